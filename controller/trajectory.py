@@ -1,0 +1,543 @@
+"""Desired joint trajectories α^d(t) for the X-joint neck, and their validation before anything moves.
+
+A trajectory is a list of joint configurations (waypoints) joined by cycloidal point-to-point
+motions, as in the 3-X paper (§5.2.2 and §7: "all desired joint configurations are connected with
+cycloïdal functions"), with an optional hold (dwell) at each waypoint. Its timeline is::
+
+    dwell_0 | move 0→1 | dwell_1 | move 1→2 | ... | move K-2→K-1 | dwell_{K-1}
+
+Units: SI inside (rad, s); degrees only at the edges (user files, ``to_dict``, error messages).
+Indices in messages: waypoints and segments count from 0 (they index the arrays of a user file);
+joints count from 1 at the base (α1, α2, α3), as in the paper.
+
+Built-in trajectories: :func:`identification_trajectory` (§5.2.2) and
+:func:`control_test_trajectory` (§7, Fig. 10); user files via :func:`load_trajectory`::
+
+    {"name": "nod", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, 0, 0]],
+     "durations_s": [2.0, 2.0], "dwell_s": 0.5}
+
+:func:`validate` rejects a trajectory outside the joint limits, too fast, accelerating too hard,
+or (given the controller's ``force_check``) needing forces outside [f_min, f_max]; the
+:class:`TrajectoryError` names the waypoint or segment and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "TrajectoryError",
+    "TrajectorySample",
+    "Trajectory",
+    "TrajectoryLimits",
+    "TrajectoryFile",
+    "ForceCheck",
+    "cycloid",
+    "CYCLOID_PEAK_VELOCITY",
+    "CYCLOID_PEAK_ACCELERATION",
+    "identification_trajectory",
+    "control_test_trajectory",
+    "IDENTIFICATION_AMPLITUDES_DEG",
+    "CONTROL_TEST_WAYPOINTS_DEG",
+    "NAMED_TRAJECTORIES",
+    "trajectory_by_name",
+    "load_trajectory",
+    "trajectory_json_schema",
+    "validate",
+]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+ForceCheck = Callable[[FloatArray, FloatArray, FloatArray], tuple[BoolArray, str]]
+"""(α, α̇, α̈) on a time grid, each (T, N) in rad, rad/s, rad/s² -> (ok per sample (T,), reason).
+
+Supplied by the controller: forces after tension distribution (§6.2, Eqs. 63-65) within
+[f_min, f_max] along the nominal path."""
+
+_TWO_PI = 2.0 * math.pi
+
+# Peaks of s'(τ) = 1 - cos 2πτ and s''(τ) = 2π sin 2πτ: a cycloidal move of amplitude Δ over T
+# seconds peaks at 2|Δ|/T (τ = 1/2) and 2π|Δ|/T² (τ = 1/4), so limits are checked exactly.
+CYCLOID_PEAK_VELOCITY = 2.0
+CYCLOID_PEAK_ACCELERATION = _TWO_PI
+
+
+class TrajectoryError(ValueError):
+    """A trajectory is malformed or unsafe; the message names the waypoint or segment and why."""
+
+
+class TrajectorySample(NamedTuple):
+    """Desired joint state; each array is ``t.shape + (N,)`` (rad, rad/s, rad/s²)."""
+
+    alpha: FloatArray
+    alpha_dot: FloatArray
+    alpha_ddot: FloatArray
+
+
+def cycloid(tau: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Cycloidal profile s(τ) = τ − sin(2πτ)/(2π) and its derivatives ds/dτ, d²s/dτ².
+
+    Rest-to-rest: s(0) = 0, s(1) = 1, and s', s'' vanish at both ends, so joining moves at
+    waypoints keeps α^d, α̇^d and α̈^d continuous (no force jumps in the feed-forward of Eq. 66).
+    τ is clipped to [0, 1] (before: at the start, after: at the end, both at rest).
+    """
+    tau = np.clip(np.asarray(tau, dtype=np.float64), 0.0, 1.0)
+    phase = _TWO_PI * tau
+    inside = (tau > 0.0) & (tau < 1.0)
+    # sin(2π) is -2.4e-16, not 0: force the end values so holds are exactly at rest.
+    s = np.where(tau >= 1.0, 1.0, tau - np.sin(phase) / _TWO_PI)
+    ds = np.where(inside, 1.0 - np.cos(phase), 0.0)
+    dds = np.where(inside, _TWO_PI * np.sin(phase), 0.0)
+    return s, ds, dds
+
+
+def _deg(values_rad: ArrayLike) -> str:
+    """Format joint angles (rad) for a message, in degrees."""
+    return "[" + ", ".join(f"{v:.4g}" for v in np.rad2deg(np.atleast_1d(values_rad))) + "]°"
+
+
+def _per_item(value: ArrayLike, count: int, what: str) -> FloatArray:
+    """Broadcast a scalar or check a list of ``count`` values (durations, dwells)."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        return np.full(count, float(arr))
+    if arr.shape != (count,):
+        got = arr.shape[0] if arr.ndim == 1 else f"shape {arr.shape}"
+        raise TrajectoryError(f"expected {count} {what} value(s), got {got}")
+    return arr.copy()
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Waypoints joined by cycloidal moves, with a hold at each waypoint (immutable).
+
+    Args:
+        waypoints_rad: joint configurations α_k, shape (K, N), K ≥ 1, N ≥ 1 joints (rad).
+        durations_s: duration of each move k → k+1, shape (K-1,) or a scalar for all (s, > 0).
+        dwell_s: hold at each waypoint after arriving, shape (K,) or a scalar for all (s, ≥ 0);
+            the hold at waypoint 0 is an initial rest, the one at the last waypoint a final rest.
+        name: label recorded with the campaign.
+
+    Structural problems (empty, non-finite, wrong lengths, non-positive durations) raise
+    :class:`TrajectoryError` here; physical limits are checked by :func:`validate`.
+    """
+
+    waypoints_rad: FloatArray
+    durations_s: FloatArray
+    dwell_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    name: str = "trajectory"
+    _arrive: FloatArray = field(init=False, repr=False)
+    _depart: FloatArray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        w = np.array(self.waypoints_rad, dtype=np.float64)
+        if w.ndim != 2:
+            raise TrajectoryError(f"waypoints must be a (K, N) array of joint angles, got shape {w.shape}")
+        k, n = w.shape
+        if k == 0:
+            raise TrajectoryError("empty trajectory: at least one waypoint is needed")
+        if n == 0:
+            raise TrajectoryError("waypoints have no joints (shape (K, 0))")
+        for i in np.flatnonzero(~np.isfinite(w).all(axis=1)):
+            raise TrajectoryError(f"waypoint {i} has a non-finite value: {_deg(w[i])}")
+        durations = _per_item(self.durations_s, k - 1, "segment duration (one per move, K-1)")
+        for i in np.flatnonzero(~(np.isfinite(durations) & (durations > 0.0))):
+            raise TrajectoryError(
+                f"segment {i} (waypoint {i} → {i + 1}) has a non-positive or non-finite duration "
+                f"{durations[i]} s"
+            )
+        dwell = np.zeros(k) if np.size(self.dwell_s) == 0 else _per_item(self.dwell_s, k, "dwell (one per waypoint)")
+        for i in np.flatnonzero(~(np.isfinite(dwell) & (dwell >= 0.0))):
+            raise TrajectoryError(f"waypoint {i} has a negative or non-finite dwell {dwell[i]} s")
+        # Departure from waypoint k = Σ_{j≤k} dwell_j + Σ_{j<k} T_j; the last one is the end.
+        depart = np.cumsum(dwell + np.append(0.0, durations))
+        arrive = depart - dwell
+        for name, arr in (("waypoints_rad", w), ("durations_s", durations), ("dwell_s", dwell),
+                          ("_arrive", arrive), ("_depart", depart)):
+            arr.flags.writeable = False
+            object.__setattr__(self, name, arr)
+
+    # -- shape and timing -------------------------------------------------------------------
+    @property
+    def n_joints(self) -> int:
+        return int(self.waypoints_rad.shape[1])
+
+    @property
+    def n_waypoints(self) -> int:
+        return int(self.waypoints_rad.shape[0])
+
+    @property
+    def n_segments(self) -> int:
+        return self.n_waypoints - 1
+
+    @property
+    def duration_s(self) -> float:
+        """Total duration including all dwells (s); after it, the last waypoint is held."""
+        return float(self._depart[-1])
+
+    def waypoint_times(self) -> FloatArray:
+        """Arrival time at each waypoint, shape (K,) (s); waypoint 0 is at t = 0."""
+        return self._arrive
+
+    def segment_times(self) -> FloatArray:
+        """Start and end of each move, shape (K-1, 2) (s)."""
+        return np.stack([self._depart[:-1], self._arrive[1:]], axis=1)
+
+    def segment_at(self, t: float) -> tuple[str, int]:
+        """Where the timeline is at ``t``: ``("segment", i)`` while moving, else ``("hold", k)``."""
+        k = int(np.searchsorted(self._arrive, t, side="right")) - 1
+        k = max(k, 0)
+        if t < self._depart[k] or k == self.n_waypoints - 1:
+            return ("hold", k)
+        return ("segment", k)
+
+    def describe_time(self, t: float) -> str:
+        kind, i = self.segment_at(t)
+        if kind == "segment":
+            return f"segment {i} (waypoint {i} → {i + 1})"
+        return f"hold at waypoint {i}"
+
+    # -- peaks, exact for cycloids ----------------------------------------------------------
+    def segment_deltas(self) -> FloatArray:
+        """Δα of each move, shape (K-1, N) (rad)."""
+        return np.diff(self.waypoints_rad, axis=0)
+
+    def segment_peak_velocity(self) -> FloatArray:
+        """Peak |α̇| of each move per joint, 2|Δ|/T, shape (K-1, N) (rad/s)."""
+        return CYCLOID_PEAK_VELOCITY * np.abs(self.segment_deltas()) / self.durations_s[:, None]
+
+    def segment_peak_acceleration(self) -> FloatArray:
+        """Peak |α̈| of each move per joint, 2π|Δ|/T², shape (K-1, N) (rad/s²)."""
+        return CYCLOID_PEAK_ACCELERATION * np.abs(self.segment_deltas()) / self.durations_s[:, None] ** 2
+
+    # -- sampling ---------------------------------------------------------------------------
+    def sample(self, t: ArrayLike) -> TrajectorySample:
+        """α^d, α̇^d, α̈^d at times ``t`` (s), vectorised; arrays of shape ``t.shape + (N,)``.
+
+        Before t = 0 the first waypoint is held, after :attr:`duration_s` the last one.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        if not np.all(np.isfinite(t)):
+            raise TrajectoryError("sample times must be finite")
+        w = self.waypoints_rad
+        if self.n_segments == 0:
+            alpha = np.broadcast_to(w[0], t.shape + w.shape[1:]).copy()
+            return TrajectorySample(alpha, np.zeros_like(alpha), np.zeros_like(alpha))
+        # Segment i is the last one whose departure is ≤ t; τ outside [0, 1] means a hold.
+        seg = np.clip(np.searchsorted(self._depart[:-1], t, side="right") - 1, 0, self.n_segments - 1)
+        period = self.durations_s[seg]
+        tau = (t - self._depart[seg]) / period
+        s, ds, dds = cycloid(tau)
+        start, end = w[seg], w[seg + 1]
+        delta = end - start
+        # At τ ≥ 1 return the next waypoint itself: start + Δ can be off by an ulp.
+        alpha = np.where((tau >= 1.0)[..., None], end, start + delta * s[..., None])
+        alpha_dot = delta * (ds / period)[..., None]
+        alpha_ddot = delta * (dds / period**2)[..., None]
+        return TrajectorySample(alpha, alpha_dot, alpha_ddot)
+
+    def time_grid(self, dt_s: float = 0.01) -> FloatArray:
+        """Times 0, dt, 2dt, ... plus every waypoint arrival/departure and the end (s), sorted."""
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be positive, got {dt_s}")
+        grid = np.arange(0.0, self.duration_s, dt_s)
+        return np.unique(np.concatenate([grid, self._arrive, self._depart]))
+
+    # -- serialisation (degrees at this edge) ----------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form, the same schema as a user file (angles in degrees).
+
+        Degrees are rounded to 1e-9° so that deg → rad → deg round trips print cleanly.
+        """
+        return {
+            "name": self.name,
+            "waypoints_deg": np.round(np.rad2deg(self.waypoints_rad), 9).tolist(),
+            "durations_s": self.durations_s.tolist(),
+            "dwell_s": self.dwell_s.tolist(),
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Trajectory:
+        """Inverse of :meth:`to_dict` (same as :func:`load_trajectory` on a mapping)."""
+        return load_trajectory(data)
+
+    @classmethod
+    def from_degrees(
+        cls, waypoints_deg: ArrayLike, durations_s: ArrayLike, dwell_s: ArrayLike = 0.0, name: str = "trajectory"
+    ) -> Trajectory:
+        return cls(np.deg2rad(np.asarray(waypoints_deg, dtype=np.float64)), durations_s, dwell_s, name)
+
+
+# -- user files -------------------------------------------------------------------------------
+
+
+class TrajectoryFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Schema of a user trajectory file (JSON or TOML) and of :meth:`Trajectory.to_dict`.
+
+    ``durations_s`` and ``dwell_s`` are a scalar for all segments/waypoints or one per item.
+    """
+
+    waypoints_deg: list[list[float]]
+    durations_s: float | list[float] = msgspec.field(default_factory=list)
+    dwell_s: float | list[float] = 0.0
+    name: str = "user"
+
+
+def trajectory_json_schema() -> dict[str, Any]:
+    """JSON Schema of :class:`TrajectoryFile`, for the REST API and editors."""
+    return msgspec.json.schema(TrajectoryFile)
+
+
+def _from_file_struct(spec: TrajectoryFile) -> Trajectory:
+    rows = spec.waypoints_deg
+    if rows and len({len(r) for r in rows}) != 1:
+        first = len(rows[0])
+        bad = next(i for i, r in enumerate(rows) if len(r) != first)
+        raise TrajectoryError(f"waypoint {bad} has {len(rows[bad])} joints, waypoint 0 has {first}")
+    if not rows:
+        raise TrajectoryError("empty trajectory: waypoints_deg has no waypoint")
+    return Trajectory.from_degrees(rows, spec.durations_s, spec.dwell_s, spec.name)
+
+
+def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Trajectory:
+    """Build a trajectory from a user file (``.json`` or ``.toml``) or an already parsed mapping.
+
+    Raises :class:`TrajectoryError` naming the key or waypoint/segment on bad content; unknown
+    keys are rejected so a typo (``duration_s``) is not silently ignored.
+    """
+    where = ""
+    try:
+        if isinstance(source, Mapping):
+            spec = msgspec.convert(dict(source), TrajectoryFile)
+        else:
+            path = Path(source)
+            where = f"{path}: "
+            suffix = path.suffix.lower()
+            if suffix == ".json":
+                spec = msgspec.json.decode(path.read_bytes(), type=TrajectoryFile)
+            elif suffix == ".toml":
+                spec = msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), TrajectoryFile)
+            else:
+                raise TrajectoryError(
+                    f"unknown trajectory file type {suffix!r}; use .json or .toml "
+                    f"(built-in trajectories: trajectory_by_name({', '.join(map(repr, NAMED_TRAJECTORIES))}))"
+                )
+        return _from_file_struct(spec)
+    except (msgspec.ValidationError, msgspec.DecodeError, tomllib.TOMLDecodeError, TrajectoryError) as err:
+        raise TrajectoryError(f"{where}{err}") from err
+
+
+# -- the paper's trajectories ---------------------------------------------------------------
+
+IDENTIFICATION_AMPLITUDES_DEG: tuple[tuple[float, float, float], ...] = (
+    (40.0, 30.0, 20.0),
+    (-40.0, 30.0, 20.0),
+    (40.0, -30.0, 20.0),
+    (40.0, 30.0, -20.0),
+)
+"""α^d of the four sequences of §5.2.2 (deg): all joints together, then joint 1, 2, 3 opposed."""
+
+CONTROL_TEST_WAYPOINTS_DEG: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 0.0),
+    (50.0, 50.0, 50.0),
+    (0.0, 0.0, 0.0),
+    (-30.0, -40.0, -50.0),
+    (0.0, 0.0, 0.0),
+)
+"""Waypoints of the control test of §7 / Fig. 10 (deg)."""
+
+
+def _rest_dwell(n_waypoints: int, dwell_s: float, rest_s: float | None) -> FloatArray:
+    dwell = np.full(n_waypoints, float(dwell_s))
+    dwell[[0, -1]] = dwell_s if rest_s is None else rest_s
+    return dwell
+
+
+def identification_trajectory(motion_s: float = 3.0, dwell_s: float = 1.0, rest_s: float | None = None) -> Trajectory:
+    """Excitation trajectory of §5.2.2: four sequences of six cycloidal motions (24 in all).
+
+    Each sequence is 0 → α → −α → 0 → −α → α → 0 with α = (40, 30, 20)°, (−40, 30, 20)°,
+    (40, −30, 20)°, (40, 30, −20)°; consecutive sequences share their straight configuration,
+    so there are 25 waypoints.
+
+    The paper gives no timing. Defaults: every motion ``motion_s`` = 3 s and a ``dwell_s`` = 1 s
+    stop at every waypoint (``rest_s`` overrides the initial and final rest), 97 s in all. The
+    largest move (α → −α, 80° on joint 1) then peaks at 53°/s and 56°/s², slow enough for the
+    simplified model of Eq. 66, while the stops give static samples at every configuration
+    (the identification wants "a large set of configurations α", i.e. of Z(α) and of forces).
+    """
+    rows: list[tuple[float, ...]] = [(0.0, 0.0, 0.0)]
+    for amp in IDENTIFICATION_AMPLITUDES_DEG:
+        a = np.asarray(amp)
+        rows += [tuple(a), tuple(-a), (0.0, 0.0, 0.0), tuple(-a), tuple(a), (0.0, 0.0, 0.0)]
+    return Trajectory.from_degrees(rows, motion_s, _rest_dwell(len(rows), dwell_s, rest_s), "identification")
+
+
+def control_test_trajectory(motion_s: float = 2.0, dwell_s: float = 1.0, rest_s: float | None = None) -> Trajectory:
+    """Control-test trajectory of §7: 0 → (50, 50, 50)° → 0 → (−30, −40, −50)° → 0.
+
+    Defaults chosen to match Fig. 10 (straight at 0 s, (50, 50, 50)° at 4 s, straight at 7 s,
+    (−30, −40, −50)° at 10 s) *and* the "displacement phases and stop phases" of §7 (Fig. 14):
+    a 1 s rest, then 2 s motions each followed by a 1 s stop. The waypoints are reached at
+    0, 3, 6, 9, 12 s and left at 1, 4, 7, 10 s, so each configuration of Fig. 10 is the pose
+    held at the end of its stop; the trajectory ends at 13 s. Peak rates (0 → 50°):
+    50°/s and 79°/s². ``control_test_trajectory(motion_s=3.0, dwell_s=0.0, rest_s=1.0)``
+    instead arrives exactly at 4, 7, 10 s without intermediate stops.
+    """
+    rows = CONTROL_TEST_WAYPOINTS_DEG
+    return Trajectory.from_degrees(rows, motion_s, _rest_dwell(len(rows), dwell_s, rest_s), "control_test")
+
+
+NAMED_TRAJECTORIES: dict[str, Callable[..., Trajectory]] = {
+    "identification": identification_trajectory,
+    "control_test": control_test_trajectory,
+}
+
+
+def trajectory_by_name(name: str, **timing: float) -> Trajectory:
+    """A built-in trajectory by name (``identification``, ``control_test``); ``timing`` keywords
+    (``motion_s``, ``dwell_s``, ``rest_s``) are passed on."""
+    key = name.strip().lower().replace("-", "_")
+    if key not in NAMED_TRAJECTORIES:
+        raise TrajectoryError(f"unknown trajectory {name!r}; known: {', '.join(NAMED_TRAJECTORIES)}")
+    return NAMED_TRAJECTORIES[key](**timing)
+
+
+# -- validation -------------------------------------------------------------------------------
+
+
+class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Bounds a desired trajectory must respect, per joint (a scalar applies to every joint).
+
+    Defaults:
+      * ``alpha_max_rad`` = 60° (controller issue; ``Limits.alpha_max_deg`` in the robot params).
+      * ``alpha_dot_max_rad_s`` = 1.5 rad/s (86°/s) and ``alpha_ddot_max_rad_s2`` = 3.0 rad/s²
+        (172°/s²). Not from the paper: the default identification (≤ 0.93 rad/s, 0.98 rad/s²)
+        and control-test (≤ 0.87 rad/s, 1.37 rad/s²) trajectories pass with a ×1.6 / ×2 margin,
+        while the controller's simplified model (Eq. 66, centrifugal and elongation-acceleration
+        terms dropped because "motions are not very fast") stays credible.
+    """
+
+    alpha_max_rad: float | tuple[float, ...] = math.radians(60.0)
+    alpha_dot_max_rad_s: float | tuple[float, ...] = 1.5
+    alpha_ddot_max_rad_s2: float | tuple[float, ...] = 3.0
+
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            values = np.atleast_1d(np.asarray(getattr(self, name), dtype=np.float64))
+            if values.size == 0 or not np.all(np.isfinite(values) & (values > 0)):
+                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)}")
+
+    @classmethod
+    def from_degrees(
+        cls,
+        alpha_max_deg: float | tuple[float, ...] = 60.0,
+        alpha_dot_max_deg_s: float | tuple[float, ...] = math.degrees(1.5),
+        alpha_ddot_max_deg_s2: float | tuple[float, ...] = math.degrees(3.0),
+    ) -> TrajectoryLimits:
+        def rad(v: float | tuple[float, ...]) -> float | tuple[float, ...]:
+            return tuple(math.radians(x) for x in v) if isinstance(v, tuple | list) else math.radians(v)
+
+        return cls(
+            alpha_max_rad=rad(alpha_max_deg),
+            alpha_dot_max_rad_s=rad(alpha_dot_max_deg_s),
+            alpha_ddot_max_rad_s2=rad(alpha_ddot_max_deg_s2),
+        )
+
+    def per_joint(self, n_joints: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(|α| max, |α̇| max, |α̈| max), each shape (n_joints,) (rad, rad/s, rad/s²)."""
+        out = []
+        for name in self.__struct_fields__:
+            values = np.asarray(getattr(self, name), dtype=np.float64)
+            if values.ndim == 1 and values.shape != (n_joints,):
+                raise TrajectoryError(f"limit {name} has {values.size} values for {n_joints} joints")
+            out.append(np.broadcast_to(values, (n_joints,)).astype(np.float64))
+        return out[0], out[1], out[2]
+
+
+# Tolerance on limits: a waypoint written as exactly 60° must pass a 60° limit after deg → rad.
+_RTOL = 1e-9
+
+
+def validate(
+    traj: Trajectory,
+    limits: TrajectoryLimits,
+    n_joints: int,
+    force_check: ForceCheck | None = None,
+    *,
+    dt_s: float = 0.01,
+) -> None:
+    """Reject an unsafe trajectory before anything moves; returns None if it is acceptable.
+
+    Checks, in order: number of joints; every waypoint within ±α_max (a cycloidal move is
+    monotonic per joint, so the whole path then stays within limits); each segment's exact peak
+    |α̇| = 2|Δ|/T and |α̈| = 2π|Δ|/T²; then, if ``force_check`` is given, the nominal path
+    sampled every ``dt_s`` (plus every waypoint time), reporting the first failing sample.
+
+    Raises:
+        TrajectoryError: naming the waypoint (with its value in degrees) or segment, the joint
+            and the reason; speed/acceleration failures suggest the shortest acceptable duration.
+    """
+    if not isinstance(traj, Trajectory):
+        raise TrajectoryError(f"expected a Trajectory, got {type(traj).__name__}")
+    if traj.n_joints != n_joints:
+        raise TrajectoryError(
+            f"{traj.name!r}: wrong number of joints: waypoints have {traj.n_joints}, the robot has {n_joints}"
+        )
+    a_max, v_max, acc_max = limits.per_joint(n_joints)
+    w = traj.waypoints_rad
+
+    outside = np.abs(w) > a_max * (1 + _RTOL)
+    for k in np.flatnonzero(outside.any(axis=1)):
+        j = int(np.flatnonzero(outside[k])[0])
+        raise TrajectoryError(
+            f"{traj.name!r}: waypoint {k} ({_deg(w[k])}) is out of the joint limits: "
+            f"α{j + 1} = {math.degrees(w[k, j]):.4g}° exceeds ±{math.degrees(a_max[j]):.4g}°"
+        )
+
+    delta = np.abs(traj.segment_deltas())
+    for peak, bound, what, unit, power in (
+        (traj.segment_peak_velocity(), v_max, "is too fast", "°/s", 1),
+        (traj.segment_peak_acceleration(), acc_max, "has too much acceleration", "°/s²", 2),
+    ):
+        over = peak > bound * (1 + _RTOL)
+        for i in np.flatnonzero(over.any(axis=1)):
+            j = int(np.argmax(peak[i] / bound))
+            gain = CYCLOID_PEAK_VELOCITY if power == 1 else CYCLOID_PEAK_ACCELERATION
+            t_min = (gain * delta[i, j] / bound[j]) ** (1.0 / power)
+            raise TrajectoryError(
+                f"{traj.name!r}: segment {i} (waypoint {i} → {i + 1}, {traj.durations_s[i]:.4g} s) {what}: "
+                f"α{j + 1} peaks at {math.degrees(peak[i, j]):.4g}{unit} > {math.degrees(bound[j]):.4g}{unit}; "
+                f"needs at least {t_min:.3g} s"
+            )
+
+    if force_check is None:
+        return
+    t = traj.time_grid(dt_s)
+    alpha, alpha_dot, alpha_ddot = traj.sample(t)
+    ok, reason = force_check(alpha, alpha_dot, alpha_ddot)
+    ok = np.asarray(ok)
+    if ok.shape != t.shape or ok.dtype != np.bool_:
+        raise ValueError(f"force_check must return a bool array of shape {t.shape}, got {ok.dtype} {ok.shape}")
+    bad = np.flatnonzero(~ok)
+    if bad.size:
+        i = int(bad[0])
+        raise TrajectoryError(
+            f"{traj.name!r}: forces out of bounds in {traj.describe_time(float(t[i]))} at t = {t[i]:.3f} s "
+            f"(α^d = {_deg(alpha[i])}): {reason}"
+        )

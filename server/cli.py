@@ -1,0 +1,38 @@
+"""The `xneck` command line: one entry point, one subcommand per capability.
+
+Each package owns its commands in its own ``cli`` module; this file only assembles them so that
+``xneck --help`` lists everything a lab can run.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from twin import cli as twin_cli
+
+app = typer.Typer(
+    name="xneck",
+    help="Digital twin and experiment console for the X-joint cable-driven neck.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+
+@app.callback()
+def _root() -> None:
+    """Digital twin and experiment console for the X-joint cable-driven neck."""
+
+
+app.command(
+    "model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True}
+)(twin_cli.model)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

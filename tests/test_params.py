@@ -1,0 +1,94 @@
+"""Parameter files (issue 2): defaults, user files, overrides and clear errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pytest
+
+from twin.params import ParameterError, load_params, params_from_dict
+
+
+def test_default_is_the_3x_prototype(params):
+    assert params.n_joints == 3 and params.n_cables == 4
+    assert (params.geometry.L, params.geometry.b, params.geometry.r) == (0.100, 0.050, 0.0046)
+    assert params.springs.k_left == (600.0, 200.0, 200.0) and params.springs.l0[0] == 0.046
+    assert params.friction.f_s == (14.42, 17.65, 18.77, 16.18) and params.friction.c_s == 0.5
+    assert params.cables.variable.lam == (103.3, 88.7, 53.2, 120.9)
+    assert (params.limits.t_min, params.limits.f_min) == (8.5, 2.0)
+    assert params.routes[3] == ((0, "c"), (1, "c"), (2, "a"))
+
+
+def test_round_trip_through_a_user_file(params, tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text(params.to_toml())
+    assert load_params(path) == params
+    tuned = load_params(path, overrides={"springs.l0": [0.05, 0.05, 0.05], "cables.model": "linear"})
+    assert tuned.springs.l0 == (0.05, 0.05, 0.05) and tuned.cables.model == "linear"
+    with pytest.raises(AttributeError):
+        tuned.geometry.L = 1.0  # immutable
+
+
+@pytest.mark.parametrize(
+    "override, key, reason",
+    [
+        ({"geometry.b": 0.1}, "geometry", "must be smaller than L"),
+        ({"geometry.L": "long"}, "geometry.L", "Expected `float`, got `str`"),
+        ({"springs.k_right": [600.0, -1.0, 200.0]}, "springs", "k_right must be >= 0"),
+        ({"bars.m_top": [0.01, 0.01]}, "bars.m_top", "expected one per joint"),
+        ({"friction.f_s": [1.0, 2.0, 3.0]}, "friction.f_s", "expected one per cable"),
+        ({"bars.m_diagonal": [0.009, -0.009, 0.009]}, "bars", "m_diagonal must be >= 0"),
+        ({"cables.routing": ["1b", "1x"]}, "routing[1]", "is not <joint number"),
+        ({"cables.routing": ["1b", "1d 2b", "1d 2d 4b", "1c 2c 3a"]}, "routing[2]", "n_joints = 3"),
+        ({"cables.model": "rubber"}, "cables.model", "Invalid enum value 'rubber'"),
+        ({"limits.f_max": 1.0}, "limits", "must exceed f_min"),
+        ({"motors.I_a": float("nan")}, "motors", "I_a must be finite"),
+        ({"geometry.n_joints": True}, "geometry.n_joints", "Expected `int`, got `bool`"),
+    ],
+)
+def test_bad_values_name_the_key_and_the_reason(override, key, reason):
+    with pytest.raises(ParameterError) as err:
+        load_params(overrides=override)
+    assert key in str(err.value) and reason in str(err.value)
+
+
+def test_unknown_keys_are_refused(params, tmp_path):
+    data = tomllib.loads(params.to_toml())
+    data["springs"]["k_middle"] = [1.0, 2.0, 3.0]
+    with pytest.raises(ParameterError, match="unknown field `k_middle` - at|springs.*k_middle|k_middle"):
+        params_from_dict(data)
+    with pytest.raises(ParameterError, match="override 'springs.k_middle': unknown key"):
+        load_params(overrides={"springs.k_middle": 1.0})
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[geometry\nL = 1")
+    with pytest.raises(ParameterError, match="not a valid TOML file"):
+        load_params(bad)
+    with pytest.raises(ParameterError, match="cannot read parameter file"):
+        load_params(tmp_path / "missing.toml")
+
+
+def _xneck(*args):
+    return subprocess.run([sys.executable, "-m", "server.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_cli_model_prints_the_model_at_one_configuration(model):
+    from twin import cables
+
+    run = _xneck("model", "--alpha", "40", "-30", "20", "--json")
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    np.testing.assert_allclose(out["Z_m_per_rad"], cables.Z(model, np.radians([40, -30, 20])), rtol=1e-12)
+    assert len(out["spring_left_m"]) == 3 and np.all(np.linalg.eigvalsh(out["M_kg_m2"]) > 0)
+    human = _xneck("model", "--alpha", "40", "30", "20")
+    assert "-30.32" in human.stdout and "Z = −∂l_c/∂α" in human.stdout
+
+
+def test_cli_model_rejects_bad_input_without_a_traceback():
+    run = _xneck("model", "--alpha", "40", "30")
+    assert run.returncode == 2 and "needs 3 finite angles" in run.stderr and "Traceback" not in run.stderr
+    run = _xneck("model", "--alpha", "1", "2", "3", "--set", "geometry.b=0.3")
+    assert run.returncode == 2 and "must be smaller than L" in run.stderr and "Traceback" not in run.stderr

@@ -1,0 +1,268 @@
+"""Desired trajectories (controller/trajectory.py): cycloids, the paper's trajectories, user files,
+and every rejection path of validate()."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from controller.trajectory import (
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    control_test_trajectory,
+    cycloid,
+    identification_trajectory,
+    load_trajectory,
+    trajectory_by_name,
+    trajectory_json_schema,
+    validate,
+)
+
+LIMITS = TrajectoryLimits()
+
+
+def user(**kw) -> Trajectory:
+    spec = {"name": "u", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, -10, 5]], "durations_s": [2.0, 1.5], "dwell_s": 0.5}
+    spec.update(kw)
+    return load_trajectory(spec)
+
+
+# -- cycloid ------------------------------------------------------------------------------------
+
+
+def test_cycloid_boundary_conditions():
+    s, ds, dds = cycloid(np.array([0.0, 1.0, -0.3, 1.7]))
+    np.testing.assert_array_equal(s, [0.0, 1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(ds, 0.0)
+    np.testing.assert_array_equal(dds, 0.0)
+    s, ds, dds = cycloid(0.5)
+    assert s == pytest.approx(0.5) and ds == pytest.approx(2.0) and dds == pytest.approx(0.0, abs=1e-12)
+    assert cycloid(0.25)[2] == pytest.approx(2 * math.pi)
+
+
+def test_cycloid_derivatives_match_finite_differences():
+    tau = np.linspace(0.01, 0.99, 200)
+    h = 1e-6
+    s, ds, dds = cycloid(tau)
+    np.testing.assert_allclose(ds, (cycloid(tau + h)[0] - cycloid(tau - h)[0]) / (2 * h), atol=1e-7)
+    np.testing.assert_allclose(dds, (cycloid(tau + h)[1] - cycloid(tau - h)[1]) / (2 * h), atol=1e-6)
+    assert np.all(np.diff(s) > 0)  # monotonic: waypoints within limits ⇒ whole path within limits
+
+
+# -- sampling -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("traj", [user(), control_test_trajectory(), identification_trajectory()], ids=lambda t: t.name)
+def test_sample_derivatives_match_numerical_differentiation(traj):
+    t = np.linspace(-0.5, traj.duration_s + 0.5, 4001)
+    h = 1e-6  # small: at waypoints the jerk jumps, and the central-difference error there is ∝ h
+    alpha, alpha_dot, alpha_ddot = traj.sample(t)
+    assert alpha.shape == alpha_dot.shape == alpha_ddot.shape == (t.size, traj.n_joints)
+    np.testing.assert_allclose(alpha_dot, (traj.sample(t + h).alpha - traj.sample(t - h).alpha) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(
+        alpha_ddot, (traj.sample(t + h).alpha_dot - traj.sample(t - h).alpha_dot) / (2 * h), atol=1e-5
+    )
+
+
+def test_continuity_and_rest_at_waypoints():
+    traj = user(dwell_s=0.0)  # no hold: moves meet head to tail
+    eps = 1e-9
+    for k, tk in enumerate(traj.waypoint_times()):
+        for side in (tk - eps, tk, tk + eps):
+            a, ad, add = traj.sample(side)
+            np.testing.assert_allclose(a, traj.waypoints_rad[k], atol=1e-12)
+            np.testing.assert_allclose(ad, 0.0, atol=1e-7)
+            np.testing.assert_allclose(add, 0.0, atol=1e-6)
+    # holds return the waypoint bit-exactly, before the start and after the end too
+    traj = user()
+    for k, (arrive, leave) in enumerate(zip(traj.waypoint_times(), traj.waypoint_times() + traj.dwell_s)):
+        a = traj.sample(np.linspace(arrive, leave, 5)).alpha
+        assert np.array_equal(a, np.broadcast_to(traj.waypoints_rad[k], a.shape))
+    assert np.array_equal(traj.sample(-3.0).alpha, traj.waypoints_rad[0])
+    assert np.array_equal(traj.sample(traj.duration_s + 10).alpha, traj.waypoints_rad[-1])
+
+
+def test_timeline_and_shapes():
+    traj = user()
+    assert traj.duration_s == pytest.approx(3 * 0.5 + 2.0 + 1.5)
+    np.testing.assert_allclose(traj.waypoint_times(), [0.0, 2.5, 4.5])
+    np.testing.assert_allclose(traj.segment_times(), [[0.5, 2.5], [3.0, 4.5]])
+    assert traj.sample(1.0).alpha.shape == (3,)
+    assert traj.sample(np.zeros((2, 4))).alpha.shape == (2, 4, 3)
+    assert traj.describe_time(1.0) == "segment 0 (waypoint 0 → 1)"
+    assert traj.describe_time(2.7) == "hold at waypoint 1"
+    with pytest.raises(ValueError):
+        traj.waypoints_rad[0, 0] = 1.0  # immutable
+    single = Trajectory(np.zeros((1, 2)), [], 1.0)
+    assert single.duration_s == 1.0 and single.sample([0.0, 5.0]).alpha.shape == (2, 2)
+    one_joint = Trajectory.from_degrees([[0], [30]], 1.0)
+    assert one_joint.sample(1.0).alpha == pytest.approx([math.radians(30)])
+
+
+# -- the paper's trajectories -------------------------------------------------------------------
+
+
+def test_identification_trajectory_visits_paper_configurations():
+    traj = identification_trajectory()
+    assert traj.n_segments == 24 and traj.n_joints == 3
+    w = np.rad2deg(traj.waypoints_rad)
+    amps = [(40, 30, 20), (-40, 30, 20), (40, -30, 20), (40, 30, -20)]
+    for seq, a in enumerate(amps):
+        a = np.array(a, float)
+        expected = [np.zeros(3), a, -a, np.zeros(3), -a, a, np.zeros(3)]
+        np.testing.assert_allclose(w[6 * seq : 6 * seq + 7], expected, atol=1e-12)
+    validate(traj, LIMITS, 3)
+    assert traj.duration_s == pytest.approx(25 * 1.0 + 24 * 3.0)
+    assert identification_trajectory(motion_s=2.0, dwell_s=0.0).duration_s == pytest.approx(48.0)
+
+
+def test_control_test_matches_fig10_timings():
+    traj = control_test_trajectory()
+    t = np.array([0.0, 4.0, 7.0, 10.0])
+    np.testing.assert_allclose(
+        np.rad2deg(traj.sample(t).alpha), [[0, 0, 0], [50, 50, 50], [0, 0, 0], [-30, -40, -50]], atol=1e-12
+    )
+    np.testing.assert_allclose(traj.sample(t).alpha_dot, 0.0, atol=1e-12)  # stop phases
+    np.testing.assert_allclose(traj.segment_times(), [[1, 3], [4, 6], [7, 9], [10, 12]])
+    assert traj.duration_s == pytest.approx(13.0)
+    validate(traj, LIMITS, 3)
+    # The no-stop variant arrives exactly at 4, 7 and 10 s.
+    alt = control_test_trajectory(motion_s=3.0, dwell_s=0.0, rest_s=1.0)
+    np.testing.assert_allclose(alt.waypoint_times()[1:4], [4.0, 7.0, 10.0])
+
+
+def test_trajectory_by_name():
+    assert trajectory_by_name("identification").name == "identification"
+    assert trajectory_by_name("control-test", motion_s=3.0).durations_s[0] == 3.0
+    with pytest.raises(TrajectoryError, match="unknown trajectory 'spiral'; known: identification, control_test"):
+        trajectory_by_name("spiral")
+
+
+# -- files and serialisation --------------------------------------------------------------------
+
+
+def test_json_and_toml_round_trip(tmp_path):
+    traj = identification_trajectory(motion_s=2.5, dwell_s=0.25)
+    path = tmp_path / "ident.json"
+    path.write_text(traj.to_json())
+    back = load_trajectory(path)
+    assert back.to_dict() == traj.to_dict()
+    np.testing.assert_allclose(back.waypoints_rad, traj.waypoints_rad, rtol=0, atol=1e-12)
+
+    toml = tmp_path / "nod.toml"
+    toml.write_text('name = "nod"\nwaypoints_deg = [[0, 0, 0], [20, 10, 0], [0, 0, 0]]\ndurations_s = 2\ndwell_s = [1, 0, 0.5]\n')
+    nod = load_trajectory(toml)
+    assert nod.name == "nod" and nod.duration_s == pytest.approx(5.5)
+    np.testing.assert_allclose(np.rad2deg(nod.waypoints_rad[1]), [20, 10, 0])
+    assert load_trajectory(json.loads(json.dumps(nod.to_dict()))).to_dict() == nod.to_dict()
+    assert Trajectory.from_dict(nod.to_dict()).to_dict() == nod.to_dict()
+    assert trajectory_json_schema()["$defs"]["TrajectoryFile"]["required"] == ["waypoints_deg"]
+
+
+@pytest.mark.parametrize(
+    ("content", "suffix", "message"),
+    [
+        ('{"waypoints_deg": [[0, 0, 0]], "duration_s": 1}', ".json", "unknown field `duration_s`"),
+        ('{"waypoints_deg": "up"}', ".json", r"\$.waypoints_deg"),
+        ("{not json", ".json", "malformed"),
+        ("waypoints_deg = [[0, 0, 0]", ".toml", "nod.toml"),
+        ("", ".yaml", "unknown trajectory file type '.yaml'"),
+    ],
+)
+def test_bad_files_are_rejected_with_context(tmp_path, content, suffix, message):
+    path = tmp_path / f"nod{suffix}"
+    path.write_text(content)
+    with pytest.raises(TrajectoryError, match=message):
+        load_trajectory(path)
+
+
+# -- rejection paths ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ({"waypoints_deg": []}, "empty trajectory"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0]]}, "waypoint 1 has 2 joints, waypoint 0 has 3"),
+        ({"waypoints_deg": [[0, 0, 0], [10, float("nan"), 0]], "durations_s": 1}, r"waypoint 1 has a non-finite value"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0, 0], [0, 0, 0]], "durations_s": [1, 0]}, r"segment 1 \(waypoint 1 → 2\) has a non-positive"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]], "durations_s": -1}, r"segment 0 .* non-positive"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]], "durations_s": [1, 1]}, "expected 1 segment duration"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]]}, "expected 1 segment duration .* got 0"),
+        ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]], "durations_s": 1, "dwell_s": [0, -1]}, "waypoint 1 has a negative"),
+    ],
+)
+def test_malformed_trajectories_name_waypoint_or_segment(spec, message):
+    with pytest.raises(TrajectoryError, match=message):
+        load_trajectory(spec)
+
+
+def test_rejects_wrong_number_of_joints():
+    with pytest.raises(TrajectoryError, match="wrong number of joints: waypoints have 3, the robot has 2"):
+        validate(user(), LIMITS, 2)
+
+
+def test_rejects_waypoint_out_of_joint_limits():
+    traj = user(waypoints_deg=[[0, 0, 0], [20, 10, 0], [0, -65, 5]])
+    with pytest.raises(TrajectoryError, match=r"waypoint 2 \(\[0, -65, 5\]°\) is out of the joint limits: α2 = -65° exceeds ±60°"):
+        validate(traj, LIMITS, 3)
+    validate(user(waypoints_deg=[[0, 0, 0], [60, -60, 0], [0, 0, 0]], durations_s=3.0), LIMITS, 3)  # edge passes
+    slow = user(waypoints_deg=[[0, 0, 0], [20, 10, 0], [0, -65, 5]], durations_s=3.0)
+    validate(slow, TrajectoryLimits.from_degrees(alpha_max_deg=(60.0, 70.0, 60.0)), 3)  # per-joint limits
+
+
+def test_rejects_too_fast_and_too_much_acceleration():
+    fast = user(waypoints_deg=[[0, 0, 0], [0, 0, 50], [0, 0, 0]], durations_s=[3.0, 1.0])
+    # segment 1: 50° in 1 s peaks at 100°/s > 85.94°/s
+    with pytest.raises(TrajectoryError, match=r"segment 1 \(waypoint 1 → 2, 1 s\) is too fast: α3 peaks at 100°/s > 85.94°/s; needs at least 1.16 s"):
+        validate(fast, LIMITS, 3)
+    jerky = TrajectoryLimits(alpha_dot_max_rad_s=10.0, alpha_ddot_max_rad_s2=1.0)
+    with pytest.raises(TrajectoryError, match=r"segment 1 \(waypoint 1 → 2, 1 s\) has too much acceleration: α3 peaks at 314.2°/s² > 57.3°/s²; needs at least 2.34 s"):
+        validate(fast, jerky, 3)
+    with pytest.raises(TrajectoryError, match=r"limit alpha_dot_max_rad_s has 2 values for 3 joints"):
+        validate(fast, TrajectoryLimits(alpha_dot_max_rad_s=(1.0, 1.0)), 3)
+    with pytest.raises(ValueError, match="alpha_max_rad must be positive"):
+        TrajectoryLimits(alpha_max_rad=-1.0)
+
+
+def test_peak_rates_are_exact():
+    traj = user(dwell_s=0.0)
+    t = np.linspace(0.0, traj.duration_s, 200001)
+    s = traj.sample(t)
+    np.testing.assert_allclose(np.abs(s.alpha_dot).max(axis=0), traj.segment_peak_velocity().max(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(np.abs(s.alpha_ddot).max(axis=0), traj.segment_peak_acceleration().max(axis=0), rtol=1e-6)
+
+
+def test_force_check_hook():
+    traj = control_test_trajectory()
+    calls = []
+
+    def f_ok(alpha, alpha_dot, alpha_ddot):
+        calls.append(alpha.shape)
+        return np.ones(alpha.shape[0], bool), ""
+
+    validate(traj, LIMITS, 3, force_check=f_ok)
+    assert calls and calls[0][0] >= 1300 and calls[0][1] == 3  # 10 ms over 13 s
+
+    def f_max(alpha, alpha_dot, alpha_ddot):  # pretend large α3 needs f > f_max
+        return alpha[:, 2] > math.radians(-45.0), "f_4 = 120 N > f_max = 100 N"
+
+    with pytest.raises(TrajectoryError, match=r"forces out of bounds in segment 2 \(waypoint 2 → 3\) at t = 8\.\d+ s .*f_4 = 120 N > f_max"):
+        validate(traj, LIMITS, 3, force_check=f_max)
+
+    def f_hold(alpha, alpha_dot, alpha_ddot):
+        return np.linalg.norm(alpha_dot, axis=1) > 0, "f_min violated at rest"
+
+    with pytest.raises(TrajectoryError, match=r"hold at waypoint 0 at t = 0\.000 s"):
+        validate(traj, LIMITS, 3, force_check=f_hold)
+
+    with pytest.raises(ValueError, match="force_check must return a bool array"):
+        validate(traj, LIMITS, 3, force_check=lambda a, ad, add: (np.ones(3, bool), ""))
+
+    never = lambda a, ad, add: pytest.fail("force_check must not run on a trajectory that fails limits")  # noqa: E731
+    with pytest.raises(TrajectoryError, match="out of the joint limits"):
+        validate(user(waypoints_deg=[[0, 0, 0], [70, 0, 0], [0, 0, 0]]), LIMITS, 3, force_check=never)

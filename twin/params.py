@@ -1,0 +1,362 @@
+"""Robot parameter sets: one TOML file, loaded into a typed, immutable, validated object.
+
+The default is the 3-X prototype (``prototype_3x.toml`` shipped with this package). A user loads
+their own file and/or overrides single values with dotted keys::
+
+    params = load_params("my_neck.toml", overrides={"springs.l0": [0.05, 0.05, 0.05]})
+
+Every error names the key and the reason, e.g. ``geometry.b: b = 0.1 m must be smaller than
+L = 0.1 m``. SI units throughout, except keys whose name ends in ``_deg``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import msgspec
+
+__all__ = ["ParameterError", "Params", "load_params", "params_from_dict", "parse_override", "DEFAULT_PARAMS_FILE"]
+
+DEFAULT_PARAMS_FILE = "prototype_3x.toml"
+_CASES = "abcd"
+
+
+class ParameterError(ValueError):
+    """A parameter file or override is invalid; the message names the key and the reason."""
+
+
+class _Section(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            value = getattr(self, name)
+            values = value if isinstance(value, tuple) else (value,)
+            if any(isinstance(v, float) and not math.isfinite(v) for v in values):
+                raise ValueError(f"{name} must be finite, got {value}")
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _nonneg(section: _Section, *names: str) -> None:
+    for name in names:
+        value = getattr(section, name)
+        values = value if isinstance(value, tuple) else (value,)
+        _require(all(v >= 0 for v in values), f"{name} must be >= 0, got {value}")
+
+
+def _positive(section: _Section, *names: str) -> None:
+    for name in names:
+        value = getattr(section, name)
+        values = value if isinstance(value, tuple) else (value,)
+        _require(all(v > 0 for v in values), f"{name} must be > 0, got {value}")
+
+
+class Geometry(_Section, kw_only=True):
+    """X-joint and transmission geometry (3-X paper §2): lengths in m."""
+
+    n_joints: int
+    L: float
+    b: float
+    r: float
+    r_d: float
+    R: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(self.n_joints >= 1, f"n_joints must be >= 1, got {self.n_joints}")
+        _positive(self, "L", "b", "r_d", "R")
+        _nonneg(self, "r")
+        _require(self.b < self.L, f"b = {self.b} m must be smaller than L = {self.L} m (X-joint assembly)")
+        # Cases (a) and (b) need the side length to exceed the pulley radius over the whole range.
+        _require(
+            self.L - self.b > self.r,
+            f"pulley radius r = {self.r} m must be smaller than L - b = {self.L - self.b:.4g} m",
+        )
+
+
+class Springs(_Section, kw_only=True):
+    """Lateral springs of every joint: stiffness N/m, rest length m."""
+
+    k_left: tuple[float, ...]
+    k_right: tuple[float, ...]
+    l0: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _nonneg(self, "k_left", "k_right")
+        _positive(self, "l0")
+
+
+class Bars(_Section, kw_only=True):
+    """Masses (kg) and inertias about the centre of mass (kg·m²) of every bar, per joint."""
+
+    m_diagonal: tuple[float, ...]
+    I_diagonal: tuple[float, ...]
+    m_top: tuple[float, ...]
+    I_top: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _nonneg(self, "m_diagonal", "I_diagonal", "m_top", "I_top")
+
+
+class Motors(_Section, kw_only=True):
+    """Geared motors: inertia at the motor shaft (kg·m²) and the electrical data the bridge uses."""
+
+    I_a: float
+    torque_constant: float
+    gear_efficiency: float
+    current_max: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _positive(self, "I_a", "torque_constant", "current_max")
+        _require(0 < self.gear_efficiency <= 1, f"gear_efficiency must be in (0, 1], got {self.gear_efficiency}")
+
+
+class Friction(_Section, kw_only=True):
+    """Dry friction of the geared motors, eqs. 36-37: f_s in N per cable, c_s in s/rad."""
+
+    model: Literal["arctan", "sign"] = "arctan"
+    f_s: tuple[float, ...]
+    c_s: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _nonneg(self, "f_s")
+        _positive(self, "c_s")
+
+
+class LinearCable(_Section, kw_only=True):
+    """Eq. 39: t = k·x + c_a·ẋ. k in N/m, c_a in N·s/m, per cable."""
+
+    k: tuple[float, ...]
+    c_a: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _positive(self, "k")
+
+
+class VariableCable(_Section, kw_only=True):
+    """Eq. 54: t = (k + λ·t)·x + c_a·ẋ. k in N/m, λ in 1/m, c_a in N·s/m, per cable."""
+
+    k: tuple[float, ...]
+    lam: tuple[float, ...] = msgspec.field(name="lambda")
+    c_a: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _positive(self, "k")
+        _require(all(v >= 0 for v in self.lam), f"lambda must be >= 0, got {self.lam}")
+
+
+class Cables(_Section, kw_only=True):
+    """Cable routing (one string per cable, e.g. ``"1d 2b"``) and tension models."""
+
+    routing: tuple[str, ...]
+    model: Literal["rigid", "linear", "variable"] = "variable"
+    linear: LinearCable
+    variable: VariableCable
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(len(self.routing) >= 1, "routing needs at least one cable")
+        for j, path in enumerate(self.routing):
+            _parse_route(path, f"routing[{j}]")
+
+
+class Limits(_Section, kw_only=True):
+    """Force limits of §6.2 (N) and the joint limit used to validate trajectories (deg)."""
+
+    t_min: float
+    f_min: float
+    f_max: float
+    alpha_max_deg: float = 60.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _nonneg(self, "t_min", "f_min")
+        _require(self.f_max > self.f_min, f"f_max = {self.f_max} N must exceed f_min = {self.f_min} N")
+        _require(0 < self.alpha_max_deg < 90, f"alpha_max_deg must be in (0, 90), got {self.alpha_max_deg}")
+
+
+class Environment(_Section, kw_only=True):
+    gravity: float = 9.81  # m/s², along −y of the base frame
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _nonneg(self, "gravity")
+
+
+class Sensors(_Section, kw_only=True):
+    """Encoders and the camera (rates Hz, noise deg, latency s)."""
+
+    encoder_counts_per_rev: int = 2048
+    camera_rate: float = 30.0
+    camera_noise_deg: float = 1.0
+    camera_latency: float = 0.05
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _positive(self, "encoder_counts_per_rev", "camera_rate")
+        _nonneg(self, "camera_noise_deg", "camera_latency")
+
+
+class Params(_Section, kw_only=True):
+    """A complete, validated parameter set. Immutable: derive variants with :func:`load_params` overrides."""
+
+    name: str = "unnamed"
+    geometry: Geometry
+    springs: Springs
+    bars: Bars
+    motors: Motors
+    friction: Friction
+    cables: Cables
+    limits: Limits
+    environment: Environment = Environment()
+    sensors: Sensors = Sensors()
+
+    @property
+    def n_joints(self) -> int:
+        return self.geometry.n_joints
+
+    @property
+    def n_cables(self) -> int:
+        return len(self.cables.routing)
+
+    @property
+    def routes(self) -> tuple[tuple[tuple[int, str], ...], ...]:
+        """Routing as data: for each cable, the (joint index from 0, case letter) pairs it runs along."""
+        return tuple(_parse_route(p, "routing") for p in self.cables.routing)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        n, m = self.n_joints, self.n_cables
+        per_joint = {
+            "springs": ("k_left", "k_right", "l0"),
+            "bars": ("m_diagonal", "I_diagonal", "m_top", "I_top"),
+        }
+        per_cable = {"friction": ("f_s",), "cables.linear": ("k", "c_a"), "cables.variable": ("k", "lambda", "c_a")}
+        for section, names in per_joint.items():
+            for name in names:
+                got = len(getattr(getattr(self, section), name))
+                _require(got == n, f"{section}.{name} has {got} values, expected one per joint (n_joints = {n})")
+        for section, names in per_cable.items():
+            obj = self
+            for part in section.split("."):
+                obj = getattr(obj, part)
+            for name in names:
+                got = len(getattr(obj, "lam" if name == "lambda" else name))
+                _require(got == m, f"{section}.{name} has {got} values, expected one per cable ({m} in cables.routing)")
+        for j, route in enumerate(self.routes):
+            for joint, _ in route:
+                _require(joint < n, f"cables.routing[{j}] names joint {joint + 1} but n_joints = {n}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return msgspec.to_builtins(self)
+
+    def to_toml(self) -> str:
+        """The parameter set as TOML text that :func:`load_params` reads back identically."""
+        return _to_toml(self.to_dict())
+
+
+def _parse_route(path: str, where: str) -> tuple[tuple[int, str], ...]:
+    steps = []
+    for token in path.split():
+        joint, case = token[:-1], token[-1:]
+        if not joint.isdigit() or case not in _CASES or int(joint) < 1:
+            raise ValueError(f"{where}: '{token}' is not <joint number from 1><case a-d>, e.g. '2b'")
+        steps.append((int(joint) - 1, case))
+    joints = [j for j, _ in steps]
+    if not steps or len(set(joints)) != len(joints):
+        raise ValueError(f"{where}: '{path}' must name each joint at most once and at least one joint")
+    return tuple(steps)
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """Parse ``key.path=value`` where value is a TOML value (``0.05``, ``[1, 2]``, ``"sign"``)."""
+    if "=" not in text:
+        raise ParameterError(f"override '{text}' must look like key.path=value")
+    key, raw = (s.strip() for s in text.split("=", 1))
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # a bare word is taken as a string, e.g. cables.model=linear
+    return key, value
+
+
+def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Params:
+    """Load a parameter set (default: the 3-X prototype) and apply dotted-key overrides.
+
+    Raises :class:`ParameterError` naming the key and the reason for unknown keys, non-numbers,
+    vectors of the wrong length, b >= L, negative stiffness or mass, non-finite values.
+    """
+    if path is None:
+        source = f"<package>/{DEFAULT_PARAMS_FILE}"
+        text = resources.files("twin").joinpath(DEFAULT_PARAMS_FILE).read_text()
+    else:
+        source = str(path)
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ParameterError(f"{source}: cannot read parameter file ({exc.strerror})") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ParameterError(f"{source}: not a valid TOML file ({exc})") from exc
+    for key, value in (overrides or {}).items():
+        _set_dotted(data, key, value, source)
+    return params_from_dict(data, source)
+
+
+def params_from_dict(data: dict[str, Any], source: str = "<dict>") -> Params:
+    try:
+        return msgspec.convert(data, Params, strict=True)
+    except msgspec.ValidationError as exc:
+        raise ParameterError(f"{source}: {_readable(str(exc))}") from None
+
+
+def _readable(message: str) -> str:
+    """'reason - at `$.a.b`' -> 'a.b: reason'."""
+    if " - at `$" in message:
+        reason, at = message.rsplit(" - at `$", 1)
+        key = at.rstrip("`").lstrip(".")
+        return f"{key}: {reason}" if key else reason
+    return message
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+    parts = key.split(".")
+    node = data
+    for i, part in enumerate(parts[:-1]):
+        child = node.get(part)
+        if not isinstance(child, dict):
+            raise ParameterError(f"{source}: override '{key}': '{'.'.join(parts[: i + 1])}' is not a section")
+        node = child
+    if parts[-1] not in node:
+        raise ParameterError(f"{source}: override '{key}': unknown key")
+    node[parts[-1]] = value
+
+
+def _to_toml(data: dict[str, Any], prefix: str = "") -> str:
+    def value(v: Any) -> str:
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    scalars = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    tables = [
+        f"\n[{prefix}{k}]\n" + _to_toml(v, f"{prefix}{k}.") for k, v in data.items() if isinstance(v, dict)
+    ]
+    return "\n".join(scalars) + "\n" + "".join(tables)
