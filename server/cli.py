@@ -9,6 +9,7 @@ from __future__ import annotations
 import typer
 
 from twin import cli as twin_cli
+from twin.kinematics_cli import kinematics_app, workspace
 
 app = typer.Typer(
     name="xneck",
@@ -28,6 +29,8 @@ def _root() -> None:
 app.command(
     "model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True}
 )(twin_cli.model)
+app.add_typer(kinematics_app, name="kinematics")
+app.command("workspace")(workspace)
 
 
 def main() -> None:

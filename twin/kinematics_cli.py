@@ -1,0 +1,116 @@
+"""`xneck kinematics ...` and `xneck workspace`: the 2-X paper's analyses from the command line.
+
+Angles are printed in degrees (SI radians inside); lengths are in whatever unit L and b are given.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from twin.kinematics import FLAT, check_design, cuspidal_threshold, det_jacobian_2x, fk, ik_2x, is_cuspidal
+
+kinematics_app = typer.Typer(
+    help="Kinematics of the 2-X manipulator (Furet & Wenger 2019): inverse kinematics, cuspidality.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+def _design(L: float, b: float) -> tuple[float, float]:
+    try:
+        return check_design(L, b)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
+
+
+@kinematics_app.command("ik")
+def ik(
+    L: float = typer.Option(..., "--L", help="Diagonal bar length."),
+    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L."),
+    x: float = typer.Option(..., "--x", help="Target x of the top-bar middle (unit of L)."),
+    y: float = typer.Option(..., "--y", help="Target y of the top-bar middle (unit of L)."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """Every inverse kinematic solution (θ1, θ2) at (x, y), from the quartic of eqs. (7)-(9)."""
+    L, b = _design(L, b)
+    if not (np.isfinite(x) and np.isfinite(y)):
+        raise typer.BadParameter(f"x and y must be finite, got x = {x}, y = {y}")
+    sols = ik_2x(x, y, L, b)
+    rows = []
+    for th in sols:
+        res = float(np.linalg.norm(fk(th, L, b) - (x, y)))
+        rows.append(
+            {
+                "theta_deg": [round(float(v), 6) for v in np.degrees(th)],
+                "theta_rad": [float(v) for v in th],
+                "up": [bool(abs(v) < FLAT) for v in th],
+                "aspect": int(np.sign(det_jacobian_2x(th[0], th[1], L, b))),
+                "fk_residual": res,
+            }
+        )
+    if json_out:
+        typer.echo(json.dumps({"L": L, "b": b, "x": x, "y": y, "count": len(rows), "solutions": rows}, indent=2))
+        return
+    typer.echo(f"2-X IK at (x, y) = ({x:g}, {y:g}), L = {L:g}, b = {b:g}: {len(rows)} solution(s)")
+    if not rows:
+        typer.echo("  (point outside the workspace)")
+        return
+    typer.echo(f"  {'#':>2}  {'θ1 (deg)':>10}  {'θ2 (deg)':>10}  {'joints':>9}  {'aspect':>6}  {'|FK−p|':>9}")
+    for i, r in enumerate(rows, 1):
+        ups = "/".join("up" if u else "down" for u in r["up"])
+        t1, t2 = r["theta_deg"]
+        typer.echo(f"  {i:>2}  {t1:>10.3f}  {t2:>10.3f}  {ups:>9}  {r['aspect']:>+6d}  {r['fk_residual']:>9.1e}")
+
+
+@kinematics_app.command("cuspidal")
+def cuspidal(
+    L: float = typer.Option(..., "--L", help="Diagonal bar length."),
+    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of text."),
+) -> None:
+    """Is the 2-X chain cuspidal? Closed form b < L < b√6 (section 2.6), checked by counting IK
+    solutions numerically along the symmetry axis, and the threshold found by a sweep of b."""
+    from twin.workspace import cuspidality_threshold_numeric, max_solutions_on_axis
+
+    L, b = _design(L, b)
+    result = {
+        "L": L,
+        "b": b,
+        "cuspidal": is_cuspidal(L, b),
+        "condition": "b < L < b*sqrt(6)",
+        "b_threshold": cuspidal_threshold(L),
+        "b_threshold_numeric": cuspidality_threshold_numeric(L),
+        "max_ik_solutions_found": max_solutions_on_axis(L, b),
+    }
+    if json_out:
+        typer.echo(json.dumps(result, indent=2))
+        return
+    verdict = "cuspidal (four IK solutions in two regions)" if result["cuspidal"] else "not cuspidal (two IK solutions)"
+    typer.echo(f"L = {L:g}, b = {b:g} (b/L = {b / L:.4g}): {verdict}")
+    typer.echo(f"  condition b < L < b√6  <=>  b > L/√6 = {result['b_threshold']:.6g}")
+    typer.echo(f"  threshold from a numerical sweep of b: {result['b_threshold_numeric']:.6g}")
+    typer.echo(f"  most IK solutions found on the axis x = 0: {result['max_ik_solutions_found']}")
+
+
+def workspace(
+    design: str = typer.Option("2x", "--design", help="2x (the 2-X paper's figures) or 3x (the prototype)."),
+    out: Path = typer.Option(Path("artifacts/workspace"), "--out", help="Directory for the PNG files."),
+    n: int = typer.Option(0, "--n", help="Grid points per axis (0: 300 for 2x, 31 for 3x)."),
+) -> None:
+    """Write workspace, wrench-feasible workspace and stiffness maps as PNG files."""
+    from twin.workspace import write_2x_figures, write_3x_figures
+
+    if design not in ("2x", "3x"):
+        raise typer.BadParameter(f"--design must be 2x or 3x, got {design!r}")
+    if n < 0 or n == 1:
+        raise typer.BadParameter(f"--n must be 0 (default) or >= 2, got {n}")
+    if design == "2x":
+        paths = write_2x_figures(out, n=n or 300)
+    else:
+        paths = write_3x_figures(out, n=n or 31)
+    for p in paths:
+        typer.echo(str(p))
