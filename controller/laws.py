@@ -1,0 +1,126 @@
+"""The paper's computed-torque control laws (3-X paper §6, eqs. 59-66).
+
+One tick of :class:`ComputedTorque`: α̂ from the encoders (eq. 35, :mod:`controller.estimation`),
+the PID outer loop w = α̈^d + k_v·ė + k_p·e + k_i∫e (eq. 59, k_p = 3ω², k_v = 3ω, k_i = ω³,
+ω = 11 rad/s), the simplified model Γ^d = M(α̂)w + g(α̂) + Z(α̂)·f_friction(θ̇^d) (eq. 66), and
+the tension distribution (eqs. 63-65, :mod:`controller.distribution`) with θ^d, θ̇^d, θ̈^d in the
+friction and inertia terms "to avoid any force discontinuity" (§6.2).
+
+The laws differ only in the controller's model (§6.3, Table 3):
+- law 1: no friction, rigid cables in α̂;
+- law 2: friction, rigid cables in α̂;
+- law 3: friction, and elastic cables (variable stiffness, eq. 58) in α̂;
+- ``no_pulleys``: law 2 computed with r = 0 (Z and α̂ without pulleys), the Table 3 variant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from controller.distribution import distribute, lower_bounds
+from controller.estimation import PseudoInverseEstimator, short_cables
+from twin import dynamics
+from twin.model import Model, build
+from twin.params import Params
+
+LAWS = (1, 2, 3)
+
+
+@dataclass(frozen=True)
+class LawConfig:
+    """Which law, and its gains. ``omega`` in rad/s (eq. 59)."""
+
+    law: int = 2
+    no_pulleys: bool = False
+    omega: float = 11.0
+    rate_hz: float = 500.0
+    velocity_filter_hz: float = 50.0  # first-order low-pass on finite differences of α̂ and θ
+
+    def __post_init__(self) -> None:
+        if self.law not in LAWS:
+            raise ValueError(f"law must be one of {LAWS}, got {self.law!r}")
+        if not (self.omega > 0 and math.isfinite(self.omega)):
+            raise ValueError(f"omega must be a positive number (rad/s), got {self.omega}")
+
+    @property
+    def name(self) -> str:
+        return f"law{self.law}" + ("-no-pulleys" if self.no_pulleys else "")
+
+
+def controller_model(params: Params, config: LawConfig) -> Model:
+    """The controller's model of the robot for a law (module docstring)."""
+    cable_model = "variable" if config.law == 3 else "rigid"
+    return build(params, cable_model, friction=config.law != 1, pulleys=not config.no_pulleys)
+
+
+class Command(NamedTuple):
+    f: np.ndarray  # (n_cables,) N
+    alpha_hat: np.ndarray  # (N,) rad
+    e: np.ndarray  # (N,) rad, α^d − α̂
+    saturated: np.ndarray  # (n_cables,) bool
+    gamma_d: np.ndarray  # (N,) N·m/rad
+
+
+class ComputedTorque:
+    """State of one law between ticks: the α̂ estimator, the PID integral, filtered velocities."""
+
+    def __init__(self, params: Params, config: LawConfig = LawConfig()):
+        self.params, self.config = params, config
+        self.model = controller_model(params, config)
+        self.dt = 1.0 / config.rate_hz
+        self.short = short_cables(self.model)
+        self.long = int(next(j for j in range(self.model.n_cables) if j not in set(self.short.tolist())))
+        self.kp, self.kv, self.ki = 3 * config.omega**2, 3 * config.omega, config.omega**3
+        self._beta = 1.0 - math.exp(-2 * math.pi * config.velocity_filter_hz * self.dt)
+        self.estimator = PseudoInverseEstimator(self.model, self.dt)
+        self.reset()
+
+    def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None) -> None:
+        m = self.model
+        self.estimator.reset(alpha, theta)
+        self.integral = np.zeros(m.n_joints)
+        self.alpha_hat_dot = np.zeros(m.n_joints)
+        self.theta_dot = np.zeros(m.n_cables)
+        self.f_prev = np.zeros(m.n_cables)
+        self._theta_prev = None if theta is None else np.array(theta, dtype=float)
+
+    def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
+        """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d."""
+        m, est = self.model, self.estimator
+        theta = np.asarray(theta, dtype=float)
+        if self._theta_prev is not None:
+            self.theta_dot += self._beta * ((theta - self._theta_prev) / self.dt - self.theta_dot)
+        self._theta_prev = theta
+        previous = est.alpha_hat.copy()
+        alpha_hat = est.update(theta, self.f_prev, self.theta_dot).copy()
+        self.alpha_hat_dot += self._beta * ((alpha_hat - previous) / self.dt - self.alpha_hat_dot)
+
+        e = alpha_d - alpha_hat
+        self.integral += e * self.dt
+        w = alpha_d_ddot + self.kv * (alpha_d_dot - self.alpha_hat_dot) + self.kp * e + self.ki * self.integral
+
+        terms = dynamics.evaluate(m, alpha_hat)
+        desired = dynamics.evaluate(m, alpha_d, alpha_d_dot)
+        theta_d_dot = desired.Z.T @ alpha_d_dot / m.rho
+        theta_d_ddot = (desired.Z.T @ alpha_d_ddot + desired.Z_dot.T @ alpha_d_dot) / m.rho
+        f_fric = dynamics.f_friction(m, theta_d_dot)  # zero for law 1, whose model has no friction
+        gamma_d = terms.M @ w + terms.g + terms.Z @ f_fric  # eq. 66
+        lower = lower_bounds(m.t_min, m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho)
+        dist = distribute(terms.Z, gamma_d, lower, m.f_max, self.short, self.long)
+        self.f_prev = dist.f
+        return Command(dist.f, alpha_hat, e, dist.saturated, gamma_d)
+
+
+def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
+    """Forces (N) that hold the neck still at α (rad): Z f = g(α) with every cable at least at
+    t_min (eqs. 63-65 with w = 0 and no motion). What the controller commands when it must stop."""
+    m = build(params, "rigid", friction=False)
+    terms = dynamics.evaluate(m, alpha)
+    short = short_cables(m)
+    long = int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
+    lower = lower_bounds(m.t_min, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
+    return distribute(terms.Z, terms.g, lower, m.f_max, short, long).f

@@ -1,0 +1,119 @@
+"""Controller (issue 4): estimation, tension distribution, the paper's laws and findings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller.distribution import distribute, lower_bounds
+from controller.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
+from controller.laws import ComputedTorque, LawConfig, hold_forces
+from controller.offline import run_closed_loop
+from controller.trajectory import control_test_trajectory
+from twin import cables, dynamics
+from twin.model import build
+from twin.sim import TwinConfig
+
+DEG = np.pi / 180
+
+
+def test_eq_33_inverts_the_short_cables_exactly(params, rng):
+    m = build(params, "variable")
+    for alpha in rng.uniform(-80, 80, size=(50, 3)) * DEG:
+        x = rng.uniform(0, 3e-3, size=4)
+        theta = (x - (cables.l_c(m, alpha) - m.l_c0)) / m.rho  # x_c = l_c − l_c0 + ρθ
+        np.testing.assert_allclose(alpha_hat_3(m, theta, x), alpha, atol=1e-10)
+    # One encoder count is 2π/2048 rad of θ, ≈ 9e-5 rad of α: far above the solver's error.
+
+
+def test_eq_35_follows_a_rigid_motion(params):
+    m = build(params, "rigid")
+    est = PseudoInverseEstimator(m, 0.002)
+    goal = np.radians([40.0, -30.0, 20.0])
+    for k in range(1, 501):
+        est.update(cables.theta_rigid(m, goal * k / 500), np.zeros(4), np.zeros(4))
+    assert np.degrees(np.abs(est.alpha_hat - goal)).max() < 0.02
+
+
+def test_eq_58_relaxes_to_the_static_stretch(params):
+    m = build(params, "variable")
+    x, f = np.zeros(4), np.full(4, 30.0)
+    for _ in range(20000):
+        x = predict_elongation(m, x, f, np.zeros(4), 0.002)
+    np.testing.assert_allclose((m.k + m.lam * f) * x, f, rtol=1e-6)
+    assert np.all(predict_elongation(m, np.full(4, 1e-4), np.zeros(4), np.zeros(4), 10.0) == 0)  # never < 0
+
+
+def test_distribution_meets_torque_and_bounds_with_one_active(params, rng):
+    m = build(params, "rigid")
+    short, long = short_cables(m), 3
+    for alpha in rng.uniform(-60, 60, size=(200, 3)) * DEG:
+        Z = cables.Z(m, alpha)
+        gamma = rng.uniform(-0.5, 0.5, 3)
+        lower = lower_bounds(8.5, 2.0, rng.uniform(-15, 15, 4), rng.uniform(-1, 1, 4))
+        d = distribute(Z, gamma, lower, 1e6, short, long)
+        assert d.feasible and not d.saturated.any()
+        np.testing.assert_allclose(Z @ d.f, gamma, atol=1e-9)
+        assert np.all(d.f >= lower - 1e-9) and np.isclose(d.f - lower, 0, atol=1e-9).any()
+
+
+def test_distribution_clamps_and_reports_saturation(params):
+    m = build(params, "rigid")
+    Z = cables.Z(m, np.radians([50.0, 50.0, 50.0]))
+    d = distribute(Z, np.array([3.0, 2.0, 1.0]), np.full(4, 8.5), 40.0, short_cables(m), 3)
+    assert d.saturated.any() and d.f.max() == 40.0
+
+
+def test_distribution_for_a_ten_joint_neck(rng):
+    from twin.params import load_params
+
+    n = 10
+    routing = [" ".join([f"{i}d" for i in range(1, k)] + [f"{k}b"]) for k in range(1, n + 1)]
+    routing.append(" ".join([f"{i}c" for i in range(1, n)] + [f"{n}a"]))
+    pj, pc = (lambda v: [v] * n), (lambda v: [v] * (n + 1))
+    p = load_params(overrides={
+        "geometry.n_joints": n, "cables.routing": routing, "springs.k_left": pj(200.0), "springs.k_right": pj(200.0),
+        "springs.l0": pj(0.046), "bars.m_diagonal": pj(0.009), "bars.I_diagonal": pj(7.5e-6), "bars.m_top": pj(0.015),
+        "bars.I_top": pj(3e-6), "friction.f_s": pc(15.0), "cables.linear.k": pc(9e3), "cables.linear.c_a": pc(3e3),
+        "cables.variable.k": pc(5e3), "cables.variable.lambda": pc(100.0), "cables.variable.c_a": pc(3e3)})
+    m = build(p, "rigid")
+    alpha = rng.uniform(-20, 20, n) * DEG
+    f = hold_forces(p, alpha)
+    np.testing.assert_allclose(cables.Z(m, alpha) @ f, dynamics.g(m, alpha), atol=1e-9)
+    assert f.min() >= p.limits.t_min - 1e-9
+
+
+def test_bad_law_config_is_refused(params):
+    with pytest.raises(ValueError, match="law must be one of"):
+        LawConfig(law=4)
+    with pytest.raises(ValueError, match="omega"):
+        LawConfig(omega=-1.0)
+
+
+@pytest.fixture(scope="module")
+def runs(params):
+    """The §7 control test with each law against the same twin (Table 2 cables, Table 1 friction)."""
+    traj = control_test_trajectory()
+    cfgs = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
+            "no_pulleys": LawConfig(law=2, no_pulleys=True)}
+    return {k: run_closed_loop(params, c, traj, TwinConfig(seed=11)).metrics() for k, c in cfgs.items()}
+
+
+def test_law_2_tracks_better_than_law_1_with_lower_forces(runs):
+    assert runs["law2"]["e_mean_all_deg"] < runs["law1"]["e_mean_all_deg"]
+    assert runs["law2"]["force_mean_all_N"] < runs["law1"]["force_mean_all_N"]
+
+
+def test_law_3_estimates_alpha_best_against_the_camera(runs):
+    ea = {k: v["e_alpha_mean_all_deg"] for k, v in runs.items()}
+    assert ea["law3"] < min(ea["law1"], ea["law2"], ea["no_pulleys"])
+
+
+def test_neglecting_pulleys_worsens_tracking_and_estimation(runs):
+    assert runs["no_pulleys"]["e_mean_all_deg"] > runs["law2"]["e_mean_all_deg"]
+    assert runs["no_pulleys"]["e_alpha_mean_all_deg"] > runs["law2"]["e_alpha_mean_all_deg"]
+
+
+def test_every_law_stays_within_force_limits(runs, params):
+    for m in runs.values():
+        assert max(m["force_max_N"]) <= params.limits.f_max and m["camera_frames"] > 300
