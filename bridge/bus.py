@@ -1,0 +1,426 @@
+"""The bus contract: every key expression and message schema of the xneck Zenoh bus.
+
+Every process (bridge, controller, twin, server, recorder) imports this one module, so a message
+changes in exactly one place. The module depends on msgspec only (no zenoh), so offline tools that
+read MCAP archives use the same types.
+
+Wire format
+    JSON (``msgspec.json``), one message per Zenoh sample. The same bytes are written to MCAP with
+    ``message_encoding="json"`` and a JSON Schema (:func:`json_schema`) that Foxglove can read.
+
+Units and frames
+    SI units, spelled in field names (``_rad``, ``_rad_s``, ``_N``, ``_m``, ``_s``). Per-motor and
+    per-cable lists are in motor index order, the order of the robot's parameter file. Joint angles
+    ``alpha`` are the X-joint angles, base to head. ``stamp_s`` is the sender's clock in seconds:
+    wall time (``time.time()``) for hardware processes, simulated time for the twin.
+
+Version rule
+    Every message carries ``v``, its schema version; the current one is the default of the ``v``
+    field of its type (:func:`schema_version`). Any change to a message's fields (added, removed,
+    renamed, retyped, or a changed unit or meaning) bumps that message's version. Receivers accept
+    exactly the version they were built with and reject every other one with a
+    :class:`BusDecodeError` naming both versions; there is no negotiation, since all processes ship
+    from one repository: the version catches mixed deployments and old archives. ``v`` is required
+    on the wire even though it has a default in Python.
+
+Validation
+    :func:`decode` checks structure only: JSON syntax, version, field names and types, required
+    fields, and that every float is finite (JSON has no NaN/inf; ``msgspec`` rejects ``NaN`` tokens,
+    ``null`` for a float and overflowing literals such as ``1e999``). Range checks that need the
+    robot's parameters (list lengths, force limits) belong to the receiver; :func:`check_force_command`
+    is the shared one for commands. Both raise only :class:`BusDecodeError`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from typing import Any, Literal, TypeVar
+
+import msgspec
+
+PREFIX = "xneck"
+
+# Key expressions (Zenoh: no leading slash; MCAP topics are "/" + key).
+MOTOR_STATE = f"{PREFIX}/motor/state"
+MOTOR_COMMAND = f"{PREFIX}/motor/command"
+CAMERA_ALPHA = f"{PREFIX}/camera/alpha_ip"
+TWIN_TRUTH = f"{PREFIX}/twin/truth"
+CONTROLLER_STATUS = f"{PREFIX}/controller/status"
+CAMPAIGN_EVENTS = f"{PREFIX}/campaign/events"
+ESTOP = f"{PREFIX}/estop"
+HEALTH_ALL = f"{PREFIX}/health/*/*"
+ALIVE_ALL = f"{PREFIX}/alive/**"
+ALL = f"{PREFIX}/**"
+
+DriveState = Literal["disabled", "inactive", "active", "hold"]
+CampaignEventKind = Literal["started", "progress", "finished", "aborted", "interrupted"]
+
+
+class BusDecodeError(Exception):
+    """A payload was rejected; ``reason`` is a human-readable sentence fit for a log or a counter."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class BusEncodeError(ValueError):
+    """A message cannot be put on the bus (non-finite float, unregistered type): a sender bug."""
+
+
+class BusMessage(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Fields every message carries.
+
+    ``seq`` counts messages of one publisher (starts anywhere, +1 per message; gaps mean loss).
+    ``stamp_s`` is the sender's time of the data in seconds (simulated time for the twin).
+    Lists are not copied: treat a received message as read-only.
+    """
+
+    v: int = 1
+    seq: int
+    stamp_s: float
+
+
+class MotorState(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Motor shaft angles and applied cable forces, published by the bridge (or the twin) at 500 Hz.
+
+    ``force_applied_N`` is what the drives actually apply, after the bridge's clamping to
+    [f_min, f_max] and hold logic. ``hold_reason`` is empty unless ``drive == "hold"``.
+    """
+
+    v: int = 1
+    theta_rad: list[float]
+    force_applied_N: list[float]
+    drive: DriveState
+    hold_reason: str = ""
+
+
+class ForceCommand(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Cable force set-points [N], controller to bridge, one per motor. ``source`` names the sender
+    (control law or console) so a rejected or clamped command can be traced."""
+
+    v: int = 1
+    force_N: list[float]
+    source: str
+
+
+class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """X-joint angles measured by the camera (image processing, about 30 Hz).
+
+    ``capture_stamp_s`` is the exposure time, ``stamp_s`` the publication time, both wall clock.
+    """
+
+    v: int = 1
+    alpha_ip_rad: list[float]
+    capture_stamp_s: float
+
+
+class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Ground truth of the twin (never published by hardware); ``stamp_s`` is simulated time.
+
+    Per joint: ``alpha_rad``, ``alpha_dot_rad_s``. Per motor: ``theta_rad``, ``theta_dot_rad_s``.
+    Per cable: ``tension_N``, ``elongation_m``, ``slack`` (cable tension at zero).
+    ``near_singular`` flags a configuration close to a singular one of the mechanism.
+    """
+
+    v: int = 1
+    alpha_rad: list[float]
+    alpha_dot_rad_s: list[float]
+    theta_rad: list[float]
+    theta_dot_rad_s: list[float]
+    tension_N: list[float]
+    elongation_m: list[float]
+    slack: list[bool]
+    near_singular: bool
+
+
+class ControllerStatus(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """What the controller did this tick (published at a decimated rate).
+
+    ``tick_s`` is the loop period actually measured, ``compute_s`` the time spent in the law.
+    ``overruns`` counts ticks whose compute exceeded the period, ``deadline_misses`` ticks whose
+    command left late; both cumulative. ``saturated`` flags each motor whose force was clipped.
+    ``alpha_hat_rad`` (estimate), ``alpha_d_rad`` (desired) and ``e_rad`` (error) are per joint.
+    """
+
+    v: int = 1
+    law: str
+    tick_s: float
+    compute_s: float
+    overruns: int
+    deadline_misses: int
+    saturated: list[bool]
+    alpha_hat_rad: list[float]
+    alpha_d_rad: list[float]
+    e_rad: list[float]
+    holding: bool
+    hold_reason: str = ""
+
+
+class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Life cycle of a campaign (identification run, tracking experiment...).
+
+    ``kind`` is the campaign kind, ``event`` the transition, ``progress`` in [0, 1].
+    """
+
+    v: int = 1
+    campaign_id: str
+    kind: str
+    event: CampaignEventKind
+    progress: float = 0.0
+    message: str = ""
+
+
+class EStop(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Emergency stop: while ``engaged``, the bridge holds and ignores force commands."""
+
+    v: int = 1
+    engaged: bool
+    reason: str
+
+
+class Health(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Counters of a process, at about 1 Hz on ``xneck/health/<kind>/<instance>``.
+
+    ``rejected`` maps a key expression to the number of payloads refused on it since start,
+    ``last_reject_reason`` is the most recent reason (empty if none).
+    """
+
+    v: int = 1
+    process: str
+    instance: str
+    uptime_s: float
+    received: dict[str, int]
+    rejected: dict[str, int]
+    last_reject_reason: str = ""
+
+
+M = TypeVar("M", bound=BusMessage)
+
+#: Key expression -> message type, for every fixed key.
+REGISTRY: dict[str, type[BusMessage]] = {
+    MOTOR_STATE: MotorState,
+    MOTOR_COMMAND: ForceCommand,
+    CAMERA_ALPHA: CameraAlpha,
+    TWIN_TRUTH: Truth,
+    CONTROLLER_STATUS: ControllerStatus,
+    CAMPAIGN_EVENTS: CampaignEvent,
+    ESTOP: EStop,
+}
+
+#: Key patterns (``*`` = one chunk) -> message type, for keys that carry a process name.
+PATTERNS: dict[str, type[BusMessage]] = {HEALTH_ALL: Health}
+
+MESSAGE_TYPES: tuple[type[BusMessage], ...] = (*REGISTRY.values(), *PATTERNS.values())
+
+# A chunk of a process kind or instance name: safe in a key expression and in a file name.
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def _check_name(what: str, name: str) -> str:
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"{what} {name!r} must be non-empty and use only letters, digits, '_', '.', '-'")
+    return name
+
+
+def liveliness_key(kind: str, instance: str) -> str:
+    """Key of the liveliness token of one process: ``xneck/alive/<kind>/<instance>``."""
+    return f"{PREFIX}/alive/{_check_name('process kind', kind)}/{_check_name('instance', instance)}"
+
+
+def parse_liveliness_key(key: str) -> tuple[str, str]:
+    """``(kind, instance)`` of a liveliness key; ``ValueError`` if ``key`` is not one."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[1] != "alive":
+        raise ValueError(f"{key!r} is not a liveliness key ({PREFIX}/alive/<kind>/<instance>)")
+    return parts[2], parts[3]
+
+
+def health_key(kind: str, instance: str) -> str:
+    """Key of the health counters of one process: ``xneck/health/<kind>/<instance>``."""
+    return f"{PREFIX}/health/{_check_name('process kind', kind)}/{_check_name('instance', instance)}"
+
+
+def _matches(pattern: str, key: str) -> bool:
+    p, k = pattern.split("/"), key.split("/")
+    return len(p) == len(k) and all(a == "*" or a == b for a, b in zip(p, k))
+
+
+def message_type(key: str) -> type[BusMessage] | None:
+    """The message type published on ``key`` (a concrete key, not a wildcard), or None."""
+    key = str(key)
+    found = REGISTRY.get(key)
+    if found is not None:
+        return found
+    for pattern, msg_type in PATTERNS.items():
+        if _matches(pattern, key):
+            return msg_type
+    return None
+
+
+def schema_version(msg_type: type[BusMessage]) -> int:
+    """Current schema version of ``msg_type``: the default of its ``v`` field."""
+    for field in msgspec.structs.fields(msg_type):
+        if field.name == "v":
+            return int(field.default)
+    raise TypeError(f"{msg_type.__name__} has no schema version field 'v'")
+
+
+_VERSIONS: dict[type, int] = {t: schema_version(t) for t in MESSAGE_TYPES}
+
+
+def schema_name(msg_type: type[BusMessage]) -> str:
+    """Name of the MCAP schema of ``msg_type``, e.g. ``xneck.MotorState``."""
+    return f"{PREFIX}.{msg_type.__name__}"
+
+
+def mcap_topic(key: str) -> str:
+    """MCAP/Foxglove topic of a key expression: ``"/" + key``."""
+    key = str(key)
+    return key if key.startswith("/") else "/" + key
+
+
+def key_of_topic(topic: str) -> str:
+    """Inverse of :func:`mcap_topic`."""
+    return topic[1:] if topic.startswith("/") else topic
+
+
+# --- encoding ---------------------------------------------------------------------------------
+
+_encoder = msgspec.json.Encoder()
+
+
+def _non_finite_field(msg: BusMessage) -> str | None:
+    for name in msg.__struct_fields__:
+        value = getattr(msg, name)
+        if isinstance(value, float):
+            if not math.isfinite(value):
+                return f"{name} = {value}"
+        elif isinstance(value, (list, tuple)):
+            for i, item in enumerate(value):
+                if isinstance(item, float) and not math.isfinite(item):
+                    return f"{name}[{i}] = {item}"
+    return None
+
+
+def encode(msg: BusMessage) -> bytes:
+    """JSON bytes of ``msg``. Raises :class:`BusEncodeError` on a NaN or infinite float (msgspec
+    would silently write ``null``, which every receiver rejects) or on an unregistered type."""
+    if type(msg) not in _VERSIONS:
+        raise BusEncodeError(f"{type(msg).__name__} is not a registered bus message type")
+    bad = _non_finite_field(msg)
+    if bad is not None:
+        raise BusEncodeError(f"{type(msg).__name__}: non-finite float {bad}")
+    return _encoder.encode(msg)
+
+
+# --- decoding ---------------------------------------------------------------------------------
+
+
+class _Envelope(msgspec.Struct):
+    """Just the version, read first so that a message of another version is reported as such
+    rather than as an unknown or missing field."""
+
+    v: int
+
+
+_envelope_decoder = msgspec.json.Decoder(_Envelope)
+_decoders: dict[type, msgspec.json.Decoder] = {t: msgspec.json.Decoder(t) for t in MESSAGE_TYPES}
+
+
+def decode(type_or_key: type[M] | str, payload: bytes | bytearray | memoryview) -> M:
+    """Decode and validate one payload.
+
+    ``type_or_key`` is a message type or a key expression of the registry. Raises only
+    :class:`BusDecodeError`, whose reason names the type and the problem (bad JSON, missing ``v``,
+    wrong version, wrong type, missing or unknown field, non-finite float, unknown key).
+    """
+    if isinstance(type_or_key, str):
+        msg_type = message_type(type_or_key)
+        if msg_type is None:
+            raise BusDecodeError(f"no message type is registered for key {type_or_key!r}")
+    else:
+        msg_type = type_or_key
+    decoder = _decoders.get(msg_type)  # type: ignore[arg-type]
+    if decoder is None:
+        raise BusDecodeError(f"{getattr(msg_type, '__name__', msg_type)!r} is not a bus message type")
+    name = msg_type.__name__
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise BusDecodeError(f"{name}: payload must be bytes, got {type(payload).__name__}")
+    try:
+        version = _envelope_decoder.decode(payload).v
+    except msgspec.ValidationError as exc:
+        raise BusDecodeError(f"{name}: no valid schema version 'v' ({exc})") from None
+    except msgspec.DecodeError as exc:
+        raise BusDecodeError(f"{name}: malformed JSON ({exc})") from None
+    except Exception as exc:  # noqa: BLE001 - the contract: nothing but BusDecodeError escapes
+        raise BusDecodeError(f"{name}: undecodable payload ({type(exc).__name__}: {exc})") from None
+    expected = _VERSIONS[msg_type]
+    if version != expected:
+        raise BusDecodeError(f"{name}: schema version {version} is not supported (expected {expected})")
+    try:
+        return decoder.decode(payload)  # type: ignore[return-value]
+    except msgspec.DecodeError as exc:
+        raise BusDecodeError(f"{name}: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - the contract: nothing but BusDecodeError escapes
+        raise BusDecodeError(f"{name}: undecodable payload ({type(exc).__name__}: {exc})") from None
+
+
+def check_force_command(cmd: ForceCommand, n_motors: int, f_min_N: float, f_max_N: float) -> None:
+    """Range check of a decoded command against the robot's parameters (receiver side).
+
+    Raises :class:`BusDecodeError` if ``force_N`` does not have ``n_motors`` entries or one lies
+    outside ``[f_min_N, f_max_N]``; ``f_min_N`` is normally 0 (cables only pull).
+    """
+    if len(cmd.force_N) != n_motors:
+        raise BusDecodeError(f"ForceCommand: {len(cmd.force_N)} forces for {n_motors} motors")
+    for i, f in enumerate(cmd.force_N):
+        if not (f_min_N <= f <= f_max_N):  # also false for NaN
+            raise BusDecodeError(f"ForceCommand: force_N[{i}] = {f} N outside [{f_min_N}, {f_max_N}] N")
+
+
+# --- schemas ----------------------------------------------------------------------------------
+
+
+def json_schema(msg_type: type[BusMessage]) -> dict[str, Any]:
+    """Self-contained JSON Schema (no ``$ref``) of ``msg_type``, with a ``title``, for MCAP/Foxglove.
+
+    ``v`` is required and constant: the schema describes exactly one version.
+    """
+    if msg_type not in _VERSIONS:
+        raise TypeError(f"{msg_type!r} is not a registered bus message type")
+    raw = msgspec.json.schema(msg_type)
+    schema = dict(raw["$defs"][msg_type.__name__]) if "$ref" in raw else dict(raw)
+    # Flat messages only: a nested struct would need its $defs carried along.
+    assert "$ref" not in msgspec.json.encode(schema).decode(), "nested structs are not supported"
+    version = _VERSIONS[msg_type]
+    properties = dict(schema["properties"])
+    properties["v"] = {"type": "integer", "const": version, "description": "schema version"}
+    schema["properties"] = properties
+    schema["required"] = ["v", *[r for r in schema.get("required", []) if r != "v"]]
+    schema["title"] = msg_type.__name__
+    schema["$comment"] = f"{schema_name(msg_type)} version {version}"
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", **schema}
+
+
+def json_schema_bytes(msg_type: type[BusMessage]) -> bytes:
+    """:func:`json_schema` as the bytes stored in an MCAP schema record."""
+    return msgspec.json.encode(json_schema(msg_type))
+
+
+def as_plain(msg: BusMessage) -> Mapping[str, Any]:
+    """A message as a dict of builtins (for JSON APIs and plotting)."""
+    return msgspec.structs.asdict(msg)
+
+
+__all__ = [
+    "ALIVE_ALL", "ALL", "CAMERA_ALPHA", "CAMPAIGN_EVENTS", "CONTROLLER_STATUS", "ESTOP", "HEALTH_ALL",
+    "MESSAGE_TYPES", "MOTOR_COMMAND", "MOTOR_STATE", "PATTERNS", "PREFIX", "REGISTRY", "TWIN_TRUTH",
+    "BusDecodeError", "BusEncodeError", "BusMessage", "CameraAlpha", "CampaignEvent", "ControllerStatus",
+    "EStop", "ForceCommand", "Health", "MotorState", "Truth",
+    "as_plain", "check_force_command", "decode", "encode", "health_key", "json_schema", "json_schema_bytes",
+    "key_of_topic", "liveliness_key", "mcap_topic", "message_type", "parse_liveliness_key",
+    "schema_name", "schema_version",
+]

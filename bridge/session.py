@@ -1,0 +1,294 @@
+"""Zenoh sessions for xneck processes, and typed publishers and subscribers of the bus contract.
+
+Discovery is explicit: multicast scouting is off (labs share networks, tests share machines), one
+process listens on a known endpoint and the others connect to it. Gossip scouting stays on so that
+two processes connected to the same listener find each other and link directly (Zenoh >= 1.9 peers
+no longer relay for each other). Every process also listens, on an ephemeral loopback port by
+default, so that gossip has somewhere to connect.
+
+Environment (comma-separated Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``):
+    ``XNECK_ZENOH_LISTEN``   endpoints to listen on (default ``tcp/127.0.0.1:0``),
+    ``XNECK_ZENOH_CONNECT``  endpoints to connect to (default none).
+Across machines, the listening process uses ``tcp/0.0.0.0:7447`` and the others connect to it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import zenoh
+
+from bridge import bus
+
+log = logging.getLogger(__name__)
+
+ENV_LISTEN = "XNECK_ZENOH_LISTEN"
+ENV_CONNECT = "XNECK_ZENOH_CONNECT"
+DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
+MODES = ("peer", "client", "router")
+
+#: Keys on the control path: sent at once (no batching) at the highest priority.
+REAL_TIME_KEYS = frozenset({bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.ESTOP})
+#: Rare messages that must not be lost: under congestion the publisher waits instead of dropping.
+#: Every other key is a stream where the newest value matters and a stale one is worse than none.
+RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS})
+
+M = TypeVar("M", bound=bus.BusMessage)
+
+
+def _endpoints_from_env(name: str) -> list[str] | None:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return None
+    return [e.strip() for e in raw.split(",") if e.strip()]
+
+
+def _check_endpoints(what: str, endpoints: Sequence[str]) -> list[str]:
+    if isinstance(endpoints, str):
+        raise TypeError(f"{what} endpoints must be a list of strings, not one string {endpoints!r}")
+    checked = []
+    for e in endpoints:
+        proto, sep, address = str(e).partition("/")
+        if not sep or not proto or not address:
+            raise ValueError(f"{what} endpoint {e!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+        checked.append(str(e))
+    return checked
+
+
+def zenoh_config(
+    listen: Sequence[str] | None = None,
+    connect: Sequence[str] | None = None,
+    mode: str = "peer",
+) -> zenoh.Config:
+    """Zenoh configuration of an xneck process.
+
+    ``listen`` / ``connect``: endpoint lists; None takes ``XNECK_ZENOH_LISTEN`` /
+    ``XNECK_ZENOH_CONNECT`` from the environment, then the defaults (listen on an ephemeral
+    loopback port, connect to nothing). An empty list means none. ``mode``: peer, client or router.
+    Connections are retried in the background, so a process may start before its listener.
+    """
+    if mode not in MODES:
+        raise ValueError(f"zenoh mode {mode!r} is not one of {MODES}")
+    if listen is None:
+        listen = _endpoints_from_env(ENV_LISTEN) or list(DEFAULT_LISTEN)
+    if connect is None:
+        connect = _endpoints_from_env(ENV_CONNECT) or []
+    listen = _check_endpoints("listen", listen)
+    connect = _check_endpoints("connect", connect)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "true")
+    conf.insert_json5("scouting/gossip/autoconnect", '{router: [], peer: ["router", "peer"]}')
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    # A busy listen port is a configuration error that must not go unnoticed.
+    conf.insert_json5("listen/exit_on_failure", "true")
+    return conf
+
+
+def open_session(
+    listen: Sequence[str] | None = None,
+    connect: Sequence[str] | None = None,
+    mode: str = "peer",
+) -> zenoh.Session:
+    """Open a Zenoh session (see :func:`zenoh_config`). Use it as a context manager, or close it:
+    an open session with callback subscribers can hang interpreter exit."""
+    return zenoh.open(zenoh_config(listen, connect, mode))
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` right now (for tests; another process may take it later)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def liveliness_token(session: zenoh.Session, kind: str, instance: str) -> zenoh.LivelinessToken:
+    """Declare ``xneck/alive/<kind>/<instance>``; it vanishes when undeclared or the session ends."""
+    return session.liveliness().declare_token(bus.liveliness_key(kind, instance))
+
+
+class BusPublisher(Generic[M]):
+    """Publisher of one key of the contract; :meth:`put` takes a message of the key's type."""
+
+    def __init__(self, session: zenoh.Session, key: str, msg_type: type[M]) -> None:
+        self.key = key
+        self.msg_type = msg_type
+        real_time = key in REAL_TIME_KEYS
+        self._pub = session.declare_publisher(
+            key,
+            encoding=zenoh.Encoding("application/json"),
+            congestion_control=(
+                zenoh.CongestionControl.BLOCK if key in RELIABLE_KEYS else zenoh.CongestionControl.DROP
+            ),
+            priority=zenoh.Priority.REAL_TIME if real_time else zenoh.Priority.DATA,
+            express=real_time,
+        )
+
+    def put(self, msg: M) -> None:
+        """Encode and publish. Raises ``TypeError`` for a message of another type and
+        :class:`bus.BusEncodeError` for a non-finite float."""
+        if type(msg) is not self.msg_type:
+            raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
+        self._pub.put(bus.encode(msg))
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+    def __enter__(self) -> BusPublisher[M]:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def publisher(session: zenoh.Session, key: str) -> BusPublisher[bus.BusMessage]:
+    """Typed publisher on ``key`` (a concrete key of the contract)."""
+    msg_type = bus.message_type(key)
+    if msg_type is None:
+        raise ValueError(f"{key!r} is not a key of the bus contract")
+    return BusPublisher(session, key, msg_type)
+
+
+@dataclass(frozen=True)
+class ReceiveStats:
+    """Counters of one subscriber. ``rejected`` payloads failed decoding or the receiver's check."""
+
+    received: int = 0
+    accepted: int = 0
+    rejected: int = 0
+    last_reject_reason: str = ""
+
+
+class LatestSubscriber(Generic[M]):
+    """Keeps the latest valid message of one key and counts the rejected ones.
+
+    The Zenoh callback only decodes, validates and stores under a lock (no blocking call, no Zenoh
+    call). ``validate`` is the receiver's own check (e.g. :func:`bus.check_force_command`); it
+    must raise :class:`bus.BusDecodeError` to reject. Rejections are logged, at most once per
+    second per subscriber, and counted.
+    """
+
+    LOG_PERIOD_S = 1.0
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        msg_type: type[M],
+        validate: Callable[[M], None] | None = None,
+    ) -> None:
+        self.key = key
+        self.msg_type = msg_type
+        self._validate = validate
+        self._cond = threading.Condition()
+        self._latest: M | None = None
+        self._latest_time_ns = 0
+        self._received = self._accepted = self._rejected = 0
+        self._last_reason = ""
+        self._last_log_s = -float("inf")
+        self._unlogged = 0
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        now_ns = time.time_ns()
+        try:
+            msg = bus.decode(self.msg_type, sample.payload.to_bytes())
+            if self._validate is not None:
+                self._validate(msg)
+        except bus.BusDecodeError as exc:
+            self._reject(f"{sample.key_expr}: {exc.reason}")
+            return
+        except Exception as exc:  # noqa: BLE001 - a faulty validator must not kill the callback
+            self._reject(f"{sample.key_expr}: validator failed ({type(exc).__name__}: {exc})")
+            return
+        with self._cond:
+            self._received += 1
+            self._accepted += 1
+            self._latest = msg
+            self._latest_time_ns = now_ns
+            self._cond.notify_all()
+
+    def _reject(self, reason: str) -> None:
+        with self._cond:
+            self._received += 1
+            self._rejected += 1
+            self._last_reason = reason
+            now = time.monotonic()
+            if now - self._last_log_s < self.LOG_PERIOD_S:
+                self._unlogged += 1
+                return
+            skipped, self._unlogged, self._last_log_s = self._unlogged, 0, now
+        suffix = f" (+{skipped} more since the last report)" if skipped else ""
+        log.warning("rejected %s%s", reason, suffix)
+
+    def latest(self) -> M | None:
+        """The latest valid message, or None if none arrived yet."""
+        with self._cond:
+            return self._latest
+
+    def latest_with_time(self) -> tuple[M | None, int]:
+        """The latest valid message and its receive time (``time.time_ns()``; 0 if none)."""
+        with self._cond:
+            return self._latest, self._latest_time_ns
+
+    def wait(self, timeout_s: float, predicate: Callable[[M], bool] | None = None) -> M | None:
+        """Block (never from a Zenoh callback) until a valid message arrives after this call, or one
+        satisfying ``predicate`` is the latest; None on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            start = self._accepted
+            while True:
+                if self._latest is not None and (
+                    predicate(self._latest) if predicate is not None else self._accepted > start
+                ):
+                    return self._latest
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+
+    @property
+    def stats(self) -> ReceiveStats:
+        with self._cond:
+            return ReceiveStats(self._received, self._accepted, self._rejected, self._last_reason)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def __enter__(self) -> LatestSubscriber[M]:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def subscribe_latest(
+    session: zenoh.Session,
+    key: str,
+    msg_type: type[M] | None = None,
+    validate: Callable[[M], None] | None = None,
+) -> LatestSubscriber[M]:
+    """Subscribe to ``key`` keeping the latest valid message; ``msg_type`` defaults to the
+    registry's type for ``key`` (required for wildcard keys)."""
+    if msg_type is None:
+        msg_type = bus.message_type(key)  # type: ignore[assignment]
+        if msg_type is None:
+            raise ValueError(f"{key!r} is not a key of the bus contract: pass msg_type")
+    return LatestSubscriber(session, key, msg_type, validate)  # type: ignore[arg-type]
+
+
+__all__ = [
+    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "REAL_TIME_KEYS", "RELIABLE_KEYS",
+    "BusPublisher", "LatestSubscriber", "ReceiveStats",
+    "free_tcp_port", "liveliness_token", "open_session", "publisher", "subscribe_latest", "zenoh_config",
+]

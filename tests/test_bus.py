@@ -1,0 +1,234 @@
+"""The bus contract and the Zenoh helpers, on real Zenoh sessions over TCP loopback."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import msgspec
+import pytest
+import zenoh
+
+from bridge import bus
+from bridge.session import (
+    free_tcp_port,
+    liveliness_token,
+    open_session,
+    publisher,
+    subscribe_latest,
+    zenoh_config,
+)
+
+TIMEOUT_S = 5.0
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float = TIMEOUT_S, poll_s: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """Two peers: ``a`` listens on a free loopback port, ``b`` connects to it."""
+    port = free_tcp_port()
+    with open_session(listen=[f"tcp/127.0.0.1:{port}"], connect=[]) as a:
+        with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as b:
+            yield a, b
+
+
+def sample_messages() -> dict[str, bus.BusMessage]:
+    """One valid message per fixed key of the registry, plus a health key."""
+    common = {"seq": 7, "stamp_s": 12.5}
+    return {
+        bus.MOTOR_STATE: bus.MotorState(**common, theta_rad=[0.1, -0.2, 0.3, 0.0], force_applied_N=[1.0, 2.0, 3.0, 4.0], drive="active"),
+        bus.MOTOR_COMMAND: bus.ForceCommand(**common, force_N=[5.0, 6.0, 7.0, 8.0], source="pid"),
+        bus.CAMERA_ALPHA: bus.CameraAlpha(**common, alpha_ip_rad=[0.01, 0.02], capture_stamp_s=12.4),
+        bus.TWIN_TRUTH: bus.Truth(
+            **common, alpha_rad=[0.1, 0.2], alpha_dot_rad_s=[0.0, 0.1], theta_rad=[1.0] * 4, theta_dot_rad_s=[0.0] * 4,
+            tension_N=[10.0, 0.0, 5.0, 5.0], elongation_m=[1e-4, 0.0, 5e-5, 5e-5], slack=[False, True, False, False],
+            near_singular=False,
+        ),
+        bus.CONTROLLER_STATUS: bus.ControllerStatus(
+            **common, law="pid", tick_s=0.002, compute_s=1.5e-4, overruns=0, deadline_misses=1,
+            saturated=[False] * 4, alpha_hat_rad=[0.1, 0.2], alpha_d_rad=[0.1, 0.25], e_rad=[0.0, 0.05], holding=False,
+        ),
+        bus.CAMPAIGN_EVENTS: bus.CampaignEvent(**common, campaign_id="c-1", kind="identification", event="progress", progress=0.5),
+        bus.ESTOP: bus.EStop(**common, engaged=True, reason="console button"),
+        bus.health_key("bridge", "0"): bus.Health(
+            **common, process="bridge", instance="0", uptime_s=3.0, received={bus.MOTOR_COMMAND: 10}, rejected={bus.MOTOR_COMMAND: 2},
+        ),
+    }
+
+
+# --- the contract, without a bus ---------------------------------------------------------------
+
+
+def test_every_message_round_trips_and_has_a_titled_schema() -> None:
+    for key, msg in sample_messages().items():
+        msg_type = bus.message_type(key)
+        assert msg_type is type(msg)
+        assert bus.decode(key, bus.encode(msg)) == msg
+        schema = bus.json_schema(msg_type)
+        assert schema["title"] == msg_type.__name__
+        assert schema["properties"]["v"]["const"] == bus.schema_version(msg_type)
+        assert "v" in schema["required"] and "$ref" not in msgspec.json.encode(schema).decode()
+        assert bus.mcap_topic(key) == "/" + key and bus.key_of_topic(bus.mcap_topic(key)) == key
+
+
+GOOD_STATE = b'{"v":1,"seq":1,"stamp_s":0.5,"theta_rad":[0.1],"force_applied_N":[1.0],"drive":"active"}'
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason_part"),
+    [
+        (b"{not json", "malformed JSON"),
+        (b"", "malformed JSON"),
+        (b"[1, 2]", "schema version"),
+        (GOOD_STATE.replace(b'"v":1', b'"v":2'), "version 2 is not supported (expected 1)"),
+        (GOOD_STATE.replace(b'"v":1,', b""), "missing required field `v`"),
+        (GOOD_STATE.replace(b"0.5", b"NaN"), "malformed JSON"),
+        (GOOD_STATE.replace(b"0.5", b"Infinity"), "malformed JSON"),
+        (GOOD_STATE.replace(b"0.5", b"1e999"), "out of range"),
+        (GOOD_STATE.replace(b"[0.1]", b"[null]"), "Expected `float`, got `null`"),
+        (GOOD_STATE.replace(b"[0.1]", b'["0.1"]'), "Expected `float`, got `str`"),
+        (GOOD_STATE.replace(b'"seq":1', b'"seq":true'), "Expected `int`, got `bool`"),
+        (GOOD_STATE.replace(b',"drive":"active"', b""), "missing required field `drive`"),
+        (GOOD_STATE.replace(b'"active"', b'"flying"'), "Invalid enum value"),
+        (GOOD_STATE[:-1] + b',"extra":1}', "unknown field `extra`"),
+        (b"\xff\xfe\x00", "malformed JSON"),
+    ],
+)
+def test_decode_rejects_bad_payloads_with_a_reason(payload: bytes, reason_part: str) -> None:
+    with pytest.raises(bus.BusDecodeError) as err:
+        bus.decode(bus.MotorState, payload)
+    assert reason_part in err.value.reason
+    assert err.value.reason.startswith("MotorState: ")
+
+
+def test_decode_never_raises_anything_else() -> None:
+    for bad_input in (None, 42, "text", {"v": 1}):
+        with pytest.raises(bus.BusDecodeError):
+            bus.decode(bus.MotorState, bad_input)  # type: ignore[arg-type]
+    with pytest.raises(bus.BusDecodeError, match="no message type"):
+        bus.decode("xneck/unknown", GOOD_STATE)
+    with pytest.raises(bus.BusDecodeError, match="not a bus message type"):
+        bus.decode(dict, GOOD_STATE)  # type: ignore[arg-type]
+
+
+def test_encode_refuses_non_finite_floats() -> None:
+    with pytest.raises(bus.BusEncodeError, match=r"force_N\[1\] = nan"):
+        bus.encode(bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[1.0, float("nan")], source="test"))
+    with pytest.raises(bus.BusEncodeError, match="stamp_s = inf"):
+        bus.encode(bus.EStop(seq=0, stamp_s=float("inf"), engaged=False, reason=""))
+
+
+def test_force_command_range_check() -> None:
+    cmd = bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[0.0, 10.0, 50.0], source="t")
+    bus.check_force_command(cmd, 3, 0.0, 50.0)
+    with pytest.raises(bus.BusDecodeError, match="3 forces for 4 motors"):
+        bus.check_force_command(cmd, 4, 0.0, 50.0)
+    with pytest.raises(bus.BusDecodeError, match=r"force_N\[2\] = 50.0 N outside"):
+        bus.check_force_command(cmd, 3, 0.0, 40.0)
+
+
+def test_keys_and_config() -> None:
+    assert bus.liveliness_key("twin", "sim-1") == "xneck/alive/twin/sim-1"
+    assert bus.parse_liveliness_key("xneck/alive/twin/sim-1") == ("twin", "sim-1")
+    with pytest.raises(ValueError):
+        bus.liveliness_key("twin", "a/b")
+    with pytest.raises(ValueError, match="protocol"):
+        zenoh_config(listen=["127.0.0.1:7447"])
+    with pytest.raises(ValueError, match="mode"):
+        zenoh_config(mode="server")
+
+
+def test_config_defaults_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("XNECK_ZENOH_LISTEN", "tcp/127.0.0.1:7001, tcp/127.0.0.1:7002")
+    monkeypatch.setenv("XNECK_ZENOH_CONNECT", "tcp/127.0.0.1:7003")
+    conf = zenoh_config()
+    assert msgspec.json.decode(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002"]
+    assert msgspec.json.decode(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7003"]
+    assert msgspec.json.decode(conf.get_json("scouting/multicast/enabled")) is False
+    assert msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("listen/endpoints")) == []
+
+
+# --- on the bus ----------------------------------------------------------------------------------
+
+
+def test_messages_cross_the_bus_decoded(sessions: tuple[zenoh.Session, zenoh.Session]) -> None:
+    a, b = sessions
+    for key, msg in sample_messages().items():
+        pub = publisher(a, key)
+        sub = subscribe_latest(b, key)
+        try:
+            # Subscriptions propagate asynchronously: publish until the first one lands.
+            assert wait_until(lambda: (pub.put(msg), sub.latest() is not None)[1]), f"nothing on {key}"
+            assert sub.latest() == msg
+            assert sub.stats.rejected == 0
+        finally:
+            sub.close()
+            pub.close()
+    with pytest.raises(TypeError, match="carries ForceCommand"):
+        publisher(a, bus.MOTOR_COMMAND).put(sample_messages()[bus.ESTOP])
+
+
+def test_malformed_commands_are_counted_and_never_crash_the_subscriber(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    a, b = sessions
+    sub = subscribe_latest(b, bus.MOTOR_COMMAND, validate=lambda c: bus.check_force_command(c, 3, 0.0, 40.0))
+    good = bus.ForceCommand(seq=1, stamp_s=1.0, force_N=[1.0, 2.0, 3.0], source="test")
+    pub = publisher(a, bus.MOTOR_COMMAND)
+    assert wait_until(lambda: (pub.put(good), sub.latest() is not None)[1])
+
+    valid = bus.encode(good)
+    bad_payloads = [
+        (b"{oops", "malformed JSON"),
+        (valid.replace(b'"v":1', b'"v":9'), "version 9 is not supported"),
+        (valid.replace(b"[1.0,", b"[NaN,"), "malformed JSON"),
+        (valid.replace(b',"source":"test"', b""), "missing required field `source`"),
+        (valid.replace(b"2.0", b'"2"'), "Expected `float`, got `str`"),
+        (valid.replace(b"[1.0,2.0,3.0]", b"[1.0,2.0]"), "2 forces for 3 motors"),
+        (valid.replace(b"[1.0,", b"[-1.0,"), "force_N[0] = -1.0 N outside"),
+        (valid.replace(b"3.0]", b"41.0]"), "force_N[2] = 41.0 N outside"),
+    ]
+    for i, (payload, reason_part) in enumerate(bad_payloads, start=1):
+        assert payload != valid, f"payload {i} is not malformed"
+        a.put(bus.MOTOR_COMMAND, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        assert wait_until(lambda: sub.stats.rejected >= i), f"payload {i} was not rejected"
+        assert reason_part in sub.stats.last_reject_reason
+        assert sub.stats.last_reject_reason.startswith(bus.MOTOR_COMMAND)
+    # Still alive, still keeping the last valid command.
+    assert sub.latest() == good
+    newer = bus.ForceCommand(seq=2, stamp_s=2.0, force_N=[4.0, 5.0, 6.0], source="test")
+    # The publisher drops under congestion (motor keys): repeat until it lands.
+    assert wait_until(lambda: (pub.put(newer), sub.wait(0.05, lambda m: m == newer) == newer)[1])
+    assert sub.stats.rejected == len(bad_payloads)
+    sub.close()
+    pub.close()
+
+
+def test_liveliness_token_appears_and_vanishes_with_its_session() -> None:
+    port = free_tcp_port()
+    events: list[tuple[str, str]] = []
+    lock = threading.Lock()
+
+    def on_change(sample: zenoh.Sample) -> None:
+        with lock:
+            events.append((str(sample.key_expr), "up" if sample.kind == zenoh.SampleKind.PUT else "down"))
+
+    key = bus.liveliness_key("twin", "test")
+    with open_session(listen=[f"tcp/127.0.0.1:{port}"], connect=[]) as console:
+        console.liveliness().declare_subscriber(bus.ALIVE_ALL, on_change, history=True)
+        process = open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"])
+        try:
+            liveliness_token(process, "twin", "test")
+            assert wait_until(lambda: (key, "up") in events), events
+        finally:
+            process.close()
+        assert wait_until(lambda: (key, "down") in events), events
