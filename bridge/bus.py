@@ -289,7 +289,17 @@ def key_of_topic(topic: str) -> str:
 
 # --- encoding ---------------------------------------------------------------------------------
 
-_encoder = msgspec.json.Encoder()
+
+
+def _enc_hook(obj: Any) -> Any:
+    # numpy scalars (np.float64 subclasses float but msgspec wants exact builtins)
+    item = getattr(obj, "item", None)
+    if callable(item) and type(obj).__module__ == "numpy":
+        return item()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
+_encoder = msgspec.json.Encoder(enc_hook=_enc_hook)
 
 
 def _non_finite_field(msg: BusMessage) -> str | None:

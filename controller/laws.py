@@ -124,3 +124,33 @@ def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
     long = int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
     lower = lower_bounds(m.t_min, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
     return distribute(terms.Z, terms.g, lower, m.f_max, short, long).f
+
+
+def nominal_force_check(params: Params, config: LawConfig):
+    """A ``force_check`` for :func:`controller.trajectory.validate`: the forces the law would
+    command on the nominal path (α̂ = α^d, e = 0, so w = α̈^d) after the tension distribution must
+    lie within [f_min, f_max], and the distribution must be possible (n > 0, eq. 63)."""
+    m = controller_model(params, config)
+    short = short_cables(m)
+    long = int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
+
+    def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
+        terms = dynamics.evaluate(m, alpha, alpha_dot)
+        ok = np.ones(len(alpha), dtype=bool)
+        worst = ""
+        for k in range(len(alpha)):
+            Z = terms.Z[k]
+            theta_d_dot = Z.T @ alpha_dot[k] / m.rho
+            theta_d_ddot = (Z.T @ alpha_ddot[k] + terms.Z_dot[k].T @ alpha_dot[k]) / m.rho
+            f_fric = dynamics.f_friction(m, theta_d_dot)
+            gamma = terms.M[k] @ alpha_ddot[k] + terms.g[k] + Z @ f_fric
+            d = distribute(Z, gamma, lower_bounds(m.t_min, m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho),
+                           np.inf, short, long)
+            if not d.feasible or d.f.max() > m.f_max:
+                ok[k] = False
+                if not worst:
+                    worst = ("the cables cannot hold this configuration (eq. 63 needs −Z1⁻¹Z2 > 0)" if not d.feasible
+                             else f"needs {d.f.max():.1f} N on cable {int(np.argmax(d.f)) + 1} > f_max = {m.f_max:g} N")
+        return ok, worst
+
+    return check

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import typer
 
+from controller import cli as controller_cli
 from twin import cli as twin_cli
 from twin.kinematics_cli import kinematics_app, workspace
 
@@ -29,6 +30,10 @@ def _root() -> None:
 app.command(
     "model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True}
 )(twin_cli.model)
+app.command("twin")(twin_cli.twin)
+app.command("controller")(controller_cli.controller)
+controller_cli.campaign_app.command("control")(controller_cli.campaign_control)
+app.add_typer(controller_cli.campaign_app, name="campaign")
 app.add_typer(kinematics_app, name="kinematics")
 app.command("workspace")(workspace)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json as jsonlib
+import logging
 from pathlib import Path
 from typing import Optional
 
@@ -11,6 +12,7 @@ import typer
 
 from twin import cables, dynamics, xjoint
 from twin.model import build
+from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION
 from twin.params import ParameterError, Params, load_params, parse_override
 
 PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
@@ -85,3 +87,46 @@ def model(
         typer.echo("    " + fmt(row, 1, 5))
 
 
+
+
+def twin(
+    lockstep: bool = typer.Option(False, "--lockstep", help="One tick per command (deterministic; CI mode)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
+    cable_model: Optional[str] = typer.Option(None, "--cable-model", help="rigid, linear or variable (default: the parameter file's)."),
+    no_friction: bool = typer.Option(False, "--no-friction", help="Simulate without motor friction."),
+    max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
+    idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this many seconds without a command."),
+    instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
+    listen: Optional[list[str]] = LISTEN_OPTION,
+    connect: Optional[list[str]] = CONNECT_OPTION,
+    params_file: Optional[Path] = PARAMS_OPTION,
+    overrides: Optional[list[str]] = SET_OPTION,
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Run the simulated robot on the bus, speaking exactly the bridge's topics."""
+    from bridge.runtime import endpoints, setup_logging, stop_on_signals
+    from bridge.session import open_session
+    from twin.process import TwinNode, TwinProcessConfig, run_lockstep, run_realtime
+    from twin.sim import TwinConfig
+
+    setup_logging(verbose)
+    params = load_cli_params(params_file, overrides)
+    try:
+        twin_config = TwinConfig(cable_model=cable_model, friction=not no_friction, seed=seed)
+        build(params, cable_model)  # fail here on a bad cable model name, before opening the bus
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    stop = stop_on_signals()
+    config = TwinProcessConfig(lockstep=lockstep, max_ticks=max_ticks, idle_timeout_s=idle_timeout, instance=instance)
+    with open_session(endpoints(listen), endpoints(connect)) as session:
+        node = TwinNode(session, params, twin_config, config)
+        mode = "lockstep" if lockstep else "real time"
+        logging.getLogger("xneck.twin").info("twin %s up (%s, seed %d)", node.instance, mode, seed)
+        try:
+            ticks = (run_lockstep if lockstep else run_realtime)(node, stop)
+        finally:
+            node.close()
+        stats = node.commands.stats
+        logging.getLogger("xneck.twin").info(
+            "twin %s stopped after %d ticks; commands accepted %d, rejected %d, overruns %d",
+            node.instance, ticks, stats.accepted, stats.rejected, node.overruns)

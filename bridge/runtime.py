@@ -1,0 +1,41 @@
+"""What every bus process shares: logging, a stop event set by SIGINT/SIGTERM, endpoint options."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from typing import Optional
+
+import typer
+
+LISTEN_OPTION = typer.Option(
+    None, "--listen", help="Zenoh endpoint to listen on (repeatable), e.g. tcp/127.0.0.1:7447. "
+    "Default: $XNECK_ZENOH_LISTEN or an ephemeral loopback port.")
+CONNECT_OPTION = typer.Option(
+    None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
+
+
+def setup_logging(verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+    )
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by Ctrl-C or SIGTERM, so loops end cleanly and sessions get closed."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: object) -> None:
+        logging.getLogger("xneck").info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def endpoints(values: Optional[list[str]]) -> Optional[list[str]]:
+    """CLI endpoint list: None (not given) defers to the environment."""
+    return list(values) if values else None

@@ -1,0 +1,221 @@
+"""Headless campaigns: the real processes on a private loopback bus, recorded as one MCAP file.
+
+:func:`run_campaign` opens a Zenoh session that listens on a free loopback port (the hub),
+starts the MCAP recorder on it, then starts ``xneck twin --lockstep`` (unless the robot's bridge
+is already on the bus) and ``xneck controller`` as separate processes connected to the hub. It
+follows the controller's campaign events (progress, finished, aborted), stops everything within
+bounded time, and computes the paper's metrics from the archive it wrote — so what it prints is
+exactly what the file holds.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from bridge import bus
+from bridge.session import free_tcp_port, open_session
+from controller.laws import LawConfig
+from controller.metrics import campaign_metrics
+from controller.trajectory import Trajectory
+from server.archive import CampaignRecorder, read_campaign
+from twin.params import Params
+
+STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
+
+
+@dataclass(frozen=True)
+class CampaignSpec:
+    kind: str  # "control" or "identification"
+    law: LawConfig
+    trajectory: Trajectory
+    twin: bool = True  # start a lockstep twin; False: the robot's bridge is already on the bus
+    seed: int = 0
+    timeout_s: float = 600.0
+    params_file: Path | None = None
+    overrides: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
+
+
+@dataclass
+class CampaignResult:
+    campaign_id: str
+    path: Path
+    outcome: str
+    message: str
+    metrics: dict[str, object] = field(default_factory=dict)
+    law: str = ""
+
+    def summary(self) -> dict[str, object]:
+        return {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
+                "message": self.message, "law": self.law, "metrics": self.metrics}
+
+    def table(self) -> str:
+        m = self.metrics
+        lines = [f"campaign {self.campaign_id} ({self.law}): {self.outcome}  {self.message}", f"archive: {self.path}"]
+        if m.get("ticks"):
+            fmt = lambda v: "  ".join(f"{x:7.3f}" for x in v)  # noqa: E731
+            lines += [
+                f"ticks {m['ticks']}, {m['duration_s']:.2f} s, saturated ticks {m['saturated_ticks']}",
+                "                      per joint (deg)            all",
+                f"mean |α̂ − α^d| (e)    {fmt(m['e_mean_deg'])}   {m['e_mean_all_deg']:7.3f}",
+                f"max  |α̂ − α^d|        {fmt(m['e_max_deg'])}",
+            ]
+            if m.get("e_alpha_mean_deg") is not None:
+                lines += [f"mean |α̂ − α_IP| (e_α) {fmt(m['e_alpha_mean_deg'])}   {m['e_alpha_mean_all_deg']:7.3f}",
+                          f"max  |α̂ − α_IP|       {fmt(m['e_alpha_max_deg'])}"]
+            lines += [f"mean force (N)  {fmt(m['force_mean_N'])}   all {m['force_mean_all_N']:.2f}",
+                      f"max force (N)   {fmt(m['force_max_N'])}"]
+        return "\n".join(lines)
+
+
+def new_campaign_id(kind: str) -> str:
+    return f"{kind}-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:4]}"
+
+
+def _xneck(*args: str) -> list[str]:
+    return [sys.executable, "-m", "server.cli", *args]
+
+
+def _param_args(spec: CampaignSpec) -> list[str]:
+    out = ["--params", str(spec.params_file)] if spec.params_file else []
+    for o in spec.overrides:
+        out += ["--set", o]
+    return out
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(STOP_GRACE_S)
+
+
+def _tail(path: Path, lines: int = 8) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return ""
+
+
+def run_campaign(
+    spec: CampaignSpec, params: Params, out: Path | None = None,
+    progress: Callable[[float, str], None] | None = None, campaign_id: str | None = None,
+) -> CampaignResult:
+    """Run one campaign end to end (module docstring). Never leaves a child process behind."""
+    campaign_id = campaign_id or new_campaign_id(spec.kind)
+    path = Path(out) if out else Path.cwd() / f"campaign-{campaign_id}.mcap"
+    if path.exists():
+        raise FileExistsError(f"{path} exists: choose another --out (archives are never overwritten)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    workdir = Path(tempfile.mkdtemp(prefix=f"xneck-{campaign_id}-"))
+    traj_file = workdir / "trajectory.json"
+    traj_file.write_text(spec.trajectory.to_json())
+    common = ["--listen", "tcp/127.0.0.1:0", "--connect", hub, *[a for c in spec.connect for a in ("--connect", c)],
+              *_param_args(spec)]
+    metadata = {
+        "campaign_id": campaign_id, "kind": spec.kind, "law": spec.law.name,
+        "trajectory": spec.trajectory.to_json(), "parameter_set": params.name,
+        "target": "twin" if spec.twin else "robot", "seed": str(spec.seed),
+        "parameters_toml": params.to_toml(),
+    }
+    events: queue.Queue[bus.CampaignEvent] = queue.Queue()
+    procs: dict[str, subprocess.Popen] = {}
+    logs: dict[str, Path] = {}
+    outcome, message = "aborted", ""
+    with open_session(listen=[hub], connect=list(spec.connect)) as session:
+        def on_event(sample) -> None:
+            try:
+                ev = bus.decode(bus.CampaignEvent, sample.payload.to_bytes())
+            except bus.BusDecodeError:
+                return
+            if ev.campaign_id == campaign_id:
+                events.put(ev)
+
+        sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
+        recorder = CampaignRecorder(session, path, metadata)
+        try:
+            def spawn(name: str, args: list[str]) -> None:
+                logs[name] = workdir / f"{name}.log"
+                with open(logs[name], "wb") as log:
+                    procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT,
+                                                   stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+            if spec.twin:
+                spawn("twin", ["twin", "--lockstep", "--seed", str(spec.seed), "--idle-timeout", "30",
+                               "--instance", f"twin-{campaign_id}", *common])
+            law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
+            spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
+                                 *(["--lockstep"] if spec.twin else []), "--campaign-id", campaign_id,
+                                 "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
+            deadline = time.monotonic() + spec.timeout_s
+            while True:
+                try:
+                    ev = events.get(timeout=0.2)
+                except queue.Empty:
+                    ev = None
+                if ev is not None:
+                    if progress:
+                        progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
+                    if ev.event in ("finished", "aborted"):
+                        outcome, message = ev.event, ev.message
+                        break
+                    continue
+                dead = [n for n, p in procs.items() if p.poll() is not None]
+                if dead:
+                    name = dead[0]
+                    outcome = "aborted"
+                    message = f"{name} exited with code {procs[name].returncode}: {_tail(logs[name], 3)}"
+                    break
+                if time.monotonic() > deadline:
+                    outcome, message = "aborted", f"timed out after {spec.timeout_s:.0f} s"
+                    break
+        finally:
+            for p in procs.values():
+                _stop(p)
+            sub.undeclare()
+            recorder.stop(outcome, {"message": message[:2000]})
+    result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name)
+    try:
+        result.metrics = metrics_from_archive(path)
+    except ValueError as exc:
+        result.metrics = {"error": str(exc)}
+    return result
+
+
+def metrics_from_archive(path: Path) -> dict[str, object]:
+    """The paper's metrics (controller.metrics) from a recorded campaign."""
+    campaign = read_campaign(path)
+    status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS) if not m.holding]
+    if not status:
+        raise ValueError(f"{path}: no controller status recorded")
+    cmds = {m.stamp_s: m.force_N for _, m in campaign.messages(bus.MOTOR_COMMAND)}
+    status = [m for m in status if m.stamp_s in cmds]
+    t = np.array([m.stamp_s for m in status])
+    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+    return campaign_metrics(
+        t_s=t,
+        alpha_hat=np.array([m.alpha_hat_rad for m in status]),
+        alpha_d=np.array([m.alpha_d_rad for m in status]),
+        force_N=np.array([cmds[m.stamp_s] for m in status]),
+        saturated=np.array([m.saturated for m in status]),
+        t_ip_s=np.array([m.capture_stamp_s for m in frames]),
+        alpha_ip=np.array([m.alpha_ip_rad for m in frames]).reshape(len(frames), -1),
+    )

@@ -1,0 +1,191 @@
+"""The controller as a bus process (`xneck controller`): motor state in, force command out.
+
+Each new ``MotorState`` triggers one tick of the law (:class:`controller.laws.ComputedTorque`):
+α̂ from the encoders, α^d from the trajectory at the state's time stamp, forces from the
+distribution; then a ``ForceCommand`` and a ``ControllerStatus`` (tick period, compute time,
+overruns, deadline misses, saturation, α̂, α^d, e). With the bridge or the real-time twin that is
+500 Hz; with the lockstep twin it is as fast as both go.
+
+Safety: it commands the hold forces (Z f = g(α̂) with every cable at t_min, or at the last sane
+α̂) and says why in the status when
+- no valid state arrived for ``stale_s`` (10 ms; malformed or NaN states are rejected by the
+  subscriber, so they count as missing) — it resumes when states come back;
+- the estimate diverges (non-finite, or beyond the joint limit plus a margin) — latched: the
+  campaign is aborted with the reason.
+Time: the trajectory runs on the states' stamps (the twin's simulated time or the bridge's
+clock), from the first state received. The neck must be straight then (eq. 20's zero).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from bridge import bus
+from bridge.session import liveliness_token, publisher, subscribe_latest
+from controller.laws import ComputedTorque, LawConfig, hold_forces
+from controller.trajectory import Trajectory
+from twin.params import Params
+
+log = logging.getLogger("xneck.controller")
+
+DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
+LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
+
+
+@dataclass(frozen=True)
+class ControllerProcessConfig:
+    campaign_id: str = ""
+    campaign_kind: str = "control"
+    settle_s: float = 1.0  # hold at the last waypoint this long before "finished"
+    stale_s: float = 0.010  # real time: no new state for this long -> hold
+    lockstep: bool = False
+    idle_timeout_s: float = 10.0  # no state at all for this long -> give up (twin gone)
+    exit_when_done: bool = True
+    instance: str = ""
+
+
+class ControllerNode:
+    def __init__(self, session: zenoh.Session, params: Params, law: LawConfig, trajectory: Trajectory | None,
+                 config: ControllerProcessConfig):
+        self.params, self.law, self.trajectory, self.config = params, law, trajectory, config
+        self.ctl = ComputedTorque(params, law)
+        n_motors = self.ctl.model.n_cables
+        self.instance = config.instance or f"controller-{uuid.uuid4().hex[:6]}"
+        self.campaign_id = config.campaign_id or f"c-{uuid.uuid4().hex[:8]}"
+
+        def check_state(msg: bus.MotorState) -> None:
+            if len(msg.theta_rad) != n_motors:
+                raise bus.BusDecodeError(f"MotorState: {len(msg.theta_rad)} angles for {n_motors} motors")
+
+        self.states = subscribe_latest(session, bus.MOTOR_STATE, validate=check_state)
+        self._cmd = publisher(session, bus.MOTOR_COMMAND)
+        self._status = publisher(session, bus.CONTROLLER_STATUS)
+        self._events = publisher(session, bus.CAMPAIGN_EVENTS)
+        self._token = liveliness_token(session, "controller", self.instance)
+        self._seq = {"cmd": 0, "status": 0, "event": 0}
+        self.overruns = self.deadline_misses = 0
+        self.hold_reason = ""
+        self.latched = False
+        self.outcome = ""
+        self._last_cmd: bus.ForceCommand | None = None
+
+    def _next(self, name: str) -> int:
+        self._seq[name] += 1
+        return self._seq[name]
+
+    def event(self, event: str, progress: float = 0.0, message: str = "") -> None:
+        self._events.put(bus.CampaignEvent(seq=self._next("event"), stamp_s=time.time(), campaign_id=self.campaign_id,
+                                           kind=self.config.campaign_kind, event=event, progress=progress,
+                                           message=message))
+
+    def command(self, f: np.ndarray, stamp_s: float) -> None:
+        self._last_cmd = bus.ForceCommand(seq=self._next("cmd"), stamp_s=stamp_s, force_N=f.tolist(),
+                                          source=self.law.name)
+        self._cmd.put(self._last_cmd)
+
+    def hold(self, reason: str, stamp_s: float) -> None:
+        if reason != self.hold_reason:
+            log.warning("holding: %s", reason)
+        self.hold_reason = reason
+        alpha = self.ctl.estimator.alpha_hat
+        if not np.all(np.isfinite(alpha)) or np.any(np.abs(alpha) > math.radians(self.params.limits.alpha_max_deg)):
+            alpha = self._last_sane
+        self.command(hold_forces(self.params, alpha), stamp_s)
+
+    def status(self, stamp_s: float, tick_s: float, compute_s: float, sat, alpha_hat, alpha_d, e) -> None:
+        self._status.put(bus.ControllerStatus(
+            seq=self._next("status"), stamp_s=stamp_s, law=self.law.name, tick_s=tick_s, compute_s=compute_s,
+            overruns=self.overruns, deadline_misses=self.deadline_misses, saturated=[bool(s) for s in sat],
+            alpha_hat_rad=[float(a) if math.isfinite(a) else 0.0 for a in alpha_hat],
+            alpha_d_rad=list(map(float, alpha_d)), e_rad=[float(x) if math.isfinite(x) else 0.0 for x in e],
+            holding=bool(self.hold_reason), hold_reason=self.hold_reason))
+
+    def run(self, stop: threading.Event) -> str:
+        """Run until the trajectory is done (then "finished"), the estimate diverges ("aborted"),
+        the states stop for good ("aborted") or ``stop`` is set ("stopped")."""
+        cfg, period = self.config, 1.0 / self.law.rate_hz
+        n_joints = self.ctl.model.n_joints
+        limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
+        self._last_sane = np.zeros(n_joints)
+        first = self.states.wait(cfg.idle_timeout_s)
+        if first is None:
+            self.outcome = "aborted"
+            self.event("aborted", message=f"no motor state within {cfg.idle_timeout_s} s")
+            return self.outcome
+        t0, last_seq, last_wall = first.stamp_s, None, time.perf_counter()
+        self.ctl.reset(theta=np.asarray(first.theta_rad))
+        total = (self.trajectory.duration_s + cfg.settle_s) if self.trajectory else math.inf
+        self.event("started", message=f"{self.law.name}, trajectory {self.trajectory.name if self.trajectory else 'hold'}")
+        next_progress = 0.0
+        state = first
+        while not stop.is_set():
+            if last_seq is not None:
+                state = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s, lambda s: s.seq != last_seq)
+                if state is None or state.seq == last_seq:
+                    stale_for = time.perf_counter() - last_wall
+                    if stale_for > cfg.idle_timeout_s:
+                        self.outcome = "aborted"
+                        self.event("aborted", message=f"no motor state for {stale_for:.1f} s")
+                        return self.outcome
+                    if cfg.lockstep:
+                        # The bus may drop a message: resend the same command (same seq, so a twin
+                        # that already stepped on it ignores it) instead of stalling.
+                        if self._last_cmd is not None:
+                            self._cmd.put(self._last_cmd)
+                    else:
+                        self.hold(f"stale state: none for {stale_for * 1e3:.0f} ms", time.time())
+                    continue
+            wall = time.perf_counter()
+            tick_s, last_wall, last_seq = wall - last_wall, wall, state.seq
+            t = state.stamp_s - t0
+            if self.trajectory is not None:
+                ref = self.trajectory.sample(np.array([t]))
+                a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
+            else:
+                a_d, a_d_dot, a_d_ddot = self._last_sane, np.zeros(n_joints), np.zeros(n_joints)
+            if self.latched:
+                self.hold(self.hold_reason, state.stamp_s)
+                continue
+            cmd = self.ctl.step(np.asarray(state.theta_rad), a_d, a_d_dot, a_d_ddot)
+            if not np.all(np.isfinite(cmd.alpha_hat)) or np.any(np.abs(cmd.alpha_hat) > limit) \
+                    or not np.all(np.isfinite(cmd.f)):
+                self.latched = True
+                self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°", state.stamp_s)
+                self.outcome = "aborted"
+                self.event("aborted", min(t / total, 1.0), self.hold_reason)
+                if cfg.exit_when_done:
+                    return self.outcome
+                continue
+            self._last_sane = cmd.alpha_hat.copy()
+            self.hold_reason = ""
+            self.command(cmd.f, state.stamp_s)
+            compute_s = time.perf_counter() - wall
+            if compute_s > period:
+                self.overruns += 1
+            if not cfg.lockstep and tick_s > 2 * period:
+                self.deadline_misses += 1
+            self.status(state.stamp_s, tick_s, compute_s, cmd.saturated, cmd.alpha_hat, a_d, cmd.e)
+            if t >= next_progress and math.isfinite(total):
+                self.event("progress", min(t / total, 1.0))
+                next_progress += 0.5
+            if t >= total and self.outcome == "":
+                self.outcome = "finished"
+                self.event("finished", 1.0, f"overruns {self.overruns}, deadline misses {self.deadline_misses}")
+                if cfg.exit_when_done:
+                    return self.outcome
+        return self.outcome or "stopped"
+
+    def close(self) -> None:
+        for closer in (self.states.close, self._cmd.close, self._status.close, self._events.close, self._token.undeclare):
+            try:
+                closer()
+            except Exception:  # noqa: BLE001
+                pass

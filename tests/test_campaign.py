@@ -1,0 +1,87 @@
+"""Headless control campaigns over the bus (issue 4): real twin and controller processes,
+recorded to MCAP and read back; the paper's findings hold on the twin."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from bridge import bus
+from controller.campaign import CampaignSpec, run_campaign
+from controller.laws import LawConfig
+from controller.trajectory import control_test_trajectory
+from server.archive import read_campaign
+
+
+def _xneck(*args, timeout=180):
+    return subprocess.run([sys.executable, "-m", "server.cli", *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def campaigns(params, tmp_path_factory):
+    """The §7 control test with each law, each against its own lockstep twin (seed 3)."""
+    out = tmp_path_factory.mktemp("campaigns")
+    laws = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
+            "no_pulleys": LawConfig(law=2, no_pulleys=True)}
+    return {name: run_campaign(CampaignSpec("control", law, control_test_trajectory(), seed=3, timeout_s=240),
+                               params, out / f"{name}.mcap") for name, law in laws.items()}
+
+
+def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
+    for name, result in campaigns.items():
+        assert result.outcome == "finished", (name, result.message)
+        c = read_campaign(result.path)
+        assert c.info["outcome"] == "finished" and c.info["law"] == result.law
+        for key in (bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA, bus.TWIN_TRUTH,
+                    bus.CONTROLLER_STATUS, bus.CAMPAIGN_EVENTS):
+            assert len(c.messages(key)) > 0, (name, key)
+            assert c.schemas[bus.mcap_topic(key)] == bus.schema_name(bus.message_type(key))
+        assert len(c.messages(bus.CONTROLLER_STATUS)) >= 0.95 * 7000
+        assert result.metrics["camera_frames"] > 350
+
+
+def test_law_2_tracks_better_than_law_1_with_lower_mean_forces(campaigns):
+    m1, m2 = campaigns["law1"].metrics, campaigns["law2"].metrics
+    assert m2["e_mean_all_deg"] < m1["e_mean_all_deg"] and m2["force_mean_all_N"] < m1["force_mean_all_N"]
+
+
+def test_law_3_has_the_smallest_estimation_error_against_the_camera(campaigns):
+    ea = {k: r.metrics["e_alpha_mean_all_deg"] for k, r in campaigns.items()}
+    assert ea["law3"] == min(ea.values())
+
+
+def test_neglecting_the_pulleys_gives_larger_e_and_e_alpha(campaigns):
+    m2, mp = campaigns["law2"].metrics, campaigns["no_pulleys"].metrics
+    assert mp["e_mean_all_deg"] > m2["e_mean_all_deg"] and mp["e_alpha_mean_all_deg"] > m2["e_alpha_mean_all_deg"]
+
+
+def test_lockstep_campaigns_repeat_exactly(params, campaigns, tmp_path):
+    again = run_campaign(CampaignSpec("control", LawConfig(law=2), control_test_trajectory(), seed=3), params,
+                         tmp_path / "again.mcap")
+    assert again.metrics == campaigns["law2"].metrics
+
+
+def test_cli_campaign_prints_json_metrics(tmp_path):
+    out = tmp_path / "run.mcap"
+    run = _xneck("campaign", "control", "--law", "1", "--twin", "--out", str(out), "--json", "--seed", "2")
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    assert summary["outcome"] == "finished" and summary["law"] == "law1" and out.exists()
+    assert len(summary["metrics"]["e_mean_deg"]) == 3 and summary["metrics"]["saturated_ticks"] >= 0
+
+
+def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_path):
+    bad = tmp_path / "reach.json"
+    bad.write_text(json.dumps({"name": "reach", "waypoints_deg": [[0, 0, 0], [30, 70, 0], [0, 0, 0]],
+                               "durations_s": [3.0, 3.0]}))
+    out = tmp_path / "never.mcap"
+    run = _xneck("campaign", "control", "--trajectory", str(bad), "--out", str(out))
+    assert run.returncode == 2 and "waypoint 1" in run.stderr and "70" in run.stderr
+    assert not out.exists()
+    fast = tmp_path / "fast.json"
+    fast.write_text(json.dumps({"waypoints_deg": [[0, 0, 0], [50, 50, 50]], "durations_s": [0.2]}))
+    run = _xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
+    assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
