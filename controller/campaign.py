@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import zenoh
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session
@@ -48,6 +50,7 @@ class CampaignSpec:
     params_file: Path | None = None
     overrides: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
+    realtime: bool = False  # twin paced at 500 Hz by the clock instead of lockstep (live viewing)
 
 
 @dataclass
@@ -117,14 +120,28 @@ def _tail(path: Path, lines: int = 8) -> str:
 def run_campaign(
     spec: CampaignSpec, params: Params, out: Path | None = None,
     progress: Callable[[float, str], None] | None = None, campaign_id: str | None = None,
+    session: zenoh.Session | None = None, hub: str | None = None, stop: threading.Event | None = None,
 ) -> CampaignResult:
-    """Run one campaign end to end (module docstring). Never leaves a child process behind."""
+    """Run one campaign end to end (module docstring). Never leaves a child process behind.
+
+    ``session``/``hub``: run on an existing session that listens on ``hub`` (the server does, so
+    it sees the live traffic); by default a private hub is opened. ``stop``: set it to abort.
+    """
     campaign_id = campaign_id or new_campaign_id(spec.kind)
     path = Path(out) if out else Path.cwd() / f"campaign-{campaign_id}.mcap"
     if path.exists():
         raise FileExistsError(f"{path} exists: choose another --out (archives are never overwritten)")
+    if (session is None) != (hub is None):
+        raise ValueError("pass both session and hub, or neither")
     path.parent.mkdir(parents=True, exist_ok=True)
-    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    if session is None:
+        hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+        with open_session(listen=[hub], connect=list(spec.connect)) as own:
+            return _run(spec, params, path, progress, campaign_id, own, hub, stop or threading.Event())
+    return _run(spec, params, path, progress, campaign_id, session, hub, stop or threading.Event())
+
+
+def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> CampaignResult:
     workdir = Path(tempfile.mkdtemp(prefix=f"xneck-{campaign_id}-"))
     traj_file = workdir / "trajectory.json"
     traj_file.write_text(spec.trajectory.to_json())
@@ -140,58 +157,62 @@ def run_campaign(
     procs: dict[str, subprocess.Popen] = {}
     logs: dict[str, Path] = {}
     outcome, message = "aborted", ""
-    with open_session(listen=[hub], connect=list(spec.connect)) as session:
-        def on_event(sample) -> None:
-            try:
-                ev = bus.decode(bus.CampaignEvent, sample.payload.to_bytes())
-            except bus.BusDecodeError:
-                return
-            if ev.campaign_id == campaign_id:
-                events.put(ev)
 
-        sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
-        recorder = CampaignRecorder(session, path, metadata)
+    def on_event(sample) -> None:
         try:
-            def spawn(name: str, args: list[str]) -> None:
-                logs[name] = workdir / f"{name}.log"
-                with open(logs[name], "wb") as log:
-                    procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            ev = bus.decode(bus.CampaignEvent, sample.payload.to_bytes())
+        except bus.BusDecodeError:
+            return
+        if ev.campaign_id == campaign_id:
+            events.put(ev)
 
-            if spec.twin:
-                spawn("twin", ["twin", "--lockstep", "--seed", str(spec.seed), "--idle-timeout", "30",
-                               "--instance", f"twin-{campaign_id}", *common])
-            law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
-            spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
-                                 *(["--lockstep"] if spec.twin else []), "--campaign-id", campaign_id,
-                                 "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
-            deadline = time.monotonic() + spec.timeout_s
-            while True:
-                try:
-                    ev = events.get(timeout=0.2)
-                except queue.Empty:
-                    ev = None
-                if ev is not None:
-                    if progress:
-                        progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
-                    if ev.event in ("finished", "aborted"):
-                        outcome, message = ev.event, ev.message
-                        break
-                    continue
-                dead = [n for n, p in procs.items() if p.poll() is not None]
-                if dead:
-                    name = dead[0]
-                    outcome = "aborted"
-                    message = f"{name} exited with code {procs[name].returncode}: {_tail(logs[name], 3)}"
+    sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
+    recorder = CampaignRecorder(session, path, metadata)
+    try:
+        def spawn(name: str, args: list[str]) -> None:
+            logs[name] = workdir / f"{name}.log"
+            with open(logs[name], "wb") as log:
+                procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT,
+                                               stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+        lockstep = spec.twin and not spec.realtime
+        if spec.twin:
+            spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
+                           "--idle-timeout", "30", "--instance", f"twin-{campaign_id}", *common])
+        law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
+        spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
+                             *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
+                             "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
+        deadline = time.monotonic() + spec.timeout_s
+        while True:
+            try:
+                ev = events.get(timeout=0.2)
+            except queue.Empty:
+                ev = None
+            if ev is not None:
+                if progress:
+                    progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
+                if ev.event in ("finished", "aborted"):
+                    outcome, message = ev.event, ev.message
                     break
-                if time.monotonic() > deadline:
-                    outcome, message = "aborted", f"timed out after {spec.timeout_s:.0f} s"
-                    break
-        finally:
-            for p in procs.values():
-                _stop(p)
-            sub.undeclare()
-            recorder.stop(outcome, {"message": message[:2000]})
+                continue
+            dead = [n for n, p in procs.items() if p.poll() is not None]
+            if dead:
+                name = dead[0]
+                outcome = "aborted"
+                message = f"{name} exited with code {procs[name].returncode}: {_tail(logs[name], 3)}"
+                break
+            if time.monotonic() > deadline:
+                outcome, message = "aborted", f"timed out after {spec.timeout_s:.0f} s"
+                break
+            if stop.is_set():
+                outcome, message = "aborted", "stopped by the user"
+                break
+    finally:
+        for p in procs.values():
+            _stop(p)
+        sub.undeclare()
+        recorder.stop(outcome, {"message": message[:2000]})
     result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name)
     try:
         result.metrics = metrics_from_archive(path)
