@@ -9,13 +9,20 @@ exact jets replace). Run: ``.venv/bin/python benchmarks/model.py``.
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import summary, time_calls  # noqa: E402
+# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin
+# package: drop it and load the shared timing helpers by path.
+HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
+_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+_timing = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_timing)
+summary, time_calls = _timing.summary, _timing.time_calls
 
 from twin import cables, dynamics  # noqa: E402
 from twin.model import build  # noqa: E402

@@ -61,9 +61,10 @@ def _tension_and_slopes(m, x, x_dot, t, K, D):
 
 
 @njit(cache=True)
-def step(m, s, f, h, n_sub, work, t_out):
+def step(m, s, f, h, n_sub, work, t_out, x_out):
     """Advance state ``s`` = (α, θ, α̇, θ̇) in place by ``n_sub`` substeps of ``h`` seconds with the
-    motor forces ``f`` (N) held. Writes the cable tensions of the last substep into ``t_out``.
+    motor forces ``f`` (N) held. Writes the cable tensions of the last substep into ``t_out`` and
+    the cable stretch at the end (m, zero for rigid cables) into ``x_out``.
 
     Returns a bit field: bit j set if cable j is slack at the end; bit 62 set if a joint reached
     the flat singularity (the step is then not taken and the state is left unchanged).
@@ -132,10 +133,13 @@ def step(m, s, f, h, n_sub, work, t_out):
             if abs(alpha[i]) >= ALPHA_FLAT:
                 s[:] = s0
                 return np.int64(1) << 62
+    evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
     if m.cable_model == RIGID:
-        evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
         theta[:] = -(lc - m.l_c0) / m.rho
         theta_dot[:] = (Z.T @ alpha_dot) / m.rho
+        x_out[:] = 0.0
+    else:
+        x_out[:] = lc - m.l_c0 + m.rho * theta
     bits = np.int64(0)
     for j in range(nc):
         if t_out[j] <= 0.0:

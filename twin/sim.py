@@ -16,7 +16,7 @@ import numpy as np
 
 from twin import cables, dynamics
 from twin.integrator import step
-from twin.model import RIGID, Model, build
+from twin.model import Model, build
 from twin.params import Params, load_params
 from twin.sensors import Camera, quantise_encoder
 
@@ -75,6 +75,7 @@ class Twin:
         self.state = np.zeros(2 * (n + nc))
         self._work = dynamics.workspace(self.model)
         self._tension = np.zeros(nc)
+        self._stretch = np.zeros(nc)
         self.seq = 0
         self.t_s = 0.0
         sensors = self.params.sensors
@@ -110,14 +111,14 @@ class Twin:
     def tick(self, f: np.ndarray) -> Tick:
         """Hold forces ``f`` (N, one per cable, assumed validated) for one period and step."""
         h = self.dt / self.config.substeps
-        bits = step(self.model, self.state, np.asarray(f, dtype=float), h, self.config.substeps, self._work, self._tension)
+        bits = int(step(self.model, self.state, np.asarray(f, dtype=float), h, self.config.substeps, self._work,
+                        self._tension, self._stretch))
         flat = bool(bits >> 62 & 1)
         self.seq += 1
         self.t_s = self.seq * self.dt
         n, nc = self._n, self._nc
-        alpha = self.state[:n].copy()
-        theta = self.state[n : n + nc].copy()
-        x = np.zeros(nc) if self.model.cable_model == RIGID else cables.elongation(self.model, alpha, theta)
+        s = self.state.copy()
+        alpha, theta = s[:n], s[n : n + nc]
         frames = self.camera.update(self.t_s, alpha) if self.camera else []
         return Tick(
             seq=self.seq,
@@ -125,12 +126,12 @@ class Twin:
             theta_meas=quantise_encoder(theta, self.counts_per_rev),
             frames=frames,
             alpha=alpha,
-            alpha_dot=self.state[n + nc : 2 * n + nc].copy(),
+            alpha_dot=s[n + nc : 2 * n + nc],
             theta=theta,
-            theta_dot=self.state[2 * n + nc :].copy(),
+            theta_dot=s[2 * n + nc :],
             tension=self._tension.copy(),
-            elongation=x,
-            slack=np.array([(bits >> j) & 1 == 1 for j in range(nc)]) if not flat else np.zeros(nc, bool),
-            near_singular=flat or bool(np.any(np.abs(alpha) >= NEAR_FLAT)),
+            elongation=self._stretch.copy(),
+            slack=(bits >> np.arange(nc)) & 1 == 1 if not flat else np.zeros(nc, bool),
+            near_singular=flat or bool(np.abs(alpha).max() >= NEAR_FLAT),
             flat=flat,
         )

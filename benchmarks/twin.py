@@ -1,0 +1,87 @@
+"""Speed of the twin: real-time factor of the full model stepped at 500 Hz (issue 3's target:
+at least 50x real time on one core, so a 100 s campaign is a two-second CI job).
+
+Input: the forces law 2 commands on the §7 control test (recorded once from an in-process run).
+Prints the per-tick cost of Twin.tick (median, p99), the real-time factor, and the ratio against
+scipy's solve_ivp (Radau, rtol 1e-8) integrating the same model over the same held forces, in
+the same process. Run: ``.venv/bin/python benchmarks/twin.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin
+# package: drop it and load the shared timing helpers by path.
+HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
+_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+_timing = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_timing)
+summary = _timing.summary
+
+from controller.laws import LawConfig  # noqa: E402
+from controller.offline import run_closed_loop  # noqa: E402
+from controller.trajectory import control_test_trajectory  # noqa: E402
+from twin import dynamics  # noqa: E402
+from twin.params import load_params  # noqa: E402
+from twin.sim import Twin, TwinConfig  # noqa: E402
+
+TARGET_RTF = 50.0
+RADAU_SPAN_S = 2.0  # Radau is slow: compare both on the first 2 s of the same input
+
+
+def main() -> None:
+    params = load_params()
+    forces = run_closed_loop(params, LawConfig(law=2), control_test_trajectory()).force_N
+    twin = Twin(params, TwinConfig())  # variable stiffness + friction, camera on
+    dt = twin.dt
+    twin.tick(forces[0])  # compile outside the timing
+    twin.reset()
+    per_tick = np.empty(len(forces))
+    clock = time.perf_counter
+    t_all = clock()
+    for k, f in enumerate(forces):
+        t0 = clock()
+        twin.tick(f)
+        per_tick[k] = clock() - t0
+    wall = clock() - t_all
+    sim_s = len(forces) * dt
+    print(f"xneck twin benchmark: {len(forces)} ticks ({sim_s:.1f} s simulated) of the full model, "
+          f"variable-stiffness cables and friction, {twin.config.substeps} substeps per tick")
+    summary("Twin.tick (integration + sensors + truth)", per_tick)
+    rtf = sim_s / wall
+    print(f"real-time factor: {rtf:.0f}x  (a 100 s campaign takes {100 / rtf:.2f} s)  target >= {TARGET_RTF:.0f}x -> "
+          f"{'meets' if rtf >= TARGET_RTF else 'MISSES'}")
+
+    # Radau on the same held forces, tick by tick, for RADAU_SPAN_S.
+    m = twin.model
+    n, nc = m.n_joints, m.n_cables
+    ticks = int(RADAU_SPAN_S / dt)
+    state = np.zeros(2 * (n + nc))
+    t0 = clock()
+    for f in forces[:ticks]:
+        def rhs(_t, s, f=f):
+            acc = dynamics.accelerations(m, s[:n], s[n:n + nc], s[n + nc:2 * n + nc], s[2 * n + nc:], f)
+            return np.concatenate([s[n + nc:], acc.alpha_ddot, acc.theta_ddot])
+
+        state = solve_ivp(rhs, (0.0, dt), state, method="Radau", rtol=1e-8, atol=1e-10).y[:, -1]
+    radau = clock() - t0
+    twin.reset()
+    t0 = clock()
+    for f in forces[:ticks]:
+        tick = twin.tick(f)
+    ours = clock() - t0
+    err = np.degrees(np.abs(tick.alpha - state[:n])).max()
+    print(f"solve_ivp Radau over the first {RADAU_SPAN_S:.0f} s: {radau:.2f} s; Twin.tick: {ours:.3f} s; "
+          f"ratio Radau / twin: {radau / ours:.0f}x; max |Δα| at the end {err:.4f}°")
+
+
+if __name__ == "__main__":
+    main()
