@@ -18,6 +18,7 @@ clock), from the first state received. The neck must be straight then (eq. 20's 
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import threading
@@ -120,6 +121,10 @@ class ControllerNode:
             self.outcome = "aborted"
             self.event("aborted", message=f"no motor state within {cfg.idle_timeout_s} s")
             return self.outcome
+        # Everything allocated so far lives for the whole run: keep the collector off it, so a
+        # full collection cannot land in the middle of a 2 ms tick.
+        gc.collect()
+        gc.freeze()
         t0, last_seq, last_wall = first.stamp_s, None, time.perf_counter()
         self.ctl.reset(theta=np.asarray(first.theta_rad))
         total = (self.trajectory.duration_s + cfg.settle_s) if self.trajectory else math.inf

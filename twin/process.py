@@ -16,6 +16,7 @@ Two modes:
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import threading
@@ -150,6 +151,8 @@ def run_realtime(node: TwinNode, stop: threading.Event) -> int:
     """Ticks paced by the clock; the latest valid command is held between commands."""
     cfg, dt = node.config, node.twin.dt
     ticks = 0
+    gc.collect()
+    gc.freeze()  # long-lived objects out of the collector's way: no full collection mid-tick
     start = time.perf_counter()
     next_health = start + 1.0
     while not stop.is_set() and (cfg.max_ticks is None or ticks < cfg.max_ticks):

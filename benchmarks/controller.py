@@ -1,0 +1,157 @@
+"""Controller speed (issue 4): per-tick compute time, and state-to-command latency on the bus.
+
+1. In process: the time of one ComputedTorque.step (law 3, the most expensive: estimation with
+   eq. 58, model at α̂ and α^d, distribution) and of its parts, median and p99, on the encoder
+   angles of a recorded run. Target p99 <= 0.5 ms (a quarter of the 2 ms period). Baseline: the
+   same step with Z by central differences of l_c, which the exact jets replace.
+2. Over Zenoh on loopback against the real-time twin (500 Hz, `xneck twin`) with `xneck
+   controller --law 2` following a trajectory for ``--seconds`` (default 60): state-to-command
+   latency seen by an observer session (p50, p99) and the controller's deadline misses (target 0).
+Run: ``.venv/bin/python benchmarks/controller.py [--seconds 60]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # this file shadows `controller`
+_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+_timing = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_timing)
+
+from bridge import bus  # noqa: E402
+from bridge.session import free_tcp_port, open_session  # noqa: E402
+from controller.distribution import distribute, lower_bounds  # noqa: E402
+from controller.laws import ComputedTorque, LawConfig  # noqa: E402
+from controller.offline import run_closed_loop  # noqa: E402
+from controller.trajectory import Trajectory, control_test_trajectory  # noqa: E402
+from twin import cables, dynamics  # noqa: E402
+from twin.params import load_params  # noqa: E402
+from twin.sim import Twin, TwinConfig  # noqa: E402
+
+TARGET_P99_MS = 0.5
+
+
+def in_process() -> None:
+    params = load_params()
+    traj = control_test_trajectory()
+    twin = Twin(params, TwinConfig(camera=False))
+    ctl = ComputedTorque(params, LawConfig(law=3))
+    n = int(traj.duration_s * 500)
+    ref = traj.sample(np.arange(1, n + 1) / 500)
+    tick = twin.tick(np.zeros(4))
+    step_t = np.empty(n)
+    clock = time.perf_counter
+    for k in range(n):
+        t0 = clock()
+        cmd = ctl.step(tick.theta_meas, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k])
+        step_t[k] = clock() - t0
+        tick = twin.tick(cmd.f)
+    print("controller benchmark, in process: law 3 on the §7 control test (14 s, 7000 ticks)")
+    _, p99 = _timing.summary("ComputedTorque.step (whole tick)", step_t[100:], unit=1e-3, unit_name="ms")
+    m, alpha, theta = ctl.model, cmd.alpha_hat, tick.theta_meas
+    est = ctl.estimator
+    _timing.summary("  estimation (eq. 35 + eq. 58)", _timing.time_calls(
+        lambda: est.update(theta, cmd.f, np.zeros(4)), 3000), unit=1e-3, unit_name="ms")
+    _timing.summary("  model terms at α̂ and α^d", _timing.time_calls(
+        lambda: (dynamics.evaluate(m, alpha), dynamics.evaluate(m, alpha, alpha)), 3000), unit=1e-3, unit_name="ms")
+    Z = cables.Z(m, alpha)
+    lower = lower_bounds(8.5, 2.0, np.zeros(4), np.zeros(4))
+    _timing.summary("  tension distribution (eqs. 63-65)", _timing.time_calls(
+        lambda: distribute(Z, np.ones(3), lower, 100.0, ctl.short, ctl.long), 3000), unit=1e-3, unit_name="ms")
+
+    def fd_model():
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = 1e-6
+            cables.l_c(m, alpha + e) - cables.l_c(m, alpha - e)
+        dynamics.evaluate(m, alpha)
+
+    base = _timing.time_calls(fd_model, 3000)
+    exact = _timing.time_calls(lambda: dynamics.evaluate(m, alpha), 3000)
+    print(f"  baseline: Z by central differences costs {np.median(base) / np.median(exact):.1f}x the exact model terms")
+    print(f"target: p99 <= {TARGET_P99_MS} ms -> {'meets' if p99 <= TARGET_P99_MS else 'MISSES'} ({p99:.3f} ms)")
+
+
+def on_the_bus(seconds: float) -> None:
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    waypoints = [[0, 0, 0], [40, 30, 20], [0, 0, 0], [-30, -20, -40], [0, 0, 0]]
+    reps = max(1, int(seconds // 12))
+    traj = Trajectory.from_degrees(waypoints * reps + [[0, 0, 0]], durations_s=2.0, dwell_s=1.0, name="bench")
+    tmp = Path(tempfile.mkdtemp(prefix="xneck-bench-"))
+    (tmp / "traj.json").write_text(traj.to_json())
+    state_rx: dict[float, int] = {}
+    latencies: list[float] = []
+    last_status: list[bus.ControllerStatus] = []
+    lock = threading.Lock()
+
+    def on_state(sample):
+        msg = bus.decode(bus.MotorState, sample.payload.to_bytes())
+        with lock:
+            state_rx[msg.stamp_s] = time.perf_counter_ns()
+
+    def on_cmd(sample):
+        now = time.perf_counter_ns()
+        msg = bus.decode(bus.ForceCommand, sample.payload.to_bytes())
+        with lock:
+            sent = state_rx.pop(msg.stamp_s, None)
+            if sent is not None:
+                latencies.append((now - sent) * 1e-6)
+
+    def on_status(sample):
+        last_status[:] = [bus.decode(bus.ControllerStatus, sample.payload.to_bytes())]
+
+    common = ["--listen", "tcp/127.0.0.1:0", "--connect", hub]
+    with open_session(listen=[hub], connect=[]) as s:
+        subs = [s.declare_subscriber(bus.MOTOR_STATE, on_state), s.declare_subscriber(bus.MOTOR_COMMAND, on_cmd),
+                s.declare_subscriber(bus.CONTROLLER_STATUS, on_status)]
+        py = [sys.executable, "-m", "server.cli"]
+        twin = subprocess.Popen([*py, "twin", "--seed", "1", *common], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        ctl = subprocess.Popen([*py, "controller", "--law", "2", "--trajectory", str(tmp / "traj.json"), *common],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            ctl.wait(timeout=traj.duration_s + 60)
+        finally:
+            for p in (ctl, twin):
+                p.terminate()
+                p.wait(10)
+            for sub in subs:
+                sub.undeclare()
+    lat = np.array(latencies)
+    status = last_status[0] if last_status else None
+    print(f"\ncontroller benchmark, on the bus: real-time twin at 500 Hz + `xneck controller --law 2`, "
+          f"{traj.duration_s:.0f} s")
+    if len(lat) == 0 or status is None:
+        print("no commands observed: the run failed")
+        return
+    print(f"state-to-command latency over {len(lat)} ticks: p50 {np.percentile(lat, 50):.3f} ms, "
+          f"p99 {np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms")
+    print(f"controller: deadline misses {status.deadline_misses}, compute overruns {status.overruns} "
+          f"(target: no deadline miss) -> {'meets' if status.deadline_misses == 0 else 'MISSES'}")
+    print(json.dumps({"latency_p50_ms": float(np.percentile(lat, 50)), "latency_p99_ms": float(np.percentile(lat, 99)),
+                      "deadline_misses": status.deadline_misses, "overruns": status.overruns}))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0, help="length of the bus run (s)")
+    ap.add_argument("--skip-bus", action="store_true")
+    args = ap.parse_args()
+    in_process()
+    if not args.skip_bus:
+        on_the_bus(args.seconds)
+
+
+if __name__ == "__main__":
+    main()
