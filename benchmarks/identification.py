@@ -19,11 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.append(str(ROOT / "benchmarks"))
-
-from _timing import summary, time_calls  # noqa: E402
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin package.
+sys.path[:] = [str(ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != HERE]
+_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+_timing = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_timing)
+summary, time_calls = _timing.summary, _timing.time_calls
 
 from twin import dynamics  # noqa: E402
 from twin.identification import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402

@@ -122,3 +122,34 @@ def _print_progress(fraction: float, message: str) -> None:
     typer.echo(f"\r[{bar:<30s}] {100 * fraction:5.1f}% {message[:60]:<60s}", nl=False, err=True)
     if fraction >= 1.0:
         typer.echo("", err=True)
+
+
+def campaign_identification(
+    twin: bool = typer.Option(True, "--twin/--robot", help="Against a lockstep twin started for the campaign, or "
+                              "the robot's bridge already on the bus."),
+    out: Optional[Path] = typer.Option(None, "--out", help="MCAP file to write (default: campaign-<id>.mcap here)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
+    params_file: Optional[Path] = PARAMS_OPTION,
+    overrides: Optional[list[str]] = SET_OPTION,
+) -> None:
+    """Run the identification trajectory (§5.2.2) in closed loop with law 1, record it, and
+    identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8)."""
+    from controller.campaign import CampaignSpec, run_campaign
+    from controller.trajectory import identification_trajectory
+    from twin.identification import DEFAULT_THRESHOLD
+    from twin.identification_cli import identify
+
+    params = load_cli_params(params_file, overrides)
+    config = _law(1, False)
+    spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
+                        seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()))
+    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    if result.outcome != "finished":
+        typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
+        raise typer.Exit(1)
+    if not as_json:
+        typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
+    identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
+             threshold=DEFAULT_THRESHOLD, no_alpha_hat=False)

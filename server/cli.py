@@ -10,6 +10,7 @@ import typer
 
 from controller import cli as controller_cli
 from twin import cli as twin_cli
+from twin.identification_cli import identify
 from twin.kinematics_cli import kinematics_app, workspace
 
 app = typer.Typer(
@@ -33,9 +34,11 @@ app.command(
 app.command("twin")(twin_cli.twin)
 app.command("controller")(controller_cli.controller)
 controller_cli.campaign_app.command("control")(controller_cli.campaign_control)
+controller_cli.campaign_app.command("identification")(controller_cli.campaign_identification)
 app.add_typer(controller_cli.campaign_app, name="campaign")
 app.add_typer(kinematics_app, name="kinematics")
 app.command("workspace")(workspace)
+app.command("identify")(identify)
 
 
 def main() -> None:

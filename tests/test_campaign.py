@@ -85,3 +85,21 @@ def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_pat
     fast.write_text(json.dumps({"waypoints_deg": [[0, 0, 0], [50, 50, 50]], "durations_s": [0.2]}))
     run = _xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
     assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
+
+
+def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_path):
+    """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
+    processes, identified from the archive: Table 1 friction and Table 2 stiffness come back."""
+    out = tmp_path / "ident.mcap"
+    run = _xneck("campaign", "identification", "--twin", "--out", str(out), "--json", "--seed", "4", timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    doc = json.loads(run.stdout)
+    values = lambda table: {p["name"]: p["value"] for p in table["parameters"]}  # noqa: E731
+    f_s = values(doc["table_1"]["friction"])
+    for j, truth in enumerate(params.friction.f_s):
+        assert abs(f_s[f"f_s({j + 1})"] / truth - 1) < 0.03
+    var = values(doc["table_2"])
+    for j in range(4):
+        assert abs(var[f"k({j + 1})"] / params.cables.variable.k[j] - 1) < 0.10
+        assert abs(var[f"lambda({j + 1})"] / params.cables.variable.lam[j] - 1) < 0.10
+    assert any(p.endswith(".toml") for p in doc["files"])

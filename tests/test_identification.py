@@ -1,0 +1,216 @@
+"""Identification of friction and cable stiffness (issue 5, 3-X paper §5) on the twin.
+
+Truth: Table 1 friction and Table 2 variable stiffness (c_a = 3000 N·s/m), quantised encoders,
+1° camera noise. The campaign runs the §5.2.2 identification trajectory under a simple
+closed loop written here (computed torque on the true α, tensions kept ≥ 10 N through the
+positive null vector of Z, friction compensated): smooth, rich forces, as §5.2.2 asks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controller.trajectory import identification_trajectory
+from twin import dynamics
+from twin.identification import (
+    CampaignData, IdentificationError, identified_params, identify_all, identify_friction, make_provenance,
+    preprocess, validate, write_identified,
+)
+from twin.params import load_params
+from twin.sim import Twin, TwinConfig
+
+SEEDS = (0, 1)
+
+
+def simulate_campaign(seed: int, duration_s: float | None = None, omega: float = 11.0, floor_N: float = 10.0,
+                      still: bool = False) -> tuple[CampaignData, dict[str, np.ndarray]]:
+    """Run the identification trajectory on a twin; returns the campaign and the twin's truth.
+    ``still``: hold the straight pose instead (motors never move)."""
+    twin = Twin(config=TwinConfig(seed=seed))
+    m = twin.model
+    traj = identification_trajectory()
+    T = int(round((duration_s or traj.duration_s) / twin.dt))
+    t = np.arange(1, T + 1) * twin.dt
+    ref = traj.sample(np.zeros(T) if still else t - twin.dt)
+    kp, kv = 3 * omega**2, 3 * omega
+    theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
+    t_ip, a_ip = [], []
+    alpha, alpha_dot, theta_dot = np.zeros(3), np.zeros(3), np.zeros(4)
+    for k in range(T):
+        w = ref.alpha_ddot[k] + kv * (ref.alpha_dot[k] - alpha_dot) + kp * (ref.alpha[k] - alpha)
+        terms = dynamics.evaluate(m, alpha, alpha_dot)
+        Z = terms.Z
+        gamma = terms.M @ w + terms.c + terms.g
+        null = np.append(-np.linalg.solve(Z[:, :3], Z[:, 3]), 1.0)  # positive (ERRATA)
+        f_p = np.append(np.linalg.solve(Z[:, :3], gamma), 0.0)
+        f_fr = dynamics.f_friction(m, theta_dot)
+        # Both the tension and the motor force stay above the floor.
+        s = max(np.max((floor_N - f_p) / null), np.max((floor_N - f_p - f_fr) / null))
+        f = np.clip(f_p + s * null + f_fr, m.f_min, m.f_max)
+        tick = twin.tick(f)
+        alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot
+        theta[k], force[k], alpha_true[k] = tick.theta_meas, f, alpha
+        for capture, frame in tick.frames:
+            t_ip.append(capture)
+            a_ip.append(frame)
+    data = CampaignData(t, theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}")
+    return data, {"alpha": alpha_true}
+
+
+@pytest.fixture(scope="module")
+def params():
+    return load_params()
+
+
+@pytest.fixture(scope="module", params=SEEDS, ids=lambda s: f"seed{s}")
+def result(request, params):
+    data, truth = simulate_campaign(request.param)
+    proc = preprocess(data, params)
+    est = identify_all(proc, params)
+    new, report, prov = identified_params(params, est, make_provenance(data.campaign, proc))
+    val = validate(data, proc, new, est)
+    return dict(data=data, truth=truth, proc=proc, est=est, new=new, report=report, prov=prov, val=val)
+
+
+def test_friction_within_3_percent(result, params):
+    truth = np.array(params.friction.f_s)
+    err = result["est"]["friction"].values / truth - 1.0
+    assert np.abs(err).max() < 0.03, err
+    assert not result["est"]["friction"].badly_identified.any()
+
+
+def test_variable_stiffness_within_10_percent(result, params):
+    var = result["est"]["variable"]
+    k_err = var.vector("k") / np.array(params.cables.variable.k) - 1.0
+    lam_err = var.vector("lambda") / np.array(params.cables.variable.lam) - 1.0
+    assert np.abs(k_err).max() < 0.10, k_err
+    assert np.abs(lam_err).max() < 0.10, lam_err
+    assert not var.flags("k").any() and not var.flags("lambda").any()
+
+
+def test_linear_damping_is_flagged_and_not_used(result, params):
+    comp = result["est"]["complete"]
+    assert comp.flags("c_a").all(), comp.relative_sigma
+    assert result["new"].cables.linear.c_a == params.cables.linear.c_a
+    assert all(f"cables.linear.c_a({j})" in result["prov"].kept_base for j in range(1, 5))
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "the twin's damping (3000 N·s/m, τ = c_a/k ≈ 0.3 s) is identifiable through the variable model: "
+    "c_a ≈ 2500-3100 with relative σ 1-6 % (eq. 50), so it is not flagged; see the report"))
+def test_variable_damping_is_flagged(result):
+    assert result["est"]["variable"].flags("c_a").all()
+
+
+def test_variable_model_reconstructs_tension_better(result):
+    err = result["val"].tension_error
+    assert err["variable"] < err["linear"], err
+
+
+def test_friction_improves_torque_reconstruction(result):
+    val = result["val"]
+    assert val.gamma_rf_error < 0.5 * val.gamma_r_error
+
+
+def test_elastic_models_beat_rigid_cables(result):
+    e = result["val"].alpha_errors_deg()
+    for meth in ("eq33", "eq35"):
+        assert e[f"{meth}/variable"] < e[f"{meth}/rigid"]
+        assert e[f"{meth}/linear"] < e[f"{meth}/rigid"]
+    assert e["eq33/variable"] < e["eq33/linear"]
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "controller.estimation.predict_elongation uses λ·f (eq. 58 as printed) instead of λ·t: 0.3-1 mm of "
+    "stretch error on the twin; with λ·t both eq. 33 and eq. 35 sit at the α_IP noise floor (≈ 0.80°) "
+    "and eq. 33 is marginally better (0.035° vs 0.045° against the truth)"))
+def test_eq35_variable_is_best(result):
+    e = result["val"].alpha_errors_deg()
+    assert min(e, key=e.get) == "eq35/variable", e
+
+
+def test_identified_parameter_set_round_trips(result, tmp_path, params):
+    path, prov_path = write_identified(tmp_path / "id.toml", result["new"], result["prov"])
+    again = load_params(path)
+    assert again == result["new"]
+    assert again.friction.f_s != params.friction.f_s
+    text = prov_path.read_text()
+    assert "twin-seed" in text and "kept_base" in text and "cables.linear.c_a(1)" in text
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def short_campaign():
+    return simulate_campaign(0, duration_s=12.0)[0]
+
+
+def _with(data: CampaignData, **changes) -> dict:
+    base = dict(t_s=data.t_s, theta_rad=data.theta_rad, force_N=data.force_N, t_ip_s=data.t_ip_s,
+                alpha_ip_rad=data.alpha_ip_rad)
+    base.update(changes)
+    return base
+
+
+def test_too_few_samples(short_campaign):
+    d = short_campaign
+    with pytest.raises(IdentificationError, match="too few encoder samples"):
+        CampaignData(**_with(d, t_s=d.t_s[:500], theta_rad=d.theta_rad[:500], force_N=d.force_N[:500]))
+
+
+def test_nan_is_refused(short_campaign):
+    theta = short_campaign.theta_rad.copy()
+    theta[1234, 2] = np.nan
+    with pytest.raises(IdentificationError, match="NaN.*sample 1234"):
+        CampaignData(**_with(short_campaign, theta_rad=theta))
+
+
+def test_shapes_and_times(short_campaign):
+    d = short_campaign
+    with pytest.raises(IdentificationError, match="force_N must have shape"):
+        CampaignData(**_with(d, force_N=d.force_N[:, :3]))
+    t = d.t_s.copy()
+    t[100] = t[99]
+    with pytest.raises(IdentificationError, match="increase strictly"):
+        CampaignData(**_with(d, t_s=t))
+
+
+def test_motors_that_never_move_are_rank_deficient(params):
+    data, _ = simulate_campaign(0, duration_s=8.0, still=True)
+    proc = preprocess(data, params)
+    with pytest.raises(IdentificationError, match="rank-deficient"):
+        identify_friction(proc, params)
+
+
+def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
+    archive = pytest.importorskip("server.archive")
+    from bridge import bus
+    from twin.identification_cli import campaign_data_from_mcap
+
+    d = short_campaign
+    msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
+                                                          force_applied_N=list(f), drive="active"))
+            for k, (t, th, f) in enumerate(zip(d.t_s, d.theta_rad, d.force_N))]
+    msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
+                                                                 capture_stamp_s=float(t)))
+             for k, (t, a) in enumerate(zip(d.t_ip_s, d.alpha_ip_rad))]
+    msgs.sort(key=lambda m: m[1])
+    meta = {"campaign_id": "c42", "kind": "identification"}
+    path = archive.write_campaign(tmp_path / "c.mcap", msgs, meta)
+    back = campaign_data_from_mcap(path)
+    assert back.campaign == "c42"
+    np.testing.assert_allclose(back.theta_rad, d.theta_rad)
+    np.testing.assert_allclose(back.alpha_ip_rad, d.alpha_ip_rad)
+
+    truncated = tmp_path / "t.mcap"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(IdentificationError, match="truncated"):
+        campaign_data_from_mcap(truncated)
+
+    only_motor = archive.write_campaign(tmp_path / "m.mcap", [m for m in msgs if m[0] == bus.MOTOR_STATE], meta)
+    with pytest.raises(IdentificationError, match="missing channel.*camera"):
+        campaign_data_from_mcap(only_motor)
