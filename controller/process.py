@@ -125,16 +125,18 @@ class ControllerNode:
         # full collection cannot land in the middle of a 2 ms tick.
         gc.collect()
         gc.freeze()
-        t0, last_seq, last_wall = first.stamp_s, None, time.perf_counter()
+        # A state is new when its stamp is: a waiting lockstep twin re-publishes the same state.
+        t0, last_stamp, last_wall = first.stamp_s, None, time.perf_counter()
         self.ctl.reset(theta=np.asarray(first.theta_rad))
         total = (self.trajectory.duration_s + cfg.settle_s) if self.trajectory else math.inf
         self.event("started", message=f"{self.law.name}, trajectory {self.trajectory.name if self.trajectory else 'hold'}")
         next_progress = 0.0
         state = first
         while not stop.is_set():
-            if last_seq is not None:
-                state = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s, lambda s: s.seq != last_seq)
-                if state is None or state.seq == last_seq:
+            if last_stamp is not None:
+                state = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s,
+                                         lambda s: s.stamp_s > last_stamp)
+                if state is None or state.stamp_s <= last_stamp:
                     stale_for = time.perf_counter() - last_wall
                     if stale_for > cfg.idle_timeout_s:
                         self.outcome = "aborted"
@@ -149,7 +151,7 @@ class ControllerNode:
                         self.hold(f"stale state: none for {stale_for * 1e3:.0f} ms", time.time())
                     continue
             wall = time.perf_counter()
-            tick_s, last_wall, last_seq = wall - last_wall, wall, state.seq
+            tick_s, last_wall, last_stamp = wall - last_wall, wall, state.stamp_s
             t = state.stamp_s - t0
             if self.trajectory is not None:
                 ref = self.trajectory.sample(np.array([t]))
