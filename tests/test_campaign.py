@@ -113,3 +113,5 @@ def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_
         assert abs(var[f"k({j + 1})"] / params.cables.variable.k[j] - 1) < 0.10
         assert abs(var[f"lambda({j + 1})"] / params.cables.variable.lam[j] - 1) < 0.10
     assert any(p.endswith(".toml") for p in doc["files"])
+    tension = doc["validation"]["tension_mean_error_N"]
+    assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
