@@ -178,7 +178,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         lockstep = spec.twin and not spec.realtime
         if spec.twin:
             spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
-                           "--idle-timeout", "30", "--instance", f"twin-{campaign_id}", *common])
+                           "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
+                       *common])
         law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
         spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
                              *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,

@@ -48,7 +48,8 @@ class ControllerProcessConfig:
     settle_s: float = 1.0  # hold at the last waypoint this long before "finished"
     stale_s: float = 0.010  # real time: no new state for this long -> hold
     lockstep: bool = False
-    idle_timeout_s: float = 10.0  # no state at all for this long -> give up (twin gone)
+    idle_timeout_s: float = 10.0  # no new state for this long once running -> give up (twin gone)
+    startup_timeout_s: float = 120.0  # for the first state: peers may still be starting
     exit_when_done: bool = True
     instance: str = ""
 
@@ -116,10 +117,10 @@ class ControllerNode:
         n_joints = self.ctl.model.n_joints
         limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._last_sane = np.zeros(n_joints)
-        first = self.states.wait(cfg.idle_timeout_s)
+        first = self.states.wait(cfg.startup_timeout_s)
         if first is None:
             self.outcome = "aborted"
-            self.event("aborted", message=f"no motor state within {cfg.idle_timeout_s} s")
+            self.event("aborted", message=f"no motor state within {cfg.startup_timeout_s} s of start")
             return self.outcome
         # Everything allocated so far lives for the whole run: keep the collector off it, so a
         # full collection cannot land in the middle of a 2 ms tick.

@@ -96,6 +96,7 @@ def twin(
     no_friction: bool = typer.Option(False, "--no-friction", help="Simulate without motor friction."),
     max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
     idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this many seconds without a command."),
+    startup_timeout: Optional[float] = typer.Option(None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout)."),
     instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
     listen: Optional[list[str]] = LISTEN_OPTION,
     connect: Optional[list[str]] = CONNECT_OPTION,
@@ -117,7 +118,8 @@ def twin(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     stop = stop_on_signals()
-    config = TwinProcessConfig(lockstep=lockstep, max_ticks=max_ticks, idle_timeout_s=idle_timeout, instance=instance)
+    config = TwinProcessConfig(lockstep=lockstep, max_ticks=max_ticks, idle_timeout_s=idle_timeout,
+                               startup_timeout_s=startup_timeout, instance=instance)
     with open_session(endpoints(listen), endpoints(connect)) as session:
         node = TwinNode(session, params, twin_config, config)
         mode = "lockstep" if lockstep else "real time"

@@ -40,6 +40,7 @@ class TwinProcessConfig:
     lockstep: bool = False
     max_ticks: int | None = None  # stop after this many ticks (None: run until stopped)
     idle_timeout_s: float | None = None  # lockstep: stop when no command came for this long
+    startup_timeout_s: float | None = None  # lockstep: the limit before the first command (default: idle's)
     republish_s: float = 0.05  # lockstep: re-publish the waiting state this often (wall clock)
     instance: str = ""
 
@@ -132,8 +133,11 @@ def run_lockstep(node: TwinNode, stop: threading.Event) -> int:
     while not stop.is_set() and (cfg.max_ticks is None or ticks < cfg.max_ticks):
         cmd = node.commands.wait(cfg.republish_s, lambda c: c.seq != last_seq)
         if cmd is None or cmd.seq == last_seq:
-            if cfg.idle_timeout_s is not None and time.monotonic() - idle_since > cfg.idle_timeout_s:
-                log.info("no command for %.1f s: stopping", cfg.idle_timeout_s)
+            limit = cfg.idle_timeout_s
+            if last_seq is None and cfg.startup_timeout_s is not None:
+                limit = cfg.startup_timeout_s
+            if limit is not None and time.monotonic() - idle_since > limit:
+                log.info("no command for %.1f s: stopping", limit)
                 break
             node.publish_state("inactive" if last_seq is None else "active")
             continue
