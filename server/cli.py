@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import typer
 
+from bridge import cli as bridge_cli
 from controller import cli as controller_cli
 from twin import cli as twin_cli
 from twin.identification_cli import identify
@@ -32,6 +33,7 @@ app.command(
     "model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True}
 )(twin_cli.model)
 app.command("twin")(twin_cli.twin)
+app.command("bridge")(bridge_cli.bridge)
 app.command("controller")(controller_cli.controller)
 controller_cli.campaign_app.command("control")(controller_cli.campaign_control)
 controller_cli.campaign_app.command("identification")(controller_cli.campaign_identification)

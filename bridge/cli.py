@@ -1,0 +1,123 @@
+"""`xneck bridge --driver beaglebone|twin|replay`: the motor controllers on the bus."""
+
+from __future__ import annotations
+
+import logging
+import tomllib
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION
+from twin.cli import PARAMS_OPTION, SET_OPTION, load_cli_params
+
+log = logging.getLogger("xneck.bridge")
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.secho(f"error: {message}", err=True, fg="red")
+    return typer.Exit(2)
+
+
+def _driver_table(path: Optional[Path]) -> dict:
+    if path is None:
+        return {}
+    try:
+        return tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise _fail(f"{path}: cannot read the driver config ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise _fail(f"{path}: not a valid TOML file ({exc})") from None
+
+
+def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = None, loop: bool = False,
+                seed: int = 0, cable_model: Optional[str] = None):
+    """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
+    Raises :class:`bridge.driver.DriverError` with a readable reason."""
+    from bridge.driver import DriverError, config_from_dict
+
+    base = {"n_motors": params.n_cables, **table}
+    if driver == "beaglebone":
+        from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver
+
+        return BeagleBoneDriver.from_params(config_from_dict(BeagleBoneConfig, base), params)
+    if driver == "twin":
+        from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+
+        base.setdefault("seed", seed)
+        if cable_model is not None:
+            base["cable_model"] = cable_model
+        return TwinDriver(config_from_dict(TwinDriverConfig, base), params)
+    if driver == "replay":
+        from bridge.drivers.replay import ReplayConfig, ReplayDriver
+
+        if replay is None and "path" not in table:
+            raise DriverError("--driver replay needs --replay FILE (a campaign MCAP file)")
+        if replay is not None:
+            base["path"] = str(replay)
+        base.setdefault("loop", loop)
+        return ReplayDriver(config_from_dict(ReplayConfig, base))
+    raise DriverError(f"unknown driver {driver!r}: choose beaglebone, twin or replay")
+
+
+def bridge(
+    driver: str = typer.Option(..., "--driver", help="beaglebone (the prototype), twin (simulated) or replay (an archive)."),
+    replay: Optional[Path] = typer.Option(None, "--replay", help="Campaign MCAP file to replay (--driver replay)."),
+    loop: bool = typer.Option(False, "--loop", help="Replay: start over at the end instead of stopping."),
+    driver_config: Optional[Path] = typer.Option(
+        None, "--driver-config", help="TOML file of the driver's config (e.g. the BeagleBone wiring and ESCON points)."),
+    lockstep: bool = typer.Option(False, "--lockstep", help="Twin only: one tick per command; no watchdog."),
+    command_timeout: float = typer.Option(0.010, "--command-timeout", help="Hold after this long without a valid command (s)."),
+    hold_ramp: float = typer.Option(0.010, "--hold-ramp", help="Ramp to the hold forces over this long (s)."),
+    seed: int = typer.Option(0, "--seed", help="Twin: seed of the sensor noise."),
+    cable_model: Optional[str] = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable."),
+    max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
+    idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s)."),
+    instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
+    listen: Optional[list[str]] = LISTEN_OPTION,
+    connect: Optional[list[str]] = CONNECT_OPTION,
+    params_file: Optional[Path] = PARAMS_OPTION,
+    overrides: Optional[list[str]] = SET_OPTION,
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
+    rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""
+    from bridge.driver import DriverError
+    from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
+    from bridge.runtime import endpoints, setup_logging, stop_on_signals
+    from bridge.session import open_session
+
+    setup_logging(verbose)
+    params = load_cli_params(params_file, overrides)
+    if lockstep and driver != "twin":
+        raise _fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
+    try:
+        config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
+                              idle_timeout_s=idle_timeout, max_ticks=max_ticks, instance=instance)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+    try:
+        drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
+                          cable_model=cable_model)
+        drv.configure()
+    except (DriverError, ValueError) as exc:
+        raise _fail(str(exc)) from None
+    try:
+        # After configure: importing rcpy installs its own SIGINT/SIGTERM handlers, ours must win.
+        stop = stop_on_signals()
+        with open_session(endpoints(listen), endpoints(connect)) as session:
+            node = BridgeNode(session, drv, params, config)
+            mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz"
+            log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
+                     command_timeout * 1e3)
+            try:
+                ticks = (run_lockstep if lockstep else run_realtime)(node, stop)
+            finally:
+                node.shutdown()
+            stats = node.commands.stats
+            log.info("bridge %s stopped after %d ticks, drives disabled; commands accepted %d, rejected %d, "
+                     "clamped %d, holds %d, overruns %d", node.instance, ticks, stats.accepted, stats.rejected,
+                     node.clamped, node.holds, node.overruns)
+    finally:
+        drv.close()

@@ -1,0 +1,283 @@
+"""The 3-X prototype's motor driver: a BeagleBone Blue with four ESCON 50/5 in current mode.
+
+Hardware path (3-X paper §2.2): four Maxon EC-max 40 motors with GP 42 C gearheads, each run by an
+ESCON 50/5 in current (torque) mode; the BeagleBone Blue reads the four motor encoders and sends
+each ESCON a current set value and an enable line.
+
+- Encoders in: the Blue's four quadrature counters (``rcpy.encoder.get(channel)``, counts).
+- Set values out: the Blue's four motor outputs (``rcpy.motor.set(channel, duty)``, duty in
+  [-1, 1]), either read by the ESCON as a PWM duty cycle (``set_value_mode = "pwm"``, set value =
+  duty) or low-pass filtered into the ESCON's differential analog input (``"analog"``, set value =
+  volts = duty · ``analog_full_scale_V``).
+- Enable lines out: one GPIO per ESCON (``rcpy.gpio.set_value(pin, level)``).
+
+Force to set value::
+
+    I   = f · r_d / (R · η · k_t)            motor current (A) for a cable force f (N)
+    I_m = direction · min(I, current_max)     signed current the ESCON must drive
+    s   = s1 + (I_m − I1) · (s2 − s1) / (I2 − I1)    the ESCON's linear set-value map
+    s   clamped to [set_value_min, set_value_max]    the input range the ESCON accepts
+
+with r_d (drum radius), R (gear ratio), η (gear efficiency), k_t (torque constant) and
+current_max from the parameter file (``geometry`` and ``motors``), and the two points
+(s1 → I1, s2 → I2) exactly as configured in ESCON Studio, in :class:`BeagleBoneConfig`.
+
+``rcpy`` (Python bindings of librobotcontrol) is imported only when this driver is configured, so
+every other driver runs on machines without it. Importing ``rcpy`` installs its own SIGINT and
+SIGTERM handlers: install the bridge's handlers after :meth:`Driver.configure`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from bridge.driver import Driver, DriverConfig, DriverError
+
+log = logging.getLogger("xneck.bridge.beaglebone")
+
+#: ESCON 50/5 analog set-value input range (V).
+ESCON_ANALOG_RANGE_V = (-10.0, 10.0)
+#: BeagleBone Blue GP0 header pins 3-6 (librobotcontrol pinmap: BLUE_GP0_PIN_3..6 = gpio 1_25,
+#: 1_17, 3_20, 3_17); our wiring assumption for the four enable lines.
+BLUE_GP0_PINS = (57, 49, 116, 113)
+
+
+class BeagleBoneConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Wiring of the BeagleBone Blue to the four ESCON 50/5, and the ESCONs' set-value maps.
+
+    Per-motor tuples are in motor order (the parameter file's). Defaults are our assumptions for
+    the prototype: check them against the wiring and the ESCON Studio configuration.
+
+    - ``encoder_channels``: quadrature counter of each motor (1-4).
+    - ``counts_per_rev``: counts per motor-shaft turn in quadrature; 0 takes the parameter file's
+      ``sensors.encoder_counts_per_rev``.
+    - ``motor_channels``: Blue motor output (1-4) carrying each ESCON's set value.
+    - ``direction``: +1 or -1 per motor, so that positive current winds the cable (pulls) and the
+      encoder angle grows while winding.
+    - ``set_value_mode``: ``"pwm"`` (set value = duty cycle in [0, 1]) or ``"analog"`` (set value
+      in V, produced as duty · ``analog_full_scale_V`` through an RC filter).
+    - ``set_value_1 → current_1_A`` and ``set_value_2 → current_2_A``: the two points of the ESCON's
+      linear map (ESCON Studio: "current at PWM 1 / PWM 2" or "at voltage 1 / voltage 2").
+    - ``set_value_min``, ``set_value_max``: the set values the ESCON accepts (PWM 10-90 %, or
+      within ±10 V); commands are clamped into this range.
+    - ``analog_full_scale_V``: analog mode only, the filtered output voltage at duty 1 (the Blue's
+      motor supply).
+    - ``enable_pins``: GPIO number of each ESCON's enable line; ``enable_active_high``: its polarity.
+    """
+
+    encoder_channels: tuple[int, ...] = (1, 2, 3, 4)
+    counts_per_rev: int = 0
+    motor_channels: tuple[int, ...] = (1, 2, 3, 4)
+    direction: tuple[int, ...] = (1, 1, 1, 1)
+    set_value_mode: Literal["pwm", "analog"] = "pwm"
+    set_value_1: float = 0.10
+    current_1_A: float = -5.0
+    set_value_2: float = 0.90
+    current_2_A: float = 5.0
+    set_value_min: float = 0.10
+    set_value_max: float = 0.90
+    analog_full_scale_V: float = 12.0
+    enable_pins: tuple[int, ...] = BLUE_GP0_PINS
+    enable_active_high: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("encoder_channels", "motor_channels", "direction", "enable_pins"):
+            self.per_motor(name, getattr(self, name))
+        for name in ("encoder_channels", "motor_channels"):
+            channels = getattr(self, name)
+            if not all(1 <= c <= 4 for c in channels) or len(set(channels)) != len(channels):
+                raise ValueError(f"{name} must be distinct Blue channels 1-4, got {channels}")
+        if len(set(self.enable_pins)) != len(self.enable_pins) or min(self.enable_pins) < 0:
+            raise ValueError(f"enable_pins must be distinct GPIO numbers, got {self.enable_pins}")
+        if not all(d in (1, -1) for d in self.direction):
+            raise ValueError(f"direction must be +1 or -1 per motor, got {self.direction}")
+        if self.counts_per_rev < 0:
+            raise ValueError(f"counts_per_rev must be > 0 (or 0 for the parameter file's), got {self.counts_per_rev}")
+        if self.set_value_1 == self.set_value_2:
+            raise ValueError(f"set_value_1 and set_value_2 must differ, both are {self.set_value_1}")
+        if self.current_1_A == self.current_2_A:
+            raise ValueError(f"current_1_A and current_2_A must differ, both are {self.current_1_A} A")
+        if not self.set_value_min < self.set_value_max:
+            raise ValueError(f"set_value_min = {self.set_value_min} must be below set_value_max = {self.set_value_max}")
+        if self.set_value_mode == "pwm":
+            lo, hi, unit = 0.0, 1.0, ""
+        else:
+            lo, hi, unit = max(ESCON_ANALOG_RANGE_V[0], -self.analog_full_scale_V), \
+                min(ESCON_ANALOG_RANGE_V[1], self.analog_full_scale_V), " V"
+            if not self.analog_full_scale_V > 0:
+                raise ValueError(f"analog_full_scale_V must be > 0, got {self.analog_full_scale_V}")
+        if not (lo <= self.set_value_min and self.set_value_max <= hi):
+            raise ValueError(f"{self.set_value_mode} set values must lie within [{lo}, {hi}]{unit}, got "
+                             f"[{self.set_value_min}, {self.set_value_max}]{unit}")
+        zero = self.set_value_at(0.0)
+        if not self.set_value_min <= zero <= self.set_value_max:
+            raise ValueError(f"zero current needs set value {zero:.4g}, outside [{self.set_value_min}, "
+                             f"{self.set_value_max}]: the drives could not be idled")
+
+    def set_value_at(self, current_A: float) -> float:
+        """The ESCON's linear map, unclamped: set value for a signed current (A)."""
+        slope = (self.set_value_2 - self.set_value_1) / (self.current_2_A - self.current_1_A)
+        return self.set_value_1 + (current_A - self.current_1_A) * slope
+
+    def current_at(self, set_value: float) -> float:
+        """Inverse of :meth:`set_value_at`: the signed current (A) the ESCON drives at a set value."""
+        slope = (self.current_2_A - self.current_1_A) / (self.set_value_2 - self.set_value_1)
+        return self.current_1_A + (set_value - self.set_value_1) * slope
+
+    def duty_of(self, set_value: float) -> float:
+        """Duty cycle of the Blue's motor output that produces ``set_value``."""
+        return set_value if self.set_value_mode == "pwm" else set_value / self.analog_full_scale_V
+
+
+@dataclass(frozen=True)
+class Transmission:
+    """Cable force to motor current, from the parameter file (``geometry``, ``motors``).
+
+    ``r_d`` drum radius (m), ``R`` gear ratio, ``efficiency`` of the gearhead, ``k_t`` torque
+    constant (N·m/A), ``current_max`` (A) the motor controller's continuous current.
+    """
+
+    r_d: float
+    R: float
+    efficiency: float
+    k_t: float
+    current_max: float
+
+    @classmethod
+    def from_params(cls, params: Any) -> Transmission:
+        g, m = params.geometry, params.motors
+        return cls(r_d=g.r_d, R=g.R, efficiency=m.gear_efficiency, k_t=m.torque_constant, current_max=m.current_max)
+
+    @property
+    def amps_per_newton(self) -> float:
+        """I/f = r_d / (R·η·k_t): the drum turns f into a torque f·r_d, the gearhead divides it
+        by R and loses a fraction 1 − η, the motor makes k_t N·m per A."""
+        return self.r_d / (self.R * self.efficiency * self.k_t)
+
+
+class _Board:
+    """The three rcpy calls this driver makes, in one place (the layer the tests fake)."""
+
+    def __init__(self) -> None:
+        try:
+            importlib.import_module("rcpy")  # initialises the board (librobotcontrol)
+            self.encoder = importlib.import_module("rcpy.encoder")
+            self.motor = importlib.import_module("rcpy.motor")
+            self.gpio = importlib.import_module("rcpy.gpio")
+        except ImportError as exc:
+            raise DriverError(
+                "the beaglebone driver needs rcpy, the BeagleBone Blue's Python library (librobotcontrol), "
+                f"which is not installed here ({exc}). Run it on the board after `pip install rcpy`, "
+                "or choose --driver twin or --driver replay."
+            ) from None
+
+
+class BeagleBoneDriver(Driver):
+    """Four encoders in, four ESCON set values and enable lines out (module docstring)."""
+
+    name = "beaglebone"
+
+    def __init__(self, config: BeagleBoneConfig, transmission: Transmission, counts_per_rev: int = 2048) -> None:
+        super().__init__(config)
+        self.config: BeagleBoneConfig = config
+        self.transmission = transmission
+        self.counts_per_rev = config.counts_per_rev or counts_per_rev
+        if self.counts_per_rev <= 0:
+            raise DriverError(f"beaglebone: counts_per_rev must be > 0, got {self.counts_per_rev}")
+        self._board: _Board | None = None
+        self._offset = np.zeros(config.n_motors)
+        self._sign = np.array(config.direction, dtype=float)
+        self._zero_duty = config.duty_of(config.set_value_at(0.0))
+
+    @classmethod
+    def from_params(cls, config: BeagleBoneConfig, params: Any) -> BeagleBoneDriver:
+        return cls(config, Transmission.from_params(params), params.sensors.encoder_counts_per_rev)
+
+    # -- conversions (pure, unit-tested against hand computation) ------------------------------
+    def set_values(self, force_N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Set values (duty or V) for cable forces (N), and the forces they actually produce."""
+        cfg, tr = self.config, self.transmission
+        current = np.clip(np.asarray(force_N, dtype=float) * tr.amps_per_newton, 0.0, tr.current_max)
+        s = np.array([cfg.set_value_at(sign * i) for sign, i in zip(self._sign, current)])
+        s = np.clip(s, cfg.set_value_min, cfg.set_value_max)
+        applied = np.array([sign * cfg.current_at(v) for sign, v in zip(self._sign, s)]) / tr.amps_per_newton
+        return s, np.maximum(applied, 0.0)
+
+    # -- hooks ---------------------------------------------------------------------------------
+    def _on_configure(self) -> None:
+        self._board = _Board()
+        # Enable lines may float high at boot: force every drive off before anything else.
+        self._drives_off()
+        self._offset = self._counts()
+        log.info("beaglebone: encoders %s zeroed at %s counts (the neck must be straight now)",
+                 self.config.encoder_channels, self._offset.astype(int).tolist())
+
+    def _on_activate(self) -> None:
+        board, cfg = self._require_board(), self.config
+        board.motor.enable()
+        for ch in cfg.motor_channels:  # zero current first, so enabling cannot jerk a cable
+            board.motor.set(ch, self._zero_duty)
+        for pin in cfg.enable_pins:
+            board.gpio.set_value(pin, self._level(True))
+
+    def _on_deactivate(self) -> None:
+        self._drives_off()
+
+    def _on_close(self) -> None:
+        self._drives_off()
+        try:
+            self._require_board().motor.disable()
+        except Exception:  # noqa: BLE001 - the enable lines are already low, which is what matters
+            log.exception("beaglebone: could not put the motor outputs in standby")
+
+    def _on_read(self) -> np.ndarray:
+        counts = self._counts() - self._offset
+        return self._sign * counts * (2.0 * math.pi / self.counts_per_rev)
+
+    def _on_write(self, force_N: np.ndarray) -> np.ndarray:
+        board, cfg = self._require_board(), self.config
+        s, applied = self.set_values(force_N)
+        for ch, value in zip(cfg.motor_channels, s):
+            board.motor.set(ch, float(cfg.duty_of(value)))
+        return applied
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _drives_off(self) -> None:
+        """Enable lines low first (the ESCON stops at once), then zero-current set values; every
+        line is attempted even if one fails."""
+        board, cfg = self._require_board(), self.config
+        errors = []
+        for pin in cfg.enable_pins:
+            try:
+                board.gpio.set_value(pin, self._level(False))
+            except Exception as exc:  # noqa: BLE001 - keep disabling the others
+                errors.append(f"enable pin {pin}: {exc}")
+        for ch in cfg.motor_channels:
+            try:
+                board.motor.set(ch, self._zero_duty)
+            except Exception as exc:  # noqa: BLE001
+                errors.append(f"motor output {ch}: {exc}")
+        if errors:
+            raise DriverError("beaglebone: could not disable every drive: " + "; ".join(errors))
+
+    def _counts(self) -> np.ndarray:
+        board = self._require_board()
+        return np.array([float(board.encoder.get(ch)) for ch in self.config.encoder_channels])
+
+    def _level(self, enabled: bool) -> int:
+        return int(enabled == self.config.enable_active_high)
+
+    def _require_board(self) -> _Board:
+        if self._board is None:
+            raise DriverError("beaglebone: the board is not open (configure() first)")
+        return self._board
+
+
+__all__ = ["BLUE_GP0_PINS", "BeagleBoneConfig", "BeagleBoneDriver", "ESCON_ANALOG_RANGE_V", "Transmission"]

@@ -1,0 +1,124 @@
+"""The digital twin as a motor driver: :class:`twin.sim.Twin` behind the driver interface.
+
+The bridge's safety logic then runs unchanged against the simulated robot, so the watchdog, the
+e-stop and the exit behaviour are tested on the twin exactly as they run on the BeagleBone.
+
+- :meth:`read` returns the twin's quantised encoder angles (what the Blue's counters report).
+- :meth:`write` holds forces for the next :meth:`step`; while the drives are not active the motors
+  are unpowered and the twin is stepped with zero force (the neck sags onto its springs, as the
+  real one does with the ESCONs disabled).
+- :meth:`step` integrates one control period; :meth:`stamp_s` is simulated time.
+- :meth:`extra_messages` carries the twin-only ``Truth`` and the camera frames, so a bridge on the
+  twin publishes every topic ``xneck twin`` does.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import numpy as np
+
+from bridge import bus
+from bridge.driver import Driver, DriverConfig, Lifecycle
+from twin.params import Params
+from twin.sensors import quantise_encoder
+from twin.sim import Tick, Twin, TwinConfig
+
+log = logging.getLogger("xneck.bridge.twin")
+
+
+class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """What the twin simulates (see :class:`twin.sim.TwinConfig`): cable model (None: the
+    parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera."""
+
+    cable_model: Literal["rigid", "linear", "variable"] | None = None
+    friction: bool = True
+    substeps: int = 2
+    seed: int = 0
+    camera: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {self.substeps}")
+
+
+class TwinDriver(Driver):
+    name = "twin"
+
+    def __init__(self, config: TwinDriverConfig, params: Params) -> None:
+        super().__init__(config)
+        self.config: TwinDriverConfig = config
+        self.params = params
+        if params.n_cables != config.n_motors:
+            raise ValueError(f"the parameter set has {params.n_cables} cables, the driver config {config.n_motors} motors")
+        self.twin: Twin | None = None
+        self.last_tick: Tick | None = None
+        self._force = np.zeros(config.n_motors)
+        self._extra: list[tuple[str, bus.BusMessage]] = []
+        self._seq = {"camera": 0, "truth": 0}
+        self._slack = np.zeros(config.n_motors, dtype=bool)
+        self.flat_refusals = 0
+
+    def _on_configure(self) -> None:
+        c = self.config
+        twin_config = TwinConfig(cable_model=c.cable_model, friction=c.friction, rate_hz=c.rate_hz,
+                                 substeps=c.substeps, seed=c.seed, camera=c.camera)
+        # One step of a throwaway twin loads the compiled integrator now (about 80 ms), so the
+        # bridge's first real tick does not overrun.
+        Twin(self.params, twin_config).tick(np.zeros(self.n_motors))
+        self.twin = Twin(self.params, twin_config)
+
+    def _on_activate(self) -> None:
+        self._force[:] = 0.0
+
+    def _on_deactivate(self) -> None:
+        self._force[:] = 0.0
+
+    def _on_close(self) -> None:
+        self._force[:] = 0.0
+
+    def _on_read(self) -> np.ndarray:
+        tick = self.last_tick
+        return tick.theta_meas.copy() if tick else quantise_encoder(self.twin.theta, self.twin.counts_per_rev)
+
+    def _on_write(self, force_N: np.ndarray) -> np.ndarray:
+        self._force = force_N.copy()
+        return self._force.copy()
+
+    def step(self) -> None:
+        """One control period with the forces written since the last step (zero unless active)."""
+        if self.state not in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
+            return
+        force = self._force if self.state is Lifecycle.ACTIVE else np.zeros(self.n_motors)
+        tick = self.twin.tick(force)
+        self.last_tick = tick
+        if tick.flat:
+            self.flat_refusals += 1
+            log.warning("t = %.3f s: a joint reached its flat singularity; step refused", tick.t_s)
+        if np.any(tick.slack != self._slack):
+            log.info("t = %.3f s: slack cables %s", tick.t_s, (np.nonzero(tick.slack)[0] + 1).tolist())
+            self._slack = tick.slack
+        extra: list[tuple[str, bus.BusMessage]] = []
+        for capture, alpha_ip in tick.frames:
+            self._seq["camera"] += 1
+            extra.append((bus.CAMERA_ALPHA, bus.CameraAlpha(seq=self._seq["camera"], stamp_s=tick.t_s,
+                                                            alpha_ip_rad=alpha_ip.tolist(), capture_stamp_s=capture)))
+        self._seq["truth"] += 1
+        extra.append((bus.TWIN_TRUTH, bus.Truth(
+            seq=self._seq["truth"], stamp_s=tick.t_s, alpha_rad=tick.alpha.tolist(),
+            alpha_dot_rad_s=tick.alpha_dot.tolist(), theta_rad=tick.theta.tolist(),
+            theta_dot_rad_s=tick.theta_dot.tolist(), tension_N=tick.tension.tolist(),
+            elongation_m=tick.elongation.tolist(), slack=tick.slack.tolist(), near_singular=tick.near_singular)))
+        self._extra = extra
+
+    def stamp_s(self) -> float:
+        return self.twin.t_s if self.twin is not None else 0.0
+
+    def extra_messages(self) -> list[tuple[str, bus.BusMessage]]:
+        out, self._extra = self._extra, []
+        return out
+
+
+__all__ = ["TwinDriver", "TwinDriverConfig"]

@@ -1,0 +1,359 @@
+"""The bridge as a bus process: a motor driver behind the safety rules, on the twin's topics.
+
+Every tick (500 Hz) the node decides the cable forces, writes them to the driver, steps it, reads
+the encoders and publishes ``MotorState`` (with ``drive`` and ``hold_reason``); ``Health`` goes
+out about once per second. The rules do not depend on any controller:
+
+Commands
+    A ``ForceCommand`` is valid when it decodes and every force lies in [0, f_max] with one force
+    per motor (:func:`bridge.bus.check_force_command`); anything else is counted as rejected and
+    never moves a motor. Valid forces are clamped to [f_min, f_max] (a cable must stay taut).
+Activation
+    The drives start disabled (``inactive``: angles published, zero force). The first valid
+    command enables them (``active``).
+Watchdog
+    Real time: when no valid command arrived for ``command_timeout_s`` (10 ms), the forces ramp
+    linearly, over ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold
+    forces Z f = g(α̂) with every cable at t_min (:func:`controller.laws.hold_forces`) at the
+    rigid-cable estimate α̂ from the encoders at that moment (eq. 33,
+    :func:`controller.estimation.alpha_hat_3`); ``drive = "hold"`` and ``hold_reason`` says why.
+    The next valid command resumes ``active``.
+    Lockstep (twin only): one tick per new command, so simulated time stands still without
+    commands and nothing can drift; the watchdog is off there.
+E-stop
+    ``EStop(engaged=true)`` on ``xneck/estop`` (the console's button publishes the same) disables
+    the drives on the next tick (``drive = "disabled"``, zero force) and commands are ignored until
+    ``EStop(engaged=false)``; then the drives are ``inactive`` until the next valid command. A
+    payload on ``xneck/estop`` that cannot be decoded counts as engaged (fail safe).
+Exit
+    :meth:`BridgeNode.shutdown` (called from ``finally`` on Ctrl-C, SIGTERM or an exception, and
+    from ``atexit`` as a backstop) disables the drives and publishes a last ``MotorState`` with
+    ``drive = "disabled"``. A SIGKILL cannot be caught: on hardware only the ESCONs' own enable
+    logic remains.
+"""
+
+from __future__ import annotations
+
+import atexit
+import collections
+import logging
+import math
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from bridge import bus
+from bridge.driver import Driver, Lifecycle
+from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
+from controller.estimation import alpha_hat_3
+from controller.laws import hold_forces
+from twin.model import build
+from twin.params import Params
+
+log = logging.getLogger("xneck.bridge")
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """Safety and timing of the bridge. Times in s (wall clock unless said otherwise)."""
+
+    command_timeout_s: float = 0.010  # no valid command for this long -> hold (real time only)
+    hold_ramp_s: float = 0.010  # duration of the ramp to the hold forces, counted in ticks
+    lockstep: bool = False  # one tick per new command (twin driver only)
+    republish_s: float = 0.05  # lockstep: re-publish the waiting state this often
+    idle_timeout_s: float | None = None  # lockstep: stop after this long without a command
+    health_period_s: float = 1.0
+    max_ticks: int | None = None  # stop after this many ticks (None: until stopped)
+    instance: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("command_timeout_s", "republish_s", "health_period_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {value}")
+        if not (math.isfinite(self.hold_ramp_s) and self.hold_ramp_s >= 0):
+            raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
+
+
+class BridgeNode:
+    """A :class:`bridge.driver.Driver` on the bus with the safety rules of the module docstring.
+
+    Drive it with :func:`run_realtime` or :func:`run_lockstep`, or call :meth:`tick` yourself
+    (tests do, to check what happens within one tick). Always end with :meth:`shutdown`.
+    """
+
+    def __init__(self, session: zenoh.Session, driver: Driver, params: Params, config: BridgeConfig = BridgeConfig()):
+        if driver.n_motors != params.n_cables:
+            raise ValueError(f"the driver has {driver.n_motors} motors, the parameter set {params.n_cables} cables")
+        if driver.state is Lifecycle.UNCONFIGURED:
+            driver.configure()
+        self.driver, self.params, self.config = driver, params, config
+        self.session = session
+        self.instance = config.instance or f"bridge-{uuid.uuid4().hex[:6]}"
+        n, lim = driver.n_motors, params.limits
+        self.f_min, self.f_max = float(lim.f_min), float(lim.f_max)
+        self.alpha_max = math.radians(lim.alpha_max_deg)
+        self.dt = driver.dt
+        self._ramp_ticks = max(1, round(config.hold_ramp_s / self.dt))
+
+        # α̂ for the hold forces: rigid cables, eq. 33 (what the controller's laws 1-2 assume).
+        self._rigid = build(params, "rigid", friction=False)
+        self._hold_target(np.zeros(n))  # compile/load the numba kernels now, not in the first hold
+
+        def check(cmd: bus.ForceCommand) -> None:
+            bus.check_force_command(cmd, n, 0.0, self.f_max)
+
+        self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
+        self._estop_lock = threading.Lock()
+        self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
+        self.estop_received = self.estop_rejected = 0
+        self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
+        self._state_pub = publisher(session, bus.MOTOR_STATE)
+        self._extra_pubs: dict[str, BusPublisher] = {}
+        self._health = session.declare_publisher(bus.health_key("bridge", self.instance))
+        self._token = liveliness_token(session, "bridge", self.instance)
+
+        self.mode: bus.DriveState = "inactive"
+        self.hold_reason = ""
+        self.estop_reason = ""
+        self.force = np.zeros(n)  # N, what the drives apply now
+        self.theta = driver.read()
+        self._consumed_ns = 0  # receive time of the last command acted upon
+        self._ramp_from = self._ramp_to = np.zeros(n)
+        self._ramp_k = 0
+        self.ticks = self.overruns = self.clamped = self.holds = 0
+        self.tick_max_s = 0.0
+        self._seq = {"state": 0, "health": 0}
+        self._started = time.monotonic()
+        self._closed = False
+        atexit.register(self._atexit)
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def _on_estop(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: decode and queue only; the loop acts on it within one tick.
+        try:
+            msg = bus.decode(bus.EStop, sample.payload.to_bytes())
+            event = (msg.engaged, msg.reason or "e-stop")
+            valid = True
+        except bus.BusDecodeError as exc:
+            event = (True, f"undecodable e-stop message ({exc.reason})")
+            valid = False
+        with self._estop_lock:
+            self.estop_received += 1
+            self.estop_rejected += 0 if valid else 1
+            self._estop_events.append(event)
+
+    def process_estop(self) -> bool:
+        """Apply queued e-stop events; True if the drive state changed."""
+        with self._estop_lock:
+            events = list(self._estop_events)
+            self._estop_events.clear()
+        changed = False
+        for engaged, reason in events:
+            if engaged and self.mode != "disabled":
+                self.driver.deactivate()
+                self.mode, self.hold_reason, self.estop_reason = "disabled", "", reason
+                self.force = np.zeros(self.driver.n_motors)
+                changed = True
+                log.warning("e-stop engaged (%s): drives disabled", reason)
+            elif not engaged and self.mode == "disabled":
+                # Only commands received after the release may enable the drives again.
+                _cmd, recv_ns = self.commands.latest_with_time()
+                self._consumed_ns = max(self._consumed_ns, recv_ns)
+                self.mode, self.estop_reason = "inactive", ""
+                changed = True
+                log.warning("e-stop released (%s): drives inactive until the next valid command", reason)
+        return changed
+
+    # -- one period -----------------------------------------------------------------------------
+    def tick(self) -> None:
+        """Decide the forces, write, step, read, publish: one control period."""
+        t0 = time.perf_counter()
+        self.process_estop()
+        cmd, recv_ns = self.commands.latest_with_time()
+        fresh = cmd is not None and recv_ns > self._consumed_ns
+        if self.mode == "disabled":
+            if fresh:
+                self._consumed_ns = recv_ns  # ignored: a command never outlives the e-stop
+        elif fresh:
+            self._consumed_ns = recv_ns
+            if self.mode == "inactive":
+                self.driver.activate()
+                log.info("first valid command from %r: drives enabled", cmd.source)
+            if self.mode == "hold":
+                log.info("valid commands from %r again: leaving hold", cmd.source)
+            self.mode, self.hold_reason = "active", ""
+            self.force = self._clamp(cmd.force_N)
+        elif self.mode == "active" and not self.config.lockstep:
+            age_s = (time.time_ns() - recv_ns) * 1e-9
+            if age_s > self.config.command_timeout_s:
+                self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
+                                 f"(timeout {self.config.command_timeout_s * 1e3:.0f} ms)")
+        if self.mode == "hold":
+            self._ramp_k = min(self._ramp_k + 1, self._ramp_ticks)
+            w = self._ramp_k / self._ramp_ticks
+            self.force = (1.0 - w) * self._ramp_from + w * self._ramp_to
+        if self.driver.state is Lifecycle.ACTIVE:
+            self.force = self.driver.write(self.force)
+        else:
+            self.force = np.zeros(self.driver.n_motors)
+        self.driver.step()
+        self.theta = self.driver.read()
+        self.ticks += 1
+        self.publish_state()
+        for key, msg in self.driver.extra_messages():
+            pub = self._extra_pubs.get(key)
+            if pub is None:
+                pub = self._extra_pubs[key] = publisher(self.session, key)
+            pub.put(msg)
+        self.tick_max_s = max(self.tick_max_s, time.perf_counter() - t0)
+
+    def _clamp(self, force_N: list[float]) -> np.ndarray:
+        f = np.asarray(force_N, dtype=float)
+        clamped = np.clip(f, self.f_min, self.f_max)
+        if np.any(clamped != f):
+            self.clamped += 1
+        return clamped
+
+    def _hold_target(self, theta: np.ndarray) -> np.ndarray:
+        """Hold forces at the rigid-cable α̂ of ``theta``; α̂ is kept within the joint limits so
+        a wild estimate cannot ask for wild forces."""
+        alpha = alpha_hat_3(self._rigid, theta)
+        if not np.all(np.isfinite(alpha)):
+            alpha = np.zeros_like(alpha)
+        alpha = np.clip(alpha, -self.alpha_max, self.alpha_max)
+        try:
+            f = hold_forces(self.params, alpha)
+        except Exception:  # noqa: BLE001 - never fail the hold itself: keep the forces applied
+            log.exception("hold forces failed at α̂ = %s rad; holding the applied forces", alpha.tolist())
+            f = self.force
+        f = np.asarray(f, dtype=float)
+        if not np.all(np.isfinite(f)):
+            f = self.force
+        return np.clip(f, self.f_min, self.f_max)
+
+    def _start_hold(self, reason: str) -> None:
+        self.mode, self.hold_reason = "hold", reason
+        self.holds += 1
+        self._ramp_from = self.force.copy()
+        self._ramp_to = self._hold_target(self.theta)
+        self._ramp_k = 0
+        log.warning("hold: %s; ramping to %s N over %d ticks", reason, np.round(self._ramp_to, 2).tolist(),
+                    self._ramp_ticks)
+
+    # -- outputs --------------------------------------------------------------------------------
+    def publish_state(self) -> None:
+        self._seq["state"] += 1
+        self._state_pub.put(bus.MotorState(
+            seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self.theta.tolist(),
+            force_applied_N=self.force.tolist(), drive=self.mode,
+            hold_reason=self.hold_reason if self.mode == "hold" else ""))
+
+    def publish_health(self) -> None:
+        stats = self.commands.stats
+        self._seq["health"] += 1
+        with self._estop_lock:
+            estop_received, estop_rejected = self.estop_received, self.estop_rejected
+        reason = stats.last_reject_reason
+        self._health.put(bus.encode(bus.Health(
+            seq=self._seq["health"], stamp_s=self.driver.stamp_s(), process="bridge", instance=self.instance,
+            uptime_s=time.monotonic() - self._started,
+            received={bus.MOTOR_COMMAND: stats.received, bus.ESTOP: estop_received, "ticks": self.ticks,
+                      "overruns": self.overruns, "clamped": self.clamped, "holds": self.holds,
+                      "tick_max_us": int(self.tick_max_s * 1e6)},
+            rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected},
+            last_reject_reason=reason)))
+
+    # -- exit -----------------------------------------------------------------------------------
+    def shutdown(self) -> None:
+        """Disable the drives, publish the final state and health, close the driver and the bus
+        objects. Safe to call more than once and from a half-dead state."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.driver.close()  # disables the drives first of all
+        finally:
+            self.mode, self.hold_reason = "disabled", ""
+            self.force = np.zeros(self.driver.n_motors)
+            for last in (self.publish_state, self.publish_health):
+                try:
+                    last()
+                except Exception:  # noqa: BLE001 - the session may already be gone
+                    pass
+            closers = [self.commands.close, self._estop_sub.undeclare, self._state_pub.close,
+                       self._health.undeclare, self._token.undeclare]
+            closers += [p.close for p in self._extra_pubs.values()]
+            for closer in closers:
+                try:
+                    closer()
+                except Exception:  # noqa: BLE001
+                    pass
+            atexit.unregister(self._atexit)
+
+    def _atexit(self) -> None:
+        # Backstop for an exit that skipped the finally blocks (e.g. sys.exit in another thread).
+        self.driver.close()
+
+
+def run_realtime(node: BridgeNode, stop: threading.Event) -> int:
+    """Ticks paced by the clock at the driver's rate. A tick that ends after the next one was due
+    is an overrun (counted, reported in ``Health``); whole periods lost are skipped, never caught
+    up. Returns the number of ticks run."""
+    cfg, dt = node.config, node.dt
+    start = time.perf_counter()
+    k = 0
+    next_health = start + cfg.health_period_s
+    node.publish_health()
+    while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
+        node.tick()
+        k += 1
+        now = time.perf_counter()
+        due = start + k * dt
+        if now > due:
+            node.overruns += 1
+            if now > due + dt:
+                start += math.floor((now - due) / dt) * dt
+        else:
+            time.sleep(due - now)
+        if now >= next_health:
+            node.publish_health()
+            next_health = now + cfg.health_period_s
+    return k
+
+
+def run_lockstep(node: BridgeNode, stop: threading.Event) -> int:
+    """One tick per new valid command (a new ``seq``), as fast as the controller goes; e-stops are
+    acted upon within 5 ms even without commands. Returns the number of ticks run."""
+    cfg = node.config
+    last_seq = None
+    k = 0
+    idle_since = last_publish = time.monotonic()
+    next_health = idle_since + cfg.health_period_s
+    node.publish_state()
+    node.publish_health()
+    while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
+        cmd = node.commands.wait(0.005, lambda c: c.seq != last_seq)
+        now = time.monotonic()
+        if cmd is None or cmd.seq == last_seq:
+            if node.process_estop() or now - last_publish >= cfg.republish_s:
+                node.publish_state()
+                last_publish = now
+            if cfg.idle_timeout_s is not None and now - idle_since > cfg.idle_timeout_s:
+                log.info("no command for %.1f s: stopping", cfg.idle_timeout_s)
+                break
+        else:
+            last_seq, idle_since, last_publish = cmd.seq, now, now
+            node.tick()
+            k += 1
+        if now >= next_health:
+            node.publish_health()
+            next_health = now + cfg.health_period_s
+    return k
+
+
+__all__ = ["BridgeConfig", "BridgeNode", "run_lockstep", "run_realtime"]

@@ -1,0 +1,278 @@
+"""The bridge's motor drivers (issue 7): the BeagleBone Blue driver against a fake of rcpy at its
+lowest layer (encoder counts in, duty cycles and enable levels out), the lifecycle rules every
+driver obeys, the twin and replay drivers."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from bridge import bus
+from bridge.driver import DriverError, Lifecycle, config_from_dict
+from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver, Transmission
+from bridge.drivers.replay import ReplayConfig, ReplayDriver
+from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+
+
+class FakeBoard:
+    """What librobotcontrol would see: four quadrature counters, four motor outputs, GPIO levels.
+    It refuses what the C library refuses (bad channel, duty outside [-1, 1])."""
+
+    def __init__(self) -> None:
+        self.counts = {ch: 0 for ch in range(1, 5)}
+        self.duty: dict[int, float] = {}
+        self.pins: dict[int, int] = {}
+        self.motors_enabled = False
+        self.calls: list[tuple] = []
+
+    def modules(self) -> dict[str, types.ModuleType]:
+        rcpy = types.ModuleType("rcpy")
+        encoder = types.ModuleType("rcpy.encoder")
+        motor = types.ModuleType("rcpy.motor")
+        gpio = types.ModuleType("rcpy.gpio")
+
+        def enc_get(channel):
+            if channel not in self.counts:
+                raise ValueError(f"no encoder channel {channel}")
+            return self.counts[channel]
+
+        def motor_set(channel, duty):
+            if channel not in range(1, 5) or not -1.0 <= duty <= 1.0:
+                raise ValueError(f"motor.set({channel}, {duty}) refused")
+            self.calls.append(("motor.set", channel, duty))
+            self.duty[channel] = duty
+
+        def set_value(pin, value=0):
+            self.calls.append(("gpio.set_value", pin, value))
+            self.pins[pin] = int(value)
+
+        def enable():
+            self.motors_enabled = True
+
+        def disable():
+            self.motors_enabled = False
+
+        encoder.get = enc_get
+        encoder.set = lambda channel, count: self.counts.__setitem__(channel, count)
+        motor.set, motor.enable, motor.disable = motor_set, enable, disable
+        gpio.set_value, gpio.get_value = set_value, lambda pin: self.pins.get(pin, 0)
+        rcpy.encoder, rcpy.motor, rcpy.gpio = encoder, motor, gpio
+        return {"rcpy": rcpy, "rcpy.encoder": encoder, "rcpy.motor": motor, "rcpy.gpio": gpio}
+
+
+@pytest.fixture
+def board(monkeypatch):
+    b = FakeBoard()
+    for name, module in b.modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    return b
+
+
+PINS = (57, 49, 116, 113)
+# Prototype constants by hand (prototype_3x.toml): r_d = 0.020 m, R = 25, η = 0.81, k_t = 0.0367 N·m/A.
+AMPS_PER_N = 0.020 / (25 * 0.81 * 0.0367)  # 2.6912e-2 A/N
+
+
+def _driver(params, **config) -> BeagleBoneDriver:
+    return BeagleBoneDriver.from_params(BeagleBoneConfig(**config), params)
+
+
+def test_force_to_current_to_duty_matches_hand_computation(board, params):
+    drv = _driver(params, direction=(1, -1, 1, 1))
+    assert drv.transmission == Transmission(r_d=0.020, R=25.0, efficiency=0.81, k_t=0.0367, current_max=5.0)
+    assert drv.transmission.amps_per_newton == pytest.approx(AMPS_PER_N)
+    drv.configure()
+    drv.activate()
+    applied = drv.write(np.array([50.0, 50.0, 0.0, 200.0]))
+    i50 = 50 * AMPS_PER_N  # 1.3456 A
+    # Default ESCON map: PWM 10 % -> -5 A, 90 % -> +5 A, i.e. duty = 0.1 + (I + 5)·0.08.
+    expected = [0.1 + (i50 + 5) * 0.08,   # 0.60765
+                0.1 + (-i50 + 5) * 0.08,  # motor 2 turns the other way
+                0.5,                      # zero force: zero current
+                0.9]                      # 200 N needs 5.38 A > 5 A: clamped
+    assert [board.duty[ch] for ch in (1, 2, 3, 4)] == pytest.approx(expected, abs=1e-12)
+    assert expected[0] == pytest.approx(0.60765, abs=1e-5)
+    assert applied == pytest.approx([50.0, 50.0, 0.0, 5.0 / AMPS_PER_N])  # 185.8 N at 5 A
+
+
+def test_analog_mode_maps_current_to_volts_then_to_duty(board, params):
+    drv = _driver(params, set_value_mode="analog", set_value_1=0.0, current_1_A=0.0, set_value_2=10.0,
+                  current_2_A=5.0, set_value_min=-10.0, set_value_max=10.0, analog_full_scale_V=12.0)
+    drv.configure()
+    drv.activate()
+    drv.write(np.array([50.0, 100.0, 0.0, 10.0]))
+    volts = np.array([50.0, 100.0, 0.0, 10.0]) * AMPS_PER_N * 2.0  # 2 V per A
+    assert [board.duty[ch] for ch in (1, 2, 3, 4)] == pytest.approx(volts / 12.0)
+    assert board.duty[1] == pytest.approx(2.6912 / 12.0, abs=1e-4)  # 50 N: 1.3456 A, 2.6912 V
+
+
+def test_counts_in_angles_out_zeroed_at_configure(board, params):
+    board.counts.update({1: 100, 2: -40, 3: 0, 4: 7})
+    drv = _driver(params, encoder_channels=(2, 1, 3, 4), direction=(1, 1, -1, 1))
+    drv.configure()
+    assert drv.read() == pytest.approx(np.zeros(4))
+    board.counts.update({1: 100 + 512, 2: -40 - 1024, 3: 2048, 4: 7})
+    theta = drv.read()  # motor 1 reads channel 2, motor 3 counts the other way
+    assert theta == pytest.approx([-math.pi, math.pi / 2, -2 * math.pi, 0.0])
+
+
+def test_lifecycle_refuses_out_of_order_calls(board, params):
+    drv = _driver(params)
+    assert drv.state is Lifecycle.UNCONFIGURED
+    with pytest.raises(DriverError, match="configured"):
+        drv.read()
+    with pytest.raises(DriverError, match="refused"):
+        drv.write(np.full(4, 10.0))
+    with pytest.raises(DriverError, match="activate"):
+        drv.activate()
+    drv.configure()
+    with pytest.raises(DriverError, match="configure"):
+        drv.configure()
+    with pytest.raises(DriverError, match="inactive"):
+        drv.write(np.full(4, 10.0))  # states readable, commands refused
+    drv.activate()
+    with pytest.raises(DriverError, match="finite"):
+        drv.write(np.array([10.0, math.nan, 10.0, 10.0]))
+    with pytest.raises(DriverError, match="4 finite"):
+        drv.write(np.full(3, 10.0))
+    drv.deactivate()
+    assert drv.read().shape == (4,)  # encoders still readable
+    drv.close()
+    assert drv.state is Lifecycle.CLOSED
+    with pytest.raises(DriverError):
+        drv.read()
+    drv.close()  # idempotent
+
+
+def test_enable_lines_follow_the_lifecycle_and_close_disables(board, params):
+    drv = _driver(params)
+    drv.configure()
+    # Configure forces every drive off: enable low, zero-current set value (PWM 50 %).
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+    assert all(board.duty[ch] == pytest.approx(0.5) for ch in (1, 2, 3, 4))
+    drv.activate()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 1) and board.motors_enabled
+    drv.write(np.full(4, 30.0))
+    board.calls.clear()
+    drv.deactivate()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+    assert all(board.duty[ch] == pytest.approx(0.5) for ch in (1, 2, 3, 4))
+    # The enable lines go low before the set values move: the ESCON stops at once.
+    first_motor = next(i for i, c in enumerate(board.calls) if c[0] == "motor.set")
+    assert all(c[0] == "gpio.set_value" for c in board.calls[:first_motor]) and first_motor == 4
+    drv.activate()
+    drv.write(np.full(4, 30.0))
+    drv.close()  # from ACTIVE, as on Ctrl-C or a crash
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+    assert all(board.duty[ch] == pytest.approx(0.5) for ch in (1, 2, 3, 4))
+    assert not board.motors_enabled
+
+
+def test_active_low_enable_lines(board, params):
+    drv = _driver(params, enable_active_high=False)
+    drv.configure()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 1)
+    drv.activate()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+    drv.close()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 1)
+
+
+def test_close_keeps_disabling_when_one_line_fails(board, params, monkeypatch):
+    drv = _driver(params)
+    drv.configure()
+    drv.activate()
+    original = sys.modules["rcpy.gpio"].set_value
+
+    def flaky(pin, value=0):
+        if pin == PINS[0]:
+            raise OSError("gpio write failed")
+        original(pin, value)
+
+    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", flaky)
+    drv.close()  # never raises; logs
+    assert {p: board.pins[p] for p in PINS[1:]} == dict.fromkeys(PINS[1:], 0)
+    assert drv.state is Lifecycle.CLOSED
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"direction": (1, 1, 1)}, "one per motor"),
+    ({"direction": (1, 2, 1, 1)}, "direction"),
+    ({"motor_channels": (1, 1, 2, 3)}, "distinct"),
+    ({"encoder_channels": (1, 2, 3, 5)}, "distinct"),
+    ({"set_value_2": 0.10}, "must differ"),
+    ({"set_value_max": 1.2}, "within"),
+    ({"set_value_mode": "analog", "set_value_min": -12.0, "set_value_max": 10.0}, "within"),
+    ({"current_1_A": 1.0, "current_2_A": 5.0}, "zero current"),
+    ({"set_value_mode": "voltage"}, "set_value_mode: Invalid enum"),
+    ({"enable_pins": (1, 1, 2, 3)}, "enable_pins"),
+    ({"bogus": 1}, "bogus"),
+])
+def test_bad_config_names_the_field(fields, message):
+    with pytest.raises(DriverError, match=message):
+        config_from_dict(BeagleBoneConfig, fields)
+
+
+def test_missing_rcpy_is_a_clear_error(monkeypatch, params):
+    monkeypatch.setitem(sys.modules, "rcpy", None)  # import rcpy raises ImportError
+    drv = _driver(params)
+    with pytest.raises(DriverError, match="rcpy"):
+        drv.configure()
+    assert drv.state is Lifecycle.UNCONFIGURED
+    drv.close()
+
+
+def test_cli_beaglebone_without_rcpy_fails_cleanly():
+    run = subprocess.run([sys.executable, "-m", "server.cli", "bridge", "--driver", "beaglebone"],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert "rcpy" in run.stderr and "not installed" in run.stderr
+    assert "Traceback" not in run.stderr + run.stdout
+
+
+def test_twin_driver_steps_with_zero_force_unless_active(params):
+    drv = TwinDriver(TwinDriverConfig(seed=1, camera=False), params)
+    drv.configure()
+    with pytest.raises(DriverError):
+        drv.write(np.full(4, 20.0))
+    drv.step()  # inactive: unpowered motors
+    assert drv.stamp_s() == pytest.approx(0.002)
+    drv.activate()
+    f = np.array([20.0, 20.0, 20.0, 20.0])
+    assert drv.write(f) == pytest.approx(f)
+    for _ in range(50):
+        drv.step()
+    theta = drv.read()
+    # Quantised like the encoders: whole counts of 2π/2048.
+    assert np.allclose(theta / (2 * math.pi / 2048), np.round(theta / (2 * math.pi / 2048)))
+    assert np.abs(theta).max() > 0
+    keys = [k for k, _ in drv.extra_messages()]
+    assert keys == [bus.TWIN_TRUTH]
+    drv.close()
+
+
+def test_replay_driver_replays_archived_angles(tmp_path):
+    from server.archive import write_campaign
+
+    states = [bus.MotorState(seq=k, stamp_s=0.002 * k, theta_rad=[0.1 * k, 0.0, -0.1 * k, 1.0],
+                             force_applied_N=[10.0 + k, 10.0, 10.0, 10.0], drive="active") for k in range(5)]
+    path = write_campaign(tmp_path / "c.mcap", [(bus.MOTOR_STATE, k * 2_000_000, s) for k, s in enumerate(states)],
+                          {"campaign_id": "r1", "kind": "control"})
+    drv = ReplayDriver(ReplayConfig(path=str(path)))
+    drv.configure()
+    drv.activate()
+    seen = []
+    while not drv.exhausted:  # the bridge's order: write, step, read
+        drv.write(np.full(4, 50.0))
+        drv.step()
+        seen.append(drv.read().tolist())
+        assert drv.write(np.full(4, 50.0))[0] == 10.0 + len(seen) - 1  # accepted, ignored
+    assert seen == [s.theta_rad for s in states]
+    drv.close()
+    with pytest.raises(DriverError, match="no such file"):
+        ReplayDriver(ReplayConfig(path=str(tmp_path / "missing.mcap"))).configure()
