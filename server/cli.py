@@ -10,6 +10,7 @@ import typer
 
 from bridge import cli as bridge_cli
 from controller import cli as controller_cli
+from server.serve import server
 from twin import cli as twin_cli
 from twin.identification_cli import identify
 from twin.kinematics_cli import kinematics_app, workspace
@@ -41,6 +42,7 @@ app.add_typer(controller_cli.campaign_app, name="campaign")
 app.add_typer(kinematics_app, name="kinematics")
 app.command("workspace")(workspace)
 app.command("identify")(identify)
+app.command("server")(server)
 
 
 def main() -> None:

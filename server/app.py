@@ -1,0 +1,117 @@
+"""The console's ASGI application, built by :func:`create_app` from typed :class:`Settings`.
+
+Lifespan (start-up, in order): one Zenoh session listening on the hub endpoint (campaign
+processes connect to it; ``settings.connect`` reaches a robot's bridge), liveliness presence, the
+live fan-out and its broadcaster task, the viser 3D view (its own thread and port), the campaign
+manager — which first recovers archives a crash left unfinished. Shutdown reverses it; the
+session is closed last so no Zenoh callback outlives its objects.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from bridge.session import free_tcp_port, open_session
+from server import routes_campaigns, routes_live, routes_params, routes_system
+from server.archive import software_version
+from server.campaigns import CampaignManager
+from server.live import Broadcaster, LiveBus
+from server.paramsets import ParameterStore
+from server.presence import Presence
+from server.settings import Settings, resolve_token
+
+log = logging.getLogger("xneck.server")
+
+WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+
+
+def concrete_hub(endpoint: str) -> str:
+    """``tcp/127.0.0.1:0`` -> a free port now: child processes need a port they can connect to."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if port == "0":
+        return f"{proto}/{host}:{free_tcp_port(host)}"
+    return endpoint
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    data_dir = Path(settings.data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    token, generated = resolve_token(settings)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state = app.state
+        state.started = time.monotonic()
+        state.hub = concrete_hub(settings.hub)
+        session = open_session(listen=[state.hub], connect=list(settings.connect))
+        state.session = session
+        state.scene = None
+        tasks: list[asyncio.Task] = []
+        try:
+            state.presence = Presence(session)
+            state.live = LiveBus(session)
+            state.broadcaster = Broadcaster(state.live.values, settings.live_rate_hz)
+            tasks.append(asyncio.create_task(state.broadcaster.run(), name="live-broadcaster"))
+            state.default_params = state.params.load(state.params.active())
+            if settings.viser:
+                from server.scene import NeckScene
+
+                state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
+                                        port=settings.viser_port, rate_hz=settings.scene_rate_hz)
+            state.campaigns = CampaignManager(data_dir, session, state.hub)
+            recovered = state.campaigns.recover_all()
+            if recovered:
+                log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))
+            yield
+        finally:
+            for task in tasks:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+            if getattr(state, "campaigns", None) is not None:
+                await asyncio.to_thread(state.campaigns.close)
+            if state.scene is not None:
+                state.scene.close()
+            for name in ("live", "presence"):
+                obj = getattr(state, name, None)
+                if obj is not None:
+                    obj.close()
+            session.close()
+
+    app = FastAPI(
+        title="xneck experiment console",
+        version=software_version(),
+        description="Campaigns, parameter sets, live data and archives of the X-joint cable-driven neck. "
+                    "SI units (angles in rad) unless a field name says otherwise. Mutating endpoints need "
+                    "`Authorization: Bearer <token>`.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.token = token
+    app.state.token_generated = generated
+    app.state.params = ParameterStore(data_dir)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # Same shape as FastAPI's, minus the echoed input (it may be a whole uploaded file).
+        detail = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
+                  for e in exc.errors()]
+        return JSONResponse(status_code=422, content={"detail": detail})
+
+    for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router):
+        app.include_router(router)
+    if WEB_DIR.is_dir():
+        app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+    return app

@@ -1,0 +1,284 @@
+"""Campaigns started by the console: one at a time, run in a worker thread, archived and indexed.
+
+The worker calls :func:`controller.campaign.run_campaign` with the server's own Zenoh session and
+hub endpoint, so the twin/controller processes it spawns publish where the console's live views
+already listen. Progress comes from the controller's campaign events; stop sets the event
+``run_campaign`` polls (it then stops the children within bounded time and finishes the MCAP).
+
+After a campaign: a Foxglove scene channel is added to the archive, the metrics (and for an
+identification campaign the identification tables) are computed, and the JSON record is final.
+
+At start-up :meth:`CampaignManager.recover_all` repairs what a crash left: an unfinished MCAP is
+recovered (:func:`server.archive.recover`) and its record marked ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from bridge import bus
+from bridge.session import publisher
+from controller.campaign import metrics_from_archive, new_campaign_id, run_campaign
+from server.archive import ArchiveError, is_complete, iso_time, read_campaign, recover
+from server.campaign_request import PreparedCampaign
+from server.foxglove_scene import add_scene_channel
+from server.records import CampaignIndex, CampaignRecord
+from server.replay import Replay
+from server.results import identify_archive
+
+log = logging.getLogger("xneck.campaigns")
+
+
+class Busy(Exception):
+    """Another campaign (or a replay) holds the robot; ``running_id`` names it."""
+
+    def __init__(self, running_id: str, what: str = "campaign") -> None:
+        super().__init__(f"{what} {running_id} is running")
+        self.running_id = running_id
+        self.what = what
+
+
+class NotFound(KeyError):
+    pass
+
+
+class CampaignManager:
+    def __init__(self, data_dir: Path, session: zenoh.Session, hub: str,
+                 on_finish: Callable[[CampaignRecord], None] | None = None) -> None:
+        self.index = CampaignIndex(Path(data_dir) / "campaigns")
+        self.session = session
+        self.hub = hub
+        self._on_finish = on_finish
+        self._lock = threading.Lock()
+        self._records: dict[str, CampaignRecord] = {}
+        self._running: str | None = None
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._replay: Replay | None = None
+        self._estop_pub = publisher(session, bus.ESTOP)
+        self._estop_seq = 0
+        self.estop_engaged = False
+        self.estop_reason = ""
+
+    # -- start-up ---------------------------------------------------------------------------
+    def recover_all(self) -> list[str]:
+        """Recover unfinished archives and records left by a crash; returns the ids marked interrupted."""
+        interrupted = []
+        for rec in self.index.load_all():
+            self._records[rec.id] = rec
+        for mcap in sorted(self.index.dir.glob("*.mcap")):
+            cid = mcap.stem
+            rec = self._records.get(cid)
+            try:
+                complete = is_complete(mcap)
+            except ArchiveError as exc:
+                log.warning("skipping %s: %s", mcap, exc)
+                continue
+            if complete and rec is not None and rec.status != "running":
+                continue
+            try:
+                report = recover(mcap)
+            except ArchiveError as exc:
+                log.error("cannot recover %s: %s", mcap, exc)
+                continue
+            info = {}
+            with contextlib.suppress(ArchiveError):
+                info = read_campaign(mcap).info
+            if rec is None:
+                rec = CampaignRecord(
+                    id=cid, kind=info.get("kind", "control") if info.get("kind") in ("control", "identification")
+                    else "control", law=info.get("law", ""), trajectory="", parameter_set=info.get("parameter_set", ""),
+                    target=info.get("target", "twin") if info.get("target") in ("twin", "robot") else "twin",
+                    created_at=info.get("start_time", ""))
+            rec.status = "interrupted"
+            rec.ended_at = info.get("end_time", iso_time())
+            rec.message = f"recovered after a crash ({report.status}: {report.messages} messages kept" + \
+                          (f"; {report.reason}" if report.reason else "") + ")"
+            with contextlib.suppress(Exception):
+                rec.metrics = metrics_from_archive(mcap)
+            rec.mcap_bytes = mcap.stat().st_size
+            self._records[cid] = rec
+            self.index.save(rec)
+            interrupted.append(cid)
+        # A record still "running" without its MCAP: the crash came before the first byte.
+        for rec in self._records.values():
+            if rec.status == "running":
+                rec.status, rec.message = "interrupted", "the server stopped before anything was recorded"
+                self.index.save(rec)
+                interrupted.append(rec.id)
+        return interrupted
+
+    # -- queries ----------------------------------------------------------------------------
+    @property
+    def running_id(self) -> str | None:
+        return self._running
+
+    def get(self, campaign_id: str) -> CampaignRecord:
+        with self._lock:
+            rec = self._records.get(campaign_id)
+        if rec is None:
+            raise NotFound(campaign_id)
+        return rec.model_copy()
+
+    def list(self, status: str | None = None, kind: str | None = None, law: str | None = None,
+             limit: int = 100) -> list[CampaignRecord]:
+        with self._lock:
+            recs = [r.model_copy() for r in self._records.values()]
+        recs = [r for r in recs if (status is None or r.status == status) and (kind is None or r.kind == kind)
+                and (law is None or r.law == law)]
+        recs.sort(key=lambda r: r.created_at, reverse=True)
+        return recs[:limit]
+
+    def mcap_path(self, campaign_id: str) -> Path:
+        self.get(campaign_id)
+        return self.index.mcap(campaign_id)
+
+    # -- life cycle -------------------------------------------------------------------------
+    def start(self, prepared: PreparedCampaign) -> CampaignRecord:
+        spec = prepared.spec
+        with self._lock:
+            if self._running is not None:
+                raise Busy(self._running)
+            if self._replay is not None and self._replay.running:
+                raise Busy(self._replay.campaign_id, "replay of")
+            if self.estop_engaged:
+                raise Busy("estop", "e-stop")
+            cid = new_campaign_id(spec.kind)
+            rec = CampaignRecord(
+                id=cid, kind=spec.kind, law=spec.law.name, trajectory=spec.trajectory.name,
+                trajectory_spec=spec.trajectory.to_dict(), duration_s=spec.trajectory.duration_s,
+                parameter_set=prepared.parameter_set, target="twin" if spec.twin else "robot",
+                pace=prepared.pace, seed=spec.seed, created_at=iso_time())
+            self._records[cid] = rec
+            self._running = cid
+            self._stop = threading.Event()
+            self.index.save(rec)
+            self._worker = threading.Thread(target=self._run, args=(cid, prepared), name=f"campaign:{cid}",
+                                            daemon=True)
+            self._worker.start()
+        return rec.model_copy()
+
+    def _update(self, cid: str, **fields: object) -> CampaignRecord:
+        with self._lock:
+            rec = self._records[cid]
+            for k, v in fields.items():
+                setattr(rec, k, v)
+            snapshot = rec.model_copy()
+        self.index.save(snapshot)
+        return snapshot
+
+    def _run(self, cid: str, prepared: PreparedCampaign) -> None:
+        path = self.index.mcap(cid)
+        spec = prepared.spec
+
+        def progress(fraction: float, message: str) -> None:
+            with self._lock:
+                rec = self._records[cid]
+                rec.progress = max(rec.progress, min(max(float(fraction), 0.0), 1.0))
+                rec.message = message[:300]
+
+        try:
+            result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
+                                  session=self.session, hub=self.hub, stop=self._stop)
+            status = result.outcome if result.outcome in ("finished", "aborted") else "failed"
+            fields: dict[str, object] = {"status": status, "message": result.message[:2000],
+                                         "metrics": result.metrics or None}
+            if status == "finished":
+                fields["progress"] = 1.0
+        except Exception as exc:  # noqa: BLE001 - the record says what went wrong
+            log.exception("campaign %s failed", cid)
+            fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
+        try:
+            if path.exists():
+                fields["scene_messages"] = add_scene_channel(path, prepared.params)
+        except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
+            log.warning("no Foxglove scene for %s: %s", cid, exc)
+        if spec.kind == "identification" and path.exists() and fields.get("status") == "finished":
+            self._update(cid, message="identifying (twin.identification)…")
+            report, text = identify_archive(path, spec.params_file)
+            fields["identification"] = report
+            fields["identification_status"] = text
+        fields["ended_at"] = iso_time()
+        fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
+        with self._lock:
+            self._running = None
+        rec = self._update(cid, **fields)
+        if self._on_finish is not None:
+            self._on_finish(rec)
+
+    def stop(self, campaign_id: str) -> CampaignRecord:
+        rec = self.get(campaign_id)
+        if self._running == campaign_id:
+            self._stop.set()
+        elif self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
+            self._replay.stop()
+        return rec
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        worker = self._worker
+        if worker is not None:
+            worker.join(timeout_s)
+            return not worker.is_alive()
+        return True
+
+    def delete(self, campaign_id: str) -> None:
+        self.get(campaign_id)
+        with self._lock:
+            if self._running == campaign_id:
+                raise Busy(campaign_id)
+            if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
+                raise Busy(campaign_id, "replay of")
+            self._records.pop(campaign_id, None)
+        for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):
+            p.unlink(missing_ok=True)
+        figs = self.index.figures(campaign_id)
+        if figs.is_dir():
+            for f in figs.iterdir():
+                f.unlink(missing_ok=True)
+            figs.rmdir()
+
+    # -- replay -----------------------------------------------------------------------------
+    def replay(self, campaign_id: str, speed: float) -> dict[str, object]:
+        rec = self.get(campaign_id)
+        with self._lock:
+            if self._running is not None:
+                raise Busy(self._running)
+            if self._replay is not None and self._replay.running:
+                raise Busy(self._replay.campaign_id, "replay of")
+        if rec.status == "running":
+            raise Busy(campaign_id)
+        replay = Replay(self.session, campaign_id, self.index.mcap(campaign_id), speed)
+        with self._lock:
+            self._replay = replay
+        return replay.status()
+
+    def replay_status(self) -> dict[str, object] | None:
+        return self._replay.status() if self._replay is not None else None
+
+    # -- e-stop -----------------------------------------------------------------------------
+    def estop(self, engaged: bool, reason: str) -> None:
+        """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
+        engaging, abort the running campaign and any replay."""
+        self._estop_seq += 1
+        self._estop_pub.put(bus.EStop(seq=self._estop_seq, stamp_s=time.time(), engaged=engaged,
+                                      reason=reason))
+        self.estop_engaged, self.estop_reason = engaged, reason
+        if engaged:
+            self._stop.set()
+            if self._replay is not None:
+                self._replay.stop()
+
+    def close(self, timeout_s: float = 20.0) -> None:
+        self._stop.set()
+        if self._replay is not None:
+            self._replay.stop()
+        self.wait_idle(timeout_s)
+        with contextlib.suppress(Exception):
+            self._estop_pub.close()

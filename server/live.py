@@ -1,0 +1,206 @@
+"""Bus → browser fan-out: the latest value of every live series, broadcast at a fixed rate.
+
+Zenoh callbacks only decode and store the newest message per key under a lock (no queue grows,
+nothing blocks, nothing calls Zenoh). A broadcaster coroutine builds one JSON frame per period
+(``live_rate_hz``, 30 Hz) from the latest values and hands the *same bytes* to every client's
+bounded queue, dropping that client's oldest frame when it is full. A slow or stalled browser
+thus loses frames (it sees the newest state when it catches up) and never pushes back on the bus
+or on other clients.
+
+Frame (JSON, SI units; the dashboard converts to degrees)::
+
+    {"type": "live", "seq": n, "wall_s": ..., "series": {
+        "status":  {"stamp_s", "alpha_hat_rad", "alpha_d_rad", "e_rad", "holding", "hold_reason",
+                    "law", "tick_s", "deadline_misses", "overruns"},
+        "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive"},
+        "command": {"stamp_s", "force_N"},
+        "camera":  {"stamp_s", "alpha_ip_rad"},
+        "truth":   {"stamp_s", "alpha_rad", "tension_N"},
+        "campaign":{"campaign_id", "kind", "event", "progress", "message"},
+        "estop":   {"engaged", "reason"}}}
+
+A series appears once its first message arrived; ``stamp_s`` lets a client drop repeats.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import zenoh
+
+from bridge import bus
+
+#: Series name -> (key, fields forwarded to browsers).
+SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "status": (bus.CONTROLLER_STATUS, ("stamp_s", "alpha_hat_rad", "alpha_d_rad", "e_rad", "holding", "hold_reason",
+                                       "law", "tick_s", "deadline_misses", "overruns")),
+    "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive")),
+    "command": (bus.MOTOR_COMMAND, ("stamp_s", "force_N")),
+    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad")),
+    "truth": (bus.TWIN_TRUTH, ("stamp_s", "alpha_rad", "tension_N")),
+    "campaign": (bus.CAMPAIGN_EVENTS, ("campaign_id", "kind", "event", "progress", "message")),
+    "estop": (bus.ESTOP, ("engaged", "reason")),
+}
+
+CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
+
+
+class LatestValues:
+    """Thread-safe store of the latest message per series, fed by Zenoh callbacks.
+
+    Callbacks store raw payloads (500 Hz per key would otherwise cost a decode each); a payload is
+    decoded only when read, at most once, so the cost follows the 30 Hz readers, not the bus.
+    Payloads that fail to decode are counted in :attr:`rejected` and never shown.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._raw: dict[str, bytes] = {}
+        self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
+        self._version = 0
+        self.rejected = 0
+
+    def put_raw(self, series: str, payload: bytes) -> None:
+        with self._lock:
+            self._raw[series] = payload
+            self._version += 1
+
+    def put(self, series: str, msg: bus.BusMessage) -> None:
+        self.put_raw(series, bus.encode(msg))
+
+    def _decode(self, series: str, payload: bytes) -> bus.BusMessage | None:
+        cached = self._decoded.get(series)
+        if cached is not None and cached[0] is payload:
+            return cached[1]
+        try:
+            msg: bus.BusMessage | None = bus.decode(SERIES[series][0], payload)
+        except bus.BusDecodeError:
+            msg = None
+            self.rejected += 1
+        self._decoded[series] = (payload, msg)
+        return msg
+
+    def get(self, series: str) -> Any:
+        with self._lock:
+            payload = self._raw.get(series)
+        return None if payload is None else self._decode_locked(series, payload)
+
+    def _decode_locked(self, series: str, payload: bytes) -> bus.BusMessage | None:
+        with self._lock:
+            return self._decode(series, payload)
+
+    def snapshot(self) -> tuple[int, dict[str, bus.BusMessage]]:
+        with self._lock:
+            version, raw = self._version, dict(self._raw)
+            out = {}
+            for series, payload in raw.items():
+                msg = self._decode(series, payload)
+                if msg is not None:
+                    out[series] = msg
+        return version, out
+
+    def version(self) -> int:
+        with self._lock:
+            return self._version
+
+
+def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
+    """The ``series`` part of a live frame from the latest messages."""
+    out: dict[str, Any] = {}
+    for name, msg in values.items():
+        fields = SERIES[name][1]
+        out[name] = {f: getattr(msg, f) for f in fields}
+    return out
+
+
+class LiveBus:
+    """Subscribes to every live series on a session and keeps only the newest message of each."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.values = LatestValues()
+        self._subs = [session.declare_subscriber(key, self._callback(name, key)) for name, (key, _) in SERIES.items()]
+
+    def _callback(self, name: str, key: str) -> Callable[[zenoh.Sample], None]:
+        values = self.values
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            values.put_raw(name, sample.payload.to_bytes())
+
+        return on_sample
+
+    def close(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+
+@dataclass(eq=False)
+class Client:
+    """One browser connection: a bounded queue of encoded frames (newest kept)."""
+
+    queue: asyncio.Queue[bytes] = field(default_factory=lambda: asyncio.Queue(CLIENT_QUEUE_FRAMES))
+    dropped: int = 0
+
+    def offer(self, frame: bytes) -> None:
+        """Enqueue without ever waiting: on a full queue the oldest frame goes."""
+        while True:
+            try:
+                self.queue.put_nowait(frame)
+                return
+            except asyncio.QueueFull:
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    self.queue.get_nowait()
+                    self.dropped += 1
+
+
+class Broadcaster:
+    """Sends a frame to every connected client at ``rate_hz`` when something changed (runs on the
+    server's event loop; :meth:`run` is its task)."""
+
+    def __init__(self, values: LatestValues, rate_hz: float) -> None:
+        self.values = values
+        self.period_s = 1.0 / rate_hz
+        self.clients: set[Client] = set()
+        self.frames_sent = 0
+        self._encoder = msgspec.json.Encoder()
+
+    def connect(self) -> Client:
+        client = Client()
+        self.clients.add(client)
+        # A new client gets the current state at once, not after the next change.
+        _, latest = self.values.snapshot()
+        if latest:
+            client.offer(self._encode(latest))
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        self.clients.discard(client)
+
+    def _encode(self, latest: dict[str, bus.BusMessage]) -> bytes:
+        self.frames_sent += 1
+        return self._encoder.encode({"type": "live", "seq": self.frames_sent, "wall_s": time.time(),
+                                     "series": frame_of(latest)})
+
+    async def run(self) -> None:
+        last_version = -1
+        next_t = time.monotonic()
+        while True:
+            next_t += self.period_s
+            version, latest = self.values.snapshot()
+            if version != last_version and self.clients and latest:
+                last_version = version
+                frame = self._encode(latest)
+                for client in list(self.clients):
+                    client.offer(frame)
+            delay = next_t - time.monotonic()
+            if delay < 0:  # fell behind (loaded machine): skip, do not burst
+                next_t = time.monotonic()
+                delay = 0
+            await asyncio.sleep(delay)

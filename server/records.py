@@ -1,0 +1,81 @@
+"""The campaign index: one small JSON file per campaign next to its MCAP archive.
+
+``<data_dir>/campaigns/<id>.mcap`` is the data; ``<id>.json`` is what the console lists and
+filters without opening archives (kind, law, trajectory, status, progress, metrics). The JSON is
+rewritten atomically on every change, so a crash leaves the previous version.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+CampaignStatus = Literal["running", "finished", "aborted", "interrupted", "failed"]
+ACTIVE: tuple[str, ...] = ("running",)
+_ID = re.compile(r"^[A-Za-z0-9_.\-]{1,100}$")
+
+
+class CampaignRecord(BaseModel):
+    """What the API returns for a campaign. Angles in ``metrics`` are in degrees (report edge),
+    forces in N, times in s; timestamps are UTC ISO 8601."""
+
+    id: str
+    kind: Literal["identification", "control"]
+    law: str = Field(description="Law name, e.g. law2 or law2-no-pulleys.")
+    trajectory: str = Field(description="Trajectory name.")
+    trajectory_spec: dict[str, Any] = Field(default_factory=dict, description="Waypoints (deg), durations (s).")
+    duration_s: float = 0.0
+    parameter_set: str
+    target: Literal["twin", "robot"]
+    pace: Literal["lockstep", "realtime"] = "lockstep"
+    seed: int = 0
+    status: CampaignStatus = "running"
+    progress: float = Field(0.0, ge=0.0, le=1.0)
+    message: str = ""
+    created_at: str = ""
+    ended_at: str = ""
+    metrics: dict[str, Any] | None = None
+    identification: dict[str, Any] | None = None
+    identification_status: str = ""
+    scene_messages: int = 0
+    mcap_bytes: int = 0
+
+
+def valid_id(campaign_id: str) -> bool:
+    return bool(_ID.match(campaign_id)) and not campaign_id.startswith(".")
+
+
+class CampaignIndex:
+    """Reads and writes the JSON records in one directory."""
+
+    def __init__(self, directory: Path) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+
+    def mcap(self, campaign_id: str) -> Path:
+        return self.dir / f"{campaign_id}.mcap"
+
+    def json(self, campaign_id: str) -> Path:
+        return self.dir / f"{campaign_id}.json"
+
+    def figures(self, campaign_id: str) -> Path:
+        return self.dir / f"{campaign_id}_figures"
+
+    def save(self, record: CampaignRecord) -> None:
+        path = self.json(record.id)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(record.model_dump_json(indent=1))
+        os.replace(tmp, path)
+
+    def load_all(self) -> list[CampaignRecord]:
+        out = []
+        for p in sorted(self.dir.glob("*.json")):
+            try:
+                out.append(CampaignRecord.model_validate_json(p.read_text()))
+            except ValueError:
+                continue  # a foreign or damaged file is not a campaign; leave it alone
+        return out

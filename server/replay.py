@@ -1,0 +1,81 @@
+"""Replay of an archived campaign onto the bus, so the dashboard and the 3D view show it as live.
+
+Messages are published with their recorded log-time spacing divided by ``speed``. Keys that
+actuate anything (force commands, e-stop) are never replayed: a replay must not move a robot.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from bridge import bus
+from bridge.session import publisher
+from server.archive import read_campaign
+
+NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP})
+
+
+class Replay:
+    """One replay in a daemon thread; :meth:`stop` ends it within one message interval."""
+
+    def __init__(self, session: zenoh.Session, campaign_id: str, path: Path, speed: float = 1.0) -> None:
+        if not speed > 0:
+            raise ValueError("speed must be > 0")
+        self.campaign_id = campaign_id
+        self.speed = speed
+        self.published = 0
+        self.total = 0
+        self.error = ""
+        self._stop = threading.Event()
+        campaign = read_campaign(path)  # before the thread: a bad file is the caller's error
+        self._messages: list[tuple[int, str, bus.BusMessage]] = []
+        for topic, msgs in campaign.topics.items():
+            key = bus.key_of_topic(topic)
+            if key in NEVER_REPLAYED or bus.message_type(key) is None:
+                continue
+            self._messages += [(t, key, m) for t, m in msgs if isinstance(m, bus.BusMessage)]
+        self._messages.sort(key=lambda x: x[0])
+        self.total = len(self._messages)
+        self._pubs = {key: publisher(session, key) for key in {k for _, k, _ in self._messages}}
+        self._thread = threading.Thread(target=self._run, name=f"replay:{campaign_id}", daemon=True)
+        self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    @property
+    def progress(self) -> float:
+        return self.published / self.total if self.total else 1.0
+
+    def _run(self) -> None:
+        try:
+            if not self._messages:
+                return
+            t0_log, t0_wall = self._messages[0][0], time.monotonic()
+            for log_ns, key, msg in self._messages:
+                due = t0_wall + (log_ns - t0_log) / 1e9 / self.speed
+                delay = due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                if self._stop.is_set():
+                    return
+                self._pubs[key].put(msg)
+                self.published += 1
+        except Exception as exc:  # noqa: BLE001 - shown in the status, not lost in a thread
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            for pub in self._pubs.values():
+                pub.close()
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+
+    def status(self) -> dict[str, object]:
+        return {"campaign_id": self.campaign_id, "running": self.running, "progress": self.progress,
+                "published": self.published, "total": self.total, "speed": self.speed, "error": self.error}

@@ -1,0 +1,146 @@
+"""Results of a campaign for people: tables shaped like the 3-X paper's and PNG figures.
+
+- Control campaigns: Table 3's quantities for this run — mean estimation error e_α = |α̂ − α_IP|
+  and tracking error e = |α^d − α̂| (deg), overall and per joint — plus forces and saturation.
+- Identification campaigns: Tables 1 and 2 (identified friction/stiffness with σ), from
+  :mod:`twin.identification` when it can process the archive; otherwise the control metrics.
+
+Figures (matplotlib, Agg): ``tracking`` (α̂, α^d, α_IP per joint, deg, against time) and
+``forces`` (commanded forces per motor, N), computed from the archive on first request and cached.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge import bus
+from server.archive import read_campaign
+
+FIGURES = ("tracking", "forces")
+_plot_lock = threading.Lock()  # pyplot's state machine is not thread-safe
+
+
+def _table(title: str, columns: list[str], rows: list[list[Any]], note: str = "") -> dict[str, Any]:
+    return {"title": title, "columns": columns, "rows": rows, "note": note}
+
+
+def control_tables(law: str, metrics: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Tables (title, columns, rows) from :func:`controller.metrics.campaign_metrics` output."""
+    m = metrics or {}
+    if not m.get("ticks"):
+        return []
+    r = lambda x: None if x is None else round(float(x), 3)  # noqa: E731
+    n = len(m["e_mean_deg"])
+    tables = [
+        _table("Table 3 (this run): mean errors", ["control law", "e_α mean (deg)", "e mean (deg)"],
+               [[law, r(m.get("e_alpha_mean_all_deg")), r(m["e_mean_all_deg"])]],
+               "e_α = |α̂ − α_IP| against the camera, e = |α^d − α̂| (3-X paper §7, Table 3)."),
+        _table("Errors per joint (deg)", ["", *[f"α{i + 1}" for i in range(n)]], [
+            ["mean e", *map(r, m["e_mean_deg"])], ["max e", *map(r, m["e_max_deg"])],
+            ["mean e_α", *map(r, m.get("e_alpha_mean_deg") or [None] * n)],
+            ["max e_α", *map(r, m.get("e_alpha_max_deg") or [None] * n)],
+        ]),
+        _table("Forces (N)", ["", *[f"f{i + 1}" for i in range(len(m["force_mean_N"]))]], [
+            ["mean", *map(r, m["force_mean_N"])], ["max", *map(r, m["force_max_N"])],
+        ], f"{m['ticks']} ticks over {m['duration_s']:.2f} s, {m['saturated_ticks']} with a saturated cable, "
+           f"{m.get('camera_frames', 0)} camera frames."),
+    ]
+    return tables
+
+
+def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Tables 1 and 2 from ``twin.identification_report.report_dict`` output."""
+    if not report:
+        return []
+    out = []
+
+    def rows(est: dict[str, Any]) -> list[list[Any]]:
+        return [[p["name"], p["value"], p["sigma"], round(100 * p["relative_sigma"], 2),
+                 "badly identified" if p["badly_identified"] else ""] for p in est["parameters"]]
+
+    cols = ["parameter", "value (SI)", "σ", "σ/|value| (%)", ""]
+    t1 = report.get("table_1", {})
+    for key, title in (("complete", "Table 1: identified parameters (friction + elastic cables)"),
+                       ("friction", "Table 1: identified parameters (friction only)")):
+        if key in t1:
+            out.append(_table(title, cols, rows(t1[key]), t1[key].get("equations", "")))
+    if "table_2" in report:
+        out.append(_table("Table 2: identified parameters, variable cable stiffness", cols, rows(report["table_2"]),
+                          report["table_2"].get("equations", "")))
+    return out
+
+
+def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, Any] | None, str]:
+    """Run the offline identification (twin.identification) on an archive: (report, status text).
+    Never raises: an identification problem is a result to show, not a server error."""
+    try:
+        from twin.identification import identify_all, preprocess
+        from twin.identification_cli import campaign_data_from_mcap
+        from twin.identification_report import report_dict
+        from twin.params import load_params
+    except ImportError as exc:
+        return None, f"identification pending: twin.identification is not available ({exc})"
+    try:
+        base = load_params(params_file)
+        data = campaign_data_from_mcap(path)
+        proc = preprocess(data, base, None)
+        est = identify_all(proc, base)
+        return report_dict(est, proc), "identified"
+    except Exception as exc:  # noqa: BLE001 - reported to the user
+        return None, f"identification failed: {type(exc).__name__}: {exc}"
+
+
+def render_figure(mcap: Path, name: str, out: Path) -> Path:
+    """Write figure ``name`` (one of :data:`FIGURES`) of an archive to ``out`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    campaign = read_campaign(mcap)
+    status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS)]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with _plot_lock:
+        if name == "tracking":
+            frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+            n = len(status[0].alpha_hat_rad) if status else 3
+            fig, axes = plt.subplots(n, 1, figsize=(8, 2.2 * n), sharex=True, squeeze=False)
+            t0 = status[0].stamp_s if status else 0.0
+            t = np.array([m.stamp_s for m in status]) - t0
+            for j in range(n):
+                ax = axes[j, 0]
+                if status:
+                    ax.plot(t, np.degrees([m.alpha_d_rad[j] for m in status]), "g-", lw=1, label="α^d")
+                    ax.plot(t, np.degrees([m.alpha_hat_rad[j] for m in status]), "b-", lw=1, label="α̂")
+                if frames:
+                    ax.plot(np.array([m.capture_stamp_s for m in frames]) - t0,
+                            np.degrees([m.alpha_ip_rad[j] for m in frames]), ".", color="orange", ms=2, label="α_IP")
+                ax.set_ylabel(f"α{j + 1} (deg)")
+                ax.grid(alpha=0.3)
+            axes[0, 0].legend(loc="upper right", fontsize=8)
+            axes[-1, 0].set_xlabel("t (s)")
+        elif name == "forces":
+            cmds = [m for _, m in campaign.messages(bus.MOTOR_COMMAND)]
+            fig, ax = plt.subplots(figsize=(8, 3.5))
+            if cmds:
+                t = np.array([m.stamp_s for m in cmds])
+                f = np.array([m.force_N for m in cmds])
+                for i in range(f.shape[1]):
+                    ax.plot(t - t[0], f[:, i], lw=1, label=f"f{i + 1}")
+                ax.legend(loc="upper right", fontsize=8)
+            ax.set_xlabel("t (s)")
+            ax.set_ylabel("force (N)")
+            ax.grid(alpha=0.3)
+        else:
+            raise KeyError(name)
+        fig.suptitle(f"{campaign.info.get('campaign_id', mcap.stem)}: {name}", fontsize=10)
+        fig.tight_layout()
+        tmp = out.with_name(out.name + ".tmp.png")
+        fig.savefig(tmp, dpi=90)
+        plt.close(fig)
+        tmp.replace(out)
+    return out

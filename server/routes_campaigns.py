@@ -1,0 +1,153 @@
+"""``/api/campaigns``: create, list, status, stop, delete, results, MCAP download, figures, replay."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+from fastapi.responses import FileResponse, JSONResponse, Response
+from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
+
+from server.auth import require_token
+from server.campaign_request import CampaignCreate, RequestError, prepare
+from server.campaigns import Busy, CampaignManager, NotFound
+from server.records import CampaignRecord, valid_id
+from server.results import FIGURES, control_tables, identification_tables, render_figure
+
+router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
+
+
+def _manager(request: Request) -> CampaignManager:
+    return request.app.state.campaigns
+
+
+def _record(manager: CampaignManager, campaign_id: str) -> CampaignRecord:
+    if not valid_id(campaign_id):
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign_id!r}")
+    try:
+        return manager.get(campaign_id)
+    except NotFound:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign_id!r}") from None
+
+
+def _conflict(exc: Busy) -> JSONResponse:
+    return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
+        "detail": f"{exc.what} {exc.running_id} is running" if exc.running_id != "estop"
+        else "the e-stop is engaged: release it first", "running_campaign_id": exc.running_id})
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
+             dependencies=[Depends(require_token)],
+             responses={409: {"description": "Another campaign is running (its id in running_campaign_id)"},
+                        422: {"description": "Invalid body; loc names the field"}})
+async def create_campaign(body: CampaignCreate, request: Request) -> Any:
+    """Start a campaign. The trajectory is validated as the controller does before anything moves."""
+    manager = _manager(request)
+    if manager.running_id is not None:  # cheap early answer; start() re-checks under its lock
+        return _conflict(Busy(manager.running_id))
+    try:
+        prepared = await run_in_threadpool(prepare, body, request.app.state.params, request.app.state.settings)
+    except RequestError as exc:
+        return JSONResponse(status_code=422, content={"detail": exc.detail()})
+    try:
+        return manager.start(prepared)
+    except Busy as exc:
+        return _conflict(exc)
+
+
+@router.get("", response_model=list[CampaignRecord])
+def list_campaigns(request: Request,
+                   status_: Literal["running", "finished", "aborted", "interrupted", "failed"] | None =
+                   Query(None, alias="status"),
+                   kind: Literal["identification", "control"] | None = None,
+                   law: str | None = Query(None, description="Law name, e.g. law2"),
+                   limit: int = Query(100, ge=1, le=1000)) -> list[CampaignRecord]:
+    return _manager(request).list(status_, kind, law, limit)
+
+
+@router.get("/{campaign_id}", response_model=CampaignRecord)
+def get_campaign(campaign_id: str, request: Request) -> CampaignRecord:
+    """Status with progress (0-1) and, once ended, the metrics."""
+    return _record(_manager(request), campaign_id)
+
+
+@router.post("/{campaign_id}/stop", response_model=CampaignRecord, dependencies=[Depends(require_token)])
+def stop_campaign(campaign_id: str, request: Request) -> CampaignRecord:
+    """Ask a running campaign (or replay) to stop; it ends as ``aborted`` within a few seconds."""
+    _record(_manager(request), campaign_id)
+    return _manager(request).stop(campaign_id)
+
+
+@router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Depends(require_token)],
+               responses={409: {"description": "The campaign is running"}})
+def delete_campaign(campaign_id: str, request: Request) -> Response:
+    _record(_manager(request), campaign_id)
+    try:
+        _manager(request).delete(campaign_id)
+    except Busy as exc:
+        return _conflict(exc)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.get("/{campaign_id}/results")
+def campaign_results(campaign_id: str, request: Request) -> dict[str, Any]:
+    """Metrics and tables shaped like the 3-X paper's (Table 3 for control, Tables 1-2 for identification)."""
+    rec = _record(_manager(request), campaign_id)
+    tables = identification_tables(rec.identification) + control_tables(rec.law, rec.metrics)
+    return {"id": rec.id, "kind": rec.kind, "status": rec.status, "law": rec.law, "metrics": rec.metrics,
+            "identification": rec.identification, "identification_status": rec.identification_status,
+            "tables": tables,
+            "figures": [f"/api/campaigns/{rec.id}/figures/{n}.png" for n in FIGURES] if rec.status != "running" else [],
+            "mcap": f"/api/campaigns/{rec.id}/mcap"}
+
+
+@router.get("/{campaign_id}/mcap", response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def download_mcap(campaign_id: str, request: Request) -> FileResponse:
+    """The campaign's MCAP archive (readable by Foxglove; 409 while it is being recorded)."""
+    rec = _record(_manager(request), campaign_id)
+    if rec.status == "running":
+        raise HTTPException(status.HTTP_409_CONFLICT, "the campaign is still being recorded")
+    path = _manager(request).mcap_path(campaign_id)
+    if not path.exists():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "this campaign has no archive")
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
+@router.get("/{campaign_id}/figures/{name}.png", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}})
+async def figure(campaign_id: str, name: str, request: Request) -> FileResponse:
+    """Report figure: ``tracking`` (α̂, α^d, α_IP per joint) or ``forces``."""
+    rec = _record(_manager(request), campaign_id)
+    if name not in FIGURES:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no figure {name!r}; figures: {', '.join(FIGURES)}")
+    if rec.status == "running":
+        raise HTTPException(status.HTTP_409_CONFLICT, "figures are drawn once the campaign has ended")
+    manager = _manager(request)
+    out = manager.index.figures(campaign_id) / f"{name}.png"
+    if not out.exists():
+        try:
+            await run_in_threadpool(render_figure, manager.mcap_path(campaign_id), name, out)
+        except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"cannot draw {name}: {exc}") from None
+    return FileResponse(out, media_type="image/png")
+
+
+class ReplayRequest(BaseModel):
+    speed: float = Field(1.0, gt=0, le=100, description="Playback speed (1 = as recorded).")
+
+
+@router.post("/{campaign_id}/replay", dependencies=[Depends(require_token)],
+             responses={409: {"description": "A campaign or replay is running"}})
+async def replay_campaign(campaign_id: str, request: Request, body: ReplayRequest | None = None) -> Any:
+    """Publish the archive back onto the bus (never force commands or e-stops); the live views
+    show it as if it were live."""
+    _record(_manager(request), campaign_id)
+    speed = body.speed if body else 1.0
+    try:
+        return await run_in_threadpool(_manager(request).replay, campaign_id, speed)
+    except Busy as exc:
+        return _conflict(exc)
+    except Exception as exc:  # noqa: BLE001 - e.g. an archive that cannot be read
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"cannot replay: {exc}") from None

@@ -1,0 +1,69 @@
+"""``/api/system``: health, processes alive on the bus, mode, e-stop; ``/api/config`` for the dashboard."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from fastapi import APIRouter, Depends, Request
+from pydantic import BaseModel, Field
+
+from controller.laws import LAWS
+from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
+from server.archive import software_version
+from server.auth import require_token
+
+router = APIRouter(tags=["system"])
+
+
+@router.get("/api/system/health")
+def health(request: Request) -> dict[str, Any]:
+    s = request.app.state
+    return {
+        "status": "ok", "version": software_version(), "uptime_s": time.monotonic() - s.started,
+        "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
+        "viser_port": s.scene.port if s.scene else None,
+        "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
+        "estop": {"engaged": s.campaigns.estop_engaged, "reason": s.campaigns.estop_reason},
+        "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
+                 "rejected_payloads": s.live.values.rejected},
+    }
+
+
+@router.get("/api/system/processes")
+def processes(request: Request) -> dict[str, Any]:
+    """Processes whose Zenoh liveliness token is on the bus (twin, controller, bridge, ...)."""
+    return {"processes": request.app.state.presence.processes()}
+
+
+@router.get("/api/system/mode")
+def mode(request: Request) -> dict[str, str]:
+    """``twin`` (campaigns start their own twin) or ``robot`` (they drive the bridge on the bus)."""
+    return {"mode": request.app.state.settings.mode, "pace": request.app.state.settings.pace}
+
+
+class EStopRequest(BaseModel):
+    engaged: bool = Field(True, description="true engages, false releases.")
+    reason: str = Field("console", max_length=200)
+
+
+@router.post("/api/system/estop", dependencies=[Depends(require_token)])
+def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
+    """Engage or release the e-stop: published on the bus (the bridge holds); engaging also
+    aborts the running campaign and any replay."""
+    request.app.state.campaigns.estop(body.engaged, body.reason)
+    return {"engaged": body.engaged, "reason": body.reason}
+
+
+@router.get("/api/config")
+def config(request: Request) -> dict[str, Any]:
+    """What the dashboard needs to build its forms and embed the 3D view."""
+    s = request.app.state
+    return {
+        "viser_port": s.scene.port if s.scene else None, "mode": s.settings.mode, "pace": s.settings.pace,
+        "live_rate_hz": s.settings.live_rate_hz, "laws": list(LAWS), "kinds": ["control", "identification"],
+        "trajectories": list(NAMED_TRAJECTORIES), "waypoints_schema": trajectory_json_schema(),
+        "parameter_sets": s.params.names(), "active_parameter_set": s.params.active(),
+        "n_joints": s.default_params.n_joints, "n_motors": s.default_params.n_cables,
+        "f_max_N": s.default_params.limits.f_max, "alpha_max_deg": s.default_params.limits.alpha_max_deg,
+    }

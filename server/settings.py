@@ -1,0 +1,58 @@
+"""Typed settings of the experiment console, from arguments or ``XNECK_*`` environment variables.
+
+Every field can be set as ``XNECK_<FIELD>`` (e.g. ``XNECK_PORT=8001``, ``XNECK_TOKEN=...``).
+Defaults are safe for a lab bench: the HTTP server and the viser view bind to loopback only.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+TOKEN_FILE = "token"
+
+
+class Settings(BaseSettings):
+    """Configuration of one console server (one lab, one robot or twin, one data directory)."""
+
+    model_config = SettingsConfigDict(env_prefix="XNECK_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="HTTP bind address (loopback unless a lab opens it on purpose).")
+    port: int = Field(8000, ge=0, le=65535, description="HTTP port.")
+    viser_port: int = Field(0, ge=0, le=65535, description="Port of the viser 3D view; 0 = a free one.")
+    data_dir: Path = Field(Path("data"), description="Campaign archives, their JSON index, parameter sets.")
+    token: str | None = Field(None, description="Bearer token of mutating endpoints; generated if absent.")
+    hub: str = Field("tcp/127.0.0.1:0", description="Zenoh endpoint the console listens on (the hub); "
+                     "port 0 picks a free loopback port at start-up.")
+    connect: list[str] = Field(default_factory=list, description="Zenoh endpoints to connect to (robot mode: "
+                               "the bridge).")
+    mode: Literal["twin", "robot"] = Field("twin", description="What campaigns drive by default.")
+    pace: Literal["lockstep", "realtime"] = Field("realtime", description="Twin campaigns: lockstep (fast, "
+                                                   "deterministic) or real time (500 Hz, for watching).")
+    live_rate_hz: float = Field(30.0, gt=0, le=200, description="Rate of live frames sent to browsers (Hz).")
+    scene_rate_hz: float = Field(30.0, gt=0, le=200, description="Update rate of the viser scene (Hz).")
+    campaign_timeout_s: float = Field(600.0, gt=0, description="Abort a campaign after this long (wall, s).")
+    viser: bool = Field(True, description="Start the viser 3D view.")
+
+
+def resolve_token(settings: Settings) -> tuple[str, bool]:
+    """The bearer token: from the settings, else ``<data_dir>/token``, else a new one written there
+    (mode 600). Returns ``(token, generated_now)`` so the caller can print a new token once."""
+    if settings.token:
+        return settings.token, False
+    path = Path(settings.data_dir) / TOKEN_FILE
+    if path.exists():
+        token = path.read_text().strip()
+        if token:
+            return token, False
+    path.parent.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_urlsafe(24)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    return token, True

@@ -1,0 +1,84 @@
+"""Real console servers for tests: uvicorn on 127.0.0.1 and a free port, in a thread or in a
+subprocess (the latter can be killed like a crashed server). Everything stops within bounded time."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import uvicorn
+
+from bridge.session import free_tcp_port
+from server.app import create_app
+from server.settings import Settings
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def wait_until(predicate, timeout_s: float, poll_s: float = 0.1) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
+@contextlib.contextmanager
+def running_server(data_dir: Path, **overrides) -> Iterator[tuple[str, object]]:
+    """A console in this process (uvicorn.Server in a thread); yields (base URL, app)."""
+    port = free_tcp_port()
+    settings = Settings(host="127.0.0.1", port=port, data_dir=data_dir, token=TOKEN, pace="lockstep",
+                        campaign_timeout_s=120, **overrides)
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                           ws_ping_interval=None, timeout_graceful_shutdown=5))
+    thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
+    thread.start()
+    try:
+        if not wait_until(lambda: server.started, 30):
+            raise RuntimeError("the console did not start within 30 s")
+        yield f"http://127.0.0.1:{port}", app
+    finally:
+        server.should_exit = True
+        thread.join(40)
+        assert not thread.is_alive(), "uvicorn did not stop within 40 s"
+
+
+@contextlib.contextmanager
+def server_process(data_dir: Path) -> Iterator[tuple[str, subprocess.Popen]]:
+    """``xneck server`` as a subprocess leading its own process group (so the twin and controller
+    it spawns can be killed with it, as a crash would). Yields (base URL, process)."""
+    port = free_tcp_port()
+    env = {**os.environ, "XNECK_TOKEN": TOKEN, "XNECK_CAMPAIGN_TIMEOUT_S": "120", "PYTHONUNBUFFERED": "1"}
+    log = open(Path(data_dir).parent / f"server-{port}.log", "wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server.cli", "server", "--port", str(port), "--data-dir", str(data_dir),
+         "--pace", "lockstep"], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+        start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+
+    def up() -> bool:
+        try:
+            return httpx.get(base + "/api/system/health", timeout=1).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    try:
+        if not wait_until(up, 40, 0.2):
+            raise RuntimeError(f"xneck server did not start: {Path(log.name).read_text()[-2000:]}")
+        yield base, proc
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        log.close()

@@ -1,0 +1,171 @@
+"""A whole control campaign through the REST API of a real server (uvicorn on 127.0.0.1, lockstep
+twin and controller processes), followed on the live WebSocket, its MCAP downloaded and every
+channel read back; one campaign at a time; replay onto the bus shows on the live endpoint."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from websockets.sync.client import connect
+
+from bridge import bus
+from server.archive import read_campaign
+from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
+from server_harness import AUTH, running_server, wait_until
+
+
+class LiveFollower:
+    """Reads the live WebSocket in a thread and keeps what the test checks."""
+
+    def __init__(self, base: str) -> None:
+        self.frames = 0
+        self.status_stamps: list[float] = []
+        self.forces: list[list[float]] = []
+        self.campaign_events: list[dict] = []
+        self._stop = threading.Event()
+        self._ws = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                raw = self._ws.recv(timeout=0.5)
+            except TimeoutError:
+                continue
+            except Exception:  # noqa: BLE001 - closed
+                return
+            frame = json.loads(raw)
+            self.frames += 1
+            s = frame["series"]
+            if "status" in s:
+                self.status_stamps.append(s["status"]["stamp_s"])
+            if "state" in s:
+                self.forces.append(s["state"]["force_applied_N"])
+            if "campaign" in s:
+                self.campaign_events.append(s["campaign"])
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(3)
+        self._ws.close()
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory):
+    with running_server(tmp_path_factory.mktemp("console")) as (base, app):
+        with httpx.Client(base_url=base, timeout=30) as client:
+            yield base, client, app
+
+
+def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
+    base, client, app = console
+    live = LiveFollower(base)
+    try:
+        r = client.post("/api/campaigns", json={"kind": "control", "law": 2, "trajectory": "control_test",
+                                                "pace": "lockstep"}, headers=AUTH)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        assert r.json()["status"] == "running"
+
+        # One campaign at a time: a second start gets 409 naming the running one; it cannot be deleted.
+        second = client.post("/api/campaigns", json={"kind": "control"}, headers=AUTH)
+        assert second.status_code == 409 and second.json()["running_campaign_id"] == cid
+        assert client.delete(f"/api/campaigns/{cid}", headers=AUTH).status_code == 409
+        assert client.get(f"/api/campaigns/{cid}/mcap").status_code == 409
+
+        progress = []
+
+        def done() -> bool:
+            rec = client.get(f"/api/campaigns/{cid}").json()
+            progress.append(rec["progress"])
+            return rec["status"] != "running"
+
+        assert wait_until(done, 120, 0.25), "campaign did not end within 120 s"
+        rec = client.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] == "finished", rec["message"]
+        assert rec["progress"] == 1.0 and any(0 < p < 1 for p in progress)
+        assert rec["metrics"]["ticks"] > 6000 and rec["scene_messages"] > 10
+    finally:
+        live.close()
+
+    # The live endpoint carried the campaign: many frames, increasing simulated time, 4 forces.
+    assert live.frames > 30, live.frames
+    assert len(live.status_stamps) > 30 and live.status_stamps[-1] > 10.0
+    assert all(len(f) == 4 for f in live.forces)
+    assert any(e["campaign_id"] == cid for e in live.campaign_events)
+
+    # Listing with filters, results tables shaped like Table 3, figures.
+    listed = client.get("/api/campaigns", params={"status": "finished", "kind": "control"}).json()
+    assert cid in [c["id"] for c in listed]
+    assert client.get("/api/campaigns", params={"kind": "identification"}).json() == []
+    res = client.get(f"/api/campaigns/{cid}/results").json()
+    titles = [t["title"] for t in res["tables"]]
+    assert titles[0].startswith("Table 3") and res["tables"][0]["rows"][0][0] == "law2"
+    assert res["metrics"]["e_mean_all_deg"] < 1.0
+    for url in res["figures"]:
+        fig = client.get(url)
+        assert fig.status_code == 200 and fig.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # The MCAP download: every bus channel plus the Foxglove scene, all readable.
+    mcap = client.get(f"/api/campaigns/{cid}/mcap")
+    assert mcap.status_code == 200
+    path = tmp_path / "download.mcap"
+    path.write_bytes(mcap.content)
+    campaign = read_campaign(path)
+    assert campaign.info["outcome"] == "finished" and campaign.info["campaign_id"] == cid
+    for key in (bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA, bus.TWIN_TRUTH, bus.CONTROLLER_STATUS,
+                bus.CAMPAIGN_EVENTS):
+        assert campaign.messages(key), key
+        assert campaign.schemas[bus.mcap_topic(key)] == bus.schema_name(bus.message_type(key))
+    assert campaign.schemas[SCENE_TOPIC] == SCHEMA_NAME
+    update = campaign.topics[SCENE_TOPIC][0][1]
+    entity = update["entities"][0]
+    assert entity["frame_id"] == "base" and len(entity["lines"]) >= 7  # bars, springs, pulleys, 4 cables
+    for topic, msgs in campaign.topics.items():
+        assert msgs, topic
+
+    # Replay onto the bus: the live endpoint shows it as if it were live.
+    live = LiveFollower(base)
+    try:
+        r = client.post(f"/api/campaigns/{cid}/replay", json={"speed": 4.0}, headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert wait_until(lambda: len(live.status_stamps) > 10, 15)
+        assert client.post(f"/api/campaigns/{cid}/replay", json={}, headers=AUTH).status_code == 409
+        client.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+        assert wait_until(lambda: not client.get("/api/system/health").json()["replay"]["running"], 5)
+    finally:
+        live.close()
+
+    # Delete: gone from the list and from disk.
+    assert client.delete(f"/api/campaigns/{cid}", headers=AUTH).status_code == 204
+    assert client.get(f"/api/campaigns/{cid}").status_code == 404
+    assert not list(Path(app.state.settings.data_dir).glob(f"campaigns/{cid}*"))
+
+
+def test_a_stalled_live_client_does_not_hold_frames_back(console) -> None:
+    """A WebSocket client that never reads keeps a bounded queue; another client still gets frames."""
+    base, client, app = console
+    broadcaster = app.state.broadcaster
+    stalled = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)  # never read
+    try:
+        values = app.state.live.values
+        for i in range(200):  # simulate bus traffic directly: the broadcaster sends only on change
+            values.put("estop", bus.EStop(seq=i, stamp_s=float(i), engaged=False, reason=f"t{i}"))
+            time.sleep(0.005)
+        live = LiveFollower(base)
+        try:
+            for i in range(200, 260):
+                values.put("estop", bus.EStop(seq=i, stamp_s=float(i), engaged=False, reason=f"t{i}"))
+                time.sleep(0.01)
+            assert wait_until(lambda: live.frames > 5, 5)
+        finally:
+            live.close()
+        assert all(c.queue.qsize() <= c.queue.maxsize for c in broadcaster.clients)
+    finally:
+        stalled.close()

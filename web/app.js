@@ -1,0 +1,254 @@
+// xneck dashboard: forms over the REST API, live plots from the /api/live WebSocket, the viser
+// view in an iframe. The API speaks SI (rad); this page shows degrees.
+"use strict";
+
+const DEG = 180 / Math.PI;
+const WINDOW_S = 20;          // seconds of history kept in the live plots
+const MAX_POINTS = 1200;      // per series, browser-side decimation bound
+const $ = (sel) => document.querySelector(sel);
+const stats = (window.xneckStats = { frames: 0, points: 0, lastStamp: null });
+
+let config = null;
+let runningId = null;
+
+function token() { return $("#token").value.trim(); }
+$("#token").value = localStorage.getItem("xneck-token") || "";
+$("#token").addEventListener("change", () => localStorage.setItem("xneck-token", token()));
+
+async function api(method, path, body) {
+  const headers = {};
+  if (method !== "GET") headers["Authorization"] = "Bearer " + token();
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const text = await r.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch (e) { data = text; }
+  if (!r.ok) {
+    let msg = `${r.status}`;
+    if (data && data.detail) {
+      msg += ": " + (Array.isArray(data.detail)
+        ? data.detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("\n")
+        : data.detail);
+    }
+    throw new Error(msg);
+  }
+  return data;
+}
+
+function showError(e) { $("#error").textContent = e ? String(e.message || e) : ""; }
+
+// ---------------------------------------------------------------- live plots
+function makePlot(el, title, labels, colors, yLabel) {
+  const series = [{}].concat(labels.map((l, i) => ({ label: l, stroke: colors[i], width: 1.5,
+    points: { show: false } })));
+  const data = [[]].concat(labels.map(() => []));
+  const plot = new uPlot({ title, width: el.clientWidth || 600, height: 170, series,
+    scales: { x: { time: false } }, axes: [{ label: "t (s)" }, { label: yLabel }] }, data, el);
+  return { plot, data, lastX: null };
+}
+
+function push(p, x, ys) {
+  if (p.lastX !== null && x <= p.lastX) {
+    if (x < p.lastX - 1) { for (const a of p.data) a.length = 0; }  // time went back: a new run
+    else return;                                                   // repeat of the same sample
+  }
+  p.lastX = x;
+  p.data[0].push(x);
+  ys.forEach((y, i) => p.data[i + 1].push(y));
+  while (p.data[0].length > MAX_POINTS || (p.data[0].length && p.data[0][0] < x - WINDOW_S)) {
+    for (const a of p.data) a.shift();
+  }
+  stats.points++;
+}
+
+let forcePlot = null;
+const jointPlots = [];
+let dirty = false;
+
+function buildPlots() {
+  const nm = config.n_motors, nj = config.n_joints;
+  const fcol = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"];
+  forcePlot = makePlot($("#plot-forces"), "cable forces (applied)",
+    Array.from({ length: nm }, (_, i) => `f${i + 1} (N)`), fcol, "N");
+  for (let j = 0; j < nj; j++) {
+    const div = document.createElement("div");
+    $("#plot-joints").appendChild(div);
+    jointPlots.push(makePlot(div, `joint ${j + 1}`, ["α^d", "α̂", "α_IP"],
+      ["#2e7d32", "#1565c0", "#ef6c00"], "deg"));
+  }
+}
+
+function onFrame(frame) {
+  stats.frames++;
+  const s = frame.series || {};
+  if (s.state) push(forcePlot, s.state.stamp_s, s.state.force_applied_N);
+  if (s.status) {
+    stats.lastStamp = s.status.stamp_s;
+    const ip = s.camera ? s.camera.alpha_ip_rad : null;
+    jointPlots.forEach((p, j) => push(p, s.status.stamp_s,
+      [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG, ip ? ip[j] * DEG : null]));
+    $("#live-info").textContent = `${s.status.law}, t = ${s.status.stamp_s.toFixed(2)} s` +
+      (s.status.holding ? `, HOLD: ${s.status.hold_reason}` : "");
+  }
+  if (s.campaign && s.campaign.campaign_id === runningId) setProgress(s.campaign.progress, s.campaign.event);
+  dirty = true;
+}
+
+function redraw() {
+  if (dirty && forcePlot) {
+    dirty = false;
+    forcePlot.plot.setData(forcePlot.data);
+    jointPlots.forEach((p) => p.plot.setData(p.data));
+  }
+  requestAnimationFrame(redraw);
+}
+
+function connectLive() {
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/live`);
+  ws.onmessage = (ev) => { try { onFrame(JSON.parse(ev.data)); } catch (e) { console.error(e); } };
+  ws.onclose = () => setTimeout(connectLive, 1000);
+}
+
+// ---------------------------------------------------------------- campaigns
+function setProgress(fraction, text) {
+  const pct = Math.round(100 * (fraction || 0));
+  $("#progress-bar").style.width = pct + "%";
+  $("#progress-text").textContent = `${text || ""} ${pct}%`;
+}
+
+$("#trajectory").addEventListener("change", () => {
+  $("#waypoints-box").hidden = $("#trajectory").value !== "__custom";
+});
+
+$("#start-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  showError(null);
+  const f = new FormData(ev.target);
+  const body = { kind: f.get("kind"), no_pulleys: f.get("no_pulleys") === "on", seed: Number(f.get("seed") || 0) };
+  if (f.get("law")) body.law = Number(f.get("law"));
+  for (const k of ["parameter_set", "target", "pace"]) if (f.get(k)) body[k] = f.get(k);
+  const traj = f.get("trajectory");
+  if (traj === "__custom") {
+    try { body.waypoints = JSON.parse(f.get("waypoints")); } catch (e) { return showError("waypoints: not valid JSON: " + e.message); }
+  } else if (traj) body.trajectory = traj;
+  try {
+    const rec = await api("POST", "/api/campaigns", body);
+    runningId = rec.id;
+    setProgress(0, `${rec.id} started`);
+    refreshList();
+  } catch (e) { showError(e); }
+});
+
+$("#stop").addEventListener("click", async () => {
+  if (!runningId) return;
+  try { await api("POST", `/api/campaigns/${runningId}/stop`); } catch (e) { showError(e); }
+});
+$("#estop").addEventListener("click", async () => {
+  try { await api("POST", "/api/system/estop", { engaged: true, reason: "dashboard" }); } catch (e) { showError(e); }
+});
+$("#estop-release").addEventListener("click", async () => {
+  try { await api("POST", "/api/system/estop", { engaged: false, reason: "dashboard" }); } catch (e) { showError(e); }
+});
+$("#refresh").addEventListener("click", () => refreshList());
+
+function cell(text) { const td = document.createElement("td"); td.textContent = text; return td; }
+
+async function refreshList() {
+  let list;
+  try { list = await api("GET", "/api/campaigns?limit=50"); } catch (e) { return; }
+  const tbody = $("#campaigns tbody");
+  tbody.replaceChildren();
+  for (const r of list) {
+    const tr = document.createElement("tr");
+    tr.dataset.id = r.id;
+    tr.append(cell(r.id), cell(r.kind), cell(r.law), cell(r.trajectory));
+    const st = cell(r.status); st.className = "status-" + r.status; tr.append(st);
+    tr.append(cell(Math.round(100 * r.progress) + "%"), cell((r.created_at || "").slice(0, 19).replace("T", " ")));
+    const actions = document.createElement("td");
+    const show = document.createElement("button"); show.textContent = "results";
+    show.onclick = () => showResults(r.id);
+    const replay = document.createElement("button"); replay.textContent = "replay";
+    replay.onclick = async () => { try { await api("POST", `/api/campaigns/${r.id}/replay`, { speed: 1.0 }); } catch (e) { showError(e); } };
+    const del = document.createElement("button"); del.textContent = "delete";
+    del.onclick = async () => {
+      if (!confirm(`Delete ${r.id}?`)) return;
+      try { await api("DELETE", `/api/campaigns/${r.id}`); refreshList(); } catch (e) { showError(e); }
+    };
+    actions.append(show, replay, del);
+    if (r.status !== "running") {
+      const a = document.createElement("a"); a.href = `/api/campaigns/${r.id}/mcap`; a.textContent = " MCAP";
+      actions.append(a);
+    }
+    tr.append(actions);
+    tbody.append(tr);
+    if (r.status === "running") { runningId = r.id; setProgress(r.progress, r.id); }
+  }
+}
+
+function renderTable(t) {
+  const wrap = document.createElement("div");
+  const h = document.createElement("h3"); h.textContent = t.title; wrap.append(h);
+  const table = document.createElement("table");
+  const head = document.createElement("tr");
+  t.columns.forEach((c) => { const th = document.createElement("th"); th.textContent = c; head.append(th); });
+  table.append(head);
+  t.rows.forEach((row) => {
+    const tr = document.createElement("tr");
+    row.forEach((v) => tr.append(cell(v === null ? "–" : typeof v === "number" ? Number(v.toPrecision(4)) : v)));
+    table.append(tr);
+  });
+  wrap.append(table);
+  if (t.note) { const p = document.createElement("small"); p.textContent = t.note; wrap.append(p); }
+  return wrap;
+}
+
+async function showResults(id) {
+  document.querySelectorAll("#campaigns tr").forEach((tr) => tr.classList.toggle("selected", tr.dataset.id === id));
+  const box = $("#results");
+  box.replaceChildren();
+  let res;
+  try { res = await api("GET", `/api/campaigns/${id}/results`); } catch (e) { return showError(e); }
+  const h = document.createElement("h3");
+  h.textContent = `${res.id}: ${res.status}` + (res.identification_status ? ` (${res.identification_status})` : "");
+  box.append(h);
+  res.tables.forEach((t) => box.append(renderTable(t)));
+  res.figures.forEach((src) => { const img = document.createElement("img"); img.src = src; img.alt = src; box.append(img); });
+  const a = document.createElement("a"); a.href = res.mcap; a.textContent = "download MCAP (opens in Foxglove)";
+  box.append(document.createElement("br"), a);
+}
+
+async function pollStatus() {
+  try {
+    const h = await api("GET", "/api/system/health");
+    const procs = await api("GET", "/api/system/processes");
+    $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
+      (h.estop.engaged ? " — E-STOP ENGAGED" : "") +
+      ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}`;
+    if (runningId && h.running_campaign_id !== runningId) {
+      const rec = await api("GET", `/api/campaigns/${runningId}`);
+      setProgress(rec.progress, `${rec.id} ${rec.status}`);
+      if (rec.status !== "running") { runningId = null; refreshList(); showResults(rec.id); }
+    } else if (runningId) {
+      const rec = await api("GET", `/api/campaigns/${runningId}`);
+      setProgress(rec.progress, `${rec.id} ${rec.message}`);
+    }
+  } catch (e) { $("#sys").textContent = "server unreachable"; }
+}
+
+async function main() {
+  config = await api("GET", "/api/config");
+  const traj = $("#trajectory");
+  traj.append(new Option("default for the kind", ""));
+  config.trajectories.forEach((t) => traj.append(new Option(t, t)));
+  traj.append(new Option("custom waypoints…", "__custom"));
+  const ps = $("#parameter-set");
+  config.parameter_sets.forEach((n) => ps.append(new Option(n, n, false, n === config.active_parameter_set)));
+  if (config.viser_port) $("#viser").src = `${location.protocol}//${location.hostname}:${config.viser_port}/`;
+  buildPlots();
+  connectLive();
+  requestAnimationFrame(redraw);
+  refreshList();
+  setInterval(pollStatus, 1000);
+}
+
+main().catch(showError);
