@@ -49,6 +49,7 @@ CAMERA_ALPHA = f"{PREFIX}/camera/alpha_ip"
 TWIN_TRUTH = f"{PREFIX}/twin/truth"
 CONTROLLER_STATUS = f"{PREFIX}/controller/status"
 CAMPAIGN_EVENTS = f"{PREFIX}/campaign/events"
+CAMPAIGN_REQUEST = f"{PREFIX}/campaign/request"
 ESTOP = f"{PREFIX}/estop"
 HEALTH_ALL = f"{PREFIX}/health/*/*"
 ALIVE_ALL = f"{PREFIX}/alive/**"
@@ -173,6 +174,21 @@ class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only
     message: str = ""
 
 
+class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Console to a controller service (``xneck controller`` without ``--trajectory``): start a
+    campaign with ``law`` (1-3), ``no_pulleys`` and a trajectory (``trajectory_json``, the
+    ``Trajectory.to_json()`` form, degrees), or stop the one running. The controller answers with
+    ``CampaignEvent``s of the same ``campaign_id`` (``aborted`` with the reason if it refuses)."""
+
+    v: int = 1
+    campaign_id: str
+    action: Literal["start", "stop"]
+    kind: str = "control"
+    law: int = 2
+    no_pulleys: bool = False
+    trajectory_json: str = ""
+
+
 class EStop(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Emergency stop: while ``engaged``, the bridge holds and ignores force commands."""
 
@@ -207,6 +223,7 @@ REGISTRY: dict[str, type[BusMessage]] = {
     TWIN_TRUTH: Truth,
     CONTROLLER_STATUS: ControllerStatus,
     CAMPAIGN_EVENTS: CampaignEvent,
+    CAMPAIGN_REQUEST: CampaignRequest,
     ESTOP: EStop,
 }
 
@@ -426,7 +443,7 @@ def as_plain(msg: BusMessage) -> Mapping[str, Any]:
 
 
 __all__ = [
-    "ALIVE_ALL", "ALL", "CAMERA_ALPHA", "CAMPAIGN_EVENTS", "CONTROLLER_STATUS", "ESTOP", "HEALTH_ALL",
+    "ALIVE_ALL", "ALL", "CAMERA_ALPHA", "CAMPAIGN_EVENTS", "CAMPAIGN_REQUEST", "CampaignRequest", "CONTROLLER_STATUS", "ESTOP", "HEALTH_ALL",
     "MESSAGE_TYPES", "MOTOR_COMMAND", "MOTOR_STATE", "PATTERNS", "PREFIX", "REGISTRY", "TWIN_TRUTH",
     "BusDecodeError", "BusEncodeError", "BusMessage", "CameraAlpha", "CampaignEvent", "ControllerStatus",
     "EStop", "ForceCommand", "Health", "MotorState", "Truth",

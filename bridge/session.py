@@ -39,7 +39,7 @@ MODES = ("peer", "client", "router")
 REAL_TIME_KEYS = frozenset({bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.ESTOP})
 #: Rare messages that must not be lost: under congestion the publisher waits instead of dropping.
 #: Every other key is a stream where the newest value matters and a stale one is worse than none.
-RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS})
+RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS, bus.CAMPAIGN_REQUEST})
 
 M = TypeVar("M", bound=bus.BusMessage)
 

@@ -10,6 +10,7 @@ exactly what the file holds.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import os
@@ -29,7 +30,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import free_tcp_port, open_session
+from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
@@ -51,6 +52,7 @@ class CampaignSpec:
     overrides: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
     realtime: bool = False  # twin paced at 500 Hz by the clock instead of lockstep (live viewing)
+    service: bool = False  # ask the controller service on the bus (`xneck up`) instead of spawning processes
 
 
 @dataclass
@@ -167,6 +169,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             events.put(ev)
 
     sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
+    services = _Services(session) if spec.service else None
     recorder = CampaignRecorder(session, path, metadata)
     try:
         def spawn(name: str, args: list[str]) -> None:
@@ -175,22 +178,31 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT,
                                                stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
-        lockstep = spec.twin and not spec.realtime
-        if spec.twin:
-            spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
-                           "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
-                       *common])
-        law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
-        spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
-                             *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
-                             "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
+        if spec.service:
+            requests = publisher(session, bus.CAMPAIGN_REQUEST)
+            requests.put(bus.CampaignRequest(
+                seq=1, stamp_s=time.time(), campaign_id=campaign_id, action="start", kind=spec.kind,
+                law=spec.law.law, no_pulleys=spec.law.no_pulleys, trajectory_json=spec.trajectory.to_json()))
+        else:
+            lockstep = spec.twin and not spec.realtime
+            if spec.twin:
+                spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
+                               "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
+                               *common])
+            law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
+            spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
+                                 *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
+                                 "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
         deadline = time.monotonic() + spec.timeout_s
+        answer_deadline = time.monotonic() + 10.0
+        started = False
         while True:
             try:
                 ev = events.get(timeout=0.2)
             except queue.Empty:
                 ev = None
             if ev is not None:
+                started = True
                 if progress:
                     progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
                 if ev.event in ("finished", "aborted"):
@@ -209,7 +221,21 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             if stop.is_set():
                 outcome, message = "aborted", "stopped by the user"
                 break
+            if spec.service and not services.alive():
+                outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
+                break
+            if spec.service and not started and time.monotonic() > answer_deadline:
+                outcome, message = "aborted", "no controller service answered the campaign request"
+                break
     finally:
+        if spec.service and outcome == "aborted":
+            with contextlib.suppress(Exception):
+                requests.put(bus.CampaignRequest(seq=2, stamp_s=time.time(), campaign_id=campaign_id, action="stop"))
+                time.sleep(0.05)
+        if spec.service:
+            requests.close()
+        if services is not None:
+            services.close()
         for p in procs.values():
             _stop(p)
         sub.undeclare()
@@ -220,6 +246,32 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     except ValueError as exc:
         result.metrics = {"error": str(exc)}
     return result
+
+
+class _Services:
+    """Controller services seen on the bus (liveliness), to notice one vanishing mid-campaign."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._lock = threading.Lock()
+        self._alive: set[str] = set()
+        self.gone = ""
+        self._sub = session.liveliness().declare_subscriber(
+            f"{bus.PREFIX}/alive/campaign-service/*", self._on_sample, history=True)
+
+    def _on_sample(self, sample) -> None:
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(str(sample.key_expr))
+            else:
+                self._alive.discard(str(sample.key_expr))
+                self.gone = str(sample.key_expr)
+
+    def alive(self) -> bool:
+        with self._lock:
+            return bool(self._alive) or not self.gone
+
+    def close(self) -> None:
+        self._sub.undeclare()
 
 
 def metrics_from_archive(path: Path) -> dict[str, object]:

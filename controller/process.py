@@ -19,8 +19,10 @@ clock), from the first state received. The neck must be straight then (eq. 20's 
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import math
+import queue
 import threading
 import time
 import uuid
@@ -31,8 +33,8 @@ import zenoh
 
 from bridge import bus
 from bridge.session import liveliness_token, publisher, subscribe_latest
-from controller.laws import ComputedTorque, LawConfig, hold_forces
-from controller.trajectory import Trajectory
+from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
+from controller.trajectory import Trajectory, TrajectoryError, TrajectoryLimits, approach, validate
 from twin.params import Params
 
 log = logging.getLogger("xneck.controller")
@@ -78,6 +80,13 @@ class ControllerNode:
         self.latched = False
         self.outcome = ""
         self._last_cmd: bus.ForceCommand | None = None
+        self.campaign_kind = config.campaign_kind
+        self._t0, self._total, self._next_progress = 0.0, math.inf, 0.0
+        # Service mode: no trajectory of its own; campaigns come as requests on the bus.
+        self._service = trajectory is None and not config.exit_when_done
+        self._requests: queue.Queue[bus.CampaignRequest] = queue.Queue(maxsize=16)
+        self._request_sub = session.declare_subscriber(bus.CAMPAIGN_REQUEST, self._on_request) if self._service else None
+        self._service_token = liveliness_token(session, "campaign-service", self.instance) if self._service else None
 
     def _next(self, name: str) -> int:
         self._seq[name] += 1
@@ -85,7 +94,7 @@ class ControllerNode:
 
     def event(self, event: str, progress: float = 0.0, message: str = "") -> None:
         self._events.put(bus.CampaignEvent(seq=self._next("event"), stamp_s=time.time(), campaign_id=self.campaign_id,
-                                           kind=self.config.campaign_kind, event=event, progress=progress,
+                                           kind=self.campaign_kind, event=event, progress=progress,
                                            message=message))
 
     def command(self, f: np.ndarray, stamp_s: float) -> None:
@@ -110,13 +119,81 @@ class ControllerNode:
             alpha_d_rad=list(map(float, alpha_d)), e_rad=[float(x) if math.isfinite(x) else 0.0 for x in e],
             holding=bool(self.hold_reason), hold_reason=self.hold_reason))
 
+    # -- campaigns --------------------------------------------------------------------------
+    def _begin(self, trajectory: Trajectory, stamp_s: float) -> None:
+        self.trajectory = trajectory
+        self._t0 = stamp_s
+        self._total = trajectory.duration_s + self.config.settle_s
+        self._next_progress = 0.0
+        self.outcome = ""
+        self.latched = False
+        self.event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
+
+    def _end(self, outcome: str, message: str, progress: float, hold_at: np.ndarray) -> None:
+        self.outcome = outcome
+        self.event(outcome, progress, message)
+        self.trajectory = None
+        self.hold_target = np.array(hold_at, dtype=float)
+
+    def _on_request(self, sample: zenoh.Sample) -> None:
+        try:
+            self._requests.put_nowait(bus.decode(bus.CampaignRequest, sample.payload.to_bytes()))
+        except (bus.BusDecodeError, queue.Full) as exc:
+            log.warning("campaign request rejected: %s", getattr(exc, "reason", exc))
+
+    def _serve_requests(self, state: bus.MotorState) -> None:
+        """Service mode: start or stop campaigns asked for on the bus (between two ticks)."""
+        while True:
+            try:
+                req = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            if req.action == "stop":
+                if self.trajectory is not None and req.campaign_id == self.campaign_id:
+                    t = state.stamp_s - self._t0
+                    self._end("aborted", "stopped by the user", min(t / self._total, 1.0), self.ctl.estimator.alpha_hat)
+                continue
+            if self.trajectory is not None:
+                self._refuse(req, f"the controller is running campaign {self.campaign_id}")
+                continue
+            try:
+                law = LawConfig(law=req.law, no_pulleys=req.no_pulleys, omega=self.law.omega, rate_hz=self.law.rate_hz)
+                traj = Trajectory.from_dict(json.loads(req.trajectory_json))
+                validate(traj, TrajectoryLimits(alpha_max_rad=math.radians(self.params.limits.alpha_max_deg)),
+                         self.ctl.model.n_joints, nominal_force_check(self.params, law))
+            except (ValueError, TrajectoryError, json.JSONDecodeError) as exc:
+                self._refuse(req, f"refused: {exc}")
+                continue
+            self._switch_law(law)
+            self.campaign_id, self.campaign_kind = req.campaign_id, req.kind
+            self._begin(approach(traj, self.ctl.estimator.alpha_hat), state.stamp_s)
+
+    def _refuse(self, req: bus.CampaignRequest, message: str) -> None:
+        log.warning("campaign %s: %s", req.campaign_id, message)
+        self._events.put(bus.CampaignEvent(seq=self._next("event"), stamp_s=time.time(), campaign_id=req.campaign_id,
+                                           kind=req.kind, event="aborted", message=message))
+
+    def _switch_law(self, law: LawConfig) -> None:
+        """A new law continues from the current estimate (α̂, θ and, when both models are
+        elastic, the predicted stretch), with a fresh integral."""
+        old = self.ctl.estimator
+        ctl = ComputedTorque(self.params, law)
+        ctl.reset(alpha=old.alpha_hat, theta=old.theta)
+        if ctl.model.cable_model == self.ctl.model.cable_model:
+            ctl.estimator.x_c = old.x_c.copy()
+        ctl.theta_dot = self.ctl.theta_dot.copy()
+        self.ctl, self.law = ctl, law
+
+    # -- the loop -----------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> str:
         """Run until the trajectory is done (then "finished"), the estimate diverges ("aborted"),
-        the states stop for good ("aborted") or ``stop`` is set ("stopped")."""
-        cfg, period = self.config, 1.0 / self.law.rate_hz
+        the states stop for good ("aborted") or ``stop`` is set ("stopped"). In service mode
+        (``exit_when_done`` False) it holds between campaigns and serves campaign requests."""
+        cfg = self.config
         n_joints = self.ctl.model.n_joints
         limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._last_sane = np.zeros(n_joints)
+        self.hold_target = np.zeros(n_joints)
         first = self.states.wait(cfg.startup_timeout_s)
         if first is None:
             self.outcome = "aborted"
@@ -126,12 +203,11 @@ class ControllerNode:
         # full collection cannot land in the middle of a 2 ms tick.
         gc.collect()
         gc.freeze()
-        # A state is new when its stamp is: a waiting lockstep twin re-publishes the same state.
-        t0, last_stamp, last_wall = first.stamp_s, None, time.perf_counter()
         self.ctl.reset(theta=np.asarray(first.theta_rad))
-        total = (self.trajectory.duration_s + cfg.settle_s) if self.trajectory else math.inf
-        self.event("started", message=f"{self.law.name}, trajectory {self.trajectory.name if self.trajectory else 'hold'}")
-        next_progress = 0.0
+        if self.trajectory is not None:
+            self._begin(self.trajectory, first.stamp_s)
+        # A state is new when its stamp is: a waiting lockstep twin re-publishes the same state.
+        last_stamp, last_wall = None, time.perf_counter()
         state = first
         while not stop.is_set():
             if last_stamp is not None:
@@ -139,7 +215,7 @@ class ControllerNode:
                                          lambda s: s.stamp_s > last_stamp)
                 if state is None or state.stamp_s <= last_stamp:
                     stale_for = time.perf_counter() - last_wall
-                    if stale_for > cfg.idle_timeout_s:
+                    if stale_for > cfg.idle_timeout_s and cfg.exit_when_done:
                         self.outcome = "aborted"
                         self.event("aborted", message=f"no motor state for {stale_for:.1f} s")
                         return self.outcome
@@ -148,51 +224,65 @@ class ControllerNode:
                         # that already stepped on it ignores it) instead of stalling.
                         if self._last_cmd is not None:
                             self._cmd.put(self._last_cmd)
-                    else:
+                    elif self._last_cmd is not None:
                         self.hold(f"stale state: none for {stale_for * 1e3:.0f} ms", time.time())
                     continue
             wall = time.perf_counter()
             tick_s, last_wall, last_stamp = wall - last_wall, wall, state.stamp_s
-            t = state.stamp_s - t0
-            if self.trajectory is not None:
-                ref = self.trajectory.sample(np.array([t]))
-                a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
-            else:
-                a_d, a_d_dot, a_d_ddot = self._last_sane, np.zeros(n_joints), np.zeros(n_joints)
-            if self.latched:
-                self.hold(self.hold_reason, state.stamp_s)
-                continue
-            cmd = self.ctl.step(np.asarray(state.theta_rad), a_d, a_d_dot, a_d_ddot)
-            if not np.all(np.isfinite(cmd.alpha_hat)) or np.any(np.abs(cmd.alpha_hat) > limit) \
-                    or not np.all(np.isfinite(cmd.f)):
-                self.latched = True
-                self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°", state.stamp_s)
-                self.outcome = "aborted"
-                self.event("aborted", min(t / total, 1.0), self.hold_reason)
-                if cfg.exit_when_done:
-                    return self.outcome
-                continue
-            self._last_sane = cmd.alpha_hat.copy()
-            self.hold_reason = ""
-            self.command(cmd.f, state.stamp_s)
-            compute_s = time.perf_counter() - wall
-            if compute_s > period:
-                self.overruns += 1
-            if not cfg.lockstep and tick_s > 2 * period:
-                self.deadline_misses += 1
-            self.status(state.stamp_s, tick_s, compute_s, cmd.saturated, cmd.alpha_hat, a_d, cmd.e)
-            if t >= next_progress and math.isfinite(total):
-                self.event("progress", min(t / total, 1.0))
-                next_progress += 0.5
-            if t >= total and self.outcome == "":
-                self.outcome = "finished"
-                self.event("finished", 1.0, f"overruns {self.overruns}, deadline misses {self.deadline_misses}")
-                if cfg.exit_when_done:
-                    return self.outcome
+            if self._service:
+                self._serve_requests(state)
+            if self.outcome in ("aborted", "finished") and cfg.exit_when_done:
+                return self.outcome
+            if not self._tick(state, wall, tick_s, limit) and cfg.exit_when_done:
+                return self.outcome
+            if self.trajectory is None and self.outcome == "finished" and cfg.exit_when_done:
+                return self.outcome
         return self.outcome or "stopped"
 
+    def _tick(self, state: bus.MotorState, wall: float, tick_s: float, limit: float) -> bool:
+        """One law tick on ``state``; False when the campaign had to be aborted."""
+        period, n_joints = 1.0 / self.law.rate_hz, self.ctl.model.n_joints
+        t = state.stamp_s - self._t0 if self.trajectory is not None else 0.0
+        if self.trajectory is not None:
+            ref = self.trajectory.sample(np.array([t]))
+            a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
+        else:
+            a_d, a_d_dot, a_d_ddot = self.hold_target, np.zeros(n_joints), np.zeros(n_joints)
+        if self.latched:
+            self.hold(self.hold_reason, state.stamp_s)
+            return True
+        cmd = self.ctl.step(np.asarray(state.theta_rad), a_d, a_d_dot, a_d_ddot)
+        if not np.all(np.isfinite(cmd.alpha_hat)) or np.any(np.abs(cmd.alpha_hat) > limit) \
+                or not np.all(np.isfinite(cmd.f)):
+            self.latched = True
+            self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°", state.stamp_s)
+            if self.trajectory is not None or not self._service:
+                self._end("aborted", self.hold_reason, min(t / self._total, 1.0) if self.trajectory else 0.0,
+                          self._last_sane)
+            return False
+        self._last_sane = cmd.alpha_hat.copy()
+        self.hold_reason = ""
+        self.command(cmd.f, state.stamp_s)
+        compute_s = time.perf_counter() - wall
+        if compute_s > period:
+            self.overruns += 1
+        if not self.config.lockstep and tick_s > 2 * period:
+            self.deadline_misses += 1
+        self.status(state.stamp_s, tick_s, compute_s, cmd.saturated, cmd.alpha_hat, a_d, cmd.e)
+        if self.trajectory is not None:
+            if t >= self._next_progress:
+                self.event("progress", min(t / self._total, 1.0))
+                self._next_progress += 0.5
+            if t >= self._total:
+                self._end("finished", f"overruns {self.overruns}, deadline misses {self.deadline_misses}", 1.0,
+                          self.trajectory.waypoints_rad[-1])
+        return True
+
     def close(self) -> None:
-        for closer in (self.states.close, self._cmd.close, self._status.close, self._events.close, self._token.undeclare):
+        closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._token.undeclare]
+        if self._service:
+            closers += [self._request_sub.undeclare, self._service_token.undeclare]
+        for closer in closers:
             try:
                 closer()
             except Exception:  # noqa: BLE001

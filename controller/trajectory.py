@@ -55,6 +55,7 @@ __all__ = [
     "load_trajectory",
     "trajectory_json_schema",
     "validate",
+    "approach",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -541,3 +542,23 @@ def validate(
             f"{traj.name!r}: forces out of bounds in {traj.describe_time(float(t[i]))} at t = {t[i]:.3f} s "
             f"(α^d = {_deg(alpha[i])}): {reason}"
         )
+
+
+def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math.radians(0.5)) -> Trajectory:
+    """``traj`` preceded, if the neck is not already at its first waypoint, by a gentle cycloidal
+    move from ``alpha_now`` (rad): peak speed at most 0.5 rad/s and acceleration at most 1 rad/s²,
+    at least 1 s. A controller that runs campaigns back to back never jumps to a start pose."""
+    now = np.asarray(alpha_now, dtype=np.float64)
+    w = np.asarray(traj.waypoints_rad, dtype=np.float64)
+    delta = float(np.max(np.abs(w[0] - now)))
+    if delta <= tolerance_rad:
+        return traj
+    move_s = max(1.0, CYCLOID_PEAK_VELOCITY * delta / 0.5, math.sqrt(CYCLOID_PEAK_ACCELERATION * delta / 1.0))
+    durations = np.broadcast_to(np.asarray(traj.durations_s, dtype=np.float64), (len(w) - 1,))
+    dwell = np.broadcast_to(np.asarray(traj.dwell_s, dtype=np.float64), (len(w),)) if np.size(traj.dwell_s) else np.zeros(len(w))
+    return Trajectory(
+        waypoints_rad=np.vstack([now, w]),
+        durations_s=np.concatenate([[move_s], durations]),
+        dwell_s=np.concatenate([[0.0], dwell]),
+        name=traj.name,
+    )

@@ -22,13 +22,14 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from bridge.session import free_tcp_port, open_session
-from server import routes_campaigns, routes_live, routes_params, routes_system
+from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
 from server.archive import software_version
 from server.campaigns import CampaignManager
 from server.live import Broadcaster, LiveBus
 from server.paramsets import ParameterStore
 from server.presence import Presence
 from server.settings import Settings, resolve_token
+from server.workspace_maps import WorkspaceCache
 
 log = logging.getLogger("xneck.server")
 
@@ -70,7 +71,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz)
-            state.campaigns = CampaignManager(data_dir, session, state.hub)
+            state.campaigns = CampaignManager(data_dir, session, state.hub,
+                                              service_alive=lambda: state.presence.any_alive("campaign-service"))
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))
@@ -102,6 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.token = token
     app.state.token_generated = generated
     app.state.params = ParameterStore(data_dir)
+    app.state.workspace = WorkspaceCache(data_dir / "workspace", grid_3x=settings.workspace_grid)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -110,7 +113,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   for e in exc.errors()]
         return JSONResponse(status_code=422, content={"detail": detail})
 
-    for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router):
+    for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
+                   routes_workspace.router):
         app.include_router(router)
     if WEB_DIR.is_dir():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")

@@ -15,6 +15,7 @@ recovered (:func:`server.archive.recover`) and its record marked ``interrupted``
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
@@ -51,11 +52,15 @@ class NotFound(KeyError):
 
 class CampaignManager:
     def __init__(self, data_dir: Path, session: zenoh.Session, hub: str,
-                 on_finish: Callable[[CampaignRecord], None] | None = None) -> None:
+                 on_finish: Callable[[CampaignRecord], None] | None = None,
+                 service_alive: Callable[[], bool] = lambda: False) -> None:
         self.index = CampaignIndex(Path(data_dir) / "campaigns")
         self.session = session
         self.hub = hub
         self._on_finish = on_finish
+        # With a controller service on the bus (`xneck up`) campaigns are requests to it, driving the
+        # bridge that is already there; otherwise each campaign starts its own processes.
+        self._service_alive = service_alive
         self._lock = threading.Lock()
         self._records: dict[str, CampaignRecord] = {}
         self._running: str | None = None
@@ -142,6 +147,9 @@ class CampaignManager:
 
     # -- life cycle -------------------------------------------------------------------------
     def start(self, prepared: PreparedCampaign) -> CampaignRecord:
+        if self._service_alive():
+            prepared = prepared.model_copy(
+                update={"spec": dataclasses.replace(prepared.spec, service=True, twin=False), "pace": "realtime"})
         spec = prepared.spec
         with self._lock:
             if self._running is not None:

@@ -11,6 +11,7 @@ import typer
 from bridge import cli as bridge_cli
 from controller import cli as controller_cli
 from server.serve import server
+from server.up import up
 from twin import cli as twin_cli
 from twin.identification_cli import identify
 from twin.kinematics_cli import kinematics_app, workspace
@@ -43,6 +44,7 @@ app.add_typer(kinematics_app, name="kinematics")
 app.command("workspace")(workspace)
 app.command("identify")(identify)
 app.command("server")(server)
+app.command("up")(up)
 
 
 def main() -> None:

@@ -1,0 +1,135 @@
+"""`xneck up`: the whole stack as separate processes on one Zenoh bus, and the dashboard URL.
+
+    server (FastAPI + viser, the hub)  <-- tcp/127.0.0.1:7447 -->  bridge (twin or BeagleBone)
+                                                              \\->  controller (campaign service)
+
+The server listens on the hub endpoint; the bridge and the controller connect to it (peer mode,
+multicast scouting off). Start order: server (until its health endpoint answers), bridge,
+controller. Nothing is restarted silently: if a process exits, the launcher says which, with its
+exit code and last log lines, stops the others and exits non-zero. Ctrl-C or SIGTERM stops them
+all in the safe order: controller, then bridge (which disables its drives), then server.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+STOP_GRACE_S = 8.0
+
+
+def _xneck(*args: str) -> list[str]:
+    return [sys.executable, "-m", "server.cli", *args]
+
+
+def _healthy(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # noqa: S310 - loopback URL we built
+            return r.status == 200
+    except OSError:
+        return False
+
+
+def _tail(path: Path, n: int = 12) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
+    except OSError:
+        return ""
+
+
+def up(
+    robot: bool = typer.Option(False, "--robot", help="Drive the BeagleBone's motors instead of the twin."),
+    no_bridge: bool = typer.Option(False, "--no-bridge", help="The bridge runs elsewhere (e.g. on the BeagleBone) "
+                                   "and connects to --hub."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Dashboard bind address."),
+    port: int = typer.Option(8000, "--port", help="Dashboard HTTP port."),
+    hub: str = typer.Option("tcp/127.0.0.1:7447", "--hub", help="Zenoh endpoint the server listens on and the "
+                            "others connect to. Use tcp/0.0.0.0:7447 for a bridge on another machine."),
+    data_dir: Path = typer.Option(Path("data"), "--data-dir", help="Archives, parameter sets, token, logs."),
+    law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
+    driver_config: Optional[Path] = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    params_file: Optional[Path] = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
+    exit_after: Optional[float] = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
+                                                 "(tests, demos)."),
+) -> None:
+    """Start the bridge, the controller and the server as separate processes and print the URL."""
+    logs = Path(data_dir) / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    connect_to = hub.replace("0.0.0.0", "127.0.0.1")
+    common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
+    param_args = ["--params", str(params_file)] if params_file else []
+    url = f"http://{host}:{port}/"
+    procs: dict[str, subprocess.Popen] = {}
+    log_files: dict[str, Path] = {}
+    stop = {"signal": ""}
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop["signal"] = signal.Signals(signum).name
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    def start(name: str, args: list[str]) -> None:
+        log_files[name] = logs / f"{name}.log"
+        with open(log_files[name], "ab") as log:
+            procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                           env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+
+    code = 0
+    try:
+        start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
+                         "--mode", "robot" if robot else "twin"])
+        deadline = time.monotonic() + 60
+        while not _healthy(url):
+            if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:
+                raise RuntimeError(f"the server did not come up:\n{_tail(log_files['server'])}")
+            time.sleep(0.2)
+        if not no_bridge:
+            driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
+                if robot else ["--driver", "twin", "--seed", str(seed)]
+            start("bridge", ["bridge", *driver, *common, *param_args])
+        start("controller", ["controller", "--law", str(law), *common, *param_args])
+        token_file = Path(data_dir) / "token"
+        typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
+        typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else 'twin'} bridge"
+                   f"{' expected from elsewhere' if no_bridge else ''}, controller service (law {law})")
+        typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
+        started = time.monotonic()
+        while not stop["signal"]:
+            dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
+            if dead:
+                name, rc = dead[0]
+                typer.secho(f"error: the {name} exited (code {rc}); stopping the stack, nothing is restarted.\n"
+                            f"last lines of {log_files[name]}:\n{_tail(log_files[name])}", err=True, fg="red")
+                code = 1
+                break
+            if exit_after is not None and time.monotonic() - started > exit_after:
+                break
+            time.sleep(0.2)
+    except RuntimeError as exc:
+        typer.secho(f"error: {exc}", err=True, fg="red")
+        code = 1
+    finally:
+        for name in ("controller", "bridge", "server"):
+            p = procs.get(name)
+            if p is None or p.poll() is not None:
+                continue
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
+                p.kill()
+                p.wait(STOP_GRACE_S)
+        typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
+    if code:
+        raise typer.Exit(code)

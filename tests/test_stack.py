@@ -1,0 +1,173 @@
+"""The whole stack as separate processes (issue 7): `xneck up` as a new user runs it, and the
+fault-tolerance cases: a controller killed mid-campaign, a server killed and restarted."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from bridge import bus
+from bridge.session import free_tcp_port, open_session
+from server.archive import read_campaign
+from server_harness import AUTH, TOKEN, wait_until
+
+PY = [sys.executable, "-m", "server.cli"]
+ENV = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+CAMPAIGN = {"kind": "control", "law": 2, "trajectory": "control_test"}
+
+
+def _healthy(base: str) -> bool:
+    try:
+        return httpx.get(base + "/api/system/health", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def _alive_kinds(base: str) -> set[str]:
+    return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
+
+
+def _wait_status(base: str, cid: str, statuses: set[str], timeout_s: float) -> dict:
+    rec: dict = {}
+
+    def done() -> bool:
+        nonlocal rec
+        rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=2).json()
+        return rec.get("status") in statuses
+
+    assert wait_until(done, timeout_s, 0.3), rec
+    return rec
+
+
+@contextlib.contextmanager
+def _procs():
+    started: list[subprocess.Popen] = []
+
+    def spawn(args: list[str], log: Path) -> subprocess.Popen:
+        p = subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             env=ENV, start_new_session=True)
+        started.append(p)
+        return p
+
+    try:
+        yield spawn
+    finally:
+        for p in reversed(started):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in reversed(started):
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait(5)
+
+
+def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) -> None:
+    port, hub_port = free_tcp_port(), free_tcp_port()
+    base = f"http://127.0.0.1:{port}"
+    with _procs() as spawn:
+        up = spawn(["up", "--port", str(port), "--hub", f"tcp/127.0.0.1:{hub_port}", "--data-dir", str(tmp_path / "d")],
+                   tmp_path / "up.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "up.log").read_text()
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+        printed = (tmp_path / "up.log").read_text()
+        assert f"dashboard http://127.0.0.1:{port}/" in printed
+        assert "<html" in httpx.get(base + "/", timeout=5).text.lower()
+        r = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
+        assert r.status_code in (200, 201), r.text
+        rec = _wait_status(base, r.json()["id"], {"finished", "aborted", "failed"}, 90)
+        assert rec["status"] == "finished", rec
+        assert rec["metrics"]["e_mean_all_deg"] < 0.5
+        up.send_signal(signal.SIGTERM)
+        assert up.wait(30) == 0
+    assert "xneck stopped (SIGTERM)" in (tmp_path / "up.log").read_text()
+
+
+def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign_aborted(tmp_path: Path) -> None:
+    port, hub_port = free_tcp_port(), free_tcp_port()
+    hub = f"tcp/127.0.0.1:{hub_port}"
+    base = f"http://127.0.0.1:{port}"
+    data = tmp_path / "d"
+    with _procs() as spawn:
+        spawn(["server", "--port", str(port), "--data-dir", str(data), "--hub", hub, "--mode", "robot"], tmp_path / "s.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3)
+        spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
+        ctl = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "c.log")
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+        cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.3, 60, 0.2)
+        os.killpg(ctl.pid, signal.SIGKILL)
+        rec = _wait_status(base, cid, {"finished", "aborted", "failed"}, 30)
+        assert rec["status"] == "aborted" and "controller" in rec["message"], rec
+    campaign = read_campaign(data / "campaigns" / f"{cid}.mcap")  # readable
+    commands = [m.stamp_s for _, m in campaign.messages(bus.MOTOR_COMMAND)]
+    states = sorted((m.stamp_s, m.drive, tuple(m.force_applied_N)) for _, m in campaign.messages(bus.MOTOR_STATE))
+    last_command = max(commands)
+    holds = [s for s in states if s[0] > last_command and s[1] == "hold"]
+    assert holds, "the bridge never held after the controller died"
+    assert holds[0][0] - last_command <= 0.010 + 0.006  # watchdog: 10 ms, plus at most a tick or two
+    settled = [s for s in holds if s[0] >= holds[0][0] + 0.012]
+    assert settled and all(np.allclose(s[2], settled[-1][2], atol=1e-6) for s in settled)  # at the hold forces
+    alpha = np.array([m.alpha_rad for _, m in campaign.messages(bus.TWIN_TRUTH)])
+    assert np.degrees(np.abs(alpha)).max() <= 60.0
+
+
+def test_a_server_killed_and_restarted_mid_campaign(tmp_path: Path) -> None:
+    port, hub_port, bridge_port = free_tcp_port(), free_tcp_port(), free_tcp_port()
+    hub = f"tcp/127.0.0.1:{hub_port}"
+    base = f"http://127.0.0.1:{port}"
+    data = tmp_path / "d"
+    server_args = ["server", "--port", str(port), "--data-dir", str(data), "--hub", hub, "--mode", "robot"]
+    with _procs() as spawn:
+        server = spawn(server_args, tmp_path / "s1.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3)
+        spawn(["bridge", "--driver", "twin", "--listen", f"tcp/127.0.0.1:{bridge_port}", "--connect", hub], tmp_path / "b.log")
+        spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "c.log")
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+        before = {c["id"] for c in httpx.get(base + "/api/campaigns").json()}
+        cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.2, 60, 0.2)
+        os.killpg(server.pid, signal.SIGKILL)
+        server.wait(10)
+
+        # Without the console the robot stays under control: the bridge keeps publishing, active
+        # (the controller finishes its trajectory) or holding, and the neck stays within its limits.
+        seen: list[bus.MotorState] = []
+        truths: list[bus.Truth] = []
+        lock = threading.Lock()
+        with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{bridge_port}"]) as s:
+            subs = [
+                s.declare_subscriber(bus.MOTOR_STATE, lambda x: (lock.acquire(), seen.append(
+                    bus.decode(bus.MotorState, x.payload.to_bytes())), lock.release())),
+                s.declare_subscriber(bus.TWIN_TRUTH, lambda x: (lock.acquire(), truths.append(
+                    bus.decode(bus.Truth, x.payload.to_bytes())), lock.release())),
+            ]
+            time.sleep(2.0)
+            for sub in subs:
+                sub.undeclare()
+        with lock:
+            assert len(seen) > 200 and all(m.drive in ("active", "hold") for m in seen)
+            assert np.degrees(np.abs([t.alpha_rad for t in truths])).max() <= 60.0
+
+        spawn(server_args, tmp_path / "s2.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s2.log").read_text()[-2000:]
+        listed = {c["id"]: c for c in httpx.get(base + "/api/campaigns").json()}
+        assert before | {cid} <= set(listed)
+        assert listed[cid]["status"] == "interrupted"
+        mcap = httpx.get(f"{base}/api/campaigns/{cid}/mcap", timeout=10)
+        assert mcap.status_code == 200
+    path = tmp_path / "downloaded.mcap"
+    path.write_bytes(mcap.content)
+    c = read_campaign(path)
+    assert c.info["outcome"] == "interrupted" and len(c.messages(bus.MOTOR_STATE)) > 100
