@@ -21,7 +21,7 @@ from bridge import bus
 from server.archive import read_campaign
 
 FIGURES = ("tracking", "forces")
-_plot_lock = threading.Lock()  # pyplot's state machine is not thread-safe
+PYPLOT_LOCK = threading.Lock()  # pyplot's state machine is not thread-safe; every server figure takes it
 
 
 def _table(title: str, columns: list[str], rows: list[list[Any]], note: str = "") -> dict[str, Any]:
@@ -104,7 +104,7 @@ def render_figure(mcap: Path, name: str, out: Path) -> Path:
     campaign = read_campaign(mcap)
     status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS)]
     out.parent.mkdir(parents=True, exist_ok=True)
-    with _plot_lock:
+    with PYPLOT_LOCK:
         if name == "tracking":
             frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
             n = len(status[0].alpha_hat_rad) if status else 3

@@ -11,7 +11,7 @@ import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 TOKEN_FILE = "token"
@@ -38,6 +38,15 @@ class Settings(BaseSettings):
     scene_rate_hz: float = Field(30.0, gt=0, le=200, description="Update rate of the viser scene (Hz).")
     campaign_timeout_s: float = Field(600.0, gt=0, description="Abort a campaign after this long (wall, s).")
     viser: bool = Field(True, description="Start the viser 3D view.")
+    workspace_grid: int = Field(31, ge=5, le=61, description="Points per α axis of the 3-X workspace maps "
+                                "(odd, over ±90°); the cost grows with its cube (31: ≈2 s on 2 cores).")
+
+    @field_validator("workspace_grid")
+    @classmethod
+    def _odd_grid(cls, n: int) -> int:
+        if n % 2 == 0:
+            raise ValueError(f"must be odd so that α = 0 is on the grid, got {n}")
+        return n
 
 
 def resolve_token(settings: Settings) -> tuple[str, bool]:

@@ -124,9 +124,9 @@ def test_elastic_models_beat_rigid_cables(result):
 
 
 @pytest.mark.xfail(strict=False, reason=(
-    "controller.estimation.predict_elongation uses λ·f (eq. 58 as printed) instead of λ·t: 0.3-1 mm of "
-    "stretch error on the twin; with λ·t both eq. 33 and eq. 35 sit at the α_IP noise floor (≈ 0.80°) "
-    "and eq. 33 is marginally better (0.035° vs 0.045° against the truth)"))
+    "on a twin whose cables follow eq. 54 exactly, eq. 33 and eq. 35 with the variable model both sit at "
+    "the α_IP noise floor (≈ 0.80°) and eq. 33 is marginally better against the truth (0.035° vs 0.045°): "
+    "eq. 35's advantage on the robot comes from model error the twin does not have"))
 def test_eq35_variable_is_best(result):
     e = result["val"].alpha_errors_deg()
     assert min(e, key=e.get) == "eq35/variable", e

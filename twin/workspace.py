@@ -25,6 +25,7 @@ from twin.kinematics import (
 from twin.statics import Design, prototype_2x, stiffness_extremes, wrench_feasible_two_cables
 
 __all__ = [
+    "CAPTIONS",
     "CartesianCounts",
     "JointMaps2X",
     "Maps3X",
@@ -34,10 +35,28 @@ __all__ = [
     "joint_maps_2x",
     "maps_3x",
     "max_solutions_on_axis",
+    "plot_3x_stiffness",
+    "plot_3x_wfw",
     "singularity_polylines",
     "write_2x_figures",
     "write_3x_figures",
 ]
+
+# One-line caption per figure file, shared by docs/workspace.md and the console.
+CAPTIONS: dict[str, str] = {
+    "2x_ik_example.png": "The four IK solutions at (0.03, 1.6) for L = 1, b = 2/3 (paper Fig. 3).",
+    "2x_aspects.png": "Singularity curves (eq. 13 and θ1 = −θ2 ± π) and the two aspects, sign of det J, b = 2/3 (Fig. 4).",
+    "2x_workspace.png": "Number of IK solutions without joint limits for b/L = 2/5, 2/3, 9/10; lines: images of the singularity curves (Fig. 5).",
+    "2x_workspace_types.png": "Solutions per pair of X-joint configurations, up M or down M̄, b = 2/3 (Fig. 8).",
+    "2x_workspace_limits.png": "Number of IK solutions with −90° < θ_i < 90° for b/L = 2/5, 2/3, 9/10 (Fig. 9).",
+    "2x_workspace_prototype.png": "Workspace of the 2-X prototype (L = 0.1 m, b = 0.05 m) with joint limits (Fig. 11).",
+    "2x_wfw_two_cables.png": "Two-cable wrench-feasible workspace, prototype and identical springs, joint and Cartesian space (Figs. 13-14).",
+    "2x_joint_stiffness.png": "Minimal and maximal joint stiffness over the four-cable force redundancy (Figs. 16-17).",
+    "2x_cartesian_stiffness.png": "Minimal and maximal Cartesian stiffness K_x, K_y over the four-cable WFW (Figs. 18-19).",
+    "3x_wfw.png": "3-X prototype: configurations with Z(α) f = g(α) for f in [f_min, f_max], slices and head positions.",
+    "3x_stiffness.png": "3-X prototype: joint stiffness at the lowest and the highest antagonistic tension, slice α3 = 0.",
+}
+
 
 # --- solution counting ---------------------------------------------------------------------------
 
@@ -447,22 +466,12 @@ def _fields(d: Design) -> dict[str, Any]:
     return {f.name: getattr(d, f.name) for f in fields(d)}
 
 
-def write_3x_figures(out: Path, n: int = 31, params: Any = None) -> list[Path]:
-    """Write the 3-X prototype's maps: reachable configurations for f in [f_min, f_max], and the
-    joint stiffness range that raising the antagonistic tension gives."""
-    from twin.model import build
-    from twin.params import load_params
-
+def plot_3x_wfw(mp: Maps3X, f_min: float, f_max: float) -> Any:
+    """Reachable set of the 3-X prototype: feasibility on the slices α3 = −α_max, 0, α_max
+    (grid ends and middle) and the head positions (m) of all grid configurations."""
     plt = _plt()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    params = load_params() if params is None else params
-    lim = params.limits
-    mp = maps_3x(build(params), lim.f_min, lim.f_max, n=n)
     a = np.degrees(mp.alpha)
-    written = []
-
-    # Reachable set: slices at three α_3 values, plus the head positions.
+    n = a.size
     fig, axes = plt.subplots(1, 4, figsize=(17, 4.8), constrained_layout=True)
     for ax, k in zip(axes[:3], (0, n // 2, n - 1)):
         ax.pcolormesh(a, a, mp.feasible[:, :, k].T.astype(float), shading="nearest", cmap="Blues", vmin=0, vmax=1.3)
@@ -479,14 +488,17 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None) -> list[Path]:
     ax.set_ylabel("y (m)")
     ax.set_title("head positions", fontsize=9)
     ax.legend(markerscale=10, fontsize=8)
-    fig.suptitle(f"3-X prototype: Z(α) f = g(α) with {lim.f_min:g} <= f <= {lim.f_max:g} N "
-                 f"({100 * mp.feasible.mean():.0f}% of |α_i| <= 90°)")
-    fig.savefig(out / "3x_wfw.png", dpi=110)
-    plt.close(fig)
-    written.append(out / "3x_wfw.png")
+    fig.suptitle(f"3-X prototype: Z(α) f = g(α) with {f_min:g} <= f <= {f_max:g} N "
+                 f"({100 * mp.feasible.mean():.0f}% of |α_i| <= {a[-1]:.0f}°)")
+    return fig
 
-    # Stiffness range on the α_3 = 0 slice.
-    k = n // 2
+
+def plot_3x_stiffness(mp: Maps3X) -> Any:
+    """Joint stiffness diagonal K_ii (N·m/rad) of the 3-X prototype on the middle α3 slice (α3 = 0
+    for an odd grid), at the lowest and the highest antagonistic tension."""
+    plt = _plt()
+    a = np.degrees(mp.alpha)
+    k = a.size // 2
     fig, axes = plt.subplots(2, 3, figsize=(13, 8), constrained_layout=True)
     for j in range(3):
         lo, hi = mp.K_lo[:, :, k, j], mp.K_hi[:, :, k, j]
@@ -500,8 +512,31 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None) -> list[Path]:
             ax.set_ylabel("α2 (deg)")
             ax.set_title(f"K_{j + 1}{j + 1}, {name} (N·m/rad)", fontsize=9)
             fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.suptitle("3-X joint stiffness at α3 = 0 over the force redundancy f = f_p + n t")
-    fig.savefig(out / "3x_stiffness.png", dpi=110)
-    plt.close(fig)
-    written.append(out / "3x_stiffness.png")
+    fig.suptitle(f"3-X joint stiffness at α3 = {a[k]:.0f}° over the force redundancy f = f_p + n t")
+    return fig
+
+
+def write_3x_figures(out: Path, n: int = 31, params: Any = None, maps: Maps3X | None = None) -> list[Path]:
+    """Write the 3-X prototype's maps: reachable configurations for f in [f_min, f_max], and the
+    joint stiffness range that raising the antagonistic tension gives.
+
+    ``maps``: already computed :func:`maps_3x` output for ``params`` (then ``n`` is ignored), so
+    a caller that also needs the numbers computes them once.
+    """
+    from twin.model import build
+    from twin.params import load_params
+
+    plt = _plt()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    params = load_params() if params is None else params
+    lim = params.limits
+    mp = maps_3x(build(params), lim.f_min, lim.f_max, n=n) if maps is None else maps
+    written = []
+    for name, draw in (("3x_wfw.png", lambda: plot_3x_wfw(mp, lim.f_min, lim.f_max)),
+                       ("3x_stiffness.png", lambda: plot_3x_stiffness(mp))):
+        fig = draw()
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        written.append(out / name)
     return written

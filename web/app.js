@@ -235,6 +235,109 @@ async function pollStatus() {
   } catch (e) { $("#sys").textContent = "server unreachable"; }
 }
 
+// ---------------------------------------------------------------- workspace maps
+// The maps follow the ACTIVE parameter set: a poll notices when it changes (here or from another
+// client) and reloads them; the server computes them once per set (a few seconds) and caches them.
+// tried: the set of the last load, shown or failed, so a failing set is not retried every poll.
+const ws = (window.xneckWorkspace = { tried: null, shownKey: null, loading: null, loads: 0 });
+
+function figureEl(f) {
+  const fig = document.createElement("figure");
+  const img = document.createElement("img");
+  img.src = f.url; img.alt = f.caption; img.loading = "lazy";
+  const link = document.createElement("a"); link.href = f.url; link.target = "_blank"; link.append(img);
+  const cap = document.createElement("figcaption"); cap.textContent = f.caption;
+  fig.append(link, cap);
+  return fig;
+}
+
+function fmt(x, digits = 3) { return x === null || x === undefined ? "–" : Number(x.toPrecision(digits)).toString(); }
+
+function renderWorkspaceSummary(s) {
+  const k = s.joint_stiffness_N_m_per_rad, rest = s.straight_neck;
+  const pct = (x) => (x === null || x === undefined ? "–" : (100 * x).toFixed(1) + " %");
+  const rows = [
+    ["parameter set", s.parameter_set],
+    ["cable forces", `${fmt(s.f_min_N)} N ≤ f ≤ ${fmt(s.f_max_N)} N`],
+    ["wrench-feasible", `${pct(s.feasible_fraction)} of |α_i| ≤ ${fmt(s.grid.alpha_max_deg)}°, ` +
+      `${pct(s.feasible_fraction_within_joint_limit)} within the joint limit ±${fmt(s.joint_limit_deg)}°`],
+    ["joint stiffness K_ii over the feasible set (N·m/rad)", k.min
+      ? k.min.map((lo, i) => `K${i + 1}${i + 1}: ${fmt(lo)} … ${fmt(k.max[i])}`).join(",  ") : "no feasible configuration"],
+    ["straight neck, lowest → highest tension (N·m/rad)", rest.feasible
+      ? rest.stiffness_lowest_tension_N_m_per_rad.map((lo, i) =>
+          `K${i + 1}${i + 1}: ${fmt(lo)} → ${fmt(rest.stiffness_highest_tension_N_m_per_rad[i])}`).join(",  ")
+      : "not wrench-feasible"],
+    ["grid", `${s.grid.points_per_axis}³ = ${s.grid.configurations} configurations, ${fmt(s.grid.step_deg)}° steps`],
+  ];
+  const tbody = $("#ws-summary tbody");
+  tbody.replaceChildren();
+  for (const [name, value] of rows) {
+    const tr = document.createElement("tr");
+    const th = document.createElement("th"); th.textContent = name;
+    tr.append(th, cell(value));
+    tbody.append(tr);
+  }
+}
+
+async function loadWorkspace(expectedSet = null) {
+  if (ws.loading) return ws.loading;  // one load at a time; the poll retries if the set changed meanwhile
+  ws.tried = expectedSet;
+  ws.loading = (async () => {
+    $("#ws-error").textContent = "";
+    $("#ws-status").textContent = "computing the maps of the active parameter set (a few seconds the first time)…";
+    try {
+      const s = await api("GET", "/api/workspace");
+      renderWorkspaceSummary(s);
+      if (s.key !== ws.shownKey) $("#ws-figures").replaceChildren(...s.figures.map(figureEl));
+      ws.tried = s.parameter_set; ws.shownKey = s.key; ws.loads++;
+      $("#ws-status").textContent = `maps of ${s.parameter_set}` +
+        (s.cached ? " (cached)" : ` (computed in ${s.render_s.toFixed(1)} s)`);
+    } catch (e) {
+      $("#ws-status").textContent = "";
+      $("#ws-error").textContent = "workspace: " + (e.message || e);
+      ws.shownKey = null;
+      $("#ws-figures").replaceChildren();
+      $("#ws-summary tbody").replaceChildren();
+    } finally { ws.loading = null; }
+  })();
+  return ws.loading;
+}
+
+async function pollActiveSet() {
+  let p;
+  try { p = await api("GET", "/api/params"); } catch (e) { return; }
+  const sel = $("#ws-active");
+  if (sel.options.length !== p.parameter_sets.length || [...sel.options].some((o, i) => o.value !== p.parameter_sets[i])) {
+    sel.replaceChildren(...p.parameter_sets.map((n) => new Option(n, n)));
+  }
+  if (document.activeElement !== sel) sel.value = p.active;
+  if (p.active !== ws.tried && !ws.loading) loadWorkspace(p.active);
+}
+
+$("#ws-active").addEventListener("change", async () => {
+  const name = $("#ws-active").value;
+  try {
+    await api("PUT", "/api/params/active", { name });
+  } catch (e) {
+    $("#ws-error").textContent = "active parameter set: " + (e.message || e);
+    return pollActiveSet();
+  }
+  $("#ws-active").blur();
+  loadWorkspace(name);
+});
+
+$("#ws-refresh").addEventListener("click", () => { ws.shownKey = null; loadWorkspace($("#ws-active").value || null); });
+
+$("#ws-2x").addEventListener("toggle", async () => {
+  const box = $("#ws-2x-figures");
+  if (!$("#ws-2x").open || box.childElementCount) return;
+  box.textContent = "drawing the 2-X figures (several seconds the first time)…";
+  try {
+    const s = await api("GET", "/api/workspace?design=2x");
+    box.replaceChildren(...s.figures.map(figureEl));
+  } catch (e) { box.textContent = "2-X figures: " + (e.message || e); }
+});
+
 async function main() {
   config = await api("GET", "/api/config");
   const traj = $("#trajectory");
@@ -249,6 +352,8 @@ async function main() {
   requestAnimationFrame(redraw);
   refreshList();
   setInterval(pollStatus, 1000);
+  pollActiveSet();
+  setInterval(pollActiveSet, 3000);
 }
 
 main().catch(showError);
