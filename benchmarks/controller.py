@@ -135,8 +135,10 @@ def on_the_bus(seconds: float) -> None:
     if len(lat) == 0 or status is None:
         print("no commands observed: the run failed")
         return
+    slow = np.nonzero(lat > 2.0)[0]
     print(f"state-to-command latency over {len(lat)} ticks: p50 {np.percentile(lat, 50):.3f} ms, "
-          f"p99 {np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms")
+          f"p99 {np.percentile(lat, 99):.3f} ms, max {lat.max():.3f} ms; above 2 ms: {len(slow)} ticks"
+          + (f" (first at tick {slow[0]}, last at tick {slow[-1]})" if len(slow) else ""))
     print(f"controller: deadline misses {status.deadline_misses}, compute overruns {status.overruns} "
           f"(target: no deadline miss) -> {'meets' if status.deadline_misses == 0 else 'MISSES'}")
     print(json.dumps({"latency_p50_ms": float(np.percentile(lat, 50)), "latency_p99_ms": float(np.percentile(lat, 99)),

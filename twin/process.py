@@ -19,6 +19,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import sys
 import threading
 import time
 import uuid
@@ -157,6 +158,7 @@ def run_realtime(node: TwinNode, stop: threading.Event) -> int:
     ticks = 0
     gc.collect()
     gc.freeze()  # long-lived objects out of the collector's way: no full collection mid-tick
+    sys.setswitchinterval(0.0005)  # Zenoh callback threads share the GIL: hand it over quickly
     start = time.perf_counter()
     next_health = start + 1.0
     while not stop.is_set() and (cfg.max_ticks is None or ticks < cfg.max_ticks):
