@@ -124,21 +124,30 @@ class PseudoInverseEstimator:
         self._tab = np.empty((m.n_joints, xjoint.N_ROWS, 3))
         self._Z = np.empty((m.n_joints, m.n_cables))
 
-    def update(self, theta: np.ndarray, f_prev: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
-        """New encoder angles θ (rad); ``f_prev`` the forces (N) applied over the last period and
-        ``theta_dot`` (rad/s) the motor velocities for eq. 58's friction. Returns α̂ (rad)."""
-        m = self.model
-        x_next = predict_elongation(m, self.x_c, f_prev, theta_dot, self.dt)
+    def _Z_at(self, alpha: np.ndarray) -> np.ndarray:
+        m, Z = self.model, self._Z
         for i in range(m.n_joints):
-            xjoint.joint_jets(m.L, m.b, m.r, self.alpha_hat[i], self._tab[i])
-        Z = self._Z
+            xjoint.joint_jets(m.L, m.b, m.r, alpha[i], self._tab[i])
         for j in range(m.n_cables):
             for i in range(m.n_joints):
                 row = m.case_rows[j, i]
                 Z[i, j] = -self._tab[i, row, 1] if row >= 0 else 0.0
+        return Z
+
+    def update(self, theta: np.ndarray, f_prev: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
+        """New encoder angles θ (rad); ``f_prev`` the forces (N) applied over the last period and
+        ``theta_dot`` (rad/s) the motor velocities for eq. 58's friction. Returns α̂ (rad).
+
+        Eq. 34 holds along the motion, so Z is taken at the middle of the step (a predictor step
+        with Z(α̂(t)) as eq. 35 prints it, then the corrector): the estimate no longer drifts by
+        the first-order error of evaluating Z at the start of each step."""
+        m = self.model
+        x_next = predict_elongation(m, self.x_c, f_prev, theta_dot, self.dt)
         rhs = m.rho * (theta - self.theta) - (x_next - self.x_c)
         # (Zᵀ)⁺ applied to rhs: the least-squares Δα of Zᵀ·Δα = rhs.
-        self.alpha_hat = self.alpha_hat + np.linalg.lstsq(Z.T, rhs, rcond=None)[0]
+        step = np.linalg.lstsq(self._Z_at(self.alpha_hat).T, rhs, rcond=None)[0]
+        step = np.linalg.lstsq(self._Z_at(self.alpha_hat + 0.5 * step).T, rhs, rcond=None)[0]
+        self.alpha_hat = self.alpha_hat + step
         self.theta = np.array(theta, dtype=float)
         self.x_c = x_next
         return self.alpha_hat
