@@ -32,7 +32,7 @@ def _driver_table(path: Optional[Path]) -> dict:
 
 
 def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = None, loop: bool = False,
-                seed: int = 0, cable_model: Optional[str] = None):
+                seed: int = 0, cable_model: Optional[str] = None, friction: bool = True):
     """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
     Raises :class:`bridge.driver.DriverError` with a readable reason."""
     from bridge.driver import DriverError, config_from_dict
@@ -48,6 +48,8 @@ def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = No
         base.setdefault("seed", seed)
         if cable_model is not None:
             base["cable_model"] = cable_model
+        if not friction:
+            base["friction"] = False
         return TwinDriver(config_from_dict(TwinDriverConfig, base), params)
     if driver == "replay":
         from bridge.drivers.replay import ReplayConfig, ReplayDriver
@@ -72,8 +74,10 @@ def bridge(
     hold_ramp: float = typer.Option(0.010, "--hold-ramp", help="Ramp to the hold forces over this long (s)."),
     seed: int = typer.Option(0, "--seed", help="Twin: seed of the sensor noise."),
     cable_model: Optional[str] = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable."),
+    no_friction: bool = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction."),
     max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
     idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s)."),
+    startup_timeout: Optional[float] = typer.Option(None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout)."),
     instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
     listen: Optional[list[str]] = LISTEN_OPTION,
     connect: Optional[list[str]] = CONNECT_OPTION,
@@ -94,12 +98,13 @@ def bridge(
         raise _fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
-                              idle_timeout_s=idle_timeout, max_ticks=max_ticks, instance=instance)
+                              idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
+                              instance=instance)
     except ValueError as exc:
         raise _fail(str(exc)) from None
     try:
         drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
-                          cable_model=cable_model)
+                          cable_model=cable_model, friction=not no_friction)
         drv.configure()
     except (DriverError, ValueError) as exc:
         raise _fail(str(exc)) from None

@@ -66,6 +66,7 @@ class BridgeConfig:
     lockstep: bool = False  # one tick per new command (twin driver only)
     republish_s: float = 0.05  # lockstep: re-publish the waiting state this often
     idle_timeout_s: float | None = None  # lockstep: stop after this long without a command
+    startup_timeout_s: float | None = None  # lockstep: the limit before the first command (default: idle's)
     health_period_s: float = 1.0
     max_ticks: int | None = None  # stop after this many ticks (None: until stopped)
     instance: str = ""
@@ -343,8 +344,11 @@ def run_lockstep(node: BridgeNode, stop: threading.Event) -> int:
             if node.process_estop() or now - last_publish >= cfg.republish_s:
                 node.publish_state()
                 last_publish = now
-            if cfg.idle_timeout_s is not None and now - idle_since > cfg.idle_timeout_s:
-                log.info("no command for %.1f s: stopping", cfg.idle_timeout_s)
+            limit = cfg.idle_timeout_s
+            if last_seq is None and cfg.startup_timeout_s is not None:
+                limit = cfg.startup_timeout_s  # peers may still be starting
+            if limit is not None and now - idle_since > limit:
+                log.info("no command for %.1f s: stopping", limit)
                 break
         else:
             last_seq, idle_since, last_publish = cmd.seq, now, now

@@ -1,5 +1,5 @@
-"""The twin on a real Zenoh bus (issue 3): commands move it, lockstep repeats, bad input is
-counted and ignored, slack is reported."""
+"""The twin on a real Zenoh bus (issue 3): the bridge with the twin as its driver. Commands move
+it, lockstep repeats, bad input is counted and ignored, slack is reported."""
 
 from __future__ import annotations
 
@@ -14,8 +14,16 @@ from bridge import bus
 from bridge.session import publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_for
 from test_sim import static_forces
-from twin.process import TwinNode, TwinProcessConfig, run_lockstep, run_realtime
-from twin.sim import TwinConfig
+from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
+
+
+def twin_node(session, params, lockstep=True, **twin):
+    """`xneck twin` in this process: a bridge node driving a twin."""
+    driver = TwinDriver(TwinDriverConfig(n_motors=params.n_cables, **twin), params)
+    config = BridgeConfig(lockstep=lockstep, idle_timeout_s=5 if lockstep else None,
+                          max_ticks=None if lockstep else 250)
+    return BridgeNode(session, driver, params, config)
 
 
 def _collect(session, key):
@@ -29,10 +37,10 @@ def _collect(session, key):
     return got, sub
 
 
-def _drive_lockstep(params, commands, seed=0, twin_config=None):
+def _drive_lockstep(params, commands, seed=0):
     """Start a lockstep twin, send ``commands`` one per state, return the states and truths seen."""
     with bus_pair() as (_hub, hub_session, connect):
-        node = TwinNode(connect(), params, twin_config or TwinConfig(seed=seed), TwinProcessConfig(lockstep=True, idle_timeout_s=5))
+        node = twin_node(connect(), params, seed=seed)
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
         states = subscribe_latest(hub_session, bus.MOTOR_STATE)
@@ -57,7 +65,7 @@ def _drive_lockstep(params, commands, seed=0, twin_config=None):
         finally:
             stop.set()
             th.join(5)
-            node.close()
+            node.shutdown()
             tsub.undeclare()
         assert "error" not in out, out.get("error")
         return seen, list(truths), node
@@ -75,7 +83,7 @@ def test_a_command_stream_moves_the_twin_and_lockstep_repeats(params, model):
 
 def test_malformed_commands_are_counted_and_never_move_the_twin(params):
     with bus_pair() as (_hub, hub_session, connect):
-        node = TwinNode(connect(), params, TwinConfig(), TwinProcessConfig(lockstep=True, idle_timeout_s=5))
+        node = twin_node(connect(), params)
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
         raw = hub_session.declare_publisher(bus.MOTOR_COMMAND)
@@ -88,19 +96,19 @@ def test_malformed_commands_are_counted_and_never_move_the_twin(params):
             bus.encode(bus.ForceCommand(seq=5, stamp_s=0, force_N=[10.0, 10.0, 1e4, 10.0], source="x")),
         ]
         try:
-            assert wait_for(lambda: node.last_tick is None and node.commands is not None, 2)
+            assert wait_for(lambda: node.driver.last_tick is None and node.commands is not None, 2)
             for payload in bad:
                 raw.put(payload)
             assert wait_for(lambda: node.commands.stats.rejected >= len(bad), 5.0), node.commands.stats
-            assert node.last_tick is None  # not a single tick
+            assert node.driver.last_tick is None  # not a single tick
             assert "outside" in node.commands.stats.last_reject_reason
             good = bus.encode(bus.ForceCommand(seq=6, stamp_s=0, force_N=[10.0] * 4, source="x"))
             raw.put(good)
-            assert wait_for(lambda: node.last_tick is not None, 5.0)  # still alive, obeys valid ones
+            assert wait_for(lambda: node.driver.last_tick is not None, 5.0)  # still alive, obeys valid ones
         finally:
             stop.set()
             th.join(5)
-            node.close()
+            node.shutdown()
         assert "error" not in out, out.get("error")
 
 
@@ -108,9 +116,8 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
     target = np.radians([20.0, 20.0, 20.0])
     f = static_forces(model, target)
     with bus_pair() as (_hub, hub_session, connect):
-        twin_cfg = TwinConfig(friction=False, camera=False)
-        node = TwinNode(connect(), params, twin_cfg, TwinProcessConfig(lockstep=True, idle_timeout_s=5))
-        node.twin.reset(target)
+        node = twin_node(connect(), params, friction=False, camera=False)
+        node.driver.twin.reset(target)
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
         truths, tsub = _collect(hub_session, bus.TWIN_TRUTH)
@@ -125,7 +132,7 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
         finally:
             stop.set()
             th.join(5)
-            node.close()
+            node.shutdown()
             tsub.undeclare()
         slack_after_cut = [t.slack for t in truths if t.stamp_s > 0.4]
         assert any(all(s[:3]) for s in slack_after_cut)
@@ -133,19 +140,22 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
 
 
 def test_realtime_mode_paces_ticks_by_the_clock(params):
-    with bus_pair() as (_hub, hub_session, connect):
-        node = TwinNode(connect(), params, TwinConfig(camera=False), TwinProcessConfig(max_ticks=250))
-        states = subscribe_latest(hub_session, bus.MOTOR_STATE)
-        stop = threading.Event()
-        import time
+    import time
 
+    with bus_pair() as (_hub, hub_session, connect):
+        node = twin_node(connect(), params, lockstep=False, camera=False)
+        states, sub = _collect(hub_session, bus.MOTOR_STATE)
         t0 = time.monotonic()
-        th, out = run_in_thread(run_realtime, node, stop)
+        th, out = run_in_thread(run_realtime, node, threading.Event())
         th.join(10)
         wall = time.monotonic() - t0
-        node.close()
-        assert out.get("result") == 250 and wall > 0.45  # 250 ticks at 500 Hz take 0.5 s
-        assert states.latest() is not None and states.latest().drive == "inactive"  # no command yet
+        node.shutdown()
+        assert wait_for(lambda: len(states) >= 240 and states[-1].drive == "disabled", 3.0)
+        sub.undeclare()
+    assert out.get("result") == 250 and wall > 0.45  # 250 ticks at 500 Hz take 0.5 s
+    ticking = [m for m in states if m.drive != "disabled"]
+    assert ticking and all(m.drive == "inactive" for m in ticking)  # no command yet: drives off
+    assert states[-1].drive == "disabled" and states[-1].force_applied_N == [0.0] * 4  # safe on exit
 
 
 def test_cli_twin_starts_and_stops_by_itself():
@@ -154,4 +164,4 @@ def test_cli_twin_starts_and_stops_by_itself():
     assert run.returncode == 0 and "no command for 0.5 s: stopping" in run.stderr
     bad = subprocess.run([sys.executable, "-m", "server.cli", "twin", "--cable-model", "rubber"],
                          capture_output=True, text=True, timeout=60)
-    assert bad.returncode == 2 and "cable_model must be one of" in bad.stderr
+    assert bad.returncode == 2 and "cable_model" in bad.stderr and "rubber" in bad.stderr

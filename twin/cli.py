@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json as jsonlib
-import logging
 from pathlib import Path
 from typing import Optional
 
@@ -104,31 +103,11 @@ def twin(
     overrides: Optional[list[str]] = SET_OPTION,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Run the simulated robot on the bus, speaking exactly the bridge's topics."""
-    from bridge.runtime import endpoints, setup_logging, stop_on_signals
-    from bridge.session import open_session
-    from twin.process import TwinNode, TwinProcessConfig, run_lockstep, run_realtime
-    from twin.sim import TwinConfig
+    """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
+    exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
+    from bridge.cli import bridge
 
-    setup_logging(verbose)
-    params = load_cli_params(params_file, overrides)
-    try:
-        twin_config = TwinConfig(cable_model=cable_model, friction=not no_friction, seed=seed)
-        build(params, cable_model)  # fail here on a bad cable model name, before opening the bus
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
-    stop = stop_on_signals()
-    config = TwinProcessConfig(lockstep=lockstep, max_ticks=max_ticks, idle_timeout_s=idle_timeout,
-                               startup_timeout_s=startup_timeout, instance=instance)
-    with open_session(endpoints(listen), endpoints(connect)) as session:
-        node = TwinNode(session, params, twin_config, config)
-        mode = "lockstep" if lockstep else "real time"
-        logging.getLogger("xneck.twin").info("twin %s up (%s, seed %d)", node.instance, mode, seed)
-        try:
-            ticks = (run_lockstep if lockstep else run_realtime)(node, stop)
-        finally:
-            node.close()
-        stats = node.commands.stats
-        logging.getLogger("xneck.twin").info(
-            "twin %s stopped after %d ticks; commands accepted %d, rejected %d, overruns %d",
-            node.instance, ticks, stats.accepted, stats.rejected, node.overruns)
+    bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
+           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, max_ticks=max_ticks,
+           idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
+           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
