@@ -15,6 +15,7 @@ The laws differ only in the controller's model (§6.3, Table 3):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -115,13 +116,19 @@ class ComputedTorque:
         return Command(dist.f, alpha_hat, e, dist.saturated, gamma_d)
 
 
+@functools.lru_cache(maxsize=8)
+def _hold_model(params: Params) -> tuple[Model, np.ndarray, int]:
+    m = build(params, "rigid", friction=False)
+    short = short_cables(m)
+    return m, short, int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
+
+
 def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
     """Forces (N) that hold the neck still at α (rad): Z f = g(α) with every cable at least at
-    t_min (eqs. 63-65 with w = 0 and no motion). What the controller commands when it must stop."""
-    m = build(params, "rigid", friction=False)
+    t_min (eqs. 63-65 with w = 0 and no motion). What the controller commands when it must stop.
+    The model is built once per parameter set: this runs inside 2 ms ticks."""
+    m, short, long = _hold_model(params)
     terms = dynamics.evaluate(m, alpha)
-    short = short_cables(m)
-    long = int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
     lower = lower_bounds(m.t_min, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
     return distribute(terms.Z, terms.g, lower, m.f_max, short, long).f
 

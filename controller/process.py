@@ -13,7 +13,13 @@ Safety: it commands the hold forces (Z f = g(α̂) with every cable at t_min, or
 - the estimate diverges (non-finite, or beyond the joint limit plus a margin) — latched: the
   campaign is aborted with the reason.
 Time: the trajectory runs on the states' stamps (the twin's simulated time or the bridge's
-clock), from the first state received. The neck must be straight then (eq. 20's zero).
+clock), from the start of the campaign. The neck must be straight when the controller starts
+(eq. 20's zero: θ = 0 there).
+
+Two ways to run: with ``--trajectory`` it runs that one campaign and exits; without, it is a
+service (what `xneck up` starts): it holds the neck where it is and runs the campaigns asked for
+on ``xneck/campaign/request``, one at a time, approaching each trajectory's first waypoint
+gently and continuing the estimate across laws.
 """
 
 from __future__ import annotations
