@@ -176,8 +176,8 @@ class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only
 
 class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Console to a controller service (``xneck controller`` without ``--trajectory``): start a
-    campaign with ``law`` (1-3), ``no_pulleys`` and a trajectory (``trajectory_json``, the
-    ``Trajectory.to_json()`` form, degrees), or stop the one running. The controller answers with
+    campaign with ``law`` (1-3), ``no_pulleys``, a trajectory (``trajectory_json``, the
+    ``Trajectory.to_json()`` form, degrees) and the campaign's parameter set, or stop the one running. The controller answers with
     ``CampaignEvent``s of the same ``campaign_id`` (``aborted`` with the reason if it refuses)."""
 
     v: int = 1
@@ -187,6 +187,7 @@ class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_on
     law: int = 2
     no_pulleys: bool = False
     trajectory_json: str = ""
+    parameters_toml: str = ""  # the campaign's parameter set (Params.to_toml()); empty: the controller's own
 
 
 class EStop(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):

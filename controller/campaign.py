@@ -182,7 +182,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             requests = publisher(session, bus.CAMPAIGN_REQUEST)
             requests.put(bus.CampaignRequest(
                 seq=1, stamp_s=time.time(), campaign_id=campaign_id, action="start", kind=spec.kind,
-                law=spec.law.law, no_pulleys=spec.law.no_pulleys, trajectory_json=spec.trajectory.to_json()))
+                law=spec.law.law, no_pulleys=spec.law.no_pulleys, trajectory_json=spec.trajectory.to_json(),
+                parameters_toml=params.to_toml()))
         else:
             lockstep = spec.twin and not spec.realtime
             if spec.twin:

@@ -32,6 +32,7 @@ import queue
 import sys
 import threading
 import time
+import tomllib
 import uuid
 from dataclasses import dataclass
 
@@ -42,7 +43,7 @@ from bridge import bus
 from bridge.session import liveliness_token, publisher, subscribe_latest
 from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
 from controller.trajectory import Trajectory, TrajectoryError, TrajectoryLimits, approach, validate
-from twin.params import Params
+from twin.params import Params, params_from_dict
 
 log = logging.getLogger("xneck.controller")
 
@@ -164,13 +165,21 @@ class ControllerNode:
                 self._refuse(req, f"the controller is running campaign {self.campaign_id}")
                 continue
             try:
+                params = self.params
+                if req.parameters_toml:
+                    params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
+                    if (params.n_joints, params.n_cables) != (self.params.n_joints, self.params.n_cables):
+                        raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
+                                         f"{params.n_cables} cables, the robot has {self.params.n_joints} and "
+                                         f"{self.params.n_cables}")
                 law = LawConfig(law=req.law, no_pulleys=req.no_pulleys, omega=self.law.omega, rate_hz=self.law.rate_hz)
                 traj = Trajectory.from_dict(json.loads(req.trajectory_json))
-                validate(traj, TrajectoryLimits(alpha_max_rad=math.radians(self.params.limits.alpha_max_deg)),
-                         self.ctl.model.n_joints, nominal_force_check(self.params, law))
-            except (ValueError, TrajectoryError, json.JSONDecodeError) as exc:
+                validate(traj, TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg)),
+                         params.n_joints, nominal_force_check(params, law))
+            except (ValueError, TrajectoryError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
                 self._refuse(req, f"refused: {exc}")
                 continue
+            self.params = params
             self._switch_law(law)
             self.campaign_id, self.campaign_kind = req.campaign_id, req.kind
             self._begin(approach(traj, self.ctl.estimator.alpha_hat), state.stamp_s)
