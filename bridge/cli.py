@@ -89,7 +89,7 @@ def bridge(
     rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""
     from bridge.driver import DriverError
     from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
-    from bridge.runtime import endpoints, setup_logging, stop_on_signals
+    from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
     from bridge.session import open_session
 
     setup_logging(verbose)
@@ -116,6 +116,8 @@ def bridge(
             mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz"
             log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
                      command_timeout * 1e3)
+            if not lockstep:
+                raise_priority()
             try:
                 ticks = (run_lockstep if lockstep else run_realtime)(node, stop)
             finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 from typing import Optional
@@ -39,3 +40,15 @@ def stop_on_signals() -> threading.Event:
 def endpoints(values: Optional[list[str]]) -> Optional[list[str]]:
     """CLI endpoint list: None (not given) defers to the environment."""
     return list(values) if values else None
+
+
+def raise_priority(niceness: int = -10) -> bool:
+    """Ask the OS to schedule this real-time process before ordinary work (the console, a
+    browser rendering WebGL in software): on a small machine they would otherwise delay ticks.
+    Needs the right to lower niceness (root or CAP_SYS_NICE); without it, carries on as is."""
+    try:
+        os.nice(niceness)
+        return True
+    except (PermissionError, OSError):
+        logging.getLogger("xneck").info("could not raise the scheduling priority (needs CAP_SYS_NICE)")
+        return False

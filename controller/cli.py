@@ -64,7 +64,7 @@ def controller(
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""
-    from bridge.runtime import endpoints, setup_logging, stop_on_signals
+    from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
     from bridge.session import open_session
     from controller.process import ControllerNode, ControllerProcessConfig
 
@@ -77,6 +77,8 @@ def controller(
                                   idle_timeout_s=idle_timeout, exit_when_done=traj is not None)
     with open_session(endpoints(listen), endpoints(connect)) as session:
         node = ControllerNode(session, params, config, traj, cfg)
+        if not lockstep:
+            raise_priority()
         logging.getLogger("xneck.controller").info("controller %s up (%s)", node.instance, config.name)
         try:
             outcome = node.run(stop)
