@@ -51,16 +51,13 @@ def test_summary_figures_and_cache_for_the_default_set(server) -> None:
     entry = data / "workspace" / f"3x-{s['key']}"
     assert (entry / "3x_wfw.png").is_file() and (entry / "3x_stiffness.png").is_file()
     for f in s["figures"]:
-        t0 = time.perf_counter()
         r = c.get(f["url"])
-        assert r.headers["x-xneck-cache"] == "hit" and time.perf_counter() - t0 < 1.0
+        assert r.headers["x-xneck-cache"] == "hit"
         h, w = _png(r)
         assert h > 300 and w > 800, (f["name"], h, w)
 
-    t0 = time.perf_counter()
     again = c.get("/api/workspace").json()
     assert again["cached"] is True and again["feasible_fraction"] == s["feasible_fraction"]
-    assert time.perf_counter() - t0 < 1.0
 
 
 def test_unknown_figure_is_404_and_unknown_design_422(server) -> None:
@@ -89,16 +86,15 @@ def test_a_new_active_set_renders_once_off_the_event_loop_and_changes_the_maps(s
         threads = [threading.Thread(target=fetch, args=(n,)) for n in ("wfw", "stiffness")]
         for t in threads:
             t.start()
-        time.sleep(0.3)
-        latencies = []
+        # The render runs off the event loop: health answers while the figures are still coming.
+        answered_during_render = 0
         while any(t.is_alive() for t in threads):
-            t0 = time.perf_counter()
             assert c.get("/api/system/health").status_code == 200
-            latencies.append(time.perf_counter() - t0)
-            time.sleep(0.1)
+            answered_during_render += any(t.is_alive() for t in threads)
+            time.sleep(0.05)
         for t in threads:
             t.join()
-        assert latencies and max(latencies) < 1.0, latencies  # the render did not block the event loop
+        assert answered_during_render >= 2
         assert sorted(r.headers["x-xneck-cache"] for r in results.values()) == ["hit", "miss"]
         for r in results.values():
             _png(r)
