@@ -42,10 +42,11 @@ def run_in_thread(target, *args) -> tuple[threading.Thread, dict]:
     return th, out
 
 
-def wait_for(predicate, timeout_s: float = 5.0, period_s: float = 0.01) -> bool:
+def wait_until(predicate, timeout_s: float = 5.0, period_s: float = 0.01) -> bool:
+    """Poll ``predicate`` until it holds or ``timeout_s`` passes; its last value."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if predicate():
             return True
         time.sleep(period_s)
-    return False
+    return bool(predicate())

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,18 +18,10 @@ import uvicorn
 from bridge.session import free_tcp_port
 from server.app import create_app
 from server.settings import Settings
+from busutil import wait_until  # noqa: F401 - re-exported for the server tests
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-
-
-def wait_until(predicate, timeout_s: float, poll_s: float = 0.1) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll_s)
-    return predicate()
 
 
 @contextlib.contextmanager

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgspec
@@ -29,18 +29,9 @@ from server.archive import (
     recover,
     write_campaign,
 )
+from busutil import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
-TIMEOUT_S = 5.0
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float = TIMEOUT_S, poll_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll_s)
-    return predicate()
 
 
 def motor_state(seq: int) -> bus.MotorState:

@@ -21,7 +21,7 @@ from bridge.driver import Lifecycle
 from bridge.drivers.twin import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_realtime
 from bridge.session import publisher, subscribe_latest
-from busutil import bus_pair, run_in_thread, wait_for
+from busutil import bus_pair, run_in_thread, wait_until
 from controller.laws import hold_forces
 
 DT = 0.002
@@ -92,7 +92,7 @@ def _put_until(pub, msg, predicate, timeout_s=5.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         pub.put(msg)
-        if wait_for(predicate, 0.02, 0.002):
+        if wait_until(predicate, 0.02, 0.002):
             return True
     return False
 
@@ -118,7 +118,7 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
                 pub.put(bad)
             pub._pub.put(b'{"v":1,"seq":5,"stamp_s":0,"force_N":[NaN,1,1,1],"source":"x"}')
             pub._pub.put(b"\x00garbage")
-            assert wait_for(lambda: node.commands.stats.rejected == 5, 5.0)
+            assert wait_until(lambda: node.commands.stats.rejected == 5, 5.0)
             node.tick()
             assert node.force.tolist() == [2.0, 50.0, 100.0, 2.0]  # still the last valid command
         finally:
@@ -141,29 +141,29 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             node.tick()  # a release while not engaged changes nothing
             assert node.mode == "active"
             estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="console button"))
-            assert wait_for(lambda: len(node._estop_events) == 1, 5.0)
+            assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()  # one tick
             assert node.driver.state is Lifecycle.INACTIVE
             assert node.mode == "disabled" and node.force.tolist() == [0.0] * 4
-            assert wait_for(lambda: any(s.drive == "disabled" for s in states.messages()), 5.0)
+            assert wait_until(lambda: any(s.drive == "disabled" for s in states.messages()), 5.0)
             # Commands are ignored while engaged.
             n = node.commands.stats.accepted
             cmd_pub.put(_command(2, [30.0] * 4))
-            assert wait_for(lambda: node.commands.stats.accepted == n + 1, 5.0)
+            assert wait_until(lambda: node.commands.stats.accepted == n + 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.driver.state is Lifecycle.INACTIVE
             # Released: inactive, and a command sent before the release does not re-enable.
             estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared"))
-            assert wait_for(lambda: len(node._estop_events) == 1, 5.0)
+            assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()
             assert node.mode == "inactive" and node.driver.state is Lifecycle.INACTIVE
             cmd_pub.put(_command(3, [25.0] * 4))
-            assert wait_for(lambda: node.commands.stats.accepted == n + 2, 5.0)
+            assert wait_until(lambda: node.commands.stats.accepted == n + 2, 5.0)
             node.tick()
             assert node.mode == "active" and node.force.tolist() == [25.0] * 4
             # An e-stop payload that cannot be decoded counts as engaged (fail safe).
             estop_pub._pub.put(b'{"v":7,"engaged":false}')
-            assert wait_for(lambda: len(node._estop_events) == 1, 5.0)
+            assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.estop_rejected == 1
         finally:
@@ -204,19 +204,19 @@ def test_watchdog_ramps_to_the_hold_forces_when_commands_stop(params):
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         f_cmd = hold_forces(params, np.zeros(3)) + 5.0
         try:
-            assert wait_for(lambda: len(states.messages()) > 5, 10.0)
+            assert wait_until(lambda: len(states.messages()) > 5, 10.0)
             t_end = time.perf_counter() + 0.4
             k = 0
             while time.perf_counter() < t_end:
                 k += 1
                 pub.put(_command(k, f_cmd))
                 time.sleep(DT)
-            assert wait_for(lambda: sum(s.drive == "hold" for s in states.messages()) > 30, 5.0)
+            assert wait_until(lambda: sum(s.drive == "hold" for s in states.messages()) > 30, 5.0)
         finally:
             stop.set()
             th.join(5)
             node.shutdown()
-            wait_for(lambda: states.messages()[-1].drive == "disabled", 2.0)
+            wait_until(lambda: states.messages()[-1].drive == "disabled", 2.0)
             states.close()
             commands.close()
         assert "error" not in out, out.get("error")
@@ -246,11 +246,11 @@ def test_estop_in_real_time_takes_effect_on_the_next_tick(params):
         estop_pub = publisher(hub_session, bus.ESTOP)
         try:
             cmd_pub.put(_command(1, [20.0] * 4))
-            assert wait_for(lambda: any(s.drive == "active" for s in states.messages()), 10.0)
+            assert wait_until(lambda: any(s.drive == "active" for s in states.messages()), 10.0)
             time.sleep(0.1)
             sent = time.perf_counter()
             estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="test"))
-            assert wait_for(lambda: any(s.drive == "disabled" for s in states.messages()), 5.0)
+            assert wait_until(lambda: any(s.drive == "disabled" for s in states.messages()), 5.0)
         finally:
             stop.set()
             th.join(5)
@@ -275,7 +275,7 @@ def test_sigterm_leaves_the_drives_disabled(tmp_path):
                        "--instance", "sigterm-test"], tmp_path / "bridge.log")
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
-            assert wait_for(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
+            assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
             k = 0
             while not any(s.drive == "active" for s in states.messages()[-5:]):
                 k += 1
@@ -313,12 +313,12 @@ def test_killed_controller_leaves_the_twin_holding_within_its_joint_limits(param
                       "--connect", hub, "--idle-timeout", "20"], tmp_path / "controller.log")
         try:
             # Let the controller drive the neck away from straight (control_test rises to 50° per joint).
-            assert wait_for(lambda: sum(s.drive == "active" for s in states.messages()) > 750, 40.0), \
+            assert wait_until(lambda: sum(s.drive == "active" for s in states.messages()) > 750, 40.0), \
                 (tmp_path / "controller.log").read_text()
             ctl.kill()  # SIGKILL: no goodbye message, the commands just stop
             ctl.wait(5)
             n_before = len(states.messages())
-            assert wait_for(lambda: len(states.messages()) > n_before + 250, 5.0)
+            assert wait_until(lambda: len(states.messages()) > n_before + 250, 5.0)
         finally:
             if ctl.poll() is None:
                 ctl.kill()
@@ -380,7 +380,7 @@ def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         valid = [20.0, 25.0, 30.0, 1.0]  # the last one is clamped to f_min
         try:
-            assert wait_for(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
+            assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
             flood = subprocess.Popen([sys.executable, "-c", FLOOD, hub, "3.0"], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
             before = health.messages()[-1] if health.messages() else None
@@ -465,7 +465,7 @@ def test_replay_driver_publishes_the_archived_angles(params, tmp_path):
             ticks = run_realtime(node, threading.Event())  # stops by itself at the end of the archive
         finally:
             node.shutdown()
-        assert wait_for(lambda: states.messages() and states.messages()[-1].drive == "disabled", 5.0)
+        assert wait_until(lambda: states.messages() and states.messages()[-1].drive == "disabled", 5.0)
         states.close()
     assert ticks == 50
     replayed = [s.theta_rad for s in states.messages() if s.drive != "disabled"]

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import msgspec
 import pytest
@@ -19,17 +18,8 @@ from bridge.session import (
     subscribe_latest,
     zenoh_config,
 )
+from busutil import wait_until
 
-TIMEOUT_S = 5.0
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float = TIMEOUT_S, poll_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll_s)
-    return predicate()
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ import pytest
 
 from bridge import bus
 from bridge.session import publisher, subscribe_latest
-from busutil import bus_pair, run_in_thread, wait_for
+from busutil import bus_pair, run_in_thread, wait_until
 from test_sim import static_forces
 from bridge.drivers.twin import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
@@ -61,7 +61,7 @@ def _drive_lockstep(params, commands, seed=0):
                 assert state is not None, f"no state after command {k + 1}"
                 last = state.stamp_s
                 seen.append(state)
-            wait_for(lambda: len(truths) >= len(commands), 2.0)
+            wait_until(lambda: len(truths) >= len(commands), 2.0)
         finally:
             stop.set()
             th.join(5)
@@ -96,15 +96,15 @@ def test_malformed_commands_are_counted_and_never_move_the_twin(params):
             bus.encode(bus.ForceCommand(seq=5, stamp_s=0, force_N=[10.0, 10.0, 1e4, 10.0], source="x")),
         ]
         try:
-            assert wait_for(lambda: node.driver.last_tick is None and node.commands is not None, 2)
+            assert wait_until(lambda: node.driver.last_tick is None and node.commands is not None, 2)
             for payload in bad:
                 raw.put(payload)
-            assert wait_for(lambda: node.commands.stats.rejected >= len(bad), 5.0), node.commands.stats
+            assert wait_until(lambda: node.commands.stats.rejected >= len(bad), 5.0), node.commands.stats
             assert node.driver.last_tick is None  # not a single tick
             assert "outside" in node.commands.stats.last_reject_reason
             good = bus.encode(bus.ForceCommand(seq=6, stamp_s=0, force_N=[10.0] * 4, source="x"))
             raw.put(good)
-            assert wait_for(lambda: node.driver.last_tick is not None, 5.0)  # still alive, obeys valid ones
+            assert wait_until(lambda: node.driver.last_tick is not None, 5.0)  # still alive, obeys valid ones
         finally:
             stop.set()
             th.join(5)
@@ -128,7 +128,7 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
             for k in range(300):
                 pub.put(bus.ForceCommand(seq=k + 1, stamp_s=0.0, force_N=list(f) if k < 100 else [0.0] * 4, source="t"))
                 assert states.wait(2.0, lambda s, n=k + 1: s.stamp_s >= n * 0.002 - 1e-9) is not None
-            assert wait_for(lambda: len(truths) >= 290, 3.0)
+            assert wait_until(lambda: len(truths) >= 290, 3.0)
         finally:
             stop.set()
             th.join(5)
@@ -150,7 +150,7 @@ def test_realtime_mode_paces_ticks_by_the_clock(params):
         th.join(10)
         wall = time.monotonic() - t0
         node.shutdown()
-        assert wait_for(lambda: len(states) >= 240 and states[-1].drive == "disabled", 3.0)
+        assert wait_until(lambda: len(states) >= 240 and states[-1].drive == "disabled", 3.0)
         sub.undeclare()
     assert out.get("result") == 250 and wall > 0.45  # 250 ticks at 500 Hz take 0.5 s
     ticking = [m for m in states if m.drive != "disabled"]
