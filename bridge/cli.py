@@ -9,7 +9,19 @@ from typing import Optional
 
 import typer
 
-from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION
+from bridge.runtime import (
+    CABLE_MODEL_OPTION,
+    CONNECT_OPTION,
+    IDLE_TIMEOUT_OPTION,
+    INSTANCE_OPTION,
+    LISTEN_OPTION,
+    LOCKSTEP_OPTION,
+    MAX_TICKS_OPTION,
+    NO_FRICTION_OPTION,
+    SEED_OPTION,
+    STARTUP_TIMEOUT_OPTION,
+    VERBOSE_OPTION,
+)
 from twin.cli import PARAMS_OPTION, SET_OPTION, load_cli_params
 
 log = logging.getLogger("xneck.bridge")
@@ -69,21 +81,21 @@ def bridge(
     loop: bool = typer.Option(False, "--loop", help="Replay: start over at the end instead of stopping."),
     driver_config: Optional[Path] = typer.Option(
         None, "--driver-config", help="TOML file of the driver's config (e.g. the BeagleBone wiring and ESCON points)."),
-    lockstep: bool = typer.Option(False, "--lockstep", help="Twin only: one tick per command; no watchdog."),
+    lockstep: bool = LOCKSTEP_OPTION,
     command_timeout: float = typer.Option(0.010, "--command-timeout", help="Hold after this long without a valid command (s)."),
     hold_ramp: float = typer.Option(0.010, "--hold-ramp", help="Ramp to the hold forces over this long (s)."),
-    seed: int = typer.Option(0, "--seed", help="Twin: seed of the sensor noise."),
-    cable_model: Optional[str] = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable."),
-    no_friction: bool = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction."),
-    max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
-    idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s)."),
-    startup_timeout: Optional[float] = typer.Option(None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout)."),
-    instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
+    seed: int = SEED_OPTION,
+    cable_model: Optional[str] = CABLE_MODEL_OPTION,
+    no_friction: bool = NO_FRICTION_OPTION,
+    max_ticks: Optional[int] = MAX_TICKS_OPTION,
+    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
+    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
+    instance: str = INSTANCE_OPTION,
     listen: Optional[list[str]] = LISTEN_OPTION,
     connect: Optional[list[str]] = CONNECT_OPTION,
     params_file: Optional[Path] = PARAMS_OPTION,
     overrides: Optional[list[str]] = SET_OPTION,
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
+    verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
     rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""

@@ -15,6 +15,17 @@ LISTEN_OPTION = typer.Option(
     "Default: $XNECK_ZENOH_LISTEN or an ephemeral loopback port.")
 CONNECT_OPTION = typer.Option(
     None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
+VERBOSE_OPTION = typer.Option(False, "--verbose", "-v", help="Debug logging.")
+INSTANCE_OPTION = typer.Option("", "--instance", help="Name on the bus (default: a random one).")
+# The twin's options, shared by `xneck twin` and `xneck bridge --driver twin`.
+LOCKSTEP_OPTION = typer.Option(False, "--lockstep", help="Twin only: one tick per command (deterministic; CI mode).")
+SEED_OPTION = typer.Option(0, "--seed", help="Twin: seed of the sensor noise.")
+CABLE_MODEL_OPTION = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable (default: the parameter file's).")
+NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction.")
+MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
+IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
+STARTUP_TIMEOUT_OPTION = typer.Option(
+    None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout).")
 
 
 def setup_logging(verbose: bool = False) -> None:

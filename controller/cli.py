@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION
+from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION, VERBOSE_OPTION
 from twin.cli import PARAMS_OPTION, SET_OPTION, load_cli_params
 
 campaign_app = typer.Typer(help="Run a campaign (identification or control), record it as MCAP, print its results.",
@@ -61,7 +61,7 @@ def controller(
     connect: Optional[list[str]] = CONNECT_OPTION,
     params_file: Optional[Path] = PARAMS_OPTION,
     overrides: Optional[list[str]] = SET_OPTION,
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
+    verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""
     from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals

@@ -11,7 +11,19 @@ import typer
 
 from twin import cables, dynamics, xjoint
 from twin.model import build
-from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION
+from bridge.runtime import (
+    CABLE_MODEL_OPTION,
+    CONNECT_OPTION,
+    IDLE_TIMEOUT_OPTION,
+    INSTANCE_OPTION,
+    LISTEN_OPTION,
+    LOCKSTEP_OPTION,
+    MAX_TICKS_OPTION,
+    NO_FRICTION_OPTION,
+    SEED_OPTION,
+    STARTUP_TIMEOUT_OPTION,
+    VERBOSE_OPTION,
+)
 from twin.params import ParameterError, Params, load_params, parse_override
 
 PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
@@ -89,19 +101,19 @@ def model(
 
 
 def twin(
-    lockstep: bool = typer.Option(False, "--lockstep", help="One tick per command (deterministic; CI mode)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
-    cable_model: Optional[str] = typer.Option(None, "--cable-model", help="rigid, linear or variable (default: the parameter file's)."),
-    no_friction: bool = typer.Option(False, "--no-friction", help="Simulate without motor friction."),
-    max_ticks: Optional[int] = typer.Option(None, "--max-ticks", help="Stop after this many ticks."),
-    idle_timeout: Optional[float] = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this many seconds without a command."),
-    startup_timeout: Optional[float] = typer.Option(None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout)."),
-    instance: str = typer.Option("", "--instance", help="Name on the bus (default: a random one)."),
+    lockstep: bool = LOCKSTEP_OPTION,
+    seed: int = SEED_OPTION,
+    cable_model: Optional[str] = CABLE_MODEL_OPTION,
+    no_friction: bool = NO_FRICTION_OPTION,
+    max_ticks: Optional[int] = MAX_TICKS_OPTION,
+    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
+    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
+    instance: str = INSTANCE_OPTION,
     listen: Optional[list[str]] = LISTEN_OPTION,
     connect: Optional[list[str]] = CONNECT_OPTION,
     params_file: Optional[Path] = PARAMS_OPTION,
     overrides: Optional[list[str]] = SET_OPTION,
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
+    verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
     exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
