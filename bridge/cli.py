@@ -18,6 +18,7 @@ from bridge.runtime import (
     LOCKSTEP_OPTION,
     MAX_TICKS_OPTION,
     NO_FRICTION_OPTION,
+    TRUTH_OPTION,
     SEED_OPTION,
     STARTUP_TIMEOUT_OPTION,
     VERBOSE_OPTION,
@@ -44,7 +45,8 @@ def _driver_table(path: Optional[Path]) -> dict:
 
 
 def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = None, loop: bool = False,
-                seed: int = 0, cable_model: Optional[str] = None, friction: bool = True):
+                seed: int = 0, cable_model: Optional[str] = None, friction: bool = True,
+                truth: str = "model"):
     """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
     Raises :class:`bridge.driver.DriverError` with a readable reason."""
     from bridge.driver import DriverError, config_from_dict
@@ -62,6 +64,8 @@ def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = No
             base["cable_model"] = cable_model
         if not friction:
             base["friction"] = False
+        if truth != "model":
+            base["truth"] = truth
         return TwinDriver(config_from_dict(TwinDriverConfig, base), params)
     if driver == "replay":
         from bridge.drivers.replay import ReplayConfig, ReplayDriver
@@ -87,6 +91,7 @@ def bridge(
     seed: int = SEED_OPTION,
     cable_model: Optional[str] = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
+    truth: str = TRUTH_OPTION,
     max_ticks: Optional[int] = MAX_TICKS_OPTION,
     idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
     startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
@@ -116,7 +121,7 @@ def bridge(
         raise _fail(str(exc)) from None
     try:
         drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
-                          cable_model=cable_model, friction=not no_friction)
+                          cable_model=cable_model, friction=not no_friction, truth=truth)
         drv.configure()
     except (DriverError, ValueError) as exc:
         raise _fail(str(exc)) from None

@@ -22,6 +22,18 @@ LOCKSTEP_OPTION = typer.Option(False, "--lockstep", help="Twin only: one tick pe
 SEED_OPTION = typer.Option(0, "--seed", help="Twin: seed of the sensor noise.")
 CABLE_MODEL_OPTION = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable (default: the parameter file's).")
 NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction.")
+
+
+def check_truth(value: str) -> str:
+    """Typer callback: ``--truth`` is one of twin.truth.TRUTHS."""
+    from twin.truth import TRUTHS
+
+    if value not in TRUTHS:
+        raise typer.BadParameter(f"{value!r}: choose {' or '.join(TRUTHS)}")
+    return value
+
+
+TRUTH_OPTION = typer.Option("model", "--truth", callback=check_truth, help="Twin: what it simulates, the parameter file as it is (model) or with a real line's small cable damping (robot); see twin/truth.py.")
 MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
 IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
 STARTUP_TIMEOUT_OPTION = typer.Option(

@@ -53,6 +53,7 @@ class CampaignSpec:
     connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
     realtime: bool = False  # twin paced at 500 Hz by the clock instead of lockstep (live viewing)
     service: bool = False  # ask the controller service on the bus (`xneck up`) instead of spawning processes
+    truth: str = "model"  # what a spawned twin simulates (twin.truth); a service's twin runs as it was started
 
 
 @dataclass
@@ -153,6 +154,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         "campaign_id": campaign_id, "kind": spec.kind, "law": spec.law.name,
         "trajectory": spec.trajectory.to_json(), "parameter_set": params.name,
         "target": "twin" if spec.twin else "robot", "seed": str(spec.seed),
+        "twin_truth": spec.truth if spec.twin and not spec.service else "",
         "parameters_toml": params.to_toml(),
     }
     events: queue.Queue[bus.CampaignEvent] = queue.Queue()
@@ -188,7 +190,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             lockstep = spec.twin and not spec.realtime
             if spec.twin:
                 spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
-                               "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
+                               "--truth", spec.truth, "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
                                *common])
             law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
             spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION, VERBOSE_OPTION
+from bridge.runtime import CONNECT_OPTION, LISTEN_OPTION, VERBOSE_OPTION, check_truth
 from twin.cli import PARAMS_OPTION, SET_OPTION, load_cli_params
 
 campaign_app = typer.Typer(help="Run a campaign (identification or control), record it as MCAP, print its results.",
@@ -98,6 +98,8 @@ def campaign_control(
     out: Optional[Path] = typer.Option(None, "--out", help="MCAP file to write (default: campaign-<id>.mcap here)."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
+                              "parameter file as it is (model) or with a real line's small cable damping (robot)."),
     timeout: float = typer.Option(600.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     params_file: Optional[Path] = PARAMS_OPTION,
     overrides: Optional[list[str]] = SET_OPTION,
@@ -109,7 +111,7 @@ def campaign_control(
     config = _law(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
-                        params_file=params_file, overrides=tuple(overrides or ()))
+                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if as_json:
         typer.echo(jsonlib.dumps(result.summary(), indent=2))
@@ -132,6 +134,9 @@ def campaign_identification(
     out: Optional[Path] = typer.Option(None, "--out", help="MCAP file to write (default: campaign-<id>.mcap here)."),
     as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "
+                              "line's small cable damping, unknown to the model (robot), or the parameter file as "
+                              "it is (model, an identity check)."),
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     params_file: Optional[Path] = PARAMS_OPTION,
     overrides: Optional[list[str]] = SET_OPTION,
@@ -146,7 +151,8 @@ def campaign_identification(
     params = load_cli_params(params_file, overrides)
     config = _law(1, False)
     spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
-                        seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()))
+                        seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
+                        truth=truth)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if result.outcome != "finished":
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")

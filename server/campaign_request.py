@@ -58,6 +58,9 @@ class CampaignCreate(BaseModel):
     target: Literal["twin", "robot"] | None = Field(None, description="Default: the server's mode.")
     pace: Literal["lockstep", "realtime"] | None = Field(None, description="Twin pacing (default: the server's).")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the twin's sensor noise.")
+    truth: Literal["model", "robot"] | None = Field(
+        None, description="What a twin started for the campaign simulates (twin/truth.py; default: robot for "
+        "identification, model for control). The `xneck up` stack's twin keeps the truth it was started with.")
 
 
 class PreparedCampaign(BaseModel):
@@ -112,5 +115,6 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings) -> P
         kind=req.kind, law=law, trajectory=traj, twin=target == "twin", seed=req.seed,
         timeout_s=settings.campaign_timeout_s, params_file=params_file,
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
+        truth=req.truth or ("robot" if req.kind == "identification" else "model"),
     )
     return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace)

@@ -23,6 +23,8 @@ from typing import Optional
 
 import typer
 
+from bridge.runtime import TRUTH_OPTION
+
 STOP_GRACE_S = 8.0
 
 
@@ -57,6 +59,7 @@ def up(
     law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
     driver_config: Optional[Path] = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    truth: str = TRUTH_OPTION,
     params_file: Optional[Path] = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
     exit_after: Optional[float] = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
                                                  "(tests, demos)."),
@@ -95,7 +98,7 @@ def up(
             time.sleep(0.2)
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
-                if robot else ["--driver", "twin", "--seed", str(seed)]
+                if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth]
             start("bridge", ["bridge", *driver, *common, *param_args])
         start("controller", ["controller", "--law", str(law), *common, *param_args])
         token_file = Path(data_dir) / "token"

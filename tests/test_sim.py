@@ -143,3 +143,29 @@ def test_reset_rejects_bad_states():
         twin.reset(np.array([0.0, np.nan, 0.0]))
     with pytest.raises(ValueError):
         twin.reset(np.radians([170.0, 0.0, 0.0]))
+
+
+def test_robot_truth_changes_only_the_cable_damping():
+    """`truth="robot"`: the twin integrates the model with a real line's damping (twin/truth.py);
+    after a force step the cable stretches within a fraction of a second instead of creeping."""
+    from twin.truth import C_A_ROBOT, truth_params
+
+    model_twin = Twin(config=TwinConfig(camera=False))
+    robot_twin = Twin(config=TwinConfig(camera=False, truth="robot"))
+    p, q = model_twin.params, robot_twin.params
+    assert q.cables.variable.c_a == (C_A_ROBOT,) * 4 and q.cables.linear.c_a == (C_A_ROBOT,) * 4
+    assert p.cables.variable.c_a == (3000.0,) * 4
+    strip = lambda x: {k: v for k, v in x.to_dict().items() if k not in ("cables", "name")}  # noqa: E731
+    assert strip(p) == strip(q) and p.cables.variable.k == q.cables.variable.k
+    assert truth_params(p, "model") is p
+    with pytest.raises(ValueError, match="truth must be one of"):
+        TwinConfig(truth="bogus")
+
+    f = np.full(4, 20.0)
+    stretch = {}
+    for name, twin in (("model", model_twin), ("robot", robot_twin)):
+        ticks = [twin.tick(f) for _ in range(100)]  # 0.2 s
+        stretch[name] = np.array([t.elongation[0] for t in ticks])
+    # Low damping: most of the static stretch within 0.2 s; c_a = 3000 N·s/m (τ = c_a/k ≈ 0.4 s):
+    # less than a third of it.
+    assert stretch["robot"].max() > 1.5 * stretch["model"].max(), stretch

@@ -20,6 +20,7 @@ from bridge.runtime import (
     LOCKSTEP_OPTION,
     MAX_TICKS_OPTION,
     NO_FRICTION_OPTION,
+    TRUTH_OPTION,
     SEED_OPTION,
     STARTUP_TIMEOUT_OPTION,
     VERBOSE_OPTION,
@@ -105,6 +106,7 @@ def twin(
     seed: int = SEED_OPTION,
     cable_model: Optional[str] = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
+    truth: str = TRUTH_OPTION,
     max_ticks: Optional[int] = MAX_TICKS_OPTION,
     idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
     startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
@@ -120,6 +122,6 @@ def twin(
     from bridge.cli import bridge
 
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, max_ticks=max_ticks,
+           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)

@@ -19,6 +19,7 @@ from twin.integrator import step
 from twin.model import Model, build
 from twin.params import Params, load_params
 from twin.sensors import Camera, quantise_encoder
+from twin.truth import TRUTHS, Truth, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
 
@@ -26,7 +27,9 @@ NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of i
 @dataclass(frozen=True)
 class TwinConfig:
     """What the twin simulates. Defaults: the paper's identified robot (Table 1 friction, Table 2
-    variable-stiffness cables), 500 Hz, two integration substeps per tick."""
+    variable-stiffness cables), 500 Hz, two integration substeps per tick. ``truth``: "model"
+    integrates the parameter file as it is, "robot" with a real line's small cable damping
+    (``twin.truth``)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None  # None: the parameter file's
     friction: bool = True
@@ -34,8 +37,11 @@ class TwinConfig:
     substeps: int = 2
     seed: int = 0
     camera: bool = True
+    truth: Truth = "model"
 
     def __post_init__(self) -> None:
+        if self.truth not in TRUTHS:
+            raise ValueError(f"truth must be one of {', '.join(TRUTHS)}, got {self.truth!r}")
         if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise ValueError(f"rate_hz must be a positive number, got {self.rate_hz}")
         if self.substeps < 1:
@@ -63,10 +69,11 @@ class Tick:
 
 class Twin:
     """The simulated robot. State (α, θ, α̇, θ̇) starts straight and at rest with slack-free,
-    unstretched cables (θ = 0 at α = 0, eq. 20)."""
+    unstretched cables (θ = 0 at α = 0, eq. 20). ``params`` is the model; ``self.params`` is what
+    is integrated (the same unless ``config.truth`` is "robot")."""
 
     def __init__(self, params: Params | None = None, config: TwinConfig = TwinConfig()):
-        self.params = params or load_params()
+        self.params = truth_params(params or load_params(), config.truth)
         self.config = config
         self.model: Model = build(self.params, config.cable_model, friction=config.friction)
         self.dt = 1.0 / config.rate_hz

@@ -24,19 +24,22 @@ from bridge.driver import Driver, DriverConfig, Lifecycle
 from twin.params import Params
 from twin.sensors import quantise_encoder
 from twin.sim import Tick, Twin, TwinConfig
+from twin.truth import Truth
 
 log = logging.getLogger("xneck.bridge.twin")
 
 
 class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """What the twin simulates (see :class:`twin.sim.TwinConfig`): cable model (None: the
-    parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera."""
+    parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera,
+    truth ("model": the parameter file as it is; "robot": a real line's cable damping)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None
     friction: bool = True
     substeps: int = 2
     seed: int = 0
     camera: bool = True
+    truth: Truth = "model"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -64,7 +67,7 @@ class TwinDriver(Driver):
     def _on_configure(self) -> None:
         c = self.config
         twin_config = TwinConfig(cable_model=c.cable_model, friction=c.friction, rate_hz=c.rate_hz,
-                                 substeps=c.substeps, seed=c.seed, camera=c.camera)
+                                 substeps=c.substeps, seed=c.seed, camera=c.camera, truth=c.truth)
         # One step of a throwaway twin loads the compiled integrator now (about 80 ms), so the
         # bridge's first real tick does not overrun.
         Twin(self.params, twin_config).tick(np.zeros(self.n_motors))
