@@ -99,7 +99,8 @@ def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_pat
 
 def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_path):
     """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
-    processes, identified from the archive: Table 1 friction and Table 2 stiffness come back."""
+    processes, identified from the archive: Table 1 friction and Table 2 stiffness come back, and the
+    robot truth's small damping (the default for identification) is flagged, never used."""
     out = tmp_path / "ident.mcap"
     run = _xneck("campaign", "identification", "--twin", "--out", str(out), "--json", "--seed", "4", timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
@@ -115,3 +116,7 @@ def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_
     assert any(p.endswith(".toml") for p in doc["files"])
     tension = doc["validation"]["tension_mean_error_N"]
     assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
+    assert all(p["badly_identified"] for p in doc["table_2"]["parameters"] if p["name"].startswith("c_a"))
+    from server.archive import read_campaign
+
+    assert read_campaign(out).info["twin_truth"] == "robot"

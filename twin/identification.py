@@ -23,8 +23,9 @@ solves (three rows per sample, four parameters).
 
 Least squares (eqs. 48-50): v = W⁺Y through the SVD; σ_ρ² = ‖Y − Wv‖²/(r − n_p),
 C_X = σ_ρ²(WᵀW)⁻¹, σ_i = √C_X(i,i), relative σ_i = σ_i/|v_i|. A parameter whose relative σ
-exceeds ``threshold`` (10 % by default) is *badly identified*: it is flagged in the
-:class:`Estimate`, and :func:`identified_params` keeps the base value for it (the paper's damping).
+exceeds ``threshold`` (10 % by default), or whose value is physically impossible (k ≤ 0; f_s, λ,
+c_a < 0), is *badly identified*: it is flagged in the :class:`Estimate`, and
+:func:`identified_params` keeps the base value for it (the paper's damping).
 """
 
 from __future__ import annotations
@@ -131,6 +132,9 @@ class CampaignData:
     t_ip_s (K,): capture times of the camera frames (same clock as ``t_s``), s.
     alpha_ip_rad (K, n_joints): α_IP from image processing, rad.
     campaign: id or path, kept for provenance.
+    excitation_alpha_rad (N, n_joints) or None: the excitation trajectory α^d, rad, sampled at the
+        encoder rate, when known (a campaign archive records its trajectory). Only its spectrum is
+        used, to set the filter cutoff (:func:`cutoff_rule`), so it need not be aligned with t_s.
 
     Raises :class:`IdentificationError` on wrong shapes, NaNs, non-increasing times, too few
     samples, or camera frames that do not cover the encoder record.
@@ -142,6 +146,7 @@ class CampaignData:
     t_ip_s: FloatArray
     alpha_ip_rad: FloatArray
     campaign: str = "unnamed"
+    excitation_alpha_rad: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=float)
@@ -172,6 +177,12 @@ class CampaignData:
                 f"camera frames ({t_ip[0]:.2f}-{t_ip[-1]:.2f} s) cover less than half of the encoder record "
                 f"({t[0]:.2f}-{t[-1]:.2f} s): are both on the same clock?"
             )
+        if self.excitation_alpha_rad is not None:
+            exc = _as_matrix("excitation_alpha_rad", self.excitation_alpha_rad, alpha.shape[1])
+            if len(exc) < MIN_SAMPLES or not np.all(np.isfinite(exc)):
+                raise IdentificationError(f"excitation_alpha_rad must hold at least {MIN_SAMPLES} finite rows, "
+                                          f"got {len(exc)} rows, {int((~np.isfinite(exc)).sum())} non-finite values")
+            object.__setattr__(self, "excitation_alpha_rad", exc)
         for name, arr in (("t_s", t), ("theta_rad", theta), ("force_N", force), ("t_ip_s", t_ip), ("alpha_ip_rad", alpha)):
             object.__setattr__(self, name, arr)
 
@@ -220,6 +231,7 @@ class Processed:
     cutoff_hz: float
     f_99_hz: float
     rate_hz: float
+    bandwidth_from: str  # "alpha_d" (the excitation trajectory), "theta_dot" (the encoders) or "given"
     fast_t_s: FloatArray
     fast_theta: FloatArray
     fast_theta_dot: FloatArray
@@ -230,20 +242,25 @@ class Processed:
         return int(len(self.t_s))
 
 
-def cutoff_rule(theta_dot: FloatArray, rate_hz: float, nyquist_hz: float) -> tuple[float, float]:
-    """Cutoff (Hz) of the zero-phase Butterworth filter, and the trajectory bandwidth f_99 (Hz).
+def cutoff_rule(velocity: FloatArray, rate_hz: float, nyquist_hz: float) -> tuple[float, float]:
+    """Cutoff (Hz) of the zero-phase Butterworth filter, and the motion bandwidth f_99 (Hz).
 
     Rule (after Pham, Gautier & Poignet 2001, ref. [37]: the cutoff sits a few times above the
     bandwidth of the motion, so that the filter removes noise and leaves the dynamics alone, and
     both sides of the linear model are filtered alike): f_99 is the frequency below which 99 % of
-    the energy of the motor velocities θ̇ lies (encoder data: quantisation noise is ~0.1 % of it);
-    f_c = 4·f_99, at least 0.5 Hz and at most 0.8 of the Nyquist frequency of the slowest stream
-    (the camera, 15 Hz). On the identification trajectory f_99 ≈ 0.43 Hz, hence f_c ≈ 1.7 Hz.
+    the energy of ``velocity`` lies; f_c = 4·f_99, at least 0.5 Hz and at most 0.8 of the Nyquist
+    frequency of the slowest stream (the camera, 15 Hz). :func:`preprocess` passes the velocity of
+    the excitation trajectory α̇^d when the campaign records it (f_99 = 0.40 Hz on the §5.2.2
+    trajectory, f_c = 1.6 Hz), else the motor velocities θ̇. θ̇ is a fallback: it also carries the
+    motor-cable mode (≈ 18 kg of reflected motor inertia on a 5-8 kN/m cable, ≈ 3 Hz), which rings
+    when the cable damping is small and then holds ~1 % of the θ̇ energy: enough to move f_99 from
+    0.43 to 1.7 Hz, hence f_c from 1.7 to 6.8 Hz, which lets α_IP noise into x_c and, twice
+    differentiated, into ẍ_c (the Γ_rf error of eq. 52 grows fifteenfold on the twin).
     Why 4 and not the usual 5-10: α_IP carries 1° of white noise up to 15 Hz that enters the
     regressor x_c; the friction regressor arctan(c_s·θ̇) is nonlinear, so a too-low cutoff rounds
     its sign changes (f_s is 2 % low at 0.9 Hz, 0.1 % at 1.7 Hz on the twin).
     """
-    v = theta_dot - theta_dot.mean(axis=0)
+    v = velocity - velocity.mean(axis=0)
     spec = np.abs(np.fft.rfft(v, axis=0)) ** 2
     power = spec.sum(axis=1)
     cum = np.cumsum(power)
@@ -297,9 +314,15 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
     nc = m.n_cables
     raw_theta = enc[:, :nc]
-    rough_theta_dot = np.gradient(raw_theta, dt, axis=0)
     nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
-    fc, f_99 = cutoff_rule(rough_theta_dot, rate, nyquist) if cutoff_hz is None else (float(cutoff_hz), float("nan"))
+    if cutoff_hz is not None:
+        fc, f_99, source = float(cutoff_hz), float("nan"), "given"
+    elif data.excitation_alpha_rad is not None:
+        fc, f_99 = cutoff_rule(np.gradient(data.excitation_alpha_rad, dt, axis=0), rate, nyquist)
+        source = "alpha_d"
+    else:
+        fc, f_99 = cutoff_rule(np.gradient(raw_theta, dt, axis=0), rate, nyquist)
+        source = "theta_dot"
     if not (0.0 < fc < nyquist):
         raise IdentificationError(f"cutoff {fc} Hz must be in (0, {nyquist:.2f}) Hz (Nyquist of the decimated/camera data)")
 
@@ -335,7 +358,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
         alpha=alpha, alpha_dot=alpha_dot, alpha_ddot=alpha_ddot,
         x_c=x_c, x_c_dot=x_c_dot, x_c_ddot=x_c_ddot,
         Z=terms.Z, M=terms.M, c=terms.c, g=terms.g,
-        cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h,
+        cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h, bandwidth_from=source,
         fast_t_s=t, fast_theta=raw_theta, fast_theta_dot=theta_dot, fast_force=enc[:, nc:],
     )
 
@@ -367,10 +390,28 @@ class Estimate:
     estimator: str = "least squares"
 
     @property
+    def out_of_range(self) -> NDArray[np.bool_]:
+        """Values no physical cable or motor can have: k ≤ 0, or f_s, λ, c_a < 0. A model that
+        does not fit (the linear one on variable-stiffness cables) buys its fit with such values,
+        often with a small σ: Table 1's c_a(3) = −218 N·s/m is one."""
+        symbols = np.array([n.split("(")[0] for n in self.names])
+        return np.where(symbols == "k", self.values <= 0.0, self.values < 0.0)
+
+    @property
     def badly_identified(self) -> NDArray[np.bool_]:
-        """Relative σ above the threshold (or not finite): never used silently."""
+        """Relative σ above the threshold (or not finite), or out of physical range: never used
+        silently."""
         r = self.relative_sigma
-        return ~np.isfinite(r) | (r > self.threshold)
+        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range
+
+    def reason(self, i: int) -> str:
+        """Why parameter ``i`` is badly identified ("" if it is not)."""
+        r = self.relative_sigma[i]
+        if not np.isfinite(r) or r > self.threshold:
+            return f"badly identified, relative σ {100 * r:.1f} % > {100 * self.threshold:g} %"
+        if self.out_of_range[i]:
+            return "outside its physical range"
+        return ""
 
     def vector(self, symbol: str) -> FloatArray:
         """Values of one symbol in cable order, e.g. ``vector("k")`` -> (n_cables,)."""
@@ -684,11 +725,7 @@ def identified_params(
         idx = [i for i, n in enumerate(est.names) if n.split("(")[0] == symbol]
         for j, (value, i) in enumerate(zip(new, idx)):
             name = f"{'.'.join(path)}.{key}({j + 1})"
-            reason = ""
-            if est.badly_identified[i]:
-                reason = f"badly identified, relative σ {100 * est.relative_sigma[i]:.1f} % > {100 * est.threshold:g} %"
-            elif (symbol == "k" and value <= 0) or value < 0:
-                reason = "outside its physical range"
+            reason = est.reason(i)
             if reason:
                 report.kept_base[name] = (float(values[j]), float(value), reason)
             else:

@@ -53,7 +53,24 @@ def campaign_data_from_mcap(path: str | Path) -> CampaignData:
     _, order = np.unique(t, return_index=True)
     _, order_ip = np.unique(t_ip, return_index=True)
     campaign = camp.info.get("campaign_id") or Path(path).stem
-    return CampaignData(t[order], theta[order], force[order], t_ip[order_ip], alpha[order_ip], campaign=campaign)
+    return CampaignData(t[order], theta[order], force[order], t_ip[order_ip], alpha[order_ip], campaign=campaign,
+                        excitation_alpha_rad=_excitation(camp.info.get("trajectory"), t[order]))
+
+
+def _excitation(trajectory_json: str | None, t: np.ndarray) -> np.ndarray | None:
+    """α^d of the campaign's recorded trajectory at the encoder rate (its spectrum sets the filter
+    cutoff); None when the archive does not hold a readable trajectory (the cutoff then comes
+    from the encoders)."""
+    from controller.trajectory import TrajectoryError, load_trajectory
+
+    if not trajectory_json or len(t) < 2:
+        return None
+    try:
+        traj = load_trajectory(json.loads(trajectory_json))
+    except (TrajectoryError, ValueError, TypeError):
+        return None
+    dt = float(np.median(np.diff(t)))
+    return traj.sample(np.arange(0.0, traj.duration_s, dt)).alpha
 
 
 def identify(

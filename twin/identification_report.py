@@ -19,6 +19,9 @@ from twin.identification import Estimate, Processed, Validation
 __all__ = ["table_1", "table_2", "tables_text", "report_dict", "write_figures"]
 
 
+_BANDWIDTH_FROM = {"alpha_d": "the excitation α^d", "theta_dot": "the motor velocities", "given": "--cutoff-hz"}
+
+
 def _cell(est: Estimate, name: str) -> tuple[str, str]:
     i = est.names.index(name)
     flag = " !" if est.badly_identified[i] else ""
@@ -65,10 +68,12 @@ def table_2(estimates: Mapping[str, Estimate]) -> str:
 def tables_text(estimates: Mapping[str, Estimate], proc: Processed, validation: Validation | None = None,
                 kept_base: list[str] | None = None) -> str:
     parts = [
-        f"processing: Butterworth filtfilt cutoff {proc.cutoff_hz:.2f} Hz (f_99 {proc.f_99_hz:.2f} Hz), "
+        f"processing: Butterworth filtfilt cutoff {proc.cutoff_hz:.2f} Hz (f_99 {proc.f_99_hz:.2f} Hz of "
+        f"{_BANDWIDTH_FROM.get(proc.bandwidth_from, proc.bandwidth_from)}), "
         f"{proc.n} instants at {proc.rate_hz:.2f} Hz",
         "", table_1(estimates), "", table_2(estimates), "",
-        f"! = badly identified (relative σ > {100 * estimates['variable'].threshold:g} %): never used, the base value is kept",
+        f"! = badly identified (relative σ > {100 * estimates['variable'].threshold:g} %, or a value outside the "
+        "physical range): never used, the base value is kept",
     ]
     if kept_base:
         parts.append("kept at base value: " + ", ".join(kept_base))
@@ -89,7 +94,7 @@ def report_dict(estimates: Mapping[str, Estimate], proc: Processed, validation: 
     import msgspec
 
     out: dict[str, Any] = {
-        "processing": {"cutoff_hz": proc.cutoff_hz, "f_99_hz": proc.f_99_hz, "rate_hz": proc.rate_hz, "n": proc.n},
+        "processing": {"cutoff_hz": proc.cutoff_hz, "f_99_hz": proc.f_99_hz, "bandwidth_from": proc.bandwidth_from, "rate_hz": proc.rate_hz, "n": proc.n},
         "table_1": {"complete": estimates["complete"].to_dict(), "friction": estimates["friction"].to_dict()},
         "table_2": estimates["variable"].to_dict(),
     }
