@@ -27,10 +27,11 @@ SEEDS = (0, 1)
 
 
 def simulate_campaign(seed: int, duration_s: float | None = None, omega: float = 11.0, floor_N: float = 10.0,
-                      still: bool = False, truth: str = "robot") -> tuple[CampaignData, dict[str, np.ndarray]]:
+                      still: bool = False, truth: str = "robot", params=None) -> tuple[CampaignData, dict[str, np.ndarray]]:
     """Run the identification trajectory on a twin; returns the campaign and the twin's truth.
-    ``still``: hold the straight pose instead (motors never move)."""
-    twin = Twin(config=TwinConfig(seed=seed, truth=truth))
+    ``still``: hold the straight pose instead (motors never move). ``params``/``truth``: what the
+    twin integrates (default: the 3-X prototype with the robot's damping)."""
+    twin = Twin(params, TwinConfig(seed=seed, truth=truth))
     m = twin.model
     traj = identification_trajectory()
     T = int(round((duration_s or traj.duration_s) / twin.dt))
