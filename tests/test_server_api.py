@@ -55,6 +55,7 @@ def test_malformed_json_and_unknown_fields_name_the_problem(client) -> None:
     assert ["body", "law"] in _loc(client.post("/api/campaigns", json={"law": 7}, headers=AUTH))
     assert ["body", "kind"] in _loc(client.post("/api/campaigns", json={"kind": "dance"}, headers=AUTH))
     assert ["body", "lawz"] in _loc(client.post("/api/campaigns", json={"lawz": 2}, headers=AUTH))
+    assert ["body", "truth"] in _loc(client.post("/api/campaigns", json={"truth": "perfect"}, headers=AUTH))
     r = client.post("/api/campaigns", json={"trajectory": "moonwalk"}, headers=AUTH)
     assert ["body", "trajectory"] in _loc(r) and "unknown trajectory" in r.json()["detail"][0]["msg"]
     r = client.post("/api/campaigns", json={"parameter_set": "nope"}, headers=AUTH)
@@ -143,3 +144,16 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
     assert campaign.info["outcome"] == "interrupted" and campaign.info["campaign_id"] == cid
     assert len(campaign.messages(bus.CONTROLLER_STATUS)) > 500
     assert "xneck.recovery" in campaign.metadata
+
+
+def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
+    """A twin started for an identification campaign has the robot's damping, one for a control
+    campaign the model's, unless the request says otherwise (twin/truth.py)."""
+    from server.campaign_request import CampaignCreate, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)
+    truth = lambda **kw: prepare(CampaignCreate(**kw), store, settings).spec.truth  # noqa: E731
+    assert truth(kind="identification") == "robot" and truth(kind="control") == "model"
+    assert truth(kind="identification", truth="model") == "model" and truth(kind="control", truth="robot") == "robot"
