@@ -60,7 +60,7 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
 
     def rows(est: dict[str, Any]) -> list[list[Any]]:
         return [[p["name"], p["value"], p["sigma"], round(100 * p["relative_sigma"], 2),
-                 "badly identified" if p["badly_identified"] else ""] for p in est["parameters"]]
+                 p.get("reason") or ("badly identified" if p["badly_identified"] else "")] for p in est["parameters"]]
 
     cols = ["parameter", "value (SI)", "σ", "σ/|value| (%)", ""]
     t1 = report.get("table_1", {})

@@ -152,6 +152,7 @@ def test_a_physically_impossible_value_is_never_used(params):
                    n_rows=10, n_samples=10)
     assert est.badly_identified.tolist() == [False, True, False]
     assert est.reason(1) == "outside its physical range" and est.reason(0) == ""
+    assert [r["reason"] for r in est.rows()] == ["", "outside its physical range", ""]  # JSON and dashboard
 
 
 def test_bad_excitation_is_refused(short_campaign):

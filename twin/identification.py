@@ -425,10 +425,12 @@ class Estimate:
         return self.badly_identified[idx]
 
     def rows(self) -> list[dict[str, Any]]:
-        """One dict per parameter: name, value, sigma, relative_sigma, badly_identified."""
+        """One dict per parameter: name, value, sigma, relative_sigma, badly_identified, reason."""
         return [
-            {"name": n, "value": float(v), "sigma": float(s), "relative_sigma": float(r), "badly_identified": bool(b)}
-            for n, v, s, r, b in zip(self.names, self.values, self.sigma, self.relative_sigma, self.badly_identified)
+            {"name": n, "value": float(v), "sigma": float(s), "relative_sigma": float(r), "badly_identified": bool(b),
+             "reason": self.reason(i)}
+            for i, (n, v, s, r, b) in enumerate(zip(self.names, self.values, self.sigma, self.relative_sigma,
+                                                    self.badly_identified))
         ]
 
     def to_dict(self) -> dict[str, Any]:
