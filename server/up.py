@@ -103,7 +103,7 @@ def up(
         start("controller", ["controller", "--law", str(law), *common, *param_args])
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
-        typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else 'twin'} bridge"
+        typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
                    f"{' expected from elsewhere' if no_bridge else ''}, controller service (law {law})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = time.monotonic()
