@@ -90,13 +90,15 @@ def test_bad_law_config_is_refused(params):
         LawConfig(omega=-1.0)
 
 
-@pytest.fixture(scope="module")
-def runs(params):
-    """The §7 control test with each law against the same twin (Table 2 cables, Table 1 friction)."""
+@pytest.fixture(scope="module", params=["model", "robot"], ids=lambda t: f"truth-{t}")
+def runs(params, request):
+    """The §7 control test with each law against the same twin (Table 2 cables, Table 1 friction),
+    which is the model itself or has the robot's small cable damping the controller does not know."""
     traj = control_test_trajectory()
     cfgs = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
             "no_pulleys": LawConfig(law=2, no_pulleys=True)}
-    return {k: run_closed_loop(params, c, traj, TwinConfig(seed=11)).metrics() for k, c in cfgs.items()}
+    return {k: run_closed_loop(params, c, traj, TwinConfig(seed=11, truth=request.param)).metrics()
+            for k, c in cfgs.items()}
 
 
 def test_law_2_tracks_better_than_law_1_with_lower_forces(runs):
