@@ -36,9 +36,9 @@ from controller.distribution import distribute, lower_bounds  # noqa: E402
 from controller.laws import ComputedTorque, LawConfig  # noqa: E402
 from controller.offline import run_closed_loop  # noqa: E402
 from controller.trajectory import Trajectory, control_test_trajectory  # noqa: E402
-from twin import cables, dynamics  # noqa: E402
-from twin.params import load_params  # noqa: E402
-from twin.sim import Twin, TwinConfig  # noqa: E402
+from twin.model import cables, dynamics  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
+from twin.sim.simulator import Twin, TwinConfig  # noqa: E402
 
 TARGET_P99_MS = 0.5
 

@@ -28,10 +28,10 @@ _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 summary, time_calls = _timing.summary, _timing.time_calls
 
-from twin import dynamics  # noqa: E402
-from twin.identification import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
-from twin.model import build  # noqa: E402
-from twin.params import load_params  # noqa: E402
+from twin.model import dynamics  # noqa: E402
+from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
+from twin.model.numeric import build  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
 
 TARGET_S = 2.0
 

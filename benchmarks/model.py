@@ -24,9 +24,9 @@ _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 summary, time_calls = _timing.summary, _timing.time_calls
 
-from twin import cables, dynamics  # noqa: E402
-from twin.model import build  # noqa: E402
-from twin.params import load_params  # noqa: E402
+from twin.model import cables, dynamics  # noqa: E402
+from twin.model.numeric import build  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
 
 TARGET_P99_US = 100.0
 

@@ -29,9 +29,9 @@ summary = _timing.summary
 from controller.laws import LawConfig  # noqa: E402
 from controller.offline import run_closed_loop  # noqa: E402
 from controller.trajectory import control_test_trajectory  # noqa: E402
-from twin import dynamics  # noqa: E402
-from twin.params import load_params  # noqa: E402
-from twin.sim import Twin, TwinConfig  # noqa: E402
+from twin.model import dynamics  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
+from twin.sim.simulator import Twin, TwinConfig  # noqa: E402
 
 TARGET_RTF = 50.0
 RADAU_SPAN_S = 2.0  # Radau is slow: compare both on the first 2 s of the same input

@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from twin.statics import prototype_2x, stiffness_extremes, wrench_feasible_two_cables
-from twin.workspace import joint_grid, joint_maps_2x
+from twin.analysis.statics import prototype_2x, stiffness_extremes, wrench_feasible_two_cables
+from twin.analysis.workspace import joint_grid, joint_maps_2x
 
 
 def main() -> None:

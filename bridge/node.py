@@ -16,7 +16,7 @@ Watchdog
     linearly, over ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold
     forces Z f = g(α̂) with every cable at t_min (:func:`controller.laws.hold_forces`) at the
     rigid-cable estimate α̂ from the encoders at that moment (eq. 33,
-    :func:`controller.estimation.alpha_hat_3`); ``drive = "hold"`` and ``hold_reason`` says why.
+    :func:`twin.model.estimation.alpha_hat_3`); ``drive = "hold"`` and ``hold_reason`` says why.
     The next valid command resumes ``active``.
     Lockstep (twin only): one tick per new command, so simulated time stands still without
     commands and nothing can drift; the watchdog is off there.
@@ -42,6 +42,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import zenoh
@@ -49,12 +50,11 @@ import zenoh
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
 from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
-from controller.estimation import alpha_hat_3
-from controller.laws import hold_forces
-from twin.model import build
-from twin.params import Params
 
 log = logging.getLogger("xneck.bridge")
+
+HoldForces = Callable[[np.ndarray], np.ndarray]
+"""θ (rad, one per motor) → the cable forces (N) that hold the neck still there."""
 
 
 @dataclass(frozen=True)
@@ -87,23 +87,23 @@ class BridgeNode:
     (tests do, to check what happens within one tick). Always end with :meth:`shutdown`.
     """
 
-    def __init__(self, session: zenoh.Session, driver: Driver, params: Params, config: BridgeConfig = BridgeConfig()):
-        if driver.n_motors != params.n_cables:
-            raise ValueError(f"the driver has {driver.n_motors} motors, the parameter set {params.n_cables} cables")
+    def __init__(self, session: zenoh.Session, driver: Driver, hold_forces: HoldForces,
+                 f_range_N: tuple[float, float], config: BridgeConfig = BridgeConfig()):
+        f_min, f_max = (float(x) for x in f_range_N)
+        if not (math.isfinite(f_min) and math.isfinite(f_max) and 0.0 <= f_min < f_max):
+            raise ValueError(f"the force range must be 0 <= f_min < f_max (N), got {f_range_N}")
         if driver.state is Lifecycle.UNCONFIGURED:
             driver.configure()
-        self.driver, self.params, self.config = driver, params, config
+        self.driver, self.config = driver, config
         self.session = session
         self.instance = config.instance or f"bridge-{uuid.uuid4().hex[:6]}"
-        n, lim = driver.n_motors, params.limits
-        self.f_min, self.f_max = float(lim.f_min), float(lim.f_max)
-        self.alpha_max = math.radians(lim.alpha_max_deg)
+        n = driver.n_motors
+        self.f_min, self.f_max = f_min, f_max
         self.dt = driver.dt
         self._ramp_ticks = max(1, round(config.hold_ramp_s / self.dt))
-
-        # α̂ for the hold forces: rigid cables, eq. 33 (what the controller's laws 1-2 assume).
-        self._rigid = build(params, "rigid", friction=False)
-        self._hold_target(np.zeros(n))  # compile/load the numba kernels now, not in the first hold
+        self._hold_forces = hold_forces
+        self.force = np.zeros(n)  # N, what the drives apply now
+        self._hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold
 
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
@@ -121,7 +121,6 @@ class BridgeNode:
         self.mode: bus.DriveState = "inactive"
         self.hold_reason = ""
         self.estop_reason = ""
-        self.force = np.zeros(n)  # N, what the drives apply now
         self.theta = driver.read()
         self._consumed_ns = 0  # receive time of the last command acted upon
         self._ramp_from = self._ramp_to = np.zeros(n)
@@ -221,19 +220,14 @@ class BridgeNode:
         return clamped
 
     def _hold_target(self, theta: np.ndarray) -> np.ndarray:
-        """Hold forces at the rigid-cable α̂ of ``theta``; α̂ is kept within the joint limits so
-        a wild estimate cannot ask for wild forces."""
-        alpha = alpha_hat_3(self._rigid, theta)
-        if not np.all(np.isfinite(alpha)):
-            alpha = np.zeros_like(alpha)
-        alpha = np.clip(alpha, -self.alpha_max, self.alpha_max)
+        """Hold forces at the encoder angles ``theta``, within [f_min, f_max]. A hold function that
+        fails or answers nonsense never fails the hold itself: the applied forces are kept."""
         try:
-            f = hold_forces(self.params, alpha)
-        except Exception:  # noqa: BLE001 - never fail the hold itself: keep the forces applied
-            log.exception("hold forces failed at α̂ = %s rad; holding the applied forces", alpha.tolist())
+            f = np.asarray(self._hold_forces(np.asarray(theta, dtype=float)), dtype=float)
+        except Exception:  # noqa: BLE001
+            log.exception("hold forces failed at θ = %s rad; holding the applied forces", np.asarray(theta).tolist())
             f = self.force
-        f = np.asarray(f, dtype=float)
-        if not np.all(np.isfinite(f)):
+        if f.shape != self.force.shape or not np.all(np.isfinite(f)):
             f = self.force
         return np.clip(f, self.f_min, self.f_max)
 

@@ -1,6 +1,6 @@
 """The paper's computed-torque control laws (3-X paper §6, eqs. 59-66).
 
-One tick of :class:`ComputedTorque`: α̂ from the encoders (eq. 35, :mod:`controller.estimation`),
+One tick of :class:`ComputedTorque`: α̂ from the encoders (eq. 35, :mod:`twin.model.estimation`),
 the PID outer loop w = α̈^d + k_v·ė + k_p·e + k_i∫e (eq. 59, k_p = 3ω², k_v = 3ω, k_i = ω³,
 ω = 11 rad/s), the simplified model Γ^d = M(α̂)w + g(α̂) + Z(α̂)·f_friction(θ̇^d) (eq. 66), and
 the tension distribution (eqs. 63-65, :mod:`controller.distribution`) with θ^d, θ̇^d, θ̈^d in the
@@ -23,10 +23,10 @@ from typing import NamedTuple
 import numpy as np
 
 from controller.distribution import distribute, lower_bounds
-from controller.estimation import PseudoInverseEstimator, short_cables
-from twin import dynamics
-from twin.model import Model, build
-from twin.params import Params
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, short_cables
+from twin.model import dynamics
+from twin.model.numeric import Model, build
+from twin.model.params import Params
 
 LAWS = (1, 2, 3)
 
@@ -131,6 +131,22 @@ def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
     terms = dynamics.evaluate(m, alpha)
     lower = lower_bounds(m.t_min, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
     return distribute(terms.Z, terms.g, lower, m.f_max, short, long).f
+
+
+def encoder_hold_forces(params: Params):
+    """The bridge's hold rule as a function θ (rad, encoders) → f (N): :func:`hold_forces` at the
+    rigid-cable α̂ of eq. 33 (what laws 1-2 assume), with α̂ kept within the joint limits so a
+    wild estimate cannot ask for wild forces. Given to :class:`bridge.node.BridgeNode`."""
+    rigid = build(params, "rigid", friction=False)
+    alpha_max = math.radians(params.limits.alpha_max_deg)
+
+    def hold(theta: np.ndarray) -> np.ndarray:
+        alpha = alpha_hat_3(rigid, theta)
+        if not np.all(np.isfinite(alpha)):
+            alpha = np.zeros_like(alpha)
+        return hold_forces(params, np.clip(alpha, -alpha_max, alpha_max))
+
+    return hold
 
 
 def nominal_force_check(params: Params, config: LawConfig):

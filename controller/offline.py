@@ -14,8 +14,8 @@ import numpy as np
 from controller.laws import ComputedTorque, LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
-from twin.params import Params
-from twin.sim import Twin, TwinConfig
+from twin.model.params import Params
+from twin.sim.simulator import Twin, TwinConfig
 
 
 @dataclass

@@ -43,7 +43,7 @@ from bridge import bus
 from bridge.session import liveliness_token, publisher, subscribe_latest
 from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
 from controller.trajectory import Trajectory, TrajectoryError, TrajectoryLimits, approach, validate
-from twin.params import Params, params_from_dict
+from twin.model.params import Params, params_from_dict
 
 log = logging.getLogger("xneck.controller")
 

@@ -363,6 +363,21 @@ CONTROL_TEST_WAYPOINTS_DEG: tuple[tuple[float, float, float], ...] = (
 """Waypoints of the control test of §7 / Fig. 10 (deg)."""
 
 
+def recorded_excitation(trajectory_json: str, t: FloatArray) -> FloatArray | None:
+    """α^d (rad) of a campaign's recorded trajectory (its archive's ``trajectory`` metadata, JSON)
+    at the times ``t`` (s, from the first sample): the excitation whose spectrum sets the
+    identification's filter cutoff (:mod:`twin.identification.record`). None when the record holds
+    no readable trajectory; the cutoff then comes from the encoders."""
+    if not trajectory_json or len(t) < 2:
+        return None
+    try:
+        traj = load_trajectory(json.loads(trajectory_json))
+    except (TrajectoryError, ValueError, TypeError):
+        return None
+    dt = float(np.median(np.diff(t)))
+    return traj.sample(np.arange(0.0, traj.duration_s, dt)).alpha
+
+
 def _rest_dwell(n_waypoints: int, dwell_s: float, rest_s: float | None) -> FloatArray:
     dwell = np.full(n_waypoints, float(dwell_s))
     dwell[[0, -1]] = dwell_s if rest_s is None else rest_s

@@ -27,9 +27,9 @@ ROOT = DOCS.parent
 OUT = DOCS / "identification"
 sys.path.insert(0, str(ROOT))
 
-from twin.identification import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
-from twin.params import load_params  # noqa: E402
-from twin.truth import C_A_ROBOT  # noqa: E402
+from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
+from twin.sim.truth import C_A_ROBOT  # noqa: E402
 
 DAMPING = (0.0, 10.0, 20.0, C_A_ROBOT, 100.0, 200.0, 500.0, 3000.0)  # N·s/m, the twin's truth
 SEEDS = (0, 1)
@@ -102,7 +102,7 @@ def main() -> None:
         "negative) and chose 3000 N·s/m for its simulator \"in order to damp the elongation in our",
         "model\" (§5.3). A twin that *is* that model has no mismatch for the identification to find:",
         "its damping is identifiable (relative σ 2-5 %), and α̂ by eqs. 33 and 35 both sit at the",
-        "camera-noise floor. `--truth robot` (twin/truth.py) gives the twin a real line's damping,",
+        "camera-noise floor. `--truth robot` (twin/sim/truth.py) gives the twin a real line's damping,",
         f"{C_A_ROBOT:g} N·s/m (loss factor ≈ 0.1 at the ≈ 3 Hz motor-cable mode), while the model and the",
         "controller keep 3000 N·s/m: the mismatch the prototype has. Identification campaigns use it",
         "by default (`xneck campaign identification --truth robot`).",
@@ -150,7 +150,7 @@ def main() -> None:
     md += [
         "",
         "Reading: from 20 to 100 N·s/m every point holds. The robot truth's 40 N·s/m comes from the",
-        "physical estimate in twin/truth.py, not from this sweep; the sweep shows the conclusions hold",
+        "physical estimate in twin/sim/truth.py, not from this sweep; the sweep shows the conclusions hold",
         "over a factor of five around it. From 200 N·s/m on, the damping is large enough to be",
         "identified from 1°-camera data (relative σ under 10 % for some cables), and the mismatch in",
         "eq. 58 shrinks until eqs. 33 and 35 tie at the camera floor (500 and 3000 N·s/m, the latter",

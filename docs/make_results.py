@@ -18,8 +18,8 @@ import numpy as np  # noqa: E402
 from controller.laws import LawConfig  # noqa: E402
 from controller.offline import run_closed_loop  # noqa: E402
 from controller.trajectory import control_test_trajectory  # noqa: E402
-from twin.params import load_params  # noqa: E402
-from twin.sim import TwinConfig  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
+from twin.sim.simulator import TwinConfig  # noqa: E402
 
 DOCS = Path(__file__).resolve().parent
 OUT = DOCS / "results"

@@ -23,7 +23,7 @@ from fastapi.staticfiles import StaticFiles
 
 from bridge.session import free_tcp_port, open_session
 from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
-from server.archive import software_version
+from bridge.archive import software_version
 from server.campaigns import CampaignManager
 from server.live import Broadcaster, LiveBus
 from server.paramsets import ParameterStore

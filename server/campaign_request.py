@@ -13,13 +13,13 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from controller.campaign import CampaignSpec
+from server.campaign_runner import CampaignSpec
 from controller.laws import LawConfig, nominal_force_check
 from controller.trajectory import (NAMED_TRAJECTORIES, Trajectory, TrajectoryError, TrajectoryLimits,
                                    load_trajectory, trajectory_by_name, validate)
 from server.paramsets import ParameterStore, UnknownParameterSet
 from server.settings import Settings
-from twin.params import ParameterError, Params
+from twin.model.params import ParameterError, Params
 
 
 class RequestError(ValueError):
@@ -59,7 +59,7 @@ class CampaignCreate(BaseModel):
     pace: Literal["lockstep", "realtime"] | None = Field(None, description="Twin pacing (default: the server's).")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the twin's sensor noise.")
     truth: Literal["model", "robot"] | None = Field(
-        None, description="What a twin started for the campaign simulates (twin/truth.py; default: robot for "
+        None, description="What a twin started for the campaign simulates (twin/sim/truth.py; default: robot for "
         "identification, model for control). The `xneck up` stack's twin keeps the truth it was started with.")
 
 
@@ -72,7 +72,7 @@ class PreparedCampaign(BaseModel):
 
 
 def check_trajectory(traj: Trajectory, params: Params, law: LawConfig) -> None:
-    """The controller's own validation (``controller.cli.load_checked_trajectory`` without the CLI)."""
+    """The controller's own validation (``server.cli.campaign.load_checked_trajectory`` without the CLI)."""
     limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg))
     validate(traj, limits, params.n_joints, nominal_force_check(params, law))
 

@@ -1,6 +1,6 @@
 """Campaigns started by the console: one at a time, run in a worker thread, archived and indexed.
 
-The worker calls :func:`controller.campaign.run_campaign` with the server's own Zenoh session and
+The worker calls :func:`server.campaign_runner.run_campaign` with the server's own Zenoh session and
 hub endpoint, so the twin/controller processes it spawns publish where the console's live views
 already listen. Progress comes from the controller's campaign events; stop sets the event
 ``run_campaign`` polls (it then stops the children within bounded time and finishes the MCAP).
@@ -9,7 +9,7 @@ After a campaign: a Foxglove scene channel is added to the archive, the metrics 
 identification campaign the identification tables) are computed, and the JSON record is final.
 
 At start-up :meth:`CampaignManager.recover_all` repairs what a crash left: an unfinished MCAP is
-recovered (:func:`server.archive.recover`) and its record marked ``interrupted``.
+recovered (:func:`bridge.archive.recover`) and its record marked ``interrupted``.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ import zenoh
 
 from bridge import bus
 from bridge.session import publisher
-from controller.campaign import metrics_from_archive, new_campaign_id, run_campaign
-from server.archive import ArchiveError, is_complete, iso_time, read_campaign, recover
+from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
+from bridge.archive import ArchiveError, is_complete, iso_time, read_campaign, recover
 from server.campaign_request import PreparedCampaign
 from server.foxglove_scene import add_scene_channel
 from server.records import CampaignIndex, CampaignRecord
@@ -209,7 +209,7 @@ class CampaignManager:
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
         if spec.kind == "identification" and path.exists() and fields.get("status") == "finished":
-            self._update(cid, message="identifying (twin.identification)…")
+            self._update(cid, message="identifying (twin.identification.pipeline)…")
             report, text = identify_archive(path, spec.params_file)
             fields["identification"] = report
             fields["identification_status"] = text

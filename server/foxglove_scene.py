@@ -30,9 +30,9 @@ from mcap.reader import SeekingReader
 from mcap.writer import Writer
 
 from bridge import bus
-from server.archive import CHUNK_SIZE, COMPRESSION, PROFILE, software_version
+from bridge.archive import CHUNK_SIZE, COMPRESSION, PROFILE, software_version
 from server.neck_geometry import NeckDrawing, tension_colors
-from twin.params import Params
+from twin.model.params import Params
 
 SCENE_TOPIC = "/xneck/scene"
 SCHEMA_NAME = "foxglove.SceneUpdate"

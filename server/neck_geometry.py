@@ -1,13 +1,13 @@
 """Drawable geometry of the neck at a configuration α: bars, springs, cables and pulleys as 3D
 line segments, shared by the viser scene and the Foxglove scene channel of the archive.
 
-Frame: the robot's base frame (``twin.chain``), x to the right along the base bar, y up along the
+Frame: the robot's base frame (``twin.model.chain``), x to the right along the base bar, y up along the
 straight neck, z = 0 (the neck is planar), metres. Gravity is −y.
 
 Cables are schematic: each cable is drawn through the bar ends its routing names — cases (a) and
 (c) along the left side A→C, (b) along the right side B→D, (d) crossing from the side the cable is
 on to the other one — starting at its motor below the base. Lengths drawn are not the model's
-cable lengths (pulley wraps are not drawn); the model (``twin.cables``) owns those.
+cable lengths (pulley wraps are not drawn); the model (``twin.model.cables``) owns those.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.chain import bar_ends
-from twin.model import Model, build
-from twin.params import Params
+from twin.model.chain import bar_ends
+from twin.model.numeric import Model, build
+from twin.model.params import Params
 
 A, B, C, D = 0, 1, 2, 3
 MOTOR_DROP_M = 0.03  # how far below the base bar the motors are drawn (m)

@@ -1,7 +1,7 @@
 """Parameter sets of the console: the shipped prototype plus uploaded TOML files, one active.
 
 Files live in ``<data_dir>/params/<name>.toml``; the active name in ``<data_dir>/params/active``.
-An upload is validated exactly as ``--params FILE`` is (:func:`twin.params.params_from_dict`),
+An upload is validated exactly as ``--params FILE`` is (:func:`twin.model.params.params_from_dict`),
 so a set the console accepts is one every process accepts. The built-in set ``prototype_3x``
 cannot be replaced.
 """
@@ -14,7 +14,7 @@ import threading
 import tomllib
 from pathlib import Path
 
-from twin.params import ParameterError, Params, load_params, params_from_dict
+from twin.model.params import ParameterError, Params, load_params, params_from_dict
 
 BUILTIN = "prototype_3x"
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")

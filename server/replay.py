@@ -14,7 +14,7 @@ import zenoh
 
 from bridge import bus
 from bridge.session import publisher
-from server.archive import read_campaign
+from bridge.archive import read_campaign
 
 NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP})
 

@@ -3,7 +3,7 @@
 - Control campaigns: Table 3's quantities for this run — mean estimation error e_α = |α̂ − α_IP|
   and tracking error e = |α^d − α̂| (deg), overall and per joint — plus forces and saturation.
 - Identification campaigns: Tables 1 and 2 (identified friction/stiffness with σ), from
-  :mod:`twin.identification` when it can process the archive; otherwise the control metrics.
+  :mod:`twin.identification.pipeline` when it can process the archive; otherwise the control metrics.
 
 Figures (matplotlib, Agg): ``tracking`` (α̂, α^d, α_IP per joint, deg, against time) and
 ``forces`` (commanded forces per motor, N), computed from the archive on first request and cached.
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from bridge import bus
-from server.archive import read_campaign
+from bridge.archive import read_campaign
 
 FIGURES = ("tracking", "forces")
 PYPLOT_LOCK = threading.Lock()  # pyplot's state machine is not thread-safe; every server figure takes it
@@ -53,7 +53,7 @@ def control_tables(law: str, metrics: dict[str, Any] | None) -> list[dict[str, A
 
 
 def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """Tables 1 and 2 from ``twin.identification_report.report_dict`` output."""
+    """Tables 1 and 2 from ``twin.identification.report.report_dict`` output."""
     if not report:
         return []
     out = []
@@ -75,21 +75,16 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
 
 
 def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, Any] | None, str]:
-    """Run the offline identification (twin.identification) on an archive: (report, status text).
+    """Run the offline identification (twin.identification.pipeline) on an archive: (report, status text).
     Never raises: an identification problem is a result to show, not a server error."""
+    from controller.trajectory import recorded_excitation
+    from twin.identification.record import identify_record
+    from twin.identification.report import report_dict
+    from twin.model.params import load_params
+
     try:
-        from twin.identification import identify_all, preprocess
-        from twin.identification_cli import campaign_data_from_mcap
-        from twin.identification_report import report_dict
-        from twin.params import load_params
-    except ImportError as exc:
-        return None, f"identification pending: twin.identification is not available ({exc})"
-    try:
-        base = load_params(params_file)
-        data = campaign_data_from_mcap(path)
-        proc = preprocess(data, base, None)
-        est = identify_all(proc, base)
-        return report_dict(est, proc), "identified"
+        ident = identify_record(path, load_params(params_file), excitation=recorded_excitation, with_validation=False)
+        return report_dict(ident.estimate, ident.processed), "identified"
     except Exception as exc:  # noqa: BLE001 - reported to the user
         return None, f"identification failed: {type(exc).__name__}: {exc}"
 

@@ -10,7 +10,7 @@ from pydantic import BaseModel, Field
 
 from server.auth import require_token
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore, UnknownParameterSet, check_name
-from twin.params import ParameterError
+from twin.model.params import ParameterError
 
 router = APIRouter(prefix="/api/params", tags=["parameter sets"])
 

@@ -10,7 +10,7 @@ from pydantic import BaseModel, Field
 
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
-from server.archive import software_version
+from bridge.archive import software_version
 from server.auth import require_token
 
 router = APIRouter(tags=["system"])

@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from server.paramsets import ParameterStore, UnknownParameterSet
 from server.workspace_maps import FIGURES, DesignName, Entry, UnsupportedParameterSet, WorkspaceCache, caption
-from twin.params import ParameterError
+from twin.model.params import ParameterError
 
 router = APIRouter(prefix="/api/workspace", tags=["workspace"])
 

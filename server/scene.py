@@ -22,7 +22,7 @@ import viser
 
 from server.live import LatestValues
 from server.neck_geometry import NeckDrawing, tension_colors
-from twin.params import Params
+from twin.model.params import Params
 
 log = logging.getLogger("xneck.scene")
 

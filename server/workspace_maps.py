@@ -2,8 +2,8 @@
 
 3-X: the prototype's wrench-feasible workspace (configurations α with Z(α) f = g(α) for some
 f_min <= f <= f_max) and its joint stiffness range over the force redundancy, from
-:func:`twin.workspace.maps_3x` on a regular α grid over ±90°. 2-X: the paper's figures
-(:func:`twin.workspace.write_2x_figures`), which do not depend on any parameter set.
+:func:`twin.analysis.workspace.maps_3x` on a regular α grid over ±90°. 2-X: the paper's figures
+(:func:`twin.analysis.workspace.write_2x_figures`), which do not depend on any parameter set.
 
 Cache layout: ``<root>/<design>-<key>/`` holds the PNGs and ``summary.json``. An entry is drawn
 in a temporary directory and renamed into place, so it is either complete or absent. The 3-X key
@@ -31,8 +31,8 @@ import msgspec
 import numpy as np
 
 from server.results import PYPLOT_LOCK
-from twin.params import Params
-from twin.workspace import CAPTIONS, Maps3X
+from twin.model.params import Params
+from twin.analysis.workspace import CAPTIONS, Maps3X
 
 log = logging.getLogger("xneck.server.workspace")
 
@@ -45,7 +45,7 @@ GRID_2X = 150  # points per axis of the 2-X maps: ≈5 s for all nine figures on
 ALPHA_MAX_3X = np.pi / 2  # rad, half-width of the mapped α cube (the X-joint's flat configuration)
 MAX_ENTRIES = 16
 
-# URL name -> file name written by twin.workspace.
+# URL name -> file name written by twin.analysis.workspace.
 FIGURES: dict[str, dict[str, str]] = {
     "3x": {"wfw": "3x_wfw.png", "stiffness": "3x_stiffness.png"},
     "2x": {f[len("2x_"):-len(".png")]: f for f in CAPTIONS if f.startswith("2x_")},
@@ -208,8 +208,8 @@ class WorkspaceCache:
             return Entry(final, summary, hit=False, render_s=dt)
 
     def _render_3x(self, params: Params, out: Path) -> dict[str, Any]:
-        from twin.model import build
-        from twin.workspace import maps_3x, write_3x_figures
+        from twin.model.numeric import build
+        from twin.analysis.workspace import maps_3x, write_3x_figures
 
         lim = params.limits
         mp = maps_3x(build(params), lim.f_min, lim.f_max, n=self.grid_3x, alpha_max=ALPHA_MAX_3X)
@@ -218,7 +218,7 @@ class WorkspaceCache:
         return summarize_3x(mp, params)
 
     def _render_2x(self, out: Path) -> dict[str, Any]:
-        from twin.workspace import write_2x_figures
+        from twin.analysis.workspace import write_2x_figures
 
         with PYPLOT_LOCK:
             write_2x_figures(out, n=self.grid_2x)

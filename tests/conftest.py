@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin.model import build
-from twin.params import load_params
+from twin.model.numeric import build
+from twin.model.params import load_params
 
 
 @pytest.fixture(scope="session")

@@ -20,7 +20,7 @@ from mcap.writer import CompressionType, Writer
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session, publisher
-from server.archive import (
+from bridge.archive import (
     CAMPAIGN,
     ArchiveError,
     CampaignRecorder,
@@ -222,7 +222,7 @@ def test_damage_inside_the_file_keeps_the_original(tmp_path: Path) -> None:
 RECORDER_SCRIPT = """
 import sys, time
 from bridge.session import open_session
-from server.archive import CampaignRecorder
+from bridge.archive import CampaignRecorder
 port, path = sys.argv[1], sys.argv[2]
 with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session:
     recorder = CampaignRecorder(session, path, {"campaign_id": "killed", "law": "pid"}, flush_period_s=0.2)

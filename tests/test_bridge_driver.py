@@ -16,7 +16,7 @@ from bridge import bus
 from bridge.driver import DriverError, Lifecycle, config_from_dict
 from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver, Transmission
 from bridge.drivers.replay import ReplayConfig, ReplayDriver
-from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+from twin.sim.driver import TwinDriver, TwinDriverConfig
 
 
 class FakeBoard:
@@ -257,7 +257,7 @@ def test_twin_driver_steps_with_zero_force_unless_active(params):
 
 
 def test_replay_driver_replays_archived_angles(tmp_path):
-    from server.archive import write_campaign
+    from bridge.archive import write_campaign
 
     states = [bus.MotorState(seq=k, stamp_s=0.002 * k, theta_rad=[0.1 * k, 0.0, -0.1 * k, 1.0],
                              force_applied_N=[10.0 + k, 10.0, 10.0, 10.0], drive="active") for k in range(5)]

@@ -18,8 +18,9 @@ import pytest
 
 from bridge import bus
 from bridge.driver import Lifecycle
-from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+from twin.sim.driver import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_realtime
+from server.cli.processes import bridge_node
 from bridge.session import publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_until
 from controller.laws import hold_forces
@@ -60,7 +61,7 @@ class Collector:
 
 def _node(session, params, **config) -> BridgeNode:
     driver = TwinDriver(TwinDriverConfig(seed=0, camera=False), params)
-    return BridgeNode(session, driver, params, BridgeConfig(**config))
+    return bridge_node(session, driver, params, BridgeConfig(**config))
 
 
 def _command(seq, force, source="test"):
@@ -451,7 +452,7 @@ def test_lockstep_ticks_once_per_command_and_never_holds(params):
 
 def test_replay_driver_publishes_the_archived_angles(params, tmp_path):
     from bridge.drivers.replay import ReplayConfig, ReplayDriver
-    from server.archive import write_campaign
+    from bridge.archive import write_campaign
 
     archived = [bus.MotorState(seq=k, stamp_s=DT * k, theta_rad=[0.01 * k, 0.02 * k, -0.01 * k, 0.0],
                                force_applied_N=[10.0] * 4, drive="active") for k in range(50)]
@@ -459,7 +460,7 @@ def test_replay_driver_publishes_the_archived_angles(params, tmp_path):
                           {"campaign_id": "replay", "kind": "control"})
     with bus_pair() as (_hub, hub_session, connect):
         states = Collector(hub_session, bus.MOTOR_STATE)
-        node = BridgeNode(connect(), ReplayDriver(ReplayConfig(path=str(path))), params, BridgeConfig())
+        node = bridge_node(connect(), ReplayDriver(ReplayConfig(path=str(path))), params, BridgeConfig())
         try:
             time.sleep(0.3)  # let the subscriber's route settle before the first tick
             ticks = run_realtime(node, threading.Event())  # stops by itself at the end of the archive

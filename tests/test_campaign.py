@@ -10,10 +10,10 @@ import sys
 import pytest
 
 from bridge import bus
-from controller.campaign import CampaignSpec, run_campaign
+from server.campaign_runner import CampaignSpec, run_campaign
 from controller.laws import LawConfig
 from controller.trajectory import control_test_trajectory
-from server.archive import read_campaign
+from bridge.archive import read_campaign
 
 
 def _xneck(*args, timeout=180):
@@ -117,6 +117,6 @@ def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_
     tension = doc["validation"]["tension_mean_error_N"]
     assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
     assert all(p["badly_identified"] for p in doc["table_2"]["parameters"] if p["name"].startswith("c_a"))
-    from server.archive import read_campaign
+    from bridge.archive import read_campaign
 
     assert read_campaign(out).info["twin_truth"] == "robot"

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from controller.distribution import distribute, lower_bounds
-from controller.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
 from controller.laws import ComputedTorque, LawConfig, hold_forces
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
-from twin import cables, dynamics
-from twin.model import build
-from twin.sim import TwinConfig
+from twin.model import cables, dynamics
+from twin.model.numeric import build
+from twin.sim.simulator import TwinConfig
 
 DEG = np.pi / 180
 
@@ -65,7 +65,7 @@ def test_distribution_clamps_and_reports_saturation(params):
 
 
 def test_distribution_for_a_ten_joint_neck(rng):
-    from twin.params import load_params
+    from twin.model.params import load_params
 
     n = 10
     routing = [" ".join([f"{i}d" for i in range(1, k)] + [f"{k}b"]) for k in range(1, n + 1)]

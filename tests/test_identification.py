@@ -2,7 +2,7 @@
 
 Truth: Table 1 friction and Table 2 variable stiffness, quantised encoders, 1° camera noise, and
 the robot's small cable damping (``truth="robot"``, 40 N·s/m; the model keeps the paper's
-3000 N·s/m: twin/truth.py, docs/identification.md). The campaign runs the §5.2.2 identification
+3000 N·s/m: twin/sim/truth.py, docs/identification.md). The campaign runs the §5.2.2 identification
 trajectory under a simple closed loop written here (computed torque on the true α, tensions kept ≥ 10 N through the
 positive null vector of Z, friction compensated): smooth, rich forces, as §5.2.2 asks.
 """
@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from controller.trajectory import identification_trajectory
-from twin import dynamics
-from twin.identification import (
+from twin.model import dynamics
+from twin.identification.pipeline import (
     CampaignData, Estimate, IdentificationError, identified_params, identify_all, identify_friction, make_provenance,
     preprocess, validate, write_identified,
 )
-from twin.params import load_params
-from twin.sim import Twin, TwinConfig
+from twin.model.params import load_params
+from twin.sim.simulator import Twin, TwinConfig
 
 SEEDS = (0, 1)
 
@@ -219,9 +219,9 @@ def test_motors_that_never_move_are_rank_deficient(params):
 
 
 def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
-    archive = pytest.importorskip("server.archive")
+    archive = pytest.importorskip("bridge.archive")
     from bridge import bus
-    from twin.identification_cli import campaign_data_from_mcap
+    from twin.identification.record import campaign_data_from_mcap
 
     d = short_campaign
     msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from twin.kinematics import (
+from twin.analysis.kinematics import (
     aspect,
     characteristic_quartic,
     det_jacobian_2x,
@@ -22,7 +22,7 @@ from twin.kinematics import (
     singular_theta1,
     wrap_angle,
 )
-from twin.workspace import cartesian_counts, cuspidality_threshold_numeric, max_solutions_on_axis
+from twin.analysis.workspace import cartesian_counts, cuspidality_threshold_numeric, max_solutions_on_axis
 
 # ERRATA.md, "2-X paper": section 2.3 example, (θ1, θ2) in degrees, "about" = 2 decimals.
 PAPER_IK = np.array([(-33.18, 91.46), (16.24, -48.34), (30.51, -87.50), (-16.46, 45.20)])

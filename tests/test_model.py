@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin import cables, chain, dynamics, xjoint
-from twin.model import build
-from twin.params import load_params
+from twin.model import cables, chain, dynamics, xjoint
+from twin.model.numeric import build
+from twin.model.params import load_params
 
 DEG = np.pi / 180
 

@@ -10,7 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from twin.params import ParameterError, load_params, params_from_dict
+from twin.model.params import ParameterError, load_params, params_from_dict
 
 
 def test_default_is_the_3x_prototype(params):
@@ -76,7 +76,7 @@ def _xneck(*args):
 
 
 def test_cli_model_prints_the_model_at_one_configuration(model):
-    from twin import cables
+    from twin.model import cables
 
     run = _xneck("model", "--alpha", "40", "-30", "20", "--json")
     assert run.returncode == 0, run.stderr

@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from bridge import bus
-from server.archive import is_complete, read_campaign
+from bridge.archive import is_complete, read_campaign
 from server_harness import AUTH, running_server, server_process, wait_until
 
 
@@ -148,7 +148,7 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
 
 def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
     """A twin started for an identification campaign has the robot's damping, one for a control
-    campaign the model's, unless the request says otherwise (twin/truth.py)."""
+    campaign the model's, unless the request says otherwise (twin/sim/truth.py)."""
     from server.campaign_request import CampaignCreate, prepare
     from server.paramsets import ParameterStore
     from server.settings import Settings

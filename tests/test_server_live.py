@@ -14,7 +14,7 @@ import pytest
 from websockets.sync.client import connect
 
 from bridge import bus
-from server.archive import read_campaign
+from bridge.archive import read_campaign
 from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
 from server_harness import AUTH, running_server, wait_until
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from twin import dynamics
-from twin.sim import Twin, TwinConfig
+from twin.model import dynamics
+from twin.sim.simulator import Twin, TwinConfig
 
 
 def static_forces(model, alpha, pretension=10.0):
@@ -146,9 +146,9 @@ def test_reset_rejects_bad_states():
 
 
 def test_robot_truth_changes_only_the_cable_damping():
-    """`truth="robot"`: the twin integrates the model with a real line's damping (twin/truth.py);
+    """`truth="robot"`: the twin integrates the model with a real line's damping (twin/sim/truth.py);
     after a force step the cable stretches within a fraction of a second instead of creeping."""
-    from twin.truth import C_A_ROBOT, truth_params
+    from twin.sim.truth import C_A_ROBOT, truth_params
 
     model_twin = Twin(config=TwinConfig(camera=False))
     robot_twin = Twin(config=TwinConfig(camera=False, truth="robot"))

@@ -17,7 +17,7 @@ import numpy as np
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session
-from server.archive import read_campaign
+from bridge.archive import read_campaign
 from server_harness import AUTH, TOKEN, wait_until
 
 PY = [sys.executable, "-m", "server.cli"]

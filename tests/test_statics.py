@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin.kinematics import joint_points, side_lengths
-from twin.statics import (
+from twin.analysis.kinematics import joint_points, side_lengths
+from twin.analysis.statics import (
     Design,
     cartesian_stiffness,
     forces_two_cables,
@@ -19,7 +19,7 @@ from twin.statics import (
     stiffness_extremes,
     wrench_feasible_two_cables,
 )
-from twin.kinematics import jacobian
+from twin.analysis.kinematics import jacobian
 
 
 def _potential(d: Design, theta: np.ndarray) -> np.ndarray:
@@ -129,21 +129,21 @@ def test_bad_design_is_rejected():
 
 # --- 3-X prototype ------------------------------------------------------------------------------
 
-params_mod = pytest.importorskip("twin.params")
+params_mod = pytest.importorskip("twin.model.params")
 
 
 @pytest.fixture(scope="module")
 def model3():
-    from twin.model import build
+    from twin.model.numeric import build
 
     p = params_mod.load_params()
     return build(p), p.limits
 
 
 def test_3x_equilibrium_and_null_vector(model3):
-    from twin.cables import Z
-    from twin.dynamics import g
-    from twin.statics import statics_3x
+    from twin.model.cables import Z
+    from twin.model.dynamics import g
+    from twin.analysis.statics import statics_3x
 
     m, lim = model3
     alpha = np.radians([[0, 0, 0], [40, 30, 20], [50, 50, 50], [-30, -40, -50]])
@@ -159,8 +159,8 @@ def test_3x_equilibrium_and_null_vector(model3):
 
 
 def test_3x_stiffness_rises_with_tension(model3):
-    from twin.statics import statics_3x, stiffness_3x
-    from twin.workspace import maps_3x
+    from twin.analysis.statics import statics_3x, stiffness_3x
+    from twin.analysis.workspace import maps_3x
 
     m, lim = model3
     alpha = np.radians([[0, 0, 0], [20, -10, 15]])

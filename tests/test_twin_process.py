@@ -14,8 +14,9 @@ from bridge import bus
 from bridge.session import publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_until
 from test_sim import static_forces
-from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+from twin.sim.driver import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
+from server.cli.processes import bridge_node
 
 
 def twin_node(session, params, lockstep=True, **twin):
@@ -23,7 +24,7 @@ def twin_node(session, params, lockstep=True, **twin):
     driver = TwinDriver(TwinDriverConfig(n_motors=params.n_cables, **twin), params)
     config = BridgeConfig(lockstep=lockstep, idle_timeout_s=5 if lockstep else None,
                           max_ticks=None if lockstep else 250)
-    return BridgeNode(session, driver, params, config)
+    return bridge_node(session, driver, params, config)
 
 
 def _collect(session, key):

@@ -34,7 +34,7 @@ class ReplayDriver(Driver):
         self._started = False
 
     def _on_configure(self) -> None:
-        from server.archive import ArchiveError, read_campaign
+        from bridge.archive import ArchiveError, read_campaign
 
         try:
             campaign = read_campaign(Path(self.config.path))

@@ -18,8 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
-from twin import xjoint
-from twin.model import RIGID, Model
+from twin.model import xjoint
+from twin.model.numeric import RIGID, Model
 
 
 def short_cables(model: Model) -> np.ndarray:

@@ -23,7 +23,7 @@ from typing import Optional
 
 import typer
 
-from bridge.runtime import TRUTH_OPTION
+from server.cli.options import TRUTH_OPTION
 
 STOP_GRACE_S = 8.0
 

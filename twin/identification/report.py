@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.identification import Estimate, Processed, Validation
+from twin.identification.pipeline import Estimate, Processed, Validation
 
 __all__ = ["table_1", "table_2", "tables_text", "report_dict", "write_figures"]
 

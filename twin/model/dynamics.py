@@ -22,9 +22,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from twin import xjoint
-from twin.cables import cable_terms
-from twin.model import LINEAR, RIGID, Model
+from twin.model import xjoint
+from twin.model.cables import cable_terms
+from twin.model.numeric import LINEAR, RIGID, Model
 
 
 @njit(cache=True)

@@ -42,9 +42,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
-from twin import cables, dynamics
-from twin.model import Model, build
-from twin.params import Params, params_from_dict
+from twin.model import cables, dynamics
+from twin.model.numeric import Model, build
+from twin.model.params import Params, params_from_dict
 
 __all__ = [
     "IdentificationError",
@@ -767,7 +767,7 @@ def make_provenance(campaign: str, proc: Processed, *, method: str = "", thresho
 
 
 def write_identified(path: str | Path, params: Params, provenance: Provenance) -> tuple[Path, Path]:
-    """Write ``path`` (TOML, loadable by :func:`twin.params.load_params`, with a comment header
+    """Write ``path`` (TOML, loadable by :func:`twin.model.params.load_params`, with a comment header
     naming the campaign, date, method and the parameters kept at their base value) and
     ``<stem>.provenance.json`` next to it. Returns both paths."""
     path = Path(path)
@@ -835,10 +835,10 @@ class Validation:
 
 
 def _alpha_hat_all(data: CampaignData, proc: Processed, params: Params, models: tuple[str, ...]) -> tuple[dict, FloatArray, FloatArray]:
-    """α̂ by eqs. 33 and 35 (controller.estimation) on the 500 Hz record, compared at the camera
+    """α̂ by eqs. 33 and 35 (twin.model.estimation) on the 500 Hz record, compared at the camera
     frames inside it. The estimators start at α̂ = 0, x_c = 0 with the first encoder reading: the
     campaign starts straight and at rest (§5.2.2)."""
-    from controller.estimation import PseudoInverseEstimator, alpha_hat_3
+    from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3
 
     t, theta, force, theta_dot = proc.fast_t_s, proc.fast_theta, proc.fast_force, proc.fast_theta_dot
     inside = (data.t_ip_s >= t[0]) & (data.t_ip_s <= t[-1])

@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from twin.kinematics import (
+from twin.analysis.kinematics import (
     FLAT,
     check_design,
     det_jacobian_2x,
@@ -22,7 +22,7 @@ from twin.kinematics import (
     ik_2x_batch,
     singular_theta1,
 )
-from twin.statics import Design, prototype_2x, stiffness_extremes, wrench_feasible_two_cables
+from twin.analysis.statics import Design, prototype_2x, stiffness_extremes, wrench_feasible_two_cables
 
 __all__ = [
     "CAPTIONS",
@@ -225,8 +225,8 @@ class Maps3X(NamedTuple):
 
 def maps_3x(m: Any, f_min: float, f_max: float, n: int = 31, alpha_max: float = np.pi / 2) -> Maps3X:
     """Reachable configurations and stiffness range of the 3-X prototype (model ``m``)."""
-    from twin.chain import head
-    from twin.statics import statics_3x, stiffness_3x
+    from twin.model.chain import head
+    from twin.analysis.statics import statics_3x, stiffness_3x
 
     if n < 2:
         raise ValueError(f"n (grid size) must be >= 2, got {n}")
@@ -331,7 +331,7 @@ def plot_aspects(L: float, b: float, n: int = 400) -> Any:
 
 def plot_ik_example(L: float = 1.0, b: float = 2.0 / 3.0, x: float = 0.03, y: float = 1.6) -> Any:
     """Fig. 3: the IK solutions at one point, drawn as bars."""
-    from twin.kinematics import bar_nodes, ik_2x
+    from twin.analysis.kinematics import bar_nodes, ik_2x
 
     plt = _plt()
     sols = ik_2x(x, y, L, b)
@@ -370,7 +370,7 @@ def plot_wfw_two_cables(designs: dict[str, Design], n: int = 300) -> Any:
     for row, (name, d) in zip(axes, designs.items()):
         maps = joint_maps_2x(d, n)
         t, T = joint_grid(n)
-        from twin.statics import forces_two_cables
+        from twin.analysis.statics import forces_two_cables
 
         f = forces_two_cables(d, T)
         taut = np.all(f >= d.f_min, axis=-1)
@@ -523,8 +523,8 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None, maps: Maps3X | 
     ``maps``: already computed :func:`maps_3x` output for ``params`` (then ``n`` is ignored), so
     a caller that also needs the numbers computes them once.
     """
-    from twin.model import build
-    from twin.params import load_params
+    from twin.model.numeric import build
+    from twin.model.params import load_params
 
     plt = _plt()
     out = Path(out)

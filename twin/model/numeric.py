@@ -12,8 +12,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from twin import xjoint
-from twin.params import Params
+from twin.model import xjoint
+from twin.model.params import Params
 
 CABLE_MODELS = ("rigid", "linear", "variable")
 RIGID, LINEAR, VARIABLE = 0, 1, 2

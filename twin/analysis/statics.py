@@ -15,8 +15,8 @@ Two actuation strategies:
     along it, so its minimum and maximum sit at the segment's ends.
 
 3-X prototype part: equilibrium Z(α) f = g(α) with four cables and three joints, one-dimensional
-redundancy f = f_p + n t, through the numeric model of ``twin.model`` / ``twin.cables`` /
-``twin.dynamics`` (3-X paper notation: joint angle α = 2θ, Z = −∂l_c/∂α).
+redundancy f = f_p + n t, through the numeric model of ``twin.model.numeric`` / ``twin.model.cables`` /
+``twin.model.dynamics`` (3-X paper notation: joint angle α = 2θ, Z = −∂l_c/∂α).
 
 Units: SI. Lengths m, angles rad, forces N, torques N·m, joint stiffness N·m/rad, Cartesian
 stiffness N/m. Cable forces are tensions (>= 0).
@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from twin.kinematics import check_design, jacobian, median_length_derivatives
+from twin.analysis.kinematics import check_design, jacobian, median_length_derivatives
 
 __all__ = [
     "Design",
@@ -365,8 +365,8 @@ class Statics3X(NamedTuple):
 
 def _model_functions() -> tuple[Any, Any]:
     # Imported here so the 2-X analysis never depends on the 3-X model being importable.
-    from twin.cables import Z
-    from twin.dynamics import g
+    from twin.model.cables import Z
+    from twin.model.dynamics import g
 
     return Z, g
 

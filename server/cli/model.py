@@ -9,35 +9,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from twin import cables, dynamics, xjoint
-from twin.model import build
-from bridge.runtime import (
-    CABLE_MODEL_OPTION,
-    CONNECT_OPTION,
-    IDLE_TIMEOUT_OPTION,
-    INSTANCE_OPTION,
-    LISTEN_OPTION,
-    LOCKSTEP_OPTION,
-    MAX_TICKS_OPTION,
-    NO_FRICTION_OPTION,
-    TRUTH_OPTION,
-    SEED_OPTION,
-    STARTUP_TIMEOUT_OPTION,
-    VERBOSE_OPTION,
-)
-from twin.params import ParameterError, Params, load_params, parse_override
-
-PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
-SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set springs.l0=[0.05,0.05,0.05].")
-
-
-def load_cli_params(params_file: Optional[Path], overrides: Optional[list[str]]) -> Params:
-    """Parameters for a command, or a clean exit with the reason (no traceback)."""
-    try:
-        return load_params(params_file, dict(parse_override(o) for o in overrides or []))
-    except ParameterError as exc:
-        typer.secho(f"error: {exc}", err=True, fg="red")
-        raise typer.Exit(2) from None
+from server.cli.options import PARAMS_OPTION, SET_OPTION, load_cli_params
 
 
 def _alpha_from_cli(first: float, extra: list[str], n: int) -> np.ndarray:
@@ -63,6 +35,9 @@ def model(
 ) -> None:
     """Print l_c, θ, Z, M, g and the spring lengths at one configuration: a first check of the
     model against the real robot."""
+    from twin.model import cables, dynamics, xjoint
+    from twin.model.numeric import build
+
     params = load_cli_params(params_file, overrides)
     m = build(params)
     a = _alpha_from_cli(alpha, ctx.args, m.n_joints)
@@ -97,31 +72,3 @@ def model(
     typer.echo("M with geared motors (kg·m²)")
     for row in terms.M:
         typer.echo("    " + fmt(row, 1, 5))
-
-
-
-
-def twin(
-    lockstep: bool = LOCKSTEP_OPTION,
-    seed: int = SEED_OPTION,
-    cable_model: Optional[str] = CABLE_MODEL_OPTION,
-    no_friction: bool = NO_FRICTION_OPTION,
-    truth: str = TRUTH_OPTION,
-    max_ticks: Optional[int] = MAX_TICKS_OPTION,
-    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
-    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
-    instance: str = INSTANCE_OPTION,
-    listen: Optional[list[str]] = LISTEN_OPTION,
-    connect: Optional[list[str]] = CONNECT_OPTION,
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
-    verbose: bool = VERBOSE_OPTION,
-) -> None:
-    """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
-    exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
-    from bridge.cli import bridge
-
-    bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
-           idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
-           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)

@@ -2,7 +2,7 @@
 
 Run by ``.ci/setup``: without it the first processes of a fresh checkout each spend seconds
 compiling (several at once on a small machine), which a lockstep campaign would mistake for a
-dead peer. ``python -m twin.warmup``.
+dead peer. ``python -m controller.warmup``.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import numpy as np
 def main() -> None:
     t0 = time.perf_counter()
     from controller.laws import ComputedTorque, LawConfig
-    from twin.params import load_params
-    from twin.sim import Twin, TwinConfig
+    from twin.model.params import load_params
+    from twin.sim.simulator import Twin, TwinConfig
 
     params = load_params()
     for cable_model in ("rigid", "linear", "variable"):

@@ -1,4 +1,4 @@
-"""The digital twin as a motor driver: :class:`twin.sim.Twin` behind the driver interface.
+"""The digital twin as a motor driver: :class:`twin.sim.simulator.Twin` behind the driver interface.
 
 The bridge's safety logic then runs unchanged against the simulated robot, so the watchdog, the
 e-stop and the exit behaviour are tested on the twin exactly as they run on the BeagleBone.
@@ -21,16 +21,16 @@ import numpy as np
 
 from bridge import bus
 from bridge.driver import Driver, DriverConfig, Lifecycle
-from twin.params import Params
-from twin.sensors import quantise_encoder
-from twin.sim import Tick, Twin, TwinConfig
-from twin.truth import Truth
+from twin.model.params import Params
+from twin.sim.sensors import quantise_encoder
+from twin.sim.simulator import Tick, Twin, TwinConfig
+from twin.sim.truth import Truth
 
 log = logging.getLogger("xneck.bridge.twin")
 
 
 class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """What the twin simulates (see :class:`twin.sim.TwinConfig`): cable model (None: the
+    """What the twin simulates (see :class:`twin.sim.simulator.TwinConfig`): cable model (None: the
     parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera,
     truth ("model": the parameter file as it is; "robot": a real line's cable damping)."""
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from twin import jet
+from twin.model import jet
 
 # Rows of the (N_ROWS, 3) jet table that joint_jets fills: (value, d/dα, d²/dα²) per quantity.
 L_LEFT, L_RIGHT, PSI = 0, 1, 2

@@ -2,15 +2,15 @@
 forward kinematics): the 2-X paper's eq. 2 generalised from the median points to the bar ends.
 
 Joint i's base bar is joint i−1's top bar; its frame is turned by β_i = α_1 + … + α_{i−1} and
-sits at the middle of that bar. Lengths in m, α in rad, base frame as in ``twin.dynamics``.
+sits at the middle of that bar. Lengths in m, α in rad, base frame as in ``twin.model.dynamics``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from twin import xjoint
-from twin.model import Model
+from twin.model import xjoint
+from twin.model.numeric import Model
 
 
 def bar_ends(model: Model, alpha) -> np.ndarray:

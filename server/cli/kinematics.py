@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from twin.kinematics import FLAT, check_design, cuspidal_threshold, det_jacobian_2x, fk, ik_2x, is_cuspidal
+from twin.analysis.kinematics import FLAT, check_design, cuspidal_threshold, det_jacobian_2x, fk, ik_2x, is_cuspidal
 
 kinematics_app = typer.Typer(
     help="Kinematics of the 2-X manipulator (Furet & Wenger 2019): inverse kinematics, cuspidality.",
@@ -74,7 +74,7 @@ def cuspidal(
 ) -> None:
     """Is the 2-X chain cuspidal? Closed form b < L < b√6 (section 2.6), checked by counting IK
     solutions numerically along the symmetry axis, and the threshold found by a sweep of b."""
-    from twin.workspace import cuspidality_threshold_numeric, max_solutions_on_axis
+    from twin.analysis.workspace import cuspidality_threshold_numeric, max_solutions_on_axis
 
     L, b = _design(L, b)
     result = {
@@ -102,7 +102,7 @@ def workspace(
     n: int = typer.Option(0, "--n", help="Grid points per axis (0: 300 for 2x, 31 for 3x)."),
 ) -> None:
     """Write workspace, wrench-feasible workspace and stiffness maps as PNG files."""
-    from twin.workspace import write_2x_figures, write_3x_figures
+    from twin.analysis.workspace import write_2x_figures, write_3x_figures
 
     if design not in ("2x", "3x"):
         raise typer.BadParameter(f"--design must be 2x or 3x, got {design!r}")

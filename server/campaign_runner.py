@@ -34,8 +34,8 @@ from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
-from server.archive import CampaignRecorder, read_campaign
-from twin.params import Params
+from bridge.archive import CampaignRecorder, read_campaign
+from twin.model.params import Params
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 
@@ -53,7 +53,7 @@ class CampaignSpec:
     connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
     realtime: bool = False  # twin paced at 500 Hz by the clock instead of lockstep (live viewing)
     service: bool = False  # ask the controller service on the bus (`xneck up`) instead of spawning processes
-    truth: str = "model"  # what a spawned twin simulates (twin.truth); a service's twin runs as it was started
+    truth: str = "model"  # what a spawned twin simulates (twin.sim.truth); a service's twin runs as it was started
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 The variable length of cable j is the sum, over the joints it runs along, of the length of its
 routing case (a)-(d) at that joint's angle; hence Z_ij = −∂l_cj/∂α_i (eq. 22) depends on α_i only
-and its time derivative is Ż_ij = −(∂²l_cj/∂α_i²)·α̇_i. All exact (jets, see ``twin.jet``).
+and its time derivative is Ż_ij = −(∂²l_cj/∂α_i²)·α̇_i. All exact (jets, see ``twin.model.jet``).
 
 Elongation sign: we use x_c = l_c − l_c0 + (r_d/R)·θ, the physical stretch (> 0 under tension,
 so t = k·x_c of eqs. 39/54 is positive). Eq. 27 as printed has −(r_d/R)·θ, which contradicts
@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from twin import xjoint
-from twin.model import Model
+from twin.model import xjoint
+from twin.model.numeric import Model
 
 
 @njit(cache=True)

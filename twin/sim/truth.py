@@ -25,7 +25,7 @@ from typing import Literal
 
 import msgspec
 
-from twin.params import Params
+from twin.model.params import Params
 
 Truth = Literal["model", "robot"]
 TRUTHS: tuple[str, ...] = ("model", "robot")

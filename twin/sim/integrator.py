@@ -24,8 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
-from twin.dynamics import evaluate_into, friction_into, motor_terms
-from twin.model import LINEAR, RIGID
+from twin.model.dynamics import evaluate_into, friction_into, motor_terms
+from twin.model.numeric import LINEAR, RIGID
 
 ALPHA_FLAT = math.pi  # rad: an X-joint is flat (singular) at α = ±π, i.e. θ = α/2 = ±90° (2-X paper)
 

@@ -1,4 +1,11 @@
-"""`xneck bridge --driver beaglebone|twin|replay`: the motor controllers on the bus."""
+"""The bus processes: `xneck bridge --driver beaglebone|twin|replay`, `xneck twin` and
+`xneck controller`.
+
+This is where the layers meet: the bridge node (:mod:`bridge.node`) is given its driver (the
+twin's comes from :mod:`twin.sim.driver`) and its hold rule (:func:`controller.laws.encoder_hold_forces`)
+here, so the bridge package itself depends on neither. Heavy imports stay inside the commands:
+`xneck --help` and the bridge on a small board load only what they run.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +16,7 @@ from typing import Optional
 
 import typer
 
-from bridge.runtime import (
+from server.cli.options import (
     CABLE_MODEL_OPTION,
     CONNECT_OPTION,
     IDLE_TIMEOUT_OPTION,
@@ -18,14 +25,33 @@ from bridge.runtime import (
     LOCKSTEP_OPTION,
     MAX_TICKS_OPTION,
     NO_FRICTION_OPTION,
-    TRUTH_OPTION,
+    PARAMS_OPTION,
     SEED_OPTION,
+    SET_OPTION,
     STARTUP_TIMEOUT_OPTION,
+    TRUTH_OPTION,
     VERBOSE_OPTION,
+    LAW_OPTION,
+    NO_PULLEYS_OPTION,
+    TRAJECTORY_OPTION,
+    law_config,
+    load_checked_trajectory,
+    load_cli_params,
 )
-from twin.cli import PARAMS_OPTION, SET_OPTION, load_cli_params
 
 log = logging.getLogger("xneck.bridge")
+
+
+def bridge_node(session, driver, params, config):
+    """A :class:`bridge.node.BridgeNode` for a parameter set: the bridge's safety rules with the
+    force range of ``params`` and the controller's hold rule (θ → hold forces). The one place
+    where the bridge is composed with the model; ``xneck bridge`` and in-process tests use it."""
+    from bridge.node import BridgeNode
+    from controller.laws import encoder_hold_forces
+
+    if driver.n_motors != params.n_cables:
+        raise ValueError(f"the driver has {driver.n_motors} motors, the parameter set {params.n_cables} cables")
+    return BridgeNode(session, driver, encoder_hold_forces(params), (params.limits.f_min, params.limits.f_max), config)
 
 
 def _fail(message: str) -> typer.Exit:
@@ -57,7 +83,7 @@ def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = No
 
         return BeagleBoneDriver.from_params(config_from_dict(BeagleBoneConfig, base), params)
     if driver == "twin":
-        from bridge.drivers.twin import TwinDriver, TwinDriverConfig
+        from twin.sim.driver import TwinDriver, TwinDriverConfig
 
         base.setdefault("seed", seed)
         if cable_model is not None:
@@ -105,7 +131,7 @@ def bridge(
     """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
     rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""
     from bridge.driver import DriverError
-    from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
+    from bridge.node import BridgeConfig, run_lockstep, run_realtime
     from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
     from bridge.session import open_session
 
@@ -129,7 +155,10 @@ def bridge(
         # After configure: importing rcpy installs its own SIGINT/SIGTERM handlers, ours must win.
         stop = stop_on_signals()
         with open_session(endpoints(listen), endpoints(connect)) as session:
-            node = BridgeNode(session, drv, params, config)
+            try:
+                node = bridge_node(session, drv, params, config)
+            except ValueError as exc:
+                raise _fail(str(exc)) from None
             mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz"
             log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
                      command_timeout * 1e3)
@@ -145,3 +174,67 @@ def bridge(
                      node.clamped, node.holds, node.overruns)
     finally:
         drv.close()
+
+
+def twin(
+    lockstep: bool = LOCKSTEP_OPTION,
+    seed: int = SEED_OPTION,
+    cable_model: Optional[str] = CABLE_MODEL_OPTION,
+    no_friction: bool = NO_FRICTION_OPTION,
+    truth: str = TRUTH_OPTION,
+    max_ticks: Optional[int] = MAX_TICKS_OPTION,
+    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
+    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
+    instance: str = INSTANCE_OPTION,
+    listen: Optional[list[str]] = LISTEN_OPTION,
+    connect: Optional[list[str]] = CONNECT_OPTION,
+    params_file: Optional[Path] = PARAMS_OPTION,
+    overrides: Optional[list[str]] = SET_OPTION,
+    verbose: bool = VERBOSE_OPTION,
+) -> None:
+    """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
+    exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
+    bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
+           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
+           idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
+           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
+
+
+def controller(
+    law: int = LAW_OPTION,
+    no_pulleys: bool = NO_PULLEYS_OPTION,
+    trajectory: Optional[str] = TRAJECTORY_OPTION,
+    lockstep: bool = typer.Option(False, "--lockstep", help="Wait as long as needed for each state (lockstep twin)."),
+    campaign_id: str = typer.Option("", "--campaign-id", help="Id in the campaign events (default: random)."),
+    campaign_kind: str = typer.Option("control", "--campaign-kind"),
+    idle_timeout: float = typer.Option(10.0, "--idle-timeout", help="Give up after this long without any state (s)."),
+    listen: Optional[list[str]] = LISTEN_OPTION,
+    connect: Optional[list[str]] = CONNECT_OPTION,
+    params_file: Optional[Path] = PARAMS_OPTION,
+    overrides: Optional[list[str]] = SET_OPTION,
+    verbose: bool = VERBOSE_OPTION,
+) -> None:
+    """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""
+    from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
+    from bridge.session import open_session
+    from controller.process import ControllerNode, ControllerProcessConfig
+
+    setup_logging(verbose)
+    params = load_cli_params(params_file, overrides)
+    config = law_config(law, no_pulleys)
+    traj = load_checked_trajectory(trajectory, params, config) if trajectory else None
+    stop = stop_on_signals()
+    cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
+                                  idle_timeout_s=idle_timeout, exit_when_done=traj is not None)
+    with open_session(endpoints(listen), endpoints(connect)) as session:
+        node = ControllerNode(session, params, config, traj, cfg)
+        if not lockstep:
+            raise_priority()
+        logging.getLogger("xneck.controller").info("controller %s up (%s)", node.instance, config.name)
+        try:
+            outcome = node.run(stop)
+        finally:
+            node.close()
+        logging.getLogger("xneck.controller").info("controller %s: %s", node.instance, outcome)
+    if outcome == "aborted":
+        raise typer.Exit(1)

@@ -300,7 +300,7 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
     """
     if path is None:
         source = f"<package>/{DEFAULT_PARAMS_FILE}"
-        text = resources.files("twin").joinpath(DEFAULT_PARAMS_FILE).read_text()
+        text = resources.files("twin.model").joinpath(DEFAULT_PARAMS_FILE).read_text()
     else:
         source = str(path)
         try:

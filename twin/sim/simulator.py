@@ -1,7 +1,7 @@
 """The twin's simulator: the full model stepped at the control rate, with the prototype's sensors.
 
 ``Twin.tick(f)`` holds the motor forces f (N) for one control period (2 ms at 500 Hz), integrates
-the full model (``twin.integrator``) and returns what the bridge would report (quantised encoder
+the full model (``twin.sim.integrator``) and returns what the bridge would report (quantised encoder
 angles) plus the camera frames due now and the twin-only truth. Pure Python shell around the
 compiled step; deterministic for a seed.
 """
@@ -14,12 +14,12 @@ from typing import Literal
 
 import numpy as np
 
-from twin import cables, dynamics
-from twin.integrator import step
-from twin.model import Model, build
-from twin.params import Params, load_params
-from twin.sensors import Camera, quantise_encoder
-from twin.truth import TRUTHS, Truth, truth_params
+from twin.model import cables, dynamics
+from twin.sim.integrator import step
+from twin.model.numeric import Model, build
+from twin.model.params import Params, load_params
+from twin.sim.sensors import Camera, quantise_encoder
+from twin.sim.truth import TRUTHS, Truth, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
 
@@ -29,7 +29,7 @@ class TwinConfig:
     """What the twin simulates. Defaults: the paper's identified robot (Table 1 friction, Table 2
     variable-stiffness cables), 500 Hz, two integration substeps per tick. ``truth``: "model"
     integrates the parameter file as it is, "robot" with a real line's small cable damping
-    (``twin.truth``)."""
+    (``twin.sim.truth``)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None  # None: the parameter file's
     friction: bool = True

@@ -1,0 +1,49 @@
+"""The `xneck` command line: one entry point, one subcommand per capability.
+
+One module per group of commands (``model``, ``processes``, ``campaign``, ``identify``,
+``kinematics``, ``serve``, ``up``); this file assembles them so that ``xneck --help`` lists
+everything a lab can run. The modules import the packages they drive inside their commands, so the
+bridge on a small board loads only the bridge.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from server.cli import campaign, identify, kinematics, model, processes, serve, up
+
+app = typer.Typer(
+    name="xneck",
+    help="Digital twin and experiment console for the X-joint cable-driven neck.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+
+@app.callback()
+def _root() -> None:
+    """Digital twin and experiment console for the X-joint cable-driven neck."""
+
+
+app.command("model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(model.model)
+app.command("twin")(processes.twin)
+app.command("bridge")(processes.bridge)
+app.command("controller")(processes.controller)
+campaign.campaign_app.command("control")(campaign.campaign_control)
+campaign.campaign_app.command("identification")(campaign.campaign_identification)
+app.add_typer(campaign.campaign_app, name="campaign")
+app.add_typer(kinematics.kinematics_app, name="kinematics")
+app.command("workspace")(kinematics.workspace)
+app.command("identify")(identify.identify)
+app.command("server")(serve.server)
+app.command("up")(up.up)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""Options shared by the ``xneck`` commands: endpoints, the twin's options, the parameter set."""
+
+from __future__ import annotations
+
+import math
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from twin.model.params import ParameterError, Params, load_params, parse_override
+
+LISTEN_OPTION = typer.Option(
+    None, "--listen", help="Zenoh endpoint to listen on (repeatable), e.g. tcp/127.0.0.1:7447. "
+    "Default: $XNECK_ZENOH_LISTEN or an ephemeral loopback port.")
+CONNECT_OPTION = typer.Option(
+    None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
+VERBOSE_OPTION = typer.Option(False, "--verbose", "-v", help="Debug logging.")
+INSTANCE_OPTION = typer.Option("", "--instance", help="Name on the bus (default: a random one).")
+# The twin's options, shared by `xneck twin` and `xneck bridge --driver twin`.
+LOCKSTEP_OPTION = typer.Option(False, "--lockstep", help="Twin only: one tick per command (deterministic; CI mode).")
+SEED_OPTION = typer.Option(0, "--seed", help="Twin: seed of the sensor noise.")
+CABLE_MODEL_OPTION = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable (default: the parameter file's).")
+NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction.")
+
+
+def check_truth(value: str) -> str:
+    """Typer callback: ``--truth`` is one of twin.sim.truth.TRUTHS."""
+    from twin.sim.truth import TRUTHS
+
+    if value not in TRUTHS:
+        raise typer.BadParameter(f"{value!r}: choose {' or '.join(TRUTHS)}")
+    return value
+
+
+TRUTH_OPTION = typer.Option("model", "--truth", callback=check_truth, help="Twin: what it simulates, the parameter file as it is (model) or with a real line's small cable damping (robot); see twin/sim/truth.py.")
+MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
+IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
+STARTUP_TIMEOUT_OPTION = typer.Option(
+    None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout).")
+
+
+PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
+SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set springs.l0=[0.05,0.05,0.05].")
+
+
+def load_cli_params(params_file: Optional[Path], overrides: Optional[list[str]]) -> Params:
+    """Parameters for a command, or a clean exit with the reason (no traceback)."""
+    try:
+        return load_params(params_file, dict(parse_override(o) for o in overrides or []))
+    except ParameterError as exc:
+        typer.secho(f"error: {exc}", err=True, fg="red")
+        raise typer.Exit(2) from None
+
+
+LAW_OPTION = typer.Option(2, "--law", help="Control law: 1 (no friction), 2 (friction), 3 (friction + elastic cables).")
+NO_PULLEYS_OPTION = typer.Option(False, "--no-pulleys", help="Neglect the pulleys in the controller's model (Table 3).")
+TRAJECTORY_OPTION = typer.Option(
+    None, "--trajectory", help="identification, control_test, or a JSON/TOML file of waypoints (degrees).")
+
+
+def law_config(law: int, no_pulleys: bool):
+    from controller.laws import LawConfig
+
+    try:
+        return LawConfig(law=law, no_pulleys=no_pulleys)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--law") from None
+
+
+def load_checked_trajectory(name_or_path: str, params, law_config):
+    """A trajectory by name or file, validated against the joint limits and the forces on its
+    nominal path; a clean CLI error naming the waypoint or segment otherwise."""
+    from controller.laws import nominal_force_check
+    from controller.trajectory import (NAMED_TRAJECTORIES, TrajectoryError, TrajectoryLimits, load_trajectory,
+                                       trajectory_by_name, validate)
+
+    try:
+        traj = (trajectory_by_name(name_or_path) if name_or_path.replace("-", "_") in NAMED_TRAJECTORIES
+                else load_trajectory(Path(name_or_path)))
+        limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg))
+        validate(traj, limits, params.n_joints, nominal_force_check(params, law_config))
+    except TrajectoryError as exc:
+        typer.secho(f"error: trajectory rejected: {exc}", err=True, fg="red")
+        raise typer.Exit(2) from None
+    return traj

@@ -1,0 +1,94 @@
+"""A recorded campaign as identification data, and the whole offline pipeline on it (3-X paper §5).
+
+:func:`identify_record` is the one pipeline that ``xneck identify``, ``xneck campaign identification``
+and the console's results all run. The MCAP is read with :func:`bridge.archive.read_campaign`; encoder angles and applied forces come
+from ``/xneck/motor/state`` (``theta_rad``, ``force_applied_N``, ``stamp_s``), α_IP from
+``/xneck/camera/alpha_ip`` (``alpha_ip_rad``, ``capture_stamp_s``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from twin.identification.pipeline import (
+    DEFAULT_THRESHOLD, CampaignData, Estimate, IdentificationError, Processed, Provenance, Validation,
+    identified_params, identify_all, make_provenance, preprocess, validate,
+)
+from twin.model.params import Params
+
+Excitation = Callable[[str, np.ndarray], "np.ndarray | None"]
+"""(the campaign's recorded trajectory as JSON, sample times in s) → α^d (rad) at those times, or None.
+Given by the caller (:func:`controller.trajectory.recorded_excitation`): trajectories are the
+controller's, and the identification must not depend on them."""
+
+MOTOR_TOPIC = "/xneck/motor/state"
+CAMERA_TOPIC = "/xneck/camera/alpha_ip"
+
+
+def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = None) -> CampaignData:
+    """Campaign arrays from an archived campaign; with ``excitation``, α^d of its recorded
+    trajectory too (the filter cutoff then follows the excitation). Raises
+    :class:`IdentificationError` for a missing, truncated or damaged file and for missing or empty
+    channels."""
+    from bridge.archive import ArchiveError, read_campaign
+
+    try:
+        camp = read_campaign(path)
+    except ArchiveError as exc:
+        raise IdentificationError(f"cannot read campaign: {exc}") from None
+    missing = [t for t in (MOTOR_TOPIC, CAMERA_TOPIC) if not camp.topics.get(t)]
+    if missing:
+        have = ", ".join(sorted(camp.topics)) or "none"
+        raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
+    motor = [m for _, m in camp.topics[MOTOR_TOPIC]]
+    frames = [m for _, m in camp.topics[CAMERA_TOPIC]]
+    try:
+        t = np.array([m.stamp_s for m in motor], dtype=float)
+        theta = np.array([m.theta_rad for m in motor], dtype=float)
+        force = np.array([m.force_applied_N for m in motor], dtype=float)
+        t_ip = np.array([m.capture_stamp_s for m in frames], dtype=float)
+        alpha = np.array([m.alpha_ip_rad for m in frames], dtype=float)
+    except (AttributeError, ValueError) as exc:
+        raise IdentificationError(f"{path}: motor or camera messages are malformed ({exc})") from None
+    # Recorder order is receive order; the identification needs sample order. A lockstep twin
+    # re-publishes its state while it waits for a command: keep one sample per time stamp.
+    _, order = np.unique(t, return_index=True)
+    _, order_ip = np.unique(t_ip, return_index=True)
+    campaign = camp.info.get("campaign_id") or Path(path).stem
+    trajectory_json = camp.info.get("trajectory")
+    alpha_d = None
+    if excitation is not None and trajectory_json and len(t) >= 2:
+        alpha_d = excitation(trajectory_json, t[order])
+    return CampaignData(t[order], theta[order], force[order], t_ip[order_ip], alpha[order_ip], campaign=campaign,
+                        excitation_alpha_rad=alpha_d)
+
+
+class Identification(NamedTuple):
+    """Everything one identification produced (3-X paper §5.2-5.6)."""
+
+    data: CampaignData
+    processed: Processed
+    estimate: dict[str, Estimate]  # by model name, as identify_all returns them
+    provenance: Provenance
+    params: Params  # the identified parameter set (flagged values kept at base)
+    report: object  # twin.model.params diff report of ``params`` against the base
+    validation: Validation | None
+
+
+def identify_record(path: str | Path, base: Params, *, excitation: Excitation | None = None,
+                    cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
+                    with_validation: bool = True, alpha_hat: bool = True) -> Identification:
+    """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
+    (Tables 1-2), keep what is well identified, and validate (Figs. 4-8). Raises
+    :class:`IdentificationError` with the reason."""
+    data = campaign_data_from_mcap(path, excitation)
+    proc = preprocess(data, base, cutoff_hz)
+    est = identify_all(proc, base, threshold=threshold)
+    prov = make_provenance(f"{data.campaign} ({path})", proc, threshold=threshold)
+    new, report, prov = identified_params(base, est, prov)
+    val = validate(data, proc, new, est, alpha_hat=alpha_hat) if with_validation else None
+    return Identification(data, proc, est, prov, new, report, val)
