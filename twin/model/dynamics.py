@@ -20,7 +20,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from twin.model.compiled import njit
 
 from twin.model import xjoint
 from twin.model.cables import cable_terms

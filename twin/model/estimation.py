@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from twin.model.compiled import njit
 
 from twin.model import xjoint
 from twin.model.numeric import RIGID, Model

@@ -4,14 +4,15 @@ A jet is a tuple ``(v, d, dd)``: a value and its first and second derivatives wi
 one variable (here always the angle α_i of one X-joint). Every cable length and bar position of
 joint i depends on α_i alone, so jets give Z = −∂l_c/∂α (3-X paper eq. 22), Ż and the bias
 accelerations of the dynamics exactly, without finite differences and without symbolic algebra.
-All functions are numba-compiled so the 500 Hz loop and the twin pay microseconds.
+All functions are numba-compiled where numba is installed (twin.model.compiled), so the 500 Hz loop
+and the twin pay microseconds; the robot's lean bridge runs them as plain Python.
 """
 
 from __future__ import annotations
 
 import math
 
-from numba import njit
+from twin.model.compiled import njit
 
 Jet = tuple[float, float, float]
 

@@ -13,7 +13,7 @@ P = m(α)·(−sin(α/2), cos(α/2)) with m = sqrt(L² − b² cos²(α/2)) is 2
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from twin.model.compiled import njit
 
 from twin.model import jet
 
