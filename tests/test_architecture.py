@@ -1,0 +1,46 @@
+"""The tree's static rules: one-way layers (import-linter), lint (ruff) and types (pyright).
+
+Each tool's configuration lives in pyproject.toml; a failure shows the tool's own report.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _tool(name: str) -> str:
+    """The tool installed beside this interpreter (the `test` extra), else the one on PATH."""
+    path = BIN / name
+    if path.exists():
+        return str(path)
+    found = shutil.which(name)
+    if found is None:
+        pytest.fail(f"{name} is not installed: pip install -e '.[test]'")
+    return found
+
+
+def _run(argv: list[str], timeout_s: float) -> None:
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False)
+    if done.returncode != 0:
+        pytest.fail(f"{' '.join(argv)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}", pytrace=False)
+
+
+def test_layers_import_one_way():
+    """bridge <- twin <- controller <- server, imports inside functions included."""
+    _run([_tool("lint-imports"), "--no-cache"], timeout_s=300)
+
+
+def test_ruff_is_clean():
+    _run([_tool("ruff"), "check", "--no-cache", "."], timeout_s=300)
+
+
+def test_pyright_is_clean():
+    _run([_tool("pyright")], timeout_s=900)
