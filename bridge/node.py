@@ -1,8 +1,9 @@
 """The bridge as a bus process: a motor driver behind the safety rules, on the twin's topics.
 
-Every tick (500 Hz) the node decides the cable forces, writes them to the driver, steps it, reads
-the encoders and publishes ``MotorState`` (with ``drive`` and ``hold_reason``); ``Health`` goes
-out about once per second. The rules do not depend on any controller:
+Every tick (500 Hz) the node is a thin shell: bus in (the latest valid command, e-stop events) →
+:meth:`bridge.safety.Safety.step` (the rules below, a pure state machine) → driver (enable or
+disable, write the forces, step, read the encoders) → bus out (``MotorState`` with ``drive`` and
+``hold_reason``; ``Health`` about once per second). The rules do not depend on any controller:
 
 Commands
     A ``ForceCommand`` is valid when it decodes and every force lies in [0, f_max] with one force
@@ -42,20 +43,15 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
 import zenoh
 
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
+from bridge.safety import HoldForces, Inputs, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
 
 log = logging.getLogger("xneck.bridge")
-
-HoldForces = Callable[[np.ndarray], np.ndarray]
-"""θ (rad, one per motor) → the cable forces (N) that hold the neck still there."""
-
 
 @dataclass(frozen=True)
 class BridgeConfig:
@@ -90,20 +86,19 @@ class BridgeNode:
     def __init__(self, session: zenoh.Session, driver: Driver, hold_forces: HoldForces,
                  f_range_N: tuple[float, float], config: BridgeConfig = BridgeConfig()):
         f_min, f_max = (float(x) for x in f_range_N)
-        if not (math.isfinite(f_min) and math.isfinite(f_max) and 0.0 <= f_min < f_max):
-            raise ValueError(f"the force range must be 0 <= f_min < f_max (N), got {f_range_N}")
         if driver.state is Lifecycle.UNCONFIGURED:
             driver.configure()
         self.driver, self.config = driver, config
         self.session = session
         self.instance = config.instance or f"bridge-{uuid.uuid4().hex[:6]}"
         n = driver.n_motors
-        self.f_min, self.f_max = f_min, f_max
         self.dt = driver.dt
-        self._ramp_ticks = max(1, round(config.hold_ramp_s / self.dt))
-        self._hold_forces = hold_forces
+        self.safety = Safety(SafetyConfig(
+            n_motors=n, f_min_N=f_min, f_max_N=f_max, command_timeout_s=config.command_timeout_s,
+            hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), watchdog=not config.lockstep), hold_forces)
+        self.f_min, self.f_max = f_min, f_max
         self.force = np.zeros(n)  # N, what the drives apply now
-        self._hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold
+        self.safety.hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold
 
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
@@ -120,17 +115,26 @@ class BridgeNode:
 
         self.mode: bus.DriveState = "inactive"
         self.hold_reason = ""
-        self.estop_reason = ""
         self.theta = driver.read()
-        self._consumed_ns = 0  # receive time of the last command acted upon
-        self._ramp_from = self._ramp_to = np.zeros(n)
-        self._ramp_k = 0
-        self.ticks = self.overruns = self.clamped = self.holds = 0
+        self._consumed_ns = 0  # receive time of the newest command already shown to the safety rules
+        self.ticks = self.overruns = 0
         self.tick_max_s = 0.0
         self._seq = {"state": 0, "health": 0}
         self._started = time.monotonic()
         self._closed = False
         atexit.register(self._atexit)
+
+    @property
+    def clamped(self) -> int:
+        return self.safety.clamped
+
+    @property
+    def holds(self) -> int:
+        return self.safety.holds
+
+    @property
+    def estop_reason(self) -> str:
+        return self.safety.estop_reason
 
     # -- inputs ---------------------------------------------------------------------------------
     def _on_estop(self, sample: zenoh.Sample) -> None:
@@ -147,60 +151,48 @@ class BridgeNode:
             self.estop_rejected += 0 if valid else 1
             self._estop_events.append(event)
 
-    def process_estop(self) -> bool:
-        """Apply queued e-stop events; True if the drive state changed."""
+    def _take_estop_events(self) -> list[tuple[bool, str]]:
         with self._estop_lock:
             events = list(self._estop_events)
             self._estop_events.clear()
-        changed = False
-        for engaged, reason in events:
-            if engaged and self.mode != "disabled":
-                self.driver.deactivate()
-                self.mode, self.hold_reason, self.estop_reason = "disabled", "", reason
-                self.force = np.zeros(self.driver.n_motors)
-                changed = True
-                log.warning("e-stop engaged (%s): drives disabled", reason)
-            elif not engaged and self.mode == "disabled":
-                # Only commands received after the release may enable the drives again.
-                _cmd, recv_ns = self.commands.latest_with_time()
-                self._consumed_ns = max(self._consumed_ns, recv_ns)
-                self.mode, self.estop_reason = "inactive", ""
-                changed = True
-                log.warning("e-stop released (%s): drives inactive until the next valid command", reason)
+        return events
+
+    def process_estop(self) -> bool:
+        """Apply queued e-stop events now (between ticks); True if the drive state changed."""
+        changed = self.safety.apply_estop(self._take_estop_events())
+        self._follow(self.safety.take_events())
         return changed
+
+    def _follow(self, events: tuple[tuple[int, str], ...]) -> None:
+        """Make the driver and the published state follow the safety rules' decision."""
+        for level, message in events:
+            log.log(level, "%s", message)
+        if self.safety.enabled:
+            self.driver.activate()
+        elif self.driver.state is Lifecycle.ACTIVE:
+            self.driver.deactivate()
+        if self.safety.drive == "inactive" and self.mode == "disabled":
+            # Released: only commands received after the release may enable the drives again.
+            self._consumed_ns = max(self._consumed_ns, self.commands.latest_with_time()[1])
+        self.mode = self.safety.drive
+        self.hold_reason = self.safety.hold_reason if self.mode == "hold" else ""
+        if not self.safety.enabled:
+            self.force = np.zeros(self.driver.n_motors)
 
     # -- one period -----------------------------------------------------------------------------
     def tick(self) -> None:
-        """Decide the forces, write, step, read, publish: one control period."""
+        """Bus in, safety rules, driver, bus out: one control period."""
         t0 = time.perf_counter()
         self.process_estop()
         cmd, recv_ns = self.commands.latest_with_time()
         fresh = cmd is not None and recv_ns > self._consumed_ns
-        if self.mode == "disabled":
-            if fresh:
-                self._consumed_ns = recv_ns  # ignored: a command never outlives the e-stop
-        elif fresh:
-            self._consumed_ns = recv_ns
-            if self.mode == "inactive":
-                self.driver.activate()
-                log.info("first valid command from %r: drives enabled", cmd.source)
-            if self.mode == "hold":
-                log.info("valid commands from %r again: leaving hold", cmd.source)
-            self.mode, self.hold_reason = "active", ""
-            self.force = self._clamp(cmd.force_N)
-        elif self.mode == "active" and not self.config.lockstep:
-            age_s = (time.time_ns() - recv_ns) * 1e-9
-            if age_s > self.config.command_timeout_s:
-                self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
-                                 f"(timeout {self.config.command_timeout_s * 1e3:.0f} ms)")
-        if self.mode == "hold":
-            self._ramp_k = min(self._ramp_k + 1, self._ramp_ticks)
-            w = self._ramp_k / self._ramp_ticks
-            self.force = (1.0 - w) * self._ramp_from + w * self._ramp_to
-        if self.driver.state is Lifecycle.ACTIVE:
-            self.force = self.driver.write(self.force)
-        else:
-            self.force = np.zeros(self.driver.n_motors)
+        self._consumed_ns = max(self._consumed_ns, recv_ns)
+        decision = self.safety.step(Inputs(
+            theta_rad=self.theta, command_N=cmd.force_N if fresh else None, source=cmd.source if fresh else "",
+            command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None))
+        self._follow(decision.events)
+        self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
+            else np.zeros(self.driver.n_motors)
         self.driver.step()
         self.theta = self.driver.read()
         self.ticks += 1
@@ -211,34 +203,6 @@ class BridgeNode:
                 pub = self._extra_pubs[key] = publisher(self.session, key)
             pub.put(msg)
         self.tick_max_s = max(self.tick_max_s, time.perf_counter() - t0)
-
-    def _clamp(self, force_N: list[float]) -> np.ndarray:
-        f = np.asarray(force_N, dtype=float)
-        clamped = np.clip(f, self.f_min, self.f_max)
-        if np.any(clamped != f):
-            self.clamped += 1
-        return clamped
-
-    def _hold_target(self, theta: np.ndarray) -> np.ndarray:
-        """Hold forces at the encoder angles ``theta``, within [f_min, f_max]. A hold function that
-        fails or answers nonsense never fails the hold itself: the applied forces are kept."""
-        try:
-            f = np.asarray(self._hold_forces(np.asarray(theta, dtype=float)), dtype=float)
-        except Exception:  # noqa: BLE001
-            log.exception("hold forces failed at θ = %s rad; holding the applied forces", np.asarray(theta).tolist())
-            f = self.force
-        if f.shape != self.force.shape or not np.all(np.isfinite(f)):
-            f = self.force
-        return np.clip(f, self.f_min, self.f_max)
-
-    def _start_hold(self, reason: str) -> None:
-        self.mode, self.hold_reason = "hold", reason
-        self.holds += 1
-        self._ramp_from = self.force.copy()
-        self._ramp_to = self._hold_target(self.theta)
-        self._ramp_k = 0
-        log.warning("hold: %s; ramping to %s N over %d ticks", reason, np.round(self._ramp_to, 2).tolist(),
-                    self._ramp_ticks)
 
     # -- outputs --------------------------------------------------------------------------------
     def publish_state(self) -> None:

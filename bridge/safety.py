@@ -1,0 +1,207 @@
+"""The bridge's safety rules as a pure state machine: no bus, no clock, no driver.
+
+Each tick :class:`bridge.node.BridgeNode` gathers the facts of the tick in :class:`Inputs` (a valid
+command received since the last tick, the age of the newest valid command, the e-stop events, the
+encoder angles) and :meth:`Safety.step` answers with a :class:`Decision`: the drive state, the
+forces to write, whether the drives must be enabled, the hold reason and what to log. The node
+only moves data between the bus, this machine and the driver, so every rule below is tested
+without a bus (tests/test_bridge_safety.py) and is the same for the robot, the twin and a replay.
+
+Rules (the numbers live in :class:`SafetyConfig`):
+
+Clamping
+    Valid command forces are clamped to [f_min, f_max] (a cable must stay taut; counted).
+Activation
+    The drives start disabled (``inactive``: zero force). The first valid command enables them
+    (``active``).
+Watchdog
+    When no valid command arrived for ``command_timeout_s`` (real time only), the forces ramp
+    linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder angles
+    at that moment (``drive = "hold"``, ``hold_reason`` says why). The next valid command resumes
+    ``active``.
+E-stop
+    An engaged e-stop disables the drives (``disabled``, zero force) and every command is ignored
+    until it is released; then the drives are ``inactive`` until the next valid command. The node
+    turns an undecodable e-stop payload into an engaged event (fail safe).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bridge.bus import DriveState
+
+log = logging.getLogger("xneck.bridge")
+
+HoldForces = Callable[[np.ndarray], np.ndarray]
+"""θ (rad, one per motor) → the cable forces (N) that hold the neck still there."""
+
+EStopEvent = tuple[bool, str]
+"""(engaged, reason) of one e-stop message, in arrival order."""
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """The numbers of the rules. Forces in N, times in s."""
+
+    n_motors: int
+    f_min_N: float
+    f_max_N: float
+    command_timeout_s: float = 0.010  # no valid command for this long -> hold
+    hold_ramp_ticks: int = 5  # ticks of the linear ramp to the hold forces
+    watchdog: bool = True  # off in lockstep, where time stands still without commands
+
+    def __post_init__(self) -> None:
+        f_min, f_max = self.f_min_N, self.f_max_N
+        if not (math.isfinite(f_min) and math.isfinite(f_max) and 0.0 <= f_min < f_max):
+            raise ValueError(f"the force range must be 0 <= f_min < f_max (N), got ({f_min}, {f_max})")
+        if self.n_motors < 1 or self.hold_ramp_ticks < 1:
+            raise ValueError(f"n_motors and hold_ramp_ticks must be >= 1, got {self.n_motors}, {self.hold_ramp_ticks}")
+        if not (math.isfinite(self.command_timeout_s) and self.command_timeout_s > 0):
+            raise ValueError(f"command_timeout_s must be a positive number of seconds, got {self.command_timeout_s}")
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """The facts of one tick.
+
+    ``command_N``: the forces of a valid command received since the last step (None if none);
+    ``source``: its sender's law, for the log. ``command_age_s``: age of the newest valid
+    command (None if none ever arrived). ``estop``: e-stop events since the last step.
+    ``theta_rad``: the encoder angles of the last read.
+    """
+
+    theta_rad: np.ndarray
+    command_N: Sequence[float] | None = None
+    source: str = ""
+    command_age_s: float | None = None
+    estop: Sequence[EStopEvent] = ()
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the node must do this tick: enable or disable the drives (``enabled``), write
+    ``force_N`` if enabled (zeros otherwise), publish ``drive`` and ``hold_reason``, and log
+    ``events`` (``(logging level, message)`` pairs)."""
+
+    drive: DriveState
+    force_N: np.ndarray
+    enabled: bool
+    hold_reason: str = ""
+    estop_reason: str = ""
+    events: tuple[tuple[int, str], ...] = field(default=())
+
+
+class Safety:
+    """The state machine of the module docstring. Not thread-safe: one caller (the bridge loop)."""
+
+    def __init__(self, config: SafetyConfig, hold_forces: HoldForces) -> None:
+        self.config = config
+        self._hold_forces = hold_forces
+        n = config.n_motors
+        self.drive: DriveState = "inactive"
+        self.hold_reason = ""
+        self.estop_reason = ""
+        self.force = np.zeros(n)  # N, decided at the last step
+        self._ramp_from = self._ramp_to = np.zeros(n)
+        self._ramp_k = 0
+        self.clamped = self.holds = 0
+        self._events: list[tuple[int, str]] = []
+
+    @property
+    def enabled(self) -> bool:
+        """True while the drives must be enabled."""
+        return self.drive in ("active", "hold")
+
+    # -- e-stop --------------------------------------------------------------------------------
+    def apply_estop(self, events: Sequence[EStopEvent]) -> bool:
+        """Apply e-stop events in order; True if the drive state changed. :meth:`step` calls it
+        first; the lockstep loop also calls it between commands."""
+        changed = False
+        for engaged, reason in events:
+            if engaged and self.drive != "disabled":
+                self.drive, self.hold_reason, self.estop_reason = "disabled", "", reason
+                self.force = np.zeros(self.config.n_motors)
+                changed = True
+                self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
+            elif not engaged and self.drive == "disabled":
+                self.drive, self.estop_reason = "inactive", ""
+                changed = True
+                self._log(logging.WARNING, f"e-stop released ({reason}): drives inactive until the next valid command")
+        return changed
+
+    # -- one tick ------------------------------------------------------------------------------
+    def step(self, inputs: Inputs) -> Decision:
+        """Decide this tick's drive state and forces from its facts."""
+        cfg = self.config
+        was_disabled = self.drive == "disabled"
+        self.apply_estop(inputs.estop)
+        if self.drive == "disabled" or was_disabled:
+            pass  # a command never outlives the e-stop, nor one that may predate its release
+        elif inputs.command_N is not None:
+            if self.drive == "inactive":
+                self._log(logging.INFO, f"first valid command from {inputs.source!r}: drives enabled")
+            elif self.drive == "hold":
+                self._log(logging.INFO, f"valid commands from {inputs.source!r} again: leaving hold")
+            self.drive, self.hold_reason = "active", ""
+            self.force = self.clamp(inputs.command_N)
+        elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:
+            age_s = inputs.command_age_s
+            if age_s > cfg.command_timeout_s:
+                self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
+                                 f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms)", inputs.theta_rad)
+        if self.drive == "hold":
+            self._ramp_k = min(self._ramp_k + 1, cfg.hold_ramp_ticks)
+            w = self._ramp_k / cfg.hold_ramp_ticks
+            self.force = (1.0 - w) * self._ramp_from + w * self._ramp_to
+        if not self.enabled:
+            self.force = np.zeros(cfg.n_motors)
+        return Decision(drive=self.drive, force_N=self.force.copy(), enabled=self.enabled,
+                        hold_reason=self.hold_reason if self.drive == "hold" else "",
+                        estop_reason=self.estop_reason, events=self.take_events())
+
+    def take_events(self) -> tuple[tuple[int, str], ...]:
+        """The log events since the last call (``(logging level, message)``), oldest first."""
+        events, self._events = tuple(self._events), []
+        return events
+
+    def clamp(self, force_N: Sequence[float]) -> np.ndarray:
+        """Forces within [f_min, f_max]; counts the commands that needed it."""
+        f = np.asarray(force_N, dtype=float)
+        clamped = np.clip(f, self.config.f_min_N, self.config.f_max_N)
+        if np.any(clamped != f):
+            self.clamped += 1
+        return clamped
+
+    def hold_target(self, theta_rad: np.ndarray) -> np.ndarray:
+        """Hold forces at the encoder angles, within [f_min, f_max]. A hold function that fails or
+        answers nonsense never fails the hold itself: the present forces are kept."""
+        try:
+            f = np.asarray(self._hold_forces(np.asarray(theta_rad, dtype=float)), dtype=float)
+        except Exception:  # noqa: BLE001
+            log.exception("hold forces failed at θ = %s rad; holding the applied forces",
+                          np.asarray(theta_rad).tolist())
+            f = self.force
+        if f.shape != self.force.shape or not np.all(np.isfinite(f)):
+            f = self.force
+        return np.clip(f, self.config.f_min_N, self.config.f_max_N)
+
+    def _start_hold(self, reason: str, theta_rad: np.ndarray) -> None:
+        self.drive, self.hold_reason = "hold", reason
+        self.holds += 1
+        self._ramp_from = self.force.copy()
+        self._ramp_to = self.hold_target(theta_rad)
+        self._ramp_k = 0
+        self._log(logging.WARNING, f"hold: {reason}; ramping to {np.round(self._ramp_to, 2).tolist()} N "
+                                   f"over {self.config.hold_ramp_ticks} ticks")
+
+    def _log(self, level: int, message: str) -> None:
+        self._events.append((level, message))
+
+
+__all__ = ["Decision", "EStopEvent", "HoldForces", "Inputs", "Safety", "SafetyConfig"]

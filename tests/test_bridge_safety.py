@@ -1,0 +1,114 @@
+"""The bridge's safety rules as a pure state machine (issue 12), tick by tick without a bus:
+activation, clamping, the watchdog's ramp to the hold forces, leaving the hold, the e-stop."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from bridge.safety import Inputs, Safety, SafetyConfig
+
+N = 4
+THETA = np.zeros(N)
+HOLD = np.array([10.0, 12.0, 14.0, 16.0])
+
+
+def machine(**config) -> Safety:
+    cfg = {"n_motors": N, "f_min_N": 2.0, "f_max_N": 100.0, "command_timeout_s": 0.010, "hold_ramp_ticks": 5,
+           **config}
+    return Safety(SafetyConfig(**cfg), lambda theta: HOLD.copy())
+
+
+def cmd(force, age_s=0.0, source="law2", **extra) -> Inputs:
+    return Inputs(theta_rad=THETA, command_N=[float(f) for f in force], source=source, command_age_s=age_s, **extra)
+
+
+def idle(age_s=None, **extra) -> Inputs:
+    return Inputs(theta_rad=THETA, command_age_s=age_s, **extra)
+
+
+def test_drives_start_inactive_and_the_first_valid_command_enables_them():
+    s = machine()
+    d = s.step(idle())
+    assert (d.drive, d.enabled, d.force_N.tolist()) == ("inactive", False, [0.0] * N)
+    d = s.step(cmd([20.0] * N))
+    assert d.drive == "active" and d.enabled
+    assert any("drives enabled" in m for _lvl, m in d.events)
+
+
+def test_command_forces_are_clamped_to_the_force_range_and_counted():
+    s = machine()
+    s.step(cmd([20.0] * N))
+    s.step(cmd([20.0] * N))
+    d = s.step(cmd([0.5, 50.0, 100.0, 0.0]))
+    assert d.force_N.tolist() == [2.0, 50.0, 100.0, 2.0]
+    assert s.clamped == 1
+
+
+def test_watchdog_ramps_linearly_to_the_hold_forces_then_a_command_leaves_the_hold():
+    s = machine()
+    start = np.full(N, 30.0)
+    for _ in range(100):  # long enough for any start-up ramp to be over
+        s.step(cmd(start))
+    d = s.step(idle(age_s=0.009))
+    assert d.drive == "active"  # within the timeout: keep the last command
+    ramp = [s.step(idle(age_s=0.011 + 0.002 * k)) for k in range(7)]
+    assert all(r.drive == "hold" and "no valid command for 11 ms" in ramp[0].hold_reason for r in ramp)
+    assert s.holds == 1
+    for k, r in enumerate(ramp[:5]):
+        w = (k + 1) / 5
+        assert r.force_N == pytest.approx((1 - w) * start + w * HOLD)
+    assert ramp[-1].force_N.tolist() == HOLD.tolist()
+    assert any(lvl == logging.WARNING and m.startswith("hold:") for lvl, m in ramp[0].events)
+    d = s.step(cmd([25.0] * N))
+    assert d.drive == "active" and d.hold_reason == ""
+    assert any("leaving hold" in m for _lvl, m in d.events)
+
+
+def test_without_the_watchdog_lockstep_never_holds():
+    s = machine(watchdog=False)
+    s.step(cmd([20.0] * N))
+    assert s.step(idle(age_s=10.0)).drive == "active"
+
+
+def test_a_failing_hold_function_keeps_the_present_forces():
+    def broken(_theta):
+        raise RuntimeError("no model")
+
+    s = Safety(SafetyConfig(n_motors=N, f_min_N=2.0, f_max_N=100.0), broken)
+    for _ in range(100):
+        s.step(cmd([30.0] * N))
+    for k in range(6):
+        d = s.step(idle(age_s=0.02 + k))
+    assert d.drive == "hold" and d.force_N.tolist() == [30.0] * N
+
+
+def test_estop_disables_at_once_ignores_commands_and_release_waits_for_a_new_command():
+    s = machine()
+    s.step(cmd([20.0] * N))
+    d = s.step(cmd([20.0] * N, estop=[(True, "console button")]))
+    assert (d.drive, d.enabled, d.force_N.tolist()) == ("disabled", False, [0.0] * N)
+    assert d.estop_reason == "console button"
+    assert s.step(cmd([30.0] * N)).drive == "disabled"  # ignored while engaged
+    d = s.step(idle(estop=[(False, "cleared")]))
+    assert (d.drive, d.enabled, d.estop_reason) == ("inactive", False, "")
+    assert s.step(cmd([25.0] * N)).drive == "active"
+
+
+def test_release_and_command_in_the_same_tick_does_not_enable():
+    # The command may have been sent before the release: only a later one may enable the drives.
+    s = machine()
+    s.step(cmd([20.0] * N, estop=[(True, "button")]))
+    assert s.step(cmd([20.0] * N, estop=[(False, "cleared")])).drive == "inactive"
+    assert s.step(cmd([20.0] * N)).drive == "active"
+
+
+def test_an_undecodable_estop_counts_as_engaged_and_a_release_while_running_changes_nothing():
+    s = machine()
+    s.step(cmd([20.0] * N))
+    assert s.apply_estop([(False, "route check")]) is False
+    assert s.step(cmd([20.0] * N)).drive == "active"
+    d = s.step(idle(age_s=0.0, estop=[(True, "malformed e-stop message: bad JSON")]))
+    assert d.drive == "disabled" and d.estop_reason.startswith("malformed e-stop message")
