@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from controller.trajectory import identification_trajectory
+from controller.trajectory import identification_trajectory, recorded_excitation
 from twin.model import dynamics
 from twin.identification.pipeline import (
     CampaignData, Estimate, IdentificationError, identified_params, identify_all, identify_friction, make_provenance,
@@ -238,7 +238,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
     assert back.excitation_alpha_rad is None  # no trajectory in this archive: cutoff from θ̇
     with_traj = archive.write_campaign(tmp_path / "e.mcap", msgs,
                                        {**meta, "trajectory": identification_trajectory().to_json()})
-    exc = campaign_data_from_mcap(with_traj).excitation_alpha_rad
+    exc = campaign_data_from_mcap(with_traj, recorded_excitation).excitation_alpha_rad
     assert exc.shape[1] == 3 and np.degrees(np.abs(exc).max()) == pytest.approx(40.0, abs=0.5)
     np.testing.assert_allclose(back.theta_rad, d.theta_rad)
     np.testing.assert_allclose(back.alpha_ip_rad, d.alpha_ip_rad)
