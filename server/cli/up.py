@@ -5,15 +5,21 @@
 
 The server listens on the hub endpoint; the bridge and the controller connect to it (peer mode,
 multicast scouting off). Start order: server (until its health endpoint answers), bridge,
-controller. Nothing is restarted silently: if a process exits, the launcher says which, with its
-exit code and last log lines, stops the others and exits non-zero. Ctrl-C or SIGTERM stops them
-all in the safe order: controller, then bridge (which disables its drives), then server.
+controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
+and the viser port are free and that no other stack answers on the hub; if not, ``xneck up`` says
+so in one line and exits with code 3, having started no process (issue 13, finding 5: a second
+stack on the same hub would otherwise join the first one's bus and command its bridge). Nothing
+is restarted silently: if a process exits, the launcher says which, with its exit code and last
+log lines, stops the others and exits non-zero. Ctrl-C or SIGTERM stops them all in the safe
+order: controller, then bridge (which disables its drives), then server.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -26,6 +32,72 @@ import typer
 from server.cli.options import TRUTH_OPTION
 
 STOP_GRACE_S = 8.0
+PREFLIGHT_EXIT = 3  # exit code of a refused start (nothing was started)
+PROBE_S = 1.0  # how long the preflight waits for a Zenoh peer on a busy hub port
+
+
+def _port_taken(host: str, port: int) -> str:
+    """Why ``host:port`` cannot be bound now ('' if it can). SO_REUSEADDR as the servers use it,
+    so a port in TIME_WAIT counts as free but one with a listener does not."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            return "in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+    return ""
+
+
+def _tcp_address(endpoint: str) -> tuple[str, int] | None:
+    """(host, port) of a ``tcp/<host>:<port>`` endpoint; None for other protocols or no port."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def _stack_on(hub: str) -> list[str]:
+    """Processes of an xneck stack answering on ``hub`` (their liveliness keys), ['a Zenoh peer'] for
+    a Zenoh peer without any, [] when nothing Zenoh answers within :data:`PROBE_S`."""
+    import zenoh
+
+    from bridge import bus
+    from bridge.session import zenoh_config
+
+    with zenoh.open(zenoh_config(listen=[], connect=[hub.replace("0.0.0.0", "127.0.0.1")])) as probe:
+        deadline = time.monotonic() + PROBE_S
+        while not list(probe.info.peers_zid()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not list(probe.info.peers_zid()):
+            return []
+        # The hub's peers link to the probe by gossip, not at once: ask again for a short while.
+        found: set[str] = set()
+        while not found and time.monotonic() < deadline + PROBE_S:
+            found = {"/".join(str(r.ok.key_expr).split("/")[2:])
+                     for r in probe.liveliness().get(bus.ALIVE_ALL, timeout=0.25) if r.ok is not None}
+            time.sleep(0.05)
+    return sorted(found) or ["a Zenoh peer"]
+
+
+def preflight(host: str, port: int, viser_port: int, hub: str) -> str:
+    """The reason ``xneck up`` must not start (one line), or '' when it may."""
+    hub_address = _tcp_address(hub)
+    if hub_address is not None and hub_address[1] != 0:
+        why = _port_taken(*hub_address)
+        if why:
+            stack = _stack_on(hub)
+            if stack:
+                return (f"another xneck stack answers on the hub {hub} ({', '.join(stack)}): stop it, or give this "
+                        f"one its own --hub, --port and --viser-port")
+            return f"the hub endpoint {hub} is {why} (another program listens there): choose another --hub"
+    why = _port_taken(host, port) if port else ""
+    if why:
+        return f"the dashboard port {host}:{port} is {why}: choose another --port"
+    why = _port_taken(host, viser_port) if viser_port else ""
+    if why:
+        return f"the 3D view port {host}:{viser_port} is {why}: choose another --viser-port (0 = a free one)"
+    return ""
 
 
 def _xneck(*args: str) -> list[str]:
@@ -53,6 +125,7 @@ def up(
                                    "and connects to --hub."),
     host: str = typer.Option("127.0.0.1", "--host", help="Dashboard bind address."),
     port: int = typer.Option(8000, "--port", help="Dashboard HTTP port."),
+    viser_port: int = typer.Option(0, "--viser-port", help="Port of the 3D view (0: a free one)."),
     hub: str = typer.Option("tcp/127.0.0.1:7447", "--hub", help="Zenoh endpoint the server listens on and the "
                             "others connect to. Use tcp/0.0.0.0:7447 for a bridge on another machine."),
     data_dir: Path = typer.Option(Path("data"), "--data-dir", help="Archives, parameter sets, token, logs."),
@@ -65,6 +138,10 @@ def up(
                                                  "(tests, demos)."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
+    refused = preflight(host, port, viser_port, hub)
+    if refused:
+        typer.secho(f"error: xneck up refused to start: {refused}", err=True, fg="red")
+        raise typer.Exit(PREFLIGHT_EXIT)
     logs = Path(data_dir) / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
@@ -90,7 +167,7 @@ def up(
     code = 0
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
-                         "--mode", "robot" if robot else "twin"])
+                         "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port)])
         deadline = time.monotonic() + 60
         while not _healthy(url):
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:
