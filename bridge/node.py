@@ -59,6 +59,7 @@ class BridgeConfig:
 
     command_timeout_s: float = 0.010  # no valid command for this long -> hold (real time only)
     hold_ramp_s: float = 0.010  # duration of the ramp to the hold forces, counted in ticks
+    max_force_step_N: float = 1.0  # after any enable: the most a force may change per tick (N)
     lockstep: bool = False  # one tick per new command (twin driver only)
     republish_s: float = 0.05  # lockstep: re-publish the waiting state this often
     idle_timeout_s: float | None = None  # lockstep: stop after this long without a command
@@ -68,10 +69,11 @@ class BridgeConfig:
     instance: str = ""
 
     def __post_init__(self) -> None:
-        for name in ("command_timeout_s", "republish_s", "health_period_s"):
+        for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number of seconds, got {value}")
+                unit = "N" if name.endswith("_N") else "s"
+                raise ValueError(f"{name} must be a positive number ({unit}), got {value}")
         if not (math.isfinite(self.hold_ramp_s) and self.hold_ramp_s >= 0):
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
 
@@ -95,7 +97,8 @@ class BridgeNode:
         self.dt = driver.dt
         self.safety = Safety(SafetyConfig(
             n_motors=n, f_min_N=f_min, f_max_N=f_max, command_timeout_s=config.command_timeout_s,
-            hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), watchdog=not config.lockstep), hold_forces)
+            hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), max_force_step_N=config.max_force_step_N,
+            watchdog=not config.lockstep), hold_forces)
         self.f_min, self.f_max = f_min, f_max
         self.force = np.zeros(n)  # N, what the drives apply now
         self.safety.hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold

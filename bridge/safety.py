@@ -54,6 +54,7 @@ class SafetyConfig:
     f_max_N: float
     command_timeout_s: float = 0.010  # no valid command for this long -> hold
     hold_ramp_ticks: int = 5  # ticks of the linear ramp to the hold forces
+    max_force_step_N: float = 1.0  # after an enable: the most any force may change in one tick
     watchdog: bool = True  # off in lockstep, where time stands still without commands
 
     def __post_init__(self) -> None:
@@ -62,6 +63,8 @@ class SafetyConfig:
             raise ValueError(f"the force range must be 0 <= f_min < f_max (N), got ({f_min}, {f_max})")
         if self.n_motors < 1 or self.hold_ramp_ticks < 1:
             raise ValueError(f"n_motors and hold_ramp_ticks must be >= 1, got {self.n_motors}, {self.hold_ramp_ticks}")
+        if not (math.isfinite(self.max_force_step_N) and self.max_force_step_N > 0):
+            raise ValueError(f"max_force_step_N must be a positive force (N), got {self.max_force_step_N}")
         if not (math.isfinite(self.command_timeout_s) and self.command_timeout_s > 0):
             raise ValueError(f"command_timeout_s must be a positive number of seconds, got {self.command_timeout_s}")
 
@@ -110,6 +113,8 @@ class Safety:
         self.force = np.zeros(n)  # N, decided at the last step
         self._ramp_from = self._ramp_to = np.zeros(n)
         self._ramp_k = 0
+        self._target = np.zeros(n)  # N, the clamped forces of the newest valid command
+        self._bumpless = False  # after an enable, until the applied forces reach the command
         self.clamped = self.holds = 0
         self._events: list[tuple[int, str]] = []
 
@@ -145,17 +150,23 @@ class Safety:
             pass  # a command never outlives the e-stop, nor one that may predate its release
         elif inputs.command_N is not None:
             if self.drive == "inactive":
-                self._log(logging.INFO, f"first valid command from {inputs.source!r}: drives enabled")
+                self._log(logging.INFO, f"first valid command from {inputs.source!r}: drives enabled, "
+                                        f"ramping at {cfg.max_force_step_N:g} N per tick")
             elif self.drive == "hold":
-                self._log(logging.INFO, f"valid commands from {inputs.source!r} again: leaving hold")
+                self._log(logging.INFO, f"valid commands from {inputs.source!r} again: leaving hold, "
+                                        f"ramping at {cfg.max_force_step_N:g} N per tick")
+            if self.drive != "active":
+                self._bumpless = True  # every enable starts from the forces applied now
             self.drive, self.hold_reason = "active", ""
-            self.force = self.clamp(inputs.command_N)
+            self._target = self.clamp(inputs.command_N)
         elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:
             age_s = inputs.command_age_s
             if age_s > cfg.command_timeout_s:
                 self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
                                  f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms)", inputs.theta_rad)
-        if self.drive == "hold":
+        if self.drive == "active":
+            self.force = self._towards_target()
+        elif self.drive == "hold":
             self._ramp_k = min(self._ramp_k + 1, cfg.hold_ramp_ticks)
             w = self._ramp_k / cfg.hold_ramp_ticks
             self.force = (1.0 - w) * self._ramp_from + w * self._ramp_to
@@ -169,6 +180,18 @@ class Safety:
         """The log events since the last call (``(logging level, message)``), oldest first."""
         events, self._events = tuple(self._events), []
         return events
+
+    def _towards_target(self) -> np.ndarray:
+        """Bumpless enable: at most ``max_force_step_N`` per tick from the present forces until the
+        command is reached; from then on commands pass through."""
+        if not self._bumpless:
+            return self._target.copy()
+        step = self.config.max_force_step_N
+        f = self.force + np.clip(self._target - self.force, -step, step)
+        if np.array_equal(f, self._target):
+            self._bumpless = False
+            self._log(logging.INFO, "bumpless ramp done: commands pass through")
+        return f
 
     def clamp(self, force_N: Sequence[float]) -> np.ndarray:
         """Forces within [f_min, f_max]; counts the commands that needed it."""

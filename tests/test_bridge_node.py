@@ -112,6 +112,9 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
             assert _put_until(pub, _command(1, [0.5, 50.0, 100.0, 0.0]), lambda: node.commands.stats.accepted >= 1)
             node.tick()
             assert node.mode == "active" and node.driver.state is Lifecycle.ACTIVE
+            assert node.force.tolist() == [1.0, 1.0, 1.0, 1.0]  # bumpless: 1 N per tick from zero
+            for _ in range(99):
+                node.tick()
             assert node.force.tolist() == [2.0, 50.0, 100.0, 2.0]  # raised to f_min = 2 N
             assert node.clamped == 1
             for bad in (_command(2, [10.0, 10.0, 100.5, 10.0]), _command(3, [10.0, -0.1, 10.0, 10.0]),
@@ -161,7 +164,7 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             cmd_pub.put(_command(3, [25.0] * 4))
             assert wait_until(lambda: node.commands.stats.accepted == n + 2, 5.0)
             node.tick()
-            assert node.mode == "active" and node.force.tolist() == [25.0] * 4
+            assert node.mode == "active" and node.force.tolist() == [1.0] * 4  # bumpless from zero
             # An e-stop payload that cannot be decoded counts as engaged (fail safe).
             estop_pub._pub.put(b'{"v":7,"engaged":false}')
             assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
@@ -170,6 +173,54 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
         finally:
             node.shutdown()
             states.close()
+
+
+def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command(params):
+    """Issue 13, finding 1: after a release the first commands were [81, 22, 8, 28] N and
+    [100, 48, 8, 54] N from about 9 N; the applied forces must move at most 1 N per tick."""
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0, max_force_step_N=1.0)
+        cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        estop_pub = publisher(hub_session, bus.ESTOP)
+        states = Collector(hub_session, bus.MOTOR_STATE)
+        applied = []
+
+        def tick():
+            node.tick()
+            applied.append(node.force.copy())
+
+        try:
+            assert _put_until(cmd_pub, _command(1, [9.0] * 4), lambda: node.commands.stats.accepted >= 1)
+            for _ in range(20):
+                tick()
+            assert node.force.tolist() == [9.0] * 4
+            assert _put_until(estop_pub, bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="button"),
+                              lambda: node.estop_received >= 1)
+            tick()
+            assert node.mode == "disabled"  # the e-stop itself cuts the forces at once
+            engaged = len(applied) - 1
+            estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared"))
+            assert wait_until(lambda: node.estop_received >= 2, 5.0)
+            tick()
+            assert node.mode == "inactive"
+            for k, force in enumerate([[81.0, 22.0, 8.0, 28.0]] + [[100.0, 48.0, 8.0, 54.0]] * 3):
+                n = node.commands.stats.accepted
+                cmd_pub.put(_command(2 + k, force))
+                assert wait_until(lambda: node.commands.stats.accepted > n, 5.0)
+                tick()
+            for _ in range(120):
+                tick()
+            assert wait_until(lambda: len(states.messages()) >= len(applied), 5.0)
+            seen = states.messages()  # before the shutdown's final state
+        finally:
+            node.shutdown()
+            states.close()
+        steps = np.abs(np.diff(np.array(applied[engaged:]), axis=0)).max(axis=1)
+        print(f"\nlargest force step per tick: {steps.max():.2f} N")
+        assert steps.max() <= 1.0 + 1e-9, steps.round(1).tolist()
+        assert applied[-1].tolist() == [100.0, 48.0, 8.0, 54.0]
+        after = [s.force_applied_N for s in seen[next(i for i, s in enumerate(seen) if s.drive == "disabled"):]]
+        assert len(after) > 100 and np.abs(np.diff(np.array(after), axis=0)).max() <= 1.0 + 1e-9
 
 
 # -- real time -----------------------------------------------------------------------------------

@@ -40,8 +40,8 @@ def test_drives_start_inactive_and_the_first_valid_command_enables_them():
 
 def test_command_forces_are_clamped_to_the_force_range_and_counted():
     s = machine()
-    s.step(cmd([20.0] * N))
-    s.step(cmd([20.0] * N))
+    for _ in range(25):  # past the bumpless ramp from zero
+        s.step(cmd([20.0] * N))
     d = s.step(cmd([0.5, 50.0, 100.0, 0.0]))
     assert d.force_N.tolist() == [2.0, 50.0, 100.0, 2.0]
     assert s.clamped == 1
@@ -112,3 +112,42 @@ def test_an_undecodable_estop_counts_as_engaged_and_a_release_while_running_chan
     assert s.step(cmd([20.0] * N)).drive == "active"
     d = s.step(idle(age_s=0.0, estop=[(True, "malformed e-stop message: bad JSON")]))
     assert d.drive == "disabled" and d.estop_reason.startswith("malformed e-stop message")
+
+
+# -- bumpless enable (issue 13, finding 1) ---------------------------------------------------------
+
+FINDING_1 = [81.0, 22.0, 8.0, 28.0]  # the first command seen after an e-stop release
+
+
+def _max_step(forces) -> float:
+    return float(np.abs(np.diff(np.array(forces), axis=0)).max())
+
+
+def test_estop_release_ramps_to_the_first_commands_at_the_bounded_rate():
+    s = machine(max_force_step_N=1.0)
+    for _ in range(200):
+        s.step(cmd([9.0] * N))
+    applied = [s.step(cmd([9.0] * N)).force_N]
+    applied.append(s.step(idle(age_s=0.0, estop=[(True, "console button")])).force_N)
+    applied.append(s.step(idle(age_s=0.0, estop=[(False, "cleared")])).force_N)
+    commands = [FINDING_1, [100.0, 48.0, 8.0, 54.0]] + [[100.0, 48.0, 8.0, 54.0]] * 150
+    applied += [s.step(cmd(c)).force_N for c in commands]
+    steps = np.abs(np.diff(np.array(applied[2:]), axis=0))
+    assert steps.max() <= 1.0 + 1e-12, steps.max()
+    assert applied[-1].tolist() == [100.0, 48.0, 8.0, 54.0]  # reached, then passed through
+
+
+def test_every_enable_is_bumpless_then_commands_pass_through():
+    s = machine(max_force_step_N=1.0)
+    start_up = [s.step(cmd(FINDING_1)).force_N for _ in range(100)]
+    assert start_up[0].tolist() == [1.0, 1.0, 1.0, 1.0]  # from zero, one step
+    assert _max_step([np.zeros(N), *start_up]) <= 1.0 + 1e-12
+    assert start_up[-1].tolist() == FINDING_1
+    # Reached: commands pass through at once (clamped), in both directions.
+    assert s.step(cmd([50.0, 30.0, 1.0, 90.0])).force_N.tolist() == [50.0, 30.0, 2.0, 90.0]
+    # Leaving a hold: from the hold forces, at the bounded rate.
+    hold = [s.step(idle(age_s=0.02 + k)).force_N for k in range(6)]
+    assert hold[-1].tolist() == HOLD.tolist()
+    leave = [s.step(cmd(FINDING_1)).force_N for _ in range(100)]
+    assert _max_step([hold[-1], *leave]) <= 1.0 + 1e-12
+    assert leave[-1].tolist() == FINDING_1

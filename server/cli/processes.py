@@ -114,6 +114,8 @@ def bridge(
     lockstep: bool = LOCKSTEP_OPTION,
     command_timeout: float = typer.Option(0.010, "--command-timeout", help="Hold after this long without a valid command (s)."),
     hold_ramp: float = typer.Option(0.010, "--hold-ramp", help="Ramp to the hold forces over this long (s)."),
+    max_force_step: float = typer.Option(
+        1.0, "--max-force-step", help="After any enable, ramp the forces at most this much per tick (N)."),
     seed: int = SEED_OPTION,
     cable_model: Optional[str] = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
@@ -141,6 +143,7 @@ def bridge(
         raise _fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
+                              max_force_step_N=max_force_step,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
                               instance=instance)
     except ValueError as exc:
@@ -195,7 +198,7 @@ def twin(
     """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
     exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
+           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
 
