@@ -53,7 +53,7 @@ def baseline(data, params) -> None:
     th_d = np.gradient(data.theta_rad, dt, axis=0)
     th_dd = np.gradient(th_d, dt, axis=0)
     terms = dynamics.evaluate(m, alpha, ad)
-    a = (2 / np.pi) * np.arctan(params.friction.c_s * th_d)
+    a = dynamics.friction_shape(params.friction.c_s, params.friction.model == "sign", th_d)
     x = terms.l_c - m.l_c0 + m.rho * data.theta_rad
     xd = np.gradient(x, dt, axis=0)
     y_j = np.einsum("nij,nj->ni", terms.Z, data.force_N) - np.einsum("nij,nj->ni", terms.M, add) - terms.c - terms.g

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from controller.distribution import distribute, lower_bounds
-from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, short_cables
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, long_cable, short_cables
 from twin.model import dynamics
 from twin.model.numeric import Model, build
 from twin.model.params import Params
@@ -73,8 +73,7 @@ class ComputedTorque:
         self.params, self.config = params, config
         self.model = controller_model(params, config)
         self.dt = 1.0 / config.rate_hz
-        self.short = short_cables(self.model)
-        self.long = int(next(j for j in range(self.model.n_cables) if j not in set(self.short.tolist())))
+        self.short, self.long = short_cables(self.model), long_cable(self.model)
         self.kp, self.kv, self.ki = 3 * config.omega**2, 3 * config.omega, config.omega**3
         self._beta = 1.0 - math.exp(-2 * math.pi * config.velocity_filter_hz * self.dt)
         self.estimator = PseudoInverseEstimator(self.model, self.dt)
@@ -119,8 +118,7 @@ class ComputedTorque:
 @functools.lru_cache(maxsize=8)
 def _hold_model(params: Params) -> tuple[Model, np.ndarray, int]:
     m = build(params, "rigid", friction=False)
-    short = short_cables(m)
-    return m, short, int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
+    return m, short_cables(m), long_cable(m)
 
 
 def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
@@ -154,8 +152,7 @@ def nominal_force_check(params: Params, config: LawConfig):
     command on the nominal path (α̂ = α^d, e = 0, so w = α̈^d) after the tension distribution must
     lie within [f_min, f_max], and the distribution must be possible (n > 0, eq. 63)."""
     m = controller_model(params, config)
-    short = short_cables(m)
-    long = int(next(j for j in range(m.n_cables) if j not in set(short.tolist())))
+    short, long = short_cables(m), long_cable(m)
 
     def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
         terms = dynamics.evaluate(m, alpha, alpha_dot)

@@ -12,6 +12,7 @@ from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
 from twin.model import cables, dynamics
 from twin.model.numeric import build
+from twin.model.params import load_params
 from twin.sim.simulator import TwinConfig
 
 DEG = np.pi / 180
@@ -42,6 +43,17 @@ def test_eq_58_relaxes_to_the_static_stretch(params):
         x = predict_elongation(m, x, f, np.zeros(4), 0.002)
     np.testing.assert_allclose((m.k + m.lam * f) * x, f, rtol=1e-6)
     assert np.all(predict_elongation(m, np.full(4, 1e-4), np.zeros(4), np.zeros(4), 10.0) == 0)  # never < 0
+
+
+def test_eq_58_uses_the_models_friction_law(params):
+    """Eq. 58's t = f − f_friction(θ̇) with the model's own friction law: eq. 36 (sign) when the
+    parameters say so, not eq. 37 regardless (θ̇ = 0.05 rad/s: arctan is far from its plateau)."""
+    x, f, theta_dot = np.full(4, 1e-3), np.full(4, 30.0), np.full(4, 0.05)
+    for law in ("arctan", "sign"):
+        m = build(load_params(overrides={"friction.model": law}), "variable")
+        t = f - dynamics.f_friction(m, theta_dot)
+        expected = np.maximum(x + 0.002 / m.c_a * (t - (m.k + m.lam * t) * x), 0.0)
+        np.testing.assert_allclose(predict_elongation(m, x, f, theta_dot, 0.002), expected, rtol=1e-12)
 
 
 def test_distribution_meets_torque_and_bounds_with_one_active(params, rng):

@@ -21,17 +21,17 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 import urllib.request
 from pathlib import Path
-from typing import Optional
 
 import typer
 
+from server.child_processes import log_tail, stop_child, xneck_argv
 from server.cli.options import TRUTH_OPTION
 
 STOP_GRACE_S = 8.0
+LOG_LINES = 12  # of a child's log in an error message
 PREFLIGHT_EXIT = 3  # exit code of a refused start (nothing was started)
 PROBE_S = 1.0  # how long the preflight waits for a Zenoh peer on a busy hub port
 
@@ -100,23 +100,12 @@ def preflight(host: str, port: int, viser_port: int, hub: str) -> str:
     return ""
 
 
-def _xneck(*args: str) -> list[str]:
-    return [sys.executable, "-m", "server.cli", *args]
-
-
 def _healthy(url: str) -> bool:
     try:
-        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # noqa: S310 - loopback URL we built
+        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:
             return r.status == 200
     except OSError:
         return False
-
-
-def _tail(path: Path, n: int = 12) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
-    except OSError:
-        return ""
 
 
 def up(
@@ -130,11 +119,11 @@ def up(
                             "others connect to. Use tcp/0.0.0.0:7447 for a bridge on another machine."),
     data_dir: Path = typer.Option(Path("data"), "--data-dir", help="Archives, parameter sets, token, logs."),
     law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
-    driver_config: Optional[Path] = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
+    driver_config: Path | None = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = TRUTH_OPTION,
-    params_file: Optional[Path] = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
-    exit_after: Optional[float] = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
+    params_file: Path | None = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
+    exit_after: float | None = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
                                                  "(tests, demos)."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
@@ -161,7 +150,7 @@ def up(
     def start(name: str, args: list[str]) -> None:
         log_files[name] = logs / f"{name}.log"
         with open(log_files[name], "ab") as log:
-            procs[name] = subprocess.Popen(_xneck(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
 
     code = 0
@@ -171,7 +160,7 @@ def up(
         deadline = time.monotonic() + 60
         while not _healthy(url):
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:
-                raise RuntimeError(f"the server did not come up:\n{_tail(log_files['server'])}")
+                raise RuntimeError(f"the server did not come up:\n{log_tail(log_files['server'], LOG_LINES)}")
             time.sleep(0.2)
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
@@ -189,7 +178,7 @@ def up(
             if dead:
                 name, rc = dead[0]
                 typer.secho(f"error: the {name} exited (code {rc}); stopping the stack, nothing is restarted.\n"
-                            f"last lines of {log_files[name]}:\n{_tail(log_files[name])}", err=True, fg="red")
+                            f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
                 code = 1
                 break
             if exit_after is not None and time.monotonic() - started > exit_after:
@@ -201,15 +190,8 @@ def up(
     finally:
         for name in ("controller", "bridge", "server"):
             p = procs.get(name)
-            if p is None or p.poll() is not None:
-                continue
-            p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(STOP_GRACE_S)
-            except subprocess.TimeoutExpired:
+            if p is not None and stop_child(p, STOP_GRACE_S):
                 typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
-                p.kill()
-                p.wait(STOP_GRACE_S)
         typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
     if code:
         raise typer.Exit(code)

@@ -352,8 +352,9 @@ class Statics3X(NamedTuple):
     """Static equilibrium Z(α) f = g(α) of the 3-X prototype with four cables.
 
     f(t) = f_p + n t for t in [t_lo, t_hi] keeps f_min <= f <= f_max; ``feasible`` is t_lo <= t_hi.
-    f_p: (..., 4) particular solution with f_4 = 0 (N); n: (..., 4) null vector of Z with n_4 = 1
-    (positive entries, ERRATA); t is the long-cable force f_4 (N).
+    f_p: (..., 4) particular solution with no force on the long cable (N); n: (..., 4) null vector
+    of Z with 1 on the long cable (positive entries, ERRATA); t is the long-cable force (N), the
+    long cable being :func:`twin.model.estimation.long_cable` (c4 on the prototype).
     """
 
     f_p: NDArray[np.float64]
@@ -371,11 +372,18 @@ def _model_functions() -> tuple[Any, Any]:
     return Z, g
 
 
+def _cable_split(m: Any) -> tuple[NDArray[np.int64], int]:
+    """The short cables (one per joint, Z1 upper triangular) and the long one (Z2), eq. 23."""
+    from twin.model.estimation import long_cable, short_cables
+
+    return short_cables(m), long_cable(m)
+
+
 def statics_3x(m: Any, alpha: ArrayLike, f_min: float, f_max: float) -> Statics3X:
     """Force redundancy of the 3-X prototype at configurations ``alpha`` (rad, shape (..., 3)).
 
-    Z = [Z1 | Z2] with Z1 (3x3) upper triangular and invertible: f_p = [Z1⁻¹ g; 0] and
-    n = [−Z1⁻¹ Z2; 1] (3-X paper, section 6.2). Every component of f(t) gives an interval for t.
+    Z = [Z1 | Z2] (short cables | long cable) with Z1 (3x3) upper triangular and invertible:
+    f_p = [Z1⁻¹ g; 0] and n = [−Z1⁻¹ Z2; 1] (3-X paper, section 6.2). Every component of f(t) gives an interval for t.
     """
     if not (0.0 <= f_min < f_max):
         raise ValueError(f"need 0 <= f_min < f_max, got f_min = {f_min}, f_max = {f_max}")
@@ -385,11 +393,12 @@ def statics_3x(m: Any, alpha: ArrayLike, f_min: float, f_max: float) -> Statics3
     G = np.asarray(gf(m, alpha), dtype=float)
     if Z.shape[-1] != Z.shape[-2] + 1:
         raise ValueError(f"Z must have one more cable than joints, got shape {Z.shape}")
-    Z1, Z2 = Z[..., :-1], Z[..., -1:]
+    short, long = _cable_split(m)
+    Z1, Z2 = Z[..., short], Z[..., [long]]
     sol = np.linalg.solve(Z1, np.concatenate([G[..., None], -Z2], axis=-1))
-    ones = np.ones(Z.shape[:-2] + (1,))
-    f_p = np.concatenate([sol[..., 0], 0.0 * ones], axis=-1)
-    n = np.concatenate([sol[..., 1], ones], axis=-1)
+    f_p = np.zeros(Z.shape[:-2] + (Z.shape[-1],))
+    n = np.zeros_like(f_p)
+    f_p[..., short], n[..., short], n[..., long] = sol[..., 0], sol[..., 1], 1.0
     with np.errstate(divide="ignore", invalid="ignore"):
         lo = (f_min - f_p) / n
         hi = (f_max - f_p) / n

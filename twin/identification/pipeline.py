@@ -525,9 +525,7 @@ def _check_friction_excitation(proc: Processed, params: Params) -> None:
 
 def _friction_shape(proc: Processed, params: Params) -> FloatArray:
     """a = (2/π)·arctan(c_s·θ̇) (eq. 37), or sign(θ̇) for the eq. 36 model, (n, n_cables)."""
-    if params.friction.model == "sign":
-        return np.sign(proc.theta_dot)
-    return (2.0 / np.pi) * np.arctan(params.friction.c_s * proc.theta_dot)
+    return dynamics.friction_shape(params.friction.c_s, params.friction.model == "sign", proc.theta_dot)
 
 
 def _ia_over_rho(params: Params) -> float:
@@ -899,12 +897,12 @@ def validate(
     if comp is not None:
         comp = identify_complete(proc, identified, estimator="ls")
         tf["linear"] = cable_tension(proc, identified, comp.vector("f_s"))
-        ts["linear"] = comp.vector("k") * proc.x_c + comp.vector("c_a") * proc.x_c_dot
+        ts["linear"] = dynamics.cable_tension_law(comp.vector("k"), 0.0, comp.vector("c_a"), proc.x_c, proc.x_c_dot)
     if var is not None:
         var = identify_variable(proc, identified, fs_var, estimator="ls")
         tf["variable"] = cable_tension(proc, identified, fs_var)
         k, lam, c_a = var.vector("k"), var.vector("lambda"), var.vector("c_a")
-        ts["variable"] = (k * proc.x_c + c_a * proc.x_c_dot) / np.maximum(1.0 - lam * proc.x_c, 0.05)
+        ts["variable"] = dynamics.cable_tension_law(k, lam, c_a, proc.x_c, proc.x_c_dot)
     for name in tf:
         mask = _tension_mask(tf[name])
         te[name] = float(np.mean(np.abs(tf[name] - ts[name])[mask]))

@@ -20,10 +20,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from twin.model.compiled import njit
 
 from twin.model import xjoint
 from twin.model.cables import cable_terms
+from twin.model.compiled import njit
 from twin.model.numeric import LINEAR, RIGID, Model
 
 
@@ -181,39 +181,58 @@ def potential_energy(model: Model, alpha) -> np.ndarray:
 
 
 @njit(cache=True)
+def friction_shape(c_s, sign_law, theta_dot):
+    """Friction per newton of f_s at motor-shaft velocities θ̇ (rad/s, scalar or array):
+    (2/π)·arctan(c_s·θ̇) (eq. 37), or sign(θ̇) (eq. 36) when ``sign_law``. The one implementation
+    of eqs. 36-37: the twin, the controller, α̂'s eq. 58 and the identification regressor use it."""
+    if sign_law:
+        return np.sign(theta_dot)
+    return (2.0 / math.pi) * np.arctan(c_s * theta_dot)
+
+
+@njit(cache=True)
 def friction_into(m, theta_dot, out):
     """Eq. 37 (or eq. 36 when m.friction_sign): friction force (N) opposing the motor motion."""
     for j in range(m.n_cables):
-        if m.friction_sign:
-            out[j] = m.f_s[j] * np.sign(theta_dot[j])
-        else:
-            out[j] = m.f_s[j] * (2.0 / math.pi) * math.atan(m.c_s * theta_dot[j])
+        out[j] = m.f_s[j] * friction_shape(m.c_s, m.friction_sign, theta_dot[j])
+
+
+DIVISOR_MIN = 0.05  # floor of eq. 54's 1 − λ·x: no positive tension solves it past x = 1/λ
+
+
+@njit(cache=True)
+def tension_divisor(lam, x):
+    """1 − λ·x of eq. 54 (scalar or array), floored at DIVISOR_MIN: the stiffness k/(1 − λ·x)
+    grows without bound towards x = 1/λ, and the cap keeps the tension finite there."""
+    return np.maximum(1.0 - lam * x, DIVISOR_MIN)
+
+
+@njit(cache=True)
+def cable_tension_law(k, lam, c_a, x, x_dot):
+    """Eq. 39 (λ = 0) or eq. 54 solved for t: t = (k·x + c_a·ẋ)/(1 − λ·x), with x the stretch (m)
+    and ẋ its rate (m/s); scalar or array, not yet clipped to a pulling cable."""
+    return (k * x + c_a * x_dot) / tension_divisor(lam, x)
 
 
 @njit(cache=True)
 def tension_into(m, x, x_dot, out):
     """Cable tension (N) from stretch x (m) and its rate (m/s): eq. 39 (linear) or eq. 54
-    (variable), solved for t: t = (k·x + c_a·ẋ)/(1 − λ·x). A cable only pulls: t = 0 when slack
-    (x <= 0) or when the damper would push. Returns the number of slack cables."""
+    (variable), see :func:`cable_tension_law`. A cable only pulls: t = 0 when slack (x <= 0) or
+    when the damper would push. Returns the number of slack cables."""
     slack = 0
     for j in range(m.n_cables):
         if x[j] <= 0.0:
             out[j] = 0.0
             slack += 1
             continue
-        den = 1.0 - m.lam[j] * x[j]
-        # eq. 54 has no positive solution past x = 1/λ (stiffness → ∞); cap it there.
-        t = (m.k[j] * x[j] + m.c_a[j] * x_dot[j]) / max(den, 0.05)
+        t = cable_tension_law(m.k[j], m.lam[j], m.c_a[j], x[j], x_dot[j])
         out[j] = t if t > 0.0 else 0.0
     return slack
 
 
 def f_friction(model: Model, theta_dot) -> np.ndarray:
     """Friction forces (N) at motor-shaft velocities θ̇ (..., n_cables) rad/s, eqs. 36-37."""
-    td = np.asarray(theta_dot, dtype=float)
-    if model.friction_sign:
-        return model.f_s * np.sign(td)
-    return model.f_s * (2.0 / np.pi) * np.arctan(model.c_s * td)
+    return model.f_s * friction_shape(model.c_s, model.friction_sign, np.asarray(theta_dot, dtype=float))
 
 
 def tension(model: Model, x_c, x_c_dot) -> np.ndarray:
@@ -222,8 +241,7 @@ def tension(model: Model, x_c, x_c_dot) -> np.ndarray:
     xd = np.broadcast_to(np.asarray(x_c_dot, dtype=float), x.shape)
     if model.cable_model == RIGID:
         raise ValueError("the rigid cable model has no tension law: tensions follow from eq. 29")
-    den = np.maximum(1.0 - model.lam * x, 0.05)
-    t = np.maximum((model.k * x + model.c_a * xd) / den, 0.0)
+    t = np.maximum(cable_tension_law(model.k, model.lam, model.c_a, x, xd), 0.0)
     return np.where(x > 0.0, t, 0.0)
 
 

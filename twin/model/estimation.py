@@ -16,9 +16,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from twin.model.compiled import njit
 
 from twin.model import xjoint
+from twin.model.compiled import njit
+from twin.model.dynamics import f_friction
 from twin.model.numeric import RIGID, Model
 
 
@@ -36,6 +37,16 @@ def short_cables(model: Model) -> np.ndarray:
             raise ValueError(f"no cable ends at joint {i + 1}: eq. 33 needs one cable per joint")
         chosen.append(candidates[0])
     return np.array(chosen, dtype=np.int64)
+
+
+def long_cable(model: Model) -> int:
+    """Index of the one cable that is not short (the paper's c4, along every joint): the column
+    Z2 of Z = [Z1 | Z2] (eq. 23) whose force is the redundancy t of eqs. 63-65."""
+    short = set(short_cables(model).tolist())
+    rest = [j for j in range(model.n_cables) if j not in short]
+    if len(rest) != 1:
+        raise ValueError(f"eqs. 63-65 need exactly one cable beside the short ones, got {len(rest)}")
+    return rest[0]
 
 
 @njit(cache=True)
@@ -99,7 +110,7 @@ def predict_elongation(model: Model, x_c: np.ndarray, f: np.ndarray, theta_dot: 
     0.3-1 mm where friction is large, with λ·t by about 0.01 mm (measured on the twin)."""
     if model.cable_model == RIGID:
         return np.zeros(model.n_cables)
-    t = f - model.f_s * (2.0 / math.pi) * np.arctan(model.c_s * theta_dot)
+    t = f - f_friction(model, theta_dot)
     x_next = x_c + dt / model.c_a * (t - (model.k + model.lam * t) * x_c)
     return np.maximum(x_next, 0.0)
 

@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-from twin.model.dynamics import evaluate_into, friction_into, motor_terms
+from twin.model.dynamics import evaluate_into, friction_into, motor_terms, tension_divisor
 from twin.model.numeric import LINEAR, RIGID
 
 ALPHA_FLAT = math.pi  # rad: an X-joint is flat (singular) at α = ±π, i.e. θ = α/2 = ±90° (2-X paper)
@@ -51,7 +51,7 @@ def _tension_and_slopes(m, x, x_dot, t, K, D):
             continue
         den = 1.0
         if m.cable_model != LINEAR:
-            den = max(1.0 - m.lam[j] * x[j], 0.05)
+            den = tension_divisor(m.lam[j], x[j])
         tj = (m.k[j] * x[j] + m.c_a[j] * x_dot[j]) / den
         if tj > 0.0:
             t[j] = tj
