@@ -132,6 +132,12 @@ def bridge(
 ) -> None:
     """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
     rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""
+    if driver != "twin":
+        # Real and replayed motors need the model only once per hold: plain Python keeps numba,
+        # llvmlite and scipy out of the bridge (the BeagleBone has neither the RAM nor the wheels).
+        from twin.model.compiled import prefer_plain_python
+
+        prefer_plain_python()
     from bridge.driver import DriverError
     from bridge.node import BridgeConfig, run_lockstep, run_realtime
     from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals

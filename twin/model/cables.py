@@ -12,9 +12,9 @@ eq. 20's θ convention (θ > 0 winds the cable in); eqs. 28-35 use the opposite 
 from __future__ import annotations
 
 import numpy as np
-from twin.model.compiled import njit
 
 from twin.model import xjoint
+from twin.model.compiled import njit
 from twin.model.numeric import Model
 
 

@@ -1,37 +1,61 @@
-"""numba's ``njit`` when numba is installed, a do-nothing decorator otherwise.
+"""numba's ``njit`` when numba is wanted and installed, a do-nothing decorator otherwise.
 
 The model's kernels (jets, X-joint, cables, dynamics, eq. 33) are written once, in the subset of
 Python that numba compiles. On the PC they are compiled (the 500 Hz loop and the 50× real-time twin
-need microseconds); on the robot's BeagleBone Blue (ARMv7, no numba for Debian 12's Python) the
-bridge runs the very same functions as plain Python/numpy: it only needs them once per hold (the
-hold forces, eq. 33 + eqs. 63-65), so there is no second implementation of any equation.
+need microseconds); the bridge with a real or replayed driver runs the very same functions as plain
+Python/numpy: it needs them once per hold (the hold forces, eq. 33 + eqs. 63-65), and the robot's
+BeagleBone Blue (ARMv7, 512 MB) has no numba for Debian 12's Python. So there is no second
+implementation of any equation, only two ways to run it.
 
-``XNECK_NO_NUMBA=1`` forces the plain path even where numba is installed (what the tests and
-``benchmarks/bridge.py`` use to check the robot's path on the PC).
+The choice is made once, when the first kernel is decorated (that is, when the first model module
+is imported):
+- numba is used when it imports, unless ``XNECK_NO_NUMBA=1`` (tests and ``benchmarks/bridge.py``
+  use it to run the robot's path on the PC), or :func:`prefer_plain_python` was called before
+  (``xneck bridge --driver beaglebone|replay`` does, so it never loads numba, llvmlite or scipy).
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
-NUMBA = False
-if os.environ.get("XNECK_NO_NUMBA", "") in ("", "0"):
-    try:
-        from numba import njit as _numba_njit
+_use_numba: bool | None = None  # None: not decided yet
+_numba_njit: Callable | None = None
 
-        NUMBA = True
-    except ImportError:  # the lean (robot) install has no numba
-        pass
+
+def prefer_plain_python() -> bool:
+    """Run the model as plain Python in this process; call before importing any model module.
+    Returns False when it is too late (kernels already compiled with numba, e.g. a test process
+    that ran the twin before): they stay compiled, which gives the same numbers."""
+    global _use_numba
+    if _use_numba is None:
+        _use_numba = False
+    return not _use_numba
+
+
+def numba_enabled() -> bool:
+    """Whether the kernels of this process are compiled with numba (decides if not decided yet)."""
+    global _use_numba, _numba_njit
+    if _use_numba is None:
+        _use_numba = False
+        if os.environ.get("XNECK_NO_NUMBA", "") in ("", "0"):
+            try:
+                from numba import njit as numba_njit
+            except ImportError:  # the lean (robot) install has no numba
+                pass
+            else:
+                _numba_njit, _use_numba = numba_njit, True
+    return _use_numba
 
 
 def njit(*args, **kwargs):
-    """``numba.njit`` if available; otherwise returns the function unchanged. Used both as
+    """``numba.njit`` when :func:`numba_enabled`, else the function unchanged. Used both as
     ``@njit`` and as ``@njit(cache=True)``."""
-    if NUMBA:
+    if numba_enabled() and _numba_njit is not None:
         return _numba_njit(*args, **kwargs)
     if len(args) == 1 and callable(args[0]) and not kwargs:
         return args[0]
     return lambda function: function
 
 
-__all__ = ["NUMBA", "njit"]
+__all__ = ["njit", "numba_enabled", "prefer_plain_python"]

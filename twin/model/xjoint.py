@@ -13,9 +13,9 @@ P = m(α)·(−sin(α/2), cos(α/2)) with m = sqrt(L² − b² cos²(α/2)) is 2
 from __future__ import annotations
 
 import numpy as np
-from twin.model.compiled import njit
 
 from twin.model import jet
+from twin.model.compiled import njit
 
 # Rows of the (N_ROWS, 3) jet table that joint_jets fills: (value, d/dα, d²/dα²) per quantity.
 L_LEFT, L_RIGHT, PSI = 0, 1, 2

@@ -1,0 +1,11 @@
+"""Fake rcpy.gpio: remembers the levels it was given."""
+
+_levels = {}
+
+
+def set_value(pin, value=0):
+    _levels[pin] = int(value)
+
+
+def get_value(pin):
+    return _levels.get(pin, 0)
