@@ -88,23 +88,42 @@ class MotorState(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     """Motor shaft angles and applied cable forces, published by the bridge (or the twin) at 500 Hz.
 
     ``force_applied_N`` is what the drives actually apply, after the bridge's clamping to
-    [f_min, f_max] and hold logic. ``hold_reason`` is empty unless ``drive == "hold"``.
+    [f_min, f_max], bumpless ramp and hold logic. ``hold_reason`` is empty unless ``drive == "hold"``.
+
+    Identity (v2): ``epoch`` is a random id of this bridge run, new at every start (a command
+    answers a state by echoing it; a restarted bridge is recognised at once); ``bridge`` is the
+    bridge's instance name; ``owner`` the controller instance whose commands it accepts ("" if
+    none). The e-stop (v2): ``estop_engaged`` is the bridge's latched e-stop, the one truth every
+    other process shows, and ``estop_reason`` why (e.g. "malformed e-stop message: ...").
     """
 
-    v: int = 1
+    v: int = 2
     theta_rad: list[float]
     force_applied_N: list[float]
     drive: DriveState
     hold_reason: str = ""
+    epoch: str
+    bridge: str
+    owner: str = ""
+    estop_engaged: bool = False
+    estop_reason: str = ""
 
 
 class ForceCommand(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """Cable force set-points [N], controller to bridge, one per motor. ``source`` names the sender
-    (control law or console) so a rejected or clamped command can be traced."""
+    """Cable force set-points [N], controller to bridge, one per motor. ``source`` names the law
+    (for logs) so a rejected or clamped command can be traced.
 
-    v: int = 1
+    Identity (v2): ``sender`` is the sending controller's instance, whose liveliness token
+    ``liveliness_key("controller", sender)`` must be alive; the bridge obeys one owner at a time.
+    ``epoch`` is the bridge epoch of the ``MotorState`` the command answers and ``stamp_s`` that
+    state's ``stamp_s`` (one clock on the command key): a command for another bridge run is refused.
+    """
+
+    v: int = 2
     force_N: list[float]
     source: str
+    sender: str
+    epoch: str
 
 
 class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):

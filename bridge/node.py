@@ -48,7 +48,7 @@ import zenoh
 
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
-from bridge.safety import HoldForces, Inputs, Safety, SafetyConfig
+from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
 
 log = logging.getLogger("xneck.bridge")
@@ -93,6 +93,7 @@ class BridgeNode:
         self.driver, self.config = driver, config
         self.session = session
         self.instance = config.instance or f"bridge-{uuid.uuid4().hex[:6]}"
+        self.epoch = uuid.uuid4().hex[:12]  # this run: commands for another run are refused
         n = driver.n_motors
         self.dt = driver.dt
         self.safety = Safety(SafetyConfig(
@@ -103,8 +104,22 @@ class BridgeNode:
         self.force = np.zeros(n)  # N, what the drives apply now
         self.safety.hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold
 
+        # Ownership is decided where commands arrive (Zenoh's callback thread), so a refused
+        # command never replaces the owner's latest one.
+        self._owner_lock = threading.Lock()
+        self.ownership = Ownership(self.epoch)
+        self._controllers = session.liveliness().declare_subscriber(
+            f"{bus.PREFIX}/alive/controller/*", self._on_controller, history=True)
+
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
+            with self._owner_lock:
+                before = self.ownership.owner
+                reason = self.ownership.admit(cmd.sender, cmd.epoch)
+            if reason:
+                raise bus.BusDecodeError(f"ForceCommand from {cmd.sender!r}: {reason}")
+            if before != cmd.sender:
+                log.info("controller %r owns the bridge now", cmd.sender)
 
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
@@ -128,6 +143,11 @@ class BridgeNode:
         atexit.register(self._atexit)
 
     @property
+    def owner(self) -> str:
+        with self._owner_lock:
+            return self.ownership.owner
+
+    @property
     def clamped(self) -> int:
         return self.safety.clamped
 
@@ -140,6 +160,21 @@ class BridgeNode:
         return self.safety.estop_reason
 
     # -- inputs ---------------------------------------------------------------------------------
+    def _on_controller(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: a controller's liveliness token appeared or vanished.
+        try:
+            _kind, name = bus.parse_liveliness_key(str(sample.key_expr))
+        except ValueError:
+            return
+        with self._owner_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.ownership.appeared(name)
+                released = False
+            else:
+                released = self.ownership.vanished(name)
+        if released:
+            log.warning("owner %r is gone: ownership released (the watchdog holds until a new owner)", name)
+
     def _on_estop(self, sample: zenoh.Sample) -> None:
         # Zenoh callback thread: decode and queue only; the loop acts on it within one tick.
         try:
@@ -147,7 +182,7 @@ class BridgeNode:
             event = (msg.engaged, msg.reason or "e-stop")
             valid = True
         except bus.BusDecodeError as exc:
-            event = (True, f"undecodable e-stop message ({exc.reason})")
+            event = (True, f"malformed e-stop message: {exc.reason}")
             valid = False
         with self._estop_lock:
             self.estop_received += 1
@@ -213,7 +248,8 @@ class BridgeNode:
         self._state_pub.put(bus.MotorState(
             seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self.theta.tolist(),
             force_applied_N=self.force.tolist(), drive=self.mode,
-            hold_reason=self.hold_reason if self.mode == "hold" else ""))
+            hold_reason=self.hold_reason if self.mode == "hold" else "", epoch=self.epoch, bridge=self.instance,
+            owner=self.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
 
     def publish_health(self) -> None:
         stats = self.commands.stats
@@ -247,7 +283,7 @@ class BridgeNode:
                     last()
                 except Exception:  # noqa: BLE001 - the session may already be gone
                     pass
-            closers = [self.commands.close, self._estop_sub.undeclare, self._state_pub.close,
+            closers = [self.commands.close, self._controllers.undeclare, self._estop_sub.undeclare, self._state_pub.close,
                        self._health.undeclare, self._token.undeclare]
             closers += [p.close for p in self._extra_pubs.values()]
             for closer in closers:

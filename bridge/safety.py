@@ -96,6 +96,7 @@ class Decision:
     force_N: np.ndarray
     enabled: bool
     hold_reason: str = ""
+    estop_engaged: bool = False
     estop_reason: str = ""
     events: tuple[tuple[int, str], ...] = field(default=())
 
@@ -109,6 +110,7 @@ class Safety:
         n = config.n_motors
         self.drive: DriveState = "inactive"
         self.hold_reason = ""
+        self.estop_engaged = False  # latched from engage to release
         self.estop_reason = ""
         self.force = np.zeros(n)  # N, decided at the last step
         self._ramp_from = self._ramp_to = np.zeros(n)
@@ -131,11 +133,12 @@ class Safety:
         for engaged, reason in events:
             if engaged and self.drive != "disabled":
                 self.drive, self.hold_reason, self.estop_reason = "disabled", "", reason
+                self.estop_engaged = True
                 self.force = np.zeros(self.config.n_motors)
                 changed = True
                 self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
             elif not engaged and self.drive == "disabled":
-                self.drive, self.estop_reason = "inactive", ""
+                self.drive, self.estop_reason, self.estop_engaged = "inactive", "", False
                 changed = True
                 self._log(logging.WARNING, f"e-stop released ({reason}): drives inactive until the next valid command")
         return changed
@@ -174,7 +177,8 @@ class Safety:
             self.force = np.zeros(cfg.n_motors)
         return Decision(drive=self.drive, force_N=self.force.copy(), enabled=self.enabled,
                         hold_reason=self.hold_reason if self.drive == "hold" else "",
-                        estop_reason=self.estop_reason, events=self.take_events())
+                        estop_engaged=self.estop_engaged, estop_reason=self.estop_reason,
+                        events=self.take_events())
 
     def take_events(self) -> tuple[tuple[int, str], ...]:
         """The log events since the last call (``(logging level, message)``), oldest first."""
@@ -206,7 +210,7 @@ class Safety:
         answers nonsense never fails the hold itself: the present forces are kept."""
         try:
             f = np.asarray(self._hold_forces(np.asarray(theta_rad, dtype=float)), dtype=float)
-        except Exception:  # noqa: BLE001
+        except Exception:  # any failure of the hold rule must not fail the hold itself
             log.exception("hold forces failed at θ = %s rad; holding the applied forces",
                           np.asarray(theta_rad).tolist())
             f = self.force
@@ -227,4 +231,46 @@ class Safety:
         self._events.append((level, message))
 
 
-__all__ = ["Decision", "EStopEvent", "HoldForces", "Inputs", "Safety", "SafetyConfig"]
+class Ownership:
+    """One controller owns the bridge at a time (issue 13, finding 5), decided from facts only.
+
+    The node reports controllers' liveliness tokens as they appear and vanish
+    (``xneck/alive/controller/<instance>``) and asks :meth:`admit` for every decoded command. The
+    sender of the first command whose token is alive becomes the owner; commands from any other
+    sender are refused ("bridge owned by <owner>"), and so is every command whose ``epoch`` is not
+    this bridge run's (computed for a previous run). When the owner's token vanishes the bridge
+    has no owner (its watchdog holds meanwhile) and the next live sender takes over. Not
+    thread-safe: the node calls it under one lock.
+    """
+
+    def __init__(self, epoch: str) -> None:
+        self.epoch = epoch
+        self.owner = ""
+        self._alive: set[str] = set()
+
+    def appeared(self, sender: str) -> None:
+        self._alive.add(sender)
+
+    def vanished(self, sender: str) -> bool:
+        """Forget a token; True if it was the owner's (ownership released)."""
+        self._alive.discard(sender)
+        if sender and sender == self.owner:
+            self.owner = ""
+            return True
+        return False
+
+    def admit(self, sender: str, epoch: str) -> str:
+        """"" if a command of ``sender`` answering bridge run ``epoch`` is to be obeyed (taking
+        ownership if there is no owner), else the reason it is refused."""
+        if self.owner and sender != self.owner:
+            return f"bridge owned by {self.owner}"
+        if epoch != self.epoch:
+            return f"command for bridge epoch {epoch!r}, this bridge run is {self.epoch!r}"
+        if not self.owner:
+            if sender not in self._alive:
+                return f"sender {sender!r} has no liveliness token (xneck/alive/controller/<sender>)"
+            self.owner = sender
+        return ""
+
+
+__all__ = ["Decision", "EStopEvent", "HoldForces", "Inputs", "Ownership", "Safety", "SafetyConfig"]

@@ -111,8 +111,10 @@ class ControllerNode:
                                                kind=ev.kind, event=ev.event, progress=ev.progress, message=ev.message))
 
     def command(self, f: np.ndarray, stamp_s: float) -> None:
+        state = self.states.latest()  # the bridge run it answers (issue 13: the bridge refuses other epochs)
         self._last_cmd = bus.ForceCommand(seq=self._next("cmd"), stamp_s=stamp_s, force_N=f.tolist(),
-                                          source=self.service.law.name)
+                                          source=self.service.law.name, sender=self.instance,
+                                          epoch=state.epoch if state is not None else "")
         self._cmd.put(self._last_cmd)
 
     def hold(self, reason: str, stamp_s: float) -> None:

@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 def motor_state(seq: int) -> bus.MotorState:
     return bus.MotorState(
         seq=seq, stamp_s=seq * 0.002, theta_rad=[0.001 * seq, 0.2, -0.3, 0.4],
-        force_applied_N=[5.0, 6.0, 7.0, 8.0], drive="active",
+        force_applied_N=[5.0, 6.0, 7.0, 8.0], drive="active", epoch="e1", bridge="b1",
     )
 
 
@@ -126,7 +126,7 @@ def test_recorder_archives_every_channel_from_the_bus(
         for i in range(200):
             states.put(motor_state(i))
             if i % 10 == 0:
-                commands.put(bus.ForceCommand(seq=i // 10, stamp_s=i * 0.002, force_N=[1.0, 2.0, 3.0, 4.0], source="pid"))
+                commands.put(bus.ForceCommand(seq=i // 10, stamp_s=i * 0.002, force_N=[1.0, 2.0, 3.0, 4.0], source="pid", sender="c", epoch="e1"))
             time.sleep(0.0005)
         a.put(bus.MOTOR_STATE, b'{"v": 1, "broken": true}', congestion_control=zenoh.CongestionControl.BLOCK)
         a.put("xneck/not/in/contract", b"{}", congestion_control=zenoh.CongestionControl.BLOCK)

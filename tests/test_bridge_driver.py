@@ -260,7 +260,8 @@ def test_replay_driver_replays_archived_angles(tmp_path):
     from bridge.archive import write_campaign
 
     states = [bus.MotorState(seq=k, stamp_s=0.002 * k, theta_rad=[0.1 * k, 0.0, -0.1 * k, 1.0],
-                             force_applied_N=[10.0 + k, 10.0, 10.0, 10.0], drive="active") for k in range(5)]
+                             force_applied_N=[10.0 + k, 10.0, 10.0, 10.0], drive="active", epoch="e0",
+                             bridge="b0") for k in range(5)]
     path = write_campaign(tmp_path / "c.mcap", [(bus.MOTOR_STATE, k * 2_000_000, s) for k, s in enumerate(states)],
                           {"campaign_id": "r1", "kind": "control"})
     drv = ReplayDriver(ReplayConfig(path=str(path)))

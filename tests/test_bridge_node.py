@@ -21,7 +21,7 @@ from bridge.driver import Lifecycle
 from twin.sim.driver import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_realtime
 from server.cli.processes import bridge_node
-from bridge.session import publisher, subscribe_latest
+from bridge.session import liveliness_token, publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_until
 from controller.laws import hold_forces
 
@@ -64,8 +64,22 @@ def _node(session, params, **config) -> BridgeNode:
     return bridge_node(session, driver, params, BridgeConfig(**config))
 
 
-def _command(seq, force, source="test"):
-    return bus.ForceCommand(seq=seq, stamp_s=time.time(), force_N=[float(f) for f in force], source=source)
+def _command(seq, force, epoch, source="law2", sender="test"):
+    """A command of controller ``sender`` answering bridge run ``epoch`` (the bridge obeys only
+    its owner, a controller with a live token: see :func:`_as_controller`)."""
+    return bus.ForceCommand(seq=seq, stamp_s=time.time(), force_N=[float(f) for f in force], source=source,
+                            sender=sender, epoch=epoch)
+
+
+def _as_controller(session, name="test"):
+    """Make ``session`` a controller on the bus: its liveliness token, as ``xneck controller`` has."""
+    return liveliness_token(session, "controller", name)
+
+
+def _epoch(states) -> str:
+    """The bridge epoch of the latest state a Collector saw."""
+    assert wait_until(lambda: len(states.messages()) > 0, 30.0)
+    return states.messages()[-1].epoch
 
 
 def _stop_process(proc: subprocess.Popen, sig=signal.SIGTERM, timeout=10.0) -> int:
@@ -103,13 +117,14 @@ def _put_until(pub, msg, predicate, timeout_s=5.0) -> bool:
 
 def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params, command_timeout_s=5.0)  # no watchdog between manual ticks
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
             node.tick()
             assert node.mode == "inactive" and node.driver.state is Lifecycle.INACTIVE
             assert node.force.tolist() == [0.0] * 4
-            assert _put_until(pub, _command(1, [0.5, 50.0, 100.0, 0.0]), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(pub, _command(1, [0.5, 50.0, 100.0, 0.0], node.epoch), lambda: node.commands.stats.accepted >= 1)
             node.tick()
             assert node.mode == "active" and node.driver.state is Lifecycle.ACTIVE
             assert node.force.tolist() == [1.0, 1.0, 1.0, 1.0]  # bumpless: 1 N per tick from zero
@@ -117,10 +132,11 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
                 node.tick()
             assert node.force.tolist() == [2.0, 50.0, 100.0, 2.0]  # raised to f_min = 2 N
             assert node.clamped == 1
-            for bad in (_command(2, [10.0, 10.0, 100.5, 10.0]), _command(3, [10.0, -0.1, 10.0, 10.0]),
-                        _command(4, [10.0, 10.0, 10.0])):
+            for bad in (_command(2, [10.0, 10.0, 100.5, 10.0], node.epoch), _command(3, [10.0, -0.1, 10.0, 10.0], node.epoch),
+                        _command(4, [10.0, 10.0, 10.0], node.epoch)):
                 pub.put(bad)
-            pub._pub.put(b'{"v":1,"seq":5,"stamp_s":0,"force_N":[NaN,1,1,1],"source":"x"}')
+            pub._pub.put(b'{"v":2,"seq":5,"stamp_s":0,"force_N":[NaN,1,1,1],"source":"x","sender":"test","epoch":"%s"}'
+                         % node.epoch.encode())
             pub._pub.put(b"\x00garbage")
             assert wait_until(lambda: node.commands.stats.rejected == 5, 5.0)
             node.tick()
@@ -132,12 +148,13 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
 
 def test_estop_disables_the_drives_within_one_tick_until_released(params):
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params, command_timeout_s=5.0)
         cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
         estop_pub = publisher(hub_session, bus.ESTOP)
         states = Collector(hub_session, bus.MOTOR_STATE)
         try:
-            assert _put_until(cmd_pub, _command(1, [20.0] * 4), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(cmd_pub, _command(1, [20.0] * 4, node.epoch), lambda: node.commands.stats.accepted >= 1)
             node.tick()
             assert node.mode == "active"
             assert _put_until(estop_pub, bus.EStop(seq=0, stamp_s=time.time(), engaged=False, reason="route check"),
@@ -150,9 +167,11 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             assert node.driver.state is Lifecycle.INACTIVE
             assert node.mode == "disabled" and node.force.tolist() == [0.0] * 4
             assert wait_until(lambda: any(s.drive == "disabled" for s in states.messages()), 5.0)
+            engaged = next(s for s in states.messages() if s.drive == "disabled")
+            assert engaged.estop_engaged and engaged.estop_reason == "console button"
             # Commands are ignored while engaged.
             n = node.commands.stats.accepted
-            cmd_pub.put(_command(2, [30.0] * 4))
+            cmd_pub.put(_command(2, [30.0] * 4, node.epoch))
             assert wait_until(lambda: node.commands.stats.accepted == n + 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.driver.state is Lifecycle.INACTIVE
@@ -161,7 +180,7 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()
             assert node.mode == "inactive" and node.driver.state is Lifecycle.INACTIVE
-            cmd_pub.put(_command(3, [25.0] * 4))
+            cmd_pub.put(_command(3, [25.0] * 4, node.epoch))
             assert wait_until(lambda: node.commands.stats.accepted == n + 2, 5.0)
             node.tick()
             assert node.mode == "active" and node.force.tolist() == [1.0] * 4  # bumpless from zero
@@ -170,6 +189,11 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.estop_rejected == 1
+            # ... and says so in every state: one e-stop truth for the console and the controller.
+            assert wait_until(lambda: states.messages()[-1].estop_engaged, 5.0)
+            assert states.messages()[-1].estop_reason.startswith("malformed e-stop message: EStop: schema version 7")
+            released = [s for s in states.messages() if s.drive == "active"]
+            assert released and not any(s.estop_engaged or s.estop_reason for s in released)
         finally:
             node.shutdown()
             states.close()
@@ -179,6 +203,7 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
     """Issue 13, finding 1: after a release the first commands were [81, 22, 8, 28] N and
     [100, 48, 8, 54] N from about 9 N; the applied forces must move at most 1 N per tick."""
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params, command_timeout_s=5.0, max_force_step_N=1.0)
         cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
         estop_pub = publisher(hub_session, bus.ESTOP)
@@ -190,7 +215,7 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
             applied.append(node.force.copy())
 
         try:
-            assert _put_until(cmd_pub, _command(1, [9.0] * 4), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(cmd_pub, _command(1, [9.0] * 4, node.epoch), lambda: node.commands.stats.accepted >= 1)
             for _ in range(20):
                 tick()
             assert node.force.tolist() == [9.0] * 4
@@ -205,7 +230,7 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
             assert node.mode == "inactive"
             for k, force in enumerate([[81.0, 22.0, 8.0, 28.0]] + [[100.0, 48.0, 8.0, 54.0]] * 3):
                 n = node.commands.stats.accepted
-                cmd_pub.put(_command(2 + k, force))
+                cmd_pub.put(_command(2 + k, force, node.epoch))
                 assert wait_until(lambda: node.commands.stats.accepted > n, 5.0)
                 tick()
             for _ in range(120):
@@ -221,6 +246,56 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
         assert applied[-1].tolist() == [100.0, 48.0, 8.0, 54.0]
         after = [s.force_applied_N for s in seen[next(i for i, s in enumerate(seen) if s.drive == "disabled"):]]
         assert len(after) > 100 and np.abs(np.diff(np.array(after), axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_is_gone(params):
+    """Issue 13, finding 5: two stacks could command one bridge. Now the first live sender owns it,
+    another is refused and reported, and a new one takes over once the owner's session is gone."""
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        ctl_a, ctl_b = connect(), connect()
+        tokens = [_as_controller(ctl_a, "ctl-a"), _as_controller(ctl_b, "ctl-b")]  # kept: a dropped token vanishes
+        pub_a, pub_b = publisher(ctl_a, bus.MOTOR_COMMAND), publisher(ctl_b, bus.MOTOR_COMMAND)
+        states = Collector(hub_session, bus.MOTOR_STATE)
+        health = Collector(hub_session, bus.health_key("bridge", node.instance), bus.Health)
+        try:
+            assert _put_until(pub_a, _command(1, [20.0] * 4, node.epoch, sender="ctl-a"), lambda: node.owner == "ctl-a")
+            node.tick()
+            assert node.mode == "active"
+            n = node.commands.stats.rejected
+            assert _put_until(pub_b, _command(1, [60.0] * 4, node.epoch, sender="ctl-b"),
+                              lambda: node.commands.stats.rejected > n)
+            assert node.commands.stats.last_reject_reason.endswith("bridge owned by ctl-a")
+            assert node.commands.latest().sender == "ctl-a"  # a refused command never replaces the owner's
+            # A command computed for another bridge run is refused too, even from the owner.
+            n = node.commands.stats.rejected
+            assert _put_until(pub_a, _command(2, [20.0] * 4, "an-old-epoch", sender="ctl-a"),
+                              lambda: node.commands.stats.rejected > n)
+            assert "epoch 'an-old-epoch'" in node.commands.stats.last_reject_reason
+            node.tick()
+            node.publish_health()
+            assert wait_until(lambda: health.messages() and states.messages(), 5.0)
+            assert health.messages()[-1].rejected[bus.MOTOR_COMMAND] >= 2
+            state = states.messages()[-1]
+            assert (state.owner, state.epoch, state.bridge) == ("ctl-a", node.epoch, node.instance)
+            ctl_a.close()  # the owner's session ends: its liveliness token vanishes
+            assert wait_until(lambda: node.owner == "", 5.0)
+            assert _put_until(pub_b, _command(2, [30.0] * 4, node.epoch, sender="ctl-b"), lambda: node.owner == "ctl-b")
+            node.tick()
+            assert wait_until(lambda: states.messages()[-1].owner == "ctl-b", 5.0)
+        finally:
+            node.shutdown()
+            states.close()
+            health.close()
+            del tokens
+
+
+def test_every_bridge_run_has_its_own_epoch(params):
+    with bus_pair() as (_hub, _hub_session, connect):
+        first, second = _node(connect(), params), _node(connect(), params)
+        first.shutdown()
+        second.shutdown()
+    assert first.epoch and second.epoch and first.epoch != second.epoch
 
 
 # -- real time -----------------------------------------------------------------------------------
@@ -248,6 +323,7 @@ def _hold_check(timed_states, timed_commands):
 
 def test_watchdog_ramps_to_the_hold_forces_when_commands_stop(params):
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params)
         states = Collector(hub_session, bus.MOTOR_STATE)
         commands = Collector(hub_session, bus.MOTOR_COMMAND)
@@ -261,7 +337,7 @@ def test_watchdog_ramps_to_the_hold_forces_when_commands_stop(params):
             k = 0
             while time.perf_counter() < t_end:
                 k += 1
-                pub.put(_command(k, f_cmd))
+                pub.put(_command(k, f_cmd, node.epoch))
                 time.sleep(DT)
             assert wait_until(lambda: sum(s.drive == "hold" for s in states.messages()) > 30, 5.0)
         finally:
@@ -290,6 +366,7 @@ def test_watchdog_ramps_to_the_hold_forces_when_commands_stop(params):
 
 def test_estop_in_real_time_takes_effect_on_the_next_tick(params):
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params, command_timeout_s=1.0)
         states = Collector(hub_session, bus.MOTOR_STATE)
         stop = threading.Event()
@@ -297,7 +374,7 @@ def test_estop_in_real_time_takes_effect_on_the_next_tick(params):
         cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
         estop_pub = publisher(hub_session, bus.ESTOP)
         try:
-            cmd_pub.put(_command(1, [20.0] * 4))
+            cmd_pub.put(_command(1, [20.0] * 4, node.epoch))
             assert wait_until(lambda: any(s.drive == "active" for s in states.messages()), 10.0)
             time.sleep(0.1)
             sent = time.perf_counter()
@@ -322,21 +399,23 @@ def test_estop_in_real_time_takes_effect_on_the_next_tick(params):
 
 def test_sigterm_leaves_the_drives_disabled(tmp_path):
     with bus_pair() as (hub, hub_session, _connect):
+        _token = _as_controller(hub_session)
         states = Collector(hub_session, bus.MOTOR_STATE)
         proc = _spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub,
                        "--instance", "sigterm-test"], tmp_path / "bridge.log")
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
             assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
+            epoch = _epoch(states)
             k = 0
             while not any(s.drive == "active" for s in states.messages()[-5:]):
                 k += 1
-                pub.put(_command(k, [20.0] * 4))
+                pub.put(_command(k, [20.0] * 4, epoch))
                 time.sleep(DT)
                 assert k < 5000
             for _ in range(50):
                 k += 1
-                pub.put(_command(k, [20.0] * 4))
+                pub.put(_command(k, [20.0] * 4, epoch))
                 time.sleep(DT)
             rc = _stop_process(proc)
         finally:
@@ -403,11 +482,12 @@ import sys, time
 from bridge.session import open_session
 from bridge import bus
 hub, seconds = sys.argv[1], float(sys.argv[2])
-bad = [b"\x00garbage", b'{"v":1,"seq":1,"stamp_s":0,"force_N":[NaN,1,1,1],"source":"f"}',
-       b'{"v":2,"seq":1,"stamp_s":0,"force_N":[1,1,1,1],"source":"f"}',
-       b'{"v":1,"seq":1,"stamp_s":0,"force_N":[1,1,1],"source":"f"}',
-       b'{"v":1,"seq":1,"stamp_s":0,"force_N":[500,1,1,1],"source":"f"}',
-       b'{"v":1,"seq":1,"stamp_s":0,"force_N":[-1,1,1,1],"source":"f"}']
+who = b'"source":"f","sender":"f","epoch":"e"'
+bad = [b"\x00garbage", b'{"v":2,"seq":1,"stamp_s":0,"force_N":[NaN,1,1,1],' + who + b'}',
+       b'{"v":3,"seq":1,"stamp_s":0,"force_N":[1,1,1,1],' + who + b'}',
+       b'{"v":2,"seq":1,"stamp_s":0,"force_N":[1,1,1],' + who + b'}',
+       b'{"v":2,"seq":1,"stamp_s":0,"force_N":[500,1,1,1],' + who + b'}',
+       b'{"v":2,"seq":1,"stamp_s":0,"force_N":[-1,1,1,1],' + who + b'}']
 with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s:
     pub = s.declare_publisher(bus.MOTOR_COMMAND)
     time.sleep(1.0)  # let the routes settle
@@ -424,6 +504,7 @@ with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s:
 
 def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(tmp_path):
     with bus_pair() as (hub, hub_session, _connect):
+        _token = _as_controller(hub_session, "valid-controller")
         states = Collector(hub_session, bus.MOTOR_STATE)
         health = Collector(hub_session, bus.health_key("bridge", "flood-test"), bus.Health)
         bridge = _spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub,
@@ -433,6 +514,7 @@ def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(
         valid = [20.0, 25.0, 30.0, 1.0]  # the last one is clamped to f_min
         try:
             assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
+            epoch = _epoch(states)
             flood = subprocess.Popen([sys.executable, "-c", FLOOD, hub, "3.0"], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
             before = health.messages()[-1] if health.messages() else None
@@ -440,7 +522,7 @@ def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(
             start = time.perf_counter()
             while flood.poll() is None and time.perf_counter() - start < 15:
                 k += 1
-                pub.put(_command(k, valid, source="valid-controller"))
+                pub.put(_command(k, valid, epoch, sender="valid-controller"))
                 time.sleep(DT)
             flood_out, flood_err = flood.communicate(timeout=10)
             assert flood.returncode == 0, flood_err
@@ -475,6 +557,7 @@ def test_lockstep_ticks_once_per_command_and_never_holds(params):
     from bridge.node import run_lockstep
 
     with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
         node = _node(connect(), params, lockstep=True, idle_timeout_s=5.0)
         states = subscribe_latest(hub_session, bus.MOTOR_STATE)
         stop = threading.Event()
@@ -485,7 +568,7 @@ def test_lockstep_ticks_once_per_command_and_never_holds(params):
             last = 0.0
             for k in range(1, 21):
                 for _attempt in range(20):  # resend on loss, as the controller does
-                    pub.put(_command(k, [15.0] * 4))
+                    pub.put(_command(k, [15.0] * 4, node.epoch))
                     got = states.wait(0.25, lambda s: s.stamp_s > last + 1e-9)
                     if got is not None and got.stamp_s > last + 1e-9:
                         break
@@ -506,7 +589,7 @@ def test_replay_driver_publishes_the_archived_angles(params, tmp_path):
     from bridge.archive import write_campaign
 
     archived = [bus.MotorState(seq=k, stamp_s=DT * k, theta_rad=[0.01 * k, 0.02 * k, -0.01 * k, 0.0],
-                               force_applied_N=[10.0] * 4, drive="active") for k in range(50)]
+                               force_applied_N=[10.0] * 4, drive="active", epoch="e0", bridge="b0") for k in range(50)]
     path = write_campaign(tmp_path / "c.mcap", [(bus.MOTOR_STATE, k * 2_000_000, s) for k, s in enumerate(archived)],
                           {"campaign_id": "replay", "kind": "control"})
     with bus_pair() as (_hub, hub_session, connect):

@@ -8,7 +8,7 @@ import logging
 import numpy as np
 import pytest
 
-from bridge.safety import Inputs, Safety, SafetyConfig
+from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
 
 N = 4
 THETA = np.zeros(N)
@@ -151,3 +151,28 @@ def test_every_enable_is_bumpless_then_commands_pass_through():
     leave = [s.step(cmd(FINDING_1)).force_N for _ in range(100)]
     assert _max_step([hold[-1], *leave]) <= 1.0 + 1e-12
     assert leave[-1].tolist() == FINDING_1
+
+
+# -- ownership (issue 13, finding 5) ---------------------------------------------------------------
+
+
+def test_the_first_live_sender_owns_the_bridge_others_are_refused_until_its_token_vanishes():
+    own = Ownership(epoch="e1")
+    assert "no liveliness token" in own.admit("ctl-a", "e1")  # not alive: never an owner
+    own.appeared("ctl-a")
+    own.appeared("ctl-b")
+    assert own.admit("ctl-a", "e1") == "" and own.owner == "ctl-a"
+    assert own.admit("ctl-b", "e1") == "bridge owned by ctl-a"
+    assert own.admit("ctl-a", "e1") == ""
+    assert own.vanished("ctl-c") is False and own.owner == "ctl-a"
+    assert own.vanished("ctl-a") is True and own.owner == ""
+    assert own.admit("ctl-a", "e1") != ""  # gone is gone until its token is back
+    assert own.admit("ctl-b", "e1") == "" and own.owner == "ctl-b"
+
+
+def test_a_command_for_another_bridge_run_is_refused():
+    own = Ownership(epoch="e2")
+    own.appeared("ctl-a")
+    reason = own.admit("ctl-a", "e1")
+    assert "epoch" in reason and "e1" in reason and own.owner == ""
+    assert own.admit("ctl-a", "e2") == ""

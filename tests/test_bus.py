@@ -35,8 +35,8 @@ def sample_messages() -> dict[str, bus.BusMessage]:
     """One valid message per fixed key of the registry, plus a health key."""
     common = {"seq": 7, "stamp_s": 12.5}
     return {
-        bus.MOTOR_STATE: bus.MotorState(**common, theta_rad=[0.1, -0.2, 0.3, 0.0], force_applied_N=[1.0, 2.0, 3.0, 4.0], drive="active"),
-        bus.MOTOR_COMMAND: bus.ForceCommand(**common, force_N=[5.0, 6.0, 7.0, 8.0], source="pid"),
+        bus.MOTOR_STATE: bus.MotorState(**common, theta_rad=[0.1, -0.2, 0.3, 0.0], force_applied_N=[1.0, 2.0, 3.0, 4.0], drive="active", epoch="e1", bridge="b1"),
+        bus.MOTOR_COMMAND: bus.ForceCommand(**common, force_N=[5.0, 6.0, 7.0, 8.0], source="pid", sender="ctl", epoch="e1"),
         bus.CAMERA_ALPHA: bus.CameraAlpha(**common, alpha_ip_rad=[0.01, 0.02], capture_stamp_s=12.4),
         bus.TWIN_TRUTH: bus.Truth(
             **common, alpha_rad=[0.1, 0.2], alpha_dot_rad_s=[0.0, 0.1], theta_rad=[1.0] * 4, theta_dot_rad_s=[0.0] * 4,
@@ -70,7 +70,7 @@ def test_every_message_round_trips_and_has_a_titled_schema() -> None:
         assert bus.mcap_topic(key) == "/" + key and bus.key_of_topic(bus.mcap_topic(key)) == key
 
 
-GOOD_STATE = b'{"v":1,"seq":1,"stamp_s":0.5,"theta_rad":[0.1],"force_applied_N":[1.0],"drive":"active"}'
+GOOD_STATE = b'{"v":2,"seq":1,"stamp_s":0.5,"theta_rad":[0.1],"force_applied_N":[1.0],"drive":"active","epoch":"e","bridge":"b"}'
 
 
 @pytest.mark.parametrize(
@@ -79,8 +79,8 @@ GOOD_STATE = b'{"v":1,"seq":1,"stamp_s":0.5,"theta_rad":[0.1],"force_applied_N":
         (b"{not json", "malformed JSON"),
         (b"", "malformed JSON"),
         (b"[1, 2]", "schema version"),
-        (GOOD_STATE.replace(b'"v":1', b'"v":2'), "version 2 is not supported (expected 1)"),
-        (GOOD_STATE.replace(b'"v":1,', b""), "missing required field `v`"),
+        (GOOD_STATE.replace(b'"v":2', b'"v":1'), "version 1 is not supported (expected 2)"),
+        (GOOD_STATE.replace(b'"v":2,', b""), "missing required field `v`"),
         (GOOD_STATE.replace(b"0.5", b"NaN"), "malformed JSON"),
         (GOOD_STATE.replace(b"0.5", b"Infinity"), "malformed JSON"),
         (GOOD_STATE.replace(b"0.5", b"1e999"), "out of range"),
@@ -88,6 +88,7 @@ GOOD_STATE = b'{"v":1,"seq":1,"stamp_s":0.5,"theta_rad":[0.1],"force_applied_N":
         (GOOD_STATE.replace(b"[0.1]", b'["0.1"]'), "Expected `float`, got `str`"),
         (GOOD_STATE.replace(b'"seq":1', b'"seq":true'), "Expected `int`, got `bool`"),
         (GOOD_STATE.replace(b',"drive":"active"', b""), "missing required field `drive`"),
+        (GOOD_STATE.replace(b',"epoch":"e"', b""), "missing required field `epoch`"),
         (GOOD_STATE.replace(b'"active"', b'"flying"'), "Invalid enum value"),
         (GOOD_STATE[:-1] + b',"extra":1}', "unknown field `extra`"),
         (b"\xff\xfe\x00", "malformed JSON"),
@@ -112,13 +113,13 @@ def test_decode_never_raises_anything_else() -> None:
 
 def test_encode_refuses_non_finite_floats() -> None:
     with pytest.raises(bus.BusEncodeError, match=r"force_N\[1\] = nan"):
-        bus.encode(bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[1.0, float("nan")], source="test"))
+        bus.encode(bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[1.0, float("nan")], source="test", sender="t", epoch="e"))
     with pytest.raises(bus.BusEncodeError, match="stamp_s = inf"):
         bus.encode(bus.EStop(seq=0, stamp_s=float("inf"), engaged=False, reason=""))
 
 
 def test_force_command_range_check() -> None:
-    cmd = bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[0.0, 10.0, 50.0], source="t")
+    cmd = bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[0.0, 10.0, 50.0], source="t", sender="t", epoch="e")
     bus.check_force_command(cmd, 3, 0.0, 50.0)
     with pytest.raises(bus.BusDecodeError, match="3 forces for 4 motors"):
         bus.check_force_command(cmd, 4, 0.0, 50.0)
@@ -172,14 +173,14 @@ def test_malformed_commands_are_counted_and_never_crash_the_subscriber(
 ) -> None:
     a, b = sessions
     sub = subscribe_latest(b, bus.MOTOR_COMMAND, validate=lambda c: bus.check_force_command(c, 3, 0.0, 40.0))
-    good = bus.ForceCommand(seq=1, stamp_s=1.0, force_N=[1.0, 2.0, 3.0], source="test")
+    good = bus.ForceCommand(seq=1, stamp_s=1.0, force_N=[1.0, 2.0, 3.0], source="test", sender="t", epoch="e")
     pub = publisher(a, bus.MOTOR_COMMAND)
     assert wait_until(lambda: (pub.put(good), sub.latest() is not None)[1])
 
     valid = bus.encode(good)
     bad_payloads = [
         (b"{oops", "malformed JSON"),
-        (valid.replace(b'"v":1', b'"v":9'), "version 9 is not supported"),
+        (valid.replace(b'"v":2', b'"v":9'), "version 9 is not supported"),
         (valid.replace(b"[1.0,", b"[NaN,"), "malformed JSON"),
         (valid.replace(b',"source":"test"', b""), "missing required field `source`"),
         (valid.replace(b"2.0", b'"2"'), "Expected `float`, got `str`"),
@@ -195,7 +196,7 @@ def test_malformed_commands_are_counted_and_never_crash_the_subscriber(
         assert sub.stats.last_reject_reason.startswith(bus.MOTOR_COMMAND)
     # Still alive, still keeping the last valid command.
     assert sub.latest() == good
-    newer = bus.ForceCommand(seq=2, stamp_s=2.0, force_N=[4.0, 5.0, 6.0], source="test")
+    newer = bus.ForceCommand(seq=2, stamp_s=2.0, force_N=[4.0, 5.0, 6.0], source="test", sender="t", epoch="e")
     # The publisher drops under congestion (motor keys): repeat until it lands.
     assert wait_until(lambda: (pub.put(newer), sub.wait(0.05, lambda m: m == newer) == newer)[1])
     assert sub.stats.rejected == len(bad_payloads)

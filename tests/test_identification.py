@@ -225,7 +225,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
 
     d = short_campaign
     msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
-                                                          force_applied_N=list(f), drive="active"))
+                                                          force_applied_N=list(f), drive="active", epoch="e", bridge="b"))
             for k, (t, th, f) in enumerate(zip(d.t_s, d.theta_rad, d.force_N))]
     msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
                                                                  capture_stamp_s=float(t)))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bridge import bus
-from bridge.session import publisher, subscribe_latest
+from bridge.session import liveliness_token, publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_until
 from test_sim import static_forces
 from twin.sim.driver import TwinDriver, TwinDriverConfig
@@ -41,6 +41,7 @@ def _collect(session, key):
 def _drive_lockstep(params, commands, seed=0):
     """Start a lockstep twin, send ``commands`` one per state, return the states and truths seen."""
     with bus_pair() as (_hub, hub_session, connect):
+        _token = liveliness_token(hub_session, "controller", "test")  # the bridge obeys a live controller
         node = twin_node(connect(), params, seed=seed)
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
@@ -55,7 +56,8 @@ def _drive_lockstep(params, commands, seed=0):
             for k, f in enumerate(commands):
                 state = None
                 for _attempt in range(20):  # resend on loss, as the controller does
-                    pub.put(bus.ForceCommand(seq=k + 1, stamp_s=last, force_N=list(map(float, f)), source="test"))
+                    pub.put(bus.ForceCommand(seq=k + 1, stamp_s=last, force_N=list(map(float, f)), source="test",
+                                             sender="test", epoch=first.epoch))
                     state = states.wait(0.25, lambda s: s.stamp_s > last + 1e-9)
                     if state is not None and state.stamp_s > last + 1e-9:
                         break
@@ -84,17 +86,19 @@ def test_a_command_stream_moves_the_twin_and_lockstep_repeats(params, model):
 
 def test_malformed_commands_are_counted_and_never_move_the_twin(params):
     with bus_pair() as (_hub, hub_session, connect):
+        _token = liveliness_token(hub_session, "controller", "x")
         node = twin_node(connect(), params)
+        who = {"sender": "x", "epoch": node.epoch}
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
         raw = hub_session.declare_publisher(bus.MOTOR_COMMAND)
         bad = [
             b"{not json",
-            b'{"v": 2, "seq": 1, "stamp_s": 0, "force_N": [1, 1, 1, 1], "source": "x"}',
-            b'{"v": 1, "seq": 2, "stamp_s": 0, "force_N": [NaN, 1, 1, 1], "source": "x"}',
-            bus.encode(bus.ForceCommand(seq=3, stamp_s=0, force_N=[10.0, 10.0, 10.0], source="x")),
-            bus.encode(bus.ForceCommand(seq=4, stamp_s=0, force_N=[10.0, -1.0, 10.0, 10.0], source="x")),
-            bus.encode(bus.ForceCommand(seq=5, stamp_s=0, force_N=[10.0, 10.0, 1e4, 10.0], source="x")),
+            b'{"v": 3, "seq": 1, "stamp_s": 0, "force_N": [1, 1, 1, 1], "source": "x"}',
+            b'{"v": 2, "seq": 2, "stamp_s": 0, "force_N": [NaN, 1, 1, 1], "source": "x"}',
+            bus.encode(bus.ForceCommand(seq=3, stamp_s=0, force_N=[10.0, 10.0, 10.0], source="x", **who)),
+            bus.encode(bus.ForceCommand(seq=4, stamp_s=0, force_N=[10.0, -1.0, 10.0, 10.0], source="x", **who)),
+            bus.encode(bus.ForceCommand(seq=5, stamp_s=0, force_N=[10.0, 10.0, 1e4, 10.0], source="x", **who)),
         ]
         try:
             assert wait_until(lambda: node.driver.last_tick is None and node.commands is not None, 2)
@@ -103,7 +107,7 @@ def test_malformed_commands_are_counted_and_never_move_the_twin(params):
             assert wait_until(lambda: node.commands.stats.rejected >= len(bad), 5.0), node.commands.stats
             assert node.driver.last_tick is None  # not a single tick
             assert "outside" in node.commands.stats.last_reject_reason
-            good = bus.encode(bus.ForceCommand(seq=6, stamp_s=0, force_N=[10.0] * 4, source="x"))
+            good = bus.encode(bus.ForceCommand(seq=6, stamp_s=0, force_N=[10.0] * 4, source="x", **who))
             raw.put(good)
             assert wait_until(lambda: node.driver.last_tick is not None, 5.0)  # still alive, obeys valid ones
         finally:
@@ -117,6 +121,7 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
     target = np.radians([20.0, 20.0, 20.0])
     f = static_forces(model, target)
     with bus_pair() as (_hub, hub_session, connect):
+        _token = liveliness_token(hub_session, "controller", "t")
         node = twin_node(connect(), params, friction=False, camera=False)
         node.driver.twin.reset(target)
         stop = threading.Event()
@@ -127,7 +132,8 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
         try:
             assert states.wait(10.0) is not None
             for k in range(300):
-                pub.put(bus.ForceCommand(seq=k + 1, stamp_s=0.0, force_N=list(f) if k < 100 else [0.0] * 4, source="t"))
+                pub.put(bus.ForceCommand(seq=k + 1, stamp_s=0.0, force_N=list(f) if k < 100 else [0.0] * 4, source="t",
+                                         sender="t", epoch=node.epoch))
                 assert states.wait(2.0, lambda s, n=k + 1: s.stamp_s >= n * 0.002 - 1e-9) is not None
             assert wait_until(lambda: len(truths) >= 290, 3.0)
         finally:
