@@ -21,6 +21,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -48,7 +49,7 @@ def replay_file(tmp_path_factory) -> Path:
     from bridge.archive import write_campaign
 
     # A recorded bridge run; the identity fields exist from MotorState v2 on.
-    identity = {"epoch": "recorded", "bridge": "bridge-lean"} if "epoch" in bus.MotorState.__struct_fields__ else {}
+    identity: dict[str, Any] = {"epoch": "recorded", "bridge": "bridge-lean"} if "epoch" in bus.MotorState.__struct_fields__ else {}
     states = [bus.MotorState(seq=k, stamp_s=0.002 * k, theta_rad=[0.02 * np.sin(k / 40), 0.0, -0.02 * np.sin(k / 40), 0.0],
                              force_applied_N=[10.0] * 4, drive="active", **identity) for k in range(400)]
     return write_campaign(tmp_path_factory.mktemp("replay") / "replay.mcap",

@@ -1,0 +1,165 @@
+"""Bridge speed and memory without numba, as on the robot's BeagleBone Blue (issue 20).
+
+1. In process, the model as plain Python (numba off, as ``xneck bridge --driver beaglebone|replay``
+   runs it): one ``BridgeNode.tick`` (e-stop check, command in, safety rules with clamping and the
+   watchdog, driver write/step/read, ``MotorState`` published on a real Zenoh session) with a fresh
+   command every tick (one force below f_min, so every tick clamps), then ticks in hold after the
+   commands stop (the command's decoding and validation run on Zenoh's thread, not counted).
+   Median and p99; target p99 <= 50 µs on x86_64, so a Cortex-A8 (roughly 10-20x
+   slower) keeps its 2 ms period. Also the cost of the hold forces (eq. 33 + eqs. 63-65 in plain
+   Python), paid once, in the tick that starts a hold.
+2. The resident memory of a real ``xneck bridge --driver replay`` process after a few seconds
+   on the bus (VmHWM, the peak); target <= 80 MB on x86_64.
+Run: ``.venv/bin/python benchmarks/bridge.py [--ticks 5000]``.
+``--write-replay PATH`` only writes a replay MCAP file (used by benchmarks/armhf_bridge.sh).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # this file shadows `bridge`
+_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+assert _spec is not None and _spec.loader is not None
+_timing = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_timing)
+
+from twin.model import compiled  # noqa: E402
+
+compiled.prefer_plain_python()  # before any model import: the robot's path
+
+from bridge import bus  # noqa: E402
+
+TARGET_TICK_P99_US = 50.0
+TARGET_RSS_MB = 80.0
+
+
+def write_replay(path: Path, n: int = 1000) -> Path:
+    """A campaign MCAP file of ``n`` recorded states (2 s of a slow nod) for the replay driver."""
+    from bridge.archive import write_campaign
+
+    # The identity fields exist from MotorState v2 on.
+    identity: dict[str, Any] = {"epoch": "recorded", "bridge": "bridge-bench"} if "epoch" in bus.MotorState.__struct_fields__ else {}
+    states = [bus.MotorState(seq=k, stamp_s=0.002 * k, drive="active", force_applied_N=[10.0] * 4,
+                             theta_rad=[0.05 * np.sin(k / 80), 0.0, -0.05 * np.sin(k / 80), 0.0], **identity)
+              for k in range(n)]
+    return write_campaign(path, [(bus.MOTOR_STATE, k * 2_000_000, s) for k, s in enumerate(states)],
+                          {"campaign_id": "bench", "kind": "control"})
+
+
+def _command(node, seq: int, force_N: list[float]) -> bus.ForceCommand:
+    # From ForceCommand v2 on, a command names its sender and answers the bridge's epoch.
+    extra: dict[str, Any] = {"sender": "bench", "epoch": node.epoch} if "epoch" in bus.ForceCommand.__struct_fields__ else {}
+    return bus.ForceCommand(seq=seq, stamp_s=time.time(), force_N=force_N, source="benchmark", **extra)
+
+
+def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
+    from bridge.drivers.replay import ReplayConfig, ReplayDriver
+    from bridge.node import BridgeConfig
+    from bridge.session import free_tcp_port, liveliness_token, open_session, publisher
+    from controller.laws import encoder_hold_forces
+    from server.cli.processes import bridge_node
+    from twin.model.params import load_params
+
+    assert not compiled.numba_enabled() and "numba" not in sys.modules
+    params = load_params()
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    out: dict[str, float] = {}
+    with open_session(listen=[hub], connect=[]) as bridge_session, \
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as controller_session:
+        driver = ReplayDriver(ReplayConfig(path=str(replay), loop=True, n_motors=params.n_cables))
+        node = bridge_node(bridge_session, driver, params, BridgeConfig(command_timeout_s=0.010))
+        token = liveliness_token(controller_session, "controller", "bench")
+        commands = publisher(controller_session, bus.MOTOR_COMMAND)
+        time.sleep(0.5)  # peers and liveliness settle
+        f_low = max(params.limits.f_min - 0.5, 0.0)  # valid (>= 0) but below f_min: clamped
+        active = np.empty(n_ticks)
+        k = 0
+        try:
+            while k < n_ticks:
+                before = node.commands.latest_with_time()[1]
+                commands.put(_command(node, k + 1, [f_low, 12.0, 12.0, 12.0]))
+                deadline = time.perf_counter() + 0.05
+                while node.commands.latest_with_time()[1] == before and time.perf_counter() < deadline:
+                    time.sleep(0)
+                time.sleep(0.0002)  # let Zenoh's thread finish its callback: time the tick, not a GIL hand-over
+                t0 = time.perf_counter()
+                node.tick()
+                active[k] = time.perf_counter() - t0
+                k += 1
+            assert node.mode == "active" and node.clamped > 0, (node.mode, node.clamped, node.commands.stats)
+            out["active_median_us"], out["active_p99_us"] = _timing.summary(
+                "tick, fresh command, clamped, published", active[100:])
+            time.sleep(0.02)  # past the 10 ms command timeout: the next tick starts the hold
+            t0 = time.perf_counter()
+            node.tick()
+            out["hold_start_ms"] = (time.perf_counter() - t0) * 1e3
+            assert node.mode == "hold", node.mode
+            held = _timing.time_calls(node.tick, repeats=n_ticks, warmup=0)
+            out["hold_median_us"], out["hold_p99_us"] = _timing.summary("tick in hold (watchdog, ramp, published)", held)
+            print(f"{'tick that starts the hold (hold forces computed)':<58s} {out['hold_start_ms']:10.2f} ms")
+            hold = encoder_hold_forces(params)
+            thetas = np.random.default_rng(1).uniform(-2, 2, size=(200, params.n_cables))
+            it = iter(np.vstack([thetas] * 2))
+            _timing.summary("hold forces alone, plain Python (eq. 33 + 63-65)",
+                            _timing.time_calls(lambda: hold(next(it)), repeats=200, warmup=20), unit=1e-3, unit_name="ms")
+        finally:
+            node.shutdown()
+            commands.close()
+            token.undeclare()
+    return out
+
+
+def bridge_process_rss(replay: Path, seconds: float) -> dict[str, float]:
+    """VmHWM and VmRSS (MB) of a real `xneck bridge --driver replay` after ``seconds``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "replay", "--replay", str(replay),
+                             "--loop"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(seconds)
+        if proc.poll() is not None:
+            raise RuntimeError(f"the bridge exited early: {proc.stderr.read() if proc.stderr else ''}")
+        status = Path(f"/proc/{proc.pid}/status").read_text()
+        mods = {k: float(v.split()[0]) / 1024 for k, v in (line.split(":", 1) for line in status.splitlines())
+                if k in ("VmHWM", "VmRSS")}
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    print(f"{'xneck bridge --driver replay: resident memory':<58s} peak {mods['VmHWM']:8.1f} MB   now {mods['VmRSS']:8.1f} MB")
+    return {"rss_peak_mb": mods["VmHWM"], "rss_mb": mods["VmRSS"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--ticks", type=int, default=5000)
+    ap.add_argument("--seconds", type=float, default=5.0, help="how long the bridge process runs before its RSS is read")
+    ap.add_argument("--write-replay", type=Path, default=None, help="only write a replay MCAP file there")
+    args = ap.parse_args()
+    if args.write_replay is not None:
+        print(write_replay(args.write_replay))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        replay = write_replay(Path(tmp) / "replay.mcap")
+        print(f"bridge tick without numba ({args.ticks} ticks), {os.cpu_count()} cores")
+        ticks = ticks_in_process(replay, args.ticks)
+        rss = bridge_process_rss(replay, args.seconds)
+    ok_tick = ticks["active_p99_us"] <= TARGET_TICK_P99_US and ticks["hold_p99_us"] <= TARGET_TICK_P99_US
+    ok_rss = rss["rss_peak_mb"] <= TARGET_RSS_MB
+    print(f"target tick p99 <= {TARGET_TICK_P99_US:.0f} µs: {'met' if ok_tick else 'NOT met'};"
+          f" target RSS <= {TARGET_RSS_MB:.0f} MB: {'met' if ok_rss else 'NOT met'}")
+
+
+if __name__ == "__main__":
+    main()
