@@ -35,7 +35,7 @@ def main() -> None:
     model = build(load_params())
     rng = np.random.default_rng(0)
     alpha, alpha_dot = np.radians([40.0, 30.0, 20.0]), np.array([0.3, -0.2, 0.5])
-    work = dynamics.workspace(model)
+    work = dynamics.scratch_buffers(model)
     tab, lc, Z, Zd, Mm, cm, g, M, c, _ = work
 
     def kernel():

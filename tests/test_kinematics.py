@@ -13,13 +13,13 @@ from twin.analysis.kinematics import (
     characteristic_quartic,
     det_jacobian_2x,
     fk,
-    foldback_theta1,
+    foldback_half_alpha1,
     ik_2x,
     ik_2x_batch,
     is_cuspidal,
     jacobian,
-    side_lengths,
-    singular_theta1,
+    side_lengths_at_half_alpha,
+    singular_half_alpha1,
     wrap_angle,
 )
 from twin.analysis.workspace import cartesian_counts, cuspidality_threshold_numeric, max_solutions_on_axis
@@ -44,8 +44,8 @@ def test_fk_n_joints_straight_and_bar_geometry():
     np.testing.assert_allclose(fk(np.zeros(5), L, b), [0.0, 5 * np.sqrt(L**2 - b**2)])
     # Each side is l ∓ b sin θ; at θ = 0 both equal the median, and l_r(θ) = l_l(−θ).
     t = np.linspace(-1.5, 1.5, 7)
-    ll, lr = side_lengths(t, L, b)
-    np.testing.assert_allclose(ll, side_lengths(-t, L, b)[1])
+    ll, lr = side_lengths_at_half_alpha(t, L, b)
+    np.testing.assert_allclose(ll, side_lengths_at_half_alpha(-t, L, b)[1])
     assert np.all(ll[t > 0] < lr[t > 0])  # θ > 0 shortens the left side
 
 
@@ -65,8 +65,8 @@ def test_ik_scales_with_L():
 def test_fk_of_ik_on_random_reachable_points():
     rng = np.random.default_rng(1)
     for L, b in ((1.0, 2 / 3), (0.1, 0.05), (2.0, 0.5), (1.0, 0.95)):
-        theta = rng.uniform(-np.pi, np.pi, (3000, 2))
-        p = fk(theta, L, b)
+        half_alpha = rng.uniform(-np.pi, np.pi, (3000, 2))
+        p = fk(half_alpha, L, b)
         sol = ik_2x_batch(p[:, 0], p[:, 1], L, b)
         n = (~np.isnan(sol[..., 0])).sum(-1)
         assert np.isin(n, (2, 4)).all()  # generic points: two or four solutions
@@ -74,7 +74,7 @@ def test_fk_of_ik_on_random_reachable_points():
         err = np.linalg.norm(fk(np.where(ok[..., None], sol, 0.0), L, b) - p[:, None, :], axis=-1)
         assert np.all(err[ok] < 1e-9 * L)
         # The configuration we started from is among the solutions.
-        dist = np.abs(wrap_angle(sol - theta[:, None, :])).max(-1)
+        dist = np.abs(wrap_angle(sol - half_alpha[:, None, :])).max(-1)
         assert np.all(np.nanmin(dist, axis=1) < 1e-7)
 
 
@@ -115,11 +115,11 @@ def test_jacobian_matches_finite_differences_and_eq12():
 def test_det_vanishes_on_singularity_curves(b):
     L = 1.0
     t2 = np.linspace(-np.pi, np.pi, 1001)
-    J = jacobian(np.stack([singular_theta1(t2, L, b), t2], -1), L, b)
+    J = jacobian(np.stack([singular_half_alpha1(t2, L, b), t2], -1), L, b)
     assert np.abs(np.linalg.det(J)).max() < 1e-12
-    J = jacobian(np.stack([foldback_theta1(t2), t2], -1), L, b)
+    J = jacobian(np.stack([foldback_half_alpha1(t2), t2], -1), L, b)
     assert np.abs(np.linalg.det(J)).max() < 1e-12
-    np.testing.assert_allclose(fk(np.stack([foldback_theta1(t2), t2], -1), L, b), 0.0, atol=1e-12)
+    np.testing.assert_allclose(fk(np.stack([foldback_half_alpha1(t2), t2], -1), L, b), 0.0, atol=1e-12)
     # ...and not on a generic point off them.
     assert abs(det_jacobian_2x(0.3, 0.9, L, b)) > 1e-3
 

@@ -82,6 +82,8 @@ def test_cli_model_prints_the_model_at_one_configuration(model):
     assert run.returncode == 0, run.stderr
     out = json.loads(run.stdout)
     np.testing.assert_allclose(out["Z_m_per_rad"], cables.Z(model, np.radians([40, -30, 20])), rtol=1e-12)
+    # l_c − l_c0, named for what it holds (not a cable length)
+    np.testing.assert_allclose(out["delta_l_c_m"], cables.l_c(model, np.radians([40, -30, 20])) - model.l_c0, rtol=1e-12)
     assert len(out["spring_left_m"]) == 3 and np.all(np.linalg.eigvalsh(out["M_kg_m2"]) > 0)
     human = _xneck("model", "--alpha", "40", "30", "20")
     assert "-30.32" in human.stdout and "Z = −∂l_c/∂α" in human.stdout

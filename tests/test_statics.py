@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin.analysis.kinematics import joint_points, side_lengths
+from twin.analysis.kinematics import joint_points, side_lengths_at_half_alpha
 from twin.analysis.statics import (
     Design,
     cartesian_stiffness,
@@ -22,56 +22,56 @@ from twin.analysis.statics import (
 from twin.analysis.kinematics import jacobian
 
 
-def _potential(d: Design, theta: np.ndarray) -> np.ndarray:
+def _potential(d: Design, half_alpha: np.ndarray) -> np.ndarray:
     """U_springs + U_gravity from the geometry directly (eq. 16), as an independent reference."""
-    ll, lr = side_lengths(theta, d.L, d.b)
+    ll, lr = side_lengths_at_half_alpha(half_alpha, d.L, d.b)
     springs = 0.5 * (d.array("k_l") * (ll - d.array("l0_l")) ** 2 + d.array("k_r") * (lr - d.array("l0_r")) ** 2)
     # Masses from the bar ends: diagonals at their midpoints, top bars at their middles.
-    P = joint_points(theta, d.L, d.b)
+    P = joint_points(half_alpha, d.L, d.b)
     y_diag = 0.5 * (P[..., :-1, 1] + P[..., 1:, 1])  # the two diagonals' midpoints average here
     y_top = P[..., 1:, 1]
     grav = d.gravity * (2 * d.m_diagonal * y_diag + d.m_bar * y_top)
     return springs.sum(-1) + grav.sum(-1)
 
 
-def _grad(f, theta, h=1e-6):
-    return np.stack([(f(theta + h * e) - f(theta - h * e)) / (2 * h) for e in np.eye(theta.shape[-1])], -1)
+def _grad(f, half_alpha, h=1e-6):
+    return np.stack([(f(half_alpha + h * e) - f(half_alpha - h * e)) / (2 * h) for e in np.eye(half_alpha.shape[-1])], -1)
 
 
 @pytest.mark.parametrize("n", [2, 3])
 def test_gradient_and_hessian_match_the_potential(n):
     d = Design(k_l=(150.0, 90.0, 60.0)[:n], k_r=(140.0, 80.0, 70.0)[:n], l0_l=(0.047, 0.037, 0.03)[:n],
                l0_r=(0.045, 0.035, 0.032)[:n])
-    theta = np.random.default_rng(0).uniform(-1.5, 1.5, (200, n))
-    np.testing.assert_allclose(potential_gradient(d, theta), _grad(lambda t: _potential(d, t), theta), atol=1e-8)
-    np.testing.assert_allclose(potential_hessian(d, theta), _grad(lambda t: potential_gradient(d, t), theta),
+    half_alpha = np.random.default_rng(0).uniform(-1.5, 1.5, (200, n))
+    np.testing.assert_allclose(potential_gradient(d, half_alpha), _grad(lambda t: _potential(d, t), half_alpha), atol=1e-8)
+    np.testing.assert_allclose(potential_hessian(d, half_alpha), _grad(lambda t: potential_gradient(d, t), half_alpha),
                                atol=1e-7)
 
 
 def test_side_length_derivatives():
     t = np.linspace(-1.5, 1.5, 50)
     ll, lr, dll, dlr, ddll, ddlr = side_length_derivatives(t, 0.1, 0.05)
-    np.testing.assert_allclose(dll, _grad(lambda x: side_lengths(x[..., 0], 0.1, 0.05)[0], t[:, None])[:, 0], atol=1e-8)
+    np.testing.assert_allclose(dll, _grad(lambda x: side_lengths_at_half_alpha(x[..., 0], 0.1, 0.05)[0], t[:, None])[:, 0], atol=1e-8)
     np.testing.assert_allclose(ddlr, _grad(lambda x: side_length_derivatives(x[..., 0], 0.1, 0.05)[3], t[:, None])[:, 0],
                                atol=1e-7)
     assert np.all(dll < 0) and np.all(dlr > 0)  # antagonistic pair inside the flat singularities
 
 
-def _total_gradient(d, theta, f_l, f_r):
+def _total_gradient(d, half_alpha, f_l, f_r):
     """∂U_total/∂θ with the cable work of eq. (22) (or (20) when f is shared)."""
     def U(t):
-        ll, lr = side_lengths(t, d.L, d.b)
+        ll, lr = side_lengths_at_half_alpha(t, d.L, d.b)
         return _potential(d, t) + (f_l * ll + f_r * lr).sum(-1)
-    return _grad(U, theta)
+    return _grad(U, half_alpha)
 
 
 def test_two_cable_forces_are_in_equilibrium():
     d = prototype_2x()
-    theta = np.random.default_rng(1).uniform(-1.4, 1.4, (300, 2))
-    f = forces_two_cables(d, theta)
+    half_alpha = np.random.default_rng(1).uniform(-1.4, 1.4, (300, 2))
+    f = forces_two_cables(d, half_alpha)
     fl = np.repeat(f[:, :1], 2, axis=1)
     fr = np.repeat(f[:, 1:], 2, axis=1)
-    np.testing.assert_allclose(_total_gradient(d, theta, fl, fr), 0.0, atol=1e-7)
+    np.testing.assert_allclose(_total_gradient(d, half_alpha, fl, fr), 0.0, atol=1e-7)
 
 
 def test_two_cables_cannot_leave_the_diagonal_without_gravity():
@@ -86,28 +86,28 @@ def test_two_cables_cannot_leave_the_diagonal_without_gravity():
 
 def test_four_cable_redundancy_segment_and_stiffness_extremes():
     d = prototype_2x()
-    theta = np.random.default_rng(2).uniform(-1.3, 1.3, (400, 2))
-    se = stiffness_extremes(d, theta)
+    half_alpha = np.random.default_rng(2).uniform(-1.3, 1.3, (400, 2))
+    se = stiffness_extremes(d, half_alpha)
     assert se.feasible.mean() > 0.9  # far larger than the two-cable WFW
-    assert wrench_feasible_two_cables(d, theta).mean() < se.feasible.mean()
+    assert wrench_feasible_two_cables(d, half_alpha).mean() < se.feasible.mean()
     ok = se.feasible
-    for F, K in ((se.forces_min, se.K_theta_min), (se.forces_max, se.K_theta_max)):
+    for F, K in ((se.forces_min, se.K_joint_min), (se.forces_max, se.K_joint_max)):
         assert np.all((F[ok] >= d.f_min - 1e-9) & (F[ok] <= d.f_max + 1e-9))
-        np.testing.assert_allclose(_total_gradient(d, theta[ok], F[ok, :, 0], F[ok, :, 1]), 0.0, atol=1e-7)
-        np.testing.assert_allclose(K[ok], joint_stiffness(d, theta[ok], F[ok, :, 0], F[ok, :, 1]))
+        np.testing.assert_allclose(_total_gradient(d, half_alpha[ok], F[ok, :, 0], F[ok, :, 1]), 0.0, atol=1e-7)
+        np.testing.assert_allclose(K[ok], joint_stiffness(d, half_alpha[ok], F[ok, :, 0], F[ok, :, 1]))
     # Off-diagonal terms depend only on gravity; the diagonal spans a range (min <= max).
-    np.testing.assert_allclose(se.K_theta_min[ok][:, 0, 1], se.K_theta_max[ok][:, 0, 1])
-    assert np.all(se.K_theta_min[ok][:, [0, 1], [0, 1]] <= se.K_theta_max[ok][:, [0, 1], [0, 1]] + 1e-12)
+    np.testing.assert_allclose(se.K_joint_min[ok][:, 0, 1], se.K_joint_max[ok][:, 0, 1])
+    assert np.all(se.K_joint_min[ok][:, [0, 1], [0, 1]] <= se.K_joint_max[ok][:, [0, 1], [0, 1]] + 1e-12)
     # No point inside the segment beats the ends (K is affine along it).
-    seg = redundancy_segment(d, theta[ok])
+    seg = redundancy_segment(d, half_alpha[ok])
     for s in np.linspace(0, 1, 5):
         fr = seg.s_lo + s * (seg.s_hi - seg.s_lo)
-        K = joint_stiffness(d, theta[ok], seg.A + seg.B * fr, fr)
-        assert np.all(K[:, [0, 1], [0, 1]] >= se.K_theta_min[ok][:, [0, 1], [0, 1]] - 1e-9)
-        assert np.all(K[:, [0, 1], [0, 1]] <= se.K_theta_max[ok][:, [0, 1], [0, 1]] + 1e-9)
+        K = joint_stiffness(d, half_alpha[ok], seg.A + seg.B * fr, fr)
+        assert np.all(K[:, [0, 1], [0, 1]] >= se.K_joint_min[ok][:, [0, 1], [0, 1]] - 1e-9)
+        assert np.all(K[:, [0, 1], [0, 1]] <= se.K_joint_max[ok][:, [0, 1], [0, 1]] + 1e-9)
     # Eq. (19) and "K_x, K_y are extreme at the same forces".
-    J = jacobian(theta[ok], d.L, d.b)
-    np.testing.assert_allclose(se.K_c_min[ok], cartesian_stiffness(se.K_theta_min[ok], J))
+    J = jacobian(half_alpha[ok], d.L, d.b)
+    np.testing.assert_allclose(se.K_c_min[ok], cartesian_stiffness(se.K_joint_min[ok], J))
     good = np.isfinite(se.K_c_min[ok]).all(axis=(-1, -2))
     assert np.all(np.diagonal(se.K_c_min[ok][good], axis1=1, axis2=2)
                   <= np.diagonal(se.K_c_max[ok][good], axis1=1, axis2=2) + 1e-9)
@@ -123,7 +123,7 @@ def test_bad_design_is_rejected():
         Design(k_l=(1.0, 2.0), k_r=(1.0,))
     with pytest.raises(ValueError, match="f_min"):
         prototype_2x(f_min=5.0, f_max=1.0)
-    with pytest.raises(ValueError, match="theta"):
+    with pytest.raises(ValueError, match="half_alpha"):
         potential_gradient(prototype_2x(), np.zeros(3))
 
 

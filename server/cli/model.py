@@ -47,7 +47,7 @@ def model(
     out = {
         "params": params.name,
         "alpha_rad": a.tolist(),
-        "l_c_m": (terms.l_c - m.l_c0).tolist(),
+        "delta_l_c_m": (terms.l_c - m.l_c0).tolist(),  # l_c − l_c0
         "theta_rad": theta.tolist(),
         "Z_m_per_rad": terms.Z.tolist(),
         "M_kg_m2": terms.M.tolist(),

@@ -8,7 +8,8 @@ shared by ``L``, ``b``, ``x`` and ``y``), angles in radians.
 
 Each X-joint is an antiparallelogram with diagonal bars of length ``L`` and base/top bars of
 length ``b`` (0 < b < L). Its configuration is θ_i, the angle of the median segment (base-bar
-middle to top-bar middle) from the base-bar normal; the top bar turns by α_i = 2 θ_i, and
+middle to top-bar middle) from the base-bar normal (the 2-X paper's symbol; ``half_alpha`` in the
+code, because θ is the motor angle everywhere else in xneck); the top bar turns by α_i = 2 θ_i, and
 θ_i in (−π, π] covers a full turn of the mechanism. θ_i > 0 tilts the joint to the left (−x) and
 shortens its left side. |θ_i| = π/2 is the flat singularity of one X-joint; |θ_i| < π/2 is
 "configuration up", which cable actuation requires.
@@ -31,7 +32,7 @@ __all__ = [
     "check_design",
     "cuspidal_threshold",
     "det_jacobian_2x",
-    "foldback_theta1",
+    "foldback_half_alpha1",
     "fk",
     "ik_2x",
     "ik_2x_batch",
@@ -40,8 +41,8 @@ __all__ = [
     "joint_points",
     "median_length",
     "median_length_derivatives",
-    "side_lengths",
-    "singular_theta1",
+    "side_lengths_at_half_alpha",
+    "singular_half_alpha1",
     "wrap_angle",
 ]
 
@@ -78,96 +79,96 @@ def wrap_angle(a: ArrayLike) -> NDArray[np.float64]:
     return np.where(w == -np.pi, np.pi, w)
 
 
-def median_length(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def median_length(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """Median-segment length l(θ) = sqrt(L² − b² cos²θ), eq. (1). Same unit as L."""
-    c = np.cos(np.asarray(theta, dtype=float))
+    c = np.cos(np.asarray(half_alpha, dtype=float))
     return np.sqrt(L * L - b * b * c * c)
 
 
 def median_length_derivatives(
-    theta: ArrayLike, L: float, b: float
+    half_alpha: ArrayLike, L: float, b: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """l(θ), dl/dθ and d²l/dθ² of eq. (1) (length, length/rad, length/rad²)."""
-    theta = np.asarray(theta, dtype=float)
-    l = median_length(theta, L, b)
-    s2 = np.sin(2.0 * theta)
+    half_alpha = np.asarray(half_alpha, dtype=float)
+    l = median_length(half_alpha, L, b)
+    s2 = np.sin(2.0 * half_alpha)
     dl = 0.5 * b * b * s2 / l
-    ddl = (b * b * np.cos(2.0 * theta) - dl * dl) / l
+    ddl = (b * b * np.cos(2.0 * half_alpha) - dl * dl) / l
     return l, dl, ddl
 
 
-def side_lengths(theta: ArrayLike, L: float, b: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def side_lengths_at_half_alpha(half_alpha: ArrayLike, L: float, b: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Left and right side lengths (l_l, l_r) = (l − b sin θ, l + b sin θ) of one X-joint.
 
     Both sides are parallel to the median; this is ERRATA eq. (2) of the 3-X paper written with
     θ = α/2 (l_r(θ) = l_l(−θ)). Positive for every θ since b < L.
     """
-    theta = np.asarray(theta, dtype=float)
-    l = median_length(theta, L, b)
-    bs = b * np.sin(theta)
+    half_alpha = np.asarray(half_alpha, dtype=float)
+    l = median_length(half_alpha, L, b)
+    bs = b * np.sin(half_alpha)
     return l - bs, l + bs
 
 
-def _phases(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+def _phases(half_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
     """Median-segment direction φ_i = −θ_i + Σ_{j<=i} 2θ_j of eq. (2), from the y axis (rad)."""
-    return 2.0 * np.cumsum(theta, axis=-1) - theta
+    return 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
 
 
-def _as_chain(theta: ArrayLike) -> NDArray[np.float64]:
-    theta = np.asarray(theta, dtype=float)
-    if theta.ndim == 0 or theta.shape[-1] < 1:
-        raise ValueError(f"theta must have shape (..., N) with N >= 1 joints, got shape {theta.shape}")
-    return theta
+def _as_chain(half_alpha: ArrayLike) -> NDArray[np.float64]:
+    half_alpha = np.asarray(half_alpha, dtype=float)
+    if half_alpha.ndim == 0 or half_alpha.shape[-1] < 1:
+        raise ValueError(f"half_alpha must have shape (..., N) with N >= 1 joints, got shape {half_alpha.shape}")
+    return half_alpha
 
 
-def joint_points(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def joint_points(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """Middles of the base bar and of every top bar, shape (..., N+1, 2), eq. (2) partial sums."""
-    theta = _as_chain(theta)
-    phi = _phases(theta)
-    l = median_length(theta, L, b)
+    half_alpha = _as_chain(half_alpha)
+    phi = _phases(half_alpha)
+    l = median_length(half_alpha, L, b)
     steps = np.stack([-l * np.sin(phi), l * np.cos(phi)], axis=-1)
     zero = np.zeros(steps.shape[:-2] + (1, 2))
     return np.concatenate([zero, np.cumsum(steps, axis=-2)], axis=-2)
 
 
-def bar_nodes(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def bar_nodes(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """End nodes (left, right) of the base bar and of every top bar, shape (..., N+1, 2, 2).
 
     Bar i turns by Σ_{j<=i} 2θ_j; its nodes are its middle ± b/2 along it. The diagonal bars of
     joint i join left node of bar i−1 to right node of bar i and vice versa (for drawing).
     """
-    theta = _as_chain(theta)
-    mid = joint_points(theta, L, b)
-    turn = 2.0 * np.cumsum(theta, axis=-1)
+    half_alpha = _as_chain(half_alpha)
+    mid = joint_points(half_alpha, L, b)
+    turn = 2.0 * np.cumsum(half_alpha, axis=-1)
     turn = np.concatenate([np.zeros(turn.shape[:-1] + (1,)), turn], axis=-1)
     half = 0.5 * b * np.stack([np.cos(turn), np.sin(turn)], axis=-1)
     return np.stack([mid - half, mid + half], axis=-2)
 
 
-def fk(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def fk(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """Forward kinematics of N X-joints in series, eq. (2) (eq. (3) for N = 2).
 
     Args:
-        theta: joint angles θ_i (rad), shape (..., N), joint 1 at the base.
+        half_alpha: joint angles θ_i (rad), shape (..., N), joint 1 at the base.
         L, b: diagonal and base/top bar lengths.
     Returns:
         (x, y) of the middle of the last top bar in the base frame, shape (..., 2), unit of L.
     """
-    theta = _as_chain(theta)
-    phi = _phases(theta)
-    l = median_length(theta, L, b)
+    half_alpha = _as_chain(half_alpha)
+    phi = _phases(half_alpha)
+    l = median_length(half_alpha, L, b)
     return np.stack([-(l * np.sin(phi)).sum(-1), (l * np.cos(phi)).sum(-1)], axis=-1)
 
 
-def jacobian(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def jacobian(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """Jacobian J = ∂(x, y)/∂θ of eq. (2), shape (..., 2, N) (length/rad); eqs. (10)-(11) for N = 2.
 
     Differentiated analytically: φ_i depends on θ_k with weight 1 (k = i) or 2 (k < i).
     """
-    theta = _as_chain(theta)
-    n = theta.shape[-1]
-    phi = _phases(theta)
-    l, dl, _ = median_length_derivatives(theta, L, b)
+    half_alpha = _as_chain(half_alpha)
+    n = half_alpha.shape[-1]
+    phi = _phases(half_alpha)
+    l, dl, _ = median_length_derivatives(half_alpha, L, b)
     # weights[i, k] = ∂φ_i/∂θ_k
     weights = np.tril(np.full((n, n), 2.0), -1) + np.eye(n)
     s, c = np.sin(phi), np.cos(phi)
@@ -176,14 +177,14 @@ def jacobian(theta: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     return np.stack([jx, jy], axis=-2)
 
 
-def det_jacobian_2x(theta1: ArrayLike, theta2: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def det_jacobian_2x(half_alpha1: ArrayLike, half_alpha2: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """det J of the 2-X chain (length²/rad²) from the closed form of eq. (12).
 
     Eq. (12) is det J with the never-vanishing factor l_1(θ_1) l_2(θ_2) cleared; it is divided back
     here so the result equals ``np.linalg.det(jacobian(...))``.
     """
-    t1 = np.asarray(theta1, dtype=float)
-    t2 = np.asarray(theta2, dtype=float)
+    t1 = np.asarray(half_alpha1, dtype=float)
+    t2 = np.asarray(half_alpha2, dtype=float)
     L2, b2 = L * L, b * b
     c1, s1, c2, s2 = np.cos(t1), np.sin(t1), np.cos(t2), np.sin(t2)
     l1 = median_length(t1, L, b)
@@ -196,16 +197,16 @@ def det_jacobian_2x(theta1: ArrayLike, theta2: ArrayLike, L: float, b: float) ->
     return eq12 / (l1 * l2)
 
 
-def aspect(theta1: ArrayLike, theta2: ArrayLike, L: float, b: float) -> NDArray[np.int8]:
+def aspect(half_alpha1: ArrayLike, half_alpha2: ArrayLike, L: float, b: float) -> NDArray[np.int8]:
     """Aspect label (+1 or −1) of 2-X configurations: the sign of det J (section 2.4).
 
     The singularity curves split the (toroidal) joint space into two aspects, one per sign.
     0 on a singularity.
     """
-    return np.sign(det_jacobian_2x(theta1, theta2, L, b)).astype(np.int8)
+    return np.sign(det_jacobian_2x(half_alpha1, half_alpha2, L, b)).astype(np.int8)
 
 
-def singular_theta1(theta2: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
+def singular_half_alpha1(half_alpha2: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """The "outstretched" singularity curve of eq. (13): θ_1 as a function of θ_2 (rad).
 
     Eq. (13) gives tan θ_1; of its two branches θ_1 and θ_1 + π, det J vanishes on the one with
@@ -213,7 +214,7 @@ def singular_theta1(theta2: ArrayLike, L: float, b: float) -> NDArray[np.float64
     what ``arctan2(numerator, denominator)`` returns. At cos θ_2 = 0 this gives θ_1 = ±π/2
     (both joints flat).
     """
-    t2 = np.asarray(theta2, dtype=float)
+    t2 = np.asarray(half_alpha2, dtype=float)
     L2, b2 = L * L, b * b
     c2, s2 = np.cos(t2), np.sin(t2)
     q = (2.0 * b2 * c2 * c2 - L2) ** 2
@@ -222,13 +223,13 @@ def singular_theta1(theta2: ArrayLike, L: float, b: float) -> NDArray[np.float64
     return np.arctan2(num, den)
 
 
-def foldback_theta1(theta2: ArrayLike) -> NDArray[np.float64]:
+def foldback_half_alpha1(half_alpha2: ArrayLike) -> NDArray[np.float64]:
     """The folded-back singularity θ_1 = −θ_2 ± π (section 2.4), wrapped to (−π, π] (rad).
 
     The two signs are one curve on the joint torus; drawn in the square (−π, π]² it shows as two
     lines. On it the two joints coincide and p = (0, 0).
     """
-    return wrap_angle(-np.asarray(theta2, dtype=float) + np.pi)
+    return wrap_angle(-np.asarray(half_alpha2, dtype=float) + np.pi)
 
 
 def cuspidal_threshold(L: float) -> float:
@@ -313,37 +314,37 @@ def ik_2x_batch(
     # which α_1 = 2θ_1 alone cannot.
     m1x = -0.5 * bs + np.cos(phi1) - 0.5 * bs * np.cos(alpha1)
     m1y = np.sin(phi1) - 0.5 * bs * np.sin(alpha1)
-    theta1 = np.arctan2(-m1x, m1y)
+    half_alpha1 = np.arctan2(-m1x, m1y)
     # Joint 2 in the frame of the top bar of joint 1: its median points at p, which fixes θ_2
     # (the other candidate of eq. (4) points away and never closes the loop).
     dx, dy = p[..., 0] - m1x, p[..., 1] - m1y
-    ca, sa = np.cos(2.0 * theta1), np.sin(2.0 * theta1)
-    theta2 = np.arctan2(-(ca * dx + sa * dy), -sa * dx + ca * dy)
-    theta = np.stack([theta1, theta2], axis=-1)  # (..., 4, 2)
+    ca, sa = np.cos(2.0 * half_alpha1), np.sin(2.0 * half_alpha1)
+    half_alpha2 = np.arctan2(-(ca * dx + sa * dy), -sa * dx + ca * dy)
+    half_alpha = np.stack([half_alpha1, half_alpha2], axis=-1)  # (..., 4, 2)
 
     for _ in range(newton_steps):
-        r = p - fk(theta, 1.0, bs)
-        J = jacobian(theta, 1.0, bs)
+        r = p - fk(half_alpha, 1.0, bs)
+        J = jacobian(half_alpha, 1.0, bs)
         # Damped normal equations: a singular J (boundary points) must not blow the step up.
         JtJ = np.swapaxes(J, -1, -2) @ J + 1e-12 * np.eye(2)
         step = np.linalg.solve(JtJ, (np.swapaxes(J, -1, -2) @ r[..., None]))[..., 0]
-        theta = np.where(np.isfinite(step), theta + step, theta)
-    theta = wrap_angle(theta)
+        half_alpha = np.where(np.isfinite(step), half_alpha + step, half_alpha)
+    half_alpha = wrap_angle(half_alpha)
 
-    ok = np.linalg.norm(fk(theta, 1.0, bs) - p, axis=-1) < _IK_TOL
-    ok &= np.isfinite(theta).all(-1)
-    theta = np.where(ok[..., None], theta, np.nan)
+    ok = np.linalg.norm(fk(half_alpha, 1.0, bs) - p, axis=-1) < _IK_TOL
+    ok &= np.isfinite(half_alpha).all(-1)
+    half_alpha = np.where(ok[..., None], half_alpha, np.nan)
 
     # A double root of the quartic gives the same configuration twice: keep one.
     for i in range(1, 4):
         for j in range(i):
-            d = np.abs(wrap_angle(theta[..., i, :] - theta[..., j, :])).max(-1)
+            d = np.abs(wrap_angle(half_alpha[..., i, :] - half_alpha[..., j, :])).max(-1)
             dup = d < 1e-7
-            theta[..., i, :] = np.where(dup[..., None], np.nan, theta[..., i, :])
+            half_alpha[..., i, :] = np.where(dup[..., None], np.nan, half_alpha[..., i, :])
 
-    key = np.where(np.isnan(theta[..., 0]), np.inf, theta[..., 0])
+    key = np.where(np.isnan(half_alpha[..., 0]), np.inf, half_alpha[..., 0])
     order = np.argsort(key, axis=-1)
-    return np.take_along_axis(theta, order[..., None], axis=-2)
+    return np.take_along_axis(half_alpha, order[..., None], axis=-2)
 
 
 def ik_2x(x: float, y: float, L: float, b: float) -> NDArray[np.float64]:

@@ -18,6 +18,9 @@ Two actuation strategies:
 redundancy f = f_p + n t, through the numeric model of ``twin.model.numeric`` / ``twin.model.cables`` /
 ``twin.model.dynamics`` (3-X paper notation: joint angle α = 2θ, Z = −∂l_c/∂α).
 
+Names: θ in the formulas is the 2-X paper's joint angle (half the top-bar angle, θ_i = α_i/2),
+``half_alpha`` in the code (θ is the motor angle everywhere else in xneck); K_θ is ``K_joint``.
+
 Units: SI. Lengths m, angles rad, forces N, torques N·m, joint stiffness N·m/rad, Cartesian
 stiffness N/m. Cable forces are tensions (>= 0).
 """
@@ -133,15 +136,15 @@ def prototype_2x(**overrides: Any) -> Design:
 # --- geometry of the sides -------------------------------------------------------------------
 
 
-def side_length_derivatives(theta: ArrayLike, L: float, b: float) -> tuple[NDArray[np.float64], ...]:
+def side_length_derivatives(half_alpha: ArrayLike, L: float, b: float) -> tuple[NDArray[np.float64], ...]:
     """Side lengths l_l, l_r = l ∓ b sin θ and their first and second θ-derivatives.
 
-    Returns (l_l, l_r, dl_l, dl_r, ddl_l, ddl_r) (m, m/rad, m/rad²), each shaped like ``theta``.
+    Returns (l_l, l_r, dl_l, dl_r, ddl_l, ddl_r) (m, m/rad, m/rad²), each shaped like ``half_alpha``.
     For |θ| < π/2, dl_l < 0 < dl_r: the left cable pulls θ up, the right one pulls it down.
     """
-    theta = np.asarray(theta, dtype=float)
-    l, dl, ddl = median_length_derivatives(theta, L, b)
-    bs, bc = b * np.sin(theta), b * np.cos(theta)
+    half_alpha = np.asarray(half_alpha, dtype=float)
+    l, dl, ddl = median_length_derivatives(half_alpha, L, b)
+    bs, bc = b * np.sin(half_alpha), b * np.cos(half_alpha)
     return l - bs, l + bs, dl - bc, dl + bc, ddl + bs, ddl - bs
 
 
@@ -164,24 +167,24 @@ def _gravity_weights(d: Design) -> NDArray[np.float64]:
     return m * (d.com_fraction + np.arange(n - 1, -1, -1, dtype=float))
 
 
-def _check_theta(theta: ArrayLike, d: Design) -> NDArray[np.float64]:
-    theta = np.asarray(theta, dtype=float)
-    if theta.ndim == 0 or theta.shape[-1] != d.n_joints:
-        raise ValueError(f"theta must have shape (..., {d.n_joints}), got {theta.shape}")
-    return theta
+def _check_half_alpha(half_alpha: ArrayLike, d: Design) -> NDArray[np.float64]:
+    half_alpha = np.asarray(half_alpha, dtype=float)
+    if half_alpha.ndim == 0 or half_alpha.shape[-1] != d.n_joints:
+        raise ValueError(f"half_alpha must have shape (..., {d.n_joints}), got {half_alpha.shape}")
+    return half_alpha
 
 
-def potential_gradient(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
+def potential_gradient(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
     """∂(U_springs + U_gravity)/∂θ (N·m/rad), eq. (16a)-(16b), shape (..., N).
 
     At equilibrium the cables balance it: −Σ f ∂l/∂θ equals this (right-hand side of eq. (21)).
     """
-    theta = _check_theta(theta, d)
+    half_alpha = _check_half_alpha(half_alpha, d)
     n = d.n_joints
     a = _phase_weights(n)
-    phi = 2.0 * np.cumsum(theta, axis=-1) - theta
-    l, dl, _ = median_length_derivatives(theta, d.L, d.b)
-    ll, lr, dll, dlr, _, _ = side_length_derivatives(theta, d.L, d.b)
+    phi = 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
+    l, dl, _ = median_length_derivatives(half_alpha, d.L, d.b)
+    ll, lr, dll, dlr, _, _ = side_length_derivatives(half_alpha, d.L, d.b)
     springs = d.array("k_l") * (ll - d.array("l0_l")) * dll + d.array("k_r") * (lr - d.array("l0_r")) * dlr
     w = _gravity_weights(d)
     # h_j = l_j cos φ_j; ∂h_j/∂θ_k = δ_jk l'_j cos φ_j − l_j sin φ_j a_jk
@@ -189,14 +192,14 @@ def potential_gradient(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
     return springs + d.gravity * grav
 
 
-def potential_hessian(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
+def potential_hessian(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
     """∂²(U_springs + U_gravity)/∂θ² (N·m/rad), shape (..., N, N): K_θ of eq. (18) without cables."""
-    theta = _check_theta(theta, d)
+    half_alpha = _check_half_alpha(half_alpha, d)
     n = d.n_joints
     a = _phase_weights(n)
-    phi = 2.0 * np.cumsum(theta, axis=-1) - theta
-    l, dl, ddl = median_length_derivatives(theta, d.L, d.b)
-    ll, lr, dll, dlr, ddll, ddlr = side_length_derivatives(theta, d.L, d.b)
+    phi = 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
+    l, dl, ddl = median_length_derivatives(half_alpha, d.L, d.b)
+    ll, lr, dll, dlr, ddll, ddlr = side_length_derivatives(half_alpha, d.L, d.b)
     kl, kr = d.array("k_l"), d.array("k_r")
     springs = kl * (dll**2 + (ll - d.array("l0_l")) * ddll) + kr * (dlr**2 + (lr - d.array("l0_r")) * ddlr)
     w = _gravity_weights(d)
@@ -215,7 +218,7 @@ def potential_hessian(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
 # --- cables ------------------------------------------------------------------------------------
 
 
-def joint_stiffness(d: Design, theta: ArrayLike, f_l: ArrayLike, f_r: ArrayLike) -> NDArray[np.float64]:
+def joint_stiffness(d: Design, half_alpha: ArrayLike, f_l: ArrayLike, f_r: ArrayLike) -> NDArray[np.float64]:
     """K_θ = ∂²U/∂θ² of eq. (18) (N·m/rad), shape (..., N, N).
 
     Args:
@@ -223,15 +226,15 @@ def joint_stiffness(d: Design, theta: ArrayLike, f_l: ArrayLike, f_r: ArrayLike)
             two-cable strategy pass the same f_l (f_r) for every joint. The cables add
             f ∂²l/∂θ² to the diagonal only (eq. (20)/(22) are sums of f times side lengths).
     """
-    theta = _check_theta(theta, d)
-    _, _, _, _, ddll, ddlr = side_length_derivatives(theta, d.L, d.b)
+    half_alpha = _check_half_alpha(half_alpha, d)
+    _, _, _, _, ddll, ddlr = side_length_derivatives(half_alpha, d.L, d.b)
     cables = np.asarray(f_l, dtype=float) * ddll + np.asarray(f_r, dtype=float) * ddlr
-    return potential_hessian(d, theta) + cables[..., :, None] * np.eye(d.n_joints)
+    return potential_hessian(d, half_alpha) + cables[..., :, None] * np.eye(d.n_joints)
 
 
-def cartesian_stiffness(K_theta: ArrayLike, J: ArrayLike) -> NDArray[np.float64]:
+def cartesian_stiffness(K_joint: ArrayLike, J: ArrayLike) -> NDArray[np.float64]:
     """K_c = J⁻ᵀ K_θ J⁻¹, eq. (19) (N/m), shape (..., 2, 2); NaN where J is singular."""
-    K_theta = np.asarray(K_theta, dtype=float)
+    K_joint = np.asarray(K_joint, dtype=float)
     J = np.asarray(J, dtype=float)
     if J.shape[-2:] != (2, 2):
         raise ValueError(f"J must be square 2x2 (a 2-X chain), got shape {J.shape}")
@@ -239,11 +242,11 @@ def cartesian_stiffness(K_theta: ArrayLike, J: ArrayLike) -> NDArray[np.float64]
     scale = np.abs(J).max(axis=(-1, -2)) ** 2
     ok = np.abs(det) > 1e-9 * scale
     Jinv = np.linalg.inv(np.where(ok[..., None, None], J, np.eye(2)))
-    Kc = np.swapaxes(Jinv, -1, -2) @ K_theta @ Jinv
+    Kc = np.swapaxes(Jinv, -1, -2) @ K_joint @ Jinv
     return np.where(ok[..., None, None], Kc, np.nan)
 
 
-def forces_two_cables(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
+def forces_two_cables(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
     """Unique equilibrium forces (f_l, f_r) (N) of the two-cable strategy, eqs. (20)-(21).
 
     Solves Σ_i-rows [∂l_li/∂θ_i, ∂l_ri/∂θ_i] (f_l, f_r) = −∂(U_s + U_g)/∂θ. Shape (..., 2);
@@ -251,9 +254,9 @@ def forces_two_cables(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
     """
     if d.n_joints != 2:
         raise ValueError(f"the two-cable strategy of eq. (20) is defined for 2 joints, design has {d.n_joints}")
-    theta = _check_theta(theta, d)
-    _, _, dll, dlr, _, _ = side_length_derivatives(theta, d.L, d.b)
-    rhs = -potential_gradient(d, theta)
+    half_alpha = _check_half_alpha(half_alpha, d)
+    _, _, dll, dlr, _, _ = side_length_derivatives(half_alpha, d.L, d.b)
+    rhs = -potential_gradient(d, half_alpha)
     a, bb = dll[..., 0], dlr[..., 0]
     c, e = dll[..., 1], dlr[..., 1]
     det = a * e - bb * c
@@ -264,9 +267,9 @@ def forces_two_cables(d: Design, theta: ArrayLike) -> NDArray[np.float64]:
     return np.stack([f_l, f_r], axis=-1)
 
 
-def wrench_feasible_two_cables(d: Design, theta: ArrayLike) -> NDArray[np.bool_]:
+def wrench_feasible_two_cables(d: Design, half_alpha: ArrayLike) -> NDArray[np.bool_]:
     """Wrench-feasible configurations of the two-cable strategy: f_min <= f_l, f_r <= f_max."""
-    f = forces_two_cables(d, theta)
+    f = forces_two_cables(d, half_alpha)
     return np.all((f >= d.f_min) & (f <= d.f_max), axis=-1)
 
 
@@ -281,15 +284,15 @@ class ForceSegment(NamedTuple):
     feasible: NDArray[np.bool_]
 
 
-def redundancy_segment(d: Design, theta: ArrayLike) -> ForceSegment:
+def redundancy_segment(d: Design, half_alpha: ArrayLike) -> ForceSegment:
     """The force redundancy of the 2N-cable strategy (eq. (22)) at each configuration.
 
     Joint i balances f_li ∂l_li/∂θ_i + f_ri ∂l_ri/∂θ_i = −∂(U_s + U_g)/∂θ_i (eq. 17), a line in the
     (f_li, f_ri) plane, cut by the box [f_min, f_max]². Parametrised by f_ri.
     """
-    theta = _check_theta(theta, d)
-    _, _, dll, dlr, _, _ = side_length_derivatives(theta, d.L, d.b)
-    G = potential_gradient(d, theta)
+    half_alpha = _check_half_alpha(half_alpha, d)
+    _, _, dll, dlr, _, _ = side_length_derivatives(half_alpha, d.L, d.b)
+    G = potential_gradient(d, half_alpha)
     with np.errstate(divide="ignore", invalid="ignore"):
         A = -G / dll
         B = -dlr / dll
@@ -304,7 +307,7 @@ def redundancy_segment(d: Design, theta: ArrayLike) -> ForceSegment:
 class StiffnessExtremes(NamedTuple):
     """Minimum and maximum stiffness over the force redundancy (2N-cable strategy).
 
-    K_theta_min/max: (..., N, N) N·m/rad, the diagonal minimised/maximised joint by joint
+    K_joint_min/max: (..., N, N) N·m/rad, the diagonal minimised/maximised joint by joint
     (off-diagonal terms do not depend on the forces). f_min/f_max: (..., N, 2) forces (f_l, f_r)
     that realise them. K_c_min/max: (..., 2, 2) N/m for a 2-X chain (the diagonal K_x, K_y is
     monotone in every K_θi, so it is extreme at the same forces), NaN near singular J, else None.
@@ -312,23 +315,23 @@ class StiffnessExtremes(NamedTuple):
     """
 
     feasible: NDArray[np.bool_]
-    K_theta_min: NDArray[np.float64]
-    K_theta_max: NDArray[np.float64]
+    K_joint_min: NDArray[np.float64]
+    K_joint_max: NDArray[np.float64]
     forces_min: NDArray[np.float64]
     forces_max: NDArray[np.float64]
     K_c_min: NDArray[np.float64] | None
     K_c_max: NDArray[np.float64] | None
 
 
-def stiffness_extremes(d: Design, theta: ArrayLike) -> StiffnessExtremes:
+def stiffness_extremes(d: Design, half_alpha: ArrayLike) -> StiffnessExtremes:
     """Wrench feasibility and extreme stiffness of the 2N-cable strategy (Figs. 16-19).
 
     K_θi is affine in f_ri along the redundancy segment, so its extremes are at the segment ends;
     which end depends on the slope's sign, found per point.
     """
-    theta = _check_theta(theta, d)
-    seg = redundancy_segment(d, theta)
-    _, _, _, _, ddll, ddlr = side_length_derivatives(theta, d.L, d.b)
+    half_alpha = _check_half_alpha(half_alpha, d)
+    seg = redundancy_segment(d, half_alpha)
+    _, _, _, _, ddll, ddlr = side_length_derivatives(half_alpha, d.L, d.b)
     slope = seg.B * ddll + ddlr  # dK_θi / df_ri along the segment
     s_min = np.where(slope >= 0, seg.s_lo, seg.s_hi)
     s_max = np.where(slope >= 0, seg.s_hi, seg.s_lo)
@@ -336,11 +339,11 @@ def stiffness_extremes(d: Design, theta: ArrayLike) -> StiffnessExtremes:
     feasible = seg.feasible.all(-1)
     nan = np.where(feasible[..., None, None], 0.0, np.nan)
     F_min, F_max = f_at(s_min) + nan, f_at(s_max) + nan
-    K_min = joint_stiffness(d, theta, F_min[..., 0], F_min[..., 1]) + nan
-    K_max = joint_stiffness(d, theta, F_max[..., 0], F_max[..., 1]) + nan
+    K_min = joint_stiffness(d, half_alpha, F_min[..., 0], F_min[..., 1]) + nan
+    K_max = joint_stiffness(d, half_alpha, F_max[..., 0], F_max[..., 1]) + nan
     Kc_min = Kc_max = None
     if d.n_joints == 2:
-        J = jacobian(theta, d.L, d.b)
+        J = jacobian(half_alpha, d.L, d.b)
         Kc_min, Kc_max = cartesian_stiffness(K_min, J), cartesian_stiffness(K_max, J)
     return StiffnessExtremes(feasible, K_min, K_max, F_min, F_max, Kc_min, Kc_max)
 

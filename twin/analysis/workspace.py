@@ -3,6 +3,7 @@
 Maps are plain arrays on regular grids (computed vectorised, one LAPACK batch per map); the
 ``plot_*`` functions turn them into matplotlib figures and ``write_*_figures`` save PNGs with the
 Agg backend. Units: SI (m, rad, N, N·m/rad, N/m); figure axes are in degrees and in units of L.
+The 2-X paper's joint angle θ_i = α_i/2 is ``half_alpha`` in the code (θ is the motor angle elsewhere).
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from twin.analysis.kinematics import (
     check_design,
     det_jacobian_2x,
     fk,
-    foldback_theta1,
+    foldback_half_alpha1,
     ik_2x_batch,
-    singular_theta1,
+    singular_half_alpha1,
 )
 from twin.analysis.statics import Design, prototype_2x, stiffness_extremes, wrench_feasible_two_cables
 
@@ -142,7 +143,7 @@ def singularity_polylines(L: float, b: float, n: int = 721) -> dict[str, NDArray
         pts = np.insert(pts, np.nonzero(jump)[0] + 1, np.nan, axis=0)
         return pts
 
-    out = {"general": _break(singular_theta1(t2, L, b)), "foldback": _break(foldback_theta1(t2))}
+    out = {"general": _break(singular_half_alpha1(t2, L, b)), "foldback": _break(foldback_half_alpha1(t2))}
     line = np.linspace(-np.pi, np.pi, n)
     sep = np.full((1, 2), np.nan)
     out["flat1"] = np.concatenate(
@@ -173,15 +174,15 @@ class JointMaps2X(NamedTuple):
     """Joint-space maps of a 2-X design (Figs. 13-19) on an (n, n) grid indexed [θ_1, θ_2].
 
     wfw2: two-cable wrench feasibility (eqs. 20-21). wfw4: four-cable feasibility (eq. 22).
-    K_theta_min/max: (n, n, 2) diagonal K_θ1, K_θ2 (N·m/rad). K_c_min/max: (n, n, 2) diagonal
+    K_joint_min/max: (n, n, 2) diagonal K_θ1, K_θ2 (N·m/rad). K_c_min/max: (n, n, 2) diagonal
     K_x, K_y (N/m). xy: (n, n, 2) end point (m). All NaN where infeasible.
     """
 
-    theta: NDArray[np.float64]
+    half_alpha: NDArray[np.float64]
     wfw2: NDArray[np.bool_]
     wfw4: NDArray[np.bool_]
-    K_theta_min: NDArray[np.float64]
-    K_theta_max: NDArray[np.float64]
+    K_joint_min: NDArray[np.float64]
+    K_joint_max: NDArray[np.float64]
     K_c_min: NDArray[np.float64]
     K_c_max: NDArray[np.float64]
     xy: NDArray[np.float64]
@@ -195,11 +196,11 @@ def joint_maps_2x(d: Design, n: int = 400) -> JointMaps2X:
     se = stiffness_extremes(d, T)
     diag = lambda K: np.diagonal(K, axis1=-2, axis2=-1)  # noqa: E731
     return JointMaps2X(
-        theta=t,
+        half_alpha=t,
         wfw2=wrench_feasible_two_cables(d, T),
         wfw4=se.feasible,
-        K_theta_min=diag(se.K_theta_min),
-        K_theta_max=diag(se.K_theta_max),
+        K_joint_min=diag(se.K_joint_min),
+        K_joint_max=diag(se.K_joint_max),
         K_c_min=diag(se.K_c_min),
         K_c_max=diag(se.K_c_max),
         xy=fk(T, d.L, d.b),
@@ -396,10 +397,10 @@ def plot_joint_stiffness(d: Design, n: int = 300) -> Any:
     maps = joint_maps_2x(d, n)
     fig, axes = plt.subplots(2, 2, figsize=(9, 8.5), constrained_layout=True)
     for col, i in enumerate((0, 1)):
-        vals = np.concatenate([maps.K_theta_min[..., i].ravel(), maps.K_theta_max[..., i].ravel()])
+        vals = np.concatenate([maps.K_joint_min[..., i].ravel(), maps.K_joint_max[..., i].ravel()])
         lim = np.nanmax(np.abs(vals))
-        for row, (kind, K) in enumerate((("min", maps.K_theta_min), ("max", maps.K_theta_max))):
-            im = _joint_image(axes[row, col], maps.theta, K[..., i], f"{kind} K_θ{i + 1} (N·m/rad)",
+        for row, (kind, K) in enumerate((("min", maps.K_joint_min), ("max", maps.K_joint_max))):
+            im = _joint_image(axes[row, col], maps.half_alpha, K[..., i], f"{kind} K_θ{i + 1} (N·m/rad)",
                               cmap="RdBu_r", vmin=-lim, vmax=lim)
             fig.colorbar(im, ax=axes[row, col], shrink=0.8)
     fig.suptitle(f"four cables, {d.f_min:g} <= f <= {d.f_max:g} N (blank: not wrench-feasible; red: unstable < 0)")

@@ -255,7 +255,7 @@ def accelerations_into(m, alpha, theta, alpha_dot, theta_dot, f, work, out_add, 
     Elastic cables (linear/variable): M_m·α̈ + c_m + g = Z·t (eq. 30) and
     I_a·θ̈ = (r_d/R)(f − f_friction − t) (eq. 29) with t from the stretch (eq. 27). Rigid cables:
     M·α̈ + c + g = Z(f − f_friction) (eq. 32 with ẍ_c = 0) and θ̈ = (Zᵀα̈ + Żᵀα̇)·R/r_d.
-    ``work`` is a scratch tuple from :func:`workspace`. Returns the number of slack cables.
+    ``work`` is a scratch tuple from :func:`scratch_buffers`. Returns the number of slack cables.
     """
     tab, lc, Z, Zd, Mm, cm, g, M, c, ff = work
     evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
@@ -276,7 +276,7 @@ def accelerations_into(m, alpha, theta, alpha_dot, theta_dot, f, work, out_add, 
     return slack
 
 
-def workspace(model: Model):
+def scratch_buffers(model: Model):
     """Scratch arrays for the compiled kernels (allocated once per process, not per tick)."""
     N, nc = model.n_joints, model.n_cables
     return (
@@ -308,5 +308,5 @@ def accelerations(model: Model, alpha, theta, alpha_dot, theta_dot, f) -> Accele
         if v.shape != (n,):
             raise ValueError(f"{name} must have shape ({n},), got {v.shape}")
     add, tdd, t = np.empty(N), np.empty(nc), np.empty(nc)
-    slack = accelerations_into(model, *args, workspace(model), add, tdd, t)
+    slack = accelerations_into(model, *args, scratch_buffers(model), add, tdd, t)
     return Accelerations(add, tdd, t, int(slack))

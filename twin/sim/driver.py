@@ -24,7 +24,7 @@ from bridge.driver import Driver, DriverConfig, Lifecycle
 from twin.model.params import Params
 from twin.sim.sensors import quantise_encoder
 from twin.sim.simulator import Tick, Twin, TwinConfig
-from twin.sim.truth import Truth
+from twin.sim.truth import TruthName
 
 log = logging.getLogger("xneck.bridge.twin")
 
@@ -39,7 +39,7 @@ class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw
     substeps: int = 2
     seed: int = 0
     camera: bool = True
-    truth: Truth = "model"
+    truth: TruthName = "model"
 
     def __post_init__(self) -> None:
         super().__post_init__()

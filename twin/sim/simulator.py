@@ -19,7 +19,7 @@ from twin.sim.integrator import step
 from twin.model.numeric import Model, build
 from twin.model.params import Params, load_params
 from twin.sim.sensors import Camera, quantise_encoder
-from twin.sim.truth import TRUTHS, Truth, truth_params
+from twin.sim.truth import TRUTHS, TruthName, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
 
@@ -37,7 +37,7 @@ class TwinConfig:
     substeps: int = 2
     seed: int = 0
     camera: bool = True
-    truth: Truth = "model"
+    truth: TruthName = "model"
 
     def __post_init__(self) -> None:
         if self.truth not in TRUTHS:
@@ -80,7 +80,7 @@ class Twin:
         n, nc = self.model.n_joints, self.model.n_cables
         self._n, self._nc = n, nc
         self.state = np.zeros(2 * (n + nc))
-        self._work = dynamics.workspace(self.model)
+        self._work = dynamics.scratch_buffers(self.model)
         self._tension = np.zeros(nc)
         self._stretch = np.zeros(nc)
         self.seq = 0

@@ -27,13 +27,13 @@ import msgspec
 
 from twin.model.params import Params
 
-Truth = Literal["model", "robot"]
+TruthName = Literal["model", "robot"]  # which parameters the twin integrates (not the bus message bridge.bus.Truth)
 TRUTHS: tuple[str, ...] = ("model", "robot")
 
 C_A_ROBOT = 40.0  # N·s/m, cable damping of the simulated robot (all cables, both cable models)
 
 
-def truth_params(params: Params, truth: Truth = "model") -> Params:
+def truth_params(params: Params, truth: TruthName = "model") -> Params:
     """The parameter set the twin integrates for ``truth`` (see the module docstring)."""
     if truth == "model":
         return params
