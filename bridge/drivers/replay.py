@@ -80,9 +80,5 @@ class ReplayDriver(Driver):
         """True once the last state has been stepped to (the bridge stops after publishing it)."""
         return not self.config.loop and self._started and self._k == len(self._theta) - 1
 
-    @property
-    def n_states(self) -> int:
-        return len(self._theta)
-
 
 __all__ = ["ReplayConfig", "ReplayDriver"]

@@ -6,10 +6,12 @@ Pipeline (every function takes and returns arrays in SI units; θ at the motor s
     proc = preprocess(data, params)                  # §5.2.1: filter, differentiate, decimate
     fric = identify_friction(proc, params)           # eqs. 38 (rigid cables) -> f_s
     comp = identify_complete(proc, params)           # eqs. 43-45, W = 100 -> k, c_a, f_s
-    var = identify_variable(proc, params, comp.vector("f_s"))   # eqs. 54-57 -> k, λ, c_a
-    new_params, report = identified_params(params, {"friction": fric, "complete": comp,
-                                                    "variable": var}, provenance)
-    val = validate(data, proc, params, new_params, comp, var)   # eqs. 51-53, 42, 33, 35
+    var = identify_variable(proc, params, fric.values)   # eqs. 54-57 -> k, λ, c_a (friction-alone f_s)
+    est = {"friction": fric, "complete": comp, "variable": var}   # or identify_all(proc, params)
+    new_params, report, prov = identified_params(params, est, provenance)   # prov: + kept_base
+    val = validate(data, proc, new_params, est)   # eqs. 51-53, 42, 33, 35 (Figs. 4-8)
+
+twin.identification.record.identify_record runs it on an MCAP archive (xneck identify, the console).
 
 Signs. We use the physical stretch x_c = l_c − l_c0 + (r_d/R)·θ (docs/model.md), so in our
 sign eq. 32 reads M·α̈ + c + g = Z(f − f_friction − I_a(R/r_d)²·ẍ_c) and the joint rows of

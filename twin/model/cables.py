@@ -79,8 +79,3 @@ def Z_dot(model: Model, alpha, alpha_dot) -> np.ndarray:
 def theta_rigid(model: Model, alpha) -> np.ndarray:
     """Motor-shaft angles (rad) of inextensible cables, eq. 20: θ = −(R/r_d)(l_c − l_c0)."""
     return -(l_c(model, alpha) - model.l_c0) / model.rho
-
-
-def elongation(model: Model, alpha, theta) -> np.ndarray:
-    """Cable stretch x_c (m), eq. 27 with the physical sign (see the module docstring)."""
-    return l_c(model, alpha) - model.l_c0 + model.rho * np.asarray(theta, dtype=float)

@@ -153,16 +153,8 @@ def evaluate(model: Model, alpha, alpha_dot=None) -> Terms:
     return Terms(*(v.reshape(lead + v.shape[1:]) for v in out))
 
 
-def M_m(model: Model, alpha) -> np.ndarray:
-    return evaluate(model, alpha).M_m
-
-
 def M(model: Model, alpha) -> np.ndarray:
     return evaluate(model, alpha).M
-
-
-def c_m(model: Model, alpha, alpha_dot) -> np.ndarray:
-    return evaluate(model, alpha, alpha_dot).c_m
 
 
 def c(model: Model, alpha, alpha_dot) -> np.ndarray:

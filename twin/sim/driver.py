@@ -62,7 +62,6 @@ class TwinDriver(Driver):
         self._extra: list[tuple[str, bus.BusMessage]] = []
         self._seq = {"camera": 0, "truth": 0}
         self._slack = np.zeros(config.n_motors, dtype=bool)
-        self.flat_refusals = 0
 
     def _on_configure(self) -> None:
         c = self.config
@@ -98,7 +97,6 @@ class TwinDriver(Driver):
         tick = self.twin.tick(force)
         self.last_tick = tick
         if tick.flat:
-            self.flat_refusals += 1
             log.warning("t = %.3f s: a joint reached its flat singularity; step refused", tick.t_s)
         if np.any(tick.slack != self._slack):
             log.info("t = %.3f s: slack cables %s", tick.t_s, (np.nonzero(tick.slack)[0] + 1).tolist())
