@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import campaign, identify, kinematics, model, processes, serve, up
+from server.cli import camera, campaign, identify, kinematics, model, processes, serve, up
 
 app = typer.Typer(
     name="xneck",
@@ -39,6 +39,7 @@ app.command("workspace")(kinematics.workspace)
 app.command("identify")(identify.identify)
 app.command("server")(serve.server)
 app.command("up")(up.up)
+app.add_typer(camera.camera_app, name="camera")
 
 
 def main() -> None:

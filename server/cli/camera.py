@@ -1,0 +1,189 @@
+"""`xneck camera ...`: α_IP from a camera (issue 15, docs/camera.md).
+
+- ``xneck camera --source usb:N|/dev/videoN|file:VIDEO|twin``: the bus process publishing
+  ``xneck/camera/alpha_ip`` from one detector (``twin.camera.detect``); composed here.
+- ``xneck camera render --alpha A1 A2 A3 --out F.png``: the twin's camera view at α (degrees).
+- ``xneck camera detect F.png [--calibration FILE] --json``: α measured on one frame.
+- ``xneck camera markers --out sheet.png`` / ``board --out board.png``: printable marker sheet
+  and calibration checkerboard; ``calibrate``: a calibration file from a checkerboard video and a
+  frame of the base plate.
+- ``xneck camera align VIDEO CAMPAIGN.mcap``: offline time alignment of a video with a campaign.
+
+OpenCV is imported inside the commands (``xneck --help`` and the bridge never load it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import typer
+
+from server.cli.options import (
+    PARAMS_OPTION,
+    SET_OPTION,
+    load_cli_params,
+)
+
+camera_app = typer.Typer(
+    help="α_IP from a camera: the bus process (--source), and render/detect/markers/calibrate/align.",
+    add_completion=False,
+    invoke_without_command=True,
+)
+
+CALIBRATION_OPTION = typer.Option(None, "--calibration", help="Calibration file (JSON); default: the twin's nominal camera.")
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.secho(f"error: {message}", err=True, fg="red")
+    return typer.Exit(2)
+
+
+def _calibration(path: Path | None):
+    from twin.camera.calibration import CalibrationError, load_calibration, twin_calibration
+
+    if path is None:
+        return twin_calibration()
+    try:
+        return load_calibration(path)
+    except CalibrationError as exc:
+        raise _fail(str(exc)) from None
+
+
+def _write_png(path: Path, image) -> None:
+    import cv2
+
+    if path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise _fail(f"{path}: the output must be a .png or .jpg file")
+    try:
+        ok = cv2.imwrite(str(path), image)
+    except cv2.error as exc:
+        raise _fail(f"{path}: cannot write ({exc})") from None
+    if not ok:
+        raise _fail(f"{path}: cannot write")
+
+
+def _angles(first: list[str], extra: list[str]) -> list[float]:
+    """``--alpha 10 -20 30`` (Click gives the first value to the option and leaves the others as
+    extra arguments), ``--alpha 10,-20,30`` or ``--alpha 10 --alpha -20 ...``."""
+    values = []
+    for item in [*first, *extra]:
+        for part in item.split(","):
+            if part.strip():
+                try:
+                    values.append(float(part))
+                except ValueError:
+                    raise _fail(f"--alpha: {part!r} is not a number (degrees)") from None
+    return values
+
+
+@camera_app.command("render", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def render(
+    ctx: typer.Context,
+    alpha_text: list[str] = typer.Option(..., "--alpha", help="Joint angles in degrees, base to head: --alpha 10 -20 30.",
+                                         show_default=False),
+    out: Path = typer.Option(..., "--out", help="Output image (.png)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
+    noise: float = typer.Option(2.0, "--noise", help="Sensor noise σ, grey levels."),
+    blur: float = typer.Option(0.8, "--blur", help="Defocus blur σ, pixels."),
+    occlude: list[str] | None = typer.Option(None, "--occlude", help="Cover a marker: BAR:SIDE, e.g. 3:0 (bar 0 = base; side 0 = left)."),
+    calibration: Path | None = CALIBRATION_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """Render the twin's camera view of the neck at --alpha (degrees)."""
+    import numpy as np
+
+    from twin.camera.render import Renderer, RenderOptions
+    from twin.model.numeric import build
+
+    alpha = _angles(alpha_text, list(ctx.args))
+    params = load_cli_params(params_file, overrides)
+    if len(alpha) != params.n_joints:
+        raise _fail(f"--alpha needs {params.n_joints} angles (one per joint), got {len(alpha)}")
+    limit = params.limits.alpha_max_deg
+    if not all(math.isfinite(a) and abs(a) <= 90.0 for a in alpha):
+        raise _fail("every angle must be finite and within ±90°")
+    if any(abs(a) > limit for a in alpha):
+        typer.secho(f"warning: an angle is beyond the joint limit ±{limit:g}°", err=True, fg="yellow")
+    covered = []
+    for item in occlude or []:
+        try:
+            bar, side = (int(v) for v in item.split(":"))
+        except ValueError:
+            raise _fail(f"--occlude {item!r}: expected BAR:SIDE, e.g. 3:0") from None
+        if not (0 <= bar <= params.n_joints and side in (0, 1)):
+            raise _fail(f"--occlude {item!r}: bar in 0..{params.n_joints}, side 0 or 1")
+        covered.append((bar, side))
+    try:
+        options = RenderOptions(noise_dn=noise, blur_px=blur, occlude=tuple(covered))
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+    renderer = Renderer(build(params), _calibration(calibration), options=options, seed=seed)
+    _write_png(out, renderer.render(np.radians(alpha)))
+    typer.echo(f"wrote {out}")
+
+
+@camera_app.command("detect")
+def detect(
+    image: Path = typer.Argument(..., help="A frame (.png/.jpg) of the calibrated camera."),
+    calibration: Path | None = CALIBRATION_OPTION,
+    json_out: bool = typer.Option(False, "--json", help="Print JSON: {alpha_deg: [...], confidence: [...]}, null for a missing joint."),
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """Measure α (degrees) on one frame."""
+    import cv2
+
+    from twin.camera.detect import Detector
+
+    params = load_cli_params(params_file, overrides)
+    cal = _calibration(calibration)
+    if not image.is_file():
+        raise _fail(f"{image}: no such file")
+    frame = cv2.imread(str(image), cv2.IMREAD_COLOR)
+    if frame is None:
+        raise _fail(f"{image}: not a readable image")
+    detector = Detector(params.n_joints, params.geometry.L, params.geometry.b, cal)
+    try:
+        result = detector.detect(frame)
+    except ValueError as exc:
+        raise _fail(f"{image}: {exc}") from None
+    if json_out:
+        typer.echo(json.dumps(result.as_json()))
+        return
+    for i, (a, c) in enumerate(zip(result.alpha_deg, result.confidence), start=1):
+        typer.echo(f"alpha_{i} = {'missing' if a is None else f'{a:8.3f}°'}   confidence {c:.2f}")
+
+
+@camera_app.command("markers")
+def markers(
+    out: Path = typer.Option(..., "--out", help="Output image (.png), an A4 sheet."),
+    dpi: int = typer.Option(300, "--dpi", min=72, max=1200),
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """A printable sheet of the coloured markers at their true size (print at 100 %)."""
+    from twin.camera.render import marker_sheet
+
+    params = load_cli_params(params_file, overrides)
+    _write_png(out, marker_sheet(params.n_joints, dpi=dpi))
+    typer.echo(f"wrote {out} ({dpi} dpi, A4)")
+
+
+@camera_app.command("board")
+def board(
+    out: Path = typer.Option(..., "--out", help="Output image (.png)."),
+    columns: int = typer.Option(9, "--columns", min=3, max=30, help="Inner corners per row."),
+    rows: int = typer.Option(6, "--rows", min=3, max=30, help="Inner corners per column."),
+    square: float = typer.Option(0.02, "--square", help="Square size, m."),
+    dpi: int = typer.Option(300, "--dpi", min=72, max=1200),
+) -> None:
+    """A printable checkerboard for the intrinsic calibration."""
+    from twin.camera.render import checkerboard
+
+    if not (0.002 <= square <= 0.2):
+        raise _fail("--square must be between 0.002 and 0.2 m")
+    _write_png(out, checkerboard((columns, rows), square, dpi))
+    typer.echo(f"wrote {out}")

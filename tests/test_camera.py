@@ -1,0 +1,194 @@
+"""α_IP from a camera (issue 15): frames rendered by the twin are measured back by the detector.
+
+Real OpenCV on real rendered frames (and real Zenoh/MCAP further down); fixed seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+cv2 = pytest.importorskip("cv2")
+
+from twin.camera.calibration import (  # noqa: E402
+    CalibrationError,
+    calibration_from_dict,
+    extrinsics_from_reference,
+    intrinsics_from_checkerboard,
+    load_calibration,
+    look_at_pose,
+    twin_calibration,
+)
+from twin.camera.detect import Detector  # noqa: E402
+from twin.camera.layout import MarkerLayout  # noqa: E402
+from twin.camera.render import Renderer, RenderOptions, render_checkerboard  # noqa: E402
+
+
+def sweep(params, n: int, seed: int) -> np.ndarray:
+    """Configurations within the joint limits: the corners of the box, then random ones."""
+    lim = math.radians(params.limits.alpha_max_deg)
+    corners = np.array(np.meshgrid(*[[-lim, lim]] * params.n_joints)).reshape(params.n_joints, -1).T
+    rand = np.random.default_rng(seed).uniform(-lim, lim, size=(n, params.n_joints))
+    return np.vstack([np.zeros(params.n_joints), corners, rand])
+
+
+def detector_for(params, calibration=None) -> Detector:
+    return Detector(params.n_joints, params.geometry.L, params.geometry.b, calibration)
+
+
+def errors_deg(renderer: Renderer, detector: Detector, configs: np.ndarray, missing_ok: bool = False) -> np.ndarray:
+    """|α_IP − α| in degrees per configuration and joint (inf for a missing joint if ``missing_ok``)."""
+    out = []
+    for alpha in configs:
+        detector.reset()
+        found = detector.detect(renderer.render(alpha))
+        assert missing_ok or None not in found.alpha_rad, f"a joint is missing at α = {np.degrees(alpha)}°"
+        measured = np.array([np.inf if a is None else a for a in found.alpha_rad])
+        out.append(np.degrees(np.abs(measured - alpha)))
+    return np.array(out)
+
+
+def test_rendered_frames_are_measured_back_within_the_targets(params, model) -> None:
+    renderer = Renderer(model, options=RenderOptions(noise_dn=3.0, blur_px=1.0), seed=11)
+    err = errors_deg(renderer, detector_for(params), sweep(params, 25, seed=5))
+    assert err.mean() <= 0.3 and err.max() <= 1.0, f"mean {err.mean():.3f}°, max {err.max():.3f}°"
+
+
+def test_tracking_windows_give_the_full_search_result(params, model) -> None:
+    renderer = Renderer(model, seed=2)
+    detector = detector_for(params)
+    path = np.radians(np.linspace([0.0, 0.0, 0.0], [30.0, -40.0, 50.0], 12))
+    for alpha in path:
+        tracked = detector.detect(frame := renderer.render(alpha))
+        fresh = detector_for(params).detect(frame)
+        assert tracked.alpha_rad == pytest.approx(fresh.alpha_rad, abs=1e-9)
+        assert np.degrees(np.abs(np.array(tracked.alpha_rad) - alpha)).max() < 1.0
+    assert detector.windowed_frames >= 10 and detector.full_frames <= 2
+
+
+def test_an_occluded_marker_makes_its_joint_missing_and_the_others_valid(params, model) -> None:
+    alpha = np.radians([25.0, -30.0, 40.0])
+    head = Renderer(model, options=RenderOptions(occlude=((3, 0),)), seed=4)
+    found = detector_for(params).detect(head.render(alpha))
+    assert found.alpha_rad[2] is None and found.confidence[2] == 0.0
+    assert np.degrees(np.abs(np.array(found.alpha_rad[:2]) - alpha[:2])).max() < 1.0
+    assert min(found.confidence[:2]) > 0.5
+    # A middle bar is shared by two joints: both lose it, the third is still measured.
+    middle = Renderer(model, options=RenderOptions(occlude=((1, 1),)), seed=4)
+    found = detector_for(params).detect(middle.render(alpha))
+    assert found.alpha_rad[:2] == [None, None]
+    assert found.alpha_rad[2] == pytest.approx(alpha[2], abs=math.radians(1.0))
+
+
+def test_lens_distortion_is_corrected(params, model) -> None:
+    wide = replace(twin_calibration(), dist=(-0.28, 0.09, 0.001, -0.001, 0.0))
+    configs = sweep(params, 6, seed=9)
+    renderer = Renderer(model, wide, seed=3)
+    err = errors_deg(renderer, detector_for(params, wide), configs)
+    assert err.mean() <= 0.3 and err.max() <= 1.0
+    # The same frames read as if the lens were perfect: large errors, or joints rejected by the
+    # geometric check (the distortion bends the bars' spacing).
+    naive = errors_deg(renderer, detector_for(params, replace(wide, dist=(0.0,) * 5)), configs, missing_ok=True)
+    assert naive.max() > 3 * err.max() and naive.max() > 0.5
+
+
+def test_extrinsics_from_the_base_plate_reference_markers(params, model) -> None:
+    truth = twin_calibration()
+    frame = Renderer(model, truth, seed=1).render(np.zeros(params.n_joints))
+    guess = truth.with_pose(*look_at_pose((0.0, 0.0), 0.8))  # the camera moved: pose unknown
+    refs = detector_for(params, guess).detect(frame).reference_px
+    assert len(refs) == 4
+    solved = extrinsics_from_reference(guess, np.array(refs), MarkerLayout().reference())
+    assert solved.tvec == pytest.approx(truth.tvec, abs=1e-3)
+    rot = [cv2.Rodrigues(np.array(c.rvec))[0] for c in (solved, truth)]
+    assert np.abs(rot[0] - rot[1]).max() < 2e-3
+    err = errors_deg(Renderer(model, truth, seed=6), detector_for(params, solved), sweep(params, 4, seed=1))
+    assert err.max() <= 1.0
+
+
+def test_intrinsics_from_checkerboard_frames() -> None:
+    truth = twin_calibration()
+    rng = np.random.default_rng(0)
+    frames = []
+    for k in range(12):  # the board shown all over the field, as the docs tell a user to do
+        aim = (0.08 + rng.uniform(-0.17, 0.17), 0.05 + rng.uniform(-0.09, 0.09))
+        pose = look_at_pose(aim, 0.40 + 0.1 * rng.uniform(), tilt_deg=rng.uniform(-25, 25),
+                            pan_deg=rng.uniform(-25, 25), roll_deg=rng.uniform(-20, 20))
+        frames.append(render_checkerboard(truth, *pose, seed=k))
+    cal, rms = intrinsics_from_checkerboard(frames, (9, 6), 0.02)
+    assert rms < 0.5
+    assert cal.fx == pytest.approx(truth.fx, rel=0.01) and cal.fy == pytest.approx(truth.fy, rel=0.01)
+    assert cal.cx == pytest.approx(truth.cx, abs=8) and cal.cy == pytest.approx(truth.cy, abs=8)
+    # The calibrated lens undistorts like the true one over the whole frame (within 1.5 px at the corners).
+    grid = np.stack(np.meshgrid(np.linspace(100, 1180, 7), np.linspace(80, 640, 5)), -1).reshape(-1, 1, 2)
+    a = cv2.undistortPoints(grid, truth.K, truth.dist_array, P=truth.K).reshape(-1, 2)
+    b = cv2.undistortPoints(grid, cal.K, cal.dist_array, P=truth.K).reshape(-1, 2)
+    assert np.abs(a - b).max() < 1.5
+    with pytest.raises(CalibrationError, match="at least 3"):
+        intrinsics_from_checkerboard(frames[:1] + [np.zeros_like(frames[0])] * 3, (9, 6), 0.02)
+
+
+def test_calibration_files_are_validated(tmp_path) -> None:
+    path = tmp_path / "cal.json"
+    twin_calibration().save(path)
+    assert load_calibration(path) == twin_calibration()
+    good = json.loads(path.read_text())
+    bad_cases = [
+        ({**good, "fx": -1.0}, "positive"),
+        ({**good, "dist": [0.0, 0.0]}, "5 coefficients"),
+        ({**good, "tvec": [0.0, 0.0, -0.5]}, "in front"),
+        ({**good, "width": "1280"}, "integer"),
+        ({**good, "extra": 1}, "fields"),
+        ({**good, "version": 2}, "version"),
+        ([1, 2], "not an xneck"),
+    ]
+    for data, reason in bad_cases:
+        with pytest.raises(CalibrationError, match=reason):
+            calibration_from_dict(data)
+    path.write_text("{not json")
+    with pytest.raises(CalibrationError, match="not JSON"):
+        load_calibration(path)
+
+
+def test_detector_rejects_frames_of_the_wrong_shape(params) -> None:
+    detector = detector_for(params)
+    for frame in (np.zeros((720, 1280), np.uint8), np.zeros((480, 640, 3), np.uint8), np.zeros((720, 1280, 3), np.float32)):
+        with pytest.raises(ValueError):
+            detector.detect(frame)
+    blank = detector.detect(np.full((720, 1280, 3), 128, np.uint8))
+    assert blank.alpha_rad == [None] * params.n_joints and blank.confidence == [0.0] * params.n_joints
+
+
+def test_cli_render_then_detect_json(tmp_path) -> None:
+    from server.cli import app
+
+    runner = CliRunner()
+    frame = tmp_path / "f.png"
+    r = runner.invoke(app, ["camera", "render", "--alpha", "12", "-25", "33", "--seed", "4", "--out", str(frame)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["camera", "detect", str(frame), "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["alpha_deg"] == pytest.approx([12.0, -25.0, 33.0], abs=1.0) and min(out["confidence"]) > 0.5
+    covered = tmp_path / "c.png"
+    r = runner.invoke(app, ["camera", "render", "--alpha", "12,-25,33", "--occlude", "3:1", "--out", str(covered)])
+    assert r.exit_code == 0, r.output
+    out = json.loads(runner.invoke(app, ["camera", "detect", str(covered), "--json"]).stdout)
+    assert out["alpha_deg"][2] is None and out["confidence"][2] == 0.0
+    cal = tmp_path / "cal.json"
+    cal.write_text("[]")
+    r = runner.invoke(app, ["camera", "detect", str(frame), "--calibration", str(cal)])
+    assert r.exit_code == 2 and "not an xneck camera calibration" in r.output
+    r = runner.invoke(app, ["camera", "render", "--alpha", "1", "2", "--out", str(frame)])
+    assert r.exit_code == 2 and "3 angles" in r.output
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    r = runner.invoke(app, ["camera", "detect", str(tmp_path / "junk.png")])
+    assert r.exit_code == 2 and "not a readable image" in r.output
+    sheet = tmp_path / "sheet.png"
+    assert runner.invoke(app, ["camera", "markers", "--out", str(sheet), "--dpi", "150"]).exit_code == 0
+    assert cv2.imread(str(sheet)).shape[:2] == (int(0.297 * 150 / 0.0254), int(0.210 * 150 / 0.0254))  # A4 at 150 dpi

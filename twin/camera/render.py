@@ -1,0 +1,281 @@
+"""The twin's camera: frames of the neck drawn from the truth, as the prototype's camera films it
+(3-X paper §4.2: 1280×720, coloured markers on the base and top bars).
+
+The scene lies in the neck's plane: a grey board, the base plate with its reference markers, and
+per X-joint the crossed bars, the springs along the sides, the cables, the base/top bars and their
+coloured markers (``twin.camera.layout``). Every outline is sampled densely in the plane and pushed
+through the pinhole camera with its lens distortion (``Calibration.project``), so straight bars
+curve as a real lens bends them. Then, in the order light meets a sensor: anti-aliased edges
+(OpenCV's 1/16-pixel ``shift`` and ``LINE_AA``, optionally supersampled), lighting (a gradient and
+vignetting), defocus blur, and Gaussian sensor noise. Occlusion covers chosen markers with a
+grey disk (a finger, a cable bundle). Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from twin.camera.calibration import Calibration, twin_calibration
+from twin.camera.layout import BAR_HUES_DEG, HUE_BGR, REFERENCE_HUE_DEG, MarkerLayout, marker_points
+from twin.model import chain
+from twin.model.numeric import Model
+
+BOARD_BGR = (168, 168, 168)
+PLATE_BGR = (120, 120, 120)
+BAR_BGR = (35, 35, 35)
+DIAGONAL_BGR = (70, 70, 70)
+SPRING_BGR = (205, 205, 205)
+CABLE_BGR = (45, 45, 45)
+OCCLUDER_BGR = (110, 110, 110)
+_SHIFT = 4
+_SUB = 1 << _SHIFT
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Image degradations. ``noise_dn``: σ of the sensor noise in grey levels; ``blur_px``: σ of the
+    defocus blur in pixels (0: none); ``gradient``: relative gain change from left to right edge;
+    ``vignetting``: relative gain loss in the corners; ``gain``: overall exposure; ``occlude``:
+    markers covered, as (bar, side) with bar 0 the base bar and side 0 left, 1 right;
+    ``supersample``: draw at s× and average down (anti-aliasing beyond LINE_AA)."""
+
+    noise_dn: float = 2.0
+    blur_px: float = 0.8
+    gradient: float = 0.15
+    vignetting: float = 0.2
+    gain: float = 1.0
+    occlude: tuple[tuple[int, int], ...] = ()
+    supersample: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ("noise_dn", "blur_px", "gradient", "vignetting"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value <= 50):
+                raise ValueError(f"{name} must be in [0, 50], got {value}")
+        if not (0.2 <= self.gain <= 3.0):
+            raise ValueError(f"gain must be in [0.2, 3], got {self.gain}")
+        if self.supersample not in (1, 2, 3, 4):
+            raise ValueError("supersample must be 1, 2, 3 or 4")
+
+
+def _disk(centre: np.ndarray, radius: float, n: int = 40) -> np.ndarray:
+    t = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    return centre + radius * np.column_stack([np.cos(t), np.sin(t)])
+
+
+def _band(p: np.ndarray, q: np.ndarray, width: float, extend: float = 0.0, step: float = 0.004) -> np.ndarray:
+    """Outline of a rectangle of ``width`` around segment p–q (extended by ``extend`` at each end),
+    sampled every ``step`` m so that lens distortion bends its sides."""
+    d = q - p
+    length = float(np.hypot(*d))
+    u = d / length
+    n = np.array([-u[1], u[0]]) * 0.5 * width
+    a, b = p - extend * u, q + extend * u
+    k = max(2, math.ceil((length + 2 * extend) / step) + 1)
+    s = np.linspace(0.0, 1.0, k)[:, None]
+    side = a + s * (b - a)
+    return np.vstack([side + n, (side - n)[::-1]])
+
+
+def _zigzag(p: np.ndarray, q: np.ndarray, amplitude: float, turns: int = 9) -> np.ndarray:
+    d = q - p
+    u = d / max(float(np.hypot(*d)), 1e-9)
+    n = np.array([-u[1], u[0]])
+    s = np.linspace(0.0, 1.0, 2 * turns + 1)
+    offs = np.zeros_like(s)
+    offs[1:-1] = amplitude * np.where(np.arange(1, 2 * turns) % 2 == 0, -1.0, 1.0)
+    return p + s[:, None] * d + offs[:, None] * n
+
+
+def _to_pixels(cal: Calibration, plane_polys: list[np.ndarray]) -> list[np.ndarray]:
+    """Plane polylines → fixed-point pixel polylines (1/16 px), one projection call for all."""
+    if not plane_polys:
+        return []
+    fixed = np.round(cal.project(np.vstack(plane_polys)) * _SUB).astype(np.int32)
+    return np.split(fixed, np.cumsum([len(p) for p in plane_polys])[:-1])
+
+
+class Renderer:
+    """Frames of the neck at joint angles α (rad) for one camera, layout and option set."""
+
+    def __init__(self, model: Model, calibration: Calibration | None = None, layout: MarkerLayout | None = None,
+                 options: RenderOptions | None = None, seed: int = 0) -> None:
+        self.model = model
+        self.calibration = calibration or twin_calibration()
+        self.layout = layout or MarkerLayout()
+        self.layout.check(model.n_joints, model.b)
+        self.options = options or RenderOptions()
+        self.rng = np.random.default_rng(seed)
+        c, s = self.calibration, self.options.supersample
+        self._draw_cal = c if s == 1 else replace(
+            c, width=c.width * s, height=c.height * s, fx=c.fx * s, fy=c.fy * s,
+            cx=s * c.cx + 0.5 * (s - 1), cy=s * c.cy + 0.5 * (s - 1))
+        self._light = self._lighting()
+        self._noise = None
+        if self.options.noise_dn > 0:
+            margin = 64
+            bank = self.rng.normal(0.0, self.options.noise_dn, size=(c.height + margin, c.width + margin, 3))
+            self._noise = np.round(bank).astype(np.int16)
+        self._static = self._static_layer()
+
+    def _lighting(self) -> np.ndarray:
+        """Gain per pixel (float32, H×W×3): exposure, a left-to-right gradient, vignetting."""
+        c, o = self.calibration, self.options
+        x = (np.arange(c.width) - 0.5 * c.width) / (0.5 * c.width)
+        y = (np.arange(c.height) - 0.5 * c.height) / (0.5 * c.width)
+        xx, yy = np.meshgrid(x, y)
+        gain = o.gain * (1.0 + 0.5 * o.gradient * xx) * (1.0 - o.vignetting * (xx**2 + yy**2) / (1.0 + (c.height / c.width) ** 2))
+        return np.repeat(gain.astype(np.float32)[..., None], 3, axis=2)
+
+    def _fill(self, img: np.ndarray, plane_polys: list[np.ndarray], colours: list[tuple[int, int, int]]) -> None:
+        """Fill polygons given in the plane."""
+        for pts, colour in zip(_to_pixels(self._draw_cal, plane_polys), colours):
+            cv2.fillPoly(img, [pts], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
+
+    def _lines(self, img: np.ndarray, plane_lines: list[np.ndarray], colours: list[tuple[int, int, int]], thickness: int) -> None:
+        for pts, colour in zip(_to_pixels(self._draw_cal, plane_lines), colours):
+            cv2.polylines(img, [pts], False, colour, thickness * self.options.supersample, lineType=cv2.LINE_AA, shift=_SHIFT)
+
+    def _static_layer(self) -> np.ndarray:
+        """Board, base plate and reference markers: the part of the frame that never moves."""
+        c = self._draw_cal
+        img = np.empty((c.height, c.width, 3), np.uint8)
+        img[:] = BOARD_BGR
+        plate = np.array([[-0.6, -0.012], [0.6, -0.012], [0.6, -0.3], [-0.6, -0.3]])
+        edge = np.vstack([np.linspace(plate[0], plate[1], 60), np.linspace(plate[1], plate[2], 20),
+                          np.linspace(plate[2], plate[3], 60), np.linspace(plate[3], plate[0], 20)])
+        refs = [_disk(p, self.layout.reference_radius_m) for p in self.layout.reference()]
+        self._fill(img, [edge, *refs], [PLATE_BGR] + [HUE_BGR[REFERENCE_HUE_DEG]] * len(refs))
+        return img
+
+    def draw(self, alpha) -> np.ndarray:
+        """The ideal image (no lighting, blur or noise) at the drawing resolution."""
+        alpha = np.asarray(alpha, dtype=float)
+        m, lay = self.model, self.layout
+        ends = chain.bar_ends(m, alpha)  # (N, 4, 2): A, B, C, D per joint
+        img = self._static.copy()
+        springs, cables = [], []
+        for A, B, C, D in ends:
+            springs += [_zigzag(A, C, 0.004), _zigzag(B, D, 0.004)]
+        # Cables: along each side of the chain, just outside the springs (the pulleys' radius).
+        left = np.vstack([ends[0, 0], *(e[2] for e in ends)])
+        right = np.vstack([ends[0, 1], *(e[3] for e in ends)])
+        for side, sign in ((left, -1.0), (right, 1.0)):
+            phi = np.concatenate([[0.0], np.cumsum(alpha)])
+            out = sign * m.r * np.column_stack([np.cos(phi), np.sin(phi)])
+            cables.append(np.vstack([side[0] + out[0] + [0.0, -0.06], side + out]))
+        self._lines(img, springs, [SPRING_BGR] * len(springs), 2)
+        self._lines(img, cables, [CABLE_BGR] * len(cables), 1)
+        polys, colours = [], []
+        for A, B, C, D in ends:
+            polys += [_band(A, D, 0.006), _band(B, C, 0.006)]
+            colours += [DIAGONAL_BGR, DIAGONAL_BGR]
+        bars = [(ends[0, 0], ends[0, 1])] + [(e[2], e[3]) for e in ends]
+        for p, q in bars:
+            polys.append(_band(p, q, 0.009, extend=0.004))
+            colours.append(BAR_BGR)
+        markers = marker_points(m, alpha, lay)
+        for k, pair in enumerate(markers):
+            for p in pair:
+                polys.append(_disk(p, lay.radius_m))
+                colours.append(HUE_BGR[BAR_HUES_DEG[k]])
+        for bar, side in self.options.occlude:
+            if 0 <= bar < len(markers) and side in (0, 1):
+                polys.append(_disk(markers[bar, side], 2.0 * lay.radius_m))
+                colours.append(OCCLUDER_BGR)
+        self._fill(img, polys, colours)
+        return img
+
+    def render(self, alpha) -> np.ndarray:
+        """A camera frame (H×W×3 BGR uint8) at joint angles ``alpha`` (rad)."""
+        img = self.draw(alpha)
+        o, c = self.options, self.calibration
+        if o.supersample > 1:
+            img = cv2.resize(img, (c.width, c.height), interpolation=cv2.INTER_AREA)
+        # The gain map is smooth, so blurring before lighting is the same image and keeps the
+        # whole chain in saturating 8-bit arithmetic (a few ms for 1280×720).
+        if o.blur_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), o.blur_px)
+        img = cv2.multiply(img, self._light, dtype=cv2.CV_8U)
+        if self._noise is not None:
+            dy, dx = (int(v) for v in self.rng.integers(0, 64, size=2))
+            img = cv2.add(img, self._noise[dy:dy + c.height, dx:dx + c.width], dtype=cv2.CV_8U)
+        return img
+
+
+def marker_sheet(n_joints: int, layout: MarkerLayout | None = None, dpi: int = 300) -> np.ndarray:
+    """A printable A4 sheet (BGR, ``dpi``) of every marker at its true size, labelled: two per bar
+    (bar 0 is the base bar) and the base plate's reference markers. Print at 100 % scale."""
+    lay = layout or MarkerLayout()
+    px_per_m = dpi / 0.0254
+    w, h = int(0.210 * px_per_m), int(0.297 * px_per_m)
+    sheet = np.full((h, w, 3), 255, np.uint8)
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, dpi / 300.0
+    cv2.putText(sheet, "xneck camera markers - print at 100% (check: the bar below is 100 mm)", (int(0.015 * px_per_m), int(0.015 * px_per_m)),
+                font, 0.8 * scale, (0, 0, 0), max(1, int(2 * scale)), cv2.LINE_AA)
+    y_bar = int(0.025 * px_per_m)
+    cv2.rectangle(sheet, (int(0.015 * px_per_m), y_bar), (int(0.115 * px_per_m), y_bar + int(0.002 * px_per_m)), (0, 0, 0), -1)
+    entries = [(f"bar {k} {'base' if k == 0 else f'top of joint {k}'}", BAR_HUES_DEG[k], lay.radius_m, 2) for k in range(n_joints + 1)]
+    entries.append(("base plate reference", REFERENCE_HUE_DEG, lay.reference_radius_m, 4))
+    y = 0.05
+    for label, hue, radius, count in entries:
+        cv2.putText(sheet, f"{label} (diameter {2000 * radius:.0f} mm) x{count}", (int(0.015 * px_per_m), int(y * px_per_m)),
+                    font, 0.7 * scale, (0, 0, 0), max(1, int(2 * scale)), cv2.LINE_AA)
+        y += 0.004 + radius
+        for i in range(count * 2):  # spares
+            centre = (int((0.02 + i * (2 * radius + 0.006)) * px_per_m), int(y * px_per_m))
+            cv2.circle(sheet, centre, round(radius * px_per_m), HUE_BGR[hue], -1, cv2.LINE_AA)
+        y += radius + 0.012
+    return sheet
+
+
+def checkerboard(pattern: tuple[int, int] = (9, 6), square_m: float = 0.02, dpi: int = 300) -> np.ndarray:
+    """A printable checkerboard with ``pattern`` inner corners (columns, rows) for the intrinsic
+    calibration (``twin.camera.calibration.intrinsics_from_checkerboard``)."""
+    px = round(square_m * dpi / 0.0254)
+    cols, rows = pattern[0] + 1, pattern[1] + 1
+    margin = px
+    board = np.full((rows * px + 2 * margin, cols * px + 2 * margin, 3), 255, np.uint8)
+    for r in range(rows):
+        for c in range(cols):
+            if (r + c) % 2 == 0:
+                board[margin + r * px: margin + (r + 1) * px, margin + c * px: margin + (c + 1) * px] = 0
+    return board
+
+
+def render_checkerboard(calibration: Calibration, rvec, tvec, pattern: tuple[int, int] = (9, 6), square_m: float = 0.02,
+                        noise_dn: float = 2.0, blur_px: float = 0.8, seed: int = 0) -> np.ndarray:
+    """A frame of the printed checkerboard (:func:`checkerboard`) held at pose (rvec, tvec): the
+    twin's input to the intrinsic calibration. Board frame: the first inner corner at the origin,
+    x along the columns, y along the rows, as ``calibrateCamera`` numbers them."""
+    s = 2
+    cal = replace(calibration, rvec=tuple(float(v) for v in np.ravel(rvec)), tvec=tuple(float(v) for v in np.ravel(tvec)))
+    big = replace(cal, width=cal.width * s, height=cal.height * s, fx=cal.fx * s, fy=cal.fy * s,
+                  cx=s * cal.cx + 0.5 * (s - 1), cy=s * cal.cy + 0.5 * (s - 1))
+    img = np.full((big.height, big.width, 3), 90, np.uint8)
+    cols, rows = pattern[0] + 1, pattern[1] + 1
+    q = square_m
+    paper = np.array([[-2 * q, -2 * q], [(cols) * q, -2 * q], [(cols) * q, (rows) * q], [-2 * q, (rows) * q]])
+    polys, colours = [_band(0.5 * (paper[0] + paper[3]), 0.5 * (paper[1] + paper[2]), (rows + 2) * q, step=q / 4)], [(235, 235, 235)]
+    for r in range(rows):
+        for c in range(cols):
+            if (r + c) % 2 == 0:
+                x0, y0 = (c - 1) * q, (r - 1) * q
+                k = np.linspace(0.0, q, 6)[:-1]
+                square = np.vstack([np.column_stack([x0 + k, np.full(5, y0)]), np.column_stack([np.full(5, x0 + q), y0 + k]),
+                                    np.column_stack([x0 + q - k, np.full(5, y0 + q)]), np.column_stack([np.full(5, x0), y0 + q - k])])
+                polys.append(square)
+                colours.append((20, 20, 20))
+    for pts, colour in zip(_to_pixels(big, polys), colours):
+        cv2.fillPoly(img, [pts], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
+    img = cv2.resize(img, (cal.width, cal.height), interpolation=cv2.INTER_AREA)
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    if noise_dn > 0:
+        noise = np.round(np.random.default_rng(seed).normal(0.0, noise_dn, img.shape)).astype(np.int16)
+        img = cv2.add(img, noise, dtype=cv2.CV_8U)
+    return img
