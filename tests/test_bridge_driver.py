@@ -74,8 +74,9 @@ def board(monkeypatch):
 
 
 PINS = (57, 49, 116, 113)
-# Prototype constants by hand (prototype_3x.toml): r_d = 0.020 m, R = 25, η = 0.81, k_t = 0.0367 N·m/A.
-AMPS_PER_N = 0.020 / (25 * 0.81 * 0.0367)  # 2.6912e-2 A/N
+# Prototype constants by hand (prototype_3x.toml): r_d = 0.020 m, R = 25, k_t = 0.0367 N·m/A; no gear
+# efficiency (its losses are in the identified friction f_s).
+AMPS_PER_N = 0.020 / (25 * 0.0367)  # 2.1798e-2 A/N
 
 
 def _driver(params, **config) -> BeagleBoneDriver:
@@ -84,20 +85,20 @@ def _driver(params, **config) -> BeagleBoneDriver:
 
 def test_force_to_current_to_duty_matches_hand_computation(board, params):
     drv = _driver(params, direction=(1, -1, 1, 1))
-    assert drv.transmission == Transmission(r_d=0.020, R=25.0, efficiency=0.81, k_t=0.0367, current_max=5.0)
+    assert drv.transmission == Transmission(r_d=0.020, R=25.0, k_t=0.0367, current_max=5.0)
     assert drv.transmission.amps_per_newton == pytest.approx(AMPS_PER_N)
     drv.configure()
     drv.activate()
-    applied = drv.write(np.array([50.0, 50.0, 0.0, 200.0]))
-    i50 = 50 * AMPS_PER_N  # 1.3456 A
+    applied = drv.write(np.array([50.0, 50.0, 0.0, 250.0]))
+    i50 = 50 * AMPS_PER_N  # 1.0899 A
     # Default ESCON map: PWM 10 % -> -5 A, 90 % -> +5 A, i.e. duty = 0.1 + (I + 5)·0.08.
-    expected = [0.1 + (i50 + 5) * 0.08,   # 0.60765
+    expected = [0.1 + (i50 + 5) * 0.08,   # 0.58719
                 0.1 + (-i50 + 5) * 0.08,  # motor 2 turns the other way
                 0.5,                      # zero force: zero current
-                0.9]                      # 200 N needs 5.38 A > 5 A: clamped
+                0.9]                      # 250 N needs 5.45 A > 5 A: clamped
     assert [board.duty[ch] for ch in (1, 2, 3, 4)] == pytest.approx(expected, abs=1e-12)
-    assert expected[0] == pytest.approx(0.60765, abs=1e-5)
-    assert applied == pytest.approx([50.0, 50.0, 0.0, 5.0 / AMPS_PER_N])  # 185.8 N at 5 A
+    assert expected[0] == pytest.approx(0.58719, abs=1e-5)
+    assert applied == pytest.approx([50.0, 50.0, 0.0, 5.0 / AMPS_PER_N])  # 229.4 N at 5 A
 
 
 def test_analog_mode_maps_current_to_volts_then_to_duty(board, params):
@@ -108,7 +109,7 @@ def test_analog_mode_maps_current_to_volts_then_to_duty(board, params):
     drv.write(np.array([50.0, 100.0, 0.0, 10.0]))
     volts = np.array([50.0, 100.0, 0.0, 10.0]) * AMPS_PER_N * 2.0  # 2 V per A
     assert [board.duty[ch] for ch in (1, 2, 3, 4)] == pytest.approx(volts / 12.0)
-    assert board.duty[1] == pytest.approx(2.6912 / 12.0, abs=1e-4)  # 50 N: 1.3456 A, 2.6912 V
+    assert board.duty[1] == pytest.approx(2.1798 / 12.0, abs=1e-4)  # 50 N: 1.0899 A, 2.1798 V
 
 
 def test_counts_in_angles_out_zeroed_at_configure(board, params):
@@ -277,3 +278,34 @@ def test_replay_driver_replays_archived_angles(tmp_path):
     drv.close()
     with pytest.raises(DriverError, match="no such file"):
         ReplayDriver(ReplayConfig(path=str(tmp_path / "missing.mcap"))).configure()
+
+
+def test_beaglebone_and_twin_apply_the_same_motor_torque_for_a_commanded_force(board, params):
+    """Issue 13, finding 9: one force → torque convention for the robot and the twin. A cable force
+    f is the motor torque seen at the cable, τ_m = f·r_d/R (eq. 29 of the twin); the gear losses
+    are in the identified friction f_s (eq. 37), so the driver has no efficiency η either: the
+    ESCON gets I = f·r_d/(R·k_t). Dividing by η = 0.81 again made the robot's forces 23 % high."""
+    from twin.model.dynamics import accelerations
+    from twin.model.numeric import build
+
+    f = np.array([5.0, 20.0, 50.0, 100.0])
+    drv = _driver(params, direction=(1, -1, 1, -1))
+    drv.configure()
+    drv.activate()
+    drv.write(f)
+    cfg = drv.config
+    current_A = np.array([d * cfg.current_at(board.duty[ch]) for d, ch in zip(cfg.direction, cfg.motor_channels)])
+    torque_robot = params.motors.torque_constant * current_A
+
+    twin = TwinDriver(TwinDriverConfig(camera=False), params)
+    twin.configure()
+    twin.activate()
+    applied = twin.write(f)  # the force the twin's motors get
+    model = build(params, "linear")
+    rest = (np.zeros(3), np.zeros(4), np.zeros(3), np.zeros(4))
+    theta_ddot = accelerations(model, *rest, applied).theta_ddot - accelerations(model, *rest, np.zeros(4)).theta_ddot
+    torque_twin = params.motors.I_a * theta_ddot  # eq. 29: I_a·θ̈ = (r_d/R)(f − f_friction − t)
+    twin.close()
+
+    assert torque_robot == pytest.approx(torque_twin, rel=1e-9)
+    assert torque_robot == pytest.approx(f * params.geometry.r_d / params.geometry.R, rel=1e-9)

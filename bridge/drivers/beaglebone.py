@@ -13,14 +13,21 @@ each ESCON a current set value and an enable line.
 
 Force to set value::
 
-    I   = f · r_d / (R · η · k_t)            motor current (A) for a cable force f (N)
+    I   = f · r_d / (R · k_t)                motor current (A) for a cable force f (N)
     I_m = direction · min(I, current_max)     signed current the ESCON must drive
     s   = s1 + (I_m − I1) · (s2 − s1) / (I2 − I1)    the ESCON's linear set-value map
     s   clamped to [set_value_min, set_value_max]    the input range the ESCON accepts
 
-with r_d (drum radius), R (gear ratio), η (gear efficiency), k_t (torque constant) and
-current_max from the parameter file (``geometry`` and ``motors``), and the two points
-(s1 → I1, s2 → I2) exactly as configured in ESCON Studio, in :class:`BeagleBoneConfig`.
+with r_d (drum radius), R (gear ratio), k_t (torque constant) and current_max from the parameter
+file (``geometry`` and ``motors``), and the two points (s1 → I1, s2 → I2) exactly as configured
+in ESCON Studio, in :class:`BeagleBoneConfig`.
+
+Convention (one for the robot, the twin and identification, issue 13 finding 9): a cable force f
+is the motor torque seen at the cable, τ_m = k_t·I = f·r_d/R, exactly the twin's motor equation
+I_a·θ̈ = (r_d/R)(f − f_friction − t) (eq. 29). The gearhead's losses are not a factor η here:
+they are part of the dry friction f_s identified on the robot (eqs. 37, 44-45), which the
+controller compensates. Dividing by η as well would count them twice (forces ~23 % high at
+η = 0.81). ``motors.gear_efficiency`` of the parameter file is therefore not applied.
 
 ``rcpy`` (Python bindings of librobotcontrol) is imported only when this driver is configured, so
 every other driver runs on machines without it. Importing ``rcpy`` installs its own SIGINT and
@@ -140,26 +147,25 @@ class BeagleBoneConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw
 class Transmission:
     """Cable force to motor current, from the parameter file (``geometry``, ``motors``).
 
-    ``r_d`` drum radius (m), ``R`` gear ratio, ``efficiency`` of the gearhead, ``k_t`` torque
-    constant (N·m/A), ``current_max`` (A) the motor controller's continuous current.
+    ``r_d`` drum radius (m), ``R`` gear ratio, ``k_t`` torque constant (N·m/A), ``current_max`` (A)
+    the motor controller's continuous current. No gear efficiency: see the module docstring.
     """
 
     r_d: float
     R: float
-    efficiency: float
     k_t: float
     current_max: float
 
     @classmethod
     def from_params(cls, params: Any) -> Transmission:
         g, m = params.geometry, params.motors
-        return cls(r_d=g.r_d, R=g.R, efficiency=m.gear_efficiency, k_t=m.torque_constant, current_max=m.current_max)
+        return cls(r_d=g.r_d, R=g.R, k_t=m.torque_constant, current_max=m.current_max)
 
     @property
     def amps_per_newton(self) -> float:
-        """I/f = r_d / (R·η·k_t): the drum turns f into a torque f·r_d, the gearhead divides it
-        by R and loses a fraction 1 − η, the motor makes k_t N·m per A."""
-        return self.r_d / (self.R * self.efficiency * self.k_t)
+        """I/f = r_d / (R·k_t): the drum turns f into a torque f·r_d, the gearhead divides it by R,
+        the motor makes k_t N·m per A (its losses are in the identified friction f_s)."""
+        return self.r_d / (self.R * self.k_t)
 
 
 class _Board:
