@@ -25,7 +25,7 @@ from bridge.session import free_tcp_port, open_session
 from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
 from bridge.archive import software_version
 from server.campaigns import CampaignManager
-from server.live import Broadcaster, LiveBus
+from server.live import Broadcaster, LiveBus, bridge_estop
 from server.paramsets import ParameterStore
 from server.presence import Presence
 from server.settings import Settings, resolve_token
@@ -72,7 +72,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz)
             state.campaigns = CampaignManager(data_dir, session, state.hub,
-                                              service_alive=lambda: state.presence.any_alive("campaign-service"))
+                                              service_alive=lambda: state.presence.any_alive("campaign-service"),
+                                              bridge_estop=lambda: bridge_estop(state.live.values))
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))

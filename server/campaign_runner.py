@@ -6,12 +6,19 @@ is already on the bus) and ``xneck controller`` as separate processes connected 
 follows the controller's campaign events (progress, finished, aborted), stops everything within
 bounded time, and computes the paper's metrics from the archive it wrote — so what it prints is
 exactly what the file holds.
+
+It also follows the bridge's ``MotorState`` (:class:`server.quality.CampaignMonitor`): drives
+disabled during the campaign (the bridge's e-stop) abort it with the bridge's reason, and a
+finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` ends
+``degraded`` with its reasons, in the result and in the MCAP metadata (``quality``, JSON, and
+``degraded_reasons``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import json
 import json
 import os
 import queue
@@ -34,6 +41,7 @@ from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
 from bridge.archive import CampaignRecorder, read_campaign
 from server.child_processes import log_tail, stop_child, xneck_argv
+from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
 from twin.model.params import Params
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
@@ -63,10 +71,11 @@ class CampaignResult:
     message: str
     metrics: dict[str, object] = field(default_factory=dict)
     law: str = ""
+    quality: dict[str, object] = field(default_factory=dict)  # server.quality: counters, thresholds, reasons
 
     def summary(self) -> dict[str, object]:
         return {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
-                "message": self.message, "law": self.law, "metrics": self.metrics}
+                "message": self.message, "law": self.law, "metrics": self.metrics, "quality": self.quality}
 
     def table(self) -> str:
         m = self.metrics
@@ -150,6 +159,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
 
     sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
     services = _Services(session) if spec.service else None
+    # Follows the bridge's drives from now on (the e-stop's one truth) and counts the quality.
+    monitor = CampaignMonitor(session)
+    realtime = spec.realtime or not spec.twin
+    quality: dict[str, object] = {}
     recorder = CampaignRecorder(session, path, metadata)
     try:
         def spawn(name: str, args: list[str]) -> None:
@@ -182,7 +195,13 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 ev = events.get(timeout=0.2)
             except queue.Empty:
                 ev = None
+            disabled = monitor.drives_disabled()
+            if disabled:
+                outcome, message = "aborted", f"the drives were disabled during the campaign: {disabled}"
+                break
             if ev is not None:
+                if not started:
+                    monitor.begin()
                 started = True
                 if progress:
                     progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
@@ -200,7 +219,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 outcome, message = "aborted", f"timed out after {spec.timeout_s:.0f} s"
                 break
             if stop.is_set():
-                outcome, message = "aborted", "stopped by the user"
+                # The console's e-stop sets stop too: the bridge's word on it, if it comes, names the reason.
+                disabled = monitor.wait_drives_disabled(0.3)
+                outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
+                    if disabled else ("aborted", "stopped by the user")
                 break
             if spec.service and not services.alive():
                 outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
@@ -209,6 +231,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 outcome, message = "aborted", "no controller service answered the campaign request"
                 break
     finally:
+        monitor.end()
         if spec.service and outcome == "aborted":
             with contextlib.suppress(Exception):
                 requests.put(bus.CampaignRequest(seq=2, stamp_s=time.time(), campaign_id=campaign_id, action="stop"))
@@ -220,8 +243,15 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         for p in procs.values():
             stop_child(p, STOP_GRACE_S)
         sub.undeclare()
-        recorder.stop(outcome, {"message": message[:2000]})
-    result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name)
+        monitor.close()
+        counters = monitor.counters(recorder.stats.dropped)
+        reasons = assess(counters, realtime) if outcome == "finished" else []
+        if reasons:
+            outcome, message = "degraded", "; ".join(reasons) + (f" ({message})" if message else "")
+        quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
+        recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
+                                "degraded_reasons": "; ".join(reasons)})
+    result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality)
     try:
         result.metrics = metrics_from_archive(path)
     except ValueError as exc:

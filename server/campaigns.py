@@ -46,6 +46,14 @@ class Busy(Exception):
         self.what = what
 
 
+class DrivesDisabled(Busy):
+    """The drives a campaign would use are disabled (the bridge's e-stop); ``reason`` is the bridge's."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__("estop", "e-stop")
+        self.reason = reason
+
+
 class NotFound(KeyError):
     pass
 
@@ -53,7 +61,8 @@ class NotFound(KeyError):
 class CampaignManager:
     def __init__(self, data_dir: Path, session: zenoh.Session, hub: str,
                  on_finish: Callable[[CampaignRecord], None] | None = None,
-                 service_alive: Callable[[], bool] = lambda: False) -> None:
+                 service_alive: Callable[[], bool] = lambda: False,
+                 bridge_estop: Callable[[], dict[str, object] | None] = lambda: None) -> None:
         self.index = CampaignIndex(Path(data_dir) / "campaigns")
         self.session = session
         self.hub = hub
@@ -69,8 +78,9 @@ class CampaignManager:
         self._replay: Replay | None = None
         self._estop_pub = publisher(session, bus.ESTOP)
         self._estop_seq = 0
-        self.estop_engaged = False
+        self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
         self.estop_reason = ""
+        self._bridge_estop = bridge_estop  # server.live.bridge_estop: the bridge's latched e-stop, if fresh
 
     # -- start-up ---------------------------------------------------------------------------
     def recover_all(self) -> list[str]:
@@ -156,8 +166,9 @@ class CampaignManager:
                 raise Busy(self._running)
             if self._replay is not None and self._replay.running:
                 raise Busy(self._replay.campaign_id, "replay of")
-            if self.estop_engaged:
-                raise Busy("estop", "e-stop")
+            disabled = self._drives_disabled(spec.twin)
+            if disabled:
+                raise DrivesDisabled(disabled)
             cid = new_campaign_id(spec.kind)
             rec = CampaignRecord(
                 id=cid, kind=spec.kind, law=spec.law.name, trajectory=spec.trajectory.name,
@@ -195,10 +206,10 @@ class CampaignManager:
         try:
             result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
                                   session=self.session, hub=self.hub, stop=self._stop)
-            status = result.outcome if result.outcome in ("finished", "aborted") else "failed"
+            status = result.outcome if result.outcome in ("finished", "degraded", "aborted") else "failed"
             fields: dict[str, object] = {"status": status, "message": result.message[:2000],
-                                         "metrics": result.metrics or None}
-            if status == "finished":
+                                         "metrics": result.metrics or None, "quality": result.quality or None}
+            if status in ("finished", "degraded"):
                 fields["progress"] = 1.0
         except Exception as exc:  # noqa: BLE001 - the record says what went wrong
             log.exception("campaign %s failed", cid)
@@ -208,11 +219,14 @@ class CampaignManager:
                 fields["scene_messages"] = add_scene_channel(path, prepared.params)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
-        if spec.kind == "identification" and path.exists() and fields.get("status") == "finished":
+        if spec.kind == "identification" and path.exists() and fields.get("status") in ("finished", "degraded"):
             self._update(cid, message="identifying (twin.identification.pipeline)…")
             report, text = identify_archive(path, spec.params_file)
             fields["identification"] = report
             fields["identification_status"] = text
+            if report is None:  # the run was recorded, its analysis failed: not a finished identification
+                fields["status"] = "analysis_failed"
+                fields["message"] = f"{text} ({fields['message']})"[:2000] if fields.get("message") else text
         fields["ended_at"] = iso_time()
         fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
         with self._lock:
@@ -271,6 +285,24 @@ class CampaignManager:
         return self._replay.status() if self._replay is not None else None
 
     # -- e-stop -----------------------------------------------------------------------------
+    def estop_status(self) -> dict[str, object]:
+        """The e-stop as the console shows it: the bridge's latched state from its latest
+        ``MotorState`` when one is fresh (the one truth: it also counts e-stops engaged by others
+        or by a malformed message), else what this console last sent (``source`` says which)."""
+        truth = self._bridge_estop()
+        if truth is not None:
+            return truth
+        return {"engaged": self.estop_engaged, "reason": self.estop_reason if self.estop_engaged else "",
+                "drive": None, "source": "console"}
+
+    def _drives_disabled(self, own_twin: bool) -> str:
+        """Why a campaign cannot start on the drives (''if it can): the bridge's disabled drives
+        when it drives the bridge on the bus, this console's e-stop when it starts its own twin."""
+        truth = None if own_twin else self._bridge_estop()
+        if truth is not None:
+            return str(truth["reason"]) if truth["engaged"] or truth["drive"] == "disabled" else ""
+        return (self.estop_reason or "e-stop engaged") if self.estop_engaged else ""
+
     def estop(self, engaged: bool, reason: str) -> None:
         """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
         engaging, abort the running campaign and any replay."""

@@ -12,7 +12,7 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
     {"type": "live", "seq": n, "wall_s": ..., "series": {
         "status":  {"stamp_s", "alpha_hat_rad", "alpha_d_rad", "e_rad", "holding", "hold_reason",
                     "law", "tick_s", "deadline_misses", "overruns"},
-        "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive"},
+        "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason"},
         "command": {"stamp_s", "force_N"},
         "camera":  {"stamp_s", "alpha_ip_rad"},
         "truth":   {"stamp_s", "alpha_rad", "tension_N"},
@@ -20,6 +20,8 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
         "estop":   {"engaged", "reason"}}}
 
 A series appears once its first message arrived; ``stamp_s`` lets a client drop repeats.
+``estop`` is what was last *sent* on ``xneck/estop`` (by anyone); whether the drives are really
+stopped is the bridge's word, ``state.estop_engaged``/``estop_reason`` (:func:`bridge_estop`).
 """
 
 from __future__ import annotations
@@ -36,12 +38,13 @@ import msgspec
 import zenoh
 
 from bridge import bus
+from server.quality import drive_estop
 
 #: Series name -> (key, fields forwarded to browsers).
 SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
     "status": (bus.CONTROLLER_STATUS, ("stamp_s", "alpha_hat_rad", "alpha_d_rad", "e_rad", "holding", "hold_reason",
                                        "law", "tick_s", "deadline_misses", "overruns")),
-    "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive")),
+    "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason")),
     "command": (bus.MOTOR_COMMAND, ("stamp_s", "force_N")),
     "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad")),
     "truth": (bus.TWIN_TRUTH, ("stamp_s", "alpha_rad", "tension_N")),
@@ -50,6 +53,7 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
+BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
 
 
 class LatestValues:
@@ -63,13 +67,16 @@ class LatestValues:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._raw: dict[str, bytes] = {}
+        self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
         self._version = 0
         self.rejected = 0
 
     def put_raw(self, series: str, payload: bytes) -> None:
+        now = time.monotonic()
         with self._lock:
             self._raw[series] = payload
+            self._received_s[series] = now
             self._version += 1
 
     def put(self, series: str, msg: bus.BusMessage) -> None:
@@ -110,13 +117,33 @@ class LatestValues:
         with self._lock:
             return self._version
 
+    def fresh(self, series: str, max_age_s: float) -> Any:
+        """The latest message of ``series`` if it arrived within ``max_age_s`` and decodes, else None."""
+        with self._lock:
+            received = self._received_s.get(series)
+        if received is None or time.monotonic() - received > max_age_s:
+            return None
+        return self.get(series)
+
+
+def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> dict[str, Any] | None:
+    """The e-stop as the bridge reports it in its latest ``MotorState`` (``{"engaged", "reason",
+    "drive", "source": "bridge"}``), or None when no bridge state arrived within ``max_age_s``.
+    ``engaged`` is the bridge's latched e-stop; ``drive == "disabled"`` without it (a bridge
+    stopping) also keeps campaigns from starting, with its own reason."""
+    state = values.fresh("state", max_age_s)
+    if state is None:
+        return None
+    engaged, reason = drive_estop(state)
+    return {"engaged": engaged, "reason": reason, "drive": state.drive, "source": "bridge"}
+
 
 def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
     """The ``series`` part of a live frame from the latest messages."""
     out: dict[str, Any] = {}
     for name, msg in values.items():
         fields = SERIES[name][1]
-        out[name] = {f: getattr(msg, f) for f in fields}
+        out[name] = {f: getattr(msg, f, None) for f in fields}  # None: a field of a newer schema version
     return out
 
 

@@ -14,7 +14,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-CampaignStatus = Literal["running", "finished", "aborted", "interrupted", "failed"]
+#: ``degraded``: finished below the real-time quality thresholds (server.quality; reasons in ``quality``);
+#: ``analysis_failed``: recorded, but its identification analysis failed (``identification_status``).
+CampaignStatus = Literal["running", "finished", "degraded", "analysis_failed", "aborted", "interrupted", "failed"]
 ACTIVE: tuple[str, ...] = ("running",)
 _ID = re.compile(r"^[A-Za-z0-9_.\-]{1,100}$")
 
@@ -39,6 +41,9 @@ class CampaignRecord(BaseModel):
     created_at: str = ""
     ended_at: str = ""
     metrics: dict[str, Any] | None = None
+    quality: dict[str, Any] | None = Field(None, description="Real-time quality of the run (server.quality): "
+                                           "ticks, rate_hz, deadline_misses, record_gaps, messages_lost, "
+                                           "thresholds, and reasons (why it is degraded).")
     identification: dict[str, Any] | None = None
     identification_status: str = ""
     scene_messages: int = 0

@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from server.auth import require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
 from server.campaigns import Busy, CampaignManager, NotFound
-from server.records import CampaignRecord, valid_id
+from server.records import CampaignRecord, CampaignStatus, valid_id
 from server.results import FIGURES, control_tables, identification_tables, render_figure
 
 router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
@@ -34,7 +34,8 @@ def _record(manager: CampaignManager, campaign_id: str) -> CampaignRecord:
 def _conflict(exc: Busy) -> JSONResponse:
     return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
         "detail": f"{exc.what} {exc.running_id} is running" if exc.running_id != "estop"
-        else "the e-stop is engaged: release it first", "running_campaign_id": exc.running_id})
+        else f"the drives are disabled ({getattr(exc, 'reason', '') or 'e-stop engaged'}): release the e-stop first",
+        "running_campaign_id": exc.running_id})
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
@@ -58,7 +59,7 @@ async def create_campaign(body: CampaignCreate, request: Request) -> Any:
 
 @router.get("", response_model=list[CampaignRecord])
 def list_campaigns(request: Request,
-                   status_: Literal["running", "finished", "aborted", "interrupted", "failed"] | None =
+                   status_: CampaignStatus | None =
                    Query(None, alias="status"),
                    kind: Literal["identification", "control"] | None = None,
                    law: str | None = Query(None, description="Law name, e.g. law2"),
@@ -95,7 +96,8 @@ def campaign_results(campaign_id: str, request: Request) -> dict[str, Any]:
     """Metrics and tables shaped like the 3-X paper's (Table 3 for control, Tables 1-2 for identification)."""
     rec = _record(_manager(request), campaign_id)
     tables = identification_tables(rec.identification) + control_tables(rec.law, rec.metrics)
-    return {"id": rec.id, "kind": rec.kind, "status": rec.status, "law": rec.law, "metrics": rec.metrics,
+    return {"id": rec.id, "kind": rec.kind, "status": rec.status, "message": rec.message, "quality": rec.quality,
+            "law": rec.law, "metrics": rec.metrics,
             "identification": rec.identification, "identification_status": rec.identification_status,
             "tables": tables,
             "figures": [f"/api/campaigns/{rec.id}/figures/{n}.png" for n in FIGURES] if rec.status != "running" else [],

@@ -24,7 +24,7 @@ def health(request: Request) -> dict[str, Any]:
         "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
         "viser_port": s.scene.port if s.scene else None,
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
-        "estop": {"engaged": s.campaigns.estop_engaged, "reason": s.campaigns.estop_reason},
+        "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }
@@ -49,8 +49,9 @@ class EStopRequest(BaseModel):
 
 @router.post("/api/system/estop", dependencies=[Depends(require_token)])
 def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
-    """Engage or release the e-stop: published on the bus (the bridge holds); engaging also
-    aborts the running campaign and any replay."""
+    """Engage or release the e-stop: published on the bus (the bridge disables its drives and
+    latches it); engaging also aborts the running campaign and any replay. The answer is what was
+    sent; ``/api/system/health`` shows what the bridge reports (``estop.source``)."""
     request.app.state.campaigns.estop(body.engaged, body.reason)
     return {"engaged": body.engaged, "reason": body.reason}
 

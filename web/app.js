@@ -211,10 +211,26 @@ async function showResults(id) {
   const h = document.createElement("h3");
   h.textContent = `${res.id}: ${res.status}` + (res.identification_status ? ` (${res.identification_status})` : "");
   box.append(h);
+  const reasons = (res.quality && res.quality.reasons) || [];
+  if (res.status !== "finished" && res.status !== "running" && (reasons.length || res.message)) {
+    const why = document.createElement("p"); why.className = "outcome-reasons";
+    why.textContent = reasons.length ? `degraded: ${reasons.join("; ")}` : res.message;
+    box.append(why);
+  }
   res.tables.forEach((t) => box.append(renderTable(t)));
   res.figures.forEach((src) => { const img = document.createElement("img"); img.src = src; img.alt = src; box.append(img); });
   const a = document.createElement("a"); a.href = res.mcap; a.textContent = "download MCAP (opens in Foxglove)";
   box.append(document.createElement("br"), a);
+}
+
+// The e-stop as the bridge reports it (its latched state in every MotorState), not as this page
+// last asked: a malformed message or another console may have engaged it.
+function showEstop(e) {
+  const box = $("#estop-state");
+  const disabled = e.engaged || e.drive === "disabled";
+  box.hidden = !disabled;
+  box.textContent = disabled ? `${e.engaged ? "E-STOP ENGAGED" : "DRIVES DISABLED"}: ${e.reason || "no reason given"}` +
+    (e.source === "console" ? " (as sent by this console; no bridge reports)" : "") : "";
 }
 
 async function pollStatus() {
@@ -222,8 +238,8 @@ async function pollStatus() {
     const h = await api("GET", "/api/system/health");
     const procs = await api("GET", "/api/system/processes");
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
-      (h.estop.engaged ? " — E-STOP ENGAGED" : "") +
       ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}`;
+    showEstop(h.estop);
     if (runningId && h.running_campaign_id !== runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
       setProgress(rec.progress, `${rec.id} ${rec.status}`);

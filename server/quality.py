@@ -1,0 +1,232 @@
+"""What a campaign's run was really like: the drives' state and the real-time quality, measured on
+the bus while it runs, and the thresholds that make its outcome ``degraded`` (issue 13, findings 4
+and 7).
+
+:class:`CampaignMonitor` subscribes to the bridge's ``MotorState``, the controller's ``ForceCommand``
+and ``ControllerStatus`` on the campaign's session. Its callbacks only decode and update counters
+under a lock. The campaign runner marks the window (:meth:`~CampaignMonitor.begin` at the
+controller's first event, :meth:`~CampaignMonitor.end` at its last) and asks two questions:
+
+Drives
+    :meth:`~CampaignMonitor.drives_disabled` — did the bridge report its drives disabled (its
+    e-stop, latched and published in every ``MotorState``) during the window? Then the campaign
+    ends ``aborted`` with the bridge's reason, whatever the controller says: the bridge is the one
+    truth of the e-stop, not what the console last sent.
+Quality
+    :func:`assess` compares the window's counters with :data:`THRESHOLDS`; every breach is a reason,
+    and a campaign that finished with reasons ends ``degraded``. The thresholds (defined here only):
+
+    - **deadline misses**: ticks whose command left late, over the ticks of the campaign (the
+      difference of the controller's counters between the window's first and last status, so it is
+      per campaign whether the controller counts since its start or since the campaign's),
+      at most :attr:`QualityThresholds.deadline_miss_rate_max` (1 %). Real-time campaigns only: a
+      lockstep run has no deadline.
+    - **record gaps**: ``MotorState`` and ``ForceCommand`` messages missing from their publishers'
+      ``seq`` sequences as seen by the console, plus those the recorder dropped, over the messages
+      expected, at most :attr:`QualityThresholds.lost_fraction_max` (0.1 %). A gap is one run of
+      missing messages; both the gaps and the messages lost are reported.
+    - **rate**: the commands' rate in wall-clock time over the window, at least
+      :attr:`QualityThresholds.rate_min_fraction` (95 %) of :attr:`QualityThresholds.nominal_rate_hz`
+      (500 Hz, the prototype's control rate). Real-time campaigns only: lockstep runs as fast as
+      it can and its simulated time is exact by construction.
+
+The same counters go to the campaign's record (``quality``) and its MCAP metadata.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import zenoh
+
+from bridge import bus
+
+
+@dataclass(frozen=True)
+class QualityThresholds:
+    """Limits below which a finished campaign is ``degraded`` (module docstring)."""
+
+    deadline_miss_rate_max: float = 0.01  # deadline misses per tick
+    lost_fraction_max: float = 0.001  # messages missing from the record per message expected
+    rate_min_fraction: float = 0.95  # of the nominal rate, wall clock
+    nominal_rate_hz: float = 500.0  # the prototype's control rate
+
+
+THRESHOLDS = QualityThresholds()
+
+
+class _SeqCounter:
+    """Counts messages and the runs of missing ``seq`` numbers of one publisher. A jump back
+    (a restarted publisher) starts a new sequence, neither a gap nor a loss."""
+
+    def __init__(self) -> None:
+        self.count = self.gaps = self.lost = 0
+        self._last: int | None = None
+
+    def add(self, seq: int) -> None:
+        self.count += 1
+        if self._last is not None and seq > self._last + 1:
+            self.gaps += 1
+            self.lost += seq - self._last - 1
+        self._last = seq
+
+
+class CampaignMonitor:
+    """Follows the drives and counts the real-time quality of one campaign (module docstring).
+    Close it (or use it as a context manager)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._lock = threading.Lock()
+        self._active = self._ended = False
+        self._states, self._commands = _SeqCounter(), _SeqCounter()
+        self._first_cmd_s = self._last_cmd_s = 0.0
+        self._misses: tuple[int, int] | None = None  # (first, last) deadline_misses of the window
+        self._overruns: tuple[int, int] | None = None
+        self.disabled_reason = ""
+        self.rejected = 0
+        self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
+                      session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
+                      session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status)]
+
+    # -- window -----------------------------------------------------------------------------
+    def begin(self) -> None:
+        """Start counting (the controller's first event of the campaign)."""
+        with self._lock:
+            self._active = True
+
+    def end(self) -> None:
+        """Stop counting and following (the campaign's last event; the bridge may disable after)."""
+        with self._lock:
+            self._active, self._ended = False, True
+
+    # -- callbacks (Zenoh threads: decode, count, nothing else) -----------------------------
+    def _decode(self, msg_type: type[bus.BusMessage], sample: zenoh.Sample) -> Any:
+        try:
+            return bus.decode(msg_type, sample.payload.to_bytes())
+        except bus.BusDecodeError:
+            with self._lock:
+                self.rejected += 1
+            return None
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(bus.MotorState, sample)
+        if msg is None:
+            return
+        engaged, reason = drive_estop(msg)
+        with self._lock:
+            # Drives are followed from the monitor's creation, the quality only within the window.
+            if (engaged or msg.drive == "disabled") and not self.disabled_reason and not self._ended:
+                self.disabled_reason = reason
+            if self._active:
+                self._states.add(msg.seq)
+
+    def _on_command(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(bus.ForceCommand, sample)
+        now = time.monotonic()
+        with self._lock:
+            if msg is None or not self._active:
+                return
+            if self._commands.count == 0:
+                self._first_cmd_s = now
+            self._last_cmd_s = now
+            self._commands.add(msg.seq)
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(bus.ControllerStatus, sample)
+        with self._lock:
+            if msg is None or not self._active:
+                return
+            self._misses = (self._misses[0] if self._misses else msg.deadline_misses, msg.deadline_misses)
+            self._overruns = (self._overruns[0] if self._overruns else msg.overruns, msg.overruns)
+
+    # -- questions --------------------------------------------------------------------------
+    def drives_disabled(self) -> str:
+        """The bridge's reason if it reported its drives disabled during the window, else ''."""
+        with self._lock:
+            return self.disabled_reason
+
+    def wait_drives_disabled(self, timeout_s: float) -> str:
+        """:meth:`drives_disabled`, waiting up to ``timeout_s`` for the bridge to say so."""
+        deadline = time.monotonic() + timeout_s
+        while not self.drives_disabled() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return self.drives_disabled()
+
+    def counters(self, recorder_dropped: int = 0) -> dict[str, Any]:
+        """The window's counters (plain numbers, for the record and the MCAP metadata)."""
+        with self._lock:
+            duration_s = self._last_cmd_s - self._first_cmd_s
+            return {
+                "ticks": self._commands.count, "states": self._states.count,
+                "duration_wall_s": round(duration_s, 4),
+                "rate_hz": round((self._commands.count - 1) / duration_s, 2) if duration_s > 0 else 0.0,
+                "deadline_misses": _delta(self._misses), "overruns": _delta(self._overruns),
+                "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
+                "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
+                "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
+            }
+
+    def close(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+    def __enter__(self) -> CampaignMonitor:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def _delta(pair: tuple[int, int] | None) -> int:
+    """Events counted within the window from a counter's first and last values; a counter that
+    went back was reset at the campaign's start, so its last value is the campaign's own."""
+    if pair is None:
+        return 0
+    first, last = pair
+    return last - first if last >= first else last
+
+
+def drive_estop(state: bus.MotorState) -> tuple[bool, str]:
+    """(engaged, reason) of the bridge's e-stop from one of its states. ``MotorState`` v2 carries
+    ``estop_engaged``/``estop_reason``; a v1 state says only ``drive == "disabled"``."""
+    engaged = bool(getattr(state, "estop_engaged", False))
+    reason = str(getattr(state, "estop_reason", "") or "")
+    if engaged:
+        return True, reason or "e-stop engaged"
+    if state.drive == "disabled":
+        return False, "the bridge's drives are disabled"
+    return False, ""
+
+
+def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds = THRESHOLDS) -> list[str]:
+    """The reasons (sentences) a campaign with these counters is degraded; [] if none."""
+    reasons = []
+    ticks = int(counters.get("ticks", 0))
+    expected = ticks + int(counters.get("states", 0)) + int(counters.get("messages_lost", 0))
+    lost = int(counters.get("messages_lost", 0))
+    if expected and lost / expected > limits.lost_fraction_max:
+        reasons.append(f"record gaps: {lost} of {expected} messages lost in {counters.get('record_gaps', 0)} gap(s) "
+                       f"({100 * lost / expected:.2f} % > {100 * limits.lost_fraction_max:.2f} %)")
+    if realtime and ticks:
+        misses = int(counters.get("deadline_misses", 0))
+        if misses / ticks > limits.deadline_miss_rate_max:
+            reasons.append(f"deadline misses: {misses} in {ticks} ticks ({100 * misses / ticks:.1f} % > "
+                           f"{100 * limits.deadline_miss_rate_max:.0f} %)")
+        rate = float(counters.get("rate_hz", 0.0))
+        floor = limits.rate_min_fraction * limits.nominal_rate_hz
+        if ticks > 1 and rate < floor:
+            reasons.append(f"rate {rate:.0f} Hz below {100 * limits.rate_min_fraction:.0f} % of the nominal "
+                           f"{limits.nominal_rate_hz:.0f} Hz ({floor:.0f} Hz)")
+    return reasons
+
+
+def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:
+    return asdict(limits)
+
+
+__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "drive_estop", "thresholds_dict"]
