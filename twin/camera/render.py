@@ -121,6 +121,7 @@ class Renderer:
             bank = self.rng.normal(0.0, self.options.noise_dn, size=(c.height + margin, c.width + margin, 3))
             self._noise = np.round(bank).astype(np.int16)
         self._static = self._static_layer()
+        self._background = self._optics(self._static, 0, 0)
 
     def _lighting(self) -> np.ndarray:
         """Gain per pixel (float32, H×W×3): exposure, a left-to-right gradient, vignetting."""
@@ -131,15 +132,6 @@ class Renderer:
         gain = o.gain * (1.0 + 0.5 * o.gradient * xx) * (1.0 - o.vignetting * (xx**2 + yy**2) / (1.0 + (c.height / c.width) ** 2))
         return np.repeat(gain.astype(np.float32)[..., None], 3, axis=2)
 
-    def _fill(self, img: np.ndarray, plane_polys: list[np.ndarray], colours: list[tuple[int, int, int]]) -> None:
-        """Fill polygons given in the plane."""
-        for pts, colour in zip(_to_pixels(self._draw_cal, plane_polys), colours):
-            cv2.fillPoly(img, [pts], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
-
-    def _lines(self, img: np.ndarray, plane_lines: list[np.ndarray], colours: list[tuple[int, int, int]], thickness: int) -> None:
-        for pts, colour in zip(_to_pixels(self._draw_cal, plane_lines), colours):
-            cv2.polylines(img, [pts], False, colour, thickness * self.options.supersample, lineType=cv2.LINE_AA, shift=_SHIFT)
-
     def _static_layer(self) -> np.ndarray:
         """Board, base plate and reference markers: the part of the frame that never moves."""
         c = self._draw_cal
@@ -149,62 +141,84 @@ class Renderer:
         edge = np.vstack([np.linspace(plate[0], plate[1], 60), np.linspace(plate[1], plate[2], 20),
                           np.linspace(plate[2], plate[3], 60), np.linspace(plate[3], plate[0], 20)])
         refs = [_disk(p, self.layout.reference_radius_m) for p in self.layout.reference()]
-        self._fill(img, [edge, *refs], [PLATE_BGR] + [HUE_BGR[REFERENCE_HUE_DEG]] * len(refs))
+        polys = [edge, *refs]
+        colours = [PLATE_BGR] + [HUE_BGR[REFERENCE_HUE_DEG]] * len(refs)
+        for pts, colour in zip(_to_pixels(c, polys), colours):
+            cv2.fillPoly(img, [pts], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
         return img
 
-    def draw(self, alpha) -> np.ndarray:
-        """The ideal image (no lighting, blur or noise) at the drawing resolution."""
-        alpha = np.asarray(alpha, dtype=float)
+    def _optics(self, img: np.ndarray, x0: int, y0: int) -> np.ndarray:
+        """Drawing resolution → sensor: area average (anti-aliasing), defocus blur, lighting.
+        ``img`` is the sensor region starting at pixel (x0, y0), at the drawing resolution."""
+        s, o = self.options.supersample, self.options
+        h, w = img.shape[0] // s, img.shape[1] // s
+        if s > 1:
+            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        # The gain map is smooth, so blurring before lighting is the same image and keeps the
+        # whole chain in saturating 8-bit arithmetic.
+        if o.blur_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), o.blur_px)
+        return cv2.multiply(img, self._light[y0:y0 + h, x0:x0 + w], dtype=cv2.CV_8U)
+
+    def _scene(self, alpha: np.ndarray) -> list[tuple[np.ndarray, tuple[int, int, int], int]]:
+        """What moves, back to front, in the plane: (outline, colour, line thickness; 0 = filled)."""
         m, lay = self.model, self.layout
         ends = chain.bar_ends(m, alpha)  # (N, 4, 2): A, B, C, D per joint
-        img = self._static.copy()
-        springs, cables = [], []
+        ops: list[tuple[np.ndarray, tuple[int, int, int], int]] = []
         for A, B, C, D in ends:
-            springs += [_zigzag(A, C, 0.004), _zigzag(B, D, 0.004)]
+            ops += [(_zigzag(A, C, 0.004), SPRING_BGR, 2), (_zigzag(B, D, 0.004), SPRING_BGR, 2)]
         # Cables: along each side of the chain, just outside the springs (the pulleys' radius).
+        phi = np.concatenate([[0.0], np.cumsum(alpha)])
         left = np.vstack([ends[0, 0], *(e[2] for e in ends)])
         right = np.vstack([ends[0, 1], *(e[3] for e in ends)])
         for side, sign in ((left, -1.0), (right, 1.0)):
-            phi = np.concatenate([[0.0], np.cumsum(alpha)])
             out = sign * m.r * np.column_stack([np.cos(phi), np.sin(phi)])
-            cables.append(np.vstack([side[0] + out[0] + [0.0, -0.06], side + out]))
-        self._lines(img, springs, [SPRING_BGR] * len(springs), 2)
-        self._lines(img, cables, [CABLE_BGR] * len(cables), 1)
-        polys, colours = [], []
+            ops.append((np.vstack([side[0] + out[0] + [0.0, -0.06], side + out]), CABLE_BGR, 1))
         for A, B, C, D in ends:
-            polys += [_band(A, D, 0.006), _band(B, C, 0.006)]
-            colours += [DIAGONAL_BGR, DIAGONAL_BGR]
-        bars = [(ends[0, 0], ends[0, 1])] + [(e[2], e[3]) for e in ends]
-        for p, q in bars:
-            polys.append(_band(p, q, 0.009, extend=0.004))
-            colours.append(BAR_BGR)
+            ops += [(_band(A, D, 0.006), DIAGONAL_BGR, 0), (_band(B, C, 0.006), DIAGONAL_BGR, 0)]
+        for p, q in [(ends[0, 0], ends[0, 1])] + [(e[2], e[3]) for e in ends]:
+            ops.append((_band(p, q, 0.009, extend=0.004), BAR_BGR, 0))
         markers = marker_points(m, alpha, lay)
         for k, pair in enumerate(markers):
-            for p in pair:
-                polys.append(_disk(p, lay.radius_m))
-                colours.append(HUE_BGR[BAR_HUES_DEG[k]])
+            ops += [(_disk(p, lay.radius_m), HUE_BGR[BAR_HUES_DEG[k]], 0) for p in pair]
         for bar, side in self.options.occlude:
             if 0 <= bar < len(markers) and side in (0, 1):
-                polys.append(_disk(markers[bar, side], 2.0 * lay.radius_m))
-                colours.append(OCCLUDER_BGR)
-        self._fill(img, polys, colours)
-        return img
+                ops.append((_disk(markers[bar, side], 2.0 * lay.radius_m), OCCLUDER_BGR, 0))
+        return ops
 
     def render(self, alpha) -> np.ndarray:
-        """A camera frame (H×W×3 BGR uint8) at joint angles ``alpha`` (rad)."""
-        img = self.draw(alpha)
-        o, c = self.options, self.calibration
-        if o.supersample > 1:
-            img = cv2.resize(img, (c.width, c.height), interpolation=cv2.INTER_AREA)
-        # The gain map is smooth, so blurring before lighting is the same image and keeps the
-        # whole chain in saturating 8-bit arithmetic (a few ms for 1280×720).
-        if o.blur_px > 0:
-            img = cv2.GaussianBlur(img, (0, 0), o.blur_px)
-        img = cv2.multiply(img, self._light, dtype=cv2.CV_8U)
+        """A camera frame (H×W×3 BGR uint8) at joint angles ``alpha`` (rad).
+
+        Only the region around the neck is drawn and filtered each frame (the rest is the static
+        background, filtered once); the region is padded by the blur's reach so the result is the
+        same as filtering the whole frame. Noise covers the whole frame."""
+        alpha = np.asarray(alpha, dtype=float)
+        c, s = self.calibration, self.options.supersample
+        ops = self._scene(alpha)
+        pixels = _to_pixels(self._draw_cal, [o[0] for o in ops])
+        pts = np.vstack(pixels) / (_SUB * s)
+        reach = math.ceil(4.0 * self.options.blur_px) + 2
+        inner = (max(int(pts[:, 0].min()) - 4, 0), max(int(pts[:, 1].min()) - 4, 0),
+                 min(int(pts[:, 0].max()) + 6, c.width), min(int(pts[:, 1].max()) + 6, c.height))
+        frame = self._background.copy()
+        if inner[2] > inner[0] and inner[3] > inner[1]:
+            x0, y0 = max(inner[0] - reach, 0), max(inner[1] - reach, 0)
+            x1, y1 = min(inner[2] + reach, c.width), min(inner[3] + reach, c.height)
+            img = self._static[y0 * s:y1 * s, x0 * s:x1 * s].copy()
+            shift = np.array([x0 * s, y0 * s], dtype=np.int32) * _SUB
+            for pts_i, (_, colour, thickness) in zip(pixels, ops):
+                local = pts_i - shift
+                if thickness:
+                    cv2.polylines(img, [local], False, colour, thickness * s, lineType=cv2.LINE_AA, shift=_SHIFT)
+                else:
+                    cv2.fillPoly(img, [local], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
+            region = self._optics(img, x0, y0)
+            ix0, iy0 = inner[0] - x0, inner[1] - y0
+            frame[inner[1]:inner[3], inner[0]:inner[2]] = region[iy0:iy0 + inner[3] - inner[1], ix0:ix0 + inner[2] - inner[0]]
         if self._noise is not None:
             dy, dx = (int(v) for v in self.rng.integers(0, 64, size=2))
-            img = cv2.add(img, self._noise[dy:dy + c.height, dx:dx + c.width], dtype=cv2.CV_8U)
-        return img
+            frame = cv2.add(frame, self._noise[dy:dy + c.height, dx:dx + c.width], dtype=cv2.CV_8U)
+        return frame
 
 
 def marker_sheet(n_joints: int, layout: MarkerLayout | None = None, dpi: int = 300) -> np.ndarray:
