@@ -9,17 +9,16 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import msgspec
 import pytest
 import zenoh
+from busutil import wait_until
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
-from bridge.session import free_tcp_port, open_session, publisher
 from bridge.archive import (
     CAMPAIGN,
     ArchiveError,
@@ -29,7 +28,7 @@ from bridge.archive import (
     recover,
     write_campaign,
 )
-from busutil import wait_until
+from bridge.session import free_tcp_port, open_session, publisher
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -53,14 +52,6 @@ class LosslessPublisher:
 
     def close(self) -> None:
         self._pub.undeclare()
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    port = free_tcp_port()
-    with open_session(listen=[f"tcp/127.0.0.1:{port}"], connect=[]) as a:
-        with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as b:
-            yield a, b
 
 
 # --- writing and reading -------------------------------------------------------------------------

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 
 import msgspec
 import pytest
 import zenoh
+from busutil import wait_until
 
 from bridge import bus
 from bridge.session import (
@@ -18,17 +18,6 @@ from bridge.session import (
     subscribe_latest,
     zenoh_config,
 )
-from busutil import wait_until
-
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    """Two peers: ``a`` listens on a free loopback port, ``b`` connects to it."""
-    port = free_tcp_port()
-    with open_session(listen=[f"tcp/127.0.0.1:{port}"], connect=[]) as a:
-        with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as b:
-            yield a, b
 
 
 def sample_messages() -> dict[str, bus.BusMessage]:

@@ -4,20 +4,18 @@ recorded to MCAP and read back; the paper's findings hold on the twin."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
+from pathlib import Path
 
 import pytest
 
 from bridge import bus
-from server.campaign_runner import CampaignSpec, run_campaign
+from bridge.archive import read_campaign
 from controller.laws import LawConfig
 from controller.trajectory import control_test_trajectory
-from bridge.archive import read_campaign
+from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campaign
 
+pytestmark = pytest.mark.e2e  # twin and controller processes on a real bus
 
-def _xneck(*args, timeout=180):
-    return subprocess.run([sys.executable, "-m", "server.cli", *args], capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -74,35 +72,43 @@ def test_lockstep_campaigns_repeat_exactly(params, campaigns, tmp_path):
     assert again.metrics["e_mean_all_deg"] == pytest.approx(campaigns["law2"].metrics["e_mean_all_deg"], rel=1e-3)
 
 
-def test_cli_campaign_prints_json_metrics(tmp_path):
-    out = tmp_path / "run.mcap"
-    run = _xneck("campaign", "control", "--law", "1", "--twin", "--out", str(out), "--json", "--seed", "2")
+def test_cli_campaign_prints_json_metrics_and_records_into_the_data_directory(tmp_path, xneck):
+    """Without --out the archive goes to the console's data directory (XNECK_DATA_DIR), never the
+    current directory; the printed metrics are the archive's."""
+    cwd, data = tmp_path / "cwd", tmp_path / "data"
+    cwd.mkdir()
+    run = xneck("campaign", "control", "--law", "1", "--twin", "--json", "--seed", "2", cwd=cwd,
+                env={"XNECK_DATA_DIR": str(data)})
     assert run.returncode == 0, run.stderr
     summary = json.loads(run.stdout)
+    out = Path(summary["path"])
     assert summary["outcome"] == "finished" and summary["law"] == "law1" and out.exists()
-    assert len(summary["metrics"]["e_mean_deg"]) == 3 and summary["metrics"]["saturated_ticks"] >= 0
+    assert out.parent == data.resolve() / "cli-campaigns" and out.name == f"campaign-{summary['campaign_id']}.mcap"
+    assert list(cwd.iterdir()) == []
+    assert len(summary["metrics"]["e_mean_deg"]) == 3
+    assert summary["metrics"] == json.loads(json.dumps(metrics_from_archive(out)))
 
 
-def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_path):
+def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_path, xneck):
     bad = tmp_path / "reach.json"
     bad.write_text(json.dumps({"name": "reach", "waypoints_deg": [[0, 0, 0], [30, 70, 0], [0, 0, 0]],
                                "durations_s": [3.0, 3.0]}))
     out = tmp_path / "never.mcap"
-    run = _xneck("campaign", "control", "--trajectory", str(bad), "--out", str(out))
+    run = xneck("campaign", "control", "--trajectory", str(bad), "--out", str(out))
     assert run.returncode == 2 and "waypoint 1" in run.stderr and "70" in run.stderr
     assert not out.exists()
     fast = tmp_path / "fast.json"
     fast.write_text(json.dumps({"waypoints_deg": [[0, 0, 0], [50, 50, 50]], "durations_s": [0.2]}))
-    run = _xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
+    run = xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
     assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
 
 
-def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_path):
+def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_path, xneck):
     """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
     processes, identified from the archive: Table 1 friction and Table 2 stiffness come back, and the
     robot truth's small damping (the default for identification) is flagged, never used."""
     out = tmp_path / "ident.mcap"
-    run = _xneck("campaign", "identification", "--twin", "--out", str(out), "--json", "--seed", "4", timeout=600)
+    run = xneck("campaign", "identification", "--twin", "--out", str(out), "--json", "--seed", "4", timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     doc = json.loads(run.stdout)
     values = lambda table: {p["name"]: p["value"] for p in table["parameters"]}  # noqa: E731

@@ -128,6 +128,8 @@ def test_neglecting_pulleys_worsens_tracking_and_estimation(runs):
     assert runs["no_pulleys"]["e_alpha_mean_all_deg"] > runs["law2"]["e_alpha_mean_all_deg"]
 
 
-def test_every_law_stays_within_force_limits(runs, params):
-    for m in runs.values():
-        assert max(m["force_max_N"]) <= params.limits.f_max and m["camera_frames"] > 300
+def test_every_law_stays_within_force_limits(runs):
+    """The distribution clamps every command to [.., f_max], so the recorded maximum cannot say
+    whether a law needed more: no tick may have saturated on the §7 trajectory."""
+    for name, m in runs.items():
+        assert m["saturated_ticks"] == 0 and m["camera_frames"] > 300, (name, m["saturated_ticks"])

@@ -14,11 +14,14 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session
 from bridge.archive import read_campaign
 from server_harness import AUTH, TOKEN, wait_until
+
+pytestmark = pytest.mark.e2e  # the whole stack as processes, campaigns over the bus
 
 PY = [sys.executable, "-m", "server.cli"]
 ENV = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}

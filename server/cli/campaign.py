@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json as jsonlib
-import logging
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -29,14 +27,14 @@ def campaign_control(
     twin: bool = typer.Option(True, "--twin/--robot", help="Against a lockstep twin started for the campaign, or "
                               "the robot's bridge already on the bus."),
     trajectory: str = typer.Option("control_test", "--trajectory", help="Trajectory name or file (degrees)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="MCAP file to write (default: campaign-<id>.mcap here)."),
+    out: Path | None = typer.Option(None, "--out", help="MCAP file to write (default: <data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data)."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
                               "parameter file as it is (model) or with a real line's small cable damping (robot)."),
     timeout: float = typer.Option(600.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Run a control campaign (3-X paper §7), record it, print e, e_α, forces and saturation."""
     from server.campaign_runner import CampaignSpec, run_campaign
@@ -46,13 +44,29 @@ def campaign_control(
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
                         params_file=params_file, overrides=tuple(overrides or ()), truth=truth)
-    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    campaign_id, default_out = default_archive("control")
+    result = run_campaign(spec, params, out or default_out, progress=None if as_json else _print_progress,
+                          campaign_id=campaign_id)
     if as_json:
         typer.echo(jsonlib.dumps(result.summary(), indent=2))
     else:
         typer.echo(result.table())
     if result.outcome != "finished":
         raise typer.Exit(1)
+
+
+CLI_ARCHIVES = "cli-campaigns"  # below the data directory; not campaigns/, which the console indexes and recovers
+
+
+def default_archive(kind: str) -> tuple[str, Path]:
+    """A new campaign id and its archive in the console's data directory (server.settings: the
+    ``XNECK_DATA_DIR`` variable, else ./data), never the current directory: a checkout used to
+    collect hundreds of MB of campaign files."""
+    from server.campaign_runner import new_campaign_id
+    from server.settings import Settings
+
+    campaign_id = new_campaign_id(kind)
+    return campaign_id, Path(Settings().data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
 
 
 def _print_progress(fraction: float, message: str) -> None:
@@ -65,20 +79,20 @@ def _print_progress(fraction: float, message: str) -> None:
 def campaign_identification(
     twin: bool = typer.Option(True, "--twin/--robot", help="Against a lockstep twin started for the campaign, or "
                               "the robot's bridge already on the bus."),
-    out: Optional[Path] = typer.Option(None, "--out", help="MCAP file to write (default: campaign-<id>.mcap here)."),
+    out: Path | None = typer.Option(None, "--out", help="MCAP file to write (default: <data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data)."),
     as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "
                               "line's small cable damping, unknown to the model (robot), or the parameter file as "
                               "it is (model, an identity check)."),
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Run the identification trajectory (§5.2.2) in closed loop with law 1, record it, and
     identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8)."""
-    from server.campaign_runner import CampaignSpec, run_campaign
     from controller.trajectory import identification_trajectory
+    from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
 
     params = load_cli_params(params_file, overrides)
@@ -86,7 +100,9 @@ def campaign_identification(
     spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
                         truth=truth)
-    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    campaign_id, default_out = default_archive("identification")
+    result = run_campaign(spec, params, out or default_out, progress=None if as_json else _print_progress,
+                          campaign_id=campaign_id)
     if result.outcome != "finished":
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
         raise typer.Exit(1)
