@@ -17,7 +17,6 @@ from pydantic import BaseModel, Field
 #: ``degraded``: finished below the real-time quality thresholds (server.quality; reasons in ``quality``);
 #: ``analysis_failed``: recorded, but its identification analysis failed (``identification_status``).
 CampaignStatus = Literal["running", "finished", "degraded", "analysis_failed", "aborted", "interrupted", "failed"]
-ACTIVE: tuple[str, ...] = ("running",)
 _ID = re.compile(r"^[A-Za-z0-9_.\-]{1,100}$")
 
 
