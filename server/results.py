@@ -52,6 +52,28 @@ def control_tables(law: str, metrics: dict[str, Any] | None) -> list[dict[str, A
     return tables
 
 
+def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """The real-time quality of a run (``server.quality``) against its thresholds; the note says
+    why it is degraded, if it is."""
+    q = quality or {}
+    if "ticks" not in q:
+        return []
+    t = q.get("thresholds", {})
+    rt = "" if q.get("realtime") else " (lockstep: not applied)"
+    rows = [
+        ["command rate (Hz, wall clock)", q.get("rate_hz"), f"≥ {100 * t.get('rate_min_fraction', 0):.0f} % of "
+         f"{t.get('nominal_rate_hz', 0):.0f} Hz{rt}"],
+        ["deadline misses / ticks", f"{q.get('deadline_misses')} / {q['ticks']}",
+         f"≤ {100 * t.get('deadline_miss_rate_max', 0):.0f} %{rt}"],
+        ["messages lost (gaps)", f"{q.get('messages_lost')} ({q.get('record_gaps')})",
+         f"≤ {100 * t.get('lost_fraction_max', 0):.1f} % of the messages"],
+        ["overruns", q.get("overruns"), ""],
+    ]
+    reasons = q.get("reasons") or []
+    return [_table("Real-time quality (server.quality)", ["", "this run", "threshold"], rows,
+                   ("degraded: " + "; ".join(reasons)) if reasons else "within the thresholds")]
+
+
 def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]:
     """Tables 1 and 2 from ``twin.identification.report.report_dict`` output."""
     if not report:

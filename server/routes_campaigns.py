@@ -13,7 +13,7 @@ from server.auth import require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
 from server.campaigns import Busy, CampaignManager, NotFound
 from server.records import CampaignRecord, CampaignStatus, valid_id
-from server.results import FIGURES, control_tables, identification_tables, render_figure
+from server.results import FIGURES, control_tables, identification_tables, quality_tables, render_figure
 
 router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
 
@@ -95,7 +95,8 @@ def delete_campaign(campaign_id: str, request: Request) -> Response:
 def campaign_results(campaign_id: str, request: Request) -> dict[str, Any]:
     """Metrics and tables shaped like the 3-X paper's (Table 3 for control, Tables 1-2 for identification)."""
     rec = _record(_manager(request), campaign_id)
-    tables = identification_tables(rec.identification) + control_tables(rec.law, rec.metrics)
+    tables = identification_tables(rec.identification) + control_tables(rec.law, rec.metrics) + \
+        quality_tables(rec.quality)
     return {"id": rec.id, "kind": rec.kind, "status": rec.status, "message": rec.message, "quality": rec.quality,
             "law": rec.law, "metrics": rec.metrics,
             "identification": rec.identification, "identification_status": rec.identification_status,

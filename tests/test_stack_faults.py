@@ -158,6 +158,8 @@ def test_a_campaign_whose_controller_stalls_ends_degraded_with_its_reasons(tmp_p
     assert any(r.startswith("rate ") for r in reasons), rec["quality"]
     assert rec["quality"]["rate_hz"] < 0.95 * 500
     assert results["status"] == "degraded" and results["quality"]["reasons"] == reasons
+    shown = [t for t in results["tables"] if t["title"].startswith("Real-time quality")]  # the dashboard's table
+    assert shown and shown[0]["note"] == "degraded: " + "; ".join(reasons)
     info = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").info
     assert info["outcome"] == "degraded" and info["degraded_reasons"] == "; ".join(reasons)
     assert json.loads(info["quality"])["reasons"] == reasons
