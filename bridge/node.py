@@ -78,6 +78,11 @@ class BridgeConfig:
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
 
 
+def _bounded(text: str, n: int = 200) -> str:
+    """A string from the bus, cut to ``n`` characters: it goes into every state and the log."""
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
 class BridgeNode:
     """A :class:`bridge.driver.Driver` on the bus with the safety rules of the module docstring.
 
@@ -179,10 +184,10 @@ class BridgeNode:
         # Zenoh callback thread: decode and queue only; the loop acts on it within one tick.
         try:
             msg = bus.decode(bus.EStop, sample.payload.to_bytes())
-            event = (msg.engaged, msg.reason or "e-stop")
+            event = (msg.engaged, _bounded(msg.reason) or "e-stop")
             valid = True
         except bus.BusDecodeError as exc:
-            event = (True, f"malformed e-stop message: {exc.reason}")
+            event = (True, _bounded(f"malformed e-stop message: {exc.reason}"))
             valid = False
         with self._estop_lock:
             self.estop_received += 1
@@ -226,7 +231,8 @@ class BridgeNode:
         fresh = cmd is not None and recv_ns > self._consumed_ns
         self._consumed_ns = max(self._consumed_ns, recv_ns)
         decision = self.safety.step(Inputs(
-            theta_rad=self.theta, command_N=cmd.force_N if fresh else None, source=cmd.source if fresh else "",
+            theta_rad=self.theta, command_N=cmd.force_N if fresh else None,
+            source=f"{cmd.sender} ({_bounded(cmd.source, 64)})" if fresh else "",
             command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None))
         self._follow(decision.events)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -40,6 +41,10 @@ log = logging.getLogger("xneck.bridge")
 
 HoldForces = Callable[[np.ndarray], np.ndarray]
 """θ (rad, one per motor) → the cable forces (N) that hold the neck still there."""
+
+#: A controller instance name as the bridge accepts it: a key chunk, short enough to publish in
+#: every state and to log.
+INSTANCE_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
 EStopEvent = tuple[bool, str]
 """(engaged, reason) of one e-stop message, in arrival order."""
@@ -262,10 +267,12 @@ class Ownership:
     def admit(self, sender: str, epoch: str) -> str:
         """"" if a command of ``sender`` answering bridge run ``epoch`` is to be obeyed (taking
         ownership if there is no owner), else the reason it is refused."""
+        if not INSTANCE_NAME.match(sender):
+            return f"sender {sender[:40]!r}{'...' if len(sender) > 40 else ''} is not a valid controller instance name"
         if self.owner and sender != self.owner:
             return f"bridge owned by {self.owner}"
         if epoch != self.epoch:
-            return f"command for bridge epoch {epoch!r}, this bridge run is {self.epoch!r}"
+            return f"command for bridge epoch {epoch[:40]!r}, this bridge run is {self.epoch!r}"
         if not self.owner:
             if sender not in self._alive:
                 return f"sender {sender!r} has no liveliness token (xneck/alive/controller/<sender>)"

@@ -176,3 +176,14 @@ def test_a_command_for_another_bridge_run_is_refused():
     reason = own.admit("ctl-a", "e1")
     assert "epoch" in reason and "e1" in reason and own.owner == ""
     assert own.admit("ctl-a", "e2") == ""
+
+
+def test_an_oversized_or_odd_sender_never_becomes_the_owner():
+    # Published in every state at 500 Hz and logged: a name from the bus is bounded like an instance name.
+    own = Ownership(epoch="e1")
+    for name in ("x" * 65, "a b", "", "ctl/other"):
+        own.appeared(name)
+        assert "not a valid controller instance name" in own.admit(name, "e1"), name
+    assert own.owner == ""
+    huge = own.admit("y" * 100_000, "e1")
+    assert len(huge) < 200
