@@ -158,6 +158,20 @@ def test_prefer_plain_python_is_refused_once_compiled():
     assert compiled.numba_enabled()
 
 
+def test_base_install_is_the_bridge_and_meets_debian_armhf():
+    """pyproject's base dependencies are the bridge's, with minimums Debian 12 armhf's packages
+    meet (python3-numpy 1.24.2); the PC's heavy packages come with the `pc` extra."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = {re.split(r"[<>=!~ \[;]", d, maxsplit=1)[0].lower().replace("_", "-"): d for d in project["dependencies"]}
+    heavy = {m.replace("_", "-") for m in HEAVY}
+    assert not heavy & set(names), f"heavy packages in the base install: {sorted(heavy & set(names))}"
+    assert names["numpy"] == "numpy>=1.24"
+    pc = {re.split(r"[<>=!~ \[;]", d, maxsplit=1)[0].lower() for d in project["optional-dependencies"]["pc"]}
+    assert {"numba", "scipy", "matplotlib", "fastapi", "uvicorn", "viser"} <= pc
+
+
 # -- the cheap part of the target-platform check (benchmarks/armhf_bridge.sh does the rest) ------
 
 def _lean_venv(path: Path) -> Path:
