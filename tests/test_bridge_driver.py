@@ -309,3 +309,67 @@ def test_beaglebone_and_twin_apply_the_same_motor_torque_for_a_commanded_force(b
 
     assert torque_robot == pytest.approx(torque_twin, rel=1e-9)
     assert torque_robot == pytest.approx(f * params.geometry.r_d / params.geometry.R, rel=1e-9)
+
+
+def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_estop_release(board, params):
+    """Issue 13 on the robot's path: the same bridge rules drive the ESCONs. After an e-stop the
+    enable lines are low at once; after the release the set values move at most 1 N's worth of
+    current per tick towards the first commands ([81, 22, 8, 28] N, finding 1), and only for the
+    owning controller."""
+    import time
+
+    from bridge.node import BridgeConfig
+    from bridge.session import liveliness_token, publisher
+    from busutil import bus_pair, wait_until
+    from server.cli.processes import bridge_node
+
+    drv = _driver(params)
+    cfg = drv.config
+    amps_per_newton = drv.transmission.amps_per_newton
+
+    def forces_at_the_escons():  # what the ESCONs drive, as forces; zero with the enable lines low
+        if not all(board.pins[p] == 1 for p in cfg.enable_pins):
+            return np.zeros(4)
+        return np.array([cfg.current_at(board.duty[ch]) for ch in cfg.motor_channels]) / amps_per_newton
+
+    with bus_pair() as (_hub, hub_session, connect):
+        node = bridge_node(connect(), drv, params, BridgeConfig(command_timeout_s=5.0))
+        _token = liveliness_token(hub_session, "controller", "ctl")
+        cmd_pub, estop_pub = publisher(hub_session, bus.MOTOR_COMMAND), publisher(hub_session, bus.ESTOP)
+
+        def command(seq, force, sender="ctl"):
+            n = node.commands.stats.received
+            msg = bus.ForceCommand(seq=seq, stamp_s=0.0, force_N=force, source="law2", sender=sender, epoch=node.epoch)
+            for _ in range(250):  # the first messages on a fresh route may be lost
+                cmd_pub.put(msg)
+                if wait_until(lambda: node.commands.stats.received > n, 0.02, 0.002):
+                    return
+            raise AssertionError("command never arrived")
+
+        seen = []
+        try:
+            command(1, [9.0] * 4)
+            for _ in range(15):
+                node.tick()
+            assert forces_at_the_escons() == pytest.approx([9.0] * 4)
+            n = node.estop_received
+            estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="button"))
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+            node.tick()
+            assert all(board.pins[p] == 0 for p in cfg.enable_pins) and node.mode == "disabled"
+            estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared"))
+            assert wait_until(lambda: node.estop_received > n + 1, 5.0)
+            node.tick()
+            seen.append(forces_at_the_escons())
+            command(2, [81.0, 22.0, 8.0, 28.0])
+            command(3, [60.0] * 4, sender="intruder")  # not the owner: refused, never applied
+            assert node.commands.stats.rejected >= 1
+            for _ in range(100):
+                node.tick()
+                seen.append(forces_at_the_escons())
+        finally:
+            node.shutdown()
+    steps = np.abs(np.diff(np.array(seen), axis=0))
+    assert steps.max() <= 1.0 + 1e-9, steps.max()
+    assert seen[-1] == pytest.approx([81.0, 22.0, 8.0, 28.0])
+    assert all(board.pins[p] == 0 for p in cfg.enable_pins)  # shutdown disabled the drives
