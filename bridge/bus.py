@@ -129,12 +129,22 @@ class ForceCommand(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=
 class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """X-joint angles measured by the camera (image processing, about 30 Hz).
 
-    ``capture_stamp_s`` is the exposure time, ``stamp_s`` the publication time, both wall clock.
+    ``capture_stamp_s`` is the middle of the exposure, ``stamp_s`` the publication time, both on the
+    publisher's clock (wall time on hardware, simulated time for the twin; video time for a file).
+    v2: ``alpha_ip_rad[i]`` is null for a joint the camera did not measure (a hidden marker, an
+    outlier): missing, never guessed. ``confidence[i]`` in [0, 1] grades each joint (0 when
+    missing); empty when the publisher does not grade (the twin's white-noise camera).
+    ``source`` names the frames (``twin-noise``, ``twin-render``, ``usb:0``, ``file:run.mp4``) and
+    ``dropped`` counts the frames the source lost since it started. See
+    :func:`check_camera_alpha` for the receiver's range check.
     """
 
-    v: int = 1
-    alpha_ip_rad: list[float]
+    v: int = 2
+    alpha_ip_rad: list[float | None]
     capture_stamp_s: float
+    confidence: list[float] = []
+    source: str = ""
+    dropped: int = 0
 
 
 class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -428,6 +438,25 @@ def check_force_command(cmd: ForceCommand, n_motors: int, f_min_N: float, f_max_
             raise BusDecodeError(f"ForceCommand: force_N[{i}] = {f} N outside [{f_min_N}, {f_max_N}] N")
 
 
+def check_camera_alpha(msg: CameraAlpha, n_joints: int) -> None:
+    """Range check of a decoded camera message (receiver side): ``n_joints`` angles within ±π, a
+    confidence per joint in [0, 1] (or none), 0 for every missing joint, ``dropped`` ≥ 0.
+    Raises :class:`BusDecodeError`."""
+    if len(msg.alpha_ip_rad) != n_joints:
+        raise BusDecodeError(f"CameraAlpha: {len(msg.alpha_ip_rad)} angles for {n_joints} joints")
+    for i, a in enumerate(msg.alpha_ip_rad):
+        if a is not None and not (-math.pi <= a <= math.pi):
+            raise BusDecodeError(f"CameraAlpha: alpha_ip_rad[{i}] = {a} rad outside [-pi, pi]")
+    if msg.confidence:
+        if len(msg.confidence) != n_joints:
+            raise BusDecodeError(f"CameraAlpha: {len(msg.confidence)} confidences for {n_joints} joints")
+        for i, (a, c) in enumerate(zip(msg.alpha_ip_rad, msg.confidence)):
+            if not (0.0 <= c <= 1.0) or (a is None and c != 0.0):
+                raise BusDecodeError(f"CameraAlpha: confidence[{i}] = {c} (must be in [0, 1], 0 when missing)")
+    if msg.dropped < 0:
+        raise BusDecodeError(f"CameraAlpha: dropped = {msg.dropped} < 0")
+
+
 # --- schemas ----------------------------------------------------------------------------------
 
 
@@ -467,7 +496,7 @@ __all__ = [
     "MESSAGE_TYPES", "MOTOR_COMMAND", "MOTOR_STATE", "PATTERNS", "PREFIX", "REGISTRY", "TWIN_TRUTH",
     "BusDecodeError", "BusEncodeError", "BusMessage", "CameraAlpha", "CampaignEvent", "ControllerStatus",
     "EStop", "ForceCommand", "Health", "MotorState", "Truth",
-    "as_plain", "check_force_command", "decode", "encode", "health_key", "json_schema", "json_schema_bytes",
+    "as_plain", "check_camera_alpha", "check_force_command", "decode", "encode", "health_key", "json_schema", "json_schema_bytes",
     "key_of_topic", "liveliness_key", "mcap_topic", "message_type", "parse_liveliness_key",
     "schema_name", "schema_version",
 ]

@@ -135,7 +135,7 @@ def render_figure(mcap: Path, name: str, out: Path) -> Path:
                     ax.plot(t, np.degrees([m.alpha_hat_rad[j] for m in status]), "b-", lw=1, label="α̂")
                 if frames:
                     ax.plot(np.array([m.capture_stamp_s for m in frames]) - t0,
-                            np.degrees([m.alpha_ip_rad[j] for m in frames]), ".", color="orange", ms=2, label="α_IP")
+                            np.degrees(np.array([m.alpha_ip_rad[j] for m in frames], dtype=float)), ".", color="orange", ms=2, label="α_IP")
                 ax.set_ylabel(f"α{j + 1} (deg)")
                 ax.grid(alpha=0.3)
             axes[0, 0].legend(loc="upper right", fontsize=8)

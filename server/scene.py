@@ -99,7 +99,7 @@ class NeckScene:
         camera, state = self.values.get("camera"), self.values.get("state")
         alpha_hat = np.asarray(status.alpha_hat_rad) if status else (np.asarray(truth.alpha_rad) if truth else None)
         alpha_d = np.asarray(status.alpha_d_rad) if status else None
-        alpha_ip = np.asarray(camera.alpha_ip_rad) if camera else None
+        alpha_ip = np.asarray(camera.alpha_ip_rad, dtype=float) if camera else None  # a missing joint (null) → NaN
         tension = np.asarray(truth.tension_N) if truth else (np.asarray(state.force_applied_N) if state else None)
         return alpha_hat, alpha_d, alpha_ip, tension
 
@@ -119,7 +119,7 @@ class NeckScene:
                     if colors is not None:
                         handle.colors = np.broadcast_to(colors[j], g.cables[j].shape).copy()
             for handle, alpha in ((self.ghost_d, alpha_d), (self.ghost_ip, alpha_ip)):
-                if alpha is not None and alpha.shape == (n,):
+                if alpha is not None and alpha.shape == (n,) and np.all(np.isfinite(alpha)):
                     handle.points = self.drawing.skeleton(alpha)
                     handle.visible = True
         self.updates += 1

@@ -6,6 +6,7 @@ Real OpenCV on real rendered frames (and real Zenoh/MCAP further down); fixed se
 from __future__ import annotations
 
 import json
+import re
 import math
 from dataclasses import replace
 
@@ -192,3 +193,39 @@ def test_cli_render_then_detect_json(tmp_path) -> None:
     sheet = tmp_path / "sheet.png"
     assert runner.invoke(app, ["camera", "markers", "--out", str(sheet), "--dpi", "150"]).exit_code == 0
     assert cv2.imread(str(sheet)).shape[:2] == (int(0.297 * 150 / 0.0254), int(0.210 * 150 / 0.0254))  # A4 at 150 dpi
+
+
+# --- the bus contract: CameraAlpha v2 ------------------------------------------------------------
+
+
+def test_camera_alpha_v2_carries_missing_joints_and_confidence() -> None:
+    from bridge import bus
+
+    msg = bus.CameraAlpha(seq=1, stamp_s=2.05, capture_stamp_s=2.0, alpha_ip_rad=[0.1, None, -0.2],
+                          confidence=[0.9, 0.0, 1.0], source="twin-render", dropped=3)
+    wire = bus.encode(msg)
+    assert b"null" in wire and bus.decode(bus.CAMERA_ALPHA, wire) == msg
+    bus.check_camera_alpha(msg, 3)
+    # The twin's white-noise camera does not grade: no confidence at all is valid.
+    bus.check_camera_alpha(bus.CameraAlpha(seq=1, stamp_s=0.0, capture_stamp_s=0.0, alpha_ip_rad=[0.0] * 3), 3)
+    with pytest.raises(bus.BusDecodeError, match="version 1 is not supported"):
+        bus.decode(bus.CAMERA_ALPHA, wire.replace(b'"v":2', b'"v":1'))
+    bad = [
+        (dict(alpha_ip_rad=[0.1, 0.2]), "2 angles for 3 joints"),
+        (dict(alpha_ip_rad=[0.1, 4.0, 0.0]), "outside"),
+        (dict(confidence=[0.9, 0.5, 1.0]), "0 when missing"),
+        (dict(confidence=[1.5, 0.0, 1.0]), "confidence[0]"),
+        (dict(confidence=[1.0]), "1 confidences"),
+        (dict(dropped=-1), "dropped"),
+    ]
+    for change, reason in bad:
+        with pytest.raises(bus.BusDecodeError, match=re.escape(reason)):
+            bus.check_camera_alpha(msgspec_replace(msg, **change), 3)
+    schema = bus.json_schema(bus.CameraAlpha)
+    assert schema["properties"]["v"]["const"] == 2
+
+
+def msgspec_replace(msg, **changes):
+    import msgspec
+
+    return msgspec.structs.replace(msg, **changes)

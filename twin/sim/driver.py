@@ -105,7 +105,8 @@ class TwinDriver(Driver):
         for capture, alpha_ip in tick.frames:
             self._seq["camera"] += 1
             extra.append((bus.CAMERA_ALPHA, bus.CameraAlpha(seq=self._seq["camera"], stamp_s=tick.t_s,
-                                                            alpha_ip_rad=alpha_ip.tolist(), capture_stamp_s=capture)))
+                                                            alpha_ip_rad=alpha_ip.tolist(), capture_stamp_s=capture,
+                                                            source="twin-noise")))
         self._seq["truth"] += 1
         extra.append((bus.TWIN_TRUTH, bus.Truth(
             seq=self._seq["truth"], stamp_s=tick.t_s, alpha_rad=tick.alpha.tolist(),
