@@ -18,18 +18,28 @@ What is recorded
 Crash safety
     The recorder closes the open chunk and fsyncs at least every ``flush_period_s`` (1 s), so a
     killed recorder loses at most that much. :func:`recover` rewrites such a file as a valid,
-    indexed one with outcome ``interrupted``.
+    indexed one with outcome ``interrupted``. A writer holds an exclusive ``flock`` on its file
+    for as long as it writes, so :func:`writer_alive` tells a live recording (never to be
+    "recovered") from a dead one; the kernel drops the lock when the writer dies.
+
+Storage faults
+    A write that fails (ENOSPC, EROFS, EIO) ends the recording: the writer thread stops, calls
+    ``on_error`` (the campaign runner stops the campaign) and :meth:`CampaignRecorder.stop` raises
+    :class:`ArchiveError` naming the fault (:func:`storage_reason`). Small files next to the
+    archives (indexes, records) are written with :func:`atomic_write`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import errno
+import fcntl
 import os
 import queue
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -91,6 +101,46 @@ def iso_time(time_ns: int | None = None) -> str:
     return dt.datetime.fromtimestamp(t / 1e9, tz=dt.timezone.utc).isoformat(timespec="microseconds")
 
 
+def storage_reason(exc: BaseException) -> str:
+    """One line for a storage fault: ``No space left on device (ENOSPC)``; other errors as repr."""
+    if isinstance(exc, OSError) and exc.errno in errno.errorcode:
+        return f"{exc.strerror or os.strerror(exc.errno)} ({errno.errorcode[exc.errno]})"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
+    """Replace ``path`` by ``data`` so that a crash or a full disk leaves the old or the new
+    content, never a mix: write a temporary file beside it, fsync, rename, fsync the directory.
+    Raises the ``OSError`` (the old file is intact and no temporary file remains)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    _fsync_dir(path.parent)
+
+
+def writer_alive(path: str | os.PathLike[str]) -> bool:
+    """Whether a live process (this one included) is writing ``path`` (it holds the writer's flock)."""
+    try:
+        with open(path, "rb") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    except FileNotFoundError:
+        return False
+    return False
+
+
 def _check_metadata(path: Path, metadata: Mapping[str, str]) -> dict[str, str]:
     bad = {k: v for k, v in metadata.items() if not isinstance(k, str) or not isinstance(v, str)}
     if bad:
@@ -106,7 +156,9 @@ class _ArchiveWriter:
         try:
             self._file: BinaryIO = open(path, "xb")  # never overwrite a campaign
         except OSError as exc:
-            raise ArchiveError(path, f"cannot create the file ({exc.strerror or exc})") from None
+            raise ArchiveError(path, f"cannot create the file ({storage_reason(exc)})") from None
+        # Held until the file is closed (or the process dies): tells recovery the writer is alive.
+        fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self.writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSION)
         self.writer.start(profile=PROFILE, library=f"xneck/{software_version()}")
         self._channels: dict[str, int] = {}
@@ -136,6 +188,7 @@ class _ArchiveWriter:
 
     def flush(self, fsync: bool = True) -> None:
         self.writer.flush()
+        self._file.flush()  # out of Python's buffer, so that fsync covers it and a full disk shows now
         if fsync:
             os.fsync(self._file.fileno())
 
@@ -148,7 +201,8 @@ class _ArchiveWriter:
             self._file.close()
 
     def abandon(self) -> None:
-        self._file.close()
+        with contextlib.suppress(OSError):  # closing flushes the buffer, which fails again on a full disk
+            self._file.close()
 
 
 @dataclass(frozen=True)
@@ -182,6 +236,7 @@ class CampaignRecorder:
         queue_size: int = 20_000,
         flush_period_s: float = 1.0,
         chunk_size: int = CHUNK_SIZE,
+        on_error: Callable[[BaseException], None] | None = None,
     ) -> None:
         self.path = Path(path)
         self._metadata = _check_metadata(self.path, metadata)
@@ -195,10 +250,15 @@ class CampaignRecorder:
         self._lock = threading.Lock()
         self._stopped = False
         self._error: BaseException | None = None
+        self._on_error = on_error
 
         self._out = _ArchiveWriter(self.path, chunk_size)
-        self._out.writer.add_metadata(CAMPAIGN_START, self._metadata)
-        self._out.flush()
+        try:
+            self._out.writer.add_metadata(CAMPAIGN_START, self._metadata)
+            self._out.flush()
+        except OSError as exc:
+            self._out.abandon()
+            raise ArchiveError(self.path, f"recording failed: {storage_reason(exc)}") from exc
         self._thread = threading.Thread(target=self._run, name=f"recorder:{self.path.name}", daemon=True)
         self._thread.start()
         self._subs = [session.declare_subscriber(k, self._on_sample) for k in keys]
@@ -247,6 +307,9 @@ class CampaignRecorder:
                     last_flush = time.monotonic()
         except BaseException as exc:  # noqa: BLE001 - reported by stop(), not lost in a thread
             self._error = exc
+            if self._on_error is not None:
+                with contextlib.suppress(Exception):
+                    self._on_error(exc)
 
     @property
     def stats(self) -> RecorderStats:
@@ -281,18 +344,23 @@ class CampaignRecorder:
             raise ArchiveError(self.path, f"the writer thread did not stop within {timeout_s} s")
         if self._error is not None:
             self._out.abandon()
-            raise ArchiveError(self.path, f"recording failed: {self._error!r}") from self._error
+            raise ArchiveError(self.path, f"recording failed: {storage_reason(self._error)}") from self._error
         final = dict(self._metadata)
         final.update(_check_metadata(self.path, extra_metadata or {}))
         final["end_time"] = iso_time()
         final["outcome"] = outcome
         stats = self.stats
-        self._out.writer.add_metadata(CAMPAIGN, final)
-        self._out.writer.add_metadata(RECORDER, {
-            "received": str(stats.received), "recorded": str(stats.recorded), "dropped": str(stats.dropped),
-            "rejected": msgspec.json.encode(stats.rejected).decode(), "last_reject_reason": stats.last_reject_reason,
-        })
-        self._out.finish()
+        try:
+            self._out.writer.add_metadata(CAMPAIGN, final)
+            self._out.writer.add_metadata(RECORDER, {
+                "received": str(stats.received), "recorded": str(stats.recorded), "dropped": str(stats.dropped),
+                "rejected": msgspec.json.encode(stats.rejected).decode(),
+                "last_reject_reason": stats.last_reject_reason,
+            })
+            self._out.finish()
+        except OSError as exc:  # the file stays as it is: recover() salvages its flushed chunks
+            self._out.abandon()
+            raise ArchiveError(self.path, f"finishing failed: {storage_reason(exc)}") from exc
         return self.path
 
     def __enter__(self) -> CampaignRecorder:
@@ -614,6 +682,7 @@ def _fsync_dir(directory: Path) -> None:
 
 __all__ = [
     "CAMPAIGN", "CAMPAIGN_KEYS", "CAMPAIGN_START", "OUTCOMES", "RECORDER", "RECOVERY",
-    "ArchiveError", "Campaign", "CampaignRecorder", "RecorderStats", "RecoveryReport",
-    "is_complete", "iso_time", "read_campaign", "recover", "software_version", "write_campaign",
+    "ArchiveError", "Campaign", "CampaignRecorder", "RecorderStats", "RecoveryReport", "atomic_write",
+    "is_complete", "iso_time", "read_campaign", "recover", "software_version", "storage_reason", "write_campaign",
+    "writer_alive",
 ]

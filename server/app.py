@@ -3,8 +3,14 @@
 Lifespan (start-up, in order): one Zenoh session listening on the hub endpoint (campaign
 processes connect to it; ``settings.connect`` reaches a robot's bridge), liveliness presence, the
 live fan-out and its broadcaster task, the viser 3D view (its own thread and port), the campaign
-manager — which first recovers archives a crash left unfinished. Shutdown reverses it; the
-session is closed last so no Zenoh callback outlives its objects.
+manager — which first recovers archives a crash left unfinished (per-file errors are logged and
+shown on the records, they never stop start-up). Shutdown reverses it; the session is closed
+last so no Zenoh callback outlives its objects.
+
+Before all that, :func:`create_app` takes the data directory (:class:`server.datadir.DataDirLock`:
+one console per directory) and raises :class:`server.datadir.DataDirError` — one line, which
+``xneck server`` prints — when it cannot. :class:`server.guard.ConsoleGuard` wraps the app: Host,
+Origin, token and body limits are checked before any route reads anything.
 """
 
 from __future__ import annotations
@@ -23,10 +29,12 @@ from fastapi.staticfiles import StaticFiles
 
 from bridge.session import free_tcp_port, open_session
 from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
-from bridge.archive import software_version
-from server.campaigns import CampaignManager
+from bridge.archive import software_version, storage_reason
+from server.campaigns import CampaignManager, StorageError
+from server.datadir import DataDirError, DataDirLock
+from server.guard import ConsoleGuard, document_responses
 from server.live import Broadcaster, LiveBus, bridge_estop
-from server.paramsets import ParameterStore
+from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.settings import Settings, resolve_token
 from server.workspace_maps import WorkspaceCache
@@ -46,10 +54,19 @@ def concrete_hub(endpoint: str) -> str:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
+    """The console on ``settings.data_dir``, which it owns from now until its lifespan ends.
+    Raises :class:`DataDirError` (one line) if the directory is another server's or unusable."""
     settings = settings or Settings()
     data_dir = Path(settings.data_dir)
-    data_dir.mkdir(parents=True, exist_ok=True)
-    token, generated = resolve_token(settings)
+    lock = DataDirLock(data_dir)
+    try:
+        token, generated = resolve_token(settings)
+        params = ParameterStore(data_dir)
+        workspace = WorkspaceCache(data_dir / "workspace", grid_3x=settings.workspace_grid)
+        (data_dir / "campaigns").mkdir(exist_ok=True)
+    except OSError as exc:
+        lock.release()
+        raise DataDirError(f"cannot use the data directory {data_dir}: {storage_reason(exc)}") from None
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -73,10 +90,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz)
             state.campaigns = CampaignManager(data_dir, session, state.hub,
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
+                                              min_free_bytes=int(settings.min_free_mb * 1e6),
                                               bridge_estop=lambda: bridge_estop(state.live.values))
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))
+            for name, reason in state.campaigns.recovery_errors.items():
+                log.error("recovery left %s as it is: %s", name, reason)
             yield
         finally:
             for task in tasks:
@@ -92,6 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 if obj is not None:
                     obj.close()
             session.close()
+            lock.release()
 
     app = FastAPI(
         title="xneck experiment console",
@@ -104,8 +125,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.token = token
     app.state.token_generated = generated
-    app.state.params = ParameterStore(data_dir)
-    app.state.workspace = WorkspaceCache(data_dir / "workspace", grid_3x=settings.workspace_grid)
+    app.state.params = params
+    app.state.workspace = workspace
+    app.state.data_dir_lock = lock
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -114,9 +136,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   for e in exc.errors()]
         return JSONResponse(status_code=422, content={"detail": detail})
 
+    @app.exception_handler(StorageError)
+    async def _storage(request: Request, exc: StorageError) -> JSONResponse:
+        return JSONResponse(status_code=507, content={"detail": str(exc)})
+
+    @app.exception_handler(OSError)
+    async def _storage_fault(request: Request, exc: OSError) -> JSONResponse:
+        # A full, read-only or failing disk under any route: the client gets the reason, not a 500.
+        log.error("%s %s: storage fault: %s", request.method, request.url.path, storage_reason(exc))
+        return JSONResponse(status_code=507, content={"detail": f"storage fault: {storage_reason(exc)}"})
+
     for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
                    routes_workspace.router):
+        document_responses(router.routes)
         app.include_router(router)
     if WEB_DIR.is_dir():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
+    app.add_middleware(ConsoleGuard, bind_host=settings.host, token=lambda: app.state.token,
+                       max_body_bytes=MAX_UPLOAD_BYTES, allowed_hosts=settings.allowed_hosts,
+                       allowed_origins=settings.allowed_origins)
     return app

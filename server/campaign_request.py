@@ -4,12 +4,21 @@ Structural errors are pydantic's (422 naming the field). The semantic ones raise
 (:class:`RequestError`) use the same shape, ``{"loc": ["body", <field>...], "msg", "type"}``,
 so a client handles one kind of 422. A trajectory is validated exactly as the controller does
 (joint limits, speed, acceleration, forces on the nominal path) before anything moves.
+
+A request is honoured or refused, never silently changed (issue 14, finding 6). Omitted fields take
+the documented defaults; a given one that this console cannot honour is a 422 naming it. With a
+controller service on the bus (``xneck up``) the stack's bridge is what campaigns drive: its target
+is the server's ``mode``, a twin bridge runs in real time with the truth and seed it was started
+with (``--twin-truth``/``--twin-seed``, passed by ``xneck up``). The robot runs in real time and
+has no truth or seed to choose. What was resolved here is what the record and the MCAP say.
 """
 
 from __future__ import annotations
 
 import math
 from typing import Any, Literal
+
+import msgspec
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -57,18 +66,24 @@ class CampaignCreate(BaseModel):
     parameter_set: str | None = Field(None, description="Parameter set name (default: the active one).")
     target: Literal["twin", "robot"] | None = Field(None, description="Default: the server's mode.")
     pace: Literal["lockstep", "realtime"] | None = Field(None, description="Twin pacing (default: the server's).")
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the twin's sensor noise.")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1, description="Seed of the twin's sensor noise (default 0; "
+                             "under `xneck up` the stack twin's seed, which cannot be changed per campaign).")
     truth: Literal["model", "robot"] | None = Field(
         None, description="What a twin started for the campaign simulates (twin/sim/truth.py; default: robot for "
-        "identification, model for control). The `xneck up` stack's twin keeps the truth it was started with.")
+        "identification, model for control). Under `xneck up` the stack's twin keeps the truth it was started with: "
+        "another one is refused.")
 
 
 class PreparedCampaign(BaseModel):
+    """A request resolved: every choice explicit, as the record and the MCAP metadata state it."""
+
     model_config = ConfigDict(arbitrary_types_allowed=True)
     spec: Any
     params: Any
     parameter_set: str
-    pace: str
+    pace: Literal["lockstep", "realtime"]
+    target: Literal["twin", "robot"]
+    truth: Literal["model", "robot", ""]
 
 
 def check_trajectory(traj: Trajectory, params: Params, law: LawConfig) -> None:
@@ -77,8 +92,39 @@ def check_trajectory(traj: Trajectory, params: Params, law: LawConfig) -> None:
     validate(traj, limits, params.n_joints, nominal_force_check(params, law))
 
 
-def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings) -> PreparedCampaign:
-    """Resolve defaults and validate everything; raises :class:`RequestError`."""
+def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> tuple[str, str, str, int]:
+    """(target, pace, truth, seed) as given or defaulted, or :class:`RequestError` for one that
+    cannot be honoured (module docstring)."""
+    target = req.target or settings.mode
+    if service and target != settings.mode:
+        raise RequestError(("target",), f"this console's stack drives the {settings.mode} (the bridge `xneck up` "
+                           f"started); a {target} campaign needs a stack started for it")
+    if target == "robot":
+        if req.pace == "lockstep":
+            raise RequestError(("pace",), "the robot runs in real time: lockstep is for the twin only")
+        for name in ("truth", "seed"):
+            if getattr(req, name) is not None:
+                raise RequestError((name,), f"{name} applies to the twin only; the robot is the real thing")
+        return target, "realtime", "", 0
+    default_truth = "robot" if req.kind == "identification" else "model"
+    if not service:
+        return target, req.pace or settings.pace, req.truth or default_truth, req.seed or 0
+    if req.pace == "lockstep":
+        raise RequestError(("pace",), "the `xneck up` stack's twin runs in real time (500 Hz); lockstep is only for "
+                           "campaigns that start their own twin (`xneck server` without a controller service)")
+    if req.truth is not None and req.truth != settings.twin_truth:
+        raise RequestError(("truth",), f"the stack's twin simulates the {settings.twin_truth} truth (`xneck up "
+                           f"--truth`); it cannot change per campaign")
+    if req.seed is not None and req.seed != settings.twin_seed:
+        raise RequestError(("seed",), f"the stack's twin runs with seed {settings.twin_seed} (`xneck up --seed`); it "
+                           f"cannot change per campaign")
+    return target, "realtime", settings.twin_truth, settings.twin_seed
+
+
+def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, service: bool = False) -> PreparedCampaign:
+    """Resolve defaults and validate everything; raises :class:`RequestError`. ``service``: a
+    controller service is on the bus (campaigns are requests to it, driving the stack's bridge)."""
+    target, pace, truth, seed = _resolve_target(req, settings, service)
     if req.trajectory is not None and req.waypoints is not None:
         raise RequestError(("waypoints",), "give either trajectory (a built-in name) or waypoints, not both")
     name = req.parameter_set or store.active()
@@ -90,6 +136,8 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings) -> P
             from None
     except ParameterError as exc:
         raise RequestError(("parameter_set",), str(exc)) from None
+    # One name for the set everywhere: the console's (REST, record, MCAP metadata, TOML sent on).
+    params = msgspec.structs.replace(params, name=name)
     law = LawConfig(law=req.law if req.law is not None else (1 if req.kind == "identification" else 2),
                     no_pulleys=req.no_pulleys)
     if req.waypoints is not None:
@@ -109,12 +157,10 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings) -> P
         check_trajectory(traj, params, law)
     except TrajectoryError as exc:
         raise RequestError(loc, f"trajectory rejected: {exc}") from None
-    target = req.target or settings.mode
-    pace = req.pace or settings.pace
     spec = CampaignSpec(
-        kind=req.kind, law=law, trajectory=traj, twin=target == "twin", seed=req.seed,
+        kind=req.kind, law=law, trajectory=traj, twin=target == "twin", seed=seed,
         timeout_s=settings.campaign_timeout_s, params_file=params_file,
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
-        truth=req.truth or ("robot" if req.kind == "identification" else "model"),
+        truth=truth or "model", service=service,
     )
-    return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace)
+    return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target, truth=truth)

@@ -141,7 +141,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         "campaign_id": campaign_id, "kind": spec.kind, "law": spec.law.name,
         "trajectory": spec.trajectory.to_json(), "parameter_set": params.name,
         "target": "twin" if spec.twin else "robot", "seed": str(spec.seed),
-        "twin_truth": spec.truth if spec.twin and not spec.service else "",
+        "pace": "realtime" if spec.realtime or not spec.twin else "lockstep",
+        "twin_truth": spec.truth if spec.twin else "",  # a service's twin: the truth the console was told
         "parameters_toml": params.to_toml(),
     }
     events: queue.Queue[bus.CampaignEvent] = queue.Queue()
@@ -163,7 +164,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     monitor = CampaignMonitor(session)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}
-    recorder = CampaignRecorder(session, path, metadata)
+    recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set())  # a storage fault ends it
     try:
         def spawn(name: str, args: list[str]) -> None:
             logs[name] = workdir / f"{name}.log"

@@ -9,14 +9,23 @@ After a campaign: a Foxglove scene channel is added to the archive, the metrics 
 identification campaign the identification tables) are computed, and the JSON record is final.
 
 At start-up :meth:`CampaignManager.recover_all` repairs what a crash left: an unfinished MCAP is
-recovered (:func:`bridge.archive.recover`) and its record marked ``interrupted``.
+recovered (:func:`bridge.archive.recover`) and its record marked ``interrupted``. It never touches
+an archive whose writer is alive (:func:`bridge.archive.writer_alive`), and a file it cannot
+repair (full or read-only disk, I/O error) is reported in :attr:`CampaignManager.recovery_errors`
+and on the record, never an exception: start-up goes on.
+
+Storage faults are campaign outcomes, not server states: a campaign starts only where it can be
+recorded (:class:`StorageError`, a 507), one that hits ENOSPC/EROFS/EIO ends ``failed`` with the
+reason, and the robot is free again whatever happened. A small reserve file
+(``campaigns/.reserve``) is given up on such a fault so that the final record can still be
+written on a full disk.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -27,14 +36,19 @@ import zenoh
 from bridge import bus
 from bridge.session import publisher
 from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
-from bridge.archive import ArchiveError, is_complete, iso_time, read_campaign, recover
+from bridge.archive import (ArchiveError, is_complete, iso_time, read_campaign, recover, storage_reason,
+                            writer_alive)
 from server.campaign_request import PreparedCampaign
+from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.records import CampaignIndex, CampaignRecord
 from server.replay import Replay
 from server.results import identify_archive
 
 log = logging.getLogger("xneck.campaigns")
+
+RESERVE_BYTES = 512 * 1024  # given up on a storage fault, room for the final records
+DEFAULT_MIN_FREE_BYTES = 64_000_000
 
 
 class Busy(Exception):
@@ -58,10 +72,15 @@ class NotFound(KeyError):
     pass
 
 
+class StorageError(Exception):
+    """A campaign cannot be recorded (no space, read-only, I/O error); the message has the figures."""
+
+
 class CampaignManager:
     def __init__(self, data_dir: Path, session: zenoh.Session, hub: str,
                  on_finish: Callable[[CampaignRecord], None] | None = None,
                  service_alive: Callable[[], bool] = lambda: False,
+                 min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
                  bridge_estop: Callable[[], dict[str, object] | None] = lambda: None) -> None:
         self.index = CampaignIndex(Path(data_dir) / "campaigns")
         self.session = session
@@ -69,7 +88,9 @@ class CampaignManager:
         self._on_finish = on_finish
         # With a controller service on the bus (`xneck up`) campaigns are requests to it, driving the
         # bridge that is already there; otherwise each campaign starts its own processes.
-        self._service_alive = service_alive
+        self.service_alive = service_alive
+        self.min_free_bytes = min_free_bytes
+        self.recovery_errors: dict[str, str] = {}  # file name -> why it could not be repaired
         self._lock = threading.Lock()
         self._records: dict[str, CampaignRecord] = {}
         self._running: str | None = None
@@ -84,51 +105,109 @@ class CampaignManager:
 
     # -- start-up ---------------------------------------------------------------------------
     def recover_all(self) -> list[str]:
-        """Recover unfinished archives and records left by a crash; returns the ids marked interrupted."""
+        """Recover unfinished archives and records left by a crash; returns the ids marked
+        interrupted. Per-file problems go to :attr:`recovery_errors` (and the log), never up."""
         interrupted = []
-        for rec in self.index.load_all():
+        for rec in self.index.load_all(self.recovery_errors):
             self._records[rec.id] = rec
-        for mcap in sorted(self.index.dir.glob("*.mcap")):
-            cid = mcap.stem
-            rec = self._records.get(cid)
+        try:
+            archives = sorted(self.index.dir.glob("*.mcap"))
+        except OSError as exc:
+            self.recovery_errors[str(self.index.dir)] = storage_reason(exc)
+            archives = []
+        for mcap in archives:
             try:
-                complete = is_complete(mcap)
-            except ArchiveError as exc:
-                log.warning("skipping %s: %s", mcap, exc)
-                continue
-            if complete and rec is not None and rec.status != "running":
-                continue
-            try:
-                report = recover(mcap)
-            except ArchiveError as exc:
-                log.error("cannot recover %s: %s", mcap, exc)
-                continue
-            info = {}
-            with contextlib.suppress(ArchiveError):
-                info = read_campaign(mcap).info
-            if rec is None:
-                rec = CampaignRecord(
-                    id=cid, kind=info.get("kind", "control") if info.get("kind") in ("control", "identification")
-                    else "control", law=info.get("law", ""), trajectory="", parameter_set=info.get("parameter_set", ""),
-                    target=info.get("target", "twin") if info.get("target") in ("twin", "robot") else "twin",
-                    created_at=info.get("start_time", ""))
-            rec.status = "interrupted"
-            rec.ended_at = info.get("end_time", iso_time())
-            rec.message = f"recovered after a crash ({report.status}: {report.messages} messages kept" + \
-                          (f"; {report.reason}" if report.reason else "") + ")"
-            with contextlib.suppress(Exception):
-                rec.metrics = metrics_from_archive(mcap)
-            rec.mcap_bytes = mcap.stat().st_size
-            self._records[cid] = rec
-            self.index.save(rec)
-            interrupted.append(cid)
+                if self._recover_one(mcap):
+                    interrupted.append(mcap.stem)
+            except Exception as exc:  # noqa: BLE001 - one bad file must not stop the console
+                self._recovery_failed(mcap, exc)
         # A record still "running" without its MCAP: the crash came before the first byte.
         for rec in self._records.values():
-            if rec.status == "running":
-                rec.status, rec.message = "interrupted", "the server stopped before anything was recorded"
-                self.index.save(rec)
+            if rec.status == "running" and not writer_alive(self.index.mcap(rec.id)):
+                rec.status = "interrupted"
+                rec.message = rec.message or "the server stopped before anything was recorded"
+                self._save_quietly(rec)
                 interrupted.append(rec.id)
+        self.release_reserve(keep=True)
         return interrupted
+
+    def _recover_one(self, mcap: Path) -> bool:
+        cid = mcap.stem
+        rec = self._records.get(cid)
+        if writer_alive(mcap):  # another process records it now: not a crash's leftover
+            log.warning("not recovering %s: its writer is alive", mcap)
+            return False
+        try:
+            complete = is_complete(mcap)
+        except ArchiveError as exc:
+            log.warning("skipping %s: %s", mcap, exc)
+            return False
+        if complete and rec is not None and rec.status != "running":
+            return False
+        report = recover(mcap)
+        info = {}
+        with contextlib.suppress(ArchiveError):
+            info = read_campaign(mcap).info
+        rec = rec or self._record_from_archive(cid, info)
+        note = f"recovered after a crash ({report.status}: {report.messages} messages kept" + \
+               (f"; {report.reason}" if report.reason else "") + ")"
+        if rec.status == "running":
+            rec.status = "interrupted"
+            rec.ended_at = info.get("end_time", iso_time())
+            rec.message = note
+        else:  # e.g. failed on a full disk: keep the outcome, say the archive was repaired since
+            rec.message = f"{rec.message}; archive {note}"[:2000]
+        with contextlib.suppress(Exception):
+            rec.metrics = metrics_from_archive(mcap)
+        rec.mcap_bytes = mcap.stat().st_size
+        self._records[cid] = rec
+        self._save_quietly(rec)
+        return rec.status == "interrupted"
+
+    @staticmethod
+    def _record_from_archive(cid: str, info: dict[str, str]) -> CampaignRecord:
+        return CampaignRecord(
+            id=cid, kind=info.get("kind") if info.get("kind") in ("control", "identification") else "control",
+            law=info.get("law", ""), trajectory="", parameter_set=info.get("parameter_set", ""),
+            target=info.get("target") if info.get("target") in ("twin", "robot") else "twin",
+            created_at=info.get("start_time", ""), status="running")
+
+    def _recovery_failed(self, mcap: Path, exc: Exception) -> None:
+        reason = exc.reason if isinstance(exc, ArchiveError) else storage_reason(exc)
+        log.error("cannot recover %s: %s", mcap, reason)
+        self.recovery_errors[mcap.name] = reason
+        rec = self._records.get(mcap.stem)
+        if rec is None:
+            rec = self._records[mcap.stem] = self._record_from_archive(mcap.stem, {})
+        if rec.status == "running":
+            rec.status = "interrupted"
+            rec.message = f"interrupted by a crash; the archive could not be repaired yet ({reason}): it is kept " \
+                          f"as it is and repaired at the next start"
+            self._save_quietly(rec)
+
+    def _save_quietly(self, rec: CampaignRecord) -> bool:
+        """Save a record; a storage fault is logged (the record in memory stays right)."""
+        try:
+            self.index.save(rec)
+            return True
+        except OSError as exc:
+            log.error("cannot save the record of %s: %s", rec.id, storage_reason(exc))
+            return False
+
+    # -- storage reserve --------------------------------------------------------------------
+    @property
+    def _reserve(self) -> Path:
+        return self.index.dir / ".reserve"
+
+    def release_reserve(self, keep: bool = False) -> None:
+        """``keep=False``: give the reserve up (a storage fault); ``keep=True``: (re)create it if
+        there is room (after start-up and after each campaign)."""
+        with contextlib.suppress(OSError):
+            if not keep:
+                self._reserve.unlink(missing_ok=True)
+            elif not self._reserve.exists() and not storage_problem(self.index.dir, self.min_free_bytes):
+                with open(self._reserve, "wb") as f:
+                    os.posix_fallocate(f.fileno(), 0, RESERVE_BYTES)
 
     # -- queries ----------------------------------------------------------------------------
     @property
@@ -156,44 +235,69 @@ class CampaignManager:
         return self.index.mcap(campaign_id)
 
     # -- life cycle -------------------------------------------------------------------------
+    def storage_problem(self) -> str:
+        """Why no campaign can be recorded now ('' if one can); see :mod:`server.datadir`."""
+        return storage_problem(self.index.dir, self.min_free_bytes)
+
     def start(self, prepared: PreparedCampaign) -> CampaignRecord:
-        if self._service_alive():
-            prepared = prepared.model_copy(
-                update={"spec": dataclasses.replace(prepared.spec, service=True, twin=False), "pace": "realtime"})
+        """Start a campaign as prepared (nothing is changed here: the request was resolved and
+        checked by :func:`server.campaign_request.prepare`). Raises :class:`Busy` or
+        :class:`StorageError`."""
         spec = prepared.spec
         with self._lock:
             if self._running is not None:
                 raise Busy(self._running)
             if self._replay is not None and self._replay.running:
                 raise Busy(self._replay.campaign_id, "replay of")
-            disabled = self._drives_disabled(spec.twin)
+            disabled = self._drives_disabled(spec.twin and not spec.service)  # a service drives the bus bridge
             if disabled:
                 raise DrivesDisabled(disabled)
+            problem = self.storage_problem()
+            if problem:
+                raise StorageError(problem)
             cid = new_campaign_id(spec.kind)
             rec = CampaignRecord(
                 id=cid, kind=spec.kind, law=spec.law.name, trajectory=spec.trajectory.name,
                 trajectory_spec=spec.trajectory.to_dict(), duration_s=spec.trajectory.duration_s,
-                parameter_set=prepared.parameter_set, target="twin" if spec.twin else "robot",
-                pace=prepared.pace, seed=spec.seed, created_at=iso_time())
+                parameter_set=prepared.parameter_set, target=prepared.target, pace=prepared.pace,
+                seed=spec.seed, truth=prepared.truth, created_at=iso_time())
+            try:
+                self.index.save(rec)  # before the robot is taken: a refused start leaves nothing behind
+            except OSError as exc:
+                raise StorageError(f"cannot write the campaign record: {storage_reason(exc)}") from None
             self._records[cid] = rec
             self._running = cid
             self._stop = threading.Event()
-            self.index.save(rec)
             self._worker = threading.Thread(target=self._run, args=(cid, prepared), name=f"campaign:{cid}",
                                             daemon=True)
             self._worker.start()
         return rec.model_copy()
 
     def _update(self, cid: str, **fields: object) -> CampaignRecord:
+        """Change a record in memory and on disk; never raises. On a storage fault the reserve is
+        given up and the save tried once more; if that fails too the record in memory says so."""
         with self._lock:
             rec = self._records[cid]
             for k, v in fields.items():
                 setattr(rec, k, v)
             snapshot = rec.model_copy()
-        self.index.save(snapshot)
+        if not self._save_quietly(snapshot):
+            self.release_reserve()
+            if not self._save_quietly(snapshot):
+                with self._lock:
+                    rec.message = f"{rec.message} (this record could not be saved: storage fault)"[:2000]
         return snapshot
 
     def _run(self, cid: str, prepared: PreparedCampaign) -> None:
+        try:
+            self._record_campaign(cid, prepared)
+        finally:  # whatever happened, the robot is free again
+            with self._lock:
+                if self._running == cid:
+                    self._running = None
+            self.release_reserve(keep=True)
+
+    def _record_campaign(self, cid: str, prepared: PreparedCampaign) -> None:
         path = self.index.mcap(cid)
         spec = prepared.spec
 
@@ -211,11 +315,16 @@ class CampaignManager:
                                          "metrics": result.metrics or None, "quality": result.quality or None}
             if status in ("finished", "degraded"):
                 fields["progress"] = 1.0
+        except (ArchiveError, OSError) as exc:  # a storage fault: an outcome, not a server state
+            reason = exc.reason if isinstance(exc, ArchiveError) else storage_reason(exc)
+            log.error("campaign %s failed: storage fault: %s", cid, reason)
+            self.release_reserve()
+            fields = {"status": "failed", "message": f"storage fault while recording {path.name}: {reason}"}
         except Exception as exc:  # noqa: BLE001 - the record says what went wrong
             log.exception("campaign %s failed", cid)
             fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
         try:
-            if path.exists():
+            if path.exists() and is_complete(path):
                 fields["scene_messages"] = add_scene_channel(path, prepared.params)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)

@@ -8,17 +8,31 @@ cannot be replaced.
 
 from __future__ import annotations
 
-import os
 import re
 import threading
 import tomllib
 from pathlib import Path
 
+from bridge.archive import atomic_write
 from twin.model.params import ParameterError, Params, load_params, params_from_dict
 
 BUILTIN = "prototype_3x"
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 MAX_UPLOAD_BYTES = 256 * 1024
+MAX_DEPTH = 16  # tables and arrays in a parameter file nest 3 deep; deeper is not a parameter file
+
+
+def _depth(value: object) -> int:
+    """Nesting depth of parsed TOML, without recursion."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        v, d = stack.pop()
+        deepest = max(deepest, d)
+        if d > MAX_DEPTH:
+            break
+        children = v.values() if isinstance(v, dict) else v if isinstance(v, list) else ()
+        stack.extend((c, d + 1) for c in children if isinstance(c, (dict, list)))
+    return deepest
 
 
 class UnknownParameterSet(KeyError):
@@ -73,6 +87,11 @@ class ParameterStore:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ParameterError(f"{source}: not a valid TOML file ({exc})") from None
+        except RecursionError:  # tomllib recurses per nesting level: a hostile file, not a traceback
+            raise ParameterError(f"{source}: arrays or tables nested too deeply (a parameter file nests at most "
+                                 f"{MAX_DEPTH} levels)") from None
+        if _depth(data) > MAX_DEPTH:
+            raise ParameterError(f"{source}: arrays or tables nested too deeply (at most {MAX_DEPTH} levels)")
         return params_from_dict(data, source)
 
     def save(self, name: str, text: str | bytes) -> Params:
@@ -82,9 +101,7 @@ class ParameterStore:
         params = self.validate(text, f"{name}.toml")
         raw = text if isinstance(text, bytes) else text.encode()
         with self._lock:
-            tmp = self.dir / f".{name}.toml.tmp"
-            tmp.write_bytes(raw)
-            os.replace(tmp, self.dir / f"{name}.toml")
+            atomic_write(self.dir / f"{name}.toml", raw)
         return params
 
     def delete(self, name: str) -> None:
@@ -107,4 +124,4 @@ class ParameterStore:
     def set_active(self, name: str) -> None:
         self.path(name)  # raises if unknown
         with self._lock:
-            (self.dir / "active").write_text(name + "\n")
+            atomic_write(self.dir / "active", (name + "\n").encode())

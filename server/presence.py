@@ -20,7 +20,7 @@ class Presence:
 
     def __init__(self, session: zenoh.Session) -> None:
         self._lock = threading.Lock()
-        self._alive: dict[str, tuple[str, str, float]] = {}  # key -> (kind, instance, since wall s)
+        self._alive: dict[str, tuple[str, str, float]] = {}  # key -> (kind, instance, monotonic s when seen)
         self._sub = session.liveliness().declare_subscriber(bus.ALIVE_ALL, self._on_sample, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -31,15 +31,17 @@ class Presence:
             return
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.setdefault(key, (kind, instance, time.time()))
+                self._alive.setdefault(key, (kind, instance, time.monotonic()))
             else:
                 self._alive.pop(key, None)
 
     def processes(self) -> list[dict[str, object]]:
-        """``[{"kind", "instance", "since_s"}]`` sorted by kind then instance."""
+        """``[{"kind", "instance", "since_s"}]`` sorted by kind then instance; ``since_s`` is how
+        long (s) the console has seen the process alive (a duration, not a time of day)."""
+        now = time.monotonic()
         with self._lock:
             items = sorted(self._alive.values())
-        return [{"kind": k, "instance": i, "since_s": s} for k, i, s in items]
+        return [{"kind": k, "instance": i, "since_s": round(now - s, 3)} for k, i, s in items]
 
     def any_alive(self, kind: str) -> bool:
         with self._lock:

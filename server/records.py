@@ -2,17 +2,22 @@
 
 ``<data_dir>/campaigns/<id>.mcap`` is the data; ``<id>.json`` is what the console lists and
 filters without opening archives (kind, law, trajectory, status, progress, metrics). The JSON is
-rewritten atomically on every change, so a crash leaves the previous version.
+rewritten atomically (write, fsync, rename: :func:`bridge.archive.atomic_write`) on every change,
+so a crash or a full disk leaves the previous version.
 """
 
 from __future__ import annotations
 
-import os
+import logging
 import re
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, Field
+
+from bridge.archive import atomic_write, storage_reason
+
+log = logging.getLogger("xneck.campaigns")
 
 #: ``degraded``: finished below the real-time quality thresholds (server.quality; reasons in ``quality``);
 #: ``analysis_failed``: recorded, but its identification analysis failed (``identification_status``).
@@ -33,7 +38,9 @@ class CampaignRecord(BaseModel):
     parameter_set: str
     target: Literal["twin", "robot"]
     pace: Literal["lockstep", "realtime"] = "lockstep"
-    seed: int = 0
+    seed: int = Field(0, description="Seed of the twin's sensor noise (0 on the robot).")
+    truth: Literal["model", "robot", ""] = Field("", description="What the twin simulated (twin/sim/truth.py); "
+                                                 "empty on the robot.")
     status: CampaignStatus = "running"
     progress: float = Field(0.0, ge=0.0, le=1.0)
     message: str = ""
@@ -70,16 +77,20 @@ class CampaignIndex:
         return self.dir / f"{campaign_id}_figures"
 
     def save(self, record: CampaignRecord) -> None:
-        path = self.json(record.id)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(record.model_dump_json(indent=1))
-        os.replace(tmp, path)
+        """Raises ``OSError`` on a storage fault (the previous version stays)."""
+        atomic_write(self.json(record.id), record.model_dump_json(indent=1).encode())
 
-    def load_all(self) -> list[CampaignRecord]:
+    def load_all(self, errors: dict[str, str] | None = None) -> list[CampaignRecord]:
+        """Every readable record; a file that cannot be read is reported in ``errors`` (name ->
+        reason) and skipped, never an exception."""
         out = []
         for p in sorted(self.dir.glob("*.json")):
             try:
                 out.append(CampaignRecord.model_validate_json(p.read_text()))
             except ValueError:
                 continue  # a foreign or damaged file is not a campaign; leave it alone
+            except OSError as exc:
+                log.error("cannot read %s: %s", p, storage_reason(exc))
+                if errors is not None:
+                    errors[p.name] = storage_reason(exc)
         return out

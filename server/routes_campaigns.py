@@ -41,14 +41,19 @@ def _conflict(exc: Busy) -> JSONResponse:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
              dependencies=[Depends(require_token)],
              responses={409: {"description": "Another campaign is running (its id in running_campaign_id)"},
-                        422: {"description": "Invalid body; loc names the field"}})
+                        422: {"description": "Invalid body, or a choice this console cannot honour; loc names "
+                                             "the field"},
+                        507: {"description": "The archive cannot be written (free space with the figures, "
+                                             "read-only, I/O error)"}})
 async def create_campaign(body: CampaignCreate, request: Request) -> Any:
-    """Start a campaign. The trajectory is validated as the controller does before anything moves."""
+    """Start a campaign, exactly as asked (omitted fields: the documented defaults) or not at all.
+    The trajectory is validated as the controller does before anything moves."""
     manager = _manager(request)
     if manager.running_id is not None:  # cheap early answer; start() re-checks under its lock
         return _conflict(Busy(manager.running_id))
     try:
-        prepared = await run_in_threadpool(prepare, body, request.app.state.params, request.app.state.settings)
+        prepared = await run_in_threadpool(prepare, body, request.app.state.params, request.app.state.settings,
+                                           manager.service_alive())
     except RequestError as exc:
         return JSONResponse(status_code=422, content={"detail": exc.detail()})
     try:

@@ -81,7 +81,8 @@ async def upload_params(name: str, request: Request) -> Any:
     return {"name": name, "n_joints": params.n_joints, "n_cables": params.n_cables}
 
 
-@router.delete("/{name}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Depends(require_token)])
+@router.delete("/{name}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Depends(require_token)],
+               responses={409: {"description": "Built in, or the active set: choose another one first"}})
 def delete_params(name: str, request: Request) -> Response:
     try:
         _store(request).delete(name)

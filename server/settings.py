@@ -38,6 +38,17 @@ class Settings(BaseSettings):
     scene_rate_hz: float = Field(30.0, gt=0, le=200, description="Update rate of the viser scene (Hz).")
     campaign_timeout_s: float = Field(600.0, gt=0, description="Abort a campaign after this long (wall, s).")
     viser: bool = Field(True, description="Start the viser 3D view.")
+    twin_truth: Literal["model", "robot"] = Field("model", description="With a controller service on the bus "
+                                                  "(`xneck up`): what the stack's twin bridge simulates.")
+    twin_seed: int = Field(0, ge=0, le=2**31 - 1, description="With a controller service on the bus: the seed of "
+                           "the stack's twin bridge.")
+    min_free_mb: float = Field(64.0, ge=0, description="A campaign starts only with this much free space (MB) "
+                               "in the archive directory (else 507).")
+    allowed_hosts: list[str] = Field(default_factory=list, description="Host names the console answers to besides "
+                                     "its bind address and loopback (DNS-rebinding guard); with --host 0.0.0.0 and "
+                                     "this list empty, any.")
+    allowed_origins: list[str] = Field(default_factory=list, description="Web origins (scheme://host:port) allowed "
+                                       "to read live data besides the console's own.")
     workspace_grid: int = Field(31, ge=5, le=61, description="Points per α axis of the 3-X workspace maps "
                                 "(odd, over ±90°); the cost grows with its cube (31: ≈2 s on 2 cores).")
 

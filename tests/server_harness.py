@@ -26,10 +26,11 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @contextlib.contextmanager
 def running_server(data_dir: Path, **overrides) -> Iterator[tuple[str, object]]:
-    """A console in this process (uvicorn.Server in a thread); yields (base URL, app)."""
+    """A console in this process (uvicorn.Server in a thread); yields (base URL, app). uvicorn binds
+    127.0.0.1 even when ``host`` says otherwise: the settings' host only sets the console's policy."""
     port = free_tcp_port()
-    settings = Settings(host="127.0.0.1", port=port, data_dir=data_dir, token=TOKEN, pace="lockstep",
-                        campaign_timeout_s=120, **overrides)
+    settings = Settings(**{"host": "127.0.0.1", "port": port, "data_dir": data_dir, "token": TOKEN, "pace": "lockstep",
+                           "campaign_timeout_s": 120, **overrides})
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
                                            ws_ping_interval=None, timeout_graceful_shutdown=5))
@@ -73,3 +74,14 @@ def server_process(data_dir: Path) -> Iterator[tuple[str, subprocess.Popen]]:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(10)
         log.close()
+
+
+def start_campaign(client: httpx.Client, body: dict | None = None, progress: float = 0.0,
+                   timeout_s: float = 60) -> str:
+    """POST a campaign (a 201 is asserted), wait until its progress reaches ``progress``; its id."""
+    r = client.post("/api/campaigns", json=body if body is not None else {"kind": "control", "law": 2},
+                    headers=AUTH)
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    assert wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["progress"] >= progress, timeout_s, 0.2)
+    return cid

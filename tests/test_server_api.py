@@ -4,16 +4,20 @@ the next start recovers and marks interrupted."""
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
+import socket
 from pathlib import Path
 
 import httpx
 import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
 
 from bridge import bus
 from bridge.archive import is_complete, read_campaign
-from server_harness import AUTH, running_server, server_process, wait_until
+from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -123,10 +127,7 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
     data = tmp_path / "data"
     with server_process(data) as (base, proc):
         with httpx.Client(base_url=base, timeout=30) as c:
-            r = c.post("/api/campaigns", json={"kind": "control", "law": 2}, headers=AUTH)
-            assert r.status_code == 201, r.text
-            cid = r.json()["id"]
-            assert wait_until(lambda: c.get(f"/api/campaigns/{cid}").json()["progress"] >= 0.3, 60, 0.2)
+            cid = start_campaign(c, progress=0.3)
         os.killpg(proc.pid, signal.SIGKILL)  # the server, its recorder, the twin and the controller
         proc.wait(10)
     mcap = data / "campaigns" / f"{cid}.mcap"
@@ -157,3 +158,105 @@ def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
     truth = lambda **kw: prepare(CampaignCreate(**kw), store, settings).spec.truth  # noqa: E731
     assert truth(kind="identification") == "robot" and truth(kind="control") == "model"
     assert truth(kind="identification", truth="model") == "model" and truth(kind="control", truth="robot") == "robot"
+
+
+# -- issue 14: limits before reading, origin and host checks ------------------------------------------------------
+
+
+def _raw(base: str, head: str, body: bytes = b"", wait_s: float = 5.0) -> bytes:
+    """Send a request by hand (headers may promise more body than is sent) and return what the server
+    answers within ``wait_s``: an answer before the body is complete proves it was not read."""
+    host, port = base.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=wait_s) as s:
+        s.sendall(head.replace("\n", "\r\n").encode() + b"\r\n" + body)
+        try:
+            return s.recv(4096)
+        except TimeoutError:
+            return b""
+
+
+def test_deeply_nested_toml_and_json_are_a_422_with_the_reason_not_a_500(client, caplog) -> None:
+    nested_toml = b"a = " + b"[" * 5000 + b"]" * 5000 + b"\n"
+    with caplog.at_level(logging.ERROR):
+        r = client.put("/api/params/deep", content=nested_toml, headers=AUTH)
+        assert r.status_code == 422 and "nested" in r.json()["detail"][0]["msg"], r.text
+        deep_json = b'{"waypoints": {"waypoints_deg": ' + b"[" * 5000 + b"]" * 5000 + b', "durations_s": 1}}'
+        r = client.post("/api/campaigns", content=deep_json, headers={**AUTH, "Content-Type": "application/json"})
+        assert r.status_code == 422 and "nested" in r.json()["detail"][0]["msg"], r.text
+    assert not [rec for rec in caplog.records if rec.exc_info], "a traceback was logged"
+
+
+def test_bodies_are_refused_before_they_are_read(client) -> None:
+    base = str(client.base_url).rstrip("/")
+    host = base.removeprefix("http://")
+    # No token: 401 while 8 MB are still announced and unsent.
+    answer = _raw(base, f"POST /api/campaigns HTTP/1.1\nHost: {host}\nContent-Type: application/json\n"
+                        f"Content-Length: 8000000\n", b'{"kind": "control", "pad": "')
+    assert answer.startswith(b"HTTP/1.1 401"), answer[:200]
+    # With the token: 413 on the announced length, before reading it.
+    answer = _raw(base, f"PUT /api/params/big HTTP/1.1\nHost: {host}\nAuthorization: Bearer {TOKEN}\n"
+                        f"Content-Length: 100000000\n", b"a = 1\n")
+    assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+    # Chunked, no length: 413 once the limit is passed, the rest never read.
+    chunk = b"x" * 65536
+    body = b"".join(b"%x\r\n" % len(chunk) + chunk + b"\r\n" for _ in range(8))
+    answer = _raw(base, f"PUT /api/params/big HTTP/1.1\nHost: {host}\nAuthorization: Bearer {TOKEN}\n"
+                        f"Transfer-Encoding: chunked\n", body)
+    assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+    assert client.get("/api/params").json()["parameter_sets"] == ["prototype_3x"]
+
+
+def test_live_data_and_dashboard_refuse_foreign_origins_and_hosts(client) -> None:
+    base = str(client.base_url).rstrip("/")
+    ws_url = base.replace("http", "ws") + "/api/live"
+    with pytest.raises(InvalidStatus) as refused:
+        connect(ws_url, origin="http://evil.example", open_timeout=5)
+    assert refused.value.response.status_code == 403
+    with connect(ws_url, origin=base, open_timeout=5) as ws:  # the dashboard's own origin
+        ws.ping()
+    with connect(ws_url, open_timeout=5) as ws:  # no Origin: not a browser
+        ws.ping()
+    r = client.get("/api/live/sse", headers={"Origin": "http://evil.example"})
+    assert r.status_code == 403
+    # DNS rebinding: a page of evil.example whose name now resolves to 127.0.0.1.
+    r = client.get("/", headers={"Host": "evil.example:8000"})
+    assert r.status_code == 400 and "Host" in r.json()["detail"]
+    assert client.get("/api/system/health", headers={"Host": "localhost"}).status_code == 200
+
+
+def test_on_the_lab_network_live_data_needs_the_token_too(tmp_path) -> None:
+    with running_server(tmp_path / "d", viser=False, host="0.0.0.0") as (base, _app):
+        ws_url = base.replace("http", "ws") + "/api/live"
+        with pytest.raises(InvalidStatus) as refused:
+            connect(ws_url, open_timeout=5)
+        assert refused.value.response.status_code == 401
+        with connect(ws_url + f"?token={TOKEN}", open_timeout=5) as ws:
+            ws.ping()
+        with connect(ws_url, additional_headers=AUTH, open_timeout=5) as ws:
+            ws.ping()
+        assert httpx.get(base + "/api/live/sse", timeout=5).status_code == 401
+        assert httpx.get(base + "/api/system/health", headers={"Host": "lab-pc.example:8000"}).status_code == 200
+
+
+def test_process_ages_are_durations(client) -> None:
+    from bridge.session import open_session
+
+    hub = client.get("/api/system/health").json()["hub"]
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s:
+        token = s.liveliness().declare_token(bus.liveliness_key("bridge", "test"))
+        try:
+            assert wait_until(lambda: client.get("/api/system/processes").json()["processes"], 10, 0.1)
+            (p,) = client.get("/api/system/processes").json()["processes"]
+            assert p["kind"] == "bridge" and 0 <= p["since_s"] < 60, p
+        finally:
+            token.undeclare()
+
+
+def test_the_parameter_set_has_one_name_in_rest_and_mcap(tmp_path) -> None:
+    from server.campaign_request import CampaignCreate, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)
+    prepared = prepare(CampaignCreate(), store, settings)
+    assert prepared.parameter_set == prepared.params.name == "prototype_3x"

@@ -17,6 +17,15 @@ def server(
     hub: Optional[str] = typer.Option(None, "--hub", help="Zenoh endpoint to listen on (default a free loopback port)."),
     connect: Optional[list[str]] = typer.Option(None, "--connect", help="Zenoh endpoint to connect to (robot mode)."),
     viser_port: Optional[int] = typer.Option(None, "--viser-port", help="Port of the 3D view (default: free)."),
+    twin_truth: Optional[str] = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
+                                             "controller service is on the bus (xneck up passes it)."),
+    twin_seed: Optional[int] = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
+    min_free_mb: Optional[float] = typer.Option(None, "--min-free-mb", help="Free space a campaign needs (MB, "
+                                                "default 64)."),
+    allowed_host: Optional[list[str]] = typer.Option(None, "--allowed-host", help="Host name the console answers "
+                                                     "to besides its address and loopback (repeatable)."),
+    allowed_origin: Optional[list[str]] = typer.Option(None, "--allowed-origin", help="Web origin allowed to read "
+                                                       "live data besides the console's own (repeatable)."),
 ) -> None:
     """Run the experiment console; prints the dashboard URL and, at first start, the token."""
     import logging
@@ -25,10 +34,12 @@ def server(
     from pydantic import ValidationError
 
     from server.app import create_app
+    from server.datadir import DataDirError
     from server.settings import Settings
 
     given = {"host": host, "port": port, "data_dir": data_dir, "pace": pace, "mode": mode, "hub": hub,
-             "connect": connect, "viser_port": viser_port}
+             "connect": connect, "viser_port": viser_port, "twin_truth": twin_truth, "twin_seed": twin_seed,
+             "min_free_mb": min_free_mb, "allowed_hosts": allowed_host, "allowed_origins": allowed_origin}
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as exc:
@@ -36,7 +47,11 @@ def server(
             typer.secho(f"error: --{'-'.join(map(str, err['loc'])).replace('_', '-')}: {err['msg']}", err=True, fg="red")
         raise typer.Exit(2) from None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    app = create_app(settings)
+    try:
+        app = create_app(settings)
+    except DataDirError as exc:  # one line, no traceback: another owner, read-only, missing rights
+        typer.secho(f"error: {exc}", err=True, fg="red")
+        raise typer.Exit(2) from None
     url = f"http://{settings.host}:{settings.port}/"
     typer.echo(f"xneck console: {url}  (API docs {url}docs, data in {Path(settings.data_dir).resolve()})")
     if app.state.token_generated:

@@ -132,7 +132,13 @@ def up(
         typer.secho(f"error: xneck up refused to start: {refused}", err=True, fg="red")
         raise typer.Exit(PREFLIGHT_EXIT)
     logs = Path(data_dir) / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
+    try:
+        logs.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # e.g. a read-only data directory: one line, nothing started
+        from bridge.archive import storage_reason
+
+        typer.secho(f"error: cannot use the data directory {data_dir}: {storage_reason(exc)}", err=True, fg="red")
+        raise typer.Exit(2) from None
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
     param_args = ["--params", str(params_file)] if params_file else []
@@ -156,7 +162,9 @@ def up(
     code = 0
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
-                         "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port)])
+                         "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
+                         # what this stack's twin bridge is, so that campaign requests are checked against it
+                         "--twin-truth", truth, "--twin-seed", str(seed)])
         deadline = time.monotonic() + 60
         while not _healthy(url):
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:

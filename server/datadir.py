@@ -1,0 +1,101 @@
+"""The console's data directory: one owner at a time, and the storage checks before a campaign.
+
+One owner: ``<data_dir>/server.lock`` holds an exclusive ``flock`` for the life of the server and
+says who holds it (pid, host, start time). A second server on the same directory is refused with
+one line naming the owner (two servers would each "recover" the other's live campaign, issue 14
+finding 1). The kernel drops the lock when its owner dies, however it dies, so a dead owner's lock
+is taken over without any staleness rule. (``flock`` is local: a data directory shared over NFS
+between machines is not protected.)
+
+Storage: a campaign starts only where it can be written and where ``min_free_bytes`` are free
+(:func:`storage_problem`); the reason, with the figures, is the 507 a client sees.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import socket
+from pathlib import Path
+
+from bridge.archive import iso_time, storage_reason
+
+LOCK_FILE = "server.lock"
+
+
+class DataDirError(Exception):
+    """The data directory cannot be used; the message is the one line ``xneck server`` prints."""
+
+
+class DataDirLock:
+    """Exclusive ownership of a data directory by this process; :meth:`release` gives it back."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.dir = Path(data_dir)
+        self.path = self.dir / LOCK_FILE
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise DataDirError(f"cannot use the data directory {self.dir}: {storage_reason(exc)}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = _read_owner(fd)
+            os.close(fd)
+            raise DataDirError(
+                f"the data directory {self.dir} is in use by another xneck server (pid {owner.get('pid', '?')} on "
+                f"{owner.get('host', '?')}, since {owner.get('started_at', '?')}): stop it or choose another "
+                f"--data-dir") from None
+        self._fd: int | None = fd
+        self.owner = {"pid": os.getpid(), "host": socket.gethostname(), "started_at": iso_time()}
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps(self.owner).encode() + b"\n", 0)
+            os.fsync(fd)
+        except OSError as exc:
+            self.release()
+            raise DataDirError(f"cannot use the data directory {self.dir}: {storage_reason(exc)}") from None
+
+    def release(self) -> None:
+        """Unlock (the file stays: removing it would race with a server opening it right now)."""
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+                os.close(self._fd)
+            self._fd = None
+
+
+def _read_owner(fd: int) -> dict:
+    try:
+        return json.loads(os.pread(fd, 4096, 0) or b"{}")
+    except (OSError, ValueError):
+        return {}
+
+
+def free_bytes(directory: Path) -> int:
+    st = os.statvfs(directory)
+    return st.f_bavail * st.f_frsize
+
+
+def storage_problem(directory: Path, min_free_bytes: int) -> str:
+    """Why a campaign cannot be recorded in ``directory`` now ('' if it can): not writable, or less
+    than ``min_free_bytes`` free (the figures in MB)."""
+    probe = Path(directory) / f".probe-{os.getpid()}"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"\0")
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as exc:
+        return f"the archive directory {directory} is not writable: {storage_reason(exc)}"
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+    free = free_bytes(directory)
+    if free < min_free_bytes:
+        return (f"{free / 1e6:.1f} MB free in {directory}, a campaign needs at least {min_free_bytes / 1e6:.1f} MB: "
+                f"free some space (delete or move archives)")
+    return ""

@@ -1,0 +1,217 @@
+"""What the console checks before any route runs (an ASGI middleware, so before a body is read).
+
+In order, for HTTP and WebSocket requests:
+
+1. **Host** (DNS-rebinding guard): the ``Host`` header must name the bind address, loopback, or
+   one of ``allowed_hosts`` (bound to 0.0.0.0 with no list: any). A page of ``evil.example``
+   whose name was re-pointed at 127.0.0.1 is thus refused (400) although the browser thinks it
+   is talking to its own origin.
+2. **Origin** of live data (``/api/live`` WebSocket and SSE): a browser's ``Origin`` must be the
+   console's own (same host and port as the ``Host`` header) or in ``allowed_origins`` (403).
+   Browsers send it on every WebSocket; clients without one (scripts) are not browsers.
+3. **Token**: every mutating request (POST/PUT/PATCH/DELETE) needs the bearer token (401 without,
+   403 wrong) checked *before its body is read*; live data too when the console listens beyond
+   loopback (the token may come as ``?token=`` since a browser WebSocket cannot set headers).
+4. **Body**: at most ``max_body_bytes`` (413 on a larger ``Content-Length`` at once, and as soon
+   as a chunked body passes the limit, the rest unread); a JSON body nested deeper than
+   :data:`MAX_JSON_DEPTH` is a 422 (Python's parser would recurse until it crashes).
+
+The routes keep their own ``require_token`` dependency (it documents the security scheme in
+OpenAPI and holds if this middleware is ever left out).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import secrets
+from collections.abc import Awaitable, Callable, Iterable
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+Scope = dict[str, Any]
+Message = dict[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+MAX_JSON_DEPTH = 32
+LIVE_PATHS = ("/api/live", "/api/live/sse")
+MUTATING = ("POST", "PUT", "PATCH", "DELETE")
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def json_depth_exceeds(body: bytes, limit: int = MAX_JSON_DEPTH) -> bool:
+    """Whether a JSON text nests arrays/objects deeper than ``limit`` (brackets inside strings do
+    not count). A linear scan: no parsing, so no recursion."""
+    depth, in_string, escaped = 0, False, False
+    for byte in body:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif byte == 0x5C:  # backslash
+                escaped = True
+            elif byte == 0x22:  # quote
+                in_string = False
+        elif byte == 0x22:
+            in_string = True
+        elif byte in (0x5B, 0x7B):  # [ {
+            depth += 1
+            if depth > limit:
+                return True
+        elif byte in (0x5D, 0x7D):
+            depth -= 1
+    return False
+
+
+def _split_host(value: str) -> str:
+    """Host name of a ``Host`` header value (``name:port``, ``[v6]:port``), lower case."""
+    value = value.strip().lower()
+    if value.startswith("["):
+        return value[1:value.find("]")] if "]" in value else value
+    return value.rsplit(":", 1)[0] if value.count(":") == 1 else value
+
+
+class ConsoleGuard:
+    """The checks of the module docstring around an ASGI app. ``token`` is read per request (a
+    callable, so the app's state stays the one source)."""
+
+    def __init__(self, app: ASGIApp, *, bind_host: str, token: Callable[[], str], max_body_bytes: int,
+                 allowed_hosts: Iterable[str] = (), allowed_origins: Iterable[str] = ()) -> None:
+        self.app = app
+        self.token = token
+        self.max_body_bytes = max_body_bytes
+        self.allowed_origins = {o.rstrip("/").lower() for o in allowed_origins}
+        self.exposed = not is_loopback(bind_host)
+        hosts = {h.lower() for h in allowed_hosts}
+        if bind_host in ("0.0.0.0", "::", ""):
+            self.allowed_hosts: set[str] | None = (hosts | set(LOOPBACK_NAMES)) if hosts else None
+        else:
+            self.allowed_hosts = hosts | set(LOOPBACK_NAMES) | {bind_host.lower()}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        refusal = self._refusal(scope, headers)
+        if refusal is not None:
+            await _deny(scope, receive, send, *refusal)
+            return
+        if scope["type"] == "http" and scope["method"] in MUTATING:
+            await self._with_bounded_body(scope, receive, send, headers)
+            return
+        await self.app(scope, receive, send)
+
+    def _refusal(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict[str, str]] | None:
+        host = headers.get("host", "")
+        if self.allowed_hosts is not None and _split_host(host) not in self.allowed_hosts:
+            return 400, (f"Host header {host!r} is not this console's (DNS-rebinding guard); a lab name for it goes "
+                         f"in XNECK_ALLOWED_HOSTS"), {}
+        path = scope.get("path", "")
+        live = path in LIVE_PATHS
+        origin = headers.get("origin")
+        if live and origin is not None:
+            parts = urlsplit(origin)
+            if parts.netloc.lower() != host.lower() and origin.rstrip("/").lower() not in self.allowed_origins:
+                return 403, f"origin {origin!r} may not read live data (same origin or XNECK_ALLOWED_ORIGINS)", {}
+        if (scope["type"] == "http" and scope["method"] in MUTATING) or (live and self.exposed):
+            return self._token_refusal(scope, headers)
+        return None
+
+    def _token_refusal(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict[str, str]] | None:
+        scheme, _, given = headers.get("authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not given.strip():
+            given = (parse_qs(scope.get("query_string", b"").decode("latin-1")).get("token") or [""])[0]
+        if not given:
+            return 401, "missing bearer token (Authorization: Bearer <token>)", {"WWW-Authenticate": "Bearer"}
+        if not secrets.compare_digest(given.strip().encode(), self.token().encode()):
+            return 403, "wrong bearer token", {}
+        return None
+
+    async def _with_bounded_body(self, scope: Scope, receive: Receive, send: Send, headers: dict[str, str]) -> None:
+        """Read the body up to the limit (413 beyond, without reading on), check JSON depth, then
+        hand the app the same body."""
+        limit = self.max_body_bytes
+        declared = headers.get("content-length")
+        if declared is not None and (not declared.strip().isdigit() or int(declared) > limit):
+            await _deny(scope, receive, send, 413, f"request body of {declared} bytes: at most {limit} bytes", {})
+            return
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > limit:
+                await _deny(scope, receive, send, 413, f"request body larger than {limit} bytes", {})
+                return
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        if "json" in headers.get("content-type", "") and json_depth_exceeds(body):
+            await _send_json(send, 422, {"detail": [{"loc": ["body"], "msg": f"JSON nested deeper than "
+                                                     f"{MAX_JSON_DEPTH} levels", "type": "value_error"}]}, {})
+            return
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+
+def document_responses(routes: Iterable[Any]) -> None:
+    """Add what this guard (and the storage handler) may answer to each route's OpenAPI responses,
+    so that clients, and the schema-driven fuzz test, know every status code they can get."""
+    detail = {"application/json": {"schema": {"type": "object", "properties": {"detail": {}}}}}
+    for route in routes:
+        responses = getattr(route, "responses", None)
+        if responses is None:
+            continue
+        extra = {400: "Host header not this console's (DNS-rebinding guard)"}
+        if "{" in route.path:
+            extra[404] = "No such item"
+        if set(getattr(route, "methods", ())) & set(MUTATING):
+            extra.update({401: "Missing bearer token", 403: "Wrong bearer token",
+                          413: "Body larger than the limit", 422: "Invalid body; loc names the field",
+                          507: "Storage fault: the data directory cannot be written"})
+        for code, text in extra.items():
+            responses.setdefault(code, {"description": text, "content": detail})
+
+
+async def _send_json(send: Send, status: int, content: object, headers: dict[str, str], ws: bool = False) -> None:
+    body = json.dumps(content).encode()
+    raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    raw += [(k.lower().encode(), v.encode()) for k, v in headers.items()]
+    prefix = "websocket.http.response" if ws else "http.response"
+    await send({"type": f"{prefix}.start", "status": status, "headers": raw})
+    await send({"type": f"{prefix}.body", "body": body})
+
+
+async def _deny(scope: Scope, receive: Receive, send: Send, status: int, detail: str,
+                headers: dict[str, str]) -> None:
+    if scope["type"] == "websocket":
+        await receive()  # websocket.connect: the handshake request
+        if "websocket.http.response" in scope.get("extensions", {}):
+            await _send_json(send, status, {"detail": detail}, headers, ws=True)
+        else:  # the server cannot send a status: closing before accepting is a 403
+            await send({"type": "websocket.close", "code": 1008, "reason": detail[:120]})
+        return
+    await _send_json(send, status, {"detail": detail}, headers)
