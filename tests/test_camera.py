@@ -6,8 +6,8 @@ Real OpenCV on real rendered frames (and real Zenoh/MCAP further down); fixed se
 from __future__ import annotations
 
 import json
-import re
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -229,3 +229,84 @@ def msgspec_replace(msg, **changes):
     import msgspec
 
     return msgspec.structs.replace(msg, **changes)
+
+
+# --- the bus process ------------------------------------------------------------------------------
+
+
+def test_twin_shutter_exposes_at_the_rate_and_releases_after_the_latency() -> None:
+    from twin.camera.source import TwinShutter
+
+    shutter = TwinShutter(rate_hz=30.0, latency_s=0.05)
+    out = []
+    for k in range(500):  # 1 s of truth at 500 Hz
+        t = k * 0.002
+        out += [(e.capture_s, e.ready_s, float(e.alpha_rad[0])) for e in shutter.feed(t, np.array([t, 0.0, 0.0]))]
+    captures = np.array([o[0] for o in out])
+    assert len(out) == 29  # exposures at 0, 1/30, ... released by t = 0.998 s
+    assert np.diff(captures) == pytest.approx(1 / 30, abs=0.002)
+    assert all(0.05 - 1e-9 <= ready - cap < 0.05 + 0.002 for cap, ready, _ in out)
+    assert all(a == pytest.approx(cap) for cap, _, a in out)  # α of the exposure time
+    # A stalled truth (0.998 s → 1.2 s) loses the exposures due at 1.0, 1.033, ... 1.167 s, and says so.
+    shutter.feed(1.2, np.zeros(3))
+    assert shutter.dropped == 6
+
+
+def test_camera_process_publishes_rendered_alpha_ip_from_the_twin_on_a_real_bus(params) -> None:
+    import threading
+
+    from busutil import bus_pair, run_in_thread, wait_until
+
+    from bridge import bus
+    from bridge.node import BridgeConfig, run_realtime
+    from server.cli.processes import bridge_node
+    from twin.camera.process import CameraNode
+    from twin.camera.source import TwinShutter
+    from twin.model.numeric import build
+    from twin.sim.driver import TwinDriver, TwinDriverConfig
+
+    n_ticks = 1500  # 3 s of the real-time twin at 500 Hz, drives disabled: the neck rests on its springs
+    with bus_pair() as (_hub, hub, connect):
+        got: dict[str, list] = {bus.TWIN_TRUTH: [], bus.CAMERA_ALPHA: []}
+        lock = threading.Lock()
+
+        def collect(sample) -> None:
+            key = str(sample.key_expr)
+            with lock:
+                got[key].append(bus.decode(key, sample.payload.to_bytes()))
+
+        subs = [hub.declare_subscriber(k, collect) for k in got]
+        driver = TwinDriver(TwinDriverConfig(n_motors=params.n_cables, camera=False), params)
+        driver.configure()
+        twin = bridge_node(connect(), driver, params, BridgeConfig(lockstep=False, max_ticks=n_ticks))
+        camera = CameraNode(connect(), detector_for(params), instance="test")
+        stop = threading.Event()
+        latency = params.sensors.camera_latency
+        cam_thread, cam_out = run_in_thread(camera.run_twin, Renderer(build(params), seed=1), TwinShutter(30.0, latency), stop,
+                                            None, 3.0)
+        twin_thread, twin_out = run_in_thread(run_realtime, twin, stop)
+        try:
+            assert wait_until(lambda: len(got[bus.CAMERA_ALPHA]) >= 40, 30.0), f"{len(got[bus.CAMERA_ALPHA])} frames"
+        finally:
+            twin_thread.join(30)
+            stop.set()
+            cam_thread.join(10)
+            twin.shutdown()
+            camera.close()
+            for s in subs:
+                s.undeclare()
+        assert "error" not in cam_out and "error" not in twin_out, (cam_out, twin_out)
+        frames, truths = list(got[bus.CAMERA_ALPHA]), list(got[bus.TWIN_TRUTH])
+    assert {f.source for f in frames} == {"twin-render"}  # the twin's own noise camera is off
+    truth_t = np.array([m.stamp_s for m in truths])
+    truth_a = np.array([m.alpha_rad for m in truths])
+    captures = np.array([f.capture_stamp_s for f in frames])
+    assert np.median(np.diff(captures)) == pytest.approx(1 / 30, abs=0.0021)  # 30 fps of the bus clock
+    for f in frames:
+        bus.check_camera_alpha(f, params.n_joints)
+        assert latency - 1e-9 <= f.stamp_s - f.capture_stamp_s <= latency + 0.1  # published after the exposure latency
+        k = int(np.argmin(np.abs(truth_t - f.capture_stamp_s)))
+        assert abs(truth_t[k] - f.capture_stamp_s) < 1e-6
+        assert None not in f.alpha_ip_rad and min(f.confidence) > 0.5
+        assert np.degrees(np.abs(np.array(f.alpha_ip_rad) - truth_a[k])).max() < 1.0
+    assert camera.truth_rejected == 0 and camera.frames == len(frames)

@@ -21,8 +21,12 @@ from pathlib import Path
 import typer
 
 from server.cli.options import (
+    CONNECT_OPTION,
+    INSTANCE_OPTION,
+    LISTEN_OPTION,
     PARAMS_OPTION,
     SET_OPTION,
+    VERBOSE_OPTION,
     load_cli_params,
 )
 
@@ -76,6 +80,88 @@ def _angles(first: list[str], extra: list[str]) -> list[float]:
                 except ValueError:
                     raise _fail(f"--alpha: {part!r} is not a number (degrees)") from None
     return values
+
+
+@camera_app.callback()
+def camera(
+    ctx: typer.Context,
+    source: str | None = typer.Option(None, "--source", help="usb:N, /dev/videoN, file:VIDEO or twin (frames rendered from xneck/twin/truth)."),
+    calibration: Path | None = CALIBRATION_OPTION,
+    rate: float = typer.Option(30.0, "--rate", help="twin: frames per second of simulated time."),
+    latency: float | None = typer.Option(None, "--latency", help="s from exposure to publication (twin) or to grab (usb); default: the parameter file's sensors.camera_latency."),
+    seed: int = typer.Option(0, "--seed", help="twin: seed of the sensor noise."),
+    noise: float = typer.Option(2.0, "--noise", help="twin: sensor noise σ, grey levels."),
+    blur: float = typer.Option(0.8, "--blur", help="twin: defocus blur σ, pixels."),
+    realtime: bool = typer.Option(True, "--realtime/--fast", help="file: replay at the video's frame rate, or as fast as detection runs."),
+    t0: float = typer.Option(0.0, "--t0", help="file: time stamp of the first frame (s)."),
+    max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after this many frames."),
+    idle_timeout: float | None = typer.Option(None, "--idle-timeout", help="twin: stop after this long without truth (s)."),
+    instance: str = INSTANCE_OPTION,
+    listen: list[str] | None = LISTEN_OPTION,
+    connect: list[str] | None = CONNECT_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+    verbose: bool = VERBOSE_OPTION,
+) -> None:
+    """The camera on the bus: publish α_IP (xneck/camera/alpha_ip) measured on frames from --source.
+
+    With --source twin, run the twin without its white-noise camera (`xneck twin --no-camera`)."""
+    if ctx.invoked_subcommand is not None:
+        return
+    if source is None:
+        typer.echo(ctx.get_help())
+        raise typer.Exit(0)
+    import logging
+
+    from bridge.runtime import endpoints, setup_logging, stop_on_signals
+    from bridge.session import open_session
+    from twin.camera.detect import Detector
+    from twin.camera.process import CameraNode
+    from twin.camera.source import FileSource, SourceError, TwinShutter, UsbSource, parse_source
+
+    try:
+        kind, where = parse_source(source)
+    except ValueError as exc:
+        raise _fail(str(exc)) from None
+    setup_logging(verbose)
+    params = load_cli_params(params_file, overrides)
+    cal = _calibration(calibration)
+    lat = params.sensors.camera_latency if latency is None else latency
+    if not (0.0 <= lat <= 1.0):
+        raise _fail("--latency must be between 0 and 1 s")
+    detector = Detector(params.n_joints, params.geometry.L, params.geometry.b, cal)
+    renderer = shutter = frames = None
+    try:
+        if kind == "twin":
+            from twin.camera.render import Renderer, RenderOptions
+            from twin.model.numeric import build
+
+            shutter = TwinShutter(rate, lat)
+            renderer = Renderer(build(params), cal, options=RenderOptions(noise_dn=noise, blur_px=blur), seed=seed)
+        elif kind == "file":
+            frames = FileSource(where, t0)
+        else:
+            frames = UsbSource(where, cal.width, cal.height, latency_s=lat)
+    except (SourceError, ValueError) as exc:
+        raise _fail(str(exc)) from None
+    stop = stop_on_signals()
+    log = logging.getLogger("xneck.camera")
+    with open_session(endpoints(listen), endpoints(connect)) as session:
+        node = CameraNode(session, detector, instance)
+        log.info("camera %s up: --source %s", node.instance, source)
+        try:
+            if renderer is not None and shutter is not None:
+                count = node.run_twin(renderer, shutter, stop, max_frames, idle_timeout)
+            else:
+                assert frames is not None
+                count = node.run_source(frames, stop, max_frames, frames.fps if (kind == "file" and realtime) else None)
+        except RuntimeError as exc:
+            raise _fail(str(exc)) from None
+        finally:
+            node.close()
+            if frames is not None:
+                frames.close()
+        log.info("camera %s: %d frames, %d missing joints, %d dropped", node.instance, count, node.missing_joints, node.dropped)
 
 
 @camera_app.command("render", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})

@@ -41,6 +41,9 @@ from server.cli.options import (
 
 log = logging.getLogger("xneck.bridge")
 
+# Off when `xneck camera --source twin` measures α_IP on rendered frames instead (issue 15).
+NO_CAMERA_OPTION = typer.Option(False, "--no-camera", help="Twin: publish no white-noise α_IP (for `xneck camera --source twin`).")
+
 
 def bridge_node(session, driver, params, config):
     """A :class:`bridge.node.BridgeNode` for a parameter set: the bridge's safety rules with the
@@ -72,7 +75,7 @@ def _driver_table(path: Optional[Path]) -> dict:
 
 def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = None, loop: bool = False,
                 seed: int = 0, cable_model: Optional[str] = None, friction: bool = True,
-                truth: str = "model"):
+                truth: str = "model", camera: bool = True):
     """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
     Raises :class:`bridge.driver.DriverError` with a readable reason."""
     from bridge.driver import DriverError, config_from_dict
@@ -92,6 +95,8 @@ def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = No
             base["friction"] = False
         if truth != "model":
             base["truth"] = truth
+        if not camera:
+            base["camera"] = False
         return TwinDriver(config_from_dict(TwinDriverConfig, base), params)
     if driver == "replay":
         from bridge.drivers.replay import ReplayConfig, ReplayDriver
@@ -120,6 +125,7 @@ def bridge(
     cable_model: Optional[str] = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
+    no_camera: bool = NO_CAMERA_OPTION,
     max_ticks: Optional[int] = MAX_TICKS_OPTION,
     idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
     startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
@@ -156,7 +162,7 @@ def bridge(
         raise _fail(str(exc)) from None
     try:
         drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
-                          cable_model=cable_model, friction=not no_friction, truth=truth)
+                          cable_model=cable_model, friction=not no_friction, truth=truth, camera=not no_camera)
         drv.configure()
     except (DriverError, ValueError) as exc:
         raise _fail(str(exc)) from None
@@ -191,6 +197,7 @@ def twin(
     cable_model: Optional[str] = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
+    no_camera: bool = NO_CAMERA_OPTION,
     max_ticks: Optional[int] = MAX_TICKS_OPTION,
     idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
     startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
@@ -204,7 +211,7 @@ def twin(
     """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
     exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, max_ticks=max_ticks,
+           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
 

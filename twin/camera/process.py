@@ -1,0 +1,175 @@
+"""The camera's bus process: frames → detector → ``xneck/camera/alpha_ip`` (CameraAlpha v2).
+
+One :class:`CameraNode` per process, whatever the source: :meth:`CameraNode.run_source` reads a
+USB camera or a video file; :meth:`CameraNode.run_twin` renders the twin's truth
+(``xneck/twin/truth``) through :class:`twin.camera.render.Renderer` on the exposure schedule of
+:class:`twin.camera.source.TwinShutter`, so the twin's α_IP comes from real image processing with a
+realistic latency, stamped on the bus clock (the truth's simulated time). Health counters go to
+``xneck/health/camera/<instance>`` every second; the liveliness token says the camera is up.
+The Zenoh callback only decodes and schedules; rendering and detection run on the caller's thread.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import math
+import threading
+import time
+import uuid
+from typing import Protocol
+
+import numpy as np
+import zenoh
+
+from bridge import bus
+from bridge.session import liveliness_token, publisher
+from twin.camera.detect import Detection, Detector
+from twin.camera.render import Renderer
+from twin.camera.source import Exposure, Frame, TwinShutter
+
+log = logging.getLogger("xneck.camera")
+
+
+class FrameSource(Protocol):
+    name: str
+    dropped: int
+
+    def read(self) -> Frame | None: ...
+
+    def close(self) -> None: ...
+
+
+class CameraNode:
+    """Publishes what ``detector`` measures; ``instance`` names it on the bus."""
+
+    HEALTH_PERIOD_S = 1.0
+
+    def __init__(self, session: zenoh.Session, detector: Detector, instance: str = "", queue_frames: int = 4) -> None:
+        self.session = session
+        self.detector = detector
+        self.instance = instance or uuid.uuid4().hex[:8]
+        self._pub = publisher(session, bus.CAMERA_ALPHA)
+        self._health = publisher(session, bus.health_key("camera", self.instance))
+        self._token = liveliness_token(session, "camera", self.instance)
+        self._seq = 0
+        self._started = time.monotonic()
+        self._last_health = -math.inf
+        self.frames = 0
+        self.missing_joints = 0
+        self.dropped = 0
+        self.truth_received = 0
+        self.truth_rejected = 0
+        self._last_reject = ""
+        self._queue: collections.deque[Exposure] = collections.deque()
+        self._queue_frames = queue_frames
+        self._cond = threading.Condition()
+
+    # --- publishing ---------------------------------------------------------------------------
+
+    def publish(self, found: Detection, capture_s: float, stamp_s: float, source: str) -> bus.CameraAlpha:
+        self._seq += 1
+        self.frames += 1
+        self.missing_joints += sum(a is None for a in found.alpha_rad)
+        msg = bus.CameraAlpha(seq=self._seq, stamp_s=float(stamp_s), capture_stamp_s=float(capture_s),
+                              alpha_ip_rad=[None if a is None else float(a) for a in found.alpha_rad],
+                              confidence=[float(c) for c in found.confidence], source=source, dropped=self.dropped)
+        self._pub.put(msg)
+        self._maybe_health()
+        return msg
+
+    def _maybe_health(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last_health < self.HEALTH_PERIOD_S:
+            return
+        self._last_health = now
+        self._health.put(bus.Health(
+            seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
+            received={bus.TWIN_TRUTH: self.truth_received, "frames": self.frames, "dropped": self.dropped,
+                      "missing_joints": self.missing_joints},
+            rejected={bus.TWIN_TRUTH: self.truth_rejected}, last_reject_reason=self._last_reject))
+
+    # --- sources -------------------------------------------------------------------------------
+
+    def run_source(self, source: FrameSource, stop: threading.Event, max_frames: int | None = None,
+                   pace_fps: float | None = None) -> int:
+        """Read, detect, publish until the source ends, ``stop`` is set or ``max_frames`` were
+        published. ``pace_fps`` replays a file at its frame rate (None: as fast as detection runs).
+        A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``."""
+        started = time.monotonic()
+        while not stop.is_set() and (max_frames is None or self.frames < max_frames):
+            frame = source.read()
+            if frame is None:
+                break
+            if pace_fps:
+                delay = started + self.frames / pace_fps - time.monotonic()
+                if delay > 0 and stop.wait(delay):
+                    break
+            self.dropped = source.dropped
+            try:
+                found = self.detector.detect(frame.image)
+            except ValueError as exc:  # a frame of another size: the calibration does not fit
+                raise RuntimeError(f"{source.name}: {exc}") from None
+            stamp = frame.capture_s if source.name.startswith("file:") else time.time()
+            self.publish(found, frame.capture_s, stamp, source.name)
+        self._maybe_health(force=True)
+        return self.frames
+
+    def run_twin(self, renderer: Renderer, shutter: TwinShutter, stop: threading.Event,
+                 max_frames: int | None = None, idle_timeout_s: float | None = None) -> int:
+        """Render the twin's truth on ``shutter``'s schedule and publish what the detector sees.
+
+        Frames wait in a short queue between the truth callback and this thread; when rendering
+        falls behind (a twin running faster than real time), the oldest frames are dropped and
+        counted. Returns when ``stop`` is set, after ``max_frames``, or after ``idle_timeout_s``
+        without truth."""
+        n = self.detector.n_joints
+        last_truth = [time.monotonic()]
+
+        def on_truth(sample: zenoh.Sample) -> None:
+            try:
+                truth = bus.decode(bus.Truth, sample.payload.to_bytes())
+                if len(truth.alpha_rad) != n:
+                    raise bus.BusDecodeError(f"Truth: {len(truth.alpha_rad)} angles for {n} joints")
+            except bus.BusDecodeError as exc:
+                with self._cond:
+                    self.truth_rejected += 1
+                    self._last_reject = f"{sample.key_expr}: {exc.reason}"
+                return
+            with self._cond:
+                self.truth_received += 1
+                last_truth[0] = time.monotonic()
+                for exposure in shutter.feed(truth.stamp_s, np.asarray(truth.alpha_rad)):
+                    if len(self._queue) >= self._queue_frames:
+                        self._queue.popleft()
+                        self.dropped += 1
+                    self._queue.append(exposure)
+                self._cond.notify_all()
+
+        sub = self.session.declare_subscriber(bus.TWIN_TRUTH, on_truth)
+        try:
+            while not stop.is_set() and (max_frames is None or self.frames < max_frames):
+                with self._cond:
+                    if not self._queue:
+                        self._cond.wait(0.1)
+                    exposure = self._queue.popleft() if self._queue else None
+                    dropped = self.dropped + shutter.dropped
+                if exposure is None:
+                    if idle_timeout_s is not None and time.monotonic() - last_truth[0] > idle_timeout_s:
+                        log.info("camera %s: no truth for %.1f s, stopping", self.instance, idle_timeout_s)
+                        break
+                    self._maybe_health()
+                    continue
+                found = self.detector.detect(renderer.render(exposure.alpha_rad))
+                self.dropped = dropped
+                self.publish(found, exposure.capture_s, exposure.ready_s, "twin-render")
+        finally:
+            sub.undeclare()
+        self._maybe_health(force=True)
+        return self.frames
+
+    def close(self) -> None:
+        for closer in (self._pub.close, self._health.close, self._token.undeclare):
+            with contextlib.suppress(Exception):  # the session may be closed already
+                closer()

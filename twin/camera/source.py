@@ -1,0 +1,155 @@
+"""Where the camera's frames come from: a USB camera, a video file, or the twin's truth.
+
+- :class:`UsbSource` (``usb:N`` or ``/dev/videoN``): OpenCV capture at 1280×720, 30 fps. The
+  exposure's time stamp is the wall time at which the frame was grabbed minus the camera's
+  latency (``latency_s``, half an exposure plus the transfer: measure it once with a visible sync
+  event, see docs/camera.md); frames lost by the driver are counted from the gaps between grabs.
+- :class:`FileSource` (``file:VIDEO``): a recorded video, as the paper processed its videos
+  offline (§4.2); time stamps are the video's own (frame index / fps, plus ``t0_s``).
+- :class:`TwinShutter` (``twin``): the exposure schedule of the twin's camera on the truth's
+  clock (simulated time): an exposure every 1/``rate_hz`` s, the frame ready ``latency_s`` later.
+  The bus process (``twin.camera.process``) feeds it the twin's truth and renders each exposure.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+class SourceError(RuntimeError):
+    """A frame source cannot be opened or used; the message says why."""
+
+
+@dataclass
+class Frame:
+    capture_s: float  # middle of the exposure, on the source's clock
+    image: np.ndarray  # H×W×3 BGR uint8
+
+
+def parse_source(text: str) -> tuple[str, str]:
+    """``("usb", "N" or "/dev/videoN")``, ``("file", path)`` or ``("twin", "")``; ``ValueError`` otherwise."""
+    text = str(text).strip()
+    if text == "twin":
+        return "twin", ""
+    if re.fullmatch(r"usb:\d{1,3}", text):
+        return "usb", text[4:]
+    if re.fullmatch(r"/dev/video\d{1,3}", text):
+        return "usb", text
+    if text.startswith("file:") and len(text) > 5:
+        return "file", text[5:]
+    raise ValueError(f"--source {text!r}: expected usb:N, /dev/videoN, file:VIDEO or twin")
+
+
+class FileSource:
+    """Frames of a video file with their time stamps (constant frame rate assumed)."""
+
+    def __init__(self, path: str | Path, t0_s: float = 0.0) -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise SourceError(f"{path}: no such video file")
+        self.cap = cv2.VideoCapture(str(path))
+        if not self.cap.isOpened():
+            raise SourceError(f"{path}: OpenCV cannot open this video")
+        fps = float(self.cap.get(cv2.CAP_PROP_FPS))
+        if not (math.isfinite(fps) and 1.0 <= fps <= 1000.0):
+            raise SourceError(f"{path}: implausible frame rate {fps}")
+        self.fps = fps
+        self.t0_s = float(t0_s)
+        self.index = 0
+        self.dropped = 0
+        self.name = f"file:{path.name}"
+
+    def read(self) -> Frame | None:
+        ok, image = self.cap.read()
+        if not ok or image is None:
+            return None
+        frame = Frame(self.t0_s + self.index / self.fps, image)
+        self.index += 1
+        return frame
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+class UsbSource:
+    """A V4L2 camera through OpenCV; ``read`` blocks until the next frame."""
+
+    def __init__(self, device: str, width: int = 1280, height: int = 720, fps: float = 30.0, latency_s: float = 0.05) -> None:
+        target: int | str = int(device) if device.isdigit() else device
+        self.cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
+        if not self.cap.isOpened():
+            raise SourceError(f"camera {device}: cannot open (is it plugged in, and is the user in group 'video'?)")
+        self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        self.cap.set(cv2.CAP_PROP_FPS, fps)
+        self.fps = float(self.cap.get(cv2.CAP_PROP_FPS)) or fps
+        self.latency_s = float(latency_s)
+        self.dropped = 0
+        self._last_grab_s: float | None = None
+        self.name = f"usb:{device}"
+
+    def read(self) -> Frame | None:
+        if not self.cap.grab():
+            return None
+        grabbed_s = time.time()
+        ok, image = self.cap.retrieve()
+        if not ok or image is None:
+            return None
+        if self._last_grab_s is not None:
+            missed = round((grabbed_s - self._last_grab_s) * self.fps) - 1
+            self.dropped += max(0, missed)
+        self._last_grab_s = grabbed_s
+        return Frame(grabbed_s - self.latency_s, image)
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+@dataclass
+class Exposure:
+    capture_s: float
+    alpha_rad: np.ndarray
+    ready_s: float = 0.0
+
+
+@dataclass
+class TwinShutter:
+    """Exposures every 1/``rate_hz`` s of the truth's clock, each ready ``latency_s`` after it.
+
+    :meth:`feed` takes every truth sample (time, α) in order and returns the exposures whose
+    latency has elapsed, stamped with the time they became ready. A gap in the truth longer than
+    a frame period (a stalled twin) skips the exposures it covers and counts them as dropped.
+    """
+
+    rate_hz: float = 30.0
+    latency_s: float = 0.05
+    dropped: int = 0
+    _next_s: float | None = None
+    _pending: list[Exposure] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.rate_hz <= 1000.0 and 0.0 <= self.latency_s <= 1.0):
+            raise ValueError("rate_hz must be in (0, 1000] Hz and latency_s in [0, 1] s")
+
+    def feed(self, t_s: float, alpha_rad: np.ndarray) -> list[Exposure]:
+        period = 1.0 / self.rate_hz
+        if self._next_s is None:
+            self._next_s = t_s
+        if t_s + 1e-9 >= self._next_s:
+            late = int((t_s - self._next_s + 1e-9) // period)
+            self.dropped += late
+            self._pending.append(Exposure(t_s, np.array(alpha_rad, dtype=float)))
+            self._next_s += (late + 1) * period
+        ready = [e for e in self._pending if e.capture_s + self.latency_s <= t_s + 1e-9]
+        if ready:
+            self._pending = self._pending[len(ready):]
+            for e in ready:
+                e.ready_s = t_s
+        return ready
