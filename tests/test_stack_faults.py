@@ -120,23 +120,25 @@ def test_the_console_shows_the_bridges_estop_and_campaigns_follow_it(tmp_path: P
         shown = _estop(base)
         assert shown["source"] == "bridge" and shown["reason"], shown
 
-        r = httpx.post(base + "/api/campaigns", json=CONTROL, headers=AUTH, timeout=10)
+        r = httpx.post(base + "/api/campaigns", json=CONTROL, headers=AUTH, timeout=90)
         assert r.status_code == 409, r.text
         assert shown["reason"] in r.json()["detail"]
 
         assert httpx.post(base + "/api/system/estop", json={"engaged": False, "reason": "test"}, headers=AUTH,
                           timeout=5).status_code == 200
         assert wait_until(lambda: not _estop(base)["engaged"], 10, 0.1), _estop(base)
-        r = httpx.post(base + "/api/campaigns", json=CONTROL, headers=AUTH, timeout=10)
+        r = httpx.post(base + "/api/campaigns", json=CONTROL, headers=AUTH, timeout=90)
         assert r.status_code == 201, r.text
         cid = r.json()["id"]
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.15, 60, 0.2)
         s.put(bus.ESTOP, b"{\"v\": 1}")  # malformed again, mid-campaign
         rec = _wait_end(base, cid, 30)
+    # Aborted with the bridge's reason, whoever noticed first (the runner following the states, or
+    # the controller seeing its drives disabled).
     assert rec["status"] == "aborted", rec
-    assert "drives were disabled" in rec["message"], rec
+    assert "disabled" in rec["message"] and "malformed e-stop" in rec["message"], rec
     info = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").info
-    assert info["outcome"] == "aborted" and "drives were disabled" in info["message"]
+    assert info["outcome"] == "aborted" and info["message"] == rec["message"]
 
 
 # -- finding 7: honest outcomes -------------------------------------------------------------------
@@ -144,7 +146,7 @@ def test_the_console_shows_the_bridges_estop_and_campaigns_follow_it(tmp_path: P
 def test_a_campaign_whose_controller_stalls_ends_degraded_with_its_reasons(tmp_path: Path) -> None:
     """Finding 7: a real-time run that fell well below 500 Hz was recorded ``finished``."""
     with _robot_stack(tmp_path) as (base, _hub, procs):
-        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=10)
+        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90)
         assert r.status_code == 201, r.text
         cid = r.json()["id"]
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.05)
@@ -167,7 +169,7 @@ def test_a_campaign_whose_controller_stalls_ends_degraded_with_its_reasons(tmp_p
 
 def test_a_healthy_real_time_campaign_finishes_with_its_quality_on_record(tmp_path: Path) -> None:
     with _robot_stack(tmp_path) as (base, _, _):
-        cid = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=10).json()["id"]
+        cid = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90).json()["id"]
         rec = _wait_end(base, cid, 60)
     # A loaded test machine may miss deadlines: then it is degraded, and must say why.
     assert rec["status"] in ("finished", "degraded"), rec
