@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 
@@ -167,15 +167,18 @@ class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
 
 
 class ControllerStatus(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """What the controller did this tick (published at a decimated rate).
+    """What the controller did for one motor state (every state it took, holds included).
 
     ``tick_s`` is the loop period actually measured, ``compute_s`` the time spent in the law.
     ``overruns`` counts ticks whose compute exceeded the period, ``deadline_misses`` ticks whose
-    command left late; both cumulative. ``saturated`` flags each motor whose force was clipped.
-    ``alpha_hat_rad`` (estimate), ``alpha_d_rad`` (desired) and ``e_rad`` (error) are per joint.
+    command left late, ``ticks`` the states answered: all three since ``campaign_id`` started
+    (since the previous campaign ended when ``campaign_id`` is empty), never since the process
+    started (v2). ``saturated`` flags each motor whose force was clipped. ``alpha_hat_rad``
+    (estimate), ``alpha_d_rad`` (desired) and ``e_rad`` (error) are per joint. ``holding``: the
+    command is the hold forces, ``hold_reason`` says why (drives disabled, stale states...).
     """
 
-    v: int = 1
+    v: int = 2
     law: str
     tick_s: float
     compute_s: float
@@ -187,36 +190,55 @@ class ControllerStatus(BusMessage, frozen=True, forbid_unknown_fields=True, kw_o
     e_rad: list[float]
     holding: bool
     hold_reason: str = ""
+    campaign_id: str = ""
+    ticks: int = 0
 
 
 class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Life cycle of a campaign (identification run, tracking experiment...).
 
-    ``kind`` is the campaign kind, ``event`` the transition, ``progress`` in [0, 1].
+    ``kind`` is the campaign kind, ``event`` the transition, ``progress`` in [0, 1]. ``ticks``,
+    ``overruns`` and ``deadline_misses`` are the controller's counts for this campaign so far (v2;
+    see :class:`ControllerStatus`), so that a console can judge the real-time quality of a run.
     """
 
-    v: int = 1
+    v: int = 2
     campaign_id: str
     kind: str
     event: CampaignEventKind
     progress: float = 0.0
     message: str = ""
+    ticks: int = 0
+    overruns: int = 0
+    deadline_misses: int = 0
+
+
+#: Bounds of a campaign request, checked when it is decoded (v2): a request is untrusted input.
+CAMPAIGN_ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,128}$"
+TRAJECTORY_JSON_MAX_BYTES = 256 * 1024
+PARAMETERS_TOML_MAX_BYTES = 64 * 1024
+CampaignKind = Literal["control", "identification"]
 
 
 class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Console to a controller service (``xneck controller`` without ``--trajectory``): start a
     campaign with ``law`` (1-3), ``no_pulleys``, a trajectory (``trajectory_json``, the
     ``Trajectory.to_json()`` form, degrees) and the campaign's parameter set, or stop the one running. The controller answers with
-    ``CampaignEvent``s of the same ``campaign_id`` (``aborted`` with the reason if it refuses)."""
+    ``CampaignEvent``s of the same ``campaign_id`` (``aborted`` with the reason if it refuses).
 
-    v: int = 1
-    campaign_id: str
+    v2: the id, kind and law are checked when decoded, and the two texts are bounded in size.
+    ``trajectory_json`` is JSON text, never a path: the controller opens no file named on the bus.
+    """
+
+    v: int = 2
+    campaign_id: Annotated[str, msgspec.Meta(pattern=CAMPAIGN_ID_PATTERN)]
     action: Literal["start", "stop"]
-    kind: str = "control"
-    law: int = 2
+    kind: CampaignKind = "control"
+    law: Literal[1, 2, 3] = 2
     no_pulleys: bool = False
-    trajectory_json: str = ""
-    parameters_toml: str = ""  # the campaign's parameter set (Params.to_toml()); empty: the controller's own
+    trajectory_json: Annotated[str, msgspec.Meta(max_length=TRAJECTORY_JSON_MAX_BYTES)] = ""
+    # the campaign's parameter set (Params.to_toml()); empty: the controller's own
+    parameters_toml: Annotated[str, msgspec.Meta(max_length=PARAMETERS_TOML_MAX_BYTES)] = ""
 
 
 class EStop(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):

@@ -88,16 +88,37 @@ class ComputedTorque:
         self.f_prev = np.zeros(m.n_cables)
         self._theta_prev = None if theta is None else np.array(theta, dtype=float)
 
-    def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
-        """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d."""
-        m, est = self.model, self.estimator
-        theta = np.asarray(theta, dtype=float)
+    def observe(self, theta: np.ndarray, f_applied: np.ndarray) -> np.ndarray:
+        """Follow the measured state without commanding (drives off, or the bridge holding): α̂
+        and the velocity filters take the encoders θ (rad) and the forces ``f_applied`` (N) the
+        drives really apply, and the integral stays at zero, so nothing winds up and the next
+        :meth:`step` starts from the measurement (bumpless re-start). Returns α̂ (rad)."""
+        alpha_hat = self._estimate(np.asarray(theta, dtype=float), np.asarray(f_applied, dtype=float))
+        self.integral = np.zeros(self.model.n_joints)
+        return alpha_hat
+
+    def restart_integral(self) -> None:
+        """Forget the PID integral (eq. 59): a law taking over again starts without the error
+        accumulated before."""
+        self.integral = np.zeros(self.model.n_joints)
+
+    def _estimate(self, theta: np.ndarray, f_prev: np.ndarray) -> np.ndarray:
+        """α̂ from the encoders (eq. 35) with ``f_prev`` the forces over the last period, and the
+        filtered θ̇ and α̂̇."""
+        est = self.estimator
         if self._theta_prev is not None:
             self.theta_dot += self._beta * ((theta - self._theta_prev) / self.dt - self.theta_dot)
         self._theta_prev = theta
         previous = est.alpha_hat.copy()
-        alpha_hat = est.update(theta, self.f_prev, self.theta_dot).copy()
+        alpha_hat = est.update(theta, f_prev, self.theta_dot).copy()
         self.alpha_hat_dot += self._beta * ((alpha_hat - previous) / self.dt - self.alpha_hat_dot)
+        self.f_prev = np.array(f_prev, dtype=float)
+        return alpha_hat
+
+    def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
+        """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d."""
+        m = self.model
+        alpha_hat = self._estimate(np.asarray(theta, dtype=float), self.f_prev)
 
         e = alpha_d - alpha_hat
         self.integral += e * self.dt

@@ -8,13 +8,22 @@ overruns, deadline misses, saturation, α̂, α^d, e). With the bridge or the re
 
 Safety: it commands the hold forces (Z f = g(α̂) with every cable at t_min, or at the last sane
 α̂) and says why in the status when
-- no valid state arrived for ``stale_s`` (10 ms; malformed or NaN states are rejected by the
-  subscriber, so they count as missing) — it resumes when states come back;
+- no valid state arrived for ``stale_s`` (10 ms; malformed, NaN, forged or foreign states are
+  rejected by the subscriber, so they count as missing) — the law re-starts when states come back;
+- the bridge's drives are not active (e-stop, not yet enabled, the bridge's watchdog hold) — α̂
+  follows the encoders, nothing winds up, and the law re-starts bumplessly when they are;
 - the estimate diverges (non-finite, or beyond the joint limit plus a margin) — latched: the
   campaign is aborted with the reason.
-Time: the trajectory runs on the states' stamps (the twin's simulated time or the bridge's
-clock), from the start of the campaign. The neck must be straight when the controller starts
-(eq. 20's zero: θ = 0 there).
+Time and identity: the trajectory runs on the states' stamps (the twin's simulated time or the
+bridge's clock), from the start of the campaign. Only states of the bridge run the controller is
+bound to are taken, with stamps that neither go back nor run ahead of its own clock
+(:class:`controller.service.StateGate`); a restarted bridge (new epoch) is taken at once and
+the estimate starts again from it. Every command, holds included, carries the stamp and epoch of
+the state it answers and this controller's instance (the bridge obeys one owner). The neck must
+be straight when the bridge starts (eq. 20's zero: θ = 0 there).
+Untrusted input: campaign requests are bounded when decoded, prepared (parsed, validated within a
+time budget) by a worker thread while the loop keeps commanding, and refused with the reason as
+an ``aborted`` event; rejections are counted on ``xneck/health/controller/<instance>``.
 
 Two ways to run: with ``--trajectory`` it runs that one campaign and exits; without, it is a
 service (what `xneck up` starts): it holds the neck where it is and runs the campaigns asked for
@@ -27,6 +36,7 @@ state machine :class:`controller.service.CampaignService`.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import math
@@ -43,13 +53,14 @@ import zenoh
 from bridge import bus
 from bridge.session import liveliness_token, publisher, subscribe_latest
 from controller.laws import LawConfig
-from controller.service import CampaignService, Output
+from controller.service import CampaignService, Output, Prepared, Refused, StateGate, prepare
 from controller.trajectory import Trajectory
 from twin.model.params import Params
 
 log = logging.getLogger("xneck.controller")
 
 LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
+MAX_REQUEST_BYTES = bus.TRAJECTORY_JSON_MAX_BYTES + bus.PARAMETERS_TOML_MAX_BYTES + 4096  # larger: not decoded
 
 
 @dataclass(frozen=True)
@@ -63,11 +74,13 @@ class ControllerProcessConfig:
     startup_timeout_s: float = 120.0  # for the first state: peers may still be starting
     exit_when_done: bool = True
     instance: str = ""
+    skew_s: float = 0.05  # how far a state's stamp may run ahead of the controller's clock
+    health_period_s: float = 1.0
 
 
 class ControllerNode:
     """The bus shell around :class:`controller.service.CampaignService`: states and requests in,
-    commands, status and campaign events out (module docstring)."""
+    commands, status, health and campaign events out (module docstring)."""
 
     def __init__(self, session: zenoh.Session, params: Params, law: LawConfig, trajectory: Trajectory | None,
                  config: ControllerProcessConfig):
@@ -77,22 +90,43 @@ class ControllerNode:
         self.service = CampaignService(params, law, service=self._service, settle_s=config.settle_s,
                                        campaign_id=config.campaign_id or f"c-{uuid.uuid4().hex[:8]}",
                                        kind=config.campaign_kind)
-        self._own_trajectory = trajectory
+        self._robot, self._own_trajectory = params, trajectory
         n_motors = self.service.ctl.model.n_cables
         self.instance = config.instance or f"controller-{uuid.uuid4().hex[:6]}"
+        self.gate = StateGate(skew_s=config.skew_s)
+        self._gate_lock = threading.Lock()
 
         def check_state(msg: bus.MotorState) -> None:
+            # Zenoh's callback thread: a state that fails here never becomes the latest one, so a
+            # forged or foreign state cannot stand in for the bridge's (counted with its reason).
             if len(msg.theta_rad) != n_motors:
                 raise bus.BusDecodeError(f"MotorState: {len(msg.theta_rad)} angles for {n_motors} motors")
+            with self._gate_lock:
+                reason = self.gate.admit(msg, time.monotonic())
+            if reason:
+                raise bus.BusDecodeError(reason)
 
         self.states = subscribe_latest(session, bus.MOTOR_STATE, validate=check_state)
         self._cmd = publisher(session, bus.MOTOR_COMMAND)
         self._status = publisher(session, bus.CONTROLLER_STATUS)
         self._events = publisher(session, bus.CAMPAIGN_EVENTS)
+        self._health = publisher(session, bus.health_key("controller", self.instance))
         self._token = liveliness_token(session, "controller", self.instance)
-        self._seq = {"cmd": 0, "status": 0, "event": 0}
+        self._seq = {"cmd": 0, "status": 0, "event": 0, "health": 0}
         self._last_cmd: bus.ForceCommand | None = None
-        self._requests: queue.Queue[bus.CampaignRequest] = queue.Queue(maxsize=16)
+        self._started = time.monotonic()
+        # Requests: decoded and bounded in the callback, prepared by a worker thread (parsing and
+        # validating a trajectory may take seconds), started by the loop between two ticks.
+        self._req_lock = threading.Lock()
+        self.requests_received = self.requests_rejected = self._states_rejected_seen = 0
+        self.last_reject = ""  # the latest reason a state or a request was rejected
+        self._inbox: queue.Queue[bus.CampaignRequest] = queue.Queue(maxsize=16)
+        self._to_prepare: queue.Queue[bus.CampaignRequest | None] = queue.Queue(maxsize=4)
+        self._prepared: queue.Queue[tuple[bus.CampaignRequest, Prepared | Refused]] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        if self._service:
+            self._worker = threading.Thread(target=self._prepare_forever, name="campaign-prepare", daemon=True)
+            self._worker.start()
         self._request_sub = session.declare_subscriber(bus.CAMPAIGN_REQUEST, self._on_request) if self._service else None
         self._service_token = liveliness_token(session, "campaign-service", self.instance) if self._service else None
 
@@ -107,20 +141,17 @@ class ControllerNode:
     # -- bus out ------------------------------------------------------------------------------
     def publish_events(self) -> None:
         for ev in self.service.drain_events():
-            self._events.put(bus.CampaignEvent(seq=self._next("event"), stamp_s=time.time(), campaign_id=ev.campaign_id,
-                                               kind=ev.kind, event=ev.event, progress=ev.progress, message=ev.message))
+            self._events.put(bus.CampaignEvent(
+                seq=self._next("event"), stamp_s=time.time(), campaign_id=ev.campaign_id, kind=ev.kind,
+                event=ev.event, progress=ev.progress, message=ev.message, ticks=ev.ticks, overruns=ev.overruns,
+                deadline_misses=ev.deadline_misses))
 
-    def command(self, f: np.ndarray, stamp_s: float) -> None:
-        state = self.states.latest()  # the bridge run it answers (issue 13: the bridge refuses other epochs)
-        self._last_cmd = bus.ForceCommand(seq=self._next("cmd"), stamp_s=stamp_s, force_N=f.tolist(),
-                                          source=self.service.law.name, sender=self.instance,
-                                          epoch=state.epoch if state is not None else "")
+    def command(self, f: np.ndarray, state: bus.MotorState) -> None:
+        """Forces answering ``state``: its stamp and epoch, so every command is on the bridge's
+        clock (holds included) and a command for a previous bridge run is refused by the bridge."""
+        self._last_cmd = bus.ForceCommand(seq=self._next("cmd"), stamp_s=state.stamp_s, force_N=f.tolist(),
+                                          source=self.service.law.name, sender=self.instance, epoch=state.epoch)
         self._cmd.put(self._last_cmd)
-
-    def hold(self, reason: str, stamp_s: float) -> None:
-        if reason != self.service.hold_reason:
-            log.warning("holding: %s", reason)
-        self.command(self.service.hold(reason).force_N, stamp_s)
 
     def status(self, stamp_s: float, tick_s: float, compute_s: float, out: Output) -> None:
         svc = self.service
@@ -130,34 +161,99 @@ class ControllerNode:
             alpha_hat_rad=[float(a) if math.isfinite(a) else 0.0 for a in out.alpha_hat_rad],
             alpha_d_rad=list(map(float, out.alpha_d_rad)),
             e_rad=[float(x) if math.isfinite(x) else 0.0 for x in out.e_rad],
-            holding=bool(svc.hold_reason), hold_reason=svc.hold_reason))
+            holding=not out.law_ran, hold_reason="" if out.law_ran else svc.hold_reason,
+            campaign_id=svc.campaign_id if svc.running else "", ticks=svc.ticks))
+
+    def publish_health(self, stamp_s: float) -> None:
+        """Counters on ``xneck/health/controller/<instance>``: states and requests received and
+        rejected, and the latest reason (a forged state, a malformed request...)."""
+        states = self.states.stats
+        with self._req_lock:
+            received, rejected = self.requests_received, self.requests_rejected
+            if states.rejected > self._states_rejected_seen:
+                self.last_reject = states.last_reject_reason
+            self._states_rejected_seen = states.rejected
+            reason = self.last_reject
+        self._health.put(bus.Health(
+            seq=self._next("health"), stamp_s=stamp_s, process="controller", instance=self.instance,
+            uptime_s=time.monotonic() - self._started,
+            received={bus.MOTOR_STATE: states.received, bus.CAMPAIGN_REQUEST: received, "ticks": self._seq["status"]},
+            rejected={bus.MOTOR_STATE: states.rejected, bus.CAMPAIGN_REQUEST: rejected},
+            last_reject_reason=reason))
 
     # -- bus in -------------------------------------------------------------------------------
-    def _on_request(self, sample: zenoh.Sample) -> None:
-        try:
-            self._requests.put_nowait(bus.decode(bus.CampaignRequest, sample.payload.to_bytes()))
-        except (bus.BusDecodeError, queue.Full) as exc:
-            log.warning("campaign request rejected: %s", getattr(exc, "reason", exc))
+    def _reject_request(self, reason: str) -> None:
+        with self._req_lock:
+            self.requests_rejected += 1
+            self.last_reject = f"{bus.CAMPAIGN_REQUEST}: {reason}"
+        log.warning("campaign request rejected: %s", reason)
 
-    def _serve_requests(self, state: bus.MotorState) -> None:
-        """Service mode: start or stop campaigns asked for on the bus (between two ticks)."""
+    def _on_request(self, sample: zenoh.Sample) -> None:
+        # Zenoh's callback thread: bounded work only, and nothing may escape (a raise here would
+        # be a stack trace in Zenoh's thread, and a flood of them a dead service).
+        try:
+            with self._req_lock:
+                self.requests_received += 1
+            payload = sample.payload.to_bytes()
+            if len(payload) > MAX_REQUEST_BYTES:
+                self._reject_request(f"payload of {len(payload)} bytes, more than {MAX_REQUEST_BYTES}")
+                return
+            self._inbox.put_nowait(bus.decode(bus.CampaignRequest, payload))
+        except bus.BusDecodeError as exc:
+            self._reject_request(exc.reason)
+        except queue.Full:
+            self._reject_request("too many requests waiting")
+        except Exception as exc:  # see above
+            self._reject_request(f"{type(exc).__name__}: {exc}")
+
+    def _prepare_forever(self) -> None:
+        """Worker thread: parse and validate start requests off the 500 Hz loop (within the
+        service's time budget), hand the result to the loop."""
+        while True:
+            req = self._to_prepare.get()
+            if req is None:
+                return
+            try:
+                result: Prepared | Refused = prepare(req, self._robot, self.service.law)
+            except Refused as exc:
+                result = exc
+            except Exception as exc:  # prepare refuses everything: a backstop
+                result = Refused(f"refused: {type(exc).__name__}: {exc}")
+            self._prepared.put((req, result))
+
+    def _serve_requests(self, stamp_s: float) -> None:
+        """Service mode, between two ticks: stop requests at once, start requests to the worker,
+        prepared campaigns started."""
+        svc = self.service
         while True:
             try:
-                req = self._requests.get_nowait()
+                req, result = self._prepared.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(result, Refused):
+                log.warning("campaign %s: %s", req.campaign_id, result.reason)
+                self._reject_request(f"{req.campaign_id}: {result.reason}")
+            svc.prepared(result, req.campaign_id, req.kind, stamp_s)
+        while True:
+            try:
+                req = self._inbox.get_nowait()
             except queue.Empty:
                 return
-            self.service.handle(req, state.stamp_s)
-            for ev in self.service.events:
-                if ev.event == "aborted" and ev.campaign_id == req.campaign_id and req.action == "start":
-                    log.warning("campaign %s: %s", req.campaign_id, ev.message)
+            if req.action == "stop":
+                svc.stop(req.campaign_id, stamp_s)
+            elif svc.request_start(req):
+                try:
+                    self._to_prepare.put_nowait(req)
+                except queue.Full:
+                    svc.prepared(Refused("refused: the controller is busy preparing other campaigns"),
+                                 req.campaign_id, req.kind, stamp_s)
 
     # -- the loop -----------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> str:
         """Run until the trajectory is done (then "finished"), the estimate diverges ("aborted"),
         the states stop for good ("aborted") or ``stop`` is set ("stopped"). In service mode
         (``exit_when_done`` False) it holds between campaigns and serves campaign requests."""
-        cfg, svc = self.config, self.service
-        svc.warm_up()
+        self.service.warm_up()
         # Everything allocated so far lives for the whole run: keep the collector off it, so a
         # full collection cannot land in the middle of a 2 ms tick.
         gc.collect()
@@ -165,78 +261,99 @@ class ControllerNode:
         # Zenoh's callback threads share the GIL with this loop: hand it over every 0.5 ms rather
         # than every 5 ms, so a state waiting in a callback is not held up for a whole period.
         sys.setswitchinterval(0.0005)
+        try:
+            return self._loop(stop)
+        finally:
+            self.publish_events()
+            if self._worker is not None:
+                with contextlib.suppress(queue.Full):
+                    self._to_prepare.put_nowait(None)
+
+    def _loop(self, stop: threading.Event) -> str:
+        cfg, svc = self.config, self.service
         first = self.states.wait(cfg.startup_timeout_s)
         if first is None:
             svc.outcome = "aborted"
             svc.refuse(svc.campaign_id, svc.kind, f"no motor state within {cfg.startup_timeout_s} s of start")
-            self.publish_events()
             return svc.outcome
         svc.initialise(np.asarray(first.theta_rad))
         if self._own_trajectory is not None:
             svc.begin(self._own_trajectory, first.stamp_s)
-        # A state is new when its stamp is: a waiting lockstep twin re-publishes the same state.
-        last_stamp, last_wall = None, time.perf_counter()
+        # A state is new when its (epoch, stamp) is: a waiting lockstep twin re-publishes the same
+        # state, and a restarted bridge starts its clock again under a new epoch.
+        last, last_wall = (first.epoch, None), time.perf_counter()
         state = first
-        try:
-            while not stop.is_set():
-                self.publish_events()
-                if last_stamp is not None:
-                    state = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s,
-                                             lambda s: s.stamp_s > last_stamp)
-                    if state is None or state.stamp_s <= last_stamp:
-                        stale_for = time.perf_counter() - last_wall
-                        if stale_for > cfg.idle_timeout_s and cfg.exit_when_done:
-                            svc.outcome = "aborted"
-                            svc.refuse(svc.campaign_id, svc.kind, f"no motor state for {stale_for:.1f} s")
-                            return svc.outcome
-                        if cfg.lockstep:
-                            # The bus may drop a message: resend the same command (same seq, so a twin
-                            # that already stepped on it ignores it) instead of stalling.
-                            if self._last_cmd is not None:
-                                self._cmd.put(self._last_cmd)
-                        elif self._last_cmd is not None:
-                            self.hold(f"stale state: none for {stale_for * 1e3:.0f} ms", time.time())
-                        continue
-                wall = time.perf_counter()
-                tick_s, last_wall, last_stamp = wall - last_wall, wall, state.stamp_s
-                if self._service:
-                    self._serve_requests(state)
-                if svc.outcome in ("aborted", "finished") and cfg.exit_when_done:
-                    return svc.outcome
-                if not self._tick(state, wall, tick_s) and cfg.exit_when_done:
-                    return svc.outcome
-                if not svc.running and svc.outcome == "finished" and cfg.exit_when_done:
-                    return svc.outcome
-            return svc.outcome or "stopped"
-        finally:
+        next_health = time.monotonic()
+        while not stop.is_set():
             self.publish_events()
+            if time.monotonic() >= next_health:
+                self.publish_health(state.stamp_s)
+                next_health = time.monotonic() + cfg.health_period_s
+            if last[1] is not None:
+                fresh = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s,
+                                         lambda s, last=last: (s.epoch, s.stamp_s) != last)
+                if fresh is None or (fresh.epoch, fresh.stamp_s) == last:
+                    stale_for = time.perf_counter() - last_wall
+                    if stale_for > cfg.idle_timeout_s and cfg.exit_when_done:
+                        svc.outcome = "aborted"
+                        svc.refuse(svc.campaign_id, svc.kind, f"no motor state for {stale_for:.1f} s")
+                        return svc.outcome
+                    if cfg.lockstep:
+                        # The bus may drop a message: resend the same command (same seq, so a twin
+                        # that already stepped on it ignores it) instead of stalling.
+                        if self._last_cmd is not None:
+                            self._cmd.put(self._last_cmd)
+                    elif self._last_cmd is not None:
+                        if not svc.hold_reason.startswith("stale state"):
+                            log.warning("holding: stale state")
+                        # On the last state's clock and epoch: one clock on the command key.
+                        self.command(svc.stale(f"stale state: none for {stale_for * 1e3:.0f} ms").force_N, state)
+                    continue
+                state = fresh
+                if state.epoch != last[0]:
+                    log.warning("bridge %s restarted (epoch %s): re-initialising from its state", state.bridge,
+                                state.epoch)
+                    svc.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge)
+            wall = time.perf_counter()
+            tick_s, last_wall, last = wall - last_wall, wall, (state.epoch, state.stamp_s)
+            if self._service:
+                self._serve_requests(state.stamp_s)
+            if svc.outcome in ("aborted", "finished") and cfg.exit_when_done:
+                return svc.outcome
+            if not self._tick(state, wall, tick_s) and cfg.exit_when_done:
+                return svc.outcome
+            if not svc.running and svc.outcome == "finished" and cfg.exit_when_done:
+                return svc.outcome
+        return svc.outcome or "stopped"
 
     def _tick(self, state: bus.MotorState, wall: float, tick_s: float) -> bool:
-        """One law tick on ``state``; False when the campaign had to be aborted."""
+        """One tick on ``state``; False when the campaign had to be aborted by a diverging estimate."""
         svc = self.service
         period = 1.0 / svc.law.rate_hz
         was_latched, reason_before = svc.latched, svc.hold_reason
-        out = svc.control(np.asarray(state.theta_rad), state.stamp_s)
-        if not out.law_ran:
-            if svc.hold_reason != reason_before:
-                log.warning("holding: %s", svc.hold_reason)
-            self.command(out.force_N, state.stamp_s)
-            return was_latched
-        self.command(out.force_N, state.stamp_s)
+        svc.drive_reason = state.estop_reason if state.drive == "disabled" else state.hold_reason
+        if state.owner and state.owner != self.instance:
+            svc.drive_reason = f"the bridge obeys controller {state.owner}, not this one"
+        out = svc.control(np.asarray(state.theta_rad), state.stamp_s, state.drive, np.asarray(state.force_applied_N))
+        if not out.law_ran and svc.hold_reason.split(":")[0] != reason_before.split(":")[0]:
+            log.warning("holding: %s", svc.hold_reason)
+        self.command(out.force_N, state)
         compute_s = time.perf_counter() - wall
         # A deadline miss: the command left more than one period after its state arrived.
         missed = not self.config.lockstep and time.time_ns() - self.states.latest_with_time()[1] > period * 1e9
         svc.count_timing(compute_s > period, missed)
         self.status(state.stamp_s, tick_s, compute_s, out)
-        svc.advance(state.stamp_s)
-        return True
+        if out.law_ran:
+            svc.advance(state.stamp_s)
+        return not (svc.latched and not was_latched)
 
     def close(self) -> None:
-        closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._token.undeclare]
-        if self._service:
-            closers += [self._request_sub.undeclare, self._service_token.undeclare]
+        closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._health.close,
+                   self._token.undeclare]
+        closers += [x.undeclare for x in (self._request_sub, self._service_token) if x is not None]
         for closer in closers:
-            try:
+            with contextlib.suppress(Exception):  # the session may already be gone
                 closer()
-            except Exception:  # noqa: BLE001
-                pass
+        if self._worker is not None:
+            with contextlib.suppress(queue.Full):
+                self._to_prepare.put_nowait(None)

@@ -17,13 +17,29 @@ Holds: :meth:`CampaignService.hold` commands Z f = g(α) with every cable at t_m
 (:func:`controller.laws.hold_forces`) at α̂, or at the last sane α̂ when the estimate is not
 (non-finite or beyond the joint limits). A diverging estimate latches the hold until the next
 campaign starts.
+
+Drives and re-starts (issue 13): while the bridge says the drives are not ``active`` (``disabled``
+by the e-stop, ``inactive`` until a command enables them, or ``hold`` by its watchdog) the law
+does not run: α̂ follows the encoders and the applied forces
+(:meth:`controller.laws.ComputedTorque.observe`), the integral stays at zero and the command is
+the hold forces at α̂, so nothing grows while the drives are off and the first command that
+enables them is one that holds the neck where it is. When the drives are ``active`` again (and
+after a hold of the controller's own for stale states) the law re-starts from the measurement: a
+fresh integral and α^d starting at α̂, blended back to the trajectory by a cycloid as gentle as
+:func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
+``aborted`` with the reason, and none starts while they are.
+
+Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
+count and duration, a time budget for the force check); :class:`StateGate` admits motor states
+of one bridge run on a clock consistent with the controller's own.
 """
 
 from __future__ import annotations
 
-import json
 import math
+import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -31,11 +47,24 @@ import numpy as np
 
 from bridge import bus
 from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
-from controller.trajectory import Trajectory, TrajectoryError, TrajectoryLimits, approach, validate
+from controller.trajectory import (
+    ForceCheck,
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    approach,
+    approach_duration_s,
+    cycloid,
+    trajectory_from_json,
+    validate,
+)
 from twin.model.params import Params, params_from_dict
 
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
 PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
+VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
+FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
+BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
 
@@ -49,6 +78,9 @@ class Event:
     event: bus.CampaignEventKind
     progress: float = 0.0
     message: str = ""
+    ticks: int = 0
+    overruns: int = 0
+    deadline_misses: int = 0
 
 
 class Output(NamedTuple):
@@ -59,7 +91,7 @@ class Output(NamedTuple):
     alpha_d_rad: np.ndarray  # (N,)
     e_rad: np.ndarray  # (N,)
     saturated: np.ndarray  # (n_cables,) bool
-    law_ran: bool  # False for a hold (no status is published for it)
+    law_ran: bool  # False for a hold
 
 
 @dataclass(frozen=True)
@@ -82,10 +114,35 @@ class Refused(Exception):
         self.reason = reason
 
 
-def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig) -> Prepared:
+def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) -> ForceCheck:
+    """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``: a validation whose
+    cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
+
+    def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
+        ok = np.ones(len(alpha), dtype=bool)
+        for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
+            if clock() > deadline:
+                raise Refused("refused: the force check did not finish within its time budget; "
+                              "ask for a shorter trajectory")
+            part = slice(k, k + FORCE_CHECK_CHUNK)
+            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part])
+            if not ok[part].all():
+                return ok, reason
+        return ok, ""
+
+    return run
+
+
+def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
+            budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic) -> Prepared:
     """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
-    gives the gains and rate kept from the process's own law. Raises :class:`Refused`."""
+    gives the gains and rate kept from the process's own law. Runs off the control loop (it may
+    take seconds), never longer than ``budget_s`` by ``clock``. Raises :class:`Refused` with the
+    reason for anything wrong, never another exception."""
+    deadline = clock() + budget_s
     try:
+        if not req.trajectory_json:
+            raise ValueError("the request has no trajectory (trajectory_json is empty)")
         params = robot
         if req.parameters_toml:
             params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
@@ -93,12 +150,60 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig) -> Prepared
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
         new_law = LawConfig(law=req.law, no_pulleys=req.no_pulleys, omega=law.omega, rate_hz=law.rate_hz)
-        traj = Trajectory.from_dict(json.loads(req.trajectory_json))
-        validate(traj, TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg)),
-                 params.n_joints, nominal_force_check(params, new_law))
-    except (ValueError, TrajectoryError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        traj = trajectory_from_json(req.trajectory_json)
+        base = limits or TrajectoryLimits()
+        limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg),
+                                  alpha_dot_max_rad_s=base.alpha_dot_max_rad_s,
+                                  alpha_ddot_max_rad_s2=base.alpha_ddot_max_rad_s2,
+                                  duration_max_s=base.duration_max_s, waypoints_max=base.waypoints_max)
+        validate(traj, limits, params.n_joints, _budgeted(nominal_force_check(params, new_law), deadline, clock))
+    except Refused:
+        raise
+    except (ValueError, TrajectoryError, tomllib.TOMLDecodeError) as exc:
         raise Refused(f"refused: {exc}") from None
+    except RecursionError:
+        raise Refused("refused: the parameter set is nested too deeply") from None
+    except Exception as exc:  # hostile input: any failure is a refusal, never a crash
+        raise Refused(f"refused: {type(exc).__name__}: {exc}") from None
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
+
+
+class StateGate:
+    """Which motor states the controller takes (finding 3 of issue 13): those of one bridge run
+    (``bridge`` instance and ``epoch``), with stamps that never go back and never run ahead of the
+    controller's own clock by more than ``skew_s`` since the last state taken (a lockstep twin's
+    2 ms step per state is within it). Only after ``rebind_s`` without any state taken does the
+    gate start again from the next state: of a new run (a restarted bridge is taken at once, its
+    first state comes long after the old run's last) or of the same one (a bridge whose clock
+    stepped). A forged run or stamp beside a live bridge is never taken. ``now_s``: a monotonic
+    clock (s)."""
+
+    def __init__(self, skew_s: float = 0.05, rebind_s: float = 0.25) -> None:
+        self.skew_s, self.rebind_s = skew_s, rebind_s
+        self.bridge = self.epoch = ""
+        self._stamp = self._wall = -math.inf  # the newest stamp taken, and when
+        self._taken = -math.inf  # when the last state was taken (a re-publication too)
+
+    def admit(self, state: bus.MotorState, now_s: float) -> str:
+        """"" if ``state`` is taken, else why not."""
+        if now_s - self._taken >= self.rebind_s:
+            self.bridge, self.epoch = state.bridge, state.epoch
+            self._stamp, self._wall = state.stamp_s, now_s
+            self._taken = now_s
+            return ""
+        if (state.bridge, state.epoch) != (self.bridge, self.epoch):
+            return (f"MotorState of bridge {state.bridge!r} run {state.epoch!r}: the controller is bound to "
+                    f"{self.bridge!r} run {self.epoch!r}, which is alive")
+        if state.stamp_s < self._stamp:
+            return f"MotorState stamp {state.stamp_s:.6g} s goes back in time (last {self._stamp:.6g} s)"
+        ahead = (state.stamp_s - self._stamp) - (now_s - self._wall)
+        if ahead > self.skew_s:
+            return (f"MotorState stamp {state.stamp_s:.6g} s runs {ahead:.3g} s ahead of the controller's clock "
+                    f"(at most {self.skew_s:g} s)")
+        if state.stamp_s > self._stamp:
+            self._stamp, self._wall = state.stamp_s, now_s
+        self._taken = now_s
+        return ""
 
 
 @dataclass
@@ -120,8 +225,11 @@ class CampaignService:
     outcome: str = ""
     hold_reason: str = ""
     latched: bool = False
-    overruns: int = 0
+    overruns: int = 0  # these three count since the campaign started (or the last one ended)
     deadline_misses: int = 0
+    ticks: int = 0
+    drive: str = "inactive"  # the bridge's drive state in the last state taken
+    drive_reason: str = ""  # why, when it is not active (e-stop reason, bridge hold reason)
     trajectory: Trajectory | None = None
     events: list[Event] = field(default_factory=list)
 
@@ -132,6 +240,9 @@ class CampaignService:
         self.hold_target = np.zeros(n_joints)
         self._t0, self._total, self._next_progress = 0.0, math.inf, 0.0
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
+        self._restart = False  # the law takes over again at the next active state
+        self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
+        self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -139,7 +250,8 @@ class CampaignService:
         return out
 
     def _event(self, event: bus.CampaignEventKind, progress: float = 0.0, message: str = "") -> None:
-        self.events.append(Event(self.campaign_id, self.kind, event, progress, message))
+        self.events.append(Event(self.campaign_id, self.kind, event, progress, message,
+                                 self.ticks, self.overruns, self.deadline_misses))
 
     @property
     def running(self) -> bool:
@@ -150,14 +262,27 @@ class CampaignService:
         """One throw-away tick so the first real one does not pay for first calls (LAPACK, caches)."""
         z = np.zeros(self.ctl.model.n_joints)
         self.ctl.step(np.zeros(self.ctl.model.n_cables), z, z, z)
+        hold_forces(self.params, z)
 
     def initialise(self, theta_rad: np.ndarray) -> None:
-        """The first state: the estimate starts from the encoders (the neck straight, eq. 20's zero)."""
+        """The first state of a bridge run: the estimate starts from the encoders (the neck
+        straight, eq. 20's zero), and the service holds there."""
         self.ctl.reset(theta=np.asarray(theta_rad, dtype=float))
+        self.last_sane = self.ctl.estimator.alpha_hat.copy()
+        self.hold_target = self.last_sane.copy()
+        self._restart, self._blend = True, None
+
+    def new_bridge_run(self, theta_rad: np.ndarray, stamp_s: float, bridge: str) -> None:
+        """The bridge restarted (a new epoch): its clock and encoders start again, so a running
+        campaign cannot go on; the estimate starts again from the encoders."""
+        if self.running:
+            self._end("aborted", f"the bridge restarted ({bridge}): the campaign cannot continue",
+                      self._progress(stamp_s), self.ctl.estimator.alpha_hat)
+        self.initialise(theta_rad)
 
     # -- campaigns ----------------------------------------------------------------------------
     def begin(self, trajectory: Trajectory, stamp_s: float) -> None:
-        """Run ``trajectory`` from ``stamp_s`` (the states' clock) on."""
+        """Run ``trajectory`` from ``stamp_s`` (the states' clock) on; the counters start at zero."""
         self.trajectory = trajectory
         self.phase = "running"
         self._t0 = stamp_s
@@ -165,6 +290,9 @@ class CampaignService:
         self._next_progress = 0.0
         self.outcome = ""
         self.latched = False
+        self.ticks = self.overruns = self.deadline_misses = 0
+        self.ctl.restart_integral()
+        self._blend = None
         self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:
@@ -172,15 +300,20 @@ class CampaignService:
         self.phase = outcome
         self._event(outcome, progress, message)
         self.trajectory = None
+        self._blend = None
         self.hold_target = np.array(hold_at, dtype=float)
+        self.ticks = self.overruns = self.deadline_misses = 0
 
     def _progress(self, stamp_s: float) -> float:
-        return min((stamp_s - self._t0) / self._total, 1.0)
+        return min(max((stamp_s - self._t0) / self._total, 0.0), 1.0)
 
     def stop(self, campaign_id: str, stamp_s: float) -> None:
-        """A stop request: aborts the running campaign if it is ``campaign_id``."""
+        """A stop request: aborts the campaign ``campaign_id`` if it runs or is being prepared."""
         if self.running and campaign_id == self.campaign_id:
             self._end("aborted", "stopped by the user", self._progress(stamp_s), self.ctl.estimator.alpha_hat)
+        elif self._starting is not None and self._starting[0] == campaign_id:
+            self.refuse(campaign_id, self._starting[1], "stopped by the user before it started")
+            self._starting, self.phase = None, "idle"
 
     def refuse(self, campaign_id: str, kind: str, message: str) -> None:
         """Answer a request the service will not run with an ``aborted`` event of its id."""
@@ -188,13 +321,40 @@ class CampaignService:
 
     def busy_reason(self) -> str:
         """Why a new campaign cannot start now ("" if it can)."""
-        return f"the controller is running campaign {self.campaign_id}" if self.running else ""
+        if self.running:
+            return f"the controller is running campaign {self.campaign_id}"
+        if self._starting is not None:
+            return f"the controller is preparing campaign {self._starting[0]}"
+        if self.drive == "disabled":
+            return f"drives disabled ({self.drive_reason or 'e-stop'}): release the e-stop first"
+        return ""  # a latched hold too: a new campaign is how it is lifted
+
+    def request_start(self, req: bus.CampaignRequest) -> bool:
+        """A start request arrived: True if it is to be prepared (the service is ``starting``);
+        otherwise it was refused with the reason."""
+        busy = self.busy_reason()
+        if busy:
+            self.refuse(req.campaign_id, req.kind, f"refused: {busy}")
+            return False
+        self._starting, self.phase = (req.campaign_id, req.kind), "starting"
+        return True
+
+    def prepared(self, result: Prepared | Refused, campaign_id: str, kind: str, stamp_s: float) -> None:
+        """The preparation of ``campaign_id`` ended: start it, or pass the refusal on. Dropped if
+        the campaign was stopped meanwhile (it was answered then)."""
+        if self._starting is None or self._starting[0] != campaign_id:
+            return
+        self._starting, self.phase = None, "idle"
+        if isinstance(result, Refused):
+            self.refuse(campaign_id, kind, result.reason)
+            return
+        self.start(result, stamp_s)
 
     def start(self, prepared: Prepared, stamp_s: float) -> None:
         """Start a prepared campaign, approaching its first waypoint gently from α̂."""
         busy = self.busy_reason()
         if busy:
-            self.refuse(prepared.campaign_id, prepared.kind, busy)
+            self.refuse(prepared.campaign_id, prepared.kind, f"refused: {busy}")
             return
         self.params = prepared.params
         self._switch_law(prepared.law)
@@ -202,20 +362,17 @@ class CampaignService:
         self.begin(approach(prepared.trajectory, self.ctl.estimator.alpha_hat), stamp_s)
 
     def handle(self, req: bus.CampaignRequest, stamp_s: float) -> None:
-        """A campaign request, prepared here and now (between two ticks)."""
+        """A campaign request, prepared here and now (tests; the process prepares off its loop)."""
         if req.action == "stop":
             self.stop(req.campaign_id, stamp_s)
             return
-        busy = self.busy_reason()
-        if busy:
-            self.refuse(req.campaign_id, req.kind, busy)
+        if not self.request_start(req):
             return
         try:
-            prepared = prepare(req, self.params, self.law)
+            result: Prepared | Refused = prepare(req, self.params, self.law)
         except Refused as exc:
-            self.refuse(req.campaign_id, req.kind, exc.reason)
-            return
-        self.start(prepared, stamp_s)
+            result = exc
+        self.prepared(result, req.campaign_id, req.kind, stamp_s)
 
     def _switch_law(self, law: LawConfig) -> None:
         """A new law continues from the current estimate (α̂, θ and, when both models are
@@ -226,6 +383,7 @@ class CampaignService:
         if ctl.model.cable_model == old_ctl.model.cable_model:
             ctl.estimator.x_c = old.x_c.copy()
         ctl.theta_dot = old_ctl.theta_dot.copy()
+        ctl.f_prev = old_ctl.f_prev.copy()
         self.ctl, self.law = ctl, law
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
 
@@ -245,20 +403,71 @@ class CampaignService:
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
 
+    def stale(self, reason: str) -> Output:
+        """No new state in time: hold, and re-start the law from the measurement when states return."""
+        self._restart = True
+        return self.hold(reason)
+
     def reference(self, stamp_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """α^d, α̇^d, α̈^d at ``stamp_s``: the campaign's trajectory, or the hold target."""
+        """α^d, α̇^d, α̈^d at ``stamp_s``: the campaign's trajectory or the hold target, plus the
+        re-start blend while it lasts: (α̂₀ − α^d₀)(1 − s(τ)) with the cycloid s over the blend's
+        duration, so α^d starts at α̂ and joins the trajectory at rest relative to it."""
         if self.trajectory is not None:
             ref = self.trajectory.sample(np.array([stamp_s - self._t0]))
-            return ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
-        z = np.zeros_like(self.hold_target)
-        return self.hold_target, z, z
+            a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
+        else:
+            a_d = self.hold_target
+            a_d_dot = a_d_ddot = np.zeros_like(a_d)
+        if self._blend is not None:
+            start_s, offset, duration_s = self._blend
+            tau = (stamp_s - start_s) / duration_s
+            if tau >= 1.0:
+                self._blend = None
+            else:
+                s, ds, dds = cycloid(tau)
+                a_d = a_d + offset * (1.0 - s)
+                a_d_dot = a_d_dot - offset * (ds / duration_s)
+                a_d_ddot = a_d_ddot - offset * (dds / duration_s**2)
+        return a_d, a_d_dot, a_d_ddot
 
-    def control(self, theta_rad: np.ndarray, stamp_s: float) -> Output:
-        """One law tick on a new state (encoders θ at ``stamp_s``). A diverging estimate
-        (non-finite, or beyond the joint limit plus a margin) latches a hold and aborts the campaign."""
-        a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
+    def _take_over(self, stamp_s: float) -> None:
+        """The law re-starts from the measured state: fresh integral, α^d from α̂ (module docstring)."""
+        self._restart = False
+        self.ctl.restart_integral()
+        alpha_hat = self.hold_alpha()
+        if not self.running:
+            self.hold_target = alpha_hat.copy()
+            self._blend = None
+            return
+        self._blend = None
+        a_d = self.reference(stamp_s)[0]
+        offset = alpha_hat - a_d
+        delta = float(np.max(np.abs(offset)))
+        if delta > BLEND_TOLERANCE_RAD:
+            self._blend = (stamp_s, offset, approach_duration_s(delta))
+
+    def control(self, theta_rad: np.ndarray, stamp_s: float, drive: str = "active",
+                force_applied_N: np.ndarray | None = None) -> Output:
+        """One tick on a new state: encoders θ at ``stamp_s``, the bridge's ``drive`` state and the
+        forces it applies. A diverging estimate (non-finite, or beyond the joint limit plus a
+        margin) latches a hold and aborts the campaign; drives that are not active get the hold
+        forces at α̂ and the law re-starts bumplessly when they are (module docstring)."""
+        self.ticks += 1
+        self.drive = drive
+        if drive != "active":
+            applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
+            self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
+            self._restart = True
+            reason = f"drives {drive}" + (f": {self.drive_reason}" if self.drive_reason else "")
+            if drive == "disabled" and self.running:
+                self._end("aborted", f"{reason} during the campaign", self._progress(stamp_s), self.hold_alpha())
+            return self.hold(self.hold_reason if self.latched else reason)
         if self.latched:
+            self.reference(stamp_s)
             return self.hold(self.hold_reason)
+        if self._restart:
+            self._take_over(stamp_s)
+        a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot)
         if not np.all(np.isfinite(cmd.alpha_hat)) or np.any(np.abs(cmd.alpha_hat) > self._limit) \
                 or not np.all(np.isfinite(cmd.f)):

@@ -37,25 +37,27 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
-    "TrajectoryError",
-    "TrajectorySample",
-    "Trajectory",
-    "TrajectoryLimits",
-    "TrajectoryFile",
-    "ForceCheck",
-    "cycloid",
-    "CYCLOID_PEAK_VELOCITY",
-    "CYCLOID_PEAK_ACCELERATION",
-    "identification_trajectory",
-    "control_test_trajectory",
-    "IDENTIFICATION_AMPLITUDES_DEG",
     "CONTROL_TEST_WAYPOINTS_DEG",
+    "CYCLOID_PEAK_ACCELERATION",
+    "CYCLOID_PEAK_VELOCITY",
+    "IDENTIFICATION_AMPLITUDES_DEG",
     "NAMED_TRAJECTORIES",
-    "trajectory_by_name",
+    "ForceCheck",
+    "Trajectory",
+    "TrajectoryError",
+    "TrajectoryFile",
+    "TrajectoryLimits",
+    "TrajectorySample",
+    "approach",
+    "approach_duration_s",
+    "control_test_trajectory",
+    "cycloid",
+    "identification_trajectory",
     "load_trajectory",
+    "trajectory_by_name",
+    "trajectory_from_json",
     "trajectory_json_schema",
     "validate",
-    "approach",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -343,6 +345,16 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
         raise TrajectoryError(f"{where}{err}") from err
 
 
+def trajectory_from_json(text: str | bytes) -> Trajectory:
+    """A trajectory from JSON text in the user-file schema (:class:`TrajectoryFile`), for input
+    that is not trusted (the bus, REST): never a path, so it opens no file; the structure is
+    checked while decoding, so deep nesting or a wrong type fails fast with a reason."""
+    try:
+        return _from_file_struct(msgspec.json.decode(text, type=TrajectoryFile))
+    except (msgspec.ValidationError, msgspec.DecodeError) as err:
+        raise TrajectoryError(f"trajectory JSON: {err}") from None
+
+
 # -- the paper's trajectories ---------------------------------------------------------------
 
 IDENTIFICATION_AMPLITUDES_DEG: tuple[tuple[float, float, float], ...] = (
@@ -447,17 +459,25 @@ class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         and control-test (≤ 0.87 rad/s, 1.37 rad/s²) trajectories pass with a ×1.6 / ×2 margin,
         while the controller's simplified model (Eq. 66, centrifugal and elongation-acceleration
         terms dropped because "motions are not very fast") stays credible.
+      * ``duration_max_s`` = 600 s and ``waypoints_max`` = 2000: what one campaign may ask for
+        (the identification trajectory is 97 s and 25 waypoints). Checked first, so that the
+        force check, whose cost grows with the duration, never runs on a huge request.
     """
 
     alpha_max_rad: float | tuple[float, ...] = math.radians(60.0)
     alpha_dot_max_rad_s: float | tuple[float, ...] = 1.5
     alpha_ddot_max_rad_s2: float | tuple[float, ...] = 3.0
+    duration_max_s: float = 600.0
+    waypoints_max: int = 2000
 
     def __post_init__(self) -> None:
-        for name in self.__struct_fields__:
+        for name in _PER_JOINT:
             values = np.atleast_1d(np.asarray(getattr(self, name), dtype=np.float64))
             if values.size == 0 or not np.all(np.isfinite(values) & (values > 0)):
                 raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)}")
+        if not (math.isfinite(self.duration_max_s) and self.duration_max_s > 0 and self.waypoints_max >= 1):
+            raise ValueError(f"duration_max_s and waypoints_max must be positive, got {self.duration_max_s}, "
+                             f"{self.waypoints_max}")
 
     @classmethod
     def from_degrees(
@@ -478,13 +498,15 @@ class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     def per_joint(self, n_joints: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(|α| max, |α̇| max, |α̈| max), each shape (n_joints,) (rad, rad/s, rad/s²)."""
         out = []
-        for name in self.__struct_fields__:
+        for name in _PER_JOINT:
             values = np.asarray(getattr(self, name), dtype=np.float64)
             if values.ndim == 1 and values.shape != (n_joints,):
                 raise TrajectoryError(f"limit {name} has {values.size} values for {n_joints} joints")
             out.append(np.broadcast_to(values, (n_joints,)).astype(np.float64))
         return out[0], out[1], out[2]
 
+
+_PER_JOINT = ("alpha_max_rad", "alpha_dot_max_rad_s", "alpha_ddot_max_rad_s2")
 
 # Tolerance on limits: a waypoint written as exactly 60° must pass a 60° limit after deg → rad.
 _RTOL = 1e-9
@@ -500,7 +522,7 @@ def validate(
 ) -> None:
     """Reject an unsafe trajectory before anything moves; returns None if it is acceptable.
 
-    Checks, in order: number of joints; every waypoint within ±α_max (a cycloidal move is
+    Checks, in order: number of joints; number of waypoints and total duration; every waypoint within ±α_max (a cycloidal move is
     monotonic per joint, so the whole path then stays within limits); each segment's exact peak
     |α̇| = 2|Δ|/T and |α̈| = 2π|Δ|/T²; then, if ``force_check`` is given, the nominal path
     sampled every ``dt_s`` (plus every waypoint time), reporting the first failing sample.
@@ -515,6 +537,12 @@ def validate(
         raise TrajectoryError(
             f"{traj.name!r}: wrong number of joints: waypoints have {traj.n_joints}, the robot has {n_joints}"
         )
+    if traj.n_waypoints > limits.waypoints_max:
+        raise TrajectoryError(f"{traj.name!r}: {traj.n_waypoints} waypoints, more than the {limits.waypoints_max} "
+                              "a campaign may have")
+    if traj.duration_s > limits.duration_max_s:
+        raise TrajectoryError(f"{traj.name!r}: lasts {traj.duration_s:.4g} s, longer than the "
+                              f"{limits.duration_max_s:.4g} s a campaign may last")
     a_max, v_max, acc_max = limits.per_joint(n_joints)
     w = traj.waypoints_rad
 
@@ -559,6 +587,17 @@ def validate(
         )
 
 
+APPROACH_SPEED_MAX_RAD_S = 0.5
+APPROACH_ACCELERATION_MAX_RAD_S2 = 1.0
+
+
+def approach_duration_s(delta_rad: float) -> float:
+    """Duration (s) of a gentle cycloidal move over ``delta_rad`` (the largest joint's): peak speed
+    at most 0.5 rad/s and acceleration at most 1 rad/s², at least 1 s."""
+    return max(1.0, CYCLOID_PEAK_VELOCITY * delta_rad / APPROACH_SPEED_MAX_RAD_S,
+               math.sqrt(CYCLOID_PEAK_ACCELERATION * delta_rad / APPROACH_ACCELERATION_MAX_RAD_S2))
+
+
 def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math.radians(0.5)) -> Trajectory:
     """``traj`` preceded, if the neck is not already at its first waypoint, by a gentle cycloidal
     move from ``alpha_now`` (rad): peak speed at most 0.5 rad/s and acceleration at most 1 rad/s²,
@@ -568,7 +607,7 @@ def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math
     delta = float(np.max(np.abs(w[0] - now)))
     if delta <= tolerance_rad:
         return traj
-    move_s = max(1.0, CYCLOID_PEAK_VELOCITY * delta / 0.5, math.sqrt(CYCLOID_PEAK_ACCELERATION * delta / 1.0))
+    move_s = approach_duration_s(delta)
     durations = np.broadcast_to(np.asarray(traj.durations_s, dtype=np.float64), (len(w) - 1,))
     dwell = np.broadcast_to(np.asarray(traj.dwell_s, dtype=np.float64), (len(w),)) if np.size(traj.dwell_s) else np.zeros(len(w))
     return Trajectory(

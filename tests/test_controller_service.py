@@ -3,19 +3,24 @@ request handling, against the twin's simulator in the same process, without any 
 
 from __future__ import annotations
 
+import json
+import math
+from typing import Literal
+
 import numpy as np
 import pytest
 
 from bridge import bus
 from controller.laws import LawConfig, hold_forces
-from controller.service import CampaignService
+from controller.service import CampaignService, Refused, StateGate, prepare
 from controller.trajectory import Trajectory
 from twin.sim.simulator import Twin, TwinConfig
 
 NOD = Trajectory.from_degrees([[0, 0, 0], [10, 5, 0]], 1.0, 0.2, name="nod")
 
 
-def _request(cid="c-1", action="start", trajectory_json=NOD.to_json(), **kw) -> bus.CampaignRequest:
+def _request(cid="c-1", action: Literal["start", "stop"] = "start", trajectory_json=NOD.to_json(),
+             **kw) -> bus.CampaignRequest:
     return bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id=cid, action=action, trajectory_json=trajectory_json, **kw)
 
 
@@ -113,3 +118,142 @@ def test_a_headless_campaign_ends_aborted_on_divergence(params):
     loop.run(0.1)
     loop.run(0.004, theta=np.array([1e3, -1e3, 0.0, 0.0]))
     assert loop.svc.outcome == "aborted" and loop.events[-1].event == "aborted"
+
+
+# -- issue 13: a controller safe on a hostile bus (pure parts) --------------------------------
+
+
+class DriveLoop(Loop):
+    """The loop with the bridge's drive state: while not "active" the plant gets no force."""
+
+    def run_drive(self, seconds: float, drive: str) -> list:
+        outs = []
+        for _ in range(round(seconds * 500)):
+            applied = self.outputs[-1].force_N if (self.outputs and drive == "active") else np.zeros(4)
+            out = self.svc.control(self.tick.theta_meas, self.stamp_s, drive=drive, force_applied_N=applied)
+            outs.append(out)
+            self.outputs.append(out)
+            if out.law_ran:
+                self.svc.advance(self.stamp_s)
+            self.events += self.svc.drain_events()
+            self.tick = self.twin.tick(out.force_N if drive == "active" else np.zeros(4))
+        return outs
+
+
+def test_drives_off_send_only_hold_forces_and_re_enable_starts_from_the_estimate(params):
+    """Finding 1: with the drives disabled the law neither winds up nor steps when they return."""
+    loop = DriveLoop(params)
+    loop.run_drive(0.3, "active")
+    before = loop.outputs[-1].force_N
+    off = loop.run_drive(2.0, "disabled")
+    assert not any(o.law_ran for o in off)  # holds only: no PID, no integral
+    for o in off[::50]:
+        np.testing.assert_allclose(o.force_N, hold_forces(params, o.alpha_hat_rad), atol=1e-9)
+    assert np.all(loop.svc.ctl.integral == 0)
+    assert loop.svc.hold_reason.startswith("drives disabled")
+    inactive = loop.run_drive(0.004, "inactive")  # released: the bridge waits for a command
+    assert not inactive[-1].law_ran
+    back = loop.run_drive(0.2, "active")
+    assert back[0].law_ran
+    np.testing.assert_allclose(back[0].alpha_d_rad, back[0].alpha_hat_rad, atol=1e-3)  # α^d starts at α̂
+    steps = np.abs(np.diff([o.force_N for o in [inactive[-1], *back]], axis=0)).max()
+    assert steps < 2.0, steps  # no force step when the law takes over again
+    assert np.abs(back[-1].force_N - before).max() < 15.0
+
+
+def test_a_campaign_during_which_the_drives_are_disabled_ends_aborted(params):
+    loop = DriveLoop(params)
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run_drive(0.2, "active")
+    loop.svc.drive_reason = "e-stop: console"
+    loop.run_drive(0.01, "disabled")
+    ev = [e for e in loop.events if e.event == "aborted"]
+    assert len(ev) == 1 and "drives disabled" in ev[0].message
+    loop.svc.handle(_request("c-2"), loop.stamp_s)  # cannot start while disabled
+    (refused,) = loop.svc.drain_events()
+    assert refused.event == "aborted" and "drives disabled" in refused.message
+
+
+def test_leaving_a_hold_blends_the_reference_from_the_estimate_back_to_the_trajectory(params):
+    loop = DriveLoop(params)
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run_drive(0.5, "active")
+    loop.run_drive(0.3, "hold")  # the bridge's watchdog held
+    back = loop.run_drive(2.5, "active")
+    np.testing.assert_allclose(back[0].alpha_d_rad, back[0].alpha_hat_rad, atol=1e-3)
+    assert np.abs(np.diff(np.array([o.alpha_d_rad for o in back]), axis=0)).max() < math.radians(0.5)
+    assert loop.events[-1].event == "finished"
+
+
+def _state(stamp_s, epoch="e1", bridge="b1", seq=1):
+    return bus.MotorState(seq=seq, stamp_s=stamp_s, theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4,
+                          drive="active", epoch=epoch, bridge=bridge)
+
+
+def test_the_gate_takes_states_of_one_bridge_run_on_a_consistent_clock():
+    """Finding 3: a forged stamp from the future or another bridge run is refused; real states go on."""
+    gate = StateGate()
+    assert gate.admit(_state(5.000), now_s=100.000) == ""
+    assert "ahead" in gate.admit(_state(1e12), now_s=100.001)
+    assert gate.admit(_state(5.002), now_s=100.002) == ""  # real states keep flowing
+    assert "back in time" in gate.admit(_state(4.0), now_s=100.003)
+    assert gate.admit(_state(5.002), now_s=100.004) == ""  # a lockstep re-publication
+    assert "bound to" in gate.admit(_state(0.0, epoch="forged"), now_s=100.005)
+    # A restarted bridge (new epoch, new instance, stamps from 0) once the old run fell silent.
+    assert gate.admit(_state(0.0, epoch="e2", bridge="b2"), now_s=100.5) == ""
+    assert gate.epoch == "e2" and gate.admit(_state(0.002, epoch="e2", bridge="b2"), now_s=100.502) == ""
+    assert gate.admit(_state(5.004), now_s=100.503) != ""  # the old run is not taken back
+
+
+@pytest.mark.parametrize("text, reason", [
+    ("[]", "object"), ("null", "object"), ("1", "object"), ('"trajectory.json"', "object"),
+    ("[" * 5000 + "]" * 5000, "object"), ('{"waypoints_deg": ' + "[" * 5000 + "]" * 5000 + "}", "waypoints_deg"),
+    ('{"waypoints_deg": [[0, 0, 0], [1, 1, 1]], "durations_s": [1e300]}', "longer than"),
+    ('{"waypoints_deg": [[0, 0, 0], [1, 1, 1]], "durations_s": [-1]}', "duration"),
+    ('{"waypoints_deg": [[0, 0, 0], [1, 1, 1]], "durations_s": [1], "dwell_s": 1000}', "longer than"),
+    (json.dumps({"waypoints_deg": [[0, 0, 0]] * 5001, "durations_s": 1.0}), "waypoints"),
+    ('{"waypoints_deg": [[0, 0, 0], [1, 1]], "durations_s": 1}', "joints"),
+    ('{"waypoints_deg": [[0, 0, 0], [1, 1, 1e999]], "durations_s": 1}', "JSON"),
+    ("", "no trajectory"), ("{", "JSON"),
+])
+def test_hostile_trajectories_are_refused_with_a_reason(params, text, reason):
+    with pytest.raises(Refused, match=reason):
+        prepare(_request(trajectory_json=text), params, LawConfig())
+
+
+def test_a_trajectory_named_by_path_is_never_opened(params, tmp_path, monkeypatch):
+    path = tmp_path / "nod.json"
+    path.write_text(NOD.to_json())
+    opened = []
+    real_open = open
+    monkeypatch.setattr("builtins.open", lambda f, *a, **k: (opened.append(str(f)), real_open(f, *a, **k))[1])
+    with pytest.raises(Refused):
+        prepare(_request(trajectory_json=json.dumps(str(path))), params, LawConfig())
+    assert str(path) not in opened
+
+
+def test_hostile_parameter_sets_are_refused(params):
+    for toml in ("a = " + "[" * 3000 + "]" * 3000, "not toml [", "[geometry]\nn_joints = 7\n"):
+        with pytest.raises(Refused):
+            prepare(_request(parameters_toml=toml), params, LawConfig())
+
+
+def test_validation_past_its_time_budget_is_refused(params):
+    from controller.trajectory import identification_trajectory
+
+    req = _request(trajectory_json=identification_trajectory().to_json(), law=1)
+    with pytest.raises(Refused, match="time budget"):
+        prepare(req, params, LawConfig(), budget_s=0.05)
+
+
+def test_counters_are_per_campaign(loop):
+    loop.svc.count_timing(True, True)
+    loop.svc.count_timing(True, False)
+    loop.svc.handle(_request(), loop.stamp_s)
+    assert (loop.svc.overruns, loop.svc.deadline_misses) == (0, 0)
+    loop.run(0.1)
+    loop.svc.count_timing(True, False)
+    loop.run(NOD.duration_s + 0.3)
+    fin = loop.events[-1]
+    assert fin.event == "finished" and (fin.overruns, fin.deadline_misses) == (1, 0) and fin.ticks > 500
+    assert "overruns 1, deadline misses 0" in fin.message
