@@ -89,8 +89,10 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
         assert "<html" in httpx.get(base + "/", timeout=5).text.lower()
         r = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
         assert r.status_code in (200, 201), r.text
-        rec = _wait_status(base, r.json()["id"], {"finished", "aborted", "failed"}, 90)
-        assert rec["status"] == "finished", rec
+        rec = _wait_status(base, r.json()["id"], {"finished", "degraded", "aborted", "failed"}, 90)
+        # Real time on a shared machine may fall below the quality thresholds: then degraded, saying why.
+        assert rec["status"] in ("finished", "degraded"), rec
+        assert bool(rec["quality"]["reasons"]) == (rec["status"] == "degraded"), rec["quality"]
         assert rec["metrics"]["e_mean_all_deg"] < 0.5
         up.send_signal(signal.SIGTERM)
         assert up.wait(30) == 0
@@ -111,7 +113,7 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
         cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.3, 60, 0.2)
         os.killpg(ctl.pid, signal.SIGKILL)
-        rec = _wait_status(base, cid, {"finished", "aborted", "failed"}, 30)
+        rec = _wait_status(base, cid, {"finished", "degraded", "aborted", "failed"}, 30)
         assert rec["status"] == "aborted" and "controller" in rec["message"], rec
     campaign = read_campaign(data / "campaigns" / f"{cid}.mcap")  # readable
     last_command = max((m for _, m in campaign.messages(bus.MOTOR_COMMAND)), key=lambda m: m.stamp_s)
