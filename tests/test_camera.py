@@ -310,3 +310,59 @@ def test_camera_process_publishes_rendered_alpha_ip_from_the_twin_on_a_real_bus(
         assert None not in f.alpha_ip_rad and min(f.confidence) > 0.5
         assert np.degrees(np.abs(np.array(f.alpha_ip_rad) - truth_a[k])).max() < 1.0
     assert camera.truth_rejected == 0 and camera.frames == len(frames)
+
+
+# --- offline alignment ----------------------------------------------------------------------------
+
+
+def _excitation(t: np.ndarray) -> np.ndarray:
+    """A non-periodic multi-sine per joint within ±50° (rad), as an identification excitation."""
+    f = np.array([[0.23, 0.61], [0.31, 0.47], [0.17, 0.53]])
+    return np.radians(np.column_stack([28 * np.sin(2 * np.pi * f[j, 0] * t + j) + 18 * np.sin(2 * np.pi * f[j, 1] * t + 2 * j)
+                                       for j in range(3)]))
+
+
+def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, model) -> None:
+    from bridge import bus
+    from bridge.archive import read_campaign, write_campaign
+    from server.cli import app
+
+    # The campaign: 20 s of truth at 100 Hz on its (simulated) clock.
+    t = np.arange(0.0, 20.0, 0.01)
+    alpha = _excitation(t)
+    zeros = [0.0] * params.n_cables
+    truths = [(bus.TWIN_TRUTH, int((1.7e9 + tk) * 1e9), bus.Truth(
+        seq=k + 1, stamp_s=float(tk), alpha_rad=a.tolist(), alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros, theta_dot_rad_s=zeros,
+        tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables, near_singular=False)) for k, (tk, a) in enumerate(zip(t, alpha))]
+    camp = write_campaign(tmp_path / "c.mcap", truths, {"campaign_id": "c1", "kind": "identification"})
+    # The video: started 4.321 s into the campaign (not a whole number of frames), 10 s at 30 fps.
+    offset = 4.321
+    renderer = Renderer(model, seed=8)
+    video = tmp_path / "run.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (1280, 720))
+    for k in range(300):
+        writer.write(renderer.render(_excitation(np.array([offset + k / 30.0]))[0]))
+    writer.release()
+    out = tmp_path / "aligned.mcap"
+    r = CliRunner().invoke(app, ["camera", "align", str(video), str(camp), "--out", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    prov = json.loads(r.stdout)
+    assert abs(float(prov["offset_s"]) - offset) < 1 / 30  # the requirement: within one frame period
+    assert abs(float(prov["offset_s"]) - offset) < 0.005 and abs(float(prov["drift"])) < 1e-3
+    assert prov["reference"] == "truth" and float(prov["rms_deg"]) < 0.5
+    back = read_campaign(out)
+    frames = [m for _, m in back.messages(bus.CAMERA_ALPHA)]
+    assert len(frames) == 300 and {f.source for f in frames} == {"file:run.mp4"}
+    assert len(back.messages(bus.TWIN_TRUTH)) == len(truths)  # everything recorded is kept
+    assert back.metadata["xneck.camera.alignment"]["video_sha256"] == prov["video_sha256"]
+    assert back.info["campaign_id"] == "c1"
+    t_ip = np.array([f.capture_stamp_s for f in frames])
+    a_ip = np.array([f.alpha_ip_rad for f in frames], dtype=float)
+    assert np.abs(t_ip - (offset + np.arange(300) / 30.0)).max() < 0.005
+    assert np.degrees(np.abs(a_ip - _excitation(t_ip))).max() < 1.0
+    # Never overwrite; a campaign that the video does not overlap is refused with the reason.
+    r = CliRunner().invoke(app, ["camera", "align", str(video), str(camp), "--out", str(out)])
+    assert r.exit_code == 2 and "exists already" in r.output
+    short = write_campaign(tmp_path / "short.mcap", truths[:50], {"campaign_id": "c2"})
+    r = CliRunner().invoke(app, ["camera", "align", str(video), str(short), "--out", str(tmp_path / "x.mcap")])
+    assert r.exit_code == 2 and "never overlap" in r.output

@@ -273,3 +273,41 @@ def board(
         raise _fail("--square must be between 0.002 and 0.2 m")
     _write_png(out, checkerboard((columns, rows), square, dpi))
     typer.echo(f"wrote {out}")
+
+
+@camera_app.command("align")
+def align(
+    video: Path = typer.Argument(..., help="Video of the campaign (any format OpenCV reads)."),
+    campaign: Path = typer.Argument(..., help="The campaign's MCAP file."),
+    out: Path | None = typer.Option(None, "--out", help="New MCAP file (default: CAMPAIGN.aligned.mcap); never overwritten."),
+    reference: str = typer.Option("auto", "--reference", help="auto (the twin's truth if recorded, else α̂), truth or alpha_hat."),
+    drift: bool = typer.Option(True, "--drift/--no-drift", help="Estimate the video clock's drift as well as the offset."),
+    calibration: Path | None = CALIBRATION_OPTION,
+    json_out: bool = typer.Option(False, "--json", help="Print the provenance as JSON."),
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """Align a video with a recorded campaign and write its α_IP into a copy of the campaign."""
+    from bridge.archive import software_version
+    from twin.camera.align import AlignmentError, align, campaign_reference, measure_video, write_aligned
+    from twin.camera.detect import Detector
+    from twin.camera.source import SourceError
+
+    params = load_cli_params(params_file, overrides)
+    cal = _calibration(calibration)
+    target = out or campaign.with_name(campaign.stem + ".aligned.mcap")
+    if target.exists():
+        raise _fail(f"{target}: exists already (choose another --out)")
+    try:
+        ref = campaign_reference(campaign, reference)
+        measured = measure_video(video, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal))
+        result = align(measured, ref, estimate_drift=drift)
+        provenance = write_aligned(campaign, target, video, measured, result, ref.name, software_version())
+    except (AlignmentError, SourceError) as exc:
+        raise _fail(str(exc)) from None
+    if json_out:
+        typer.echo(json.dumps({**provenance, "out": str(target)}))
+        return
+    typer.echo(f"offset {result.offset_s:+.4f} s, drift {result.drift:+.2e}, rms {result.rms_deg:.3f}° against {ref.name} "
+               f"over {result.frames_used} frames (next best: {result.runner_up_offset_s:+.3f} s, {result.runner_up_rms_deg:.2f}°)")
+    typer.echo(f"wrote {target}")

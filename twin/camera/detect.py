@@ -116,12 +116,13 @@ class Detector:
         self.layout.check(n_joints, b_m)
         self.config = config or DetectorConfig()
         self.hues = list(BAR_HUES_DEG[: n_joints + 1]) + [REFERENCE_HUE_DEG]
-        self._last: list[np.ndarray] | None = None  # centroids of the last full detection, per bar marker
+        self._last: list[np.ndarray] | None = None  # centroids of the last complete detection, per bar marker
+        self._previous: list[np.ndarray] | None = None  # and of the one before (for the velocity)
         self.full_frames = 0
         self.windowed_frames = 0
 
     def reset(self) -> None:
-        self._last = None
+        self._last = self._previous = None
 
     # --- segmentation ---------------------------------------------------------------------------
 
@@ -173,21 +174,33 @@ class Detector:
         return classes
 
     def _windowed(self, image: np.ndarray) -> list[Blob] | None:
-        """Blobs found in windows around the last centroids, or None if a marker was not found again."""
+        """Blobs found in windows around each marker's predicted position (constant velocity from
+        the last two frames), or None if one was not found whole: no blob of its bar's colour in
+        its window, or a blob cut by the window's edge (its centroid would be biased)."""
         assert self._last is not None
         h, w = image.shape[:2]
         half = self.config.window_px
         found: list[Blob] = []
-        for centre in self._last:
+        previous = self._previous if self._previous is not None else self._last
+        for index, (last, before) in enumerate(zip(self._last, previous)):
+            hue = self.hues[index // 2]  # two markers per bar, in bar order
+            centre = 2.0 * last - before
             x, y = round(centre[0]), round(centre[1])
             xa, ya, xb, yb = max(x - half, 0), max(y - half, 0), min(x + half, w), min(y + half, h)
             if xb - xa < 4 or yb - ya < 4:
                 return None
-            blobs = self._blobs(image[ya:yb, xa:xb], xa, ya)
+            blobs = [bl for bl in self._blobs(image[ya:yb, xa:xb], xa, ya)
+                     if math.isfinite(bl.hue_deg) and _hue_distance(bl.hue_deg, hue) <= self.config.hue_tolerance_deg]
             if not blobs:
                 return None
-            nearest = min(blobs, key=lambda bl: float(np.hypot(*(bl.centre_px - centre))))
-            found.append(nearest)
+            best = min(blobs, key=lambda bl: float(np.hypot(*(bl.centre_px - centre))))
+            reach = math.sqrt(best.area_px / math.pi) + 4.0
+            cx, cy = best.centre_px
+            inner = (cx - reach >= xa or xa == 0) and (cx + reach <= xb or xb == w) and \
+                (cy - reach >= ya or ya == 0) and (cy + reach <= yb or yb == h)
+            if not inner:
+                return None
+            found.append(best)
         return found
 
     # --- geometry -------------------------------------------------------------------------------
@@ -235,11 +248,17 @@ class Detector:
         if image.shape[:2] != (cal.height, cal.width):
             raise ValueError(f"frame is {image.shape[1]}×{image.shape[0]}, the calibration {cal.width}×{cal.height}")
         blobs = self._windowed(image) if self._last is not None else None
-        if blobs is None:
-            blobs = self._blobs(image)
-            self.full_frames += 1
-        else:
-            self.windowed_frames += 1
+        if blobs is not None:
+            found = self._measure(blobs)
+            if None not in found.alpha_rad:
+                self.windowed_frames += 1
+                return found
+            # A window caught the wrong blob (two markers crossing): search the whole frame.
+        self.full_frames += 1
+        return self._measure(self._blobs(image))
+
+    def _measure(self, blobs: list[Blob]) -> Detection:
+        """α from the blobs of one frame (the body of :meth:`detect`)."""
         classes = self._classify(blobs)
         bars = self._bars(classes)
         n = self.n_joints
@@ -286,9 +305,10 @@ class Detector:
         refs = [bl for i in range(0, len(by_row), 2) for bl in sorted(by_row[i:i + 2], key=lambda bl: bl.centre_px[0])]
         # Keep the tracking windows only when every bar marker was found (else a full search next time).
         if len(markers) == 2 * (n + 1):
+            self._previous = self._last
             self._last = [np.array(markers[(k, s)]) for k in range(n + 1) for s in (0, 1)]
         else:
-            self._last = None
+            self._last = self._previous = None
         return Detection(alpha_rad=alpha, confidence=conf, markers_px=markers,
                          reference_px=[(float(b.centre_px[0]), float(b.centre_px[1])) for b in refs],
                          residual_m=residual)
