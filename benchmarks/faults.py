@@ -17,12 +17,13 @@ attacks, one after the other, and prints one row per attack:
 - **e-stop cycle k**: engage through the console's REST API, 1 s, release, 1 s; reaction: from
   the request to the first disabled state; force step: the largest after the release (bumpless).
 - **kill -9 <process>**: SIGKILL of the controller (reaction: to the bridge's hold), of the
-  bridge (reaction: the controller's last command; then restarted, and the force step of its
-  re-enable), of the console (nothing may change on the control path); each is restarted.
+  bridge (restarted after 1 s: the force step of its re-enable, and how soon the controller
+  answers the new bridge run, recognised by its epoch), of the console (nothing may change on the
+  control path); each is restarted after 1 s.
 
-Columns: reaction time (ms, "-" when nothing should react), max force step (N, the largest change
-of an applied force between two consecutive states of one bridge in the attack's window, the
-ramp's bound being 1 N per 2 ms tick), data lost (``MotorState``s missing from the bridge's
+Columns: reaction time (ms, "-" when nothing should react), max force step (N per 2 ms tick, the
+largest change of an applied force between two states of one bridge run in the attack's window,
+divided by the ticks between them; the enable ramp's bound is 1 N per tick), data lost (``MotorState``s missing from the bridge's
 sequence, and the longest gap between states), and whether every process survived.
 Bounded: every attack has a fixed duration, the whole run stops after ``--budget-s`` (300 s)
 and always stops every process it started. Twin only (the BeagleBone needs the robot).
@@ -48,8 +49,11 @@ import httpx
 import msgspec
 import numpy as np
 
-from bridge import bus
-from bridge.session import free_tcp_port, open_session
+# benchmarks/bridge.py would shadow the `bridge` package when this runs as a script from here.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from bridge import bus  # noqa: E402
+from bridge.session import free_tcp_port, open_session  # noqa: E402
 
 TOKEN = "fault-benchmark-token-0123456789"
 GARBAGE_HZ = 10_000.0
@@ -157,15 +161,17 @@ def _bridge_of(msg: bus.MotorState) -> str:
 
 
 def force_step_N(states: list) -> float:
-    """Largest change of one applied force between consecutive states of the same bridge run,
-    except into ``disabled``: the drives off (zero torque) is the e-stop's purpose, not a step."""
+    """Largest change of one applied force per tick of the same bridge run (over the ticks between
+    two received states, when some were lost on the way), except into ``disabled``: the drives
+    off (zero torque) is the e-stop's purpose, not a step."""
     step = 0.0
     prev: dict[str, tuple[int, np.ndarray]] = {}
     for _, m in states:
         key = _bridge_of(m)
         f = np.asarray(m.force_applied_N, dtype=float)
         if key in prev and m.seq > prev[key][0] and m.drive != "disabled":
-            step = max(step, float(np.max(np.abs(f - prev[key][1]))))
+            ticks = m.seq - prev[key][0]
+            step = max(step, float(np.max(np.abs(f - prev[key][1]))) / ticks)
         prev[key] = (m.seq, f)
     return step
 
@@ -224,6 +230,25 @@ def flood(session, key: str, duration_s: float, rate_hz: float, payloads: tuple[
     return sent
 
 
+def flood_from_another_process(endpoints: list[str], key: str, duration_s: float) -> tuple[float, int]:
+    """:func:`flood` from a child process with its own session (an attacker is another process,
+    and this one's observer must not starve under the flooding loop): (start, messages sent), the
+    start in ``time.monotonic()``, which is one clock for every process on Linux."""
+    out = subprocess.run([sys.executable, __file__, "--flood", key, "--garbage-s", str(duration_s),
+                          *[a for e in endpoints for a in ("--connect", e)]],
+                         capture_output=True, text=True, timeout=duration_s + 60, check=True)
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    return float(report["start"]), int(report["sent"])
+
+
+def _flood_main(args: argparse.Namespace) -> None:
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=args.connect) as s:
+        time.sleep(0.5)  # let the session link to its peers
+        start = time.monotonic()
+        sent = flood(s, args.flood, args.garbage_s, GARBAGE_HZ, hostile_payloads(random.Random(13)))
+    print(json.dumps({"start": start, "sent": sent}))
+
+
 def forged_state(seq: int) -> bus.MotorState:
     """A well-formed MotorState from the future and from no real bridge (v1 or v2 of the contract)."""
     names = {f.name for f in msgspec.structs.fields(bus.MotorState)}
@@ -265,7 +290,6 @@ def run(args: argparse.Namespace) -> list[Row]:
     rows: list[Row] = []
     workdir = Path(tempfile.mkdtemp(prefix="xneck-faults-"))
     stack = Stack(workdir)
-    payloads = hostile_payloads(random.Random(13))
     auth = {"Authorization": f"Bearer {TOKEN}"}
 
     def wait(predicate, timeout_s: float, what: str) -> None:
@@ -295,8 +319,8 @@ def run(args: argparse.Namespace) -> list[Row]:
 
     def garbage(key: str):
         def attack(s, obs: Observer) -> None:
-            t0 = time.monotonic()
-            sent = flood(s, key, args.garbage_s, GARBAGE_HZ, payloads)
+            t0, sent = flood_from_another_process([stack.hub, stack.bridge_ep, stack.controller_ep], key,
+                                                  args.garbage_s)
             time.sleep(0.3)
             reaction = None
             if key == bus.ESTOP:  # fail safe: it engages; released by the console afterwards
@@ -343,9 +367,8 @@ def run(args: argparse.Namespace) -> list[Row]:
             t0 = time.monotonic()
             stack.kill9(name)
             time.sleep(1.0)
-            states, commands = obs.window(t0, time.monotonic())
-            reaction = {"controller": first_after(states, t0, lambda m: m.drive == "hold"),
-                        "bridge": (commands[-1][0] - t0) if commands else 0.0}.get(name)
+            states, _ = obs.window(t0, time.monotonic())
+            reaction = first_after(states, t0, lambda m: m.drive == "hold") if name == "controller" else None
             t_restart = time.monotonic()
             stack.start(name)
             if name == "server":
@@ -401,8 +424,13 @@ def main() -> None:
     parser.add_argument("--cycles", type=int, default=3, help="E-stop cycles.")
     parser.add_argument("--budget-s", type=float, default=300.0, help="Stop after this long whatever happens (s).")
     parser.add_argument("--only", default="", help="Run only the attacks whose name contains this (e.g. kill).")
+    parser.add_argument("--flood", default="", help=argparse.SUPPRESS)  # the child of a garbage attack
+    parser.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, default=None, help="Also write the table (Markdown) here.")
     args = parser.parse_args()
+    if args.flood:
+        _flood_main(args)
+        return
     rows = run(args)
     text = table(rows)
     print(text)
