@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import atexit
 import collections
+import contextlib
 import logging
 import math
 import threading
 import time
 import uuid
 from dataclasses import dataclass
+
 import numpy as np
 import zenoh
 
@@ -228,11 +230,11 @@ class BridgeNode:
         t0 = time.perf_counter()
         self.process_estop()
         cmd, recv_ns = self.commands.latest_with_time()
-        fresh = cmd is not None and recv_ns > self._consumed_ns
+        fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
         self._consumed_ns = max(self._consumed_ns, recv_ns)
         decision = self.safety.step(Inputs(
-            theta_rad=self.theta, command_N=cmd.force_N if fresh else None,
-            source=f"{cmd.sender} ({_bounded(cmd.source, 64)})" if fresh else "",
+            theta_rad=self.theta, command_N=fresh.force_N if fresh is not None else None,
+            source=f"{fresh.sender} ({_bounded(fresh.source, 64)})" if fresh is not None else "",
             command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None))
         self._follow(decision.events)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
@@ -285,18 +287,14 @@ class BridgeNode:
             self.mode, self.hold_reason = "disabled", ""
             self.force = np.zeros(self.driver.n_motors)
             for last in (self.publish_state, self.publish_health):
-                try:
+                with contextlib.suppress(Exception):  # the session may already be gone
                     last()
-                except Exception:  # noqa: BLE001 - the session may already be gone
-                    pass
             closers = [self.commands.close, self._controllers.undeclare, self._estop_sub.undeclare, self._state_pub.close,
                        self._health.undeclare, self._token.undeclare]
             closers += [p.close for p in self._extra_pubs.values()]
             for closer in closers:
-                try:
+                with contextlib.suppress(Exception):  # close everything we can, whatever failed before
                     closer()
-                except Exception:  # noqa: BLE001
-                    pass
             atexit.unregister(self._atexit)
 
     def _atexit(self) -> None:

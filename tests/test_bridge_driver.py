@@ -318,9 +318,10 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
     owning controller."""
     import time
 
+    from busutil import bus_pair, wait_until
+
     from bridge.node import BridgeConfig
     from bridge.session import liveliness_token, publisher
-    from busutil import bus_pair, wait_until
     from server.cli.processes import bridge_node
 
     drv = _driver(params)
@@ -353,12 +354,14 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
                 node.tick()
             assert forces_at_the_escons() == pytest.approx([9.0] * 4)
             n = node.estop_received
-            estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="button"))
-            assert wait_until(lambda: node.estop_received > n, 5.0)
+            engage = bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="button")
+            # The first messages on a fresh route may be lost; a repeated engage or release is harmless.
+            assert wait_until(lambda: (estop_pub.put(engage), node.estop_received > n)[1], 5.0, 0.02)
             node.tick()
             assert all(board.pins[p] == 0 for p in cfg.enable_pins) and node.mode == "disabled"
-            estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared"))
-            assert wait_until(lambda: node.estop_received > n + 1, 5.0)
+            n = node.estop_received
+            release = bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared")
+            assert wait_until(lambda: (estop_pub.put(release), node.estop_received > n)[1], 5.0, 0.02)
             node.tick()
             seen.append(forces_at_the_escons())
             command(2, [81.0, 22.0, 8.0, 28.0])

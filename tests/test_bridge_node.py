@@ -15,15 +15,15 @@ import time
 
 import numpy as np
 import pytest
+from busutil import bus_pair, run_in_thread, wait_until
 
 from bridge import bus
 from bridge.driver import Lifecycle
-from twin.sim.driver import TwinDriver, TwinDriverConfig
 from bridge.node import BridgeConfig, BridgeNode, run_realtime
-from server.cli.processes import bridge_node
 from bridge.session import liveliness_token, publisher, subscribe_latest
-from busutil import bus_pair, run_in_thread, wait_until
 from controller.laws import hold_forces
+from server.cli.processes import bridge_node
+from twin.sim.driver import TwinDriver, TwinDriverConfig
 
 DT = 0.002
 XNECK = [sys.executable, "-m", "server.cli"]
@@ -95,10 +95,9 @@ def _stop_process(proc: subprocess.Popen, sig=signal.SIGTERM, timeout=10.0) -> i
 
 
 def _spawn(args, log_path):
-    log = open(log_path, "wb")
-    proc = subprocess.Popen([*XNECK, *args], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    log.close()
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([*XNECK, *args], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
     return proc
 
 
@@ -478,7 +477,7 @@ def test_killed_controller_leaves_the_twin_holding_within_its_joint_limits(param
             commands.close()
             truths.close()
         assert "error" not in out, out.get("error")
-        to_hold, age, ramp, target = _hold_check(states.timed(), commands.timed())
+        to_hold, age, ramp, _target = _hold_check(states.timed(), commands.timed())
         print(f"\ncontroller killed: hold {to_hold * 1e3:.1f} ms (wall, seen here) and {age * 1e3:.0f} ms (bridge's "
               f"clock) after its last command, ramp {ramp * 1e3:.0f} ms (sim); holds before the kill: {node.holds - 1}")
         assert 0.010 <= age <= 0.010 + 2 * DT, age
@@ -534,7 +533,6 @@ def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(
             epoch = _epoch(states)
             flood = subprocess.Popen([sys.executable, "-c", FLOOD, hub, "3.0"], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
-            before = health.messages()[-1] if health.messages() else None
             k = 0
             start = time.perf_counter()
             while flood.poll() is None and time.perf_counter() - start < 15:
@@ -614,8 +612,8 @@ def test_lockstep_ticks_once_per_command_and_never_holds(params):
 
 
 def test_replay_driver_publishes_the_archived_angles(params, tmp_path):
-    from bridge.drivers.replay import ReplayConfig, ReplayDriver
     from bridge.archive import write_campaign
+    from bridge.drivers.replay import ReplayConfig, ReplayDriver
 
     archived = [bus.MotorState(seq=k, stamp_s=DT * k, theta_rad=[0.01 * k, 0.02 * k, -0.01 * k, 0.0],
                                force_applied_N=[10.0] * 4, drive="active", epoch="e0", bridge="b0") for k in range(50)]

@@ -240,7 +240,7 @@ class BeagleBoneDriver(Driver):
         self._drives_off()
         try:
             self._require_board().motor.disable()
-        except Exception:  # noqa: BLE001 - the enable lines are already low, which is what matters
+        except Exception:
             log.exception("beaglebone: could not put the motor outputs in standby")
 
     def _on_read(self) -> np.ndarray:
@@ -263,12 +263,12 @@ class BeagleBoneDriver(Driver):
         for pin in cfg.enable_pins:
             try:
                 board.gpio.set_value(pin, self._level(False))
-            except Exception as exc:  # noqa: BLE001 - keep disabling the others
+            except Exception as exc:
                 errors.append(f"enable pin {pin}: {exc}")
         for ch in cfg.motor_channels:
             try:
                 board.motor.set(ch, self._zero_duty)
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 errors.append(f"motor output {ch}: {exc}")
         if errors:
             raise DriverError("beaglebone: could not disable every drive: " + "; ".join(errors))
@@ -286,4 +286,4 @@ class BeagleBoneDriver(Driver):
         return self._board
 
 
-__all__ = ["BLUE_GP0_PINS", "BeagleBoneConfig", "BeagleBoneDriver", "ESCON_ANALOG_RANGE_V", "Transmission"]
+__all__ = ["BLUE_GP0_PINS", "ESCON_ANALOG_RANGE_V", "BeagleBoneConfig", "BeagleBoneDriver", "Transmission"]
