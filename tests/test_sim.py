@@ -145,13 +145,16 @@ def test_reset_rejects_bad_states():
         twin.reset(np.radians([170.0, 0.0, 0.0]))
 
 
-def test_robot_truth_changes_only_the_cable_damping():
-    """`truth="robot"`: the twin integrates the model with a real line's damping (twin/sim/truth.py);
-    after a force step the cable stretches within a fraction of a second instead of creeping."""
-    from twin.sim.truth import C_A_ROBOT, truth_params
+def test_robot_cable_damping_changes_only_the_cable_damping():
+    """The robot truth's cable effect alone without creep (twin/sim/truth.py): the twin integrates
+    the model with a real line's damping; after a force step the cable stretches within a
+    fraction of a second instead of creeping. (Issue 16: `truth="robot"` now switches on every
+    unmodelled effect, so this test takes the damping alone; tests/test_truth.py covers the rest.)"""
+    from twin.sim.truth import C_A_ROBOT, load_truth, truth_params
 
+    damping_only = load_truth("robot").only("cables").replace("cables", creep_ratio=0.0)
     model_twin = Twin(config=TwinConfig(camera=False))
-    robot_twin = Twin(config=TwinConfig(camera=False, truth="robot"))
+    robot_twin = Twin(config=TwinConfig(camera=False, truth=damping_only))
     p, q = model_twin.params, robot_twin.params
     assert q.cables.variable.c_a == (C_A_ROBOT,) * 4 and q.cables.linear.c_a == (C_A_ROBOT,) * 4
     assert p.cables.variable.c_a == (3000.0,) * 4

@@ -26,15 +26,17 @@ NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate w
 
 
 def check_truth(value: str) -> str:
-    """Typer callback: ``--truth`` is one of twin.sim.truth.TRUTHS."""
-    from twin.sim.truth import TRUTHS
+    """Typer callback: ``--truth`` is one of twin.sim.truth.TRUTHS or a truth file that loads."""
+    from twin.sim.truth import TRUTHS, TruthError, check_truth as load_check
 
-    if value not in TRUTHS:
-        raise typer.BadParameter(f"{value!r}: choose {' or '.join(TRUTHS)}")
-    return value
+    try:
+        load_check(value)
+    except TruthError as exc:
+        raise typer.BadParameter(f"{value!r}: {exc} (choose {' or '.join(TRUTHS)} or a truth file)") from None
+    return str(Path(value).resolve()) if value not in TRUTHS else value
 
 
-TRUTH_OPTION = typer.Option("model", "--truth", callback=check_truth, help="Twin: what it simulates, the parameter file as it is (model) or with a real line's small cable damping (robot); see twin/sim/truth.py.")
+TRUTH_OPTION = typer.Option("model", "--truth", callback=check_truth, help="Twin: what it simulates, the parameter file as it is (model), the robot's unmodelled physics (robot: twin/sim/robot_truth.toml), or a truth FILE; see twin/sim/truth.py.")
 MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
 IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
 STARTUP_TIMEOUT_OPTION = typer.Option(

@@ -24,7 +24,7 @@ from bridge.driver import Driver, DriverConfig, Lifecycle
 from twin.model.params import Params
 from twin.sim.sensors import quantise_encoder
 from twin.sim.simulator import Tick, Twin, TwinConfig
-from twin.sim.truth import TruthName
+from twin.sim.truth import check_truth
 
 log = logging.getLogger("xneck.bridge.twin")
 
@@ -32,17 +32,19 @@ log = logging.getLogger("xneck.bridge.twin")
 class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """What the twin simulates (see :class:`twin.sim.simulator.TwinConfig`): cable model (None: the
     parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera,
-    truth ("model": the parameter file as it is; "robot": a real line's cable damping)."""
+    truth ("model": the parameter file as it is; "robot": the shipped robot truth with every
+    unmodelled effect; or the path of a truth file, twin/sim/truth.py)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None
     friction: bool = True
     substeps: int = 2
     seed: int = 0
     camera: bool = True
-    truth: TruthName = "model"
+    truth: str = "model"
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_truth(self.truth)  # a TruthError (ValueError) names what is wrong
         if self.substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {self.substeps}")
 

@@ -15,6 +15,14 @@ generalised force is −G·t), K = ∂t/∂x_c, D = ∂t/∂ẋ_c and F = (−c_
 The step is L-stable for the stiff cable modes and first-order accurate for the slow motion; with
 two substeps per 2 ms tick it stays within 0.01° of scipy's Radau at tight tolerances
 (tests/test_sim.py). Rigid cables: the same step on M·α̈ + c + g = Z(f − f_friction) (eq. 32).
+
+The robot truth's friction (twin.sim.truth) is not a smooth function of θ̇: a motor at rest
+holds against any load below its static level. It enters the same step as an unknown force λ
+per motor, bounded by the static level when the motor ends the substep at rest and equal to the
+kinetic (Stribeck) level when it slides; the 4 unknowns are found by projected Gauss-Seidel on
+θ̇⁺ = θ̇_free − W·λ with W = h·ρ·(A⁻¹)_θθ (time stepping with set-valued friction, Moreau/Jean).
+Its levels depend on the motor force and the cable tension (gear losses, pulley friction), taken
+at the start of the substep.
 """
 
 from __future__ import annotations
@@ -60,11 +68,67 @@ def _tension_and_slopes(m, x, x_dot, t, K, D):
     return slack
 
 
+# Columns of the robot-friction table ``rf`` (one row per cable), see twin.sim.truth.FrictionTruth.
+RF_F_PLUS, RF_F_MINUS, RF_STATIC, RF_V_S, RF_VISCOUS, RF_LOSS_FWD, RF_LOSS_BWD, RF_PULLEY, RF_T_REF = range(9)
+RF_COLUMNS = 9
+PGS_SWEEPS = 12  # projected Gauss-Seidel sweeps: the 4x4 Delassus matrix is well conditioned
+
+
 @njit(cache=True)
-def step(m, s, f, h, n_sub, work, t_out, x_out):
+def _coulomb_level(rf, j, direction, f_j, t_j):
+    """Kinetic Coulomb level (N) of cable j's motor resisting motion in ``direction`` (±1): Table 1's
+    f_s with its asymmetry and the tension-dependent pulley friction (floored at 0)."""
+    base = rf[j, RF_F_PLUS] if direction > 0 else rf[j, RF_F_MINUS]
+    return max(base + rf[j, RF_PULLEY] * (t_j - rf[j, RF_T_REF]), 0.0)
+
+
+@njit(cache=True)
+def _gear_loss(rf, j, direction, f_j, t_j):
+    """Load-dependent gear loss (N): a fraction of the motor force when the motor drives (winding,
+    θ̇ > 0), of the tension when the cable drives the motor back (θ̇ < 0)."""
+    return rf[j, RF_LOSS_FWD] * max(f_j, 0.0) if direction > 0 else rf[j, RF_LOSS_BWD] * max(t_j, 0.0)
+
+
+@njit(cache=True)
+def _set_valued_friction(rf, h, rho, X, theta_dot, f, t, lam):
+    """Friction forces ``lam`` (N, positive resisting θ̇ > 0) of the linearly implicit step, with
+    stiction: X = A⁻¹[rhs | E_θ]. A motor whose friction can hold it (|λ| ≤ static level) ends
+    the substep at rest exactly; otherwise it slides against the kinetic (Stribeck) level. The
+    4x4 complementarity problem is solved by projected Gauss-Seidel (Moreau/Jean time stepping)."""
+    nc = lam.shape[0]
+    N = X.shape[0] - nc
+    W = np.empty((nc, nc))
+    for i in range(nc):
+        for j in range(nc):
+            W[i, j] = h * rho * X[N + i, j + 1]
+    lam[:] = 0.0
+    for _ in range(PGS_SWEEPS):
+        for j in range(nc):
+            v = X[N + j, 0]  # θ̇_j after the substep with every friction but its own
+            for i in range(nc):
+                if i != j:
+                    v -= W[j, i] * lam[i]
+            need = v / W[j, j]  # the friction that would stop motor j exactly
+            up = _coulomb_level(rf, j, 1.0, f[j], t[j]) * rf[j, RF_STATIC] + _gear_loss(rf, j, 1.0, f[j], t[j])
+            lo = _coulomb_level(rf, j, -1.0, f[j], t[j]) * rf[j, RF_STATIC] + _gear_loss(rf, j, -1.0, f[j], t[j])
+            if -lo <= need <= up:
+                lam[j] = need  # sticks
+            else:
+                d = 1.0 if need > 0 else -1.0
+                u = theta_dot[j] / rf[j, RF_V_S]
+                stribeck = 1.0 + (rf[j, RF_STATIC] - 1.0) * math.exp(-u * u)
+                lam[j] = d * (_coulomb_level(rf, j, d, f[j], t[j]) * stribeck + _gear_loss(rf, j, d, f[j], t[j]))
+
+
+@njit(cache=True)
+def step(m, s, f, h, n_sub, work, t_out, x_out, fr_table, x_off):
     """Advance state ``s`` = (α, θ, α̇, θ̇) in place by ``n_sub`` substeps of ``h`` seconds with the
     motor forces ``f`` (N) held. Writes the cable tensions of the last substep into ``t_out`` and
     the cable stretch at the end (m, zero for rigid cables) into ``x_out``.
+
+    ``fr_table``: the robot truth's friction table (n_cables × RF_COLUMNS, elastic cables only), used
+    instead of the model's eq. 37 (build the model with friction off), or an empty (0, RF_COLUMNS)
+    table. ``x_off``: creep stretch (m) per cable that the elastic law does not carry.
 
     Returns a bit field: bit j set if cable j is slack at the end; bit 62 set if a joint reached
     the flat singularity (the step is then not taken and the state is left unchanged).
@@ -76,6 +140,9 @@ def step(m, s, f, h, n_sub, work, t_out, x_out):
     x, xd, K, D, dff = np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc)
     A = np.zeros((n, n))
     rhs = np.empty(n)
+    robot = fr_table.shape[0] == nc
+    B = np.zeros((n, nc + 1))
+    lam = np.zeros(nc)
     s0 = s.copy()
     for _ in range(n_sub):
         evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
@@ -96,7 +163,7 @@ def step(m, s, f, h, n_sub, work, t_out, x_out):
             alpha += h * alpha_dot
         else:
             for j in range(nc):
-                x[j] = lc[j] - m.l_c0[j] + m.rho * theta[j]
+                x[j] = lc[j] - m.l_c0[j] + m.rho * theta[j] - x_off[j]
                 xd[j] = m.rho * theta_dot[j]
                 for i in range(N):
                     xd[j] -= Z[i, j] * alpha_dot[i]
@@ -124,7 +191,19 @@ def step(m, s, f, h, n_sub, work, t_out, x_out):
                 rhs[N + j] = m.I_a * theta_dot[j] + h * m.rho * (
                     -(t_out[j] - D[j] * xd[j]) + f[j] - ff[j] + dff[j] * theta_dot[j]
                 )
-            v = np.linalg.solve(A, rhs)
+            if robot:
+                for j in range(nc):
+                    A[N + j, N + j] += h * m.rho * fr_table[j, RF_VISCOUS]  # viscous friction, implicit
+                B[:, 0] = rhs
+                for j in range(nc):
+                    B[N + j, j + 1] = 1.0
+                X = np.linalg.solve(A, B)
+                _set_valued_friction(fr_table, h, m.rho, X, theta_dot, f, t_out, lam)
+                v = X[:, 0].copy()
+                for j in range(nc):
+                    v -= (h * m.rho * lam[j]) * X[:, j + 1]
+            else:
+                v = np.linalg.solve(A, rhs)
             alpha_dot[:] = v[:N]
             theta_dot[:] = v[N:]
             alpha += h * alpha_dot
@@ -145,3 +224,30 @@ def step(m, s, f, h, n_sub, work, t_out, x_out):
         if t_out[j] <= 0.0:
             bits |= np.int64(1) << j
     return bits
+
+
+ACT_K_T, ACT_RHO, ACT_I_MAX, ACT_DECAY, ACT_MEAN_GAIN, ACT_RIPPLE, ACT_RIPPLE_N, ACT_COGGING, ACT_COGGING_N = range(9)
+
+
+@njit(cache=True)
+def actuate(f, theta, current, kt_factor, act, out):
+    """Force at the cable (N) for the commanded forces ``f`` over one period: the driver's current
+    I = f·ρ/k_t saturated at I_max, a first-order current loop (``current`` is its state, A;
+    act[ACT_DECAY] = e^(−T/τ), act[ACT_MEAN_GAIN] = τ/T·(1 − e^(−T/τ)) its mean over the held
+    period), the motor's true torque constant, block-commutation ripple and cogging (functions of
+    the motor angle θ). ``act``: the ACT_* values."""
+    k_t, rho, i_max = act[ACT_K_T], act[ACT_RHO], act[ACT_I_MAX]
+    for j in range(f.shape[0]):
+        i_cmd = min(max(f[j] * rho / k_t, -i_max), i_max)
+        mean = i_cmd + (current[j] - i_cmd) * act[ACT_MEAN_GAIN]
+        current[j] = i_cmd + (current[j] - i_cmd) * act[ACT_DECAY]
+        torque = k_t * kt_factor[j] * mean * (1.0 + act[ACT_RIPPLE] * math.cos(act[ACT_RIPPLE_N] * theta[j]))
+        out[j] = torque / rho + act[ACT_COGGING] * math.sin(act[ACT_COGGING_N] * theta[j])
+
+
+@njit(cache=True)
+def creep_update(creep, tension, k, ratio, gain):
+    """Kelvin creep element in series with the elastic law: its stretch (m) relaxes towards
+    ratio·t/k with ``gain`` = 1 − e^(−T/τ) per period."""
+    for j in range(creep.shape[0]):
+        creep[j] += (ratio * tension[j] / k[j] - creep[j]) * gain

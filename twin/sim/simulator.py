@@ -15,11 +15,11 @@ from typing import Literal
 import numpy as np
 
 from twin.model import cables, dynamics
-from twin.sim.integrator import step
-from twin.model.numeric import Model, build
+from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
+from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
 from twin.sim.sensors import Camera, quantise_encoder
-from twin.sim.truth import TRUTHS, TruthName, truth_params
+from twin.sim.truth import RobotTruth, TruthError, load_truth, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
 
@@ -28,8 +28,8 @@ NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of i
 class TwinConfig:
     """What the twin simulates. Defaults: the paper's identified robot (Table 1 friction, Table 2
     variable-stiffness cables), 500 Hz, two integration substeps per tick. ``truth``: "model"
-    integrates the parameter file as it is, "robot" with a real line's small cable damping
-    (``twin.sim.truth``)."""
+    integrates the parameter file as it is, "robot" the shipped robot truth (every unmodelled
+    effect on), a path a truth file, or a :class:`twin.sim.truth.RobotTruth` (``twin.sim.truth``)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None  # None: the parameter file's
     friction: bool = True
@@ -37,11 +37,13 @@ class TwinConfig:
     substeps: int = 2
     seed: int = 0
     camera: bool = True
-    truth: TruthName = "model"
+    truth: str | RobotTruth = "model"
 
     def __post_init__(self) -> None:
-        if self.truth not in TRUTHS:
-            raise ValueError(f"truth must be one of {', '.join(TRUTHS)}, got {self.truth!r}")
+        try:
+            load_truth(self.truth)
+        except TruthError as exc:
+            raise ValueError(str(exc)) from None
         if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise ValueError(f"rate_hz must be a positive number, got {self.rate_hz}")
         if self.substeps < 1:
@@ -70,19 +72,47 @@ class Tick:
 class Twin:
     """The simulated robot. State (α, θ, α̇, θ̇) starts straight and at rest with slack-free,
     unstretched cables (θ = 0 at α = 0, eq. 20). ``params`` is the model; ``self.params`` is what
-    is integrated (the same unless ``config.truth`` is "robot")."""
+    is integrated (the model plus the truth's structural errors and cable damping), and
+    ``self.truth`` the effects applied around the integrator (``twin.sim.truth``)."""
 
     def __init__(self, params: Params | None = None, config: TwinConfig = TwinConfig()):
-        self.params = truth_params(params or load_params(), config.truth)
+        self.truth: RobotTruth = load_truth(config.truth)
+        model_params = params or load_params()
+        self.params = truth_params(model_params, self.truth)
         self.config = config
-        self.model: Model = build(self.params, config.cable_model, friction=config.friction)
-        self.dt = 1.0 / config.rate_hz
+        fr = self.truth.friction
+        self.model: Model = build(self.params, config.cable_model, friction=config.friction and not fr.enabled)
         n, nc = self.model.n_joints, self.model.n_cables
+        if fr.enabled and config.friction and self.model.cable_model == RIGID:
+            raise ValueError("the robot truth's friction needs elastic cables (linear or variable), not rigid ones")
+        self._rf = np.zeros((0, RF_COLUMNS))
+        if fr.enabled and config.friction:
+            self._rf = _friction_table(self.params, self.truth)
+        self.dt = 1.0 / config.rate_hz
         self._n, self._nc = n, nc
         self.state = np.zeros(2 * (n + nc))
         self._work = dynamics.scratch_buffers(self.model)
         self._tension = np.zeros(nc)
         self._stretch = np.zeros(nc)
+        self._creep = np.zeros(nc)  # m, stretch of the creep element (cables effect)
+        self._current = np.zeros(nc)  # A, the current loops' state (actuation effect)
+        self._pending: list[np.ndarray] = []  # commands not yet applied (timing effect)
+        a = self.truth.actuation
+        self._kt_factor = np.asarray(a.torque_constant_factor or (1.0,) * nc, dtype=float)
+        if self._kt_factor.shape != (nc,):
+            raise ValueError(f"actuation.torque_constant_factor: {len(a.torque_constant_factor)} values for {nc} motors")
+        self._k_t = self.params.motors.torque_constant
+        self._force = np.zeros(nc)
+        bw = a.current_bandwidth_hz
+        self._tau_current = 1.0 / (2.0 * math.pi * bw) if math.isfinite(bw) else 0.0
+        self._act = np.array([self._k_t, self.model.rho, a.current_max_A, 0.0, 0.0, a.ripple_fraction,
+                              float(a.ripple_per_rev), a.cogging_N, float(a.cogging_per_rev)])  # integrator.ACT_*
+        self._backlash = a.backlash_rad if a.enabled else 0.0
+        t, c = self.truth.timing, self.truth.cables
+        self._delay = t.delay_ticks if t.enabled else 0
+        self._jitter = t.jitter_s if t.enabled else 0.0
+        self._creep_on = c.enabled and c.creep_ratio > 0 and self.model.cable_model != RIGID
+        self._rng_timing = np.random.default_rng([config.seed, 16])  # apart from the camera's noise stream
         self.seq = 0
         self.t_s = 0.0
         sensors = self.params.sensors
@@ -113,24 +143,53 @@ class Twin:
         th = cables.theta_rigid(self.model, a) if theta is None else np.asarray(theta, dtype=float)
         self.state[:] = 0.0
         self.state[:n], self.state[n : n + nc] = a, th
+        self._creep[:] = 0.0
+        self._current[:] = 0.0
+        self._pending.clear()
         self.seq, self.t_s = 0, 0.0
+
+    def _applied_force(self, f: np.ndarray, period_s: float) -> np.ndarray:
+        """The force (N) the motors put on the cables this period for the command ``f``: delayed
+        (timing), through the current loop and the motor's torque errors (actuation)."""
+        if self._delay:
+            self._pending.append(f.copy())
+            f = self._pending.pop(0) if len(self._pending) > self._delay else np.zeros_like(f)
+        a = self.truth.actuation
+        if not a.enabled:
+            return f
+        if self._tau_current:
+            decay = math.exp(-period_s / self._tau_current)
+            self._act[ACT_DECAY], self._act[ACT_MEAN_GAIN] = decay, self._tau_current / period_s * (1.0 - decay)
+        actuate(f, self.state[self._n : self._n + self._nc], self._current, self._kt_factor, self._act, self._force)
+        return self._force
 
     def tick(self, f: np.ndarray) -> Tick:
         """Hold forces ``f`` (N, one per cable, assumed validated) for one period and step."""
-        h = self.dt / self.config.substeps
-        bits = int(step(self.model, self.state, np.asarray(f, dtype=float), h, self.config.substeps, self._work,
-                        self._tension, self._stretch))
+        period = self.dt
+        if self._jitter:
+            period = min(max(self.dt + self._jitter * self._rng_timing.standard_normal(), 0.5 * self.dt), 1.5 * self.dt)
+        f_applied = self._applied_force(np.asarray(f, dtype=float), period)
+        h = period / self.config.substeps
+        bits = int(step(self.model, self.state, f_applied, h, self.config.substeps, self._work,
+                        self._tension, self._stretch, self._rf, self._creep))
         flat = bool(bits >> 62 & 1)
+        if self._creep_on:
+            c = self.truth.cables
+            creep_update(self._creep, self._tension, self.model.k, c.creep_ratio, 1.0 - math.exp(-period / c.creep_time_s))
         self.seq += 1
-        self.t_s = self.seq * self.dt
+        self.t_s += period
         n, nc = self._n, self._nc
         s = self.state.copy()
         alpha, theta = s[:n], s[n : n + nc]
+        slack = (bits >> np.arange(nc)) & 1 == 1 if not flat else np.zeros(nc, bool)
         frames = self.camera.update(self.t_s, alpha) if self.camera else []
+        # Backlash: a pulling cable keeps the gear on one flank (the offset is zeroed at homing);
+        # a slack cable lets the motor shaft turn through the backlash.
+        seen = theta - self._backlash * slack if self._backlash and bits & ((1 << nc) - 1) else theta
         return Tick(
             seq=self.seq,
             t_s=self.t_s,
-            theta_meas=quantise_encoder(theta, self.counts_per_rev),
+            theta_meas=quantise_encoder(seen, self.counts_per_rev),
             frames=frames,
             alpha=alpha,
             alpha_dot=s[n + nc : 2 * n + nc],
@@ -138,7 +197,24 @@ class Twin:
             theta_dot=s[2 * n + nc :],
             tension=self._tension.copy(),
             elongation=self._stretch.copy(),
-            slack=(bits >> np.arange(nc)) & 1 == 1 if not flat else np.zeros(nc, bool),
+            slack=slack,
             near_singular=flat or bool(np.abs(alpha).max() >= NEAR_FLAT),
             flat=flat,
         )
+
+
+def _friction_table(params: Params, truth: RobotTruth) -> np.ndarray:
+    """The integrator's robot-friction table (twin.sim.integrator.RF_*) from Table 1's f_s and the
+    truth's friction section."""
+    fr, nc = truth.friction, params.n_cables
+    f_s = np.asarray(params.friction.f_s, dtype=float)
+    asym = np.asarray(fr.asymmetry or (0.0,) * nc, dtype=float)
+    pulley = np.asarray(fr.pulley_friction_per_N or (0.0,) * nc, dtype=float)
+    if asym.shape != (nc,) or pulley.shape != (nc,):
+        raise ValueError(f"friction.asymmetry and pulley_friction_per_N need {nc} values (one per cable)")
+    table = np.empty((nc, RF_COLUMNS))
+    table[:, 0], table[:, 1] = f_s * (1 + asym), f_s * (1 - asym)
+    table[:, 2], table[:, 3], table[:, 4] = fr.static_ratio, fr.stribeck_velocity_rad_s, fr.viscous_N_s_rad
+    table[:, 5], table[:, 6] = fr.gear_loss_forward, fr.gear_loss_backward
+    table[:, 7], table[:, 8] = pulley, fr.pulley_reference_tension_N
+    return table

@@ -1,49 +1,255 @@
 """What the twin simulates where the robot differs from the model the controller runs.
 
-The parameter file is the *model*: the paper's identified values, and c_a = 3000 N·s/m for every
-cable, which the 3-X paper (§5.3) chose "in order to damp the elongation in our model" — a choice
-for its simulator and its eq. 58, not a measurement. Two truths:
+The parameter file (twin/model/prototype_3x.toml) is the *model*: the paper's identified values,
+the smooth arctan friction of eq. 37, ideal motors, and c_a = 3000 N·s/m for every cable, which
+the 3-X paper (§5.3) chose "in order to damp the elongation in our model". The controller keeps
+that model. A *truth* adds what the paper's model leaves out, each effect switchable and every
+value with its source (datasheet, measurement, physics estimate, architecture, or none):
 
 ``"model"``
-    The twin simulates the parameter file exactly (the paper's simulator, §5.6). Controller and
-    twin then share one model; campaigns measure the control law, not the model's errors.
-
+    No effect: the twin simulates the parameter file exactly (the paper's simulator, §5.6).
+    Controller and twin share one model; campaigns then measure the control law alone.
 ``"robot"``
-    The parameter file, but with the small cable damping of a real line, :data:`C_A_ROBOT`. The
-    paper found the damping "not identifiable" (Tables 1-2: relative σ 15-94 %; its estimates
-    change sign and differ between the two tables by a factor of 2, so they measure model error
-    rather than damping). A braided polymer line has a loss factor η of order 0.1; at the
-    motor-cable mode (equivalent mass m = I_a·(R/r_d)² ≈ 18 kg, stiffness k + λ·t ≈ 5-8 kN/m) that
-    is a viscous c = η·√(k·m) ≈ 30-40 N·s/m. The model keeps 3000 N·s/m (a badly identified
-    parameter is never used silently), so the controller's eq. 58 carries the same mismatch it has
-    on the prototype. docs/identification.md shows what this changes and how sensitive it is.
+    The shipped truth file ``robot_truth.toml`` (beside this module), every effect on.
+a path to a TOML file
+    Another truth in the same format (e.g. written by ``xneck twin calibrate``).
+
+The effects (sections of the file; docs/twin-fidelity.md shows what each one changes):
+
+- ``friction``: Coulomb + viscous + Stribeck stiction (static > kinetic), direction asymmetry,
+  load-dependent gear losses (direction-dependent efficiency) and tension-dependent pulley
+  friction, integrated as set-valued friction (sticks exactly at rest): twin.sim.integrator.
+  Table 1's f_s stays the Coulomb level at the pulley reference tension.
+- ``actuation``: the ESCON current loop (first order, saturating), per-motor torque-constant
+  errors, block-commutation torque ripple, cogging, gear backlash (seen when a cable goes slack).
+- ``structure``: errors in bar masses, spring constants and free lengths, pulley radius.
+- ``cables``: the real line's small damping (instead of 3000 N·s/m) and creep/hysteresis (a
+  Kelvin element in series with the eq. 54 spring). Table 2's k and λ stay the truth's.
+- ``timing``: the BeagleBone's one-tick command delay and its control-period jitter.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+import math
+import tomllib
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Literal
 
 import msgspec
 
 from twin.model.params import Params
 
-TruthName = Literal["model", "robot"]  # which parameters the twin integrates (not the bus message bridge.bus.Truth)
+TruthName = Literal["model", "robot"]  # named truths (not the bus message bridge.bus.Truth); a path also works
 TRUTHS: tuple[str, ...] = ("model", "robot")
+ROBOT_TRUTH_FILE = Path(__file__).with_name("robot_truth.toml")
+EFFECTS: tuple[str, ...] = ("friction", "actuation", "structure", "cables", "timing")
+SOURCE_KINDS = ("datasheet", "measurement", "physics estimate", "architecture", "none")
 
-C_A_ROBOT = 40.0  # N·s/m, cable damping of the simulated robot (all cables, both cable models)
+C_A_ROBOT = 40.0  # N·s/m, cable damping of the shipped robot truth (robot_truth.toml [cables])
 
 
-def truth_params(params: Params, truth: TruthName = "model") -> Params:
-    """The parameter set the twin integrates for ``truth`` (see the module docstring)."""
+class TruthError(ValueError):
+    """A truth name or file is invalid; the message names the key and the reason."""
+
+
+class _Effect(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    enabled: bool = False
+
+
+class FrictionTruth(_Effect, frozen=True, kw_only=True):
+    """Motor + pulley friction at the cable (N), against the model's arctan (eq. 37)."""
+
+    static_ratio: float = 1.0  # F_static / F_Coulomb (>= 1)
+    stribeck_velocity_rad_s: float = 1.0  # motor shaft
+    viscous_N_s_rad: float = 0.0  # N at the cable per rad/s of the motor shaft
+    asymmetry: tuple[float, ...] = ()  # per cable: level f_s(1 + a) when winding, f_s(1 − a) unwinding
+    gear_loss_forward: float = 0.0  # fraction of the motor force lost when the motor drives (θ̇ > 0)
+    gear_loss_backward: float = 0.0  # fraction of the tension lost when the cable drives (θ̇ < 0)
+    pulley_friction_per_N: tuple[float, ...] = ()  # per cable, N of friction per N of tension
+    pulley_reference_tension_N: float = 0.0  # tension at which Table 1's f_s holds the pulley part
+
+
+class ActuationTruth(_Effect, frozen=True, kw_only=True):
+    current_bandwidth_hz: float = math.inf  # ESCON current loop, first order
+    current_max_A: float = math.inf
+    torque_constant_factor: tuple[float, ...] = ()  # per motor, true k_t / catalogue k_t
+    ripple_fraction: float = 0.0  # torque ripple amplitude / mean torque
+    ripple_per_rev: int = 6
+    cogging_N: float = 0.0  # cogging amplitude at the cable (N)
+    cogging_per_rev: int = 6
+    backlash_rad: float = 0.0  # gear backlash at the motor shaft
+
+
+class StructureTruth(_Effect, frozen=True, kw_only=True):
+    mass_factor: tuple[float, ...] = ()  # per joint, all bars of the joint
+    spring_factor_left: tuple[float, ...] = ()
+    spring_factor_right: tuple[float, ...] = ()
+    l0_offset_m: tuple[float, ...] = ()  # per joint, both springs
+    pulley_radius_offset_m: float = 0.0
+
+
+class CableTruth(_Effect, frozen=True, kw_only=True):
+    damping_N_s_m: float = 3000.0  # c_a of every cable
+    creep_ratio: float = 0.0  # creep stretch / elastic stretch at equilibrium (k / k_creep)
+    creep_time_s: float = 1.0
+
+
+class TimingTruth(_Effect, frozen=True, kw_only=True):
+    delay_ticks: int = 0
+    jitter_s: float = 0.0  # standard deviation of the control period
+
+
+class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """A truth: the effects the twin adds to the model. ``sources``: "section.key" → source."""
+
+    name: str = "model"
+    friction: FrictionTruth = FrictionTruth()
+    actuation: ActuationTruth = ActuationTruth()
+    structure: StructureTruth = StructureTruth()
+    cables: CableTruth = CableTruth()
+    timing: TimingTruth = TimingTruth()
+    sources: dict[str, str] = {}
+
+    def enabled(self) -> tuple[str, ...]:
+        return tuple(e for e in EFFECTS if getattr(self, e).enabled)
+
+    def only(self, *effects: str) -> "RobotTruth":
+        """This truth with only ``effects`` switched on (the others off)."""
+        unknown = set(effects) - set(EFFECTS)
+        if unknown:
+            raise TruthError(f"unknown effects {sorted(unknown)}: choose from {', '.join(EFFECTS)}")
+        changes = {e: msgspec.structs.replace(getattr(self, e), enabled=e in effects) for e in EFFECTS}
+        label = "+".join(effects) if effects else "none"
+        return msgspec.structs.replace(self, name=f"{self.name} [{label}]", **changes)
+
+    def replace(self, section: str, **values: Any) -> "RobotTruth":
+        """A copy with values of one section changed (validated again)."""
+        new = msgspec.structs.replace(getattr(self, section), **values)
+        return _validated(msgspec.structs.replace(self, **{section: new}))
+
+
+MODEL_TRUTH = RobotTruth()
+
+
+def _validated(truth: RobotTruth) -> RobotTruth:
+    f, a, c, t = truth.friction, truth.actuation, truth.cables, truth.timing
+    checks = [
+        (f.static_ratio >= 1.0, "friction.static_ratio must be >= 1 (static friction is not below kinetic)"),
+        (f.stribeck_velocity_rad_s > 0, "friction.stribeck_velocity_rad_s must be > 0"),
+        (f.viscous_N_s_rad >= 0, "friction.viscous_N_s_rad must be >= 0"),
+        (all(abs(x) < 1 for x in f.asymmetry), "friction.asymmetry must be within (−1, 1)"),
+        (0 <= f.gear_loss_forward < 1 and 0 <= f.gear_loss_backward < 1, "friction.gear_loss_* must be in [0, 1)"),
+        (all(x >= 0 for x in f.pulley_friction_per_N), "friction.pulley_friction_per_N must be >= 0"),
+        (a.current_bandwidth_hz > 0, "actuation.current_bandwidth_hz must be > 0"),
+        (a.current_max_A > 0, "actuation.current_max_A must be > 0"),
+        (all(x > 0 for x in a.torque_constant_factor), "actuation.torque_constant_factor must be > 0"),
+        (0 <= a.ripple_fraction < 1, "actuation.ripple_fraction must be in [0, 1)"),
+        (a.cogging_N >= 0 and a.backlash_rad >= 0, "actuation.cogging_N and backlash_rad must be >= 0"),
+        (c.damping_N_s_m >= 0, "cables.damping_N_s_m must be >= 0"),
+        (c.creep_ratio >= 0 and c.creep_time_s > 0, "cables.creep_ratio must be >= 0 and creep_time_s > 0"),
+        (t.delay_ticks in (0, 1, 2, 3), "timing.delay_ticks must be 0-3"),
+        (t.jitter_s >= 0, "timing.jitter_s must be >= 0"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise TruthError(message)
+    return truth
+
+
+def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
+    """A truth from a TOML document: each section has ``enabled`` and values written as
+    ``key = { value = ..., source = "<kind>: ..." }``, kind one of :data:`SOURCE_KINDS`."""
+    plain: dict[str, Any] = {"name": str(data.get("name", name))}
+    sources: dict[str, str] = {}
+    for section, body in data.items():
+        if section == "name":
+            continue
+        if section not in EFFECTS or not isinstance(body, dict):
+            raise TruthError(f"{section}: not an effect section (choose from {', '.join(EFFECTS)})")
+        out: dict[str, Any] = {}
+        for key, item in body.items():
+            if key == "enabled":
+                out[key] = item
+                continue
+            if not (isinstance(item, dict) and set(item) == {"value", "source"}):
+                raise TruthError(f"{section}.{key}: write it as {{ value = ..., source = \"<kind>: ...\" }}")
+            source = item["source"]
+            if not (isinstance(source, str) and source.split(":", 1)[0].strip() in SOURCE_KINDS):
+                raise TruthError(f"{section}.{key}: source must start with one of {', '.join(SOURCE_KINDS)} "
+                                 f"followed by ':', got {source!r}")
+            out[key], sources[f"{section}.{key}"] = item["value"], source
+        plain[section] = out
+    plain["sources"] = sources
+    try:
+        return _validated(msgspec.convert(plain, RobotTruth, strict=False))
+    except msgspec.ValidationError as exc:
+        raise TruthError(f"{name}: {exc}") from None
+
+
+@lru_cache(maxsize=16)
+def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise TruthError(f"{path}: {exc}") from None
+    return parse_truth(data, path.stem)
+
+
+def load_truth(truth: "str | Path | RobotTruth" = "model") -> RobotTruth:
+    """A truth by name ("model", "robot"), by TOML path, or as given."""
+    if isinstance(truth, RobotTruth):
+        return _validated(truth)
     if truth == "model":
+        return MODEL_TRUTH
+    path = ROBOT_TRUTH_FILE if truth == "robot" else Path(truth)
+    if str(truth) not in TRUTHS and path.suffix != ".toml":
+        raise TruthError(f"truth must be one of {', '.join(TRUTHS)} or a .toml file, got {truth!r}")
+    if not path.is_file():
+        raise TruthError(f"truth file {str(path)!r} does not exist")
+    truth_obj = _load_file(path.resolve(), path.stat().st_mtime_ns)
+    return msgspec.structs.replace(truth_obj, name="robot") if truth == "robot" else truth_obj
+
+
+def check_truth(value: str) -> str:
+    """``value`` if it names a truth that loads; :class:`TruthError` with the reason otherwise."""
+    load_truth(value)
+    return value
+
+
+def _per(values: tuple[float, ...], n: int, default: float, key: str) -> tuple[float, ...]:
+    if not values:
+        return (default,) * n
+    if len(values) != n:
+        raise TruthError(f"{key}: {len(values)} values for {n} joints/cables")
+    return tuple(values)
+
+
+def truth_params(params: Params, truth: "str | RobotTruth" = "model") -> Params:
+    """The parameter set the twin integrates: the model with the truth's structural errors and
+    cable damping (the other effects live in the simulator and integrator)."""
+    t = load_truth(truth)
+    if not (t.structure.enabled or t.cables.enabled):
         return params
-    if truth != "robot":
-        raise ValueError(f"truth must be one of {', '.join(TRUTHS)}, got {truth!r}")
-    c = params.cables
-    damping = (C_A_ROBOT,) * params.n_cables
-    cables = msgspec.structs.replace(
-        c,
-        linear=msgspec.structs.replace(c.linear, c_a=damping),
-        variable=msgspec.structs.replace(c.variable, c_a=damping),
-    )
-    return msgspec.structs.replace(params, name=f"{params.name} (robot truth)", cables=cables)
+    changes: dict[str, Any] = {"name": f"{params.name} ({t.name} truth)"}
+    n = params.n_joints
+    if t.structure.enabled:
+        s = t.structure
+        mass = _per(s.mass_factor, n, 1.0, "structure.mass_factor")
+        b = params.bars
+        changes["bars"] = msgspec.structs.replace(
+            b, **{k: tuple(v * f for v, f in zip(getattr(b, k), mass)) for k in ("m_diagonal", "I_diagonal", "m_top", "I_top")})
+        sp = params.springs
+        kl = _per(s.spring_factor_left, n, 1.0, "structure.spring_factor_left")
+        kr = _per(s.spring_factor_right, n, 1.0, "structure.spring_factor_right")
+        dl = _per(s.l0_offset_m, n, 0.0, "structure.l0_offset_m")
+        changes["springs"] = msgspec.structs.replace(
+            sp, k_left=tuple(k * f for k, f in zip(sp.k_left, kl)), k_right=tuple(k * f for k, f in zip(sp.k_right, kr)),
+            l0=tuple(v + d for v, d in zip(sp.l0, dl)))
+        changes["geometry"] = msgspec.structs.replace(params.geometry, r=params.geometry.r + s.pulley_radius_offset_m)
+    if t.cables.enabled:
+        c = params.cables
+        damping = (t.cables.damping_N_s_m,) * params.n_cables
+        changes["cables"] = msgspec.structs.replace(
+            c, linear=msgspec.structs.replace(c.linear, c_a=damping), variable=msgspec.structs.replace(c.variable, c_a=damping))
+    return msgspec.structs.replace(params, **changes)
