@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -205,3 +206,27 @@ def test_quality_thresholds_name_each_breach() -> None:
     gaps = assess({**ok, "record_gaps": 37, "messages_lost": 40}, realtime=False)
     assert len(gaps) == 1 and "40 of 10040 messages lost in 37 gap(s)" in gaps[0]
     assert THRESHOLDS.rate_min_fraction == 0.95 and THRESHOLDS.nominal_rate_hz == 500.0
+
+
+def test_the_dashboard_shows_the_bridges_estop_and_its_reason(tmp_path: Path) -> None:
+    """Finding 4, the dashboard: the e-stop banner comes from the bridge's MotorState, so an e-stop
+    engaged by someone else on the bus (here a malformed message) shows, with its reason."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    if not os.path.exists("/usr/bin/chromium"):
+        pytest.skip("Debian chromium not installed (bash .ci/setup)")
+    with _robot_stack(tmp_path) as (base, hub, _), open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s, \
+            sync_api.sync_playwright() as pw:
+        assert wait_until(lambda: _estop(base).get("source") == "bridge", 30, 0.2), _estop(base)
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=["--no-sandbox", "--disable-gpu"],
+                                     headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(base + "/", wait_until="load")
+            page.wait_for_function("document.querySelector('#sys').textContent.startsWith('mode')", timeout=20000)
+            assert page.is_hidden("#estop-state")
+            s.put(bus.ESTOP, b"not json")
+            page.wait_for_selector("#estop-state:not([hidden])", timeout=20000)
+            banner = page.text_content("#estop-state")
+        finally:
+            browser.close()
+    assert banner.startswith("E-STOP ENGAGED: malformed e-stop message"), banner
