@@ -66,7 +66,8 @@ def default_archive(kind: str) -> tuple[str, Path]:
     from server.settings import Settings
 
     campaign_id = new_campaign_id(kind)
-    return campaign_id, Path(Settings().data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
+    settings = Settings()  # pyright: ignore[reportCallIssue] - pydantic-settings fills the fields from XNECK_*
+    return campaign_id, Path(settings.data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
 
 
 def _print_progress(fraction: float, message: str) -> None:

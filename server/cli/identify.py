@@ -5,18 +5,18 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional
 
 import typer
+
 
 def identify(
     campaign: Path = typer.Argument(..., help="Campaign MCAP file recorded on the identification trajectory."),
     json_out: bool = typer.Option(False, "--json", help="Print the tables and checks as JSON."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Directory for figures and the parameter set "
+    out: Path | None = typer.Option(None, "--out", help="Directory for figures and the parameter set "
                                        "(default: <campaign stem>_identification next to the file)."),
-    params_file: Optional[Path] = typer.Option(None, "--params", help="Base parameter file (default: prototype)."),
-    cutoff_hz: Optional[float] = typer.Option(None, "--cutoff-hz", help="Override the filter cutoff rule (Hz)."),
-    threshold: Optional[float] = typer.Option(None, "--threshold", help="Relative σ above which a parameter is "
+    params_file: Path | None = typer.Option(None, "--params", help="Base parameter file (default: prototype)."),
+    cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", help="Override the filter cutoff rule (Hz)."),
+    threshold: float | None = typer.Option(None, "--threshold", help="Relative σ above which a parameter is "
                                               "badly identified (default: the pipeline's, 0.10)."),
     no_alpha_hat: bool = typer.Option(False, "--no-alpha-hat", help="Skip the α̂ reconstruction (Fig. 8)."),
 ) -> None:
@@ -39,7 +39,7 @@ def identify(
     out_dir.mkdir(parents=True, exist_ok=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
-    figures = write_figures(val, out_dir)
+    figures = write_figures(val, out_dir) if val is not None else []
     toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
     if json_out:
         doc = report_dict(est, proc, val, prov)

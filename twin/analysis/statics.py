@@ -38,8 +38,8 @@ from twin.analysis.kinematics import check_design, jacobian, median_length_deriv
 __all__ = [
     "Design",
     "ForceSegment",
-    "StiffnessExtremes",
     "Statics3X",
+    "StiffnessExtremes",
     "cartesian_stiffness",
     "forces_two_cables",
     "joint_stiffness",
@@ -49,8 +49,8 @@ __all__ = [
     "redundancy_segment",
     "side_length_derivatives",
     "statics_3x",
-    "stiffness_extremes",
     "stiffness_3x",
+    "stiffness_extremes",
     "wrench_feasible_two_cables",
 ]
 
@@ -336,7 +336,7 @@ def stiffness_extremes(d: Design, half_alpha: ArrayLike) -> StiffnessExtremes:
     s_min = np.where(slope >= 0, seg.s_lo, seg.s_hi)
     s_max = np.where(slope >= 0, seg.s_hi, seg.s_lo)
     f_at = lambda s: np.stack([seg.A + seg.B * s, s], axis=-1)  # noqa: E731
-    feasible = seg.feasible.all(-1)
+    feasible = np.asarray(seg.feasible.all(-1))
     nan = np.where(feasible[..., None, None], 0.0, np.nan)
     F_min, F_max = f_at(s_min) + nan, f_at(s_max) + nan
     K_min = joint_stiffness(d, half_alpha, F_min[..., 0], F_min[..., 1]) + nan

@@ -226,8 +226,8 @@ class Maps3X(NamedTuple):
 
 def maps_3x(m: Any, f_min: float, f_max: float, n: int = 31, alpha_max: float = np.pi / 2) -> Maps3X:
     """Reachable configurations and stiffness range of the 3-X prototype (model ``m``)."""
-    from twin.model.chain import head
     from twin.analysis.statics import statics_3x, stiffness_3x
+    from twin.model.chain import head
 
     if n < 2:
         raise ValueError(f"n (grid size) must be >= 2, got {n}")

@@ -35,40 +35,41 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
-from twin.model import cables, dynamics
-from twin.model.numeric import Model, build
+from twin.model import dynamics
+from twin.model.numeric import CableModelName, build
 from twin.model.params import Params, params_from_dict
 
 __all__ = [
-    "IdentificationError",
-    "CampaignData",
-    "Processed",
-    "Estimate",
-    "Provenance",
-    "ParameterReport",
-    "Validation",
-    "AlphaHat",
     "DECIMATION",
-    "W_JOINT",
     "DEFAULT_THRESHOLD",
+    "W_JOINT",
+    "AlphaHat",
+    "CampaignData",
+    "Estimate",
+    "IdentificationError",
+    "ParameterReport",
+    "Processed",
+    "Provenance",
+    "Validation",
     "cutoff_rule",
-    "preprocess",
-    "identify_friction",
+    "identified_params",
     "identify_complete",
+    "identify_friction",
     "identify_variable",
     "least_squares",
-    "identified_params",
-    "write_identified",
+    "preprocess",
     "validate",
+    "write_identified",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -241,7 +242,7 @@ class Processed:
 
     @property
     def n(self) -> int:
-        return int(len(self.t_s))
+        return len(self.t_s)
 
 
 def cutoff_rule(velocity: FloatArray, rate_hz: float, nyquist_hz: float) -> tuple[float, float]:
@@ -752,11 +753,11 @@ def make_provenance(campaign: str, proc: Processed, *, method: str = "", thresho
         from importlib.metadata import version
 
         sw = version("xneck")
-    except Exception:  # noqa: BLE001 - not installed: an editable checkout
+    except Exception:
         sw = "unknown"
     return Provenance(
         campaign=campaign,
-        date=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        date=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         method=method or (
             f"3-X paper §5: Butterworth filtfilt {proc.cutoff_hz:.2f} Hz, decimation to {proc.rate_hz:.2f} Hz; "
             "f_s by eq. 38 (rigid cables); linear cables by eqs. 43-45 (W = 100); variable cables by eqs. 54-57; "
@@ -834,7 +835,7 @@ class Validation:
         }
 
 
-def _alpha_hat_all(data: CampaignData, proc: Processed, params: Params, models: tuple[str, ...]) -> tuple[dict, FloatArray, FloatArray]:
+def _alpha_hat_all(data: CampaignData, proc: Processed, params: Params, models: tuple[CableModelName, ...]) -> tuple[dict, FloatArray, FloatArray]:
     """α̂ by eqs. 33 and 35 (twin.model.estimation) on the 500 Hz record, compared at the camera
     frames inside it. The estimators start at α̂ = 0, x_c = 0 with the first encoder reading: the
     campaign starts straight and at rest (§5.2.2)."""

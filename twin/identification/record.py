@@ -8,15 +8,26 @@ from ``/xneck/motor/state`` (``theta_rad``, ``force_applied_N``, ``stamp_s``), Î
 
 from __future__ import annotations
 
-import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from twin.identification.pipeline import (
-    DEFAULT_THRESHOLD, CampaignData, Estimate, IdentificationError, Processed, Provenance, Validation,
-    identified_params, identify_all, make_provenance, preprocess, validate,
+    DEFAULT_THRESHOLD,
+    CampaignData,
+    Estimate,
+    IdentificationError,
+    ParameterReport,
+    Processed,
+    Provenance,
+    Validation,
+    identified_params,
+    identify_all,
+    make_provenance,
+    preprocess,
+    validate,
 )
 from twin.model.params import Params
 
@@ -75,7 +86,7 @@ class Identification(NamedTuple):
     estimate: dict[str, Estimate]  # by model name, as identify_all returns them
     provenance: Provenance
     params: Params  # the identified parameter set (flagged values kept at base)
-    report: object  # twin.model.params diff report of ``params`` against the base
+    report: ParameterReport  # which estimates replaced a base value, which did not and why
     validation: Validation | None
 
 

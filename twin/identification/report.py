@@ -16,7 +16,7 @@ import numpy as np
 
 from twin.identification.pipeline import Estimate, Processed, Validation
 
-__all__ = ["table_1", "table_2", "tables_text", "report_dict", "write_figures"]
+__all__ = ["report_dict", "table_1", "table_2", "tables_text", "write_figures"]
 
 
 _BANDWIDTH_FROM = {"alpha_d": "the excitation α^d", "theta_dot": "the motor velocities", "given": "--cutoff-hz"}
@@ -118,14 +118,15 @@ def write_figures(validation: Validation, out_dir: str | Path) -> list[Path]:
     t = validation.t_s
     N = validation.gamma_m.shape[1]
 
-    fig, axes = plt.subplots(N, 1, figsize=(10, 2.4 * N), sharex=True)
-    for i, ax in enumerate(np.atleast_1d(axes)):
+    fig, grid = plt.subplots(N, 1, figsize=(10, 2.4 * N), sharex=True, squeeze=False)
+    axes = grid[:, 0]
+    for i, ax in enumerate(axes):
         ax.plot(t, validation.gamma_m[:, i], "b", lw=0.8, label="Γ_m = Z·f")
         ax.plot(t, validation.gamma_rf[:, i], "g", lw=0.8, label="Γ_rf (friction)")
         ax.plot(t, validation.gamma_r[:, i], "r", lw=0.8, label="Γ_r (no friction)")
         ax.set_ylabel(f"joint {i + 1} (N·m/rad)")
-    np.atleast_1d(axes)[0].legend(loc="upper right", fontsize=8)
-    np.atleast_1d(axes)[-1].set_xlabel("t (s)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("t (s)")
     fig.suptitle(f"Fig. 4: torques; mean error {validation.gamma_rf_error:.3f} with friction, "
                  f"{validation.gamma_r_error:.3f} without (N·m/rad)")
     paths.append(_save(fig, out / "fig4_torques.png", plt))
@@ -135,7 +136,8 @@ def write_figures(validation: Validation, out_dir: str | Path) -> list[Path]:
             continue
         tf, ts = validation.tension_force[model], validation.tension_stiffness[model]
         nc = tf.shape[1]
-        fig, axes = plt.subplots(nc, 1, figsize=(10, 2.2 * nc), sharex=True)
+        fig, grid = plt.subplots(nc, 1, figsize=(10, 2.2 * nc), sharex=True, squeeze=False)
+        axes = grid[:, 0]
         for j, ax in enumerate(axes):
             ax.plot(t, tf[:, j], "b", lw=0.8, label="from forces (eq. 42 RHS)")
             ax.plot(t, ts[:, j], "r", lw=0.8, label="from stiffness (eq. 42 LHS)")

@@ -24,7 +24,7 @@ import numpy as np
 from twin.model import xjoint
 from twin.model.cables import cable_terms
 from twin.model.compiled import njit
-from twin.model.numeric import LINEAR, RIGID, Model
+from twin.model.numeric import RIGID, Model
 
 
 @njit(cache=True)
@@ -300,5 +300,6 @@ def accelerations(model: Model, alpha, theta, alpha_dot, theta_dot, f) -> Accele
         if v.shape != (n,):
             raise ValueError(f"{name} must have shape ({n},), got {v.shape}")
     add, tdd, t = np.empty(N), np.empty(nc), np.empty(nc)
-    slack = accelerations_into(model, *args, scratch_buffers(model), add, tdd, t)
+    a, th, ad, thd, f_ = args
+    slack = accelerations_into(model, a, th, ad, thd, f_, scratch_buffers(model), add, tdd, t)
     return Accelerations(add, tdd, t, int(slack))

@@ -8,7 +8,7 @@ off, or pulleys neglected (r = 0, the controller variant of 3-X paper Table 3).
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -18,6 +18,8 @@ from twin.model.params import Params
 CABLE_MODELS = ("rigid", "linear", "variable")
 RIGID, LINEAR, VARIABLE = 0, 1, 2
 
+
+CableModelName = Literal["rigid", "linear", "variable"]  # the index into CABLE_MODELS is Model.cable_model
 
 class Model(NamedTuple):
     L: float  # m, diagonal bar length
@@ -49,7 +51,7 @@ class Model(NamedTuple):
 
 def build(
     params: Params,
-    cable_model: Literal["rigid", "linear", "variable"] | None = None,
+    cable_model: CableModelName | None = None,
     *,
     friction: bool = True,
     pulleys: bool = True,
@@ -67,7 +69,7 @@ def build(
     cable = params.cables.variable if name == "variable" else params.cables.linear
     lam = np.asarray(params.cables.variable.lam if name == "variable" else (0.0,) * nc, dtype=float)
     r = g.r if pulleys else 0.0
-    partial = dict(
+    partial: dict[str, Any] = dict(
         L=g.L,
         b=g.b,
         r=r,

@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 import msgspec
 
-__all__ = ["ParameterError", "Params", "load_params", "params_from_dict", "parse_override", "DEFAULT_PARAMS_FILE"]
+__all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "load_params", "params_from_dict", "parse_override"]
 
 DEFAULT_PARAMS_FILE = "prototype_3x.toml"
 _CASES = "abcd"
@@ -57,7 +57,7 @@ def _positive(section: _Section, *names: str) -> None:
         _require(all(v > 0 for v in values), f"{name} must be > 0, got {value}")
 
 
-class Geometry(_Section, kw_only=True):
+class Geometry(_Section, frozen=True, kw_only=True):
     """X-joint and transmission geometry (3-X paper §2): lengths in m."""
 
     n_joints: int
@@ -80,7 +80,7 @@ class Geometry(_Section, kw_only=True):
         )
 
 
-class Springs(_Section, kw_only=True):
+class Springs(_Section, frozen=True, kw_only=True):
     """Lateral springs of every joint: stiffness N/m, rest length m."""
 
     k_left: tuple[float, ...]
@@ -93,7 +93,7 @@ class Springs(_Section, kw_only=True):
         _positive(self, "l0")
 
 
-class Bars(_Section, kw_only=True):
+class Bars(_Section, frozen=True, kw_only=True):
     """Masses (kg) and inertias about the centre of mass (kg·m²) of every bar, per joint."""
 
     m_diagonal: tuple[float, ...]
@@ -106,7 +106,7 @@ class Bars(_Section, kw_only=True):
         _nonneg(self, "m_diagonal", "I_diagonal", "m_top", "I_top")
 
 
-class Motors(_Section, kw_only=True):
+class Motors(_Section, frozen=True, kw_only=True):
     """Geared motors: inertia at the motor shaft (kg·m²) and the electrical data the bridge uses."""
 
     I_a: float
@@ -120,7 +120,7 @@ class Motors(_Section, kw_only=True):
         _require(0 < self.gear_efficiency <= 1, f"gear_efficiency must be in (0, 1], got {self.gear_efficiency}")
 
 
-class Friction(_Section, kw_only=True):
+class Friction(_Section, frozen=True, kw_only=True):
     """Dry friction of the geared motors, eqs. 36-37: f_s in N per cable, c_s in s/rad."""
 
     model: Literal["arctan", "sign"] = "arctan"
@@ -133,7 +133,7 @@ class Friction(_Section, kw_only=True):
         _positive(self, "c_s")
 
 
-class LinearCable(_Section, kw_only=True):
+class LinearCable(_Section, frozen=True, kw_only=True):
     """Eq. 39: t = k·x + c_a·ẋ. k in N/m, c_a in N·s/m, per cable."""
 
     k: tuple[float, ...]
@@ -144,7 +144,7 @@ class LinearCable(_Section, kw_only=True):
         _positive(self, "k")
 
 
-class VariableCable(_Section, kw_only=True):
+class VariableCable(_Section, frozen=True, kw_only=True):
     """Eq. 54: t = (k + λ·t)·x + c_a·ẋ. k in N/m, λ in 1/m, c_a in N·s/m, per cable."""
 
     k: tuple[float, ...]
@@ -157,7 +157,7 @@ class VariableCable(_Section, kw_only=True):
         _require(all(v >= 0 for v in self.lam), f"lambda must be >= 0, got {self.lam}")
 
 
-class Cables(_Section, kw_only=True):
+class Cables(_Section, frozen=True, kw_only=True):
     """Cable routing (one string per cable, e.g. ``"1d 2b"``) and tension models."""
 
     routing: tuple[str, ...]
@@ -172,7 +172,7 @@ class Cables(_Section, kw_only=True):
             _parse_route(path, f"routing[{j}]")
 
 
-class Limits(_Section, kw_only=True):
+class Limits(_Section, frozen=True, kw_only=True):
     """Force limits of §6.2 (N) and the joint limit used to validate trajectories (deg)."""
 
     t_min: float
@@ -187,7 +187,7 @@ class Limits(_Section, kw_only=True):
         _require(0 < self.alpha_max_deg < 90, f"alpha_max_deg must be in (0, 90), got {self.alpha_max_deg}")
 
 
-class Environment(_Section, kw_only=True):
+class Environment(_Section, frozen=True, kw_only=True):
     gravity: float = 9.81  # m/s², along −y of the base frame
 
     def __post_init__(self) -> None:
@@ -195,7 +195,7 @@ class Environment(_Section, kw_only=True):
         _nonneg(self, "gravity")
 
 
-class Sensors(_Section, kw_only=True):
+class Sensors(_Section, frozen=True, kw_only=True):
     """Encoders and the camera (rates Hz, noise deg, latency s)."""
 
     encoder_counts_per_rev: int = 2048
@@ -209,7 +209,7 @@ class Sensors(_Section, kw_only=True):
         _nonneg(self, "camera_noise_deg", "camera_latency")
 
 
-class Params(_Section, kw_only=True):
+class Params(_Section, frozen=True, kw_only=True):
     """A complete, validated parameter set. Immutable: derive variants with :func:`load_params` overrides."""
 
     name: str = "unnamed"
