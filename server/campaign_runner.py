@@ -204,6 +204,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 if not started:
                     monitor.begin()
                 started = True
+                monitor.note_event(ev)
                 if progress:
                     progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
                 if ev.event in ("finished", "aborted"):

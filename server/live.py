@@ -143,7 +143,7 @@ def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, msg in values.items():
         fields = SERIES[name][1]
-        out[name] = {f: getattr(msg, f, None) for f in fields}  # None: a field of a newer schema version
+        out[name] = {f: getattr(msg, f) for f in fields}
     return out
 
 

@@ -2,10 +2,12 @@
 the bus while it runs, and the thresholds that make its outcome ``degraded`` (issue 13, findings 4
 and 7).
 
-:class:`CampaignMonitor` subscribes to the bridge's ``MotorState``, the controller's ``ForceCommand``
-and ``ControllerStatus`` on the campaign's session. Its callbacks only decode and update counters
-under a lock. The campaign runner marks the window (:meth:`~CampaignMonitor.begin` at the
-controller's first event, :meth:`~CampaignMonitor.end` at its last) and asks two questions:
+:class:`CampaignMonitor` subscribes to the bridge's ``MotorState`` and the controller's
+``ForceCommand`` on the campaign's session; its callbacks only decode and update counters under a
+lock. The campaign runner marks the window (:meth:`~CampaignMonitor.begin` at the controller's
+first event, :meth:`~CampaignMonitor.end` at its last), hands it the controller's own counts of
+the campaign (:meth:`~CampaignMonitor.note_event`: ``CampaignEvent`` v2 carries ``ticks``,
+``overruns``, ``deadline_misses`` since the campaign started) and asks two questions:
 
 Drives
     :meth:`~CampaignMonitor.drives_disabled` — did the bridge report its drives disabled (its
@@ -16,11 +18,10 @@ Quality
     :func:`assess` compares the window's counters with :data:`THRESHOLDS`; every breach is a reason,
     and a campaign that finished with reasons ends ``degraded``. The thresholds (defined here only):
 
-    - **deadline misses**: ticks whose command left late, over the ticks of the campaign (the
-      difference of the controller's counters between the window's first and last status, so it is
-      per campaign whether the controller counts since its start or since the campaign's),
-      at most :attr:`QualityThresholds.deadline_miss_rate_max` (1 %). Real-time campaigns only: a
-      lockstep run has no deadline.
+    - **deadline misses**: ticks whose command left late over the ticks of the campaign, both as
+      the controller counts them for this campaign (its last event), at most
+      :attr:`QualityThresholds.deadline_miss_rate_max` (1 %). Real-time campaigns only: a lockstep
+      run has no deadline.
     - **record gaps**: ``MotorState`` and ``ForceCommand`` messages missing from their publishers'
       ``seq`` sequences as seen by the console, plus those the recorder dropped, over the messages
       expected, at most :attr:`QualityThresholds.lost_fraction_max` (0.1 %). A gap is one run of
@@ -84,19 +85,23 @@ class CampaignMonitor:
         self._active = self._ended = False
         self._states, self._commands = _SeqCounter(), _SeqCounter()
         self._first_cmd_s = self._last_cmd_s = 0.0
-        self._misses: tuple[int, int] | None = None  # (first, last) deadline_misses of the window
-        self._overruns: tuple[int, int] | None = None
+        self._controller = {"controller_ticks": 0, "overruns": 0, "deadline_misses": 0}  # its counts, this campaign
         self.disabled_reason = ""
         self.rejected = 0
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
-                      session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
-                      session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status)]
+                      session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command)]
 
     # -- window -----------------------------------------------------------------------------
     def begin(self) -> None:
         """Start counting (the controller's first event of the campaign)."""
         with self._lock:
             self._active = True
+
+    def note_event(self, event: bus.CampaignEvent) -> None:
+        """The controller's counts of this campaign so far, from one of its events."""
+        with self._lock:
+            self._controller = {"controller_ticks": event.ticks, "overruns": event.overruns,
+                                "deadline_misses": event.deadline_misses}
 
     def end(self) -> None:
         """Stop counting and following (the campaign's last event; the bridge may disable after)."""
@@ -135,14 +140,6 @@ class CampaignMonitor:
             self._last_cmd_s = now
             self._commands.add(msg.seq)
 
-    def _on_status(self, sample: zenoh.Sample) -> None:
-        msg = self._decode(bus.ControllerStatus, sample)
-        with self._lock:
-            if msg is None or not self._active:
-                return
-            self._misses = (self._misses[0] if self._misses else msg.deadline_misses, msg.deadline_misses)
-            self._overruns = (self._overruns[0] if self._overruns else msg.overruns, msg.overruns)
-
     # -- questions --------------------------------------------------------------------------
     def drives_disabled(self) -> str:
         """The bridge's reason if it reported its drives disabled during the window, else ''."""
@@ -164,7 +161,7 @@ class CampaignMonitor:
                 "ticks": self._commands.count, "states": self._states.count,
                 "duration_wall_s": round(duration_s, 4),
                 "rate_hz": round((self._commands.count - 1) / duration_s, 2) if duration_s > 0 else 0.0,
-                "deadline_misses": _delta(self._misses), "overruns": _delta(self._overruns),
+                **self._controller,
                 "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
@@ -182,22 +179,11 @@ class CampaignMonitor:
         self.close()
 
 
-def _delta(pair: tuple[int, int] | None) -> int:
-    """Events counted within the window from a counter's first and last values; a counter that
-    went back was reset at the campaign's start, so its last value is the campaign's own."""
-    if pair is None:
-        return 0
-    first, last = pair
-    return last - first if last >= first else last
-
-
 def drive_estop(state: bus.MotorState) -> tuple[bool, str]:
-    """(engaged, reason) of the bridge's e-stop from one of its states. ``MotorState`` v2 carries
-    ``estop_engaged``/``estop_reason``; a v1 state says only ``drive == "disabled"``."""
-    engaged = bool(getattr(state, "estop_engaged", False))
-    reason = str(getattr(state, "estop_reason", "") or "")
-    if engaged:
-        return True, reason or "e-stop engaged"
+    """(engaged, reason) of the bridge's latched e-stop from one of its states (``MotorState`` v2);
+    drives disabled without it (a bridge stopping) are not an e-stop but get a reason too."""
+    if state.estop_engaged:
+        return True, state.estop_reason or "e-stop engaged"
     if state.drive == "disabled":
         return False, "the bridge's drives are disabled"
     return False, ""
@@ -212,11 +198,12 @@ def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds =
     if expected and lost / expected > limits.lost_fraction_max:
         reasons.append(f"record gaps: {lost} of {expected} messages lost in {counters.get('record_gaps', 0)} gap(s) "
                        f"({100 * lost / expected:.2f} % > {100 * limits.lost_fraction_max:.2f} %)")
-    if realtime and ticks:
+    controller_ticks = int(counters.get("controller_ticks", 0)) or ticks
+    if realtime and controller_ticks:
         misses = int(counters.get("deadline_misses", 0))
-        if misses / ticks > limits.deadline_miss_rate_max:
-            reasons.append(f"deadline misses: {misses} in {ticks} ticks ({100 * misses / ticks:.1f} % > "
-                           f"{100 * limits.deadline_miss_rate_max:.0f} %)")
+        if misses / controller_ticks > limits.deadline_miss_rate_max:
+            reasons.append(f"deadline misses: {misses} in {controller_ticks} ticks "
+                           f"({100 * misses / controller_ticks:.1f} % > {100 * limits.deadline_miss_rate_max:.0f} %)")
         rate = float(counters.get("rate_hz", 0.0))
         floor = limits.rate_min_fraction * limits.nominal_rate_hz
         if ticks > 1 and rate < floor:

@@ -63,7 +63,7 @@ def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
     rows = [
         ["command rate (Hz, wall clock)", q.get("rate_hz"), f"≥ {100 * t.get('rate_min_fraction', 0):.0f} % of "
          f"{t.get('nominal_rate_hz', 0):.0f} Hz{rt}"],
-        ["deadline misses / ticks", f"{q.get('deadline_misses')} / {q['ticks']}",
+        ["deadline misses / ticks", f"{q.get('deadline_misses')} / {q.get('controller_ticks') or q['ticks']}",
          f"≤ {100 * t.get('deadline_miss_rate_max', 0):.0f} %{rt}"],
         ["messages lost (gaps)", f"{q.get('messages_lost')} ({q.get('record_gaps')})",
          f"≤ {100 * t.get('lost_fraction_max', 0):.1f} % of the messages"],
