@@ -160,20 +160,23 @@ def _bridge_of(msg: bus.MotorState) -> str:
     return str(getattr(msg, "epoch", "") or getattr(msg, "bridge", "") or "")
 
 
-def force_step_N(states: list) -> float:
+def force_step(states: list) -> tuple[float, str]:
     """Largest change of one applied force per tick of the same bridge run (over the ticks between
     two received states, when some were lost on the way), except into ``disabled``: the drives
-    off (zero torque) is the e-stop's purpose, not a step."""
-    step = 0.0
-    prev: dict[str, tuple[int, np.ndarray]] = {}
+    off (zero torque) is the e-stop's purpose, not a step. Also says where: the drive states
+    before and after it."""
+    step, where = 0.0, ""
+    prev: dict[str, tuple[int, np.ndarray, str]] = {}
     for _, m in states:
         key = _bridge_of(m)
         f = np.asarray(m.force_applied_N, dtype=float)
         if key in prev and m.seq > prev[key][0] and m.drive != "disabled":
             ticks = m.seq - prev[key][0]
-            step = max(step, float(np.max(np.abs(f - prev[key][1]))) / ticks)
-        prev[key] = (m.seq, f)
-    return step
+            change = float(np.max(np.abs(f - prev[key][1]))) / ticks
+            if change > step:
+                step, where = change, f"{prev[key][2]}→{m.drive}"
+        prev[key] = (m.seq, f, m.drive)
+    return step, where
 
 
 def data_lost(states: list) -> str:
@@ -264,7 +267,7 @@ def forged_state(seq: int) -> bus.MotorState:
 class Row:
     attack: str
     reaction_ms: str
-    step_N: float
+    step: tuple[float, str]  # N per tick, and between which drive states
     lost: str
     survived: str
 
@@ -315,7 +318,7 @@ def run(args: argparse.Namespace) -> list[Row]:
         t0 = time.monotonic()
         time.sleep(1.0)
         states, _ = obs.window(t0, time.monotonic())
-        rows.append(Row("baseline (1 s, holding)", "-", force_step_N(states), data_lost(states), survived()))
+        rows.append(Row("baseline (1 s, holding)", "-", force_step(states), data_lost(states), survived()))
 
     def garbage(key: str):
         def attack(s, obs: Observer) -> None:
@@ -330,7 +333,7 @@ def run(args: argparse.Namespace) -> list[Row]:
                 time.sleep(0.5)
             states, _ = obs.window(t0, time.monotonic())
             rows.append(Row(f"garbage {key} ({sent / args.garbage_s / 1e3:.1f} kHz)", _ms(reaction),
-                            force_step_N(states), data_lost(states), survived()))
+                            force_step(states), data_lost(states), survived()))
         return attack
 
     def forged(s, obs: Observer) -> None:
@@ -346,7 +349,7 @@ def run(args: argparse.Namespace) -> list[Row]:
         states, commands = obs.window(t0, time.monotonic())
         real = [(t, m) for t, m in states if m.stamp_s < 1e9]
         rows.append(Row("forged future state (1 s, 500 Hz)", _ms(longest_pause(commands, t0, time.monotonic())),
-                        force_step_N(real), data_lost(real), survived()))
+                        force_step(real), data_lost(real), survived()))
 
     def estop_cycle(cycle: int):
         def attack(s, obs: Observer) -> None:
@@ -359,7 +362,7 @@ def run(args: argparse.Namespace) -> list[Row]:
             states, _ = obs.window(t0, time.monotonic())
             after = [x for x in states if x[0] >= t_release]
             rows.append(Row(f"e-stop cycle {cycle} (1 s engaged)", _ms(first_after(states, t0, lambda m: m.drive == "disabled")),
-                            force_step_N(after), data_lost(states), survived()))
+                            force_step(after), data_lost(states), survived()))
         return attack
 
     def kill(name: str):
@@ -376,14 +379,14 @@ def run(args: argparse.Namespace) -> list[Row]:
             driven(obs, 90, f"the drives did not come back after restarting the {name}")
             time.sleep(1.0)
             states, _ = obs.window(t0, time.monotonic())
-            rows.append(Row(f"kill -9 {name} (restarted after 1 s)", _ms(reaction), force_step_N(states),
+            rows.append(Row(f"kill -9 {name} (restarted after 1 s)", _ms(reaction), force_step(states),
                             data_lost(states), survived()))
             if name == "bridge":  # how soon the controller answers the new bridge run
                 new = [x for x in states if x[0] >= t_restart]
                 first_new = new[0][0] if new else t_restart
                 cmds = obs.window(first_new, time.monotonic())[1]
                 rows.append(Row("  controller answers the restarted bridge", _ms((cmds[0][0] - first_new) if cmds else None),
-                                force_step_N(new), data_lost(new), survived()))
+                                force_step(new), data_lost(new), survived()))
         return attack
 
     attacks = [("baseline", baseline), *[(f"garbage {k}", garbage(k)) for k in KEYS], ("forged", forged),
@@ -412,9 +415,10 @@ def run(args: argparse.Namespace) -> list[Row]:
 
 
 def table(rows: list[Row]) -> str:
-    out = ["| attack | reaction (ms) | max force step (N) | data lost | processes |",
-           "|---|---:|---:|---|---|"]
-    out += [f"| {r.attack} | {r.reaction_ms} | {r.step_N:.2f} | {r.lost} | {r.survived} |" for r in rows]
+    out = ["| attack | reaction (ms) | max force step (N/tick, where) | data lost | processes |",
+           "|---|---:|---|---|---|"]
+    out += [f"| {r.attack} | {r.reaction_ms} | {r.step[0]:.2f} ({r.step[1] or '-'}) | {r.lost} | {r.survived} |"
+            for r in rows]
     return "\n".join(out)
 
 
