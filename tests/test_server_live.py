@@ -119,6 +119,11 @@ def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
     path.write_bytes(mcap.content)
     campaign = read_campaign(path)
     assert campaign.info["outcome"] == "finished" and campaign.info["campaign_id"] == cid
+    # What the request resolved to is what REST and the archive both say (issue 14, finding 6).
+    info = campaign.info
+    assert (info["target"], info["pace"], info["twin_truth"], info["seed"], info["law"], info["parameter_set"]) == \
+        (rec["target"], rec["pace"], rec["truth"], str(rec["seed"]), rec["law"], rec["parameter_set"]) == \
+        ("twin", "lockstep", "model", "0", "law2", "prototype_3x")
     for key in (bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA, bus.TWIN_TRUTH, bus.CONTROLLER_STATUS,
                 bus.CAMPAIGN_EVENTS):
         assert campaign.messages(key), key

@@ -104,7 +104,10 @@ function redraw() {
 }
 
 function connectLive() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/live`);
+  // A console on the lab network wants the token for live data too; a browser WebSocket cannot
+  // send headers, so it goes in the query (server/guard.py).
+  const q = token() ? "?token=" + encodeURIComponent(token()) : "";
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/live${q}`);
   ws.onmessage = (ev) => { try { onFrame(JSON.parse(ev.data)); } catch (e) { console.error(e); } };
   ws.onclose = () => setTimeout(connectLive, 1000);
 }
@@ -124,7 +127,9 @@ $("#start-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   showError(null);
   const f = new FormData(ev.target);
-  const body = { kind: f.get("kind"), no_pulleys: f.get("no_pulleys") === "on", seed: Number(f.get("seed") || 0) };
+  const body = { kind: f.get("kind"), no_pulleys: f.get("no_pulleys") === "on" };
+  // An empty seed is the default (under `xneck up`: the stack twin's own seed, which cannot change).
+  if (f.get("seed") !== "" && f.get("seed") !== null) body.seed = Number(f.get("seed"));
   if (f.get("law")) body.law = Number(f.get("law"));
   for (const k of ["parameter_set", "target", "pace"]) if (f.get(k)) body[k] = f.get(k);
   const traj = f.get("trajectory");
