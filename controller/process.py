@@ -307,7 +307,8 @@ class ControllerNode:
                         if not svc.hold_reason.startswith("stale state"):
                             log.warning("holding: stale state")
                         # On the last state's clock and epoch: one clock on the command key.
-                        self.command(svc.stale(f"stale state: none for {stale_for * 1e3:.0f} ms").force_N, state)
+                        out = svc.stale(f"stale state: none for {stale_for * 1e3:.0f} ms", stale_for)
+                        self.command(out.force_N, state)
                     continue
                 state = fresh
                 if state.epoch != last[0]:

@@ -18,15 +18,15 @@ Holds: :meth:`CampaignService.hold` commands Z f = g(α) with every cable at t_m
 (non-finite or beyond the joint limits). A diverging estimate latches the hold until the next
 campaign starts.
 
-Drives and re-starts (issue 13): while the bridge says the drives are not ``active`` (``disabled``
-by the e-stop, ``inactive`` until a command enables them, or ``hold`` by its watchdog) the law
-does not run: α̂ follows the encoders and the applied forces
-(:meth:`controller.laws.ComputedTorque.observe`), the integral stays at zero and the command is
-the hold forces at α̂, so nothing grows while the drives are off and the first command that
-enables them is one that holds the neck where it is. When the drives are ``active`` again (and
-after a hold of the controller's own for stale states) the law re-starts from the measurement: a
-fresh integral and α^d starting at α̂, blended back to the trajectory by a cycloid as gentle as
-:func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
+Drives and re-starts (issue 13): while the bridge says the drives are ``disabled`` (e-stop) or
+``inactive`` (until a command enables them) the law does not run: α̂ follows the encoders and the
+applied forces (:meth:`controller.laws.ComputedTorque.observe`), the integral stays at zero and
+the command is the hold forces at α̂, so nothing grows while the drives are off and the first
+command that enables them is one that holds the neck where it is. When the drives are ``active``
+again (also after a watchdog ``hold`` of the bridge, during which the law keeps running since its
+next command ends the hold, and after a long hold of the controller's own for stale states) the
+law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
+trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
 ``aborted`` with the reason, and none starts while they are.
 
 Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
@@ -64,6 +64,7 @@ DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts
 PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
 VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
 FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
+STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
@@ -403,9 +404,12 @@ class CampaignService:
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
 
-    def stale(self, reason: str) -> Output:
-        """No new state in time: hold, and re-start the law from the measurement when states return."""
-        self._restart = True
+    def stale(self, reason: str, stale_for_s: float) -> Output:
+        """No new state for ``stale_for_s``: hold; after a long gap (``STALE_RESTART_S``) the law
+        re-starts from the measurement when states return (after a short one it goes on: its
+        integral did not move meanwhile, and a blend would only delay the trajectory)."""
+        if stale_for_s >= STALE_RESTART_S:
+            self._restart = True
         return self.hold(reason)
 
     def reference(self, stamp_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -454,7 +458,12 @@ class CampaignService:
         forces at α̂ and the law re-starts bumplessly when they are (module docstring)."""
         self.ticks += 1
         self.drive = drive
-        if drive != "active":
+        if drive == "hold":
+            # The bridge's watchdog holds because our commands came late: the next one ends the
+            # hold (the bridge ramps to it), so the law keeps running (a hold command here would be
+            # one more step) and re-starts from the measurement once the bridge obeys again.
+            self._restart = True
+        elif drive != "active":
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
             self._restart = True
@@ -465,7 +474,7 @@ class CampaignService:
         if self.latched:
             self.reference(stamp_s)
             return self.hold(self.hold_reason)
-        if self._restart:
+        if self._restart and drive == "active":
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot)

@@ -129,14 +129,15 @@ class DriveLoop(Loop):
     def run_drive(self, seconds: float, drive: str) -> list:
         outs = []
         for _ in range(round(seconds * 500)):
-            applied = self.outputs[-1].force_N if (self.outputs and drive == "active") else np.zeros(4)
+            on = drive in ("active", "hold")  # in a hold the bridge applies forces (its own, here ours)
+            applied = self.outputs[-1].force_N if (self.outputs and on) else np.zeros(4)
             out = self.svc.control(self.tick.theta_meas, self.stamp_s, drive=drive, force_applied_N=applied)
             outs.append(out)
             self.outputs.append(out)
             if out.law_ran:
                 self.svc.advance(self.stamp_s)
             self.events += self.svc.drain_events()
-            self.tick = self.twin.tick(out.force_N if drive == "active" else np.zeros(4))
+            self.tick = self.twin.tick(out.force_N if on else np.zeros(4))
         return outs
 
 
@@ -178,7 +179,8 @@ def test_leaving_a_hold_blends_the_reference_from_the_estimate_back_to_the_traje
     loop = DriveLoop(params)
     loop.svc.handle(_request(), loop.stamp_s)
     loop.run_drive(0.5, "active")
-    loop.run_drive(0.3, "hold")  # the bridge's watchdog held
+    held = loop.run_drive(0.3, "hold")  # the bridge's watchdog held: the law goes on meanwhile
+    assert all(o.law_ran for o in held)
     back = loop.run_drive(2.5, "active")
     np.testing.assert_allclose(back[0].alpha_d_rad, back[0].alpha_hat_rad, atol=1e-3)
     assert np.abs(np.diff(np.array([o.alpha_d_rad for o in back]), axis=0)).max() < math.radians(0.5)
@@ -257,3 +259,14 @@ def test_counters_are_per_campaign(loop):
     fin = loop.events[-1]
     assert fin.event == "finished" and (fin.overruns, fin.deadline_misses) == (1, 0) and fin.ticks > 500
     assert "overruns 1, deadline misses 0" in fin.message
+
+
+def test_a_long_stale_gap_re_starts_the_law_and_a_short_one_does_not(loop):
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run(0.5)
+    assert not loop.svc.stale("stale state", 0.02).law_ran
+    loop.run(0.002)
+    assert np.abs(loop.outputs[-1].alpha_d_rad - loop.outputs[-1].alpha_hat_rad).max() > 1e-4  # the law went on
+    loop.svc.stale("stale state", 0.2)
+    loop.run(0.002)
+    np.testing.assert_allclose(loop.outputs[-1].alpha_d_rad, loop.outputs[-1].alpha_hat_rad, atol=1e-3)
