@@ -103,7 +103,7 @@ def iso_time(time_ns: int | None = None) -> str:
 
 def storage_reason(exc: BaseException) -> str:
     """One line for a storage fault: ``No space left on device (ENOSPC)``; other errors as repr."""
-    if isinstance(exc, OSError) and exc.errno in errno.errorcode:
+    if isinstance(exc, OSError) and exc.errno is not None and exc.errno in errno.errorcode:
         return f"{exc.strerror or os.strerror(exc.errno)} ({errno.errorcode[exc.errno]})"
     return f"{type(exc).__name__}: {exc}"
 

@@ -31,6 +31,11 @@ from server.settings import Settings
 from twin.model.params import ParameterError, Params
 
 
+Target = Literal["twin", "robot"]
+Pace = Literal["lockstep", "realtime"]
+Truth = Literal["model", "robot", ""]  # "" on the robot
+
+
 class RequestError(ValueError):
     """A body that is well formed but not acceptable; ``loc`` names the field."""
 
@@ -81,9 +86,9 @@ class PreparedCampaign(BaseModel):
     spec: Any
     params: Any
     parameter_set: str
-    pace: Literal["lockstep", "realtime"]
-    target: Literal["twin", "robot"]
-    truth: Literal["model", "robot", ""]
+    pace: Pace
+    target: Target
+    truth: Truth
 
 
 def check_trajectory(traj: Trajectory, params: Params, law: LawConfig) -> None:
@@ -92,7 +97,7 @@ def check_trajectory(traj: Trajectory, params: Params, law: LawConfig) -> None:
     validate(traj, limits, params.n_joints, nominal_force_check(params, law))
 
 
-def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> tuple[str, str, str, int]:
+def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> tuple[Target, Pace, Truth, int]:
     """(target, pace, truth, seed) as given or defaulted, or :class:`RequestError` for one that
     cannot be honoured (module docstring)."""
     target = req.target or settings.mode
@@ -106,7 +111,7 @@ def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> t
             if getattr(req, name) is not None:
                 raise RequestError((name,), f"{name} applies to the twin only; the robot is the real thing")
         return target, "realtime", "", 0
-    default_truth = "robot" if req.kind == "identification" else "model"
+    default_truth: Truth = "robot" if req.kind == "identification" else "model"
     if not service:
         return target, req.pace or settings.pace, req.truth or default_truth, req.seed or 0
     if req.pace == "lockstep":

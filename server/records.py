@@ -38,8 +38,8 @@ class CampaignRecord(BaseModel):
     parameter_set: str
     target: Literal["twin", "robot"]
     pace: Literal["lockstep", "realtime"] = "lockstep"
-    seed: int = Field(0, description="Seed of the twin's sensor noise (0 on the robot).")
-    truth: Literal["model", "robot", ""] = Field("", description="What the twin simulated (twin/sim/truth.py); "
+    seed: int = Field(default=0, description="Seed of the twin's sensor noise (0 on the robot).")
+    truth: Literal["model", "robot", ""] = Field(default="", description="What the twin simulated (twin/sim/truth.py); "
                                                  "empty on the robot.")
     status: CampaignStatus = "running"
     progress: float = Field(0.0, ge=0.0, le=1.0)

@@ -19,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -34,7 +35,7 @@ ENV = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
 
 
 @contextlib.contextmanager
-def tmpfs(path: Path, size: str = "16m") -> Path:
+def tmpfs(path: Path, size: str = "16m") -> Iterator[Path]:
     """A small tmpfs at ``path`` (skips the test with the reason where mounting is not permitted)."""
     path.mkdir(parents=True, exist_ok=True)
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True,
