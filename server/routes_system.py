@@ -24,6 +24,7 @@ def health(request: Request) -> dict[str, Any]:
         "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
         "viser_port": s.scene.port if s.scene else None,
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
+        "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
