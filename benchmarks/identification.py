@@ -24,12 +24,13 @@ ROOT = HERE.parent
 # Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin package.
 sys.path[:] = [str(ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != HERE]
 _spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+assert _spec is not None and _spec.loader is not None
 _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 summary, time_calls = _timing.summary, _timing.time_calls
 
-from twin.model import dynamics  # noqa: E402
 from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
+from twin.model import dynamics  # noqa: E402
 from twin.model.numeric import build  # noqa: E402
 from twin.model.params import load_params  # noqa: E402
 
@@ -38,6 +39,7 @@ TARGET_S = 2.0
 
 def _load_campaign():
     spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.simulate_campaign(0)[0]

@@ -60,7 +60,7 @@ class LosslessPublisher:
 def test_offline_campaign_round_trips_with_schemas(tmp_path: Path) -> None:
     path = tmp_path / "offline.mcap"
     t0 = 1_700_000_000_000_000_000
-    msgs = [(bus.MOTOR_STATE, t0 + i * 2_000_000, motor_state(i)) for i in range(50)]
+    msgs: list[tuple[str, int, bus.BusMessage]] = [(bus.MOTOR_STATE, t0 + i * 2_000_000, motor_state(i)) for i in range(50)]
     msgs.append((bus.ESTOP, t0 + 200_000_000, bus.EStop(seq=0, stamp_s=0.2, engaged=True, reason="test")))
     write_campaign(path, msgs, {"campaign_id": "c-0", "law": "pid"})
     campaign = read_campaign(path)

@@ -161,7 +161,8 @@ def test_malformed_commands_are_counted_and_never_crash_the_subscriber(
     sessions: tuple[zenoh.Session, zenoh.Session],
 ) -> None:
     a, b = sessions
-    sub = subscribe_latest(b, bus.MOTOR_COMMAND, validate=lambda c: bus.check_force_command(c, 3, 0.0, 40.0))
+    sub = subscribe_latest(b, bus.MOTOR_COMMAND, bus.ForceCommand,
+                           validate=lambda c: bus.check_force_command(c, 3, 0.0, 40.0))
     good = bus.ForceCommand(seq=1, stamp_s=1.0, force_N=[1.0, 2.0, 3.0], source="test", sender="t", epoch="e")
     pub = publisher(a, bus.MOTOR_COMMAND)
     assert wait_until(lambda: (pub.put(good), sub.latest() is not None)[1])

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from controller.distribution import distribute, lower_bounds
-from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
-from controller.laws import ComputedTorque, LawConfig, hold_forces
+from controller.laws import LawConfig, hold_forces
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
 from twin.model import cables, dynamics
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
 from twin.model.numeric import build
 from twin.model.params import load_params
 from twin.sim.simulator import TwinConfig

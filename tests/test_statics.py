@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twin.analysis.kinematics import joint_points, side_lengths_at_half_alpha
+from twin.analysis.kinematics import jacobian, joint_points, side_lengths_at_half_alpha
 from twin.analysis.statics import (
     Design,
     cartesian_stiffness,
@@ -19,7 +19,6 @@ from twin.analysis.statics import (
     stiffness_extremes,
     wrench_feasible_two_cables,
 )
-from twin.analysis.kinematics import jacobian
 
 
 def _potential(d: Design, half_alpha: np.ndarray) -> np.ndarray:
@@ -50,7 +49,7 @@ def test_gradient_and_hessian_match_the_potential(n):
 
 def test_side_length_derivatives():
     t = np.linspace(-1.5, 1.5, 50)
-    ll, lr, dll, dlr, ddll, ddlr = side_length_derivatives(t, 0.1, 0.05)
+    _, _, dll, dlr, _, ddlr = side_length_derivatives(t, 0.1, 0.05)
     np.testing.assert_allclose(dll, _grad(lambda x: side_lengths_at_half_alpha(x[..., 0], 0.1, 0.05)[0], t[:, None])[:, 0], atol=1e-8)
     np.testing.assert_allclose(ddlr, _grad(lambda x: side_length_derivatives(x[..., 0], 0.1, 0.05)[3], t[:, None])[:, 0],
                                atol=1e-7)
@@ -141,9 +140,9 @@ def model3():
 
 
 def test_3x_equilibrium_and_null_vector(model3):
+    from twin.analysis.statics import statics_3x
     from twin.model.cables import Z
     from twin.model.dynamics import g
-    from twin.analysis.statics import statics_3x
 
     m, lim = model3
     alpha = np.radians([[0, 0, 0], [40, 30, 20], [50, 50, 50], [-30, -40, -50]])
