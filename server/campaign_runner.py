@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
-import json
 import os
 import queue
 import subprocess
@@ -27,19 +26,19 @@ import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import zenoh
 
 from bridge import bus
+from bridge.archive import CampaignRecorder, read_campaign
 from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
-from bridge.archive import CampaignRecorder, read_campaign
 from server.child_processes import log_tail, stop_child, xneck_argv
 from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
 from twin.model.params import Params
@@ -96,6 +95,19 @@ class CampaignResult:
         return "\n".join(lines)
 
 
+CLI_ARCHIVES = "cli-campaigns"  # below the data directory; not campaigns/, which the console indexes and recovers
+
+
+def default_archive(campaign_id: str) -> Path:
+    """Where a campaign run without an explicit file is recorded: the console's data directory
+    (server.settings: ``XNECK_DATA_DIR``, else ./data), ``cli-campaigns/campaign-<id>.mcap``;
+    never the current directory (a checkout used to collect hundreds of MB of them)."""
+    from server.settings import Settings
+
+    settings = Settings()  # pyright: ignore[reportCallIssue] - pydantic-settings fills the fields from XNECK_*
+    return Path(settings.data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
+
+
 def new_campaign_id(kind: str) -> str:
     return f"{kind}-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:4]}"
 
@@ -118,7 +130,7 @@ def run_campaign(
     it sees the live traffic); by default a private hub is opened. ``stop``: set it to abort.
     """
     campaign_id = campaign_id or new_campaign_id(spec.kind)
-    path = Path(out) if out else Path.cwd() / f"campaign-{campaign_id}.mcap"
+    path = Path(out) if out else default_archive(campaign_id)
     if path.exists():
         raise FileExistsError(f"{path} exists: choose another --out (archives are never overwritten)")
     if (session is None) != (hub is None):

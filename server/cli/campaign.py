@@ -44,30 +44,13 @@ def campaign_control(
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
                         params_file=params_file, overrides=tuple(overrides or ()), truth=truth)
-    campaign_id, default_out = default_archive("control")
-    result = run_campaign(spec, params, out or default_out, progress=None if as_json else _print_progress,
-                          campaign_id=campaign_id)
+    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if as_json:
         typer.echo(jsonlib.dumps(result.summary(), indent=2))
     else:
         typer.echo(result.table())
     if result.outcome != "finished":
         raise typer.Exit(1)
-
-
-CLI_ARCHIVES = "cli-campaigns"  # below the data directory; not campaigns/, which the console indexes and recovers
-
-
-def default_archive(kind: str) -> tuple[str, Path]:
-    """A new campaign id and its archive in the console's data directory (server.settings: the
-    ``XNECK_DATA_DIR`` variable, else ./data), never the current directory: a checkout used to
-    collect hundreds of MB of campaign files."""
-    from server.campaign_runner import new_campaign_id
-    from server.settings import Settings
-
-    campaign_id = new_campaign_id(kind)
-    settings = Settings()  # pyright: ignore[reportCallIssue] - pydantic-settings fills the fields from XNECK_*
-    return campaign_id, Path(settings.data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
 
 
 def _print_progress(fraction: float, message: str) -> None:
@@ -101,9 +84,7 @@ def campaign_identification(
     spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
                         truth=truth)
-    campaign_id, default_out = default_archive("identification")
-    result = run_campaign(spec, params, out or default_out, progress=None if as_json else _print_progress,
-                          campaign_id=campaign_id)
+    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if result.outcome != "finished":
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
         raise typer.Exit(1)
