@@ -5,7 +5,6 @@ driver obeys, the twin and replay drivers."""
 from __future__ import annotations
 
 import math
-import subprocess
 import sys
 import types
 
@@ -228,9 +227,8 @@ def test_missing_rcpy_is_a_clear_error(monkeypatch, params):
     drv.close()
 
 
-def test_cli_beaglebone_without_rcpy_fails_cleanly():
-    run = subprocess.run([sys.executable, "-m", "server.cli", "bridge", "--driver", "beaglebone"],
-                         capture_output=True, text=True, timeout=60)
+def test_cli_beaglebone_without_rcpy_fails_cleanly(xneck):
+    run = xneck("bridge", "--driver", "beaglebone", timeout=60)
     assert run.returncode == 2
     assert "rcpy" in run.stderr and "not installed" in run.stderr
     assert "Traceback" not in run.stderr + run.stdout

@@ -3,20 +3,18 @@ it, lockstep repeats, bad input is counted and ignored, slack is reported."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 
 import numpy as np
 import pytest
-
-from bridge import bus
-from bridge.session import liveliness_token, publisher, subscribe_latest
 from busutil import bus_pair, run_in_thread, wait_until
 from test_sim import static_forces
-from twin.sim.driver import TwinDriver, TwinDriverConfig
-from bridge.node import BridgeConfig, BridgeNode, run_lockstep, run_realtime
+
+from bridge import bus
+from bridge.node import BridgeConfig, run_lockstep, run_realtime
+from bridge.session import liveliness_token, publisher, subscribe_latest
 from server.cli.processes import bridge_node
+from twin.sim.driver import TwinDriver, TwinDriverConfig
 
 
 def twin_node(session, params, lockstep=True, **twin):
@@ -165,10 +163,8 @@ def test_realtime_mode_paces_ticks_by_the_clock(params):
     assert states[-1].drive == "disabled" and states[-1].force_applied_N == [0.0] * 4  # safe on exit
 
 
-def test_cli_twin_starts_and_stops_by_itself():
-    run = subprocess.run([sys.executable, "-m", "server.cli", "twin", "--lockstep", "--idle-timeout", "0.5"],
-                         capture_output=True, text=True, timeout=60)
+def test_cli_twin_starts_and_stops_by_itself(xneck):
+    run = xneck("twin", "--lockstep", "--idle-timeout", "0.5", timeout=60)
     assert run.returncode == 0 and "no command for 0.5 s: stopping" in run.stderr
-    bad = subprocess.run([sys.executable, "-m", "server.cli", "twin", "--cable-model", "rubber"],
-                         capture_output=True, text=True, timeout=60)
+    bad = xneck("twin", "--cable-model", "rubber", timeout=60)
     assert bad.returncode == 2 and "cable_model" in bad.stderr and "rubber" in bad.stderr
