@@ -10,7 +10,7 @@ from controller.laws import LawConfig, hold_forces
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
 from twin.model import cables, dynamics
-from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, predict_elongation, short_cables
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, long_cable, predict_elongation, short_cables
 from twin.model.numeric import build
 from twin.model.params import load_params
 from twin.sim.simulator import TwinConfig
@@ -58,7 +58,8 @@ def test_eq_58_uses_the_models_friction_law(params):
 
 def test_distribution_meets_torque_and_bounds_with_one_active(params, rng):
     m = build(params, "rigid")
-    short, long = short_cables(m), 3
+    short, long = short_cables(m), long_cable(m)
+    assert short.tolist() == [0, 1, 2] and long == 3  # the paper's c1..c3 and c4 (eq. 23)
     for alpha in rng.uniform(-60, 60, size=(200, 3)) * DEG:
         Z = cables.Z(m, alpha)
         gamma = rng.uniform(-0.5, 0.5, 3)
