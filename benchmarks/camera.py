@@ -16,6 +16,7 @@ import importlib.util
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -26,6 +27,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
 _spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+assert _spec is not None and _spec.loader is not None
 _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 summary, time_calls = _timing.summary, _timing.time_calls
@@ -92,6 +94,16 @@ def main() -> None:
     med, _ = summary("detection, tracked (windows around the last centroids)",
                      time_calls(lambda: detector.detect(frames[next(k) % n_frames]), n_frames, warmup=1), unit=1e-3, unit_name="ms")
     print(f"  tracked frames {detector.windowed_frames}, full searches {detector.full_frames}")
+    # CPU time of this thread per frame: what detection costs when the machine is shared (wall
+    # time above also counts the time other processes held the core).
+    detector.reset()
+    cpu = []
+    for frame in frames:
+        c0 = time.thread_time()
+        detector.detect(frame)
+        cpu.append(time.thread_time() - c0)
+    summary("detection, tracked, CPU time of the thread", np.array(cpu[1:]), unit=1e-3, unit_name="ms")
+    print(f"  load average while measuring: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     j = iter(range(10**9))
     summary("renderer (twin camera), per frame", time_calls(lambda: renderer.render(path[next(j) % n_frames]), 30 if quick else 100, warmup=3),
             unit=1e-3, unit_name="ms")

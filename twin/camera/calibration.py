@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -88,10 +88,13 @@ class Calibration:
         h = np.column_stack([norm, np.ones(len(norm))]) @ np.linalg.inv(self.homography()).T
         return h[:, :2] / h[:, 2:3]
 
-    def with_pose(self, rvec: Sequence[float], tvec: Sequence[float]) -> Calibration:
-        data = asdict(self)
-        data.update(rvec=tuple(float(v) for v in np.ravel(rvec)), tvec=tuple(float(v) for v in np.ravel(tvec)))
-        return Calibration(**data)
+    def with_pose(self, rvec: Sequence[float] | np.ndarray, tvec: Sequence[float] | np.ndarray) -> Calibration:
+        """The same camera at another pose (3 values each)."""
+        r = [float(v) for v in np.ravel(rvec)]
+        t = [float(v) for v in np.ravel(tvec)]
+        if len(r) != 3 or len(t) != 3:
+            raise CalibrationError("rvec and tvec need 3 values each")
+        return replace(self, rvec=(r[0], r[1], r[2]), tvec=(t[0], t[1], t[2]))
 
     def to_json(self) -> str:
         return json.dumps({"format": "xneck-camera-calibration", "version": 1, **asdict(self)}, indent=2)
@@ -170,7 +173,7 @@ def intrinsics_from_checkerboard(frames: Sequence[np.ndarray], pattern: tuple[in
     for frame in frames:
         gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         size = gray.shape[::-1]
-        found, corners = cv2.findChessboardCorners(gray, pattern, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        found, corners = cv2.findChessboardCorners(gray, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
         if not found:
             continue
         corners = cv2.cornerSubPix(gray, corners, (7, 7), (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4))
@@ -180,9 +183,10 @@ def intrinsics_from_checkerboard(frames: Sequence[np.ndarray], pattern: tuple[in
         raise CalibrationError(f"the checkerboard was found in {len(obj_pts)} frames; at least 3 are needed")
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_pts, img_pts, size, None, None,
                                                      flags=cv2.CALIB_FIX_K3)
+    d = [float(v) for v in np.ravel(dist)[:5]]
     cal = Calibration(width=int(size[0]), height=int(size[1]), fx=float(K[0, 0]), fy=float(K[1, 1]),
-                      cx=float(K[0, 2]), cy=float(K[1, 2]), dist=tuple(float(v) for v in dist.ravel()[:5]),
-                      rvec=tuple(float(v) for v in rvecs[-1].ravel()), tvec=tuple(float(v) for v in tvecs[-1].ravel()))
+                      cx=float(K[0, 2]), cy=float(K[1, 2]), dist=(d[0], d[1], d[2], d[3], d[4]))
+    cal = cal.with_pose(rvecs[-1], tvecs[-1])
     return cal, float(rms)
 
 

@@ -263,22 +263,22 @@ class Detector:
         bars = self._bars(classes)
         n = self.n_joints
         phi: list[float | None] = [None] * (n + 1)
-        ordered: list[np.ndarray | None] = [None] * (n + 1)
         markers: dict[tuple[int, int], tuple[float, float]] = {}
+        middles = [None if bar is None else bar[1] for bar in bars]
         for k, bar in enumerate(bars):
             if bar is None:
                 continue
             pts, middle, pair = bar
+            below, above = (middles[k - 1] if k > 0 else None), (middles[k + 1] if k < n else None)
             if k == 0:
                 toward, sign = middle + np.array([0.0, 1.0]), 1.0  # the base bar is upright
-            elif bars[k - 1] is not None:
-                toward, sign = bars[k - 1][1], -1.0  # the previous bar lies below this one
-            elif k < n and bars[k + 1] is not None:
-                toward, sign = bars[k + 1][1], 1.0
+            elif below is not None:
+                toward, sign = below, -1.0  # the previous bar lies below this one
+            elif above is not None:
+                toward, sign = above, 1.0
             else:
                 continue
             ordered_pts, phi[k] = self._orient(pts, middle, toward, sign)
-            ordered[k] = ordered_pts
             swapped = not np.allclose(ordered_pts[0], pts[0])
             left, right = (pair[1], pair[0]) if swapped else pair
             markers[(k, 0)] = (float(left.centre_px[0]), float(left.centre_px[1]))
@@ -291,7 +291,9 @@ class Detector:
             if base is None or top is None:
                 continue
             a = math.remainder(top - base, 2.0 * math.pi)
-            rel = bars[i + 1][1] - bars[i][1]
+            m_base, m_top = middles[i], middles[i + 1]
+            assert m_base is not None and m_top is not None  # both bars have an orientation
+            rel = m_top - m_base
             c, s = math.cos(base), math.sin(base)
             local = np.array([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1]])
             res = float(np.hypot(*(local - self._top_middle(a))))
