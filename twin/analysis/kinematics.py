@@ -39,6 +39,7 @@ __all__ = [
     "is_cuspidal",
     "jacobian",
     "joint_points",
+    "median_directions",
     "median_length",
     "median_length_derivatives",
     "side_lengths_at_half_alpha",
@@ -109,7 +110,7 @@ def side_lengths_at_half_alpha(half_alpha: ArrayLike, L: float, b: float) -> tup
     return l - bs, l + bs
 
 
-def _phases(half_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
+def median_directions(half_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
     """Median-segment direction φ_i = −θ_i + Σ_{j<=i} 2θ_j of eq. (2), from the y axis (rad)."""
     return 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
 
@@ -124,7 +125,7 @@ def _as_chain(half_alpha: ArrayLike) -> NDArray[np.float64]:
 def joint_points(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """Middles of the base bar and of every top bar, shape (..., N+1, 2), eq. (2) partial sums."""
     half_alpha = _as_chain(half_alpha)
-    phi = _phases(half_alpha)
+    phi = median_directions(half_alpha)
     l = median_length(half_alpha, L, b)
     steps = np.stack([-l * np.sin(phi), l * np.cos(phi)], axis=-1)
     zero = np.zeros(steps.shape[:-2] + (1, 2))
@@ -155,7 +156,7 @@ def fk(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
         (x, y) of the middle of the last top bar in the base frame, shape (..., 2), unit of L.
     """
     half_alpha = _as_chain(half_alpha)
-    phi = _phases(half_alpha)
+    phi = median_directions(half_alpha)
     l = median_length(half_alpha, L, b)
     return np.stack([-(l * np.sin(phi)).sum(-1), (l * np.cos(phi)).sum(-1)], axis=-1)
 
@@ -167,7 +168,7 @@ def jacobian(half_alpha: ArrayLike, L: float, b: float) -> NDArray[np.float64]:
     """
     half_alpha = _as_chain(half_alpha)
     n = half_alpha.shape[-1]
-    phi = _phases(half_alpha)
+    phi = median_directions(half_alpha)
     l, dl, _ = median_length_derivatives(half_alpha, L, b)
     # weights[i, k] = ∂φ_i/∂θ_k
     weights = np.tril(np.full((n, n), 2.0), -1) + np.eye(n)

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from twin.analysis.kinematics import check_design, jacobian, median_length_derivatives
+from twin.analysis.kinematics import check_design, jacobian, median_directions, median_length_derivatives
 
 __all__ = [
     "Design",
@@ -174,17 +174,27 @@ def _check_half_alpha(half_alpha: ArrayLike, d: Design) -> NDArray[np.float64]:
     return half_alpha
 
 
+class _ChainTerms(NamedTuple):
+    """What both derivatives of U need at ``half_alpha``: the phase weights a and median
+    directions φ (eq. 2), the median length and its derivatives (eq. 1), the sides' (eq. 2)."""
+
+    a: NDArray[np.float64]
+    phi: NDArray[np.float64]
+    median: tuple[NDArray[np.float64], ...]
+    sides: tuple[NDArray[np.float64], ...]
+
+
+def _chain_terms(d: Design, half_alpha: NDArray[np.float64]) -> _ChainTerms:
+    return _ChainTerms(_phase_weights(d.n_joints), median_directions(half_alpha),
+                       median_length_derivatives(half_alpha, d.L, d.b), side_length_derivatives(half_alpha, d.L, d.b))
+
+
 def potential_gradient(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
     """∂(U_springs + U_gravity)/∂θ (N·m/rad), eq. (16a)-(16b), shape (..., N).
 
     At equilibrium the cables balance it: −Σ f ∂l/∂θ equals this (right-hand side of eq. (21)).
     """
-    half_alpha = _check_half_alpha(half_alpha, d)
-    n = d.n_joints
-    a = _phase_weights(n)
-    phi = 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
-    l, dl, _ = median_length_derivatives(half_alpha, d.L, d.b)
-    ll, lr, dll, dlr, _, _ = side_length_derivatives(half_alpha, d.L, d.b)
+    a, phi, (l, dl, _), (ll, lr, dll, dlr, _, _) = _chain_terms(d, _check_half_alpha(half_alpha, d))
     springs = d.array("k_l") * (ll - d.array("l0_l")) * dll + d.array("k_r") * (lr - d.array("l0_r")) * dlr
     w = _gravity_weights(d)
     # h_j = l_j cos φ_j; ∂h_j/∂θ_k = δ_jk l'_j cos φ_j − l_j sin φ_j a_jk
@@ -194,12 +204,8 @@ def potential_gradient(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
 
 def potential_hessian(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
     """∂²(U_springs + U_gravity)/∂θ² (N·m/rad), shape (..., N, N): K_θ of eq. (18) without cables."""
-    half_alpha = _check_half_alpha(half_alpha, d)
     n = d.n_joints
-    a = _phase_weights(n)
-    phi = 2.0 * np.cumsum(half_alpha, axis=-1) - half_alpha
-    l, dl, ddl = median_length_derivatives(half_alpha, d.L, d.b)
-    ll, lr, dll, dlr, ddll, ddlr = side_length_derivatives(half_alpha, d.L, d.b)
+    a, phi, (l, dl, ddl), (ll, lr, dll, dlr, ddll, ddlr) = _chain_terms(d, _check_half_alpha(half_alpha, d))
     kl, kr = d.array("k_l"), d.array("k_r")
     springs = kl * (dll**2 + (ll - d.array("l0_l")) * ddll) + kr * (dlr**2 + (lr - d.array("l0_r")) * ddlr)
     w = _gravity_weights(d)
