@@ -14,7 +14,7 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
                     "law", "tick_s", "deadline_misses", "overruns"},
         "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason"},
         "command": {"stamp_s", "force_N"},
-        "camera":  {"stamp_s", "alpha_ip_rad"},
+        "camera":  {"stamp_s", "alpha_ip_rad", "confidence", "source"},  (alpha_ip_rad[i] null: joint missing)
         "truth":   {"stamp_s", "alpha_rad", "tension_N"},
         "campaign":{"campaign_id", "kind", "event", "progress", "message"},
         "estop":   {"engaged", "reason"}}}
@@ -46,7 +46,7 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
                                        "law", "tick_s", "deadline_misses", "overruns")),
     "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason")),
     "command": (bus.MOTOR_COMMAND, ("stamp_s", "force_N")),
-    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad")),
+    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad", "confidence", "source")),
     "truth": (bus.TWIN_TRUTH, ("stamp_s", "alpha_rad", "tension_N")),
     "campaign": (bus.CAMPAIGN_EVENTS, ("campaign_id", "kind", "event", "progress", "message")),
     "estop": (bus.ESTOP, ("engaged", "reason")),
@@ -124,6 +124,21 @@ class LatestValues:
         if received is None or time.monotonic() - received > max_age_s:
             return None
         return self.get(series)
+
+
+CAMERA_MAX_AGE_S = 1.0  # s: a camera silent for longer than this is reported stale
+
+
+def camera_health(values: LatestValues, max_age_s: float = CAMERA_MAX_AGE_S) -> dict[str, Any] | None:
+    """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
+    whether it arrived within ``max_age_s`` (``fresh``), the joints it reports missing (1-based),
+    the per-joint confidence and the frames the source dropped. None before any camera message."""
+    msg = values.get("camera")
+    if msg is None:
+        return None
+    return {"source": msg.source, "stamp_s": msg.stamp_s, "fresh": values.fresh("camera", max_age_s) is not None,
+            "missing_joints": [i + 1 for i, a in enumerate(msg.alpha_ip_rad) if a is None],
+            "confidence": list(msg.confidence), "dropped": msg.dropped}
 
 
 def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> dict[str, Any] | None:

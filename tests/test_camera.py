@@ -366,3 +366,29 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
     short = write_campaign(tmp_path / "short.mcap", truths[:50], {"campaign_id": "c2"})
     r = CliRunner().invoke(app, ["camera", "align", str(video), str(short), "--out", str(tmp_path / "x.mcap")])
     assert r.exit_code == 2 and "never overlap" in r.output
+
+
+def test_detection_health_in_the_console(tmp_path) -> None:
+    import httpx
+    from busutil import wait_until
+    from server_harness import running_server
+
+    from bridge import bus
+    from bridge.session import open_session, publisher
+
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        assert c.get("/api/system/health").json()["camera"] is None  # no camera yet
+        hub = c.get("/api/system/health").json()["hub"]
+        with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as session:
+            pub = publisher(session, bus.CAMERA_ALPHA)
+            msg = bus.CameraAlpha(seq=1, stamp_s=3.0, capture_stamp_s=2.95, alpha_ip_rad=[0.1, None, 0.2],
+                                  confidence=[0.99, 0.0, 0.97], source="twin-render", dropped=2)
+
+            def seen() -> bool:
+                pub.put(msg)
+                return c.get("/api/system/health").json()["camera"] is not None
+
+            assert wait_until(seen, 20.0)
+        camera = c.get("/api/system/health").json()["camera"]
+    assert camera["source"] == "twin-render" and camera["missing_joints"] == [2] and camera["dropped"] == 2
+    assert camera["confidence"] == [0.99, 0.0, 0.97] and camera["fresh"] is True

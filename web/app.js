@@ -86,7 +86,8 @@ function onFrame(frame) {
     stats.lastStamp = s.status.stamp_s;
     const ip = s.camera ? s.camera.alpha_ip_rad : null;
     jointPlots.forEach((p, j) => push(p, s.status.stamp_s,
-      [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG, ip ? ip[j] * DEG : null]));
+      [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG,
+       ip && ip[j] !== null ? ip[j] * DEG : null]));  // null: the camera missed this joint (a gap, not 0°)
     $("#live-info").textContent = `${s.status.law}, t = ${s.status.stamp_s.toFixed(2)} s` +
       (s.status.holding ? `, HOLD: ${s.status.hold_reason}` : "");
   }
