@@ -392,3 +392,42 @@ def test_detection_health_in_the_console(tmp_path) -> None:
         camera = c.get("/api/system/health").json()["camera"]
     assert camera["source"] == "twin-render" and camera["missing_joints"] == [2] and camera["dropped"] == 2
     assert camera["confidence"] == [0.99, 0.0, 0.97] and camera["fresh"] is True
+
+
+def test_xneck_camera_file_source_publishes_on_the_bus(tmp_path, model) -> None:
+    import subprocess
+    import sys
+    import threading
+
+    from busutil import bus_pair, wait_until
+
+    from bridge import bus
+
+    alphas = np.radians([[5.0 * k, -3.0 * k, 2.0 * k] for k in range(15)])
+    renderer = Renderer(model, options=RenderOptions(occlude=((3, 1),)), seed=2)  # joint 3 hidden throughout
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (1280, 720))
+    for a in alphas:
+        writer.write(renderer.render(a))
+    writer.release()
+    with bus_pair() as (hub, session, _connect):
+        got, lock = [], threading.Lock()
+
+        def collect(sample) -> None:
+            with lock:
+                got.append(bus.decode(bus.CAMERA_ALPHA, sample.payload.to_bytes()))
+
+        sub = session.declare_subscriber(bus.CAMERA_ALPHA, collect)
+        done = subprocess.run([sys.executable, "-m", "server.cli", "camera", "--source", f"file:{video}", "--fast", "--t0", "100",
+                               "--connect", hub], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert wait_until(lambda: len(got) >= len(alphas), 10.0)
+        sub.undeclare()
+    frames = sorted(got, key=lambda m: m.seq)
+    assert len(frames) == len(alphas) and {m.source for m in frames} == {"file:clip.avi"}
+    assert [m.capture_stamp_s for m in frames] == pytest.approx(100.0 + np.arange(len(alphas)) / 30.0)
+    for m, a in zip(frames, alphas):
+        assert m.alpha_ip_rad[2] is None and m.confidence[2] == 0.0
+        assert np.degrees(np.abs(np.array(m.alpha_ip_rad[:2]) - a[:2])).max() < 1.0
+    bad = subprocess.run([sys.executable, "-m", "server.cli", "camera", "--source", "webcam"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "expected usb:N" in bad.stderr

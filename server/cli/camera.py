@@ -154,6 +154,10 @@ def camera(
                 count = node.run_twin(renderer, shutter, stop, max_frames, idle_timeout)
             else:
                 assert frames is not None
+                # A video has no live moment to miss, but its first frames would be lost while Zenoh
+                # routes this new session to the subscribers: give it a moment first.
+                if kind == "file" and stop.wait(0.5):
+                    return
                 count = node.run_source(frames, stop, max_frames, frames.fps if (kind == "file" and realtime) else None)
         except RuntimeError as exc:
             raise _fail(str(exc)) from None
