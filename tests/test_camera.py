@@ -431,3 +431,27 @@ def test_xneck_camera_file_source_publishes_on_the_bus(tmp_path, model) -> None:
         assert np.degrees(np.abs(np.array(m.alpha_ip_rad[:2]) - a[:2])).max() < 1.0
     bad = subprocess.run([sys.executable, "-m", "server.cli", "camera", "--source", "webcam"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "expected usb:N" in bad.stderr
+
+
+def test_identification_reader_drops_frames_with_a_missing_joint(tmp_path, params) -> None:
+    from bridge import bus
+    from bridge.archive import write_campaign
+    from twin.identification.pipeline import IdentificationError
+    from twin.identification.record import campaign_data_from_mcap
+
+    n_m = params.n_cables
+    states = [(bus.MOTOR_STATE, int(k * 2e6) + 1, bus.MotorState(seq=k + 1, stamp_s=k * 0.002, theta_rad=[0.01 * k] * n_m,
+                                                                  force_applied_N=[10.0] * n_m, drive="active", epoch="e", bridge="b"))
+              for k in range(1200)]  # 2.4 s: the pipeline's minimum record
+    frames = [(bus.CAMERA_ALPHA, int(k / 30 * 1e9) + 2, bus.CameraAlpha(
+        seq=k + 1, stamp_s=k / 30 + 0.05, capture_stamp_s=k / 30, source="twin-render",
+        alpha_ip_rad=[0.1, None, 0.3] if k in (4, 5) else [0.1, 0.2, 0.3],
+        confidence=[1.0, 0.0, 1.0] if k in (4, 5) else [1.0, 1.0, 1.0])) for k in range(72)]
+    path = write_campaign(tmp_path / "c.mcap", sorted(states + frames, key=lambda m: m[1]), {"campaign_id": "c"})
+    data = campaign_data_from_mcap(path)
+    assert len(data.t_ip_s) == 70 and np.isfinite(data.alpha_ip_rad).all()
+    assert 4 / 30 not in data.t_ip_s.tolist() and data.alpha_ip_rad[0].tolist() == [0.1, 0.2, 0.3]
+    blind = [(key, t, msgspec_replace(m, alpha_ip_rad=[None, None, None], confidence=[0.0] * 3)) for key, t, m in frames]
+    path = write_campaign(tmp_path / "blind.mcap", sorted(states + blind, key=lambda m: m[1]), {"campaign_id": "b"})
+    with pytest.raises(IdentificationError, match="no camera frame measures every joint"):
+        campaign_data_from_mcap(path)

@@ -65,6 +65,12 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
         alpha = np.array([m.alpha_ip_rad for m in frames], dtype=float)
     except (AttributeError, ValueError) as exc:
         raise IdentificationError(f"{path}: motor or camera messages are malformed ({exc})") from None
+    # A camera frame with a missing joint (CameraAlpha v2: null, read as NaN) is a frame not measured:
+    # drop it; the pipeline interpolates across short gaps and refuses long ones (_uniform).
+    measured = np.isfinite(alpha).all(axis=1) if alpha.ndim == 2 else np.zeros(len(frames), dtype=bool)
+    if not measured.any():
+        raise IdentificationError(f"{path}: no camera frame measures every joint")
+    t_ip, alpha = t_ip[measured], alpha[measured]
     # Recorder order is receive order; the identification needs sample order. A lockstep twin
     # re-publishes its state while it waits for a command: keep one sample per time stamp.
     _, order = np.unique(t, return_index=True)
