@@ -175,6 +175,13 @@ def test_base_install_is_the_bridge_and_meets_debian_armhf():
     assert {"numba", "scipy", "matplotlib", "fastapi", "uvicorn", "viser"} <= pc
 
 
+def test_armhf_check_script_parses():
+    """benchmarks/armhf_bridge.sh (the expensive part, run by hand as root) stays valid bash."""
+    run = subprocess.run(["bash", "-n", str(ROOT / "benchmarks" / "armhf_bridge.sh")], capture_output=True, text=True,
+                         timeout=30)
+    assert run.returncode == 0, run.stderr
+
+
 # -- the cheap part of the target-platform check (benchmarks/armhf_bridge.sh does the rest) ------
 
 def _lean_venv(path: Path) -> Path:
