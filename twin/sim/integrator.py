@@ -76,17 +76,15 @@ PGS_SWEEPS = 12  # projected Gauss-Seidel sweeps: the 4x4 Delassus matrix is wel
 
 @njit(cache=True)
 def _coulomb_level(rf, j, direction, f_j, t_j):
-    """Kinetic Coulomb level (N) of cable j's motor resisting motion in ``direction`` (±1): Table 1's
-    f_s with its asymmetry and the tension-dependent pulley friction (floored at 0)."""
-    base = rf[j, RF_F_PLUS] if direction > 0 else rf[j, RF_F_MINUS]
-    return max(base + rf[j, RF_PULLEY] * (t_j - rf[j, RF_T_REF]), 0.0)
-
-
-@njit(cache=True)
-def _gear_loss(rf, j, direction, f_j, t_j):
-    """Load-dependent gear loss (N): a fraction of the motor force when the motor drives (winding,
-    θ̇ > 0), of the tension when the cable drives the motor back (θ̇ < 0)."""
-    return rf[j, RF_LOSS_FWD] * max(f_j, 0.0) if direction > 0 else rf[j, RF_LOSS_BWD] * max(t_j, 0.0)
+    """Kinetic Coulomb level (N) of cable j's motor resisting motion in ``direction`` (±1), floored
+    at 0: Table 1's f_s (scaled, with its asymmetry), which holds at the reference load T_ref, plus
+    what the load adds beyond it: pulley friction ∝ tension, and the gear's meshing loss ∝ the
+    driving load (the motor force when it winds, θ̇ > 0; the tension when the cable drives it back)."""
+    if direction > 0:
+        base, gear = rf[j, RF_F_PLUS], rf[j, RF_LOSS_FWD] * (f_j - rf[j, RF_T_REF])
+    else:
+        base, gear = rf[j, RF_F_MINUS], rf[j, RF_LOSS_BWD] * (t_j - rf[j, RF_T_REF])
+    return max(base + rf[j, RF_PULLEY] * (t_j - rf[j, RF_T_REF]) + gear, 0.0)
 
 
 @njit(cache=True)
@@ -109,15 +107,15 @@ def _set_valued_friction(rf, h, rho, X, theta_dot, f, t, lam):
                 if i != j:
                     v -= W[j, i] * lam[i]
             need = v / W[j, j]  # the friction that would stop motor j exactly
-            up = _coulomb_level(rf, j, 1.0, f[j], t[j]) * rf[j, RF_STATIC] + _gear_loss(rf, j, 1.0, f[j], t[j])
-            lo = _coulomb_level(rf, j, -1.0, f[j], t[j]) * rf[j, RF_STATIC] + _gear_loss(rf, j, -1.0, f[j], t[j])
+            up = _coulomb_level(rf, j, 1.0, f[j], t[j]) * rf[j, RF_STATIC]
+            lo = _coulomb_level(rf, j, -1.0, f[j], t[j]) * rf[j, RF_STATIC]
             if -lo <= need <= up:
                 lam[j] = need  # sticks
             else:
                 d = 1.0 if need > 0 else -1.0
                 u = theta_dot[j] / rf[j, RF_V_S]
                 stribeck = 1.0 + (rf[j, RF_STATIC] - 1.0) * math.exp(-u * u)
-                lam[j] = d * (_coulomb_level(rf, j, d, f[j], t[j]) * stribeck + _gear_loss(rf, j, d, f[j], t[j]))
+                lam[j] = d * _coulomb_level(rf, j, d, f[j], t[j]) * stribeck
 
 
 @njit(cache=True)

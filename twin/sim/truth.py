@@ -18,8 +18,9 @@ The effects (sections of the file; docs/twin-fidelity.md shows what each one cha
 
 - ``friction``: Coulomb + viscous + Stribeck stiction (static > kinetic), direction asymmetry,
   load-dependent gear losses (direction-dependent efficiency) and tension-dependent pulley
-  friction, integrated as set-valued friction (sticks exactly at rest): twin.sim.integrator.
-  Table 1's f_s stays the Coulomb level at the pulley reference tension.
+  friction, integrated as set-valued friction (sticks at rest): twin.sim.integrator. Table 1's
+  f_s stays the Coulomb level at the reference load (the identification campaign's mean tension);
+  pulleys and gears add friction beyond it in proportion to the load.
 - ``actuation``: the ESCON current loop (first order, saturating), per-motor torque-constant
   errors, block-commutation torque ripple, cogging, gear backlash (seen when a cable goes slack).
 - ``structure``: errors in bar masses, spring constants and free lengths, pulley radius.
@@ -67,7 +68,7 @@ class FrictionTruth(_Effect, frozen=True, kw_only=True):
     gear_loss_forward: float = 0.0  # fraction of the motor force lost when the motor drives (θ̇ > 0)
     gear_loss_backward: float = 0.0  # fraction of the tension lost when the cable drives (θ̇ < 0)
     pulley_friction_per_N: tuple[float, ...] = ()  # per cable, N of friction per N of tension
-    pulley_reference_tension_N: float = 0.0  # tension at which Table 1's f_s holds the pulley part
+    pulley_reference_tension_N: float = 0.0  # load at which Table 1's f_s holds the pulley and gear losses
 
 
 class ActuationTruth(_Effect, frozen=True, kw_only=True):
