@@ -455,3 +455,38 @@ def test_identification_reader_drops_frames_with_a_missing_joint(tmp_path, param
     path = write_campaign(tmp_path / "blind.mcap", sorted(states + blind, key=lambda m: m[1]), {"campaign_id": "b"})
     with pytest.raises(IdentificationError, match="no camera frame measures every joint"):
         campaign_data_from_mcap(path)
+
+
+def test_a_camera_behind_a_fast_twin_drops_frames_and_counts_every_one(params, model) -> None:
+    """Truth arriving far faster than real time (a lockstep twin): the camera cannot render every
+    exposure; each one is either published or counted as dropped, never silently lost."""
+    import threading
+
+    from busutil import bus_pair, run_in_thread, wait_until
+
+    from bridge import bus
+    from bridge.session import publisher
+    from twin.camera.process import CameraNode
+    from twin.camera.source import TwinShutter
+
+    with bus_pair() as (_hub, hub, connect):
+        camera = CameraNode(connect(), detector_for(params), instance="fast", queue_frames=2)
+        shutter = TwinShutter(30.0, 0.05)
+        stop = threading.Event()
+        thread, out = run_in_thread(camera.run_twin, Renderer(model, seed=3), shutter, stop, None, 1.5)
+        pub = publisher(hub, bus.TWIN_TRUTH)
+        zeros = [0.0] * params.n_cables
+        assert wait_until(lambda: (pub.put(bus.Truth(
+            seq=0, stamp_s=0.0, alpha_rad=[0.0] * 3, alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros, theta_dot_rad_s=zeros,
+            tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables, near_singular=False)), camera.truth_received > 0)[1], 10)
+        for k in range(1, 1501):  # 3 s of simulated time in a burst
+            t = k * 0.002
+            pub.put(bus.Truth(seq=k, stamp_s=t, alpha_rad=[0.3 * math.sin(t), 0.0, -0.2], alpha_dot_rad_s=[0.0] * 3,
+                              theta_rad=zeros, theta_dot_rad_s=zeros, tension_N=zeros, elongation_m=zeros,
+                              slack=[False] * params.n_cables, near_singular=False))
+        thread.join(60)
+        camera.close()
+    assert "error" not in out, out
+    assert camera.queue_dropped > 0, "the burst should outrun the renderer"
+    assert camera.frames + camera.queue_dropped + shutter.pending == shutter.exposures
+    assert camera.dropped == camera.queue_dropped + shutter.dropped

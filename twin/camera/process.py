@@ -58,7 +58,8 @@ class CameraNode:
         self._last_health = -math.inf
         self.frames = 0
         self.missing_joints = 0
-        self.dropped = 0
+        self.dropped = 0  # frames the source lost, as published in CameraAlpha.dropped
+        self.queue_dropped = 0  # twin: exposures dropped because rendering fell behind
         self.truth_received = 0
         self.truth_rejected = 0
         self._last_reject = ""
@@ -143,7 +144,7 @@ class CameraNode:
                 for exposure in shutter.feed(truth.stamp_s, np.asarray(truth.alpha_rad)):
                     if len(self._queue) >= self._queue_frames:
                         self._queue.popleft()
-                        self.dropped += 1
+                        self.queue_dropped += 1
                     self._queue.append(exposure)
                 self._cond.notify_all()
 
@@ -154,7 +155,7 @@ class CameraNode:
                     if not self._queue:
                         self._cond.wait(0.1)
                     exposure = self._queue.popleft() if self._queue else None
-                    dropped = self.dropped + shutter.dropped
+                    dropped = self.queue_dropped + shutter.dropped
                 if exposure is None:
                     if idle_timeout_s is not None and time.monotonic() - last_truth[0] > idle_timeout_s:
                         log.info("camera %s: no truth for %.1f s, stopping", self.instance, idle_timeout_s)
@@ -166,6 +167,8 @@ class CameraNode:
                 self.publish(found, exposure.capture_s, exposure.ready_s, "twin-render")
         finally:
             sub.undeclare()
+        with self._cond:
+            self.dropped = self.queue_dropped + shutter.dropped
         self._maybe_health(force=True)
         return self.frames
 

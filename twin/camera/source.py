@@ -130,7 +130,8 @@ class TwinShutter:
 
     rate_hz: float = 30.0
     latency_s: float = 0.05
-    dropped: int = 0
+    dropped: int = 0  # exposures skipped because the truth stalled
+    exposures: int = 0  # exposures taken
     _next_s: float | None = None
     _pending: list[Exposure] = field(default_factory=list)
 
@@ -146,6 +147,7 @@ class TwinShutter:
             late = int((t_s - self._next_s + 1e-9) // period)
             self.dropped += late
             self._pending.append(Exposure(t_s, np.array(alpha_rad, dtype=float)))
+            self.exposures += 1
             self._next_s += (late + 1) * period
         ready = [e for e in self._pending if e.capture_s + self.latency_s <= t_s + 1e-9]
         if ready:
@@ -153,3 +155,8 @@ class TwinShutter:
             for e in ready:
                 e.ready_s = t_s
         return ready
+
+    @property
+    def pending(self) -> int:
+        """Exposures taken whose latency has not elapsed yet."""
+        return len(self._pending)
