@@ -5,6 +5,7 @@ Real OpenCV on real rendered frames (and real Zenoh/MCAP further down); fixed se
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
@@ -356,6 +357,12 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
     assert len(back.messages(bus.TWIN_TRUTH)) == len(truths)  # everything recorded is kept
     assert back.metadata["xneck.camera.alignment"]["video_sha256"] == prov["video_sha256"]
     assert back.info["campaign_id"] == "c1"
+    images = back.messages("/xneck/camera/image")  # 5 JPEGs per second of video, for Foxglove's Image panel
+    assert back.schemas["/xneck/camera/image"] == "foxglove.CompressedImage" and len(images) == 50
+    first = images[0][1]
+    assert first["format"] == "jpeg" and first["timestamp"]["sec"] == 4
+    jpeg = cv2.imdecode(np.frombuffer(base64.b64decode(first["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert jpeg.shape == (720, 1280, 3)
     t_ip = np.array([f.capture_stamp_s for f in frames])
     a_ip = np.array([f.alpha_ip_rad for f in frames], dtype=float)
     assert np.abs(t_ip - (offset + np.arange(300) / 30.0)).max() < 0.005

@@ -286,6 +286,7 @@ def align(
     out: Path | None = typer.Option(None, "--out", help="New MCAP file (default: CAMPAIGN.aligned.mcap); never overwritten."),
     reference: str = typer.Option("auto", "--reference", help="auto (the twin's truth if recorded, else α̂), truth or alpha_hat."),
     drift: bool = typer.Option(True, "--drift/--no-drift", help="Estimate the video clock's drift as well as the offset."),
+    images: float = typer.Option(5.0, "--images", min=0.0, max=60.0, help="Frames per second (of video) archived as JPEG on /xneck/camera/image (0: none)."),
     calibration: Path | None = CALIBRATION_OPTION,
     json_out: bool = typer.Option(False, "--json", help="Print the provenance as JSON."),
     params_file: Path | None = PARAMS_OPTION,
@@ -304,7 +305,7 @@ def align(
         raise _fail(f"{target}: exists already (choose another --out)")
     try:
         ref = campaign_reference(campaign, reference)
-        measured = measure_video(video, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal))
+        measured = measure_video(video, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal), image_rate_hz=images)
         result = align(measured, ref, estimate_drift=drift)
         provenance = write_aligned(campaign, target, video, measured, result, ref.name, software_version())
     except (AlignmentError, SourceError) as exc:

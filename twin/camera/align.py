@@ -17,15 +17,20 @@ was computed offline from the video, then put beside the encoder data).
    ``file:<video>``), and a metadata record ``xneck.camera.alignment`` with the provenance
    (video file and hash, offset, drift, residual, reference, counts). Camera messages already in
    the campaign (the twin's white-noise camera) are replaced, and counted in the provenance.
+   With an image rate, JPEGs of the frames go on ``/xneck/camera/image`` as
+   ``foxglove.CompressedImage`` (JSON), so Foxglove plays the video beside the plots.
 """
 
 from __future__ import annotations
 
+import base64
 import hashlib
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
@@ -35,6 +40,19 @@ from twin.camera.detect import Detector
 from twin.camera.source import FileSource
 
 ALIGNMENT_METADATA = "xneck.camera.alignment"
+IMAGE_TOPIC = "/xneck/camera/image"
+# Foxglove's JSON Schema of foxglove.CompressedImage (bytes travel as base64 in JSON), so Foxglove's
+# Image panel plays the video beside the plots.
+COMPRESSED_IMAGE_SCHEMA = {
+    "title": "foxglove.CompressedImage", "description": "A compressed image", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "title": "time", "properties": {
+            "sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+        "frame_id": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": {"type": "string"},
+    },
+}
 MOTOR_TOPIC = bus.mcap_topic(bus.MOTOR_STATE)
 CAMERA_TOPIC = bus.mcap_topic(bus.CAMERA_ALPHA)
 
@@ -52,6 +70,7 @@ class VideoAlpha:
     t_s: np.ndarray
     alpha_rad: np.ndarray
     confidence: np.ndarray
+    jpeg: dict[int, bytes] | None = None  # frame index -> JPEG of the frames kept for the archive
 
 
 @dataclass
@@ -74,15 +93,23 @@ class Alignment:
         return self.offset_s + (1.0 + self.drift) * np.asarray(t_video_s, dtype=float)
 
 
-def measure_video(path: str | Path, detector: Detector, max_frames: int | None = None) -> VideoAlpha:
+def measure_video(path: str | Path, detector: Detector, max_frames: int | None = None,
+                  image_rate_hz: float = 0.0, jpeg_quality: int = 75) -> VideoAlpha:
+    """α_IP of every frame; with ``image_rate_hz`` > 0, JPEGs of frames at about that rate too."""
     source = FileSource(path)
     t, alpha, conf = [], [], []
+    jpeg: dict[int, bytes] = {}
+    every = max(1, round(source.fps / image_rate_hz)) if image_rate_hz > 0 else 0
     try:
         while max_frames is None or len(t) < max_frames:
             frame = source.read()
             if frame is None:
                 break
             found = detector.detect(frame.image)
+            if every and len(t) % every == 0:
+                ok, buf = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+                if ok:
+                    jpeg[len(t)] = buf.tobytes()
             t.append(frame.capture_s)
             alpha.append([math.nan if a is None else a for a in found.alpha_rad])
             conf.append(found.confidence)
@@ -92,7 +119,8 @@ def measure_video(path: str | Path, detector: Detector, max_frames: int | None =
         source.close()
     if len(t) < 10:
         raise AlignmentError(f"{path}: {len(t)} frames; at least 10 are needed")
-    return VideoAlpha(Path(path).name, source.fps, np.array(t), np.array(alpha, dtype=float), np.array(conf, dtype=float))
+    return VideoAlpha(Path(path).name, source.fps, np.array(t), np.array(alpha, dtype=float), np.array(conf, dtype=float),
+                      jpeg or None)
 
 
 def _iter_raw(path: Path):
@@ -226,6 +254,14 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
                               confidence=[0.0 if not math.isfinite(a) else float(c) for a, c in zip(row, conf)],
                               source=f"file:{video.name}")
         new.append((int(log_of[k]), msg))
+    images = []
+    for k, data in sorted((video.jpeg or {}).items()):
+        t = float(tc[k])
+        if math.isfinite(t) and t >= 0:
+            sec, nsec = int(t), int(round((t - int(t)) * 1e9)) % 1_000_000_000
+            payload = {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": "camera",
+                       "data": base64.b64encode(data).decode("ascii"), "format": "jpeg"}
+            images.append((int(log_of[k]), int(t * 1e9), json.dumps(payload).encode()))
     provenance = {
         "video": str(video_path), "video_sha256": _sha256(Path(video_path)), "video_fps": f"{video.fps:g}",
         "campaign": campaign.name, "reference": reference,
@@ -233,7 +269,7 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         "rms_deg": f"{alignment.rms_deg:.4f}", "frames": str(len(video.t_s)), "frames_used": str(alignment.frames_used),
         "frames_written": str(len(new)), "missing_joints": str(int(np.isnan(video.alpha_rad).sum())),
         "runner_up_offset_s": f"{alignment.runner_up_offset_s:.6f}", "runner_up_rms_deg": f"{alignment.runner_up_rms_deg:.4f}",
-        "replaced_camera_messages": str(replaced), "software": software,
+        "replaced_camera_messages": str(replaced), "images": str(len(images)), "software": software,
         "method": "least-squares offset/drift of detected α against the reference (twin/camera/align.py)",
     }
     with open(out, "xb") as f:
@@ -246,15 +282,23 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         camera_channel = writer.register_channel(topic=CAMERA_TOPIC, message_encoding="json", schema_id=camera_schema,
                                                  metadata={"key": bus.CAMERA_ALPHA, "version": str(bus.schema_version(bus.CameraAlpha)),
                                                            "source": f"file:{video.name}"})
-        pending = iter(sorted(new, key=lambda x: x[0]))
+        image_channel = 0
+        if images:
+            image_schema = writer.register_schema(name="foxglove.CompressedImage", encoding="jsonschema",
+                                                  data=json.dumps(COMPRESSED_IMAGE_SCHEMA).encode())
+            image_channel = writer.register_channel(topic=IMAGE_TOPIC, message_encoding="json", schema_id=image_schema,
+                                                    metadata={"source": f"file:{video.name}"})
+        # New records (log time, channel, publish time, data, sequence), merged in log-time order.
+        added = sorted([(lt, camera_channel, int(m.capture_stamp_s * 1e9), bus.encode(m), m.seq) for lt, m in new]
+                       + [(lt, image_channel, pt, data, i + 1) for i, (lt, pt, data) in enumerate(images)], key=lambda r: r[0])
+        pending = iter(added)
         nxt = next(pending, None)
 
         def flush_until(log_time: float) -> None:
             nonlocal nxt
             while nxt is not None and nxt[0] <= log_time:
-                lt, msg = nxt
-                writer.add_message(channel_id=camera_channel, log_time=lt, publish_time=int(msg.capture_stamp_s * 1e9),
-                                   data=bus.encode(msg), sequence=msg.seq)
+                lt, channel_id, publish_time, data, seq = nxt
+                writer.add_message(channel_id=channel_id, log_time=lt, publish_time=publish_time, data=data, sequence=seq)
                 nxt = next(pending, None)
 
         for schema, channel, message in records:
