@@ -185,7 +185,7 @@ def test_a_failed_identification_analysis_is_analysis_failed_not_finished(tmp_pa
     nod = {"kind": "identification", "waypoints": {"name": "nod", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0]],
                                                    "durations_s": 1.0, "dwell_s": 0.2}}
     with running_server(tmp_path / "d") as (base, _app):
-        r = httpx.post(base + "/api/campaigns", json=nod, headers=AUTH, timeout=10)
+        r = httpx.post(base + "/api/campaigns", json=nod, headers=AUTH, timeout=90)
         assert r.status_code == 201, r.text
         rec = _wait_end(base, r.json()["id"], 180)
     assert rec["status"] == "analysis_failed", rec
