@@ -1,0 +1,210 @@
+"""Regenerate docs/twin-fidelity.md: what each effect of the robot truth (twin/sim/truth.py,
+twin/sim/robot_truth.toml) changes on the §7 control test and on the identification, alone and
+all together, beside the 3-X paper's prototype numbers.
+
+Runs in process what the users' commands run over the bus: ``xneck campaign control --twin
+--truth robot --law 1|2|3 [--no-pulleys]`` is controller.offline.run_closed_loop (the same loop as
+the lockstep campaign) against a twin of the truth; ``xneck campaign identification --twin --truth
+robot`` is the §5.2.2 closed loop of tests/test_identification.py and the identification pipeline.
+"Each effect alone" is the robot truth with only that section enabled (``RobotTruth.only``), the
+same as a truth file with the other sections' ``enabled = false``. Serial, about 15 minutes on a
+loaded 2-core machine. Run: ``.venv/bin/python docs/make_twin_fidelity.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from controller.laws import LawConfig
+from controller.offline import run_closed_loop
+from controller.trajectory import control_test_trajectory
+from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate
+from twin.model.params import load_params
+from twin.sim.simulator import TwinConfig
+from twin.sim.truth import EFFECTS, load_truth
+
+DOCS = Path(__file__).resolve().parent
+ROOT = DOCS.parent
+PAPER = {"law1": (0.52, 2.19), "law2": (0.37, 1.51), "law3": (0.66, 1.09)}  # §7: mean e, e_α (deg), prototype
+PAPER_GAMMA_RF = 0.18  # N·m/rad, §5.3: mean |Γ_m − Γ_rf| on the prototype
+LAWS = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
+        "no pulleys": LawConfig(law=2, no_pulleys=True)}
+SEED = 11
+# Values with no source ("none" in robot_truth.toml): the range over which the conclusions are checked.
+# (Each row costs four §7 runs: only the two unsourced values that move the results most here.)
+RANGES = [
+    ("friction", "stribeck_velocity_rad_s", (0.5, 5.0)),
+    ("cables", "creep_ratio", (0.0, 0.10)),
+]
+
+
+def control(truth) -> dict[str, dict]:
+    traj = control_test_trajectory()
+    params = load_params()
+    return {name: run_closed_loop(params, law, traj, TwinConfig(seed=SEED, truth=truth)).metrics()
+            for name, law in LAWS.items()}
+
+
+def _simulate():
+    spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(ROOT / "tests"))
+    spec.loader.exec_module(mod)
+    return mod.simulate_campaign
+
+
+def identification(truth) -> dict[str, float]:
+    base = load_params()
+    data, _ = _simulate()(0, truth=truth)
+    proc = preprocess(data, base)
+    est = identify_all(proc, base)
+    new, _, _ = identified_params(base, est, make_provenance(data.campaign, proc))
+    val = validate(data, proc, new, est)
+    var = est["variable"]
+    return {
+        "f_s": est["friction"].values / np.array(base.friction.f_s) - 1,
+        "k": var.vector("k") / np.array(base.cables.variable.k) - 1,
+        "lam": var.vector("lambda") / np.array(base.cables.variable.lam) - 1,
+        "gamma_rf": float(val.gamma_rf_error),
+    }
+
+
+def findings(m: dict[str, dict]) -> dict[str, bool]:
+    e = {k: v["e_mean_all_deg"] for k, v in m.items()}
+    ea = {k: v["e_alpha_mean_all_deg"] for k, v in m.items()}
+    factor2 = all(0.5 < e[k] / PAPER[k][0] < 2 and 0.5 < ea[k] / PAPER[k][1] < 2 for k in PAPER)
+    return {
+        "law 2 tracks best": e["law2"] < min(e["law1"], e["law3"]),
+        "law 3 estimates best": ea["law3"] < min(ea["law1"], ea["law2"]),
+        "pulleys matter": e["no pulleys"] > e["law2"] and ea["no pulleys"] > ea["law2"],
+        "within ×2 of the prototype": factor2,
+    }
+
+
+def _yes(b: bool) -> str:
+    return "yes" if b else "**no**"
+
+
+def main() -> None:
+    t0 = time.time()
+    robot = load_truth("robot")
+    configs = [("none (`--truth model`)", robot.only())] + [(f"{e} alone", robot.only(e)) for e in EFFECTS]
+    configs.append(("all (`--truth robot`)", robot))
+    results, ident, ranges = {}, {}, []
+    for label, truth in configs:
+        results[label] = control(truth)
+        print(f"[{time.time() - t0:5.0f} s] control: {label}", flush=True)
+        write(results, ident, ranges)
+    for label, truth in (configs[0], configs[1], configs[-1]):
+        ident[label] = identification(truth)
+        print(f"[{time.time() - t0:5.0f} s] identification: {label}", flush=True)
+        write(results, ident, ranges)
+    for section, key, values in RANGES:
+        for value in values:
+            truth = robot.replace(section, **{key: value})
+            ranges.append((f"{section}.{key} = {value}", findings(control(truth))))
+            print(f"[{time.time() - t0:5.0f} s] range: {section}.{key} = {value}", flush=True)
+            write(results, ident, ranges)
+    print(f"wrote {DOCS / 'twin-fidelity.md'} in {time.time() - t0:.0f} s")
+
+
+def write(results: dict, ident: dict, ranges: list) -> None:
+    """docs/twin-fidelity.md from what has run so far (rewritten after every stage)."""
+    lines = [
+        "# Twin fidelity: the robot's unmodelled physics beside the 3-X prototype",
+        "",
+        "Regenerated by `docs/make_twin_fidelity.py` (in process, the same loops as `xneck campaign control",
+        "--twin --truth robot --law 1|2|3 [--no-pulleys]` and `xneck campaign identification --twin --truth robot`).",
+        "The controller always runs the paper's model (prototype_3x.toml); the twin runs a *truth*:",
+        "the model plus the effects of `twin/sim/robot_truth.toml`, each with its source there",
+        "(datasheet / measurement / physics estimate / architecture / none). Values are chosen from those",
+        "sources, not fitted to the tables below. Angles in degrees, forces in N; §7 control test, seed 11;",
+        "e = mean |α^d − α̂|, e_α = mean |α̂ − α_IP| (camera σ = 1°, so e_α ≥ about 0.8° whatever the truth).",
+        "",
+        "## §7 control test: each effect alone and all together",
+        "",
+        "| truth | law 1 e | law 2 e | law 3 e | no-pulleys e | law 1 e_α | law 2 e_α | law 3 e_α | no-pulleys e_α "
+        "| mean force law 1/2/3 | saturated ticks law 1/2/3 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for label, m in results.items():
+        e = [m[k]["e_mean_all_deg"] for k in LAWS]
+        ea = [m[k]["e_alpha_mean_all_deg"] for k in LAWS]
+        f = [m[k]["force_mean_all_N"] for k in ("law1", "law2", "law3")]
+        sat = [m[k]["saturated_ticks"] for k in ("law1", "law2", "law3")]
+        lines.append(f"| {label} | " + " | ".join(f"{x:.2f}" for x in e + ea)
+                     + f" | {f[0]:.1f} / {f[1]:.1f} / {f[2]:.1f} | {sat[0]} / {sat[1]} / {sat[2]} |")
+    lines.append("| **prototype (§7)** | 0.52 | 0.37 | 0.66 | – | 2.19 | 1.51 | 1.09 | – | – | – |")
+    lines += [
+        "",
+        "## The paper's findings on each truth",
+        "",
+        "| truth | law 2 tracks best | law 3 estimates best | pulleys matter | e and e_α within ×2 of the prototype |",
+        "|---|---|---|---|---|",
+    ]
+    for label, m in results.items():
+        lines.append(f"| {label} | " + " | ".join(_yes(v) for v in findings(m).values()) + " |")
+    lines += [
+        "",
+        "## Identification (§5.2.2 trajectory, seed 0): relative error of the identified values against",
+        "the truth's Table 1 f_s and Table 2 k, λ; Γ_rf residual (mean |Γ_m − Γ_rf|, N·m/rad; prototype 0.18)",
+        "",
+        "| truth | f_s error | k error | λ error | Γ_rf residual |",
+        "|---|---|---|---|---|",
+    ]
+    for label, r in ident.items():
+        fmt = lambda v: ", ".join(f"{100 * x:+.0f} %" for x in v)  # noqa: E731
+        lines.append(f"| {label} | {fmt(r['f_s'])} | {fmt(r['k'])} | {fmt(r['lam'])} | {r['gamma_rf']:.3f} |")
+    lines += [
+        "",
+        "## Values without a source: do the findings hold over a range?",
+        "",
+        "Each row is the full robot truth with one unsourced value changed.",
+        "",
+        "| change | law 2 tracks best | law 3 estimates best | pulleys matter | within ×2 |",
+        "|---|---|---|---|---|",
+    ]
+    for label, f in ranges:
+        lines.append(f"| `{label}` | " + " | ".join(_yes(v) for v in f.values()) + " |")
+    lines += ["", *NOTES, ""]
+    (DOCS / "twin-fidelity.md").write_text("\n".join(lines))
+
+
+NOTES = [
+    "## Reading the tables (written with the numbers above, 2026-11-23)",
+    "",
+    "- **Friction explains the tracking gap.** The model's truth has the controller's own arctan friction,",
+    "  so laws 2 and 3 compensate it perfectly (e 0.04° and 0.07° against the prototype's 0.37° and 0.66°).",
+    "  The robot's friction alone (stiction 1.3× Coulomb, Stribeck, gear and pulley losses that grow with the",
+    "  load, direction asymmetry) brings every law within ×2 of the prototype and keeps the paper's three",
+    "  findings. Law 1 hardly changes (0.47 → 0.51°): it has no friction model to be wrong.",
+    "- **Cable damping and creep explain part of the e_α gap** (law 2: 1.24 → 1.44°): the rigid-cable α̂ of",
+    "  laws 1-2 misses the stretch of a lightly damped, creeping line. Actuation errors (k_t spread, ripple,",
+    "  cogging) add about 0.06° to law 2's e. Structure errors, the one-tick delay and 0.1 ms jitter barely",
+    "  matter at the outer loop's ω = 11 rad/s; so does the current loop above about 10 Hz (at 2 Hz law 2's",
+    "  e grows 2.7×, tests/test_truth.py).",
+    "- **What does not close:** e_α stays below the prototype for law 1 (1.59° against 2.19°); the camera's",
+    "  bias and calibration errors are not simulated here (camera issue). Law 3 tracks 35 % worse than the",
+    "  prototype (0.89° against 0.66°), law 2 35 % worse (0.50° against 0.37°). \"Pulleys matter\" holds",
+    "  robustly for e_α (3.34° against 1.49°) but only marginally for e (0.51° against 0.50°): with",
+    "  creep_ratio = 0 it flips (range table), so that half of the finding rests on an unsourced value.",
+    "- **Identification does not keep its known answer with the robot's friction.** The paper's arctan",
+    "  regressor (eqs. 44-45, 55) fits f_s within 3-14 % of Table 1, but the tensions it reconstructs carry",
+    "  the friction-shape error, and k comes out 26-45 % low, λ up to 118 % high; the Γ_rf residual is 0.43",
+    "  N·m/rad against the prototype's 0.18. Alone, actuation and structure errors keep k and λ within 6 %;",
+    "  the cables effect (light damping + 5 % creep) lowers k by 9-12 % (separate runs, not in this table).",
+    "  The prototype's well-identified Table 2 and its",
+    "  smaller residual say its friction is closer to eq. 37 near θ̇ = 0 than this set-valued Coulomb law",
+    "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",
+    "  first thing a calibration on recorded campaigns should fit (not built yet).",
+    "- Speed: `benchmarks/twin.py` prints the tick cost with every effect off, each alone and all on.",
+]
+
+
+if __name__ == "__main__":
+    main()
