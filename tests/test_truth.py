@@ -240,3 +240,22 @@ def test_each_law_is_within_a_factor_2_of_the_prototype(section7):
         m = section7[f"law{law}"]
         assert 0.5 < m["e_mean_all_deg"] / e_paper < 2.0, (law, m["e_mean_all_deg"])
         assert 0.5 < m["e_alpha_mean_all_deg"] / ea_paper < 2.0, (law, m["e_alpha_mean_all_deg"])
+
+
+def test_truth_file_is_accepted_wherever_a_truth_name_is(tmp_path):
+    """`--truth FILE` (the CLI's shared callback) and the twin driver's config take a truth file;
+    a bad one is refused with the reason."""
+    import msgspec
+    import typer
+
+    from server.cli.options import check_truth as cli_check
+    from twin.sim.driver import TwinDriverConfig
+
+    path = tmp_path / "mine.toml"
+    path.write_text('[cables]\nenabled = true\ncreep_ratio = { value = 0.02, source = "none: test" }\n')
+    assert cli_check(str(path)) == str(path.resolve()) and cli_check("robot") == "robot"
+    with pytest.raises(typer.BadParameter, match="does not exist"):
+        cli_check(str(tmp_path / "nope.toml"))
+    assert TwinDriverConfig(truth=str(path)).truth == str(path)
+    with pytest.raises(msgspec.ValidationError, match="truth must be one of"):
+        msgspec.convert({"truth": "bogus"}, TwinDriverConfig)
