@@ -11,6 +11,8 @@ attacks, one after the other, and prints one row per attack:
   version, 1 MB of nesting, huge arrays) on every key a process subscribes to, for ``--garbage-s``.
   Garbage on ``xneck/estop`` must engage the e-stop (fail safe): its reaction time is that, and
   it is released afterwards; every other key must change nothing.
+- **campaign under garbage**: a short real-time campaign while a flood (10 kHz, 3 s) cycles
+  over every key but the e-stop; its outcome, as the console records it, must be honest.
 - **forged future state**: ``MotorState``s with ``stamp_s = 1e12`` from a forged bridge at 500 Hz
   for 1 s; the controller must keep answering the real bridge (reaction: the longest pause of
   its commands from the forgery's start to 2 s after it).
@@ -217,19 +219,22 @@ BIG_EVERY = 100
 
 
 def flood(session, key: str, duration_s: float, rate_hz: float, payloads: tuple[list[bytes], list[bytes]]) -> int:
-    """Put hostile payloads on ``key`` at ``rate_hz`` for ``duration_s``; returns the number sent."""
+    """Put hostile payloads on ``key`` (comma-separated keys: in turn) at ``rate_hz`` for
+    ``duration_s``; returns the number sent."""
     small, big = payloads
-    pub = session.declare_publisher(key)
+    pubs = [session.declare_publisher(k) for k in key.split(",")]
     sent, t0 = 0, time.monotonic()
     try:
         while (now := time.monotonic()) - t0 < duration_s:
             due = int((now - t0) * rate_hz)
             while sent < due:
-                pub.put(big[sent // BIG_EVERY % len(big)] if sent % BIG_EVERY == 0 else small[sent % len(small)])
+                pubs[sent % len(pubs)].put(big[sent // BIG_EVERY % len(big)] if sent % BIG_EVERY == 0
+                                           else small[sent % len(small)])
                 sent += 1
             time.sleep(0.0005)
     finally:
-        pub.undeclare()
+        for pub in pubs:
+            pub.undeclare()
     return sent
 
 
@@ -336,6 +341,31 @@ def run(args: argparse.Namespace) -> list[Row]:
                             force_step(states), data_lost(states), survived()))
         return attack
 
+    def campaign_under_garbage(s, obs: Observer) -> None:
+        """A real-time campaign while every key but the e-stop is flooded: its outcome must be
+        honest (``finished`` or ``degraded`` with reasons; aborted only with a reason)."""
+        body = {"kind": "control", "law": 2, "waypoints": {"name": "gentle", "durations_s": 2.0, "dwell_s": 0.3,
+                                                           "waypoints_deg": [[0, 0, 0], [8, 6, 4], [0, 0, 0]]}}
+        r = httpx.post(stack.base + "/api/campaigns", json=body, headers=auth, timeout=120)
+        if r.status_code != 201:
+            rows.append(Row(f"campaign under garbage: refused {r.status_code}", "-", (0.0, ""), "-", survived()))
+            return
+        cid = r.json()["id"]
+        rec: dict = {}
+
+        def ended() -> bool:
+            rec.update(httpx.get(f"{stack.base}/api/campaigns/{cid}", timeout=5).json())
+            return rec["status"] != "running"
+
+        wait(lambda: ended() or rec["progress"] > 0.05, 60, "the campaign did not start")
+        t0, _ = flood_from_another_process([stack.hub, stack.bridge_ep, stack.controller_ep],
+                                           ",".join(k for k in KEYS if k != bus.ESTOP), 3.0)
+        wait(ended, 60, "the campaign did not end")
+        states, _ = obs.window(t0, time.monotonic())
+        why = "; ".join((rec.get("quality") or {}).get("reasons") or []) or rec.get("message", "")[:80]
+        rows.append(Row(f"campaign under garbage on 7 keys (3 s): {rec['status']}" + (f" ({why})" if why else ""),
+                        "-", force_step(states), data_lost(states), survived()))
+
     def forged(s, obs: Observer) -> None:
         pub = s.declare_publisher(bus.MOTOR_STATE)
         t0 = time.monotonic()
@@ -389,7 +419,10 @@ def run(args: argparse.Namespace) -> list[Row]:
                                 force_step(new), data_lost(new), survived()))
         return attack
 
-    attacks = [("baseline", baseline), *[(f"garbage {k}", garbage(k)) for k in KEYS], ("forged", forged),
+    # The campaign first: an e-stop lets the twin's neck fall (no cable tension), and the controller
+    # then holds with "diverging estimate" until a person looks (as on the robot).
+    attacks = [("baseline", baseline), ("garbage campaign", campaign_under_garbage),
+               *[(f"garbage {k}", garbage(k)) for k in KEYS], ("forged", forged),
                *[(f"estop cycle {c + 1}", estop_cycle(c + 1)) for c in range(args.cycles)],
                *[(f"kill {n}", kill(n)) for n in ("controller", "bridge", "server")]]
     try:
