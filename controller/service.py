@@ -301,7 +301,8 @@ class CampaignService:
         self.phase = outcome
         self._event(outcome, progress, message)
         self.trajectory = None
-        self._blend = None
+        if outcome != "finished":  # held where it is; a finished one holds its last waypoint, blend and all
+            self._blend = None
         self.hold_target = np.array(hold_at, dtype=float)
         self.ticks = self.overruns = self.deadline_misses = 0
 
@@ -415,7 +416,9 @@ class CampaignService:
     def reference(self, stamp_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """α^d, α̇^d, α̈^d at ``stamp_s``: the campaign's trajectory or the hold target, plus the
         re-start blend while it lasts: (α̂₀ − α^d₀)(1 − s(τ)) with the cycloid s over the blend's
-        duration, so α^d starts at α̂ and joins the trajectory at rest relative to it."""
+        duration, so α^d starts at α̂ and joins the trajectory at rest relative to it. (α̇^d is the
+        trajectory's from the start: the k_v term then damps whatever motion the neck has, rather
+        than following an α̂̇ that is mostly the jolt of the drives coming back.)"""
         if self.trajectory is not None:
             ref = self.trajectory.sample(np.array([stamp_s - self._t0]))
             a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
@@ -439,13 +442,11 @@ class CampaignService:
         self._restart = False
         self.ctl.restart_integral()
         alpha_hat = self.hold_alpha()
+        self._blend = None
         if not self.running:
             self.hold_target = alpha_hat.copy()
-            self._blend = None
             return
-        self._blend = None
-        a_d = self.reference(stamp_s)[0]
-        offset = alpha_hat - a_d
+        offset = alpha_hat - self.reference(stamp_s)[0]
         delta = float(np.max(np.abs(offset)))
         if delta > BLEND_TOLERANCE_RAD:
             self._blend = (stamp_s, offset, approach_duration_s(delta))

@@ -211,7 +211,8 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
         estop.close()
     cmds = [(t, np.array(c.force_N)) for t, c in stack.commands.timed() if t >= t_on]
     during = np.array([f for t, f in cmds if t_dis <= t <= t_off])
-    assert len(during) > 100 and np.ptp(during, axis=0).max() < 3.0, np.ptp(during, axis=0)  # nothing grows
+    # Nothing grows: the hold forces only follow α̂ as the neck settles on slack cables.
+    assert len(during) > 100 and np.ptp(during, axis=0).max() < 8.0 and during.max() < 40.0, np.ptp(during, axis=0)
     around = np.array([f for t, f in cmds if t_off - 0.2 <= t <= t_off + 1.0])
     assert np.abs(np.diff(around, axis=0)).max() < 3.0  # no step when the law takes over again
     disabled = [s for t, s in stack.status.timed() if t_dis <= t <= t_off]

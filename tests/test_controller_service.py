@@ -129,7 +129,7 @@ class DriveLoop(Loop):
     def run_drive(self, seconds: float, drive: str) -> list:
         outs = []
         for _ in range(round(seconds * 500)):
-            on = drive in ("active", "hold")  # in a hold the bridge applies forces (its own, here ours)
+            on = drive in ("active", "hold")
             applied = self.outputs[-1].force_N if (self.outputs and on) else np.zeros(4)
             out = self.svc.control(self.tick.theta_meas, self.stamp_s, drive=drive, force_applied_N=applied)
             outs.append(out)
@@ -137,7 +137,9 @@ class DriveLoop(Loop):
             if out.law_ran:
                 self.svc.advance(self.stamp_s)
             self.events += self.svc.drain_events()
-            self.tick = self.twin.tick(out.force_N if on else np.zeros(4))
+            # In a hold the bridge applies its own hold forces (at its estimate, here the truth).
+            bridge = hold_forces(self.svc.params, self.tick.alpha) if drive == "hold" else out.force_N
+            self.tick = self.twin.tick(bridge if on else np.zeros(4))
         return outs
 
 
