@@ -59,7 +59,7 @@ def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> Non
               tmp_path / "s.log")
         assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()
         spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
-        assert wait_until(lambda: "bridge" in _alive_kinds(base), 60, 0.3)
+        assert wait_until(lambda: "bridge" in _alive_kinds(base), 120, 0.3)
         line, _ = _up_refused(tmp_path, free_tcp_port(), free_tcp_port(), hub_port)
         assert "another xneck stack answers on the hub" in line and "bridge/" in line, line
         assert _alive_kinds(base) == {"bridge"}  # no second controller joined
@@ -90,7 +90,7 @@ def _robot_stack(tmp_path: Path):
                                 tmp_path / "b.log")
         procs["controller"] = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
                                     tmp_path / "c.log")
-        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 120, 0.3)
         yield base, hub, procs
 
 
