@@ -288,7 +288,8 @@ def _uniform(t: FloatArray, x: FloatArray, what: str, max_gap: float = 5.0) -> t
         )
     n = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
-    if np.allclose(grid, t[:n], atol=1e-3 * dt, rtol=0.0) and n == len(t):
+    # Length first: with a missed sample the grid is longer than the stamps and cannot be compared.
+    if n == len(t) and np.allclose(grid, t, atol=1e-3 * dt, rtol=0.0):
         return t, x, dt
     return grid, np.column_stack([np.interp(grid, t, x[:, j]) for j in range(x.shape[1])]), dt
 
