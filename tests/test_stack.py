@@ -120,8 +120,19 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
     states = sorted((m.stamp_s, m.drive, tuple(m.force_applied_N)) for _, m in campaign.messages(bus.MOTOR_STATE))
     # When the bridge applied the controller's last command (its stamp is the older state the
     # controller answered, which lags under load): the watchdog counts from there.
-    applied = [s for s in states if s[0] >= last_command.stamp_s and s[1] == "active"
-               and np.allclose(s[2], last_command.force_N, atol=1e-9)]
+    # Applied means the forces became the command, or, while the bridge ramps after leaving a hold
+    # (bumpless, at most max_force_step_N a tick), every force moved towards it.
+    target = np.asarray(last_command.force_N)
+
+    def acts_on_last_command(prev, s) -> bool:
+        f, f0 = np.asarray(s[2]), np.asarray(prev[2])
+        if np.allclose(f, target, atol=1e-9):
+            return True
+        towards = np.abs(f - target) <= np.abs(f0 - target) + 1e-9
+        return bool(towards.all() and np.any(np.abs(f - f0) > 1e-9) and np.abs(f - f0).max() <= 1.0 + 1e-6)
+
+    applied = [s for prev, s in zip(states, states[1:])
+               if s[0] >= last_command.stamp_s and s[1] == "active" and acts_on_last_command(prev, s)]
     assert applied, "the last command was never applied"
     holds = [s for s in states if s[0] > applied[0][0] and s[1] == "hold"]
     assert holds, "the bridge never held after the controller died"
