@@ -16,8 +16,16 @@ from controller.trajectory import control_test_trajectory
 from twin.model.params import load_params
 from twin.sim.integrator import RF_COLUMNS, _coulomb_level
 from twin.sim.simulator import Twin, TwinConfig
-from twin.sim.truth import (EFFECTS, ROBOT_TRUTH_FILE, SOURCE_KINDS, TruthError, check_truth, load_truth, parse_truth,
-                            truth_params)
+from twin.sim.truth import (
+    EFFECTS,
+    ROBOT_TRUTH_FILE,
+    SOURCE_KINDS,
+    TruthError,
+    check_truth,
+    load_truth,
+    parse_truth,
+    truth_params,
+)
 
 ROBOT = load_truth("robot")
 PAPER = {1: (0.52, 2.19), 2: (0.37, 1.51), 3: (0.66, 1.09)}  # §7: mean e, mean e_α (deg), prototype
@@ -48,7 +56,7 @@ def test_every_value_of_the_robot_truth_has_a_source():
 
 
 def test_a_value_without_a_source_or_out_of_range_is_refused(tmp_path):
-    with pytest.raises(TruthError, match="friction.static_ratio: write it as"):
+    with pytest.raises(TruthError, match=r"friction\.static_ratio: write it as"):
         parse_truth({"friction": {"enabled": True, "static_ratio": 1.3}})
     with pytest.raises(TruthError, match="source must start with one of"):
         parse_truth({"friction": {"static_ratio": {"value": 1.3, "source": "trust me"}}})
@@ -62,7 +70,7 @@ def test_a_value_without_a_source_or_out_of_range_is_refused(tmp_path):
         check_truth("robots")
     bad = tmp_path / "bad.toml"
     bad.write_text("[timing\n")
-    with pytest.raises(TruthError, match="bad.toml"):
+    with pytest.raises(TruthError, match=r"bad\.toml"):
         load_truth(str(bad))
 
 

@@ -27,7 +27,8 @@ NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate w
 
 def check_truth(value: str) -> str:
     """Typer callback: ``--truth`` is one of twin.sim.truth.TRUTHS or a truth file that loads."""
-    from twin.sim.truth import TRUTHS, TruthError, check_truth as load_check
+    from twin.sim.truth import TRUTHS, TruthError
+    from twin.sim.truth import check_truth as load_check
 
     try:
         load_check(value)

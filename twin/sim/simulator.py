@@ -15,9 +15,9 @@ from typing import Literal
 import numpy as np
 
 from twin.model import cables, dynamics
-from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
 from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
+from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
 from twin.sim.sensors import Camera, quantise_encoder
 from twin.sim.truth import RobotTruth, TruthError, load_truth, truth_params
 

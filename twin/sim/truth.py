@@ -115,7 +115,7 @@ class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     def enabled(self) -> tuple[str, ...]:
         return tuple(e for e in EFFECTS if getattr(self, e).enabled)
 
-    def only(self, *effects: str) -> "RobotTruth":
+    def only(self, *effects: str) -> RobotTruth:
         """This truth with only ``effects`` switched on (the others off)."""
         unknown = set(effects) - set(EFFECTS)
         if unknown:
@@ -124,7 +124,7 @@ class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
         label = "+".join(effects) if effects else "none"
         return msgspec.structs.replace(self, name=f"{self.name} [{label}]", **changes)
 
-    def replace(self, section: str, **values: Any) -> "RobotTruth":
+    def replace(self, section: str, **values: Any) -> RobotTruth:
         """A copy with values of one section changed (validated again)."""
         new = msgspec.structs.replace(getattr(self, section), **values)
         return _validated(msgspec.structs.replace(self, **{section: new}))
@@ -197,7 +197,7 @@ def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
     return parse_truth(data, path.stem)
 
 
-def load_truth(truth: "str | Path | RobotTruth" = "model") -> RobotTruth:
+def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
     """A truth by name ("model", "robot"), by TOML path, or as given."""
     if isinstance(truth, RobotTruth):
         return _validated(truth)
@@ -226,7 +226,7 @@ def _per(values: tuple[float, ...], n: int, default: float, key: str) -> tuple[f
     return tuple(values)
 
 
-def truth_params(params: Params, truth: "str | RobotTruth" = "model") -> Params:
+def truth_params(params: Params, truth: str | RobotTruth = "model") -> Params:
     """The parameter set the twin integrates: the model with the truth's structural errors and
     cable damping (the other effects live in the simulator and integrator)."""
     t = load_truth(truth)
