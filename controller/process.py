@@ -119,6 +119,7 @@ class ControllerNode:
         # validating a trajectory may take seconds), started by the loop between two ticks.
         self._req_lock = threading.Lock()
         self.requests_received = self.requests_rejected = self._states_rejected_seen = 0
+        self._reject_logged_at, self._rejects_unlogged = -math.inf, 0
         self.last_reject = ""  # the latest reason a state or a request was rejected
         self._inbox: queue.Queue[bus.CampaignRequest] = queue.Queue(maxsize=16)
         self._to_prepare: queue.Queue[bus.CampaignRequest | None] = queue.Queue(maxsize=4)
@@ -186,7 +187,18 @@ class ControllerNode:
         with self._req_lock:
             self.requests_rejected += 1
             self.last_reject = f"{bus.CAMPAIGN_REQUEST}: {reason}"
-        log.warning("campaign request rejected: %s", reason)
+            # A flood must not turn into a flood of log lines (CPU the loop needs): at most one
+            # line a second, with how many were rejected since; Health has every count.
+            now = time.monotonic()
+            quiet = now - self._reject_logged_at < 1.0
+            if not quiet:
+                self._reject_logged_at = now
+                since, self._rejects_unlogged = self._rejects_unlogged, 0
+            else:
+                self._rejects_unlogged += 1
+        if not quiet:
+            log.warning("campaign request rejected: %s%s", reason,
+                        f" (and {since} more in the last second)" if since else "")
 
     def _on_request(self, sample: zenoh.Sample) -> None:
         # Zenoh's callback thread: bounded work only, and nothing may escape (a raise here would
