@@ -27,6 +27,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # this file shadows `controller`
 _spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+assert _spec is not None and _spec.loader is not None
 _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 
@@ -34,7 +35,6 @@ from bridge import bus  # noqa: E402
 from bridge.session import free_tcp_port, open_session  # noqa: E402
 from controller.distribution import distribute, lower_bounds  # noqa: E402
 from controller.laws import ComputedTorque, LawConfig  # noqa: E402
-from controller.offline import run_closed_loop  # noqa: E402
 from controller.trajectory import Trajectory, control_test_trajectory  # noqa: E402
 from twin.model import cables, dynamics  # noqa: E402
 from twin.model.params import load_params  # noqa: E402

@@ -30,8 +30,8 @@ import numpy as np  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
 from bridge import bus  # noqa: E402
-from bridge.session import free_tcp_port  # noqa: E402
 from bridge.archive import read_campaign  # noqa: E402
+from bridge.session import free_tcp_port  # noqa: E402
 
 TOKEN = "bench-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -24,6 +24,7 @@ from scipy.integrate import solve_ivp
 HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
 _spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
+assert _spec is not None and _spec.loader is not None
 _timing = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_timing)
 summary = _timing.summary

@@ -98,7 +98,7 @@ def software_version() -> str:
 def iso_time(time_ns: int | None = None) -> str:
     """UTC ISO 8601 time of ``time_ns`` (now if None), with microseconds."""
     t = time.time_ns() if time_ns is None else time_ns
-    return dt.datetime.fromtimestamp(t / 1e9, tz=dt.timezone.utc).isoformat(timespec="microseconds")
+    return dt.datetime.fromtimestamp(t / 1e9, tz=dt.UTC).isoformat(timespec="microseconds")
 
 
 def storage_reason(exc: BaseException) -> str:
@@ -154,7 +154,7 @@ class _ArchiveWriter:
     def __init__(self, path: Path, chunk_size: int = CHUNK_SIZE) -> None:
         self.path = path
         try:
-            self._file: BinaryIO = open(path, "xb")  # never overwrite a campaign
+            self._file: BinaryIO = open(path, "xb")  # noqa: SIM115 - held until close(); "x": never overwrite a campaign
         except OSError as exc:
             raise ArchiveError(path, f"cannot create the file ({storage_reason(exc)})") from None
         # Held until the file is closed (or the process dies): tells recovery the writer is alive.
@@ -610,7 +610,7 @@ class _Salvage:
                     if isinstance(record, Chunk):
                         try:
                             inner = breakup_chunk(record, validate_crc=True)
-                        except Exception as exc:  # noqa: BLE001 - CRC or decompression failure
+                        except Exception as exc:  # CRC or decompression failure
                             if f.tell() > size:
                                 raise
                             # The chunk's framing is intact (its length led to the next record):

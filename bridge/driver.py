@@ -32,6 +32,7 @@ import logging
 import math
 import threading
 import time
+from typing import TypeVar
 
 import msgspec
 import numpy as np
@@ -82,7 +83,10 @@ class DriverConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"{name} has {len(values)} values, expected one per motor (n_motors = {self.n_motors})")
 
 
-def config_from_dict(config_type: type[DriverConfig], data: dict) -> DriverConfig:
+ConfigT = TypeVar("ConfigT", bound=DriverConfig)
+
+
+def config_from_dict(config_type: type[ConfigT], data: dict) -> ConfigT:
     """A driver config from plain data (a TOML table), or a :class:`DriverError` naming the key."""
     try:
         return msgspec.convert(data, config_type, strict=False)
@@ -162,7 +166,7 @@ class Driver(abc.ABC):
             try:
                 if was is not Lifecycle.UNCONFIGURED:
                     self._on_close()
-            except Exception:  # noqa: BLE001 - close runs on the way out of a crash
+            except Exception:  # close runs on the way out of a crash
                 log.exception("%s: error while closing the driver", self.name)
 
     # -- I/O ---------------------------------------------------------------------------------
@@ -183,7 +187,7 @@ class Driver(abc.ABC):
             raise DriverError(f"{self.name}: write() needs {self.n_motors} finite forces (N), got {f.tolist()}")
         return self._on_write(f)
 
-    def step(self) -> None:
+    def step(self) -> None:  # noqa: B027 - an optional hook, not abstract: hardware has nothing to do
         """Advance one tick. Simulated devices integrate here; hardware does nothing."""
 
     def stamp_s(self) -> float:

@@ -9,7 +9,7 @@ import logging
 import os
 import signal
 import threading
-from typing import Optional
+
 
 def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(
@@ -31,7 +31,7 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-def endpoints(values: Optional[list[str]]) -> Optional[list[str]]:
+def endpoints(values: list[str] | None) -> list[str] | None:
     """CLI endpoint list: None (not given) defers to the environment."""
     return list(values) if values else None
 

@@ -23,8 +23,8 @@ from typing import NamedTuple
 import numpy as np
 
 from controller.distribution import distribute, lower_bounds
-from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, long_cable, short_cables
 from twin.model import dynamics
+from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, long_cable, short_cables
 from twin.model.numeric import Model, build
 from twin.model.params import Params
 

@@ -215,7 +215,7 @@ class ControllerNode:
             self._reject_request(exc.reason)
         except queue.Full:
             self._reject_request("too many requests waiting")
-        except Exception as exc:  # see above
+        except Exception as exc:  # noqa: BLE001 - see above
             self._reject_request(f"{type(exc).__name__}: {exc}")
 
     def _prepare_forever(self) -> None:
@@ -229,7 +229,7 @@ class ControllerNode:
                 result: Prepared | Refused = prepare(req, self._robot, self.service.law)
             except Refused as exc:
                 result = exc
-            except Exception as exc:  # prepare refuses everything: a backstop
+            except Exception as exc:  # noqa: BLE001 - prepare refuses everything: a backstop
                 result = Refused(f"refused: {type(exc).__name__}: {exc}")
             self._prepared.put((req, result))
 

@@ -164,7 +164,7 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
         raise Refused(f"refused: {exc}") from None
     except RecursionError:
         raise Refused("refused: the parameter set is nested too deeply") from None
-    except Exception as exc:  # hostile input: any failure is a refusal, never a crash
+    except Exception as exc:  # noqa: BLE001 - hostile input: any failure is a refusal, never a crash
         raise Refused(f"refused: {type(exc).__name__}: {exc}") from None
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
 

@@ -30,7 +30,7 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import msgspec
 import numpy as np
@@ -283,7 +283,9 @@ class Trajectory:
     def from_degrees(
         cls, waypoints_deg: ArrayLike, durations_s: ArrayLike, dwell_s: ArrayLike = 0.0, name: str = "trajectory"
     ) -> Trajectory:
-        return cls(np.deg2rad(np.asarray(waypoints_deg, dtype=np.float64)), durations_s, dwell_s, name)
+        # __post_init__ checks and converts durations and dwells (scalars or arrays)
+        return cls(np.deg2rad(np.asarray(waypoints_deg, dtype=np.float64)), cast(FloatArray, durations_s),
+                   cast(FloatArray, dwell_s), name)
 
 
 # -- user files -------------------------------------------------------------------------------

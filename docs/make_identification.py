@@ -18,9 +18,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.ticker import ScalarFormatter  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.ticker import ScalarFormatter
 
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
@@ -41,6 +41,7 @@ PAPER_TENSION = {"linear": 6.88, "variable": 4.75}  # §5.4, N
 
 def _simulate():
     spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.simulate_campaign
@@ -52,7 +53,7 @@ def run(c_a: float, seed: int) -> dict:
     data, _ = _simulate()(seed, truth="model", params=truth)
     proc = preprocess(data, base)
     est = identify_all(proc, base)
-    new, _, prov = identified_params(base, est, make_provenance(data.campaign, proc))
+    new, _, _ = identified_params(base, est, make_provenance(data.campaign, proc))
     val = validate(data, proc, new, est)
     var, comp = est["variable"], est["complete"]
     return {

@@ -12,14 +12,14 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from controller.laws import LawConfig  # noqa: E402
-from controller.offline import run_closed_loop  # noqa: E402
-from controller.trajectory import control_test_trajectory  # noqa: E402
-from twin.model.params import load_params  # noqa: E402
-from twin.sim.simulator import TwinConfig  # noqa: E402
+from controller.laws import LawConfig
+from controller.offline import run_closed_loop
+from controller.trajectory import control_test_trajectory
+from twin.model.params import load_params
+from twin.sim.simulator import TwinConfig
 
 DOCS = Path(__file__).resolve().parent
 OUT = DOCS / "results"

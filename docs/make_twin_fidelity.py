@@ -17,6 +17,7 @@ import importlib.util
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,13 +53,14 @@ def control(truth) -> dict[str, dict]:
 
 def _simulate():
     spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     sys.path.insert(0, str(ROOT / "tests"))
     spec.loader.exec_module(mod)
     return mod.simulate_campaign
 
 
-def identification(truth) -> dict[str, float]:
+def identification(truth) -> dict[str, Any]:
     base = load_params()
     data, _ = _simulate()(0, truth=truth)
     proc = preprocess(data, base)

@@ -27,9 +27,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
 from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
-from bridge.archive import software_version, storage_reason
 from server.campaigns import CampaignManager, StorageError
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
@@ -56,7 +56,7 @@ def concrete_hub(endpoint: str) -> str:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The console on ``settings.data_dir``, which it owns from now until its lifespan ends.
     Raises :class:`DataDirError` (one line) if the directory is another server's or unusable."""
-    settings = settings or Settings()
+    settings = settings or Settings()  # pyright: ignore[reportCallIssue] - pydantic-settings fills the fields from XNECK_*
     data_dir = Path(settings.data_dir)
     lock = DataDirLock(data_dir)
     try:

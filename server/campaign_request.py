@@ -19,17 +19,22 @@ import math
 from typing import Any, Literal
 
 import msgspec
-
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.campaign_runner import CampaignSpec
 from controller.laws import LawConfig, nominal_force_check
-from controller.trajectory import (NAMED_TRAJECTORIES, Trajectory, TrajectoryError, TrajectoryLimits,
-                                   load_trajectory, trajectory_by_name, validate)
+from controller.trajectory import (
+    NAMED_TRAJECTORIES,
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    load_trajectory,
+    trajectory_by_name,
+    validate,
+)
+from server.campaign_runner import CampaignSpec
 from server.paramsets import ParameterStore, UnknownParameterSet
 from server.settings import Settings
 from twin.model.params import ParameterError, Params
-
 
 Target = Literal["twin", "robot"]
 Pace = Literal["lockstep", "realtime"]

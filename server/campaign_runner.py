@@ -238,7 +238,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
                     if disabled else ("aborted", "stopped by the user")
                 break
-            if spec.service and not services.alive():
+            if services is not None and not services.alive():
                 outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
                 break
             if spec.service and not started and time.monotonic() > answer_deadline:

@@ -34,11 +34,10 @@ from pathlib import Path
 import zenoh
 
 from bridge import bus
+from bridge.archive import ArchiveError, is_complete, iso_time, read_campaign, recover, storage_reason, writer_alive
 from bridge.session import publisher
-from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
-from bridge.archive import (ArchiveError, is_complete, iso_time, read_campaign, recover, storage_reason,
-                            writer_alive)
 from server.campaign_request import PreparedCampaign
+from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.records import CampaignIndex, CampaignRecord
@@ -167,9 +166,9 @@ class CampaignManager:
     @staticmethod
     def _record_from_archive(cid: str, info: dict[str, str]) -> CampaignRecord:
         return CampaignRecord(
-            id=cid, kind=info.get("kind") if info.get("kind") in ("control", "identification") else "control",
+            id=cid, kind="identification" if info.get("kind") == "identification" else "control",
             law=info.get("law", ""), trajectory="", parameter_set=info.get("parameter_set", ""),
-            target=info.get("target") if info.get("target") in ("twin", "robot") else "twin",
+            target="robot" if info.get("target") == "robot" else "twin",
             created_at=info.get("start_time", ""), status="running")
 
     def _recovery_failed(self, mcap: Path, exc: Exception) -> None:
@@ -320,7 +319,7 @@ class CampaignManager:
             log.error("campaign %s failed: storage fault: %s", cid, reason)
             self.release_reserve()
             fields = {"status": "failed", "message": f"storage fault while recording {path.name}: {reason}"}
-        except Exception as exc:  # noqa: BLE001 - the record says what went wrong
+        except Exception as exc:  # the record says what went wrong
             log.exception("campaign %s failed", cid)
             fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
         try:

@@ -42,12 +42,12 @@ class CampaignRecord(BaseModel):
     truth: Literal["model", "robot", ""] = Field(default="", description="What the twin simulated (twin/sim/truth.py); "
                                                  "empty on the robot.")
     status: CampaignStatus = "running"
-    progress: float = Field(0.0, ge=0.0, le=1.0)
+    progress: float = Field(default=0.0, ge=0.0, le=1.0)
     message: str = ""
     created_at: str = ""
     ended_at: str = ""
     metrics: dict[str, Any] | None = None
-    quality: dict[str, Any] | None = Field(None, description="Real-time quality of the run (server.quality): "
+    quality: dict[str, Any] | None = Field(default=None, description="Real-time quality of the run (server.quality): "
                                            "ticks, rate_hz, deadline_misses, record_gaps, messages_lost, "
                                            "thresholds, and reasons (why it is degraded).")
     identification: dict[str, Any] | None = None

@@ -13,8 +13,8 @@ from pathlib import Path
 import zenoh
 
 from bridge import bus
-from bridge.session import publisher
 from bridge.archive import read_campaign
+from bridge.session import publisher
 
 NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP})
 

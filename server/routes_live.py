@@ -57,7 +57,7 @@ async def live_sse(request: Request) -> StreamingResponse:
             while True:
                 try:
                     frame = await asyncio.wait_for(client.queue.get(), KEEPALIVE_S)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     yield b": keepalive\n\n"
                     continue
                 if await request.is_disconnected():

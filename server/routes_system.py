@@ -8,9 +8,9 @@ from typing import Any
 from fastapi import APIRouter, Depends, Request
 from pydantic import BaseModel, Field
 
+from bridge.archive import software_version
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
-from bridge.archive import software_version
 from server.auth import require_token
 from server.live import camera_health
 

@@ -134,7 +134,7 @@ class NeckScene:
             last_version = version
             try:
                 self.update()
-            except Exception:  # noqa: BLE001 - a drawing bug must not kill the view thread
+            except Exception:  # a drawing bug must not kill the view thread
                 log.exception("scene update failed")
                 time.sleep(1.0)
 

@@ -31,8 +31,8 @@ import msgspec
 import numpy as np
 
 from server.results import PYPLOT_LOCK
-from twin.model.params import Params
 from twin.analysis.workspace import CAPTIONS, Maps3X
+from twin.model.params import Params
 
 log = logging.getLogger("xneck.server.workspace")
 
@@ -208,8 +208,8 @@ class WorkspaceCache:
             return Entry(final, summary, hit=False, render_s=dt)
 
     def _render_3x(self, params: Params, out: Path) -> dict[str, Any]:
-        from twin.model.numeric import build
         from twin.analysis.workspace import maps_3x, write_3x_figures
+        from twin.model.numeric import build
 
         lim = params.limits
         mp = maps_3x(build(params), lim.f_min, lim.f_max, n=self.grid_3x, alpha_max=ALPHA_MAX_3X)

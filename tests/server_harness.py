@@ -14,11 +14,11 @@ from pathlib import Path
 
 import httpx
 import uvicorn
+from busutil import wait_until  # re-exported for the server tests
 
 from bridge.session import free_tcp_port
 from server.app import create_app
 from server.settings import Settings
-from busutil import wait_until  # noqa: F401 - re-exported for the server tests
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -52,7 +52,7 @@ def server_process(data_dir: Path) -> Iterator[tuple[str, subprocess.Popen]]:
     it spawns can be killed with it, as a crash would). Yields (base URL, process)."""
     port = free_tcp_port()
     env = {**os.environ, "XNECK_TOKEN": TOKEN, "XNECK_CAMPAIGN_TIMEOUT_S": "120", "PYTHONUNBUFFERED": "1"}
-    log = open(Path(data_dir).parent / f"server-{port}.log", "wb")
+    log = open(Path(data_dir).parent / f"server-{port}.log", "wb")  # noqa: SIM115 - the server's stdout while it runs
     proc = subprocess.Popen(
         [sys.executable, "-m", "server.cli", "server", "--port", str(port), "--data-dir", str(data_dir),
          "--pace", "lockstep"], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,

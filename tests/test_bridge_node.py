@@ -36,6 +36,7 @@ class Collector:
         self.items: list[tuple[float, object]] = []
         self._lock = threading.Lock()
         msg_type = msg_type or bus.message_type(key)
+        assert msg_type is not None, key
 
         def cb(sample):
             try:

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import httpx
 import pytest
-
 from server_harness import TOKEN, running_server, wait_until
 
 CHROMIUM = "/usr/bin/chromium"

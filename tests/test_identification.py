@@ -12,17 +12,23 @@ positive null vector of Z, friction compensated): smooth, rich forces, as §5.2.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
 from controller.trajectory import identification_trajectory, recorded_excitation
-from twin.model import dynamics
 from twin.identification.pipeline import (
-    CampaignData, Estimate, IdentificationError, identified_params, identify_all, identify_friction, make_provenance,
-    preprocess, validate, write_identified,
+    CampaignData,
+    Estimate,
+    IdentificationError,
+    identified_params,
+    identify_all,
+    identify_friction,
+    make_provenance,
+    preprocess,
+    validate,
+    write_identified,
 )
+from twin.model import dynamics
 from twin.model.params import load_params
 from twin.sim.simulator import Twin, TwinConfig
 from twin.sim.truth import load_truth
@@ -63,7 +69,7 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
         for capture, frame in tick.frames:
             t_ip.append(capture)
             a_ip.append(frame)
-    data = CampaignData(t, theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
+    data = CampaignData(np.asarray(t, dtype=np.float64), theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
                         excitation_alpha_rad=None if still else ref.alpha)
     return data, {"alpha": alpha_true}
 
@@ -202,7 +208,7 @@ def test_too_few_samples(short_campaign):
 def test_nan_is_refused(short_campaign):
     theta = short_campaign.theta_rad.copy()
     theta[1234, 2] = np.nan
-    with pytest.raises(IdentificationError, match="NaN.*sample 1234"):
+    with pytest.raises(IdentificationError, match=r"NaN.*sample 1234"):
         CampaignData(**_with(short_campaign, theta_rad=theta))
 
 
@@ -244,7 +250,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
     with_traj = archive.write_campaign(tmp_path / "e.mcap", msgs,
                                        {**meta, "trajectory": identification_trajectory().to_json()})
     exc = campaign_data_from_mcap(with_traj, recorded_excitation).excitation_alpha_rad
-    assert exc.shape[1] == 3 and np.degrees(np.abs(exc).max()) == pytest.approx(40.0, abs=0.5)
+    assert exc is not None and exc.shape[1] == 3 and np.degrees(np.abs(exc).max()) == pytest.approx(40.0, abs=0.5)
     np.testing.assert_allclose(back.theta_rad, d.theta_rad)
     np.testing.assert_allclose(back.alpha_ip_rad, d.alpha_ip_rad)
 
@@ -254,7 +260,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
         campaign_data_from_mcap(truncated)
 
     only_motor = archive.write_campaign(tmp_path / "m.mcap", [m for m in msgs if m[0] == bus.MOTOR_STATE], meta)
-    with pytest.raises(IdentificationError, match="missing channel.*camera"):
+    with pytest.raises(IdentificationError, match=r"missing channel.*camera"):
         campaign_data_from_mcap(only_motor)
 
 

@@ -12,19 +12,19 @@ from pathlib import Path
 
 import httpx
 import pytest
+from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from bridge import bus
 from bridge.archive import is_complete, read_campaign
-from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
 
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    with running_server(tmp_path_factory.mktemp("api"), viser=False) as (base, _app):
-        with httpx.Client(base_url=base, timeout=30) as c:
-            yield c
+    with (running_server(tmp_path_factory.mktemp("api"), viser=False) as (base, _app),
+          httpx.Client(base_url=base, timeout=30) as c):
+        yield c
 
 
 def _loc(r: httpx.Response) -> list[list]:
@@ -133,13 +133,12 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
     mcap = data / "campaigns" / f"{cid}.mcap"
     assert mcap.exists() and not is_complete(mcap)
 
-    with running_server(data, viser=False) as (base, _app):
-        with httpx.Client(base_url=base, timeout=30) as c:
-            rec = c.get(f"/api/campaigns/{cid}").json()
-            assert rec["status"] == "interrupted" and "recovered" in rec["message"]
-            assert c.get("/api/campaigns", params={"status": "interrupted"}).json()[0]["id"] == cid
-            download = c.get(f"/api/campaigns/{cid}/mcap")
-            assert download.status_code == 200
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        rec = c.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] == "interrupted" and "recovered" in rec["message"]
+        assert c.get("/api/campaigns", params={"status": "interrupted"}).json()[0]["id"] == cid
+        download = c.get(f"/api/campaigns/{cid}/mcap")
+        assert download.status_code == 200
     assert is_complete(mcap)
     campaign = read_campaign(mcap)
     assert campaign.info["outcome"] == "interrupted" and campaign.info["campaign_id"] == cid
@@ -154,7 +153,7 @@ def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
     from server.paramsets import ParameterStore
     from server.settings import Settings
 
-    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
     truth = lambda **kw: prepare(CampaignCreate(**kw), store, settings).spec.truth  # noqa: E731
     assert truth(kind="identification") == "robot" and truth(kind="control") == "model"
     assert truth(kind="identification", truth="model") == "model" and truth(kind="control", truth="robot") == "robot"
@@ -210,9 +209,9 @@ def test_live_data_and_dashboard_refuse_foreign_origins_and_hosts(client) -> Non
     base = str(client.base_url).rstrip("/")
     ws_url = base.replace("http", "ws") + "/api/live"
     with pytest.raises(InvalidStatus) as refused:
-        connect(ws_url, origin="http://evil.example", open_timeout=5)
+        connect(ws_url, origin="http://evil.example", open_timeout=5)  # pyright: ignore[reportArgumentType] - Origin is a str NewType
     assert refused.value.response.status_code == 403
-    with connect(ws_url, origin=base, open_timeout=5) as ws:  # the dashboard's own origin
+    with connect(ws_url, origin=base, open_timeout=5) as ws:  # pyright: ignore[reportArgumentType] - the dashboard's own origin
         ws.ping()
     with connect(ws_url, open_timeout=5) as ws:  # no Origin: not a browser
         ws.ping()
@@ -257,6 +256,6 @@ def test_the_parameter_set_has_one_name_in_rest_and_mcap(tmp_path) -> None:
     from server.paramsets import ParameterStore
     from server.settings import Settings
 
-    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)
-    prepared = prepare(CampaignCreate(), store, settings)
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
+    prepared = prepare(CampaignCreate(), store, settings)  # pyright: ignore[reportCallIssue] - all fields default
     assert prepared.parameter_set == prepared.params.name == "prototype_3x"

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from server_harness import AUTH, running_server, wait_until
 from websockets.sync.client import connect
 
 from bridge import bus
 from bridge.archive import read_campaign
 from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
-from server_harness import AUTH, running_server, wait_until
 
 
 class LiveFollower:
@@ -58,9 +58,9 @@ class LiveFollower:
 
 @pytest.fixture(scope="module")
 def console(tmp_path_factory):
-    with running_server(tmp_path_factory.mktemp("console")) as (base, app):
-        with httpx.Client(base_url=base, timeout=30) as client:
-            yield base, client, app
+    with (running_server(tmp_path_factory.mktemp("console")) as (base, app),
+          httpx.Client(base_url=base, timeout=30) as client):
+        yield base, client, app
 
 
 def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
@@ -127,7 +127,8 @@ def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
     for key in (bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA, bus.TWIN_TRUTH, bus.CONTROLLER_STATUS,
                 bus.CAMPAIGN_EVENTS):
         assert campaign.messages(key), key
-        assert campaign.schemas[bus.mcap_topic(key)] == bus.schema_name(bus.message_type(key))
+        msg_type = bus.message_type(key)
+        assert msg_type is not None and campaign.schemas[bus.mcap_topic(key)] == bus.schema_name(msg_type)
     assert campaign.schemas[SCENE_TOPIC] == SCHEMA_NAME
     update = campaign.topics[SCENE_TOPIC][0][1]
     entity = update["entities"][0]
@@ -155,7 +156,7 @@ def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
 
 def test_a_stalled_live_client_does_not_hold_frames_back(console) -> None:
     """A WebSocket client that never reads keeps a bounded queue; another client still gets frames."""
-    base, client, app = console
+    base, _client, app = console
     broadcaster = app.state.broadcaster
     stalled = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)  # never read
     try:

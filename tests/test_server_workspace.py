@@ -12,7 +12,6 @@ from pathlib import Path
 import httpx
 import matplotlib.image as mpimg
 import pytest
-
 from server_harness import AUTH, running_server
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -21,9 +20,8 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     data = tmp_path_factory.mktemp("workspace") / "data"
-    with running_server(data, viser=False) as (base, _app):
-        with httpx.Client(base_url=base, timeout=60) as c:
-            yield c, data
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as c:
+        yield c, data
 
 
 def _png(r: httpx.Response) -> tuple[int, int]:

@@ -4,6 +4,7 @@ fault-tolerance cases: a controller killed mid-campaign, a server killed and res
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import signal
 import subprocess
@@ -15,11 +16,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from server_harness import AUTH, TOKEN, wait_until
 
 from bridge import bus
-from bridge.session import free_tcp_port, open_session
 from bridge.archive import read_campaign
-from server_harness import AUTH, TOKEN, wait_until
+from bridge.session import free_tcp_port, open_session
 
 pytestmark = pytest.mark.e2e  # the whole stack as processes, campaigns over the bus
 
@@ -56,7 +57,7 @@ def _procs():
     started: list[subprocess.Popen] = []
 
     def spawn(args: list[str], log: Path) -> subprocess.Popen:
-        p = subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        p = subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,  # noqa: SIM115
                              env=ENV, start_new_session=True)
         started.append(p)
         return p
@@ -131,7 +132,7 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
         towards = np.abs(f - target) <= np.abs(f0 - target) + 1e-9
         return bool(towards.all() and np.any(np.abs(f - f0) > 1e-9) and np.abs(f - f0).max() <= 1.0 + 1e-6)
 
-    applied = [s for prev, s in zip(states, states[1:])
+    applied = [s for prev, s in itertools.pairwise(states)
                if s[0] >= last_command.stamp_s and s[1] == "active" and acts_on_last_command(prev, s)]
     assert applied, "the last command was never applied"
     holds = [s for s in states if s[0] > applied[0][0] and s[1] == "hold"]

@@ -97,7 +97,7 @@ def test_timeline_and_shapes():
     assert traj.describe_time(2.7) == "hold at waypoint 1"
     with pytest.raises(ValueError):
         traj.waypoints_rad[0, 0] = 1.0  # immutable
-    single = Trajectory(np.zeros((1, 2)), [], 1.0)
+    single = Trajectory(np.zeros((1, 2)), [], 1.0)  # pyright: ignore[reportArgumentType] - plain values are converted
     assert single.duration_s == 1.0 and single.sample([0.0, 5.0]).alpha.shape == (2, 2)
     one_joint = Trajectory.from_degrees([[0], [30]], 1.0)
     assert one_joint.sample(1.0).alpha == pytest.approx([math.radians(30)])

@@ -4,6 +4,7 @@ it, lockstep repeats, bad input is counted and ignored, slack is reported."""
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 import pytest
@@ -86,7 +87,7 @@ def test_malformed_commands_are_counted_and_never_move_the_twin(params):
     with bus_pair() as (_hub, hub_session, connect):
         _token = liveliness_token(hub_session, "controller", "x")
         node = twin_node(connect(), params)
-        who = {"sender": "x", "epoch": node.epoch}
+        who: dict[str, Any] = {"sender": "x", "epoch": node.epoch}
         stop = threading.Event()
         th, out = run_in_thread(run_lockstep, node, stop)
         raw = hub_session.declare_publisher(bus.MOTOR_COMMAND)
@@ -123,7 +124,7 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
         node = twin_node(connect(), params, friction=False, camera=False)
         node.driver.twin.reset(target)
         stop = threading.Event()
-        th, out = run_in_thread(run_lockstep, node, stop)
+        th, _out = run_in_thread(run_lockstep, node, stop)
         truths, tsub = _collect(hub_session, bus.TWIN_TRUTH)
         states = subscribe_latest(hub_session, bus.MOTOR_STATE)
         pub = publisher(hub_session, bus.MOTOR_COMMAND)

@@ -263,12 +263,12 @@ class BeagleBoneDriver(Driver):
         for pin in cfg.enable_pins:
             try:
                 board.gpio.set_value(pin, self._level(False))
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - try every drive, then report all failures
                 errors.append(f"enable pin {pin}: {exc}")
         for ch in cfg.motor_channels:
             try:
                 board.motor.set(ch, self._zero_duty)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - try every drive, then report all failures
                 errors.append(f"motor output {ch}: {exc}")
         if errors:
             raise DriverError("beaglebone: could not disable every drive: " + "; ".join(errors))

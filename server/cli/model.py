@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json as jsonlib
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import typer
@@ -30,8 +29,8 @@ def model(
     ctx: typer.Context,
     alpha: float = typer.Option(..., "--alpha", help="Joint angles in degrees, one per joint: --alpha 40 30 20."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output (SI units)."),
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Print l_c, θ, Z, M, g and the spring lengths at one configuration: a first check of the
     model against the real robot."""

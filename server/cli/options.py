@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -48,7 +46,7 @@ PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); defa
 SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set springs.l0=[0.05,0.05,0.05].")
 
 
-def load_cli_params(params_file: Optional[Path], overrides: Optional[list[str]]) -> Params:
+def load_cli_params(params_file: Path | None, overrides: list[str] | None) -> Params:
     """Parameters for a command, or a clean exit with the reason (no traceback)."""
     try:
         return load_params(params_file, dict(parse_override(o) for o in overrides or []))
@@ -76,8 +74,14 @@ def load_checked_trajectory(name_or_path: str, params, law_config):
     """A trajectory by name or file, validated against the joint limits and the forces on its
     nominal path; a clean CLI error naming the waypoint or segment otherwise."""
     from controller.laws import nominal_force_check
-    from controller.trajectory import (NAMED_TRAJECTORIES, TrajectoryError, TrajectoryLimits, load_trajectory,
-                                       trajectory_by_name, validate)
+    from controller.trajectory import (
+        NAMED_TRAJECTORIES,
+        TrajectoryError,
+        TrajectoryLimits,
+        load_trajectory,
+        trajectory_by_name,
+        validate,
+    )
 
     try:
         traj = (trajectory_by_name(name_or_path) if name_or_path.replace("-", "_") in NAMED_TRAJECTORIES

@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import tomllib
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -21,19 +20,19 @@ from server.cli.options import (
     CONNECT_OPTION,
     IDLE_TIMEOUT_OPTION,
     INSTANCE_OPTION,
+    LAW_OPTION,
     LISTEN_OPTION,
     LOCKSTEP_OPTION,
     MAX_TICKS_OPTION,
     NO_FRICTION_OPTION,
+    NO_PULLEYS_OPTION,
     PARAMS_OPTION,
     SEED_OPTION,
     SET_OPTION,
     STARTUP_TIMEOUT_OPTION,
+    TRAJECTORY_OPTION,
     TRUTH_OPTION,
     VERBOSE_OPTION,
-    LAW_OPTION,
-    NO_PULLEYS_OPTION,
-    TRAJECTORY_OPTION,
     law_config,
     load_checked_trajectory,
     load_cli_params,
@@ -62,7 +61,7 @@ def _fail(message: str) -> typer.Exit:
     return typer.Exit(2)
 
 
-def _driver_table(path: Optional[Path]) -> dict:
+def _driver_table(path: Path | None) -> dict:
     if path is None:
         return {}
     try:
@@ -73,8 +72,8 @@ def _driver_table(path: Optional[Path]) -> dict:
         raise _fail(f"{path}: not a valid TOML file ({exc})") from None
 
 
-def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = None, loop: bool = False,
-                seed: int = 0, cable_model: Optional[str] = None, friction: bool = True,
+def make_driver(driver: str, params, table: dict, *, replay: Path | None = None, loop: bool = False,
+                seed: int = 0, cable_model: str | None = None, friction: bool = True,
                 truth: str = "model", camera: bool = True):
     """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
     Raises :class:`bridge.driver.DriverError` with a readable reason."""
@@ -112,9 +111,9 @@ def make_driver(driver: str, params, table: dict, *, replay: Optional[Path] = No
 
 def bridge(
     driver: str = typer.Option(..., "--driver", help="beaglebone (the prototype), twin (simulated) or replay (an archive)."),
-    replay: Optional[Path] = typer.Option(None, "--replay", help="Campaign MCAP file to replay (--driver replay)."),
+    replay: Path | None = typer.Option(None, "--replay", help="Campaign MCAP file to replay (--driver replay)."),
     loop: bool = typer.Option(False, "--loop", help="Replay: start over at the end instead of stopping."),
-    driver_config: Optional[Path] = typer.Option(
+    driver_config: Path | None = typer.Option(
         None, "--driver-config", help="TOML file of the driver's config (e.g. the BeagleBone wiring and ESCON points)."),
     lockstep: bool = LOCKSTEP_OPTION,
     command_timeout: float = typer.Option(0.010, "--command-timeout", help="Hold after this long without a valid command (s)."),
@@ -122,18 +121,18 @@ def bridge(
     max_force_step: float = typer.Option(
         1.0, "--max-force-step", help="After any enable, ramp the forces at most this much per tick (N)."),
     seed: int = SEED_OPTION,
-    cable_model: Optional[str] = CABLE_MODEL_OPTION,
+    cable_model: str | None = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
     no_camera: bool = NO_CAMERA_OPTION,
-    max_ticks: Optional[int] = MAX_TICKS_OPTION,
-    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
-    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
+    max_ticks: int | None = MAX_TICKS_OPTION,
+    idle_timeout: float | None = IDLE_TIMEOUT_OPTION,
+    startup_timeout: float | None = STARTUP_TIMEOUT_OPTION,
     instance: str = INSTANCE_OPTION,
-    listen: Optional[list[str]] = LISTEN_OPTION,
-    connect: Optional[list[str]] = CONNECT_OPTION,
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    listen: list[str] | None = LISTEN_OPTION,
+    connect: list[str] | None = CONNECT_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
@@ -194,18 +193,18 @@ def bridge(
 def twin(
     lockstep: bool = LOCKSTEP_OPTION,
     seed: int = SEED_OPTION,
-    cable_model: Optional[str] = CABLE_MODEL_OPTION,
+    cable_model: str | None = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
     no_camera: bool = NO_CAMERA_OPTION,
-    max_ticks: Optional[int] = MAX_TICKS_OPTION,
-    idle_timeout: Optional[float] = IDLE_TIMEOUT_OPTION,
-    startup_timeout: Optional[float] = STARTUP_TIMEOUT_OPTION,
+    max_ticks: int | None = MAX_TICKS_OPTION,
+    idle_timeout: float | None = IDLE_TIMEOUT_OPTION,
+    startup_timeout: float | None = STARTUP_TIMEOUT_OPTION,
     instance: str = INSTANCE_OPTION,
-    listen: Optional[list[str]] = LISTEN_OPTION,
-    connect: Optional[list[str]] = CONNECT_OPTION,
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    listen: list[str] | None = LISTEN_OPTION,
+    connect: list[str] | None = CONNECT_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
@@ -219,15 +218,15 @@ def twin(
 def controller(
     law: int = LAW_OPTION,
     no_pulleys: bool = NO_PULLEYS_OPTION,
-    trajectory: Optional[str] = TRAJECTORY_OPTION,
+    trajectory: str | None = TRAJECTORY_OPTION,
     lockstep: bool = typer.Option(False, "--lockstep", help="Wait as long as needed for each state (lockstep twin)."),
     campaign_id: str = typer.Option("", "--campaign-id", help="Id in the campaign events (default: random)."),
     campaign_kind: str = typer.Option("control", "--campaign-kind"),
     idle_timeout: float = typer.Option(10.0, "--idle-timeout", help="Give up after this long without any state (s)."),
-    listen: Optional[list[str]] = LISTEN_OPTION,
-    connect: Optional[list[str]] = CONNECT_OPTION,
-    params_file: Optional[Path] = PARAMS_OPTION,
-    overrides: Optional[list[str]] = SET_OPTION,
+    listen: list[str] | None = LISTEN_OPTION,
+    connect: list[str] | None = CONNECT_OPTION,
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""

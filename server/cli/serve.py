@@ -3,28 +3,27 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
 
 def server(
-    host: Optional[str] = typer.Option(None, "--host", help="Bind address (default 127.0.0.1, $XNECK_HOST)."),
-    port: Optional[int] = typer.Option(None, "--port", help="HTTP port (default 8000, $XNECK_PORT)."),
-    data_dir: Optional[Path] = typer.Option(None, "--data-dir", help="Archives and parameter sets (default ./data)."),
-    pace: Optional[str] = typer.Option(None, "--pace", help="Twin campaigns: realtime (default) or lockstep."),
-    mode: Optional[str] = typer.Option(None, "--mode", help="twin (default) or robot (drive the bridge on the bus)."),
-    hub: Optional[str] = typer.Option(None, "--hub", help="Zenoh endpoint to listen on (default a free loopback port)."),
-    connect: Optional[list[str]] = typer.Option(None, "--connect", help="Zenoh endpoint to connect to (robot mode)."),
-    viser_port: Optional[int] = typer.Option(None, "--viser-port", help="Port of the 3D view (default: free)."),
-    twin_truth: Optional[str] = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
+    host: str | None = typer.Option(None, "--host", help="Bind address (default 127.0.0.1, $XNECK_HOST)."),
+    port: int | None = typer.Option(None, "--port", help="HTTP port (default 8000, $XNECK_PORT)."),
+    data_dir: Path | None = typer.Option(None, "--data-dir", help="Archives and parameter sets (default ./data)."),
+    pace: str | None = typer.Option(None, "--pace", help="Twin campaigns: realtime (default) or lockstep."),
+    mode: str | None = typer.Option(None, "--mode", help="twin (default) or robot (drive the bridge on the bus)."),
+    hub: str | None = typer.Option(None, "--hub", help="Zenoh endpoint to listen on (default a free loopback port)."),
+    connect: list[str] | None = typer.Option(None, "--connect", help="Zenoh endpoint to connect to (robot mode)."),
+    viser_port: int | None = typer.Option(None, "--viser-port", help="Port of the 3D view (default: free)."),
+    twin_truth: str | None = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
                                              "controller service is on the bus (xneck up passes it)."),
-    twin_seed: Optional[int] = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
-    min_free_mb: Optional[float] = typer.Option(None, "--min-free-mb", help="Free space a campaign needs (MB, "
+    twin_seed: int | None = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
+    min_free_mb: float | None = typer.Option(None, "--min-free-mb", help="Free space a campaign needs (MB, "
                                                 "default 64)."),
-    allowed_host: Optional[list[str]] = typer.Option(None, "--allowed-host", help="Host name the console answers "
+    allowed_host: list[str] | None = typer.Option(None, "--allowed-host", help="Host name the console answers "
                                                      "to besides its address and loopback (repeatable)."),
-    allowed_origin: Optional[list[str]] = typer.Option(None, "--allowed-origin", help="Web origin allowed to read "
+    allowed_origin: list[str] | None = typer.Option(None, "--allowed-origin", help="Web origin allowed to read "
                                                        "live data besides the console's own (repeatable)."),
 ) -> None:
     """Run the experiment console; prints the dashboard URL and, at first start, the token."""

@@ -102,7 +102,7 @@ def preflight(host: str, port: int, viser_port: int, hub: str) -> str:
 
 def _healthy(url: str) -> bool:
     try:
-        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:
+        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # a loopback URL we built
             return r.status == 200
     except OSError:
         return False

@@ -132,7 +132,7 @@ def _iter_raw(path: Path):
         raise AlignmentError(f"{path}: no such campaign file") from None
     except AlignmentError:
         raise
-    except Exception as exc:  # mcap raises many types on a damaged file
+    except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
         raise AlignmentError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
 
 

@@ -754,7 +754,7 @@ def make_provenance(campaign: str, proc: Processed, *, method: str = "", thresho
         from importlib.metadata import version
 
         sw = version("xneck")
-    except Exception:
+    except Exception:  # noqa: BLE001 - not installed: an editable checkout
         sw = "unknown"
     return Provenance(
         campaign=campaign,

@@ -97,7 +97,7 @@ def _table(L, b, r, alpha):
     return out
 
 
-def jets(L: float, b: float, r: float, alpha: np.ndarray) -> np.ndarray:
+def jets(L: float, b: float, r: float, alpha: np.ndarray | float) -> np.ndarray:
     """Jet table for every angle of ``alpha`` (any shape, rad): shape alpha.shape + (N_ROWS, 3)."""
     alpha = np.asarray(alpha, dtype=float)
     return _table(float(L), float(b), float(r), np.ascontiguousarray(alpha)).reshape(alpha.shape + (N_ROWS, 3))
@@ -109,6 +109,6 @@ def side_lengths(L: float, b: float, alpha: np.ndarray) -> tuple[np.ndarray, np.
     return t[..., L_LEFT, 0], t[..., L_RIGHT, 0]
 
 
-def psi(L: float, b: float, alpha: np.ndarray) -> np.ndarray:
+def psi(L: float, b: float, alpha: np.ndarray | float) -> np.ndarray:
     """ψ(α), eq. 7: angle (rad) between the base bar and the diagonal bar B→C."""
     return jets(L, b, 0.0, alpha)[..., PSI, 0]

@@ -85,7 +85,10 @@ class TwinDriver(Driver):
 
     def _on_read(self) -> np.ndarray:
         tick = self.last_tick
-        return tick.theta_meas.copy() if tick else quantise_encoder(self.twin.theta, self.twin.counts_per_rev)
+        if tick:
+            return tick.theta_meas.copy()
+        assert self.twin is not None, "read() before configure()"  # the Lifecycle allows read only when configured
+        return quantise_encoder(self.twin.theta, self.twin.counts_per_rev)
 
     def _on_write(self, force_N: np.ndarray) -> np.ndarray:
         self._force = force_N.copy()
@@ -96,6 +99,7 @@ class TwinDriver(Driver):
         if self.state not in (Lifecycle.INACTIVE, Lifecycle.ACTIVE):
             return
         force = self._force if self.state is Lifecycle.ACTIVE else np.zeros(self.n_motors)
+        assert self.twin is not None  # INACTIVE/ACTIVE come after configure(), which builds it
         tick = self.twin.tick(force)
         self.last_tick = tick
         if tick.flat:
