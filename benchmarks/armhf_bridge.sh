@@ -138,7 +138,7 @@ say "resident memory of an idle python3 under qemu: $IDLE_MB MB"
 
 # 6. Runs against a hub on the host.
 rm -f "$ROOTFS/tmp/replay.mcap"
-"$HOST_PY" "$REPO/benchmarks/bridge.py" --write-replay "$ROOTFS/tmp/replay.mcap" >>"$LOG" 2>&1 \
+"$HOST_PY" "$REPO/benchmarks/bridge_tick.py" --write-replay "$ROOTFS/tmp/replay.mcap" >>"$LOG" 2>&1 \
     || fail "writing the replay file (see $LOG)"
 PORT=$("$HOST_PY" -c 'from bridge.session import free_tcp_port; print(free_tcp_port())')
 HUB="tcp/127.0.0.1:$PORT"

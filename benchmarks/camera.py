@@ -12,7 +12,6 @@ Run: ``.venv/bin/python benchmarks/camera.py [--quick]``.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import sys
@@ -22,14 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# benchmarks/twin.py would shadow the twin package: drop this folder from the path and load the
-# shared timing helpers by file (as benchmarks/twin.py does).
 HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
+
 summary, time_calls = _timing.summary, _timing.time_calls
 
 from twin.camera.detect import Detector  # noqa: E402

@@ -51,11 +51,8 @@ import httpx
 import msgspec
 import numpy as np
 
-# benchmarks/bridge.py would shadow the `bridge` package when this runs as a script from here.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
-
-from bridge import bus  # noqa: E402
-from bridge.session import free_tcp_port, open_session  # noqa: E402
+from bridge import bus
+from bridge.session import free_tcp_port, open_session
 
 TOKEN = "fault-benchmark-token-0123456789"
 GARBAGE_HZ = 10_000.0

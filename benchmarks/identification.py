@@ -13,7 +13,6 @@ linearly interpolated to every tick), i.e. what the processing replaces. Validat
 from __future__ import annotations
 
 import importlib.util
-import sys
 import time
 from pathlib import Path
 
@@ -21,12 +20,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin package.
-sys.path[:] = [str(ROOT)] + [p for p in sys.path if Path(p or ".").resolve() != HERE]
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
+
 summary, time_calls = _timing.summary, _timing.time_calls
 
 from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402

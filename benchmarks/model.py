@@ -9,20 +9,13 @@ exact jets replace). Run: ``.venv/bin/python benchmarks/model.py``.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 
-# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin
-# package: drop it and load the shared timing helpers by path.
 HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
+
 summary, time_calls = _timing.summary, _timing.time_calls
 
 from twin.model import cables, dynamics  # noqa: E402

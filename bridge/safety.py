@@ -205,7 +205,7 @@ class Safety:
     def clamp(self, force_N: Sequence[float]) -> np.ndarray:
         """Forces within [f_min, f_max]; counts the commands that needed it. On plain floats: for
         four values numpy's clip costs about 20 µs, a large part of a Cortex-A8's tick budget
-        (benchmarks/bridge.py)."""
+        (benchmarks/bridge_tick.py)."""
         lo, hi = self.config.f_min_N, self.config.f_max_N
         f = [float(x) for x in force_N]
         clamped = [min(max(x, lo), hi) for x in f]

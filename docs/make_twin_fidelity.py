@@ -204,7 +204,7 @@ NOTES = [
     "  smaller residual say its friction is closer to eq. 37 near θ̇ = 0 than this set-valued Coulomb law",
     "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",
     "  first thing a calibration on recorded campaigns should fit (not built yet).",
-    "- Speed: `benchmarks/twin.py` prints the tick cost with every effect off, each alone and all on.",
+    "- Speed: `benchmarks/twin_speed.py` prints the tick cost with every effect off, each alone and all on.",
 ]
 
 

@@ -44,3 +44,13 @@ def test_ruff_is_clean():
 
 def test_pyright_is_clean():
     _run([_tool("pyright")], timeout_s=900)
+
+
+def test_no_script_folder_shadows_a_package():
+    """`python benchmarks/NAME.py` puts benchmarks/ first on sys.path (issue 21): a script named like a
+    package (benchmarks/twin.py did) hides the real package and the script dies on a circular import."""
+    packages = {p.name for p in ROOT.iterdir() if (p / "__init__.py").is_file()}
+    assert {"bridge", "twin", "controller", "server"} <= packages
+    for folder in ("benchmarks", "docs", ".ci"):
+        names = {p.stem for p in (ROOT / folder).glob("*.py")} | {p.name for p in (ROOT / folder).iterdir() if p.is_dir()}
+        assert not names & packages, f"{folder}/ shadows {sorted(names & packages)} when its scripts run"

@@ -9,7 +9,7 @@ implementation of any equation, only two ways to run it.
 
 The choice is made once, when the first kernel is decorated (that is, when the first model module
 is imported):
-- numba is used when it imports, unless ``XNECK_NO_NUMBA=1`` (tests and ``benchmarks/bridge.py``
+- numba is used when it imports, unless ``XNECK_NO_NUMBA=1`` (tests and ``benchmarks/bridge_tick.py``
   use it to run the robot's path on the PC), or :func:`prefer_plain_python` was called before
   (``xneck bridge --driver beaglebone|replay`` does, so it never loads numba, llvmlite or scipy).
 """

@@ -7,7 +7,7 @@ thread, always on). During each, status reads ``GET /api/campaigns/<id>`` are is
 requests per second. Prints, from the archives: the controller's tick period p99 and deadline
 misses with 20 clients against none (and their ratio), and the REST p99 latency of the status reads.
 
-Run: ``.venv/bin/python benchmarks/server.py`` (about 1 minute; ``--clients N`` to change 20).
+Run: ``.venv/bin/python benchmarks/console_load.py`` (about 1 minute; ``--clients N`` to change 20).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
 
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402

@@ -7,13 +7,12 @@
 2. Over Zenoh on loopback against the real-time twin (500 Hz, `xneck twin`) with `xneck
    controller --law 2` following a trajectory for ``--seconds`` (default 60): state-to-command
    latency seen by an observer session (p50, p99) and the controller's deadline misses (target 0).
-Run: ``.venv/bin/python benchmarks/controller.py [--seconds 60]``.
+Run: ``.venv/bin/python benchmarks/controller_latency.py [--seconds 60]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import subprocess
 import sys
@@ -25,11 +24,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # this file shadows `controller`
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 from bridge import bus  # noqa: E402
 from bridge.session import free_tcp_port, open_session  # noqa: E402

@@ -12,14 +12,13 @@
    Python), paid once, in the tick that starts a hold.
 2. The resident memory of a real ``xneck bridge --driver replay`` process after a few seconds
    on the bus (VmHWM, the peak); target <= 80 MB on x86_64.
-Run: ``.venv/bin/python benchmarks/bridge.py [--ticks 5000]``.
+Run: ``.venv/bin/python benchmarks/bridge_tick.py [--ticks 5000]``.
 ``--write-replay PATH`` only writes a replay MCAP file (used by benchmarks/armhf_bridge.sh).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import subprocess
 import sys
@@ -32,11 +31,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # this file shadows `bridge`
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 from twin.model import compiled  # noqa: E402
 

@@ -6,27 +6,20 @@ Prints the per-tick cost of Twin.tick (median, p99) and the real-time factor wit
 (every effect of twin/sim/truth.py off), each robot effect alone, and every effect on (issue 16:
 still >= 50x), both in wall time and in this process's CPU time (the machine may be shared);
 then the ratio against scipy's solve_ivp (Radau, rtol 1e-8) integrating the same model over the
-same held forces, in the same process. Run: ``.venv/bin/python benchmarks/twin.py``.
+same held forces, in the same process. Run: ``.venv/bin/python benchmarks/twin_speed.py``.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
-# Python puts this folder first on sys.path, where benchmarks/twin.py would shadow the twin
-# package: drop it and load the shared timing helpers by path.
 HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
-_spec = importlib.util.spec_from_file_location("_timing", HERE / "_timing.py")
-assert _spec is not None and _spec.loader is not None
-_timing = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_timing)
+import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
+
 summary = _timing.summary
 
 from controller.laws import LawConfig  # noqa: E402
