@@ -217,7 +217,7 @@ class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only
 CAMPAIGN_ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,128}$"
 TRAJECTORY_JSON_MAX_BYTES = 256 * 1024
 PARAMETERS_TOML_MAX_BYTES = 64 * 1024
-CampaignKind = Literal["control", "identification"]
+CampaignKind = Literal["control", "identification", "jog"]
 
 
 class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -228,9 +228,13 @@ class CampaignRequest(BusMessage, frozen=True, forbid_unknown_fields=True, kw_on
 
     v2: the id, kind and law are checked when decoded, and the two texts are bounded in size.
     ``trajectory_json`` is JSON text, never a path: the controller opens no file named on the bus.
+
+    v3: kind ``jog`` (the console's ``POST /api/jog``): a move to one pose, not archived; a jog
+    asked for while a jog runs waits for it to end (the newest one only), so the console's sliders
+    chain gentle moves without a force step, and ``settle_s`` is short.
     """
 
-    v: int = 2
+    v: int = 3
     campaign_id: Annotated[str, msgspec.Meta(pattern=CAMPAIGN_ID_PATTERN)]
     action: Literal["start", "stop"]
     kind: CampaignKind = "control"

@@ -29,6 +29,12 @@ law re-starts from the measurement: a fresh integral and α^d starting at α̂, 
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
 ``aborted`` with the reason, and none starts while they are.
 
+Jogs (kind ``jog``, the console's sliders): a jog is a campaign of one waypoint reached by the
+gentle approach from α̂. A jog asked for while a jog runs is prepared, then waits (the newest one
+only; an older waiting one is answered ``aborted``, superseded) until the running one finishes at
+rest on its pose, and starts from there: moves chain without a step in α^d or α̇^d. Stopping or
+aborting the running jog drops the waiting one.
+
 Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
 count and duration, a time budget for the force check); :class:`StateGate` admits motor states
 of one bridge run on a clock consistent with the controller's own.
@@ -66,6 +72,7 @@ VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console wait
 FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
 STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
+JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog waits for it
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
 
@@ -244,6 +251,7 @@ class CampaignService:
         self._restart = False  # the law takes over again at the next active state
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
+        self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -287,12 +295,13 @@ class CampaignService:
         self.trajectory = trajectory
         self.phase = "running"
         self._t0 = stamp_s
-        self._total = trajectory.duration_s + self.settle_s
+        self._total = trajectory.duration_s + (JOG_SETTLE_S if self.kind == "jog" else self.settle_s)
         self._next_progress = 0.0
         self.outcome = ""
         self.latched = False
         self.ticks = self.overruns = self.deadline_misses = 0
-        self.ctl.restart_integral()
+        if self.kind != "jog":  # a jog goes on with the law that holds the neck, integral and all
+            self.ctl.restart_integral()
         self._blend = None
         self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
 
@@ -305,13 +314,21 @@ class CampaignService:
             self._blend = None
         self.hold_target = np.array(hold_at, dtype=float)
         self.ticks = self.overruns = self.deadline_misses = 0
+        waiting, self._next_jog = self._next_jog, None
+        if waiting is not None and outcome != "finished":
+            self.refuse(waiting.campaign_id, waiting.kind, f"dropped: jog {self.campaign_id} ended {outcome} ({message})")
+        elif waiting is not None:
+            self._next_jog = waiting  # started by advance() once this one has ended
 
     def _progress(self, stamp_s: float) -> float:
         return min(max((stamp_s - self._t0) / self._total, 0.0), 1.0)
 
     def stop(self, campaign_id: str, stamp_s: float) -> None:
         """A stop request: aborts the campaign ``campaign_id`` if it runs or is being prepared."""
-        if self.running and campaign_id == self.campaign_id:
+        if self._next_jog is not None and self._next_jog.campaign_id == campaign_id:
+            self.refuse(campaign_id, "jog", "stopped by the user before it started")
+            self._next_jog = None
+        elif self.running and campaign_id == self.campaign_id:
             self._end("aborted", "stopped by the user", self._progress(stamp_s), self.ctl.estimator.alpha_hat)
         elif self._starting is not None and self._starting[0] == campaign_id:
             self.refuse(campaign_id, self._starting[1], "stopped by the user before it started")
@@ -321,9 +338,10 @@ class CampaignService:
         """Answer a request the service will not run with an ``aborted`` event of its id."""
         self.events.append(Event(campaign_id, kind, "aborted", 0.0, message))
 
-    def busy_reason(self) -> str:
-        """Why a new campaign cannot start now ("" if it can)."""
-        if self.running:
+    def busy_reason(self, kind: str = "") -> str:
+        """Why a new campaign of ``kind`` cannot start now ("" if it can); a jog may follow a
+        running jog (module docstring)."""
+        if self.running and not (kind == "jog" and self.kind == "jog"):
             return f"the controller is running campaign {self.campaign_id}"
         if self._starting is not None:
             return f"the controller is preparing campaign {self._starting[0]}"
@@ -334,7 +352,7 @@ class CampaignService:
     def request_start(self, req: bus.CampaignRequest) -> bool:
         """A start request arrived: True if it is to be prepared (the service is ``starting``);
         otherwise it was refused with the reason."""
-        busy = self.busy_reason()
+        busy = self.busy_reason(req.kind)
         if busy:
             self.refuse(req.campaign_id, req.kind, f"refused: {busy}")
             return False
@@ -353,15 +371,28 @@ class CampaignService:
         self.start(result, stamp_s)
 
     def start(self, prepared: Prepared, stamp_s: float) -> None:
-        """Start a prepared campaign, approaching its first waypoint gently from α̂."""
-        busy = self.busy_reason()
+        """Start a prepared campaign, approaching its first waypoint gently from α̂ (a jog asked
+        for while a jog runs waits for it: module docstring)."""
+        busy = self.busy_reason(prepared.kind)
+        if not busy and self.running:
+            if self._next_jog is not None:
+                self.refuse(self._next_jog.campaign_id, "jog", f"superseded by jog {prepared.campaign_id}")
+            self._next_jog = prepared
+            return
         if busy:
             self.refuse(prepared.campaign_id, prepared.kind, f"refused: {busy}")
             return
-        self.params = prepared.params
-        self._switch_law(prepared.law)
         self.campaign_id, self.kind = prepared.campaign_id, prepared.kind
-        self.begin(approach(prepared.trajectory, self.ctl.estimator.alpha_hat), stamp_s)
+        start_at = self.ctl.estimator.alpha_hat
+        if prepared.kind == "jog":
+            # Bumpless: the law, its integral and α^d go on; the move starts where α^d rests
+            # (α̂ while the law is not running or re-starting).
+            if not self._restart and self._blend is None and self.drive == "active":
+                start_at = self.reference(stamp_s)[0]
+        else:
+            self.params = prepared.params
+            self._switch_law(prepared.law)
+        self.begin(approach(prepared.trajectory, start_at), stamp_s)
 
     def handle(self, req: bus.CampaignRequest, stamp_s: float) -> None:
         """A campaign request, prepared here and now (tests; the process prepares off its loop)."""
@@ -507,3 +538,6 @@ class CampaignService:
         if t >= self._total:
             self._end("finished", f"overruns {self.overruns}, deadline misses {self.deadline_misses}", 1.0,
                       self.trajectory.waypoints_rad[-1])
+            waiting, self._next_jog = self._next_jog, None
+            if waiting is not None:
+                self.start(waiting, stamp_s)

@@ -1,0 +1,57 @@
+"""Jogs in the controller's campaign service (issue 18): a jog asked for while a jog runs waits
+for it and starts where α^d rests, so the console's sliders chain moves without a force step."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from test_controller_service import Loop, _request
+
+from controller.trajectory import Trajectory
+
+
+def _jog(cid: str, alpha_deg: list[float]):
+    return _request(cid, kind="jog", trajectory_json=Trajectory.from_degrees([alpha_deg], [], 0.0, "jog").to_json())
+
+
+def _outcome(loop: Loop, cid: str) -> str:
+    return next((e.event for e in loop.events if e.campaign_id == cid and e.event in ("finished", "aborted")), "")
+
+
+def test_a_jog_during_a_jog_waits_the_newest_wins_and_they_chain_without_a_step(params):
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-a", [10.0, 5.0, 0.0]), loop.stamp_s)
+    loop.run(0.4)
+    loop.svc.handle(_jog("jog-b", [0.0, 10.0, 0.0]), loop.stamp_s)  # mid-move: waits, not refused
+    loop.svc.handle(_jog("jog-c", [-5.0, 0.0, 6.0]), loop.stamp_s)  # supersedes the waiting one
+    loop.svc.handle(_request("ctl"), loop.stamp_s)  # a campaign is refused while a jog runs
+    loop.events += loop.svc.drain_events()
+    assert loop.svc.campaign_id == "jog-a" and not _outcome(loop, "jog-c")
+    assert _outcome(loop, "ctl") == "aborted" and "running campaign jog-a" in loop.events[-1].message
+    b = next(e for e in loop.events if e.campaign_id == "jog-b")
+    assert b.event == "aborted" and "superseded by jog jog-c" in b.message
+    before = len(loop.outputs)
+    loop.run(2.6)
+    assert _outcome(loop, "jog-a") == "finished" and _outcome(loop, "jog-c") == "finished", loop.events
+    assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - np.radians([-5.0, 0.0, 6.0]))).max() < 0.5
+    moved = loop.outputs[before - 100:]
+    a_d = np.array([o.alpha_d_rad for o in moved])
+    forces = np.array([o.force_N for o in moved])
+    assert np.abs(np.diff(a_d, axis=0)).max() < math.radians(0.05)  # α^d continuous across the hand-over
+    assert np.abs(np.diff(forces, axis=0)).max() < 2.0  # and no force step
+
+
+def test_stopping_the_running_jog_drops_the_waiting_one_and_holds(params):
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-1", [15.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.3)
+    loop.svc.handle(_jog("jog-2", [-15.0, 0.0, 0.0]), loop.stamp_s)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.events += loop.svc.drain_events()
+    assert _outcome(loop, "jog-1") == "aborted" and _outcome(loop, "jog-2") == "aborted"
+    held = loop.svc.hold_target.copy()
+    loop.run(0.3)
+    assert not loop.svc.running and np.array_equal(loop.svc.hold_target, held)
