@@ -18,7 +18,7 @@ from twin.model import cables, dynamics
 from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
 from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
-from twin.sim.sensors import Camera, quantise_encoder
+from twin.sim.sensors import Camera
 from twin.sim.truth import RobotTruth, TruthError, load_truth, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
@@ -123,6 +123,13 @@ class Twin:
             else None
         )
         self.counts_per_rev = sensors.encoder_counts_per_rev
+        # Per-tick constants, so that tick() spends its time integrating (benchmarks/twin_speed.py).
+        self._rad_per_count = 2.0 * math.pi / self.counts_per_rev
+        self._all_cables = (1 << nc) - 1
+        self._slack_of = (np.arange(1 << nc)[:, None] >> np.arange(nc)) & 1 == 1  # row: the integrator's slack bits
+        self._actuation_on = a.enabled
+        self._act_period = -1.0  # the period the current loop's ACT_DECAY/ACT_MEAN_GAIN were computed for
+        self._creep_gain, self._creep_period = 0.0, -1.0
 
     # -- state views (copies, so callers cannot corrupt the integrator's state) -----------------
     @property
@@ -154,42 +161,53 @@ class Twin:
         if self._delay:
             self._pending.append(f.copy())
             f = self._pending.pop(0) if len(self._pending) > self._delay else np.zeros_like(f)
-        a = self.truth.actuation
-        if not a.enabled:
+        if not self._actuation_on:
             return f
-        if self._tau_current:
+        if self._tau_current and period_s != self._act_period:
             decay = math.exp(-period_s / self._tau_current)
             self._act[ACT_DECAY], self._act[ACT_MEAN_GAIN] = decay, self._tau_current / period_s * (1.0 - decay)
+            self._act_period = period_s
         actuate(f, self.state[self._n : self._n + self._nc], self._current, self._kt_factor, self._act, self._force)
         return self._force
 
-    def tick(self, f: np.ndarray) -> Tick:
-        """Hold forces ``f`` (N, one per cable, assumed validated) for one period and step."""
-        period = self.dt
-        if self._jitter:
-            period = min(max(self.dt + self._jitter * self._rng_timing.standard_normal(), 0.5 * self.dt), 1.5 * self.dt)
-        f_applied = self._applied_force(np.asarray(f, dtype=float), period)
-        h = period / self.config.substeps
-        bits = int(step(self.model, self.state, f_applied, h, self.config.substeps, self._work,
-                        self._tension, self._stretch, self._rf, self._creep))
-        flat = bool(bits >> 62 & 1)
+    def advance(self, f: np.ndarray, period_s: float | None = None) -> int:
+        """Hold forces ``f`` for one period and step, without building a :class:`Tick` (no
+        sensors, no camera): what replaying a recording needs (twin.sim.calibrate). ``period_s``:
+        the period (default: the control period, with the truth's jitter). Returns the
+        integrator's bit field (twin.sim.integrator.step)."""
+        if period_s is None:
+            period_s = self.dt
+            if self._jitter:
+                period_s = min(max(self.dt + self._jitter * self._rng_timing.standard_normal(), 0.5 * self.dt),
+                               1.5 * self.dt)
+        f_applied = self._applied_force(np.asarray(f, dtype=float), period_s)
+        bits = int(step(self.model, self.state, f_applied, period_s / self.config.substeps, self.config.substeps,
+                        self._work, self._tension, self._stretch, self._rf, self._creep))
         if self._creep_on:
-            c = self.truth.cables
-            creep_update(self._creep, self._tension, self.model.k, c.creep_ratio, 1.0 - math.exp(-period / c.creep_time_s))
+            if period_s != self._creep_period:
+                self._creep_gain, self._creep_period = 1.0 - math.exp(-period_s / self.truth.cables.creep_time_s), period_s
+            creep_update(self._creep, self._tension, self.model.k, self.truth.cables.creep_ratio, self._creep_gain)
         self.seq += 1
-        self.t_s += period
+        self.t_s += period_s
+        return bits
+
+    def tick(self, f: np.ndarray, period_s: float | None = None) -> Tick:
+        """Hold forces ``f`` (N, one per cable, assumed validated) for one period and step.
+        ``period_s``: as in :meth:`advance`."""
+        bits = self.advance(f, period_s)
+        flat = bool(bits >> 62 & 1)
         n, nc = self._n, self._nc
         s = self.state.copy()
         alpha, theta = s[:n], s[n : n + nc]
-        slack = (bits >> np.arange(nc)) & 1 == 1 if not flat else np.zeros(nc, bool)
+        slack = self._slack_of[bits & self._all_cables if not flat else 0].copy()
         frames = self.camera.update(self.t_s, alpha) if self.camera else []
         # Backlash: a pulling cable keeps the gear on one flank (the offset is zeroed at homing);
         # a slack cable lets the motor shaft turn through the backlash.
-        seen = theta - self._backlash * slack if self._backlash and bits & ((1 << nc) - 1) else theta
+        seen = theta - self._backlash * slack if self._backlash and bits & self._all_cables else theta
         return Tick(
             seq=self.seq,
             t_s=self.t_s,
-            theta_meas=quantise_encoder(seen, self.counts_per_rev),
+            theta_meas=np.floor(seen / self._rad_per_count) * self._rad_per_count,  # = sensors.quantise_encoder
             frames=frames,
             alpha=alpha,
             alpha_dot=s[n + nc : 2 * n + nc],
@@ -198,7 +216,7 @@ class Twin:
             tension=self._tension.copy(),
             elongation=self._stretch.copy(),
             slack=slack,
-            near_singular=flat or bool(np.abs(alpha).max() >= NEAR_FLAT),
+            near_singular=flat or max(map(abs, alpha.tolist())) >= NEAR_FLAT,
             flat=flat,
         )
 
