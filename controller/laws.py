@@ -22,6 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from controller import kernel
 from controller.distribution import distribute, lower_bounds
 from twin.model import dynamics
 from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3, long_cable, short_cables
@@ -80,60 +81,67 @@ class ComputedTorque:
         self.reset()
 
     def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None) -> None:
+        """Start again at α̂ = ``alpha`` with the encoders at ``theta`` (default: zeros, the
+        straight neck of eq. 20). The state lives in arrays allocated here, which every tick
+        updates in place (:mod:`controller.kernel`)."""
         m = self.model
         self.estimator.reset(alpha, theta)
         self.integral = np.zeros(m.n_joints)
         self.alpha_hat_dot = np.zeros(m.n_joints)
         self.theta_dot = np.zeros(m.n_cables)
         self.f_prev = np.zeros(m.n_cables)
-        self._theta_prev = None if theta is None else np.array(theta, dtype=float)
+        self._has_prev = theta is not None
+        self._theta_prev = np.zeros(m.n_cables) if theta is None else np.array(theta, dtype=float)
+        self._work = kernel.scratch(m.n_joints, m.n_cables)
+        self._gains = np.array([self.kp, self.kv, self.ki, self.dt, self._beta])
+        self._theta = np.zeros(m.n_cables)
+        self._ref = (np.zeros(m.n_joints), np.zeros(m.n_joints), np.zeros(m.n_joints))
+        self._out = (np.zeros(m.n_cables), np.zeros(m.n_cables, dtype=np.bool_), np.zeros(m.n_joints),
+                     np.zeros(m.n_joints))
+        self._alpha_out = np.zeros(m.n_joints)
+
+    def _state(self) -> tuple[np.ndarray, ...]:
+        est = self.estimator
+        return (self._theta_prev, self.theta_dot, est.alpha_hat, self.alpha_hat_dot, est.theta, est.x_c, self.f_prev,
+                self.integral)
 
     def observe(self, theta: np.ndarray, f_applied: np.ndarray) -> np.ndarray:
         """Follow the measured state without commanding (drives off, or the bridge holding): α̂
         and the velocity filters take the encoders θ (rad) and the forces ``f_applied`` (N) the
         drives really apply, and the integral stays at zero, so nothing winds up and the next
         :meth:`step` starts from the measurement (bumpless re-start). Returns α̂ (rad)."""
-        alpha_hat = self._estimate(np.asarray(theta, dtype=float), np.asarray(f_applied, dtype=float))
-        self.integral = np.zeros(self.model.n_joints)
-        return alpha_hat
+        self.f_prev[:] = f_applied
+        self._estimate(theta)
+        self.integral[:] = 0.0
+        return self.estimator.alpha_hat.copy()
 
     def restart_integral(self) -> None:
         """Forget the PID integral (eq. 59): a law taking over again starts without the error
         accumulated before."""
-        self.integral = np.zeros(self.model.n_joints)
+        self.integral[:] = 0.0
 
-    def _estimate(self, theta: np.ndarray, f_prev: np.ndarray) -> np.ndarray:
+    def _estimate(self, theta: np.ndarray) -> None:
         """α̂ from the encoders (eq. 35) with ``f_prev`` the forces over the last period, and the
-        filtered θ̇ and α̂̇."""
-        est = self.estimator
-        if self._theta_prev is not None:
-            self.theta_dot += self._beta * ((theta - self._theta_prev) / self.dt - self.theta_dot)
-        self._theta_prev = theta
-        previous = est.alpha_hat.copy()
-        alpha_hat = est.update(theta, f_prev, self.theta_dot).copy()
-        self.alpha_hat_dot += self._beta * ((alpha_hat - previous) / self.dt - self.alpha_hat_dot)
-        self.f_prev = np.array(f_prev, dtype=float)
-        return alpha_hat
+        filtered θ̇ and α̂̇ (:func:`controller.kernel.estimate`)."""
+        self._theta[:] = theta
+        w = self._work
+        kernel.estimate(self.model, self.dt, self._beta, self._has_prev, self._theta, *self._state()[:7], w[0], w[1],
+                        w[2], w[3], w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
+        self._has_prev = True
 
     def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
-        """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d."""
-        m = self.model
-        alpha_hat = self._estimate(np.asarray(theta, dtype=float), self.f_prev)
-
-        e = alpha_d - alpha_hat
-        self.integral += e * self.dt
-        w = alpha_d_ddot + self.kv * (alpha_d_dot - self.alpha_hat_dot) + self.kp * e + self.ki * self.integral
-
-        terms = dynamics.evaluate(m, alpha_hat)
-        desired = dynamics.evaluate(m, alpha_d, alpha_d_dot)
-        theta_d_dot = desired.Z.T @ alpha_d_dot / m.rho
-        theta_d_ddot = (desired.Z.T @ alpha_d_ddot + desired.Z_dot.T @ alpha_d_dot) / m.rho
-        f_fric = dynamics.f_friction(m, theta_d_dot)  # zero for law 1, whose model has no friction
-        gamma_d = terms.M @ w + terms.g + terms.Z @ f_fric  # eq. 66
-        lower = lower_bounds(m.t_min, m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho)
-        dist = distribute(terms.Z, gamma_d, lower, m.f_max, self.short, self.long)
-        self.f_prev = dist.f
-        return Command(dist.f, alpha_hat, e, dist.saturated, gamma_d)
+        """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d: one
+        call of the compiled :func:`controller.kernel.law_tick`. The arrays of the returned
+        :class:`Command` are the law's own and change at the next tick: copy what you keep."""
+        self._theta[:] = theta
+        a, ad, add = self._ref
+        a[:], ad[:], add[:] = alpha_d, alpha_d_dot, alpha_d_ddot
+        kernel.law_tick(self.model, self._gains, self.short, self.long, self._has_prev, self._theta, a, ad, add,
+                        self._state(), self._work, self._out)
+        self._has_prev = True
+        self._alpha_out[:] = self.estimator.alpha_hat
+        f, saturated, e, gamma = self._out
+        return Command(f, self._alpha_out, e, saturated, gamma)
 
 
 @functools.lru_cache(maxsize=8)

@@ -431,7 +431,7 @@ class CampaignService:
     def hold(self, reason: str) -> Output:
         """The forces that hold the neck still where it is (module docstring), with ``reason``."""
         self.hold_reason = reason
-        alpha = self.hold_alpha()
+        alpha = self.hold_alpha().copy()  # the law's α̂ changes in place at its next tick
         f = hold_forces(self.params, alpha)
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
@@ -520,7 +520,8 @@ class CampaignService:
             return out
         self.last_sane = cmd.alpha_hat.copy()
         self.hold_reason = ""
-        return Output(cmd.f, cmd.alpha_hat, a_d, cmd.e, cmd.saturated, True)
+        # The law's arrays change in place at its next tick: the Output keeps its own (a few µs).
+        return Output(cmd.f.copy(), self.last_sane, np.array(a_d), cmd.e.copy(), cmd.saturated.copy(), True)
 
     def count_timing(self, overrun: bool, deadline_missed: bool) -> None:
         """The shell's measure of the tick just commanded: compute over the period, command late."""
