@@ -30,6 +30,7 @@ from fastapi.staticfiles import StaticFiles
 from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
 from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
+from server import routes_jog  # the operator's console (issue 18)
 from server.campaigns import CampaignManager, StorageError
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
@@ -146,6 +147,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.error("%s %s: storage fault: %s", request.method, request.url.path, storage_reason(exc))
         return JSONResponse(status_code=507, content={"detail": f"storage fault: {storage_reason(exc)}"})
 
+    for router in (routes_jog.router,):  # before /api/campaigns/{id}: the console's own paths
+        document_responses(router.routes)
+        app.include_router(router)
     for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
                    routes_workspace.router):
         document_responses(router.routes)

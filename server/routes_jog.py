@@ -1,0 +1,169 @@
+"""``/api/jog``: move the neck to a pose by hand, through the controller service (issue 18).
+
+A jog is a campaign request of kind ``jog`` (:class:`bridge.bus.CampaignRequest` v3) holding one
+waypoint, the target; the controller reaches it by its gentle approach from α^d (peak 0.5 rad/s,
+1 rad/s², :func:`controller.trajectory.approach`) and holds it. A jog asked for while a jog runs
+waits for it (the newest one only), so a slider dragged in the dashboard chains moves, each from
+rest, with no force step. Nothing is archived: a jog is not an experiment.
+
+Before anything is sent, the move from the controller's α̂ (its latest status) to the target is
+checked as a campaign is (:func:`server.campaign_request.check_trajectory`: joint limits, speed,
+acceleration, forces on the nominal path with the law that holds the neck): a 422 carries the
+checker's message. Refused with 409 while a campaign or a replay runs and while the drives are
+disabled (the bridge's e-stop, its one truth); 503 without a controller service or its status;
+429 when jogs come faster than ``JOG_MIN_INTERVAL_S`` (the sliders send at most a few per second).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+import time
+from typing import Any
+
+from fastapi import APIRouter, Depends, Request, status
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from bridge import bus
+from bridge.session import publisher
+from controller.laws import LawConfig
+from controller.trajectory import Trajectory, TrajectoryError, approach
+from server.auth import require_token
+from server.campaign_request import check_trajectory
+
+router = APIRouter(prefix="/api/jog", tags=["jog"])
+
+JOG_MIN_INTERVAL_S = 0.1  # s between two accepted jogs
+STATUS_MAX_AGE_S = 0.5  # s: an older controller status says nothing about α̂ now
+
+
+class JogRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    alpha_deg: list[float] = Field(min_length=1, max_length=16, description="Target joint angles α1..αN (deg).")
+
+
+class JogDesk:
+    """The console's jog state: the publisher of requests, the last jog and when it was sent."""
+
+    def __init__(self, session: Any) -> None:
+        self.requests = publisher(session, bus.CAMPAIGN_REQUEST)
+        self.lock = threading.Lock()
+        self.last_s = -math.inf
+        self.last_id = ""
+        self.seq = itertools.count(1)  # of the request messages
+        self.ids = itertools.count(1)
+
+    def send(self, campaign_id: str, action: str, trajectory_json: str = "") -> None:
+        self.requests.put(bus.CampaignRequest(seq=next(self.seq), stamp_s=time.time(), campaign_id=campaign_id,
+                                              action=action, kind="jog",  # pyright: ignore[reportArgumentType]
+                                              trajectory_json=trajectory_json))
+
+
+def _desk(request: Request) -> JogDesk:
+    state = request.app.state
+    desk = getattr(state, "jog", None)
+    if desk is None:
+        desk = state.jog = JogDesk(state.session)
+    return desk
+
+
+def law_of(name: str) -> LawConfig:
+    """The law a controller status names (``law2``, ``law3-no-pulleys``); law 2 if unreadable."""
+    digits = name[3:4] if name.startswith("law") else ""
+    law = int(digits) if digits in ("1", "2", "3") else 2
+    return LawConfig(law=law, no_pulleys=name.endswith("-no-pulleys"))
+
+
+def jog_target(alpha_deg: list[float], params: Any, law: LawConfig) -> Trajectory:
+    """The target pose as a one-waypoint trajectory, checked as a campaign's (joint limits, forces
+    to hold it); raises :class:`TrajectoryError` with the checker's message."""
+    target = Trajectory.from_degrees([alpha_deg], [], 0.0, "jog")
+    check_trajectory(target, params, law)
+    return target
+
+
+def jog_move(target: Trajectory, alpha_hat_rad: list[float], params: Any, law: LawConfig) -> Trajectory:
+    """The move from α̂ to ``target`` the controller will make, checked as a campaign's."""
+    move = approach(target, alpha_hat_rad)
+    check_trajectory(move, params, law)
+    return move
+
+
+def _refuse(code: int, detail: Any) -> JSONResponse:
+    return JSONResponse(status_code=code, content={"detail": detail})
+
+
+def _unacceptable(exc: Exception) -> JSONResponse:
+    return _refuse(422, [{"loc": ["body", "alpha_deg"], "msg": str(exc), "type": "value_error"}])
+
+
+def busy_reason(state: Any) -> str:
+    """Why no jog can start now ('' if one can): a campaign or replay, or disabled drives."""
+    campaigns = state.campaigns
+    if campaigns.running_id is not None:
+        return f"campaign {campaigns.running_id} is running"
+    replay = campaigns.replay_status()
+    if replay and replay.get("running"):
+        return f"replay of {replay.get('campaign_id')} is running"
+    estop = campaigns.estop_status()  # the bridge's word when it is fresh
+    if estop["engaged"] or estop.get("drive") == "disabled":
+        return f"the drives are disabled ({estop['reason'] or 'e-stop engaged'}): release the e-stop first"
+    return ""
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
+             responses={409: {"description": "A campaign or replay runs, or the e-stop is engaged"},
+                        422: {"description": "The move is out of the joint limits or the force range (the "
+                                             "checker's message)"},
+                        429: {"description": "Jogs come too fast"},
+                        503: {"description": "No controller service (or no status from it) on the bus"}})
+def jog(body: JogRequest, request: Request) -> Any:
+    """Move the neck to ``alpha_deg`` and hold it there (module docstring). The answer says the
+    move planned from α̂: ``jog_id``, ``from_deg``, ``to_deg``, ``duration_s``."""
+    state = request.app.state
+    busy = busy_reason(state)
+    if busy:
+        return _refuse(status.HTTP_409_CONFLICT, busy)
+    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
+    law = law_of(ctl.law if ctl is not None else "")
+    params = state.default_params
+    try:
+        target = jog_target(body.alpha_deg, params, law)
+    except (TrajectoryError, ValueError) as exc:
+        return _unacceptable(exc)
+    if not state.presence.any_alive("campaign-service"):
+        return _refuse(status.HTTP_503_SERVICE_UNAVAILABLE, "no controller service on the bus (start the stack "
+                       "with `xneck up`)")
+    if ctl is None:
+        return _refuse(status.HTTP_503_SERVICE_UNAVAILABLE, "no recent controller status: α̂ is unknown")
+    try:
+        move = jog_move(target, ctl.alpha_hat_rad, params, law)
+    except (TrajectoryError, ValueError) as exc:
+        return _unacceptable(exc)
+    desk = _desk(request)
+    with desk.lock:
+        now = time.monotonic()
+        if now - desk.last_s < JOG_MIN_INTERVAL_S:
+            return _refuse(status.HTTP_429_TOO_MANY_REQUESTS,
+                           f"jogs come faster than one per {JOG_MIN_INTERVAL_S:g} s")
+        desk.last_s = now
+        desk.last_id = f"jog-{time.strftime('%H%M%S')}-{next(desk.ids)}"
+        desk.send(desk.last_id, "start", target.to_json())
+    return {"jog_id": desk.last_id, "from_deg": [round(math.degrees(a), 3) for a in ctl.alpha_hat_rad],
+            "to_deg": list(body.alpha_deg), "duration_s": move.duration_s}
+
+
+@router.post("/stop", dependencies=[Depends(require_token)])
+def jog_stop(request: Request) -> dict[str, Any]:
+    """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
+    (the controller then holds α̂)."""
+    desk = _desk(request)
+    ctl = request.app.state.live.values.fresh("status", STATUS_MAX_AGE_S)
+    running = ctl.campaign_id if ctl is not None and ctl.campaign_id.startswith("jog-") else ""
+    stopped = [cid for cid in dict.fromkeys((desk.last_id, running)) if cid]
+    with desk.lock:
+        for cid in stopped:
+            desk.send(cid, "stop")
+    return {"stopped": stopped}
