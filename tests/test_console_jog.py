@@ -3,8 +3,6 @@ The jog that moves the neck is in tests/test_console_browser.py (a real stack)."
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import httpx
 import pytest
 from server_harness import AUTH, running_server
