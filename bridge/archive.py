@@ -10,6 +10,14 @@ File layout (readable by Foxglove and by :func:`read_campaign`)
       and ``xneck.recorder`` (counters) when the campaign ends; see :data:`CAMPAIGN_KEYS`;
     - chunked, indexed, lz4-compressed when ``lz4`` is installed (zstandard is not a dependency).
 
+Camera frames
+    ``xneck/camera/frame`` (:class:`bridge.bus.CameraFrame`) is not stored as the bus message: each
+    frame that passes :func:`bridge.bus.check_camera_frame` becomes a ``foxglove.CompressedImage``
+    (JSON, schema :data:`COMPRESSED_IMAGE_SCHEMA`; ``timestamp`` the exposure, ``data`` the JPEG in
+    base64) on :data:`IMAGE_TOPIC`, so Foxglove's Image panel plays the video beside the plots.
+    The markers found on it are not archived (``/xneck/camera/alpha_ip`` has what they measured).
+    At most :data:`FRAME_QUEUE_MAX` frames wait for the writer; more are dropped and counted.
+
 What is recorded
     Only payloads that decode as their key's type of the contract. Unknown keys and rejected
     payloads are not written (a schema-less channel would break plots and replays); they are
@@ -76,6 +84,30 @@ CAMPAIGN_KEYS = (
 #: Conventional outcomes; ``interrupted`` is set by :func:`recover`.
 OUTCOMES = ("finished", "aborted", "failed", "interrupted")
 CHUNK_SIZE = 256 * 1024
+IMAGE_TOPIC = "/xneck/camera/image"
+IMAGE_SCHEMA_NAME = "foxglove.CompressedImage"
+#: Foxglove's JSON Schema of ``foxglove.CompressedImage`` (the required fields of the published
+#: schemas/jsonschema/CompressedImage.json; the installed packages do not ship Foxglove's schemas).
+#: Foxglove picks its image decoder by the schema name; bytes travel as base64 in JSON.
+COMPRESSED_IMAGE_SCHEMA: dict[str, Any] = {
+    "title": IMAGE_SCHEMA_NAME, "description": "A compressed image", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "title": "time", "description": "Timestamp of image", "properties": {
+            "sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+        "frame_id": {"type": "string", "description": "Frame of reference for the image"},
+        "data": {"type": "string", "contentEncoding": "base64", "description": "Compressed image data"},
+        "format": {"type": "string", "description": "Image format"},
+    },
+    "required": ["timestamp", "frame_id", "data", "format"],
+}
+FRAME_QUEUE_MAX = 8  # frames (≤ 1.4 MB each on the wire) waiting for the writer: bounds the recorder's memory
+
+
+def compressed_image(stamp_s: float, frame_id: str, data: bytes, image_format: str = "jpeg") -> bytes:
+    """JSON of one ``foxglove.CompressedImage``; ``stamp_s`` (≥ 0, else 0) becomes its ``timestamp``."""
+    ns = max(0, round(stamp_s * 1e9))
+    return msgspec.json.encode({"timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000},
+                                "frame_id": frame_id, "data": data, "format": image_format})
 
 
 class ArchiveError(Exception):
@@ -166,6 +198,12 @@ class _ArchiveWriter:
 
     def channel(self, key: str, msg_type: type[bus.BusMessage]) -> int:
         channel_id = self._channels.get(key)
+        if channel_id is None and msg_type is bus.CameraFrame:
+            schema_id = self.writer.register_schema(name=IMAGE_SCHEMA_NAME, encoding="jsonschema",
+                                                    data=msgspec.json.encode(COMPRESSED_IMAGE_SCHEMA))
+            channel_id = self._channels[key] = self.writer.register_channel(
+                topic=IMAGE_TOPIC, message_encoding="json", schema_id=schema_id,
+                metadata={"key": key, "version": str(bus.schema_version(msg_type))})
         if channel_id is None:
             schema_id = self.writer.register_schema(
                 name=bus.schema_name(msg_type), encoding="jsonschema", data=bus.json_schema_bytes(msg_type)
@@ -178,6 +216,8 @@ class _ArchiveWriter:
         return channel_id
 
     def add(self, key: str, msg: bus.BusMessage, data: bytes, log_time_ns: int) -> None:
+        if isinstance(msg, bus.CameraFrame):  # Foxglove's image message, not the bus's
+            data = compressed_image(msg.capture_stamp_s, msg.frame_id, msg.data, msg.format)
         stamp_ns = int(msg.stamp_s * 1e9)
         publish_ns = stamp_ns if 0 <= stamp_ns < 2**63 else log_time_ns
         self.writer.add_message(
@@ -245,6 +285,7 @@ class CampaignRecorder:
         self._flush_period_s = flush_period_s
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(maxsize=queue_size)
         self._received = self._dropped = 0
+        self._frames_queued = 0
         self._rejected: dict[str, int] = {}
         self._last_reason = ""
         self._lock = threading.Lock()
@@ -265,12 +306,19 @@ class CampaignRecorder:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         now_ns = time.time_ns()
-        item = (str(sample.key_expr), sample.payload.to_bytes(), now_ns)
+        key = str(sample.key_expr)
+        frame = key == bus.CAMERA_FRAME
+        with self._lock:
+            if frame and self._frames_queued >= FRAME_QUEUE_MAX:  # a flood of large frames must not fill memory
+                self._dropped += 1
+                return
+            self._frames_queued += frame
         try:
-            self._queue.put_nowait(item)
+            self._queue.put_nowait((key, sample.payload.to_bytes(), now_ns))
         except queue.Full:
             with self._lock:
                 self._dropped += 1
+                self._frames_queued -= frame
             return
         with self._lock:
             self._received += 1
@@ -292,12 +340,17 @@ class CampaignRecorder:
                     return
                 if item:
                     key, payload, log_time_ns = item
+                    if key == bus.CAMERA_FRAME:
+                        with self._lock:
+                            self._frames_queued -= 1
                     msg_type = bus.message_type(key)
                     if msg_type is None:
                         self._reject(key, "no message type is registered for this key")
                     else:
                         try:
                             msg = bus.decode(msg_type, payload)
+                            if isinstance(msg, bus.CameraFrame):
+                                bus.check_camera_frame(msg)  # Foxglove would show garbage
                         except bus.BusDecodeError as exc:
                             self._reject(key, exc.reason)
                         else:
@@ -681,8 +734,9 @@ def _fsync_dir(directory: Path) -> None:
 
 
 __all__ = [
-    "CAMPAIGN", "CAMPAIGN_KEYS", "CAMPAIGN_START", "OUTCOMES", "RECORDER", "RECOVERY",
-    "ArchiveError", "Campaign", "CampaignRecorder", "RecorderStats", "RecoveryReport", "atomic_write",
+    "CAMPAIGN", "CAMPAIGN_KEYS", "CAMPAIGN_START", "COMPRESSED_IMAGE_SCHEMA", "IMAGE_SCHEMA_NAME", "IMAGE_TOPIC",
+    "OUTCOMES", "RECORDER", "RECOVERY",
+    "ArchiveError", "Campaign", "CampaignRecorder", "RecorderStats", "RecoveryReport", "atomic_write", "compressed_image",
     "is_complete", "iso_time", "read_campaign", "recover", "software_version", "storage_reason", "write_campaign",
     "writer_alive",
 ]

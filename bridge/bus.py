@@ -46,6 +46,7 @@ PREFIX = "xneck"
 MOTOR_STATE = f"{PREFIX}/motor/state"
 MOTOR_COMMAND = f"{PREFIX}/motor/command"
 CAMERA_ALPHA = f"{PREFIX}/camera/alpha_ip"
+CAMERA_FRAME = f"{PREFIX}/camera/frame"
 TWIN_TRUTH = f"{PREFIX}/twin/truth"
 CONTROLLER_STATUS = f"{PREFIX}/controller/status"
 CAMPAIGN_EVENTS = f"{PREFIX}/campaign/events"
@@ -145,6 +146,39 @@ class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=T
     confidence: list[float] = []
     source: str = ""
     dropped: int = 0
+
+
+#: Bounds of a camera frame, checked when it is decoded: a frame is large, and untrusted input.
+FRAME_DATA_MAX_BYTES = 1024 * 1024  # a 1280×720 JPEG at quality 75 is 100-300 kB, noise included
+FRAME_MAX_SIDE_PX = 8192
+FRAME_MAX_MARKERS = 64
+
+
+class CameraFrame(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """A camera frame (JPEG) and the markers the detector found on it, decimated to a few Hz
+    (``xneck camera --frame-rate-hz``), for the console's camera panel and the campaign archive
+    (which stores it as ``foxglove.CompressedImage`` on ``/xneck/camera/image``).
+
+    ``stamp_s`` is the publication time and ``capture_stamp_s`` the middle of the exposure, on
+    the bus clock as in :class:`CameraAlpha` (whose message of the same exposure has the same
+    ``capture_stamp_s``). ``frame_id`` names the camera's frame of reference, ``format`` the
+    encoding of ``data`` (base64 in JSON), ``width``/``height`` its size in pixels.
+    ``marker_bar[k]`` is the bar of the k-th marker centroid (0 the base bar … n the head bar,
+    −1 a base-plate reference marker), at pixel (``markers_px[2k]``, ``markers_px[2k+1]``).
+    Sizes are bounded when decoded; :func:`check_camera_frame` is the receiver's content check.
+    """
+
+    v: int = 1
+    capture_stamp_s: float
+    frame_id: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")] = "camera"
+    format: Literal["jpeg"] = "jpeg"
+    width: Annotated[int, msgspec.Meta(ge=1, le=FRAME_MAX_SIDE_PX)]
+    height: Annotated[int, msgspec.Meta(ge=1, le=FRAME_MAX_SIDE_PX)]
+    data: Annotated[bytes, msgspec.Meta(min_length=4, max_length=FRAME_DATA_MAX_BYTES)]
+    marker_bar: Annotated[list[Annotated[int, msgspec.Meta(ge=-1, le=FRAME_MAX_MARKERS)]],
+                          msgspec.Meta(max_length=FRAME_MAX_MARKERS)] = []
+    markers_px: Annotated[list[float], msgspec.Meta(max_length=2 * FRAME_MAX_MARKERS)] = []
+    source: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
 class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -276,6 +310,7 @@ REGISTRY: dict[str, type[BusMessage]] = {
     MOTOR_STATE: MotorState,
     MOTOR_COMMAND: ForceCommand,
     CAMERA_ALPHA: CameraAlpha,
+    CAMERA_FRAME: CameraFrame,
     TWIN_TRUTH: Truth,
     CONTROLLER_STATUS: ControllerStatus,
     CAMPAIGN_EVENTS: CampaignEvent,
@@ -483,6 +518,21 @@ def check_camera_alpha(msg: CameraAlpha, n_joints: int) -> None:
         raise BusDecodeError(f"CameraAlpha: dropped = {msg.dropped} < 0")
 
 
+def check_camera_frame(msg: CameraFrame) -> None:
+    """Content check of a decoded frame (receiver side): ``data`` starts as a JPEG does (SOI
+    marker), two coordinates per marker, every centroid inside the image. It does not decode the
+    image (a receiver that shows it lets the browser or OpenCV refuse a damaged one).
+    Raises :class:`BusDecodeError`."""
+    if msg.data[:3] != b"\xff\xd8\xff":
+        raise BusDecodeError("CameraFrame: data is not a JPEG image (no SOI marker)")
+    if len(msg.markers_px) != 2 * len(msg.marker_bar):
+        raise BusDecodeError(f"CameraFrame: {len(msg.markers_px)} coordinates for {len(msg.marker_bar)} markers")
+    for k in range(len(msg.marker_bar)):
+        x, y = msg.markers_px[2 * k], msg.markers_px[2 * k + 1]
+        if not (0.0 <= x <= msg.width and 0.0 <= y <= msg.height):
+            raise BusDecodeError(f"CameraFrame: marker {k} at ({x}, {y}) px outside the {msg.width}×{msg.height} image")
+
+
 # --- schemas ----------------------------------------------------------------------------------
 
 
@@ -521,6 +571,7 @@ __all__ = [
     "ALIVE_ALL",
     "ALL",
     "CAMERA_ALPHA",
+    "CAMERA_FRAME",
     "CAMPAIGN_EVENTS",
     "CAMPAIGN_REQUEST",
     "CONTROLLER_STATUS",
@@ -537,6 +588,7 @@ __all__ = [
     "BusEncodeError",
     "BusMessage",
     "CameraAlpha",
+    "CameraFrame",
     "CampaignEvent",
     "CampaignRequest",
     "ControllerStatus",
@@ -547,6 +599,7 @@ __all__ = [
     "Truth",
     "as_plain",
     "check_camera_alpha",
+    "check_camera_frame",
     "check_force_command",
     "decode",
     "encode",

@@ -29,7 +29,8 @@ from fastapi.staticfiles import StaticFiles
 
 from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
-from server import routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
+from server import routes_camera, routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
+from server.camera_feed import CameraFeed
 from server import routes_jog  # the operator's console (issue 18)
 from server.campaigns import CampaignManager, StorageError
 from server.datadir import DataDirError, DataDirLock
@@ -81,6 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             state.presence = Presence(session)
             state.live = LiveBus(session)
+            state.camera = CameraFeed(session)
             state.broadcaster = Broadcaster(state.live.values, settings.live_rate_hz)
             tasks.append(asyncio.create_task(state.broadcaster.run(), name="live-broadcaster"))
             state.default_params = state.params.load(state.params.active())
@@ -108,7 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await asyncio.to_thread(state.campaigns.close)
             if state.scene is not None:
                 state.scene.close()
-            for name in ("live", "presence"):
+            for name in ("live", "camera", "presence"):
                 obj = getattr(state, name, None)
                 if obj is not None:
                     obj.close()
@@ -151,7 +153,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         document_responses(router.routes)
         app.include_router(router)
     for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
-                   routes_workspace.router):
+                   routes_workspace.router, routes_camera.router):
         document_responses(router.routes)
         app.include_router(router)
     if WEB_DIR.is_dir():

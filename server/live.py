@@ -126,21 +126,6 @@ class LatestValues:
         return self.get(series)
 
 
-CAMERA_MAX_AGE_S = 1.0  # s: a camera silent for longer than this is reported stale
-
-
-def camera_health(values: LatestValues, max_age_s: float = CAMERA_MAX_AGE_S) -> dict[str, Any] | None:
-    """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
-    whether it arrived within ``max_age_s`` (``fresh``), the joints it reports missing (1-based),
-    the per-joint confidence and the frames the source dropped. None before any camera message."""
-    msg = values.get("camera")
-    if msg is None:
-        return None
-    return {"source": msg.source, "stamp_s": msg.stamp_s, "fresh": values.fresh("camera", max_age_s) is not None,
-            "missing_joints": [i + 1 for i, a in enumerate(msg.alpha_ip_rad) if a is None],
-            "confidence": list(msg.confidence), "dropped": msg.dropped}
-
-
 def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> dict[str, Any] | None:
     """The e-stop as the bridge reports it in its latest ``MotorState`` (``{"engaged", "reason",
     "drive", "source": "bridge"}``), or None when no bridge state arrived within ``max_age_s``.

@@ -12,7 +12,7 @@ from bridge.archive import software_version
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_token
-from server.live import camera_health
+from server.camera_feed import camera_health
 
 router = APIRouter(tags=["system"])
 
@@ -27,7 +27,7 @@ def health(request: Request) -> dict[str, Any]:
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
-        "camera": camera_health(s.live.values),  # detection health (issue 15); None without a camera
+        "camera": camera_health(s.live.values, s.camera),  # detection health (issue 15); None without a camera
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }

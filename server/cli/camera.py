@@ -1,7 +1,8 @@
 """`xneck camera ...`: α_IP from a camera (issue 15, docs/camera.md).
 
 - ``xneck camera --source usb:N|/dev/videoN|file:VIDEO|twin``: the bus process publishing
-  ``xneck/camera/alpha_ip`` from one detector (``twin.camera.detect``); composed here.
+  ``xneck/camera/alpha_ip`` from one detector (``twin.camera.detect``), and a few JPEG frames
+  per second on ``xneck/camera/frame`` (``--frame-rate-hz``); composed here.
 - ``xneck camera render --alpha A1 A2 A3 --out F.png``: the twin's camera view at α (degrees).
 - ``xneck camera detect F.png [--calibration FILE] --json``: α measured on one frame.
 - ``xneck camera markers --out sheet.png`` / ``board --out board.png``: printable marker sheet
@@ -82,6 +83,22 @@ def _angles(first: list[str], extra: list[str]) -> list[float]:
     return values
 
 
+OCCLUDE_OPTION = typer.Option(None, "--occlude", help="Cover a marker: BAR:SIDE, e.g. 3:0 (bar 0 = base; side 0 = left).")
+
+
+def _occluded(occlude: list[str] | None, n_joints: int) -> tuple[tuple[int, int], ...]:
+    covered = []
+    for item in occlude or []:
+        try:
+            bar, side = (int(v) for v in item.split(":"))
+        except ValueError:
+            raise _fail(f"--occlude {item!r}: expected BAR:SIDE, e.g. 3:0") from None
+        if not (0 <= bar <= n_joints and side in (0, 1)):
+            raise _fail(f"--occlude {item!r}: bar in 0..{n_joints}, side 0 or 1")
+        covered.append((bar, side))
+    return tuple(covered)
+
+
 @camera_app.callback()
 def camera(
     ctx: typer.Context,
@@ -92,6 +109,9 @@ def camera(
     seed: int = typer.Option(0, "--seed", help="twin: seed of the sensor noise."),
     noise: float = typer.Option(2.0, "--noise", help="twin: sensor noise σ, grey levels."),
     blur: float = typer.Option(0.8, "--blur", help="twin: defocus blur σ, pixels."),
+    occlude: list[str] | None = OCCLUDE_OPTION,
+    frame_rate_hz: float = typer.Option(5.0, "--frame-rate-hz", min=0.0, max=30.0, help="JPEG frames per second (of the source's clock) on xneck/camera/frame, for the console and campaign archives (0: none)."),
+    jpeg_quality: int = typer.Option(75, "--jpeg-quality", min=10, max=95, help="JPEG quality of those frames."),
     realtime: bool = typer.Option(True, "--realtime/--fast", help="file: replay at the video's frame rate, or as fast as detection runs."),
     t0: float = typer.Option(0.0, "--t0", help="file: time stamp of the first frame (s)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after this many frames."),
@@ -137,7 +157,8 @@ def camera(
             from twin.model.numeric import build
 
             shutter = TwinShutter(rate, lat)
-            renderer = Renderer(build(params), cal, options=RenderOptions(noise_dn=noise, blur_px=blur), seed=seed)
+            options = RenderOptions(noise_dn=noise, blur_px=blur, occlude=_occluded(occlude, params.n_joints))
+            renderer = Renderer(build(params), cal, options=options, seed=seed)
         elif kind == "file":
             frames = FileSource(where, t0)
         else:
@@ -147,7 +168,7 @@ def camera(
     stop = stop_on_signals()
     log = logging.getLogger("xneck.camera")
     with open_session(endpoints(listen), endpoints(connect)) as session:
-        node = CameraNode(session, detector, instance)
+        node = CameraNode(session, detector, instance, frame_rate_hz=frame_rate_hz, jpeg_quality=jpeg_quality)
         log.info("camera %s up: --source %s", node.instance, source)
         try:
             if renderer is not None and shutter is not None:
@@ -165,7 +186,8 @@ def camera(
             node.close()
             if frames is not None:
                 frames.close()
-        log.info("camera %s: %d frames, %d missing joints, %d dropped", node.instance, count, node.missing_joints, node.dropped)
+        log.info("camera %s: %d frames, %d missing joints, %d dropped, %d JPEG frames", node.instance, count,
+                 node.missing_joints, node.dropped, node.images)
 
 
 @camera_app.command("render", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -177,7 +199,7 @@ def render(
     seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
     noise: float = typer.Option(2.0, "--noise", help="Sensor noise σ, grey levels."),
     blur: float = typer.Option(0.8, "--blur", help="Defocus blur σ, pixels."),
-    occlude: list[str] | None = typer.Option(None, "--occlude", help="Cover a marker: BAR:SIDE, e.g. 3:0 (bar 0 = base; side 0 = left)."),
+    occlude: list[str] | None = OCCLUDE_OPTION,
     calibration: Path | None = CALIBRATION_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
@@ -197,17 +219,8 @@ def render(
         raise _fail("every angle must be finite and within ±90°")
     if any(abs(a) > limit for a in alpha):
         typer.secho(f"warning: an angle is beyond the joint limit ±{limit:g}°", err=True, fg="yellow")
-    covered = []
-    for item in occlude or []:
-        try:
-            bar, side = (int(v) for v in item.split(":"))
-        except ValueError:
-            raise _fail(f"--occlude {item!r}: expected BAR:SIDE, e.g. 3:0") from None
-        if not (0 <= bar <= params.n_joints and side in (0, 1)):
-            raise _fail(f"--occlude {item!r}: bar in 0..{params.n_joints}, side 0 or 1")
-        covered.append((bar, side))
     try:
-        options = RenderOptions(noise_dn=noise, blur_px=blur, occlude=tuple(covered))
+        options = RenderOptions(noise_dn=noise, blur_px=blur, occlude=_occluded(occlude, params.n_joints))
     except ValueError as exc:
         raise _fail(str(exc)) from None
     renderer = Renderer(build(params), _calibration(calibration), options=options, seed=seed)

@@ -23,7 +23,6 @@ was computed offline from the video, then put beside the encoder data).
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import json
 import math
@@ -36,23 +35,11 @@ from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
+from bridge.archive import COMPRESSED_IMAGE_SCHEMA, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
 from twin.camera.detect import Detector
 from twin.camera.source import FileSource
 
 ALIGNMENT_METADATA = "xneck.camera.alignment"
-IMAGE_TOPIC = "/xneck/camera/image"
-# Foxglove's JSON Schema of foxglove.CompressedImage (bytes travel as base64 in JSON), so Foxglove's
-# Image panel plays the video beside the plots.
-COMPRESSED_IMAGE_SCHEMA = {
-    "title": "foxglove.CompressedImage", "description": "A compressed image", "type": "object",
-    "properties": {
-        "timestamp": {"type": "object", "title": "time", "properties": {
-            "sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
-        "frame_id": {"type": "string"},
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "format": {"type": "string"},
-    },
-}
 MOTOR_TOPIC = bus.mcap_topic(bus.MOTOR_STATE)
 CAMERA_TOPIC = bus.mcap_topic(bus.CAMERA_ALPHA)
 
@@ -258,10 +245,7 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
     for k, data in sorted((video.jpeg or {}).items()):
         t = float(tc[k])
         if math.isfinite(t) and t >= 0:
-            sec, nsec = int(t), int(round((t - int(t)) * 1e9)) % 1_000_000_000
-            payload = {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": "camera",
-                       "data": base64.b64encode(data).decode("ascii"), "format": "jpeg"}
-            images.append((int(log_of[k]), int(t * 1e9), json.dumps(payload).encode()))
+            images.append((int(log_of[k]), int(t * 1e9), compressed_image(t, "camera", data)))
     provenance = {
         "video": str(video_path), "video_sha256": _sha256(Path(video_path)), "video_fps": f"{video.fps:g}",
         "campaign": campaign.name, "reference": reference,
@@ -269,7 +253,8 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         "rms_deg": f"{alignment.rms_deg:.4f}", "frames": str(len(video.t_s)), "frames_used": str(alignment.frames_used),
         "frames_written": str(len(new)), "missing_joints": str(int(np.isnan(video.alpha_rad).sum())),
         "runner_up_offset_s": f"{alignment.runner_up_offset_s:.6f}", "runner_up_rms_deg": f"{alignment.runner_up_rms_deg:.4f}",
-        "replaced_camera_messages": str(replaced), "images": str(len(images)), "software": software,
+        "replaced_camera_messages": str(replaced), "images": str(len(images)),
+        "replaced_images": str(sum(1 for _s, c, _m in records if c.topic == IMAGE_TOPIC) if images else 0), "software": software,
         "method": "least-squares offset/drift of detected α against the reference (twin/camera/align.py)",
     }
     with open(out, "xb") as f:
@@ -284,7 +269,7 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
                                                            "source": f"file:{video.name}"})
         image_channel = 0
         if images:
-            image_schema = writer.register_schema(name="foxglove.CompressedImage", encoding="jsonschema",
+            image_schema = writer.register_schema(name=IMAGE_SCHEMA_NAME, encoding="jsonschema",
                                                   data=json.dumps(COMPRESSED_IMAGE_SCHEMA).encode())
             image_channel = writer.register_channel(topic=IMAGE_TOPIC, message_encoding="json", schema_id=image_schema,
                                                     metadata={"source": f"file:{video.name}"})
@@ -302,7 +287,8 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
                 nxt = next(pending, None)
 
         for schema, channel, message in records:
-            if channel.topic == CAMERA_TOPIC:
+            # The video's α_IP replaces the recorded one; its images replace the live camera's frames.
+            if channel.topic == CAMERA_TOPIC or (images and channel.topic == IMAGE_TOPIC):
                 continue
             flush_until(message.log_time)
             if channel.id not in channel_ids:

@@ -6,6 +6,8 @@ USB camera or a video file; :meth:`CameraNode.run_twin` renders the twin's truth
 :class:`twin.camera.source.TwinShutter`, so the twin's α_IP comes from real image processing with a
 realistic latency, stamped on the bus clock (the truth's simulated time). Health counters go to
 ``xneck/health/camera/<instance>`` every second; the liveliness token says the camera is up.
+With ``frame_rate_hz`` > 0, a few frames per second also go out as JPEG on ``xneck/camera/frame``
+(:mod:`twin.camera.frames`) for the console's camera panel and the campaign archive.
 The Zenoh callback only decodes and schedules; rendering and detection run on the caller's thread.
 """
 
@@ -26,6 +28,7 @@ import zenoh
 from bridge import bus
 from bridge.session import liveliness_token, publisher
 from twin.camera.detect import Detection, Detector
+from twin.camera.frames import FrameDecimator, frame_message
 from twin.camera.render import Renderer
 from twin.camera.source import Exposure, Frame, TwinShutter
 
@@ -46,12 +49,17 @@ class CameraNode:
 
     HEALTH_PERIOD_S = 1.0
 
-    def __init__(self, session: zenoh.Session, detector: Detector, instance: str = "", queue_frames: int = 4) -> None:
+    def __init__(self, session: zenoh.Session, detector: Detector, instance: str = "", queue_frames: int = 4,
+                 frame_rate_hz: float = 0.0, jpeg_quality: int = 75) -> None:
         self.session = session
         self.detector = detector
         self.instance = instance or uuid.uuid4().hex[:8]
         self._pub = publisher(session, bus.CAMERA_ALPHA)
         self._health = publisher(session, bus.health_key("camera", self.instance))
+        self._frames = publisher(session, bus.CAMERA_FRAME) if frame_rate_hz > 0 else None
+        self._decimator = FrameDecimator(frame_rate_hz)
+        self._jpeg_quality = jpeg_quality
+        self.images = 0  # JPEG frames published
         self._token = liveliness_token(session, "camera", self.instance)
         self._seq = 0
         self._started = time.monotonic()
@@ -69,7 +77,8 @@ class CameraNode:
 
     # --- publishing ---------------------------------------------------------------------------
 
-    def publish(self, found: Detection, capture_s: float, stamp_s: float, source: str) -> bus.CameraAlpha:
+    def publish(self, found: Detection, capture_s: float, stamp_s: float, source: str,
+                image: np.ndarray | None = None) -> bus.CameraAlpha:
         self._seq += 1
         self.frames += 1
         self.missing_joints += sum(a is None for a in found.alpha_rad)
@@ -77,6 +86,12 @@ class CameraNode:
                               alpha_ip_rad=[None if a is None else float(a) for a in found.alpha_rad],
                               confidence=[float(c) for c in found.confidence], source=source, dropped=self.dropped)
         self._pub.put(msg)
+        if image is not None and self._frames is not None and self._decimator.due(capture_s):
+            try:
+                self._frames.put(frame_message(self.images + 1, image, found, capture_s, stamp_s, source, self._jpeg_quality))
+                self.images += 1
+            except ValueError as exc:  # too large a JPEG: α_IP goes on, the console shows no picture
+                log.warning("camera %s: frame not published: %s", self.instance, exc)
         self._maybe_health()
         return msg
 
@@ -88,7 +103,7 @@ class CameraNode:
         self._health.put(bus.Health(
             seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
             received={bus.TWIN_TRUTH: self.truth_received, "frames": self.frames, "dropped": self.dropped,
-                      "missing_joints": self.missing_joints},
+                      "missing_joints": self.missing_joints, "images": self.images},
             rejected={bus.TWIN_TRUTH: self.truth_rejected}, last_reject_reason=self._last_reject))
 
     # --- sources -------------------------------------------------------------------------------
@@ -113,7 +128,7 @@ class CameraNode:
             except ValueError as exc:  # a frame of another size: the calibration does not fit
                 raise RuntimeError(f"{source.name}: {exc}") from None
             stamp = frame.capture_s if source.name.startswith("file:") else time.time()
-            self.publish(found, frame.capture_s, stamp, source.name)
+            self.publish(found, frame.capture_s, stamp, source.name, frame.image)
         self._maybe_health(force=True)
         return self.frames
 
@@ -162,9 +177,10 @@ class CameraNode:
                         break
                     self._maybe_health()
                     continue
-                found = self.detector.detect(renderer.render(exposure.alpha_rad))
+                image = renderer.render(exposure.alpha_rad)
+                found = self.detector.detect(image)
                 self.dropped = dropped
-                self.publish(found, exposure.capture_s, exposure.ready_s, "twin-render")
+                self.publish(found, exposure.capture_s, exposure.ready_s, "twin-render", image)
         finally:
             sub.undeclare()
         with self._cond:
@@ -173,6 +189,9 @@ class CameraNode:
         return self.frames
 
     def close(self) -> None:
-        for closer in (self._pub.close, self._health.close, self._token.undeclare):
+        closers = [self._pub.close, self._health.close, self._token.undeclare]
+        if self._frames is not None:
+            closers.append(self._frames.close)
+        for closer in closers:
             with contextlib.suppress(Exception):  # the session may be closed already
                 closer()

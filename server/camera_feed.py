@@ -1,0 +1,121 @@
+"""The camera as the console sees it: the latest JPEG frame, the α_IP message rate, detection health.
+
+Zenoh callbacks only store (the newest frame's raw payload, arrival times of α_IP messages);
+a frame is decoded and checked (:func:`bridge.bus.check_camera_frame`) when the console reads
+it, at most once, so a flood costs the bus callbacks nothing but a copy. A payload larger than
+the contract's bound is refused in the callback without being kept. Refused payloads are counted
+and never shown.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import math
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from bridge import bus
+from server.live import LatestValues
+
+#: A frame payload on the wire: base64 of the largest JPEG plus the JSON around it.
+MAX_FRAME_PAYLOAD = bus.FRAME_DATA_MAX_BYTES * 4 // 3 + 64 * 1024
+RATE_WINDOW_S = 2.0  # s over which the α_IP message rate is measured
+CAMERA_MAX_AGE_S = 1.0  # s: a camera silent for longer than this is reported stale
+
+
+class CameraFeed:
+    """Latest camera frame and α_IP rate; subscribes on ``session`` (None: fed by :meth:`put_frame`)."""
+
+    def __init__(self, session: zenoh.Session | None = None) -> None:
+        self._lock = threading.Lock()
+        self._raw: bytes | None = None
+        self._received_s = -math.inf
+        self._decoded: tuple[bytes, bus.CameraFrame | None] | None = None
+        self._alpha_times: collections.deque[float] = collections.deque(maxlen=512)
+        self.frames_received = 0
+        self.frames_rejected = 0
+        self.last_reject_reason = ""
+        self._subs = [] if session is None else [
+            session.declare_subscriber(bus.CAMERA_FRAME, lambda s: self.put_frame(s.payload.to_bytes())),
+            session.declare_subscriber(bus.CAMERA_ALPHA, lambda s: self.note_alpha(s.payload.to_bytes())),
+        ]
+
+    def put_frame(self, payload: bytes) -> None:
+        with self._lock:
+            if len(payload) > MAX_FRAME_PAYLOAD:
+                self.frames_rejected += 1
+                self.last_reject_reason = f"CameraFrame: {len(payload)}-byte payload exceeds {MAX_FRAME_PAYLOAD} B"
+                return
+            self._raw, self._received_s = payload, time.monotonic()
+            self.frames_received += 1
+
+    def note_alpha(self, payload: bytes) -> None:
+        """Counts a valid α_IP message (a refused one is the live store's to count)."""
+        try:
+            bus.decode(bus.CameraAlpha, payload)
+        except bus.BusDecodeError:
+            return
+        with self._lock:
+            self._alpha_times.append(time.monotonic())
+
+    def frame(self) -> tuple[bus.CameraFrame, float] | None:
+        """The latest valid frame and its age (s since it arrived), or None."""
+        with self._lock:
+            raw, received = self._raw, self._received_s
+            if raw is None:
+                return None
+            if self._decoded is None or self._decoded[0] is not raw:
+                try:
+                    msg: bus.CameraFrame | None = bus.decode(bus.CameraFrame, raw)
+                    bus.check_camera_frame(msg)
+                except bus.BusDecodeError as exc:
+                    msg = None
+                    self.frames_rejected += 1
+                    self.last_reject_reason = exc.reason
+                self._decoded = (raw, msg)
+            msg = self._decoded[1]
+        return None if msg is None else (msg, time.monotonic() - received)
+
+    def alpha_rate_hz(self, window_s: float = RATE_WINDOW_S) -> float:
+        """Valid α_IP messages per second over the last ``window_s``."""
+        now = time.monotonic()
+        with self._lock:
+            n = sum(1 for t in self._alpha_times if now - t <= window_s)
+        return n / window_s
+
+    def alpha_age_s(self) -> float | None:
+        """s since the latest valid α_IP message, None before any."""
+        with self._lock:
+            return time.monotonic() - self._alpha_times[-1] if self._alpha_times else None
+
+    def close(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+
+def camera_health(values: LatestValues, feed: CameraFeed | None = None,
+                  max_age_s: float = CAMERA_MAX_AGE_S) -> dict[str, Any] | None:
+    """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
+    whether it arrived within ``max_age_s`` (``fresh``), the joints it reports missing (1-based),
+    the per-joint confidence and the frames the source dropped; with ``feed``, the α_IP rate
+    (``rate_hz``), the age of the latest α_IP message and of the latest JPEG frame (s, null
+    without one) and the frames refused. None before any camera message."""
+    msg = values.get("camera")
+    if msg is None:
+        return None
+    out: dict[str, Any] = {
+        "source": msg.source, "stamp_s": msg.stamp_s, "fresh": values.fresh("camera", max_age_s) is not None,
+        "missing_joints": [i + 1 for i, a in enumerate(msg.alpha_ip_rad) if a is None],
+        "confidence": list(msg.confidence), "dropped": msg.dropped,
+    }
+    if feed is not None:
+        latest = feed.frame()
+        out.update({"rate_hz": feed.alpha_rate_hz(), "age_s": feed.alpha_age_s(),
+                    "frame_age_s": None if latest is None else latest[1],
+                    "frames_received": feed.frames_received, "frames_rejected": feed.frames_rejected})
+    return out

@@ -1,0 +1,204 @@
+"""The camera in campaign archives and in the console (issue 15): JPEG frames on the bus
+(``xneck/camera/frame``), recorded as ``foxglove.CompressedImage``, served to the camera panel,
+detection health in ``/api/system/health``, and the panel in Chromium.
+
+Real processes on a loopback Zenoh bus, a real uvicorn console, real MCAP files read back with
+the mcap reader, a real browser; the frames are rendered by the twin's camera.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import msgspec
+import numpy as np
+import pytest
+from busutil import bus_pair, wait_until
+
+cv2 = pytest.importorskip("cv2")
+
+from bridge import bus  # noqa: E402
+from bridge.archive import IMAGE_TOPIC, CampaignRecorder, read_campaign  # noqa: E402
+from bridge.session import open_session, publisher  # noqa: E402
+from twin.camera.detect import Detector  # noqa: E402
+from twin.camera.frames import FrameDecimator, frame_message  # noqa: E402
+from twin.camera.render import Renderer, RenderOptions  # noqa: E402
+
+ARTIFACTS = Path(__file__).resolve().parent.parent / "artifacts"
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--disable-sync", "--no-first-run", "--disable-quic"]
+
+
+def xneck(*args: str) -> list[str]:
+    return [sys.executable, "-m", "server.cli", *args]
+
+
+@pytest.fixture(scope="module")
+def rendered(model, params):
+    """One rendered frame at α = (10, -20, 30)° and what the detector finds on it."""
+    image = Renderer(model, options=RenderOptions(noise_dn=2.0, blur_px=0.8), seed=3).render(np.radians([10.0, -20.0, 30.0]))
+    found = Detector(params.n_joints, params.geometry.L, params.geometry.b).detect(image)
+    return image, found
+
+
+# --- the contract --------------------------------------------------------------------------------
+
+
+def test_camera_frame_round_trips_and_hostile_frames_are_refused(rendered) -> None:
+    image, found = rendered
+    msg = frame_message(7, image, found, capture_s=2.0, stamp_s=2.05, source="twin-render")
+    assert (msg.width, msg.height, msg.format) == (1280, 720, "jpeg")
+    assert len(msg.marker_bar) == 2 * 4 + 4 and msg.marker_bar.count(-1) == 4  # 4 bars + the base plate's 4
+    assert bus.decode(bus.CAMERA_FRAME, bus.encode(msg)) == msg
+    bus.check_camera_frame(msg)
+    assert cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR).shape == (720, 1280, 3)
+
+    def payload(**changes) -> bytes:
+        doc = json.loads(bus.encode(msg))
+        doc.update(changes)
+        return json.dumps(doc).encode()
+
+    too_big = base64.b64encode(b"\xff\xd8\xff" + bytes(bus.FRAME_DATA_MAX_BYTES)).decode()
+    for bad in (payload(data=too_big), payload(width=0), payload(format="png"), payload(marker_bar=[5] * 65),
+                payload(frame_id="../etc")):
+        with pytest.raises(bus.BusDecodeError):
+            bus.decode(bus.CAMERA_FRAME, bad)
+    for bad in (payload(data=base64.b64encode(b"GIF89a....").decode()), payload(markers_px=[1.0]),
+                payload(marker_bar=[0], markers_px=[1281.0, 5.0])):
+        with pytest.raises(bus.BusDecodeError):
+            bus.check_camera_frame(bus.decode(bus.CAMERA_FRAME, bad))
+
+
+def test_frames_are_decimated_on_the_capture_clock() -> None:
+    five = FrameDecimator(5.0)
+    kept = [k for k in range(90) if five.due(k / 30.0)]
+    assert kept == list(range(0, 90, 6))  # 30 fps → every 6th frame, exactly
+    assert five.due(0.01)  # the clock jumped back (a new video): starts again
+    assert not any(FrameDecimator(0.0).due(k / 30.0) for k in range(30))
+
+
+# --- the archive ---------------------------------------------------------------------------------
+
+
+def test_campaign_mcap_holds_the_camera_process_frames_as_foxglove_compressed_images(tmp_path, model) -> None:
+    from mcap.reader import make_reader
+
+    alphas = np.radians([[2.0 * k, -1.5 * k, 1.0 * k] for k in range(24)])  # 0.8 s of video at 30 fps
+    renderer = Renderer(model, seed=4)
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (1280, 720))
+    for a in alphas:
+        writer.write(renderer.render(a))
+    writer.release()
+    path = tmp_path / "campaign.mcap"
+    with bus_pair() as (hub, session, _connect):
+        recorder = CampaignRecorder(session, path, {"campaign_id": "cam", "kind": "control"})
+        try:
+            done = subprocess.run(xneck("camera", "--source", f"file:{video}", "--fast", "--t0", "10",
+                                        "--frame-rate-hz", "5", "--connect", hub),
+                                  capture_output=True, text=True, timeout=120)
+            assert done.returncode == 0, done.stderr
+            assert wait_until(lambda: recorder.stats.recorded >= len(alphas) + 4, 10.0), recorder.stats
+        finally:
+            recorder.stop()
+    stats = recorder.stats
+    assert stats.rejected == {} and stats.dropped == 0, stats
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        images = [(s, c, m) for s, c, m in reader.iter_messages(topics=[IMAGE_TOPIC])]
+    assert len(images) == 4  # 0.8 s of video at 5 Hz: frames 0, 6, 12 and 18
+    schema, channel = images[0][0], images[0][1]
+    assert schema is not None and schema.name == "foxglove.CompressedImage" and schema.encoding == "jsonschema"
+    assert json.loads(schema.data)["title"] == "foxglove.CompressedImage"
+    assert channel.message_encoding == "json" and channel.metadata["key"] == bus.CAMERA_FRAME
+    stamps = []
+    for _s, _c, message in images:
+        doc = json.loads(message.data)
+        assert set(doc) == {"timestamp", "frame_id", "data", "format"} and doc["format"] == "jpeg"
+        picture = cv2.imdecode(np.frombuffer(base64.b64decode(doc["data"]), np.uint8), cv2.IMREAD_COLOR)
+        assert picture is not None and picture.shape == (720, 1280, 3)
+        stamps.append(doc["timestamp"]["sec"] + doc["timestamp"]["nsec"] * 1e-9)
+    assert stamps == pytest.approx(10.0 + np.array([0, 6, 12, 18]) / 30.0, abs=1e-6)  # the exposures' own time
+    # The archive reader still reads the whole campaign: α_IP of every frame, the images as JSON.
+    campaign = read_campaign(path)
+    assert len(campaign.messages(bus.CAMERA_ALPHA)) == len(alphas)
+    assert campaign.schemas[IMAGE_TOPIC] == "foxglove.CompressedImage"
+
+
+def test_the_recorder_refuses_a_frame_that_is_not_a_jpeg(tmp_path, rendered) -> None:
+    image, found = rendered
+    good = frame_message(1, image, found, 1.0, 1.0, "test")
+    not_jpeg = msgspec.structs.replace(good, seq=2, data=b"\x89PNG\r\n\x1a\n0000")
+    path = tmp_path / "c.mcap"
+    with bus_pair() as (_hub, session, connect):
+        recorder = CampaignRecorder(session, path, {"campaign_id": "c"})
+        try:
+            pub = publisher(connect(), bus.CAMERA_FRAME)
+            assert wait_until(lambda: (pub.put(not_jpeg), recorder.stats.rejected.get(bus.CAMERA_FRAME, 0) > 0)[1], 10.0, 0.2)
+            assert "not a JPEG" in recorder.stats.last_reject_reason
+            pub.put(good)
+            assert wait_until(lambda: recorder.stats.recorded == 1, 10.0)
+        finally:
+            recorder.stop()
+    campaign = read_campaign(path)
+    [(_t, doc)] = campaign.messages(IMAGE_TOPIC)
+    assert base64.b64decode(doc["data"]) == good.data and campaign.schemas[IMAGE_TOPIC] == "foxglove.CompressedImage"
+
+
+# --- the console ---------------------------------------------------------------------------------
+
+
+def test_camera_route_and_detection_health_on_a_real_console(tmp_path, rendered) -> None:
+    from server_harness import running_server
+
+    image, found = rendered
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        empty = c.get("/api/camera").json()
+        assert empty == {"health": None, "alpha": None, "frame": None}
+        assert c.get("/api/camera/frame.jpg").status_code == 404
+        hub = c.get("/api/system/health").json()["hub"]
+        with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as session:
+            alpha_pub, frame_pub = publisher(session, bus.CAMERA_ALPHA), publisher(session, bus.CAMERA_FRAME)
+            frame = frame_message(3, image, found, 5.0, 5.05, "twin-render")
+            seq = [0]
+
+            def publish_alpha() -> None:
+                seq[0] += 1
+                alpha_pub.put(bus.CameraAlpha(seq=seq[0], stamp_s=5.0 + seq[0] / 30, capture_stamp_s=5.0,
+                                              alpha_ip_rad=[0.17, -0.35, None], confidence=[0.99, 0.98, 0.0],
+                                              source="twin-render"))
+
+            def frame_seen() -> bool:
+                frame_pub.put(frame)
+                publish_alpha()
+                return c.get("/api/camera").json()["frame"] is not None
+
+            assert wait_until(frame_seen, 20.0, 0.1)
+            for _ in range(30):  # 30 Hz for a second
+                publish_alpha()
+                time.sleep(1 / 30)
+            state = c.get("/api/camera").json()
+            health = c.get("/api/system/health").json()["camera"]
+            jpeg = c.get(state["frame"]["url"])
+            # A hostile frame (not a JPEG) is refused and counted; the last good one stays.
+            session.put(bus.CAMERA_FRAME, bus.encode(msgspec.structs.replace(frame, seq=4, data=b"<html>....")))
+            assert wait_until(lambda: c.get("/api/system/health").json()["camera"]["frames_rejected"] == 1, 10.0, 0.1)
+            assert c.get("/api/camera").json()["frame"]["seq"] == 3
+    assert jpeg.status_code == 200 and jpeg.headers["content-type"] == "image/jpeg" and jpeg.content == frame.data
+    assert jpeg.headers["cache-control"] == "no-store" and jpeg.headers["x-frame-seq"] == "3"
+    f = state["frame"]
+    assert (f["width"], f["height"], f["seq"], f["capture_stamp_s"]) == (1280, 720, 3, 5.0)
+    assert f["marker_bar"] == frame.marker_bar and f["markers_px"] == pytest.approx(frame.markers_px)
+    assert state["alpha"]["alpha_ip_rad"] == [0.17, -0.35, None] and state["alpha"]["fresh"] is True
+    assert health["missing_joints"] == [3] and health["fresh"] is True and health["source"] == "twin-render"
+    assert 10.0 < health["rate_hz"] < 40.0, health  # about 30 α_IP messages per second were published
+    assert 0.0 <= health["age_s"] < 1.0 and 0.0 <= health["frame_age_s"] < 30.0
+    assert health["frames_received"] >= 1
