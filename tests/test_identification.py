@@ -267,7 +267,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
 def test_a_record_with_a_missed_sample_is_resampled_not_a_crash():
     """One lost state (a gap of two periods, well under the refused gap) used to raise a numpy
     broadcast error: the record must be put on the uniform grid instead."""
-    from twin.identification.pipeline import _uniform
+    from twin.identification.processing import _uniform
 
     t = np.arange(0.0, 1.0, 0.002)
     t = np.delete(t, 100)  # one missed state

@@ -13,6 +13,10 @@ Pipeline (every function takes and returns arrays in SI units; θ at the motor s
 
 twin.identification.record.identify_record runs it on an MCAP archive (xneck identify, the console).
 
+Modules follow the pipeline: processing (CampaignData, preprocess), regressors (W and Y of each
+model), estimators (Estimate, least squares), report (Tables 1-2, Figs. 4-8), record (MCAP);
+this module composes them (identify_*, identified_params, validate) and re-exports their names.
+
 Signs. We use the physical stretch x_c = l_c − l_c0 + (r_d/R)·θ (docs/model.md), so in our
 sign eq. 32 reads M·α̈ + c + g = Z(f − f_friction − I_a(R/r_d)²·ẍ_c) and the joint rows of
 eqs. 38/44 become  Z·diag(a)·f_s = Z(f − I_a(R/r_d)²ẍ_c) − M·α̈ − c − g  with
@@ -34,7 +38,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,8 +46,27 @@ from typing import Any
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 
+from twin.identification.estimators import DEFAULT_THRESHOLD, Estimate, least_squares
+from twin.identification.processing import (
+    DECIMATION,
+    CampaignData,
+    IdentificationError,
+    Processed,
+    cutoff_rule,
+    preprocess,
+)
+from twin.identification.regressors import (
+    W_JOINT,
+    cable_tension,
+    check_friction_excitation,
+    friction_shape,
+    ia_over_rho,
+    instrument_dot,
+    joint_rows,
+    param_names,
+    tension_mask,
+)
 from twin.model import dynamics
 from twin.model.numeric import CableModelName, build
 from twin.model.params import Params, params_from_dict
@@ -61,6 +83,7 @@ __all__ = [
     "Processed",
     "Provenance",
     "Validation",
+    "cable_tension",
     "cutoff_rule",
     "identified_params",
     "identify_complete",
@@ -74,497 +97,18 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-DECIMATION = 16  # 500 Hz -> 31.25 Hz, "the value closest to 30 Hz" (§5.2.1)
-W_JOINT = 100.0  # weight of the joint rows of eq. 44 (§5.1.3)
-DEFAULT_THRESHOLD = 0.10  # relative σ above which a parameter is badly identified
-MIN_SAMPLES = 64  # decimated samples (≈ 2 s at 31.25 Hz) below which nothing is identified
-MIN_TENSION_N = 2.0  # tension rows of a cable below this (N) are dropped: a slack cable obeys no eq. 54
-# Cutoff rule (see cutoff_rule): f_c = CUTOFF_FACTOR · f_99 clipped to [CUTOFF_MIN_HZ, 0.8·f_Nyquist].
-CUTOFF_FACTOR = 4.0
-CUTOFF_MIN_HZ = 0.5
-RANK_TOL = 1e-7  # relative singular value below which the (column-scaled) regressor is rank-deficient
-
-
-class IdentificationError(ValueError):
-    """The data cannot give a trustworthy identification; the message says why and what to fix."""
-
-
-# --- campaign data ------------------------------------------------------------------------------
-
-
-def _as_matrix(name: str, x: Any, cols: int | None) -> FloatArray:
-    try:
-        arr = np.asarray(x, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise IdentificationError(f"{name}: not a numeric array ({exc})") from None
-    if arr.ndim != 2 or (cols is not None and arr.shape[1] != cols):
-        want = f"(T, {cols})" if cols is not None else "(T, n)"
-        raise IdentificationError(f"{name} must have shape {want}, got {arr.shape}")
-    return arr
-
-
-def _check_finite(name: str, arr: FloatArray, t: FloatArray) -> None:
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
-        raise IdentificationError(
-            f"{name} has {bad.sum()} NaN/inf value(s), first at sample {rows[0]} (t = {t[rows[0]]:.4f} s); "
-            "remove or repair them before identifying"
-        )
-
-
-def _check_times(name: str, t: FloatArray) -> None:
-    if t.ndim != 1:
-        raise IdentificationError(f"{name} must be a 1-D array of times (s), got shape {t.shape}")
-    if not np.all(np.isfinite(t)):
-        raise IdentificationError(f"{name} has NaN/inf times")
-    d = np.diff(t)
-    if np.any(d <= 0):
-        k = int(np.flatnonzero(d <= 0)[0])
-        raise IdentificationError(f"{name} must increase strictly: t[{k}] = {t[k]} s, t[{k + 1}] = {t[k + 1]} s")
-
-
-@dataclass(frozen=True, eq=False)
-class CampaignData:
-    """One identification campaign, as recorded (SI units).
-
-    t_s (T,): encoder/force sample times at the control rate (500 Hz), s.
-    theta_rad (T, n_cables): encoder angles at the motor shaft, rad (θ = 0 at the straight,
-        unloaded neck, eq. 20).
-    force_N (T, n_cables): motor forces applied over each period, N.
-    t_ip_s (K,): capture times of the camera frames (same clock as ``t_s``), s.
-    alpha_ip_rad (K, n_joints): α_IP from image processing, rad.
-    campaign: id or path, kept for provenance.
-    excitation_alpha_rad (N, n_joints) or None: the excitation trajectory α^d, rad, sampled at the
-        encoder rate, when known (a campaign archive records its trajectory). Only its spectrum is
-        used, to set the filter cutoff (:func:`cutoff_rule`), so it need not be aligned with t_s.
-
-    Raises :class:`IdentificationError` on wrong shapes, NaNs, non-increasing times, too few
-    samples, or camera frames that do not cover the encoder record.
-    """
-
-    t_s: FloatArray
-    theta_rad: FloatArray
-    force_N: FloatArray
-    t_ip_s: FloatArray
-    alpha_ip_rad: FloatArray
-    campaign: str = "unnamed"
-    excitation_alpha_rad: FloatArray | None = None
-
-    def __post_init__(self) -> None:
-        t = np.asarray(self.t_s, dtype=float)
-        t_ip = np.asarray(self.t_ip_s, dtype=float)
-        _check_times("t_s", t)
-        _check_times("t_ip_s", t_ip)
-        theta = _as_matrix("theta_rad", self.theta_rad, None)
-        force = _as_matrix("force_N", self.force_N, theta.shape[1])
-        alpha = _as_matrix("alpha_ip_rad", self.alpha_ip_rad, None)
-        for name, arr, times in (("theta_rad", theta, t), ("force_N", force, t), ("alpha_ip_rad", alpha, t_ip)):
-            if len(arr) != len(times):
-                tname = "t_ip_s" if name == "alpha_ip_rad" else "t_s"
-                raise IdentificationError(f"{name} has {len(arr)} rows but {tname} has {len(times)} times")
-        _check_finite("theta_rad", theta, t)
-        _check_finite("force_N", force, t)
-        _check_finite("alpha_ip_rad", alpha, t_ip)
-        need = MIN_SAMPLES * DECIMATION
-        if len(t) < need:
-            raise IdentificationError(
-                f"too few encoder samples: {len(t)} ({t[-1] - t[0] if len(t) > 1 else 0:.2f} s); identification "
-                f"needs at least {need} (about {need / 500:.1f} s at 500 Hz), a full excitation trajectory is ~100 s"
-            )
-        if len(t_ip) < MIN_SAMPLES:
-            raise IdentificationError(f"too few camera frames: {len(t_ip)}, need at least {MIN_SAMPLES}")
-        overlap = min(t[-1], t_ip[-1]) - max(t[0], t_ip[0])
-        if overlap < 0.5 * (t[-1] - t[0]):
-            raise IdentificationError(
-                f"camera frames ({t_ip[0]:.2f}-{t_ip[-1]:.2f} s) cover less than half of the encoder record "
-                f"({t[0]:.2f}-{t[-1]:.2f} s): are both on the same clock?"
-            )
-        if self.excitation_alpha_rad is not None:
-            exc = _as_matrix("excitation_alpha_rad", self.excitation_alpha_rad, alpha.shape[1])
-            if len(exc) < MIN_SAMPLES or not np.all(np.isfinite(exc)):
-                raise IdentificationError(f"excitation_alpha_rad must hold at least {MIN_SAMPLES} finite rows, "
-                                          f"got {len(exc)} rows, {int((~np.isfinite(exc)).sum())} non-finite values")
-            object.__setattr__(self, "excitation_alpha_rad", exc)
-        for name, arr in (("t_s", t), ("theta_rad", theta), ("force_N", force), ("t_ip_s", t_ip), ("alpha_ip_rad", alpha)):
-            object.__setattr__(self, name, arr)
-
-    @property
-    def n_cables(self) -> int:
-        return int(self.theta_rad.shape[1])
-
-    @property
-    def n_joints(self) -> int:
-        return int(self.alpha_ip_rad.shape[1])
-
-    @property
-    def rate_hz(self) -> float:
-        return float(1.0 / np.median(np.diff(self.t_s)))
-
-
-# --- processing (§5.2.1) ----------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class Processed:
-    """Filtered, differentiated, decimated signals on the identification instants ``t_s``.
-
-    Arrays are (n,) or (n, ·) at 31.25 Hz: θ, θ̇, θ̈ (rad, rad/s, rad/s²) and f (N) from the
-    encoders (filtered at 500 Hz, then decimated by 16); α, α̇, α̈ from α_IP (filtered at the
-    camera rate, linearly interpolated to ``t_s``, central differences); x_c, ẋ_c, ẍ_c (m, m/s,
-    m/s²) from eq. 27 (our sign); the model terms Z, M, c, g at (α, α̇).
-    ``fast_*``: the 500 Hz record (raw θ, filtered θ̇, f) for the 2 ms estimators of eqs. 35/58.
-    """
-
-    t_s: FloatArray
-    theta: FloatArray
-    theta_dot: FloatArray
-    theta_ddot: FloatArray
-    force: FloatArray
-    alpha: FloatArray
-    alpha_dot: FloatArray
-    alpha_ddot: FloatArray
-    x_c: FloatArray
-    x_c_dot: FloatArray
-    x_c_ddot: FloatArray
-    Z: FloatArray
-    M: FloatArray
-    c: FloatArray
-    g: FloatArray
-    cutoff_hz: float
-    f_99_hz: float
-    rate_hz: float
-    bandwidth_from: str  # "alpha_d" (the excitation trajectory), "theta_dot" (the encoders) or "given"
-    fast_t_s: FloatArray
-    fast_theta: FloatArray
-    fast_theta_dot: FloatArray
-    fast_force: FloatArray
-
-    @property
-    def n(self) -> int:
-        return len(self.t_s)
-
-
-def cutoff_rule(velocity: FloatArray, rate_hz: float, nyquist_hz: float) -> tuple[float, float]:
-    """Cutoff (Hz) of the zero-phase Butterworth filter, and the motion bandwidth f_99 (Hz).
-
-    Rule (after Pham, Gautier & Poignet 2001, ref. [37]: the cutoff sits a few times above the
-    bandwidth of the motion, so that the filter removes noise and leaves the dynamics alone, and
-    both sides of the linear model are filtered alike): f_99 is the frequency below which 99 % of
-    the energy of ``velocity`` lies; f_c = 4·f_99, at least 0.5 Hz and at most 0.8 of the Nyquist
-    frequency of the slowest stream (the camera, 15 Hz). :func:`preprocess` passes the velocity of
-    the excitation trajectory α̇^d when the campaign records it (f_99 = 0.40 Hz on the §5.2.2
-    trajectory, f_c = 1.6 Hz), else the motor velocities θ̇. θ̇ is a fallback: it also carries the
-    motor-cable mode (≈ 18 kg of reflected motor inertia on a 5-8 kN/m cable, ≈ 3 Hz), which rings
-    when the cable damping is small and then holds ~1 % of the θ̇ energy: enough to move f_99 from
-    0.43 to 1.7 Hz, hence f_c from 1.7 to 6.8 Hz, which lets α_IP noise into x_c and, twice
-    differentiated, into ẍ_c (the Γ_rf error of eq. 52 grows fifteenfold on the twin).
-    Why 4 and not the usual 5-10: α_IP carries 1° of white noise up to 15 Hz that enters the
-    regressor x_c; the friction regressor arctan(c_s·θ̇) is nonlinear, so a too-low cutoff rounds
-    its sign changes (f_s is 2 % low at 0.9 Hz, 0.1 % at 1.7 Hz on the twin).
-    """
-    v = velocity - velocity.mean(axis=0)
-    spec = np.abs(np.fft.rfft(v, axis=0)) ** 2
-    power = spec.sum(axis=1)
-    cum = np.cumsum(power)
-    freqs = np.fft.rfftfreq(len(v), 1.0 / rate_hz)
-    if cum[-1] <= 0.0:
-        f_99 = CUTOFF_MIN_HZ
-    else:
-        f_99 = float(freqs[min(np.searchsorted(cum, 0.99 * cum[-1]), len(freqs) - 1)])
-    return float(np.clip(CUTOFF_FACTOR * f_99, CUTOFF_MIN_HZ, 0.8 * nyquist_hz)), f_99
-
-
-def _uniform(t: FloatArray, x: FloatArray, what: str, max_gap: float = 5.0) -> tuple[FloatArray, FloatArray, float]:
-    """Samples on a uniform grid at the median rate (linear interpolation of jittered stamps).
-    A gap longer than ``max_gap`` periods is lost data, not jitter: refuse it."""
-    dt = float(np.median(np.diff(t)))
-    gaps = np.diff(t) > max_gap * dt
-    if gaps.any():
-        k = int(np.flatnonzero(gaps)[0])
-        raise IdentificationError(
-            f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
-            f"(sampling period {dt * 1e3:.2f} ms); split the campaign or recover the data"
-        )
-    n = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
-    grid = t[0] + dt * np.arange(n)
-    # Length first: with a missed sample the grid is longer than the stamps and cannot be compared.
-    if n == len(t) and np.allclose(grid, t, atol=1e-3 * dt, rtol=0.0):
-        return t, x, dt
-    return grid, np.column_stack([np.interp(grid, t, x[:, j]) for j in range(x.shape[1])]), dt
-
-
-def _butter(x: FloatArray, cutoff_hz: float, rate_hz: float, order: int = 4) -> FloatArray:
-    sos = signal.butter(order, cutoff_hz, fs=rate_hz, output="sos")
-    return signal.sosfiltfilt(sos, x, axis=0)
-
-
-def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
-    """§5.2.1: zero-phase Butterworth (order 4, :func:`cutoff_rule` unless ``cutoff_hz``) on θ,
-    f and α_IP; central differences; θ and f decimated from 500 Hz to 31.25 Hz (anti-aliased,
-    zero phase); α_IP interpolated linearly to the same instants; x_c from eq. 27 (our sign).
-
-    Edge samples spoiled by the filters (two cutoff periods, at least 1 s, at each end) and
-    instants outside the camera record are dropped.
-    """
-    m = build(params)
-    if data.n_cables != m.n_cables or data.n_joints != m.n_joints:
-        raise IdentificationError(
-            f"campaign has {data.n_cables} motors and {data.n_joints} camera angles, the parameter set "
-            f"{params.name!r} has {m.n_cables} cables and {m.n_joints} joints"
-        )
-    t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
-    rate = 1.0 / dt
-    t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
-    nc = m.n_cables
-    raw_theta = enc[:, :nc]
-    nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
-    if cutoff_hz is not None:
-        fc, f_99, source = float(cutoff_hz), float("nan"), "given"
-    elif data.excitation_alpha_rad is not None:
-        fc, f_99 = cutoff_rule(np.gradient(data.excitation_alpha_rad, dt, axis=0), rate, nyquist)
-        source = "alpha_d"
-    else:
-        fc, f_99 = cutoff_rule(np.gradient(raw_theta, dt, axis=0), rate, nyquist)
-        source = "theta_dot"
-    if not (0.0 < fc < nyquist):
-        raise IdentificationError(f"cutoff {fc} Hz must be in (0, {nyquist:.2f}) Hz (Nyquist of the decimated/camera data)")
-
-    filt = _butter(enc, fc, rate)
-    theta_f, force_f = filt[:, :nc], filt[:, nc:]
-    theta_dot = np.gradient(theta_f, dt, axis=0)
-    theta_ddot = np.gradient(theta_dot, dt, axis=0)
-    # Anti-aliased, zero-phase decimation (FIR: an order-8 IIR is unstable for a factor > 13).
-    stack = np.hstack([theta_f, theta_dot, theta_ddot, force_f])
-    dec = signal.decimate(stack, DECIMATION, ftype="fir", axis=0, zero_phase=True)
-    t_dec = t[:: DECIMATION][: len(dec)]
-
-    alpha_f = _butter(a_ip, fc, 1.0 / dt_ip)
-    edge = max(1.0, 2.0 / fc)
-    keep = (t_dec >= max(t[0], t_ip[0]) + edge) & (t_dec <= min(t[-1], t_ip[-1]) - edge)
-    if keep.sum() < MIN_SAMPLES:
-        raise IdentificationError(
-            f"only {keep.sum()} identification instants remain after dropping {edge:.1f} s of filter edges "
-            f"at each end; need at least {MIN_SAMPLES}"
-        )
-    t_dec, dec = t_dec[keep], dec[keep]
-    theta_d, theta_dot_d, theta_ddot_d, force_d = np.split(dec, 4, axis=1)
-    alpha = np.column_stack([np.interp(t_dec, t_ip, alpha_f[:, i]) for i in range(m.n_joints)])
-    h = DECIMATION * dt
-    alpha_dot = np.gradient(alpha, h, axis=0)
-    alpha_ddot = np.gradient(alpha_dot, h, axis=0)
-    terms = dynamics.evaluate(m, alpha, alpha_dot)
-    x_c = terms.l_c - m.l_c0 + m.rho * theta_d  # eq. 27, physical stretch
-    x_c_dot = np.gradient(x_c, h, axis=0)
-    x_c_ddot = np.gradient(x_c_dot, h, axis=0)
-    return Processed(
-        t_s=t_dec, theta=theta_d, theta_dot=theta_dot_d, theta_ddot=theta_ddot_d, force=force_d,
-        alpha=alpha, alpha_dot=alpha_dot, alpha_ddot=alpha_ddot,
-        x_c=x_c, x_c_dot=x_c_dot, x_c_ddot=x_c_ddot,
-        Z=terms.Z, M=terms.M, c=terms.c, g=terms.g,
-        cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h, bandwidth_from=source,
-        fast_t_s=t, fast_theta=raw_theta, fast_theta_dot=theta_dot, fast_force=enc[:, nc:],
-    )
-
-
-# --- least squares (eqs. 48-50) -----------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class Estimate:
-    """Least-squares estimate of one identification model (eqs. 48-50).
-
-    names: parameter names like ``"f_s(1)"``, ``"k(2)"``, ``"lambda(3)"``, ``"c_a(4)"``;
-    values, sigma: SI units of each parameter; relative_sigma: σ_i/|v_i| (fraction, eq. 50);
-    condition_number: of the observation matrix W; residual_norm: ‖Y − Wv‖ (units of Y);
-    n_rows: r, rows of W; n_samples: identification instants used.
-    """
-
-    method: str
-    equations: str
-    names: tuple[str, ...]
-    values: FloatArray
-    sigma: FloatArray
-    relative_sigma: FloatArray
-    condition_number: float
-    residual_norm: float
-    n_rows: int
-    n_samples: int
-    threshold: float = DEFAULT_THRESHOLD
-    estimator: str = "least squares"
-
-    @property
-    def out_of_range(self) -> NDArray[np.bool_]:
-        """Values no physical cable or motor can have: k ≤ 0, or f_s, λ, c_a < 0. A model that
-        does not fit (the linear one on variable-stiffness cables) buys its fit with such values,
-        often with a small σ: Table 1's c_a(3) = −218 N·s/m is one."""
-        symbols = np.array([n.split("(")[0] for n in self.names])
-        return np.where(symbols == "k", self.values <= 0.0, self.values < 0.0)
-
-    @property
-    def badly_identified(self) -> NDArray[np.bool_]:
-        """Relative σ above the threshold (or not finite), or out of physical range: never used
-        silently."""
-        r = self.relative_sigma
-        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range
-
-    def reason(self, i: int) -> str:
-        """Why parameter ``i`` is badly identified ("" if it is not)."""
-        r = self.relative_sigma[i]
-        if not np.isfinite(r) or r > self.threshold:
-            return f"badly identified, relative σ {100 * r:.1f} % > {100 * self.threshold:g} %"
-        if self.out_of_range[i]:
-            return "outside its physical range"
-        return ""
-
-    def vector(self, symbol: str) -> FloatArray:
-        """Values of one symbol in cable order, e.g. ``vector("k")`` -> (n_cables,)."""
-        idx = [i for i, n in enumerate(self.names) if n.split("(")[0] == symbol]
-        if not idx:
-            raise KeyError(f"{self.method} estimate has no parameter {symbol!r} (has {sorted({n.split('(')[0] for n in self.names})})")
-        return self.values[idx]
-
-    def flags(self, symbol: str) -> NDArray[np.bool_]:
-        idx = [i for i, n in enumerate(self.names) if n.split("(")[0] == symbol]
-        return self.badly_identified[idx]
-
-    def rows(self) -> list[dict[str, Any]]:
-        """One dict per parameter: name, value, sigma, relative_sigma, badly_identified, reason."""
-        return [
-            {"name": n, "value": float(v), "sigma": float(s), "relative_sigma": float(r), "badly_identified": bool(b),
-             "reason": self.reason(i)}
-            for i, (n, v, s, r, b) in enumerate(zip(self.names, self.values, self.sigma, self.relative_sigma,
-                                                    self.badly_identified))
-        ]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "method": self.method, "equations": self.equations, "parameters": self.rows(),
-            "condition_number": self.condition_number, "residual_norm": self.residual_norm,
-            "n_rows": self.n_rows, "n_samples": self.n_samples, "threshold": self.threshold,
-            "estimator": self.estimator,
-        }
-
-
-def least_squares(
-    W: FloatArray, Y: FloatArray, names: tuple[str, ...], *, method: str, equations: str,
-    n_samples: int, threshold: float = DEFAULT_THRESHOLD, instruments: FloatArray | None = None,
-) -> Estimate:
-    """Solve W·v + ρ = Y (eq. 48) by v = W⁺Y (eq. 49) with σ's from eq. 50.
-
-    With ``instruments`` Φ (same shape as W) the instrumental-variable solution
-    v = (ΦᵀW)⁻¹ΦᵀY is returned instead, with C_X = σ_ρ²(ΦᵀW)⁻¹ΦᵀΦ(ΦᵀW)⁻ᵀ (eq. 50's IV form).
-    Raises :class:`IdentificationError` when r ≤ n_p, W or Y is not finite, or W is
-    rank-deficient (a parameter, or a combination, that the trajectory does not excite); the
-    message names the parameters involved.
-    """
-    r, n_p = W.shape
-    if r <= n_p:
-        raise IdentificationError(f"{method}: {r} equations for {n_p} parameters; need r > n_p (eq. 48)")
-    if not (np.all(np.isfinite(W)) and np.all(np.isfinite(Y))):
-        raise IdentificationError(f"{method}: the observation matrix or vector has NaN/inf entries")
-    scale = np.linalg.norm(W, axis=0)
-    dead = scale <= 1e-300
-    if dead.any():
-        raise IdentificationError(
-            f"{method}: regressor is rank-deficient, {', '.join(np.array(names)[dead])} never excited "
-            "(zero column: did the motors move / were the cables stretched?)"
-        )
-    # Rank on the column-scaled matrix: the raw W mixes metres and newtons.
-    _, s_scaled, Vt_scaled = np.linalg.svd(W / scale, full_matrices=False)
-    if s_scaled[-1] < RANK_TOL * s_scaled[0]:
-        weak = np.abs(Vt_scaled[-1])
-        involved = np.array(names)[weak > 0.3 * weak.max()]
-        raise IdentificationError(
-            f"{method}: regressor is rank-deficient (scaled condition number "
-            f"{s_scaled[0] / max(s_scaled[-1], 1e-300):.3g}); the trajectory does not excite {', '.join(involved)}"
-        )
-    U, s, Vt = np.linalg.svd(W, full_matrices=False)
-    if instruments is None:
-        v = Vt.T @ ((U.T @ Y) / s)
-        res = Y - W @ v
-        cov_unit = (Vt.T / s**2) @ Vt  # (WᵀW)⁻¹ through the SVD
-    else:
-        Phi = instruments
-        A = Phi.T @ W
-        try:
-            A_inv = np.linalg.inv(A)
-        except np.linalg.LinAlgError:
-            raise IdentificationError(f"{method}: instruments are uncorrelated with the regressor (ΦᵀW singular)") from None
-        v = A_inv @ (Phi.T @ Y)
-        res = Y - W @ v
-        cov_unit = A_inv @ (Phi.T @ Phi) @ A_inv.T
-    sigma_rho2 = float(res @ res) / (r - n_p)
-    sigma = np.sqrt(np.abs(np.diag(cov_unit)) * sigma_rho2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = sigma / np.abs(v)
-    return Estimate(
-        method=method, equations=equations, names=names, values=v, sigma=sigma, relative_sigma=rel,
-        condition_number=float(s[0] / s[-1]), residual_norm=float(np.sqrt(res @ res)),
-        n_rows=r, n_samples=n_samples, threshold=threshold,
-        estimator="least squares" if instruments is None else "instrumental variables",
-    )
-
-
-def _names(symbol: str, n: int) -> tuple[str, ...]:
-    return tuple(f"{symbol}({j + 1})" for j in range(n))
-
-
-MIN_MOVING = 16  # decimated samples (≈ 0.5 s) a motor must turn in each direction to excite f_s
-
-
-def _check_friction_excitation(proc: Processed, params: Params) -> None:
-    """f_s(j) needs motor j to turn both ways at speeds where eq. 37 is near saturation
-    (|θ̇| > 1/c_s, a > 0.5); below that its regressor column is numerically, not exactly, zero."""
-    v = proc.theta_dot * params.friction.c_s
-    poor = [j for j in range(v.shape[1]) if min((v[:, j] > 1).sum(), (v[:, j] < -1).sum()) < MIN_MOVING]
-    if poor:
-        names = ", ".join(f"f_s({j + 1})" for j in poor)
-        raise IdentificationError(
-            f"regressor is rank-deficient in practice: {names} not excited (motor(s) "
-            f"{', '.join(str(j + 1) for j in poor)} turned faster than {1 / params.friction.c_s:.1f} rad/s in each "
-            f"direction for less than {MIN_MOVING} samples); run the identification trajectory"
-        )
-
-
-def _friction_shape(proc: Processed, params: Params) -> FloatArray:
-    """a = (2/π)·arctan(c_s·θ̇) (eq. 37), or sign(θ̇) for the eq. 36 model, (n, n_cables)."""
-    return dynamics.friction_shape(params.friction.c_s, params.friction.model == "sign", proc.theta_dot)
-
-
-def _ia_over_rho(params: Params) -> float:
-    g = params.geometry
-    return params.motors.I_a * g.R / g.r_d  # (R/r_d)·I_a: N per rad/s² of θ̈
-
-
-def _joint_rows(proc: Processed, params: Params, elastic: bool) -> tuple[FloatArray, FloatArray]:
-    """Joint rows of eqs. 38/44 (our sign): D = Z·diag(a) (n, N, nc), y = Z(f − I_a(R/r_d)²ẍ_c) − Mα̈ − c − g."""
-    a = _friction_shape(proc, params)
-    D = proc.Z * a[:, None, :]
-    g = params.geometry
-    drive = proc.force - (params.motors.I_a * (g.R / g.r_d) ** 2 * proc.x_c_ddot if elastic else 0.0)
-    y = (np.einsum("nij,nj->ni", proc.Z, drive) - np.einsum("nij,nj->ni", proc.M, proc.alpha_ddot) - proc.c - proc.g)
-    return D, y
-
-
-def _tension_mask(t_c: FloatArray) -> NDArray[np.bool_]:
-    return t_c >= MIN_TENSION_N
-
 
 def identify_friction(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD) -> Estimate:
     """Dry friction f_s (N) alone, with rigid cables: eq. 38 with ẍ_c = 0 (the paper's eqs. 46-47
     "model without cable elasticity", see the module docstring). Rows: N per sample."""
-    _check_friction_excitation(proc, params)
-    D, y = _joint_rows(proc, params, elastic=False)
+    check_friction_excitation(proc, params)
+    D, y = joint_rows(proc, params, elastic=False)
     nc = D.shape[-1]
     return least_squares(
-        D.reshape(-1, nc), y.reshape(-1), _names("f_s", nc), method="friction",
+        D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), method="friction",
         equations="eq. 38, rigid cables (eqs. 46-47)", n_samples=proc.n, threshold=threshold,
     )
 
-
-def _instrument_dot(x: FloatArray, proc: Processed) -> FloatArray:
-    return np.gradient(x, 1.0 / proc.rate_hz, axis=0)
 
 
 def identify_complete(
@@ -579,11 +123,11 @@ def identify_complete(
     ``estimator``: ``"iv"`` (default, see :func:`identify_variable`: the instruments of x_c, ẋ_c
     are y = f − (R/r_d)I_a·θ̈ and ẏ) or ``"ls"`` (eq. 49 as printed).
     """
-    _check_friction_excitation(proc, params)
+    check_friction_excitation(proc, params)
     n, nc = proc.n, params.n_cables
-    a = _friction_shape(proc, params)
-    y_t = proc.force - _ia_over_rho(params) * proc.theta_ddot
-    D_j, y_j = _joint_rows(proc, params, elastic=True)
+    a = friction_shape(proc, params)
+    y_t = proc.force - ia_over_rho(params) * proc.theta_ddot
+    D_j, y_j = joint_rows(proc, params, elastic=True)
     N = D_j.shape[1]
     eye = np.eye(nc)
 
@@ -591,14 +135,14 @@ def identify_complete(
         return np.concatenate([x[:, :, None] * eye, x_dot[:, :, None] * eye, a[:, :, None] * eye], axis=2)
 
     bottom = np.concatenate([np.zeros((n, N, 2 * nc)), weight * D_j], axis=2).reshape(-1, 3 * nc)
-    mask = _tension_mask(y_t - a * np.asarray(params.friction.f_s))
+    mask = tension_mask(y_t - a * np.asarray(params.friction.f_s))
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
     Phi = None
     if _check_estimator(estimator) == "iv":
-        Phi = np.concatenate([tension_rows(y_t, _instrument_dot(y_t, proc))[mask], bottom])
+        Phi = np.concatenate([tension_rows(y_t, instrument_dot(y_t, proc))[mask], bottom])
     return least_squares(
-        W, Y, _names("k", nc) + _names("c_a", nc) + _names("f_s", nc), method="complete",
+        W, Y, param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc), method="complete",
         equations=f"eqs. 43-45, W = {weight:g}", n_samples=n, threshold=threshold, instruments=Phi,
     )
 
@@ -608,10 +152,6 @@ def _check_estimator(estimator: str) -> str:
         raise ValueError(f"estimator must be 'iv' or 'ls', got {estimator!r}")
     return estimator
 
-
-def cable_tension(proc: Processed, params: Params, f_s: FloatArray) -> FloatArray:
-    """Eq. 41/55: t_c = f − diag(a)f_s − (R/r_d)I_a·θ̈ (N), (n, n_cables)."""
-    return proc.force - _friction_shape(proc, params) * np.asarray(f_s) - _ia_over_rho(params) * proc.theta_ddot
 
 
 def identify_variable(
@@ -639,11 +179,11 @@ def identify_variable(
     def rows(a: FloatArray, b: FloatArray, c: FloatArray) -> FloatArray:
         return np.concatenate([a[:, :, None] * eye, b[:, :, None] * eye, c[:, :, None] * eye], axis=2)
 
-    mask = _tension_mask(t_c)
+    mask = tension_mask(t_c)
     W = rows(proc.x_c, proc.x_c * t_c, proc.x_c_dot)[mask]
-    Phi = rows(t_c, t_c**2, _instrument_dot(t_c, proc))[mask] if _check_estimator(estimator) == "iv" else None
+    Phi = rows(t_c, t_c**2, instrument_dot(t_c, proc))[mask] if _check_estimator(estimator) == "iv" else None
     return least_squares(
-        W, t_c[mask], _names("k", nc) + _names("lambda", nc) + _names("c_a", nc), method="variable",
+        W, t_c[mask], param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc), method="variable",
         equations="eqs. 54-57", n_samples=proc.n, threshold=threshold, instruments=Phi,
     )
 
@@ -882,7 +422,7 @@ def validate(
     """
     g = identified.geometry
     iar2 = identified.motors.I_a * (g.R / g.r_d) ** 2
-    a = _friction_shape(proc, identified)
+    a = friction_shape(proc, identified)
     f_s = np.asarray(identified.friction.f_s)
     Zx = np.einsum("nij,nj->ni", proc.Z, -iar2 * proc.x_c_ddot)
     rigid_part = Zx + np.einsum("nij,nj->ni", proc.M, proc.alpha_ddot) + proc.c + proc.g
@@ -908,7 +448,7 @@ def validate(
         k, lam, c_a = var.vector("k"), var.vector("lambda"), var.vector("c_a")
         ts["variable"] = dynamics.cable_tension_law(k, lam, c_a, proc.x_c, proc.x_c_dot)
     for name in tf:
-        mask = _tension_mask(tf[name])
+        mask = tension_mask(tf[name])
         te[name] = float(np.mean(np.abs(tf[name] - ts[name])[mask]))
 
     if alpha_hat:

@@ -1,0 +1,309 @@
+"""Campaign data and its processing (3-X paper §5.2.1): checks, zero-phase filtering, differentiation,
+decimation to 31.25 Hz, and the stretch x_c of eq. 27 (our sign, docs/model.md). Pure functions on arrays.
+
+    data = CampaignData(t_s, theta_rad, force_N, t_ip_s, alpha_ip_rad)   # checked on creation
+    proc = preprocess(data, params)                                     # Processed at 31.25 Hz
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import signal
+
+from twin.model import dynamics
+from twin.model.numeric import build
+from twin.model.params import Params
+
+FloatArray = NDArray[np.float64]
+
+DECIMATION = 16  # 500 Hz -> 31.25 Hz, "the value closest to 30 Hz" (§5.2.1)
+MIN_SAMPLES = 64  # decimated samples (≈ 2 s at 31.25 Hz) below which nothing is identified
+# Cutoff rule (see cutoff_rule): f_c = CUTOFF_FACTOR · f_99 clipped to [CUTOFF_MIN_HZ, 0.8·f_Nyquist].
+CUTOFF_FACTOR = 4.0
+CUTOFF_MIN_HZ = 0.5
+
+class IdentificationError(ValueError):
+    """The data cannot give a trustworthy identification; the message says why and what to fix."""
+
+
+# --- campaign data ------------------------------------------------------------------------------
+
+
+def _as_matrix(name: str, x: Any, cols: int | None) -> FloatArray:
+    try:
+        arr = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise IdentificationError(f"{name}: not a numeric array ({exc})") from None
+    if arr.ndim != 2 or (cols is not None and arr.shape[1] != cols):
+        want = f"(T, {cols})" if cols is not None else "(T, n)"
+        raise IdentificationError(f"{name} must have shape {want}, got {arr.shape}")
+    return arr
+
+
+def _check_finite(name: str, arr: FloatArray, t: FloatArray) -> None:
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
+        raise IdentificationError(
+            f"{name} has {bad.sum()} NaN/inf value(s), first at sample {rows[0]} (t = {t[rows[0]]:.4f} s); "
+            "remove or repair them before identifying"
+        )
+
+
+def _check_times(name: str, t: FloatArray) -> None:
+    if t.ndim != 1:
+        raise IdentificationError(f"{name} must be a 1-D array of times (s), got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise IdentificationError(f"{name} has NaN/inf times")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        k = int(np.flatnonzero(d <= 0)[0])
+        raise IdentificationError(f"{name} must increase strictly: t[{k}] = {t[k]} s, t[{k + 1}] = {t[k + 1]} s")
+
+
+@dataclass(frozen=True, eq=False)
+class CampaignData:
+    """One identification campaign, as recorded (SI units).
+
+    t_s (T,): encoder/force sample times at the control rate (500 Hz), s.
+    theta_rad (T, n_cables): encoder angles at the motor shaft, rad (θ = 0 at the straight,
+        unloaded neck, eq. 20).
+    force_N (T, n_cables): motor forces applied over each period, N.
+    t_ip_s (K,): capture times of the camera frames (same clock as ``t_s``), s.
+    alpha_ip_rad (K, n_joints): α_IP from image processing, rad.
+    campaign: id or path, kept for provenance.
+    excitation_alpha_rad (N, n_joints) or None: the excitation trajectory α^d, rad, sampled at the
+        encoder rate, when known (a campaign archive records its trajectory). Only its spectrum is
+        used, to set the filter cutoff (:func:`cutoff_rule`), so it need not be aligned with t_s.
+
+    Raises :class:`IdentificationError` on wrong shapes, NaNs, non-increasing times, too few
+    samples, or camera frames that do not cover the encoder record.
+    """
+
+    t_s: FloatArray
+    theta_rad: FloatArray
+    force_N: FloatArray
+    t_ip_s: FloatArray
+    alpha_ip_rad: FloatArray
+    campaign: str = "unnamed"
+    excitation_alpha_rad: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, dtype=float)
+        t_ip = np.asarray(self.t_ip_s, dtype=float)
+        _check_times("t_s", t)
+        _check_times("t_ip_s", t_ip)
+        theta = _as_matrix("theta_rad", self.theta_rad, None)
+        force = _as_matrix("force_N", self.force_N, theta.shape[1])
+        alpha = _as_matrix("alpha_ip_rad", self.alpha_ip_rad, None)
+        for name, arr, times in (("theta_rad", theta, t), ("force_N", force, t), ("alpha_ip_rad", alpha, t_ip)):
+            if len(arr) != len(times):
+                tname = "t_ip_s" if name == "alpha_ip_rad" else "t_s"
+                raise IdentificationError(f"{name} has {len(arr)} rows but {tname} has {len(times)} times")
+        _check_finite("theta_rad", theta, t)
+        _check_finite("force_N", force, t)
+        _check_finite("alpha_ip_rad", alpha, t_ip)
+        need = MIN_SAMPLES * DECIMATION
+        if len(t) < need:
+            raise IdentificationError(
+                f"too few encoder samples: {len(t)} ({t[-1] - t[0] if len(t) > 1 else 0:.2f} s); identification "
+                f"needs at least {need} (about {need / 500:.1f} s at 500 Hz), a full excitation trajectory is ~100 s"
+            )
+        if len(t_ip) < MIN_SAMPLES:
+            raise IdentificationError(f"too few camera frames: {len(t_ip)}, need at least {MIN_SAMPLES}")
+        overlap = min(t[-1], t_ip[-1]) - max(t[0], t_ip[0])
+        if overlap < 0.5 * (t[-1] - t[0]):
+            raise IdentificationError(
+                f"camera frames ({t_ip[0]:.2f}-{t_ip[-1]:.2f} s) cover less than half of the encoder record "
+                f"({t[0]:.2f}-{t[-1]:.2f} s): are both on the same clock?"
+            )
+        if self.excitation_alpha_rad is not None:
+            exc = _as_matrix("excitation_alpha_rad", self.excitation_alpha_rad, alpha.shape[1])
+            if len(exc) < MIN_SAMPLES or not np.all(np.isfinite(exc)):
+                raise IdentificationError(f"excitation_alpha_rad must hold at least {MIN_SAMPLES} finite rows, "
+                                          f"got {len(exc)} rows, {int((~np.isfinite(exc)).sum())} non-finite values")
+            object.__setattr__(self, "excitation_alpha_rad", exc)
+        for name, arr in (("t_s", t), ("theta_rad", theta), ("force_N", force), ("t_ip_s", t_ip), ("alpha_ip_rad", alpha)):
+            object.__setattr__(self, name, arr)
+
+    @property
+    def n_cables(self) -> int:
+        return int(self.theta_rad.shape[1])
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.alpha_ip_rad.shape[1])
+
+    @property
+    def rate_hz(self) -> float:
+        return float(1.0 / np.median(np.diff(self.t_s)))
+
+
+# --- processing (§5.2.1) ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Processed:
+    """Filtered, differentiated, decimated signals on the identification instants ``t_s``.
+
+    Arrays are (n,) or (n, ·) at 31.25 Hz: θ, θ̇, θ̈ (rad, rad/s, rad/s²) and f (N) from the
+    encoders (filtered at 500 Hz, then decimated by 16); α, α̇, α̈ from α_IP (filtered at the
+    camera rate, linearly interpolated to ``t_s``, central differences); x_c, ẋ_c, ẍ_c (m, m/s,
+    m/s²) from eq. 27 (our sign); the model terms Z, M, c, g at (α, α̇).
+    ``fast_*``: the 500 Hz record (raw θ, filtered θ̇, f) for the 2 ms estimators of eqs. 35/58.
+    """
+
+    t_s: FloatArray
+    theta: FloatArray
+    theta_dot: FloatArray
+    theta_ddot: FloatArray
+    force: FloatArray
+    alpha: FloatArray
+    alpha_dot: FloatArray
+    alpha_ddot: FloatArray
+    x_c: FloatArray
+    x_c_dot: FloatArray
+    x_c_ddot: FloatArray
+    Z: FloatArray
+    M: FloatArray
+    c: FloatArray
+    g: FloatArray
+    cutoff_hz: float
+    f_99_hz: float
+    rate_hz: float
+    bandwidth_from: str  # "alpha_d" (the excitation trajectory), "theta_dot" (the encoders) or "given"
+    fast_t_s: FloatArray
+    fast_theta: FloatArray
+    fast_theta_dot: FloatArray
+    fast_force: FloatArray
+
+    @property
+    def n(self) -> int:
+        return len(self.t_s)
+
+
+def cutoff_rule(velocity: FloatArray, rate_hz: float, nyquist_hz: float) -> tuple[float, float]:
+    """Cutoff (Hz) of the zero-phase Butterworth filter, and the motion bandwidth f_99 (Hz).
+
+    Rule (after Pham, Gautier & Poignet 2001, ref. [37]: the cutoff sits a few times above the
+    bandwidth of the motion, so that the filter removes noise and leaves the dynamics alone, and
+    both sides of the linear model are filtered alike): f_99 is the frequency below which 99 % of
+    the energy of ``velocity`` lies; f_c = 4·f_99, at least 0.5 Hz and at most 0.8 of the Nyquist
+    frequency of the slowest stream (the camera, 15 Hz). :func:`preprocess` passes the velocity of
+    the excitation trajectory α̇^d when the campaign records it (f_99 = 0.40 Hz on the §5.2.2
+    trajectory, f_c = 1.6 Hz), else the motor velocities θ̇. θ̇ is a fallback: it also carries the
+    motor-cable mode (≈ 18 kg of reflected motor inertia on a 5-8 kN/m cable, ≈ 3 Hz), which rings
+    when the cable damping is small and then holds ~1 % of the θ̇ energy: enough to move f_99 from
+    0.43 to 1.7 Hz, hence f_c from 1.7 to 6.8 Hz, which lets α_IP noise into x_c and, twice
+    differentiated, into ẍ_c (the Γ_rf error of eq. 52 grows fifteenfold on the twin).
+    Why 4 and not the usual 5-10: α_IP carries 1° of white noise up to 15 Hz that enters the
+    regressor x_c; the friction regressor arctan(c_s·θ̇) is nonlinear, so a too-low cutoff rounds
+    its sign changes (f_s is 2 % low at 0.9 Hz, 0.1 % at 1.7 Hz on the twin).
+    """
+    v = velocity - velocity.mean(axis=0)
+    spec = np.abs(np.fft.rfft(v, axis=0)) ** 2
+    power = spec.sum(axis=1)
+    cum = np.cumsum(power)
+    freqs = np.fft.rfftfreq(len(v), 1.0 / rate_hz)
+    if cum[-1] <= 0.0:
+        f_99 = CUTOFF_MIN_HZ
+    else:
+        f_99 = float(freqs[min(np.searchsorted(cum, 0.99 * cum[-1]), len(freqs) - 1)])
+    return float(np.clip(CUTOFF_FACTOR * f_99, CUTOFF_MIN_HZ, 0.8 * nyquist_hz)), f_99
+
+
+def _uniform(t: FloatArray, x: FloatArray, what: str, max_gap: float = 5.0) -> tuple[FloatArray, FloatArray, float]:
+    """Samples on a uniform grid at the median rate (linear interpolation of jittered stamps).
+    A gap longer than ``max_gap`` periods is lost data, not jitter: refuse it."""
+    dt = float(np.median(np.diff(t)))
+    gaps = np.diff(t) > max_gap * dt
+    if gaps.any():
+        k = int(np.flatnonzero(gaps)[0])
+        raise IdentificationError(
+            f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
+            f"(sampling period {dt * 1e3:.2f} ms); split the campaign or recover the data"
+        )
+    n = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
+    grid = t[0] + dt * np.arange(n)
+    # Length first: with a missed sample the grid is longer than the stamps and cannot be compared.
+    if n == len(t) and np.allclose(grid, t, atol=1e-3 * dt, rtol=0.0):
+        return t, x, dt
+    return grid, np.column_stack([np.interp(grid, t, x[:, j]) for j in range(x.shape[1])]), dt
+
+
+def _butter(x: FloatArray, cutoff_hz: float, rate_hz: float, order: int = 4) -> FloatArray:
+    sos = signal.butter(order, cutoff_hz, fs=rate_hz, output="sos")
+    return signal.sosfiltfilt(sos, x, axis=0)
+
+
+def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
+    """§5.2.1: zero-phase Butterworth (order 4, :func:`cutoff_rule` unless ``cutoff_hz``) on θ,
+    f and α_IP; central differences; θ and f decimated from 500 Hz to 31.25 Hz (anti-aliased,
+    zero phase); α_IP interpolated linearly to the same instants; x_c from eq. 27 (our sign).
+
+    Edge samples spoiled by the filters (two cutoff periods, at least 1 s, at each end) and
+    instants outside the camera record are dropped.
+    """
+    m = build(params)
+    if data.n_cables != m.n_cables or data.n_joints != m.n_joints:
+        raise IdentificationError(
+            f"campaign has {data.n_cables} motors and {data.n_joints} camera angles, the parameter set "
+            f"{params.name!r} has {m.n_cables} cables and {m.n_joints} joints"
+        )
+    t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
+    rate = 1.0 / dt
+    t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
+    nc = m.n_cables
+    raw_theta = enc[:, :nc]
+    nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
+    if cutoff_hz is not None:
+        fc, f_99, source = float(cutoff_hz), float("nan"), "given"
+    elif data.excitation_alpha_rad is not None:
+        fc, f_99 = cutoff_rule(np.gradient(data.excitation_alpha_rad, dt, axis=0), rate, nyquist)
+        source = "alpha_d"
+    else:
+        fc, f_99 = cutoff_rule(np.gradient(raw_theta, dt, axis=0), rate, nyquist)
+        source = "theta_dot"
+    if not (0.0 < fc < nyquist):
+        raise IdentificationError(f"cutoff {fc} Hz must be in (0, {nyquist:.2f}) Hz (Nyquist of the decimated/camera data)")
+
+    filt = _butter(enc, fc, rate)
+    theta_f, force_f = filt[:, :nc], filt[:, nc:]
+    theta_dot = np.gradient(theta_f, dt, axis=0)
+    theta_ddot = np.gradient(theta_dot, dt, axis=0)
+    # Anti-aliased, zero-phase decimation (FIR: an order-8 IIR is unstable for a factor > 13).
+    stack = np.hstack([theta_f, theta_dot, theta_ddot, force_f])
+    dec = signal.decimate(stack, DECIMATION, ftype="fir", axis=0, zero_phase=True)
+    t_dec = t[:: DECIMATION][: len(dec)]
+
+    alpha_f = _butter(a_ip, fc, 1.0 / dt_ip)
+    edge = max(1.0, 2.0 / fc)
+    keep = (t_dec >= max(t[0], t_ip[0]) + edge) & (t_dec <= min(t[-1], t_ip[-1]) - edge)
+    if keep.sum() < MIN_SAMPLES:
+        raise IdentificationError(
+            f"only {keep.sum()} identification instants remain after dropping {edge:.1f} s of filter edges "
+            f"at each end; need at least {MIN_SAMPLES}"
+        )
+    t_dec, dec = t_dec[keep], dec[keep]
+    theta_d, theta_dot_d, theta_ddot_d, force_d = np.split(dec, 4, axis=1)
+    alpha = np.column_stack([np.interp(t_dec, t_ip, alpha_f[:, i]) for i in range(m.n_joints)])
+    h = DECIMATION * dt
+    alpha_dot = np.gradient(alpha, h, axis=0)
+    alpha_ddot = np.gradient(alpha_dot, h, axis=0)
+    terms = dynamics.evaluate(m, alpha, alpha_dot)
+    x_c = terms.l_c - m.l_c0 + m.rho * theta_d  # eq. 27, physical stretch
+    x_c_dot = np.gradient(x_c, h, axis=0)
+    x_c_ddot = np.gradient(x_c_dot, h, axis=0)
+    return Processed(
+        t_s=t_dec, theta=theta_d, theta_dot=theta_dot_d, theta_ddot=theta_ddot_d, force=force_d,
+        alpha=alpha, alpha_dot=alpha_dot, alpha_ddot=alpha_ddot,
+        x_c=x_c, x_c_dot=x_c_dot, x_c_ddot=x_c_ddot,
+        Z=terms.Z, M=terms.M, c=terms.c, g=terms.g,
+        cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h, bandwidth_from=source,
+        fast_t_s=t, fast_theta=raw_theta, fast_theta_dot=theta_dot, fast_force=enc[:, nc:],
+    )
