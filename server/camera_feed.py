@@ -2,7 +2,8 @@
 
 Zenoh callbacks only store (the newest frame's raw payload, arrival times of α_IP messages);
 a frame is decoded and checked (:func:`bridge.bus.check_camera_frame`) when the console reads
-it, at most once, so a flood costs the bus callbacks nothing but a copy. A payload larger than
+it, at most once, so a flood costs the bus callbacks nothing but a copy; a refused frame leaves
+the last good one in place. A payload larger than
 the contract's bound is refused in the callback without being kept. Refused payloads are counted
 and never shown.
 """
@@ -34,7 +35,7 @@ class CameraFeed:
         self._lock = threading.Lock()
         self._raw: bytes | None = None
         self._received_s = -math.inf
-        self._decoded: tuple[bytes, bus.CameraFrame | None] | None = None
+        self._good: tuple[bus.CameraFrame, float] | None = None  # the latest valid frame, its arrival
         self._alpha_times: collections.deque[float] = collections.deque(maxlen=512)
         self.frames_received = 0
         self.frames_rejected = 0
@@ -63,22 +64,22 @@ class CameraFeed:
             self._alpha_times.append(time.monotonic())
 
     def frame(self) -> tuple[bus.CameraFrame, float] | None:
-        """The latest valid frame and its age (s since it arrived), or None."""
+        """The latest valid frame and its age (s since it arrived), or None. A refused frame
+        does not hide the last good one."""
         with self._lock:
             raw, received = self._raw, self._received_s
-            if raw is None:
-                return None
-            if self._decoded is None or self._decoded[0] is not raw:
+            if raw is not None:
+                self._raw = None  # decoded once, whatever the outcome
                 try:
-                    msg: bus.CameraFrame | None = bus.decode(bus.CameraFrame, raw)
+                    msg = bus.decode(bus.CameraFrame, raw)
                     bus.check_camera_frame(msg)
                 except bus.BusDecodeError as exc:
-                    msg = None
                     self.frames_rejected += 1
                     self.last_reject_reason = exc.reason
-                self._decoded = (raw, msg)
-            msg = self._decoded[1]
-        return None if msg is None else (msg, time.monotonic() - received)
+                else:
+                    self._good = (msg, received)
+            good = self._good
+        return None if good is None else (good[0], time.monotonic() - good[1])
 
     def alpha_rate_hz(self, window_s: float = RATE_WINDOW_S) -> float:
         """Valid α_IP messages per second over the last ``window_s``."""

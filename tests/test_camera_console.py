@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -202,3 +204,76 @@ def test_camera_route_and_detection_health_on_a_real_console(tmp_path, rendered)
     assert 10.0 < health["rate_hz"] < 40.0, health  # about 30 α_IP messages per second were published
     assert 0.0 <= health["age_s"] < 1.0 and 0.0 <= health["frame_age_s"] < 30.0
     assert health["frames_received"] >= 1
+
+
+@pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian chromium not installed (bash .ci/setup)")
+def test_dashboard_camera_panel_shows_the_twin_camera_with_its_markers(tmp_path, params) -> None:
+    playwright_sync = pytest.importorskip("playwright.sync_api")
+    from server_harness import running_server
+
+    ARTIFACTS.mkdir(exist_ok=True)
+    stop = threading.Event()
+    with running_server(tmp_path / "data", viser=False) as (base, _app), playwright_sync.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        camera = None
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1100})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(base + "/", wait_until="load")
+            page.wait_for_function("window.xneckCamera && window.xneckCamera.polls > 0", timeout=15000)
+            assert "no camera" in page.inner_text("#camera-state")
+
+            hub = httpx.get(base + "/api/system/health", timeout=10).json()["hub"]
+            log = open(tmp_path / "camera.log", "wb")  # noqa: SIM115 - the child's output while it runs
+            # The twin's rendered camera, joint 3's head-bar marker covered: the panel says "missing".
+            camera = subprocess.Popen(xneck("camera", "--source", "twin", "--rate", "10", "--frame-rate-hz", "5",
+                                            "--occlude", "3:1", "--connect", hub, "--instance", "panel-test"),
+                                      stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as session:
+                truth = publisher(session, bus.TWIN_TRUTH)
+                alpha = np.radians([15.0, -25.0, 20.0])
+
+                def feed_truth() -> None:  # the twin's truth at 50 Hz of the bus clock, held still
+                    k, t0 = 0, time.monotonic()
+                    while not stop.wait(0.02):
+                        k += 1
+                        truth.put(bus.Truth(seq=k, stamp_s=time.monotonic() - t0, alpha_rad=list(alpha),
+                                            alpha_dot_rad_s=[0.0] * 3, theta_rad=[0.0] * 4, theta_dot_rad_s=[0.0] * 4,
+                                            tension_N=[0.0] * 4, elongation_m=[0.0] * 4, slack=[False] * 4,
+                                            near_singular=False))
+
+                feeder = threading.Thread(target=feed_truth, daemon=True)
+                feeder.start()
+                try:
+                    page.wait_for_function("window.xneckCamera.frames >= 2 && window.xneckCamera.markers > 0", timeout=90000)
+                    page.wait_for_timeout(500)
+                    text = page.inner_text("#camera-alpha")
+                    state = page.evaluate("window.xneckCamera")
+                    health = httpx.get(base + "/api/system/health", timeout=10).json()["camera"]
+                    page.locator("#camera").screenshot(path=str(ARTIFACTS / "camera_panel.png"))
+                finally:
+                    stop.set()
+                    feeder.join(5)
+            assert state["state"] == "live" and state["markers"] >= 8, state
+            # The canvas shows the picture: not blank, and the overlay's colour is on it.
+            pixels = page.evaluate("""() => { const c = document.querySelector('#camera-canvas');
+                const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let lit = 0;
+                for (let i = 0; i < d.length; i += 4 * 97) if (d[i] + d[i + 1] + d[i + 2] > 60) lit++; return lit; }""")
+            assert pixels > 100, pixels
+            rows = text.splitlines()
+            assert any("α1" in r and "15." in r for r in rows) and any("α2" in r and "-25." in r for r in rows), text
+            assert any("α3" in r and "missing" in r for r in rows), text
+            assert health["source"] == "twin-render" and health["missing_joints"] == [3] and health["rate_hz"] > 0
+            assert health["frame_age_s"] is not None
+            assert not errors, errors
+        finally:
+            stop.set()
+            if camera is not None:
+                camera.terminate()
+                try:
+                    camera.wait(10)
+                except subprocess.TimeoutExpired:
+                    camera.kill()
+                    camera.wait(5)
+            browser.close()

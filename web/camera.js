@@ -1,0 +1,143 @@
+// The camera panel (issue 15): the latest camera frame with the markers the detector found drawn
+// over it, α_IP per joint with its confidence ("missing" for a joint the camera did not measure,
+// never a number), the detection health, and a clear "no camera" state.
+// Data: GET /api/camera (metadata, markers, α_IP, health) then GET /api/camera/frame.jpg; the
+// overlay is drawn only when the JPEG's X-Frame-Seq is the frame the markers belong to.
+(function () {
+  "use strict";
+  const POLL_MS = 300;
+  // Marker colours of the bars, base up (twin/camera/layout.py): red, green, blue, yellow, cyan.
+  const BAR_COLORS = ["#ff3b30", "#30d158", "#0a84ff", "#ffd60a", "#40e0ff"];
+  const REF_COLOR = "#ff2dd4";  // base-plate reference markers (magenta)
+  const DEG = 180 / Math.PI;
+  const stats = { polls: 0, frames: 0, markers: 0, state: "none", key: null };
+  let dimmed = false;
+  window.xneckCamera = stats;  // for tests and the curious
+
+  const canvas = document.getElementById("camera-canvas");
+  const stateEl = document.getElementById("camera-state");
+  const alphaEl = document.getElementById("camera-alpha");
+  if (!canvas || !stateEl || !alphaEl) return;
+  canvas.style.width = "100%";
+  canvas.style.height = "auto";
+  canvas.style.background = "#1f2933";
+  const ctx = canvas.getContext("2d");
+
+  function blank(text) {
+    ctx.fillStyle = "#1f2933";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    ctx.fillStyle = "#cfd6dd";
+    ctx.font = `${Math.round(canvas.height / 10)}px system-ui, sans-serif`;
+    ctx.textAlign = "center";
+    ctx.fillText(text, canvas.width / 2, canvas.height / 2);
+  }
+
+  function setState(state, text) {
+    stats.state = state;
+    stateEl.textContent = text;
+    stateEl.style.color = state === "live" ? "#2e7d32" : state === "stale" ? "#ef6c00" : "#777";
+  }
+
+  function fmt(x, digits) { return x === null || x === undefined ? "–" : Number(x).toFixed(digits); }
+
+  function showAlpha(alpha) {
+    alphaEl.replaceChildren();
+    if (!alpha) return;
+    alpha.alpha_ip_rad.forEach((a, j) => {
+      const row = document.createElement("div");
+      const conf = alpha.confidence.length ? alpha.confidence[j] : null;
+      if (a === null) {
+        row.textContent = `α${j + 1}  missing`;
+        row.style.color = "#c62828";
+      } else {
+        row.textContent = `α${j + 1}  ${(a * DEG).toFixed(1)}°` + (conf === null ? "" : `  confidence ${conf.toFixed(2)}`);
+      }
+      alphaEl.appendChild(row);
+    });
+  }
+
+  function drawOverlay(f) {
+    const bars = new Map();
+    f.marker_bar.forEach((bar, k) => {
+      const p = [f.markers_px[2 * k], f.markers_px[2 * k + 1]];
+      if (!bars.has(bar)) bars.set(bar, []);
+      bars.get(bar).push(p);
+    });
+    const r = Math.max(6, f.width / 110);
+    ctx.lineWidth = Math.max(2, f.width / 400);
+    for (const [bar, pts] of bars) {
+      const color = bar < 0 ? REF_COLOR : BAR_COLORS[bar % BAR_COLORS.length];
+      ctx.strokeStyle = color;
+      if (bar >= 0 && pts.length === 2) {  // the bar through its two markers
+        ctx.setLineDash([r, r / 2]);
+        ctx.beginPath();
+        ctx.moveTo(pts[0][0], pts[0][1]);
+        ctx.lineTo(pts[1][0], pts[1][1]);
+        ctx.stroke();
+        ctx.setLineDash([]);
+      }
+      for (const [x, y] of pts) {
+        ctx.beginPath();
+        ctx.arc(x, y, r, 0, 2 * Math.PI);
+        ctx.stroke();
+        ctx.beginPath();  // a cross at the sub-pixel centroid
+        ctx.moveTo(x - r / 2, y); ctx.lineTo(x + r / 2, y);
+        ctx.moveTo(x, y - r / 2); ctx.lineTo(x, y + r / 2);
+        ctx.stroke();
+      }
+    }
+    stats.markers = f.marker_bar.length;
+  }
+
+  async function loadFrame(f) {
+    const r = await fetch(f.url, { cache: "no-store" });
+    if (!r.ok) return;
+    if (r.headers.get("X-Frame-Seq") !== String(f.seq)) return;  // a newer frame: its markers come next poll
+    const bitmap = await createImageBitmap(await r.blob());
+    canvas.width = f.width;
+    canvas.height = f.height;
+    ctx.drawImage(bitmap, 0, 0, f.width, f.height);
+    bitmap.close();
+    drawOverlay(f);
+    dimmed = false;
+    stats.frames += 1;
+    stats.key = `${f.seq}@${f.capture_stamp_s}`;
+  }
+
+  async function poll() {
+    try {
+      const r = await fetch("/api/camera", { cache: "no-store" });
+      const s = await r.json();
+      const h = s.health;
+      if (!h) {
+        setState("none", "no camera");
+        if (stats.frames === 0) blank("no camera");
+      } else {
+        const missing = h.missing_joints.length ? `, missing joint ${h.missing_joints.join(", ")}` : "";
+        const age = h.frame_age_s === null || h.frame_age_s === undefined ? "no picture" : `picture ${fmt(h.frame_age_s, 1)} s old`;
+        if (h.fresh) {
+          setState("live", `${h.source}: ${fmt(h.rate_hz, 0)} Hz${missing}, ${h.dropped} dropped, ${age}`);
+        } else {
+          setState("stale", `no camera (${h.source} silent for ${fmt(h.age_s, 0)} s)`);
+        }
+      }
+      showAlpha(h && h.fresh ? s.alpha : null);
+      if (!h || !h.fresh) {
+        if (stats.frames > 0 && !dimmed) {  // the last picture stays, greyed: it is not now
+          ctx.fillStyle = "rgba(31,41,51,0.6)";
+          ctx.fillRect(0, 0, canvas.width, canvas.height);
+          dimmed = true;
+        }
+      } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` !== stats.key) {
+        await loadFrame(s.frame);
+      }
+    } catch (e) {
+      setState("none", "no camera (console unreachable)");
+    }
+    stats.polls += 1;
+    setTimeout(poll, POLL_MS);
+  }
+
+  blank("no camera");
+  poll();
+})();
