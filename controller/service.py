@@ -249,6 +249,7 @@ class CampaignService:
         self._t0, self._total, self._next_progress = 0.0, math.inf, 0.0
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
+        self._drives_off = False  # the drives were off since the law last ran
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
@@ -474,9 +475,12 @@ class CampaignService:
         self.ctl.restart_integral()
         alpha_hat = self.hold_alpha()
         self._blend = None
-        if not self.running:
+        drives_were_off, self._drives_off = self._drives_off, False
+        if not self.running and (drives_were_off or self.kind != "jog" or self.outcome != "finished"):
             self.hold_target = alpha_hat.copy()
             return
+        # A finished jog's pose is where the operator put the neck: a stall of the states does not
+        # move it (after the drives were off the neck stays where it is, above).
         offset = alpha_hat - self.reference(stamp_s)[0]
         delta = float(np.max(np.abs(offset)))
         if delta > BLEND_TOLERANCE_RAD:
@@ -498,7 +502,7 @@ class CampaignService:
         elif drive != "active":
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
-            self._restart = True
+            self._restart = self._drives_off = True
             reason = f"drives {drive}" + (f": {self.drive_reason}" if self.drive_reason else "")
             if drive == "disabled" and self.running:
                 self._end("aborted", f"{reason} during the campaign", self._progress(stamp_s), self.hold_alpha())

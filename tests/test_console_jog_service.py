@@ -55,3 +55,22 @@ def test_stopping_the_running_jog_drops_the_waiting_one_and_holds(params):
     held = loop.svc.hold_target.copy()
     loop.run(0.3)
     assert not loop.svc.running and np.array_equal(loop.svc.hold_target, held)
+
+
+def test_a_finished_jog_keeps_its_pose_through_a_stall_of_the_states_but_not_through_drives_off(params):
+    """On a loaded machine states stall for a while (the law then re-starts from α̂): the neck
+    must still end where the operator put it, not where the stall caught it; after the drives
+    were off it holds where it is (nothing moves by itself when they come back)."""
+    loop = Loop(params)
+    loop.run(0.1)
+    loop.svc.handle(_jog("jog-1", [10.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.5)
+    loop.svc.advance(loop.stamp_s + 5.0)  # the jog ends while the neck lags behind (a loaded machine)
+    loop.events += loop.svc.drain_events()
+    assert _outcome(loop, "jog-1") == "finished"
+    loop.svc.stale("stale state", 0.2)  # and the states stall: the law re-starts from α̂
+    loop.run(1.5)
+    assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - np.radians([10.0, 0.0, 0.0]))).max() < 0.5
+    loop.svc.control(loop.tick.theta_meas, loop.stamp_s, drive="disabled")
+    loop.run(0.1)
+    assert np.degrees(np.abs(loop.svc.hold_target - loop.outputs[-1].alpha_hat_rad)).max() < 0.2
