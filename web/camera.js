@@ -130,6 +130,8 @@
         }
       } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` !== stats.key) {
         await loadFrame(s.frame);
+      } else if (!s.frame && stats.frames === 0) {
+        blank(`no picture: ${h.source} sends α_IP only`);  // e.g. the twin's white-noise camera
       }
     } catch (e) {
       setState("none", "no camera (console unreachable)");
