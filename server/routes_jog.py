@@ -61,8 +61,7 @@ class JogDesk:
                                               trajectory_json=trajectory_json))
 
 
-def _desk(request: Request) -> JogDesk:
-    state = request.app.state
+def desk_of(state: Any) -> JogDesk:
     desk = getattr(state, "jog", None)
     if desk is None:
         desk = state.jog = JogDesk(state.session)
@@ -91,12 +90,8 @@ def jog_move(target: Trajectory, alpha_hat_rad: list[float], params: Any, law: L
     return move
 
 
-def _refuse(code: int, detail: Any) -> JSONResponse:
-    return JSONResponse(status_code=code, content={"detail": detail})
-
-
-def _unacceptable(exc: Exception) -> JSONResponse:
-    return _refuse(422, [{"loc": ["body", "alpha_deg"], "msg": str(exc), "type": "value_error"}])
+def _unacceptable(exc: Exception) -> tuple[int, Any]:
+    return 422, {"detail": [{"loc": ["body", "alpha_deg"], "msg": str(exc), "type": "value_error"}]}
 
 
 def busy_reason(state: Any) -> str:
@@ -113,6 +108,55 @@ def busy_reason(state: Any) -> str:
     return ""
 
 
+def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
+    """Check and send a jog to ``alpha_deg`` for the console whose app state is ``state``:
+    (HTTP status, answer body). Shared by the REST route and the viser panel's sliders."""
+    busy = busy_reason(state)
+    if busy:
+        return status.HTTP_409_CONFLICT, {"detail": busy}
+    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
+    law = law_of(ctl.law if ctl is not None else "")
+    params = state.default_params
+    try:
+        target = jog_target(alpha_deg, params, law)
+    except (TrajectoryError, ValueError) as exc:
+        return _unacceptable(exc)
+    if not state.presence.any_alive("campaign-service"):
+        return status.HTTP_503_SERVICE_UNAVAILABLE, {"detail": "no controller service on the bus (start the "
+                                                              "stack with `xneck up`)"}
+    if ctl is None:
+        return status.HTTP_503_SERVICE_UNAVAILABLE, {"detail": "no recent controller status: α̂ is unknown"}
+    try:
+        move = jog_move(target, ctl.alpha_hat_rad, params, law)
+    except (TrajectoryError, ValueError) as exc:
+        return _unacceptable(exc)
+    desk = desk_of(state)
+    with desk.lock:
+        now = time.monotonic()
+        if now - desk.last_s < JOG_MIN_INTERVAL_S:
+            return status.HTTP_429_TOO_MANY_REQUESTS, {"detail": f"jogs come faster than one per "
+                                                                 f"{JOG_MIN_INTERVAL_S:g} s"}
+        desk.last_s = now
+        desk.last_id = f"jog-{time.strftime('%H%M%S')}-{next(desk.ids)}"
+        desk.send(desk.last_id, "start", target.to_json())
+    return status.HTTP_202_ACCEPTED, {"jog_id": desk.last_id,
+                                      "from_deg": [round(math.degrees(a), 3) for a in ctl.alpha_hat_rad],
+                                      "to_deg": list(alpha_deg), "duration_s": move.duration_s}
+
+
+def stop_jog(state: Any) -> list[str]:
+    """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
+    (the controller then holds α̂). Returns the ids stopped."""
+    desk = desk_of(state)
+    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
+    running = ctl.campaign_id if ctl is not None and ctl.campaign_id.startswith("jog-") else ""
+    stopped = [cid for cid in dict.fromkeys((desk.last_id, running)) if cid]
+    with desk.lock:
+        for cid in stopped:
+            desk.send(cid, "stop")
+    return stopped
+
+
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
              responses={409: {"description": "A campaign or replay runs, or the e-stop is engaged"},
                         422: {"description": "The move is out of the joint limits or the force range (the "
@@ -122,48 +166,12 @@ def busy_reason(state: Any) -> str:
 def jog(body: JogRequest, request: Request) -> Any:
     """Move the neck to ``alpha_deg`` and hold it there (module docstring). The answer says the
     move planned from α̂: ``jog_id``, ``from_deg``, ``to_deg``, ``duration_s``."""
-    state = request.app.state
-    busy = busy_reason(state)
-    if busy:
-        return _refuse(status.HTTP_409_CONFLICT, busy)
-    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
-    law = law_of(ctl.law if ctl is not None else "")
-    params = state.default_params
-    try:
-        target = jog_target(body.alpha_deg, params, law)
-    except (TrajectoryError, ValueError) as exc:
-        return _unacceptable(exc)
-    if not state.presence.any_alive("campaign-service"):
-        return _refuse(status.HTTP_503_SERVICE_UNAVAILABLE, "no controller service on the bus (start the stack "
-                       "with `xneck up`)")
-    if ctl is None:
-        return _refuse(status.HTTP_503_SERVICE_UNAVAILABLE, "no recent controller status: α̂ is unknown")
-    try:
-        move = jog_move(target, ctl.alpha_hat_rad, params, law)
-    except (TrajectoryError, ValueError) as exc:
-        return _unacceptable(exc)
-    desk = _desk(request)
-    with desk.lock:
-        now = time.monotonic()
-        if now - desk.last_s < JOG_MIN_INTERVAL_S:
-            return _refuse(status.HTTP_429_TOO_MANY_REQUESTS,
-                           f"jogs come faster than one per {JOG_MIN_INTERVAL_S:g} s")
-        desk.last_s = now
-        desk.last_id = f"jog-{time.strftime('%H%M%S')}-{next(desk.ids)}"
-        desk.send(desk.last_id, "start", target.to_json())
-    return {"jog_id": desk.last_id, "from_deg": [round(math.degrees(a), 3) for a in ctl.alpha_hat_rad],
-            "to_deg": list(body.alpha_deg), "duration_s": move.duration_s}
+    code, answer = request_jog(request.app.state, body.alpha_deg)
+    return JSONResponse(status_code=code, content=answer)
 
 
 @router.post("/stop", dependencies=[Depends(require_token)])
 def jog_stop(request: Request) -> dict[str, Any]:
     """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
     (the controller then holds α̂)."""
-    desk = _desk(request)
-    ctl = request.app.state.live.values.fresh("status", STATUS_MAX_AGE_S)
-    running = ctl.campaign_id if ctl is not None and ctl.campaign_id.startswith("jog-") else ""
-    stopped = [cid for cid in dict.fromkeys((desk.last_id, running)) if cid]
-    with desk.lock:
-        for cid in stopped:
-            desk.send(cid, "stop")
-    return {"stopped": stopped}
+    return {"stopped": stop_jog(request.app.state)}

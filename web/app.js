@@ -93,6 +93,7 @@ function onFrame(frame) {
   }
   if (s.campaign && s.campaign.campaign_id === runningId) setProgress(s.campaign.progress, s.campaign.event);
   dirty = true;
+  window.dispatchEvent(new CustomEvent("xneck-frame", { detail: frame }));  // jog.js, console.js
 }
 
 function redraw() {
@@ -370,6 +371,7 @@ async function main() {
   config.parameter_sets.forEach((n) => ps.append(new Option(n, n, false, n === config.active_parameter_set)));
   if (config.viser_port) $("#viser").src = `${location.protocol}//${location.hostname}:${config.viser_port}/`;
   buildPlots();
+  window.dispatchEvent(new CustomEvent("xneck-config", { detail: config }));  // jog.js, trajectories.js, compare.js
   connectLive();
   requestAnimationFrame(redraw);
   refreshList();

@@ -1,0 +1,126 @@
+"""The operator's console in a real browser (issue 18): playwright driving Debian's chromium on a
+real console (uvicorn in this process) with a real stack on its hub — the twin bridge and the
+controller service as processes, as `xneck up` starts them. Each test saves a screenshot under
+artifacts/ for a person to look at (docs/console.md lists them)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from server_harness import AUTH, TOKEN, running_server, wait_until
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--disable-sync", "--no-first-run", "--disable-quic"]
+ARTIFACTS = Path(__file__).resolve().parent.parent / "artifacts"
+NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [6, 4, 0], [0, 0, 0]], "durations_s": 0.8, "dwell_s": 0.1}
+
+playwright_sync = pytest.importorskip("playwright.sync_api")
+pytestmark = pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian chromium not installed (bash .ci/setup)")
+
+
+class Console:
+    """The console, its stack and one browser page, shared by the tests of this module."""
+
+    def __init__(self, base: str, app, page, tmp: Path) -> None:
+        self.base, self.app, self.page, self.tmp = base, app, page, tmp
+        self.http = httpx.Client(base_url=base, timeout=10)
+        self.errors: list[str] = []
+        page.on("pageerror", lambda e: self.errors.append(str(e)))
+
+    def shot(self, name: str, selector: str | None = None) -> None:
+        ARTIFACTS.mkdir(exist_ok=True)
+        target = self.page.locator(selector) if selector else self.page
+        target.screenshot(path=str(ARTIFACTS / name))
+
+    def run_campaign(self, body: dict) -> str:
+        r = self.http.post("/api/campaigns", json=body, headers=AUTH)
+        assert r.status_code == 201, r.text
+        return r.json()["id"]
+
+    def wait_ended(self, cid: str, timeout_s: float = 40) -> dict:
+        rec: dict = {}
+
+        def ended() -> bool:
+            nonlocal rec
+            rec = self.http.get(f"/api/campaigns/{cid}").json()
+            return rec["status"] != "running" and self.http.get("/api/system/health").json()["running_campaign_id"] is None
+
+        assert wait_until(ended, timeout_s, 0.2), rec
+        return rec
+
+
+def _spawn(hub: str, log: Path, *args: str) -> subprocess.Popen:
+    with open(log, "wb") as out:
+        return subprocess.Popen([sys.executable, "-m", "server.cli", *args, "--listen", "tcp/127.0.0.1:0",
+                                 "--connect", hub], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("console")
+    procs: list[subprocess.Popen] = []
+    with running_server(tmp / "data", pace="realtime") as (base, app), playwright_sync.sync_playwright() as pw:
+        try:
+            procs.append(_spawn(app.state.hub, tmp / "bridge.log", "bridge", "--driver", "twin"))
+            procs.append(_spawn(app.state.hub, tmp / "controller.log", "controller", "--law", "2"))
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            c = Console(base, app, page, tmp)
+            page.goto(base + "/", wait_until="load")
+            page.fill("#token", TOKEN)
+            page.dispatch_event("#token", "change")
+            up = wait_until(lambda: app.state.presence.any_alive("campaign-service")
+                            and app.state.live.values.fresh("status", 0.5) is not None, 90, 0.2)
+            assert up, (tmp / "controller.log").read_text()[-2000:] + (tmp / "bridge.log").read_text()[-2000:]
+            yield c
+            assert not c.errors, c.errors
+            browser.close()
+        finally:
+            for p in procs:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGTERM)
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait(5)
+
+
+def _slide(page, joint: int, value: float) -> None:
+    """Drag a jog slider to ``value`` and release it (input events while moving, change on release)."""
+    page.evaluate("""([j, v]) => { const s = document.getElementById(`jog-${j}`);
+        for (const x of [v / 2, v]) { s.value = x; s.dispatchEvent(new Event("input")); }
+        s.dispatchEvent(new Event("change")); }""", [joint, value])
+
+
+def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(console):
+    page, app = console.page, console.app
+    page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
+    straight = np.array(app.state.scene.bars.points, copy=True)
+    _slide(page, 1, 15.0)
+    page.wait_for_function("window.xneckJog.accepted >= 1", timeout=10000)
+    page.wait_for_function("Math.abs(window.xneckJog.alphaHat[0] - 15) < 1", timeout=20000)
+    # the 3D view follows: its bars are drawn at α̂ ≈ (15, 0, 0)°
+    bent = app.state.scene.drawing.geometry(np.radians([15.0, 0.0, 0.0])).bars
+    assert wait_until(lambda: np.abs(np.asarray(app.state.scene.bars.points) - bent).max() < 0.003, 5, 0.05)
+    assert np.abs(np.asarray(app.state.scene.bars.points) - straight).max() > 0.01
+    # ... and so do the plots: the last α̂ of joint 1 (uPlot series 2) is the target
+    page.wait_for_function("Math.abs(jointPlots[0].data[2].at(-1) - 15) < 1", timeout=5000)
+    page.wait_for_timeout(500)
+    console.shot("console_jog.png")
+
+    cid = console.run_campaign({"kind": "control", "waypoints": NOD})
+    r = console.http.post("/api/jog", json={"alpha_deg": [0, 10, 0]}, headers=AUTH)
+    assert r.status_code == 409 and cid in r.json()["detail"], r.text
+    assert console.wait_ended(cid)["status"] in ("finished", "degraded")

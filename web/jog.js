@@ -1,0 +1,87 @@
+// Jog: one slider per joint sends the target pose to POST /api/jog (the controller moves there by
+// its gentle approach and holds it). While a slider is dragged the newest target goes at most
+// every SEND_PERIOD_MS (the server refuses faster, 429); releasing it sends where it stopped, and
+// the neck holds there. "hold here" stops the move where the neck is. Uses api(), $ and DEG of app.js.
+"use strict";
+
+(() => {
+  const SEND_PERIOD_MS = 300;
+  const jog = (window.xneckJog = { sent: 0, accepted: 0, last: null, error: "", alphaHat: null });
+  let sliders = [];
+  let timer = null, lastSent = 0, inFlight = false, pending = false;
+
+  function target() { return sliders.map((s) => Number(s.value)); }
+
+  function say(text, isError) {
+    $("#jog-status").textContent = isError ? "" : text;
+    $("#jog-error").textContent = isError ? text : "";
+    jog.error = isError ? text : "";
+  }
+
+  async function send() {
+    if (inFlight) { pending = true; return; }
+    inFlight = true; pending = false; lastSent = Date.now(); jog.sent++;
+    const alpha = target();
+    try {
+      const r = await api("POST", "/api/jog", { alpha_deg: alpha });
+      jog.accepted++; jog.last = r;
+      say(`→ [${alpha.map((a) => a.toFixed(1)).join(", ")}]° in ${r.duration_s.toFixed(1)} s (${r.jog_id})`, false);
+    } catch (e) {
+      if (String(e.message).startsWith("429")) pending = true;  // too fast: the newest target goes next
+      else say(e.message || String(e), true);
+    } finally {
+      inFlight = false;
+      if (pending) schedule();
+    }
+  }
+
+  function schedule() {
+    clearTimeout(timer);
+    timer = setTimeout(send, Math.max(0, SEND_PERIOD_MS - (Date.now() - lastSent)));
+  }
+
+  function build(config) {
+    const box = $("#jog-sliders");
+    box.replaceChildren();
+    sliders = [];
+    for (let j = 0; j < config.n_joints; j++) {
+      const row = document.createElement("label");
+      row.className = "jog-row";
+      const name = document.createElement("span"); name.textContent = `α${j + 1}`;
+      const s = document.createElement("input");
+      Object.assign(s, { type: "range", min: -config.alpha_max_deg, max: config.alpha_max_deg, step: 0.5, value: 0 });
+      s.id = `jog-${j + 1}`;
+      const val = document.createElement("output"); val.textContent = "0.0°";
+      const hat = document.createElement("small"); hat.className = "jog-hat"; hat.id = `jog-hat-${j + 1}`;
+      s.addEventListener("input", () => { val.textContent = Number(s.value).toFixed(1) + "°"; schedule(); });
+      s.addEventListener("change", () => { clearTimeout(timer); send(); });  // released: where it stopped
+      row.append(name, s, val, hat);
+      box.append(row);
+      sliders.push(s);
+    }
+    $("#jog-limits").textContent = `±${config.alpha_max_deg}°`;
+  }
+
+  window.addEventListener("xneck-config", (ev) => build(ev.detail));
+
+  window.addEventListener("xneck-frame", (ev) => {
+    const st = (ev.detail.series || {}).status;
+    if (!st) return;
+    const first = jog.alphaHat === null;
+    jog.alphaHat = st.alpha_hat_rad.map((a) => a * DEG);
+    jog.alphaHat.forEach((a, j) => {
+      const el = document.getElementById(`jog-hat-${j + 1}`);
+      if (el) el.textContent = `α̂ ${a.toFixed(1)}°`;
+      if (first && sliders[j]) {  // start from where the neck is, not from zero
+        sliders[j].value = a.toFixed(1);
+        sliders[j].nextSibling.textContent = Number(sliders[j].value).toFixed(1) + "°";
+      }
+    });
+  });
+
+  $("#jog-hold").addEventListener("click", async () => {
+    clearTimeout(timer); pending = false;
+    try { const r = await api("POST", "/api/jog/stop"); say(`holding (${r.stopped.join(", ") || "nothing moving"})`, false); }
+    catch (e) { say(e.message || String(e), true); }
+  });
+})();
