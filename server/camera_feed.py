@@ -36,7 +36,8 @@ class CameraFeed:
         self._raw: bytes | None = None
         self._received_s = -math.inf
         self._good: tuple[bus.CameraFrame, float] | None = None  # the latest valid frame, its arrival
-        self._alpha_times: collections.deque[float] = collections.deque(maxlen=512)
+        # (arrival, which joints were missing) of the latest valid α_IP messages
+        self._alpha: collections.deque[tuple[float, tuple[bool, ...]]] = collections.deque(maxlen=512)
         self.frames_received = 0
         self.frames_rejected = 0
         self.last_reject_reason = ""
@@ -57,11 +58,11 @@ class CameraFeed:
     def note_alpha(self, payload: bytes) -> None:
         """Counts a valid α_IP message (a refused one is the live store's to count)."""
         try:
-            bus.decode(bus.CameraAlpha, payload)
+            msg = bus.decode(bus.CameraAlpha, payload)
         except bus.BusDecodeError:
             return
         with self._lock:
-            self._alpha_times.append(time.monotonic())
+            self._alpha.append((time.monotonic(), tuple(a is None for a in msg.alpha_ip_rad)))
 
     def frame(self) -> tuple[bus.CameraFrame, float] | None:
         """The latest valid frame and its age (s since it arrived), or None. A refused frame
@@ -81,17 +82,20 @@ class CameraFeed:
             good = self._good
         return None if good is None else (good[0], time.monotonic() - good[1])
 
-    def alpha_rate_hz(self, window_s: float = RATE_WINDOW_S) -> float:
-        """Valid α_IP messages per second over the last ``window_s``."""
+    def alpha_window(self, window_s: float = RATE_WINDOW_S) -> tuple[float, list[float]]:
+        """Valid α_IP messages per second over the last ``window_s``, and per joint the fraction
+        of them that had it missing (empty without a message)."""
         now = time.monotonic()
         with self._lock:
-            n = sum(1 for t in self._alpha_times if now - t <= window_s)
-        return n / window_s
+            recent = [missing for t, missing in self._alpha if now - t <= window_s]
+        n_joints = min((len(m) for m in recent), default=0)
+        fractions = [sum(m[j] for m in recent) / len(recent) for j in range(n_joints)]
+        return len(recent) / window_s, fractions
 
     def alpha_age_s(self) -> float | None:
         """s since the latest valid α_IP message, None before any."""
         with self._lock:
-            return time.monotonic() - self._alpha_times[-1] if self._alpha_times else None
+            return time.monotonic() - self._alpha[-1][0] if self._alpha else None
 
     def close(self) -> None:
         for sub in self._subs:
@@ -104,7 +108,8 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
     """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
     whether it arrived within ``max_age_s`` (``fresh``), the joints it reports missing (1-based),
     the per-joint confidence and the frames the source dropped; with ``feed``, the α_IP rate
-    (``rate_hz``), the age of the latest α_IP message and of the latest JPEG frame (s, null
+    (``rate_hz``) and per joint the fraction of those messages that had it missing
+    (``missing_fraction``), both over the last :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
     without one) and the frames refused. None before any camera message."""
     msg = values.get("camera")
     if msg is None:
@@ -116,7 +121,8 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
     }
     if feed is not None:
         latest = feed.frame()
-        out.update({"rate_hz": feed.alpha_rate_hz(), "age_s": feed.alpha_age_s(),
+        rate_hz, missing_fraction = feed.alpha_window()
+        out.update({"rate_hz": rate_hz, "missing_fraction": missing_fraction, "age_s": feed.alpha_age_s(),
                     "frame_age_s": None if latest is None else latest[1],
                     "frames_received": feed.frames_received, "frames_rejected": feed.frames_rejected})
     return out

@@ -202,6 +202,7 @@ def test_camera_route_and_detection_health_on_a_real_console(tmp_path, rendered)
     assert state["alpha"]["alpha_ip_rad"] == [0.17, -0.35, None] and state["alpha"]["fresh"] is True
     assert health["missing_joints"] == [3] and health["fresh"] is True and health["source"] == "twin-render"
     assert 10.0 < health["rate_hz"] < 40.0, health  # about 30 α_IP messages per second were published
+    assert health["missing_fraction"] == [0.0, 0.0, 1.0]
     assert 0.0 <= health["age_s"] < 1.0 and 0.0 <= health["frame_age_s"] < 30.0
     assert health["frames_received"] >= 1
 

@@ -40,7 +40,7 @@
 
   function fmt(x, digits) { return x === null || x === undefined ? "–" : Number(x).toFixed(digits); }
 
-  function showAlpha(alpha) {
+  function showAlpha(alpha, missingFraction) {
     alphaEl.replaceChildren();
     if (!alpha) return;
     alpha.alpha_ip_rad.forEach((a, j) => {
@@ -52,6 +52,8 @@
       } else {
         row.textContent = `α${j + 1}  ${(a * DEG).toFixed(1)}°` + (conf === null ? "" : `  confidence ${conf.toFixed(2)}`);
       }
+      const lost = missingFraction && missingFraction[j];
+      if (lost) row.textContent += `  (missing in ${Math.round(100 * lost)} % of the last 2 s)`;
       alphaEl.appendChild(row);
     });
   }
@@ -121,7 +123,7 @@
           setState("stale", `no camera (${h.source} silent for ${fmt(h.age_s, 0)} s)`);
         }
       }
-      showAlpha(h && h.fresh ? s.alpha : null);
+      showAlpha(h && h.fresh ? s.alpha : null, h ? h.missing_fraction : null);
       if (!h || !h.fresh) {
         if (stats.frames > 0 && !dimmed) {  // the last picture stays, greyed: it is not now
           ctx.fillStyle = "rgba(31,41,51,0.6)";
