@@ -53,7 +53,7 @@
         row.textContent = `α${j + 1}  ${(a * DEG).toFixed(1)}°` + (conf === null ? "" : `  confidence ${conf.toFixed(2)}`);
       }
       const lost = missingFraction && missingFraction[j];
-      if (lost) row.textContent += `  (missing in ${Math.round(100 * lost)} % of the last 2 s)`;
+      if (lost) row.textContent += a === null ? `  (${Math.round(100 * lost)} % of the last 2 s)` : `  (missing in ${Math.round(100 * lost)} % of the last 2 s)`;
       alphaEl.appendChild(row);
     });
   }
