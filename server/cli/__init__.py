@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import camera, campaign, identify, kinematics, model, processes, serve, up
+from server.cli import calibrate, camera, campaign, identify, kinematics, model, processes, serve, up
 
 app = typer.Typer(
     name="xneck",
@@ -28,7 +28,11 @@ def _root() -> None:
 
 
 app.command("model", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(model.model)
-app.command("twin")(processes.twin)
+# `xneck twin` runs the twin; `xneck twin calibrate` fits a truth to recordings (issue 16).
+twin_app = typer.Typer(help="Run the simulated robot on the bus, or calibrate its truth.", invoke_without_command=True)
+twin_app.callback()(processes.twin)
+twin_app.command("calibrate")(calibrate.calibrate)
+app.add_typer(twin_app, name="twin")
 app.command("bridge")(processes.bridge)
 app.command("controller")(processes.controller)
 campaign.campaign_app.command("control")(campaign.campaign_control)

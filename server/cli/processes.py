@@ -191,6 +191,7 @@ def bridge(
 
 
 def twin(
+    ctx: typer.Context,
     lockstep: bool = LOCKSTEP_OPTION,
     seed: int = SEED_OPTION,
     cable_model: str | None = CABLE_MODEL_OPTION,
@@ -208,7 +209,10 @@ def twin(
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the simulated robot on the bus: the bridge with the twin as its driver, so it speaks
-    exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`)."""
+    exactly the bridge's topics and applies the bridge's safety rules (`xneck bridge --driver twin`).
+    `xneck twin calibrate` fits a truth to recorded campaigns instead."""
+    if ctx.invoked_subcommand is not None:
+        return  # a subcommand (calibrate) runs instead of the twin
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
            hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,

@@ -140,6 +140,11 @@ class Twin:
     def theta(self) -> np.ndarray:
         return self.state[self._n : self._n + self._nc].copy()
 
+    @property
+    def tension_N(self) -> np.ndarray:
+        """Cable tensions (N) of the last substep."""
+        return self._tension.copy()
+
     def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None) -> None:
         """Put the robot at rest at ``alpha`` (rad) with motor angles ``theta`` (default: rigid
         cables, no stretch)."""

@@ -101,8 +101,24 @@ class TimingTruth(_Effect, frozen=True, kw_only=True):
     jitter_s: float = 0.0  # standard deviation of the control period
 
 
+class Calibration(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Provenance of a truth written by ``xneck twin calibrate`` (twin/sim/calibrate.py): the
+    ``[calibration]`` table of its file. Values are named "section.key" or "section.key[i]"."""
+
+    command: str
+    date: str  # ISO 8601, UTC
+    campaigns: list[str]  # the recordings fitted (file names)
+    base: str  # the truth the fit started from
+    fitted: dict[str, float]
+    sigma: dict[str, float]  # one standard deviation from the Jacobian at the solution
+    residual_rms: dict[str, float]  # theta_rad, alpha_ip_deg, tension_N (those the recordings had)
+    evaluations: int
+    validation: dict[str, dict[str, float]] = {}  # held-out recording → its residual_rms
+
+
 class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """A truth: the effects the twin adds to the model. ``sources``: "section.key" → source."""
+    """A truth: the effects the twin adds to the model. ``sources``: "section.key" → source;
+    ``calibration``: how a calibrated truth was fitted (None for a truth written by hand)."""
 
     name: str = "model"
     friction: FrictionTruth = FrictionTruth()
@@ -111,6 +127,7 @@ class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     cables: CableTruth = CableTruth()
     timing: TimingTruth = TimingTruth()
     sources: dict[str, str] = {}
+    calibration: Calibration | None = None
 
     def enabled(self) -> tuple[str, ...]:
         return tuple(e for e in EFFECTS if getattr(self, e).enabled)
@@ -160,11 +177,15 @@ def _validated(truth: RobotTruth) -> RobotTruth:
 
 def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
     """A truth from a TOML document: each section has ``enabled`` and values written as
-    ``key = { value = ..., source = "<kind>: ..." }``, kind one of :data:`SOURCE_KINDS`."""
+    ``key = { value = ..., source = "<kind>: ..." }``, kind one of :data:`SOURCE_KINDS`; an optional
+    ``[calibration]`` table says how the values were fitted (:class:`Calibration`)."""
     plain: dict[str, Any] = {"name": str(data.get("name", name))}
     sources: dict[str, str] = {}
     for section, body in data.items():
         if section == "name":
+            continue
+        if section == "calibration":
+            plain[section] = body
             continue
         if section not in EFFECTS or not isinstance(body, dict):
             raise TruthError(f"{section}: not an effect section (choose from {', '.join(EFFECTS)})")
