@@ -161,6 +161,8 @@ def test_the_recorder_refuses_a_frame_that_is_not_a_jpeg(tmp_path, rendered) -> 
 def test_camera_route_and_detection_health_on_a_real_console(tmp_path, rendered) -> None:
     from server_harness import running_server
 
+    from server.camera_feed import MAX_FRAME_PAYLOAD
+
     image, found = rendered
     with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
         empty = c.get("/api/camera").json()
@@ -193,6 +195,10 @@ def test_camera_route_and_detection_health_on_a_real_console(tmp_path, rendered)
             # A hostile frame (not a JPEG) is refused and counted; the last good one stays.
             session.put(bus.CAMERA_FRAME, bus.encode(msgspec.structs.replace(frame, seq=4, data=b"<html>....")))
             assert wait_until(lambda: c.get("/api/system/health").json()["camera"]["frames_rejected"] == 1, 10.0, 0.1)
+            assert c.get("/api/camera").json()["frame"]["seq"] == 3
+            # An oversized payload is refused as it arrives, before anything decodes it.
+            session.put(bus.CAMERA_FRAME, b"{" + b" " * MAX_FRAME_PAYLOAD + b"}")
+            assert wait_until(lambda: c.get("/api/system/health").json()["camera"]["frames_rejected"] == 2, 10.0, 0.1)
             assert c.get("/api/camera").json()["frame"]["seq"] == 3
     assert jpeg.status_code == 200 and jpeg.headers["content-type"] == "image/jpeg" and jpeg.content == frame.data
     assert jpeg.headers["cache-control"] == "no-store" and jpeg.headers["x-frame-seq"] == "3"
