@@ -12,9 +12,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from twin.identification import uncertainty
 from twin.identification.processing import IdentificationError
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 DEFAULT_THRESHOLD = 0.10  # relative σ above which a parameter is badly identified
 RANK_TOL = 1e-7  # relative singular value below which the (column-scaled) regressor is rank-deficient
@@ -41,7 +43,23 @@ class Estimate:
     n_rows: int
     n_samples: int
     threshold: float = DEFAULT_THRESHOLD
-    estimator: str = "least squares"
+    estimator: str = "ordinary least squares"
+    sigma_method: str = "eq. 50 (white residuals)"
+    hac_lag: int = 0  # instants over which residuals were taken as correlated (0: white)
+    active_bounds: tuple[str, ...] = ()  # parameters the bounded solution holds at a physical bound
+
+    @property
+    def ci_low(self) -> FloatArray:
+        """Lower end of the ±2σ confidence interval (about 95 %)."""
+        return self.values - 2.0 * self.sigma
+
+    @property
+    def ci_high(self) -> FloatArray:
+        return self.values + 2.0 * self.sigma
+
+    @property
+    def at_bound(self) -> NDArray[np.bool_]:
+        return np.array([n in self.active_bounds for n in self.names], dtype=bool)
 
     @property
     def out_of_range(self) -> NDArray[np.bool_]:
@@ -56,7 +74,7 @@ class Estimate:
         """Relative σ above the threshold (or not finite), or out of physical range: never used
         silently."""
         r = self.relative_sigma
-        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range
+        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range | self.at_bound
 
     def reason(self, i: int) -> str:
         """Why parameter ``i`` is badly identified ("" if it is not)."""
@@ -65,6 +83,8 @@ class Estimate:
             return f"badly identified, relative σ {100 * r:.1f} % > {100 * self.threshold:g} %"
         if self.out_of_range[i]:
             return "outside its physical range"
+        if self.at_bound[i]:
+            return "held at its physical bound (the data pull it beyond)"
         return ""
 
     def vector(self, symbol: str) -> FloatArray:
@@ -79,9 +99,11 @@ class Estimate:
         return self.badly_identified[idx]
 
     def rows(self) -> list[dict[str, Any]]:
-        """One dict per parameter: name, value, sigma, relative_sigma, badly_identified, reason."""
+        """One dict per parameter: name, value, sigma, relative_sigma, ±2σ interval (ci_low, ci_high),
+        at_bound, badly_identified, reason."""
         return [
             {"name": n, "value": float(v), "sigma": float(s), "relative_sigma": float(r), "badly_identified": bool(b),
+             "ci_low": float(v - 2 * s), "ci_high": float(v + 2 * s), "at_bound": n in self.active_bounds,
              "reason": self.reason(i)}
             for i, (n, v, s, r, b) in enumerate(zip(self.names, self.values, self.sigma, self.relative_sigma,
                                                     self.badly_identified))
@@ -92,22 +114,28 @@ class Estimate:
             "method": self.method, "equations": self.equations, "parameters": self.rows(),
             "condition_number": self.condition_number, "residual_norm": self.residual_norm,
             "n_rows": self.n_rows, "n_samples": self.n_samples, "threshold": self.threshold,
-            "estimator": self.estimator,
+            "estimator": self.estimator, "sigma_method": self.sigma_method, "hac_lag": self.hac_lag,
+            "active_bounds": list(self.active_bounds),
         }
 
 
-def least_squares(
-    W: FloatArray, Y: FloatArray, names: tuple[str, ...], *, method: str, equations: str,
-    n_samples: int, threshold: float = DEFAULT_THRESHOLD, instruments: FloatArray | None = None,
-) -> Estimate:
-    """Solve W·v + ρ = Y (eq. 48) by v = W⁺Y (eq. 49) with σ's from eq. 50.
+ESTIMATORS = ("ols", "wls", "iv")
+ESTIMATOR_NAMES = {"ols": "ordinary least squares", "wls": "weighted least squares",
+                   "iv": "instrumental variables"}
+SIGMA_METHODS = ("hac", "white")
+POSITIVE = 1e-9  # lower bound standing for "> 0" (k, f_s) in lsq_linear, which needs closed bounds
 
-    With ``instruments`` Φ (same shape as W) the instrumental-variable solution
-    v = (ΦᵀW)⁻¹ΦᵀY is returned instead, with C_X = σ_ρ²(ΦᵀW)⁻¹ΦᵀΦ(ΦᵀW)⁻ᵀ (eq. 50's IV form).
-    Raises :class:`IdentificationError` when r ≤ n_p, W or Y is not finite, or W is
-    rank-deficient (a parameter, or a combination, that the trajectory does not excite); the
-    message names the parameters involved.
-    """
+# Physical range of each symbol: k > 0, f_s > 0; λ, c_a ≥ 0 (issue 17). Others are free.
+_LOWER = {"k": POSITIVE, "f_s": POSITIVE, "lambda": 0.0, "c_a": 0.0}
+
+
+def physical_bounds(names: tuple[str, ...]) -> tuple[FloatArray, FloatArray]:
+    """(lower, upper) bounds of each parameter from its symbol (``"k(2)"`` → k > 0)."""
+    lower = np.array([_LOWER.get(n.split("(")[0], -np.inf) for n in names])
+    return lower, np.full(len(names), np.inf)
+
+
+def _check_regressor(W: FloatArray, Y: FloatArray, names: tuple[str, ...], method: str) -> None:
     r, n_p = W.shape
     if r <= n_p:
         raise IdentificationError(f"{method}: {r} equations for {n_p} parameters; need r > n_p (eq. 48)")
@@ -129,28 +157,98 @@ def least_squares(
             f"{method}: regressor is rank-deficient (scaled condition number "
             f"{s_scaled[0] / max(s_scaled[-1], 1e-300):.3g}); the trajectory does not excite {', '.join(involved)}"
         )
-    U, s, Vt = np.linalg.svd(W, full_matrices=False)
-    if instruments is None:
-        v = Vt.T @ ((U.T @ Y) / s)
-        res = Y - W @ v
-        cov_unit = (Vt.T / s**2) @ Vt  # (WᵀW)⁻¹ through the SVD
-    else:
-        Phi = instruments
-        A = Phi.T @ W
+
+
+def _group_weights(W: FloatArray, Y: FloatArray, groups: IntArray) -> FloatArray:
+    """IDIM-WLS row weights (Gautier & Poignet 2001, BIRDy): each group of equations (a joint's, a
+    cable's) weighted by the inverse of its residual standard deviation in an OLS fit, so that
+    equations in newtons and in newton-metres, or a noisy cable and a quiet one, count alike."""
+    v = np.linalg.lstsq(W, Y, rcond=None)[0]
+    res = Y - W @ v
+    w = np.ones(len(Y))
+    for g in np.unique(groups):
+        sel = groups == g
+        sd = float(np.sqrt(np.mean(res[sel] ** 2)))
+        w[sel] = 1.0 / sd if sd > 0 else 1.0
+    return w
+
+
+def least_squares(
+    W: FloatArray, Y: FloatArray, names: tuple[str, ...], *, method: str, equations: str,
+    n_samples: int, threshold: float = DEFAULT_THRESHOLD, instruments: FloatArray | None = None,
+    estimator: str | None = None, groups: IntArray | None = None, sample_index: IntArray | None = None,
+    bounds: tuple[FloatArray, FloatArray] | None = None, sigma: str = "hac", min_lag: int = 1,
+) -> Estimate:
+    """Solve W·v + ρ = Y (eq. 48) with one of :data:`ESTIMATORS`, within ``bounds``.
+
+    - ``"ols"``: v = W⁺Y (eq. 49).
+    - ``"wls"``: rows scaled by the inverse residual σ of their ``groups`` (:func:`_group_weights`).
+    - ``"iv"``: v = (ΦᵀW)⁻¹ΦᵀY with ``instruments`` Φ (same shape as W), consistent when W is
+      noisy as long as Φ is correlated with W and not with ρ.
+    ``estimator`` None: "iv" with instruments, else "ols". Every estimator is linear, v = B·Y, so
+    its covariance is the sandwich of :mod:`twin.identification.uncertainty`: ``sigma="hac"``
+    (default) with residuals correlated within an instant (``sample_index``: the instant of each
+    row) and over ``min_lag``+ instants, or ``"white"`` (eq. 50 as printed). ``bounds`` (lower,
+    upper): a solution outside them is replaced by the bounded one (scipy.optimize.lsq_linear on
+    the weighted rows, or on the rows projected onto the instruments for IV: two-stage least
+    squares); the parameters it holds at a bound are listed in ``Estimate.active_bounds`` and
+    flagged. Raises :class:`IdentificationError` when r ≤ n_p, W or Y is not finite, or W is
+    rank-deficient (a parameter, or a combination, that the trajectory does not excite); the
+    message names the parameters involved.
+    """
+    est_name = estimator or ("iv" if instruments is not None else "ols")
+    if est_name not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {est_name!r}")
+    if sigma not in SIGMA_METHODS:
+        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    if est_name == "iv" and (instruments is None or instruments.shape != W.shape):
+        raise ValueError("the IV estimator needs instruments shaped like W")
+    _check_regressor(W, Y, names, method)
+    r = W.shape[0]
+    w = _group_weights(W, Y, groups) if est_name == "wls" and groups is not None else np.ones(r)
+    Ww, Yw = W * w[:, None], Y * w
+    if est_name == "iv":
+        assert instruments is not None
+        Phi = instruments * w[:, None]
         try:
-            A_inv = np.linalg.inv(A)
+            A_inv = np.linalg.inv(Phi.T @ Ww)
         except np.linalg.LinAlgError:
             raise IdentificationError(f"{method}: instruments are uncorrelated with the regressor (ΦᵀW singular)") from None
-        v = A_inv @ (Phi.T @ Y)
-        res = Y - W @ v
-        cov_unit = A_inv @ (Phi.T @ Phi) @ A_inv.T
-    sigma_rho2 = float(res @ res) / (r - n_p)
-    sigma = np.sqrt(np.abs(np.diag(cov_unit)) * sigma_rho2)
+        B = A_inv @ Phi.T
+    else:
+        U, s_w, Vt = np.linalg.svd(Ww, full_matrices=False)
+        B = (Vt.T / s_w) @ U.T  # W⁺ through the SVD
+    v = B @ Yw
+    active: tuple[str, ...] = ()
+    if bounds is not None:
+        lo, hi = (np.asarray(b, dtype=float) for b in bounds)
+        if np.any(v < lo) or np.any(v > hi):
+            from scipy.optimize import lsq_linear
+
+            A, b = Ww, Yw
+            if est_name == "iv":
+                Q, _ = np.linalg.qr(Phi)
+                A, b = Q.T @ Ww, Q.T @ Yw
+            col = np.linalg.norm(A, axis=0)  # scaled columns: metres and newtons in one solve
+            sol = lsq_linear(A / col, b, bounds=(lo * col, hi * col), method="bvls", tol=1e-12)
+            v = sol.x / col
+            active = tuple(n for n, a in zip(names, sol.active_mask) if a != 0)
+    res_w = Yw - Ww @ v
+    idx = np.arange(r) if sample_index is None else np.asarray(sample_index)
+    if sigma == "hac":
+        cov, lag = uncertainty.hac_covariance(B, res_w, idx, int(idx.max()) + 1, min_lag=min_lag)
+        sigma_method = f"HAC (Newey-West, Bartlett, {lag} lags)"
+    else:
+        cov, lag = uncertainty.white_covariance(B, res_w), 0
+        sigma_method = "eq. 50 (white residuals)"
+    sd = np.sqrt(np.abs(np.diag(cov)))
     with np.errstate(divide="ignore", invalid="ignore"):
-        rel = sigma / np.abs(v)
+        rel = sd / np.abs(v)
+    s_raw = np.linalg.svd(W, compute_uv=False)
+    res = Y - W @ v
     return Estimate(
-        method=method, equations=equations, names=names, values=v, sigma=sigma, relative_sigma=rel,
-        condition_number=float(s[0] / s[-1]), residual_norm=float(np.sqrt(res @ res)),
-        n_rows=r, n_samples=n_samples, threshold=threshold,
-        estimator="least squares" if instruments is None else "instrumental variables",
+        method=method, equations=equations, names=names, values=v, sigma=sd, relative_sigma=rel,
+        condition_number=float(s_raw[0] / s_raw[-1]), residual_norm=float(np.sqrt(res @ res)),
+        n_rows=r, n_samples=n_samples, threshold=threshold, estimator=ESTIMATOR_NAMES[est_name],
+        sigma_method=sigma_method, hac_lag=lag, active_bounds=active,
     )

@@ -47,7 +47,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from twin.identification.estimators import DEFAULT_THRESHOLD, Estimate, least_squares
+from twin.identification.estimators import DEFAULT_THRESHOLD, ESTIMATORS, Estimate, least_squares, physical_bounds
 from twin.identification.processing import (
     DECIMATION,
     CampaignData,
@@ -64,7 +64,9 @@ from twin.identification.regressors import (
     ia_over_rho,
     instrument_dot,
     joint_rows,
+    masked_rows,
     param_names,
+    stacked_rows,
     tension_mask,
 )
 from twin.model import dynamics
@@ -96,24 +98,50 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
-def identify_friction(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD) -> Estimate:
+ESTIMATOR_ALIASES = {"ls": "ols"}  # the name this pipeline used for eq. 49 before issue 17
+
+
+def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...], rows: tuple[IntArray, IntArray], *,
+           method: str, equations: str, threshold: float, estimator: str, sigma: str, bounded: bool,
+           instruments: FloatArray | None = None) -> Estimate:
+    """One model through :func:`least_squares`: physical bounds unless ``bounded`` is False, HAC σ
+    with at least the filter's memory (rate / cutoff instants) as correlation lag."""
+    sample_index, groups = rows
+    return least_squares(
+        W, Y, names, method=method, equations=equations, n_samples=proc.n, threshold=threshold,
+        instruments=instruments, estimator=estimator, groups=groups, sample_index=sample_index,
+        bounds=physical_bounds(names) if bounded else None, sigma=sigma,
+        min_lag=int(np.ceil(proc.rate_hz / proc.cutoff_hz)),
+    )
+
+
+def _check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> str:
+    name = ESTIMATOR_ALIASES.get(estimator, estimator)
+    if name not in allowed:
+        raise ValueError(f"estimator must be one of {', '.join(allowed)}, got {estimator!r}")
+    return name
+
+
+def identify_friction(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
+                      estimator: str = "ols", sigma: str = "hac", bounded: bool = True) -> Estimate:
     """Dry friction f_s (N) alone, with rigid cables: eq. 38 with ẍ_c = 0 (the paper's eqs. 46-47
-    "model without cable elasticity", see the module docstring). Rows: N per sample."""
+    "model without cable elasticity", see the module docstring). Rows: N per sample. Its
+    regressor (friction shapes from the encoders) is noise-free: OLS or WLS, no instruments."""
     check_friction_excitation(proc, params)
     D, y = joint_rows(proc, params, elastic=False)
     nc = D.shape[-1]
-    return least_squares(
-        D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), method="friction",
-        equations="eq. 38, rigid cables (eqs. 46-47)", n_samples=proc.n, threshold=threshold,
-    )
-
+    est = _check_estimator(estimator)
+    return _solve(proc, D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), stacked_rows(proc.n, D.shape[1]),
+                  method="friction", equations="eq. 38, rigid cables (eqs. 46-47)", threshold=threshold,
+                  estimator="ols" if est == "iv" else est, sigma=sigma, bounded=bounded)
 
 
 def identify_complete(
     proc: Processed, params: Params, *, weight: float = W_JOINT, threshold: float = DEFAULT_THRESHOLD,
-    estimator: str = "iv",
+    estimator: str = "iv", sigma: str = "hac", bounded: bool = True,
 ) -> Estimate:
     """Friction and linear cables together, eqs. 43-45: v = (k, c_a, f_s), 3·n_cables parameters.
 
@@ -121,7 +149,7 @@ def identify_complete(
     f − (R/r_d)I_a·θ̈, and N joint rows (eq. 38, our sign) weighted by W = ``weight``.
     Tension rows of a cable whose tension from the forces is below 2 N are dropped (slack).
     ``estimator``: ``"iv"`` (default, see :func:`identify_variable`: the instruments of x_c, ẋ_c
-    are y = f − (R/r_d)I_a·θ̈ and ẏ) or ``"ls"`` (eq. 49 as printed).
+    are y = f − (R/r_d)I_a·θ̈ and ẏ), ``"ols"`` (eq. 49 as printed) or ``"wls"``.
     """
     check_friction_excitation(proc, params)
     n, nc = proc.n, params.n_cables
@@ -138,24 +166,18 @@ def identify_complete(
     mask = tension_mask(y_t - a * np.asarray(params.friction.f_s))
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
-    Phi = None
-    if _check_estimator(estimator) == "iv":
-        Phi = np.concatenate([tension_rows(y_t, instrument_dot(y_t, proc))[mask], bottom])
-    return least_squares(
-        W, Y, param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc), method="complete",
-        equations=f"eqs. 43-45, W = {weight:g}", n_samples=n, threshold=threshold, instruments=Phi,
-    )
-
-
-def _check_estimator(estimator: str) -> str:
-    if estimator not in ("iv", "ls"):
-        raise ValueError(f"estimator must be 'iv' or 'ls', got {estimator!r}")
-    return estimator
-
+    est = _check_estimator(estimator)
+    Phi = np.concatenate([tension_rows(y_t, instrument_dot(y_t, proc))[mask], bottom]) if est == "iv" else None
+    (si_t, g_t), (si_j, g_j) = masked_rows(mask), stacked_rows(n, N)
+    rows = (np.concatenate([si_t, si_j]), np.concatenate([g_t, nc + g_j]))
+    return _solve(proc, W, Y, param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc), rows,
+                  method="complete", equations=f"eqs. 43-45, W = {weight:g}", threshold=threshold,
+                  estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
 
 
 def identify_variable(
-    proc: Processed, params: Params, f_s: FloatArray, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv"
+    proc: Processed, params: Params, f_s: FloatArray, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv",
+    sigma: str = "hac", bounded: bool = True,
 ) -> Estimate:
     """Variable stiffness, eqs. 54-57: t_c = k·x_c + λ·x_c·t_c + c_a·ẋ_c with t_c from eq. 55
     using the friction ``f_s`` (N) identified before; v = (k, λ, c_a).
@@ -167,7 +189,7 @@ def identify_variable(
     the encoders, is independent of the camera noise and strongly correlated with the stretch, so
     Φ = (diag(t_c), diag(t_c²), diag(ṫ_c)) are valid instruments (Janot, Vandanjon & Gautier,
     "A generic instrumental variable approach for industrial robot identification", IEEE TCST
-    2014). ``estimator="ls"`` gives eq. 49 as printed.
+    2014). ``estimator="ols"`` gives eq. 49 as printed.
     """
     nc = params.n_cables
     f_s = np.asarray(f_s, dtype=float)
@@ -181,22 +203,24 @@ def identify_variable(
 
     mask = tension_mask(t_c)
     W = rows(proc.x_c, proc.x_c * t_c, proc.x_c_dot)[mask]
-    Phi = rows(t_c, t_c**2, instrument_dot(t_c, proc))[mask] if _check_estimator(estimator) == "iv" else None
-    return least_squares(
-        W, t_c[mask], param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc), method="variable",
-        equations="eqs. 54-57", n_samples=proc.n, threshold=threshold, instruments=Phi,
-    )
+    est = _check_estimator(estimator)
+    Phi = rows(t_c, t_c**2, instrument_dot(t_c, proc))[mask] if est == "iv" else None
+    return _solve(proc, W, t_c[mask], param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc),
+                  masked_rows(mask), method="variable", equations="eqs. 54-57", threshold=threshold,
+                  estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
 
 
 def identify_all(
-    proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv"
+    proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv",
+    sigma: str = "hac", bounded: bool = True,
 ) -> dict[str, Estimate]:
     """The three estimations of §5 in order: friction alone, complete (Table 1), variable (Table 2,
     with the f_s of the friction-alone estimate: it does not depend on the cable model, while the
     complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension)."""
-    fric = identify_friction(proc, params, threshold=threshold)
-    comp = identify_complete(proc, params, threshold=threshold, estimator=estimator)
-    var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator)
+    fric = identify_friction(proc, params, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
+    comp = identify_complete(proc, params, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
+    var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator, sigma=sigma,
+                            bounded=bounded)
     return {"friction": fric, "complete": comp, "variable": var}
 
 

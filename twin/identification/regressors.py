@@ -69,3 +69,14 @@ def instrument_dot(x: FloatArray, proc: Processed) -> FloatArray:
 def cable_tension(proc: Processed, params: Params, f_s: FloatArray) -> FloatArray:
     """Eq. 41/55: t_c = f − diag(a)f_s − (R/r_d)I_a·θ̈ (N), (n, n_cables)."""
     return proc.force - friction_shape(proc, params) * np.asarray(f_s) - ia_over_rho(params) * proc.theta_ddot
+
+
+def stacked_rows(n: int, per_sample: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(instant, equation) of each row of an (n, per_sample, ·) block reshaped to rows."""
+    return np.repeat(np.arange(n), per_sample), np.tile(np.arange(per_sample), n)
+
+
+def masked_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(instant, cable) of each row of ``block[mask]`` for an (n, n_cables) ``mask``."""
+    i, j = np.nonzero(mask)
+    return i.astype(np.int64), j.astype(np.int64)
