@@ -183,7 +183,8 @@ class Driver(abc.ABC):
         if self._state is not Lifecycle.ACTIVE:
             raise DriverError(f"{self.name}: write() refused, the drives are {self._state.value} (activate first)")
         f = np.asarray(force_N, dtype=float)
-        if f.shape != (self.n_motors,) or not np.all(np.isfinite(f)):
+        # On plain floats: numpy's reduction costs more than the rest of a bridge tick (issue 20).
+        if f.shape != (self.n_motors,) or not all(map(math.isfinite, f.tolist())):
             raise DriverError(f"{self.name}: write() needs {self.n_motors} finite forces (N), got {f.tolist()}")
         return self._on_write(f)
 

@@ -16,9 +16,11 @@ Watchdog
     Real time: when no valid command arrived for ``command_timeout_s`` (10 ms), the forces ramp
     linearly, over ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold
     forces Z f = g(α̂) with every cable at t_min (:func:`controller.laws.hold_forces`) at the
-    rigid-cable estimate α̂ from the encoders at that moment (eq. 33,
-    :func:`twin.model.estimation.alpha_hat_3`); ``drive = "hold"`` and ``hold_reason`` says why.
-    The next valid command resumes ``active``.
+    rigid-cable estimate α̂ from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
+    ``drive = "hold"`` and ``hold_reason`` says why. The next valid command resumes ``active``.
+    The hold forces are never computed in a tick (:class:`HoldWorker` keeps them ready on a
+    thread of its own); without hold forces ready for the present angles the hold keeps the
+    applied forces until they are.
     Lockstep (twin only): one tick per new command, so simulated time stands still without
     commands and nothing can drift; the watchdog is off there.
 E-stop
@@ -40,9 +42,12 @@ import collections
 import contextlib
 import logging
 import math
+import os
+import sys
 import threading
 import time
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +59,11 @@ from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
 
 log = logging.getLogger("xneck.bridge")
+
+#: The real-time loop's GIL switch interval (s), instead of Python's 5 ms: a thread computing in
+#: Python (the hold worker, a Zenoh callback) hands the GIL to a waking tick within this.
+SWITCH_INTERVAL_S = 2e-4
+
 
 @dataclass(frozen=True)
 class BridgeConfig:
@@ -69,12 +79,16 @@ class BridgeConfig:
     health_period_s: float = 1.0
     max_ticks: int | None = None  # stop after this many ticks (None: until stopped)
     instance: str = ""
+    hold_tolerance_rad: float = 0.2  # angles closer than this to the last computed share its hold forces
+    hold_refresh_s: float = 0.02  # the hold worker computes at most this often
+    hold_max_age_s: float = 0.1  # hold forces of angles older than this are stale (a hold keeps the forces)
 
     def __post_init__(self) -> None:
-        for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N"):
+        for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N",
+                     "hold_tolerance_rad", "hold_refresh_s", "hold_max_age_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                unit = "N" if name.endswith("_N") else "s"
+                unit = {"N": "N", "rad": "rad"}.get(name.rsplit("_", 1)[-1], "s")
                 raise ValueError(f"{name} must be a positive number ({unit}), got {value}")
         if not (math.isfinite(self.hold_ramp_s) and self.hold_ramp_s >= 0):
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
@@ -83,6 +97,119 @@ class BridgeConfig:
 def _bounded(text: str, n: int = 200) -> str:
     """A string from the bus, cut to ``n`` characters: it goes into every state and the log."""
     return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def _demote_this_thread() -> None:
+    """Give the calling thread the lowest ordinary priority (Linux: per thread). Under the
+    robot's SCHED_FIFO (docs/bridge.md) a thread computing for 20-50 ms would otherwise keep a
+    single core from the loop until it blocks; niceness 19 keeps it to time nothing else wants."""
+    tid = threading.get_native_id()
+    with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
+        os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(AttributeError, OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, 19)
+
+
+class HoldWorker:
+    """The hold forces of the latest encoder angles, kept ready off the tick (issue 20).
+
+    The hold rule (eq. 33 + eqs. 63-65) costs 1-3 ms in plain Python here and 20-50 ms on the
+    BeagleBone's Cortex-A8, 10-25 periods: the tick that starts a hold must find it done. The
+    tick hands over its angles (:meth:`offer`, one attribute store) and asks :meth:`ready`: the
+    forces computed from angles read at most ``max_age_s`` ago, else None (stale forces are never
+    used; a hold then keeps the applied forces until fresh ones come). A thread of low priority
+    wakes every ``poll_s``: when the angles moved more than ``tolerance_rad`` (any motor) from
+    those of its last computation it computes again, at most once per ``refresh_s``; otherwise
+    the forces it has still describe the angles and it only renews their time, so a still neck
+    costs nothing. Fresh thus means at most ``poll_s + refresh_s`` plus one computation old while
+    the neck moves: about 25 ms here, 40-80 ms on the Cortex-A8, well within ``max_age_s``.
+
+    The tolerance, 0.2 rad at the motor shaft, is 0.16 mm of cable (r_d/R = 0.8 mm/rad): less
+    than 0.4° of α̂ and 0.4 N of hold force on the prototype, below the 1 N a force may change in
+    one tick. A hold rule that fails or answers nonsense leaves no forces (logged at most every
+    10 s) and is tried again once the angles move.
+    """
+
+    LOG_PERIOD_S = 10.0
+
+    def __init__(self, hold_forces: HoldForces, n_motors: int, tolerance_rad: float = 0.2,
+                 refresh_s: float = 0.02, max_age_s: float = 0.1, poll_s: float = 0.01) -> None:
+        self._hold_forces = hold_forces
+        self.n_motors = n_motors
+        self.tolerance_rad, self.refresh_s, self.max_age_s, self.poll_s = tolerance_rad, refresh_s, max_age_s, poll_s
+        self._theta: list[float] | None = None  # the latest angles offered (a new list each time)
+        self._tried: list[float] | None = None  # the angles of the last computation
+        self._ready: tuple[float, list[float]] | None = None  # (monotonic time of the angles, forces)
+        self.computed = self.failed = 0
+        self._last_log_s = -math.inf
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def offer(self, theta_rad: list[float]) -> None:
+        """The latest encoder angles (rad); the list must not be changed afterwards."""
+        self._theta = theta_rad
+
+    def ready(self, now_s: float) -> list[float] | None:
+        """Hold forces (N) of angles read at most ``max_age_s`` before ``now_s`` (time.monotonic),
+        else None."""
+        ready = self._ready  # one read: the worker replaces the pair whole
+        if ready is None or now_s - ready[0] > self.max_age_s:
+            return None
+        return ready[1]
+
+    def compute(self, theta_rad: list[float]) -> bool:
+        """Compute the hold forces at ``theta_rad`` on the calling thread; True if they are ready."""
+        self._tried, read_s = theta_rad, time.monotonic()
+        try:
+            f = np.asarray(self._hold_forces(np.array(theta_rad, dtype=float)), dtype=float)
+            if f.shape != (self.n_motors,) or not np.all(np.isfinite(f)):
+                raise ValueError(f"the hold rule answered {f.tolist()} N")
+        except Exception as exc:  # noqa: BLE001 - a failing hold rule must not fail a hold (nor this thread)
+            self._ready = None
+            self.failed += 1
+            now = time.monotonic()
+            if now - self._last_log_s >= self.LOG_PERIOD_S:
+                self._last_log_s = now
+                log.error("hold forces failed at θ = %s rad (%s: %s; %d failures): a hold there keeps the "
+                          "applied forces", [round(x, 3) for x in theta_rad], type(exc).__name__, exc, self.failed)
+            return False
+        self._ready = (read_s, f.tolist())
+        self.computed += 1
+        return True
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="xneck-hold-forces", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 1.0) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        _demote_this_thread()
+        last = -math.inf
+        while not self._stop.wait(self.poll_s):
+            theta, tried, ready = self._theta, self._tried, self._ready
+            if theta is None:
+                continue
+            now = time.monotonic()
+            if tried is not None and _within(theta, tried, self.tolerance_rad):
+                if ready is not None:
+                    self._ready = (now, ready[1])  # still these angles' forces
+            elif now - last >= self.refresh_s:
+                last = now
+                self.compute(theta)
+
+
+def _log_events(events: Sequence[tuple[int, str]]) -> None:
+    for level, message in events:
+        log.log(level, "%s", message)
+
+
+def _within(a: Sequence[float], b: Sequence[float], tol: float) -> bool:
+    """Every |a_i - b_i| <= tol (False for a NaN)."""
+    return all(abs(x - y) <= tol for x, y in zip(a, b, strict=True))
 
 
 class BridgeNode:
@@ -106,10 +233,15 @@ class BridgeNode:
         self.safety = Safety(SafetyConfig(
             n_motors=n, f_min_N=f_min, f_max_N=f_max, command_timeout_s=config.command_timeout_s,
             hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), max_force_step_N=config.max_force_step_N,
-            watchdog=not config.lockstep), hold_forces)
+            watchdog=not config.lockstep))
         self.f_min, self.f_max = f_min, f_max
         self.force = np.zeros(n)  # N, what the drives apply now
-        self.safety.hold_target(driver.read())  # compile/load what the hold needs now, not in the first hold
+        # Holds need the watchdog: lockstep never holds. The first hold forces (and whatever the
+        # model compiles or loads) are computed here, so a hold is ready from the first tick on.
+        self.hold = HoldWorker(hold_forces, n, config.hold_tolerance_rad, config.hold_refresh_s, config.hold_max_age_s)
+        if not config.lockstep:
+            self.hold.compute(driver.read().tolist())
+            self.hold.start()
 
         # Ownership is decided where commands arrive (Zenoh's callback thread), so a refused
         # command never replaces the owner's latest one.
@@ -141,6 +273,7 @@ class BridgeNode:
         self.mode: bus.DriveState = "inactive"
         self.hold_reason = ""
         self.theta = driver.read()
+        self._theta_list = self.theta.tolist()  # the same angles as plain floats (the hold, the state)
         self._consumed_ns = 0  # receive time of the newest command already shown to the safety rules
         self.ticks = self.overruns = 0
         self.tick_max_s = 0.0
@@ -205,15 +338,17 @@ class BridgeNode:
     def process_estop(self) -> bool:
         """Apply queued e-stop events now (between ticks); True if the drive state changed."""
         changed = self.safety.apply_estop(self._take_estop_events())
-        self._follow(self.safety.take_events())
+        self._follow()
+        _log_events(self.safety.take_events())
         return changed
 
-    def _follow(self, events: tuple[tuple[int, str], ...]) -> None:
-        """Make the driver and the published state follow the safety rules' decision."""
-        for level, message in events:
-            log.log(level, "%s", message)
+    def _follow(self) -> None:
+        """Make the driver and the published state follow the safety rules' decision. The
+        decision's log lines come after (formatting and writing them takes longer than a tick's
+        work: the drives and the bus go first)."""
         if self.safety.enabled:
-            self.driver.activate()
+            if self.driver.state is not Lifecycle.ACTIVE:
+                self.driver.activate()
         elif self.driver.state is Lifecycle.ACTIVE:
             self.driver.deactivate()
         if self.safety.drive == "inactive" and self.mode == "disabled":
@@ -226,21 +361,28 @@ class BridgeNode:
 
     # -- one period -----------------------------------------------------------------------------
     def tick(self) -> None:
-        """Bus in, safety rules, driver, bus out: one control period."""
+        """Bus in, safety rules, driver, bus out: one control period. Nothing here may cost more
+        than a few µs on this machine (benchmarks/bridge_tick.py): the model is not called."""
         t0 = time.perf_counter()
-        self.process_estop()
+        # An empty queue is read without its lock: an event appended meanwhile waits one tick,
+        # as one arriving just after the read would.
+        estop = self._take_estop_events() if self._estop_events else ()
         cmd, recv_ns = self.commands.latest_with_time()
         fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
         self._consumed_ns = max(self._consumed_ns, recv_ns)
         decision = self.safety.step(Inputs(
-            theta_rad=self.theta, command_N=fresh.force_N if fresh is not None else None,
+            command_N=fresh.force_N if fresh is not None else None,
             source=f"{fresh.sender} ({_bounded(fresh.source, 64)})" if fresh is not None else "",
-            command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None))
-        self._follow(decision.events)
+            command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
+            # a tick with a valid command neither starts nor continues a hold
+            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None))
+        self._follow()
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
             else np.zeros(self.driver.n_motors)
         self.driver.step()
         self.theta = self.driver.read()
+        self._theta_list = self.theta.tolist()
+        self.hold.offer(self._theta_list)
         self.ticks += 1
         self.publish_state()
         for key, msg in self.driver.extra_messages():
@@ -248,13 +390,14 @@ class BridgeNode:
             if pub is None:
                 pub = self._extra_pubs[key] = publisher(self.session, key)
             pub.put(msg)
+        _log_events(decision.events)
         self.tick_max_s = max(self.tick_max_s, time.perf_counter() - t0)
 
     # -- outputs --------------------------------------------------------------------------------
     def publish_state(self) -> None:
         self._seq["state"] += 1
         self._state_pub.put(bus.MotorState(
-            seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self.theta.tolist(),
+            seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self._theta_list,
             force_applied_N=self.force.tolist(), drive=self.mode,
             hold_reason=self.hold_reason if self.mode == "hold" else "", epoch=self.epoch, bridge=self.instance,
             owner=self.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
@@ -284,6 +427,7 @@ class BridgeNode:
         try:
             self.driver.close()  # disables the drives first of all
         finally:
+            self.hold.stop()
             self.mode, self.hold_reason = "disabled", ""
             self.force = np.zeros(self.driver.n_motors)
             for last in (self.publish_state, self.publish_health):
@@ -311,20 +455,25 @@ def run_realtime(node: BridgeNode, stop: threading.Event) -> int:
     k = 0
     next_health = start + cfg.health_period_s
     node.publish_health()
-    while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
-        node.tick()
-        k += 1
-        now = time.perf_counter()
-        due = start + k * dt
-        if now > due:
-            node.overruns += 1
-            if now > due + dt:
-                start += math.floor((now - due) / dt) * dt
-        else:
-            time.sleep(due - now)
-        if now >= next_health:
-            node.publish_health()
-            next_health = now + cfg.health_period_s
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
+    try:
+        while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
+            node.tick()
+            k += 1
+            now = time.perf_counter()
+            due = start + k * dt
+            if now > due:
+                node.overruns += 1
+                if now > due + dt:
+                    start += math.floor((now - due) / dt) * dt
+            else:
+                time.sleep(due - now)
+            if now >= next_health:
+                node.publish_health()
+                next_health = now + cfg.health_period_s
+    finally:
+        sys.setswitchinterval(switch)
     return k
 
 
@@ -361,4 +510,4 @@ def run_lockstep(node: BridgeNode, stop: threading.Event) -> int:
     return k
 
 
-__all__ = ["BridgeConfig", "BridgeNode", "run_lockstep", "run_realtime"]
+__all__ = ["BridgeConfig", "BridgeNode", "HoldWorker", "run_lockstep", "run_realtime"]

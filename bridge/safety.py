@@ -2,7 +2,7 @@
 
 Each tick :class:`bridge.node.BridgeNode` gathers the facts of the tick in :class:`Inputs` (a valid
 command received since the last tick, the age of the newest valid command, the e-stop events, the
-encoder angles) and :meth:`Safety.step` answers with a :class:`Decision`: the drive state, the
+hold forces ready for the encoder angles) and :meth:`Safety.step` answers with a :class:`Decision`: the drive state, the
 forces to write, whether the drives must be enabled, the hold reason and what to log. The node
 only moves data between the bus, this machine and the driver, so every rule below is tested
 without a bus (tests/test_bridge_safety.py) and is the same for the robot, the twin and a replay.
@@ -16,9 +16,16 @@ Activation
     (``active``).
 Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only), the forces ramp
-    linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder angles
-    at that moment (``drive = "hold"``, ``hold_reason`` says why). The next valid command resumes
-    ``active``.
+    linearly over ``hold_ramp_ticks`` from those applied to the hold forces ready for the encoder
+    angles of that moment (``drive = "hold"``, ``hold_reason`` says why). The hold forces are
+    computed off the tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the
+    tick's facts; when none are ready for these angles the hold keeps the applied forces (within
+    [f_min, f_max]) and moves to the hold forces once they are, at most ``max_force_step_N`` per
+    tick. The next valid command resumes ``active``.
+Speed
+    One step runs in every 2 ms tick of a Cortex-A8: the forces are plain floats, not numpy arrays
+    (numpy's per-call overhead on four values is most of a tick, benchmarks/bridge_tick.py), and
+    only :class:`Decision` hands an array to the driver.
 E-stop
     An engaged e-stop disables the drives (``disabled``, zero force) and every command is ignored
     until it is released; then the drives are ``inactive`` until the next valid command. The node
@@ -31,7 +38,8 @@ import logging
 import math
 import re
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -74,25 +82,24 @@ class SafetyConfig:
             raise ValueError(f"command_timeout_s must be a positive number of seconds, got {self.command_timeout_s}")
 
 
-@dataclass(frozen=True)
-class Inputs:
-    """The facts of one tick.
+class Inputs(NamedTuple):
+    """The facts of one tick (a tuple: built every tick, it must be cheap).
 
     ``command_N``: the forces of a valid command received since the last step (None if none);
     ``source``: its sender's law, for the log. ``command_age_s``: age of the newest valid
     command (None if none ever arrived). ``estop``: e-stop events since the last step.
-    ``theta_rad``: the encoder angles of the last read.
+    ``hold_N``: the hold forces ready for the encoder angles of the last read (computed off the
+    tick), None when none are ready for them.
     """
 
-    theta_rad: np.ndarray
     command_N: Sequence[float] | None = None
     source: str = ""
     command_age_s: float | None = None
     estop: Sequence[EStopEvent] = ()
+    hold_N: Sequence[float] | None = None
 
 
-@dataclass(frozen=True)
-class Decision:
+class Decision(NamedTuple):
     """What the node must do this tick: enable or disable the drives (``enabled``), write
     ``force_N`` if enabled (zeros otherwise), publish ``drive`` and ``hold_reason``, and log
     ``events`` (``(logging level, message)`` pairs)."""
@@ -103,24 +110,25 @@ class Decision:
     hold_reason: str = ""
     estop_engaged: bool = False
     estop_reason: str = ""
-    events: tuple[tuple[int, str], ...] = field(default=())
+    events: tuple[tuple[int, str], ...] = ()
 
 
 class Safety:
     """The state machine of the module docstring. Not thread-safe: one caller (the bridge loop)."""
 
-    def __init__(self, config: SafetyConfig, hold_forces: HoldForces) -> None:
+    def __init__(self, config: SafetyConfig) -> None:
         self.config = config
-        self._hold_forces = hold_forces
         n = config.n_motors
         self.drive: DriveState = "inactive"
         self.hold_reason = ""
         self.estop_engaged = False  # latched from engage to release
         self.estop_reason = ""
-        self.force = np.zeros(n)  # N, decided at the last step
-        self._ramp_from = self._ramp_to = np.zeros(n)
-        self._ramp_k = 0
-        self._target = np.zeros(n)  # N, the clamped forces of the newest valid command
+        self._zero = [0.0] * n
+        self.force: list[float] = self._zero  # N, decided at the last step (never mutated in place)
+        self._ramp_from = self._ramp_to = self._zero
+        self._ramp_k = 0  # ticks into the linear hold ramp; -1: bounded steps to hold forces found late
+        self._hold_ready = True  # False while a hold keeps the applied forces, waiting for hold forces
+        self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
         self.clamped = self.holds = 0
         self._events: list[tuple[int, str]] = []
@@ -139,7 +147,7 @@ class Safety:
             if engaged and self.drive != "disabled":
                 self.drive, self.hold_reason, self.estop_reason = "disabled", "", reason
                 self.estop_engaged = True
-                self.force = np.zeros(self.config.n_motors)
+                self.force = self._zero
                 changed = True
                 self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
             elif not engaged and self.drive == "disabled":
@@ -171,72 +179,93 @@ class Safety:
             age_s = inputs.command_age_s
             if age_s > cfg.command_timeout_s:
                 self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
-                                 f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms)", inputs.theta_rad)
+                                 f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms)", inputs.hold_N)
         if self.drive == "active":
             self.force = self._towards_target()
         elif self.drive == "hold":
-            self._ramp_k = min(self._ramp_k + 1, cfg.hold_ramp_ticks)
-            w = self._ramp_k / cfg.hold_ramp_ticks
-            self.force = (1.0 - w) * self._ramp_from + w * self._ramp_to
-        if not self.enabled:
-            self.force = np.zeros(cfg.n_motors)
-        return Decision(drive=self.drive, force_N=self.force.copy(), enabled=self.enabled,
-                        hold_reason=self.hold_reason if self.drive == "hold" else "",
-                        estop_engaged=self.estop_engaged, estop_reason=self.estop_reason,
-                        events=self.take_events())
+            self.force = self._hold_step(inputs.hold_N)
+        else:
+            self.force = self._zero
+        return Decision(self.drive, np.array(self.force), self.enabled,
+                        self.hold_reason if self.drive == "hold" else "", self.estop_engaged, self.estop_reason,
+                        self.take_events() if self._events else ())
 
     def take_events(self) -> tuple[tuple[int, str], ...]:
         """The log events since the last call (``(logging level, message)``), oldest first."""
         events, self._events = tuple(self._events), []
         return events
 
-    def _towards_target(self) -> np.ndarray:
+    def _towards_target(self) -> list[float]:
         """Bumpless enable: at most ``max_force_step_N`` per tick from the present forces until the
         command is reached; from then on commands pass through."""
         if not self._bumpless:
-            return self._target.copy()
-        step = self.config.max_force_step_N
-        f = self.force + np.clip(self._target - self.force, -step, step)
-        if np.array_equal(f, self._target):
+            return self._target
+        f = _step_towards(self.force, self._target, self.config.max_force_step_N)
+        if f == self._target:
             self._bumpless = False
             self._log(logging.INFO, "bumpless ramp done: commands pass through")
         return f
 
-    def clamp(self, force_N: Sequence[float]) -> np.ndarray:
-        """Forces within [f_min, f_max]; counts the commands that needed it. On plain floats: for
-        four values numpy's clip costs about 20 µs, a large part of a Cortex-A8's tick budget
-        (benchmarks/bridge_tick.py)."""
-        lo, hi = self.config.f_min_N, self.config.f_max_N
+    def clamp(self, force_N: Sequence[float]) -> list[float]:
+        """Forces within [f_min, f_max]; counts the commands that needed it."""
         f = [float(x) for x in force_N]
-        clamped = [min(max(x, lo), hi) for x in f]
+        clamped = self._in_range(f)
         if clamped != f:
             self.clamped += 1
-        return np.array(clamped)
+        return clamped
 
-    def hold_target(self, theta_rad: np.ndarray) -> np.ndarray:
-        """Hold forces at the encoder angles, within [f_min, f_max]. A hold function that fails or
-        answers nonsense never fails the hold itself: the present forces are kept."""
-        try:
-            f = np.asarray(self._hold_forces(np.asarray(theta_rad, dtype=float)), dtype=float)
-        except Exception:  # any failure of the hold rule must not fail the hold itself
-            log.exception("hold forces failed at θ = %s rad; holding the applied forces",
-                          np.asarray(theta_rad).tolist())
-            f = self.force
-        if f.shape != self.force.shape or not np.all(np.isfinite(f)):
-            f = self.force
-        return np.clip(f, self.config.f_min_N, self.config.f_max_N)
+    def hold_target(self, hold_N: Sequence[float] | None) -> list[float] | None:
+        """Hold forces handed in with a tick, within [f_min, f_max]; None if there are none or
+        they are not one finite force per motor (nonsense never fails a hold)."""
+        if hold_N is None or len(hold_N) != self.config.n_motors:
+            return None
+        f = [float(x) for x in hold_N]
+        return self._in_range(f) if all(map(math.isfinite, f)) else None
 
-    def _start_hold(self, reason: str, theta_rad: np.ndarray) -> None:
+    def _in_range(self, f: list[float]) -> list[float]:
+        lo, hi = self.config.f_min_N, self.config.f_max_N
+        return [lo if x < lo else hi if x > hi else x for x in f]  # not min/max: 4x faster here
+
+    def _start_hold(self, reason: str, hold_N: Sequence[float] | None) -> None:
         self.drive, self.hold_reason = "hold", reason
         self.holds += 1
-        self._ramp_from = self.force.copy()
-        self._ramp_to = self.hold_target(theta_rad)
-        self._ramp_k = 0
-        self._log(logging.WARNING, f"hold: {reason}; ramping to {np.round(self._ramp_to, 2).tolist()} N "
-                                   f"over {self.config.hold_ramp_ticks} ticks")
+        self._ramp_from, self._ramp_k = self.force, 0
+        target = self.hold_target(hold_N)
+        self._hold_ready = target is not None
+        if target is None:  # the applied forces (within [f_min, f_max]) until hold forces are ready
+            target = self._in_range(self.force)
+            self._log(logging.WARNING, f"hold: {reason}; no hold forces ready for these angles: keeping the "
+                                       f"applied forces {[round(x, 2) for x in target]} N until they are")
+        else:
+            self._log(logging.WARNING, f"hold: {reason}; ramping to {[round(x, 2) for x in target]} N "
+                                       f"over {self.config.hold_ramp_ticks} ticks")
+        self._ramp_to = target
+
+    def _hold_step(self, hold_N: Sequence[float] | None) -> list[float]:
+        """One tick of a hold: the linear ramp to its target. A hold that kept the applied forces
+        takes hold forces that became ready as its new target, approached at most
+        ``max_force_step_N`` per tick (bumpless, as every enable)."""
+        if not self._hold_ready:
+            target = self.hold_target(hold_N)
+            if target is not None:
+                self._hold_ready, self._ramp_to, self._ramp_k = True, target, -1
+                self._log(logging.INFO, f"hold forces ready: moving to {[round(x, 2) for x in target]} N "
+                                        f"at {self.config.max_force_step_N:g} N per tick")
+        if self._ramp_k < 0:
+            return _step_towards(self.force, self._ramp_to, self.config.max_force_step_N)
+        n_ramp = self.config.hold_ramp_ticks
+        self._ramp_k = min(self._ramp_k + 1, n_ramp)
+        w = self._ramp_k / n_ramp
+        return [(1.0 - w) * a + w * b for a, b in zip(self._ramp_from, self._ramp_to, strict=True)]
 
     def _log(self, level: int, message: str) -> None:
         self._events.append((level, message))
+
+
+def _step_towards(force: list[float], target: list[float], step: float) -> list[float]:
+    """``force`` moved towards ``target`` by at most ``step`` per component (the bounded rate of
+    every enable)."""
+    return [f + min(max(t - f, -step), step) for f, t in zip(force, target, strict=True)]
 
 
 class Ownership:

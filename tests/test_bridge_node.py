@@ -19,9 +19,9 @@ from busutil import bus_pair, run_in_thread, wait_until
 
 from bridge import bus
 from bridge.driver import Lifecycle
-from bridge.node import BridgeConfig, BridgeNode, run_realtime
+from bridge.node import BridgeConfig, BridgeNode, HoldWorker, run_realtime
 from bridge.session import liveliness_token, publisher, subscribe_latest
-from controller.laws import hold_forces
+from controller.laws import encoder_hold_forces, hold_forces
 from server.cli.processes import bridge_node
 from twin.sim.driver import TwinDriver, TwinDriverConfig
 
@@ -288,6 +288,133 @@ def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_
             states.close()
             health.close()
             del tokens
+
+
+# -- the hold forces off the tick (issue 20) ------------------------------------------------------
+
+
+def _recording_hold(params, fail=False):
+    """The bridge's hold rule, recording the calls made from inside a tick of the loop thread."""
+    real = encoder_hold_forces(params)
+    loop_thread = threading.get_ident()
+    record = {"ticking": False, "in_tick": 0, "elsewhere": []}
+
+    def hold(theta):
+        if record["ticking"] and threading.get_ident() == loop_thread:
+            record["in_tick"] += 1
+        else:
+            record["elsewhere"].append(threading.get_ident())
+        if fail:
+            raise RuntimeError("no model here")
+        return real(theta)
+
+    def tick(node):
+        record["ticking"] = True
+        try:
+            node.tick()
+        finally:
+            record["ticking"] = False
+
+    return hold, record, tick
+
+
+def _held_node(session, params, hold):
+    driver = TwinDriver(TwinDriverConfig(seed=0, camera=False), params)
+    return BridgeNode(session, driver, hold, (params.limits.f_min, params.limits.f_max),
+                      BridgeConfig(command_timeout_s=0.010))
+
+
+def test_the_hold_worker_serves_only_fresh_forces_and_computes_only_when_the_angles_move():
+    calls = []
+
+    def hold(theta):
+        calls.append(theta.tolist())
+        return np.full(4, 10.0) + theta
+
+    worker = HoldWorker(hold, 4, tolerance_rad=0.2, refresh_s=0.0, max_age_s=0.1, poll_s=0.002)
+    assert worker.ready(time.monotonic()) is None  # nothing before the first computation
+    assert worker.compute([0.0] * 4)
+    now = time.monotonic()
+    assert worker.ready(now) == [10.0] * 4
+    assert worker.ready(now + 0.2) is None  # stale: older than max_age_s
+    worker.offer([0.1] * 4)  # within the tolerance: the same forces, their time renewed
+    worker.start()
+    try:
+        time.sleep(0.2)
+        assert worker.ready(time.monotonic()) == [10.0] * 4 and len(calls) == 1
+        worker.offer([1.0] * 4)  # moved: computed again, on the worker's thread
+        assert wait_until(lambda: worker.ready(time.monotonic()) == [11.0] * 4, 5.0)
+        assert len(calls) == 2
+    finally:
+        worker.stop()
+
+
+def test_a_failing_hold_rule_leaves_no_hold_forces():
+    def broken(_theta):
+        raise RuntimeError("no model here")
+
+    worker = HoldWorker(broken, 4)
+    assert not worker.compute([0.0] * 4)
+    assert worker.ready(time.monotonic()) is None and worker.failed == 1
+    nonsense = HoldWorker(lambda theta: np.array([1.0, np.nan, 1.0, 1.0]), 4)
+    assert not nonsense.compute([0.0] * 4) and nonsense.ready(time.monotonic()) is None
+
+
+def test_the_tick_that_starts_a_hold_uses_hold_forces_computed_off_the_tick(params):
+    hold, record, tick = _recording_hold(params)
+    real = encoder_hold_forces(params)
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _held_node(connect(), params, hold)
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        f_cmd = hold_forces(params, np.zeros(3)) + 5.0
+        try:
+            assert _put_until(pub, _command(1, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            for _ in range(60):  # past the bumpless ramp from zero; the twin's neck moves meanwhile
+                tick(node)
+                pub.put(_command(2, f_cmd, node.epoch))
+            assert node.mode == "active" and node.force.tolist() == pytest.approx(f_cmd.tolist())
+            time.sleep(0.05)
+            tick(node)  # takes the last command (in flight a moment ago); then the worker catches up
+            time.sleep(0.2)
+            before, theta = node.force.copy(), node.theta.copy()
+            tick(node)
+            assert node.mode == "hold"
+            assert record["in_tick"] == 0, "the tick that started the hold computed the hold forces"
+            assert any(t != threading.get_ident() for t in record["elsewhere"]), "no worker thread computed them"
+            first = node.force.copy()
+            for _ in range(4):
+                tick(node)
+            target = node.force.copy()
+            # The ramp starts at once (a fifth of the way in the first tick) towards hold forces of
+            # angles within the worker's tolerance of these (0.2 rad at the shaft: < 0.4 N).
+            np.testing.assert_allclose(first, before + (target - before) / 5, atol=1e-9)
+            exact = np.clip(real(theta), params.limits.f_min, params.limits.f_max)
+            np.testing.assert_allclose(target, exact, atol=0.5)
+            assert record["in_tick"] == 0
+        finally:
+            node.shutdown()
+
+
+def test_without_hold_forces_ready_the_hold_keeps_the_present_forces(params):
+    hold, record, tick = _recording_hold(params, fail=True)
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _held_node(connect(), params, hold)
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        f_cmd = [20.0, 15.0, 10.0, 12.0]
+        try:
+            assert _put_until(pub, _command(1, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            for _ in range(40):
+                tick(node)
+                pub.put(_command(2, f_cmd, node.epoch))
+            time.sleep(0.05)
+            for _ in range(10):
+                tick(node)
+            assert node.mode == "hold" and node.force.tolist() == f_cmd
+            assert record["in_tick"] == 0
+        finally:
+            node.shutdown()
 
 
 def test_every_bridge_run_has_its_own_epoch(params):

@@ -11,22 +11,22 @@ import pytest
 from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
 
 N = 4
-THETA = np.zeros(N)
-HOLD = np.array([10.0, 12.0, 14.0, 16.0])
+HOLD = np.array([10.0, 12.0, 14.0, 16.0])  # the hold forces the node's worker has ready
 
 
 def machine(**config) -> Safety:
     cfg = {"n_motors": N, "f_min_N": 2.0, "f_max_N": 100.0, "command_timeout_s": 0.010, "hold_ramp_ticks": 5,
            **config}
-    return Safety(SafetyConfig(**cfg), lambda theta: HOLD.copy())
+    return Safety(SafetyConfig(**cfg))
 
 
 def cmd(force, age_s=0.0, source="law2", **extra) -> Inputs:
-    return Inputs(theta_rad=THETA, command_N=[float(f) for f in force], source=source, command_age_s=age_s, **extra)
+    return Inputs(command_N=[float(f) for f in force], source=source, command_age_s=age_s, **extra)
 
 
-def idle(age_s=None, **extra) -> Inputs:
-    return Inputs(theta_rad=THETA, command_age_s=age_s, **extra)
+def idle(age_s=None, hold: np.ndarray | None = HOLD, **extra) -> Inputs:
+    """A tick without a command; ``hold``: the hold forces ready for its angles (None: none)."""
+    return Inputs(command_age_s=age_s, hold_N=None if hold is None else hold.tolist(), **extra)
 
 
 def test_drives_start_inactive_and_the_first_valid_command_enables_them():
@@ -73,16 +73,44 @@ def test_without_the_watchdog_lockstep_never_holds():
     assert s.step(idle(age_s=10.0)).drive == "active"
 
 
-def test_a_failing_hold_function_keeps_the_present_forces():
-    def broken(_theta):
-        raise RuntimeError("no model")
-
-    s = Safety(SafetyConfig(n_motors=N, f_min_N=2.0, f_max_N=100.0), broken)
+@pytest.mark.parametrize("hold", [None, np.array([10.0, np.nan, 14.0, 16.0]), np.array([10.0, 12.0, 14.0])],
+                         ids=["none ready", "NaN", "too few"])
+def test_without_hold_forces_ready_a_hold_keeps_the_present_forces(hold):
+    s = machine()
     for _ in range(100):
         s.step(cmd([30.0] * N))
     for k in range(6):
-        d = s.step(idle(age_s=0.02 + k))
+        d = s.step(idle(age_s=0.02 + k, hold=hold))
     assert d.drive == "hold" and d.force_N.tolist() == [30.0] * N
+
+
+def test_hold_forces_ready_later_are_reached_at_the_bounded_rate():
+    s = machine(max_force_step_N=1.0)
+    for _ in range(100):
+        s.step(cmd([30.0] * N))
+    first = s.step(idle(age_s=0.02, hold=None))
+    assert first.drive == "hold" and any("no hold forces ready" in m for _lvl, m in first.events)
+    ready = [s.step(idle(age_s=0.03 + k)) for k in range(30)]
+    assert any("hold forces ready" in m for _lvl, m in ready[0].events)
+    forces = [first.force_N] + [r.force_N for r in ready]
+    assert forces[0].tolist() == [30.0] * N and _max_step(forces) <= 1.0 + 1e-12
+    assert all(r.drive == "hold" for r in ready) and ready[-1].force_N.tolist() == HOLD.tolist()
+
+
+def test_a_hold_without_hold_forces_during_the_start_up_ramp_raises_the_forces_to_f_min():
+    s = machine(max_force_step_N=1.0)
+    assert s.step(cmd([30.0] * N)).force_N.tolist() == [1.0] * N  # bumpless from zero: below f_min
+    hold = [s.step(idle(age_s=0.02 + k, hold=None)).force_N for k in range(6)]
+    assert hold[-1].tolist() == [2.0] * N
+
+
+def test_hold_forces_are_kept_within_the_force_range():
+    s = machine()
+    for _ in range(100):
+        s.step(cmd([30.0] * N))
+    for k in range(6):
+        d = s.step(idle(age_s=0.02 + k, hold=np.array([0.5, 12.0, 150.0, 16.0])))
+    assert d.force_N.tolist() == [2.0, 12.0, 100.0, 16.0]
 
 
 def test_estop_disables_at_once_ignores_commands_and_release_waits_for_a_new_command():
