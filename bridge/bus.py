@@ -49,6 +49,7 @@ CAMERA_ALPHA = f"{PREFIX}/camera/alpha_ip"
 CAMERA_FRAME = f"{PREFIX}/camera/frame"
 TWIN_TRUTH = f"{PREFIX}/twin/truth"
 CONTROLLER_STATUS = f"{PREFIX}/controller/status"
+CONTROLLER_TIMING = f"{PREFIX}/controller/timing"
 CAMPAIGN_EVENTS = f"{PREFIX}/campaign/events"
 CAMPAIGN_REQUEST = f"{PREFIX}/campaign/request"
 ESTOP = f"{PREFIX}/estop"
@@ -228,6 +229,43 @@ class ControllerStatus(BusMessage, frozen=True, forbid_unknown_fields=True, kw_o
     ticks: int = 0
 
 
+class ControllerTiming(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Where the controller's ticks spent their time, about once a second (issue 21).
+
+    The window since the last message: ``window_ticks`` ticks, the state-to-command latency (from
+    the state's arrival at the controller's subscriber to its command handed to Zenoh) and the
+    tick period (between two states' arrivals) as p50/p99/max in ms, the same per stage
+    (``decode``, ``law``, ``encode``, ``put``), and histograms over the bins ``bin_edges_ms``
+    (``len(bin_edges_ms) − 1`` counts; the last bin takes everything above). ``campaign_*``: the
+    campaign ``campaign_id`` so far ("" between campaigns: since the service started or the last
+    campaign ended), its counts as in :class:`ControllerStatus` and its histograms; the campaign
+    quantiles are upper bin edges. ``window_skipped``: stale states of a burst (after the
+    controller was held up) it did not answer, in the window.
+    """
+
+    v: int = 1
+    campaign_id: str = ""
+    window_ticks: int
+    window_skipped: int = 0
+    latency_p50_ms: float
+    latency_p99_ms: float
+    latency_max_ms: float
+    period_p50_ms: float
+    period_p99_ms: float
+    stage_p50_ms: dict[str, float]
+    stage_p99_ms: dict[str, float]
+    bin_edges_ms: list[float]
+    latency_counts: list[int]
+    period_counts: list[int]
+    campaign_ticks: int
+    campaign_deadline_misses: int
+    campaign_overruns: int
+    campaign_latency_counts: list[int]
+    campaign_period_counts: list[int]
+    campaign_latency_p50_ms: float
+    campaign_latency_p99_ms: float
+
+
 class CampaignEvent(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Life cycle of a campaign (identification run, tracking experiment...).
 
@@ -313,6 +351,7 @@ REGISTRY: dict[str, type[BusMessage]] = {
     CAMERA_FRAME: CameraFrame,
     TWIN_TRUTH: Truth,
     CONTROLLER_STATUS: ControllerStatus,
+    CONTROLLER_TIMING: ControllerTiming,
     CAMPAIGN_EVENTS: CampaignEvent,
     CAMPAIGN_REQUEST: CampaignRequest,
     ESTOP: EStop,
@@ -578,6 +617,7 @@ __all__ = [
     "CAMPAIGN_EVENTS",
     "CAMPAIGN_REQUEST",
     "CONTROLLER_STATUS",
+    "CONTROLLER_TIMING",
     "ESTOP",
     "HEALTH_ALL",
     "MESSAGE_TYPES",
@@ -595,6 +635,7 @@ __all__ = [
     "CampaignEvent",
     "CampaignRequest",
     "ControllerStatus",
+    "ControllerTiming",
     "EStop",
     "ForceCommand",
     "Health",

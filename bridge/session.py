@@ -141,6 +141,11 @@ class BusPublisher(Generic[M]):
             raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
         self._pub.put(bus.encode(msg))
 
+    def put_bytes(self, data: bytes) -> None:
+        """Publish a payload already made by :func:`bus.encode` from a message of this key's type
+        (a sender that times or reuses its encoding)."""
+        self._pub.put(data)
+
     def close(self) -> None:
         self._pub.undeclare()
 
@@ -186,10 +191,13 @@ class LatestSubscriber(Generic[M]):
         key: str,
         msg_type: type[M],
         validate: Callable[[M], None] | None = None,
+        on_message: Callable[[M, int], None] | None = None,
+        direct: bool = False,
     ) -> None:
         self.key = key
         self.msg_type = msg_type
         self._validate = validate
+        self._on_message = on_message
         self._cond = threading.Condition()
         self._latest: M | None = None
         self._latest_time_ns = 0
@@ -197,7 +205,10 @@ class LatestSubscriber(Generic[M]):
         self._last_reason = ""
         self._last_log_s = -float("inf")
         self._unlogged = 0
-        self._sub = session.declare_subscriber(key, self._on_sample)
+        # direct: the callback runs on Zenoh's network thread itself, not on a Python thread fed by
+        # a FIFO: one thread hand-over less between a sample's arrival and what reacts to it.
+        handler = zenoh.handlers.Callback(self._on_sample, indirect=False) if direct else self._on_sample
+        self._sub = session.declare_subscriber(key, handler)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         now_ns = time.time_ns()
@@ -217,6 +228,8 @@ class LatestSubscriber(Generic[M]):
             self._latest = msg
             self._latest_time_ns = now_ns
             self._cond.notify_all()
+        if self._on_message is not None:
+            self._on_message(msg, now_ns)
 
     def _reject(self, reason: str) -> None:
         with self._cond:
@@ -277,14 +290,18 @@ def subscribe_latest(
     key: str,
     msg_type: type[M] | None = None,
     validate: Callable[[M], None] | None = None,
+    on_message: Callable[[M, int], None] | None = None,
+    direct: bool = False,
 ) -> LatestSubscriber[M]:
     """Subscribe to ``key`` keeping the latest valid message; ``msg_type`` defaults to the
-    registry's type for ``key`` (required for wildcard keys)."""
+    registry's type for ``key`` (required for wildcard keys). ``on_message(msg, arrival_ns)``
+    reacts to each valid message in the callback (it must be short and must not raise);
+    ``direct`` runs it on Zenoh's network thread (see :class:`LatestSubscriber`)."""
     if msg_type is None:
         msg_type = bus.message_type(key)  # type: ignore[assignment]
         if msg_type is None:
             raise ValueError(f"{key!r} is not a key of the bus contract: pass msg_type")
-    return LatestSubscriber(session, key, msg_type, validate)  # type: ignore[arg-type]
+    return LatestSubscriber(session, key, msg_type, validate, on_message, direct)  # type: ignore[arg-type]
 
 
 __all__ = [

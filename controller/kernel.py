@@ -25,6 +25,7 @@ from twin.model.compiled import njit
 from twin.model.dynamics import chain_terms, friction_into, motor_terms
 from twin.model.numeric import RIGID
 
+
 @njit(cache=True)
 def solve_into(A, b, LU, x):
     """x = A⁻¹b for a small square A, by Gaussian elimination with partial pivoting in ``LU``

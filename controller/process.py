@@ -54,12 +54,14 @@ from bridge import bus
 from bridge.session import liveliness_token, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.service import CampaignService, Output, Prepared, Refused, StateGate, prepare
+from controller.timing import TickTimes, timing_message
 from controller.trajectory import Trajectory
 from twin.model.params import Params
 
 log = logging.getLogger("xneck.controller")
 
 LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
+LAG_FLOOR_RELAX_NS = 2_000  # ns per state the floor of arrival − stamp lets up (clock drift up to 1 ms/s)
 MAX_REQUEST_BYTES = bus.TRAJECTORY_JSON_MAX_BYTES + bus.PARAMETERS_TOML_MAX_BYTES + 4096  # larger: not decoded
 
 
@@ -106,13 +108,27 @@ class ControllerNode:
             if reason:
                 raise bus.BusDecodeError(reason)
 
-        self.states = subscribe_latest(session, bus.MOTOR_STATE, validate=check_state)
+        # The tick runs in the subscriber's callback, on Zenoh's network thread (:meth:`_on_state`);
+        # the lock keeps it and this process's loop thread (holds, requests) apart.
+        self._tick_lock = threading.Lock()
+        self._ticked = threading.Event()
+        self._live = self._done = False
+        self._error: Exception | None = None
+        self._last_key: tuple[str, float] = ("", -math.inf)
+        self._last_wall = 0.0
+        self._state: bus.MotorState | None = None
+        self.times = TickTimes()
+        self._timed_id = ""  # the campaign whose ticks the timing histograms hold
+        self._lag_floor, self._floor_epoch, self._last_done_ns = 0.0, "", 0  # see _stale_in_burst
+        self.states = subscribe_latest(session, bus.MOTOR_STATE, validate=check_state, on_message=self._on_state,
+                                       direct=True)
         self._cmd = publisher(session, bus.MOTOR_COMMAND)
         self._status = publisher(session, bus.CONTROLLER_STATUS)
+        self._timing = publisher(session, bus.CONTROLLER_TIMING)
         self._events = publisher(session, bus.CAMPAIGN_EVENTS)
         self._health = publisher(session, bus.health_key("controller", self.instance))
         self._token = liveliness_token(session, "controller", self.instance)
-        self._seq = {"cmd": 0, "status": 0, "event": 0, "health": 0}
+        self._seq = {"cmd": 0, "status": 0, "event": 0, "health": 0, "timing": 0}
         self._last_cmd: bus.ForceCommand | None = None
         self._started = time.monotonic()
         # Requests: decoded and bounded in the callback, prepared by a worker thread (parsing and
@@ -141,18 +157,45 @@ class ControllerNode:
 
     # -- bus out ------------------------------------------------------------------------------
     def publish_events(self) -> None:
-        for ev in self.service.drain_events():
+        """The service's campaign events (a campaign that ended gets its final timing first);
+        drained under the tick lock, published outside it (the events key may block)."""
+        with self._tick_lock:
+            events = self.service.drain_events()
+            if self.service.running:
+                self._timed_id = self.service.campaign_id
+        for ev in events:
+            if ev.event in ("finished", "aborted") and ev.campaign_id == self._timed_id:
+                self.publish_timing(time.time(), (ev.campaign_id, ev.ticks, ev.deadline_misses, ev.overruns))
+                self._timed_id = ""
+                self.times.reset_campaign()
             self._events.put(bus.CampaignEvent(
                 seq=self._next("event"), stamp_s=time.time(), campaign_id=ev.campaign_id, kind=ev.kind,
                 event=ev.event, progress=ev.progress, message=ev.message, ticks=ev.ticks, overruns=ev.overruns,
                 deadline_misses=ev.deadline_misses))
 
-    def command(self, f: np.ndarray, state: bus.MotorState) -> None:
+    def _encode_command(self, f: np.ndarray, state: bus.MotorState) -> bytes:
         """Forces answering ``state``: its stamp and epoch, so every command is on the bridge's
         clock (holds included) and a command for a previous bridge run is refused by the bridge."""
         self._last_cmd = bus.ForceCommand(seq=self._next("cmd"), stamp_s=state.stamp_s, force_N=f.tolist(),
                                           source=self.service.law.name, sender=self.instance, epoch=state.epoch)
-        self._cmd.put(self._last_cmd)
+        return bus.encode(self._last_cmd)
+
+    def command(self, f: np.ndarray, state: bus.MotorState) -> None:
+        """:meth:`_encode_command`, published."""
+        self._cmd.put_bytes(self._encode_command(f, state))
+
+    def publish_timing(self, stamp_s: float, ended: tuple[str, int, int, int] | None = None) -> None:
+        """The ticks since the last call as a ``ControllerTiming``: stages, latency and period, and
+        the campaign's histograms; ``ended`` = (id, ticks, misses, overruns) of a campaign that
+        just ended (its final figures), else the running campaign's so far."""
+        with self._tick_lock:
+            stages, period = self.times.window()
+            svc = self.service
+            if ended is None:
+                ended = (svc.campaign_id if svc.running else "", svc.ticks, svc.deadline_misses, svc.overruns)
+        campaign_id, ticks, misses, overruns = ended
+        self._timing.put(timing_message(self._next("timing"), stamp_s, campaign_id, stages, period, self.times,
+                                        ticks, misses, overruns))
 
     def status(self, stamp_s: float, tick_s: float, compute_s: float, out: Output) -> None:
         svc = self.service
@@ -264,18 +307,25 @@ class ControllerNode:
     def run(self, stop: threading.Event) -> str:
         """Run until the trajectory is done (then "finished"), the estimate diverges ("aborted"),
         the states stop for good ("aborted") or ``stop`` is set ("stopped"). In service mode
-        (``exit_when_done`` False) it holds between campaigns and serves campaign requests."""
+        (``exit_when_done`` False) it holds between campaigns and serves campaign requests.
+
+        Each new state is answered in the subscriber's callback itself (:meth:`_on_state`): no
+        queue, no thread hand-over and no polling between its arrival and the command. This
+        thread does the rest, between ticks: holds on stale states, lockstep re-sends, campaign
+        requests, events, health and timing."""
         self.service.warm_up()
         # Everything allocated so far lives for the whole run: keep the collector off it, so a
         # full collection cannot land in the middle of a 2 ms tick.
         gc.collect()
         gc.freeze()
-        # Zenoh's callback threads share the GIL with this loop: hand it over every 0.5 ms rather
-        # than every 5 ms, so a state waiting in a callback is not held up for a whole period.
+        # Zenoh's network thread needs the GIL to run the tick: this thread hands it over every
+        # 0.5 ms rather than every 5 ms when it is busy (it mostly sleeps).
         sys.setswitchinterval(0.0005)
         try:
             return self._loop(stop)
         finally:
+            with self._tick_lock:
+                self._live = False  # no command after run() returned
             self.publish_events()
             if self._worker is not None:
                 with contextlib.suppress(queue.Full):
@@ -288,73 +338,138 @@ class ControllerNode:
             svc.outcome = "aborted"
             svc.refuse(svc.campaign_id, svc.kind, f"no motor state within {cfg.startup_timeout_s} s of start")
             return svc.outcome
-        svc.initialise(np.asarray(first.theta_rad))
-        if self._own_trajectory is not None:
-            svc.begin(self._own_trajectory, first.stamp_s)
-        # A state is new when its (epoch, stamp) is: a waiting lockstep twin re-publishes the same
-        # state, and a restarted bridge starts its clock again under a new epoch.
-        last, last_wall = (first.epoch, None), time.perf_counter()
-        state = first
+        with self._tick_lock:
+            svc.initialise(np.asarray(first.theta_rad))
+            if self._own_trajectory is not None:
+                svc.begin(self._own_trajectory, first.stamp_s)
+            self._last_key, self._last_wall = (first.epoch, first.stamp_s), time.perf_counter()
+            self._state = first
+            if self._service:
+                self._serve_requests(first.stamp_s)
+            self._react(first, time.time_ns(), time.time_ns(), 0.0)
+            self._live = True
         next_health = time.monotonic()
+        wait_s = LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s
+        timeout_s = wait_s
         while not stop.is_set():
             self.publish_events()
             if time.monotonic() >= next_health:
-                self.publish_health(state.stamp_s)
+                self.publish_health(self._state.stamp_s)
+                self.publish_timing(self._state.stamp_s)
                 next_health = time.monotonic() + cfg.health_period_s
-            if last[1] is not None:
-                fresh = self.states.wait(LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s,
-                                         lambda s, last=last: (s.epoch, s.stamp_s) != last)
-                if fresh is None or (fresh.epoch, fresh.stamp_s) == last:
-                    stale_for = time.perf_counter() - last_wall
-                    if stale_for > cfg.idle_timeout_s and cfg.exit_when_done:
-                        svc.outcome = "aborted"
-                        svc.refuse(svc.campaign_id, svc.kind, f"no motor state for {stale_for:.1f} s")
-                        return svc.outcome
-                    if cfg.lockstep:
-                        # The bus may drop a message: resend the same command (same seq, so a twin
-                        # that already stepped on it ignores it) instead of stalling.
-                        if self._last_cmd is not None:
-                            self._cmd.put(self._last_cmd)
-                    elif self._last_cmd is not None:
-                        if not svc.hold_reason.startswith("stale state"):
-                            log.warning("holding: stale state")
-                        # On the last state's clock and epoch: one clock on the command key.
-                        out = svc.stale(f"stale state: none for {stale_for * 1e3:.0f} ms", stale_for)
-                        self.command(out.force_N, state)
+            # Woken early only when the run is over: ticks do not wake this thread (it would
+            # compete with the next one for the GIL), it looks at the time of the last one.
+            self._ticked.wait(timeout_s)
+            self._ticked.clear()
+            with self._tick_lock:
+                if self._error is not None:
+                    raise self._error
+                if self._done:
+                    return svc.outcome
+                if self._service:
+                    self._serve_requests(self._state.stamp_s)
+                stale_for = time.perf_counter() - self._last_wall
+                timeout_s = max(wait_s - stale_for, 0.001) if stale_for < wait_s else wait_s
+                if stale_for < wait_s:
                     continue
-                state = fresh
-                if state.epoch != last[0]:
-                    log.warning("bridge %s restarted (epoch %s): re-initialising from its state", state.bridge,
-                                state.epoch)
-                    svc.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge)
-            wall = time.perf_counter()
-            tick_s, last_wall, last = wall - last_wall, wall, (state.epoch, state.stamp_s)
-            if self._service:
-                self._serve_requests(state.stamp_s)
-            if svc.outcome in ("aborted", "finished") and cfg.exit_when_done:
-                return svc.outcome
-            if not self._tick(state, wall, tick_s) and cfg.exit_when_done:
-                return svc.outcome
-            if not svc.running and svc.outcome == "finished" and cfg.exit_when_done:
-                return svc.outcome
+                if stale_for > cfg.idle_timeout_s and cfg.exit_when_done:
+                    svc.outcome = "aborted"
+                    svc.refuse(svc.campaign_id, svc.kind, f"no motor state for {stale_for:.1f} s")
+                    self._done = True
+                    return svc.outcome
+                if cfg.lockstep:
+                    # The bus may drop a message: resend the same command (same seq, so a twin
+                    # that already stepped on it ignores it) instead of stalling.
+                    if self._last_cmd is not None:
+                        self._cmd.put(self._last_cmd)
+                elif self._last_cmd is not None:
+                    if not svc.hold_reason.startswith("stale state"):
+                        log.warning("holding: stale state")
+                    # On the last state's clock and epoch: one clock on the command key.
+                    out = svc.stale(f"stale state: none for {stale_for * 1e3:.0f} ms", stale_for)
+                    self.command(out.force_N, self._state)
         return svc.outcome or "stopped"
 
-    def _tick(self, state: bus.MotorState, wall: float, tick_s: float) -> bool:
+    def _on_state(self, state: bus.MotorState, arrival_ns: int) -> None:
+        """Zenoh's callback, for each state the gate took: the tick, at once. Nothing escapes
+        (an error is handed to the loop, which raises it: the process ends, the bridge holds)."""
+        decoded_ns = time.time_ns()
+        try:
+            with self._tick_lock:
+                if not self._live or self._done:
+                    return
+                key = (state.epoch, state.stamp_s)
+                if key == self._last_key:  # a waiting lockstep twin re-publishes the same state
+                    return
+                if self._stale_in_burst(state, arrival_ns):
+                    return
+                if state.epoch != self._last_key[0]:
+                    log.warning("bridge %s restarted (epoch %s): re-initialising from its state", state.bridge,
+                                state.epoch)
+                    self.service.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge)
+                wall = time.perf_counter()
+                tick_s, self._last_wall, self._last_key, self._state = wall - self._last_wall, wall, key, state
+                self._react(state, arrival_ns, decoded_ns, tick_s)
+        except Exception as exc:  # noqa: BLE001 - see the docstring
+            self._error, self._done = exc, True
+        if self._done:
+            self._ticked.set()
+
+    def _stale_in_burst(self, state: bus.MotorState, arrival_ns: int) -> bool:
+        """Whether ``state`` is a stale one of a burst, not to be answered: after this process was
+        held up (a loaded machine), Zenoh delivers the states that queued meanwhile back to back,
+        and answering each would put the loop further behind. A state is stale when it arrives more
+        than a period later, relative to its stamp, than the best state of this bridge run did
+        (the floor of arrival − stamp, let up slowly so the clocks may drift); it is in a burst
+        when it arrives within a quarter period of the end of the last tick. The first state after
+        the hold-up is answered (what the bridge waits for), the stale rest skipped (counted),
+        the next fresh one answered. Not in lockstep, where stamps are not on the wall clock."""
+        if self.config.lockstep:
+            return False
+        period_ns = 1e9 / self.service.law.rate_hz
+        lag = arrival_ns - state.stamp_s * 1e9
+        if state.epoch != self._floor_epoch:
+            self._lag_floor, self._floor_epoch = lag, state.epoch
+        else:
+            self._lag_floor = min(lag, self._lag_floor + LAG_FLOOR_RELAX_NS)
+        if lag - self._lag_floor > period_ns and arrival_ns - self._last_done_ns < period_ns / 4:
+            self.times.skipped += 1
+            return True
+        return False
+
+    def _react(self, state: bus.MotorState, arrival_ns: int, decoded_ns: int, tick_s: float) -> None:
+        """One tick on ``state`` (under the tick lock), and whether the run is over."""
+        cfg, svc = self.config, self.service
+        if svc.outcome in ("aborted", "finished") and cfg.exit_when_done:
+            self._done = True
+            return
+        if not self._tick(state, arrival_ns, decoded_ns, tick_s) and cfg.exit_when_done:
+            self._done = True
+        if not svc.running and svc.outcome == "finished" and cfg.exit_when_done:
+            self._done = True
+
+    def _tick(self, state: bus.MotorState, arrival_ns: int, decoded_ns: int, tick_s: float) -> bool:
         """One tick on ``state``; False when the campaign had to be aborted by a diverging estimate."""
         svc = self.service
-        period = 1.0 / svc.law.rate_hz
+        period_ns = 1e9 / svc.law.rate_hz
         was_latched, reason_before = svc.latched, svc.hold_reason
         svc.drive_reason = state.estop_reason if state.drive == "disabled" else state.hold_reason
         if state.owner and state.owner != self.instance:
             svc.drive_reason = f"the bridge obeys controller {state.owner}, not this one"
         out = svc.control(np.asarray(state.theta_rad), state.stamp_s, state.drive, np.asarray(state.force_applied_N))
+        law_ns = time.time_ns()
+        data = self._encode_command(out.force_N, state)
+        encoded_ns = time.time_ns()
+        self._cmd.put_bytes(data)
+        put_ns = time.time_ns()
         if not out.law_ran and svc.hold_reason.split(":")[0] != reason_before.split(":")[0]:
             log.warning("holding: %s", svc.hold_reason)
-        self.command(out.force_N, state)
-        compute_s = time.perf_counter() - wall
+        latency_ns = self.times.record(arrival_ns, decoded_ns, law_ns, encoded_ns, put_ns)
+        self._last_done_ns = put_ns
+        compute_s = (law_ns - decoded_ns) * 1e-9
         # A deadline miss: the command left more than one period after its state arrived.
-        missed = not self.config.lockstep and time.time_ns() - self.states.latest_with_time()[1] > period * 1e9
-        svc.count_timing(compute_s > period, missed)
+        missed = not self.config.lockstep and latency_ns > period_ns
+        svc.count_timing(compute_s * 1e9 > period_ns, missed)
         self.status(state.stamp_s, tick_s, compute_s, out)
         if out.law_ran:
             svc.advance(state.stamp_s)
@@ -362,7 +477,7 @@ class ControllerNode:
 
     def close(self) -> None:
         closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._health.close,
-                   self._token.undeclare]
+                   self._timing.close, self._token.undeclare]
         closers += [x.undeclare for x in (self._request_sub, self._service_token) if x is not None]
         for closer in closers:
             with contextlib.suppress(Exception):  # the session may already be gone

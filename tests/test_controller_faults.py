@@ -127,7 +127,7 @@ def test_malformed_campaign_requests_are_answered_counted_and_never_stop_the_con
         stack.raw_requests.put(raw)
     assert "passwd" not in "".join(e.message for e in stack.answers("bad-path"))  # never opened, never echoed
     _alive(stack)
-    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.CAMPAIGN_REQUEST] >= len(HOSTILE) + 6, 5, 0.1), \
+    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.CAMPAIGN_REQUEST] >= len(HOSTILE) + 6, 30, 0.1), \
         (stack.health.messages()[-1].rejected, stack.health.messages()[-1].last_reject_reason[:300])
     assert stack.health.messages()[-1].last_reject_reason
     # ... and the service still runs a good campaign, with its own counters (finding 7).
@@ -177,19 +177,21 @@ def test_forged_states_are_rejected_and_real_ones_keep_flowing(stack):
     _alive(stack)
     last = stack.status.messages()[-1]
     assert last.stamp_s < 1e6 and abs(last.stamp_s - stack.states.messages()[-1].stamp_s) < 1.0
-    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.MOTOR_STATE] >= 40, 5, 0.1)
+    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.MOTOR_STATE] >= 40, 30, 0.1)
 
 
 def test_every_command_is_on_the_state_clock_with_sender_and_epoch(stack):
     """Finding 6: holds included, every command carries the stamp and epoch of a state it answers."""
     time.sleep(0.5)
-    commands = stack.commands.messages()[-200:]
+    commands = stack.commands.messages()
     time.sleep(0.1)  # the states they answer have arrived by then
     states = {(s.epoch, s.stamp_s) for s in stack.states.messages()}
     instance = stack.health.messages()[-1].instance
-    assert len(commands) == 200 and all(c.sender == instance for c in commands)
+    assert len(commands) >= 200 and all(c.sender == instance for c in commands)
+    # Over every command so far: on a loaded machine this test's own subscriber misses bursts of
+    # states now and then (never the property under test), which a window of 200 could be.
     answered = [c for c in commands if (c.epoch, c.stamp_s) in states]
-    assert len(answered) >= 0.97 * len(commands), [c for c in commands if c not in answered][:3]  # the test may miss a state
+    assert len(answered) >= 0.97 * len(commands), [c for c in commands if c not in answered][:3]
     assert all(c.stamp_s < 1e5 for c in commands)  # never the wall clock (≈ 1.8e9 s)
 
 
@@ -200,12 +202,18 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
     try:
         t_on = time.perf_counter()
         estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="test e-stop"))
-        assert wait_until(lambda: stack.states.messages()[-1].drive == "disabled", 5, 0.01)
-        t_dis = time.perf_counter() + 0.05  # the controller has seen it by then
+        assert wait_until(lambda: stack.states.messages()[-1].drive == "disabled", 30, 0.01)
+
+        def seen_disabled() -> list[float]:  # when the controller's statuses say it saw the e-stop
+            return [t for t, s in stack.status.timed() if t >= t_on and "drives disabled" in s.hold_reason]
+
+        # Not a fixed delay after the bridge: on a loaded machine the controller may see it later.
+        assert wait_until(seen_disabled, 30, 0.01)
+        t_dis = seen_disabled()[0]
         time.sleep(3.0)
         t_off = time.perf_counter()
         estop.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="released"))
-        assert wait_until(lambda: stack.states.messages()[-1].drive == "active", 5, 0.01)
+        assert wait_until(lambda: stack.states.messages()[-1].drive == "active", 30, 0.01)
         time.sleep(1.0)
     finally:
         estop.close()
@@ -230,9 +238,9 @@ def test_a_restarted_bridge_is_followed_at_once(stack):
     assert wait_until(lambda: any(s.epoch != old_epoch for s in stack.states.messages()[-50:]), 60, 0.1), \
         stack.log("bridge")
     t_new = time.perf_counter()
-    assert wait_until(lambda: any(c.epoch not in ("", old_epoch) for c in stack.commands.messages()[-50:]), 5, 0.01)
+    assert wait_until(lambda: any(c.epoch not in ("", old_epoch) for c in stack.commands.messages()[-50:]), 30, 0.01)
     assert time.perf_counter() - t_new < 2.0  # at once, not after the old stamps are caught up
-    assert wait_until(lambda: stack.states.messages()[-1].drive == "active", 5, 0.05)
+    assert wait_until(lambda: stack.states.messages()[-1].drive == "active", 30, 0.05)
     first = next(c for c in stack.commands.messages() if c.epoch not in ("", old_epoch))
     assert first.stamp_s < 5.0  # the new run's clock
     _alive(stack)
