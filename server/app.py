@@ -90,7 +90,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 from server.scene import NeckScene
 
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
-                                        port=settings.viser_port, rate_hz=settings.scene_rate_hz)
+                                        port=settings.viser_port, rate_hz=settings.scene_rate_hz,
+                                        jog=lambda alpha_deg: routes_jog.request_jog(state, alpha_deg),
+                                        hold=lambda: routes_jog.stop_jog(state))
             state.campaigns = CampaignManager(data_dir, session, state.hub,
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),

@@ -16,6 +16,7 @@ has no truth or seed to choose. What was resolved here is what the record and th
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any, Literal
 
 import msgspec
@@ -34,11 +35,13 @@ from controller.trajectory import (
 from server.campaign_runner import CampaignSpec
 from server.paramsets import ParameterStore, UnknownParameterSet
 from server.settings import Settings
+from server.truthstore import TruthStore, UnknownTruth, truth_label
 from twin.model.params import ParameterError, Params
+from twin.sim.truth import TruthError
 
 Target = Literal["twin", "robot"]
 Pace = Literal["lockstep", "realtime"]
-Truth = Literal["model", "robot", ""]  # "" on the robot
+Truth = str  # "model", "robot", a stored truth's name (server.truthstore), the stack twin's file; "" on the robot
 
 
 class RequestError(ValueError):
@@ -78,10 +81,12 @@ class CampaignCreate(BaseModel):
     pace: Literal["lockstep", "realtime"] | None = Field(None, description="Twin pacing (default: the server's).")
     seed: int | None = Field(None, ge=0, le=2**31 - 1, description="Seed of the twin's sensor noise (default 0; "
                              "under `xneck up` the stack twin's seed, which cannot be changed per campaign).")
-    truth: Literal["model", "robot"] | None = Field(
-        None, description="What a twin started for the campaign simulates (twin/sim/truth.py; default: robot for "
-        "identification, model for control). Under `xneck up` the stack's twin keeps the truth it was started with: "
-        "another one is refused.")
+    truth: str | None = Field(
+        None, max_length=64, pattern=r"^[A-Za-z0-9_.\-]{1,64}$",
+        description="What a twin started for the campaign simulates (twin/sim/truth.py): model, robot, or the name of "
+        "a truth file the console knows (GET /api/truths; e.g. calibrated by `xneck twin calibrate`). Default: robot "
+        "for identification, model for control. Under `xneck up` the stack's twin keeps the truth it was started "
+        "with: another one is refused.")
 
 
 class PreparedCampaign(BaseModel):
@@ -118,17 +123,30 @@ def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> t
         return target, "realtime", "", 0
     default_truth: Truth = "robot" if req.kind == "identification" else "model"
     if not service:
-        return target, req.pace or settings.pace, req.truth or default_truth, req.seed or 0
+        return target, req.pace or settings.pace, _known_truth(req.truth or default_truth, settings), req.seed or 0
     if req.pace == "lockstep":
         raise RequestError(("pace",), "the `xneck up` stack's twin runs in real time (500 Hz); lockstep is only for "
                            "campaigns that start their own twin (`xneck server` without a controller service)")
-    if req.truth is not None and req.truth != settings.twin_truth:
-        raise RequestError(("truth",), f"the stack's twin simulates the {settings.twin_truth} truth (`xneck up "
-                           f"--truth`); it cannot change per campaign")
+    if req.truth is not None and req.truth not in (settings.twin_truth, truth_label(settings.twin_truth)):
+        raise RequestError(("truth",), f"the stack's twin simulates the {truth_label(settings.twin_truth)} truth "
+                           f"(`xneck up --truth`); it cannot change per campaign")
     if req.seed is not None and req.seed != settings.twin_seed:
         raise RequestError(("seed",), f"the stack's twin runs with seed {settings.twin_seed} (`xneck up --seed`); it "
                            f"cannot change per campaign")
     return target, "realtime", settings.twin_truth, settings.twin_seed
+
+
+def _known_truth(name: str, settings: Settings) -> Truth:
+    """The truth a spawned twin runs for the request's name: "model", "robot" or a stored file's
+    absolute path (server.truthstore), or :class:`RequestError` saying why not."""
+    store = TruthStore(Path(settings.data_dir))
+    try:
+        return store.resolve(name)
+    except UnknownTruth:
+        raise RequestError(("truth",), f"unknown truth {name!r}; known: {', '.join(store.names())} "
+                           "(upload a truth file with PUT /api/truths/{name})") from None
+    except TruthError as exc:
+        raise RequestError(("truth",), f"truth {name!r} does not load: {exc}") from None
 
 
 def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, service: bool = False) -> PreparedCampaign:
@@ -173,4 +191,6 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
         truth=truth or "model", service=service,
     )
-    return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target, truth=truth)
+    # The record names the truth ("model", "robot", a stored truth's name); the spec carries what the twin loads.
+    return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target,
+                            truth=truth_label(truth) if truth else "")

@@ -39,7 +39,7 @@ from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
-from server.child_processes import log_tail, stop_child, xneck_argv
+from server.child_processes import isolate, log_tail, stop_child, xneck_argv
 from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
 from twin.model.params import Params
 
@@ -183,6 +183,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             with open(logs[name], "wb") as log:
                 procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT,
                                                stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            if realtime:  # a lockstep twin runs flat out: no real-time priority for it (issue 21)
+                isolate(procs[name].pid, args[0])
 
         if spec.service:
             requests = publisher(session, bus.CAMPAIGN_REQUEST)

@@ -76,6 +76,26 @@ class NeckDrawing:
         pulleys = _to3((centres[:, None, None, :] + self._ring[None]).reshape(-1, 2, 2))
         return NeckGeometry(bars=bars, springs=springs, cables=cables, pulleys=pulleys)
 
+    def motors(self) -> tuple[np.ndarray, ...]:
+        """The motors' drums, one ring of radius r_d per cable under the base where its cable
+        starts, (S, 2, 3) each in m (the base is fixed: drawn once)."""
+        e = self.ends(np.zeros(self.n_joints))
+        ring = self._ring / max(self.pulley_radius_m, 1e-3) * float(self.params.geometry.r_d)
+        out = []
+        for route in self.routes:
+            start = e[0, A if route[0][1] in "ac" else B] - np.array([0.0, MOTOR_DROP_M + float(self.params.geometry.r_d)])
+            out.append(_to3(start + ring))
+        return tuple(out)
+
+    def bounds(self, alpha_max_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """(centre (3,), half extents (3,)) of the box holding the neck over its joint range and its
+        motors: what a camera frames so that the whole neck shows at any pose, in m."""
+        poses = [np.zeros(self.n_joints), np.full(self.n_joints, alpha_max_rad), np.full(self.n_joints, -alpha_max_rad)]
+        points = [self.geometry(p).bars.reshape(-1, 3) for p in poses] + [m.reshape(-1, 3) for m in self.motors()]
+        cloud = np.concatenate(points)
+        lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+        return (lo + hi) / 2.0, (hi - lo) / 2.0
+
     def _cable(self, e: np.ndarray, route: tuple[tuple[int, str], ...]) -> np.ndarray:
         first_case = route[0][1]
         left = first_case in "ac"

@@ -39,8 +39,8 @@ class CampaignRecord(BaseModel):
     target: Literal["twin", "robot"]
     pace: Literal["lockstep", "realtime"] = "lockstep"
     seed: int = Field(default=0, description="Seed of the twin's sensor noise (0 on the robot).")
-    truth: Literal["model", "robot", ""] = Field(default="", description="What the twin simulated (twin/sim/truth.py); "
-                                                 "empty on the robot.")
+    truth: str = Field(default="", max_length=256, description="What the twin simulated (twin/sim/truth.py): model, "
+                       "robot or a truth file's name (GET /api/truths); empty on the robot.")
     status: CampaignStatus = "running"
     progress: float = Field(default=0.0, ge=0.0, le=1.0)
     message: str = ""

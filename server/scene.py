@@ -5,6 +5,13 @@ status; the twin's truth when no controller runs) with bars, springs, pulleys an
 coloured by tension (blue 0 N → red f_max; the twin's tension, else the applied forces); ghosts
 of the bars at α^d (green) and α_IP (orange, camera); the base frame axes and a gravity arrow.
 
+The camera frames the neck's bounding volume over its joint range (:meth:`NeckDrawing.bounds`)
+when a browser connects, when its view changes shape (a resized card) and on "reset view"; the
+motors' drums (radius r_d), pulleys (r) and bars are drawn with the parameter set's dimensions.
+The GUI panel has a slider per joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`;
+at most one per ``JOG_PERIOD_S`` while dragging, the last one where the slider stops) and a
+"hold here" button (``hold``).
+
 Nodes are created once; a daemon thread updates their properties at ``rate_hz`` inside
 ``server.atomic()`` so a browser never sees half a pose. It only reads :class:`LatestValues`,
 never the bus, so a slow viser client cannot slow the control loop.
@@ -14,8 +21,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import viser
@@ -32,6 +42,9 @@ PULLEY_RGB = (90, 90, 110)
 GHOST_D_RGB = (40, 170, 80)
 GHOST_IP_RGB = (240, 140, 20)
 GRAVITY_RGB = (200, 30, 200)
+MOTOR_RGB = (60, 60, 60)
+JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
+FIT_MARGIN = 1.15  # the bounding box fills this much less than the view
 
 
 def _solid(segments: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
@@ -42,12 +55,19 @@ class NeckScene:
     """A viser server showing the live neck. ``port`` 0 picks a free port; read :attr:`port`."""
 
     def __init__(self, values: LatestValues, params: Params, host: str = "127.0.0.1", port: int = 0,
-                 rate_hz: float = 30.0) -> None:
+                 rate_hz: float = 30.0, jog: Callable[[list[float]], tuple[int, Any]] | None = None,
+                 hold: Callable[[], object] | None = None) -> None:
         from bridge.session import free_tcp_port
 
         self.values = values
+        self.jog, self.hold = jog, hold
+        self._jog_target: list[float] | None = None  # newest slider pose not sent yet
+        self._jog_sent_s = -math.inf
+        self._aspects: dict[int, float] = {}  # client id -> aspect ratio of its last fit
         self.rate_hz = rate_hz
         self.drawing = NeckDrawing(params)
+        self.alpha_max_deg = float(params.limits.alpha_max_deg)
+        self.centre, self.half_extents = self.drawing.bounds(math.radians(self.alpha_max_deg))
         self.f_max_N = float(params.limits.f_max)
         self.server = viser.ViserServer(host=host, port=port or free_tcp_port(host), verbose=False)
         self.port = self.server.get_port()  # viser silently takes port+1 if the port is busy
@@ -62,12 +82,15 @@ class NeckScene:
         scene.set_up_direction("+y")
         self.server.gui.configure_theme(show_logo=False)
         self.server.gui.main_panel.minimize()  # the dashboard is the control surface; keep the neck visible
-        # The neck is about 0.3 m tall: frame it from the front (+z) instead of viser's metres-scale default.
+        # The neck is about 0.3 m tall: frame it from the front (+z) instead of viser's metres-scale default;
+        # each client is fitted once its view's shape is known (fit()).
         cam = self.server.initial_camera
         cam.up = (0.0, 1.0, 0.0)
-        cam.look_at = (0.03, 0.14, 0.0)
-        cam.position = (0.06, 0.2, 0.5)
+        cam.look_at = tuple(self.centre)
+        cam.position = tuple(self.centre + np.array([0.0, 0.0, 3.0 * float(self.half_extents.max())]))
         cam.near = 0.01
+        self.server.on_client_connect(self._on_connect)
+        self._build_gui()
         zero = np.zeros(self.drawing.n_joints)
         g = self.drawing.geometry(zero)
         scene.add_frame("/base", axes_length=0.04, axes_radius=0.0015)
@@ -86,12 +109,89 @@ class NeckScene:
                                                thickness=0.0015)
         self.pulleys = scene.add_line_segments("/neck/pulleys", g.pulleys, _solid(g.pulleys, PULLEY_RGB),
                                                thickness=0.001)
+        for j, ring in enumerate(self.drawing.motors()):
+            scene.add_line_segments(f"/motors/motor_{j + 1}", ring, _solid(ring, MOTOR_RGB), thickness=0.003,
+                                    position=(0.0, 0.0, 0.002 * (j + 1)))
         self.cables = []
         for j, segs in enumerate(g.cables):
             # z offset per cable so that cables sharing a side stay distinguishable
             self.cables.append(scene.add_line_segments(
                 f"/neck/cable_{j + 1}", segs, _solid(segs, (0, 0, 255)), thickness=0.002,
                 position=(0.0, 0.0, 0.002 * (j + 1))))
+
+    # -- camera -------------------------------------------------------------------------------
+    def camera_distance(self, fov_rad: float, aspect: float) -> float:
+        """How far in front of the centre (+z) a camera of vertical field ``fov_rad`` and
+        ``aspect`` (width/height) sees the whole bounding box, in m: the box's front face fills
+        the tighter of the two fields."""
+        hx, hy, hz = (float(v) for v in self.half_extents)
+        tan_y = math.tan(max(fov_rad, 1e-3) / 2.0)
+        tan_x = tan_y * max(aspect, 1e-3)
+        return FIT_MARGIN * max(hx / tan_x, hy / tan_y) + hz
+
+    def fit(self, client: viser.ClientHandle) -> None:
+        """Frame the neck's bounding volume in ``client``'s view, from the front (+z)."""
+        cam = client.camera
+        self._aspects[client.client_id] = cam.aspect
+        distance = self.camera_distance(cam.fov, cam.aspect)
+        with client.atomic():  # position first: its setter moves look_at along
+            cam.position = tuple(self.centre + np.array([0.0, 0.0, distance]))
+            cam.look_at = tuple(self.centre)
+            cam.up_direction = (0.0, 1.0, 0.0)
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        self.fit(client)
+
+        @client.camera.on_update
+        def _(cam: viser.CameraHandle) -> None:  # a resized card changes the aspect: fit again
+            if abs(cam.aspect - self._aspects.get(client.client_id, cam.aspect)) > 0.02:
+                self.fit(client)
+
+    # -- GUI panel: reset view, jog ---------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        reset = gui.add_button("reset view", hint="Frame the whole neck again")
+
+        @reset.on_click
+        def _(event: viser.GuiEvent) -> None:
+            if event.client is not None:
+                self.fit(event.client)
+
+        self.jog_sliders = []
+        if self.jog is None:
+            return
+        with gui.add_folder("Jog (deg)"):
+            for j in range(self.drawing.n_joints):
+                slider = gui.add_slider(f"α{j + 1}", -self.alpha_max_deg, self.alpha_max_deg, 0.5, 0.0)
+                slider.on_update(lambda _event: self._slider_moved())
+                self.jog_sliders.append(slider)
+            hold = gui.add_button("hold here", hint="Stop the move where the neck is")
+            self.jog_text = gui.add_markdown("")
+
+        @hold.on_click
+        def _(_event: viser.GuiEvent) -> None:
+            self._jog_target = None
+            if self.hold is not None:
+                self.hold()
+                self.jog_text.content = "holding"
+
+    def _slider_moved(self) -> None:
+        self._jog_target = [float(s.value) for s in self.jog_sliders]
+
+    def send_jog(self, now_s: float) -> None:
+        """Send the newest slider pose if one waits and the last went ``JOG_PERIOD_S`` ago."""
+        target = self._jog_target
+        if target is None or self.jog is None or now_s - self._jog_sent_s < JOG_PERIOD_S:
+            return
+        self._jog_target, self._jog_sent_s = None, now_s
+        code, answer = self.jog(target)
+        if code == 429:
+            self._jog_target = target  # the newest goes next time
+            return
+        detail = answer.get("detail") if isinstance(answer, dict) else None
+        if isinstance(detail, list):
+            detail = "; ".join(str(d.get("msg", d)) for d in detail)
+        self.jog_text.content = f"→ {answer['jog_id']}" if code == 202 else f"**refused ({code})**: {detail}"
 
     def pose(self) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
         """(α̂, α^d, α_IP, tension) from the latest values (rad, rad, rad, N); None when unknown."""
@@ -128,6 +228,10 @@ class NeckScene:
         period = 1.0 / self.rate_hz
         last_version = -1
         while not self._stop.wait(period):
+            try:
+                self.send_jog(time.monotonic())
+            except Exception:  # a jog that cannot be sent must not kill the view thread
+                log.exception("jog from the 3D view failed")
             version = self.values.version()
             if version == last_version:
                 continue

@@ -38,8 +38,8 @@ class Settings(BaseSettings):
     scene_rate_hz: float = Field(30.0, gt=0, le=200, description="Update rate of the viser scene (Hz).")
     campaign_timeout_s: float = Field(600.0, gt=0, description="Abort a campaign after this long (wall, s).")
     viser: bool = Field(True, description="Start the viser 3D view.")
-    twin_truth: Literal["model", "robot"] = Field("model", description="With a controller service on the bus "
-                                                  "(`xneck up`): what the stack's twin bridge simulates.")
+    twin_truth: str = Field("model", description="With a controller service on the bus (`xneck up`): what the "
+                            "stack's twin bridge simulates, model, robot or a truth file (twin/sim/truth.py).")
     twin_seed: int = Field(0, ge=0, le=2**31 - 1, description="With a controller service on the bus: the seed of "
                            "the stack's twin bridge.")
     min_free_mb: float = Field(64.0, ge=0, description="A campaign starts only with this much free space (MB) "
@@ -51,6 +51,17 @@ class Settings(BaseSettings):
                                        "to read live data besides the console's own.")
     workspace_grid: int = Field(31, ge=5, le=61, description="Points per α axis of the 3-X workspace maps "
                                 "(odd, over ±90°); the cost grows with its cube (31: ≈2 s on 2 cores).")
+
+    @field_validator("twin_truth")
+    @classmethod
+    def _truth_loads(cls, truth: str) -> str:
+        from twin.sim.truth import TRUTHS, TruthError, check_truth
+
+        try:
+            check_truth(truth)
+        except TruthError as exc:
+            raise ValueError(str(exc)) from None
+        return truth if truth in TRUTHS else str(Path(truth).resolve())
 
     @field_validator("workspace_grid")
     @classmethod

@@ -124,3 +124,30 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     r = console.http.post("/api/jog", json={"alpha_deg": [0, 10, 0]}, headers=AUTH)
     assert r.status_code == 409 and cid in r.json()["detail"], r.text
     assert console.wait_ended(cid)["status"] in ("finished", "degraded")
+
+
+def _camera_fitted(scene, client) -> bool:
+    cam = client.camera
+    distance = np.linalg.norm(np.asarray(cam.position) - scene.centre)
+    return abs(distance / scene.camera_distance(cam.fov, cam.aspect) - 1) < 0.02 and \
+        np.abs(np.asarray(cam.look_at) - scene.centre).max() < 1e-3
+
+
+def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(console):
+    page, scene = console.page, console.app.state.scene
+    page.frame_locator("#viser").locator("canvas").first.wait_for(state="attached", timeout=30000)
+    assert page.locator("#viser").is_visible()
+    assert wait_until(lambda: len(scene.server.get_clients()) >= 1, 20)  # a client renders while it is seen
+    client = next(iter(scene.server.get_clients().values()))
+    assert wait_until(lambda: _camera_fitted(scene, client), 10, 0.1)
+    aspect = client.camera.aspect
+    page.set_viewport_size({"width": 900, "height": 1000})  # the card narrows: the view is fitted again
+    assert wait_until(lambda: abs(client.camera.aspect - aspect) > 0.05 and _camera_fitted(scene, client), 10, 0.1)
+    page.set_viewport_size({"width": 1400, "height": 1000})
+    # The panel's sliders send jog targets: α2 to 8° (the others at 0°) reaches the neck.
+    scene.jog_sliders[1].value = 8.0
+    status = console.app.state.live.values
+    assert wait_until(lambda: np.abs(np.degrees(status.get("status").alpha_hat_rad) - [0, 8, 0]).max() < 1, 20, 0.1)
+    assert scene.jog_text.content.startswith("→ jog-"), scene.jog_text.content
+    page.wait_for_timeout(800)
+    console.shot("console_3d_view.png", "#view")

@@ -267,3 +267,96 @@ def test_truth_file_is_accepted_wherever_a_truth_name_is(tmp_path):
     assert TwinDriverConfig(truth=str(path)).truth == str(path)
     with pytest.raises(msgspec.ValidationError, match="truth must be one of"):
         msgspec.convert({"truth": "bogus"}, TwinDriverConfig)
+
+
+# -- a truth file everywhere: REST, the console's settings under `xneck up` (issue 16) ---------------------------
+
+
+CALIBRATED = ('name = "bench"\n[cables]\nenabled = true\n'
+              'damping_N_s_m = { value = 55.0, source = "measurement: fitted by xneck twin calibrate to a.mcap" }\n'
+              '[calibration]\ncommand = "xneck twin calibrate a.mcap --out bench.toml"\ndate = "2026-11-23T00:00:00Z"\n'
+              'campaigns = ["a.mcap"]\nbase = "robot"\nfitted = { "cables.damping_N_s_m" = 55.0 }\n'
+              'sigma = { "cables.damping_N_s_m" = 2.0 }\nresidual_rms = { theta_rad = 0.02 }\nevaluations = 12\n')
+
+
+def test_truth_files_are_uploaded_validated_and_listed_over_rest(tmp_path):
+    import httpx
+    from server_harness import AUTH, running_server
+
+    with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=30) as client:
+        put = lambda name, body: client.put(f"/api/truths/{name}", content=body, headers=AUTH)  # noqa: E731
+        assert client.put("/api/truths/bench", content=CALIBRATED).status_code == 401  # the token is needed
+        hostile = [
+            ("robot", CALIBRATED, ["path", "name"], "built in"),
+            ("bad$name", CALIBRATED, ["path", "name"], "must be 1-64"),
+            ("bench", "", ["body"], "empty body"),
+            ("bench", "\xff\xfe", ["body"], "invalid UTF-8"),
+            ("bench", "x = " + "[" * 3000 + "]" * 3000, ["body"], "nested too deeply"),
+            ("bench", "[camera]\nbias = 1\n", ["body"], "not an effect section"),
+            ("bench", "[cables]\ndamping_N_s_m = 40.0\n", ["body"], "write it as"),
+            ("bench", '[timing]\ndelay_ticks = { value = 9, source = "none: x" }\n', ["body"], "0-3"),
+            ("bench", "[calibration]\ndate = 1\n", ["body"], "calibration"),
+            ("bench", "a" * 70_000, ["body"], "more than"),
+        ]
+        for name, body, loc, reason in hostile:
+            r = put(name, body.encode("latin-1") if body.startswith("\xff") else body)
+            assert r.status_code == 422, (name, body[:40], r.text)
+            detail = r.json()["detail"][0]
+            assert detail["loc"] == loc and reason in detail["msg"], (name, body[:40], detail)
+        assert not (tmp_path / "data" / "truths" / "bench.toml").exists()
+        r = put("bench", CALIBRATED)
+        assert r.status_code == 201 and r.json() == {"name": "bench", "effects": ["cables"], "calibrated": True}
+        listed = {t["name"]: t for t in client.get("/api/truths").json()["truths"]}
+        assert set(listed) == {"model", "robot", "bench"}
+        assert listed["bench"]["calibration"]["campaigns"] == ["a.mcap"] and listed["robot"]["builtin"]
+        assert client.get("/api/truths/bench").text == CALIBRATED
+        assert client.get("/api/truths/nope").status_code == 404
+        # A campaign request names a truth, never a path; an unknown name is a 422 that lists the known ones.
+        for truth, reason in (("../../etc/passwd", "pattern"), ("/tmp/x.toml", "pattern"), ("other", "known: model, robot, bench")):
+            r = client.post("/api/campaigns", json={"kind": "control", "truth": truth}, headers=AUTH)
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "truth"], r.text
+            assert reason in r.json()["detail"][0]["msg"], r.text
+
+
+def test_a_rest_campaign_runs_a_stored_truth_and_its_record_says_which(tmp_path):
+    """The console starts the campaign's twin with the named truth file: the record names it, the
+    MCAP says which file the twin loaded."""
+    import httpx
+    from server_harness import AUTH, running_server, wait_until
+
+    from bridge.archive import read_campaign
+
+    with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=60) as client:
+        assert client.put("/api/truths/bench", content=CALIBRATED, headers=AUTH).status_code == 201
+        short = {"waypoints_deg": [[0, 0, 0], [10, 10, 10]], "durations_s": 1.0}
+        r = client.post("/api/campaigns", json={"kind": "control", "law": 2, "truth": "bench", "waypoints": short},
+                        headers=AUTH)
+        assert r.status_code == 201 and r.json()["truth"] == "bench", r.text
+        cid = r.json()["id"]
+        assert wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 150, 0.3)
+        rec = client.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] in ("finished", "degraded") and rec["truth"] == "bench", rec
+    stored = tmp_path / "data" / "truths" / "bench.toml"
+    assert read_campaign(tmp_path / "data" / "campaigns" / f"{cid}.mcap").info["twin_truth"] == str(stored.resolve())
+
+
+def test_the_console_under_xneck_up_takes_a_truth_file_and_campaigns_keep_it(tmp_path):
+    """`xneck up --truth FILE` passes the file to the server (--twin-truth): its settings take it,
+    campaigns for the stack's twin record it, and another truth is refused."""
+    from server.campaign_request import CampaignCreate, RequestError, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    path = tmp_path / "bench.toml"
+    path.write_text(CALIBRATED)
+    settings = Settings(data_dir=tmp_path, twin_truth=str(path))  # pyright: ignore[reportCallIssue] - env-filled
+    assert settings.twin_truth == str(path.resolve())
+    store = ParameterStore(tmp_path)
+    request = lambda truth: CampaignCreate.model_validate({"kind": "control", "truth": truth})  # noqa: E731
+    for asked in (None, "bench"):
+        prepared = prepare(request(asked), store, settings, service=True)
+        assert prepared.truth == "bench" and prepared.spec.truth == str(path.resolve())
+    with pytest.raises(RequestError, match="simulates the bench truth"):
+        prepare(request("robot"), store, settings, service=True)
+    with pytest.raises(ValueError, match="does not exist"):
+        Settings(data_dir=tmp_path, twin_truth=str(tmp_path / "gone.toml"))  # pyright: ignore[reportCallIssue]
