@@ -31,13 +31,14 @@ from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
 from server import routes_camera, routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
 from server.camera_feed import CameraFeed
-from server import routes_jog  # the operator's console (issue 18)
 from server.campaigns import CampaignManager, StorageError
+from server.console import include_console_routes
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
 from server.live import Broadcaster, LiveBus, bridge_estop
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
+from server.routes_jog import request_jog, stop_jog
 from server.settings import Settings, resolve_token
 from server.workspace_maps import WorkspaceCache
 
@@ -91,8 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz,
-                                        jog=lambda alpha_deg: routes_jog.request_jog(state, alpha_deg),
-                                        hold=lambda: routes_jog.stop_jog(state))
+                                        jog=lambda alpha_deg: request_jog(state, alpha_deg), hold=lambda: stop_jog(state))
             state.campaigns = CampaignManager(data_dir, session, state.hub,
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),
@@ -151,9 +151,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.error("%s %s: storage fault: %s", request.method, request.url.path, storage_reason(exc))
         return JSONResponse(status_code=507, content={"detail": f"storage fault: {storage_reason(exc)}"})
 
-    for router in (routes_jog.router,):  # before /api/campaigns/{id}: the console's own paths
-        document_responses(router.routes)
-        app.include_router(router)
+    include_console_routes(app)  # before /api/campaigns/{id}: the console's own paths
     for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
                    routes_workspace.router, routes_camera.router):
         document_responses(router.routes)

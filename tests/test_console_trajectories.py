@@ -1,0 +1,60 @@
+"""``/api/trajectories`` over real HTTP (issue 18): the library (list, get, put, delete; JSON or
+TOML), names that cannot leave the library's directory, and the checks a campaign start runs."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+from server_harness import AUTH, running_server
+
+NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, 0, 0]], "durations_s": 2.0, "dwell_s": 0.5}
+NOD_TOML = b'name = "nod"\nwaypoints_deg = [[0, 0, 0], [20, 10, 0], [0, 0, 0]]\ndurations_s = 2.0\ndwell_s = 0.5\n'
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory):
+    data = tmp_path_factory.mktemp("traj") / "data"
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=10) as client:
+        yield client, data
+
+
+def test_the_library_saves_lists_gets_and_deletes_json_and_toml(console):
+    client, data = console
+    assert client.put("/api/trajectories/nod", json=NOD, headers=AUTH).status_code == 201
+    r = client.put("/api/trajectories/nod-toml", content=NOD_TOML, headers={**AUTH, "Content-Type": "application/toml"})
+    assert r.status_code == 201, r.text
+    listed = {t["name"]: t for t in client.get("/api/trajectories").json()["trajectories"]}
+    assert listed["control_test"]["builtin"] and listed["nod"]["duration_s"] == pytest.approx(5.5)
+    got = client.get("/api/trajectories/nod-toml").json()
+    assert got["waypoints_deg"] == NOD["waypoints_deg"] and got["name"] == "nod-toml"
+    assert (data / "trajectories" / "nod.json").is_file()
+    assert client.delete("/api/trajectories/nod", headers=AUTH).status_code == 204
+    assert client.get("/api/trajectories/nod").status_code == 404
+    assert client.delete("/api/trajectories/control_test", headers=AUTH).status_code == 409
+    assert client.put("/api/trajectories/x", json=NOD).status_code == 401
+
+
+@pytest.mark.parametrize("name", ["..", ".hidden", "a/b", "..%2F..%2Fetc%2Fpasswd", "a" * 65, "x y", "control_test"])
+def test_names_cannot_leave_the_library_or_replace_a_builtin(console, name):
+    client, data = console
+    r = client.put(f"/api/trajectories/{name}", json=NOD, headers=AUTH)
+    assert r.status_code in (404, 405, 422), (name, r.status_code, r.text)
+    assert not any(p.name.startswith(".") and p.suffix == ".json" for p in data.rglob("*")), list(data.rglob("*"))
+    assert not (data.parent / "etc").exists()
+
+
+def test_the_checks_of_a_campaign_start_refuse_with_the_checkers_message(console):
+    client, _ = console
+    far = {**NOD, "waypoints_deg": [[0, 0, 0], [20, 75, 0], [0, 0, 0]]}
+    r = client.put("/api/trajectories/far", json=far, headers=AUTH)
+    assert r.status_code == 422 and "out of the joint limits" in r.json()["detail"][0]["msg"], r.text
+    v = client.post("/api/trajectories/validate", json=far, headers=AUTH).json()
+    assert not v["ok"] and "waypoint 1" in v["message"] and "α2 = 75°" in v["message"], v
+    assert len(v["preview"]["alpha_deg"]) == 3 and max(v["preview"]["alpha_deg"][1]) == pytest.approx(75)
+    fast = {**NOD, "durations_s": 0.2}
+    v = client.post("/api/trajectories/validate", json=fast, headers=AUTH).json()
+    assert not v["ok"] and "too fast" in v["message"] and "needs at least" in v["message"], v
+    v = client.post("/api/trajectories/validate", json=NOD, headers=AUTH).json()
+    assert v["ok"] and v["preview"]["duration_s"] == pytest.approx(5.5), v
+    v = client.post("/api/trajectories/validate", json={"waypoints_deg": [[0, 0]], "bogus": 1}, headers=AUTH).json()
+    assert not v["ok"] and v["preview"] is None and "bogus" in v["message"], v
