@@ -1,16 +1,37 @@
 """Child processes of the console: the `xneck` command lines it starts (campaign runner, `xneck up`),
-how they are stopped, and the last lines of their logs for an error message.
+how they are stopped, how they are scheduled, and the last lines of their logs for an error message.
 
 One place for what both orchestrators do, so a stop always means SIGTERM, a grace period (the
 bridge ramps its forces down and closes its archive in it), then SIGKILL.
+
+Isolation (issue 21): the loop's processes (bridge, twin, controller) get real-time priority
+(SCHED_FIFO, the bridge's safety above the controller) and the last CPU; everything else the
+console starts (and the console itself: viewers, figures, the 3D scene) the other CPUs, so a
+viewer never competes with the loop. What the kernel does not permit falls back (FIFO → nice −10
+→ nothing) and is reported: :func:`isolate` answers what each process really got, read back from
+the kernel, with the reason of each refusal; ``/api/system/processes`` shows it for every xneck
+process of this machine (:func:`local_processes`). ``XNECK_REALTIME=0`` leaves scheduling alone.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
+
+ENV_REALTIME = "XNECK_REALTIME"
+#: SCHED_FIFO priority of each loop process (1-99): the bridge (its watchdog and hold) first; the
+#: robot's bridge unit has 50 too (docs/bridge.md).
+LOOP_PRIORITY = {"bridge": 50, "twin": 50, "controller": 49}
+LOOP_NICE = -10  # the fallback when real-time priority is not permitted
+KINDS = ("bridge", "twin", "controller", "server", "camera", "up", "campaign")
+_POLICIES = {os.SCHED_OTHER: "other", os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr",
+             getattr(os, "SCHED_BATCH", -1): "batch", getattr(os, "SCHED_IDLE", -2): "idle"}
+_refusals: dict[int, list[str]] = {}  # pid -> why a request was refused (what isolate could not do)
 
 
 def xneck_argv(*args: str) -> list[str]:
@@ -38,3 +59,84 @@ def log_tail(path: Path, lines: int) -> str:
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
     except OSError:
         return ""
+
+
+def cpu_split(cpus: set[int] | None = None) -> tuple[set[int], set[int]]:
+    """(the loop's CPUs, everyone else's) out of ``cpus`` (default: this process's): the last CPU
+    for the loop and the rest for the others; one CPU is shared by all."""
+    cpus = set(os.sched_getaffinity(0)) if cpus is None else set(cpus)
+    if len(cpus) < 2:
+        return cpus, cpus
+    loop = {max(cpus)}
+    return loop, cpus - loop
+
+
+def isolate(pid: int, kind: str) -> dict[str, Any]:
+    """Schedule process ``pid`` as its ``kind`` asks (module docstring) and return what it got
+    (:func:`scheduling`). Call it right after the process started: it sets the main thread,
+    and the threads it starts later inherit (a thread that must not run at real-time priority,
+    like the bridge's hold worker, demotes itself when it starts)."""
+    refused: list[str] = []
+    if os.environ.get(ENV_REALTIME, "1") == "0":
+        refused.append(f"{ENV_REALTIME}=0: scheduling left alone")
+    else:
+        loop_cpus, other_cpus = cpu_split()
+        is_loop = kind in LOOP_PRIORITY
+        try:
+            os.sched_setaffinity(pid, loop_cpus if is_loop else other_cpus)
+        except OSError as exc:
+            refused.append(f"CPU affinity: {exc.strerror or exc}")
+        if is_loop:
+            try:
+                os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))
+            except OSError as exc:
+                refused.append(f"SCHED_FIFO {LOOP_PRIORITY[kind]}: {exc.strerror or exc}")
+                try:
+                    os.setpriority(os.PRIO_PROCESS, pid, LOOP_NICE)
+                except OSError as exc2:
+                    refused.append(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
+    _refusals[pid] = sorted(set(refused))
+    return scheduling(pid, kind)
+
+
+def isolate_self(kind: str = "server") -> dict[str, Any]:
+    """:func:`isolate` of this very process (the console: off the loop's CPU)."""
+    return isolate(os.getpid(), kind)
+
+
+def scheduling(pid: int, kind: str = "") -> dict[str, Any]:
+    """What process ``pid`` got, read back from the kernel: policy, real-time priority, nice,
+    CPUs, and what was refused when it was isolated (empty if it was not isolated here)."""
+    out: dict[str, Any] = {"pid": pid, "kind": kind}
+    try:
+        out["policy"] = _POLICIES.get(os.sched_getscheduler(pid), "unknown")
+        out["rt_priority"] = os.sched_getparam(pid).sched_priority
+        out["nice"] = os.getpriority(os.PRIO_PROCESS, pid)
+        out["cpus"] = sorted(os.sched_getaffinity(pid))
+    except OSError as exc:
+        out["error"] = exc.strerror or str(exc)
+    out["refused"] = _refusals.get(pid, [])
+    return out
+
+
+def _kind_of(argv: list[str]) -> str:
+    """``bridge`` for ``python -m server.cli bridge ...`` or ``xneck bridge ...``, else ''."""
+    for i, arg in enumerate(argv[:-1]):
+        if arg == "server.cli" or arg.endswith("/xneck") or arg == "xneck":
+            return argv[i + 1] if argv[i + 1] in KINDS else ""
+    return ""
+
+
+def local_processes() -> list[dict[str, Any]]:
+    """:func:`scheduling` of every xneck process on this machine (found by its command line),
+    this console included."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        with contextlib.suppress(OSError):
+            argv = Path(f"/proc/{entry}/cmdline").read_bytes().decode(errors="replace").split("\0")
+            kind = _kind_of(argv)
+            if kind or int(entry) == os.getpid():
+                found.append(scheduling(int(entry), kind or "server"))
+    return sorted(found, key=lambda p: p["pid"])

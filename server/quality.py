@@ -88,8 +88,10 @@ class CampaignMonitor:
         self._controller = {"controller_ticks": 0, "overruns": 0, "deadline_misses": 0}  # its counts, this campaign
         self.disabled_reason = ""
         self.rejected = 0
+        self._timing: dict[str, Any] = {}  # the controller's own timing of this campaign (issue 21)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
-                      session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command)]
+                      session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
+                      session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing)]
 
     # -- window -----------------------------------------------------------------------------
     def begin(self) -> None:
@@ -140,6 +142,17 @@ class CampaignMonitor:
             self._last_cmd_s = now
             self._commands.add(msg.seq)
 
+    def _on_timing(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(bus.ControllerTiming, sample)
+        with self._lock:
+            if msg is None or not msg.campaign_id or (self._ended and msg.campaign_id != self._timing.get("id")):
+                return
+            # Its state-to-command latency over the whole campaign (upper bin edges, ms), and the
+            # stale states of bursts it skipped; the last message of the campaign is its final one.
+            skipped = self._timing.get("skipped_states", 0) + msg.window_skipped
+            self._timing = {"id": msg.campaign_id, "latency_p50_ms": msg.campaign_latency_p50_ms,
+                            "latency_p99_ms": msg.campaign_latency_p99_ms, "skipped_states": skipped}
+
     # -- questions --------------------------------------------------------------------------
     def drives_disabled(self) -> str:
         """The bridge's reason if it reported its drives disabled during the window, else ''."""
@@ -162,6 +175,7 @@ class CampaignMonitor:
                 "duration_wall_s": round(duration_s, 4),
                 "rate_hz": round((self._commands.count - 1) / duration_s, 2) if duration_s > 0 else 0.0,
                 **self._controller,
+                **{k: v for k, v in self._timing.items() if k != "id"},
                 "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,

@@ -68,6 +68,8 @@ def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
         ["messages lost (gaps)", f"{q.get('messages_lost')} ({q.get('record_gaps')})",
          f"≤ {100 * t.get('lost_fraction_max', 0):.1f} % of the messages"],
         ["overruns", q.get("overruns"), ""],
+        ["state-to-command latency p50 / p99 (ms)", f"{q.get('latency_p50_ms', '–')} / {q.get('latency_p99_ms', '–')}",
+         "the controller's own, upper bin edges"],
     ]
     reasons = q.get("reasons") or []
     return [_table("Real-time quality (server.quality)", ["", "this run", "threshold"], rows,

@@ -13,6 +13,7 @@ from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_token
 from server.camera_feed import camera_health
+from server.child_processes import local_processes
 
 router = APIRouter(tags=["system"])
 
@@ -35,8 +36,11 @@ def health(request: Request) -> dict[str, Any]:
 
 @router.get("/api/system/processes")
 def processes(request: Request) -> dict[str, Any]:
-    """Processes whose Zenoh liveliness token is on the bus (twin, controller, bridge, ...)."""
-    return {"processes": request.app.state.presence.processes()}
+    """Processes whose Zenoh liveliness token is on the bus (twin, controller, bridge, ...), and
+    ``scheduling``: what each xneck process of this machine got from the kernel (policy,
+    real-time priority, nice, CPUs) and what it was refused (issue 21: the loop's processes at
+    real-time priority on their own CPU where permitted, the console off it)."""
+    return {"processes": request.app.state.presence.processes(), "scheduling": local_processes()}
 
 
 @router.get("/api/system/mode")

@@ -235,8 +235,14 @@ def test_under_xneck_up_a_request_is_honoured_or_refused_and_rest_and_mcap_agree
 
     try:
         assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
-        procs = httpx.get(base + "/api/system/processes").json()["processes"]
+        answer = httpx.get(base + "/api/system/processes").json()
+        procs = answer["processes"]
         assert all(0 <= p["since_s"] < 600 for p in procs), procs  # a duration, not an epoch
+        # What each loop process got from the kernel: real-time priority, or the refusal named.
+        sched = {p["kind"]: p for p in answer["scheduling"] if p["pid"] != up.pid}
+        assert {"bridge", "controller", "server"} <= set(sched), answer["scheduling"]
+        for kind in ("bridge", "controller"):
+            assert sched[kind]["policy"] == "fifo" or sched[kind]["refused"], sched[kind]
 
         def post(body: dict) -> httpx.Response:
             return httpx.post(base + "/api/campaigns", json=body, headers=AUTH, timeout=120)

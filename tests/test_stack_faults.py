@@ -177,6 +177,13 @@ def test_a_healthy_real_time_campaign_finishes_with_its_quality_on_record(tmp_pa
     q = rec["quality"]
     assert q["realtime"] and q["ticks"] > 1000 and q["thresholds"]["rate_min_fraction"] == 0.95
     assert (rec["status"] == "degraded") == bool(q["reasons"])
+    # Issue 21: the controller's own latency of this campaign on record, its histograms in the MCAP.
+    assert 0 < q["latency_p50_ms"] <= q["latency_p99_ms"] and q["skipped_states"] >= 0, q
+    timing = [m for _, m in read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").messages(bus.CONTROLLER_TIMING)
+              if m.campaign_id == cid]
+    assert timing and timing[-1].campaign_ticks == q["controller_ticks"], (timing[-1:], q)
+    assert sum(timing[-1].campaign_latency_counts) >= 0.9 * q["controller_ticks"]
+    assert len(timing[-1].campaign_period_counts) == len(timing[-1].bin_edges_ms) - 1
 
 
 def test_a_failed_identification_analysis_is_analysis_failed_not_finished(tmp_path: Path) -> None:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import typer
 
-from server.child_processes import log_tail, stop_child, xneck_argv
+from server.child_processes import isolate, log_tail, stop_child, xneck_argv
 from server.cli.options import TRUTH_OPTION
 
 STOP_GRACE_S = 8.0
@@ -158,6 +158,7 @@ def up(
         with open(log_files[name], "ab") as log:
             procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+        isolate(procs[name].pid, args[0])  # the loop's processes first, the console off their CPU (issue 21)
 
     code = 0
     try:

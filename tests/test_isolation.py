@@ -1,0 +1,64 @@
+"""Isolation of the loop's processes (issue 21): real-time priority and CPU affinity where the
+kernel permits, what each process got read back and reported, refusals named."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from server import child_processes as cp
+
+
+@pytest.fixture
+def child():
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        yield p
+    finally:
+        p.kill()
+        p.wait(5)
+
+
+def test_a_loop_process_gets_real_time_priority_and_the_loop_cpu_or_says_why_not(child):
+    got = cp.isolate(child.pid, "controller")
+    loop_cpus, _ = cp.cpu_split()
+    assert got["pid"] == child.pid and got["kind"] == "controller"
+    assert got["cpus"] == sorted(loop_cpus) or any("affinity" in r for r in got["refused"]), got
+    if got["policy"] == "fifo":
+        assert got["rt_priority"] == cp.LOOP_PRIORITY["controller"] and not got["refused"]
+    else:  # not permitted here: the fallback and the refusal are on record
+        assert any("SCHED_FIFO" in r for r in got["refused"]), got
+        assert got["nice"] == cp.LOOP_NICE or any("nice" in r for r in got["refused"]), got
+    assert cp.scheduling(child.pid, "controller") == got  # read back from the kernel, not remembered
+
+
+def test_the_console_leaves_the_loop_cpu_and_realtime_can_be_turned_off(child, monkeypatch):
+    got = cp.isolate(child.pid, "server")
+    loop_cpus, other_cpus = cp.cpu_split()
+    assert got["policy"] == "other" and got["rt_priority"] == 0
+    if loop_cpus != other_cpus:  # two CPUs or more: the console never shares the loop's
+        assert set(got["cpus"]) == other_cpus or got["refused"], got
+    monkeypatch.setenv(cp.ENV_REALTIME, "0")
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"]) as other:
+        try:
+            off = cp.isolate(other.pid, "bridge")
+            assert off["policy"] == "other" and off["refused"] == [f"{cp.ENV_REALTIME}=0: scheduling left alone"]
+            assert off["cpus"] == sorted(os.sched_getaffinity(other.pid))
+        finally:
+            other.kill()
+
+
+def test_cpu_split_keeps_one_cpu_for_the_loop():
+    assert cp.cpu_split({0, 1, 2, 3}) == ({3}, {0, 1, 2})
+    assert cp.cpu_split({0}) == ({0}, {0})
+
+
+def test_local_processes_finds_xneck_processes_by_their_command_line(child):
+    assert cp._kind_of([sys.executable, "-m", "server.cli", "controller", "--law", "2"]) == "controller"
+    assert cp._kind_of(["/venv/bin/xneck", "bridge", "--driver", "twin"]) == "bridge"
+    assert cp._kind_of([sys.executable, "-m", "pytest"]) == ""
+    me = [p for p in cp.local_processes() if p["pid"] == os.getpid()]
+    assert me and me[0]["kind"] == "server" and "policy" in me[0]
