@@ -151,3 +151,34 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
     assert scene.jog_text.content.startswith("→ jog-"), scene.jog_text.content
     page.wait_for_timeout(800)
     console.shot("console_3d_view.png", "#view")
+
+
+def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_and_runs_a_fixed_one(console):
+    page, http = console.page, console.http
+    assert http.put("/api/trajectories/nod-short", json=NOD, headers=AUTH).status_code == 201
+    page.reload()
+    page.wait_for_function("document.querySelectorAll('#traj-library option').length >= 3", timeout=15000)
+    page.select_option("#traj-library", "nod-short")
+    page.click("#traj-load")
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('ok')", timeout=10000)
+    page.fill('#traj-table tr[data-k="1"] .traj-a2', "75")  # typed: checked without a click
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.includes('out of the joint limits')",
+                           timeout=10000)
+    msg = page.inner_text("#traj-msg")
+    assert "waypoint 1" in msg and "α2 = 75°" in msg and "exceeds ±60°" in msg, msg
+    assert page.get_attribute('#traj-table tr[data-k="1"]', "class") == "bad"
+    page.locator("#trajectories").scroll_into_view_if_needed()
+    page.wait_for_timeout(300)
+    console.shot("console_editor_rejects.png", "#trajectories")
+
+    page.fill('#traj-table tr[data-k="1"] .traj-a2', "4")
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('ok')", timeout=10000)
+    page.fill("#traj-name", "nod-edited")
+    page.click("#traj-save")
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('saved nod-edited')")
+    assert http.get("/api/trajectories/nod-edited").json()["waypoints_deg"][1] == [6, 4, 0]
+    page.click("#traj-start")
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.includes('started')", timeout=10000)
+    cid = page.inner_text("#traj-msg").split()[1]
+    rec = console.wait_ended(cid)
+    assert rec["status"] in ("finished", "degraded") and rec["trajectory"] == "nod-edited", rec
