@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bridge import bus
 from controller.laws import ComputedTorque, LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
@@ -24,14 +25,37 @@ class Run:
     alpha_d: np.ndarray  # (T, N) rad
     alpha_hat: np.ndarray  # (T, N) rad
     alpha: np.ndarray  # (T, N) rad, twin truth
+    theta_meas: np.ndarray  # (T, n_cables) rad, the encoders as the bridge reports them
     force_N: np.ndarray  # (T, n_cables)
     tension_N: np.ndarray  # (T, n_cables), twin truth
     saturated: np.ndarray  # (T, n_cables) bool
     t_ip_s: np.ndarray  # (K,) capture times
-    alpha_ip: np.ndarray  # (K, N) rad
+    alpha_ip: np.ndarray  # (K, N) rad, NaN for a joint the camera did not measure
+    ip_stamp_s: np.ndarray  # (K,) when each frame was delivered (capture + the camera's latency)
+    ip_confidence: np.ndarray  # (K, N) per joint in [0, 1]; NaN when the camera does not grade (white noise)
+    ip_source: str = ""  # the twin camera's CameraAlpha.source
 
     def metrics(self) -> dict[str, object]:
-        return campaign_metrics(self.t_s, self.alpha_hat, self.alpha_d, self.force_N, self.saturated, self.t_ip_s, self.alpha_ip)
+        seen = np.isfinite(self.alpha_ip).all(axis=1)  # a frame with a missing joint compares with nothing
+        return campaign_metrics(self.t_s, self.alpha_hat, self.alpha_d, self.force_N, self.saturated,
+                                self.t_ip_s[seen], self.alpha_ip[seen])
+
+    def messages(self) -> list[tuple[str, int, bus.BusMessage]]:
+        """The run as the bus would have carried it — ``MotorState`` every tick (encoders, the
+        forces applied), ``CameraAlpha`` per frame — for :func:`bridge.archive.write_campaign`,
+        so the archive readers (``xneck identify``) read a closed loop run here as a bus campaign."""
+        out: list[tuple[str, int, bus.BusMessage]] = []
+        for k, t in enumerate(self.t_s.tolist()):
+            out.append((bus.MOTOR_STATE, round(t * 1e9), bus.MotorState(
+                seq=k + 1, stamp_s=t, theta_rad=self.theta_meas[k].tolist(), force_applied_N=self.force_N[k].tolist(),
+                drive="active", epoch="offline", bridge="offline")))
+        for k, (t, a, c) in enumerate(zip(self.t_ip_s.tolist(), self.alpha_ip, self.ip_confidence, strict=True)):
+            stamp = float(self.ip_stamp_s[k])
+            out.append((bus.CAMERA_ALPHA, round(stamp * 1e9) + 1, bus.CameraAlpha(
+                seq=k + 1, stamp_s=stamp, capture_stamp_s=t, source=self.ip_source,
+                alpha_ip_rad=[None if np.isnan(x) else float(x) for x in a],
+                confidence=[] if np.isnan(c).all() else c.tolist())))
+        return sorted(out, key=lambda m: m[1])
 
 
 def run_closed_loop(
@@ -44,19 +68,23 @@ def run_closed_loop(
     t = np.arange(1, n + 1) / twin_config.rate_hz
     ref = trajectory.sample(t)
     N, nc = twin.model.n_joints, twin.model.n_cables
-    out = {k: np.empty((n, w)) for k, w in (("alpha_hat", N), ("alpha", N), ("force_N", nc), ("tension_N", nc))}
+    out = {k: np.empty((n, w)) for k, w in (("alpha_hat", N), ("alpha", N), ("force_N", nc), ("tension_N", nc),
+                                            ("theta_meas", nc))}
     saturated = np.zeros((n, nc), dtype=bool)
-    frames_t, frames_a = [], []
+    frames_t, frames_a, frames_stamp, frames_c = [], [], [], []
     tick = twin.tick(np.zeros(nc))  # the first state the controller sees
     for k in range(n):
         cmd = ctl.step(tick.theta_meas, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k])
         tick = twin.tick(cmd.f)
         out["alpha_hat"][k], out["force_N"][k], saturated[k] = cmd.alpha_hat, cmd.f, cmd.saturated
-        out["alpha"][k], out["tension_N"][k] = tick.alpha, tick.tension
-        for capture, alpha_ip in tick.frames:
+        out["alpha"][k], out["tension_N"][k], out["theta_meas"][k] = tick.alpha, tick.tension, tick.theta_meas
+        for j, (capture, alpha_ip) in enumerate(tick.frames):
             frames_t.append(capture)
             frames_a.append(alpha_ip)
+            frames_stamp.append(tick.t_s)
+            frames_c.append(tick.frame_confidence[j] if j < len(tick.frame_confidence) else np.full(N, np.nan))
     return Run(
         t_s=t, alpha_d=ref.alpha, saturated=saturated,
-        t_ip_s=np.array(frames_t), alpha_ip=np.array(frames_a).reshape(-1, N), **out,
+        t_ip_s=np.array(frames_t), alpha_ip=np.array(frames_a).reshape(-1, N), ip_stamp_s=np.array(frames_stamp),
+        ip_confidence=np.array(frames_c).reshape(-1, N), ip_source=twin.camera.source if twin.camera else "", **out,
     )

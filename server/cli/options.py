@@ -36,6 +36,18 @@ def check_truth(value: str) -> str:
 
 
 TRUTH_OPTION = typer.Option("model", "--truth", callback=check_truth, help="Twin: what it simulates, the parameter file as it is (model), the robot's unmodelled physics (robot: twin/sim/robot_truth.toml), or a truth FILE; see twin/sim/truth.py.")
+def check_alpha_ip(value: str) -> str:
+    """Typer callback: ``--alpha-ip`` is one of twin.sim.sensors.ALPHA_IP_KINDS."""
+    from twin.sim.sensors import ALPHA_IP_KINDS
+
+    if value not in ALPHA_IP_KINDS:
+        raise typer.BadParameter(f"{value!r}: choose {' or '.join(ALPHA_IP_KINDS)}")
+    return value
+
+
+ALPHA_IP_OPTION = typer.Option("noise", "--alpha-ip", callback=check_alpha_ip, help="Twin: its α_IP, the true α plus "
+                               "the camera's white noise (noise) or measured on frames rendered from its truth by the "
+                               "robot's detector (camera; docs/camera.md), 30 fps of simulated time, after the exposure latency.")
 MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
 IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
 STARTUP_TIMEOUT_OPTION = typer.Option(

@@ -16,6 +16,7 @@ from pathlib import Path
 import typer
 
 from server.cli.options import (
+    ALPHA_IP_OPTION,
     CABLE_MODEL_OPTION,
     CONNECT_OPTION,
     IDLE_TIMEOUT_OPTION,
@@ -74,7 +75,7 @@ def _driver_table(path: Path | None) -> dict:
 
 def make_driver(driver: str, params, table: dict, *, replay: Path | None = None, loop: bool = False,
                 seed: int = 0, cable_model: str | None = None, friction: bool = True,
-                truth: str = "model", camera: bool = True):
+                truth: str = "model", camera: bool = True, alpha_ip: str = "noise"):
     """The driver named ``driver`` with its config from ``table`` (a TOML table) and the options.
     Raises :class:`bridge.driver.DriverError` with a readable reason."""
     from bridge.driver import DriverError, config_from_dict
@@ -96,6 +97,8 @@ def make_driver(driver: str, params, table: dict, *, replay: Path | None = None,
             base["truth"] = truth
         if not camera:
             base["camera"] = False
+        if alpha_ip != "noise":
+            base["alpha_ip"] = alpha_ip
         return TwinDriver(config_from_dict(TwinDriverConfig, base), params)
     if driver == "replay":
         from bridge.drivers.replay import ReplayConfig, ReplayDriver
@@ -125,6 +128,7 @@ def bridge(
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
     no_camera: bool = NO_CAMERA_OPTION,
+    alpha_ip: str = ALPHA_IP_OPTION,
     max_ticks: int | None = MAX_TICKS_OPTION,
     idle_timeout: float | None = IDLE_TIMEOUT_OPTION,
     startup_timeout: float | None = STARTUP_TIMEOUT_OPTION,
@@ -161,7 +165,8 @@ def bridge(
         raise _fail(str(exc)) from None
     try:
         drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
-                          cable_model=cable_model, friction=not no_friction, truth=truth, camera=not no_camera)
+                          cable_model=cable_model, friction=not no_friction, truth=truth, camera=not no_camera,
+                          alpha_ip=alpha_ip)
         drv.configure()
     except (DriverError, ValueError) as exc:
         raise _fail(str(exc)) from None
@@ -198,6 +203,7 @@ def twin(
     no_friction: bool = NO_FRICTION_OPTION,
     truth: str = TRUTH_OPTION,
     no_camera: bool = NO_CAMERA_OPTION,
+    alpha_ip: str = ALPHA_IP_OPTION,
     max_ticks: int | None = MAX_TICKS_OPTION,
     idle_timeout: float | None = IDLE_TIMEOUT_OPTION,
     startup_timeout: float | None = STARTUP_TIMEOUT_OPTION,
@@ -214,7 +220,7 @@ def twin(
     if ctx.invoked_subcommand is not None:
         return  # a subcommand (calibrate) runs instead of the twin
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, max_ticks=max_ticks,
+           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
 

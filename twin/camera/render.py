@@ -33,6 +33,9 @@ CABLE_BGR = (45, 45, 45)
 OCCLUDER_BGR = (110, 110, 110)
 _SHIFT = 4
 _SUB = 1 << _SHIFT
+_MARGIN = 64  # px of extra sensor-noise bank: each frame reads it at a random offset
+_NOISY_BACKGROUNDS = 4
+_LIGHT_ONE = 128  # the lighting gain in fixed point (1/128): 8-bit arithmetic, under half a grey level off
 
 
 @dataclass(frozen=True)
@@ -62,9 +65,12 @@ class RenderOptions:
             raise ValueError("supersample must be 1, 2, 3 or 4")
 
 
-def _disk(centre: np.ndarray, radius: float, n: int = 40) -> np.ndarray:
-    t = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
-    return centre + radius * np.column_stack([np.cos(t), np.sin(t)])
+_CIRCLE = np.column_stack([np.cos(np.linspace(0.0, 2.0 * math.pi, 40, endpoint=False)),
+                           np.sin(np.linspace(0.0, 2.0 * math.pi, 40, endpoint=False))])  # a disk's outline, 40 points
+
+
+def _disk(centre: np.ndarray, radius: float) -> np.ndarray:
+    return centre + radius * _CIRCLE
 
 
 def _band(p: np.ndarray, q: np.ndarray, width: float, extend: float = 0.0, step: float = 0.004) -> np.ndarray:
@@ -81,14 +87,15 @@ def _band(p: np.ndarray, q: np.ndarray, width: float, extend: float = 0.0, step:
     return np.vstack([side + n, (side - n)[::-1]])
 
 
-def _zigzag(p: np.ndarray, q: np.ndarray, amplitude: float, turns: int = 9) -> np.ndarray:
+_ZIGZAG_TURNS = 9
+_ZIGZAG_S = np.linspace(0.0, 1.0, 2 * _ZIGZAG_TURNS + 1)[:, None]  # along the spring
+_ZIGZAG_SIDE = np.concatenate([[0.0], np.where(np.arange(1, 2 * _ZIGZAG_TURNS) % 2 == 0, -1.0, 1.0), [0.0]])[:, None]
+
+
+def _zigzag(p: np.ndarray, q: np.ndarray, amplitude: float) -> np.ndarray:
     d = q - p
     u = d / max(float(np.hypot(*d)), 1e-9)
-    n = np.array([-u[1], u[0]])
-    s = np.linspace(0.0, 1.0, 2 * turns + 1)
-    offs = np.zeros_like(s)
-    offs[1:-1] = amplitude * np.where(np.arange(1, 2 * turns) % 2 == 0, -1.0, 1.0)
-    return p + s[:, None] * d + offs[:, None] * n
+    return p + _ZIGZAG_S * d + (amplitude * _ZIGZAG_SIDE) * np.array([-u[1], u[0]])
 
 
 def _to_pixels(cal: Calibration, plane_polys: list[np.ndarray]) -> list[np.ndarray]:
@@ -117,20 +124,36 @@ class Renderer:
         self._light = self._lighting()
         self._noise = None
         if self.options.noise_dn > 0:
-            margin = 64
-            bank = self.rng.normal(0.0, self.options.noise_dn, size=(c.height + margin, c.width + margin, 3))
-            self._noise = np.round(bank).astype(np.int16)
+            bank = np.round(self.rng.normal(0.0, self.options.noise_dn, size=(c.height + _MARGIN, c.width + _MARGIN, 3)))
+            # Two 8-bit banks, what is added and what is taken away: saturating 8-bit adds, no widening.
+            self._noise = (np.clip(bank, 0, 255).astype(np.uint8), np.clip(-bank, 0, 255).astype(np.uint8))
         self._static = self._static_layer()
         self._background = self._optics(self._static, 0, 0)
+        # The static background with sensor noise, a few draws of it: a frame starts as one of
+        # them and only the neck's region gets fresh noise (adding noise to the whole frame was
+        # half the cost of a frame; the background's noise is then one of a few fixed patterns).
+        self._backgrounds = [self._background if self._noise is None else self._noisy(self._background, 0, 0)
+                             for _ in range(_NOISY_BACKGROUNDS if self._noise is not None else 1)]
+
+    def _noisy(self, img: np.ndarray, x0: int, y0: int) -> np.ndarray:
+        """``img`` (the sensor region starting at pixel (x0, y0)) plus sensor noise, at a random
+        offset into the bank."""
+        assert self._noise is not None
+        dy, dx = (int(v) for v in self.rng.integers(0, _MARGIN, size=2))
+        h, w = img.shape[:2]
+        up, down = (bank[dy + y0:dy + y0 + h, dx + x0:dx + x0 + w] for bank in self._noise)
+        return cv2.subtract(cv2.add(img, up), down)
 
     def _lighting(self) -> np.ndarray:
-        """Gain per pixel (float32, H×W×3): exposure, a left-to-right gradient, vignetting."""
+        """Gain per pixel (uint8 in 1/:data:`_LIGHT_ONE`, H×W×3): exposure, a left-to-right
+        gradient, vignetting."""
         c, o = self.calibration, self.options
         x = (np.arange(c.width) - 0.5 * c.width) / (0.5 * c.width)
         y = (np.arange(c.height) - 0.5 * c.height) / (0.5 * c.width)
         xx, yy = np.meshgrid(x, y)
         gain = o.gain * (1.0 + 0.5 * o.gradient * xx) * (1.0 - o.vignetting * (xx**2 + yy**2) / (1.0 + (c.height / c.width) ** 2))
-        return np.repeat(gain.astype(np.float32)[..., None], 3, axis=2)
+        fixed = np.clip(np.round(gain * _LIGHT_ONE), 0, 255).astype(np.uint8)
+        return np.repeat(fixed[..., None], 3, axis=2)
 
     def _static_layer(self) -> np.ndarray:
         """Board, base plate and reference markers: the part of the frame that never moves."""
@@ -158,7 +181,7 @@ class Renderer:
         # whole chain in saturating 8-bit arithmetic.
         if o.blur_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), o.blur_px)
-        return cv2.multiply(img, self._light[y0:y0 + h, x0:x0 + w], dtype=cv2.CV_8U)
+        return cv2.multiply(img, self._light[y0:y0 + h, x0:x0 + w], scale=1.0 / _LIGHT_ONE, dtype=cv2.CV_8U)
 
     def _scene(self, alpha: np.ndarray) -> list[tuple[np.ndarray, tuple[int, int, int], int]]:
         """What moves, back to front, in the plane: (outline, colour, line thickness; 0 = filled)."""
@@ -191,7 +214,8 @@ class Renderer:
 
         Only the region around the neck is drawn and filtered each frame (the rest is the static
         background, filtered once); the region is padded by the blur's reach so the result is the
-        same as filtering the whole frame. Noise covers the whole frame."""
+        same as filtering the whole frame. Noise covers the whole frame: fresh over the region, one
+        of a few pre-drawn patterns elsewhere."""
         alpha = np.asarray(alpha, dtype=float)
         c, s = self.calibration, self.options.supersample
         ops = self._scene(alpha)
@@ -200,7 +224,8 @@ class Renderer:
         reach = math.ceil(4.0 * self.options.blur_px) + 2
         inner = (max(int(pts[:, 0].min()) - 4, 0), max(int(pts[:, 1].min()) - 4, 0),
                  min(int(pts[:, 0].max()) + 6, c.width), min(int(pts[:, 1].max()) + 6, c.height))
-        frame = self._background.copy()
+        pick = int(self.rng.integers(len(self._backgrounds))) if self._noise is not None else 0
+        frame = self._backgrounds[pick].copy()
         if inner[2] > inner[0] and inner[3] > inner[1]:
             x0, y0 = max(inner[0] - reach, 0), max(inner[1] - reach, 0)
             x1, y1 = min(inner[2] + reach, c.width), min(inner[3] + reach, c.height)
@@ -214,10 +239,10 @@ class Renderer:
                     cv2.fillPoly(img, [local], colour, lineType=cv2.LINE_AA, shift=_SHIFT)
             region = self._optics(img, x0, y0)
             ix0, iy0 = inner[0] - x0, inner[1] - y0
-            frame[inner[1]:inner[3], inner[0]:inner[2]] = region[iy0:iy0 + inner[3] - inner[1], ix0:ix0 + inner[2] - inner[0]]
-        if self._noise is not None:
-            dy, dx = (int(v) for v in self.rng.integers(0, 64, size=2))
-            frame = cv2.add(frame, self._noise[dy:dy + c.height, dx:dx + c.width], dtype=cv2.CV_8U)
+            region = region[iy0:iy0 + inner[3] - inner[1], ix0:ix0 + inner[2] - inner[0]]
+            if self._noise is not None:
+                region = self._noisy(region, inner[0], inner[1])
+            frame[inner[1]:inner[3], inner[0]:inner[2]] = region
         return frame
 
 

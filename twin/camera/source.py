@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -126,12 +127,15 @@ class TwinShutter:
     :meth:`feed` takes every truth sample (time, α) in order and returns the exposures whose
     latency has elapsed, stamped with the time they became ready. A gap in the truth longer than
     a frame period (a stalled twin) skips the exposures it covers and counts them as dropped.
+    ``on_exposure`` is called with each exposure when it is taken (a renderer can start on it
+    while its latency elapses).
     """
 
     rate_hz: float = 30.0
     latency_s: float = 0.05
     dropped: int = 0  # exposures skipped because the truth stalled
     exposures: int = 0  # exposures taken
+    on_exposure: Callable[[Exposure], None] | None = None
     _next_s: float | None = None
     _pending: list[Exposure] = field(default_factory=list)
 
@@ -148,6 +152,8 @@ class TwinShutter:
             self.dropped += late
             self._pending.append(Exposure(t_s, np.array(alpha_rad, dtype=float)))
             self.exposures += 1
+            if self.on_exposure is not None:
+                self.on_exposure(self._pending[-1])
             self._next_s += (late + 1) * period
         ready = [e for e in self._pending if e.capture_s + self.latency_s <= t_s + 1e-9]
         if ready:

@@ -15,6 +15,7 @@ e-stop and the exit behaviour are tested on the twin exactly as they run on the 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -33,7 +34,8 @@ class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw
     """What the twin simulates (see :class:`twin.sim.simulator.TwinConfig`): cable model (None: the
     parameter file's), motor friction, integration substeps per tick, sensor-noise seed, camera,
     truth ("model": the parameter file as it is; "robot": the shipped robot truth with every
-    unmodelled effect; or the path of a truth file, twin/sim/truth.py)."""
+    unmodelled effect; or the path of a truth file, twin/sim/truth.py), α_IP ("noise": the true α
+    plus white noise; "camera": measured on frames rendered from the truth, twin.sim.sensors)."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None
     friction: bool = True
@@ -41,6 +43,7 @@ class TwinDriverConfig(DriverConfig, frozen=True, forbid_unknown_fields=True, kw
     seed: int = 0
     camera: bool = True
     truth: str = "model"
+    alpha_ip: Literal["noise", "camera"] = "noise"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -68,10 +71,10 @@ class TwinDriver(Driver):
     def _on_configure(self) -> None:
         c = self.config
         twin_config = TwinConfig(cable_model=c.cable_model, friction=c.friction, rate_hz=c.rate_hz,
-                                 substeps=c.substeps, seed=c.seed, camera=c.camera, truth=c.truth)
+                                 substeps=c.substeps, seed=c.seed, camera=c.camera, truth=c.truth, alpha_ip=c.alpha_ip)
         # One step of a throwaway twin loads the compiled integrator now (about 80 ms), so the
         # bridge's first real tick does not overrun.
-        Twin(self.params, twin_config).tick(np.zeros(self.n_motors))
+        Twin(self.params, replace(twin_config, camera=False)).tick(np.zeros(self.n_motors))
         self.twin = Twin(self.params, twin_config)
 
     def _on_activate(self) -> None:
@@ -108,11 +111,14 @@ class TwinDriver(Driver):
             log.info("t = %.3f s: slack cables %s", tick.t_s, (np.nonzero(tick.slack)[0] + 1).tolist())
             self._slack = tick.slack
         extra: list[tuple[str, bus.BusMessage]] = []
-        for capture, alpha_ip in tick.frames:
+        camera = self.twin.camera
+        for k, (capture, alpha_ip) in enumerate(tick.frames):
             self._seq["camera"] += 1
-            extra.append((bus.CAMERA_ALPHA, bus.CameraAlpha(seq=self._seq["camera"], stamp_s=tick.t_s,
-                                                            alpha_ip_rad=alpha_ip.tolist(), capture_stamp_s=capture,
-                                                            source="twin-noise")))
+            confidence = tick.frame_confidence[k].tolist() if k < len(tick.frame_confidence) else []
+            extra.append((bus.CAMERA_ALPHA, bus.CameraAlpha(
+                seq=self._seq["camera"], stamp_s=tick.t_s, capture_stamp_s=capture,
+                alpha_ip_rad=[None if np.isnan(a) else float(a) for a in alpha_ip],  # a missing joint is null
+                confidence=confidence, source=camera.source if camera is not None else "twin-noise")))
         self._seq["truth"] += 1
         extra.append((bus.TWIN_TRUTH, bus.Truth(
             seq=self._seq["truth"], stamp_s=tick.t_s, alpha_rad=tick.alpha.tolist(),

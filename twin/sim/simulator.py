@@ -18,7 +18,7 @@ from twin.model import cables, dynamics
 from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
 from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
-from twin.sim.sensors import Camera
+from twin.sim.sensors import ALPHA_IP_KINDS, make_camera
 from twin.sim.truth import RobotTruth, TruthError, load_truth, truth_params
 
 NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
@@ -29,7 +29,9 @@ class TwinConfig:
     """What the twin simulates. Defaults: the paper's identified robot (Table 1 friction, Table 2
     variable-stiffness cables), 500 Hz, two integration substeps per tick. ``truth``: "model"
     integrates the parameter file as it is, "robot" the shipped robot truth (every unmodelled
-    effect on), a path a truth file, or a :class:`twin.sim.truth.RobotTruth` (``twin.sim.truth``)."""
+    effect on), a path a truth file, or a :class:`twin.sim.truth.RobotTruth` (``twin.sim.truth``).
+    ``alpha_ip``: the camera's α_IP, the true α plus white noise ("noise") or measured on frames
+    rendered from the truth ("camera", ``twin.sim.sensors.make_camera``); ``camera=False``: none."""
 
     cable_model: Literal["rigid", "linear", "variable"] | None = None  # None: the parameter file's
     friction: bool = True
@@ -38,8 +40,11 @@ class TwinConfig:
     seed: int = 0
     camera: bool = True
     truth: str | RobotTruth = "model"
+    alpha_ip: Literal["noise", "camera"] = "noise"
 
     def __post_init__(self) -> None:
+        if self.alpha_ip not in ALPHA_IP_KINDS:
+            raise ValueError(f"alpha_ip must be one of {', '.join(ALPHA_IP_KINDS)}, got {self.alpha_ip!r}")
         try:
             load_truth(self.truth)
         except TruthError as exc:
@@ -67,6 +72,7 @@ class Tick:
     slack: np.ndarray  # bool per cable
     near_singular: bool
     flat: bool  # a joint reached its flat configuration: the step was refused
+    frame_confidence: tuple[np.ndarray, ...] = ()  # per frame, per joint in [0, 1]; empty: not graded
 
 
 class Twin:
@@ -116,12 +122,8 @@ class Twin:
         self.seq = 0
         self.t_s = 0.0
         sensors = self.params.sensors
-        rng = np.random.default_rng(config.seed)
-        self.camera = (
-            Camera(sensors.camera_rate, math.radians(sensors.camera_noise_deg), sensors.camera_latency, rng)
-            if config.camera
-            else None
-        )
+        self.camera = make_camera(config.alpha_ip, sensors, config.seed, self.model, model_params.geometry) \
+            if config.camera else None
         self.counts_per_rev = sensors.encoder_counts_per_rev
         # Per-tick constants, so that tick() spends its time integrating (benchmarks/twin_speed.py).
         self._rad_per_count = 2.0 * math.pi / self.counts_per_rev
@@ -223,6 +225,7 @@ class Twin:
             slack=slack,
             near_singular=flat or max(map(abs, alpha.tolist())) >= NEAR_FLAT,
             flat=flat,
+            frame_confidence=tuple(self.camera.confidence) if frames and self.camera else (),
         )
 
 
