@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from server import routes_jog, routes_trajectories
+from server import routes_compare, routes_jog, routes_trajectories
 from server.guard import document_responses
 
 
 def include_console_routes(app: FastAPI) -> None:
-    for router in (routes_jog.router, routes_trajectories.router):
+    for router in (routes_compare.router, routes_jog.router, routes_trajectories.router):
         document_responses(router.routes)
         app.include_router(router)

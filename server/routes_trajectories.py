@@ -87,7 +87,7 @@ def get_trajectory(name: str, request: Request) -> dict[str, Any]:
     except (NotInLibrary, LibraryError):
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no trajectory {name!r}") from None
     except TrajectoryError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"stored trajectory {name!r}: {exc}") from None
+        raise HTTPException(422, f"stored trajectory {name!r}: {exc}") from None
     return {**traj.to_dict(), "duration_s": traj.duration_s}
 
 
