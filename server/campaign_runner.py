@@ -12,6 +12,18 @@ disabled during the campaign (the bridge's e-stop) abort it with the bridge's re
 finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` ends
 ``degraded`` with its reasons, in the result and in the MCAP metadata (``quality``, JSON, and
 ``degraded_reasons``).
+
+An identification campaign is analysed here, once its archive is finished (:func:`analyse_identification`,
+the console's and the CLI's one analysis): one whose analysis fails ends ``analysis_failed`` with the
+pipeline's reason and the record's gaps explained (:mod:`server.record_gaps`), in the result and in
+the archive's ``xneck.campaign`` record (``outcome``, ``message``, ``analysis``), never ``finished``
+(issue 17).
+
+α_IP of a twin started for a campaign (``alpha_ip``; default: ``camera`` for identification,
+``noise`` for control): ``camera`` measures it on frames the twin renders from its truth with
+the robot's detector (``twin.camera``, issue 15) — inside a lockstep twin, every exposure of
+simulated time, deterministic for the seed; beside a real-time twin, a separate ``xneck camera
+--source twin`` process —; ``noise`` is the true α plus the camera's white noise.
 """
 
 from __future__ import annotations
@@ -34,14 +46,16 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.archive import CampaignRecorder, read_campaign
+from bridge.archive import CAMPAIGN, CampaignRecorder, is_complete, read_campaign
 from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
+from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
 from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
 from twin.model.params import Params
+from twin.sim.sensors import ALPHA_IP_KINDS
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 
@@ -60,6 +74,16 @@ class CampaignSpec:
     realtime: bool = False  # twin paced at 500 Hz by the clock instead of lockstep (live viewing)
     service: bool = False  # ask the controller service on the bus (`xneck up`) instead of spawning processes
     truth: str = "model"  # what a spawned twin simulates (twin.sim.truth); a service's twin runs as it was started
+    alpha_ip: str | None = None  # a spawned twin's α_IP (module docstring); None: camera for identification, else noise
+
+    def __post_init__(self) -> None:
+        if self.alpha_ip is not None and self.alpha_ip not in ALPHA_IP_KINDS:
+            raise ValueError(f"alpha_ip must be one of {', '.join(ALPHA_IP_KINDS)}, got {self.alpha_ip!r}")
+
+    @property
+    def alpha_ip_source(self) -> str:
+        """The α_IP a spawned twin gives: as asked, else camera for identification, noise for control."""
+        return self.alpha_ip or ("camera" if self.kind == "identification" else "noise")
 
 
 @dataclass
@@ -71,10 +95,13 @@ class CampaignResult:
     metrics: dict[str, object] = field(default_factory=dict)
     law: str = ""
     quality: dict[str, object] = field(default_factory=dict)  # server.quality: counters, thresholds, reasons
+    analysis: str = ""  # identification: "identified" or why it failed (then outcome is analysis_failed)
+    identification: dict[str, object] | None = None  # twin.identification.report.report_dict, when identified
 
     def summary(self) -> dict[str, object]:
-        return {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
-                "message": self.message, "law": self.law, "metrics": self.metrics, "quality": self.quality}
+        out = {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
+               "message": self.message, "law": self.law, "metrics": self.metrics, "quality": self.quality}
+        return {**out, "analysis": self.analysis} if self.analysis else out
 
     def table(self) -> str:
         m = self.metrics
@@ -155,6 +182,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         "target": "twin" if spec.twin else "robot", "seed": str(spec.seed),
         "pace": "realtime" if spec.realtime or not spec.twin else "lockstep",
         "twin_truth": spec.truth if spec.twin else "",  # a service's twin: the truth the console was told
+        "alpha_ip": spec.alpha_ip_source if spec.twin and not spec.service else "",  # a service's twin: as started
         "parameters_toml": params.to_toml(),
     }
     events: queue.Queue[bus.CampaignEvent] = queue.Queue()
@@ -194,10 +222,16 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 parameters_toml=params.to_toml()))
         else:
             lockstep = spec.twin and not spec.realtime
+            # A real-time twin cannot wait for the renderer: a camera process beside it measures its truth.
+            camera_process = spec.twin and not lockstep and spec.alpha_ip_source == "camera"
             if spec.twin:
+                alpha_ip = ["--no-camera"] if camera_process else ["--alpha-ip", spec.alpha_ip_source]
                 spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
-                               "--truth", spec.truth, "--idle-timeout", "30", "--startup-timeout", "120", "--instance", f"twin-{campaign_id}",
-                               *common])
+                               "--truth", spec.truth, *alpha_ip, "--idle-timeout", "30", "--startup-timeout", "120",
+                               "--instance", f"twin-{campaign_id}", *common])
+            if camera_process:
+                spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout", "30",
+                                 "--instance", f"camera-{campaign_id}", *common])
             law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
             spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
                                  *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
@@ -272,7 +306,28 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         result.metrics = metrics_from_archive(path)
     except ValueError as exc:
         result.metrics = {"error": str(exc)}
+    if spec.kind == "identification" and outcome in ("finished", "degraded"):
+        if progress:
+            progress(1.0, "identifying (twin.identification.pipeline)…")
+        analyse_identification(result, spec.params_file)
     return result
+
+
+def analyse_identification(result: CampaignResult, params_file: Path | None) -> None:
+    """Identify a recorded identification campaign (:func:`server.results.identify_archive`) into
+    ``result``; a failed analysis makes the outcome ``analysis_failed`` with its reason, in the
+    result and in the archive (module docstring)."""
+    from server.results import identify_archive
+
+    result.identification, result.analysis = identify_archive(result.path, params_file)
+    if result.identification is not None:
+        return
+    run = result.message
+    result.outcome = "analysis_failed"
+    result.message = f"{result.analysis} ({run})" if run else result.analysis
+    if is_complete(result.path):
+        rewrite_archive(result.path, amend={CAMPAIGN: {"outcome": result.outcome, "message": result.message[:2000],
+                                                       "analysis": result.analysis[:2000]}})
 
 
 class _Services:
@@ -310,7 +365,8 @@ def metrics_from_archive(path: Path) -> dict[str, object]:
     cmds = {m.stamp_s: m.force_N for _, m in campaign.messages(bus.MOTOR_COMMAND)}
     status = [m for m in status if m.stamp_s in cmds]
     t = np.array([m.stamp_s for m in status])
-    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+    # A frame with a missing joint (the rendered camera's occlusions) measured nothing to compare with.
+    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA) if None not in m.alpha_ip_rad]
     return campaign_metrics(
         t_s=t,
         alpha_hat=np.array([m.alpha_hat_rad for m in status]),

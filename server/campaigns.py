@@ -6,7 +6,8 @@ already listen. Progress comes from the controller's campaign events; stop sets 
 ``run_campaign`` polls (it then stops the children within bounded time and finishes the MCAP).
 
 After a campaign: a Foxglove scene channel is added to the archive, the metrics (and for an
-identification campaign the identification tables) are computed, and the JSON record is final.
+identification campaign the identification tables, from the runner's analysis: a failed one is
+``analysis_failed``) are computed, and the JSON record is final.
 
 At start-up :meth:`CampaignManager.recover_all` repairs what a crash left: an unfinished MCAP is
 recovered (:func:`bridge.archive.recover`) and its record marked ``interrupted``. It never touches
@@ -42,7 +43,6 @@ from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.records import CampaignIndex, CampaignRecord
 from server.replay import Replay
-from server.results import identify_archive
 
 log = logging.getLogger("xneck.campaigns")
 
@@ -309,9 +309,12 @@ class CampaignManager:
         try:
             result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
                                   session=self.session, hub=self.hub, stop=self._stop)
-            status = result.outcome if result.outcome in ("finished", "degraded", "aborted") else "failed"
+            status = result.outcome if result.outcome in ("finished", "degraded", "aborted", "analysis_failed") \
+                else "failed"
             fields: dict[str, object] = {"status": status, "message": result.message[:2000],
                                          "metrics": result.metrics or None, "quality": result.quality or None}
+            if result.analysis:  # an identification campaign, analysed by the runner (issue 17: never finished if it failed)
+                fields["identification"], fields["identification_status"] = result.identification, result.analysis
             if status in ("finished", "degraded"):
                 fields["progress"] = 1.0
         except (ArchiveError, OSError) as exc:  # a storage fault: an outcome, not a server state
@@ -327,14 +330,6 @@ class CampaignManager:
                 fields["scene_messages"] = add_scene_channel(path, prepared.params)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
-        if spec.kind == "identification" and path.exists() and fields.get("status") in ("finished", "degraded"):
-            self._update(cid, message="identifying (twin.identification.pipeline)…")
-            report, text = identify_archive(path, spec.params_file)
-            fields["identification"] = report
-            fields["identification_status"] = text
-            if report is None:  # the run was recorded, its analysis failed: not a finished identification
-                fields["status"] = "analysis_failed"
-                fields["message"] = f"{text} ({fields['message']})"[:2000] if fields.get("message") else text
         fields["ended_at"] = iso_time()
         fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
         with self._lock:

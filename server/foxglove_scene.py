@@ -30,7 +30,7 @@ from mcap.reader import SeekingReader
 from mcap.writer import Writer
 
 from bridge import bus
-from bridge.archive import CHUNK_SIZE, COMPRESSION, PROFILE, software_version
+from server.archive_rewrite import OnMessage, rewrite_archive
 from server.neck_geometry import NeckDrawing, tension_colors
 from twin.model.params import Params
 
@@ -124,52 +124,35 @@ def add_scene_channel(path: str | os.PathLike[str], params: Params, rate_hz: flo
     if SCENE_TOPIC in topics or not ({status_topic, truth_topic} & topics):
         return 0
     pose_topic = status_topic if status_topic in topics else truth_topic
-    tmp = path.with_name(path.name + ".scene")
-    tmp.unlink(missing_ok=True)
-    added = 0
     period_ns = int(1e9 / rate_hz)
-    try:
-        with open(path, "rb") as src, open(tmp, "xb") as dst:
-            reader = SeekingReader(src)
-            writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=COMPRESSION)
-            writer.start(profile=PROFILE, library=f"xneck/{software_version()}")
-            schema_ids: dict[int, int] = {}
-            channel_ids: dict[int, int] = {}
-            scene_schema = writer.register_schema(SCHEMA_NAME, "jsonschema", json.dumps(SCENE_UPDATE_SCHEMA).encode())
-            scene_channel = writer.register_channel(SCENE_TOPIC, "json", scene_schema, {"frame_id": FRAME_ID})
-            tension: np.ndarray | None = None
-            next_ns = 0
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
-                if schema is not None and schema.id not in schema_ids:
-                    schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                if channel.id not in channel_ids:
-                    channel_ids[channel.id] = writer.register_channel(
-                        channel.topic, channel.message_encoding, schema_ids.get(channel.schema_id, 0),
-                        dict(channel.metadata))
-                writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
-                                   message.sequence)
-                if channel.topic == truth_topic:
-                    tension = np.asarray(msgspec.json.decode(message.data)["tension_N"], dtype=float)
-                if channel.topic == pose_topic and message.log_time >= next_ns:
-                    doc = msgspec.json.decode(message.data)
-                    if pose_topic == status_topic:
-                        alpha, alpha_d = doc["alpha_hat_rad"], doc["alpha_d_rad"]
-                    else:
-                        alpha, alpha_d = doc["alpha_rad"], None
-                    update = scene_update(drawing, np.asarray(alpha), None if alpha_d is None else np.asarray(alpha_d),
-                                          tension, f_max, message.log_time)
-                    writer.add_message(scene_channel, message.log_time, msgspec.json.encode(update),
-                                       message.log_time, added)
-                    added += 1
-                    next_ns = message.log_time + period_ns
-            for record in reader.iter_metadata():
-                writer.add_metadata(record.name, dict(record.metadata))
-            writer.add_metadata(METADATA, {"scene_topic": SCENE_TOPIC, "frame_id": FRAME_ID, "rate_hz": str(rate_hz),
-                                           "source_topic": pose_topic, "messages": str(added)})
-            writer.finish()
-            dst.flush()
-            os.fsync(dst.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    state = {"added": 0, "next_ns": 0, "tension": None}
+
+    def begin(writer: Writer) -> OnMessage:
+        scene_schema = writer.register_schema(SCHEMA_NAME, "jsonschema", json.dumps(SCENE_UPDATE_SCHEMA).encode())
+        scene_channel = writer.register_channel(SCENE_TOPIC, "json", scene_schema, {"frame_id": FRAME_ID})
+
+        def after(writer: Writer, _schema, channel, message) -> None:
+            if channel.topic == truth_topic:
+                state["tension"] = np.asarray(msgspec.json.decode(message.data)["tension_N"], dtype=float)
+            if channel.topic == pose_topic and message.log_time >= state["next_ns"]:
+                doc = msgspec.json.decode(message.data)
+                if pose_topic == status_topic:
+                    alpha, alpha_d = doc["alpha_hat_rad"], doc["alpha_d_rad"]
+                else:
+                    alpha, alpha_d = doc["alpha_rad"], None
+                update = scene_update(drawing, np.asarray(alpha), None if alpha_d is None else np.asarray(alpha_d),
+                                      state["tension"], f_max, message.log_time)
+                writer.add_message(scene_channel, message.log_time, msgspec.json.encode(update),
+                                   message.log_time, state["added"])
+                state["added"] += 1
+                state["next_ns"] = message.log_time + period_ns
+
+        return after
+
+    def end(writer: Writer) -> None:
+        writer.add_metadata(METADATA, {"scene_topic": SCENE_TOPIC, "frame_id": FRAME_ID, "rate_hz": str(rate_hz),
+                                       "source_topic": pose_topic, "messages": str(state["added"])})
+
+    rewrite_archive(path, begin=begin, end=end)
+    added = state["added"]
     return added

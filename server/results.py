@@ -19,6 +19,7 @@ import numpy as np
 
 from bridge import bus
 from bridge.archive import read_campaign
+from server.record_gaps import explain_gaps
 
 FIGURES = ("tracking", "forces")
 PYPLOT_LOCK = threading.Lock()  # pyplot's state machine is not thread-safe; every server figure takes it
@@ -100,7 +101,8 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
 
 def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, Any] | None, str]:
     """Run the offline identification (twin.identification.pipeline) on an archive: (report, status text).
-    Never raises: an identification problem is a result to show, not a server error."""
+    Never raises: an identification problem is a result to show, not a server error; the status of
+    a failed one ends with the record's gaps explained (:mod:`server.record_gaps`), if it has any."""
     from controller.trajectory import recorded_excitation
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict
@@ -110,7 +112,12 @@ def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, An
         ident = identify_record(path, load_params(params_file), excitation=recorded_excitation, with_validation=False)
         return report_dict(ident.estimate, ident.processed), "identified"
     except Exception as exc:  # noqa: BLE001 - reported to the user
-        return None, f"identification failed: {type(exc).__name__}: {exc}"
+        text = f"identification failed: {type(exc).__name__}: {exc}"
+    try:  # the gaps that broke it, explained (issue 17): which topic, which messages, what happened then
+        gaps = explain_gaps(read_campaign(path))
+    except Exception as exc:  # noqa: BLE001 - an unreadable archive: its reason is the failure above
+        gaps = f"(record gaps not examined: {type(exc).__name__}: {exc})"
+    return None, f"{text}; {gaps}" if gaps else text
 
 
 def render_figure(mcap: Path, name: str, out: Path) -> Path:

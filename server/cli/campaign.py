@@ -8,15 +8,23 @@ from pathlib import Path
 import typer
 
 from server.cli.options import (
+    ALPHA_IP_OPTION,
     LAW_OPTION,
     NO_PULLEYS_OPTION,
     PARAMS_OPTION,
     SET_OPTION,
+    check_alpha_ip,
     check_truth,
     law_config,
     load_checked_trajectory,
     load_cli_params,
 )
+
+CAMPAIGN_ALPHA_IP_OPTION = typer.Option(
+    "camera", "--alpha-ip", callback=check_alpha_ip,
+    help="The twin's α_IP: camera (measured on frames rendered from its truth by the robot's detector, 30 fps, "
+         "with the exposure latency) or noise (the true α plus the camera's white noise).")
+
 
 campaign_app = typer.Typer(help="Run a campaign (identification or control), record it as MCAP, print its results.",
                            no_args_is_help=True)
@@ -32,6 +40,7 @@ def campaign_control(
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
                               "parameter file as it is (model) or with a real line's small cable damping (robot)."),
+    alpha_ip: str = ALPHA_IP_OPTION,
     timeout: float = typer.Option(600.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
@@ -43,7 +52,7 @@ def campaign_control(
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
-                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth)
+                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if as_json:
         typer.echo(jsonlib.dumps(result.summary(), indent=2))
@@ -69,12 +78,15 @@ def campaign_identification(
     truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "
                               "line's small cable damping, unknown to the model (robot), or the parameter file as "
                               "it is (model, an identity check)."),
+    alpha_ip: str = CAMPAIGN_ALPHA_IP_OPTION,
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Run the identification trajectory (§5.2.2) in closed loop with law 1, record it, and
-    identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8)."""
+    identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8). A twin's α_IP
+    is measured on frames it renders (--alpha-ip camera, issue 15). A failed identification ends
+    the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
     from controller.trajectory import identification_trajectory
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
@@ -83,11 +95,15 @@ def campaign_identification(
     config = law_config(1, False)
     spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
-                        truth=truth)
+                        truth=truth, alpha_ip=alpha_ip)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
-    if result.outcome != "finished":
+    if result.outcome not in ("finished", "degraded"):
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
+        if as_json:
+            typer.echo(jsonlib.dumps(result.summary(), indent=2))
         raise typer.Exit(1)
+    if result.outcome == "degraded":
+        typer.secho(f"warning: campaign {result.campaign_id} degraded: {result.message}", err=True, fg="yellow")
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
