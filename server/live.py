@@ -1,7 +1,9 @@
 """Bus → browser fan-out: the latest value of every live series, broadcast at a fixed rate.
 
-Zenoh callbacks only decode and store the newest message per key under a lock (no queue grows,
-nothing blocks, nothing calls Zenoh). A broadcaster coroutine builds one JSON frame per period
+Decimated where the samples enter the console (issue 21): each series is a Zenoh subscriber with
+a one-slot ring, which Zenoh's own (native) thread overwrites at 500 Hz without running any
+Python; the console takes the newest sample only when it reads (30 Hz), so the loop's rates cost
+it no interpreter time and no GIL, and nothing queues. A broadcaster coroutine builds one JSON frame per period
 (``live_rate_hz``, 30 Hz) from the latest values and hands the *same bytes* to every client's
 bounded queue, dropping that client's oldest frame when it is full. A slow or stalled browser
 thus loses frames (it sees the newest state when it catches up) and never pushes back on the bus
@@ -66,6 +68,7 @@ class LatestValues:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._sources: dict[str, Callable[[], Any]] = {}  # series -> try_recv of its one-slot ring
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
@@ -75,9 +78,30 @@ class LatestValues:
     def put_raw(self, series: str, payload: bytes) -> None:
         now = time.monotonic()
         with self._lock:
-            self._raw[series] = payload
-            self._received_s[series] = now
-            self._version += 1
+            self._store(series, payload, now)
+
+    def _store(self, series: str, payload: bytes, now: float) -> None:
+        self._raw[series] = payload
+        self._received_s[series] = now
+        self._version += 1
+
+    def add_source(self, series: str, try_recv: Callable[[], Any]) -> None:
+        """Pull ``series`` from ``try_recv`` (a Zenoh ring's: the newest sample or None) whenever
+        a value is read, instead of having it pushed by a callback per sample."""
+        with self._lock:
+            self._sources[series] = try_recv
+
+    def _pull(self) -> None:
+        """(Under the lock.) Take the newest sample of every ring that has one; its time of
+        arrival is known to within a read period (what ``fresh`` allows for)."""
+        now = time.monotonic()
+        for series, try_recv in self._sources.items():
+            try:
+                sample = try_recv()
+            except Exception:  # noqa: BLE001 - a closed subscriber: nothing new, ever
+                continue
+            if sample is not None:
+                self._store(series, sample.payload.to_bytes(), now)
 
     def put(self, series: str, msg: bus.BusMessage) -> None:
         self.put_raw(series, bus.encode(msg))
@@ -96,6 +120,7 @@ class LatestValues:
 
     def get(self, series: str) -> Any:
         with self._lock:
+            self._pull()
             payload = self._raw.get(series)
         return None if payload is None else self._decode_locked(series, payload)
 
@@ -105,6 +130,7 @@ class LatestValues:
 
     def snapshot(self) -> tuple[int, dict[str, bus.BusMessage]]:
         with self._lock:
+            self._pull()
             version, raw = self._version, dict(self._raw)
             out = {}
             for series, payload in raw.items():
@@ -115,11 +141,13 @@ class LatestValues:
 
     def version(self) -> int:
         with self._lock:
+            self._pull()
             return self._version
 
     def fresh(self, series: str, max_age_s: float) -> Any:
         """The latest message of ``series`` if it arrived within ``max_age_s`` and decodes, else None."""
         with self._lock:
+            self._pull()
             received = self._received_s.get(series)
         if received is None or time.monotonic() - received > max_age_s:
             return None
@@ -148,19 +176,16 @@ def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
 
 
 class LiveBus:
-    """Subscribes to every live series on a session and keeps only the newest message of each."""
+    """Subscribes to every live series on a session and keeps only the newest message of each,
+    in a one-slot ring per series read on demand (module docstring)."""
 
     def __init__(self, session: zenoh.Session) -> None:
         self.values = LatestValues()
-        self._subs = [session.declare_subscriber(key, self._callback(name, key)) for name, (key, _) in SERIES.items()]
-
-    def _callback(self, name: str, key: str) -> Callable[[zenoh.Sample], None]:
-        values = self.values
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            values.put_raw(name, sample.payload.to_bytes())
-
-        return on_sample
+        self._subs = []
+        for name, (key, _) in SERIES.items():
+            sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+            self._subs.append(sub)
+            self.values.add_source(name, sub.try_recv)
 
     def close(self) -> None:
         for sub in self._subs:
