@@ -5,6 +5,7 @@ Input: the forces law 2 commands on the §7 control test (recorded once from an 
 Prints the per-tick cost of Twin.tick (median, p99) and the real-time factor with the model truth
 (every effect of twin/sim/truth.py off), each robot effect alone, and every effect on (issue 16:
 still >= 50x), both in wall time and in this process's CPU time (the machine may be shared);
+the cost of a calibration replay (``Twin.advance``, robot truth, what `xneck twin calibrate` runs);
 then the ratio against scipy's solve_ivp (Radau, rtol 1e-8) integrating the same model over the
 same held forces, in the same process. Run: ``.venv/bin/python benchmarks/twin_speed.py``.
 """
@@ -51,6 +52,18 @@ def main() -> None:
               f"(a 100 s campaign takes {100 / rtf:.2f} s); target >= {TARGET_RTF:.0f}x (median tick, robust to a "
               f"shared machine's preemption) -> {'meets' if rtf_median >= TARGET_RTF else 'MISSES'}")
     print(f"every effect on: median tick {medians[-1] / medians[0]:.2f}x the model truth's (same run, same load)")
+    # What `xneck twin calibrate` runs per evaluation: Twin.advance (no sensors, no Tick) over a recording.
+    twin = Twin(params, TwinConfig(truth=robot, camera=False))
+    twin.advance(forces[0])
+    twin.reset()
+    per_tick = np.empty(len(forces))
+    for k, f in enumerate(forces):
+        t0 = time.perf_counter()
+        twin.advance(f)
+        per_tick[k] = time.perf_counter() - t0
+    summary("Twin.advance (calibration replays), robot truth", per_tick)
+    print(f"  one replay of this {len(forces) / 500:.0f} s recording: about {np.median(per_tick) * len(forces):.2f} s "
+          f"({twin.dt / float(np.median(per_tick)):.0f}x real time from the median tick)")
     twin = Twin(params, TwinConfig())
     dt = twin.dt
     clock = time.perf_counter
