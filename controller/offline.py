@@ -59,11 +59,13 @@ class Run:
 
 
 def run_closed_loop(
-    params: Params, law: LawConfig, trajectory: Trajectory, twin_config: TwinConfig = TwinConfig(), settle_s: float = 1.0
+    params: Params, law: LawConfig, trajectory: Trajectory, twin_config: TwinConfig = TwinConfig(), settle_s: float = 1.0,
+    model: Params | None = None,
 ) -> Run:
-    """Run ``trajectory`` (plus ``settle_s`` of hold at its end) with ``law`` against a twin."""
+    """Run ``trajectory`` (plus ``settle_s`` of hold at its end) with ``law`` against a twin of
+    ``params``; the controller holds ``model`` (default: the same set; a study's robot differs from it)."""
     twin = Twin(params, twin_config)
-    ctl = ComputedTorque(params, law)
+    ctl = ComputedTorque(params if model is None else model, law)
     n = int(round((trajectory.duration_s + settle_s) * twin_config.rate_hz))
     t = np.arange(1, n + 1) / twin_config.rate_hz
     ref = trajectory.sample(t)

@@ -1,0 +1,223 @@
+"""A study's runs as Dask tasks, their rows streamed into partitioned Parquet under the study directory.
+
+Layout of ``DIR``::
+
+    study.json                 the study (its definition and digest): DIR holds this study only
+    runs/law=<n>/part-*.parquet one row per finished run (law 0: design studies)
+    summary.json, figures/     written at the end (server.studies.report)
+
+Resumable: the finished run ids are read back (the ``run_id`` column only) and skipped. A batch of
+rows becomes visible at once (written to a hidden temp file, fsynced, renamed), so a crash at any
+moment leaves whole batches and no partial or repeated row; what was computed but not yet written
+is simply run again. One process at a time runs a study directory (an flock on ``DIR/.lock``).
+A worker killed mid-study loses its running tasks only: the scheduler gives them to another worker
+(``distributed.scheduler.allowed-failures`` times before it gives up on a task).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from threading import Event
+from typing import Any
+
+from server.studies.spec import RunSpec, Study, StudyError, expand
+
+RUNS_DIR = "runs"
+STUDY_FILE = "study.json"
+Progress = Callable[[int, int, str], None]  # (finished runs, all runs, message)
+
+
+def software_version() -> str:
+    """xneck's installed version and the checkout's commit when there is one (rows say what computed them)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        v = version("xneck")
+    except PackageNotFoundError:
+        v = "unknown"
+    head = Path(__file__).resolve().parents[2] / ".git" / "HEAD"
+    with contextlib.suppress(OSError):
+        ref = head.read_text().strip()
+        sha = (head.parent / ref[5:]).read_text().strip() if ref.startswith("ref: ") else ref
+        v += f"+g{sha[:10]}"
+    return v
+
+
+def part_files(out: Path) -> list[Path]:
+    """Every committed batch (hidden temp files of an interrupted write are not batches)."""
+    return sorted(p for p in (Path(out) / RUNS_DIR).glob("law=*/part-*.parquet") if not p.name.startswith("."))
+
+
+def finished_ids(out: Path) -> set[str]:
+    import pyarrow.parquet as pq
+
+    done: set[str] = set()
+    for f in part_files(out):
+        done.update(pq.read_table(f, columns=["run_id"]).column("run_id").to_pylist())
+    return done
+
+
+def read_rows(out: Path) -> list[dict[str, Any]]:
+    """All rows of a study directory, one per run id (the first written, should a copy ever exist)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    files = part_files(out)
+    if not files:
+        return []
+    table = pa.concat_tables([pq.read_table(f) for f in files], promote_options="default")
+    seen: set[str] = set()
+    rows = []
+    for row in table.to_pylist():
+        if row["run_id"] not in seen:
+            seen.add(row["run_id"])
+            rows.append(row)
+    return rows
+
+
+def write_batch(out: Path, rows: list[dict[str, Any]]) -> list[Path]:
+    """Rows as one Parquet file per law partition, each made visible atomically (temp + fsync + rename)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    written = []
+    for law in sorted({r["law"] for r in rows}):
+        part = [r for r in rows if r["law"] == law]
+        keys = list(dict.fromkeys(k for r in part for k in r))
+        table = pa.Table.from_pylist([{k: r.get(k) for k in keys} for r in part])
+        folder = Path(out) / RUNS_DIR / f"law={law}"
+        folder.mkdir(parents=True, exist_ok=True)
+        name = f"part-{time.time_ns()}-{os.getpid()}.parquet"
+        tmp = folder / f".{name}.tmp"
+        with open(tmp, "wb") as fh:
+            pq.write_table(table, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, folder / name)
+        written.append(folder / name)
+    return written
+
+
+@contextlib.contextmanager
+def study_dir(study: Study, out: Path) -> Iterator[Path]:
+    """``out`` locked for this process and holding ``study`` (created, or checked to be the same study)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise StudyError(f"{out}: another process is running this study") from None
+        meta = out / STUDY_FILE
+        if meta.exists():
+            try:
+                old = json.loads(meta.read_text())
+            except (OSError, ValueError) as exc:
+                raise StudyError(f"{meta}: unreadable ({exc}); use a new --out") from None
+            if old.get("digest") != study.digest():
+                raise StudyError(f"{out} holds another study ({old.get('digest')}, {old.get('study', {}).get('kind')}): "
+                                 "its rows would mix with this one's; use a new --out")
+        else:
+            tmp = out / f".{STUDY_FILE}.tmp"
+            tmp.write_text(json.dumps({"digest": study.digest(), "study": study.canonical(), "created": time.time()}, indent=2))
+            os.replace(tmp, meta)
+        for stale in (out / RUNS_DIR).glob("law=*/.part-*.tmp"):  # a crashed writer's; we hold the lock
+            stale.unlink(missing_ok=True)
+        yield out
+
+
+def load_study(out: Path) -> Study:
+    """The study a directory holds."""
+    try:
+        doc = json.loads((Path(out) / STUDY_FILE).read_text())
+    except (OSError, ValueError) as exc:
+        raise StudyError(f"{out}: not a study directory ({exc})") from None
+    data = doc["study"]
+    for key in ("vary", "laws", "set"):
+        data[key] = tuple(data[key])
+    return Study(**data)
+
+
+def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            return Client(scheduler, timeout=20), None
+        except (OSError, TimeoutError) as exc:
+            raise StudyError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                           dashboard_address=None)  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
+    return Client(cluster), cluster
+
+
+def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler: str | None = None, client: Any = None,
+              progress: Progress | None = None, stop: Event | None = None, flush_rows: int = 64,
+              flush_s: float = 2.0) -> dict[str, Any]:
+    """Run every unfinished run of ``study`` into ``out`` and write its summary and figures.
+
+    ``client``: an existing dask.distributed Client (else one on ``scheduler``, else a LocalCluster of
+    ``workers`` processes, default this machine's cores). ``stop``: set to stop early (the rows finished
+    so far are kept; a rerun goes on). Returns the summary (server.studies.report)."""
+    from server.studies.report import write_outputs
+    from server.studies.run import config_for
+
+    out = Path(out)
+    cfg = config_for(study, software_version())
+    runs = expand(study)
+    with study_dir(study, out):
+        done = finished_ids(out)
+        todo = [r for r in runs if r.run_id not in done]
+        if progress:
+            progress(len(runs) - len(todo), len(runs), "resuming" if done else "starting")
+        if todo and not (stop and stop.is_set()):
+            _execute(cfg, todo, out, len(runs), len(runs) - len(todo), client, workers, scheduler, progress, stop,
+                     flush_rows, flush_s)
+        return write_outputs(out, study, len(runs))
+
+
+def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
+             scheduler: str | None, progress: Progress | None, stop: Event | None, flush_rows: int,
+             flush_s: float) -> None:
+    from distributed import as_completed
+
+    from server.studies.run import run_one
+
+    own = None
+    if client is None:
+        client, own = _client(workers, scheduler)
+    futures: list[Any] = []
+    pending: list[dict[str, Any]] = []
+    last_flush = time.monotonic()
+    t0 = time.monotonic()
+    finished = 0
+    try:
+        cfg_future = client.scatter(cfg, broadcast=True, hash=False)
+        digest = cfg.study.digest()
+        futures = [client.submit(run_one, cfg_future, r, key=f"xneck-study-{digest}-{r.run_id}", pure=False) for r in todo]
+        for fut in as_completed(futures):
+            pending.append(fut.result())
+            fut.release()
+            finished += 1
+            if len(pending) >= flush_rows or time.monotonic() - last_flush >= flush_s:
+                write_batch(out, pending)
+                pending, last_flush = [], time.monotonic()
+            if progress:
+                rate = finished / max(time.monotonic() - t0, 1e-9)
+                progress(done + finished, total, f"{rate:.2f} runs/s")
+            if stop is not None and stop.is_set():
+                break
+    finally:
+        if pending:  # whatever finished is kept, also on Ctrl-C
+            write_batch(out, pending)
+        for fut in futures:
+            fut.cancel()
+        if own is not None:
+            client.close()
+            own.close()

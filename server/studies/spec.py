@@ -1,0 +1,253 @@
+"""What a study varies and how: ``--vary PATH=SPEC`` parsed, checked and expanded into runs.
+
+A study is many headless twin runs of one kind (``control``, ``identification``, ``design``).
+Each run gets concrete values for the varied parameter paths, a twin seed and a stable run id,
+all decided here, on the client, before anything runs: the per-run function
+(:func:`server.studies.run.run_one`) then depends on its arguments only, so a retried or resumed
+run gives the same row.
+
+SPEC (one scalar per run and path):
+
+- ``10%``: a relative spread, the nominal value times a factor drawn from U(0.9, 1.1); for a vector
+  (``friction.f_s``) every element is scaled by the same factor. The stored input is the factor.
+- ``N(mu,sigma)``: a normal draw, sigma > 0; ``U(a,b)``: a uniform draw, a < b. A vector path gets
+  the drawn value in every element; ``friction.f_s[2]`` (counted from 1, as the papers number
+  cables and joints) varies one element.
+- ``a:b:n``: a grid of n values from a to b (both included). Runs are the product of every grid
+  with ``samples`` random draws of the other paths, for every law.
+
+PATH is a parameter-file key (twin/model/params.py), or ``truth.<effect>.<key>`` for the truth file
+(twin/sim/truth.py; needs ``--truth robot`` or a truth file). Every error names the path and the
+reason, and is raised before anything runs (:class:`StudyError`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import re
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+KINDS = ("control", "identification", "design")
+MAX_RUNS = 200_000  # a typo (a grid of 1e6 points) is refused before a cluster spends a day on it
+_NUM = r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*"
+_PATTERNS = {
+    "relative": re.compile(rf"^{_NUM}%$"),
+    "normal": re.compile(rf"^[Nn]\({_NUM},{_NUM}\)$"),
+    "uniform": re.compile(rf"^[Uu]\({_NUM},{_NUM}\)$"),
+    "grid": re.compile(rf"^{_NUM}:{_NUM}:\s*(\d+)\s*$"),
+}
+_PATH = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\])?$")
+
+
+class StudyError(ValueError):
+    """A study definition is invalid; the message names the option or path and the reason."""
+
+
+@dataclass(frozen=True)
+class Vary:
+    """One varied path: ``kind`` relative|normal|uniform|grid with its numbers ``a``, ``b`` (and ``n`` for a grid)."""
+
+    path: str  # e.g. "friction.f_s", "truth.friction.static_ratio"
+    index: int | None  # element counted from 1, or None for the whole value
+    kind: str
+    a: float
+    b: float = 0.0
+    n: int = 0
+
+    @property
+    def label(self) -> str:
+        """The path as written, also the Parquet column suffix (``x:<label>``)."""
+        return self.path if self.index is None else f"{self.path}[{self.index}]"
+
+    @property
+    def text(self) -> str:
+        spec = {"relative": f"{self.a:g}%", "normal": f"N({self.a:g},{self.b:g})", "uniform": f"U({self.a:g},{self.b:g})",
+                "grid": f"{self.a:g}:{self.b:g}:{self.n}"}[self.kind]
+        return f"{self.label}={spec}"
+
+    def grid(self) -> np.ndarray:
+        return np.linspace(self.a, self.b, self.n)
+
+    def draw(self, rng: np.random.Generator) -> float:
+        if self.kind == "relative":
+            return float(rng.uniform(1.0 - self.a / 100.0, 1.0 + self.a / 100.0))
+        if self.kind == "normal":
+            return float(rng.normal(self.a, self.b))
+        return float(rng.uniform(self.a, self.b))
+
+    def extremes(self) -> tuple[float, ...]:
+        """Values checked against the parameter file before anything runs (a normal's mean only: its tails are unbounded)."""
+        if self.kind == "relative":
+            return (1.0 - self.a / 100.0, 1.0 + self.a / 100.0)
+        if self.kind == "normal":
+            return (self.a,)
+        if self.kind == "uniform":
+            return (self.a, self.b)
+        return (self.a, self.b)
+
+
+def parse_vary(text: str) -> Vary:
+    """``PATH=SPEC`` → :class:`Vary`; :class:`StudyError` saying what is wrong otherwise."""
+    if "=" not in text:
+        raise StudyError(f"--vary {text!r}: write PATH=SPEC, e.g. friction.f_s=10%")
+    raw_path, spec = (s.strip() for s in text.split("=", 1))
+    m = _PATH.match(raw_path)
+    if not m:
+        raise StudyError(f"--vary {text!r}: {raw_path!r} is not a dotted parameter path (e.g. cables.variable.k or friction.f_s[2])")
+    path, index = m.group(1), int(m.group(2)) if m.group(2) else None
+    if index is not None and index < 1:
+        raise StudyError(f"--vary {text!r}: elements are counted from 1")
+    where = f"--vary {text!r}"
+    for kind, pattern in _PATTERNS.items():
+        g = pattern.match(spec)
+        if not g:
+            continue
+        a, b = float(g.group(1)), float(g.group(2)) if kind != "relative" else 0.0
+        if not all(math.isfinite(v) for v in (a, b)):
+            raise StudyError(f"{where}: numbers must be finite")
+        if kind == "relative" and not 0 < a < 100:
+            raise StudyError(f"{where}: a relative spread must be in (0, 100) %, got {a:g} %")
+        if kind == "normal" and not b > 0:
+            raise StudyError(f"{where}: sigma must be > 0, got {b:g}")
+        if kind == "uniform" and not a < b:
+            raise StudyError(f"{where}: U(a,b) needs a < b, got a = {a:g}, b = {b:g}")
+        n = int(g.group(3)) if kind == "grid" else 0
+        if kind == "grid" and not (n >= 1 and (n == 1 or a != b)):
+            raise StudyError(f"{where}: a grid a:b:n needs n >= 1 points (and a != b for n > 1)")
+        return Vary(path, index, kind, a, b, n)
+    raise StudyError(f"{where}: SPEC {spec!r} is none of: 10% (relative spread), N(mu,sigma), U(a,b), a:b:n (grid)")
+
+
+@dataclass(frozen=True)
+class Study:
+    """A whole study as the flags and the study file say it (everything that decides its rows).
+
+    ``model_follows``: the controller's model gets the sampled values too (a perfectly identified
+    robot); by default only the twin does, so a run measures a law against a robot that is off
+    from the model it holds, the robustness question.
+    """
+
+    kind: str = "control"
+    samples: int = 1
+    seed: int = 0
+    vary: tuple[str, ...] = ()
+    laws: tuple[int, ...] = (2,)
+    no_pulleys: bool = False
+    trajectory: str = "control_test"  # an identification study's default is "identification" (§5.2.2)
+    truth: str = "model"
+    alpha_ip: str = "noise"
+    settle_s: float = 1.0
+    model_follows: bool = False
+    params_file: str | None = None
+    set: tuple[str, ...] = ()  # --set overrides of the base parameter file
+    design_configurations: int = 2000  # design: random configurations per design (within the joint limit)
+
+    def varies(self) -> tuple[Vary, ...]:
+        return tuple(parse_vary(v) for v in self.vary)
+
+    def canonical(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def digest(self) -> str:
+        """Identity of the study's rows: a study directory holds one study and refuses another."""
+        return hashlib.sha256(json.dumps(self.canonical(), sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: its id, law (0 for design), twin seed and the value of every varied path."""
+
+    run_id: str
+    law: int
+    seed: int
+    values: dict[str, float] = field(default_factory=dict)  # Vary.label -> value (a factor for '%')
+
+
+def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
+    """The study of a study file (TOML, keys as :class:`Study`'s fields) with the flags that were
+    given (not None) on top; checked with :func:`check`'s syntax part."""
+    data: dict[str, Any] = {}
+    if file is not None:
+        try:
+            data = tomllib.loads(Path(file).read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise StudyError(f"study file {str(file)!r}: {exc}") from None
+        unknown = set(data) - set(Study.__dataclass_fields__)
+        if unknown:
+            raise StudyError(f"study file {str(file)!r}: unknown keys {sorted(unknown)} "
+                             f"(known: {', '.join(Study.__dataclass_fields__)})")
+        data.setdefault("kind", kind)
+        if data["kind"] != kind:
+            raise StudyError(f"study file {str(file)!r} is a {data['kind']!r} study, not {kind!r}")
+    for key, value in flags.items():
+        if value is None or value == ():
+            continue
+        if key == "vary":  # flags add to the file's
+            data["vary"] = (*data.get("vary", ()), *value)
+        else:
+            data[key] = value
+    data["kind"] = kind
+    data.setdefault("trajectory", "identification" if kind == "identification" else "control_test")
+    for key in ("vary", "laws", "set"):
+        if key in data:
+            data[key] = tuple(data[key])
+    try:
+        study = Study(**data)
+    except TypeError as exc:
+        raise StudyError(f"study: {exc}") from None
+    return _checked_syntax(study)
+
+
+def _checked_syntax(s: Study) -> Study:
+    if s.kind not in KINDS:
+        raise StudyError(f"study kind {s.kind!r}: choose {', '.join(KINDS)}")
+    if not isinstance(s.samples, int) or s.samples < 1:
+        raise StudyError(f"--samples must be an integer >= 1, got {s.samples!r}")
+    if not isinstance(s.seed, int) or s.seed < 0:
+        raise StudyError(f"--seed must be an integer >= 0, got {s.seed!r}")
+    if not s.laws or any(law not in (1, 2, 3) for law in s.laws) or len(set(s.laws)) != len(s.laws):
+        raise StudyError(f"--law: each of 1, 2, 3 at most once, got {list(s.laws)}")
+    if not (isinstance(s.settle_s, int | float) and 0 <= s.settle_s <= 60):
+        raise StudyError(f"settle_s must be in [0, 60] s, got {s.settle_s!r}")
+    if not (isinstance(s.design_configurations, int) and 10 <= s.design_configurations <= 1_000_000):
+        raise StudyError(f"design_configurations must be an integer in [10, 1e6], got {s.design_configurations!r}")
+    labels = [v.label for v in s.varies()]
+    if len(set(labels)) != len(labels):
+        raise StudyError(f"--vary: a path is varied twice ({', '.join(sorted({x for x in labels if labels.count(x) > 1}))})")
+    if "geometry.n_joints" in labels and s.kind != "design":
+        raise StudyError("--vary geometry.n_joints: only a design study changes the number of joints "
+                         "(a control or identification trajectory is written for the prototype's joints)")
+    n_runs = len(expand(s))
+    if n_runs > MAX_RUNS:
+        raise StudyError(f"the study has {n_runs} runs, more than {MAX_RUNS}: use fewer samples or coarser grids")
+    return s
+
+
+def expand(s: Study) -> list[RunSpec]:
+    """Every run of the study in a fixed order: law × grid point × sample. Random draws depend on
+    (seed, grid point, sample) only, so every law meets the same robots (common random numbers)."""
+    varies = s.varies()
+    grids = [v for v in varies if v.kind == "grid"]
+    randoms = [v for v in varies if v.kind != "grid"]
+    points = list(itertools.product(*(v.grid().tolist() for v in grids))) or [()]
+    laws = (0,) if s.kind == "design" else s.laws
+    runs: list[RunSpec] = []
+    for law in laws:
+        for g, point in enumerate(points):
+            for k in range(s.samples):
+                seq = np.random.SeedSequence([s.seed, g, k])
+                rng = np.random.default_rng(seq)
+                values = {v.label: float(x) for v, x in zip(grids, point)}
+                values.update({v.label: v.draw(rng) for v in randoms})
+                twin_seed = int(seq.generate_state(1)[0])
+                prefix = f"L{law}-" if law else ""
+                runs.append(RunSpec(f"{prefix}g{g:04d}-s{k:05d}", law, twin_seed, values))
+    return runs
