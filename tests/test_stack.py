@@ -140,6 +140,14 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
     assert holds[0][0] - applied[0][0] <= 0.010 + 0.006, (applied[0], holds[0])  # 10 ms watchdog + a tick or two
     settled = [s for s in holds if s[0] >= holds[0][0] + 0.012]
     assert settled and all(np.allclose(s[2], settled[-1][2], atol=1e-6) for s in settled)  # at the hold forces
+    # No force step into the hold, on any machine: a linear ramp over hold_ramp_s (5 ticks) from the
+    # applied forces to the hold forces (per tick of the bridge's clock, whatever the recorder missed).
+    i = states.index(holds[0])
+    into = [s for s in states[max(i - 1, 0):] if s[0] <= settled[0][0]]
+    span = np.abs(np.asarray(into[-1][2]) - np.asarray(into[0][2])).max()
+    for a, b in itertools.pairwise(into):
+        ticks = max(round((b[0] - a[0]) / 0.002), 1)
+        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * span / 5 + 1e-6, (a, b, span)
     alpha = np.array([m.alpha_rad for _, m in campaign.messages(bus.TWIN_TRUTH)])
     assert np.degrees(np.abs(alpha)).max() <= 60.0
 
