@@ -45,6 +45,8 @@ GRAVITY_RGB = (200, 30, 200)
 MOTOR_RGB = (60, 60, 60)
 JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
 FIT_MARGIN = 1.15  # the bounding box fills this much less than the view
+TYPICAL_ASPECT = 1.4  # width/height of the dashboard's 3D card, for the camera before a client's is known
+EARLY_UPDATES = 3  # camera updates after connecting that are fitted again (the client's initial camera races the fit)
 
 
 def _solid(segments: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
@@ -64,6 +66,7 @@ class NeckScene:
         self._jog_target: list[float] | None = None  # newest slider pose not sent yet
         self._jog_sent_s = -math.inf
         self._aspects: dict[int, float] = {}  # client id -> aspect ratio of its last fit
+        self._updates: dict[int, int] = {}  # client id -> camera updates seen
         self.rate_hz = rate_hz
         self.drawing = NeckDrawing(params)
         self.alpha_max_deg = float(params.limits.alpha_max_deg)
@@ -87,7 +90,7 @@ class NeckScene:
         cam = self.server.initial_camera
         cam.up = (0.0, 1.0, 0.0)
         cam.look_at = tuple(self.centre)
-        cam.position = tuple(self.centre + np.array([0.0, 0.0, 3.0 * float(self.half_extents.max())]))
+        cam.position = tuple(self.centre + np.array([0.0, 0.0, self.camera_distance(cam.fov, TYPICAL_ASPECT)]))
         cam.near = 0.01
         self.server.on_client_connect(self._on_connect)
         self._build_gui()
@@ -144,7 +147,8 @@ class NeckScene:
 
         @client.camera.on_update
         def _(cam: viser.CameraHandle) -> None:  # a resized card changes the aspect: fit again
-            if abs(cam.aspect - self._aspects.get(client.client_id, cam.aspect)) > 0.02:
+            seen = self._updates[client.client_id] = self._updates.get(client.client_id, 0) + 1
+            if seen <= EARLY_UPDATES or abs(cam.aspect - self._aspects.get(client.client_id, cam.aspect)) > 0.02:
                 self.fit(client)
 
     # -- GUI panel: reset view, jog ---------------------------------------------------------

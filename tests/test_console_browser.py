@@ -76,6 +76,7 @@ def console(tmp_path_factory):
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1400, "height": 1000})
             c = Console(base, app, page, tmp)
+            assert c.http.put("/api/trajectories/nod-short", json=NOD, headers=AUTH).status_code == 201
             page.goto(base + "/", wait_until="load")
             page.fill("#token", TOKEN)
             page.dispatch_event("#token", "change")
@@ -117,7 +118,6 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     assert np.abs(np.asarray(app.state.scene.bars.points) - straight).max() > 0.01
     # ... and so do the plots: the last α̂ of joint 1 (uPlot series 2) is the target
     page.wait_for_function("Math.abs(jointPlots[0].data[2].at(-1) - 15) < 1", timeout=5000)
-    page.wait_for_timeout(500)
     console.shot("console_jog.png")
 
     cid = console.run_campaign({"kind": "control", "waypoints": NOD})
@@ -139,7 +139,9 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
     assert page.locator("#viser").is_visible()
     assert wait_until(lambda: len(scene.server.get_clients()) >= 1, 20)  # a client renders while it is seen
     client = next(iter(scene.server.get_clients().values()))
-    assert wait_until(lambda: _camera_fitted(scene, client), 10, 0.1)
+    cam = client.camera
+    assert wait_until(lambda: _camera_fitted(scene, client), 10, 0.1), \
+        (cam.position, cam.look_at, cam.fov, cam.aspect, scene.camera_distance(cam.fov, cam.aspect), scene.centre)
     aspect = client.camera.aspect
     page.set_viewport_size({"width": 900, "height": 1000})  # the card narrows: the view is fitted again
     assert wait_until(lambda: abs(client.camera.aspect - aspect) > 0.05 and _camera_fitted(scene, client), 10, 0.1)
@@ -155,8 +157,6 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
 
 def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_and_runs_a_fixed_one(console):
     page, http = console.page, console.http
-    assert http.put("/api/trajectories/nod-short", json=NOD, headers=AUTH).status_code == 201
-    page.reload()
     page.wait_for_function("document.querySelectorAll('#traj-library option').length >= 3", timeout=15000)
     page.select_option("#traj-library", "nod-short")
     page.click("#traj-load")
@@ -182,3 +182,25 @@ def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_a
     cid = page.inner_text("#traj-msg").split()[1]
     rec = console.wait_ended(cid)
     assert rec["status"] in ("finished", "degraded") and rec["trajectory"] == "nod-edited", rec
+
+
+def test_comparing_two_campaigns_shows_both_traces_and_their_table(console):
+    page, http = console.page, console.http
+    ids = [r["id"] for r in http.get("/api/campaigns").json() if r["status"] in ("finished", "degraded")][:2]
+    assert len(ids) == 2, ids  # the runs of the jog and editor tests
+    page.evaluate("refreshList()")
+    for cid in ids:
+        page.locator(f'#campaigns tr[data-id="{cid}"] .cmp-pick').check(timeout=10000)
+    page.click("#compare-go")
+    page.wait_for_function("window.xneckCompare.plots.length >= 6", timeout=15000)
+    labels = page.evaluate("window.xneckCompare.plots.map((p) => p.labels)")
+    for cid in ids:  # both runs in every overlay: α per joint, e, e_α, forces
+        assert all(any(label.startswith(cid) for label in plot) for plot in labels), (cid, labels)
+    drawn = page.evaluate("window.xneckCompare.plots[0].plot.data.slice(1).map((s) => s.filter((v) => v !== null).length)")
+    assert min(drawn[:2]) > 50 and min(drawn[3:5]) > 50, drawn  # α^d and α̂ of both runs have points
+    rows = page.locator("#compare-out > div:first-child table tr").count()
+    assert rows == 3, rows  # header + the two runs
+    assert "truth" in page.inner_text("#compare-out table") and "model" in page.inner_text("#compare-out table")
+    page.locator("#compare").scroll_into_view_if_needed()
+    page.wait_for_timeout(300)
+    console.shot("console_compare.png", "#compare")
