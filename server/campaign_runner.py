@@ -58,6 +58,7 @@ from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
+CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             if realtime:  # a lockstep twin runs flat out: no real-time priority for it (issue 21)
                 isolate(procs[name].pid, args[0])
 
+        camera_problem = ""  # a camera process that did not come up: the campaign does not start
         if spec.service:
             requests = publisher(session, bus.CAMPAIGN_REQUEST)
             requests.put(bus.CampaignRequest(
@@ -224,22 +226,27 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             lockstep = spec.twin and not spec.realtime
             # A real-time twin cannot wait for the renderer: a camera process beside it measures its truth.
             camera_process = spec.twin and not lockstep and spec.alpha_ip_source == "camera"
-            if spec.twin:
+            if camera_process:  # first, and waited for: the campaign's first seconds need α_IP too
+                spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout",
+                                 str(CAMERA_STARTUP_S), "--instance", f"camera-{campaign_id}", *common])
+                camera_problem = _wait_alive(session, bus.liveliness_key("camera", f"camera-{campaign_id}"),
+                                             procs["camera"], logs["camera"], stop)
+            if spec.twin and not camera_problem:
                 alpha_ip = ["--no-camera"] if camera_process else ["--alpha-ip", spec.alpha_ip_source]
                 spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
                                "--truth", spec.truth, *alpha_ip, "--idle-timeout", "30", "--startup-timeout", "120",
                                "--instance", f"twin-{campaign_id}", *common])
-            if camera_process:
-                spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout", "30",
-                                 "--instance", f"camera-{campaign_id}", *common])
             law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
-            spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
-                                 *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
-                                 "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
+            if not camera_problem:
+                spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
+                                     *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
+                                     "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
+        if camera_problem:
+            outcome, message = "aborted", camera_problem
         deadline = time.monotonic() + spec.timeout_s
         answer_deadline = time.monotonic() + 10.0
         started = False
-        while True:
+        while not camera_problem:
             try:
                 ev = events.get(timeout=0.2)
             except queue.Empty:
@@ -328,6 +335,27 @@ def analyse_identification(result: CampaignResult, params_file: Path | None) -> 
     if is_complete(result.path):
         rewrite_archive(result.path, amend={CAMPAIGN: {"outcome": result.outcome, "message": result.message[:2000],
                                                        "analysis": result.analysis[:2000]}})
+
+
+def _wait_alive(session: zenoh.Session, key: str, proc: subprocess.Popen, log: Path, stop: threading.Event,
+                timeout_s: float = CAMERA_STARTUP_S) -> str:
+    """Wait for a child's liveliness token ``key``: '' once it is up, else why not (it exited,
+    it took longer than ``timeout_s``, or the campaign was stopped)."""
+    up = threading.Event()
+    sub = session.liveliness().declare_subscriber(
+        key, lambda sample: up.set() if sample.kind == zenoh.SampleKind.PUT else None, history=True)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not up.wait(0.1):
+            if proc.poll() is not None:
+                return f"the camera exited with code {proc.returncode} before it was up: {log_tail(log, 3)}"
+            if stop.is_set():
+                return "stopped by the user"
+            if time.monotonic() > deadline:
+                return f"the camera was not up within {timeout_s:.0f} s: {log_tail(log, 3)}"
+        return ""
+    finally:
+        sub.undeclare()
 
 
 class _Services:

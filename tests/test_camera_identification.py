@@ -131,3 +131,19 @@ def test_an_identification_campaign_whose_analysis_fails_ends_analysis_failed(pa
     frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
     assert info["alpha_ip"] == "camera" and {m.source for m in frames} == {"twin-render"}
     assert len(frames) >= 30 * nod.duration_s - 2 and all(len(m.confidence) == 3 for m in frames)
+
+
+@pytest.mark.e2e
+def test_a_real_time_identification_campaign_measures_alpha_ip_with_a_camera_process(params, tmp_path) -> None:
+    """A real-time twin cannot wait for the renderer: the runner starts it without its white-noise
+    camera and a separate `xneck camera --source twin` beside it, which renders the truth as it
+    comes (frames the renderer cannot keep up with are dropped and counted, never invented)."""
+    from server.campaign_runner import CampaignSpec, run_campaign
+
+    result = run_campaign(CampaignSpec("identification", LawConfig(law=1), load_trajectory(NOD), seed=1,
+                                       timeout_s=180, realtime=True), params, tmp_path / "rt.mcap")
+    assert result.outcome == "analysis_failed", (result.outcome, result.message)  # a nod identifies nothing
+    campaign = read_campaign(result.path)
+    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+    assert campaign.info["alpha_ip"] == "camera" and {m.source for m in frames} == {"twin-render"}
+    assert len(frames) > 30 and all(m.stamp_s - m.capture_stamp_s >= params.sensors.camera_latency - 1e-6 for m in frames)
