@@ -60,7 +60,7 @@ from controller.trajectory import (
     TrajectoryLimits,
     approach,
     approach_duration_s,
-    cycloid,
+    cycloid_at,
     trajectory_from_json,
     validate,
 )
@@ -452,8 +452,7 @@ class CampaignService:
         trajectory's from the start: the k_v term then damps whatever motion the neck has, rather
         than following an α̂̇ that is mostly the jolt of the drives coming back.)"""
         if self.trajectory is not None:
-            ref = self.trajectory.sample(np.array([stamp_s - self._t0]))
-            a_d, a_d_dot, a_d_ddot = ref.alpha[0], ref.alpha_dot[0], ref.alpha_ddot[0]
+            a_d, a_d_dot, a_d_ddot = self.trajectory.sample_at(stamp_s - self._t0)
         else:
             a_d = self.hold_target
             a_d_dot = a_d_ddot = np.zeros_like(a_d)
@@ -463,7 +462,7 @@ class CampaignService:
             if tau >= 1.0:
                 self._blend = None
             else:
-                s, ds, dds = cycloid(tau)
+                s, ds, dds = cycloid_at(tau)
                 a_d = a_d + offset * (1.0 - s)
                 a_d_dot = a_d_dot - offset * (ds / duration_s)
                 a_d_ddot = a_d_ddot - offset * (dds / duration_s**2)

@@ -106,6 +106,18 @@ def cycloid(tau: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
     return s, ds, dds
 
 
+def cycloid_at(tau: float) -> tuple[float, float, float]:
+    """:func:`cycloid` of one τ in plain floats (the controller's per-tick path, where numpy's
+    per-call overhead is most of the cost); the same values."""
+    tau = min(max(tau, 0.0), 1.0)
+    if tau >= 1.0:
+        return 1.0, 0.0, 0.0
+    phase = _TWO_PI * tau
+    if tau <= 0.0:
+        return 0.0, 0.0, 0.0
+    return tau - math.sin(phase) / _TWO_PI, 1.0 - math.cos(phase), _TWO_PI * math.sin(phase)
+
+
 def _deg(values_rad: ArrayLike) -> str:
     """Format joint angles (rad) for a message, in degrees."""
     return "[" + ", ".join(f"{v:.4g}" for v in np.rad2deg(np.atleast_1d(values_rad))) + "]°"
@@ -250,6 +262,23 @@ class Trajectory:
         alpha_dot = delta * (ds / period)[..., None]
         alpha_ddot = delta * (dds / period**2)[..., None]
         return TrajectorySample(alpha, alpha_dot, alpha_ddot)
+
+    def sample_at(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """:meth:`sample` at one time ``t`` (s): α^d, α̇^d, α̈^d, each (N,), the same values; the
+        controller samples one time per tick, where the vectorised form's overhead dominates."""
+        if not math.isfinite(t):
+            raise TrajectoryError("sample times must be finite")
+        w = self.waypoints_rad
+        if self.n_segments == 0:
+            return w[0].copy(), np.zeros(w.shape[1]), np.zeros(w.shape[1])
+        seg = min(max(int(np.searchsorted(self._depart[:-1], t, side="right")) - 1, 0), self.n_segments - 1)
+        period = float(self.durations_s[seg])
+        tau = (t - float(self._depart[seg])) / period
+        s, ds, dds = cycloid_at(tau)
+        start, end = w[seg], w[seg + 1]
+        delta = end - start
+        alpha = end.copy() if tau >= 1.0 else start + delta * s
+        return alpha, delta * (ds / period), delta * (dds / period**2)
 
     def time_grid(self, dt_s: float = 0.01) -> FloatArray:
         """Times 0, dt, 2dt, ... plus every waypoint arrival/departure and the end (s), sorted."""

@@ -85,3 +85,19 @@ def test_tick_times_give_stage_durations_latency_histograms_and_campaign_quantil
     assert sum(msg.campaign_latency_counts) == 10 and sum(msg.campaign_period_counts) == 9
     assert msg.campaign_latency_p99_ms == 0.3  # the upper edge of the bin holding 0.2 ms
     assert times.window()[0].shape == (0, 4)  # read once
+
+
+def test_sampling_one_time_equals_the_vectorised_trajectory():
+    """The controller's per-tick sample (Trajectory.sample_at, cycloid_at) is the vectorised one."""
+    from controller.trajectory import Trajectory, control_test_trajectory, cycloid, cycloid_at
+
+    for traj in (control_test_trajectory(), Trajectory.from_degrees([[10, -5, 3]], durations_s=[], name="one")):
+        t = np.concatenate([np.linspace(-1.0, traj.duration_s + 1.0, 2001), traj._depart, traj._arrive])
+        ref = traj.sample(t)
+        for k, tk in enumerate(t):
+            a, ad, add = traj.sample_at(float(tk))
+            np.testing.assert_allclose(a, ref.alpha[k], rtol=0, atol=1e-15)
+            np.testing.assert_allclose(ad, ref.alpha_dot[k], rtol=0, atol=1e-15)
+            np.testing.assert_allclose(add, ref.alpha_ddot[k], rtol=0, atol=1e-15)
+    for tau in (-0.5, 0.0, 1e-9, 0.25, 0.5, 0.999, 1.0, 1.5):
+        np.testing.assert_allclose(cycloid_at(tau), [float(x) for x in cycloid(tau)], rtol=0, atol=1e-15)
