@@ -12,6 +12,7 @@ cable lengths (pulley wraps are not drawn); the model (``twin.model.cables``) ow
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,7 +91,9 @@ class NeckDrawing:
     def bounds(self, alpha_max_rad: float) -> tuple[np.ndarray, np.ndarray]:
         """(centre (3,), half extents (3,)) of the box holding the neck over its joint range and its
         motors: what a camera frames so that the whole neck shows at any pose, in m."""
-        poses = [np.zeros(self.n_joints), np.full(self.n_joints, alpha_max_rad), np.full(self.n_joints, -alpha_max_rad)]
+        # A grid over the joint range: a bent X-joint can stand taller than a straight one.
+        steps = np.linspace(-alpha_max_rad, alpha_max_rad, 5 if self.n_joints <= 3 else 3)
+        poses = [np.array(p) for p in itertools.product(steps, repeat=self.n_joints)]
         points = [self.geometry(p).bars.reshape(-1, 3) for p in poses] + [m.reshape(-1, 3) for m in self.motors()]
         cloud = np.concatenate(points)
         lo, hi = cloud.min(axis=0), cloud.max(axis=0)

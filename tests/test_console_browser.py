@@ -76,6 +76,7 @@ def console(tmp_path_factory):
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1400, "height": 1000})
             c = Console(base, app, page, tmp)
+            c.procs = procs
             assert c.http.put("/api/trajectories/nod-short", json=NOD, headers=AUTH).status_code == 201
             page.goto(base + "/", wait_until="load")
             page.fill("#token", TOKEN)
@@ -118,6 +119,13 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     assert np.abs(np.asarray(app.state.scene.bars.points) - straight).max() > 0.01
     # ... and so do the plots: the last α̂ of joint 1 (uPlot series 2) is the target
     page.wait_for_function("Math.abs(jointPlots[0].data[2].at(-1) - 15) < 1", timeout=5000)
+    # legends say the newest values with their units; e and e_α are plotted too
+    legend = page.inner_text("#plot-joints .u-legend")
+    assert "--" not in legend and "°" in legend and " s" in legend, legend
+    assert " N" in page.inner_text("#plot-forces .u-legend")
+    page.wait_for_function("window.xneckErrors.e.data[0].length > 20 && window.xneckErrors.ea.data[0].length > 5")
+    ticks = page.evaluate("jointPlots[1].plot.axes[1]._splits.length")
+    assert ticks >= 3, ticks  # a still joint still gets a readable axis
     console.shot("console_jog.png")
 
     cid = console.run_campaign({"kind": "control", "waypoints": NOD})
@@ -204,3 +212,25 @@ def test_comparing_two_campaigns_shows_both_traces_and_their_table(console):
     page.locator("#compare").scroll_into_view_if_needed()
     page.wait_for_timeout(300)
     console.shot("console_compare.png", "#compare")
+
+
+def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
+    page, http = console.page, console.http
+    page.focus("#jog-2")  # an input with focus does not swallow Escape
+    page.keyboard.press("Escape")
+    page.wait_for_function("!document.querySelector('#estop-state').hidden", timeout=10000)
+    text = page.inner_text("#estop-state")
+    assert "E-STOP ENGAGED" in text and "Escape key" in text, text
+    st = console.app.state.live.values.get("state")
+    assert st.estop_engaged and "Escape key" in st.estop_reason  # the bridge's word, not the page's
+    r = http.post("/api/jog", json={"alpha_deg": [0, 5, 0]}, headers=AUTH)
+    assert r.status_code == 409 and "release the e-stop" in r.json()["detail"], r.text
+    page.evaluate("window.scrollTo(0, document.body.scrollHeight)")  # the e-stop stays in view
+    assert page.locator("#estop").is_visible() and page.locator("#estop").bounding_box()["y"] < 60
+    console.shot("console_estop.png")
+    http.post("/api/system/estop", json={"engaged": False, "reason": "test"}, headers=AUTH)
+    page.wait_for_function("document.querySelector('#estop-state').hidden", timeout=10000)
+    console.procs[0].send_signal(signal.SIGKILL)  # the bridge dies: the page says so
+    page.wait_for_function("window.xneckSafety.banner !== ''", timeout=10000)
+    assert "NO MOTOR STATE" in page.inner_text("#live-lost") or "LIVE STREAM LOST" in page.inner_text("#live-lost")
+    console.shot("console_bridge_silent.png")

@@ -38,13 +38,26 @@ async function api(method, path, body) {
 function showError(e) { $("#error").textContent = e ? String(e.message || e) : ""; }
 
 // ---------------------------------------------------------------- live plots
-function makePlot(el, title, labels, colors, yLabel) {
-  const series = [{}].concat(labels.map((l, i) => ({ label: l, stroke: colors[i], width: 1.5,
-    points: { show: false } })));
+// Legends show the newest values with their unit (uPlot shows the cursor's, "--" without one:
+// showLatest), and the y range spans at least minSpan so that a still signal gets several ticks.
+function makePlot(el, title, labels, colors, yLabel, minSpan = 2) {
+  const unit = yLabel === "deg" ? "°" : ` ${yLabel}`;
+  const value = (u, v) => (v === null || v === undefined ? "–" : v.toFixed(yLabel === "deg" ? 2 : 1) + unit);
+  const series = [{ label: "t", value: (u, v) => (v === null || v === undefined ? "–" : v.toFixed(2) + " s") }]
+    .concat(labels.map((l, i) => ({ label: l, stroke: colors[i], width: 1.5, points: { show: false }, value })));
   const data = [[]].concat(labels.map(() => []));
+  const range = (u, lo, hi) => {
+    if (lo === null || hi === null) return [-minSpan / 2, minSpan / 2];
+    const mid = (lo + hi) / 2, half = Math.max(hi - lo, minSpan) * 0.55;
+    return [mid - half, mid + half];
+  };
   const plot = new uPlot({ title, width: el.clientWidth || 600, height: 170, series,
-    scales: { x: { time: false } }, axes: [{ label: "t (s)" }, { label: yLabel }] }, data, el);
+    scales: { x: { time: false }, y: { range } }, axes: [{ label: "t (s)" }, { label: yLabel, space: 24 }] }, data, el);
   return { plot, data, lastX: null };
+}
+
+function showLatest(p) {
+  if (!(p.plot.cursor.left >= 0) && p.data[0].length) p.plot.setLegend({ idx: p.data[0].length - 1 });
 }
 
 function push(p, x, ys) {
@@ -69,12 +82,12 @@ function buildPlots() {
   const nm = config.n_motors, nj = config.n_joints;
   const fcol = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"];
   forcePlot = makePlot($("#plot-forces"), "cable forces (applied)",
-    Array.from({ length: nm }, (_, i) => `f${i + 1} (N)`), fcol, "N");
+    Array.from({ length: nm }, (_, i) => `f${i + 1}`), fcol, "N", 5);
   for (let j = 0; j < nj; j++) {
     const div = document.createElement("div");
     $("#plot-joints").appendChild(div);
     jointPlots.push(makePlot(div, `joint ${j + 1}`, ["α^d", "α̂", "α_IP"],
-      ["#2e7d32", "#1565c0", "#ef6c00"], "deg"));
+      ["#2e7d32", "#1565c0", "#ef6c00"], "deg", 4));
   }
 }
 
@@ -101,6 +114,7 @@ function redraw() {
     dirty = false;
     forcePlot.plot.setData(forcePlot.data);
     jointPlots.forEach((p) => p.plot.setData(p.data));
+    [forcePlot, ...jointPlots].forEach(showLatest);
   }
   requestAnimationFrame(redraw);
 }

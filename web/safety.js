@@ -1,0 +1,47 @@
+// Operator safety in the page: the e-stop stays in view (sticky header) and Escape engages it
+// from anywhere in the page; its state and reason are the bridge's own (its latched e-stop in
+// every MotorState of the live stream, not what this page asked); and the page says when it has
+// lost the live stream, or when the bridge went silent, so a frozen plot is never read as live.
+// Uses api(), $ and showEstop() of app.js.
+"use strict";
+
+(() => {
+  const STREAM_LOST_MS = 2000;   // no live frame for this long: the stream is lost
+  const BRIDGE_SILENT_MS = 1500; // frames but no new motor state: the bridge is silent
+  const safety = (window.xneckSafety = { lastFrame: 0, lastState: 0, stateStamp: null, escapes: 0, banner: "" });
+
+  async function engage(reason) {
+    try { await api("POST", "/api/system/estop", { engaged: true, reason }); }
+    catch (e) { $("#live-lost").hidden = false; $("#live-lost").textContent = `E-STOP NOT SENT: ${e.message || e}`; }
+  }
+
+  document.addEventListener("keydown", (ev) => {
+    if (ev.key !== "Escape") return;
+    ev.preventDefault();
+    safety.escapes++;
+    engage("dashboard: Escape key");
+  }, true);  // capture: an input or a slider with focus does not swallow it
+
+  window.addEventListener("xneck-frame", (ev) => {
+    const now = Date.now();
+    safety.lastFrame = now;
+    const st = (ev.detail.series || {}).state;
+    if (st && st.stamp_s !== safety.stateStamp) {
+      safety.stateStamp = st.stamp_s; safety.lastState = now;
+      showEstop({ engaged: st.estop_engaged, reason: st.estop_reason, drive: st.drive, source: "bridge" });
+    }
+  });
+
+  setInterval(() => {
+    const now = Date.now(), box = $("#live-lost");
+    let text = "";
+    if (safety.lastFrame && now - safety.lastFrame > STREAM_LOST_MS) {
+      text = `LIVE STREAM LOST ${((now - safety.lastFrame) / 1000).toFixed(0)} s ago: the plots and the 3D view are frozen`;
+    } else if (safety.lastState && now - safety.lastState > BRIDGE_SILENT_MS) {
+      text = `NO MOTOR STATE from the bridge for ${((now - safety.lastState) / 1000).toFixed(0)} s: the drives' state is unknown`;
+    }
+    safety.banner = text;
+    box.hidden = !text;
+    if (text) box.textContent = text;
+  }, 250);
+})();
