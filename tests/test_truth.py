@@ -279,11 +279,13 @@ CALIBRATED = ('name = "bench"\n[cables]\nenabled = true\n'
               'sigma = { "cables.damping_N_s_m" = 2.0 }\nresidual_rms = { theta_rad = 0.02 }\nevaluations = 12\n')
 
 
-def test_truth_files_are_uploaded_validated_and_listed_over_rest(tmp_path):
+def test_truth_files_are_uploaded_validated_listed_and_run_over_rest(tmp_path):
     import httpx
-    from server_harness import AUTH, running_server
+    from server_harness import AUTH, running_server, wait_until
 
-    with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=30) as client:
+    from bridge.archive import read_campaign
+
+    with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=60) as client:
         put = lambda name, body: client.put(f"/api/truths/{name}", content=body, headers=AUTH)  # noqa: E731
         assert client.put("/api/truths/bench", content=CALIBRATED).status_code == 401  # the token is needed
         hostile = [
@@ -316,18 +318,8 @@ def test_truth_files_are_uploaded_validated_and_listed_over_rest(tmp_path):
             r = client.post("/api/campaigns", json={"kind": "control", "truth": truth}, headers=AUTH)
             assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "truth"], r.text
             assert reason in r.json()["detail"][0]["msg"], r.text
-
-
-def test_a_rest_campaign_runs_a_stored_truth_and_its_record_says_which(tmp_path):
-    """The console starts the campaign's twin with the named truth file: the record names it, the
-    MCAP says which file the twin loaded."""
-    import httpx
-    from server_harness import AUTH, running_server, wait_until
-
-    from bridge.archive import read_campaign
-
-    with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=60) as client:
-        assert client.put("/api/truths/bench", content=CALIBRATED, headers=AUTH).status_code == 201
+        # The console starts the campaign's twin with the named file: the record names it, the MCAP says
+        # which file the twin loaded.
         short = {"waypoints_deg": [[0, 0, 0], [10, 10, 10]], "durations_s": 1.0}
         r = client.post("/api/campaigns", json={"kind": "control", "law": 2, "truth": "bench", "waypoints": short},
                         headers=AUTH)
@@ -340,23 +332,55 @@ def test_a_rest_campaign_runs_a_stored_truth_and_its_record_says_which(tmp_path)
     assert read_campaign(tmp_path / "data" / "campaigns" / f"{cid}.mcap").info["twin_truth"] == str(stored.resolve())
 
 
-def test_the_console_under_xneck_up_takes_a_truth_file_and_campaigns_keep_it(tmp_path):
-    """`xneck up --truth FILE` passes the file to the server (--twin-truth): its settings take it,
-    campaigns for the stack's twin record it, and another truth is refused."""
-    from server.campaign_request import CampaignCreate, RequestError, prepare
-    from server.paramsets import ParameterStore
-    from server.settings import Settings
+def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
+    """`xneck up --truth FILE`: the stack's twin bridge runs the file, the console (--twin-truth FILE)
+    takes it, a campaign records it (REST record and MCAP), and another truth is refused."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import httpx
+    from server_harness import AUTH, TOKEN, wait_until
+
+    from bridge.archive import read_campaign
+    from bridge.session import free_tcp_port
 
     path = tmp_path / "bench.toml"
     path.write_text(CALIBRATED)
-    settings = Settings(data_dir=tmp_path, twin_truth=str(path))  # pyright: ignore[reportCallIssue] - env-filled
-    assert settings.twin_truth == str(path.resolve())
-    store = ParameterStore(tmp_path)
-    request = lambda truth: CampaignCreate.model_validate({"kind": "control", "truth": truth})  # noqa: E731
-    for asked in (None, "bench"):
-        prepared = prepare(request(asked), store, settings, service=True)
-        assert prepared.truth == "bench" and prepared.spec.truth == str(path.resolve())
-    with pytest.raises(RequestError, match="simulates the bench truth"):
-        prepare(request("robot"), store, settings, service=True)
-    with pytest.raises(ValueError, match="does not exist"):
-        Settings(data_dir=tmp_path, twin_truth=str(tmp_path / "gone.toml"))  # pyright: ignore[reportCallIssue]
+    port, hub, data = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}", tmp_path / "d"
+    base = f"http://127.0.0.1:{port}"
+    env = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+    with open(tmp_path / "up.log", "wb") as log:
+        up = subprocess.Popen([sys.executable, "-m", "server.cli", "up", "--port", str(port), "--hub", hub,
+                               "--data-dir", str(data), "--truth", str(path)], stdout=log, stderr=subprocess.STDOUT,
+                              stdin=subprocess.DEVNULL, env=env, start_new_session=True)
+
+    def kinds() -> set[str]:
+        try:
+            return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
+        except httpx.HTTPError:
+            return set()
+
+    try:
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 180, 0.3), (tmp_path / "up.log").read_text()
+        short = {"waypoints_deg": [[0, 0, 0], [10, 10, 10]], "durations_s": 1.0}
+        r = httpx.post(base + "/api/campaigns", json={"kind": "control", "truth": "robot", "waypoints": short},
+                       headers=AUTH, timeout=60)
+        assert r.status_code == 422 and "simulates the bench truth" in r.text, r.text
+        r = httpx.post(base + "/api/campaigns", json={"kind": "control", "waypoints": short}, headers=AUTH, timeout=60)
+        assert r.status_code == 201 and r.json()["truth"] == "bench", r.text
+        cid = r.json()["id"]
+        done = lambda: httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()["status"] != "running"  # noqa: E731
+        assert wait_until(done, 90, 0.3), (tmp_path / "up.log").read_text()[-3000:]
+        rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()
+        assert rec["status"] in ("finished", "degraded") and rec["truth"] == "bench", rec
+    finally:
+        up.send_signal(signal.SIGTERM)
+        try:
+            up.wait(40)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait(10)
+    assert read_campaign(data / "campaigns" / f"{cid}.mcap").info["twin_truth"] == str(path.resolve())
+    assert "twin (bench truth)" in (tmp_path / "up.log").read_text() or str(path.resolve()) in (tmp_path / "up.log").read_text()
