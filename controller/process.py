@@ -346,7 +346,9 @@ class ControllerNode:
             self._state = first
             if self._service:
                 self._serve_requests(first.stamp_s)
-            self._react(first, time.time_ns(), time.time_ns(), 0.0)
+            arrival_ns = self.states.latest_with_time()[1] or time.time_ns()
+            self._stale_in_burst(first, arrival_ns)  # the floor of arrival − stamp starts with it
+            self._react(first, arrival_ns, time.time_ns(), 0.0)
             self._live = True
         next_health = time.monotonic()
         wait_s = LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s
