@@ -176,17 +176,19 @@ def encoder_hold_forces(params: Params):
     return hold
 
 
-def nominal_force_check(params: Params, config: LawConfig):
-    """A ``force_check`` for :func:`controller.trajectory.validate`: the forces the law would
-    command on the nominal path (α̂ = α^d, e = 0, so w = α̈^d) after the tension distribution must
-    lie within [f_min, f_max], and the distribution must be possible (n > 0, eq. 63)."""
+def nominal_forces(params: Params, config: LawConfig):
+    """The forces (N) the law would command on a nominal path (α̂ = α^d, e = 0, so w = α̈^d),
+    after the tension distribution and before clamping at f_max, as a function
+    (α, α̇, α̈) on a time grid, each (T, N) -> (f (T, n_cables), feasible (T,): the distribution is
+    possible, n > 0 in eq. 63). Used by :func:`nominal_force_check` and by the excitation design
+    (:mod:`server.cli.excitation`), which needs the cable tensions along a candidate path."""
     m = controller_model(params, config)
     short, long = short_cables(m), long_cable(m)
 
-    def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
+    def forces(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         terms = dynamics.evaluate(m, alpha, alpha_dot)
-        ok = np.ones(len(alpha), dtype=bool)
-        worst = ""
+        f = np.empty((len(alpha), m.n_cables))
+        feasible = np.ones(len(alpha), dtype=bool)
         for k in range(len(alpha)):
             Z = terms.Z[k]
             theta_d_dot = Z.T @ alpha_dot[k] / m.rho
@@ -195,11 +197,28 @@ def nominal_force_check(params: Params, config: LawConfig):
             gamma = terms.M[k] @ alpha_ddot[k] + terms.g[k] + Z @ f_fric
             d = distribute(Z, gamma, lower_bounds(m.t_min, m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho),
                            np.inf, short, long)
-            if not d.feasible or d.f.max() > m.f_max:
-                ok[k] = False
-                if not worst:
-                    worst = ("the cables cannot hold this configuration (eq. 63 needs −Z1⁻¹Z2 > 0)" if not d.feasible
-                             else f"needs {d.f.max():.1f} N on cable {int(np.argmax(d.f)) + 1} > f_max = {m.f_max:g} N")
+            f[k], feasible[k] = d.f, d.feasible
+        return f, feasible
+
+    return forces
+
+
+def nominal_force_check(params: Params, config: LawConfig):
+    """A ``force_check`` for :func:`controller.trajectory.validate`: the forces the law would
+    command on the nominal path (:func:`nominal_forces`) must lie within [f_min, f_max], and the
+    distribution must be possible (n > 0, eq. 63)."""
+    forces = nominal_forces(params, config)
+    f_max = controller_model(params, config).f_max
+
+    def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
+        f, feasible = forces(alpha, alpha_dot, alpha_ddot)
+        ok = feasible & (f.max(axis=1) <= f_max)
+        worst = ""
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            k = int(bad[0])
+            worst = ("the cables cannot hold this configuration (eq. 63 needs −Z1⁻¹Z2 > 0)" if not feasible[k]
+                     else f"needs {f[k].max():.1f} N on cable {int(np.argmax(f[k])) + 1} > f_max = {f_max:g} N")
         return ok, worst
 
     return check

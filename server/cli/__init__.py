@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import calibrate, camera, campaign, identify, kinematics, model, processes, serve, up
+from server.cli import calibrate, camera, campaign, excitation, identify, kinematics, model, processes, serve, up
 from server.cli import study  # issue 19: studies on Dask
 
 app = typer.Typer(
@@ -45,6 +45,8 @@ app.command("identify")(identify.identify)
 app.command("server")(serve.server)
 app.command("up")(up.up)
 app.add_typer(camera.camera_app, name="camera")
+excitation.excitation_app.command("design")(excitation.design_command)
+app.add_typer(excitation.excitation_app, name="excitation")
 for _kind in ("control", "identification", "design"):
     study.study_app.command(_kind)(getattr(study, f"study_{_kind}"))
 app.add_typer(study.study_app, name="study")

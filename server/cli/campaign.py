@@ -80,6 +80,8 @@ def campaign_identification(
                               "it is (model, an identity check)."),
     alpha_ip: str = CAMPAIGN_ALPHA_IP_OPTION,
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
+    trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
+                                   "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -87,13 +89,13 @@ def campaign_identification(
     identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8). A twin's α_IP
     is measured on frames it renders (--alpha-ip camera, issue 15). A failed identification ends
     the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
-    from controller.trajectory import identification_trajectory
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
 
     params = load_cli_params(params_file, overrides)
     config = law_config(1, False)
-    spec = CampaignSpec(kind="identification", law=config, trajectory=identification_trajectory(), twin=twin,
+    traj = load_checked_trajectory(trajectory, params, config)
+    spec = CampaignSpec(kind="identification", law=config, trajectory=traj, twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
                         truth=truth, alpha_ip=alpha_ip)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
@@ -107,4 +109,4 @@ def campaign_identification(
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
-             threshold=None, no_alpha_hat=False)
+             threshold=None, no_alpha_hat=False, validate=None)

@@ -19,6 +19,9 @@ def identify(
     threshold: float | None = typer.Option(None, "--threshold", help="Relative σ above which a parameter is "
                                               "badly identified (default: the pipeline's, 0.10)."),
     no_alpha_hat: bool = typer.Option(False, "--no-alpha-hat", help="Skip the α̂ reconstruction (Fig. 8)."),
+    validate: Path | None = typer.Option(None, "--validate", help="Another campaign MCAP (e.g. a §7 control "
+                                         "test): Figs. 4-8 and the errors on it with the models fitted here, "
+                                         "beside the in-sample ones (figures in <out>/validation)."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     from controller.trajectory import recorded_excitation
@@ -27,6 +30,7 @@ def identify(
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params
 
+    data_b = _validation_campaign(validate) if validate is not None else None
     try:
         base = load_params(params_file)
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
@@ -41,12 +45,51 @@ def identify(
                                          ident.params, ident.report)
     figures = write_figures(val, out_dir) if val is not None else []
     toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
+    cross = (_cross_validate(ident, data_b, validate, out_dir, alpha_hat=not no_alpha_hat)
+             if validate is not None and data_b is not None else None)
     if json_out:
         doc = report_dict(est, proc, val, prov)
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
+        if cross is not None:
+            doc["cross_validation"] = cross[0]
         typer.echo(json.dumps(doc, indent=2, default=float))
     else:
         typer.echo(tables_text(est, proc, val, prov.kept_base))
         typer.echo("")
         typer.echo("\n".join(report.lines()))
         typer.echo(f"parameter set: {toml_path} (provenance {prov_path.name}); figures: {out_dir}")
+        if cross is not None:
+            typer.echo("")
+            typer.echo(cross[1])
+
+
+def _validation_campaign(path: Path):
+    """``--validate B`` read before anything is fitted: a bad B fails fast with its reason."""
+    from controller.trajectory import recorded_excitation
+    from twin.identification.pipeline import IdentificationError
+    from twin.identification.validation import load_validation_campaign
+
+    try:
+        return load_validation_campaign(path, recorded_excitation)
+    except IdentificationError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+def _cross_validate(ident, data_b, campaign_b: Path, out_dir: Path, *, alpha_hat: bool) -> tuple[dict, str]:
+    """A's models on campaign B (twin/identification/validation.py); B's Figs. 4-8 in
+    ``out_dir/validation``. Returns the JSON summary and the text table; a clean exit if B is unusable."""
+    from twin.identification.pipeline import IdentificationError
+    from twin.identification.report import write_figures
+    from twin.identification.validation import comparison_text, cross_validate, summary
+
+    try:
+        cv = cross_validate(ident, data_b, alpha_hat=alpha_hat)
+    except IdentificationError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    doc = summary(cv)
+    figures = write_figures(cv.validation, out_dir / "validation")
+    doc["files"] = [str(p) for p in figures]
+    text = comparison_text(doc["errors"], f"{ident.data.campaign}", f"{cv.data.campaign} ({campaign_b})")
+    return doc, text + f"\nfigures on the validation campaign: {out_dir / 'validation'}"

@@ -1,0 +1,112 @@
+"""``xneck excitation design``: a D-optimal identification excitation (twin/identification/excitation.py)
+written as a trajectory file that ``xneck campaign identification --trajectory FILE`` runs.
+
+The composition lives here because it joins two layers: the design (twin) is given the
+controller's cycloidal path, the forces law 1 commands on it (the identification campaign's law)
+and the controller's trajectory validation, the very checks a campaign applies to the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import typer
+
+from server.cli.options import PARAMS_OPTION, SET_OPTION, law_config, load_cli_params
+
+excitation_app = typer.Typer(help="Design identification excitations (D-optimal cycloids within the limits).",
+                             no_args_is_help=True)
+
+
+def _problem(params, duration_s: float, speed: float):
+    """The design problem for ``params`` with the controller's path, forces and validation."""
+    import numpy as np
+
+    from controller.laws import nominal_force_check, nominal_forces
+    from controller.trajectory import Trajectory, TrajectoryLimits, validate
+    from twin.identification.excitation import DesignProblem
+
+    config = law_config(1, False)  # the identification campaign's law (xneck campaign identification)
+    limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg))
+    a_max, v_max, acc_max = limits.per_joint(params.n_joints)
+    force_check = nominal_force_check(params, config)
+
+    def path(start, end, T, t):
+        return Trajectory(np.vstack([start, end]), np.array([T]), np.zeros(2)).sample(t)
+
+    def check(waypoints, durations, dwell) -> None:
+        validate(Trajectory(waypoints, durations, dwell, "excitation"), limits, params.n_joints, force_check)
+
+    return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=a_max, v_max_rad_s=v_max,
+                                a_max_rad_s2=acc_max, path=path, forces=nominal_forces(params, config),
+                                check=check, speed=speed)
+
+
+def design_command(
+    duration: float = typer.Option(97.0, "--duration", help="Duration of the trajectory (s), rests included; "
+                                   "97 s is the §5.2.2 identification trajectory's."),
+    out: Path = typer.Option(Path("excitation.json"), "--out", help="Trajectory file to write (JSON, degrees); "
+                             "the design's scores go to <stem>.design.json beside it."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the random starting designs."),
+    waypoints: int | None = typer.Option(None, "--waypoints", help="Number of waypoints, the straight start and "
+                                         "end included (default: one every 4 s)."),
+    speed: float = typer.Option(0.6, "--speed", help="Fraction of the speed and acceleration limits the moves "
+                                "use (faster moves raise the filter cutoff, hence the camera noise let in)."),
+    starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
+    maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
+    as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """Optimise an identification trajectory (D-optimal for friction and variable stiffness), compare
+    it with the §5.2.2 cycloids, and write it for `xneck campaign identification --trajectory FILE`."""
+    from controller.trajectory import Trajectory, identification_trajectory
+    from twin.identification.excitation import DesignError, design, score
+
+    params = load_cli_params(params_file, overrides)
+    try:
+        problem = _problem(params, duration, speed)
+        if waypoints is not None and waypoints < 3:
+            raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
+        result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter)
+    except DesignError as exc:
+        typer.secho(f"error: {exc}", err=True, fg="red")
+        raise typer.Exit(2) from None
+    paper = identification_trajectory()
+    baseline = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
+    traj = Trajectory(result.waypoints_rad, result.durations_s, result.dwell_s, f"excitation-seed{seed}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
+    report = {
+        "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
+        "seed": seed, "speed": speed, "iterations": result.iterations,
+        "designed": result.score.to_dict(), "paper_4x6_cycloids": baseline.to_dict(),
+        "gain": {"log_det": result.score.log_det - baseline.log_det,
+                 "cond_friction_ratio": baseline.cond_friction / result.score.cond_friction,
+                 "cond_variable_ratio": baseline.cond_variable / result.score.cond_variable,
+                 # predicted σ(designed)/σ(cycloids) at equal duration and noise (√diag F⁻¹)
+                 "predicted_sigma_ratio": {n: result.score.relative_sigma[n] / baseline.relative_sigma[n]
+                                           for n in baseline.relative_sigma}},
+    }
+    design_path = out.with_name(out.stem + ".design.json")
+    design_path.write_text(json.dumps(report, indent=2) + "\n")
+    if as_json:
+        typer.echo(json.dumps(report, indent=2))
+        return
+    d, b = result.score, baseline
+    typer.echo(f"designed excitation: {traj.n_waypoints} waypoints, {traj.duration_s:.1f} s "
+               f"(§5.2.2 cycloids: {paper.n_waypoints}, {paper.duration_s:.1f} s)")
+    typer.echo(f"{'':34s}{'designed':>12s}{'4x6 cycloids':>14s}")
+    for label, a, c in (("log det F (friction + variable)", d.log_det, b.log_det),
+                        ("  log det F friction (eq. 38)", d.log_det_friction, b.log_det_friction),
+                        ("  log det F variable (eqs. 54-57)", d.log_det_variable, b.log_det_variable),
+                        ("cond, friction regressor", d.cond_friction, b.cond_friction),
+                        ("cond, variable regressor", d.cond_variable, b.cond_variable)):
+        typer.echo(f"{label:34s}{a:12.4g}{c:14.4g}")
+    ratios = report["gain"]["predicted_sigma_ratio"]
+    typer.echo("predicted σ(designed)/σ(cycloids), same duration and noise: "
+               + ", ".join(f"{n} {r:.2f}" for n, r in ratios.items() if not n.startswith("c_a")))
+    typer.echo(f"information ratio det F: ×{math.exp(d.log_det - b.log_det):.3g}; written {out} (scores {design_path.name})")
+    typer.echo(f"run it: xneck campaign identification --trajectory {out}")

@@ -1,0 +1,123 @@
+"""Excitation design (issue 17): `xneck excitation design` optimises cycloids within the limits and
+beats the §5.2.2 cycloids on its criterion; the file it writes is a campaign's trajectory."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from controller.laws import nominal_force_check
+from controller.trajectory import Trajectory, TrajectoryLimits, identification_trajectory, load_trajectory, validate
+from server.cli import app
+from server.cli.excitation import _problem
+from twin.identification.excitation import DesignError, design, score
+
+
+@pytest.fixture
+def cli():
+    """The `xneck` app in this process (typer's runner): the commands' own argument checks."""
+    from typer.testing import CliRunner
+
+    return CliRunner()
+
+
+@pytest.fixture(scope="module")
+def problem(params):
+    return _problem(params, 20.0, 0.6)
+
+
+@pytest.fixture(scope="module")
+def designed(problem):
+    return design(problem, seed=1, starts=1, maxiter=6)
+
+
+def test_design_respects_the_limits(designed, problem, params):
+    from server.cli.options import law_config
+
+    traj = Trajectory(designed.waypoints_rad, designed.durations_s, designed.dwell_s, "designed")
+    assert traj.duration_s == pytest.approx(20.0, abs=1e-6)
+    np.testing.assert_allclose(traj.waypoints_rad[[0, -1]], 0.0)  # starts and ends straight, at rest
+    # the campaign's own checks, independently of the design's: joints, speed, acceleration, forces
+    limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg))
+    validate(traj, limits, params.n_joints, nominal_force_check(params, law_config(1, False)))
+    # the moves use at most the asked fraction (0.6) of the speed and acceleration limits
+    assert np.all(traj.segment_peak_velocity() <= 0.6 * 1.5 * (1 + 1e-5))
+    assert np.all(traj.segment_peak_acceleration() <= 0.6 * 3.0 * (1 + 1e-5))
+    assert designed.score.penalty == 0.0
+
+
+def test_design_beats_the_paper_cycloids_on_the_criterion(designed, problem):
+    paper = identification_trajectory()
+    base = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
+    d = designed.score
+    # D-optimality per second of record: at least e³ ≈ 20 times the information volume
+    assert d.log_det > base.log_det + 3.0, (d, base)
+    assert d.log_det_variable > base.log_det_variable
+    # the predicted relative σ of every k and λ is lower than the cycloids' at the same duration
+    for name in base.relative_sigma:
+        if name.startswith(("k(", "lambda(")):
+            assert d.relative_sigma[name] < base.relative_sigma[name], name
+
+
+def test_a_force_limit_is_a_penalty_the_design_avoids(params):
+    """With f_max lowered, poses that need large forces are out: the design must stay feasible
+    (penalty 0, validation passed) rather than return the unconstrained optimum."""
+    from twin.model.params import load_params
+
+    low = load_params(overrides={"limits.f_max": 60.0})
+    p = _problem(low, 12.0, 0.6)
+    d = design(p, seed=2, starts=1, maxiter=3)
+    assert d.score.penalty == 0.0
+    f, ok = p.forces(*p.path(np.zeros(3), d.waypoints_rad[1], float(d.durations_s[0]), np.linspace(0, d.durations_s[0], 20)))
+    assert ok.all() and f.max() <= 60.0
+
+
+def test_cli_writes_a_file_the_identification_campaign_accepts(xneck, tmp_path, params):
+    from server.cli.options import law_config, load_checked_trajectory
+
+    out = tmp_path / "exc.json"
+    r = xneck("excitation", "design", "--duration", "12", "--out", str(out), "--starts", "1", "--maxiter", "2",
+              "--seed", "3", "--json", timeout=300)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["trajectory_file"] == str(out)
+    assert report["designed"]["log_det"] > report["paper_4x6_cycloids"]["log_det"]
+    assert json.loads(out.with_name("exc.design.json").read_text())["seed"] == 3
+    # the loader `xneck campaign identification --trajectory FILE` uses, with its validation
+    traj = load_checked_trajectory(str(out), params, law_config(1, False))
+    assert traj.duration_s == pytest.approx(12.0, abs=1e-6)
+    assert load_trajectory(out).name == "excitation-seed3"
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--duration", "2"), "duration must be"),
+    (("--duration", "nan"), "duration must be"),
+    (("--speed", "1.5"), "speed is a fraction"),
+    (("--waypoints", "2"), "at least 3"),
+])
+def test_bad_design_requests_are_refused_clearly(cli, tmp_path, args, message):
+    r = cli.invoke(app, ["excitation", "design", "--out", str(tmp_path / "x.json"), *args])
+    assert r.exit_code == 2, r.output
+    assert message in r.stderr
+    assert r.exception is None or isinstance(r.exception, SystemExit)  # a message, not a traceback
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_a_trajectory_file_out_of_limits_is_refused_before_anything_runs(cli, tmp_path):
+    bad = tmp_path / "fast.json"
+    bad.write_text(json.dumps({"waypoints_deg": [[0, 0, 0], [55, 0, 0], [0, 0, 0]], "durations_s": 0.5}))
+    r = cli.invoke(app, ["campaign", "identification", "--trajectory", str(bad), "--out", str(tmp_path / "c.mcap")])
+    assert r.exit_code == 2, r.output
+    assert "trajectory rejected" in r.stderr and "too fast" in r.stderr
+    assert not (tmp_path / "c.mcap").exists()
+
+
+def test_design_problem_refuses_impossible_limits(params):
+    with pytest.raises(DesignError, match="v_max"):
+        from twin.identification.excitation import DesignProblem
+
+        DesignProblem.create(params, duration_s=20.0, alpha_max_rad=1.0, v_max_rad_s=0.0, a_max_rad_s2=1.0,
+                             path=lambda *a: a, forces=lambda *a: a)

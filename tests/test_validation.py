@@ -1,0 +1,124 @@
+"""Cross-validation (issue 17): `xneck identify A.mcap --validate B.mcap` fits on A and reports
+Figs. 4-8 and the tension/α̂ errors on B beside A's in-sample ones, as text and JSON."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from bridge import archive, bus
+from controller.trajectory import identification_trajectory
+
+DURATION_S = 13.0  # the shortest record the pipeline identifies: a move out, back and through
+
+
+def _write(path, data, trajectory_json: str) -> None:
+    msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
+                                                          force_applied_N=list(f), drive="active", epoch="e", bridge="b"))
+            for k, (t, th, f) in enumerate(zip(data.t_s, data.theta_rad, data.force_N))]
+    msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
+                                                                 capture_stamp_s=float(t)))
+             for k, (t, a) in enumerate(zip(data.t_ip_s, data.alpha_ip_rad))]
+    msgs.sort(key=lambda m: m[1])
+    archive.write_campaign(path, msgs, {"campaign_id": path.stem, "kind": "identification",
+                                        "trajectory": trajectory_json})
+
+
+@pytest.fixture(scope="module")
+def campaigns(tmp_path_factory):
+    """Two short twin campaigns (the closed-loop twin of tests/test_identification.py, real MCAP
+    files): A with seed 0, B with seed 1 (other sensor noise, so other data)."""
+    from test_identification import simulate_campaign
+
+    d = tmp_path_factory.mktemp("cv")
+    traj = identification_trajectory().to_json()
+    a, _ = simulate_campaign(0, duration_s=DURATION_S)
+    b, _ = simulate_campaign(1, duration_s=DURATION_S)
+    _write(d / "A.mcap", a, traj)
+    _write(d / "B.mcap", b, traj)
+    return d / "A.mcap", d / "B.mcap"
+
+
+def test_validate_prints_in_sample_and_out_of_sample_columns(xneck, campaigns, tmp_path):
+    a, b = campaigns
+    r = xneck("identify", str(a), "--validate", str(b), "--out", str(tmp_path / "id"), timeout=300)
+    assert r.returncode == 0, r.stderr
+    text = r.stdout
+    assert "Cross-validation: fitted on A, validated on B" in text
+    assert re.search(r"in-sample \(A\)\s+on B", text)
+    rows = {}
+    for line in text.splitlines():
+        m = re.match(r"(.+?)\s+(-?\d+\.\d{3})\s+(-?\d+\.\d{3})$", line)
+        if m:
+            rows[m.group(1).strip()] = (float(m.group(2)), float(m.group(3)))
+    for name in ("torque |Γ_m − Γ_rf| (N·m/rad), eqs. 51-53", "tension (variable cables, eq. 42) (N)",
+                 "α̂ by eq. 35, variable cables (deg)"):
+        assert name in rows, (name, text)
+        a_err, b_err = rows[name]
+        assert np.isfinite(a_err) and np.isfinite(b_err) and a_err > 0 and b_err > 0
+        # out of sample on a campaign of the same kind: the same order, not a broken prediction
+        assert b_err < 5 * a_err + 1.0, (name, a_err, b_err)
+    # A different noise realisation: B's errors are its own, not A's printed twice
+    assert any(abs(x - y) > 1e-3 for x, y in rows.values())
+    figs = sorted(p.name for p in (tmp_path / "id" / "validation").glob("*.png"))
+    assert "fig4_torques.png" in figs and "fig7_tension_variable.png" in figs and "fig8_alpha_hat.png" in figs
+
+
+@pytest.fixture(scope="module")
+def fit_a(campaigns, params):
+    from controller.trajectory import recorded_excitation
+    from twin.identification.record import identify_record
+
+    return identify_record(campaigns[0], params, excitation=recorded_excitation, alpha_hat=False)
+
+
+def test_out_of_sample_uses_the_models_fitted_on_a(campaigns, fit_a):
+    """A's models on A itself reproduce A's in-sample figures exactly (same fits, same data); on B
+    they give B's own errors; the JSON summary carries both columns."""
+    from controller.trajectory import recorded_excitation
+    from twin.identification.validation import cross_validate, load_validation_campaign, out_of_sample, summary
+
+    assert fit_a.validation is not None
+    same = out_of_sample(fit_a, fit_a.data, fit_a.processed, alpha_hat=False)
+    for model in ("linear", "variable"):
+        assert same.tension_error[model] == pytest.approx(fit_a.validation.tension_error[model], rel=1e-9)
+    assert same.gamma_rf_error == pytest.approx(fit_a.validation.gamma_rf_error, rel=1e-9)
+    cv = cross_validate(fit_a, load_validation_campaign(campaigns[1], recorded_excitation), alpha_hat=False)
+    doc = json.loads(json.dumps(summary(cv)))  # JSON-ready
+    assert doc["fitted_on"] == "A" and doc["validated_on"] == "B"
+    tension = doc["errors"]["tension (variable cables, eq. 42) (N)"]
+    assert tension["in_sample"] == pytest.approx(fit_a.validation.tension_error["variable"])
+    assert tension["out_of_sample"] == pytest.approx(cv.validation.tension_error["variable"])
+    assert tension["out_of_sample"] != pytest.approx(tension["in_sample"], rel=1e-6)
+    assert doc["validation_processing"]["cutoff_hz"] > 0
+
+
+def test_a_bad_validation_campaign_is_a_clear_error(xneck, campaigns, fit_a, tmp_path):
+    from twin.identification.pipeline import IdentificationError
+    from twin.identification.validation import cross_validate, load_validation_campaign
+
+    a, _ = campaigns
+    # checked before A is fitted: the command fails at once, with B's name and the reason
+    r = xneck("identify", str(a), "--validate", str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "m"),
+              timeout=120)
+    assert r.returncode == 2
+    assert "validation campaign" in r.stderr and "missing.mcap" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "m").exists()
+    motor_only = tmp_path / "motor_only.mcap"
+    archive.write_campaign(motor_only, [(bus.MOTOR_STATE, 1, bus.MotorState(
+        seq=0, stamp_s=0.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4, drive="active", epoch="e", bridge="b"))],
+        {"campaign_id": "m"})
+    with pytest.raises(IdentificationError, match=r"validation campaign .*motor_only.*missing channel.*camera"):
+        load_validation_campaign(motor_only)
+    # a campaign of another robot (two joints) is refused by name, not a broadcast error
+    other = fit_a.data
+    from twin.identification.pipeline import CampaignData
+
+    two = CampaignData(other.t_s, other.theta_rad[:, :3], other.force_N[:, :3], other.t_ip_s, other.alpha_ip_rad[:, :2],
+                       campaign="two-joints")
+    with pytest.raises(IdentificationError, match="validation campaign two-joints: campaign has 3 motors"):
+        cross_validate(fit_a, two, alpha_hat=False)
