@@ -124,9 +124,10 @@ class ComputedTorque:
         """α̂ from the encoders (eq. 35) with ``f_prev`` the forces over the last period, and the
         filtered θ̇ and α̂̇ (:func:`controller.kernel.estimate`)."""
         self._theta[:] = theta
-        w = self._work
-        kernel.estimate(self.model, self.dt, self._beta, self._has_prev, self._theta, *self._state()[:7], w[0], w[1],
-                        w[2], w[3], w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
+        w, est = self._work, self.estimator
+        kernel.estimate(self.model, self.dt, self._beta, self._has_prev, self._theta, self._theta_prev, self.theta_dot,
+                        est.alpha_hat, self.alpha_hat_dot, est.theta, est.x_c, self.f_prev, w[0], w[1], w[2], w[3],
+                        w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
         self._has_prev = True
 
     def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
