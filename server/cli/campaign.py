@@ -109,4 +109,4 @@ def campaign_identification(
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
-             threshold=None, no_alpha_hat=False, validate=None)
+             threshold=None, no_alpha_hat=False, validate=None, estimator="iv", sigma="hac", no_bounds=False)

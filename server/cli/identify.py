@@ -22,6 +22,13 @@ def identify(
     validate: Path | None = typer.Option(None, "--validate", help="Another campaign MCAP (e.g. a §7 control "
                                          "test): Figs. 4-8 and the errors on it with the models fitted here, "
                                          "beside the in-sample ones (figures in <out>/validation)."),
+    estimator: str = typer.Option("iv", "--estimator", help="iv (default): instrumental variables from the model "
+                                  "re-simulated on the encoders, consistent under camera noise and open-loop force "
+                                  "errors; ols: eq. 49 as printed; wls: rows weighted by their residual σ."),
+    sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "
+                              "white: eq. 50 as printed (too small on filtered data)."),
+    no_bounds: bool = typer.Option(False, "--no-bounds", help="Unbounded least squares (default: k, f_s > 0 and "
+                                   "λ, c_a ≥ 0, the parameters held at a bound reported)."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     from controller.trajectory import recorded_excitation
@@ -35,8 +42,8 @@ def identify(
         base = load_params(params_file)
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
-                                alpha_hat=not no_alpha_hat)
-    except (IdentificationError, ParameterError) as exc:
+                                alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds)
+    except (IdentificationError, ParameterError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     out_dir = out or campaign.with_name(campaign.stem + "_identification")

@@ -79,12 +79,12 @@ class Estimate:
     def reason(self, i: int) -> str:
         """Why parameter ``i`` is badly identified ("" if it is not)."""
         r = self.relative_sigma[i]
+        if self.at_bound[i]:  # first: at a bound of 0 its relative σ is infinite by construction
+            return "held at its physical bound (the data pull it beyond)"
         if not np.isfinite(r) or r > self.threshold:
             return f"badly identified, relative σ {100 * r:.1f} % > {100 * self.threshold:g} %"
         if self.out_of_range[i]:
             return "outside its physical range"
-        if self.at_bound[i]:
-            return "held at its physical bound (the data pull it beyond)"
         return ""
 
     def vector(self, symbol: str) -> FloatArray:

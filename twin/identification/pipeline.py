@@ -36,9 +36,10 @@ c_a < 0), is *badly identified*: it is flagged in the :class:`Estimate`, and
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twin.identification.estimators import DEFAULT_THRESHOLD, ESTIMATORS, Estimate, least_squares, physical_bounds
+from twin.identification.instruments import Simulated, simulated_stretch
 from twin.identification.processing import (
     DECIMATION,
     CampaignData,
@@ -62,7 +64,6 @@ from twin.identification.regressors import (
     check_friction_excitation,
     friction_shape,
     ia_over_rho,
-    instrument_dot,
     joint_rows,
     masked_rows,
     param_names,
@@ -114,8 +115,36 @@ def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...]
         W, Y, names, method=method, equations=equations, n_samples=proc.n, threshold=threshold,
         instruments=instruments, estimator=estimator, groups=groups, sample_index=sample_index,
         bounds=physical_bounds(names) if bounded else None, sigma=sigma,
-        min_lag=int(np.ceil(proc.rate_hz / proc.cutoff_hz)),
+        min_lag=int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz)),
     )
+
+
+# Residuals share noise over the filter's memory, about one cutoff period; the lag of the HAC σ spans
+# this many cutoff periods at least (3: chosen on camera-noise seeds 201-206 of campaign seed 0).
+HAC_MIN_LAG_PERIODS = 3.0
+IV_MAX_ITERATIONS = 10
+IV_TOLERANCE = 1e-3  # relative change of k and λ between iterations at which IDIM-IV has converged
+
+
+def _iterate_iv(proc: Processed, params: Params, cable_model: CableModelName, k: FloatArray, lam: FloatArray,
+                solve: Callable[[Simulated | None], Estimate]) -> Estimate:
+    """IDIM-IV: instruments from the model re-simulated on the encoders (twin.identification.
+    instruments) with the current (k, λ), re-estimated until k and λ stop changing. Starts from
+    the base parameter set's values; a value outside its physical range is not simulated (the
+    previous one is kept)."""
+    m = build(params, cable_model)
+    sim = simulated_stretch(m, proc, k, lam)
+    est = solve(sim)
+    for it in range(1, IV_MAX_ITERATIONS + 1):
+        k_new = np.where(est.vector("k") > 0, est.vector("k"), k)
+        lam_new = np.maximum(est.vector("lambda"), 0.0) if cable_model != "linear" else lam
+        change = max(np.max(np.abs(k_new / k - 1)), np.max(np.abs(lam_new - lam) / np.maximum(np.abs(lam), 1.0)))
+        if change < IV_TOLERANCE:
+            return dataclasses.replace(est, estimator=f"{est.estimator} (simulated model, {it} iterations)")
+        k, lam = k_new, lam_new
+        sim = simulated_stretch(m, proc, k, lam, sim.alpha)
+        est = solve(sim)
+    return dataclasses.replace(est, estimator=f"{est.estimator} (simulated model, not converged in {it} iterations)")
 
 
 def _check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> str:
@@ -167,12 +196,17 @@ def identify_complete(
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
     est = _check_estimator(estimator)
-    Phi = np.concatenate([tension_rows(y_t, instrument_dot(y_t, proc))[mask], bottom]) if est == "iv" else None
     (si_t, g_t), (si_j, g_j) = masked_rows(mask), stacked_rows(n, N)
     rows = (np.concatenate([si_t, si_j]), np.concatenate([g_t, nc + g_j]))
-    return _solve(proc, W, Y, param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc), rows,
-                  method="complete", equations=f"eqs. 43-45, W = {weight:g}", threshold=threshold,
-                  estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
+    names = param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc)
+
+    def solve(sim: Simulated | None) -> Estimate:
+        Phi = None if sim is None else np.concatenate([tension_rows(sim.x, sim.x_dot)[mask], bottom])
+        return _solve(proc, W, Y, names, rows, method="complete", equations=f"eqs. 43-45, W = {weight:g}",
+                      threshold=threshold, estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
+
+    k0 = np.asarray(params.cables.linear.k, dtype=float)
+    return solve(None) if est != "iv" else _iterate_iv(proc, params, "linear", k0, np.zeros(nc), solve)
 
 
 def identify_variable(
@@ -204,10 +238,16 @@ def identify_variable(
     mask = tension_mask(t_c)
     W = rows(proc.x_c, proc.x_c * t_c, proc.x_c_dot)[mask]
     est = _check_estimator(estimator)
-    Phi = rows(t_c, t_c**2, instrument_dot(t_c, proc))[mask] if est == "iv" else None
-    return _solve(proc, W, t_c[mask], param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc),
-                  masked_rows(mask), method="variable", equations="eqs. 54-57", threshold=threshold,
-                  estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
+    names = param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc)
+
+    def solve(sim: Simulated | None) -> Estimate:
+        Phi = None if sim is None else rows(sim.x, sim.x * sim.t, sim.x_dot)[mask]
+        return _solve(proc, W, t_c[mask], names, masked_rows(mask), method="variable", equations="eqs. 54-57",
+                      threshold=threshold, estimator=est, sigma=sigma, bounded=bounded, instruments=Phi)
+
+    v = params.cables.variable
+    k0, lam0 = np.asarray(v.k, dtype=float), np.asarray(v.lam, dtype=float)
+    return solve(None) if est != "iv" else _iterate_iv(proc, params, "variable", k0, lam0, solve)
 
 
 def identify_all(
@@ -312,21 +352,24 @@ def identified_params(
     return params, report, prov
 
 
-def make_provenance(campaign: str, proc: Processed, *, method: str = "", threshold: float = DEFAULT_THRESHOLD) -> Provenance:
-    """Provenance for a campaign processed now (ISO date in UTC)."""
+def make_provenance(campaign: str, proc: Processed, *, method: str = "", threshold: float = DEFAULT_THRESHOLD,
+                    estimates: Mapping[str, Estimate] | None = None) -> Provenance:
+    """Provenance for a campaign processed now (ISO date in UTC); with ``estimates``, the method
+    names each model's estimator and σ."""
     try:
         from importlib.metadata import version
 
         sw = version("xneck")
     except Exception:  # noqa: BLE001 - not installed: an editable checkout
         sw = "unknown"
+    how = "".join(f"; {name}: {e.estimator}, σ {e.sigma_method}" for name, e in (estimates or {}).items())
     return Provenance(
         campaign=campaign,
         date=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         method=method or (
             f"3-X paper §5: Butterworth filtfilt {proc.cutoff_hz:.2f} Hz, decimation to {proc.rate_hz:.2f} Hz; "
             "f_s by eq. 38 (rigid cables); linear cables by eqs. 43-45 (W = 100); variable cables by eqs. 54-57; "
-            "instrumental variables for the stretch regressors"
+            "physical bounds k, f_s > 0, λ, c_a ≥ 0" + how
         ),
         cutoff_hz=proc.cutoff_hz, threshold=threshold, software_version=sw,
     )

@@ -98,14 +98,16 @@ class Identification(NamedTuple):
 
 def identify_record(path: str | Path, base: Params, *, excitation: Excitation | None = None,
                     cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
-                    with_validation: bool = True, alpha_hat: bool = True) -> Identification:
+                    with_validation: bool = True, alpha_hat: bool = True, estimator: str = "iv",
+                    sigma: str = "hac", bounded: bool = True) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
-    (Tables 1-2), keep what is well identified, and validate (Figs. 4-8). Raises
-    :class:`IdentificationError` with the reason."""
+    (Tables 1-2) with ``estimator`` ("iv", "ols" or "wls", :func:`identify_all`), ``sigma``
+    ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
+    identified, and validate (Figs. 4-8). Raises :class:`IdentificationError` with the reason."""
     data = campaign_data_from_mcap(path, excitation)
     proc = preprocess(data, base, cutoff_hz)
-    est = identify_all(proc, base, threshold=threshold)
-    prov = make_provenance(f"{data.campaign} ({path})", proc, threshold=threshold)
+    est = identify_all(proc, base, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
+    prov = make_provenance(f"{data.campaign} ({path})", proc, threshold=threshold, estimates=est)
     new, report, prov = identified_params(base, est, prov)
     val = validate(data, proc, new, est, alpha_hat=alpha_hat) if with_validation else None
     return Identification(data, proc, est, prov, new, report, val)

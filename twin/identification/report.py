@@ -24,8 +24,16 @@ _BANDWIDTH_FROM = {"alpha_d": "the excitation α^d", "theta_dot": "the motor vel
 
 def _cell(est: Estimate, name: str) -> tuple[str, str]:
     i = est.names.index(name)
-    flag = " !" if est.badly_identified[i] else ""
+    flag = " !" if est.badly_identified[i] else (" b" if est.at_bound[i] else "")
     return f"{est.values[i]:.4g}", f"{100 * est.relative_sigma[i]:.2f}%{flag}"
+
+
+def _method_lines(est: Estimate) -> list[str]:
+    """How ``est`` was obtained, and every parameter's ±2σ interval (about 95 %)."""
+    bounds = ", ".join(est.active_bounds) or "none"
+    cells = [f"{n} [{lo:.4g}, {hi:.4g}]" for n, lo, hi in zip(est.names, est.ci_low, est.ci_high)]
+    return [f"  {est.method}: {est.estimator}; σ {est.sigma_method}; held at a physical bound: {bounds}",
+            *("    ±2σ: " + "  ".join(cells[i:i + 4]) for i in range(0, len(cells), 4))]
 
 
 def table_1(estimates: Mapping[str, Estimate]) -> str:
@@ -41,6 +49,7 @@ def table_1(estimates: Mapping[str, Estimate]) -> str:
         c, rca = _cell(comp, f"c_a({j})")
         lines.append(f"{f'f_s({j}) N':10s}{fc:>12s}{ff:>12s} | {f'k({j}) N/m':>10s}{k:>12s} | {f'c_a({j}) Ns/m':>10s}{c:>12s}")
         lines.append(f"{'rel. σ':10s}{rc:>12s}{rf:>12s} | {'rel. σ':>10s}{rk:>12s} | {'rel. σ':>10s}{rca:>12s}")
+    lines += _method_lines(comp) + _method_lines(fric)
     lines.append(
         f"cond(W): {comp.condition_number:.4g} (eqs. 44-45), {fric.condition_number:.4g} (eq. 38); "
         f"residual ‖ρ‖: {comp.residual_norm:.4g}, {fric.residual_norm:.4g}; rows {comp.n_rows}, {fric.n_rows}"
@@ -60,6 +69,7 @@ def table_2(estimates: Mapping[str, Estimate]) -> str:
         c, rc = _cell(var, f"c_a({j})")
         lines.append(f"{f'k({j}) N/m':>14s}{k:>12s} | {f'λ({j}) 1/m':>14s}{lam:>12s} | {f'c_a({j}) Ns/m':>14s}{c:>12s}")
         lines.append(f"{'rel. σ':>14s}{rk:>12s} | {'rel. σ':>14s}{rl:>12s} | {'rel. σ':>14s}{rc:>12s}")
+    lines += _method_lines(var)
     lines.append(f"cond(W): {var.condition_number:.4g}; residual ‖ρ‖: {var.residual_norm:.4g} N; rows {var.n_rows}; "
                  f"estimator: {var.estimator}")
     return "\n".join(lines)
@@ -73,7 +83,8 @@ def tables_text(estimates: Mapping[str, Estimate], proc: Processed, validation: 
         f"{proc.n} instants at {proc.rate_hz:.2f} Hz",
         "", table_1(estimates), "", table_2(estimates), "",
         f"! = badly identified (relative σ > {100 * estimates['variable'].threshold:g} %, or a value outside the "
-        "physical range): never used, the base value is kept",
+        "physical range, or held at a physical bound by the bounded solution): never used, the base value is "
+        "kept; b = at a bound; ±2σ = about 95 % confidence interval with the σ method named under each table",
     ]
     if kept_base:
         parts.append("kept at base value: " + ", ".join(kept_base))

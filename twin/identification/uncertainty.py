@@ -23,8 +23,9 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-MAX_LAG_FRACTION = 0.1  # L never exceeds this fraction of the instants: the sum needs many lags' worth of data
+MAX_LAG_FRACTION = 0.2  # L never exceeds this fraction of the instants: the sum needs many lags' worth of data
 CORRELATION_FLOOR = 0.1  # residual autocorrelation below which two instants count as independent
+LAG_FACTOR = 2  # Bartlett weights halve the covariance at half the lag: sum over twice the correlation length
 
 
 def instant_sums(rows: FloatArray, sample_index: IntArray, n_samples: int) -> FloatArray:
@@ -55,7 +56,7 @@ def correlation_lag(residual: FloatArray, sample_index: IntArray, n_samples: int
         spec = np.fft.rfft(series, 2 * n_samples)
         acf = np.fft.irfft(spec * np.conj(spec))[: cap + 1] / var
         below = np.flatnonzero(acf < CORRELATION_FLOOR)
-        lag = max(lag, int(below[0]) if len(below) else cap)
+        lag = max(lag, LAG_FACTOR * int(below[0]) if len(below) else cap)
     return int(min(lag, cap))
 
 

@@ -1,0 +1,98 @@
+"""Instruments for the stretch regressors from the identified model re-simulated (IDIM-IV).
+
+The stretch x_c = l_c(α) − l_c0 + ρ·θ (eq. 27) takes α from the camera: 1° of noise on α_IP makes
+the regressors x_c, x_c·t_c, ẋ_c noisy and least squares biased (errors in variables). An
+instrument must follow x_c without sharing that noise, and without being the measured tension
+either: t_c = f − friction − inertia is the fitted quantity, and on the prototype the forces are
+open-loop current commands, so its errors (torque constants, ripple, friction the model lacks)
+are in both the instrument and the residual and the estimate is biased as much as with no
+instrument at all. This module therefore simulates the neck with the model being identified,
+driven by the motor encoders only: at every identification instant, α_sim solves the neck's
+equation (32) with the cable tensions of the cable model,
+
+    Z(α)·t(x(α, θ)) = M(α)·α̈_sim + c + g(α),   x = l_c(α) − l_c0 + ρ·θ,   t = k·x/(1 − λ·x) ≥ 0,
+
+θ the (filtered) encoder angles, α̈_sim from the previous pass (quasi-static on the first). The
+instruments are x_sim, x_sim·t_sim, ẋ_sim: functions of the encoders and the model, free of
+camera noise and of force errors. They depend on the estimate (k, λ), so the estimation is
+iterated to a fixed point (BIRDy's IDIM-IV: Janot, Vandanjon & Gautier, IEEE TCST 2014, where
+the instruments come from the identified model simulated on the same inputs). Pure functions.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from twin.identification.processing import Processed
+from twin.model import dynamics
+from twin.model.numeric import Model
+
+FloatArray = NDArray[np.float64]
+
+NEWTON_STEPS = 12
+NEWTON_TOL_RAD = 1e-7  # rad, ≈ 1/1000 of an encoder count at the joint
+FD_STEP_RAD = 1e-6
+
+
+def _stretch(m: Model, alpha: FloatArray, theta: FloatArray) -> tuple[FloatArray, dynamics.Terms]:
+    terms = dynamics.evaluate(m, alpha, np.zeros_like(alpha))
+    return terms.l_c - m.l_c0 + m.rho * theta, terms
+
+
+def _residual(m: Model, alpha: FloatArray, theta: FloatArray, k: FloatArray, lam: FloatArray,
+              inertial: FloatArray) -> tuple[FloatArray, FloatArray]:
+    x, terms = _stretch(m, alpha, theta)
+    t = np.maximum(dynamics.cable_tension_law(k, lam, 0.0, x, 0.0), 0.0)
+    return np.einsum("nij,nj->ni", terms.Z, t) - terms.g - inertial, x
+
+
+def neck_equilibrium(m: Model, theta: FloatArray, k: FloatArray, lam: FloatArray, alpha0: FloatArray,
+                     inertial: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+    """α (n, N) solving Z·t(x(α, θ)) = g(α) + ``inertial`` at every instant (batched Newton with a
+    finite-difference Jacobian, from ``alpha0``); returns (α, x)."""
+    alpha = np.array(alpha0, dtype=float)
+    inertial = np.zeros_like(alpha) if inertial is None else inertial
+    n, N = alpha.shape
+    for _ in range(NEWTON_STEPS):
+        F, _ = _residual(m, alpha, theta, k, lam, inertial)
+        J = np.empty((n, N, N))
+        for i in range(N):
+            da = np.zeros(N)
+            da[i] = FD_STEP_RAD
+            J[:, :, i] = (_residual(m, alpha + da, theta, k, lam, inertial)[0] - F) / FD_STEP_RAD
+        try:
+            step = np.linalg.solve(J, -F[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(J.reshape(-1, N), -F.reshape(-1), rcond=None)[0].reshape(n, N)  # pragma: no cover
+        step = np.clip(step, -0.05, 0.05)  # rad: a Newton step never jumps across the workspace
+        alpha += step
+        if np.max(np.abs(step)) < NEWTON_TOL_RAD:
+            break
+    return alpha, _stretch(m, alpha, theta)[0]
+
+
+class Simulated(NamedTuple):
+    """The neck re-simulated on the encoders: α (n, N), stretch x, ẋ and tension t (n, n_cables)."""
+
+    alpha: FloatArray
+    x: FloatArray
+    x_dot: FloatArray
+    t: FloatArray
+
+
+def simulated_stretch(m: Model, proc: Processed, k: FloatArray, lam: FloatArray,
+                      alpha0: FloatArray | None = None) -> Simulated:
+    """The stretch the model (k, λ) predicts on the recorded encoder angles. Two passes:
+    quasi-static, then with the inertial terms M·α̈_sim + c of the first pass. ``alpha0``: where
+    Newton starts (default: the camera's α, which only seeds the root it converges to)."""
+    h = 1.0 / proc.rate_hz
+    alpha, _ = neck_equilibrium(m, proc.theta, k, lam, proc.alpha if alpha0 is None else alpha0)
+    a_dot = np.gradient(alpha, h, axis=0)
+    terms = dynamics.evaluate(m, alpha, a_dot)
+    inertial = np.einsum("nij,nj->ni", terms.M, np.gradient(a_dot, h, axis=0)) + terms.c
+    alpha, x = neck_equilibrium(m, proc.theta, k, lam, alpha, inertial)
+    t = np.maximum(dynamics.cable_tension_law(k, lam, 0.0, x, 0.0), 0.0)
+    return Simulated(alpha, x, np.gradient(x, h, axis=0), t)
