@@ -497,38 +497,3 @@ def test_a_camera_behind_a_fast_twin_drops_frames_and_counts_every_one(params, m
     assert camera.queue_dropped > 0, "the burst should outrun the renderer"
     assert camera.frames + camera.queue_dropped + shutter.pending == shutter.exposures
     assert camera.dropped == camera.queue_dropped + shutter.dropped
-
-
-@pytest.mark.slow
-def test_identification_on_the_rendered_camera_matches_identification_on_the_true_alpha(params, model) -> None:
-    """Issue 15's chain frames → α_IP → identification: the §5.2.2 campaign of
-    tests/test_identification.py with its white-noise α_IP replaced by α measured on frames the twin
-    renders at the same capture times. The camera must add nothing the identification can see: its
-    estimates equal those from the true α (which tests/test_identification.py holds to the paper's
-    acceptance with a 1° noisy camera)."""
-    from test_identification import simulate_campaign
-
-    from twin.identification.pipeline import CampaignData, identify_all, preprocess
-
-    data, truth = simulate_campaign(0)
-    renderer = Renderer(model, seed=0)
-    detector = detector_for(params)
-    dt = float(data.t_s[1] - data.t_s[0])
-    index = np.searchsorted(data.t_s, data.t_ip_s - 0.5 * dt)  # the tick nearest each (jittered) exposure
-    assert np.abs(data.t_s[index] - data.t_ip_s).max() <= 0.5 * dt + 1e-9
-    measured = []
-    for k in index:
-        found = detector.detect(renderer.render(truth["alpha"][k]))
-        assert None not in found.alpha_rad
-        measured.append(found.alpha_rad)
-    a_ip = np.array(measured)
-    assert np.degrees(np.abs(a_ip - truth["alpha"][index])).mean() < 0.3
-
-    def estimates(alpha_ip: np.ndarray) -> dict[str, np.ndarray]:
-        est = identify_all(preprocess(CampaignData(data.t_s, data.theta_rad, data.force_N, data.t_ip_s, alpha_ip,
-                                                   excitation_alpha_rad=data.excitation_alpha_rad), params), params)
-        return {"f_s": est["friction"].values, "k": est["variable"].vector("k"), "lambda": est["variable"].vector("lambda")}
-
-    camera, exact = estimates(a_ip), estimates(truth["alpha"][index])
-    for name in exact:
-        assert np.abs(camera[name] / exact[name] - 1.0).max() < 0.01, (name, camera[name], exact[name])
