@@ -57,6 +57,7 @@ def test_design_beats_the_paper_cycloids_on_the_criterion(designed, problem):
     assert d.log_det > base.log_det + 3.0, (d, base)
     assert d.log_det_variable > base.log_det_variable
     # the predicted relative σ of every k and λ is lower than the cycloids' at the same duration
+    assert d.log_det_ds > base.log_det_ds  # the k/λ part of the criterion improves too
     for name in base.relative_sigma:
         if name.startswith(("k(", "lambda(")):
             assert d.relative_sigma[name] < base.relative_sigma[name], name
@@ -97,6 +98,7 @@ def test_cli_writes_a_file_the_identification_campaign_accepts(xneck, tmp_path, 
     (("--duration", "nan"), "duration must be"),
     (("--speed", "1.5"), "speed is a fraction"),
     (("--waypoints", "2"), "at least 3"),
+    (("--criterion", "e"), "criterion must be d"),
 ])
 def test_bad_design_requests_are_refused_clearly(cli, tmp_path, args, message):
     r = cli.invoke(app, ["excitation", "design", "--out", str(tmp_path / "x.json"), *args])

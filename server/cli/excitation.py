@@ -20,7 +20,7 @@ excitation_app = typer.Typer(help="Design identification excitations (D-optimal 
                              no_args_is_help=True)
 
 
-def _problem(params, duration_s: float, speed: float):
+def _problem(params, duration_s: float, speed: float, criterion: str = "d"):
     """The design problem for ``params`` with the controller's path, forces and validation."""
     import numpy as np
 
@@ -41,7 +41,7 @@ def _problem(params, duration_s: float, speed: float):
 
     return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=a_max, v_max_rad_s=v_max,
                                 a_max_rad_s2=acc_max, path=path, forces=nominal_forces(params, config),
-                                check=check, speed=speed)
+                                check=check, speed=speed, criterion=criterion)
 
 
 def design_command(
@@ -54,6 +54,8 @@ def design_command(
                                          "end included (default: one every 4 s)."),
     speed: float = typer.Option(0.6, "--speed", help="Fraction of the speed and acceleration limits the moves "
                                 "use (faster moves raise the filter cutoff, hence the camera noise let in)."),
+    criterion: str = typer.Option("d", "--criterion", help="d: D-optimality on f_s, k, λ and c_a; ds: on f_s, "
+                                  "k and λ only (the damping, barely identifiable, a nuisance)."),
     starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
@@ -67,7 +69,7 @@ def design_command(
 
     params = load_cli_params(params_file, overrides)
     try:
-        problem = _problem(params, duration, speed)
+        problem = _problem(params, duration, speed, criterion)
         if waypoints is not None and waypoints < 3:
             raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
         result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter)
@@ -81,7 +83,7 @@ def design_command(
     out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
     report = {
         "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
-        "seed": seed, "speed": speed, "iterations": result.iterations,
+        "seed": seed, "speed": speed, "criterion": criterion, "iterations": result.iterations,
         "designed": result.score.to_dict(), "paper_4x6_cycloids": baseline.to_dict(),
         "gain": {"log_det": result.score.log_det - baseline.log_det,
                  "cond_friction_ratio": baseline.cond_friction / result.score.cond_friction,

@@ -106,17 +106,21 @@ class DesignProblem:
     path: PathFn
     forces: ForceFn
     check: CheckFn | None = None
+    criterion: str = "d"  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
     _cache: dict[Any, Information] = field(default_factory=dict, repr=False)
 
     @classmethod
     def create(cls, params: Params, *, duration_s: float, alpha_max_rad: FloatArray | float,
                v_max_rad_s: FloatArray | float, a_max_rad_s2: FloatArray | float, path: PathFn,
-               forces: ForceFn, check: CheckFn | None = None, speed: float = 0.6) -> DesignProblem:
+               forces: ForceFn, check: CheckFn | None = None, speed: float = 0.6,
+               criterion: str = "d") -> DesignProblem:
         """A problem for ``params`` (its variable-stiffness cables and friction are the base values)."""
         if not (math.isfinite(duration_s) and duration_s > 2 * REST_S + MIN_MOVE_S):
             raise DesignError(f"duration must be a number of seconds above {2 * REST_S + MIN_MOVE_S:g}, got {duration_s}")
         if not (math.isfinite(speed) and 0.0 < speed <= 1.0):
             raise DesignError(f"speed is a fraction of the speed and acceleration limits in (0, 1], got {speed}")
+        if criterion not in ("d", "ds"):
+            raise DesignError(f"criterion must be d (every parameter) or ds (k and λ, c_a a nuisance), got {criterion!r}")
         n = params.n_joints
         per_joint = [np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
                      for v in (alpha_max_rad, v_max_rad_s, a_max_rad_s2)]
@@ -127,7 +131,8 @@ class DesignProblem:
         return cls(model=build(params, "variable"), f_s=np.asarray(params.friction.f_s, dtype=float),
                    k=np.asarray(var.k, dtype=float), lam=np.asarray(var.lam, dtype=float),
                    c_a=np.asarray(var.c_a, dtype=float), alpha_max=per_joint[0], v_max=speed * per_joint[1],
-                   a_max=speed * per_joint[2], duration_s=float(duration_s), path=path, forces=forces, check=check)
+                   a_max=speed * per_joint[2], duration_s=float(duration_s), path=path, forces=forces, check=check,
+                   criterion=criterion)
 
     @property
     def n_joints(self) -> int:
@@ -240,6 +245,8 @@ class Score(NamedTuple):
     # the relative σ up to the (common) noise level, per √s of record. Ratios between two designs
     # of the same duration predict the ratio of their σ's.
     relative_sigma: dict[str, float]
+    # Ds-optimality on k and λ (c_a a nuisance): log det F_friction − Σ_cables log det Cov(k, λ)
+    log_det_ds: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: float(v) for k, v in self._asdict().items() if k != "relative_sigma"}
@@ -273,10 +280,14 @@ def score(p: DesignProblem, waypoints: FloatArray, durations: FloatArray, dwell:
     info = information(p, waypoints, durations, dwell).scaled(1.0 / duration)
     lf, lv = _logdet(info.friction), _logdet(info.variable)
     nc = p.model.n_cables
+    # Schur complement: det Cov(k_j, λ_j)⁻¹ = det F_j / F_j(c_a, c_a) for each cable's 3×3 block
+    c_a = np.diag(info.variable)[2 * nc:]
+    ds = lf + sum(_logdet(info.variable[np.ix_([j, nc + j, 2 * nc + j], [j, nc + j, 2 * nc + j])])
+                  - (math.log(c_a[j]) if c_a[j] > 0 else -1e3) for j in range(nc))
     names = [f"{s}({j + 1})" for s in ("f_s",) for j in range(nc)]
     names += [f"{s}({j + 1})" for s in ("k", "lambda", "c_a") for j in range(nc)]
     return Score(lf + lv, lf, lv, _cond(info.friction), _cond(info.variable), info.penalty, duration,
-                 dict(zip(names, np.concatenate([_rel_sigma(info.friction), _rel_sigma(info.variable)]))))
+                 dict(zip(names, np.concatenate([_rel_sigma(info.friction), _rel_sigma(info.variable)]))), ds)
 
 
 class Excitation(NamedTuple):
@@ -303,7 +314,7 @@ def _objective(p: DesignProblem, k: int) -> Callable[[FloatArray], float]:
         s = score(p, w, durations, dwell)
         if len(p._cache) > 200_000:  # a long design: keep memory bounded
             p._cache.clear()
-        return -s.log_det + PENALTY_WEIGHT * s.penalty + OVERRUN_WEIGHT * overrun**2
+        return -(s.log_det_ds if p.criterion == "ds" else s.log_det) + PENALTY_WEIGHT * s.penalty + OVERRUN_WEIGHT * overrun**2
 
     return f
 
