@@ -337,13 +337,20 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
         cmd_pub, estop_pub = publisher(hub_session, bus.MOTOR_COMMAND), publisher(hub_session, bus.ESTOP)
 
         def command(seq, force, sender="ctl"):
-            n = node.commands.stats.received
+            # The owner's command must be accepted: until the bridge has seen the owner's fresh
+            # liveliness token it refuses it ("no liveliness token"), and a received-only wait
+            # made the test flaky. The intruder's must merely arrive (it is refused).
+            def count():
+                stats = node.commands.stats
+                return stats.accepted if sender == "ctl" else stats.received
+
+            n = count()
             msg = bus.ForceCommand(seq=seq, stamp_s=0.0, force_N=force, source="law2", sender=sender, epoch=node.epoch)
             for _ in range(250):  # the first messages on a fresh route may be lost
                 cmd_pub.put(msg)
-                if wait_until(lambda: node.commands.stats.received > n, 0.02, 0.002):
+                if wait_until(lambda: count() > n, 0.02, 0.002):
                     return
-            raise AssertionError("command never arrived")
+            raise AssertionError(f"command never arrived: {node.commands.stats}")
 
         seen = []
         try:
