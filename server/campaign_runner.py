@@ -58,6 +58,7 @@ from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
+EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
 CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
 
 
@@ -246,6 +247,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         deadline = time.monotonic() + spec.timeout_s
         answer_deadline = time.monotonic() + 10.0
         started = False
+        dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
         while not camera_problem:
             try:
                 ev = events.get(timeout=0.2)
@@ -268,6 +270,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 continue
             dead = [n for n, p in procs.items() if p.poll() is not None]
             if dead:
+                # A controller that finished puts its last event just before it exits: under load
+                # the event may come after the exit is seen. Wait for it a moment (issue 21).
+                dead_since = dead_since or time.monotonic()
+                if time.monotonic() - dead_since < EXIT_GRACE_S:
+                    continue
                 name = dead[0]
                 outcome = "aborted"
                 message = f"{name} exited with code {procs[name].returncode}: {log_tail(logs[name], 3)}"
