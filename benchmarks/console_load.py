@@ -11,7 +11,8 @@ reads. Issue 21's target: tick p99 with 20 clients within 5 % of none, 0 deadlin
 
 ``--idle S``: instead, the idle stack's CPU (``xneck up`` with its twin bridge and controller
 service, no campaign, no client) over S seconds, per process in % of one core (target: below 40 %
-in total).
+in total), and the bridge's watchdog holds and the controller's late ticks meanwhile (target 0
+holds; ``--idle 600`` is issue 21's 10-minute soak).
 
 Run: ``.venv/bin/python benchmarks/console_load.py`` (about 1 minute; ``--clients N`` to change 20),
 ``.venv/bin/python benchmarks/console_load.py --idle 60``.
@@ -38,7 +39,7 @@ from websockets.sync.client import connect  # noqa: E402
 
 from bridge import bus  # noqa: E402
 from bridge.archive import read_campaign  # noqa: E402
-from bridge.session import free_tcp_port  # noqa: E402
+from bridge.session import free_tcp_port, open_session  # noqa: E402
 
 TOKEN = "bench-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -82,7 +83,7 @@ def campaign(client: httpx.Client, base: str, data: Path, n_clients: int) -> dic
     stop.set()
     for t in threads:
         t.join(2)
-    if status != "finished":
+    if status not in ("finished", "degraded"):  # degraded: finished, with its quality's reasons (printed)
         raise RuntimeError(f"campaign {cid}: {status}: {client.get(f'/api/campaigns/{cid}').json()['message']}")
     c = read_campaign(data / "campaigns" / f"{cid}.mcap")
     st = [m for _, m in c.messages(bus.CONTROLLER_STATUS) if not m.holding]
@@ -93,7 +94,7 @@ def campaign(client: httpx.Client, base: str, data: Path, n_clients: int) -> dic
             "deadline_misses": float(final.campaign_deadline_misses if final else max(m.deadline_misses for m in st)),
             "latency_p99_ms": float(final.campaign_latency_p99_ms) if final else float("nan"),
             "rest_p99_ms": float(np.percentile(latencies, 99) * 1e3),
-            "rest_reads": float(len(latencies)), "frames_per_client": float(np.mean(counts)) if counts else 0.0}
+            "rest_reads": float(len(latencies)), "outcome": client.get(f"/api/campaigns/{cid}").json()["message"], "frames_per_client": float(np.mean(counts)) if counts else 0.0}
 
 
 def _cpu_ticks(pid: int) -> int:
@@ -140,9 +141,34 @@ def idle_stack(seconds: float) -> None:
                     if int(stat[1]) == up.pid:
                         pids[int(entry.name)] = _kind_of(argv) or argv[-1]
             hz = os.sysconf("SC_CLK_TCK")
-            before = {pid: _cpu_ticks(pid) for pid in pids}
-            time.sleep(seconds)
-            used = {pid: (_cpu_ticks(pid) - before[pid]) / hz / seconds * 100 for pid in pids}
+            holds, timing, reasons, gaps = [0, "active"], [], {}, [0.0, 0.0]
+
+            def on_state(sample) -> None:  # entries into the bridge's watchdog hold (a force ramp each)
+                msg = bus.decode(bus.MotorState, sample.payload.to_bytes())
+                if msg.drive == "hold" and holds[1] != "hold":
+                    holds[0] += 1
+                    reasons[msg.hold_reason] = reasons.get(msg.hold_reason, 0) + 1
+                holds[1] = msg.drive
+
+            def on_command(_sample) -> None:  # the longest silence on the command key, as seen here
+                now = time.perf_counter()
+                if gaps[1]:
+                    gaps[0] = max(gaps[0], now - gaps[1])
+                gaps[1] = now
+
+            with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as session:
+                subs = [session.declare_subscriber(bus.MOTOR_STATE, on_state),
+                        session.declare_subscriber(bus.MOTOR_COMMAND, on_command),
+                        session.declare_subscriber(bus.CONTROLLER_TIMING, lambda s: timing.append(
+                            bus.decode(bus.ControllerTiming, s.payload.to_bytes())))]
+                time.sleep(1.0)
+                before = {pid: _cpu_ticks(pid) for pid in pids}
+                holds[0], gaps[0] = 0, 0.0
+                reasons.clear()
+                time.sleep(seconds)
+                used = {pid: (_cpu_ticks(pid) - before[pid]) / hz / seconds * 100 for pid in pids}
+                for sub in subs:
+                    sub.undeclare()
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(up.pid, signal.SIGTERM)
@@ -156,6 +182,12 @@ def idle_stack(seconds: float) -> None:
         print(f"  {kind:<12s} pid {pid:<8d} {used[pid]:6.1f} %")
     total = sum(used.values())
     print(f"  {'total':<21s} {total:6.1f} %   (target below 40 %: {'meets' if total < 40 else 'MISSES'})")
+    ticks = sum(t.window_ticks for t in timing)
+    late = sum(int(np.sum(t.latency_counts[int(np.searchsorted(t.bin_edges_ms, 2.0)):])) for t in timing)
+    print(f"bridge watchdog holds: {holds[0]} (target 0); controller ticks {ticks}, answered later than 2 ms: {late}, "
+          f"stale states of bursts skipped: {sum(t.window_skipped for t in timing)}")
+    print(f"hold reasons: {reasons or '-'}; longest silence on the command key seen by this (unprioritised) observer: "
+          f"{gaps[0] * 1e3:.1f} ms")
 
 
 def main() -> None:
@@ -201,6 +233,7 @@ def main() -> None:
         a, b = none[key], many[key]
         ratio = f"{b / a:8.2f}" if a > 0 else ("    1.00" if b == 0 else "     inf")
         print(f"{label:34s}{a:12.3f}{b:12.3f}{ratio}")
+    print(f"outcomes: no client: {none['outcome']}; {args.clients} clients: {many['outcome']}")
     print(f"status reads per run: {none['rest_reads']:.0f} / {many['rest_reads']:.0f} at 50/s; "
           f"live frames per client: {many['frames_per_client']:.0f}")
 
