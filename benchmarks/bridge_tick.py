@@ -14,7 +14,9 @@
    The machine is shared: each timed tick is followed by a fixed reference workload of the same
    kind (small Python lists, a 4-element numpy array, a msgspec encoding), timed the same way,
    and the ratio tick / reference is printed too, a figure that load affects far less.
-2. The resident memory of a real ``xneck bridge --driver replay`` process after a few seconds
+2. The BeagleBone driver's own part of a tick on the robot (``write`` + ``read``, rcpy faked),
+   which the replay driver of 1. does not have.
+3. The resident memory of a real ``xneck bridge --driver replay`` process after a few seconds
    on the bus (VmHWM, the peak); target <= 80 MB on x86_64.
 Run: ``.venv/bin/python benchmarks/bridge_tick.py [--ticks 5000]``.
 ``--write-replay PATH`` only writes a replay MCAP file (used by benchmarks/armhf_bridge.sh).
@@ -183,6 +185,36 @@ def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
     return out
 
 
+def beaglebone_driver_io(n_calls: int) -> dict[str, float]:
+    """The robot's driver in a tick: ``write`` (force → ESCON set value → force) then ``read``
+    (encoder counts → θ), back to back, with rcpy faked at the library boundary as the tests and
+    benchmarks/armhf_bridge.sh do (tests/fake_rcpy: the fake's calls cost next to nothing)."""
+    sys.path.insert(0, str(ROOT / "tests" / "fake_rcpy"))
+    from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver
+    from twin.model.params import load_params
+
+    params = load_params()
+    driver = BeagleBoneDriver.from_params(BeagleBoneConfig(n_motors=params.n_cables), params)
+    driver.configure()
+    driver.activate()
+    force = np.array([10.0, 12.0, 14.0, 16.0][: params.n_cables])
+    io, io_ref = np.empty(n_calls), np.empty(n_calls)
+    try:
+        for k in range(n_calls):
+            t0 = time.perf_counter()
+            driver.write(force)
+            driver.read()
+            t1 = time.perf_counter()
+            reference()
+            io[k], io_ref[k] = t1 - t0, time.perf_counter() - t1
+    finally:
+        driver.close()
+    out: dict[str, float] = {}
+    out["bb_median_us"], out["bb_p99_us"] = _timing.summary("BeagleBone driver write + read (fake rcpy)", io)
+    out["bb_ratio_median"], out["bb_ratio_p99"] = _ratio("BeagleBone driver", io, io_ref)
+    return out
+
+
 def bridge_process_rss(replay: Path, seconds: float) -> dict[str, float]:
     """VmHWM and VmRSS (MB) of a real `xneck bridge --driver replay` after ``seconds``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -215,6 +247,7 @@ def main() -> None:
         replay = write_replay(Path(tmp) / "replay.mcap")
         print(f"bridge tick without numba ({args.ticks} ticks), {os.cpu_count()} cores")
         ticks = ticks_in_process(replay, args.ticks)
+        beaglebone_driver_io(args.ticks)
         rss = bridge_process_rss(replay, args.seconds)
     ok_tick = ticks["active_p99_us"] <= TARGET_TICK_P99_US and ticks["hold_p99_us"] <= TARGET_TICK_P99_US
     ok_rss = rss["rss_peak_mb"] <= TARGET_RSS_MB
