@@ -39,6 +39,7 @@ from server.live import Broadcaster, LiveBus, bridge_estop
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.routes_jog import request_jog, stop_jog
+from server.routes_studies import router as studies_router
 from server.settings import Settings, resolve_token
 from server.workspace_maps import WorkspaceCache
 
@@ -156,6 +157,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                    routes_workspace.router, routes_camera.router):
         document_responses(router.routes)
         app.include_router(router)
+    app.include_router(studies_router)  # /api/studies (issue 19)
     if WEB_DIR.is_dir():
         app.mount("/", StaticFiles(directory=WEB_DIR, html=True), name="web")
     app.add_middleware(ConsoleGuard, bind_host=settings.host, token=lambda: app.state.token,

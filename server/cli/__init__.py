@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import calibrate, camera, campaign, excitation, identify, kinematics, model, processes, serve, up
-from server.cli import study  # issue 19: studies on Dask
+from server.cli import calibrate, camera, campaign, excitation, identify, kinematics, model, processes, serve, study, up
 
 app = typer.Typer(
     name="xneck",

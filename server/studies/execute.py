@@ -34,13 +34,11 @@ Progress = Callable[[int, int, str], None]  # (finished runs, all runs, message)
 
 
 def software_version() -> str:
-    """xneck's installed version and the checkout's commit when there is one (rows say what computed them)."""
-    from importlib.metadata import PackageNotFoundError, version
+    """xneck's version (as campaign archives record it) and the checkout's commit when there is one:
+    a study's rows may come from several machines and days."""
+    from bridge.archive import software_version as package_version
 
-    try:
-        v = version("xneck")
-    except PackageNotFoundError:
-        v = "unknown"
+    v = package_version()
     head = Path(__file__).resolve().parents[2] / ".git" / "HEAD"
     with contextlib.suppress(OSError):
         ref = head.read_text().strip()
@@ -158,7 +156,7 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
 
 
 def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler: str | None = None, client: Any = None,
-              progress: Progress | None = None, stop: Event | None = None, flush_rows: int = 64,
+              progress: Progress | None = None, stop: Event | None = None, flush_rows: int = 32,
               flush_s: float = 2.0) -> dict[str, Any]:
     """Run every unfinished run of ``study`` into ``out`` and write its summary and figures.
 
@@ -176,10 +174,22 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
         todo = [r for r in runs if r.run_id not in done]
         if progress:
             progress(len(runs) - len(todo), len(runs), "resuming" if done else "starting")
-        if todo and not (stop and stop.is_set()):
+        if not todo:
+            summary = _finished_summary(out, len(runs))
+            if summary is not None:  # a rerun of a finished study: nothing to run or draw again
+                return summary
+        elif not (stop and stop.is_set()):
             _execute(cfg, todo, out, len(runs), len(runs) - len(todo), client, workers, scheduler, progress, stop,
                      flush_rows, flush_s)
         return write_outputs(out, study, len(runs))
+
+
+def _finished_summary(out: Path, total: int) -> dict[str, Any] | None:
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return summary if summary.get("runs_done") == total else None
 
 
 def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,

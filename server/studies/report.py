@@ -41,14 +41,23 @@ def _stats(x: np.ndarray) -> dict[str, float | int] | None:
             "p95": float(np.percentile(x, 95)), "min": float(x.min()), "max": float(x.max())}
 
 
-def spearman(x: np.ndarray, y: np.ndarray) -> float | None:
-    """Spearman's rank correlation of the finite pairs; None when either side is constant or too short."""
-    from scipy.stats import spearmanr
+def _ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks from 0, ties sharing their mean rank (numpy only: scipy's import costs a study more than its use)."""
+    order = np.argsort(x, kind="mergesort")
+    ranks = np.empty(len(x))
+    ranks[order] = np.arange(len(x))
+    _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    sums = np.bincount(inverse, weights=ranks)
+    return (sums / counts)[inverse]
 
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float | None:
+    """Spearman's rank correlation of the finite pairs (Pearson's of their ranks); None when either
+    side is constant or there are fewer than 3 pairs."""
     ok = np.isfinite(x) & np.isfinite(y)
     if ok.sum() < 3 or np.ptp(x[ok]) == 0 or np.ptp(y[ok]) == 0:
         return None
-    rho = float(np.asarray(spearmanr(x[ok], y[ok])[0]))
+    rho = float(np.corrcoef(_ranks(x[ok]), _ranks(y[ok]))[0, 1])
     return rho if math.isfinite(rho) else None
 
 

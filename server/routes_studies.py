@@ -1,0 +1,128 @@
+"""``/api/studies``: Monte Carlo and design studies of many headless twins on Dask (issue 19).
+
+Create (token), list, progress, results (Parquet rows as JSON pages), figures, stop (token); the
+same code as ``xneck study`` (server.studies). A request names built-in trajectories and truths
+only: a path on the console's disk is nothing a browser may choose.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
+
+from server.auth import require_token
+from server.studies.service import StudyBusy, StudyError, StudyManager, UnknownStudy, study_or_error
+
+router = APIRouter(prefix="/api/studies", tags=["studies"])
+_lock = threading.Lock()
+
+
+class StudyRequest(BaseModel):
+    """A study as ``xneck study`` takes it (docs/studies.md)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    kind: Literal["control", "identification", "design"]
+    samples: int = Field(1, ge=1, le=100_000)
+    vary: list[str] = Field(default_factory=list, max_length=20, description="PATH=SPEC, e.g. friction.f_s=10%")
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    laws: list[Literal[1, 2, 3]] = Field(default_factory=lambda: [2], min_length=1, max_length=3)
+    no_pulleys: bool = False
+    trajectory: Literal["control_test", "identification"] | None = None
+    truth: Literal["model", "robot"] = "model"
+    alpha_ip: Literal["noise", "camera"] = "noise"
+    settle_s: float = Field(1.0, ge=0.0, le=60.0)
+    model_follows: bool = False
+    design_configurations: int = Field(2000, ge=10, le=100_000)
+    workers: int | None = Field(None, ge=1, le=64, description="Local Dask workers (default: the machine's cores)")
+
+
+def _manager(request: Request) -> StudyManager:
+    with _lock:
+        manager = getattr(request.app.state, "studies", None)
+        if manager is None:
+            manager = request.app.state.studies = StudyManager(Path(request.app.state.settings.data_dir) / "studies")
+        return manager
+
+
+def _unknown(study_id: str) -> HTTPException:
+    return HTTPException(status.HTTP_404_NOT_FOUND, f"no study {study_id!r}")
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
+             responses={409: {"description": "A study is running"}, 422: {"description": "The study is invalid; detail says why"}})
+async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
+    """Check and start a study; every spec is checked before anything runs."""
+    if any(len(v) > 200 for v in body.vary):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, "vary: each PATH=SPEC at most 200 characters")
+    fields = body.model_dump(exclude={"workers"})
+    fields["laws"], fields["vary"] = tuple(fields["laws"]), tuple(fields["vary"])
+    try:
+        study = study_or_error(**fields)
+        study_id, total = await run_in_threadpool(_manager(request).create, study, body.workers)
+    except StudyError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, str(exc)) from None
+    except StudyBusy as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return {"id": study_id, "runs_total": total, "url": f"/api/studies/{study_id}"}
+
+
+@router.get("")
+async def list_studies(request: Request) -> dict[str, Any]:
+    """Every study of the console, newest first, with its progress."""
+    manager = _manager(request)
+
+    def collect() -> list[dict[str, Any]]:
+        out = []
+        for study_id in manager.ids():
+            p = manager.progress(study_id)
+            out.append({k: p[k] for k in ("id", "kind", "state", "runs_done", "runs_total", "fraction", "error")})
+        return out
+
+    return {"studies": await run_in_threadpool(collect)}
+
+
+@router.get("/{study_id}", responses={404: {"description": "No such study"}})
+async def study_progress(study_id: str, request: Request) -> dict[str, Any]:
+    """Progress while it runs; its summary (metrics per law, Spearman sensitivities) and figure URLs after."""
+    try:
+        return await run_in_threadpool(_manager(request).progress, study_id)
+    except UnknownStudy:
+        raise _unknown(study_id) from None
+
+
+@router.get("/{study_id}/results", responses={404: {"description": "No such study"}})
+async def study_results(study_id: str, request: Request, offset: int = Query(0, ge=0, le=10_000_000),
+                        limit: int = Query(200, ge=1, le=5000)) -> dict[str, Any]:
+    """The rows so far (one per run: inputs ``x:<path>``, metrics, outcome, timing, version), a page at a time."""
+    try:
+        return await run_in_threadpool(_manager(request).results, study_id, offset, limit)
+    except UnknownStudy:
+        raise _unknown(study_id) from None
+
+
+@router.get("/{study_id}/figures/{name}", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, 404: {"description": "No such study or figure"}})
+async def study_figure(study_id: str, name: str, request: Request) -> FileResponse:
+    try:
+        return FileResponse(_manager(request).figure(study_id, name), media_type="image/png",
+                            headers={"Cache-Control": "no-cache"})
+    except UnknownStudy:
+        raise _unknown(f"{study_id}/{name}") from None
+
+
+@router.post("/{study_id}/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
+             responses={404: {"description": "No such study"}})
+async def stop_study(study_id: str, request: Request) -> dict[str, str]:
+    """Stop after the runs in progress; the rows so far stay and creating the same study again goes on."""
+    try:
+        _manager(request).stop(study_id)
+    except UnknownStudy:
+        raise _unknown(study_id) from None
+    return {"id": study_id, "state": "stopping"}

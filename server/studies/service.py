@@ -1,0 +1,150 @@
+"""Studies of the console: one at a time in a background thread, on the data directory's ``studies/``.
+
+The same code as ``xneck study`` (server.studies.execute.run_study); progress is kept in memory
+while a study runs and read back from its directory otherwise (a study the console did not finish,
+e.g. across a restart, shows as ``stopped`` and resumes when created again with the same definition).
+The Dask cluster: ``XNECK_DASK_SCHEDULER`` (tcp://HOST:PORT, a cluster the lab runs) when set, else a
+LocalCluster of the request's ``workers`` (default: this machine's cores).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from server.studies.spec import Study, StudyError, expand
+
+STUDY_ID = re.compile(r"^(control|identification|design)-[0-9a-f]{16}$")  # kind-digest: the same study, the same directory
+SCHEDULER_ENV = "XNECK_DASK_SCHEDULER"
+
+
+class UnknownStudy(KeyError):
+    pass
+
+
+class StudyBusy(RuntimeError):
+    pass
+
+
+@dataclass
+class _Running:
+    study: Study
+    total: int
+    stop: threading.Event = field(default_factory=threading.Event)
+    done: int = 0
+    message: str = "starting"
+    state: str = "running"  # running, complete, stopped, failed
+    error: str = ""
+    thread: threading.Thread | None = None
+
+
+class StudyManager:
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._lock = threading.Lock()
+        self._runs: dict[str, _Running] = {}
+
+    def _dir(self, study_id: str) -> Path:
+        """The directory of a known study (one this console started, maybe not on disk yet, or one on disk)."""
+        if not STUDY_ID.match(study_id) or not (study_id in self._runs or (self.root / study_id / "study.json").is_file()):
+            raise UnknownStudy(study_id)
+        return self.root / study_id
+
+    def create(self, study: Study, workers: int | None) -> tuple[str, int]:
+        """Check the study (StudyError says why it cannot run), then start it; (id, runs)."""
+        from server.studies.execute import software_version
+        from server.studies.run import config_for
+
+        config_for(study, software_version())  # every spec checked before anything starts
+        total = len(expand(study))
+        with self._lock:
+            if any(r.state == "running" for r in self._runs.values()):
+                raise StudyBusy("a study is running; stop it or wait (one at a time on this machine)")
+            study_id = f"{study.kind}-{study.digest()}"  # created again, a study resumes where it stopped
+            run = _Running(study, total)
+            self._runs[study_id] = run
+        run.thread = threading.Thread(target=self._work, args=(study_id, run, workers), name=f"study-{study_id}",
+                                      daemon=True)
+        run.thread.start()
+        return study_id, total
+
+    def _work(self, study_id: str, run: _Running, workers: int | None) -> None:
+        from server.studies.execute import run_study
+
+        def progress(done: int, total: int, message: str) -> None:
+            run.done, run.message = done, message
+
+        try:
+            summary = run_study(run.study, self.root / study_id, workers=workers,
+                                scheduler=os.environ.get(SCHEDULER_ENV) or None, progress=progress, stop=run.stop)
+            run.done = summary["runs_done"]
+            run.state = "complete" if summary["complete"] else "stopped"
+        except Exception as exc:  # noqa: BLE001 - a study's failure (cluster lost, disk full) is its state, never the console's crash
+            run.state, run.error = "failed", f"{type(exc).__name__}: {exc}"
+
+    def stop(self, study_id: str) -> None:
+        self._dir(study_id)
+        run = self._runs.get(study_id)
+        if run is not None:
+            run.stop.set()
+
+    def ids(self) -> list[str]:
+        if not self.root.is_dir():
+            return []
+        found = [p for p in self.root.iterdir() if STUDY_ID.match(p.name) and (p / "study.json").is_file()]
+        return [p.name for p in sorted(found, key=lambda p: (p / "study.json").stat().st_mtime, reverse=True)]
+
+    def progress(self, study_id: str) -> dict[str, Any]:
+        import json
+
+        from server.studies.execute import finished_ids, load_study
+
+        folder = self._dir(study_id)
+        run = self._runs.get(study_id)
+        summary_file = folder / "summary.json"
+        summary = json.loads(summary_file.read_text()) if summary_file.is_file() else None
+        figures = [f"/api/studies/{study_id}/figures/{n}" for n in (summary or {}).get("figures", [])]
+        if run is None:  # not run by this console (or before its restart): the directory says
+            study = load_study(folder)
+            total = len(expand(study))
+            done = len(finished_ids(folder))
+            state, message, error = ("complete" if done >= total else "stopped"), "", ""
+        else:
+            study, total, done, state, message, error = run.study, run.total, run.done, run.state, run.message, run.error
+        return {"id": study_id, "kind": study.kind, "state": state, "runs_done": done, "runs_total": total,
+                "fraction": done / total if total else 1.0, "message": message, "error": error,
+                "study": study.canonical(), "summary": summary if state != "running" else None,
+                "figures": figures if state != "running" else []}
+
+    def results(self, study_id: str, offset: int, limit: int) -> dict[str, Any]:
+        import math
+
+        from server.studies.execute import read_rows
+
+        rows = read_rows(self._dir(study_id))
+        page = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}
+                for r in rows[offset:offset + limit]]
+        return {"total": len(rows), "offset": offset, "rows": page}
+
+    def figure(self, study_id: str, name: str) -> Path:
+        from server.studies.report import FIGURES
+
+        path = self._dir(study_id) / "figures" / name
+        if name not in FIGURES or not path.is_file():
+            raise UnknownStudy(f"{study_id}/{name}")
+        return path
+
+
+def study_or_error(**fields: Any) -> Study:
+    """A :class:`Study` from a request's fields; StudyError names what is wrong."""
+    from server.studies.spec import study_from
+
+    kind = fields.pop("kind")
+    return study_from(kind, **fields)
+
+
+__all__ = ["StudyBusy", "StudyError", "StudyManager", "UnknownStudy", "study_or_error"]
