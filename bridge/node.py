@@ -18,9 +18,9 @@ Watchdog
     forces Z f = g(α̂) with every cable at t_min (:func:`controller.laws.hold_forces`) at the
     rigid-cable estimate α̂ from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
     ``drive = "hold"`` and ``hold_reason`` says why. The next valid command resumes ``active``.
-    The hold forces are never computed in a tick (:class:`HoldWorker` keeps them ready on a
-    thread of its own); without hold forces ready for the present angles the hold keeps the
-    applied forces until they are.
+    The hold forces are never computed in a tick (:class:`HoldWorker` keeps them fresh on a
+    thread of its own); without fresh ones (of angles read at most 0.1 s before) the hold keeps
+    the applied forces until they come.
     Lockstep (twin only): one tick per new command, so simulated time stands still without
     commands and nothing can drift; the watchdog is off there.
 E-stop

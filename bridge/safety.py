@@ -2,7 +2,7 @@
 
 Each tick :class:`bridge.node.BridgeNode` gathers the facts of the tick in :class:`Inputs` (a valid
 command received since the last tick, the age of the newest valid command, the e-stop events, the
-hold forces ready for the encoder angles) and :meth:`Safety.step` answers with a :class:`Decision`: the drive state, the
+fresh hold forces of the encoder angles) and :meth:`Safety.step` answers with a :class:`Decision`: the drive state, the
 forces to write, whether the drives must be enabled, the hold reason and what to log. The node
 only moves data between the bus, this machine and the driver, so every rule below is tested
 without a bus (tests/test_bridge_safety.py) and is the same for the robot, the twin and a replay.
@@ -16,12 +16,12 @@ Activation
     (``active``).
 Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only), the forces ramp
-    linearly over ``hold_ramp_ticks`` from those applied to the hold forces ready for the encoder
-    angles of that moment (``drive = "hold"``, ``hold_reason`` says why). The hold forces are
-    computed off the tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the
-    tick's facts; when none are ready for these angles the hold keeps the applied forces (within
-    [f_min, f_max]) and moves to the hold forces once they are, at most ``max_force_step_N`` per
-    tick. The next valid command resumes ``active``.
+    linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder
+    angles (``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
+    tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the tick's facts when
+    fresh; without them the hold keeps the applied forces (within [f_min, f_max]) and moves to
+    the hold forces once they come, at most ``max_force_step_N`` per tick. The next valid command
+    resumes ``active``.
 Speed
     One step runs in every 2 ms tick of a Cortex-A8: the forces are plain floats, not numpy arrays
     (numpy's per-call overhead on four values is most of a tick, benchmarks/bridge_tick.py), and
@@ -88,8 +88,8 @@ class Inputs(NamedTuple):
     ``command_N``: the forces of a valid command received since the last step (None if none);
     ``source``: its sender's law, for the log. ``command_age_s``: age of the newest valid
     command (None if none ever arrived). ``estop``: e-stop events since the last step.
-    ``hold_N``: the hold forces ready for the encoder angles of the last read (computed off the
-    tick), None when none are ready for them.
+    ``hold_N``: fresh hold forces of the encoder angles (computed off the tick), None when there
+    are none.
     """
 
     command_N: Sequence[float] | None = None
