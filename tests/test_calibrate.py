@@ -37,17 +37,19 @@ def record(path: Path, truth: RobotTruth, law: int = 2, seconds: float = 4.0, se
     n = int(seconds * 500)
     ref = control_test_trajectory().sample(np.arange(1, n + 1) / 500)
     nc = PARAMS.n_cables
-    ids = {"epoch": "e1", "bridge": "twin-test", "owner": "ctl"}
-    msgs: list[tuple[str, int, bus.BusMessage]] = [(bus.MOTOR_STATE, 0, bus.MotorState(
-        seq=0, stamp_s=0.0, theta_rad=[0.0] * nc, force_applied_N=[0.0] * nc, drive="active", **ids))]
+
+    def state(seq: int, stamp_s: float, theta: list[float], force: list[float]) -> bus.MotorState:
+        return bus.MotorState(seq=seq, stamp_s=stamp_s, theta_rad=theta, force_applied_N=force, drive="active",
+                              epoch="e1", bridge="twin-test", owner="ctl")
+
+    msgs: list[tuple[str, int, bus.BusMessage]] = [(bus.MOTOR_STATE, 0, state(0, 0.0, [0.0] * nc, [0.0] * nc))]
     theta = np.zeros(nc)
     for k in range(n):
         f = ctl.step(theta, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k]).f.copy()
         tick = twin.tick(f)
         theta = tick.theta_meas
         t_ns = (k + 1) * 2_000_000
-        msgs.append((bus.MOTOR_STATE, t_ns, bus.MotorState(seq=k + 1, stamp_s=tick.t_s, theta_rad=theta.tolist(),
-                                                         force_applied_N=f.tolist(), drive="active", **ids)))
+        msgs.append((bus.MOTOR_STATE, t_ns, state(k + 1, tick.t_s, theta.tolist(), f.tolist())))
         msgs.append((bus.TWIN_TRUTH, t_ns, bus.Truth(
             seq=k + 1, stamp_s=tick.t_s, alpha_rad=tick.alpha.tolist(), alpha_dot_rad_s=tick.alpha_dot.tolist(),
             theta_rad=tick.theta.tolist(), theta_dot_rad_s=tick.theta_dot.tolist(), tension_N=tick.tension.tolist(),
