@@ -39,7 +39,8 @@ def campaign_control(
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
-                              "parameter file as it is (model) or with a real line's small cable damping (robot)."),
+                              "parameter file as it is (model), the robot's unmodelled physics (robot), or a truth "
+                              "FILE (e.g. from `xneck twin calibrate`)."),
     alpha_ip: str = ALPHA_IP_OPTION,
     timeout: float = typer.Option(600.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     params_file: Path | None = PARAMS_OPTION,
