@@ -17,6 +17,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from server.auth import require_token
+from server.datadir import storage_problem
+from server.guard import document_responses
 from server.studies.service import StudyBusy, StudyError, StudyManager, UnknownStudy, study_or_error
 
 router = APIRouter(prefix="/api/studies", tags=["studies"])
@@ -56,11 +58,18 @@ def _unknown(study_id: str) -> HTTPException:
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
-             responses={409: {"description": "A study is running"}, 422: {"description": "The study is invalid; detail says why"}})
+             responses={409: {"description": "A study is running"}, 422: {"description": "The study is invalid; detail says why"},
+                        507: {"description": "Not enough free space in the data directory"}})
 async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
     """Check and start a study; every spec is checked before anything runs."""
     if any(len(v) > 200 for v in body.vary):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, "vary: each PATH=SPEC at most 200 characters")
+    settings = request.app.state.settings
+    folder = Path(settings.data_dir) / "studies"
+    folder.mkdir(exist_ok=True)
+    problem = storage_problem(folder, int(settings.min_free_mb * 1e6))  # rows and figures need room, as campaigns do
+    if problem:
+        raise HTTPException(status.HTTP_507_INSUFFICIENT_STORAGE, problem)
     fields = body.model_dump(exclude={"workers"})
     fields["laws"], fields["vary"] = tuple(fields["laws"]), tuple(fields["vary"])
     try:
@@ -126,3 +135,6 @@ async def stop_study(study_id: str, request: Request) -> dict[str, str]:
     except UnknownStudy:
         raise _unknown(study_id) from None
     return {"id": study_id, "state": "stopping"}
+
+
+document_responses(router.routes)  # the guard's and storage handler's answers, as every router's
