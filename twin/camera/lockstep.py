@@ -12,10 +12,11 @@ dropped, and the result is the same for the same seed whatever the machine's loa
 The renderer draws the robot being simulated (the truth's geometry); the detector measures with
 the geometry the model believes (the parameter file's), as on the prototype.
 
-Speed: an exposure is rendered and measured on one worker thread from the moment it is taken,
-while the simulation runs through its latency (25 ticks at 50 ms); the frame is collected when it
-is due. One worker takes the exposures in order, so the renderer's noise and the detector's
-tracking see the same sequence as without it: the result does not depend on the timing.
+Speed: an exposure is rendered on one worker thread from the moment it is taken and measured on
+a second one, while the simulation runs through its latency (25 ticks at 50 ms); the frame is
+collected when it is due. Each worker takes the exposures in order, so the renderer's noise and
+the detector's tracking see the same sequence as without them: the result does not depend on
+the timing (OpenCV releases the GIL, so on two cores most of the camera hides behind the loop).
 """
 
 from __future__ import annotations
@@ -47,29 +48,31 @@ class LockstepCamera:
         self.confidence: list[np.ndarray] = []
         self.frames = 0
         self.missing_joints = 0
-        self._worker: ThreadPoolExecutor | None = None  # started with the first exposure
+        self._workers: tuple[ThreadPoolExecutor, ThreadPoolExecutor] | None = None  # started with the first exposure
         self._jobs: deque[tuple[Exposure, Future[Detection]]] = deque()
 
-    def _measure(self, alpha: np.ndarray) -> Detection:
-        return self.detector.detect(self.renderer.render(alpha))
-
     def _start(self, exposure: Exposure) -> None:
-        if self._worker is None:
-            self._worker = ThreadPoolExecutor(1, thread_name_prefix="twin-camera")
-        self._jobs.append((exposure, self._worker.submit(self._measure, exposure.alpha_rad)))
+        if self._workers is None:
+            self._workers = (ThreadPoolExecutor(1, thread_name_prefix="twin-camera-render"),
+                             ThreadPoolExecutor(1, thread_name_prefix="twin-camera-detect"))
+        render, detect = self._workers
+        frame = render.submit(self.renderer.render, exposure.alpha_rad)
+        self._jobs.append((exposure, detect.submit(lambda: self.detector.detect(frame.result()))))
 
     def _result(self, exposure: Exposure) -> Detection:
         while self._jobs:
             taken, job = self._jobs.popleft()
             if taken is exposure:
                 return job.result()
-        return self._measure(exposure.alpha_rad)  # not started (cannot happen with the shutter's callback)
+        # Not started (cannot happen with the shutter's callback): measure it here.
+        return self.detector.detect(self.renderer.render(exposure.alpha_rad))
 
     def close(self) -> None:
-        """Stop the worker thread (it also ends with the camera's last reference)."""
-        if self._worker is not None:
-            self._worker.shutdown(wait=True, cancel_futures=True)
-            self._worker = None
+        """Stop the worker threads (they also end with the camera's last reference)."""
+        if self._workers is not None:
+            for worker in self._workers:
+                worker.shutdown(wait=True, cancel_futures=True)
+            self._workers = None
         self._jobs.clear()
 
     def update(self, t_s: float, alpha: np.ndarray) -> list[tuple[float, np.ndarray]]:
