@@ -66,6 +66,7 @@ from twin.identification.regressors import (
     ia_over_rho,
     joint_rows,
     masked_rows,
+    moving_mask,
     param_names,
     stacked_rows,
     tension_mask,
@@ -176,7 +177,8 @@ def identify_complete(
 
     Per sample: n_cables tension rows (eq. 42) diag(x_c)k + diag(ẋ_c)c_a + diag(a)f_s =
     f − (R/r_d)I_a·θ̈, and N joint rows (eq. 38, our sign) weighted by W = ``weight``.
-    Tension rows of a cable whose tension from the forces is below 2 N are dropped (slack).
+    Tension rows of a cable whose tension from the forces is below 2 N are dropped (slack), and
+    those of a motor slower than 1/c_s (regressors.moving_mask: its friction is unknown there).
     ``estimator``: ``"iv"`` (default, see :func:`identify_variable`: the instruments of x_c, ẋ_c
     are y = f − (R/r_d)I_a·θ̈ and ẏ), ``"ols"`` (eq. 49 as printed) or ``"wls"``.
     """
@@ -192,7 +194,7 @@ def identify_complete(
         return np.concatenate([x[:, :, None] * eye, x_dot[:, :, None] * eye, a[:, :, None] * eye], axis=2)
 
     bottom = np.concatenate([np.zeros((n, N, 2 * nc)), weight * D_j], axis=2).reshape(-1, 3 * nc)
-    mask = tension_mask(y_t - a * np.asarray(params.friction.f_s))
+    mask = tension_mask(y_t - a * np.asarray(params.friction.f_s)) & moving_mask(proc, params)
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
     est = _check_estimator(estimator)
@@ -214,7 +216,8 @@ def identify_variable(
     sigma: str = "hac", bounded: bool = True,
 ) -> Estimate:
     """Variable stiffness, eqs. 54-57: t_c = k·x_c + λ·x_c·t_c + c_a·ẋ_c with t_c from eq. 55
-    using the friction ``f_s`` (N) identified before; v = (k, λ, c_a).
+    using the friction ``f_s`` (N) identified before; v = (k, λ, c_a). Rows of slack cables and of
+    motors slower than 1/c_s (regressors.moving_mask) are dropped.
 
     Why instrumental variables by default: x_c comes from α_IP (1° of camera noise, ≈ 0.2-0.4 mm
     of stretch after filtering, against a stretch of a few mm), so the regressors x_c, x_c·t_c and
@@ -235,7 +238,7 @@ def identify_variable(
     def rows(a: FloatArray, b: FloatArray, c: FloatArray) -> FloatArray:
         return np.concatenate([a[:, :, None] * eye, b[:, :, None] * eye, c[:, :, None] * eye], axis=2)
 
-    mask = tension_mask(t_c)
+    mask = tension_mask(t_c) & moving_mask(proc, params)
     W = rows(proc.x_c, proc.x_c * t_c, proc.x_c_dot)[mask]
     est = _check_estimator(estimator)
     names = param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc)
