@@ -125,8 +125,8 @@ def test_a_small_study_end_to_end_on_two_workers(nod, client, tmp_path) -> None:
 def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, client, tmp_path) -> None:
     """`xneck study` on the cluster (--scheduler), SIGKILLed once its first batch is on disk; the
     rerun finishes the rest, never repeating a row; a third run has nothing to do."""
-    s = _study(nod, 30)
-    args = [sys.executable, "-m", "server.cli", "study", "control", "--out", str(tmp_path), "--samples", "30",
+    s = _study(nod, 20)
+    args = [sys.executable, "-m", "server.cli", "study", "control", "--out", str(tmp_path), "--samples", "20",
             "--law", "1", "--law", "2", "--trajectory", nod, "--seed", "3", "--scheduler", client.scheduler.address]
     args += [x for v in VARY for x in ("--vary", v)]
     (tmp_path / "settle.toml").write_text("settle_s = 0.1\n")
@@ -155,7 +155,7 @@ def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, 
 
 
 def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, client, tmp_path) -> None:
-    s = _study(nod, 15)
+    s = _study(nod, 8)
     pids = client.run(os.getpid)
     victim = next(iter(pids.values()))
     killed: list[int] = []
@@ -168,7 +168,7 @@ def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, client, tmp
     summary = run_study(s, tmp_path, client=client, progress=progress)
     assert killed and killed[0] < len(expand(s))
     ids = [r["run_id"] for r in read_rows(tmp_path)]
-    assert sorted(ids) == sorted(r.run_id for r in expand(s)) and summary["outcomes"] == {"finished": 30}
+    assert sorted(ids) == sorted(r.run_id for r in expand(s)) and summary["outcomes"] == {"finished": 16}
     assert victim not in client.run(os.getpid).values()
 
 
