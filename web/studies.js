@@ -1,0 +1,104 @@
+// The Studies card (issue 19): start a Monte Carlo / identification / design study on Dask, watch
+// its progress live, read its summary (metrics per law, Spearman sensitivities) and figures.
+// Data: /api/studies (POST needs the token, as every mutating route), /api/studies/{id}.
+(function () {
+  "use strict";
+  const POLL_MS = 1000;
+  const card = document.getElementById("studies");
+  if (!card || typeof api !== "function") return;
+  const el = (id) => document.getElementById(id);
+  const form = { kind: el("st-kind"), samples: el("st-samples"), vary: el("st-vary"), laws: el("st-laws"),
+                 truth: el("st-truth"), seed: el("st-seed") };
+  const list = el("st-list").querySelector("tbody");
+  const out = el("st-out");
+  const errorEl = el("st-error");
+  let selected = null;
+  let timer = null;
+  window.xneckStudies = { polls: 0 };
+
+  function showError(e) { errorEl.textContent = e ? String(e.message || e) : ""; }
+  function fmt(x) { return x === null || x === undefined ? "–" : Number(x).toPrecision(3); }
+
+  function body() {
+    const kind = form.kind.value;
+    const b = { kind, samples: Number(form.samples.value) || 1, seed: Number(form.seed.value) || 0,
+                vary: form.vary.value.split("\n").map((s) => s.trim()).filter(Boolean), truth: form.truth.value };
+    if (kind === "control") b.laws = form.laws.value.split(/[ ,]+/).filter(Boolean).map(Number);
+    return b;
+  }
+
+  async function start() {
+    showError(null);
+    try {
+      const r = await api("POST", "/api/studies", body());
+      selected = r.id;
+      await refresh();
+    } catch (e) { showError(e); }
+  }
+
+  function row(s) {
+    const tr = document.createElement("tr");
+    const pct = Math.round(100 * s.fraction);
+    [s.id, s.kind, s.state + (s.error ? ": " + s.error : ""), `${s.runs_done}/${s.runs_total}`].forEach((t) => {
+      const td = document.createElement("td"); td.textContent = t; tr.appendChild(td);
+    });
+    const bar = document.createElement("td");
+    const p = document.createElement("progress"); p.max = 100; p.value = pct; bar.appendChild(p);
+    tr.appendChild(bar);
+    tr.style.cursor = "pointer";
+    if (s.id === selected) tr.style.fontWeight = "bold";
+    tr.addEventListener("click", () => { selected = s.id; refresh(); });
+    return tr;
+  }
+
+  function summaryTable(summary) {
+    const table = document.createElement("table");
+    table.className = "ws-summary";
+    const head = table.insertRow();
+    ["", "metric", "median", "p5", "p95", "n"].forEach((t) => { const th = document.createElement("th"); th.textContent = t; head.appendChild(th); });
+    Object.entries(summary.metrics).forEach(([law, metrics]) => {
+      Object.entries(metrics).forEach(([name, s]) => {
+        if (!s) return;
+        const tr = table.insertRow();
+        [law === "0" ? "design" : `law ${law}`, name, fmt(s.median), fmt(s.p5), fmt(s.p95), s.n].forEach((t) => { tr.insertCell().textContent = t; });
+      });
+    });
+    return table;
+  }
+
+  function showStudy(p) {
+    out.replaceChildren();
+    const head = document.createElement("div");
+    head.textContent = `${p.id}: ${p.state}, ${p.runs_done}/${p.runs_total} runs` + (p.message ? ` (${p.message})` : "");
+    out.appendChild(head);
+    if (p.summary) {
+      out.appendChild(summaryTable(p.summary));
+      const figs = document.createElement("div");
+      figs.className = "ws-figures";
+      p.figures.forEach((url) => {
+        const img = document.createElement("img");
+        img.src = url + "?v=" + p.runs_done; img.alt = url.split("/").pop(); img.style.maxWidth = "100%";
+        figs.appendChild(img);
+      });
+      out.appendChild(figs);
+    }
+  }
+
+  async function refresh() {
+    window.xneckStudies.polls += 1;
+    try {
+      const r = await api("GET", "/api/studies");
+      list.replaceChildren(...r.studies.map(row));
+      if (!selected && r.studies.length) selected = r.studies[0].id;
+      if (selected) showStudy(await api("GET", `/api/studies/${selected}`));
+      const running = r.studies.some((s) => s.state === "running");
+      clearTimeout(timer);
+      if (running) timer = setTimeout(refresh, POLL_MS);  // live progress while a study runs
+    } catch (e) { showError(e); }
+  }
+
+  el("st-start").addEventListener("click", start);
+  el("st-refresh").addEventListener("click", refresh);
+  form.kind.addEventListener("change", () => { form.laws.disabled = form.kind.value !== "control"; });
+  refresh();
+})();
