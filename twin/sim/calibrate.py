@@ -230,7 +230,7 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
 
 @dataclass(frozen=True)
 class Replayed:
-    theta: np.ndarray  # (T, n_cables), θ (continuous, not quantised)
+    theta: np.ndarray  # (T, n_cables), θ as the encoders would read it (backlash on slack cables; not quantised)
     alpha: np.ndarray  # (T, N)
     tension: np.ndarray  # (T, n_cables)
     settling: np.ndarray  # (T,) bool: within settle_s of a re-start from the encoders (not compared)
@@ -278,19 +278,28 @@ def replay(rec: Recording, params: Params, truth: RobotTruth, w: Weights = Weigh
     restart = (math.isfinite(w.horizon_s) and w.horizon_s > 0)
     next_restart = rec.t_s[0] + w.horizon_s if restart else math.inf
     settle_until = rec.t_s[0] + w.settle_s
+    # Gear backlash shows in the encoders on slack cables only (twin.sim.simulator.Twin.tick): the replay
+    # reads its motors as the encoders would, and re-starts a motor on a slack cable through its backlash.
+    backlash = truth.actuation.backlash_rad if truth.actuation.enabled else 0.0
+    cable_bits = np.arange(nc)
+    slack = np.zeros(nc)
     for k in range(1, T):
         t = rec.t_s[k - 1]
         if t >= next_restart and k + 1 < T:
-            state[n : n + nc] = rec.theta[k - 1] + half_count
+            state[n : n + nc] = rec.theta[k - 1] + half_count + backlash * slack
             state[2 * n + nc :] = (rec.theta[k] - rec.theta[k - 2]) / (rec.t_s[k] - rec.t_s[k - 2])
             next_restart += w.horizon_s
             settle_until = t + w.settle_s
         gap = rec.t_s[k] - t
         steps = max(1, int(round(gap / dt_nominal)))  # missed ticks on the robot: hold the force over them
+        bits = 0
         for _ in range(steps):
-            if twin.advance(rec.force[k], gap / steps) >> 62 & 1:
+            bits = twin.advance(rec.force[k], gap / steps)
+            if bits >> 62 & 1:
                 ok = False
-        theta[k], alpha[k], tension[k] = state[n : n + nc], state[:n], twin.tension_N
+        if backlash:
+            slack = (bits >> cable_bits) & 1 if not bits >> 62 & 1 else slack * 0
+        theta[k], alpha[k], tension[k] = state[n : n + nc] - backlash * slack, state[:n], twin.tension_N
         settling[k] = rec.t_s[k] <= settle_until
     if not (ok and np.all(np.isfinite(theta)) and np.all(np.isfinite(alpha))):
         ok = False
