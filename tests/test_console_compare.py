@@ -41,16 +41,23 @@ def _archive(path: Path, cid: str, offset_deg: float, camera_offset_deg: float) 
     write_campaign(path, msgs, {"campaign_id": cid, "kind": "control", "law": "law2"})
 
 
-@pytest.fixture(scope="module")
-def console(tmp_path_factory):
-    data = tmp_path_factory.mktemp("compare") / "data"
+def seed_runs(data: Path) -> list[str]:
+    """Two archived control runs in a console's data directory, as campaigns leave them:
+    ``run-a`` (model truth, e = 1°, e_α = 0.5°) and ``run-b`` (robot truth, 2°, 1.5°)."""
     index = CampaignIndex(data / "campaigns")
     index.dir.mkdir(parents=True, exist_ok=True)
-    for cid, truth, off, cam in (("run-a", "model", 1.0, 0.5), ("run-b", "robot", 2.0, 1.5)):
+    for k, (cid, truth, off, cam) in enumerate((("run-a", "model", 1.0, 0.5), ("run-b", "robot", 2.0, 1.5))):
         _archive(index.mcap(cid), cid, off, cam)
         index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",
                                   parameter_set="prototype_3x", target="twin", truth=truth, status="finished",
-                                  created_at=f"2026-11-23T10:00:0{len(cid)}", metrics=metrics_from_archive(index.mcap(cid))))
+                                  created_at=f"2026-11-23T10:00:0{k}", metrics=metrics_from_archive(index.mcap(cid))))
+    return ["run-a", "run-b"]
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory):
+    data = tmp_path_factory.mktemp("compare") / "data"
+    seed_runs(data)
     with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=10) as client:
         yield client
 

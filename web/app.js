@@ -46,13 +46,17 @@ function makePlot(el, title, labels, colors, yLabel, minSpan = 2) {
   const series = [{ label: "t", value: (u, v) => (v === null || v === undefined ? "–" : v.toFixed(2) + " s") }]
     .concat(labels.map((l, i) => ({ label: l, stroke: colors[i], width: 1.5, points: { show: false }, value })));
   const data = [[]].concat(labels.map(() => []));
-  const range = (u, lo, hi) => {
-    if (lo === null || hi === null) return [-minSpan / 2, minSpan / 2];
-    const mid = (lo + hi) / 2, half = Math.max(hi - lo, minSpan) * 0.55;
-    return [mid - half, mid + half];
+  const range = (u, lo, hi) => {  // at least minSpan, ends on a round step: ticks at both ends
+    if (lo === null || hi === null) { lo = -minSpan / 2; hi = minSpan / 2; }
+    const mid = (lo + hi) / 2, half = Math.max(hi - lo, minSpan) / 2;
+    const raw = half / 2, mag = 10 ** Math.floor(Math.log10(raw));
+    const step = [1, 2, 5, 10].map((k) => k * mag).find((x) => x >= raw);
+    const lo2 = Math.floor((mid - half) / step) * step, hi2 = Math.ceil((mid + half) / step) * step;
+    return [lo2, Math.round((hi2 - lo2) / step) % 2 ? hi2 + step : hi2];  // an even number of steps
   };
+  const splits = (u, i, lo, hi) => [lo, (lo + hi) / 2, hi];  // three round ticks, whatever the height
   const plot = new uPlot({ title, width: el.clientWidth || 600, height: 170, series,
-    scales: { x: { time: false }, y: { range } }, axes: [{ label: "t (s)" }, { label: yLabel, space: 24 }] }, data, el);
+    scales: { x: { time: false }, y: { range } }, axes: [{ label: "t (s)" }, { label: yLabel, splits }] }, data, el);
   return { plot, data, lastX: null };
 }
 
@@ -394,4 +398,5 @@ async function main() {
   setInterval(pollActiveSet, 3000);
 }
 
-main().catch(showError);
+// After every script of the page ran: jog.js, trajectories.js... listen for xneck-config, which main() sends.
+window.addEventListener("DOMContentLoaded", () => main().catch(showError));
