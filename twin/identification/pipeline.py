@@ -27,10 +27,14 @@ cable tension plus friction, ~30 N against f_s ~15 N. The paper calls it "the mo
 elasticity", i.e. the joint rows of eq. 38 with ẍ_c = 0; that is what :func:`identify_friction`
 solves (three rows per sample, four parameters).
 
-Least squares (eqs. 48-50): v = W⁺Y through the SVD; σ_ρ² = ‖Y − Wv‖²/(r − n_p),
-C_X = σ_ρ²(WᵀW)⁻¹, σ_i = √C_X(i,i), relative σ_i = σ_i/|v_i|. A parameter whose relative σ
-exceeds ``threshold`` (10 % by default), or whose value is physically impossible (k ≤ 0; f_s, λ,
-c_a < 0), is *badly identified*: it is flagged in the :class:`Estimate`, and
+Estimation (eqs. 48-50, twin.identification.estimators): OLS (v = W⁺Y, eq. 49), WLS or, by
+default, IV with instruments from the model re-simulated on the encoders (identify_variable),
+bounded to the physical range (k, f_s > 0; λ, c_a ≥ 0; scipy.optimize.lsq_linear, the parameters
+held at a bound reported). σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
+too small on filtered, decimated data; the default is the Newey-West HAC sandwich
+(twin.identification.uncertainty), with ±2σ intervals. A parameter whose relative σ exceeds
+``threshold`` (10 % by default), whose value is physically impossible, or which the bounded
+solution holds at a bound is *badly identified*: it is flagged in the :class:`Estimate`, and
 :func:`identified_params` keeps the base value for it (the paper's damping).
 """
 
@@ -179,8 +183,8 @@ def identify_complete(
     f − (R/r_d)I_a·θ̈, and N joint rows (eq. 38, our sign) weighted by W = ``weight``.
     Tension rows of a cable whose tension from the forces is below 2 N are dropped (slack), and
     those of a motor slower than 1/c_s (regressors.moving_mask: its friction is unknown there).
-    ``estimator``: ``"iv"`` (default, see :func:`identify_variable`: the instruments of x_c, ẋ_c
-    are y = f − (R/r_d)I_a·θ̈ and ẏ), ``"ols"`` (eq. 49 as printed) or ``"wls"``.
+    ``estimator``: ``"iv"`` (default, see :func:`identify_variable`: instruments x_sim, ẋ_sim of
+    the linear model re-simulated on the encoders), ``"ols"`` (eq. 49 as printed) or ``"wls"``.
     """
     check_friction_excitation(proc, params)
     n, nc = proc.n, params.n_cables
@@ -221,12 +225,14 @@ def identify_variable(
 
     Why instrumental variables by default: x_c comes from α_IP (1° of camera noise, ≈ 0.2-0.4 mm
     of stretch after filtering, against a stretch of a few mm), so the regressors x_c, x_c·t_c and
-    ẋ_c are noisy and plain least squares is biased towards zero (errors in variables: −15 % on
-    k(4), +20 % on λ(3), damping halved on the twin). The tension t_c, computed from the forces and
-    the encoders, is independent of the camera noise and strongly correlated with the stretch, so
-    Φ = (diag(t_c), diag(t_c²), diag(ṫ_c)) are valid instruments (Janot, Vandanjon & Gautier,
-    "A generic instrumental variable approach for industrial robot identification", IEEE TCST
-    2014). ``estimator="ols"`` gives eq. 49 as printed.
+    ẋ_c are noisy and plain least squares is biased towards zero (errors in variables). The
+    instruments are x_sim, x_sim·t_sim, ẋ_sim of the model (k, λ) re-simulated on the encoders
+    (twin.identification.instruments), iterated to a fixed point (IDIM-IV, Janot, Vandanjon &
+    Gautier, IEEE TCST 2014): free of camera noise, and not built from the measured tension t_c,
+    which is the fitted quantity (on the prototype the forces are open-loop current commands whose
+    errors would be in the instruments and in the residual alike; this module's instruments before
+    issue 17 were t_c, t_c², ṫ_c). ``estimator="ols"`` gives eq. 49 as printed, ``"wls"`` weights
+    each cable's rows by its residual σ.
     """
     nc = params.n_cables
     f_s = np.asarray(f_s, dtype=float)
