@@ -108,7 +108,8 @@ def main() -> None:
             return json.loads(path.read_text()) if path.exists() else {"command": "(not run)", "json": None}
         return run(name, args, fresh)
 
-    design = go("design", ["excitation", "design", "--duration", f"{PAPER_DURATION_S:g}", "--seed", "0",
+    design = go("design", ["excitation", "design", "--duration", f"{PAPER_DURATION_S:g}", "--seed", "0", "--starts", "1",
+                           "--maxiter", "25",
                            "--out", str(EXCITATION.relative_to(ROOT)), "--json"], "design")
     paper, designed = {}, {}
     for s in seeds:

@@ -20,8 +20,28 @@ excitation_app = typer.Typer(help="Design identification excitations (D-optimal 
                              no_args_is_help=True)
 
 
-def _problem(params, duration_s: float, speed: float, criterion: str = "d"):
-    """The design problem for ``params`` with the controller's path, forces and validation."""
+PAPER_BOX_DEG = "40,30,20"  # the §5.2.2 amplitudes: the envelope law 1 is known to track (Fig. 10 of the paper)
+
+
+def _box(box_deg: str, n_joints: int, alpha_max_deg: float):
+    """--box-deg "a1,a2,a3" (or one value for all joints) as rad, within the joint limits."""
+    from twin.identification.excitation import DesignError
+
+    try:
+        values = [float(v) for v in box_deg.split(",")]
+    except ValueError:
+        raise DesignError(f"--box-deg must be numbers separated by commas (deg), got {box_deg!r}") from None
+    if len(values) == 1:
+        values *= n_joints
+    if len(values) != n_joints or not all(0.0 < v <= alpha_max_deg for v in values):
+        raise DesignError(f"--box-deg needs {n_joints} amplitudes in (0, {alpha_max_deg:g}]° (the joint limit), "
+                          f"got {box_deg!r}")
+    return [math.radians(v) for v in values]
+
+
+def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_deg: str = PAPER_BOX_DEG):
+    """The design problem for ``params`` with the controller's path, forces and validation; the
+    waypoints stay in the ±``box_deg`` box (the joint limits are checked by the validation)."""
     import numpy as np
 
     from controller.laws import nominal_force_check, nominal_forces
@@ -39,7 +59,8 @@ def _problem(params, duration_s: float, speed: float, criterion: str = "d"):
     def check(waypoints, durations, dwell) -> None:
         validate(Trajectory(waypoints, durations, dwell, "excitation"), limits, params.n_joints, force_check)
 
-    return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=a_max, v_max_rad_s=v_max,
+    box = _box(box_deg, params.n_joints, params.limits.alpha_max_deg)
+    return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=np.minimum(box, a_max), v_max_rad_s=v_max,
                                 a_max_rad_s2=acc_max, path=path, forces=nominal_forces(params, config),
                                 check=check, speed=speed, criterion=criterion)
 
@@ -56,6 +77,9 @@ def design_command(
                                 "use (faster moves raise the filter cutoff, hence the camera noise let in)."),
     criterion: str = typer.Option("d", "--criterion", help="d: D-optimality on f_s, k, λ and c_a; ds: on f_s, "
                                   "k and λ only (the damping, barely identifiable, a nuisance)."),
+    box_deg: str = typer.Option(PAPER_BOX_DEG, "--box-deg", help="Largest |α| per joint (deg), e.g. 40,30,20 (the "
+                                "§5.2.2 amplitudes, the default): a design out to the joint limits (60°) asks law 1 "
+                                "for poses where it loses track (a campaign aborted on a diverging α̂)."),
     starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
@@ -69,7 +93,7 @@ def design_command(
 
     params = load_cli_params(params_file, overrides)
     try:
-        problem = _problem(params, duration, speed, criterion)
+        problem = _problem(params, duration, speed, criterion, box_deg)
         if waypoints is not None and waypoints < 3:
             raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
         result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter)
@@ -83,7 +107,7 @@ def design_command(
     out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
     report = {
         "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
-        "seed": seed, "speed": speed, "criterion": criterion, "iterations": result.iterations,
+        "seed": seed, "speed": speed, "criterion": criterion, "box_deg": box_deg, "iterations": result.iterations,
         "designed": result.score.to_dict(), "paper_4x6_cycloids": baseline.to_dict(),
         "gain": {"log_det": result.score.log_det - baseline.log_det,
                  "cond_friction_ratio": baseline.cond_friction / result.score.cond_friction,
