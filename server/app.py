@@ -29,7 +29,7 @@ from fastapi.staticfiles import StaticFiles
 
 from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
-from server import routes_camera, routes_campaigns, routes_live, routes_params, routes_system, routes_workspace
+from server import routes_camera, routes_campaigns, routes_live, routes_params, routes_system, routes_truths, routes_workspace
 from server.camera_feed import CameraFeed
 from server.campaigns import CampaignManager, StorageError
 from server.console import include_console_routes
@@ -154,7 +154,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     include_console_routes(app)  # before /api/campaigns/{id}: the console's own paths
     for router in (routes_campaigns.router, routes_params.router, routes_system.router, routes_live.router,
-                   routes_workspace.router, routes_camera.router):
+                   routes_workspace.router, routes_camera.router, routes_truths.router):
         document_responses(router.routes)
         app.include_router(router)
     app.include_router(studies_router)  # /api/studies (issue 19)
