@@ -103,7 +103,10 @@ def _wait_end(base: str, cid: str, timeout_s: float) -> dict:
 
     def ended() -> bool:
         nonlocal rec
-        rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=2).json()
+        try:  # a loaded machine may keep the console busy (an analysis) past one read's timeout
+            rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=10).json()
+        except httpx.TimeoutException:
+            return False
         return rec.get("status") != "running"
 
     assert wait_until(ended, timeout_s, 0.3), rec
