@@ -109,7 +109,7 @@ def main() -> None:
         return run(name, args, fresh)
 
     design = go("design", ["excitation", "design", "--duration", f"{PAPER_DURATION_S:g}", "--seed", "0", "--starts", "1",
-                           "--maxiter", "25",
+                           "--maxiter", "25", "--criterion", "ds",
                            "--out", str(EXCITATION.relative_to(ROOT)), "--json"], "design")
     paper, designed = {}, {}
     for s in seeds:
@@ -217,6 +217,22 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "")
            ""]
     if failed:
         md += [f"Campaigns that failed (not in the means): {', '.join(failed)}; see runs/<name>.json.", ""]
+    wide = [json.loads(f.read_text()) for f in sorted(RUNS.glob("designed-wide-*.json"))]
+    wide_design = RUNS / "design-wide.json"
+    if wide and wide_design.exists():
+        wd = json.loads(wide_design.read_text())
+        gain = (wd.get("json") or {}).get("gain", {})
+        md += ["### A design out to the joint limits: law 1 lost track", "",
+               f"Before `--box-deg` existed the design used ±95 % of the 60° joint limits (`{wd['command']}`, "
+               f"then the default). Its criterion gain over the cycloids was larger (log det +{gain.get('log_det', math.nan):.1f}; "
+               "predicted σ ratios " + ", ".join(f"{n} {r:.2f}" for n, r in gain.get("predicted_sigma_ratio", {}).items()
+                                                  if n.startswith(("k", "lambda"))) + "), but its campaigns did not finish:", ""]
+        for r in wide:
+            md.append(f"- `{r['command']}` → exit {r['returncode']}: {' '.join(r.get('stderr_tail') or [])}")
+        md += ["", "Its waypoints sit on the corners of a ±54° box (mixed signs, e.g. (54, −51, −41)°) with",
+               "0.2 s holds; law 1 (no friction in the feed-forward, rigid α̂) overshot joint 3 to −80°. Hence the",
+               "default box: the §5.2.2 amplitudes, which law 1 tracks. In that box the cycloids already sit",
+               "on the corners, where D-optimal designs go, so the room left is small.", ""]
     # -- coverage -------------------------------------------------------------------------------
     md += ["## Coverage of the ±2σ intervals", "",
            "Same campaigns. A k or λ is covered when |estimate − truth| ≤ 2σ, σ as `xneck identify` reports it:", "",

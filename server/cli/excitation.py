@@ -96,7 +96,8 @@ def design_command(
         problem = _problem(params, duration, speed, criterion, box_deg)
         if waypoints is not None and waypoints < 3:
             raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
-        result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter)
+        # margin 1: the box is the bound asked for (the joint limits are the validation's)
+        result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter, margin=1.0)
     except DesignError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(2) from None
