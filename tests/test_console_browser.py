@@ -108,7 +108,7 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     straight = np.array(app.state.scene.bars.points, copy=True)
     _slide(page, 1, 15.0)
     page.wait_for_function("window.xneckJog.accepted >= 1", timeout=10000)
-    page.wait_for_function("Math.abs(window.xneckJog.alphaHat[0] - 15) < 1", timeout=20000)
+    page.wait_for_function("Math.abs(window.xneckJog.alphaHat[0] - 15) < 1", timeout=45000)  # slow when loaded
     # the 3D view follows: its bars are drawn at α̂ ≈ (15, 0, 0)°
     bent = app.state.scene.drawing.geometry(np.radians([15.0, 0.0, 0.0])).bars
     assert wait_until(lambda: np.abs(np.asarray(app.state.scene.bars.points) - bent).max() < 0.003, 5, 0.05)
@@ -154,7 +154,7 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
     # The panel's sliders send jog targets: α2 to 8° (the others at 0°) reaches the neck.
     scene.jog_sliders[1].value = 8.0
     status = console.app.state.live.values
-    assert wait_until(lambda: np.abs(np.degrees(status.get("status").alpha_hat_rad) - [0, 8, 0]).max() < 1, 20, 0.1)
+    assert wait_until(lambda: np.abs(np.degrees(status.get("status").alpha_hat_rad) - [0, 8, 0]).max() < 1, 45, 0.1)
     assert scene.jog_text.content.startswith("→ jog-"), scene.jog_text.content
     page.wait_for_timeout(800)
     console.shot("console_3d_view.png", "#view")
@@ -162,6 +162,8 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
 
 def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_and_runs_a_fixed_one(console):
     page, http = console.page, console.http
+    # The 3D view's software WebGL is the page's heaviest part: the tests from here on do not use it.
+    page.evaluate("document.querySelector('#viser').src = 'about:blank'")
     page.wait_for_function("document.querySelectorAll('#traj-library option').length >= 3", timeout=15000)
     page.select_option("#traj-library", "nod-short")
     page.click("#traj-load")
