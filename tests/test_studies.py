@@ -97,6 +97,21 @@ def test_runs_are_fixed_by_the_seed_and_every_law_meets_the_same_robots(nod) -> 
     assert parse_vary("friction.f_s[2]=N(15,1)").label == "friction.f_s[2]"
 
 
+def test_a_study_directory_refuses_a_study_whose_files_changed(nod, tmp_path) -> None:
+    """The same flags over an edited trajectory (or parameter, truth) file are another robot's runs."""
+    from server.studies.execute import study_dir
+
+    traj = tmp_path / "nod.json"
+    traj.write_text(json.dumps(NOD))
+    s = study_from("control", trajectory=str(traj), vary=VARY)
+    with study_dir(s, tmp_path / "out", "inputs-a"):
+        pass
+    with study_dir(s, tmp_path / "out", "inputs-a"):  # the same study goes on
+        pass
+    with pytest.raises(StudyError, match="changed since this study started"), study_dir(s, tmp_path / "out", "inputs-b"):
+        pass
+
+
 def test_a_small_study_end_to_end_on_two_workers(nod, client, tmp_path) -> None:
     s = _study(nod, 3)
     summary = run_study(s, tmp_path, client=client)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import json
 import os
 import time
@@ -103,8 +104,10 @@ def write_batch(out: Path, rows: list[dict[str, Any]]) -> list[Path]:
 
 
 @contextlib.contextmanager
-def study_dir(study: Study, out: Path) -> Iterator[Path]:
-    """``out`` locked for this process and holding ``study`` (created, or checked to be the same study)."""
+def study_dir(study: Study, out: Path, inputs: str = "") -> Iterator[Path]:
+    """``out`` locked for this process and holding ``study`` (created, or checked to be the same study).
+    ``inputs``: a digest of what the files it names held (parameter set, truth, trajectory): an edited
+    file makes another study, whose rows must not mix with these."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / ".lock", "w") as lock:
@@ -121,9 +124,13 @@ def study_dir(study: Study, out: Path) -> Iterator[Path]:
             if old.get("digest") != study.digest():
                 raise StudyError(f"{out} holds another study ({old.get('digest')}, {old.get('study', {}).get('kind')}): "
                                  "its rows would mix with this one's; use a new --out")
+            if inputs and old.get("inputs", inputs) != inputs:
+                raise StudyError(f"{out}: the parameter set, truth or trajectory file changed since this study started: "
+                                 "its rows would mix two robots; use a new --out")
         else:
             tmp = out / f".{STUDY_FILE}.tmp"
-            tmp.write_text(json.dumps({"digest": study.digest(), "study": study.canonical(), "created": time.time()}, indent=2))
+            tmp.write_text(json.dumps({"digest": study.digest(), "inputs": inputs, "study": study.canonical(),
+                                       "created": time.time()}, indent=2))
             os.replace(tmp, meta)
         for stale in (out / RUNS_DIR).glob("law=*/.part-*.tmp"):  # a crashed writer's; we hold the lock
             stale.unlink(missing_ok=True)
@@ -169,7 +176,8 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     out = Path(out)
     cfg = config_for(study, software_version())
     runs = expand(study)
-    with study_dir(study, out):
+    inputs = hashlib.sha256(json.dumps([cfg.params, cfg.truth, cfg.trajectory_json], sort_keys=True).encode()).hexdigest()[:16]
+    with study_dir(study, out, inputs):
         done = finished_ids(out)
         todo = [r for r in runs if r.run_id not in done]
         if progress:
