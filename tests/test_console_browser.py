@@ -123,6 +123,14 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     ticks = page.evaluate("jointPlots[1].plot.axes[1]._splits.length")
     assert ticks >= 3, page.evaluate("JSON.stringify([jointPlots[1].plot.axes[1]._splits, jointPlots[1].plot.scales.y, jointPlots[1].plot.bbox, jointPlots[1].plot.axes[1]._values])")
     console.shot("console_jog.png")
+    # pause: the plots stand still over the whole kept history while frames keep coming; resume
+    page.click("#live-pause")
+    paused = page.evaluate("[jointPlots[0].plot.scales.x.max, jointPlots[0].plot.scales.x.min, jointPlots[0].data[0][0]]")
+    assert paused[1] == paused[2], paused
+    page.wait_for_function(f"jointPlots[0].data[0].at(-1) > {paused[0]} + 0.5", timeout=10000)
+    assert page.evaluate("jointPlots[0].plot.scales.x.max") == paused[0]
+    page.click("#live-pause")
+    page.wait_for_function(f"jointPlots[0].plot.scales.x.max > {paused[0]} + 0.5", timeout=10000)
 
     cid = console.run_campaign({"kind": "control", "waypoints": NOD})
     r = console.http.post("/api/jog", json={"alpha_deg": [0, 10, 0]}, headers=AUTH)

@@ -3,8 +3,10 @@
 "use strict";
 
 const DEG = 180 / Math.PI;
-const WINDOW_S = 20;          // seconds of history kept in the live plots
-const MAX_POINTS = 1200;      // per series, browser-side decimation bound
+const WINDOW_S = 20;          // seconds shown by the live plots while they run
+const HISTORY_S = 60;         // seconds kept: paused, the plots scroll back over the last minute
+const MAX_POINTS = 2400;      // per series, browser-side decimation bound
+let livePaused = false;       // the pause button: frames are still stored, the plots stand still
 const $ = (sel) => document.querySelector(sel);
 const stats = (window.xneckStats = { frames: 0, points: 0, lastStamp: null });
 
@@ -72,7 +74,7 @@ function push(p, x, ys) {
   p.lastX = x;
   p.data[0].push(x);
   ys.forEach((y, i) => p.data[i + 1].push(y));
-  while (p.data[0].length > MAX_POINTS || (p.data[0].length && p.data[0][0] < x - WINDOW_S)) {
+  while (p.data[0].length > MAX_POINTS || (p.data[0].length && p.data[0][0] < x - HISTORY_S)) {
     for (const a of p.data) a.shift();
   }
   stats.points++;
@@ -113,12 +115,19 @@ function onFrame(frame) {
   window.dispatchEvent(new CustomEvent("xneck-frame", { detail: frame }));  // jog.js, console.js
 }
 
+// Running: the last WINDOW_S seconds. Paused: the whole last minute, to zoom in by dragging
+// (double click zooms out again).
+function drawLive(p) {
+  p.plot.setData(p.data);
+  const last = p.data[0].length ? p.data[0][p.data[0].length - 1] : 0;
+  p.plot.setScale("x", { min: livePaused ? p.data[0][0] : last - WINDOW_S, max: last });
+  showLatest(p);
+}
+
 function redraw() {
-  if (dirty && forcePlot) {
+  if (dirty && forcePlot && !livePaused) {
     dirty = false;
-    forcePlot.plot.setData(forcePlot.data);
-    jointPlots.forEach((p) => p.plot.setData(p.data));
-    [forcePlot, ...jointPlots].forEach(showLatest);
+    [forcePlot, ...jointPlots].forEach(drawLive);
   }
   requestAnimationFrame(redraw);
 }

@@ -1,7 +1,7 @@
 // Live error plots beside the joint plots: the tracking error e = α^d − α̂ (the controller's
 // status) and the estimation error e_α = α̂ − α_IP at each new camera frame (α̂ of the newest
 // status: within a live frame, 33 ms, of the capture; the archive's metrics interpolate). Uses
-// makePlot, push, showLatest and DEG of app.js.
+// makePlot, push, drawLive, livePaused and DEG of app.js.
 "use strict";
 
 (() => {
@@ -33,10 +33,23 @@
   });
 
   (function draw() {
-    if (dirty) {
+    if (dirty && !livePaused) {
       dirty = false;
-      for (const p of [live.e, live.ea]) { p.plot.setData(p.data); showLatest(p); }
+      [live.e, live.ea].forEach(drawLive);
     }
     requestAnimationFrame(draw);
   })();
+})();
+
+// Pause / resume of the live plots (app.js's livePaused): paused, they show the last minute.
+(() => {
+  const btn = document.createElement("button");
+  btn.id = "live-pause"; btn.type = "button"; btn.textContent = "pause";
+  btn.title = "Freeze the live plots and scroll back over the last minute (drag to zoom, double click to zoom out)";
+  btn.addEventListener("click", () => {
+    livePaused = !livePaused;
+    btn.textContent = livePaused ? "resume" : "pause";
+    if (livePaused) [forcePlot, ...jointPlots, window.xneckErrors.e, window.xneckErrors.ea].filter(Boolean).forEach(drawLive);
+  });
+  window.addEventListener("xneck-config", () => $("#plots h2").append(" ", btn));
 })();

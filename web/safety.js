@@ -45,3 +45,4 @@
     if (text) box.textContent = text;
   }, 250);
 })();
+
