@@ -79,6 +79,23 @@ async def validate_trajectory(request: Request, law: int = Query(2, ge=1, le=3),
     return {"ok": ok, "message": message, "preview": preview(traj)}
 
 
+@router.post("/preview3d", dependencies=[Depends(require_token)], openapi_extra=BODY,
+             responses={409: {"description": "The 3D view is off"}, 422: {"description": "Not a trajectory of this "
+                                                                              "neck"}})
+async def preview_in_3d(request: Request) -> Any:
+    """Play the trajectory once in the 3D view as a violet ghost (nothing moves); its duration."""
+    try:
+        traj = await _parsed(request)
+    except (LibraryError, TrajectoryError) as exc:
+        return _unprocessable(["body"], str(exc))
+    scene = getattr(request.app.state, "scene", None)
+    if scene is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, "the 3D view is off (the console runs without viser)")
+    if traj.n_joints != scene.drawing.n_joints:
+        return _unprocessable(["body", "waypoints_deg"], f"{traj.n_joints} joints for a neck of {scene.drawing.n_joints}")
+    return {"duration_s": scene.preview(traj)}
+
+
 @router.get("/{name}")
 def get_trajectory(name: str, request: Request) -> dict[str, Any]:
     """A trajectory in the user-file schema (JSON, degrees), with its duration."""

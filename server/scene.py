@@ -8,7 +8,8 @@ of the bars at α^d (green) and α_IP (orange, camera); the base frame axes and 
 The camera frames the neck's bounding volume over its joint range (:meth:`NeckDrawing.bounds`)
 when a browser connects, when its view changes shape (a resized card) and on "reset view"; the
 motors' drums (radius r_d), pulleys (r) and bars are drawn with the parameter set's dimensions.
-The GUI panel has a slider per joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`;
+A trajectory's motion can be previewed as a violet ghost (:meth:`NeckScene.preview`, the
+editor's "preview in 3D"). The GUI panel has a slider per joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`;
 at most one per ``JOG_PERIOD_S`` while dragging, the last one where the slider stops) and a
 "hold here" button (``hold``).
 
@@ -41,6 +42,8 @@ SPRING_RGB = (150, 150, 160)
 PULLEY_RGB = (90, 90, 110)
 GHOST_D_RGB = (40, 170, 80)
 GHOST_IP_RGB = (240, 140, 20)
+PREVIEW_RGB = (150, 60, 200)
+PREVIEW_HOLD_S = 1.0  # s the preview ghost stays at the last pose before it disappears
 GRAVITY_RGB = (200, 30, 200)
 MOTOR_RGB = (60, 60, 60)
 JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
@@ -66,6 +69,7 @@ class NeckScene:
         self._jog_target: list[float] | None = None  # newest slider pose not sent yet
         self._jog_sent_s = -math.inf
         self._aspects: dict[int, float] = {}  # client id -> aspect ratio of its last fit
+        self._preview: tuple[float, Any] | None = None  # (start, trajectory) of the motion previewed
         self._updates: dict[int, int] = {}  # client id -> camera updates seen
         self.rate_hz = rate_hz
         self.drawing = NeckDrawing(params)
@@ -107,6 +111,8 @@ class NeckScene:
                                                visible=False)
         self.ghost_ip = scene.add_line_segments("/ghost_alpha_ip", skel, _solid(skel, GHOST_IP_RGB), thickness=0.002,
                                                 visible=False)
+        self.ghost_preview = scene.add_line_segments("/ghost_preview", skel, _solid(skel, PREVIEW_RGB),
+                                                     thickness=0.003, visible=False)
         self.bars = scene.add_line_segments("/neck/bars", g.bars, _solid(g.bars, BAR_RGB), thickness=0.004)
         self.springs = scene.add_line_segments("/neck/springs", g.springs, _solid(g.springs, SPRING_RGB),
                                                thickness=0.0015)
@@ -197,6 +203,27 @@ class NeckScene:
             detail = "; ".join(str(d.get("msg", d)) for d in detail)
         self.jog_text.content = f"→ {answer['jog_id']}" if code == 202 else f"**refused ({code})**: {detail}"
 
+    # -- preview of a trajectory's motion -------------------------------------------------------
+    def preview(self, trajectory: Any) -> float:
+        """Play ``trajectory`` (a :class:`controller.trajectory.Trajectory`) once as a violet ghost,
+        in real time from now, before anything moves; returns its duration (s)."""
+        self._preview = (time.monotonic(), trajectory)
+        return float(trajectory.duration_s)
+
+    def draw_preview(self, now_s: float) -> None:
+        if self._preview is None:
+            return
+        start_s, traj = self._preview
+        t = now_s - start_s
+        if t > traj.duration_s + PREVIEW_HOLD_S:
+            self._preview = None
+            self.ghost_preview.visible = False
+            return
+        alpha = traj.sample(np.array([min(t, traj.duration_s)])).alpha[0]
+        if alpha.shape == (self.drawing.n_joints,):
+            self.ghost_preview.points = self.drawing.skeleton(alpha)
+            self.ghost_preview.visible = True
+
     def pose(self) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
         """(α̂, α^d, α_IP, tension) from the latest values (rad, rad, rad, N); None when unknown."""
         status, truth = self.values.get("status"), self.values.get("truth")
@@ -234,8 +261,9 @@ class NeckScene:
         while not self._stop.wait(period):
             try:
                 self.send_jog(time.monotonic())
+                self.draw_preview(time.monotonic())
             except Exception:  # a jog that cannot be sent must not kill the view thread
-                log.exception("jog from the 3D view failed")
+                log.exception("jog or preview in the 3D view failed")
             version = self.values.version()
             if version == last_version:
                 continue

@@ -188,6 +188,13 @@ def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_a
 
     page.fill('#traj-table tr[data-k="1"] .traj-a2', "4")
     page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('ok')", timeout=10000)
+    scene = console.app.state.scene  # the motion previewed in the 3D view, before anything moves
+    page.click("#traj-preview3d")
+    page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('previewing')", timeout=10000)
+    assert wait_until(lambda: scene.ghost_preview.visible, 5, 0.05)
+    straight = scene.drawing.skeleton(np.zeros(3))
+    bent = np.abs(scene.drawing.skeleton(np.radians([6.0, 4.0, 0.0])) - straight).max()
+    assert wait_until(lambda: np.abs(np.asarray(scene.ghost_preview.points) - straight).max() > 0.5 * bent, 5, 0.02)
     page.fill("#traj-name", "nod-edited")
     page.click("#traj-save")
     page.wait_for_function("document.querySelector('#traj-msg').textContent.startsWith('saved nod-edited')")

@@ -143,6 +143,12 @@
     try { await api("DELETE", `/api/trajectories/${encodeURIComponent(name)}`); refreshLibrary(); }
     catch (e) { say(e.message || String(e), false); }
   });
+  $("#traj-preview3d").addEventListener("click", async () => {
+    try {
+      const r = await api("POST", "/api/trajectories/preview3d", body());
+      say(`previewing in the 3D view (violet ghost, ${r.duration_s.toFixed(1)} s)`, true);
+    } catch (e) { say(e.message || String(e), false); }
+  });
   $("#traj-start").addEventListener("click", async () => {
     try {
       const rec = await api("POST", "/api/campaigns", { kind: "control", waypoints: body() });
