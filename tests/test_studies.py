@@ -95,6 +95,8 @@ def test_runs_are_fixed_by_the_seed_and_every_law_meets_the_same_robots(nod) -> 
     grid = study_from("design", vary=("geometry.b=0.04:0.06:3", "springs.k_left=10%"), samples=2)
     assert len(expand(grid)) == 6 and {r.values["geometry.b"] for r in expand(grid)} == {0.04, 0.05, 0.06}
     assert parse_vary("friction.f_s[2]=N(15,1)").label == "friction.f_s[2]"
+    ident = study_from("identification", samples=2)
+    assert ident.trajectory == "identification" and {r.law for r in expand(ident)} == {1}  # §5.2.2 runs law 1
 
 
 def test_a_study_directory_refuses_a_study_whose_files_changed(nod, tmp_path) -> None:

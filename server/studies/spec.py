@@ -196,6 +196,8 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
             data[key] = value
     data["kind"] = kind
     data.setdefault("trajectory", "identification" if kind == "identification" else "control_test")
+    if kind == "identification":
+        data["laws"] = (1,)  # the §5.2.2 campaign runs law 1 (server.cli.campaign): its rows say so
     for key in ("vary", "laws", "set"):
         if key in data:
             data[key] = tuple(data[key])
