@@ -29,7 +29,15 @@ from fastapi.staticfiles import StaticFiles
 
 from bridge.archive import software_version, storage_reason
 from bridge.session import free_tcp_port, open_session
-from server import routes_camera, routes_campaigns, routes_live, routes_params, routes_system, routes_truths, routes_workspace
+from server import (
+    routes_camera,
+    routes_campaigns,
+    routes_live,
+    routes_params,
+    routes_system,
+    routes_truths,
+    routes_workspace,
+)
 from server.camera_feed import CameraFeed
 from server.campaigns import CampaignManager, StorageError
 from server.console import include_console_routes
