@@ -50,6 +50,9 @@ def run(name: str, args: list[str], fresh: bool) -> dict[str, Any]:
     path = RUNS / f"{name}.json"
     if path.exists() and not fresh:
         return json.loads(path.read_text())
+    if "--out" in args and args[args.index("--out") + 1].endswith(".mcap"):
+        # a re-run: archives are never overwritten, and this one belongs to the run being redone
+        (ROOT / args[args.index("--out") + 1]).unlink(missing_ok=True)
     command = "xneck " + " ".join(shlex.quote(a) for a in args)
     print(f"[{time.strftime('%H:%M:%S')}] {command}", file=sys.stderr, flush=True)
     t0 = time.monotonic()
@@ -93,7 +96,7 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="re-run every command, ignoring runs/*.json")
     ap.add_argument("--seeds", default="0,1,2", help="twin noise seeds of the identification campaigns")
     ap.add_argument("--md-only", action="store_true", help="only rewrite the page from the cached runs")
-    ap.add_argument("--steps", default="design,paper,control,table3,designed,cv",
+    ap.add_argument("--steps", default="design,paper,control,table3,designed,cv-paper,cv-designed",
                     help="which groups of commands to run (two processes may run different groups at once)")
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",") if s.strip()]
@@ -125,14 +128,14 @@ def main() -> None:
     for kind in ("paper", "designed"):
         cv[kind] = go(f"cv-{kind}-{s0}", ["identify", str((RUNS / f"{kind}-{s0}.mcap").relative_to(ROOT)),
                                          "--validate", str((RUNS / "control-0.mcap").relative_to(ROOT)),
-                                         "--out", str((RUNS / f"cv-{kind}-{s0}").relative_to(ROOT)), "--json"], "cv")
+                                         "--out", str((RUNS / f"cv-{kind}-{s0}").relative_to(ROOT)), "--json"], f"cv-{kind}")
     table3 = {}
     for label, extra in (("with pulleys", []), ("without pulleys", ["--no-pulleys"])):
         name = "table3-" + label.replace(" ", "-")
         table3[label] = go(name, ["campaign", "control", "--trajectory", "identification", "--law", "2", *extra,
                                   "--truth", "robot", "--seed", "0", "--out",
                                   str((RUNS / f"{name}.mcap").relative_to(ROOT)), "--json"], "table3")
-    if not steps >= {"design", "paper", "control", "table3", "designed", "cv"} and not a.md_only:
+    if not steps >= {"design", "paper", "control", "table3", "designed", "cv-paper", "cv-designed"} and not a.md_only:
         return  # a partial run: the page is written by a full or --md-only run
     version = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
                              cwd=ROOT).stdout.strip()
@@ -164,13 +167,16 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "")
     # -- excitation design --------------------------------------------------------------------
     d = design.get("json") or {}
     md += ["## Designed excitation against the §5.2.2 4×6 cycloids", "",
-           f"Design: `{design['command']}` ({design.get('wall_s', '?')} s wall). D-optimality on the friction",
+           f"Design: `{design['command']}` ({design.get('wall_s', '?')} s wall). The information of the friction",
            "(eq. 38) and variable-stiffness (eqs. 54-57) regressors predicted along the nominal path, columns",
-           "normalised by the base parameters (twin/identification/excitation.py).", ""]
+           "normalised by the base parameters (twin/identification/excitation.py); `--criterion ds` maximises",
+           "it for f_s, k and λ with the damping c_a a nuisance (Ds-optimality), since the target is k and λ;",
+           "the default `d` spends part of it on c_a. Waypoints within the §5.2.2 amplitudes (40, 30, 20)°.", ""]
     if d:
         des, pap, gain = d["designed"], d["paper_4x6_cycloids"], d["gain"]
         md += ["| criterion (design model, per second of record) | designed | 4×6 cycloids |", "|---|---|---|",
-               f"| log det F (friction + variable) | {des['log_det']:.2f} | {pap['log_det']:.2f} |",
+               f"| log det F (friction + variable), D | {des['log_det']:.2f} | {pap['log_det']:.2f} |",
+               f"| Ds on f_s, k, λ (c_a a nuisance) | {des.get('log_det_ds', math.nan):.2f} | {pap.get('log_det_ds', math.nan):.2f} |",
                f"| cond, normalised friction regressor | {des['cond_friction']:.3g} | {pap['cond_friction']:.3g} |",
                f"| cond, normalised variable regressor | {des['cond_variable']:.3g} | {pap['cond_variable']:.3g} |",
                "", "Predicted σ(designed)/σ(cycloids) at equal duration and noise: "
@@ -279,10 +285,12 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "")
         md.append(f"| {label} | `{rec['command']}` | {_fmt(m.get('e_mean_all_deg'), '.3f')} | "
                   f"{_fmt(m.get('e_alpha_mean_all_deg'), '.3f')} | {paper_t3[label]} |")
     md += ["", "## Not done", "",
-           "- The design's criterion is D-optimality on all friction and variable-stiffness parameters;",
-           "  the damping c_a takes part of the information (a Ds-criterion on k and λ only is not implemented).",
-           "- The design predicts tensions from law 1's nominal forces on the nominal path; the camera noise",
-           "  and the filter cutoff (which rises with the trajectory's bandwidth) are not in the criterion.",
+           "- Closed-loop tracking is not in the design: only the box keeps law 1 on track (a design out to",
+           "  the joint limits diverged, above). A criterion on the closed loop (simulating law 1 on the twin",
+           "  per candidate) would allow a larger box safely; it costs a campaign per evaluation.",
+           "- The design's tensions come from law 1's nominal forces on the nominal path; the camera noise and",
+           "  the filter cutoff (which rises with the trajectory's bandwidth) are not in the criterion.",
+           "- The ±2σ coverage here is over a few seeds (campaigns take minutes on a shared machine).",
            ""]
     return "\n".join(md)
 
