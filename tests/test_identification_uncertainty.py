@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib.util
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -81,7 +82,7 @@ def test_wls_weights_the_noisy_group_down():
     noise = np.r_[0.05 * rng.standard_normal(n), 1.0 * rng.standard_normal(n)]
     y = 3.0 * x + noise
     groups = np.r_[np.zeros(n, dtype=np.int64), np.ones(n, dtype=np.int64)]
-    args = dict(method="t", equations="t", n_samples=2 * n, groups=groups)
+    args: dict[str, Any] = dict(method="t", equations="t", n_samples=2 * n, groups=groups)
     ols = least_squares(x[:, None], y, ("a(1)",), estimator="ols", **args)
     wls = least_squares(x[:, None], y, ("a(1)",), estimator="wls", **args)
     assert wls.sigma[0] < 0.3 * ols.sigma[0]
