@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -123,6 +124,13 @@ class LatestValues:
             self._pull()
             payload = self._raw.get(series)
         return None if payload is None else self._decode_locked(series, payload)
+
+    def age_s(self, series: str) -> float:
+        """Seconds since ``series`` last received a payload (monotonic clock); inf if never."""
+        with self._lock:
+            self._pull()
+            received = self._received_s.get(series)
+        return math.inf if received is None else time.monotonic() - received
 
     def _decode_locked(self, series: str, payload: bytes) -> bus.BusMessage | None:
         with self._lock:

@@ -28,11 +28,14 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
 import viser
+import viser.transforms as vtf
 
 from server.live import LatestValues
 from server.neck_geometry import NeckDrawing, tension_colors
+from twin.camera.calibration import Calibration, twin_calibration
 from twin.model.params import Params
 
 log = logging.getLogger("xneck.scene")
@@ -46,10 +49,24 @@ PREVIEW_RGB = (150, 60, 200)
 PREVIEW_HOLD_S = 1.0  # s the preview ghost stays at the last pose before it disappears
 GRAVITY_RGB = (200, 30, 200)
 MOTOR_RGB = (60, 60, 60)
+CAMERA_RGB = (0, 120, 200)
+CAMERA_FRESH_S = 1.0  # s: the frustum is drawn while α_IP from a camera is younger than this
+CAMERA_FRUSTUM_SCALE_M = 0.06
 JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
 FIT_MARGIN = 1.15  # the bounding box fills this much less than the view
 TYPICAL_ASPECT = 1.4  # width/height of the dashboard's 3D card, for the camera before a client's is known
 EARLY_UPDATES = 3  # camera updates after connecting that are fitted again (the client's initial camera races the fit)
+
+
+def camera_frustum_pose(cal: Calibration) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(wxyz, position in m, vertical field of view in rad, aspect) of ``cal``'s camera in the
+    robot's base frame, for viser's frustum (OpenCV convention, as the calibration's camera frame).
+    ``rvec``/``tvec`` map plane (= base frame) points to the camera: the camera sits at −Rᵀt
+    and turns by Rᵀ."""
+    R = np.asarray(cv2.Rodrigues(np.asarray(cal.rvec, dtype=float))[0], dtype=float)
+    position = -R.T @ np.asarray(cal.tvec, dtype=float)
+    fov = 2.0 * math.atan2(cal.height / 2.0, cal.fy)
+    return vtf.SO3.from_matrix(R.T).wxyz, position, fov, cal.width / cal.height
 
 
 def _solid(segments: np.ndarray, rgb: tuple[int, int, int]) -> np.ndarray:
@@ -61,7 +78,7 @@ class NeckScene:
 
     def __init__(self, values: LatestValues, params: Params, host: str = "127.0.0.1", port: int = 0,
                  rate_hz: float = 30.0, jog: Callable[[list[float]], tuple[int, Any]] | None = None,
-                 hold: Callable[[], object] | None = None) -> None:
+                 hold: Callable[[], object] | None = None, calibration: Calibration | None = None) -> None:
         from bridge.session import free_tcp_port
 
         self.values = values
@@ -76,6 +93,7 @@ class NeckScene:
         self.alpha_max_deg = float(params.limits.alpha_max_deg)
         self.centre, self.half_extents = self.drawing.bounds(math.radians(self.alpha_max_deg))
         self.f_max_N = float(params.limits.f_max)
+        self.calibration = calibration or twin_calibration()
         self.server = viser.ViserServer(host=host, port=port or free_tcp_port(host), verbose=False)
         self.port = self.server.get_port()  # viser silently takes port+1 if the port is busy
         self.updates = 0
@@ -121,6 +139,11 @@ class NeckScene:
         for j, ring in enumerate(self.drawing.motors()):
             scene.add_line_segments(f"/motors/motor_{j + 1}", ring, _solid(ring, MOTOR_RGB), thickness=0.003,
                                     position=(0.0, 0.0, 0.002 * (j + 1)))
+        # The camera's frustum at its calibrated pose (the twin's nominal camera), shown while a camera
+        # (not the twin's white-noise α_IP) publishes.
+        wxyz, position, fov, aspect = camera_frustum_pose(self.calibration)
+        self.frustum = scene.add_camera_frustum("/camera", fov, aspect, scale=CAMERA_FRUSTUM_SCALE_M, thickness=0.002,
+                                                color=CAMERA_RGB, wxyz=wxyz, position=position, visible=False)
         self.cables = []
         for j, segs in enumerate(g.cables):
             # z offset per cable so that cables sharing a side stay distinguishable
@@ -249,6 +272,9 @@ class NeckScene:
                     handle.points = g.cables[j]
                     if colors is not None:
                         handle.colors = np.broadcast_to(colors[j], g.cables[j].shape).copy()
+            camera = self.values.get("camera")
+            self.frustum.visible = bool(camera is not None and camera.source not in ("", "twin-noise")
+                                        and self.values.age_s("camera") < CAMERA_FRESH_S)
             for handle, alpha in ((self.ghost_d, alpha_d), (self.ghost_ip, alpha_ip)):
                 if alpha is not None and alpha.shape == (n,) and np.all(np.isfinite(alpha)):
                     handle.points = self.drawing.skeleton(alpha)
