@@ -81,10 +81,17 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
     port, hub_port = free_tcp_port(), free_tcp_port()
     base = f"http://127.0.0.1:{port}"
     with _procs() as spawn:
-        up = spawn(["up", "--port", str(port), "--hub", f"tcp/127.0.0.1:{hub_port}", "--data-dir", str(tmp_path / "d")],
-                   tmp_path / "up.log")
+        up = spawn(["up", "--port", str(port), "--hub", f"tcp/127.0.0.1:{hub_port}", "--data-dir", str(tmp_path / "d"),
+                    "--alpha-ip", "camera"], tmp_path / "up.log")
         assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "up.log").read_text()
         assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+
+        def camera() -> dict:
+            return httpx.get(base + "/api/system/health", timeout=5).json().get("camera") or {}
+
+        # --alpha-ip camera: α_IP measured on frames rendered from the twin's truth (issue 15), not white noise
+        assert wait_until(lambda: camera().get("source") == "twin-render" and camera().get("fresh"), 90, 0.5), \
+            (camera(), (tmp_path / "d" / "logs" / "camera.log").read_text()[-2000:])
         printed = (tmp_path / "up.log").read_text()
         assert f"dashboard http://127.0.0.1:{port}/" in printed
         assert "<html" in httpx.get(base + "/", timeout=5).text.lower()

@@ -123,10 +123,16 @@ def up(
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = TRUTH_OPTION,
     params_file: Path | None = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
+    alpha_ip: str = typer.Option("noise", "--alpha-ip", help="Twin's α_IP: noise (the true α plus the camera's white "
+                                 "noise) or camera (an `xneck camera --source twin` process renders the truth at 30 fps "
+                                 "and detects the markers, as the robot's camera would; costs about a fifth of a core)."),
     exit_after: float | None = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
                                                  "(tests, demos)."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
+    if alpha_ip not in ("noise", "camera"):
+        typer.secho(f"error: --alpha-ip must be noise or camera, not {alpha_ip!r}", err=True, fg="red")
+        raise typer.Exit(2)
     refused = preflight(host, port, viser_port, hub)
     if refused:
         typer.secho(f"error: xneck up refused to start: {refused}", err=True, fg="red")
@@ -171,9 +177,12 @@ def up(
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:
                 raise RuntimeError(f"the server did not come up:\n{log_tail(log_files['server'], LOG_LINES)}")
             time.sleep(0.2)
+        camera = alpha_ip == "camera" and not robot and not no_bridge
+        if camera:  # before the twin, so its first truth is seen; off the loop's CPU like the console
+            start("camera", ["camera", "--source", "twin", "--seed", str(seed), *common, *param_args])
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
-                if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth]
+                if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
             start("bridge", ["bridge", *driver, *common, *param_args])
         start("controller", ["controller", "--law", str(law), *common, *param_args])
         token_file = Path(data_dir) / "token"
@@ -197,7 +206,7 @@ def up(
         typer.secho(f"error: {exc}", err=True, fg="red")
         code = 1
     finally:
-        for name in ("controller", "bridge", "server"):
+        for name in ("controller", "bridge", "camera", "server"):
             p = procs.get(name)
             if p is not None and stop_child(p, STOP_GRACE_S):
                 typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
