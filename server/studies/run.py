@@ -49,16 +49,12 @@ class RunConfig:
 
 
 def _node(doc: dict[str, Any], path: str, where: str) -> tuple[dict[str, Any], str]:
-    parts = path.split(".")
-    node = doc
-    for i, part in enumerate(parts[:-1]):
-        child = node.get(part)
-        if not isinstance(child, dict):
-            raise StudyError(f"{where}: {'.'.join(parts[: i + 1])!r} is not a section")
-        node = child
-    if parts[-1] not in node:
-        raise StudyError(f"{where}: unknown key {parts[-1]!r} (in {'.'.join(parts[:-1]) or 'the file'})")
-    return node, parts[-1]
+    from twin.model.params import dotted_parent
+
+    try:
+        return dotted_parent(doc, path)
+    except ValueError as exc:
+        raise StudyError(f"{where}: {exc}") from None
 
 
 def _set(doc: dict[str, Any], v: Vary, value: float, where: str, wrapped: bool) -> None:

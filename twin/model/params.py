@@ -19,7 +19,8 @@ from typing import Any, Literal
 
 import msgspec
 
-__all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "load_params", "params_from_dict", "parse_override"]
+__all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "dotted_parent", "load_params", "params_from_dict",
+           "parse_override"]
 
 DEFAULT_PARAMS_FILE = "prototype_3x.toml"
 _CASES = "abcd"
@@ -332,17 +333,27 @@ def _readable(message: str) -> str:
     return message
 
 
-def _set_dotted(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+def dotted_parent(data: dict[str, Any], key: str) -> tuple[dict[str, Any], str]:
+    """(section, last name) of a dotted ``key`` such as ``cables.variable.k`` in a parameter
+    document; ``ValueError`` saying which part is not a section or that the key is unknown."""
     parts = key.split(".")
     node = data
     for i, part in enumerate(parts[:-1]):
         child = node.get(part)
         if not isinstance(child, dict):
-            raise ParameterError(f"{source}: override '{key}': '{'.'.join(parts[: i + 1])}' is not a section")
+            raise ValueError(f"'{'.'.join(parts[: i + 1])}' is not a section")
         node = child
     if parts[-1] not in node:
-        raise ParameterError(f"{source}: override '{key}': unknown key")
-    node[parts[-1]] = value
+        raise ValueError(f"unknown key {parts[-1]!r} (in {'.'.join(parts[:-1]) or 'the file'})")
+    return node, parts[-1]
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+    try:
+        node, last = dotted_parent(data, key)
+    except ValueError as exc:
+        raise ParameterError(f"{source}: override '{key}': {exc}") from None
+    node[last] = value
 
 
 def _to_toml(data: dict[str, Any], prefix: str = "") -> str:
