@@ -325,9 +325,11 @@ class BridgeNode:
             event = (True, _bounded(f"malformed e-stop message: {exc.reason}"))
             valid = False
         with self._estop_lock:
+            # Queue before counting: whoever sees the count (tests, health) may rely on the next tick
+            # applying the event, and the tick looks at the queue without the lock.
+            self._estop_events.append(event)
             self.estop_received += 1
             self.estop_rejected += 0 if valid else 1
-            self._estop_events.append(event)
 
     def _take_estop_events(self) -> list[tuple[bool, str]]:
         with self._estop_lock:
