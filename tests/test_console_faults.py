@@ -25,6 +25,7 @@ from pathlib import Path
 import httpx
 import pytest
 from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
+from test_stack import _alive_kinds
 
 from bridge import bus
 from bridge.archive import CampaignRecorder, is_complete, read_campaign
@@ -236,14 +237,8 @@ def test_under_xneck_up_a_request_is_honoured_or_refused_and_rest_and_mcap_agree
                                "robot", "--seed", "7"], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                               env=ENV, start_new_session=True)
 
-    def kinds() -> set[str]:
-        try:
-            return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
-        except httpx.HTTPError:
-            return set()
-
     try:
-        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 90, 0.3), (tmp_path / "up.log").read_text()
         answer = httpx.get(base + "/api/system/processes").json()
         procs = answer["processes"]
         assert all(0 <= p["since_s"] < 600 for p in procs), procs  # a duration, not an epoch

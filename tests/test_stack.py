@@ -37,7 +37,11 @@ def _healthy(base: str) -> bool:
 
 
 def _alive_kinds(base: str) -> set[str]:
-    return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
+    """Kinds of the xneck processes the console sees alive; empty while the console is not up yet."""
+    try:
+        return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
+    except httpx.HTTPError:
+        return set()
 
 
 def _wait_status(base: str, cid: str, statuses: set[str], timeout_s: float) -> dict:

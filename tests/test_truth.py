@@ -342,6 +342,7 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
 
     import httpx
     from server_harness import AUTH, TOKEN, wait_until
+    from test_stack import _alive_kinds
 
     from bridge.archive import read_campaign
     from bridge.session import free_tcp_port
@@ -356,14 +357,8 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
                                "--data-dir", str(data), "--truth", str(path)], stdout=log, stderr=subprocess.STDOUT,
                               stdin=subprocess.DEVNULL, env=env, start_new_session=True)
 
-    def kinds() -> set[str]:
-        try:
-            return {p["kind"] for p in httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]}
-        except httpx.HTTPError:
-            return set()
-
     try:
-        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 180, 0.3), (tmp_path / "up.log").read_text()
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 180, 0.3), (tmp_path / "up.log").read_text()
         short = {"waypoints_deg": [[0, 0, 0], [10, 10, 10]], "durations_s": 1.0}
         r = httpx.post(base + "/api/campaigns", json={"kind": "control", "truth": "robot", "waypoints": short},
                        headers=AUTH, timeout=60)
