@@ -61,10 +61,31 @@ def log_tail(path: Path, lines: int) -> str:
         return ""
 
 
+def _parse_cpu_list(text: str) -> set[int]:
+    """``"0-2,5"`` (the kernel's CPU list format) -> {0, 1, 2, 5}."""
+    cpus: set[int] = set()
+    for part in text.strip().split(","):
+        if part:
+            lo, _, hi = part.partition("-")
+            cpus.update(range(int(lo), int(hi or lo) + 1))
+    return cpus
+
+
+def machine_cpus() -> set[int]:
+    """The CPUs this machine (or this container's cpuset) offers, whatever this very process's
+    affinity: the console that isolates a campaign's processes runs off the loop's CPU itself."""
+    for path in ("/sys/fs/cgroup/cpuset.cpus.effective", "/sys/devices/system/cpu/online"):
+        with contextlib.suppress(OSError, ValueError):
+            cpus = _parse_cpu_list(Path(path).read_text())
+            if cpus:
+                return cpus
+    return set(range(os.cpu_count() or 1))
+
+
 def cpu_split(cpus: set[int] | None = None) -> tuple[set[int], set[int]]:
-    """(the loop's CPUs, everyone else's) out of ``cpus`` (default: this process's): the last CPU
-    for the loop and the rest for the others; one CPU is shared by all."""
-    cpus = set(os.sched_getaffinity(0)) if cpus is None else set(cpus)
+    """(the loop's CPUs, everyone else's) out of ``cpus`` (default: :func:`machine_cpus`): the
+    last CPU for the loop and the rest for the others; one CPU is shared by all."""
+    cpus = machine_cpus() if cpus is None else set(cpus)
     if len(cpus) < 2:
         return cpus, cpus
     loop = {max(cpus)}
@@ -140,3 +161,19 @@ def local_processes() -> list[dict[str, Any]]:
             if kind or int(entry) == os.getpid():
                 found.append(scheduling(int(entry), kind or "server"))
     return sorted(found, key=lambda p: p["pid"])
+
+
+def thread_scheduling(pid: int) -> dict[str, int]:
+    """How many threads of process ``pid`` run under each policy, e.g. ``{"fifo 49": 11}``:
+    :func:`isolate` sets the main thread and the threads started later inherit from it, so
+    this is where a thread started too early, or one that demoted itself, shows."""
+    counts: dict[str, int] = {}
+    with contextlib.suppress(OSError):
+        for entry in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(OSError):
+                tid = int(entry)
+                policy = _POLICIES.get(os.sched_getscheduler(tid), "unknown")
+                prio = os.sched_getparam(tid).sched_priority
+                key = f"{policy} {prio}" if prio else policy
+                counts[key] = counts.get(key, 0) + 1
+    return counts

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -62,3 +63,38 @@ def test_local_processes_finds_xneck_processes_by_their_command_line(child):
     assert cp._kind_of([sys.executable, "-m", "pytest"]) == ""
     me = [p for p in cp.local_processes() if p["pid"] == os.getpid()]
     assert me and me[0]["kind"] == "server" and "policy" in me[0]
+
+
+def test_the_split_is_of_the_machine_not_of_the_caller_already_off_the_loop_cpu():
+    # The console runs off the loop's CPU and starts campaigns' loop processes itself
+    # (campaign_runner): their CPU must still be the loop's, not the console's.
+    loop_cpus, other_cpus = cp.cpu_split()
+    if loop_cpus == other_cpus:
+        pytest.skip("one CPU: nothing to split")
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, other_cpus)
+    try:
+        assert cp.cpu_split() == (loop_cpus, other_cpus)
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def test_thread_scheduling_counts_every_thread_and_they_inherit_the_loop_priority():
+    code = ("import threading, time\n"
+            "for _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+            "time.sleep(30)\n")
+    with subprocess.Popen([sys.executable, "-c", code]) as p:
+        try:
+            got = cp.isolate(p.pid, "controller")  # before the interpreter starts its threads
+            counts: dict[str, int] = {}
+            for _ in range(200):
+                counts = cp.thread_scheduling(p.pid)
+                if sum(counts.values()) == 3:
+                    break
+                time.sleep(0.05)
+            assert sum(counts.values()) == 3, counts
+            if got["policy"] == "fifo":
+                assert counts == {f"fifo {cp.LOOP_PRIORITY['controller']}": 3}
+        finally:
+            p.kill()
+    assert cp.thread_scheduling(p.pid) == {}  # gone: nothing, no error
