@@ -11,6 +11,8 @@
    slower) keeps its 2 ms period. Also the tick that starts a hold (its hold forces are ready:
    the node's worker thread computes them off the tick) and the cost of the hold forces
    themselves (eq. 33 + eqs. 63-65 in plain Python), which that worker pays.
+   The process runs as the robot's systemd unit runs the bridge (docs/bridge.md): SCHED_FIFO 50
+   where permitted (``--no-realtime``: normal priority) and the bridge loop's GIL switch interval.
    The machine is shared: each timed tick is followed by a fixed reference workload of the same
    kind (small Python lists, a 4-element numpy array, a msgspec encoding), timed the same way,
    and the ratio tick / reference is printed too, a figure that load affects far less.
@@ -91,7 +93,7 @@ def _ratio(label: str, ticks: np.ndarray, refs: np.ndarray) -> tuple[float, floa
 
 def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
     from bridge.drivers.replay import ReplayConfig, ReplayDriver
-    from bridge.node import BridgeConfig
+    from bridge.node import SWITCH_INTERVAL_S, BridgeConfig
     from bridge.session import free_tcp_port, liveliness_token, open_session, publisher
     from controller.laws import encoder_hold_forces
     from server.cli.processes import bridge_node
@@ -111,7 +113,9 @@ def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
         f_low = max(params.limits.f_min - 0.5, 0.0)  # valid (>= 0) but below f_min: clamped
         active, active_ref = np.empty(n_ticks), np.empty(n_ticks)
         switch = sys.getswitchinterval()
-        sys.setswitchinterval(1e-5)  # hand the GIL to Zenoh's callback at once while spinning
+        # The GIL switch interval the bridge's real-time loop runs with (run_realtime): the tick
+        # is timed as the robot runs it, Zenoh's callback thread included.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         k = 0
         try:
             while k < n_ticks:
@@ -234,15 +238,32 @@ def bridge_process_rss(replay: Path, seconds: float) -> dict[str, float]:
     return {"rss_peak_mb": mods["VmHWM"], "rss_mb": mods["VmRSS"]}
 
 
+def realtime_priority(wanted: bool) -> str:
+    """Run this process as docs/bridge.md's systemd unit runs the bridge on the robot: SCHED_FIFO
+    at priority 50 (Zenoh's threads, started later, inherit it; the hold worker demotes itself).
+    On a machine shared with other work this is also what keeps their load out of the figures.
+    Returns what was got."""
+    if not wanted:
+        return "normal priority (--no-realtime)"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+    except (AttributeError, OSError) as exc:
+        return f"normal priority (SCHED_FIFO refused: {exc})"
+    return "SCHED_FIFO 50, as the robot's systemd unit (docs/bridge.md)"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--ticks", type=int, default=5000)
     ap.add_argument("--seconds", type=float, default=5.0, help="how long the bridge process runs before its RSS is read")
     ap.add_argument("--write-replay", type=Path, default=None, help="only write a replay MCAP file there")
+    ap.add_argument("--no-realtime", action="store_true",
+                    help="time at normal priority, not SCHED_FIFO 50 as the robot's systemd unit runs the bridge")
     args = ap.parse_args()
     if args.write_replay is not None:
         print(write_replay(args.write_replay))
         return
+    print(f"scheduling: {realtime_priority(not args.no_realtime)}; load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
         replay = write_replay(Path(tmp) / "replay.mcap")
         print(f"bridge tick without numba ({args.ticks} ticks), {os.cpu_count()} cores")

@@ -275,6 +275,8 @@ class BridgeNode:
         self.theta = driver.read()
         self._theta_list = self.theta.tolist()  # the same angles as plain floats (the hold, the state)
         self._consumed_ns = 0  # receive time of the newest command already shown to the safety rules
+        self._source_key: tuple[str, str] = ("", "")
+        self._source = ""
         self.ticks = self.overruns = 0
         self.tick_max_s = 0.0
         self._seq = {"state": 0, "health": 0}
@@ -361,6 +363,14 @@ class BridgeNode:
         if not self.safety.enabled:
             self.force = np.zeros(self.driver.n_motors)
 
+    def _source_text(self, cmd: bus.ForceCommand) -> str:
+        """``sender (law)`` of a command, for the log: formatted once per sender and law, not per
+        tick (the tick's budget is a few µs of Python, benchmarks/bridge_tick.py)."""
+        key = (cmd.sender, cmd.source)
+        if key != self._source_key:
+            self._source_key, self._source = key, f"{cmd.sender} ({_bounded(cmd.source, 64)})"
+        return self._source
+
     # -- one period -----------------------------------------------------------------------------
     def tick(self) -> None:
         """Bus in, safety rules, driver, bus out: one control period. Nothing here may cost more
@@ -371,14 +381,16 @@ class BridgeNode:
         estop = self._take_estop_events() if self._estop_events else ()
         cmd, recv_ns = self.commands.latest_with_time()
         fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
-        self._consumed_ns = max(self._consumed_ns, recv_ns)
+        if recv_ns > self._consumed_ns:
+            self._consumed_ns = recv_ns
         decision = self.safety.step(Inputs(
             command_N=fresh.force_N if fresh is not None else None,
-            source=f"{fresh.sender} ({_bounded(fresh.source, 64)})" if fresh is not None else "",
+            source=self._source_text(fresh) if fresh is not None else "",
             command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
             # a tick with a valid command neither starts nor continues a hold
             hold_N=self.hold.ready(time.monotonic()) if fresh is None else None))
-        self._follow()
+        if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
+            self._follow()  # something to follow (else nothing changed: the steady state, cheaper)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
             else np.zeros(self.driver.n_motors)
         self.driver.step()
@@ -392,8 +404,11 @@ class BridgeNode:
             if pub is None:
                 pub = self._extra_pubs[key] = publisher(self.session, key)
             pub.put(msg)
-        _log_events(decision.events)
-        self.tick_max_s = max(self.tick_max_s, time.perf_counter() - t0)
+        if decision.events:
+            _log_events(decision.events)
+        dt = time.perf_counter() - t0
+        if dt > self.tick_max_s:
+            self.tick_max_s = dt
 
     # -- outputs --------------------------------------------------------------------------------
     def publish_state(self) -> None:
@@ -402,7 +417,8 @@ class BridgeNode:
             seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self._theta_list,
             force_applied_N=self.force.tolist(), drive=self.mode,
             hold_reason=self.hold_reason if self.mode == "hold" else "", epoch=self.epoch, bridge=self.instance,
-            owner=self.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
+            # one attribute read (a str): the lock only guards the callback's read-modify-write
+            owner=self.ownership.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
 
     def publish_health(self) -> None:
         stats = self.commands.stats

@@ -159,6 +159,12 @@ class Safety:
     # -- one tick ------------------------------------------------------------------------------
     def step(self, inputs: Inputs) -> Decision:
         """Decide this tick's drive state and forces from its facts."""
+        if (self.drive == "active" and inputs.command_N is not None and not inputs.estop
+                and not self._bumpless):
+            # The steady state, nearly every tick: the rules below reduce to clamp and pass through.
+            self.force = self._target = self.clamp(inputs.command_N)
+            return Decision("active", np.array(self.force), True, "", self.estop_engaged, self.estop_reason,
+                            self.take_events() if self._events else ())
         cfg = self.config
         was_disabled = self.drive == "disabled"
         self.apply_estop(inputs.estop)

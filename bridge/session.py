@@ -200,7 +200,9 @@ class LatestSubscriber(Generic[M]):
         self._on_message = on_message
         self._cond = threading.Condition()
         self._latest: M | None = None
-        self._latest_time_ns = 0
+        # (message, receive time) replaced whole, so a reader needs no lock: a real-time loop
+        # reads it every tick, and a lock it shares with Zenoh's thread can make it wait.
+        self._latest_pair: tuple[M | None, int] = (None, 0)
         self._received = self._accepted = self._rejected = 0
         self._last_reason = ""
         self._last_log_s = -float("inf")
@@ -226,7 +228,7 @@ class LatestSubscriber(Generic[M]):
             self._received += 1
             self._accepted += 1
             self._latest = msg
-            self._latest_time_ns = now_ns
+            self._latest_pair = (msg, now_ns)
             self._cond.notify_all()
         if self._on_message is not None:
             self._on_message(msg, now_ns)
@@ -250,9 +252,9 @@ class LatestSubscriber(Generic[M]):
             return self._latest
 
     def latest_with_time(self) -> tuple[M | None, int]:
-        """The latest valid message and its receive time (``time.time_ns()``; 0 if none)."""
-        with self._cond:
-            return self._latest, self._latest_time_ns
+        """The latest valid message and its receive time (``time.time_ns()``; 0 if none).
+        Lock-free (one attribute read): safe from a real-time loop."""
+        return self._latest_pair
 
     def wait(self, timeout_s: float, predicate: Callable[[M], bool] | None = None) -> M | None:
         """Block (never from a Zenoh callback) until a valid message arrives after this call, or one
