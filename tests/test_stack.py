@@ -103,9 +103,12 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
         assert r.status_code in (200, 201), r.text
         rec = _wait_status(base, r.json()["id"], {"finished", "degraded", "aborted", "failed"}, 90)
         # Real time on a shared machine may fall below the quality thresholds: then degraded, saying why.
-        assert rec["status"] in ("finished", "degraded"), rec
+        assert rec["status"] in ("finished", "degraded"), (rec["status"], rec["message"], rec["quality"])
         assert bool(rec["quality"]["reasons"]) == (rec["status"] == "degraded"), rec["quality"]
-        assert rec["metrics"]["e_mean_all_deg"] < 0.5
+        # xneck up's twin simulates the robot truth by default (issues 16-17): law 2 tracks with e 0.50°
+        # there in lockstep (docs/twin-fidelity.md; the prototype: 0.37°), not the model truth's 0.04°.
+        assert rec["truth"] == "robot", rec
+        assert 0.1 < rec["metrics"]["e_mean_all_deg"] < 1.5, rec["metrics"]
         up.send_signal(signal.SIGTERM)
         assert up.wait(30) == 0
     assert "xneck stopped (SIGTERM)" in (tmp_path / "up.log").read_text()

@@ -28,7 +28,7 @@ from pathlib import Path
 import typer
 
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
-from server.cli.options import TRUTH_OPTION
+from server.cli.options import check_truth
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
@@ -121,7 +121,10 @@ def up(
     law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
     driver_config: Path | None = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
-    truth: str = TRUTH_OPTION,
+    truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the stack's twin simulates: the "
+                              "robot's unmodelled physics (robot, the default: twin/sim/robot_truth.toml, so that the "
+                              "campaigns run here are not the controller's own model), the parameter file as it is "
+                              "(model), or a truth FILE; see twin/sim/truth.py."),
     params_file: Path | None = typer.Option(None, "--params", help="Parameter file (default: the 3-X prototype)."),
     alpha_ip: str = typer.Option("noise", "--alpha-ip", help="Twin's α_IP: noise (the true α plus the camera's white "
                                  "noise) or camera (an `xneck camera --source twin` process renders the truth at 30 fps "
