@@ -92,32 +92,55 @@ def cpu_split(cpus: set[int] | None = None) -> tuple[set[int], set[int]]:
     return loop, cpus - loop
 
 
+def _tids(pid: int) -> list[int]:
+    """The threads of process ``pid`` (just ``pid`` where /proc cannot say)."""
+    try:
+        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return [pid]
+
+
 def isolate(pid: int, kind: str) -> dict[str, Any]:
     """Schedule process ``pid`` as its ``kind`` asks (module docstring) and return what it got
-    (:func:`scheduling`). Call it right after the process started: it sets the main thread,
-    and the threads it starts later inherit (a thread that must not run at real-time priority,
-    like the bridge's hold worker, demotes itself when it starts)."""
+    (:func:`scheduling`). Call it right after the process started: it sets every thread the
+    process has by then (the interpreter may already have started some, e.g. when this caller
+    was slow to run), and the threads it starts later inherit. A thread that made itself nicer
+    than the default (the bridge's hold worker, which must not run at real-time priority) is
+    left as it is."""
     refused: list[str] = []
     if os.environ.get(ENV_REALTIME, "1") == "0":
         refused.append(f"{ENV_REALTIME}=0: scheduling left alone")
     else:
         loop_cpus, other_cpus = cpu_split()
         is_loop = kind in LOOP_PRIORITY
-        try:
-            os.sched_setaffinity(pid, loop_cpus if is_loop else other_cpus)
-        except OSError as exc:
-            refused.append(f"CPU affinity: {exc.strerror or exc}")
-        if is_loop:
+        for tid in _tids(pid):
             try:
-                os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))
+                os.sched_setaffinity(tid, loop_cpus if is_loop else other_cpus)
+            except ProcessLookupError:
+                continue  # a thread that ended meanwhile
+            except OSError as exc:
+                refused.append(f"CPU affinity: {exc.strerror or exc}")
+            if not is_loop or (tid != pid and _nice(tid) > 0):
+                continue
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))
+            except ProcessLookupError:
+                continue
             except OSError as exc:
                 refused.append(f"SCHED_FIFO {LOOP_PRIORITY[kind]}: {exc.strerror or exc}")
                 try:
-                    os.setpriority(os.PRIO_PROCESS, pid, LOOP_NICE)
+                    os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
                 except OSError as exc2:
                     refused.append(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
     _refusals[pid] = sorted(set(refused))
     return scheduling(pid, kind)
+
+
+def _nice(tid: int) -> int:
+    try:
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError:
+        return 0
 
 
 def isolate_self(kind: str = "server") -> dict[str, Any]:
@@ -165,15 +188,15 @@ def local_processes() -> list[dict[str, Any]]:
 
 def thread_scheduling(pid: int) -> dict[str, int]:
     """How many threads of process ``pid`` run under each policy, e.g. ``{"fifo 49": 11}``:
-    :func:`isolate` sets the main thread and the threads started later inherit from it, so
-    this is where a thread started too early, or one that demoted itself, shows."""
+    :func:`isolate` sets the threads there are and the later ones inherit, so this is where
+    a thread that demoted itself shows (and one isolation missed would)."""
     counts: dict[str, int] = {}
-    with contextlib.suppress(OSError):
-        for entry in os.listdir(f"/proc/{pid}/task"):
-            with contextlib.suppress(OSError):
-                tid = int(entry)
-                policy = _POLICIES.get(os.sched_getscheduler(tid), "unknown")
-                prio = os.sched_getparam(tid).sched_priority
-                key = f"{policy} {prio}" if prio else policy
-                counts[key] = counts.get(key, 0) + 1
+    if not Path(f"/proc/{pid}").exists():
+        return counts
+    for tid in _tids(pid):
+        with contextlib.suppress(OSError):
+            policy = _POLICIES.get(os.sched_getscheduler(tid), "unknown")
+            prio = os.sched_getparam(tid).sched_priority
+            key = f"{policy} {prio}" if prio else policy
+            counts[key] = counts.get(key, 0) + 1
     return counts

@@ -79,22 +79,41 @@ def test_the_split_is_of_the_machine_not_of_the_caller_already_off_the_loop_cpu(
         os.sched_setaffinity(0, before)
 
 
-def test_thread_scheduling_counts_every_thread_and_they_inherit_the_loop_priority():
-    code = ("import threading, time\n"
-            "for _ in range(2): threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+def test_every_thread_is_isolated_those_started_before_and_after_but_a_niced_one_is_left_alone():
+    # A slow caller (a loaded machine, or a parent the child starves) isolates a process that
+    # has already started threads: they get the loop's priority and CPU too, later ones inherit,
+    # and a thread that made itself nicer than the default (the bridge's hold worker) stays so.
+    code = ("import os, sys, threading, time\n"
+            "def niced():\n"
+            "    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)\n"
+            "    time.sleep(30)\n"
+            "threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+            "threading.Thread(target=niced, daemon=True).start()\n"
+            "time.sleep(0.2)\n"
+            "print('started', flush=True)\n"
+            "sys.stdin.readline()\n"
+            "threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
             "time.sleep(30)\n")
-    with subprocess.Popen([sys.executable, "-c", code]) as p:
+    with subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) as p:
         try:
-            got = cp.isolate(p.pid, "controller")  # before the interpreter starts its threads
+            assert p.stdout is not None and p.stdin is not None
+            assert p.stdout.readline().strip() == "started"
+            got = cp.isolate(p.pid, "controller")
+            p.stdin.write("go\n")
+            p.stdin.flush()
             counts: dict[str, int] = {}
             for _ in range(200):
                 counts = cp.thread_scheduling(p.pid)
-                if sum(counts.values()) == 3:
+                if sum(counts.values()) == 4:
                     break
                 time.sleep(0.05)
-            assert sum(counts.values()) == 3, counts
-            if got["policy"] == "fifo":
-                assert counts == {f"fifo {cp.LOOP_PRIORITY['controller']}": 3}
+            loop_cpus, _ = cp.cpu_split()
+            if not got["refused"]:
+                assert counts == {f"fifo {cp.LOOP_PRIORITY['controller']}": 3, "other": 1}, counts
+                for tid in os.listdir(f"/proc/{p.pid}/task"):
+                    assert os.sched_getaffinity(int(tid)) == loop_cpus, tid
+            else:
+                assert sum(counts.values()) == 4, counts
         finally:
             p.kill()
     assert cp.thread_scheduling(p.pid) == {}  # gone: nothing, no error
