@@ -8,6 +8,11 @@ it no interpreter time and no GIL, and nothing queues. A broadcaster coroutine b
 bounded queue, dropping that client's oldest frame when it is full. A slow or stalled browser
 thus loses frames (it sees the newest state when it catches up) and never pushes back on the bus
 or on other clients.
+While no client is connected the broadcaster sleeps until one connects: it reads and decodes
+nothing. The series only viewers need (``VIEW_ONLY``: the commands and the twin's truth, 500 Hz
+each) are subscribed to while a viewer (a browser here, a viser client of the 3D view) is
+connected, so the idle console takes no sample of them and their senders send them to nobody
+(the idle stack's CPU, issue 21). The console's own checks read the other series at any time.
 
 Frame (JSON, SI units; the dashboard converts to degrees)::
 
@@ -55,6 +60,10 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
     "estop": (bus.ESTOP, ("engaged", "reason")),
 }
 
+#: Series that only viewers read (:meth:`LatestValues.watch`); the others feed the console's own
+#: checks while nobody watches: the bridge's e-stop (``state``), jogs (``status``), the camera.
+VIEW_ONLY = frozenset({"command", "truth"})
+
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
 
@@ -75,6 +84,29 @@ class LatestValues:
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
         self._version = 0
         self.rejected = 0
+        self._watch_lock = threading.Lock()  # orders the watched/unwatched hand-overs
+        self._viewers: set[str] = set()
+        self._on_watched: Callable[[bool], None] | None = None
+
+    def on_watched(self, hook: Callable[[bool], None]) -> None:
+        """Call ``hook(True)`` when a first viewer starts watching and ``hook(False)`` when the last
+        one stops (:meth:`watch`)."""
+        self._on_watched = hook
+
+    def watch(self, viewer: str, watching: bool) -> None:
+        """``viewer`` (a name: the browsers' fan-out, the 3D view) starts or stops watching."""
+        with self._watch_lock:
+            before = bool(self._viewers)
+            if watching:
+                self._viewers.add(viewer)
+            else:
+                self._viewers.discard(viewer)
+            if bool(self._viewers) != before and self._on_watched is not None:
+                self._on_watched(not before)
+
+    @property
+    def watched(self) -> bool:
+        return bool(self._viewers)
 
     def put_raw(self, series: str, payload: bytes) -> None:
         now = time.monotonic()
@@ -91,6 +123,15 @@ class LatestValues:
         a value is read, instead of having it pushed by a callback per sample."""
         with self._lock:
             self._sources[series] = try_recv
+
+    def remove_source(self, series: str) -> None:
+        """Stop pulling ``series`` and forget its value (a later viewer must not see a stale one)."""
+        with self._lock:
+            self._sources.pop(series, None)
+            if self._raw.pop(series, None) is not None:
+                self._version += 1
+            self._received_s.pop(series, None)
+            self._decoded.pop(series, None)
 
     def _pull(self) -> None:
         """(Under the lock.) Take the newest sample of every ring that has one; its time of
@@ -184,19 +225,43 @@ def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
 
 
 class LiveBus:
-    """Subscribes to every live series on a session and keeps only the newest message of each,
-    in a one-slot ring per series read on demand (module docstring)."""
+    """Subscribes to the live series on a session and keeps only the newest message of each, in a
+    one-slot ring per series read on demand; the ``VIEW_ONLY`` ones while a viewer watches
+    (module docstring)."""
 
     def __init__(self, session: zenoh.Session) -> None:
         self.values = LatestValues()
-        self._subs = []
-        for name, (key, _) in SERIES.items():
-            sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
-            self._subs.append(sub)
-            self.values.add_source(name, sub.try_recv)
+        self._session = session
+        self._lock = threading.Lock()
+        self._closed = False
+        self._subs: dict[str, Any] = {}
+        for name in SERIES:
+            if name not in VIEW_ONLY:
+                self._subscribe(name)
+        self.values.on_watched(self._watched)
+
+    def _subscribe(self, name: str) -> None:
+        sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(1))
+        self._subs[name] = sub
+        self.values.add_source(name, sub.try_recv)
+
+    def _watched(self, watching: bool) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            for name in sorted(VIEW_ONLY):
+                if watching and name not in self._subs:
+                    self._subscribe(name)
+                elif not watching and name in self._subs:
+                    self.values.remove_source(name)
+                    with contextlib.suppress(Exception):
+                        self._subs.pop(name).undeclare()
 
     def close(self) -> None:
-        for sub in self._subs:
+        with self._lock:
+            self._closed = True
+            subs, self._subs = list(self._subs.values()), {}
+        for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()
 
@@ -230,10 +295,13 @@ class Broadcaster:
         self.clients: set[Client] = set()
         self.frames_sent = 0
         self._encoder = msgspec.json.Encoder()
+        self._watched = asyncio.Event()  # set while a client is connected
 
     def connect(self) -> Client:
         client = Client()
         self.clients.add(client)
+        self._watched.set()
+        self.values.watch("browsers", True)
         # A new client gets the current state at once, not after the next change.
         _, latest = self.values.snapshot()
         if latest:
@@ -242,6 +310,9 @@ class Broadcaster:
 
     def disconnect(self, client: Client) -> None:
         self.clients.discard(client)
+        if not self.clients:
+            self._watched.clear()
+            self.values.watch("browsers", False)
 
     def _encode(self, latest: dict[str, bus.BusMessage]) -> bytes:
         self.frames_sent += 1
@@ -252,6 +323,9 @@ class Broadcaster:
         last_version = -1
         next_t = time.monotonic()
         while True:
+            if not self.clients:
+                await self._watched.wait()  # nobody watches: no read, no decode, no wake-up
+                next_t = time.monotonic()
             next_t += self.period_s
             version, latest = self.values.snapshot()
             if version != last_version and self.clients and latest:

@@ -15,7 +15,9 @@ at most one per ``JOG_PERIOD_S`` while dragging, the last one where the slider s
 
 Nodes are created once; a daemon thread updates their properties at ``rate_hz`` inside
 ``server.atomic()`` so a browser never sees half a pose. It only reads :class:`LatestValues`,
-never the bus, so a slow viser client cannot slow the control loop.
+never the bus, so a slow viser client cannot slow the control loop. While no viser client is
+connected (and no preview or jog is under way) it redraws at ``IDLE_RATE_HZ`` only: the idle
+console must cost next to nothing (issue 21); a client that connects wakes it at once.
 """
 
 from __future__ import annotations
@@ -56,6 +58,10 @@ JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
 FIT_MARGIN = 1.15  # the bounding box fills this much less than the view
 TYPICAL_ASPECT = 1.4  # width/height of the dashboard's 3D card, for the camera before a client's is known
 EARLY_UPDATES = 3  # camera updates after connecting that are fitted again (the client's initial camera races the fit)
+# Redraws per second while nobody watches: geometry for 30 poses a second was most of the idle
+# console's CPU (issue 21); the handles stay current within a second for a client that connects
+# (it is woken at once anyway) and for anything reading them.
+IDLE_RATE_HZ = 1.0
 
 
 def camera_frustum_pose(cal: Calibration) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -98,6 +104,7 @@ class NeckScene:
         self.port = self.server.get_port()  # viser silently takes port+1 if the port is busy
         self.updates = 0
         self._stop = threading.Event()
+        self._wake = threading.Event()  # a client connected, or close(): redraw now
         self._build()
         self._thread = threading.Thread(target=self._run, name="viser-scene", daemon=True)
         self._thread.start()
@@ -115,6 +122,7 @@ class NeckScene:
         cam.position = tuple(self.centre + np.array([0.0, 0.0, self.camera_distance(cam.fov, TYPICAL_ASPECT)]))
         cam.near = 0.01
         self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(self._on_disconnect)
         self._build_gui()
         zero = np.zeros(self.drawing.n_joints)
         g = self.drawing.geometry(zero)
@@ -172,13 +180,21 @@ class NeckScene:
             cam.up_direction = (0.0, 1.0, 0.0)
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
+        self.values.watch("3d view", True)  # the truth's tensions are drawn (server.live.VIEW_ONLY)
         self.fit(client)
+        self._wake.set()  # the idle thread draws the current pose for it now, then runs at rate_hz
 
         @client.camera.on_update
         def _(cam: viser.CameraHandle) -> None:  # a resized card changes the aspect: fit again
             seen = self._updates[client.client_id] = self._updates.get(client.client_id, 0) + 1
             if seen <= EARLY_UPDATES or abs(cam.aspect - self._aspects.get(client.client_id, cam.aspect)) > 0.02:
                 self.fit(client)
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        self._aspects.pop(client.client_id, None)
+        self._updates.pop(client.client_id, None)
+        if not self.server.get_clients():
+            self.values.watch("3d view", False)
 
     # -- GUI panel: reset view, jog ---------------------------------------------------------
     def _build_gui(self) -> None:
@@ -210,6 +226,7 @@ class NeckScene:
 
     def _slider_moved(self) -> None:
         self._jog_target = [float(s.value) for s in self.jog_sliders]
+        self._wake.set()
 
     def send_jog(self, now_s: float) -> None:
         """Send the newest slider pose if one waits and the last went ``JOG_PERIOD_S`` ago."""
@@ -231,6 +248,7 @@ class NeckScene:
         """Play ``trajectory`` (a :class:`controller.trajectory.Trajectory`) once as a violet ghost,
         in real time from now, before anything moves; returns its duration (s)."""
         self._preview = (time.monotonic(), trajectory)
+        self._wake.set()  # played at rate_hz from now, even while no client is connected
         return float(trajectory.duration_s)
 
     def draw_preview(self, now_s: float) -> None:
@@ -281,10 +299,18 @@ class NeckScene:
                     handle.visible = True
         self.updates += 1
 
+    def watched(self) -> bool:
+        """Whether the view is worth its full rate: a viser client is connected, or a preview or a
+        jog from the panel is under way."""
+        return bool(self._preview is not None or self._jog_target is not None or self.server.get_clients())
+
     def _run(self) -> None:
-        period = 1.0 / self.rate_hz
         last_version = -1
-        while not self._stop.wait(period):
+        while True:
+            self._wake.wait(1.0 / (self.rate_hz if self.watched() else min(IDLE_RATE_HZ, self.rate_hz)))
+            self._wake.clear()
+            if self._stop.is_set():
+                return
             try:
                 self.send_jog(time.monotonic())
                 self.draw_preview(time.monotonic())
@@ -302,6 +328,7 @@ class NeckScene:
 
     def close(self) -> None:
         self._stop.set()
+        self._wake.set()
         self._thread.join(2.0)
         with contextlib.suppress(Exception):
             self.server.stop()
