@@ -269,9 +269,12 @@ class CampaignService:
 
     # -- start-up -----------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """One throw-away tick so the first real one does not pay for first calls (LAPACK, caches)."""
-        z = np.zeros(self.ctl.model.n_joints)
-        self.ctl.step(np.zeros(self.ctl.model.n_cables), z, z, z)
+        """One throw-away tick of each kind (the law, the estimate alone as with the drives off,
+        the hold) so the first real one does not pay for first calls (LAPACK, numba's cache: a
+        kernel loaded inside a tick took 45 ms). :meth:`initialise` starts the estimate afresh."""
+        z, zc = np.zeros(self.ctl.model.n_joints), np.zeros(self.ctl.model.n_cables)
+        self.ctl.step(zc, z, z, z)
+        self.ctl.observe(zc, zc)
         hold_forces(self.params, z)
 
     def initialise(self, theta_rad: np.ndarray) -> None:
