@@ -40,6 +40,7 @@ import contextlib
 import gc
 import logging
 import math
+import os
 import queue
 import sys
 import threading
@@ -63,6 +64,27 @@ log = logging.getLogger("xneck.controller")
 LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
 LAG_FLOOR_RELAX_NS = 2_000  # ns per state the floor of arrival − stamp lets up (clock drift up to 1 ms/s)
 MAX_REQUEST_BYTES = bus.TRAJECTORY_JSON_MAX_BYTES + bus.PARAMETERS_TOML_MAX_BYTES + 4096  # larger: not decoded
+
+
+def below_the_tick() -> None:
+    """This thread one real-time priority below the tick's, when it has one (`xneck up` gives the
+    controller's threads SCHED_FIFO, :mod:`server.child_processes`). The tick runs on Zenoh's
+    threads; this process's own threads (the loop's housekeeping, the campaign preparation) at
+    the same FIFO priority on the same CPU would keep a state's tick waiting until they block
+    (FIFO does not share a CPU between equals), and a waiting tick cannot even ask them for the
+    GIL. One below, the tick preempts them and gets the GIL within the switch interval."""
+    tid = threading.get_native_id()
+    with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
+        if os.sched_getscheduler(tid) == os.SCHED_FIFO:
+            prio = os.sched_getparam(tid).sched_priority
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(prio - 1, 1)))
+
+
+def _finite_list(x: np.ndarray) -> list[float]:
+    """``x`` as plain floats, a non-finite one as 0.0 (the status must encode). ``tolist`` and one
+    pass of ``math.isfinite``: a quarter of the per-element numpy scalars' cost, at 500 Hz."""
+    v = x.tolist()
+    return v if all(map(math.isfinite, v)) else [a if math.isfinite(a) else 0.0 for a in v]
 
 
 @dataclass(frozen=True)
@@ -201,10 +223,9 @@ class ControllerNode:
         svc = self.service
         self._status.put(bus.ControllerStatus(
             seq=self._next("status"), stamp_s=stamp_s, law=svc.law.name, tick_s=tick_s, compute_s=compute_s,
-            overruns=svc.overruns, deadline_misses=svc.deadline_misses, saturated=[bool(s) for s in out.saturated],
-            alpha_hat_rad=[float(a) if math.isfinite(a) else 0.0 for a in out.alpha_hat_rad],
-            alpha_d_rad=list(map(float, out.alpha_d_rad)),
-            e_rad=[float(x) if math.isfinite(x) else 0.0 for x in out.e_rad],
+            overruns=svc.overruns, deadline_misses=svc.deadline_misses, saturated=out.saturated.tolist(),
+            alpha_hat_rad=_finite_list(out.alpha_hat_rad), alpha_d_rad=out.alpha_d_rad.tolist(),
+            e_rad=_finite_list(out.e_rad),
             holding=not out.law_ran, hold_reason="" if out.law_ran else svc.hold_reason,
             campaign_id=svc.campaign_id if svc.running else "", ticks=svc.ticks))
 
@@ -264,6 +285,7 @@ class ControllerNode:
     def _prepare_forever(self) -> None:
         """Worker thread: parse and validate start requests off the 500 Hz loop (within the
         service's time budget), hand the result to the loop."""
+        below_the_tick()
         while True:
             req = self._to_prepare.get()
             if req is None:
@@ -313,6 +335,7 @@ class ControllerNode:
         queue, no thread hand-over and no polling between its arrival and the command. This
         thread does the rest, between ticks: holds on stale states, lockstep re-sends, campaign
         requests, events, health and timing."""
+        below_the_tick()
         self.service.warm_up()
         # Everything allocated so far lives for the whole run: keep the collector off it, so a
         # full collection cannot land in the middle of a 2 ms tick.

@@ -117,3 +117,25 @@ def test_every_thread_is_isolated_those_started_before_and_after_but_a_niced_one
         finally:
             p.kill()
     assert cp.thread_scheduling(p.pid) == {}  # gone: nothing, no error
+
+
+def test_the_controllers_own_threads_run_one_below_its_tick_on_zenohs_threads():
+    # FIFO does not share a CPU between equals: the loop's housekeeping at the tick's priority
+    # kept a state's tick waiting until it blocked. The tick (Zenoh's threads) must preempt it.
+    with subprocess.Popen(cp.xneck_argv("controller", "--law", "2", "--listen", "tcp/127.0.0.1:0"),
+                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) as p:
+        try:
+            got = cp.isolate(p.pid, "controller")
+            if got["policy"] != "fifo":
+                pytest.skip(f"no real-time priority here: {got['refused']}")
+            tick = cp.LOOP_PRIORITY["controller"]
+            counts: dict[str, int] = {}
+            for _ in range(600):  # imports and the warm-up first, on a loaded machine
+                counts = cp.thread_scheduling(p.pid)
+                if os.sched_getparam(p.pid).sched_priority == tick - 1:
+                    break
+                time.sleep(0.1)
+            assert os.sched_getparam(p.pid).sched_priority == tick - 1, counts  # the main thread
+            assert counts.get(f"fifo {tick}", 0) >= 1, counts  # Zenoh's threads, the tick's
+        finally:
+            p.kill()
