@@ -102,6 +102,12 @@ class Output(NamedTuple):
     law_ran: bool  # False for a hold
 
 
+def _sane(alpha: np.ndarray, limit: float, f: np.ndarray) -> bool:
+    """Whether α̂ is finite and within ±``limit`` and the forces are finite: on plain floats, a
+    fifth of the cost of numpy's reductions over a few values (20 µs per tick here, issue 21)."""
+    return all(abs(a) <= limit for a in alpha.tolist()) and all(map(math.isfinite, f.tolist()))
+
+
 @dataclass(frozen=True)
 class Prepared:
     """A campaign request turned into what the service runs: parameters, law and a validated
@@ -516,8 +522,7 @@ class CampaignService:
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot)
-        if not np.all(np.isfinite(cmd.alpha_hat)) or np.any(np.abs(cmd.alpha_hat) > self._limit) \
-                or not np.all(np.isfinite(cmd.f)):
+        if not _sane(cmd.alpha_hat, self._limit, cmd.f):
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
             if self.running or not self.service:
