@@ -14,6 +14,7 @@
   const errorEl = el("st-error");
   let selected = null;
   let timer = null;
+  let live = false;  // a study was running at the last poll
   window.xneckStudies = { polls: 0 };
 
   function showError(e) { errorEl.textContent = e ? String(e.message || e) : ""; }
@@ -90,11 +91,17 @@
       const r = await api("GET", "/api/studies");
       list.replaceChildren(...r.studies.map(row));
       if (!selected && r.studies.length) selected = r.studies[0].id;
-      if (selected) showStudy(await api("GET", `/api/studies/${selected}`));
-      const running = r.studies.some((s) => s.state === "running");
+      const shown = selected ? await api("GET", `/api/studies/${selected}`) : null;
+      if (shown) showStudy(shown);
+      // Live progress while a study runs: the list's word or the shown study's (either may lag the other).
+      live = r.studies.some((s) => s.state === "running") || (shown !== null && shown.state === "running");
       clearTimeout(timer);
-      if (running) timer = setTimeout(refresh, POLL_MS);  // live progress while a study runs
-    } catch (e) { showError(e); }
+      if (live) timer = setTimeout(refresh, POLL_MS);
+    } catch (e) {
+      showError(e);
+      clearTimeout(timer);
+      if (live) timer = setTimeout(refresh, 5 * POLL_MS);  // one failed poll (a busy console) does not end live progress
+    }
   }
 
   el("st-start").addEventListener("click", start);

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import re
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ class _Running:
     state: str = "running"  # running, complete, stopped, failed
     error: str = ""
     thread: threading.Thread | None = None
+    created: float = field(default_factory=time.time)
 
 
 class StudyManager:
@@ -93,10 +95,13 @@ class StudyManager:
             run.stop.set()
 
     def ids(self) -> list[str]:
-        if not self.root.is_dir():
-            return []
-        found = [p for p in self.root.iterdir() if STUDY_ID.match(p.name) and (p / "study.json").is_file()]
-        return [p.name for p in sorted(found, key=lambda p: (p / "study.json").stat().st_mtime, reverse=True)]
+        """Every study, newest first: those this console started from the moment they are created (their
+        thread writes study.json a moment later, or never when it fails first: the dashboard polls this
+        list and must see them), and those on disk."""
+        when = {p.name: (p / "study.json").stat().st_mtime for p in (self.root.iterdir() if self.root.is_dir() else ())
+                if STUDY_ID.match(p.name) and (p / "study.json").is_file()}
+        when.update({study_id: run.created for study_id, run in list(self._runs.items())})
+        return sorted(when, key=lambda study_id: when[study_id], reverse=True)
 
     def progress(self, study_id: str) -> dict[str, Any]:
         import json
