@@ -30,10 +30,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from twin.model.cables import cable_terms
+from twin.model.compiled import njit
 from twin.model.dynamics import evaluate_into, friction_into, motor_terms, tension_divisor
 from twin.model.numeric import LINEAR, RIGID
+from twin.model.xjoint import joint_jets
 
 ALPHA_FLAT = math.pi  # rad: an X-joint is flat (singular) at α = ±π, i.e. θ = α/2 = ±90° (2-X paper)
 
@@ -88,14 +90,14 @@ def _coulomb_level(rf, j, direction, f_j, t_j):
 
 
 @njit(cache=True)
-def _set_valued_friction(rf, h, rho, X, theta_dot, f, t, lam):
+def _set_valued_friction(rf, h, rho, X, theta_dot, f, t, lam, W):
     """Friction forces ``lam`` (N, positive resisting θ̇ > 0) of the linearly implicit step, with
     stiction: X = A⁻¹[rhs | E_θ]. A motor whose friction can hold it (|λ| ≤ static level) ends
     the substep at rest exactly; otherwise it slides against the kinetic (Stribeck) level. The
-    4x4 complementarity problem is solved by projected Gauss-Seidel (Moreau/Jean time stepping)."""
+    4x4 complementarity problem is solved by projected Gauss-Seidel (Moreau/Jean time stepping).
+    ``W``: scratch (n_cables × n_cables) for the Delassus matrix."""
     nc = lam.shape[0]
     N = X.shape[0] - nc
-    W = np.empty((nc, nc))
     for i in range(nc):
         for j in range(nc):
             W[i, j] = h * rho * X[N + i, j + 1]
@@ -119,10 +121,57 @@ def _set_valued_friction(rf, h, rho, X, theta_dot, f, t, lam):
 
 
 @njit(cache=True)
-def step(m, s, f, h, n_sub, work, t_out, x_out, fr_table, x_off):
+def _cholesky_solve(A, L, X, ncols):
+    """Solve A·Y = X for the first ``ncols`` columns of ``X`` in place, A symmetric positive definite
+    (the step's matrix is 𝕄 plus positive semi-definite cable and friction terms), by Cholesky
+    A = L·Lᵀ from A's lower triangle (``L``: scratch of A's shape). Why not LAPACK: for 7 unknowns
+    its call and allocations cost more than the arithmetic. Returns False, X unsolved, if a pivot
+    is not positive (a non-finite state): the caller then solves by LU."""
+    n = A.shape[0]
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return False
+        ljj = math.sqrt(d)
+        L[j, j] = ljj
+        for i in range(j + 1, n):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / ljj
+    for c in range(ncols):
+        for i in range(n):  # L·y = x
+            acc = X[i, c]
+            for k in range(i):
+                acc -= L[i, k] * X[k, c]
+            X[i, c] = acc / L[i, i]
+        for i in range(n - 1, -1, -1):  # Lᵀ·y' = y
+            acc = X[i, c]
+            for k in range(i + 1, n):
+                acc -= L[k, i] * X[k, c]
+            X[i, c] = acc / L[i, i]
+    return True
+
+
+def scratch(n_joints: int, n_cables: int) -> tuple[np.ndarray, ...]:
+    """Scratch arrays of :func:`step` (allocated once per twin, so a substep allocates nothing on
+    elastic cables): stretch x, its rate ẋ, K, D, ∂f_fr/∂θ̇, λ per cable; A and its Cholesky
+    factor, rhs, X = A⁻¹[rhs | E_θ] (solved in place); the Delassus matrix W; the state at the start
+    of the step."""
+    n, nc = n_joints + n_cables, n_cables
+    return (np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc),
+            np.empty((n, n)), np.empty((n, n)), np.empty(n), np.empty((n, nc + 1)), np.empty((nc, nc)),
+            np.empty(2 * n))
+
+
+@njit(cache=True)
+def step(m, s, f, h, n_sub, work, scr, t_out, x_out, fr_table, x_off):
     """Advance state ``s`` = (α, θ, α̇, θ̇) in place by ``n_sub`` substeps of ``h`` seconds with the
     motor forces ``f`` (N) held. Writes the cable tensions of the last substep into ``t_out`` and
-    the cable stretch at the end (m, zero for rigid cables) into ``x_out``.
+    the cable stretch at the end (m, zero for rigid cables) into ``x_out``. ``work``: the model's
+    scratch (twin.model.dynamics.scratch_buffers); ``scr``: this step's (:func:`scratch`).
 
     ``fr_table``: the robot truth's friction table (n_cables × RF_COLUMNS, elastic cables only), used
     instead of the model's eq. 37 (build the model with friction off), or an empty (0, RF_COLUMNS)
@@ -132,16 +181,12 @@ def step(m, s, f, h, n_sub, work, t_out, x_out, fr_table, x_off):
     the flat singularity (the step is then not taken and the state is left unchanged).
     """
     tab, lc, Z, Zd, Mm, cm, g, M, c, ff = work
+    x, xd, K, D, dff, lam, A, LA, rhs, X, W, s0 = scr
     N, nc = m.n_joints, m.n_cables
     n = N + nc
     alpha, theta, alpha_dot, theta_dot = s[:N], s[N:n], s[n : n + N], s[n + N :]
-    x, xd, K, D, dff = np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc)
-    A = np.zeros((n, n))
-    rhs = np.empty(n)
     robot = fr_table.shape[0] == nc
-    B = np.zeros((n, nc + 1))
-    lam = np.zeros(nc)
-    s0 = s.copy()
+    s0[:] = s
     for _ in range(n_sub):
         evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
         if m.cable_model == RIGID:
@@ -151,9 +196,9 @@ def step(m, s, f, h, n_sub, work, t_out, x_out, fr_table, x_off):
         _friction_slope(m, theta_dot, dff)
         if m.cable_model == RIGID:
             motor_terms(m, Z, Zd, alpha_dot, Mm, cm, M, c)
-            W = Z * (dff / m.rho)  # friction torque slope through the cables, Z·diag(∂f/∂θ̇)·Zᵀ/ρ
-            Af = M + h * (W @ Z.T)
-            rf = M @ alpha_dot + h * (Z @ (f - ff) - c - g) + h * (W @ (Z.T @ alpha_dot))
+            Wr = Z * (dff / m.rho)  # friction torque slope through the cables, Z·diag(∂f/∂θ̇)·Zᵀ/ρ
+            Af = M + h * (Wr @ Z.T)
+            rf = M @ alpha_dot + h * (Z @ (f - ff) - c - g) + h * (Wr @ (Z.T @ alpha_dot))
             new_dot = np.linalg.solve(Af, rf)
             theta_ddot = (Z.T @ new_dot - Z.T @ alpha_dot) / (h * m.rho)
             t_out[:] = f - ff - m.I_a * theta_ddot / m.rho
@@ -189,28 +234,38 @@ def step(m, s, f, h, n_sub, work, t_out, x_out, fr_table, x_off):
                 rhs[N + j] = m.I_a * theta_dot[j] + h * m.rho * (
                     -(t_out[j] - D[j] * xd[j]) + f[j] - ff[j] + dff[j] * theta_dot[j]
                 )
+            ncols = 1
             if robot:
                 for j in range(nc):
                     A[N + j, N + j] += h * m.rho * fr_table[j, RF_VISCOUS]  # viscous friction, implicit
-                B[:, 0] = rhs
+                ncols = nc + 1
+                X[:, 1:] = 0.0
                 for j in range(nc):
-                    B[N + j, j + 1] = 1.0
-                X = np.linalg.solve(A, B)
-                _set_valued_friction(fr_table, h, m.rho, X, theta_dot, f, t_out, lam)
-                v = X[:, 0].copy()
-                for j in range(nc):
-                    v -= (h * m.rho * lam[j]) * X[:, j + 1]
+                    X[N + j, j + 1] = 1.0
+            X[:, 0] = rhs
+            if not _cholesky_solve(A, LA, X, ncols):
+                X[:, :ncols] = np.linalg.solve(A, X[:, :ncols])
+            if robot:
+                _set_valued_friction(fr_table, h, m.rho, X, theta_dot, f, t_out, lam, W)
+                for a in range(n):
+                    v = X[a, 0]
+                    for j in range(nc):
+                        v -= (h * m.rho * lam[j]) * X[a, j + 1]
+                    rhs[a] = v
             else:
-                v = np.linalg.solve(A, rhs)
-            alpha_dot[:] = v[:N]
-            theta_dot[:] = v[N:]
+                rhs[:] = X[:, 0]
+            alpha_dot[:] = rhs[:N]
+            theta_dot[:] = rhs[N:]
             alpha += h * alpha_dot
             theta += h * theta_dot
         for i in range(N):
             if abs(alpha[i]) >= ALPHA_FLAT:
                 s[:] = s0
                 return np.int64(1) << 62
-    evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
+    # The cable lengths (and, for rigid cables, Z) at the end: no chain terms needed.
+    for i in range(N):
+        joint_jets(m.L, m.b, m.r, alpha[i], tab[i])
+    cable_terms(m, tab, alpha_dot, lc, Z, Zd)
     if m.cable_model == RIGID:
         theta[:] = -(lc - m.l_c0) / m.rho
         theta_dot[:] = (Z.T @ alpha_dot) / m.rho
@@ -249,3 +304,51 @@ def creep_update(creep, tension, k, ratio, gain):
     ratio·t/k with ``gain`` = 1 − e^(−T/τ) per period."""
     for j in range(creep.shape[0]):
         creep[j] += (ratio * tension[j] / k[j] - creep[j]) * gain
+
+
+# Slots of the ``io`` array of :func:`advance` (what varies per tick or per twin, as numbers, so the
+# kernel's arguments are the same arrays every call).
+IO_H, IO_SUBSTEPS, IO_ACTUATION, IO_CREEP, IO_CREEP_RATIO, IO_CREEP_GAIN, IO_BACKLASH, IO_RAD_PER_COUNT = range(8)
+IO_SIZE = 8
+NEAR_FLAT = math.radians(160.0)  # rad: a joint within 20° of its flat singularity is reported
+
+
+def observation_size(n_joints: int, n_cables: int) -> int:
+    """Length of :func:`advance`'s ``obs``: α, θ, α̇, θ̇, tension, stretch, encoders, near_singular."""
+    return 2 * n_joints + 5 * n_cables + 1
+
+
+@njit(cache=True)
+def advance(m, s, cmd, io, work, scr, t_out, x_out, fr_table, creep, current, kt_factor, act, force, obs):
+    """One control period of the twin in one call: the motors' applied force for the command
+    ``cmd`` (:func:`actuate`, when io[IO_ACTUATION]), :func:`step` with io[IO_SUBSTEPS] substeps of
+    io[IO_H] s, the creep element (:func:`creep_update`, when io[IO_CREEP]), and what the bridge
+    and the truth report, written into ``obs`` (:func:`observation_size`): the state, tensions,
+    stretch, the encoder readings (θ through the gear backlash on slack cables, truncated to
+    whole counts of io[IO_RAD_PER_COUNT] rad) and 1.0 if a joint is near its flat singularity.
+    Returns :func:`step`'s bit field."""
+    N, nc = m.n_joints, m.n_cables
+    n = N + nc
+    f = cmd
+    if io[IO_ACTUATION] != 0.0:
+        actuate(cmd, s[N:n], current, kt_factor, act, force)
+        f = force
+    bits = step(m, s, f, io[IO_H], int(io[IO_SUBSTEPS]), work, scr, t_out, x_out, fr_table, creep)
+    if io[IO_CREEP] != 0.0:
+        creep_update(creep, t_out, m.k, io[IO_CREEP_RATIO], io[IO_CREEP_GAIN])
+    flat = (bits >> 62) & 1
+    obs[: 2 * n] = s
+    obs[2 * n : 2 * n + nc] = t_out
+    obs[2 * n + nc : 2 * n + 2 * nc] = x_out
+    q, backlash = io[IO_RAD_PER_COUNT], io[IO_BACKLASH]
+    near = 1.0 if flat else 0.0
+    for j in range(nc):
+        seen = s[N + j]
+        if backlash != 0.0 and not flat and (bits >> j) & 1:
+            seen -= backlash  # a slack cable lets the motor shaft turn through the backlash
+        obs[2 * n + 2 * nc + j] = math.floor(seen / q) * q  # = twin.sim.sensors.quantise_encoder
+    for i in range(N):
+        if abs(s[i]) >= NEAR_FLAT:
+            near = 1.0
+    obs[2 * n + 3 * nc] = near
+    return bits

@@ -10,18 +10,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
 from twin.model import cables, dynamics
+from twin.model.compiled import bind
 from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
-from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, RF_COLUMNS, actuate, creep_update, step
+from twin.sim import integrator
+from twin.sim.integrator import ACT_DECAY, ACT_MEAN_GAIN, NEAR_FLAT, RF_COLUMNS, actuate
 from twin.sim.sensors import ALPHA_IP_KINDS, make_camera
 from twin.sim.truth import RobotTruth, TruthError, load_truth, truth_params
-
-NEAR_FLAT = math.radians(160.0)  # rad: warn when a joint comes within 20° of its flat singularity
 
 
 @dataclass(frozen=True)
@@ -55,9 +55,9 @@ class TwinConfig:
             raise ValueError(f"substeps must be >= 1, got {self.substeps}")
 
 
-@dataclass(frozen=True)
-class Tick:
-    """One control period's output. Times in s (simulated), angles in rad, forces in N."""
+class Tick(NamedTuple):
+    """One control period's output. Times in s (simulated), angles in rad, forces in N. (A
+    NamedTuple, not a frozen dataclass: as immutable, and built in a fraction of the time.)"""
 
     seq: int
     t_s: float
@@ -96,7 +96,7 @@ class Twin:
             self._rf = _friction_table(self.params, self.truth)
         self.dt = 1.0 / config.rate_hz
         self._n, self._nc = n, nc
-        self.state = np.zeros(2 * (n + nc))
+        self._state = np.zeros(2 * (n + nc))
         self._work = dynamics.scratch_buffers(self.model)
         self._tension = np.zeros(nc)
         self._stretch = np.zeros(nc)
@@ -130,8 +130,27 @@ class Twin:
         self._all_cables = (1 << nc) - 1
         self._slack_of = (np.arange(1 << nc)[:, None] >> np.arange(nc)) & 1 == 1  # row: the integrator's slack bits
         self._actuation_on = a.enabled
-        self._act_period = -1.0  # the period the current loop's ACT_DECAY/ACT_MEAN_GAIN were computed for
-        self._creep_gain, self._creep_period = 0.0, -1.0
+        # One compiled call per period (integrator.advance), on arrays allocated here and updated in
+        # place; what varies per period goes in through _io.
+        self._cmd = np.zeros(nc)  # N, the command applied this period (after the timing effect's delay)
+        self._io = np.zeros(integrator.IO_SIZE)
+        self._io[integrator.IO_SUBSTEPS] = config.substeps
+        self._io[integrator.IO_ACTUATION] = float(a.enabled)
+        self._io[integrator.IO_CREEP] = float(self._creep_on)
+        self._io[integrator.IO_CREEP_RATIO] = c.creep_ratio
+        self._io[integrator.IO_BACKLASH] = self._backlash
+        self._io[integrator.IO_RAD_PER_COUNT] = self._rad_per_count
+        self._obs = np.zeros(integrator.observation_size(n, nc))
+        self._advance = bind(integrator.advance, self.model, self._state, self._cmd, self._io, self._work,
+                             integrator.scratch(n, nc), self._tension, self._stretch, self._rf, self._creep,
+                             self._current, self._kt_factor, self._act, self._force, self._obs)
+        self._h = -1.0  # the period the _io entries below were computed for
+
+    @property
+    def state(self) -> np.ndarray:
+        """(α, θ, α̇, θ̇): the integrator's own array (write into it, e.g. ``state[:n] = ...``; it
+        cannot be replaced by another)."""
+        return self._state
 
     # -- state views (copies, so callers cannot corrupt the integrator's state) -----------------
     @property
@@ -162,19 +181,34 @@ class Twin:
         self._pending.clear()
         self.seq, self.t_s = 0, 0.0
 
+    def _prepare(self, f: np.ndarray, period_s: float) -> None:
+        """Everything the compiled period needs from Python: the command applied now (``f`` delayed
+        by the timing effect) in ``_cmd``, and the constants of this period's length in ``_io`` and
+        ``_act`` (computed again only when the period changes, i.e. with jitter)."""
+        if self._delay:
+            self._pending.append(np.array(f, dtype=float))
+            self._cmd[:] = self._pending.pop(0) if len(self._pending) > self._delay else 0.0
+        else:
+            self._cmd[:] = f
+        if period_s != self._h:
+            self._h = period_s
+            self._io[integrator.IO_H] = period_s / self.config.substeps
+            if self._tau_current:
+                decay = math.exp(-period_s / self._tau_current)
+                self._act[ACT_DECAY], self._act[ACT_MEAN_GAIN] = decay, self._tau_current / period_s * (1.0 - decay)
+            if self._creep_on:
+                self._io[integrator.IO_CREEP_GAIN] = 1.0 - math.exp(-period_s / self.truth.cables.creep_time_s)
+
     def _applied_force(self, f: np.ndarray, period_s: float) -> np.ndarray:
         """The force (N) the motors put on the cables this period for the command ``f``: delayed
-        (timing), through the current loop and the motor's torque errors (actuation)."""
-        if self._delay:
-            self._pending.append(f.copy())
-            f = self._pending.pop(0) if len(self._pending) > self._delay else np.zeros_like(f)
+        (timing), through the current loop and the motor's torque errors (actuation). What
+        :meth:`advance` applies first, in its compiled call; here on its own (it advances the
+        delay line and the current loops as a period would)."""
+        self._prepare(f, period_s)
         if not self._actuation_on:
-            return f
-        if self._tau_current and period_s != self._act_period:
-            decay = math.exp(-period_s / self._tau_current)
-            self._act[ACT_DECAY], self._act[ACT_MEAN_GAIN] = decay, self._tau_current / period_s * (1.0 - decay)
-            self._act_period = period_s
-        actuate(f, self.state[self._n : self._n + self._nc], self._current, self._kt_factor, self._act, self._force)
+            return self._cmd.copy()
+        actuate(self._cmd, self._state[self._n : self._n + self._nc], self._current, self._kt_factor, self._act,
+                self._force)
         return self._force
 
     def advance(self, f: np.ndarray, period_s: float | None = None) -> int:
@@ -187,13 +221,8 @@ class Twin:
             if self._jitter:
                 period_s = min(max(self.dt + self._jitter * self._rng_timing.standard_normal(), 0.5 * self.dt),
                                1.5 * self.dt)
-        f_applied = self._applied_force(np.asarray(f, dtype=float), period_s)
-        bits = int(step(self.model, self.state, f_applied, period_s / self.config.substeps, self.config.substeps,
-                        self._work, self._tension, self._stretch, self._rf, self._creep))
-        if self._creep_on:
-            if period_s != self._creep_period:
-                self._creep_gain, self._creep_period = 1.0 - math.exp(-period_s / self.truth.cables.creep_time_s), period_s
-            creep_update(self._creep, self._tension, self.model.k, self.truth.cables.creep_ratio, self._creep_gain)
+        self._prepare(f, period_s)
+        bits = int(self._advance())  # np.int64 when run as plain Python
         self.seq += 1
         self.t_s += period_s
         return bits
@@ -204,28 +233,28 @@ class Twin:
         bits = self.advance(f, period_s)
         flat = bool(bits >> 62 & 1)
         n, nc = self._n, self._nc
-        s = self.state.copy()
-        alpha, theta = s[:n], s[n : n + nc]
-        slack = self._slack_of[bits & self._all_cables if not flat else 0].copy()
+        # The kernel wrote the state, tensions, stretch and encoders into _obs (integrator.advance);
+        # one copy per tick, and the Tick's arrays are views of it. Backlash: a pulling cable keeps
+        # the gear on one flank (the offset is zeroed at homing); a slack cable lets the motor shaft
+        # turn through the backlash.
+        o = self._obs.copy()
+        alpha, m = o[:n], n + nc
         frames = self.camera.update(self.t_s, alpha) if self.camera else []
-        # Backlash: a pulling cable keeps the gear on one flank (the offset is zeroed at homing);
-        # a slack cable lets the motor shaft turn through the backlash.
-        seen = theta - self._backlash * slack if self._backlash and bits & self._all_cables else theta
-        return Tick(
-            seq=self.seq,
-            t_s=self.t_s,
-            theta_meas=np.floor(seen / self._rad_per_count) * self._rad_per_count,  # = sensors.quantise_encoder
-            frames=frames,
-            alpha=alpha,
-            alpha_dot=s[n + nc : 2 * n + nc],
-            theta=theta,
-            theta_dot=s[2 * n + nc :],
-            tension=self._tension.copy(),
-            elongation=self._stretch.copy(),
-            slack=slack,
-            near_singular=flat or max(map(abs, alpha.tolist())) >= NEAR_FLAT,
-            flat=flat,
-            frame_confidence=tuple(self.camera.confidence) if frames and self.camera else (),
+        return Tick(  # by position (keywords cost a NamedTuple twice the time): the fields in order
+            self.seq,  # seq
+            self.t_s,  # t_s
+            o[2 * m + 2 * nc : 2 * m + 3 * nc],  # theta_meas: = sensors.quantise_encoder of θ through the backlash
+            frames,  # frames
+            alpha,  # alpha
+            o[m : m + n],  # alpha_dot
+            o[n:m],  # theta
+            o[m + n : 2 * m],  # theta_dot
+            o[2 * m : 2 * m + nc],  # tension
+            o[2 * m + nc : 2 * m + 2 * nc],  # elongation
+            self._slack_of[bits & self._all_cables].copy(),  # slack (flat: the step is refused, bits & all = 0)
+            bool(o[-1]),  # near_singular
+            flat,  # flat
+            tuple(self.camera.confidence) if frames and self.camera else (),  # frame_confidence
         )
 
 
