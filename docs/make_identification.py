@@ -295,6 +295,10 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "")
            "- The design's tensions come from law 1's nominal forces on the nominal path; the camera noise and",
            "  the filter cutoff (which rises with the trajectory's bandwidth) are not in the criterion.",
            "- The ±2σ coverage here is over a few seeds (campaigns take minutes on a shared machine).",
+           "- Table 2 within 10 % on the robot truth (issue 16) is not reached by any trajectory tried: the",
+           "  tension from the forces (eq. 55) misses the truth's load-dependent friction, and eq. 54 its creep.",
+           "  docs/identification-coverage.md measures each source alone (docs/identification/diagnose_robot_truth.py),",
+           "  and compares a hold-free excitation (docs/identification/holdfree.json) with the cycloids.",
            ""]
     return "\n".join(md)
 

@@ -133,3 +133,21 @@ def test_design_problem_refuses_impossible_limits(params):
 
         DesignProblem.create(params, duration_s=20.0, alpha_max_rad=1.0, v_max_rad_s=0.0, a_max_rad_s2=1.0,
                              path=lambda *a: a, forces=lambda *a: a)
+
+
+@pytest.mark.parametrize("name", ["excitation.json", "holdfree.json"])
+def test_the_documented_excitations_pass_the_campaign_validation(params, name):
+    """The trajectory files docs/identification*.md measure (docs/identification/) still pass what
+    `xneck campaign identification --trajectory FILE` checks: joint, speed, acceleration and law 1's
+    forces. The hold-free one keeps the joints moving between its two 1 s rests (no holds)."""
+    from pathlib import Path
+
+    from server.cli.options import law_config
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "identification" / name
+    traj = load_trajectory(path)
+    limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg))
+    validate(traj, limits, params.n_joints, nominal_force_check(params, law_config(1, False)))
+    assert traj.duration_s == pytest.approx(97.0, abs=0.5)  # the §5.2.2 duration: comparisons are per equal time
+    if name == "holdfree.json":
+        assert np.all(traj.dwell_s[1:-1] == 0.0) and np.all(traj.dwell_s[[0, -1]] == 1.0)

@@ -38,18 +38,22 @@ PIPELINE_TRUTH = load_truth("robot").only("cables").replace("cables", creep_rati
 
 
 def simulate_campaign(seed: int, duration_s: float | None = None, omega: float = 11.0, floor_N: float = 10.0,
-                      still: bool = False, truth=PIPELINE_TRUTH, params=None) -> tuple[CampaignData, dict[str, np.ndarray]]:
-    """Run the identification trajectory on a twin; returns the campaign and the twin's truth.
-    ``still``: hold the straight pose instead (motors never move). ``params``/``truth``: what the
-    twin integrates (default: the 3-X prototype with the robot's damping)."""
+                      still: bool = False, truth=PIPELINE_TRUTH, params=None,
+                      trajectory=None) -> tuple[CampaignData, dict[str, np.ndarray]]:
+    """Run the identification trajectory (or ``trajectory``) on a twin; returns the campaign and the
+    twin's truth at every tick (α, cable tension, stretch, motor speed: docs/identification/
+    diagnose_robot_truth.py fits against them). ``still``: hold the straight pose instead (motors
+    never move). ``params``/``truth``: what the twin integrates (default: the 3-X prototype with the
+    robot's damping)."""
     twin = Twin(params, TwinConfig(seed=seed, truth=truth))
     m = twin.model
-    traj = identification_trajectory()
+    traj = trajectory or identification_trajectory()
     T = int(round((duration_s or traj.duration_s) / twin.dt))
     t = np.arange(1, T + 1) * twin.dt
     ref = traj.sample(np.zeros(T) if still else t - twin.dt)
     kp, kv = 3 * omega**2, 3 * omega
     theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
+    tension, stretch, speed = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 4))
     t_ip, a_ip = [], []
     alpha, alpha_dot, theta_dot = np.zeros(3), np.zeros(3), np.zeros(4)
     for k in range(T):
@@ -66,12 +70,13 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
         tick = twin.tick(f)
         alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot
         theta[k], force[k], alpha_true[k] = tick.theta_meas, f, alpha
+        tension[k], stretch[k], speed[k] = tick.tension, tick.elongation, tick.theta_dot
         for capture, frame in tick.frames:
             t_ip.append(capture)
             a_ip.append(frame)
     data = CampaignData(np.asarray(t, dtype=np.float64), theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
                         excitation_alpha_rad=None if still else ref.alpha)
-    return data, {"alpha": alpha_true}
+    return data, {"t": t, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
 
 
 @pytest.fixture(scope="module")
