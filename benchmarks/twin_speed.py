@@ -1,5 +1,6 @@
-"""Speed of the twin: real-time factor of the full model stepped at 500 Hz (issue 3's target:
-at least 50x real time on one core, so a 100 s campaign is a two-second CI job).
+"""Speed of the twin: real-time factor of the full model stepped at 500 Hz (issue 21's target:
+at least 150x real time with the model truth, 200x as the stretch; issue 3's 50x with every
+robot effect on, issue 16), so a 100 s campaign is a sub-second CI job.
 
 Input: the forces law 2 commands on the §7 control test (recorded once from an in-process run).
 Prints the per-tick cost of Twin.tick (median, p99) and the real-time factor with the model truth
@@ -12,6 +13,7 @@ same held forces, in the same process. Run: ``.venv/bin/python benchmarks/twin_s
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -31,7 +33,9 @@ from twin.model.params import load_params  # noqa: E402
 from twin.sim.simulator import Twin, TwinConfig  # noqa: E402
 from twin.sim.truth import EFFECTS, load_truth  # noqa: E402
 
-TARGET_RTF = 50.0
+TARGET_RTF = 150.0  # the full model, model truth (issue 21)
+STRETCH_RTF = 200.0
+TARGET_RTF_ROBOT = 50.0  # with robot effects on (issues 3 and 16)
 RADAU_SPAN_S = 2.0  # Radau is slow: compare both on the first 2 s of the same input
 
 
@@ -42,16 +46,22 @@ def main() -> None:
     truths = [("model truth (every effect off)", "model")] + [(f"robot: {e} alone", robot.only(e)) for e in EFFECTS]
     truths.append(("robot truth (every effect on)", robot))
     print(f"xneck twin benchmark: {len(forces)} ticks ({len(forces) / 500:.1f} s simulated) of the full model, "
-          "variable-stiffness cables and friction, camera on")
+          f"variable-stiffness cables and friction, camera on; load average {os.getloadavg()[0]:.1f} "
+          f"on {os.cpu_count()} CPUs")
     medians = []
     for label, truth in truths:
         twin = Twin(params, TwinConfig(truth=truth))  # variable stiffness + friction, camera on
         rtf, rtf_cpu, rtf_median = _time_ticks(twin, forces, label)
         medians.append(twin.dt / rtf_median)
+        target = TARGET_RTF if truth == "model" else TARGET_RTF_ROBOT
+        verdict = "meets" if rtf_median >= target else "MISSES"
+        if truth == "model":
+            verdict += f"; stretch {STRETCH_RTF:.0f}x {'met' if rtf_median >= STRETCH_RTF else 'not met'}"
         print(f"  real-time factor: {rtf:.0f}x wall, {rtf_cpu:.0f}x CPU, {rtf_median:.0f}x from the median tick "
-              f"(a 100 s campaign takes {100 / rtf:.2f} s); target >= {TARGET_RTF:.0f}x (median tick, robust to a "
-              f"shared machine's preemption) -> {'meets' if rtf_median >= TARGET_RTF else 'MISSES'}")
+              f"(a 100 s campaign takes {100 / rtf:.2f} s); target >= {target:.0f}x (median tick, robust to a "
+              f"shared machine's preemption) -> {verdict}")
     print(f"every effect on: median tick {medians[-1] / medians[0]:.2f}x the model truth's (same run, same load)")
+    print(f"  load average after the real-time factors: {os.getloadavg()[0]:.1f}")
     # What `xneck twin calibrate` runs per evaluation: Twin.advance (no sensors, no Tick) over a recording.
     twin = Twin(params, TwinConfig(truth=robot, camera=False))
     twin.advance(forces[0])

@@ -33,7 +33,7 @@ import numpy as np
 
 from twin.model.cables import cable_terms
 from twin.model.compiled import njit
-from twin.model.dynamics import evaluate_into, friction_into, motor_terms, tension_divisor
+from twin.model.dynamics import chain_terms, evaluate_into, friction_into, motor_terms, tension_divisor
 from twin.model.numeric import LINEAR, RIGID
 from twin.model.xjoint import joint_jets
 
@@ -159,11 +159,12 @@ def scratch(n_joints: int, n_cables: int) -> tuple[np.ndarray, ...]:
     """Scratch arrays of :func:`step` (allocated once per twin, so a substep allocates nothing on
     elastic cables): stretch x, its rate ẋ, K, D, ∂f_fr/∂θ̇, λ per cable; A and its Cholesky
     factor, rhs, X = A⁻¹[rhs | E_θ] (solved in place); the Delassus matrix W; the state at the start
-    of the step."""
+    of the step; the α at which the model scratch's jet table was filled at the end of the last
+    step, and 1.0 after it if that table is still valid."""
     n, nc = n_joints + n_cables, n_cables
     return (np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc),
             np.empty((n, n)), np.empty((n, n)), np.empty(n), np.empty((n, nc + 1)), np.empty((nc, nc)),
-            np.empty(2 * n))
+            np.empty(2 * n), np.zeros(n_joints + 1))
 
 
 @njit(cache=True)
@@ -181,14 +182,24 @@ def step(m, s, f, h, n_sub, work, scr, t_out, x_out, fr_table, x_off):
     the flat singularity (the step is then not taken and the state is left unchanged).
     """
     tab, lc, Z, Zd, Mm, cm, g, M, c, ff = work
-    x, xd, K, D, dff, lam, A, LA, rhs, X, W, s0 = scr
+    x, xd, K, D, dff, lam, A, LA, rhs, X, W, s0, tab_at = scr
     N, nc = m.n_joints, m.n_cables
     n = N + nc
     alpha, theta, alpha_dot, theta_dot = s[:N], s[N:n], s[n : n + N], s[n + N :]
     robot = fr_table.shape[0] == nc
     s0[:] = s
-    for _ in range(n_sub):
-        evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
+    # The last step ended by filling the jet table at its final α; unless the state was changed
+    # since, the first substep starts there and needs no new jets.
+    cached = tab_at[N] == 1.0
+    for i in range(N):
+        cached = cached and tab_at[i] == alpha[i]
+    tab_at[N] = 0.0  # the substeps overwrite the table
+    for sub in range(n_sub):
+        if sub == 0 and cached:
+            cable_terms(m, tab, alpha_dot, lc, Z, Zd)
+            chain_terms(m, alpha, alpha_dot, tab, Mm, cm, g)  # = evaluate_into with the jets already there
+        else:
+            evaluate_into(m, alpha, alpha_dot, tab, lc, Z, Zd, Mm, cm, g)
         if m.cable_model == RIGID:
             theta[:] = -(lc - m.l_c0) / m.rho
             theta_dot[:] = (Z.T @ alpha_dot) / m.rho
@@ -265,6 +276,8 @@ def step(m, s, f, h, n_sub, work, scr, t_out, x_out, fr_table, x_off):
     # The cable lengths (and, for rigid cables, Z) at the end: no chain terms needed.
     for i in range(N):
         joint_jets(m.L, m.b, m.r, alpha[i], tab[i])
+        tab_at[i] = alpha[i]
+    tab_at[N] = 1.0
     cable_terms(m, tab, alpha_dot, lc, Z, Zd)
     if m.cable_model == RIGID:
         theta[:] = -(lc - m.l_c0) / m.rho

@@ -193,7 +193,7 @@ class Twin:
         if period_s != self._h:
             self._h = period_s
             self._io[integrator.IO_H] = period_s / self.config.substeps
-            if self._tau_current:
+            if self._actuation_on and self._tau_current:
                 decay = math.exp(-period_s / self._tau_current)
                 self._act[ACT_DECAY], self._act[ACT_MEAN_GAIN] = decay, self._tau_current / period_s * (1.0 - decay)
             if self._creep_on:
