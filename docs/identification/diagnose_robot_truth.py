@@ -23,7 +23,9 @@ tension rows of moving motors (|θ̇| ≥ 1/c_s, ``regressors.moving_mask``):
   τ fitted by residual (τ on a 0.5-8 s grid): does a creep term fix it on true signals;
 - ``true t, camera x (IV)``: the camera's stretch, IDIM-IV instruments: camera noise and creep;
 - ``eq. 55 t, true x``: the tension from the forces with the identified arctan friction: friction;
-- ``pipeline``: ``identify_variable`` as ``xneck identify`` runs it (every source).
+- ``pipeline``: ``identify_variable`` as ``xneck identify`` runs it (every source);
+- ``candidate`` (``--mcap`` only): :func:`_fit_candidate`, an estimator that uses no truth, with
+  the friction of moving motors growing with the load and a creep term (not in the pipeline).
 
 The camera rows use α_IP at its capture stamp as the pipeline does; the notes give the lag of
 α_IP behind the true α measured on the same campaign (a regression of the error on α̇).
@@ -140,6 +142,43 @@ def _fit_creep(t: np.ndarray, x: np.ndarray, xd: np.ndarray, mask: np.ndarray, h
     return np.array(out)
 
 
+CANDIDATE_MIN_SPEED_RAD_S = 5.0  # the candidate's rows: Stribeck's excess (v_s = 2 rad/s) below 2 % there
+
+
+def _fit_candidate(proc, params, K: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """A candidate estimator that uses no truth: per cable, the forces of moving motors as
+    y = f − (R/r_d)I_a·θ̈ = (1 + s·μ)·t + s·F_0 (s = sign θ̇: Coulomb friction growing with the
+    load, μ shared by both directions so that k is not traded against μ), with t from eq. 54
+    (without damping) on the stretch less a Kelvin creep element β·LP_τ(t)/k. Nonlinear least
+    squares in (k, λ, μ, F_0, β), τ on a grid by residual; rows with |θ̇| ≥ 5 rad/s."""
+    from scipy import optimize
+
+    from twin.identification.regressors import ia_over_rho
+
+    y = proc.force - ia_over_rho(params) * proc.theta_ddot
+    h = 1.0 / proc.rate_hz
+    out = []
+    for j in range(params.n_cables):
+        x, s = proc.x_c[:, j], np.sign(proc.theta_dot[:, j])
+        rows = (np.abs(proc.theta_dot[:, j]) >= CANDIDATE_MIN_SPEED_RAD_S) & (y[:, j] > 2.0)
+        best = None
+        for tau in TAUS_S:
+            def residual(p, tau=tau):
+                k, lam, mu, f0, beta = p[0] * K[j], p[1] * L[j], p[2], p[3], p[4]
+                elastic = k * x / np.maximum(1 - lam * x, 0.05)
+                xx = x - beta * _lp(elastic, tau, h) / k
+                t = np.maximum(k * xx / np.maximum(1 - lam * xx, 0.05), 0.0)
+                return ((1 + s * mu) * t + s * f0 - y[:, j])[rows]
+
+            sol = optimize.least_squares(residual, [1.0, 1.0, 0.1, 10.0, 0.05],
+                                         bounds=([0.2, 0.0, -0.5, -40.0, -0.5], [5.0, 5.0, 0.9, 60.0, 0.5]))
+            if best is None or sol.cost < best[0]:
+                best = (sol.cost, sol.x)
+        assert best is not None
+        out.append((best[1][0] * K[j], best[1][1] * L[j]))
+    return np.array(out)
+
+
 def diagnose(traj: Trajectory, seed: int) -> dict:
     params = load_params()
     K, L = np.array(params.cables.variable.k), np.array(params.cables.variable.lam)
@@ -218,6 +257,8 @@ def diagnose_archive(path: str) -> dict:
         rows[name] = (kl[:, 0] / K - 1, kl[:, 1] / L - 1)
     var = identify_variable(proc, params, fric.values)
     rows["pipeline (identify_variable, IV)"] = (var.vector("k") / K - 1, var.vector("lambda") / L - 1)
+    kl = _fit_candidate(proc, params, K, L)
+    rows["candidate: load friction + creep (NLS)"] = (kl[:, 0] / K - 1, kl[:, 1] / L - 1)
     return {"rows": rows, "stretch_error_mm": 1e3 * (proc.x_c - xt).std(axis=0),
             "tension_error": (t55 - tt)[moving & tension_mask(tt)].std(), "moving": moving.mean(axis=0)}
 
