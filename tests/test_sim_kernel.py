@@ -96,3 +96,23 @@ def test_ticks_own_their_arrays_and_the_state_array_stays_the_integrators():
     reference.tick(2 * f)
     assert not np.array_equal(moved.theta, reference.tick(2 * f).theta)
 
+
+
+def test_the_carved_scratch_has_the_models_scratch_shapes_and_no_overlap():
+    """integrator.carve lays the twin's scratch out in one array: the model's part must have the
+    shapes twin.model.dynamics.scratch_buffers gives, and no two views may share memory."""
+    from twin.model.dynamics import scratch_buffers
+    from twin.sim.integrator import carve, scratch
+
+    twin = Twin(config=TwinConfig(camera=False))
+    n, nc = twin.model.n_joints, twin.model.n_cables
+    pool = scratch(n, nc)
+    work, scr, used = carve(pool, n, nc)
+    assert used == pool.size and not pool.any()
+    assert [a.shape for a in work] == [a.shape for a in scratch_buffers(twin.model)]
+    views = [*work, *scr]
+    for k, a in enumerate(views):
+        assert np.shares_memory(a, pool)
+        for b in views[k + 1 :]:
+            assert not np.shares_memory(a, b)
+    assert sum(a.size for a in views) == pool.size

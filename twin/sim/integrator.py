@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from twin.model import xjoint
 from twin.model.cables import cable_terms
 from twin.model.compiled import njit
 from twin.model.dynamics import chain_terms, evaluate_into, friction_into, motor_terms, tension_divisor
@@ -155,16 +156,50 @@ def _cholesky_solve(A, L, X, ncols):
     return True
 
 
-def scratch(n_joints: int, n_cables: int) -> tuple[np.ndarray, ...]:
-    """Scratch arrays of :func:`step` (allocated once per twin, so a substep allocates nothing on
-    elastic cables): stretch x, its rate ẋ, K, D, ∂f_fr/∂θ̇, λ per cable; A and its Cholesky
-    factor, rhs, X = A⁻¹[rhs | E_θ] (solved in place); the Delassus matrix W; the state at the start
-    of the step; the α at which the model scratch's jet table was filled at the end of the last
-    step, and 1.0 after it if that table is still valid."""
-    n, nc = n_joints + n_cables, n_cables
-    return (np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc), np.empty(nc),
-            np.empty((n, n)), np.empty((n, n)), np.empty(n), np.empty((n, nc + 1)), np.empty((nc, nc)),
-            np.empty(2 * n), np.zeros(n_joints + 1))
+@njit(cache=True)
+def carve(pool, N, nc):
+    """The scratch arrays of one twin as views of one array ``pool`` (one array crosses into the
+    compiled call instead of 23: numba unboxes each argument array on every call). Returns the
+    model's scratch (as twin.model.dynamics.scratch_buffers), :func:`step`'s, and the length used.
+
+    :func:`step`'s: stretch x, its rate ẋ, K, D, ∂f_fr/∂θ̇, λ per cable; A and its Cholesky factor,
+    rhs, X = A⁻¹[rhs | E_θ] (solved in place); the Delassus matrix W; the state at the start of the
+    step; the α at which the jet table was filled at the end of the last step, and 1.0 after it if
+    the table is still valid (so ``pool`` starts zeroed)."""
+    n = N + nc
+    o = N * xjoint.N_ROWS * 3
+    tab = pool[:o].reshape((N, xjoint.N_ROWS, 3))
+    # Per cable: lc, ff (the model's), x, xd, K, D, dff, λ (the step's).
+    lc, ff, x, xd = pool[o : o + nc], pool[o + nc : o + 2 * nc], pool[o + 2 * nc : o + 3 * nc], pool[o + 3 * nc : o + 4 * nc]
+    o += 4 * nc
+    K, D, dff, lam = pool[o : o + nc], pool[o + nc : o + 2 * nc], pool[o + 2 * nc : o + 3 * nc], pool[o + 3 * nc : o + 4 * nc]
+    o += 4 * nc
+    Z, Zd = pool[o : o + N * nc].reshape((N, nc)), pool[o + N * nc : o + 2 * N * nc].reshape((N, nc))
+    o += 2 * N * nc
+    Mm, M = pool[o : o + N * N].reshape((N, N)), pool[o + N * N : o + 2 * N * N].reshape((N, N))
+    o += 2 * N * N
+    cm, g, c = pool[o : o + N], pool[o + N : o + 2 * N], pool[o + 2 * N : o + 3 * N]
+    o += 3 * N
+    A, LA = pool[o : o + n * n].reshape((n, n)), pool[o + n * n : o + 2 * n * n].reshape((n, n))
+    o += 2 * n * n
+    rhs = pool[o : o + n]
+    o += n
+    X = pool[o : o + n * (nc + 1)].reshape((n, nc + 1))
+    o += n * (nc + 1)
+    W = pool[o : o + nc * nc].reshape((nc, nc))
+    o += nc * nc
+    s0 = pool[o : o + 2 * n]
+    o += 2 * n
+    tab_at = pool[o : o + N + 1]
+    o += N + 1
+    work = (tab, lc, Z, Zd, Mm, cm, g, M, c, ff)
+    scr = (x, xd, K, D, dff, lam, A, LA, rhs, X, W, s0, tab_at)
+    return work, scr, o
+
+
+def scratch(n_joints: int, n_cables: int) -> np.ndarray:
+    """The zeroed ``pool`` of :func:`carve` for a twin of ``n_joints`` joints and ``n_cables`` cables."""
+    return np.zeros(carve(np.empty(1 << 14), n_joints, n_cables)[2])
 
 
 @njit(cache=True)
@@ -332,7 +367,7 @@ def observation_size(n_joints: int, n_cables: int) -> int:
 
 
 @njit(cache=True)
-def advance(m, s, cmd, io, work, scr, t_out, x_out, fr_table, creep, current, kt_factor, act, force, obs):
+def advance(m, s, cmd, io, pool, t_out, x_out, fr_table, creep, current, kt_factor, act, force, obs):
     """One control period of the twin in one call: the motors' applied force for the command
     ``cmd`` (:func:`actuate`, when io[IO_ACTUATION]), :func:`step` with io[IO_SUBSTEPS] substeps of
     io[IO_H] s, the creep element (:func:`creep_update`, when io[IO_CREEP]), and what the bridge
@@ -346,6 +381,7 @@ def advance(m, s, cmd, io, work, scr, t_out, x_out, fr_table, creep, current, kt
     if io[IO_ACTUATION] != 0.0:
         actuate(cmd, s[N:n], current, kt_factor, act, force)
         f = force
+    work, scr, _ = carve(pool, N, nc)
     bits = step(m, s, f, io[IO_H], int(io[IO_SUBSTEPS]), work, scr, t_out, x_out, fr_table, creep)
     if io[IO_CREEP] != 0.0:
         creep_update(creep, t_out, m.k, io[IO_CREEP_RATIO], io[IO_CREEP_GAIN])

@@ -14,7 +14,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from twin.model import cables, dynamics
+from twin.model import cables
 from twin.model.compiled import bind
 from twin.model.numeric import RIGID, Model, build
 from twin.model.params import Params, load_params
@@ -97,7 +97,6 @@ class Twin:
         self.dt = 1.0 / config.rate_hz
         self._n, self._nc = n, nc
         self._state = np.zeros(2 * (n + nc))
-        self._work = dynamics.scratch_buffers(self.model)
         self._tension = np.zeros(nc)
         self._stretch = np.zeros(nc)
         self._creep = np.zeros(nc)  # m, stretch of the creep element (cables effect)
@@ -141,7 +140,7 @@ class Twin:
         self._io[integrator.IO_BACKLASH] = self._backlash
         self._io[integrator.IO_RAD_PER_COUNT] = self._rad_per_count
         self._obs = np.zeros(integrator.observation_size(n, nc))
-        self._advance = bind(integrator.advance, self.model, self._state, self._cmd, self._io, self._work,
+        self._advance = bind(integrator.advance, self.model, self._state, self._cmd, self._io,
                              integrator.scratch(n, nc), self._tension, self._stretch, self._rf, self._creep,
                              self._current, self._kt_factor, self._act, self._force, self._obs)
         self._h = -1.0  # the period the _io entries below were computed for
