@@ -6,6 +6,10 @@ n = (−Z1⁻¹Z2, 1) > 0 (eq. 63). Each cable needs f_i ≥ lb_i = max(t_min + 
 (R/r_d)·I_a·θ̈_i, f_min) (eq. 65); every bound gives a lower bound on f_long and the greatest is
 taken, which minimises ‖f‖ while meeting them all. Forces above f_max are clamped and reported.
 Written for any N; the 3-X prototype has N = 3.
+
+Eqs. 63-65 exist once, as the kernel :func:`distribute_into` (numba's ``njit`` or plain Python,
+:mod:`twin.model.compiled`), which the controller's tick (controller/kernel.py) calls on its own
+arrays; :func:`distribute` is the numpy-facing wrapper that allocates and calls it.
 """
 
 from __future__ import annotations
@@ -13,6 +17,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+
+from twin.model.compiled import njit
+from twin.model.estimation import solve_into
 
 
 class Distribution(NamedTuple):
@@ -22,26 +29,60 @@ class Distribution(NamedTuple):
     feasible: bool  # False when n has a non-positive entry (outside the region where eq. 63 works)
 
 
+@njit(cache=True)
+def distribute_into(Z, gamma, lower, f_max, short, long, Z1, LU, vN, p, nvec, f, saturated):
+    """Eqs. 63-65 (:func:`distribute`) into ``f`` and ``saturated``; returns (feasible, f_long):
+    whether n = −Z1⁻¹Z2 > 0 (the region where eq. 63 works) and the long cable's force before
+    clamping. Z1, LU (N, N), vN, p, nvec (N,) are scratch. Z1 is solved by elimination
+    (:func:`twin.model.estimation.solve_into`): a singular Z1 gives non-finite forces."""
+    N = Z.shape[0]
+    for i in range(N):
+        for k in range(N):
+            Z1[i, k] = Z[i, short[k]]
+    solve_into(Z1, gamma, LU, p)
+    for i in range(N):
+        vN[i] = -Z[i, long]
+    solve_into(Z1, vN, LU, nvec)
+    # f_short,i = p_i + n_i·f_long >= lower_i  <=>  f_long >= (lower_i − p_i)/n_i when n_i > 0.
+    feasible = True
+    f_long = lower[long]
+    for i in range(N):
+        if nvec[i] > 0.0:
+            cand = (lower[short[i]] - p[i]) / nvec[i]
+            if cand > f_long:
+                f_long = cand
+        else:
+            feasible = False
+    for i in range(N):
+        f[short[i]] = p[i] + nvec[i] * f_long
+    f[long] = f_long
+    for j in range(f.shape[0]):
+        saturated[j] = f[j] > f_max
+        if saturated[j]:
+            f[j] = f_max
+    return feasible, f_long
+
+
 def distribute(
     Z: np.ndarray, gamma_d: np.ndarray, lower: np.ndarray, f_max: float, short: np.ndarray, long: int
 ) -> Distribution:
-    """Forces f (N) with Z·f = Γ^d (N·m) and f ≥ ``lower`` (N), eqs. 63-65.
+    """Forces f (N) with Z·f = Γ^d (N·m) and f ≥ ``lower`` (N), eqs. 63-65 (:func:`distribute_into`).
 
     ``short`` holds the cable index of each joint's short cable, ``long`` the long cable's index.
     """
-    Z1, Z2 = Z[:, short], Z[:, long]
-    p_short = np.linalg.solve(Z1, gamma_d)
-    n_short = -np.linalg.solve(Z1, Z2)
-    feasible = bool(np.all(n_short > 0))
-    # f_short,i = p_i + n_i·f_long >= lower_i  <=>  f_long >= (lower_i − p_i)/n_i when n_i > 0.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        candidates = np.where(n_short > 0, (lower[short] - p_short) / n_short, -np.inf)
-    f_long = float(max(lower[long], np.max(candidates)))
-    f = np.empty(Z.shape[1])
-    f[short] = p_short + n_short * f_long
-    f[long] = f_long
-    saturated = f > f_max
-    return Distribution(np.minimum(f, f_max), saturated, f_long, feasible)
+    Z = np.ascontiguousarray(Z, dtype=float)
+    N, nc = Z.shape
+    gamma = np.ascontiguousarray(gamma_d, dtype=float).reshape(N)
+    lo = np.ascontiguousarray(lower, dtype=float).reshape(nc)
+    short = np.ascontiguousarray(short, dtype=np.int64).reshape(N)
+    long = int(long)
+    # The kernel does not check indices (compiled, it would read outside the arrays).
+    if not (np.all((short >= 0) & (short < nc)) and 0 <= long < nc):
+        raise IndexError(f"cable indices short={short.tolist()}, long={long} outside 0..{nc - 1}")
+    f, saturated = np.empty(nc), np.empty(nc, dtype=np.bool_)
+    feasible, f_long = distribute_into(Z, gamma, lo, float(f_max), short, long, np.empty((N, N)), np.empty((N, N)), np.empty(N), np.empty(N),
+                                       np.empty(N), f, saturated)
+    return Distribution(f, saturated, float(f_long), bool(feasible))
 
 
 def lower_bounds(t_min: float, f_min: float, f_friction: np.ndarray, inertia_force: np.ndarray) -> np.ndarray:

@@ -7,145 +7,41 @@ outer loop (eq. 59), the model at α̂ and Z, Ż at α^d (eq. 66) and the tensio
 Python object and the collector never runs inside it. The model's own kernels (jets, cables,
 chain, friction) are called, not copied: one implementation of every equation.
 
+Eqs. 35 and 58 are the model's kernel :func:`twin.model.estimation.pseudo_inverse_update` and
+eqs. 63-65 the controller's :func:`controller.distribution.distribute_into`, the very functions the
+numpy-facing ``PseudoInverseEstimator`` and ``distribute`` call; this module adds only the
+velocity filters, the PID of eq. 59 and the assembly of eq. 66.
+
 Like every model kernel it is numba's ``njit`` when numba is there (:mod:`twin.model.compiled`),
 plain Python otherwise (same numbers, slower).
-
-Least squares and solves are written out for these small systems (N = 3): (Zᵀ)⁺·rhs by the normal
-equations (Z·Zᵀ)·Δα = Z·rhs (Z has full row rank wherever eq. 35 is used), and Z1 by Gaussian
-elimination with partial pivoting. Both agree with LAPACK's to rounding.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from controller.distribution import distribute_into
 from twin.model import xjoint
 from twin.model.cables import cable_terms
 from twin.model.compiled import njit
 from twin.model.dynamics import chain_terms, friction_into, motor_terms
-from twin.model.numeric import RIGID
-
-
-@njit(cache=True)
-def solve_into(A, b, LU, x):
-    """x = A⁻¹b for a small square A, by Gaussian elimination with partial pivoting in ``LU``
-    (scratch of A's shape). A singular A gives non-finite x (the caller's divergence check)."""
-    n = A.shape[0]
-    LU[:, :] = A
-    x[:] = b
-    for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(LU[i, k]) > abs(LU[p, k]):
-                p = i
-        if p != k:
-            for j in range(n):
-                LU[k, j], LU[p, j] = LU[p, j], LU[k, j]
-            x[k], x[p] = x[p], x[k]
-        piv = LU[k, k]
-        for i in range(k + 1, n):
-            f = LU[i, k] / piv
-            for j in range(k, n):
-                LU[i, j] -= f * LU[k, j]
-            x[i] -= f * x[k]
-    for k in range(n - 1, -1, -1):
-        acc = x[k]
-        for j in range(k + 1, n):
-            acc -= LU[k, j] * x[j]
-        x[k] = acc / LU[k, k]
-
-
-@njit(cache=True)
-def _z_at(m, alpha, tab, lc, Z, Zd, zero):
-    for i in range(m.n_joints):
-        xjoint.joint_jets(m.L, m.b, m.r, alpha[i], tab[i])
-    cable_terms(m, tab, zero, lc, Z, Zd)
-
-
-@njit(cache=True)
-def _pinv_step(Z, rhs, A, LU, b, out):
-    """out = (Zᵀ)⁺·rhs: the least-squares Δα of Zᵀ·Δα = rhs (eq. 35), via Z·Zᵀ·Δα = Z·rhs."""
-    N, nc = Z.shape
-    for i in range(N):
-        acc = 0.0
-        for j in range(nc):
-            acc += Z[i, j] * rhs[j]
-        b[i] = acc
-        for k in range(N):
-            acc = 0.0
-            for j in range(nc):
-                acc += Z[i, j] * Z[k, j]
-            A[i, k] = acc
-    solve_into(A, b, LU, out)
+from twin.model.estimation import pseudo_inverse_update
 
 
 @njit(cache=True)
 def estimate(m, dt, beta, has_prev, theta, theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c, f_prev,
              tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero):
-    """α̂ from the encoders θ (eq. 35 with eq. 58's stretch) and the filtered θ̇ and α̂̇, all in
-    place (the state arrays of :class:`controller.laws.ComputedTorque`)."""
-    N, nc = m.n_joints, m.n_cables
+    """α̂ from the encoders θ (eq. 35 with eq. 58's stretch, :func:`pseudo_inverse_update`) and
+    the filtered θ̇ and α̂̇, all in place (the state arrays of :class:`controller.laws.ComputedTorque`)."""
     if has_prev:
-        for j in range(nc):
+        for j in range(m.n_cables):
             theta_dot[j] += beta * ((theta[j] - theta_prev[j]) / dt - theta_dot[j])
-    # eq. 58 (docs in twin.model.estimation.predict_elongation): x_next into vc.
-    if m.cable_model == RIGID:
-        for j in range(nc):
-            vc[j] = 0.0
-    else:
-        friction_into(m, theta_dot, vc)
-        for j in range(nc):
-            t = f_prev[j] - vc[j]
-            x = x_c[j] + dt / m.c_a[j] * (t - (m.k[j] + m.lam[j] * t) * x_c[j])
-            vc[j] = x if x > 0.0 else 0.0
-    for j in range(nc):
-        rhs[j] = m.rho * (theta[j] - est_theta[j]) - (vc[j] - x_c[j])
-    # Predictor with Z(α̂), corrector with Z at the middle of the step.
-    _z_at(m, alpha_hat, tab, lc, Z, Zd, zero)
-    _pinv_step(Z, rhs, A, LU, vN, step)
-    for i in range(N):
-        vN2[i] = alpha_hat[i] + 0.5 * step[i]
-    _z_at(m, vN2, tab, lc, Z, Zd, zero)
-    _pinv_step(Z, rhs, A, LU, vN, step)
-    for i in range(N):
-        a_new = alpha_hat[i] + step[i]
-        alpha_hat_dot[i] += beta * ((a_new - alpha_hat[i]) / dt - alpha_hat_dot[i])
-        alpha_hat[i] = a_new
-    for j in range(nc):
-        est_theta[j] = theta[j]
+    pseudo_inverse_update(m, dt, theta, est_theta, x_c, alpha_hat, f_prev, theta_dot,
+                          tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero)
+    for i in range(m.n_joints):
+        alpha_hat_dot[i] += beta * (step[i] / dt - alpha_hat_dot[i])
+    for j in range(m.n_cables):
         theta_prev[j] = theta[j]
-        x_c[j] = vc[j]
-
-
-@njit(cache=True)
-def distribute_into(Z, gamma, lower, f_max, short, long, Z1, LU, vN, p, nvec, f, saturated):
-    """Eqs. 63-65 (:func:`controller.distribution.distribute`) into ``f`` and ``saturated``;
-    returns whether n = −Z1⁻¹Z2 > 0 (the region where eq. 63 works)."""
-    N = Z.shape[0]
-    for i in range(N):
-        for k in range(N):
-            Z1[i, k] = Z[i, short[k]]
-    solve_into(Z1, gamma, LU, p)
-    for i in range(N):
-        vN[i] = -Z[i, long]
-    solve_into(Z1, vN, LU, nvec)
-    feasible = True
-    f_long = lower[long]
-    for i in range(N):
-        if nvec[i] > 0.0:
-            cand = (lower[short[i]] - p[i]) / nvec[i]
-            if cand > f_long:
-                f_long = cand
-        else:
-            feasible = False
-    for i in range(N):
-        f[short[i]] = p[i] + nvec[i] * f_long
-    f[long] = f_long
-    for j in range(f.shape[0]):
-        saturated[j] = f[j] > f_max
-        if saturated[j]:
-            f[j] = f_max
-    return feasible
 
 
 @njit(cache=True)
@@ -209,4 +105,4 @@ def scratch(n_joints: int, n_cables: int) -> tuple[np.ndarray, ...]:
             np.empty(nc), np.empty(nc), np.empty((N, nc)), np.empty((N, nc)))
 
 
-__all__ = ["distribute_into", "estimate", "law_tick", "scratch", "solve_into"]
+__all__ = ["estimate", "law_tick", "scratch"]

@@ -9,6 +9,13 @@
   predicted by eq. 58 for the linear or variable cable model, or zero for rigid cables.
 - :func:`predict_elongation` — eq. 58, one explicit step of the cable model.
 Angles in rad (θ at the motor shaft), lengths in m, forces in N.
+
+Eqs. 35 and 58 exist once, as the kernels :func:`pseudo_inverse_update` and
+:func:`elongation_into` (numba's ``njit`` or plain Python, :mod:`twin.model.compiled`): the
+controller's tick (controller/kernel.py) calls them on its own arrays, and
+:class:`PseudoInverseEstimator` and :func:`predict_elongation` are thin numpy-facing wrappers that
+allocate and call them. :func:`solve_into` is the small linear solve they share with the tension
+distribution (controller/distribution.py, eqs. 63-65).
 """
 
 from __future__ import annotations
@@ -18,8 +25,9 @@ import math
 import numpy as np
 
 from twin.model import xjoint
+from twin.model.cables import cable_terms
 from twin.model.compiled import njit
-from twin.model.dynamics import f_friction
+from twin.model.dynamics import friction_into
 from twin.model.numeric import RIGID, Model
 
 
@@ -101,18 +109,136 @@ def alpha_hat_3(model: Model, theta: np.ndarray, x_c: np.ndarray | None = None, 
     return out
 
 
+@njit(cache=True)
+def solve_into(A, b, LU, x):
+    """x = A⁻¹b for a small square A, by Gaussian elimination with partial pivoting in ``LU``
+    (scratch of A's shape). Agrees with LAPACK's to rounding; a singular A gives non-finite x
+    (the callers' divergence checks), not an exception."""
+    n = A.shape[0]
+    LU[:, :] = A
+    x[:] = b
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(LU[i, k]) > abs(LU[p, k]):
+                p = i
+        if p != k:
+            for j in range(n):
+                LU[k, j], LU[p, j] = LU[p, j], LU[k, j]
+            x[k], x[p] = x[p], x[k]
+        piv = LU[k, k]
+        for i in range(k + 1, n):
+            f = LU[i, k] / piv
+            for j in range(k, n):
+                LU[i, j] -= f * LU[k, j]
+            x[i] -= f * x[k]
+    for k in range(n - 1, -1, -1):
+        acc = x[k]
+        for j in range(k + 1, n):
+            acc -= LU[k, j] * x[j]
+        x[k] = acc / LU[k, k]
+
+
+@njit(cache=True)
+def elongation_into(m, x_c, f, theta_dot, dt, out):
+    """Eq. 58 into ``out`` (see :func:`predict_elongation`): x_c(t+Δt) (m) from x_c (m), the
+    forces f (N) over the step and the motor velocities θ̇ (rad/s); zeros for rigid cables."""
+    if m.cable_model == RIGID:
+        for j in range(m.n_cables):
+            out[j] = 0.0
+        return
+    friction_into(m, theta_dot, out)
+    for j in range(m.n_cables):
+        t = f[j] - out[j]
+        x = x_c[j] + dt / m.c_a[j] * (t - (m.k[j] + m.lam[j] * t) * x_c[j])
+        out[j] = x if x > 0.0 else 0.0
+
+
+@njit(cache=True)
+def _z_at(m, alpha, tab, lc, Z, Zd, zero):
+    """Z(α) of eq. 23 (the model's cable kernel) into ``Z``; ``zero`` is α̇ = 0 (Ż unused)."""
+    for i in range(m.n_joints):
+        xjoint.joint_jets(m.L, m.b, m.r, alpha[i], tab[i])
+    cable_terms(m, tab, zero, lc, Z, Zd)
+
+
+@njit(cache=True)
+def _pinv_step(Z, rhs, A, LU, b, out):
+    """out = (Zᵀ)⁺·rhs: the least-squares Δα of Zᵀ·Δα = rhs (eq. 35), by the normal equations
+    Z·Zᵀ·Δα = Z·rhs (Z has full row rank wherever eq. 35 is used)."""
+    N, nc = Z.shape
+    for i in range(N):
+        acc = 0.0
+        for j in range(nc):
+            acc += Z[i, j] * rhs[j]
+        b[i] = acc
+        for k in range(N):
+            acc = 0.0
+            for j in range(nc):
+                acc += Z[i, j] * Z[k, j]
+            A[i, k] = acc
+    solve_into(A, b, LU, out)
+
+
+@njit(cache=True)
+def pseudo_inverse_update(m, dt, theta, est_theta, x_c, alpha_hat, f_prev, theta_dot,
+                          tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero):
+    """One tick of eq. 35 with eq. 58's stretch, in place: α̂⁺ = α̂ + (Zᵀ)⁺[(r_d/R)Δθ − Δx_c].
+
+    ``theta`` the new encoder angles (rad), ``est_theta`` the previous ones and ``x_c`` the
+    stretch (m), both advanced here; ``f_prev`` the forces (N) over the last period and
+    ``theta_dot`` (rad/s) eq. 58's friction velocities. Z is taken at the middle of the step (a
+    predictor with Z(α̂), as eq. 35 prints it, then the corrector), see
+    :meth:`PseudoInverseEstimator.update`. On return ``step`` holds α̂⁺ − α̂ as applied. The rest
+    are scratch: tab (N, N_ROWS, 3), lc (nc,), Z and Zd (N, nc), A and LU (N, N), vN, vN2 (N,),
+    vc, rhs (nc,), and ``zero`` (N,) all zeros."""
+    N, nc = m.n_joints, m.n_cables
+    elongation_into(m, x_c, f_prev, theta_dot, dt, vc)
+    for j in range(nc):
+        rhs[j] = m.rho * (theta[j] - est_theta[j]) - (vc[j] - x_c[j])
+    _z_at(m, alpha_hat, tab, lc, Z, Zd, zero)
+    _pinv_step(Z, rhs, A, LU, vN, step)
+    for i in range(N):
+        vN2[i] = alpha_hat[i] + 0.5 * step[i]
+    _z_at(m, vN2, tab, lc, Z, Zd, zero)
+    _pinv_step(Z, rhs, A, LU, vN, step)
+    for i in range(N):
+        a_new = alpha_hat[i] + step[i]
+        step[i] = a_new - alpha_hat[i]
+        alpha_hat[i] = a_new
+    for j in range(nc):
+        est_theta[j] = theta[j]
+        x_c[j] = vc[j]
+
+
+def pseudo_inverse_scratch(n_joints: int, n_cables: int) -> tuple[np.ndarray, ...]:
+    """The scratch arrays of :func:`pseudo_inverse_update` (tab … zero), allocated once."""
+    N, nc = n_joints, n_cables
+    return (np.empty((N, xjoint.N_ROWS, 3)), np.empty(nc), np.empty((N, nc)), np.empty((N, nc)), np.empty((N, N)),
+            np.empty((N, N)), np.empty(N), np.empty(N), np.empty(N), np.empty(nc), np.empty(nc), np.zeros(N))
+
+
+def _vector(x, n: int, name: str) -> np.ndarray:
+    """``x`` as a fresh contiguous float vector of length n (the kernels trust their arguments)."""
+    v = np.array(x, dtype=float).reshape(-1)
+    if v.shape != (n,):
+        raise ValueError(f"{name} must have {n} entries, got shape {np.shape(x)}")
+    return v
+
+
 def predict_elongation(model: Model, x_c: np.ndarray, f: np.ndarray, theta_dot: np.ndarray, dt: float) -> np.ndarray:
     """Eq. 58: x_c(t+Δt) = x_c + Δt/c_a·(t − (k + λ·t)·x_c) with t = f − f_friction(θ̇), never
-    below 0 (a cable does not push). Rigid cables: zeros.
+    below 0 (a cable does not push). Rigid cables: zeros. Vectors of n_cables; the work is
+    :func:`elongation_into`.
 
     Eq. 58 as printed puts λ·f in the stiffness; eq. 54 has λ·t, and t = f − f_friction (eq. 41
     without the motor inertia) is as cheap and much closer: with λ·f the predicted stretch is off by
     0.3-1 mm where friction is large, with λ·t by about 0.01 mm (measured on the twin)."""
-    if model.cable_model == RIGID:
-        return np.zeros(model.n_cables)
-    t = f - f_friction(model, theta_dot)
-    x_next = x_c + dt / model.c_a * (t - (model.k + model.lam * t) * x_c)
-    return np.maximum(x_next, 0.0)
+    nc = model.n_cables
+    out = np.empty(nc)
+    elongation_into(model, _vector(x_c, nc, "x_c"), _vector(f, nc, "f"), _vector(theta_dot, nc, "theta_dot"),
+                    float(dt), out)
+    return out
 
 
 class PseudoInverseEstimator:
@@ -120,45 +246,29 @@ class PseudoInverseEstimator:
     neck of eq. 20), or wherever :meth:`reset` puts it.
 
     ``model`` is the controller's model: its cable model decides the elongation (rigid: none;
-    linear or variable: eq. 58) and its pulley radius the Z it inverts.
+    linear or variable: eq. 58) and its pulley radius the Z it inverts. The state arrays
+    (``alpha_hat``, ``theta``, ``x_c``) are updated in place by :func:`pseudo_inverse_update`.
     """
 
     def __init__(self, model: Model, dt: float):
-        self.model, self.dt = model, dt
+        self.model, self.dt = model, float(dt)
         self.reset()
 
     def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None) -> None:
         m = self.model
-        self.alpha_hat = np.zeros(m.n_joints) if alpha is None else np.array(alpha, dtype=float)
-        self.theta = np.zeros(m.n_cables) if theta is None else np.array(theta, dtype=float)
+        self.alpha_hat = np.zeros(m.n_joints) if alpha is None else _vector(alpha, m.n_joints, "alpha")
+        self.theta = np.zeros(m.n_cables) if theta is None else _vector(theta, m.n_cables, "theta")
         self.x_c = np.zeros(m.n_cables)
-        self._tab = np.empty((m.n_joints, xjoint.N_ROWS, 3))
-        self._Z = np.empty((m.n_joints, m.n_cables))
-
-    def _Z_at(self, alpha: np.ndarray) -> np.ndarray:
-        m, Z = self.model, self._Z
-        for i in range(m.n_joints):
-            xjoint.joint_jets(m.L, m.b, m.r, alpha[i], self._tab[i])
-        for j in range(m.n_cables):
-            for i in range(m.n_joints):
-                row = m.case_rows[j, i]
-                Z[i, j] = -self._tab[i, row, 1] if row >= 0 else 0.0
-        return Z
+        self._work = pseudo_inverse_scratch(m.n_joints, m.n_cables)
 
     def update(self, theta: np.ndarray, f_prev: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
         """New encoder angles θ (rad); ``f_prev`` the forces (N) applied over the last period and
-        ``theta_dot`` (rad/s) the motor velocities for eq. 58's friction. Returns α̂ (rad).
+        ``theta_dot`` (rad/s) the motor velocities for eq. 58's friction. Returns α̂ (rad), a copy.
 
         Eq. 34 holds along the motion, so Z is taken at the middle of the step (a predictor step
         with Z(α̂(t)) as eq. 35 prints it, then the corrector): the estimate no longer drifts by
         the first-order error of evaluating Z at the start of each step."""
-        m = self.model
-        x_next = predict_elongation(m, self.x_c, f_prev, theta_dot, self.dt)
-        rhs = m.rho * (theta - self.theta) - (x_next - self.x_c)
-        # (Zᵀ)⁺ applied to rhs: the least-squares Δα of Zᵀ·Δα = rhs.
-        step = np.linalg.lstsq(self._Z_at(self.alpha_hat).T, rhs, rcond=None)[0]
-        step = np.linalg.lstsq(self._Z_at(self.alpha_hat + 0.5 * step).T, rhs, rcond=None)[0]
-        self.alpha_hat = self.alpha_hat + step
-        self.theta = np.array(theta, dtype=float)
-        self.x_c = x_next
-        return self.alpha_hat
+        nc = self.model.n_cables
+        pseudo_inverse_update(self.model, self.dt, _vector(theta, nc, "theta"), self.theta, self.x_c, self.alpha_hat,
+                              _vector(f_prev, nc, "f_prev"), _vector(theta_dot, nc, "theta_dot"), *self._work)
+        return self.alpha_hat.copy()
