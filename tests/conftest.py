@@ -17,6 +17,16 @@ from twin.model.params import load_params
 XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter, whatever PATH says
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto`` (pyproject's addopts): the whole suite, or a folder of it, runs on two workers, one
+    module per unit (``--dist loadfile``: a module's fixtures, a stack, a console, recorded campaigns,
+    are set up once); named files or tests run in this one process, as a developer checking one thing
+    on a shared machine wants. More than two workers would only add load beside the real-time tests."""
+    whole = all(Path(str(arg).split("::")[0]).is_dir() for arg in config.args)
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 2 if whole and cpus >= 2 else 0
+
+
 @pytest.fixture(scope="session")
 def params():
     return load_params()
