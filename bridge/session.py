@@ -40,6 +40,8 @@ REAL_TIME_KEYS = frozenset({bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.ESTOP})
 #: Rare messages that must not be lost: under congestion the publisher waits instead of dropping.
 #: Every other key is a stream where the newest value matters and a stale one is worse than none.
 RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS, bus.CAMPAIGN_REQUEST})
+#: Transmit queue of the real-time priority, in batches (one express message each); see zenoh_config.
+REAL_TIME_QUEUE_BATCHES = 16
 
 M = TypeVar("M", bound=bus.BusMessage)
 
@@ -92,6 +94,12 @@ def zenoh_config(
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     # A busy listen port is a configuration error that must not go unnoticed.
     conf.insert_json5("listen/exit_on_failure", "true")
+    # The control path's express messages are one batch each, and Zenoh queues 2 batches per
+    # priority by default: a sender whose transmit thread is starved for more than ~5 ms (a loaded
+    # machine) dropped states that the archive then lacked (issue 21's CI run: 27 states lost,
+    # identification refused). 16, Zenoh's maximum, rides out 30 ms at 500 Hz; the latest-value
+    # consumers read the newest of a burst, and the allocation stays lazy.
+    conf.insert_json5("transport/link/tx/queue/size/real_time", str(REAL_TIME_QUEUE_BATCHES))
     return conf
 
 

@@ -137,6 +137,18 @@ def test_config_defaults_come_from_the_environment(monkeypatch: pytest.MonkeyPat
     assert msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("listen/endpoints")) == []
 
 
+def test_the_control_path_queue_rides_out_a_starved_sender() -> None:
+    """Express real-time messages are one batch each: Zenoh's default queue of 2 batches dropped
+    states whenever the sender's transmit thread was starved for ~5 ms (a CI run lost 27 states
+    and the campaign's identification refused the archive). Every process queues 16 (32 ms at
+    500 Hz), and a session opens with it."""
+    conf = zenoh_config(listen=[], connect=[])
+    sizes = msgspec.json.decode(conf.get_json("transport/link/tx/queue/size"))
+    assert sizes["real_time"] == 16 and sizes["real_time"] * 0.002 >= 0.030
+    assert sizes["data"] == msgspec.json.decode(zenoh.Config().get_json("transport/link/tx/queue/size"))["data"]
+    zenoh.open(conf).close()  # Zenoh accepts it
+
+
 # --- on the bus ----------------------------------------------------------------------------------
 
 
