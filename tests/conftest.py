@@ -1,8 +1,11 @@
 from __future__ import annotations
 
+import fcntl
 import os
 import subprocess
 import sys
+import time
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -25,6 +28,52 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     whole = all(Path(str(arg).split("::")[0]).is_dir() for arg in config.args)
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return 2 if whole and cpus >= 2 else 0
+
+
+#: How long a module waits for its turn on the CPUs before it runs anyway (a stuck peer worker
+#: must not hang CI): longer than any one module takes.
+TURN_TIMEOUT_S = 600.0
+
+
+def _flock(f, mode: int, deadline: float) -> bool:
+    """``fcntl.flock`` polled until ``deadline`` (monotonic s); False if it timed out."""
+    while True:
+        try:
+            fcntl.flock(f, mode | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _cpu_turn(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """On xdist workers, a module marked ``realtime`` (its assertions are about deadlines, ticks
+    and lost messages) runs with no other module beside it; other modules share the machine.
+    A readers-writer lock on files both workers see, writer first: a realtime module takes the
+    gate, waits until the running module ends, and the other worker's next module waits for it.
+    On a 2-CPU machine a second worker's stacks and campaigns were what made those tests miss
+    (CI: a hold 1 ms late, 27 states lost on the bus); the rest still runs two at a time."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    exclusive = request.node.get_closest_marker("realtime") is not None
+    root = tmp_path_factory.getbasetemp().parent  # the session's directory, shared by the workers
+    deadline = time.monotonic() + TURN_TIMEOUT_S
+    with open(root / "cpu-gate.lock", "a+") as gate, open(root / "cpu-turn.lock", "a+") as turn:
+        got = _flock(gate, fcntl.LOCK_EX, deadline)
+        try:
+            got = _flock(turn, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH, deadline) and got
+        finally:
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        if not got:
+            warnings.warn(f"{request.node.name}: no turn on the CPUs after {TURN_TIMEOUT_S:.0f} s, running anyway",
+                          stacklevel=1)
+        try:
+            yield
+        finally:
+            fcntl.flock(turn, fcntl.LOCK_UN)
 
 
 @pytest.fixture(scope="session")

@@ -14,7 +14,7 @@ from controller.laws import LawConfig
 from controller.trajectory import control_test_trajectory
 from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campaign
 
-pytestmark = pytest.mark.e2e  # twin and controller processes on a real bus
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # twin and controller processes on a real bus
 
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
 from busutil import wait_until
 
 from bridge import bus
@@ -13,6 +14,8 @@ from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.process import ControllerNode, ControllerProcessConfig
 from twin.model.params import load_params
+
+pytestmark = pytest.mark.realtime  # its premise is a burst that arrives at once
 
 
 def _state(k: int) -> bus.MotorState:

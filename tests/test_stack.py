@@ -22,7 +22,7 @@ from bridge import bus
 from bridge.archive import read_campaign
 from bridge.session import free_tcp_port, open_session
 
-pytestmark = pytest.mark.e2e  # the whole stack as processes, campaigns over the bus
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # the whole stack as processes, campaigns over the bus
 
 PY = [sys.executable, "-m", "server.cli"]
 ENV = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}

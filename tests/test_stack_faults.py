@@ -22,6 +22,8 @@ from bridge.archive import read_campaign
 from bridge.session import free_tcp_port, open_session
 from server.quality import THRESHOLDS, assess
 
+pytestmark = pytest.mark.realtime  # stalls and campaign quality judged from deadlines
+
 
 def _up_refused(tmp_path: Path, port: int, viser_port: int, hub_port: int) -> tuple[str, Path]:
     """Run ``xneck up`` expecting a refusal: its stderr and its data directory."""
