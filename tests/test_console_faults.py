@@ -64,7 +64,8 @@ def fill(path: Path) -> Path:
     file system was full already: a fast campaign on a loaded machine may get there first)."""
     filler = path / "filler.bin"
     try:
-        f = open(filler, "wb")  # noqa: SIM115 - closed by the with below
+        # Unbuffered: a buffered file's close flushes its tail and raises ENOSPC out of the with.
+        f = open(filler, "wb", buffering=0)  # noqa: SIM115 - closed by the with below
     except OSError as exc:
         assert exc.errno == errno.ENOSPC, exc
         return filler
@@ -76,7 +77,7 @@ def fill(path: Path) -> Path:
                 f.flush()
         except OSError as exc:
             assert exc.errno == errno.ENOSPC, exc
-    with contextlib.suppress(OSError), open(filler, "ab") as f:  # the last partial block
+    with contextlib.suppress(OSError), open(filler, "ab", buffering=0) as f:  # the last partial block
         while True:
             f.write(b"\0" * 512)
             f.flush()

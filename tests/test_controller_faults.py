@@ -217,12 +217,16 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
         time.sleep(1.0)
     finally:
         estop.close()
-    cmds = [(t, np.array(c.force_N)) for t, c in stack.commands.timed() if t >= t_on]
-    during = np.array([f for t, f in cmds if t_dis <= t <= t_off])
+    cmds = [(t, np.array(c.force_N), c.stamp_s) for t, c in stack.commands.timed() if t >= t_on]
+    during = np.array([f for t, f, _ in cmds if t_dis <= t <= t_off])
     # Nothing grows: the hold forces only follow α̂ as the neck settles on slack cables.
     assert len(during) > 100 and np.ptp(during, axis=0).max() < 8.0 and during.max() < 40.0, np.ptp(during, axis=0)
-    around = np.array([f for t, f in cmds if t_off - 0.2 <= t <= t_off + 1.0])
-    assert np.abs(np.diff(around, axis=0)).max() < 3.0  # no step when the law takes over again
+    around = [(f, stamp) for t, f, stamp in cmds if t_off - 0.2 <= t <= t_off + 1.0]
+    # No step when the law takes over again, per controller tick: on a loaded machine this test's
+    # subscriber misses a few commands now and then, and the change across such a gap is several ticks'.
+    ticks = np.maximum(np.round(np.diff([stamp for _f, stamp in around]) / 0.002), 1.0)
+    per_tick = np.abs(np.diff([f for f, _stamp in around], axis=0)) / ticks[:, None]
+    assert per_tick.max() < 3.0, (per_tick.max(), ticks.max())
     disabled = [s for t, s in stack.status.timed() if t_dis <= t <= t_off]
     assert disabled and all(s.holding and "drives disabled" in s.hold_reason for s in disabled), \
         [(s.holding, s.hold_reason) for s in disabled if not (s.holding and "drives disabled" in s.hold_reason)]
