@@ -1,0 +1,68 @@
+"""The suite's turns on the machine (tests/conftest.py ``_cpu_turn``): under xdist, a module marked
+``realtime`` runs with no other module beside it, and the other modules still run two at a time."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+CONFTEST = f"""
+import importlib.util
+import sys
+sys.path.insert(0, {str(HERE)!r})
+_spec = importlib.util.spec_from_file_location("xneck_tests_conftest", {str(HERE / "conftest.py")!r})
+_outer = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_outer)
+_cpu_turn = _outer._cpu_turn  # the fixture under test (autouse)
+"""
+
+MODULE = """
+import json, os, time
+import pytest
+{mark}
+
+@pytest.mark.parametrize("k", range({n}))
+def test_span(k):
+    t0 = time.time()
+    time.sleep({sleep})
+    with open(os.environ["SPANS"], "a") as f:
+        f.write(json.dumps({{"module": {name!r}, "t0": t0, "t1": time.time()}}) + "\\n")
+"""
+
+
+def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> None:
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "conftest.py").write_text(CONFTEST)
+    # xdist's loadfile sends the module with the most tests first: the realtime one starts beside
+    # a shared one, as it would without turns.
+    specs = [("test_a", "", 4, 0.1), ("test_b", "", 4, 0.1), ("test_rt", "pytestmark = pytest.mark.realtime", 8, 0.1),
+             ("test_c", "", 4, 0.1), ("test_d", "", 4, 0.1)]
+    for name, mark, n, sleep in specs:
+        (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
+    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n")
+    spans = tmp_path / "spans.jsonl"
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
+                          "-p", "no:randomly", str(suite)], capture_output=True, text=True, timeout=120, cwd=suite,
+                         env={**os.environ, "SPANS": str(spans)})
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    rows = [json.loads(line) for line in spans.read_text().splitlines()]
+    assert len(rows) == 24
+
+    def window(module: str) -> tuple[float, float]:
+        mine = [r for r in rows if r["module"] == module]
+        return min(r["t0"] for r in mine), max(r["t1"] for r in mine)
+
+    rt0, rt1 = window("test_rt")
+    others = [r for r in rows if r["module"] != "test_rt"]
+    overlapping = [r for r in others if r["t0"] < rt1 and r["t1"] > rt0]
+    assert not overlapping, (rt0, rt1, overlapping)
+    # The shared modules did overlap one another: the two workers both ran.
+    shared = sorted(others, key=lambda r: r["t0"])
+    assert any(b["t0"] < a["t1"] and a["module"] != b["module"] for a, b in itertools.pairwise(shared)), shared
