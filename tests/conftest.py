@@ -4,6 +4,7 @@ import fcntl
 import os
 import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -48,18 +49,18 @@ def _flock(f, mode: int, deadline: float) -> bool:
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _cpu_turn(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
-    """On xdist workers, a module marked ``realtime`` (its assertions are about deadlines, ticks
-    and lost messages) runs with no other module beside it; other modules share the machine.
-    A readers-writer lock on files both workers see, writer first: a realtime module takes the
-    gate, waits until the running module ends, and the other worker's next module waits for it.
+def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A module marked ``realtime`` (its assertions are about deadlines, ticks and lost messages)
+    runs with no other module beside it, of this suite or of another one running on the machine
+    at the same time (issue 21: the suite stays green with a second copy beside it); other modules
+    share the machine. A readers-writer lock on files in ``XNECK_TEST_TURNS_DIR`` (default: a
+    directory under the system's temporary directory), writer first: a realtime module takes the
+    gate, waits until the running modules end, and every other worker's next module waits for it.
     On a 2-CPU machine a second worker's stacks and campaigns were what made those tests miss
     (CI: a hold 1 ms late, 27 states lost on the bus); the rest still runs two at a time."""
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
-        yield
-        return
     exclusive = request.node.get_closest_marker("realtime") is not None
-    root = tmp_path_factory.getbasetemp().parent  # the session's directory, shared by the workers
+    root = Path(os.environ.get("XNECK_TEST_TURNS_DIR") or Path(tempfile.gettempdir()) / "xneck-test-turns")
+    root.mkdir(parents=True, exist_ok=True)
     deadline = time.monotonic() + TURN_TIMEOUT_S
     with open(root / "cpu-gate.lock", "a+") as gate, open(root / "cpu-turn.lock", "a+") as turn:
         got = _flock(gate, fcntl.LOCK_EX, deadline)

@@ -1,5 +1,6 @@
 """The suite's turns on the machine (tests/conftest.py ``_cpu_turn``): under xdist, a module marked
-``realtime`` runs with no other module beside it, and the other modules still run two at a time."""
+``realtime`` runs with no other module beside it, and the other modules still run two at a time.
+The suite under test has its own turns (``XNECK_TEST_TURNS_DIR``): this test itself holds one."""
 
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
     spans = tmp_path / "spans.jsonl"
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
                           "-p", "no:randomly", str(suite)], capture_output=True, text=True, timeout=120, cwd=suite,
-                         env={**os.environ, "SPANS": str(spans)})
+                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     rows = [json.loads(line) for line in spans.read_text().splitlines()]
     assert len(rows) == 24
