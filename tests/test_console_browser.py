@@ -234,10 +234,20 @@ def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_s
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped
     page.focus("#jog-2")  # an input with focus does not swallow Escape
+    # Once shown, the banner must stay: count it going hidden again (two paths report the
+    # bridge's e-stop, the live frames and the health poll; mixed, they made it blink).
+    page.evaluate("""() => {
+      const box = document.querySelector('#estop-state');
+      window.estopBlinks = 0; let shown = false;
+      new MutationObserver(() => { if (!box.hidden) shown = true; else if (shown) window.estopBlinks++; })
+        .observe(box, { attributes: true, attributeFilter: ['hidden'] });
+    }""")
     page.keyboard.press("Escape")
     page.wait_for_function("!document.querySelector('#estop-state').hidden", timeout=10000)
+    page.wait_for_timeout(2500)  # several health polls and many live frames
     text = page.inner_text("#estop-state")
     assert "E-STOP ENGAGED" in text and "Escape key" in text, text
+    assert page.evaluate("window.estopBlinks") == 0
     st = console.app.state.live.values.get("state")
     assert st.estop_engaged and "Escape key" in st.estop_reason  # the bridge's word, not the page's
     r = http.post("/api/jog", json={"alpha_deg": [0, 5, 0]}, headers=AUTH)

@@ -273,7 +273,11 @@ async function pollStatus() {
     const procs = await api("GET", "/api/system/processes");
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
       ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}`;
-    showEstop(h.estop);
+    // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
+    // of the same state may be older or newer than the last frame, and mixing the two made the
+    // banner blink off and on right after an engage.
+    const safety = window.xneckSafety;
+    if (!(safety && safety.liveStateFresh())) showEstop(h.estop);
     if (runningId && h.running_campaign_id !== runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
       setProgress(rec.progress, `${rec.id} ${rec.status}`);

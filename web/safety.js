@@ -9,6 +9,8 @@
   const STREAM_LOST_MS = 2000;   // no live frame for this long: the stream is lost
   const BRIDGE_SILENT_MS = 1500; // frames but no new motor state: the bridge is silent
   const safety = (window.xneckSafety = { lastFrame: 0, lastState: 0, stateStamp: null, escapes: 0, banner: "" });
+  // True while the live stream brings new motor states: they then show the e-stop (app.js).
+  safety.liveStateFresh = () => safety.lastState > 0 && Date.now() - safety.lastState <= BRIDGE_SILENT_MS;
 
   async function engage(reason) {
     try { await api("POST", "/api/system/estop", { engaged: true, reason }); }
