@@ -20,6 +20,9 @@
    which the replay driver of 1. does not have.
 3. The resident memory of a real ``xneck bridge --driver replay`` process after a few seconds
    on the bus (VmHWM, the peak); target <= 80 MB on x86_64.
+4. How often the machine interrupts a busy Python thread for more than 10 µs, and for how long
+   (``_timing.interruptions``): a tick of median d loses the CPU in about rate x d of its runs,
+   a floor under its p99 that no change to the tick removes (cold caches after other work add more).
 Run: ``.venv/bin/python benchmarks/bridge_tick.py [--ticks 5000]``.
 ``--write-replay PATH`` only writes a replay MCAP file (used by benchmarks/armhf_bridge.sh).
 """
@@ -268,6 +271,10 @@ def main() -> None:
         replay = write_replay(Path(tmp) / "replay.mcap")
         print(f"bridge tick without numba ({args.ticks} ticks), {os.cpu_count()} cores")
         ticks = ticks_in_process(replay, args.ticks)
+        rate, gap_s = _timing.interruptions()
+        hit = rate * ticks["active_median_us"] * 1e-6
+        print(f"{'machine: a busy Python thread loses the CPU for > 10 µs':<58s} {rate:6.0f} times/s, median gap"
+              f" {gap_s * 1e6:.1f} µs: about {hit * 100:.2f} % of fresh-command ticks (at their median) lose it once")
         beaglebone_driver_io(args.ticks)
         rss = bridge_process_rss(replay, args.seconds)
     ok_tick = ticks["active_p99_us"] <= TARGET_TICK_P99_US and ticks["hold_p99_us"] <= TARGET_TICK_P99_US
