@@ -1,5 +1,5 @@
 """Identification (issue 5): processing + estimation time for a 100 s campaign (target < 2 s).
-``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls] [--seeds N] [--out FILE]``: the ±2σ
+``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction] [--seeds N] [--first S] [--out FILE]``: the ±2σ
 coverage of Table 2's k and λ over campaign seeds 21-30 (issue 17), as markdown for the docs.
 
 The campaign is simulated once with the test suite's closed loop on the twin (97 s trajectory,
@@ -26,7 +26,14 @@ import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 summary, time_calls = _timing.summary, _timing.time_calls
 
-from twin.identification.pipeline import identified_params, identify_all, make_provenance, preprocess, validate  # noqa: E402
+from twin.identification.pipeline import (  # noqa: E402
+    VARIABLE_ESTIMATORS,
+    identified_params,
+    identify_all,
+    make_provenance,
+    preprocess,
+    validate,
+)
 from twin.model import dynamics  # noqa: E402
 from twin.model.numeric import build  # noqa: E402
 from twin.model.params import load_params  # noqa: E402
@@ -141,13 +148,13 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--coverage", action="store_true", help="±2σ coverage of Table 2 over campaign seeds instead of timing")
     ap.add_argument("--truth", default="pipeline", help="pipeline (the tests' damping-only truth), robot, or a truth file")
-    ap.add_argument("--estimator", default="iv", choices=("iv", "ols", "wls"))
-    ap.add_argument("--seeds", type=int, default=len(COVERAGE_SEEDS), help="how many campaign seeds (from 21)")
+    ap.add_argument("--estimator", default="iv", choices=VARIABLE_ESTIMATORS)
+    ap.add_argument("--first", type=int, default=COVERAGE_SEEDS[0], help="first campaign seed (default 21)")
+    ap.add_argument("--seeds", type=int, default=len(COVERAGE_SEEDS), help="how many campaign seeds (from --first)")
     ap.add_argument("--out", type=Path, help="also write the markdown table to this file")
     args = ap.parse_args()
     if args.coverage:
-        text = coverage(COVERAGE_SEEDS[: args.seeds] if args.seeds <= len(COVERAGE_SEEDS)
-                        else tuple(range(21, 21 + args.seeds)), args.truth, args.estimator)
+        text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator)
         print(text)
         if args.out:
             args.out.write_text(text + "\n")

@@ -24,7 +24,9 @@ def identify(
                                          "beside the in-sample ones (figures in <out>/validation)."),
     estimator: str = typer.Option("iv", "--estimator", help="iv (default): instrumental variables from the model "
                                   "re-simulated on the encoders, consistent under camera noise and open-loop force "
-                                  "errors; ols: eq. 49 as printed; wls: rows weighted by their residual σ."),
+                                  "errors; ols: eq. 49 as printed; wls: rows weighted by their residual σ; loadfriction: "
+                                  "Table 2 with the motor friction growing with the load and a cable creep term "
+                                  "(docs/identification-coverage.md), Table 1 by iv."),
     sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "
                               "white: eq. 50 as printed (too small on filtered data)."),
     no_bounds: bool = typer.Option(False, "--no-bounds", help="Unbounded least squares (default: k, f_s > 0 and "

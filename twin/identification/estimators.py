@@ -67,7 +67,8 @@ class Estimate:
         does not fit (the linear one on variable-stiffness cables) buys its fit with such values,
         often with a small σ: Table 1's c_a(3) = −218 N·s/m is one."""
         symbols = np.array([n.split("(")[0] for n in self.names])
-        return np.where(symbols == "k", self.values <= 0.0, self.values < 0.0)
+        physical = np.isin(symbols, list(_LOWER))  # others (a friction offset F_0, a slope mu) may be < 0
+        return physical & np.where(symbols == "k", self.values <= 0.0, self.values < 0.0)
 
     @property
     def badly_identified(self) -> NDArray[np.bool_]:

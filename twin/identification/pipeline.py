@@ -82,6 +82,7 @@ from twin.model.params import Params, params_from_dict
 __all__ = [
     "DECIMATION",
     "DEFAULT_THRESHOLD",
+    "VARIABLE_ESTIMATORS",
     "W_JOINT",
     "AlphaHat",
     "CampaignData",
@@ -107,7 +108,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-ESTIMATOR_ALIASES = {"ls": "ols"}  # the name this pipeline used for eq. 49 before issue 17
+ESTIMATOR_ALIASES = {"ls": "ols", "load-friction": "loadfriction"}  # "ls": eq. 49's name before issue 17
+# Table 2 only: eq. 55's friction replaced by one growing with the load, plus cable creep
+# (twin.identification.loadfriction, issues 16/17); Table 1 and f_s then use the default "iv".
+VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction")
 
 
 def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...], rows: tuple[IntArray, IntArray], *,
@@ -232,8 +236,14 @@ def identify_variable(
     which is the fitted quantity (on the prototype the forces are open-loop current commands whose
     errors would be in the instruments and in the residual alike; this module's instruments before
     issue 17 were t_c, t_c², ṫ_c). ``estimator="ols"`` gives eq. 49 as printed, ``"wls"`` weights
-    each cable's rows by its residual σ.
+    each cable's rows by its residual σ. ``"loadfriction"``: twin.identification.loadfriction (the
+    motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
+    forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta.
     """
+    if _check_estimator(estimator, VARIABLE_ESTIMATORS) == "loadfriction":
+        from twin.identification.loadfriction import fit_load_friction
+
+        return fit_load_friction(proc, params, threshold=threshold, sigma=sigma).estimate
     nc = params.n_cables
     f_s = np.asarray(f_s, dtype=float)
     if f_s.shape != (nc,) or not np.all(np.isfinite(f_s)):
@@ -265,9 +275,11 @@ def identify_all(
 ) -> dict[str, Estimate]:
     """The three estimations of §5 in order: friction alone, complete (Table 1), variable (Table 2,
     with the f_s of the friction-alone estimate: it does not depend on the cable model, while the
-    complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension)."""
-    fric = identify_friction(proc, params, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
-    comp = identify_complete(proc, params, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
+    complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension).
+    ``estimator="loadfriction"`` is Table 2's alone: friction and Table 1 then use "iv"."""
+    linear = "iv" if _check_estimator(estimator, VARIABLE_ESTIMATORS) == "loadfriction" else estimator
+    fric = identify_friction(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
+    comp = identify_complete(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator, sigma=sigma,
                             bounded=bounded)
     return {"friction": fric, "complete": comp, "variable": var}

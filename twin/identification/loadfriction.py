@@ -1,0 +1,307 @@
+"""Table 2's k and λ with load-dependent motor friction and cable creep (issues 16, 17).
+
+Eq. 55 takes the cable tension as the motor force less eq. 37's friction, a function of θ̇ alone.
+On the robot truth (twin/sim/robot_truth.toml) the friction of a turning motor grows with the
+load it carries (pulley and gear losses), and the cables creep; eq. 54 fitted on that tension
+comes out 8-25 % low in k (docs/identification-coverage.md, "Where the error comes from").
+This estimator fits, per cable j, the force of its motor where it turns fast (|θ̇| ≥ 5 rad/s,
+where eq. 37's arctan and any Stribeck excess are saturated)::
+
+    y = f − (R/r_d)·I_a·θ̈ = (1 + s·μ)·t + s·F₀,        s = sign θ̇            (N)
+    t = (k·x' + c_a·ẋ) / (1 − λ·x')                     eq. 54 solved for t    (N)
+    x' = x_c − β·LP_τ(t_e)/k,  t_e = k·x_c / (1 − λ·x_c)  Kelvin creep element  (m)
+
+x_c, ẋ_c (m, m/s) from α_IP (eq. 27), f (N) the applied force, θ̇ (rad/s), θ̈ (rad/s²);
+k (N/m), λ (1/m), c_a (N·s/m); μ (dimensionless: friction per newton of tension), F₀ (N);
+β (dimensionless creep ratio), τ (s) the creep time constant, LP_τ a first-order low-pass.
+One μ serves both directions, so that the scale k/(1 ± μ) of the tension rows cannot trade μ
+against k; β ≥ 0 (creep only lengthens a loaded cable), λ, c_a ≥ 0.
+
+Estimation, per cable: (1) bounded nonlinear least squares (scipy.optimize.least_squares, trust
+region) in (k, λ, c_a, μ, F₀, β) on the camera's stretch, for each τ of a grid; (2) IDIM-IV as
+pipeline.identify_variable does it: x_c comes from α_IP, whose noise (0.15-0.35 mm of stretch
+on the twin's camera, against 0.7-1.4 mm of motion) biases least squares, so Zᵀρ(p) = 0 is
+solved with Z the model's Jacobian on the stretch re-simulated from the encoders
+(twin.identification.instruments), iterated to a fixed point, for every τ; τ is then picked per
+cable by the camera residual. σ: the Newey-West HAC sandwich (twin.identification.uncertainty)
+of the linearised estimator B = (ZᵀJ)⁻¹Zᵀ at the solution, conditional on the chosen τ.
+
+The start is not the parameter file: on the twin the file's k and λ are the truth. It is the
+model without creep made linear (:func:`linear_start`, no prior), and any (k, λ) the caller gives
+is tried beside it (the lower residual kept): the solution does not depend on the start
+(tests/test_identification_loadfriction.py). Coverage on the twin: docs/identification-coverage.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, signal
+
+from twin.identification import uncertainty
+from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
+from twin.identification.instruments import simulated_stretch
+from twin.identification.processing import Processed
+from twin.identification.regressors import ia_over_rho, param_names
+from twin.model.numeric import build
+from twin.model.params import Params
+
+FloatArray = NDArray[np.float64]
+
+NAME = "loadfriction"
+MIN_SPEED_RAD_S = 5.0  # rows: the robot's Stribeck excess (v_s = 2 rad/s) is below 2 % there
+MIN_FORCE_N = 2.0  # rows: a slack cable obeys no eq. 54 (regressors.MIN_TENSION_N)
+MIN_ROWS = 50  # rows a cable needs: six parameters and residuals correlated over ~10 instants
+TAUS_S = (0.5, 1.0, 2.0, 4.0, 8.0)  # creep time constants tried (s): the robot truth's is within
+MIN_STRETCH_FACTOR = 0.05  # 1 − λx is kept above this: a start far off must not divide by zero
+HAC_MIN_LAG_PERIODS = 3.0  # as pipeline.HAC_MIN_LAG_PERIODS: residuals share the filter's memory
+# Bounds of (μ, F₀ (N), β): wide against the robot truth's μ 0.08-0.34, F₀ 5-15 N, β 0.05.
+# μ may be negative (a friction that falls with the load) but not below -0.5 (a motor pulling itself).
+MU_BOUNDS = (-0.5, 0.9)
+F0_BOUNDS_N = (-40.0, 60.0)
+BETA_BOUNDS = (0.0, 0.5)  # creep only lengthens a loaded cable: β ≥ 0
+SYMBOLS = ("k", "lambda", "c_a", "mu", "F_0", "beta")
+IV_MAX_ITERATIONS = 10
+IV_TOLERANCE = 1e-3  # relative change of k and λ at which the IV iteration has converged (pipeline's)
+
+
+@dataclass(frozen=True, eq=False)
+class LoadFrictionFit:
+    """The fit of one campaign: ``estimate`` holds k(j), lambda(j), c_a(j) (Table 2's layout)
+    then mu(j), F_0(j), beta(j), with HAC σ; ``tau_s`` (s) the creep time constant chosen per
+    cable; ``start`` the (k, λ) the fit began from; ``rows`` the rows used per cable."""
+
+    estimate: Estimate
+    tau_s: FloatArray
+    start: tuple[FloatArray, FloatArray]
+    rows: NDArray[np.int64]
+
+
+def _low_pass(x: FloatArray, tau_s: float, h: float) -> FloatArray:
+    """First-order low-pass, time constant τ, step h, starting at x[0] (the campaign starts at rest)."""
+    a = np.exp(-h / tau_s)
+    return signal.lfilter([1 - a], [1, -a], x - x[0]) + x[0]
+
+
+def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: float) -> FloatArray:
+    """t (N) of the model for p = (k, λ, c_a, ...) on the whole record (the creep filter needs it)."""
+    k, lam, c_a, beta = p[0], p[1], p[2], p[5]
+    elastic = k * x / np.maximum(1 - lam * x, MIN_STRETCH_FACTOR)
+    xx = x - beta * _low_pass(elastic, tau_s, h) / k
+    return np.maximum((k * xx + c_a * xd) / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
+
+
+def _residual(p: FloatArray, x: FloatArray, xd: FloatArray, s: FloatArray, y: FloatArray, rows: NDArray[np.bool_],
+              tau_s: float, h: float) -> FloatArray:
+    mu, f0 = p[3], p[4]
+    return ((1 + s * mu) * _tension(p, x, xd, tau_s, h) + s * f0 - y)[rows]
+
+
+def fit_rows(proc: Processed, params: Params) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """y = f − (R/r_d)I_a·θ̈ (N, (n, n_cables)) and the rows the fit uses: motor faster than
+    5 rad/s and y above 2 N."""
+    y = proc.force - ia_over_rho(params) * proc.theta_ddot
+    return y, (np.abs(proc.theta_dot) >= MIN_SPEED_RAD_S) & (y > MIN_FORCE_N)
+
+
+def linear_start(proc: Processed, params: Params) -> tuple[FloatArray, FloatArray]:
+    """(k, λ) per cable with no prior: without creep (β = 0) the model multiplied by 1 − λx is
+    linear, y = k·x + λ·x·y + c_a·ẋ + (μk − F₀λ)·s·x + μc_a·s·ẋ + F₀·s, solved by least squares
+    on the fit's rows (biased by the noise of x·y, but only a start); k ≤ 0 or λ < 0 are replaced
+    by a tenth of the row's scale and 0."""
+    y, rows = fit_rows(proc, params)
+    s = np.sign(proc.theta_dot)
+    k, lam = np.zeros(params.n_cables), np.zeros(params.n_cables)
+    for j in range(params.n_cables):
+        r = rows[:, j]
+        x, xd, sj, yj = proc.x_c[r, j], proc.x_c_dot[r, j], s[r, j], y[r, j]
+        A = np.column_stack([x, x * yj, xd, sj * x, sj * xd, sj])
+        col = np.linalg.norm(A, axis=0)
+        c = np.linalg.lstsq(A / np.maximum(col, 1e-300), yj, rcond=None)[0] / np.maximum(col, 1e-300)
+        k_floor = 0.1 * float(np.mean(np.abs(yj)) / max(float(np.mean(np.abs(x))), 1e-9))
+        k[j], lam[j] = (c[0] if c[0] > 0 else k_floor), max(c[1], 0.0)
+    return k, lam
+
+
+def _jacobian(p: FloatArray, scale: FloatArray, free: NDArray[np.bool_], *args) -> FloatArray:
+    """∂r/∂p (rows, free parameters) by central differences, steps of 1e-6 of each scale."""
+    cols = []
+    for i in np.flatnonzero(free):
+        d = np.zeros_like(p)
+        d[i] = 1e-6 * scale[i]
+        cols.append((_residual(p + d, *args) - _residual(p - d, *args)) / (2 * d[i]))
+    return np.column_stack(cols)
+
+
+@dataclass
+class _Cable:
+    """One cable's fit: its data arguments of :func:`_residual` (but τ), scales and bounds."""
+
+    x: FloatArray
+    x_dot: FloatArray
+    s: FloatArray
+    y: FloatArray
+    rows: NDArray[np.bool_]
+    h: float
+    scale: FloatArray
+    lo: FloatArray
+    hi: FloatArray
+
+    def args(self, tau_s: float, x: FloatArray | None = None, x_dot: FloatArray | None = None) -> tuple:
+        """:func:`_residual`'s arguments; ``x``, ``x_dot``: another stretch than the camera's."""
+        return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.s, self.y, self.rows,
+                tau_s, self.h)
+
+    def solve(self, fun, p0: FloatArray) -> FloatArray:
+        return optimize.least_squares(fun, p0, bounds=(self.lo, self.hi), x_scale=self.scale, method="trf",
+                                      xtol=1e-10, ftol=1e-10, gtol=1e-10).x
+
+
+def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, damping: bool) -> list[_Cable]:
+    y, rows = fit_rows(proc, params)
+    out = []
+    for j in range(params.n_cables):
+        # Scales: k and λ from the start (a start of λ = 0 still needs one), c_a like a few hundred
+        # N·s/m, μ, F₀, β like the robot's; the solver works on p / scale.
+        k_s, lam_s = max(abs(k0[j]), 100.0), max(abs(lam0[j]), 10.0)
+        # c_a held at 0 without damping: least_squares needs lo < hi, so a 1e-12 sliver
+        lo = np.array([1e-3 * k_s, 0.0, 0.0 if damping else -1e-12, MU_BOUNDS[0], F0_BOUNDS_N[0], BETA_BOUNDS[0]])
+        hi = np.array([np.inf, np.inf, np.inf if damping else 0.0, MU_BOUNDS[1], F0_BOUNDS_N[1], BETA_BOUNDS[1]])
+        out.append(_Cable(proc.x_c[:, j], proc.x_c_dot[:, j], np.sign(proc.theta_dot[:, j]), y[:, j], rows[:, j],
+                          1.0 / proc.rate_hz, np.array([k_s, lam_s, 1000.0, 0.1, 10.0, 0.05]), lo, hi))
+    return out
+
+
+def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...]) -> tuple[FloatArray, float]:
+    """Stage 1: least squares on the camera's stretch from every start and τ; the lowest residual."""
+    best: tuple[float, FloatArray, float] | None = None
+    for tau in taus_s:
+        for p0 in starts:
+            p = c.solve(lambda q, a=c.args(tau): _residual(q, *a), p0)
+            cost = float(np.sum(_residual(p, *c.args(tau)) ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, p, tau)
+    assert best is not None
+    return best[1], best[2]
+
+
+def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
+                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int]:
+    """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
+    (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
+    re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE."""
+    m = build(params, "variable")
+    vals, zs, alpha, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
+    while it < IV_MAX_ITERATIONS:
+        it += 1
+        k, lam = vals[:, 0].copy(), vals[:, 1].copy()
+        sim = simulated_stretch(m, proc, k, lam, alpha)
+        alpha = sim.alpha
+        for j, c in enumerate(cables):
+            Z = _jacobian(vals[j], c.scale, free, *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
+            Q, _ = np.linalg.qr(Z / np.maximum(np.linalg.norm(Z, axis=0), 1e-300))
+            zs[j] = Z
+            vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j])
+        change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
+        if change < IV_TOLERANCE:
+            break
+    return vals, zs, it
+
+
+def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
+                      threshold: float = DEFAULT_THRESHOLD, sigma: str = "hac", damping: bool = True,
+                      instruments: bool = True, taus_s: tuple[float, ...] = TAUS_S) -> LoadFrictionFit:
+    """Fit the model of the module docstring per cable.
+
+    ``start``: (k (N/m), λ (1/m)) per cable, tried beside :func:`linear_start`. ``damping`` False
+    holds c_a at 0 (the diagnosis script's candidate). ``instruments`` (default): after the
+    least-squares fit, IDIM-IV (:func:`_instrumental`) for each τ of the grid, τ picked per cable
+    by the camera residual; False: least squares alone (consistent only with a noise-free
+    stretch). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
+    turned fast while its cable was taut), for a bad ``start`` or an unknown ``sigma``."""
+    if sigma not in SIGMA_METHODS:
+        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    nc = params.n_cables
+    _, rows = fit_rows(proc, params)
+    counts = rows.sum(axis=0)
+    if np.any(counts < MIN_ROWS):
+        poor = [f"{j + 1} ({int(counts[j])} rows)" for j in range(nc) if counts[j] < MIN_ROWS]
+        raise ValueError(f"{NAME}: cable(s) {', '.join(poor)} have fewer than {MIN_ROWS} instants with the motor "
+                         f"faster than {MIN_SPEED_RAD_S:g} rad/s and a force above {MIN_FORCE_N:g} N; "
+                         "run the identification trajectory")
+    linear = linear_start(proc, params)
+    k0, lam0 = (np.asarray(v, dtype=float) for v in (start or linear))
+    if k0.shape != (nc,) or lam0.shape != (nc,) or not (np.all(np.isfinite(k0)) and np.all(np.isfinite(lam0))):
+        raise ValueError(f"{NAME}: start must be {nc} finite k and λ, got {start}")
+    cables = _cables(proc, params, k0, lam0, damping)
+    free = np.arange(len(SYMBOLS)) != 2 if not damping else np.ones(len(SYMBOLS), dtype=bool)
+    values, taus = np.zeros((nc, len(SYMBOLS))), np.zeros(nc)
+    for j, c in enumerate(cables):
+        starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, 0.0])
+                  for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
+        values[j], taus[j] = _least_squares(c, starts, taus_s)
+    zs: list[FloatArray] | None = None
+    iterations = 0
+    if instruments:
+        # τ again, by the camera residual of each τ's IV solution: least squares on the noisy stretch
+        # picks it with the noise's bias, and a wrong β, τ trades against k.
+        best = np.full(nc, np.inf)
+        chosen = values.copy()
+        for tau in taus_s:
+            vals, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
+            cost = np.array([np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)])
+            better = cost < best
+            best[better], taus[better], chosen[better] = cost[better], tau, vals[better]
+        values, zs, iterations = _instrumental(proc, params, cables, chosen, taus, free)
+    est = _estimate(proc, cables, values, taus, free, zs, sigma, threshold)
+    how = (f"instrumental variables (simulated model, {iterations} iterations)" if instruments
+           else "nonlinear least squares")
+    est = dataclasses.replace(est, estimator=(
+        f"{how}; friction (1 + s·μ)·t + s·F₀, |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
+        f"{', '.join(f'{t:g}' for t in taus)} s" + ("" if damping else "; no damping")))
+    return LoadFrictionFit(est, taus, (k0, lam0), np.asarray(counts, dtype=np.int64))
+
+
+def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: FloatArray, free: NDArray[np.bool_],
+              zs: list[FloatArray] | None, sigma: str, threshold: float) -> Estimate:
+    """The :class:`Estimate`: σ of the linearised estimator v − v_true ≈ −B·ρ at the solution,
+    B = (ZᵀJ)⁻¹Zᵀ (Z = J for least squares), by the HAC sandwich with the rows' instants as the
+    time index (at least the filter's memory as lag, as the pipeline's), conditional on τ."""
+    nc, n_par = len(cables), len(SYMBOLS)
+    min_lag = int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz))
+    sd = np.zeros((nc, n_par))
+    active: list[str] = []
+    lags: list[int] = []
+    conds: list[float] = []
+    sse = 0.0
+    for j, c in enumerate(cables):
+        res = _residual(values[j], *c.args(taus[j]))
+        J = _jacobian(values[j], c.scale, free, *c.args(taus[j]))
+        Z = J if zs is None else zs[j]
+        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)
+        idx = np.flatnonzero(c.rows).astype(np.int64)
+        if sigma == "hac":
+            cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
+        else:
+            cov, lag = uncertainty.white_covariance(B, res), 0
+        sd[j, free] = np.sqrt(np.abs(np.diag(cov)))
+        lags.append(lag)
+        conds.append(float(np.linalg.cond(J)))
+        sse += float(res @ res)
+        at = free & ((values[j] <= c.lo + 1e-9 * c.scale) | (values[j] >= c.hi - 1e-9 * c.scale))
+        active += [f"{SYMBOLS[i]}({j + 1})" for i in np.flatnonzero(at)]
+    v, sd_v = values.T.reshape(-1), sd.T.reshape(-1)  # symbol-major: k(1..nc), lambda(1..nc), ...
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = sd_v / np.abs(v)
+    lag = max(lags)
+    return Estimate(
+        method="variable", equations="eqs. 54-55 with load-dependent friction and creep",
+        names=sum((param_names(sym, nc) for sym in SYMBOLS), ()), values=v, sigma=sd_v, relative_sigma=rel,
+        condition_number=max(conds), residual_norm=float(np.sqrt(sse)), n_rows=int(sum(c.rows.sum() for c in cables)),
+        n_samples=proc.n, threshold=threshold,
+        sigma_method=f"HAC (Newey-West, Bartlett, {lag} lags)" if sigma == "hac" else "eq. 50 (white residuals)",
+        hac_lag=lag, active_bounds=tuple(active),
+    )
