@@ -70,6 +70,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
              "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |",
              "|---|---|---|---|---|---|"]
     covered = cases = within = 0
+    by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
     for seed in seeds:
         data = mod.simulate_campaign(seed, truth=truth)[0]
         proc = preprocess(data, params)
@@ -81,12 +82,17 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
                     (var.ci_low[il] <= lam_true) & (lam_true <= var.ci_high[il])]
         err = np.r_[k / k_true - 1, lam / lam_true - 1]
         covered, cases, within = covered + int(cov.sum()), cases + len(cov), within + int(np.sum(np.abs(err) < 0.10))
+        for i in range(2):
+            part = slice(4 * i, 4 * i + 4)
+            by_symbol[i] += (int(cov[part].sum()), int(np.sum(np.abs(err[part]) < 0.10)))
         fmt = lambda a: ", ".join(f"{100 * x:+.1f}" for x in a)  # noqa: E731
         lines.append(f"| {seed} | {fmt(err[:4])} | {fmt(err[4:])} | {', '.join(f'{100 * x:.2f}' for x in var.relative_sigma[ik])} "
                      f"| {int(cov[:4].sum())}/4, {int(cov[4:].sum())}/4 | {var.sigma_method} |")
         print(lines[-1], flush=True)
     lines += ["", f"**covered: {covered}/{cases} = {100 * covered / cases:.0f} %** (target ≥ 85 %); "
-              f"within 10 %: {within}/{cases}", ""]
+              f"within 10 %: {within}/{cases}",
+              f"k: covered {by_symbol[0, 0]}/{cases // 2}, within 10 % {by_symbol[0, 1]}/{cases // 2}; "
+              f"λ: covered {by_symbol[1, 0]}/{cases // 2}, within 10 % {by_symbol[1, 1]}/{cases // 2}", ""]
     return "\n".join(lines)
 
 
