@@ -189,10 +189,11 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
 
 
 def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
-                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int]:
+                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int, bool]:
     """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
     (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
-    re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE."""
+    re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE. Returns the
+    values, the instruments, the iterations and whether they converged."""
     m = build(params, "variable")
     vals, zs, alpha, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
     while it < IV_MAX_ITERATIONS:
@@ -207,8 +208,8 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
             vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j])
         change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
         if change < IV_TOLERANCE:
-            break
-    return vals, zs, it
+            return vals, zs, it, True
+    return vals, zs, it, False
 
 
 def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
@@ -244,20 +245,23 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
                   for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
         values[j], taus[j] = _least_squares(c, starts, taus_s)
     zs: list[FloatArray] | None = None
-    iterations = 0
+    iterations, converged = 0, True
     if instruments:
         # τ again, by the camera residual of each τ's IV solution: least squares on the noisy stretch
         # picks it with the noise's bias, and a wrong β, τ trades against k.
         best = np.full(nc, np.inf)
         chosen = values.copy()
         for tau in taus_s:
-            vals, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
+            vals, _, it, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
+            iterations = max(iterations, it)
             cost = np.array([np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)])
             better = cost < best
             best[better], taus[better], chosen[better] = cost[better], tau, vals[better]
-        values, zs, iterations = _instrumental(proc, params, cables, chosen, taus, free)
+        values, zs, it, ok = _instrumental(proc, params, cables, chosen, taus, free)  # Z at the chosen τ
+        iterations, converged = max(iterations, it), ok
     est = _estimate(proc, cables, values, taus, free, zs, sigma, threshold)
-    how = (f"instrumental variables (simulated model, {iterations} iterations)" if instruments
+    how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
+           f"at most {iterations} iterations per τ)" if instruments
            else "nonlinear least squares")
     est = dataclasses.replace(est, estimator=(
         f"{how}; friction (1 + s·μ)·t + s·F₀, |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
