@@ -30,7 +30,9 @@ solves (three rows per sample, four parameters).
 Estimation (eqs. 48-50, twin.identification.estimators): OLS (v = W⁺Y, eq. 49), WLS or, by
 default, IV with instruments from the model re-simulated on the encoders (identify_variable),
 bounded to the physical range (k, f_s > 0; λ, c_a ≥ 0; scipy.optimize.lsq_linear, the parameters
-held at a bound reported). σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
+held at a bound reported); Table 2 alternatively with ``estimator="loadfriction"``
+(twin.identification.loadfriction: motor friction growing with the load and cable creep, fitted on
+the forces by nonlinear IDIM-IV; not the default, see docs/identification-coverage.md). σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
 too small on filtered, decimated data; the default is the Newey-West HAC sandwich
 (twin.identification.uncertainty), with ±2σ intervals. A parameter whose relative σ exceeds
 ``threshold`` (10 % by default), whose value is physically impossible, or which the bounded
