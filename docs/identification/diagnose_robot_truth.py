@@ -25,7 +25,11 @@ tension rows of moving motors (|θ̇| ≥ 1/c_s, ``regressors.moving_mask``):
 - ``eq. 55 t, true x``: the tension from the forces with the identified arctan friction: friction;
 - ``pipeline``: ``identify_variable`` as ``xneck identify`` runs it (every source);
 - ``candidate`` (``--mcap`` only): :func:`_fit_candidate`, an estimator that uses no truth, with
-  the friction of moving motors growing with the load and a creep term (not in the pipeline).
+  the friction of moving motors growing with the load and a creep term (scaled by the truth K, L
+  here; no damping, no instruments);
+- ``loadfriction`` (``--mcap`` only): the same model as the pipeline ships it
+  (``identify_variable(..., estimator="loadfriction")``, twin/identification/loadfriction.py:
+  with damping and IDIM-IV instruments, started with no prior).
 
 The camera rows use α_IP at its capture stamp as the pipeline does; the notes give the lag of
 α_IP behind the true α measured on the same campaign (a regression of the error on α̇).
@@ -259,6 +263,8 @@ def diagnose_archive(path: str) -> dict:
     rows["pipeline (identify_variable, IV)"] = (var.vector("k") / K - 1, var.vector("lambda") / L - 1)
     kl = _fit_candidate(proc, params, K, L)
     rows["candidate: load friction + creep (NLS)"] = (kl[:, 0] / K - 1, kl[:, 1] / L - 1)
+    lf = identify_variable(proc, params, fric.values, estimator="loadfriction")
+    rows["loadfriction (identify_variable)"] = (lf.vector("k") / K - 1, lf.vector("lambda") / L - 1)
     return {"rows": rows, "stretch_error_mm": 1e3 * (proc.x_c - xt).std(axis=0),
             "tension_error": (t55 - tt)[moving & tension_mask(tt)].std(), "moving": moving.mean(axis=0)}
 
