@@ -3,7 +3,7 @@
 Synthetic data from the estimator's own model check that it recovers k and λ with honest ±2σ and
 does not depend on its start; one campaign on the robot truth (twin/sim/robot_truth.toml: load-
 dependent friction and creep, which eq. 55 lacks) checks that it brings k within 10 % where the
-default IDIM-IV does not. Campaign seed 9: not among the coverage seeds (21-40) nor those the
+default IDIM-IV does not. Campaign seed 9: not among the coverage seeds (21-60) nor those the
 estimator was developed on (21-23).
 """
 
