@@ -12,7 +12,12 @@ reads. Issue 21's target: tick p99 with 20 clients within 5 % of none, 0 deadlin
 ``--idle S``: instead, the idle stack's CPU (``xneck up`` with its twin bridge and controller
 service, no campaign, no client) over S seconds, per process in % of one core (target: below 40 %
 in total), and the bridge's watchdog holds and the controller's late ticks meanwhile (target 0
-holds; ``--idle 600`` is issue 21's 10-minute soak).
+holds; ``--idle 600`` is issue 21's 10-minute soak). Ticks and holds are the bridge's own health
+counters (1 Hz), so the figure is the stack's alone; ``--observe-streams`` adds this script's
+subscriptions to every state and command (the reasons of each hold, the longest silence of the
+commands), which the bridge and the controller then serve too. ``--campaigns`` runs §7 control
+campaigns back to back through REST during the window (the soak "running campaigns"; holds are
+counted the same way).
 
 Run: ``.venv/bin/python benchmarks/console_load.py`` (about 1 minute; ``--clients N`` to change 20),
 ``.venv/bin/python benchmarks/console_load.py --idle 60``.
@@ -106,7 +111,26 @@ def _cpu_ticks(pid: int) -> int:
         return 0
 
 
-def idle_stack(seconds: float) -> None:
+def campaigns_loop(base: str, token: str, stop: threading.Event, outcomes: list[str]) -> None:
+    """§7 control campaigns (law 2, real time) back to back through REST until ``stop``; each
+    outcome (status and message) appended to ``outcomes``."""
+    auth = {"Authorization": f"Bearer {token}"}
+    with httpx.Client(base_url=base, timeout=10) as client:
+        while not stop.is_set():
+            r = client.post("/api/campaigns", json={"kind": "control", "law": 2, "pace": "realtime"}, headers=auth)
+            if r.status_code >= 400:
+                outcomes.append(f"refused {r.status_code}: {r.text[:200]}")
+                stop.wait(2.0)
+                continue
+            cid = r.json()["id"]
+            while True:
+                body = client.get(f"/api/campaigns/{cid}").json()
+                if body["status"] != "running" or stop.wait(0.5):
+                    break
+            outcomes.append(f"{body['status']}: {body.get('message', '')}"[:300])
+
+
+def idle_stack(seconds: float, observe_streams: bool = False, with_campaigns: bool = False) -> None:
     """CPU of the idle `xneck up` stack, per process (module docstring)."""
     from server.child_processes import _kind_of  # the kind of an xneck command line
 
@@ -143,6 +167,7 @@ def idle_stack(seconds: float) -> None:
             hz = os.sysconf("SC_CLK_TCK")
             holds, timing, reasons, gaps = [0, "active"], [], {}, [0.0, 0.0]
             seqs: list[int] = []  # the states' seq over the window: the bridge's ticks, even if this observer drops some
+            health: list[bus.Health] = []  # the bridge's own counters (ticks, holds) at 1 Hz
 
             def on_state(sample) -> None:  # entries into the bridge's watchdog hold (a force ramp each)
                 msg = bus.decode(bus.MotorState, sample.payload.to_bytes())
@@ -158,18 +183,37 @@ def idle_stack(seconds: float) -> None:
                     gaps[0] = max(gaps[0], now - gaps[1])
                 gaps[1] = now
 
+            def on_health(sample) -> None:
+                msg = bus.decode(bus.Health, sample.payload.to_bytes())
+                if msg.process == "bridge":
+                    health.append(msg)
+
             with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as session:
-                subs = [session.declare_subscriber(bus.MOTOR_STATE, on_state),
-                        session.declare_subscriber(bus.MOTOR_COMMAND, on_command),
+                # A 500 Hz subscriber is a third party on the loop's keys (Zenoh copies every state and
+                # command to it): it is in the bridge's and controller's CPU, so only on request.
+                subs = [session.declare_subscriber(f"{bus.PREFIX}/health/bridge/*", on_health),
                         session.declare_subscriber(bus.CONTROLLER_TIMING, lambda s: timing.append(
                             bus.decode(bus.ControllerTiming, s.payload.to_bytes())))]
-                time.sleep(1.0)
+                if observe_streams:
+                    subs += [session.declare_subscriber(bus.MOTOR_STATE, on_state),
+                             session.declare_subscriber(bus.MOTOR_COMMAND, on_command)]
+                time.sleep(1.5)
                 before = {pid: _cpu_ticks(pid) for pid in pids}
                 holds[0], gaps[0] = 0, 0.0
                 seqs.clear()
                 reasons.clear()
+                health.clear()
+                stop, outcomes = threading.Event(), []
+                runner = threading.Thread(target=campaigns_loop, args=(
+                    f"http://127.0.0.1:{port}", (Path(tmp) / "d" / "token").read_text().strip(), stop, outcomes))
+                if with_campaigns:
+                    runner.start()
                 time.sleep(seconds)
                 used = {pid: (_cpu_ticks(pid) - before[pid]) / hz / seconds * 100 for pid in pids}
+                stop.set()
+                if with_campaigns:
+                    runner.join(60)
+                time.sleep(1.2)  # the health beat after the window
                 for sub in subs:
                     sub.undeclare()
         finally:
@@ -179,31 +223,48 @@ def idle_stack(seconds: float) -> None:
                 up.wait(60)
             except subprocess.TimeoutExpired:
                 os.killpg(up.pid, signal.SIGKILL)
-    print(f"idle `xneck up` stack over {seconds:.0f} s, CPU in % of one core ({os.cpu_count()} CPUs, "
+    if with_campaigns:
+        print(f"control campaigns run back to back in the window: {len(outcomes)}")
+        for text in sorted(set(outcomes)):
+            print(f"  {outcomes.count(text)} x {text}")
+    print(f"{'busy' if with_campaigns else 'idle'} `xneck up` stack over {seconds:.0f} s, CPU in % of one core ({os.cpu_count()} CPUs, "
           f"load average {os.getloadavg()[0]:.1f}):")
     for pid, kind in sorted(pids.items(), key=lambda x: -used[x[0]]):
         print(f"  {kind:<12s} pid {pid:<8d} {used[pid]:6.1f} %")
     total = sum(used.values())
-    print(f"  {'total':<21s} {total:6.1f} %   (target below 40 %: {'meets' if total < 40 else 'MISSES'})")
+    print(f"  {'total':<21s} {total:6.1f} %" + ("" if with_campaigns else
+          f"   (target below 40 %: {'meets' if total < 40 else 'MISSES'})"))
+    if len(health) < 2:
+        raise RuntimeError(f"{len(health)} bridge health message(s) in the window: cannot count ticks and holds")
     # A loaded machine runs fewer ticks, and fewer ticks cost less: the figure at the rate due.
-    rate_hz = (seqs[-1] - seqs[0]) / seconds if len(seqs) > 1 else float("nan")
-    print(f"bridge ticks over the window: {rate_hz:.0f} per s (500 due); the total at 500 Hz would be about "
-          f"{total * 500 / rate_hz:.1f} %")
+    first, last = health[0], health[-1]
+    rate_hz = (last.received["ticks"] - first.received["ticks"]) / (last.uptime_s - first.uptime_s)
+    print(f"bridge ticks over the window (its health counters): {rate_hz:.0f} per s (500 due); the total at 500 Hz "
+          f"would be about {total * 500 / rate_hz:.1f} %")
     ticks = sum(t.window_ticks for t in timing)
     late = sum(int(np.sum(t.latency_counts[int(np.searchsorted(t.bin_edges_ms, 2.0)):])) for t in timing)
-    print(f"bridge watchdog holds: {holds[0]} (target 0); controller ticks {ticks}, answered later than 2 ms: {late}, "
-          f"stale states of bursts skipped: {sum(t.window_skipped for t in timing)}")
-    print(f"hold reasons: {reasons or '-'}; longest silence on the command key seen by this (unprioritised) observer: "
-          f"{gaps[0] * 1e3:.1f} ms")
+    n_holds = last.received["holds"] - first.received["holds"]
+    print(f"bridge watchdog holds (its health counters): {n_holds} (target 0); controller ticks {ticks}, answered "
+          f"later than 2 ms: {late}, stale states of bursts skipped: {sum(t.window_skipped for t in timing)}")
+    if observe_streams:
+        print(f"observed on the streams: {holds[0]} hold entries, bridge ticks {len(seqs) and seqs[-1] - seqs[0]}; "
+              f"hold reasons: {reasons or '-'}; longest silence on the command key seen by this (unprioritised) "
+              f"observer: {gaps[0] * 1e3:.1f} ms")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--clients", type=int, default=20)
     parser.add_argument("--idle", type=float, default=0.0, help="measure the idle stack's CPU over this many s")
+    parser.add_argument("--observe-streams", action="store_true",
+                        help="with --idle: also subscribe to every state and command (hold reasons, the longest "
+                             "command silence); the stack then also serves this observer at 500 Hz")
+    parser.add_argument("--campaigns", action="store_true",
+                        help="with --idle: run §7 control campaigns (law 2, real time) back to back through REST "
+                             "during the window (the soak's 'running campaigns' half; CPU then is not idle)")
     args = parser.parse_args()
     if args.idle > 0:
-        idle_stack(args.idle)
+        idle_stack(args.idle, args.observe_streams, args.campaigns)
         return
     with tempfile.TemporaryDirectory(prefix="xneck-bench-") as tmp:
         data = Path(tmp) / "data"
