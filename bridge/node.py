@@ -13,8 +13,9 @@ Activation
     The drives start disabled (``inactive``: angles published, zero force). The first valid
     command enables them (``active``).
 Watchdog
-    Real time: when no valid command arrived for ``command_timeout_s`` (10 ms), the forces ramp
-    linearly, over ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold
+    Real time: when no valid command arrived for ``command_timeout_s`` (10 ms) and the states
+    published meanwhile went unanswered (5 at 500 Hz: a stall of the CPU that the bridge shares
+    with the controller is not a silent controller), the forces ramp linearly, over ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold
     forces Z f = g(α̂) with every cable at t_min (:func:`controller.laws.hold_forces`) at the
     rigid-cable estimate α̂ from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
     ``drive = "hold"`` and ``hold_reason`` says why. The next valid command resumes ``active``.
@@ -232,6 +233,8 @@ class BridgeNode:
         self.dt = driver.dt
         self.safety = Safety(SafetyConfig(
             n_motors=n, f_min_N=f_min, f_max_N=f_max, command_timeout_s=config.command_timeout_s,
+            # the states a controller answering on time would have answered within the timeout
+            command_timeout_states=max(1, int(config.command_timeout_s / self.dt + 1e-9)),
             hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), max_force_step_N=config.max_force_step_N,
             watchdog=not config.lockstep))
         self.f_min, self.f_max = f_min, f_max
@@ -275,6 +278,9 @@ class BridgeNode:
         self.theta = driver.read()
         self._theta_list = self.theta.tolist()  # the same angles as plain floats (the hold, the state)
         self._consumed_ns = 0  # receive time of the newest command already shown to the safety rules
+        # States published since the newest valid command arrived: the watchdog holds only once the
+        # controller has had states to answer, not after a stall of the CPU it shares with the bridge.
+        self._unanswered = 0
         self._source_key: tuple[str, str] = ("", "")
         self._source = ""
         self.ticks = self.overruns = 0
@@ -382,13 +388,13 @@ class BridgeNode:
         cmd, recv_ns = self.commands.latest_with_time()
         fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
         if recv_ns > self._consumed_ns:
-            self._consumed_ns = recv_ns
+            self._consumed_ns, self._unanswered = recv_ns, 0
         decision = self.safety.step(Inputs(
             command_N=fresh.force_N if fresh is not None else None,
             source=self._source_text(fresh) if fresh is not None else "",
             command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
             # a tick with a valid command neither starts nor continues a hold
-            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None))
+            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered))
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
             self._follow()  # something to follow (else nothing changed: the steady state, cheaper)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
@@ -399,6 +405,7 @@ class BridgeNode:
         self.hold.offer(self._theta_list)
         self.ticks += 1
         self.publish_state()
+        self._unanswered += 1
         for key, msg in self.driver.extra_messages():
             pub = self._extra_pubs.get(key)
             if pub is None:

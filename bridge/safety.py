@@ -15,7 +15,8 @@ Activation
     The drives start disabled (``inactive``: zero force). The first valid command enables them
     (``active``).
 Watchdog
-    When no valid command arrived for ``command_timeout_s`` (real time only), the forces ramp
+    When no valid command arrived for ``command_timeout_s`` (real time only) while at least
+    ``command_timeout_states`` states went out unanswered (the node counts them), the forces ramp
     linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder
     angles (``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
     tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the tick's facts when
@@ -66,6 +67,10 @@ class SafetyConfig:
     f_min_N: float
     f_max_N: float
     command_timeout_s: float = 0.010  # no valid command for this long -> hold
+    # ... and this many states published unanswered meanwhile (when the caller counts them): the
+    # node sets command_timeout_s / period (5 at 500 Hz), so a silent controller holds on the same
+    # tick as by age alone, and a stall of the CPU the bridge and controller share does not.
+    command_timeout_states: int = 1
     hold_ramp_ticks: int = 5  # ticks of the linear ramp to the hold forces
     max_force_step_N: float = 1.0  # after an enable: the most any force may change in one tick
     watchdog: bool = True  # off in lockstep, where time stands still without commands
@@ -74,8 +79,9 @@ class SafetyConfig:
         f_min, f_max = self.f_min_N, self.f_max_N
         if not (math.isfinite(f_min) and math.isfinite(f_max) and 0.0 <= f_min < f_max):
             raise ValueError(f"the force range must be 0 <= f_min < f_max (N), got ({f_min}, {f_max})")
-        if self.n_motors < 1 or self.hold_ramp_ticks < 1:
-            raise ValueError(f"n_motors and hold_ramp_ticks must be >= 1, got {self.n_motors}, {self.hold_ramp_ticks}")
+        if self.n_motors < 1 or self.hold_ramp_ticks < 1 or self.command_timeout_states < 1:
+            raise ValueError(f"n_motors, hold_ramp_ticks and command_timeout_states must be >= 1, got "
+                             f"{self.n_motors}, {self.hold_ramp_ticks}, {self.command_timeout_states}")
         if not (math.isfinite(self.max_force_step_N) and self.max_force_step_N > 0):
             raise ValueError(f"max_force_step_N must be a positive force (N), got {self.max_force_step_N}")
         if not (math.isfinite(self.command_timeout_s) and self.command_timeout_s > 0):
@@ -87,9 +93,10 @@ class Inputs(NamedTuple):
 
     ``command_N``: the forces of a valid command received since the last step (None if none);
     ``source``: its sender's law, for the log. ``command_age_s``: age of the newest valid
-    command (None if none ever arrived). ``estop``: e-stop events since the last step.
-    ``hold_N``: fresh hold forces of the encoder angles (computed off the tick), None when there
-    are none.
+    command (None if none ever arrived). ``states_unanswered``: states published since the newest
+    valid command arrived (None: not counted, the age alone decides). ``estop``: e-stop events since
+    the last step. ``hold_N``: fresh hold forces of the encoder angles (computed off the tick), None
+    when there are none.
     """
 
     command_N: Sequence[float] | None = None
@@ -97,6 +104,7 @@ class Inputs(NamedTuple):
     command_age_s: float | None = None
     estop: Sequence[EStopEvent] = ()
     hold_N: Sequence[float] | None = None
+    states_unanswered: int | None = None
 
 
 class Decision(NamedTuple):
@@ -182,10 +190,10 @@ class Safety:
             self.drive, self.hold_reason = "active", ""
             self._target = self.clamp(inputs.command_N)
         elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:
-            age_s = inputs.command_age_s
-            if age_s > cfg.command_timeout_s:
-                self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms "
-                                 f"(timeout {cfg.command_timeout_s * 1e3:.0f} ms)", inputs.hold_N)
+            age_s, unanswered = inputs.command_age_s, inputs.states_unanswered
+            if age_s > cfg.command_timeout_s and (unanswered is None or unanswered >= cfg.command_timeout_states):
+                self._start_hold(f"no valid command for {age_s * 1e3:.0f} ms (timeout {cfg.command_timeout_s * 1e3:.0f} ms)"
+                                 + ("" if unanswered is None else f", {unanswered} states unanswered"), inputs.hold_N)
         if self.drive == "active":
             self.force = self._towards_target()
         elif self.drive == "hold":

@@ -380,8 +380,11 @@ def test_the_tick_that_starts_a_hold_uses_hold_forces_computed_off_the_tick(para
                 pub.put(_command(2, f_cmd, node.epoch))
             assert node.mode == "active" and node.force.tolist() == pytest.approx(f_cmd.tolist())
             time.sleep(0.05)
-            tick(node)  # takes the last command (in flight a moment ago); then the worker catches up
-            time.sleep(0.2)
+            tick(node)  # takes the last command (in flight a moment ago)
+            for _ in range(4):  # states unanswered: a hold needs five (the controller's silence)
+                tick(node)
+            assert node.mode == "active"
+            time.sleep(0.2)  # the worker catches up with these angles
             before, theta = node.force.copy(), node.theta.copy()
             tick(node)
             assert node.mode == "hold"
@@ -397,6 +400,50 @@ def test_the_tick_that_starts_a_hold_uses_hold_forces_computed_off_the_tick(para
             exact = np.clip(real(theta), params.limits.f_min, params.limits.f_max)
             np.testing.assert_allclose(target, exact, atol=0.05)
             assert record["in_tick"] == 0
+        finally:
+            node.shutdown()
+
+
+def test_a_stall_of_the_loops_cpu_starts_no_hold_a_silent_controller_does(params):
+    """The watchdog guards against a controller that stops answering, not against a CPU that the
+    bridge and the controller share being taken from both: after a 50 ms stall right after a
+    state went out (the controller had no time to answer it), the bridge keeps the drives active
+    and the late answer is obeyed; a controller that stays silent trips the hold once five states
+    are unanswered (the idle soak: 1-2 holds in 10 min, each a force ramp for nothing)."""
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _node(connect(), params)  # the default watchdog: 10 ms
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        f_cmd = hold_forces(params, np.zeros(3)) + 5.0
+        k = 0
+
+        def answer() -> None:  # the controller's reply to the state just published
+            nonlocal k
+            k += 1
+            seen = node.commands.stats.accepted
+            pub.put(_command(k, f_cmd, node.epoch))
+            assert wait_until(lambda: node.commands.stats.accepted > seen, 2.0)
+
+        try:
+            assert _put_until(pub, _command(k, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            for _ in range(40):  # past the bumpless ramp from zero, every state answered
+                node.tick()
+                answer()
+            node.tick()  # a state goes out; then the CPU is gone before the controller answers it
+            assert node.mode == "active"
+            time.sleep(0.050)
+            node.tick()  # the bridge runs first after the stall
+            assert node.mode == "active" and node.holds == 0, node.hold_reason
+            answer()  # the controller's late answer
+            node.tick()
+            assert node.mode == "active" and node.holds == 0
+            ticks = 0
+            while node.mode == "active" and ticks < 10:  # now the controller is silent
+                time.sleep(DT)
+                node.tick()
+                ticks += 1
+            assert node.mode == "hold" and node.holds == 1 and ticks == 5, (ticks, node.hold_reason)
+            assert "5 states unanswered" in node.hold_reason
         finally:
             node.shutdown()
 

@@ -67,6 +67,34 @@ def test_watchdog_ramps_linearly_to_the_hold_forces_then_a_command_leaves_the_ho
     assert any("leaving hold" in m for _lvl, m in d.events)
 
 
+def test_a_stall_of_the_loops_cpu_is_not_a_silent_controller():
+    # The 10-minute idle soak (benchmarks/console_load.py --idle 600) held once or twice: the
+    # VM took the loop's CPU, which the bridge and the controller share, for tens of ms. The
+    # bridge (the higher priority) ran first after it and found its last command 50 ms old,
+    # while the controller had not yet had the CPU to answer the one state published before.
+    # A hold needs the controller to have had states to answer: five, and 10 ms.
+    s = machine(command_timeout_states=5)
+    for _ in range(100):
+        s.step(cmd([30.0] * N, states_unanswered=0))
+    d = s.step(idle(age_s=0.052, states_unanswered=1))  # the first tick after a 50 ms stall
+    assert d.drive == "active" and s.holds == 0
+    for k in range(2, 5):  # the controller still silent: its states are not yet 5
+        assert s.step(idle(age_s=0.052 + 0.002 * k, states_unanswered=k)).drive == "active"
+    d = s.step(idle(age_s=0.062, states_unanswered=5))
+    assert d.drive == "hold" and s.holds == 1
+    assert "no valid command for 62 ms (timeout 10 ms), 5 states unanswered" in d.hold_reason
+
+
+def test_a_silent_controller_holds_on_the_same_tick_as_by_its_commands_age_alone():
+    s = machine(command_timeout_states=5)
+    for _ in range(100):
+        s.step(cmd([30.0] * N, states_unanswered=0))
+    # the normal pace: a state every 2 ms, the last command 0.5 ms after the state it answered
+    for k in range(1, 5):
+        assert s.step(idle(age_s=0.0015 + 0.002 * k, states_unanswered=k)).drive == "active"
+    assert s.step(idle(age_s=0.0115, states_unanswered=5)).drive == "hold"
+
+
 def test_without_the_watchdog_lockstep_never_holds():
     s = machine(watchdog=False)
     s.step(cmd([20.0] * N))
