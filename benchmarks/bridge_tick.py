@@ -139,8 +139,12 @@ def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
                 "tick, fresh command, clamped, published", active[100:])
             _timing.summary("  reference workload beside it", active_ref[100:])
             out["active_ratio_median"], out["active_ratio_p99"] = _ratio("fresh command", active[100:], active_ref[100:])
-            time.sleep(0.02)  # past the 10 ms command timeout: the next tick starts the hold
-            node.tick()
+            # Past the 10 ms command timeout, with the states a controller would have answered
+            # meanwhile (the watchdog's second condition, bridge/safety.py) gone out unanswered.
+            unanswered = node.safety.config.command_timeout_states
+            time.sleep(0.02)
+            for _ in range(unanswered):
+                node.tick()
             assert node.mode == "hold", node.mode
             held, held_ref = np.empty(n_ticks), np.empty(n_ticks)
             for k in range(n_ticks):
@@ -169,7 +173,8 @@ def ticks_in_process(replay: Path, n_ticks: int) -> dict[str, float]:
                 deadline = time.perf_counter() + 1.0
                 while node.commands.latest_with_time()[1] == before and time.perf_counter() < deadline:
                     time.sleep(0.001)
-                node.tick()
+                for _ in range(unanswered):  # the command's tick, then states unanswered
+                    node.tick()
                 for out_s in (starts, later):
                     time.sleep(0.02)
                     t0 = time.perf_counter()
