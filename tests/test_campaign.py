@@ -4,6 +4,9 @@ recorded to MCAP and read back; the paper's findings hold on the twin."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -19,13 +22,40 @@ pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # twin and controller proc
 
 
 @pytest.fixture(scope="module")
-def campaigns(params, tmp_path_factory):
-    """The §7 control test with each law, each against its own lockstep twin (seed 3)."""
+def identification_run(tmp_path_factory):
+    """`xneck campaign identification --twin` (see its test below), started before the control
+    campaigns so that it runs beside them: this module has the machine to itself (a realtime
+    turn, tests/conftest.py), and one lockstep campaign keeps about one CPU busy."""
+    tmp = tmp_path_factory.mktemp("identification")
+    out, damping = tmp / "ident.mcap", tmp / "damping.toml"
+    damping.write_text('[cables]\nenabled = true\ncreep_ratio = { value = 0.0, source = "none: test" }\n'
+                       'damping_N_s_m = { value = 40.0, source = "physics estimate: robot_truth.toml" }\n')
+    # White-noise α_IP: this test is the bus path; the rendered camera's whole chain (the campaigns'
+    # default) is tests/test_camera_identification.py, and rendering here would double the suite's cost.
+    with open(tmp / "stdout", "wb") as stdout, open(tmp / "stderr", "wb") as stderr:
+        proc = subprocess.Popen([sys.executable, "-m", "server.cli", "campaign", "identification", "--twin", "--truth",
+                                 str(damping), "--out", str(out), "--json", "--seed", "4", "--alpha-ip", "noise"],
+                                stdout=stdout, stderr=stderr, stdin=subprocess.DEVNULL)
+    try:
+        yield proc, tmp, out, damping
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
+@pytest.fixture(scope="module")
+def campaigns(params, tmp_path_factory, identification_run):
+    """The §7 control test with each law, each against its own lockstep twin (seed 3), two at a
+    time beside the identification campaign (each has its own hub: nothing is shared)."""
     out = tmp_path_factory.mktemp("campaigns")
     laws = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
             "no_pulleys": LawConfig(law=2, no_pulleys=True)}
-    return {name: run_campaign(CampaignSpec("control", law, control_test_trajectory(), seed=3, timeout_s=240),
-                               params, out / f"{name}.mcap") for name, law in laws.items()}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        runs = {name: pool.submit(run_campaign, CampaignSpec("control", law, control_test_trajectory(), seed=3,
+                                                             timeout_s=240), params, out / f"{name}.mcap")
+                for name, law in laws.items()}
+        return {name: run.result() for name, run in runs.items()}
 
 
 def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
@@ -104,22 +134,16 @@ def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_pat
     assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
 
 
-def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, tmp_path, xneck):
+def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, identification_run):
     """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
     processes, identified from the archive: Table 1 friction and Table 2 stiffness come back, and the
     robot's small cable damping is flagged, never used. The twin runs a truth file with that damping
     alone (`--truth FILE`): the default robot truth's friction and creep are outside what the paper's
     identification models (issue 16, docs/twin-fidelity.md), and this test checks the pipeline."""
-    out = tmp_path / "ident.mcap"
-    damping = tmp_path / "damping.toml"
-    damping.write_text('[cables]\nenabled = true\ncreep_ratio = { value = 0.0, source = "none: test" }\n'
-                       'damping_N_s_m = { value = 40.0, source = "physics estimate: robot_truth.toml" }\n')
-    # White-noise α_IP: this test is the bus path; the rendered camera's whole chain (the campaigns'
-    # default) is tests/test_camera_identification.py, and rendering here would double the suite's cost.
-    run = xneck("campaign", "identification", "--twin", "--truth", str(damping), "--out", str(out), "--json",
-                "--seed", "4", "--alpha-ip", "noise", timeout=600)
-    assert run.returncode == 0, run.stderr[-2000:]
-    doc = json.loads(run.stdout)
+    proc, tmp, out, damping = identification_run
+    returncode = proc.wait(600)
+    assert returncode == 0, (tmp / "stderr").read_text()[-2000:]
+    doc = json.loads((tmp / "stdout").read_text())
     values = lambda table: {p["name"]: p["value"] for p in table["parameters"]}  # noqa: E731
     f_s = values(doc["table_1"]["friction"])
     for j, truth in enumerate(params.friction.f_s):
