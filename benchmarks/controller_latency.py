@@ -201,6 +201,14 @@ def on_the_bus(seconds: float, controller_tree: Path | None = None, isolated: bo
     waypoints = [[0, 0, 0], [40, 30, 20], [0, 0, 0], [-30, -20, -40], [0, 0, 0]]
     reps = max(1, int(seconds // 12))
     traj = Trajectory.from_degrees(waypoints * reps + [[0, 0, 0]], durations_s=2.0, dwell_s=1.0, name="bench")
+    longest = 600.0  # s, the most a campaign may last (the controller refuses longer trajectories)
+    if traj.duration_s > longest:  # the 10-minute soak: as many repetitions as fit
+        reps = max(1, int(reps * longest / traj.duration_s))
+        while reps > 1 and Trajectory.from_degrees(waypoints * reps + [[0, 0, 0]], durations_s=2.0,
+                                                   dwell_s=1.0).duration_s > longest:
+            reps -= 1
+        traj = Trajectory.from_degrees(waypoints * reps + [[0, 0, 0]], durations_s=2.0, dwell_s=1.0, name="bench")
+        print(f"--seconds {seconds:g}: the trajectory is cut to {traj.duration_s:.0f} s, the longest a campaign may last")
     tmp = Path(tempfile.mkdtemp(prefix="xneck-bench-"))
     (tmp / "traj.json").write_text(traj.to_json())
     state_rx: dict[float, int] = {}
