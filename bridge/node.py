@@ -17,7 +17,8 @@ Watchdog
     published meanwhile went unanswered (5 at 500 Hz: a stall of the CPU that the bridge shares
     with the controller is not a silent controller), the forces ramp linearly, over
     ``hold_ramp_s`` (10 ms, counted in ticks), from those applied to the hold forces Z f = g(α̂)
-    with every cable at t_min (:func:`controller.laws.hold_forces`) at the rigid-cable estimate α̂ from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
+    with every cable at t_min (:func:`controller.laws.hold_forces`) at the rigid-cable estimate α̂
+    from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
     ``drive = "hold"`` and ``hold_reason`` says why. The next valid command resumes ``active``.
     The hold forces are never computed in a tick (:class:`HoldWorker` keeps them fresh on a
     thread of its own); without fresh ones (of angles read at most 0.1 s before) the hold keeps
