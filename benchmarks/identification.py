@@ -71,6 +71,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
              "|---|---|---|---|---|---|"]
     covered = cases = within = 0
     by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
+    z = []  # (estimate − truth)/σ of k(1..4), λ(1..4) per seed: mean 0 and spread 1 for an honest σ
     for seed in seeds:
         data = mod.simulate_campaign(seed, truth=truth)[0]
         proc = preprocess(data, params)
@@ -81,6 +82,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
         cov = np.r_[(var.ci_low[ik] <= k_true) & (k_true <= var.ci_high[ik]),
                     (var.ci_low[il] <= lam_true) & (lam_true <= var.ci_high[il])]
         err = np.r_[k / k_true - 1, lam / lam_true - 1]
+        z.append(np.r_[(k - k_true) / var.sigma[ik], (lam - lam_true) / var.sigma[il]])
         covered, cases, within = covered + int(cov.sum()), cases + len(cov), within + int(np.sum(np.abs(err) < 0.10))
         for i in range(2):
             part = slice(4 * i, 4 * i + 4)
@@ -93,6 +95,12 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
               f"within 10 %: {within}/{cases}",
               f"k: covered {by_symbol[0, 0]}/{cases // 2}, within 10 % {by_symbol[0, 1]}/{cases // 2}; "
               f"λ: covered {by_symbol[1, 0]}/{cases // 2}, within 10 % {by_symbol[1, 1]}/{cases // 2}", ""]
+    if len(seeds) > 2:
+        zz = np.asarray(z)
+        fmt_z = lambda a: ", ".join(f"{x:+.2f}" for x in a)  # noqa: E731
+        lines += ["(estimate − truth)/σ over the seeds (an honest σ: mean 0, spread 1): "
+                  f"k mean {fmt_z(zz[:, :4].mean(0))}, spread {fmt_z(zz[:, :4].std(0, ddof=1))}; "
+                  f"λ mean {fmt_z(zz[:, 4:].mean(0))}, spread {fmt_z(zz[:, 4:].std(0, ddof=1))}", ""]
     return "\n".join(lines)
 
 
