@@ -2,8 +2,8 @@
 ``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction] [--seeds N] [--first S] [--out FILE]``: the ±2σ
 coverage of Table 2's k and λ over campaign seeds 21-30 (issue 17), as markdown for the docs.
 
-The campaign is simulated once with the test suite's closed loop on the twin (97 s trajectory,
-48 500 encoder samples, 2 900 camera frames). Timed: :func:`preprocess` + :func:`identify_all`
+The campaign is simulated once with the identification closed loop (controller/identification_loop.py)
+on the twin (97 s trajectory, 48 500 encoder samples, 2 900 camera frames). Timed: :func:`preprocess` + :func:`identify_all`
 (friction, complete, variable). Baseline in the same process: the same three regressions solved
 with numpy.linalg.lstsq on the raw, unfiltered 500 Hz data (no filtering, no decimation; α_IP
 linearly interpolated to every tick), i.e. what the processing replaces. Validation (α̂ by eqs.
@@ -14,7 +14,6 @@ linearly interpolated to every tick), i.e. what the processing replaces. Validat
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 summary, time_calls = _timing.summary, _timing.time_calls
 
+from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign  # noqa: E402
 from twin.identification.pipeline import (  # noqa: E402
     VARIABLE_ESTIMATORS,
     identified_params,
@@ -41,16 +41,8 @@ from twin.model.params import load_params  # noqa: E402
 TARGET_S = 2.0
 
 
-def _test_module():
-    spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def _load_campaign():
-    return _test_module().simulate_campaign(0)[0]
+    return simulate_campaign(0)[0]
 
 
 COVERAGE_SEEDS = tuple(range(21, 31))  # campaign seeds never used while the estimators were developed (0, 1)
@@ -62,8 +54,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
     from twin.identification.pipeline import identify_friction, identify_variable
     from twin.sim.truth import load_truth
 
-    mod = _test_module()
-    truth = mod.PIPELINE_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
+    truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
     params = load_params()
     k_true, lam_true = np.array(params.cables.variable.k), np.array(params.cables.variable.lam)
     lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}", "",
@@ -73,7 +64,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
     by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
     z = []  # (estimate − truth)/σ of k(1..4), λ(1..4) per seed: mean 0 and spread 1 for an honest σ
     for seed in seeds:
-        data = mod.simulate_campaign(seed, truth=truth)[0]
+        data = simulate_campaign(seed, truth=truth)[0]
         proc = preprocess(data, params)
         var = identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator)
         k, lam = var.vector("k"), var.vector("lambda")

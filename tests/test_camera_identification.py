@@ -11,16 +11,16 @@ import pytest
 
 from bridge import bus
 from bridge.archive import read_campaign, write_campaign
+from controller.identification_loop import DAMPING_ONLY_TRUTH
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop
 from controller.trajectory import identification_trajectory, load_trajectory, recorded_excitation
 from twin.sim.simulator import TwinConfig
-from twin.sim.truth import load_truth
 
 # The truth tests/test_identification.py and the bus campaign test identify against: the robot's
 # small cable damping alone (the default robot truth's other effects are outside the paper's models).
 pytestmark = pytest.mark.realtime  # real-time campaigns whose analysis refuses lost states
-PIPELINE_TRUTH = load_truth("robot").only("cables").replace("cables", creep_ratio=0.0)
+PIPELINE_TRUTH = DAMPING_ONLY_TRUTH
 NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0]], "durations_s": 1.0, "dwell_s": 0.2}
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign
 from controller.trajectory import identification_trajectory, recorded_excitation
 from twin.identification.pipeline import (
     CampaignData,
@@ -28,55 +29,10 @@ from twin.identification.pipeline import (
     validate,
     write_identified,
 )
-from twin.model import dynamics
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
-from twin.sim.truth import load_truth
 
 SEEDS = (0, 1)
-PIPELINE_TRUTH = load_truth("robot").only("cables").replace("cables", creep_ratio=0.0)  # see the module docstring
-
-
-def simulate_campaign(seed: int, duration_s: float | None = None, omega: float = 11.0, floor_N: float = 10.0,
-                      still: bool = False, truth=PIPELINE_TRUTH, params=None,
-                      trajectory=None) -> tuple[CampaignData, dict[str, np.ndarray]]:
-    """Run the identification trajectory (or ``trajectory``) on a twin; returns the campaign and the
-    twin's truth at every tick (α, cable tension, stretch, motor speed: docs/identification/
-    diagnose_robot_truth.py fits against them). ``still``: hold the straight pose instead (motors
-    never move). ``params``/``truth``: what the twin integrates (default: the 3-X prototype with the
-    robot's damping)."""
-    twin = Twin(params, TwinConfig(seed=seed, truth=truth))
-    m = twin.model
-    traj = trajectory or identification_trajectory()
-    T = int(round((duration_s or traj.duration_s) / twin.dt))
-    t = np.arange(1, T + 1) * twin.dt
-    ref = traj.sample(np.zeros(T) if still else t - twin.dt)
-    kp, kv = 3 * omega**2, 3 * omega
-    theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
-    tension, stretch, speed = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 4))
-    t_ip, a_ip = [], []
-    alpha, alpha_dot, theta_dot = np.zeros(3), np.zeros(3), np.zeros(4)
-    for k in range(T):
-        w = ref.alpha_ddot[k] + kv * (ref.alpha_dot[k] - alpha_dot) + kp * (ref.alpha[k] - alpha)
-        terms = dynamics.evaluate(m, alpha, alpha_dot)
-        Z = terms.Z
-        gamma = terms.M @ w + terms.c + terms.g
-        null = np.append(-np.linalg.solve(Z[:, :3], Z[:, 3]), 1.0)  # positive (ERRATA)
-        f_p = np.append(np.linalg.solve(Z[:, :3], gamma), 0.0)
-        f_fr = dynamics.f_friction(m, theta_dot)
-        # Both the tension and the motor force stay above the floor.
-        s = max(np.max((floor_N - f_p) / null), np.max((floor_N - f_p - f_fr) / null))
-        f = np.clip(f_p + s * null + f_fr, m.f_min, m.f_max)
-        tick = twin.tick(f)
-        alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot
-        theta[k], force[k], alpha_true[k] = tick.theta_meas, f, alpha
-        tension[k], stretch[k], speed[k] = tick.tension, tick.elongation, tick.theta_dot
-        for capture, frame in tick.frames:
-            t_ip.append(capture)
-            a_ip.append(frame)
-    data = CampaignData(np.asarray(t, dtype=np.float64), theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
-                        excitation_alpha_rad=None if still else ref.alpha)
-    return data, {"t": t, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
+PIPELINE_TRUTH = DAMPING_ONLY_TRUTH  # see the module docstring
 
 
 @pytest.fixture(scope="module")

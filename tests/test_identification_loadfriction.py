@@ -9,13 +9,12 @@ estimator was developed on (21-23).
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from controller.identification_loop import simulate_campaign
 from twin.identification import loadfriction
 from twin.identification.loadfriction import fit_load_friction
 from twin.identification.pipeline import (
@@ -109,11 +108,7 @@ def test_refuses_a_campaign_where_the_motors_never_turn_fast(synthetic, params):
 
 
 def _simulate_campaign(seed: int, truth):
-    spec = importlib.util.spec_from_file_location("_id_tests", Path(__file__).with_name("test_identification.py"))
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.simulate_campaign(seed, truth=truth)[0]
+    return simulate_campaign(seed, truth=truth)[0]
 
 
 def test_robot_truth_k_within_10_percent_where_iv_is_not(params):

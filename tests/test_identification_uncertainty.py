@@ -10,14 +10,13 @@ The full coverage over more campaigns is ``benchmarks/identification.py --covera
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from controller.identification_loop import simulate_campaign
 from twin.identification.estimators import least_squares, physical_bounds
 from twin.identification.instruments import simulated_stretch
 from twin.identification.pipeline import identify_friction, identify_variable, preprocess
@@ -96,12 +95,7 @@ def test_wls_weights_the_noisy_group_down():
 
 
 def _simulate():
-    here = Path(__file__).resolve().parent
-    spec = importlib.util.spec_from_file_location("_identification_campaign", here / "test_identification.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.simulate_campaign(DYNAMICS_SEED)
+    return simulate_campaign(DYNAMICS_SEED)
 
 
 @pytest.fixture(scope="module")

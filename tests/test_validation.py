@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bridge import archive, bus
+from controller.identification_loop import simulate_campaign
 from controller.trajectory import identification_trajectory
 
 DURATION_S = 13.0  # the shortest record the pipeline identifies: a move out, back and through
@@ -29,10 +30,8 @@ def _write(path, data, trajectory_json: str) -> None:
 
 @pytest.fixture(scope="module")
 def campaigns(tmp_path_factory):
-    """Two short twin campaigns (the closed-loop twin of tests/test_identification.py, real MCAP
+    """Two short twin campaigns (the identification closed loop, controller/identification_loop.py; real MCAP
     files): A with seed 0, B with seed 1 (other sensor noise, so other data)."""
-    from test_identification import simulate_campaign
-
     d = tmp_path_factory.mktemp("cv")
     traj = identification_trajectory().to_json()
     a, _ = simulate_campaign(0, duration_s=DURATION_S)

@@ -1,6 +1,6 @@
 """Which robot-truth effect biases Table 2's estimate? (issues 16/17)
 
-Runs the identification tests' closed loop (the §5.2.2 trajectory, 97 s) on the robot truth with
+Runs the identification closed loop (controller/identification_loop.py) (the §5.2.2 trajectory, 97 s) on the robot truth with
 one effect or one friction term switched off at a time, identifies Table 2 with the chosen
 estimator and prints, per variant, the mean k and λ errors over the campaign seeds and the mean
 of (estimate − truth)/σ. ``--true-camera`` replaces α_IP by the twin's true α at each frame's
@@ -18,16 +18,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
+from controller.identification_loop import simulate_campaign
 from twin.identification.pipeline import VARIABLE_ESTIMATORS, identify_friction, identify_variable, preprocess
 from twin.model.params import load_params
 from twin.sim.truth import RobotTruth, load_truth
 
-ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_VARIANTS = (
     "robot",
     "no-friction", "no-actuation", "no-structure", "no-cables", "no-timing",
@@ -53,18 +51,10 @@ def variant(name: str, robot: RobotTruth) -> RobotTruth:
     return robot.replace(section, **values)
 
 
-def _tests_module():
-    spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def errors(truth: RobotTruth, seed: int, estimator: str, true_camera: bool) -> np.ndarray:
     """(2, 2, n_cables): [k, λ] × [relative error, (estimate − truth)/σ] of one campaign."""
     params = load_params()
-    data, tru = _tests_module().simulate_campaign(seed, truth=truth)
+    data, tru = simulate_campaign(seed, truth=truth)
     if true_camera:
         at = np.clip(np.searchsorted(tru["t"], data.t_ip_s), 0, len(tru["t"]) - 1)
         data = dataclasses.replace(data, alpha_ip_rad=tru["alpha"][at])

@@ -9,8 +9,8 @@ motor speed) is recorded beside the data. Prints markdown for docs/identificatio
 bus, α_IP measured on rendered frames), whose ``/xneck/twin/truth`` channel holds the twin's true
 tension and stretch.
 
-The campaign is the identification tests' closed loop (tests/test_identification.py
-``simulate_campaign``: computed torque on the true α, friction compensated with eq. 37) on the
+The campaign is the identification closed loop (controller/identification_loop.py
+``simulate_campaign``, the identification tests' loop: computed torque on the true α, friction compensated with eq. 37) on the
 robot truth (twin/sim/robot_truth.toml, every effect on), on the §5.2.2 4×6 cycloids or on a
 hold-free excitation (``holdfree``: random poses in a (50, 45, 40)° box joined back to back by
 cycloids at 80 % of the speed and acceleration limits, 97 s, seed 0, through the controller's
@@ -41,7 +41,6 @@ moving motors fitted per direction as F = F_0 + μ·t (the load-dependent part e
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -53,6 +52,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 
+from controller.identification_loop import simulate_campaign  # noqa: E402
 from controller.trajectory import Trajectory, identification_trajectory, load_trajectory  # noqa: E402
 from twin.identification.instruments import simulated_stretch  # noqa: E402
 from twin.identification.pipeline import CampaignData, identify_friction, identify_variable, preprocess  # noqa: E402
@@ -94,13 +94,9 @@ def holdfree(seed: int = 0, box_deg: str = "50,45,40", speed: float = 0.8, durat
 
 
 def simulate(traj: Trajectory, seed: int) -> tuple[CampaignData, dict[str, np.ndarray]]:
-    """The tests' closed loop (tests/test_identification.py ``simulate_campaign``) on the robot
-    truth, with the truth's tension, stretch and motor speed at every tick."""
-    spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
-    assert spec is not None and spec.loader is not None
-    tests = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tests)
-    return tests.simulate_campaign(seed, truth=load_truth("robot"), trajectory=traj)
+    """The identification closed loop (controller/identification_loop.py ``simulate_campaign``) on
+    the robot truth, with the truth's tension, stretch and motor speed at every tick."""
+    return simulate_campaign(seed, truth=load_truth("robot"), trajectory=traj)
 
 
 def _lp(x: np.ndarray, tau_s: float, h: float) -> np.ndarray:

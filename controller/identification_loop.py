@@ -1,0 +1,65 @@
+"""The identification campaign's closed loop in one process, without the bus (3-X paper §5.2.2).
+
+Computed torque on the twin's *true* α, the cable tensions kept at least ``floor_N`` through the
+positive null vector of Z, the model's friction (eq. 37) compensated: smooth, rich forces, as §5.2.2
+asks. It is not law 1 (law 1 runs on α̂; its campaigns are `xneck campaign identification`): it is
+the known-answer loop of the identification tests, of the coverage benchmark
+(benchmarks/identification.py) and of the docs' diagnosis scripts, one definition for all of them.
+
+:data:`DAMPING_ONLY_TRUTH` is the truth the identification tests were written for: the robot
+truth's small cable damping alone (twin/sim/robot_truth.toml), the other unmodelled effects off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controller.trajectory import identification_trajectory
+from twin.identification.processing import CampaignData
+from twin.model import dynamics
+from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.truth import load_truth
+
+DAMPING_ONLY_TRUTH = load_truth("robot").only("cables").replace("cables", creep_ratio=0.0)
+
+
+def simulate_campaign(seed: int, duration_s: float | None = None, omega: float = 11.0, floor_N: float = 10.0,
+                      still: bool = False, truth=DAMPING_ONLY_TRUTH, params=None,
+                      trajectory=None) -> tuple[CampaignData, dict[str, np.ndarray]]:
+    """Run the identification trajectory (or ``trajectory``) on a twin; returns the campaign and the
+    twin's truth at every tick (α, cable tension, stretch, motor speed: docs/identification/
+    diagnose_robot_truth.py fits against them). ``still``: hold the straight pose instead (motors
+    never move). ``params``/``truth``: what the twin integrates (default: the 3-X prototype with the
+    robot's damping)."""
+    twin = Twin(params, TwinConfig(seed=seed, truth=truth))
+    m = twin.model
+    traj = trajectory or identification_trajectory()
+    T = int(round((duration_s or traj.duration_s) / twin.dt))
+    t = np.arange(1, T + 1) * twin.dt
+    ref = traj.sample(np.zeros(T) if still else t - twin.dt)
+    kp, kv = 3 * omega**2, 3 * omega
+    theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
+    tension, stretch, speed = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 4))
+    t_ip, a_ip = [], []
+    alpha, alpha_dot, theta_dot = np.zeros(3), np.zeros(3), np.zeros(4)
+    for k in range(T):
+        w = ref.alpha_ddot[k] + kv * (ref.alpha_dot[k] - alpha_dot) + kp * (ref.alpha[k] - alpha)
+        terms = dynamics.evaluate(m, alpha, alpha_dot)
+        Z = terms.Z
+        gamma = terms.M @ w + terms.c + terms.g
+        null = np.append(-np.linalg.solve(Z[:, :3], Z[:, 3]), 1.0)  # positive (ERRATA)
+        f_p = np.append(np.linalg.solve(Z[:, :3], gamma), 0.0)
+        f_fr = dynamics.f_friction(m, theta_dot)
+        # Both the tension and the motor force stay above the floor.
+        s = max(np.max((floor_N - f_p) / null), np.max((floor_N - f_p - f_fr) / null))
+        f = np.clip(f_p + s * null + f_fr, m.f_min, m.f_max)
+        tick = twin.tick(f)
+        alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot
+        theta[k], force[k], alpha_true[k] = tick.theta_meas, f, alpha
+        tension[k], stretch[k], speed[k] = tick.tension, tick.elongation, tick.theta_dot
+        for capture, frame in tick.frames:
+            t_ip.append(capture)
+            a_ip.append(frame)
+    data = CampaignData(np.asarray(t, dtype=np.float64), theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
+                        excitation_alpha_rad=None if still else ref.alpha)
+    return data, {"t": t, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
