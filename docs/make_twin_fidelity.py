@@ -5,7 +5,7 @@ all together, beside the 3-X paper's prototype numbers.
 Runs in process what the users' commands run over the bus: ``xneck campaign control --twin
 --truth robot --law 1|2|3 [--no-pulleys]`` is controller.offline.run_closed_loop (the same loop as
 the lockstep campaign) against a twin of the truth; ``xneck campaign identification --twin --truth
-robot`` is the §5.2.2 closed loop of tests/test_identification.py and the identification pipeline.
+robot`` is the §5.2.2 closed loop of controller/identification_loop.py and the identification pipeline.
 "Each effect alone" is the robot truth with only that section enabled (``RobotTruth.only``), the
 same as a truth file with the other sections' ``enabled = false``. Serial, about 15 minutes on a
 loaded 2-core machine. Run: ``.venv/bin/python docs/make_twin_fidelity.py``.
@@ -13,8 +13,6 @@ loaded 2-core machine. Run: ``.venv/bin/python docs/make_twin_fidelity.py``.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -52,12 +50,9 @@ def control(truth) -> dict[str, dict]:
 
 
 def _simulate():
-    spec = importlib.util.spec_from_file_location("_id_tests", ROOT / "tests" / "test_identification.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(ROOT / "tests"))
-    spec.loader.exec_module(mod)
-    return mod.simulate_campaign
+    from controller.identification_loop import simulate_campaign
+
+    return simulate_campaign
 
 
 def identification(truth) -> dict[str, Any]:
@@ -185,7 +180,7 @@ CALIBRATION_HEADING = "\n## Calibration on recorded campaigns"
 
 
 NOTES = [
-    "## Reading the tables (written with the numbers above, 2026-11-23)",
+    "## Reading the tables (written with the numbers above, 2026-11-25)",
     "",
     "- **Friction explains the tracking gap.** The model's truth has the controller's own arctan friction,",
     "  so laws 2 and 3 compensate it perfectly (e 0.04° and 0.07° against the prototype's 0.37° and 0.66°).",
@@ -198,15 +193,16 @@ NOTES = [
     "  matter at the outer loop's ω = 11 rad/s; so does the current loop above about 10 Hz (at 2 Hz law 2's",
     "  e grows 2.7×, tests/test_truth.py).",
     "- **What does not close:** e_α stays below the prototype for law 1 (1.59° against 2.19°); the camera's",
-    "  bias and calibration errors are not simulated here (camera issue). Law 3 tracks 35 % worse than the",
-    "  prototype (0.89° against 0.66°), law 2 35 % worse (0.50° against 0.37°). \"Pulleys matter\" holds",
-    "  robustly for e_α (3.34° against 1.49°) but only marginally for e (0.51° against 0.50°): with",
+    "  bias and calibration errors are not simulated here (camera issue). Law 3 tracks 32 % worse than the",
+    "  prototype (0.87° against 0.66°), law 2 32 % worse (0.49° against 0.37°). \"Pulleys matter\" holds",
+    "  robustly for e_α (3.34° against 1.49°) but only marginally for e (0.51° against 0.49°): with",
     "  creep_ratio = 0 it flips (range table), so that half of the finding rests on an unsourced value.",
     "- **Identification does not keep its known answer with the robot's friction.** The paper's arctan",
     "  regressor (eqs. 44-45, 55) fits f_s within 3-14 % of Table 1, but the tensions it reconstructs carry",
-    "  the friction-shape error, and k comes out 26-45 % low, λ up to 118 % high; the Γ_rf residual is 0.43",
-    "  N·m/rad against the prototype's 0.18. Alone, actuation and structure errors keep k and λ within 6 %;",
-    "  the cables effect (light damping + 5 % creep) lowers k by 9-12 % (separate runs, not in this table).",
+    "  the friction-shape error, and k comes out 6-16 % low, λ −12 … +25 % (with the pipeline of 2026-11-23:",
+    "  k 26-45 % low, λ up to +118 %); the Γ_rf residual is 0.43 N·m/rad",
+    "  against the prototype's 0.18. Table 2 on this truth: docs/identification-coverage.md (with the",
+    "  `loadfriction` estimator k comes within 10 % in most campaigns, λ(1) and λ(4) stay about 6 % low).",
     "  The prototype's well-identified Table 2 and its",
     "  smaller residual say its friction is closer to eq. 37 near θ̇ = 0 than this set-valued Coulomb law",
     "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",
