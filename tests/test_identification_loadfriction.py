@@ -136,3 +136,16 @@ def test_robot_truth_k_within_10_percent_where_iv_is_not(params):
         assert np.allclose(other.vector("lambda"), lf.vector("lambda"), rtol=1e-3)
     with pytest.raises(ValueError, match="loadfriction"):
         identify_variable(proc, params, np.ones(params.n_cables), estimator="magic")
+
+
+def test_refine_tau_finds_the_vertex_between_grid_points_and_keeps_the_ends():
+    grid = np.array(loadfriction.TAUS_S)
+    u = np.log(grid)
+    vertex = np.log(3.0)  # between the grid's 2 and 4 s
+    costs = np.column_stack([(u - vertex) ** 2 + 1.0,  # a parabola in log τ: its vertex exactly
+                             (u - np.log(20.0)) ** 2,  # best at the grid's end (8 s): kept there
+                             -((u - vertex) ** 2)])  # best at the grid's start (0.5 s): kept there
+    tau = loadfriction.refine_tau(grid, costs)
+    assert tau[0] == pytest.approx(3.0, rel=1e-9)
+    assert tau[1] == grid[-1]
+    assert tau[2] == grid[0]

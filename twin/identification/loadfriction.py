@@ -23,8 +23,10 @@ pipeline.identify_variable does it: x_c comes from α_IP, whose noise (0.15-0.35
 on the twin's camera, against 0.7-1.4 mm of motion) biases least squares, so Zᵀρ(p) = 0 is
 solved with Z the model's Jacobian on the stretch re-simulated from the encoders
 (twin.identification.instruments), iterated to a fixed point, for every τ; τ is then picked per
-cable by the camera residual. σ: the Newey-West HAC sandwich (twin.identification.uncertainty)
-of the linearised estimator B = (ZᵀJ)⁻¹Zᵀ at the solution, conditional on the chosen τ.
+cable by the camera residual, between the grid's points by a parabola in log τ
+(:func:`refine_tau`). σ: the Newey-West HAC sandwich (twin.identification.uncertainty) of the
+linearised estimator B = (ZᵀJ)⁻¹Zᵀ at the solution, τ counted as estimated (its column ∂ρ/∂τ in
+J and Z): held at the grid's τ, the σ of k(4) and λ(4) missed how far they move with τ.
 
 The start is not the parameter file: on the twin the file's k and λ are the truth. It is the
 model without creep made linear (:func:`linear_start`, no prior), and any (k, λ) the caller gives
@@ -189,11 +191,12 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
 
 
 def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
-                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int, bool]:
+                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int, bool, tuple[FloatArray, FloatArray]]:
     """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
     (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
     re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE. Returns the
-    values, the instruments, the iterations and whether they converged."""
+    values, the instruments, the iterations, whether they converged and the last simulated
+    stretch (x (m), ẋ (m/s), (n, n_cables)) the instruments were computed on."""
     m = build(params, "variable")
     vals, zs, alpha, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
     while it < IV_MAX_ITERATIONS:
@@ -208,8 +211,8 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
             vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j])
         change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
         if change < IV_TOLERANCE:
-            return vals, zs, it, True
-    return vals, zs, it, False
+            return vals, zs, it, True, (sim.x, sim.x_dot)
+    return vals, zs, it, False, (sim.x, sim.x_dot)
 
 
 def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
@@ -245,35 +248,66 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
                   for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
         values[j], taus[j] = _least_squares(c, starts, taus_s)
     zs: list[FloatArray] | None = None
+    sim: tuple[FloatArray, FloatArray] | None = None
     iterations, converged = 0, True
     if instruments:
         # τ again, by the camera residual of each τ's IV solution: least squares on the noisy stretch
         # picks it with the noise's bias, and a wrong β, τ trades against k.
-        best = np.full(nc, np.inf)
-        chosen = values.copy()
-        for tau in taus_s:
-            vals, _, it, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
+        costs = np.zeros((len(taus_s), nc))
+        grid_values = []
+        for i, tau in enumerate(taus_s):
+            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
             iterations = max(iterations, it)
-            cost = np.array([np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)])
-            better = cost < best
-            best[better], taus[better], chosen[better] = cost[better], tau, vals[better]
-        values, zs, it, ok = _instrumental(proc, params, cables, chosen, taus, free)  # Z at the chosen τ
+            costs[i] = [np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)]
+            grid_values.append(vals)
+        best = np.argmin(costs, axis=0)
+        chosen = np.array([grid_values[best[j]][j] for j in range(nc)])
+        taus = refine_tau(np.asarray(taus_s, dtype=float), costs)
+        values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, free)  # Z at the chosen τ
         iterations, converged = max(iterations, it), ok
-    est = _estimate(proc, cables, values, taus, free, zs, sigma, threshold)
+    est = _estimate(proc, cables, values, taus, free, zs, sim, sigma, threshold)
     how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
            f"at most {iterations} iterations per τ)" if instruments
            else "nonlinear least squares")
     est = dataclasses.replace(est, estimator=(
         f"{how}; friction (1 + s·μ)·t + s·F₀, |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
-        f"{', '.join(f'{t:g}' for t in taus)} s" + ("" if damping else "; no damping")))
+        f"{', '.join(f'{t:.2g}' for t in taus)} s" + ("" if damping else "; no damping")))
     return LoadFrictionFit(est, taus, (k0, lam0), np.asarray(counts, dtype=np.int64))
 
 
+def refine_tau(grid_s: FloatArray, costs: FloatArray) -> FloatArray:
+    """τ (s) per cable between the grid's points: the vertex of the parabola in log τ through the
+    best grid point and its two neighbours (``costs``: (len(grid), n_cables) camera residuals of
+    each τ's IV solution); the best grid point itself at the grid's ends or where the three points
+    do not curve upwards."""
+    u = np.log(grid_s)
+    out = np.empty(costs.shape[1])
+    for j in range(costs.shape[1]):
+        i = int(np.argmin(costs[:, j]))
+        out[j] = grid_s[i]
+        if 0 < i < len(grid_s) - 1:
+            a, b, _ = np.polyfit(u[i - 1:i + 2], costs[i - 1:i + 2, j], 2)
+            if a > 0:
+                out[j] = float(np.exp(np.clip(-b / (2 * a), u[i - 1], u[i + 1])))
+    return out
+
+
+def _tau_column(p: FloatArray, tau_s: float, c: _Cable, x: FloatArray | None = None,
+                x_dot: FloatArray | None = None) -> FloatArray:
+    """∂ρ/∂τ (rows,) by a central difference of 0.1 % of τ, on the camera's stretch or on ``x``."""
+    d = 1e-3 * tau_s
+    return (_residual(p, *c.args(tau_s + d, x, x_dot)) - _residual(p, *c.args(tau_s - d, x, x_dot))) / (2 * d)
+
+
 def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: FloatArray, free: NDArray[np.bool_],
-              zs: list[FloatArray] | None, sigma: str, threshold: float) -> Estimate:
+              zs: list[FloatArray] | None, sim: tuple[FloatArray, FloatArray] | None, sigma: str,
+              threshold: float) -> Estimate:
     """The :class:`Estimate`: σ of the linearised estimator v − v_true ≈ −B·ρ at the solution,
     B = (ZᵀJ)⁻¹Zᵀ (Z = J for least squares), by the HAC sandwich with the rows' instants as the
-    time index (at least the filter's memory as lag, as the pipeline's), conditional on τ."""
+    time index (at least the filter's memory as lag, as the pipeline's). τ counts as estimated:
+    it was picked by the camera residual, i.e. by least squares, so J and Z both get its column
+    ∂ρ/∂τ (where β > 0; with β = 0, τ changes nothing). ``sim``: the simulated stretch of the
+    instruments, (x, ẋ) per cable, for Z's τ column."""
     nc, n_par = len(cables), len(SYMBOLS)
     min_lag = int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz))
     sd = np.zeros((nc, n_par))
@@ -284,8 +318,13 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
     for j, c in enumerate(cables):
         res = _residual(values[j], *c.args(taus[j]))
         J = _jacobian(values[j], c.scale, free, *c.args(taus[j]))
+        conds.append(float(np.linalg.cond(J)))
         Z = J if zs is None else zs[j]
-        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)
+        if values[j, 5] > BETA_BOUNDS[0] + 1e-9 * c.scale[5]:
+            jt = _tau_column(values[j], taus[j], c)
+            zt = jt if sim is None else _tau_column(values[j], taus[j], c, sim[0][:, j], sim[1][:, j])
+            J, Z = np.column_stack([J, jt]), np.column_stack([Z, zt])
+        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(free.sum())]
         idx = np.flatnonzero(c.rows).astype(np.int64)
         if sigma == "hac":
             cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
@@ -293,7 +332,6 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
             cov, lag = uncertainty.white_covariance(B, res), 0
         sd[j, free] = np.sqrt(np.abs(np.diag(cov)))
         lags.append(lag)
-        conds.append(float(np.linalg.cond(J)))
         sse += float(res @ res)
         at = free & ((values[j] <= c.lo + 1e-9 * c.scale) | (values[j] >= c.hi - 1e-9 * c.scale))
         active += [f"{SYMBOLS[i]}({j + 1})" for i in np.flatnonzero(at)]
