@@ -9,6 +9,7 @@ import typer
 
 from server.cli.options import (
     ALPHA_IP_OPTION,
+    ARCHIVE_OUT_OPTION,
     LAW_OPTION,
     NO_PULLEYS_OPTION,
     PARAMS_OPTION,
@@ -35,7 +36,7 @@ def campaign_control(
     twin: bool = typer.Option(True, "--twin/--robot", help="Against a lockstep twin started for the campaign, or "
                               "the robot's bridge already on the bus."),
     trajectory: str = typer.Option("control_test", "--trajectory", help="Trajectory name or file (degrees)."),
-    out: Path | None = typer.Option(None, "--out", help="MCAP file to write (default: <data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data)."),
+    out: Path | None = ARCHIVE_OUT_OPTION,
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
@@ -73,7 +74,7 @@ def _print_progress(fraction: float, message: str) -> None:
 def campaign_identification(
     twin: bool = typer.Option(True, "--twin/--robot", help="Against a lockstep twin started for the campaign, or "
                               "the robot's bridge already on the bus."),
-    out: Path | None = typer.Option(None, "--out", help="MCAP file to write (default: <data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data)."),
+    out: Path | None = ARCHIVE_OUT_OPTION,
     as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
     seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
     truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "

@@ -54,6 +54,18 @@ STARTUP_TIMEOUT_OPTION = typer.Option(
     None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout).")
 
 
+def check_new_archive(value: Path | None) -> Path | None:
+    """Typer callback: ``--out`` of a campaign must not exist. The runner refuses it too
+    (server.campaign_runner.run_campaign); checking here refuses it before anything is loaded or
+    started, as a usage error rather than a traceback."""
+    if value is not None and value.exists():
+        raise typer.BadParameter(f"{value} exists: choose another --out (archives are never overwritten)")
+    return value
+
+
+ARCHIVE_OUT_OPTION = typer.Option(
+    None, "--out", callback=check_new_archive, help="MCAP file to write, which must not exist (default: "
+    "<data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data).")
 PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
 SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set springs.l0=[0.05,0.05,0.05].")
 

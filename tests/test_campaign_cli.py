@@ -1,0 +1,20 @@
+"""`xneck campaign control|identification` refuse bad input before anything runs, with a message,
+not a traceback (the campaigns themselves: tests/test_campaign.py, realtime)."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from server.cli import app
+
+
+@pytest.mark.parametrize("kind", ["control", "identification"])
+def test_an_existing_archive_is_refused_and_kept(tmp_path, kind):
+    out = tmp_path / "earlier.mcap"
+    out.write_bytes(b"an earlier campaign")
+    r = CliRunner().invoke(app, ["campaign", kind, "--out", str(out)])
+    assert r.exit_code == 2, r.output
+    assert "exists" in r.stderr and "never overwritten" in r.stderr
+    assert r.exception is None or isinstance(r.exception, SystemExit)  # a message, not a traceback
+    assert out.read_bytes() == b"an earlier campaign"
