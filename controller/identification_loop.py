@@ -40,6 +40,7 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     kp, kv = 3 * omega**2, 3 * omega
     theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
     tension, stretch, speed = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 4))
+    stamp = np.empty(T)  # s, the twin's clock: with the truth's timing jitter its periods vary
     t_ip, a_ip = [], []
     alpha, alpha_dot, theta_dot = np.zeros(3), np.zeros(3), np.zeros(4)
     for k in range(T):
@@ -55,11 +56,11 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
         f = np.clip(f_p + s * null + f_fr, m.f_min, m.f_max)
         tick = twin.tick(f)
         alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot
-        theta[k], force[k], alpha_true[k] = tick.theta_meas, f, alpha
+        theta[k], force[k], alpha_true[k], stamp[k] = tick.theta_meas, f, alpha, tick.t_s
         tension[k], stretch[k], speed[k] = tick.tension, tick.elongation, tick.theta_dot
         for capture, frame in tick.frames:
             t_ip.append(capture)
             a_ip.append(frame)
-    data = CampaignData(np.asarray(t, dtype=np.float64), theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
+    data = CampaignData(stamp, theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
                         excitation_alpha_rad=None if still else ref.alpha)
-    return data, {"t": t, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
+    return data, {"t": stamp, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}

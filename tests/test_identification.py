@@ -30,6 +30,7 @@ from twin.identification.pipeline import (
     write_identified,
 )
 from twin.model.params import load_params
+from twin.sim.truth import load_truth
 
 SEEDS = (0, 1)
 PIPELINE_TRUTH = DAMPING_ONLY_TRUTH  # see the module docstring
@@ -237,3 +238,15 @@ def test_a_record_with_a_missed_sample_is_resampled_not_a_crash():
     assert dt == pytest.approx(0.002)
     assert len(grid) == len(t) + 1
     np.testing.assert_allclose(xu[:, 0], np.sin(grid), atol=1e-5)
+
+
+def test_the_closed_loop_stamps_encoders_and_frames_on_the_twins_clock():
+    """With the robot's timing jitter the twin's periods vary: the encoder samples must carry the
+    twin's clock, as the camera frames do (a nominal k·dt drifted up to ±20 ms from the frames over
+    a campaign, a time shift between α_IP and θ that the identification then had to absorb)."""
+    jitter = load_truth("robot").only("timing")
+    data, truth = simulate_campaign(3, duration_s=4.0, truth=jitter)
+    assert np.all(np.diff(data.t_s) > 0) and not np.allclose(np.diff(data.t_s), np.diff(data.t_s)[0])
+    assert np.array_equal(truth["t"], data.t_s)
+    at = np.searchsorted(data.t_s, data.t_ip_s)
+    assert np.allclose(data.t_s[at], data.t_ip_s, rtol=0.0, atol=1e-12)  # each frame at a sample's stamp
