@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.identification_loop import simulate_campaign
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
@@ -49,15 +50,9 @@ def control(truth) -> dict[str, dict]:
             for name, law in LAWS.items()}
 
 
-def _simulate():
-    from controller.identification_loop import simulate_campaign
-
-    return simulate_campaign
-
-
 def identification(truth) -> dict[str, Any]:
     base = load_params()
-    data, _ = _simulate()(0, truth=truth)
+    data, _ = simulate_campaign(0, truth=truth)
     proc = preprocess(data, base)
     est = identify_all(proc, base)
     new, _, _ = identified_params(base, est, make_provenance(data.campaign, proc))

@@ -107,13 +107,9 @@ def test_refuses_a_campaign_where_the_motors_never_turn_fast(synthetic, params):
         fit_load_friction(synthetic, params, sigma="magic")  # type: ignore[arg-type]
 
 
-def _simulate_campaign(seed: int, truth):
-    return simulate_campaign(seed, truth=truth)[0]
-
-
 def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params):
     """The full §5.2.2 campaign (shorter ones leave too few fast rows on some motors)."""
-    data = _simulate_campaign(CAMPAIGN_SEED, load_truth("robot"))
+    data = simulate_campaign(CAMPAIGN_SEED, truth=load_truth("robot"))[0]
     proc = preprocess(data, params)
     k_true = np.array(params.cables.variable.k)
     est = identify_all(proc, params, estimator="loadfriction")

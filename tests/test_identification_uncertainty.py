@@ -94,13 +94,9 @@ def test_wls_weights_the_noisy_group_down():
 # --- on the twin -----------------------------------------------------------------------------------
 
 
-def _simulate():
-    return simulate_campaign(DYNAMICS_SEED)
-
-
 @pytest.fixture(scope="module")
 def campaign():
-    data, truth = _simulate()
+    data, truth = simulate_campaign(DYNAMICS_SEED)
     return data, truth
 
 
