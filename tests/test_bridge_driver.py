@@ -358,16 +358,24 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
             for _ in range(15):
                 node.tick()
             assert forces_at_the_escons() == pytest.approx([9.0] * 4)
-            n = node.estop_received
             engage = bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="button")
-            # The first messages on a fresh route may be lost; a repeated engage or release is harmless.
-            assert wait_until(lambda: (estop_pub.put(engage), node.estop_received > n)[1], 5.0, 0.02)
-            node.tick()
+            # The first messages on a fresh route may be lost, so each is repeated until the bridge has
+            # applied it. Copies still in flight must not land after the release (a loaded suite once
+            # re-engaged the drives that way): wait until no more arrive before releasing.
+            assert wait_until(lambda: (estop_pub.put(engage), node.tick(), node.safety.estop_engaged)[2], 5.0, 0.02)
             assert all(board.pins[p] == 0 for p in cfg.enable_pins) and node.mode == "disabled"
-            n = node.estop_received
-            release = bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared")
-            assert wait_until(lambda: (estop_pub.put(release), node.estop_received > n)[1], 5.0, 0.02)
+            quiet = [node.estop_received, time.monotonic()]
+
+            def settled():
+                if node.estop_received != quiet[0]:
+                    quiet[:] = [node.estop_received, time.monotonic()]
+                return time.monotonic() - quiet[1] > 0.2
+
+            assert wait_until(settled, 5.0, 0.02)
             node.tick()
+            release = bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="cleared")
+            assert wait_until(lambda: (estop_pub.put(release), node.tick(), not node.safety.estop_engaged)[2], 5.0,
+                              0.02)
             seen.append(forces_at_the_escons())
             command(2, [81.0, 22.0, 8.0, 28.0])
             command(3, [60.0] * 4, sender="intruder")  # not the owner: refused, never applied
@@ -375,9 +383,10 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
             for _ in range(100):
                 node.tick()
                 seen.append(forces_at_the_escons())
+            state = (node.mode, node.hold_reason, node.estop_received, node.commands.stats)  # for a failure's message
         finally:
             node.shutdown()
     steps = np.abs(np.diff(np.array(seen), axis=0))
     assert steps.max() <= 1.0 + 1e-9, steps.max()
-    assert seen[-1] == pytest.approx([81.0, 22.0, 8.0, 28.0])
+    assert seen[-1] == pytest.approx([81.0, 22.0, 8.0, 28.0]), state
     assert all(board.pins[p] == 0 for p in cfg.enable_pins)  # shutdown disabled the drives
