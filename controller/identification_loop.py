@@ -1,7 +1,7 @@
 """The identification campaign's closed loop in one process, without the bus (3-X paper §5.2.2).
 
 Computed torque on the twin's *true* α, the cable tensions kept at least ``floor_N`` through the
-positive null vector of Z, the model's friction (eq. 37) compensated: smooth, rich forces, as §5.2.2
+positive null vector of Z (raised by the trajectory's pretension, if any), the model's friction (eq. 37) compensated: smooth, rich forces, as §5.2.2
 asks. It is not law 1 (law 1 runs on α̂; its campaigns are `xneck campaign identification`): it is
 the known-answer loop of the identification tests, of the coverage benchmark
 (benchmarks/identification.py) and of the docs' diagnosis scripts, one definition for all of them.
@@ -37,6 +37,7 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     T = int(round((duration_s or traj.duration_s) / twin.dt))
     t = np.arange(1, T + 1) * twin.dt
     ref = traj.sample(np.zeros(T) if still else t - twin.dt)
+    floor = floor_N + (np.zeros(T) if still else traj.pretension(t - twin.dt))  # a trajectory's pretension raises it
     kp, kv = 3 * omega**2, 3 * omega
     theta, force, alpha_true = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 3))
     tension, stretch, speed = np.empty((T, 4)), np.empty((T, 4)), np.empty((T, 4))
@@ -52,7 +53,7 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
         f_p = np.append(np.linalg.solve(Z[:, :3], gamma), 0.0)
         f_fr = dynamics.f_friction(m, theta_dot)
         # Both the tension and the motor force stay above the floor.
-        s = max(np.max((floor_N - f_p) / null), np.max((floor_N - f_p - f_fr) / null))
+        s = max(np.max((floor[k] - f_p) / null), np.max((floor[k] - f_p - f_fr) / null))
         f = np.clip(f_p + s * null + f_fr, m.f_min, m.f_max)
         tick = twin.tick(f)
         alpha, alpha_dot, theta_dot = tick.alpha, tick.alpha_dot, tick.theta_dot

@@ -45,8 +45,9 @@ def estimate(m, dt, beta, has_prev, theta, theta_prev, theta_dot, alpha_hat, alp
 
 
 @njit(cache=True)
-def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, state, work, out):
-    """One tick of eqs. 35, 58, 59, 63-66 (module docstring), all in place.
+def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, pretension, state, work, out):
+    """One tick of eqs. 35, 58, 59, 63-66 (module docstring), all in place. ``pretension`` (N)
+    raises every cable's floor t_min of eq. 65 (a trajectory's pretension, controller.trajectory).
 
     ``gains`` = (k_p, k_v, k_i, dt, β of the velocity filters); ``state`` = (θ_prev, θ̇, α̂, α̂̇,
     θ of the estimator, x_c, f_prev, ∫e) updated in place; ``out`` = (f, saturated, e, Γ^d)."""
@@ -88,7 +89,7 @@ def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, sta
             acc += Z[i, j] * ff[j]
         gamma[i] = acc
     for j in range(nc):
-        lb = m.t_min + ff[j] + m.I_a * tdd[j] / m.rho
+        lb = m.t_min + pretension + ff[j] + m.I_a * tdd[j] / m.rho
         lower[j] = lb if lb > m.f_min else m.f_min
     distribute_into(Z, gamma, lower, m.f_max, short, long, Z1, LU, vN, p, nvec, f, saturated)
     for j in range(nc):

@@ -130,15 +130,17 @@ class ComputedTorque:
                         w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
         self._has_prev = True
 
-    def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray) -> Command:
+    def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray,
+             pretension_N: float = 0.0) -> Command:
         """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d: one
-        call of the compiled :func:`controller.kernel.law_tick`. The arrays of the returned
+        call of the compiled :func:`controller.kernel.law_tick`. ``pretension_N`` raises every
+        cable's floor t_min (eq. 65; a trajectory's pretension). The arrays of the returned
         :class:`Command` are the law's own and change at the next tick: copy what you keep."""
         self._theta[:] = theta
         a, ad, add = self._ref
         a[:], ad[:], add[:] = alpha_d, alpha_d_dot, alpha_d_ddot
         kernel.law_tick(self.model, self._gains, self.short, self.long, self._has_prev, self._theta, a, ad, add,
-                        self._state(), self._work, self._out)
+                        float(pretension_N), self._state(), self._work, self._out)
         self._has_prev = True
         self._alpha_out[:] = self.estimator.alpha_hat
         f, saturated, e, gamma = self._out
@@ -151,13 +153,13 @@ def _hold_model(params: Params) -> tuple[Model, np.ndarray, int]:
     return m, short_cables(m), long_cable(m)
 
 
-def hold_forces(params: Params, alpha: np.ndarray) -> np.ndarray:
+def hold_forces(params: Params, alpha: np.ndarray, pretension_N: float = 0.0) -> np.ndarray:
     """Forces (N) that hold the neck still at α (rad): Z f = g(α) with every cable at least at
-    t_min (eqs. 63-65 with w = 0 and no motion). What the controller commands when it must stop.
-    The model is built once per parameter set: this runs inside 2 ms ticks."""
+    t_min + ``pretension_N`` (eqs. 63-65 with w = 0 and no motion). What the controller commands
+    when it must stop. The model is built once per parameter set: this runs inside 2 ms ticks."""
     m, short, long = _hold_model(params)
     terms = dynamics.evaluate(m, alpha)
-    lower = lower_bounds(m.t_min, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
+    lower = lower_bounds(m.t_min + pretension_N, m.f_min, np.zeros(m.n_cables), np.zeros(m.n_cables))
     return distribute(terms.Z, terms.g, lower, m.f_max, short, long).f
 
 
@@ -180,14 +182,16 @@ def encoder_hold_forces(params: Params):
 def nominal_forces(params: Params, config: LawConfig):
     """The forces (N) the law would command on a nominal path (α̂ = α^d, e = 0, so w = α̈^d),
     after the tension distribution and before clamping at f_max, as a function
-    (α, α̇, α̈) on a time grid, each (T, N) -> (f (T, n_cables), feasible (T,): the distribution is
-    possible, n > 0 in eq. 63). Used by :func:`nominal_force_check` and by the excitation design
+    (α, α̇, α̈[, pretension (T,) N]) on a time grid, each (T, N) -> (f (T, n_cables), feasible (T,):
+    the distribution is possible, n > 0 in eq. 63). Used by :func:`nominal_force_check` and by the excitation design
     (:mod:`server.cli.excitation`), which needs the cable tensions along a candidate path."""
     m = controller_model(params, config)
     short, long = short_cables(m), long_cable(m)
 
-    def forces(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def forces(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
+               pretension: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         terms = dynamics.evaluate(m, alpha, alpha_dot)
+        floor = np.full(len(alpha), m.t_min) if pretension is None else m.t_min + np.asarray(pretension, dtype=float)
         f = np.empty((len(alpha), m.n_cables))
         feasible = np.ones(len(alpha), dtype=bool)
         for k in range(len(alpha)):
@@ -196,7 +200,7 @@ def nominal_forces(params: Params, config: LawConfig):
             theta_d_ddot = (Z.T @ alpha_ddot[k] + terms.Z_dot[k].T @ alpha_dot[k]) / m.rho
             f_fric = dynamics.f_friction(m, theta_d_dot)
             gamma = terms.M[k] @ alpha_ddot[k] + terms.g[k] + Z @ f_fric
-            d = distribute(Z, gamma, lower_bounds(m.t_min, m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho),
+            d = distribute(Z, gamma, lower_bounds(floor[k], m.f_min, f_fric, m.I_a * theta_d_ddot / m.rho),
                            np.inf, short, long)
             f[k], feasible[k] = d.f, d.feasible
         return f, feasible
@@ -211,8 +215,9 @@ def nominal_force_check(params: Params, config: LawConfig):
     forces = nominal_forces(params, config)
     f_max = controller_model(params, config).f_max
 
-    def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
-        f, feasible = forces(alpha, alpha_dot, alpha_ddot)
+    def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
+              pretension: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+        f, feasible = forces(alpha, alpha_dot, alpha_ddot, pretension)
         ok = feasible & (f.max(axis=1) <= f_max)
         worst = ""
         bad = np.flatnonzero(~ok)

@@ -69,6 +69,7 @@ def run_closed_loop(
     n = int(round((trajectory.duration_s + settle_s) * twin_config.rate_hz))
     t = np.arange(1, n + 1) / twin_config.rate_hz
     ref = trajectory.sample(t)
+    pretension = trajectory.pretension(t)
     N, nc = twin.model.n_joints, twin.model.n_cables
     out = {k: np.empty((n, w)) for k, w in (("alpha_hat", N), ("alpha", N), ("force_N", nc), ("tension_N", nc),
                                             ("theta_meas", nc))}
@@ -76,7 +77,7 @@ def run_closed_loop(
     frames_t, frames_a, frames_stamp, frames_c = [], [], [], []
     tick = twin.tick(np.zeros(nc))  # the first state the controller sees
     for k in range(n):
-        cmd = ctl.step(tick.theta_meas, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k])
+        cmd = ctl.step(tick.theta_meas, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k], pretension[k])
         tick = twin.tick(cmd.f)
         out["alpha_hat"][k], out["force_N"][k], saturated[k] = cmd.alpha_hat, cmd.f, cmd.saturated
         out["alpha"][k], out["tension_N"][k], out["theta_meas"][k] = tick.alpha, tick.tension, tick.theta_meas

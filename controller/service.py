@@ -16,7 +16,9 @@ the neck at ``hold_target`` (the last waypoint, or where it was when the service
 Holds: :meth:`CampaignService.hold` commands Z f = g(α) with every cable at t_min
 (:func:`controller.laws.hold_forces`) at α̂, or at the last sane α̂ when the estimate is not
 (non-finite or beyond the joint limits). A diverging estimate latches the hold until the next
-campaign starts.
+campaign starts. A trajectory's pretension (raised floor, controller.trajectory) is followed while
+the campaign runs; once it stops, the floor falls back to t_min at ``PRETENSION_RELEASE_N_S``,
+in the law and in the hold alike, so an abort at high tension drops no force in one tick.
 
 Drives and re-starts (issue 13): while the bridge says the drives are ``disabled`` (e-stop) or
 ``inactive`` (until a command enables them) the law does not run: α̂ follows the encoders and the
@@ -73,6 +75,10 @@ FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the b
 STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog waits for it
+# N/s at which a pretension left over by an aborted campaign is let go (the law's floor and the
+# hold's): half the trajectories' bound (controller.trajectory.TrajectoryLimits), so an abort at
+# the highest pretension returns to t_min within a couple of seconds, 0.1 N per tick.
+PRETENSION_RELEASE_N_S = 50.0
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
 
@@ -132,14 +138,16 @@ def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) ->
     """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``: a validation whose
     cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
 
-    def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray) -> tuple[np.ndarray, str]:
+    def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
+            pretension: np.ndarray | None = None) -> tuple[np.ndarray, str]:
         ok = np.ones(len(alpha), dtype=bool)
         for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
             if clock() > deadline:
                 raise Refused("refused: the force check did not finish within its time budget; "
                               "ask for a shorter trajectory")
             part = slice(k, k + FORCE_CHECK_CHUNK)
-            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part])
+            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part],
+                                     None if pretension is None else pretension[part])
             if not ok[part].all():
                 return ok, reason
         return ok, ""
@@ -256,6 +264,7 @@ class CampaignService:
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
+        self.pretension_N = 0.0  # the floor added to t_min at the last tick (N, module docstring)
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
@@ -442,9 +451,19 @@ class CampaignService:
         """The forces that hold the neck still where it is (module docstring), with ``reason``."""
         self.hold_reason = reason
         alpha = self.hold_alpha().copy()  # the law's α̂ changes in place at its next tick
-        f = hold_forces(self.params, alpha)
+        f = hold_forces(self.params, alpha, self._pretension(None))
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
+
+    def _pretension(self, stamp_s: float | None) -> float:
+        """The floor added to t_min this tick (N): the running trajectory's pretension at
+        ``stamp_s``, else (no campaign, or ``None``: a hold) the last one let go at
+        ``PRETENSION_RELEASE_N_S``."""
+        if stamp_s is not None and self.trajectory is not None:
+            self.pretension_N = self.trajectory.pretension_at(stamp_s - self._t0)
+        elif self.pretension_N > 0.0:
+            self.pretension_N = max(0.0, self.pretension_N - PRETENSION_RELEASE_N_S * self.ctl.dt)
+        return self.pretension_N
 
     def stale(self, reason: str, stale_for_s: float) -> Output:
         """No new state for ``stale_for_s``: hold; after a long gap (``STALE_RESTART_S``) the law
@@ -521,7 +540,7 @@ class CampaignService:
         if self._restart and drive == "active":
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
-        cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot)
+        cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s))
         if not _sane(cmd.alpha_hat, self._limit, cmd.f):
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")

@@ -16,6 +16,13 @@ Built-in trajectories: :func:`identification_trajectory` (§5.2.2) and
     {"name": "nod", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, 0, 0]],
      "durations_s": [2.0, 2.0], "dwell_s": 0.5}
 
+A trajectory may also carry a **pretension** schedule (``pretension_N``, one value per waypoint,
+N ≥ 0, default 0): tension added to the law's floor t_min (eq. 65) at each waypoint, joined by the
+same cycloids as the joints. Raising every cable's floor raises the internal force of the
+redundant cables (the null space of Z, eq. 63) without moving the neck: identification
+excitations use it to sweep the cables over their tension range (eqs. 54-57), which the joint
+motion alone barely does. It starts and ends at 0, so taking over and handing back stay bumpless.
+
 :func:`validate` rejects a trajectory outside the joint limits, too fast, accelerating too hard,
 or (given the controller's ``force_check``) needing forces outside [f_min, f_max]; the
 :class:`TrajectoryError` names the waypoint or segment and the reason.
@@ -63,8 +70,9 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-ForceCheck = Callable[[FloatArray, FloatArray, FloatArray], tuple[BoolArray, str]]
-"""(α, α̇, α̈) on a time grid, each (T, N) in rad, rad/s, rad/s² -> (ok per sample (T,), reason).
+ForceCheck = Callable[..., tuple[BoolArray, str]]
+"""(α, α̇, α̈) on a time grid, each (T, N) in rad, rad/s, rad/s² [, pretension (T,) N] -> (ok per
+sample (T,), reason). The pretension is passed only for a trajectory that has one.
 
 Supplied by the controller: forces after tension distribution (§6.2, Eqs. 63-65) within
 [f_min, f_max] along the nominal path."""
@@ -144,6 +152,8 @@ class Trajectory:
         dwell_s: hold at each waypoint after arriving, shape (K,) or a scalar for all (s, ≥ 0);
             the hold at waypoint 0 is an initial rest, the one at the last waypoint a final rest.
         name: label recorded with the campaign.
+        pretension_N: tension added to the law's floor t_min at each waypoint, shape (K,) or a
+            scalar for all (N, ≥ 0; default none): module docstring.
 
     Structural problems (empty, non-finite, wrong lengths, non-positive durations) raise
     :class:`TrajectoryError` here; physical limits are checked by :func:`validate`.
@@ -153,6 +163,7 @@ class Trajectory:
     durations_s: FloatArray
     dwell_s: FloatArray = field(default_factory=lambda: np.zeros(0))
     name: str = "trajectory"
+    pretension_N: FloatArray = field(default_factory=lambda: np.zeros(0))
     _arrive: FloatArray = field(init=False, repr=False)
     _depart: FloatArray = field(init=False, repr=False)
 
@@ -176,11 +187,14 @@ class Trajectory:
         dwell = np.zeros(k) if np.size(self.dwell_s) == 0 else _per_item(self.dwell_s, k, "dwell (one per waypoint)")
         for i in np.flatnonzero(~(np.isfinite(dwell) & (dwell >= 0.0))):
             raise TrajectoryError(f"waypoint {i} has a negative or non-finite dwell {dwell[i]} s")
+        pre = np.zeros(k) if np.size(self.pretension_N) == 0 else _per_item(self.pretension_N, k, "pretension (one per waypoint)")
+        for i in np.flatnonzero(~(np.isfinite(pre) & (pre >= 0.0))):
+            raise TrajectoryError(f"waypoint {i} has a negative or non-finite pretension {pre[i]} N")
         # Departure from waypoint k = Σ_{j≤k} dwell_j + Σ_{j<k} T_j; the last one is the end.
         depart = np.cumsum(dwell + np.append(0.0, durations))
         arrive = depart - dwell
         for name, arr in (("waypoints_rad", w), ("durations_s", durations), ("dwell_s", dwell),
-                          ("_arrive", arrive), ("_depart", depart)):
+                          ("pretension_N", pre), ("_arrive", arrive), ("_depart", depart)):
             arr.flags.writeable = False
             object.__setattr__(self, name, arr)
 
@@ -263,6 +277,35 @@ class Trajectory:
         alpha_ddot = delta * (dds / period**2)[..., None]
         return TrajectorySample(alpha, alpha_dot, alpha_ddot)
 
+    @property
+    def has_pretension(self) -> bool:
+        """Whether any waypoint raises the tension floor (module docstring)."""
+        return bool(np.any(self.pretension_N > 0.0))
+
+    def segment_peak_pretension_rate(self) -> FloatArray:
+        """Peak |dP/dt| of each move, 2|ΔP|/T, shape (K-1,) (N/s)."""
+        return CYCLOID_PEAK_VELOCITY * np.abs(np.diff(self.pretension_N)) / self.durations_s
+
+    def pretension(self, t: ArrayLike) -> FloatArray:
+        """The pretension P(t) (N) at times ``t`` (s), vectorised, shape ``t.shape``: the waypoints'
+        values joined by the joints' cycloids, held before 0 and after the end."""
+        t = np.asarray(t, dtype=np.float64)
+        P = self.pretension_N
+        if self.n_segments == 0 or not self.has_pretension:
+            return np.full(t.shape, float(P[0]))
+        seg = np.clip(np.searchsorted(self._depart[:-1], t, side="right") - 1, 0, self.n_segments - 1)
+        s, _, _ = cycloid((t - self._depart[seg]) / self.durations_s[seg])
+        return np.where(s >= 1.0, P[seg + 1], P[seg] + (P[seg + 1] - P[seg]) * s)
+
+    def pretension_at(self, t: float) -> float:
+        """:meth:`pretension` at one time ``t`` (s), a plain float (the controller's tick)."""
+        P = self.pretension_N
+        if self.n_segments == 0 or not self.has_pretension:
+            return float(P[0])
+        seg = min(max(int(np.searchsorted(self._depart[:-1], t, side="right")) - 1, 0), self.n_segments - 1)
+        s = cycloid_at((t - float(self._depart[seg])) / float(self.durations_s[seg]))[0]
+        return float(P[seg + 1]) if s >= 1.0 else float(P[seg] + (P[seg + 1] - P[seg]) * s)
+
     def sample_at(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """:meth:`sample` at one time ``t`` (s): α^d, α̇^d, α̈^d, each (N,), the same values; the
         controller samples one time per tick, where the vectorised form's overhead dominates."""
@@ -293,12 +336,15 @@ class Trajectory:
 
         Degrees are rounded to 1e-9° so that deg → rad → deg round trips print cleanly.
         """
-        return {
+        out: dict[str, Any] = {
             "name": self.name,
             "waypoints_deg": np.round(np.rad2deg(self.waypoints_rad), 9).tolist(),
             "durations_s": self.durations_s.tolist(),
             "dwell_s": self.dwell_s.tolist(),
         }
+        if self.has_pretension:  # files without one stay as they were
+            out["pretension_N"] = self.pretension_N.tolist()
+        return out
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict())
@@ -310,11 +356,12 @@ class Trajectory:
 
     @classmethod
     def from_degrees(
-        cls, waypoints_deg: ArrayLike, durations_s: ArrayLike, dwell_s: ArrayLike = 0.0, name: str = "trajectory"
+        cls, waypoints_deg: ArrayLike, durations_s: ArrayLike, dwell_s: ArrayLike = 0.0, name: str = "trajectory",
+        pretension_N: ArrayLike = 0.0,
     ) -> Trajectory:
-        # __post_init__ checks and converts durations and dwells (scalars or arrays)
+        # __post_init__ checks and converts durations, dwells and pretensions (scalars or arrays)
         return cls(np.deg2rad(np.asarray(waypoints_deg, dtype=np.float64)), cast(FloatArray, durations_s),
-                   cast(FloatArray, dwell_s), name)
+                   cast(FloatArray, dwell_s), name, cast(FloatArray, pretension_N))
 
 
 # -- user files -------------------------------------------------------------------------------
@@ -323,13 +370,15 @@ class Trajectory:
 class TrajectoryFile(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Schema of a user trajectory file (JSON or TOML) and of :meth:`Trajectory.to_dict`.
 
-    ``durations_s`` and ``dwell_s`` are a scalar for all segments/waypoints or one per item.
+    ``durations_s``, ``dwell_s`` and ``pretension_N`` are a scalar for all segments/waypoints or
+    one per item.
     """
 
     waypoints_deg: list[list[float]]
     durations_s: float | list[float] = msgspec.field(default_factory=list)
     dwell_s: float | list[float] = 0.0
     name: str = "user"
+    pretension_N: float | list[float] = 0.0
 
 
 def trajectory_json_schema() -> dict[str, Any]:
@@ -345,7 +394,7 @@ def _from_file_struct(spec: TrajectoryFile) -> Trajectory:
         raise TrajectoryError(f"waypoint {bad} has {len(rows[bad])} joints, waypoint 0 has {first}")
     if not rows:
         raise TrajectoryError("empty trajectory: waypoints_deg has no waypoint")
-    return Trajectory.from_degrees(rows, spec.durations_s, spec.dwell_s, spec.name)
+    return Trajectory.from_degrees(rows, spec.durations_s, spec.dwell_s, spec.name, spec.pretension_N)
 
 
 def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Trajectory:
@@ -493,6 +542,9 @@ class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
       * ``duration_max_s`` = 600 s and ``waypoints_max`` = 2000: what one campaign may ask for
         (the identification trajectory is 97 s and 25 waypoints). Checked first, so that the
         force check, whose cost grows with the duration, never runs on a huge request.
+      * ``pretension_rate_max_N_s`` = 100 N/s: the fastest a pretension may change (peak of its
+        cycloid, 2|ΔP|/T). Not from the paper: 0.2 N per 500 Hz tick, five times gentler than
+        the bridge's bumpless ramp (1 N per tick), and slow next to the current loop.
     """
 
     alpha_max_rad: float | tuple[float, ...] = math.radians(60.0)
@@ -500,6 +552,7 @@ class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     alpha_ddot_max_rad_s2: float | tuple[float, ...] = 3.0
     duration_max_s: float = 600.0
     waypoints_max: int = 2000
+    pretension_rate_max_N_s: float = 100.0
 
     def __post_init__(self) -> None:
         for name in _PER_JOINT:
@@ -509,6 +562,8 @@ class TrajectoryLimits(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         if not (math.isfinite(self.duration_max_s) and self.duration_max_s > 0 and self.waypoints_max >= 1):
             raise ValueError(f"duration_max_s and waypoints_max must be positive, got {self.duration_max_s}, "
                              f"{self.waypoints_max}")
+        if not (math.isfinite(self.pretension_rate_max_N_s) and self.pretension_rate_max_N_s > 0):
+            raise ValueError(f"pretension_rate_max_N_s must be positive and finite, got {self.pretension_rate_max_N_s}")
 
     @classmethod
     def from_degrees(
@@ -601,11 +656,27 @@ def validate(
                 f"needs at least {t_min:.3g} s"
             )
 
+    if traj.has_pretension:
+        P = traj.pretension_N
+        if P[0] > 0.0 or P[-1] > 0.0:
+            raise TrajectoryError(f"{traj.name!r}: the pretension must start and end at 0 N (got {P[0]:.4g} N and "
+                                  f"{P[-1]:.4g} N): the law takes over and hands back the neck at its own floor")
+        rate = traj.segment_peak_pretension_rate()
+        for i in np.flatnonzero(rate > limits.pretension_rate_max_N_s * (1 + _RTOL)):
+            raise TrajectoryError(
+                f"{traj.name!r}: segment {i} (waypoint {i} → {i + 1}, {traj.durations_s[i]:.4g} s) changes the "
+                f"pretension too fast: {P[i]:.4g} → {P[i + 1]:.4g} N peaks at {rate[i]:.4g} N/s > "
+                f"{limits.pretension_rate_max_N_s:.4g} N/s; needs at least "
+                f"{CYCLOID_PEAK_VELOCITY * abs(P[i + 1] - P[i]) / limits.pretension_rate_max_N_s:.3g} s")
+
     if force_check is None:
         return
     t = traj.time_grid(dt_s)
     alpha, alpha_dot, alpha_ddot = traj.sample(t)
-    ok, reason = force_check(alpha, alpha_dot, alpha_ddot)
+    if traj.has_pretension:
+        ok, reason = force_check(alpha, alpha_dot, alpha_ddot, traj.pretension(t))
+    else:
+        ok, reason = force_check(alpha, alpha_dot, alpha_ddot)
     ok = np.asarray(ok)
     if ok.shape != t.shape or ok.dtype != np.bool_:
         raise ValueError(f"force_check must return a bool array of shape {t.shape}, got {ok.dtype} {ok.shape}")
@@ -646,4 +717,5 @@ def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math
         durations_s=np.concatenate([[move_s], durations]),
         dwell_s=np.concatenate([[0.0], dwell]),
         name=traj.name,
+        pretension_N=np.concatenate([[0.0], traj.pretension_N]),
     )
