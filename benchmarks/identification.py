@@ -48,23 +48,28 @@ def _load_campaign():
 COVERAGE_SEEDS = tuple(range(21, 31))  # campaign seeds never used while the estimators were developed (0, 1)
 
 
-def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
+def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory_file: Path | None = None) -> str:
     """Markdown: per campaign seed, the identified Table 2 k and λ against the truth, whether
-    their ±2σ intervals cover it, and the totals (issue 17's target: ≥ 85 % covered, all within 10 %)."""
+    their ±2σ intervals cover it, and the totals (issue 17's target: ≥ 85 % covered, all within 10 %).
+    ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids)."""
+    from controller.trajectory import load_trajectory
     from twin.identification.pipeline import identify_friction, identify_variable
     from twin.sim.truth import load_truth
 
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
     params = load_params()
     k_true, lam_true = np.array(params.cables.variable.k), np.array(params.cables.variable.lam)
-    lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}", "",
+    trajectory = None if trajectory_file is None else load_trajectory(trajectory_file)
+    lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}, "
+             f"trajectory {'§5.2.2 cycloids' if trajectory is None else trajectory_file}", "",
              "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |",
              "|---|---|---|---|---|---|"]
     covered = cases = within = 0
     by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
+    rel_sigma = []  # relative σ of k(1..4), λ(1..4) per seed
     z = []  # (estimate − truth)/σ of k(1..4), λ(1..4) per seed: mean 0 and spread 1 for an honest σ
     for seed in seeds:
-        data = simulate_campaign(seed, truth=truth)[0]
+        data = simulate_campaign(seed, truth=truth, trajectory=trajectory)[0]
         proc = preprocess(data, params)
         var = identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator)
         k, lam = var.vector("k"), var.vector("lambda")
@@ -74,6 +79,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
                     (var.ci_low[il] <= lam_true) & (lam_true <= var.ci_high[il])]
         err = np.r_[k / k_true - 1, lam / lam_true - 1]
         z.append(np.r_[(k - k_true) / var.sigma[ik], (lam - lam_true) / var.sigma[il]])
+        rel_sigma.append(np.r_[var.relative_sigma[ik], var.relative_sigma[il]])
         covered, cases, within = covered + int(cov.sum()), cases + len(cov), within + int(np.sum(np.abs(err) < 0.10))
         for i in range(2):
             part = slice(4 * i, 4 * i + 4)
@@ -86,6 +92,9 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str) -> str:
               f"within 10 %: {within}/{cases}",
               f"k: covered {by_symbol[0, 0]}/{cases // 2}, within 10 % {by_symbol[0, 1]}/{cases // 2}; "
               f"λ: covered {by_symbol[1, 0]}/{cases // 2}, within 10 % {by_symbol[1, 1]}/{cases // 2}", ""]
+    rs = 100 * np.mean(rel_sigma, axis=0)
+    lines += ["mean relative σ (%): " + ", ".join(f"k({j + 1}) {rs[j]:.2f}" for j in range(4)) + ", "
+              + ", ".join(f"λ({j + 1}) {rs[4 + j]:.2f}" for j in range(4)), ""]
     if len(seeds) > 2:
         zz = np.asarray(z)
         fmt_z = lambda a: ", ".join(f"{x:+.2f}" for x in a)  # noqa: E731
@@ -157,9 +166,11 @@ if __name__ == "__main__":
     ap.add_argument("--first", type=int, default=COVERAGE_SEEDS[0], help="first campaign seed (default 21)")
     ap.add_argument("--seeds", type=int, default=len(COVERAGE_SEEDS), help="how many campaign seeds (from --first)")
     ap.add_argument("--out", type=Path, help="also write the markdown table to this file")
+    ap.add_argument("--trajectory", type=Path, help="excitation file to run (default: the §5.2.2 cycloids), e.g. "
+                    "one written by `xneck excitation design`")
     args = ap.parse_args()
     if args.coverage:
-        text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator)
+        text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator, args.trajectory)
         print(text)
         if args.out:
             args.out.write_text(text + "\n")

@@ -89,7 +89,7 @@ def holdfree(seed: int = 0, box_deg: str = "50,45,40", speed: float = 0.8, durat
     dwell = np.zeros(len(W))
     dwell[[0, -1]] = REST_S
     assert p.check is not None
-    p.check(W, dur, dwell)
+    p.check(W, dur, dwell, np.zeros(len(W)))
     return Trajectory(W, dur, dwell, f"holdfree-seed{seed}")
 
 

@@ -20,6 +20,9 @@ excitation_app = typer.Typer(help="Design identification excitations (D-optimal 
                              no_args_is_help=True)
 
 
+PRETENSION_MAX_N = 0.0  # default: no pretension. Measured on the twin, a pretension design raised
+# the σ of every k 1.8× (docs/identification-coverage.md, "Pretension"): the stretch's noise and the
+# truth's load-dependent friction grow with the tension faster than its information
 PAPER_BOX_DEG = "40,30,20"  # the §5.2.2 amplitudes: the envelope law 1 is known to track (Fig. 10 of the paper)
 
 
@@ -39,9 +42,11 @@ def _box(box_deg: str, n_joints: int, alpha_max_deg: float):
     return [math.radians(v) for v in values]
 
 
-def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_deg: str = PAPER_BOX_DEG):
+def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_deg: str = PAPER_BOX_DEG,
+             pretension_max_N: float = 0.0):
     """The design problem for ``params`` with the controller's path, forces and validation; the
-    waypoints stay in the ±``box_deg`` box (the joint limits are checked by the validation)."""
+    waypoints stay in the ±``box_deg`` box (the joint limits are checked by the validation), the
+    pretensions in [0, ``pretension_max_N``]."""
     import numpy as np
 
     from controller.laws import nominal_force_check, nominal_forces
@@ -56,13 +61,14 @@ def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_
     def path(start, end, T, t):
         return Trajectory(np.vstack([start, end]), np.array([T]), np.zeros(2)).sample(t)
 
-    def check(waypoints, durations, dwell) -> None:
-        validate(Trajectory(waypoints, durations, dwell, "excitation"), limits, params.n_joints, force_check)
+    def check(waypoints, durations, dwell, pretension) -> None:
+        validate(Trajectory(waypoints, durations, dwell, "excitation", pretension), limits, params.n_joints, force_check)
 
     box = _box(box_deg, params.n_joints, params.limits.alpha_max_deg)
     return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=np.minimum(box, a_max), v_max_rad_s=v_max,
                                 a_max_rad_s2=acc_max, path=path, forces=nominal_forces(params, config),
-                                check=check, speed=speed, criterion=criterion)
+                                check=check, speed=speed, criterion=criterion, pretension_max_N=pretension_max_N,
+                                pretension_rate_N_s=limits.pretension_rate_max_N_s)
 
 
 def design_command(
@@ -80,6 +86,10 @@ def design_command(
     box_deg: str = typer.Option(PAPER_BOX_DEG, "--box-deg", help="Largest |α| per joint (deg), e.g. 40,30,20 (the "
                                 "§5.2.2 amplitudes, the default): a design out to the joint limits (60°) asks law 1 "
                                 "for poses where it loses track (a campaign aborted on a diverging α̂)."),
+    pretension_max: float = typer.Option(PRETENSION_MAX_N, "--pretension-max", help="Largest pretension a waypoint "
+                                         "may add to every cable's floor t_min (N), to sweep the tensions over "
+                                         "eqs. 54-57's curve; 0 (default) designs the joints alone. Keep "
+                                         "it below f_max minus the law's forces (the design checks them)."),
     starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
@@ -93,7 +103,7 @@ def design_command(
 
     params = load_cli_params(params_file, overrides)
     try:
-        problem = _problem(params, duration, speed, criterion, box_deg)
+        problem = _problem(params, duration, speed, criterion, box_deg, pretension_max)
         if waypoints is not None and waypoints < 3:
             raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
         # margin 1: the box is the bound asked for (the joint limits are the validation's)
@@ -103,12 +113,14 @@ def design_command(
         raise typer.Exit(2) from None
     paper = identification_trajectory()
     baseline = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
-    traj = Trajectory(result.waypoints_rad, result.durations_s, result.dwell_s, f"excitation-seed{seed}")
+    traj = Trajectory(result.waypoints_rad, result.durations_s, result.dwell_s, f"excitation-seed{seed}",
+                      result.pretension_N)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
     report = {
         "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
         "seed": seed, "speed": speed, "criterion": criterion, "box_deg": box_deg, "iterations": result.iterations,
+        "pretension_max_N": pretension_max, "pretension_N": result.pretension_N.tolist(),
         "designed": result.score.to_dict(), "paper_4x6_cycloids": baseline.to_dict(),
         "gain": {"log_det": result.score.log_det - baseline.log_det,
                  "cond_friction_ratio": baseline.cond_friction / result.score.cond_friction,
@@ -125,6 +137,8 @@ def design_command(
     d, b = result.score, baseline
     typer.echo(f"designed excitation: {traj.n_waypoints} waypoints, {traj.duration_s:.1f} s "
                f"(§5.2.2 cycloids: {paper.n_waypoints}, {paper.duration_s:.1f} s)")
+    if traj.has_pretension:
+        typer.echo(f"pretension: 0 … {traj.pretension_N.max():.1f} N over the waypoints (bound {pretension_max:g} N)")
     typer.echo(f"{'':34s}{'designed':>12s}{'4x6 cycloids':>14s}")
     for label, a, c in (("log det F (friction + variable)", d.log_det, b.log_det),
                         ("  log det F friction (eq. 38)", d.log_det_friction, b.log_det_friction),

@@ -21,8 +21,18 @@ stretch x_c = t_c/(k + λ·t_c) (eq. 54 at rest, the base parameters), ẋ_c, an
 parameter (so that the information is about *relative* precision, the unit of the σ's reported):
 
 * friction, eq. 38: Z·diag(a)·diag(f_s), a = (2/π)arctan(c_s·θ̇) (eq. 37), N rows per sample;
-* variable stiffness, eqs. 54-57: per cable [x_c·k, x_c·t_c·λ, ẋ_c·c_a], slack rows (t_c < 2 N)
-  dropped as in the identification.
+* variable stiffness, eqs. 54-57: per cable [x_c·k, x_c·t_c·λ, ẋ_c·c_a] / (1 + λt_c/k), rows of
+  slack cables (t_c < 2 N) and of motors slower than 1/c_s dropped as in the identification
+  (regressors.moving_mask); the weight is the growth of the residual's noise with the tension
+  (the stretch's noise σ_x enters t − kx − λxt as (k + λt)·σ_x).
+
+Pretension. The redundant cables' internal force is free: raising every cable's floor t_min by a
+pretension P (controller.trajectory, eq. 65) raises all four tensions without moving the neck.
+The joint motion alone keeps the tensions near the floor (law 1 minimises ‖f‖), where t_c ≈ k·x_c
+and k and λ are nearly collinear; sweeping P over [0, ``pretension_max_N``] spreads the tensions
+over the curve of eq. 54 and decorrelates them. Each inner waypoint then has a pretension level
+as well (the first and last stay at 0), joined by the same cycloids, and a move lasts long enough
+for its pretension change at ``pretension_rate_N_s``.
 
 Criterion (D-optimality): log det of each normalised information matrix F = Σ_rows wwᵀ·h / D
 (h the sample step, D the duration), summed over the two regressors (they share no parameter, so
@@ -66,13 +76,15 @@ PathFn = Callable[[FloatArray, FloatArray, float, FloatArray], tuple[FloatArray,
 """(start α (N,), end α (N,), move duration T (s), times in [0, T] (s)) -> α, α̇, α̈ (T, N) of the
 cycloidal move (rad, rad/s, rad/s²). Given by the caller: the controller's trajectory."""
 
-ForceFn = Callable[[FloatArray, FloatArray, FloatArray], tuple[FloatArray, BoolArray]]
-"""(α, α̇, α̈) (T, N) -> (forces the law commands on that nominal path (T, n_cables) N before any
-clamping, distribution feasible (T,)). Given by the caller: :func:`controller.laws.nominal_forces`."""
+ForceFn = Callable[..., tuple[FloatArray, BoolArray]]
+"""(α, α̇, α̈) (T, N)[, pretension (T,) N] -> (forces the law commands on that nominal path
+(T, n_cables) N before any clamping, distribution feasible (T,)). Given by the caller:
+:func:`controller.laws.nominal_forces`."""
 
-CheckFn = Callable[[FloatArray, FloatArray, FloatArray], None]
-"""(waypoints (K, N) rad, move durations (K-1,) s, holds (K,) s) -> None, or raises ValueError
-with the reason: the controller's trajectory validation (joint, speed, acceleration, forces)."""
+CheckFn = Callable[[FloatArray, FloatArray, FloatArray, FloatArray], None]
+"""(waypoints (K, N) rad, move durations (K-1,) s, holds (K,) s, pretension (K,) N) -> None, or
+raises ValueError with the reason: the controller's trajectory validation (joint, speed,
+acceleration, pretension, forces)."""
 
 MIN_TENSION_N = 2.0  # the identification drops tension rows below this (slack cable), so does the design
 MIN_MOVE_S = 1.0  # shortest move: below it the law's tracking, not the path, sets the motion
@@ -106,14 +118,17 @@ class DesignProblem:
     path: PathFn
     forces: ForceFn
     check: CheckFn | None = None
-    criterion: str = "d"  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
+    criterion: str = "d"
+    pretension_max_N: float = 0.0  # largest pretension a waypoint may ask for (0: none, the joints alone)
+    pretension_rate_N_s: float = 100.0  # peak rate of a pretension change (the trajectory limit)  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
     _cache: dict[Any, Information] = field(default_factory=dict, repr=False)
 
     @classmethod
     def create(cls, params: Params, *, duration_s: float, alpha_max_rad: FloatArray | float,
                v_max_rad_s: FloatArray | float, a_max_rad_s2: FloatArray | float, path: PathFn,
                forces: ForceFn, check: CheckFn | None = None, speed: float = 0.6,
-               criterion: str = "d") -> DesignProblem:
+               criterion: str = "d", pretension_max_N: float = 0.0,
+               pretension_rate_N_s: float = 100.0) -> DesignProblem:
         """A problem for ``params`` (its variable-stiffness cables and friction are the base values)."""
         if not (math.isfinite(duration_s) and duration_s > 2 * REST_S + MIN_MOVE_S):
             raise DesignError(f"duration must be a number of seconds above {2 * REST_S + MIN_MOVE_S:g}, got {duration_s}")
@@ -121,6 +136,10 @@ class DesignProblem:
             raise DesignError(f"speed is a fraction of the speed and acceleration limits in (0, 1], got {speed}")
         if criterion not in ("d", "ds"):
             raise DesignError(f"criterion must be d (every parameter) or ds (k and λ, c_a a nuisance), got {criterion!r}")
+        if not (math.isfinite(pretension_max_N) and 0.0 <= pretension_max_N < params.limits.f_max):
+            raise DesignError(f"the pretension bound must be in [0, f_max = {params.limits.f_max:g}) N, got {pretension_max_N}")
+        if not (math.isfinite(pretension_rate_N_s) and pretension_rate_N_s > 0.0):
+            raise DesignError(f"the pretension rate must be positive (N/s), got {pretension_rate_N_s}")
         n = params.n_joints
         per_joint = [np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
                      for v in (alpha_max_rad, v_max_rad_s, a_max_rad_s2)]
@@ -132,7 +151,8 @@ class DesignProblem:
                    k=np.asarray(var.k, dtype=float), lam=np.asarray(var.lam, dtype=float),
                    c_a=np.asarray(var.c_a, dtype=float), alpha_max=per_joint[0], v_max=speed * per_joint[1],
                    a_max=speed * per_joint[2], duration_s=float(duration_s), path=path, forces=forces, check=check,
-                   criterion=criterion)
+                   criterion=criterion, pretension_max_N=float(pretension_max_N),
+                   pretension_rate_N_s=speed * float(pretension_rate_N_s))
 
     @property
     def n_joints(self) -> int:
@@ -156,23 +176,31 @@ class Information(NamedTuple):
 
 
 def _information(p: DesignProblem, alpha: FloatArray, alpha_dot: FloatArray, alpha_ddot: FloatArray,
-                 h: float) -> Information:
-    """Regressor rows (module docstring) of nominal samples taken every ``h`` seconds, as information."""
+                 h: float, pretension: FloatArray | None = None) -> Information:
+    """Regressor rows (module docstring) of nominal samples taken every ``h`` seconds, as
+    information; ``pretension`` (T,) N raises the law's floor (None: none)."""
     m = p.model
-    f, feasible = p.forces(alpha, alpha_dot, alpha_ddot)
+    f, feasible = (p.forces(alpha, alpha_dot, alpha_ddot) if pretension is None
+                   else p.forces(alpha, alpha_dot, alpha_ddot, pretension))
     terms = dynamics.evaluate(m, alpha, alpha_dot)
     zt_dot = np.einsum("nij,ni->nj", terms.Z, alpha_dot)  # Zᵀα̇ = −l̇_c
     theta_ddot = (np.einsum("nij,ni->nj", terms.Z, alpha_ddot) + np.einsum("nij,ni->nj", terms.Z_dot, alpha_dot)) / m.rho
     t_c = np.maximum(f - m.I_a * theta_ddot / m.rho, 0.0)
     x_c = t_c / (p.k + p.lam * t_c)
     x_dot = np.gradient(x_c, h, axis=0) if len(x_c) > 1 else np.zeros_like(x_c)
-    a = dynamics.friction_shape(m.c_s, m.friction_sign, (zt_dot + x_dot) / m.rho)
+    theta_dot = (zt_dot + x_dot) / m.rho
+    a = dynamics.friction_shape(m.c_s, m.friction_sign, theta_dot)
+    # The identification keeps the tension rows of turning motors only (regressors.moving_mask),
+    # and the stretch's noise σ_x enters their residual t − kx − λxt as (k + λt)·σ_x: rows
+    # weighted by 1/(1 + λt/k), the base noise being that at zero tension.
+    kept = (t_c >= MIN_TENSION_N) & (np.abs(theta_dot) * m.c_s >= 1.0)
+    weight = 1.0 / (1.0 + p.lam * t_c / p.k)
     fr = (terms.Z * (a * p.f_s)[:, None, :]).reshape(-1, m.n_cables)
     nc = m.n_cables
     var = np.zeros((3 * nc, 3 * nc))
     for j in range(nc):  # one cable's rows touch only its own k, λ, c_a
         rows = np.column_stack([x_c[:, j] * p.k[j], x_c[:, j] * t_c[:, j] * p.lam[j], x_dot[:, j] * p.c_a[j]])
-        rows = rows[t_c[:, j] >= MIN_TENSION_N]
+        rows = (rows * weight[:, j, None])[kept[:, j]]
         idx = [j, nc + j, 2 * nc + j]
         var[np.ix_(idx, idx)] = rows.T @ rows
     excess = np.maximum(f.max(axis=1) / (FORCE_MARGIN * m.f_max) - 1.0, 0.0)
@@ -180,39 +208,46 @@ def _information(p: DesignProblem, alpha: FloatArray, alpha_dot: FloatArray, alp
     return Information(h * (fr.T @ fr), h * var, h * penalty)
 
 
-def _move(p: DesignProblem, a: FloatArray, b: FloatArray, T: float) -> Information:
-    key = ("move", a.tobytes(), b.tobytes(), T)
+def _move(p: DesignProblem, a: FloatArray, b: FloatArray, T: float, pa: float = 0.0, pb: float = 0.0) -> Information:
+    key = ("move", a.tobytes(), b.tobytes(), T, pa, pb)
     if key not in p._cache:
         n = max(int(math.ceil(T / STEP_S)), 2)
         t = np.linspace(0.0, T, n + 1)
         alpha, alpha_dot, alpha_ddot = p.path(a, b, T, t)
-        p._cache[key] = _information(p, alpha, alpha_dot, alpha_ddot, T / n)
+        # The pretension follows the joints' cycloid: the same path, on one coordinate.
+        pre = None if pa == pb == 0.0 else p.path(np.array([pa]), np.array([pb]), T, t)[0][:, 0]
+        p._cache[key] = _information(p, alpha, alpha_dot, alpha_ddot, T / n, pre)
     return p._cache[key]
 
 
-def _hold(p: DesignProblem, a: FloatArray) -> Information:
-    """Information of one second held at ``a``."""
-    key = ("hold", a.tobytes())
+def _hold(p: DesignProblem, a: FloatArray, pa: float = 0.0) -> Information:
+    """Information of one second held at ``a`` with the pretension ``pa`` (N)."""
+    key = ("hold", a.tobytes(), pa)
     if key not in p._cache:
         z = np.zeros((1, p.n_joints))
-        p._cache[key] = _information(p, a[None, :], z, z, 1.0)
+        p._cache[key] = _information(p, a[None, :], z, z, 1.0, None if pa == 0.0 else np.array([pa]))
     return p._cache[key]
 
 
-def move_durations(p: DesignProblem, waypoints: FloatArray) -> FloatArray:
+def move_durations(p: DesignProblem, waypoints: FloatArray, pretension: FloatArray | None = None) -> FloatArray:
     """Shortest duration (s) of each cycloidal move within ``p``'s speed and acceleration: peaks
-    2|Δ|/T and 2π|Δ|/T² (controller.trajectory's exact cycloid peaks), at least 1 s."""
+    2|Δ|/T and 2π|Δ|/T² (controller.trajectory's exact cycloid peaks), and 2|ΔP|/T within the
+    pretension rate; at least 1 s."""
     delta = np.abs(np.diff(waypoints, axis=0))
     t_v = 2.0 * delta / p.v_max
     t_a = np.sqrt(2.0 * math.pi * delta / p.a_max)
+    t_move = np.maximum(t_v, t_a).max(axis=1)
+    if pretension is not None:
+        t_move = np.maximum(t_move, 2.0 * np.abs(np.diff(pretension)) / p.pretension_rate_N_s)
     # A hair above the bound: the validation compares the peak with the limit in floating point.
-    return np.maximum(np.maximum(t_v, t_a).max(axis=1) * (1.0 + 1e-6), MIN_MOVE_S)
+    return np.maximum(t_move * (1.0 + 1e-6), MIN_MOVE_S)
 
 
-def _timing(p: DesignProblem, waypoints: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+def _timing(p: DesignProblem, waypoints: FloatArray, pretension: FloatArray | None = None
+            ) -> tuple[FloatArray, FloatArray, float]:
     """Move durations, holds (rests at both ends, the remaining time shared by the inner holds),
     and how many seconds the moves overrun the duration (0 when they fit)."""
-    durations = move_durations(p, waypoints)
+    durations = move_durations(p, waypoints, pretension)
     k = len(waypoints)
     inner = p.duration_s - 2 * REST_S - durations.sum()
     dwell = np.full(k, max(inner, 0.0) / max(k - 2, 1))
@@ -220,14 +255,17 @@ def _timing(p: DesignProblem, waypoints: FloatArray) -> tuple[FloatArray, FloatA
     return durations, dwell, max(-inner, 0.0)
 
 
-def information(p: DesignProblem, waypoints: FloatArray, durations: FloatArray, dwell: FloatArray) -> Information:
-    """Information of a whole trajectory (any timing: the designed one or the paper's)."""
+def information(p: DesignProblem, waypoints: FloatArray, durations: FloatArray, dwell: FloatArray,
+                pretension: FloatArray | None = None) -> Information:
+    """Information of a whole trajectory (any timing: the designed one or the paper's), with the
+    pretension (K,) N at each waypoint (None: none)."""
+    P = np.zeros(len(waypoints)) if pretension is None else np.asarray(pretension, dtype=float)
     total = Information(np.zeros((p.model.n_cables,) * 2), np.zeros((3 * p.model.n_cables,) * 2), 0.0)
     for i in range(len(waypoints)):
         if dwell[i] > 0:
-            total = total + _hold(p, waypoints[i]).scaled(float(dwell[i]))
+            total = total + _hold(p, waypoints[i], float(P[i])).scaled(float(dwell[i]))
         if i + 1 < len(waypoints):
-            total = total + _move(p, waypoints[i], waypoints[i + 1], float(durations[i]))
+            total = total + _move(p, waypoints[i], waypoints[i + 1], float(durations[i]), float(P[i]), float(P[i + 1]))
     return total
 
 
@@ -271,13 +309,15 @@ def _cond(F: FloatArray) -> float:
     return float(math.sqrt(s[-1] / s[0])) if s[0] > 0 else math.inf
 
 
-def score(p: DesignProblem, waypoints: FloatArray, durations: FloatArray, dwell: FloatArray) -> Score:
-    """The design criterion of a trajectory (waypoints (K, N) rad, durations (K-1,) s, holds (K,) s)."""
+def score(p: DesignProblem, waypoints: FloatArray, durations: FloatArray, dwell: FloatArray,
+          pretension: FloatArray | None = None) -> Score:
+    """The design criterion of a trajectory (waypoints (K, N) rad, durations (K-1,) s, holds (K,) s,
+    pretension (K,) N or None)."""
     waypoints = np.asarray(waypoints, dtype=float)
     durations = np.broadcast_to(np.asarray(durations, dtype=float), (len(waypoints) - 1,))
     dwell = np.broadcast_to(np.asarray(dwell, dtype=float), (len(waypoints),))
     duration = float(durations.sum() + dwell.sum())
-    info = information(p, waypoints, durations, dwell).scaled(1.0 / duration)
+    info = information(p, waypoints, durations, dwell, pretension).scaled(1.0 / duration)
     lf, lv = _logdet(info.friction), _logdet(info.variable)
     nc = p.model.n_cables
     # Schur complement: det Cov(k_j, λ_j)⁻¹ = det F_j / F_j(c_a, c_a) for each cable's 3×3 block
@@ -299,6 +339,7 @@ class Excitation(NamedTuple):
     score: Score
     iterations: int
     seed: int
+    pretension_N: FloatArray  # (K,) N, zeros when the design has no pretension
 
 
 PENALTY_WEIGHT = 1e4  # on the force penalty (per second, normalised); the log-dets move by units
@@ -309,9 +350,9 @@ def _objective(p: DesignProblem, k: int) -> Callable[[FloatArray], float]:
     n = p.n_joints
 
     def f(u: FloatArray) -> float:
-        w = _waypoints(p, u, k, n)
-        durations, dwell, overrun = _timing(p, w)
-        s = score(p, w, durations, dwell)
+        w, P = _waypoints(p, u, k, n)
+        durations, dwell, overrun = _timing(p, w, P)
+        s = score(p, w, durations, dwell, P)
         if len(p._cache) > 200_000:  # a long design: keep memory bounded
             p._cache.clear()
         return -(s.log_det_ds if p.criterion == "ds" else s.log_det) + PENALTY_WEIGHT * s.penalty + OVERRUN_WEIGHT * overrun**2
@@ -319,11 +360,23 @@ def _objective(p: DesignProblem, k: int) -> Callable[[FloatArray], float]:
     return f
 
 
-def _waypoints(p: DesignProblem, u: FloatArray, k: int, n: int) -> FloatArray:
+def _n_vars(p: DesignProblem, k: int) -> int:
+    """Design variables: each inner waypoint's joints, and its pretension when the problem has one."""
+    return (k - 2) * (p.n_joints + (1 if p.pretension_max_N > 0.0 else 0))
+
+
+def _waypoints(p: DesignProblem, u: FloatArray, k: int, n: int) -> tuple[FloatArray, FloatArray | None]:
+    """The waypoints (K, N) rad and pretensions (K,) N (None without) of the design variables
+    ``u``: joints as fractions of alpha_max in [−1, 1], pretensions as fractions of the bound in
+    [0, 1]; the first and last waypoint straight, at rest and at 0 N."""
+    v = np.round(np.asarray(u, dtype=float), 12)  # so that the cache sees a move again when the optimiser comes back
     w = np.zeros((k, n))
-    # Rounded so that the cache sees a move again when the optimiser comes back to it.
-    w[1:-1] = np.round(u.reshape(k - 2, n), 12) * p.alpha_max
-    return w
+    w[1:-1] = v[:(k - 2) * n].reshape(k - 2, n) * p.alpha_max
+    if p.pretension_max_N <= 0.0:
+        return w, None
+    P = np.zeros(k)
+    P[1:-1] = np.round(v[(k - 2) * n:] * p.pretension_max_N, 9)
+    return w, P
 
 
 def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, starts: int = 2,
@@ -340,10 +393,11 @@ def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, s
         raise DesignError(f"a design needs at least 3 waypoints (straight, one pose, straight), got {k}")
     n = p.n_joints
     rng = np.random.default_rng(seed)
-    bounds = [(-margin, margin)] * ((k - 2) * n)
+    n_pre = _n_vars(p, k) - (k - 2) * n
+    bounds = [(-margin, margin)] * ((k - 2) * n) + [(0.0, 1.0)] * n_pre
     best: tuple[float, FloatArray, int] | None = None
     for _ in range(max(starts, 1)):
-        u0 = rng.uniform(-margin, margin, size=(k - 2) * n)
+        u0 = np.concatenate([rng.uniform(-margin, margin, size=(k - 2) * n), rng.uniform(0.0, 1.0, size=n_pre)])
         res = optimize.minimize(_objective(p, k), u0, method="L-BFGS-B", bounds=bounds,
                                 options={"maxiter": maxiter, "eps": 1e-4})
         if best is None or res.fun < best[0]:
@@ -352,19 +406,20 @@ def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, s
     _, u, nit = best
     reason = ""
     for _ in range(40):
-        w = _waypoints(p, u, k, n)
-        durations, dwell, overrun = _timing(p, w)
-        s = score(p, w, durations, dwell)
+        w, P = _waypoints(p, u, k, n)
+        durations, dwell, overrun = _timing(p, w, P)
+        s = score(p, w, durations, dwell, P)
+        pretension = np.zeros(k) if P is None else P
         try:
             if overrun > 1e-9:
                 raise ValueError(f"the moves need {overrun:.2f} s more than the duration")
             if s.penalty > 0.0:
                 raise ValueError(f"nominal forces above {FORCE_MARGIN:g}·f_max or not distributable")
             if p.check is not None:
-                p.check(w, durations, dwell)
+                p.check(w, durations, dwell, pretension)
         except ValueError as exc:
             reason = str(exc)
-            u = 0.95 * u
+            u = 0.95 * u  # towards the straight pose and a lower pretension
             continue
-        return Excitation(w, durations, dwell, s, nit, seed)
+        return Excitation(w, durations, dwell, s, nit, seed, pretension)
     raise DesignError(f"no design passed the trajectory validation; last reason: {reason}")
