@@ -25,7 +25,7 @@ import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 summary, time_calls = _timing.summary, _timing.time_calls
 
-from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign  # noqa: E402
+from controller.identification_loop import DAMPING_ONLY_TRUTH, identify_campaign, simulate_campaign  # noqa: E402
 from twin.identification.pipeline import (  # noqa: E402
     VARIABLE_ESTIMATORS,
     identified_params,
@@ -53,7 +53,6 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
     their ±2σ intervals cover it, and the totals (issue 17's target: ≥ 85 % covered, all within 10 %).
     ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids)."""
     from controller.trajectory import load_trajectory
-    from twin.identification.pipeline import identify_friction, identify_variable
     from twin.sim.truth import load_truth
 
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
@@ -69,9 +68,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
     rel_sigma = []  # relative σ of k(1..4), λ(1..4) per seed
     z = []  # (estimate − truth)/σ of k(1..4), λ(1..4) per seed: mean 0 and spread 1 for an honest σ
     for seed in seeds:
-        data = simulate_campaign(seed, truth=truth, trajectory=trajectory)[0]
-        proc = preprocess(data, params)
-        var = identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator)
+        var = identify_campaign(seed, truth, estimator, trajectory, params)
         k, lam = var.vector("k"), var.vector("lambda")
         ik = [i for i, n in enumerate(var.names) if n.startswith("k(")]
         il = [i for i, n in enumerate(var.names) if n.startswith("lambda(")]

@@ -65,3 +65,16 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     data = CampaignData(stamp, theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
                         excitation_alpha_rad=None if still else ref.alpha)
     return data, {"t": stamp, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
+
+
+def identify_campaign(seed: int, truth=DAMPING_ONLY_TRUTH, estimator: str = "iv", trajectory=None, params=None):
+    """:func:`simulate_campaign` then the pipeline's Table 2 identification (friction first, then
+    the variable-stiffness cables with ``estimator``): the coverage benchmark's and the docs'
+    known-answer run. Returns the variable model's estimate (twin.identification.estimators)."""
+    from twin.identification.pipeline import identify_friction, identify_variable, preprocess
+    from twin.model.params import load_params
+
+    params = params or load_params()
+    proc = preprocess(simulate_campaign(seed, truth=truth, params=params, trajectory=trajectory)[0], params)
+    return identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator)
+

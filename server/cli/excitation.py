@@ -43,7 +43,7 @@ def _box(box_deg: str, n_joints: int, alpha_max_deg: float):
 
 
 def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_deg: str = PAPER_BOX_DEG,
-             pretension_max_N: float = 0.0):
+             pretension_max_N: float = 0.0, holds: str = "none"):
     """The design problem for ``params`` with the controller's path, forces and validation; the
     waypoints stay in the ±``box_deg`` box (the joint limits are checked by the validation), the
     pretensions in [0, ``pretension_max_N``]."""
@@ -68,7 +68,7 @@ def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_
     return DesignProblem.create(params, duration_s=duration_s, alpha_max_rad=np.minimum(box, a_max), v_max_rad_s=v_max,
                                 a_max_rad_s2=acc_max, path=path, forces=nominal_forces(params, config),
                                 check=check, speed=speed, criterion=criterion, pretension_max_N=pretension_max_N,
-                                pretension_rate_N_s=limits.pretension_rate_max_N_s)
+                                pretension_rate_N_s=limits.pretension_rate_max_N_s, holds=holds)
 
 
 def design_command(
@@ -90,6 +90,9 @@ def design_command(
                                          "may add to every cable's floor t_min (N), to sweep the tensions over "
                                          "eqs. 54-57's curve; 0 (default) designs the joints alone. Keep "
                                          "it below f_max minus the law's forces (the design checks them)."),
+    holds: str = typer.Option("none", "--holds", help="none: the moves are stretched to fill the duration (a "
+                              "still motor gives the identification no row); fill: the shortest moves, the "
+                              "remaining time as holds at the waypoints (the §5.2.2 trajectory's stops)."),
     starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
@@ -103,15 +106,19 @@ def design_command(
 
     params = load_cli_params(params_file, overrides)
     try:
-        problem = _problem(params, duration, speed, criterion, box_deg, pretension_max)
+        problem = _problem(params, duration, speed, criterion, box_deg, pretension_max, holds)
         if waypoints is not None and waypoints < 3:
             raise DesignError(f"--waypoints must be at least 3 (straight, one pose, straight), got {waypoints}")
-        # margin 1: the box is the bound asked for (the joint limits are the validation's)
-        result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter, margin=1.0)
+        # margin 1: the box is the bound asked for (the joint limits are the validation's). With as
+        # many waypoints, the §5.2.2 cycloids are the first start: the design cannot lose to them.
+        paper = identification_trajectory()
+        k = waypoints if waypoints is not None else max(int(round(duration / 4.0)) + 1, 3)
+        start = paper.waypoints_rad if k == paper.n_waypoints else None
+        result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter, margin=1.0,
+                        start=start)
     except DesignError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(2) from None
-    paper = identification_trajectory()
     baseline = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
     traj = Trajectory(result.waypoints_rad, result.durations_s, result.dwell_s, f"excitation-seed{seed}",
                       result.pretension_N)
@@ -119,7 +126,8 @@ def design_command(
     out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
     report = {
         "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
-        "seed": seed, "speed": speed, "criterion": criterion, "box_deg": box_deg, "iterations": result.iterations,
+        "seed": seed, "speed": speed, "criterion": criterion, "box_deg": box_deg, "holds": holds,
+        "started_from_the_cycloids": start is not None, "iterations": result.iterations,
         "pretension_max_N": pretension_max, "pretension_N": result.pretension_N.tolist(),
         "designed": result.score.to_dict(), "paper_4x6_cycloids": baseline.to_dict(),
         "gain": {"log_det": result.score.log_det - baseline.log_det,

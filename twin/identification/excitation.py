@@ -10,9 +10,13 @@ twin must not import the controller.
 The design problem
 ------------------
 A trajectory is K waypoints α_0 = 0, α_1 … α_{K-2}, α_{K-1} = 0 (rad; it starts and ends straight
-and at rest, as §5.2.2 and the α̂ estimators assume) joined by cycloidal moves, each followed by a
-hold. A move's duration is the shortest its peak speed 2|Δ|/T and acceleration 2π|Δ|/T² allow at a
-fraction ``speed`` of the limits; whatever time remains is shared equally by the holds.
+and at rest, as §5.2.2 and the α̂ estimators assume) joined by cycloidal moves, with a 1 s rest at
+each end. A move's shortest duration is what its peak speed 2|Δ|/T and acceleration 2π|Δ|/T² allow
+at a fraction ``speed`` of the limits. ``holds="none"`` (the default) stretches every move by the
+same factor until they fill the duration: a still motor gives neither regressor a row (eq. 37's
+arctan is 0 at rest, and the identification drops the tension rows of slow motors), so a hold is
+time without information. ``holds="fill"`` keeps the shortest moves and shares the remaining time
+equally between holds at the waypoints (the §5.2.2 trajectory's stops).
 
 Along the nominal path (α = α^d) the law's forces f give the cable tensions t_c = f − (R/r_d)I_a·θ̈
 (eq. 41 without friction: the law-1 feed-forward has none, its integrator adds it on top), the
@@ -120,7 +124,8 @@ class DesignProblem:
     check: CheckFn | None = None
     criterion: str = "d"
     pretension_max_N: float = 0.0  # largest pretension a waypoint may ask for (0: none, the joints alone)
-    pretension_rate_N_s: float = 100.0  # peak rate of a pretension change (the trajectory limit)  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
+    pretension_rate_N_s: float = 100.0  # peak rate of a pretension change (the trajectory limit)
+    holds: str = "none"  # "none": moves stretched to fill the duration; "fill": shortest moves, then holds  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
     _cache: dict[Any, Information] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -128,7 +133,7 @@ class DesignProblem:
                v_max_rad_s: FloatArray | float, a_max_rad_s2: FloatArray | float, path: PathFn,
                forces: ForceFn, check: CheckFn | None = None, speed: float = 0.6,
                criterion: str = "d", pretension_max_N: float = 0.0,
-               pretension_rate_N_s: float = 100.0) -> DesignProblem:
+               pretension_rate_N_s: float = 100.0, holds: str = "none") -> DesignProblem:
         """A problem for ``params`` (its variable-stiffness cables and friction are the base values)."""
         if not (math.isfinite(duration_s) and duration_s > 2 * REST_S + MIN_MOVE_S):
             raise DesignError(f"duration must be a number of seconds above {2 * REST_S + MIN_MOVE_S:g}, got {duration_s}")
@@ -136,6 +141,8 @@ class DesignProblem:
             raise DesignError(f"speed is a fraction of the speed and acceleration limits in (0, 1], got {speed}")
         if criterion not in ("d", "ds"):
             raise DesignError(f"criterion must be d (every parameter) or ds (k and λ, c_a a nuisance), got {criterion!r}")
+        if holds not in ("none", "fill"):
+            raise DesignError(f"holds must be none (moves fill the duration) or fill (shortest moves, then holds), got {holds!r}")
         if not (math.isfinite(pretension_max_N) and 0.0 <= pretension_max_N < params.limits.f_max):
             raise DesignError(f"the pretension bound must be in [0, f_max = {params.limits.f_max:g}) N, got {pretension_max_N}")
         if not (math.isfinite(pretension_rate_N_s) and pretension_rate_N_s > 0.0):
@@ -152,7 +159,7 @@ class DesignProblem:
                    c_a=np.asarray(var.c_a, dtype=float), alpha_max=per_joint[0], v_max=speed * per_joint[1],
                    a_max=speed * per_joint[2], duration_s=float(duration_s), path=path, forces=forces, check=check,
                    criterion=criterion, pretension_max_N=float(pretension_max_N),
-                   pretension_rate_N_s=speed * float(pretension_rate_N_s))
+                   pretension_rate_N_s=speed * float(pretension_rate_N_s), holds=holds)
 
     @property
     def n_joints(self) -> int:
@@ -245,12 +252,18 @@ def move_durations(p: DesignProblem, waypoints: FloatArray, pretension: FloatArr
 
 def _timing(p: DesignProblem, waypoints: FloatArray, pretension: FloatArray | None = None
             ) -> tuple[FloatArray, FloatArray, float]:
-    """Move durations, holds (rests at both ends, the remaining time shared by the inner holds),
-    and how many seconds the moves overrun the duration (0 when they fit)."""
+    """Move durations, holds (rests at both ends; the remaining time stretches the moves, or is
+    shared by the inner holds: ``p.holds``), and how many seconds the shortest moves overrun the
+    duration (0 when they fit)."""
     durations = move_durations(p, waypoints, pretension)
     k = len(waypoints)
     inner = p.duration_s - 2 * REST_S - durations.sum()
-    dwell = np.full(k, max(inner, 0.0) / max(k - 2, 1))
+    dwell = np.zeros(k)
+    if p.holds == "none":
+        if inner > 0.0:
+            durations = durations * ((p.duration_s - 2 * REST_S) / durations.sum())
+    else:
+        dwell[:] = max(inner, 0.0) / max(k - 2, 1)
     dwell[[0, -1]] = REST_S
     return durations, dwell, max(-inner, 0.0)
 
@@ -380,12 +393,14 @@ def _waypoints(p: DesignProblem, u: FloatArray, k: int, n: int) -> tuple[FloatAr
 
 
 def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, starts: int = 2,
-           maxiter: int = 40, margin: float = 0.95) -> Excitation:
+           maxiter: int = 40, margin: float = 0.95, start: FloatArray | None = None) -> Excitation:
     """The D-optimal excitation of ``p`` (module docstring).
 
     ``n_waypoints`` K (default: one every 4 s, as the §5.2.2 trajectory's 25 in 97 s); the inner
-    waypoints move within ±``margin``·alpha_max. ``starts`` random starting designs (seeded by
-    ``seed``), each improved by L-BFGS-B for at most ``maxiter`` iterations; the best one that the
+    waypoints move within ±``margin``·alpha_max. ``start`` (K, N) rad, e.g. the §5.2.2 cycloids'
+    waypoints: a first starting design, so the result is at least as good on the criterion; then
+    ``starts`` random starting designs (seeded by ``seed``); each is improved by L-BFGS-B for at
+    most ``maxiter`` iterations; the best one that the
     caller's ``check`` accepts, with every nominal force under FORCE_MARGIN·f_max, is returned (a
     rejected one is shrunk towards the straight pose by 5 % steps until it passes). Raises :class:`DesignError` when none passes."""
     k = n_waypoints if n_waypoints is not None else max(int(round(p.duration_s / 4.0)) + 1, 3)
@@ -396,8 +411,15 @@ def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, s
     n_pre = _n_vars(p, k) - (k - 2) * n
     bounds = [(-margin, margin)] * ((k - 2) * n) + [(0.0, 1.0)] * n_pre
     best: tuple[float, FloatArray, int] | None = None
+    initial = []
+    if start is not None:
+        w0 = np.asarray(start, dtype=float)
+        if w0.shape != (k, n):
+            raise DesignError(f"the starting design has shape {w0.shape}, the design {k} waypoints of {n} joints")
+        initial.append(np.concatenate([np.clip(w0[1:-1] / p.alpha_max, -margin, margin).ravel(), np.zeros(n_pre)]))
     for _ in range(max(starts, 1)):
-        u0 = np.concatenate([rng.uniform(-margin, margin, size=(k - 2) * n), rng.uniform(0.0, 1.0, size=n_pre)])
+        initial.append(np.concatenate([rng.uniform(-margin, margin, size=(k - 2) * n), rng.uniform(0.0, 1.0, size=n_pre)]))
+    for u0 in initial:
         res = optimize.minimize(_objective(p, k), u0, method="L-BFGS-B", bounds=bounds,
                                 options={"maxiter": maxiter, "eps": 1e-4})
         if best is None or res.fun < best[0]:
