@@ -48,19 +48,23 @@ def _load_campaign():
 COVERAGE_SEEDS = tuple(range(21, 31))  # campaign seeds never used while the estimators were developed (0, 1)
 
 
-def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory_file: Path | None = None) -> str:
+def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory_file: Path | None = None,
+             repeat: int = 1) -> str:
     """Markdown: per campaign seed, the identified Table 2 k and λ against the truth, whether
     their ±2σ intervals cover it, and the totals (issue 17's target: ≥ 85 % covered, all within 10 %).
-    ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids)."""
-    from controller.trajectory import load_trajectory
+    ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids), ``repeat`` times."""
+    from controller.trajectory import identification_trajectory, load_trajectory, repeated
     from twin.sim.truth import load_truth
 
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
     params = load_params()
     k_true, lam_true = np.array(params.cables.variable.k), np.array(params.cables.variable.lam)
     trajectory = None if trajectory_file is None else load_trajectory(trajectory_file)
+    if repeat > 1:
+        trajectory = repeated(trajectory or identification_trajectory(), repeat)
     lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}, "
-             f"trajectory {'§5.2.2 cycloids' if trajectory is None else trajectory_file}", "",
+             f"trajectory {'§5.2.2 cycloids' if trajectory_file is None else trajectory_file}"
+             + (f" × {repeat} ({trajectory.duration_s:g} s)" if trajectory is not None and repeat > 1 else ""), "",
              "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |",
              "|---|---|---|---|---|---|"]
     covered = cases = within = 0
@@ -165,9 +169,11 @@ if __name__ == "__main__":
     ap.add_argument("--out", type=Path, help="also write the markdown table to this file")
     ap.add_argument("--trajectory", type=Path, help="excitation file to run (default: the §5.2.2 cycloids), e.g. "
                     "one written by `xneck excitation design`")
+    ap.add_argument("--repeat", type=int, default=1, help="run the excitation this many times back to back (σ ∝ 1/√n)")
     args = ap.parse_args()
     if args.coverage:
-        text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator, args.trajectory)
+        text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator, args.trajectory,
+                        args.repeat)
         print(text)
         if args.out:
             args.out.write_text(text + "\n")

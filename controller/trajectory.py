@@ -61,6 +61,7 @@ __all__ = [
     "cycloid",
     "identification_trajectory",
     "load_trajectory",
+    "repeated",
     "trajectory_by_name",
     "trajectory_from_json",
     "trajectory_json_schema",
@@ -509,6 +510,26 @@ def control_test_trajectory(motion_s: float = 2.0, dwell_s: float = 1.0, rest_s:
     """
     rows = CONTROL_TEST_WAYPOINTS_DEG
     return Trajectory.from_degrees(rows, motion_s, _rest_dwell(len(rows), dwell_s, rest_s), "control_test")
+
+
+def repeated(traj: Trajectory, n: int) -> Trajectory:
+    """``traj`` run ``n`` times back to back (its last waypoint must be its first, as the §5.2.2
+    trajectory's straight pose): a longer identification record at the same speeds, whose σ's fall
+    as 1/√n. Each pass keeps its holds; the joined waypoint keeps the first pass's final hold."""
+    if n < 1:
+        raise TrajectoryError(f"a trajectory is repeated at least once, got {n}")
+    w = traj.waypoints_rad
+    if not np.allclose(w[0], w[-1]):
+        raise TrajectoryError(f"{traj.name!r} ends at {_deg(w[-1])}, not at its start {_deg(w[0])}: it cannot be repeated")
+    k = traj.n_waypoints
+    body = slice(1, k)
+    return Trajectory(
+        np.vstack([w] + [w[body]] * (n - 1)),
+        np.concatenate([traj.durations_s] * n),
+        np.concatenate([traj.dwell_s] + [traj.dwell_s[body]] * (n - 1)),
+        traj.name if n == 1 else f"{traj.name}-x{n}",
+        np.concatenate([traj.pretension_N] + [traj.pretension_N[body]] * (n - 1)),
+    )
 
 
 NAMED_TRAJECTORIES: dict[str, Callable[..., Trajectory]] = {

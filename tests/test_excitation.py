@@ -62,7 +62,7 @@ def test_design_beats_the_paper_cycloids_on_the_criterion(designed, problem):
     assert d.log_det_variable > base.log_det_variable
     # predicted relative σ at the same duration: lower on the whole for k and λ. Not each one: a
     # k's information comes from turning motors at low tension, where the cycloids already spend
-    # their moves (docs/identification-coverage.md, "The design model's noise")
+    # their moves (docs/identification.md, "How far a design goes as the limits are opened")
     ratio = {n: d.relative_sigma[n] / base.relative_sigma[n] for n in base.relative_sigma}
     assert np.prod([ratio[f"{s}({j})"] for s in ("k", "lambda") for j in range(1, 5)]) < 0.8, ratio
 

@@ -266,3 +266,21 @@ def test_force_check_hook():
     never = lambda a, ad, add: pytest.fail("force_check must not run on a trajectory that fails limits")  # noqa: E731
     with pytest.raises(TrajectoryError, match="out of the joint limits"):
         validate(user(waypoints_deg=[[0, 0, 0], [70, 0, 0], [0, 0, 0]]), LIMITS, 3, force_check=never)
+
+
+def test_a_repeated_trajectory_runs_its_passes_back_to_back():
+    from controller.trajectory import identification_trajectory, repeated
+
+    one = identification_trajectory()
+    four = repeated(one, 4)
+    assert four.duration_s == pytest.approx(4 * one.duration_s - 3 * one.dwell_s[0])
+    assert four.n_waypoints == 4 * one.n_waypoints - 3 and four.name == "identification-x4"
+    t = np.linspace(0.0, one.duration_s - one.dwell_s[-1], 500)
+    second = t + one.duration_s - one.dwell_s[-1]  # the second pass starts where the first one's final rest would
+    np.testing.assert_allclose(four.sample(second).alpha, one.sample(t).alpha, atol=1e-12)
+    validate(four, LIMITS, 3)
+    assert repeated(one, 1).duration_s == one.duration_s
+    with pytest.raises(TrajectoryError, match="cannot be repeated"):
+        repeated(Trajectory.from_degrees([[0, 0, 0], [10, 0, 0]], 1.0), 2)
+    with pytest.raises(TrajectoryError, match="at least once"):
+        repeated(one, 0)
