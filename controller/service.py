@@ -457,10 +457,11 @@ class CampaignService:
 
     def _pretension(self, stamp_s: float | None) -> float:
         """The floor added to t_min this tick (N): the running trajectory's pretension at
-        ``stamp_s``, else (no campaign, or ``None``: a hold) the last one let go at
-        ``PRETENSION_RELEASE_N_S``."""
-        if stamp_s is not None and self.trajectory is not None:
-            self.pretension_N = self.trajectory.pretension_at(stamp_s - self._t0)
+        ``stamp_s`` (``None``: a hold within the campaign keeps the last one, so the law resumes
+        where it was), else, with no campaign, the last one let go at ``PRETENSION_RELEASE_N_S``."""
+        if self.trajectory is not None:
+            if stamp_s is not None:
+                self.pretension_N = self.trajectory.pretension_at(stamp_s - self._t0)
         elif self.pretension_N > 0.0:
             self.pretension_N = max(0.0, self.pretension_N - PRETENSION_RELEASE_N_S * self.ctl.dt)
         return self.pretension_N

@@ -153,3 +153,16 @@ def test_a_finished_pretension_campaign_ends_on_the_plain_floor(params):
     forces = np.array(loop.forces)
     assert forces.max() > 40.0  # the plateau was commanded
     assert np.abs(np.diff(forces, axis=0)).max() < 2.0  # and reached and left without a step
+
+
+def test_a_short_hold_within_the_campaign_keeps_the_floor(params):
+    """States stall for a few ticks mid-campaign (the service holds): the floor stays where the
+    campaign has it, so the law resumes without a step; it is let go only once the campaign ends."""
+    loop = _Loop(params)
+    loop.svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="squeeze", action="start",
+                                        trajectory_json=SQUEEZE.to_json()), loop.tick.t_s)
+    loop.run(3.0)
+    for _ in range(10):
+        held = loop.svc.stale("no state", 0.02)
+    assert loop.svc.pretension_N == pytest.approx(40.0)
+    np.testing.assert_allclose(held.force_N, hold_forces(params, loop.svc.hold_alpha(), 40.0))
