@@ -166,6 +166,7 @@ class Trajectory:
     name: str = "trajectory"
     pretension_N: FloatArray = field(default_factory=lambda: np.zeros(0))
     _arrive: FloatArray = field(init=False, repr=False)
+    _has_pretension: bool = field(init=False, repr=False)
     _depart: FloatArray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -198,6 +199,7 @@ class Trajectory:
                           ("pretension_N", pre), ("_arrive", arrive), ("_depart", depart)):
             arr.flags.writeable = False
             object.__setattr__(self, name, arr)
+        object.__setattr__(self, "_has_pretension", bool(np.any(pre > 0.0)))  # read every controller tick
 
     # -- shape and timing -------------------------------------------------------------------
     @property
@@ -281,7 +283,7 @@ class Trajectory:
     @property
     def has_pretension(self) -> bool:
         """Whether any waypoint raises the tension floor (module docstring)."""
-        return bool(np.any(self.pretension_N > 0.0))
+        return self._has_pretension
 
     def segment_peak_pretension_rate(self) -> FloatArray:
         """Peak |dP/dt| of each move, 2|ΔP|/T, shape (K-1,) (N/s)."""
