@@ -122,10 +122,10 @@ class DesignProblem:
     path: PathFn
     forces: ForceFn
     check: CheckFn | None = None
-    criterion: str = "d"
+    criterion: str = "d"  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
     pretension_max_N: float = 0.0  # largest pretension a waypoint may ask for (0: none, the joints alone)
     pretension_rate_N_s: float = 100.0  # peak rate of a pretension change (the trajectory limit)
-    holds: str = "none"  # "none": moves stretched to fill the duration; "fill": shortest moves, then holds  # "d": D-optimality on every parameter; "ds": on k and λ (c_a a nuisance) + f_s
+    holds: str = "none"  # "none": moves stretched to fill the duration; "fill": shortest moves, then holds
     _cache: dict[Any, Information] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -366,7 +366,9 @@ def _objective(p: DesignProblem, k: int) -> Callable[[FloatArray], float]:
         w, P = _waypoints(p, u, k, n)
         durations, dwell, overrun = _timing(p, w, P)
         s = score(p, w, durations, dwell, P)
-        if len(p._cache) > 200_000:  # a long design: keep memory bounded
+        # Keep memory bounded (~1.3 kB an entry). With holds="none" every evaluation stretches all the
+        # moves anew, so the cache mostly serves the holds and the line search's repeated points.
+        if len(p._cache) > 20_000:
             p._cache.clear()
         return -(s.log_det_ds if p.criterion == "ds" else s.log_det) + PENALTY_WEIGHT * s.penalty + OVERRUN_WEIGHT * overrun**2
 
