@@ -63,21 +63,27 @@ def run_closed_loop(
     model: Params | None = None,
 ) -> Run:
     """Run ``trajectory`` (plus ``settle_s`` of hold at its end) with ``law`` against a twin of
-    ``params``; the controller holds ``model`` (default: the same set; a study's robot differs from it)."""
+    ``params``; the controller holds ``model`` (default: the same set; a study's robot differs from it).
+
+    On the twin's clock, as on the bus: each tick's α^d is the trajectory at the stamp of the state
+    the law acts on, and ``t_s`` holds those stamps, the clock of the camera frames too (with the
+    robot's timing jitter the periods vary, and a nominal k·dt drifts from the frames)."""
     twin = Twin(params, twin_config)
     ctl = ComputedTorque(params if model is None else model, law)
     n = int(round((trajectory.duration_s + settle_s) * twin_config.rate_hz))
-    t = np.arange(1, n + 1) / twin_config.rate_hz
-    ref = trajectory.sample(t)
-    pretension = trajectory.pretension(t)
+    t = np.empty(n)
     N, nc = twin.model.n_joints, twin.model.n_cables
+    alpha_d = np.empty((n, N))
     out = {k: np.empty((n, w)) for k, w in (("alpha_hat", N), ("alpha", N), ("force_N", nc), ("tension_N", nc),
                                             ("theta_meas", nc))}
     saturated = np.zeros((n, nc), dtype=bool)
     frames_t, frames_a, frames_stamp, frames_c = [], [], [], []
     tick = twin.tick(np.zeros(nc))  # the first state the controller sees
     for k in range(n):
-        cmd = ctl.step(tick.theta_meas, ref.alpha[k], ref.alpha_dot[k], ref.alpha_ddot[k], pretension[k])
+        t[k] = tick.t_s
+        a_d, a_d_dot, a_d_ddot = trajectory.sample_at(t[k])
+        alpha_d[k] = a_d
+        cmd = ctl.step(tick.theta_meas, a_d, a_d_dot, a_d_ddot, trajectory.pretension_at(t[k]))
         tick = twin.tick(cmd.f)
         out["alpha_hat"][k], out["force_N"][k], saturated[k] = cmd.alpha_hat, cmd.f, cmd.saturated
         out["alpha"][k], out["tension_N"][k], out["theta_meas"][k] = tick.alpha, tick.tension, tick.theta_meas
@@ -87,7 +93,7 @@ def run_closed_loop(
             frames_stamp.append(tick.t_s)
             frames_c.append(tick.frame_confidence[j] if j < len(tick.frame_confidence) else np.full(N, np.nan))
     return Run(
-        t_s=t, alpha_d=ref.alpha, saturated=saturated,
+        t_s=t, alpha_d=alpha_d, saturated=saturated,
         t_ip_s=np.array(frames_t), alpha_ip=np.array(frames_a).reshape(-1, N), ip_stamp_s=np.array(frames_stamp),
         ip_confidence=np.array(frames_c).reshape(-1, N), ip_source=twin.camera.source if twin.camera else "", **out,
     )

@@ -134,3 +134,22 @@ def test_every_law_stays_within_force_limits(runs):
     whether a law needed more: no tick may have saturated on the §7 trajectory."""
     for name, m in runs.items():
         assert m["saturated_ticks"] == 0 and m["camera_frames"] > 300, (name, m["saturated_ticks"])
+
+
+def test_the_offline_loop_runs_on_the_twins_clock(params):
+    """As on the bus (the controller samples α^d at each state's stamp, the archive keeps the
+    twin's stamps): with the robot's timing jitter the twin's periods vary, and a nominal k·dt
+    drifted up to 43 ms from the camera frames over 97 s, which e_α then counted as error."""
+    from controller.trajectory import Trajectory
+    from twin.sim.truth import load_truth
+
+    traj = Trajectory.from_degrees([[0, 0, 0], [20, 10, 5], [0, 0, 0]], 1.5, 0.2)
+    run = run_closed_loop(params, LawConfig(law=2), traj, TwinConfig(seed=3, truth=load_truth("robot").only("timing")),
+                          settle_s=0.5)
+    dt = np.diff(run.t_s)
+    assert np.all(dt > 0) and not np.allclose(dt, dt[0])
+    at = np.searchsorted(run.t_s, run.t_ip_s)
+    inside = at < len(run.t_s)
+    assert inside.sum() >= len(run.t_ip_s) - 1
+    np.testing.assert_allclose(run.t_s[at[inside]], run.t_ip_s[inside], rtol=0.0, atol=1e-12)  # frames on the states' clock
+    np.testing.assert_allclose(run.alpha_d, traj.sample(run.t_s).alpha, atol=1e-12)
