@@ -185,7 +185,7 @@ def test_design_problem_refuses_impossible_limits(params):
                              path=lambda *a: a, forces=lambda *a: a)
 
 
-@pytest.mark.parametrize("name", ["excitation.json", "holdfree.json", "pretension.json"])
+@pytest.mark.parametrize("name", ["excitation.json", "holdfree.json", "pretension.json", "taut10.json"])
 def test_the_documented_excitations_pass_the_campaign_validation(params, name):
     """The trajectory files docs/identification*.md measure (docs/identification/) still pass what
     `xneck campaign identification --trajectory FILE` checks: joint, speed, acceleration and law 1's
