@@ -25,7 +25,8 @@ What is recorded
 
 Crash safety
     The recorder closes the open chunk and fsyncs at least every ``flush_period_s`` (1 s), so a
-    killed recorder loses at most that much. :func:`recover` rewrites such a file as a valid,
+    killed recorder loses that much, plus what still waits in its queue: on an overloaded machine
+    the writer thread lags, seconds of backlog (a fresh-clone CI run lost about 4 s). :func:`recover` rewrites such a file as a valid,
     indexed one with outcome ``interrupted``. A writer holds an exclusive ``flock`` on its file
     for as long as it writes, so :func:`writer_alive` tells a live recording (never to be
     "recovered") from a dead one; the kernel drops the lock when the writer dies.

@@ -4,6 +4,7 @@ the next start recovers and marks interrupted."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import signal
@@ -142,7 +143,13 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
     assert is_complete(mcap)
     campaign = read_campaign(mcap)
     assert campaign.info["outcome"] == "interrupted" and campaign.info["campaign_id"] == cid
-    assert len(campaign.messages(bus.CONTROLLER_STATUS)) > 500
+    # What the recorder had written is kept, in order: about 2400 statuses (500 Hz, killed near
+    # 4.8 s) on a quiet machine; on a loaded one its writer thread lags and SIGKILL takes the
+    # backlog with it (a fresh-clone CI run kept 397), so the count asserted is a floor.
+    statuses = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS)]
+    ours = [m for m in statuses if m.campaign_id == cid]
+    assert len(ours) > 100
+    assert all(b.seq > a.seq and b.stamp_s >= a.stamp_s for a, b in itertools.pairwise(statuses))
     assert "xneck.recovery" in campaign.metadata
 
 
