@@ -18,3 +18,12 @@ def test_an_existing_archive_is_refused_and_kept(tmp_path, kind):
     assert "exists" in r.stderr and "never overwritten" in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)  # a message, not a traceback
     assert out.read_bytes() == b"an earlier campaign"
+
+
+def test_an_unknown_estimator_is_refused_before_the_campaign_runs(tmp_path):
+    out = tmp_path / "c.mcap"
+    r = CliRunner().invoke(app, ["campaign", "identification", "--estimator", "magic", "--out", str(out)])
+    assert r.exit_code == 2, r.output
+    assert "'magic'" in r.stderr and "loadfriction" in r.stderr
+    assert r.exception is None or isinstance(r.exception, SystemExit)
+    assert not out.exists()

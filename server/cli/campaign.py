@@ -15,6 +15,7 @@ from server.cli.options import (
     PARAMS_OPTION,
     SET_OPTION,
     check_alpha_ip,
+    check_estimator,
     check_truth,
     law_config,
     load_checked_trajectory,
@@ -84,6 +85,9 @@ def campaign_identification(
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
+    estimator: str = typer.Option("iv", "--estimator", callback=check_estimator, help="Table 2's estimator, as "
+                                  "`xneck identify --estimator` (iv, ols, wls, loadfriction; on the robot truth "
+                                  "loadfriction comes closest: docs/identification-coverage.md)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -111,4 +115,4 @@ def campaign_identification(
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
-             threshold=None, no_alpha_hat=False, validate=None, estimator="iv", sigma="hac", no_bounds=False)
+             threshold=None, no_alpha_hat=False, validate=None, estimator=estimator, sigma="hac", no_bounds=False)

@@ -63,6 +63,16 @@ def check_new_archive(value: Path | None) -> Path | None:
     return value
 
 
+def check_estimator(value: str) -> str:
+    """Typer callback: ``--estimator`` is one of the variable-stiffness estimators
+    (twin.identification.pipeline.VARIABLE_ESTIMATORS), refused before a campaign runs."""
+    from twin.identification.pipeline import VARIABLE_ESTIMATORS
+
+    if value not in VARIABLE_ESTIMATORS:
+        raise typer.BadParameter(f"{value!r}: choose {', '.join(VARIABLE_ESTIMATORS)}")
+    return value
+
+
 ARCHIVE_OUT_OPTION = typer.Option(
     None, "--out", callback=check_new_archive, help="MCAP file to write, which must not exist (default: "
     "<data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data).")
