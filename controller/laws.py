@@ -216,7 +216,7 @@ def nominal_force_check(params: Params, config: LawConfig):
     f_max = controller_model(params, config).f_max
 
     def check(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
-              pretension: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+              pretension: np.ndarray) -> tuple[np.ndarray, str]:
         f, feasible = forces(alpha, alpha_dot, alpha_ddot, pretension)
         ok = feasible & (f.max(axis=1) <= f_max)
         worst = ""

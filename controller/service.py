@@ -139,15 +139,14 @@ def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) ->
     cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
 
     def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
-            pretension: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+            pretension: np.ndarray) -> tuple[np.ndarray, str]:
         ok = np.ones(len(alpha), dtype=bool)
         for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
             if clock() > deadline:
                 raise Refused("refused: the force check did not finish within its time budget; "
                               "ask for a shorter trajectory")
             part = slice(k, k + FORCE_CHECK_CHUNK)
-            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part],
-                                     None if pretension is None else pretension[part])
+            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part], pretension[part])
             if not ok[part].all():
                 return ok, reason
         return ok, ""

@@ -71,9 +71,9 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-ForceCheck = Callable[..., tuple[BoolArray, str]]
-"""(α, α̇, α̈) on a time grid, each (T, N) in rad, rad/s, rad/s² [, pretension (T,) N] -> (ok per
-sample (T,), reason). The pretension is passed only for a trajectory that has one.
+ForceCheck = Callable[[FloatArray, FloatArray, FloatArray, FloatArray], tuple[BoolArray, str]]
+"""(α, α̇, α̈, pretension) on a time grid, each (T, N) in rad, rad/s, rad/s², the pretension (T,) in
+N (zeros for a trajectory without one) -> (ok per sample (T,), reason).
 
 Supplied by the controller: forces after tension distribution (§6.2, Eqs. 63-65) within
 [f_min, f_max] along the nominal path."""
@@ -696,10 +696,7 @@ def validate(
         return
     t = traj.time_grid(dt_s)
     alpha, alpha_dot, alpha_ddot = traj.sample(t)
-    if traj.has_pretension:
-        ok, reason = force_check(alpha, alpha_dot, alpha_ddot, traj.pretension(t))
-    else:
-        ok, reason = force_check(alpha, alpha_dot, alpha_ddot)
+    ok, reason = force_check(alpha, alpha_dot, alpha_ddot, traj.pretension(t))
     ok = np.asarray(ok)
     if ok.shape != t.shape or ok.dtype != np.bool_:
         raise ValueError(f"force_check must return a bool array of shape {t.shape}, got {ok.dtype} {ok.shape}")

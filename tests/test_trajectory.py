@@ -241,29 +241,29 @@ def test_force_check_hook():
     traj = control_test_trajectory()
     calls = []
 
-    def f_ok(alpha, alpha_dot, alpha_ddot):
+    def f_ok(alpha, alpha_dot, alpha_ddot, pretension):
         calls.append(alpha.shape)
         return np.ones(alpha.shape[0], bool), ""
 
     validate(traj, LIMITS, 3, force_check=f_ok)
     assert calls and calls[0][0] >= 1300 and calls[0][1] == 3  # 10 ms over 13 s
 
-    def f_max(alpha, alpha_dot, alpha_ddot):  # pretend large α3 needs f > f_max
+    def f_max(alpha, alpha_dot, alpha_ddot, pretension):  # pretend large α3 needs f > f_max
         return alpha[:, 2] > math.radians(-45.0), "f_4 = 120 N > f_max = 100 N"
 
     with pytest.raises(TrajectoryError, match=r"forces out of bounds in segment 2 \(waypoint 2 → 3\) at t = 8\.\d+ s .*f_4 = 120 N > f_max"):
         validate(traj, LIMITS, 3, force_check=f_max)
 
-    def f_hold(alpha, alpha_dot, alpha_ddot):
+    def f_hold(alpha, alpha_dot, alpha_ddot, pretension):
         return np.linalg.norm(alpha_dot, axis=1) > 0, "f_min violated at rest"
 
     with pytest.raises(TrajectoryError, match=r"hold at waypoint 0 at t = 0\.000 s"):
         validate(traj, LIMITS, 3, force_check=f_hold)
 
     with pytest.raises(ValueError, match="force_check must return a bool array"):
-        validate(traj, LIMITS, 3, force_check=lambda a, ad, add: (np.ones(3, bool), ""))
+        validate(traj, LIMITS, 3, force_check=lambda a, ad, add, p: (np.ones(3, bool), ""))
 
-    never = lambda a, ad, add: pytest.fail("force_check must not run on a trajectory that fails limits")  # noqa: E731
+    never = lambda a, ad, add, p: pytest.fail("force_check must not run on a trajectory that fails limits")  # noqa: E731
     with pytest.raises(TrajectoryError, match="out of the joint limits"):
         validate(user(waypoints_deg=[[0, 0, 0], [70, 0, 0], [0, 0, 0]]), LIMITS, 3, force_check=never)
 
