@@ -171,6 +171,8 @@ if __name__ == "__main__":
                     "one written by `xneck excitation design`")
     ap.add_argument("--repeat", type=int, default=1, help="run the excitation this many times back to back (σ ∝ 1/√n)")
     args = ap.parse_args()
+    if args.repeat < 1:
+        ap.error(f"--repeat must be at least 1, got {args.repeat}")
     if args.coverage:
         text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator, args.trajectory,
                         args.repeat)
