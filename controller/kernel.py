@@ -10,7 +10,8 @@ chain, friction) are called, not copied: one implementation of every equation.
 Eqs. 35 and 58 are the model's kernel :func:`twin.model.estimation.pseudo_inverse_update` and
 eqs. 63-65 the controller's :func:`controller.distribution.distribute_into`, the very functions the
 numpy-facing ``PseudoInverseEstimator`` and ``distribute`` call; this module adds only the
-velocity filters, the PID of eq. 59 and the assembly of eq. 66.
+velocity filters, the PID of eq. 59, the assembly of eq. 66 and the bound on the force rate
+(:attr:`controller.laws.LawConfig.force_rate_max_N_s`, not from the paper).
 
 Like every model kernel it is numba's ``njit`` when numba is there (:mod:`twin.model.compiled`),
 plain Python otherwise (same numbers, slower).
@@ -49,9 +50,12 @@ def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, pre
     """One tick of eqs. 35, 58, 59, 63-66 (module docstring), all in place. ``pretension`` (N)
     raises every cable's floor t_min of eq. 65 (a trajectory's pretension, controller.trajectory).
 
-    ``gains`` = (k_p, k_v, k_i, dt, β of the velocity filters); ``state`` = (θ_prev, θ̇, α̂, α̂̇,
+    The forces then move from the last ones (``f_prev``: commanded, or applied while the law only
+    observed) by at most ``df_max`` N (:attr:`controller.laws.LawConfig.force_rate_max_N_s`).
+
+    ``gains`` = (k_p, k_v, k_i, dt, β of the velocity filters, df_max); ``state`` = (θ_prev, θ̇, α̂, α̂̇,
     θ of the estimator, x_c, f_prev, ∫e) updated in place; ``out`` = (f, saturated, e, Γ^d)."""
-    kp, kv, ki, dt, beta = gains[0], gains[1], gains[2], gains[3], gains[4]
+    kp, kv, ki, dt, beta, df_max = gains[0], gains[1], gains[2], gains[3], gains[4], gains[5]
     theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c, f_prev, integral = state
     (tab, lc, Z, Zd, Mm, cm, g, M, c, A, LU, Z1, vN, vN2, step, p, nvec, w, vc, rhs, zero, ff, tdd, lower,
      Zdes, Zddes) = work
@@ -92,7 +96,11 @@ def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, pre
         lb = m.t_min + pretension + ff[j] + m.I_a * tdd[j] / m.rho
         lower[j] = lb if lb > m.f_min else m.f_min
     distribute_into(Z, gamma, lower, m.f_max, short, long, Z1, LU, vN, p, nvec, f, saturated)
-    for j in range(nc):
+    for j in range(nc):  # the rate bound, after eqs. 63-65 (LawConfig.force_rate_max_N_s)
+        if f[j] > f_prev[j] + df_max:
+            f[j] = f_prev[j] + df_max
+        elif f[j] < f_prev[j] - df_max:
+            f[j] = f_prev[j] - df_max
         f_prev[j] = f[j]
 
 

@@ -11,6 +11,9 @@ The laws differ only in the controller's model (§6.3, Table 3):
 - law 2: friction, rigid cables in α̂;
 - law 3: friction, and elastic cables (variable stiffness, eq. 58) in α̂;
 - ``no_pulleys``: law 2 computed with r = 0 (Z and α̂ without pulleys), the Table 3 variant.
+
+Beyond the paper, every law bounds the rate of its commanded forces (``LawConfig.force_rate_max_N_s``):
+an encoder that jumps (a slack cable crossing the gear backlash) must not step the cables.
 """
 
 from __future__ import annotations
@@ -41,12 +44,19 @@ class LawConfig:
     omega: float = 11.0
     rate_hz: float = 500.0
     velocity_filter_hz: float = 50.0  # first-order low-pass on finite differences of α̂ and θ
+    # The most a commanded force may change per second (N/s; 10 N per 500 Hz tick). Not from the
+    # paper: a slack cable crossing the gear backlash makes the encoder jump, α̂̇ spikes and the k_v
+    # term of eq. 59 steps the forces by up to 84 N in a tick (law 1 on the robot truth). The bound
+    # never binds on smooth tracking (steps stay below 5 N); math.inf turns it off.
+    force_rate_max_N_s: float = 5000.0
 
     def __post_init__(self) -> None:
         if self.law not in LAWS:
             raise ValueError(f"law must be one of {LAWS}, got {self.law!r}")
         if not (self.omega > 0 and math.isfinite(self.omega)):
             raise ValueError(f"omega must be a positive number (rad/s), got {self.omega}")
+        if not self.force_rate_max_N_s > 0:  # inf allowed: no bound
+            raise ValueError(f"force_rate_max_N_s must be a positive rate (N/s) or inf, got {self.force_rate_max_N_s}")
 
     @property
     def name(self) -> str:
@@ -93,7 +103,8 @@ class ComputedTorque:
         self._has_prev = theta is not None
         self._theta_prev = np.zeros(m.n_cables) if theta is None else np.array(theta, dtype=float)
         self._work = kernel.scratch(m.n_joints, m.n_cables)
-        self._gains = np.array([self.kp, self.kv, self.ki, self.dt, self._beta])
+        self._gains = np.array([self.kp, self.kv, self.ki, self.dt, self._beta,
+                                self.config.force_rate_max_N_s * self.dt])
         self._theta = np.zeros(m.n_cables)
         self._ref = (np.zeros(m.n_joints), np.zeros(m.n_joints), np.zeros(m.n_joints))
         self._out = (np.zeros(m.n_cables), np.zeros(m.n_cables, dtype=np.bool_), np.zeros(m.n_joints),

@@ -44,6 +44,7 @@ of one bridge run on a clock consistent with the controller's own.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import tomllib
@@ -170,7 +171,7 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
             if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
-        new_law = LawConfig(law=req.law, no_pulleys=req.no_pulleys, omega=law.omega, rate_hz=law.rate_hz)
+        new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
         traj = trajectory_from_json(req.trajectory_json)
         base = limits or TrajectoryLimits()
         limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg),

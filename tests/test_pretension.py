@@ -86,8 +86,8 @@ def test_the_force_check_sees_the_raised_floor(params):
 def test_the_law_raises_every_cable_by_the_pretension(params):
     m = controller_model(params, LawConfig(law=2))
     forces = {}
-    for P in (0.0, 25.0):
-        ctl = ComputedTorque(params, LawConfig(law=2))
+    for P in (0.0, 25.0):  # one tick from zero forces: without the rate bound, which would hide the floor
+        ctl = ComputedTorque(params, LawConfig(law=2, force_rate_max_N_s=math.inf))
         ctl.reset(theta=np.zeros(params.n_cables))
         z = np.zeros(params.n_joints)
         forces[P] = ctl.step(np.zeros(params.n_cables), z, z, z, P).f.copy()
