@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -131,27 +132,20 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
         rec = _wait_status(base, cid, {"finished", "degraded", "aborted", "failed"}, 30)
         assert rec["status"] == "aborted" and "controller" in rec["message"], rec
     campaign = read_campaign(data / "campaigns" / f"{cid}.mcap")  # readable
-    last_command = max((m for _, m in campaign.messages(bus.MOTOR_COMMAND)), key=lambda m: m.stamp_s)
-    states = sorted((m.stamp_s, m.drive, tuple(m.force_applied_N)) for _, m in campaign.messages(bus.MOTOR_STATE))
-    # When the bridge applied the controller's last command (its stamp is the older state the
-    # controller answered, which lags under load): the watchdog counts from there.
-    # Applied means the forces became the command, or, while the bridge ramps after leaving a hold
-    # (bumpless, at most max_force_step_N a tick), every force moved towards it.
-    target = np.asarray(last_command.force_N)
-
-    def acts_on_last_command(prev, s) -> bool:
-        f, f0 = np.asarray(s[2]), np.asarray(prev[2])
-        if np.allclose(f, target, atol=1e-9):
-            return True
-        towards = np.abs(f - target) <= np.abs(f0 - target) + 1e-9
-        return bool(towards.all() and np.any(np.abs(f - f0) > 1e-9) and np.abs(f - f0).max() <= 1.0 + 1e-6)
-
-    applied = [s for prev, s in itertools.pairwise(states)
-               if s[0] >= last_command.stamp_s and s[1] == "active" and acts_on_last_command(prev, s)]
-    assert applied, "the last command was never applied"
-    holds = [s for s in states if s[0] > applied[0][0] and s[1] == "hold"]
+    states = sorted((m.stamp_s, m.drive, tuple(m.force_applied_N), m.hold_reason)
+                    for _, m in campaign.messages(bus.MOTOR_STATE))
+    # The hold the controller's death started: the last run of hold states, to the end of the record
+    # (a CPU stall earlier in the campaign may have held too, docs/safety.md rule 3).
+    driven = [k for k, s in enumerate(states) if s[1] != "hold"]
+    assert driven and states[driven[-1]][1] == "active", "the controller never drove the robot"
+    holds = states[driven[-1] + 1:]
     assert holds, "the bridge never held after the controller died"
-    assert holds[0][0] - applied[0][0] <= 0.010 + 0.006, (applied[0], holds[0])  # 10 ms watchdog + a tick or two
+    # The watchdog's timing, on the bridge's own clock: its hold reason gives the age of the last
+    # valid command when it decided (10 ms timeout + a tick or two). The recorder may miss states
+    # under load (real-time keys drop), so the state that applied the last command need not be in
+    # the archive; the bridge's own count does not depend on it.
+    age = re.search(r"no valid command for (\d+) ms", holds[0][3])
+    assert age and int(age.group(1)) <= 10 + 6, holds[0]
     settled = [s for s in holds if s[0] >= holds[0][0] + 0.012]
     assert settled and all(np.allclose(s[2], settled[-1][2], atol=1e-6) for s in settled)  # at the hold forces
     # No force step into the hold, on any machine: a linear ramp over hold_ramp_s (5 ticks) from the
