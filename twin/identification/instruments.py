@@ -52,24 +52,28 @@ def _residual(m: Model, alpha: FloatArray, theta: FloatArray, k: FloatArray, lam
 def neck_equilibrium(m: Model, theta: FloatArray, k: FloatArray, lam: FloatArray, alpha0: FloatArray,
                      inertial: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
     """α (n, N) solving Z·t(x(α, θ)) = g(α) + ``inertial`` at every instant (batched Newton with a
-    finite-difference Jacobian, from ``alpha0``); returns (α, x)."""
+    finite-difference Jacobian, from ``alpha0``, each instant until its step is below
+    ``NEWTON_TOL_RAD``); returns (α, x)."""
     alpha = np.array(alpha0, dtype=float)
     inertial = np.zeros_like(alpha) if inertial is None else inertial
     n, N = alpha.shape
+    active = np.arange(n)  # instants still iterating: one converged stops costing evaluations
     for _ in range(NEWTON_STEPS):
-        F, _ = _residual(m, alpha, theta, k, lam, inertial)
-        J = np.empty((n, N, N))
+        a, th, ine = alpha[active], theta[active], inertial[active]
+        F, _ = _residual(m, a, th, k, lam, ine)
+        J = np.empty((len(active), N, N))
         for i in range(N):
             da = np.zeros(N)
             da[i] = FD_STEP_RAD
-            J[:, :, i] = (_residual(m, alpha + da, theta, k, lam, inertial)[0] - F) / FD_STEP_RAD
+            J[:, :, i] = (_residual(m, a + da, th, k, lam, ine)[0] - F) / FD_STEP_RAD
         try:
             step = np.linalg.solve(J, -F[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            step = np.linalg.lstsq(J.reshape(-1, N), -F.reshape(-1), rcond=None)[0].reshape(n, N)  # pragma: no cover
+            step = np.linalg.lstsq(J.reshape(-1, N), -F.reshape(-1), rcond=None)[0].reshape(-1, N)  # pragma: no cover
         step = np.clip(step, -0.05, 0.05)  # rad: a Newton step never jumps across the workspace
-        alpha += step
-        if np.max(np.abs(step)) < NEWTON_TOL_RAD:
+        alpha[active] += step
+        active = active[np.max(np.abs(step), axis=1) >= NEWTON_TOL_RAD]
+        if not len(active):
             break
     return alpha, _stretch(m, alpha, theta)[0]
 

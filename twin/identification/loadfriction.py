@@ -191,18 +191,27 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
 
 
 def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
-                  free: NDArray[np.bool_]) -> tuple[FloatArray, list[FloatArray], int, bool, tuple[FloatArray, FloatArray]]:
+                  free: NDArray[np.bool_], first: dict | None = None,
+                  ) -> tuple[FloatArray, list[FloatArray], int, bool, tuple[FloatArray, FloatArray]]:
     """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
     (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
     re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE. Returns the
     values, the instruments, the iterations, whether they converged and the last simulated
-    stretch (x (m), ẋ (m/s), (n, n_cables)) the instruments were computed on."""
+    stretch (x (m), ẋ (m/s), (n, n_cables)) the instruments were computed on. ``first``: a cache
+    of first simulations by (k, λ), shared by the calls of one fit (every τ of the grid starts
+    from the same least-squares values, hence the same first simulation)."""
     m = build(params, "variable")
     vals, zs, alpha, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
     while it < IV_MAX_ITERATIONS:
         it += 1
         k, lam = vals[:, 0].copy(), vals[:, 1].copy()
-        sim = simulated_stretch(m, proc, k, lam, alpha)
+        key = (k.tobytes(), lam.tobytes())
+        if alpha is None and first is not None and key in first:
+            sim = first[key]
+        else:
+            sim = simulated_stretch(m, proc, k, lam, alpha)
+            if alpha is None and first is not None:
+                first[key] = sim
         alpha = sim.alpha
         for j, c in enumerate(cables):
             Z = _jacobian(vals[j], c.scale, free, *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
@@ -254,9 +263,9 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         # τ again, by the camera residual of each τ's IV solution: least squares on the noisy stretch
         # picks it with the noise's bias, and a wrong β, τ trades against k.
         costs = np.zeros((len(taus_s), nc))
-        grid_values = []
+        grid_values, first = [], {}
         for i, tau in enumerate(taus_s):
-            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free)
+            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free, first)
             iterations = max(iterations, it)
             costs[i] = [np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)]
             grid_values.append(vals)
