@@ -101,6 +101,11 @@ COMPRESSED_IMAGE_SCHEMA: dict[str, Any] = {
     },
     "required": ["timestamp", "frame_id", "data", "format"],
 }
+# Messages waiting for the writer thread. A lockstep campaign publishes about 1600 a second; on a
+# loaded machine (a bus campaign beside two CPU-bound benchmarks, 2026-11-26) the writer stalled
+# long enough to fill 20 000 and dropped 66 321 messages (40 %), and the analysis failed. 100 000
+# hold a minute of stall at about 35 MB (entries of ~350 B); past that the recorder drops and counts.
+QUEUE_MAX = 100_000
 FRAME_QUEUE_MAX = 8  # frames (≤ 1.4 MB each on the wire) waiting for the writer: bounds the recorder's memory
 
 
@@ -274,7 +279,7 @@ class CampaignRecorder:
         metadata: Mapping[str, str],
         keys: Iterable[str] = (bus.ALL,),
         *,
-        queue_size: int = 20_000,
+        queue_size: int = QUEUE_MAX,
         flush_period_s: float = 1.0,
         chunk_size: int = CHUNK_SIZE,
         on_error: Callable[[BaseException], None] | None = None,
