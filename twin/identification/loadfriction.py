@@ -5,20 +5,26 @@ On the robot truth (twin/sim/robot_truth.toml) the friction of a turning motor g
 load it carries (pulley and gear losses), and the cables creep; eq. 54 fitted on that tension
 comes out 8-25 % low in k (docs/identification-coverage.md, "Where the error comes from").
 This estimator fits, per cable j, the force of its motor where it turns fast (|θ̇| ≥ 5 rad/s,
-where eq. 37's arctan and any Stribeck excess are saturated)::
+where a Stribeck excess has died out)::
 
-    y = f − (R/r_d)·I_a·θ̈ = (1 + s·μ)·t + s·F₀,        s = sign θ̇            (N)
+    y = f − (R/r_d)·I_a·θ̈ = (1 + a·μ)·t + a·F₀,   a = (2/π)·arctan(c_f·θ̇)   eq. 37's shape (N)
     t = (k·x' + c_a·ẋ) / (1 − λ·x')                     eq. 54 solved for t    (N)
     x' = x_c − β·LP_τ(t_e)/k,  t_e = k·x_c / (1 − λ·x_c)  Kelvin creep element  (m)
 
 x_c, ẋ_c (m, m/s) from α_IP (eq. 27), f (N) the applied force, θ̇ (rad/s), θ̈ (rad/s²);
 k (N/m), λ (1/m), c_a (N·s/m); μ (dimensionless: friction per newton of tension), F₀ (N);
-β (dimensionless creep ratio), τ (s) the creep time constant, LP_τ a first-order low-pass.
+β (dimensionless creep ratio), τ (s) the creep time constant, LP_τ a first-order low-pass;
+c_f (s/rad) the slope of the friction's shape. The paper's arctan (c_s = 0.5 s/rad, §5.1.1) is
+far from a sign at these speeds: 0.76 of its level at 5 rad/s, 0.94 at 20. A sign (F₀ constant)
+made the damping-only truth's λ(3) 13 % low on law 1's campaigns; with c_f fitted it is 6 % low,
+and c_f comes out 0.48-0.58 there, and at its bound of 100 (a sign) on the robot truth, whose
+friction is flat above its Stribeck velocity. At that bound c_f is held for the IV and the σ
+(:func:`_hold_flat_shape`).
 One μ serves both directions, so that the scale k/(1 ± μ) of the tension rows cannot trade μ
 against k; β ≥ 0 (creep only lengthens a loaded cable), λ, c_a ≥ 0.
 
 Estimation, per cable: (1) bounded nonlinear least squares (scipy.optimize.least_squares, trust
-region) in (k, λ, c_a, μ, F₀, β) on the camera's stretch, for each τ of a grid; (2) IDIM-IV as
+region) in (k, λ, c_a, μ, F₀, β, c_f) on the camera's stretch, for each τ of a grid; (2) IDIM-IV as
 pipeline.identify_variable does it: x_c comes from α_IP, whose noise (0.15-0.35 mm of stretch
 on the twin's camera, against 0.7-1.4 mm of motion) biases least squares, so Zᵀρ(p) = 0 is
 solved with Z the model's Jacobian on the stretch re-simulated from the encoders
@@ -65,7 +71,9 @@ HAC_MIN_LAG_PERIODS = 3.0  # as pipeline.HAC_MIN_LAG_PERIODS: residuals share th
 MU_BOUNDS = (-0.5, 0.9)
 F0_BOUNDS_N = (-40.0, 60.0)
 BETA_BOUNDS = (0.0, 0.5)  # creep only lengthens a loaded cable: β ≥ 0
-SYMBOLS = ("k", "lambda", "c_a", "mu", "F_0", "beta")
+# c_f (s/rad): the paper's c_s is 0.5 (§5.1.1); at 100 the shape is a sign above 0.1 rad/s.
+C_F_BOUNDS = (0.05, 100.0)
+SYMBOLS = ("k", "lambda", "c_a", "mu", "F_0", "beta", "c_f")
 IV_MAX_ITERATIONS = 10
 IV_TOLERANCE = 1e-3  # relative change of k and λ at which the IV iteration has converged (pipeline's)
 
@@ -73,7 +81,7 @@ IV_TOLERANCE = 1e-3  # relative change of k and λ at which the IV iteration has
 @dataclass(frozen=True, eq=False)
 class LoadFrictionFit:
     """The fit of one campaign: ``estimate`` holds k(j), lambda(j), c_a(j) (Table 2's layout)
-    then mu(j), F_0(j), beta(j), with HAC σ; ``tau_s`` (s) the creep time constant chosen per
+    then mu(j), F_0(j), beta(j), c_f(j), with HAC σ; ``tau_s`` (s) the creep time constant chosen per
     cable; ``start`` the (k, λ) the fit began from; ``rows`` the rows used per cable."""
 
     estimate: Estimate
@@ -96,10 +104,15 @@ def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: floa
     return np.maximum((k * xx + c_a * xd) / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
 
 
-def _residual(p: FloatArray, x: FloatArray, xd: FloatArray, s: FloatArray, y: FloatArray, rows: NDArray[np.bool_],
-              tau_s: float, h: float) -> FloatArray:
-    mu, f0 = p[3], p[4]
-    return ((1 + s * mu) * _tension(p, x, xd, tau_s, h) + s * f0 - y)[rows]
+def _shape(c_f: float, theta_dot: FloatArray) -> FloatArray:
+    """Eq. 37's friction shape (2/π)·arctan(c_f·θ̇): a sign for c_f → ∞."""
+    return (2.0 / np.pi) * np.arctan(c_f * theta_dot)
+
+
+def _residual(p: FloatArray, x: FloatArray, xd: FloatArray, theta_dot: FloatArray, y: FloatArray,
+              rows: NDArray[np.bool_], tau_s: float, h: float) -> FloatArray:
+    mu, f0, a = p[3], p[4], _shape(p[6], theta_dot[rows])
+    return (1 + a * mu) * _tension(p, x, xd, tau_s, h)[rows] + a * f0 - y[rows]
 
 
 def fit_rows(proc: Processed, params: Params) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -144,7 +157,7 @@ class _Cable:
 
     x: FloatArray
     x_dot: FloatArray
-    s: FloatArray
+    theta_dot: FloatArray  # rad/s, the motor speed of eq. 37's friction shape
     y: FloatArray
     rows: NDArray[np.bool_]
     h: float
@@ -154,7 +167,7 @@ class _Cable:
 
     def args(self, tau_s: float, x: FloatArray | None = None, x_dot: FloatArray | None = None) -> tuple:
         """:func:`_residual`'s arguments; ``x``, ``x_dot``: another stretch than the camera's."""
-        return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.s, self.y, self.rows,
+        return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.theta_dot, self.y, self.rows,
                 tau_s, self.h)
 
     def solve(self, fun, p0: FloatArray) -> FloatArray:
@@ -170,10 +183,12 @@ def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, d
         # N·s/m, μ, F₀, β like the robot's; the solver works on p / scale.
         k_s, lam_s = max(abs(k0[j]), 100.0), max(abs(lam0[j]), 10.0)
         # c_a held at 0 without damping: least_squares needs lo < hi, so a 1e-12 sliver
-        lo = np.array([1e-3 * k_s, 0.0, 0.0 if damping else -1e-12, MU_BOUNDS[0], F0_BOUNDS_N[0], BETA_BOUNDS[0]])
-        hi = np.array([np.inf, np.inf, np.inf if damping else 0.0, MU_BOUNDS[1], F0_BOUNDS_N[1], BETA_BOUNDS[1]])
-        out.append(_Cable(proc.x_c[:, j], proc.x_c_dot[:, j], np.sign(proc.theta_dot[:, j]), y[:, j], rows[:, j],
-                          1.0 / proc.rate_hz, np.array([k_s, lam_s, 1000.0, 0.1, 10.0, 0.05]), lo, hi))
+        lo = np.array([1e-3 * k_s, 0.0, 0.0 if damping else -1e-12, MU_BOUNDS[0], F0_BOUNDS_N[0], BETA_BOUNDS[0],
+                       C_F_BOUNDS[0]])
+        hi = np.array([np.inf, np.inf, np.inf if damping else 0.0, MU_BOUNDS[1], F0_BOUNDS_N[1], BETA_BOUNDS[1],
+                       C_F_BOUNDS[1]])
+        out.append(_Cable(proc.x_c[:, j], proc.x_c_dot[:, j], proc.theta_dot[:, j], y[:, j], rows[:, j],
+                          1.0 / proc.rate_hz, np.array([k_s, lam_s, 1000.0, 0.1, 10.0, 0.05, 1.0]), lo, hi))
     return out
 
 
@@ -191,7 +206,7 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
 
 
 def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
-                  free: NDArray[np.bool_], first: dict | None = None,
+                  frees: list[NDArray[np.bool_]], first: dict | None = None,
                   ) -> tuple[FloatArray, list[FloatArray], int, bool, tuple[FloatArray, FloatArray]]:
     """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
     (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
@@ -214,7 +229,7 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
                 first[key] = sim
         alpha = sim.alpha
         for j, c in enumerate(cables):
-            Z = _jacobian(vals[j], c.scale, free, *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
+            Z = _jacobian(vals[j], c.scale, frees[j], *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
             Q, _ = np.linalg.qr(Z / np.maximum(np.linalg.norm(Z, axis=0), 1e-300))
             zs[j] = Z
             vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j])
@@ -253,9 +268,10 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     free = np.arange(len(SYMBOLS)) != 2 if not damping else np.ones(len(SYMBOLS), dtype=bool)
     values, taus = np.zeros((nc, len(SYMBOLS))), np.zeros(nc)
     for j, c in enumerate(cables):
-        starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, 0.0])
+        starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, 0.0, params.friction.c_s])
                   for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
         values[j], taus[j] = _least_squares(c, starts, taus_s)
+    frees = [_hold_flat_shape(c, values[j], free) for j, c in enumerate(cables)]
     zs: list[FloatArray] | None = None
     sim: tuple[FloatArray, FloatArray] | None = None
     iterations, converged = 0, True
@@ -265,21 +281,21 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         costs = np.zeros((len(taus_s), nc))
         grid_values, first = [], {}
         for i, tau in enumerate(taus_s):
-            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), free, first)
+            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), frees, first)
             iterations = max(iterations, it)
             costs[i] = [np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)]
             grid_values.append(vals)
         best = np.argmin(costs, axis=0)
         chosen = np.array([grid_values[best[j]][j] for j in range(nc)])
         taus = refine_tau(np.asarray(taus_s, dtype=float), costs)
-        values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, free)  # Z at the chosen τ
+        values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, frees)  # Z at the chosen τ
         iterations, converged = max(iterations, it), ok
-    est = _estimate(proc, cables, values, taus, free, zs, sim, sigma, threshold)
+    est = _estimate(proc, cables, values, taus, free, frees, zs, sim, sigma, threshold)
     how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
            f"at most {iterations} iterations per τ)" if instruments
            else "nonlinear least squares")
     est = dataclasses.replace(est, estimator=(
-        f"{how}; friction (1 + s·μ)·t + s·F₀, |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
+        f"{how}; friction (1 + a·μ)·t + a·F₀, a = (2/π)·arctan(c_f·θ̇), |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
         f"{', '.join(f'{t:.2g}' for t in taus)} s" + ("" if damping else "; no damping")))
     return LoadFrictionFit(est, taus, (k0, lam0), np.asarray(counts, dtype=np.int64))
 
@@ -308,7 +324,20 @@ def _tau_column(p: FloatArray, tau_s: float, c: _Cable, x: FloatArray | None = N
     return (_residual(p, *c.args(tau_s + d, x, x_dot)) - _residual(p, *c.args(tau_s - d, x, x_dot))) / (2 * d)
 
 
+def _hold_flat_shape(c: _Cable, p: FloatArray, free: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The parameters estimated for this cable: ``free`` less c_f when the fit put it at its upper
+    bound. The shape is then a sign on the fit's rows (|θ̇| ≥ 5 rad/s), c_f's column of the
+    Jacobian vanishes, and it would only add noise to the instruments and the σ: held there."""
+    fj = free.copy()
+    if p[6] >= C_F_BOUNDS[1] * (1 - 1e-6):
+        p[6] = C_F_BOUNDS[1]
+        c.lo[6] = C_F_BOUNDS[1] * (1 - 1e-12)  # least_squares needs lo < hi
+        fj[6] = False
+    return fj
+
+
 def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: FloatArray, free: NDArray[np.bool_],
+              frees: list[NDArray[np.bool_]],
               zs: list[FloatArray] | None, sim: tuple[FloatArray, FloatArray] | None, sigma: str,
               threshold: float) -> Estimate:
     """The :class:`Estimate`: σ of the linearised estimator v − v_true ≈ −B·ρ at the solution,
@@ -326,20 +355,21 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
     sse = 0.0
     for j, c in enumerate(cables):
         res = _residual(values[j], *c.args(taus[j]))
-        J = _jacobian(values[j], c.scale, free, *c.args(taus[j]))
+        fj = frees[j]
+        J = _jacobian(values[j], c.scale, fj, *c.args(taus[j]))
         conds.append(float(np.linalg.cond(J)))
         Z = J if zs is None else zs[j]
         if values[j, 5] > BETA_BOUNDS[0] + 1e-9 * c.scale[5]:
             jt = _tau_column(values[j], taus[j], c)
             zt = jt if sim is None else _tau_column(values[j], taus[j], c, sim[0][:, j], sim[1][:, j])
             J, Z = np.column_stack([J, jt]), np.column_stack([Z, zt])
-        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(free.sum())]
+        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(fj.sum())]
         idx = np.flatnonzero(c.rows).astype(np.int64)
         if sigma == "hac":
             cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
         else:
             cov, lag = uncertainty.white_covariance(B, res), 0
-        sd[j, free] = np.sqrt(np.abs(np.diag(cov)))
+        sd[j, fj] = np.sqrt(np.abs(np.diag(cov)))
         lags.append(lag)
         sse += float(res @ res)
         at = free & ((values[j] <= c.lo + 1e-9 * c.scale) | (values[j] >= c.hi - 1e-9 * c.scale))

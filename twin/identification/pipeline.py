@@ -240,7 +240,7 @@ def identify_variable(
     issue 17 were t_c, t_c², ṫ_c). ``estimator="ols"`` gives eq. 49 as printed, ``"wls"`` weights
     each cable's rows by its residual σ. ``"loadfriction"``: twin.identification.loadfriction (the
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
-    forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta.
+    forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
     """
     if _check_estimator(estimator, VARIABLE_ESTIMATORS) == "loadfriction":
         from twin.identification.loadfriction import fit_load_friction
