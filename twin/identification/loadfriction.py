@@ -170,9 +170,20 @@ class _Cable:
         return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.theta_dot, self.y, self.rows,
                 tau_s, self.h)
 
-    def solve(self, fun, p0: FloatArray) -> FloatArray:
-        return optimize.least_squares(fun, p0, bounds=(self.lo, self.hi), x_scale=self.scale, method="trf",
-                                      xtol=1e-10, ftol=1e-10, gtol=1e-10).x
+    def solve(self, fun, p0: FloatArray, free: NDArray[np.bool_] | None = None) -> FloatArray:
+        """Bounded least squares of ``fun`` from ``p0``, over the ``free`` parameters only (the
+        others held at ``p0``: an IV system has one equation per free parameter)."""
+        idx = np.arange(len(p0)) if free is None else np.flatnonzero(free)
+
+        def sub(q: FloatArray) -> FloatArray:
+            p = p0.copy()
+            p[idx] = q
+            return fun(p)
+
+        out = p0.copy()
+        out[idx] = optimize.least_squares(sub, p0[idx], bounds=(self.lo[idx], self.hi[idx]), x_scale=self.scale[idx],
+                                          method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10).x
+        return out
 
 
 def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, damping: bool) -> list[_Cable]:
@@ -232,7 +243,7 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
             Z = _jacobian(vals[j], c.scale, frees[j], *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
             Q, _ = np.linalg.qr(Z / np.maximum(np.linalg.norm(Z, axis=0), 1e-300))
             zs[j] = Z
-            vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j])
+            vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j], frees[j])
         change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
         if change < IV_TOLERANCE:
             return vals, zs, it, True, (sim.x, sim.x_dot)
@@ -331,7 +342,6 @@ def _hold_flat_shape(c: _Cable, p: FloatArray, free: NDArray[np.bool_]) -> NDArr
     fj = free.copy()
     if p[6] >= C_F_BOUNDS[1] * (1 - 1e-6):
         p[6] = C_F_BOUNDS[1]
-        c.lo[6] = C_F_BOUNDS[1] * (1 - 1e-12)  # least_squares needs lo < hi
         fj[6] = False
     return fj
 
