@@ -48,6 +48,12 @@ def _xneck() -> list[str]:
     return [found] if found else [sys.executable, "-m", "server.cli"]
 
 
+def _checkout() -> str:
+    """``git describe --always --dirty`` of the tree the commands run on."""
+    return subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
+                          cwd=ROOT).stdout.strip()
+
+
 def run(name: str, args: list[str], fresh: bool) -> dict[str, Any]:
     """``xneck <args>`` once; its JSON stdout, the command and the wall time cached in runs/<name>.json."""
     path = RUNS / f"{name}.json"
@@ -66,7 +72,7 @@ def run(name: str, args: list[str], fresh: bool) -> dict[str, Any]:
     except json.JSONDecodeError:
         out = None
     record = {"command": command, "returncode": proc.returncode, "wall_s": round(wall, 1), "json": out,
-              "stderr_tail": proc.stderr.strip().splitlines()[-3:]}
+              "stderr_tail": proc.stderr.strip().splitlines()[-3:], "checkout": _checkout()}
     path.write_text(json.dumps(record, indent=1) + "\n")
     if proc.returncode != 0:
         print(f"  failed ({proc.returncode}): {record['stderr_tail']}", file=sys.stderr)
@@ -84,7 +90,7 @@ def run_script(name: str, argv: list[str], fresh: bool) -> dict[str, Any]:
     t0 = time.monotonic()
     proc = subprocess.run([sys.executable, *argv], capture_output=True, text=True, cwd=ROOT, timeout=3600)
     record = {"command": command, "returncode": proc.returncode, "wall_s": round(time.monotonic() - t0, 1),
-              "stdout": proc.stdout, "stderr_tail": proc.stderr.strip().splitlines()[-3:]}
+              "stdout": proc.stdout, "stderr_tail": proc.stderr.strip().splitlines()[-3:], "checkout": _checkout()}
     path.write_text(json.dumps(record, indent=1) + "\n")
     return record
 
@@ -181,8 +187,7 @@ def main() -> None:
     if not steps >= {"design", "paper", "control", "table3", "designed", "cv-paper", "cv-designed", "check", "reach"} \
             and not a.md_only:
         return  # a partial run: the page is written by a full or --md-only run
-    version = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
-                             cwd=ROOT).stdout.strip()
+    version = _checkout()
     (DOCS / "identification.md").write_text(page(design, paper, designed, control, cv, table3, seeds, version,
                                                  checks, reach))
     print(f"wrote {DOCS / 'identification.md'}", file=sys.stderr)
@@ -191,6 +196,17 @@ def main() -> None:
 def _mean(xs: list[float]) -> float:
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     return sum(xs) / len(xs) if xs else math.nan
+
+
+def _run_checkouts(*groups) -> str:
+    """The checkouts the cached runs were made at, most runs first (runs before the field: "not recorded")."""
+    counts: dict[str, int] = {}
+    for g in groups:
+        for r in (g or {}).values() if isinstance(g, dict) and "command" not in g else [g]:
+            if isinstance(r, dict) and "command" in r:
+                key = f"`{r['checkout']}`" if r.get("checkout") else "a checkout not recorded"
+                counts[key] = counts.get(key, 0) + 1
+    return ", ".join(f"{k} ({n} run{'s' if n > 1 else ''})" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 def page(design, paper, designed, control, cv, table3, seeds, version: str = "", checks=None, reach=None) -> str:
@@ -205,8 +221,9 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
         "the default of identification campaigns: Table 2's k and λ, a real line's damping, friction",
         "with stiction and asymmetry, BeagleBone timing) and, by default, measures α_IP on rendered",
         "camera frames. The truth of k and λ is the prototype parameter file's Table 2.",
-        f"Page written {time.strftime('%Y-%m-%d %H:%M')} from a checkout at `{version}` (`-dirty`: with",
-        "other engineers' uncommitted changes in the tree; the commands ran on that tree).",
+        f"Page written {time.strftime('%Y-%m-%d %H:%M')} at `{version}`; its commands ran at "
+        f"{_run_checkouts(design, paper, designed, control, cv, table3, checks, reach)} (each run's JSON in",
+        "docs/identification/runs/ names its checkout; `-dirty`: with uncommitted changes in the tree).",
         "",
     ]
     # -- excitation design --------------------------------------------------------------------
@@ -389,8 +406,9 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
            "  tension from the forces (eq. 55) misses the truth's load-dependent friction, and eq. 54 its creep.",
            "  docs/identification-coverage.md measures each source alone (docs/identification/diagnose_robot_truth.py),",
            "  and compares a hold-free excitation (docs/identification/holdfree.json) with the cycloids. On",
-           "  these law-1 campaigns `xneck identify --estimator loadfriction` comes closest: 36/40 within",
-           "  10 % on five seeds, λ(3) the usual miss (the section \"On law 1's campaigns\" there).",
+           "  these law-1 campaigns `xneck identify --estimator loadfriction` comes closest: 44/48 within",
+           "  10 % on six seeds, λ(3) the usual miss (the section \"On law 1's campaigns\" there, and the",
+           "  friction offset that explains it).",
            ""]
     return "\n".join(md)
 
