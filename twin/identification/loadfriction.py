@@ -282,7 +282,7 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, 0.0, params.friction.c_s])
                   for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
         values[j], taus[j] = _least_squares(c, starts, taus_s)
-    frees = [_hold_flat_shape(c, values[j], free) for j, c in enumerate(cables)]
+    frees = [_hold_flat_shape(values[j], free) for j in range(nc)]
     zs: list[FloatArray] | None = None
     sim: tuple[FloatArray, FloatArray] | None = None
     iterations, converged = 0, True
@@ -335,7 +335,7 @@ def _tau_column(p: FloatArray, tau_s: float, c: _Cable, x: FloatArray | None = N
     return (_residual(p, *c.args(tau_s + d, x, x_dot)) - _residual(p, *c.args(tau_s - d, x, x_dot))) / (2 * d)
 
 
-def _hold_flat_shape(c: _Cable, p: FloatArray, free: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def _hold_flat_shape(p: FloatArray, free: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """The parameters estimated for this cable: ``free`` less c_f when the fit put it at its upper
     bound. The shape is then a sign on the fit's rows (|θ̇| ≥ 5 rad/s), c_f's column of the
     Jacobian vanishes, and it would only add noise to the instruments and the σ: held there."""
