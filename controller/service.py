@@ -195,36 +195,56 @@ class StateGate:
     (``bridge`` instance and ``epoch``), with stamps that never go back and never run ahead of the
     controller's own clock by more than ``skew_s`` since the last state taken (a lockstep twin's
     2 ms step per state is within it). Only after ``rebind_s`` without any state taken does the
-    gate start again from the next state: of a new run (a restarted bridge is taken at once, its
-    first state comes long after the old run's last) or of the same one (a bridge whose clock
-    stepped). A forged run or stamp beside a live bridge is never taken. ``now_s``: a monotonic
-    clock (s)."""
+    gate start again: at once from a state that continues the bound run's clock, else from a
+    state of a new run (a restarted bridge) or of a stepped clock once the next state confirms it
+    (same run, not earlier, not ahead of it). A forged run or stamp beside a live bridge is never
+    taken, nor is a lone one that arrives first after a stall of the controller's CPU. ``now_s``:
+    a monotonic clock (s)."""
 
     def __init__(self, skew_s: float = 0.05, rebind_s: float = 0.25) -> None:
         self.skew_s, self.rebind_s = skew_s, rebind_s
         self.bridge = self.epoch = ""
         self._stamp = self._wall = -math.inf  # the newest stamp taken, and when
         self._taken = -math.inf  # when the last state was taken (a re-publication too)
+        self._candidate: tuple[str, str, float, float] | None = None  # (bridge, epoch, stamp, when)
 
-    def admit(self, state: bus.MotorState, now_s: float) -> str:
-        """"" if ``state`` is taken, else why not."""
-        if now_s - self._taken >= self.rebind_s:
-            self.bridge, self.epoch = state.bridge, state.epoch
-            self._stamp, self._wall = state.stamp_s, now_s
-            self._taken = now_s
-            return ""
-        if (state.bridge, state.epoch) != (self.bridge, self.epoch):
+    def _bind(self, state: bus.MotorState, now_s: float) -> str:
+        self.bridge, self.epoch = state.bridge, state.epoch
+        self._stamp, self._wall = state.stamp_s, now_s
+        self._taken, self._candidate = now_s, None
+        return ""
+
+    def _check(self, state: bus.MotorState, bridge: str, epoch: str, stamp: float, wall: float,
+               now_s: float) -> str:
+        """"" if ``state`` continues the run ``bridge``/``epoch`` last seen at ``stamp`` (its
+        clock) and ``wall`` (ours), else why not."""
+        if (state.bridge, state.epoch) != (bridge, epoch):
             return (f"MotorState of bridge {state.bridge!r} run {state.epoch!r}: the controller is bound to "
-                    f"{self.bridge!r} run {self.epoch!r}, which is alive")
-        if state.stamp_s < self._stamp:
-            return f"MotorState stamp {state.stamp_s:.6g} s goes back in time (last {self._stamp:.6g} s)"
-        ahead = (state.stamp_s - self._stamp) - (now_s - self._wall)
+                    f"{bridge!r} run {epoch!r}, which is alive")
+        if state.stamp_s < stamp:
+            return f"MotorState stamp {state.stamp_s:.6g} s goes back in time (last {stamp:.6g} s)"
+        ahead = (state.stamp_s - stamp) - (now_s - wall)
         if ahead > self.skew_s:
             return (f"MotorState stamp {state.stamp_s:.6g} s runs {ahead:.3g} s ahead of the controller's clock "
                     f"(at most {self.skew_s:g} s)")
+        return ""
+
+    def admit(self, state: bus.MotorState, now_s: float) -> str:
+        """"" if ``state`` is taken, else why not."""
+        if not self.epoch:
+            return self._bind(state, now_s)  # the first state ever: nothing to compare it with
+        why = self._check(state, self.bridge, self.epoch, self._stamp, self._wall, now_s)
+        if now_s - self._taken >= self.rebind_s and why:
+            cand = self._candidate
+            if cand is not None and not self._check(state, *cand, now_s):
+                return self._bind(state, now_s)
+            self._candidate = (state.bridge, state.epoch, state.stamp_s, now_s)
+            return f"{why}; after {now_s - self._taken:.3g} s without a state, taken if the next one confirms it"
+        if why:
+            return why
         if state.stamp_s > self._stamp:
             self._stamp, self._wall = state.stamp_s, now_s
-        self._taken = now_s
+        self._taken, self._candidate = now_s, None
         return ""
 
 

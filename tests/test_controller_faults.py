@@ -204,12 +204,12 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
         estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="test e-stop"))
         assert wait_until(lambda: stack.states.messages()[-1].drive == "disabled", 30, 0.01)
 
-        def seen_disabled() -> list[float]:  # when the controller's statuses say it saw the e-stop
-            return [t for t, s in stack.status.timed() if t >= t_on and "drives disabled" in s.hold_reason]
+        def seen_disabled() -> list[tuple[float, float]]:  # when the controller's statuses say it saw the e-stop
+            return [(t, s.stamp_s) for t, s in stack.status.timed() if t >= t_on and "drives disabled" in s.hold_reason]
 
         # Not a fixed delay after the bridge: on a loaded machine the controller may see it later.
         assert wait_until(seen_disabled, 30, 0.01)
-        t_dis = seen_disabled()[0]
+        t_dis, stamp_dis = seen_disabled()[0]
         time.sleep(3.0)
         t_off = time.perf_counter()
         estop.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="released"))
@@ -218,7 +218,9 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
     finally:
         estop.close()
     cmds = [(t, np.array(c.force_N), c.stamp_s) for t, c in stack.commands.timed() if t >= t_on]
-    during = np.array([f for t, f, _ in cmds if t_dis <= t <= t_off])
+    # From the state on which the controller saw the e-stop (its stamp: on a loaded machine this
+    # test's subscriber receives the last law commands after the status that says so).
+    during = np.array([f for t, f, stamp in cmds if stamp >= stamp_dis and t <= t_off])
     # Nothing grows: the hold forces only follow α̂ as the neck settles on slack cables.
     assert len(during) > 100 and np.ptp(during, axis=0).max() < 8.0 and during.max() < 40.0, np.ptp(during, axis=0)
     around = [(f, stamp) for t, f, stamp in cmds if t_off - 0.2 <= t <= t_off + 1.0]

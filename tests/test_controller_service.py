@@ -203,10 +203,33 @@ def test_the_gate_takes_states_of_one_bridge_run_on_a_consistent_clock():
     assert "back in time" in gate.admit(_state(4.0), now_s=100.003)
     assert gate.admit(_state(5.002), now_s=100.004) == ""  # a lockstep re-publication
     assert "bound to" in gate.admit(_state(0.0, epoch="forged"), now_s=100.005)
-    # A restarted bridge (new epoch, new instance, stamps from 0) once the old run fell silent.
-    assert gate.admit(_state(0.0, epoch="e2", bridge="b2"), now_s=100.5) == ""
-    assert gate.epoch == "e2" and gate.admit(_state(0.002, epoch="e2", bridge="b2"), now_s=100.502) == ""
+    # A restarted bridge (new epoch, new instance, stamps from 0) once the old run fell silent:
+    # taken at its second state (a lone state after a silence may be forged, the next test).
+    assert "confirms" in gate.admit(_state(0.0, epoch="e2", bridge="b2"), now_s=100.5)
+    assert gate.admit(_state(0.002, epoch="e2", bridge="b2"), now_s=100.502) == "" and gate.epoch == "e2"
+    assert gate.admit(_state(0.004, epoch="e2", bridge="b2"), now_s=100.504) == ""
     assert gate.admit(_state(5.004), now_s=100.503) != ""  # the old run is not taken back
+
+
+def test_a_forged_state_after_a_stall_is_not_taken_and_a_stepped_clock_is():
+    """Found under load (two test suites at once): the controller's CPU stalled longer than
+    ``rebind_s``, the next state to arrive was a forged one of the same run stamped 1e12 s, the
+    gate bound to it and the controller answered it, then refused the real states as going back
+    in time until the next re-bind. After a stall, a stamp far ahead of the run's clock is only a
+    candidate: taken when the next state confirms it (a bridge whose clock stepped), dropped when a
+    real one comes first."""
+    gate = StateGate()
+    assert gate.admit(_state(5.000), now_s=100.000) == ""
+    # 0.4 s of stall, then the forged state arrives first, then the real ones
+    assert "ahead" in gate.admit(_state(1e12), now_s=100.400)
+    assert gate.admit(_state(5.400), now_s=100.401) == ""
+    assert gate.admit(_state(5.402), now_s=100.402) == ""
+    assert "ahead" in gate.admit(_state(1e12), now_s=100.403)  # bound again: never taken
+    # A bridge whose clock stepped 10 s forward: taken at its second state, and followed.
+    assert "ahead" in gate.admit(_state(15.800), now_s=100.800)
+    assert gate.admit(_state(15.802), now_s=100.802) == ""
+    assert gate.admit(_state(15.804), now_s=100.804) == ""
+    assert "back in time" in gate.admit(_state(5.806), now_s=100.806)
 
 
 @pytest.mark.parametrize("text, reason", [
