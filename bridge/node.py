@@ -269,7 +269,7 @@ class BridgeNode:
         self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
         self.estop_received = self.estop_rejected = 0
         self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
-        self._state_pub = publisher(session, bus.MOTOR_STATE)
+        self._state_pub = publisher(session, bus.MOTOR_STATE, block=config.lockstep)
         self._extra_pubs: dict[str, BusPublisher] = {}
         self._health = session.declare_publisher(bus.health_key("bridge", self.instance))
         self._token = liveliness_token(session, "bridge", self.instance)
@@ -410,7 +410,7 @@ class BridgeNode:
         for key, msg in self.driver.extra_messages():
             pub = self._extra_pubs.get(key)
             if pub is None:
-                pub = self._extra_pubs[key] = publisher(self.session, key)
+                pub = self._extra_pubs[key] = publisher(self.session, key, block=self.config.lockstep)
             pub.put(msg)
         if decision.events:
             _log_events(decision.events)

@@ -144,8 +144,8 @@ class ControllerNode:
         self._lag_floor, self._floor_epoch, self._last_done_ns = 0.0, "", 0  # see _stale_in_burst
         self.states = subscribe_latest(session, bus.MOTOR_STATE, validate=check_state, on_message=self._on_state,
                                        direct=True)
-        self._cmd = publisher(session, bus.MOTOR_COMMAND)
-        self._status = publisher(session, bus.CONTROLLER_STATUS)
+        self._cmd = publisher(session, bus.MOTOR_COMMAND, block=config.lockstep)
+        self._status = publisher(session, bus.CONTROLLER_STATUS, block=config.lockstep)
         self._timing = publisher(session, bus.CONTROLLER_TIMING)
         self._events = publisher(session, bus.CAMPAIGN_EVENTS)
         self._health = publisher(session, bus.health_key("controller", self.instance))
