@@ -1,0 +1,62 @@
+"""Law 1's identification campaigns run in process, then ``loadfriction``: the k and λ errors and
+the ±2σ coverage over seeds (docs/identification-coverage.md, "The friction's shape").
+
+The campaign is what `xneck campaign identification` runs on the bus: law 1 on the §5.2.2
+cycloids against the robot truth with the rendered camera, here through the offline closed loop
+(controller.offline.run_closed_loop), about 10 s a seed plus the fit.
+
+    nice -n 19 .venv/bin/python docs/identification/law1_coverage.py --first 21 --seeds 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from controller.laws import LawConfig  # noqa: E402
+from controller.offline import run_closed_loop  # noqa: E402
+from controller.trajectory import identification_trajectory  # noqa: E402
+from twin.identification.loadfriction import fit_load_friction  # noqa: E402
+from twin.identification.processing import CampaignData, preprocess  # noqa: E402
+from twin.model.params import load_params  # noqa: E402
+from twin.sim.simulator import TwinConfig  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--first", type=int, default=21, help="first campaign seed")
+    ap.add_argument("--seeds", type=int, default=20, help="how many seeds")
+    ap.add_argument("--truth", default="robot", help="robot, model, or a truth file")
+    args = ap.parse_args()
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    params, traj = load_params(), identification_trajectory()
+    truth = {"k": np.asarray(params.cables.variable.k), "lambda": np.asarray(params.cables.variable.lam)}
+    within = covered = cases = 0
+    print("| seed | k error (%) | λ error (%) | covered by ±2σ (k, λ) | c_f (s/rad) |")
+    print("|---|---|---|---|---|")
+    for seed in range(args.first, args.first + args.seeds):
+        run = run_closed_loop(params, LawConfig(law=1), traj, TwinConfig(truth=args.truth, seed=seed, alpha_ip="camera"),
+                              settle_s=0.0)
+        seen = np.isfinite(run.alpha_ip).all(axis=1)
+        data = CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
+                            campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
+        est = fit_load_friction(preprocess(data, params), params).estimate
+        cells = []
+        for sym in ("k", "lambda"):
+            v, sd = est.vector(sym), est.sigma[[i for i, n in enumerate(est.names) if n.split("(")[0] == sym]]
+            err, cov = v / truth[sym] - 1, np.abs(v - truth[sym]) <= 2 * sd
+            within, covered, cases = within + int(np.sum(np.abs(err) <= 0.10)), covered + int(cov.sum()), cases + 4
+            cells.append((", ".join(f"{100 * e:+.1f}" for e in err), int(cov.sum())))
+        c_f = ", ".join(f"{c:.3g}" for c in est.vector("c_f"))
+        print(f"| {seed} | {cells[0][0]} | {cells[1][0]} | {cells[0][1]}/4, {cells[1][1]}/4 | {c_f} |", flush=True)
+    print(f"\nwithin 10 %: {within}/{cases}; covered by ±2σ: {covered}/{cases}")
+
+
+if __name__ == "__main__":
+    main()
