@@ -18,13 +18,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from controller.laws import LawConfig  # noqa: E402
-from controller.offline import run_closed_loop  # noqa: E402
-from controller.trajectory import identification_trajectory  # noqa: E402
-from twin.identification.loadfriction import fit_load_friction  # noqa: E402
-from twin.identification.processing import CampaignData, preprocess  # noqa: E402
-from twin.model.params import load_params  # noqa: E402
-from twin.sim.simulator import TwinConfig  # noqa: E402
+from controller.laws import LawConfig
+from controller.offline import run_closed_loop
+from controller.trajectory import identification_trajectory
+from twin.identification.loadfriction import fit_load_friction
+from twin.identification.processing import CampaignData, preprocess
+from twin.model.params import load_params
+from twin.sim.simulator import TwinConfig
 
 
 def main() -> None:

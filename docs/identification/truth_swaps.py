@@ -18,12 +18,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bridge import bus  # noqa: E402
-from bridge.archive import read_campaign  # noqa: E402
-from twin.identification import loadfriction  # noqa: E402
-from twin.identification.processing import preprocess  # noqa: E402
-from twin.identification.record import campaign_data_from_mcap  # noqa: E402
-from twin.model.params import load_params  # noqa: E402
+from bridge import bus
+from bridge.archive import read_campaign
+from twin.identification import loadfriction
+from twin.identification.processing import preprocess
+from twin.identification.record import campaign_data_from_mcap
+from twin.model.params import load_params
 
 
 def _errors(proc, params, y=None) -> str:
