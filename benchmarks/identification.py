@@ -1,5 +1,5 @@
 """Identification (issue 5): processing + estimation time for a 100 s campaign (target < 2 s).
-``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction] [--seeds N] [--first S] [--out FILE]``: the ±2σ
+``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction|auto] [--seeds N] [--first S] [--out FILE]``: the ±2σ
 coverage of Table 2's k and λ over campaign seeds 21-30 (issue 17), as markdown for the docs.
 
 The campaign is simulated once with the identification closed loop (controller/identification_loop.py)
@@ -16,6 +16,7 @@ with its ratio to the default.
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -67,8 +68,9 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
     lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}, "
              f"trajectory {'§5.2.2 cycloids' if trajectory_file is None else trajectory_file}"
              + (f" × {repeat} ({trajectory.duration_s:g} s)" if trajectory is not None and repeat > 1 else ""), "",
-             "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |",
-             "|---|---|---|---|---|---|"]
+             "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |"
+             + (" auto's choice (χ², 8 dof) |" if estimator == "auto" else ""),
+             "|---|---|---|---|---|---|" + ("---|" if estimator == "auto" else "")]
     covered = cases = within = 0
     by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
     rel_sigma = []  # relative σ of k(1..4), λ(1..4) per seed
@@ -89,7 +91,8 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
             by_symbol[i] += (int(cov[part].sum()), int(np.sum(np.abs(err[part]) < 0.10)))
         fmt = lambda a: ", ".join(f"{100 * x:+.1f}" for x in a)  # noqa: E731
         lines.append(f"| {seed} | {fmt(err[:4])} | {fmt(err[4:])} | {', '.join(f'{100 * x:.2f}' for x in var.relative_sigma[ik])} "
-                     f"| {int(cov[:4].sum())}/4, {int(cov[4:].sum())}/4 | {var.sigma_method} |")
+                     f"| {int(cov[:4].sum())}/4, {int(cov[4:].sum())}/4 | {var.sigma_method} |"
+                     + (f" {_auto_choice(var.estimator)} |" if estimator == "auto" else ""))
         print(lines[-1], flush=True)
     lines += ["", f"**covered: {covered}/{cases} = {100 * covered / cases:.0f} %** (target ≥ 85 %); "
               f"within 10 %: {within}/{cases}",
@@ -105,6 +108,13 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
                   f"k mean {fmt_z(zz[:, :4].mean(0))}, spread {fmt_z(zz[:, :4].std(0, ddof=1))}; "
                   f"λ mean {fmt_z(zz[:, 4:].mean(0))}, spread {fmt_z(zz[:, 4:].std(0, ddof=1))}", ""]
     return "\n".join(lines)
+
+
+def _auto_choice(text: str) -> str:
+    """"loadfriction, χ² 309.4" from the estimator text of ``estimator="auto"`` (pipeline._identify_variable_auto)."""
+    chosen = text.split(" ", 3)[2] if text.startswith("auto → ") else "?"
+    m = re.search(r"χ² = ([0-9.]+)", text)
+    return f"{chosen}, χ² {m.group(1)}" if m else chosen
 
 
 def baseline(data, params) -> None:

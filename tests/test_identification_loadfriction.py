@@ -9,6 +9,7 @@ estimator was developed on (21-23).
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,6 +18,7 @@ import pytest
 from controller.identification_loop import simulate_campaign
 from twin.identification import loadfriction
 from twin.identification.loadfriction import fit_load_friction
+from twin.identification.model_choice import P_THRESHOLD, paper_model_test
 from twin.identification.pipeline import (
     identified_params,
     identify_all,
@@ -43,25 +45,27 @@ def _smooth(rng: np.random.Generator, n: int, cutoff_hz: float) -> np.ndarray:
     return x / x.std()
 
 
-def _synthetic(params, seed: int = 1, n: int = 3000, noise_N: float = 0.5) -> SimpleNamespace:
+def _synthetic(params, seed: int = 1, n: int = 3000, noise_N: float = 0.5, **true: float) -> SimpleNamespace:
     """A processed campaign whose forces follow the estimator's model exactly (plus AR(1) noise):
-    the stretch 0.5-6 mm (λx up to 0.6), the motors turning both ways at up to ~25 rad/s."""
+    the stretch 0.5-6 mm (λx up to 0.6), the motors turning both ways at up to ~25 rad/s.
+    ``true``: values of :data:`TRUE` to replace (e.g. mu=0, beta=0: the paper's eqs. 54-55)."""
+    truth = {**TRUE, **true}
     rng = np.random.default_rng(seed)
     nc = params.n_cables
     x = np.column_stack([3.2e-3 + 1.3e-3 * _smooth(rng, n, 0.3) for _ in range(nc)]).clip(0.5e-3, 6e-3)
     x_dot = np.gradient(x, 1 / RATE_HZ, axis=0)
     theta_dot = np.column_stack([12.0 * _smooth(rng, n, 0.4) for _ in range(nc)])
     theta_ddot = np.gradient(theta_dot, 1 / RATE_HZ, axis=0)
-    p = np.array([TRUE[s] for s in loadfriction.SYMBOLS])
+    p = np.array([truth[s] for s in loadfriction.SYMBOLS])
     e = np.zeros((n, nc))
     w = rng.standard_normal((n, nc))
     for i in range(1, n):
         e[i] = 0.8 * e[i - 1] + 0.6 * w[i]  # filtered data: residuals correlated over instants
     force = np.empty((n, nc))
     for j in range(nc):
-        a = (2 / np.pi) * np.arctan(TRUE["c_f"] * theta_dot[:, j])  # eq. 37's shape, the paper's c_s
+        a = (2 / np.pi) * np.arctan(truth["c_f"] * theta_dot[:, j])  # eq. 37's shape, the paper's c_s
         t = loadfriction._tension(p, x[:, j], x_dot[:, j], TAU_S, 1 / RATE_HZ)
-        force[:, j] = (1 + a * TRUE["mu"]) * t + a * TRUE["F_0"] + noise_N * e[:, j] + ia_over_rho(params) * theta_ddot[:, j]
+        force[:, j] = (1 + a * truth["mu"]) * t + a * truth["F_0"] + noise_N * e[:, j] + ia_over_rho(params) * theta_ddot[:, j]
     return SimpleNamespace(x_c=x, x_c_dot=x_dot, theta_dot=theta_dot, theta_ddot=theta_ddot, force=force,
                            rate_hz=RATE_HZ, cutoff_hz=1.0, n=n)
 
@@ -108,13 +112,35 @@ def test_refuses_a_campaign_where_the_motors_never_turn_fast(synthetic, params):
         fit_load_friction(synthetic, params, sigma="magic")  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_the_paper_model_test_keeps_eqs_54_55_where_they_hold_and_rejects_them_where_friction_grows(params, seed):
+    """estimator="auto" chooses by this test (twin/identification/model_choice.py): on forces of
+    the paper's model (μ = β = 0) it must keep it, with the load-dependent friction and creep of
+    :data:`TRUE` reject it."""
+    paper = paper_model_test(fit_load_friction(_synthetic(params, seed, mu=0.0, beta=0.0), params,  # type: ignore[arg-type]
+                                               instruments=False).estimate)
+    robot = paper_model_test(fit_load_friction(_synthetic(params, seed), params,  # type: ignore[arg-type]
+                                               instruments=False).estimate)
+    assert paper.dof == robot.dof == 2 * params.n_cables
+    assert paper.p > P_THRESHOLD and not paper.rejects_paper_model, paper
+    assert robot.p < P_THRESHOLD and robot.rejects_paper_model, robot
+    assert "kept" in paper.describe() and "rejected" in robot.describe()
+    with pytest.raises(ValueError, match="not a load-friction estimate"):
+        paper_model_test(dataclasses.replace(fit_load_friction(_synthetic(params, seed), params,  # type: ignore[arg-type]
+                                                               instruments=False).estimate, names=("k(1)",) * 28))
+
+
 def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params):
     """The full §5.2.2 campaign (shorter ones leave too few fast rows on some motors)."""
     data = simulate_campaign(CAMPAIGN_SEED, truth=load_truth("robot"))[0]
     proc = preprocess(data, params)
     k_true = np.array(params.cables.variable.k)
-    est = identify_all(proc, params, estimator="loadfriction")
+    # "auto" (the user's default): the robot's friction grows with the load, so the test rejects
+    # the paper's model and the load-friction fit is taken
+    est = identify_all(proc, params, estimator="auto")
     lf = est["variable"]
+    assert lf.estimator.startswith("auto → loadfriction (the paper's model"), lf.estimator
+    assert paper_model_test(lf).p < 1e-10
     iv = identify_all(proc, params)["variable"]
     err_lf, err_iv = lf.vector("k") / k_true - 1, iv.vector("k") / k_true - 1
     # The stiff cables within 10 %; k(4), the soft cable, scatters ±10-25 % over campaigns

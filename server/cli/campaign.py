@@ -85,9 +85,9 @@ def campaign_identification(
     timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
     trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
-    estimator: str = typer.Option("iv", "--estimator", callback=check_estimator, help="Table 2's estimator, as "
-                                  "`xneck identify --estimator` (iv, ols, wls, loadfriction; on the robot truth "
-                                  "loadfriction comes closest: docs/identification-coverage.md)."),
+    estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
+                                  "as `xneck identify --estimator` (auto, the default: loadfriction where the "
+                                  "campaign rejects the paper's model, else iv; or iv, ols, wls, loadfriction)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:

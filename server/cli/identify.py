@@ -22,11 +22,14 @@ def identify(
     validate: Path | None = typer.Option(None, "--validate", help="Another campaign MCAP (e.g. a §7 control "
                                          "test): Figs. 4-8 and the errors on it with the models fitted here, "
                                          "beside the in-sample ones (figures in <out>/validation)."),
-    estimator: str = typer.Option("iv", "--estimator", help="iv (default): instrumental variables from the model "
-                                  "re-simulated on the encoders, consistent under camera noise and open-loop force "
-                                  "errors; ols: eq. 49 as printed; wls: rows weighted by their residual σ; loadfriction: "
-                                  "Table 2 with the motor friction growing with the load and a cable creep term "
-                                  "(docs/identification-coverage.md), Table 1 by iv."),
+    estimator: str = typer.Option("auto", "--estimator", help="auto (default): "
+                                  "loadfriction where the campaign rejects the paper's eqs. 54-55 (a Wald test of "
+                                  "its friction growing with the load and creep), else iv; iv: instrumental "
+                                  "variables from the model re-simulated on the encoders, consistent under camera "
+                                  "noise; ols: eq. 49 as printed; wls: rows weighted by their residual σ; "
+                                  "loadfriction: Table 2 with the motor friction growing with the load and a cable "
+                                  "creep term (docs/identification-coverage.md). Table 1 is always by iv or the "
+                                  "linear estimator named."),
     sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "
                               "white: eq. 50 as printed (too small on filtered data)."),
     no_bounds: bool = typer.Option(False, "--no-bounds", help="Unbounded least squares (default: k, f_s > 0 and "

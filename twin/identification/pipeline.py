@@ -32,7 +32,10 @@ default, IV with instruments from the model re-simulated on the encoders (identi
 bounded to the physical range (k, f_s > 0; λ, c_a ≥ 0; scipy.optimize.lsq_linear, the parameters
 held at a bound reported); Table 2 alternatively with ``estimator="loadfriction"``
 (twin.identification.loadfriction: motor friction growing with the load and cable creep, fitted on
-the forces by nonlinear IDIM-IV; not the default, see docs/identification-coverage.md). σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
+the forces by nonlinear IDIM-IV, see docs/identification-coverage.md), or ``"auto"``, the default
+of the user's commands (twin.identification.record): the load-friction fit where a Wald test
+rejects eqs. 54-55 (twin.identification.model_choice), else IDIM-IV. These functions keep "iv" as
+their default: they are the paper's pipeline. σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
 too small on filtered, decimated data; the default is the Newey-West HAC sandwich
 (twin.identification.uncertainty), with ±2σ intervals. A parameter whose relative σ exceeds
 ``threshold`` (10 % by default), whose value is physically impossible, or which the bounded
@@ -113,7 +116,10 @@ IntArray = NDArray[np.int64]
 ESTIMATOR_ALIASES = {"ls": "ols", "load-friction": "loadfriction"}  # "ls": eq. 49's name before issue 17
 # Table 2 only: eq. 55's friction replaced by one growing with the load, plus cable creep
 # (twin.identification.loadfriction, issues 16/17); Table 1 and f_s then use the default "iv".
-VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction")
+VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "auto")
+# "auto": the load-friction fit, kept when it rejects the paper's model (twin.identification.model_choice),
+# else "iv". The default of the user's commands (xneck identify, campaigns, the console).
+NONLINEAR_ESTIMATORS = ("loadfriction", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
 
 
 def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...], rows: tuple[IntArray, IntArray], *,
@@ -242,10 +248,13 @@ def identify_variable(
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
     """
-    if _check_estimator(estimator, VARIABLE_ESTIMATORS) == "loadfriction":
+    name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
+    if name == "loadfriction":
         from twin.identification.loadfriction import fit_load_friction
 
         return fit_load_friction(proc, params, threshold=threshold, sigma=sigma).estimate
+    if name == "auto":
+        return _identify_variable_auto(proc, params, f_s, threshold=threshold, sigma=sigma, bounded=bounded)
     nc = params.n_cables
     f_s = np.asarray(f_s, dtype=float)
     if f_s.shape != (nc,) or not np.all(np.isfinite(f_s)):
@@ -271,6 +280,26 @@ def identify_variable(
     return solve(None) if est != "iv" else _iterate_iv(proc, params, "variable", k0, lam0, solve)
 
 
+def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *, threshold: float, sigma: str,
+                            bounded: bool) -> Estimate:
+    """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (Wald test of μ = β = 0,
+    twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
+    A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
+    from twin.identification.loadfriction import fit_load_friction
+    from twin.identification.model_choice import paper_model_test
+
+    try:
+        lf = fit_load_friction(proc, params, threshold=threshold, sigma=sigma).estimate
+    except ValueError as exc:
+        iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
+        return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
+    test = paper_model_test(lf)
+    if test.rejects_paper_model:
+        return dataclasses.replace(lf, estimator=f"auto → loadfriction ({test.describe()}); {lf.estimator}")
+    iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
+    return dataclasses.replace(iv, estimator=f"auto → iv ({test.describe()}); {iv.estimator}")
+
+
 def identify_all(
     proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv",
     sigma: str = "hac", bounded: bool = True,
@@ -278,8 +307,8 @@ def identify_all(
     """The three estimations of §5 in order: friction alone, complete (Table 1), variable (Table 2,
     with the f_s of the friction-alone estimate: it does not depend on the cable model, while the
     complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension).
-    ``estimator="loadfriction"`` is Table 2's alone: friction and Table 1 then use "iv"."""
-    linear = "iv" if _check_estimator(estimator, VARIABLE_ESTIMATORS) == "loadfriction" else estimator
+    ``estimator="loadfriction"`` or ``"auto"`` is Table 2's alone: friction and Table 1 then use "iv"."""
+    linear = "iv" if _check_estimator(estimator, VARIABLE_ESTIMATORS) in NONLINEAR_ESTIMATORS else estimator
     fric = identify_friction(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     comp = identify_complete(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator, sigma=sigma,

@@ -98,10 +98,11 @@ class Identification(NamedTuple):
 
 def identify_record(path: str | Path, base: Params, *, excitation: Excitation | None = None,
                     cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
-                    with_validation: bool = True, alpha_hat: bool = True, estimator: str = "iv",
+                    with_validation: bool = True, alpha_hat: bool = True, estimator: str = "auto",
                     sigma: str = "hac", bounded: bool = True) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
-    (Tables 1-2) with ``estimator`` ("iv", "ols", "wls" or "loadfriction", :func:`identify_all`), ``sigma``
+    (Tables 1-2) with ``estimator`` ("auto", the default: the load-friction fit where the campaign rejects
+    eqs. 54-55, else "iv"; or "iv", "ols", "wls", "loadfriction", :func:`identify_all`), ``sigma``
     ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
     identified, and validate (Figs. 4-8). Raises :class:`IdentificationError` with the reason."""
     data = campaign_data_from_mcap(path, excitation)
