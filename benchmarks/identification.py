@@ -9,7 +9,7 @@ with numpy.linalg.lstsq on the raw, unfiltered 500 Hz data (no filtering, no dec
 linearly interpolated to every tick), i.e. what the processing replaces. Validation (α̂ by eqs.
 33/35, 2 ms steps) is timed separately: it is not part of the target. Last, the same processing
 and estimation with ``estimator="loadfriction"`` (Table 2 by twin.identification.loadfriction),
-with its ratio to the default.
+and with ``estimator="auto"`` (the user's commands' default), with their ratios to IDIM-IV.
 
     .venv/bin/python benchmarks/identification.py
 """
@@ -177,6 +177,16 @@ def main() -> None:
                              unit=1e-3, unit_name="ms")
     print(f"ratio loadfriction / default: {med_lf / med:.2f}; against the target: "
           f"{'PASS' if p99_lf / 1e3 < TARGET_S else 'FAIL'} (p99 {p99_lf / 1e3:.3f} s)")
+
+    def auto():
+        proc = preprocess(data, params)
+        return identify_all(proc, params, estimator="auto")
+
+    s_auto = time_calls(auto, repeats=3, warmup=1)
+    med_a, p99_a = summary("the same with --estimator auto (the user's default: the load-friction fit, its test, "
+                           "then IDIM-IV or not)", s_auto, unit=1e-3, unit_name="ms")
+    print(f"auto chose: {auto()['variable'].estimator.split(' (')[0]}; ratio auto / IDIM-IV: {med_a / med:.2f}; "
+          f"against the target: {'PASS' if p99_a / 1e3 < TARGET_S else 'FAIL'} (p99 {p99_a / 1e3:.3f} s)")
 
 
 if __name__ == "__main__":

@@ -94,8 +94,10 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
         if key in t1:
             out.append(_table(title, cols, rows(t1[key]), t1[key].get("equations", "")))
     if "table_2" in report:
-        out.append(_table("Table 2: identified parameters, variable cable stiffness", cols, rows(report["table_2"]),
-                          report["table_2"].get("equations", "")))
+        t2 = report["table_2"]
+        # which estimator made Table 2 ("auto → loadfriction (…)" names the test that chose it)
+        note = "; ".join(x for x in (t2.get("equations", ""), f"estimator: {t2['estimator']}" if t2.get("estimator") else "") if x)
+        out.append(_table("Table 2: identified parameters, variable cable stiffness", cols, rows(t2), note))
     return out
 
 
