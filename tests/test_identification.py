@@ -79,6 +79,20 @@ def test_auto_keeps_the_papers_estimator_where_its_model_holds(result, params):
     assert np.array_equal(auto.values, iv.values) and np.array_equal(auto.sigma, iv.sigma)
 
 
+def test_auto_falls_back_to_iv_where_the_motors_never_turn_fast_enough_for_the_load_friction_fit(params):
+    """The §5.2.2 cycloids four times slower (12 s a motion): motor 3 never turns faster than the
+    load-friction fit's 5 rad/s, while every motor passes IDIM-IV's 2 rad/s. `auto` says why it
+    took IDIM-IV instead of failing."""
+    from twin.identification.pipeline import identify_variable
+
+    data = simulate_campaign(0, duration_s=60.0, trajectory=identification_trajectory(motion_s=12.0))[0]
+    proc = preprocess(data, params)
+    f_s = identify_friction(proc, params).values
+    auto = identify_variable(proc, params, f_s, estimator="auto")
+    assert auto.estimator.startswith("auto → iv (no load-friction fit: loadfriction: cable(s) 3 (0 rows)"), auto.estimator
+    assert np.array_equal(auto.values, identify_variable(proc, params, f_s).values)
+
+
 def test_linear_damping_is_flagged_and_not_used(result, params):
     comp = result["est"]["complete"]
     assert comp.flags("c_a").all(), comp.relative_sigma
