@@ -239,7 +239,7 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
                       f"Fewest: `{rest[0][0]}` ({rest[0][1]['within']}), `{rest[1][0]}` ({rest[1][1]['within']}). "
                       "So whether the target holds rests on values the robot truth guesses: the load-friction model "
                       "has no direction asymmetry of the friction (a constant offset trades against k and λ, "
-                      "docs/identification-coverage.md), and a creep as fast as 0.5 s sits at the edge of its τ grid (0.5-8 s). "
+                      "docs/identification-coverage.md), and a creep as fast as 0.5 s (the shortest τ its grid tries) fits worst. "
                       "A calibration on the prototype's recordings (`xneck twin calibrate`, below) is what would pin them."]
     lines += ["", *notes(results, ranges), ""]
     doc = DOCS / "twin-fidelity.md"
