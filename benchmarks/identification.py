@@ -168,25 +168,14 @@ def main() -> None:
     print(f"target: processing + estimation < {TARGET_S:.0f} s for a 100 s campaign -> {verdict} "
           f"(median {med / 1e3:.3f} s, p99 {p99 / 1e3:.3f} s)")
 
-    def load_friction():
-        proc = preprocess(data, params)
-        return identify_all(proc, params, estimator="loadfriction")
-
-    s_lf = time_calls(load_friction, repeats=3, warmup=1)
-    med_lf, p99_lf = summary("the same with --estimator loadfriction (Table 2 by the load-friction fit)", s_lf,
-                             unit=1e-3, unit_name="ms")
-    print(f"ratio loadfriction / default: {med_lf / med:.2f}; against the target: "
-          f"{'PASS' if p99_lf / 1e3 < TARGET_S else 'FAIL'} (p99 {p99_lf / 1e3:.3f} s)")
-
-    def auto():
-        proc = preprocess(data, params)
-        return identify_all(proc, params, estimator="auto")
-
-    s_auto = time_calls(auto, repeats=3, warmup=1)
-    med_a, p99_a = summary("the same with --estimator auto (the user's default: the load-friction fit, its test, "
-                           "then IDIM-IV or not)", s_auto, unit=1e-3, unit_name="ms")
-    print(f"auto chose: {auto()['variable'].estimator.split(' (')[0]}; ratio auto / IDIM-IV: {med_a / med:.2f}; "
-          f"against the target: {'PASS' if p99_a / 1e3 < TARGET_S else 'FAIL'} (p99 {p99_a / 1e3:.3f} s)")
+    for name, what in (("loadfriction", "Table 2 by the load-friction fit"),
+                       ("auto", "the user's default: the load-friction fit, its test, then IDIM-IV or not")):
+        run = lambda name=name: identify_all(preprocess(data, params), params, estimator=name)  # noqa: E731
+        med_x, p99_x = summary(f"the same with --estimator {name} ({what})", time_calls(run, repeats=3, warmup=1),
+                               unit=1e-3, unit_name="ms")
+        chose = f"chose {run()['variable'].estimator.split(' (')[0]}; " if name == "auto" else ""
+        print(f"{name}: {chose}ratio to IDIM-IV {med_x / med:.2f}; against the target: "
+              f"{'PASS' if p99_x / 1e3 < TARGET_S else 'FAIL'} (p99 {p99_x / 1e3:.3f} s)")
 
 
 if __name__ == "__main__":
