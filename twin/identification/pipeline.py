@@ -247,6 +247,7 @@ def identify_variable(
     each cable's rows by its residual σ. ``"loadfriction"``: twin.identification.loadfriction (the
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
+    ``"auto"``: that fit where it rejects eqs. 54-55, else ``"iv"`` (:func:`_identify_variable_auto`).
     """
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
     if name == "loadfriction":
