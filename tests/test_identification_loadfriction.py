@@ -152,7 +152,7 @@ def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params)
     # Table 1 stays the IDIM-IV's; Table 2 and the parameter set take the new estimate
     assert "instrumental" in est["complete"].estimator and "load" not in est["complete"].estimator
     assert "(1 + a·μ)·t + a·F₀" in lf.estimator
-    assert "k(4) N/m" in table_2(est)
+    assert "k(4) N/m" in table_2(est) and "cond(J, largest of the cables)" in table_2(est)
     new, _, _ = identified_params(params, est, make_provenance("t", proc))
     assert len(new.cables.variable.k) == params.n_cables
     # the same solution from starts 0.7× and 1.3× of it
