@@ -69,7 +69,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
              f"trajectory {'§5.2.2 cycloids' if trajectory_file is None else trajectory_file}"
              + (f" × {repeat} ({trajectory.duration_s:g} s)" if trajectory is not None and repeat > 1 else ""), "",
              "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |"
-             + (" auto's choice (χ², 8 dof) |" if estimator == "auto" else ""),
+             + (" auto's choice (pooled z of μ) |" if estimator == "auto" else ""),
              "|---|---|---|---|---|---|" + ("---|" if estimator == "auto" else "")]
     covered = cases = within = 0
     by_symbol = np.zeros((2, 2), dtype=int)  # (k, λ) × (covered, within 10 %)
@@ -111,10 +111,10 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
 
 
 def _auto_choice(text: str) -> str:
-    """"loadfriction, χ² 309.4" from the estimator text of ``estimator="auto"`` (pipeline._identify_variable_auto)."""
+    """"loadfriction, z 17.3" from the estimator text of ``estimator="auto"`` (pipeline._identify_variable_auto)."""
     chosen = text.split(" ", 3)[2] if text.startswith("auto → ") else "?"
-    m = re.search(r"χ² = ([0-9.]+)", text)
-    return f"{chosen}, χ² {m.group(1)}" if m else chosen
+    m = re.search(r"z = (-?[0-9.]+)", text)
+    return f"{chosen}, z {m.group(1)}" if m else chosen
 
 
 def baseline(data, params) -> None:

@@ -194,7 +194,7 @@ def main() -> None:
 
 
 def _estimators(runs: dict[int, dict[str, Any]], seeds: list[int]) -> str:
-    """Which Table 2 estimator the reports of ``runs`` name, e.g. "auto → loadfriction on 3 of 3 (χ² 188-309 on 8 dof)"."""
+    """Which Table 2 estimator the reports of ``runs`` name, e.g. "auto → loadfriction on 3 of 3 (z of the pooled μ 15-22)"."""
     import re
 
     picks: dict[str, list[float]] = {}
@@ -202,11 +202,11 @@ def _estimators(runs: dict[int, dict[str, Any]], seeds: list[int]) -> str:
         text = str((((runs[s].get("json") or {}).get("table_2")) or {}).get("estimator", ""))
         if text:
             name = "auto → " + text.split(" ", 3)[2] if text.startswith("auto → ") else text.split(" (")[0]
-            m = re.search(r"χ² = ([0-9.]+)", text)
+            m = re.search(r"z = (-?[0-9.]+)", text)
             picks.setdefault(name, []).append(float(m.group(1)) if m else math.nan)
     n = sum(len(c) for c in picks.values())
     return ", ".join(f"{name} on {len(c)} of {n}"
-                     + (f" (χ² {min(c):.0f}-{max(c):.0f} on 8 dof)" if all(map(math.isfinite, c)) else "")
+                     + (f" (z of the pooled μ {min(c):.1f}-{max(c):.1f})" if all(map(math.isfinite, c)) else "")
                      for name, c in picks.items()) or "not reported"
 
 
@@ -293,7 +293,7 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
               for s in seeds if runs[s].get("returncode") != 0]
     chosen = {kind: _estimators(runs, seeds) for kind, runs in (("cycloids", paper), ("designed", designed))}
     md += ["", "Table 2's estimator, as the reports name it (the default `--estimator auto` takes the load-friction",
-           "fit where a Wald test rejects the paper's eqs. 54-55, else IDIM-IV): "
+           "fit where its friction grows with the load, a one-sided test of the cables' pooled μ, else IDIM-IV): "
            + "; ".join(f"{kind}: {text}" for kind, text in chosen.items()) + ".", ""]
     lf = any("loadfriction" in text for text in chosen.values())
     md += ["cond as the identification reports it (Table 1's complete model: its raw regressor W, mixed units; "

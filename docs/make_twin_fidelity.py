@@ -197,7 +197,7 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
         "## Identification (§5.2.2 trajectory, seed 0): relative error of the identified values against",
         "the truth's Table 1 f_s and Table 2 k, λ; Γ_rf residual (mean |Γ_m − Γ_rf|, N·m/rad; prototype 0.18).",
         "The paper's pipeline (IDIM-IV, eqs. 44-45, 55), then Table 2 as `xneck identify` reports it by default",
-        "(`--estimator auto`: the load-friction fit where a Wald test rejects eqs. 54-55, else IDIM-IV):",
+        "(`--estimator auto`: the load-friction fit where its friction grows with the load, else IDIM-IV):",
         "",
         "| truth | f_s error | k error | λ error | Γ_rf residual | `auto` chose | k error, `auto` | λ error, `auto` |",
         "|---|---|---|---|---|---|---|---|",

@@ -69,12 +69,12 @@ def test_variable_stiffness_within_10_percent(result, params):
 
 def test_auto_keeps_the_papers_estimator_where_its_model_holds(result, params):
     """estimator="auto", the user's default (xneck identify): on this truth eqs. 54-55 hold, the
-    load-friction fit's μ and β are noise, and the IDIM-IV estimate is returned as it is."""
+    load-friction fit's μ is noise, and the IDIM-IV estimate is returned as it is."""
     from twin.identification.pipeline import identify_variable
 
     iv = result["est"]["variable"]
     auto = identify_variable(result["proc"], params, result["est"]["friction"].values, estimator="auto")
-    assert auto.estimator.startswith("auto → iv (the paper's model (μ = β = 0"), auto.estimator
+    assert auto.estimator.startswith("auto → iv (the paper's model (μ = 0"), auto.estimator
     assert auto.estimator.endswith(iv.estimator)
     assert np.array_equal(auto.values, iv.values) and np.array_equal(auto.sigma, iv.sigma)
 

@@ -2,7 +2,7 @@
 "The default estimator: `auto`").
 
 Per seed: the identification closed loop (controller/identification_loop.py, the §5.2.2
-cycloids) on the truth, then the load-friction fit and the Wald test of μ = β = 0
+cycloids) on the truth, then the load-friction fit and the one-sided test of the cables' pooled μ
 (twin/identification/model_choice.py). Prints one line per seed, then the range.
 
     .venv/bin/python docs/identification/model_choice_scan.py --truth pipeline --first 21 --seeds 20
@@ -39,10 +39,10 @@ def main() -> None:
         proc = preprocess(simulate_campaign(seed, truth=truth, params=params)[0], params)
         t = paper_model_test(fit_load_friction(proc, params).estimate)
         tests.append(t)
-        print(f"{a.truth} seed {seed}: chi2 {t.chi2:.1f} on {t.dof} dof, p {t.p:.3g}, "
+        print(f"{a.truth} seed {seed}: pooled mu {t.mu:.3f} +- {t.sigma:.3f}, z {t.z:.1f}, p {t.p:.3g}, "
               f"{'rejected' if t.rejects_paper_model else 'kept'}", flush=True)
-    chi2, p = [t.chi2 for t in tests], [t.p for t in tests]
-    print(f"{a.truth} seeds {a.first}-{a.first + a.seeds - 1}: chi2 {min(chi2):.1f}-{max(chi2):.1f}, "
+    z, p = [t.z for t in tests], [t.p for t in tests]
+    print(f"{a.truth} seeds {a.first}-{a.first + a.seeds - 1}: z {min(z):.1f} to {max(z):.1f}, "
           f"p {min(p):.3g}-{max(p):.3g}, paper's model rejected on {sum(t.rejects_paper_model for t in tests)}/{len(tests)}")
 
 

@@ -23,8 +23,8 @@ def identify(
                                          "test): Figs. 4-8 and the errors on it with the models fitted here, "
                                          "beside the in-sample ones (figures in <out>/validation)."),
     estimator: str = typer.Option("auto", "--estimator", help="auto (default): "
-                                  "loadfriction where the campaign rejects the paper's eqs. 54-55 (a Wald test of "
-                                  "its friction growing with the load and creep), else iv; iv: instrumental "
+                                  "loadfriction where the campaign's motor friction grows with the load (a one-sided "
+                                  "test of the load-friction fit's pooled μ), else iv; iv: instrumental "
                                   "variables from the model re-simulated on the encoders, consistent under camera "
                                   "noise; ols: eq. 49 as printed; wls: rows weighted by their residual σ; "
                                   "loadfriction: Table 2 with the motor friction growing with the load and a cable "

@@ -33,8 +33,8 @@ bounded to the physical range (k, f_s > 0; λ, c_a ≥ 0; scipy.optimize.lsq_lin
 held at a bound reported); Table 2 alternatively with ``estimator="loadfriction"``
 (twin.identification.loadfriction: motor friction growing with the load and cable creep, fitted on
 the forces by nonlinear IDIM-IV, see docs/identification-coverage.md), or ``"auto"``, the default
-of the user's commands (twin.identification.record): the load-friction fit where a Wald test
-rejects eqs. 54-55 (twin.identification.model_choice), else IDIM-IV. These functions keep "iv" as
+of the user's commands (twin.identification.record): the load-friction fit where its friction
+grows with the load (a test of μ = 0, twin.identification.model_choice), else IDIM-IV. These functions keep "iv" as
 their default: they are the paper's pipeline. σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
 too small on filtered, decimated data; the default is the Newey-West HAC sandwich
 (twin.identification.uncertainty), with ±2σ intervals. A parameter whose relative σ exceeds
@@ -283,8 +283,8 @@ def identify_variable(
 
 def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *, threshold: float, sigma: str,
                             bounded: bool) -> Estimate:
-    """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (Wald test of μ = β = 0,
-    twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
+    """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (its friction grows with
+    the load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
     A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
     from twin.identification.loadfriction import fit_load_friction
     from twin.identification.model_choice import paper_model_test
