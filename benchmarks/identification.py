@@ -16,7 +16,6 @@ and with ``estimator="auto"`` (the user's commands' default), with their ratios 
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
@@ -112,9 +111,10 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
 
 def _auto_choice(text: str) -> str:
     """"loadfriction, z 17.3" from the estimator text of ``estimator="auto"`` (pipeline._identify_variable_auto)."""
-    chosen = text.split(" ", 3)[2] if text.startswith("auto → ") else "?"
-    m = re.search(r"z = (-?[0-9.]+)", text)
-    return f"{chosen}, z {m.group(1)}" if m else chosen
+    from twin.identification.model_choice import auto_choice
+
+    chosen, z = auto_choice(text)
+    return chosen if z is None else f"{chosen}, z {z:.1f}"
 
 
 def baseline(data, params) -> None:

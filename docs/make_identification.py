@@ -195,15 +195,15 @@ def main() -> None:
 
 def _estimators(runs: dict[int, dict[str, Any]], seeds: list[int]) -> str:
     """Which Table 2 estimator the reports of ``runs`` name, e.g. "auto → loadfriction on 3 of 3 (z of the pooled μ 15-22)"."""
-    import re
+    from twin.identification.model_choice import auto_choice
 
     picks: dict[str, list[float]] = {}
     for s in seeds:
         text = str((((runs[s].get("json") or {}).get("table_2")) or {}).get("estimator", ""))
         if text:
-            name = "auto → " + text.split(" ", 3)[2] if text.startswith("auto → ") else text.split(" (")[0]
-            m = re.search(r"z = (-?[0-9.]+)", text)
-            picks.setdefault(name, []).append(float(m.group(1)) if m else math.nan)
+            chosen, z = auto_choice(text)
+            name = f"auto → {chosen}" if text.startswith("auto → ") else chosen
+            picks.setdefault(name, []).append(math.nan if z is None else z)
     n = sum(len(c) for c in picks.values())
     return ", ".join(f"{name} on {len(c)} of {n}"
                      + (f" (z of the pooled μ {min(c):.1f}-{max(c):.1f})" if all(map(math.isfinite, c)) else "")

@@ -23,6 +23,7 @@ from controller.identification_loop import simulate_campaign
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
+from twin.identification.model_choice import auto_choice
 from twin.identification.pipeline import (
     identified_params,
     identify_all,
@@ -84,7 +85,7 @@ def identification(truth) -> dict[str, Any]:
         "k": var.vector("k") / np.array(base.cables.variable.k) - 1,
         "lam": var.vector("lambda") / np.array(base.cables.variable.lam) - 1,
         "gamma_rf": float(val.gamma_rf_error),
-        "auto": auto.estimator.split(" ", 3)[2],
+        "auto": auto_choice(auto.estimator)[0],
         "k_auto": auto.vector("k") / np.array(base.cables.variable.k) - 1,
         "lam_auto": auto.vector("lambda") / np.array(base.cables.variable.lam) - 1,
     }
@@ -100,7 +101,7 @@ def table2_auto(truth) -> dict[str, Any]:
     for seed in IDENT_SEEDS:
         proc = preprocess(simulate_campaign(seed, truth=truth)[0], base)
         auto = identify_variable(proc, base, identify_friction(proc, base).values, estimator="auto")
-        chosen.add(auto.estimator.split(" ", 3)[2])
+        chosen.add(auto_choice(auto.estimator)[0])
         err = np.r_[auto.vector("k") / truth_k - 1, auto.vector("lambda") / truth_lam - 1]
         errors.append(err)
         names = [f"k({j + 1})" for j in range(4)] + [f"λ({j + 1})" for j in range(4)]

@@ -18,7 +18,7 @@ import pytest
 from controller.identification_loop import simulate_campaign
 from twin.identification import loadfriction
 from twin.identification.loadfriction import fit_load_friction
-from twin.identification.model_choice import P_THRESHOLD, paper_model_test
+from twin.identification.model_choice import P_THRESHOLD, auto_choice, paper_model_test
 from twin.identification.pipeline import (
     identified_params,
     identify_all,
@@ -142,6 +142,8 @@ def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params)
     lf = est["variable"]
     assert lf.estimator.startswith("auto → loadfriction (the paper's model"), lf.estimator
     assert paper_model_test(lf).z > 10
+    chosen, z = auto_choice(lf.estimator)  # the choice read back from the report's text (docs, benchmark)
+    assert chosen == "loadfriction" and z == pytest.approx(paper_model_test(lf).z, abs=0.05)
     iv = identify_all(proc, params)["variable"]
     err_lf, err_iv = lf.vector("k") / k_true - 1, iv.vector("k") / k_true - 1
     # The stiff cables within 10 %; k(4), the soft cable, scatters ±10-25 % over campaigns

@@ -24,6 +24,7 @@ fit's extra parameters cost it k(4) +10…+20 % on some campaigns (docs/identifi
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,3 +70,13 @@ def paper_model_test(load_friction: Estimate) -> ModelTest:
     mu, sigma = float(np.sum(w * v[ok]) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
     z = mu / sigma
     return ModelTest(mu=mu, sigma=sigma, z=z, p=float(stats.norm.sf(z)), cables=int(ok.sum()))
+
+
+def auto_choice(estimator_text: str) -> tuple[str, float | None]:
+    """(the estimator ``"auto"`` chose, its test's z) read back from an Estimate's ``estimator`` text
+    (pipeline._identify_variable_auto writes "auto → loadfriction (… z = 17.2 …)"; JSON reports keep
+    only that text). Another estimator's text gives (its name before any parenthesis, None)."""
+    if not estimator_text.startswith("auto → "):
+        return estimator_text.split(" (")[0], None
+    m = re.search(r"z = (-?[0-9.]+)", estimator_text)
+    return estimator_text.split(" ", 3)[2], float(m.group(1)) if m else None
