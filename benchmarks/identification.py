@@ -1,5 +1,6 @@
 """Identification (issue 5): processing + estimation time for a 100 s campaign (target < 2 s).
-``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction|auto] [--seeds N] [--first S] [--out FILE]``: the ±2σ
+``--coverage [--truth pipeline|robot] [--estimator iv|ols|wls|loadfriction|auto] [--seeds N] [--first S]
+[--creep-time-s S] [--out FILE]``: the ±2σ
 coverage of Table 2's k and λ over campaign seeds 21-30 (issue 17), as markdown for the docs.
 
 The campaign is simulated once with the identification closed loop (controller/identification_loop.py)
@@ -51,10 +52,11 @@ COVERAGE_SEEDS = tuple(range(21, 31))  # campaign seeds never used while the est
 
 
 def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory_file: Path | None = None,
-             repeat: int = 1) -> str:
+             repeat: int = 1, creep_time_s: float | None = None) -> str:
     """Markdown: per campaign seed, the identified Table 2 k and λ against the truth, whether
     their ±2σ intervals cover it, and the totals (issue 17's target: ≥ 85 % covered, all within 10 %).
-    ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids), ``repeat`` times."""
+    ``trajectory_file``: the excitation to run (default: the §5.2.2 4×6 cycloids), ``repeat`` times;
+    ``creep_time_s``: the line's creep time constant held in the load-friction fit (None: chosen)."""
     from controller.trajectory import identification_trajectory, load_trajectory, repeated
     from twin.sim.truth import load_truth
 
@@ -66,7 +68,8 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
         trajectory = repeated(trajectory or identification_trajectory(), repeat)
     lines = [f"### truth `{truth_name}`, estimator `{estimator}`, campaign seeds {seeds[0]}-{seeds[-1]}, "
              f"trajectory {'§5.2.2 cycloids' if trajectory_file is None else trajectory_file}"
-             + (f" × {repeat} ({trajectory.duration_s:g} s)" if trajectory is not None and repeat > 1 else ""), "",
+             + (f" × {repeat} ({trajectory.duration_s:g} s)" if trajectory is not None and repeat > 1 else "")
+             + ("" if creep_time_s is None else f", creep time held at {creep_time_s:g} s"), "",
              "| seed | k error (%) | λ error (%) | relative σ of k (%) | covered by ±2σ (k, λ) | σ method |"
              + (" auto's choice (pooled z of μ) |" if estimator == "auto" else ""),
              "|---|---|---|---|---|---|" + ("---|" if estimator == "auto" else "")]
@@ -75,7 +78,7 @@ def coverage(seeds: tuple[int, ...], truth_name: str, estimator: str, trajectory
     rel_sigma = []  # relative σ of k(1..4), λ(1..4) per seed
     z = []  # (estimate − truth)/σ of k(1..4), λ(1..4) per seed: mean 0 and spread 1 for an honest σ
     for seed in seeds:
-        var = identify_campaign(seed, truth, estimator, trajectory, params)
+        var = identify_campaign(seed, truth, estimator, trajectory, params, creep_time_s)
         k, lam = var.vector("k"), var.vector("lambda")
         ik = [i for i, n in enumerate(var.names) if n.startswith("k(")]
         il = [i for i, n in enumerate(var.names) if n.startswith("lambda(")]
@@ -190,13 +193,15 @@ if __name__ == "__main__":
     ap.add_argument("--out", type=Path, help="also write the markdown table to this file")
     ap.add_argument("--trajectory", type=Path, help="excitation file to run (default: the §5.2.2 cycloids), e.g. "
                     "one written by `xneck excitation design`")
+    ap.add_argument("--creep-time-s", type=float, help="the line's creep time constant (s) held in the load-friction "
+                    "fit (xneck identify --creep-time-s); default: chosen from each campaign")
     ap.add_argument("--repeat", type=int, default=1, help="run the excitation this many times back to back (σ ∝ 1/√n)")
     args = ap.parse_args()
     if args.repeat < 1:
         ap.error(f"--repeat must be at least 1, got {args.repeat}")
     if args.coverage:
         text = coverage(tuple(range(args.first, args.first + args.seeds)), args.truth, args.estimator, args.trajectory,
-                        args.repeat)
+                        args.repeat, args.creep_time_s)
         print(text)
         if args.out:
             args.out.write_text(text + "\n")

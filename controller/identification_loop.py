@@ -67,14 +67,17 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     return data, {"t": stamp, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
 
 
-def identify_campaign(seed: int, truth=DAMPING_ONLY_TRUTH, estimator: str = "iv", trajectory=None, params=None):
+def identify_campaign(seed: int, truth=DAMPING_ONLY_TRUTH, estimator: str = "iv", trajectory=None, params=None,
+                      creep_time_s: float | None = None):
     """:func:`simulate_campaign` then the pipeline's Table 2 identification (friction first, then
     the variable-stiffness cables with ``estimator``): the coverage benchmark's and the docs'
-    known-answer run. Returns the variable model's estimate (twin.identification.estimators)."""
+    known-answer run. Returns the variable model's estimate (twin.identification.estimators).
+    ``creep_time_s``: the line's creep time constant held in the load-friction fit (None: chosen)."""
     from twin.identification.pipeline import identify_friction, identify_variable, preprocess
     from twin.model.params import load_params
 
     params = params or load_params()
     proc = preprocess(simulate_campaign(seed, truth=truth, params=params, trajectory=trajectory)[0], params)
-    return identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator)
+    return identify_variable(proc, params, identify_friction(proc, params).values, estimator=estimator,
+                             creep_time_s=creep_time_s)
 

@@ -112,6 +112,49 @@ def test_refuses_a_campaign_where_the_motors_never_turn_fast(synthetic, params):
         fit_load_friction(synthetic, params, sigma="magic")  # type: ignore[arg-type]
 
 
+def test_creep_relaxes_the_tension_to_the_kelvin_elements_equilibrium():
+    """The creep element is driven by the tension it leaves (as the robot truth's, twin/sim/
+    integrator.py creep_update), so that τ and β are the line's: after a step of stretch the tension
+    relaxes monotonically to t with c = β·t/k, t = eq. 54 at x − c."""
+    k, lam, beta, tau, h = 2000.0, 120.0, 0.05, 2.0, 1 / RATE_HZ
+    p = np.array([k, lam, 0.0, 0.0, 0.0, beta, 1.0])
+    x = np.full(int(20 * tau / h), 5e-3)
+    x[:10] = 2e-3
+    t = loadfriction._tension(p, x, np.zeros_like(x), tau, h)
+    c = 0.0
+    for _ in range(200):
+        c = beta * k * (5e-3 - c) / (1 - lam * (5e-3 - c)) / k
+    t_inf = k * (5e-3 - c) / (1 - lam * (5e-3 - c))
+    assert np.all(np.diff(t[10:]) < 0)  # the line lengthens under the new load
+    assert t[-1] == pytest.approx(t_inf, rel=1e-4)
+    assert t[10] > t_inf * (1 + 0.5 * beta)  # just after the step the line has not crept yet
+    x_old = 5e-3 - beta * (k * 5e-3 / (1 - lam * 5e-3)) / k  # the old drive: the whole stretch's elastic tension
+    assert abs(k * x_old / (1 - lam * x_old) / t_inf - 1) > 0.03  # 6 % apart here: the test tells them apart
+    assert t[0] == pytest.approx(k * (2e-3 - beta * t[0] / k) / (1 - lam * (2e-3 - beta * t[0] / k)), rel=1e-6)
+
+
+def test_a_creep_time_measured_apart_is_held_and_a_wrong_one_fits_worse(synthetic, params):
+    """``--creep-time-s``: τ held at the line's value instead of chosen from the record."""
+    assert loadfriction.creep_taus(None) == loadfriction.TAUS_S
+    held = {tau: fit_load_friction(synthetic, params, instruments=False,  # type: ignore[arg-type]
+                                   taus_s=loadfriction.creep_taus(tau)) for tau in (TAU_S, 8.0)}
+    assert np.allclose(held[TAU_S].tau_s, TAU_S) and np.allclose(held[8.0].tau_s, 8.0)
+    assert "τ = 2 s (held, given)" in held[TAU_S].estimate.estimator
+    assert held[8.0].estimate.residual_norm > 1.05 * held[TAU_S].estimate.residual_norm
+    err = held[TAU_S].estimate.vector("k") / TRUE["k"] - 1
+    assert np.abs(err).max() < 0.02, err
+    beta = fit_load_friction(synthetic, params, instruments=False, taus_s=(TAU_S,),  # type: ignore[arg-type]
+                             creep_ratio=0.04).estimate
+    assert np.allclose(beta.vector("beta"), 0.04) and not any(b.startswith("beta") for b in beta.active_bounds)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="creep time constant must be a positive number of seconds"):
+            loadfriction.creep_taus(bad)
+        for estimator in ("loadfriction", "auto"):  # auto must not fall back to IDIM-IV over the caller's error
+            with pytest.raises(ValueError, match="creep time constant"):
+                identify_variable(synthetic, params, np.full(params.n_cables, 5.0), estimator=estimator,  # type: ignore[arg-type]
+                                  creep_time_s=bad)
+
+
 @pytest.mark.parametrize("seed", [3, 4, 5])
 def test_the_paper_model_test_keeps_eqs_54_55_where_they_hold_and_rejects_them_where_friction_grows(params, seed):
     """estimator="auto" chooses by this test (twin/identification/model_choice.py): on forces of

@@ -88,6 +88,8 @@ def campaign_identification(
     estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
                                   "as `xneck identify --estimator` (auto, the default: loadfriction where the "
                                   "campaign rejects the paper's model, else iv; or iv, ols, wls, loadfriction)."),
+    creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The line's creep time constant (s) "
+                                              "measured apart, as `xneck identify --creep-time-s`."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -97,7 +99,13 @@ def campaign_identification(
     the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
+    from twin.identification.loadfriction import creep_taus
 
+    try:
+        creep_taus(creep_time_s)  # a bad τ fails before the campaign runs, not after
+    except ValueError as exc:
+        typer.echo(f"error: --creep-time-s: {exc}", err=True)
+        raise typer.Exit(2) from None
     params = load_cli_params(params_file, overrides)
     config = law_config(1, False)
     traj = load_checked_trajectory(trajectory, params, config)
@@ -115,4 +123,5 @@ def campaign_identification(
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
-             threshold=None, no_alpha_hat=False, validate=None, estimator=estimator, sigma="hac", no_bounds=False)
+             threshold=None, no_alpha_hat=False, validate=None, estimator=estimator, sigma="hac", no_bounds=False,
+             creep_time_s=creep_time_s)

@@ -34,6 +34,10 @@ def identify(
                               "white: eq. 50 as printed (too small on filtered data)."),
     no_bounds: bool = typer.Option(False, "--no-bounds", help="Unbounded least squares (default: k, f_s > 0 and "
                                    "λ, c_a ≥ 0, the parameters held at a bound reported)."),
+    creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The cable line's creep time constant "
+                                              "(s), measured apart (a weight hung on a sample of the line, its "
+                                              "elongation recorded): held in the load-friction fit instead of "
+                                              "chosen from the campaign (default), which makes k(4), λ(4) vary more."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     from controller.trajectory import recorded_excitation
@@ -47,7 +51,8 @@ def identify(
         base = load_params(params_file)
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
-                                alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds)
+                                alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds,
+                                creep_time_s=creep_time_s)
     except (IdentificationError, ParameterError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

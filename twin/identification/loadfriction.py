@@ -9,11 +9,11 @@ where a Stribeck excess has died out)::
 
     y = f − (R/r_d)·I_a·θ̈ = (1 + a·μ)·t + a·F₀,   a = (2/π)·arctan(c_f·θ̇)   eq. 37's shape (N)
     t = (k·x' + c_a·ẋ) / (1 − λ·x')                     eq. 54 solved for t    (N)
-    x' = x_c − β·LP_τ(t_e)/k,  t_e = k·x_c / (1 − λ·x_c)  Kelvin creep element  (m)
+    x' = x_c − c,  τ·ċ = β·t/k − c                        Kelvin creep element  (m)
 
 x_c, ẋ_c (m, m/s) from α_IP (eq. 27), f (N) the applied force, θ̇ (rad/s), θ̈ (rad/s²);
 k (N/m), λ (1/m), c_a (N·s/m); μ (dimensionless: friction per newton of tension), F₀ (N);
-β (dimensionless creep ratio), τ (s) the creep time constant, LP_τ a first-order low-pass;
+β (dimensionless creep ratio), τ (s) the line's creep time constant (:func:`_tension`);
 c_f (s/rad) the slope of the friction's shape. The paper's arctan (c_s = 0.5 s/rad, §5.1.1) is
 far from a sign at these speeds: 0.76 of its level at 5 rad/s, 0.94 at 20. A sign (F₀ constant)
 made the damping-only truth's λ(3) 13 % low on law 1's campaigns; with c_f fitted it is 6 % low,
@@ -30,7 +30,7 @@ on the twin's camera, against 0.7-1.4 mm of motion) biases least squares, so Z�
 solved with Z the model's Jacobian on the stretch re-simulated from the encoders
 (twin.identification.instruments), iterated to a fixed point, for every τ; τ is then picked per
 cable by the camera residual, between the grid's points by a parabola in log τ
-(:func:`refine_tau`). σ: the Newey-West HAC sandwich (twin.identification.uncertainty) of the
+(:func:`refine_tau`), or held at a value measured apart (:func:`creep_taus`). σ: the Newey-West HAC sandwich (twin.identification.uncertainty) of the
 linearised estimator B = (ZᵀJ)⁻¹Zᵀ at the solution, τ counted as estimated (its column ∂ρ/∂τ in
 J and Z): held at the grid's τ, the σ of k(4) and λ(4) missed how far they move with τ.
 
@@ -46,8 +46,9 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
-from scipy import optimize, signal
+from scipy import optimize
 
 from twin.identification import uncertainty
 from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
@@ -90,18 +91,35 @@ class LoadFrictionFit:
     rows: NDArray[np.int64]
 
 
-def _low_pass(x: FloatArray, tau_s: float, h: float) -> FloatArray:
-    """First-order low-pass, time constant τ, step h, starting at x[0] (the campaign starts at rest)."""
-    a = np.exp(-h / tau_s)
-    return signal.lfilter([1 - a], [1, -a], x - x[0]) + x[0]
+@njit(cache=True)
+def _creep_tension(k: float, lam: float, c_a: float, beta: float, x: FloatArray, xd: FloatArray, gain: float,
+                   floor: float) -> FloatArray:  # pragma: no cover - compiled; tested through _tension
+    """t (N) per sample, the creep stretch c (m) relaxing towards β·t/k at ``gain`` = 1 − e^(−h/τ)
+    per step, t the tension of x − c; c at its equilibrium at the first sample (the robot waited at
+    rest under its pretension before the campaign)."""
+    n = x.shape[0]
+    out = np.empty(n)
+    c = 0.0
+    for _ in range(50):  # a contraction: β·t'/k < 1 on any cable that is not near λx = 1
+        xx = x[0] - c
+        c = beta * max((k * xx + c_a * xd[0]) / max(1.0 - lam * xx, floor), 0.0) / k
+    for i in range(n):
+        xx = x[i] - c
+        t = max((k * xx + c_a * xd[i]) / max(1.0 - lam * xx, floor), 0.0)
+        out[i] = t
+        c += (beta * t / k - c) * gain
+    return out
 
 
 def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: float) -> FloatArray:
-    """t (N) of the model for p = (k, λ, c_a, ...) on the whole record (the creep filter needs it)."""
-    k, lam, c_a, beta = p[0], p[1], p[2], p[5]
-    elastic = k * x / np.maximum(1 - lam * x, MIN_STRETCH_FACTOR)
-    xx = x - beta * _low_pass(elastic, tau_s, h) / k
-    return np.maximum((k * xx + c_a * xd) / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
+    """t (N) of the model for p = (k, λ, c_a, μ, F₀, β, c_f) on the whole record (x (m), ẋ (m/s),
+    step h (s)): eq. 54 on the stretch less the creep, the creep element driven by t itself, as
+    a Kelvin element in series with the line is (twin/sim/integrator.py ``creep_update``), so
+    that τ is the line's creep time, measurable on a bench (:func:`creep_taus`). (Until
+    2026-11-26 it was driven by the elastic tension of the whole stretch, k·x/(1 − λx): its τ was
+    then shorter than the line's by 1 + β/(1 − λx)², and λ(4) 8 % low on the robot truth.)"""
+    return _creep_tension(float(p[0]), float(p[1]), float(p[2]), float(p[5]), np.ascontiguousarray(x, dtype=float),
+                          np.ascontiguousarray(xd, dtype=float), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
 
 
 def _shape(c_f: float, theta_dot: FloatArray) -> FloatArray:
@@ -203,12 +221,13 @@ def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, d
     return out
 
 
-def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...]) -> tuple[FloatArray, float]:
+def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...],
+                   free: NDArray[np.bool_] | None = None) -> tuple[FloatArray, float]:
     """Stage 1: least squares on the camera's stretch from every start and τ; the lowest residual."""
     best: tuple[float, FloatArray, float] | None = None
     for tau in taus_s:
         for p0 in starts:
-            p = c.solve(lambda q, a=c.args(tau): _residual(q, *a), p0)
+            p = c.solve(lambda q, a=c.args(tau): _residual(q, *a), p0, free)
             cost = float(np.sum(_residual(p, *c.args(tau)) ** 2))
             if best is None or cost < best[0]:
                 best = (cost, p, tau)
@@ -252,14 +271,18 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
 
 def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
                       threshold: float = DEFAULT_THRESHOLD, sigma: str = "hac", damping: bool = True,
-                      instruments: bool = True, taus_s: tuple[float, ...] = TAUS_S) -> LoadFrictionFit:
+                      instruments: bool = True, taus_s: tuple[float, ...] = TAUS_S,
+                      creep_ratio: float | None = None) -> LoadFrictionFit:
     """Fit the model of the module docstring per cable.
 
     ``start``: (k (N/m), λ (1/m)) per cable, tried beside :func:`linear_start`. ``damping`` False
     holds c_a at 0 (the diagnosis script's candidate). ``instruments`` (default): after the
     least-squares fit, IDIM-IV (:func:`_instrumental`) for each τ of the grid, τ picked per cable
     by the camera residual; False: least squares alone (consistent only with a noise-free
-    stretch). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
+    stretch). ``taus_s``: the creep time constants tried (:func:`creep_taus`); ``creep_ratio``: β held
+    at this value on every cable instead of fitted (docs/identification/estimator_variants.py
+    ``beta-X``: held at the robot truth's own 0.05 it made k worse, the fit's β absorbs more than
+    the creep). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
     turned fast while its cable was taut), for a bad ``start`` or an unknown ``sigma``."""
     if sigma not in SIGMA_METHODS:
         raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
@@ -277,11 +300,14 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         raise ValueError(f"{NAME}: start must be {nc} finite k and λ, got {start}")
     cables = _cables(proc, params, k0, lam0, damping)
     free = np.arange(len(SYMBOLS)) != 2 if not damping else np.ones(len(SYMBOLS), dtype=bool)
+    if creep_ratio is not None:
+        free[5] = False
     values, taus = np.zeros((nc, len(SYMBOLS))), np.zeros(nc)
     for j, c in enumerate(cables):
-        starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, 0.0, params.friction.c_s])
+        beta0 = 0.0 if creep_ratio is None else float(creep_ratio)
+        starts = [np.array([max(kk, 0.1 * c.scale[0]), max(ll, 0.0), 0.0, 0.1, 10.0, beta0, params.friction.c_s])
                   for kk, ll in dict.fromkeys(((k0[j], lam0[j]), (linear[0][j], linear[1][j])))]
-        values[j], taus[j] = _least_squares(c, starts, taus_s)
+        values[j], taus[j] = _least_squares(c, starts, taus_s, free)
     frees = [_hold_flat_shape(values[j], free) for j in range(nc)]
     zs: list[FloatArray] | None = None
     sim: tuple[FloatArray, FloatArray] | None = None
@@ -307,8 +333,27 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
            else "nonlinear least squares")
     est = dataclasses.replace(est, estimator=(
         f"{how}; friction (1 + a·μ)·t + a·F₀, a = (2/π)·arctan(c_f·θ̇), |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
-        f"{', '.join(f'{t:.2g}' for t in taus)} s" + ("" if damping else "; no damping")))
+        + (f"{taus_s[0]:.3g} s (held, given)" if len(taus_s) == 1 else f"{', '.join(f'{t:.2g}' for t in taus)} s")
+        + ("" if damping else "; no damping")))
     return LoadFrictionFit(est, taus, (k0, lam0), np.asarray(counts, dtype=np.int64))
+
+
+def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
+    """The τ grid (s) of :func:`fit_load_friction`: :data:`TAUS_S` (τ chosen from the record) or the
+    line's creep time constant measured apart, held. Raises ValueError for a τ that is not a finite
+    positive number of seconds.
+
+    Why hold it: on the robot truth, the τ the record picks (0.5-8 s per cable on seeds 21-40, the
+    truth's 2 s) moves k(4) and λ(4) by 5-17 points; held at the line's value the ±2σ coverage of
+    Table 2 goes from 124-131 to 136-137 of 160 (docs/identification-coverage.md, "Variants").
+    A creep time is a property of the line, measurable on a bench (a weight hung on a sample of the
+    line, its elongation recorded for a minute), unlike k and λ, which depend on the routing."""
+    if creep_time_s is None:
+        return TAUS_S
+    tau = float(creep_time_s)
+    if not (np.isfinite(tau) and tau > 0):
+        raise ValueError(f"creep time constant must be a positive number of seconds, got {creep_time_s!r}")
+    return (tau,)
 
 
 def refine_tau(grid_s: FloatArray, costs: FloatArray) -> FloatArray:

@@ -229,7 +229,7 @@ def identify_complete(
 
 def identify_variable(
     proc: Processed, params: Params, f_s: FloatArray, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv",
-    sigma: str = "hac", bounded: bool = True,
+    sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None,
 ) -> Estimate:
     """Variable stiffness, eqs. 54-57: t_c = k·x_c + λ·x_c·t_c + c_a·ẋ_c with t_c from eq. 55
     using the friction ``f_s`` (N) identified before; v = (k, λ, c_a). Rows of slack cables and of
@@ -248,14 +248,19 @@ def identify_variable(
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
     ``"auto"``: that fit where it rejects eqs. 54-55, else ``"iv"`` (:func:`_identify_variable_auto`).
+    ``creep_time_s``: the line's creep time constant τ (s) measured apart (a bench creep test of the
+    line), held in the load-friction fit instead of chosen from the record (twin.identification.
+    loadfriction.creep_taus); None (default): chosen.
     """
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
     if name == "loadfriction":
-        from twin.identification.loadfriction import fit_load_friction
+        from twin.identification.loadfriction import creep_taus, fit_load_friction
 
-        return fit_load_friction(proc, params, threshold=threshold, sigma=sigma).estimate
+        return fit_load_friction(proc, params, threshold=threshold, sigma=sigma,
+                                 taus_s=creep_taus(creep_time_s)).estimate
     if name == "auto":
-        return _identify_variable_auto(proc, params, f_s, threshold=threshold, sigma=sigma, bounded=bounded)
+        return _identify_variable_auto(proc, params, f_s, threshold=threshold, sigma=sigma, bounded=bounded,
+                                       creep_time_s=creep_time_s)
     nc = params.n_cables
     f_s = np.asarray(f_s, dtype=float)
     if f_s.shape != (nc,) or not np.all(np.isfinite(f_s)):
@@ -282,15 +287,16 @@ def identify_variable(
 
 
 def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *, threshold: float, sigma: str,
-                            bounded: bool) -> Estimate:
+                            bounded: bool, creep_time_s: float | None = None) -> Estimate:
     """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (its friction grows with
     the load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
     A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
-    from twin.identification.loadfriction import fit_load_friction
+    from twin.identification.loadfriction import creep_taus, fit_load_friction
     from twin.identification.model_choice import paper_model_test
 
+    taus_s = creep_taus(creep_time_s)  # a bad τ is the caller's error, not a reason to fall back
     try:
-        lf = fit_load_friction(proc, params, threshold=threshold, sigma=sigma).estimate
+        lf = fit_load_friction(proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s).estimate
     except ValueError as exc:
         iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
@@ -303,17 +309,18 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
 
 def identify_all(
     proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD, estimator: str = "iv",
-    sigma: str = "hac", bounded: bool = True,
+    sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None,
 ) -> dict[str, Estimate]:
     """The three estimations of §5 in order: friction alone, complete (Table 1), variable (Table 2,
     with the f_s of the friction-alone estimate: it does not depend on the cable model, while the
     complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension).
-    ``estimator="loadfriction"`` or ``"auto"`` is Table 2's alone: friction and Table 1 then use "iv"."""
+    ``estimator="loadfriction"`` or ``"auto"`` is Table 2's alone: friction and Table 1 then use "iv".
+    ``creep_time_s``: as :func:`identify_variable`."""
     linear = "iv" if _check_estimator(estimator, VARIABLE_ESTIMATORS) in NONLINEAR_ESTIMATORS else estimator
     fric = identify_friction(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     comp = identify_complete(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator, sigma=sigma,
-                            bounded=bounded)
+                            bounded=bounded, creep_time_s=creep_time_s)
     return {"friction": fric, "complete": comp, "variable": var}
 
 

@@ -99,15 +99,17 @@ class Identification(NamedTuple):
 def identify_record(path: str | Path, base: Params, *, excitation: Excitation | None = None,
                     cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
                     with_validation: bool = True, alpha_hat: bool = True, estimator: str = "auto",
-                    sigma: str = "hac", bounded: bool = True) -> Identification:
+                    sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
     (Tables 1-2) with ``estimator`` ("auto", the default: the load-friction fit where the campaign rejects
     eqs. 54-55, else "iv"; or "iv", "ols", "wls", "loadfriction", :func:`identify_all`), ``sigma``
     ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
-    identified, and validate (Figs. 4-8). Raises :class:`IdentificationError` with the reason."""
+    identified, and validate (Figs. 4-8). ``creep_time_s``: the line's creep time constant (s) held in
+    the load-friction fit (pipeline.identify_variable). Raises :class:`IdentificationError` with the reason."""
     data = campaign_data_from_mcap(path, excitation)
     proc = preprocess(data, base, cutoff_hz)
-    est = identify_all(proc, base, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded)
+    est = identify_all(proc, base, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded,
+                       creep_time_s=creep_time_s)
     prov = make_provenance(f"{data.campaign} ({path})", proc, threshold=threshold, estimates=est)
     new, report, prov = identified_params(base, est, prov)
     val = validate(data, proc, new, est, alpha_hat=alpha_hat) if with_validation else None
