@@ -27,3 +27,13 @@ def test_an_unknown_estimator_is_refused_before_the_campaign_runs(tmp_path):
     assert "'magic'" in r.stderr and "loadfriction" in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "nan"])
+def test_a_bad_creep_time_is_refused_before_the_campaign_runs(tmp_path, value):
+    out = tmp_path / "c.mcap"
+    r = CliRunner().invoke(app, ["campaign", "identification", "--creep-time-s", value, "--out", str(out)])
+    assert r.exit_code == 2, r.output
+    assert "--creep-time-s" in r.stderr and "positive number of seconds" in r.stderr
+    assert r.exception is None or isinstance(r.exception, SystemExit)
+    assert not out.exists()

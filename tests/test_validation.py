@@ -131,3 +131,17 @@ def test_a_bad_validation_campaign_is_a_clear_error(campaigns, fit_a, tmp_path):
                        campaign="two-joints")
     with pytest.raises(IdentificationError, match="validation campaign two-joints: campaign has 3 motors"):
         cross_validate(fit_a, two, alpha_hat=False)
+
+
+def test_a_bad_creep_time_is_a_clear_error_and_writes_nothing(campaigns, tmp_path):
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    a, _ = campaigns
+    r = CliRunner().invoke(app, ["identify", str(a), "--creep-time-s", "-1", "--no-alpha-hat", "--out",
+                                 str(tmp_path / "c")])
+    assert r.exit_code == 2, r.output
+    assert "creep time constant must be a positive number of seconds" in r.stderr
+    assert r.exception is None or isinstance(r.exception, SystemExit)
+    assert not (tmp_path / "c").exists()

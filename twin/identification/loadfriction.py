@@ -343,9 +343,9 @@ def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
     line's creep time constant measured apart, held. Raises ValueError for a τ that is not a finite
     positive number of seconds.
 
-    Why hold it: on the robot truth, the τ the record picks (0.5-8 s per cable on seeds 21-40, the
-    truth's 2 s) moves k(4) and λ(4) by 5-17 points; held at the line's value the ±2σ coverage of
-    Table 2 goes from 124-131 to 136-137 of 160 (docs/identification-coverage.md, "Variants").
+    Why hold it: on the robot truth, the τ the record picks (0.5-8 s per cable, the truth's 2 s)
+    moves k(4) and λ(4) by 5-17 points; held at the line's value the ±2σ coverage of Table 2 goes
+    from 130-134 to 147-151 of 160 (docs/identification-coverage.md, "The line's creep time").
     A creep time is a property of the line, measurable on a bench (a weight hung on a sample of the
     line, its elongation recorded for a minute), unlike k and λ, which depend on the routing."""
     if creep_time_s is None:
