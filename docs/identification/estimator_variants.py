@@ -11,6 +11,8 @@ covered in ≥ 85 % of cases). The variants:
 - ``elastic-creep``: the creep element as shipped until 2026-11-26, a low-pass of the elastic
   tension of the whole stretch, instead of driven by the model's own tension t (as the robot
   truth's, twin/sim/integrator.py ``creep_update``).
+- ``full-drive``: the creep driven by the whole tension it leaves, the damping's c_a·ẋ included
+  (as the robot truth's element), instead of its elastic part.
 - ``cluster-5s``, ``cluster-10s``, ``cluster-20s``: σ by the cluster covariance over blocks of
   record of that length (the block bootstrap's linearised form) instead of the HAC sandwich.
 - ``bartlett-150``, ``bartlett-300``: the HAC sandwich with that many lags instead of the chosen.
@@ -46,6 +48,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
+from numba import njit
 from scipy import signal
 
 from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign
@@ -65,6 +68,29 @@ def _elastic_creep_tension(p, x, xd, tau_s, h):
     a = np.exp(-h / tau_s)
     xx = x - beta * (signal.lfilter([1 - a], [1, -a], elastic - elastic[0]) + elastic[0]) / k
     return np.maximum((k * xx + c_a * xd) / np.maximum(1 - lam * xx, floor), 0.0)
+
+
+@njit(cache=True)
+def _full_drive(k, lam, c_a, beta, x, xd, gain, floor):
+    """As the shipped recursion, the creep driven by the whole tension it leaves, damping
+    included, as the robot truth's element (twin/sim/integrator.py ``creep_update``)."""
+    n = x.shape[0]
+    out = np.empty(n)
+    c = 0.0
+    for _ in range(50):
+        xx = x[0] - c
+        c = beta * max((k * xx + c_a * xd[0]) / max(1.0 - lam * xx, floor), 0.0) / k
+    for i in range(n):
+        xx = x[i] - c
+        t = max((k * xx + c_a * xd[i]) / max(1.0 - lam * xx, floor), 0.0)
+        out[i] = t
+        c += (beta * t / k - c) * gain
+    return out
+
+
+def _full_drive_tension(p, x, xd, tau_s, h):
+    return _full_drive(p[0], p[1], p[2], p[5], np.ascontiguousarray(x, dtype=float),
+                          np.ascontiguousarray(xd, dtype=float), 1.0 - np.exp(-h / tau_s), loadfriction.MIN_STRETCH_FACTOR)
 
 
 def _cluster_covariance(block_s: float, rate_hz: float) -> Callable:
@@ -106,6 +132,8 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
         return stack
     if name == "shipped":
         return contextlib.nullcontext()
+    if name == "full-drive":
+        return _patched(loadfriction, "_tension", _full_drive_tension)
     if name == "elastic-creep":
         return _patched(loadfriction, "_tension", _elastic_creep_tension)
     if name.startswith("cluster-"):
@@ -138,7 +166,7 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
     raise SystemExit(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
 
 
-VARIANTS = ("shipped", "elastic-creep", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
+VARIANTS = ("shipped", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
             "shared-tau", "beta-0.05", "tau-2s+beta-0.05")
 

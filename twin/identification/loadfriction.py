@@ -94,30 +94,33 @@ class LoadFrictionFit:
 @njit(cache=True)
 def _creep_tension(k: float, lam: float, c_a: float, beta: float, x: FloatArray, xd: FloatArray, gain: float,
                    floor: float) -> FloatArray:  # pragma: no cover - compiled; tested through _tension
-    """t (N) per sample, the creep stretch c (m) relaxing towards β·t/k at ``gain`` = 1 − e^(−h/τ)
-    per step, t the tension of x − c; c at its equilibrium at the first sample (the robot waited at
-    rest under its pretension before the campaign)."""
+    """t (N) per sample, the creep stretch c (m) relaxing towards β·t_e/k at ``gain`` = 1 − e^(−h/τ)
+    per step, t_e = k·x'/(1 − λx') the elastic tension of x' = x − c; c at its equilibrium at the
+    first sample (the robot waited at rest under its pretension before the campaign)."""
     n = x.shape[0]
     out = np.empty(n)
     c = 0.0
     for _ in range(50):  # a contraction: β·t'/k < 1 on any cable that is not near λx = 1
         xx = x[0] - c
-        c = beta * max((k * xx + c_a * xd[0]) / max(1.0 - lam * xx, floor), 0.0) / k
+        c = beta * max(k * xx / max(1.0 - lam * xx, floor), 0.0) / k
     for i in range(n):
         xx = x[i] - c
-        t = max((k * xx + c_a * xd[i]) / max(1.0 - lam * xx, floor), 0.0)
-        out[i] = t
-        c += (beta * t / k - c) * gain
+        out[i] = max((k * xx + c_a * xd[i]) / max(1.0 - lam * xx, floor), 0.0)
+        c += (beta * max(k * xx / max(1.0 - lam * xx, floor), 0.0) / k - c) * gain
     return out
 
 
 def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: float) -> FloatArray:
     """t (N) of the model for p = (k, λ, c_a, μ, F₀, β, c_f) on the whole record (x (m), ẋ (m/s),
-    step h (s)): eq. 54 on the stretch less the creep, the creep element driven by t itself, as
-    a Kelvin element in series with the line is (twin/sim/integrator.py ``creep_update``), so
-    that τ is the line's creep time, measurable on a bench (:func:`creep_taus`). (Until
-    2026-11-26 it was driven by the elastic tension of the whole stretch, k·x/(1 − λx): its τ was
-    then shorter than the line's by 1 + β/(1 − λx)², and λ(4) 8 % low on the robot truth.)"""
+    step h (s)): eq. 54 on the stretch less the creep, the creep element driven by the tension it
+    leaves, as a Kelvin element in series with the line is (twin/sim/integrator.py
+    ``creep_update``), so that τ is the line's creep time, measurable on a bench
+    (:func:`creep_taus`). (Until 2026-11-26 it was driven by the elastic tension of the whole
+    stretch, k·x/(1 − λx): its τ was then shorter than the line's by 1 + β/(1 − λx)².)
+    The drive is the elastic part k·x'/(1 − λx') of that tension, without c_a·ẋ': the fitted c_a
+    absorbs more than the line's damping (the paper's 3000 N·s/m), and a creep fed by it went
+    wrong with a heavy damping (docs/identification-coverage.md, "The creep driven by the tension it
+    leaves"); with a real line's damping (40 N·s/m) the two drives give the same fit."""
     return _creep_tension(float(p[0]), float(p[1]), float(p[2]), float(p[5]), np.ascontiguousarray(x, dtype=float),
                           np.ascontiguousarray(xd, dtype=float), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
 
