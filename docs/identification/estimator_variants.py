@@ -29,6 +29,8 @@ covered in ≥ 85 % of cases). The variants:
 
     .venv/bin/python docs/identification/estimator_variants.py --truth robot --first 21 --seeds 20
     .venv/bin/python docs/identification/estimator_variants.py --variants shipped elastic-creep --seeds 3
+    .venv/bin/python docs/identification/estimator_variants.py --only friction --first 0 --seeds 3 \
+        --variants shipped full-drive
     .venv/bin/python docs/identification/estimator_variants.py --archive docs/identification/runs/paper-0.mcap \
         --variants shipped force-offset-1 force-offset-2
 
@@ -57,7 +59,7 @@ from twin.identification import loadfriction, uncertainty
 from twin.identification.pipeline import identify_friction, identify_variable, preprocess
 from twin.identification.record import campaign_data_from_mcap
 from twin.model.params import load_params
-from twin.sim.truth import load_truth
+from twin.sim.truth import EFFECTS, load_truth
 
 
 def _elastic_creep_tension(p, x, xd, tau_s, h):
@@ -171,11 +173,14 @@ VARIANTS = ("shipped", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s
             "shared-tau", "beta-0.05", "tau-2s+beta-0.05")
 
 
-def _processed(truth_name: str, seed: int, params, cache: Path | None):
-    path = None if cache is None else cache / f"{Path(truth_name).stem}-{seed}.pkl"
+def _processed(truth_name: str, seed: int, params, cache: Path | None, only: list[str] | None = None):
+    tag = Path(truth_name).stem + ("" if not only else "-only-" + "-".join(only))
+    path = None if cache is None else cache / f"{tag}-{seed}.pkl"
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
+    if only:
+        truth = truth.only(*only)
     proc = preprocess(simulate_campaign(seed, truth=truth, params=params)[0], params)
     out = (proc, identify_friction(proc, params).values)
     if path is not None:
@@ -190,6 +195,8 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=21, help="first campaign seed (default 21)")
     ap.add_argument("--seeds", type=int, default=20, help="how many seeds (default 20)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), metavar="NAME", help=f"of {', '.join(VARIANTS)}")
+    ap.add_argument("--only", nargs="+", metavar="EFFECT", help=f"the truth with only these effects on "
+                    f"({', '.join(EFFECTS)})")
     ap.add_argument("--archive", nargs="+", type=Path, metavar="MCAP", help="recorded campaigns instead of simulated "
                     "ones, processed as `xneck identify` does")
     ap.add_argument("--cache", type=Path, help="directory keeping the processed campaigns between runs")
@@ -210,7 +217,7 @@ def main() -> None:
             proc = preprocess(campaign_data_from_mcap(seed, recorded_excitation), params)
             friction = identify_friction(proc, params).values
         else:
-            proc, friction = _processed(a.truth, seed, params, a.cache)
+            proc, friction = _processed(a.truth, seed, params, a.cache, a.only)
         for name in a.variants:
             with _variant(name, proc.rate_hz):
                 est = identify_variable(proc, params, friction, estimator="loadfriction")
@@ -223,7 +230,8 @@ def main() -> None:
                   flush=True)
     labels = [f"{s}({j + 1})" for s in ("k", "λ") for j in range(len(k_true))]
     what = (", ".join(p.name for p in a.archive) if a.archive
-            else f"truth `{a.truth}`, campaign seeds {seeds[0]}-{seeds[-1]}")
+            else f"truth `{a.truth}`{' with only ' + ', '.join(a.only) if a.only else ''}, "
+                 f"campaign seeds {seeds[0]}-{seeds[-1]}")
     print(f"{what}, `loadfriction` and its variants; per parameter: mean error (%) / covered by ±2σ (of the "
           f"{len(runs)} campaigns)\n")
     print("| variant | " + " | ".join(labels) + " | covered | within 10 % |")
