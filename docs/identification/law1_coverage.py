@@ -5,7 +5,7 @@ The campaign is what `xneck campaign identification` runs on the bus: law 1 on t
 cycloids against the robot truth with the rendered camera, here through the offline closed loop
 (controller.offline.run_closed_loop), about 10 s a seed plus the fit.
 
-    nice -n 19 .venv/bin/python docs/identification/law1_coverage.py --first 21 --seeds 20
+    nice -n 19 .venv/bin/python docs/identification/law1_coverage.py --first 21 --seeds 20 [--creep-time-s 2]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop
 from controller.trajectory import identification_trajectory
-from twin.identification.loadfriction import fit_load_friction
+from twin.identification.loadfriction import creep_taus, fit_load_friction
 from twin.identification.processing import CampaignData, preprocess
 from twin.model.params import load_params
 from twin.sim.simulator import TwinConfig
@@ -32,6 +32,8 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=21, help="first campaign seed")
     ap.add_argument("--seeds", type=int, default=20, help="how many seeds")
     ap.add_argument("--truth", default="robot", help="robot, model, or a truth file")
+    ap.add_argument("--creep-time-s", type=float, help="the line's creep time held in the fit (as `xneck identify "
+                    "--creep-time-s`); default: chosen from each campaign")
     args = ap.parse_args()
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
@@ -46,7 +48,7 @@ def main() -> None:
         seen = np.isfinite(run.alpha_ip).all(axis=1)
         data = CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
                             campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
-        est = fit_load_friction(preprocess(data, params), params).estimate
+        est = fit_load_friction(preprocess(data, params), params, taus_s=creep_taus(args.creep_time_s)).estimate
         cells = []
         for sym in ("k", "lambda"):
             v, sd = est.vector(sym), est.sigma[[i for i, n in enumerate(est.names) if n.split("(")[0] == sym]]

@@ -348,7 +348,9 @@ def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
 
     Why hold it: on the robot truth, the τ the record picks (0.5-8 s per cable, the truth's 2 s)
     moves k(4) and λ(4) by 5-17 points; held at the line's value the ±2σ coverage of Table 2 goes
-    from 130-134 to 147-151 of 160 (docs/identification-coverage.md, "The line's creep time").
+    from 129-134 to 145-150 of 160 on the identification loop (docs/identification-coverage.md, "The
+    line's creep time"); on law 1's campaigns it falls instead (120 → 109 of 160): there the free τ
+    absorbs part of the friction offset the model lacks. Not a default.
     A creep time is a property of the line, measurable on a bench (a weight hung on a sample of the
     line, its elongation recorded for a minute), unlike k and λ, which depend on the routing."""
     if creep_time_s is None:
