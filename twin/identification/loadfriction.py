@@ -9,7 +9,7 @@ where a Stribeck excess has died out)::
 
     y = f − (R/r_d)·I_a·θ̈ = (1 + a·μ)·t + a·F₀,   a = (2/π)·arctan(c_f·θ̇)   eq. 37's shape (N)
     t = (k·x' + c_a·ẋ) / (1 − λ·x')                     eq. 54 solved for t    (N)
-    x' = x_c − c,  τ·ċ = β·t/k − c                        Kelvin creep element  (m)
+    x' = x_c − c,  τ·ċ = β·t_e/k − c,  t_e = k·x'/(1 − λ·x')   Kelvin creep element  (m)
 
 x_c, ẋ_c (m, m/s) from α_IP (eq. 27), f (N) the applied force, θ̇ (rad/s), θ̈ (rad/s²);
 k (N/m), λ (1/m), c_a (N·s/m); μ (dimensionless: friction per newton of tension), F₀ (N);
@@ -93,7 +93,7 @@ class LoadFrictionFit:
 
 @njit(cache=True)
 def _creep_tension(k: float, lam: float, c_a: float, beta: float, x: FloatArray, xd: FloatArray, gain: float,
-                   floor: float) -> FloatArray:  # pragma: no cover - compiled; tested through _tension
+                   floor: float) -> FloatArray:
     """t (N) per sample, the creep stretch c (m) relaxing towards β·t_e/k at ``gain`` = 1 − e^(−h/τ)
     per step, t_e = k·x'/(1 − λx') the elastic tension of x' = x − c; c at its equilibrium at the
     first sample (the robot waited at rest under its pretension before the campaign)."""
@@ -304,6 +304,8 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     cables = _cables(proc, params, k0, lam0, damping)
     free = np.arange(len(SYMBOLS)) != 2 if not damping else np.ones(len(SYMBOLS), dtype=bool)
     if creep_ratio is not None:
+        if not BETA_BOUNDS[0] <= creep_ratio <= BETA_BOUNDS[1]:
+            raise ValueError(f"{NAME}: creep_ratio must be within {BETA_BOUNDS}, got {creep_ratio}")
         free[5] = False
     values, taus = np.zeros((nc, len(SYMBOLS))), np.zeros(nc)
     for j, c in enumerate(cables):
