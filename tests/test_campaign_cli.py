@@ -29,11 +29,14 @@ def test_an_unknown_estimator_is_refused_before_the_campaign_runs(tmp_path):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("value", ["0", "-2", "nan"])
-def test_a_bad_creep_time_is_refused_before_the_campaign_runs(tmp_path, value):
+@pytest.mark.parametrize("value, extra, said", [("0", [], "positive number of seconds"),
+                                               ("-2", [], "positive number of seconds"),
+                                               ("nan", [], "positive number of seconds"),
+                                               ("2", ["--estimator", "iv"], "load-friction fit")])
+def test_a_bad_creep_time_is_refused_before_the_campaign_runs(tmp_path, value, extra, said):
     out = tmp_path / "c.mcap"
-    r = CliRunner().invoke(app, ["campaign", "identification", "--creep-time-s", value, "--out", str(out)])
+    r = CliRunner().invoke(app, ["campaign", "identification", "--creep-time-s", value, *extra, "--out", str(out)])
     assert r.exit_code == 2, r.output
-    assert "--creep-time-s" in r.stderr and "positive number of seconds" in r.stderr
+    assert "--creep-time-s" in r.stderr and said in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)
     assert not out.exists()

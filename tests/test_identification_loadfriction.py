@@ -20,6 +20,7 @@ from twin.identification import loadfriction
 from twin.identification.loadfriction import fit_load_friction
 from twin.identification.model_choice import P_THRESHOLD, auto_choice, paper_model_test
 from twin.identification.pipeline import (
+    IdentificationError,
     identified_params,
     identify_all,
     identify_variable,
@@ -153,6 +154,10 @@ def test_a_creep_time_measured_apart_is_held_and_a_wrong_one_fits_worse(syntheti
             with pytest.raises(ValueError, match="creep time constant"):
                 identify_variable(synthetic, params, np.full(params.n_cables, 5.0), estimator=estimator,  # type: ignore[arg-type]
                                   creep_time_s=bad)
+    for estimator in ("iv", "ols", "wls"):  # no creep term: a creep time given there is a mistake, said so
+        with pytest.raises(IdentificationError, match="has no creep term"):
+            identify_variable(synthetic, params, np.full(params.n_cables, 5.0), estimator=estimator,  # type: ignore[arg-type]
+                              creep_time_s=TAU_S)
 
 
 @pytest.mark.parametrize("seed", [3, 4, 5])

@@ -100,9 +100,12 @@ def campaign_identification(
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
     from twin.identification.loadfriction import creep_taus
+    from twin.identification.pipeline import NONLINEAR_ESTIMATORS
 
     try:
         creep_taus(creep_time_s)  # a bad τ fails before the campaign runs, not after
+        if creep_time_s is not None and estimator not in NONLINEAR_ESTIMATORS:
+            raise ValueError(f"applies to the load-friction fit (--estimator auto or loadfriction), not {estimator}")
     except ValueError as exc:
         typer.echo(f"error: --creep-time-s: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -253,6 +253,9 @@ def identify_variable(
     loadfriction.creep_taus); None (default): chosen.
     """
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
+    if creep_time_s is not None and name not in NONLINEAR_ESTIMATORS:
+        raise IdentificationError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
+                                  f"estimator {name!r} has no creep term")
     if name == "loadfriction":
         from twin.identification.loadfriction import creep_taus, fit_load_friction
 
