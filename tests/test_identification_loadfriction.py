@@ -227,3 +227,24 @@ def test_refine_tau_finds_the_vertex_between_grid_points_and_keeps_the_ends():
     assert tau[0] == pytest.approx(3.0, rel=1e-9)
     assert tau[1] == grid[-1]
     assert tau[2] == grid[0]
+
+
+def test_iv_tau_is_the_root_of_its_moment_or_the_residuals_choice_without_one():
+    """twin/identification/loadfriction._iv_taus: the root of z_τᵀρ(τ) in log τ between the grid
+    points where it changes sign (the lower-residual one of two roots), else the given τ."""
+    grid = np.array(loadfriction.TAUS_S)  # 0.5, 1, 2, 4, 8 s
+    moments = np.array([[0.3, 0.2, 0.0, 0.4],
+                        [0.1, 0.1, 0.0, -0.2],
+                        [-0.1, 0.05, 0.0, 0.1],
+                        [-0.3, 0.02, 0.0, 0.3],
+                        [-0.5, 0.01, 0.0, 0.5]])
+    costs = np.ones((5, 4))
+    costs[1, 3] = 0.5  # cable 4: roots between 0.5-1 s and 1-2 s, the residual lowest at 1 s
+    given = np.full(4, 3.0)
+    values = [np.full((4, 7), float(i)) for i in range(5)]
+    taus, chosen = loadfriction._iv_taus(grid, moments, costs, given, np.full((4, 7), -1.0), values)
+    assert taus[0] == pytest.approx(np.sqrt(1.0 * 2.0))  # 0.1 → −0.1 halfway between 1 and 2 s in log τ
+    assert taus[1] == 3.0 and taus[2] == 3.0  # no sign change (cable 3: β = 0, τ changes nothing)
+    assert 0.5 < taus[3] < 1.0 or 1.0 < taus[3] < 2.0
+    assert np.all(chosen[0] == 1.0) or np.all(chosen[0] == 2.0)  # the grid point next to the root
+    assert np.all(chosen[1] == -1.0)

@@ -21,6 +21,8 @@ covered in ≥ 85 % of cases). The variants:
   instead of chosen from the grid.
 - ``beta-0.05`` (any ``beta-X``): the creep ratio β held at X on every cable (the robot truth's
   is 0.05) instead of fitted.
+- ``residual-tau``: τ per cable at the camera residual's minimum (as shipped until 2026-11-26)
+  instead of at the root of its instrument's moment.
 - ``shared-tau``: one τ for the four cables (one line), picked by the sum of their log camera
   residuals.
 - ``A+B``: variants A and B together, e.g. ``elastic-creep+tau-2s``.
@@ -152,6 +154,8 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
             return y - offset, rows
 
         return _patched(loadfriction, "fit_rows", shifted)
+    if name == "residual-tau":
+        return _patched(loadfriction, "TAU_CHOICE", "residual")
     if name == "shared-tau":
         refine = loadfriction.refine_tau
 
@@ -168,7 +172,7 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
     raise SystemExit(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
 
 
-VARIANTS = ("shipped", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
+VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
             "shared-tau", "beta-0.05", "tau-2s+beta-0.05")
 

@@ -29,8 +29,9 @@ pipeline.identify_variable does it: x_c comes from α_IP, whose noise (0.15-0.35
 on the twin's camera, against 0.7-1.4 mm of motion) biases least squares, so Zᵀρ(p) = 0 is
 solved with Z the model's Jacobian on the stretch re-simulated from the encoders
 (twin.identification.instruments), iterated to a fixed point, for every τ; τ is then picked per
-cable by the camera residual, between the grid's points by a parabola in log τ
-(:func:`refine_tau`), or held at a value measured apart (:func:`creep_taus`). σ: the Newey-West HAC sandwich (twin.identification.uncertainty) of the
+cable as IDIM-IV estimates the rest, at the root of its instrument's moment (:func:`_iv_taus`;
+where the moment does not change sign on the grid, by the camera residual, :func:`refine_tau`), or
+held at a value measured apart (:func:`creep_taus`). σ: the Newey-West HAC sandwich (twin.identification.uncertainty) of the
 linearised estimator B = (ZᵀJ)⁻¹Zᵀ at the solution, τ counted as estimated (its column ∂ρ/∂τ in
 J and Z): held at the grid's τ, the σ of k(4) and λ(4) missed how far they move with τ.
 
@@ -76,6 +77,10 @@ BETA_BOUNDS = (0.0, 0.5)  # creep only lengthens a loaded cable: β ≥ 0
 C_F_BOUNDS = (0.05, 100.0)
 SYMBOLS = ("k", "lambda", "c_a", "mu", "F_0", "beta", "c_f")
 IV_MAX_ITERATIONS = 10
+# How τ is chosen per cable (:func:`_iv_taus`): "iv", the root of its instrument's moment; "residual",
+# the camera residual's minimum (until 2026-11-26; docs/identification/estimator_variants.py
+# ``residual-tau``).
+TAU_CHOICE = "iv"
 IV_TOLERANCE = 1e-3  # relative change of k and λ at which the IV iteration has converged (pipeline's)
 
 
@@ -318,18 +323,26 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     sim: tuple[FloatArray, FloatArray] | None = None
     iterations, converged = 0, True
     if instruments:
-        # τ again, by the camera residual of each τ's IV solution: least squares on the noisy stretch
-        # picks it with the noise's bias, and a wrong β, τ trades against k.
+        # τ again, from each τ's IV solution: the least-squares stage picked it on the noisy stretch,
+        # with the noise's bias, and a wrong β, τ trades against k.
         costs = np.zeros((len(taus_s), nc))
+        moments = np.zeros((len(taus_s), nc))
         grid_values, first = [], {}
         for i, tau in enumerate(taus_s):
-            vals, _, it, _, _ = _instrumental(proc, params, cables, values, np.full(nc, tau), frees, first)
+            vals, _, it, _, sim_i = _instrumental(proc, params, cables, values, np.full(nc, tau), frees, first)
             iterations = max(iterations, it)
             costs[i] = [np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)]
+            if TAU_CHOICE == "iv":
+                for j, c in enumerate(cables):
+                    z = _tau_column(vals[j], tau, c, sim_i[0][:, j], sim_i[1][:, j])
+                    r = _residual(vals[j], *c.args(tau))
+                    moments[i, j] = float(z @ r) / max(float(np.linalg.norm(z) * np.linalg.norm(r)), 1e-300)
             grid_values.append(vals)
         best = np.argmin(costs, axis=0)
         chosen = np.array([grid_values[best[j]][j] for j in range(nc)])
         taus = refine_tau(np.asarray(taus_s, dtype=float), costs)
+        if TAU_CHOICE == "iv":
+            taus, chosen = _iv_taus(np.asarray(taus_s, dtype=float), moments, costs, taus, chosen, grid_values)
         values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, frees)  # Z at the chosen τ
         iterations, converged = max(iterations, it), ok
     est = _estimate(proc, cables, values, taus, free, frees, zs, sim, sigma, threshold)
@@ -361,6 +374,34 @@ def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
     if not (np.isfinite(tau) and tau > 0):
         raise ValueError(f"creep time constant must be a positive number of seconds, got {creep_time_s!r}")
     return (tau,)
+
+
+def _iv_taus(grid_s, moments, costs, taus, chosen, grid_values):
+    """τ (s) per cable as IDIM-IV estimates the other parameters: at the root of its instrument's
+    moment, z_τᵀρ(τ) = 0 with z_τ = ∂ρ/∂τ on the stretch simulated from the encoders (free of camera
+    noise), ρ the residual of that τ's IV solution; ``moments`` (len(grid), n_cables) normalised.
+    The root is interpolated linearly in log τ between the grid points where the moment changes
+    sign; where it changes sign more than once, the root next to the lower camera residual; where
+    it does not (β = 0: τ changes nothing, or the root is off the grid), ``taus`` as given (the
+    camera residual's choice, :func:`refine_tau`). Returns the τ and the IV solutions the final
+    iteration starts from (the grid point next to the root).
+
+    Why not the camera residual alone: it is least squares on the noisy stretch, and picked τ with
+    the noise's bias (0.5-8 s per cable on the robot truth, whose τ is 2 s), which moved k(4) and
+    λ(4) by 5-17 points; at the moment's root the ±2σ coverage of Table 2 on the robot truth went
+    from 134 / 129 to 149 / 145 of 160 (seeds 21-40 / 41-60, docs/identification-coverage.md)."""
+    u = np.log(grid_s)
+    taus, chosen = taus.copy(), chosen.copy()
+    for j in range(moments.shape[1]):
+        m = moments[:, j]
+        roots = [(i, u[i] + (u[i + 1] - u[i]) * m[i] / (m[i] - m[i + 1])) for i in range(len(u) - 1)
+                 if m[i] != 0 and m[i + 1] != 0 and np.sign(m[i]) != np.sign(m[i + 1])]
+        if roots:
+            i, root = min(roots, key=lambda r: min(costs[r[0], j], costs[r[0] + 1, j]))
+            taus[j] = float(np.exp(root))
+            near = i if costs[i, j] <= costs[i + 1, j] else i + 1
+            chosen[j] = grid_values[near][j]
+    return taus, chosen
 
 
 def refine_tau(grid_s: FloatArray, costs: FloatArray) -> FloatArray:
