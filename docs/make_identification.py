@@ -231,16 +231,16 @@ def _creep_section(paper, creep, seeds, truth) -> list[str]:
     cmd = next(iter(creep.values()))["command"].replace(f"paper-{seeds[0]}", "paper-S")
     md = ["## Table 2 with the line's creep time measured apart (`--creep-time-s`)", "",
           f"Command: `{cmd}`, S ∈ {{{', '.join(map(str, seeds))}}}: the cycloids' campaigns above, refitted with the",
-          f"creep time constant held at {CREEP_TIME_S:g} s instead of chosen from the record. {CREEP_TIME_S:g} s is the",
+          f"creep time constant held at {CREEP_TIME_S:g} s instead of estimated from the record. {CREEP_TIME_S:g} s is the",
           "robot truth's (`robot_truth.toml`, no source: a guess); on the prototype it would come from a bench",
-          "test of the line (docs/identification-coverage.md, \"The line's creep time\", which also shows how the",
-          "coverage falls when that measurement is off). Per parameter, over the seeds:", "",
-          "| parameter | truth | τ chosen: mean \\|err\\| | τ chosen: covered | τ held: mean \\|err\\| | τ held: max \\|err\\| | τ held: covered |",
+          "test of the line (docs/identification-coverage.md, \"The creep element and its time constant\", which",
+          "also shows how the coverage falls when that measurement is off). Per parameter, over the seeds:", "",
+          "| parameter | truth | τ estimated: mean \\|err\\| | τ estimated: covered | τ held: mean \\|err\\| | τ held: max \\|err\\| | τ held: covered |",
           "|---|---|---|---|---|---|---|"]
-    tot = {"chosen": [0, 0, 0], "held": [0, 0, 0]}  # covered, within 10 %, of
+    tot = {"estimated": [0, 0, 0], "held": [0, 0, 0]}  # covered, within 10 %, of
     for n in truth:
         row = {}
-        for label, runs in (("chosen", paper), ("held", creep)):
+        for label, runs in (("estimated", paper), ("held", creep)):
             ps = [_params(runs[s]).get(n) for s in seeds]
             ps = [p for p in ps if p]
             err = [abs(p["value"] / truth[n] - 1) for p in ps]
@@ -249,17 +249,15 @@ def _creep_section(paper, creep, seeds, truth) -> list[str]:
             tot[label][0] += cov
             tot[label][1] += sum(e < 0.10 for e in err)
             tot[label][2] += len(ps)
-        c, h = row["chosen"], row["held"]
+        c, h = row["estimated"], row["held"]
         md.append(f"| {n} | {truth[n]:g} | {100 * c[0]:.1f} % | {c[2]}/{c[3]} | {100 * h[0]:.1f} % | {100 * h[1]:.1f} % | "
                   f"{h[2]}/{h[3]} |")
     md += ["", "Totals: " + "; ".join(f"τ {label}: covered {t[0]}/{t[2]}, within 10 % {t[1]}/{t[2]}"
                                        for label, t in tot.items()) + ".", ""]
-    better = tot["held"][0] > tot["chosen"][0]
-    md += [("Holding τ raises the coverage on these law-1 campaigns." if better else
-            "Holding τ does not raise the coverage on these law-1 campaigns: here the τ each cable picks absorbs part "
-            "of the friction offset the load-friction model lacks, and held, the offset shows (over 20 law-1 "
-            "campaigns: docs/identification-coverage.md, \"The line's creep time\"; on the identification loop, "
-            "where the creep is what is left, it does raise it)."), ""]
+    better = tot["held"][0] > tot["estimated"][0]
+    md += [f"Holding τ {'raises' if better else 'does not raise'} the coverage on these law-1 campaigns "
+           f"({tot['held'][0]} against {tot['estimated'][0]} of {tot['estimated'][2]}). Over 20 law-1 campaigns and on the "
+           "identification loop: docs/identification-coverage.md, \"The creep element and its time constant\".", ""]
     return md
 
 

@@ -37,9 +37,9 @@ def identify(
     creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The cable line's creep time constant "
                                               "(s), measured apart (a weight hung on a sample of the line, its "
                                               "elongation recorded): held in the load-friction fit instead of "
-                                              "chosen from the campaign (default). It helps where the creep is the "
-                                              "fit's remaining error, not where the friction's offset is "
-                                              "(docs/identification-coverage.md, \"The line's creep time\")."),
+                                              "estimated from the campaign (default; on the twin the estimate does "
+                                              "as well: docs/identification-coverage.md, \"The creep element and "
+                                              "its time constant\")."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     from controller.trajectory import recorded_excitation

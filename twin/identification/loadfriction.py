@@ -361,13 +361,13 @@ def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
     line's creep time constant measured apart, held. Raises ValueError for a τ that is not a finite
     positive number of seconds.
 
-    Why hold it: on the robot truth, the τ the record picks (0.5-8 s per cable, the truth's 2 s)
-    moves k(4) and λ(4) by 5-17 points; held at the line's value the ±2σ coverage of Table 2 goes
-    from 129-134 to 145-150 of 160 on the identification loop (docs/identification-coverage.md, "The
-    line's creep time"); on law 1's campaigns it falls instead (120 → 109 of 160): there the free τ
-    absorbs part of the friction offset the model lacks. Not a default.
     A creep time is a property of the line, measurable on a bench (a weight hung on a sample of the
-    line, its elongation recorded for a minute), unlike k and λ, which depend on the routing."""
+    line, its elongation recorded for a minute), unlike k and λ, which depend on the routing. On the
+    robot truth, held at the truth's own τ it adds little to the τ estimated at its moment's root
+    (:func:`_iv_taus`; ±2σ coverage of Table 2 150 / 145 against 149 / 145 of 160 on the
+    identification loop) and costs on law 1's campaigns (109 against 122 of 160, where the free τ
+    absorbs part of the friction offset the model lacks): docs/identification-coverage.md, "The
+    creep element and its time constant". Not a default."""
     if creep_time_s is None:
         return TAUS_S
     tau = float(creep_time_s)
@@ -466,7 +466,12 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
             jt = _tau_column(values[j], taus[j], c)
             zt = jt if sim is None else _tau_column(values[j], taus[j], c, sim[0][:, j], sim[1][:, j])
             J, Z = np.column_stack([J, jt]), np.column_stack([Z, zt])
-        B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(fj.sum())]
+        try:
+            B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(fj.sum())]
+        except np.linalg.LinAlgError:
+            # τ's column vanishes where β is tiny but not 0 (τ then changes nothing): the pseudo-inverse
+            # gives the other parameters' rows as without it, instead of failing the identification
+            B = np.asarray(np.linalg.pinv(Z.T @ J) @ Z.T, dtype=np.float64)[: int(fj.sum())]
         idx = np.flatnonzero(c.rows).astype(np.int64)
         if sigma == "hac":
             cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
