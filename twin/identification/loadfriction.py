@@ -328,20 +328,21 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         costs = np.zeros((len(taus_s), nc))
         moments = np.zeros((len(taus_s), nc))
         grid_values, first = [], {}
+        by_moment = TAU_CHOICE == "iv" and len(taus_s) > 1  # a held τ (one grid point) has nothing to choose
         for i, tau in enumerate(taus_s):
             vals, _, it, _, sim_i = _instrumental(proc, params, cables, values, np.full(nc, tau), frees, first)
             iterations = max(iterations, it)
-            costs[i] = [np.sum(_residual(vals[j], *c.args(tau)) ** 2) for j, c in enumerate(cables)]
-            if TAU_CHOICE == "iv":
-                for j, c in enumerate(cables):
+            for j, c in enumerate(cables):
+                r = _residual(vals[j], *c.args(tau))
+                costs[i, j] = float(r @ r)
+                if by_moment:
                     z = _tau_column(vals[j], tau, c, sim_i[0][:, j], sim_i[1][:, j])
-                    r = _residual(vals[j], *c.args(tau))
                     moments[i, j] = float(z @ r) / max(float(np.linalg.norm(z) * np.linalg.norm(r)), 1e-300)
             grid_values.append(vals)
         best = np.argmin(costs, axis=0)
         chosen = np.array([grid_values[best[j]][j] for j in range(nc)])
         taus = refine_tau(np.asarray(taus_s, dtype=float), costs)
-        if TAU_CHOICE == "iv":
+        if by_moment:
             taus, chosen = _iv_taus(np.asarray(taus_s, dtype=float), moments, costs, taus, chosen, grid_values)
         values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, frees)  # Z at the chosen τ
         iterations, converged = max(iterations, it), ok
