@@ -87,6 +87,14 @@ class CampaignCreate(BaseModel):
         "a truth file the console knows (GET /api/truths; e.g. calibrated by `xneck twin calibrate`). Default: robot "
         "for identification, model for control. Under `xneck up` the stack's twin keeps the truth it was started "
         "with: another one is refused.")
+    estimator: str | None = Field(
+        None, max_length=32, description="Identification only: Table 2's estimator of the campaign's analysis, as "
+        "`xneck identify --estimator`: auto (default: the load-friction fit where the campaign rejects the paper's "
+        "model, else iv), iv, ols, wls or loadfriction.")
+    creep_time_s: float | None = Field(
+        None, description="Identification only: the cable line's creep time constant (s) measured apart (a bench "
+        "creep test), held in the load-friction fit instead of estimated from the record; with estimator auto or "
+        "loadfriction.")
 
 
 class PreparedCampaign(BaseModel):
@@ -149,6 +157,28 @@ def _known_truth(name: str, settings: Settings) -> Truth:
         raise RequestError(("truth",), f"truth {name!r} does not load: {exc}") from None
 
 
+def _analysis_options(req: CampaignCreate) -> str:
+    """The identification analysis's estimator (default auto) with its creep time checked
+    (twin.identification.pipeline.check_variable_options), or :class:`RequestError` naming the field."""
+    from twin.identification.pipeline import check_variable_options
+
+    if req.kind != "identification":
+        for name in ("estimator", "creep_time_s"):
+            if getattr(req, name) is not None:
+                raise RequestError((name,), f"{name} applies to identification campaigns (their analysis), "
+                                   f"not to a {req.kind} campaign")
+        return "auto"
+    estimator = req.estimator or "auto"
+    try:
+        check_variable_options(estimator, None)
+    except ValueError as exc:
+        raise RequestError(("estimator",), str(exc)) from None
+    try:
+        return check_variable_options(estimator, req.creep_time_s)
+    except ValueError as exc:
+        raise RequestError(("creep_time_s",), str(exc)) from None
+
+
 def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, service: bool = False) -> PreparedCampaign:
     """Resolve defaults and validate everything; raises :class:`RequestError`. ``service``: a
     controller service is on the bus (campaigns are requests to it, driving the stack's bridge)."""
@@ -185,11 +215,12 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
         check_trajectory(traj, params, law)
     except TrajectoryError as exc:
         raise RequestError(loc, f"trajectory rejected: {exc}") from None
+    estimator = _analysis_options(req)
     spec = CampaignSpec(
         kind=req.kind, law=law, trajectory=traj, twin=target == "twin", seed=seed,
         timeout_s=settings.campaign_timeout_s, params_file=params_file,
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
-        truth=truth or "model", service=service,
+        truth=truth or "model", service=service, estimator=estimator, creep_time_s=req.creep_time_s,
     )
     # The record names the truth ("model", "robot", a stored truth's name); the spec carries what the twin loads.
     return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target,

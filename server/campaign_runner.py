@@ -77,10 +77,16 @@ class CampaignSpec:
     service: bool = False  # ask the controller service on the bus (`xneck up`) instead of spawning processes
     truth: str = "model"  # what a spawned twin simulates (twin.sim.truth); a service's twin runs as it was started
     alpha_ip: str | None = None  # a spawned twin's α_IP (module docstring); None: camera for identification, else noise
+    estimator: str = "auto"  # Table 2's estimator of an identification's analysis (twin.identification.pipeline)
+    creep_time_s: float | None = None  # the line's creep time constant held in that analysis (s); None: estimated
 
     def __post_init__(self) -> None:
+        from twin.identification.pipeline import check_variable_options
+
         if self.alpha_ip is not None and self.alpha_ip not in ALPHA_IP_KINDS:
             raise ValueError(f"alpha_ip must be one of {', '.join(ALPHA_IP_KINDS)}, got {self.alpha_ip!r}")
+        # a bad analysis option fails before the campaign runs, not after the robot has moved
+        object.__setattr__(self, "estimator", check_variable_options(self.estimator, self.creep_time_s))
 
     @property
     def alpha_ip_source(self) -> str:
@@ -187,6 +193,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         "alpha_ip": spec.alpha_ip_source if spec.twin and not spec.service else "",  # a service's twin: as started
         "parameters_toml": params.to_toml(),
     }
+    if spec.kind == "identification":  # how its analysis is asked to run (the archive's reader may refit it otherwise)
+        metadata["estimator"] = spec.estimator
+        metadata["creep_time_s"] = "" if spec.creep_time_s is None else repr(float(spec.creep_time_s))
     events: queue.Queue[bus.CampaignEvent] = queue.Queue()
     procs: dict[str, subprocess.Popen] = {}
     logs: dict[str, Path] = {}
@@ -323,17 +332,20 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     if spec.kind == "identification" and outcome in ("finished", "degraded"):
         if progress:
             progress(1.0, "identifying (twin.identification.pipeline)…")
-        analyse_identification(result, spec.params_file)
+        analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s)
     return result
 
 
-def analyse_identification(result: CampaignResult, params_file: Path | None) -> None:
-    """Identify a recorded identification campaign (:func:`server.results.identify_archive`) into
-    ``result``; a failed analysis makes the outcome ``analysis_failed`` with its reason, in the
-    result and in the archive (module docstring)."""
+def analyse_identification(result: CampaignResult, params_file: Path | None, estimator: str = "auto",
+                           creep_time_s: float | None = None) -> None:
+    """Identify a recorded identification campaign (:func:`server.results.identify_archive`, Table 2
+    by ``estimator``, the creep time held at ``creep_time_s`` s if given) into ``result``; a failed
+    analysis makes the outcome ``analysis_failed`` with its reason, in the result and in the archive
+    (module docstring)."""
     from server.results import identify_archive
 
-    result.identification, result.analysis = identify_archive(result.path, params_file)
+    result.identification, result.analysis = identify_archive(result.path, params_file, estimator=estimator,
+                                                              creep_time_s=creep_time_s)
     if result.identification is not None:
         return
     run = result.message

@@ -165,10 +165,14 @@ class CampaignManager:
 
     @staticmethod
     def _record_from_archive(cid: str, info: dict[str, str]) -> CampaignRecord:
+        from twin.identification.pipeline import VARIABLE_ESTIMATORS
+
+        estimator = info.get("estimator", "")  # from disk: kept only if it names an estimator
         return CampaignRecord(
             id=cid, kind="identification" if info.get("kind") == "identification" else "control",
             law=info.get("law", ""), trajectory="", parameter_set=info.get("parameter_set", ""),
             target="robot" if info.get("target") == "robot" else "twin",
+            estimator=estimator if estimator in VARIABLE_ESTIMATORS else "",
             created_at=info.get("start_time", ""), status="running")
 
     def _recovery_failed(self, mcap: Path, exc: Exception) -> None:
@@ -259,7 +263,9 @@ class CampaignManager:
                 id=cid, kind=spec.kind, law=spec.law.name, trajectory=spec.trajectory.name,
                 trajectory_spec=spec.trajectory.to_dict(), duration_s=spec.trajectory.duration_s,
                 parameter_set=prepared.parameter_set, target=prepared.target, pace=prepared.pace,
-                seed=spec.seed, truth=prepared.truth, created_at=iso_time())
+                seed=spec.seed, truth=prepared.truth, created_at=iso_time(),
+                estimator=spec.estimator if spec.kind == "identification" else "",
+                creep_time_s=spec.creep_time_s)
             try:
                 self.index.save(rec)  # before the robot is taken: a refused start leaves nothing behind
             except OSError as exc:

@@ -41,6 +41,10 @@ class CampaignRecord(BaseModel):
     seed: int = Field(default=0, description="Seed of the twin's sensor noise (0 on the robot).")
     truth: str = Field(default="", max_length=256, description="What the twin simulated (twin/sim/truth.py): model, "
                        "robot or a truth file's name (GET /api/truths); empty on the robot.")
+    estimator: str = Field(default="", max_length=32, description="Identification: Table 2's estimator its "
+                           "analysis was asked for (auto, iv, ols, wls, loadfriction); empty for control.")
+    creep_time_s: float | None = Field(default=None, description="Identification: the line's creep time constant "
+                                       "(s) held in its analysis; null: estimated from the record.")
     status: CampaignStatus = "running"
     progress: float = Field(default=0.0, ge=0.0, le=1.0)
     message: str = ""

@@ -101,8 +101,10 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
     return out
 
 
-def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, Any] | None, str]:
-    """Run the offline identification (twin.identification.pipeline) on an archive: (report, status text).
+def identify_archive(path: Path, params_file: Path | None, *, estimator: str = "auto",
+                     creep_time_s: float | None = None) -> tuple[dict[str, Any] | None, str]:
+    """Run the offline identification (twin.identification.pipeline; Table 2 by ``estimator``, the
+    line's creep time held at ``creep_time_s`` s if given) on an archive: (report, status text).
     Never raises: an identification problem is a result to show, not a server error; the status of
     a failed one ends with the record's gaps explained (:mod:`server.record_gaps`), if it has any."""
     from controller.trajectory import recorded_excitation
@@ -111,7 +113,8 @@ def identify_archive(path: Path, params_file: Path | None) -> tuple[dict[str, An
     from twin.model.params import load_params
 
     try:
-        ident = identify_record(path, load_params(params_file), excitation=recorded_excitation, with_validation=False)
+        ident = identify_record(path, load_params(params_file), excitation=recorded_excitation, with_validation=False,
+                                estimator=estimator, creep_time_s=creep_time_s)
         return report_dict(ident.estimate, ident.processed), "identified"
     except Exception as exc:  # noqa: BLE001 - reported to the user
         text = f"identification failed: {type(exc).__name__}: {exc}"

@@ -67,6 +67,17 @@ def test_an_identification_campaign_on_the_rendered_camera_meets_the_acceptance(
                                             params), params))
     for name, value in exact.items():
         assert np.abs(camera[name] / value - 1).max() < 0.02, (name, camera[name], value)
+    # The console's analysis (server.results.identify_archive, what a REST or CLI campaign runs) takes
+    # the campaign's estimator and creep time: Table 2 says which, and a held τ is the one given.
+    from server.results import identify_archive
+
+    report, status = identify_archive(path, None, estimator="iv")
+    assert status == "identified" and "estimator: instrumental variables" in identification_tables(report)[-1]["note"]
+    report, status = identify_archive(path, None, estimator="loadfriction", creep_time_s=2.0)
+    note = identification_tables(report)[-1]["note"]
+    assert status == "identified" and "Kelvin creep τ = 2 s (held, given)" in note, note
+    report, status = identify_archive(path, None, estimator="iv", creep_time_s=2.0)
+    assert report is None and "no creep term" in status
 
 
 def _values(est) -> dict[str, np.ndarray]:
@@ -144,7 +155,8 @@ def test_an_identification_campaign_whose_analysis_fails_ends_analysis_failed(pa
     from server.campaign_runner import CampaignSpec, run_campaign
 
     nod = load_trajectory(NOD)
-    result = run_campaign(CampaignSpec("identification", LawConfig(law=1), nod, seed=1, timeout_s=180),
+    result = run_campaign(CampaignSpec("identification", LawConfig(law=1), nod, seed=1, timeout_s=180,
+                                       estimator="load-friction", creep_time_s=2.0),
                           params, tmp_path / "nod.mcap")
     assert result.outcome == "analysis_failed", (result.outcome, result.message)
     assert result.message.startswith("identification failed") and result.identification is None
@@ -152,6 +164,8 @@ def test_an_identification_campaign_whose_analysis_fails_ends_analysis_failed(pa
     info = campaign.info
     assert info["outcome"] == "analysis_failed" and info["message"] == result.message[:2000]
     assert info["analysis"] == result.analysis
+    # the analysis asked for is on record, its alias resolved
+    assert info["estimator"] == "loadfriction" and float(info["creep_time_s"]) == 2.0
     # The default α_IP of an identification campaign: measured on rendered frames inside the lockstep twin.
     frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
     assert info["alpha_ip"] == "camera" and {m.source for m in frames} == {"twin-render"}

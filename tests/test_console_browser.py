@@ -261,3 +261,23 @@ def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_s
     page.wait_for_function("window.xneckSafety.banner !== ''", timeout=10000)
     assert "NO MOTOR STATE" in page.inner_text("#live-lost") or "LIVE STREAM LOST" in page.inner_text("#live-lost")
     console.shot("console_bridge_silent.png")
+
+
+def test_an_identification_campaigns_analysis_options_reach_the_server_from_the_form(console):
+    """The estimator and creep time of an identification's analysis (REST ``estimator``,
+    ``creep_time_s``) are on the form only for an identification, and what is chosen there is what
+    the server checks: a creep time with IDIM-IV is refused with the reason, before anything moves."""
+    page, http = console.page, console.http
+    console.wait_idle(60)
+    before = len(http.get("/api/campaigns").json())
+    assert page.locator("#analysis-box").is_hidden()
+    page.select_option("select[name=kind]", "identification")
+    assert page.locator("#analysis-box").is_visible()
+    page.select_option("#estimator", "iv")
+    page.fill("#creep-time", "2")
+    page.click("#start")
+    page.wait_for_function("document.querySelector('#error').textContent.includes('no creep term')", timeout=10000)
+    assert len(http.get("/api/campaigns").json()) == before  # refused: nothing started, nothing recorded
+    page.select_option("select[name=kind]", "control")
+    assert page.locator("#analysis-box").is_hidden()
+    page.evaluate("document.querySelector('#error').textContent = ''")

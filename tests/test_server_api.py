@@ -166,6 +166,49 @@ def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
     assert truth(kind="identification", truth="model") == "model" and truth(kind="control", truth="robot") == "robot"
 
 
+@pytest.mark.parametrize("body, loc, said", [
+    ({"kind": "control", "estimator": "iv"}, "estimator", "identification campaigns"),
+    ({"kind": "control", "creep_time_s": 2.0}, "creep_time_s", "identification campaigns"),
+    ({"kind": "identification", "estimator": "magic"}, "estimator", "loadfriction"),
+    ({"kind": "identification", "creep_time_s": 0.0}, "creep_time_s", "positive number of seconds"),
+    ({"kind": "identification", "creep_time_s": float("inf")}, "creep_time_s", "positive number of seconds"),
+    ({"kind": "identification", "estimator": "iv", "creep_time_s": 2.0}, "creep_time_s", "no creep term"),
+])
+def test_an_identification_analysis_option_that_cannot_be_honoured_is_refused(tmp_path, body, loc, said) -> None:
+    """The analysis of an identification campaign (estimator, creep time) is chosen in the request,
+    as `xneck campaign identification --estimator/--creep-time-s`, and refused before anything moves."""
+    from server.campaign_request import CampaignCreate, RequestError, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
+    with pytest.raises(RequestError) as err:
+        prepare(CampaignCreate(**body), store, settings)
+    assert err.value.loc == ("body", loc) and said in err.value.msg, err.value.msg
+
+
+def test_an_identification_campaign_carries_its_analysis_options(tmp_path) -> None:
+    from server.campaign_request import CampaignCreate, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
+    spec = prepare(CampaignCreate(kind="identification", estimator="load-friction", creep_time_s=2.5), store,
+                   settings).spec
+    assert (spec.estimator, spec.creep_time_s) == ("loadfriction", 2.5)
+    spec = prepare(CampaignCreate(kind="identification"), store, settings).spec
+    assert (spec.estimator, spec.creep_time_s) == ("auto", None)
+
+
+def test_a_bad_analysis_option_is_a_422_over_http(client) -> None:
+    before = client.get("/api/campaigns").json()
+    r = client.post("/api/campaigns", json={"kind": "identification", "estimator": "ols", "creep_time_s": 2},
+                    headers=AUTH)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"][0]["loc"] == ["body", "creep_time_s"] and "no creep term" in r.text
+    assert client.get("/api/campaigns").json() == before  # nothing started, nothing recorded
+
+
 # -- issue 14: limits before reading, origin and host checks ------------------------------------------------------
 
 

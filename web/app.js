@@ -152,6 +152,10 @@ $("#trajectory").addEventListener("change", () => {
   $("#waypoints-box").hidden = $("#trajectory").value !== "__custom";
 });
 
+// The identification's analysis options only mean something for an identification campaign.
+const kindSelect = $("#start-form").elements.kind;
+kindSelect.addEventListener("change", () => { $("#analysis-box").hidden = kindSelect.value !== "identification"; });
+
 $("#start-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   showError(null);
@@ -161,6 +165,10 @@ $("#start-form").addEventListener("submit", async (ev) => {
   if (f.get("seed") !== "" && f.get("seed") !== null) body.seed = Number(f.get("seed"));
   if (f.get("law")) body.law = Number(f.get("law"));
   for (const k of ["parameter_set", "target", "pace"]) if (f.get(k)) body[k] = f.get(k);
+  if (body.kind === "identification") {
+    if (f.get("estimator")) body.estimator = f.get("estimator");
+    if (f.get("creep_time_s")) body.creep_time_s = Number(f.get("creep_time_s"));
+  }
   const traj = f.get("trajectory");
   if (traj === "__custom") {
     try { body.waypoints = JSON.parse(f.get("waypoints")); } catch (e) { return showError("waypoints: not valid JSON: " + e.message); }

@@ -99,13 +99,10 @@ def campaign_identification(
     the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
-    from twin.identification.loadfriction import creep_taus
-    from twin.identification.pipeline import NONLINEAR_ESTIMATORS
+    from twin.identification.pipeline import check_variable_options
 
     try:
-        creep_taus(creep_time_s)  # a bad τ fails before the campaign runs, not after
-        if creep_time_s is not None and estimator not in NONLINEAR_ESTIMATORS:
-            raise ValueError(f"applies to the load-friction fit (--estimator auto or loadfriction), not {estimator}")
+        check_variable_options(estimator, creep_time_s)  # a bad τ fails before the campaign runs, not after
     except ValueError as exc:
         typer.echo(f"error: --creep-time-s: {exc}", err=True)
         raise typer.Exit(2) from None
@@ -114,7 +111,7 @@ def campaign_identification(
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="identification", law=config, trajectory=traj, twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
-                        truth=truth, alpha_ip=alpha_ip)
+                        truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if result.outcome not in ("finished", "degraded"):
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")

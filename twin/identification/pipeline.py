@@ -98,6 +98,7 @@ __all__ = [
     "Provenance",
     "Validation",
     "cable_tension",
+    "check_variable_options",
     "cutoff_rule",
     "identified_params",
     "identify_complete",
@@ -168,6 +169,20 @@ def _check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> s
     name = ESTIMATOR_ALIASES.get(estimator, estimator)
     if name not in allowed:
         raise ValueError(f"estimator must be one of {', '.join(allowed)}, got {estimator!r}")
+    return name
+
+
+def check_variable_options(estimator: str, creep_time_s: float | None = None) -> str:
+    """Table 2's estimator name (aliases resolved) and the creep time checked together, before any
+    data is read: what a campaign request (CLI, REST) validates before the robot moves. Raises
+    ValueError saying which value is wrong and why."""
+    from twin.identification.loadfriction import creep_taus
+
+    name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
+    creep_taus(creep_time_s)
+    if creep_time_s is not None and name not in NONLINEAR_ESTIMATORS:
+        raise ValueError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
+                         f"estimator {name!r} has no creep term")
     return name
 
 
