@@ -189,6 +189,30 @@ def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, client, tmp
     assert victim not in client.run(os.getpid).values()
 
 
+def test_an_identification_study_takes_an_estimator_and_counts_the_covered_intervals() -> None:
+    """An identification study is the coverage test run as users run studies: Table 2 by the
+    estimator asked for, and per run which k and λ the ±2σ interval covers."""
+    assert "estimator" not in study_from("identification").canonical()  # the default keeps older studies' digests
+    assert study_from("identification", estimator="iv").digest() != study_from("identification").digest()
+    with pytest.raises(StudyError, match="choose"):
+        study_from("identification", estimator="magic")
+    with pytest.raises(StudyError, match="identification studies"):
+        study_from("control", estimator="iv")
+    rows = {}
+    for estimator in ("iv", "loadfriction"):
+        s = study_from("identification", samples=1, seed=2, truth="robot", estimator=estimator, settle_s=0.5)
+        run = expand(s)[0]
+        rows[estimator] = row = run_one(config_for(s, "v"), run)
+        assert row["outcome"] == "finished", row["message"]
+        for name in ("k", "lambda"):
+            covered = [row[f"{name}_covered[{i}]"] for i in range(1, 5)]
+            assert set(covered) <= {0.0, 1.0} and row[f"{name}_covered_fraction"] == pytest.approx(sum(covered) / 4)
+            within = [row[f"{name}_rel_error[{i}]"] <= 0.10 for i in range(1, 5)]
+            assert row[f"{name}_within_10pct_fraction"] == pytest.approx(sum(within) / 4)
+    # the estimator is the one asked for: the paper's eq. 55 (iv) and the load-friction fit differ on the robot truth
+    assert rows["iv"]["k_rel_error[1]"] != pytest.approx(rows["loadfriction"]["k_rel_error[1]"], rel=1e-3)
+
+
 def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, tmp_path, monkeypatch) -> None:
     """Last in this file: the console's own Client in its thread leaves dask's shared event loop
     unusable to a Client of another thread (distributed 2026.8), so no test uses ``client`` after it."""
@@ -202,6 +226,8 @@ def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, t
         bad = http.post("/api/studies", json={**body, "vary": ["geometry.b=U(1,2)"]}, headers=AUTH)
         assert bad.status_code == 422 and "must be smaller than L" in bad.text
         assert http.post("/api/studies", json={**body, "trajectory": "/etc/passwd"}, headers=AUTH).status_code == 422
+        bad = http.post("/api/studies", json={**body, "estimator": "iv"}, headers=AUTH)  # Table 2's: identification only
+        assert bad.status_code == 422 and "identification studies" in bad.text, bad.text
         created = http.post("/api/studies", json=body, headers=AUTH)
         assert created.status_code == 202, created.text
         sid = created.json()["id"]
@@ -218,3 +244,4 @@ def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, t
         assert http.get(f"/api/studies/{sid}/figures/..%2Fstudy.json").status_code == 404
         assert http.get("/api/studies/control-0123456789abcdef").status_code == 404
         assert http.post(f"/api/studies/{sid}/stop").status_code == 401
+

@@ -8,7 +8,7 @@
   if (!card || typeof api !== "function") return;
   const el = (id) => document.getElementById(id);
   const form = { kind: el("st-kind"), samples: el("st-samples"), vary: el("st-vary"), laws: el("st-laws"),
-                 truth: el("st-truth"), seed: el("st-seed") };
+                 truth: el("st-truth"), seed: el("st-seed"), estimator: el("st-estimator") };
   const list = el("st-list").querySelector("tbody");
   const out = el("st-out");
   const errorEl = el("st-error");
@@ -25,6 +25,7 @@
     const b = { kind, samples: Number(form.samples.value) || 1, seed: Number(form.seed.value) || 0,
                 vary: form.vary.value.split("\n").map((s) => s.trim()).filter(Boolean), truth: form.truth.value };
     if (kind === "control") b.laws = form.laws.value.split(/[ ,]+/).filter(Boolean).map(Number);
+    if (kind === "identification") b.estimator = form.estimator.value;
     return b;
   }
 

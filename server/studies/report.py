@@ -23,7 +23,8 @@ METRICS = {
     "control": ("e_mean_all_deg", "e_max_all_deg", "e_alpha_mean_all_deg", "force_mean_all_N", "force_max_all_N",
                 "saturated_ticks", "tension_min_N"),
     "identification": ("f_s_rel_error_max", "k_rel_error_max", "lambda_rel_error_max", "f_s_rel_sigma_max",
-                       "k_rel_sigma_max", "lambda_rel_sigma_max"),
+                       "k_rel_sigma_max", "lambda_rel_sigma_max", "k_covered_fraction", "lambda_covered_fraction",
+                       "k_within_10pct_fraction", "lambda_within_10pct_fraction"),
     "design": ("feasible_fraction", "stable_fraction", "k_min_median_N_m_per_rad", "k_max_median_N_m_per_rad"),
 }
 FIGURES = ("distributions.png", "sensitivity.png", "design_maps.png")

@@ -239,7 +239,8 @@ def _identification(cfg: RunConfig, run: RunSpec, params: Any, truth: Any) -> di
     with tempfile.TemporaryDirectory(prefix="xneck-study-") as tmp:
         path = write_campaign(Path(tmp) / f"{run.run_id}.mcap", res.messages(),
                               {"campaign_id": run.run_id, "kind": "identification", "trajectory": traj.to_json()})
-        est = identify_record(path, base, excitation=recorded_excitation, with_validation=False).estimate
+        est = identify_record(path, base, excitation=recorded_excitation, with_validation=False,
+                              estimator=cfg.study.estimator).estimate
     truths = {"f_s": ("friction", np.asarray(params.friction.f_s)), "k": ("variable", np.asarray(params.cables.variable.k)),
               "lambda": ("variable", np.asarray(params.cables.variable.lam))}
     out: dict[str, Any] = {}
@@ -251,6 +252,11 @@ def _identification(cfg: RunConfig, run: RunSpec, params: Any, truth: Any) -> di
         out[f"{name}_rel_error_max"] = float(np.max(err))
         out[f"{name}_rel_sigma_max"] = float(np.max(rsig))
         out.update({f"{name}_rel_error[{i + 1}]": float(x) for i, x in enumerate(err)})
+        # covered: the truth within the ±2σ the report gives (σ = rel. σ · |value|), issue 17's coverage test
+        covered = err <= 2.0 * rsig if len(values) == len(true) else np.zeros(len(true), dtype=bool)
+        out.update({f"{name}_covered[{i + 1}]": float(c) for i, c in enumerate(covered)})
+        out[f"{name}_covered_fraction"] = float(np.mean(covered))
+        out[f"{name}_within_10pct_fraction"] = float(np.mean(err <= 0.10))
     return out
 
 

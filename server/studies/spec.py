@@ -149,12 +149,16 @@ class Study:
     params_file: str | None = None
     set: tuple[str, ...] = ()  # --set overrides of the base parameter file
     design_configurations: int = 2000  # design: random configurations per design (within the joint limit)
+    estimator: str = "auto"  # identification: Table 2's estimator (twin.identification.pipeline.VARIABLE_ESTIMATORS)
 
     def varies(self) -> tuple[Vary, ...]:
         return tuple(parse_vary(v) for v in self.vary)
 
     def canonical(self) -> dict[str, Any]:
-        return asdict(self)
+        out = asdict(self)
+        if out["estimator"] == "auto":  # the default is left out: a study defined before the field keeps its digest
+            del out["estimator"]
+        return out
 
     def digest(self) -> str:
         """Identity of the study's rows: a study directory holds one study and refuses another."""
@@ -221,6 +225,12 @@ def _checked_syntax(s: Study) -> Study:
         raise StudyError(f"settle_s must be in [0, 60] s, got {s.settle_s!r}")
     if not (isinstance(s.design_configurations, int) and 10 <= s.design_configurations <= 1_000_000):
         raise StudyError(f"design_configurations must be an integer in [10, 1e6], got {s.design_configurations!r}")
+    from twin.identification.pipeline import VARIABLE_ESTIMATORS
+
+    if s.estimator not in VARIABLE_ESTIMATORS:
+        raise StudyError(f"--estimator {s.estimator!r}: choose {', '.join(VARIABLE_ESTIMATORS)}")
+    if s.estimator != "auto" and s.kind != "identification":
+        raise StudyError(f"--estimator applies to identification studies, not to a {s.kind} study")
     labels = [v.label for v in s.varies()]
     if len(set(labels)) != len(labels):
         raise StudyError(f"--vary: a path is varied twice ({', '.join(sorted({x for x in labels if labels.count(x) > 1}))})")
