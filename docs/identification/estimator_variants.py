@@ -28,6 +28,8 @@ covered in ≥ 85 % of cases). The variants:
 - ``A+B``: variants A and B together, e.g. ``elastic-creep+tau-2s``.
 - ``force-offset-1.5`` (any ``force-offset-C``): the fitted force less C newtons on every cable, a
   friction offset that does not reverse with the motion (the direction asymmetry's), held known.
+- ``gear-F-B``: the gear's meshing losses held at F (winding) and B (back-driven) instead of the
+  parameter file's 0.08 and 0.09; ``gear-0-0`` is the fit without them (as shipped until 2026-11-26).
 
     .venv/bin/python docs/identification/estimator_variants.py --truth robot --first 21 --seeds 20
     .venv/bin/python docs/identification/estimator_variants.py --variants shipped elastic-creep --seeds 3
@@ -154,6 +156,9 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
             return y - offset, rows
 
         return _patched(loadfriction, "fit_rows", shifted)
+    if name.startswith("gear-"):  # gear-F-B: the gear's meshing losses held at F (winding) and B (back-driven)
+        g_f, g_b = (float(v) for v in name[5:].split("-", 1))
+        return _patched(loadfriction, "gear_losses", lambda _params: (g_f, g_b))
     if name == "residual-tau":
         return _patched(loadfriction, "TAU_CHOICE", "residual")
     if name == "shared-tau":
@@ -174,18 +179,39 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
 
 VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
-            "shared-tau", "beta-0.05", "tau-2s+beta-0.05")
+            "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135")
 
 
-def _processed(truth_name: str, seed: int, params, cache: Path | None, only: list[str] | None = None):
-    tag = Path(truth_name).stem + ("" if not only else "-only-" + "-".join(only))
+def _law1_campaign(seed: int, truth, params):
+    """Law 1's identification campaign in process, as docs/identification/law1_coverage.py runs it
+    (what `xneck campaign identification` runs on the bus), with the rendered camera."""
+    from controller.laws import LawConfig
+    from controller.offline import run_closed_loop
+    from controller.trajectory import identification_trajectory
+    from twin.identification.processing import CampaignData
+    from twin.sim.simulator import TwinConfig
+
+    traj = identification_trajectory()
+    run = run_closed_loop(params, LawConfig(law=1), traj, TwinConfig(truth=truth, seed=seed, alpha_ip="camera"),
+                          settle_s=0.0)
+    seen = np.isfinite(run.alpha_ip).all(axis=1)
+    return CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
+                        campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
+
+
+def _processed(truth_name: str, seed: int, params, cache: Path | None, only: list[str] | None = None,
+               campaign: str = "loop"):
+    tag = Path(truth_name).stem + ("" if not only else "-only-" + "-".join(only)) + ("" if campaign == "loop" else
+                                                                                     f"-{campaign}")
     path = None if cache is None else cache / f"{tag}-{seed}.pkl"
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
     if only:
         truth = truth.only(*only)
-    proc = preprocess(simulate_campaign(seed, truth=truth, params=params)[0], params)
+    data = (_law1_campaign(seed, truth, params) if campaign == "law1"
+            else simulate_campaign(seed, truth=truth, params=params)[0])
+    proc = preprocess(data, params)
     out = (proc, identify_friction(proc, params).values)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -204,6 +230,9 @@ def main() -> None:
     ap.add_argument("--archive", nargs="+", type=Path, metavar="MCAP", help="recorded campaigns instead of simulated "
                     "ones, processed as `xneck identify` does")
     ap.add_argument("--cache", type=Path, help="directory keeping the processed campaigns between runs")
+    ap.add_argument("--campaign", choices=("loop", "law1"), default="loop", help="loop (default): the known-answer "
+                    "loop (controller/identification_loop.py); law1: law 1's campaign, what `xneck campaign "
+                    "identification` runs (as docs/identification/law1_coverage.py)")
     a = ap.parse_args()
     if a.seeds < 1:
         ap.error("--seeds must be at least 1")
@@ -221,7 +250,7 @@ def main() -> None:
             proc = preprocess(campaign_data_from_mcap(seed, recorded_excitation), params)
             friction = identify_friction(proc, params).values
         else:
-            proc, friction = _processed(a.truth, seed, params, a.cache, a.only)
+            proc, friction = _processed(a.truth, seed, params, a.cache, a.only, a.campaign)
         for name in a.variants:
             with _variant(name, proc.rate_hz):
                 est = identify_variable(proc, params, friction, estimator="loadfriction")
@@ -235,7 +264,7 @@ def main() -> None:
     labels = [f"{s}({j + 1})" for s in ("k", "λ") for j in range(len(k_true))]
     what = (", ".join(p.name for p in a.archive) if a.archive
             else f"truth `{a.truth}`{' with only ' + ', '.join(a.only) if a.only else ''}, "
-                 f"campaign seeds {seeds[0]}-{seeds[-1]}")
+                 f"{'law 1' if a.campaign == 'law1' else 'loop'} campaign seeds {seeds[0]}-{seeds[-1]}")
     print(f"{what}, `loadfriction` and its variants; per parameter: mean error (%) / covered by ±2σ (of the "
           f"{len(runs)} campaigns)\n")
     print("| variant | " + " | ".join(labels) + " | covered | within 10 % |")

@@ -22,7 +22,7 @@ import numpy as np
 
 from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign
 from controller.trajectory import recorded_excitation
-from twin.identification.loadfriction import fit_load_friction
+from twin.identification.loadfriction import fit_load_friction, gear_losses
 from twin.identification.model_choice import paper_model_test
 from twin.identification.pipeline import identify_friction, identify_variable, preprocess
 from twin.identification.record import campaign_data_from_mcap
@@ -68,7 +68,7 @@ def main() -> None:
         else:
             proc = preprocess(simulate_campaign(run, truth=truth, params=params)[0], params)
         lf = fit_load_friction(proc, params).estimate
-        t = paper_model_test(lf)
+        t = paper_model_test(lf, gear_losses(params))
         tests.append(t)
         print(f"{label}: pooled mu {t.mu:.3f} +- {t.sigma:.3f}, z {t.z:.1f}, p {t.p:.3g}, "
               f"{'rejected' if t.rejects_paper_model else 'kept'}", flush=True)

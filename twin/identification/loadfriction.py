@@ -7,12 +7,15 @@ comes out 8-25 % low in k (docs/identification-coverage.md, "Where the error com
 This estimator fits, per cable j, the force of its motor where it turns fast (|θ̇| ≥ 5 rad/s,
 where a Stribeck excess has died out)::
 
-    y = f − (R/r_d)·I_a·θ̈ = (1 + a·μ)·t + a·F₀,   a = (2/π)·arctan(c_f·θ̇)   eq. 37's shape (N)
+    y = f − (R/r_d)·I_a·θ̈ = ((1 + a·μ)·t + a·F₀ − g_b·a⁻·t) / (1 − g_f·a⁺)            (N)
+    a = (2/π)·arctan(c_f·θ̇), a⁺ = max(a, 0), a⁻ = max(−a, 0)   eq. 37's shape
     t = (k·x' + c_a·ẋ) / (1 − λ·x')                     eq. 54 solved for t    (N)
     x' = x_c − c,  τ·ċ = β·t_e/k − c,  t_e = k·x'/(1 − λ·x')   Kelvin creep element  (m)
 
 x_c, ẋ_c (m, m/s) from α_IP (eq. 27), f (N) the applied force, θ̇ (rad/s), θ̈ (rad/s²);
 k (N/m), λ (1/m), c_a (N·s/m); μ (dimensionless: friction per newton of tension), F₀ (N);
+g_f, g_b (dimensionless) the gear's meshing loss, of the motor force when winding and of the
+tension when back-driven, held at the parameter file's (:func:`gear_losses`);
 β (dimensionless creep ratio), τ (s) the line's creep time constant (:func:`_tension`);
 c_f (s/rad) the slope of the friction's shape. The paper's arctan (c_s = 0.5 s/rad, §5.1.1) is
 far from a sign at these speeds: 0.76 of its level at 5 rad/s, 0.94 at 20. A sign (F₀ constant)
@@ -136,9 +139,12 @@ def _shape(c_f: float, theta_dot: FloatArray) -> FloatArray:
 
 
 def _residual(p: FloatArray, x: FloatArray, xd: FloatArray, theta_dot: FloatArray, y: FloatArray,
-              rows: NDArray[np.bool_], tau_s: float, h: float) -> FloatArray:
+              rows: NDArray[np.bool_], tau_s: float, h: float, g_f: float = 0.0, g_b: float = 0.0) -> FloatArray:
+    """Model force less the measured one (N) on the fit's rows: (1 + a·μ)·t + a·F₀ with the gear's
+    meshing loss, g_f of the motor force when winding (a > 0), g_b of the tension when back-driven."""
     mu, f0, a = p[3], p[4], _shape(p[6], theta_dot[rows])
-    return (1 + a * mu) * _tension(p, x, xd, tau_s, h)[rows] + a * f0 - y[rows]
+    t = _tension(p, x, xd, tau_s, h)[rows]
+    return ((1 + a * mu) * t + a * f0 - g_b * np.maximum(-a, 0.0) * t) / (1 - g_f * np.maximum(a, 0.0)) - y[rows]
 
 
 def fit_rows(proc: Processed, params: Params) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -190,11 +196,12 @@ class _Cable:
     scale: FloatArray
     lo: FloatArray
     hi: FloatArray
+    gear: tuple[float, float] = (0.0, 0.0)  # (g_f, g_b): the gear's meshing losses, held (:func:`gear_losses`)
 
     def args(self, tau_s: float, x: FloatArray | None = None, x_dot: FloatArray | None = None) -> tuple:
         """:func:`_residual`'s arguments; ``x``, ``x_dot``: another stretch than the camera's."""
         return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.theta_dot, self.y, self.rows,
-                tau_s, self.h)
+                tau_s, self.h, *self.gear)
 
     def solve(self, fun, p0: FloatArray, free: NDArray[np.bool_] | None = None) -> FloatArray:
         """Bounded least squares of ``fun`` from ``p0``, over the ``free`` parameters only (the
@@ -212,8 +219,21 @@ class _Cable:
         return out
 
 
+def gear_losses(params: Params) -> tuple[float, float]:
+    """(g_f, g_b), the gear's meshing losses the fit holds: the parameter file's
+    ``motors.gear_loss_forward`` and ``motors.gear_loss_backward`` (physics estimates there).
+
+    Why held and not fitted: the forward loss divides the winding rows, the backward one scales
+    the back-driven rows, and together with μ their mean is a scale on the tension, which no
+    record separates from k (fitted on law 1's campaigns, g_f went to its bound and k 11-33 % low,
+    docs/identification-coverage.md). Without them the fit takes the winding rows' steeper slope
+    as curvature: on law 1's campaigns λ(3) came out 10-21 % low."""
+    return float(params.motors.gear_loss_forward), float(params.motors.gear_loss_backward)
+
+
 def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, damping: bool) -> list[_Cable]:
     y, rows = fit_rows(proc, params)
+    gear = gear_losses(params)
     out = []
     for j in range(params.n_cables):
         # Scales: k and λ from the start (a start of λ = 0 still needs one), c_a like a few hundred
@@ -225,7 +245,7 @@ def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, d
         hi = np.array([np.inf, np.inf, np.inf if damping else 0.0, MU_BOUNDS[1], F0_BOUNDS_N[1], BETA_BOUNDS[1],
                        C_F_BOUNDS[1]])
         out.append(_Cable(proc.x_c[:, j], proc.x_c_dot[:, j], proc.theta_dot[:, j], y[:, j], rows[:, j],
-                          1.0 / proc.rate_hz, np.array([k_s, lam_s, 1000.0, 0.1, 10.0, 0.05, 1.0]), lo, hi))
+                          1.0 / proc.rate_hz, np.array([k_s, lam_s, 1000.0, 0.1, 10.0, 0.05, 1.0]), lo, hi, gear))
     return out
 
 
@@ -350,8 +370,11 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
            f"at most {iterations} iterations per τ)" if instruments
            else "nonlinear least squares")
+    g_f, g_b = gear_losses(params)
     est = dataclasses.replace(est, estimator=(
-        f"{how}; friction (1 + a·μ)·t + a·F₀, a = (2/π)·arctan(c_f·θ̇), |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s; Kelvin creep τ = "
+        f"{how}; friction (1 + a·μ)·t + a·F₀, a = (2/π)·arctan(c_f·θ̇), |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s"
+        + (f", gear meshing loss {g_f:g} winding / {g_b:g} back-driven (held, parameter file)" if g_f or g_b else "")
+        + "; Kelvin creep τ = "
         + (f"{taus_s[0]:.3g} s (held, given)" if len(taus_s) == 1 else f"{', '.join(f'{t:.2g}' for t in taus)} s")
         + ("" if damping else "; no damping")))
     return LoadFrictionFit(est, taus, (k0, lam0), np.asarray(counts, dtype=np.int64))

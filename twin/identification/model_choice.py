@@ -58,11 +58,15 @@ class ModelTest:
                 f"p = {self.p:.2g} (threshold {P_THRESHOLD:g})")
 
 
-def paper_model_test(load_friction: Estimate) -> ModelTest:
+def paper_model_test(load_friction: Estimate, gear: tuple[float, float] = (0.0, 0.0)) -> ModelTest:
     """The test on a load-friction estimate (twin.identification.loadfriction.fit_load_friction's
-    ``estimate``). Raises ValueError when it has no μ with a σ (not a load-friction estimate)."""
+    ``estimate``), fitted with the gear's meshing losses ``gear`` = (g_f, g_b) held
+    (loadfriction.gear_losses): the friction per newton of tension is then μ plus their mean,
+    winding slope (1 + μ)/(1 − g_f) ≈ 1 + μ + g_f, back-driven 1 − μ − g_b, and that sum is what
+    is tested (on forces of the paper's model the fit gives μ ≈ −(g_f + g_b)/2). Raises ValueError
+    when it has no μ with a σ (not a load-friction estimate)."""
     idx = [i for i, n in enumerate(load_friction.names) if n.split("(")[0] == "mu"]
-    v, sd = load_friction.values[idx], load_friction.sigma[idx]
+    v, sd = load_friction.values[idx] + 0.5 * (gear[0] + gear[1]), load_friction.sigma[idx]
     ok = np.isfinite(v) & np.isfinite(sd) & (sd > 0)
     if not ok.any():
         raise ValueError(f"not a load-friction estimate: no 'mu' with a σ among {load_friction.names}")

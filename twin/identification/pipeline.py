@@ -309,7 +309,7 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
     """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (its friction grows with
     the load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
     A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
-    from twin.identification.loadfriction import creep_taus, fit_load_friction
+    from twin.identification.loadfriction import creep_taus, fit_load_friction, gear_losses
     from twin.identification.model_choice import paper_model_test
 
     taus_s = creep_taus(creep_time_s)  # a bad τ is the caller's error, not a reason to fall back
@@ -318,7 +318,7 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
     except ValueError as exc:
         iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
-    test = paper_model_test(lf)
+    test = paper_model_test(lf, gear_losses(params))
     if test.rejects_paper_model:
         return dataclasses.replace(lf, estimator=f"auto → loadfriction ({test.describe()}); {lf.estimator}")
     iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)

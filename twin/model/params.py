@@ -108,17 +108,28 @@ class Bars(_Section, frozen=True, kw_only=True):
 
 
 class Motors(_Section, frozen=True, kw_only=True):
-    """Geared motors: inertia at the motor shaft (kg·m²) and the electrical data the bridge uses."""
+    """Geared motors: inertia at the motor shaft (kg·m²) and the electrical data the bridge uses.
+
+    ``gear_loss_forward`` / ``gear_loss_backward`` (dimensionless): the gear's meshing loss that
+    grows with the load, a fraction of the motor force when the motor winds its cable and of the
+    tension when the cable drives the motor back. Only Table 2's load-friction fit uses them
+    (twin.identification.loadfriction): eq. 37's friction, hence the controller, keeps one level
+    per cable. 0 (the default): no such loss."""
 
     I_a: float
     torque_constant: float
     gear_efficiency: float
     current_max: float
+    gear_loss_forward: float = 0.0
+    gear_loss_backward: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _positive(self, "I_a", "torque_constant", "current_max")
         _require(0 < self.gear_efficiency <= 1, f"gear_efficiency must be in (0, 1], got {self.gear_efficiency}")
+        for name in ("gear_loss_forward", "gear_loss_backward"):
+            value = getattr(self, name)
+            _require(0 <= value < 0.5, f"{name} must be in [0, 0.5) (a fraction of the load), got {value}")
 
 
 class Friction(_Section, frozen=True, kw_only=True):
