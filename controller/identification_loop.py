@@ -5,6 +5,8 @@ positive null vector of Z (raised by the trajectory's pretension, if any), the m
 asks. It is not law 1 (law 1 runs on α̂; its campaigns are `xneck campaign identification`): it is
 the known-answer loop of the identification tests, of the coverage benchmark
 (benchmarks/identification.py) and of the docs' diagnosis scripts, one definition for all of them.
+:func:`law1_campaign` is law 1's campaign itself, in process (docs/identification/law1_coverage.py,
+docs/make_twin_fidelity.py).
 
 :data:`DAMPING_ONLY_TRUTH` is the truth the identification tests were written for: the robot
 truth's small cable damping alone (twin/sim/robot_truth.toml), the other unmodelled effects off.
@@ -65,6 +67,25 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     data = CampaignData(stamp, theta, force, np.array(t_ip), np.array(a_ip), campaign=f"twin-seed{seed}",
                         excitation_alpha_rad=None if still else ref.alpha)
     return data, {"t": stamp, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
+
+
+def law1_campaign(seed: int, truth="robot", params=None, trajectory=None, alpha_ip: str = "camera") -> CampaignData:
+    """Law 1's identification campaign in process: what `xneck campaign identification` runs over
+    the bus (law 1 on α̂, the §5.2.2 cycloids or ``trajectory``, a lockstep twin of ``truth`` whose
+    α_IP is measured on rendered frames), through the offline closed loop
+    (controller.offline.run_closed_loop, the lockstep campaign's loop), as a campaign record for the
+    identification pipeline. Unlike :func:`simulate_campaign` nothing here knows the true α."""
+    from controller.laws import LawConfig
+    from controller.offline import run_closed_loop
+    from twin.model.params import load_params
+
+    params = params or load_params()
+    traj = trajectory or identification_trajectory()
+    run = run_closed_loop(params, LawConfig(law=1), traj, TwinConfig(truth=truth, seed=seed, alpha_ip=alpha_ip),
+                          settle_s=0.0)
+    seen = np.isfinite(run.alpha_ip).all(axis=1)
+    return CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
+                        campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
 
 
 def identify_campaign(seed: int, truth=DAMPING_ONLY_TRUTH, estimator: str = "iv", trajectory=None, params=None,

@@ -5,7 +5,8 @@ all together, beside the 3-X paper's prototype numbers.
 Runs in process what the users' commands run over the bus: ``xneck campaign control --twin
 --truth robot --law 1|2|3 [--no-pulleys]`` is controller.offline.run_closed_loop (the same loop as
 the lockstep campaign) against a twin of the truth; ``xneck campaign identification --twin --truth
-robot`` is the §5.2.2 closed loop of controller/identification_loop.py and the identification pipeline.
+robot`` is law 1 on the §5.2.2 cycloids the same way, its α_IP measured on rendered frames
+(controller.identification_loop.law1_campaign), then the identification pipeline.
 "Each effect alone" is the robot truth with only that section enabled (``RobotTruth.only``), the
 same as a truth file with the other sections' ``enabled = false``. Serial, about 3 minutes on a
 2-core machine (181 s on 2026-11-26). Run: ``.venv/bin/python docs/make_twin_fidelity.py``.
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.identification_loop import simulate_campaign
+from controller.identification_loop import law1_campaign
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop
 from controller.trajectory import control_test_trajectory
@@ -72,7 +73,7 @@ def control(truth) -> dict[str, dict]:
 
 def identification(truth) -> dict[str, Any]:
     base = load_params()
-    data, _ = simulate_campaign(0, truth=truth)
+    data = law1_campaign(0, truth, base)
     proc = preprocess(data, base)
     est = identify_all(proc, base)
     new, _, _ = identified_params(base, est, make_provenance(data.campaign, proc))
@@ -99,7 +100,7 @@ def table2_auto(truth) -> dict[str, Any]:
     truth_k, truth_lam = np.array(base.cables.variable.k), np.array(base.cables.variable.lam)
     chosen, errors, misses = set(), [], []
     for seed in IDENT_SEEDS:
-        proc = preprocess(simulate_campaign(seed, truth=truth)[0], base)
+        proc = preprocess(law1_campaign(seed, truth, base), base)
         auto = identify_variable(proc, base, identify_friction(proc, base).values, estimator="auto")
         chosen.add(auto_choice(auto.estimator)[0])
         err = np.r_[auto.vector("k") / truth_k - 1, auto.vector("lambda") / truth_lam - 1]
@@ -195,7 +196,8 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
         lines.append(f"| {label} | " + " | ".join(_yes(v) for v in findings(m).values()) + " |")
     lines += [
         "",
-        "## Identification (§5.2.2 trajectory, seed 0): relative error of the identified values against",
+        "## Identification (law 1's §5.2.2 campaign, seed 0, as `xneck campaign identification` runs it):",
+        "relative error of the identified values against",
         "the truth's Table 1 f_s and Table 2 k, λ; Γ_rf residual (mean |Γ_m − Γ_rf|, N·m/rad; prototype 0.18).",
         "The paper's pipeline (IDIM-IV, eqs. 44-45, 55), then Table 2 as `xneck identify` reports it by default",
         "(`--estimator auto`: the load-friction fit where its friction grows with the load, else IDIM-IV):",
@@ -224,8 +226,9 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
             "## Values without a source: does identification keep Table 2 within 10 %?",
             "",
             "Issue 16's target. Each row is the full robot truth with one unsourced value at zero or twice the",
-            "guess; Table 2 as `xneck identify` reports it by default (`--estimator auto`), on the §5.2.2",
-            f"campaign of the identification loop, seeds {', '.join(map(str, IDENT_SEEDS))}: 8 values per campaign.",
+            "guess; Table 2 as `xneck identify` reports it by default (`--estimator auto`), on law 1's §5.2.2",
+            "campaign (what `xneck campaign identification` runs; in process, α_IP from rendered frames), seeds",
+            f"{', '.join(map(str, IDENT_SEEDS))}: 8 values per campaign.",
             "",
             "| change | `auto` chose | k, λ within 10 % | largest \\|k error\\| | largest \\|λ error\\| | misses |",
             "|---|---|---|---|---|---|",

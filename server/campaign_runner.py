@@ -332,20 +332,21 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     if spec.kind == "identification" and outcome in ("finished", "degraded"):
         if progress:
             progress(1.0, "identifying (twin.identification.pipeline)…")
-        analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s)
+        analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides)
     return result
 
 
 def analyse_identification(result: CampaignResult, params_file: Path | None, estimator: str = "auto",
-                           creep_time_s: float | None = None) -> None:
+                           creep_time_s: float | None = None, overrides: tuple[str, ...] = ()) -> None:
     """Identify a recorded identification campaign (:func:`server.results.identify_archive`, Table 2
-    by ``estimator``, the creep time held at ``creep_time_s`` s if given) into ``result``; a failed
+    by ``estimator``, the creep time held at ``creep_time_s`` s if given, the parameter file with the
+    campaign's ``overrides``, as its controller ran) into ``result``; a failed
     analysis makes the outcome ``analysis_failed`` with its reason, in the result and in the archive
     (module docstring)."""
     from server.results import identify_archive
 
     result.identification, result.analysis = identify_archive(result.path, params_file, estimator=estimator,
-                                                              creep_time_s=creep_time_s)
+                                                              creep_time_s=creep_time_s, overrides=overrides)
     if result.identification is not None:
         return
     run = result.message

@@ -102,7 +102,7 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
 
 
 def identify_archive(path: Path, params_file: Path | None, *, estimator: str = "auto",
-                     creep_time_s: float | None = None) -> tuple[dict[str, Any] | None, str]:
+                     creep_time_s: float | None = None, overrides: tuple[str, ...] = ()) -> tuple[dict[str, Any] | None, str]:
     """Run the offline identification (twin.identification.pipeline; Table 2 by ``estimator``, the
     line's creep time held at ``creep_time_s`` s if given) on an archive: (report, status text).
     Never raises: an identification problem is a result to show, not a server error; the status of
@@ -110,10 +110,11 @@ def identify_archive(path: Path, params_file: Path | None, *, estimator: str = "
     from controller.trajectory import recorded_excitation
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict
-    from twin.model.params import load_params
+    from twin.model.params import load_params, parse_override
 
     try:
-        ident = identify_record(path, load_params(params_file), excitation=recorded_excitation, with_validation=False,
+        base = load_params(params_file, dict(parse_override(o) for o in overrides))
+        ident = identify_record(path, base, excitation=recorded_excitation, with_validation=False,
                                 estimator=estimator, creep_time_s=creep_time_s)
         return report_dict(ident.estimate, ident.processed), "identified"
     except Exception as exc:  # noqa: BLE001 - reported to the user

@@ -73,9 +73,11 @@ def test_an_identification_campaign_on_the_rendered_camera_meets_the_acceptance(
 
     report, status = identify_archive(path, None, estimator="iv")
     assert status == "identified" and "estimator: instrumental variables" in identification_tables(report)[-1]["note"]
-    report, status = identify_archive(path, None, estimator="loadfriction", creep_time_s=2.0)
+    report, status = identify_archive(path, None, estimator="loadfriction", creep_time_s=2.0,
+                                      overrides=("motors.gear_loss_forward=0.05",))  # a campaign's --set
     note = identification_tables(report)[-1]["note"]
     assert status == "identified" and "Kelvin creep τ = 2 s (held, given)" in note, note
+    assert "gear meshing loss 0.05 winding / 0.09 back-driven" in note, note
     report, status = identify_archive(path, None, estimator="iv", creep_time_s=2.0)
     assert report is None and "no creep term" in status
 

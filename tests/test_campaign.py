@@ -153,7 +153,7 @@ def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, iden
         assert abs(f_s[f"f_s({j + 1})"] / truth - 1) < 0.03
     var = values(doc["table_2"])
     # the default --estimator auto: this truth is the paper's model, which its test keeps (IDIM-IV)
-    assert doc["table_2"]["estimator"].startswith("auto → iv (the paper's model (μ = 0"), doc["table_2"]["estimator"]
+    assert doc["table_2"]["estimator"].startswith("auto → iv (the paper's model (no friction growing"), doc["table_2"]["estimator"]
     for j in range(4):
         assert abs(var[f"k({j + 1})"] / params.cables.variable.k[j] - 1) < 0.10
         assert abs(var[f"lambda({j + 1})"] / params.cables.variable.lam[j] - 1) < 0.10

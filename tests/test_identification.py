@@ -74,7 +74,7 @@ def test_auto_keeps_the_papers_estimator_where_its_model_holds(result, params):
 
     iv = result["est"]["variable"]
     auto = identify_variable(result["proc"], params, result["est"]["friction"].values, estimator="auto")
-    assert auto.estimator.startswith("auto → iv (the paper's model (μ = 0"), auto.estimator
+    assert auto.estimator.startswith("auto → iv (the paper's model (no friction growing"), auto.estimator
     assert auto.estimator.endswith(iv.estimator)
     assert np.array_equal(auto.values, iv.values) and np.array_equal(auto.sigma, iv.sigma)
 

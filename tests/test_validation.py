@@ -145,3 +145,19 @@ def test_a_bad_creep_time_is_a_clear_error_and_writes_nothing(campaigns, tmp_pat
     assert "creep time constant must be a positive number of seconds" in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)
     assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("override, said", [("motors.gear_loss_forward=0.6", "gear_loss_forward must be in [0, 0.5)"),
+                                            ("motors.gear_loss_backward", "must look like key.path=value")])
+def test_a_bad_parameter_override_is_a_clear_error_and_writes_nothing(campaigns, tmp_path, override, said):
+    """``xneck identify --set`` changes the base parameter set as campaigns' ``--set`` does (the gear's
+    loss the load-friction fit holds, for one); a value the parameter checks refuse is said."""
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    a, _ = campaigns
+    r = CliRunner().invoke(app, ["identify", str(a), "--set", override, "--no-alpha-hat", "--out", str(tmp_path / "c")])
+    assert r.exit_code == 2, r.output
+    assert said in r.stderr, r.stderr
+    assert not (tmp_path / "c").exists()

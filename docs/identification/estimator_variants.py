@@ -37,6 +37,8 @@ covered in ≥ 85 % of cases). The variants:
         --variants shipped full-drive
     .venv/bin/python docs/identification/estimator_variants.py --archive docs/identification/runs/paper-0.mcap \
         --variants shipped force-offset-1 force-offset-2
+    .venv/bin/python docs/identification/estimator_variants.py --campaign law1 --first 21 --seeds 6 \
+        --truth-set friction.gear_loss_forward=0 friction.gear_loss_backward=0 --variants shipped gear-0-0
 
 Each campaign is simulated once and every variant fits the same processed record; ``--cache DIR``
 keeps the processed records (pickles, one per truth and seed) for a second run.
@@ -57,7 +59,7 @@ import numpy as np
 from numba import njit
 from scipy import signal
 
-from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign
+from controller.identification_loop import DAMPING_ONLY_TRUTH, law1_campaign, simulate_campaign
 from controller.trajectory import recorded_excitation
 from twin.identification import loadfriction, uncertainty
 from twin.identification.pipeline import identify_friction, identify_variable, preprocess
@@ -182,34 +184,33 @@ VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5
             "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135")
 
 
-def _law1_campaign(seed: int, truth, params):
-    """Law 1's identification campaign in process, as docs/identification/law1_coverage.py runs it
-    (what `xneck campaign identification` runs on the bus), with the rendered camera."""
-    from controller.laws import LawConfig
-    from controller.offline import run_closed_loop
-    from controller.trajectory import identification_trajectory
-    from twin.identification.processing import CampaignData
-    from twin.sim.simulator import TwinConfig
-
-    traj = identification_trajectory()
-    run = run_closed_loop(params, LawConfig(law=1), traj, TwinConfig(truth=truth, seed=seed, alpha_ip="camera"),
-                          settle_s=0.0)
-    seen = np.isfinite(run.alpha_ip).all(axis=1)
-    return CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
-                        campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
+def _truth_changes(items: list[str] | None) -> dict[str, dict[str, object]]:
+    """``EFFECT.KEY=VALUE`` (a number, or comma-separated numbers for a per-cable value) by section."""
+    out: dict[str, dict[str, object]] = {}
+    for item in items or []:
+        path, _, value = item.partition("=")
+        section, _, key = path.partition(".")
+        if not (section and key and value):
+            raise SystemExit(f"--truth-set {item!r}: write EFFECT.KEY=VALUE, e.g. friction.gear_loss_forward=0")
+        numbers = tuple(float(v) for v in value.split(","))
+        out.setdefault(section, {})[key] = numbers if "," in value else numbers[0]
+    return out
 
 
 def _processed(truth_name: str, seed: int, params, cache: Path | None, only: list[str] | None = None,
-               campaign: str = "loop"):
-    tag = Path(truth_name).stem + ("" if not only else "-only-" + "-".join(only)) + ("" if campaign == "loop" else
-                                                                                     f"-{campaign}")
+               campaign: str = "loop", truth_set: list[str] | None = None):
+    tag = (Path(truth_name).stem + ("" if not only else "-only-" + "-".join(only))
+           + ("" if campaign == "loop" else f"-{campaign}")
+           + "".join(f"-{x.replace('=', '_').replace(',', '_')}" for x in truth_set or []))
     path = None if cache is None else cache / f"{tag}-{seed}.pkl"
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
     truth = DAMPING_ONLY_TRUTH if truth_name == "pipeline" else load_truth(truth_name)
     if only:
         truth = truth.only(*only)
-    data = (_law1_campaign(seed, truth, params) if campaign == "law1"
+    for section, values in _truth_changes(truth_set).items():
+        truth = truth.replace(section, **values)
+    data = (law1_campaign(seed, truth, params) if campaign == "law1"
             else simulate_campaign(seed, truth=truth, params=params)[0])
     proc = preprocess(data, params)
     out = (proc, identify_friction(proc, params).values)
@@ -230,6 +231,8 @@ def main() -> None:
     ap.add_argument("--archive", nargs="+", type=Path, metavar="MCAP", help="recorded campaigns instead of simulated "
                     "ones, processed as `xneck identify` does")
     ap.add_argument("--cache", type=Path, help="directory keeping the processed campaigns between runs")
+    ap.add_argument("--truth-set", nargs="+", metavar="EFFECT.KEY=VALUE", help="change values of the truth, e.g. "
+                    "friction.gear_loss_forward=0 friction.asymmetry=0,0,0,0 (twin/sim/robot_truth.toml's keys)")
     ap.add_argument("--campaign", choices=("loop", "law1"), default="loop", help="loop (default): the known-answer "
                     "loop (controller/identification_loop.py); law1: law 1's campaign, what `xneck campaign "
                     "identification` runs (as docs/identification/law1_coverage.py)")
@@ -238,6 +241,12 @@ def main() -> None:
         ap.error("--seeds must be at least 1")
     for name in a.variants:
         _variant(name, 1.0)  # unknown names fail before any campaign runs
+    try:
+        truth = DAMPING_ONLY_TRUTH if a.truth == "pipeline" else load_truth(a.truth)
+        for section, values in _truth_changes(a.truth_set).items():
+            truth.replace(section, **values)  # a bad key or value fails before any campaign runs
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"--truth-set: {exc}") from None
     params = load_params()
     k_true, lam_true = np.asarray(params.cables.variable.k), np.asarray(params.cables.variable.lam)
     truth_v = np.r_[k_true, lam_true]
@@ -250,7 +259,7 @@ def main() -> None:
             proc = preprocess(campaign_data_from_mcap(seed, recorded_excitation), params)
             friction = identify_friction(proc, params).values
         else:
-            proc, friction = _processed(a.truth, seed, params, a.cache, a.only, a.campaign)
+            proc, friction = _processed(a.truth, seed, params, a.cache, a.only, a.campaign, a.truth_set)
         for name in a.variants:
             with _variant(name, proc.rate_hz):
                 est = identify_variable(proc, params, friction, estimator="loadfriction")
@@ -263,7 +272,8 @@ def main() -> None:
                   flush=True)
     labels = [f"{s}({j + 1})" for s in ("k", "λ") for j in range(len(k_true))]
     what = (", ".join(p.name for p in a.archive) if a.archive
-            else f"truth `{a.truth}`{' with only ' + ', '.join(a.only) if a.only else ''}, "
+            else f"truth `{a.truth}`{' with only ' + ', '.join(a.only) if a.only else ''}"
+                 f"{' with ' + ' '.join(a.truth_set) if a.truth_set else ''}, "
                  f"{'law 1' if a.campaign == 'law1' else 'loop'} campaign seeds {seeds[0]}-{seeds[-1]}")
     print(f"{what}, `loadfriction` and its variants; per parameter: mean error (%) / covered by ±2σ (of the "
           f"{len(runs)} campaigns)\n")

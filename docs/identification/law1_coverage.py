@@ -18,13 +18,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from controller.laws import LawConfig
-from controller.offline import run_closed_loop
+from controller.identification_loop import law1_campaign
 from controller.trajectory import identification_trajectory
 from twin.identification.loadfriction import creep_taus, fit_load_friction
-from twin.identification.processing import CampaignData, preprocess
+from twin.identification.processing import preprocess
 from twin.model.params import load_params
-from twin.sim.simulator import TwinConfig
 
 
 def main() -> None:
@@ -43,11 +41,7 @@ def main() -> None:
     print("| seed | k error (%) | λ error (%) | covered by ±2σ (k, λ) | c_f (s/rad) |")
     print("|---|---|---|---|---|")
     for seed in range(args.first, args.first + args.seeds):
-        run = run_closed_loop(params, LawConfig(law=1), traj, TwinConfig(truth=args.truth, seed=seed, alpha_ip="camera"),
-                              settle_s=0.0)
-        seen = np.isfinite(run.alpha_ip).all(axis=1)
-        data = CampaignData(run.t_s, run.theta_meas, run.force_N, run.t_ip_s[seen], run.alpha_ip[seen],
-                            campaign=f"law1-{seed}", excitation_alpha_rad=run.alpha_d)
+        data = law1_campaign(seed, args.truth, params, traj)
         est = fit_load_friction(preprocess(data, params), params, taus_s=creep_taus(args.creep_time_s)).estimate
         cells = []
         for sym in ("k", "lambda"):

@@ -122,6 +122,6 @@ def campaign_identification(
         typer.secho(f"warning: campaign {result.campaign_id} degraded: {result.message}", err=True, fg="yellow")
     if not as_json:
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
-    identify(result.path, json_out=as_json, out=None, params_file=params_file, cutoff_hz=None,
+    identify(result.path, json_out=as_json, out=None, params_file=params_file, overrides=overrides, cutoff_hz=None,
              threshold=None, no_alpha_hat=False, validate=None, estimator=estimator, sigma="hac", no_bounds=False,
              creep_time_s=creep_time_s)

@@ -15,6 +15,8 @@ def identify(
     out: Path | None = typer.Option(None, "--out", help="Directory for figures and the parameter set "
                                        "(default: <campaign stem>_identification next to the file)."),
     params_file: Path | None = typer.Option(None, "--params", help="Base parameter file (default: prototype)."),
+    overrides: list[str] | None = typer.Option(None, "--set", help="Override one value of the base parameter "
+                                               "file, e.g. --set motors.gear_loss_forward=0.05."),
     cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", help="Override the filter cutoff rule (Hz)."),
     threshold: float | None = typer.Option(None, "--threshold", help="Relative σ above which a parameter is "
                                               "badly identified (default: the pipeline's, 0.10)."),
@@ -46,11 +48,11 @@ def identify(
     from twin.identification.pipeline import DEFAULT_THRESHOLD, IdentificationError, write_identified
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict, tables_text, write_figures
-    from twin.model.params import ParameterError, load_params
+    from twin.model.params import ParameterError, load_params, parse_override
 
     data_b = _validation_campaign(validate) if validate is not None else None
     try:
-        base = load_params(params_file)
+        base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                                 alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds,

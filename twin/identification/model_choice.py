@@ -9,6 +9,10 @@ itself: the cables' μ pooled with their precision, one-sided::
 
     z = Σ_j (μ_j/σ_j²) / √(Σ_j 1/σ_j²),   p = 1 − Φ(z),
 
+where μ_j counts the gear's meshing loss the fit holds (loadfriction.gear_losses, its mean
+(g_f + g_b)/2 added to the fitted μ): on forces of the paper's model the fit's μ comes out near
+−(g_f + g_b)/2, their sum near 0.
+
 σ_j the fit's HAC σ of μ_j (β, F₀, c_f, k, λ estimated beside it). The creep β is a nuisance of
 the fit, not tested: under camera noise the fit can give a soft cable a spurious creep (β(4) at
 4.4σ on a damping-only bus campaign with the white-noise camera, where eqs. 54-55 hold), while μ
@@ -38,7 +42,8 @@ P_THRESHOLD = 1e-3  # below it the paper's model is rejected: its friction does 
 @dataclass(frozen=True)
 class ModelTest:
     """The one-sided test of H₀ "μ = 0 on every cable" (module docstring): ``mu`` the pooled μ
-    (dimensionless: newtons of friction per newton of tension) and its ``sigma``, ``z`` = mu/sigma,
+    plus the gear's held mean loss (dimensionless: newtons of friction per newton of tension,
+    :func:`paper_model_test`) and its ``sigma``, ``z`` = mu/sigma,
     ``p`` the probability of a z this large under H₀, ``cables`` how many cables had a σ."""
 
     mu: float
@@ -53,7 +58,7 @@ class ModelTest:
 
     def describe(self) -> str:
         verdict = "rejected" if self.rejects_paper_model else "kept"
-        return (f"the paper's model (μ = 0: no friction growing with the load) {verdict}: pooled μ = "
+        return (f"the paper's model (no friction growing with the load) {verdict}: pooled μ (with the gear's loss) = "
                 f"{self.mu:.3f} ± {self.sigma:.3f} over {self.cables} cables, z = {self.z:.1f}, one-sided "
                 f"p = {self.p:.2g} (threshold {P_THRESHOLD:g})")
 
