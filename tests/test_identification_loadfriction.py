@@ -170,22 +170,20 @@ def test_the_paper_model_test_keeps_eqs_54_55_where_they_hold_and_rejects_them_w
     the paper's model (μ = β = 0) it must keep it; with the robot's μ it must reject it, with or
     without creep (β is a nuisance of the fit, not tested)."""
     gear = loadfriction.gear_losses(params)
-    assert gear[0] > 0 and gear[1] > 0  # the parameter file's: the fit holds them
-    fit = lambda **true: fit_load_friction(_synthetic(params, seed, **true), params, instruments=False).estimate  # type: ignore[arg-type]  # noqa: E731
-    test = lambda est: paper_model_test(est, gear)  # noqa: E731
-    paper = test(fit(mu=0.0, beta=0.0, gear=False))
-    robot, no_creep = test(fit()), test(fit(beta=0.0))
+    assert gear[0] > 0 and gear[1] > 0  # the parameter file's: the estimate holds them, the test's fit does not
+    fit = lambda gear_data=False, **true: fit_load_friction(  # type: ignore[arg-type]  # noqa: E731
+        _synthetic(params, seed, gear=gear_data, **true), params, instruments=False, gear=(0.0, 0.0)).estimate
+    paper, robot, no_creep = paper_model_test(fit(mu=0.0, beta=0.0)), paper_model_test(fit()), paper_model_test(fit(beta=0.0))
     assert paper.cables == robot.cables == params.n_cables
     assert paper.p > P_THRESHOLD and not paper.rejects_paper_model, paper
     assert abs(paper.mu) < 3 * paper.sigma, paper
-    mean_gear = 0.5 * (gear[0] + gear[1])
-    for t in (robot, no_creep):  # the pooled friction per newton of tension: the cables' μ and the gear's loss
-        assert t.rejects_paper_model and abs(t.mu / (TRUE["mu"] + mean_gear) - 1) < 0.1, t
+    for t in (robot, no_creep):
+        assert t.rejects_paper_model and abs(t.mu / TRUE["mu"] - 1) < 0.1, t  # the pooled μ is the cables' μ
     assert "kept" in paper.describe() and "rejected" in robot.describe()
-    creep_only = test(fit(mu=0.0, gear=False))  # creep alone is not what the test asks about
+    creep_only = paper_model_test(fit(mu=0.0))  # creep alone is not what the test asks about
     assert not creep_only.rejects_paper_model, creep_only
-    gear_only = test(fit(mu=0.0, beta=0.0))  # a geared drive's friction grows with the load: not the paper's model
-    assert gear_only.rejects_paper_model and abs(gear_only.mu / mean_gear - 1) < 0.2, gear_only
+    # a geared drive's friction grows with the load: the gear's loss alone is not the paper's model
+    assert paper_model_test(fit(gear_data=True, mu=0.0, beta=0.0)).rejects_paper_model
     with pytest.raises(ValueError, match="not a load-friction estimate"):
         paper_model_test(dataclasses.replace(fit(), names=("k(1)",) * 28))
 
@@ -200,10 +198,9 @@ def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params)
     est = identify_all(proc, params, estimator="auto")
     lf = est["variable"]
     assert lf.estimator.startswith("auto → loadfriction (the paper's model"), lf.estimator
-    z_test = paper_model_test(lf, loadfriction.gear_losses(params)).z
-    assert z_test > 10
     chosen, z = auto_choice(lf.estimator)  # the choice read back from the report's text (docs, benchmark)
-    assert chosen == "loadfriction" and z == pytest.approx(z_test, abs=0.05)
+    assert chosen == "loadfriction" and z is not None and z > 10
+    assert "gear meshing loss 0.08 winding / 0.09 back-driven (held, parameter file)" in lf.estimator
     iv = identify_all(proc, params)["variable"]
     err_lf, err_iv = lf.vector("k") / k_true - 1, iv.vector("k") / k_true - 1
     # The stiff cables within 10 %; k(4), the soft cable, scatters ±10-25 % over campaigns

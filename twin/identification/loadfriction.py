@@ -227,13 +227,16 @@ def gear_losses(params: Params) -> tuple[float, float]:
     the back-driven rows, and together with μ their mean is a scale on the tension, which no
     record separates from k (fitted on law 1's campaigns, g_f went to its bound and k 11-33 % low,
     docs/identification-coverage.md). Without them the fit takes the winding rows' steeper slope
-    as curvature: on law 1's campaigns λ(3) came out 10-21 % low."""
+    as curvature: on law 1's campaigns λ(3) came out 10-21 % low. The loss divides the winding
+    rows' friction offset too (the meshing loss is a fraction of the whole motor force), which is
+    what corrects λ(3): with the offset left undivided the fit gained nothing there
+    (docs/identification-coverage.md, "The gear's meshing loss")."""
     return float(params.motors.gear_loss_forward), float(params.motors.gear_loss_backward)
 
 
-def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, damping: bool) -> list[_Cable]:
+def _cables(proc: Processed, params: Params, k0: FloatArray, lam0: FloatArray, damping: bool,
+            gear: tuple[float, float]) -> list[_Cable]:
     y, rows = fit_rows(proc, params)
-    gear = gear_losses(params)
     out = []
     for j in range(params.n_cables):
         # Scales: k and λ from the start (a start of λ = 0 still needs one), c_a like a few hundred
@@ -300,7 +303,7 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
 def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
                       threshold: float = DEFAULT_THRESHOLD, sigma: str = "hac", damping: bool = True,
                       instruments: bool = True, taus_s: tuple[float, ...] = TAUS_S,
-                      creep_ratio: float | None = None) -> LoadFrictionFit:
+                      creep_ratio: float | None = None, gear: tuple[float, float] | None = None) -> LoadFrictionFit:
     """Fit the model of the module docstring per cable.
 
     ``start``: (k (N/m), λ (1/m)) per cable, tried beside :func:`linear_start`. ``damping`` False
@@ -310,7 +313,9 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     stretch). ``taus_s``: the creep time constants tried (:func:`creep_taus`); ``creep_ratio``: β held
     at this value on every cable instead of fitted (docs/identification/estimator_variants.py
     ``beta-X``: held at the robot truth's own 0.05 it made k worse, the fit's β absorbs more than
-    the creep). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
+    the creep); ``gear``: the gear's meshing losses (g_f, g_b) held, None (default): the parameter
+    file's (:func:`gear_losses`); (0, 0) is the fit without them, in which the paper's eqs. 54-55 are
+    μ = β = 0 (twin.identification.model_choice tests that fit). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
     turned fast while its cable was taut), for a bad ``start`` or an unknown ``sigma``."""
     if sigma not in SIGMA_METHODS:
         raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
@@ -326,7 +331,10 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     k0, lam0 = (np.asarray(v, dtype=float) for v in (start or linear))
     if k0.shape != (nc,) or lam0.shape != (nc,) or not (np.all(np.isfinite(k0)) and np.all(np.isfinite(lam0))):
         raise ValueError(f"{NAME}: start must be {nc} finite k and λ, got {start}")
-    cables = _cables(proc, params, k0, lam0, damping)
+    gear = gear_losses(params) if gear is None else (float(gear[0]), float(gear[1]))
+    if not all(0.0 <= g < 0.5 for g in gear):
+        raise ValueError(f"{NAME}: gear losses must be in [0, 0.5), got {gear}")
+    cables = _cables(proc, params, k0, lam0, damping, gear)
     free = np.arange(len(SYMBOLS)) != 2 if not damping else np.ones(len(SYMBOLS), dtype=bool)
     if creep_ratio is not None:
         if not BETA_BOUNDS[0] <= creep_ratio <= BETA_BOUNDS[1]:
@@ -370,7 +378,7 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
            f"at most {iterations} iterations per τ)" if instruments
            else "nonlinear least squares")
-    g_f, g_b = gear_losses(params)
+    g_f, g_b = gear
     est = dataclasses.replace(est, estimator=(
         f"{how}; friction (1 + a·μ)·t + a·F₀, a = (2/π)·arctan(c_f·θ̇), |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s"
         + (f", gear meshing loss {g_f:g} winding / {g_b:g} back-driven (held, parameter file)" if g_f or g_b else "")

@@ -9,9 +9,10 @@ itself: the cables' μ pooled with their precision, one-sided::
 
     z = Σ_j (μ_j/σ_j²) / √(Σ_j 1/σ_j²),   p = 1 − Φ(z),
 
-where μ_j counts the gear's meshing loss the fit holds (loadfriction.gear_losses, its mean
-(g_f + g_b)/2 added to the fitted μ): on forces of the paper's model the fit's μ comes out near
-−(g_f + g_b)/2, their sum near 0.
+on the fit *without* the gear's meshing loss (``gear=(0, 0)``), in which eqs. 54-55 are the special
+case μ = β = 0. The fit that holds the loss (the estimate `auto` then reports) does not contain
+them: on forces of the paper's model its μ came out 4.5σ away from −(g_f + g_b)/2, the value that
+would make its slopes the paper's, because the loss divides the winding rows' friction offset too.
 
 σ_j the fit's HAC σ of μ_j (β, F₀, c_f, k, λ estimated beside it). The creep β is a nuisance of
 the fit, not tested: under camera noise the fit can give a soft cable a spurious creep (β(4) at
@@ -42,8 +43,7 @@ P_THRESHOLD = 1e-3  # below it the paper's model is rejected: its friction does 
 @dataclass(frozen=True)
 class ModelTest:
     """The one-sided test of H₀ "μ = 0 on every cable" (module docstring): ``mu`` the pooled μ
-    plus the gear's held mean loss (dimensionless: newtons of friction per newton of tension,
-    :func:`paper_model_test`) and its ``sigma``, ``z`` = mu/sigma,
+    (dimensionless: newtons of friction per newton of tension) and its ``sigma``, ``z`` = mu/sigma,
     ``p`` the probability of a z this large under H₀, ``cables`` how many cables had a σ."""
 
     mu: float
@@ -58,20 +58,17 @@ class ModelTest:
 
     def describe(self) -> str:
         verdict = "rejected" if self.rejects_paper_model else "kept"
-        return (f"the paper's model (no friction growing with the load) {verdict}: pooled μ (with the gear's loss) = "
+        return (f"the paper's model (no friction growing with the load) {verdict}: pooled μ (fit without the gear's loss) = "
                 f"{self.mu:.3f} ± {self.sigma:.3f} over {self.cables} cables, z = {self.z:.1f}, one-sided "
                 f"p = {self.p:.2g} (threshold {P_THRESHOLD:g})")
 
 
-def paper_model_test(load_friction: Estimate, gear: tuple[float, float] = (0.0, 0.0)) -> ModelTest:
-    """The test on a load-friction estimate (twin.identification.loadfriction.fit_load_friction's
-    ``estimate``), fitted with the gear's meshing losses ``gear`` = (g_f, g_b) held
-    (loadfriction.gear_losses): the friction per newton of tension is then μ plus their mean,
-    winding slope (1 + μ)/(1 − g_f) ≈ 1 + μ + g_f, back-driven 1 − μ − g_b, and that sum is what
-    is tested (on forces of the paper's model the fit gives μ ≈ −(g_f + g_b)/2). Raises ValueError
-    when it has no μ with a σ (not a load-friction estimate)."""
+def paper_model_test(load_friction: Estimate) -> ModelTest:
+    """The test on a load-friction estimate fitted without the gear's loss
+    (twin.identification.loadfriction.fit_load_friction(…, gear=(0, 0))'s ``estimate``). Raises
+    ValueError when it has no μ with a σ (not a load-friction estimate)."""
     idx = [i for i, n in enumerate(load_friction.names) if n.split("(")[0] == "mu"]
-    v, sd = load_friction.values[idx] + 0.5 * (gear[0] + gear[1]), load_friction.sigma[idx]
+    v, sd = load_friction.values[idx], load_friction.sigma[idx]
     ok = np.isfinite(v) & np.isfinite(sd) & (sd > 0)
     if not ok.any():
         raise ValueError(f"not a load-friction estimate: no 'mu' with a σ among {load_friction.names}")

@@ -314,12 +314,16 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
 
     taus_s = creep_taus(creep_time_s)  # a bad τ is the caller's error, not a reason to fall back
     try:
-        lf = fit_load_friction(proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s).estimate
+        # the test's fit has no gear loss: the paper's model is its μ = β = 0 (model_choice)
+        plain = fit_load_friction(proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s, gear=(0.0, 0.0))
     except ValueError as exc:
         iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
-    test = paper_model_test(lf, gear_losses(params))
+    test = paper_model_test(plain.estimate)
     if test.rejects_paper_model:
+        gear = gear_losses(params)
+        lf = plain.estimate if gear == (0.0, 0.0) else fit_load_friction(
+            proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s).estimate
         return dataclasses.replace(lf, estimator=f"auto → loadfriction ({test.describe()}); {lf.estimator}")
     iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
     return dataclasses.replace(iv, estimator=f"auto → iv ({test.describe()}); {iv.estimator}")
