@@ -245,7 +245,7 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
                       "has no direction asymmetry of the friction (a constant offset trades against k and λ, "
                       "docs/identification-coverage.md), and a creep as fast as 0.5 s (the shortest τ its grid tries) fits worst. "
                       "A calibration on the prototype's recordings (`xneck twin calibrate`, below) is what would pin them."]
-    lines += ["", *notes(results, ranges), ""]
+    lines += ["", *notes(results, ranges, ident), ""]
     doc = DOCS / "twin-fidelity.md"
     # The calibration section is written from `xneck twin calibrate` runs (it says which), not by this
     # script: keep it as it is.
@@ -259,7 +259,7 @@ CALIBRATION_HEADING = "\n## Calibration on recorded campaigns"
 MODEL, ROBOT = "none (`--truth model`)", "all (`--truth robot`)"
 
 
-def notes(results: dict, ranges: list) -> list[str]:
+def notes(results: dict, ranges: list, ident: dict | None = None) -> list[str]:
     """The reading of the tables, its numbers taken from them (the words were written 2026-11-25);
     while the tables are still incomplete (the script writes after every stage), nothing."""
     need = (MODEL, "actuation alone", "cables alone", ROBOT)
@@ -300,21 +300,31 @@ def notes(results: dict, ranges: list) -> list[str]:
         f"  prototype ({r['law3']:.2f}° against {PAPER['law3'][0]:.2f}°), law 2 {worse('law2')} worse ({r['law2']:.2f}° "
         f"against {PAPER['law2'][0]:.2f}°). {pulleys};",
         f"  {flip_text}.",
-        *IDENTIFICATION_NOTES,
+        *identification_notes(ident or {}),
     ]
 
 
-IDENTIFICATION_NOTES = [
+def _span(x) -> str:
+    x = 100 * np.asarray(x)
+    return f"{x.min():+.0f} … {x.max():+.0f} %"
+
+
+def identification_notes(ident: dict) -> list[str]:
+    """The identification bullet of the reading, its numbers from the identification table."""
+    if ROBOT not in ident or "friction alone" not in ident:
+        return []
+    rb, fr = ident[ROBOT], ident["friction alone"]
+    return [
     "- **Identification does not keep its known answer with the robot's friction.** The paper's arctan",
-    "  regressor (eqs. 44-45, 55) fits f_s within 1-13 % of Table 1, but the tensions it reconstructs carry",
-    "  the friction-shape error, and k comes out 13-21 % low, λ −9 … +35 % (with the pipeline of 2026-11-23:",
-    "  k 26-45 % low, λ up to +118 %); the Γ_rf residual is 0.43 N·m/rad",
-    "  against the prototype's 0.18. Table 2 on this truth: docs/identification-coverage.md (with the",
-    "  `loadfriction` estimator k comes within 10 % in most campaigns, λ(1) and λ(4) stay about 6 % low;",
-    "  the default `auto` takes it wherever friction grows with the load, as on the robot truth). On the",
-    "  friction-alone row neither keeps the known answer: that truth keeps the model's cable damping",
-    "  (3000 N·s/m, against the line's 40 N·s/m in the robot truth) and the load-friction fit, which `auto`",
-    "  takes there, trades it against a spurious creep (k up to 31 % off, IDIM-IV's up to 18 %; words of 2026-11-26).",
+    f"  regressor (eqs. 44-45, 55) fits f_s within {_span(rb['f_s'])} of Table 1, but the tensions it reconstructs",
+    f"  carry the friction-shape error, and k comes out {_span(rb['k'])}, λ {_span(rb['lam'])} off",
+    f"  (law 1's campaign); the Γ_rf residual is {rb['gamma_rf']:.2f} N·m/rad against the prototype's 0.18.",
+    f"  The default `auto` takes the load-friction fit there ({rb['auto']}): k {_span(rb['k_auto'])}, λ",
+    f"  {_span(rb['lam_auto'])} on this campaign; over 20-seed runs docs/identification-coverage.md (\"The gear's",
+    "  meshing loss\"). On the friction-alone row: that truth keeps the model's cable damping (3000 N·s/m,",
+    "  against the line's 40 N·s/m in the robot truth) and the load-friction fit, which `auto`",
+    f"  takes there ({fr['auto']}), trades it against a spurious creep (k {_span(fr['k_auto'])}, IDIM-IV's",
+    f"  {_span(fr['k'])}).",
     "  The prototype's well-identified Table 2 and its",
     "  smaller residual say its friction is closer to eq. 37 near θ̇ = 0 than this set-valued Coulomb law",
     "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",

@@ -30,6 +30,8 @@ covered in ≥ 85 % of cases). The variants:
   friction offset that does not reverse with the motion (the direction asymmetry's), held known.
 - ``gear-F-B``: the gear's meshing losses held at F (winding) and B (back-driven) instead of the
   parameter file's 0.08 and 0.09; ``gear-0-0`` is the fit without them (as shipped until 2026-11-26).
+- ``gear-undivided``: the gear's loss on the tension's slopes only, the winding rows' friction
+  offset F₀ not divided by 1 − g_f.
 
     .venv/bin/python docs/identification/estimator_variants.py --truth robot --first 21 --seeds 20
     .venv/bin/python docs/identification/estimator_variants.py --variants shipped elastic-creep --seeds 3
@@ -158,6 +160,13 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
             return y - offset, rows
 
         return _patched(loadfriction, "fit_rows", shifted)
+    if name == "gear-undivided":  # the gear's loss on the slopes only, the friction offset ±F₀ left undivided
+        def undivided(p, x, xd, theta_dot, y, rows, tau_s, h, g_f=0.0, g_b=0.0):
+            mu, f0, a = p[3], p[4], loadfriction._shape(p[6], theta_dot[rows])
+            t = loadfriction._tension(p, x, xd, tau_s, h)[rows]
+            return ((1 + a * mu) * t - g_b * np.maximum(-a, 0.0) * t) / (1 - g_f * np.maximum(a, 0.0)) + a * f0 - y[rows]
+
+        return _patched(loadfriction, "_residual", undivided)
     if name.startswith("gear-"):  # gear-F-B: the gear's meshing losses held at F (winding) and B (back-driven)
         g_f, g_b = (float(v) for v in name[5:].split("-", 1))
         return _patched(loadfriction, "gear_losses", lambda _params: (g_f, g_b))
@@ -181,7 +190,7 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
 
 VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
-            "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135")
+            "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135", "gear-undivided")
 
 
 def _truth_changes(items: list[str] | None) -> dict[str, dict[str, object]]:
