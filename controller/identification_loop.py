@@ -14,13 +14,15 @@ truth's small cable damping alone (twin/sim/robot_truth.toml), the other unmodel
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from controller.trajectory import identification_trajectory
 from twin.identification.processing import CampaignData
 from twin.model import dynamics
 from twin.sim.simulator import Twin, TwinConfig
-from twin.sim.truth import load_truth
+from twin.sim.truth import RobotTruth, load_truth
 
 DAMPING_ONLY_TRUTH = load_truth("robot").only("cables").replace("cables", creep_ratio=0.0)
 
@@ -69,7 +71,8 @@ def simulate_campaign(seed: int, duration_s: float | None = None, omega: float =
     return data, {"t": stamp, "alpha": alpha_true, "tension": tension, "stretch": stretch, "theta_dot": speed}
 
 
-def law1_campaign(seed: int, truth="robot", params=None, trajectory=None, alpha_ip: str = "camera") -> CampaignData:
+def law1_campaign(seed: int, truth: str | RobotTruth = "robot", params=None, trajectory=None,
+                  alpha_ip: Literal["noise", "camera"] = "camera") -> CampaignData:
     """Law 1's identification campaign in process: what `xneck campaign identification` runs over
     the bus (law 1 on α̂, the §5.2.2 cycloids or ``trajectory``, a lockstep twin of ``truth`` whose
     α_IP is measured on rendered frames), through the offline closed loop

@@ -171,8 +171,9 @@ def test_the_paper_model_test_keeps_eqs_54_55_where_they_hold_and_rejects_them_w
     without creep (β is a nuisance of the fit, not tested)."""
     gear = loadfriction.gear_losses(params)
     assert gear[0] > 0 and gear[1] > 0  # the parameter file's: the estimate holds them, the test's fit does not
-    fit = lambda gear_data=False, **true: fit_load_friction(  # type: ignore[arg-type]  # noqa: E731
-        _synthetic(params, seed, gear=gear_data, **true), params, instruments=False, gear=(0.0, 0.0)).estimate
+    fit = lambda gear_data=False, **true: fit_load_friction(  # noqa: E731
+        _synthetic(params, seed, gear=gear_data, **true), params,  # type: ignore[arg-type]
+        instruments=False, gear=(0.0, 0.0)).estimate
     paper, robot, no_creep = paper_model_test(fit(mu=0.0, beta=0.0)), paper_model_test(fit()), paper_model_test(fit(beta=0.0))
     assert paper.cables == robot.cables == params.n_cables
     assert paper.p > P_THRESHOLD and not paper.rejects_paper_model, paper

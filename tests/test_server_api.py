@@ -183,7 +183,7 @@ def test_an_identification_analysis_option_that_cannot_be_honoured_is_refused(tm
 
     store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
     with pytest.raises(RequestError) as err:
-        prepare(CampaignCreate(**body), store, settings)
+        prepare(CampaignCreate.model_validate(body), store, settings)
     assert err.value.loc == ("body", loc) and said in err.value.msg, err.value.msg
 
 
@@ -193,10 +193,10 @@ def test_an_identification_campaign_carries_its_analysis_options(tmp_path) -> No
     from server.settings import Settings
 
     store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
-    spec = prepare(CampaignCreate(kind="identification", estimator="load-friction", creep_time_s=2.5), store,
-                   settings).spec
+    body = {"kind": "identification", "estimator": "load-friction", "creep_time_s": 2.5}
+    spec = prepare(CampaignCreate.model_validate(body), store, settings).spec
     assert (spec.estimator, spec.creep_time_s) == ("loadfriction", 2.5)
-    spec = prepare(CampaignCreate(kind="identification"), store, settings).spec
+    spec = prepare(CampaignCreate.model_validate({"kind": "identification"}), store, settings).spec
     assert (spec.estimator, spec.creep_time_s) == ("auto", None)
 
 
