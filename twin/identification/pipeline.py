@@ -310,19 +310,21 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
     the load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
     A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
     from twin.identification.loadfriction import creep_taus, fit_load_friction, gear_losses
-    from twin.identification.model_choice import paper_model_test
+    from twin.identification.model_choice import TEST_TAU_S, paper_model_test
 
     taus_s = creep_taus(creep_time_s)  # a bad τ is the caller's error, not a reason to fall back
     try:
-        # the test's fit has no gear loss: the paper's model is its μ = β = 0 (model_choice)
-        plain = fit_load_friction(proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s, gear=(0.0, 0.0))
+        # the test's fit has no gear loss: the paper's model is its μ = β = 0 (model_choice); one τ
+        # of the grid (model_choice.TEST_TAU_S) unless one is held, as μ hardly depends on it
+        plain = fit_load_friction(proc, params, threshold=threshold, sigma=sigma, gear=(0.0, 0.0),
+                                  taus_s=taus_s if len(taus_s) == 1 else (TEST_TAU_S,))
     except ValueError as exc:
         iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
     test = paper_model_test(plain.estimate)
     if test.rejects_paper_model:
         gear = gear_losses(params)
-        lf = plain.estimate if gear == (0.0, 0.0) else fit_load_friction(
+        lf = plain.estimate if gear == (0.0, 0.0) and len(taus_s) == 1 else fit_load_friction(
             proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s).estimate
         return dataclasses.replace(lf, estimator=f"auto → loadfriction ({test.describe()}); {lf.estimator}")
     iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
