@@ -8,6 +8,7 @@ cycloids) on the truth, then the load-friction fit and the one-sided test of the
     .venv/bin/python docs/identification/model_choice_scan.py --truth pipeline --first 21 --seeds 20
     .venv/bin/python docs/identification/model_choice_scan.py --truth robot --only cables --first 0 --seeds 3 --errors
     .venv/bin/python docs/identification/model_choice_scan.py --archive CAMPAIGN.mcap --errors
+    .venv/bin/python docs/identification/model_choice_scan.py --truth model --campaign law1 --first 0 --seeds 1 --tau-grid
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
 
-from controller.identification_loop import DAMPING_ONLY_TRUTH, simulate_campaign
+from controller.identification_loop import DAMPING_ONLY_TRUTH, law1_campaign, simulate_campaign
 from controller.trajectory import recorded_excitation
 from twin.identification.loadfriction import fit_load_friction
-from twin.identification.model_choice import paper_model_test
+from twin.identification.model_choice import TEST_TAU_S, paper_model_test
 from twin.identification.pipeline import identify_friction, identify_variable, preprocess
 from twin.identification.record import campaign_data_from_mcap
 from twin.model.params import load_params
@@ -51,6 +52,10 @@ def main() -> None:
                     "ones, processed as `xneck identify` does")
     ap.add_argument("--errors", action="store_true", help="also Table 2's k and λ errors (%%) by IDIM-IV and by the "
                     "load-friction fit, and the pooled z of the creep β")
+    ap.add_argument("--tau-grid", action="store_true", help="also the test's z on a fit over the whole τ grid "
+                    "(what the test used before it held τ at model_choice.TEST_TAU_S)")
+    ap.add_argument("--campaign", choices=("loop", "law1"), default="loop", help="loop (default): the known-answer "
+                    "loop; law1: law 1's campaign as `xneck campaign identification` runs it")
     a = ap.parse_args()
     if a.seeds < 1:
         ap.error("--seeds must be at least 1")
@@ -66,12 +71,17 @@ def main() -> None:
         if isinstance(run, Path):
             proc = preprocess(campaign_data_from_mcap(run, recorded_excitation), params)
         else:
-            proc = preprocess(simulate_campaign(run, truth=truth, params=params)[0], params)
-        lf = fit_load_friction(proc, params, gear=(0.0, 0.0)).estimate  # the test's fit (model_choice)
+            data = (law1_campaign(run, truth, params) if a.campaign == "law1"
+                    else simulate_campaign(run, truth=truth, params=params)[0])
+            proc = preprocess(data, params)
+        # the test's fit (model_choice): without the gear's loss, τ held at TEST_TAU_S
+        lf = fit_load_friction(proc, params, gear=(0.0, 0.0), taus_s=(TEST_TAU_S,)).estimate
         t = paper_model_test(lf)
         tests.append(t)
-        print(f"{label}: pooled mu {t.mu:.3f} +- {t.sigma:.3f}, z {t.z:.1f}, p {t.p:.3g}, "
-              f"{'rejected' if t.rejects_paper_model else 'kept'}", flush=True)
+        grid = (f"; with the whole τ grid z {paper_model_test(fit_load_friction(proc, params, gear=(0.0, 0.0)).estimate).z:.2f}"
+                if a.tau_grid else "")
+        print(f"{label}: pooled mu {t.mu:.3f} +- {t.sigma:.3f}, z {t.z:.2f}, p {t.p:.3g}, "
+              f"{'rejected' if t.rejects_paper_model else 'kept'}{grid}", flush=True)
         if a.errors:
             iv = identify_variable(proc, params, identify_friction(proc, params).values, estimator="iv")
             shipped = fit_load_friction(proc, params).estimate  # the estimate, the gear's loss held
