@@ -154,7 +154,9 @@ $("#trajectory").addEventListener("change", () => {
 
 // The identification's analysis options only mean something for an identification campaign.
 const kindSelect = $("#start-form").elements.kind;
-kindSelect.addEventListener("change", () => { $("#analysis-box").hidden = kindSelect.value !== "identification"; });
+const showAnalysis = () => { $("#analysis-box").hidden = kindSelect.value !== "identification"; };
+kindSelect.addEventListener("change", showAnalysis);
+showAnalysis();  // a browser may restore the form's kind on reload
 
 $("#start-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
