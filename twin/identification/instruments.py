@@ -32,9 +32,10 @@ from twin.model.numeric import Model
 
 FloatArray = NDArray[np.float64]
 
-NEWTON_STEPS = 12
+NEWTON_STEPS = 20  # chord steps converge linearly; a slow one refreshes its Jacobian (below)
 NEWTON_TOL_RAD = 1e-7  # rad, ≈ 1/1000 of an encoder count at the joint
 FD_STEP_RAD = 1e-6
+CHORD_MIN_CONTRACTION = 0.25  # a step not below this fraction of the last one gets a fresh Jacobian
 
 
 def _stretch(m: Model, alpha: FloatArray, theta: FloatArray) -> tuple[FloatArray, dynamics.Terms]:
@@ -50,49 +51,72 @@ def _residual(m: Model, alpha: FloatArray, theta: FloatArray, k: FloatArray, lam
 
 
 def neck_equilibrium(m: Model, theta: FloatArray, k: FloatArray, lam: FloatArray, alpha0: FloatArray,
-                     inertial: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
-    """α (n, N) solving Z·t(x(α, θ)) = g(α) + ``inertial`` at every instant (batched Newton with a
-    finite-difference Jacobian, from ``alpha0``, each instant until its step is below
-    ``NEWTON_TOL_RAD``); returns (α, x)."""
+                     inertial: FloatArray | None = None, jacobian0: FloatArray | None = None,
+                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """α (n, N) solving Z·t(x(α, θ)) = g(α) + ``inertial`` at every instant, from ``alpha0``, each
+    instant until its step is below ``NEWTON_TOL_RAD``; returns (α, x, the Jacobians (n, N, N)).
+
+    Batched chord iterations: an instant keeps its Jacobian (finite differences, N evaluations of
+    the model) while its steps shrink at least fourfold, and gets a fresh one where they do not.
+    ``jacobian0``: the Jacobians of an earlier solve at nearby α and (k, λ) (the IV iteration's
+    previous simulation), used from the first step. Why: the Jacobian cost three quarters of the
+    evaluations, and a warm start's root moves by little (benchmarks/identification.py: the same
+    roots to the tolerance at about a third of the evaluations)."""
     alpha = np.array(alpha0, dtype=float)
     inertial = np.zeros_like(alpha) if inertial is None else inertial
     n, N = alpha.shape
+    J = np.empty((n, N, N))
+    fresh = np.ones(n, dtype=bool)
+    if jacobian0 is not None and np.shape(jacobian0) == (n, N, N) and np.all(np.isfinite(jacobian0)):
+        J[:] = jacobian0
+        fresh[:] = False
+    last = np.full(n, np.inf)
     active = np.arange(n)  # instants still iterating: one converged stops costing evaluations
     for _ in range(NEWTON_STEPS):
         a, th, ine = alpha[active], theta[active], inertial[active]
         F, _ = _residual(m, a, th, k, lam, ine)
-        J = np.empty((len(active), N, N))
-        for i in range(N):
-            da = np.zeros(N)
-            da[i] = FD_STEP_RAD
-            J[:, :, i] = (_residual(m, a + da, th, k, lam, ine)[0] - F) / FD_STEP_RAD
+        new = fresh[active]
+        if np.any(new):
+            idx = active[new]
+            for i in range(N):
+                da = np.zeros(N)
+                da[i] = FD_STEP_RAD
+                J[idx, :, i] = (_residual(m, a[new] + da, th[new], k, lam, ine[new])[0] - F[new]) / FD_STEP_RAD
+            fresh[idx] = False
         try:
-            step = np.linalg.solve(J, -F[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            step = np.linalg.lstsq(J.reshape(-1, N), -F.reshape(-1), rcond=None)[0].reshape(-1, N)  # pragma: no cover
+            step = np.linalg.solve(J[active], -F[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # pragma: no cover
+            step = np.stack([np.linalg.lstsq(J[i], -f, rcond=None)[0] for i, f in zip(active, F, strict=True)])
         step = np.clip(step, -0.05, 0.05)  # rad: a Newton step never jumps across the workspace
         alpha[active] += step
-        active = active[np.max(np.abs(step), axis=1) >= NEWTON_TOL_RAD]
+        size = np.max(np.abs(step), axis=1)
+        fresh[active] = size > CHORD_MIN_CONTRACTION * last[active]
+        last[active] = size
+        active = active[size >= NEWTON_TOL_RAD]
         if not len(active):
             break
-    return alpha, _stretch(m, alpha, theta)[0]
+    return alpha, _stretch(m, alpha, theta)[0], J
 
 
 class Simulated(NamedTuple):
-    """The neck re-simulated on the encoders: α (n, N), stretch x, ẋ and tension t (n, n_cables)."""
+    """The neck re-simulated on the encoders: α (n, N), stretch x, ẋ and tension t (n, n_cables);
+    ``jacobian`` (n, N, N) the equilibrium's, for the next solve to start from."""
 
     alpha: FloatArray
     x: FloatArray
     x_dot: FloatArray
     t: FloatArray
+    jacobian: FloatArray | None = None
 
 
 def simulated_stretch(m: Model, proc: Processed, k: FloatArray, lam: FloatArray,
-                      alpha0: FloatArray | None = None) -> Simulated:
+                      alpha0: FloatArray | None = None, jacobian0: FloatArray | None = None) -> Simulated:
     """The stretch the model (k, λ) predicts on the recorded encoder angles, quasi-static (the
     inertial terms M·α̈ + c of a second pass moved k and λ by less than 0.05 σ on the twin, at
     twice the cost). ``alpha0``: where Newton starts (default: the camera's α, which only seeds
-    the root it converges to)."""
-    alpha, x = neck_equilibrium(m, proc.theta, k, lam, proc.alpha if alpha0 is None else alpha0)
+    the root it converges to); ``jacobian0``: an earlier solve's Jacobians (:func:`neck_equilibrium`),
+    with that solve's α as ``alpha0``."""
+    alpha, x, J = neck_equilibrium(m, proc.theta, k, lam, proc.alpha if alpha0 is None else alpha0,
+                                   jacobian0=jacobian0)
     t = np.maximum(dynamics.cable_tension_law(k, lam, 0.0, x, 0.0), 0.0)
-    return Simulated(alpha, x, np.gradient(x, 1.0 / proc.rate_hz, axis=0), t)
+    return Simulated(alpha, x, np.gradient(x, 1.0 / proc.rate_hz, axis=0), t, J)

@@ -277,18 +277,18 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
     of first simulations by (k, λ), shared by the calls of one fit (every τ of the grid starts
     from the same least-squares values, hence the same first simulation)."""
     m = build(params, "variable")
-    vals, zs, alpha, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
+    vals, zs, prev, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
     while it < IV_MAX_ITERATIONS:
         it += 1
         k, lam = vals[:, 0].copy(), vals[:, 1].copy()
         key = (k.tobytes(), lam.tobytes())
-        if alpha is None and first is not None and key in first:
+        if prev is None and first is not None and key in first:
             sim = first[key]
         else:
-            sim = simulated_stretch(m, proc, k, lam, alpha)
-            if alpha is None and first is not None:
+            sim = simulated_stretch(m, proc, k, lam, *((None, None) if prev is None else (prev.alpha, prev.jacobian)))
+            if prev is None and first is not None:
                 first[key] = sim
-        alpha = sim.alpha
+        prev = sim
         for j, c in enumerate(cables):
             Z = _jacobian(vals[j], c.scale, frees[j], *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
             Q, _ = np.linalg.qr(Z / np.maximum(np.linalg.norm(Z, axis=0), 1e-300))

@@ -160,7 +160,7 @@ def _iterate_iv(proc: Processed, params: Params, cable_model: CableModelName, k:
         if change < IV_TOLERANCE:
             return dataclasses.replace(est, estimator=f"{est.estimator} (simulated model, {it} iterations)")
         k, lam = k_new, lam_new
-        sim = simulated_stretch(m, proc, k, lam, sim.alpha)
+        sim = simulated_stretch(m, proc, k, lam, sim.alpha, sim.jacobian)
         est = solve(sim)
     return dataclasses.replace(est, estimator=f"{est.estimator} (simulated model, not converged in {it} iterations)")
 
