@@ -130,6 +130,25 @@ def test_simulated_instruments_see_neither_the_camera_nor_the_forces(campaign, p
     assert not np.allclose(other.x_c, proc.x_c, atol=1e-5)  # the regressor itself does change
 
 
+
+def test_equilibrium_from_carried_jacobians_is_the_fresh_solves_root(campaign, params):
+    """The re-simulation's chord steps (Jacobians kept while steps shrink, carried to the next IV
+    iteration) land on the root a fresh solve finds; a carried Jacobian of the wrong shape, with a
+    NaN, or far off (here 100 times too large) costs steps, not the root."""
+    data, _ = campaign
+    proc = preprocess(data, params)
+    m = build(params, "variable")
+    k, lam = np.array(params.cables.variable.k), np.array(params.cables.variable.lam)
+    near = simulated_stretch(m, proc, 1.02 * k, 0.97 * lam)  # the previous IV iteration's (k, λ)
+    fresh = simulated_stretch(m, proc, k, lam)
+    assert near.jacobian is not None and near.jacobian.shape == (proc.n, m.n_joints, m.n_joints)
+    bad_nan = near.jacobian.copy()
+    bad_nan[3, 0, 0] = np.nan
+    for jac in (near.jacobian, 100.0 * near.jacobian, bad_nan, near.jacobian[:-1]):
+        carried = simulated_stretch(m, proc, k, lam, near.alpha, jac)
+        np.testing.assert_allclose(carried.alpha, fresh.alpha, atol=1e-6)
+        np.testing.assert_allclose(carried.x, fresh.x, atol=1e-8)
+
 def test_intervals_cover_the_truth_over_camera_seeds(campaign, params):
     """Issue 17's target on the twin: the ±2σ intervals of Table 2's k and λ cover the truth in at
     least 85 % of cases (8 parameters × 10 camera seeds), and every k and λ is within 10 %.
