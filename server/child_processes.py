@@ -105,14 +105,16 @@ def isolate(pid: int, kind: str) -> dict[str, Any]:
     (:func:`scheduling`). Call it right after the process started: it sets every thread the
     process has by then (the interpreter may already have started some, e.g. when this caller
     was slow to run), and the threads it starts later inherit. A thread that made itself nicer
-    than the default (the bridge's hold worker, which must not run at real-time priority) is
-    left as it is."""
+    than its process's main thread (the bridge's hold worker, which must not run at real-time
+    priority) is left as it is; the main thread's nice is the reference, not 0, because a
+    process started under ``nice`` passes its nice to every thread it starts."""
     refused: list[str] = []
     if os.environ.get(ENV_REALTIME, "1") == "0":
         refused.append(f"{ENV_REALTIME}=0: scheduling left alone")
     else:
         loop_cpus, other_cpus = cpu_split()
         is_loop = kind in LOOP_PRIORITY
+        base_nice = _nice(pid)
         for tid in _tids(pid):
             try:
                 os.sched_setaffinity(tid, loop_cpus if is_loop else other_cpus)
@@ -120,7 +122,7 @@ def isolate(pid: int, kind: str) -> dict[str, Any]:
                 continue  # a thread that ended meanwhile
             except OSError as exc:
                 refused.append(f"CPU affinity: {exc.strerror or exc}")
-            if not is_loop or (tid != pid and _nice(tid) > 0):
+            if not is_loop or (tid != pid and _nice(tid) > base_nice):
                 continue
             try:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))

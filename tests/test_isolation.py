@@ -79,10 +79,13 @@ def test_the_split_is_of_the_machine_not_of_the_caller_already_off_the_loop_cpu(
         os.sched_setaffinity(0, before)
 
 
-def test_every_thread_is_isolated_those_started_before_and_after_but_a_niced_one_is_left_alone():
+@pytest.mark.parametrize("started_nice", [0, 5], ids=["default", "under-nice-5"])
+def test_every_thread_is_isolated_those_started_before_and_after_but_a_niced_one_is_left_alone(started_nice):
     # A slow caller (a loaded machine, or a parent the child starves) isolates a process that
     # has already started threads: they get the loop's priority and CPU too, later ones inherit,
-    # and a thread that made itself nicer than the default (the bridge's hold worker) stays so.
+    # and a thread that made itself nicer than its process (the bridge's hold worker) stays so.
+    # Started under `nice`, every thread inherits that nice: they are still the process's own
+    # threads (this once left all but the main thread unisolated).
     code = ("import os, sys, threading, time\n"
             "def niced():\n"
             "    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)\n"
@@ -94,7 +97,8 @@ def test_every_thread_is_isolated_those_started_before_and_after_but_a_niced_one
             "sys.stdin.readline()\n"
             "threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
             "time.sleep(30)\n")
-    with subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) as p:
+    with subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                          preexec_fn=(lambda: os.nice(started_nice)) if started_nice else None) as p:
         try:
             assert p.stdout is not None and p.stdin is not None
             assert p.stdout.readline().strip() == "started"
