@@ -56,7 +56,7 @@ from scipy import optimize
 
 from twin.identification import uncertainty
 from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
-from twin.identification.instruments import simulated_stretch
+from twin.identification.instruments import Simulated, simulated_stretch
 from twin.identification.processing import Processed
 from twin.identification.regressors import ia_over_rho, param_names
 from twin.model.numeric import build
@@ -267,15 +267,16 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
 
 
 def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values: FloatArray, taus: FloatArray,
-                  frees: list[NDArray[np.bool_]], first: dict | None = None,
-                  ) -> tuple[FloatArray, list[FloatArray], int, bool, tuple[FloatArray, FloatArray]]:
+                  frees: list[NDArray[np.bool_]], first: dict | None = None, start: Simulated | None = None,
+                  ) -> tuple[FloatArray, list[FloatArray], int, bool, Simulated]:
     """Stage 2, IDIM-IV: Zᵀρ(p) = 0 per cable, Z the model's Jacobian on the stretch the model
     (k, λ) predicts from the encoders (twin.identification.instruments: free of camera noise),
     re-simulated with each new (k, λ) until they change by less than IV_TOLERANCE. Returns the
-    values, the instruments, the iterations, whether they converged and the last simulated
-    stretch (x (m), ẋ (m/s), (n, n_cables)) the instruments were computed on. ``first``: a cache
-    of first simulations by (k, λ), shared by the calls of one fit (every τ of the grid starts
-    from the same least-squares values, hence the same first simulation)."""
+    values, the instruments, the iterations, whether they converged and the last simulation
+    (:class:`Simulated`: the stretch x (m), ẋ (m/s) the instruments were computed on). ``first``: a
+    cache of first simulations by (k, λ), shared by the calls of one fit (every τ of the grid starts
+    from the same least-squares values, hence the same first simulation). ``start``: a simulation
+    at nearby values (another τ's) the first one starts from, instead of the camera's α."""
     m = build(params, "variable")
     vals, zs, prev, it = values.copy(), [np.zeros(0)] * len(cables), None, 0
     while it < IV_MAX_ITERATIONS:
@@ -285,7 +286,8 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
         if prev is None and first is not None and key in first:
             sim = first[key]
         else:
-            sim = simulated_stretch(m, proc, k, lam, *((None, None) if prev is None else (prev.alpha, prev.jacobian)))
+            warm = prev or start
+            sim = simulated_stretch(m, proc, k, lam, *((None, None) if warm is None else (warm.alpha, warm.jacobian)))
             if prev is None and first is not None:
                 first[key] = sim
         prev = sim
@@ -296,8 +298,8 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
             vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j], frees[j])
         change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
         if change < IV_TOLERANCE:
-            return vals, zs, it, True, (sim.x, sim.x_dot)
-    return vals, zs, it, False, (sim.x, sim.x_dot)
+            return vals, zs, it, True, sim
+    return vals, zs, it, False, sim
 
 
 def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, FloatArray] | None = None, *,
@@ -348,14 +350,14 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
         values[j], taus[j] = _least_squares(c, starts, taus_s, free)
     frees = [_hold_flat_shape(values[j], free) for j in range(nc)]
     zs: list[FloatArray] | None = None
-    sim: tuple[FloatArray, FloatArray] | None = None
+    sim: Simulated | None = None
     iterations, converged = 0, True
     if instruments:
         # τ again, from each τ's IV solution: the least-squares stage picked it on the noisy stretch,
         # with the noise's bias, and a wrong β, τ trades against k.
         costs = np.zeros((len(taus_s), nc))
         moments = np.zeros((len(taus_s), nc))
-        grid_values, first = [], {}
+        grid_values, grid_sims, first = [], [], {}
         by_moment = TAU_CHOICE == "iv" and len(taus_s) > 1  # a held τ (one grid point) has nothing to choose
         for i, tau in enumerate(taus_s):
             vals, _, it, _, sim_i = _instrumental(proc, params, cables, values, np.full(nc, tau), frees, first)
@@ -364,15 +366,18 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
                 r = _residual(vals[j], *c.args(tau))
                 costs[i, j] = float(r @ r)
                 if by_moment:
-                    z = _tau_column(vals[j], tau, c, sim_i[0][:, j], sim_i[1][:, j])
+                    z = _tau_column(vals[j], tau, c, sim_i.x[:, j], sim_i.x_dot[:, j])
                     moments[i, j] = float(z @ r) / max(float(np.linalg.norm(z) * np.linalg.norm(r)), 1e-300)
             grid_values.append(vals)
+            grid_sims.append(sim_i)
         best = np.argmin(costs, axis=0)
         chosen = np.array([grid_values[best[j]][j] for j in range(nc)])
         taus = refine_tau(np.asarray(taus_s, dtype=float), costs)
         if by_moment:
             taus, chosen = _iv_taus(np.asarray(taus_s, dtype=float), moments, costs, taus, chosen, grid_values)
-        values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, frees)  # Z at the chosen τ
+        # Z at the chosen τ, the neck's re-simulation started from the grid's nearest one
+        near = int(np.argmin(np.abs(np.log(np.asarray(taus_s, dtype=float)) - np.log(np.median(taus)))))
+        values, zs, it, ok, sim = _instrumental(proc, params, cables, chosen, taus, frees, start=grid_sims[near])
         iterations, converged = max(iterations, it), ok
     est = _estimate(proc, cables, values, taus, free, frees, zs, sim, sigma, threshold)
     how = (f"instrumental variables (simulated model, {'' if converged else 'NOT converged in '}"
@@ -473,14 +478,14 @@ def _hold_flat_shape(p: FloatArray, free: NDArray[np.bool_]) -> NDArray[np.bool_
 
 def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: FloatArray, free: NDArray[np.bool_],
               frees: list[NDArray[np.bool_]],
-              zs: list[FloatArray] | None, sim: tuple[FloatArray, FloatArray] | None, sigma: str,
+              zs: list[FloatArray] | None, sim: Simulated | None, sigma: str,
               threshold: float) -> Estimate:
     """The :class:`Estimate`: σ of the linearised estimator v − v_true ≈ −B·ρ at the solution,
     B = (ZᵀJ)⁻¹Zᵀ (Z = J for least squares), by the HAC sandwich with the rows' instants as the
     time index (at least the filter's memory as lag, as the pipeline's). τ counts as estimated:
     it was picked by the camera residual, i.e. by least squares, so J and Z both get its column
-    ∂ρ/∂τ (where β > 0; with β = 0, τ changes nothing). ``sim``: the simulated stretch of the
-    instruments, (x, ẋ) per cable, for Z's τ column."""
+    ∂ρ/∂τ (where β > 0; with β = 0, τ changes nothing). ``sim``: the instruments' simulation, whose
+    stretch x, ẋ gives Z's τ column."""
     nc, n_par = len(cables), len(SYMBOLS)
     min_lag = int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz))
     sd = np.zeros((nc, n_par))
@@ -496,7 +501,7 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
         Z = J if zs is None else zs[j]
         if values[j, 5] > BETA_BOUNDS[0] + 1e-9 * c.scale[5]:
             jt = _tau_column(values[j], taus[j], c)
-            zt = jt if sim is None else _tau_column(values[j], taus[j], c, sim[0][:, j], sim[1][:, j])
+            zt = jt if sim is None else _tau_column(values[j], taus[j], c, sim.x[:, j], sim.x_dot[:, j])
             J, Z = np.column_stack([J, jt]), np.column_stack([Z, zt])
         try:
             B = np.asarray(np.linalg.solve(Z.T @ J, Z.T), dtype=np.float64)[: int(fj.sum())]
