@@ -32,6 +32,12 @@ covered in ≥ 85 % of cases). The variants:
   parameter file's 0.08 and 0.09; ``gear-0-0`` is the fit without them (as shipped until 2026-11-26).
 - ``gear-undivided``: the gear's loss on the tension's slopes only, the winding rows' friction
   offset F₀ not divided by 1 − g_f.
+- ``reversal-guard-0.2s`` (any ``reversal-guard-Ss``): rows within S seconds of a reversal of
+  their motor dropped (the filtered force smears the friction's jump at a reversal over the
+  filter's memory, the model puts it at the filtered speed's zero).
+- ``filtered-shape``: eq. 37's shape a = (2/π)·arctan(c_f·θ̇) computed at 500 Hz on the encoders'
+  speed, then filtered and decimated as the force was (processing.preprocess), instead of taken
+  at the filtered, decimated speed; tabulated over 41 values of c_f, interpolated in log c_f.
 
     .venv/bin/python docs/identification/estimator_variants.py --truth robot --first 21 --seeds 20
     .venv/bin/python docs/identification/estimator_variants.py --variants shipped elastic-creep --seeds 3
@@ -134,6 +140,38 @@ def _patched(obj, name: str, value) -> Iterator[None]:
         setattr(obj, name, old)
 
 
+@contextlib.contextmanager
+def _filtered_shape() -> Iterator[None]:
+    """``filtered-shape``: the friction shape of every cable's rows from a table over c_f of
+    eq. 37 at 500 Hz, filtered and decimated as the force (tables keyed by the cable's θ̇ array)."""
+    from twin.identification.processing import DECIMATION, _butter
+
+    grid = np.geomspace(loadfriction.C_F_BOUNDS[0], loadfriction.C_F_BOUNDS[1], 41)
+    tables: dict[int, np.ndarray] = {}
+    cables_of = loadfriction._cables
+
+    def cables(proc, params, *args, **kw):
+        out = cables_of(proc, params, *args, **kw)
+        rate = 1.0 / float(np.median(np.diff(proc.fast_t_s)))
+        at = np.searchsorted(proc.fast_t_s[::DECIMATION], proc.t_s - 1e-9)
+        table = np.stack([signal.decimate(_butter(loadfriction._shape(cf, proc.fast_theta_dot), proc.cutoff_hz, rate),
+                                          DECIMATION, ftype="fir", axis=0, zero_phase=True)[at] for cf in grid])
+        for j, c in enumerate(out):
+            tables[id(c.theta_dot)] = table[:, :, j]
+        return out
+
+    def residual(p, x, xd, theta_dot, y, rows, tau_s, h, g_f=0.0, g_b=0.0):
+        u, lg = np.log(np.clip(p[6], grid[0], grid[-1])), np.log(grid)
+        i = int(np.clip(np.searchsorted(lg, u) - 1, 0, len(grid) - 2))
+        w = (u - lg[i]) / (lg[i + 1] - lg[i])
+        a = (1 - w) * tables[id(theta_dot)][i, rows] + w * tables[id(theta_dot)][i + 1, rows]
+        t = loadfriction._tension(p, x, xd, tau_s, h)[rows]
+        return ((1 + a * p[3]) * t + a * p[4] - g_b * np.maximum(-a, 0.0) * t) / (1 - g_f * np.maximum(a, 0.0)) - y[rows]
+
+    with _patched(loadfriction, "_cables", cables), _patched(loadfriction, "_residual", residual):
+        yield
+
+
 def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
     if "+" in name:  # several variants at once, e.g. elastic-creep+tau-2s
         stack = contextlib.ExitStack()
@@ -170,6 +208,21 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
     if name.startswith("gear-"):  # gear-F-B: the gear's meshing losses held at F (winding) and B (back-driven)
         g_f, g_b = (float(v) for v in name[5:].split("-", 1))
         return _patched(loadfriction, "gear_losses", lambda _params: (g_f, g_b))
+    if name.startswith("reversal-guard-"):  # rows within S s of a reversal of their motor dropped
+        rows_of, guard_s = loadfriction.fit_rows, float(name[15:-1])
+
+        def guarded(proc, params):
+            y, rows = rows_of(proc, params)
+            w = int(round(guard_s * proc.rate_hz))
+            flips = np.zeros(rows.shape, dtype=bool)
+            flips[1:] = np.sign(proc.theta_dot[1:]) != np.sign(proc.theta_dot[:-1])
+            near = np.stack([np.convolve(flips[:, j], np.ones(2 * w + 1), mode="same") > 0
+                             for j in range(rows.shape[1])], axis=1)
+            return y, rows & ~near
+
+        return _patched(loadfriction, "fit_rows", guarded)
+    if name == "filtered-shape":
+        return _filtered_shape()
     if name == "residual-tau":
         return _patched(loadfriction, "TAU_CHOICE", "residual")
     if name == "shared-tau":
@@ -190,7 +243,8 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
 
 VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
-            "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135", "gear-undivided")
+            "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135", "gear-undivided",
+            "reversal-guard-0.2s", "reversal-guard-0.4s", "filtered-shape")
 
 
 def _truth_changes(items: list[str] | None) -> dict[str, dict[str, object]]:
