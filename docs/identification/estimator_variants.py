@@ -35,6 +35,9 @@ covered in ≥ 85 % of cases). The variants:
 - ``reversal-guard-0.2s`` (any ``reversal-guard-Ss``): rows within S seconds of a reversal of
   their motor dropped (the filtered force smears the friction's jump at a reversal over the
   filter's memory, the model puts it at the filtered speed's zero).
+- ``offset-free``: an eighth parameter per cable, F_a (N, bounds ±10 N), a friction offset that
+  does not reverse with the motion (the direction asymmetry's): y = ((1 + a·μ)·t + a·F₀ + |a|·F_a
+  − g_b·a⁻·t)/(1 − g_f·a⁺), started at 0.
 - ``filtered-shape``: eq. 37's shape a = (2/π)·arctan(c_f·θ̇) computed at 500 Hz on the encoders'
   speed, then filtered and decimated as the force was (processing.preprocess), instead of taken
   at the filtered, decimated speed; tabulated over 41 values of c_f, interpolated in log c_f.
@@ -141,6 +144,31 @@ def _patched(obj, name: str, value) -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def _offset_free() -> Iterator[None]:
+    """``offset-free``: F_a appended to every cable's parameters (bounds, scale, start, residual)."""
+    cables_of, least_squares_of = loadfriction._cables, loadfriction._least_squares
+
+    def cables(*args, **kw):
+        out = cables_of(*args, **kw)
+        for c in out:
+            c.lo, c.hi, c.scale = np.append(c.lo, -10.0), np.append(c.hi, 10.0), np.append(c.scale, 1.0)
+        return out
+
+    def residual(p, x, xd, theta_dot, y, rows, tau_s, h, g_f=0.0, g_b=0.0):
+        a = loadfriction._shape(p[6], theta_dot[rows])
+        t = loadfriction._tension(p, x, xd, tau_s, h)[rows]
+        return (((1 + a * p[3]) * t + a * p[4] + np.abs(a) * p[7] - g_b * np.maximum(-a, 0.0) * t)
+                / (1 - g_f * np.maximum(a, 0.0)) - y[rows])
+
+    def least_squares(c, starts, taus_s, free=None):
+        return least_squares_of(c, [np.append(p0, 0.0) for p0 in starts], taus_s, free)
+
+    with (_patched(loadfriction, "SYMBOLS", (*loadfriction.SYMBOLS, "F_a")), _patched(loadfriction, "_cables", cables),
+          _patched(loadfriction, "_residual", residual), _patched(loadfriction, "_least_squares", least_squares)):
+        yield
+
+
+@contextlib.contextmanager
 def _filtered_shape() -> Iterator[None]:
     """``filtered-shape``: the friction shape of every cable's rows from a table over c_f of
     eq. 37 at 500 Hz, filtered and decimated as the force (tables keyed by the cable's θ̇ array)."""
@@ -221,6 +249,8 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
             return y, rows & ~near
 
         return _patched(loadfriction, "fit_rows", guarded)
+    if name == "offset-free":
+        return _offset_free()
     if name == "filtered-shape":
         return _filtered_shape()
     if name == "residual-tau":
@@ -244,7 +274,7 @@ def _variant(name: str, rate_hz: float) -> contextlib.AbstractContextManager:
 VARIANTS = ("shipped", "residual-tau", "elastic-creep", "full-drive", "cluster-5s", "cluster-10s", "cluster-20s", "bartlett-150",
             "bartlett-300", "min-force-12", "tau-2s", "force-offset-1.5",
             "shared-tau", "beta-0.05", "tau-2s+beta-0.05", "gear-0-0", "gear-0.04-0.045", "gear-0.12-0.135", "gear-undivided",
-            "reversal-guard-0.2s", "reversal-guard-0.4s", "filtered-shape")
+            "reversal-guard-0.2s", "reversal-guard-0.4s", "filtered-shape", "offset-free")
 
 
 def _truth_changes(items: list[str] | None) -> dict[str, dict[str, object]]:
