@@ -60,8 +60,9 @@ def neck_equilibrium(m: Model, theta: FloatArray, k: FloatArray, lam: FloatArray
     the model) while its steps shrink at least fourfold, and gets a fresh one where they do not.
     ``jacobian0``: the Jacobians of an earlier solve at nearby α and (k, λ) (the IV iteration's
     previous simulation), used from the first step. Why: the Jacobian cost three quarters of the
-    evaluations, and a warm start's root moves by little (benchmarks/identification.py: the same
-    roots to the tolerance at about a third of the evaluations)."""
+    evaluations, and a warm start's root moves by little. The same roots to the tolerance
+    (tests/test_identification_uncertainty.py); `auto` on a robot-truth campaign 2.7 → 1.7 s with
+    the IV's warm starts (benchmarks/identification.py)."""
     alpha = np.array(alpha0, dtype=float)
     inertial = np.zeros_like(alpha) if inertial is None else inertial
     n, N = alpha.shape
