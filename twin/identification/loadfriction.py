@@ -286,7 +286,7 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
         if prev is None and first is not None and key in first:
             sim = first[key]
         else:
-            warm = prev or start
+            warm = prev if prev is not None else start
             sim = simulated_stretch(m, proc, k, lam, *((None, None) if warm is None else (warm.alpha, warm.jacobian)))
             if prev is None and first is not None:
                 first[key] = sim
