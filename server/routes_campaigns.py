@@ -138,7 +138,7 @@ async def figure(campaign_id: str, name: str, request: Request) -> FileResponse:
         try:
             await run_in_threadpool(render_figure, manager.mcap_path(campaign_id), name, out)
         except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"cannot draw {name}: {exc}") from None
+            raise HTTPException(422, f"cannot draw {name}: {exc}") from None
     return FileResponse(out, media_type="image/png")
 
 
@@ -158,4 +158,4 @@ async def replay_campaign(campaign_id: str, request: Request, body: ReplayReques
     except Busy as exc:
         return _conflict(exc)
     except Exception as exc:  # noqa: BLE001 - e.g. an archive that cannot be read
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"cannot replay: {exc}") from None
+        raise HTTPException(422, f"cannot replay: {exc}") from None

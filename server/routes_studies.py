@@ -65,7 +65,7 @@ def _unknown(study_id: str) -> HTTPException:
 async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
     """Check and start a study; every spec is checked before anything runs."""
     if any(len(v) > 200 for v in body.vary):
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, "vary: each PATH=SPEC at most 200 characters")
+        raise HTTPException(422, "vary: each PATH=SPEC at most 200 characters")
     settings = request.app.state.settings
     folder = Path(settings.data_dir) / "studies"
     folder.mkdir(exist_ok=True)
@@ -78,7 +78,7 @@ async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
         study = study_or_error(**fields)
         study_id, total = await run_in_threadpool(_manager(request).create, study, body.workers)
     except StudyError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, str(exc)) from None
+        raise HTTPException(422, str(exc)) from None
     except StudyBusy as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     return {"id": study_id, "runs_total": total, "url": f"/api/studies/{study_id}"}

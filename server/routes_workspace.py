@@ -42,7 +42,7 @@ async def _entry_3x(request: Request) -> tuple[str, Entry]:
     try:
         return name, await run_in_threadpool(_cache(request).ensure_3x, params)
     except UnsupportedParameterSet as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"{name!r}: {exc}") from None
+        raise HTTPException(422, f"{name!r}: {exc}") from None
 
 
 def _figures(design: DesignName, entry_key: str, summary: dict[str, Any] | None) -> list[dict[str, str]]:
