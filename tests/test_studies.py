@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 
 import httpx
 import pytest
@@ -212,6 +213,23 @@ def test_an_identification_study_takes_an_estimator_and_counts_the_covered_inter
     # the estimator is the one asked for: the paper's eq. 55 (iv) and the load-friction fit differ on the robot truth
     assert rows["iv"]["k_rel_error[1]"] != pytest.approx(rows["loadfriction"]["k_rel_error[1]"], rel=1e-3)
 
+
+
+def test_a_study_on_a_scheduler_leaves_no_client_of_its_own_connected(nod, client, tmp_path) -> None:
+    """The console runs studies in a thread on a configured scheduler: each used to leave its Client
+    connected to the scheduler for as long as the console ran."""
+
+    def clients() -> int:
+        return client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.clients))
+
+    before = clients()
+    done: dict[str, object] = {}
+    worker = threading.Thread(target=lambda: done.update(
+        summary=run_study(_study(nod, 2), tmp_path / "s", scheduler=client.scheduler.address)))
+    worker.start()
+    worker.join(120)
+    assert not worker.is_alive() and done, "the study did not finish"
+    assert wait_until(lambda: clients() == before, 10), (before, clients())
 
 def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, tmp_path, monkeypatch) -> None:
     """Last in this file: the console's own Client in its thread leaves dask's shared event loop

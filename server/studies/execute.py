@@ -207,9 +207,9 @@ def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, cl
 
     from server.studies.run import run_one
 
-    own = None
-    if client is None:
-        client, own = _client(workers, scheduler)
+    own_client, cluster = client is None, None
+    if own_client:
+        client, cluster = _client(workers, scheduler)
     futures: list[Any] = []
     pending: list[dict[str, Any]] = []
     last_flush = time.monotonic()
@@ -236,6 +236,7 @@ def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, cl
             write_batch(out, pending)
         for fut in futures:
             fut.cancel()
-        if own is not None:
+        if own_client:  # a client made here (on --scheduler too: it held a connection open) and its cluster
             client.close()
-            own.close()
+            if cluster is not None:
+                cluster.close()
