@@ -319,8 +319,17 @@ class CampaignRecorder:
                 self._dropped += 1
                 return
             self._frames_queued += frame
+        msg_type = bus.message_type(key)
         try:
+            if msg_type is not None:  # a huge payload is refused before it is copied (bus.PAYLOAD_MAX_BYTES)
+                bus.check_payload_size(msg_type, len(sample.payload))
             self._queue.put_nowait((key, sample.payload.to_bytes(), now_ns))
+        except bus.BusDecodeError as exc:
+            with self._lock:
+                self._received += 1
+                self._frames_queued -= frame
+            self._reject(key, exc.reason)
+            return
         except queue.Full:
             with self._lock:
                 self._dropped += 1

@@ -362,6 +362,34 @@ PATTERNS: dict[str, type[BusMessage]] = {HEALTH_ALL: Health}
 
 MESSAGE_TYPES: tuple[type[BusMessage], ...] = (*REGISTRY.values(), *PATTERNS.values())
 
+#: The largest payload (bytes) a receiver decodes, by message type (others: ``PAYLOAD_MAX_BYTES``).
+#: Checked before a payload is copied out of Zenoh or parsed: a 20 MB ``ForceCommand`` held the
+#: bridge's callback (and the GIL) for 134 ms and delayed an e-stop by 175 ms (audit of
+#: 2026-11-26). The real-time messages are a few hundred bytes; a frame is base64 in JSON; a
+#: request carries a trajectory and a parameter set.
+PAYLOAD_MAX_BYTES = 64 * 1024
+REAL_TIME_PAYLOAD_MAX_BYTES = 8 * 1024
+PAYLOAD_MAX_BYTES_BY_TYPE: dict[type[BusMessage], int] = {
+    MotorState: REAL_TIME_PAYLOAD_MAX_BYTES,
+    ForceCommand: REAL_TIME_PAYLOAD_MAX_BYTES,
+    EStop: REAL_TIME_PAYLOAD_MAX_BYTES,
+    CameraFrame: 4 * (FRAME_DATA_MAX_BYTES // 3 + 1) + PAYLOAD_MAX_BYTES,
+    CampaignRequest: TRAJECTORY_JSON_MAX_BYTES + PARAMETERS_TOML_MAX_BYTES + 4096,
+}
+
+
+def max_payload_bytes(msg_type: type[BusMessage]) -> int:
+    """The largest payload (bytes) of ``msg_type`` a receiver decodes."""
+    return PAYLOAD_MAX_BYTES_BY_TYPE.get(msg_type, PAYLOAD_MAX_BYTES)
+
+
+def check_payload_size(msg_type: type[BusMessage], n_bytes: int) -> None:
+    """Raise :class:`BusDecodeError` if a payload of ``n_bytes`` is too large for ``msg_type``
+    (call it before copying the payload out of Zenoh)."""
+    limit = max_payload_bytes(msg_type)
+    if n_bytes > limit:
+        raise BusDecodeError(f"{msg_type.__name__}: payload of {n_bytes} bytes, more than {limit}")
+
 # A chunk of a process kind or instance name: safe in a key expression and in a file name.
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -509,6 +537,7 @@ def decode(type_or_key: type[M] | str, payload: bytes | bytearray | memoryview) 
     name = msg_type.__name__
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise BusDecodeError(f"{name}: payload must be bytes, got {type(payload).__name__}")
+    check_payload_size(msg_type, len(payload))
     try:
         version = _envelope_decoder.decode(payload).v
     except msgspec.ValidationError as exc:
@@ -539,6 +568,20 @@ def check_force_command(cmd: ForceCommand, n_motors: int, f_min_N: float, f_max_
     for i, f in enumerate(cmd.force_N):
         if not (f_min_N <= f <= f_max_N):  # also false for NaN
             raise BusDecodeError(f"ForceCommand: force_N[{i}] = {f} N outside [{f_min_N}, {f_max_N}] N")
+
+
+def check_motor_state(msg: MotorState, n_motors: int, f_max_N: float) -> None:
+    """Range check of a decoded motor state (receiver side): one angle and one applied force per
+    motor, the forces within [0, ``f_max_N``] (the bridge clamps what it applies; a wrong-length
+    or 1e308 N state made the controller raise or command 1e308 N: audit of 2026-11-26).
+    Raises :class:`BusDecodeError`."""
+    if len(msg.theta_rad) != n_motors:
+        raise BusDecodeError(f"MotorState: {len(msg.theta_rad)} angles for {n_motors} motors")
+    if len(msg.force_applied_N) != n_motors:
+        raise BusDecodeError(f"MotorState: {len(msg.force_applied_N)} applied forces for {n_motors} motors")
+    for i, f in enumerate(msg.force_applied_N):
+        if not (0.0 <= f <= f_max_N):
+            raise BusDecodeError(f"MotorState: force_applied_N[{i}] = {f} N outside [0, {f_max_N}] N")
 
 
 def check_camera_alpha(msg: CameraAlpha, n_joints: int) -> None:
@@ -624,6 +667,8 @@ __all__ = [
     "MOTOR_COMMAND",
     "MOTOR_STATE",
     "PATTERNS",
+    "PAYLOAD_MAX_BYTES",
+    "PAYLOAD_MAX_BYTES_BY_TYPE",
     "PREFIX",
     "REGISTRY",
     "TWIN_TRUTH",
@@ -645,6 +690,8 @@ __all__ = [
     "check_camera_alpha",
     "check_camera_frame",
     "check_force_command",
+    "check_motor_state",
+    "check_payload_size",
     "decode",
     "encode",
     "health_key",
@@ -652,6 +699,7 @@ __all__ = [
     "json_schema_bytes",
     "key_of_topic",
     "liveliness_key",
+    "max_payload_bytes",
     "mcap_topic",
     "message_type",
     "parse_liveliness_key",

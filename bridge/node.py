@@ -58,7 +58,7 @@ import zenoh
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
 from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
-from bridge.session import BusPublisher, liveliness_token, publisher, subscribe_latest
+from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, subscribe_latest
 
 log = logging.getLogger("xneck.bridge")
 
@@ -327,7 +327,7 @@ class BridgeNode:
     def _on_estop(self, sample: zenoh.Sample) -> None:
         # Zenoh callback thread: decode and queue only; the loop acts on it within one tick.
         try:
-            msg = bus.decode(bus.EStop, sample.payload.to_bytes())
+            msg = bus.decode(bus.EStop, payload_of(sample, bus.EStop))
             event = (msg.engaged, _bounded(msg.reason) or "e-stop")
             valid = True
         except bus.BusDecodeError as exc:
@@ -393,7 +393,8 @@ class BridgeNode:
         decision = self.safety.step(Inputs(
             command_N=fresh.force_N if fresh is not None else None,
             source=self._source_text(fresh) if fresh is not None else "",
-            command_age_s=(time.time_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
+            command_age_s=(time.monotonic_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
+            sender=fresh.sender if fresh is not None else "",
             # a tick with a valid command neither starts nor continues a hold
             hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered))
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):

@@ -14,6 +14,11 @@ Clamping
 Activation
     The drives start disabled (``inactive``: zero force). The first valid command enables them
     (``active``).
+Bumpless
+    Every enable (the first command, leaving a hold, after an e-stop release) and every change of
+    the commanding controller (a new owner's first command) starts from the forces applied now and
+    moves at most ``max_force_step_N`` per tick until the command is reached; then commands pass
+    through.
 Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only) while at least
     ``command_timeout_states`` states went out unanswered (the node counts them), the forces ramp
@@ -29,7 +34,8 @@ Speed
     only :class:`Decision` hands an array to the driver.
 E-stop
     An engaged e-stop disables the drives (``disabled``, zero force) and every command is ignored
-    until it is released; then the drives are ``inactive`` until the next valid command. The node
+    until it is released; then the drives are ``inactive`` until the next valid command. A command
+    in a tick whose events engage (or release) the e-stop is ignored: it may predate them. The node
     turns an undecodable e-stop payload into an engaged event (fail safe).
 """
 
@@ -92,7 +98,8 @@ class Inputs(NamedTuple):
     """The facts of one tick (a tuple: built every tick, it must be cheap).
 
     ``command_N``: the forces of a valid command received since the last step (None if none);
-    ``source``: its sender's law, for the log. ``command_age_s``: age of the newest valid
+    ``source``: its sender's law, for the log; ``sender``: the controller instance that sent it
+    (a change of sender is ramped, module docstring). ``command_age_s``: age of the newest valid
     command (None if none ever arrived). ``states_unanswered``: states published since the newest
     valid command arrived (None: not counted, the age alone decides). ``estop``: e-stop events since
     the last step. ``hold_N``: fresh hold forces of the encoder angles (computed off the tick), None
@@ -102,6 +109,7 @@ class Inputs(NamedTuple):
     command_N: Sequence[float] | None = None
     source: str = ""
     command_age_s: float | None = None
+    sender: str = ""
     estop: Sequence[EStopEvent] = ()
     hold_N: Sequence[float] | None = None
     states_unanswered: int | None = None
@@ -138,6 +146,7 @@ class Safety:
         self._hold_ready = True  # False while a hold keeps the applied forces, waiting for hold forces
         self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
+        self._sender = ""  # the controller whose commands the applied forces follow
         self.clamped = self.holds = 0
         self._events: list[tuple[int, str]] = []
 
@@ -168,7 +177,7 @@ class Safety:
     def step(self, inputs: Inputs) -> Decision:
         """Decide this tick's drive state and forces from its facts."""
         if (self.drive == "active" and inputs.command_N is not None and not inputs.estop
-                and not self._bumpless):
+                and not self._bumpless and inputs.sender == self._sender):
             # The steady state, nearly every tick: the rules below reduce to clamp and pass through.
             self.force = self._target = self.clamp(inputs.command_N)
             return Decision("active", np.array(self.force), True, "", self.estop_engaged, self.estop_reason,
@@ -176,8 +185,8 @@ class Safety:
         cfg = self.config
         was_disabled = self.drive == "disabled"
         self.apply_estop(inputs.estop)
-        if self.drive == "disabled" or was_disabled:
-            pass  # a command never outlives the e-stop, nor one that may predate its release
+        if self.drive == "disabled" or was_disabled or any(engaged for engaged, _ in inputs.estop):
+            pass  # a command never outlives the e-stop, nor one that may predate its engage or release
         elif inputs.command_N is not None:
             if self.drive == "inactive":
                 self._log(logging.INFO, f"first valid command from {inputs.source!r}: drives enabled, "
@@ -185,8 +194,12 @@ class Safety:
             elif self.drive == "hold":
                 self._log(logging.INFO, f"valid commands from {inputs.source!r} again: leaving hold, "
                                         f"ramping at {cfg.max_force_step_N:g} N per tick")
-            if self.drive != "active":
-                self._bumpless = True  # every enable starts from the forces applied now
+            elif inputs.sender != self._sender:
+                self._log(logging.WARNING, f"controller {inputs.sender!r} commands now (was {self._sender!r}): "
+                                           f"ramping at {cfg.max_force_step_N:g} N per tick")
+            if self.drive != "active" or inputs.sender != self._sender:
+                self._bumpless = True  # every enable and every new sender starts from the forces applied now
+            self._sender = inputs.sender
             self.drive, self.hold_reason = "active", ""
             self._target = self.clamp(inputs.command_N)
         elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:

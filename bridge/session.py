@@ -176,6 +176,14 @@ def publisher(session: zenoh.Session, key: str, *, block: bool = False) -> BusPu
     return BusPublisher(session, key, msg_type, block)
 
 
+def payload_of(sample: zenoh.Sample, msg_type: type[bus.BusMessage]) -> bytes:
+    """The bytes of ``sample``, a message of ``msg_type``; :class:`bus.BusDecodeError` if the payload
+    is larger than the contract allows for it, found before it is copied (a huge payload must not
+    hold a callback)."""
+    bus.check_payload_size(msg_type, len(sample.payload))
+    return sample.payload.to_bytes()
+
+
 @dataclass(frozen=True)
 class ReceiveStats:
     """Counters of one subscriber. ``rejected`` payloads failed decoding or the receiver's check."""
@@ -225,9 +233,11 @@ class LatestSubscriber(Generic[M]):
         self._sub = session.declare_subscriber(key, handler)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        now_ns = time.time_ns()
+        now_ns = time.time_ns()  # wall clock: compared with the sender's stamps (``on_message``)
+        # monotonic: which message is newer and how old it is must survive a step of the wall clock
+        mono_ns = time.monotonic_ns()
         try:
-            msg = bus.decode(self.msg_type, sample.payload.to_bytes())
+            msg = bus.decode(self.msg_type, payload_of(sample, self.msg_type))
             if self._validate is not None:
                 self._validate(msg)
         except bus.BusDecodeError as exc:
@@ -240,7 +250,7 @@ class LatestSubscriber(Generic[M]):
             self._received += 1
             self._accepted += 1
             self._latest = msg
-            self._latest_pair = (msg, now_ns)
+            self._latest_pair = (msg, mono_ns)
             self._cond.notify_all()
         if self._on_message is not None:
             self._on_message(msg, now_ns)
@@ -264,7 +274,8 @@ class LatestSubscriber(Generic[M]):
             return self._latest
 
     def latest_with_time(self) -> tuple[M | None, int]:
-        """The latest valid message and its receive time (``time.time_ns()``; 0 if none).
+        """The latest valid message and its receive time (``time.monotonic_ns()``, so that a step
+        of the wall clock neither makes a new message look old nor an old one new; 0 if none).
         Lock-free (one attribute read): safe from a real-time loop."""
         return self._latest_pair
 
@@ -321,5 +332,5 @@ def subscribe_latest(
 __all__ = [
     "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "REAL_TIME_KEYS", "RELIABLE_KEYS",
     "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "free_tcp_port", "liveliness_token", "open_session", "publisher", "subscribe_latest", "zenoh_config",
+    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "subscribe_latest", "zenoh_config",
 ]

@@ -47,7 +47,7 @@ import zenoh
 
 from bridge import bus
 from bridge.archive import CAMPAIGN, CampaignRecorder, is_complete, read_campaign
-from bridge.session import free_tcp_port, open_session, publisher
+from bridge.session import free_tcp_port, open_session, payload_of, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
@@ -203,7 +203,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
 
     def on_event(sample) -> None:
         try:
-            ev = bus.decode(bus.CampaignEvent, sample.payload.to_bytes())
+            ev = bus.decode(bus.CampaignEvent, payload_of(sample, bus.CampaignEvent))
         except bus.BusDecodeError:
             return
         if ev.campaign_id == campaign_id:

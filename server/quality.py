@@ -45,6 +45,7 @@ from typing import Any
 import zenoh
 
 from bridge import bus
+from bridge.session import payload_of
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,7 @@ class CampaignMonitor:
     # -- callbacks (Zenoh threads: decode, count, nothing else) -----------------------------
     def _decode(self, msg_type: type[bus.BusMessage], sample: zenoh.Sample) -> Any:
         try:
-            return bus.decode(msg_type, sample.payload.to_bytes())
+            return bus.decode(msg_type, payload_of(sample, msg_type))
         except bus.BusDecodeError:
             with self._lock:
                 self.rejected += 1

@@ -291,6 +291,95 @@ def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_
             del tokens
 
 
+
+def _send_and_tick(node, pub, seq, force, sender):
+    """Publish one command of ``sender`` until the node has taken it, then tick once."""
+    n = node.commands.stats.accepted
+    assert _put_until(pub, _command(seq, force, node.epoch, sender=sender), lambda: node.commands.stats.accepted > n,
+                      timeout_s=5.0), node.commands.stats.last_reject_reason
+    node.tick()
+
+
+def test_a_new_owner_within_the_watchdogs_timeout_is_ramped_to_not_stepped(params):
+    """Audit of 2026-11-26: the owner's session ended and a second controller's command arrived
+    within the 10 ms watchdog: the bridge applied it on the next tick, a 60 N step. A new owner's
+    first command is an enable like any other: at most ``max_force_step_N`` per tick."""
+    with bus_pair() as (_hub, _hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)  # the handover, not the watchdog, is tested
+        ctl_a, ctl_b = connect(), connect()
+        tokens = [_as_controller(ctl_a, "ctl-a"), _as_controller(ctl_b, "ctl-b")]
+        pub_a, pub_b = publisher(ctl_a, bus.MOTOR_COMMAND), publisher(ctl_b, bus.MOTOR_COMMAND)
+        applied = []
+        try:
+            for k in range(80):
+                _send_and_tick(node, pub_a, k + 1, [30.0] * 4, "ctl-a")
+            applied.append(node.force.copy())
+            assert applied[-1].tolist() == [30.0] * 4
+            ctl_a.close()
+            assert wait_until(lambda: node.owner == "", 5.0)
+            for k in range(80):
+                _send_and_tick(node, pub_b, k + 1, [90.0, 2.0, 90.0, 2.0], "ctl-b")
+                applied.append(node.force.copy())
+        finally:
+            node.shutdown()
+            del tokens
+        steps = np.abs(np.diff(np.array(applied), axis=0)).max(axis=1)
+        print(f"\nlargest force step per tick across the handover: {steps.max():.2f} N")
+        assert steps.max() <= 1.0 + 1e-9
+        assert applied[-1].tolist() == [90.0, 2.0, 90.0, 2.0]
+
+
+def test_a_wall_clock_step_back_does_not_deafen_the_bridge(params, monkeypatch):
+    """Audit of 2026-11-26: receive times were wall-clock times, so after the clock stepped back
+    (an NTP step; the BeagleBone has no RTC battery) every new command looked older than the last
+    one taken and was ignored, with no hold: 60 s back ignored every command. Receive times and
+    the watchdog's age are on the monotonic clock."""
+    real_ns = time.time_ns
+    offset = [0]
+    monkeypatch.setattr(time, "time_ns", lambda: real_ns() - offset[0])
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _node(connect(), params, command_timeout_s=5.0)
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        try:
+            for k in range(40):
+                _send_and_tick(node, pub, k + 1, [30.0] * 4, "test")
+            assert node.force.tolist() == [30.0] * 4
+            offset[0] = 60 * 10**9  # the wall clock steps back by 60 s
+            for k in range(40):
+                _send_and_tick(node, pub, 100 + k, [60.0] * 4, "test")
+            assert node.mode == "active"
+            assert node.force.tolist() == [60.0] * 4  # obeyed (30 ticks of the 1 N ramp, then reached)
+        finally:
+            node.shutdown()
+
+
+def test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages(params):
+    """Audit of 2026-11-26: a 20 MB ForceCommand was copied and parsed in the bridge's callback
+    (the loop stalled 134 ms, an e-stop took 175 ms). Payloads beyond the contract's bound for
+    their type are refused by their size; an e-stop that cannot be read counts as engaged."""
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _node(connect(), params, command_timeout_s=5.0)
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        try:
+            _send_and_tick(node, pub, 1, [20.0] * 4, "test")
+            huge = bus.encode(_command(2, [60.0] * 4, node.epoch)).replace(b'"source":"law2"',
+                                                                           b'"source":"' + b"x" * 2_000_000 + b'"')
+            n = node.commands.stats.rejected
+            hub_session.put(bus.MOTOR_COMMAND, huge)
+            assert wait_until(lambda: node.commands.stats.rejected > n, 5.0)
+            assert "ForceCommand: payload of 2000" in node.commands.stats.last_reject_reason
+            assert node.commands.latest().force_N == [20.0] * 4
+            release = bus.encode(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="x" * 100_000))
+            hub_session.put(bus.ESTOP, release)
+            assert wait_until(lambda: node.estop_received >= 1, 5.0)
+            node.tick()
+            assert node.mode == "disabled" and node.estop_rejected == 1
+            assert "payload of" in node.estop_reason
+        finally:
+            node.shutdown()
+
 # -- the hold forces off the tick (issue 20) ------------------------------------------------------
 
 
@@ -478,12 +567,14 @@ def test_every_bridge_run_has_its_own_epoch(params):
 
 
 def test_an_estop_reason_from_the_bus_is_bounded_before_it_goes_into_every_state(params):
+    # 5 kB: within the e-stop's payload bound (a larger payload is refused unread and engages,
+    # test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages)
     with bus_pair() as (_hub, hub_session, connect):
         node = _node(connect(), params, command_timeout_s=5.0)
         estop_pub = publisher(hub_session, bus.ESTOP)
         states = Collector(hub_session, bus.MOTOR_STATE)
         try:
-            assert _put_until(estop_pub, bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="x" * 100_000),
+            assert _put_until(estop_pub, bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="x" * 5_000),
                               lambda: node.estop_received >= 1)
             node.tick()
             assert wait_until(lambda: states.messages() and states.messages()[-1].estop_engaged, 5.0)

@@ -170,6 +170,18 @@ def test_an_undecodable_estop_counts_as_engaged_and_a_release_while_running_chan
     assert d.drive == "disabled" and d.estop_reason.startswith("malformed e-stop message")
 
 
+
+def test_an_estop_engaged_and_released_within_one_tick_does_not_let_an_older_command_enable():
+    """Audit of 2026-11-26: with [engage, release] in one tick's events, a command received before
+    the engage came out ``active``: the drives were never switched off. A command in a tick that
+    saw an engage may predate it, as one in a tick that saw a release may predate that."""
+    s = machine()
+    for _ in range(40):
+        s.step(cmd([30.0] * N))
+    d = s.step(cmd([30.0] * N, estop=[(True, "button"), (False, "cleared")]))
+    assert (d.drive, d.enabled, d.force_N.tolist()) == ("inactive", False, [0.0] * N)
+    assert s.step(cmd([30.0] * N)).drive == "active"  # the next command, after the release, enables
+
 # -- bumpless enable (issue 13, finding 1) ---------------------------------------------------------
 
 FINDING_1 = [81.0, 22.0, 8.0, 28.0]  # the first command seen after an e-stop release
@@ -243,3 +255,21 @@ def test_an_oversized_or_odd_sender_never_becomes_the_owner():
     assert own.owner == ""
     huge = own.admit("y" * 100_000, "e1")
     assert len(huge) < 200
+
+
+def test_a_new_owners_first_command_is_ramped_to_not_stepped():
+    """Audit of 2026-11-26: the owner's session ended and a second controller's command came within
+    the watchdog's timeout: the applied forces stepped from 30 N to [90, 2, 90, 2] N in one tick
+    (91.5 N in a closed loop). A change of sender is an enable like any other: bumpless."""
+    s = machine(max_force_step_N=1.0)
+    for _ in range(60):
+        s.step(cmd([30.0] * N, sender="ctl-a"))
+    applied = [s.step(cmd([30.0] * N, sender="ctl-a")).force_N]
+    d = s.step(cmd([90.0, 2.0, 90.0, 2.0], sender="ctl-b"))
+    assert any("ctl-b" in m and "ramping" in m for _lvl, m in d.events)
+    applied.append(d.force_N)
+    applied += [s.step(cmd([90.0, 2.0, 90.0, 2.0], sender="ctl-b")).force_N for _ in range(80)]
+    assert _max_step(applied) <= 1.0 + 1e-12
+    assert applied[-1].tolist() == [90.0, 2.0, 90.0, 2.0]  # reached, then passed through
+    # The same sender's commands pass through at once, as before.
+    assert s.step(cmd([40.0] * N, sender="ctl-b")).force_N.tolist() == [40.0] * N

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 
 import msgspec
@@ -100,6 +101,21 @@ def test_decode_never_raises_anything_else() -> None:
         bus.decode(dict, GOOD_STATE)  # type: ignore[arg-type]
 
 
+def test_decode_refuses_payloads_larger_than_their_type_allows() -> None:
+    """Audit of 2026-11-26: a 20 MB ForceCommand was parsed in the bridge's callback (134 ms). Every
+    type has a size bound, a few kB for the real-time ones; a request at its fields' bounds fits."""
+    for msg_type in bus.MESSAGE_TYPES:
+        limit = bus.max_payload_bytes(msg_type)
+        with pytest.raises(bus.BusDecodeError, match=f"{msg_type.__name__}: payload of {limit + 1} bytes, more than"):
+            bus.decode(msg_type, b" " * (limit + 1))
+    assert bus.max_payload_bytes(bus.ForceCommand) <= 8192 and bus.max_payload_bytes(bus.EStop) <= 8192
+    trajectory = '{"waypoints_deg": [' + ",".join(["[1.5, -2.25, 3.125]"] * 12000) + "]}"
+    trajectory = trajectory[: bus.TRAJECTORY_JSON_MAX_BYTES - 2] + "]}"
+    request = bus.CampaignRequest(seq=1, stamp_s=1.0, campaign_id="c-1", action="start", kind="control", law=2,
+                                  trajectory_json=trajectory, parameters_toml="x" * bus.PARAMETERS_TOML_MAX_BYTES)
+    assert bus.decode(bus.CampaignRequest, bus.encode(request)) == request
+
+
 def test_encode_refuses_non_finite_floats() -> None:
     with pytest.raises(bus.BusEncodeError, match=r"force_N\[1\] = nan"):
         bus.encode(bus.ForceCommand(seq=0, stamp_s=0.0, force_N=[1.0, float("nan")], source="test", sender="t", epoch="e"))
@@ -114,6 +130,23 @@ def test_force_command_range_check() -> None:
         bus.check_force_command(cmd, 4, 0.0, 50.0)
     with pytest.raises(bus.BusDecodeError, match=r"force_N\[2\] = 50.0 N outside"):
         bus.check_force_command(cmd, 3, 0.0, 40.0)
+
+
+def test_motor_state_range_check() -> None:
+    """Audit of 2026-11-26: a state with 7 applied forces made the controller raise (the process
+    ended); one with 1e308 N made it command 1e308 N, refused by the bridge tick after tick."""
+    ok = sample_messages()[bus.MOTOR_STATE]
+    assert isinstance(ok, bus.MotorState)
+    bus.check_motor_state(ok, 4, 100.0)
+    for bad, reason in [
+        (msgspec.structs.replace(ok, theta_rad=[0.0] * 3), "3 angles for 4 motors"),
+        (msgspec.structs.replace(ok, force_applied_N=[]), "0 applied forces for 4 motors"),
+        (msgspec.structs.replace(ok, force_applied_N=[1.0] * 7), "7 applied forces"),
+        (msgspec.structs.replace(ok, force_applied_N=[1e308] * 4), "force_applied_N[0] = 1e+308 N outside [0, 100.0]"),
+        (msgspec.structs.replace(ok, force_applied_N=[1.0, -0.5, 1.0, 1.0]), "force_applied_N[1] = -0.5 N"),
+    ]:
+        with pytest.raises(bus.BusDecodeError, match=re.escape(reason)):
+            bus.check_motor_state(bad, 4, 100.0)
 
 
 def test_keys_and_config() -> None:
@@ -189,6 +222,8 @@ def test_malformed_commands_are_counted_and_never_crash_the_subscriber(
         (valid.replace(b"[1.0,2.0,3.0]", b"[1.0,2.0]"), "2 forces for 3 motors"),
         (valid.replace(b"[1.0,", b"[-1.0,"), "force_N[0] = -1.0 N outside"),
         (valid.replace(b"3.0]", b"41.0]"), "force_N[2] = 41.0 N outside"),
+        # audit of 2026-11-26: refused by its size, before it is copied or parsed
+        (valid.replace(b'"source":"test"', b'"source":"' + b"x" * 2_000_000 + b'"'), "more than 8192"),
     ]
     for i, (payload, reason_part) in enumerate(bad_payloads, start=1):
         assert payload != valid, f"payload {i} is not malformed"

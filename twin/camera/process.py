@@ -26,7 +26,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import liveliness_token, publisher
+from bridge.session import liveliness_token, payload_of, publisher
 from twin.camera.detect import Detection, Detector
 from twin.camera.frames import FrameDecimator, frame_message
 from twin.camera.render import Renderer
@@ -145,7 +145,7 @@ class CameraNode:
 
         def on_truth(sample: zenoh.Sample) -> None:
             try:
-                truth = bus.decode(bus.Truth, sample.payload.to_bytes())
+                truth = bus.decode(bus.Truth, payload_of(sample, bus.Truth))
                 if len(truth.alpha_rad) != n:
                     raise bus.BusDecodeError(f"Truth: {len(truth.alpha_rad)} angles for {n} joints")
             except bus.BusDecodeError as exc:
