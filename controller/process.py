@@ -52,7 +52,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import liveliness_token, publisher, subscribe_latest
+from bridge.session import liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.service import CampaignService, Output, Prepared, Refused, StateGate, prepare
 from controller.timing import TickTimes, timing_message
@@ -63,7 +63,6 @@ log = logging.getLogger("xneck.controller")
 
 LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
 LAG_FLOOR_RELAX_NS = 2_000  # ns per state the floor of arrival − stamp lets up (clock drift up to 1 ms/s)
-MAX_REQUEST_BYTES = bus.TRAJECTORY_JSON_MAX_BYTES + bus.PARAMETERS_TOML_MAX_BYTES + 4096  # larger: not decoded
 
 
 def below_the_tick() -> None:
@@ -115,16 +114,15 @@ class ControllerNode:
                                        campaign_id=config.campaign_id or f"c-{uuid.uuid4().hex[:8]}",
                                        kind=config.campaign_kind)
         self._robot, self._own_trajectory = params, trajectory
-        n_motors = self.service.ctl.model.n_cables
+        n_motors, f_max = self.service.ctl.model.n_cables, float(params.limits.f_max)
         self.instance = config.instance or f"controller-{uuid.uuid4().hex[:6]}"
-        self.gate = StateGate(skew_s=config.skew_s)
+        self.gate = StateGate(skew_s=config.skew_s, rate_hz=None if config.lockstep else law.rate_hz)
         self._gate_lock = threading.Lock()
 
         def check_state(msg: bus.MotorState) -> None:
             # Zenoh's callback thread: a state that fails here never becomes the latest one, so a
             # forged or foreign state cannot stand in for the bridge's (counted with its reason).
-            if len(msg.theta_rad) != n_motors:
-                raise bus.BusDecodeError(f"MotorState: {len(msg.theta_rad)} angles for {n_motors} motors")
+            bus.check_motor_state(msg, n_motors, f_max)
             with self._gate_lock:
                 reason = self.gate.admit(msg, time.monotonic())
             if reason:
@@ -270,11 +268,7 @@ class ControllerNode:
         try:
             with self._req_lock:
                 self.requests_received += 1
-            payload = sample.payload.to_bytes()
-            if len(payload) > MAX_REQUEST_BYTES:
-                self._reject_request(f"payload of {len(payload)} bytes, more than {MAX_REQUEST_BYTES}")
-                return
-            self._inbox.put_nowait(bus.decode(bus.CampaignRequest, payload))
+            self._inbox.put_nowait(bus.decode(bus.CampaignRequest, payload_of(sample, bus.CampaignRequest)))
         except bus.BusDecodeError as exc:
             self._reject_request(exc.reason)
         except queue.Full:
@@ -369,7 +363,8 @@ class ControllerNode:
             self._state = first
             if self._service:
                 self._serve_requests(first.stamp_s)
-            arrival_ns = self.states.latest_with_time()[1] or time.time_ns()
+            received_ns = self.states.latest_with_time()[1]  # monotonic: the wall clock's arrival time
+            arrival_ns = time.time_ns() - (time.monotonic_ns() - received_ns if received_ns else 0)
             self._stale_in_burst(first, arrival_ns)  # the floor of arrival − stamp starts with it
             self._react(first, arrival_ns, time.time_ns(), 0.0)
             self._live = True
@@ -479,9 +474,11 @@ class ControllerNode:
         period_ns = 1e9 / svc.law.rate_hz
         was_latched, reason_before = svc.latched, svc.hold_reason
         svc.drive_reason = state.estop_reason if state.drive == "disabled" else state.hold_reason
-        if state.owner and state.owner != self.instance:
+        obeyed = not state.owner or state.owner == self.instance
+        if not obeyed:
             svc.drive_reason = f"the bridge obeys controller {state.owner}, not this one"
-        out = svc.control(np.asarray(state.theta_rad), state.stamp_s, state.drive, np.asarray(state.force_applied_N))
+        out = svc.control(np.asarray(state.theta_rad), state.stamp_s, state.drive, np.asarray(state.force_applied_N),
+                          obeyed)
         law_ns = time.time_ns()
         data = self._encode_command(out.force_N, state)
         encoded_ns = time.time_ns()

@@ -199,20 +199,47 @@ class StateGate:
     state of a new run (a restarted bridge) or of a stepped clock once the next state confirms it
     (same run, not earlier, not ahead of it). A forged run or stamp beside a live bridge is never
     taken, nor is a lone one that arrives first after a stall of the controller's CPU. ``now_s``:
-    a monotonic clock (s)."""
+    a monotonic clock (s).
 
-    def __init__(self, skew_s: float = 0.05, rebind_s: float = 0.25) -> None:
+    The first state ever is taken as it comes (there is nothing to compare it with), so a stray
+    run seen first could keep the gate, fed at a few Hz, away from the bridge (audit of
+    2026-11-26). With ``rate_hz`` (the law's), a rival run that for ``confirm_s`` states at half
+    that rate or more, consistently on its own clock, while the bound run gave fewer than a tenth
+    of it, is taken: a bridge states at the control rate. A run bound at that rate never gives way
+    to another, however fast."""
+
+    def __init__(self, skew_s: float = 0.05, rebind_s: float = 0.25, rate_hz: float | None = None,
+                 confirm_s: float = 0.1) -> None:
         self.skew_s, self.rebind_s = skew_s, rebind_s
+        self.rate_hz, self.confirm_s = rate_hz, confirm_s
         self.bridge = self.epoch = ""
         self._stamp = self._wall = -math.inf  # the newest stamp taken, and when
         self._taken = -math.inf  # when the last state was taken (a re-publication too)
         self._candidate: tuple[str, str, float, float] | None = None  # (bridge, epoch, stamp, when)
+        self._n_taken = 0  # states taken so far
+        # a run other than the bound one: [bridge, epoch, stamp, when, states, since, _n_taken then]
+        self._rival: list | None = None
 
     def _bind(self, state: bus.MotorState, now_s: float) -> str:
         self.bridge, self.epoch = state.bridge, state.epoch
         self._stamp, self._wall = state.stamp_s, now_s
-        self._taken, self._candidate = now_s, None
+        self._taken, self._candidate, self._rival = now_s, None, None
+        self._n_taken += 1
         return ""
+
+    def _rival_takes_over(self, state: bus.MotorState, now_s: float) -> bool:
+        """Count ``state`` (of another run than the bound one) for its run; True when that run
+        states at the control rate and the bound one does not (class docstring)."""
+        if self.rate_hz is None:
+            return False
+        r = self._rival
+        if r is None or self._check(state, r[0], r[1], r[2], r[3], now_s):
+            self._rival = [state.bridge, state.epoch, state.stamp_s, now_s, 1, now_s, self._n_taken]
+            return False
+        r[2], r[3], r[4] = max(r[2], state.stamp_s), now_s, r[4] + 1
+        elapsed = now_s - r[5]
+        expected = elapsed * self.rate_hz
+        return elapsed >= self.confirm_s and r[4] >= 0.5 * expected and self._n_taken - r[6] < 0.1 * expected
 
     def _check(self, state: bus.MotorState, bridge: str, epoch: str, stamp: float, wall: float,
                now_s: float) -> str:
@@ -234,6 +261,8 @@ class StateGate:
         if not self.epoch:
             return self._bind(state, now_s)  # the first state ever: nothing to compare it with
         why = self._check(state, self.bridge, self.epoch, self._stamp, self._wall, now_s)
+        if why and (state.bridge, state.epoch) != (self.bridge, self.epoch) and self._rival_takes_over(state, now_s):
+            return self._bind(state, now_s)
         if now_s - self._taken >= self.rebind_s and why:
             cand = self._candidate
             if cand is not None and not self._check(state, *cand, now_s):
@@ -245,6 +274,7 @@ class StateGate:
         if state.stamp_s > self._stamp:
             self._stamp, self._wall = state.stamp_s, now_s
         self._taken, self._candidate = now_s, None
+        self._n_taken += 1
         return ""
 
 
@@ -535,13 +565,19 @@ class CampaignService:
             self._blend = (stamp_s, offset, approach_duration_s(delta))
 
     def control(self, theta_rad: np.ndarray, stamp_s: float, drive: str = "active",
-                force_applied_N: np.ndarray | None = None) -> Output:
+                force_applied_N: np.ndarray | None = None, obeyed: bool = True) -> Output:
         """One tick on a new state: encoders θ at ``stamp_s``, the bridge's ``drive`` state and the
         forces it applies. A diverging estimate (non-finite, or beyond the joint limit plus a
         margin) latches a hold and aborts the campaign; drives that are not active get the hold
-        forces at α̂ and the law re-starts bumplessly when they are (module docstring)."""
+        forces at α̂ and the law re-starts bumplessly when they are (module docstring).
+        ``obeyed``: False while the bridge obeys another controller (its state's ``owner``): this
+        one only observes, as with the drives off (a law running on refused commands winds its
+        integral up, and its first admitted command was a 91.5 N step: audit of 2026-11-26), and a
+        campaign it runs is aborted."""
         self.ticks += 1
         self.drive = drive
+        if not obeyed:
+            drive = "inactive"
         if drive == "hold":
             # The bridge's watchdog holds because our commands came late: the next one ends the
             # hold (the bridge ramps to it), so the law keeps running (a hold command here would be
@@ -551,8 +587,11 @@ class CampaignService:
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
             self._restart = self._drives_off = True
-            reason = f"drives {drive}" + (f": {self.drive_reason}" if self.drive_reason else "")
-            if drive == "disabled" and self.running:
+            if not obeyed:
+                reason = self.drive_reason or "the bridge obeys another controller"
+            else:
+                reason = f"drives {drive}" + (f": {self.drive_reason}" if self.drive_reason else "")
+            if (drive == "disabled" or not obeyed) and self.running:
                 self._end("aborted", f"{reason} during the campaign", self._progress(stamp_s), self.hold_alpha())
             return self.hold(self.hold_reason if self.latched else reason)
         if self.latched:

@@ -171,13 +171,18 @@ def test_forged_states_are_rejected_and_real_ones_keep_flowing(stack):
         for i in range(20):
             forged.put(bus.MotorState(**{**bus.as_plain(real), "seq": 10**6 + i, "stamp_s": 1e12}))
             forged.put(bus.MotorState(**{**bus.as_plain(real), "seq": 10**6 + i, "epoch": "forged", "stamp_s": 0.0}))
+            # audit of 2026-11-26: the bound run's epoch, a fresh stamp, applied forces out of range
+            now = stack.states.messages()[-1].stamp_s
+            forged.put(bus.MotorState(**{**bus.as_plain(real), "stamp_s": now, "force_applied_N": [1e308] * 4}))
+            forged.put(bus.MotorState(**{**bus.as_plain(real), "stamp_s": now, "force_applied_N": [1.0] * 7}))
             time.sleep(0.01)
     finally:
         forged.close()
     _alive(stack)
     last = stack.status.messages()[-1]
     assert last.stamp_s < 1e6 and abs(last.stamp_s - stack.states.messages()[-1].stamp_s) < 1.0
-    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.MOTOR_STATE] >= 40, 30, 0.1)
+    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.MOTOR_STATE] >= 80, 30, 0.1)
+    assert max(abs(f) for c in stack.commands.messages()[-50:] for f in c.force_N) <= 100.0
 
 
 def test_every_command_is_on_the_state_clock_with_sender_and_epoch(stack):

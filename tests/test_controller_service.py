@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from bridge import bus
+from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
 from controller.laws import LawConfig, hold_forces
 from controller.service import CampaignService, Refused, StateGate, prepare
 from controller.trajectory import Trajectory
@@ -177,6 +178,61 @@ def test_a_campaign_during_which_the_drives_are_disabled_ends_aborted(params):
     assert refused.event == "aborted" and "drives disabled" in refused.message
 
 
+def test_a_controller_the_bridge_does_not_obey_only_observes_and_takes_over_without_a_step(params):
+    """Audit of 2026-11-26: a second controller (another stack) ran its law on the states of a
+    bridge that refused its commands; its integral wound up to [100, 100, 100, 8.5] N and when the
+    owner's session ended 2 s into a campaign the applied forces stepped by 91.5 N in one tick. Closed
+    on the twin through the bridge's own rules (Safety, Ownership): the refused controller only
+    observes (hold forces at its α̂), and after the handover the forces move at most 1 N per tick
+    and the neck stays where the old owner left it. A campaign on a controller the bridge does not
+    obey is aborted with the reason."""
+    twin = Twin(params, TwinConfig(camera=False, seed=1))
+    tick = twin.tick(np.zeros(params.n_cables))
+    a, b = (CampaignService(params, LawConfig(law=2), service=True, settle_s=5.0) for _ in range(2))
+    for svc in (a, b):
+        svc.initialise(tick.theta_meas)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min,
+                                 f_max_N=params.limits.f_max, max_force_step_N=1.0))
+    owner = Ownership("e1")
+    owner.appeared("A")
+    owner.appeared("B")
+    a.handle(_request(), tick.t_s)
+    switch, applied, alpha = 1000, [], []
+    for k in range(switch + 300):
+        if k == switch:
+            owner.vanished("A")  # A's session ends 2 s into its campaign
+        outs = {}
+        for name, svc in (("A", a), ("B", b)):
+            if name == "A" and k >= switch:
+                continue
+            obeyed = owner.owner in ("", name)
+            outs[name] = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force), obeyed)
+            if outs[name].law_ran:
+                svc.advance(tick.t_s)
+            svc.drain_events()
+            if name == "B" and k < switch:
+                assert not outs[name].law_ran and np.all(svc.ctl.integral == 0)
+        command = next(outs[n].force_N for n in ("A", "B") if n in outs and owner.admit(n, "e1") == "")
+        decision = safety.step(Inputs(command_N=command.tolist(), command_age_s=0.0, states_unanswered=0,
+                                      sender=owner.owner))
+        applied.append(decision.force_N)
+        tick = twin.tick(decision.force_N)
+        alpha.append(tick.alpha)
+    steps = np.abs(np.diff(np.array(applied), axis=0)).max(axis=1)
+    print(f"\nlargest force step across the handover: {steps[switch - 5:].max():.2f} N per tick")
+    assert owner.owner == "B" and b.drive == "active"
+    assert steps[switch - 5:].max() <= 1.0 + 1e-9
+    moved = np.degrees(np.abs(np.array(alpha[switch:]) - alpha[switch - 1]).max())
+    assert moved < 1.0, moved
+    # B's own campaign while A owns the bridge: aborted, with the reason.
+    b.handle(_request("c-2"), tick.t_s)
+    owner.owner = "A"
+    b.drive_reason = "the bridge obeys controller A, not this one"
+    b.control(tick.theta_meas, tick.t_s, "active", np.asarray(safety.force), obeyed=False)
+    (*_, ended) = b.drain_events()
+    assert ended.event == "aborted" and "obeys controller A" in ended.message
+
+
 def test_leaving_a_hold_blends_the_reference_from_the_estimate_back_to_the_trajectory(params):
     loop = DriveLoop(params)
     loop.svc.handle(_request(), loop.stamp_s)
@@ -230,6 +286,30 @@ def test_a_forged_state_after_a_stall_is_not_taken_and_a_stepped_clock_is():
     assert gate.admit(_state(15.802), now_s=100.802) == ""
     assert gate.admit(_state(15.804), now_s=100.804) == ""
     assert "back in time" in gate.admit(_state(5.806), now_s=100.806)
+
+
+def test_a_stray_run_seen_first_gives_way_to_the_bridge_that_states_at_the_control_rate():
+    """Audit of 2026-11-26: the first state ever was bound whatever it was; a forged run seen first
+    by a (re)starting controller and kept alive at 10 Hz deafened it to the real bridge (0 of 5000
+    states taken over 10 s). A run that states at the law's rate while the bound one does not
+    takes over; once bound to it, a slower run never does, nor a faster one beside it."""
+    gate = StateGate(rate_hz=500.0)
+    assert gate.admit(_state(0.0, epoch="forged", bridge="evil"), now_s=100.0) == ""
+    taken = {"real": 0, "forged": 0}
+    for k in range(1, 5001):  # 10 s: the bridge at 500 Hz, the forger at 10 Hz
+        now = 100.0 + k * 0.002
+        taken["real"] += gate.admit(_state(1000.0 + k * 0.002, epoch="real", bridge="b1"), now) == ""
+        if k % 50 == 0:
+            taken["forged"] += gate.admit(_state(k * 0.002, epoch="forged", bridge="evil"), now) == ""
+    assert (gate.bridge, gate.epoch) == ("b1", "real")
+    assert taken["real"] >= 4800 and taken["forged"] <= 2, taken
+    # Bound to the bridge: a forger at twice the rate beside it is never taken.
+    for k in range(5001, 6001):
+        now = 100.0 + k * 0.002
+        assert gate.admit(_state(1000.0 + k * 0.002, epoch="real", bridge="b1"), now) == ""
+        for j in range(2):
+            assert gate.admit(_state(k * 0.002 + j * 0.001, epoch="forged", bridge="evil"), now + j * 0.001) != ""
+    assert gate.epoch == "real"
 
 
 @pytest.mark.parametrize("text, reason", [
