@@ -67,6 +67,15 @@ def test_unknown_keys_are_refused(params, tmp_path):
         load_params(bad)
     with pytest.raises(ParameterError, match="cannot read parameter file"):
         load_params(tmp_path / "missing.toml")
+    # audit of 2026-11-26: these escaped as UnicodeDecodeError / RecursionError (500 on the console)
+    latin = tmp_path / "latin.toml"
+    latin.write_bytes(params.to_toml().replace('name = "', 'name = "caf\xe9 ').encode("latin-1"))
+    with pytest.raises(ParameterError, match=r"latin\.toml: not UTF-8 text"):
+        load_params(latin)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("x = " + "[" * 50_000 + "]" * 50_000 + "\n")
+    with pytest.raises(ParameterError, match=r"deep\.toml: nested too deeply"):
+        load_params(deep)
 
 
 def test_cli_model_prints_the_model_at_one_configuration(model, xneck):

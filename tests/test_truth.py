@@ -5,6 +5,7 @@ the paper's findings (twin/sim/truth.py, twin/sim/robot_truth.toml, docs/twin-fi
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 
 import numpy as np
@@ -72,6 +73,47 @@ def test_a_value_without_a_source_or_out_of_range_is_refused(tmp_path):
     bad.write_text("[timing\n")
     with pytest.raises(TruthError, match=r"bad\.toml"):
         load_truth(str(bad))
+
+
+def _truth_file(tmp_path, section, key, value):
+    path = tmp_path / f"{key}.toml"
+    path.write_text(f'name = "t"\n[{section}]\nenabled = true\n{key} = {{ value = {value}, source = "none: test" }}\n')
+    return str(path)
+
+
+@pytest.mark.parametrize("section, key, value, reason", [
+    ("friction", "pulley_reference_tension_N", "nan", "friction.pulley_reference_tension_N"),
+    ("friction", "pulley_reference_tension_N", "-5.0", "friction.pulley_reference_tension_N"),
+    ("friction", "viscous_N_s_rad", "inf", "friction.viscous_N_s_rad"),
+    ("friction", "asymmetry", "[nan, 0.0, 0.0, 0.0]", "friction.asymmetry"),
+    ("structure", "mass_factor", "[nan, 1.0, 1.0]", "structure.mass_factor"),
+    ("structure", "mass_factor", "[0.0, 1.0, 1.0]", "structure.mass_factor"),
+    ("structure", "spring_factor_left", "[1.0, -1.0, 1.0]", "structure.spring_factor_left"),
+    ("structure", "l0_offset_m", "[inf, 0.0, 0.0]", "structure.l0_offset_m"),
+    ("structure", "pulley_radius_offset_m", "nan", "structure.pulley_radius_offset_m"),
+    ("structure", "mass_factor", "[1.0, 1.0]", "structure.mass_factor: 2 values for 3"),
+    ("cables", "creep_time_s", "inf", "cables.creep_time_s"),
+    ("actuation", "ripple_per_rev", "0", "actuation.ripple_per_rev"),
+    ("actuation", "current_max_A", "nan", "actuation.current_max_A"),
+])
+def test_a_truth_file_with_a_value_the_twin_cannot_run_is_refused_when_checked(tmp_path, section, key, value, reason):
+    """Audit of 2026-11-26: ``pulley_reference_tension_N = nan`` or ``mass_factor = [nan, 1, 1]``
+    passed the ``--truth`` check; the campaign then started, wrote an aborted archive and failed 8 s
+    later with "Array must not contain infs or NaNs", naming no key. Every value is checked (NaN
+    never, ±inf only where it means "ideal"), and against the prototype's joints and cables."""
+    with pytest.raises(TruthError, match=re.escape(reason)):
+        check_truth(_truth_file(tmp_path, section, key, value))
+
+
+def test_a_truth_file_that_does_not_decode_is_a_truth_error(tmp_path):
+    """Audit of 2026-11-26: a nested-too-deeply truth file answered 500 on GET /api/truths."""
+    deep = tmp_path / "deep.toml"
+    deep.write_text("x = " + "[" * 50_000 + "]" * 50_000 + "\n")
+    latin = tmp_path / "latin.toml"
+    latin.write_bytes('name = "caf\xe9"\n'.encode("latin-1"))
+    for path in (deep, latin):
+        with pytest.raises(TruthError, match=path.name):
+            check_truth(str(path))
 
 
 def test_a_truth_file_loads_by_path_like_the_named_ones(tmp_path):

@@ -319,10 +319,14 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
             text = Path(path).read_text()
         except OSError as exc:
             raise ParameterError(f"{source}: cannot read parameter file ({exc.strerror})") from exc
+        except UnicodeDecodeError as exc:  # the console answered 500 (audit of 2026-11-26)
+            raise ParameterError(f"{source}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ParameterError(f"{source}: not a valid TOML file ({exc})") from exc
+    except RecursionError:
+        raise ParameterError(f"{source}: nested too deeply") from None
     for key, value in (overrides or {}).items():
         _set_dotted(data, key, value, source)
     return params_from_dict(data, source)

@@ -39,7 +39,7 @@ from typing import Any, Literal
 
 import msgspec
 
-from twin.model.params import Params
+from twin.model.params import Params, load_params
 
 TruthName = Literal["model", "robot"]  # named truths (not the bus message bridge.bus.Truth); a path also works
 TRUTHS: tuple[str, ...] = ("model", "robot")
@@ -150,8 +150,31 @@ class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
 MODEL_TRUTH = RobotTruth()
 
 
+#: Values for which +inf means "ideal" (no bandwidth limit, no saturation); NaN never is a value.
+_INFINITE_ALLOWED = frozenset({"actuation.current_bandwidth_hz", "actuation.current_max_A"})
+
+
+def _not_finite(truth: RobotTruth) -> str | None:
+    """The first value of a section that is NaN, or infinite where that means nothing, as
+    "section.key" (audit of 2026-11-26: a NaN passed every check and failed the twin 8 s into a
+    campaign, naming no key)."""
+    for section in EFFECTS:
+        body = getattr(truth, section)
+        for key in body.__struct_fields__:
+            value = getattr(body, key)
+            values = value if isinstance(value, tuple) else (value,)
+            for x in values:
+                if isinstance(x, float) and (math.isnan(x) or (math.isinf(x) and (
+                        f"{section}.{key}" not in _INFINITE_ALLOWED or x < 0))):
+                    return f"{section}.{key} must be a finite number, got {value}"
+    return None
+
+
 def _validated(truth: RobotTruth) -> RobotTruth:
-    f, a, c, t = truth.friction, truth.actuation, truth.cables, truth.timing
+    f, a, s, c, t = truth.friction, truth.actuation, truth.structure, truth.cables, truth.timing
+    not_finite = _not_finite(truth)
+    if not_finite:
+        raise TruthError(not_finite)
     checks = [
         (f.static_ratio >= 1.0, "friction.static_ratio must be >= 1 (static friction is not below kinetic)"),
         (f.stribeck_velocity_rad_s > 0, "friction.stribeck_velocity_rad_s must be > 0"),
@@ -159,11 +182,16 @@ def _validated(truth: RobotTruth) -> RobotTruth:
         (all(abs(x) < 1 for x in f.asymmetry), "friction.asymmetry must be within (−1, 1)"),
         (0 <= f.gear_loss_forward < 1 and 0 <= f.gear_loss_backward < 1, "friction.gear_loss_* must be in [0, 1)"),
         (all(x >= 0 for x in f.pulley_friction_per_N), "friction.pulley_friction_per_N must be >= 0"),
+        (f.pulley_reference_tension_N >= 0, "friction.pulley_reference_tension_N must be >= 0"),
         (a.current_bandwidth_hz > 0, "actuation.current_bandwidth_hz must be > 0"),
         (a.current_max_A > 0, "actuation.current_max_A must be > 0"),
         (all(x > 0 for x in a.torque_constant_factor), "actuation.torque_constant_factor must be > 0"),
         (0 <= a.ripple_fraction < 1, "actuation.ripple_fraction must be in [0, 1)"),
         (a.cogging_N >= 0 and a.backlash_rad >= 0, "actuation.cogging_N and backlash_rad must be >= 0"),
+        (a.ripple_per_rev >= 1 and a.cogging_per_rev >= 1, "actuation.ripple_per_rev and cogging_per_rev must be >= 1"),
+        (all(x > 0 for x in s.mass_factor), "structure.mass_factor must be > 0"),
+        (all(x > 0 for x in (*s.spring_factor_left, *s.spring_factor_right)),
+         "structure.spring_factor_left and spring_factor_right must be > 0"),
         (c.damping_N_s_m >= 0, "cables.damping_N_s_m must be >= 0"),
         (c.creep_ratio >= 0 and c.creep_time_s > 0, "cables.creep_ratio must be >= 0 and creep_time_s > 0"),
         (t.delay_ticks in (0, 1, 2, 3), "timing.delay_ticks must be 0-3"),
@@ -207,6 +235,8 @@ def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
         return _validated(msgspec.convert(plain, RobotTruth, strict=False))
     except msgspec.ValidationError as exc:
         raise TruthError(f"{name}: {exc}") from None
+    except RecursionError:
+        raise TruthError(f"{name}: nested too deeply") from None
 
 
 @lru_cache(maxsize=16)
@@ -215,7 +245,12 @@ def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
         data = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise TruthError(f"{path}: {exc}") from None
-    return parse_truth(data, path.stem)
+    except RecursionError:
+        raise TruthError(f"{path}: nested too deeply") from None
+    try:
+        return parse_truth(data, path.stem)
+    except TruthError as exc:
+        raise TruthError(f"{path.name}: {exc}") from None
 
 
 def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
@@ -233,9 +268,16 @@ def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
     return msgspec.structs.replace(truth_obj, name="robot") if truth == "robot" else truth_obj
 
 
-def check_truth(value: str) -> str:
-    """``value`` if it names a truth that loads; :class:`TruthError` with the reason otherwise."""
-    load_truth(value)
+def check_truth(value: str, params: Params | None = None) -> str:
+    """``value`` if it names a truth that loads and applies to ``params`` (default: the 3-X
+    prototype: one value per joint or cable where a section wants that); :class:`TruthError` with
+    the reason otherwise."""
+    p, t = load_params() if params is None else params, load_truth(value)
+    for key, values in (("friction.asymmetry", t.friction.asymmetry),
+                        ("friction.pulley_friction_per_N", t.friction.pulley_friction_per_N),
+                        ("actuation.torque_constant_factor", t.actuation.torque_constant_factor)):
+        _per(values, p.n_cables, 0.0, key)
+    truth_params(p, t)
     return value
 
 
