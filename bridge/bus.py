@@ -395,7 +395,7 @@ _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
 def _check_name(what: str, name: str) -> str:
-    if not isinstance(name, str) or not _NAME.match(name):
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(f"{what} {name!r} must be non-empty and use only letters, digits, '_', '.', '-'")
     return name
 

@@ -326,7 +326,7 @@ class Ownership:
     def admit(self, sender: str, epoch: str) -> str:
         """"" if a command of ``sender`` answering bridge run ``epoch`` is to be obeyed (taking
         ownership if there is no owner), else the reason it is refused."""
-        if not INSTANCE_NAME.match(sender):
+        if not INSTANCE_NAME.fullmatch(sender):
             return f"sender {sender[:40]!r}{'...' if len(sender) > 40 else ''} is not a valid controller instance name"
         if self.owner and sender != self.owner:
             return f"bridge owned by {self.owner}"

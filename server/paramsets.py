@@ -40,7 +40,7 @@ class UnknownParameterSet(KeyError):
 
 
 def check_name(name: str) -> str:
-    if not _NAME.match(name) or name.startswith("."):
+    if not _NAME.fullmatch(name) or name.startswith("."):
         raise ParameterError(f"parameter set name {name!r} must be 1-64 letters, digits, '_', '.', '-'")
     return name
 

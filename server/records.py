@@ -61,7 +61,7 @@ class CampaignRecord(BaseModel):
 
 
 def valid_id(campaign_id: str) -> bool:
-    return bool(_ID.match(campaign_id)) and not campaign_id.startswith(".")
+    return bool(_ID.fullmatch(campaign_id)) and not campaign_id.startswith(".")
 
 
 class CampaignIndex:

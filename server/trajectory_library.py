@@ -36,7 +36,7 @@ class NotInLibrary(KeyError):
 
 
 def check_name(name: str) -> str:
-    if not isinstance(name, str) or not NAME.match(name):
+    if not isinstance(name, str) or not NAME.fullmatch(name):
         raise LibraryError(f"trajectory name {name!r}: use 1-64 letters, digits, '_', '.', '-', not starting with '.'")
     return name
 
@@ -75,7 +75,7 @@ class TrajectoryLibrary:
     def names(self) -> list[str]:
         if not self.dir.is_dir():
             return []
-        return sorted(p.stem for p in self.dir.glob("*.json") if NAME.match(p.stem))
+        return sorted(p.stem for p in self.dir.glob("*.json") if NAME.fullmatch(p.stem))
 
     def list(self) -> list[dict[str, Any]]:
         out = [{"name": n, "builtin": True} for n in NAMED_TRAJECTORIES]

@@ -309,3 +309,45 @@ def test_the_parameter_set_has_one_name_in_rest_and_mcap(tmp_path) -> None:
     store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
     prepared = prepare(CampaignCreate(), store, settings)  # pyright: ignore[reportCallIssue] - all fields default
     assert prepared.parameter_set == prepared.params.name == "prototype_3x"
+
+
+def test_a_name_ending_in_a_newline_is_refused_and_creates_no_file(client, tmp_path) -> None:
+    # audit of 2026-11-26: `$` of re.match matches before a final "\n", so "evil\n" passed every
+    # name check and became a file named with a newline, or an active set silently not applied.
+    text = client.get("/api/params/prototype_3x").text
+    toml = {**AUTH, "Content-Type": "application/toml"}
+    nod = {"name": "nod", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, 0, 0]], "durations_s": [2, 2]}
+    assert ["path", "name"] in _loc(client.put("/api/params/evil%0A", content=text.encode(), headers=AUTH))
+    assert client.put("/api/trajectories/evil%0A", json=nod, headers=AUTH).status_code == 422
+    truth = client.get("/api/truths/robot").text
+    assert client.put("/api/truths/evil%0A", content=truth.encode(), headers=toml).status_code == 422
+    assert ["body", "name"] in _loc(client.put("/api/params/active", json={"name": "prototype_3x\n"}, headers=AUTH))
+    assert "evil\n" not in client.get("/api/params").json()["parameter_sets"]
+    assert not any("\n" in t["name"] for t in client.get("/api/trajectories").json()["trajectories"])
+
+
+def test_every_name_and_id_check_refuses_a_trailing_newline(tmp_path) -> None:
+    from bridge.bus import liveliness_key
+    from bridge.safety import Ownership
+    from server.paramsets import check_name
+    from server.records import valid_id
+    from server.studies.service import StudyManager, UnknownStudy
+    from server.trajectory_library import LibraryError
+    from server.trajectory_library import check_name as trajectory_name
+    from twin.model.params import ParameterError
+
+    with pytest.raises(ParameterError):
+        check_name("evil\n")
+    with pytest.raises(LibraryError):
+        trajectory_name("evil\n")
+    assert not valid_id("control-1\n") and valid_id("control-1")
+    study = tmp_path / "control-0123456789abcdef\n"
+    study.mkdir()
+    (study / "study.json").write_text("{}")
+    with pytest.raises(UnknownStudy):
+        StudyManager(tmp_path)._dir(study.name)
+    with pytest.raises(ValueError, match="instance"):
+        liveliness_key("controller", "c1\n")
+    ownership = Ownership("run-1")
+    ownership.appeared("c1\n")
+    assert "not a valid controller instance name" in ownership.admit("c1\n", "run-1")

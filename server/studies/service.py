@@ -52,7 +52,7 @@ class StudyManager:
 
     def _dir(self, study_id: str) -> Path:
         """The directory of a known study (one this console started, maybe not on disk yet, or one on disk)."""
-        if not STUDY_ID.match(study_id) or not (study_id in self._runs or (self.root / study_id / "study.json").is_file()):
+        if not STUDY_ID.fullmatch(study_id) or not (study_id in self._runs or (self.root / study_id / "study.json").is_file()):
             raise UnknownStudy(study_id)
         return self.root / study_id
 
@@ -99,7 +99,7 @@ class StudyManager:
         thread writes study.json a moment later, or never when it fails first: the dashboard polls this
         list and must see them), and those on disk."""
         when = {p.name: (p / "study.json").stat().st_mtime for p in (self.root.iterdir() if self.root.is_dir() else ())
-                if STUDY_ID.match(p.name) and (p / "study.json").is_file()}
+                if STUDY_ID.fullmatch(p.name) and (p / "study.json").is_file()}
         when.update({study_id: run.created for study_id, run in list(self._runs.items())})
         return sorted(when, key=lambda study_id: when[study_id], reverse=True)
 

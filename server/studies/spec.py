@@ -99,7 +99,7 @@ def parse_vary(text: str) -> Vary:
     if "=" not in text:
         raise StudyError(f"--vary {text!r}: write PATH=SPEC, e.g. friction.f_s=10%")
     raw_path, spec = (s.strip() for s in text.split("=", 1))
-    m = _PATH.match(raw_path)
+    m = _PATH.fullmatch(raw_path)
     if not m:
         raise StudyError(f"--vary {text!r}: {raw_path!r} is not a dotted parameter path (e.g. cables.variable.k or friction.f_s[2])")
     path, index = m.group(1), int(m.group(2)) if m.group(2) else None
@@ -107,7 +107,7 @@ def parse_vary(text: str) -> Vary:
         raise StudyError(f"--vary {text!r}: elements are counted from 1")
     where = f"--vary {text!r}"
     for kind, pattern in _PATTERNS.items():
-        g = pattern.match(spec)
+        g = pattern.fullmatch(spec)
         if not g:
             continue
         a, b = float(g.group(1)), float(g.group(2)) if kind != "relative" else 0.0
