@@ -95,7 +95,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.camera = CameraFeed(session)
             state.broadcaster = Broadcaster(state.live.values, settings.live_rate_hz)
             tasks.append(asyncio.create_task(state.broadcaster.run(), name="live-broadcaster"))
-            state.default_params = state.params.load(state.params.active())
+            active, state.default_params = state.params.load_active()
+            if state.params.fallback is not None:
+                # A set that no longer loads must not keep the console (and its e-stop) down.
+                named, reason = state.params.fallback
+                log.error("active parameter set %r does not load, the console uses %s instead: %s",
+                          named, active, reason)
             if settings.viser:
                 from server.scene import NeckScene
 

@@ -4,6 +4,11 @@ Files live in ``<data_dir>/params/<name>.toml``; the active name in ``<data_dir>
 An upload is validated exactly as ``--params FILE`` is (:func:`twin.model.params.params_from_dict`),
 so a set the console accepts is one every process accepts. The built-in set ``prototype_3x``
 cannot be replaced.
+
+A set is chosen active only if it loads. One that no longer does when the console starts (edited
+by hand, another encoding, a stricter loader after an update) is not used: the console runs on
+``prototype_3x`` and :attr:`ParameterStore.fallback` says which set was named and why, while the
+``active`` file keeps the operator's choice for when the set is repaired.
 """
 
 from __future__ import annotations
@@ -39,6 +44,11 @@ class UnknownParameterSet(KeyError):
     pass
 
 
+# What loading a file can raise besides ParameterError: a loader that does not yet name every
+# fault (undecodable bytes, nesting deeper than the parser's recursion) must not crash a route.
+LOAD_FAULTS = (UnicodeDecodeError, RecursionError, ValueError)
+
+
 def check_name(name: str) -> str:
     if not _NAME.fullmatch(name) or name.startswith("."):
         raise ParameterError(f"parameter set name {name!r} must be 1-64 letters, digits, '_', '.', '-'")
@@ -52,6 +62,7 @@ class ParameterStore:
         self.dir = Path(data_dir) / "params"
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
+        self.fallback: tuple[str, str] | None = None  # (set named active, why it does not load) while prototype_3x stands in
 
     def names(self) -> list[str]:
         return [BUILTIN] + sorted(p.stem for p in self.dir.glob("*.toml") if p.stem != BUILTIN)
@@ -67,11 +78,27 @@ class ParameterStore:
         return p
 
     def load(self, name: str) -> Params:
-        return load_params(self.path(name))
+        """Raises :class:`UnknownParameterSet`, or :class:`ParameterError` naming the file and why it
+        does not load."""
+        path = self.path(name)
+        try:
+            return load_params(path)
+        except ParameterError:
+            raise
+        except LOAD_FAULTS as exc:
+            reason = "nested too deeply" if isinstance(exc, RecursionError) else f"{type(exc).__name__}: {exc}"
+            raise ParameterError(f"{path}: does not load ({reason})") from None
 
     def text(self, name: str) -> str:
+        """The file's TOML text. Raises :class:`UnknownParameterSet`, or :class:`ParameterError` when
+        the file is not UTF-8 text."""
         p = self.path(name)
-        return load_params(None).to_toml() if p is None else p.read_text()
+        if p is None:
+            return load_params(None).to_toml()
+        try:
+            return p.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ParameterError(f"{p.name}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
 
     @staticmethod
     def validate(text: str | bytes, source: str = "upload") -> Params:
@@ -112,16 +139,48 @@ class ParameterStore:
             raise ParameterError(f"{name!r} is the active parameter set; choose another one first")
         p.unlink()
 
-    def active(self) -> str:
+    def _named(self) -> str:
+        """The name the ``active`` file holds (``prototype_3x`` without one)."""
         f = self.dir / "active"
-        name = f.read_text().strip() if f.is_file() else BUILTIN
+        if not f.is_file():
+            return BUILTIN
+        try:
+            return f.read_bytes().decode("utf-8").strip()
+        except UnicodeDecodeError:
+            return ""  # not a name check_name accepts: active() falls back
+
+    def active(self) -> str:
+        if self.fallback is not None:
+            return BUILTIN
+        name = self._named()
         try:
             self.path(name)
         except (UnknownParameterSet, ParameterError):
             return BUILTIN
         return name
 
+    def load_active(self) -> tuple[str, Params]:
+        """(name, parameters) of the active set, at start-up. A set named active that does not load
+        is replaced by ``prototype_3x`` until another is chosen; :attr:`fallback` says why."""
+        named = self._named()
+        try:
+            return named, self.load(named)
+        except UnknownParameterSet:
+            self.fallback = (named, f"no parameter set {named!r} in {self.dir}")
+        except ParameterError as exc:
+            self.fallback = (named, str(exc))
+        return BUILTIN, self.load(BUILTIN)
+
+    def active_status(self) -> dict[str, str | None]:
+        """The active set, and which set is named active instead and why it is not used (None, None
+        when it is)."""
+        named, reason = self.fallback or (None, None)
+        return {"active": self.active(), "fallback_from": named, "reason": reason}
+
     def set_active(self, name: str) -> None:
-        self.path(name)  # raises if unknown
+        """Raises :class:`UnknownParameterSet`, or :class:`ParameterError` with the loader's message:
+        a set that does not load is never chosen (the console could not start on it)."""
+        self.load(name)
         with self._lock:
             atomic_write(self.dir / "active", (name + "\n").encode())
+            self.fallback = None

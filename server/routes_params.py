@@ -25,8 +25,10 @@ def _unprocessable(loc: list[str], msg: str) -> JSONResponse:
 
 @router.get("")
 def list_params(request: Request) -> dict[str, Any]:
+    """The sets and the active one; ``fallback_from`` and ``reason``: the set named active that
+    did not load when the console started (``prototype_3x`` stands in), else null."""
     store = _store(request)
-    return {"active": store.active(), "parameter_sets": store.names()}
+    return {**store.active_status(), "parameter_sets": store.names()}
 
 
 class ActiveChoice(BaseModel):
@@ -34,28 +36,37 @@ class ActiveChoice(BaseModel):
 
 
 @router.get("/active")
-def get_active(request: Request) -> dict[str, str]:
-    return {"active": _store(request).active()}
+def get_active(request: Request) -> dict[str, str | None]:
+    return _store(request).active_status()
 
 
 @router.put("/active", dependencies=[Depends(require_token)])
 def set_active(body: ActiveChoice, request: Request) -> Any:
-    """Choose the parameter set campaigns use by default."""
+    """Choose the parameter set campaigns use by default; 422 if it is unknown or does not load."""
     try:
         _store(request).set_active(body.name)
-    except (UnknownParameterSet, ParameterError):
+    except UnknownParameterSet:
         return _unprocessable(["body", "name"], f"unknown parameter set {body.name!r}; known: "
                               f"{', '.join(_store(request).names())}")
+    except ParameterError as exc:
+        return _unprocessable(["body", "name"], f"parameter set {body.name!r} cannot be chosen: {exc}")
     return {"active": body.name}
 
 
 @router.get("/{name}", response_class=PlainTextResponse, responses={200: {"content": {"application/toml": {}}}})
 def get_params(name: str, request: Request) -> PlainTextResponse:
-    """The parameter file (TOML, SI units)."""
+    """The parameter file (TOML, SI units); 422 if the file on disk is not text."""
+    missing = HTTPException(status.HTTP_404_NOT_FOUND, f"no parameter set {name!r}")
+    try:
+        check_name(name)
+    except ParameterError:
+        raise missing from None
     try:
         text = _store(request).text(name)
-    except (UnknownParameterSet, ParameterError):
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no parameter set {name!r}") from None
+    except UnknownParameterSet:
+        raise missing from None
+    except ParameterError as exc:
+        raise HTTPException(422, f"parameter set {name!r}: {exc}") from None
     return PlainTextResponse(text, media_type="application/toml")
 
 

@@ -27,6 +27,7 @@ def health(request: Request) -> dict[str, Any]:
         "viser_port": s.scene.port if s.scene else None,
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it
+        "parameter_set": s.params.active_status(),  # the active set; the one named instead and why it did not load
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
         "camera": camera_health(s.live.values, s.camera),  # detection health (issue 15); None without a camera
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,

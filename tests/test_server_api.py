@@ -351,3 +351,47 @@ def test_every_name_and_id_check_refuses_a_trailing_newline(tmp_path) -> None:
     ownership = Ownership("run-1")
     ownership.appeared("c1\n")
     assert "not a valid controller instance name" in ownership.admit("c1\n", "run-1")
+
+
+LATIN1_SET = 'name = "réglage"\n'.encode("latin-1")  # a parameter file an editor saved in Latin-1
+
+
+def test_an_active_set_that_no_longer_loads_leaves_the_console_on_the_built_in_one(tmp_path, caplog) -> None:
+    # audit of 2026-11-26: the console did not start at all (exit 3, a traceback), and nothing
+    # through the API could repair it.
+    (tmp_path / "params").mkdir()
+    (tmp_path / "params" / "latin1.toml").write_bytes(LATIN1_SET)
+    (tmp_path / "params" / "active").write_text("latin1\n")
+    with caplog.at_level(logging.ERROR, logger="xneck.server"), \
+            running_server(tmp_path, viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c:
+        from twin.model.params import load_params
+
+        assert app.state.default_params == load_params(None)
+        why = c.get("/api/system/health").json()["parameter_set"]
+        assert why["active"] == "prototype_3x" and why["fallback_from"] == "latin1"
+        assert "latin1.toml" in why["reason"] and "UTF-8" in why["reason"], why
+        listing = c.get("/api/params").json()
+        assert listing["active"] == "prototype_3x" and listing["fallback_from"] == "latin1" and listing["reason"]
+        assert c.get("/api/params/active").json()["active"] == "prototype_3x"
+        assert any("latin1" in r.getMessage() and "prototype_3x" in r.getMessage() for r in caplog.records)
+        # The operator's choice on disk is kept (nothing lost); uploading a fixed file and choosing it repairs it.
+        assert (tmp_path / "params" / "active").read_text().strip() == "latin1"
+        r = c.get("/api/params/latin1")
+        assert r.status_code == 422 and "UTF-8" in r.json()["detail"], r.text
+        good = c.get("/api/params/prototype_3x").text.replace('name = "', 'name = "fixed-', 1)
+        assert c.put("/api/params/latin1", content=good.encode(), headers=AUTH).status_code == 201
+        assert c.put("/api/params/active", json={"name": "latin1"}, headers=AUTH).status_code == 200
+        after = c.get("/api/system/health").json()["parameter_set"]
+        assert after == {"active": "latin1", "fallback_from": None, "reason": None}
+
+
+def test_choosing_an_active_set_that_does_not_load_is_a_422_with_the_loaders_message(tmp_path) -> None:
+    with running_server(tmp_path, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        (tmp_path / "params" / "latin1.toml").write_bytes(LATIN1_SET)  # damaged on disk after upload
+        (tmp_path / "params" / "deep.toml").write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+        for name in ("latin1", "deep"):
+            r = c.put("/api/params/active", json={"name": name}, headers=AUTH)
+            assert ["body", "name"] in _loc(r)
+            assert f"{name}.toml" in r.json()["detail"][0]["msg"], r.text
+        assert c.get("/api/params/active").json()["active"] == "prototype_3x"
+        assert not (tmp_path / "params" / "active").exists()
