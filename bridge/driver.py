@@ -141,7 +141,16 @@ class Driver(abc.ABC):
             if self._state is Lifecycle.ACTIVE:
                 return
             self._expect("activate", Lifecycle.INACTIVE)
-            self._on_activate()
+            try:
+                self._on_activate()
+            except BaseException:
+                # Half-enabled is the worst state: INACTIVE promises the drives are off, and the
+                # lines already raised would stay high (audit of 2026-11-26). Off again first.
+                try:
+                    self._on_deactivate()
+                except Exception:
+                    log.exception("%s: error while disabling the drives after a failed enable", self.name)
+                raise
             self._state = Lifecycle.ACTIVE
 
     def deactivate(self) -> None:

@@ -200,6 +200,26 @@ def test_close_keeps_disabling_when_one_line_fails(board, params, monkeypatch):
     assert drv.state is Lifecycle.CLOSED
 
 
+def test_an_activate_that_fails_half_way_leaves_every_drive_disabled(board, params, monkeypatch):
+    """Audit of 2026-11-26: the third enable line failed to go high; activate() raised with the
+    driver INACTIVE ("drives disabled") while lines 57 and 49 stayed high, and deactivate() was a
+    no-op that left them so: only close() lowered them. A failed enable now disables again."""
+    drv = _driver(params)
+    drv.configure()
+    original = sys.modules["rcpy.gpio"].set_value
+
+    def flaky(pin, value=0):
+        if pin == PINS[2] and value == 1:
+            raise OSError("gpio write failed")
+        original(pin, value)
+
+    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", flaky)
+    with pytest.raises(OSError, match="gpio write failed"):
+        drv.activate()
+    assert drv.state is Lifecycle.INACTIVE
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+
+
 @pytest.mark.parametrize("fields, message", [
     ({"direction": (1, 1, 1)}, "one per motor"),
     ({"direction": (1, 2, 1, 1)}, "direction"),
