@@ -19,7 +19,7 @@ from starlette.concurrency import run_in_threadpool
 from server.auth import require_token
 from server.datadir import storage_problem
 from server.guard import document_responses
-from server.studies.service import StudyBusy, StudyError, StudyManager, UnknownStudy, study_or_error
+from server.studies.service import DamagedStudy, StudyBusy, StudyError, StudyManager, UnknownStudy, study_or_error
 
 router = APIRouter(prefix="/api/studies", tags=["studies"])
 _lock = threading.Lock()
@@ -86,29 +86,25 @@ async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
 
 @router.get("")
 async def list_studies(request: Request) -> dict[str, Any]:
-    """Every study of the console, newest first, with its progress."""
-    manager = _manager(request)
-
-    def collect() -> list[dict[str, Any]]:
-        out = []
-        for study_id in manager.ids():
-            p = manager.progress(study_id)
-            out.append({k: p[k] for k in ("id", "kind", "state", "runs_done", "runs_total", "fraction", "error")})
-        return out
-
-    return {"studies": await run_in_threadpool(collect)}
+    """Every study of the console, newest first, with its progress; a directory that does not read
+    is listed with state ``damaged`` and the reason in ``error``."""
+    return {"studies": await run_in_threadpool(_manager(request).listing)}
 
 
-@router.get("/{study_id}", responses={404: {"description": "No such study"}})
+@router.get("/{study_id}", responses={404: {"description": "No such study"},
+                                      422: {"description": "The study's directory does not read; detail says why"}})
 async def study_progress(study_id: str, request: Request) -> dict[str, Any]:
     """Progress while it runs; its summary (metrics per law, Spearman sensitivities) and figure URLs after."""
     try:
         return await run_in_threadpool(_manager(request).progress, study_id)
     except UnknownStudy:
         raise _unknown(study_id) from None
+    except DamagedStudy as exc:
+        raise HTTPException(422, str(exc)) from None
 
 
-@router.get("/{study_id}/results", responses={404: {"description": "No such study"}})
+@router.get("/{study_id}/results", responses={404: {"description": "No such study"},
+                                              422: {"description": "The study's rows do not read; detail says why"}})
 async def study_results(study_id: str, request: Request, offset: int = Query(0, ge=0, le=10_000_000),
                         limit: int = Query(200, ge=1, le=5000)) -> dict[str, Any]:
     """The rows so far (one per run: inputs ``x:<path>``, metrics, outcome, timing, version), a page at a time."""
@@ -116,6 +112,8 @@ async def study_results(study_id: str, request: Request, offset: int = Query(0, 
         return await run_in_threadpool(_manager(request).results, study_id, offset, limit)
     except UnknownStudy:
         raise _unknown(study_id) from None
+    except DamagedStudy as exc:
+        raise HTTPException(422, str(exc)) from None
 
 
 @router.get("/{study_id}/figures/{name}", response_class=FileResponse,

@@ -231,6 +231,50 @@ def test_a_study_on_a_scheduler_leaves_no_client_of_its_own_connected(nod, clien
     assert not worker.is_alive() and done, "the study did not finish"
     assert wait_until(lambda: clients() == before, 10), (before, clients())
 
+def test_a_damaged_study_directory_is_listed_as_damaged_and_the_others_still_are(tmp_path) -> None:
+    # audit of 2026-11-26: one damaged directory made GET /api/studies (all of them) a 500.
+    from server.studies.execute import STUDY_FILE
+    from server.studies.service import study_or_error
+
+    studies = tmp_path / "data" / "studies"
+
+    def on_disk(seed: int):
+        st = study_or_error(kind="control", samples=1, vary=(), seed=seed, laws=(2,), no_pulleys=False, trajectory=None,
+                            truth="model", alpha_ip="noise", settle_s=1.0, model_follows=False,
+                            design_configurations=2000, estimator="auto")
+        folder = studies / f"control-{st.digest()}"
+        folder.mkdir(parents=True)
+        (folder / STUDY_FILE).write_text(json.dumps({"study": st.canonical()}))
+        return folder
+
+    good = on_disk(0)
+    on_disk(1).joinpath("summary.json").write_text("{truncated")
+    parquet = on_disk(2) / "runs" / "law=2"
+    parquet.mkdir(parents=True)
+    (parquet / "part-0.parquet").write_bytes(b"PAR1garbage")
+    for sid, text in (("control-0123456789abcdef", "{not json"), ("control-fedcba9876543210", '{"x": 1}'),
+                      ("control-00000000000000ff", '{"study": {"kind": "control", "bogus": 1}}')):
+        (studies / sid).mkdir()
+        (studies / sid / STUDY_FILE).write_text(text)
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        r = http.get("/api/studies")
+        assert r.status_code == 200, r.text
+        listed = {s["id"]: s for s in r.json()["studies"]}
+        assert len(listed) == 6
+        assert listed[good.name]["state"] == "stopped" and listed[good.name]["runs_total"] == 1
+        damaged = {sid: s for sid, s in listed.items() if sid != good.name}
+        for sid, s in damaged.items():
+            assert s["state"] == "damaged" and s["error"], s
+            one = http.get(f"/api/studies/{sid}")
+            assert one.status_code == 422 and one.json()["detail"] == s["error"], (sid, one.status_code, one.text)
+        assert any("summary.json" in s["error"] for s in damaged.values())
+        assert any("part-0.parquet" in s["error"] for s in damaged.values())
+        assert "study.json" in listed["control-fedcba9876543210"]["error"]
+        assert http.get(f"/api/studies/{parquet.parent.parent.name}/results").status_code == 422
+        assert http.get(f"/api/studies/{good.name}").status_code == 200
+        assert http.get(f"/api/studies/{good.name}/results").json()["total"] == 0
+
+
 def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, tmp_path, monkeypatch) -> None:
     """Last in this file: the console's own Client in its thread leaves dask's shared event loop
     unusable to a Client of another thread (distributed 2026.8), so no test uses ``client`` after it."""
@@ -262,4 +306,3 @@ def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, t
         assert http.get(f"/api/studies/{sid}/figures/..%2Fstudy.json").status_code == 404
         assert http.get("/api/studies/control-0123456789abcdef").status_code == 404
         assert http.post(f"/api/studies/{sid}/stop").status_code == 401
-

@@ -53,24 +53,41 @@ def part_files(out: Path) -> list[Path]:
     return sorted(p for p in (Path(out) / RUNS_DIR).glob("law=*/part-*.parquet") if not p.name.startswith("."))
 
 
-def finished_ids(out: Path) -> set[str]:
+def _read_part(f: Path, columns: list[str] | None = None) -> Any:
+    """One batch as a pyarrow Table; :class:`StudyError` naming the file when it is not one (truncated,
+    overwritten), instead of pyarrow's message that names no file."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
+    try:
+        table = pq.read_table(f, columns=columns)
+    except (OSError, ValueError, pa.ArrowException) as exc:
+        raise StudyError(f"{f}: not a readable batch of rows ({exc})") from None
+    if "run_id" not in table.column_names:
+        raise StudyError(f"{f}: a batch of rows without run_id")
+    return table
+
+
+def finished_ids(out: Path) -> set[str]:
     done: set[str] = set()
     for f in part_files(out):
-        done.update(pq.read_table(f, columns=["run_id"]).column("run_id").to_pylist())
+        done.update(_read_part(f, ["run_id"]).column("run_id").to_pylist())
     return done
 
 
 def read_rows(out: Path) -> list[dict[str, Any]]:
     """All rows of a study directory, one per run id (the first written, should a copy ever exist)."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     files = part_files(out)
     if not files:
         return []
-    table = pa.concat_tables([pq.read_table(f) for f in files], promote_options="default")
+    try:
+        table = pa.concat_tables([_read_part(f) for f in files], promote_options="default")
+    except (ValueError, pa.ArrowException) as exc:
+        if isinstance(exc, StudyError):
+            raise
+        raise StudyError(f"{Path(out) / RUNS_DIR}: batches whose columns do not agree ({exc})") from None
     seen: set[str] = set()
     rows = []
     for row in table.to_pylist():
@@ -138,15 +155,18 @@ def study_dir(study: Study, out: Path, inputs: str = "") -> Iterator[Path]:
 
 
 def load_study(out: Path) -> Study:
-    """The study a directory holds."""
+    """The study a directory holds; :class:`StudyError` when its study.json is not one."""
     try:
         doc = json.loads((Path(out) / STUDY_FILE).read_text())
     except (OSError, ValueError) as exc:
         raise StudyError(f"{out}: not a study directory ({exc})") from None
-    data = doc["study"]
-    for key in ("vary", "laws", "set"):
-        data[key] = tuple(data[key])
-    return Study(**data)
+    try:
+        data = dict(doc["study"])
+        for key in ("vary", "laws", "set"):
+            data[key] = tuple(data[key])
+        return Study(**data)
+    except (KeyError, TypeError, ValueError) as exc:  # edited by hand, or written by another version
+        raise StudyError(f"{Path(out) / STUDY_FILE}: not a study definition ({type(exc).__name__}: {exc})") from None
 
 
 def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:

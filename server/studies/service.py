@@ -9,6 +9,7 @@ LocalCluster of the request's ``workers`` (default: this machine's cores).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
@@ -29,6 +30,14 @@ class UnknownStudy(KeyError):
 
 class StudyBusy(RuntimeError):
     pass
+
+
+class DamagedStudy(ValueError):
+    """A study directory whose files do not read (edited by hand, truncated, another version's); the
+    message names the study, the file and why."""
+
+
+LIST_KEYS = ("id", "kind", "state", "runs_done", "runs_total", "fraction", "error")
 
 
 @dataclass
@@ -98,20 +107,55 @@ class StudyManager:
         """Every study, newest first: those this console started from the moment they are created (their
         thread writes study.json a moment later, or never when it fails first: the dashboard polls this
         list and must see them), and those on disk."""
-        when = {p.name: (p / "study.json").stat().st_mtime for p in (self.root.iterdir() if self.root.is_dir() else ())
-                if STUDY_ID.fullmatch(p.name) and (p / "study.json").is_file()}
+        when: dict[str, float] = {}
+        for p in self.root.iterdir() if self.root.is_dir() else ():
+            if STUDY_ID.fullmatch(p.name):
+                with contextlib.suppress(OSError):  # no study.json (yet), or removed meanwhile
+                    when[p.name] = (p / "study.json").stat().st_mtime
         when.update({study_id: run.created for study_id, run in list(self._runs.items())})
         return sorted(when, key=lambda study_id: when[study_id], reverse=True)
 
+    def listing(self) -> list[dict[str, Any]]:
+        """:meth:`ids` with their progress (:data:`LIST_KEYS`). A directory that does not read is
+        listed as ``damaged`` with the reason in ``error``: one broken study must not hide the others."""
+        out = []
+        for study_id in self.ids():
+            try:
+                p = self.progress(study_id)
+            except UnknownStudy:  # removed since ids() saw it
+                continue
+            except DamagedStudy as exc:
+                p = {"id": study_id, "kind": study_id.split("-", 1)[0], "state": "damaged", "runs_done": 0,
+                     "runs_total": 0, "fraction": 0.0, "error": str(exc)}
+            out.append({k: p[k] for k in LIST_KEYS})
+        return out
+
     def progress(self, study_id: str) -> dict[str, Any]:
+        """Progress and, once it ran, the summary. Raises :class:`UnknownStudy`, or
+        :class:`DamagedStudy` when the directory's files do not read."""
+        folder = self._dir(study_id)
+        run = self._runs.get(study_id)
+        try:
+            return self._progress(study_id, folder, run)
+        except (StudyError, OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+            if run is None and not (folder / "study.json").is_file():
+                raise UnknownStudy(study_id) from None  # removed while it was read
+            raise DamagedStudy(f"study {study_id} is damaged: {exc}") from None
+
+    def _progress(self, study_id: str, folder: Path, run: _Running | None) -> dict[str, Any]:
         import json
 
         from server.studies.execute import finished_ids, load_study
 
-        folder = self._dir(study_id)
-        run = self._runs.get(study_id)
         summary_file = folder / "summary.json"
-        summary = json.loads(summary_file.read_text()) if summary_file.is_file() else None
+        summary = None
+        if summary_file.is_file():
+            try:
+                summary = json.loads(summary_file.read_text())
+            except ValueError as exc:
+                raise StudyError(f"{summary_file}: not JSON ({exc})") from None
+            if not isinstance(summary, dict):
+                raise StudyError(f"{summary_file}: not a JSON object")
         figures = [f"/api/studies/{study_id}/figures/{n}" for n in (summary or {}).get("figures", [])]
         if run is None:  # not run by this console (or before its restart): the directory says
             study = load_study(folder)
@@ -130,7 +174,11 @@ class StudyManager:
 
         from server.studies.execute import read_rows
 
-        rows = read_rows(self._dir(study_id))
+        folder = self._dir(study_id)
+        try:
+            rows = read_rows(folder)
+        except (StudyError, OSError) as exc:
+            raise DamagedStudy(f"study {study_id} is damaged: {exc}") from None
         page = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}
                 for r in rows[offset:offset + limit]]
         return {"total": len(rows), "offset": offset, "rows": page}
@@ -152,4 +200,4 @@ def study_or_error(**fields: Any) -> Study:
     return study_from(kind, **fields)
 
 
-__all__ = ["StudyBusy", "StudyError", "StudyManager", "UnknownStudy", "study_or_error"]
+__all__ = ["DamagedStudy", "StudyBusy", "StudyError", "StudyManager", "UnknownStudy", "study_or_error"]
