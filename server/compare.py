@@ -10,6 +10,7 @@ from ``CameraAlpha``. Angles in degrees (a report edge), forces in N, decimated 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -23,19 +24,50 @@ TABLE_COLUMNS = ["campaign", "control law", "parameter set", "truth", "trajector
                  "e_α mean (deg)", "e mean (deg)", "e max (deg)", "force mean (N)", "saturated ticks"]
 
 
+class UnreadableMetrics(ValueError):
+    """A record whose metrics are not what a campaign writes (edited by hand); the message names
+    the campaign and the metric."""
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _r(x: Any) -> float | None:
-    return None if x is None else round(float(x), 3)
+    # NaN would make the JSON answer itself fail: an unknown value is shown as none.
+    return None if x is None or not math.isfinite(x) else round(float(x), 3)
+
+
+def _metric(rec: CampaignRecord, m: dict[str, Any], key: str, per_joint: bool = False) -> float | None:
+    """``metrics[key]`` of ``rec`` (its largest element when ``per_joint``), None when absent; raises
+    :class:`UnreadableMetrics` when it is not a number (a list of numbers when ``per_joint``)."""
+    value = m.get(key)
+    if value is None:
+        return None
+    if per_joint:
+        if not isinstance(value, list) or not all(_number(v) for v in value):
+            raise UnreadableMetrics(f"campaign {rec.id}: metrics.{key} is {str(value)[:60]}, not a list of numbers "
+                                    "(one per joint)")
+        return _r(max(value)) if value else None
+    if not _number(value):
+        raise UnreadableMetrics(f"campaign {rec.id}: metrics.{key} is {str(value)[:60]!r}, not a number")
+    return _r(value)
 
 
 def compare_table(records: list[CampaignRecord]) -> dict[str, Any]:
-    """Table 3 of the 3-X paper (§7) for the chosen runs: one row per campaign."""
+    """Table 3 of the 3-X paper (§7) for the chosen runs: one row per campaign. Raises
+    :class:`UnreadableMetrics` for a record whose metrics are not numbers."""
     rows = []
     for rec in records:
-        m = rec.metrics or {}
-        e_max = max(m["e_max_deg"]) if m.get("e_max_deg") else None
+        m = rec.metrics if isinstance(rec.metrics, dict) else {}
+        saturated = m.get("saturated_ticks")
+        if saturated is not None and not _number(saturated):
+            raise UnreadableMetrics(f"campaign {rec.id}: metrics.saturated_ticks is {str(saturated)[:60]!r}, "
+                                    "not a number")
         rows.append([rec.id, rec.law, rec.parameter_set, rec.truth or ("robot" if rec.target == "robot" else "–"),
-                     rec.trajectory, rec.status, _r(m.get("e_alpha_mean_all_deg")), _r(m.get("e_mean_all_deg")),
-                     _r(e_max), _r(m.get("force_mean_all_N")), m.get("saturated_ticks")])
+                     rec.trajectory, rec.status, _metric(rec, m, "e_alpha_mean_all_deg"),
+                     _metric(rec, m, "e_mean_all_deg"), _metric(rec, m, "e_max_deg", per_joint=True),
+                     _metric(rec, m, "force_mean_all_N"), saturated])
     return {"title": "Table 3 (selected runs): mean errors", "columns": TABLE_COLUMNS, "rows": rows,
             "note": "e_α = |α̂ − α_IP| against the camera, e = |α^d − α̂| (3-X paper §7, Table 3); "
                     "truth: what the twin simulated."}

@@ -10,7 +10,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, status
 from starlette.concurrency import run_in_threadpool
 
 from server.campaigns import NotFound
-from server.compare import compare_table, traces
+from server.compare import UnreadableMetrics, compare_table, traces
 from server.records import valid_id
 
 router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
@@ -20,7 +20,8 @@ MIN_RUNS, MAX_RUNS = 2, 4
 
 @router.get("/compare", responses={404: {"description": "An unknown campaign"},
                                    409: {"description": "A campaign still running"},
-                                   422: {"description": "Not 2-4 distinct ids"}})
+                                   422: {"description": "Not 2-4 distinct ids, or a record whose metrics "
+                                                         "are not numbers"}})
 async def compare(request: Request, ids: str = Query(..., max_length=600, description="2-4 campaign ids, comma "
                                                       "separated"),
                   traces_: bool = Query(False, alias="traces", description="Also the series of each run.")) -> Any:
@@ -41,7 +42,11 @@ async def compare(request: Request, ids: str = Query(..., max_length=600, descri
         if rec.status == "running":
             raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {cid} is still running")
         records.append(rec)
-    out: dict[str, Any] = {"table": compare_table(records),
+    try:
+        table = compare_table(records)
+    except UnreadableMetrics as exc:
+        raise HTTPException(422, str(exc)) from None
+    out: dict[str, Any] = {"table": table,
                            "campaigns": [{"id": r.id, "law": r.law, "parameter_set": r.parameter_set, "truth": r.truth,
                                           "trajectory": r.trajectory, "status": r.status} for r in records]}
     if traces_:

@@ -58,6 +58,11 @@ def seed_runs(data: Path) -> list[str]:
 def console(tmp_path_factory):
     data = tmp_path_factory.mktemp("compare") / "data"
     seed_runs(data)
+    index = CampaignIndex(data / "campaigns")
+    for cid, metrics in (("edited-number", {"e_max_deg": 5, "e_mean_all_deg": 1.0}),
+                         ("edited-text", {"e_max_deg": [1.0, 2.0, 3.0], "e_mean_all_deg": "x"})):
+        index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",  # edited by hand
+                                  parameter_set="prototype_3x", target="twin", status="finished", metrics=metrics))
     with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=10) as client:
         yield client
 
@@ -88,3 +93,12 @@ def test_compare_traces_overlay_each_runs_series(console):
                                            ("run-a,nope", 404), ("run-a,../../etc", 404)])
 def test_compare_refuses_what_it_cannot_compare(console, ids, code):
     assert console.get("/api/campaigns/compare", params={"ids": ids}).status_code == code
+
+
+@pytest.mark.parametrize(("edited", "said"), [("edited-number", "metrics.e_max_deg"),
+                                              ("edited-text", "metrics.e_mean_all_deg")])
+def test_a_hand_edited_record_whose_metrics_are_not_numbers_is_a_422_naming_them(console, edited, said):
+    # audit of 2026-11-26: max() of a number was a 500.
+    r = console.get("/api/campaigns/compare", params={"ids": f"run-a,{edited}"})
+    assert r.status_code == 422, r.text
+    assert edited in r.json()["detail"] and said in r.json()["detail"], r.text
