@@ -96,6 +96,9 @@ class CampaignManager:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._replay: Replay | None = None
+        # (campaign id, speed, cancelled) of a replay whose archive is being read: it holds the robot
+        # already, so that no campaign or second replay starts in the second the read takes.
+        self._replay_starting: tuple[str, float, threading.Event] | None = None
         self._estop_pub = publisher(session, bus.ESTOP)
         self._estop_seq = 0
         self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
@@ -242,16 +245,26 @@ class CampaignManager:
         """Why no campaign can be recorded now ('' if one can); see :mod:`server.datadir`."""
         return storage_problem(self.index.dir, self.min_free_bytes)
 
+    def _holder(self) -> Busy | None:
+        """What holds the robot now (None if nothing does): a campaign, a replay, or a replay whose
+        archive is being read. Call it under ``_lock``."""
+        if self._running is not None:
+            return Busy(self._running)
+        if self._replay_starting is not None:
+            return Busy(self._replay_starting[0], "replay of")
+        if self._replay is not None and self._replay.running:
+            return Busy(self._replay.campaign_id, "replay of")
+        return None
+
     def start(self, prepared: PreparedCampaign) -> CampaignRecord:
         """Start a campaign as prepared (nothing is changed here: the request was resolved and
         checked by :func:`server.campaign_request.prepare`). Raises :class:`Busy` or
         :class:`StorageError`."""
         spec = prepared.spec
         with self._lock:
-            if self._running is not None:
-                raise Busy(self._running)
-            if self._replay is not None and self._replay.running:
-                raise Busy(self._replay.campaign_id, "replay of")
+            busy = self._holder()
+            if busy is not None:
+                raise busy
             disabled = self._drives_disabled(spec.twin and not spec.service)  # a service drives the bus bridge
             if disabled:
                 raise DrivesDisabled(disabled)
@@ -346,8 +359,12 @@ class CampaignManager:
 
     def stop(self, campaign_id: str) -> CampaignRecord:
         rec = self.get(campaign_id)
+        with self._lock:
+            starting = self._replay_starting
         if self._running == campaign_id:
             self._stop.set()
+        elif starting is not None and starting[0] == campaign_id:
+            starting[2].set()  # it never starts
         elif self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
             self._replay.stop()
         return rec
@@ -366,6 +383,8 @@ class CampaignManager:
                 raise Busy(campaign_id)
             if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
                 raise Busy(campaign_id, "replay of")
+            if self._replay_starting is not None and self._replay_starting[0] == campaign_id:
+                raise Busy(campaign_id, "replay of")
             self._records.pop(campaign_id, None)
         for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):
             p.unlink(missing_ok=True)
@@ -377,21 +396,40 @@ class CampaignManager:
 
     # -- replay -----------------------------------------------------------------------------
     def replay(self, campaign_id: str, speed: float) -> dict[str, object]:
+        """Publish an archived campaign onto the bus at ``speed`` (recorded time per wall-clock
+        time); its status. The robot is claimed for it before its archive is read, in the same
+        critical section as the check, so a campaign or a second replay asked for meanwhile gets
+        :class:`Busy`; a stop or e-stop during the read means it never starts (``running`` false).
+        Raises :class:`Busy`, or what reading the archive raises (the claim then released)."""
         rec = self.get(campaign_id)
+        cancelled = threading.Event()
         with self._lock:
-            if self._running is not None:
-                raise Busy(self._running)
-            if self._replay is not None and self._replay.running:
-                raise Busy(self._replay.campaign_id, "replay of")
-        if rec.status == "running":
-            raise Busy(campaign_id)
-        replay = Replay(self.session, campaign_id, self.index.mcap(campaign_id), speed)
+            busy = self._holder()
+            if busy is not None:
+                raise busy
+            if rec.status == "running":
+                raise Busy(campaign_id)
+            self._replay_starting = (campaign_id, speed, cancelled)
+        try:
+            replay = Replay(self.session, campaign_id, self.index.mcap(campaign_id), speed)
+        except BaseException:
+            with self._lock:
+                self._replay_starting = None
+            raise
         with self._lock:
-            self._replay = replay
+            self._replay_starting = None
+            if not cancelled.is_set():
+                self._replay = replay
+                replay.start()
         return replay.status()
 
     def replay_status(self) -> dict[str, object] | None:
-        return self._replay.status() if self._replay is not None else None
+        with self._lock:
+            starting, replay = self._replay_starting, self._replay
+        if starting is not None:  # its archive is being read: it holds the robot already
+            return {"campaign_id": starting[0], "running": True, "starting": True, "progress": 0.0, "published": 0,
+                    "total": 0, "speed": starting[1], "error": ""}
+        return replay.status() if replay is not None else None
 
     # -- e-stop -----------------------------------------------------------------------------
     def estop_status(self) -> dict[str, object]:
@@ -421,11 +459,18 @@ class CampaignManager:
         self.estop_engaged, self.estop_reason = engaged, reason
         if engaged:
             self._stop.set()
+            self._cancel_starting_replay()
             if self._replay is not None:
                 self._replay.stop()
 
+    def _cancel_starting_replay(self) -> None:
+        with self._lock:
+            if self._replay_starting is not None:
+                self._replay_starting[2].set()
+
     def close(self, timeout_s: float = 20.0) -> None:
         self._stop.set()
+        self._cancel_starting_replay()
         if self._replay is not None:
             self._replay.stop()
         self.wait_idle(timeout_s)

@@ -14,13 +14,15 @@ import zenoh
 
 from bridge import bus
 from bridge.archive import read_campaign
-from bridge.session import publisher
+from bridge.session import BusPublisher, publisher
 
 NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP})
 
 
 class Replay:
-    """One replay in a daemon thread; :meth:`stop` ends it within one message interval."""
+    """One replay in a daemon thread, read from ``path`` when built (a bad file raises here) and
+    published from :meth:`start` on; :meth:`stop` ends it within one message interval.
+    ``speed``: recorded time per wall-clock time (1 = as recorded)."""
 
     def __init__(self, session: zenoh.Session, campaign_id: str, path: Path, speed: float = 1.0) -> None:
         if not speed > 0:
@@ -40,8 +42,14 @@ class Replay:
             self._messages += [(t, key, m) for t, m in msgs if isinstance(m, bus.BusMessage)]
         self._messages.sort(key=lambda x: x[0])
         self.total = len(self._messages)
-        self._pubs = {key: publisher(session, key) for key in {k for _, k, _ in self._messages}}
+        self._session = session
+        self._pubs: dict[str, BusPublisher[bus.BusMessage]] = {}
         self._thread = threading.Thread(target=self._run, name=f"replay:{campaign_id}", daemon=True)
+
+    def start(self) -> None:
+        """Publish from now on. Separate from reading the file so that the console can hold the
+        robot for this replay while the (long) read goes on, and start it only if still wanted."""
+        self._pubs = {key: publisher(self._session, key) for key in {k for _, k, _ in self._messages}}
         self._thread.start()
 
     @property
@@ -74,8 +82,9 @@ class Replay:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
-        self._thread.join(timeout_s)
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout_s)
 
     def status(self) -> dict[str, object]:
-        return {"campaign_id": self.campaign_id, "running": self.running, "progress": self.progress,
+        return {"campaign_id": self.campaign_id, "running": self.running, "starting": False, "progress": self.progress,
                 "published": self.published, "total": self.total, "speed": self.speed, "error": self.error}

@@ -1,0 +1,133 @@
+"""Replays hold the robot as campaigns do (audit of 2026-11-26): over real HTTP, two replays, or a
+replay and a campaign, started at the same moment: exactly one is accepted, the other gets 409 with
+the reason, and after stop and e-stop nothing keeps publishing recorded states on the bus."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import AUTH, running_server, wait_until
+
+from bridge import bus
+from bridge.archive import write_campaign
+from bridge.session import open_session
+from server.records import CampaignIndex, CampaignRecord
+
+TICKS = 30_000  # 60 s at 500 Hz: reading the archive takes a good fraction of a second, the window of the race
+
+
+def _seed(data: Path, cid: str = "run-a") -> str:
+    """A finished control run in the console's data directory, as a campaign leaves it."""
+    index = CampaignIndex(data / "campaigns")
+    index.dir.mkdir(parents=True, exist_ok=True)
+    msgs = []
+    for k in range(TICKS):
+        t = 10.0 + k / 500
+        ns = int(t * 1e9)
+        msgs.append((bus.MOTOR_STATE, ns, bus.MotorState(seq=k, stamp_s=t, theta_rad=[0.0] * 4,
+                                                          force_applied_N=[5.0, 6.0, 7.0, 8.0], drive="active",
+                                                          epoch="e", bridge="b")))
+        msgs.append((bus.CONTROLLER_STATUS, ns + 1, bus.ControllerStatus(
+            seq=k, stamp_s=t, law="law2", tick_s=0.002, compute_s=0.001, overruns=0, deadline_misses=0,
+            saturated=[False] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False,
+            campaign_id=cid, ticks=k)))
+    write_campaign(index.mcap(cid), msgs, {"campaign_id": cid, "kind": "control", "law": "law2"})
+    index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",
+                              parameter_set="prototype_3x", target="twin", status="finished",
+                              created_at="2026-11-26T10:00:00"))
+    return cid
+
+
+def _together(*calls: Callable[[], httpx.Response]) -> list[httpx.Response]:
+    barrier = threading.Barrier(len(calls))
+    out: list[httpx.Response | None] = [None] * len(calls)
+
+    def run(i: int, call: Callable[[], httpx.Response]) -> None:
+        barrier.wait()
+        out[i] = call()
+
+    threads = [threading.Thread(target=run, args=(i, c)) for i, c in enumerate(calls)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert all(r is not None for r in out)
+    return out  # pyright: ignore[reportReturnType] - checked above
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory):
+    data = tmp_path_factory.mktemp("replay") / "data"
+    cid = _seed(data)
+    _seed(data, "damaged")
+    with running_server(data, viser=False) as (base, app), \
+            httpx.Client(base_url=base, timeout=60) as a, httpx.Client(base_url=base, timeout=60) as b:
+        session = open_session(connect=[app.state.hub])
+        states: list[float] = []
+        sub = session.declare_subscriber(bus.MOTOR_STATE, lambda _s: states.append(time.monotonic()))
+        try:
+            yield a, b, cid, states, data
+        finally:
+            sub.undeclare()
+            session.close()
+
+
+def _idle(client: httpx.Client) -> bool:
+    h = client.get("/api/system/health").json()
+    return h["running_campaign_id"] is None and not (h["replay"] or {}).get("running")
+
+
+def test_two_replays_at_once_one_is_refused_and_stop_and_estop_silence_the_bus(console) -> None:
+    a, b, cid, states, _data = console
+    first, second = _together(lambda: a.post(f"/api/campaigns/{cid}/replay", json={"speed": 1.0}, headers=AUTH),
+                              lambda: b.post(f"/api/campaigns/{cid}/replay", json={"speed": 1.0}, headers=AUTH))
+    codes = sorted((first.status_code, second.status_code))
+    assert codes == [200, 409], (first.text, second.text)
+    refused = first if first.status_code == 409 else second
+    assert f"replay of {cid}" in refused.json()["detail"], refused.text
+    assert wait_until(lambda: len(states) > 50, 10), "the accepted replay published nothing"
+    assert a.post(f"/api/campaigns/{cid}/stop", headers=AUTH).status_code == 200
+    assert a.post("/api/system/estop", json={"engaged": True, "reason": "test"}, headers=AUTH).status_code == 200
+    try:
+        time.sleep(0.5)  # messages in flight
+        quiet_from = time.monotonic()
+        time.sleep(2.0)
+        assert [t for t in states if t > quiet_from] == [], "recorded MotorStates published after stop and e-stop"
+        assert _idle(a)
+    finally:
+        a.post("/api/system/estop", json={"engaged": False, "reason": ""}, headers=AUTH)
+
+
+def test_a_replay_and_a_campaign_at_once_only_one_holds_the_robot(console) -> None:
+    a, b, cid, _states, _data = console
+    body = {"kind": "control", "waypoints": {"waypoints_deg": [[0, 0, 0], [5, 0, 0], [0, 0, 0]], "durations_s": 3}}
+    replay, campaign = _together(lambda: a.post(f"/api/campaigns/{cid}/replay", json={"speed": 1.0}, headers=AUTH),
+                                 lambda: b.post("/api/campaigns", json=body, headers=AUTH))
+    try:
+        assert sorted((replay.status_code, campaign.status_code)) in ([200, 409], [201, 409]), \
+            (replay.status_code, replay.text, campaign.status_code, campaign.text)
+        refused = replay if replay.status_code == 409 else campaign
+        assert " is running" in refused.json()["detail"], refused.text
+    finally:
+        if campaign.status_code == 201:
+            a.post(f"/api/campaigns/{campaign.json()['id']}/stop", headers=AUTH)
+        a.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+        assert wait_until(lambda: _idle(a), 60, 0.5)
+
+
+def test_a_replay_whose_archive_does_not_read_leaves_the_robot_free(console) -> None:
+    a, _b, cid, _states, data = console
+    mcap = CampaignIndex(data / "campaigns").mcap("damaged")
+    mcap.write_bytes(mcap.read_bytes()[:4096])  # cut short after start-up (which would have recovered it)
+    r = a.post("/api/campaigns/damaged/replay", json={"speed": 1.0}, headers=AUTH)
+    assert r.status_code == 422 and "cannot replay" in r.json()["detail"], r.text
+    assert _idle(a)
+    r = a.post(f"/api/campaigns/{cid}/replay", json={"speed": 4.0}, headers=AUTH)  # the claim was released
+    assert r.status_code == 200, r.text
+    a.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+    assert wait_until(lambda: _idle(a), 10, 0.2)
