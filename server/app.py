@@ -106,7 +106,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz,
-                                        jog=lambda alpha_deg: request_jog(state, alpha_deg), hold=lambda: stop_jog(state))
+                                        jog=lambda alpha_deg: request_jog(state, alpha_deg), hold=lambda: stop_jog(state),
+                                        token=lambda: app.state.token)  # the panel jogs as POST /api/jog: with the token
             state.campaigns = CampaignManager(data_dir, session, state.hub,
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),

@@ -9,9 +9,13 @@ The camera frames the neck's bounding volume over its joint range (:meth:`NeckDr
 when a browser connects, when its view changes shape (a resized card) and on "reset view"; the
 motors' drums (radius r_d), pulleys (r) and bars are drawn with the parameter set's dimensions.
 A trajectory's motion can be previewed as a violet ghost (:meth:`NeckScene.preview`, the
-editor's "preview in 3D"). The GUI panel has a slider per joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`;
-at most one per ``JOG_PERIOD_S`` while dragging, the last one where the slider stops) and a
-"hold here" button (``hold``).
+editor's "preview in 3D"). The GUI panel has, for each client, a folder "Jog (deg)": a slider per
+joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`; at most one per
+``JOG_PERIOD_S`` while dragging, the last one where the slider stops), a "hold here" button
+(``hold``) and an "API token" field. Any web page the operator visits can open viser's websocket
+on 127.0.0.1 (it checks neither Origin nor token), so the folder is built per client (one client's
+values never reach another) and its sliders and button act only while that client's token field
+holds the console's API token (``token``), as ``POST /api/jog`` asks.
 
 Nodes are created once; a daemon thread updates their properties at ``rate_hz`` inside
 ``server.atomic()`` so a browser never sees half a pose. It only reads :class:`LatestValues`,
@@ -23,11 +27,13 @@ console must cost next to nothing (issue 21); a client that connects wakes it at
 from __future__ import annotations
 
 import contextlib
+import hmac
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -62,6 +68,22 @@ EARLY_UPDATES = 3  # camera updates after connecting that are fitted again (the 
 # console's CPU (issue 21); the handles stay current within a second for a client that connects
 # (it is woken at once anyway) and for anything reading them.
 IDLE_RATE_HZ = 1.0
+JOG_HELP = ("Moves the neck. Type the console's API token (printed by `xneck server`, or in "
+            "`<data-dir>/token`) into **API token** first: any web page you visit can reach this panel, "
+            "so without the token the sliders and *hold here* do nothing.")
+NOT_SENT = "**not sent**: the API token field does not hold the console's token"
+
+
+@dataclass
+class ClientJog:
+    """The jog folder of one viser client: its sliders (deg), token field and status line, and the
+    newest target (deg) not sent yet."""
+
+    sliders: list[viser.GuiSliderHandle[float]]
+    token: viser.GuiTextHandle
+    text: viser.GuiMarkdownHandle
+    target: list[float] | None = None
+    sent_s: float = field(default=-math.inf)  # monotonic s of the last target sent
 
 
 def camera_frustum_pose(cal: Calibration) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -84,13 +106,14 @@ class NeckScene:
 
     def __init__(self, values: LatestValues, params: Params, host: str = "127.0.0.1", port: int = 0,
                  rate_hz: float = 30.0, jog: Callable[[list[float]], tuple[int, Any]] | None = None,
-                 hold: Callable[[], object] | None = None, calibration: Calibration | None = None) -> None:
+                 hold: Callable[[], object] | None = None, calibration: Calibration | None = None,
+                 token: Callable[[], str] | None = None) -> None:
         from bridge.session import free_tcp_port
 
         self.values = values
         self.jog, self.hold = jog, hold
-        self._jog_target: list[float] | None = None  # newest slider pose not sent yet
-        self._jog_sent_s = -math.inf
+        self.token = token  # the console's API token now; without it the panel never jogs
+        self.jogs: dict[int, ClientJog] = {}  # client id -> its jog folder
         self._aspects: dict[int, float] = {}  # client id -> aspect ratio of its last fit
         self._preview: tuple[float, Any] | None = None  # (start, trajectory) of the motion previewed
         self._updates: dict[int, int] = {}  # client id -> camera updates seen
@@ -182,6 +205,7 @@ class NeckScene:
     def _on_connect(self, client: viser.ClientHandle) -> None:
         self.values.watch("3d view", True)  # the truth's tensions are drawn (server.live.VIEW_ONLY)
         self.fit(client)
+        self._build_jog(client)
         self._wake.set()  # the idle thread draws the current pose for it now, then runs at rate_hz
 
         @client.camera.on_update
@@ -191,6 +215,7 @@ class NeckScene:
                 self.fit(client)
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        self.jogs.pop(client.client_id, None)
         self._aspects.pop(client.client_id, None)
         self._updates.pop(client.client_id, None)
         if not self.server.get_clients():
@@ -206,42 +231,64 @@ class NeckScene:
             if event.client is not None:
                 self.fit(event.client)
 
-        self.jog_sliders = []
+    def _build_jog(self, client: viser.ClientHandle) -> None:
+        """``client``'s own jog folder (module docstring); nothing without a ``jog`` callable."""
         if self.jog is None:
             return
+        gui = client.gui
         with gui.add_folder("Jog (deg)"):
-            for j in range(self.drawing.n_joints):
-                slider = gui.add_slider(f"α{j + 1}", -self.alpha_max_deg, self.alpha_max_deg, 0.5, 0.0)
-                slider.on_update(lambda _event: self._slider_moved())
-                self.jog_sliders.append(slider)
+            gui.add_markdown(JOG_HELP)
+            token = gui.add_text("API token", "", hint="The console's API token (Authorization: Bearer <token>)")
+            sliders = [gui.add_slider(f"α{j + 1}", -self.alpha_max_deg, self.alpha_max_deg, 0.5, 0.0)
+                       for j in range(self.drawing.n_joints)]
             hold = gui.add_button("hold here", hint="Stop the move where the neck is")
-            self.jog_text = gui.add_markdown("")
+            text = gui.add_markdown("")
+        jog = ClientJog(sliders, token, text)
+        for slider in sliders:
+            slider.on_update(lambda _event: self._slider_moved(jog))
+        hold.on_click(lambda _event: self._hold(jog))
+        self.jogs[client.client_id] = jog
 
-        @hold.on_click
-        def _(_event: viser.GuiEvent) -> None:
-            self._jog_target = None
-            if self.hold is not None:
-                self.hold()
-                self.jog_text.content = "holding"
+    def authorised(self, jog: ClientJog) -> bool:
+        """Whether ``jog``'s token field holds the console's API token (in constant time)."""
+        expected = self.token() if self.token is not None else ""
+        return bool(expected) and hmac.compare_digest(jog.token.value.strip().encode(), expected.encode())
 
-    def _slider_moved(self) -> None:
-        self._jog_target = [float(s.value) for s in self.jog_sliders]
+    def _slider_moved(self, jog: ClientJog) -> None:
+        if not self.authorised(jog):
+            jog.target, jog.text.content = None, NOT_SENT
+            return
+        jog.target = [float(s.value) for s in jog.sliders]
         self._wake.set()
 
+    def _hold(self, jog: ClientJog) -> None:
+        jog.target = None
+        if not self.authorised(jog):
+            jog.text.content = NOT_SENT
+            return
+        if self.hold is not None:
+            self.hold()
+            jog.text.content = "holding"
+
     def send_jog(self, now_s: float) -> None:
-        """Send the newest slider pose if one waits and the last went ``JOG_PERIOD_S`` ago."""
-        target = self._jog_target
-        if target is None or self.jog is None or now_s - self._jog_sent_s < JOG_PERIOD_S:
-            return
-        self._jog_target, self._jog_sent_s = None, now_s
-        code, answer = self.jog(target)
-        if code == 429:
-            self._jog_target = target  # the newest goes next time
-            return
-        detail = answer.get("detail") if isinstance(answer, dict) else None
-        if isinstance(detail, list):
-            detail = "; ".join(str(d.get("msg", d)) for d in detail)
-        self.jog_text.content = f"→ {answer['jog_id']}" if code == 202 else f"**refused ({code})**: {detail}"
+        """Send each client's newest slider pose if one waits and its last went ``JOG_PERIOD_S``
+        ago; the token is checked again here (the field may have been cleared since the move)."""
+        for jog in list(self.jogs.values()):
+            target = jog.target
+            if target is None or self.jog is None or now_s - jog.sent_s < JOG_PERIOD_S:
+                continue
+            jog.target, jog.sent_s = None, now_s
+            if not self.authorised(jog):
+                jog.text.content = NOT_SENT
+                continue
+            code, answer = self.jog(target)
+            if code == 429:
+                jog.target = target  # the newest goes next time
+                continue
+            detail = answer.get("detail") if isinstance(answer, dict) else None
+            if isinstance(detail, list):
+                detail = "; ".join(str(d.get("msg", d)) for d in detail)
+            jog.text.content = f"→ {answer['jog_id']}" if code == 202 else f"**refused ({code})**: {detail}"
 
     # -- preview of a trajectory's motion -------------------------------------------------------
     def preview(self, trajectory: Any) -> float:
@@ -302,7 +349,8 @@ class NeckScene:
     def watched(self) -> bool:
         """Whether the view is worth its full rate: a viser client is connected, or a preview or a
         jog from the panel is under way."""
-        return bool(self._preview is not None or self._jog_target is not None or self.server.get_clients())
+        return bool(self._preview is not None or any(j.target is not None for j in list(self.jogs.values()))
+                    or self.server.get_clients())
 
     def _run(self) -> None:
         last_version = -1

@@ -159,11 +159,17 @@ def test_3d_view_frames_the_whole_neck_on_load_and_resize_and_its_panel_jogs(con
     assert wait_until(lambda: abs(client.camera.aspect - aspect) > 0.05 and _camera_fitted(scene, client), 10, 0.1)
     page.set_viewport_size({"width": 1400, "height": 1000})
     console.wait_idle()  # the campaign the jog test stopped
-    # The panel's sliders send jog targets: α2 to 8° (the others at 0°) reaches the neck.
-    scene.jog_sliders[1].value = 8.0
+    # The panel's sliders (this client's own folder) send jog targets once its token field holds the
+    # API token: without it a slider moves nothing; with it α2 to 8° (the others at 0°) reaches the neck.
+    assert wait_until(lambda: client.client_id in scene.jogs, 5, 0.05)
+    jog = scene.jogs[client.client_id]
+    jog.sliders[1].value = 4.0
+    assert "not sent" in jog.text.content, jog.text.content
+    jog.token.value = TOKEN
+    jog.sliders[1].value = 8.0
     status = console.app.state.live.values
     assert wait_until(lambda: np.abs(np.degrees(status.get("status").alpha_hat_rad) - [0, 8, 0]).max() < 1, 45, 0.1)
-    assert scene.jog_text.content.startswith("→ jog-"), scene.jog_text.content
+    assert jog.text.content.startswith("→ jog-"), jog.text.content
     page.wait_for_timeout(800)
     console.shot("console_3d_view.png", "#view")
 

@@ -1,11 +1,24 @@
-"""``POST /api/jog`` over real HTTP (issue 18): what is refused, and why, before anything moves.
+"""``POST /api/jog`` over real HTTP (issue 18): what is refused, and why, before anything moves;
+the viser panel's jog folder, which moves nothing for a websocket client without the API token.
 The jog that moves the neck is in tests/test_console_browser.py (a real stack)."""
 
 from __future__ import annotations
 
+import json
+import threading
+import time
+from typing import Any
+
 import httpx
+import msgspec
 import pytest
-from server_harness import AUTH, running_server
+import viser
+import zstandard
+from server_harness import AUTH, TOKEN, running_server, wait_until
+from websockets.sync.client import connect
+
+from bridge import bus
+from bridge.session import liveliness_token, open_session, publisher
 
 
 @pytest.fixture(scope="module")
@@ -46,3 +59,133 @@ def test_a_jog_is_refused_while_the_estop_is_engaged(console):
     finally:
         client.post("/api/system/estop", json={"engaged": False, "reason": "test"}, headers=AUTH)
     assert client.post("/api/jog", json={"alpha_deg": [5, 0, 0]}, headers=AUTH).status_code == 503
+
+
+class ViserPanel:
+    """A bare viser websocket client, as any web page the operator visits could open one to
+    127.0.0.1: it finds the "Jog (deg)" folder the console builds for it and sets its inputs."""
+
+    def __init__(self, port: int) -> None:
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],  # pyright: ignore[reportArgumentType]
+                          origin="http://evil.example", max_size=None, open_timeout=5)  # pyright: ignore[reportArgumentType]
+        self.folders: dict[str, str] = {}  # label -> uuid
+        self.inputs: dict[tuple[str, str], str] = {}  # (container uuid, label) -> uuid
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        # A browser's viewer sends its camera first; viser counts the client as connected from then on.
+        self._send({"type": "ViewerCameraMessage", "wxyz": [1, 0, 0, 0], "position": [0, 0, 1], "fov": 1.0,
+                    "near": 0.01, "far": 100.0, "image_height": 480, "image_width": 640, "look_at": [0, 0, 0],
+                    "up_direction": [0, 0, 1]})
+        assert wait_until(lambda: all(self._uuid(label) for label in ("α1", "API token", "hold here")), 10), \
+            (self.folders, self.inputs)
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            try:
+                raw = self.ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            except Exception:  # noqa: BLE001 - closed
+                return
+            assert isinstance(raw, bytes)
+            n_inner, n_comp = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+            inner = zstandard.ZstdDecompressor().decompress(raw[16:16 + n_comp], max_output_size=n_inner)
+            for m in msgspec.msgpack.decode(inner)["messages"]:
+                label = (m.get("props") or {}).get("label")
+                if label is None:
+                    continue
+                if m.get("type") == "GuiFolderMessage":
+                    self.folders[label] = m["uuid"]
+                elif "container_uuid" in m:
+                    self.inputs[(m["container_uuid"], label)] = m["uuid"]
+
+    def _uuid(self, label: str) -> str | None:
+        folder = self.folders.get("Jog (deg)")
+        return self.inputs.get((folder, label)) if folder else None
+
+    def _send(self, message: dict) -> None:
+        self.ws.send(msgspec.msgpack.encode(message))
+
+    def set(self, label: str, value: object) -> None:
+        self._send({"type": "GuiUpdateMessage", "uuid": self._uuid(label), "updates": {"value": value}})
+
+    def click(self, label: str) -> None:
+        self.set(label, True)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._reader.join(2)
+        self.ws.close()
+
+
+@pytest.fixture(scope="module")
+def viser_console(tmp_path_factory):
+    """A console with its viser panel and a stand-in controller service (its liveliness token and
+    a status at 50 Hz), and every CampaignRequest the console publishes on the bus."""
+    with running_server(tmp_path_factory.mktemp("jog-viser") / "data", viser=True) as (_base, app_):
+        app: Any = app_
+        session = open_session(connect=[app.state.hub])
+        requests: list[bus.CampaignRequest] = []
+        sub = session.declare_subscriber(
+            bus.CAMPAIGN_REQUEST, lambda s: requests.append(bus.decode(bus.CAMPAIGN_REQUEST, s.payload.to_bytes())))
+        token = liveliness_token(session, "campaign-service", "stand-in")
+        pub = publisher(session, bus.CONTROLLER_STATUS)
+        stop = threading.Event()
+
+        def status() -> None:
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                pub.put(bus.ControllerStatus(seq=seq, stamp_s=time.time(), law="law2", tick_s=0.002, compute_s=1e-4,
+                                             overruns=0, deadline_misses=0, saturated=[False] * 4,
+                                             alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3,
+                                             holding=True))
+                time.sleep(0.02)
+
+        thread = threading.Thread(target=status, daemon=True)
+        thread.start()
+        try:
+            assert wait_until(lambda: app.state.presence.any_alive("campaign-service")
+                              and app.state.live.values.fresh("status", 0.5) is not None, 10)
+            yield app, requests
+        finally:
+            stop.set()
+            thread.join(2)
+            sub.undeclare()
+            token.undeclare()
+            pub.close()
+            session.close()
+
+
+def test_the_viser_panel_jogs_only_for_a_client_whose_token_field_holds_the_api_token(viser_console):
+    # audit of 2026-11-26: any web page could open the viser websocket and move the neck, no token asked.
+    app, requests = viser_console
+    scene = app.state.scene
+    stranger, operator = ViserPanel(scene.port), ViserPanel(scene.port)
+    try:
+        stranger.set("API token", "guess")
+        stranger.set("α1", 15.0)
+        time.sleep(1.5)  # several of the scene thread's sends
+        assert requests == [], requests
+        texts = [j.text.content for j in scene.jogs.values()]
+        assert any("not sent" in t and "token" in t for t in texts), texts
+
+        operator.set("API token", TOKEN)
+        operator.set("α2", 8.0)
+        assert wait_until(lambda: any(r.action == "start" for r in requests), 5), requests
+        start = next(r for r in requests if r.action == "start")
+        assert start.kind == "jog" and json.loads(start.trajectory_json)["waypoints_deg"] == [[0.0, 8.0, 0.0]]
+        # Each client has its own folder: the stranger's α1 never reached the operator's sliders.
+        assert sorted(tuple(s.value for s in j.sliders) for j in scene.jogs.values()) == \
+            [(0.0, 8.0, 0.0), (15.0, 0.0, 0.0)]
+
+        stranger.click("hold here")
+        time.sleep(1.0)
+        assert [r.action for r in requests] == ["start"], requests
+        operator.click("hold here")
+        assert wait_until(lambda: [r.action for r in requests] == ["start", "stop"], 5), requests
+        assert requests[1].campaign_id == start.campaign_id
+    finally:
+        stranger.close()
+        operator.close()
