@@ -8,6 +8,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -65,8 +66,9 @@ def console(tmp_path_factory):
     data = tmp_path_factory.mktemp("replay") / "data"
     cid = _seed(data)
     _seed(data, "damaged")
-    with running_server(data, viser=False) as (base, app), \
+    with running_server(data, viser=False) as (base, app_), \
             httpx.Client(base_url=base, timeout=60) as a, httpx.Client(base_url=base, timeout=60) as b:
+        app: Any = app_
         session = open_session(connect=[app.state.hub])
         states: list[float] = []
         sub = session.declare_subscriber(bus.MOTOR_STATE, lambda _s: states.append(time.monotonic()))

@@ -10,6 +10,7 @@ import os
 import signal
 import socket
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -363,9 +364,10 @@ def test_an_active_set_that_no_longer_loads_leaves_the_console_on_the_built_in_o
     (tmp_path / "params" / "latin1.toml").write_bytes(LATIN1_SET)
     (tmp_path / "params" / "active").write_text("latin1\n")
     with caplog.at_level(logging.ERROR, logger="xneck.server"), \
-            running_server(tmp_path, viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c:
+            running_server(tmp_path, viser=False) as (base, app_), httpx.Client(base_url=base, timeout=30) as c:
         from twin.model.params import load_params
 
+        app: Any = app_
         assert app.state.default_params == load_params(None)
         why = c.get("/api/system/health").json()["parameter_set"]
         assert why["active"] == "prototype_3x" and why["fallback_from"] == "latin1"
