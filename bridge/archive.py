@@ -534,7 +534,9 @@ def read_campaign(path: str | os.PathLike[str]) -> Campaign:
     not match its schema."""
     path = Path(path)
     if not is_complete(path):
-        raise ArchiveError(path, "truncated or unfinished MCAP file (no footer): recover() it first")
+        raise ArchiveError(path, "truncated or unfinished MCAP file (no footer): if its recording was "
+                                 "interrupted, copy it into <data dir>/campaigns/ and start `xneck server` (or "
+                                 "`xneck up`): the console repairs such files at start-up, as interrupted campaigns")
     topics: dict[str, list[tuple[int, Any]]] = {}
     schemas: dict[str, str] = {}
     metadata: dict[str, dict[str, str]] = {}

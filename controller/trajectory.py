@@ -420,12 +420,16 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
                 spec = msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), TrajectoryFile)
             else:
                 raise TrajectoryError(
-                    f"unknown trajectory file type {suffix!r}; use .json or .toml "
-                    f"(built-in trajectories: trajectory_by_name({', '.join(map(repr, NAMED_TRAJECTORIES))}))"
+                    f"unknown trajectory file type {suffix!r}: give a .json or .toml file of waypoints, or a "
+                    f"built-in trajectory by its name ({' or '.join(NAMED_TRAJECTORIES)})"
                 )
         return _from_file_struct(spec)
     except (msgspec.ValidationError, msgspec.DecodeError, tomllib.TOMLDecodeError, TrajectoryError) as err:
         raise TrajectoryError(f"{where}{err}") from err
+    except OSError as err:  # missing, a directory, unreadable: the user's file, so a TrajectoryError like its content
+        raise TrajectoryError(f"{where}cannot read the trajectory file ({err.strerror or err})") from None
+    except UnicodeDecodeError as err:
+        raise TrajectoryError(f"{where}not a UTF-8 text file (byte {err.start}: {err.reason})") from None
 
 
 def trajectory_from_json(text: str | bytes) -> Trajectory:
