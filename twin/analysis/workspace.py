@@ -8,6 +8,7 @@ The 2-X paper's joint angle θ_i = α_i/2 is ``half_alpha`` in the code (θ is t
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -433,6 +434,20 @@ def plot_cartesian_stiffness(d: Design, n: int = 300) -> Any:
     return fig
 
 
+def _save(plt: Any, fig: Any, path: Path) -> None:
+    """``fig`` as PNG in ``path`` through a temporary file renamed over it: a full disk or a Ctrl-C
+    leaves the previous figure or none, never a truncated one."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        plt.close(fig)
+
+
 def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> list[Path]:
     """Write the 2-X paper's figures (3, 4, 5, 8, 9, 11, 13-19) as PNGs into ``out``."""
     plt = _plt()
@@ -454,9 +469,7 @@ def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> l
     }
     written = []
     for name, make in jobs.items():
-        fig = make()
-        fig.savefig(out / name, dpi=110)
-        plt.close(fig)
+        _save(plt, make(), out / name)
         written.append(out / name)
     return written
 
@@ -536,8 +549,6 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None, maps: Maps3X | 
     written = []
     for name, draw in (("3x_wfw.png", lambda: plot_3x_wfw(mp, lim.f_min, lim.f_max)),
                        ("3x_stiffness.png", lambda: plot_3x_stiffness(mp))):
-        fig = draw()
-        fig.savefig(out / name, dpi=110)
-        plt.close(fig)
+        _save(plt, draw(), out / name)
         written.append(out / name)
     return written

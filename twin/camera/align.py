@@ -23,9 +23,11 @@ was computed offline from the video, then put beside the encoder data).
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -257,7 +259,24 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         "replaced_images": str(sum(1 for _s, c, _m in records if c.topic == IMAGE_TOPIC) if images else 0), "software": software,
         "method": "least-squares offset/drift of detected α against the reference (twin/camera/align.py)",
     }
-    with open(out, "xb") as f:
+    if out.exists():
+        raise FileExistsError(errno.EEXIST, "exists already: an aligned copy is never overwritten", str(out))
+    # Written beside it and linked into place only when finished: a full disk or a Ctrl-C leaves no
+    # half-written MCAP under the name, and the link, unlike a rename, never replaces a file.
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        _write_copy(tmp, records, metadata, provenance, new, images, video.name)
+        os.link(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return provenance
+
+
+def _write_copy(path: Path, records: list, metadata: list, provenance: dict[str, str], new: list, images: list,
+                video_name: str) -> None:
+    """The aligned copy's MCAP (:func:`write_aligned`): ``records`` of the campaign with its camera
+    messages (and images, if the video gives some) replaced by ``new`` and ``images``."""
+    with open(path, "xb") as f:
         writer = Writer(f, compression=CompressionType.LZ4)
         writer.start(profile="xneck", library="xneck camera align")
         schema_ids: dict[int, int] = {}
@@ -266,13 +285,13 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
                                                data=bus.json_schema_bytes(bus.CameraAlpha))
         camera_channel = writer.register_channel(topic=CAMERA_TOPIC, message_encoding="json", schema_id=camera_schema,
                                                  metadata={"key": bus.CAMERA_ALPHA, "version": str(bus.schema_version(bus.CameraAlpha)),
-                                                           "source": f"file:{video.name}"})
+                                                           "source": f"file:{video_name}"})
         image_channel = 0
         if images:
             image_schema = writer.register_schema(name=IMAGE_SCHEMA_NAME, encoding="jsonschema",
                                                   data=json.dumps(COMPRESSED_IMAGE_SCHEMA).encode())
             image_channel = writer.register_channel(topic=IMAGE_TOPIC, message_encoding="json", schema_id=image_schema,
-                                                    metadata={"source": f"file:{video.name}"})
+                                                    metadata={"source": f"file:{video_name}"})
         # New records (log time, channel, publish time, data, sequence), merged in log-time order.
         added = sorted([(lt, camera_channel, int(m.capture_stamp_s * 1e9), bus.encode(m), m.seq) for lt, m in new]
                        + [(lt, image_channel, pt, data, i + 1) for i, (lt, pt, data) in enumerate(images)], key=lambda r: r[0])
@@ -306,7 +325,6 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
             writer.add_metadata(name, meta)
         writer.add_metadata(ALIGNMENT_METADATA, provenance)
         writer.finish()
-    return provenance
 
 
 __all__ = ["ALIGNMENT_METADATA", "Alignment", "AlignmentError", "Reference", "VideoAlpha", "align",

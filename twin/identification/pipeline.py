@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +56,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from bridge.archive import atomic_write
 from twin.identification.estimators import DEFAULT_THRESHOLD, ESTIMATORS, Estimate, least_squares, physical_bounds
 from twin.identification.instruments import Simulated, simulated_stretch
 from twin.identification.processing import (
@@ -80,6 +80,7 @@ from twin.identification.regressors import (
     stacked_rows,
     tension_mask,
 )
+from twin.jsonout import strict_json
 from twin.model import dynamics
 from twin.model.numeric import CableModelName, build
 from twin.model.params import Params, params_from_dict
@@ -472,8 +473,10 @@ def write_identified(path: str | Path, params: Params, provenance: Provenance) -
         f"# parameters kept at their base value (badly identified): {', '.join(provenance.kept_base) or 'none'}",
         f"# full provenance and per-parameter relative σ: {prov_path.name}",
     ]
-    path.write_text("\n".join(header) + "\n" + params.to_toml())
-    prov_path.write_text(json.dumps(msgspec.to_builtins(provenance), indent=2) + "\n")
+    # Atomic: a full disk or a Ctrl-C leaves the previous files or none, never a half-written set
+    # that load_params would refuse or, worse, read with values missing.
+    atomic_write(path, ("\n".join(header) + "\n" + params.to_toml()).encode())
+    atomic_write(prov_path, (strict_json(msgspec.to_builtins(provenance), indent=2) + "\n").encode())
     return path, prov_path
 
 

@@ -46,6 +46,9 @@ CAMERA_TOPIC = "/xneck/camera/alpha_ip"
 TRUTH_TOPIC = "/xneck/twin/truth"
 MIN_TICKS = 50  # a recording shorter than this (0.1 s at 500 Hz) says nothing about dynamics
 MAX_GAP_S = 0.5  # a longer gap between motor states: not one continuous run
+# In a fitted value's source when the fit stopped at --max-evaluations: a reader of the truth file
+# must not take such values for a converged measurement.
+NOT_CONVERGED = "not converged: stopped at the evaluation limit"
 
 
 class CalibrationError(ValueError):
@@ -347,8 +350,9 @@ class Result:
     sigma: np.ndarray
     residual_rms: dict[str, float]  # over every recording, by kind
     per_recording: dict[str, dict[str, float]]
-    evaluations: int
+    evaluations: int  # replays of every recording, the Jacobian's included
     cost: float
+    converged: bool = True  # False: the fit stopped at max_evaluations, not at its tolerances
 
 
 def _to_z(u: Unknown, v: float) -> float:
@@ -362,7 +366,13 @@ def _from_z(u: Unknown, z: float) -> float:
 def fit(recordings: Sequence[Recording], params: Params, base: RobotTruth, fitted: Sequence[Unknown],
         w: Weights = Weights(), progress: Callable[[str], None] | None = None, max_evaluations: int = 200,
         command: str = "", base_name: str = "") -> Result:
-    """Fit ``fitted`` (starting from ``base``'s values) to ``recordings`` (module docstring)."""
+    """Fit ``fitted`` (starting from ``base``'s values) to ``recordings`` (module docstring).
+
+    ``max_evaluations`` bounds the cost evaluations (scipy's ``max_nfev``), not the replays: each
+    Jacobian, estimated by finite differences, costs one replay more per fitted value. A fit cut
+    off by it is returned with ``converged`` False and says so in the sources it writes."""
+    if max_evaluations < 1:
+        raise CalibrationError(f"the evaluation limit must be at least 1, got {max_evaluations}")
     if not recordings:
         raise CalibrationError("no recording to calibrate on")
     if not fitted:
@@ -393,6 +403,7 @@ def fit(recordings: Sequence[Recording], params: Params, base: RobotTruth, fitte
 
     sol = least_squares(residuals, z0, bounds=(lo, hi), x_scale="jac", diff_step=1e-3, max_nfev=max_evaluations,
                         xtol=1e-6, ftol=1e-8)
+    converged = sol.status != 0  # 0: max_nfev reached before any tolerance was met
     values = np.array([_from_z(u, zi) for u, zi in zip(fitted, sol.x, strict=True)])
     m, n = len(sol.fun), len(fitted)
     s2 = 2.0 * float(sol.cost) / max(m - n, 1)
@@ -414,14 +425,15 @@ def fit(recordings: Sequence[Recording], params: Params, base: RobotTruth, fitte
         fitted_here = [f"[{x.index}] = {vv:.4g} ± {ss:.2g}" if x.index is not None else f"{vv:.4g} ± {ss:.2g}"
                        for x, vv, ss in zip(fitted, values, sigma, strict=True) if f"{x.section}.{x.key}" == key]
         sources[key] = (f"measurement: fitted by xneck twin calibrate to {', '.join(names)} on {when[:10]} "
-                        f"({'; '.join(fitted_here)}, 1 σ)")
+                        f"({'; '.join(fitted_here)}, 1 σ)"
+                        + ("" if converged else f"; {NOT_CONVERGED} ({evaluations} replays)"))
     provenance = Calibration(
         command=command, date=when, campaigns=names, base=base_name or base.name,
         fitted={u.name: float(v) for u, v in zip(fitted, values, strict=True)},
         sigma={u.name: float(s) for u, s in zip(fitted, sigma, strict=True)},
         residual_rms=total, evaluations=evaluations)
     truth = msgspec.structs.replace(truth, sources=sources, calibration=provenance)
-    return Result(truth, list(fitted), values, sigma, total, per, evaluations, float(sol.cost))
+    return Result(truth, list(fitted), values, sigma, total, per, evaluations, float(sol.cost), converged)
 
 
 def with_validation(truth: RobotTruth, validation: dict[str, dict[str, float]]) -> RobotTruth:
@@ -478,14 +490,16 @@ def truth_toml(truth: RobotTruth, header: str = "") -> str:
 
 def check_loadable(text: str, path: Path) -> RobotTruth:
     """Write ``text`` to ``path`` only if it loads back as a truth (never leave a file that
-    ``--truth`` would refuse); returns what it loads to."""
+    ``--truth`` would refuse); returns what it loads to. Atomic: a write that fails (raising the
+    OSError) leaves the previous file (``--force``) or none, never a half-written truth."""
     import tomllib
 
+    from bridge.archive import atomic_write
     from twin.sim.truth import parse_truth
 
     try:
         parse_truth(tomllib.loads(text), path.stem)
     except (tomllib.TOMLDecodeError, TruthError) as exc:
         raise CalibrationError(f"the calibrated truth does not load back ({exc}); not written") from None
-    path.write_text(text)
+    atomic_write(path, text.encode("utf-8"))
     return load_truth(str(path))
