@@ -4,19 +4,24 @@ truth's unknown values to recorded campaigns (twin/sim/calibrate.py) and write a
 
 from __future__ import annotations
 
-import json
 import shlex
 import sys
 from pathlib import Path
 
 import typer
 
-from server.cli.options import PARAMS_OPTION, SET_OPTION, check_truth, load_cli_params
-
-
-def _fail(message: str) -> typer.Exit:
-    typer.secho(f"error: {message}", err=True, fg="red")
-    return typer.Exit(2)
+from server.cli.options import (
+    PARAMS_OPTION,
+    POSITIVE,
+    SET_OPTION,
+    check_output,
+    check_truth,
+    echo_json,
+    fail,
+    load_cli_params,
+    number,
+    write_failed,
+)
 
 
 def calibrate(
@@ -34,10 +39,15 @@ def calibrate(
     delays: list[int] | None = typer.Option(
         None, "--delay", help="Command delays (ticks) to try (repeatable): the fit is run for each and the best "
         "kept. Default: the base truth's."),
-    span: float | None = typer.Option(None, "--span", help="Use only the first SPAN seconds of each recording."),
-    horizon: float = typer.Option(0.25, "--horizon", help="Prediction horizon (s): the replay re-starts the motors "
-                                  "from the encoders this often (inf: one open-loop replay)."),
-    max_evaluations: int = typer.Option(200, "--max-evaluations", help="Replays of all recordings at most."),
+    span: float | None = typer.Option(None, "--span", callback=POSITIVE,
+                                      help="Use only the first SPAN seconds of each recording (s)."),
+    horizon: float = typer.Option(0.25, "--horizon", callback=number(inf=True), help="Prediction horizon (s): the "
+                                  "replay re-starts the motors from the encoders this often (inf: one open-loop replay)."),
+    max_evaluations: int = typer.Option(
+        200, "--max-evaluations", min=1, help="Cost evaluations of the fit at most (scipy's max_nfev), each a replay "
+        "of every recording; the finite-difference Jacobians are not counted, and cost one replay more per fitted "
+        "value: with the 8 default values, 1 runs 9 replays, 10 about 66 (the count run is printed). A fit stopped "
+        "by this limit is still written, marked not converged."),
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
     params_file: Path | None = PARAMS_OPTION,
@@ -49,11 +59,10 @@ def calibrate(
 
     params = load_cli_params(params_file, overrides)
     if out.exists() and not force:
-        raise _fail(f"{out} exists: choose another --out or add --force")
+        raise fail(f"{out} exists: choose another --out or add --force")
     if out.suffix != ".toml":
-        raise _fail(f"--out must be a .toml file (what --truth loads), got {out}")
-    if not (horizon > 0):
-        raise _fail(f"--horizon must be > 0 s, got {horizon}")
+        raise fail(f"--out must be a .toml file (what --truth loads), got {out}")
+    check_output(out)  # before the fit, which would otherwise be lost at its end
     weights = cal.Weights(horizon_s=horizon)
     try:
         base_truth = load_truth(base)
@@ -63,7 +72,7 @@ def calibrate(
         for d in delays or ():
             base_truth.replace("timing", delay_ticks=d)  # a bad delay is refused before any fit
     except (cal.CalibrationError, TruthError) as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
 
     def progress(message: str) -> None:
         typer.echo(message, err=True)
@@ -97,19 +106,30 @@ def calibrate(
         truth = cal.with_validation(truth, validation)
     header = (f"A truth calibrated by `xneck twin calibrate` (twin/sim/calibrate.py) on {', '.join(r.name for r in recordings)}.\n"
               f"Values not fitted are the base truth's ({base}); see [calibration] for the fit.")
+    if not result.converged:
+        header += (f"\nThe fit is {cal.NOT_CONVERGED} (--max-evaluations {max_evaluations}): the fitted values are "
+                   "where it stopped, not a converged measurement.")
+        typer.secho(f"warning: the fit is {cal.NOT_CONVERGED} (--max-evaluations {max_evaluations}, "
+                    f"{result.evaluations} replays): the truth written is marked so; raise --max-evaluations for a "
+                    "converged fit", err=True, fg="yellow")
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         cal.check_loadable(cal.truth_toml(truth, header), out)
     except cal.CalibrationError as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
+    except OSError as exc:  # the disk filled or the folder went away since the check
+        raise write_failed(out, exc) from None
     summary = {
         "out": str(out), "fitted": {u.name: {"value": float(v), "sigma": float(s)}
                                     for u, v, s in zip(result.fitted, result.values, result.sigma, strict=True)},
         "delay_ticks": truth.timing.delay_ticks if truth.timing.enabled else 0,
         "residual_rms": result.residual_rms, "per_recording": result.per_recording,
         "evaluations": sum(r.evaluations for r in results), "validation": validation,
+        "converged": result.converged,
+        "status": "converged" if result.converged else cal.NOT_CONVERGED,
     }
     if as_json:
-        typer.echo(json.dumps(summary, indent=2))
+        echo_json(summary)
         return
     typer.echo(f"calibrated truth written to {out} (load it with --truth {out})")
     typer.echo(f"{'value':42s} {'fitted':>10s} {'± 1 σ':>10s} {'base':>10s}")

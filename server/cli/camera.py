@@ -15,7 +15,6 @@ OpenCV is imported inside the commands (``xneck --help`` and the bridge never lo
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -23,12 +22,21 @@ import typer
 
 from server.cli.options import (
     CONNECT_OPTION,
+    FINITE,
     INSTANCE_OPTION,
     LISTEN_OPTION,
+    NON_NEGATIVE,
     PARAMS_OPTION,
+    POSITIVE,
     SET_OPTION,
     VERBOSE_OPTION,
+    check_endpoints,
+    check_output,
+    echo_json,
+    fail,
     load_cli_params,
+    open_bus,
+    write_failed,
 )
 
 camera_app = typer.Typer(
@@ -40,9 +48,6 @@ camera_app = typer.Typer(
 CALIBRATION_OPTION = typer.Option(None, "--calibration", help="Calibration file (JSON); default: the twin's nominal camera.")
 
 
-def _fail(message: str) -> typer.Exit:
-    typer.secho(f"error: {message}", err=True, fg="red")
-    return typer.Exit(2)
 
 
 def _calibration(path: Path | None):
@@ -53,20 +58,33 @@ def _calibration(path: Path | None):
     try:
         return load_calibration(path)
     except CalibrationError as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
+
+
+def _check_image_out(path: Path) -> None:
+    """An image ``--out`` checked before anything is rendered."""
+    if path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise fail(f"{path}: the output must be a .png or .jpg file")
+    check_output(path)
 
 
 def _write_png(path: Path, image) -> None:
     import cv2
 
-    if path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        raise _fail(f"{path}: the output must be a .png or .jpg file")
+    from bridge.archive import atomic_write
+
+    _check_image_out(path)
+    # Encoded in memory, then written beside the file and renamed over it: never a truncated image.
     try:
-        ok = cv2.imwrite(str(path), image)
+        ok, data = cv2.imencode(path.suffix.lower(), image)
     except cv2.error as exc:
-        raise _fail(f"{path}: cannot write ({exc})") from None
+        raise fail(f"{path}: cannot encode ({exc})") from None
     if not ok:
-        raise _fail(f"{path}: cannot write")
+        raise fail(f"{path}: cannot encode the image")
+    try:
+        atomic_write(path, data.tobytes())
+    except OSError as exc:
+        raise write_failed(path, exc) from None
 
 
 def _angles(first: list[str], extra: list[str]) -> list[float]:
@@ -79,7 +97,7 @@ def _angles(first: list[str], extra: list[str]) -> list[float]:
                 try:
                     values.append(float(part))
                 except ValueError:
-                    raise _fail(f"--alpha: {part!r} is not a number (degrees)") from None
+                    raise fail(f"--alpha: {part!r} is not a number (degrees)") from None
     return values
 
 
@@ -92,9 +110,9 @@ def _occluded(occlude: list[str] | None, n_joints: int) -> tuple[tuple[int, int]
         try:
             bar, side = (int(v) for v in item.split(":"))
         except ValueError:
-            raise _fail(f"--occlude {item!r}: expected BAR:SIDE, e.g. 3:0") from None
+            raise fail(f"--occlude {item!r}: expected BAR:SIDE, e.g. 3:0") from None
         if not (0 <= bar <= n_joints and side in (0, 1)):
-            raise _fail(f"--occlude {item!r}: bar in 0..{n_joints}, side 0 or 1")
+            raise fail(f"--occlude {item!r}: bar in 0..{n_joints}, side 0 or 1")
         covered.append((bar, side))
     return tuple(covered)
 
@@ -104,18 +122,19 @@ def camera(
     ctx: typer.Context,
     source: str | None = typer.Option(None, "--source", help="usb:N, /dev/videoN, file:VIDEO or twin (frames rendered from xneck/twin/truth)."),
     calibration: Path | None = CALIBRATION_OPTION,
-    rate: float = typer.Option(30.0, "--rate", help="twin: frames per second of simulated time."),
+    rate: float = typer.Option(30.0, "--rate", callback=POSITIVE, help="twin: frames per second of simulated time."),
     latency: float | None = typer.Option(None, "--latency", help="s from exposure to publication (twin) or to grab (usb); default: the parameter file's sensors.camera_latency."),
-    seed: int = typer.Option(0, "--seed", help="twin: seed of the sensor noise."),
-    noise: float = typer.Option(2.0, "--noise", help="twin: sensor noise σ, grey levels."),
-    blur: float = typer.Option(0.8, "--blur", help="twin: defocus blur σ, pixels."),
+    seed: int = typer.Option(0, "--seed", min=0, help="twin: seed of the sensor noise (≥ 0)."),
+    noise: float = typer.Option(2.0, "--noise", callback=NON_NEGATIVE, help="twin: sensor noise σ, grey levels."),
+    blur: float = typer.Option(0.8, "--blur", callback=NON_NEGATIVE, help="twin: defocus blur σ, pixels."),
     occlude: list[str] | None = OCCLUDE_OPTION,
-    frame_rate_hz: float = typer.Option(5.0, "--frame-rate-hz", min=0.0, max=30.0, help="JPEG frames per second (of the source's clock) on xneck/camera/frame, for the console and campaign archives (0: none)."),
+    frame_rate_hz: float = typer.Option(5.0, "--frame-rate-hz", min=0.0, max=30.0, callback=NON_NEGATIVE, help="JPEG frames per second (of the source's clock) on xneck/camera/frame, for the console and campaign archives (0: none)."),
     jpeg_quality: int = typer.Option(75, "--jpeg-quality", min=10, max=95, help="JPEG quality of those frames."),
     realtime: bool = typer.Option(True, "--realtime/--fast", help="file: replay at the video's frame rate, or as fast as detection runs."),
-    t0: float = typer.Option(0.0, "--t0", help="file: time stamp of the first frame (s)."),
+    t0: float = typer.Option(0.0, "--t0", callback=FINITE, help="file: time stamp of the first frame (s)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after this many frames."),
-    idle_timeout: float | None = typer.Option(None, "--idle-timeout", help="twin: stop after this long without truth (s)."),
+    idle_timeout: float | None = typer.Option(None, "--idle-timeout", callback=POSITIVE,
+                                              help="twin: stop after this long without truth (s)."),
     instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
@@ -133,8 +152,7 @@ def camera(
         raise typer.Exit(0)
     import logging
 
-    from bridge.runtime import endpoints, setup_logging, stop_on_signals
-    from bridge.session import open_session
+    from bridge.runtime import setup_logging, stop_on_signals
     from twin.camera.detect import Detector
     from twin.camera.process import CameraNode
     from twin.camera.source import FileSource, SourceError, TwinShutter, UsbSource, parse_source
@@ -142,13 +160,14 @@ def camera(
     try:
         kind, where = parse_source(source)
     except ValueError as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
     setup_logging(verbose)
+    check_endpoints(listen, connect)
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
     lat = params.sensors.camera_latency if latency is None else latency
     if not (0.0 <= lat <= 1.0):
-        raise _fail("--latency must be between 0 and 1 s")
+        raise fail("--latency must be between 0 and 1 s")
     detector = Detector(params.n_joints, params.geometry.L, params.geometry.b, cal)
     renderer = shutter = frames = None
     try:
@@ -164,10 +183,10 @@ def camera(
         else:
             frames = UsbSource(where, cal.width, cal.height, latency_s=lat)
     except (SourceError, ValueError) as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
     stop = stop_on_signals()
     log = logging.getLogger("xneck.camera")
-    with open_session(endpoints(listen), endpoints(connect)) as session:
+    with open_bus(listen, connect) as session:
         node = CameraNode(session, detector, instance, frame_rate_hz=frame_rate_hz, jpeg_quality=jpeg_quality)
         log.info("camera %s up: --source %s", node.instance, source)
         try:
@@ -181,7 +200,7 @@ def camera(
                     return
                 count = node.run_source(frames, stop, max_frames, frames.fps if (kind == "file" and realtime) else None)
         except RuntimeError as exc:
-            raise _fail(str(exc)) from None
+            raise fail(str(exc)) from None
         finally:
             node.close()
             if frames is not None:
@@ -196,9 +215,9 @@ def render(
     alpha_text: list[str] = typer.Option(..., "--alpha", help="Joint angles in degrees, base to head: --alpha 10 -20 30.",
                                          show_default=False),
     out: Path = typer.Option(..., "--out", help="Output image (.png)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the sensor noise."),
-    noise: float = typer.Option(2.0, "--noise", help="Sensor noise σ, grey levels."),
-    blur: float = typer.Option(0.8, "--blur", help="Defocus blur σ, pixels."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the sensor noise (≥ 0)."),
+    noise: float = typer.Option(2.0, "--noise", callback=NON_NEGATIVE, help="Sensor noise σ, grey levels."),
+    blur: float = typer.Option(0.8, "--blur", callback=NON_NEGATIVE, help="Defocus blur σ, pixels."),
     occlude: list[str] | None = OCCLUDE_OPTION,
     calibration: Path | None = CALIBRATION_OPTION,
     params_file: Path | None = PARAMS_OPTION,
@@ -211,18 +230,19 @@ def render(
     from twin.model.numeric import build
 
     alpha = _angles(alpha_text, list(ctx.args))
+    _check_image_out(out)
     params = load_cli_params(params_file, overrides)
     if len(alpha) != params.n_joints:
-        raise _fail(f"--alpha needs {params.n_joints} angles (one per joint), got {len(alpha)}")
+        raise fail(f"--alpha needs {params.n_joints} angles (one per joint), got {len(alpha)}")
     limit = params.limits.alpha_max_deg
     if not all(math.isfinite(a) and abs(a) <= 90.0 for a in alpha):
-        raise _fail("every angle must be finite and within ±90°")
+        raise fail("every angle must be finite and within ±90°")
     if any(abs(a) > limit for a in alpha):
         typer.secho(f"warning: an angle is beyond the joint limit ±{limit:g}°", err=True, fg="yellow")
     try:
         options = RenderOptions(noise_dn=noise, blur_px=blur, occlude=_occluded(occlude, params.n_joints))
     except ValueError as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
     renderer = Renderer(build(params), _calibration(calibration), options=options, seed=seed)
     _write_png(out, renderer.render(np.radians(alpha)))
     typer.echo(f"wrote {out}")
@@ -244,17 +264,17 @@ def detect(
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
     if not image.is_file():
-        raise _fail(f"{image}: no such file")
+        raise fail(f"{image}: no such file")
     frame = cv2.imread(str(image), cv2.IMREAD_COLOR)
     if frame is None:
-        raise _fail(f"{image}: not a readable image")
+        raise fail(f"{image}: not a readable image")
     detector = Detector(params.n_joints, params.geometry.L, params.geometry.b, cal)
     try:
         result = detector.detect(frame)
     except ValueError as exc:
-        raise _fail(f"{image}: {exc}") from None
+        raise fail(f"{image}: {exc}") from None
     if json_out:
-        typer.echo(json.dumps(result.as_json()))
+        echo_json(result.as_json(), indent=None)
         return
     for i, (a, c) in enumerate(zip(result.alpha_deg, result.confidence), start=1):
         typer.echo(f"alpha_{i} = {'missing' if a is None else f'{a:8.3f}°'}   confidence {c:.2f}")
@@ -287,7 +307,7 @@ def board(
     from twin.camera.render import checkerboard
 
     if not (0.002 <= square <= 0.2):
-        raise _fail("--square must be between 0.002 and 0.2 m")
+        raise fail("--square must be between 0.002 and 0.2 m")
     _write_png(out, checkerboard((columns, rows), square, dpi))
     typer.echo(f"wrote {out}")
 
@@ -299,7 +319,7 @@ def align(
     out: Path | None = typer.Option(None, "--out", help="New MCAP file (default: CAMPAIGN.aligned.mcap); never overwritten."),
     reference: str = typer.Option("auto", "--reference", help="auto (the twin's truth if recorded, else α̂), truth or alpha_hat."),
     drift: bool = typer.Option(True, "--drift/--no-drift", help="Estimate the video clock's drift as well as the offset."),
-    images: float = typer.Option(5.0, "--images", min=0.0, max=60.0, help="Frames per second (of video) archived as JPEG on /xneck/camera/image (0: none)."),
+    images: float = typer.Option(5.0, "--images", min=0.0, max=60.0, callback=NON_NEGATIVE, help="Frames per second (of video) archived as JPEG on /xneck/camera/image (0: none)."),
     calibration: Path | None = CALIBRATION_OPTION,
     json_out: bool = typer.Option(False, "--json", help="Print the provenance as JSON."),
     params_file: Path | None = PARAMS_OPTION,
@@ -315,16 +335,21 @@ def align(
     cal = _calibration(calibration)
     target = out or campaign.with_name(campaign.stem + ".aligned.mcap")
     if target.exists():
-        raise _fail(f"{target}: exists already (choose another --out)")
+        raise fail(f"{target}: exists already (choose another --out)")
+    check_output(target)  # before the video is measured, which takes a while
     try:
         ref = campaign_reference(campaign, reference)
         measured = measure_video(video, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal), image_rate_hz=images)
         result = align(measured, ref, estimate_drift=drift)
         provenance = write_aligned(campaign, target, video, measured, result, ref.name, software_version())
     except (AlignmentError, SourceError) as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
+    except FileExistsError:  # another process wrote it meanwhile: it is kept, and so is nothing of ours
+        raise fail(f"{target}: exists already (choose another --out)") from None
+    except OSError as exc:
+        raise write_failed(target, exc) from None
     if json_out:
-        typer.echo(json.dumps({**provenance, "out": str(target)}))
+        echo_json({**provenance, "out": str(target)}, indent=None)
         return
     typer.echo(f"offset {result.offset_s:+.4f} s, drift {result.drift:+.2e}, rms {result.rms_deg:.3f}° against {ref.name} "
                f"over {result.frames_used} frames (next best: {result.runner_up_offset_s:+.3f} s, {result.runner_up_rms_deg:.2f}°)")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json as jsonlib
 from pathlib import Path
 
 import typer
@@ -13,10 +12,13 @@ from server.cli.options import (
     LAW_OPTION,
     NO_PULLEYS_OPTION,
     PARAMS_OPTION,
+    POSITIVE,
     SET_OPTION,
     check_alpha_ip,
     check_estimator,
+    check_output,
     check_truth,
+    echo_json,
     law_config,
     load_checked_trajectory,
     load_cli_params,
@@ -39,18 +41,20 @@ def campaign_control(
     trajectory: str = typer.Option("control_test", "--trajectory", help="Trajectory name or file (degrees)."),
     out: Path | None = ARCHIVE_OUT_OPTION,
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the twin's sensor noise (≥ 0)."),
     truth: str = typer.Option("model", "--truth", callback=check_truth, help="What the twin simulates: the "
                               "parameter file as it is (model), the robot's unmodelled physics (robot), or a truth "
                               "FILE (e.g. from `xneck twin calibrate`)."),
     alpha_ip: str = ALPHA_IP_OPTION,
-    timeout: float = typer.Option(600.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
+    timeout: float = typer.Option(600.0, "--timeout", callback=POSITIVE,
+                                  help="Abort the campaign after this many seconds (wall)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Run a control campaign (3-X paper §7), record it, print e, e_α, forces and saturation."""
     from server.campaign_runner import CampaignSpec, run_campaign
 
+    _check_default_archive(out)
     params = load_cli_params(params_file, overrides)
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
@@ -58,11 +62,20 @@ def campaign_control(
                         params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip)
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if as_json:
-        typer.echo(jsonlib.dumps(result.summary(), indent=2))
+        echo_json(result.summary())
     else:
         typer.echo(result.table())
     if result.outcome != "finished":
         raise typer.Exit(1)
+
+
+def _check_default_archive(out: Path | None) -> None:
+    """Without --out the archive goes below the data directory (server.campaign_runner.default_archive):
+    check that it can be written there before the campaign runs, as --out is checked."""
+    if out is None:
+        from server.campaign_runner import default_archive
+
+        check_output(default_archive("check"), "the data directory (XNECK_DATA_DIR, else ./data)")
 
 
 def _print_progress(fraction: float, message: str) -> None:
@@ -77,12 +90,13 @@ def campaign_identification(
                               "the robot's bridge already on the bus."),
     out: Path | None = ARCHIVE_OUT_OPTION,
     as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the twin's sensor noise (≥ 0)."),
     truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "
                               "line's small cable damping, unknown to the model (robot), or the parameter file as "
                               "it is (model, an identity check)."),
     alpha_ip: str = CAMPAIGN_ALPHA_IP_OPTION,
-    timeout: float = typer.Option(900.0, "--timeout", help="Abort the campaign after this many seconds (wall)."),
+    timeout: float = typer.Option(900.0, "--timeout", callback=POSITIVE,
+                                  help="Abort the campaign after this many seconds (wall)."),
     trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
     estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
@@ -106,6 +120,7 @@ def campaign_identification(
     except ValueError as exc:
         typer.echo(f"error: --creep-time-s: {exc}", err=True)
         raise typer.Exit(2) from None
+    _check_default_archive(out)
     params = load_cli_params(params_file, overrides)
     config = law_config(1, False)
     traj = load_checked_trajectory(trajectory, params, config)
@@ -116,7 +131,7 @@ def campaign_identification(
     if result.outcome not in ("finished", "degraded"):
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
         if as_json:
-            typer.echo(jsonlib.dumps(result.summary(), indent=2))
+            echo_json(result.summary())
         raise typer.Exit(1)
     if result.outcome == "degraded":
         typer.secho(f"warning: campaign {result.campaign_id} degraded: {result.message}", err=True, fg="yellow")

@@ -8,13 +8,22 @@ and the controller's trajectory validation, the very checks a campaign applies t
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import typer
 
-from server.cli.options import PARAMS_OPTION, SET_OPTION, law_config, load_cli_params
+from server.cli.options import (
+    PARAMS_OPTION,
+    SET_OPTION,
+    atomic_write_text,
+    check_output,
+    echo_json,
+    fail,
+    law_config,
+    load_cli_params,
+    write_failed,
+)
 
 excitation_app = typer.Typer(help="Design identification excitations (D-optimal cycloids within the limits).",
                              no_args_is_help=True)
@@ -75,9 +84,9 @@ def _problem(params, duration_s: float, speed: float, criterion: str = "d", box_
 def design_command(
     duration: float = typer.Option(97.0, "--duration", help="Duration of the trajectory (s), rests included; "
                                    "97 s is the §5.2.2 identification trajectory's."),
-    out: Path = typer.Option(Path("excitation.json"), "--out", help="Trajectory file to write (JSON, degrees); "
+    out: Path = typer.Option(Path("excitation.json"), "--out", help="Trajectory file to write (.json, degrees); "
                              "the design's scores go to <stem>.design.json beside it."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the random starting designs."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random starting designs (≥ 0)."),
     waypoints: int | None = typer.Option(None, "--waypoints", help="Number of waypoints, the straight start and "
                                          "end included (default: one every 4 s)."),
     speed: float = typer.Option(0.6, "--speed", help="Fraction of the speed and acceleration limits the moves "
@@ -94,8 +103,8 @@ def design_command(
     holds: str = typer.Option("none", "--holds", help="none: the moves are stretched to fill the duration (a "
                               "still motor gives the identification no row); fill: the shortest moves, the "
                               "remaining time as holds at the waypoints (the §5.2.2 trajectory's stops)."),
-    starts: int = typer.Option(2, "--starts", help="Random starting designs, each optimised."),
-    maxiter: int = typer.Option(40, "--maxiter", help="L-BFGS-B iterations per start."),
+    starts: int = typer.Option(2, "--starts", min=1, help="Random starting designs, each optimised."),
+    maxiter: int = typer.Option(40, "--maxiter", min=0, help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
@@ -105,6 +114,9 @@ def design_command(
     from controller.trajectory import Trajectory, identification_trajectory
     from twin.identification.excitation import DesignError, design, score
 
+    if out.suffix.lower() != ".json":  # --trajectory reads a file by its suffix: JSON in a .toml would not load
+        raise fail(f"--out must be a .json file (the trajectory is written as JSON), got {out}")
+    check_output(out)  # before the design, which takes minutes
     params = load_cli_params(params_file, overrides)
     try:
         problem = _problem(params, duration, speed, criterion, box_deg, pretension_max, holds)
@@ -123,8 +135,6 @@ def design_command(
     baseline = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
     traj = Trajectory(result.waypoints_rad, result.durations_s, result.dwell_s, f"excitation-seed{seed}",
                       result.pretension_N)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(traj.to_dict(), indent=1) + "\n")
     report = {
         "trajectory_file": str(out), "duration_s": traj.duration_s, "waypoints": traj.n_waypoints,
         "seed": seed, "speed": speed, "criterion": criterion, "box_deg": box_deg, "holds": holds,
@@ -139,9 +149,16 @@ def design_command(
                                            for n in baseline.relative_sigma}},
     }
     design_path = out.with_name(out.stem + ".design.json")
-    design_path.write_text(json.dumps(report, indent=2) + "\n")
+    try:
+        from twin.jsonout import strict_json
+
+        out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out, strict_json(traj.to_dict(), indent=1) + "\n")
+        atomic_write_text(design_path, strict_json(report, indent=2) + "\n")
+    except OSError as exc:  # the disk filled or the folder went away since the check
+        raise write_failed(out, exc) from None
     if as_json:
-        typer.echo(json.dumps(report, indent=2))
+        echo_json(report)
         return
     d, b = result.score, baseline
     typer.echo(f"designed excitation: {traj.n_waypoints} waypoints, {traj.duration_s:.1f} s "

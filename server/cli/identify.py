@@ -3,10 +3,11 @@ campaign (3-X paper §5), Tables 1-2 printed, Figs. 4-8 and the identified param
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
+
+from server.cli.options import POSITIVE, check_output, echo_json, write_failed
 
 
 def identify(
@@ -17,9 +18,11 @@ def identify(
     params_file: Path | None = typer.Option(None, "--params", help="Base parameter file (default: prototype)."),
     overrides: list[str] | None = typer.Option(None, "--set", help="Override one value of the base parameter "
                                                "file, e.g. --set motors.gear_loss_forward=0.05."),
-    cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", help="Override the filter cutoff rule (Hz)."),
-    threshold: float | None = typer.Option(None, "--threshold", help="Relative σ above which a parameter is "
-                                              "badly identified (default: the pipeline's, 0.10)."),
+    cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", callback=POSITIVE,
+                                           help="Override the filter cutoff rule (Hz)."),
+    threshold: float | None = typer.Option(None, "--threshold", callback=POSITIVE, help="Relative σ above which "
+                                           "a parameter is badly identified (a fraction > 0; default: the "
+                                           "pipeline's, 0.10)."),
     no_alpha_hat: bool = typer.Option(False, "--no-alpha-hat", help="Skip the α̂ reconstruction (Fig. 8)."),
     validate: Path | None = typer.Option(None, "--validate", help="Another campaign MCAP (e.g. a §7 control "
                                          "test): Figs. 4-8 and the errors on it with the models fitted here, "
@@ -50,6 +53,8 @@ def identify(
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params, parse_override
 
+    out_dir = out or campaign.with_name(campaign.stem + "_identification")
+    check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
     data_b = _validation_campaign(validate) if validate is not None else None
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
@@ -60,20 +65,22 @@ def identify(
     except (IdentificationError, ParameterError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    out_dir = out or campaign.with_name(campaign.stem + "_identification")
-    out_dir.mkdir(parents=True, exist_ok=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
-    figures = write_figures(val, out_dir) if val is not None else []
-    toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
-    cross = (_cross_validate(ident, data_b, validate, out_dir, alpha_hat=not no_alpha_hat)
-             if validate is not None and data_b is not None else None)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        figures = write_figures(val, out_dir) if val is not None else []
+        toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
+        cross = (_cross_validate(ident, data_b, validate, out_dir, alpha_hat=not no_alpha_hat)
+                 if validate is not None and data_b is not None else None)
+    except OSError as exc:  # the disk filled or the folder went away since the check
+        raise write_failed(out_dir, exc) from None
     if json_out:
         doc = report_dict(est, proc, val, prov)
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
         if cross is not None:
             doc["cross_validation"] = cross[0]
-        typer.echo(json.dumps(doc, indent=2, default=float))
+        echo_json(doc)
     else:
         typer.echo(tables_text(est, proc, val, prov.kept_base))
         typer.echo("")

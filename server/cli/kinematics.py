@@ -5,12 +5,12 @@ Angles are printed in degrees (SI radians inside); lengths are in whatever unit 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import typer
 
+from server.cli.options import check_output, echo_json, write_failed
 from twin.analysis.kinematics import FLAT, check_design, cuspidal_threshold, det_jacobian_2x, fk, ik_2x, is_cuspidal
 
 kinematics_app = typer.Typer(
@@ -53,7 +53,7 @@ def ik(
             }
         )
     if json_out:
-        typer.echo(json.dumps({"L": L, "b": b, "x": x, "y": y, "count": len(rows), "solutions": rows}, indent=2))
+        echo_json({"L": L, "b": b, "x": x, "y": y, "count": len(rows), "solutions": rows})
         return
     typer.echo(f"2-X IK at (x, y) = ({x:g}, {y:g}), L = {L:g}, b = {b:g}: {len(rows)} solution(s)")
     if not rows:
@@ -87,7 +87,7 @@ def cuspidal(
         "max_ik_solutions_found": max_solutions_on_axis(L, b),
     }
     if json_out:
-        typer.echo(json.dumps(result, indent=2))
+        echo_json(result)
         return
     verdict = "cuspidal (four IK solutions in two regions)" if result["cuspidal"] else "not cuspidal (two IK solutions)"
     typer.echo(f"L = {L:g}, b = {b:g} (b/L = {b / L:.4g}): {verdict}")
@@ -108,9 +108,10 @@ def workspace(
         raise typer.BadParameter(f"--design must be 2x or 3x, got {design!r}")
     if n < 0 or n == 1:
         raise typer.BadParameter(f"--n must be 0 (default) or >= 2, got {n}")
-    if design == "2x":
-        paths = write_2x_figures(out, n=n or 300)
-    else:
-        paths = write_3x_figures(out, n=n or 31)
+    check_output(out, directory=True)  # before the maps are computed
+    try:
+        paths = write_2x_figures(out, n=n or 300) if design == "2x" else write_3x_figures(out, n=n or 31)
+    except OSError as exc:
+        raise write_failed(out, exc) from None
     for p in paths:
         typer.echo(str(p))

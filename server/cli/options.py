@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import tempfile
 from pathlib import Path
 
 import typer
@@ -16,9 +18,134 @@ CONNECT_OPTION = typer.Option(
     None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
 VERBOSE_OPTION = typer.Option(False, "--verbose", "-v", help="Debug logging.")
 INSTANCE_OPTION = typer.Option("", "--instance", help="Name on the bus (default: a random one).")
+
+
+def fail(message: str) -> typer.Exit:
+    """Print one ``error:`` line; the caller raises the returned Exit (status 2, a usage error)."""
+    typer.secho(f"error: {message}", err=True, fg="red")
+    return typer.Exit(2)
+
+
+def number(low: float = 0.0, *, strict: bool = True, inf: bool = False):
+    """Typer callback for a float option: a number above ``low`` (at least ``low`` unless
+    ``strict``), finite unless ``inf``; None (an unset option) passes. Click's own ``min``
+    lets NaN through (every comparison with it is false), which silently disabled checks such as
+    ``--threshold nan`` or made ``--idle-timeout nan`` wait for ever."""
+
+    def callback(ctx: typer.Context, param: typer.CallbackParam, value: float | None) -> float | None:
+        if value is None or ctx.resilient_parsing:
+            return value
+        if math.isnan(value) or not (value > low if strict else value >= low) or (math.isinf(value) and not inf):
+            bound = "" if low == -math.inf else f" {'>' if strict else '≥'} {low:g}"
+            raise fail(f"{param.opts[0] if param.opts else param.name}: must be a {'' if inf else 'finite '}"
+                       f"number{bound}, got {value}")
+        return value
+
+    return callback
+
+
+POSITIVE = number()  # durations, rates, thresholds: finite and > 0
+NON_NEGATIVE = number(strict=False)  # amounts that may be zero (noise, pretension)
+FINITE = number(-math.inf, strict=False)  # a time stamp, a coordinate
+PORT_MAX = 65535
+
+
+def output_problem(path: Path, *, directory: bool = False) -> str:
+    """Why ``path`` cannot be written ('' if it can): an output file (``directory=False``) or an
+    output directory. Its folder must exist or be creatable, be a directory and take a new file;
+    a trial file proves it (permissions, read-only mounts, /proc), so a long fit or campaign is not
+    lost at its end. Folders created for the trial are removed again: a refused command leaves nothing."""
+    if directory and path.exists() and not path.is_dir():
+        return f"{path} exists and is not a directory"
+    if not directory and path.is_dir():
+        return f"{path} is a directory"
+    folder = path if directory else path.parent
+    missing = []
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        missing.append(existing)
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    created: list[Path] = []
+    try:
+        for p in reversed(missing):
+            p.mkdir()
+            created.append(p)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        from bridge.archive import storage_reason
+
+        return f"cannot write in {folder}: {storage_reason(exc)}"
+    finally:
+        for p in reversed(created):
+            with contextlib.suppress(OSError):
+                p.rmdir()
+    return ""
+
+
+def check_output(path: Path, option: str = "--out", *, directory: bool = False) -> None:
+    """:func:`output_problem` as a usage error, to be called before any long work starts."""
+    problem = output_problem(path, directory=directory)
+    if problem:
+        raise fail(f"{option}: {problem}")
+
+
+def write_failed(path: Path, exc: OSError) -> typer.Exit:
+    """A write that failed despite :func:`check_output` (disk full, a folder removed meanwhile):
+    one line naming the file; the writes are atomic, so no half-written file is left."""
+    from bridge.archive import storage_reason
+
+    return fail(f"cannot write {path}: {storage_reason(exc)}")
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """``path`` replaced by ``text`` all at once (bridge.archive.atomic_write): the old content or
+    the new one, never a half-written file. Raises the OSError."""
+    from bridge.archive import atomic_write
+
+    atomic_write(path, text.encode("utf-8"))
+
+
+def echo_json(value, indent: int | None = 2) -> None:
+    """Print ``value`` as strict JSON (twin.jsonout: NaN and ±inf as null), which every JSON
+    reader accepts, as ``--json`` promises."""
+    from twin.jsonout import strict_json
+
+    typer.echo(strict_json(value, indent=indent))
+
+
+def check_endpoints(listen: list[str] | None, connect: list[str] | None) -> None:
+    """``--listen``/``--connect`` (or XNECK_ZENOH_*) well formed, before a driver or model is built."""
+    from bridge.runtime import endpoints
+    from bridge.session import zenoh_config
+
+    try:
+        zenoh_config(endpoints(listen), endpoints(connect))
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+
+
+def open_bus(listen: list[str] | None, connect: list[str] | None):
+    """The Zenoh session of a bus process (bridge.session.open_session): an endpoint Zenoh refuses
+    (a port above 65535, an unknown host or protocol, a port in use) is one ``error:`` line."""
+    import zenoh
+
+    from bridge.runtime import endpoints
+    from bridge.session import open_session
+
+    check_endpoints(listen, connect)
+    try:
+        return open_session(endpoints(listen), endpoints(connect))
+    except zenoh.ZError as exc:
+        # Zenoh appends the Rust source location (" at /root/.cargo/…/lib.rs:62."): no use to a user.
+        raise fail(f"cannot open the bus session: {str(exc).split(' at /')[0]}") from None
+
+
 # The twin's options, shared by `xneck twin` and `xneck bridge --driver twin`.
 LOCKSTEP_OPTION = typer.Option(False, "--lockstep", help="Twin only: one tick per command (deterministic; CI mode).")
-SEED_OPTION = typer.Option(0, "--seed", help="Twin: seed of the sensor noise.")
+SEED_OPTION = typer.Option(0, "--seed", min=0, help="Twin: seed of the sensor noise (≥ 0).")
 CABLE_MODEL_OPTION = typer.Option(None, "--cable-model", help="Twin: rigid, linear or variable (default: the parameter file's).")
 NO_FRICTION_OPTION = typer.Option(False, "--no-friction", help="Twin: simulate without motor friction.")
 
@@ -48,18 +175,22 @@ def check_alpha_ip(value: str) -> str:
 ALPHA_IP_OPTION = typer.Option("noise", "--alpha-ip", callback=check_alpha_ip, help="Twin: its α_IP, the true α plus "
                                "the camera's white noise (noise) or measured on frames rendered from its truth by the "
                                "robot's detector (camera; docs/camera.md), 30 fps of simulated time, after the exposure latency.")
-MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", help="Stop after this many ticks.")
-IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", help="Lockstep: stop after this long without a command (s).")
+MAX_TICKS_OPTION = typer.Option(None, "--max-ticks", min=1, help="Stop after this many ticks.")
+IDLE_TIMEOUT_OPTION = typer.Option(None, "--idle-timeout", callback=POSITIVE,
+                                   help="Lockstep: stop after this long without a command (s).")
 STARTUP_TIMEOUT_OPTION = typer.Option(
-    None, "--startup-timeout", help="Lockstep: the same limit before the first command (default: --idle-timeout).")
+    None, "--startup-timeout", callback=POSITIVE,
+    help="Lockstep: the same limit before the first command (s; default: --idle-timeout).")
 
 
 def check_new_archive(value: Path | None) -> Path | None:
-    """Typer callback: ``--out`` of a campaign must not exist. The runner refuses it too
-    (server.campaign_runner.run_campaign); checking here refuses it before anything is loaded or
-    started, as a usage error rather than a traceback."""
+    """Typer callback: ``--out`` of a campaign must not exist and must be writable. The runner
+    refuses an existing one too (server.campaign_runner.run_campaign); checking here refuses it
+    before anything is loaded or started, as a usage error rather than a traceback."""
     if value is not None and value.exists():
-        raise typer.BadParameter(f"{value} exists: choose another --out (archives are never overwritten)")
+        raise fail(f"--out: {value} exists: choose another --out (archives are never overwritten)")
+    if value is not None:
+        check_output(value)
     return value
 
 

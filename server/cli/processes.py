@@ -27,16 +27,21 @@ from server.cli.options import (
     MAX_TICKS_OPTION,
     NO_FRICTION_OPTION,
     NO_PULLEYS_OPTION,
+    NON_NEGATIVE,
     PARAMS_OPTION,
+    POSITIVE,
     SEED_OPTION,
     SET_OPTION,
     STARTUP_TIMEOUT_OPTION,
     TRAJECTORY_OPTION,
     TRUTH_OPTION,
     VERBOSE_OPTION,
+    check_endpoints,
+    fail,
     law_config,
     load_checked_trajectory,
     load_cli_params,
+    open_bus,
 )
 
 log = logging.getLogger("xneck.bridge")
@@ -57,20 +62,15 @@ def bridge_node(session, driver, params, config):
     return BridgeNode(session, driver, encoder_hold_forces(params), (params.limits.f_min, params.limits.f_max), config)
 
 
-def _fail(message: str) -> typer.Exit:
-    typer.secho(f"error: {message}", err=True, fg="red")
-    return typer.Exit(2)
-
-
 def _driver_table(path: Path | None) -> dict:
     if path is None:
         return {}
     try:
         return tomllib.loads(path.read_text())
     except OSError as exc:
-        raise _fail(f"{path}: cannot read the driver config ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise _fail(f"{path}: not a valid TOML file ({exc})") from None
+        raise fail(f"{path}: cannot read the driver config ({exc.strerror})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise fail(f"{path}: not a valid TOML file ({exc})") from None
 
 
 def make_driver(driver: str, params, table: dict, *, replay: Path | None = None, loop: bool = False,
@@ -119,10 +119,12 @@ def bridge(
     driver_config: Path | None = typer.Option(
         None, "--driver-config", help="TOML file of the driver's config (e.g. the BeagleBone wiring and ESCON points)."),
     lockstep: bool = LOCKSTEP_OPTION,
-    command_timeout: float = typer.Option(0.010, "--command-timeout", help="Hold after this long without a valid command (s)."),
-    hold_ramp: float = typer.Option(0.010, "--hold-ramp", help="Ramp to the hold forces over this long (s)."),
+    command_timeout: float = typer.Option(0.010, "--command-timeout", callback=POSITIVE,
+                                          help="Hold after this long without a valid command (s)."),
+    hold_ramp: float = typer.Option(0.010, "--hold-ramp", callback=NON_NEGATIVE,
+                                    help="Ramp to the hold forces over this long (s)."),
     max_force_step: float = typer.Option(
-        1.0, "--max-force-step", help="After any enable, ramp the forces at most this much per tick (N)."),
+        1.0, "--max-force-step", callback=POSITIVE, help="After any enable, ramp the forces at most this much per tick (N)."),
     seed: int = SEED_OPTION,
     cable_model: str | None = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
@@ -149,35 +151,35 @@ def bridge(
         prefer_plain_python()
     from bridge.driver import DriverError
     from bridge.node import BridgeConfig, run_lockstep, run_realtime
-    from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
-    from bridge.session import open_session
+    from bridge.runtime import raise_priority, setup_logging, stop_on_signals
 
     setup_logging(verbose)
+    check_endpoints(listen, connect)  # before the driver is built (the twin's compiles for seconds)
     params = load_cli_params(params_file, overrides)
     if lockstep and driver != "twin":
-        raise _fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
+        raise fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
                               max_force_step_N=max_force_step,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
                               instance=instance)
     except ValueError as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
     try:
         drv = make_driver(driver, params, _driver_table(driver_config), replay=replay, loop=loop, seed=seed,
                           cable_model=cable_model, friction=not no_friction, truth=truth, camera=not no_camera,
                           alpha_ip=alpha_ip)
         drv.configure()
     except (DriverError, ValueError) as exc:
-        raise _fail(str(exc)) from None
+        raise fail(str(exc)) from None
     try:
         # After configure: importing rcpy installs its own SIGINT/SIGTERM handlers, ours must win.
         stop = stop_on_signals()
-        with open_session(endpoints(listen), endpoints(connect)) as session:
+        with open_bus(listen, connect) as session:
             try:
                 node = bridge_node(session, drv, params, config)
             except ValueError as exc:
-                raise _fail(str(exc)) from None
+                raise fail(str(exc)) from None
             mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz"
             log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
                      command_timeout * 1e3)
@@ -232,7 +234,8 @@ def controller(
     lockstep: bool = typer.Option(False, "--lockstep", help="Wait as long as needed for each state (lockstep twin)."),
     campaign_id: str = typer.Option("", "--campaign-id", help="Id in the campaign events (default: random)."),
     campaign_kind: str = typer.Option("control", "--campaign-kind"),
-    idle_timeout: float = typer.Option(10.0, "--idle-timeout", help="Give up after this long without any state (s)."),
+    idle_timeout: float = typer.Option(10.0, "--idle-timeout", callback=POSITIVE,
+                                       help="Give up after this long without any state (s)."),
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
@@ -240,18 +243,18 @@ def controller(
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""
-    from bridge.runtime import endpoints, raise_priority, setup_logging, stop_on_signals
-    from bridge.session import open_session
+    from bridge.runtime import raise_priority, setup_logging, stop_on_signals
     from controller.process import ControllerNode, ControllerProcessConfig
 
     setup_logging(verbose)
+    check_endpoints(listen, connect)
     params = load_cli_params(params_file, overrides)
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config) if trajectory else None
     stop = stop_on_signals()
     cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
                                   idle_timeout_s=idle_timeout, exit_when_done=traj is not None)
-    with open_session(endpoints(listen), endpoints(connect)) as session:
+    with open_bus(listen, connect) as session:
         node = ControllerNode(session, params, config, traj, cfg)
         if not lockstep:
             raise_priority()

@@ -6,16 +6,20 @@ from pathlib import Path
 
 import typer
 
+from server.cli.options import PORT_MAX
+
 
 def server(
     host: str | None = typer.Option(None, "--host", help="Bind address (default 127.0.0.1, $XNECK_HOST)."),
-    port: int | None = typer.Option(None, "--port", help="HTTP port (default 8000, $XNECK_PORT)."),
+    port: int | None = typer.Option(None, "--port", min=0, max=PORT_MAX,
+                                    help="HTTP port, 0-65535 (default 8000, $XNECK_PORT)."),
     data_dir: Path | None = typer.Option(None, "--data-dir", help="Archives and parameter sets (default ./data)."),
     pace: str | None = typer.Option(None, "--pace", help="Twin campaigns: realtime (default) or lockstep."),
     mode: str | None = typer.Option(None, "--mode", help="twin (default) or robot (drive the bridge on the bus)."),
     hub: str | None = typer.Option(None, "--hub", help="Zenoh endpoint to listen on (default a free loopback port)."),
     connect: list[str] | None = typer.Option(None, "--connect", help="Zenoh endpoint to connect to (robot mode)."),
-    viser_port: int | None = typer.Option(None, "--viser-port", help="Port of the 3D view (default: free)."),
+    viser_port: int | None = typer.Option(None, "--viser-port", min=0, max=PORT_MAX,
+                                          help="Port of the 3D view, 0-65535 (default: free)."),
     twin_truth: str | None = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
                                              "controller service is on the bus (xneck up passes it)."),
     twin_seed: int | None = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),

@@ -7,12 +7,11 @@ before a cluster starts. A rerun on the same DIR goes on where the last one stop
 
 from __future__ import annotations
 
-import json as jsonlib
 from pathlib import Path
 
 import typer
 
-from server.cli.options import PARAMS_OPTION, SET_OPTION
+from server.cli.options import PARAMS_OPTION, SET_OPTION, check_output, echo_json, write_failed
 
 study_app = typer.Typer(help="Studies: Monte Carlo robustness, identification and design sweeps on Dask "
                         "(docs/studies.md).", no_args_is_help=True)
@@ -42,18 +41,23 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
 
     if workers is not None and workers < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--workers")
+    check_output(out, directory=True)  # before a cluster starts and runs are lost
     try:
         study = study_from(kind, **fields)
         summary = run_study(study, out, workers=workers, scheduler=scheduler, progress=_progress)
     except StudyError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(2) from None
+    except OSError as exc:  # the disk filled or the folder went away since the check; finished rows are kept
+        if exc.filename is None:
+            raise  # not a file: a scheduler's connection, not an output problem
+        raise write_failed(out, exc) from None
     except KeyboardInterrupt:
         typer.secho(f"\ninterrupted: the rows finished so far are in {out}; run the same command again to go on",
                     err=True, fg="yellow")
         raise typer.Exit(130) from None
     if as_json:
-        typer.echo(jsonlib.dumps({k: v for k, v in summary.items() if k != "study"}, indent=2))
+        echo_json({k: v for k, v in summary.items() if k != "study"})
     else:
         typer.echo(_table(summary))
         typer.echo(f"rows: {out}/runs; summary: {out}/summary.json; figures: {out}/figures")

@@ -28,7 +28,7 @@ from pathlib import Path
 import typer
 
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
-from server.cli.options import check_truth
+from server.cli.options import NON_NEGATIVE, PORT_MAX, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
@@ -113,14 +113,16 @@ def up(
     no_bridge: bool = typer.Option(False, "--no-bridge", help="The bridge runs elsewhere (e.g. on the BeagleBone) "
                                    "and connects to --hub."),
     host: str = typer.Option("127.0.0.1", "--host", help="Dashboard bind address."),
-    port: int = typer.Option(8000, "--port", help="Dashboard HTTP port."),
-    viser_port: int = typer.Option(0, "--viser-port", help="Port of the 3D view (0: a free one)."),
+    port: int = typer.Option(8000, "--port", min=1, max=PORT_MAX, help="Dashboard HTTP port (1-65535)."),
+    viser_port: int = typer.Option(0, "--viser-port", min=0, max=PORT_MAX,
+                                   help="Port of the 3D view (0: a free one; at most 65535)."),
     hub: str = typer.Option("tcp/127.0.0.1:7447", "--hub", help="Zenoh endpoint the server listens on and the "
                             "others connect to. Use tcp/0.0.0.0:7447 for a bridge on another machine."),
     data_dir: Path = typer.Option(Path("data"), "--data-dir", help="Archives, parameter sets, token, logs."),
     law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
     driver_config: Path | None = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the twin's sensor noise."),
+    seed: int = typer.Option(0, "--seed", min=0, max=2**31 - 1, help="Seed of the twin's sensor noise "
+                             "(0 to 2³¹ − 1, what the console accepts as --twin-seed)."),
     truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the stack's twin simulates: the "
                               "robot's unmodelled physics (robot, the default: twin/sim/robot_truth.toml, so that the "
                               "campaigns run here are not the controller's own model), the parameter file as it is "
@@ -129,13 +131,16 @@ def up(
     alpha_ip: str = typer.Option("noise", "--alpha-ip", help="Twin's α_IP: noise (the true α plus the camera's white "
                                  "noise) or camera (an `xneck camera --source twin` process renders the truth at 30 fps "
                                  "and detects the markers, as the robot's camera would; costs about a fifth of a core)."),
-    exit_after: float | None = typer.Option(None, "--exit-after", help="Stop everything after this many seconds "
-                                                 "(tests, demos)."),
+    exit_after: float | None = typer.Option(None, "--exit-after", callback=NON_NEGATIVE, help="Stop everything "
+                                            "after this many seconds (tests, demos)."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
     if alpha_ip not in ("noise", "camera"):
-        typer.secho(f"error: --alpha-ip must be noise or camera, not {alpha_ip!r}", err=True, fg="red")
-        raise typer.Exit(2)
+        raise fail(f"--alpha-ip must be noise or camera, not {alpha_ip!r}")
+    law_config(law, False)  # a bad --law now, not as a controller that exits once the stack is up
+    hub_address = _tcp_address(hub)
+    if hub_address is not None and hub_address[1] > PORT_MAX:  # the socket module would raise OverflowError
+        raise fail(f"--hub {hub}: the port must be at most {PORT_MAX}")
     refused = preflight(host, port, viser_port, hub)
     if refused:
         typer.secho(f"error: xneck up refused to start: {refused}", err=True, fg="red")
