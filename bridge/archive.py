@@ -106,12 +106,16 @@ COMPRESSED_IMAGE_SCHEMA: dict[str, Any] = {
 # long enough to fill 20 000 and dropped 66 321 messages (40 %), and the analysis failed. 100 000
 # hold a minute of stall at about 35 MB (entries of ~350 B); past that the recorder drops and counts.
 QUEUE_MAX = 100_000
+# The last second an MCAP time (uint64 ns, kept below 2^63) can hold: a valid bus message may be
+# stamped 1e300 s, and int(1e300 * 1e9) killed the writer thread (audit of 2026-11-26).
+MAX_STAMP_S = 9.2e9
 FRAME_QUEUE_MAX = 8  # frames (≤ 1.4 MB each on the wire) waiting for the writer: bounds the recorder's memory
 
 
 def compressed_image(stamp_s: float, frame_id: str, data: bytes, image_format: str = "jpeg") -> bytes:
-    """JSON of one ``foxglove.CompressedImage``; ``stamp_s`` (≥ 0, else 0) becomes its ``timestamp``."""
-    ns = max(0, round(stamp_s * 1e9))
+    """JSON of one ``foxglove.CompressedImage``; ``stamp_s`` (within [0, 2^63) ns, else 0) becomes
+    its ``timestamp``."""
+    ns = round(stamp_s * 1e9) if 0.0 <= stamp_s < MAX_STAMP_S else 0
     return msgspec.json.encode({"timestamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000},
                                 "frame_id": frame_id, "data": data, "format": image_format})
 
@@ -224,8 +228,8 @@ class _ArchiveWriter:
     def add(self, key: str, msg: bus.BusMessage, data: bytes, log_time_ns: int) -> None:
         if isinstance(msg, bus.CameraFrame):  # Foxglove's image message, not the bus's
             data = compressed_image(msg.capture_stamp_s, msg.frame_id, msg.data, msg.format)
-        stamp_ns = int(msg.stamp_s * 1e9)
-        publish_ns = stamp_ns if 0 <= stamp_ns < 2**63 else log_time_ns
+        stamp_s = msg.stamp_s
+        publish_ns = int(stamp_s * 1e9) if 0.0 <= stamp_s < MAX_STAMP_S else log_time_ns
         self.writer.add_message(
             channel_id=self.channel(key, type(msg)), log_time=log_time_ns, data=data,
             publish_time=publish_ns, sequence=msg.seq % 2**32,
@@ -419,6 +423,9 @@ class CampaignRecorder:
         final["outcome"] = outcome
         stats = self.stats
         try:
+            # The open chunk first: a metadata record goes to the file at once, so written before
+            # the last chunk it claimed messages a full disk then lost (audit of 2026-11-26).
+            self._out.flush()
             self._out.writer.add_metadata(CAMPAIGN, final)
             self._out.writer.add_metadata(RECORDER, {
                 "received": str(stats.received), "recorded": str(stats.recorded), "dropped": str(stats.dropped),
@@ -628,16 +635,24 @@ def recover(path: str | os.PathLike[str]) -> RecoveryReport:
         stop_reason, damaged = salvage.copy_from(path, size)
         if not salvage.header_seen:
             raise ArchiveError(path, f"no readable MCAP header, nothing to recover ({stop_reason})")
-        if CAMPAIGN not in salvage.metadata_names:
+        recovery = {"recovered_at": iso_time(), "original_bytes": str(size),
+                    "bytes_discarded": str(size - salvage.good_end), "messages": str(salvage.kept),
+                    "reason": stop_reason}
+        final = salvage.held.get(CAMPAIGN)
+        if final is None:
             final = dict(salvage.start_metadata)
             last = salvage.last_log_ns
             final["end_time"] = iso_time(last) if last is not None else final.get("start_time", "")
             final["outcome"] = "interrupted"
-            out.writer.add_metadata(CAMPAIGN, final)
-        out.writer.add_metadata(RECOVERY, {
-            "recovered_at": iso_time(), "original_bytes": str(size), "bytes_discarded": str(size - salvage.good_end),
-            "messages": str(salvage.kept), "reason": stop_reason,
-        })
+        elif salvage.lost_messages() and final.get("outcome") != "interrupted":
+            # A final record written before messages that never reached the disk is not the truth.
+            recovery["outcome_before"] = final.get("outcome", "")
+            final = {**final, "outcome": "interrupted"}
+        out.writer.add_metadata(CAMPAIGN, final)
+        for name, record in salvage.held.items():
+            if name != CAMPAIGN:
+                out.writer.add_metadata(name, record)
+        out.writer.add_metadata(RECOVERY, recovery)
         out.finish()
     except BaseException:
         out.abandon()
@@ -671,6 +686,10 @@ class _Salvage:
         self.start_metadata: dict[str, str] = {}
         self._schema_ids: dict[int, int] = {}
         self._channel_ids: dict[int, int] = {}
+        self._topic_channels: dict[str, int] = {}  # topic -> channel id in the output
+        self._inferred: dict[int, int | None] = {}  # lost channel id -> the one its messages' key gave
+        self.held: dict[str, dict[str, str]] = {}  # the final records, written after every message
+        self.damaged_chunks = False
 
     def copy_from(self, path: Path, size: int) -> tuple[str, bool]:
         """Returns why reading stopped, and whether it was damage rather than the end of the file."""
@@ -686,6 +705,7 @@ class _Salvage:
                             # The chunk's framing is intact (its length led to the next record):
                             # skip its content, carry on with the next chunk.
                             self.skipped.append(f"chunk at byte {self.good_end} ({type(exc).__name__})")
+                            self.damaged_chunks = True
                             inner = []
                         for r in inner:
                             self._copy(r)
@@ -704,7 +724,30 @@ class _Salvage:
         return self._reason("end of file"), bool(self.skipped)
 
     def _reason(self, stop: str) -> str:
+        found = sum(1 for c in self._inferred.values() if c is not None)
+        stop = stop if not found else f"{stop}; {found} channel(s) lost with a damaged chunk told by their messages"
         return stop if not self.skipped else f"{stop}; skipped damaged {', '.join(self.skipped)}"
+
+    def lost_messages(self) -> bool:
+        """Whether messages the recorder counted as recorded are not among those kept."""
+        if self.damaged_chunks:
+            return True
+        recorded = self.held.get(RECORDER, {}).get("recorded", "")
+        return recorded.isdigit() and int(recorded) > self.kept
+
+    def _infer_channel(self, lost_id: int, data: bytes) -> int | None:
+        """The output channel of messages whose channel record was lost with a damaged chunk: the
+        bus contract's key of their payload (each decodes as exactly one type), or None."""
+        if lost_id not in self._inferred:
+            key_type = _key_of_payload(data)
+            out_id = None
+            if key_type is not None:
+                key, msg_type = key_type
+                topic = IMAGE_TOPIC if msg_type is bus.CameraFrame else bus.mcap_topic(key)
+                out_id = self._topic_channels.get(topic) or self.out.channel(key, msg_type)
+                self._topic_channels[topic] = out_id
+            self._inferred[lost_id] = out_id
+        return self._inferred[lost_id]
 
     def _copy(self, record: object) -> None:
         writer = self.out.writer
@@ -719,18 +762,45 @@ class _Salvage:
                     record.topic, record.message_encoding, self._schema_ids.get(record.schema_id, 0),
                     dict(record.metadata),
                 )
+                self._topic_channels.setdefault(record.topic, self._channel_ids[record.id])
         elif isinstance(record, Message):
             channel_id = self._channel_ids.get(record.channel_id)
-            if channel_id is not None:  # else its channel or schema was lost: uninterpretable
+            if channel_id is None:  # its channel was lost with a damaged chunk: its payload may tell
+                channel_id = self._infer_channel(record.channel_id, record.data)
+            if channel_id is not None:  # else uninterpretable
                 writer.add_message(channel_id, record.log_time, record.data, record.publish_time, record.sequence)
                 self.kept += 1
                 self.out.count += 1
                 self.last_log_ns = max(record.log_time, self.last_log_ns or 0)
+        elif isinstance(record, Metadata) and record.name in (CAMPAIGN, RECORDER):
+            self.held[record.name] = dict(record.metadata)  # checked against what was kept, then written
+            self.metadata_names.add(record.name)
         elif isinstance(record, Metadata) and record.name != RECOVERY:
             writer.add_metadata(record.name, dict(record.metadata))
             self.metadata_names.add(record.name)
             if record.name == CAMPAIGN_START:
                 self.start_metadata = dict(record.metadata)
+
+
+def _key_of_payload(data: bytes) -> tuple[str, type[bus.BusMessage]] | None:
+    """(key, type) of an archived payload by the one bus type it decodes as; None if none does."""
+    if data[:1] == b"{" and b'"frame_id"' in data and b'"timestamp"' in data and b'"v"' not in data:
+        return bus.CAMERA_FRAME, bus.CameraFrame  # archived as foxglove.CompressedImage
+    keys = {t: k for k, t in bus.REGISTRY.items()}
+    for msg_type in bus.MESSAGE_TYPES:
+        if msg_type is bus.CameraFrame:
+            continue
+        try:
+            msg = bus.decode(msg_type, data)
+        except bus.BusDecodeError:
+            continue
+        if isinstance(msg, bus.Health):
+            try:
+                return bus.health_key(msg.process, msg.instance), msg_type
+            except ValueError:
+                return None
+        return keys[msg_type], msg_type
+    return None
 
 
 def _runs_past_end(f: BinaryIO, offset: int, size: int) -> bool:

@@ -151,16 +151,21 @@ def test_recorder_archives_every_channel_from_the_bus(
 PER_CHUNK = 40
 
 
+def _raw_writer(f, campaign_id: str) -> tuple[Writer, int]:
+    """A started raw MCAP writer with the recorder's start record and a MotorState channel."""
+    writer = Writer(f, chunk_size=1 << 30, compression=CompressionType.LZ4)
+    writer.start(profile="xneck")
+    writer.add_metadata("xneck.campaign.start", {"campaign_id": campaign_id, "law": "pid"})
+    schema = writer.register_schema("xneck.MotorState", "jsonschema", bus.json_schema_bytes(bus.MotorState))
+    return writer, writer.register_channel("/" + bus.MOTOR_STATE, "json", schema)
+
+
 def _crashing_file(path: Path, n_chunks: int) -> list[tuple[int, int]]:
     """Write ``n_chunks`` chunks of ``PER_CHUNK`` messages with the raw writer, flushing after each
     like the recorder does, then finish; returns each chunk's (start, end) byte offsets. A prefix
     of this file is what a recorder killed after that many bytes leaves on disk."""
     with open(path, "wb") as f:
-        writer = Writer(f, chunk_size=1 << 30, compression=CompressionType.LZ4)
-        writer.start(profile="xneck")
-        writer.add_metadata("xneck.campaign.start", {"campaign_id": "crash", "law": "pid"})
-        schema = writer.register_schema("xneck.MotorState", "jsonschema", bus.json_schema_bytes(bus.MotorState))
-        channel = writer.register_channel("/" + bus.MOTOR_STATE, "json", schema)
+        writer, channel = _raw_writer(f, "crash")
         for k in range(n_chunks):
             for i in range(k * PER_CHUNK, (k + 1) * PER_CHUNK):
                 writer.add_message(channel, 10**18 + i * 2_000_000, bus.encode(motor_state(i)), i * 2_000_000, i)
@@ -208,6 +213,106 @@ def test_damage_inside_the_file_keeps_the_original(tmp_path: Path) -> None:
     assert report.corrupt_copy.read_bytes() == bytes(data)
     seqs = [m.seq for _, m in read_campaign(path).messages(bus.MOTOR_STATE)]
     assert seqs == [*range(PER_CHUNK), *range(2 * PER_CHUNK, 3 * PER_CHUNK)]
+
+
+def test_a_damaged_first_chunk_loses_only_its_own_messages(tmp_path: Path) -> None:
+    """Audit of 2026-11-26: schemas and channels are written in the chunk where a key first
+    appears, so a flipped byte in the first chunk lost every later message of those keys too
+    (0 of 1316 intact messages kept). Recovery now tells a lost channel's key from its messages
+    (each payload decodes as exactly one type of the bus contract)."""
+    path = tmp_path / "damaged-first.mcap"
+    chunks = _crashing_file(path, 3)
+    data = bytearray(path.read_bytes()[: chunks[2][1]])  # unfinished, and...
+    end = chunks[0][1]
+    data[end - 20] ^= 0xFF  # ...a flipped byte in the first chunk, which holds the channel
+    path.write_bytes(bytes(data))
+    report = recover(path)
+    assert report.status == "recovered" and report.messages == 2 * PER_CHUNK, report
+    assert "skipped damaged chunk" in report.reason and "channel" in report.reason
+    campaign = read_campaign(path)
+    assert [m.seq for _, m in campaign.messages(bus.MOTOR_STATE)] == list(range(PER_CHUNK, 3 * PER_CHUNK))
+    assert campaign.schemas == {"/" + bus.MOTOR_STATE: "xneck.MotorState"}
+
+
+def test_a_final_record_written_before_a_lost_chunk_is_not_believed(tmp_path: Path) -> None:
+    """Audit of 2026-11-26: stop() wrote the final ``xneck.campaign`` record (outcome finished,
+    recorded 2000) while the last chunk was still open; the disk filled, the chunk never came, and
+    the recovered file said finished with 1008 of 2000 messages. Recovery now calls a file
+    ``interrupted`` when its recorder counted more messages than it kept."""
+    path = tmp_path / "lost-tail.mcap"
+    with open(path, "wb") as f:
+        writer, channel = _raw_writer(f, "tail")
+        for i in range(2 * PER_CHUNK):
+            writer.add_message(channel, 10**18 + i * 2_000_000, bus.encode(motor_state(i)), i * 2_000_000, i)
+            if i == PER_CHUNK - 1:
+                writer.flush()
+        # the old order: the final records go out while the second chunk is still open
+        writer.add_metadata(CAMPAIGN, {"campaign_id": "tail", "law": "pid", "outcome": "finished"})
+        writer.add_metadata("xneck.recorder", {"received": str(2 * PER_CHUNK), "recorded": str(2 * PER_CHUNK)})
+        f.flush()
+        cut = f.tell()  # the disk is full here: the open chunk, the summary and the footer never land
+    path.write_bytes(path.read_bytes()[:cut])
+    report = recover(path)
+    assert report.messages == PER_CHUNK
+    info = read_campaign(path).info
+    assert info["outcome"] == "interrupted", info
+    assert read_campaign(path).metadata["xneck.recovery"]["outcome_before"] == "finished"
+
+
+def test_the_recorder_writes_its_last_chunk_before_its_final_records(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the disk full at finish(), every recorded message is on disk before the final records:
+    recovery keeps them all and the outcome recorded stands."""
+    a, b = sessions
+    path = tmp_path / "full-at-stop.mcap"
+    states = LosslessPublisher(a, bus.MOTOR_STATE)
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=60.0)  # one open chunk
+    try:
+        assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.recorded > 0)[1])
+        for i in range(1, 300):
+            states.put(motor_state(i))
+        assert wait_until(lambda: recorder.stats.recorded >= 300)
+        recorded = recorder.stats.recorded
+
+        def disk_full() -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(recorder._out, "finish", disk_full)
+        with pytest.raises(ArchiveError, match="finishing failed"):
+            recorder.stop("finished")
+    finally:
+        states.close()
+    monkeypatch.undo()
+    report = recover(path)
+    assert report.messages == recorded
+    assert read_campaign(path).info["outcome"] == "finished"
+
+
+def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path,
+) -> None:
+    """Audit of 2026-11-26: one valid message stamped 1e300 s overflowed the publish time and
+    killed the writer thread: the campaign failed with a storage fault, 1000 messages unrecorded."""
+    a, b = sessions
+    path = tmp_path / "stamps.mcap"
+    states = LosslessPublisher(a, bus.MOTOR_STATE)
+    frames = LosslessPublisher(a, bus.CAMERA_FRAME)
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2)
+    try:
+        assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.recorded > 0)[1])
+        states.put(msgspec.structs.replace(motor_state(1), stamp_s=1e300))
+        frames.put(bus.CameraFrame(seq=1, stamp_s=1e300, capture_stamp_s=1e300, frame_id="cam", format="jpeg",
+                                   data=b"\xff\xd8\xff\xd9", width=2, height=2))
+        for i in range(2, 100):
+            states.put(motor_state(i))
+        assert wait_until(lambda: recorder.stats.recorded >= 101)
+    finally:
+        recorder.stop("finished")
+        states.close()
+        frames.close()
+    seqs = [m.seq for _, m in read_campaign(path).messages(bus.MOTOR_STATE)]
+    assert seqs[-99:] == list(range(1, 100))
 
 
 RECORDER_SCRIPT = """
