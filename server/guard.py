@@ -16,6 +16,11 @@ In order, for HTTP and WebSocket requests:
    as a chunked body passes the limit, the rest unread); a JSON body nested deeper than
    :data:`MAX_JSON_DEPTH` is a 422 (Python's parser would recurse until it crashes).
 
+Every HTTP response carries :data:`SECURITY_HEADERS`: no page of the console may be framed (a page
+on another port of 127.0.0.1 framed the dashboard invisibly over its own button and one click
+released the e-stop: audit of 2026-11-26), nor its responses sniffed as another type, nor a
+referrer sent.
+
 The routes keep their own ``require_token`` dependency (it documents the security scheme in
 OpenAPI and holds if this middleware is ever left out).
 """
@@ -36,6 +41,12 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 MAX_JSON_DEPTH = 32
+SECURITY_HEADERS: tuple[tuple[bytes, bytes], ...] = (
+    (b"x-frame-options", b"DENY"),
+    (b"content-security-policy", b"frame-ancestors 'none'"),
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+)
 LIVE_PATHS = ("/api/live", "/api/live/sse")
 MUTATING = ("POST", "PUT", "PATCH", "DELETE")
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
@@ -103,6 +114,8 @@ class ConsoleGuard:
             await self.app(scope, receive, send)
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        if scope["type"] == "http":
+            send = _with_security_headers(send)
         refusal = self._refusal(scope, headers)
         if refusal is not None:
             await _deny(scope, receive, send, *refusal)
@@ -203,6 +216,19 @@ async def _send_json(send: Send, status: int, content: object, headers: dict[str
     prefix = "websocket.http.response" if ws else "http.response"
     await send({"type": f"{prefix}.start", "status": status, "headers": raw})
     await send({"type": f"{prefix}.body", "body": body})
+
+
+def _with_security_headers(send: Send) -> Send:
+    """``send`` that adds :data:`SECURITY_HEADERS` to the response's start (those not set)."""
+
+    async def sending(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            present = {k.lower() for k, _ in message.get("headers", [])}
+            extra = [(k, v) for k, v in SECURITY_HEADERS if k not in present]
+            message = {**message, "headers": [*message.get("headers", []), *extra]}
+        await send(message)
+
+    return sending
 
 
 async def _deny(scope: Scope, receive: Receive, send: Send, status: int, detail: str,

@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import contextlib
 import hmac
+import html
 import logging
 import math
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -72,6 +74,27 @@ JOG_HELP = ("Moves the neck. Type the console's API token (printed by `xneck ser
             "`<data-dir>/token`) into **API token** first: any web page you visit can reach this panel, "
             "so without the token the sliders and *hold here* do nothing.")
 NOT_SENT = "**not sent**: the API token field does not hold the console's token"
+
+
+_MARKDOWN_SPECIAL = re.compile(r"([\\`*_{}\[\]()#+\-.!|~>])")
+
+
+def plain_markdown(text: object) -> str:
+    """``text`` shown as itself in a viser markdown element: viser renders raw HTML in markdown, and
+    a reason that reaches the panel may come from anyone on the bus (an e-stop reason carrying an
+    ``<iframe srcdoc=...>`` ran script beside the token field: audit of 2026-11-26), so HTML is
+    escaped and so is every markdown mark (no link, no image)."""
+    return _MARKDOWN_SPECIAL.sub(r"\\\1", html.escape(str(text), quote=False))
+
+
+def jog_status_markdown(code: int, answer: object) -> str:
+    """The jog folder's status line for the console's answer ``(code, answer)`` to a jog."""
+    if code == 202 and isinstance(answer, dict):
+        return f"→ {plain_markdown(answer.get('jog_id', ''))}"
+    detail = answer.get("detail") if isinstance(answer, dict) else answer
+    if isinstance(detail, list):
+        detail = "; ".join(str(d.get("msg", d)) if isinstance(d, dict) else str(d) for d in detail)
+    return f"**refused ({int(code)})**: {plain_markdown(detail)}"
 
 
 @dataclass
@@ -285,10 +308,7 @@ class NeckScene:
             if code == 429:
                 jog.target = target  # the newest goes next time
                 continue
-            detail = answer.get("detail") if isinstance(answer, dict) else None
-            if isinstance(detail, list):
-                detail = "; ".join(str(d.get("msg", d)) for d in detail)
-            jog.text.content = f"→ {answer['jog_id']}" if code == 202 else f"**refused ({code})**: {detail}"
+            jog.text.content = jog_status_markdown(code, answer)
 
     # -- preview of a trajectory's motion -------------------------------------------------------
     def preview(self, trajectory: Any) -> float:

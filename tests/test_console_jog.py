@@ -189,3 +189,26 @@ def test_the_viser_panel_jogs_only_for_a_client_whose_token_field_holds_the_api_
     finally:
         stranger.close()
         operator.close()
+
+
+PAYLOAD = ("<iframe srcdoc=\"<script>p=parent;p.__pwned=1</script>\"></iframe> "
+           "[token](javascript:alert(1)) ![x](http://evil.example/x.png) **bold** `code` &amp;")
+
+
+def test_a_refusal_reason_from_the_bus_reaches_the_viser_panel_as_plain_text():
+    """Audit of 2026-11-26: an e-stop reason published by any peer on the bus came back in the jog's
+    409 and viser rendered it as HTML: an ``<iframe srcdoc>`` ran script beside the token field and
+    read the API token. The status line escapes HTML and every markdown mark."""
+    from server.scene import jog_status_markdown, plain_markdown
+
+    line = jog_status_markdown(409, {"detail": f"drives disabled: e-stop ({PAYLOAD})"})
+    assert line.startswith("**refused (409)**: ")
+    body = line.removeprefix("**refused (409)**: ")
+    assert "<" not in body and ">" not in body  # no tag at all
+    for mark in "[]()!*`":
+        assert all(body[i - 1] == "\\" for i, ch in enumerate(body) if ch == mark), (mark, body)
+    assert "&amp;amp;" in body  # an entity in the text is shown as typed, not decoded
+    assert plain_markdown("α1 = 15.0°") == "α1 = 15\\.0°"
+    detail_list = jog_status_markdown(422, {"detail": [{"msg": "<b>x</b>"}, "y"]})
+    assert "<b>" not in detail_list and "&lt;b&gt;x&lt;/b&gt;; y" in detail_list
+    assert jog_status_markdown(202, {"jog_id": "jog-1"}) == "→ jog\\-1"

@@ -46,6 +46,18 @@ def test_system_endpoints_and_openapi(client) -> None:
     assert client.get("/").status_code == 200 and "xneck console" in client.get("/").text
 
 
+def test_no_response_of_the_console_may_be_framed_or_sniffed(client) -> None:
+    """Audit of 2026-11-26: a page on another port of 127.0.0.1 framed the dashboard at opacity
+    0.0001 over its own button and one click released the e-stop (the token is in localStorage).
+    Every response forbids framing and content sniffing, and sends no referrer."""
+    for r in (client.get("/"), client.get("/app.js"), client.get("/api/system/health"),
+              client.post("/api/system/estop", json={"engaged": True}), client.get("/no/such/page")):
+        assert r.headers.get("x-frame-options") == "DENY", r.url
+        assert "frame-ancestors 'none'" in r.headers.get("content-security-policy", ""), r.url
+        assert r.headers.get("x-content-type-options") == "nosniff", r.url
+        assert r.headers.get("referrer-policy") == "no-referrer", r.url
+
+
 def test_missing_or_wrong_token_is_refused(client) -> None:
     body = {"kind": "control"}
     assert client.post("/api/campaigns", json=body).status_code == 401
