@@ -74,9 +74,15 @@ async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
         raise HTTPException(status.HTTP_507_INSUFFICIENT_STORAGE, problem)
     fields = body.model_dump(exclude={"workers"})
     fields["laws"], fields["vary"] = tuple(fields["laws"]), tuple(fields["vary"])
+    manager = _manager(request)
+
+    def check_and_start() -> tuple[str, int]:
+        # in the threadpool: checking the specs imports the model and loads parameter files, and
+        # nothing of it may hold the event loop (health, live views) while it runs
+        return manager.create(study_or_error(**fields), body.workers)
+
     try:
-        study = study_or_error(**fields)
-        study_id, total = await run_in_threadpool(_manager(request).create, study, body.workers)
+        study_id, total = await run_in_threadpool(check_and_start)
     except StudyError as exc:
         raise HTTPException(422, str(exc)) from None
     except StudyBusy as exc:

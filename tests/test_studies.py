@@ -100,6 +100,74 @@ def test_runs_are_fixed_by_the_seed_and_every_law_meets_the_same_robots(nod) -> 
     assert ident.trajectory == "identification" and {r.law for r in expand(ident)} == {1}  # §5.2.2 runs law 1
 
 
+def test_a_study_with_too_many_runs_is_refused_by_counting_without_building_them(monkeypatch) -> None:
+    # audit of 2026-11-26: the count was len(expand(study)): 10^9 samples built runs for minutes,
+    # a grid of 10^11 points asked numpy for 745 GiB. The count is arithmetic now; expand must not run.
+    from server.studies import spec
+
+    def no_expand(_study):
+        raise AssertionError("the limit check built the runs")
+
+    monkeypatch.setattr(spec, "expand", no_expand)
+    with pytest.raises(StudyError, match=r"1000000000000 runs .*more than the limit of 200000"):
+        study_from("control", samples=10**12)
+    with pytest.raises(StudyError, match=r"300000000000 runs \(3 laws × 100000 grid points × 1000000 samples\)"):
+        study_from("control", laws=(1, 2, 3), samples=10**6, vary=("friction.f_s=10%", "cables.variable.k=1000:3000:100000"))
+    with pytest.raises(StudyError, match=r"100000000000 points, more than the limit of 200000"):  # each grid capped alone
+        study_from("design", vary=("geometry.b=0.02:0.08:100000000000",))
+    with pytest.raises(StudyError, match=r"more than the limit of 200000"):  # digits past int()'s own limit too
+        study_from("design", vary=("geometry.b=0.02:0.08:" + "9" * 5000,))
+    s = study_from("design", samples=3, vary=("geometry.b=0.04:0.06:3", "springs.k_left=1:2:4"))
+    monkeypatch.undo()
+    assert spec.run_count(s) == len(expand(s)) == 36
+    s = _study("nod.json", 5)
+    assert spec.run_count(s) == len(expand(s)) == 10
+
+
+def test_the_command_line_refuses_a_study_with_too_many_runs_in_one_line(xneck, tmp_path) -> None:
+    out = tmp_path / "x"
+    for args, says in ((("control", "--samples", "1000000000"), "1000000000 runs"),
+                       (("design", "--vary", "geometry.b=0.02:0.08:100000000000"), "100000000000 points")):
+        r = xneck("study", *args, "--out", str(out))
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.stderr[-2000:]
+        assert says in lines[0] and "200000" in lines[0], lines
+        assert not out.exists()
+
+
+def test_the_api_refuses_a_huge_study_with_422_and_checks_it_off_the_event_loop(tmp_path, monkeypatch) -> None:
+    # audit of 2026-11-26: the check ran in the async handler: the console answered nothing (health
+    # included) for 46 s, then failed with MemoryError. Here the check is held until the health has
+    # answered: if the check ran on the event loop, the health could not answer and the gate never opens.
+    from server.studies import spec
+
+    gate, checking = threading.Event(), threading.Event()
+    original = spec.study_from
+
+    def held(*args, **kwargs):
+        checking.set()
+        gate.wait(60)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(spec, "study_from", held)
+    body = {"kind": "design", "samples": 100000, "vary": ["geometry.b=0.02:0.08:100000"]}
+    answer: dict = {}
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=90) as http:
+        post = threading.Thread(target=lambda: answer.update(r=http.post("/api/studies", json=body, headers=AUTH)))
+        post.start()
+        try:
+            assert checking.wait(60), "the study was never checked"
+            health = http.get("/api/system/health", timeout=30)  # a loop held by the check never answers
+            assert health.status_code == 200
+        finally:
+            gate.set()
+            post.join(90)
+    r = answer["r"]
+    assert r.status_code == 422, r.text
+    assert "10000000000 runs" in r.json()["detail"] and "200000" in r.json()["detail"], r.text
+    assert not (tmp_path / "data" / "studies").exists() or not any((tmp_path / "data" / "studies").iterdir())
+
+
 def test_a_study_directory_refuses_a_study_whose_files_changed(nod, tmp_path) -> None:
     """The same flags over an edited trajectory (or parameter, truth) file are another robot's runs."""
     from server.studies.execute import study_dir

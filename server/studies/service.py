@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from server.studies.spec import Study, StudyError, expand
+from server.studies.spec import Study, StudyError, run_count
 
 STUDY_ID = re.compile(r"^(control|identification|design)-[0-9a-f]{16}$")  # kind-digest: the same study, the same directory
 SCHEDULER_ENV = "XNECK_DASK_SCHEDULER"
@@ -71,7 +71,7 @@ class StudyManager:
         from server.studies.run import config_for
 
         config_for(study, software_version())  # every spec checked before anything starts
-        total = len(expand(study))
+        total = run_count(study)  # counted, not built: the runs are built in the study's own thread
         with self._lock:
             if any(r.state == "running" for r in self._runs.values()):
                 raise StudyBusy("a study is running; stop it or wait (one at a time on this machine)")
@@ -159,7 +159,7 @@ class StudyManager:
         figures = [f"/api/studies/{study_id}/figures/{n}" for n in (summary or {}).get("figures", [])]
         if run is None:  # not run by this console (or before its restart): the directory says
             study = load_study(folder)
-            total = len(expand(study))
+            total = run_count(study)  # a study.json edited to 10^12 runs must not fill the memory here
             done = len(finished_ids(folder))
             state, message, error = ("complete" if done >= total else "stopped"), "", ""
         else:

@@ -119,7 +119,15 @@ def parse_vary(text: str) -> Vary:
             raise StudyError(f"{where}: sigma must be > 0, got {b:g}")
         if kind == "uniform" and not a < b:
             raise StudyError(f"{where}: U(a,b) needs a < b, got a = {a:g}, b = {b:g}")
-        n = int(g.group(3)) if kind == "grid" else 0
+        n = 0
+        if kind == "grid":
+            digits = g.group(3).lstrip("0") or "0"
+            # a grid alone past the study limit is refused before np.linspace allocates it (10^11 points
+            # asked for 745 GiB); a count too long for int() (4300 digits) is past it too
+            if len(digits) > len(str(MAX_RUNS)) or int(digits) > MAX_RUNS:
+                shown = digits if len(digits) <= 30 else f"a {len(digits)}-digit number of"
+                raise StudyError(f"{where}: the grid has {shown} points, more than the limit of {MAX_RUNS} runs")
+            n = int(digits)
         if kind == "grid" and not (n >= 1 and (n == 1 or a != b)):
             raise StudyError(f"{where}: a grid a:b:n needs n >= 1 points (and a != b for n > 1)")
         return Vary(path, index, kind, a, b, n)
@@ -237,10 +245,21 @@ def _checked_syntax(s: Study) -> Study:
     if "geometry.n_joints" in labels and s.kind != "design":
         raise StudyError("--vary geometry.n_joints: only a design study changes the number of joints "
                          "(a control or identification trajectory is written for the prototype's joints)")
-    n_runs = len(expand(s))
+    n_runs = run_count(s)
     if n_runs > MAX_RUNS:
-        raise StudyError(f"the study has {n_runs} runs, more than {MAX_RUNS}: use fewer samples or coarser grids")
+        laws = 1 if s.kind == "design" else len(s.laws)
+        points = n_runs // (laws * s.samples)
+        raise StudyError(f"the study has {n_runs} runs ({laws} law{'s' if laws > 1 else ''} × {points} grid "
+                         f"point{'s' if points > 1 else ''} × {s.samples} sample{'s' if s.samples > 1 else ''}), "
+                         f"more than the limit of {MAX_RUNS}: use fewer samples or coarser grids")
     return s
+
+
+def run_count(s: Study) -> int:
+    """How many runs :func:`expand` gives, counted without building them: the limit is checked on
+    this, so a count of 10^12 is refused at once instead of after filling the memory."""
+    laws = 1 if s.kind == "design" else len(s.laws)
+    return laws * math.prod(v.n for v in s.varies() if v.kind == "grid") * s.samples
 
 
 def expand(s: Study) -> list[RunSpec]:
