@@ -34,6 +34,7 @@ class Run:
     ip_stamp_s: np.ndarray  # (K,) when each frame was delivered (capture + the camera's latency)
     ip_confidence: np.ndarray  # (K, N) per joint in [0, 1]; NaN when the camera does not grade (white noise)
     ip_source: str = ""  # the twin camera's CameraAlpha.source
+    flat_steps: int = 0  # steps the twin refused at a joint's flat singularity (the run left the model's range)
 
     def metrics(self) -> dict[str, object]:
         seen = np.isfinite(self.alpha_ip).all(axis=1)  # a frame with a missing joint compares with nothing
@@ -79,12 +80,14 @@ def run_closed_loop(
     saturated = np.zeros((n, nc), dtype=bool)
     frames_t, frames_a, frames_stamp, frames_c = [], [], [], []
     tick = twin.tick(np.zeros(nc))  # the first state the controller sees
+    flat_steps = int(tick.flat)
     for k in range(n):
         t[k] = tick.t_s
         a_d, a_d_dot, a_d_ddot = trajectory.sample_at(t[k])
         alpha_d[k] = a_d
         cmd = ctl.step(tick.theta_meas, a_d, a_d_dot, a_d_ddot, trajectory.pretension_at(t[k]))
         tick = twin.tick(cmd.f)
+        flat_steps += int(tick.flat)
         out["alpha_hat"][k], out["force_N"][k], saturated[k] = cmd.alpha_hat, cmd.f, cmd.saturated
         out["alpha"][k], out["tension_N"][k], out["theta_meas"][k] = tick.alpha, tick.tension, tick.theta_meas
         for j, (capture, alpha_ip) in enumerate(tick.frames):
@@ -95,5 +98,6 @@ def run_closed_loop(
     return Run(
         t_s=t, alpha_d=alpha_d, saturated=saturated,
         t_ip_s=np.array(frames_t), alpha_ip=np.array(frames_a).reshape(-1, N), ip_stamp_s=np.array(frames_stamp),
-        ip_confidence=np.array(frames_c).reshape(-1, N), ip_source=twin.camera.source if twin.camera else "", **out,
+        ip_confidence=np.array(frames_c).reshape(-1, N), ip_source=twin.camera.source if twin.camera else "",
+        flat_steps=flat_steps, **out,
     )

@@ -46,6 +46,14 @@ def test_round_trip_through_a_user_file(params, tmp_path):
         ({"limits.f_max": 1.0}, "limits", "must exceed f_min"),
         ({"motors.I_a": float("nan")}, "motors", "I_a must be finite"),
         ({"geometry.n_joints": True}, "geometry.n_joints", "Expected `int`, got `bool`"),
+        # audit of 2026-11-26: beyond what the twin's 2 ms step integrates (tests/test_sim.py
+        # checks the bounds themselves run), a typo froze the twin at its flat singularity or
+        # reported 8e7 N of tension for 2 N commanded; a massless neck raised LinAlgError.
+        ({"springs.k_left": [1e12, 1e12, 1e12]}, "springs", "k_left must be <= 1e+06 N/m"),
+        ({"cables.variable.k": [1e15] * 4}, "cables.variable", "k must be <= 1e+07 N/m"),
+        ({"cables.linear.k": [1e9] * 4}, "cables.linear", "k must be <= 1e+07 N/m"),
+        ({"bars.m_diagonal": [0.0] * 3, "bars.I_diagonal": [0.0] * 3, "bars.m_top": [0.0] * 3, "bars.I_top": [0.0] * 3},
+         "bars", "a neck without any mass or inertia"),
     ],
 )
 def test_bad_values_name_the_key_and_the_reason(override, key, reason):

@@ -374,3 +374,24 @@ def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, t
         assert http.get(f"/api/studies/{sid}/figures/..%2Fstudy.json").status_code == 404
         assert http.get("/api/studies/control-0123456789abcdef").status_code == 404
         assert http.post(f"/api/studies/{sid}/stop").status_code == 401
+
+
+def test_a_run_whose_twin_stood_at_the_flat_singularity_is_diverged_not_finished(monkeypatch) -> None:
+    """Audit of 2026-11-26: a twin that refused 999 of 1000 steps at a joint's flat singularity
+    (it stood still, its tensions in kN) gave a study row 'finished' with its metrics. A refused
+    step is counted by the closed loop (Run.flat_steps) and such a run is 'diverged', with why."""
+    from twin.sim.simulator import Twin
+
+    real_tick = Twin.tick
+
+    def refusing(self, force):
+        tick = real_tick(self, force)
+        return tick._replace(flat=True) if tick.seq % 100 == 0 else tick
+
+    s = study_from("control", samples=1, seed=2, settle_s=0.2)
+    run = expand(s)[0]
+    assert run_one(config_for(s, "v"), run)["outcome"] == "finished"
+    monkeypatch.setattr(Twin, "tick", refusing)
+    row = run_one(config_for(s, "v"), run)
+    assert row["outcome"] == "diverged" and "flat singularity" in row["message"], row["message"]
+    assert row["flat_steps"] > 0

@@ -178,7 +178,12 @@ def run_one(cfg: RunConfig, run: RunSpec) -> dict[str, Any]:
                    _identification(cfg, run, params, truth) if kind == "identification" else _design(cfg, run, params))
         finite = all(math.isfinite(x) for x in metrics.values() if isinstance(x, float))
         row.update(metrics)
-        row["outcome"], row["message"] = ("finished", "") if finite else ("diverged", "non-finite metrics")
+        flat = int(metrics.get("flat_steps", 0) or 0)
+        row["outcome"], row["message"] = (
+            ("diverged", "non-finite metrics") if not finite else
+            # the twin stood still at a joint's flat singularity: its metrics are not the robot's
+            ("diverged", f"the twin refused {flat} step(s) at a joint's flat singularity (α = ±180°)") if flat else
+            ("finished", ""))
     except (ParameterError, TruthError, StudyError) as exc:
         row["outcome"], row["message"] = "invalid", str(exc)
     except (IdentificationError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
@@ -224,6 +229,7 @@ def _control(cfg: RunConfig, run: RunSpec, params: Any, truth: Any) -> dict[str,
     out["force_max_all_N"] = float(np.max(m["force_max_N"]))  # type: ignore[arg-type]
     settled = res.t_s >= TENSION_FROM_S  # from rest the cables start slack: the pretension is the controller's first act
     out["tension_min_N"] = float(np.min(res.tension_N[settled] if settled.any() else res.tension_N))
+    out["flat_steps"] = res.flat_steps
     return out
 
 
@@ -235,6 +241,8 @@ def _identification(cfg: RunConfig, run: RunSpec, params: Any, truth: Any) -> di
 
     traj = _trajectory(cfg.trajectory_json)
     res = _closed_loop(cfg, run, params, truth, 1, traj)
+    if res.flat_steps:
+        return {"flat_steps": res.flat_steps}  # nothing to identify on a twin that stood still
     base = params_from_dict(cfg.params, "study")
     with tempfile.TemporaryDirectory(prefix="xneck-study-") as tmp:
         path = write_campaign(Path(tmp) / f"{run.run_id}.mcap", res.messages(),

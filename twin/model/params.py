@@ -39,6 +39,14 @@ class _Section(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=
                 raise ValueError(f"{name} must be finite, got {value}")
 
 
+#: The stiffest springs and cables the twin's 2 ms step was checked with (tests/test_sim.py: no
+#: step refused, tension within a few N of the command); beyond, springs of 1e7 N/m threw the
+#: joints to the flat singularity and cables of 1e15 N/m reported 8e7 N for 2 N commanded
+#: (audit of 2026-11-26). The prototype's: 200-600 N/m springs, 2-10 kN/m cables.
+SPRING_K_MAX_N_M = 1e6
+CABLE_K_MAX_N_M = 1e7
+
+
 def _require(ok: bool, message: str) -> None:
     if not ok:
         raise ValueError(message)
@@ -49,6 +57,13 @@ def _nonneg(section: _Section, *names: str) -> None:
         value = getattr(section, name)
         values = value if isinstance(value, tuple) else (value,)
         _require(all(v >= 0 for v in values), f"{name} must be >= 0, got {value}")
+
+
+def _at_most(section: _Section, bound: float, unit: str, *names: str) -> None:
+    for name in names:
+        value = getattr(section, name)
+        values = value if isinstance(value, tuple) else (value,)
+        _require(all(v <= bound for v in values), f"{name} must be <= {bound:g} {unit}, got {value}")
 
 
 def _positive(section: _Section, *names: str) -> None:
@@ -91,6 +106,7 @@ class Springs(_Section, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         _nonneg(self, "k_left", "k_right")
+        _at_most(self, SPRING_K_MAX_N_M, "N/m", "k_left", "k_right")
         _positive(self, "l0")
 
 
@@ -105,6 +121,8 @@ class Bars(_Section, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         _nonneg(self, "m_diagonal", "I_diagonal", "m_top", "I_top")
+        _require(any(v > 0 for v in (*self.m_diagonal, *self.I_diagonal, *self.m_top, *self.I_top)),
+                 "a neck without any mass or inertia has no dynamics to integrate: give a bar some")
 
 
 class Motors(_Section, frozen=True, kw_only=True):
@@ -154,6 +172,7 @@ class LinearCable(_Section, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         _positive(self, "k")
+        _at_most(self, CABLE_K_MAX_N_M, "N/m", "k")
 
 
 class VariableCable(_Section, frozen=True, kw_only=True):
@@ -166,6 +185,7 @@ class VariableCable(_Section, frozen=True, kw_only=True):
     def __post_init__(self) -> None:
         super().__post_init__()
         _positive(self, "k")
+        _at_most(self, CABLE_K_MAX_N_M, "N/m", "k")
         _require(all(v >= 0 for v in self.lam), f"lambda must be >= 0, got {self.lam}")
 
 

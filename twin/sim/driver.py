@@ -15,6 +15,7 @@ e-stop and the exit behaviour are tested on the twin exactly as they run on the 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import Literal
 
@@ -67,6 +68,7 @@ class TwinDriver(Driver):
         self._extra: list[tuple[str, bus.BusMessage]] = []
         self._seq = {"camera": 0, "truth": 0}
         self._slack = np.zeros(config.n_motors, dtype=bool)
+        self._flat_refused, self._flat_logged_s = 0, -math.inf  # refused steps since the last report, when
 
     def _on_configure(self) -> None:
         c = self.config
@@ -106,7 +108,13 @@ class TwinDriver(Driver):
         tick = self.twin.tick(force)
         self.last_tick = tick
         if tick.flat:
-            log.warning("t = %.3f s: a joint reached its flat singularity; step refused", tick.t_s)
+            # Once a second, with the count: a twin held at the singularity refuses every step
+            # (audit of 2026-11-26: 2999 warnings in 6 s, one per tick).
+            self._flat_refused += 1
+            if tick.t_s - self._flat_logged_s >= 1.0:
+                log.warning("t = %.3f s: a joint is at its flat singularity (α = ±180°): %d step(s) refused since "
+                            "the last report; Truth.near_singular is set", tick.t_s, self._flat_refused)
+                self._flat_refused, self._flat_logged_s = 0, tick.t_s
         if np.any(tick.slack != self._slack):
             log.info("t = %.3f s: slack cables %s", tick.t_s, (np.nonzero(tick.slack)[0] + 1).tolist())
             self._slack = tick.slack
