@@ -196,6 +196,58 @@ def test_cli_render_then_detect_json(tmp_path) -> None:
     assert cv2.imread(str(sheet)).shape[:2] == (int(0.297 * 150 / 0.0254), int(0.210 * 150 / 0.0254))  # A4 at 150 dpi
 
 
+def _bomb_jpeg(width: int, height: int) -> bytes:
+    """A 16×16 JPEG whose frame header (SOF0) declares width×height: under 1 kB on disk, and a
+    decoder that believes the header allocates width×height×3 bytes before reading any data."""
+    buf = cv2.imencode(".jpg", np.full((16, 16, 3), 128, np.uint8))[1]
+    data = bytearray(buf.tobytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5:sof + 7] = height.to_bytes(2, "big")
+    data[sof + 7:sof + 9] = width.to_bytes(2, "big")
+    return bytes(data)
+
+
+def _bomb_png(width: int, height: int) -> bytes:
+    import zlib
+
+    buf = cv2.imencode(".png", np.full((16, 16, 3), 128, np.uint8))[1]
+    data = bytearray(buf.tobytes())
+    data[16:24] = width.to_bytes(4, "big") + height.to_bytes(4, "big")
+    data[29:33] = zlib.crc32(bytes(data[12:29])).to_bytes(4, "big")  # IHDR's CRC, so the chunk is a valid one
+    return bytes(data)
+
+
+def test_an_image_header_is_read_without_decoding_the_image() -> None:
+    from twin.camera.imagefile import ImageFileError, image_size
+
+    assert image_size(_bomb_jpeg(32000, 31000)) == ("jpeg", 32000, 31000)
+    assert image_size(_bomb_png(60000, 60000)) == ("png", 60000, 60000)
+    real = cv2.imencode(".jpg", np.zeros((720, 1280, 3), np.uint8))[1]
+    assert image_size(real.tobytes()) == ("jpeg", 1280, 720)
+    progressive = cv2.imencode(".jpg", np.zeros((9, 7, 3), np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1]
+    assert image_size(progressive.tobytes()) == ("jpeg", 7, 9)  # SOF2
+    for junk, says in ((b"not an image", "neither a PNG nor a JPEG"), (b"\xff\xd8\xff\xe0\x00", "no frame header"),
+                       (_bomb_jpeg(0, 16), "0×16"), (b"\xff\xd8\xff\xe0\x00\x01", "segment length 1")):
+        with pytest.raises(ImageFileError, match=re.escape(says)):
+            image_size(junk)
+
+
+def test_xneck_camera_detect_refuses_a_decompression_bomb_in_one_line(xneck, tmp_path) -> None:
+    # audit of 2026-11-26: a 629-byte JPEG declaring 32000×32000 drove the command to 3 GB, then an
+    # OpenCV traceback. The header is read first and a size other than the calibration's refused.
+    for name, data, says in (("b32k.jpg", _bomb_jpeg(32000, 32000), "32000×32000"),
+                             ("b60k.jpg", _bomb_jpeg(60000, 60000), "60000×60000"),
+                             ("b60k.png", _bomb_png(60000, 60000), "60000×60000"),
+                             ("small.jpg", _bomb_jpeg(640, 480), "640×480")):
+        image = tmp_path / name
+        image.write_bytes(data)
+        assert len(data) < 1000
+        r = xneck("camera", "detect", str(image), "--json")
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.stderr[-2000:]
+        assert says in lines[0] and "1280×720" in lines[0] and r.stdout == "", lines
+
+
 # --- the bus contract: CameraAlpha v2 ------------------------------------------------------------
 
 

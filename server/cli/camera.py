@@ -257,17 +257,17 @@ def detect(
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Measure α (degrees) on one frame."""
-    import cv2
-
     from twin.camera.detect import Detector
+    from twin.camera.imagefile import ImageFileError, read_frame
 
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
     if not image.is_file():
         raise fail(f"{image}: no such file")
-    frame = cv2.imread(str(image), cv2.IMREAD_COLOR)
-    if frame is None:
-        raise fail(f"{image}: not a readable image")
+    try:  # the header's size is checked against the calibration's before decoding (a bomb declares 32000×32000)
+        frame = read_frame(image, cal.width, cal.height)
+    except ImageFileError as exc:
+        raise fail(f"{image}: {exc}") from None
     detector = Detector(params.n_joints, params.geometry.L, params.geometry.b, cal)
     try:
         result = detector.detect(frame)
