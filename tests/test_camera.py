@@ -305,6 +305,40 @@ def test_twin_shutter_exposes_at_the_rate_and_releases_after_the_latency() -> No
     assert shutter.dropped == 6
 
 
+def test_the_twin_shutter_restarts_after_its_clock_jumps_back_or_far_ahead() -> None:
+    # audit of 2026-11-26: after 600 s of truth, a twin restarted at t = 0 got no exposure for the next
+    # 600 s; one truth stamped 1e12 s stopped the camera for good and counted 3e13 dropped frames.
+    from twin.camera.source import TwinShutter
+
+    def run(shutter: TwinShutter, t0: float, seconds: float) -> list:
+        out = []
+        for k in range(int(round(seconds * 500))):
+            out += shutter.feed(t0 + k * 0.002, np.zeros(3))
+        return out
+
+    shutter = TwinShutter(rate_hz=30.0, latency_s=0.05)
+    run(shutter, 0.0, 10.0)
+    lost = shutter.pending  # taken on the old clock, never released on the new one
+    assert shutter.restarts == 0 and shutter.dropped == 0 and lost >= 1
+    again = run(shutter, 0.0, 2.0)  # the clock restarts at 0
+    assert shutter.restarts == 1 and shutter.last_jump is not None and shutter.last_jump[1] == 0.0
+    assert len(again) == 59 and shutter.dropped == lost  # as many as the first 2 s of a new shutter
+    assert np.diff([e.capture_s for e in again]) == pytest.approx(1 / 30, abs=0.002)
+    assert all(0.0 <= e.capture_s < 2.0 for e in again)  # nothing of the old clock
+
+    lost += shutter.pending
+    shutter.feed(1e12, np.zeros(3))  # one truth far ahead: a new clock, not 3e13 lost frames
+    assert shutter.restarts == 2 and shutter.dropped == lost
+    lost += shutter.pending
+    after = run(shutter, 2.0, 2.0)  # and back to the twin's clock
+    assert shutter.restarts == 3 and len(after) == 59 and shutter.dropped == lost
+
+    # a short stall is still a stall: its exposures are dropped and counted, the schedule kept
+    run(shutter, 4.0, 0.2)
+    shutter.feed(4.4, np.zeros(3))
+    assert shutter.restarts == 3 and shutter.dropped == lost + 6  # due at 4.2, 4.233, ... 4.367 s
+
+
 def test_camera_process_publishes_rendered_alpha_ip_from_the_twin_on_a_real_bus(params) -> None:
     import threading
 

@@ -68,6 +68,7 @@ class CameraNode:
         self.missing_joints = 0
         self.dropped = 0  # frames the source lost, as published in CameraAlpha.dropped
         self.queue_dropped = 0  # twin: exposures dropped because rendering fell behind
+        self.clock_restarts = 0  # twin: the truth's clock jumped (a restarted twin) and the shutter started again
         self.truth_received = 0
         self.truth_rejected = 0
         self._last_reject = ""
@@ -103,7 +104,8 @@ class CameraNode:
         self._health.put(bus.Health(
             seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
             received={bus.TWIN_TRUTH: self.truth_received, "frames": self.frames, "dropped": self.dropped,
-                      "missing_joints": self.missing_joints, "images": self.images},
+                      "missing_joints": self.missing_joints, "images": self.images,
+                      "clock_restarts": self.clock_restarts},
             rejected={bus.TWIN_TRUTH: self.truth_rejected}, last_reject_reason=self._last_reject))
 
     # --- sources -------------------------------------------------------------------------------
@@ -161,6 +163,11 @@ class CameraNode:
                         self._queue.popleft()
                         self.queue_dropped += 1
                     self._queue.append(exposure)
+                if shutter.restarts != self.clock_restarts and shutter.last_jump is not None:
+                    # said once per jump: the camera goes on on the new clock, but the operator should know why
+                    self.clock_restarts = shutter.restarts
+                    log.warning("camera %s: the truth's clock jumped from %.3f s to %.3f s: exposures start again there",
+                                self.instance, *shutter.last_jump)
                 self._cond.notify_all()
 
         sub = self.session.declare_subscriber(bus.TWIN_TRUTH, on_truth)

@@ -129,22 +129,40 @@ class TwinShutter:
     a frame period (a stalled twin) skips the exposures it covers and counts them as dropped.
     ``on_exposure`` is called with each exposure when it is taken (a renderer can start on it
     while its latency elapses).
+
+    A clock that jumps back past the last exposure (a restarted twin) or ahead by more than
+    ``restart_gap_s`` (and 3 periods) is a new clock, not a stall: the schedule starts again at
+    that sample (``restarts`` counts it, ``last_jump`` says from where to where). Without this a
+    twin restarted at 0 after 600 s got no exposure for 600 s, and one truth stamped 1e12 s
+    stopped the camera for good with 3e13 frames counted dropped (audit of 2026-11-26). The
+    exposures still pending on the old clock are never released on the new one: they count as dropped.
     """
 
     rate_hz: float = 30.0
     latency_s: float = 0.05
-    dropped: int = 0  # exposures skipped because the truth stalled
+    restart_gap_s: float = 1.0  # a longer gap is a new clock; a shorter one a stall whose exposures count as dropped
+    dropped: int = 0  # exposures skipped because the truth stalled, or pending when its clock restarted
     exposures: int = 0  # exposures taken
+    restarts: int = 0  # times the truth's clock jumped back, or far ahead, and the schedule started again
+    last_jump: tuple[float, float] | None = None  # (from, to) of the last restart, for a log line
     on_exposure: Callable[[Exposure], None] | None = None
     _next_s: float | None = None
     _pending: list[Exposure] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        if not (0.0 < self.rate_hz <= 1000.0 and 0.0 <= self.latency_s <= 1.0):
-            raise ValueError("rate_hz must be in (0, 1000] Hz and latency_s in [0, 1] s")
+        if not (0.0 < self.rate_hz <= 1000.0 and 0.0 <= self.latency_s <= 1.0 and self.restart_gap_s > 0.0):
+            raise ValueError("rate_hz must be in (0, 1000] Hz, latency_s in [0, 1] s and restart_gap_s > 0")
 
     def feed(self, t_s: float, alpha_rad: np.ndarray) -> list[Exposure]:
         period = 1.0 / self.rate_hz
+        if self._next_s is not None and (t_s + 1e-9 < self._next_s - period
+                                         or t_s - self._next_s > max(self.restart_gap_s, 3.0 * period)):
+            # (as FrameDecimator: earlier than the last exposure is a new clock; so is far ahead)
+            self.restarts += 1
+            self.last_jump = (self._next_s - period, t_s)
+            self.dropped += len(self._pending)
+            self._pending = []
+            self._next_s = None
         if self._next_s is None:
             self._next_s = t_s
         if t_s + 1e-9 >= self._next_s:
