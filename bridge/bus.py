@@ -40,6 +40,8 @@ from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 
+from bridge.imageheader import ImageFileError, image_size
+
 PREFIX = "xneck"
 
 # Key expressions (Zenoh: no leading slash; MCAP topics are "/" + key).
@@ -610,6 +612,14 @@ def check_camera_frame(msg: CameraFrame) -> None:
     Raises :class:`BusDecodeError`."""
     if msg.data[:3] != b"\xff\xd8\xff":
         raise BusDecodeError("CameraFrame: data is not a JPEG image (no SOI marker)")
+    # The size the JPEG itself declares is what a browser or decoder allocates: a 1 kB frame may
+    # declare 60000×60000 px (audit of 2026-11-26). It must be the frame's own width × height.
+    try:
+        _kind, w, h = image_size(msg.data)
+    except ImageFileError as exc:
+        raise BusDecodeError(f"CameraFrame: {exc}") from None
+    if (w, h) != (msg.width, msg.height):
+        raise BusDecodeError(f"CameraFrame: the JPEG is {w}×{h} px (its header says), the frame {msg.width}×{msg.height}")
     if len(msg.markers_px) != 2 * len(msg.marker_bar):
         raise BusDecodeError(f"CameraFrame: {len(msg.markers_px)} coordinates for {len(msg.marker_bar)} markers")
     for k in range(len(msg.marker_bar)):

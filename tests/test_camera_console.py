@@ -76,6 +76,14 @@ def test_camera_frame_round_trips_and_hostile_frames_are_refused(rendered) -> No
                 payload(marker_bar=[0], markers_px=[1281.0, 5.0])):
         with pytest.raises(bus.BusDecodeError):
             bus.check_camera_frame(bus.decode(bus.CAMERA_FRAME, bad))
+    # audit of 2026-11-26: the size the JPEG declares is what the browser allocates. A 1 kB bomb
+    # declaring 60000×60000 px in a frame that says 1280×720, or a real JPEG of another size.
+    sof = msg.data.index(b"\xff\xc0")
+    bomb = msg.data[:sof + 5] + (60000).to_bytes(2, "big") * 2 + msg.data[sof + 9:sof + 600]
+    small = cv2.imencode(".jpg", image[:240, :320])[1].tobytes()
+    for data, reason in ((bomb, "60000×60000 px"), (small, "320×240 px"), (b"\xff\xd8\xff\xd9", "no frame header")):
+        with pytest.raises(bus.BusDecodeError, match=reason):
+            bus.check_camera_frame(bus.decode(bus.CAMERA_FRAME, payload(data=base64.b64encode(data).decode())))
 
 
 def test_frames_are_decimated_on_the_capture_clock() -> None:
