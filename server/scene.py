@@ -76,7 +76,9 @@ JOG_HELP = ("Moves the neck. Type the console's API token (printed by `xneck ser
 NOT_SENT = "**not sent**: the API token field does not hold the console's token"
 
 
-_MARKDOWN_SPECIAL = re.compile(r"([\\`*_{}\[\]()#+\-.!|~>])")
+# Marks that make links, images, emphasis, code or tables anywhere in a line; those that act only at
+# a line's start (#, -, +, 1.) cannot, since the text is made one line.
+_MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]()!|~>])")
 
 
 def plain_markdown(text: object) -> str:
@@ -84,7 +86,8 @@ def plain_markdown(text: object) -> str:
     a reason that reaches the panel may come from anyone on the bus (an e-stop reason carrying an
     ``<iframe srcdoc=...>`` ran script beside the token field: audit of 2026-11-26), so HTML is
     escaped and so is every markdown mark (no link, no image)."""
-    return _MARKDOWN_SPECIAL.sub(r"\\\1", html.escape(str(text), quote=False))
+    one_line = " ".join(str(text).split())
+    return _MARKDOWN_SPECIAL.sub(r"\\\1", html.escape(one_line, quote=False))
 
 
 def jog_status_markdown(code: int, answer: object) -> str:

@@ -11,7 +11,9 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import msgspec
+import numpy as np
 import pytest
 import zenoh
 from busutil import wait_until
@@ -302,11 +304,12 @@ def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
     try:
         assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.recorded > 0)[1])
         states.put(msgspec.structs.replace(motor_state(1), stamp_s=1e300))
+        jpeg = cv2.imencode(".jpg", np.zeros((2, 2, 3), np.uint8))[1].tobytes()
         frames.put(bus.CameraFrame(seq=1, stamp_s=1e300, capture_stamp_s=1e300, frame_id="cam", format="jpeg",
-                                   data=b"\xff\xd8\xff\xd9", width=2, height=2))
+                                   data=jpeg, width=2, height=2))
         for i in range(2, 100):
             states.put(motor_state(i))
-        assert wait_until(lambda: recorder.stats.recorded >= 101)
+        assert wait_until(lambda: recorder.stats.recorded >= 101), recorder.stats
     finally:
         recorder.stop("finished")
         states.close()
