@@ -583,3 +583,31 @@ def test_a_camera_behind_a_fast_twin_drops_frames_and_counts_every_one(params, m
     assert camera.queue_dropped > 0, "the burst should outrun the renderer"
     assert camera.frames + camera.queue_dropped + shutter.pending == shutter.exposures
     assert camera.dropped == camera.queue_dropped + shutter.dropped
+
+
+def test_a_video_declaring_frames_larger_than_any_camera_is_refused_before_decoding(tmp_path) -> None:
+    """Audit of 2026-11-26 (follow-up of the JPEG bombs): a video's decoder allocates the frame
+    size its container declares; `FileSource` refuses a side beyond bus.FRAME_MAX_SIDE_PX before
+    reading a frame, and opens a small video as before."""
+    import cv2
+
+    from bridge import bus
+    from twin.camera.source import FileSource, SourceError
+
+    def video(name: str, width: int, height: int) -> str:
+        path = str(tmp_path / name)
+        writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (width, height))
+        for _ in range(3):
+            writer.write(np.zeros((height, width, 3), np.uint8))
+        writer.release()
+        return path
+
+    small = FileSource(video("small.avi", 64, 48))
+    try:
+        frame = small.read()
+        assert frame is not None and frame.image.shape == (48, 64, 3)
+    finally:
+        small.close()
+    wide = bus.FRAME_MAX_SIDE_PX + 8
+    with pytest.raises(SourceError, match=f"frames of {wide}×8 px, more than"):
+        FileSource(video("wide.avi", wide, 8))

@@ -23,6 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bridge import bus
+
 
 class SourceError(RuntimeError):
     """A frame source cannot be opened or used; the message says why."""
@@ -58,6 +60,13 @@ class FileSource:
         self.cap = cv2.VideoCapture(str(path))
         if not self.cap.isOpened():
             raise SourceError(f"{path}: OpenCV cannot open this video")
+        # The decoder allocates the size the container declares, frame after frame: a file of a few
+        # kB may declare frames no camera makes (audit of 2026-11-26, follow-up of the JPEG bombs).
+        width, height = self.cap.get(cv2.CAP_PROP_FRAME_WIDTH), self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT)
+        if not (1 <= width <= bus.FRAME_MAX_SIDE_PX and 1 <= height <= bus.FRAME_MAX_SIDE_PX):
+            self.cap.release()
+            raise SourceError(f"{path}: frames of {width:.0f}×{height:.0f} px, more than a camera frame may be "
+                              f"({bus.FRAME_MAX_SIDE_PX} px a side): refused before decoding")
         fps = float(self.cap.get(cv2.CAP_PROP_FPS))
         if not (math.isfinite(fps) and 1.0 <= fps <= 1000.0):
             raise SourceError(f"{path}: implausible frame rate {fps}")
