@@ -8,7 +8,7 @@ The 2-X paper's joint angle θ_i = α_i/2 is ``half_alpha`` in the code (θ is t
 
 from __future__ import annotations
 
-import os
+import io
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -435,17 +435,16 @@ def plot_cartesian_stiffness(d: Design, n: int = 300) -> Any:
 
 
 def _save(plt: Any, fig: Any, path: Path) -> None:
-    """``fig`` as PNG in ``path`` through a temporary file renamed over it: a full disk or a Ctrl-C
-    leaves the previous figure or none, never a truncated one."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """``fig`` as PNG in ``path``, written whole (bridge.archive.atomic_write): a full disk or a
+    Ctrl-C leaves the previous figure or none, never a truncated one."""
+    from bridge.archive import atomic_write
+
+    buffer = io.BytesIO()
     try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        fig.savefig(buffer, dpi=110, format="png")
     finally:
         plt.close(fig)
+    atomic_write(path, buffer.getvalue())
 
 
 def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> list[Path]:

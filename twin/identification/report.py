@@ -8,7 +8,7 @@ Figures are PNG files written with matplotlib's Agg backend (no display needed).
 
 from __future__ import annotations
 
-import os
+import io
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -196,16 +196,15 @@ def write_figures(validation: Validation, out_dir: str | Path) -> list[Path]:
 
 
 def _save(fig: Any, path: Path, plt: Any) -> Path:
+    from bridge.archive import atomic_write
+
     fig.tight_layout()
-    # Through a temporary file renamed over the figure: a full disk or a Ctrl-C leaves the previous
+    # Written whole (bridge.archive.atomic_write): a full disk or a Ctrl-C leaves the previous
     # figure or none, never a truncated PNG.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    buffer = io.BytesIO()
     try:
-        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        fig.savefig(buffer, dpi=110, format=path.suffix.lstrip(".") or "png")
     finally:
         plt.close(fig)
+    atomic_write(path, buffer.getvalue())
     return path
