@@ -67,6 +67,7 @@ from controller.trajectory import (
     trajectory_from_json,
     validate,
 )
+from twin.model.estimation import alpha_hat_3
 from twin.model.params import Params, params_from_dict
 
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
@@ -74,6 +75,11 @@ PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
 VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
 FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
 STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
+# No motor shaft turns faster: an encoder whose reading moved more than this allows between two
+# states is faulty (an offset, a runaway) and latches a hold (audit of 2026-11-26: a 60 rad step
+# moved α̂ a few degrees and the law drove the real joint to 85°). EC-max 40: about 785 rad/s
+# without load (robot_truth.toml); twice that for margin.
+MOTOR_SPEED_MAX_RAD_S = 1600.0
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog waits for it
 # N/s at which a pretension left over by an aborted campaign is let go (the law's floor and the
@@ -318,6 +324,8 @@ class CampaignService:
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
+        self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
+        self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -348,7 +356,22 @@ class CampaignService:
         self.ctl.reset(theta=np.asarray(theta_rad, dtype=float))
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
-        self._restart, self._blend = True, None
+        self._restart, self._blend, self._theta_last = True, None, None
+
+    def _reestimate(self) -> None:
+        """After a latch, α̂ again from the encoders' absolute reading (eq. 33): the incremental
+        estimate (eq. 35) kept the divergence, and a new campaign copying it aborted on its first
+        tick (audit of 2026-11-26). The forces of the last period stay those sent."""
+        if self._theta_last is None:
+            return
+        theta = np.array(self._theta_last[1])
+        f_sent = self.ctl.f_prev.copy()
+        alpha = alpha_hat_3(self.ctl.model, theta)
+        if not np.all(np.isfinite(alpha)):
+            return
+        self.ctl.reset(alpha=alpha, theta=theta)
+        self.ctl.f_prev[:] = f_sent
+        self.last_sane = np.clip(alpha, -self._alpha_max, self._alpha_max)
 
     def new_bridge_run(self, theta_rad: np.ndarray, stamp_s: float, bridge: str) -> None:
         """The bridge restarted (a new epoch): its clock and encoders start again, so a running
@@ -367,6 +390,9 @@ class CampaignService:
         self._total = trajectory.duration_s + (JOG_SETTLE_S if self.kind == "jog" else self.settle_s)
         self._next_progress = 0.0
         self.outcome = ""
+        if self.latched:
+            self._reestimate()
+            self._restart = True  # the law takes over from the new estimate, bumplessly
         self.latched = False
         self.ticks = self.overruns = self.deadline_misses = 0
         if self.kind != "jog":  # a jog goes on with the law that holds the neck, integral and all
@@ -487,23 +513,47 @@ class CampaignService:
         ctl.theta_dot = old_ctl.theta_dot.copy()
         ctl.f_prev = old_ctl.f_prev.copy()
         self.ctl, self.law = ctl, law
-        self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
+        self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
+        self._limit = self._alpha_max + DIVERGENCE_MARGIN
 
     # -- one tick -----------------------------------------------------------------------------
     def hold_alpha(self) -> np.ndarray:
-        """α̂, or the last sane α̂ when the estimate is not (non-finite or beyond the joint limits)."""
+        """α̂, or the last sane α̂ when the estimate is not (non-finite or beyond the joint limits);
+        never beyond ±alpha_max (the bridge's own hold clips there too)."""
         alpha = self.ctl.estimator.alpha_hat
-        if not np.all(np.isfinite(alpha)) or np.any(np.abs(alpha) > math.radians(self.params.limits.alpha_max_deg)):
-            return self.last_sane
+        if self.latched or not np.all(np.isfinite(alpha)) or np.any(np.abs(alpha) > self._alpha_max):
+            return np.clip(self.last_sane, -self._alpha_max, self._alpha_max)
         return alpha
 
     def hold(self, reason: str) -> Output:
-        """The forces that hold the neck still where it is (module docstring), with ``reason``."""
+        """The forces that hold the neck still where it is (module docstring), with ``reason``.
+        While the bridge obeys (it passes commands through), they keep the law's force rate from
+        what was last sent, and the law resumes from what was sent (audit of 2026-11-26: a stale
+        gap's hold stepped 21.9 N in one tick, and the law's return another 21.9 N)."""
         self.hold_reason = reason
         alpha = self.hold_alpha().copy()  # the law's α̂ changes in place at its next tick
         f = hold_forces(self.params, alpha, self._pretension(None))
+        if self.drive == "active":
+            step = self.law.force_rate_max_N_s * self.ctl.dt
+            f_prev = self.ctl.f_prev
+            f = np.clip(f, f_prev - step, f_prev + step)
+            f_prev[:] = f
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
+
+    def _encoder_fault(self, theta_rad: np.ndarray, stamp_s: float) -> str:
+        """Why the encoders cannot be right ("" if they can): one moved more than a motor turns in
+        the time since the last state (``MOTOR_SPEED_MAX_RAD_S``)."""
+        last, theta = self._theta_last, [float(x) for x in theta_rad]
+        self._theta_last = (stamp_s, theta)
+        if last is None:
+            return ""
+        allowed = MOTOR_SPEED_MAX_RAD_S * max(stamp_s - last[0], self.ctl.dt)
+        for j, (a, b) in enumerate(zip(last[1], theta, strict=True)):
+            if not abs(b - a) <= allowed:  # also for a NaN
+                return (f"encoder {j + 1} moved {b - a:.3g} rad in {max(stamp_s - last[0], 0.0) * 1e3:.0f} ms, more than "
+                        f"a motor turns ({MOTOR_SPEED_MAX_RAD_S:g} rad/s): encoder fault")
+        return ""
 
     def _pretension(self, stamp_s: float | None) -> float:
         """The floor added to t_min this tick (N): the running trajectory's pretension at
@@ -576,6 +626,13 @@ class CampaignService:
         campaign it runs is aborted."""
         self.ticks += 1
         self.drive = drive
+        fault = self._encoder_fault(theta_rad, stamp_s)
+        if fault and not self.latched:
+            self.latched = True
+            out = self.hold(fault)
+            if self.running or not self.service:
+                self._end("aborted", fault, self._progress(stamp_s) if self.running else 0.0, self.hold_alpha())
+            return out
         if not obeyed:
             drive = "inactive"
         if drive == "hold":
@@ -608,10 +665,11 @@ class CampaignService:
                 self._end("aborted", self.hold_reason, self._progress(stamp_s) if self.running else 0.0,
                           self.last_sane)
             return out
-        self.last_sane = cmd.alpha_hat.copy()
+        # where a hold would aim: never beyond the joint limit (audit of 2026-11-26)
+        self.last_sane = np.clip(cmd.alpha_hat, -self._alpha_max, self._alpha_max)
         self.hold_reason = ""
         # The law's arrays change in place at its next tick: the Output keeps its own (a few µs).
-        return Output(cmd.f.copy(), self.last_sane, np.array(a_d), cmd.e.copy(), cmd.saturated.copy(), True)
+        return Output(cmd.f.copy(), cmd.alpha_hat.copy(), np.array(a_d), cmd.e.copy(), cmd.saturated.copy(), True)
 
     def count_timing(self, overrun: bool, deadline_missed: bool) -> None:
         """The shell's measure of the tick just commanded: compute over the period, command late."""

@@ -99,11 +99,18 @@ def test_a_trajectory_beyond_the_limits_is_refused_with_the_reason(loop):
 def test_a_diverging_estimate_latches_a_hold_at_the_last_sane_estimate(loop, params):
     loop.svc.handle(_request(), loop.stamp_s)
     loop.run(0.3)
-    sane = loop.svc.last_sane.copy()
-    loop.run(0.01, theta=np.array([1e3, -1e3, 0.0, 0.0]))  # encoders gone mad
+    # encoders gone mad, each step one a motor could make (a larger one is an encoder fault, below)
+    theta = loop.tick.theta_meas.copy()
+    for _ in range(40):
+        theta = theta + np.array([3.0, -3.0, 0.0, 0.0])
+        loop.run(0.002, theta=theta)
+        if loop.svc.latched:
+            break
+    sane = loop.svc.hold_alpha().copy()
     aborted = [e for e in loop.events if e.event == "aborted"]
-    assert len(aborted) == 1 and "diverging estimate" in aborted[0].message
+    assert len(aborted) == 1 and "diverging estimate" in aborted[0].message, aborted
     assert loop.svc.latched and loop.svc.hold_reason.startswith("diverging")
+    loop.run(0.2, theta=theta)  # the hold's forces reached at the law's force rate
     last = loop.outputs[-1]
     assert not last.law_ran
     np.testing.assert_allclose(last.force_N, hold_forces(params, sane))
@@ -111,6 +118,89 @@ def test_a_diverging_estimate_latches_a_hold_at_the_last_sane_estimate(loop, par
     loop.svc.handle(_request("c-2", trajectory_json=Trajectory.from_degrees([[0, 0, 0]], [], 0.1).to_json()),
                     loop.stamp_s)
     assert not loop.svc.latched and loop.svc.phase == "running"
+
+
+def _fast_request(cid="fast"):
+    """A validated move at the speed and acceleration limits: 0 → 40° on every joint and back."""
+    d = math.radians(40.0)
+    t = max(2 * d / 1.5, math.sqrt(2 * math.pi * d / 3.0)) * 1.001
+    return _request(cid, trajectory_json=json.dumps({"name": "fast", "waypoints_deg": [[0, 0, 0], [40, 40, 40], [0, 0, 0]],
+                                                      "durations_s": [t, t], "dwell_s": 0.0}))
+
+
+def test_an_encoder_that_jumps_faster_than_a_motor_turns_latches_a_hold(loop):
+    """Audit of 2026-11-26: one encoder stepping by 60 rad (and staying there) moved α̂ by a few
+    degrees only, so the law drove the real joint 3 to 85°, past its 60° limit, and the campaign
+    ended 'finished'. A step no motor can make in the time between two states latches a hold where
+    the estimate was, and aborts the campaign."""
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run(0.3)
+    before = loop.svc.ctl.estimator.alpha_hat.copy()
+    theta = loop.tick.theta_meas.copy()
+    theta[2] += 60.0
+    loop.run(0.2, theta=theta)
+    assert loop.svc.latched and "encoder 3" in loop.svc.hold_reason, loop.svc.hold_reason
+    aborted = [e for e in loop.events if e.event == "aborted"]
+    assert len(aborted) == 1 and "encoder 3" in aborted[0].message
+    np.testing.assert_allclose(loop.outputs[-1].alpha_hat_rad, before, atol=math.radians(0.5))
+    assert np.degrees(np.abs(loop.tick.alpha)).max() < 30.0  # the neck stayed where it was
+
+
+def test_a_latched_hold_never_aims_beyond_the_joint_limit(loop, params):
+    """Audit of 2026-11-26: an encoder running away over two ticks left an α̂ of −72.6° (within
+    the 80° divergence limit) as the 'last sane' one; the latched hold aimed there, 60 % beyond the
+    joint limit, with the neck at 0°. The hold aims within ±alpha_max, as the bridge's own hold does."""
+    loop.run(0.3)
+    limit = math.radians(params.limits.alpha_max_deg)
+    loop.svc.last_sane = np.array([-math.radians(72.6), 0.0, 0.0])  # as the runaway's first tick left it
+    loop.svc.ctl.estimator.alpha_hat[:] = [math.radians(-200.0), 0.0, 0.0]
+    loop.svc.latched = True
+    assert np.abs(loop.svc.hold_alpha()).max() <= limit + 1e-12
+    loop.svc.latched = False
+    loop.svc.ctl.estimator.alpha_hat[:] = 0.0
+    # and the law itself never records one beyond the limit as the place to hold
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run(0.1)
+    assert np.abs(loop.svc.last_sane).max() <= limit
+
+
+def test_every_hold_while_the_bridge_obeys_keeps_the_laws_force_rate(params):
+    """Audit of 2026-11-26: the controller's own holds (a stale gap, the divergence latch) sent raw
+    hold forces while the bridge was active, which passes them through: 21.9 N in one tick during
+    a validated fast move (the law's bound: 10 N), and the law then resumed from its own last
+    forces, another 21.9 N. Holds go through the same bound, from what was last commanded."""
+    bound = LawConfig(law=2).force_rate_max_N_s / 500.0
+    worst = 0.0
+    for gap_at in (1.2, 1.45, 1.7, 1.95):
+        loop = Loop(params)
+        loop.svc.handle(_fast_request(), loop.stamp_s)
+        loop.run(gap_at)
+        sent = [loop.outputs[-1].force_N]
+        for k in range(3):  # three ticks without a state: the process holds
+            sent.append(loop.svc.stale("stale state", 0.012 + 0.002 * k).force_N)
+        loop.run(0.02)
+        sent += [o.force_N for o in loop.outputs[-10:]]
+        worst = max(worst, float(np.abs(np.diff(np.array(sent), axis=0)).max()))
+    assert worst <= bound + 1e-9, worst
+
+
+def test_a_new_campaign_after_a_divergence_latch_starts_from_the_encoders(params):
+    """Audit of 2026-11-26: after one tick of mad encoders the latched estimator kept α̂ at
+    thousands of degrees; a new campaign (or jog) copied it and aborted on its first tick, so only
+    a bridge restart recovered. Lifting the latch starts the estimate again from the encoders
+    (eq. 33's absolute α̂)."""
+    loop = Loop(params)
+    loop.run(0.5)
+    loop.run(0.002, theta=loop.tick.theta_meas + np.array([1e3, -1e3, 0.0, 0.0]))
+    assert loop.svc.latched
+    loop.run(0.5)
+    loop.svc.handle(_request("c-2", trajectory_json=Trajectory.from_degrees([[0, 0, 0]], [], 0.5).to_json()),
+                    loop.stamp_s)
+    loop.run(1.5)
+    assert [e.event for e in loop.events if e.campaign_id == "c-2"][-1] == "finished", loop.events[-3:]
+    assert not loop.svc.latched
+    # within eq. 33's own error (it takes the cables as rigid), not thousands of degrees
+    np.testing.assert_allclose(loop.svc.ctl.estimator.alpha_hat, loop.tick.alpha, atol=math.radians(2.0))
 
 
 def test_a_headless_campaign_ends_aborted_on_divergence(params):
