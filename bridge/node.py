@@ -379,9 +379,11 @@ class BridgeNode:
         return self._source
 
     # -- one period -----------------------------------------------------------------------------
-    def tick(self) -> None:
+    def tick(self, held_up_s: float = 0.0) -> None:
         """Bus in, safety rules, driver, bus out: one control period. Nothing here may cost more
-        than a few µs on this machine (benchmarks/bridge_tick.py): the model is not called."""
+        than a few µs on this machine (benchmarks/bridge_tick.py): the model is not called.
+        ``held_up_s``: how late this tick starts (:func:`run_realtime` knows it; a stalled process
+        or CPU): past the command timeout the safety rules ramp the command computed meanwhile."""
         t0 = time.perf_counter()
         # An empty queue is read without its lock: an event appended meanwhile waits one tick,
         # as one arriving just after the read would.
@@ -394,7 +396,7 @@ class BridgeNode:
             command_N=fresh.force_N if fresh is not None else None,
             source=self._source_text(fresh) if fresh is not None else "",
             command_age_s=(time.monotonic_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
-            sender=fresh.sender if fresh is not None else "",
+            sender=fresh.sender if fresh is not None else "", resumed_after_s=held_up_s,
             # a tick with a valid command neither starts nor continues a hold
             hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered))
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
@@ -486,7 +488,7 @@ def run_realtime(node: BridgeNode, stop: threading.Event) -> int:
     sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
     try:
         while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
-            node.tick()
+            node.tick(time.perf_counter() - (start + k * dt))  # how late this tick starts
             k += 1
             now = time.perf_counter()
             due = start + k * dt

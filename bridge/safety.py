@@ -15,8 +15,10 @@ Activation
     The drives start disabled (``inactive``: zero force). The first valid command enables them
     (``active``).
 Bumpless
-    Every enable (the first command, leaving a hold, after an e-stop release) and every change of
-    the commanding controller (a new owner's first command) starts from the forces applied now and
+    Every enable (the first command, leaving a hold, after an e-stop release), every change of
+    the commanding controller (a new owner's first command) and every tick after the bridge's own
+    loop was held up longer than the command timeout (``Inputs.resumed_after_s``: a stalled CPU
+    or process woke up to a command computed meanwhile) starts from the forces applied now and
     moves at most ``max_force_step_N`` per tick until the command is reached; then commands pass
     through.
 Watchdog
@@ -110,6 +112,7 @@ class Inputs(NamedTuple):
     source: str = ""
     command_age_s: float | None = None
     sender: str = ""
+    resumed_after_s: float = 0.0  # how long the bridge's own loop was held up before this tick (s)
     estop: Sequence[EStopEvent] = ()
     hold_N: Sequence[float] | None = None
     states_unanswered: int | None = None
@@ -177,12 +180,19 @@ class Safety:
     def step(self, inputs: Inputs) -> Decision:
         """Decide this tick's drive state and forces from its facts."""
         if (self.drive == "active" and inputs.command_N is not None and not inputs.estop
-                and not self._bumpless and inputs.sender == self._sender):
+                and not self._bumpless and inputs.sender == self._sender
+                and inputs.resumed_after_s <= self.config.command_timeout_s):
             # The steady state, nearly every tick: the rules below reduce to clamp and pass through.
             self.force = self._target = self.clamp(inputs.command_N)
             return Decision("active", np.array(self.force), True, "", self.estop_engaged, self.estop_reason,
                             self.take_events() if self._events else ())
         cfg = self.config
+        if inputs.resumed_after_s > cfg.command_timeout_s and self.drive == "active":
+            # A stall of the bridge itself is no silence of the controller (the watchdog never saw
+            # it), but what it commands now was computed meanwhile: a step (audit of 2026-11-26).
+            self._bumpless = True
+            self._log(logging.WARNING, f"the bridge's loop was held up {inputs.resumed_after_s * 1e3:.0f} ms: "
+                                       f"ramping at {cfg.max_force_step_N:g} N per tick")
         was_disabled = self.drive == "disabled"
         self.apply_estop(inputs.estop)
         if self.drive == "disabled" or was_disabled or any(engaged for engaged, _ in inputs.estop):

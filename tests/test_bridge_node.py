@@ -380,6 +380,57 @@ def test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages(p
         finally:
             node.shutdown()
 
+
+def test_a_bridge_woken_from_a_stall_ramps_to_the_command_computed_meanwhile(params, monkeypatch):
+    """Audit of 2026-11-26: the bridge SIGSTOPped 0.3-25 s mid-campaign stayed 'active', so on
+    waking it applied the controller's newest command (a hold computed meanwhile) and the law's
+    return after it: 13-24 N in one tick. The realtime loop tells each tick how late it starts;
+    past the command timeout the command is ramped."""
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _node(connect(), params, command_timeout_s=5.0)
+        pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        try:
+            for k in range(40):
+                _send_and_tick(node, pub, k + 1, [30.0] * 4, "test")
+            applied = [node.force.copy()]
+            n = node.commands.stats.accepted
+            assert _put_until(pub, _command(100, [54.0, 30.0, 30.0, 6.0], node.epoch), lambda: node.commands.stats.accepted > n)
+            node.tick(held_up_s=6.0)  # past this node's command timeout (5 s here, 10 ms by default)
+            applied.append(node.force.copy())
+            for _ in range(30):
+                node.tick()
+                applied.append(node.force.copy())
+        finally:
+            node.shutdown()
+        assert np.abs(np.diff(np.array(applied), axis=0)).max() <= 1.0 + 1e-9
+        assert applied[-1].tolist() == [54.0, 30.0, 30.0, 6.0]
+
+    # run_realtime measures the lateness: a sleep that overslept 50 ms shows in the next tick
+    seen: list[float] = []
+
+    class Recorder:
+        config, dt = BridgeConfig(max_ticks=20), 0.002
+        driver = type("D", (), {"exhausted": False})()
+        overruns = 0
+
+        def tick(self, held_up_s=0.0):
+            seen.append(held_up_s)
+
+        def publish_health(self):
+            pass
+
+    real_sleep = time.sleep
+    overslept = []
+
+    def sleep(s):
+        real_sleep(s + (0.05 if not overslept else 0.0))
+        overslept.append(True)
+
+    monkeypatch.setattr("bridge.node.time.sleep", sleep)
+    run_realtime(Recorder(), threading.Event())  # type: ignore[arg-type]
+    assert max(seen) >= 0.045 and sorted(seen)[-2] < 0.01, seen
+
 # -- the hold forces off the tick (issue 20) ------------------------------------------------------
 
 

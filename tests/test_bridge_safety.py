@@ -273,3 +273,20 @@ def test_a_new_owners_first_command_is_ramped_to_not_stepped():
     assert applied[-1].tolist() == [90.0, 2.0, 90.0, 2.0]  # reached, then passed through
     # The same sender's commands pass through at once, as before.
     assert s.step(cmd([40.0] * N, sender="ctl-b")).force_N.tolist() == [40.0] * N
+
+
+def test_a_bridge_loop_held_up_beyond_the_timeout_ramps_the_next_command():
+    """Audit of 2026-11-26: a bridge stopped for 0.3-25 s mid-campaign (SIGSTOP; a VM or kernel
+    stall) stayed 'active' throughout, so on waking it applied the controller's newest command at
+    once and the law's return after it: 13-24 N in one tick. A tick that comes after a hold-up of
+    the bridge's own loop longer than the command timeout ramps like an enable."""
+    s = machine(max_force_step_N=1.0)
+    for _ in range(60):
+        s.step(cmd([30.0] * N))
+    applied = [s.step(cmd([30.0] * N)).force_N]
+    d = s.step(cmd([54.0, 30.0, 30.0, 6.0], resumed_after_s=0.3))
+    assert any("held up" in m and "ramping" in m for _lvl, m in d.events)
+    applied.append(d.force_N)
+    applied += [s.step(cmd([54.0, 30.0, 30.0, 6.0])).force_N for _ in range(40)]
+    assert _max_step(applied) <= 1.0 + 1e-12
+    assert applied[-1].tolist() == [54.0, 30.0, 30.0, 6.0]
