@@ -350,7 +350,13 @@ class ControllerNode:
 
     def _loop(self, stop: threading.Event) -> str:
         cfg, svc = self.config, self.service
-        first = self.states.wait(cfg.startup_timeout_s)
+        # In slices, so that a stop (SIGTERM, its supervisor gone) while waiting for the bridge is
+        # honoured at once, not after the whole start-up timeout (audit of 2026-11-26).
+        deadline, first = time.monotonic() + cfg.startup_timeout_s, None
+        while first is None and not stop.is_set() and time.monotonic() < deadline:
+            first = self.states.wait(min(0.1, max(0.0, deadline - time.monotonic())), lambda _state: True)
+        if first is None and stop.is_set():
+            return "stopped"
         if first is None:
             svc.outcome = "aborted"
             svc.refuse(svc.campaign_id, svc.kind, f"no motor state within {cfg.startup_timeout_s} s of start")

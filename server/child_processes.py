@@ -39,6 +39,36 @@ def xneck_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "server.cli", *args]
 
 
+#: prctl(2) option: the signal the kernel sends a process when the thread that started it dies.
+PR_SET_PDEATHSIG = 1
+#: Set by a supervisor (``xneck up``) in a child's environment: its own pid, whose death stops the child.
+ENV_PARENT = "XNECK_DIE_WITH_PARENT"
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """This process gets SIGTERM (its clean stop: drives off, archive closed) when ``parent_pid``,
+    the process that started it, dies, however it dies (audit of 2026-11-26: a ``kill -9`` or a
+    hangup of ``xneck up`` left the console, bridge and controller running under init, and the
+    next ``xneck up`` joined them). Set by the child itself at start-up, not in a ``preexec_fn``
+    (unsafe in a parent with threads, as Zenoh's are). Linux only; elsewhere nothing."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != parent_pid:  # the parent died before the prctl: nothing will signal us
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def die_with_parent_from_env() -> None:
+    """:func:`die_with_parent` for the pid in ``XNECK_DIE_WITH_PARENT``, if any (taken out of the
+    environment: this process's own children answer to it, not to its parent)."""
+    value = os.environ.pop(ENV_PARENT, "")
+    if value.isdigit():
+        die_with_parent(int(value))
+
+
 def stop_child(proc: subprocess.Popen, grace_s: float) -> bool:
     """SIGTERM, then SIGKILL after ``grace_s`` seconds. Returns True if it had to be killed."""
     if proc.poll() is not None:

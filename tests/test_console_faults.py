@@ -292,3 +292,56 @@ def test_under_xneck_up_a_request_is_honoured_or_refused_and_rest_and_mcap_agree
     assert {k: info.get(k) for k in ("target", "pace", "twin_truth", "seed", "law", "parameter_set")} == {
         "target": rec["target"], "pace": rec["pace"], "twin_truth": rec["truth"], "seed": str(rec["seed"]),
         "law": rec["law"], "parameter_set": rec["parameter_set"]}
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit() and _parent_pid(int(d.name)) == pid:
+            out.append(int(d.name))
+    return out
+
+
+def _gone(pids: list[int]) -> bool:
+    return all(not Path(f"/proc/{p}").exists() or _state(p) == "Z" for p in pids)
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGKILL])
+def test_a_hangup_or_a_killed_xneck_up_leaves_no_part_of_the_stack_running(tmp_path: Path, sig) -> None:
+    """Audit of 2026-11-26: closing the terminal (SIGHUP) killed `xneck up` at once and left the
+    console, bridge and controller running unsupervised under init, holding every port; a kill -9
+    did the same, and the next `xneck up` then joined the orphans (two controllers, one bridge).
+    A hangup stops the stack as Ctrl-C does, and every child dies with its `xneck up`."""
+    port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
+    base = f"http://127.0.0.1:{port}"
+    with open(tmp_path / "up.log", "wb") as log:
+        up = subprocess.Popen([*PY, "up", "--port", str(port), "--hub", hub, "--data-dir", str(tmp_path / "d"),
+                               "--viser-port", str(free_tcp_port())],
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
+                              start_new_session=True)
+    children: list[int] = []
+    try:
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 90, 0.3), \
+            (tmp_path / "up.log").read_text()
+        children = _children(up.pid)
+        assert len(children) >= 3, children
+        up.send_signal(sig)
+        up.wait(40)
+        assert wait_until(lambda: _gone(children), 30, 0.2), [(p, _state(p)) for p in children]
+        if sig == signal.SIGHUP:
+            assert "xneck stopped (SIGHUP)" in (tmp_path / "up.log").read_text()
+    finally:
+        for p in children:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p, signal.SIGKILL)
+        if up.poll() is None:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait(10)

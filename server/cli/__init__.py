@@ -52,6 +52,9 @@ app.add_typer(study.study_app, name="study")
 
 
 def main() -> None:
+    from server.child_processes import die_with_parent_from_env
+
+    die_with_parent_from_env()  # a child of `xneck up` stops when it dies
     app()
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import typer
 
-from server.child_processes import isolate, log_tail, stop_child, xneck_argv
+from server.child_processes import ENV_PARENT, isolate, log_tail, stop_child, xneck_argv
 from server.cli.options import NON_NEGATIVE, PORT_MAX, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
@@ -164,14 +164,17 @@ def up(
     def on_signal(signum: int, _frame: object) -> None:
         stop["signal"] = signal.Signals(signum).name
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # A closed terminal or a dropped SSH session (SIGHUP) and SIGQUIT stop the stack as Ctrl-C does:
+    # the default action killed this process at once and left its children unsupervised.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        signal.signal(sig, on_signal)
 
     def start(name: str, args: list[str]) -> None:
         log_files[name] = logs / f"{name}.log"
         with open(log_files[name], "ab") as log:
             procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+                                           env={**os.environ, "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid())},
+                                           start_new_session=True)
         isolate(procs[name].pid, args[0])  # the loop's processes first, the console off their CPU (issue 21)
 
     code = 0
