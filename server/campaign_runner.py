@@ -59,6 +59,10 @@ from twin.sim.sensors import ALPHA_IP_KINDS
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
+# s without a motor state from the bridge that end a started campaign (the bridge is gone or hung;
+# the controller holds meanwhile, the bridge's watchdog too): longer than any stall of a loaded
+# machine seen in the suite, far shorter than the campaign's timeout.
+BRIDGE_SILENT_S = 3.0
 CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
 
 
@@ -265,6 +269,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             disabled = monitor.drives_disabled()
             if disabled:
                 outcome, message = "aborted", f"the drives were disabled during the campaign: {disabled}"
+                break
+            silent_s = monitor.state_silence_s() if started else 0.0
+            if silent_s > BRIDGE_SILENT_S:
+                outcome, message = "aborted", f"no motor state from the bridge for {silent_s:.1f} s: it is gone or hung"
                 break
             if ev is not None:
                 if not started:

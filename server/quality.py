@@ -86,6 +86,8 @@ class CampaignMonitor:
         self._active = self._ended = False
         self._states, self._commands = _SeqCounter(), _SeqCounter()
         self._first_cmd_s = self._last_cmd_s = 0.0
+        self._last_state_s: float | None = None  # time.monotonic() of the newest MotorState, any time
+        self._began_s: float | None = None
         self._controller = {"controller_ticks": 0, "overruns": 0, "deadline_misses": 0}  # its counts, this campaign
         self.disabled_reason = ""
         self.rejected = 0
@@ -99,12 +101,22 @@ class CampaignMonitor:
         """Start counting (the controller's first event of the campaign)."""
         with self._lock:
             self._active = True
+            self._began_s = time.monotonic()
 
     def note_event(self, event: bus.CampaignEvent) -> None:
         """The controller's counts of this campaign so far, from one of its events."""
         with self._lock:
             self._controller = {"controller_ticks": event.ticks, "overruns": event.overruns,
                                 "deadline_misses": event.deadline_misses}
+
+    def state_silence_s(self) -> float:
+        """Seconds since the bridge's newest motor state (since :meth:`begin` if none came); 0
+        before it began. A campaign whose bridge went silent is not waited for until its timeout
+        (audit of 2026-11-26: a killed or hung remote bridge left a campaign running 600 s)."""
+        with self._lock:
+            if self._began_s is None:
+                return 0.0
+            return time.monotonic() - max(self._began_s, self._last_state_s or self._began_s)
 
     def end(self) -> None:
         """Stop counting and following (the campaign's last event; the bridge may disable after)."""
@@ -126,6 +138,7 @@ class CampaignMonitor:
             return
         engaged, reason = drive_estop(msg)
         with self._lock:
+            self._last_state_s = time.monotonic()
             # Drives are followed from the monitor's creation, the quality only within the window.
             if (engaged or msg.drive == "disabled") and not self.disabled_reason and not self._ended:
                 self.disabled_reason = reason

@@ -3,6 +3,7 @@ recorded to MCAP and read back; the paper's findings hold on the twin."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -178,3 +179,53 @@ def test_loadfriction_finds_the_papers_friction_shape_in_the_bus_campaign(params
     var = identify_record(out, params, estimator="loadfriction", with_validation=False).estimate["variable"]
     assert np.all(np.abs(var.vector("c_f") / params.friction.c_s - 1) < 0.3), var.vector("c_f")
     assert np.all(np.abs(var.vector("lambda") / np.asarray(params.cables.variable.lam) - 1) < 0.10), var.vector("lambda")
+
+
+def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(params, tmp_path):
+    """Audit of 2026-11-26: a bridge killed or hung mid-campaign where nothing supervised it (the
+    robot's bridge runs on the BeagleBone) left a controller service's campaign `running` until its
+    600 s timeout, then 'timed out', naming nothing; a spawned controller ended it after 20 s as 'no
+    motor state'. The console's own watch of the bridge's states ends it within a few seconds and
+    says which process went silent (here the spawned twin bridge, SIGSTOPped)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    result: dict = {}
+    # paced by the clock, so the campaign lasts its trajectory (a lockstep one may be over in 4 s)
+    spec = CampaignSpec("control", LawConfig(law=2), control_test_trajectory(), seed=3, timeout_s=240, realtime=True)
+    runner = threading.Thread(target=lambda: result.update(r=run_campaign(spec, params, tmp_path / "hung.mcap")))
+    runner.start()
+
+    def bridge_pid() -> int | None:
+        for d in Path("/proc").iterdir():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+                if d.name.isdigit() and (b"bridge" in argv or b"twin" in argv) and b"server.cli" in argv and \
+                        int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == os.getpid():
+                    return int(d.name)
+            except (OSError, ValueError, IndexError):
+                continue
+        return None
+
+    pid = None
+    deadline = time.monotonic() + 60
+    while pid is None and time.monotonic() < deadline:
+        pid = bridge_pid()
+        time.sleep(0.2)
+    assert pid is not None, "no bridge child found"
+    try:
+        time.sleep(4.0)  # well into the campaign
+        os.kill(pid, signal.SIGSTOP)
+        t0 = time.monotonic()
+        runner.join(60)
+        took = time.monotonic() - t0
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+        runner.join(60)
+    r = result["r"]
+    assert r.outcome == "aborted" and "no motor state from the bridge" in r.message, (r.outcome, r.message)
+    assert took < 60
+    assert read_campaign(r.path).info["outcome"] == "aborted"
