@@ -4,6 +4,7 @@ commands. The twin driver stands in for the motors; the rules are the same for t
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -329,14 +330,10 @@ def test_a_new_owner_within_the_watchdogs_timeout_is_ramped_to_not_stepped(param
         assert applied[-1].tolist() == [90.0, 2.0, 90.0, 2.0]
 
 
-def test_a_wall_clock_step_back_does_not_deafen_the_bridge(params, monkeypatch):
-    """Audit of 2026-11-26: receive times were wall-clock times, so after the clock stepped back
-    (an NTP step; the BeagleBone has no RTC battery) every new command looked older than the last
-    one taken and was ignored, with no hold: 60 s back ignored every command. Receive times and
-    the watchdog's age are on the monotonic clock."""
-    real_ns = time.time_ns
-    offset = [0]
-    monkeypatch.setattr(time, "time_ns", lambda: real_ns() - offset[0])
+@contextlib.contextmanager
+def _node_at_30_N(params):
+    """A node commanded by one controller ("test") at 30 N on every cable, past its start-up ramp
+    (command timeout 5 s: the tests tick by hand); yields (node, its command publisher)."""
     with bus_pair() as (_hub, hub_session, connect):
         _token = _as_controller(hub_session)
         node = _node(connect(), params, command_timeout_s=5.0)
@@ -345,13 +342,25 @@ def test_a_wall_clock_step_back_does_not_deafen_the_bridge(params, monkeypatch):
             for k in range(40):
                 _send_and_tick(node, pub, k + 1, [30.0] * 4, "test")
             assert node.force.tolist() == [30.0] * 4
-            offset[0] = 60 * 10**9  # the wall clock steps back by 60 s
-            for k in range(40):
-                _send_and_tick(node, pub, 100 + k, [60.0] * 4, "test")
-            assert node.mode == "active"
-            assert node.force.tolist() == [60.0] * 4  # obeyed (30 ticks of the 1 N ramp, then reached)
+            yield node, pub
         finally:
             node.shutdown()
+
+
+def test_a_wall_clock_step_back_does_not_deafen_the_bridge(params, monkeypatch):
+    """Audit of 2026-11-26: receive times were wall-clock times, so after the clock stepped back
+    (an NTP step; the BeagleBone has no RTC battery) every new command looked older than the last
+    one taken and was ignored, with no hold: 60 s back ignored every command. Receive times and
+    the watchdog's age are on the monotonic clock."""
+    real_ns = time.time_ns
+    offset = [0]
+    monkeypatch.setattr(time, "time_ns", lambda: real_ns() - offset[0])
+    with _node_at_30_N(params) as (node, pub):
+        offset[0] = 60 * 10**9  # the wall clock steps back by 60 s
+        for k in range(40):
+            _send_and_tick(node, pub, 100 + k, [60.0] * 4, "test")
+        assert node.mode == "active"
+        assert node.force.tolist() == [60.0] * 4  # obeyed (30 ticks of the 1 N ramp, then reached)
 
 
 def test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages(params):
@@ -386,23 +395,15 @@ def test_a_bridge_woken_from_a_stall_ramps_to_the_command_computed_meanwhile(par
     waking it applied the controller's newest command (a hold computed meanwhile) and the law's
     return after it: 13-24 N in one tick. The realtime loop tells each tick how late it starts;
     past the command timeout the command is ramped."""
-    with bus_pair() as (_hub, hub_session, connect):
-        _token = _as_controller(hub_session)
-        node = _node(connect(), params, command_timeout_s=5.0)
-        pub = publisher(hub_session, bus.MOTOR_COMMAND)
-        try:
-            for k in range(40):
-                _send_and_tick(node, pub, k + 1, [30.0] * 4, "test")
-            applied = [node.force.copy()]
-            n = node.commands.stats.accepted
-            assert _put_until(pub, _command(100, [54.0, 30.0, 30.0, 6.0], node.epoch), lambda: node.commands.stats.accepted > n)
-            node.tick(held_up_s=6.0)  # past this node's command timeout (5 s here, 10 ms by default)
+    with _node_at_30_N(params) as (node, pub):
+        applied = [node.force.copy()]
+        n = node.commands.stats.accepted
+        assert _put_until(pub, _command(100, [54.0, 30.0, 30.0, 6.0], node.epoch), lambda: node.commands.stats.accepted > n)
+        node.tick(held_up_s=6.0)  # past this node's command timeout (5 s here, 10 ms by default)
+        applied.append(node.force.copy())
+        for _ in range(30):
+            node.tick()
             applied.append(node.force.copy())
-            for _ in range(30):
-                node.tick()
-                applied.append(node.force.copy())
-        finally:
-            node.shutdown()
         assert np.abs(np.diff(np.array(applied), axis=0)).max() <= 1.0 + 1e-9
         assert applied[-1].tolist() == [54.0, 30.0, 30.0, 6.0]
 
