@@ -37,6 +37,11 @@ only; an older waiting one is answered ``aborted``, superseded) until the runnin
 rest on its pose, and starts from there: moves chain without a step in α^d or α̇^d. Stopping or
 aborting the running jog drops the waiting one.
 
+Stops: a stop request (the user's, or the console's on a silent bridge or a timeout) while the law
+tracks brings α^d to rest from where it is at its speed (:func:`controller.trajectory.brake_at`,
+at most the trajectories' 3 rad/s²) and holds there, as any jog or campaign does; a campaign asked
+for meanwhile starts when α^d rests. Faults (a latch, drives off) hold at α̂ instead.
+
 Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
 count and duration, a time budget for the force check); :class:`StateGate` admits motor states
 of one bridge run on a clock consistent with the controller's own.
@@ -63,6 +68,8 @@ from controller.trajectory import (
     TrajectoryLimits,
     approach,
     approach_duration_s,
+    brake_at,
+    brake_duration_s,
     cycloid_at,
     trajectory_from_json,
     validate,
@@ -322,6 +329,7 @@ class CampaignService:
         self._drives_off = False  # the drives were off since the law last ran
         self.pretension_N = 0.0  # the floor added to t_min at the last tick (N, module docstring)
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
+        self._brake: tuple[float, np.ndarray, np.ndarray, float] | None = None  # (start stamp, α^d₀, α̇^d₀, duration)
         self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
@@ -356,7 +364,7 @@ class CampaignService:
         self.ctl.reset(theta=np.asarray(theta_rad, dtype=float))
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
-        self._restart, self._blend, self._theta_last = True, None, None
+        self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
 
     def _reestimate(self) -> None:
         """After a latch, α̂ again from the encoders' absolute reading (eq. 33): the incremental
@@ -397,7 +405,7 @@ class CampaignService:
         self.ticks = self.overruns = self.deadline_misses = 0
         if self.kind != "jog":  # a jog goes on with the law that holds the neck, integral and all
             self.ctl.restart_integral()
-        self._blend = None
+        self._blend = self._brake = None
         self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:
@@ -424,10 +432,29 @@ class CampaignService:
             self.refuse(campaign_id, "jog", "stopped by the user before it started")
             self._next_jog = None
         elif self.running and campaign_id == self.campaign_id:
+            brake = self._brake_from(stamp_s)
             self._end("aborted", "stopped by the user", self._progress(stamp_s), self.ctl.estimator.alpha_hat)
+            if brake is not None:
+                self._brake, self.hold_target = brake, brake[1] + brake[2] * (brake[3] / 2.0)
         elif self._starting is not None and self._starting[0] == campaign_id:
             self.refuse(campaign_id, self._starting[1], "stopped by the user before it started")
             self._starting, self.phase = None, "idle"
+
+    def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
+        """A controlled stop from where α^d is at ``stamp_s`` (:func:`controller.trajectory.brake_at`),
+        while the law tracks it (drives active, no hold, no re-start due); ``None`` otherwise (the
+        hold at α̂ then applies, bounded by the law's force rate)."""
+        if self.latched or self._restart or self.drive != "active" or self.hold_reason:
+            return None
+        a_d, a_d_dot, _ = self.reference(stamp_s)
+        a_d = np.array(a_d, dtype=float)
+        a_d_dot = np.array(a_d_dot, dtype=float)
+        return stamp_s, a_d, a_d_dot, brake_duration_s(a_d, a_d_dot, self._alpha_max)
+
+    @property
+    def braking(self) -> bool:
+        """α^d is still coming to rest after a stop (:meth:`stop`)."""
+        return self._brake is not None
 
     def refuse(self, campaign_id: str, kind: str, message: str) -> None:
         """Answer a request the service will not run with an ``aborted`` event of its id."""
@@ -476,6 +503,13 @@ class CampaignService:
             return
         if busy:
             self.refuse(prepared.campaign_id, prepared.kind, f"refused: {busy}")
+            return
+        if self._brake is not None:
+            # α^d is still coming to rest after a stop: the campaign starts from where it rests
+            # (advance()), as a jog waits for the running one, the newest one only.
+            if self._next_jog is not None:
+                self.refuse(self._next_jog.campaign_id, self._next_jog.kind, f"superseded by {prepared.campaign_id}")
+            self._next_jog = prepared
             return
         self.campaign_id, self.kind = prepared.campaign_id, prepared.kind
         start_at = self.ctl.estimator.alpha_hat
@@ -582,6 +616,14 @@ class CampaignService:
         than following an α̂̇ that is mostly the jolt of the drives coming back.)"""
         if self.trajectory is not None:
             a_d, a_d_dot, a_d_ddot = self.trajectory.sample_at(stamp_s - self._t0)
+        elif self._brake is not None:
+            start_s, a0, v0, duration_s = self._brake
+            if stamp_s - start_s >= duration_s:
+                self._brake = None
+                a_d = self.hold_target
+                a_d_dot = a_d_ddot = np.zeros_like(a_d)
+            else:
+                a_d, a_d_dot, a_d_ddot = brake_at(a0, v0, duration_s, stamp_s - start_s)
         else:
             a_d = self.hold_target
             a_d_dot = a_d_ddot = np.zeros_like(a_d)
@@ -602,7 +644,7 @@ class CampaignService:
         self._restart = False
         self.ctl.restart_integral()
         alpha_hat = self.hold_alpha()
-        self._blend = None
+        self._blend = self._brake = None
         drives_were_off, self._drives_off = self._drives_off, False
         if not self.running and (drives_were_off or self.kind != "jog" or self.outcome != "finished"):
             self.hold_target = alpha_hat.copy()
@@ -679,6 +721,9 @@ class CampaignService:
     def advance(self, stamp_s: float) -> None:
         """Progress events every 0.5 s of campaign time, ``finished`` after the settle time."""
         if self.trajectory is None:
+            if self._brake is None and self._next_jog is not None:  # one waited for a stop's brake
+                waiting, self._next_jog = self._next_jog, None
+                self.start(waiting, stamp_s)
             return
         t = stamp_s - self._t0
         if t >= self._next_progress:

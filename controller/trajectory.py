@@ -724,6 +724,38 @@ def approach_duration_s(delta_rad: float) -> float:
                math.sqrt(CYCLOID_PEAK_ACCELERATION * delta_rad / APPROACH_ACCELERATION_MAX_RAD_S2))
 
 
+BRAKE_ACCELERATION_MAX_RAD_S2 = 3.0  # the trajectories' own bound (TrajectoryLimits.alpha_ddot_max_rad_s2)
+BRAKE_DURATION_MIN_S = 0.05  # s: a stop at (almost) rest still ends smoothly over 25 ticks
+
+
+def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max_rad: float) -> float:
+    """Duration (s) of a controlled stop from α at speed α̇ (:func:`brake_at`): its deceleration
+    peaks at 2|α̇|/T, at most ``BRAKE_ACCELERATION_MAX_RAD_S2`` on every joint, and its travel
+    α̇T/2 ends within ±``alpha_max_rad`` (the stop is then shorter and firmer)."""
+    a = np.asarray(alpha_rad, dtype=np.float64)
+    v = np.asarray(alpha_dot_rad_s, dtype=np.float64)
+    speed = float(np.max(np.abs(v))) if v.size else 0.0
+    duration = max(BRAKE_DURATION_MIN_S, CYCLOID_PEAK_VELOCITY * speed / BRAKE_ACCELERATION_MAX_RAD_S2)
+    room = np.where(v > 0, alpha_max_rad - a, np.where(v < 0, alpha_max_rad + a, np.inf))
+    moving = np.abs(v) > 0
+    if np.any(moving):
+        duration = min(duration, float(np.min(2.0 * np.maximum(room[moving], 0.0) / np.abs(v[moving]))))
+    return max(duration, 1e-3)
+
+
+def brake_at(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s: float,
+             t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """α, α̇, α̈ at ``t_s`` into a controlled stop from (α₀, α̇₀): the velocity α̇₀(1 − s(τ)) with
+    the cycloid s over ``duration_s``, so the deceleration starts and ends at zero and α^d comes to
+    rest at α₀ + α̇₀T/2 without a step in α^d or α̇^d (a stop that set α^d to α̂ at rest stepped
+    the law's forces by its rate bound, 10 N a tick: audit of 2026-11-26)."""
+    tau = min(max(t_s / duration_s, 0.0), 1.0)
+    s, ds, _ = cycloid_at(tau)
+    travelled = tau * tau / 2.0 + (math.cos(_TWO_PI * tau) - 1.0) / (_TWO_PI * _TWO_PI)  # ∫₀^τ s
+    return (alpha0_rad + alpha_dot0_rad_s * duration_s * (tau - travelled),
+            alpha_dot0_rad_s * (1.0 - s), -alpha_dot0_rad_s * (ds / duration_s))
+
+
 def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math.radians(0.5)) -> Trajectory:
     """``traj`` preceded, if the neck is not already at its first waypoint, by a gentle cycloidal
     move from ``alpha_now`` (rad): peak speed at most 0.5 rad/s and acceleration at most 1 rad/s²,

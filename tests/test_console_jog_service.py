@@ -74,3 +74,67 @@ def test_a_finished_jog_keeps_its_pose_through_a_stall_of_the_states_but_not_thr
     loop.svc.control(loop.tick.theta_meas, loop.stamp_s, drive="disabled")
     loop.run(0.1)
     assert np.degrees(np.abs(loop.svc.hold_target - loop.outputs[-1].alpha_hat_rad)).max() < 0.2
+
+
+def _steps_around(loop: Loop, before: int) -> tuple[float, float]:
+    """Largest per-tick change of α^d (rad) and of the commanded forces (N) from ``before`` on."""
+    moved = loop.outputs[before - 50:]
+    a_d = np.array([o.alpha_d_rad for o in moved])
+    forces = np.array([o.force_N for o in moved])
+    return float(np.abs(np.diff(a_d, axis=0)).max()), float(np.abs(np.diff(forces, axis=0)).max())
+
+
+def test_a_jog_stopped_mid_move_decelerates_to_rest_without_a_force_step(params):
+    """Stop at full speed: α^d used to jump back to α̂ and stop dead (α̇^d 0.5 rad/s → 0), and the
+    law's forces stepped 10 N a tick for several ticks (its rate bound; audit of 2026-11-26). A
+    stop brakes α^d from where it is at its speed to rest, then holds there."""
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.8)  # about the peak speed of the approach
+    speed = abs(loop.svc.reference(loop.stamp_s)[1][0])
+    assert speed > 0.3
+    before = len(loop.outputs)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.events += loop.svc.drain_events()
+    assert _outcome(loop, "jog-1") == "aborted" and not loop.svc.running
+    target = loop.svc.hold_target.copy()
+    loop.run(1.5)
+    d_alpha_d, d_force = _steps_around(loop, before)
+    assert d_alpha_d < speed * 0.002 * 1.1  # α^d goes on at its speed, never faster
+    assert d_force < 2.0
+    assert np.array_equal(loop.svc.hold_target, target)  # where it rests is known at the stop
+    assert np.allclose(loop.outputs[-1].alpha_d_rad, target)
+    assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - target)).max() < 1.0  # law 2 at rest
+
+
+def test_a_campaign_stopped_mid_trajectory_brakes_too(params):
+    loop = Loop(params)
+    swing = Trajectory.from_degrees([[0, 0, 0], [30, -20, 10], [0, 0, 0]], 2.0, 0.2, name="swing")
+    loop.svc.handle(_request("c-1", trajectory_json=swing.to_json()), loop.stamp_s)
+    loop.run(1.0)  # the first move's peak speed
+    assert np.abs(loop.svc.reference(loop.stamp_s)[1]).max() > 0.3
+    before = len(loop.outputs)
+    loop.svc.handle(_request("c-1", action="stop"), loop.stamp_s)
+    loop.run(1.5)
+    d_alpha_d, d_force = _steps_around(loop, before)
+    assert d_alpha_d < math.radians(0.2) and d_force < 2.0
+
+
+def test_a_jog_asked_for_while_the_neck_brakes_starts_where_it_rests(params):
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.8)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.run(0.02)
+    assert loop.svc.braking
+    before = len(loop.outputs)
+    loop.svc.handle(_jog("jog-2", [-10.0, 0.0, 0.0]), loop.stamp_s)  # waits for the brake
+    loop.events += loop.svc.drain_events()
+    assert not _outcome(loop, "jog-2") and not loop.svc.running
+    loop.run(4.0)
+    assert _outcome(loop, "jog-2") == "finished", loop.events
+    d_alpha_d, d_force = _steps_around(loop, before)
+    assert d_alpha_d < math.radians(0.2) and d_force < 2.0
+    assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - np.radians([-10.0, 0.0, 0.0]))).max() < 1.0

@@ -284,3 +284,29 @@ def test_a_repeated_trajectory_runs_its_passes_back_to_back():
         repeated(Trajectory.from_degrees([[0, 0, 0], [10, 0, 0]], 1.0), 2)
     with pytest.raises(TrajectoryError, match="at least once"):
         repeated(one, 0)
+
+
+def test_a_brake_comes_to_rest_from_speed_without_a_step_and_within_the_joint_limits():
+    from controller.trajectory import BRAKE_ACCELERATION_MAX_RAD_S2, brake_at, brake_duration_s
+
+    a0, v0 = np.array([0.3, -0.2, 0.0]), np.array([0.6, -0.3, 0.0])
+    duration = brake_duration_s(a0, v0, math.radians(60.0))
+    t = np.linspace(0.0, duration, 2001)
+    samples = [brake_at(a0, v0, duration, float(x)) for x in t]
+    a = np.array([s[0] for s in samples])
+    v = np.array([s[1] for s in samples])
+    acc = np.array([s[2] for s in samples])
+    np.testing.assert_allclose(a[0], a0)
+    np.testing.assert_allclose(v[0], v0)  # no step in α^d or α̇^d at the stop
+    np.testing.assert_allclose(acc[0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(v[-1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(a[-1], a0 + v0 * duration / 2.0)
+    np.testing.assert_allclose(np.gradient(a, t, axis=0), v, atol=1e-3)  # α̇ is α's derivative
+    assert np.abs(acc).max() <= BRAKE_ACCELERATION_MAX_RAD_S2 * (1 + 1e-9)
+    # at full speed towards a joint limit, the stop is firmer but ends within it
+    near = np.array([math.radians(59.0), 0.0, 0.0])
+    fast = np.array([1.5, 0.0, 0.0])
+    short = brake_duration_s(near, fast, math.radians(60.0))
+    end = brake_at(near, fast, short, short)[0]
+    assert end[0] <= math.radians(60.0) + 1e-12 and short < brake_duration_s(np.zeros(3), fast, math.radians(60.0))
+    assert brake_duration_s(a0, np.zeros(3), math.radians(60.0)) > 0  # at rest: a short, smooth stop
