@@ -3,7 +3,8 @@
 Decimated where the samples enter the console (issue 21): each series is a Zenoh subscriber with
 a one-slot ring, which Zenoh's own (native) thread overwrites at 500 Hz without running any
 Python; the console takes the newest sample only when it reads (30 Hz), so the loop's rates cost
-it no interpreter time and no GIL, and nothing queues. A broadcaster coroutine builds one JSON frame per period
+it no interpreter time and no GIL, and nothing queues (the bridge's ``state`` alone is also taken
+every :data:`STATE_SAMPLE_PERIOD_S`, so that its age is known whoever reads). A broadcaster coroutine builds one JSON frame per period
 (``live_rate_hz``, 30 Hz) from the latest values and hands the *same bytes* to every client's
 bounded queue, dropping that client's oldest frame when it is full. A slow or stalled browser
 thus loses frames (it sees the newest state when it catches up) and never pushes back on the bus
@@ -66,6 +67,10 @@ VIEW_ONLY = frozenset({"command", "truth"})
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
+#: s between two takes of the bridge's newest ``MotorState`` off its ring (:class:`LiveBus`), read
+#: or not: a sample is stamped when it is taken, so its age (:func:`bridge_status`, the e-stop's
+#: freshness) is known to within this, even while nobody else reads (the idle 3D view reads at 1 Hz).
+STATE_SAMPLE_PERIOD_S = 0.1
 
 
 class LatestValues:
@@ -82,6 +87,8 @@ class LatestValues:
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
+        # series -> (time.monotonic() of its newest payload that decoded, that message)
+        self._valid: dict[str, tuple[float, bus.BusMessage]] = {}
         self._version = 0
         self.rejected = 0
         self._watch_lock = threading.Lock()  # orders the watched/unwatched hand-overs
@@ -132,12 +139,15 @@ class LatestValues:
                 self._version += 1
             self._received_s.pop(series, None)
             self._decoded.pop(series, None)
+            self._valid.pop(series, None)
 
-    def _pull(self) -> None:
-        """(Under the lock.) Take the newest sample of every ring that has one; its time of
-        arrival is known to within a read period (what ``fresh`` allows for)."""
+    def _pull(self, only: str | None = None) -> None:
+        """(Under the lock.) Take the newest sample of every ring that has one (of ``only``'s, if
+        given); its time of arrival is known to within a read period (what ``fresh`` allows for)."""
         now = time.monotonic()
         for series, try_recv in self._sources.items():
+            if only is not None and series != only:
+                continue
             try:
                 sample = try_recv()
             except Exception:  # noqa: BLE001 - a closed subscriber: nothing new, ever
@@ -165,6 +175,21 @@ class LatestValues:
             self._pull()
             payload = self._raw.get(series)
         return None if payload is None else self._decode_locked(series, payload)
+
+    def latest_valid(self, series: str) -> tuple[float, bus.BusMessage] | None:
+        """(age in seconds on the monotonic clock, message) of the newest payload of ``series`` that
+        decoded, or None if none did yet. Takes the ring's newest sample first (of this series
+        only). A payload that does not decode (garbage on the key) leaves the last valid one and
+        its age as they were: it says nothing about the sender being alive."""
+        with self._lock:
+            self._pull(series)
+            payload, received = self._raw.get(series), self._received_s.get(series)
+            if payload is not None and received is not None:
+                msg = self._decode(series, payload)
+                if msg is not None and received > self._valid.get(series, (-math.inf,))[0]:
+                    self._valid[series] = (received, msg)
+            valid = self._valid.get(series)
+        return None if valid is None else (time.monotonic() - valid[0], valid[1])
 
     def age_s(self, series: str) -> float:
         """Seconds since ``series`` last received a payload (monotonic clock); inf if never."""
@@ -215,6 +240,19 @@ def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S
     return {"engaged": engaged, "reason": reason, "drive": state.drive, "source": "bridge"}
 
 
+def bridge_status(values: LatestValues) -> dict[str, Any]:
+    """The bridge as its latest valid ``MotorState`` shows it, for ``/api/system/health``:
+    ``state_age_s``, seconds since that state arrived (monotonic clock, to within
+    :data:`STATE_SAMPLE_PERIOD_S`; None before any state), so a silent bridge shows an age that
+    grows; ``drive`` (active, hold, inactive, disabled), ``owner`` (the controller instance it
+    obeys, "" for none) and ``instance`` (the bridge's), as of that state. All None before any."""
+    latest = values.latest_valid("state")
+    if latest is None:
+        return {"state_age_s": None, "drive": None, "owner": None, "instance": None}
+    age_s, state = latest
+    return {"state_age_s": round(age_s, 3), "drive": state.drive, "owner": state.owner, "instance": state.bridge}
+
+
 def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
     """The ``series`` part of a live frame from the latest messages."""
     out: dict[str, Any] = {}
@@ -239,6 +277,15 @@ class LiveBus:
             if name not in VIEW_ONLY:
                 self._subscribe(name)
         self.values.on_watched(self._watched)
+        # The bridge's state is taken off its ring every STATE_SAMPLE_PERIOD_S s (one sample, one
+        # decode: 10 per second, not the bus's 500), so its age is right whoever reads it and when.
+        self._stop_sampling = threading.Event()
+        self._sampler = threading.Thread(target=self._sample_state, name="live-state-sampler", daemon=True)
+        self._sampler.start()
+
+    def _sample_state(self) -> None:
+        while not self._stop_sampling.wait(STATE_SAMPLE_PERIOD_S):
+            self.values.latest_valid("state")
 
     def _subscribe(self, name: str) -> None:
         sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(1))
@@ -258,6 +305,8 @@ class LiveBus:
                         self._subs.pop(name).undeclare()
 
     def close(self) -> None:
+        self._stop_sampling.set()
+        self._sampler.join(5.0)
         with self._lock:
             self._closed = True
             subs, self._subs = list(self._subs.values()), {}

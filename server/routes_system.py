@@ -14,12 +14,17 @@ from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
+from server.live import bridge_status
 
 router = APIRouter(tags=["system"])
 
 
 @router.get("/api/system/health")
 def health(request: Request) -> dict[str, Any]:
+    """The console's state at a glance (docs/console.md, "System health"). ``bridge``: how old the
+    bridge's latest valid motor state is (``state_age_s``, seconds on the monotonic clock, null
+    before any; it grows while the bridge is silent) and its ``drive``, ``owner`` and ``instance``
+    as of that state. ``uptime_s`` in seconds."""
     s = request.app.state
     return {
         "status": "ok", "version": software_version(), "uptime_s": time.monotonic() - s.started,
@@ -29,6 +34,7 @@ def health(request: Request) -> dict[str, Any]:
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it
         "parameter_set": s.params.active_status(),  # the active set; the one named instead and why it did not load
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
+        "bridge": bridge_status(s.live.values),  # how old its latest motor state is: live or silent
         "camera": camera_health(s.live.values, s.camera),  # detection health (issue 15); None without a camera
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
