@@ -41,7 +41,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import msgspec
 import zenoh
@@ -249,7 +249,7 @@ def bridge_status(values: LatestValues) -> dict[str, Any]:
     latest = values.latest_valid("state")
     if latest is None:
         return {"state_age_s": None, "drive": None, "owner": None, "instance": None}
-    age_s, state = latest
+    age_s, state = latest[0], cast(bus.MotorState, latest[1])  # SERIES["state"] decodes MotorState only
     return {"state_age_s": round(age_s, 3), "drive": state.drive, "owner": state.owner, "instance": state.bridge}
 
 
