@@ -53,7 +53,7 @@ def main() -> None:
         "numbers are experiments on the prototype, so only the ordering is expected to carry over.",
         "The twin is the model itself (`--truth model`, c_a = 3000 N·s/m as in the paper's simulator);",
         "with `--truth robot` (the robot's unmodelled physics, unknown to the controller) see docs/twin-fidelity.md",
-        "(law 2 there: e 0.50°, e_α 1.49° against α_IP; tests/test_controller.py and tests/test_truth.py check the findings).",
+        "(its table gives law 2's e and e_α against α_IP there, from `docs/make_twin_fidelity.py`; tests/test_controller.py and tests/test_truth.py check the findings).",
         "",
         "## Table 3: estimation error e_α = α − α̂ and tracking error e = α^d − α̂ (mean |·|), law 2",
         "",
