@@ -1,0 +1,154 @@
+"""The stuck-encoder check (controller/encoder_check.py): the fourth cable's redundancy against a
+frozen encoder reading, on the twin's robot truth, closed through the controller's campaign
+service in one process as the lockstep campaign runs it (docs/safety.md, "Stuck encoder")."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controller.encoder_check import (
+    PERSISTENCE_S,
+    THRESHOLD_M,
+    EncoderConsistency,
+    detector_model,
+    encoder_residual,
+    residuals,
+)
+from controller.laws import LawConfig
+from controller.service import CampaignService
+from controller.trajectory import Trajectory, control_test_trajectory
+from twin.model import cables
+from twin.sim.simulator import Twin, TwinConfig
+
+
+def _campaign(params, traj: Trajectory, truth: str = "robot", law: int = 2, freeze: tuple[int, float] | None = None,
+              seed: int = 0):
+    """The campaign on a twin of ``truth`` with the check called as the service would call it
+    (before the law, with its last α̂, the forces it sent and its filtered θ̇). ``freeze`` =
+    (encoder, time s): that reading stays where it was then, for the law too. Stops at the first
+    fault. Returns (first fault's stamp or nan, its reason, the check, |s| per tick)."""
+    twin = Twin(params, TwinConfig(truth=truth, seed=seed, camera=False))
+    svc = CampaignService(params, LawConfig(law=law), service=False, settle_s=1.0)
+    check = EncoderConsistency(params)
+    tick = twin.tick(np.zeros(params.n_cables))
+    svc.initialise(tick.theta_meas)
+    svc.begin(traj, tick.t_s)
+    frozen, s = None, []
+    for _ in range(round((traj.duration_s + 1.0) * 500) + 50):
+        theta = tick.theta_meas.copy()
+        if freeze is not None and tick.t_s >= freeze[1]:
+            frozen = theta[freeze[0]] if frozen is None else frozen
+            theta[freeze[0]] = frozen
+        ctl = svc.ctl
+        why = check.update(theta, ctl.estimator.alpha_hat, ctl.f_prev, ctl.theta_dot, tick.t_s, svc.drive == "active")
+        s.append(abs(check.s))
+        if why:
+            return tick.t_s, why, check, np.array(s)
+        out = svc.control(theta, tick.t_s)
+        if out.law_ran:
+            svc.advance(tick.t_s)
+        if not svc.running:
+            break
+        tick = twin.tick(out.force_N)
+    return math.nan, "", check, np.array(s)
+
+
+def _consistent(params, alpha_deg, tension_N):
+    """Encoder angles (rad) that agree exactly with α and tensions t (the detector's own eq. 54 at
+    rest): θ = (l_c0 + x − l_c(α))/ρ."""
+    m = detector_model(params)
+    alpha = np.radians(np.asarray(alpha_deg, dtype=float))
+    t = np.asarray(tension_N, dtype=float)
+    x = t / (m.k + m.lam * t)
+    return m, alpha, (m.l_c0 + x - cables.l_c(m, alpha)) / m.rho
+
+
+def test_the_residual_vanishes_on_consistent_readings_and_names_a_cable_length_error_exactly(params):
+    m, alpha, theta = _consistent(params, [[20, -10, 30], [-40, 25, 5]], [[30, 25, 20, 40], [12, 50, 33, 20]])
+    force = np.array([[30, 25, 20, 40], [12, 50, 33, 20]], dtype=float)
+    s, r = residuals(m, theta, alpha, force)  # θ̇ = 0: no friction, the tension is the force
+    assert s.shape == (2,) and r.shape == (2, 4)
+    assert np.abs(s).max() < 1e-12 and np.abs(r).max() < 1e-12
+    # Encoder j short by 1 mm of cable: r_j is that 1 mm (measured − implied), whichever j.
+    for j in range(4):
+        wrong = theta.copy()
+        wrong[:, j] -= 1e-3 / m.rho
+        r = encoder_residual(m, wrong, alpha, force)
+        np.testing.assert_allclose(r[:, j], -1e-3, rtol=1e-9)
+    one = encoder_residual(m, theta[0], alpha[0], force[0])  # one tick: shape (n_cables,)
+    assert one.shape == (4,) and np.abs(one).max() < 1e-12
+
+
+def test_the_residual_is_near_zero_on_the_model_truth(params):
+    """On the twin of the parameter file the check's only error is its stretch at rest, where the
+    model's 3000 N·s/m cable damper carries part of the tension while moving (3.5 mm measured,
+    docs/safety.md); at rest after the move it is the encoders' resolution."""
+    traj = Trajectory.from_degrees([[0, 0, 0], [20, -10, 15]], 2.0, [0.0, 3.0], name="pose")
+    fault_at, why, check, s = _campaign(params, traj, truth="model")
+    assert math.isnan(fault_at), why
+    assert s.max() < 0.5 * THRESHOLD_M
+    assert abs(check.s) < 5e-5  # m: at rest on the pose (4 µm measured; an encoder count is 2.5 µm of cable)
+
+
+def test_a_normal_robot_truth_campaign_raises_no_fault(params):
+    """§7 control test, law 2, on the robot truth (stiction, creep, backlash, pulley errors):
+    quiet, with the margin the threshold was chosen with (normal |s| max 5.7 mm, 1.5 × → 9 mm)."""
+    fault_at, why, _, s = _campaign(params, control_test_trajectory())
+    assert math.isnan(fault_at), why
+    assert len(s) > 6500  # the whole campaign ran
+    assert s.max() < THRESHOLD_M / 1.5
+
+
+@pytest.mark.parametrize("encoder", [0, 1, 2, 3])
+def test_a_stuck_encoder_is_flagged_and_named_within_a_second(params, encoder):
+    """Frozen at 3.9 s, just before the neck leaves (50, 50, 50)°: measured 0.7-0.9 s to the
+    fault, the frozen one named first (docs/safety.md, "Stuck encoder")."""
+    t_freeze = 3.9
+    fault_at, why, check, _ = _campaign(params, control_test_trajectory(), freeze=(encoder, t_freeze))
+    assert not math.isnan(fault_at), "the stuck encoder was not detected"
+    assert t_freeze < fault_at <= t_freeze + 1.2
+    assert check.suspects[0] == encoder, why
+    assert why.startswith(f"encoder {encoder + 1} ") and "stuck" in why and why.endswith("encoder fault")
+
+
+def test_one_tick_beyond_the_threshold_does_not_latch_a_sustained_one_does(params):
+    m, alpha, theta = _consistent(params, [10, 20, -15], [20, 20, 20, 30])
+    force, still = np.array([20, 20, 20, 30.0]), np.zeros(4)
+    check = EncoderConsistency(params)
+    jump = theta.copy()
+    jump[1] += 2 * THRESHOLD_M / m.rho / 0.4  # ≥ 2 thresholds of parity (n_j ≥ 0.4)
+    dt = 0.002
+    assert check.update(theta, alpha, force, still, 0.0) == ""
+    assert check.update(jump, alpha, force, still, dt) == ""  # one tick
+    assert abs(check.s) > THRESHOLD_M
+    assert check.update(theta, alpha, force, still, 2 * dt) == ""
+    # Sustained, but with the drives not active: no fault, and the persistence starts again.
+    for k in range(40):
+        assert check.update(jump, alpha, force, still, (3 + k) * dt, active=False) == ""
+    k0 = 43
+    reasons = [check.update(jump, alpha, force, still, (k0 + k) * dt) for k in range(40)]
+    first = next(k for k, why in enumerate(reasons) if why)
+    assert first * dt == pytest.approx(PERSISTENCE_S, abs=dt / 2)
+
+
+@pytest.mark.parametrize("bad", ["theta", "alpha", "force", "theta_dot", "stamp"])
+def test_non_finite_input_is_a_fault_at_once_not_an_exception(params, bad):
+    _, alpha, theta = _consistent(params, [10, 20, -15], [20, 20, 20, 30])
+    inputs = {"theta": theta, "alpha": alpha, "force": np.array([20, 20, 20, 30.0]), "theta_dot": np.zeros(4)}
+    check = EncoderConsistency(params)
+    assert check.update(inputs["theta"], inputs["alpha"], inputs["force"], inputs["theta_dot"], 0.0) == ""
+    stamp = 0.002
+    if bad == "stamp":
+        stamp = math.nan
+    else:
+        inputs[bad] = inputs[bad].copy()
+        inputs[bad][0] = math.nan if bad != "force" else math.inf
+    why = check.update(inputs["theta"], inputs["alpha"], inputs["force"], inputs["theta_dot"], stamp)
+    assert "non-finite" in why and why.endswith("encoder fault")
+    m = detector_model(params)
+    s, r = residuals(m, inputs["theta"], inputs["alpha"], inputs["force"], inputs["theta_dot"])
+    if bad != "stamp":
+        assert math.isnan(float(s)) and np.isnan(r).all()
