@@ -15,6 +15,14 @@ an archive whose writer is alive (:func:`bridge.archive.writer_alive`), and a fi
 repair (full or read-only disk, I/O error) is reported in :attr:`CampaignManager.recovery_errors`
 and on the record, never an exception: start-up goes on.
 
+A campaign ended by a cause the console cannot see itself (a child of ``xneck up`` that died: the
+supervisor knows which and how) is named by :meth:`CampaignManager.abort`: the running campaign is
+stopped and ends ``aborted`` with the cause first in its record and in its archive's
+``xneck.campaign`` message, what the runner saw after it (a side effect: the controller service
+vanished, the drives disabled, the bridge silent) kept behind it. A campaign that saw the side
+effect and ended before the cause was told is named too, if it ended within the window the caller
+gives (the time since the supervisor last saw the child alive).
+
 Storage faults are campaign outcomes, not server states: a campaign starts only where it can be
 recorded (:class:`StorageError`, a 507), one that hits ENOSPC/EROFS/EIO ends ``failed`` with the
 reason, and the robot is free again whatever happened. A small reserve file
@@ -35,8 +43,18 @@ from pathlib import Path
 import zenoh
 
 from bridge import bus
-from bridge.archive import ArchiveError, is_complete, iso_time, read_campaign, recover, storage_reason, writer_alive
+from bridge.archive import (
+    CAMPAIGN,
+    ArchiveError,
+    is_complete,
+    iso_time,
+    read_campaign,
+    recover,
+    storage_reason,
+    writer_alive,
+)
 from bridge.session import publisher
+from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
 from server.datadir import storage_problem
@@ -48,6 +66,9 @@ log = logging.getLogger("xneck.campaigns")
 
 RESERVE_BYTES = 512 * 1024  # given up on a storage fault, room for the final records
 DEFAULT_MIN_FREE_BYTES = 64_000_000
+ABORT_WAIT_S = 10.0  # s :meth:`CampaignManager.abort` waits for the stopped campaign's record to be final
+#: What the runner says of a stop it was asked for; behind a cause that stopped it, it says nothing.
+STOPPED_BY_USER = "stopped by the user"
 
 
 class Busy(Exception):
@@ -75,6 +96,17 @@ class StorageError(Exception):
     """A campaign cannot be recorded (no space, read-only, I/O error); the message has the figures."""
 
 
+def _with_cause(cause: str, seen: str, stopped_for_it: bool) -> str:
+    """A campaign's message with ``cause`` first, then what the campaign itself ``seen`` (dropped
+    when it is only the runner's word for the stop the cause asked for: ``stopped_for_it``); a
+    message that names the cause already is kept as it is."""
+    if seen.startswith(cause):  # named already (a retry)
+        return seen
+    if not seen or (stopped_for_it and seen == STOPPED_BY_USER):
+        return cause[:2000]
+    return f"{cause}; the campaign saw: {seen}"[:2000]
+
+
 class CampaignManager:
     def __init__(self, data_dir: Path, session: zenoh.Session, hub: str,
                  on_finish: Callable[[CampaignRecord], None] | None = None,
@@ -95,6 +127,13 @@ class CampaignManager:
         self._running: str | None = None
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        # Serialises the last steps of a campaign's record (its final fields, the cause named in it
+        # and its archive) with :meth:`abort`'s naming of a cause; taken before ``_lock``, never inside.
+        self._final_lock = threading.Lock()
+        # campaign id -> (cause, whether abort's stop ended it), until its worker writes its final record
+        self._causes: dict[str, tuple[str, bool]] = {}
+        # (id, time.monotonic()) when the latest campaign's run ended (before its record was final)
+        self._last_end: tuple[str, float] | None = None
         self._replay: Replay | None = None
         # (campaign id, speed, cancelled) of a replay whose archive is being read: it holds the robot
         # already, so that no campaign or second replay starts in the second the read takes.
@@ -313,6 +352,7 @@ class CampaignManager:
             with self._lock:
                 if self._running == cid:
                     self._running = None
+                self._causes.pop(cid, None)
             self.release_reserve(keep=True)
 
     def _record_campaign(self, cid: str, prepared: PreparedCampaign) -> None:
@@ -326,8 +366,12 @@ class CampaignManager:
                 rec.message = message[:300]
 
         try:
-            result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
-                                  session=self.session, hub=self.hub, stop=self._stop)
+            try:
+                result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
+                                      session=self.session, hub=self.hub, stop=self._stop)
+            finally:
+                with self._lock:
+                    self._last_end = (cid, time.monotonic())
             status = result.outcome if result.outcome in ("finished", "degraded", "aborted", "analysis_failed") \
                 else "failed"
             fields: dict[str, object] = {"status": status, "message": result.message[:2000],
@@ -350,12 +394,70 @@ class CampaignManager:
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
         fields["ended_at"] = iso_time()
-        fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
-        with self._lock:
-            self._running = None
-        rec = self._update(cid, **fields)
+        with self._final_lock:  # a cause told from now on finds this record final (abort)
+            with self._lock:
+                self._running = None
+                cause = self._causes.pop(cid, None)
+            if cause is not None and fields["status"] == "aborted":
+                fields["message"] = _with_cause(cause[0], str(fields["message"]), cause[1])
+                self._name_in_archive(path, str(fields["message"]))
+            fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
+            rec = self._update(cid, **fields)
         if self._on_finish is not None:
             self._on_finish(rec)
+
+    def _name_in_archive(self, path: Path, message: str) -> None:
+        """The archive's ``xneck.campaign`` message becomes ``message`` (a rewrite of the finished
+        file: :func:`server.archive_rewrite.rewrite_archive`); a fault is logged, the record says it."""
+        try:
+            if path.exists() and is_complete(path):
+                rewrite_archive(path, amend={CAMPAIGN: {"message": message[:2000]}})
+        except Exception as exc:  # noqa: BLE001 - the record names the cause whatever the file allows
+            log.error("cannot name the cause in %s: %s", path.name,
+                      storage_reason(exc) if isinstance(exc, OSError) else exc)
+
+    def abort(self, reason: str, ended_within_s: float | None = None,
+              timeout_s: float = ABORT_WAIT_S) -> CampaignRecord | None:
+        """Stop the running campaign because of ``reason`` (a cause the console cannot see, e.g.
+        ``"bridge process exited (signal SIGKILL)"`` from ``xneck up``): it ends ``aborted`` with
+        ``reason`` first in its record's and its archive's message, and what the runner itself saw
+        after it (module docstring). Waits at most ``timeout_s`` seconds for that record to be final.
+
+        ``ended_within_s`` (seconds before this call): a campaign whose run ended within that window
+        (it saw the cause's side effect before the cause was told) is named too, if it ended
+        ``aborted``; without it only a campaign still running is. Returns the record named (None
+        if none was): its status says whether the cause was written (``aborted``) or not."""
+        now = time.monotonic()
+        with self._final_lock:
+            with self._lock:
+                last = self._last_end
+                target = self._running or (last[0] if last is not None else None)
+                ended_s = last[1] if last is not None and last[0] == target else None  # None: still running
+                if target is None or (ended_s is not None and (ended_within_s is None
+                                                               or ended_s < now - ended_within_s)):
+                    return None  # nothing running, or it had ended before the cause
+                if target == self._running:  # its worker names the cause when it writes the final record
+                    self._causes[target] = (reason, ended_s is None and not self._stop.is_set())
+                    self._stop.set()
+                    late = None
+                else:
+                    rec = self._records.get(target)
+                    if rec is None:  # deleted since it ended
+                        return None
+                    late = rec.model_copy()
+            if late is not None and late.status == "aborted":  # final already: named here
+                message = _with_cause(reason, late.message, False)
+                path = self.index.mcap(target)
+                self._name_in_archive(path, message)
+                self._update(target, message=message, mcap_bytes=path.stat().st_size if path.exists() else 0)
+        if late is None:
+            worker = self._worker
+            if worker is not None and worker.name == f"campaign:{target}":
+                worker.join(timeout_s)
+        try:
+            return self.get(target)
+        except NotFound:  # deleted meanwhile
+            return None
 
     def stop(self, campaign_id: str) -> CampaignRecord:
         rec = self.get(campaign_id)
@@ -378,16 +480,17 @@ class CampaignManager:
 
     def delete(self, campaign_id: str) -> None:
         self.get(campaign_id)
-        with self._lock:
-            if self._running == campaign_id:
-                raise Busy(campaign_id)
-            if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
-                raise Busy(campaign_id, "replay of")
-            if self._replay_starting is not None and self._replay_starting[0] == campaign_id:
-                raise Busy(campaign_id, "replay of")
-            self._records.pop(campaign_id, None)
-        for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):
-            p.unlink(missing_ok=True)
+        with self._final_lock:  # not while abort names a cause in its record and archive
+            with self._lock:
+                if self._running == campaign_id:
+                    raise Busy(campaign_id)
+                if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
+                    raise Busy(campaign_id, "replay of")
+                if self._replay_starting is not None and self._replay_starting[0] == campaign_id:
+                    raise Busy(campaign_id, "replay of")
+                self._records.pop(campaign_id, None)
+            for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):
+                p.unlink(missing_ok=True)
         figs = self.index.figures(campaign_id)
         if figs.is_dir():
             for f in figs.iterdir():

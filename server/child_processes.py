@@ -83,6 +83,17 @@ def stop_child(proc: subprocess.Popen, grace_s: float) -> bool:
         return True
 
 
+def exit_how(returncode: int) -> str:
+    """How a child ended, from its ``Popen.returncode``: ``"signal SIGKILL"`` for a negative one
+    (killed by that signal), ``"code 1"`` otherwise."""
+    if returncode < 0:
+        try:
+            return f"signal {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"signal {-returncode}"
+    return f"code {returncode}"
+
+
 def log_tail(path: Path, lines: int) -> str:
     """The last ``lines`` lines of a child's log ('' if it cannot be read)."""
     try:

@@ -1,4 +1,5 @@
-"""``/api/system``: health, processes alive on the bus, mode, e-stop; ``/api/config`` for the dashboard."""
+"""``/api/system``: health, processes alive on the bus, mode, e-stop, abort with a cause; ``/api/config`` for
+the dashboard."""
 
 from __future__ import annotations
 
@@ -68,6 +69,29 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     sent; ``/api/system/health`` shows what the bridge reports (``estop.source``)."""
     request.app.state.campaigns.estop(body.engaged, body.reason)
     return {"engaged": body.engaged, "reason": body.reason}
+
+
+class AbortRequest(BaseModel):
+    reason: str = Field(..., min_length=1, max_length=300,
+                        description="The cause, first in the campaign's message, e.g. \"bridge process exited "
+                                    "(signal SIGKILL)\".")
+    ended_within_s: float | None = Field(None, ge=0, le=60, description="Also name a campaign that already ended "
+                                         "aborted within this many seconds before the request (it saw the cause's "
+                                         "side effect first); null: only a running one.")
+
+
+@router.post("/api/system/abort", dependencies=[Depends(require_token)])
+def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
+    """Stop the running campaign because of a cause the console cannot see itself (``xneck up``
+    tells it which of its processes died, and how): the campaign ends ``aborted`` with ``reason``
+    first in its record and in its archive, what it saw itself after that. Answers once its record
+    is final (at most 10 s): ``campaign_id`` (null if none was running or ended within
+    ``ended_within_s``), its ``status`` and ``message``. Nothing else changes: the bridge, the
+    controller and the e-stop are left as they are (the controller holds as after any stop)."""
+    rec = request.app.state.campaigns.abort(body.reason, body.ended_within_s)
+    if rec is None:
+        return {"campaign_id": None, "status": None, "message": None}
+    return {"campaign_id": rec.id, "status": rec.status, "message": rec.message}
 
 
 @router.get("/api/config")

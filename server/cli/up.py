@@ -9,14 +9,21 @@ controller. Before anything starts, :func:`preflight` checks that the hub endpoi
 and the viser port are free and that no other stack answers on the hub; if not, ``xneck up`` says
 so in one line and exits with code 3, having started no process (issue 13, finding 5: a second
 stack on the same hub would otherwise join the first one's bus and command its bridge). Nothing
-is restarted silently: if a process exits, the launcher says which, with its exit code and last
-log lines, stops the others and exits non-zero. Ctrl-C or SIGTERM stops them all in the safe
-order: controller, then bridge (which disables its drives), then server.
+is restarted silently: if a process exits, the launcher says which, with its exit code or signal
+and last log lines, stops the others and exits non-zero. Before it stops them it tells the console
+the cause (``POST /api/system/abort``, :func:`abort_campaign`), so that a running campaign ends
+``aborted`` naming the process and how it ended, e.g. "bridge process exited (signal SIGKILL)",
+in its record and archive, not the side effect the campaign would see next (the controller
+service vanished, the drives disabled, the bridge silent: audit of 2026-11-26). That stop is the
+console's ordinary one (the controller holds, as after the stop button); it waits at most
+:data:`ABORT_TIMEOUT_S` and nothing else changes meanwhile. Ctrl-C or SIGTERM stops them all in the
+safe order: controller, then bridge (which disables its drives), then server.
 """
 
 from __future__ import annotations
 
 import errno
+import json
 import os
 import signal
 import socket
@@ -27,13 +34,19 @@ from pathlib import Path
 
 import typer
 
-from server.child_processes import ENV_PARENT, isolate, log_tail, stop_child, xneck_argv
+from server.child_processes import ENV_PARENT, exit_how, isolate, log_tail, stop_child, xneck_argv
 from server.cli.options import NON_NEGATIVE, PORT_MAX, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
 PREFLIGHT_EXIT = 3  # exit code of a refused start (nothing was started)
 PROBE_S = 1.0  # how long the preflight waits for a Zenoh peer on a busy hub port
+# s the supervisor waits for the console to end a running campaign with a child's death as its
+# cause (the console waits 10 s for the record, server.campaigns.ABORT_WAIT_S; the rest is HTTP).
+ABORT_TIMEOUT_S = 15.0
+# s added to the time since a child was last seen alive, for the console's window of campaigns that
+# ended of its death before they were told (the request's own transit, a loaded machine).
+ABORT_WINDOW_MARGIN_S = 1.0
 
 
 def _port_taken(host: str, port: int) -> str:
@@ -106,6 +119,40 @@ def _healthy(url: str) -> bool:
             return r.status == 200
     except OSError:
         return False
+
+
+def _token(data_dir: Path) -> str:
+    """The console's API token, as it resolves it: ``XNECK_TOKEN``, else ``<data-dir>/token`` ('' if none)."""
+    from server.settings import TOKEN_FILE
+
+    token = os.environ.get("XNECK_TOKEN", "")
+    if token:
+        return token
+    try:
+        return (Path(data_dir) / TOKEN_FILE).read_text().strip()
+    except OSError:
+        return ""
+
+
+def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> str:
+    """Tell the console at ``url`` that ``cause`` ends its running campaign (``POST
+    /api/system/abort``; also one whose run ended within ``ended_within_s`` seconds, having seen
+    the cause's side effect first). Returns one line for the operator: what became of which
+    campaign, or why the console could not be told. Waits at most :data:`ABORT_TIMEOUT_S`."""
+    if not token:
+        return "the console could not be told why (no API token)"
+    request = urllib.request.Request(  # a loopback URL we built
+        url + "api/system/abort", method="POST",
+        data=json.dumps({"reason": cause, "ended_within_s": round(min(ended_within_s, 60.0), 3)}).encode(),
+        headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
+    try:
+        with urllib.request.urlopen(request, timeout=ABORT_TIMEOUT_S) as r:
+            answer = json.loads(r.read())
+    except (OSError, ValueError) as exc:
+        return f"the console could not be told why ({exc})"
+    if answer.get("campaign_id") is None:
+        return "no campaign was running"
+    return f"campaign {answer['campaign_id']} {answer['status']}: {answer['message']}"
 
 
 def up(
@@ -201,15 +248,21 @@ def up(
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
                    f"{' expected from elsewhere' if no_bridge else ''}, controller service (law {law})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
-        started = time.monotonic()
+        started = seen_alive = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
+            polled = time.monotonic()
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
             if dead:
                 name, rc = dead[0]
-                typer.secho(f"error: the {name} exited (code {rc}); stopping the stack, nothing is restarted.\n"
+                typer.secho(f"error: the {name} exited ({exit_how(rc)}); stopping the stack, nothing is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
+                if name != "server":  # the console ends its campaign with the cause before the rest stops
+                    typer.secho(abort_campaign(url, _token(data_dir), f"{name} process exited ({exit_how(rc)})",
+                                               time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
+                                err=True, fg="red")
                 code = 1
                 break
+            seen_alive = polled
             if exit_after is not None and time.monotonic() - started > exit_after:
                 break
             time.sleep(0.2)

@@ -1,0 +1,169 @@
+"""A child of ``xneck up`` that dies during a campaign: the campaign names the cause, not a side effect.
+
+Audit of 2026-11-26: under ``xneck up``, a bridge SIGKILLed mid-campaign ended its campaign
+``aborted`` with "the controller service vanished from the bus (...)" and a SIGKILLed controller with
+"the drives were disabled during the campaign: the bridge's drives are disabled": what the
+supervisor's own stop of the rest of the stack did next, not what happened. The supervisor now aborts
+the campaign with the cause first (``POST /api/system/abort``), then stops the stack as before.
+
+Real processes, real Zenoh on 127.0.0.1, real uvicorn over HTTP; every process is stopped within
+bounded time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import AUTH, running_server, server_process, start_campaign, wait_until
+
+from bridge.archive import read_campaign
+from bridge.session import free_tcp_port
+
+pytestmark = pytest.mark.e2e
+
+PY = [sys.executable, "-m", "server.cli"]
+# No XNECK_TOKEN: `xneck up` must find the token where its console wrote it (<data-dir>/token).
+ENV = {k: v for k, v in os.environ.items() if k != "XNECK_TOKEN"} | {"PYTHONUNBUFFERED": "1"}
+# Slow, small and long enough that the kill comes mid-campaign on a loaded machine.
+GENTLE = {"kind": "control", "law": 2, "waypoints": {"name": "gentle", "waypoints_deg": [[0, 0, 0], [8, 6, 4], [0, 0, 0]],
+                                                     "durations_s": 5.0, "dwell_s": 0.5}}
+
+
+def _parent_pid(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _child(parent: int, kind: str) -> int | None:
+    """The pid of the ``xneck <kind>`` process whose parent is ``parent`` (from /proc), or None."""
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit() and _parent_pid(int(d.name)) == parent:
+            with contextlib.suppress(OSError):
+                if f"\0{kind}\0" in Path(f"/proc/{d.name}/cmdline").read_text(errors="replace"):
+                    return int(d.name)
+    return None
+
+
+def _get(url: str, timeout_s: float = 5.0) -> dict | None:
+    """The JSON at ``url``, or None when the console does not answer (not up, or stopped)."""
+    try:
+        return httpx.get(url, timeout=timeout_s).json()
+    except (httpx.HTTPError, ValueError):
+        return None
+
+
+@contextlib.contextmanager
+def _xneck_up(tmp_path: Path):
+    """``xneck up`` on free ports; yields (base URL, data dir, process). Stopped within bounded time."""
+    port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
+    data = tmp_path / "d"
+    with open(tmp_path / "up.log", "wb") as log:  # the child has its own copy of the descriptor
+        up = subprocess.Popen([*PY, "up", "--port", str(port), "--hub", hub, "--data-dir", str(data),
+                               "--viser-port", str(free_tcp_port())],
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
+                              start_new_session=True)
+    try:
+        yield f"http://127.0.0.1:{port}", data, up
+    finally:
+        if up.poll() is None:
+            up.send_signal(signal.SIGTERM)
+            try:
+                up.wait(40)
+            except subprocess.TimeoutExpired:
+                os.killpg(up.pid, signal.SIGKILL)
+                up.wait(10)
+
+
+@pytest.mark.parametrize("victim", ["bridge", "controller"])
+def test_a_child_killed_mid_campaign_under_xneck_up_ends_it_naming_the_child_and_signal(tmp_path: Path,
+                                                                                       victim: str) -> None:
+    cause = f"{victim} process exited (signal SIGKILL)"
+    with _xneck_up(tmp_path) as (base, data, up):
+        def kinds() -> set[str]:
+            answer = _get(base + "/api/system/processes", 2)
+            return {p["kind"] for p in answer["processes"]} if answer else set()
+
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
+        auth = {"Authorization": f"Bearer {(data / 'token').read_text().strip()}"}
+        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=auth, timeout=90)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        assert wait_until(lambda: (_get(f"{base}/api/campaigns/{cid}") or {}).get("progress", 0) > 0.05, 60, 0.1)
+        pid = _child(up.pid, victim)
+        assert pid is not None, f"no {victim} under xneck up"
+        os.kill(pid, signal.SIGKILL)
+        seen: list[dict] = []  # what REST said while the console was up, after the campaign ended
+
+        def ended_or_gone() -> bool:
+            rec = _get(f"{base}/api/campaigns/{cid}", 2)
+            if rec is None:
+                return up.poll() is not None
+            if rec.get("status") != "running":
+                seen.append(rec)
+            return cause in rec.get("message", "")
+
+        wait_until(ended_or_gone, 60, 0.05)
+        assert up.wait(60) == 1  # nothing is restarted: the stack stops and says so
+    record = json.loads((data / "campaigns" / f"{cid}.json").read_text())
+    assert record["status"] == "aborted" and record["message"].startswith(cause), record["message"]
+    info = read_campaign(data / "campaigns" / f"{cid}.mcap").info
+    assert info["outcome"] == "aborted" and info["message"] == record["message"], info
+    printed = (tmp_path / "up.log").read_text()
+    assert f"error: the {victim} exited (signal SIGKILL)" in printed, printed[-3000:]
+    assert f"campaign {cid} aborted: {cause}" in printed, printed[-3000:]
+    # REST named the cause before the console stopped, and names it after a restart.
+    assert seen and seen[-1]["message"].startswith(cause), [s.get("message") for s in seen]
+    with server_process(data) as (again, _):
+        rec = httpx.get(f"{again}/api/campaigns/{cid}", timeout=10).json()
+    assert rec["status"] == "aborted" and rec["message"] == record["message"], rec
+
+
+def test_a_campaign_that_ended_of_the_cause_before_it_was_told_is_named_within_the_window(tmp_path: Path) -> None:
+    """The campaign may see the side effect (here: a stop) and end before the supervisor tells the
+    cause: ``ended_within_s`` (the time since the child was last seen alive) names it anyway, in
+    REST and in the archive; outside the window, or without one, it is left as it ended."""
+    cause = "camera process exited (code 3)"
+    with running_server(tmp_path / "d") as (base, _app), httpx.Client(base_url=base, timeout=30) as client:
+        assert client.post("/api/system/abort", json={"reason": cause}).status_code == 401  # token first
+        nothing = client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 5}, headers=AUTH).json()
+        assert nothing == {"campaign_id": None, "status": None, "message": None}, nothing
+        cid = start_campaign(client, {**GENTLE, "pace": "realtime"}, progress=0.05)  # lockstep could finish first
+        client.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+        assert wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 60, 0.1)
+        ended = client.get(f"/api/campaigns/{cid}").json()
+        seen = ended["message"]
+        assert ended["status"] == "aborted" and seen == "stopped by the user", ended
+        # Without a window, or with one that ends before the campaign did: not its cause.
+        assert client.post("/api/system/abort", json={"reason": cause}, headers=AUTH).json()["campaign_id"] is None
+        assert client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 0},
+                           headers=AUTH).json()["campaign_id"] is None
+        assert client.get(f"/api/campaigns/{cid}").json()["message"] == seen
+        answer = client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH).json()
+        named = f"{cause}; the campaign saw: {seen}"
+        assert answer == {"campaign_id": cid, "status": "aborted", "message": named}, answer
+        rec = client.get(f"/api/campaigns/{cid}").json()
+        assert rec["message"] == named and rec["mcap_bytes"] == (tmp_path / "d" / "campaigns" / f"{cid}.mcap").stat().st_size
+        # Told twice (a retry): named once.
+        client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH)
+        assert client.get(f"/api/campaigns/{cid}").json()["message"] == named
+        # A campaign that ended well is no death's victim, whatever the window.
+        done = start_campaign(client, GENTLE)  # lockstep: over in seconds
+        assert wait_until(lambda: client.get(f"/api/campaigns/{done}").json()["status"] != "running", 90, 0.1)
+        well = client.get(f"/api/campaigns/{done}").json()
+        assert well["status"] in ("finished", "degraded"), well
+        answer = client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH).json()
+        assert answer == {"campaign_id": done, "status": well["status"], "message": well["message"]}, answer
+    info = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").info
+    assert info["outcome"] == "aborted" and info["message"] == named, info
+    assert cause not in read_campaign(tmp_path / "d" / "campaigns" / f"{done}.mcap").info.get("message", "")
+    assert json.loads((tmp_path / "d" / "campaigns" / f"{cid}.json").read_text())["message"] == named
