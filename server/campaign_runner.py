@@ -62,6 +62,7 @@ EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
 # s without a motor state from the bridge that end a started campaign (the bridge is gone or hung;
 # the controller holds meanwhile, the bridge's watchdog too): longer than any stall of a loaded
 # machine seen in the suite, far shorter than the campaign's timeout.
+STOPPED_BY_USER = "stopped by the user"  # the outcome of a stop request (server.campaigns matches it)
 BRIDGE_SILENT_S = 3.0
 CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
 
@@ -303,7 +304,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 # The console's e-stop sets stop too: the bridge's word on it, if it comes, names the reason.
                 disabled = monitor.wait_drives_disabled(0.3)
                 outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
-                    if disabled else ("aborted", "stopped by the user")
+                    if disabled else ("aborted", STOPPED_BY_USER)
                 break
             if services is not None and not services.alive():
                 outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
@@ -378,7 +379,7 @@ def _wait_alive(session: zenoh.Session, key: str, proc: subprocess.Popen, log: P
             if proc.poll() is not None:
                 return f"the camera exited with code {proc.returncode} before it was up: {log_tail(log, 3)}"
             if stop.is_set():
-                return "stopped by the user"
+                return STOPPED_BY_USER
             if time.monotonic() > deadline:
                 return f"the camera was not up within {timeout_s:.0f} s: {log_tail(log, 3)}"
         return ""

@@ -56,7 +56,7 @@ from bridge.archive import (
 from bridge.session import publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
-from server.campaign_runner import metrics_from_archive, new_campaign_id, run_campaign
+from server.campaign_runner import STOPPED_BY_USER, metrics_from_archive, new_campaign_id, run_campaign
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.records import CampaignIndex, CampaignRecord
@@ -67,8 +67,6 @@ log = logging.getLogger("xneck.campaigns")
 RESERVE_BYTES = 512 * 1024  # given up on a storage fault, room for the final records
 DEFAULT_MIN_FREE_BYTES = 64_000_000
 ABORT_WAIT_S = 10.0  # s :meth:`CampaignManager.abort` waits for the stopped campaign's record to be final
-#: What the runner says of a stop it was asked for; behind a cause that stopped it, it says nothing.
-STOPPED_BY_USER = "stopped by the user"
 
 
 class Busy(Exception):
