@@ -1,7 +1,7 @@
 """The encoder consistency residual measured on the robot truth, and a stuck encoder's detection
 time (docs/safety.md, "Stuck encoder"; controller/encoder_check.py).
 
-    .venv/bin/python docs/safety/encoder_residual.py            # about 3 min on the 2-CPU machine
+    .venv/bin/python docs/safety/encoder_residual.py            # about 95 s on the 2-CPU machine
     .venv/bin/python docs/safety/encoder_residual.py --quick    # law 2, seed 0, control test only
 
 What runs: the controller's campaign service (controller.service.CampaignService, the state
@@ -138,14 +138,15 @@ def normal_runs(params, laws, trajectories, seeds, threshold_m, persistence_s) -
     print("| trajectory | law | seed | outcome | |s| max | |s| p99.9 | |r_j| max (enc 1-4) | |r_j| p99.9 (enc 1-4) | "
           "|α̂ − α| (deg) | false alarms |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    worst, costs = 0.0, []
+    worst, worst_at, costs = 0.0, "", []
     per_max, per_p = [], []
     for name, traj in trajectories:
         for law in laws:
             for seed in seeds:
                 res = run(params, law, traj, seed, threshold_m=threshold_m, persistence_s=persistence_s)
                 s, r = np.abs(res.s), np.abs(res.r)
-                worst = max(worst, float(s.max()))
+                if s.max() > worst:
+                    worst, worst_at = float(s.max()), f"{name}, law {law}, seed {seed}, at {res.t[s.argmax()]:.3f} s"
                 per_max.append(r.max(axis=0))
                 per_p.append(np.quantile(r, 0.999, axis=0))
                 costs.append(res.cost_us[50:])  # past the first calls
@@ -156,7 +157,7 @@ def normal_runs(params, laws, trajectories, seeds, threshold_m, persistence_s) -
                       f"{math.degrees(float(res.alpha_err.max())):.1f} | {alarm} |", flush=True)
     print()
     pm, pp = np.max(per_max, axis=0), np.max(per_p, axis=0)
-    print(f"Over all normal runs: |s| max {_mm(worst)} mm; per encoder |r_j| max {' / '.join(_mm(v) for v in pm)} mm "
+    print(f"Over all normal runs: |s| max {_mm(worst)} mm ({worst_at}); per encoder |r_j| max {' / '.join(_mm(v) for v in pm)} mm "
           f"(p99.9 at most {' / '.join(_mm(v) for v in pp)} mm); threshold {_mm(threshold_m)} mm = "
           f"{threshold_m / worst:.2f} × the largest |s|.")
     print()
@@ -173,11 +174,12 @@ def stuck_runs(params, laws, trajectories, seeds, threshold_m, persistence_s, fr
           "Without the check: the same from the freeze to the campaign's end, the largest true |α| then (flat steps: "
           "steps the twin refused at a joint's flat configuration, 180°), and the campaign's outcome.")
     print()
-    print("| trajectory | law | seed | encoder | frozen at (s) | detected after (s) | named | |α̂ − α| (deg) | "
-          "service's own check | without the check |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| trajectory | law | seed | encoder | frozen at (s) | detected after (s) | named | r_j then (mm) | "
+          "|α̂ − α| (deg) | service's own check | without the check |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     delays, errors, missed, first, named_in, total = [], [], 0, 0, 0, 0
     worst_alone: list[float] = []
+    by: dict[str, list[tuple[float, float, float]]] = {}  # trajectory or encoder → (delay s, |α̂ − α| deg, |r_j| mm)
     outcomes_alone: list[str] = []
     flat_runs = 0
     for name, traj in trajectories:
@@ -212,18 +214,21 @@ def stuck_runs(params, laws, trajectories, seeds, threshold_m, persistence_s, fr
                             missed += 1
                             grown = np.nanmax(np.abs(res.s[res.t >= t_f]))
                             print(f"| {name} | {law} | {seed} | {j + 1} | {t_f:.2f} | not detected by "
-                                  f"{res.t[-1] - t_f:.1f} s (|s| max {_mm(grown)} mm) | - | {err:.1f} | {own} | {alone} |",
+                                  f"{res.t[-1] - t_f:.1f} s (|s| max {_mm(grown)} mm) | - | - | {err:.1f} | {own} | {alone} |",
                                   flush=True)
                             continue
                         first += int(bool(res.suspects) and res.suspects[0] == j)
                         named_in += int(j in res.suspects)
                         delays.append(res.fault_at - t_f)
                         errors.append(err)
+                        missed_mm = 1e3 * float(res.r[int(np.searchsorted(res.t, res.fault_at)), j])
+                        by.setdefault(name, []).append((res.fault_at - t_f, err, abs(missed_mm)))
+                        by.setdefault(f"encoder {j + 1}", []).append((res.fault_at - t_f, err, abs(missed_mm)))
                         named = " or ".join(str(k + 1) for k in res.suspects) or "unknown"
                         mark = "" if res.suspects and res.suspects[0] == j else (" (also)" if j in res.suspects
                                                                                   else " (wrong)")
                         print(f"| {name} | {law} | {seed} | {j + 1} | {t_f:.2f} | {res.fault_at - t_f:.2f} | "
-                              f"{named}{mark} | {err:.1f} | {own} | {alone} |", flush=True)
+                              f"{named}{mark} | {missed_mm:+.1f} | {err:.1f} | {own} | {alone} |", flush=True)
     print()
     if delays:
         d, e = np.array(delays), np.array(errors)
@@ -231,6 +236,11 @@ def stuck_runs(params, laws, trajectories, seeds, threshold_m, persistence_s, fr
               f"{named_in} times. Time from the freeze to the fault: median {np.median(d):.2f} s, p90 "
               f"{np.quantile(d, 0.9):.2f} s, max {d.max():.2f} s; |α̂ − α| by then median {np.median(e):.1f}°, "
               f"max {e.max():.1f}°.")
+    for key, rows in by.items():
+        a = np.array(rows)
+        print(f"- {key}: detected after {a[:, 0].min():.2f}-{a[:, 0].max():.2f} s (median {np.median(a[:, 0]):.2f} s), "
+              f"|α̂ − α| then {a[:, 1].min():.1f}-{a[:, 1].max():.1f}°, the frozen cable's |r_j| "
+              f"{a[:, 2].min():.1f}-{a[:, 2].max():.1f} mm")
     if worst_alone:
         print(f"Without the check ({len(worst_alone)} runs to the end): the true |α| reached "
               f"{math.degrees(min(worst_alone)):.0f}-{math.degrees(max(worst_alone)):.0f}°, {flat_runs} runs at a joint's "
