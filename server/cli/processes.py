@@ -112,6 +112,25 @@ def make_driver(driver: str, params, table: dict, *, replay: Path | None = None,
     raise DriverError(f"unknown driver {driver!r}: choose beaglebone, twin or replay")
 
 
+def _drives_off(driver: str, driver_config: Path | None, params_file: Path | None, overrides: list[str] | None) -> None:
+    """``xneck bridge --drives-off``: a bridge killed by SIGKILL (the OOM killer, a supervisor
+    giving up on a hung one) cannot run its own shutdown, and the ESCONs go on driving the last
+    current with their enable lines high. Configuring the driver sets every drive off first
+    (:meth:`bridge.drivers.beaglebone.BeagleBoneDriver._on_configure`); closing it keeps them off."""
+    from bridge.driver import DriverError
+
+    if driver != "beaglebone":
+        raise fail(f"--drives-off is for --driver beaglebone (the {driver} driver drives no motors)")
+    params = load_cli_params(params_file, overrides)
+    try:
+        drv = make_driver(driver, params, _driver_table(driver_config))
+        drv.configure()
+    except (DriverError, ValueError) as exc:
+        raise fail(f"could not disable the drives: {exc}") from None
+    drv.close()
+    log.info("bridge --drives-off: every drive disabled (enable lines off, zero-current set values)")
+
+
 def bridge(
     driver: str = typer.Option(..., "--driver", help="beaglebone (the prototype), twin (simulated) or replay (an archive)."),
     replay: Path | None = typer.Option(None, "--replay", help="Campaign MCAP file to replay (--driver replay)."),
@@ -140,6 +159,9 @@ def bridge(
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
+    drives_off: bool = typer.Option(
+        False, "--drives-off", help="Only disable the drives (enable lines off, zero-current set values) and exit, "
+        "joining no bus: for after a bridge was killed, which could not (systemd ExecStopPost, xneck up --robot)."),
 ) -> None:
     """Expose the motor controllers on the bus with the twin's topics, behind the bridge's safety
     rules (clamping, 10 ms watchdog to the hold forces, e-stop, drives disabled on exit)."""
@@ -154,6 +176,9 @@ def bridge(
     from bridge.runtime import raise_priority, setup_logging, stop_on_signals
 
     setup_logging(verbose)
+    if drives_off:
+        _drives_off(driver, driver_config, params_file, overrides)
+        return
     check_endpoints(listen, connect)  # before the driver is built (the twin's compiles for seconds)
     params = load_cli_params(params_file, overrides)
     if lockstep and driver != "twin":
@@ -224,7 +249,7 @@ def twin(
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
            hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
-           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose)
+           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False)
 
 
 def controller(

@@ -18,6 +18,14 @@ service vanished, the drives disabled, the bridge silent: audit of 2026-11-26). 
 console's ordinary one (the controller holds, as after the stop button); it waits at most
 :data:`ABORT_TIMEOUT_S` and nothing else changes meanwhile. Ctrl-C or SIGTERM stops them all in the
 safe order: controller, then bridge (which disables its drives), then server.
+
+With ``--robot`` (the BeagleBone's bridge a child of this process) the launcher also watches the
+bridge's motor states on the bus: a bridge whose process lives but whose last state is older than
+:data:`BRIDGE_HUNG_S` is hung (its loop no longer runs its watchdog or its e-stop, and the ESCONs
+go on driving the last currents): it is killed and handled as a death. A bridge that did not end
+cleanly (killed, crashed, or not stopping within :data:`STOP_GRACE_S`) could not disable its
+drives: ``xneck bridge --driver beaglebone --drives-off`` then does (enable lines off,
+zero-current set values; audit of 2026-11-26: a hung bridge's SIGKILL left them as they were).
 """
 
 from __future__ import annotations
@@ -47,6 +55,10 @@ ABORT_TIMEOUT_S = 15.0
 # s added to the time since a child was last seen alive, for the console's window of campaigns that
 # ended of its death before they were told (the request's own transit, a loaded machine).
 ABORT_WINDOW_MARGIN_S = 1.0
+# s without a motor state from a live local robot bridge after which it counts as hung: its loop
+# states at 500 Hz, so this is 500 missed ticks (a stall the bridge's own watchdog cannot see).
+BRIDGE_HUNG_S = 1.0
+DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's import initialises the board)
 
 
 def _port_taken(host: str, port: int) -> str:
@@ -155,6 +167,42 @@ def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> s
     return f"campaign {answer['campaign_id']} {answer['status']}: {answer['message']}"
 
 
+def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) -> str:
+    """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``); one
+    line for the operator saying whether the drives are off."""
+    with open(log_file, "ab") as log:
+        try:
+            proc = subprocess.run(xneck_argv("bridge", *driver_args, *param_args, "--drives-off"), stdout=log,
+                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, timeout=DRIVES_OFF_TIMEOUT_S,
+                                  env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        except subprocess.TimeoutExpired:
+            return f"DRIVES MAY BE ON: `xneck bridge --drives-off` did not end within {DRIVES_OFF_TIMEOUT_S:.0f} s"
+    if proc.returncode != 0:
+        return f"DRIVES MAY BE ON: `xneck bridge --drives-off` failed ({exit_how(proc.returncode)}), see {log_file}"
+    return "the bridge did not end cleanly: its drives were disabled by `xneck bridge --drives-off`"
+
+
+class _StateAge:
+    """Seconds since the latest motor state on the bus (``None`` before the first), read from a
+    subscriber of this process: the console's own view could lag behind when it is busy."""
+
+    def __init__(self, hub: str) -> None:
+        import zenoh
+
+        from bridge import bus
+        from bridge.session import LatestSubscriber, zenoh_config
+
+        self._session = zenoh.open(zenoh_config(listen=[], connect=[hub]))
+        self._sub = LatestSubscriber(self._session, bus.MOTOR_STATE, bus.MotorState)
+
+    def age_s(self) -> float | None:
+        msg, received_ns = self._sub.latest_with_time()
+        return None if msg is None else (time.monotonic_ns() - received_ns) / 1e9
+
+    def close(self) -> None:
+        self._session.close()
+
+
 def up(
     robot: bool = typer.Option(False, "--robot", help="Drive the BeagleBone's motors instead of the twin."),
     no_bridge: bool = typer.Option(False, "--no-bridge", help="The bridge runs elsewhere (e.g. on the BeagleBone) "
@@ -225,6 +273,8 @@ def up(
         isolate(procs[name].pid, args[0])  # the loop's processes first, the console off their CPU (issue 21)
 
     code = 0
+    watch: _StateAge | None = None
+    driver: list[str] = []
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
                          "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
@@ -243,6 +293,7 @@ def up(
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
             start("bridge", ["bridge", *driver, *common, *param_args])
         start("controller", ["controller", "--law", str(law), *common, *param_args])
+        watch = _StateAge(connect_to) if robot and not no_bridge else None
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
@@ -251,13 +302,20 @@ def up(
         started = seen_alive = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
             polled = time.monotonic()
+            age = watch.age_s() if watch is not None else None
+            hung = ""
+            if age is not None and age > BRIDGE_HUNG_S and procs["bridge"].poll() is None:
+                procs["bridge"].kill()  # hung: SIGTERM would wait on a loop that does not run
+                procs["bridge"].wait(STOP_GRACE_S)
+                hung = f"hung (no motor state for {age:.1f} s), killed"
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
             if dead:
                 name, rc = dead[0]
-                typer.secho(f"error: the {name} exited ({exit_how(rc)}); stopping the stack, nothing is restarted.\n"
+                how = hung if name == "bridge" and hung else f"exited ({exit_how(rc)})"
+                typer.secho(f"error: the {name} {how}; stopping the stack, nothing is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
-                    typer.secho(abort_campaign(url, _token(data_dir), f"{name} process exited ({exit_how(rc)})",
+                    typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
                                                time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
                                 err=True, fg="red")
                 code = 1
@@ -274,6 +332,10 @@ def up(
             p = procs.get(name)
             if p is not None and stop_child(p, STOP_GRACE_S):
                 typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
+            if name == "bridge" and robot and p is not None and p.returncode != 0:
+                typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
+        if watch is not None:
+            watch.close()
         typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
     if code:
         raise typer.Exit(code)

@@ -1,10 +1,13 @@
-"""Fake rcpy.gpio: remembers the levels it was given."""
+"""Fake rcpy.gpio: remembers the levels it was given (and logs them: rcpy._log)."""
+
+from rcpy._log import record
 
 _levels = {}
 
 
 def set_value(pin, value=0):
     _levels[pin] = int(value)
+    record("gpio", pin, int(value))
 
 
 def get_value(pin):
