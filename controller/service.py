@@ -60,6 +60,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from bridge import bus
+from controller.encoder_check import THRESHOLD_M, EncoderConsistency
 from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
 from controller.trajectory import (
     ForceCheck,
@@ -317,9 +318,13 @@ class CampaignService:
     drive_reason: str = ""  # why, when it is not active (e-stop reason, bridge hold reason)
     trajectory: Trajectory | None = None
     events: list[Event] = field(default_factory=list)
+    # m: the stuck-encoder check's threshold (controller.encoder_check, measured on the robot
+    # truth; re-measure it on the robot); None turns the check off.
+    encoder_threshold_m: float | None = THRESHOLD_M
 
     def __post_init__(self) -> None:
         self.ctl = ComputedTorque(self.params, self.law)
+        self.encoder_check = self._make_encoder_check()
         n_joints = self.ctl.model.n_joints
         self.last_sane = np.zeros(n_joints)
         self.hold_target = np.zeros(n_joints)
@@ -365,6 +370,8 @@ class CampaignService:
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
+        if self.encoder_check is not None:
+            self.encoder_check.reset()
 
     def _reestimate(self) -> None:
         """After a latch, α̂ again from the encoders' absolute reading (eq. 33): the incremental
@@ -379,6 +386,8 @@ class CampaignService:
             return
         self.ctl.reset(alpha=alpha, theta=theta)
         self.ctl.f_prev[:] = f_sent
+        if self.encoder_check is not None:
+            self.encoder_check.reset()
         self.last_sane = np.clip(alpha, -self._alpha_max, self._alpha_max)
 
     def new_bridge_run(self, theta_rad: np.ndarray, stamp_s: float, bridge: str) -> None:
@@ -547,6 +556,8 @@ class CampaignService:
         ctl.theta_dot = old_ctl.theta_dot.copy()
         ctl.f_prev = old_ctl.f_prev.copy()
         self.ctl, self.law = ctl, law
+        if self.encoder_check is not None and self._encoder_check_params is not self.params:
+            self.encoder_check = self._make_encoder_check()  # the new set's geometry (< 1 ms once loaded)
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._limit = self._alpha_max + DIVERGENCE_MARGIN
 
@@ -575,19 +586,32 @@ class CampaignService:
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
 
-    def _encoder_fault(self, theta_rad: np.ndarray, stamp_s: float) -> str:
+    def _make_encoder_check(self) -> EncoderConsistency | None:
+        if self.encoder_threshold_m is None:
+            return None
+        self._encoder_check_params = self.params  # which set it was built for (a campaign may bring another)
+        return EncoderConsistency(self.params, self.encoder_threshold_m)
+
+    def _encoder_fault(self, theta_rad: np.ndarray, stamp_s: float, force_applied_N: np.ndarray | None = None,
+                       active: bool = True) -> str:
         """Why the encoders cannot be right ("" if they can): one moved more than a motor turns in
-        the time since the last state (``MOTOR_SPEED_MAX_RAD_S``)."""
+        the time since the last state (``MOTOR_SPEED_MAX_RAD_S``), or the four disagree with α̂
+        beyond what the cables' stretch and friction explain, for long enough: one is stuck
+        (:mod:`controller.encoder_check`, while the drives are ``active`` only)."""
         last, theta = self._theta_last, [float(x) for x in theta_rad]
         self._theta_last = (stamp_s, theta)
-        if last is None:
+        if last is not None:
+            allowed = MOTOR_SPEED_MAX_RAD_S * max(stamp_s - last[0], self.ctl.dt)
+            for j, (a, b) in enumerate(zip(last[1], theta, strict=True)):
+                if not abs(b - a) <= allowed:  # also for a NaN
+                    return (f"encoder {j + 1} moved {b - a:.3g} rad in {max(stamp_s - last[0], 0.0) * 1e3:.0f} ms, "
+                            f"more than a motor turns ({MOTOR_SPEED_MAX_RAD_S:g} rad/s): encoder fault")
+        if self.encoder_check is None:
             return ""
-        allowed = MOTOR_SPEED_MAX_RAD_S * max(stamp_s - last[0], self.ctl.dt)
-        for j, (a, b) in enumerate(zip(last[1], theta, strict=True)):
-            if not abs(b - a) <= allowed:  # also for a NaN
-                return (f"encoder {j + 1} moved {b - a:.3g} rad in {max(stamp_s - last[0], 0.0) * 1e3:.0f} ms, more than "
-                        f"a motor turns ({MOTOR_SPEED_MAX_RAD_S:g} rad/s): encoder fault")
-        return ""
+        ctl = self.ctl
+        force = ctl.f_prev if force_applied_N is None else force_applied_N  # what acted over the last period
+        return self.encoder_check.update(theta_rad, ctl.estimator.alpha_hat, force, ctl.theta_dot, stamp_s,
+                                         active=active and not self.latched)
 
     def _pretension(self, stamp_s: float | None) -> float:
         """The floor added to t_min this tick (N): the running trajectory's pretension at
@@ -668,7 +692,7 @@ class CampaignService:
         campaign it runs is aborted."""
         self.ticks += 1
         self.drive = drive
-        fault = self._encoder_fault(theta_rad, stamp_s)
+        fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N, active=drive == "active" and obeyed)
         if fault and not self.latched:
             self.latched = True
             out = self.hold(fault)

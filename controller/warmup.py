@@ -14,6 +14,7 @@ import numpy as np
 
 def main() -> None:
     t0 = time.perf_counter()
+    from controller.encoder_check import EncoderConsistency
     from controller.laws import ComputedTorque, LawConfig
     from twin.model.params import load_params
     from twin.sim.simulator import Twin, TwinConfig
@@ -25,6 +26,8 @@ def main() -> None:
     for law in (1, 2, 3):
         ctl = ComputedTorque(params, LawConfig(law=law))
         ctl.step(np.zeros(params.n_cables), np.zeros(params.n_joints), np.zeros(params.n_joints), np.zeros(params.n_joints))
+    EncoderConsistency(params).update(np.zeros(params.n_cables), np.zeros(params.n_joints), np.zeros(params.n_cables),
+                                      np.zeros(params.n_cables), 0.0)
     print(f"numba kernels compiled and cached in {time.perf_counter() - t0:.1f} s")
 
 

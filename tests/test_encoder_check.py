@@ -152,3 +152,35 @@ def test_non_finite_input_is_a_fault_at_once_not_an_exception(params, bad):
     s, r = residuals(m, inputs["theta"], inputs["alpha"], inputs["force"], inputs["theta_dot"])
     if bad != "stamp":
         assert math.isnan(float(s)) and np.isnan(r).all()
+
+
+def test_the_controller_service_aborts_a_campaign_on_a_stuck_encoder_and_holds(params):
+    """Wired into the service (``CampaignService._encoder_fault``): encoder 2 freezes mid-move, the
+    campaign ends ``aborted`` naming it, and the hold latches; with the check off it went on."""
+    from test_controller_service import Loop, _request
+
+    from controller.trajectory import Trajectory
+
+    swing = Trajectory.from_degrees([[0, 0, 0], [30, -20, 10], [0, 0, 0]], 3.0, 0.2, name="swing")
+    outcomes = {}
+    for threshold in (None, THRESHOLD_M):
+        loop = Loop(params)
+        loop.svc.encoder_threshold_m = threshold
+        loop.svc.encoder_check = loop.svc._make_encoder_check()
+        loop.svc.handle(_request("c-1", trajectory_json=swing.to_json()), loop.stamp_s)
+        loop.run(1.0)
+        frozen = float(loop.tick.theta_meas[1])
+        for _ in range(1000):  # 2 s with encoder 2 stuck
+            theta = np.array(loop.tick.theta_meas, dtype=float)
+            theta[1] = frozen
+            out = loop.svc.control(theta, loop.stamp_s)
+            if out.law_ran:
+                loop.svc.advance(loop.stamp_s)
+            loop.events += loop.svc.drain_events()
+            loop.tick = loop.twin.tick(out.force_N)
+        ended = [e for e in loop.events if e.campaign_id == "c-1" and e.event in ("finished", "aborted")]
+        outcomes[threshold] = (ended[-1].event, ended[-1].message) if ended else ("running", "")
+        if threshold is not None:
+            assert loop.svc.latched and "encoder 2 stuck" in loop.svc.hold_reason
+    assert outcomes[None][0] == "running", outcomes
+    assert outcomes[THRESHOLD_M][0] == "aborted" and "encoder 2 stuck" in outcomes[THRESHOLD_M][1], outcomes
