@@ -235,6 +235,7 @@ def test_the_dashboard_shows_the_bridges_estop_and_its_reason(tmp_path: Path) ->
             page = browser.new_page()
             page.goto(base + "/", wait_until="load")
             page.wait_for_function("document.querySelector('#sys').textContent.startsWith('mode')", timeout=20000)
+            page.wait_for_function("document.querySelector('#sys').textContent.includes('bridge: state')", timeout=20000)
             assert page.is_hidden("#estop-state")
             s.put(bus.ESTOP, b"not json")
             page.wait_for_selector("#estop-state:not([hidden])", timeout=20000)

@@ -277,12 +277,21 @@ function showEstop(e) {
     (e.source === "console" ? " (as sent by this console; no bridge reports)" : "") : "";
 }
 
+// How old the bridge's latest motor state is: a bridge that is listed alive but states nothing
+// (hung, or its bus link gone) must not look like a live one.
+function bridgeAge(b) {
+  if (!b || b.state_age_s === null || b.state_age_s === undefined) return "bridge: no motor state yet";
+  const age = b.state_age_s;
+  if (age > 1.0) return `BRIDGE SILENT for ${age.toFixed(1)} s (last drive ${b.drive})`;
+  return `bridge: state ${(age * 1e3).toFixed(0)} ms ago, drive ${b.drive}`;
+}
+
 async function pollStatus() {
   try {
     const h = await api("GET", "/api/system/health");
     const procs = await api("GET", "/api/system/processes");
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
-      ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}`;
+      ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"} — ${bridgeAge(h.bridge)}`;
     // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
     // of the same state may be older or newer than the last frame, and mixing the two made the
     // banner blink off and on right after an engage.
