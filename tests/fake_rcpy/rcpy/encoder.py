@@ -1,9 +1,14 @@
-"""Fake rcpy.encoder: four quadrature counters that never move."""
+"""Fake rcpy.encoder: four quadrature counters that never move. A read blocks while the file
+named by FAKE_RCPY_BLOCK exists (rcpy._log: a test's way to hang the bridge's loop)."""
+
+from rcpy._log import BLOCK, hang_while_blocked
 
 _counts = {1: 0, 2: 0, 3: 0, 4: 0}
 
 
 def get(channel):
+    if BLOCK:
+        hang_while_blocked(channel)
     if channel not in _counts:
         raise ValueError(f"no encoder channel {channel}")
     return _counts[channel]
