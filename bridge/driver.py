@@ -19,6 +19,8 @@ Lifecycle (after ROS 2 managed nodes, reduced to what a motor driver needs)::
 - ``ACTIVE``: the drives are enabled and follow :meth:`Driver.write`.
 - :meth:`Driver.close` disables the drives from any state and may be called any number of times;
   it must not raise, because it runs on the way out of a crash.
+- :meth:`Driver.trip` disables the drives from another thread while the loop may be hung, and
+  latches them off for good (the loop watchdog, :mod:`bridge.loop_watchdog`).
 
 Units: angles in rad at the motor shaft, forces in N along the cable, one value per motor in the
 motor order of the parameter file.
@@ -103,7 +105,9 @@ class Driver(abc.ABC):
     the public methods enforce the lifecycle, so no driver can drive from the wrong state.
 
     Thread safety: the bridge calls a driver from its loop thread only, except :meth:`close`,
-    which may also come from an ``atexit`` hook; a lock serialises the transitions.
+    which may also come from an ``atexit`` hook (a lock serialises the transitions), and
+    :meth:`trip`, which comes from the loop watchdog's thread while the loop may be hung
+    anywhere, inside a transition too: it takes no lock.
     """
 
     #: Short name used on the command line and in logs.
@@ -113,10 +117,16 @@ class Driver(abc.ABC):
         self.config = config
         self._state = Lifecycle.UNCONFIGURED
         self._lock = threading.RLock()
+        self._tripped = False
 
     @property
     def state(self) -> Lifecycle:
         return self._state
+
+    @property
+    def tripped(self) -> bool:
+        """True once :meth:`trip` was called: the drives stay off for good."""
+        return self._tripped
 
     @property
     def n_motors(self) -> int:
@@ -141,6 +151,7 @@ class Driver(abc.ABC):
             if self._state is Lifecycle.ACTIVE:
                 return
             self._expect("activate", Lifecycle.INACTIVE)
+            self._refuse_if_tripped("activate")
             try:
                 self._on_activate()
             except BaseException:
@@ -178,6 +189,30 @@ class Driver(abc.ABC):
             except Exception:  # close runs on the way out of a crash
                 log.exception("%s: error while closing the driver", self.name)
 
+    def trip(self) -> str:
+        """Disable the drives now, from any thread, and for good: the loop watchdog's way out of a
+        hung loop (:mod:`bridge.loop_watchdog`). No lock is taken (the hung loop may hold it, in
+        the middle of a transition or a write). The latch is set first: from then on
+        :meth:`activate` and :meth:`write` refuse, and a driver's own hardware writes that would
+        drive check it before each call (:meth:`_refuse_if_tripped`), so a loop that wakes up
+        cannot enable or drive again; a write already past its check when the latch was set can
+        still land, which a second call undoes. The lifecycle state is left as it is (the loop
+        may be changing it). Callable any number of times; never raises: returns '' or why not
+        every drive could be disabled."""
+        self._tripped = True
+        if self._state is Lifecycle.UNCONFIGURED:
+            return ""  # nothing opened, nothing driven
+        try:
+            self._on_trip()
+        except Exception as exc:  # noqa: BLE001 - reported to the caller, which exits the process either way
+            return f"{type(exc).__name__}: {exc}"
+        return ""
+
+    def _refuse_if_tripped(self, what: str) -> None:
+        """Raise if :meth:`trip` was called: for every hardware write that could drive."""
+        if self._tripped:
+            raise DriverError(f"{self.name}: {what} refused, the loop watchdog tripped the drives off for good")
+
     # -- I/O ---------------------------------------------------------------------------------
     def read(self) -> np.ndarray:
         """Motor shaft angles θ (rad), shape (n_motors,). INACTIVE or ACTIVE."""
@@ -189,7 +224,8 @@ class Driver(abc.ABC):
         """Apply cable forces (N), shape (n_motors,); returns the forces actually applied after
         the device's own limits (e.g. the current limit of the motor controller). ACTIVE only:
         the caller has already validated and clamped ``force_N``."""
-        if self._state is not Lifecycle.ACTIVE:
+        if self._state is not Lifecycle.ACTIVE or self._tripped:
+            self._refuse_if_tripped("write()")
             raise DriverError(f"{self.name}: write() refused, the drives are {self._state.value} (activate first)")
         f = np.asarray(force_N, dtype=float)
         # On plain floats: numpy's reduction costs more than the rest of a bridge tick (issue 20).
@@ -237,6 +273,12 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def _on_write(self, force_N: np.ndarray) -> np.ndarray: ...
+
+    def _on_trip(self) -> None:
+        """Every drive off, from another thread than the loop's, without the lock (:meth:`trip`).
+        Default: :meth:`_on_deactivate`, which must then be safe to call that way (the twin's
+        and the replay's are); a hardware driver overrides it if it is not."""
+        self._on_deactivate()
 
     def __enter__(self) -> Driver:
         return self

@@ -237,11 +237,15 @@ class BeagleBoneDriver(Driver):
                  self.config.encoder_channels, self._offset.astype(int).tolist())
 
     def _on_activate(self) -> None:
+        # Each write that could drive checks the loop watchdog's latch just before it is made
+        # (Driver.trip): a loop that wakes up in here after the trip enables nothing more.
         board, cfg = self._require_board(), self.config
+        self._refuse_if_tripped("enable")
         board.motor.enable()
         for ch in cfg.motor_channels:  # zero current first, so enabling cannot jerk a cable
             board.motor.set(ch, self._zero_duty)
         for pin in cfg.enable_pins:
+            self._refuse_if_tripped(f"enable line {pin}")
             board.gpio.set_value(pin, self._level(True))
 
     def _on_deactivate(self) -> None:
@@ -264,8 +268,16 @@ class BeagleBoneDriver(Driver):
         board, cfg = self._require_board(), self.config
         s, applied = self.set_values(force_N)
         for ch, value in zip(cfg.motor_channels, s):
+            if self._tripped:  # the latch, before each set value (Driver.trip)
+                self._refuse_if_tripped(f"motor output {ch}")
             board.motor.set(ch, float(cfg.duty_of(value)))
         return applied
+
+    def _on_trip(self) -> None:
+        # From the loop watchdog's thread, no lock: only writes that turn drives off, one library
+        # call per line or output. A write of the loop's that lands between them (it passed its
+        # latch check before the trip) is undone by the watchdog's second pass (Driver.trip).
+        self._drives_off()
 
     # -- helpers -------------------------------------------------------------------------------
     def _drives_off(self) -> None:
