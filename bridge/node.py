@@ -35,6 +35,12 @@ Exit
     from ``atexit`` as a backstop) disables the drives and publishes a last ``MotorState`` with
     ``drive = "disabled"``. A SIGKILL cannot be caught: on hardware only the ESCONs' own enable
     logic remains.
+Loop watchdog
+    Real time, ``loop_stall_s`` > 0 (``xneck bridge``: 0.5 s): when the loop makes no tick for
+    that long while the process runs (hung in a call, a deadlock, an endless loop: the rules
+    above run in the loop and hang with it), a thread of its own trips the driver (every drive
+    off, latched) and ends the process with code 70 (:mod:`bridge.loop_watchdog`). Under systemd
+    the loop also pings the unit's watchdog (:class:`bridge.runtime.SystemdNotify`).
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from __future__ import annotations
 import atexit
 import collections
 import contextlib
+import faulthandler
 import logging
 import math
 import os
@@ -57,6 +64,8 @@ import zenoh
 
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
+from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
+from bridge.runtime import SystemdNotify
 from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, subscribe_latest
 
@@ -84,6 +93,9 @@ class BridgeConfig:
     hold_tolerance_rad: float = 0.2  # angles closer than this to the last computed share its hold forces
     hold_refresh_s: float = 0.02  # the hold worker computes at most this often
     hold_max_age_s: float = 0.1  # hold forces of angles older than this are stale (a hold keeps the forces)
+    # Real time: no tick for this long while the process runs -> drives tripped off, exit 70 (0: off,
+    # for in-process callers such as tests, whose process it would end; `xneck bridge`: 0.5 s).
+    loop_stall_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N",
@@ -94,6 +106,8 @@ class BridgeConfig:
                 raise ValueError(f"{name} must be a positive number ({unit}), got {value}")
         if not (math.isfinite(self.hold_ramp_s) and self.hold_ramp_s >= 0):
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
+        if not (self.loop_stall_s == 0 or (math.isfinite(self.loop_stall_s) and self.loop_stall_s >= MIN_STALL_S)):
+            raise ValueError(f"loop_stall_s must be 0 (off) or at least {MIN_STALL_S} s, got {self.loop_stall_s}")
 
 
 def _bounded(text: str, n: int = 200) -> str:
@@ -475,22 +489,36 @@ class BridgeNode:
         self.driver.close()
 
 
-def run_realtime(node: BridgeNode, stop: threading.Event) -> int:
+def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify | None = None) -> int:
     """Ticks paced by the clock at the driver's rate. A tick that ends after the next one was due
     is an overrun (counted, reported in ``Health``); whole periods lost are skipped, never caught
-    up. Returns the number of ticks run."""
+    up. With ``config.loop_stall_s`` > 0 a :class:`bridge.loop_watchdog.LoopWatchdog` watches the
+    ticks (each stores its time: 7 ns) and, should they stop, trips the driver and ends the process
+    (code 70). ``systemd``: told ``READY=1`` as the loop starts and pinged (``WATCHDOG=1``) from
+    this thread every ``ping_period_s``. Returns the number of ticks run."""
     cfg, dt = node.config, node.dt
+    driver = node.driver
+    watchdog = LoopWatchdog(cfg.loop_stall_s, drives_off_and_exit(driver))
     start = time.perf_counter()
     k = 0
     next_health = start + cfg.health_period_s
+    next_ping = start + (systemd.ping_period_s if systemd is not None else math.inf)
     node.publish_health()
     switch = sys.getswitchinterval()
     sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
+    watchdog.start()
+    if systemd is not None:
+        if systemd.watchdog_s is not None:
+            # systemd's watchdog kills with SIGABRT: the journal then shows where every thread was
+            # (faulthandler needs no GIL, so a loop hung in a C call holding it is shown too).
+            faulthandler.enable(all_threads=True)
+        systemd.ready()
     try:
-        while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not node.driver.exhausted:
+        while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not driver.exhausted:
             node.tick(time.perf_counter() - (start + k * dt))  # how late this tick starts
             k += 1
             now = time.perf_counter()
+            watchdog.last_tick_s = now  # the loop watchdog's one per-tick cost
             due = start + k * dt
             if now > due:
                 node.overruns += 1
@@ -501,8 +529,17 @@ def run_realtime(node: BridgeNode, stop: threading.Event) -> int:
             if now >= next_health:
                 node.publish_health()
                 next_health = now + cfg.health_period_s
+            if now >= next_ping:  # finite only with systemd
+                assert systemd is not None
+                systemd.ping()
+                next_ping = now + systemd.ping_period_s
     finally:
         sys.setswitchinterval(switch)
+        # Fired: its action is ending the process (the drives are off); this thread must not go
+        # on to a clean exit's code 0 meanwhile, nor re-raise what the tripped driver raised.
+        watchdog.stop()
+        if systemd is not None:
+            systemd.stopping()
     return k
 
 

@@ -1,4 +1,5 @@
-"""What every bus process shares: logging, a stop event set by SIGINT/SIGTERM, endpoint lists, priority.
+"""What every bus process shares: logging, a stop event set by SIGINT/SIGTERM, endpoint lists, priority,
+systemd's notification socket.
 
 The command-line options of these processes live with the one ``xneck`` command line
 (:mod:`server.cli.options`); this module only holds what runs inside the processes."""
@@ -6,8 +7,10 @@ The command-line options of these processes live with the one ``xneck`` command 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
+import socket
 import threading
 
 
@@ -46,3 +49,71 @@ def raise_priority(niceness: int = -10) -> bool:
     except (PermissionError, OSError):
         logging.getLogger("xneck").info("could not raise the scheduling priority (needs CAP_SYS_NICE)")
         return False
+
+
+class SystemdNotify:
+    """sd_notify(3) in a few lines, without libsystemd: datagrams to ``$NOTIFY_SOCKET``.
+
+    Under a unit with ``Type=notify`` and ``WatchdogSec=`` (docs/bridge.md), systemd sets
+    ``NOTIFY_SOCKET`` and ``WATCHDOG_USEC``. The bridge says ``READY=1`` when its real-time loop
+    starts, ``WATCHDOG=1`` from the loop's own thread every :attr:`ping_period_s` (half of
+    ``WATCHDOG_USEC``, as sd_watchdog_enabled(3) advises) and ``STOPPING=1`` when it ends. A loop
+    that stops ticking stops the pings, whatever stopped it (a SIGSTOP, a C call holding the GIL:
+    what the in-process loop watchdog cannot see), and systemd kills the service (``WatchdogSignal``,
+    SIGABRT by default), then runs ``ExecStopPost``. Every send is non-blocking and never raises:
+    a failure is logged once and the loop goes on.
+    """
+
+    def __init__(self, address: str, watchdog_s: float | None = None) -> None:
+        self.address = address
+        self.watchdog_s = watchdog_s
+        #: How often the loop pings (s); inf without a watchdog.
+        self.ping_period_s = watchdog_s / 2 if watchdog_s else math.inf
+        self.sent = self.failed = 0
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        self._target = "\0" + address[1:] if address.startswith("@") else address  # "@": Linux abstract namespace
+
+    @classmethod
+    def from_environ(cls, environ: dict[str, str] | None = None) -> SystemdNotify | None:
+        """The notifier systemd asked for, or None (not under systemd, or not a unix socket).
+        ``WATCHDOG_PID`` naming another process (the variables were inherited) turns the
+        watchdog off."""
+        env = os.environ if environ is None else environ
+        address = env.get("NOTIFY_SOCKET", "")
+        if not address.startswith(("/", "@")):
+            if address:
+                logging.getLogger("xneck").warning("NOTIFY_SOCKET=%r is not a unix socket: systemd is not told", address)
+            return None
+        watchdog_s = None
+        try:
+            usec = int(env.get("WATCHDOG_USEC", "0"))
+            pid = int(env.get("WATCHDOG_PID", str(os.getpid())))
+        except ValueError:
+            usec, pid = 0, -1
+        if usec > 0 and pid == os.getpid():
+            watchdog_s = usec * 1e-6
+        return cls(address, watchdog_s)
+
+    def send(self, state: str) -> bool:
+        try:
+            self._sock.sendto(state.encode(), socket.MSG_DONTWAIT, self._target)
+        except OSError as exc:
+            self.failed += 1
+            if self.failed == 1:
+                logging.getLogger("xneck").warning("could not notify systemd at %s (%s): %s", self.address,
+                                                   exc.strerror or exc, state.split("=")[0])
+            return False
+        self.sent += 1
+        return True
+
+    def ready(self) -> bool:
+        return self.send("READY=1")
+
+    def ping(self) -> bool:
+        return self.send("WATCHDOG=1")
+
+    def stopping(self) -> bool:
+        return self.send("STOPPING=1")
+
+    def close(self) -> None:
+        self._sock.close()

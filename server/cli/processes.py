@@ -144,6 +144,10 @@ def bridge(
                                     help="Ramp to the hold forces over this long (s)."),
     max_force_step: float = typer.Option(
         1.0, "--max-force-step", callback=POSITIVE, help="After any enable, ramp the forces at most this much per tick (N)."),
+    loop_stall: float = typer.Option(
+        0.5, "--loop-stall", callback=NON_NEGATIVE,
+        help="Real time: when the loop makes no tick for this long while the process runs, disable the drives and "
+        "exit with code 70 (s, at least 0.05; 0: off)."),
     seed: int = SEED_OPTION,
     cable_model: str | None = CABLE_MODEL_OPTION,
     no_friction: bool = NO_FRICTION_OPTION,
@@ -173,7 +177,7 @@ def bridge(
         prefer_plain_python()
     from bridge.driver import DriverError
     from bridge.node import BridgeConfig, run_lockstep, run_realtime
-    from bridge.runtime import raise_priority, setup_logging, stop_on_signals
+    from bridge.runtime import SystemdNotify, raise_priority, setup_logging, stop_on_signals
 
     setup_logging(verbose)
     if drives_off:
@@ -185,7 +189,7 @@ def bridge(
         raise fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
-                              max_force_step_N=max_force_step,
+                              max_force_step_N=max_force_step, loop_stall_s=loop_stall,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
                               instance=instance)
     except ValueError as exc:
@@ -205,13 +209,14 @@ def bridge(
                 node = bridge_node(session, drv, params, config)
             except ValueError as exc:
                 raise fail(str(exc)) from None
-            mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz"
+            mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz, " + (
+                f"loop watchdog {loop_stall:g} s" if loop_stall else "no loop watchdog")
             log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
                      command_timeout * 1e3)
             if not lockstep:
                 raise_priority()
             try:
-                ticks = (run_lockstep if lockstep else run_realtime)(node, stop)
+                ticks = run_lockstep(node, stop) if lockstep else run_realtime(node, stop, SystemdNotify.from_environ())
             finally:
                 node.shutdown()
             stats = node.commands.stats
@@ -247,7 +252,7 @@ def twin(
     if ctx.invoked_subcommand is not None:
         return  # a subcommand (calibrate) runs instead of the twin
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, max_force_step=1.0, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
+           hold_ramp=0.010, max_force_step=1.0, loop_stall=0.5, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False)
 
