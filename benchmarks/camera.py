@@ -6,7 +6,7 @@ Accuracy: mean and max |α_IP − α| over configurations within the joint limit
 Speed, on one core (OpenCV single-threaded, process pinned to one CPU): detection time per frame,
 median and p99 (target ≤ 5 ms median), for a full-frame search and for the tracked case (windows
 around the last centroids, the steady state of a video at 30 fps); the renderer's time per frame
-(the twin source must draw 30 frames per second).
+(the twin source must draw 30 frames per second); the console frames' JPEG size and encoding time.
 Run: ``.venv/bin/python benchmarks/camera.py [--quick]``.
 """
 
@@ -31,6 +31,7 @@ from twin.camera.render import Renderer, RenderOptions  # noqa: E402
 from twin.model.numeric import build  # noqa: E402
 from twin.model.params import load_params  # noqa: E402
 
+JPEG_QUALITY = 75  # the camera process's default (--jpeg-quality)
 LEVELS = [(2.0, 0.8), (4.0, 0.8), (2.0, 1.6), (6.0, 1.6)]  # (noise σ in grey levels, blur σ in px)
 
 
@@ -101,6 +102,15 @@ def main() -> None:
     j = iter(range(10**9))
     summary("renderer (twin camera), per frame", time_calls(lambda: renderer.render(path[next(j) % n_frames]), 30 if quick else 100, warmup=3),
             unit=1e-3, unit_name="ms")
+    # The console's frames (twin.camera.frames.frame_message): JPEG size and encoding time at the
+    # default quality, on the same path.
+    sizes = [len(cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])[1]) for f in frames]
+    j = iter(range(10**9))
+    summary(f"JPEG encoding at quality {JPEG_QUALITY}, per frame",
+            time_calls(lambda: cv2.imencode(".jpg", frames[next(j) % n_frames], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]),
+                       30 if quick else 100, warmup=3), unit=1e-3, unit_name="ms")
+    print(f"  JPEG size: median {np.median(sizes) / 1e3:.1f} kB, min {min(sizes) / 1e3:.1f} kB, max {max(sizes) / 1e3:.1f} kB; "
+          f"at the default 5 Hz, {np.median(sizes) * 5 * 60 / 1e6:.1f} MB per minute")
     print(f"\ntarget: detection ≤ 5 ms median: {'met' if med <= 5.0 and med_full <= 5.0 else 'NOT met'} "
           f"(tracked {med:.2f} ms, full {med_full:.2f} ms)")
 
