@@ -39,8 +39,10 @@ aborting the running jog drops the waiting one.
 
 Stops: a stop request (the user's, or the console's on a silent bridge or a timeout) while the law
 tracks brings α^d to rest from where it is at its speed (:func:`controller.trajectory.brake_at`,
-at most the trajectories' 3 rad/s²) and holds there, as any jog or campaign does; a campaign asked
-for meanwhile starts when α^d rests. Faults (a latch, drives off) hold at α̂ instead.
+at most the trajectories' 3 rad/s², firmer where that would cross a joint limit) and holds there,
+as any jog or campaign does, through a re-start of the law too; a campaign asked for meanwhile
+starts when α^d rests. Faults (a latch, drives off, a new bridge run) hold at α̂ instead and answer
+a campaign waiting for the brake with the reason.
 
 Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
 count and duration, a time budget for the force check); :class:`StateGate` admits motor states
@@ -88,6 +90,12 @@ STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the
 # moved α̂ a few degrees and the law drove the real joint to 85°). EC-max 40: about 785 rad/s
 # without load (robot_truth.toml); twice that for margin.
 MOTOR_SPEED_MAX_RAD_S = 1600.0
+# s after the drives come back (first enable, e-stop release, another controller's hand-over)
+# before the stuck-encoder check looks again: the bridge's ramp takes up cables that went slack
+# meanwhile, and the stretch the check predicts from the forces is wrong until they are taut
+# (audit of 2026-11-26: −13 mm of parity 60 ms after an e-stop release at [35, −25, 20]°; the
+# slack was taken up after about 225 ms).
+ENCODER_CHECK_SETTLE_S = 0.5
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog waits for it
 # N/s at which a pretension left over by an aborted campaign is let go (the law's floor and the
@@ -339,6 +347,7 @@ class CampaignService:
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
+        self._check_armed_at = math.inf  # the drives have not been active yet (ENCODER_CHECK_SETTLE_S)
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -370,6 +379,7 @@ class CampaignService:
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
+        self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
             self.encoder_check.reset()
 
@@ -396,6 +406,7 @@ class CampaignService:
         if self.running:
             self._end("aborted", f"the bridge restarted ({bridge}): the campaign cannot continue",
                       self._progress(stamp_s), self.ctl.estimator.alpha_hat)
+        self._drop_waiting(f"the bridge restarted ({bridge})")
         self.initialise(theta_rad)
 
     # -- campaigns ----------------------------------------------------------------------------
@@ -438,7 +449,7 @@ class CampaignService:
     def stop(self, campaign_id: str, stamp_s: float) -> None:
         """A stop request: aborts the campaign ``campaign_id`` if it runs or is being prepared."""
         if self._next_jog is not None and self._next_jog.campaign_id == campaign_id:
-            self.refuse(campaign_id, "jog", "stopped by the user before it started")
+            self.refuse(campaign_id, self._next_jog.kind, "stopped by the user before it started")
             self._next_jog = None
         elif self.running and campaign_id == self.campaign_id:
             brake = self._brake_from(stamp_s)
@@ -459,6 +470,14 @@ class CampaignService:
         a_d = np.array(a_d, dtype=float)
         a_d_dot = np.array(a_d_dot, dtype=float)
         return stamp_s, a_d, a_d_dot, brake_duration_s(a_d, a_d_dot, self._alpha_max)
+
+    def _drop_waiting(self, reason: str) -> None:
+        """Answer the campaign waiting for the brake to end (none waits behind a running one
+        here: :meth:`_end` answers those) and give the brake up: ``reason`` ends it."""
+        self._brake = None
+        if self._next_jog is not None and not self.running:
+            waiting, self._next_jog = self._next_jog, None
+            self.refuse(waiting.campaign_id, waiting.kind, f"dropped before it started: {reason}")
 
     @property
     def braking(self) -> bool:
@@ -592,6 +611,21 @@ class CampaignService:
         self._encoder_check_params = self.params  # which set it was built for (a campaign may bring another)
         return EncoderConsistency(self.params, self.encoder_threshold_m)
 
+    def _check_armed(self, active: bool, stamp_s: float) -> bool:
+        """Whether the stuck-encoder check may judge this state: the drives active, and, after
+        they were off, ``ENCODER_CHECK_SETTLE_S`` since they came back (cables taut again)."""
+        if not active:
+            self._check_armed_at = math.inf
+            return False
+        if self._check_armed_at is None:
+            return True
+        if self._check_armed_at == math.inf:
+            self._check_armed_at = stamp_s + ENCODER_CHECK_SETTLE_S
+        if stamp_s < self._check_armed_at:
+            return False
+        self._check_armed_at = None
+        return True
+
     def _encoder_fault(self, theta_rad: np.ndarray, stamp_s: float, force_applied_N: np.ndarray | None = None,
                        active: bool = True) -> str:
         """Why the encoders cannot be right ("" if they can): one moved more than a motor turns in
@@ -668,9 +702,13 @@ class CampaignService:
         self._restart = False
         self.ctl.restart_integral()
         alpha_hat = self.hold_alpha()
-        self._blend = self._brake = None
+        brake, self._blend, self._brake = self._brake, None, None
         drives_were_off, self._drives_off = self._drives_off, False
-        if not self.running and (drives_were_off or self.kind != "jog" or self.outcome != "finished"):
+        if brake is not None and not drives_were_off:
+            # A stop's brake goes on through a re-start (a watchdog hold, stale states), blended
+            # from α̂ like a trajectory; dropping it had set α^d to α̂ at rest (audit of 2026-11-26).
+            self._brake = brake
+        elif not self.running and (drives_were_off or self.kind != "jog" or self.outcome != "finished"):
             self.hold_target = alpha_hat.copy()
             return
         # A finished jog's pose is where the operator put the neck: a stall of the states does not
@@ -692,9 +730,11 @@ class CampaignService:
         campaign it runs is aborted."""
         self.ticks += 1
         self.drive = drive
-        fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N, active=drive == "active" and obeyed)
+        fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N,
+                                    active=self._check_armed(drive == "active" and obeyed, stamp_s))
         if fault and not self.latched:
             self.latched = True
+            self._drop_waiting(fault)
             out = self.hold(fault)
             if self.running or not self.service:
                 self._end("aborted", fault, self._progress(stamp_s) if self.running else 0.0, self.hold_alpha())
@@ -716,6 +756,8 @@ class CampaignService:
                 reason = f"drives {drive}" + (f": {self.drive_reason}" if self.drive_reason else "")
             if (drive == "disabled" or not obeyed) and self.running:
                 self._end("aborted", f"{reason} during the campaign", self._progress(stamp_s), self.hold_alpha())
+            elif drive == "disabled" or not obeyed:
+                self._drop_waiting(reason)
             return self.hold(self.hold_reason if self.latched else reason)
         if self.latched:
             self.reference(stamp_s)
@@ -727,6 +769,7 @@ class CampaignService:
         if not _sane(cmd.alpha_hat, self._limit, cmd.f):
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
+            self._drop_waiting(self.hold_reason)
             if self.running or not self.service:
                 self._end("aborted", self.hold_reason, self._progress(stamp_s) if self.running else 0.0,
                           self.last_sane)

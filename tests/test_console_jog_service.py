@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from test_controller_service import Loop, _request
 
 from controller.trajectory import Trajectory
@@ -138,3 +139,92 @@ def test_a_jog_asked_for_while_the_neck_brakes_starts_where_it_rests(params):
     d_alpha_d, d_force = _steps_around(loop, before)
     assert d_alpha_d < math.radians(0.2) and d_force < 2.0
     assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - np.radians([-10.0, 0.0, 0.0]))).max() < 1.0
+
+
+def _run(loop: Loop, seconds: float, drive: str = "active", theta=None) -> None:
+    """Loop.run with the bridge's drive state; with the drives off the twin gets no force."""
+    for _ in range(round(seconds * 500)):
+        out = loop.svc.control(loop.tick.theta_meas if theta is None else theta, loop.stamp_s, drive)
+        loop.outputs.append(out)
+        if out.law_ran:
+            loop.svc.advance(loop.stamp_s)
+        loop.events += loop.svc.drain_events()
+        loop.tick = loop.twin.tick(np.zeros_like(out.force_N) if drive == "disabled" else out.force_N)
+
+
+def _braking(params) -> Loop:
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.8)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.run(0.02)
+    assert loop.svc.braking
+    return loop
+
+
+def test_a_campaign_asked_for_during_a_brake_after_a_latch_is_answered(params):
+    """Audit of 2026-11-26: a latch during the brake left a request parked behind a brake that
+    never ended (the law does not run while latched): no answer after 12 s."""
+    loop = _braking(params)
+    theta = loop.tick.theta_meas.copy()
+    theta[0] += 60.0  # an encoder jump: latches
+    _run(loop, 0.004, theta=theta)
+    assert loop.svc.latched
+    loop.svc.handle(_request("ctl-2"), loop.stamp_s)
+    _run(loop, 1.0, theta=theta)
+    assert _outcome(loop, "ctl-2") or any(e.campaign_id == "ctl-2" and e.event == "started" for e in loop.events), loop.events
+
+
+@pytest.mark.parametrize("how", ["e-stop", "new bridge run"])
+def test_a_campaign_waiting_on_a_brake_is_dropped_by_an_estop_or_a_new_bridge_run(params, how):
+    """Audit of 2026-11-26: a campaign waiting on the brake survived an e-stop and started by
+    itself once the drives came back (and on a new bridge run), with no request then."""
+    loop = _braking(params)
+    loop.svc.handle(_request("ctl-2"), loop.stamp_s)
+    assert not _outcome(loop, "ctl-2")
+    if how == "e-stop":
+        loop.svc.drive_reason = "e-stop pressed"
+        _run(loop, 0.5, drive="disabled")
+        loop.svc.drive_reason = ""
+        _run(loop, 0.2, drive="inactive")
+    else:
+        loop.svc.new_bridge_run(loop.tick.theta_meas, loop.stamp_s, "bridge-2")
+    _run(loop, 1.0)
+    loop.events += loop.svc.drain_events()
+    assert _outcome(loop, "ctl-2") == "aborted" and not loop.svc.running, loop.events
+    assert not any(e.campaign_id == "ctl-2" and e.event == "started" for e in loop.events)
+
+
+def test_a_bridge_hold_during_a_brake_keeps_braking_to_the_planned_pose(params):
+    """Audit of 2026-11-26: one watchdog ``hold`` state re-started the law, which dropped the
+    brake and held at α̂: the neck came to rest at [4.97, 0.93, 0.83]° instead of the planned
+    [7.11, 0, 0]°. The brake goes on through the re-start (blended from α̂ like a trajectory);
+    the re-start's own command step is the bridge's to ramp (at most 1 N a tick applied)."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params, truth="model", seed=1)
+    loop.run(0.5)
+    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(1.0)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.run(0.05)
+    assert loop.svc.braking
+    planned = loop.svc.hold_target.copy()
+    before = len(loop.applied)
+    loop.run(0.02, drop_commands=True)  # the bridge's 10 ms watchdog holds
+    assert loop.safety.holds > 0
+    loop.run(2.5)
+    assert np.array_equal(loop.svc.hold_target, planned)
+    assert np.allclose(loop.outputs[-1].alpha_d_rad, planned)
+    resumed = np.array(loop.applied[before + 9:])  # after the hold (its own 10 ms ramp is the bridge's rule 3)
+    assert np.abs(np.diff(resumed, axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_stopping_a_campaign_that_waits_on_a_brake_answers_with_its_kind(params):
+    loop = _braking(params)
+    loop.svc.handle(_request("ident-2", kind="identification"), loop.stamp_s)
+    loop.svc.handle(_request("ident-2", action="stop", kind="identification"), loop.stamp_s)
+    loop.events += loop.svc.drain_events()
+    ended = [e for e in loop.events if e.campaign_id == "ident-2"]
+    assert [e.event for e in ended] == ["aborted"] and ended[0].kind == "identification", ended

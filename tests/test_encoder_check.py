@@ -184,3 +184,22 @@ def test_the_controller_service_aborts_a_campaign_on_a_stuck_encoder_and_holds(p
             assert loop.svc.latched and "encoder 2 stuck" in loop.svc.hold_reason
     assert outcomes[None][0] == "running", outcomes
     assert outcomes[THRESHOLD_M][0] == "aborted" and "encoder 2 stuck" in outcomes[THRESHOLD_M][1], outcomes
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_no_stuck_encoder_fault_when_the_drives_come_back_from_an_estop_with_slack_cables(params, seed):
+    """Audit of 2026-11-26: at [35, −25, 20]° an e-stop lets the neck fall back on slack cables;
+    on release, while the bridge's ramp takes the slack up, the parity reached −13 mm and latched
+    "encoder 1 stuck" 60 ms after the enable (4 seeds of 4). The check waits for the cables to be
+    taut again after the drives were off."""
+    from bridge_loop import BridgeLoop
+    from test_console_jog_service import _jog
+
+    loop = BridgeLoop(params, seed=seed)
+    loop.run(1.0)
+    loop.svc.handle(_jog("j", [35.0, -25.0, 20.0]), loop.stamp_s)
+    loop.run(4.0)
+    loop.run(3.0, estop=((True, "test"),))
+    assert loop.safety.drive == "disabled"
+    loop.run(3.0, estop=((False, "test"),))
+    assert loop.safety.drive == "active" and not loop.svc.latched, loop.svc.hold_reason

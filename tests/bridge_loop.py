@@ -1,0 +1,52 @@
+"""The controller's campaign service closed on the twin through the bridge's safety rules, in one
+process: each state carries the bridge's drive state and the forces it applied over the last
+period, as ``controller/process.py`` passes them (what ``test_controller_service.Loop`` leaves out:
+the bridge's enable ramp, its e-stop and its watchdog hold)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bridge.safety import Inputs, Safety, SafetyConfig
+from controller.laws import LawConfig, hold_forces
+from controller.service import CampaignService
+from twin.sim.simulator import Twin, TwinConfig
+
+
+class BridgeLoop:
+    def __init__(self, params, truth: str = "robot", seed: int = 0, law: int = 2):
+        self.params = params
+        self.twin = Twin(params, TwinConfig(camera=False, seed=seed, truth=truth))
+        self.svc = CampaignService(params, LawConfig(law=law), settle_s=0.5)
+        self.safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min,
+                                          f_max_N=params.limits.f_max, max_force_step_N=1.0))
+        self.tick = self.twin.tick(np.zeros(params.n_cables))
+        self.svc.initialise(self.tick.theta_meas)
+        self.events: list = []
+        self.outputs: list = []
+        self.applied: list = []
+
+    @property
+    def stamp_s(self) -> float:
+        return self.tick.t_s
+
+    def run(self, seconds: float, estop: tuple = (), drop_commands: bool = False) -> None:
+        """``seconds`` of 2 ms ticks; ``estop``: (engaged, reason) pairs for the first tick;
+        ``drop_commands``: the bridge gets none (its watchdog holds)."""
+        pending = list(estop)
+        for _ in range(round(seconds * 500)):
+            drive = self.safety.drive
+            self.svc.drive_reason = self.safety.estop_reason if drive == "disabled" else self.safety.hold_reason
+            out = self.svc.control(self.tick.theta_meas, self.stamp_s, drive, np.asarray(self.safety.force))
+            self.outputs.append(out)
+            if out.law_ran:
+                self.svc.advance(self.stamp_s)
+            self.events += self.svc.drain_events()
+            hold = hold_forces(self.params, np.clip(out.alpha_hat_rad, -1.0, 1.0))
+            d = self.safety.step(Inputs(command_N=None if drop_commands else out.force_N.tolist(),
+                                        command_age_s=0.02 if drop_commands else 0.0,
+                                        states_unanswered=5 if drop_commands else 0,
+                                        estop=tuple(pending), hold_N=hold, sender="c"))
+            pending = []
+            self.applied.append(np.asarray(d.force_N, dtype=float))
+            self.tick = self.twin.tick(np.asarray(d.force_N))
