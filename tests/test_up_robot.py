@@ -17,14 +17,17 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
 from server_harness import wait_until
 from test_up_child_death import _child, _get
 
+from bridge import bus
 from bridge.drivers.beaglebone import BLUE_GP0_PINS
-from bridge.session import free_tcp_port
+from bridge.session import free_tcp_port, open_session
 
 pytestmark = pytest.mark.e2e
 
@@ -48,7 +51,11 @@ def _levels(lines, pids=None) -> dict[int, int]:
     return out
 
 
-def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path) -> None:
+@contextlib.contextmanager
+def _up_robot(tmp_path: Path):
+    """``xneck up --robot`` on the fake board (its log in ``tmp_path/rcpy.log``), on free ports;
+    yields (base URL, hub, process) once the controller has enabled the drives. Stopped within
+    bounded time, the bridge too even if it was left stopped."""
     board = tmp_path / "rcpy.log"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "FAKE_RCPY_LOG": str(board),
            "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "fake_rcpy"), os.environ.get("PYTHONPATH", "")])}
@@ -68,24 +75,70 @@ def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path) -
         assert wait_until(enabled, 90, 0.3), (tmp_path / "up.log").read_text()[-3000:]
         bridge = _child(up.pid, "bridge")
         assert bridge is not None
-        assert set(_levels(_board_log(board), {bridge}).values()) == {1}  # the controller enabled every drive
-        os.kill(bridge, signal.SIGSTOP)  # hung: alive, its loop (watchdog, e-stop) stopped
-        assert up.wait(60) == 1
+        yield base, hub, up, bridge
     finally:
         if up.poll() is None:
+            os.killpg(up.pid, signal.SIGCONT)
             os.killpg(up.pid, signal.SIGKILL)
             up.wait(10)
         if bridge is not None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(bridge, signal.SIGKILL)
+
+
+def _stray_states(hub: str, stop: threading.Event) -> None:
+    """Another bridge's states on the hub at 100 Hz (a stray twin, a second bridge instance)."""
+    with open_session(listen=[], connect=[hub]) as session:
+        k = 0
+        while not stop.wait(0.01):
+            k += 1
+            session.put(bus.MOTOR_STATE, bus.encode(bus.MotorState(
+                seq=k, stamp_s=0.01 * k, theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4, drive="inactive",
+                epoch="stray", bridge="bridge-stray")))
+
+
+@pytest.mark.parametrize("stray", [False, True], ids=["alone", "with-another-bridge-on-the-hub"])
+def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path, stray: bool) -> None:
+    board = tmp_path / "rcpy.log"
+    stop = threading.Event()
+    with _up_robot(tmp_path) as (_base, hub, up, bridge):
+        assert set(_levels(_board_log(board), {bridge}).values()) == {1}  # the controller enabled every drive
+        # Another bridge's states must not vouch for this one (audit of 2026-11-26).
+        other = threading.Thread(target=_stray_states, args=(hub, stop), daemon=True)
+        if stray:
+            other.start()
+        try:
+            os.kill(bridge, signal.SIGSTOP)  # hung: alive, its loop (watchdog, e-stop) stopped
+            assert up.wait(60) == 1
+        finally:
+            stop.set()
+            if stray:
+                other.join(10)
     printed = (tmp_path / "up.log").read_text()
     assert "error: the bridge hung (no motor state for" in printed, printed[-3000:]
-    assert "its drives were disabled by `xneck bridge --drives-off`" in printed, printed[-3000:]
+    off = "its drives were disabled by `xneck bridge --drives-off`"
+    assert off in printed, printed[-3000:]
+    # The drives first, the console's record after (a stalled console had delayed them 17.9 s).
+    assert printed.index(off) < printed.index("no campaign was running"), printed[-3000:]
     lines = _board_log(board)
     others = {pid for pid, *_ in lines} - {bridge}
     assert others, "nothing but the bridge touched the board"
     assert _levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)  # every enable line ends off
     assert _levels(lines, others) == dict.fromkeys(BLUE_GP0_PINS, 0)  # set off by the drives-off process
+
+
+def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -> None:
+    """Audit of 2026-11-26: `xneck up` stopped for 3 s (Ctrl-Z, then fg) found the states 3 s old
+    on its next pass and killed a healthy bridge."""
+    with _up_robot(tmp_path) as (base, _hub, up, bridge):
+        os.kill(up.pid, signal.SIGSTOP)
+        time.sleep(3.0)
+        os.kill(up.pid, signal.SIGCONT)
+        time.sleep(3.0)
+        assert up.poll() is None, (tmp_path / "up.log").read_text()[-3000:]
+        assert Path(f"/proc/{bridge}").exists()
+        assert ((_get(base + "/api/system/health", 5) or {}).get("bridge") or {}).get("drive") == "active"
+    assert "hung" not in (tmp_path / "up.log").read_text()
 
 
 def test_drives_off_is_refused_for_a_driver_without_motors() -> None:

@@ -168,36 +168,50 @@ def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> s
 
 
 def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) -> str:
-    """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``); one
-    line for the operator saying whether the drives are off."""
-    with open(log_file, "ab") as log:
-        try:
-            proc = subprocess.run(xneck_argv("bridge", *driver_args, *param_args, "--drives-off"), stdout=log,
-                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, timeout=DRIVES_OFF_TIMEOUT_S,
-                                  env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        except subprocess.TimeoutExpired:
-            return f"DRIVES MAY BE ON: `xneck bridge --drives-off` did not end within {DRIVES_OFF_TIMEOUT_S:.0f} s"
-    if proc.returncode != 0:
-        return f"DRIVES MAY BE ON: `xneck bridge --drives-off` failed ({exit_how(proc.returncode)}), see {log_file}"
-    return "the bridge did not end cleanly: its drives were disabled by `xneck bridge --drives-off`"
+    """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``), once
+    more if it fails; one line for the operator saying whether the drives are off. In a session
+    of its own: a second Ctrl-C to the terminal's process group had killed it half-way, the
+    enable lines left high (audit of 2026-11-26)."""
+    why = ""
+    for _attempt in range(2):
+        with open(log_file, "ab") as log:
+            try:
+                proc = subprocess.run(xneck_argv("bridge", *driver_args, *param_args, "--drives-off"), stdout=log,
+                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, timeout=DRIVES_OFF_TIMEOUT_S,
+                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+            except subprocess.TimeoutExpired:
+                why = f"did not end within {DRIVES_OFF_TIMEOUT_S:.0f} s"
+                continue
+        if proc.returncode == 0:
+            return "the bridge did not end cleanly: its drives were disabled by `xneck bridge --drives-off`"
+        why = f"failed ({exit_how(proc.returncode)}), see {log_file}"
+    return f"DRIVES MAY BE ON: `xneck bridge --drives-off` {why}"
 
 
 class _StateAge:
-    """Seconds since the latest motor state on the bus (``None`` before the first), read from a
-    subscriber of this process: the console's own view could lag behind when it is busy."""
+    """Seconds since the latest motor state of the bridge ``instance`` on the bus (``None``
+    before the first), read from a subscriber of this process: the console's own view could lag
+    behind when it is busy, and another bridge's states (a stray twin on the hub) must not
+    vouch for this one (audit of 2026-11-26)."""
 
-    def __init__(self, hub: str) -> None:
+    def __init__(self, hub: str, instance: str) -> None:
         import zenoh
 
         from bridge import bus
         from bridge.session import LatestSubscriber, zenoh_config
 
+        self._instance = instance
+        self._received_ns: int | None = None
         self._session = zenoh.open(zenoh_config(listen=[], connect=[hub]))
-        self._sub = LatestSubscriber(self._session, bus.MOTOR_STATE, bus.MotorState)
+        self._sub = LatestSubscriber(self._session, bus.MOTOR_STATE, bus.MotorState, on_message=self._on_state)
+
+    def _on_state(self, msg, _wall_ns: int) -> None:
+        if msg.bridge == self._instance:
+            self._received_ns = time.monotonic_ns()
 
     def age_s(self) -> float | None:
-        msg, received_ns = self._sub.latest_with_time()
-        return None if msg is None else (time.monotonic_ns() - received_ns) / 1e9
+        received_ns = self._received_ns
+        return None if received_ns is None else (time.monotonic_ns() - received_ns) / 1e9
 
     def close(self) -> None:
         self._session.close()
@@ -275,6 +289,8 @@ def up(
     code = 0
     watch: _StateAge | None = None
     driver: list[str] = []
+    bridge_instance = f"bridge-up-{os.getpid()}"
+    drives_set_off = False
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
                          "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
@@ -291,18 +307,21 @@ def up(
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
-            start("bridge", ["bridge", *driver, *common, *param_args])
+            start("bridge", ["bridge", *driver, "--instance", bridge_instance, *common, *param_args])
         start("controller", ["controller", "--law", str(law), *common, *param_args])
-        watch = _StateAge(connect_to) if robot and not no_bridge else None
+        watch = _StateAge(connect_to, bridge_instance) if robot and not no_bridge else None
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
                    f"{' expected from elsewhere' if no_bridge else ''}, controller service (law {law})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
-        started = seen_alive = time.monotonic()  # when every child was last seen running
+        started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
             polled = time.monotonic()
-            age = watch.age_s() if watch is not None else None
+            # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg) judges nothing: the
+            # states' age grew with its own pause (audit of 2026-11-26: a healthy bridge killed).
+            late, last_pass = polled - last_pass > BRIDGE_HUNG_S / 2, polled
+            age = watch.age_s() if watch is not None and not late else None
             hung = ""
             if age is not None and age > BRIDGE_HUNG_S and procs["bridge"].poll() is None:
                 procs["bridge"].kill()  # hung: SIGTERM would wait on a loop that does not run
@@ -314,6 +333,9 @@ def up(
                 how = hung if name == "bridge" and hung else f"exited ({exit_how(rc)})"
                 typer.secho(f"error: the {name} {how}; stopping the stack, nothing is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
+                if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
+                    typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
+                    drives_set_off = True
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
                     typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
                                                time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
@@ -332,7 +354,7 @@ def up(
             p = procs.get(name)
             if p is not None and stop_child(p, STOP_GRACE_S):
                 typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
-            if name == "bridge" and robot and p is not None and p.returncode != 0:
+            if name == "bridge" and robot and p is not None and p.returncode != 0 and not drives_set_off:
                 typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
         if watch is not None:
             watch.close()
