@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from busutil import bus_pair, run_in_thread, wait_until
+from fake_board_log import board_log, levels
 from test_bridge_driver import FakeBoard
 
 from bridge import bus, loop_watchdog
@@ -326,21 +327,6 @@ def test_a_hung_loop_trips_the_twin_and_the_loop_cannot_drive_again(params, monk
 # -- real bridge processes on the fake board ---------------------------------------------------------
 
 
-def _board_log(path: Path) -> list[tuple[int, str, str, str]]:
-    """(pid, what, channel or pin, value) lines the fake board was told, in order."""
-    if not path.exists():
-        return []
-    return [(int(p), w, c, v) for p, w, c, v in (line.split() for line in path.read_text().splitlines())]
-
-
-def _levels(lines, pids=None) -> dict[int, int]:
-    out: dict[int, int] = {}
-    for pid, what, pin, value in lines:
-        if what == "gpio" and (pids is None or pid in pids):
-            out[int(pin)] = int(value)
-    return out
-
-
 class _FakeSystemd:
     """A notification socket as systemd's (abstract namespace): every datagram with its time."""
 
@@ -402,7 +388,7 @@ class _RobotBridge:
             time.sleep(0.002)
             assert k < 10000 and self.proc.poll() is None, self.log.read_text()
         assert wait_until(lambda: self.states[-1][1].drive == "hold", 2.0)
-        assert _levels(_board_log(self.board), {self.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 1)
+        assert levels(board_log(self.board), {self.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 1)
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -417,7 +403,7 @@ def _seen(path: Path, what: str, timeout_s: float) -> float | None:
     """When (perf_counter, polled every 2 ms) a ``what`` line first shows in the board's log."""
     deadline = time.perf_counter() + timeout_s
     while time.perf_counter() < deadline:
-        if any(w == what for _, w, _, _ in _board_log(path)):
+        if any(w == what for _, w, _, _ in board_log(path)):
             return time.perf_counter()
         time.sleep(0.002)
     return None
@@ -439,12 +425,12 @@ def test_a_hung_robot_bridge_disables_its_own_drives_and_exits_70(tmp_path: Path
             created = time.perf_counter()
             hung = _seen(robot.board, "hang", 5.0)
             assert hung is not None, robot.log.read_text()
-            n_before = len(_board_log(robot.board))
+            n_before = len(board_log(robot.board))
             off = None
             deadline = time.perf_counter() + 10.0
             while time.perf_counter() < deadline and off is None:
-                after = _board_log(robot.board)[n_before:]
-                if _levels(after, {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 0):
+                after = board_log(robot.board)[n_before:]
+                if levels(after, {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 0):
                     off = time.perf_counter()
                 time.sleep(0.002)
             rc = robot.proc.wait(10)
@@ -455,13 +441,13 @@ def test_a_hung_robot_bridge_disables_its_own_drives_and_exits_70(tmp_path: Path
             with contextlib.suppress(FileNotFoundError):
                 robot.block.unlink()
     printed = robot.log.read_text()
-    lines = _board_log(robot.board)
+    lines = board_log(robot.board)
     assert rc == LOOP_STALL_EXIT, (rc, printed[-3000:])
     assert off is not None, lines[-20:]
     hang_at = next(i for i, (_, w, _, _) in enumerate(lines) if w == "hang")
-    assert _levels(lines[hang_at:], {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 0)  # by the bridge itself
+    assert levels(lines[hang_at:], {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 0)  # by the bridge itself
     assert {pid for pid, *_ in lines} == {robot.proc.pid}  # nobody else touched the board
-    assert _levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)
+    assert levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)
     assert not [line for line in lines[hang_at:] if line[1] == "gpio" and line[3] == "1"]  # never re-enabled
     assert "loop watchdog: the real-time loop made no tick for" in printed and "exiting with code 70" in printed
     assert "hang_while_blocked" in printed  # where it hung
@@ -501,7 +487,7 @@ def test_a_stopped_process_or_a_short_stall_is_no_hang(tmp_path: Path) -> None:
             resumed = time.perf_counter()
             assert wait_until(lambda: sum(t > resumed for t, _ in robot.states) > 250, 5.0)
             assert robot.proc.poll() is None, robot.log.read_text()
-            assert _levels(_board_log(robot.board), {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 1)
+            assert levels(board_log(robot.board), {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 1)
             assert robot.states[-1][1].epoch == epoch and robot.states[-1][1].drive == "hold"
             robot.proc.send_signal(signal.SIGTERM)
             rc = robot.proc.wait(10)
@@ -510,7 +496,7 @@ def test_a_stopped_process_or_a_short_stall_is_no_hang(tmp_path: Path) -> None:
     printed = robot.log.read_text()
     assert rc == 0, printed[-3000:]
     assert "made no tick" not in printed, printed[-3000:]
-    assert _levels(_board_log(robot.board)) == dict.fromkeys(BLUE_GP0_PINS, 0)  # the clean exit's
+    assert levels(board_log(robot.board)) == dict.fromkeys(BLUE_GP0_PINS, 0)  # the clean exit's
 
 
 def test_what_the_loop_watchdog_cannot_see_systemds_watchdog_does(tmp_path: Path) -> None:

@@ -77,6 +77,28 @@ def test_a_finished_jog_keeps_its_pose_through_a_stall_of_the_states_but_not_thr
     assert np.degrees(np.abs(loop.svc.hold_target - loop.outputs[-1].alpha_hat_rad)).max() < 0.2
 
 
+def _run(loop: Loop, seconds: float, drive: str = "active", theta=None) -> None:
+    """Loop.run with the bridge's drive state; with the drives off the twin gets no force."""
+    for _ in range(round(seconds * 500)):
+        out = loop.svc.control(loop.tick.theta_meas if theta is None else theta, loop.stamp_s, drive)
+        loop.outputs.append(out)
+        if out.law_ran:
+            loop.svc.advance(loop.stamp_s)
+        loop.events += loop.svc.drain_events()
+        loop.tick = loop.twin.tick(np.zeros_like(out.force_N) if drive == "disabled" else out.force_N)
+
+
+def _braking(params) -> Loop:
+    loop = Loop(params)
+    loop.run(0.2)
+    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.8)
+    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
+    loop.run(0.02)
+    assert loop.svc.braking
+    return loop
+
+
 def _steps_around(loop: Loop, before: int) -> tuple[float, float]:
     """Largest per-tick change of α^d (rad) and of the commanded forces (N) from ``before`` on."""
     moved = loop.outputs[before - 50:]
@@ -123,13 +145,7 @@ def test_a_campaign_stopped_mid_trajectory_brakes_too(params):
 
 
 def test_a_jog_asked_for_while_the_neck_brakes_starts_where_it_rests(params):
-    loop = Loop(params)
-    loop.run(0.2)
-    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
-    loop.run(0.8)
-    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
-    loop.run(0.02)
-    assert loop.svc.braking
+    loop = _braking(params)
     before = len(loop.outputs)
     loop.svc.handle(_jog("jog-2", [-10.0, 0.0, 0.0]), loop.stamp_s)  # waits for the brake
     loop.events += loop.svc.drain_events()
@@ -139,28 +155,6 @@ def test_a_jog_asked_for_while_the_neck_brakes_starts_where_it_rests(params):
     d_alpha_d, d_force = _steps_around(loop, before)
     assert d_alpha_d < math.radians(0.2) and d_force < 2.0
     assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - np.radians([-10.0, 0.0, 0.0]))).max() < 1.0
-
-
-def _run(loop: Loop, seconds: float, drive: str = "active", theta=None) -> None:
-    """Loop.run with the bridge's drive state; with the drives off the twin gets no force."""
-    for _ in range(round(seconds * 500)):
-        out = loop.svc.control(loop.tick.theta_meas if theta is None else theta, loop.stamp_s, drive)
-        loop.outputs.append(out)
-        if out.law_ran:
-            loop.svc.advance(loop.stamp_s)
-        loop.events += loop.svc.drain_events()
-        loop.tick = loop.twin.tick(np.zeros_like(out.force_N) if drive == "disabled" else out.force_N)
-
-
-def _braking(params) -> Loop:
-    loop = Loop(params)
-    loop.run(0.2)
-    loop.svc.handle(_jog("jog-1", [40.0, 0.0, 0.0]), loop.stamp_s)
-    loop.run(0.8)
-    loop.svc.handle(_request("jog-1", action="stop"), loop.stamp_s)
-    loop.run(0.02)
-    assert loop.svc.braking
-    return loop
 
 
 def test_a_campaign_asked_for_during_a_brake_after_a_latch_is_answered(params):

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
+from fake_board_log import board_log, levels
 from server_harness import wait_until
 from test_up_child_death import _child, _get
 
@@ -33,22 +34,6 @@ pytestmark = pytest.mark.e2e
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = [sys.executable, "-m", "server.cli"]
-
-
-def _board_log(path: Path) -> list[tuple[int, str, str, str]]:
-    """(pid, what, channel or pin, value) lines the fake board was told, in order."""
-    if not path.exists():
-        return []
-    return [(int(p), w, c, v) for p, w, c, v in (line.split() for line in path.read_text().splitlines())]
-
-
-def _levels(lines, pids=None) -> dict[int, int]:
-    """The last level each enable pin was set to (by ``pids`` if given)."""
-    out: dict[int, int] = {}
-    for pid, what, pin, value in lines:
-        if what == "gpio" and (pids is None or pid in pids):
-            out[int(pin)] = int(value)
-    return out
 
 
 @contextlib.contextmanager
@@ -102,7 +87,7 @@ def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path, s
     board = tmp_path / "rcpy.log"
     stop = threading.Event()
     with _up_robot(tmp_path) as (_base, hub, up, bridge):
-        assert set(_levels(_board_log(board), {bridge}).values()) == {1}  # the controller enabled every drive
+        assert set(levels(board_log(board), {bridge}).values()) == {1}  # the controller enabled every drive
         # Another bridge's states must not vouch for this one (audit of 2026-11-26).
         other = threading.Thread(target=_stray_states, args=(hub, stop), daemon=True)
         if stray:
@@ -120,11 +105,11 @@ def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path, s
     assert off in printed, printed[-3000:]
     # The drives first, the console's record after (a stalled console had delayed them 17.9 s).
     assert printed.index(off) < printed.index("no campaign was running"), printed[-3000:]
-    lines = _board_log(board)
+    lines = board_log(board)
     others = {pid for pid, *_ in lines} - {bridge}
     assert others, "nothing but the bridge touched the board"
-    assert _levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)  # every enable line ends off
-    assert _levels(lines, others) == dict.fromkeys(BLUE_GP0_PINS, 0)  # set off by the drives-off process
+    assert levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)  # every enable line ends off
+    assert levels(lines, others) == dict.fromkeys(BLUE_GP0_PINS, 0)  # set off by the drives-off process
 
 
 def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -> None:
