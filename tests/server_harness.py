@@ -24,6 +24,21 @@ TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
+def stop_process_groups(started: list[subprocess.Popen]) -> None:
+    """SIGTERM to each process group started (``start_new_session``), newest first; SIGKILL to
+    any still there 10 s later: what a stack's test leaves behind is gone within bounded time."""
+    for p in reversed(started):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGTERM)
+    for p in reversed(started):
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(5)
+
+
 @contextlib.contextmanager
 def running_server(data_dir: Path, **overrides) -> Iterator[tuple[str, object]]:
     """A console in this process (uvicorn.Server in a thread); yields (base URL, app). uvicorn binds

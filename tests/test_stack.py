@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from server_harness import AUTH, TOKEN, wait_until
+from server_harness import AUTH, TOKEN, stop_process_groups, wait_until
 
 from bridge import bus
 from bridge.archive import read_campaign
@@ -70,16 +70,7 @@ def _procs():
     try:
         yield spawn
     finally:
-        for p in reversed(started):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in reversed(started):
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait(5)
+        stop_process_groups(started)
 
 
 def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) -> None:

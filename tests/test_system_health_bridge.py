@@ -8,7 +8,6 @@ over HTTP; every process is stopped within bounded time. No wall-clock figure is
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import subprocess
@@ -18,7 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import TOKEN, wait_until
+from server_harness import TOKEN, stop_process_groups, wait_until
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session
@@ -85,13 +84,4 @@ def test_health_says_how_old_the_bridges_latest_motor_state_is(tmp_path: Path) -
         assert after["state_age_s"] > later["state_age_s"] and after["drive"] == "disabled", (later, after)
         assert rejected() > before  # it did arrive
     finally:
-        for p in reversed(started):
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in reversed(started):
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait(5)
+        stop_process_groups(started)
