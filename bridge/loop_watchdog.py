@@ -9,13 +9,19 @@ thread of the same process watches the loop: the loop stores the time of each ti
 its action once (latched): for the bridge :func:`drives_off_and_exit`, which trips the driver
 (:meth:`bridge.driver.Driver.trip`: every drive off from this thread, and latched, so a loop that
 wakes up cannot enable or drive again), logs one line saying so and where the loop hung, and
-ends the process with :data:`LOOP_STALL_EXIT`, so that a supervisor (systemd's ``ExecStopPost``
-and ``Restart=``, ``xneck up --robot``) sees a failure.
+ends the process with :data:`LOOP_STALL_EXIT`, so that a supervisor (systemd's ``ExecStopPost``,
+``xneck up --robot``) sees a failure and sets the drives off again from outside.
 
 What counts as a stall: time during which this thread ran and the loop did not tick. A stop of
 the whole process or machine (SIGSTOP, a VM or CPU stall) stops this thread as well, so one look
-counts for at most half the limit, however late it came: after such a stop the loop has the
-other half to tick again, and does so within a period. The bridge rides such stops out by
+counts for at most half the limit, however late it came, and a late look never fires by itself:
+after such a stop the loop has at least one regular look's time to tick again, and does so within
+a period (audit of 2026-11-26: a tolerated 0.3 s stall followed by a stop had tripped a healthy
+bridge). A loop that still ticks, but rarely (a tick every 0.48 s kept every enable line high
+for good, the e-stop taking 0.48 s), counts as hung too: fewer than :data:`MIN_TICK_FRACTION` of
+its ticks over ``stall_s`` of watching. The action itself is bounded: should the trip block, the
+process still ends within :data:`ACTION_TIMEOUT_S` (``faulthandler``'s own thread, which needs
+no GIL). The bridge rides such stops out by
 design (on waking, the loop ramps the forces to the command computed meanwhile:
 ``Inputs.resumed_after_s``); a process frozen for good is what systemd's ``WatchdogSec=`` is for
 (docs/bridge.md), the loop's own ping stops with it.
@@ -31,6 +37,7 @@ Only the standard library: the bridge stays lean (tests/test_bridge_lean.py).
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
 import sys
@@ -42,8 +49,8 @@ from typing import Protocol
 log = logging.getLogger("xneck.bridge")
 
 #: Exit code of a bridge whose loop watchdog fired (EX_SOFTWARE of sysexits.h): not 0, so
-#: systemd's ``Restart=on-failure`` and ``xneck up --robot``'s drives-off apply, and not 1 (an
-#: exception), 2 (a usage error) or 3 (``xneck up`` refused to start).
+#: systemd's ``ExecStopPost`` sees a failure and ``xneck up --robot``'s drives-off applies, and
+#: not 1 (an exception), 2 (a usage error) or 3 (``xneck up`` refused to start).
 LOOP_STALL_EXIT = 70
 #: ``xneck bridge --loop-stall`` by default (s): 250 ticks of 2 ms. Nearly 4 times the longest
 #: stall of the loop alone seen in a running bridge (134 ms, a 20 MB command parsed on the GIL
@@ -65,6 +72,15 @@ SECOND_PASS_S = 0.005
 #: may hold the logging handler's lock (a blocked write to the journal's pipe).
 LOG_TIMEOUT_S = 0.25
 
+#: A loop that ticks fewer than this fraction of its ticks over ``stall_s`` of watching is hung
+#: (at 500 Hz and 0.5 s: under 12 of 250 ticks, a tick every 40 ms or rarer, when the command
+#: watchdog's 10 ms and the e-stop's tick no longer hold). Loaded development machines ran the
+#: twin's bridge at 486-500 ticks/s (benchmarks/README.md): far above.
+MIN_TICK_FRACTION = 0.05
+#: The action may take this long (s) before ``faulthandler`` ends the process (status 1) with
+#: every thread's stack: a trip that blocks must not leave a hung loop running with its drives on.
+ACTION_TIMEOUT_S = 1.0
+
 #: ``os._exit``, replaced by in-process tests (the action must not end the test run).
 _exit: Callable[[int], object] = os._exit
 
@@ -79,16 +95,19 @@ class Trippable(Protocol):
 
 class LoopWatchdog:
     """Calls ``on_stall(self, since_tick_s)`` once, from its own thread, when the loop has not
-    stored a tick in :attr:`last_tick_s` for ``stall_s`` of the thread's regular watching
-    (module docstring). ``stall_s = 0``: off (:meth:`start` does nothing, the loop's store stays
-    as cheap). ``clock`` must be the loop's (``time.perf_counter``)."""
+    stored a tick in :attr:`last_tick_s` for ``stall_s`` of the thread's regular watching, or
+    has counted in :attr:`ticks` fewer than ``MIN_TICK_FRACTION`` of the ticks of ``period_s``
+    over ``stall_s`` of watching (module docstring). ``stall_s = 0``: off (:meth:`start` does
+    nothing, the loop's stores stay as cheap). ``clock`` must be the loop's (``time.perf_counter``)."""
 
-    __slots__ = ("_loop_ident", "_loop_native_id", "_seen", "_stop", "_thread", "clock", "fired", "last_tick_s",
-                 "max_credit_s", "on_stall", "poll_s", "priority_note", "stall_s", "stalled_s")
+    __slots__ = ("_loop_ident", "_loop_native_id", "_low_windows", "_seen", "_stop", "_thread", "_window_s", "_window_ticks", "clock",
+                 "fired", "last_tick_s", "max_credit_s", "min_ticks", "on_stall", "poll_s", "priority_note", "rare_ticks",
+                 "stall_s", "stalled_s", "ticks")
 
     def __init__(self, stall_s: float, on_stall: Callable[[LoopWatchdog, float], object],
-                 poll_s: float | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
-        if not (stall_s == 0 or stall_s >= MIN_STALL_S):  # also refuses NaN
+                 poll_s: float | None = None, clock: Callable[[], float] = time.perf_counter,
+                 period_s: float | None = None) -> None:
+        if not (stall_s == 0 or MIN_STALL_S <= stall_s < float("inf")):  # also refuses NaN
             raise ValueError(f"loop_stall_s must be 0 (off) or at least {MIN_STALL_S} s, got {stall_s}")
         self.stall_s = float(stall_s)
         self.poll_s = float(poll_s) if poll_s is not None else min(POLL_S, self.stall_s / 4 or POLL_S)
@@ -101,6 +120,12 @@ class LoopWatchdog:
         self.last_tick_s = self._seen = clock()  # the loop's store, every tick; the last one seen
         self.stalled_s = 0.0  # watched time without a tick
         self.fired = False  # latched
+        self.ticks = 0  # the loop's count of ticks, stored every tick (with ``period_s``)
+        self.rare_ticks = 0  # ticks of the window that fired check_rate (0: check fired)
+        self._low_windows = 0  # windows in a row with too few ticks
+        # Fewest ticks per ``stall_s`` of watching (0: no rate check, without a period).
+        self.min_ticks = MIN_TICK_FRACTION * self.stall_s / period_s if period_s else 0.0
+        self._window_s, self._window_ticks = 0.0, 0  # watched time and the tick count when the window began
         self.priority_note = ""  # why the thread could not be raised above the loop ('' if it was or need not be)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -116,10 +141,35 @@ class LoopWatchdog:
         if seen_tick_s != self._seen:
             self._seen, self.stalled_s = seen_tick_s, 0.0
             return False
-        self.stalled_s += min(gap_s, self.max_credit_s)  # a stop of the whole process counts for at most this
+        if gap_s > self.max_credit_s:
+            # A late look (the whole process stopped): it counts for at most half the limit and
+            # never fires by itself, so a loop that woke with it has a regular look's time to tick.
+            self.stalled_s = min(self.stalled_s + self.max_credit_s, self.stall_s - self.poll_s)
+            return False
+        self.stalled_s += gap_s
         if self.stalled_s < self.stall_s - 1e-9:  # (ten looks of 0.05 s sum to 0.49999...)
             return False
         self.fired = True
+        return True
+
+    def check_rate(self, ticks: int, gap_s: float) -> bool:
+        """One look at the loop's tick count (``ticks``, ``gap_s`` since the last look): True when,
+        over two windows of ``stall_s`` of watching in a row, some ticks but fewer than
+        :attr:`min_ticks` came in each (a late look counts as :meth:`check` says, and ends no
+        window with a verdict). Once: latched with :meth:`check`."""
+        if self.fired or not self.min_ticks:
+            return False
+        self._window_s += min(gap_s, self.max_credit_s)
+        if self._window_s < self.stall_s - 1e-9:
+            return False
+        came, self._window_s, self._window_ticks = ticks - self._window_ticks, 0.0, ticks
+        # Two windows in a row with some ticks but too few: a window where the loop hung part-way
+        # is followed by one without any, which is a stall (:meth:`check`, its own timing).
+        low = 0 < came < self.min_ticks and gap_s <= self.max_credit_s
+        self._low_windows = self._low_windows + 1 if low else 0
+        if self._low_windows < 2:
+            return False
+        self.fired, self.rare_ticks = True, came
         return True
 
     # -- the thread -----------------------------------------------------------------------------
@@ -134,11 +184,14 @@ class LoopWatchdog:
 
     def stop(self, timeout_s: float = 1.0) -> None:
         """Stop watching. After it fired, wait for its action to end (in the bridge: the process
-        ends there, so this never returns)."""
+        ends there, so this never returns); if it has not after ``2 · ACTION_TIMEOUT_S``, end the
+        process here (a woken loop must not go on to a clean exit while the trip hangs)."""
         self._stop.set()
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
-            thread.join(None if self.fired else timeout_s)
+            thread.join(2 * ACTION_TIMEOUT_S if self.fired else timeout_s)
+            if self.fired and thread.is_alive():  # its action did not end the process in time: this thread does
+                _exit(LOOP_STALL_EXIT)
 
     def loop_stack(self) -> str:
         """Where the loop's thread is now (innermost last), for the log."""
@@ -158,9 +211,10 @@ class LoopWatchdog:
         if self.priority_note:
             log.warning("loop watchdog: %s", self.priority_note)
         last = self.clock()
+        self._window_ticks = self.ticks
         while not self._stop.wait(self.poll_s):
             now = self.clock()
-            if self.check(self.last_tick_s, now - last):
+            if self.check(self.last_tick_s, now - last) or self.check_rate(self.ticks, now - last):
                 try:
                     self.on_stall(self, now - self.last_tick_s)
                 except Exception:  # the action's own failure must still be seen
@@ -195,6 +249,9 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
     ``code`` without running any handler (the loop's thread may hold any lock)."""
 
     def action(watchdog: LoopWatchdog, since_tick_s: float) -> None:
+        # Should anything below block (a trip stuck in the hardware library), the process still
+        # ends, with every thread's stack (a C thread: no GIL needed); audit of 2026-11-26.
+        faulthandler.dump_traceback_later(ACTION_TIMEOUT_S, exit=True)
         try:
             t0 = time.perf_counter()
             error = driver.trip()
@@ -203,8 +260,10 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
             error = driver.trip() or error
             outcome = f"COULD NOT disable every drive ({error})" if error else \
                 f"drives disabled in {off_s * 1e3:.2f} ms and latched off"
-            line = (f"loop watchdog: the real-time loop made no tick for {since_tick_s:.3f} s (limit "
-                    f"{watchdog.stall_s:.3f} s): {outcome} (driver {driver.name}); exiting with code {code}. "
+            what = (f"made only {watchdog.rare_ticks} ticks in {watchdog.stall_s:.3f} s (fewer than "
+                    f"{watchdog.min_ticks:.0f}; the last {since_tick_s:.3f} s ago)") if watchdog.rare_ticks else \
+                f"made no tick for {since_tick_s:.3f} s (limit {watchdog.stall_s:.3f} s)"
+            line = (f"loop watchdog: the real-time loop {what}: {outcome} (driver {driver.name}); exiting with code {code}. "
                     f"The loop's thread was at:\n{watchdog.loop_stack()}")
             writer = threading.Thread(target=log.critical, args=("%s", line), name="xneck-loop-watchdog-log",
                                       daemon=True)
@@ -212,8 +271,10 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
             writer.join(LOG_TIMEOUT_S)
         finally:
             _exit(code)  # whatever happened above: a hung loop must not be left running
+            faulthandler.cancel_dump_traceback_later()  # reached only where _exit is replaced (tests)
 
     return action
 
 
-__all__ = ["DEFAULT_STALL_S", "LOOP_STALL_EXIT", "MIN_STALL_S", "LoopWatchdog", "drives_off_and_exit"]
+__all__ = ["ACTION_TIMEOUT_S", "DEFAULT_STALL_S", "LOOP_STALL_EXIT", "MIN_STALL_S", "MIN_TICK_FRACTION", "LoopWatchdog",
+           "drives_off_and_exit"]

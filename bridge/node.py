@@ -493,12 +493,12 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
     """Ticks paced by the clock at the driver's rate. A tick that ends after the next one was due
     is an overrun (counted, reported in ``Health``); whole periods lost are skipped, never caught
     up. With ``config.loop_stall_s`` > 0 a :class:`bridge.loop_watchdog.LoopWatchdog` watches the
-    ticks (each stores its time: 7 ns) and, should they stop, trips the driver and ends the process
+    ticks (each stores its time and count: about 10 ns) and, should they stop, trips the driver and ends the process
     (code 70). ``systemd``: told ``READY=1`` as the loop starts and pinged (``WATCHDOG=1``) from
     this thread every ``ping_period_s``. Returns the number of ticks run."""
     cfg, dt = node.config, node.dt
     driver = node.driver
-    watchdog = LoopWatchdog(cfg.loop_stall_s, drives_off_and_exit(driver))
+    watchdog = LoopWatchdog(cfg.loop_stall_s, drives_off_and_exit(driver), period_s=dt)
     start = time.perf_counter()
     k = 0
     next_health = start + cfg.health_period_s
@@ -518,7 +518,8 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
             node.tick(time.perf_counter() - (start + k * dt))  # how late this tick starts
             k += 1
             now = time.perf_counter()
-            watchdog.last_tick_s = now  # the loop watchdog's one per-tick cost
+            watchdog.last_tick_s = now  # the loop watchdog's per-tick cost: two stores
+            watchdog.ticks = k
             due = start + k * dt
             if now > due:
                 node.overruns += 1

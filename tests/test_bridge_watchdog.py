@@ -95,6 +95,45 @@ def test_a_stop_of_the_whole_process_counts_for_little_a_loop_that_stays_hung_fi
     assert late.check(0.0, 0.2)
 
 
+def test_a_tolerated_stall_then_a_stop_of_the_process_is_no_hang() -> None:
+    """Audit of 2026-11-26: a 0.3 s stall (tolerated), then the whole process stopped while the
+    loop's call returned: the late look added its half to the 0.3 s and fired on a healthy
+    bridge. A late look never fires by itself: the loop ticks before the next regular one."""
+    wd = LoopWatchdog(0.5, lambda *_: None, poll_s=0.05, clock=lambda: 0.0)
+    assert not wd.check(1.0, 0.05)
+    for _ in range(6):  # 0.3 s without a tick
+        assert not wd.check(1.0, 0.05)
+    assert not wd.check(1.0, 1.0)  # stopped 1 s: late
+    assert not wd.check(2.0, 0.05)  # the loop ticked first thing
+    assert not wd.fired and wd.stalled_s == 0.0
+
+
+def test_a_loop_that_ticks_rarely_fires_and_a_hang_is_left_to_the_stall_rule() -> None:
+    """Audit of 2026-11-26: a loop ticking every 0.48 s (each just before the 0.5 s limit) kept
+    every drive enabled for good. Fewer than 5 % of its ticks over two windows of the limit in a
+    row fire; a loop at its rate never does, nor one that hangs part-way (the stall rule's case)."""
+    period = 0.002
+    wd = LoopWatchdog(0.5, lambda *_: None, poll_s=0.05, clock=lambda: 0.0, period_s=period)
+    assert wd.min_ticks == pytest.approx(12.5)
+    ticks = 0
+    for _ in range(2000):  # 100 s at 500 Hz: 25 ticks per look
+        ticks += 25
+        assert not wd.check_rate(ticks, 0.05)
+    for _ in range(9):  # hung part-way through a window: a few ticks, then none
+        assert not wd.check_rate(ticks + 3, 0.05)
+    assert not any(wd.check_rate(ticks + 3, 0.05) for _ in range(40))  # no tick: the stall rule's, not this
+    rare = LoopWatchdog(0.5, lambda *_: None, poll_s=0.05, clock=lambda: 0.0, period_s=period)
+    fired_after, t, ticks = None, 0.0, 0
+    for look in range(1, 200):
+        t += 0.05
+        if look % 10 == 0:  # a tick every 0.5 s (with 0.48 s between two, some looks see none)
+            ticks += 1
+        if rare.check_rate(ticks, 0.05):
+            fired_after = t
+            break
+    assert fired_after is not None and fired_after <= 1.0 + 1e-9 and rare.rare_ticks == 1
+
+
 def test_the_limit_is_zero_or_at_least_50_ms() -> None:
     for bad in (0.01, -1.0, float("nan")):
         with pytest.raises(ValueError, match=r"0 \(off\) or at least 0\.05 s"):
@@ -465,6 +504,55 @@ def test_a_hung_robot_bridge_disables_its_own_drives_and_exits_70(tmp_path: Path
     print(f"\n{mode}: hang → every drive off {(off - hung) * 1e3:.0f} ms (seen here), the bridge's own count "
           f"{since * 1e3:.0f} ms since its last tick; exit {(exited - hung) * 1e3:.0f} ms; pings every "
           f"{np.median(gaps) * 1e3:.0f} ms before")
+
+
+def test_a_robot_bridge_whose_loop_ticks_rarely_disables_its_own_drives(tmp_path: Path) -> None:
+    """Audit of 2026-11-26: each encoder read taking 0.48 s, the loop ticked just often enough
+    never to be silent for 0.5 s: the drives stayed enabled for good and an e-stop took 0.48 s.
+    Too few ticks over two windows in a row trip the drives and end the bridge (code 70)."""
+    with bus_pair() as (hub, hub_session, _connect):
+        robot = _RobotBridge(tmp_path, hub, hub_session)
+        try:
+            robot.enable()
+            robot.block.write_text("slow")
+            assert _seen(robot.board, "hang", 5.0) is not None
+            rc = robot.proc.wait(10)
+        finally:
+            robot.close()
+            with contextlib.suppress(FileNotFoundError):
+                robot.block.unlink()
+    printed = robot.log.read_text()
+    lines = board_log(robot.board)
+    assert rc == LOOP_STALL_EXIT, (rc, printed[-3000:])
+    assert "loop watchdog: the real-time loop made only" in printed, printed[-3000:]
+    hang_at = next(i for i, (_, w, _, _) in enumerate(lines) if w == "hang")
+    assert levels(lines[hang_at:], {robot.proc.pid}) == dict.fromkeys(BLUE_GP0_PINS, 0)
+
+
+def test_a_trip_stuck_in_the_hardware_library_still_ends_the_process(tmp_path: Path) -> None:
+    """Audit of 2026-11-26: with the trip blocked in an enable-line write, the bridge stayed alive
+    with its drives enabled until the write returned (8 s there). The action is bounded: the
+    process ends within ACTION_TIMEOUT_S (faulthandler's own thread, status 1, every thread's
+    stack in the log), so the supervisor's drives-off (ExecStopPost, xneck up) runs."""
+    from bridge.loop_watchdog import ACTION_TIMEOUT_S
+
+    with bus_pair() as (hub, hub_session, _connect):
+        robot = _RobotBridge(tmp_path, hub, hub_session)
+        try:
+            robot.enable()
+            robot.block.write_text("stuck-trip")
+            hung = _seen(robot.board, "hang", 5.0)
+            assert hung is not None
+            rc = robot.proc.wait(10)
+            ended = time.perf_counter()
+        finally:
+            robot.close()
+            with contextlib.suppress(FileNotFoundError):
+                robot.block.unlink()
+    printed = robot.log.read_text()
+    assert rc == 1 and "Timeout" in printed and "loop_watchdog.py" in printed, (rc, printed[-3000:])
+    assert any(w == "gpio-stuck" for _, w, _, _ in board_log(robot.board))  # the trip did block
+    assert ended - hung <= 0.5 + 0.05 + ACTION_TIMEOUT_S + 1.0, ended - hung
 
 
 def test_a_stopped_process_or_a_short_stall_is_no_hang(tmp_path: Path) -> None:

@@ -7,7 +7,9 @@ encoder read blocks. Its content says how: ``sleep`` (or empty) blocks in a call
 the GIL (a stuck syscall), ``spin`` loops in Python (an endless loop: the GIL is only handed over
 at Python's switch interval), ``convoy`` alternates a short call that releases the GIL with less
 Python than the switch interval (the releases keep other threads from asking for the GIL:
-CPython's convoy effect, docs/bridge.md). The read logs ``hang <channel> <mode>`` when it starts
+CPython's convoy effect, docs/bridge.md), ``slow`` makes each read of encoder 1 take 0.48 s and return (a
+loop that still ticks, rarely), ``stuck-trip`` blocks the read as ``sleep`` does and every enable
+level written meanwhile as well (a trip stuck in the hardware library). The read logs ``hang <channel> <mode>`` when it starts
 blocking and ``resume <channel> <mode>`` when the file is gone."""
 
 import os
@@ -32,17 +34,35 @@ def record(what, channel, value):
         os.write(_fd, f"{os.getpid()} {what} {channel} {value}\n".encode())
 
 
+def _mode(path):
+    try:
+        with open(path) as f:
+            return f.read().strip() or "sleep"
+    except OSError:
+        return "sleep"
+
+
+def block_gpio_while_stuck():
+    """``stuck-trip``: an enable level written while the file exists blocks (module docstring)."""
+    path = BLOCK
+    if not path or not os.path.exists(path) or _mode(path) != "stuck-trip":
+        return
+    record("gpio-stuck", 0, 0)
+    while os.path.exists(path):
+        time.sleep(0.002)
+
+
 def hang_while_blocked(channel):
     """Block while the file named by FAKE_RCPY_BLOCK exists (module docstring)."""
     path = BLOCK
     if not path or not os.path.exists(path):
         return
-    try:
-        with open(path) as f:
-            mode = f.read().strip() or "sleep"
-    except OSError:
-        mode = "sleep"
+    mode = _mode(path)
     record("hang", channel, mode)
+    if mode == "slow":
+        if channel == 1:  # once per tick (a tick reads every encoder)
+            time.sleep(0.48)
+        return
     if mode == "spin":
         while os.path.exists(path):
             # Pure Python for 20 ms between two looks at the file (whose stat releases the GIL:
