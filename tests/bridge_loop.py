@@ -42,7 +42,7 @@ class BridgeLoop:
             if out.law_ran:
                 self.svc.advance(self.stamp_s)
             self.events += self.svc.drain_events()
-            hold = hold_forces(self.params, np.clip(out.alpha_hat_rad, -1.0, 1.0))
+            hold = hold_forces(self.params, np.clip(out.alpha_hat_rad, -1.0, 1.0)).tolist()
             d = self.safety.step(Inputs(command_N=None if drop_commands else out.force_N.tolist(),
                                         command_age_s=0.02 if drop_commands else 0.0,
                                         states_unanswered=5 if drop_commands else 0,
