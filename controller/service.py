@@ -348,6 +348,7 @@ class CampaignService:
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
         self._check_armed_at = math.inf  # the drives have not been active yet (ENCODER_CHECK_SETTLE_S)
+        self._hold_since: float | None = None  # stamp of the first state of the bridge's current hold
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -741,11 +742,19 @@ class CampaignService:
             return out
         if not obeyed:
             drive = "inactive"
+        if drive != "hold":
+            self._hold_since = None
         if drive == "hold":
             # The bridge's watchdog holds because our commands came late: the next one ends the
             # hold (the bridge ramps to it), so the law keeps running (a hold command here would be
-            # one more step) and re-starts from the measurement once the bridge obeys again.
-            self._restart = True
+            # one more step). After a long hold it re-starts from the measurement once the bridge
+            # obeys again; after a short one (a tick or two late) it goes on, as after a short gap
+            # of the states: re-starting stepped the commands 8.6 N a tick (α^d to α̂, a fresh
+            # integral) for what the bridge's ramp had already smoothed.
+            if self._hold_since is None:
+                self._hold_since = stamp_s
+            if stamp_s - self._hold_since >= STALE_RESTART_S:
+                self._restart = True
         elif drive != "active":
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
