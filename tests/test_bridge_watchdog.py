@@ -634,12 +634,11 @@ def test_loop_stall_is_validated(value: str) -> None:
     assert "--loop-stall" in r.stderr or "loop_stall_s must be 0 (off) or at least 0.05 s" in r.stderr, r.stderr
 
 
-def test_the_cli_default_is_the_modules() -> None:
-    import inspect
+def test_the_cli_default_guards_real_drives_only() -> None:
+    from server.cli.processes import default_loop_stall_s
 
-    from server.cli.processes import bridge
-
-    assert inspect.signature(bridge).parameters["loop_stall"].default.default == loop_watchdog.DEFAULT_STALL_S
+    assert default_loop_stall_s("beaglebone") == loop_watchdog.DEFAULT_STALL_S
+    assert default_loop_stall_s("twin") == default_loop_stall_s("replay") == 0.0
 
 
 def test_systemd_notify_from_the_environment() -> None:
