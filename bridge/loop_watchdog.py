@@ -206,6 +206,18 @@ class LoopWatchdog:
             frame = frame.f_back
         return "\n".join(reversed(where))
 
+    def other_threads(self) -> str:
+        """Where every other thread of the process is (its name, innermost frame), for the log:
+        what the loop may have waited for (a lock, the GIL held by a starved thread)."""
+        names = {t.ident: t.name for t in threading.enumerate()}
+        mine = (self._loop_ident, threading.get_ident())
+        lines = []
+        for ident, frame in sys._current_frames().items():
+            if ident not in mine:
+                lines.append(f"  {names.get(ident, ident)}: {frame.f_code.co_filename}:{frame.f_lineno} in "
+                             f"{frame.f_code.co_name}")
+        return "\n".join(lines) or "  (none)"
+
     def _run(self) -> None:
         self.priority_note = self._raise_above_loop()
         if self.priority_note:
@@ -264,7 +276,7 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
                     f"{watchdog.min_ticks:.0f}; the last {since_tick_s:.3f} s ago)") if watchdog.rare_ticks else \
                 f"made no tick for {since_tick_s:.3f} s (limit {watchdog.stall_s:.3f} s)"
             line = (f"loop watchdog: the real-time loop {what}: {outcome} (driver {driver.name}); exiting with code {code}. "
-                    f"The loop's thread was at:\n{watchdog.loop_stack()}")
+                    f"The loop's thread was at:\n{watchdog.loop_stack()}\nOther threads:\n{watchdog.other_threads()}")
             writer = threading.Thread(target=log.critical, args=("%s", line), name="xneck-loop-watchdog-log",
                                       daemon=True)
             writer.start()

@@ -116,14 +116,15 @@ def _bounded(text: str, n: int = 200) -> str:
 
 
 def _demote_this_thread() -> None:
-    """Give the calling thread the lowest ordinary priority (Linux: per thread). Under the
-    robot's SCHED_FIFO (docs/bridge.md) a thread computing for 20-50 ms would otherwise keep a
-    single core from the loop until it blocks; niceness 19 keeps it to time nothing else wants."""
+    """Take the calling thread out of real-time scheduling (Linux: per thread). Under the robot's
+    SCHED_FIFO (docs/bridge.md) a thread computing for 20-50 ms would otherwise keep a single core
+    from the loop until it blocks; as SCHED_OTHER the loop preempts it whenever it is runnable.
+    Not niceness 19 as well: this thread holds the GIL while it computes, and on a loaded machine a
+    nice-19 thread can wait long for a CPU with the GIL in hand, the loop waiting for it (twice a
+    bridge's loop made no tick for 0.5 s in full-suite runs, 2026-11-26; priority inversion)."""
     tid = threading.get_native_id()
     with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
         os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(AttributeError, OSError):
-        os.setpriority(os.PRIO_PROCESS, tid, 19)
 
 
 class HoldWorker:
