@@ -65,7 +65,7 @@ import zenoh
 from bridge import bus
 from bridge.driver import Driver, Lifecycle
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
-from bridge.runtime import SystemdNotify
+from bridge.runtime import SystemdNotify, raise_loop_thread
 from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, subscribe_latest
 
@@ -120,8 +120,9 @@ def _demote_this_thread() -> None:
     SCHED_FIFO (docs/bridge.md) a thread computing for 20-50 ms would otherwise keep a single core
     from the loop until it blocks; as SCHED_OTHER the loop preempts it whenever it is runnable.
     Not niceness 19 as well: this thread holds the GIL while it computes, and on a loaded machine a
-    nice-19 thread can wait long for a CPU with the GIL in hand, the loop waiting for it (twice a
-    bridge's loop made no tick for 0.5 s in full-suite runs, 2026-11-26; priority inversion)."""
+    nice-19 thread can wait long for a CPU with the GIL in hand, the loop waiting for it (priority
+    inversion; suspected first for the 0.5 s stalls of 2026-11-26, which were Zenoh's threads at
+    the loop's FIFO priority instead: :func:`bridge.runtime.raise_loop_thread`)."""
     tid = threading.get_native_id()
     with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
         os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
@@ -507,6 +508,9 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
     node.publish_health()
     switch = sys.getswitchinterval()
     sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
+    above = raise_loop_thread()  # before the watchdog, which goes one above the loop
+    if above:
+        log.warning("real-time loop: %s", above)
     watchdog.start()
     if systemd is not None:
         if systemd.watchdog_s is not None:

@@ -51,6 +51,29 @@ def raise_priority(niceness: int = -10) -> bool:
         return False
 
 
+def raise_loop_thread() -> str:
+    """Under a real-time policy (SCHED_FIFO/RR, as the robot's unit and ``xneck up`` give the whole
+    process), put the calling thread, the real-time loop, one priority above the process's other
+    threads: Zenoh's threads inherit the process's priority, and at the same FIFO priority on one
+    CPU a Zenoh thread busy with a burst (a peer that stops reading, new subscribers, start-up)
+    kept the loop from waking for 0.5 s while the loop watchdog, one above, still ran (three
+    full-suite runs of 2026-11-26). '' if done or not needed, else why not (logged by the caller)."""
+    try:
+        policy = os.sched_getscheduler(0)
+        if policy not in (os.SCHED_FIFO, os.SCHED_RR):
+            return ""
+        prio = os.sched_getparam(0).sched_priority
+        if prio >= os.sched_get_priority_max(policy) - 1:
+            return f"the process runs at real-time priority {prio}: no room above it for the loop and its watchdog"
+        os.sched_setscheduler(0, policy, os.sched_param(prio + 1))  # 0: this thread (Linux)
+    except AttributeError:
+        return ""
+    except OSError as exc:
+        return (f"could not raise the loop above the process's real-time priority ({exc.strerror}; "
+                "LimitRTPRIO must allow two above the process's)")
+    return ""
+
+
 class SystemdNotify:
     """sd_notify(3) in a few lines, without libsystemd: datagrams to ``$NOTIFY_SOCKET``.
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -659,3 +660,42 @@ def test_systemd_notify_from_the_environment() -> None:
         assert [m for _, m in fake.got] == ["READY=1", "WATCHDOG=1", "STOPPING=1"]
     finally:
         fake.close()
+
+
+def test_under_fifo_the_loop_runs_above_zenohs_threads_and_the_watchdog_above_the_loop(tmp_path: Path) -> None:
+    """Three full-suite runs of 2026-11-26: a bridge at SCHED_FIFO (``xneck up``'s isolation)
+    made no tick for 0.5 s while its loop watchdog ran: Zenoh's threads inherit the process's
+    priority, and at the loop's own FIFO priority on one CPU a busy one kept the loop from waking.
+    The loop now takes one priority above the process (Zenoh's threads), the watchdog one above
+    the loop, the hold worker none (SCHED_OTHER)."""
+    if shutil.which("chrt") is None:
+        pytest.skip("chrt (util-linux) not installed")
+    probe = subprocess.run(["chrt", "-f", "50", "true"], capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip("SCHED_FIFO not permitted here")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "fake_rcpy"), os.environ.get("PYTHONPATH", "")])}
+    with open(tmp_path / "bridge.log", "wb") as out:
+        proc = subprocess.Popen(["chrt", "-f", "50", *XNECK, "bridge", "--driver", "beaglebone", "--listen",
+                                 "tcp/127.0.0.1:0"], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env=env)
+    try:
+        def priorities() -> dict[str, list[tuple[int, int]]]:
+            found: dict[str, list[tuple[int, int]]] = {}
+            for task in Path(f"/proc/{proc.pid}/task").iterdir():
+                tid = int(task.name)
+                with contextlib.suppress(OSError):
+                    found.setdefault((task / "comm").read_text().strip(), []).append(
+                        (tid, os.sched_getparam(tid).sched_priority if os.sched_getscheduler(tid) == os.SCHED_FIFO else 0))
+            return found
+
+        assert wait_until(lambda: any(p == 52 for threads in priorities().values() for _, p in threads), 60.0), \
+            (tmp_path / "bridge.log").read_text()
+        found = priorities()
+        loop = os.sched_getparam(proc.pid).sched_priority  # the main thread runs the loop
+        assert loop == 51 and os.sched_getscheduler(proc.pid) == os.SCHED_FIFO, found
+        zenoh = [p for name, threads in found.items() if name.startswith(("net-", "acc-", "app-")) for _, p in threads]
+        assert zenoh and all(p == 50 for p in zenoh), found
+        assert 0 in {p for threads in found.values() for _, p in threads}  # the hold worker: SCHED_OTHER
+    finally:
+        proc.terminate()
+        proc.wait(20)

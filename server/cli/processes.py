@@ -135,8 +135,8 @@ def default_loop_stall_s(driver: str) -> float:
     """``--loop-stall`` when not given (s): the loop watchdog guards real drives only. On the twin
     a stall is the machine's load, not a motor left driving: twice in full-suite runs on the
     loaded 2-CPU development machine a bridge's loop made no tick for 0.5 s while its watchdog
-    thread ran, and the watchdog ended a healthy test stack (suspected: the hold worker at
-    niceness 19 starved with the GIL in hand, now at the process's niceness: bridge.node)."""
+    thread ran, and the watchdog ended a healthy test stack (Zenoh's threads at the loop's FIFO
+    priority: bridge.runtime.raise_loop_thread)."""
     from bridge.loop_watchdog import DEFAULT_STALL_S
 
     return DEFAULT_STALL_S if driver == "beaglebone" else 0.0
