@@ -434,6 +434,8 @@ class _RobotBridge:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(10)
+        with contextlib.suppress(FileNotFoundError):
+            self.block.unlink()
         self._sub.undeclare()
         self._pub.close()
         self._token.undeclare()
@@ -478,8 +480,6 @@ def test_a_hung_robot_bridge_disables_its_own_drives_and_exits_70(tmp_path: Path
         finally:
             robot.close()
             systemd.close()
-            with contextlib.suppress(FileNotFoundError):
-                robot.block.unlink()
     printed = robot.log.read_text()
     lines = board_log(robot.board)
     assert rc == LOOP_STALL_EXIT, (rc, printed[-3000:])
@@ -520,8 +520,6 @@ def test_a_robot_bridge_whose_loop_ticks_rarely_disables_its_own_drives(tmp_path
             rc = robot.proc.wait(10)
         finally:
             robot.close()
-            with contextlib.suppress(FileNotFoundError):
-                robot.block.unlink()
     printed = robot.log.read_text()
     lines = board_log(robot.board)
     assert rc == LOOP_STALL_EXIT, (rc, printed[-3000:])
@@ -548,8 +546,6 @@ def test_a_trip_stuck_in_the_hardware_library_still_ends_the_process(tmp_path: P
             ended = time.perf_counter()
         finally:
             robot.close()
-            with contextlib.suppress(FileNotFoundError):
-                robot.block.unlink()
     printed = robot.log.read_text()
     assert rc == 1 and "Timeout" in printed and "loop_watchdog.py" in printed, (rc, printed[-3000:])
     assert any(w == "gpio-stuck" for _, w, _, _ in board_log(robot.board))  # the trip did block
@@ -611,8 +607,6 @@ def test_what_the_loop_watchdog_cannot_see_systemds_watchdog_does(tmp_path: Path
         finally:
             robot.close()
             systemd.close()
-            with contextlib.suppress(FileNotFoundError):
-                robot.block.unlink()
     printed = robot.log.read_text()
     assert "no loop watchdog" in printed
     assert rc == -signal.SIGABRT, (rc, printed[-3000:])
