@@ -29,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the fake board's log reader (tests/fake_board_log.py)
 
-from fake_board_log import board_log, levels  # noqa: E402
+from fake_board_log import board_log, levels  # noqa: E402  # pyright: ignore[reportMissingImports]  (tests/ on sys.path above)
 
 from bridge import bus  # noqa: E402
 from bridge.drivers.beaglebone import BLUE_GP0_PINS  # noqa: E402
