@@ -24,6 +24,19 @@ TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 
+def stop_xneck_up(up: subprocess.Popen) -> None:
+    """Stop an ``xneck up`` started with ``start_new_session``: SIGTERM to the supervisor alone (it
+    stops its children in the safe order), SIGKILL to its whole group if it has not ended in 40 s."""
+    if up.poll() is not None:
+        return
+    up.send_signal(signal.SIGTERM)
+    try:
+        up.wait(40)
+    except subprocess.TimeoutExpired:
+        os.killpg(up.pid, signal.SIGKILL)
+        up.wait(10)
+
+
 def stop_process_groups(started: list[subprocess.Popen]) -> None:
     """SIGTERM to each process group started (``start_new_session``), newest first; SIGKILL to
     any still there 10 s later: what a stack's test leaves behind is gone within bounded time."""

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
+from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, stop_xneck_up, wait_until
 from test_stack import _alive_kinds
 
 from bridge import bus
@@ -282,12 +282,7 @@ def test_under_xneck_up_a_request_is_honoured_or_refused_and_rest_and_mcap_agree
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json()["status"] != "running", 60, 0.3)
         rec = httpx.get(f"{base}/api/campaigns/{cid}").json()
     finally:
-        up.send_signal(signal.SIGTERM)
-        try:
-            up.wait(40)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(10)
+        stop_xneck_up(up)
     info = read_campaign(data / "campaigns" / f"{cid}.mcap").info
     assert {k: info.get(k) for k in ("target", "pace", "twin_truth", "seed", "law", "parameter_set")} == {
         "target": rec["target"], "pace": rec["pace"], "twin_truth": rec["truth"], "seed": str(rec["seed"]),

@@ -378,12 +378,11 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
     """`xneck up --truth FILE`: the stack's twin bridge runs the file, the console (--twin-truth FILE)
     takes it, a campaign records it (REST record and MCAP), and another truth is refused."""
     import os
-    import signal
     import subprocess
     import sys
 
     import httpx
-    from server_harness import AUTH, TOKEN, wait_until
+    from server_harness import AUTH, TOKEN, stop_xneck_up, wait_until
     from test_stack import _alive_kinds
 
     from bridge.archive import read_campaign
@@ -413,11 +412,6 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
         rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()
         assert rec["status"] in ("finished", "degraded") and rec["truth"] == "bench", rec
     finally:
-        up.send_signal(signal.SIGTERM)
-        try:
-            up.wait(40)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(10)
+        stop_xneck_up(up)
     assert read_campaign(data / "campaigns" / f"{cid}.mcap").info["twin_truth"] == str(path.resolve())
     assert "twin (bench truth)" in (tmp_path / "up.log").read_text() or str(path.resolve()) in (tmp_path / "up.log").read_text()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import AUTH, running_server, server_process, start_campaign, wait_until
+from server_harness import AUTH, running_server, server_process, start_campaign, stop_xneck_up, wait_until
 
 from bridge.archive import read_campaign
 from bridge.session import free_tcp_port
@@ -75,13 +75,7 @@ def _xneck_up(tmp_path: Path):
     try:
         yield f"http://127.0.0.1:{port}", data, up
     finally:
-        if up.poll() is None:
-            up.send_signal(signal.SIGTERM)
-            try:
-                up.wait(40)
-            except subprocess.TimeoutExpired:
-                os.killpg(up.pid, signal.SIGKILL)
-                up.wait(10)
+        stop_xneck_up(up)
 
 
 @pytest.mark.parametrize("victim", ["bridge", "controller"])
