@@ -81,6 +81,18 @@ MIN_TICK_FRACTION = 0.05
 #: every thread's stack: a trip that blocks must not leave a hung loop running with its drives on.
 ACTION_TIMEOUT_S = 1.0
 
+#: Python's switch interval while the action runs (s; CPython's default is 5 ms). The action's
+#: hardware writes and its log hand the GIL back at every system call; a loop hung in a convoy
+#: (short calls that release the GIL between less Python than the switch interval) takes it again
+#: each time before this thread wakes, and a waiting thread only asks for it when no switch at all
+#: came within one interval. At 5 ms each hand-back cost the action 5-10 ms: a median 103 ms (max
+#: 178) for the fake board's trip at rest, over :data:`ACTION_TIMEOUT_S` once under CI's load
+#: (faulthandler ended the bridge with status 1, its log line lost). At 1 µs this thread asks
+#: within a microsecond, shorter than any Python a loop can run between two calls: a median 1.7 ms
+#: (max 12.7) for the same trip (benchmarks/loop_watchdog.py, docs/bridge.md). Only for the
+#: action: the process ends right after.
+ACTION_SWITCH_INTERVAL_S = 1e-6
+
 #: ``os._exit``, replaced by in-process tests (the action must not end the test run).
 _exit: Callable[[int], object] = os._exit
 
@@ -264,6 +276,8 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
         # Should anything below block (a trip stuck in the hardware library), the process still
         # ends, with every thread's stack (a C thread: no GIL needed); audit of 2026-11-26.
         faulthandler.dump_traceback_later(ACTION_TIMEOUT_S, exit=True)
+        switch_s = sys.getswitchinterval()
+        sys.setswitchinterval(ACTION_SWITCH_INTERVAL_S)
         try:
             t0 = time.perf_counter()
             error = driver.trip()
@@ -284,6 +298,7 @@ def drives_off_and_exit(driver: Trippable, code: int = LOOP_STALL_EXIT) -> Calla
         finally:
             _exit(code)  # whatever happened above: a hung loop must not be left running
             faulthandler.cancel_dump_traceback_later()  # reached only where _exit is replaced (tests)
+            sys.setswitchinterval(switch_s)
 
     return action
 

@@ -193,9 +193,11 @@ def test_the_action_trips_the_driver_twice_logs_and_exits_with_70(monkeypatch, c
 
     monkeypatch.setattr(loop_watchdog, "_exit", exits.append)
     wd = LoopWatchdog(0.5, lambda *_: None)
+    switch_s = sys.getswitchinterval()
     with caplog.at_level("CRITICAL", logger="xneck.bridge"):
         drives_off_and_exit(Driver())(wd, 0.53)
     assert exits == [LOOP_STALL_EXIT] == [70]
+    assert sys.getswitchinterval() == switch_s  # (its 1 µs is for a process about to end, not this one)
     assert len(trips) == 2 and trips[1] - trips[0] >= loop_watchdog.SECOND_PASS_S
     (line,) = [r.getMessage() for r in caplog.records]
     assert line.startswith("loop watchdog: the real-time loop made no tick for 0.530 s (limit 0.500 s): drives "
@@ -216,6 +218,46 @@ def test_the_action_exits_even_when_tripping_fails(monkeypatch) -> None:
         drives_off_and_exit(Broken())(LoopWatchdog(0.5, lambda *_: None), 0.6)
     assert exits == [70]
 
+
+
+_CONVOYED_ACTION = """
+import logging, os, threading, time
+from bridge.loop_watchdog import LoopWatchdog, drives_off_and_exit
+logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+class Driver:  # a trip of many short calls that release the GIL, as the fake board's log writes
+    name = "convoyed"
+    def trip(self):
+        fd = os.open(os.devnull, os.O_WRONLY)
+        try:
+            for _ in range(1000):
+                os.write(fd, b"0")
+        finally:
+            os.close(fd)
+        return ""
+
+def loop():  # hung in a convoy: a short call that releases the GIL, then a little Python, for ever
+    wd.start()
+    while True:
+        os.stat(".")
+        for _ in range(5_000):
+            pass
+
+wd = LoopWatchdog(0.1, drives_off_and_exit(Driver()))
+threading.Thread(target=loop, daemon=True).start()
+time.sleep(30)
+"""
+
+
+def test_the_action_gets_the_gil_from_a_loop_hung_in_a_convoy() -> None:
+    """CI (stop 33): a bridge whose loop hung in a convoy ended by faulthandler's timeout (status
+    1, its log line lost) because each GIL hand-back of the trip waited for the loop. The action
+    ends the process itself, with 70 and its line, however many calls its trip makes."""
+    r = subprocess.run([sys.executable, "-c", _CONVOYED_ACTION], capture_output=True, text=True, timeout=60,
+                       cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == LOOP_STALL_EXIT, (r.returncode, r.stderr[-2000:])
+    assert "drives disabled in" in r.stderr and "(driver convoyed); exiting with code 70" in r.stderr, r.stderr[-2000:]
+    assert "Thread 0x" not in r.stderr  # no faulthandler dump
 
 # -- the latch in the drivers ------------------------------------------------------------------------
 
