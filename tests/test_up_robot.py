@@ -122,12 +122,9 @@ def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -
         time.sleep(3.0)
         printed = (tmp_path / "up.log").read_text()
         assert "hung" not in printed, printed[-3000:]  # the verdict under test
-        if up.poll() is not None:
-            # Once in a full-suite run on the loaded 2-CPU machine the bridge's loop itself did not
-            # tick for 0.5 s and its own loop watchdog ended it (code 70): a real stall, not the
-            # supervisor's verdict; it must then say so.
-            assert "the bridge exited (code 70)" in printed, printed[-3000:]
-            return
+        # Nor did the bridge's own loop watchdog end it (it once did under a full suite's load,
+        # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority").
+        assert up.poll() is None and "exited" not in printed, printed[-3000:]
         assert Path(f"/proc/{bridge}").exists()
         assert ((_get(base + "/api/system/health", 5) or {}).get("bridge") or {}).get("drive") == "active"
 
