@@ -232,8 +232,8 @@ def predict_elongation(model: Model, x_c: np.ndarray, f: np.ndarray, theta_dot: 
     :func:`elongation_into`.
 
     Eq. 58 as printed puts λ·f in the stiffness; eq. 54 has λ·t, and t = f − f_friction (eq. 41
-    without the motor inertia) is as cheap and much closer: with λ·f the predicted stretch is off by
-    0.3-1 mm where friction is large, with λ·t by about 0.01 mm (measured on the twin)."""
+    without the motor inertia) is as cheap and much closer: on law 3's §7 control test on the twin, off
+    by 0.19 mm at most with λ·t, 3.1 mm with λ·f (docs/model.md; docs/model/stretch_prediction.py)."""
     nc = model.n_cables
     out = np.empty(nc)
     elongation_into(model, _vector(x_c, nc, "x_c"), _vector(f, nc, "f"), _vector(theta_dot, nc, "theta_dot"),
