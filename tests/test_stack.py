@@ -135,8 +135,13 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
     # valid command when it decided (10 ms timeout + a tick or two). The recorder may miss states
     # under load (real-time keys drop), so the state that applied the last command need not be in
     # the archive; the bridge's own count does not depend on it.
-    age = re.search(r"no valid command for (\d+) ms", holds[0][3])
-    assert age and int(age.group(1)) <= 10 + 6, holds[0]
+    # A tick the machine delayed (a time-shared bridge: 19 ms once, full suite of 2026-11-26) makes
+    # the age larger but is no late rule: the rule also waits for 5 states unanswered (10 ms of
+    # ticks at 500 Hz), so a hold that came with the 5th is the first tick it could come.
+    why = re.search(r"no valid command for (\d+) ms \(timeout 10 ms\), (\d+) states unanswered", holds[0][3])
+    assert why, holds[0]
+    age_ms, unanswered = int(why.group(1)), int(why.group(2))
+    assert age_ms <= 10 + 6 or unanswered == 5, holds[0]
     settled = [s for s in holds if s[0] >= holds[0][0] + 0.012]
     assert settled and all(np.allclose(s[2], settled[-1][2], atol=1e-6) for s in settled)  # at the hold forces
     # No force step into the hold, on any machine: a linear ramp over hold_ramp_s (5 ticks) from the
