@@ -34,7 +34,7 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The ``realtime`` modules first, in file order, then the rest in file order (a stable sort).
     Each realtime module waits for the other worker's running module to end before it starts
-    (``_cpu_turn``); scattered through the suite, the eight of them waited 204 s in all on
+    (``_cpu_turn``); scattered through the suite, the seven of them waited 204 s in all on
     2026-11-26 (pytest --durations' setup times) with one CPU idle. Together, they wait for each
     other only, which they would anyway."""
     items.sort(key=lambda item: item.get_closest_marker("realtime") is None)
