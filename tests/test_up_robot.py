@@ -29,6 +29,7 @@ from test_up_child_death import _child, _get
 from bridge import bus
 from bridge.drivers.beaglebone import BLUE_GP0_PINS
 from bridge.session import free_tcp_port, open_session
+from server.child_processes import cpu_split
 
 pytestmark = pytest.mark.e2e
 
@@ -128,6 +129,51 @@ def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -
         assert Path(f"/proc/{bridge}").exists()
         assert ((_get(base + "/api/system/health", 5) or {}).get("bridge") or {}).get("drive") == "active"
 
+
+
+def test_a_stalled_hub_does_not_make_a_healthy_bridge_look_hung(tmp_path: Path) -> None:
+    """Looking for why CI (2026-11-26 19:22) saw a healthy bridge killed as hung: a console stopped
+    for 2.5 s (SIGSTOP; it hosts the hub) does not make the bridge look hung to `xneck up` (this
+    held before that fix too: the bus's peers reach each other without the hub; the cause was
+    where `xneck up` ran, the next test)."""
+    with _up_robot(tmp_path) as (base, _hub, up, bridge):
+        server = _child(up.pid, "server")
+        assert server is not None
+        os.kill(server, signal.SIGSTOP)
+        try:
+            time.sleep(2.5)
+        finally:
+            os.kill(server, signal.SIGCONT)
+        time.sleep(2.0)
+        printed = (tmp_path / "up.log").read_text()
+        assert "hung" not in printed and up.poll() is None, printed[-3000:]
+        assert Path(f"/proc/{bridge}").exists()
+        assert wait_until(lambda: ((_get(base + "/api/system/health", 2) or {}).get("bridge") or {}).get("drive")
+                          in ("active", "hold"), 30, 0.3)
+
+
+def _allowed_cpus(pid: int) -> dict[int, set[int]]:
+    """Each thread of ``pid`` and the CPUs it may run on (from /proc)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(FileNotFoundError, ProcessLookupError):
+            out[int(task.name)] = os.sched_getaffinity(int(task.name))
+    return out
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 or os.environ.get("XNECK_REALTIME") == "0",
+                    reason="one CPU, or isolation turned off: nothing to keep apart")
+def test_xneck_up_itself_stays_off_the_loops_cpu(tmp_path: Path) -> None:
+    """CI (2026-11-26 19:22): `xneck up --robot` killed a healthy bridge as hung (no motor state for
+    1 s) while the controller, already at SCHED_FIFO 49 on the loop's CPU, spent 2.7 s importing:
+    `xneck up` itself was not placed, so its bus threads could sit on that CPU, below every
+    real-time thread, while its main thread ran on time elsewhere. Its threads, the bus's included,
+    run where the console does."""
+    loop_cpus, other_cpus = cpu_split()
+    with _up_robot(tmp_path) as (_base, _hub, up, _bridge):
+        threads = _allowed_cpus(up.pid)
+        assert len(threads) > 1  # its bus session's threads too
+        assert all(cpus == other_cpus for cpus in threads.values()), (threads, loop_cpus)
 
 def test_drives_off_is_refused_for_a_driver_without_motors() -> None:
     r = subprocess.run([*PY, "bridge", "--driver", "twin", "--drives-off"], capture_output=True, text=True, timeout=60)

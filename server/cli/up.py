@@ -42,7 +42,7 @@ from pathlib import Path
 
 import typer
 
-from server.child_processes import ENV_PARENT, exit_how, isolate, log_tail, stop_child, xneck_argv
+from server.child_processes import ENV_PARENT, exit_how, isolate, isolate_self, log_tail, stop_child, xneck_argv
 from server.cli.options import NON_NEGATIVE, PORT_MAX, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
@@ -262,6 +262,10 @@ def up(
 
         typer.secho(f"error: cannot use the data directory {data_dir}: {storage_reason(exc)}", err=True, fg="red")
         raise typer.Exit(2) from None
+    # This process too runs off the loop's CPUs, as the console does: its bus session's threads,
+    # which judge whether the bridge is hung, must not queue there below the real-time threads (CI:
+    # a controller importing for 2.7 s at FIFO 49 starved them and a healthy bridge was killed).
+    isolate_self("up")
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
     param_args = ["--params", str(params_file)] if params_file else []
