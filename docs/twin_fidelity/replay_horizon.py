@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from twin.model.params import load_params
 from twin.sim import calibrate as cal
-from twin.sim.truth import load_truth
+from twin.sim.truth import TruthError, load_truth
 
 
 def main() -> None:
@@ -58,4 +58,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (cal.CalibrationError, TruthError) as exc:  # a bad recording or truth: one line, no traceback
+        raise SystemExit(f"error: {exc}") from None
