@@ -72,6 +72,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--points", type=int, default=12, help="freeze points over the moving part")
     args = ap.parse_args()
+    if args.points < 1:
+        ap.error(f"--points must be at least 1, got {args.points}")
     print(f"Command: .venv/bin/python docs/bridge-figures/frozen_forces.py {' '.join(sys.argv[1:])}".rstrip())
     print()
     started = time.perf_counter()

@@ -41,6 +41,7 @@ from twin.model.dynamics import f_friction
 from twin.model.estimation import predict_elongation
 from twin.model.params import load_params
 from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.truth import load_truth
 
 SETTLE_S = 1.0  # s held at the last waypoint, as a campaign does (run_closed_loop's settle_s)
 
@@ -63,6 +64,10 @@ def main() -> None:
     parser.add_argument("--truth", default="model", help="What the twin simulates: model, robot or a truth FILE.")
     parser.add_argument("--seed", type=int, default=0, help="Seed of the twin's sensor noise.")
     args = parser.parse_args()
+    try:
+        load_truth(args.truth)
+    except ValueError as exc:  # an unknown truth or a bad truth file: one line, before anything runs
+        parser.error(str(exc))
     start = time.perf_counter()
     params = load_params()
     traj = control_test_trajectory()
