@@ -117,6 +117,29 @@ def test_refuses_a_campaign_where_the_motors_never_turn_fast(synthetic, params):
         fit_load_friction(synthetic, params, sigma="magic")  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("where", ["typical", "near 1 = λx and slack"])
+def test_the_exact_jacobian_is_the_residuals_derivative(synthetic, params, where):
+    """The fit's Jacobian (derivatives carried through the creep recursion) against central
+    differences of the residual, on every parameter, with the gear's losses, a friction shape that
+    is not a sign, and where 1 − λx sits at its floor or the cable goes slack (the branches)."""
+    j, tau = 1, 1.5
+    x = synthetic.x_c[:, j].copy()
+    p = np.array([4500.0, 80.0, 60.0, 0.15, 9.0, 0.12, 0.7])
+    if where != "typical":
+        x[100:140] = 1.0 / p[1] * 0.98  # 1 − λx below its floor of 0.05
+        x[300:340] = -0.5e-3  # slack: no tension, no derivative
+    args = (x, synthetic.x_c_dot[:, j], synthetic.theta_dot[:, j], synthetic.force[:, j],
+            np.abs(synthetic.theta_dot[:, j]) >= 5.0, tau, 1 / RATE_HZ, *loadfriction.gear_losses(params))
+    every = np.ones(len(loadfriction.SYMBOLS), dtype=bool)
+    scale = np.array([5000.0, 100.0, 1000.0, 0.1, 10.0, 0.05, 1.0])
+    exact = loadfriction._jacobian(p, scale, every, *args)
+    fd = loadfriction._fd_jacobian(p, scale, every, *args)
+    assert exact.shape == fd.shape
+    for i, name in enumerate(loadfriction.SYMBOLS):
+        assert np.abs(fd[:, i]).max() > 0, name  # every parameter moves the residual here
+        np.testing.assert_allclose(exact[:, i], fd[:, i], rtol=1e-5, atol=1e-6 * np.abs(fd[:, i]).max(), err_msg=name)
+
+
 def test_creep_relaxes_the_tension_to_the_kelvin_elements_equilibrium():
     """The creep element is driven by the tension it leaves (as the robot truth's, twin/sim/
     integrator.py creep_update), so that τ and β are the line's: after a step of stretch the tension

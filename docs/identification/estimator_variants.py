@@ -135,12 +135,20 @@ def _fixed_lag(lag: int) -> Callable:
 
 @contextlib.contextmanager
 def _patched(obj, name: str, value) -> Iterator[None]:
-    old = getattr(obj, name)
-    setattr(obj, name, value)
+    """``obj.name`` replaced by ``value`` while in the block. A variant of the load-friction fit's
+    residual or tension also gets the Jacobian by finite differences of it: the fit's exact one
+    (loadfriction._jacobian) is the shipped model's derivative only."""
+    swaps = [(name, value)]
+    if obj is loadfriction and name in ("_residual", "_tension"):
+        swaps.append(("_jacobian", loadfriction._fd_jacobian))
+    olds = [(n, getattr(obj, n)) for n, _ in swaps]
+    for n, v in swaps:
+        setattr(obj, n, v)
     try:
         yield
     finally:
-        setattr(obj, name, old)
+        for n, v in olds:
+            setattr(obj, n, v)
 
 
 @contextlib.contextmanager

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -118,6 +119,58 @@ def _creep_tension(k: float, lam: float, c_a: float, beta: float, x: FloatArray,
     return out
 
 
+@njit(cache=True)
+def _creep_tension_jacobian(k: float, lam: float, c_a: float, beta: float, x: FloatArray, xd: FloatArray,
+                            gain: float, floor: float) -> tuple[FloatArray, FloatArray]:
+    """:func:`_creep_tension` and its exact derivatives ∂t/∂(k, λ, c_a, β) ((n,), (n, 4)), carried
+    forward through the creep recursion. The creep's drive β·t_e/k = β·x'/(1 − λx') does not depend
+    on k, so neither does c; c's derivatives at the first sample are iterated with its equilibrium
+    (a contraction, so they converge to the implicit ones)."""
+    n = x.shape[0]
+    out = np.empty(n)
+    dt = np.zeros((n, 4))
+    c, dc_lam, dc_beta = 0.0, 0.0, 0.0
+
+    def drive(xx, lam, beta):  # (g, ∂g/∂x', ∂g/∂λ, ∂g/∂β) of g = β·max(x'/(1 − λx'), 0) (clipped at floor)
+        q = 1.0 - lam * xx
+        if xx <= 0.0:
+            return 0.0, 0.0, 0.0, 0.0
+        if q > floor:
+            return beta * xx / q, beta / (q * q), beta * xx * xx / (q * q), xx / q
+        return beta * xx / floor, beta / floor, 0.0, xx / floor
+
+    for _ in range(50):
+        g, g_x, g_lam, g_beta = drive(x[0] - c, lam, beta)
+        dc_lam = g_x * -dc_lam + g_lam
+        dc_beta = g_x * -dc_beta + g_beta
+        c = g
+    for i in range(n):
+        xx = x[i] - c
+        q = 1.0 - lam * xx
+        num = k * xx + c_a * xd[i]
+        if q > floor:
+            t = num / q
+            if t > 0.0:
+                # ∂x'/∂p = −∂c/∂p; ∂q/∂λ = −x' − λ·∂x'/∂λ, ∂q/∂β = −λ·∂x'/∂β
+                dt[i, 0] = xx / q
+                dt[i, 1] = (-k * dc_lam * q - num * (-xx + lam * dc_lam)) / (q * q)
+                dt[i, 2] = xd[i] / q
+                dt[i, 3] = (-k * dc_beta * q - num * (lam * dc_beta)) / (q * q)
+        else:
+            t = num / floor
+            if t > 0.0:
+                dt[i, 0] = xx / floor
+                dt[i, 1] = -k * dc_lam / floor
+                dt[i, 2] = xd[i] / floor
+                dt[i, 3] = -k * dc_beta / floor
+        out[i] = max(t, 0.0)
+        g, g_x, g_lam, g_beta = drive(xx, lam, beta)
+        dc_lam += (g_x * -dc_lam + g_lam - dc_lam) * gain
+        dc_beta += (g_x * -dc_beta + g_beta - dc_beta) * gain
+        c += (g - c) * gain
+    return out, dt
+
+
 def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: float) -> FloatArray:
     """t (N) of the model for p = (k, λ, c_a, μ, F₀, β, c_f) on the whole record (x (m), ẋ (m/s),
     step h (s)): eq. 54 on the stretch less the creep, the creep element driven by the tension it
@@ -173,8 +226,35 @@ def linear_start(proc: Processed, params: Params) -> tuple[FloatArray, FloatArra
     return k, lam
 
 
-def _jacobian(p: FloatArray, scale: FloatArray, free: NDArray[np.bool_], *args) -> FloatArray:
-    """∂r/∂p (rows, free parameters) by central differences, steps of 1e-6 of each scale."""
+def _jacobian(p: FloatArray, scale: FloatArray, free: NDArray[np.bool_], x: FloatArray, xd: FloatArray,
+              theta_dot: FloatArray, y: FloatArray, rows: NDArray[np.bool_], tau_s: float, h: float,
+              g_f: float = 0.0, g_b: float = 0.0) -> FloatArray:
+    """∂r/∂p (rows, free parameters) of :func:`_residual`, exact: the tension's derivatives carried
+    through the creep recursion (:func:`_creep_tension_jacobian`), the friction's in closed form.
+    ``scale`` is unused (the signature of :func:`_fd_jacobian`, which variants that replace
+    :func:`_residual` put in its place). Central differences cost 14 residuals per Jacobian and
+    were a third of the robot-truth fit's time (benchmarks/identification.py)."""
+    t_all, dt_all = _creep_tension_jacobian(
+        float(p[0]), float(p[1]), float(p[2]), float(p[5]), np.ascontiguousarray(x, dtype=float),
+        np.ascontiguousarray(xd, dtype=float), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
+    t, dt = t_all[rows], dt_all[rows]
+    mu, f0, w = p[3], p[4], theta_dot[rows]
+    a = _shape(p[6], w)
+    winding, back = a > 0.0, a < 0.0
+    den = 1 - g_f * np.where(winding, a, 0.0)
+    num = (1 + a * mu) * t + a * f0 - g_b * np.where(back, -a, 0.0) * t
+    gain = (1 + a * mu - g_b * np.where(back, -a, 0.0)) / den  # ∂r/∂t
+    # ∂r/∂a: ∂num/∂a = μt + F₀ + g_b·t where back-driven; ∂den/∂a = −g_f where winding
+    r_a = (mu * t + f0 + g_b * t * back) / den + num * g_f * winding / den**2
+    a_cf = (2.0 / np.pi) * w / (1.0 + (p[6] * w) ** 2)
+    J = np.column_stack([gain * dt[:, 0], gain * dt[:, 1], gain * dt[:, 2], a * t / den, a / den,
+                         gain * dt[:, 3], r_a * a_cf])
+    return J[:, free]
+
+
+def _fd_jacobian(p: FloatArray, scale: FloatArray, free: NDArray[np.bool_], *args) -> FloatArray:
+    """∂r/∂p (rows, free parameters) by central differences of :func:`_residual`, steps of 1e-6 of
+    each scale: for variants of the residual without their own Jacobian, and to check :func:`_jacobian`."""
     cols = []
     for i in np.flatnonzero(free):
         d = np.zeros_like(p)
@@ -203,20 +283,29 @@ class _Cable:
         return (self.x if x is None else x, self.x_dot if x_dot is None else x_dot, self.theta_dot, self.y, self.rows,
                 tau_s, self.h, *self.gear)
 
-    def solve(self, fun, p0: FloatArray, free: NDArray[np.bool_] | None = None) -> FloatArray:
+    def solve(self, fun, p0: FloatArray, free: NDArray[np.bool_] | None = None, jac=None) -> FloatArray:
         """Bounded least squares of ``fun`` from ``p0``, over the ``free`` parameters only (the
-        others held at ``p0``: an IV system has one equation per free parameter)."""
+        others held at ``p0``: an IV system has one equation per free parameter); ``jac``: p ↦
+        ∂fun/∂p over all parameters, else finite differences."""
         idx = np.arange(len(p0)) if free is None else np.flatnonzero(free)
 
-        def sub(q: FloatArray) -> FloatArray:
+        def full(q: FloatArray) -> FloatArray:
             p = p0.copy()
             p[idx] = q
-            return fun(p)
+            return p
 
         out = p0.copy()
-        out[idx] = optimize.least_squares(sub, p0[idx], bounds=(self.lo[idx], self.hi[idx]), x_scale=self.scale[idx],
+        # Any: scipy's annotations infer jac's type from its default, a string
+        jac_of: Any = "2-point" if jac is None else (lambda q: jac(full(q))[:, idx])
+        out[idx] = optimize.least_squares(lambda q: fun(full(q)), p0[idx], jac=jac_of,
+                                          bounds=(self.lo[idx], self.hi[idx]), x_scale=self.scale[idx],
                                           method="trf", xtol=1e-10, ftol=1e-10, gtol=1e-10).x
         return out
+
+    def jacobian(self, tau_s: float, x: FloatArray | None = None, x_dot: FloatArray | None = None):
+        """p ↦ ∂r/∂p over all parameters (:func:`_jacobian`), on the camera's stretch or ``x``."""
+        every = np.ones(len(self.scale), dtype=bool)
+        return lambda p: _jacobian(p, self.scale, every, *self.args(tau_s, x, x_dot))
 
 
 def gear_losses(params: Params) -> tuple[float, float]:
@@ -258,7 +347,7 @@ def _least_squares(c: _Cable, starts: list[FloatArray], taus_s: tuple[float, ...
     best: tuple[float, FloatArray, float] | None = None
     for tau in taus_s:
         for p0 in starts:
-            p = c.solve(lambda q, a=c.args(tau): _residual(q, *a), p0, free)
+            p = c.solve(lambda q, a=c.args(tau): _residual(q, *a), p0, free, c.jacobian(tau))
             cost = float(np.sum(_residual(p, *c.args(tau)) ** 2))
             if best is None or cost < best[0]:
                 best = (cost, p, tau)
@@ -295,7 +384,9 @@ def _instrumental(proc: Processed, params: Params, cables: list[_Cable], values:
             Z = _jacobian(vals[j], c.scale, frees[j], *c.args(taus[j], sim.x[:, j], sim.x_dot[:, j]))
             Q, _ = np.linalg.qr(Z / np.maximum(np.linalg.norm(Z, axis=0), 1e-300))
             zs[j] = Z
-            vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j], frees[j])
+            jac = c.jacobian(taus[j])
+            vals[j] = c.solve(lambda q, a=c.args(taus[j]), Q=Q: Q.T @ _residual(q, *a), vals[j], frees[j],
+                              lambda q, Q=Q, jac=jac: Q.T @ jac(q))
         change = max(np.max(np.abs(vals[:, 0] / k - 1)), np.max(np.abs(vals[:, 1] - lam) / np.maximum(lam, 1.0)))
         if change < IV_TOLERANCE:
             return vals, zs, it, True, sim
