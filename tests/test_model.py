@@ -107,6 +107,24 @@ def test_g_is_the_gradient_of_the_potential(model, rng):
         np.testing.assert_allclose(g[:, i], fd, rtol=1e-5, atol=1e-7)
 
 
+def test_statics_are_the_full_evaluations_terms(model, rng):
+    """dynamics.statics (the identification's re-simulated neck) gives evaluate's l_c, Z and g,
+    bit for bit, at any speed the full evaluation is asked for (statics need none), one
+    configuration or a batch."""
+    alpha = rng.uniform(-70, 70, size=(4, 5, 3)) * DEG
+    full = dynamics.evaluate(model, alpha.reshape(-1, 3), rng.normal(size=(20, 3)))
+    l_c, Z, g = dynamics.statics(model, alpha)
+    assert l_c.shape == (4, 5, model.n_cables) and Z.shape == (4, 5, 3, model.n_cables) and g.shape == (4, 5, 3)
+    np.testing.assert_array_equal(l_c.reshape(full.l_c.shape), full.l_c)
+    np.testing.assert_array_equal(Z.reshape(full.Z.shape), full.Z)
+    np.testing.assert_array_equal(g.reshape(full.g.shape), full.g)
+    one = dynamics.statics(model, alpha[1, 2])
+    assert [v.shape for v in one] == [(model.n_cables,), (3, model.n_cables), (3,)]
+    np.testing.assert_array_equal(one[2], full.g[7])
+    with pytest.raises(ValueError, match=r"alpha must have shape \(\.\.\., 3\)"):
+        dynamics.statics(model, np.zeros(2))
+
+
 def test_straight_neck_is_an_equilibrium_of_springs_and_gravity(model):
     np.testing.assert_allclose(dynamics.g(model, np.zeros(3)), 0, atol=1e-12)
 

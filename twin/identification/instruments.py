@@ -38,16 +38,17 @@ FD_STEP_RAD = 1e-6
 CHORD_MIN_CONTRACTION = 0.25  # a step not below this fraction of the last one gets a fresh Jacobian
 
 
-def _stretch(m: Model, alpha: FloatArray, theta: FloatArray) -> tuple[FloatArray, dynamics.Terms]:
-    terms = dynamics.evaluate(m, alpha, np.zeros_like(alpha))
-    return terms.l_c - m.l_c0 + m.rho * theta, terms
+def _stretch(m: Model, alpha: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """x (m) of eq. 27 at α and θ, with Z and g there (:func:`dynamics.statics`)."""
+    l_c, Z, g = dynamics.statics(m, alpha)
+    return l_c - m.l_c0 + m.rho * theta, Z, g
 
 
 def _residual(m: Model, alpha: FloatArray, theta: FloatArray, k: FloatArray, lam: FloatArray,
               inertial: FloatArray) -> tuple[FloatArray, FloatArray]:
-    x, terms = _stretch(m, alpha, theta)
+    x, Z, g = _stretch(m, alpha, theta)
     t = np.maximum(dynamics.cable_tension_law(k, lam, 0.0, x, 0.0), 0.0)
-    return np.einsum("nij,nj->ni", terms.Z, t) - terms.g - inertial, x
+    return np.einsum("nij,nj->ni", Z, t) - g - inertial, x
 
 
 def neck_equilibrium(m: Model, theta: FloatArray, k: FloatArray, lam: FloatArray, alpha0: FloatArray,

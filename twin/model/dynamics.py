@@ -28,8 +28,9 @@ from twin.model.numeric import RIGID, Model
 
 
 @njit(cache=True)
-def chain_terms(m, alpha, alpha_dot, tab, Mm, cm, g):
-    """M_m, c_m and g (springs + gravity) from a filled jet table; returns the potential U (J)."""
+def chain_terms(m, alpha, alpha_dot, tab, Mm, cm, g, inertia=True):
+    """M_m, c_m and g (springs + gravity) from a filled jet table; returns the potential U (J).
+    ``inertia`` False: g and U only (M_m, c_m left at 0), for statics (:func:`statics`)."""
     N = m.n_joints
     Mm[:, :] = 0.0
     cm[:] = 0.0
@@ -68,11 +69,12 @@ def chain_terms(m, alpha, alpha_dot, tab, Mm, cm, g):
                 Jp[j] = 1.0
             Jx[i], Jy[i], Jp[i] = q1x, q1y, tab[i, rphi, 1]
             phib = tab[i, rphi, 2] * ad * ad
-            mass, inertia = m.m_body[i, k], m.I_body[i, k]
+            mass, body_inertia = m.m_body[i, k], m.I_body[i, k]
             for a in range(i + 1):
-                for c in range(i + 1):
-                    Mm[a, c] += mass * (Jx[a] * Jx[c] + Jy[a] * Jy[c]) + inertia * Jp[a] * Jp[c]
-                cm[a] += mass * (Jx[a] * bx + Jy[a] * by) + inertia * Jp[a] * phib
+                if inertia:
+                    for c in range(i + 1):
+                        Mm[a, c] += mass * (Jx[a] * Jx[c] + Jy[a] * Jy[c]) + body_inertia * Jp[a] * Jp[c]
+                    cm[a] += mass * (Jx[a] * bx + Jy[a] * by) + body_inertia * Jp[a] * phib
                 g[a] += mass * m.gravity * Jy[a]
             U += mass * m.gravity * py
         beta += alpha[i]
@@ -113,6 +115,30 @@ def _evaluate_batch(m, alpha, alpha_dot):
         U[k] = evaluate_into(m, alpha[k], alpha_dot[k], tab, lc[k], Z[k], Zd[k], Mm[k], cm[k], g[k])
         motor_terms(m, Z[k], Zd[k], alpha_dot[k], Mm[k], cm[k], M[k], c[k])
     return lc, Z, Zd, Mm, cm, g, M, c, U
+
+
+@njit(cache=True)
+def _statics_batch(m, alpha):
+    B, N, nc = alpha.shape[0], m.n_joints, m.n_cables
+    lc, Z, Zd, g = np.empty((B, nc)), np.empty((B, N, nc)), np.empty((B, N, nc)), np.empty((B, N))
+    Mm, cm, still = np.empty((N, N)), np.empty(N), np.zeros(N)
+    tab = np.empty((N, xjoint.N_ROWS, 3))
+    for k in range(B):
+        for i in range(N):
+            xjoint.joint_jets(m.L, m.b, m.r, alpha[k, i], tab[i])
+        cable_terms(m, tab, still, lc[k], Z[k], Zd[k])
+        chain_terms(m, alpha[k], still, tab, Mm, cm, g[k], False)
+    return lc, Z, g
+
+
+def statics(model: Model, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(l_c (..., n_cables) m, Z (..., N, n_cables) m/rad, g (..., N) N·m) at ``alpha`` (..., N)
+    rad: the terms of the neck's equilibrium Z·t = g (eq. 32), without the inertia
+    :func:`evaluate` computes too (a third of its cost: the identification's re-simulation of the
+    neck, twin/identification/instruments.py, evaluates them about 500 times per fit)."""
+    a2 = _as_batch(model, alpha, "alpha")
+    lead = np.shape(alpha)[:-1]
+    return tuple(v.reshape(lead + v.shape[1:]) for v in _statics_batch(model, a2))  # type: ignore[return-value]
 
 
 class Terms(NamedTuple):
