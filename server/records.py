@@ -42,7 +42,7 @@ class CampaignRecord(BaseModel):
     truth: str = Field(default="", max_length=256, description="What the twin simulated (twin/sim/truth.py): model, "
                        "robot or a truth file's name (GET /api/truths); empty on the robot.")
     estimator: str = Field(default="", max_length=32, description="Identification: Table 2's estimator its "
-                           "analysis was asked for (auto, iv, ols, wls, loadfriction); empty for control.")
+                           "analysis was asked for (auto, iv, ols, wls, loadfriction, outputerror); empty for control.")
     creep_time_s: float | None = Field(default=None, description="Identification: the line's creep time constant "
                                        "(s) held in its analysis; null: estimated from the record.")
     status: CampaignStatus = "running"

@@ -42,7 +42,7 @@ class StudyRequest(BaseModel):
     settle_s: float = Field(1.0, ge=0.0, le=60.0)
     model_follows: bool = False
     design_configurations: int = Field(2000, ge=10, le=100_000)
-    estimator: Literal["auto", "iv", "ols", "wls", "loadfriction"] = Field(
+    estimator: Literal["auto", "iv", "ols", "wls", "loadfriction", "outputerror"] = Field(
         "auto", description="Identification: Table 2's estimator, as `xneck identify --estimator`.")
     workers: int | None = Field(None, ge=1, le=64, description="Local Dask workers (default: the machine's cores)")
 

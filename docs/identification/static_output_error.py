@@ -16,7 +16,9 @@ estimator (BIRDy's DIDIM, with the encoders as the input) that never uses a forc
 depends on instead is the structure: the lateral springs' rates and free lengths, the bar masses
 (g), the pulley radii (Z, l_c), all from the parameter file, which the robot truth perturbs
 (twin/sim/robot_truth.toml [structure]). Its biases are therefore of another kind than the force
-fit's; the table it prints puts the two side by side on law 1's campaigns.
+fit's; the table it prints puts the two side by side on law 1's campaigns. The estimator built
+from it, with the springs' rates free and the forces for the tension's scale, is
+twin/identification/outputerror.py (`--estimator outputerror`).
 
     nice -n 5 .venv/bin/python docs/identification/static_output_error.py --first 61 --seeds 6 [--truth robot|model|FILE]
         [--without structure ...]
@@ -40,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from controller.identification_loop import law1_campaign
 from controller.trajectory import identification_trajectory
 from twin.identification.instruments import neck_equilibrium
-from twin.identification.loadfriction import MIN_STRETCH_FACTOR, fit_load_friction
+from twin.identification.loadfriction import fit_load_friction
+from twin.identification.outputerror import creep_stretch
 from twin.identification.processing import Processed, preprocess
 from twin.model.numeric import Model, build
 from twin.model.params import load_params
@@ -49,23 +52,6 @@ from twin.sim.truth import EFFECTS, load_truth
 FloatArray = NDArray[np.float64]
 EDGE_S = 5.0  # s dropped at each end: the zero-phase filter's edges
 CREEP_ITERATIONS = 3  # the creep shifts the equilibrium by 5 % of the stretch: fixed point in a few passes
-
-
-def creep_stretch(x_total: FloatArray, lam: FloatArray, beta: float, tau_s: float, h: float) -> FloatArray:
-    """c (m, (n, n_cables)): the Kelvin element relaxing towards β·x'/(1 − λx'), x' = x_total − c,
-    at each sample (as loadfriction._creep_tension, whose drive β·t_e/k is the same), at its
-    equilibrium at the first sample."""
-    gain = 1.0 - np.exp(-h / tau_s)
-    c = np.zeros(x_total.shape[1])
-    out = np.empty_like(x_total)
-    for _ in range(50):
-        xx = x_total[0] - c
-        c = beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
-    for i in range(len(x_total)):
-        out[i] = c
-        xx = x_total[i] - c
-        c = c + (beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0) - c) * gain
-    return out
 
 
 class StaticOutputError:
@@ -105,7 +91,7 @@ class StaticOutputError:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--first", type=int, default=61, help="first campaign seed (default 61)")
     ap.add_argument("--seeds", type=int, default=6, help="how many seeds (default 6)")
     ap.add_argument("--truth", default="robot", help="robot (default), model, or a truth file")

@@ -101,7 +101,7 @@ def campaign_identification(
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
     estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
                                   "as `xneck identify --estimator` (auto, the default: loadfriction where the "
-                                  "campaign rejects the paper's model, else iv; or iv, ols, wls, loadfriction)."),
+                                  "campaign rejects the paper's model, else iv; or iv, ols, wls, loadfriction, outputerror)."),
     creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The line's creep time constant (s) "
                                               "measured apart, as `xneck identify --creep-time-s`."),
     params_file: Path | None = PARAMS_OPTION,

@@ -33,7 +33,10 @@ def identify(
                                   "variables from the model re-simulated on the encoders, consistent under camera "
                                   "noise; ols: eq. 49 as printed; wls: rows weighted by their residual σ; "
                                   "loadfriction: Table 2 with the motor friction growing with the load and a cable "
-                                  "creep term (docs/identification-coverage.md). Table 1 is always by iv or the "
+                                  "creep term (docs/identification-coverage.md); outputerror: the neck's pose "
+                                  "simulated from the encoders against α_IP and the motor forces, fitted together "
+                                  "with the springs' rates (free of the friction model's errors; 20-30 s). Table 1 is "
+                                  "always by iv or the "
                                   "linear estimator named."),
     sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "
                               "white: eq. 50 as printed (too small on filtered data)."),

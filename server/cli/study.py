@@ -103,7 +103,7 @@ def study_identification(
     out: Path = OUT, samples: int | None = SAMPLES, vary: list[str] | None = VARY, seed: int | None = SEED,
     trajectory: str | None = TRAJECTORY, truth: str | None = TRUTH, alpha_ip: str | None = ALPHA_IP,
     estimator: str | None = typer.Option(None, "--estimator", help="Table 2's estimator, as `xneck identify "
-                                         "--estimator` (default auto; iv, ols, wls, loadfriction)."),
+                                         "--estimator` (default auto; iv, ols, wls, loadfriction, outputerror)."),
     workers: int | None = WORKERS, scheduler: str | None = SCHEDULER, as_json: bool = AS_JSON,
     study_file: Path | None = FILE, params_file: Path | None = PARAMS_OPTION, overrides: list[str] | None = SET_OPTION,
 ) -> None:

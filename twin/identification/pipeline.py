@@ -118,10 +118,10 @@ IntArray = NDArray[np.int64]
 ESTIMATOR_ALIASES = {"ls": "ols", "load-friction": "loadfriction"}  # "ls": eq. 49's name before issue 17
 # Table 2 only: eq. 55's friction replaced by one growing with the load, plus cable creep
 # (twin.identification.loadfriction, issues 16/17); Table 1 and f_s then use the default "iv".
-VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "auto")
+VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "outputerror", "auto")
 # "auto": the load-friction fit, kept when it rejects the paper's model (twin.identification.model_choice),
 # else "iv". The default of the user's commands (xneck identify, campaigns, the console).
-NONLINEAR_ESTIMATORS = ("loadfriction", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
+NONLINEAR_ESTIMATORS = ("loadfriction", "outputerror", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
 
 
 def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...], rows: tuple[IntArray, IntArray], *,
@@ -181,9 +181,9 @@ def check_variable_options(estimator: str, creep_time_s: float | None = None) ->
 
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
     creep_taus(creep_time_s)
-    if creep_time_s is not None and name not in NONLINEAR_ESTIMATORS:
+    if creep_time_s is not None and name not in ("loadfriction", "auto"):
         raise ValueError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                         f"estimator {name!r} has no creep term")
+                         f"estimator {name!r} does not hold one")
     return name
 
 
@@ -264,14 +264,21 @@ def identify_variable(
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
     ``"auto"``: that fit where it rejects eqs. 54-55, else ``"iv"`` (:func:`_identify_variable_auto`).
+    ``"outputerror"``: twin.identification.outputerror (the neck's equilibrium simulated on the
+    encoders against α_IP, and the motor forces, fitted together with the springs' rates: free of
+    the friction model's errors that bias the force fits' λ; 20-30 s; not the default).
     ``creep_time_s``: the line's creep time constant τ (s) measured apart (a bench creep test of the
     line), held in the load-friction fit instead of chosen from the record (twin.identification.
     loadfriction.creep_taus); None (default): chosen.
     """
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
-    if creep_time_s is not None and name not in NONLINEAR_ESTIMATORS:
+    if creep_time_s is not None and name not in ("loadfriction", "auto"):
         raise IdentificationError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                                  f"estimator {name!r} has no creep term")
+                                  f"estimator {name!r} does not hold one")
+    if name == "outputerror":
+        from twin.identification.outputerror import fit_output_error
+
+        return fit_output_error(proc, params, threshold=threshold, sigma=sigma)
     if name == "loadfriction":
         from twin.identification.loadfriction import creep_taus, fit_load_friction
 

@@ -1,0 +1,242 @@
+"""Table 2's k and λ by the neck's output error from the encoders, forces and pose together (issue 16).
+
+The force fits (eq. 55's IDIM-IV, twin.identification.loadfriction) take the cable tension from
+the motor force less a friction model, so whatever that model lacks biases k and λ: on the robot
+truth the friction's direction asymmetry (a value without a source) pulls λ(3) 8-25 % low
+(docs/identification-coverage.md, "What biases λ(3)"). The neck's pose does not see the friction:
+friction acts upstream of the encoders, and at every identification instant α solves the neck's
+quasi-static equilibrium (eq. 32) on the motor angles θ alone::
+
+    Z(α)·t = g(α; s),   t = k·x'/(1 − λ·x')  (eq. 54),   x' = l_c(α) − l_c0 + ρ·θ − c   (eq. 27, m)
+    τ·ċ = β·x'/(1 − λ·x') − c                       the line's Kelvin creep (loadfriction's)
+
+g holds the lateral springs, whose rates s_i (left and right of each joint, as factors of the
+parameter file's) are free: a spring rate is known to ±10 % (DIN EN 13906-2 grade 2), and the
+tension that balances the springs scales with them, so with the file's rates the pose alone
+gives k 6-11 % off on the robot truth (docs/identification/static_output_error.py). The force
+gives the tension's scale instead: on the rows where a motor turns fast (loadfriction.fit_rows),
+with a = sign θ̇ and the gear's meshing losses g_f, g_b held (loadfriction.gear_losses),
+
+    f − (R/r_d)·I_a·θ̈ = ((1 + a·μ)·t + a·F₀ − g_b·a⁻·t) / (1 − g_f·a⁺)   (N)
+
+with the same t, simulated. One least-squares fit (scipy.optimize.least_squares, bounded) of
+(k, λ, μ, F₀ per cable; β, τ; s per spring) to both: α_sim − α_IP (rad, weighted by 1/σ_α) and
+the force rows (N, by 1/σ_f), σ_α and σ_f the residual scales of a first pass. Everything the fit
+compares is simulated from the encoders, so the camera's noise is in the residual, not in a
+regressor (no errors-in-variables bias, no instruments needed). σ: the Newey-West HAC sandwich
+of the linearised estimator over the identification instants (twin.identification.uncertainty).
+
+What it assumes instead: a light cable damping (the equilibrium is quasi-static: with the paper's
+c_a = 3000 N·s/m the pose is off by c_a·ẋ and λ comes out 50-80 % high; a real line's, 40 N·s/m,
+changes nothing), c_a is held at 0; the bar masses and the springs' free lengths of the file
+(their errors go into s); a friction of a turning motor that is a sign (loadfriction's c_f at
+its bound, as on the robot truth). About 20-30 s per campaign: every spring, cable and creep
+parameter costs one re-simulation of the neck per Jacobian. Coverage on the twin:
+docs/identification-coverage.md, "The neck's output error".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from twin.identification import uncertainty
+from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
+from twin.identification.instruments import neck_equilibrium
+from twin.identification.loadfriction import (
+    BETA_BOUNDS,
+    F0_BOUNDS_N,
+    HAC_MIN_LAG_PERIODS,
+    MIN_ROWS,
+    MIN_SPEED_RAD_S,
+    MIN_STRETCH_FACTOR,
+    MU_BOUNDS,
+    fit_rows,
+    gear_losses,
+)
+from twin.identification.processing import Processed
+from twin.identification.regressors import param_names
+from twin.model.numeric import Model, build
+from twin.model.params import Params
+
+FloatArray = NDArray[np.float64]
+
+NAME = "outputerror"
+EDGE_S = 5.0  # s dropped at each end of the α rows: the zero-phase filter's edges
+CREEP_PASSES = 3  # the creep moves the equilibrium by ~5 % of the stretch: a fixed point in a few passes
+START_K_N_M, START_LAMBDA_PER_M = 4000.0, 80.0  # no prior: Table 2 spans 1900-6200 N/m and 53-121 /m
+LOG_RANGE = 3.0  # k, λ within e^±3 of the start
+SPRING_LOG_RANGE = 0.3  # spring rates within e^±0.3 (±35 %) of the file's: three times their tolerance
+TAU_BOUNDS_S = (0.2, 20.0)
+DIFF_STEP = 1e-4  # relative finite-difference step of the re-simulated parameters
+PASSES = 2  # fits: the second weighted by the first's residual scales
+
+
+def creep_stretch(x_total: FloatArray, lam: FloatArray, beta: float, tau_s: float, h: float) -> FloatArray:
+    """c (m, (n, n_cables)): the Kelvin creep of each cable at each sample, relaxing towards
+    β·x'/(1 − λx') with x' = ``x_total`` − c (loadfriction._creep_tension's element: its drive
+    β·t_e/k is the same), at its equilibrium at the first sample; ``h`` the sample step (s)."""
+    gain = 1.0 - np.exp(-h / tau_s)
+    c = np.zeros(x_total.shape[1])
+    out = np.empty_like(x_total)
+    for _ in range(50):
+        xx = x_total[0] - c
+        c = beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
+    for i in range(len(x_total)):
+        out[i] = c
+        xx = x_total[i] - c
+        c = c + (beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0) - c) * gain
+    return out
+
+
+@dataclass
+class _Neck:
+    """The neck re-simulated on the encoders for a parameter vector, the last solve kept as the next
+    one's start (its α and Jacobians), and a small cache (the friction parameters' finite
+    differences do not move the neck)."""
+
+    m: Model
+    proc: Processed
+    alpha: FloatArray
+    jacobian: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        self.cache: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+
+    def simulate(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float,
+                 springs: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(α (n, N) rad, t (n, n_cables) N) at equilibrium on the recorded θ."""
+        key = np.r_[k, lam, beta, tau_s, springs].tobytes()
+        if key in self.cache:
+            return self.cache[key]
+        N = self.m.n_joints
+        m = self.m._replace(k_left=self.m.k_left * springs[:N], k_right=self.m.k_right * springs[N:])
+        c = np.zeros_like(self.proc.theta)
+        for _ in range(CREEP_PASSES if beta > 0 else 1):
+            # the creep lengthens a cable as unwinding its motor would: it enters as θ − c/ρ
+            alpha, x, self.jacobian = neck_equilibrium(m, self.proc.theta - c / m.rho, k, lam, self.alpha,
+                                                       jacobian0=self.jacobian)
+            self.alpha = alpha
+            if beta <= 0:
+                break
+            c = creep_stretch(x + c, lam, beta, tau_s, 1.0 / self.proc.rate_hz)
+        t = np.maximum(k * x / np.maximum(1 - lam * x, MIN_STRETCH_FACTOR), 0.0)
+        if len(self.cache) > 64:
+            self.cache.clear()
+        self.cache[key] = (alpha, t)
+        return alpha, t
+
+
+def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
+                     sigma: str = "hac") -> Estimate:
+    """Fit the model of the module docstring. The Estimate holds k(j), lambda(j), c_a(j) (held at 0)
+    in Table 2's layout, then mu(j), F_0(j), beta, tau (s) and the spring-rate factors
+    s_left(i), s_right(i), with HAC σ (or eq. 50's with ``sigma="white"``). Raises ValueError when a
+    cable has fewer than loadfriction.MIN_ROWS fast-motor rows, or for an unknown ``sigma``."""
+    if sigma not in SIGMA_METHODS:
+        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    nc, N = params.n_cables, params.n_joints
+    y, rows = fit_rows(proc, params)
+    counts = rows.sum(axis=0)
+    if np.any(counts < MIN_ROWS):
+        poor = [f"{j + 1} ({int(counts[j])} rows)" for j in range(nc) if counts[j] < MIN_ROWS]
+        raise ValueError(f"{NAME}: cable(s) {', '.join(poor)} have fewer than {MIN_ROWS} instants with the motor "
+                         f"faster than {MIN_SPEED_RAD_S:g} rad/s and a force above 2 N; run the identification trajectory")
+    edge = int(EDGE_S * proc.rate_hz)
+    if proc.n <= 2 * edge + MIN_ROWS:
+        raise ValueError(f"{NAME}: {proc.n} instants: the record is too short for the pose rows ({2 * EDGE_S:g} s of "
+                         "filter edges and more)")
+    keep = slice(edge, proc.n - edge)
+    a = np.sign(proc.theta_dot)
+    g_f, g_b = gear_losses(params)
+    neck = _Neck(build(params, "variable"), proc, np.array(proc.alpha, dtype=float))
+    # q: log(k/k0), log(λ/λ0) per cable; β; log τ; log s per spring; μ, F₀ per cable
+    i_beta, i_tau, i_s, i_mu = 2 * nc, 2 * nc + 1, 2 * nc + 2, 2 * nc + 2 + 2 * N
+    i_f0 = i_mu + nc
+    lo = np.r_[np.full(2 * nc, -LOG_RANGE), BETA_BOUNDS[0], np.log(TAU_BOUNDS_S[0]), np.full(2 * N, -SPRING_LOG_RANGE),
+               np.full(nc, MU_BOUNDS[0]), np.full(nc, F0_BOUNDS_N[0])]
+    hi = np.r_[np.full(2 * nc, LOG_RANGE), BETA_BOUNDS[1], np.log(TAU_BOUNDS_S[1]), np.full(2 * N, SPRING_LOG_RANGE),
+               np.full(nc, MU_BOUNDS[1]), np.full(nc, F0_BOUNDS_N[1])]
+    q = np.r_[np.zeros(2 * nc), 0.02, 0.0, np.zeros(2 * N), np.full(nc, 0.1), np.full(nc, 10.0)]
+
+    def unpack(q: FloatArray):
+        return (START_K_N_M * np.exp(q[:nc]), START_LAMBDA_PER_M * np.exp(q[nc:2 * nc]), float(q[i_beta]),
+                float(np.exp(q[i_tau])), np.exp(q[i_s:i_mu]), q[i_mu:i_f0], q[i_f0:])
+
+    def parts(q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        k, lam, beta, tau, springs, mu, f0 = unpack(q)
+        alpha, t = neck.simulate(k, lam, beta, tau, springs)
+        model = ((1 + a * mu) * t + a * f0 - g_b * np.maximum(-a, 0) * t) / (1 - g_f * np.maximum(a, 0))
+        return (alpha - proc.alpha)[keep], (model - y)[rows]
+
+    scale_a, scale_f = np.radians(0.1), 2.0  # rad, N: the first pass's weights, of the order of the twin's
+    sol = None
+    for _ in range(PASSES):
+        def residual(q: FloatArray, sa: float = scale_a, sf: float = scale_f) -> FloatArray:
+            ra, rf = parts(q)
+            return np.concatenate([ra.ravel() / sa, rf / sf])
+
+        sol = optimize.least_squares(residual, q, bounds=(lo, hi), diff_step=DIFF_STEP, xtol=1e-8, x_scale="jac")
+        q = sol.x
+        ra, rf = parts(q)
+        scale_a, scale_f = float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rf ** 2)))
+    assert sol is not None
+    return _estimate(proc, params, sol, q, unpack, rows, keep, threshold, sigma, lo, hi)
+
+
+def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows: NDArray[np.bool_], keep: slice,
+              threshold: float, sigma: str, lo: FloatArray, hi: FloatArray) -> Estimate:
+    """The Estimate: values in SI, σ of the linearised estimator q − q_true ≈ −(JᵀJ)⁻¹Jᵀρ by the HAC
+    sandwich over the instants (each instant's α rows and force rows summed), mapped to the
+    parameters through the exponential of the log-parametrised ones."""
+    nc, N = params.n_cables, params.n_joints
+    J, res = np.asarray(sol.jac, dtype=float), np.asarray(sol.fun, dtype=float)
+    n_alpha = N * (keep.stop - keep.start)
+    # each row's instant: the α rows instant by instant (joints within), then the force rows as
+    # (model - y)[rows] orders them (row-major: instant, then cable)
+    idx = np.concatenate([np.repeat(np.arange(keep.start, keep.stop), N), np.nonzero(rows)[0]]).astype(np.int64)
+    free = (q > lo + 1e-9 * (hi - lo)) & (q < hi - 1e-9 * (hi - lo))
+    cov = np.zeros((len(q), len(q)))
+    lag = 0
+    Jf = J[:, free]
+    try:
+        B = np.linalg.solve(Jf.T @ Jf, Jf.T)
+    except np.linalg.LinAlgError:
+        B = np.linalg.pinv(Jf.T @ Jf) @ Jf.T
+    if sigma == "hac":
+        min_lag = int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz))
+        c_free, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
+    else:
+        c_free = uncertainty.white_covariance(B, res)
+    cov[np.ix_(free, free)] = c_free
+    sd_q = np.sqrt(np.abs(np.diag(cov)))
+    k, lam, beta, tau, springs, mu, f0 = unpack(q)
+    i_beta, i_tau, i_s, i_mu = 2 * nc, 2 * nc + 1, 2 * nc + 2, 2 * nc + 2 + 2 * N
+    values = np.r_[k, lam, np.zeros(nc), mu, f0, beta, tau, springs]
+    # σ of a log-parametrised value v: v·σ(log v)
+    sd = np.r_[np.r_[k, lam] * sd_q[:2 * nc], np.zeros(nc), sd_q[i_mu:i_mu + nc], sd_q[i_mu + nc:i_mu + 2 * nc],
+               sd_q[i_beta], tau * sd_q[i_tau], springs * sd_q[i_s:i_mu]]
+    names = (param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc) + param_names("mu", nc)
+             + param_names("F_0", nc) + ("beta", "tau") + param_names("s_left", N) + param_names("s_right", N))
+    q_names = (names[:2 * nc] + ("beta", "tau") + param_names("s_left", N) + param_names("s_right", N)
+               + param_names("mu", nc) + param_names("F_0", nc))
+    active = tuple(q_names[i] for i in np.flatnonzero(~free))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = sd / np.abs(values)
+    est = Estimate(
+        method="variable", equations="eq. 32's equilibrium on the encoders (α rows) and eqs. 54-55 with load friction",
+        names=names, values=values, sigma=sd, relative_sigma=rel,
+        condition_number=float(np.linalg.cond(J[:, free])), residual_norm=float(np.linalg.norm(res)),
+        n_rows=len(res), n_samples=proc.n, threshold=threshold,
+        sigma_method=f"HAC (Newey-West, Bartlett, {lag} lags)" if sigma == "hac" else "eq. 50 (white residuals)",
+        hac_lag=lag, active_bounds=active,
+    )
+    return dataclasses.replace(est, estimator=(
+        f"output error from the encoders: the neck's equilibrium against α_IP ({n_alpha} rows) and the motor "
+        f"forces where |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s ({int(rows.sum())} rows); spring rates ×"
+        f"{', '.join(f'{v:.3f}' for v in springs)} (left, right per joint); Kelvin creep β = {beta:.3f}, "
+        f"τ = {tau:.2g} s; c_a held at 0 (quasi-static)"))
