@@ -330,6 +330,10 @@ def identification_notes(ident: dict) -> list[str]:
     "  smaller residual say its friction is closer to eq. 37 near θ̇ = 0 than this set-valued Coulomb law",
     "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",
     "  first thing a calibration on recorded campaigns should fit (`xneck twin calibrate`, below).",
+    "  Free of the friction model: `--estimator outputerror` (the neck's pose simulated from the encoders,",
+    "  fitted with the forces and the springs' rates) kept every k and λ within 5 % on law 1's robot-truth",
+    "  campaigns never used in development, its σ too small (docs/identification-coverage.md, \"The neck's",
+    "  output error\"); not the default.",
     "- Speed: `benchmarks/twin_speed.py` prints the tick cost with every effect off, each alone and all on",
     "  (figures in the calibration section below).",
 ]
