@@ -16,8 +16,16 @@ import pytest
 
 from controller.identification_loop import simulate_campaign
 from twin.identification.loadfriction import fit_load_friction
-from twin.identification.outputerror import creep_stretch, fit_output_error
+from twin.identification.outputerror import (
+    L0_TOLERANCE_M,
+    MASS_TOLERANCE,
+    PULLEY_RADIUS_TOLERANCE_M,
+    creep_stretch,
+    fit_output_error,
+    structure_models,
+)
 from twin.identification.pipeline import IdentificationError, check_variable_options, identify_variable, preprocess
+from twin.model.numeric import build
 from twin.model.params import load_params
 from twin.sim.truth import load_truth
 
@@ -57,6 +65,7 @@ def test_recovers_table_2_within_5_percent_where_the_friction_model_is_wrong(par
     assert np.all(np.isfinite(fitted.sigma[idx])) and np.all(fitted.sigma[idx] > 0)
     assert np.all(fitted.vector("c_a") == 0) and "c_a held at 0" in fitted.estimator
     assert fitted.sigma_method.startswith("HAC") and fitted.hac_lag >= 1
+    assert "type B, 7 values" in fitted.sigma_method  # the held structure's tolerances are in σ
 
 
 def test_the_springs_rates_absorb_the_structures_errors(params, fitted):
@@ -81,7 +90,7 @@ def test_refuses_a_bad_sigma_a_still_record_and_a_creep_time(params, robot_campa
         fit_output_error(still, params)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="a creep time applies to the load-friction fit"):
         check_variable_options("outputerror", 2.0)
-    with pytest.raises(IdentificationError, match="does not hold one"):
+    with pytest.raises(IdentificationError, match="fits its own creep time"):
         identify_variable(proc, params, np.asarray(params.friction.f_s), estimator="outputerror", creep_time_s=2.0)
 
 
@@ -95,3 +104,22 @@ def test_creep_stretch_relaxes_to_its_equilibrium():
     c_inf = c[-1, 0]
     assert c_inf == pytest.approx(beta * (5e-3 - c_inf) / (1 - lam * (5e-3 - c_inf)), rel=1e-4)
     assert c[0, 0] == pytest.approx(beta * (2e-3 - c[0, 0]) / (1 - lam * (2e-3 - c[0, 0])), rel=1e-6)
+
+
+def test_structure_models_move_one_held_value_by_one_sigma_each(params):
+    """σ's type-B part: each joint's spring free length, each joint's bar masses (and inertias) and the
+    pulley radius, moved one at a time by half-width/√3 of its tolerance; nothing else changes."""
+    base = build(params, "variable")
+    models = structure_models(params)
+    n = params.n_joints
+    assert len(models) == 2 * n + 1
+    root3 = np.sqrt(3.0)
+    for i, m in enumerate(models[:n]):
+        np.testing.assert_allclose(m.l0 - base.l0, np.eye(n)[i] * L0_TOLERANCE_M / root3, atol=1e-15)
+        np.testing.assert_array_equal(m.m_body, base.m_body)
+    for i, m in enumerate(models[n:2 * n]):
+        np.testing.assert_allclose(m.m_body / base.m_body, 1 + np.eye(n)[i][:, None] * MASS_TOLERANCE / root3 * np.ones((1, 3)))
+        np.testing.assert_array_equal(m.l0, base.l0)
+    last = models[-1]
+    assert last.r == pytest.approx(base.r + PULLEY_RADIUS_TOLERANCE_M / root3)
+    assert not np.allclose(last.l_c0, base.l_c0)  # the cables' lengths at α = 0 follow the radius (eq. 20)

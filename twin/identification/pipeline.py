@@ -173,6 +173,11 @@ def _check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> s
     return name
 
 
+def _creep_refusal(name: str) -> str:
+    """Why estimator ``name`` takes no creep time held: outputerror fits its own, the linear ones have no creep."""
+    return "fits its own creep time" if name == "outputerror" else "has no creep term"
+
+
 def check_variable_options(estimator: str, creep_time_s: float | None = None) -> str:
     """Table 2's estimator name (aliases resolved) and the creep time checked together, before any
     data is read: what a campaign request (CLI, REST) validates before the robot moves. Raises
@@ -183,7 +188,7 @@ def check_variable_options(estimator: str, creep_time_s: float | None = None) ->
     creep_taus(creep_time_s)
     if creep_time_s is not None and name not in ("loadfriction", "auto"):
         raise ValueError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                         f"estimator {name!r} does not hold one")
+                         f"estimator {name!r} {_creep_refusal(name)}")
     return name
 
 
@@ -274,7 +279,7 @@ def identify_variable(
     name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
     if creep_time_s is not None and name not in ("loadfriction", "auto"):
         raise IdentificationError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                                  f"estimator {name!r} does not hold one")
+                                  f"estimator {name!r} {_creep_refusal(name)}")
     if name == "outputerror":
         from twin.identification.outputerror import fit_output_error
 
