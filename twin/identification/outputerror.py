@@ -149,7 +149,8 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
                      sigma: str = "hac") -> Estimate:
     """Fit the model of the module docstring. The Estimate holds k(j), lambda(j), c_a(j) (held at 0)
     in Table 2's layout, then mu(j), F_0(j), beta, tau (s) and the spring-rate factors
-    s_left(i), s_right(i), with HAC σ (or eq. 50's with ``sigma="white"``). Raises ValueError when a
+    s_left(i), s_right(i), with HAC σ (or eq. 50's with ``sigma="white"``) and the held structure's
+    type-B part (:func:`structure_models`). Raises ValueError when a
     cable has fewer than loadfriction.MIN_ROWS fast-motor rows, or for an unknown ``sigma``."""
     if sigma not in SIGMA_METHODS:
         raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
@@ -192,8 +193,8 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     for _ in range(PASSES):
         used = (scale_a, scale_f)
 
-        def residual(q: FloatArray, base: Model | None = None, sa: float = scale_a, sf: float = scale_f) -> FloatArray:
-            ra, rf = parts(q, base)
+        def residual(q: FloatArray, sa: float = scale_a, sf: float = scale_f) -> FloatArray:
+            ra, rf = parts(q)
             return np.concatenate([ra.ravel() / sa, rf / sf])
 
         sol = optimize.least_squares(residual, q, bounds=(lo, hi), diff_step=DIFF_STEP, xtol=1e-8, x_scale="jac")
