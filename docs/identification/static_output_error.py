@@ -41,9 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from controller.identification_loop import law1_campaign
 from controller.trajectory import identification_trajectory
-from twin.identification.instruments import neck_equilibrium
 from twin.identification.loadfriction import fit_load_friction
-from twin.identification.outputerror import creep_stretch
+from twin.identification.outputerror import _Neck
 from twin.identification.processing import Processed, preprocess
 from twin.model.numeric import Model, build
 from twin.model.params import load_params
@@ -51,28 +50,21 @@ from twin.sim.truth import EFFECTS, load_truth
 
 FloatArray = NDArray[np.float64]
 EDGE_S = 5.0  # s dropped at each end: the zero-phase filter's edges
-CREEP_ITERATIONS = 3  # the creep shifts the equilibrium by 5 % of the stretch: fixed point in a few passes
 
 
 class StaticOutputError:
-    """α simulated from the encoders for (k, λ, β, τ), warm-started from the last solve."""
+    """α simulated from the encoders for (k, λ, β, τ) with the parameter file's springs: the
+    estimator's re-simulated neck (twin.identification.outputerror._Neck, warm-started from its
+    last solve) with every spring-rate factor at 1."""
 
     def __init__(self, m: Model, proc: Processed) -> None:
-        self.m, self.proc = m, proc
-        self.alpha, self.jacobian = proc.alpha.copy(), None
+        self.proc = proc
+        self.neck = _Neck(m, proc, np.array(proc.alpha, dtype=float))
+        self.springs = np.ones(2 * m.n_joints)
         self.keep = slice(int(EDGE_S * proc.rate_hz), proc.n - int(EDGE_S * proc.rate_hz))
 
     def alpha_of(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float) -> FloatArray:
-        c = np.zeros_like(self.proc.theta)
-        for _ in range(CREEP_ITERATIONS if beta > 0 else 1):
-            # the creep lengthens the cable as unwinding its motor would: absorbed into θ
-            alpha, x, self.jacobian = neck_equilibrium(self.m, self.proc.theta - c / self.m.rho, k, lam, self.alpha,
-                                                       jacobian0=self.jacobian)
-            self.alpha = alpha
-            if beta <= 0:
-                break
-            c = creep_stretch(x + c, lam, beta, tau_s, 1.0 / self.proc.rate_hz)
-        return self.alpha
+        return self.neck.simulate(k, lam, beta, tau_s, self.springs)[0]
 
     def fit(self, k0: FloatArray, lam0: FloatArray) -> tuple[FloatArray, FloatArray, float, float, float]:
         """(k (N/m), λ (1/m), β, τ (s), rms α residual (rad)), from (k0, λ0); q = (log k/k0, log λ/λ0, β, log τ)."""
