@@ -331,9 +331,9 @@ def identification_notes(ident: dict) -> list[str]:
     "  (pre-sliding compliance of gear and line would smooth it); this is the truth's weakest part and the",
     "  first thing a calibration on recorded campaigns should fit (`xneck twin calibrate`, below).",
     "  Free of the friction model: `--estimator outputerror` (the neck's pose simulated from the encoders,",
-    "  fitted with the forces and the springs' rates) kept every k and λ within 5 % on law 1's robot-truth",
-    "  campaigns never used in development, its σ too small (docs/identification-coverage.md, \"The neck's",
-    "  output error\"); not the default.",
+    "  fitted with the forces, the springs' rates and the pulleys' radius) kept every k and λ within 4.2 %",
+    "  on law 1's robot-truth campaigns never used in development (seeds 102-121), its ±2σ covering 158/160",
+    "  (docs/identification-coverage.md, \"The pulleys' radius fitted\"); not the default (20-40 s a fit).",
     "- Speed: `benchmarks/twin_speed.py` prints the tick cost with every effect off, each alone and all on",
     "  (figures in the calibration section below).",
 ]

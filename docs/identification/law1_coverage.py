@@ -45,6 +45,7 @@ def main() -> None:
     params, traj = load_params(), identification_trajectory()
     truth = {"k": np.asarray(params.cables.variable.k), "lambda": np.asarray(params.cables.variable.lam)}
     within = covered = cases = 0
+    rel_sigma: dict[str, list[np.ndarray]] = {"k": [], "lambda": []}
     print("| seed | k error (%) | λ error (%) | covered by ±2σ (k, λ) | c_f (s/rad) |")
     print("|---|---|---|---|---|")
     for seed in range(args.first, args.first + args.seeds):
@@ -56,11 +57,14 @@ def main() -> None:
         for sym in ("k", "lambda"):
             v, sd = est.vector(sym), est.sigma[[i for i, n in enumerate(est.names) if n.split("(")[0] == sym]]
             err, cov = v / truth[sym] - 1, np.abs(v - truth[sym]) <= 2 * sd
+            rel_sigma[sym].append(sd / np.abs(v))
             within, covered, cases = within + int(np.sum(np.abs(err) <= 0.10)), covered + int(cov.sum()), cases + 4
             cells.append((", ".join(f"{100 * e:+.1f}" for e in err), int(cov.sum())))
         c_f = ", ".join(f"{c:.3g}" for c in est.vector("c_f")) if "c_f(1)" in est.names else "– (a sign)"
         print(f"| {seed} | {cells[0][0]} | {cells[1][0]} | {cells[0][1]}/4, {cells[1][1]}/4 | {c_f} |", flush=True)
     print(f"\nwithin 10 %: {within}/{cases}; covered by ±2σ: {covered}/{cases}")
+    mean = {sym: ", ".join(f"{100 * x:.1f}" for x in np.mean(v, axis=0)) for sym, v in rel_sigma.items()}
+    print(f"mean relative σ (%): k {mean['k']}; λ {mean['lambda']}")
 
 
 if __name__ == "__main__":

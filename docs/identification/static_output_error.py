@@ -44,8 +44,8 @@ from controller.trajectory import identification_trajectory
 from twin.identification.loadfriction import fit_load_friction
 from twin.identification.outputerror import _Neck
 from twin.identification.processing import Processed, preprocess
-from twin.model.numeric import Model, build
-from twin.model.params import load_params
+from twin.model.numeric import build
+from twin.model.params import Params, load_params
 from twin.sim.truth import EFFECTS, load_truth
 
 FloatArray = NDArray[np.float64]
@@ -57,9 +57,10 @@ class StaticOutputError:
     estimator's re-simulated neck (twin.identification.outputerror._Neck, warm-started from its
     last solve) with every spring-rate factor at 1."""
 
-    def __init__(self, m: Model, proc: Processed) -> None:
+    def __init__(self, params: Params, proc: Processed) -> None:
         self.proc = proc
-        self.neck = _Neck(m, proc, np.array(proc.alpha, dtype=float))
+        m = build(params, "variable")
+        self.neck = _Neck(params, m, proc, np.array(proc.alpha, dtype=float))
         self.springs = np.ones(2 * m.n_joints)
         self.keep = slice(int(EDGE_S * proc.rate_hz), proc.n - int(EDGE_S * proc.rate_hz))
 
@@ -100,7 +101,6 @@ def main() -> None:
     except (OSError, ValueError) as exc:
         ap.error(f"--truth {args.truth}: {exc}")
     params, traj = load_params(), identification_trajectory()
-    m = build(params, "variable")
     true_k, true_lam = np.asarray(params.cables.variable.k, float), np.asarray(params.cables.variable.lam, float)
     # the start is no prior: every k at 4000 N/m, every λ at 80 /m (Table 2: 1900-6200, 53-121)
     k0, lam0 = np.full(params.n_cables, 4000.0), np.full(params.n_cables, 80.0)
@@ -112,7 +112,7 @@ def main() -> None:
     for seed in range(args.first, args.first + args.seeds):
         proc = preprocess(law1_campaign(seed, truth, params, traj), params)
         t0 = time.perf_counter()
-        k, lam, beta, tau, rms = StaticOutputError(m, proc).fit(k0, lam0)
+        k, lam, beta, tau, rms = StaticOutputError(params, proc).fit(k0, lam0)
         rows = [("static output error", k, lam, f"{beta:.3f}, {tau:.2g}", f"{np.degrees(rms):.3f}",
                  time.perf_counter() - t0)]
         t0 = time.perf_counter()

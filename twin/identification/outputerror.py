@@ -11,7 +11,8 @@ quasi-static equilibrium (eq. 32) on the motor angles θ alone::
     τ·ċ = β·x'/(1 − λ·x') − c                       the line's Kelvin creep (loadfriction's)
 
 g holds the lateral springs, whose rates s_i (left and right of each joint, as factors of the
-parameter file's) are free: a spring rate is known to ±10 % (DIN EN 13906-2 grade 2), and the
+parameter file's) are free, and so is the pulleys' radius r + δr (eq. 20's l_c; the line's own
+radius moves the contact, and a 0.1 mm error moved λ(3), λ(4) by 3-4 % when held): a spring rate is known to ±10 % (DIN EN 13906-2 grade 2), and the
 tension that balances the springs scales with them, so with the file's rates the pose alone
 gives k 6-11 % off on the robot truth (docs/identification/static_output_error.py). The force
 gives the tension's scale instead: on the rows where a motor turns fast (loadfriction.fit_rows),
@@ -20,21 +21,23 @@ with a = sign θ̇ and the gear's meshing losses g_f, g_b held (loadfriction.gea
     f − (R/r_d)·I_a·θ̈ = ((1 + a·μ)·t + a·F₀ − g_b·a⁻·t) / (1 − g_f·a⁺)   (N)
 
 with the same t, simulated. One least-squares fit (scipy.optimize.least_squares, bounded) of
-(k, λ, μ, F₀ per cable; β, τ; s per spring) to both: α_sim − α_IP (rad, weighted by 1/σ_α) and
+(k, λ, μ, F₀ per cable; β, τ; s per spring; δr) to both: α_sim − α_IP (rad, weighted by 1/σ_α) and
 the force rows (N, by 1/σ_f), σ_α and σ_f the residual scales of a first pass. Everything the fit
 compares is simulated from the encoders, so the camera's noise is in the residual, not in a
 regressor (no errors-in-variables bias, no instruments needed). σ: the Newey-West HAC sandwich
 of the linearised estimator over the identification instants (twin.identification.uncertainty),
-plus a type-B part for the structure the fit holds at the file's (the springs' free lengths, the
-bar masses, the pulley radius: :func:`structure_models`), which no residual of the record shows:
-with the HAC part alone the ±2σ covered 45/80 on law 1's held-out campaigns, the errors repeating
-from seed to seed (docs/identification-coverage.md).
+plus a type-B part (GUM) for what the fit holds and no residual of the record shows: the
+structure at the file's (the springs' free lengths, the bar masses: :func:`structure_models`) and
+each motor's force scale (the torque constant and the current loop's gain, ``FORCE_SCALE_TOLERANCE``),
+which sets the tension's scale, hence k's (the pose takes a part of it through the springs). With the HAC part alone the ±2σ covered
+45/80 on law 1's held-out campaigns, the errors repeating from seed to seed
+(docs/identification-coverage.md).
 
 What it assumes instead: a light cable damping (the equilibrium is quasi-static: with the paper's
 c_a = 3000 N·s/m the pose is off by c_a·ẋ and λ comes out 50-80 % high; a real line's, 40 N·s/m,
 changes nothing), c_a is held at 0; the bar masses and the springs' free lengths of the file
 (their errors go into s); a friction of a turning motor that is a sign (loadfriction's c_f at
-its bound, as on the robot truth). About 20-30 s per campaign: every spring, cable and creep
+its bound, as on the robot truth). About 20-40 s per campaign: every spring, cable, creep and pulley
 parameter costs one re-simulation of the neck per Jacobian. Coverage on the twin:
 docs/identification-coverage.md, "The neck's output error".
 """
@@ -83,7 +86,12 @@ PASSES = 2  # fits: the second weighted by the first's residual scales
 # type-B part (:func:`structure_sensitivities`): what the spring rates cannot absorb.
 L0_TOLERANCE_M = 0.5e-3  # spring free length and hook positions: about ±0.5 mm on 46 mm (DIN EN 13906-2)
 MASS_TOLERANCE = 0.10  # bar masses and inertias: CAD estimates (prototype_3x.toml [bars]), ±10 %
-PULLEY_RADIUS_TOLERANCE_M = 0.1e-3  # printed/turned pulley radius and the line's own radius: ±0.1 mm
+DELTA_R_BOUNDS_M = (-0.5e-3, 0.5e-3)  # the pulleys' radius error δr, fitted: printed/turned pulleys and the line
+# Each motor's force scale: the EC-max 40's torque constant falls about 0.1 %/K with the magnet's
+# temperature (NdFeB) and the datasheet gives no unit tolerance; the ESCON's current set value comes
+# through an uncalibrated PWM input. About ±5 %: a physics estimate, not a measurement (a bench
+# calibration of f against a load cell would replace it).
+FORCE_SCALE_TOLERANCE = 0.05
 
 
 def creep_stretch(x_total: FloatArray, lam: FloatArray, beta: float, tau_s: float, h: float) -> FloatArray:
@@ -109,6 +117,7 @@ class _Neck:
     one's start (its α and Jacobians), and a small cache (the friction parameters' finite
     differences do not move the neck)."""
 
+    params: Params
     m: Model
     proc: Processed
     alpha: FloatArray
@@ -116,17 +125,20 @@ class _Neck:
 
     def __post_init__(self) -> None:
         self.cache: dict[bytes, tuple[FloatArray, FloatArray]] = {}
+        self._pulley_key: float | None = None
+        self._pulley: tuple[float, FloatArray] = (self.m.r, self.m.l_c0)
 
-    def simulate(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float,
-                 springs: FloatArray, base: Model | None = None) -> tuple[FloatArray, FloatArray]:
-        """(α (n, N) rad, t (n, n_cables) N) at equilibrium on the recorded θ; ``base``: another
-        structure than the parameter file's (not cached)."""
-        key = np.r_[k, lam, beta, tau_s, springs].tobytes()
+    def simulate(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float, springs: FloatArray,
+                 delta_r_m: float = 0.0, base: Model | None = None) -> tuple[FloatArray, FloatArray]:
+        """(α (n, N) rad, t (n, n_cables) N) at equilibrium on the recorded θ, the pulleys' radius
+        off the file's by ``delta_r_m``; ``base``: another structure than the parameter file's (not cached)."""
+        key = np.r_[k, lam, beta, tau_s, springs, delta_r_m].tobytes()
         if base is None and key in self.cache:
             return self.cache[key]
         m0 = self.m if base is None else base
         N = m0.n_joints
-        m = m0._replace(k_left=m0.k_left * springs[:N], k_right=m0.k_right * springs[N:])
+        r, l_c0 = self._pulleys(delta_r_m)
+        m = m0._replace(k_left=m0.k_left * springs[:N], k_right=m0.k_right * springs[N:], r=r, l_c0=l_c0)
         c = np.zeros_like(self.proc.theta)
         for _ in range(CREEP_PASSES if beta > 0 else 1):
             # the creep lengthens a cable as unwinding its motor would: it enters as θ − c/ρ
@@ -143,6 +155,16 @@ class _Neck:
             self.cache.clear()
         self.cache[key] = (alpha, t)
         return alpha, t
+
+    def _pulleys(self, delta_r_m: float) -> tuple[float, FloatArray]:
+        """The pulley radius (m) and the cables' lengths at α = 0 (eq. 20, m) with δr."""
+        if delta_r_m == 0.0:
+            return self.m.r, self.m.l_c0
+        if self._pulley_key != delta_r_m:
+            geometry = msgspec.structs.replace(self.params.geometry, r=self.params.geometry.r + delta_r_m)
+            m = build(msgspec.structs.replace(self.params, geometry=geometry), "variable")
+            self._pulley_key, self._pulley = delta_r_m, (m.r, m.l_c0)
+        return self._pulley
 
 
 def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
@@ -168,23 +190,23 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     keep = slice(edge, proc.n - edge)
     a = np.sign(proc.theta_dot)
     g_f, g_b = gear_losses(params)
-    neck = _Neck(build(params, "variable"), proc, np.array(proc.alpha, dtype=float))
-    # q: log(k/k0), log(λ/λ0) per cable; β; log τ; log s per spring; μ, F₀ per cable
-    i_beta, i_tau, i_s, i_mu = 2 * nc, 2 * nc + 1, 2 * nc + 2, 2 * nc + 2 + 2 * N
+    neck = _Neck(params, build(params, "variable"), proc, np.array(proc.alpha, dtype=float))
+    # q: log(k/k0), log(λ/λ0) per cable; β; log τ; log s per spring; δr (mm); μ, F₀ per cable
+    i_beta, i_tau, i_s, i_r, i_mu = _layout(nc, N)
     i_f0 = i_mu + nc
     lo = np.r_[np.full(2 * nc, -LOG_RANGE), BETA_BOUNDS[0], np.log(TAU_BOUNDS_S[0]), np.full(2 * N, -SPRING_LOG_RANGE),
-               np.full(nc, MU_BOUNDS[0]), np.full(nc, F0_BOUNDS_N[0])]
+               1e3 * DELTA_R_BOUNDS_M[0], np.full(nc, MU_BOUNDS[0]), np.full(nc, F0_BOUNDS_N[0])]
     hi = np.r_[np.full(2 * nc, LOG_RANGE), BETA_BOUNDS[1], np.log(TAU_BOUNDS_S[1]), np.full(2 * N, SPRING_LOG_RANGE),
-               np.full(nc, MU_BOUNDS[1]), np.full(nc, F0_BOUNDS_N[1])]
-    q = np.r_[np.zeros(2 * nc), 0.02, 0.0, np.zeros(2 * N), np.full(nc, 0.1), np.full(nc, 10.0)]
+               1e3 * DELTA_R_BOUNDS_M[1], np.full(nc, MU_BOUNDS[1]), np.full(nc, F0_BOUNDS_N[1])]
+    q = np.r_[np.zeros(2 * nc), 0.02, 0.0, np.zeros(2 * N), 0.0, np.full(nc, 0.1), np.full(nc, 10.0)]
 
     def unpack(q: FloatArray):
         return (START_K_N_M * np.exp(q[:nc]), START_LAMBDA_PER_M * np.exp(q[nc:2 * nc]), float(q[i_beta]),
-                float(np.exp(q[i_tau])), np.exp(q[i_s:i_mu]), q[i_mu:i_f0], q[i_f0:])
+                float(np.exp(q[i_tau])), np.exp(q[i_s:i_r]), 1e-3 * float(q[i_r]), q[i_mu:i_f0], q[i_f0:])
 
     def parts(q: FloatArray, base: Model | None = None) -> tuple[FloatArray, FloatArray]:
-        k, lam, beta, tau, springs, mu, f0 = unpack(q)
-        alpha, t = neck.simulate(k, lam, beta, tau, springs, base)
+        k, lam, beta, tau, springs, delta_r, mu, f0 = unpack(q)
+        alpha, t = neck.simulate(k, lam, beta, tau, springs, delta_r, base)
         model = ((1 + a * mu) * t + a * f0 - g_b * np.maximum(-a, 0) * t) / (1 - g_f * np.maximum(a, 0))
         return (alpha - proc.alpha)[keep], (model - y)[rows]
 
@@ -205,13 +227,25 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     # the last solve's residual, at its own weights, for each structure held at the file's moved by one σ
     shifts = [np.concatenate([ra.ravel() / used[0], rf / used[1]]) - sol.fun
               for ra, rf in (parts(q, m) for m in structure_models(params))]
+    # and each motor's force scale moved by one σ: the recorded force is off by that share of itself
+    motor = np.nonzero(rows)[1]
+    for j in range(nc):
+        d = np.zeros_like(sol.fun)
+        d[len(sol.fun) - len(motor):] = np.where(motor == j, y[rows] * FORCE_SCALE_TOLERANCE / np.sqrt(3.0), 0.0) / used[1]
+        shifts.append(d)
     return _estimate(proc, params, sol, q, unpack, rows, keep, threshold, sigma, lo, hi, shifts)
+
+
+def _layout(nc: int, N: int) -> tuple[int, int, int, int, int]:
+    """Indices into q of β, log τ, the first log s, δr (mm) and the first μ."""
+    i_beta = 2 * nc
+    return i_beta, i_beta + 1, i_beta + 2, i_beta + 2 + 2 * N, i_beta + 3 + 2 * N
 
 
 def structure_models(params: Params) -> list[Model]:
     """The variable-cable model with one held structure value moved by one σ of its tolerance
     (uniform: half-width/√3): each joint's spring free length, each joint's bar masses and
-    inertias, the pulley radius. Their effect on the estimate is σ's type-B part (GUM): the record
+    inertias. Their effect on the estimate is σ's type-B part (GUM): the record
     cannot show it, since the fit holds them (:func:`_estimate`)."""
     base = build(params, "variable")
     out = []
@@ -223,8 +257,6 @@ def structure_models(params: Params) -> list[Model]:
         f = np.ones((params.n_joints, 1))
         f[i] += MASS_TOLERANCE / np.sqrt(3.0)
         out.append(base._replace(m_body=base.m_body * f, I_body=base.I_body * f))
-    geometry = msgspec.structs.replace(params.geometry, r=params.geometry.r + PULLEY_RADIUS_TOLERANCE_M / np.sqrt(3.0))
-    out.append(build(msgspec.structs.replace(params, geometry=geometry), "variable"))
     return out
 
 
@@ -258,16 +290,17 @@ def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows:
         c_free = c_free + np.outer(dq, dq)
     cov[np.ix_(free, free)] = c_free
     sd_q = np.sqrt(np.abs(np.diag(cov)))
-    k, lam, beta, tau, springs, mu, f0 = unpack(q)
-    i_beta, i_tau, i_s, i_mu = 2 * nc, 2 * nc + 1, 2 * nc + 2, 2 * nc + 2 + 2 * N
-    values = np.r_[k, lam, np.zeros(nc), mu, f0, beta, tau, springs]
+    k, lam, beta, tau, springs, delta_r, mu, f0 = unpack(q)
+    i_beta, i_tau, i_s, i_r, i_mu = _layout(nc, N)
+    values = np.r_[k, lam, np.zeros(nc), mu, f0, beta, tau, springs, delta_r]
     # σ of a log-parametrised value v: v·σ(log v)
     sd = np.r_[np.r_[k, lam] * sd_q[:2 * nc], np.zeros(nc), sd_q[i_mu:i_mu + nc], sd_q[i_mu + nc:i_mu + 2 * nc],
-               sd_q[i_beta], tau * sd_q[i_tau], springs * sd_q[i_s:i_mu]]
+               sd_q[i_beta], tau * sd_q[i_tau], springs * sd_q[i_s:i_r], 1e-3 * sd_q[i_r]]
     names = (param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc) + param_names("mu", nc)
-             + param_names("F_0", nc) + ("beta", "tau") + param_names("s_left", N) + param_names("s_right", N))
+             + param_names("F_0", nc) + ("beta", "tau") + param_names("s_left", N) + param_names("s_right", N)
+             + ("delta_r",))
     q_names = (names[:2 * nc] + ("beta", "tau") + param_names("s_left", N) + param_names("s_right", N)
-               + param_names("mu", nc) + param_names("F_0", nc))
+               + ("delta_r",) + param_names("mu", nc) + param_names("F_0", nc))
     active = tuple(q_names[i] for i in np.flatnonzero(~free))
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = sd / np.abs(values)
@@ -277,11 +310,12 @@ def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows:
         condition_number=float(np.linalg.cond(J[:, free])), residual_norm=float(np.linalg.norm(res)),
         n_rows=len(res), n_samples=proc.n, threshold=threshold,
         sigma_method=(f"HAC (Newey-West, Bartlett, {lag} lags)" if sigma == "hac" else "eq. 50 (white residuals)")
-        + f" + the held structure's tolerances (type B, {len(shifts)} values)",
+        + f" + what the fit holds (type B, {len(shifts)} values: free lengths, bar masses, force scales)",
         hac_lag=lag, active_bounds=active,
     )
     return dataclasses.replace(est, estimator=(
         f"output error from the encoders: the neck's equilibrium against α_IP ({n_alpha} rows) and the motor "
         f"forces where |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s ({int(rows.sum())} rows); spring rates ×"
-        f"{', '.join(f'{v:.3f}' for v in springs)} (left, right per joint); Kelvin creep β = {beta:.3f}, "
+        f"{', '.join(f'{v:.3f}' for v in springs)} (left, right per joint); pulley radius δr = "
+        f"{1e3 * delta_r:+.3f} mm; Kelvin creep β = {beta:.3f}, "
         f"τ = {tau:.2g} s; c_a held at 0 (quasi-static)"))
