@@ -496,7 +496,7 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
            "  from the friction's direction asymmetry (a value without a source), is the usual miss.",
            "  `--estimator outputerror` (the neck's pose from the encoders, fitted with the forces) kept every",
            "  k and λ within 4.2 % and covered 158/160 on law 1's campaigns of new seeds 102-121",
-           "  (docs/identification-coverage.md, \"The pulleys' radius fitted\"); not the default: 20-40 s a fit.",
+           "  (docs/identification-coverage.md, \"The pulleys' radius fitted\"); not the default: about 5 s a fit (2 s is issue 5's target).",
            ""]
     return "\n".join(md)
 

@@ -333,7 +333,7 @@ def identification_notes(ident: dict) -> list[str]:
     "  Free of the friction model: `--estimator outputerror` (the neck's pose simulated from the encoders,",
     "  fitted with the forces, the springs' rates and the pulleys' radius) kept every k and λ within 4.2 %",
     "  on law 1's robot-truth campaigns never used in development (seeds 102-121), its ±2σ covering 158/160",
-    "  (docs/identification-coverage.md, \"The pulleys' radius fitted\"); not the default (20-40 s a fit).",
+    "  (docs/identification-coverage.md, \"The pulleys' radius fitted\"); not the default (about 5 s a fit).",
     "- Speed: `benchmarks/twin_speed.py` prints the tick cost with every effect off, each alone and all on",
     "  (figures in the calibration section below).",
 ]

@@ -113,6 +113,41 @@ def test_refuses_a_bad_sigma_a_still_record_and_a_creep_time(params, robot_campa
         identify_variable(proc, params, np.asarray(params.friction.f_s), estimator="outputerror", creep_time_s=2.0)
 
 
+def test_the_fits_jacobian_is_the_simulations_derivative(params, robot_campaign, monkeypatch):
+    """The neck's derivatives by the implicit function theorem (neck_sensitivity.sensitivities, the
+    fit's Jacobian) against central differences of the whole simulation (three creep passes, each a
+    Newton solve, here to 1e-13 rad so that the differences resolve them), for every one of the 17
+    parameters that move the neck, at a point off the truth with creep, springs and pulleys off 1."""
+    from twin.identification import instruments
+    from twin.identification.neck_sensitivity import Layout
+    from twin.identification.outputerror import _Neck
+
+    monkeypatch.setattr(instruments, "NEWTON_TOL_RAD", 1e-13)
+    proc = robot_campaign[1]
+    neck = _Neck(params, build(params, "variable"), proc, np.array(proc.alpha, dtype=float))
+    nc, N = params.n_cables, params.n_joints
+    lay = Layout(nc, N)
+    q = np.r_[np.log(np.asarray(params.cables.variable.k) * 1.03), np.log(np.asarray(params.cables.variable.lam) * 0.97),
+              0.05, np.log(2.0), np.log([1.02, 0.97, 1.05, 0.99, 1.03, 0.96]), 0.05]
+    assert len(q) == lay.size
+
+    def unpack(q):
+        return (np.exp(q[:nc]), np.exp(q[nc:2 * nc]), q[lay.i_beta], np.exp(q[lay.i_tau]), np.exp(q[lay.i_s:lay.i_r]),
+                1e-3 * q[lay.i_r])
+
+    d_alpha, d_t = neck.derivatives(*unpack(q))
+    assert d_alpha.shape == (proc.n, N, lay.size) and d_t.shape == (proc.n, nc, lay.size)
+    h = 1e-4
+    for p in range(lay.size):
+        e = np.zeros(lay.size)
+        e[p] = h
+        (ap, tp), (am, tm) = neck.simulate(*unpack(q + e)), neck.simulate(*unpack(q - e))
+        fd_alpha, fd_t = (ap - am) / (2 * h), (tp - tm) / (2 * h)
+        assert np.abs(fd_alpha).max() > 1e-4  # every parameter moves the neck
+        np.testing.assert_allclose(d_alpha[:, :, p], fd_alpha, atol=1e-5 * np.abs(fd_alpha).max(), err_msg=str(p))
+        np.testing.assert_allclose(d_t[:, :, p], fd_t, atol=1e-5 * np.abs(fd_t).max(), err_msg=str(p))
+
+
 def test_creep_stretch_relaxes_to_its_equilibrium():
     """After a step of total stretch the creep grows monotonically to c = β·x'/(1 − λx'), x' = x − c."""
     beta, lam, tau, h = 0.05, 100.0, 2.0, 0.032

@@ -35,7 +35,7 @@ def identify(
                                   "loadfriction: Table 2 with the motor friction growing with the load and a cable "
                                   "creep term (docs/identification-coverage.md); outputerror: the neck's pose "
                                   "simulated from the encoders against α_IP and the motor forces, fitted together "
-                                  "with the springs' rates and the pulleys' radius (free of the friction model's errors; 20-40 s). Table 1 is "
+                                  "with the springs' rates and the pulleys' radius (free of the friction model's errors; about 5 s). Table 1 is "
                                   "always by iv or the "
                                   "linear estimator named."),
     sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "

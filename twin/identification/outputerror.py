@@ -37,15 +37,17 @@ What it assumes instead: a light cable damping (the equilibrium is quasi-static:
 c_a = 3000 N·s/m the pose is off by c_a·ẋ and λ comes out 50-80 % high; a real line's, 40 N·s/m,
 changes nothing), c_a is held at 0; the bar masses and the springs' free lengths of the file
 (their errors go into s); a friction of a turning motor that is a sign (loadfriction's c_f at
-its bound, as on the robot truth). About 20-40 s per campaign: every spring, cable, creep and pulley
-parameter costs one re-simulation of the neck per Jacobian. Coverage on the twin:
-docs/identification-coverage.md, "The neck's output error".
+its bound, as on the robot truth). The fit's Jacobian is exact, from the simulation's solution by
+the implicit function theorem (twin.identification.neck_sensitivity): 3-5 s per campaign, against
+20-40 s by finite differences (one re-simulation of the neck per parameter). Coverage on the twin:
+docs/identification-coverage.md, "The pulleys' radius fitted".
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -66,6 +68,7 @@ from twin.identification.loadfriction import (
     fit_rows,
     gear_losses,
 )
+from twin.identification.neck_sensitivity import PULLEY_STEP_M, Layout, Pass, creep_stretch_kernel, sensitivities
 from twin.identification.processing import Processed
 from twin.identification.regressors import param_names
 from twin.model.numeric import Model, build
@@ -80,7 +83,6 @@ START_K_N_M, START_LAMBDA_PER_M = 4000.0, 80.0  # no prior: Table 2 spans 1900-6
 LOG_RANGE = 3.0  # k, λ within e^±3 of the start
 SPRING_LOG_RANGE = 0.3  # spring rates within e^±0.3 (±35 %) of the file's: three times their tolerance
 TAU_BOUNDS_S = (0.2, 20.0)
-DIFF_STEP = 1e-4  # relative finite-difference step of the re-simulated parameters
 PASSES = 2  # fits: the second weighted by the first's residual scales
 # The structure the fit holds at the parameter file's, as half-widths of uniform tolerances, for σ's
 # type-B part (:func:`structure_sensitivities`): what the spring rates cannot absorb.
@@ -99,23 +101,15 @@ def creep_stretch(x_total: FloatArray, lam: FloatArray, beta: float, tau_s: floa
     β·x'/(1 − λx') with x' = ``x_total`` − c (loadfriction._creep_tension's element: its drive
     β·t_e/k is the same), at its equilibrium at the first sample; ``h`` the sample step (s)."""
     gain = 1.0 - np.exp(-h / tau_s)
-    c = np.zeros(x_total.shape[1])
-    out = np.empty_like(x_total)
-    for _ in range(50):
-        xx = x_total[0] - c
-        c = beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0)
-    for i in range(len(x_total)):
-        out[i] = c
-        xx = x_total[i] - c
-        c = c + (beta * np.maximum(xx / np.maximum(1 - lam * xx, MIN_STRETCH_FACTOR), 0.0) - c) * gain
-    return out
+    return creep_stretch_kernel(np.ascontiguousarray(x_total, dtype=float), np.asarray(lam, dtype=float),
+                                float(beta), float(gain), MIN_STRETCH_FACTOR)
 
 
 @dataclass
 class _Neck:
     """The neck re-simulated on the encoders for a parameter vector, the last solve kept as the next
-    one's start (its α and Jacobians), and a small cache (the friction parameters' finite
-    differences do not move the neck)."""
+    one's start (its α and Jacobians), and a small cache (the fit's Jacobian comes at the point its
+    residual was just computed; the structure's type-B shifts are not cached)."""
 
     params: Params
     m: Model
@@ -124,9 +118,8 @@ class _Neck:
     jacobian: FloatArray | None = None
 
     def __post_init__(self) -> None:
-        self.cache: dict[bytes, tuple[FloatArray, FloatArray]] = {}
-        self._pulley_key: float | None = None
-        self._pulley: tuple[float, FloatArray] = (self.m.r, self.m.l_c0)
+        self.cache: dict[bytes, tuple[FloatArray, FloatArray, list[Pass]]] = {}
+        self._pulley: dict[float, tuple[float, FloatArray]] = {}
 
     def simulate(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float, springs: FloatArray,
                  delta_r_m: float = 0.0, base: Model | None = None) -> tuple[FloatArray, FloatArray]:
@@ -134,37 +127,57 @@ class _Neck:
         off the file's by ``delta_r_m``; ``base``: another structure than the parameter file's (not cached)."""
         key = np.r_[k, lam, beta, tau_s, springs, delta_r_m].tobytes()
         if base is None and key in self.cache:
-            return self.cache[key]
-        m0 = self.m if base is None else base
-        N = m0.n_joints
-        r, l_c0 = self._pulleys(delta_r_m)
-        m = m0._replace(k_left=m0.k_left * springs[:N], k_right=m0.k_right * springs[N:], r=r, l_c0=l_c0)
+            return self.cache[key][:2]
+        m = self.model(springs, delta_r_m, base)
         c = np.zeros_like(self.proc.theta)
+        passes: list[Pass] = []
         for _ in range(CREEP_PASSES if beta > 0 else 1):
             # the creep lengthens a cable as unwinding its motor would: it enters as θ − c/ρ
             alpha, x, self.jacobian = neck_equilibrium(m, self.proc.theta - c / m.rho, k, lam, self.alpha,
                                                        jacobian0=self.jacobian)
             self.alpha = alpha
+            passes.append(Pass(alpha, c, x + c))
             if beta <= 0:
                 break
             c = creep_stretch(x + c, lam, beta, tau_s, 1.0 / self.proc.rate_hz)
         t = np.maximum(k * x / np.maximum(1 - lam * x, MIN_STRETCH_FACTOR), 0.0)
         if base is not None:
             return alpha, t
-        if len(self.cache) > 64:
+        if len(self.cache) > 8:
             self.cache.clear()
-        self.cache[key] = (alpha, t)
+        self.cache[key] = (alpha, t, passes)
         return alpha, t
+
+    def derivatives(self, k: FloatArray, lam: FloatArray, beta: float, tau_s: float, springs: FloatArray,
+                    delta_r_m: float = 0.0) -> tuple[FloatArray, FloatArray]:
+        """(dα/dq (n, N, P) rad, dt/dq (n, n_cables, P) N) at these parameters, q the neck's
+        (twin.identification.neck_sensitivity.Layout): exact for the simulation :meth:`simulate` runs."""
+        self.simulate(k, lam, beta, tau_s, springs, delta_r_m)
+        passes = self.cache[np.r_[k, lam, beta, tau_s, springs, delta_r_m].tobytes()][2]
+        pulleys = (self.model(springs, delta_r_m + PULLEY_STEP_M), self.model(springs, delta_r_m - PULLEY_STEP_M))
+        return sensitivities(self.model(springs, delta_r_m), pulleys,
+                             self.proc.theta, k, lam, beta, tau_s, springs, passes, 1.0 / self.proc.rate_hz,
+                             MIN_STRETCH_FACTOR)
+
+    def model(self, springs: FloatArray, delta_r_m: float, base: Model | None = None) -> Model:
+        """The variable-cable model (``base``, else the file's) with the springs' rates ×``springs`` and
+        the pulleys' radius off by ``delta_r_m``."""
+        m0 = self.m if base is None else base
+        N = m0.n_joints
+        r, l_c0 = self._pulleys(delta_r_m)
+        return m0._replace(k_left=m0.k_left * springs[:N], k_right=m0.k_right * springs[N:], r=r, l_c0=l_c0)
 
     def _pulleys(self, delta_r_m: float) -> tuple[float, FloatArray]:
         """The pulley radius (m) and the cables' lengths at α = 0 (eq. 20, m) with δr."""
         if delta_r_m == 0.0:
             return self.m.r, self.m.l_c0
-        if self._pulley_key != delta_r_m:
+        if delta_r_m not in self._pulley:
             geometry = msgspec.structs.replace(self.params.geometry, r=self.params.geometry.r + delta_r_m)
             m = build(msgspec.structs.replace(self.params, geometry=geometry), "variable")
-            self._pulley_key, self._pulley = delta_r_m, (m.r, m.l_c0)
-        return self._pulley
+            if len(self._pulley) > 8:
+                self._pulley.clear()
+            self._pulley[delta_r_m] = (m.r, m.l_c0)
+        return self._pulley[delta_r_m]
 
 
 def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
@@ -210,6 +223,22 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
         model = ((1 + a * mu) * t + a * f0 - g_b * np.maximum(-a, 0) * t) / (1 - g_f * np.maximum(a, 0))
         return (alpha - proc.alpha)[keep], (model - y)[rows]
 
+    motor = np.nonzero(rows)[1]
+    winding = 1 - g_f * np.maximum(a, 0)
+
+    def jacobians(q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """d(α rows)/dq and d(force rows)/dq, exact (twin.identification.neck_sensitivity)."""
+        k, lam, beta, tau, springs, delta_r, mu, _ = unpack(q)
+        d_alpha, d_t = neck.derivatives(k, lam, beta, tau, springs, delta_r)
+        t = neck.simulate(k, lam, beta, tau, springs, delta_r)[1]
+        ja = np.zeros((N * (keep.stop - keep.start), len(q)))
+        ja[:, :i_mu] = d_alpha[keep].reshape(-1, i_mu)
+        jf = np.zeros((len(motor), len(q)))
+        jf[:, :i_mu] = (((1 + a * mu - g_b * np.maximum(-a, 0)) / winding)[:, :, None] * d_t)[rows]
+        jf[np.arange(len(motor)), i_mu + motor] = (a * t / winding)[rows]
+        jf[np.arange(len(motor)), i_f0 + motor] = (a / winding)[rows]
+        return ja, jf
+
     scale_a, scale_f = np.radians(0.1), 2.0  # rad, N: the first pass's weights, of the order of the twin's
     sol, used = None, (scale_a, scale_f)
     for _ in range(PASSES):
@@ -219,7 +248,12 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
             ra, rf = parts(q)
             return np.concatenate([ra.ravel() / sa, rf / sf])
 
-        sol = optimize.least_squares(residual, q, bounds=(lo, hi), diff_step=DIFF_STEP, xtol=1e-8, x_scale="jac")
+        def jacobian(q: FloatArray, sa: float = scale_a, sf: float = scale_f) -> FloatArray:
+            ja, jf = jacobians(q)
+            return np.vstack([ja / sa, jf / sf])
+
+        jac: Any = jacobian  # scipy's annotations infer jac's type from its default, a string
+        sol = optimize.least_squares(residual, q, jac=jac, bounds=(lo, hi), xtol=1e-8, x_scale="jac")
         q = sol.x
         ra, rf = parts(q)
         scale_a, scale_f = float(np.sqrt(np.mean(ra ** 2))), float(np.sqrt(np.mean(rf ** 2)))
@@ -228,7 +262,6 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     shifts = [np.concatenate([ra.ravel() / used[0], rf / used[1]]) - sol.fun
               for ra, rf in (parts(q, m) for m in structure_models(params))]
     # and each motor's force scale moved by one σ: the recorded force is off by that share of itself
-    motor = np.nonzero(rows)[1]
     for j in range(nc):
         d = np.zeros_like(sol.fun)
         d[len(sol.fun) - len(motor):] = np.where(motor == j, y[rows] * FORCE_SCALE_TOLERANCE / np.sqrt(3.0), 0.0) / used[1]
@@ -238,8 +271,8 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
 
 def _layout(nc: int, N: int) -> tuple[int, int, int, int, int]:
     """Indices into q of β, log τ, the first log s, δr (mm) and the first μ."""
-    i_beta = 2 * nc
-    return i_beta, i_beta + 1, i_beta + 2, i_beta + 2 + 2 * N, i_beta + 3 + 2 * N
+    lay = Layout(nc, N)  # the neck's parameters first, then μ and F₀ per cable
+    return lay.i_beta, lay.i_tau, lay.i_s, lay.i_r, lay.size
 
 
 def structure_models(params: Params) -> list[Model]:

@@ -270,8 +270,9 @@ def identify_variable(
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
     ``"auto"``: that fit where it rejects eqs. 54-55, else ``"iv"`` (:func:`_identify_variable_auto`).
     ``"outputerror"``: twin.identification.outputerror (the neck's equilibrium simulated on the
-    encoders against α_IP, and the motor forces, fitted together with the springs' rates: free of
-    the friction model's errors that bias the force fits' λ; 20-30 s; not the default).
+    encoders against α_IP, and the motor forces, fitted together with the springs' rates and the
+    pulleys' radius: free of the friction model's errors that bias the force fits' λ; about 5 s;
+    not the default).
     ``creep_time_s``: the line's creep time constant τ (s) measured apart (a bench creep test of the
     line), held in the load-friction fit instead of chosen from the record (twin.identification.
     loadfriction.creep_taus); None (default): chosen.
