@@ -100,8 +100,9 @@ def campaign_identification(
     trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
     estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
-                                  "as `xneck identify --estimator` (auto, the default: loadfriction where the "
-                                  "campaign rejects the paper's model, else iv; or iv, ols, wls, loadfriction, outputerror)."),
+                                  "as `xneck identify --estimator` (auto, the default: where the campaign rejects the paper's model, "
+                                  "outputerror if the line's damping is light, else loadfriction; iv where it "
+                                  "keeps it; or iv, ols, wls, loadfriction, outputerror)."),
     creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The line's creep time constant (s) "
                                               "measured apart, as `xneck identify --creep-time-s`."),
     params_file: Path | None = PARAMS_OPTION,

@@ -27,17 +27,17 @@ def identify(
     validate: Path | None = typer.Option(None, "--validate", help="Another campaign MCAP (e.g. a §7 control "
                                          "test): Figs. 4-8 and the errors on it with the models fitted here, "
                                          "beside the in-sample ones (figures in <out>/validation)."),
-    estimator: str = typer.Option("auto", "--estimator", help="auto (default): "
-                                  "loadfriction where the campaign's motor friction grows with the load (a one-sided "
-                                  "test of the load-friction fit's pooled μ), else iv; iv: instrumental "
+    estimator: str = typer.Option("auto", "--estimator", help="auto (default): where the campaign's motor "
+                                  "friction grows with the load (a one-sided test of the load-friction fit's pooled "
+                                  "μ), outputerror if that fit finds the line's damping light (a quasi-static pose), "
+                                  "else loadfriction; iv where it does not; iv: instrumental "
                                   "variables from the model re-simulated on the encoders, consistent under camera "
                                   "noise; ols: eq. 49 as printed; wls: rows weighted by their residual σ; "
                                   "loadfriction: Table 2 with the motor friction growing with the load and a cable "
                                   "creep term (docs/identification-coverage.md); outputerror: the neck's pose "
                                   "simulated from the encoders against α_IP and the motor forces, fitted together "
-                                  "with the springs' rates and the pulleys' radius (free of the friction model's errors; about 5 s). Table 1 is "
-                                  "always by iv or the "
-                                  "linear estimator named."),
+                                  "with the springs' rates and the pulleys' radius (free of the friction model's "
+                                  "errors). Table 1 is always by iv or the linear estimator named."),
     sigma: str = typer.Option("hac", "--sigma", help="hac (default): Newey-West σ for correlated residuals; "
                               "white: eq. 50 as printed (too small on filtered data)."),
     no_bounds: bool = typer.Option(False, "--no-bounds", help="Unbounded least squares (default: k, f_s > 0 and "

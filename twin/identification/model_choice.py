@@ -44,6 +44,12 @@ P_THRESHOLD = 1e-3  # below it the paper's model is rejected: its friction does 
 # costs a fifth of the grid: `auto` then fits the estimate itself,
 # the gear's loss held, only after a rejection.
 TEST_TAU_S = 2.0
+# Above this damping force (N) on any cable the pose is not quasi-static and `auto` keeps the
+# load-friction fit instead of the output error (:func:`damping_check`). Between what the test's fit
+# finds on law 1's campaigns with a real line's damping (40 N·s/m: at most 0.6 N) and with the
+# paper's 3000 N·s/m (2-5 N), where the output error's λ came out 50-80 % high
+# (docs/identification-coverage.md, "`auto` takes the output error").
+QUASI_STATIC_DAMPING_N = 1.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +88,38 @@ def paper_model_test(load_friction: Estimate) -> ModelTest:
     mu, sigma = float(np.sum(w * v[ok]) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
     z = mu / sigma
     return ModelTest(mu=mu, sigma=sigma, z=z, p=float(stats.norm.sf(z)), cables=int(ok.sum()))
+
+
+@dataclass(frozen=True)
+class DampingCheck:
+    """Whether the neck's pose is quasi-static on this record, the output-error fit's assumption
+    (twin.identification.outputerror: its equilibrium holds the line's damping at 0). ``force_N``
+    per cable: the damping force the load-friction fit allows, its c_a's upper 2σ bound times the
+    record's rms stretch rate ẋ_c (eq. 27), N."""
+
+    force_N: tuple[float, ...]
+
+    @property
+    def quasi_static(self) -> bool:
+        return max(self.force_N) <= QUASI_STATIC_DAMPING_N
+
+    def describe(self) -> str:
+        verdict = "quasi-static" if self.quasi_static else "not quasi-static"
+        return (f"the line's damping force (c_a + 2σ)·rms ẋ_c ≤ {max(self.force_N):.2g} N, {verdict} "
+                f"(threshold {QUASI_STATIC_DAMPING_N:g} N)")
+
+
+def damping_check(load_friction: Estimate, x_c_dot: np.ndarray) -> DampingCheck:
+    """:class:`DampingCheck` from a load-friction estimate (its c_a(j) and σ) and the record's stretch
+    rates ``x_c_dot`` (m/s, (n, n_cables): processing.Processed.x_c_dot). A c_a without a finite σ
+    counts as unbounded (not quasi-static). Raises ValueError when the estimate has no c_a."""
+    idx = [i for i, n in enumerate(load_friction.names) if n.split("(")[0] == "c_a"]
+    if not idx:
+        raise ValueError(f"not a load-friction estimate: no 'c_a' among {load_friction.names}")
+    upper = load_friction.values[idx] + 2 * np.where(np.isfinite(load_friction.sigma[idx]), load_friction.sigma[idx],
+                                                     np.inf)
+    rate = np.sqrt(np.mean(np.asarray(x_c_dot, dtype=float) ** 2, axis=0))
+    return DampingCheck(tuple(float(f) for f in np.maximum(upper, 0.0) * rate))
 
 
 def auto_choice(estimator_text: str) -> tuple[str, float | None]:

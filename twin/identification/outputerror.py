@@ -84,6 +84,7 @@ LOG_RANGE = 3.0  # k, λ within e^±3 of the start
 SPRING_LOG_RANGE = 0.3  # spring rates within e^±0.3 (±35 %) of the file's: three times their tolerance
 TAU_BOUNDS_S = (0.2, 20.0)
 PASSES = 2  # fits: the second weighted by the first's residual scales
+SAMPLES_PER_CUTOFF = 4.0  # the fit's instants per period of the filter's cutoff (:func:`decimated`)
 # The structure the fit holds at the parameter file's, as half-widths of uniform tolerances, for σ's
 # type-B part (:func:`structure_sensitivities`): what the spring rates cannot absorb.
 L0_TOLERANCE_M = 0.5e-3  # spring free length and hook positions: about ±0.5 mm on 46 mm (DIN EN 13906-2)
@@ -181,11 +182,13 @@ class _Neck:
 
 
 def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
-                     sigma: str = "hac") -> Estimate:
+                     sigma: str = "hac", start: tuple[FloatArray, FloatArray] | None = None) -> Estimate:
     """Fit the model of the module docstring. The Estimate holds k(j), lambda(j), c_a(j) (held at 0)
     in Table 2's layout, then mu(j), F_0(j), beta, tau (s) and the spring-rate factors
     s_left(i), s_right(i), with HAC σ (or eq. 50's with ``sigma="white"``) and the held structure's
-    type-B part (:func:`structure_models`). Raises ValueError when a
+    type-B part (:func:`structure_models`). ``start``: (k (N/m), λ (1/m)) per cable to start from (e.g.
+    the load-friction fit's, as `auto` does; it saves iterations, the minimum is the same), else
+    START_K_N_M, START_LAMBDA_PER_M (no prior). Raises ValueError when a
     cable has fewer than loadfriction.MIN_ROWS fast-motor rows, or for an unknown ``sigma``."""
     if sigma not in SIGMA_METHODS:
         raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
@@ -200,6 +203,9 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     if proc.n <= 2 * edge + MIN_ROWS:
         raise ValueError(f"{NAME}: {proc.n} instants: the record is too short for the pose rows ({2 * EDGE_S:g} s of "
                          "filter edges and more)")
+    proc = decimated(proc)[0]
+    y, rows = fit_rows(proc, params)
+    edge = int(EDGE_S * proc.rate_hz)
     keep = slice(edge, proc.n - edge)
     a = np.sign(proc.theta_dot)
     g_f, g_b = gear_losses(params)
@@ -212,6 +218,13 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     hi = np.r_[np.full(2 * nc, LOG_RANGE), BETA_BOUNDS[1], np.log(TAU_BOUNDS_S[1]), np.full(2 * N, SPRING_LOG_RANGE),
                1e3 * DELTA_R_BOUNDS_M[1], np.full(nc, MU_BOUNDS[1]), np.full(nc, F0_BOUNDS_N[1])]
     q = np.r_[np.zeros(2 * nc), 0.02, 0.0, np.zeros(2 * N), 0.0, np.full(nc, 0.1), np.full(nc, 10.0)]
+    if start is not None:
+        k0, lam0 = (np.asarray(v, dtype=float) for v in start)
+        if k0.shape != (nc,) or lam0.shape != (nc,) or not np.all(np.isfinite(np.r_[k0, lam0])):
+            raise ValueError(f"{NAME}: start must be finite (k, λ) for {nc} cables, got {k0!r}, {lam0!r}")
+        with np.errstate(divide="ignore"):
+            q[:2 * nc] = np.clip(np.log(np.r_[k0 / START_K_N_M, lam0 / START_LAMBDA_PER_M]), 0.9 * lo[:2 * nc],
+                                 0.9 * hi[:2 * nc])
 
     def unpack(q: FloatArray):
         return (START_K_N_M * np.exp(q[:nc]), START_LAMBDA_PER_M * np.exp(q[nc:2 * nc]), float(q[i_beta]),
@@ -267,6 +280,20 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
         d[len(sol.fun) - len(motor):] = np.where(motor == j, y[rows] * FORCE_SCALE_TOLERANCE / np.sqrt(3.0), 0.0) / used[1]
         shifts.append(d)
     return _estimate(proc, params, sol, q, unpack, rows, keep, threshold, sigma, lo, hi, shifts)
+
+
+def decimated(proc: Processed) -> tuple[Processed, int]:
+    """``proc`` on every ``step``-th instant, ``step`` the largest that keeps SAMPLES_PER_CUTOFF samples
+    per period of the filter's cutoff: the signals are low-passed there (processing.cutoff_rule), so
+    the instants in between carry no more information, only cost (each is a Newton solve of the
+    neck per residual evaluation). The 500 Hz record (``fast_*``) is kept whole."""
+    step = max(1, int(proc.rate_hz / (SAMPLES_PER_CUTOFF * proc.cutoff_hz)))
+    if step == 1:
+        return proc, 1
+    fields = ("t_s", "theta", "theta_dot", "theta_ddot", "force", "alpha", "alpha_dot", "alpha_ddot", "x_c", "x_c_dot",
+              "x_c_ddot", "Z", "M", "c", "g")
+    return dataclasses.replace(proc, rate_hz=proc.rate_hz / step,
+                               **{f: np.ascontiguousarray(getattr(proc, f)[::step]) for f in fields}), step
 
 
 def _layout(nc: int, N: int) -> tuple[int, int, int, int, int]:
@@ -347,7 +374,7 @@ def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows:
         hac_lag=lag, active_bounds=active,
     )
     return dataclasses.replace(est, estimator=(
-        f"output error from the encoders: the neck's equilibrium against α_IP ({n_alpha} rows) and the motor "
+        f"output error from the encoders at {proc.rate_hz:.3g} Hz: the neck's equilibrium against α_IP ({n_alpha} rows) and the motor "
         f"forces where |θ̇| ≥ {MIN_SPEED_RAD_S:g} rad/s ({int(rows.sum())} rows); spring rates ×"
         f"{', '.join(f'{v:.3f}' for v in springs)} (left, right per joint); pulley radius δr = "
         f"{1e3 * delta_r:+.3f} mm; Kelvin creep β = {beta:.3f}, "

@@ -268,11 +268,11 @@ def identify_variable(
     each cable's rows by its residual σ. ``"loadfriction"``: twin.identification.loadfriction (the
     motor friction growing with the load and a creep term fitted with k, λ, c_a on the motors'
     forces; ``f_s`` is not used, the bounds are always on); its Estimate also holds mu, F_0, beta, c_f.
-    ``"auto"``: that fit where it rejects eqs. 54-55, else ``"iv"`` (:func:`_identify_variable_auto`).
     ``"outputerror"``: twin.identification.outputerror (the neck's equilibrium simulated on the
     encoders against α_IP, and the motor forces, fitted together with the springs' rates and the
-    pulleys' radius: free of the friction model's errors that bias the force fits' λ; about 5 s;
-    not the default).
+    pulleys' radius: free of the friction model's errors that bias the force fits' λ).
+    ``"auto"``: where that fit rejects eqs. 54-55, the output error if the line's damping is light,
+    else the load-friction fit; ``"iv"`` where it does not (:func:`_identify_variable_auto`).
     ``creep_time_s``: the line's creep time constant τ (s) measured apart (a bench creep test of the
     line), held in the load-friction fit instead of chosen from the record (twin.identification.
     loadfriction.creep_taus); None (default): chosen.
@@ -320,11 +320,16 @@ def identify_variable(
 
 def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *, threshold: float, sigma: str,
                             bounded: bool, creep_time_s: float | None = None) -> Estimate:
-    """``estimator="auto"``: the load-friction fit where it rejects eqs. 54-55 (its friction grows with
-    the load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), else IDIM-IV; the choice and its test lead the estimator's text.
-    A campaign whose motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
+    """``estimator="auto"``: where the load-friction fit rejects eqs. 54-55 (its friction grows with the
+    load: a one-sided test of the cables' pooled μ, twin.identification.model_choice), the output
+    error (twin.identification.outputerror: the pose is free of the friction model's errors) if the
+    same fit finds the line's damping light enough for a quasi-static pose
+    (model_choice.damping_check) and no creep time is held, else the load-friction fit; where it does
+    not reject them, IDIM-IV. The choice and its tests lead the estimator's text. A campaign whose
+    motors never turned fast enough for the load-friction fit gets IDIM-IV, saying why."""
     from twin.identification.loadfriction import creep_taus, fit_load_friction, gear_losses
-    from twin.identification.model_choice import TEST_TAU_S, paper_model_test
+    from twin.identification.model_choice import TEST_TAU_S, damping_check, paper_model_test
+    from twin.identification.outputerror import fit_output_error
 
     taus_s = creep_taus(creep_time_s)  # a bad τ is the caller's error, not a reason to fall back
     try:
@@ -337,10 +342,21 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
     test = paper_model_test(plain.estimate)
     if test.rejects_paper_model:
+        damping = damping_check(plain.estimate, proc.x_c_dot)
+        why = f"{test.describe()}; {damping.describe()}"
+        if creep_time_s is not None:
+            why += f"; the creep time held at {creep_time_s:g} s, which the output error fits itself"
+        elif damping.quasi_static:
+            try:
+                oe = fit_output_error(proc, params, threshold=threshold, sigma=sigma,
+                                      start=(plain.estimate.vector("k"), plain.estimate.vector("lambda")))
+                return dataclasses.replace(oe, estimator=f"auto → outputerror ({why}); {oe.estimator}")
+            except ValueError as exc:
+                why += f"; no output-error fit: {exc}"
         gear = gear_losses(params)
         lf = plain.estimate if gear == (0.0, 0.0) and len(taus_s) == 1 else fit_load_friction(
             proc, params, threshold=threshold, sigma=sigma, taus_s=taus_s).estimate
-        return dataclasses.replace(lf, estimator=f"auto → loadfriction ({test.describe()}); {lf.estimator}")
+        return dataclasses.replace(lf, estimator=f"auto → loadfriction ({why}); {lf.estimator}")
     iv = identify_variable(proc, params, f_s, threshold=threshold, estimator="iv", sigma=sigma, bounded=bounded)
     return dataclasses.replace(iv, estimator=f"auto → iv ({test.describe()}); {iv.estimator}")
 
