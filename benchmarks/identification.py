@@ -173,7 +173,7 @@ def main() -> None:
           f"(median {med / 1e3:.3f} s, p99 {p99 / 1e3:.3f} s)")
 
     for name, what in (("loadfriction", "Table 2 by the load-friction fit"),
-                       ("auto", "the user's default: the load-friction fit, its test, then IDIM-IV or not")):
+                       ("auto", "the user's default: its test's load-friction fit, then IDIM-IV, the output error or the load-friction fit")):
         run = lambda name=name: identify_all(preprocess(data, params), params, estimator=name)  # noqa: E731
         med_x, p99_x = summary(f"the same with --estimator {name} ({what})", time_calls(run, repeats=3, warmup=1),
                                unit=1e-3, unit_name="ms")

@@ -374,7 +374,7 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
               "(friction shape, spring rates, creep) are seen, not the excitation's information"
               if lf else "") + "."
            + (" The output error's σ of k is mostly a type-B part, each motor's force scale (±5 %), which no "
-              "excitation reduces: its σ ratios stay near 1 by construction" if oe else ""), ""]
+              "excitation reduces: its σ ratios stay near 1 by construction." if oe else ""), ""]
     if failed:
         md += [f"Campaigns that failed (not in the means): {', '.join(failed)}; see runs/<name>.json.", ""]
     finite = [r for r in ratios.values() if math.isfinite(r)]
@@ -491,8 +491,9 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
            "  enters as the weight 1/(1 + λt/k), but the filter cutoff (which rises with the trajectory's",
            "  bandwidth) and the truth's unmodelled effects are not in the criterion.",
            "- The ±2σ coverage here is over a few seeds (campaigns take minutes on a shared machine); over 20",
-           "  seeds never used in development (61-80) law 1's campaigns covered 148/160 and the known-answer",
-           "  loop 143/160 (docs/identification-coverage.md, \"Seeds never looked at\").",
+           "  seeds never run before (142-161) law 1's campaigns covered 159/160 with the default `auto`",
+           "  (docs/identification-coverage.md, \"`auto` takes the output error\"); with the load-friction fit",
+           "  it took before, 148/160 on seeds 61-80 (\"Seeds never looked at\").",
            "- Table 2 within 10 % on the robot truth (issue 16): the tension from the forces (eq. 55) misses the",
            "  truth's load-dependent friction and eq. 54 its creep; the load-friction fit models both but not the",
            "  friction's direction asymmetry (λ(3) about 10 % low). The default `auto` now takes the neck's output",

@@ -12,8 +12,8 @@ quasi-static equilibrium (eq. 32) on the motor angles θ alone::
 
 g holds the lateral springs, whose rates s_i (left and right of each joint, as factors of the
 parameter file's) are free, and so is the pulleys' radius r + δr (eq. 20's l_c; the line's own
-radius moves the contact, and a 0.1 mm error moved λ(3), λ(4) by 3-4 % when held): a spring rate is known to ±10 % (DIN EN 13906-2 grade 2), and the
-tension that balances the springs scales with them, so with the file's rates the pose alone
+radius moves the contact, and a 0.1 mm error moved λ(3), λ(4) by 3-4 % when held). A spring rate
+is known to ±10 % (DIN EN 13906-2 grade 2), and the tension that balances the springs scales with them, so with the file's rates the pose alone
 gives k 6-11 % off on the robot truth (docs/identification/static_output_error.py). The force
 gives the tension's scale instead: on the rows where a motor turns fast (loadfriction.fit_rows),
 with a = sign θ̇ and the gear's meshing losses g_f, g_b held (loadfriction.gear_losses),
@@ -29,18 +29,19 @@ of the linearised estimator over the identification instants (twin.identificatio
 plus a type-B part (GUM) for what the fit holds and no residual of the record shows: the
 structure at the file's (the springs' free lengths, the bar masses: :func:`structure_models`) and
 each motor's force scale (the torque constant and the current loop's gain, ``FORCE_SCALE_TOLERANCE``),
-which sets the tension's scale, hence k's (the pose takes a part of it through the springs). With the HAC part alone the ±2σ covered
-45/80 on law 1's held-out campaigns, the errors repeating from seed to seed
-(docs/identification-coverage.md).
+which sets the tension's scale, hence k's (the pose takes a part of it through the springs). With
+the HAC part alone the ±2σ covered 45/80 on law 1's held-out campaigns, the errors repeating from
+seed to seed (docs/identification-coverage.md).
 
 What it assumes instead: a light cable damping (the equilibrium is quasi-static: with the paper's
-c_a = 3000 N·s/m the pose is off by c_a·ẋ and λ comes out 50-80 % high; a real line's, 40 N·s/m,
-changes nothing), c_a is held at 0; the bar masses and the springs' free lengths of the file
+c_a = 3000 N·s/m the pose is off by c_a·ẋ and λ comes out 30-80 % high, 5-9 % at 300 N·s/m; a real
+line's, 40 N·s/m, changes nothing; `auto` checks it, twin.identification.model_choice.damping_check),
+c_a is held at 0; the bar masses and the springs' free lengths of the file
 (their errors go into s); a friction of a turning motor that is a sign (loadfriction's c_f at
 its bound, as on the robot truth). The fit's Jacobian is exact, from the simulation's solution by
-the implicit function theorem (twin.identification.neck_sensitivity): 3-5 s per campaign, against
-20-40 s by finite differences (one re-simulation of the neck per parameter). Coverage on the twin:
-docs/identification-coverage.md, "The pulleys' radius fitted".
+the implicit function theorem (twin.identification.neck_sensitivity), and it takes every fourth
+instant (:func:`decimated`): about 1 s per campaign, against 40 s by finite differences on every
+instant. Coverage on the twin: docs/identification-coverage.md, "The pulleys' radius fitted".
 """
 
 from __future__ import annotations
