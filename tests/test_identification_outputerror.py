@@ -107,6 +107,10 @@ def test_refuses_a_bad_sigma_a_still_record_and_a_creep_time(params, robot_campa
                             theta_dot=0.1 * proc.theta_dot)
     with pytest.raises(ValueError, match=r"fewer than 50 instants with the motor faster than 5 rad/s"):
         fit_output_error(still, params)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"start must be \(k > 0, λ ≥ 0\) for 4 cables"):
+        fit_output_error(proc, params, start=(np.full(4, -1.0), np.full(4, 80.0)))
+    with pytest.raises(ValueError, match="start must be"):
+        fit_output_error(proc, params, start=(np.full(3, 4000.0), np.full(3, 80.0)))
     with pytest.raises(ValueError, match="a creep time applies to the load-friction fit"):
         check_variable_options("outputerror", 2.0)
     with pytest.raises(IdentificationError, match="fits its own creep time"):

@@ -13,8 +13,8 @@ quasi-static equilibrium (eq. 32) on the motor angles θ alone::
 g holds the lateral springs, whose rates s_i (left and right of each joint, as factors of the
 parameter file's) are free, and so is the pulleys' radius r + δr (eq. 20's l_c; the line's own
 radius moves the contact, and a 0.1 mm error moved λ(3), λ(4) by 3-4 % when held). A spring rate
-is known to ±10 % (DIN EN 13906-2 grade 2), and the tension that balances the springs scales with them, so with the file's rates the pose alone
-gives k 6-11 % off on the robot truth (docs/identification/static_output_error.py). The force
+is known to ±10 % (DIN EN 13906-2 grade 2), and the tension that balances the springs scales with
+them, so with the file's rates the pose alone gives k 6-11 % off on the robot truth (docs/identification/static_output_error.py). The force
 gives the tension's scale instead: on the rows where a motor turns fast (loadfriction.fit_rows),
 with a = sign θ̇ and the gear's meshing losses g_f, g_b held (loadfriction.gear_losses),
 
@@ -87,7 +87,7 @@ TAU_BOUNDS_S = (0.2, 20.0)
 PASSES = 2  # fits: the second weighted by the first's residual scales
 SAMPLES_PER_CUTOFF = 4.0  # the fit's instants per period of the filter's cutoff (:func:`decimated`)
 # The structure the fit holds at the parameter file's, as half-widths of uniform tolerances, for σ's
-# type-B part (:func:`structure_sensitivities`): what the spring rates cannot absorb.
+# type-B part (:func:`structure_models`): what the spring rates cannot absorb.
 L0_TOLERANCE_M = 0.5e-3  # spring free length and hook positions: about ±0.5 mm on 46 mm (DIN EN 13906-2)
 MASS_TOLERANCE = 0.10  # bar masses and inertias: CAD estimates (prototype_3x.toml [bars]), ±10 %
 DELTA_R_BOUNDS_M = (-0.5e-3, 0.5e-3)  # the pulleys' radius error δr, fitted: printed/turned pulleys and the line
@@ -204,6 +204,7 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     if proc.n <= 2 * edge + MIN_ROWS:
         raise ValueError(f"{NAME}: {proc.n} instants: the record is too short for the pose rows ({2 * EDGE_S:g} s of "
                          "filter edges and more)")
+    # the checks above speak of the record's instants, as the user knows it; the fit runs on fewer
     proc = decimated(proc)[0]
     y, rows = fit_rows(proc, params)
     edge = int(EDGE_S * proc.rate_hz)
@@ -221,8 +222,9 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     q = np.r_[np.zeros(2 * nc), 0.02, 0.0, np.zeros(2 * N), 0.0, np.full(nc, 0.1), np.full(nc, 10.0)]
     if start is not None:
         k0, lam0 = (np.asarray(v, dtype=float) for v in start)
-        if k0.shape != (nc,) or lam0.shape != (nc,) or not np.all(np.isfinite(np.r_[k0, lam0])):
-            raise ValueError(f"{NAME}: start must be finite (k, λ) for {nc} cables, got {k0!r}, {lam0!r}")
+        if (k0.shape != (nc,) or lam0.shape != (nc,) or not np.all(np.isfinite(np.r_[k0, lam0]))
+                or np.any(k0 <= 0) or np.any(lam0 < 0)):
+            raise ValueError(f"{NAME}: start must be (k > 0, λ ≥ 0) for {nc} cables, finite, got {k0!r}, {lam0!r}")
         with np.errstate(divide="ignore"):
             q[:2 * nc] = np.clip(np.log(np.r_[k0 / START_K_N_M, lam0 / START_LAMBDA_PER_M]), 0.9 * lo[:2 * nc],
                                  0.9 * hi[:2 * nc])
