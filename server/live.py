@@ -244,13 +244,15 @@ def bridge_status(values: LatestValues) -> dict[str, Any]:
     """The bridge as its latest valid ``MotorState`` shows it, for ``/api/system/health``:
     ``state_age_s``, seconds since that state arrived (monotonic clock, to within
     :data:`STATE_SAMPLE_PERIOD_S`; None before any state), so a silent bridge shows an age that
-    grows; ``drive`` (active, hold, inactive, disabled), ``owner`` (the controller instance it
-    obeys, "" for none) and ``instance`` (the bridge's), as of that state. All None before any."""
+    grows; ``drive`` (active, hold, inactive, disabled), ``hold_reason`` (why it holds, "" unless
+    ``drive == "hold"``), ``owner`` (the controller instance it obeys, "" for none) and
+    ``instance`` (the bridge's), as of that state. All None before any."""
     latest = values.latest_valid("state")
     if latest is None:
-        return {"state_age_s": None, "drive": None, "owner": None, "instance": None}
+        return {"state_age_s": None, "drive": None, "hold_reason": None, "owner": None, "instance": None}
     age_s, state = latest[0], cast(bus.MotorState, latest[1])  # SERIES["state"] decodes MotorState only
-    return {"state_age_s": round(age_s, 3), "drive": state.drive, "owner": state.owner, "instance": state.bridge}
+    return {"state_age_s": round(age_s, 3), "drive": state.drive, "hold_reason": state.hold_reason,
+            "owner": state.owner, "instance": state.bridge}
 
 
 def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:

@@ -56,13 +56,15 @@ def test_health_says_how_old_the_bridges_latest_motor_state_is(tmp_path: Path) -
         assert wait_until(lambda: _get(base + "/api/system/health", 1) is not None, 60, 0.3), \
             (tmp_path / "s.log").read_text()[-2000:]
         # No bridge yet: no state, so no age (null), not a made-up number.
-        assert bridge() == {"state_age_s": None, "drive": None, "owner": None, "instance": None}, bridge()
+        assert bridge() == {"state_age_s": None, "drive": None, "hold_reason": None, "owner": None,
+                            "instance": None}, bridge()
         twin = spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], "b.log")
         spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], "c.log")
         assert wait_until(lambda: (bridge().get("owner") or "").startswith("controller-"), 120, 0.2), bridge()
         live = bridge()
         assert live["state_age_s"] is not None and 0 <= live["state_age_s"] < 1.0, live  # 500 Hz states
         assert live["drive"] in ("active", "hold"), live
+        assert bool(live["hold_reason"]) == (live["drive"] == "hold"), live  # a hold says why, nothing else does
         twin.send_signal(signal.SIGTERM)  # a clean stop: its last state says the drives are off
         assert twin.wait(30) == 0
         first = bridge()

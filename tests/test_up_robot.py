@@ -127,7 +127,16 @@ def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -
         # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority").
         assert up.poll() is None and "exited" not in printed, printed[-3000:]
         assert Path(f"/proc/{bridge}").exists()
-        assert ((_get(base + "/api/system/health", 5) or {}).get("bridge") or {}).get("drive") == "active"
+        # The drives go on: active, or back to active within a few ticks after a hold (the bridge's
+        # watchdog holds while the controller's commands come late, as they may under a full
+        # suite's load; the next valid one ends it). CI of 2026-11-27 sampled such a hold once.
+        seen: list[dict] = []
+
+        def active() -> bool:
+            seen.append((_get(base + "/api/system/health", 5) or {}).get("bridge") or {})
+            return seen[-1].get("drive") == "active"
+
+        assert wait_until(active, 5, 0.1), (seen[-5:], printed[-3000:])
 
 
 

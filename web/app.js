@@ -283,7 +283,8 @@ function bridgeAge(b) {
   if (!b || b.state_age_s === null || b.state_age_s === undefined) return "bridge: no motor state yet";
   const age = b.state_age_s;
   if (age > 1.0) return `BRIDGE SILENT for ${age.toFixed(1)} s (last drive ${b.drive})`;
-  return `bridge: state ${(age * 1e3).toFixed(0)} ms ago, drive ${b.drive}`;
+  return `bridge: state ${(age * 1e3).toFixed(0)} ms ago, drive ${b.drive}` +
+    (b.drive === "hold" && b.hold_reason ? ` (${b.hold_reason})` : "");
 }
 
 async function pollStatus() {
