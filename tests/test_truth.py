@@ -45,7 +45,7 @@ def twin_with(*effects: str, **changes) -> Twin:
 
 def test_every_value_of_the_robot_truth_has_a_source():
     data = tomllib.loads(ROBOT_TRUTH_FILE.read_text())
-    assert set(data) - {"name"} == set(EFFECTS)
+    assert set(data) - {"name", "robot_params"} == set(EFFECTS) and data["robot_params"] == "prototype"
     for section in EFFECTS:
         assert data[section]["enabled"] is True, section
         for key, item in data[section].items():

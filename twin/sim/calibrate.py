@@ -39,7 +39,7 @@ from scipy.optimize import least_squares
 from twin.model.estimation import alpha_hat_3
 from twin.model.params import Params
 from twin.sim.simulator import Twin, TwinConfig
-from twin.sim.truth import EFFECTS, Calibration, RobotTruth, TruthError, load_truth
+from twin.sim.truth import EFFECTS, Calibration, RobotTruth, TruthError, load_truth, robot_base
 
 MOTOR_TOPIC = "/xneck/motor/state"
 CAMERA_TOPIC = "/xneck/camera/alpha_ip"
@@ -267,7 +267,7 @@ def replay(rec: Recording, params: Params, truth: RobotTruth, w: Weights = Weigh
     bars, stiff cables). What is compared is then a prediction over one horizon, as a model-based
     controller uses the model (``horizon_s`` = inf: one open-loop replay)."""
     truth = truth.replace("timing", jitter_s=0.0)
-    twin = Twin(params, TwinConfig(camera=False, truth=truth))
+    twin = Twin(robot_base(truth, params), TwinConfig(camera=False, truth=truth))
     n, nc = twin.model.n_joints, twin.model.n_cables
     half_count = math.pi / params.sensors.encoder_counts_per_rev  # encoders truncate: θ ≈ reading + q/2
     twin.reset(alpha=np.clip(rec.alpha0, -2.5, 2.5), theta=rec.theta[0] + half_count)
@@ -468,6 +468,8 @@ def truth_toml(truth: RobotTruth, header: str = "") -> str:
     source, and ``[calibration]`` holds the provenance."""
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
     lines.append(f"name = {_toml_value(truth.name)}")
+    if truth.robot_params:  # the robot the values were fitted on (twin/sim/truth.py)
+        lines.append(f"robot_params = {_toml_value(truth.robot_params)}")
     for section in EFFECTS:
         effect = getattr(truth, section)
         default = type(effect)()

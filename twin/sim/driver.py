@@ -26,7 +26,7 @@ from bridge.driver import Driver, DriverConfig, Lifecycle
 from twin.model.params import Params
 from twin.sim.sensors import quantise_encoder
 from twin.sim.simulator import Tick, Twin, TwinConfig
-from twin.sim.truth import check_truth
+from twin.sim.truth import check_truth, load_truth, robot_base
 
 log = logging.getLogger("xneck.bridge.twin")
 
@@ -59,9 +59,14 @@ class TwinDriver(Driver):
     def __init__(self, config: TwinDriverConfig, params: Params) -> None:
         super().__init__(config)
         self.config: TwinDriverConfig = config
-        self.params = params
         if params.n_cables != config.n_motors:
             raise ValueError(f"the parameter set has {params.n_cables} cables, the driver config {config.n_motors} motors")
+        # The robot: the truth's own parameter file where it names one (the robot truth: the
+        # prototype), so a parameter set given to the controller does not rebuild the robot.
+        self.params = robot_base(load_truth(config.truth), params)
+        if self.params is not params:
+            log.info("twin: the robot of truth %r is built from %s, whatever the controller's parameter set (%s)",
+                     config.truth, self.params.name, params.name)
         self.twin: Twin | None = None
         self.last_tick: Tick | None = None
         self._force = np.zeros(config.n_motors)

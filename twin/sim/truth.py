@@ -14,6 +14,16 @@ value with its source (datasheet, measurement, physics estimate, architecture, o
 a path to a TOML file
     Another truth in the same format (e.g. written by ``xneck twin calibrate``).
 
+Which robot the effects apply to: a truth's ``robot_params`` names the parameter file the robot
+is built from ("prototype": the shipped 3-X file; a path, relative to the truth file). The
+robot truth names the prototype, so the twin's robot stays the prototype whatever parameter set
+the controller is given (an identified set, ``--set`` overrides): on the real robot a new
+parameter set changes the controller's beliefs, not the robot, and a twin that followed them
+made every comparison of parameter sets circular. Without ``robot_params`` (the model truth,
+truth files written before 2026-11-27) the effects apply to the controller's parameter set.
+In-process users (studies, benchmarks) pass the robot's parameters explicitly and are not
+affected: :func:`robot_base` is for the twin processes (twin.sim.driver, twin.sim.calibrate).
+
 The effects (sections of the file; docs/twin-fidelity.md shows what each one changes):
 
 - ``friction``: Coulomb + viscous + Stribeck stiction (static > kinetic), direction asymmetry,
@@ -121,6 +131,7 @@ class RobotTruth(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     ``calibration``: how a calibrated truth was fitted (None for a truth written by hand)."""
 
     name: str = "model"
+    robot_params: str = ""  # "prototype", an absolute path once loaded, or "" (module docstring)
     friction: FrictionTruth = FrictionTruth()
     actuation: ActuationTruth = ActuationTruth()
     structure: StructureTruth = StructureTruth()
@@ -212,6 +223,11 @@ def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
     for section, body in data.items():
         if section == "name":
             continue
+        if section == "robot_params":
+            if not (isinstance(body, str) and (body == "prototype" or body.endswith(".toml"))):
+                raise TruthError(f"robot_params: \"prototype\" or the path of a parameter file (.toml), got {body!r}")
+            plain[section] = body
+            continue
         if section == "calibration":
             plain[section] = body
             continue
@@ -248,9 +264,12 @@ def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
     except RecursionError:
         raise TruthError(f"{path}: nested too deeply") from None
     try:
-        return parse_truth(data, path.stem)
+        truth = parse_truth(data, path.stem)
     except TruthError as exc:
         raise TruthError(f"{path.name}: {exc}") from None
+    if truth.robot_params not in ("", "prototype"):  # relative to the truth file, wherever it is read from
+        truth = msgspec.structs.replace(truth, robot_params=str((path.parent / truth.robot_params).resolve()))
+    return truth
 
 
 def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
@@ -272,7 +291,7 @@ def check_truth(value: str, params: Params | None = None) -> str:
     """``value`` if it names a truth that loads and applies to ``params`` (default: the 3-X
     prototype: one value per joint or cable where a section wants that); :class:`TruthError` with
     the reason otherwise."""
-    p, t = load_params() if params is None else params, load_truth(value)
+    p, t = robot_base(load_truth(value), load_params() if params is None else params), load_truth(value)
     for key, values in (("friction.asymmetry", t.friction.asymmetry),
                         ("friction.pulley_friction_per_N", t.friction.pulley_friction_per_N),
                         ("actuation.torque_constant_factor", t.actuation.torque_constant_factor)):
@@ -287,6 +306,26 @@ def _per(values: tuple[float, ...], n: int, default: float, key: str) -> tuple[f
     if len(values) != n:
         raise TruthError(f"{key}: {len(values)} values for {n} joints/cables")
     return tuple(values)
+
+
+def robot_base(truth: RobotTruth, params: Params) -> Params:
+    """The parameter set the robot of ``truth`` is built from: its ``robot_params`` file, else
+    ``params`` (the controller's). :class:`TruthError` if that file does not load or describes a
+    robot with other joints or cables than ``params`` (the controller could not drive it)."""
+    if not truth.robot_params:
+        return params
+    from twin.model.params import ParameterError
+
+    try:
+        base = load_params(None if truth.robot_params == "prototype" else truth.robot_params)
+    except ParameterError as exc:
+        raise TruthError(f"robot_params of truth {truth.name!r}: {exc}") from None
+    if (base.n_joints, base.n_cables) != (params.n_joints, params.n_cables):
+        raise TruthError(
+            f"truth {truth.name!r} is a robot of {base.n_joints} joints and {base.n_cables} cables "
+            f"({truth.robot_params}), the parameter set {params.name!r} one of {params.n_joints} and "
+            f"{params.n_cables}: give a truth file for this robot (its robot_params naming its parameter file)")
+    return base
 
 
 def truth_params(params: Params, truth: str | RobotTruth = "model") -> Params:
