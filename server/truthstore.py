@@ -3,7 +3,8 @@
 
 A campaign request names its truth (``"model"``, ``"robot"`` or one of these names), never a path:
 a name is checked against :data:`server.paramsets` 's name rule and resolved here, so a request
-cannot make the twin read an arbitrary file. Every file is validated as ``--truth FILE`` is
+cannot make the twin read an arbitrary file (nor can an uploaded truth: its ``robot_params`` is
+"prototype" or absent, never a path). Every file is validated as ``--truth FILE`` is
 (twin/sim/truth.py) when it is stored and again when a campaign uses it.
 """
 
@@ -69,7 +70,11 @@ class TruthStore:
             raise TruthError(f"{source}: {len(body)} bytes, more than {MAX_TRUTH_BYTES} for a truth file")
         try:
             data = tomllib.loads(body.decode("utf-8"))
-            return parse_truth(data, source)
+            truth = parse_truth(data, source)
+            if truth.robot_params not in ("", "prototype"):  # a path: the console would read a file the request names
+                raise TruthError(f"{source}: robot_params of an uploaded truth is \"prototype\" or absent (the "
+                                 f"controller's parameter set), not a path, got {truth.robot_params!r}")
+            return truth
         except UnicodeDecodeError:
             raise TruthError(f"{source}: not a text file (invalid UTF-8)") from None
         except tomllib.TOMLDecodeError as exc:

@@ -179,3 +179,38 @@ def test_structure_models_move_one_held_value_by_one_sigma_each(params):
         np.testing.assert_allclose(m.m_body / base.m_body, 1 + np.eye(n)[i][:, None] * MASS_TOLERANCE / root3 * np.ones((1, 3)))
         np.testing.assert_array_equal(m.l0, base.l0)
         assert m.r == base.r  # the pulley radius is fitted, not held
+
+
+def test_the_structure_is_reported_with_a_set_line_not_written(params, fitted, tmp_path):
+    """The spring rates and the pulley radius are effective values (they absorb the masses' and free
+    lengths' errors), not the physical ones a parameter file holds; in the controller's set they changed
+    tracking by hundredths of a degree (docs/identification/identified-set-control.md): the set keeps
+    the file's, the provenance reports them, and the file's header says how to apply them. c_a, held at 0, says it was not
+    estimated (it said "badly identified, relative σ nan %")."""
+    from twin.identification.pipeline import (
+        STRUCTURE_NOT_WRITTEN,
+        identified_params,
+        make_provenance,
+        write_identified,
+    )
+    from twin.model.params import parse_override
+
+    new, report, prov = identified_params(params, {"variable": fitted}, make_provenance("t", SimpleNamespace(
+        cutoff_hz=1.0, rate_hz=31.25)))  # type: ignore[arg-type]
+    assert new.springs == params.springs and new.geometry.r == params.geometry.r
+    assert new.cables.variable.k != params.cables.variable.k  # k, λ are written
+    rows = {row["name"]: row for row in prov.parameters}
+    s = np.r_[fitted.vector("s_left"), fitted.vector("s_right")]
+    assert [rows[f"springs.k_{side}({j})"]["estimate"] for side in ("left", "right") for j in (1, 2, 3)] == \
+        pytest.approx(np.r_[params.springs.k_left, params.springs.k_right] * s)
+    assert rows["geometry.r"]["estimate"] == pytest.approx(params.geometry.r + fitted.vector("delta_r")[0])
+    assert all(not rows[n]["used"] and rows[n]["reason"] == STRUCTURE_NOT_WRITTEN for n in rows
+               if n.startswith(("springs.", "geometry.")))
+    assert all(report.kept_base[f"cables.variable.c_a({j})"][2] == "not estimated: this estimator holds it at 0"
+               for j in (1, 2, 3, 4))
+    path, _ = write_identified(tmp_path / "set.toml", new, prov)
+    line = next(x for x in path.read_text().splitlines() if "to apply them:" in x)
+    sets = [parse_override(part.strip().strip("'")) for part in line.split("--set")[1:]]
+    applied = load_params(path, overrides=dict(sets))
+    assert applied.geometry.r == pytest.approx(rows["geometry.r"]["estimate"], rel=1e-6)
+    assert applied.springs.k_left == pytest.approx([rows[f"springs.k_left({j})"]["estimate"] for j in (1, 2, 3)], rel=1e-5)

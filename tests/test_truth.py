@@ -341,6 +341,7 @@ def test_truth_files_are_uploaded_validated_listed_and_run_over_rest(tmp_path):
             ("bench", '[timing]\ndelay_ticks = { value = 9, source = "none: x" }\n', ["body"], "0-3"),
             ("bench", "[calibration]\ndate = 1\n", ["body"], "calibration"),
             ("bench", "a" * 70_000, ["body"], "more than"),
+            ("bench", 'robot_params = "../../../etc/x.toml"\n', ["body"], "not a path"),
         ]
         for name, body, loc, reason in hostile:
             r = put(name, body.encode("latin-1") if body.startswith("\xff") else body)

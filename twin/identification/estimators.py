@@ -80,6 +80,8 @@ class Estimate:
     def reason(self, i: int) -> str:
         """Why parameter ``i`` is badly identified ("" if it is not)."""
         r = self.relative_sigma[i]
+        if self.values[i] == 0.0 and self.sigma[i] == 0.0:  # e.g. the output error's c_a, quasi-static
+            return "not estimated: this estimator holds it at 0"
         if self.at_bound[i]:  # first: at a bound of 0 its relative σ is infinite by construction
             return "held at its physical bound (the data pull it beyond)"
         if not np.isfinite(r) or r > self.threshold:

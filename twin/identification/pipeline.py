@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -422,11 +422,61 @@ _TARGETS = (
 )
 
 
+#: Why the output error's structure is reported and not written (docs/identification/identified-set-control.md).
+STRUCTURE_NOT_WRITTEN = ("reported, not written: an effective value of the output error (it absorbs the bar masses' "
+                         "and free lengths' errors), not the physical one a parameter file holds")
+
+
+def _structure(data: dict[str, Any], est: Estimate | None) -> list[dict[str, Any]]:
+    """The output error's structure (twin.identification.outputerror): the spring rates as the
+    file's × s_left(i), s_right(i), and the pulley radius r + δr, as provenance rows (``used``
+    False, :data:`STRUCTURE_NOT_WRITTEN`; the set keeps the file's). The rates are effective ones
+    (they absorb the bar masses' and free lengths' errors, which the fit holds), not the springs'
+    physical rates that the workspace and stiffness analyses read; in the controller's set they
+    changed tracking on the robot truth by a few hundredths of a degree
+    (docs/identification/identified-set-control.md). A user applies them with the ``--set`` line
+    :func:`write_identified` prints. ``relative_sigma``
+    of δr is σ(δr)/r (its own is large wherever δr is near 0, however well it is known)."""
+    if est is None or "delta_r" not in est.names:
+        return []
+    rows: list[dict[str, Any]] = []
+    for side in ("left", "right"):
+        for j, factor in enumerate(est.vector(f"s_{side}")):
+            i = est.names.index(f"s_{side}({j + 1})")
+            rows.append({"name": f"springs.k_{side}({j + 1})", "estimate": float(data["springs"][f"k_{side}"][j] * factor),
+                         "relative_sigma": float(est.relative_sigma[i]), "method": "variable", "used": False,
+                         "reason": STRUCTURE_NOT_WRITTEN})
+    i, r = est.names.index("delta_r"), float(data["geometry"]["r"])
+    rows.append({"name": "geometry.r", "estimate": r + float(est.values[i]), "relative_sigma": float(est.sigma[i]) / r,
+                 "method": "variable", "used": False, "reason": STRUCTURE_NOT_WRITTEN})
+    return rows
+
+
+def structure_overrides(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The ``--set`` values that apply the reported structure (:func:`_structure`'s rows), e.g.
+    ``["springs.k_left=[631.2,190.3,223.0]", ..., "geometry.r=0.0047086"]``; [] without them."""
+    values: dict[str, list[tuple[int, float]]] = {}
+    for row in rows:
+        if row.get("reason") != STRUCTURE_NOT_WRITTEN:
+            continue
+        key, _, index = str(row["name"]).partition("(")
+        values.setdefault(key, []).append((int(index.rstrip(")") or 0), float(row["estimate"])))
+    out = []
+    for key, items in values.items():
+        if len(items) == 1 and items[0][0] == 0:
+            out.append(f"{key}={items[0][1]:.7g}")
+        else:
+            out.append(f"{key}=[{','.join(f'{v:.6g}' for _, v in sorted(items))}]")
+    return out
+
+
 def identified_params(
     base: Params, estimates: Mapping[str, Estimate], provenance: Provenance
 ) -> tuple[Params, ParameterReport, Provenance]:
     """A new parameter set: friction.f_s (friction-alone estimate), cables.linear k/c_a (complete
-    model), cables.variable k/lambda/c_a (variable model) replaced by their estimates.
+    model), cables.variable k/lambda/c_a (variable model) replaced by their estimates. The output
+    error's spring rates and pulley radius are in the provenance's rows, not in the set
+    (:func:`_structure`).
 
     A badly identified parameter (relative σ above the estimate's threshold), or one outside its
     physical range (k ≤ 0, λ < 0, f_s < 0, c_a < 0), is NOT used: the base value stays and the
@@ -458,6 +508,7 @@ def identified_params(
                 "method": method, "used": not reason, "reason": reason,
             })
         section[key] = values
+    rows += _structure(data, estimates.get("variable"))
     data["name"] = f"{base.name}-identified"
     params = params_from_dict(data, f"identified from {provenance.campaign}")
     prov = msgspec.structs.replace(
@@ -500,6 +551,9 @@ def write_identified(path: str | Path, params: Params, provenance: Provenance) -
         f"# date {provenance.date}, software {provenance.software_version}, base {provenance.base_parameter_set}",
         f"# method: {provenance.method}",
         f"# parameters kept at their base value (badly identified): {', '.join(provenance.kept_base) or 'none'}",
+        *([f"# the output error's spring rates and pulley radius, {STRUCTURE_NOT_WRITTEN}; to apply them: "
+           + " ".join(f"--set '{v}'" for v in structure_overrides(provenance.parameters))]
+          if structure_overrides(provenance.parameters) else []),
         f"# full provenance and per-parameter relative σ: {prov_path.name}",
     ]
     # Atomic: a full disk or a Ctrl-C leaves the previous files or none, never a half-written set
