@@ -4,6 +4,7 @@ driver obeys, the twin and replay drivers."""
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import types
@@ -214,10 +215,50 @@ def test_an_activate_that_fails_half_way_leaves_every_drive_disabled(board, para
         original(pin, value)
 
     monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", flaky)
-    with pytest.raises(OSError, match="gpio write failed"):
+    with pytest.raises(DriverError, match=r"enable line 116 reads 0 after writing 1 \(rcpy raised: gpio write failed"):
         drv.activate()
     assert drv.state is Lifecycle.INACTIVE
     assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+
+
+def test_an_rcpy_that_raises_on_success_still_drives_and_disables(board, params, monkeypatch, caplog):
+    """rcpy's _gpio.c raises "Failed to set gpio value" when librobotcontrol returns its success
+    code (its check is inverted, docs/bridge.md): every enable looked failed and no drive could be
+    enabled. The line read back is the truth: the driver drives, warns once, and disables."""
+    original = sys.modules["rcpy.gpio"].set_value
+
+    def inverted(pin, value=0):
+        original(pin, value)
+        raise RuntimeError("Failed to set gpio value")
+
+    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", inverted)
+    drv = _driver(params)
+    with caplog.at_level(logging.WARNING, logger="xneck.bridge"):
+        drv.configure()
+        drv.activate()
+        assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 1)
+        drv.write(np.full(4, 10.0))
+        drv.deactivate()
+    assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 0)
+    assert sum("raised" in r.getMessage() and "taken as done" in r.getMessage() for r in caplog.records) == 1
+    drv.close()
+
+
+def test_an_rcpy_that_is_silent_on_a_failed_write_is_caught_by_the_read_back(board, params, monkeypatch):
+    """The same _gpio.c is silent when librobotcontrol fails: a drive left enabled looked off."""
+    drv = _driver(params)
+    drv.configure()
+    drv.activate()
+    original = sys.modules["rcpy.gpio"].set_value
+
+    def stuck_high(pin, value=0):
+        if pin != PINS[1]:
+            original(pin, value)  # PINS[1] stays as it was, and nothing is raised
+
+    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", stuck_high)
+    with pytest.raises(DriverError, match=r"enable line 49 reads 1 after writing 0 \(rcpy reported no error\)"):
+        drv.deactivate()
+    assert board.pins[PINS[1]] == 1 and all(board.pins[p] == 0 for p in PINS if p != PINS[1])
 
 
 @pytest.mark.parametrize("fields, message", [

@@ -169,7 +169,7 @@ class Transmission:
 
 
 class _Board:
-    """The three rcpy calls this driver makes, in one place (the layer the tests fake)."""
+    """The rcpy modules this driver calls, in one place (the layer the tests fake)."""
 
     def __init__(self) -> None:
         try:
@@ -203,6 +203,7 @@ class BeagleBoneDriver(Driver):
         self._sign = np.array(config.direction, dtype=float)
         self._sign_list = self._sign.tolist()
         self._zero_duty = config.duty_of(config.set_value_at(0.0))
+        self._warned_inverted = False  # an rcpy whose gpio.set_value raises on success (_set_enable)
 
     @classmethod
     def from_params(cls, config: BeagleBoneConfig, params: Any) -> BeagleBoneDriver:
@@ -246,7 +247,7 @@ class BeagleBoneDriver(Driver):
             board.motor.set(ch, self._zero_duty)
         for pin in cfg.enable_pins:
             self._refuse_if_tripped(f"enable line {pin}")
-            board.gpio.set_value(pin, self._level(True))
+            self._set_enable(pin, True)
 
     def _on_deactivate(self) -> None:
         self._drives_off()
@@ -287,7 +288,7 @@ class BeagleBoneDriver(Driver):
         errors = []
         for pin in cfg.enable_pins:
             try:
-                board.gpio.set_value(pin, self._level(False))
+                self._set_enable(pin, False)
             except Exception as exc:  # noqa: BLE001 - try every drive, then report all failures
                 errors.append(f"enable pin {pin}: {exc}")
         for ch in cfg.motor_channels:
@@ -297,6 +298,29 @@ class BeagleBoneDriver(Driver):
                 errors.append(f"motor output {ch}: {exc}")
         if errors:
             raise DriverError("beaglebone: could not disable every drive: " + "; ".join(errors))
+
+    def _set_enable(self, pin: int, enabled: bool) -> None:
+        """Write an enable line and read it back: the level read is what counts. rcpy versions
+        disagree on librobotcontrol's return codes (docs/bridge.md, "Running on the BeagleBone
+        Blue"): one raises on success (a set that worked looked failed, so no drive could be
+        enabled and a drives-off reported failure), another is silent on failure (a drive left
+        enabled looked off). :class:`DriverError` names the pin if the line does not read the
+        level written; a write that raised while the line reads it is taken as done, warned once."""
+        board, level = self._require_board(), self._level(enabled)
+        raised: Exception | None = None
+        try:
+            board.gpio.set_value(pin, level)
+        except Exception as exc:  # noqa: BLE001 - judged by the read-back below
+            raised = exc
+        read = board.gpio.get_value(pin)
+        if read != level:
+            raise DriverError(f"beaglebone: enable line {pin} reads {read} after writing {level}"
+                              + (f" (rcpy raised: {raised})" if raised else " (rcpy reported no error)"))
+        if raised is not None and not self._warned_inverted:
+            self._warned_inverted = True
+            log.warning("beaglebone: rcpy.gpio.set_value(%s, %s) raised %r but the line reads %s: taken as done "
+                        "(an rcpy that reads librobotcontrol's success code as a failure; docs/bridge.md)",
+                        pin, level, raised, read)
 
     def _counts(self) -> np.ndarray:
         board = self._require_board()
