@@ -137,7 +137,7 @@ def summary(table: dict[tuple[int, str], list[tuple[float, float]]], laws: list[
                    f"{mean('prototype', 1):.3f}° → {mean('identified', 1):.3f}° → {mean('identified + structure', 1):.3f}°, "
                    f"spread {spread[1]:.3f}°")
     out += ["", "Reading (words written 2026-11-27, on the run of that day): the identified k and λ help law 3, which",
-            "uses them (its e falls by about a sixth); law 2 uses no cable stiffness and barely changes. The output",
+            "uses them (its e falls by about 14 %); law 2 uses no cable stiffness and barely changes. The output",
             "error's spring rates and pulley radius lower law 2's e_α by a few hundredths of a degree on every run",
             "and leave law 3 within the spread. They are effective values (the rates absorb the bar masses' and free",
             "lengths' errors, which the fit holds), not the springs' physical rates that a parameter file holds and",
