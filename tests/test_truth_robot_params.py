@@ -9,6 +9,8 @@ robot truth now names the prototype's file; a parameter set changes what the con
 
 from __future__ import annotations
 
+import logging
+
 import msgspec
 import numpy as np
 import pytest
@@ -17,7 +19,15 @@ from server.studies.run import with_joints
 from twin.model.params import load_params, params_from_dict
 from twin.sim.calibrate import truth_toml
 from twin.sim.driver import TwinDriver, TwinDriverConfig
-from twin.sim.truth import TruthError, check_truth, load_truth, parse_truth, robot_base, truth_params
+from twin.sim.truth import (
+    TruthError,
+    believed_differently,
+    check_truth,
+    load_truth,
+    parse_truth,
+    robot_base,
+    truth_params,
+)
 
 
 def _believed():
@@ -26,15 +36,19 @@ def _believed():
     return msgspec.structs.replace(
         p, name="prototype-identified",
         cables=msgspec.structs.replace(p.cables, variable=msgspec.structs.replace(
-            p.cables.variable, k=tuple(1.3 * np.asarray(p.cables.variable.k)), lam=tuple(0.7 * np.asarray(p.cables.variable.lam)))),
-        springs=msgspec.structs.replace(p.springs, k_left=tuple(1.2 * np.asarray(p.springs.k_left))),
+            p.cables.variable, k=tuple(1.3 * k for k in p.cables.variable.k), lam=tuple(0.7 * v for v in p.cables.variable.lam))),
+        springs=msgspec.structs.replace(p.springs, k_left=tuple(1.2 * k for k in p.springs.k_left)),
         geometry=msgspec.structs.replace(p.geometry, r=p.geometry.r + 2e-4))
 
 
-def test_the_robot_truths_twin_is_the_prototype_whatever_the_controller_believes():
+def test_the_robot_truths_twin_is_the_prototype_whatever_the_controller_believes(caplog):
     proto, believed = load_params(), _believed()
     assert load_truth("robot").robot_params == "prototype"
-    driver = TwinDriver(TwinDriverConfig(truth="robot", camera=False), believed)
+    with caplog.at_level(logging.WARNING, logger="xneck.bridge.twin"):
+        driver = TwinDriver(TwinDriverConfig(truth="robot", camera=False), believed)
+    # said out loud, naming what the controller believes otherwise
+    warned = [r.getMessage() for r in caplog.records if "believes otherwise" in r.getMessage()]
+    assert len(warned) == 1 and "cables.variable.k, cables.variable.lambda, geometry.r, springs.k_left" in warned[0], warned
     driver.configure()
     twin = driver.twin
     assert twin is not None
@@ -51,6 +65,7 @@ def test_a_truth_without_robot_params_follows_the_controllers_set():
     believed = _believed()
     driver = TwinDriver(TwinDriverConfig(truth="model", camera=False), believed)
     assert driver.params is believed  # the model truth: the controller's model exactly, by design
+    assert believed_differently(load_params(), load_params()) == []
     assert robot_base(load_truth("model"), believed) is believed
 
 

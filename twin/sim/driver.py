@@ -26,7 +26,7 @@ from bridge.driver import Driver, DriverConfig, Lifecycle
 from twin.model.params import Params
 from twin.sim.sensors import quantise_encoder
 from twin.sim.simulator import Tick, Twin, TwinConfig
-from twin.sim.truth import check_truth, load_truth, robot_base
+from twin.sim.truth import believed_differently, check_truth, load_truth, robot_base
 
 log = logging.getLogger("xneck.bridge.twin")
 
@@ -64,9 +64,14 @@ class TwinDriver(Driver):
         # The robot: the truth's own parameter file where it names one (the robot truth: the
         # prototype), so a parameter set given to the controller does not rebuild the robot.
         self.params = robot_base(load_truth(config.truth), params)
-        if self.params is not params:
-            log.info("twin: the robot of truth %r is built from %s, whatever the controller's parameter set (%s)",
-                     config.truth, self.params.name, params.name)
+        differ = believed_differently(self.params, params) if self.params is not params else []
+        if differ:
+            # Loud: a lab that gave its own robot's file with the shipped robot truth would
+            # otherwise run a twin of the 3-X prototype without being told.
+            log.warning("twin: truth %r is a robot built from %s; the controller's parameter set %r believes "
+                        "otherwise in %s. A twin of another robot needs a truth file whose robot_params names "
+                        "its parameter file (README, \"What the twin simulates\"; twin/sim/truth.py)", config.truth,
+                        self.params.name, params.name, ", ".join(differ[:8]) + (", ..." if len(differ) > 8 else ""))
         self.twin: Twin | None = None
         self.last_tick: Tick | None = None
         self._force = np.zeros(config.n_motors)

@@ -328,6 +328,23 @@ def robot_base(truth: RobotTruth, params: Params) -> Params:
     return base
 
 
+def believed_differently(robot: Params, believed: Params) -> list[str]:
+    """The dotted keys (``"springs.k_left"``, ``"cables.variable.k"``) whose values differ between
+    the robot's parameter file and the set the controller is given (the name aside): what the
+    controller believes otherwise than the twin's robot is built."""
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in d.items():
+            if isinstance(value, dict):
+                out.update(flat(value, f"{prefix}{key}."))
+            elif key != "name":
+                out[f"{prefix}{key}"] = value
+        return out
+
+    a, b = flat(robot.to_dict()), flat(believed.to_dict())
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+
+
 def truth_params(params: Params, truth: str | RobotTruth = "model") -> Params:
     """The parameter set the twin integrates: the model with the truth's structural errors and
     cable damping (the other effects live in the simulator and integrator)."""
