@@ -188,6 +188,22 @@ def test_the_written_truth_round_trips(tmp_path):
     again = load_truth(str(path))
     for section in ("friction", "actuation", "structure", "cables", "timing"):
         assert getattr(again, section) == getattr(ROBOT, section), section
-    assert again.sources == ROBOT.sources
+    assert again.sources == ROBOT.sources and again.robot_params == ROBOT.robot_params == "prototype"
     assert math.isinf(calibrate.current_value(load_truth("model"), calibrate.unknowns(
         ["actuation.current_bandwidth_hz"], 4)[0], 4))
+
+
+def test_a_parameter_set_the_base_truths_robot_does_not_use_is_warned_about(recordings, tmp_path):
+    """The replays run the base truth's robot (robot_params: the shipped robot truth's is the
+    prototype's), so a --set for the robot's structure would be ignored without a word."""
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    out = tmp_path / "t.toml"
+    run = CliRunner().invoke(app, ["twin", "calibrate", str(recordings[2]), "--out", str(out), "--fit",
+                                   "actuation.current_bandwidth_hz", "--max-evaluations", "1",
+                                   "--set", "springs.k_left=[610.0,200.0,200.0]"])
+    assert run.exit_code == 0, run.output
+    assert "differs in springs.k_left, which the replays do not use" in run.output, run.output
+    assert load_truth(str(out)).robot_params == "prototype"  # the robot the values were fitted on

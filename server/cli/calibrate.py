@@ -55,7 +55,7 @@ def calibrate(
 ) -> None:
     """Fit the truth's unknown values to recorded campaigns and write a truth file with provenance."""
     from twin.sim import calibrate as cal
-    from twin.sim.truth import TruthError, load_truth
+    from twin.sim.truth import TruthError, believed_differently, load_truth, robot_base
 
     params = load_cli_params(params_file, overrides)
     if out.exists() and not force:
@@ -71,8 +71,14 @@ def calibrate(
         held_out = [cal.load_recording(p, params, span) for p in validate or ()]
         for d in delays or ():
             base_truth.replace("timing", delay_ticks=d)  # a bad delay is refused before any fit
+        robot = robot_base(base_truth, params)
     except (cal.CalibrationError, TruthError) as exc:
         raise fail(str(exc)) from None
+    differ = believed_differently(robot, params) if robot is not params else []
+    if differ:  # the replays run the base truth's robot, not --params/--set (twin/sim/truth.py)
+        typer.echo(f"warning: the base truth {base!r} is a robot built from {robot.name}; the parameter set given "
+                   f"differs in {', '.join(differ[:8])}{', ...' if len(differ) > 8 else ''}, which the replays do "
+                   "not use: for another robot, start from a truth whose robot_params names its file", err=True)
 
     def progress(message: str) -> None:
         typer.echo(message, err=True)
