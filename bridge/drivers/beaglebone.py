@@ -315,7 +315,7 @@ class BeagleBoneDriver(Driver):
         read = board.gpio.get_value(pin)
         if read != level:
             raise DriverError(f"beaglebone: enable line {pin} reads {read} after writing {level}"
-                              + (f" (rcpy raised: {raised})" if raised else " (rcpy reported no error)"))
+                              + (f" (rcpy raised: {raised})" if raised is not None else " (rcpy reported no error)"))
         if raised is not None and not self._warned_inverted:
             self._warned_inverted = True
             log.warning("beaglebone: rcpy.gpio.set_value(%s, %s) raised %r but the line reads %s: taken as done "

@@ -435,8 +435,8 @@ def _structure(data: dict[str, Any], est: Estimate | None) -> list[dict[str, Any
     physical rates that the workspace and stiffness analyses read; in the controller's set they
     changed tracking on the robot truth by a few hundredths of a degree
     (docs/identification/identified-set-control.md). A user applies them with the ``--set`` line
-    :func:`write_identified` prints. ``relative_sigma``
-    of δr is σ(δr)/r (its own is large wherever δr is near 0, however well it is known)."""
+    :func:`write_identified` prints. ``relative_sigma`` of δr is σ(δr)/r (its own is large
+    wherever δr is near 0, however well it is known)."""
     if est is None or "delta_r" not in est.names:
         return []
     rows: list[dict[str, Any]] = []
@@ -546,14 +546,15 @@ def write_identified(path: str | Path, params: Params, provenance: Provenance) -
     ``<stem>.provenance.json`` next to it. Returns both paths."""
     path = Path(path)
     prov_path = path.with_name(path.stem + ".provenance.json")
+    structure = structure_overrides(provenance.parameters)
     header = [
         f"# Identified parameter set (3-X paper §5) from campaign {provenance.campaign}",
         f"# date {provenance.date}, software {provenance.software_version}, base {provenance.base_parameter_set}",
         f"# method: {provenance.method}",
-        f"# parameters kept at their base value (badly identified): {', '.join(provenance.kept_base) or 'none'}",
+        f"# parameters kept at their base value (badly identified or not estimated): "
+        f"{', '.join(provenance.kept_base) or 'none'}",
         *([f"# the output error's spring rates and pulley radius, {STRUCTURE_NOT_WRITTEN}; to apply them: "
-           + " ".join(f"--set '{v}'" for v in structure_overrides(provenance.parameters))]
-          if structure_overrides(provenance.parameters) else []),
+           + " ".join(f"--set '{v}'" for v in structure)] if structure else []),
         f"# full provenance and per-parameter relative σ: {prov_path.name}",
     ]
     # Atomic: a full disk or a Ctrl-C leaves the previous files or none, never a half-written set

@@ -49,7 +49,7 @@ from typing import Any, Literal
 
 import msgspec
 
-from twin.model.params import Params, load_params
+from twin.model.params import ParameterError, Params, load_params
 
 TruthName = Literal["model", "robot"]  # named truths (not the bus message bridge.bus.Truth); a path also works
 TRUTHS: tuple[str, ...] = ("model", "robot")
@@ -291,7 +291,8 @@ def check_truth(value: str, params: Params | None = None) -> str:
     """``value`` if it names a truth that loads and applies to ``params`` (default: the 3-X
     prototype: one value per joint or cable where a section wants that); :class:`TruthError` with
     the reason otherwise."""
-    p, t = robot_base(load_truth(value), load_params() if params is None else params), load_truth(value)
+    t = load_truth(value)
+    p = robot_base(t, load_params() if params is None else params)
     for key, values in (("friction.asymmetry", t.friction.asymmetry),
                         ("friction.pulley_friction_per_N", t.friction.pulley_friction_per_N),
                         ("actuation.torque_constant_factor", t.actuation.torque_constant_factor)):
@@ -314,8 +315,6 @@ def robot_base(truth: RobotTruth, params: Params) -> Params:
     robot with other joints or cables than ``params`` (the controller could not drive it)."""
     if not truth.robot_params:
         return params
-    from twin.model.params import ParameterError
-
     try:
         base = load_params(None if truth.robot_params == "prototype" else truth.robot_params)
     except ParameterError as exc:
