@@ -151,6 +151,7 @@ class TwinShutter:
     latency_s: float = 0.05
     restart_gap_s: float = 1.0  # a longer gap is a new clock; a shorter one a stall whose exposures count as dropped
     dropped: int = 0  # exposures skipped because the truth stalled, or pending when its clock restarted
+    discarded: int = 0  # of those, exposures taken (in ``exposures``) and pending when the clock restarted
     exposures: int = 0  # exposures taken
     restarts: int = 0  # times the truth's clock jumped back, or far ahead, and the schedule started again
     last_jump: tuple[float, float] | None = None  # (from, to) of the last restart, for a log line
@@ -170,6 +171,7 @@ class TwinShutter:
             self.restarts += 1
             self.last_jump = (self._next_s - period, t_s)
             self.dropped += len(self._pending)
+            self.discarded += len(self._pending)
             self._pending = []
             self._next_s = None
         if self._next_s is None:
