@@ -121,13 +121,17 @@ class ParameterStore:
             raise ParameterError(f"{source}: arrays or tables nested too deeply (at most {MAX_DEPTH} levels)")
         return params_from_dict(data, source)
 
-    def save(self, name: str, text: str | bytes) -> Params:
+    def save(self, name: str, text: str | bytes, *, replace: bool = True) -> Params:
+        """Validate and store ``text`` as ``name``. ``replace=False``: :class:`FileExistsError` if a
+        set of that name exists (checked under the store's lock: two requests cannot both create it)."""
         check_name(name)
         if name == BUILTIN:
             raise ParameterError(f"{BUILTIN!r} is built in and cannot be replaced; upload under another name")
         params = self.validate(text, f"{name}.toml")
         raw = text if isinstance(text, bytes) else text.encode()
         with self._lock:
+            if not replace and (self.dir / f"{name}.toml").exists():
+                raise FileExistsError(f"a parameter set {name!r} exists: choose another name")
             atomic_write(self.dir / f"{name}.toml", raw)
         return params
 

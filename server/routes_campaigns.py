@@ -1,4 +1,5 @@
-"""``/api/campaigns``: create, list, status, stop, delete, results, MCAP download, figures, replay."""
+"""``/api/campaigns``: create, list, status, stop, delete, results, MCAP download, figures, replay,
+and an identification's parameter set saved to the console's sets."""
 
 from __future__ import annotations
 
@@ -140,6 +141,36 @@ async def figure(campaign_id: str, name: str, request: Request) -> FileResponse:
         except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
             raise HTTPException(422, f"cannot draw {name}: {exc}") from None
     return FileResponse(out, media_type="image/png")
+
+
+class ParameterSetRequest(BaseModel, extra="forbid"):
+    name: str = Field(..., min_length=1, max_length=64, description="Name of the new parameter set (letters, "
+                      "digits, '_', '.', '-'); an existing set is never replaced.")
+
+
+@router.post("/{campaign_id}/parameter-set", status_code=status.HTTP_201_CREATED,
+             dependencies=[Depends(require_token)],
+             responses={409: {"description": "Not an identified identification campaign, or the name is taken"},
+                        422: {"description": "A bad name, or an archive that no longer identifies"}})
+async def save_parameter_set(campaign_id: str, body: ParameterSetRequest, request: Request) -> dict[str, Any]:
+    """Store an identification campaign's identified parameter set under ``name`` (what `xneck
+    identify --out` writes: k, λ, f_s, c_a where well identified, the rest the campaign's set, a
+    header with the provenance), ready for ``PUT /api/params/active``. Identifies the archive again
+    (a few seconds). Returns which values were used, which kept their base value and why, and the
+    ``--set`` values of the output error's structure (reported, not written)."""
+    from server.identified_sets import NotIdentified, save_identified_set
+    from twin.identification.pipeline import IdentificationError
+    from twin.model.params import ParameterError
+
+    manager = _manager(request)
+    rec = _record(manager, campaign_id)
+    try:
+        return await run_in_threadpool(save_identified_set, manager.mcap_path(campaign_id), rec,
+                                       request.app.state.params, body.name)
+    except (NotIdentified, FileExistsError) as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    except (ParameterError, IdentificationError) as exc:
+        raise HTTPException(422, str(exc)) from None
 
 
 class ReplayRequest(BaseModel):

@@ -262,9 +262,34 @@ async function showResults(id) {
     box.append(why);
   }
   res.tables.forEach((t) => box.append(renderTable(t)));
+  if (res.identification_status === "identified") box.append(saveSetForm(res.id));
   res.figures.forEach((src) => { const img = document.createElement("img"); img.src = src; img.alt = src; box.append(img); });
   const a = document.createElement("a"); a.href = res.mcap; a.textContent = "download MCAP (opens in Foxglove)";
   box.append(document.createElement("br"), a);
+}
+
+// An identification's estimates as a parameter set of the console (POST .../parameter-set): the
+// set `xneck identify --out` writes, then chosen active under Workspace like any set.
+function saveSetForm(id) {
+  const form = document.createElement("form"); form.className = "save-set";
+  const name = document.createElement("input");
+  name.name = "name"; name.value = `${id}-set`.slice(-64); name.maxLength = 64; name.pattern = "[A-Za-z0-9_.\\-]{1,64}";
+  name.title = "Name of the new parameter set (letters, digits, _ . -); an existing set is never replaced";
+  const button = document.createElement("button"); button.type = "submit"; button.textContent = "save as parameter set";
+  const said = document.createElement("span"); said.className = "save-set-result";
+  form.append(name, button, said);
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    said.textContent = "identifying the archive again…";
+    try {
+      const out = await api("POST", `/api/campaigns/${id}/parameter-set`, { name: name.value.trim() });
+      const kept = Object.keys(out.kept_base);
+      said.textContent = `saved as ${out.name} (${Object.keys(out.used).length} values identified` +
+        (kept.length ? `, ${kept.length} kept at ${out.base_parameter_set}'s` : "") + "): choose it under Workspace";
+      pollActiveSet();
+    } catch (e) { said.textContent = "not saved: " + (e.message || e); }
+  });
+  return form;
 }
 
 // The e-stop as the bridge reports it (its latched state in every MotorState), not as this page

@@ -102,6 +102,7 @@ __all__ = [
     "check_variable_options",
     "cutoff_rule",
     "identified_params",
+    "identified_toml",
     "identify_complete",
     "identify_friction",
     "identify_variable",
@@ -540,12 +541,10 @@ def make_provenance(campaign: str, proc: Processed, *, method: str = "", thresho
     )
 
 
-def write_identified(path: str | Path, params: Params, provenance: Provenance) -> tuple[Path, Path]:
-    """Write ``path`` (TOML, loadable by :func:`twin.model.params.load_params`, with a comment header
-    naming the campaign, date, method and the parameters kept at their base value) and
-    ``<stem>.provenance.json`` next to it. Returns both paths."""
-    path = Path(path)
-    prov_path = path.with_name(path.stem + ".provenance.json")
+def identified_toml(params: Params, provenance: Provenance, provenance_file: str = "") -> str:
+    """The identified set as TOML that :func:`twin.model.params.load_params` reads, after a comment
+    header naming the campaign, date, method, the parameters kept at their base value, the ``--set``
+    line of the output error's structure, and ``provenance_file`` if given."""
     structure = structure_overrides(provenance.parameters)
     header = [
         f"# Identified parameter set (3-X paper §5) from campaign {provenance.campaign}",
@@ -555,11 +554,20 @@ def write_identified(path: str | Path, params: Params, provenance: Provenance) -
         f"{', '.join(provenance.kept_base) or 'none'}",
         *([f"# the output error's spring rates and pulley radius, {STRUCTURE_NOT_WRITTEN}; to apply them: "
            + " ".join(f"--set '{v}'" for v in structure)] if structure else []),
-        f"# full provenance and per-parameter relative σ: {prov_path.name}",
+        *([f"# full provenance and per-parameter relative σ: {provenance_file}"] if provenance_file else []),
     ]
+    return "\n".join(header) + "\n" + params.to_toml()
+
+
+def write_identified(path: str | Path, params: Params, provenance: Provenance) -> tuple[Path, Path]:
+    """Write ``path`` (TOML, loadable by :func:`twin.model.params.load_params`, with a comment header
+    naming the campaign, date, method and the parameters kept at their base value) and
+    ``<stem>.provenance.json`` next to it. Returns both paths."""
+    path = Path(path)
+    prov_path = path.with_name(path.stem + ".provenance.json")
     # Atomic: a full disk or a Ctrl-C leaves the previous files or none, never a half-written set
     # that load_params would refuse or, worse, read with values missing.
-    atomic_write(path, ("\n".join(header) + "\n" + params.to_toml()).encode())
+    atomic_write(path, identified_toml(params, provenance, prov_path.name).encode())
     atomic_write(prov_path, (strict_json(msgspec.to_builtins(provenance), indent=2) + "\n").encode())
     return path, prov_path
 

@@ -1,0 +1,105 @@
+"""An identification campaign's estimates saved as a parameter set of the console
+(``POST /api/campaigns/{id}/parameter-set``, server/identified_sets.py).
+
+The console showed an identification's Tables 1-2 but had no way to turn them into a set a control
+campaign could use: the lab had to download the MCAP, run ``xneck identify --out`` and upload the
+TOML. A real uvicorn console on 127.0.0.1 runs the §5.2.2 identification campaign on the twin (the
+robot truth, its default), saves the set, and the set is what ``xneck identify`` would write.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from server_harness import AUTH, running_server
+from test_stack_faults import _wait_end
+
+from twin.model.params import load_params, params_from_dict
+
+pytestmark = pytest.mark.e2e
+
+NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0]], "durations_s": 1.0, "dwell_s": 0.2}
+
+
+def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_path: Path) -> None:
+    proto = load_params()
+    with running_server(tmp_path / "d", campaign_timeout_s=600) as (base, _app), \
+            httpx.Client(base_url=base, timeout=120) as client:
+        def start(body: dict) -> dict:
+            r = client.post("/api/campaigns", json=body, headers=AUTH)
+            assert r.status_code == 201, r.text
+            return _wait_end(base, r.json()["id"], 900)
+
+        def save(cid: str, name: str, headers: dict | None = AUTH) -> httpx.Response:
+            return client.post(f"/api/campaigns/{cid}/parameter-set", json={"name": name}, headers=headers)
+
+        # Nothing to save: a control campaign, an identification whose analysis failed, no campaign.
+        control = start({"kind": "control", "law": 2, "waypoints": NOD})
+        r = save(control["id"], "x")
+        assert r.status_code == 409 and "control campaign" in r.json()["detail"], r.text
+        failed = start({"kind": "identification", "waypoints": NOD})
+        assert failed["status"] == "analysis_failed", failed
+        r = save(failed["id"], "x")
+        assert r.status_code == 409 and "no identification to save (analysis_failed" in r.json()["detail"], r.text
+        assert save("identification-20990101-000000-beef", "x").status_code == 404
+
+        ident = start({"kind": "identification"})  # the §5.2.2 trajectory, the robot truth
+        assert ident["status"] in ("finished", "degraded") and ident["identification_status"] == "identified", ident
+        cid = ident["id"]
+        assert save(cid, "lab-id", headers={}).status_code == 401  # the token is needed
+        for bad in ("a/b", ".hidden", "prototype_3x"):
+            r = save(cid, bad)
+            assert r.status_code in (409, 422), (bad, r.text)
+        r = save(cid, "lab-id")
+        assert r.status_code == 201, r.text
+        out = r.json()
+        assert out["name"] == "lab-id" and out["campaign"] == cid and out["base_parameter_set"] == ident["parameter_set"] == "prototype_3x"
+        assert {f"cables.variable.k({j})" for j in range(1, 5)} <= set(out["used"]), out
+        assert any(s.startswith("springs.k_left=[") for s in out["structure_set"]), out  # reported, not written
+        # The stored set: the identified k, λ (Table 2 is the robot truth's known answer), the
+        # campaign's structure, and a header naming the campaign.
+        text = client.get("/api/params/lab-id").text
+        assert f"from campaign {cid}" in text.splitlines()[0], text[:300]
+        saved = params_from_dict(tomllib.loads(text), "lab-id")
+        k, lam = np.asarray(saved.cables.variable.k), np.asarray(saved.cables.variable.lam)
+        assert not np.allclose(k, proto.cables.variable.k)
+        assert np.abs(k / np.asarray(proto.cables.variable.k) - 1).max() < 0.10, k
+        assert np.abs(lam / np.asarray(proto.cables.variable.lam) - 1).max() < 0.10, lam
+        assert saved.springs == proto.springs and saved.geometry == proto.geometry
+        # Never replaced; then chosen active as any set is.
+        r = save(cid, "lab-id")
+        assert r.status_code == 409 and "exists" in r.json()["detail"], r.text
+        assert client.put("/api/params/active", json={"name": "lab-id"}, headers=AUTH).status_code == 200
+        assert client.get("/api/system/health").json()["parameter_set"]["active"] == "lab-id"
+        _save_from_the_dashboard(base, client, cid)
+
+
+def _save_from_the_dashboard(base: str, client: httpx.Client, cid: str) -> None:
+    """The results of an identified campaign offer the same save; a taken name says so."""
+    from browser_harness import CHROMIUM, dashboard_page
+    from server_harness import TOKEN
+
+    if not Path(CHROMIUM).exists():
+        pytest.skip("Debian chromium not installed (bash .ci/setup)")
+    with dashboard_page(base) as (page, errors):
+        page.fill("#token", TOKEN)
+        page.dispatch_event("#token", "change")
+        page.click("#refresh")
+        page.click(f"#campaigns tr[data-id='{cid}'] button:text('results')")
+        page.wait_for_selector("#results form.save-set", timeout=20000)
+        page.fill("#results form.save-set input[name=name]", "lab-id")
+        page.click("#results form.save-set button")
+        page.wait_for_function("document.querySelector('.save-set-result').textContent.startsWith('not saved')",
+                               timeout=60000)
+        assert "exists" in page.inner_text(".save-set-result")
+        page.fill("#results form.save-set input[name=name]", "from-dashboard")
+        page.click("#results form.save-set button")
+        page.wait_for_function("document.querySelector('.save-set-result').textContent.startsWith('saved as')",
+                               timeout=60000)
+        assert "saved as from-dashboard" in page.inner_text(".save-set-result")
+        assert not errors, errors
+    assert client.get("/api/params/from-dashboard").status_code == 200
