@@ -2,8 +2,9 @@
 
 Audit of 2026-11-26: a hung bridge (its loop stopped, here by SIGSTOP) was noticed by nobody under
 ``xneck up --robot`` (the ESCONs went on driving the last currents), and once the stack was stopped
-its SIGKILL left the enable lines high. The launcher now watches the bridge's states on the bus:
-a bridge silent for ``BRIDGE_HUNG_S`` while its process lives is killed, the stack stops as for a
+its SIGKILL left the enable lines high. The launcher now watches the bridge's loop (its sd_notify
+pings to ``xneck up``; the bus's states until 2026-11-27): a bridge whose loop is silent for
+``BRIDGE_HUNG_S`` while its process lives is killed, the stack stops as for a
 death, and ``xneck bridge --drives-off`` disables the drives. The board is tests/fake_rcpy (rcpy
 cannot exist here), which logs every level and set value to ``FAKE_RCPY_LOG`` across processes.
 
@@ -101,7 +102,7 @@ def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path, s
             if stray:
                 other.join(10)
     printed = (tmp_path / "up.log").read_text()
-    assert "error: the bridge hung (no motor state for" in printed, printed[-3000:]
+    assert "error: the bridge hung (its loop silent for" in printed, printed[-3000:]
     off = "its drives were disabled by `xneck bridge --drives-off`"
     assert off in printed, printed[-3000:]
     # The drives first, the console's record after (a stalled console had delayed them 17.9 s).
@@ -181,9 +182,39 @@ def test_xneck_up_itself_stays_off_the_loops_cpu(tmp_path: Path) -> None:
     loop_cpus, other_cpus = cpu_split()
     with _up_robot(tmp_path) as (_base, _hub, up, _bridge):
         threads = _allowed_cpus(up.pid)
-        assert len(threads) > 1  # its bus session's threads too
+        assert threads  # (since 2026-11-27 it judges the bridge by its loop's pings, with no bus session)
         assert all(cpus == other_cpus for cpus in threads.values()), (threads, loop_cpus)
 
 def test_drives_off_is_refused_for_a_driver_without_motors() -> None:
     r = subprocess.run([*PY, "bridge", "--driver", "twin", "--drives-off"], capture_output=True, text=True, timeout=60)
     assert r.returncode != 0 and "--drives-off is for --driver beaglebone" in r.stderr, r.stderr
+
+
+def test_the_loop_pings_come_by_no_bus_and_age_from_the_latest() -> None:
+    """What `xneck up` judges a robot bridge by (CI of 2026-11-27: judged by the bus's states, a
+    healthy bridge was killed while the console hosting the hub was stopped): the loop's sd_notify
+    pings to a socket of `xneck up`, read as the bridge's SystemdNotify sends them."""
+    from bridge.runtime import SystemdNotify
+    from server.cli.up import PING_WATCHDOG_S, _LoopPings
+
+    pings = _LoopPings()
+    try:
+        env = pings.environ()
+        notify = SystemdNotify.from_environ({**env, "WATCHDOG_PID": str(os.getpid())})
+        assert notify is not None and notify.ping_period_s == pytest.approx(PING_WATCHDOG_S / 2)
+        assert pings.age_s() is None  # nothing yet: nothing to judge
+        assert notify.ready()
+        assert pings.age_s() is not None and pings.age_s() < 0.1
+        time.sleep(0.3)
+        silent = pings.age_s()
+        assert silent is not None and silent >= 0.3  # no ping: the age grows
+        for _ in range(5):  # pings that queued while `xneck up` was not reading count as fresh
+            assert notify.ping()
+        assert pings.age_s() < 0.1
+        time.sleep(0.2)
+        assert notify.send("STATUS=busy") and notify.stopping()  # other states are no ping
+        after = pings.age_s()
+        assert after is not None and after >= 0.2
+        notify.close()
+    finally:
+        pings.close()

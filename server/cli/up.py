@@ -20,9 +20,11 @@ console's ordinary one (the controller holds, as after the stop button); it wait
 safe order: controller, then bridge (which disables its drives), then server.
 
 With ``--robot`` (the BeagleBone's bridge a child of this process) the launcher also watches the
-bridge's motor states on the bus: a bridge whose process lives but whose last state is older than
-:data:`BRIDGE_HUNG_S` is hung (its loop no longer runs its watchdog or its e-stop, and the ESCONs
-go on driving the last currents): it is killed and handled as a death. A bridge that did not end
+bridge's real-time loop, as systemd's watchdog would (:class:`_LoopPings`): the loop says it ticks
+(sd_notify ``WATCHDOG=1``, five times a second) to a socket of this process, and a bridge whose
+process lives but whose loop was silent for :data:`BRIDGE_HUNG_S` is hung (its loop no longer runs
+its watchdog or its e-stop, and the ESCONs go on driving the last currents): it is killed and
+handled as a death. A bridge that did not end
 cleanly (killed, crashed, or not stopping within :data:`STOP_GRACE_S`) could not disable its
 drives: ``xneck bridge --driver beaglebone --drives-off`` then does (enable lines off,
 zero-current set values; audit of 2026-11-26: a hung bridge's SIGKILL left them as they were).
@@ -55,9 +57,10 @@ ABORT_TIMEOUT_S = 15.0
 # s added to the time since a child was last seen alive, for the console's window of campaigns that
 # ended of its death before they were told (the request's own transit, a loaded machine).
 ABORT_WINDOW_MARGIN_S = 1.0
-# s without a motor state from a live local robot bridge after which it counts as hung: its loop
-# states at 500 Hz, so this is 500 missed ticks (a stall the bridge's own watchdog cannot see).
+# s without a ping from a live local robot bridge's loop after which it counts as hung (a stall the
+# bridge's own watchdog cannot see: a SIGSTOP, a C call holding the GIL): five missed pings.
 BRIDGE_HUNG_S = 1.0
+PING_WATCHDOG_S = 0.4  # WATCHDOG_USEC given to the bridge: it pings every half of it (bridge.runtime.SystemdNotify)
 DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's import initialises the board)
 
 
@@ -188,33 +191,42 @@ def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) ->
     return f"DRIVES MAY BE ON: `xneck bridge --drives-off` {why}"
 
 
-class _StateAge:
-    """Seconds since the latest motor state of the bridge ``instance`` on the bus (``None``
-    before the first), read from a subscriber of this process: the console's own view could lag
-    behind when it is busy, and another bridge's states (a stray twin on the hub) must not
-    vouch for this one (audit of 2026-11-26)."""
+class _LoopPings:
+    """Seconds since the robot bridge's real-time loop last said it ticks: ``READY=1`` and
+    ``WATCHDOG=1`` datagrams of :class:`bridge.runtime.SystemdNotify`, sent from the loop's own
+    thread to a socket of this process (Linux abstract namespace) named in the child's
+    ``NOTIFY_SOCKET``. This process stands in for systemd's watchdog. Judged by the bridge's motor
+    states on the bus before, a healthy bridge was killed when the console, which hosts the hub,
+    was stopped for 2.5 s and the states stalled with it (CI of 2026-11-27); the pings take no bus
+    and no other process. Pings that queued while this process was stopped are read on its next
+    pass, as fresh ones: a paused supervisor judges nothing stale."""
 
-    def __init__(self, hub: str, instance: str) -> None:
-        import zenoh
+    def __init__(self) -> None:
+        self.address = f"@xneck-up-{os.getpid()}-{os.urandom(4).hex()}"
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        self._sock.bind("\0" + self.address[1:])
+        self._sock.setblocking(False)
+        self._last_ns: int | None = None
 
-        from bridge import bus
-        from bridge.session import LatestSubscriber, zenoh_config
-
-        self._instance = instance
-        self._received_ns: int | None = None
-        self._session = zenoh.open(zenoh_config(listen=[], connect=[hub]))
-        self._sub = LatestSubscriber(self._session, bus.MOTOR_STATE, bus.MotorState, on_message=self._on_state)
-
-    def _on_state(self, msg, _wall_ns: int) -> None:
-        if msg.bridge == self._instance:
-            self._received_ns = time.monotonic_ns()
+    def environ(self) -> dict[str, str]:
+        """What the bridge's environment needs for the loop to ping here (``WATCHDOG_PID`` unset:
+        the child's own)."""
+        return {"NOTIFY_SOCKET": self.address, "WATCHDOG_USEC": str(int(PING_WATCHDOG_S * 1e6))}
 
     def age_s(self) -> float | None:
-        received_ns = self._received_ns
-        return None if received_ns is None else (time.monotonic_ns() - received_ns) / 1e9
+        """Reads every datagram that came; seconds since the latest ping (``None`` before the first)."""
+        while True:
+            try:
+                data = self._sock.recv(4096)
+            except OSError:  # BlockingIOError: nothing more
+                break
+            if any(line in ("READY=1", "WATCHDOG=1") for line in data.decode(errors="replace").splitlines()):
+                self._last_ns = time.monotonic_ns()
+        last_ns = self._last_ns
+        return None if last_ns is None else (time.monotonic_ns() - last_ns) / 1e9
 
     def close(self) -> None:
-        self._session.close()
+        self._sock.close()
 
 
 def up(
@@ -282,16 +294,18 @@ def up(
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
         signal.signal(sig, on_signal)
 
-    def start(name: str, args: list[str]) -> None:
+    def start(name: str, args: list[str], env: dict[str, str] | None = None) -> None:
         log_files[name] = logs / f"{name}.log"
+        child_env = {**os.environ, "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **(env or {})}
+        if env and "NOTIFY_SOCKET" in env:
+            child_env.pop("WATCHDOG_PID", None)  # inherited from a systemd unit of ours it would name us, not the child
         with open(log_files[name], "ab") as log:
             procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env={**os.environ, "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid())},
-                                           start_new_session=True)
+                                           env=child_env, start_new_session=True)
         isolate(procs[name].pid, args[0])  # the loop's processes first, the console off their CPU (issue 21)
 
     code = 0
-    watch: _StateAge | None = None
+    watch = _LoopPings() if robot and not no_bridge else None
     driver: list[str] = []
     bridge_instance = f"bridge-up-{os.getpid()}"
     drives_set_off = False
@@ -311,9 +325,9 @@ def up(
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
-            start("bridge", ["bridge", *driver, "--instance", bridge_instance, *common, *param_args])
+            start("bridge", ["bridge", *driver, "--instance", bridge_instance, *common, *param_args],
+                  watch.environ() if watch is not None else None)
         start("controller", ["controller", "--law", str(law), *common, *param_args])
-        watch = _StateAge(connect_to, bridge_instance) if robot and not no_bridge else None
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
@@ -323,14 +337,14 @@ def up(
         while not stop["signal"]:
             polled = time.monotonic()
             # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg) judges nothing: the
-            # states' age grew with its own pause (audit of 2026-11-26: a healthy bridge killed).
+            # pings' age grew with its own pause (audit of 2026-11-26: a healthy bridge killed).
             late, last_pass = polled - last_pass > BRIDGE_HUNG_S / 2, polled
             age = watch.age_s() if watch is not None and not late else None
             hung = ""
             if age is not None and age > BRIDGE_HUNG_S and procs["bridge"].poll() is None:
                 procs["bridge"].kill()  # hung: SIGTERM would wait on a loop that does not run
                 procs["bridge"].wait(STOP_GRACE_S)
-                hung = f"hung (no motor state for {age:.1f} s), killed"
+                hung = f"hung (its loop silent for {age:.1f} s), killed"
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
             if dead:
                 name, rc = dead[0]
