@@ -204,6 +204,8 @@ def test_the_loop_pings_come_by_no_bus_and_age_from_the_latest() -> None:
         assert notify is not None and notify.ping_period_s == pytest.approx(PING_WATCHDOG_S / 2)
         assert pings.age_s() is None  # nothing yet: nothing to judge
         assert notify.ready()
+        assert pings.age_s() is None  # ready, but no tick yet: a slow first tick is not judged
+        assert notify.ping()
         fresh = pings.age_s()
         assert fresh is not None and fresh < 0.1
         time.sleep(0.3)
