@@ -10,6 +10,9 @@ Environment (comma-separated Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``):
     ``XNECK_ZENOH_LISTEN``   endpoints to listen on (default ``tcp/127.0.0.1:0``),
     ``XNECK_ZENOH_CONNECT``  endpoints to connect to (default none).
 Across machines, the listening process uses ``tcp/0.0.0.0:7447`` and the others connect to it.
+
+Importing this module gives the process's Zenoh runtime :data:`ZENOH_RX_WORKERS` receive workers
+(``ZENOH_RUNTIME``, unless already set), see :func:`zenoh_runtime_environment`.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, MutableMapping, Sequence
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -43,7 +46,30 @@ RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS, bus.CAMPAIGN_REQUEST}
 #: Transmit queue of the real-time priority, in batches (one express message each); see zenoh_config.
 REAL_TIME_QUEUE_BATCHES = 16
 
+#: Zenoh's receive workers in every xneck process (Zenoh's default: 2).
+ZENOH_RX_WORKERS = 8
+ENV_ZENOH_RUNTIME = "ZENOH_RUNTIME"
+
 M = TypeVar("M", bound=bus.BusMessage)
+
+
+def zenoh_runtime_environment(environ: MutableMapping[str, str] = os.environ) -> str:
+    """Set ``ZENOH_RUNTIME`` for :data:`ZENOH_RX_WORKERS` receive workers unless it is set; returns
+    the value in force. Zenoh reads it once, when the process opens its first session.
+
+    Why: Zenoh's TCP links linger 10 s on close (SO_LINGER, hard-coded in zenoh-link-tcp), so
+    closing the link of a peer that stopped reading (a console machine suspended or unplugged, a
+    stopped process) with its receive window full blocks the worker that closes it, after the
+    lease (10 s), for up to 10 s more (eclipse-zenoh/zenoh#1101). With Zenoh's 2 receive workers,
+    two such peers (the console and its campaign runner, a recorder) left a process deaf for 10 s:
+    no state for the controller, no command nor e-stop for the bridge (tests/test_bus_dead_peers.py).
+    Each such peer holds one worker; 8 leave room for a whole console machine's processes.
+    """
+    environ.setdefault(ENV_ZENOH_RUNTIME, f"(rx: (worker_threads: {ZENOH_RX_WORKERS}))")
+    return environ[ENV_ZENOH_RUNTIME]
+
+
+zenoh_runtime_environment()
 
 
 def _endpoints_from_env(name: str) -> list[str] | None:
@@ -330,7 +356,8 @@ def subscribe_latest(
 
 
 __all__ = [
-    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "REAL_TIME_KEYS", "RELIABLE_KEYS",
-    "BusPublisher", "LatestSubscriber", "ReceiveStats",
+    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS",
+    "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
     "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "subscribe_latest", "zenoh_config",
+    "zenoh_runtime_environment",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 
@@ -18,6 +19,7 @@ from bridge.session import (
     publisher,
     subscribe_latest,
     zenoh_config,
+    zenoh_runtime_environment,
 )
 
 
@@ -168,6 +170,15 @@ def test_config_defaults_come_from_the_environment(monkeypatch: pytest.MonkeyPat
     assert msgspec.json.decode(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7003"]
     assert msgspec.json.decode(conf.get_json("scouting/multicast/enabled")) is False
     assert msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("listen/endpoints")) == []
+
+
+def test_zenoh_gets_more_receive_workers_unless_the_user_chose() -> None:
+    """tests/test_bus_dead_peers.py: each peer that stops reading can hold a receive worker 10 s."""
+    env: dict[str, str] = {}
+    assert zenoh_runtime_environment(env) == "(rx: (worker_threads: 8))" == env["ZENOH_RUNTIME"]
+    mine = {"ZENOH_RUNTIME": "(rx: (worker_threads: 3))"}
+    assert zenoh_runtime_environment(mine) == "(rx: (worker_threads: 3))"
+    assert os.environ["ZENOH_RUNTIME"]  # set on import, before any session of this process
 
 
 def test_the_control_path_queue_rides_out_a_starved_sender() -> None:

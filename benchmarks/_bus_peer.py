@@ -1,0 +1,165 @@
+"""A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py and
+tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE HUB SECONDS``; every role
+exits by itself after SECONDS.
+
+Roles:
+    ``hub``      listens on HUB and subscribes to every xneck key (as the console does),
+    ``listener`` connects to HUB and subscribes to every xneck key (another console, a recorder),
+    ``publish``  publishes motor states at 500 Hz and 40 kB camera frames at 30 Hz,
+    ``control``  subscribes to the motor states and, as the controller does, publishes a command
+                 and a status at 500 Hz; prints ``ready`` at the first state and, at the end, one
+                 JSON line: the number of states received, the longest gap between two (s) and
+                 its time (s since the first state), the gaps' median and p99 (s), and how many
+                 exceeded 10 ms (the bridge's command timeout) and 100 ms.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bridge import bus
+from bridge.session import open_session, publisher
+
+PEER = [sys.executable, str(Path(__file__).resolve())]
+
+
+def _publish(hub: str, seconds: float) -> None:
+    with open_session(connect=[hub]) as session:
+        states = publisher(session, bus.MOTOR_STATE)
+        frames = publisher(session, bus.CAMERA_FRAME)
+        frame = bus.CameraFrame(seq=0, stamp_s=0.0, capture_stamp_s=0.0, width=640, height=480,
+                                data=b"\xff\xd8" + bytes(40_000))
+        t0 = time.monotonic()
+        k = 0
+        while (now := time.monotonic()) - t0 < seconds:
+            k += 1
+            states.put(bus.MotorState(seq=k, stamp_s=now - t0, theta_rad=[0.0] * 4, force_applied_N=[1.0] * 4,
+                                      drive="active", epoch="e", bridge="bridge-test"))
+            if k % 17 == 0:
+                frames.put(frame)
+            time.sleep(max(0.0, t0 + 0.002 * k - time.monotonic()))
+
+
+def _control(hub: str, seconds: float) -> None:
+    times: list[float] = []
+    lock = threading.Lock()
+
+    def on_state(_sample: object) -> None:
+        with lock:
+            times.append(time.monotonic())
+            if len(times) == 1:
+                print("ready", flush=True)
+
+    with open_session(connect=[hub]) as session:
+        sub = session.declare_subscriber(bus.MOTOR_STATE, on_state)
+        commands = publisher(session, bus.MOTOR_COMMAND)
+        status = publisher(session, bus.CONTROLLER_STATUS)
+        t0 = time.monotonic()
+        k = 0
+        while (now := time.monotonic()) - t0 < seconds:
+            k += 1
+            commands.put(bus.ForceCommand(seq=k, stamp_s=now - t0, force_N=[5.0] * 4, source="test", sender="ctl",
+                                          epoch="e"))
+            status.put(bus.ControllerStatus(
+                seq=k, stamp_s=now - t0, law="test", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+                saturated=[False] * 4, alpha_hat_rad=[0.1] * 3, alpha_d_rad=[0.1] * 3, e_rad=[0.0] * 3,
+                holding=False))
+            time.sleep(max(0.0, t0 + 0.002 * k - time.monotonic()))
+        sub.undeclare()
+    with lock:
+        t = np.asarray(times)
+    gaps = np.diff(t)
+    worst = int(np.argmax(gaps)) if gaps.size else 0
+    print(json.dumps({
+        "received": int(t.size),
+        "max_gap_s": float(gaps[worst]) if gaps.size else float("inf"),
+        "at_s": float(t[worst] - t[0]) if gaps.size else 0.0,
+        "median_gap_s": float(np.median(gaps)) if gaps.size else float("inf"),
+        "p99_gap_s": float(np.quantile(gaps, 0.99)) if gaps.size else float("inf"),
+        "gaps_over_10ms": int(np.sum(gaps > 0.010)),
+        "gaps_over_100ms": int(np.sum(gaps > 0.100)),
+    }), flush=True)
+
+
+def _listen_all(hub: str, seconds: float, listen: bool) -> None:
+    with (open_session(listen=[hub]) if listen else open_session(connect=[hub])) as session:
+        sub = session.declare_subscriber(f"{bus.PREFIX}/**", lambda _sample: None)
+        print("ready", flush=True)
+        time.sleep(seconds)
+        sub.undeclare()
+
+
+def _start(role: str, hub: str, seconds: float, env: Mapping[str, str] | None) -> subprocess.Popen[str]:
+    return subprocess.Popen([*PEER, role, hub, str(seconds)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, text=True, env=None if env is None else dict(env))
+
+
+def _ready(proc: subprocess.Popen[str]) -> None:
+    assert proc.stdout is not None
+    line = proc.stdout.readline()  # bounded: every role exits by itself
+    if line.strip() != "ready":
+        raise RuntimeError(f"a bus peer did not start: {line}{proc.stdout.read()}")
+
+
+def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | None = None) -> dict:
+    """The stalled-listeners scenario on ``hub`` (e.g. ``tcp/127.0.0.1:PORT``, free): a hub, a
+    publisher, a control peer and ``stopped - 1`` more listeners, each a process with ``env``
+    (None: this one's); the hub and the listeners stopped (SIGSTOP) for ``stop_s`` from about 1 s
+    after the control peer's first state. Returns the control peer's JSON line (module doc).
+    Every process is stopped on return, within bounded time."""
+    life = stop_s + 30.0
+    procs = [_start("hub", hub, life, env)]
+    try:
+        _ready(procs[0])
+        listeners = [procs[0]]
+        for _ in range(stopped - 1):
+            listeners.append(_start("listener", hub, life, env))
+            procs.append(listeners[-1])
+            _ready(listeners[-1])
+        procs.append(_start("publish", hub, life, env))
+        control = _start("control", hub, stop_s + 8.0, env)
+        procs.append(control)
+        _ready(control)
+        time.sleep(1.0)
+        for p in listeners:
+            p.send_signal(signal.SIGSTOP)
+        time.sleep(stop_s)
+        for p in listeners:
+            p.send_signal(signal.SIGCONT)
+        out, _ = control.communicate(timeout=30)
+        return json.loads(out.strip().splitlines()[-1])
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                p.send_signal(signal.SIGCONT)
+                p.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.communicate(timeout=10)
+
+
+def main(argv: list[str]) -> None:
+    role, hub, seconds = argv[0], argv[1], float(argv[2])
+    if role == "publish":
+        _publish(hub, seconds)
+    elif role == "control":
+        _control(hub, seconds)
+    elif role in ("hub", "listener"):
+        _listen_all(hub, seconds, listen=role == "hub")
+    else:
+        raise SystemExit(f"unknown role {role!r}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

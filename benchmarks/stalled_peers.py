@@ -1,0 +1,60 @@
+"""Stalled peers benchmark: does the control path keep flowing while listeners stop reading?
+
+    .venv/bin/python benchmarks/stalled_peers.py [--stopped 1,2] [--stop-s 24]
+
+Processes of their own on 127.0.0.1 (benchmarks/_bus_peer.py): a hub that subscribes to every
+key (as the console does), a publisher of motor states at 500 Hz and camera frames (as the
+bridge), a peer that answers at 500 Hz with a command and a status and times the states it gets
+(as the controller), and ``N - 1`` more listeners of every key. The hub and the listeners are
+stopped (SIGSTOP) for ``--stop-s``: their links' leases expire after 10 s and Zenoh's TCP links
+linger up to 10 s on close (eclipse-zenoh/zenoh#1101; docs/safety.md, "Peers that stop reading").
+
+Each case runs twice: with Zenoh's default runtime (2 receive workers, ``ZENOH_RUNTIME`` set so in
+the children: the baseline) and with xneck's (bridge.session: ``ZENOH_RX_WORKERS``). Printed per
+run: the states' inter-arrival median and p99, the longest gap and when (s after the first
+state; the stop starts about 1 s in), and how many gaps exceeded 10 ms (the bridge's command
+timeout: each one a hold) and 100 ms; then the longest gap's ratio xneck / baseline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _bus_peer import run_stalled
+
+from bridge.session import ENV_ZENOH_RUNTIME, ZENOH_RX_WORKERS, free_tcp_port
+
+ZENOH_DEFAULT = "(rx: (worker_threads: 2))"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
+    ap.add_argument("--stopped", default="1,2", help="numbers of stopped listeners, the hub included (default 1,2)")
+    ap.add_argument("--stop-s", type=float, default=24.0, help="how long they stay stopped (s; default 24: the "
+                    "lease, the linger and a margin)")
+    args = ap.parse_args()
+    print(f"stalled peers, {time.strftime('%Y-%m-%d %H:%M')}, load {os.getloadavg()[0]:.1f}, stopped {args.stop_s:g} s; "
+          f"xneck: {ZENOH_RX_WORKERS} receive workers, baseline: Zenoh's default {ZENOH_DEFAULT}")
+    print("| stopped listeners | runtime | states | gap median (ms) | gap p99 (ms) | longest gap (ms, at s) "
+          "| gaps > 10 ms | gaps > 100 ms |")
+    print("|---|---|---|---|---|---|---|---|")
+    xneck_env = {k: v for k, v in os.environ.items() if k != ENV_ZENOH_RUNTIME}
+    for n in (int(x) for x in args.stopped.split(",")):
+        worst = {}
+        for name, env in (("Zenoh default", {**xneck_env, ENV_ZENOH_RUNTIME: ZENOH_DEFAULT}), ("xneck", xneck_env)):
+            r = run_stalled(f"tcp/127.0.0.1:{free_tcp_port()}", n, args.stop_s, env)
+            worst[name] = r["max_gap_s"]
+            print(f"| {n} | {name} | {r['received']} | {1e3 * r['median_gap_s']:.2f} | {1e3 * r['p99_gap_s']:.2f} | "
+                  f"{1e3 * r['max_gap_s']:.0f} (at {r['at_s']:.1f}) | {r['gaps_over_10ms']} | {r['gaps_over_100ms']} |",
+                  flush=True)
+        print(f"|   | longest gap, xneck / baseline | {worst['xneck'] / worst['Zenoh default']:.3f} | | | | | |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
