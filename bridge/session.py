@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import socket
 import threading
 import time
@@ -65,8 +66,11 @@ def zenoh_runtime_environment(environ: MutableMapping[str, str] = os.environ) ->
     no state for the controller, no command nor e-stop for the bridge (tests/test_bus_dead_peers.py).
     Each such peer holds one worker; 8 leave room for a whole console machine's processes.
     """
-    environ.setdefault(ENV_ZENOH_RUNTIME, f"(rx: (worker_threads: {ZENOH_RX_WORKERS}))")
-    return environ[ENV_ZENOH_RUNTIME]
+    value = environ.setdefault(ENV_ZENOH_RUNTIME, f"(rx: (worker_threads: {ZENOH_RX_WORKERS}))")
+    if not re.search(r"\brx\s*:", value):
+        log.warning("%s=%r sets no receive workers (rx): Zenoh's 2 leave this process deaf for up to 10 s "
+                    "when two peers stop reading (docs/safety.md, 'Peers that stop reading')", ENV_ZENOH_RUNTIME, value)
+    return value
 
 
 zenoh_runtime_environment()

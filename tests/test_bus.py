@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import threading
@@ -172,12 +173,16 @@ def test_config_defaults_come_from_the_environment(monkeypatch: pytest.MonkeyPat
     assert msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("listen/endpoints")) == []
 
 
-def test_zenoh_gets_more_receive_workers_unless_the_user_chose() -> None:
+def test_zenoh_gets_more_receive_workers_unless_the_user_chose(caplog: pytest.LogCaptureFixture) -> None:
     """tests/test_bus_dead_peers.py: each peer that stops reading can hold a receive worker 10 s."""
     env: dict[str, str] = {}
     assert zenoh_runtime_environment(env) == "(rx: (worker_threads: 8))" == env["ZENOH_RUNTIME"]
     mine = {"ZENOH_RUNTIME": "(rx: (worker_threads: 3))"}
-    assert zenoh_runtime_environment(mine) == "(rx: (worker_threads: 3))"
+    with caplog.at_level(logging.WARNING, logger="bridge.session"):
+        assert zenoh_runtime_environment(mine) == "(rx: (worker_threads: 3))"
+        assert not caplog.records
+        assert zenoh_runtime_environment({"ZENOH_RUNTIME": "(app: (worker_threads: 2))"}) == "(app: (worker_threads: 2))"
+    assert "sets no receive workers" in caplog.text
     assert os.environ["ZENOH_RUNTIME"]  # set on import, before any session of this process
 
 
