@@ -184,18 +184,23 @@ def test_active_low_enable_lines(board, params):
     assert {p: board.pins[p] for p in PINS} == dict.fromkeys(PINS, 1)
 
 
+def _wrap_set_value(monkeypatch, wrapper) -> None:
+    """Replace the fake board's ``rcpy.gpio.set_value`` by ``wrapper(original, pin, value)``: an
+    rcpy that fails, or misreports, the way a test needs."""
+    original = sys.modules["rcpy.gpio"].set_value
+    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", lambda pin, value=0: wrapper(original, pin, value))
+
+
 def test_close_keeps_disabling_when_one_line_fails(board, params, monkeypatch):
     drv = _driver(params)
     drv.configure()
     drv.activate()
-    original = sys.modules["rcpy.gpio"].set_value
-
-    def flaky(pin, value=0):
+    def flaky(original, pin, value=0):
         if pin == PINS[0]:
             raise OSError("gpio write failed")
         original(pin, value)
 
-    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", flaky)
+    _wrap_set_value(monkeypatch, flaky)
     drv.close()  # never raises; logs
     assert {p: board.pins[p] for p in PINS[1:]} == dict.fromkeys(PINS[1:], 0)
     assert drv.state is Lifecycle.CLOSED
@@ -207,14 +212,12 @@ def test_an_activate_that_fails_half_way_leaves_every_drive_disabled(board, para
     no-op that left them so: only close() lowered them. A failed enable now disables again."""
     drv = _driver(params)
     drv.configure()
-    original = sys.modules["rcpy.gpio"].set_value
-
-    def flaky(pin, value=0):
+    def flaky(original, pin, value=0):
         if pin == PINS[2] and value == 1:
             raise OSError("gpio write failed")
         original(pin, value)
 
-    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", flaky)
+    _wrap_set_value(monkeypatch, flaky)
     with pytest.raises(DriverError, match=r"enable line 116 reads 0 after writing 1 \(rcpy raised: gpio write failed"):
         drv.activate()
     assert drv.state is Lifecycle.INACTIVE
@@ -225,13 +228,11 @@ def test_an_rcpy_that_raises_on_success_still_drives_and_disables(board, params,
     """rcpy's _gpio.c raises "Failed to set gpio value" when librobotcontrol returns its success
     code (its check is inverted, docs/bridge.md): every enable looked failed and no drive could be
     enabled. The line read back is the truth: the driver drives, warns once, and disables."""
-    original = sys.modules["rcpy.gpio"].set_value
-
-    def inverted(pin, value=0):
+    def inverted(original, pin, value=0):
         original(pin, value)
         raise RuntimeError("Failed to set gpio value")
 
-    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", inverted)
+    _wrap_set_value(monkeypatch, inverted)
     drv = _driver(params)
     with caplog.at_level(logging.WARNING, logger="xneck.bridge"):
         drv.configure()
@@ -249,13 +250,11 @@ def test_an_rcpy_that_is_silent_on_a_failed_write_is_caught_by_the_read_back(boa
     drv = _driver(params)
     drv.configure()
     drv.activate()
-    original = sys.modules["rcpy.gpio"].set_value
-
-    def stuck_high(pin, value=0):
+    def stuck_high(original, pin, value=0):
         if pin != PINS[1]:
             original(pin, value)  # PINS[1] stays as it was, and nothing is raised
 
-    monkeypatch.setattr(sys.modules["rcpy.gpio"], "set_value", stuck_high)
+    _wrap_set_value(monkeypatch, stuck_high)
     with pytest.raises(DriverError, match=r"enable line 49 reads 1 after writing 0 \(rcpy reported no error\)"):
         drv.deactivate()
     assert board.pins[PINS[1]] == 1 and all(board.pins[p] == 0 for p in PINS if p != PINS[1])
