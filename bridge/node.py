@@ -83,6 +83,9 @@ class BridgeConfig:
     command_timeout_s: float = 0.010  # no valid command for this long -> hold (real time only)
     hold_ramp_s: float = 0.010  # duration of the ramp to the hold forces, counted in ticks
     max_force_step_N: float = 1.0  # after any enable: the most a force may change per tick (N)
+    # While active: the most a force may change per second (N/s; inf: no bound), counted in ticks:
+    # the computed-torque law's own bound (controller.laws.LawConfig.force_rate_max_N_s).
+    max_force_rate_N_s: float = 5000.0
     lockstep: bool = False  # one tick per new command (twin driver only)
     republish_s: float = 0.05  # lockstep: re-publish the waiting state this often
     idle_timeout_s: float | None = None  # lockstep: stop after this long without a command
@@ -104,6 +107,8 @@ class BridgeConfig:
             if not (math.isfinite(value) and value > 0):
                 unit = {"N": "N", "rad": "rad"}.get(name.rsplit("_", 1)[-1], "s")
                 raise ValueError(f"{name} must be a positive number ({unit}), got {value}")
+        if not self.max_force_rate_N_s > 0:  # inf allowed: no bound; NaN fails the comparison
+            raise ValueError(f"max_force_rate_N_s must be a positive rate (N/s) or inf, got {self.max_force_rate_N_s}")
         if not (math.isfinite(self.hold_ramp_s) and self.hold_ramp_s >= 0):
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
         if not (self.loop_stall_s == 0 or (math.isfinite(self.loop_stall_s) and self.loop_stall_s >= MIN_STALL_S)):
@@ -253,7 +258,7 @@ class BridgeNode:
             # the states a controller answering on time would have answered within the timeout
             command_timeout_states=max(1, int(config.command_timeout_s / self.dt + 1e-9)),
             hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), max_force_step_N=config.max_force_step_N,
-            watchdog=not config.lockstep))
+            max_active_step_N=config.max_force_rate_N_s * self.dt, watchdog=not config.lockstep))
         self.f_min, self.f_max = f_min, f_max
         self.force = np.zeros(n)  # N, what the drives apply now
         # Holds need the watchdog: lockstep never holds. The first hold forces (and whatever the
@@ -319,6 +324,11 @@ class BridgeNode:
     @property
     def holds(self) -> int:
         return self.safety.holds
+
+    @property
+    def rate_limited(self) -> int:
+        """Ticks whose active command moved the forces faster than ``max_force_rate_N_s``."""
+        return self.safety.rate_limited
 
     @property
     def estop_reason(self) -> str:
@@ -458,6 +468,7 @@ class BridgeNode:
             uptime_s=time.monotonic() - self._started,
             received={bus.MOTOR_COMMAND: stats.received, bus.ESTOP: estop_received, "ticks": self.ticks,
                       "overruns": self.overruns, "clamped": self.clamped, "holds": self.holds,
+                      "rate_limited": self.rate_limited,
                       "tick_max_us": int(self.tick_max_s * 1e6)},
             rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected},
             last_reject_reason=reason)))

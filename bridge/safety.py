@@ -20,7 +20,13 @@ Bumpless
     loop was held up longer than the command timeout (``Inputs.resumed_after_s``: a stalled CPU
     or process woke up to a command computed meanwhile) starts from the forces applied now and
     moves at most ``max_force_step_N`` per tick until the command is reached; then commands pass
-    through.
+    through, within the active rate bound.
+Active rate bound
+    While ``active`` the forces move at most ``max_active_step_N`` per tick towards the newest
+    command (default 10 N: the computed-torque law's own 5000 N/s at 500 Hz,
+    ``controller.laws.LawConfig.force_rate_max_N_s``, so its commands pass through untouched).
+    It keeps a controller that jumps (one slowed by a flood, a lab's own, a bug) from stepping
+    the cables; the bounded ticks are counted (``rate_limited``) and each run of them logged once.
 Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only) while at least
     ``command_timeout_states`` states went out unanswered (the node counts them), the forces ramp
@@ -81,6 +87,7 @@ class SafetyConfig:
     command_timeout_states: int = 1
     hold_ramp_ticks: int = 5  # ticks of the linear ramp to the hold forces
     max_force_step_N: float = 1.0  # after an enable: the most any force may change in one tick
+    max_active_step_N: float = 10.0  # while active: the most any force may change in one tick (inf: off)
     watchdog: bool = True  # off in lockstep, where time stands still without commands
 
     def __post_init__(self) -> None:
@@ -92,6 +99,8 @@ class SafetyConfig:
                              f"{self.n_motors}, {self.hold_ramp_ticks}, {self.command_timeout_states}")
         if not (math.isfinite(self.max_force_step_N) and self.max_force_step_N > 0):
             raise ValueError(f"max_force_step_N must be a positive force (N), got {self.max_force_step_N}")
+        if not self.max_active_step_N > 0:  # inf allowed: no bound; NaN fails the comparison
+            raise ValueError(f"max_active_step_N must be a positive force (N) or inf, got {self.max_active_step_N}")
         if not (math.isfinite(self.command_timeout_s) and self.command_timeout_s > 0):
             raise ValueError(f"command_timeout_s must be a positive number of seconds, got {self.command_timeout_s}")
 
@@ -150,7 +159,8 @@ class Safety:
         self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
         self._sender = ""  # the controller whose commands the applied forces follow
-        self.clamped = self.holds = 0
+        self.clamped = self.holds = self.rate_limited = 0
+        self._bounding = False  # in a run of ticks bounded by max_active_step_N (logged once per run)
         self._events: list[tuple[int, str]] = []
 
     @property
@@ -182,8 +192,10 @@ class Safety:
         if (self.drive == "active" and inputs.command_N is not None and not inputs.estop
                 and not self._bumpless and inputs.sender == self._sender
                 and inputs.resumed_after_s <= self.config.command_timeout_s):
-            # The steady state, nearly every tick: the rules below reduce to clamp and pass through.
-            self.force = self._target = self.clamp(inputs.command_N)
+            # The steady state, nearly every tick: the rules below reduce to clamp and pass through
+            # (within the active rate bound).
+            self._target = self.clamp(inputs.command_N)
+            self.force = self._within_rate(self._target)
             return Decision("active", np.array(self.force), True, "", self.estop_engaged, self.estop_reason,
                             self.take_events() if self._events else ())
         cfg = self.config
@@ -234,13 +246,31 @@ class Safety:
 
     def _towards_target(self) -> list[float]:
         """Bumpless enable: at most ``max_force_step_N`` per tick from the present forces until the
-        command is reached; from then on commands pass through."""
+        command is reached; from then on commands pass through (within the active rate bound)."""
         if not self._bumpless:
-            return self._target
+            return self._within_rate(self._target)
         f = _step_towards(self.force, self._target, self.config.max_force_step_N)
         if f == self._target:
             self._bumpless = False
             self._log(logging.INFO, "bumpless ramp done: commands pass through")
+        return f
+
+    def _within_rate(self, target: list[float]) -> list[float]:
+        """``target`` if no force moves more than ``max_active_step_N`` from the applied ones, else
+        the applied forces moved towards it by that much (counted, each run logged once)."""
+        lim = self.config.max_active_step_N
+        for a, t in zip(self.force, target):  # a loop, not a comprehension: half the cost per tick
+            if t - a > lim or a - t > lim:
+                break
+        else:
+            self._bounding = False
+            return target
+        f = _step_towards(self.force, target, lim)
+        self.rate_limited += 1
+        if not self._bounding:
+            self._bounding = True
+            self._log(logging.WARNING, f"active commands step more than {lim:g} N per tick: moving at {lim:g} N "
+                                       f"per tick (commanded {[round(x, 2) for x in target]} N)")
         return f
 
     def clamp(self, force_N: Sequence[float]) -> list[float]:

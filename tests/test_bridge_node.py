@@ -351,6 +351,33 @@ def _node_at_30_N(params):
             node.shutdown()
 
 
+def test_active_commands_that_jump_move_the_forces_at_the_bounded_rate(params):
+    """Fault table of docs/safety.md: while active, the bridge passed any command through, so a
+    controller slowed by a flood stepped the cables 12.9 N in one tick. On the bus: a jump from 30 N
+    to f_max moves the applied forces at most ``max_force_rate_N_s`` × dt per tick (10 N at 500 Hz,
+    the law's own bound), and the health message counts the bounded ticks."""
+    assert BridgeConfig().max_force_rate_N_s * 0.002 == 10.0
+    with _node_at_30_N(params) as (node, pub):
+        assert node.safety.config.max_active_step_N == BridgeConfig().max_force_rate_N_s * node.dt
+        health = Collector(node.session, bus.health_key("bridge", node.instance))
+        applied = [node.force.copy()]
+        jump = [params.limits.f_max, 2.0, 30.0, 45.0]
+        try:
+            for k in range(12):
+                _send_and_tick(node, pub, 100 + k, jump, "test")
+                applied.append(node.force.copy())
+            node.publish_health()
+            assert wait_until(lambda: len(health.messages()) > 0, 5.0)
+            counted = health.messages()[-1].received["rate_limited"]
+        finally:
+            health.close()
+        steps = np.abs(np.diff(np.array(applied), axis=0)).max(axis=1)
+        print(f"\nlargest force step per tick after a jump to f_max: {steps.max():.2f} N")
+        assert steps.max() <= 10.0 + 1e-9 and steps[0] == 10.0
+        assert applied[-1].tolist() == jump
+        assert counted == node.rate_limited == int(np.ceil((params.limits.f_max - 30.0) / 10.0)) - 1
+
+
 def test_a_wall_clock_step_back_does_not_deafen_the_bridge(params, monkeypatch):
     """Audit of 2026-11-26: receive times were wall-clock times, so after the clock stepped back
     (an NTP step; the BeagleBone has no RTC battery) every new command looked older than the last

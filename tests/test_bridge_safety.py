@@ -4,6 +4,7 @@ activation, clamping, the watchdog's ramp to the hold forces, leaving the hold, 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -39,7 +40,7 @@ def test_drives_start_inactive_and_the_first_valid_command_enables_them():
 
 
 def test_command_forces_are_clamped_to_the_force_range_and_counted():
-    s = machine()
+    s = machine(max_active_step_N=math.inf)  # the clamp alone (the active rate bound: below)
     for _ in range(25):  # past the bumpless ramp from zero
         s.step(cmd([20.0] * N))
     d = s.step(cmd([0.5, 50.0, 100.0, 0.0]))
@@ -211,14 +212,56 @@ def test_every_enable_is_bumpless_then_commands_pass_through():
     assert start_up[0].tolist() == [1.0, 1.0, 1.0, 1.0]  # from zero, one step
     assert _max_step([np.zeros(N), *start_up]) <= 1.0 + 1e-12
     assert start_up[-1].tolist() == FINDING_1
-    # Reached: commands pass through at once (clamped), in both directions.
-    assert s.step(cmd([50.0, 30.0, 1.0, 90.0])).force_N.tolist() == [50.0, 30.0, 2.0, 90.0]
+    # Reached: commands within the active rate bound (10 N per tick) pass through at once
+    # (clamped), in both directions.
+    assert s.step(cmd([75.0, 30.0, 1.0, 36.0])).force_N.tolist() == [75.0, 30.0, 2.0, 36.0]
     # Leaving a hold: from the hold forces, at the bounded rate.
     hold = [s.step(idle(age_s=0.02 + k)).force_N for k in range(6)]
     assert hold[-1].tolist() == HOLD.tolist()
     leave = [s.step(cmd(FINDING_1)).force_N for _ in range(100)]
     assert _max_step([hold[-1], *leave]) <= 1.0 + 1e-12
     assert leave[-1].tolist() == FINDING_1
+
+
+# -- the rate of active commands (docs/safety.md, fault table) -----------------------------------
+
+
+def test_active_commands_that_jump_move_the_forces_at_the_bounded_rate_and_are_counted():
+    """Fault table of docs/safety.md: while active, commands passed through unbounded, so a
+    controller slowed to 247 Hz by a flood stepped the cables 12.9 N in one tick, and nothing but
+    the law's own bound kept a controller (a lab's own, a bug) from stepping them from f_min to
+    f_max. Active commands now move the forces at most ``max_active_step_N`` per tick (default
+    10 N: the law's own 5000 N/s at 500 Hz, so its commands pass through untouched)."""
+    s = machine()
+    assert s.config.max_active_step_N == 10.0
+    for _ in range(60):
+        s.step(cmd([30.0] * N))
+    applied = [s.step(cmd([30.0] * N)).force_N]
+    jump = [90.0, 2.0, 30.0, 45.0]
+    d = s.step(cmd(jump))
+    assert d.force_N.tolist() == [40.0, 20.0, 30.0, 40.0]
+    assert [m for _lvl, m in d.events if "10 N per tick" in m], d.events
+    applied.append(d.force_N)
+    # A tick without a new command (the controller late, within the timeout) goes on towards it.
+    d = s.step(idle(age_s=0.002))
+    assert (d.drive, d.force_N.tolist()) == ("active", [50.0, 10.0, 30.0, 45.0])
+    applied.append(d.force_N)
+    later = [s.step(cmd(jump)) for _ in range(6)]
+    applied += [x.force_N for x in later]
+    assert _max_step(applied) <= 10.0 + 1e-12
+    assert applied[-1].tolist() == jump
+    assert s.rate_limited == 5  # 40, 50, 60, 70, 80 N: bounded; 90 N was within the bound
+    assert not any(later_d.events for later_d in later)  # one log line per run of bounded ticks
+    # A step of exactly the bound passes through.
+    assert s.step(cmd([80.0, 12.0, 20.0, 55.0])).force_N.tolist() == [80.0, 12.0, 20.0, 55.0]
+    assert s.rate_limited == 5
+
+
+def test_the_active_rate_bound_is_a_positive_force():
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="max_active_step_N"):
+            machine(max_active_step_N=bad)
+    assert machine(max_active_step_N=math.inf).config.max_active_step_N == math.inf  # explicitly off
 
 
 # -- ownership (issue 13, finding 5) ---------------------------------------------------------------
@@ -271,8 +314,8 @@ def test_a_new_owners_first_command_is_ramped_to_not_stepped():
     applied += [s.step(cmd([90.0, 2.0, 90.0, 2.0], sender="ctl-b")).force_N for _ in range(80)]
     assert _max_step(applied) <= 1.0 + 1e-12
     assert applied[-1].tolist() == [90.0, 2.0, 90.0, 2.0]  # reached, then passed through
-    # The same sender's commands pass through at once, as before.
-    assert s.step(cmd([40.0] * N, sender="ctl-b")).force_N.tolist() == [40.0] * N
+    # The same sender's commands pass through at once, as before (within the active rate bound).
+    assert s.step(cmd([85.0, 7.0, 82.0, 10.0], sender="ctl-b")).force_N.tolist() == [85.0, 7.0, 82.0, 10.0]
 
 
 def test_a_bridge_loop_held_up_beyond_the_timeout_ramps_the_next_command():

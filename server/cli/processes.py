@@ -155,6 +155,10 @@ def bridge(
                                     help="Ramp to the hold forces over this long (s)."),
     max_force_step: float = typer.Option(
         1.0, "--max-force-step", callback=POSITIVE, help="After any enable, ramp the forces at most this much per tick (N)."),
+    max_force_rate: float = typer.Option(
+        5000.0, "--max-force-rate", callback=POSITIVE,
+        help="While active, move the forces at most this fast towards the commands (N/s; 10 N per tick at 500 Hz, the "
+        "control law's own bound)."),
     loop_stall: float | None = typer.Option(
         None, "--loop-stall", callback=NON_NEGATIVE,
         help="Real time: when the loop makes no tick for this long while the process runs, disable the drives and "
@@ -203,7 +207,8 @@ def bridge(
         raise fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
-                              max_force_step_N=max_force_step, loop_stall_s=loop_stall,
+                              max_force_step_N=max_force_step, max_force_rate_N_s=max_force_rate,
+                              loop_stall_s=loop_stall,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
                               instance=instance)
     except ValueError as exc:
@@ -266,7 +271,7 @@ def twin(
     if ctx.invoked_subcommand is not None:
         return  # a subcommand (calibrate) runs instead of the twin
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
-           hold_ramp=0.010, max_force_step=1.0, loop_stall=None, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
+           hold_ramp=0.010, max_force_step=1.0, max_force_rate=5000.0, loop_stall=None, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False)
 
