@@ -1,10 +1,17 @@
 """`xneck up`: the whole stack as separate processes on one Zenoh bus, and the dashboard URL.
 
-    server (FastAPI + viser, the hub)  <-- tcp/127.0.0.1:7447 -->  bridge (twin or BeagleBone)
-                                                              \\->  controller (campaign service)
+    server (FastAPI + viser, the hub) --> bridge (twin or BeagleBone)
+    server --> controller (campaign service) --> bridge          (A --> B: A connects to B)
 
-The server listens on the hub endpoint; the bridge and the controller connect to it (peer mode,
-multicast scouting off). Start order: server (until its health endpoint answers), bridge,
+The server listens on the hub endpoint (for other tools: a camera, CLI campaigns, a remote
+bridge); the bridge and the controller listen on loopback ports of their own and the control path
+runs the other way: the controller connects to the bridge, the server to both (peer mode,
+multicast scouting off). Neither the bridge nor the controller ever reconnects to the console, so
+a console that stops answering cannot stall them: every retry to a stopped hub ends in a socket
+close that blocks the retrying process's Zenoh poller ~40 ms (Zenoh's hard-coded SO_LINGER), one
+bridge hold per retry (docs/safety.md, "Peers that stop reading"; tests/test_up_stalled_console.py).
+With ``--no-bridge`` the controller connects to the remote bridge where it listens
+(``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until its health endpoint answers), bridge,
 controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
 and the viser port are free and that no other stack answers on the hub; if not, ``xneck up`` says
 so in one line and exits with code 3, having started no process (issue 13, finding 5: a second
@@ -45,7 +52,7 @@ from pathlib import Path
 import typer
 
 from server.child_processes import ENV_PARENT, exit_how, isolate, isolate_self, log_tail, stop_child, xneck_argv
-from server.cli.options import NON_NEGATIVE, PORT_MAX, check_truth, fail, law_config
+from server.cli.options import NON_NEGATIVE, PORT_MAX, check_endpoints, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
@@ -236,7 +243,11 @@ class _LoopPings:
 def up(
     robot: bool = typer.Option(False, "--robot", help="Drive the BeagleBone's motors instead of the twin."),
     no_bridge: bool = typer.Option(False, "--no-bridge", help="The bridge runs elsewhere (e.g. on the BeagleBone) "
-                                   "and connects to --hub."),
+                                   "and connects to --hub, or listens at --bridge-at."),
+    bridge_at_option: str | None = typer.Option(
+        None, "--bridge-at", help="With --no-bridge: the endpoint the remote bridge listens on (e.g. "
+        "tcp/<board>:7447, the bridge started with --listen tcp/0.0.0.0:7447). The controller and the console "
+        "connect to it, so the control path never retries a hung console (docs/safety.md)."),
     host: str = typer.Option("127.0.0.1", "--host", help="Dashboard bind address."),
     port: int = typer.Option(8000, "--port", min=1, max=PORT_MAX, help="Dashboard HTTP port (1-65535)."),
     viser_port: int = typer.Option(0, "--viser-port", min=0, max=PORT_MAX,
@@ -260,6 +271,10 @@ def up(
                                             "after this many seconds (tests, demos)."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
+    if bridge_at_option is not None and not no_bridge:
+        raise fail("--bridge-at names a bridge that runs elsewhere: it needs --no-bridge")
+    if bridge_at_option is not None:
+        check_endpoints(["tcp/127.0.0.1:0"], [bridge_at_option])  # one error line for a malformed endpoint
     if alpha_ip not in ("noise", "camera"):
         raise fail(f"--alpha-ip must be noise or camera, not {alpha_ip!r}")
     law_config(law, False)  # a bad --law now, not as a controller that exits once the stack is up
@@ -282,8 +297,15 @@ def up(
     # which judge whether the bridge is hung, must not queue there below the real-time threads (CI:
     # a controller importing for 2.7 s at FIFO 49 starved them and a healthy bridge was killed).
     isolate_self("up")
+    from bridge.session import ENV_CONNECT, ENV_LISTEN, free_tcp_port
+
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
+    # The control path's own endpoints (module docstring): the console connects to them, they never
+    # to the console.
+    bridge_at = bridge_at_option if no_bridge else f"tcp/127.0.0.1:{free_tcp_port()}"
+    controller_at = f"tcp/127.0.0.1:{free_tcp_port()}"
+    control_path = [arg for at in (bridge_at, controller_at) if at for arg in ("--connect", at)]
     param_args = ["--params", str(params_file)] if params_file else []
     url = f"http://{host}:{port}/"
     procs: dict[str, subprocess.Popen] = {}
@@ -300,7 +322,9 @@ def up(
 
     def start(name: str, args: list[str], env: dict[str, str] | None = None) -> None:
         log_files[name] = logs / f"{name}.log"
-        child_env = {**os.environ, "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **(env or {})}
+        # The endpoints are given on each command line: a user's XNECK_ZENOH_* must not add others.
+        child_env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},
+                     "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **(env or {})}
         if env and "NOTIFY_SOCKET" in env:
             child_env.pop("WATCHDOG_PID", None)  # inherited from a systemd unit of ours it would name us, not the child
         with open(log_files[name], "ab") as log:
@@ -315,6 +339,7 @@ def up(
     drives_set_off = False
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
+                         *control_path,
                          "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
                          # what this stack's twin bridge is, so that campaign requests are checked against it
                          "--twin-truth", truth, "--twin-seed", str(seed)])
@@ -329,9 +354,10 @@ def up(
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
-            start("bridge", ["bridge", *driver, "--instance", bridge_instance, *common, *param_args],
+            start("bridge", ["bridge", *driver, "--instance", bridge_instance, "--listen", str(bridge_at), *param_args],
                   watch.environ() if watch is not None else None)
-        start("controller", ["controller", "--law", str(law), *common, *param_args])
+        start("controller", ["controller", "--law", str(law), "--listen", controller_at,
+                             "--connect", connect_to if bridge_at is None else bridge_at, *param_args])
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"

@@ -1,0 +1,109 @@
+"""A console that stops answering under ``xneck up`` must not disturb the control path.
+
+Found 2026-11-27 (docs/safety.md, "Peers that stop reading"): with the console (the hub) stopped
+(SIGSTOP: a hung process, a suspended machine) past Zenoh's lease, the bridge and the controller,
+which connected to the hub, retried it every 11-14 s; each attempt's socket, accepted by the
+stopped hub's kernel but never answered, is closed after Zenoh's 10 s open timeout, and that close
+(SO_LINGER, hard-coded in Zenoh) blocks the thread that polls every socket of the process for about
+40 ms (``strace -T``: ``close`` 42 ms on ``net-0``, in both processes at once). So the commands
+stopped for 40 ms and the bridge held, once per attempt (3-4 holds in 45 s). The control path now
+connects to the bridge, and the console connects to it and the controller: neither reconnects to
+a console.
+
+Real processes, real Zenoh on 127.0.0.1; every process is stopped within bounded time.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from datetime import datetime
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import stop_process_groups, stop_xneck_up, wait_until
+from test_up_child_death import ENV, PY, _child, _xneck_up
+
+from bridge.session import free_tcp_port
+
+pytestmark = pytest.mark.e2e
+
+# The first reconnect attempt closed ~19 s after the stop (lease 10 s, open timeout 10 s), the
+# next ones 11-14 s apart: 34 s covers two.
+STOP_S = 34.0
+LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
+
+
+def _holds_since(log: Path, since: float) -> list[str]:
+    """The bridge's hold lines logged at or after the wall-clock time ``since``."""
+    lines = []
+    for line in log.read_text(errors="replace").splitlines():
+        m = LOG_TIME.match(line)
+        if m and " hold: " in line and datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp() >= since:
+            lines.append(line)
+    return lines
+
+
+def _bridge_state_age_s(url: str) -> float:
+    """How old the console's latest bridge state is (s); inf when it has none or does not answer."""
+    try:
+        age = httpx.get(url + "/api/system/health", timeout=5).json()["bridge"]["state_age_s"]
+    except (httpx.HTTPError, ValueError, KeyError, TypeError):
+        return float("inf")
+    return float("inf") if age is None else float(age)
+
+
+def test_a_console_stopped_past_zenohs_timeouts_does_not_make_the_bridge_hold(tmp_path: Path) -> None:
+    with _xneck_up(tmp_path) as (url, data, up):
+        bridge_log = data / "logs" / "bridge.log"
+        assert wait_until(lambda: bridge_log.exists() and "bumpless ramp done" in bridge_log.read_text(), 120, 0.3), \
+            (tmp_path / "up.log").read_text()
+        time.sleep(2.0)  # past the start-up: any hold from here on is the stop's
+        server = _child(up.pid, "server")
+        assert server is not None
+        stopped_at = time.time()
+        os.kill(server, signal.SIGSTOP)
+        try:
+            time.sleep(STOP_S)
+        finally:
+            os.kill(server, signal.SIGCONT)
+        holds = _holds_since(bridge_log, stopped_at)
+        assert up.poll() is None, (tmp_path / "up.log").read_text()
+        # The console comes back and sees the bridge's states again (its links were closed meanwhile).
+        assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
+        assert holds == [], "\n".join(holds)
+        assert "hold: " not in "\n".join(_holds_since(bridge_log, stopped_at)), "held after the console came back"
+
+
+def test_with_a_remote_bridge_listening_the_control_path_connects_to_it_not_to_the_hub(tmp_path: Path) -> None:
+    """``xneck up --no-bridge --bridge-at`` (the BeagleBone's bridge listening): the controller
+    commands the bridge through its endpoint, the console sees its states, and neither the
+    controller nor the bridge has the hub to retry."""
+    bridge_at, hub, port = (f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}",
+                            free_tcp_port())
+    url, data = f"http://127.0.0.1:{port}", tmp_path / "d"
+    with open(tmp_path / "bridge.log", "wb") as log:
+        bridge = subprocess.Popen([*PY, "bridge", "--driver", "twin", "--listen", bridge_at, "--instance", "remote-br"],
+                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
+                                  start_new_session=True)
+    with open(tmp_path / "up.log", "wb") as log:
+        up = subprocess.Popen([*PY, "up", "--no-bridge", "--bridge-at", bridge_at, "--port", str(port), "--hub", hub,
+                               "--data-dir", str(data), "--viser-port", str(free_tcp_port())],
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
+                              start_new_session=True)
+    try:
+        bridge_log = tmp_path / "bridge.log"
+        assert wait_until(lambda: "bumpless ramp done" in bridge_log.read_text(errors="replace"), 120, 0.3), \
+            bridge_log.read_text(errors="replace") + (tmp_path / "up.log").read_text()
+        assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
+        controller = _child(up.pid, "controller")
+        assert controller is not None
+        argv = Path(f"/proc/{controller}/cmdline").read_text().split("\0")
+        assert argv[argv.index("--connect") + 1] == bridge_at and hub not in argv, argv
+    finally:
+        stop_xneck_up(up)
+        stop_process_groups([bridge])
