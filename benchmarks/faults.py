@@ -80,15 +80,18 @@ class Stack:
 
     def args(self, name: str) -> list[str]:
         return {
+            # xneck up's layout (server/cli/up.py): the console connects to the bridge and the
+            # controller, the controller to the bridge, nothing on the control path to the console.
             "server": ["server", "--port", str(self.port), "--data-dir", str(self.workdir / "data"), "--hub", self.hub,
-                       "--mode", "twin"],
-            "bridge": ["bridge", "--driver", "twin", "--listen", self.bridge_ep, "--connect", self.hub],
-            "controller": ["controller", "--law", "2", "--listen", self.controller_ep, "--connect", self.hub],
+                       "--connect", self.bridge_ep, "--connect", self.controller_ep, "--mode", "twin"],
+            "bridge": ["bridge", "--driver", "twin", "--listen", self.bridge_ep],
+            "controller": ["controller", "--law", "2", "--listen", self.controller_ep, "--connect", self.bridge_ep],
         }[name]
 
     def start(self, name: str) -> None:
         log = open(self.workdir / f"{name}.log", "ab")  # noqa: SIM115 - the child keeps it
-        env = {**os.environ, "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+        env = {**{k: v for k, v in os.environ.items() if not k.startswith("XNECK_ZENOH_")},  # as xneck up
+               "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         self.procs[name] = subprocess.Popen([sys.executable, "-m", "server.cli", *self.args(name)], stdout=log,
                                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                             start_new_session=True)
