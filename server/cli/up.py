@@ -303,8 +303,14 @@ def up(
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
     # The control path's own endpoints (module docstring): the console connects to them, they never
     # to the console.
-    bridge_at = bridge_at_option if no_bridge else f"tcp/127.0.0.1:{free_tcp_port()}"
-    controller_at = f"tcp/127.0.0.1:{free_tcp_port()}"
+    taken = {port, viser_port, hub_address[1] if hub_address else 0}  # free now, bound by the server later
+    ports: list[int] = []
+    while len(ports) < 2:  # two distinct ports: the kernel may hand a just-released one out again
+        p = free_tcp_port()
+        if p not in taken and p not in ports:
+            ports.append(p)
+    bridge_at = bridge_at_option if no_bridge else f"tcp/127.0.0.1:{ports[0]}"
+    controller_at = f"tcp/127.0.0.1:{ports[1]}"
     control_path = [arg for at in (bridge_at, controller_at) if at for arg in ("--connect", at)]
     param_args = ["--params", str(params_file)] if params_file else []
     url = f"http://{host}:{port}/"
