@@ -18,19 +18,17 @@ from __future__ import annotations
 import os
 import re
 import signal
-import subprocess
 import time
 from datetime import datetime
 from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import stop_process_groups, stop_xneck_up, wait_until
-from test_up_child_death import ENV, PY, _child, _xneck_up
+from server_harness import wait_until
+from test_up_child_death import _child, _xneck_up
 
-from bridge.session import free_tcp_port
-
-pytestmark = pytest.mark.e2e
+# No hold for 34 s is a deadline (10 ms): alone on the machine (tests/conftest.py, _cpu_turn).
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]
 
 # The first reconnect attempt closed ~19 s after the stop (lease 10 s, open timeout 10 s), the
 # next ones 11-14 s apart: 34 s covers two.
@@ -78,32 +76,3 @@ def test_a_console_stopped_past_zenohs_timeouts_does_not_make_the_bridge_hold(tm
         assert holds == [], "\n".join(holds)
         assert "hold: " not in "\n".join(_holds_since(bridge_log, stopped_at)), "held after the console came back"
 
-
-def test_with_a_remote_bridge_listening_the_control_path_connects_to_it_not_to_the_hub(tmp_path: Path) -> None:
-    """``xneck up --no-bridge --bridge-at`` (the BeagleBone's bridge listening): the controller
-    commands the bridge through its endpoint, the console sees its states, and neither the
-    controller nor the bridge has the hub to retry."""
-    bridge_at, hub, port = (f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}",
-                            free_tcp_port())
-    url, data = f"http://127.0.0.1:{port}", tmp_path / "d"
-    with open(tmp_path / "bridge.log", "wb") as log:
-        bridge = subprocess.Popen([*PY, "bridge", "--driver", "twin", "--listen", bridge_at, "--instance", "remote-br"],
-                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
-                                  start_new_session=True)
-    with open(tmp_path / "up.log", "wb") as log:
-        up = subprocess.Popen([*PY, "up", "--no-bridge", "--bridge-at", bridge_at, "--port", str(port), "--hub", hub,
-                               "--data-dir", str(data), "--viser-port", str(free_tcp_port())],
-                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
-                              start_new_session=True)
-    try:
-        bridge_log = tmp_path / "bridge.log"
-        assert wait_until(lambda: "bumpless ramp done" in bridge_log.read_text(errors="replace"), 120, 0.3), \
-            bridge_log.read_text(errors="replace") + (tmp_path / "up.log").read_text()
-        assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
-        controller = _child(up.pid, "controller")
-        assert controller is not None
-        argv = Path(f"/proc/{controller}/cmdline").read_text().split("\0")
-        assert argv[argv.index("--connect") + 1] == bridge_at and hub not in argv, argv
-    finally:
-        stop_xneck_up(up)
-        stop_process_groups([bridge])
