@@ -1,16 +1,20 @@
 """A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py and
-tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE HUB SECONDS``; every role
-exits by itself after SECONDS.
+tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE SECONDS LISTEN CONNECT`` (the
+endpoints comma-separated, "" for none); every role exits by itself after SECONDS.
 
 Roles:
-    ``hub``      listens on HUB and subscribes to every xneck key (as the console does),
-    ``listener`` connects to HUB and subscribes to every xneck key (another console, a recorder),
-    ``publish``  publishes motor states at 500 Hz and 40 kB camera frames at 30 Hz,
+    ``listener`` subscribes to every xneck key (the console, the hub; another console, a recorder),
+                 prints ``ready`` once declared and ``seen`` at its first message,
+    ``publish``  publishes motor states at 500 Hz and 40 kB camera frames at 30 Hz (as the bridge),
     ``control``  subscribes to the motor states and, as the controller does, publishes a command
                  and a status at 500 Hz; prints ``ready`` at the first state and, at the end, one
                  JSON line: the number of states received, the longest gap between two (s) and
                  its time (s since the first state), the gaps' median and p99 (s), and how many
                  exceeded 10 ms (the bridge's command timeout) and 100 ms.
+
+Layouts (:data:`LAYOUTS`): ``hub``, every peer connects to the hub; ``up``, ``xneck up``'s since
+2026-11-27 (server/cli/up.py): the publisher listens, the control peer connects to it, the hub
+connects to both and the other listeners to the hub.
 """
 
 from __future__ import annotations
@@ -35,8 +39,12 @@ from bridge.session import open_session, publisher
 PEER = [sys.executable, str(Path(__file__).resolve())]
 
 
-def _publish(hub: str, seconds: float) -> None:
-    with open_session(connect=[hub]) as session:
+LAYOUTS = ("hub", "up")
+ANY = "tcp/127.0.0.1:0"
+
+
+def _publish(listen: list[str], connect: list[str], seconds: float) -> None:
+    with open_session(listen=listen, connect=connect) as session:
         states = publisher(session, bus.MOTOR_STATE)
         frames = publisher(session, bus.CAMERA_FRAME)
         frame = bus.CameraFrame(seq=0, stamp_s=0.0, capture_stamp_s=0.0, width=640, height=480,
@@ -52,7 +60,7 @@ def _publish(hub: str, seconds: float) -> None:
             time.sleep(max(0.0, t0 + 0.002 * k - time.monotonic()))
 
 
-def _control(hub: str, seconds: float) -> None:
+def _control(listen: list[str], connect: list[str], seconds: float) -> None:
     times: list[float] = []
     lock = threading.Lock()
 
@@ -62,7 +70,7 @@ def _control(hub: str, seconds: float) -> None:
             if len(times) == 1:
                 print("ready", flush=True)
 
-    with open_session(connect=[hub]) as session:
+    with open_session(listen=listen, connect=connect) as session:
         sub = session.declare_subscriber(bus.MOTOR_STATE, on_state)
         commands = publisher(session, bus.MOTOR_COMMAND)
         status = publisher(session, bus.CONTROLLER_STATUS)
@@ -93,45 +101,71 @@ def _control(hub: str, seconds: float) -> None:
     }), flush=True)
 
 
-def _listen_all(hub: str, seconds: float, listen: bool) -> None:
-    with (open_session(listen=[hub]) if listen else open_session(connect=[hub])) as session:
-        sub = session.declare_subscriber(f"{bus.PREFIX}/**", lambda _sample: None)
+def _listen_all(listen: list[str], connect: list[str], seconds: float) -> None:
+    seen = threading.Event()
+
+    def on_sample(_sample: object) -> None:
+        if not seen.is_set():
+            seen.set()
+            print("seen", flush=True)
+
+    with open_session(listen=listen, connect=connect) as session:
+        sub = session.declare_subscriber(f"{bus.PREFIX}/**", on_sample)
         print("ready", flush=True)
         time.sleep(seconds)
         sub.undeclare()
 
 
-def _start(role: str, hub: str, seconds: float, env: Mapping[str, str] | None) -> subprocess.Popen[str]:
-    return subprocess.Popen([*PEER, role, hub, str(seconds)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL, text=True, env=None if env is None else dict(env))
+def _start(role: str, seconds: float, listen: list[str], connect: list[str],
+           env: Mapping[str, str] | None) -> subprocess.Popen[str]:
+    return subprocess.Popen([*PEER, role, str(seconds), ",".join(listen), ",".join(connect)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
+                            env=None if env is None else dict(env))
 
 
-def _ready(proc: subprocess.Popen[str]) -> None:
+def _expect(proc: subprocess.Popen[str], word: str) -> None:
     assert proc.stdout is not None
     line = proc.stdout.readline()  # bounded: every role exits by itself
-    if line.strip() != "ready":
-        raise RuntimeError(f"a bus peer did not start: {line}{proc.stdout.read()}")
+    if line.strip() != word:
+        raise RuntimeError(f"a bus peer did not say {word!r}: {line}{proc.stdout.read()}")
 
 
-def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | None = None) -> dict:
+def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | None = None,
+                layout: str = "hub") -> dict:
     """The stalled-listeners scenario on ``hub`` (e.g. ``tcp/127.0.0.1:PORT``, free): a hub, a
     publisher, a control peer and ``stopped - 1`` more listeners, each a process with ``env``
-    (None: this one's); the hub and the listeners stopped (SIGSTOP) for ``stop_s`` from about 1 s
-    after the control peer's first state. Returns the control peer's JSON line (module doc).
-    Every process is stopped on return, within bounded time."""
-    life = stop_s + 30.0
-    procs = [_start("hub", hub, life, env)]
+    (None: this one's), linked as ``layout`` says (module doc); once every listener has seen a
+    message, the hub and the listeners are stopped (SIGSTOP) for ``stop_s``. Returns the control
+    peer's JSON line (module doc). Every process is stopped on return, within bounded time."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout {layout!r} is not one of {LAYOUTS}")
+    life = stop_s + 40.0
+    procs: list[subprocess.Popen[str]] = []
     try:
-        _ready(procs[0])
-        listeners = [procs[0]]
+        if layout == "hub":
+            hub_peer = _start("listener", life, [hub], [], env)
+            publish_at, control_at = [ANY], [ANY]
+            publish_to = control_to = [hub]
+        else:
+            from bridge.session import free_tcp_port
+
+            publish_ep, control_ep = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+            hub_peer = _start("listener", life, [hub], [publish_ep, control_ep], env)
+            publish_at, control_at = [publish_ep], [control_ep]
+            publish_to, control_to = [], [publish_ep]
+        procs.append(hub_peer)
+        _expect(hub_peer, "ready")
+        listeners = [hub_peer]
         for _ in range(stopped - 1):
-            listeners.append(_start("listener", hub, life, env))
+            listeners.append(_start("listener", life, [ANY], [hub], env))
             procs.append(listeners[-1])
-            _ready(listeners[-1])
-        procs.append(_start("publish", hub, life, env))
-        control = _start("control", hub, stop_s + 8.0, env)
+            _expect(listeners[-1], "ready")
+        procs.append(_start("publish", life, publish_at, publish_to, env))
+        control = _start("control", stop_s + 12.0, control_at, control_to, env)
         procs.append(control)
-        _ready(control)
+        _expect(control, "ready")
+        for p in listeners:  # linked: stopping one that never was proves nothing
+            _expect(p, "seen")
         time.sleep(1.0)
         for p in listeners:
             p.send_signal(signal.SIGSTOP)
@@ -150,13 +184,14 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
 
 
 def main(argv: list[str]) -> None:
-    role, hub, seconds = argv[0], argv[1], float(argv[2])
+    role, seconds = argv[0], float(argv[1])
+    listen, connect = ([e for e in arg.split(",") if e] for arg in argv[2:4])
     if role == "publish":
-        _publish(hub, seconds)
+        _publish(listen, connect, seconds)
     elif role == "control":
-        _control(hub, seconds)
-    elif role in ("hub", "listener"):
-        _listen_all(hub, seconds, listen=role == "hub")
+        _control(listen, connect, seconds)
+    elif role == "listener":
+        _listen_all(listen, connect, seconds)
     else:
         raise SystemExit(f"unknown role {role!r}")
 

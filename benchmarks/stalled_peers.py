@@ -1,6 +1,6 @@
 """Stalled peers benchmark: does the control path keep flowing while listeners stop reading?
 
-    .venv/bin/python benchmarks/stalled_peers.py [--stopped 1,2] [--stop-s 24]
+    .venv/bin/python benchmarks/stalled_peers.py [--stopped 1,2] [--stop-s 34] [--layout hub,up]
 
 Processes of their own on 127.0.0.1 (benchmarks/_bus_peer.py): a hub that subscribes to every
 key (as the console does), a publisher of motor states at 500 Hz and camera frames (as the
@@ -8,6 +8,9 @@ bridge), a peer that answers at 500 Hz with a command and a status and times the
 (as the controller), and ``N - 1`` more listeners of every key. The hub and the listeners are
 stopped (SIGSTOP) for ``--stop-s``: their links' leases expire after 10 s and Zenoh's TCP links
 linger up to 10 s on close (eclipse-zenoh/zenoh#1101; docs/safety.md, "Peers that stop reading").
+Layouts: ``hub``, every peer connects to the hub (as ``xneck up`` linked them before
+2026-11-27); ``up``, the publisher listens, the control peer connects to it and the hub to both,
+as ``xneck up`` links the bridge, the controller and the console now (server/cli/up.py).
 
 Each case runs twice: with Zenoh's default runtime (2 receive workers, ``ZENOH_RUNTIME`` set so in
 the children: the baseline) and with xneck's (bridge.session: ``ZENOH_RX_WORKERS``). Printed per
@@ -36,24 +39,30 @@ ZENOH_DEFAULT = "(rx: (worker_threads: 2))"
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     ap.add_argument("--stopped", default="1,2", help="numbers of stopped listeners, the hub included (default 1,2)")
-    ap.add_argument("--stop-s", type=float, default=24.0, help="how long they stay stopped (s; default 24: the "
-                    "lease, the linger and a margin)")
+    ap.add_argument("--stop-s", type=float, default=34.0, help="how long they stay stopped (s; default 34: the "
+                    "lease, the linger, and two of the peers' 11-14 s retries to a stopped hub)")
+    ap.add_argument("--layout", default="hub,up", help="layouts to run, of hub and up (default hub,up)")
     args = ap.parse_args()
+    layouts = [x for x in args.layout.split(",") if x]
+    if not layouts or not set(layouts) <= {"hub", "up"}:
+        ap.error(f"--layout takes hub and/or up, got {args.layout!r}")
     print(f"stalled peers, {time.strftime('%Y-%m-%d %H:%M')}, load {os.getloadavg()[0]:.1f}, stopped {args.stop_s:g} s; "
           f"xneck: {ZENOH_RX_WORKERS} receive workers, baseline: Zenoh's default {ZENOH_DEFAULT}")
-    print("| stopped listeners | runtime | states | gap median (ms) | gap p99 (ms) | longest gap (ms, at s) "
+    print("| layout | stopped listeners | runtime | states | gap median (ms) | gap p99 (ms) | longest gap (ms, at s) "
           "| gaps > 10 ms | gaps > 100 ms |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     xneck_env = {k: v for k, v in os.environ.items() if k != ENV_ZENOH_RUNTIME}
-    for n in (int(x) for x in args.stopped.split(",")):
-        worst = {}
-        for name, env in (("Zenoh default", {**xneck_env, ENV_ZENOH_RUNTIME: ZENOH_DEFAULT}), ("xneck", xneck_env)):
-            r = run_stalled(f"tcp/127.0.0.1:{free_tcp_port()}", n, args.stop_s, env)
-            worst[name] = r["max_gap_s"]
-            print(f"| {n} | {name} | {r['received']} | {1e3 * r['median_gap_s']:.2f} | {1e3 * r['p99_gap_s']:.2f} | "
-                  f"{1e3 * r['max_gap_s']:.0f} (at {r['at_s']:.1f}) | {r['gaps_over_10ms']} | {r['gaps_over_100ms']} |",
+    for layout in layouts:
+        for n in (int(x) for x in args.stopped.split(",")):
+            worst = {}
+            for name, env in (("Zenoh default", {**xneck_env, ENV_ZENOH_RUNTIME: ZENOH_DEFAULT}), ("xneck", xneck_env)):
+                r = run_stalled(f"tcp/127.0.0.1:{free_tcp_port()}", n, args.stop_s, env, layout=layout)
+                worst[name] = r["max_gap_s"]
+                print(f"| {layout} | {n} | {name} | {r['received']} | {1e3 * r['median_gap_s']:.2f} | "
+                      f"{1e3 * r['p99_gap_s']:.2f} | {1e3 * r['max_gap_s']:.0f} (at {r['at_s']:.1f}) | "
+                      f"{r['gaps_over_10ms']} | {r['gaps_over_100ms']} |", flush=True)
+            print(f"|   |   | longest gap, xneck / baseline | {worst['xneck'] / worst['Zenoh default']:.3f} | | | | | |",
                   flush=True)
-        print(f"|   | longest gap, xneck / baseline | {worst['xneck'] / worst['Zenoh default']:.3f} | | | | | |", flush=True)
 
 
 if __name__ == "__main__":
