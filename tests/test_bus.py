@@ -276,3 +276,25 @@ def test_liveliness_token_appears_and_vanishes_with_its_session() -> None:
         finally:
             process.close()
         assert wait_until(lambda: (key, "down") in events), events
+
+
+def test_peers_do_not_relay_so_every_pair_needs_a_link_of_its_own() -> None:
+    """The premise of the layouts (server/cli/up.py, docs/bridge.md's deployment): two peers linked
+    only through a third (each connected to it, neither listening where the other can reach it, as
+    a BeagleBone bridge listening on its loopback alone) get none of each other's messages; once one
+    of them listens, gossip links them and they do. A Zenoh upgrade that relays again shows here."""
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+
+    def delivered(b_listens: list[str]) -> int:
+        got: list[int] = []
+        with (open_session(listen=[hub], connect=[]) as _hub, open_session(listen=[], connect=[hub]) as a,
+              open_session(listen=b_listens, connect=[hub]) as b):
+            sub = a.declare_subscriber("xneck/test/relay", lambda _s: got.append(1))
+            pub = b.declare_publisher("xneck/test/relay")
+            # Puts for 3 s: the gossip link, where there is one, comes within about a second.
+            wait_until(lambda: pub.put(b"x") is None and len(got) >= 20, 3.0, 0.02)
+            sub.undeclare()
+        return len(got)
+
+    assert delivered([]) == 0
+    assert delivered(["tcp/127.0.0.1:0"]) >= 20
