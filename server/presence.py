@@ -1,7 +1,10 @@
-"""Which xneck processes are alive, from their Zenoh liveliness tokens (``xneck/alive/<kind>/<id>``).
+"""Which xneck processes are alive, from their Zenoh liveliness tokens (``xneck/alive/<kind>/<id>``),
+and each one's latest health counters (``xneck/health/<kind>/<id>``, :class:`bridge.bus.Health`).
 
 A token vanishes when its process ends or its session drops, so this is the console's ground
-truth for "is the twin / controller / bridge up"; no polling, no heartbeats to tune.
+truth for "is the twin / controller / bridge up"; no polling, no heartbeats to tune. Health
+messages are kept only for processes alive, one each (what the bus sends cannot grow the
+console's memory), and only when they decode and their body names the process of their key.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import time
 import zenoh
 
 from bridge import bus
+from bridge.session import payload_of
 
 
 class Presence:
@@ -21,7 +25,10 @@ class Presence:
     def __init__(self, session: zenoh.Session) -> None:
         self._lock = threading.Lock()
         self._alive: dict[str, tuple[str, str, float]] = {}  # key -> (kind, instance, monotonic s when seen)
+        self._health: dict[tuple[str, str], tuple[float, bus.Health]] = {}  # (kind, instance) -> (monotonic s, msg)
+        self.health_rejected = 0  # Health payloads refused (malformed, oversized, key and body disagreeing)
         self._sub = session.liveliness().declare_subscriber(bus.ALIVE_ALL, self._on_sample, history=True)
+        self._health_sub = session.declare_subscriber(bus.HEALTH_ALL, self._on_health)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -34,19 +41,55 @@ class Presence:
                 self._alive.setdefault(key, (kind, instance, time.monotonic()))
             else:
                 self._alive.pop(key, None)
+                self._health.pop((kind, instance), None)
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: never raises; a refused payload is counted.
+        parts = str(sample.key_expr).split("/")
+        try:
+            msg = bus.decode(bus.Health, payload_of(sample, bus.Health))
+        except bus.BusDecodeError:
+            msg = None
+        if msg is None or len(parts) != 4 or (msg.process, msg.instance) != (parts[2], parts[3]):
+            with self._lock:
+                self.health_rejected += 1
+            return
+        try:
+            token = bus.liveliness_key(msg.process, msg.instance)
+        except ValueError:  # names no process can have (a key chunk may hold what a name may not)
+            token = ""
+        with self._lock:
+            if token in self._alive:
+                self._health[(msg.process, msg.instance)] = (time.monotonic(), msg)
+            else:
+                self.health_rejected += not token
 
     def processes(self) -> list[dict[str, object]]:
-        """``[{"kind", "instance", "since_s"}]`` sorted by kind then instance; ``since_s`` is how
-        long (s) the console has seen the process alive (a duration, not a time of day)."""
+        """``[{"kind", "instance", "since_s", "health"}]`` sorted by kind then instance; ``since_s``
+        is how long (s) the console has seen the process alive (a duration, not a time of day).
+        ``health``: its latest Health (``received`` and ``rejected`` counters, ``last_reject_reason``,
+        ``uptime_s``) and ``age_s``, how long ago it came (s; about 1 s when the process is well),
+        or None before any."""
         now = time.monotonic()
         with self._lock:
             items = sorted(self._alive.values())
-        return [{"kind": k, "instance": i, "since_s": round(now - s, 3)} for k, i, s in items]
+            health = {k: self._health.get(k[:2]) for k in items}
+        return [{"kind": k, "instance": i, "since_s": round(now - s, 3), "health": _health_view(health[(k, i, s)], now)}
+                for k, i, s in items]
 
     def any_alive(self, kind: str) -> bool:
         with self._lock:
             return any(k == kind for k, _, _ in self._alive.values())
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self._sub.undeclare()
+        for sub in (self._sub, self._health_sub):
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+
+def _health_view(latest: tuple[float, bus.Health] | None, now: float) -> dict[str, object] | None:
+    if latest is None:
+        return None
+    t, h = latest
+    return {"age_s": round(now - t, 3), "uptime_s": h.uptime_s, "received": dict(h.received),
+            "rejected": dict(h.rejected), "last_reject_reason": h.last_reject_reason}

@@ -47,8 +47,12 @@ def processes(request: Request) -> dict[str, Any]:
     """Processes whose Zenoh liveliness token is on the bus (twin, controller, bridge, ...), and
     ``scheduling``: what each xneck process of this machine got from the kernel (policy,
     real-time priority, nice, CPUs) and what it was refused (issue 21: the loop's processes at
-    real-time priority on their own CPU where permitted, the console off it)."""
-    return {"processes": request.app.state.presence.processes(), "scheduling": local_processes()}
+    real-time priority on their own CPU where permitted, the console off it). Each process carries
+    its latest health counters (``health``, server.presence); ``health_rejected`` counts the
+    health messages refused (malformed, or their key and body disagreeing)."""
+    presence = request.app.state.presence
+    return {"processes": presence.processes(), "scheduling": local_processes(),
+            "health_rejected": presence.health_rejected}
 
 
 @router.get("/api/system/mode")

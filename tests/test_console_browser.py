@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -234,6 +235,19 @@ def test_comparing_two_campaigns_shows_both_traces_and_their_table(console):
     page.locator("#compare").scroll_into_view_if_needed()
     page.wait_for_timeout(300)
     console.shot("console_compare.png", "#compare")
+
+
+def test_the_header_shows_the_bridges_health_counters(console):
+    """docs/bridge.md's commissioning step reads the bridge's Health in the console: ticks,
+    overruns, holds, clamped and rate-bounded ticks, refused commands."""
+    page = console.page
+    page.wait_for_function("document.querySelector('#bridge-health').textContent.includes('ticks')", timeout=15000)
+    text = page.inner_text("#bridge-health")
+    assert re.search(r"bridge \S+: \d+ ticks, \d+ overruns, \d+ holds, \d+ clamped, \d+ rate-bounded, \d+ refused",
+                     text), text
+    ticks = int(re.search(r"(\d+) ticks", text).group(1))  # type: ignore[union-attr]
+    page.wait_for_function(f"parseInt(document.querySelector('#bridge-health').textContent.split(': ')[1]) > {ticks}",
+                           timeout=15000)  # counting, about once a second
 
 
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import msgspec
 import pytest
 from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, wait_until
 from websockets.exceptions import InvalidStatus
@@ -312,6 +313,51 @@ def test_process_ages_are_durations(client) -> None:
             assert p["kind"] == "bridge" and 0 <= p["since_s"] < 60, p
         finally:
             token.undeclare()
+
+
+def test_a_live_processs_health_counters_are_listed_with_it_and_garbage_is_not(client) -> None:
+    """docs/bridge.md (commissioning) says the console lists the bridge with its Health (ticks,
+    overruns, holds, clamped, refused commands); it listed only the kinds alive. Each live process
+    now carries its latest valid Health and how old it is; a Health whose key and body disagree, a
+    malformed one, or one of a process without a token is not listed."""
+    from bridge.session import open_session
+
+    hub = client.get("/api/system/health").json()["hub"]
+
+    def health(instance: str, **received: int) -> bytes:
+        return bus.encode(bus.Health(seq=1, stamp_s=1.0, process="bridge", instance=instance, uptime_s=12.5,
+                                     received={"ticks": 6000, "overruns": 2, **received},
+                                     rejected={bus.MOTOR_COMMAND: 3}, last_reject_reason="bridge owned by ctl-a"))
+
+    def listed() -> list[dict]:
+        return client.get("/api/system/processes").json()["processes"]
+
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s:
+        token = s.liveliness().declare_token(bus.liveliness_key("bridge", "hb1"))
+        try:
+            assert wait_until(lambda: any(p["instance"] == "hb1" for p in listed()), 10, 0.1)
+            s.put(bus.health_key("bridge", "ghost"), health("ghost"))  # no token: not listed
+            s.put(bus.health_key("bridge", "hb1"), health("other"))  # key and body disagree
+            s.put(bus.health_key("bridge", "hb1"), b'{"v": 1, "process": "bridge"')  # malformed
+            odd = msgspec.json.decode(health("x"))
+            s.put("xneck/health/bridge/a b", msgspec.json.encode({**odd, "instance": "a b"}))  # no valid name
+
+            def mine() -> dict | None:
+                s.put(bus.health_key("bridge", "hb1"), health("hb1", holds=4, rate_limited=7))
+                return next((p.get("health") for p in listed() if p["instance"] == "hb1"), None)
+
+            assert wait_until(lambda: mine() is not None, 10, 0.1)
+            (p,) = [p for p in listed() if p["instance"] == "hb1"]
+            h = p["health"]
+            assert h["received"]["holds"] == 4 and h["received"]["rate_limited"] == 7, h
+            assert h["rejected"] == {bus.MOTOR_COMMAND: 3} and h["last_reject_reason"] == "bridge owned by ctl-a"
+            assert h["uptime_s"] == 12.5 and 0 <= h["age_s"] < 10, h
+            assert not any(p["instance"] == "ghost" for p in listed())
+            assert client.get("/api/system/processes").json()["health_rejected"] >= 3  # other, malformed, "a b"
+        finally:
+            token.undeclare()
+        # The process gone, its health goes with it.
+        assert wait_until(lambda: not any(p["instance"] == "hb1" for p in listed()), 10, 0.1)
 
 
 def test_the_parameter_set_has_one_name_in_rest_and_mcap(tmp_path) -> None:

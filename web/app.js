@@ -312,12 +312,25 @@ function bridgeAge(b) {
     (b.drive === "hold" && b.hold_reason ? ` (${b.hold_reason})` : "");
 }
 
+// The bridge's own counters (its Health, about 1 Hz): what a commissioning engineer watches.
+function bridgeHealth(procs) {
+  const b = procs.processes.find((p) => p.kind === "bridge" && p.health);
+  if (!b) return "";
+  const r = b.health.received, n = (x) => (x === undefined ? "–" : x);
+  const refused = Object.values(b.health.rejected || {}).reduce((a, x) => a + x, 0);
+  return `bridge ${b.instance}: ${n(r.ticks)} ticks, ${n(r.overruns)} overruns, ${n(r.holds)} holds, ` +
+    `${n(r.clamped)} clamped, ${n(r.rate_limited)} rate-bounded, ${refused} refused` +
+    (b.health.last_reject_reason ? ` (last: ${b.health.last_reject_reason})` : "") +
+    (b.health.age_s > 3 ? ` — counters ${b.health.age_s.toFixed(0)} s old` : "");
+}
+
 async function pollStatus() {
   try {
     const h = await api("GET", "/api/system/health");
     const procs = await api("GET", "/api/system/processes");
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
       ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"} — ${bridgeAge(h.bridge)}`;
+    $("#bridge-health").textContent = bridgeHealth(procs);  // text: the reject reason comes from the bus
     // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
     // of the same state may be older or newer than the last frame, and mixing the two made the
     // banner blink off and on right after an engage.
