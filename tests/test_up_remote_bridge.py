@@ -44,6 +44,7 @@ def test_with_a_remote_bridge_listening_the_control_path_connects_to_it_not_to_t
         assert wait_until(lambda: "bumpless ramp done" in bridge_log.read_text(errors="replace"), 120, 0.3), \
             bridge_log.read_text(errors="replace") + (tmp_path / "up.log").read_text()
         assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
+        assert f"bridge expected at {bridge_at}" in (tmp_path / "up.log").read_text()
         controller = _child(up.pid, "controller")
         assert controller is not None
         argv = Path(f"/proc/{controller}/cmdline").read_text().split("\0")

@@ -11,8 +11,8 @@ a console that stops answering cannot stall them: every retry to a stopped hub e
 close that blocks the retrying process's Zenoh poller ~40 ms (Zenoh's hard-coded SO_LINGER), one
 bridge hold per retry (docs/safety.md, "Peers that stop reading"; tests/test_up_stalled_console.py).
 With ``--no-bridge`` the controller connects to the remote bridge where it listens
-(``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until its health endpoint answers), bridge,
-controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
+(``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until
+its health endpoint answers), bridge, controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
 and the viser port are free and that no other stack answers on the hub; if not, ``xneck up`` says
 so in one line and exits with code 3, having started no process (issue 13, finding 5: a second
 stack on the same hub would otherwise join the first one's bus and command its bridge). Nothing
@@ -367,7 +367,8 @@ def up(
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
-                   f"{' expected from elsewhere' if no_bridge else ''}, controller service (law {law})")
+                   f"{(' expected at ' + bridge_at if bridge_at else ' expected from elsewhere') if no_bridge else ''}"
+                   f", controller service (law {law})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
