@@ -52,3 +52,20 @@ def test_with_a_remote_bridge_listening_the_control_path_connects_to_it_not_to_t
     finally:
         stop_xneck_up(up)
         stop_process_groups([bridge])
+
+
+def test_without_bridge_at_xneck_up_says_the_bridge_is_expected_on_the_hub_and_what_that_costs(tmp_path: Path) -> None:
+    port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
+    r = subprocess.run([*PY, "up", "--no-bridge", "--port", str(port), "--hub", hub, "--data-dir", str(tmp_path / "d"),
+                        "--viser-port", str(free_tcp_port()), "--exit-after", "2"],
+                       capture_output=True, text=True, env=ENV, timeout=120, stdin=subprocess.DEVNULL)
+    assert "bridge expected on the hub" in r.stdout, r.stdout + r.stderr
+    assert "--bridge-at avoid" in r.stdout, r.stdout
+
+
+def test_bridge_at_needs_no_bridge_and_a_well_formed_endpoint() -> None:
+    for args, says in ((["--bridge-at", "tcp/127.0.0.1:7447"], "needs --no-bridge"),
+                       (["--no-bridge", "--bridge-at", "nonsense"], "not of the form")):
+        r = subprocess.run([*PY, "up", *args], capture_output=True, text=True, env=ENV, timeout=60,
+                           stdin=subprocess.DEVNULL)
+        assert r.returncode == 2 and says in r.stderr, r.stdout + r.stderr

@@ -367,8 +367,11 @@ def up(
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
-                   f"{(' expected at ' + bridge_at if bridge_at else ' expected from elsewhere') if no_bridge else ''}"
+                   f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
                    f", controller service (law {law})")
+        if no_bridge and not bridge_at:
+            typer.echo("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
+                       "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
