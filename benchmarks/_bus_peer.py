@@ -1,6 +1,7 @@
-"""A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py and
-tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE SECONDS LISTEN CONNECT`` (the
-endpoints comma-separated, "" for none); every role exits by itself after SECONDS.
+"""A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py,
+benchmarks/bus_flood.py and tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE
+SECONDS LISTEN CONNECT [COUNT]`` (the endpoints comma-separated, "" for none); every role exits by
+itself after SECONDS. Credentials as every xneck process reads them (``XNECK_ZENOH_CREDENTIALS``).
 
 Roles:
     ``listener`` subscribes to every xneck key (the console, the hub; another console, a recorder),
@@ -11,6 +12,11 @@ Roles:
                  JSON line: the number of states received, the longest gap between two (s) and
                  its time (s since the first state), the gaps' median and p99 (s), and how many
                  exceeded 10 ms (the bridge's command timeout) and 100 ms.
+    ``rogue-sessions`` a stranger on the network: opens COUNT Zenoh sessions to CONNECT at once (16
+                 threads), each subscribing to every xneck key, and holds them; prints one JSON line
+                 once they are open: how many, how many linked to a peer, the seconds it took.
+    ``rogue-tcp``  opens COUNT plain TCP connections to CONNECT's address, sends nothing, holds them;
+                 prints the same line (``linked``: connections the listener accepted).
 
 Layouts (:data:`LAYOUTS`): ``hub``, every peer connects to the hub; ``up``, ``xneck up``'s since
 2026-11-27 (server/cli/up.py): the publisher listens, the control peer connects to it, the hub
@@ -116,10 +122,55 @@ def _listen_all(listen: list[str], connect: list[str], seconds: float) -> None:
         sub.undeclare()
 
 
+def _rogue_sessions(connect: list[str], seconds: float, count: int) -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    t0 = time.monotonic()
+
+    def one(_: int):
+        session = open_session(listen=[], connect=connect)
+        session.declare_subscriber(f"{bus.PREFIX}/**", lambda _s: None)
+        return session
+
+    with ThreadPoolExecutor(16) as pool:
+        sessions = list(pool.map(one, range(count)))
+    time.sleep(1.0)  # links still being established
+    linked = sum(1 for s in sessions if list(s.info.peers_zid()))
+    print(json.dumps({"opened": len(sessions), "linked": linked, "open_s": time.monotonic() - t0}), flush=True)
+    time.sleep(max(0.0, seconds - (time.monotonic() - t0)))
+    for s in sessions:
+        s.close()
+
+
+def _rogue_tcp(connect: list[str], seconds: float, count: int) -> None:
+    import socket
+
+    t0 = time.monotonic()
+    host, _, port = connect[0].partition("/")[2].rpartition(":")
+    held = []
+    for _ in range(count):
+        with contextlib.suppress(OSError):
+            held.append(socket.create_connection((host, int(port)), timeout=2.0))
+    time.sleep(1.0)
+    alive = 0
+    for s in held:  # a connection the listener dropped reads as closed (b"") or errs
+        s.setblocking(False)
+        try:
+            alive += s.recv(1) != b""
+        except BlockingIOError:
+            alive += 1
+        except OSError:
+            pass
+    print(json.dumps({"opened": len(held), "linked": alive, "open_s": time.monotonic() - t0}), flush=True)
+    time.sleep(max(0.0, seconds - (time.monotonic() - t0)))
+    for s in held:
+        s.close()
+
+
 def _start(role: str, seconds: float, listen: list[str], connect: list[str],
-           env: Mapping[str, str] | None) -> subprocess.Popen[str]:
-    return subprocess.Popen([*PEER, role, str(seconds), ",".join(listen), ",".join(connect)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
+           env: Mapping[str, str] | None, count: int = 0) -> subprocess.Popen[str]:
+    return subprocess.Popen([*PEER, role, str(seconds), ",".join(listen), ",".join(connect), str(count)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
                             env=None if env is None else dict(env))
 
 
@@ -183,6 +234,47 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
                 p.communicate(timeout=10)
 
 
+FLOODS = ("none", "tcp", "sessions")
+
+
+def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], rogue_env: Mapping[str, str]) -> dict:
+    """A stranger floods the bridge's listener: a publisher (the bridge) listens on a free loopback
+    port, a control peer connects to it, both with ``env``; once states flow, a rogue process with
+    ``rogue_env`` opens ``count`` connections of kind ``flood`` (:data:`FLOODS`; "none" for none) to
+    the publisher and holds them. Returns the control peer's JSON line (module doc) with the rogue's
+    as ``rogue`` (None without flood). Every process is stopped on return, within bounded time."""
+    if flood not in FLOODS:
+        raise ValueError(f"flood {flood!r} is not one of {FLOODS}")
+    from bridge.session import free_tcp_port
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        procs.append(_start("publish", seconds + 30.0, [endpoint], [], env))
+        control = _start("control", seconds, [ANY], [endpoint], env)
+        procs.append(control)
+        _expect(control, "ready")
+        rogue_line = None
+        if flood != "none":
+            rogue = _start(f"rogue-{flood}", seconds + 10.0, [], [endpoint], rogue_env, count)
+            procs.append(rogue)
+            assert rogue.stdout is not None
+            rogue_line = rogue.stdout.readline()  # bounded: the rogue exits by itself
+        out, _ = control.communicate(timeout=seconds + 60.0)
+        result = json.loads(out.strip().splitlines()[-1])
+        try:
+            result["rogue"] = None if rogue_line is None else json.loads(rogue_line)
+        except json.JSONDecodeError:
+            raise RuntimeError(f"the rogue peer failed: {rogue_line}{procs[-1].communicate(timeout=30)[0]}") from None
+        return result
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                p.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.communicate(timeout=10)
+
+
 def main(argv: list[str]) -> None:
     role, seconds = argv[0], float(argv[1])
     listen, connect = ([e for e in arg.split(",") if e] for arg in argv[2:4])
@@ -192,6 +284,10 @@ def main(argv: list[str]) -> None:
         _control(listen, connect, seconds)
     elif role == "listener":
         _listen_all(listen, connect, seconds)
+    elif role == "rogue-sessions":
+        _rogue_sessions(connect, seconds, int(argv[4]))
+    elif role == "rogue-tcp":
+        _rogue_tcp(connect, seconds, int(argv[4]))
     else:
         raise SystemExit(f"unknown role {role!r}")
 

@@ -52,7 +52,7 @@ import msgspec
 import numpy as np
 
 from bridge import bus
-from bridge.session import free_tcp_port, open_session
+from bridge.session import ENV_CONNECT, ENV_LISTEN, free_tcp_port, open_session
 from server.child_processes import isolate, isolate_self
 
 TOKEN = "fault-benchmark-token-0123456789"
@@ -91,7 +91,7 @@ class Stack:
 
     def start(self, name: str) -> None:
         log = open(self.workdir / f"{name}.log", "ab")  # noqa: SIM115 - the child keeps it
-        env = {**{k: v for k, v in os.environ.items() if not k.startswith("XNECK_ZENOH_")},  # as xneck up
+        env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},  # as xneck up
                "XNECK_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         self.procs[name] = subprocess.Popen([sys.executable, "-m", "server.cli", *self.args(name)], stdout=log,
                                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,

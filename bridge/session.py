@@ -8,8 +8,11 @@ default, so that gossip has somewhere to connect.
 
 Environment (comma-separated Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``):
     ``XNECK_ZENOH_LISTEN``   endpoints to listen on (default ``tcp/127.0.0.1:0``),
-    ``XNECK_ZENOH_CONNECT``  endpoints to connect to (default none).
-Across machines, the listening process uses ``tcp/0.0.0.0:7447`` and the others connect to it.
+    ``XNECK_ZENOH_CONNECT``  endpoints to connect to (default none),
+    ``XNECK_ZENOH_CREDENTIALS`` a credentials file: only processes that share it link (see
+                             :mod:`bridge.bus_credentials`), ``XNECK_ZENOH_USER`` its entry to present.
+Across machines, the listening process uses ``tcp/0.0.0.0:7447`` and the others connect to it;
+on a network others share, with credentials.
 
 Importing this module gives the process's Zenoh runtime :data:`ZENOH_RX_WORKERS` receive workers
 (``ZENOH_RUNTIME``, unless already set), see :func:`zenoh_runtime_environment`.
@@ -30,7 +33,8 @@ from typing import Generic, TypeVar
 
 import zenoh
 
-from bridge import bus
+from bridge import bus, bus_credentials
+from bridge.bus_credentials import Credentials
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +50,12 @@ REAL_TIME_KEYS = frozenset({bus.MOTOR_STATE, bus.MOTOR_COMMAND, bus.ESTOP})
 RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS, bus.CAMPAIGN_REQUEST})
 #: Transmit queue of the real-time priority, in batches (one express message each); see zenoh_config.
 REAL_TIME_QUEUE_BATCHES = 16
+
+#: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
+#: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
+MAX_SESSIONS = 64
+#: Read the credentials from the environment (zenoh_config's default).
+FROM_ENV = "env"
 
 #: Zenoh's receive workers in every xneck process (Zenoh's default: 2).
 ZENOH_RX_WORKERS = 8
@@ -99,12 +109,17 @@ def zenoh_config(
     listen: Sequence[str] | None = None,
     connect: Sequence[str] | None = None,
     mode: str = "peer",
+    credentials: Credentials | str | None = FROM_ENV,
 ) -> zenoh.Config:
     """Zenoh configuration of an xneck process.
 
     ``listen`` / ``connect``: endpoint lists; None takes ``XNECK_ZENOH_LISTEN`` /
     ``XNECK_ZENOH_CONNECT`` from the environment, then the defaults (listen on an ephemeral
     loopback port, connect to nothing). An empty list means none. ``mode``: peer, client or router.
+    ``credentials``: :data:`FROM_ENV` (``XNECK_ZENOH_CREDENTIALS``, if set), None for none, or
+    loaded credentials; with credentials the process links only with processes that present an
+    entry of its file and accept its own (bridge.bus_credentials; raises CredentialsError, a
+    ValueError, for a file that cannot be used).
     Connections are retried in the background, so a process may start before its listener.
     """
     if mode not in MODES:
@@ -115,6 +130,10 @@ def zenoh_config(
         connect = _endpoints_from_env(ENV_CONNECT) or []
     listen = _check_endpoints("listen", listen)
     connect = _check_endpoints("connect", connect)
+    if isinstance(credentials, str):
+        if credentials != FROM_ENV:
+            raise ValueError(f"credentials {credentials!r}: pass {FROM_ENV!r}, None or bridge.bus_credentials.Credentials")
+        credentials = bus_credentials.from_env()
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -130,6 +149,11 @@ def zenoh_config(
     # identification refused). 16, Zenoh's maximum, rides out 30 ms at 500 Hz; the latest-value
     # consumers read the newest of a burst, and the allocation stays lazy.
     conf.insert_json5("transport/link/tx/queue/size/real_time", str(REAL_TIME_QUEUE_BATCHES))
+    conf.insert_json5("transport/unicast/max_sessions", str(MAX_SESSIONS))
+    if credentials is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials.password))
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(credentials.path)))
     return conf
 
 
@@ -137,10 +161,46 @@ def open_session(
     listen: Sequence[str] | None = None,
     connect: Sequence[str] | None = None,
     mode: str = "peer",
+    credentials: Credentials | str | None = FROM_ENV,
 ) -> zenoh.Session:
     """Open a Zenoh session (see :func:`zenoh_config`). Use it as a context manager, or close it:
     an open session with callback subscribers can hang interpreter exit."""
-    return zenoh.open(zenoh_config(listen, connect, mode))
+    conf = zenoh_config(listen, connect, mode, credentials)
+    _log_access(conf)
+    return zenoh.open(conf)
+
+
+def exposed_endpoints(listen: Sequence[str]) -> list[str]:
+    """The endpoints of ``listen`` that other machines can reach (not loopback, not a Unix socket)."""
+    out = []
+    for e in listen:
+        proto, _, address = e.partition("/")
+        if proto.startswith("unix"):
+            continue
+        host = address.rsplit(":", 1)[0].strip("[]").split("#")[0]
+        if host not in ("localhost", "::1") and not host.startswith("127."):
+            out.append(e)
+    return out
+
+
+_warned_open: set[str] = set()
+
+
+def _log_access(conf: zenoh.Config) -> None:
+    """Say who may link: the credentials in force, or a warning (once per endpoint and process)
+    when a process listens where other machines reach it and anyone may link."""
+    listen = json.loads(conf.get_json("listen/endpoints")) or []
+    user = json.loads(conf.get_json("transport/auth/usrpwd/user"))
+    if user:
+        log.info("bus: links only with holders of %s (presenting user %r)",
+                 json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file")), user)
+        return
+    for e in exposed_endpoints(listen if isinstance(listen, list) else []):
+        if e not in _warned_open:
+            _warned_open.add(e)
+            log.warning("bus: listening on %s without credentials: anyone on that network can link, subscribe and "
+                        "publish (commands, e-stops); set %s (xneck bus credentials FILE; docs/safety.md, "
+                        "'The bus')", e, bus_credentials.ENV_CREDENTIALS)
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:

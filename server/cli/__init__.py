@@ -10,7 +10,20 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import calibrate, camera, campaign, excitation, identify, kinematics, model, processes, serve, study, up
+from server.cli import (
+    bus,
+    calibrate,
+    camera,
+    campaign,
+    excitation,
+    identify,
+    kinematics,
+    model,
+    processes,
+    serve,
+    study,
+    up,
+)
 
 app = typer.Typer(
     name="xneck",
@@ -49,6 +62,7 @@ app.add_typer(excitation.excitation_app, name="excitation")
 for _kind in ("control", "identification", "design"):
     study.study_app.command(_kind)(getattr(study, f"study_{_kind}"))
 app.add_typer(study.study_app, name="study")
+app.add_typer(bus.bus_app, name="bus")
 
 
 def main() -> None:

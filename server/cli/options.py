@@ -127,6 +127,17 @@ def check_endpoints(listen: list[str] | None, connect: list[str] | None) -> None
         raise fail(str(exc)) from None
 
 
+def check_credentials() -> None:
+    """``XNECK_ZENOH_CREDENTIALS`` usable (bridge.bus_credentials) when set: one ``error:`` line, before
+    any process starts, rather than a traceback from each process of a stack."""
+    from bridge.bus_credentials import CredentialsError, from_env
+
+    try:
+        from_env()
+    except CredentialsError as exc:
+        raise fail(str(exc)) from None
+
+
 def open_bus(listen: list[str] | None, connect: list[str] | None):
     """The Zenoh session of a bus process (bridge.session.open_session): an endpoint Zenoh refuses
     (a port above 65535, an unknown host or protocol, a port in use) is one ``error:`` line."""

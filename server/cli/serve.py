@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import PORT_MAX
+from server.cli.options import PORT_MAX, check_credentials
 
 
 def server(
@@ -49,6 +49,7 @@ def server(
         for err in exc.errors():
             typer.secho(f"error: --{'-'.join(map(str, err['loc'])).replace('_', '-')}: {err['msg']}", err=True, fg="red")
         raise typer.Exit(2) from None
+    check_credentials()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         app = create_app(settings)

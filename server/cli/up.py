@@ -52,7 +52,7 @@ from pathlib import Path
 import typer
 
 from server.child_processes import ENV_PARENT, exit_how, isolate, isolate_self, log_tail, stop_child, xneck_argv
-from server.cli.options import NON_NEGATIVE, PORT_MAX, check_endpoints, check_truth, fail, law_config
+from server.cli.options import NON_NEGATIVE, PORT_MAX, check_credentials, check_endpoints, check_truth, fail, law_config
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
@@ -90,6 +90,20 @@ def _tcp_address(endpoint: str) -> tuple[str, int] | None:
     if proto != "tcp" or not port.isdigit():
         return None
     return host.strip("[]"), int(port)
+
+
+def _bus_access(hub: str, no_bridge: bool) -> str:
+    """One line on who may link to the stack's processes (bridge.bus_credentials)."""
+    from bridge.bus_credentials import ENV_CREDENTIALS, from_env
+    from bridge.session import exposed_endpoints
+
+    creds = from_env()
+    if creds is not None:
+        return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link"
+    if exposed_endpoints([hub]) or no_bridge:
+        return (f"bus: no credentials: anyone on the network can link to the hub{' and the bridge' if no_bridge else ''}; "
+                f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'The bus')")
+    return "bus: loopback only, no credentials"
 
 
 def _stack_on(hub: str) -> list[str]:
@@ -278,6 +292,7 @@ def up(
     if alpha_ip not in ("noise", "camera"):
         raise fail(f"--alpha-ip must be noise or camera, not {alpha_ip!r}")
     law_config(law, False)  # a bad --law now, not as a controller that exits once the stack is up
+    check_credentials()  # every child reads them: one line now, not a failure per process
     hub_address = _tcp_address(hub)
     if hub_address is not None and hub_address[1] > PORT_MAX:  # the socket module would raise OverflowError
         raise fail(f"--hub {hub}: the port must be at most {PORT_MAX}")
@@ -372,6 +387,7 @@ def up(
         if no_bridge and not bridge_at:
             typer.echo("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
                        "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
+        typer.echo(f"  {_bus_access(hub, no_bridge)}")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
