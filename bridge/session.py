@@ -200,7 +200,31 @@ def _log_access(conf: zenoh.Config) -> None:
             _warned_open.add(e)
             log.warning("bus: listening on %s without credentials: anyone on that network can link, subscribe and "
                         "publish (commands, e-stops); set %s (xneck bus credentials FILE; docs/safety.md, "
-                        "'The bus')", e, bus_credentials.ENV_CREDENTIALS)
+                        "'Who may link to the bridge')", e, bus_credentials.ENV_CREDENTIALS)
+
+
+LINKED, NO_LISTENER, REFUSED = "linked", "no listener", "refused"
+
+
+def probe_link(endpoint: str, seconds: float = 3.0) -> str:
+    """Whether this process could link to ``endpoint`` (``tcp/<host>:<port>``) now: :data:`LINKED`,
+    :data:`NO_LISTENER` (the TCP connection is refused or times out) or :data:`REFUSED` (a TCP
+    listener answers but no Zenoh session opens within ``seconds``: other bus credentials, or not
+    a Zenoh peer). For commissioning messages; the credentials are this process's (environment)."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto == "tcp" and port.isdigit():
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=min(seconds, 2.0)).close()
+        except OSError:
+            return NO_LISTENER
+    with zenoh.open(zenoh_config(listen=[], connect=[endpoint])) as probe:
+        deadline = time.monotonic() + seconds
+        while not list(probe.info.peers_zid()):
+            if time.monotonic() > deadline:
+                return REFUSED
+            time.sleep(0.05)
+    return LINKED
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:

@@ -252,3 +252,32 @@ def test_a_flood_of_strangers_gets_no_session_with_credentials_and_a_bounded_num
     assert with_creds["rogue"]["opened"] == 4 and with_creds["rogue"]["linked"] == 0, with_creds
     assert without["rogue"]["linked"] == 4, without
     assert with_creds["received"] > 1000 and without["received"] > 1000, json.dumps([with_creds, without])
+
+
+@pytest.mark.e2e
+def test_xneck_up_says_when_its_remote_bridge_refuses_it_or_is_not_there(tmp_path: Path) -> None:
+    """The commissioning mistakes that otherwise look alike (a bridge that never appears): the
+    board's bridge holds credentials the PC lacks, and no bridge listening at all."""
+    creds = write_new(tmp_path / "creds")
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+
+    def up(at: str) -> str:
+        r = subprocess.run([*PY, "up", "--no-bridge", "--bridge-at", at, "--port", str(free_tcp_port()), "--hub",
+                            f"tcp/127.0.0.1:{free_tcp_port()}", "--data-dir", str(tmp_path / "d"), "--viser-port",
+                            str(free_tcp_port()), "--exit-after", "1"],
+                           capture_output=True, text=True, env=ENV, timeout=180, stdin=subprocess.DEVNULL)
+        assert r.returncode == 0, r.stdout + r.stderr
+        return r.stdout
+
+    assert f"nothing listens at {ep} yet" in up(ep)
+    with open(tmp_path / "bridge.log", "wb") as log:
+        bridge = subprocess.Popen([*PY, "bridge", "--driver", "twin", "--listen", ep], stdout=log,
+                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                  env=ENV | {ENV_CREDENTIALS: str(creds.path)}, start_new_session=True)
+    try:
+        assert wait_until(lambda: "links only with holders of" in (tmp_path / "bridge.log").read_text(), 60, 0.2)
+        out = up(ep)
+        assert f"{ep} answers but refuses this machine's bus session: the bus credentials differ" in out, out
+        assert f"no {ENV_CREDENTIALS}" in out, out
+    finally:
+        stop_process_groups([bridge])

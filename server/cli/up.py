@@ -102,8 +102,25 @@ def _bus_access(hub: str, no_bridge: bool) -> str:
         return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link"
     if exposed_endpoints([hub]) or no_bridge:
         return (f"bus: no credentials: anyone on the network can link to the hub{' and the bridge' if no_bridge else ''}; "
-                f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'The bus')")
+                f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'Who may link to the bridge')")
     return "bus: loopback only, no credentials"
+
+
+def _bridge_link(endpoint: str) -> str:
+    """A note on a remote bridge at ``endpoint`` that this machine cannot link to now ('' if it can):
+    the commissioning mistakes that otherwise look alike, a bridge that never appears."""
+    from bridge.bus_credentials import ENV_CREDENTIALS, from_env
+    from bridge.session import NO_LISTENER, REFUSED, probe_link
+
+    state = probe_link(endpoint)
+    if state == NO_LISTENER:
+        return f"note: nothing listens at {endpoint} yet: start the bridge there (the controller waits for it)"
+    if state == REFUSED:
+        creds = from_env()
+        here = f"{ENV_CREDENTIALS}={creds.path}" if creds is not None else f"no {ENV_CREDENTIALS}"
+        return (f"warning: {endpoint} answers but refuses this machine's bus session: the bus credentials differ "
+                f"(here: {here}; docs/bridge.md, deployment step 3), or it is not an xneck bridge")
+    return ""
 
 
 def _stack_on(hub: str) -> list[str]:
@@ -139,7 +156,8 @@ def preflight(host: str, port: int, viser_port: int, hub: str) -> str:
             if stack:
                 return (f"another xneck stack answers on the hub {hub} ({', '.join(stack)}): stop it, or give this "
                         f"one its own --hub, --port and --viser-port")
-            return f"the hub endpoint {hub} is {why} (another program listens there): choose another --hub"
+            return (f"the hub endpoint {hub} is {why} (another program listens there, or a stack whose bus "
+                    f"credentials differ): choose another --hub")
     why = _port_taken(host, port) if port else ""
     if why:
         return f"the dashboard port {host}:{port} is {why}: choose another --port"
@@ -314,6 +332,8 @@ def up(
     isolate_self("up")
     from bridge.session import ENV_CONNECT, ENV_LISTEN, free_tcp_port
 
+    bridge_link = _bridge_link(bridge_at_option) if bridge_at_option else ""
+
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
     # The control path's own endpoints (module docstring): the console connects to them, they never
@@ -384,6 +404,8 @@ def up(
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
                    f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
                    f", controller service (law {law})")
+        if bridge_link:
+            typer.echo(f"  {bridge_link}")
         if no_bridge and not bridge_at:
             typer.echo("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
                        "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
