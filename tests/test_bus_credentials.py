@@ -233,7 +233,8 @@ def test_xneck_bus_credentials_writes_a_private_file_once_and_stacks_refuse_a_lo
                        stdin=subprocess.DEVNULL)
     assert r.returncode == 2 and "never replaced" in r.stderr and path.read_text() == before, r.stderr
     path.chmod(0o640)
-    for argv in (["up", "--exit-after", "1"], ["server"], ["bridge", "--driver", "twin"], ["controller"]):
+    for argv in (["up", "--exit-after", "1"], ["server"], ["bridge", "--driver", "twin"], ["controller"], ["twin"],
+                 ["camera", "--source", "twin"], ["campaign", "control"], ["campaign", "identification"]):
         r = subprocess.run([*PY, *argv], capture_output=True, text=True, env=ENV | {ENV_CREDENTIALS: str(path)},
                            timeout=120, stdin=subprocess.DEVNULL)
         assert r.returncode == 2 and "chmod 600" in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr)

@@ -15,6 +15,7 @@ from server.cli.options import (
     POSITIVE,
     SET_OPTION,
     check_alpha_ip,
+    check_credentials,
     check_estimator,
     check_output,
     check_truth,
@@ -55,6 +56,7 @@ def campaign_control(
     from server.campaign_runner import CampaignSpec, run_campaign
 
     _check_default_archive(out)
+    check_credentials()  # its processes meet on the bus
     params = load_cli_params(params_file, overrides)
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
@@ -122,6 +124,7 @@ def campaign_identification(
         typer.echo(f"error: --creep-time-s: {exc}", err=True)
         raise typer.Exit(2) from None
     _check_default_archive(out)
+    check_credentials()  # its processes meet on the bus
     params = load_cli_params(params_file, overrides)
     config = law_config(1, False)
     traj = load_checked_trajectory(trajectory, params, config)
