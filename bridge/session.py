@@ -183,6 +183,19 @@ def exposed_endpoints(listen: Sequence[str]) -> list[str]:
     return out
 
 
+def access_summary(listen: Sequence[str], connect: Sequence[str], credentials: Credentials | None) -> dict:
+    """Who may link to a process that listens on ``listen`` and connects to ``connect`` (for the
+    console's health): ``credentials`` in use and the ``user`` presented; ``exposed``, its listen
+    endpoints other machines reach; ``remote``, the peers it connects to on other machines; ``open``,
+    anyone on the network may link to it or to those peers (no credentials, and an exposed endpoint
+    or a remote peer: a peer reached without credentials has none either, links need them on both
+    sides)."""
+    remote = exposed_endpoints(connect)
+    exposed = exposed_endpoints(listen)
+    return {"credentials": credentials is not None, "user": None if credentials is None else credentials.user,
+            "exposed": exposed, "remote": remote, "open": credentials is None and bool(exposed or remote)}
+
+
 _warned_open: set[str] = set()
 
 

@@ -25,11 +25,12 @@ def health(request: Request) -> dict[str, Any]:
     """The console's state at a glance (docs/console.md, "System health"). ``bridge``: how old the
     bridge's latest valid motor state is (``state_age_s``, seconds on the monotonic clock, null
     before any; it grows while the bridge is silent) and its ``drive``, ``owner`` and ``instance``
-    as of that state. ``uptime_s`` in seconds."""
+    as of that state. ``bus``: who may link to the console's session (bridge.session.access_summary;
+    ``open`` when anyone on the network may). ``uptime_s`` in seconds."""
     s = request.app.state
     return {
         "status": "ok", "version": software_version(), "uptime_s": time.monotonic() - s.started,
-        "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
+        "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub, "bus": s.bus_access,
         "viser_port": s.scene.port if s.scene else None,
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it

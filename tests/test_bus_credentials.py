@@ -19,11 +19,11 @@ from pathlib import Path
 
 import msgspec
 import pytest
-from server_harness import stop_process_groups, wait_until
+from server_harness import running_server, stop_process_groups, wait_until
 
 from bridge import bus, session
 from bridge.bus_credentials import ENV_CREDENTIALS, ENV_USER, CredentialsError, from_env, load, write_new
-from bridge.session import free_tcp_port, open_session, publisher, zenoh_config
+from bridge.session import access_summary, free_tcp_port, open_session, publisher, zenoh_config
 
 PY = [sys.executable, "-m", "server.cli"]
 ENV = {k: v for k, v in os.environ.items() if k not in (ENV_CREDENTIALS, ENV_USER)} | {"PYTHONUNBUFFERED": "1"}
@@ -282,3 +282,21 @@ def test_xneck_up_says_when_its_remote_bridge_refuses_it_or_is_not_there(tmp_pat
         assert f"no {ENV_CREDENTIALS}" in out, out
     finally:
         stop_process_groups([bridge])
+
+
+def test_who_may_link_is_summarised_for_the_console(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    creds = load(_file(tmp_path, GOOD))
+    assert access_summary(["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:7448"], None)["open"] is False
+    assert access_summary(["tcp/0.0.0.0:7447"], [], None) == {
+        "credentials": False, "user": None, "exposed": ["tcp/0.0.0.0:7447"], "remote": [], "open": True}
+    # A remote bridge linked without credentials has none either: the bridge is open.
+    assert access_summary(["tcp/127.0.0.1:0"], ["tcp/10.0.0.7:7447"], None)["open"] is True
+    assert access_summary(["tcp/0.0.0.0:7447"], ["tcp/10.0.0.7:7447"], creds) == {
+        "credentials": True, "user": "ctl", "exposed": ["tcp/0.0.0.0:7447"], "remote": ["tcp/10.0.0.7:7447"],
+        "open": False}
+    monkeypatch.setenv(ENV_CREDENTIALS, str(creds.path))
+    with running_server(tmp_path / "d", viser=False) as (base, _app):
+        import httpx
+
+        bus_state = httpx.get(base + "/api/system/health", timeout=30).json()["bus"]
+    assert bus_state == {"credentials": True, "user": "ctl", "exposed": [], "remote": [], "open": False}, bus_state

@@ -250,6 +250,25 @@ def test_the_header_shows_the_bridges_health_counters(console):
                            timeout=15000)  # counting, about once a second
 
 
+def test_the_header_says_when_the_bus_is_open_to_the_network(console):
+    """Without bus credentials, a console whose hub is exposed (or linked to a remote bridge) says
+    so in the header (docs/safety.md, "Who may link to the bridge"). The test binds 127.0.0.1
+    only: the exposed state is the health's, set on the running app."""
+    from bridge.session import access_summary
+
+    page, state = console.page, console.app.state
+    assert page.locator("#bus-open").is_hidden()  # loopback, no credentials: nothing to say
+    saved = state.bus_access
+    state.bus_access = access_summary(["tcp/0.0.0.0:7447"], ["tcp/10.0.0.7:7447"], None)
+    try:
+        page.wait_for_function("!document.querySelector('#bus-open').hidden", timeout=15000)
+        text = page.inner_text("#bus-open")
+        assert "BUS OPEN" in text and "tcp/0.0.0.0:7447" in text and "tcp/10.0.0.7:7447" in text, text
+    finally:
+        state.bus_access = saved
+    page.wait_for_function("document.querySelector('#bus-open').hidden", timeout=15000)
+
+
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped

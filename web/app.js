@@ -324,6 +324,14 @@ function bridgeHealth(procs) {
     (b.health.age_s > 3 ? ` — counters ${b.health.age_s.toFixed(0)} s old` : "");
 }
 
+// Without bus credentials, anyone on the network who reaches these endpoints may link to the
+// bridge and publish e-stops and commands (docs/safety.md, "Who may link to the bridge").
+function busOpen(bus) {
+  if (!bus || !bus.open) return "";
+  return `BUS OPEN: no credentials, anyone on the network may link (${[...bus.exposed, ...bus.remote].join(", ")}); ` +
+    "set XNECK_ZENOH_CREDENTIALS";
+}
+
 async function pollStatus() {
   try {
     const h = await api("GET", "/api/system/health");
@@ -331,6 +339,9 @@ async function pollStatus() {
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
       ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"} — ${bridgeAge(h.bridge)}`;
     $("#bridge-health").textContent = bridgeHealth(procs);  // text: the reject reason comes from the bus
+    const open = busOpen(h.bus);
+    $("#bus-open").hidden = !open;
+    $("#bus-open").textContent = open;
     // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
     // of the same state may be older or newer than the last frame, and mixing the two made the
     // banner blink off and on right after an engage.
