@@ -1,5 +1,5 @@
 """A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py,
-benchmarks/bus_flood.py and tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE
+benchmarks/bus_flood.py, benchmarks/peer_churn.py and tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE
 SECONDS LISTEN CONNECT [COUNT]`` (the endpoints comma-separated, "" for none); every role exits by
 itself after SECONDS. Credentials as every xneck process reads them (``XNECK_ZENOH_CREDENTIALS``).
 
@@ -266,6 +266,49 @@ def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], ro
             result["rogue"] = None if rogue_line is None else json.loads(rogue_line)
         except json.JSONDecodeError:
             raise RuntimeError(f"the rogue peer failed: {rogue_line}{procs[-1].communicate(timeout=30)[0]}") from None
+        return result
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                p.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.communicate(timeout=10)
+
+
+def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mapping[str, str] | None = None,
+              unix_dir: Path | None = None) -> dict:
+    """Peers that come and go: a publisher (the bridge) listens on a free loopback port and a
+    control peer connects to it; once states flow, ``peers`` listener processes (each a console or
+    a tool subscribing to every key) connect to the publisher one after another, each living
+    ``period_s`` - 1 s, one started every ``period_s``; the run lasts ``slots`` (default ``peers``)
+    periods and 4 s (0 peers and the churn's slots: the baseline).
+    Returns the control peer's JSON line (module doc) with ``arrivals_s``, when each peer was
+    started (s since the control peer's first state). With ``unix_dir``, every process listens on a
+    Unix socket there instead of loopback TCP. Every process is stopped on return."""
+    from bridge.session import free_tcp_port
+
+    def listen_at(name: str) -> list[str]:
+        return [ANY] if unix_dir is None else [f"unixsock-stream/{unix_dir / name}.sock"]
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}" if unix_dir is None else listen_at("publish")[0]
+    seconds = 4.0 + period_s * (peers if slots is None else slots)
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        procs.append(_start("publish", seconds + 30.0, [endpoint], [], env))
+        control = _start("control", seconds, listen_at("control"), [endpoint], env)
+        procs.append(control)
+        _expect(control, "ready")
+        t0 = time.monotonic()
+        arrivals = []
+        time.sleep(2.0)
+        for i in range(peers):
+            arrivals.append(round(time.monotonic() - t0, 2))
+            peer = _start("listener", period_s - 1.0, listen_at(f"peer-{i}"), [endpoint], env)
+            procs.append(peer)
+            time.sleep(period_s)
+        out, _ = control.communicate(timeout=seconds + 60.0)
+        result = json.loads(out.strip().splitlines()[-1])
+        result["arrivals_s"] = arrivals
         return result
     finally:
         for p in procs:

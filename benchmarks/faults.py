@@ -71,9 +71,13 @@ class Stack:
     workdir: Path
     port: int = field(default_factory=free_tcp_port)
     hub: str = field(default_factory=lambda: f"tcp/127.0.0.1:{free_tcp_port()}")
-    bridge_ep: str = field(default_factory=lambda: f"tcp/127.0.0.1:{free_tcp_port()}")
-    controller_ep: str = field(default_factory=lambda: f"tcp/127.0.0.1:{free_tcp_port()}")
+    bridge_ep: str = ""  # Unix sockets in workdir, as xneck up's (server/cli/up.py)
+    controller_ep: str = ""
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.bridge_ep = self.bridge_ep or f"unixsock-stream/{self.workdir / 'bridge.sock'}"
+        self.controller_ep = self.controller_ep or f"unixsock-stream/{self.workdir / 'controller.sock'}"
 
     @property
     def base(self) -> str:

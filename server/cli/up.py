@@ -4,12 +4,15 @@
     server --> controller (campaign service) --> bridge          (A --> B: A connects to B)
 
 The server listens on the hub endpoint (for other tools: a camera, CLI campaigns, a remote
-bridge); the bridge and the controller listen on loopback ports of their own and the control path
-runs the other way: the controller connects to the bridge, the server to both (peer mode,
-multicast scouting off). Neither the bridge nor the controller ever reconnects to the console, so
-a console that stops answering cannot stall them: every retry to a stopped hub ends in a socket
-close that blocks the retrying process's Zenoh poller ~40 ms (Zenoh's hard-coded SO_LINGER), one
-bridge hold per retry (docs/safety.md, "Peers that stop reading"; tests/test_up_stalled_console.py).
+bridge); the bridge and the controller listen on Unix sockets of their own (in a 0700 folder of
+this user's) and the control path runs the other way: the controller connects to the bridge, the
+server to both (peer mode, multicast scouting off). Neither the bridge nor the controller ever
+reconnects to the console, so a console that stops answering cannot stall them: every retry to a
+stopped hub ends in a socket close that blocks the retrying process's Zenoh poller ~40 ms (Zenoh's
+hard-coded SO_LINGER), one bridge hold per retry (docs/safety.md, "Peers that stop reading";
+tests/test_up_stalled_console.py). And on Unix sockets a link's close does not wait for the
+peer: on loopback TCP, a peer that left (a console or tool closing) cost ~40 ms likewise
+(benchmarks/peer_churn.py).
 With ``--no-bridge`` the controller connects to the remote bridge where it listens
 (``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until
 its health endpoint answers), bridge, controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
@@ -42,9 +45,11 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
+import tempfile
 import time
 import urllib.request
 from pathlib import Path
@@ -114,7 +119,8 @@ def _bridge_link(endpoint: str) -> str:
 
     state = probe_link(endpoint)
     if state == NO_LISTENER:
-        return f"note: nothing listens at {endpoint} yet: start the bridge there (the controller waits for it)"
+        return (f"note: nothing listens at {endpoint} yet: start the bridge there, or check the address (the "
+                f"controller waits for it)")
     if state == REFUSED:
         creds = from_env()
         here = f"{ENV_CREDENTIALS}={creds.path}" if creds is not None else f"no {ENV_CREDENTIALS}"
@@ -330,22 +336,20 @@ def up(
     # which judge whether the bridge is hung, must not queue there below the real-time threads (CI:
     # a controller importing for 2.7 s at FIFO 49 starved them and a healthy bridge was killed).
     isolate_self("up")
-    from bridge.session import ENV_CONNECT, ENV_LISTEN, free_tcp_port
+    from bridge.session import ENV_CONNECT, ENV_LISTEN
 
     bridge_link = _bridge_link(bridge_at_option) if bridge_at_option else ""
 
     connect_to = hub.replace("0.0.0.0", "127.0.0.1")
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", connect_to]
     # The control path's own endpoints (module docstring): the console connects to them, they never
-    # to the console.
-    taken = {port, viser_port, hub_address[1] if hub_address else 0}  # free now, bound by the server later
-    ports: list[int] = []
-    while len(ports) < 2:  # two distinct ports: the kernel may hand a just-released one out again
-        p = free_tcp_port()
-        if p not in taken and p not in ports:
-            ports.append(p)
-    bridge_at = bridge_at_option if no_bridge else f"tcp/127.0.0.1:{ports[0]}"
-    controller_at = f"tcp/127.0.0.1:{ports[1]}"
+    # to the console. Unix sockets, not loopback TCP: closing a TCP link (a peer leaving, a console's link after its
+    # lease) blocks Zenoh's poller until the peer acknowledges (SO_LINGER, hard-coded in Zenoh), ~40
+    # ms when its ACK is delayed, a bridge hold (benchmarks/peer_churn.py); a Unix socket's close does
+    # not wait. The folder is this user's alone (0700), which loopback TCP ports are not.
+    sockets = Path(tempfile.mkdtemp(prefix="xneck-up-"))
+    bridge_at = bridge_at_option if no_bridge else f"unixsock-stream/{sockets / 'bridge.sock'}"
+    controller_at = f"unixsock-stream/{sockets / 'controller.sock'}"
     control_path = [arg for at in (bridge_at, controller_at) if at for arg in ("--connect", at)]
     param_args = ["--params", str(params_file)] if params_file else []
     url = f"http://{host}:{port}/"
@@ -454,6 +458,7 @@ def up(
                 typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
         if watch is not None:
             watch.close()
+        shutil.rmtree(sockets, ignore_errors=True)
         typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
     if code:
         raise typer.Exit(code)
