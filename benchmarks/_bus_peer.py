@@ -237,6 +237,14 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
 FLOODS = ("none", "tcp", "sessions")
 
 
+def _kill_all(procs: list[subprocess.Popen[str]]) -> None:
+    for p in procs:
+        with contextlib.suppress(ProcessLookupError):
+            p.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            p.communicate(timeout=10)
+
+
 def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], rogue_env: Mapping[str, str]) -> dict:
     """A stranger floods the bridge's listener: a publisher (the bridge) listens on a free loopback
     port, a control peer connects to it, both with ``env``; once states flow, a rogue process with
@@ -268,11 +276,7 @@ def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], ro
             raise RuntimeError(f"the rogue peer failed: {rogue_line}{procs[-1].communicate(timeout=30)[0]}") from None
         return result
     finally:
-        for p in procs:
-            with contextlib.suppress(ProcessLookupError):
-                p.kill()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.communicate(timeout=10)
+        _kill_all(procs)
 
 
 def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mapping[str, str] | None = None,
@@ -311,11 +315,7 @@ def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mappin
         result["arrivals_s"] = arrivals
         return result
     finally:
-        for p in procs:
-            with contextlib.suppress(ProcessLookupError):
-                p.kill()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.communicate(timeout=10)
+        _kill_all(procs)
 
 
 def main(argv: list[str]) -> None:
