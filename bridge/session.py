@@ -119,7 +119,7 @@ def zenoh_config(
     ``credentials``: :data:`FROM_ENV` (``XNECK_ZENOH_CREDENTIALS``, if set), None for none, or
     loaded credentials; with credentials the process links only with processes that present an
     entry of its file and accept its own (bridge.bus_credentials; raises CredentialsError, a
-    ValueError, for a file that cannot be used).
+    ValueError, for a file that cannot be used), and drops what the file's viewers publish.
     Connections are retried in the background, so a process may start before its listener.
     """
     if mode not in MODES:
@@ -154,6 +154,9 @@ def zenoh_config(
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials.user))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials.password))
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(credentials.path)))
+        acl = bus_credentials.viewer_access_control(credentials.viewers)
+        if acl is not None:
+            conf.insert_json5("access_control", json.dumps(acl))
     return conf
 
 
@@ -189,10 +192,13 @@ def access_summary(listen: Sequence[str], connect: Sequence[str], credentials: C
     endpoints other machines reach; ``remote``, the peers it connects to on other machines; ``open``,
     anyone on the network may link to it or to those peers (no credentials, and an exposed endpoint
     or a remote peer: a peer reached without credentials has none either, links need them on both
-    sides)."""
+    sides); ``role``, ``viewer`` if the user presented is one (what this process publishes reaches
+    no one) else ``operator``; ``viewers``, the users whose publications it drops."""
     remote = exposed_endpoints(connect)
     exposed = exposed_endpoints(listen)
     return {"credentials": credentials is not None, "user": None if credentials is None else credentials.user,
+            "role": "operator" if credentials is None else credentials.role,
+            "viewers": [] if credentials is None else list(credentials.viewers),
             "exposed": exposed, "remote": remote, "open": credentials is None and bool(exposed or remote)}
 
 
@@ -205,8 +211,12 @@ def _log_access(conf: zenoh.Config) -> None:
     listen = json.loads(conf.get_json("listen/endpoints")) or []
     user = json.loads(conf.get_json("transport/auth/usrpwd/user"))
     if user:
-        log.info("bus: links only with holders of %s (presenting user %r)",
-                 json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file")), user)
+        acl = json.loads(conf.get_json("access_control"))
+        viewers = acl["subjects"][0]["usernames"] if acl.get("enabled") else []
+        log.info("bus: links only with holders of %s (presenting user %r%s)%s",
+                 json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file")), user,
+                 ", a viewer: what it publishes reaches no one" if bus_credentials.is_viewer(user) else "",
+                 f"; drops what its viewers publish ({', '.join(viewers)})" if viewers else "")
         return
     for e in exposed_endpoints(listen if isinstance(listen, list) else []):
         if e not in _warned_open:

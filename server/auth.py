@@ -17,3 +17,14 @@ def require_token(request: Request, creds: HTTPAuthorizationCredentials | None =
                             headers={"WWW-Authenticate": "Bearer"})
     if not secrets.compare_digest(creds.credentials.encode(), request.app.state.token.encode()):
         raise HTTPException(status.HTTP_403_FORBIDDEN, "wrong bearer token")
+
+
+def require_operator(request: Request) -> None:
+    """403 on a viewer's console (its bus user is a viewer, bridge.bus_credentials): what it would
+    publish (campaigns, jogs, e-stops, stops) reaches no process, so it is refused here, clearly."""
+    access = getattr(request.app.state, "bus_access", None) or {}
+    if access.get("role") == "viewer":
+        raise HTTPException(status.HTTP_403_FORBIDDEN,
+                            f"this console's bus user {access.get('user')!r} is a viewer: it watches the robot and "
+                            "cannot act on it (campaigns, jogs, e-stops); use an operator's console or the e-stop "
+                            "button")

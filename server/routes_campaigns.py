@@ -10,7 +10,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
-from server.auth import require_token
+from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
 from server.campaigns import Busy, CampaignManager, NotFound
 from server.records import CampaignRecord, CampaignStatus, valid_id
@@ -40,7 +40,7 @@ def _conflict(exc: Busy) -> JSONResponse:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
-             dependencies=[Depends(require_token)],
+             dependencies=[Depends(require_token), Depends(require_operator)],
              responses={409: {"description": "Another campaign is running (its id in running_campaign_id)"},
                         422: {"description": "Invalid body, or a choice this console cannot honour; loc names "
                                              "the field"},
@@ -79,7 +79,8 @@ def get_campaign(campaign_id: str, request: Request) -> CampaignRecord:
     return _record(_manager(request), campaign_id)
 
 
-@router.post("/{campaign_id}/stop", response_model=CampaignRecord, dependencies=[Depends(require_token)])
+@router.post("/{campaign_id}/stop", response_model=CampaignRecord,
+             dependencies=[Depends(require_token), Depends(require_operator)])
 def stop_campaign(campaign_id: str, request: Request) -> CampaignRecord:
     """Ask a running campaign (or replay) to stop; it ends as ``aborted`` within a few seconds."""
     _record(_manager(request), campaign_id)

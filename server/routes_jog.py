@@ -30,7 +30,7 @@ from bridge import bus
 from bridge.session import publisher
 from controller.laws import LawConfig
 from controller.trajectory import Trajectory, TrajectoryError, approach
-from server.auth import require_token
+from server.auth import require_operator, require_token
 from server.campaign_request import check_trajectory
 
 router = APIRouter(prefix="/api/jog", tags=["jog"])
@@ -157,7 +157,7 @@ def stop_jog(state: Any) -> list[str]:
     return stopped
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
+@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token), Depends(require_operator)],
              responses={409: {"description": "A campaign or replay runs, or the e-stop is engaged"},
                         422: {"description": "The move is out of the joint limits or the force range (the "
                                              "checker's message)"},
@@ -170,7 +170,7 @@ def jog(body: JogRequest, request: Request) -> Any:
     return JSONResponse(status_code=code, content=answer)
 
 
-@router.post("/stop", dependencies=[Depends(require_token)])
+@router.post("/stop", dependencies=[Depends(require_token), Depends(require_operator)])
 def jog_stop(request: Request) -> dict[str, Any]:
     """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
     (the controller then holds α̂)."""

@@ -12,7 +12,7 @@ from pydantic import BaseModel, Field
 from bridge.archive import software_version
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
-from server.auth import require_token
+from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
 from server.live import bridge_status
@@ -67,7 +67,7 @@ class EStopRequest(BaseModel):
     reason: str = Field("console", max_length=200)
 
 
-@router.post("/api/system/estop", dependencies=[Depends(require_token)])
+@router.post("/api/system/estop", dependencies=[Depends(require_token), Depends(require_operator)])
 def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
@@ -85,7 +85,7 @@ class AbortRequest(BaseModel):
                                          "side effect first); null: only a running one.")
 
 
-@router.post("/api/system/abort", dependencies=[Depends(require_token)])
+@router.post("/api/system/abort", dependencies=[Depends(require_token), Depends(require_operator)])
 def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
     """Stop the running campaign because of a cause the console cannot see itself (``xneck up``
     tells it which of its processes died, and how): the campaign ends ``aborted`` with ``reason``

@@ -8,6 +8,7 @@ and real ``xneck`` processes on 127.0.0.1; every process is stopped within bound
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -15,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgspec
@@ -178,17 +180,15 @@ def test_a_process_accepts_at_most_max_sessions(monkeypatch: pytest.MonkeyPatch)
                 p.close()
 
 
-@pytest.mark.e2e
-def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(tmp_path: Path) -> None:
-    """A twin bridge and a controller with credentials, the bridge listening: the controller drives
-    it; a stranger's session gets no state and its e-stop changes nothing; the same e-stop from a
-    holder of the file engages (so the stranger's was refused, not ignored for another reason)."""
-    creds = write_new(tmp_path / "creds")
-    env = ENV | {ENV_CREDENTIALS: str(creds.path)}
+@contextlib.contextmanager
+def twin_stack(tmp_path: Path, env: dict[str, str], instance: str) -> Iterator[tuple[str, Path]]:
+    """A twin bridge listening on a loopback port and a law-2 controller connected to it, both with
+    ``env`` (its credentials); yields (the bridge's endpoint, its log) once the controller drives
+    it, and stops both."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs = []
     try:
-        for name, argv in (("bridge", ["bridge", "--driver", "twin", "--listen", ep, "--instance", "cred-br"]),
+        for name, argv in (("bridge", ["bridge", "--driver", "twin", "--listen", ep, "--instance", instance]),
                            ("controller", ["controller", "--law", "2", "--connect", ep])):
             with open(tmp_path / f"{name}.log", "wb") as log:
                 procs.append(subprocess.Popen([*PY, *argv], stdout=log, stderr=subprocess.STDOUT,
@@ -196,6 +196,18 @@ def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(t
         bridge_log = tmp_path / "bridge.log"
         assert wait_until(lambda: "bumpless ramp done" in bridge_log.read_text(errors="replace"), 120, 0.3), \
             bridge_log.read_text(errors="replace") + (tmp_path / "controller.log").read_text(errors="replace")
+        yield ep, bridge_log
+    finally:
+        stop_process_groups(procs)
+
+
+@pytest.mark.e2e
+def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(tmp_path: Path) -> None:
+    """A twin bridge and a controller with credentials, the bridge listening: the controller drives
+    it; a stranger's session gets no state and its e-stop changes nothing; the same e-stop from a
+    holder of the file engages (so the stranger's was refused, not ignored for another reason)."""
+    creds = write_new(tmp_path / "creds")
+    with twin_stack(tmp_path, ENV | {ENV_CREDENTIALS: str(creds.path)}, "cred-br") as (ep, bridge_log):
         assert "links only with holders of" in bridge_log.read_text()
 
         latest: dict[str, bus.MotorState] = {}
@@ -218,8 +230,6 @@ def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(t
             publisher(lab, bus.ESTOP).put(msgspec.structs.replace(engage, reason="lab"))
             assert wait_until(lambda: latest["state"].estop_engaged, 5, 0.02), latest["state"]
             assert latest["state"].estop_reason == "lab"
-    finally:
-        stop_process_groups(procs)
 
 
 def test_xneck_bus_credentials_writes_a_private_file_once_and_stacks_refuse_a_loose_one(tmp_path: Path) -> None:
@@ -288,15 +298,17 @@ def test_who_may_link_is_summarised_for_the_console(tmp_path: Path, monkeypatch:
     creds = load(_file(tmp_path, GOOD))
     assert access_summary(["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:7448"], None)["open"] is False
     assert access_summary(["tcp/0.0.0.0:7447"], [], None) == {
-        "credentials": False, "user": None, "exposed": ["tcp/0.0.0.0:7447"], "remote": [], "open": True}
+        "credentials": False, "user": None, "role": "operator", "viewers": [], "exposed": ["tcp/0.0.0.0:7447"],
+        "remote": [], "open": True}
     # A remote bridge linked without credentials has none either: the bridge is open.
     assert access_summary(["tcp/127.0.0.1:0"], ["tcp/10.0.0.7:7447"], None)["open"] is True
     assert access_summary(["tcp/0.0.0.0:7447"], ["tcp/10.0.0.7:7447"], creds) == {
-        "credentials": True, "user": "ctl", "exposed": ["tcp/0.0.0.0:7447"], "remote": ["tcp/10.0.0.7:7447"],
-        "open": False}
+        "credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": ["tcp/0.0.0.0:7447"],
+        "remote": ["tcp/10.0.0.7:7447"], "open": False}
     monkeypatch.setenv(ENV_CREDENTIALS, str(creds.path))
     with running_server(tmp_path / "d", viser=False) as (base, _app):
         import httpx
 
         bus_state = httpx.get(base + "/api/system/health", timeout=30).json()["bus"]
-    assert bus_state == {"credentials": True, "user": "ctl", "exposed": [], "remote": [], "open": False}, bus_state
+    assert bus_state == {"credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": [],
+                         "remote": [], "open": False}, bus_state

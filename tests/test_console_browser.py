@@ -269,6 +269,30 @@ def test_the_header_says_when_the_bus_is_open_to_the_network(console):
     page.wait_for_function("document.querySelector('#bus-open').hidden", timeout=15000)
 
 
+def test_a_viewers_console_says_it_cannot_act_and_its_estop_button_is_off(console, tmp_path):
+    """A console whose bus user is a viewer (docs/safety.md, "Viewers") says so in the header and
+    disables its e-stop buttons: the bus drops what it publishes and its routes answer 403. The
+    viewer's summary is set on the running app (the fixture's console is an operator's)."""
+    from bridge.bus_credentials import write_new
+    from bridge.session import access_summary
+
+    page, state = console.page, console.app.state
+    assert page.locator("#bus-viewer").is_hidden() and page.locator("#estop").is_enabled()
+    title = page.get_attribute("#estop", "title")
+    saved = state.bus_access
+    state.bus_access = access_summary(["tcp/127.0.0.1:7447"], [], write_new(tmp_path / "viewer", "viewer-a"))
+    try:
+        page.wait_for_function("!document.querySelector('#bus-viewer').hidden", timeout=15000)
+        text = page.inner_text("#bus-viewer")
+        assert text.startswith("VIEWER (bus user viewer-a)") and "cannot act" in text, text
+        assert page.locator("#estop").is_disabled() and page.locator("#estop-release").is_disabled()
+    finally:
+        state.bus_access = saved
+    page.wait_for_function("document.querySelector('#bus-viewer').hidden", timeout=15000)
+    assert page.locator("#estop").is_enabled() and page.locator("#estop-release").is_enabled()
+    assert page.get_attribute("#estop", "title") == title
+
+
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped

@@ -332,6 +332,26 @@ function busOpen(bus) {
     "set XNECK_ZENOH_CREDENTIALS";
 }
 
+// A viewer's console (its bus user is a viewer, docs/safety.md "Viewers") watches: the bus drops
+// what it would publish and its routes that act answer 403. Its e-stop button would do nothing,
+// so it says so instead of looking like one that works.
+function busViewer(bus) {
+  if (!bus || bus.role !== "viewer") return "";
+  return `VIEWER (bus user ${bus.user}): this console cannot act on the robot, no e-stop, campaign or jog; ` +
+    "use an operator's console or the e-stop button";
+}
+
+function showViewer(text) {
+  $("#bus-viewer").hidden = !text;
+  $("#bus-viewer").textContent = text;
+  for (const id of ["#estop", "#estop-release"]) {
+    const b = $(id);
+    if (b.dataset.title === undefined) b.dataset.title = b.title;
+    b.disabled = Boolean(text);
+    b.title = text || b.dataset.title;
+  }
+}
+
 async function pollStatus() {
   try {
     const h = await api("GET", "/api/system/health");
@@ -342,6 +362,7 @@ async function pollStatus() {
     const open = busOpen(h.bus);
     $("#bus-open").hidden = !open;
     $("#bus-open").textContent = open;
+    showViewer(busViewer(h.bus));
     // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
     // of the same state may be older or newer than the last frame, and mixing the two made the
     // banner blink off and on right after an engage.

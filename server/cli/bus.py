@@ -36,3 +36,48 @@ def credentials(
                f"on every machine of the stack: copy it (scp; keep it mode 600) and set\n"
                f"  export {ENV_CREDENTIALS}={made.path.resolve()}\n"
                f"(the bridge's unit: Environment={ENV_CREDENTIALS}=/etc/xneck/bus-credentials)")
+
+
+@bus_app.command("add-user")
+def add_user(
+    path: Path = typer.Argument(..., help="The lab's credentials file (xneck bus credentials)."),
+    user: str = typer.Argument(..., help="The new entry's user name; viewer or viewer-<name> for a viewer, who "
+                                         "may watch the robot and not act on it."),
+) -> None:
+    """Add a user with a new random password to a credentials file (replaced at once, mode 600).
+    A viewer's machine gets its entry alone (xneck bus export-user); every other machine needs the
+    updated file, and its processes a restart (credentials are read at start)."""
+    from bridge.bus_credentials import CredentialsError, add_entry
+
+    try:
+        made = add_entry(path.expanduser(), user)
+    except (CredentialsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"added {made.user!r} ({made.role}) to {made.path}; users: {', '.join(made.users)}\n"
+               f"copy the file to every machine of the stack again and restart its xneck processes"
+               + (f"; the viewer's machine: xneck bus export-user {made.path} {made.user} FILE" if made.role == "viewer"
+                  else ""))
+
+
+@bus_app.command("export-user")
+def export_user(
+    path: Path = typer.Argument(..., help="The lab's credentials file."),
+    user: str = typer.Argument(..., help="The entry to export."),
+    out: Path = typer.Argument(..., help="File to create (never replaced), for the machine that presents USER."),
+) -> None:
+    """Write USER's entry alone to OUT (mode 600): the file for a machine that must not learn the
+    other passwords, a viewer's. It links to the stack's processes by connecting to them (they list
+    its entry); it cannot accept their links, nor present another user."""
+    from bridge.bus_credentials import ENV_CREDENTIALS, CredentialsError, export_entry
+
+    out = out.expanduser()
+    if not out.parent.is_dir():
+        raise fail(f"{out.parent} is not a directory")
+    try:
+        made = export_entry(path.expanduser(), user, out)
+    except FileExistsError:
+        raise fail(f"{out} exists: credentials are never replaced") from None
+    except (CredentialsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"wrote {made.path} ({made.user!r}, {made.role}, mode 600)\n"
+               f"on that machine: export {ENV_CREDENTIALS}={made.path.resolve()}")

@@ -30,6 +30,7 @@ from server.cli.options import (
     POSITIVE,
     SET_OPTION,
     VERBOSE_OPTION,
+    check_credentials,
     check_endpoints,
     check_output,
     echo_json,
@@ -163,6 +164,7 @@ def camera(
         raise fail(str(exc)) from None
     setup_logging(verbose)
     check_endpoints(listen, connect)
+    check_credentials()
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
     lat = params.sensors.camera_latency if latency is None else latency

@@ -127,15 +127,20 @@ def check_endpoints(listen: list[str] | None, connect: list[str] | None) -> None
         raise fail(str(exc)) from None
 
 
-def check_credentials() -> None:
+def check_credentials(acts: bool = True) -> None:
     """``XNECK_ZENOH_CREDENTIALS`` usable (bridge.bus_credentials) when set: one ``error:`` line, before
-    any process starts, rather than a traceback from each process of a stack."""
-    from bridge.bus_credentials import CredentialsError, from_env
+    any process starts, rather than a traceback from each process of a stack. ``acts``: the command
+    publishes (a stack, a bridge, a controller, a campaign), which a viewer's user may not: what it
+    published would reach no one, so it is refused here rather than left to fail silently."""
+    from bridge.bus_credentials import ENV_USER, CredentialsError, from_env
 
     try:
-        from_env()
+        creds = from_env()
     except CredentialsError as exc:
         raise fail(str(exc)) from None
+    if acts and creds is not None and creds.role == "viewer":
+        raise fail(f"bus user {creds.user!r} ({creds.path}) is a viewer: it may watch (xneck serve --connect ...), "
+                   f"not act; set {ENV_USER} to an operator's entry or use the lab's credentials file")
 
 
 def open_bus(listen: list[str] | None, connect: list[str] | None):

@@ -36,6 +36,7 @@ from server.cli.options import (
     TRAJECTORY_OPTION,
     TRUTH_OPTION,
     VERBOSE_OPTION,
+    check_credentials,
     check_endpoints,
     fail,
     law_config,
@@ -202,6 +203,7 @@ def bridge(
         _drives_off(driver, driver_config, params_file, overrides)
         return
     check_endpoints(listen, connect)  # before the driver is built (the twin's compiles for seconds)
+    check_credentials()
     params = load_cli_params(params_file, overrides)
     if lockstep and driver != "twin":
         raise fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
@@ -297,6 +299,7 @@ def controller(
 
     setup_logging(verbose)
     check_endpoints(listen, connect)
+    check_credentials()
     params = load_cli_params(params_file, overrides)
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config) if trajectory else None

@@ -104,7 +104,8 @@ def _bus_access(hub: str, no_bridge: bool) -> str:
 
     creds = from_env()
     if creds is not None:
-        return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link"
+        viewers = f"; viewers {', '.join(creds.viewers)} may watch, not act" if creds.viewers else ""
+        return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link{viewers}"
     if exposed_endpoints([hub]) or no_bridge:
         return (f"bus: no credentials: anyone on the network can link to the hub{' and the bridge' if no_bridge else ''}; "
                 f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'Who may link to the bridge')")
