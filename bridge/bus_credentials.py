@@ -23,7 +23,7 @@ commands, e-stops, campaign requests and presence reach no one. The viewer's mac
 with its own entry alone (``xneck bus credentials LAB-FILE --export viewer-NAME OUT``): it connects
 to the stack and cannot present any other user, since it knows no other password. xneck's command
 line refuses to start a process that would act (a stack, a bridge, a controller, a campaign) as a
-viewer; ``xneck serve`` as a viewer is a read-only console.
+viewer; ``xneck server`` as a viewer is a read-only console.
 """
 
 from __future__ import annotations

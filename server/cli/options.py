@@ -139,7 +139,7 @@ def check_credentials(acts: bool = True) -> None:
     except CredentialsError as exc:
         raise fail(str(exc)) from None
     if acts and creds is not None and creds.role == "viewer":
-        raise fail(f"bus user {creds.user!r} ({creds.path}) is a viewer: it may watch (xneck serve --connect ...), "
+        raise fail(f"bus user {creds.user!r} ({creds.path}) is a viewer: it may watch (xneck server --connect ...), "
                    f"not act; set {ENV_USER} to an operator's entry or use the lab's credentials file")
 
 

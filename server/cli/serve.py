@@ -49,7 +49,7 @@ def server(
         for err in exc.errors():
             typer.secho(f"error: --{'-'.join(map(str, err['loc'])).replace('_', '-')}: {err['msg']}", err=True, fg="red")
         raise typer.Exit(2) from None
-    check_credentials(acts=False)  # a viewer's console watches; its routes that act refuse (server.guard)
+    check_credentials(acts=False)  # a viewer's console watches; its routes that act refuse (server.auth.require_operator)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         app = create_app(settings)
