@@ -1,4 +1,5 @@
-"""`xneck bus ...`: the bus's access, for a bridge that listens on the lab network."""
+"""`xneck bus ...`: the bus's access, for a bridge that listens on the lab network: credentials
+that keep strangers off it, and viewers who may watch and not act (bridge.bus_credentials)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ def credentials(
 ) -> None:
     """Create a credentials file (one user and a random 256-bit password, mode 600). Copy it to every
     machine of the stack (the bridge's board too) and set XNECK_ZENOH_CREDENTIALS to its path there:
-    processes then link only with processes that hold the same file."""
+    processes then link only with processes that hold the same file. xneck bus add-user adds users
+    (viewer-<name>: may watch, not act), xneck bus export-user writes one user's entry alone."""
     from bridge.bus_credentials import ENV_CREDENTIALS, CredentialsError, write_new
 
     path = path.expanduser()
