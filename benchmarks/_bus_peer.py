@@ -245,17 +245,19 @@ def _kill_all(procs: list[subprocess.Popen[str]]) -> None:
             p.communicate(timeout=10)
 
 
-def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], rogue_env: Mapping[str, str]) -> dict:
+def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], rogue_env: Mapping[str, str],
+              scheme: str = "tcp") -> dict:
     """A stranger floods the bridge's listener: a publisher (the bridge) listens on a free loopback
     port, a control peer connects to it, both with ``env``; once states flow, a rogue process with
     ``rogue_env`` opens ``count`` connections of kind ``flood`` (:data:`FLOODS`; "none" for none) to
     the publisher and holds them. Returns the control peer's JSON line (module doc) with the rogue's
-    as ``rogue`` (None without flood). Every process is stopped on return, within bounded time."""
+    as ``rogue`` (None without flood). ``scheme``: the listener's endpoint, ``tcp`` or ``tls`` (then
+    ``env`` needs XNECK_ZENOH_TLS). Every process is stopped on return, within bounded time."""
     if flood not in FLOODS:
         raise ValueError(f"flood {flood!r} is not one of {FLOODS}")
     from bridge.session import free_tcp_port
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    endpoint = f"{scheme}/127.0.0.1:{free_tcp_port()}"
     procs: list[subprocess.Popen[str]] = []
     try:
         procs.append(_start("publish", seconds + 30.0, [endpoint], [], env))

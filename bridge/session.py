@@ -10,7 +10,8 @@ Environment (comma-separated Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``):
     ``XNECK_ZENOH_LISTEN``   endpoints to listen on (default ``tcp/127.0.0.1:0``),
     ``XNECK_ZENOH_CONNECT``  endpoints to connect to (default none),
     ``XNECK_ZENOH_CREDENTIALS`` a credentials file: only processes that share it link (see
-                             :mod:`bridge.bus_credentials`), ``XNECK_ZENOH_USER`` its entry to present.
+                             :mod:`bridge.bus_credentials`), ``XNECK_ZENOH_USER`` its entry to present,
+    ``XNECK_ZENOH_TLS``      a TLS folder for ``tls/`` endpoints (:mod:`bridge.bus_tls`).
 Across machines, the listening process uses ``tcp/0.0.0.0:7447`` and the others connect to it;
 on a network others share, with credentials.
 
@@ -29,12 +30,14 @@ import threading
 import time
 from collections.abc import Callable, MutableMapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Generic, TypeVar
 
 import zenoh
 
-from bridge import bus, bus_credentials
+from bridge import bus, bus_credentials, bus_tls
 from bridge.bus_credentials import Credentials
+from bridge.bus_tls import Tls
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +113,7 @@ def zenoh_config(
     connect: Sequence[str] | None = None,
     mode: str = "peer",
     credentials: Credentials | str | None = FROM_ENV,
+    tls: Tls | str | None = FROM_ENV,
 ) -> zenoh.Config:
     """Zenoh configuration of an xneck process.
 
@@ -120,6 +124,9 @@ def zenoh_config(
     loaded credentials; with credentials the process links only with processes that present an
     entry of its file and accept its own (bridge.bus_credentials; raises CredentialsError, a
     ValueError, for a file that cannot be used), and drops what the file's viewers publish.
+    ``tls``: :data:`FROM_ENV` (``XNECK_ZENOH_TLS``, if set), None or a loaded folder: ``tls/``
+    endpoints encrypt and authenticate both ends (bridge.bus_tls; raises TlsError, a ValueError);
+    a ``tls/`` endpoint without one is refused.
     Connections are retried in the background, so a process may start before its listener.
     """
     if mode not in MODES:
@@ -134,6 +141,12 @@ def zenoh_config(
         if credentials != FROM_ENV:
             raise ValueError(f"credentials {credentials!r}: pass {FROM_ENV!r}, None or bridge.bus_credentials.Credentials")
         credentials = bus_credentials.from_env()
+    if isinstance(tls, str):
+        if tls != FROM_ENV:
+            raise ValueError(f"tls {tls!r}: pass {FROM_ENV!r}, None or bridge.bus_tls.Tls")
+        tls = bus_tls.from_env()
+    if tls is None and (secure := [e for e in [*listen, *connect] if e.startswith("tls/")]):
+        raise ValueError(f"endpoint {secure[0]} needs {bus_tls.ENV_TLS}, a TLS folder (xneck bus tls DIR --host ...)")
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -157,6 +170,8 @@ def zenoh_config(
         acl = bus_credentials.viewer_access_control(credentials.viewers)
         if acl is not None:
             conf.insert_json5("access_control", json.dumps(acl))
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(bus_tls.zenoh_tls(tls)))
     return conf
 
 
@@ -165,10 +180,11 @@ def open_session(
     connect: Sequence[str] | None = None,
     mode: str = "peer",
     credentials: Credentials | str | None = FROM_ENV,
+    tls: Tls | str | None = FROM_ENV,
 ) -> zenoh.Session:
     """Open a Zenoh session (see :func:`zenoh_config`). Use it as a context manager, or close it:
     an open session with callback subscribers can hang interpreter exit."""
-    conf = zenoh_config(listen, connect, mode, credentials)
+    conf = zenoh_config(listen, connect, mode, credentials, tls)
     _log_access(conf)
     return zenoh.open(conf)
 
@@ -186,29 +202,49 @@ def exposed_endpoints(listen: Sequence[str]) -> list[str]:
     return out
 
 
-def access_summary(listen: Sequence[str], connect: Sequence[str], credentials: Credentials | None) -> dict:
+def access_summary(listen: Sequence[str], connect: Sequence[str], credentials: Credentials | None,
+                   tls: Tls | None = None) -> dict:
     """Who may link to a process that listens on ``listen`` and connects to ``connect`` (for the
     console's health): ``credentials`` in use and the ``user`` presented; ``exposed``, its listen
     endpoints other machines reach; ``remote``, the peers it connects to on other machines; ``open``,
     anyone on the network may link to it or to those peers (no credentials, and an exposed endpoint
     or a remote peer: a peer reached without credentials has none either, links need them on both
     sides); ``role``, ``viewer`` if the user presented is one (what this process publishes reaches
-    no one) else ``operator``; ``viewers``, the users whose publications it drops."""
+    no one) else ``operator``; ``viewers``, the users whose publications it drops; ``encrypted``,
+    every link other machines may use is TLS (``tls/`` endpoints with a TLS folder, bridge.bus_tls)."""
     remote = exposed_endpoints(connect)
     exposed = exposed_endpoints(listen)
     return {"credentials": credentials is not None, "user": None if credentials is None else credentials.user,
             "role": "operator" if credentials is None else credentials.role,
             "viewers": [] if credentials is None else list(credentials.viewers),
-            "exposed": exposed, "remote": remote, "open": credentials is None and bool(exposed or remote)}
+            "exposed": exposed, "remote": remote, "open": credentials is None and bool(exposed or remote),
+            "encrypted": tls is not None and bool(exposed or remote)
+            and all(e.startswith("tls/") for e in [*exposed, *remote])}
 
 
 _warned_open: set[str] = set()
 
 
 def _log_access(conf: zenoh.Config) -> None:
-    """Say who may link: the credentials in force, or a warning (once per endpoint and process)
-    when a process listens where other machines reach it and anyone may link."""
+    """Say who may link: the credentials and TLS in force, or a warning (once per endpoint and
+    process) when a process listens where other machines reach it and anyone may link, or
+    unencrypted while it has TLS."""
     listen = json.loads(conf.get_json("listen/endpoints")) or []
+    exposed = exposed_endpoints(listen if isinstance(listen, list) else [])
+    tls = json.loads(conf.get_json("transport/link/tls"))
+    ca = tls.get("root_ca_certificate") if isinstance(tls, dict) else None
+    if ca:
+        folder = bus_tls.load(Path(ca).parent)
+        log.info("bus: tls/ links encrypted, both ends certified by %s (this certificate names %s; %.0f days left)",
+                 ca, ", ".join(folder.hosts), folder.days_left())
+        if folder.days_left() < bus_tls.WARN_DAYS:
+            log.warning("bus: the TLS certificate of %s expires on %s: make a new folder (xneck bus tls) before then",
+                        folder.path, folder.not_after.date())
+        for e in exposed:
+            if not e.startswith("tls/") and e not in _warned_open:
+                _warned_open.add(e)
+                log.warning("bus: listening on %s unencrypted although %s is set: other machines should link over "
+                            "tls/ (e.g. --listen tls/0.0.0.0:7447)", e, bus_tls.ENV_TLS)
     user = json.loads(conf.get_json("transport/auth/usrpwd/user"))
     if user:
         acl = json.loads(conf.get_json("access_control"))
@@ -218,7 +254,7 @@ def _log_access(conf: zenoh.Config) -> None:
                  ", a viewer: what it publishes reaches no one" if bus_credentials.is_viewer(user) else "",
                  f"; drops what its viewers publish ({', '.join(viewers)})" if viewers else "")
         return
-    for e in exposed_endpoints(listen if isinstance(listen, list) else []):
+    for e in exposed:
         if e not in _warned_open:
             _warned_open.add(e)
             log.warning("bus: listening on %s without credentials: anyone on that network can link, subscribe and "
@@ -236,7 +272,7 @@ def probe_link(endpoint: str, seconds: float = 3.0) -> str:
     a Zenoh peer). For commissioning messages; the credentials are this process's (environment)."""
     proto, _, address = endpoint.partition("/")
     host, _, port = address.rpartition(":")
-    if proto == "tcp" and port.isdigit():
+    if proto in ("tcp", "tls") and port.isdigit():
         try:
             socket.create_connection((host.strip("[]"), int(port)), timeout=min(seconds, 2.0)).close()
         except OSError:

@@ -181,11 +181,11 @@ def test_a_process_accepts_at_most_max_sessions(monkeypatch: pytest.MonkeyPatch)
 
 
 @contextlib.contextmanager
-def twin_stack(tmp_path: Path, env: dict[str, str], instance: str) -> Iterator[tuple[str, Path]]:
-    """A twin bridge listening on a loopback port and a law-2 controller connected to it, both with
-    ``env`` (its credentials); yields (the bridge's endpoint, its log) once the controller drives
-    it, and stops both."""
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+def twin_stack(tmp_path: Path, env: dict[str, str], instance: str, scheme: str = "tcp") -> Iterator[tuple[str, Path]]:
+    """A twin bridge listening on a loopback port (``scheme``: tcp or tls) and a law-2 controller
+    connected to it, both with ``env`` (its credentials, its TLS folder); yields (the bridge's
+    endpoint, its log) once the controller drives it, and stops both."""
+    ep = f"{scheme}/127.0.0.1:{free_tcp_port()}"
     procs = []
     try:
         for name, argv in (("bridge", ["bridge", "--driver", "twin", "--listen", ep, "--instance", instance]),
@@ -299,16 +299,16 @@ def test_who_may_link_is_summarised_for_the_console(tmp_path: Path, monkeypatch:
     assert access_summary(["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:7448"], None)["open"] is False
     assert access_summary(["tcp/0.0.0.0:7447"], [], None) == {
         "credentials": False, "user": None, "role": "operator", "viewers": [], "exposed": ["tcp/0.0.0.0:7447"],
-        "remote": [], "open": True}
+        "remote": [], "open": True, "encrypted": False}
     # A remote bridge linked without credentials has none either: the bridge is open.
     assert access_summary(["tcp/127.0.0.1:0"], ["tcp/10.0.0.7:7447"], None)["open"] is True
     assert access_summary(["tcp/0.0.0.0:7447"], ["tcp/10.0.0.7:7447"], creds) == {
         "credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": ["tcp/0.0.0.0:7447"],
-        "remote": ["tcp/10.0.0.7:7447"], "open": False}
+        "remote": ["tcp/10.0.0.7:7447"], "open": False, "encrypted": False}
     monkeypatch.setenv(ENV_CREDENTIALS, str(creds.path))
     with running_server(tmp_path / "d", viser=False) as (base, _app):
         import httpx
 
         bus_state = httpx.get(base + "/api/system/health", timeout=30).json()["bus"]
     assert bus_state == {"credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": [],
-                         "remote": [], "open": False}, bus_state
+                         "remote": [], "open": False, "encrypted": False}, bus_state

@@ -83,3 +83,32 @@ def export_user(
         raise fail(str(exc)) from None
     typer.echo(f"wrote {made.path} ({made.user!r}, {made.role}, mode 600)\n"
                f"on that machine: export {ENV_CREDENTIALS}={made.path.resolve()}")
+
+
+@bus_app.command("tls")
+def tls(
+    path: Path = typer.Argument(..., help="Folder to create (never replaced), e.g. ~/.config/xneck/bus-tls."),
+    host: list[str] = typer.Option(..., "--host", help="An address peers connect to, IP or DNS name (repeatable): "
+                                                         "the board's and the PC's, as they appear in tls/<host>:<port>."),
+    days: int = typer.Option(825, "--days", help="Validity of the machines' certificate (days, 1-3650)."),
+) -> None:
+    """Create a TLS folder: the lab's certificate authority and one certificate for the stack's
+    machines (keys mode 600). Copy it, without ca.key, to every machine and set XNECK_ZENOH_TLS to its
+    path there; then tls/<host>:<port> endpoints encrypt the bus and both ends prove the lab's
+    certificate (docs/safety.md, "Encrypting the bus")."""
+    from bridge.bus_tls import CA_KEY, ENV_TLS, TlsError, write_new
+
+    path = path.expanduser()
+    if not path.parent.is_dir():
+        raise fail(f"{path.parent} is not a directory")
+    try:
+        made = write_new(path, host, days)
+    except FileExistsError:
+        raise fail(f"{path} exists: a TLS folder is never replaced (make another; every machine then needs it)") from None
+    except (TlsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"wrote {made.path}: ca.pem, node.pem, node.key (names {', '.join(made.hosts)}; valid until "
+               f"{made.not_after.date()}) and {CA_KEY} (keep it here, do not copy it)\n"
+               f"on every machine of the stack: copy ca.pem, node.pem, node.key (node.key mode 600) and set\n"
+               f"  export {ENV_TLS}={made.path.resolve()}\n"
+               f"then listen and connect on tls/<host>:<port>, e.g. xneck bridge ... --listen tls/0.0.0.0:7447")

@@ -128,15 +128,18 @@ def check_endpoints(listen: list[str] | None, connect: list[str] | None) -> None
 
 
 def check_credentials(acts: bool = True) -> None:
-    """``XNECK_ZENOH_CREDENTIALS`` usable (bridge.bus_credentials) when set: one ``error:`` line, before
+    """``XNECK_ZENOH_CREDENTIALS`` and ``XNECK_ZENOH_TLS`` usable (bridge.bus_credentials, bridge.bus_tls)
+    when set: one ``error:`` line, before
     any process starts, rather than a traceback from each process of a stack. ``acts``: the command
     publishes (a stack, a bridge, a controller, a campaign), which a viewer's user may not: what it
     published would reach no one, so it is refused here rather than left to fail silently."""
+    from bridge import bus_tls
     from bridge.bus_credentials import ENV_USER, CredentialsError, from_env
 
     try:
         creds = from_env()
-    except CredentialsError as exc:
+        bus_tls.from_env()
+    except (CredentialsError, bus_tls.TlsError) as exc:
         raise fail(str(exc)) from None
     if acts and creds is not None and creds.role == "viewer":
         raise fail(f"bus user {creds.user!r} ({creds.path}) is a viewer: it may watch (xneck server --connect ...), "

@@ -98,18 +98,20 @@ def _tcp_address(endpoint: str) -> tuple[str, int] | None:
 
 
 def _bus_access(hub: str, no_bridge: bool) -> str:
-    """One line on who may link to the stack's processes (bridge.bus_credentials)."""
+    """One line on who may link to the stack's processes (bridge.bus_credentials, bridge.bus_tls)."""
+    from bridge import bus_tls
     from bridge.bus_credentials import ENV_CREDENTIALS, from_env
     from bridge.session import exposed_endpoints
 
-    creds = from_env()
+    creds, folder = from_env(), bus_tls.from_env()
+    tls = f"; TLS {folder.path} for tls/ endpoints ({folder.days_left():.0f} days left)" if folder is not None else ""
     if creds is not None:
         viewers = f"; viewers {', '.join(creds.viewers)} may watch, not act" if creds.viewers else ""
-        return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link{viewers}"
+        return f"bus: credentials {creds.path} (user {creds.user!r}): processes without them get no link{viewers}{tls}"
     if exposed_endpoints([hub]) or no_bridge:
         return (f"bus: no credentials: anyone on the network can link to the hub{' and the bridge' if no_bridge else ''}; "
-                f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'Who may link to the bridge')")
-    return "bus: loopback only, no credentials"
+                f"set {ENV_CREDENTIALS} (xneck bus credentials FILE; docs/safety.md, 'Who may link to the bridge'){tls}")
+    return f"bus: loopback only, no credentials{tls}"
 
 
 def _bridge_link(endpoint: str) -> str:
@@ -125,7 +127,8 @@ def _bridge_link(endpoint: str) -> str:
     if state == REFUSED:
         creds = from_env()
         here = f"{ENV_CREDENTIALS}={creds.path}" if creds is not None else f"no {ENV_CREDENTIALS}"
-        return (f"warning: {endpoint} answers but refuses this machine's bus session: the bus credentials differ "
+        tls = "" if not endpoint.startswith("tls/") else " or the TLS folders (another authority, or a certificate that does not name this address)"
+        return (f"warning: {endpoint} answers but refuses this machine's bus session: the bus credentials differ{tls} "
                 f"(here: {here}; docs/bridge.md, deployment step 3), or it is not an xneck bridge")
     return ""
 
