@@ -31,9 +31,10 @@ from __future__ import annotations
 import os
 import re
 import secrets
-import stat
 from dataclasses import dataclass
 from pathlib import Path
+
+from bridge.small_file import read_checked
 
 __all__ = [
     "ENV_CREDENTIALS",
@@ -127,21 +128,7 @@ def load(path: str | os.PathLike[str], user: str | None = None) -> Credentials:
 def _entries(p: Path) -> dict[str, str]:
     """The ``user: password`` entries of the file ``p``, in file order, checked (see :func:`load`)."""
     where = f"{ENV_CREDENTIALS} {p}"
-    try:
-        st = p.stat()
-    except OSError as exc:
-        raise CredentialsError(f"{where}: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise CredentialsError(f"{where} is not a regular file")
-    if st.st_mode & 0o077:
-        raise CredentialsError(f"{where} is readable or writable by others (mode {stat.S_IMODE(st.st_mode):04o}): "
-                               f"chmod 600 {p}")
-    if st.st_size > MAX_FILE_BYTES:
-        raise CredentialsError(f"{where} is {st.st_size} bytes, more than {MAX_FILE_BYTES}: not a credentials file")
-    try:
-        text = p.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CredentialsError(f"{where} cannot be read as ASCII text: {exc}") from None
+    text = read_checked(p, where, CredentialsError, kind="credentials file", max_bytes=MAX_FILE_BYTES)
     entries: dict[str, str] = {}
     for n, line in enumerate(text.splitlines(), start=1):
         if not line.strip():

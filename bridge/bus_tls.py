@@ -31,10 +31,11 @@ import datetime as dt
 import ipaddress
 import os
 import ssl
-import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from bridge.small_file import read_checked
 
 __all__ = ["ENV_TLS", "Tls", "TlsError", "from_env", "load", "write_new", "zenoh_tls"]
 
@@ -74,21 +75,8 @@ class Tls:
 
 
 def _pem(path: Path, marker: str, where: str, private: bool = False) -> None:
-    try:
-        st = path.stat()
-    except OSError as exc:
-        raise TlsError(f"{where}: {path.name}: {exc.strerror or exc} (xneck bus tls DIR --host ... makes the folder)") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise TlsError(f"{where}: {path.name} is not a regular file")
-    if private and st.st_mode & 0o077:
-        raise TlsError(f"{where}: {path.name} is readable or writable by others (mode {stat.S_IMODE(st.st_mode):04o}): "
-                       f"chmod 600 {path}")
-    if st.st_size > MAX_PEM_BYTES:
-        raise TlsError(f"{where}: {path.name} is {st.st_size} bytes, more than {MAX_PEM_BYTES}: not a PEM file")
-    try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TlsError(f"{where}: {path.name} cannot be read as PEM text: {exc}") from None
+    text = read_checked(path, f"{where}: {path.name}", TlsError, kind="PEM file", max_bytes=MAX_PEM_BYTES,
+                        private=private, hint=" (xneck bus tls DIR --host ... makes the folder)")
     if f"-----BEGIN {marker}" not in text and not (marker == "PRIVATE KEY" and "PRIVATE KEY-----" in text):
         raise TlsError(f"{where}: {path.name} holds no PEM {marker.lower()}")
 
