@@ -209,17 +209,18 @@ def access_summary(listen: Sequence[str], connect: Sequence[str], credentials: C
     endpoints other machines reach; ``remote``, the peers it connects to on other machines; ``open``,
     anyone on the network may link to it or to those peers (no credentials, and an exposed endpoint
     or a remote peer: a peer reached without credentials has none either, links need them on both
-    sides); ``role``, ``viewer`` if the user presented is one (what this process publishes reaches
+    sides; unless every such link is TLS, which admits only the lab's certificate); ``role``, ``viewer`` if the user presented is one (what this process publishes reaches
     no one) else ``operator``; ``viewers``, the users whose publications it drops; ``encrypted``,
     every link other machines may use is TLS (``tls/`` endpoints with a TLS folder, bridge.bus_tls)."""
     remote = exposed_endpoints(connect)
     exposed = exposed_endpoints(listen)
+    # mutual TLS admits only holders of the lab's certificate: as closed as credentials are
+    encrypted = tls is not None and bool(exposed or remote) and all(e.startswith("tls/") for e in [*exposed, *remote])
     return {"credentials": credentials is not None, "user": None if credentials is None else credentials.user,
             "role": "operator" if credentials is None else credentials.role,
             "viewers": [] if credentials is None else list(credentials.viewers),
-            "exposed": exposed, "remote": remote, "open": credentials is None and bool(exposed or remote),
-            "encrypted": tls is not None and bool(exposed or remote)
-            and all(e.startswith("tls/") for e in [*exposed, *remote])}
+            "exposed": exposed, "remote": remote,
+            "open": credentials is None and bool(exposed or remote) and not encrypted, "encrypted": encrypted}
 
 
 _warned_open: set[str] = set()
@@ -241,8 +242,8 @@ def _log_access(conf: zenoh.Config) -> None:
             log.warning("bus: the TLS certificate of %s expires on %s: make a new folder (xneck bus tls) before then",
                         folder.path, folder.not_after.date())
         for e in exposed:
-            if not e.startswith("tls/") and e not in _warned_open:
-                _warned_open.add(e)
+            if not e.startswith("tls/") and f"plain {e}" not in _warned_open:
+                _warned_open.add(f"plain {e}")
                 log.warning("bus: listening on %s unencrypted although %s is set: other machines should link over "
                             "tls/ (e.g. --listen tls/0.0.0.0:7447)", e, bus_tls.ENV_TLS)
     user = json.loads(conf.get_json("transport/auth/usrpwd/user"))
@@ -255,7 +256,7 @@ def _log_access(conf: zenoh.Config) -> None:
                  f"; drops what its viewers publish ({', '.join(viewers)})" if viewers else "")
         return
     for e in exposed:
-        if e not in _warned_open:
+        if e not in _warned_open and not (ca and e.startswith("tls/")):  # mutual TLS admits the lab's certificate only
             _warned_open.add(e)
             log.warning("bus: listening on %s without credentials: anyone on that network can link, subscribe and "
                         "publish (commands, e-stops); set %s (xneck bus credentials FILE; docs/safety.md, "

@@ -9,6 +9,7 @@ prove a certificate of the lab's authority. Real Zenoh sessions and real ``xneck
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import subprocess
 import time
@@ -19,7 +20,7 @@ import zenoh
 from server_harness import wait_until
 from test_bus_credentials import ENV, LINK_S, PY, _Collector, _links, twin_stack
 
-from bridge import bus
+from bridge import bus, session
 from bridge.bus_credentials import ENV_CREDENTIALS
 from bridge.bus_credentials import write_new as write_credentials
 from bridge.bus_tls import ENV_TLS, TlsError, load, write_new, zenoh_tls
@@ -78,9 +79,29 @@ def test_a_tls_endpoint_needs_a_folder_and_the_console_says_the_links_are_encryp
     section = json.loads(zenoh_config(["tls/127.0.0.1:7447"], [], credentials=None, tls=made).get_json("transport/link/tls"))
     assert section["root_ca_certificate"] == str(made.ca) and section["enable_mtls"] is True
     assert access_summary(["tls/0.0.0.0:7447"], [], None, made)["encrypted"] is True
-    assert access_summary(["tls/0.0.0.0:7447", "tcp/0.0.0.0:7448"], [], None, made)["encrypted"] is False
+    assert access_summary(["tls/0.0.0.0:7447"], [], None, made)["open"] is False  # only the lab's certificate links
+    mixed = access_summary(["tls/0.0.0.0:7447", "tcp/0.0.0.0:7448"], [], None, made)
+    assert mixed["encrypted"] is False and mixed["open"] is True
     assert access_summary(["tcp/127.0.0.1:0"], ["tls/10.0.0.7:7447"], None, made)["encrypted"] is True
     assert access_summary(["tcp/127.0.0.1:0"], ["tls/10.0.0.7:7447"], None, None)["encrypted"] is False
+
+
+def test_processes_say_what_tls_covers_and_warn_of_plain_tcp_and_an_ending_certificate(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The configuration is only built, never opened: tests bind 127.0.0.1 only. Without credentials,
+    an exposed tls/ endpoint admits the lab's certificate only (no warning); an exposed tcp/ one
+    admits anyone, and is unencrypted although TLS is set (two warnings)."""
+    made = write_new(tmp_path / "tls", ["127.0.0.1"], days=10)
+    with caplog.at_level(logging.INFO, logger="bridge.session"):
+        session._log_access(zenoh_config(["tls/0.0.0.0:17450"], [], credentials=None, tls=made))
+        session._log_access(zenoh_config(["tcp/0.0.0.0:17451"], [], credentials=None, tls=made))
+    info = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("tls/ links encrypted" in m and "names 127.0.0.1" in m and "10 days left" in m for m in info), info
+    assert sum("expires on" in w for w in warnings) == 2, warnings
+    others = [w for w in warnings if "expires on" not in w]
+    assert len(others) == 2 and all("tcp/0.0.0.0:17451" in w for w in others), warnings
+    assert any("unencrypted although" in w for w in others) and any("without credentials" in w for w in others)
 
 
 def test_only_peers_certified_by_the_lab_for_that_address_link(tmp_path: Path) -> None:
