@@ -46,6 +46,7 @@ __all__ = [
     "from_env",
     "is_viewer",
     "load",
+    "remove_entry",
     "viewer_access_control",
     "write_new",
 ]
@@ -184,6 +185,26 @@ def add_entry(path: str | os.PathLike[str], user: str) -> Credentials:
     if user in entries:
         raise CredentialsError(f"{ENV_CREDENTIALS} {p} already lists {user!r}")
     entries[user] = secrets.token_urlsafe(32)
+    _replace(p, entries)
+    return load(p, user)
+
+
+def remove_entry(path: str | os.PathLike[str], user: str) -> Credentials:
+    """Remove ``user`` from the credentials file ``path`` (a lost laptop, a viewer who left),
+    replacing it at once (mode 600 kept); returns the file's credentials, presenting its first
+    remaining entry. Raises CredentialsError for an unusable file, an unknown user or the last entry."""
+    p = Path(path).expanduser()
+    entries = _entries(p)
+    if user not in entries:
+        raise CredentialsError(f"{ENV_CREDENTIALS} {p} does not list {user!r} (users: {', '.join(entries)})")
+    if len(entries) == 1:
+        raise CredentialsError(f"{user!r} is the last entry of {p}: remove the file instead")
+    del entries[user]
+    _replace(p, entries)
+    return load(p)
+
+
+def _replace(p: Path, entries: dict[str, str]) -> None:
     # Beside it, private from creation, then renamed over it: the old file or the new one, never a
     # mix, and never a moment when the passwords are readable by others (bridge.archive.atomic_write
     # creates with the umask's mode).
@@ -198,7 +219,6 @@ def add_entry(path: str | os.PathLike[str], user: str) -> Credentials:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return load(p, user)
 
 
 def export_entry(path: str | os.PathLike[str], user: str, out: str | os.PathLike[str]) -> Credentials:

@@ -17,7 +17,7 @@ import httpx
 import msgspec
 import pytest
 from server_harness import TOKEN, running_server, wait_until
-from test_bus_credentials import ENV, PY, _Collector, _links, twin_stack
+from test_bus_credentials import ENV, LINK_S, PY, _Collector, _links, twin_stack
 
 from bridge import bus
 from bridge.bus_credentials import (
@@ -28,6 +28,7 @@ from bridge.bus_credentials import (
     export_entry,
     is_viewer,
     load,
+    remove_entry,
     viewer_access_control,
     write_new,
 )
@@ -125,6 +126,28 @@ def test_a_viewer_receives_everything_and_what_it_publishes_reaches_no_one(tmp_p
         load(viewer_file, "op")
 
 
+def test_a_removed_user_gets_no_link_once_the_listener_reads_the_new_file(tmp_path: Path) -> None:
+    """Revocation (a lost laptop): ``remove_entry`` then a restart of the listener with the file;
+    the removed viewer's own file no longer opens a session, the operator's still does."""
+    lab = _lab(tmp_path, "viewer-a")
+    viewer_file = export_entry(lab, "viewer-a", tmp_path / "viewer")
+    before = lab.read_text()
+    left = remove_entry(lab, "viewer-a")
+    assert left.users == ("op",) and left.user == "op" and lab.stat().st_mode & 0o777 == 0o600
+    assert before.splitlines()[0] == lab.read_text().strip()  # the operator's password is kept
+    with pytest.raises(CredentialsError, match="does not list 'viewer-a'"):
+        remove_entry(lab, "viewer-a")
+    with pytest.raises(CredentialsError, match="last entry"):
+        remove_entry(lab, "op")
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session([ep], [], credentials=load(lab)), \
+            open_session([], [ep], credentials=viewer_file) as viewer, \
+            open_session([], [ep], credentials=load(lab)) as op:
+        assert wait_until(lambda: _links(op) == 1, 10, 0.05)
+        time.sleep(LINK_S)
+        assert (_links(op), _links(viewer)) == (1, 0)
+
+
 @pytest.mark.e2e
 def test_a_viewer_watches_the_robot_and_its_estop_and_commands_change_nothing(tmp_path: Path) -> None:
     """A twin bridge and a controller with a lab file that lists a viewer: the viewer (its entry
@@ -185,6 +208,11 @@ def test_xneck_bus_adds_and_exports_users_and_a_viewer_cannot_start_what_acts(tm
     assert load(out).users == ("viewer-alice",)
     r = xneck("bus", "export-user", str(lab), "viewer-alice", str(out))
     assert r.returncode == 2 and "never replaced" in r.stderr, r.stderr
+    assert xneck("bus", "add-user", str(lab), "viewer-bob").returncode == 0
+    r = xneck("bus", "remove-user", str(lab), "viewer-bob")
+    assert r.returncode == 0 and "removed 'viewer-bob'" in r.stdout and "users: op, viewer-alice" in r.stdout, r.stderr
+    r = xneck("bus", "remove-user", str(lab), "viewer-bob")
+    assert r.returncode == 2 and "does not list 'viewer-bob'" in r.stderr, r.stderr
     for env in (ENV | {ENV_CREDENTIALS: str(out)}, ENV | {ENV_CREDENTIALS: str(lab), ENV_USER: "viewer-alice"}):
         for argv in (["up", "--exit-after", "1"], ["bridge", "--driver", "twin"], ["controller"], ["twin"],
                      ["camera", "--source", "twin"], ["campaign", "control"], ["campaign", "identification"]):

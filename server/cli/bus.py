@@ -61,6 +61,25 @@ def add_user(
                   else ""))
 
 
+@bus_app.command("remove-user")
+def remove_user(
+    path: Path = typer.Argument(..., help="The lab's credentials file."),
+    user: str = typer.Argument(..., help="The entry to remove: a lost laptop, a viewer who left."),
+) -> None:
+    """Remove a user from a credentials file (replaced at once, mode 600). The user is refused once
+    every machine of the stack has the updated file and its processes restarted (the file is read at
+    start; a session already open stays open until then)."""
+    from bridge.bus_credentials import CredentialsError, remove_entry
+
+    try:
+        left = remove_entry(path.expanduser(), user)
+    except (CredentialsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"removed {user!r} from {left.path}; users: {', '.join(left.users)}\n"
+               f"copy the file to every machine of the stack again and restart its xneck processes (the bridge's "
+               f"too): until then they still accept {user!r}")
+
+
 @bus_app.command("export-user")
 def export_user(
     path: Path = typer.Argument(..., help="The lab's credentials file."),
