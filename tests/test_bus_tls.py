@@ -171,3 +171,32 @@ def test_xneck_bus_tls_writes_a_folder_once_and_every_command_refuses_a_bad_one(
         r = xneck(*argv, env=ENV | {ENV_TLS: str(path)})
         assert r.returncode == 2 and "chmod 600" in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_xneck_bus_check_says_the_settings_and_whether_each_endpoint_links(tmp_path: Path) -> None:
+    """The commissioning check, against a real listener with credentials and TLS: linked with the
+    same settings; another lab's credentials are refused by the listener, nothing listens at a free
+    port; exit status 1 for those, 2 for settings that cannot be used."""
+    lab, creds = write_new(tmp_path / "tls", ["127.0.0.1"]), write_credentials(tmp_path / "creds", "op")
+    theirs = write_credentials(tmp_path / "theirs", "op")
+    env = ENV | {ENV_TLS: str(lab.path), ENV_CREDENTIALS: str(creds.path)}
+    ep, free = f"tls/127.0.0.1:{free_tcp_port()}", f"tls/127.0.0.1:{free_tcp_port()}"
+
+    def check(*endpoints: str, env: dict[str, str] = env) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*PY, "bus", "check", *endpoints], capture_output=True, text=True, env=env, timeout=120,
+                              stdin=subprocess.DEVNULL)
+
+    with open_session([ep], [], credentials=creds, tls=lab):
+        r = check(ep)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert f"credentials: {creds.path}, presenting 'op' (operator)" in r.stdout
+        assert f"TLS: {lab.path}, certificate names 127.0.0.1" in r.stdout and f"{ep}: linked" in r.stdout, r.stdout
+        r = check(ep, free, env=env | {ENV_CREDENTIALS: str(theirs.path)})
+        assert r.returncode == 1, r.stdout + r.stderr
+        assert f"{ep} answers but refuses this machine's bus session: the bus credentials differ" in r.stdout
+        assert f"nothing listens at {free}" in r.stdout, r.stdout
+    r = check(env=ENV)
+    assert r.returncode == 0 and "credentials: none" in r.stdout and "TLS: none" in r.stdout, r.stdout
+    (lab.path / "node.key").chmod(0o644)
+    r = check(ep)
+    assert r.returncode == 2 and "chmod 600" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

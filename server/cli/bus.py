@@ -7,7 +7,32 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import fail
+from server.cli.options import check_endpoints, fail
+
+
+def link_report(endpoint: str) -> tuple[str, str]:
+    """Whether this machine's processes could link to ``endpoint`` now (bridge.session.probe_link,
+    with this environment's credentials and TLS): the state and a sentence that says why not, for
+    the commissioning mistakes that otherwise look alike (a peer that never appears)."""
+    from bridge import bus_tls
+    from bridge.bus_credentials import ENV_CREDENTIALS, from_env
+    from bridge.session import LINKED, NO_LISTENER, probe_link
+
+    state = probe_link(endpoint)
+    if state == LINKED:
+        return state, f"{endpoint}: linked"
+    if state == NO_LISTENER:
+        return state, f"nothing listens at {endpoint}"
+    creds = from_env()
+    here = f"{ENV_CREDENTIALS}={creds.path}" if creds is not None else f"no {ENV_CREDENTIALS}"
+    tls = ""
+    if endpoint.startswith("tls/"):
+        folder = bus_tls.from_env()
+        tls = (" or the TLS folders (another authority, or a certificate that does not name this address: here "
+               f"{', '.join(folder.hosts) if folder else 'none'})")
+    return state, (f"{endpoint} answers but refuses this machine's bus session: the bus credentials differ{tls} "
+                   f"(here: {here}), or it is not an xneck process")
+
 
 bus_app = typer.Typer(help="The bus's access: credentials that keep strangers on the network off it.",
                       no_args_is_help=True, add_completion=False)
@@ -131,3 +156,39 @@ def tls(
                f"on every machine of the stack: copy ca.pem, node.pem, node.key (node.key mode 600) and set\n"
                f"  export {ENV_TLS}={made.path.resolve()}\n"
                f"then listen and connect on tls/<host>:<port>, e.g. xneck bridge ... --listen tls/0.0.0.0:7447")
+
+
+@bus_app.command("check")
+def check(
+    endpoint: list[str] = typer.Argument(None, help="Endpoints to try linking to, e.g. tls/<board-address>:7447."),
+) -> None:
+    """Say what this machine's bus settings are (XNECK_ZENOH_CREDENTIALS, XNECK_ZENOH_TLS) and
+    whether it links to each ENDPOINT now, as xneck's processes would: before connecting the robot.
+    Exit status 1 if an endpoint does not link, 2 if the settings cannot be used."""
+    from bridge import bus_tls
+    from bridge.bus_credentials import ENV_CREDENTIALS, CredentialsError, from_env
+    from bridge.session import LINKED
+
+    try:
+        creds, folder = from_env(), bus_tls.from_env()
+    except (CredentialsError, bus_tls.TlsError) as exc:
+        raise fail(str(exc)) from None
+    check_endpoints([], list(endpoint or []))
+    if creds is None:
+        typer.echo(f"credentials: none ({ENV_CREDENTIALS} unset): any Zenoh peer that reaches an exposed endpoint links")
+    else:
+        viewers = f"; drops what viewers publish: {', '.join(creds.viewers)}" if creds.viewers else ""
+        typer.echo(f"credentials: {creds.path}, presenting {creds.user!r} ({creds.role}); accepts "
+                   f"{', '.join(creds.users)}{viewers}")
+    if folder is None:
+        typer.echo(f"TLS: none ({bus_tls.ENV_TLS} unset): links are not encrypted; tls/ endpoints unavailable")
+    else:
+        typer.echo(f"TLS: {folder.path}, certificate names {', '.join(folder.hosts)}; valid until "
+                   f"{folder.not_after.date()} ({folder.days_left():.0f} days left)")
+    failed = 0
+    for e in endpoint or []:
+        state, sentence = link_report(e)
+        failed += state != LINKED
+        typer.echo(sentence)
+    if failed:
+        raise typer.Exit(1)

@@ -117,20 +117,15 @@ def _bus_access(hub: str, no_bridge: bool) -> str:
 def _bridge_link(endpoint: str) -> str:
     """A note on a remote bridge at ``endpoint`` that this machine cannot link to now ('' if it can):
     the commissioning mistakes that otherwise look alike, a bridge that never appears."""
-    from bridge.bus_credentials import ENV_CREDENTIALS, from_env
-    from bridge.session import NO_LISTENER, REFUSED, probe_link
+    from bridge.session import LINKED, NO_LISTENER
+    from server.cli.bus import link_report
 
-    state = probe_link(endpoint)
+    state, sentence = link_report(endpoint)
+    if state == LINKED:
+        return ""
     if state == NO_LISTENER:
-        return (f"note: nothing listens at {endpoint} yet: start the bridge there, or check the address (the "
-                f"controller waits for it)")
-    if state == REFUSED:
-        creds = from_env()
-        here = f"{ENV_CREDENTIALS}={creds.path}" if creds is not None else f"no {ENV_CREDENTIALS}"
-        tls = "" if not endpoint.startswith("tls/") else " or the TLS folders (another authority, or a certificate that does not name this address)"
-        return (f"warning: {endpoint} answers but refuses this machine's bus session: the bus credentials differ{tls} "
-                f"(here: {here}; docs/bridge.md, deployment step 3), or it is not an xneck bridge")
-    return ""
+        return f"note: {sentence} yet: start the bridge there, or check the address (the controller waits for it)"
+    return f"warning: {sentence} (docs/bridge.md, deployment step 3)"
 
 
 def _stack_on(hub: str) -> list[str]:
