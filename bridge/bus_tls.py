@@ -100,6 +100,11 @@ def load(path: str | os.PathLike[str], now: float | None = None) -> Tls:
     _pem(p / KEY, "PRIVATE KEY", where, private=True)
     _decode(p / CA, where)
     cert = _decode(p / CERT, where)
+    try:  # the standard library's check that the key is the certificate's (Zenoh only says KeyMismatch)
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(p / CERT, p / KEY)
+    except ssl.SSLError as exc:
+        raise TlsError(f"{where}: {KEY} is not the key of {CERT} ({exc.reason or exc}): copy both from the same "
+                       "folder") from None
     now = time.time() if now is None else now
     begins, ends = ssl.cert_time_to_seconds(cert["notBefore"]), ssl.cert_time_to_seconds(cert["notAfter"])
     if now >= ends:

@@ -48,6 +48,7 @@ def test_a_new_folder_holds_a_private_key_and_a_certificate_naming_the_hosts(tmp
 
 def test_a_folder_that_cannot_be_used_is_refused_with_the_reason(tmp_path: Path) -> None:
     good = write_new(tmp_path / "good", ["127.0.0.1"], days=10).path
+    other = write_new(tmp_path / "other", ["127.0.0.1"]).path
     with pytest.raises(TlsError, match="is not a directory"):
         load(tmp_path / "missing")
     with pytest.raises(TlsError, match="expired on"):
@@ -60,11 +61,13 @@ def test_a_folder_that_cannot_be_used_is_refused_with_the_reason(tmp_path: Path)
         "garbage certificate": lambda d: (d / "node.pem").write_text("-----BEGIN CERTIFICATE-----\nnope\n"
                                                                       "-----END CERTIFICATE-----\n"),
         "key for a certificate": lambda d: (d / "ca.pem").write_text((d / "node.key").read_text()),
+        "another folder's key": lambda d: (d / "node.key").write_text((other / "node.key").read_text()),
     }
     says = {"no key": "node.key: No such file", "open key": "chmod 600", "garbage certificate": "not a readable X.509",
-            "key for a certificate": "ca.pem holds no PEM certificate"}
+            "key for a certificate": "ca.pem holds no PEM certificate",
+            "another folder's key": "node.key is not the key of node.pem"}
     for name, spoil in cases.items():
-        d = tmp_path / name.replace(" ", "-")
+        d = tmp_path / name.replace(" ", "-").replace("'", "")
         shutil.copytree(good, d)
         (d / "node.key").chmod(0o600)
         spoil(d)
