@@ -128,9 +128,9 @@ def check_endpoints(listen: list[str] | None, connect: list[str] | None) -> None
 
 
 def check_credentials(acts: bool = True) -> None:
-    """``XNECK_ZENOH_CREDENTIALS`` and ``XNECK_ZENOH_TLS`` usable (bridge.bus_credentials, bridge.bus_tls)
-    when set: one ``error:`` line, before
-    any process starts, rather than a traceback from each process of a stack. ``acts``: the command
+    """``XNECK_ZENOH_CREDENTIALS`` and ``XNECK_ZENOH_TLS`` usable (bridge.bus_credentials,
+    bridge.bus_tls) when set: one ``error:`` line, before any process starts, rather than a
+    traceback from each process of a stack. ``acts``: the command
     publishes (a stack, a bridge, a controller, a campaign), which a viewer's user may not: what it
     published would reach no one, so it is refused here rather than left to fail silently."""
     from bridge import bus_tls
