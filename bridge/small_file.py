@@ -27,3 +27,22 @@ def read_checked(path: Path, label: str, error: type[ValueError], *, kind: str, 
         return path.read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"{label} cannot be read as ASCII text: {exc}") from None
+
+
+def stamps(paths: list[Path]) -> dict[str, tuple[int, int] | None]:
+    """Each file's (modification time in ns, size in bytes), None if it cannot be read now: what
+    :func:`changed` compares, to tell that a file a process read at start was replaced since."""
+    out: dict[str, tuple[int, int] | None] = {}
+    for p in paths:
+        try:
+            st = p.stat()
+            out[str(p)] = (st.st_mtime_ns, st.st_size)
+        except OSError:
+            out[str(p)] = None
+    return out
+
+
+def changed(before: dict[str, tuple[int, int] | None]) -> list[str]:
+    """The files of ``before`` (:func:`stamps`) replaced, changed or removed since."""
+    now = stamps([Path(p) for p in before])
+    return [p for p in before if now[p] != before[p]]

@@ -27,7 +27,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from bridge import bus_credentials, bus_tls
+from bridge import bus_credentials, bus_tls, small_file
 from bridge.archive import software_version, storage_reason
 from bridge.session import access_summary, free_tcp_port, open_session
 from server import (
@@ -87,8 +87,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state.started = time.monotonic()
         state.hub = concrete_hub(settings.hub)
         session = open_session(listen=[state.hub], connect=list(settings.connect))
-        state.bus_access = access_summary([state.hub], list(settings.connect), bus_credentials.from_env(),
-                                          bus_tls.from_env())
+        creds, tls = bus_credentials.from_env(), bus_tls.from_env()
+        state.bus_access = access_summary([state.hub], list(settings.connect), creds, tls)
+        # Zenoh reads them once, at start: a file replaced since (a user revoked) is not in force here
+        state.bus_files = small_file.stamps(([creds.path] if creds else []) + ([tls.ca, tls.cert, tls.key] if tls else []))
         state.session = session
         state.scene = None
         tasks: list[asyncio.Task] = []

@@ -9,6 +9,7 @@ from typing import Any
 from fastapi import APIRouter, Depends, Request
 from pydantic import BaseModel, Field
 
+from bridge import small_file
 from bridge.archive import software_version
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
@@ -26,11 +27,14 @@ def health(request: Request) -> dict[str, Any]:
     bridge's latest valid motor state is (``state_age_s``, seconds on the monotonic clock, null
     before any; it grows while the bridge is silent) and its ``drive``, ``owner`` and ``instance``
     as of that state. ``bus``: who may link to the console's session (bridge.session.access_summary;
-    ``open`` when anyone on the network may). ``uptime_s`` in seconds."""
+    ``open`` when anyone on the network may; ``changed_since_start``, its credentials and TLS files
+    replaced since it started, which its session does not apply until a restart). ``uptime_s`` in
+    seconds."""
     s = request.app.state
     return {
         "status": "ok", "version": software_version(), "uptime_s": time.monotonic() - s.started,
-        "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub, "bus": s.bus_access,
+        "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
+        "bus": {**s.bus_access, "changed_since_start": small_file.changed(s.bus_files)},
         "viser_port": s.scene.port if s.scene else None,
         "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it

@@ -24,7 +24,15 @@ import pytest
 from server_harness import running_server, stop_process_groups, wait_until
 
 from bridge import bus, session
-from bridge.bus_credentials import ENV_CREDENTIALS, ENV_USER, CredentialsError, from_env, load, write_new
+from bridge.bus_credentials import (
+    ENV_CREDENTIALS,
+    ENV_USER,
+    CredentialsError,
+    from_env,
+    load,
+    remove_entry,
+    write_new,
+)
 from bridge.session import access_summary, free_tcp_port, open_session, publisher, zenoh_config
 
 PY = [sys.executable, "-m", "server.cli"]
@@ -310,5 +318,10 @@ def test_who_may_link_is_summarised_for_the_console(tmp_path: Path, monkeypatch:
         import httpx
 
         bus_state = httpx.get(base + "/api/system/health", timeout=30).json()["bus"]
+        # A user revoked (or added) after the start is not in force until a restart: the console says so.
+        time.sleep(0.01)  # a distinct modification time, even on a coarse clock
+        remove_entry(creds.path, "bridge")
+        changed = httpx.get(base + "/api/system/health", timeout=30).json()["bus"]["changed_since_start"]
     assert bus_state == {"credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": [],
-                         "remote": [], "open": False, "encrypted": False}, bus_state
+                         "remote": [], "open": False, "encrypted": False, "changed_since_start": []}, bus_state
+    assert changed == [str(creds.path)], changed

@@ -293,6 +293,28 @@ def test_a_viewers_console_says_it_cannot_act_and_its_estop_button_is_off(consol
     assert page.get_attribute("#estop", "title") == title
 
 
+def test_the_header_says_when_the_bus_settings_changed_since_the_start(console, tmp_path):
+    """Zenoh reads the credentials and TLS files once: a file replaced since (a user revoked) is
+    not in force until a restart, and the header says so. The start's record is set on the running
+    app (the fixture's console has no credentials)."""
+    from bridge import small_file
+
+    page, state = console.page, console.app.state
+    assert page.locator("#bus-changed").is_hidden()
+    creds = tmp_path / "bus-credentials"
+    creds.write_text("x")
+    saved = state.bus_files
+    state.bus_files = small_file.stamps([creds])
+    try:
+        creds.unlink()
+        page.wait_for_function("!document.querySelector('#bus-changed').hidden", timeout=15000)
+        text = page.inner_text("#bus-changed")
+        assert text.startswith("BUS SETTINGS CHANGED") and str(creds) in text and "restart" in text, text
+    finally:
+        state.bus_files = saved
+    page.wait_for_function("document.querySelector('#bus-changed').hidden", timeout=15000)
+
+
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped

@@ -363,6 +363,10 @@ async function pollStatus() {
     $("#bus-open").hidden = !open;
     $("#bus-open").textContent = open;
     showViewer(busViewer(h.bus));
+    const changed = (h.bus && h.bus.changed_since_start) || [];
+    $("#bus-changed").hidden = !changed.length;
+    $("#bus-changed").textContent = changed.length ? `BUS SETTINGS CHANGED since this console started ` +
+      `(${changed.join(", ")}): not in force until the stack and the bridge restart` : "";
     // While live frames bring the bridge's states, they alone show its e-stop: the poll's copy
     // of the same state may be older or newer than the last frame, and mixing the two made the
     // banner blink off and on right after an engage.
