@@ -34,6 +34,9 @@ def link_report(endpoint: str) -> tuple[str, str]:
                    f"(here: {here}), or it is not an xneck process")
 
 
+#: What every change to the lab's credentials file needs: Zenoh reads it once, at start.
+REDISTRIBUTE = "copy the file to every machine of the stack again and restart its xneck processes (the bridge's too)"
+
 bus_app = typer.Typer(help="The bus's access: credentials that keep strangers on the network off it.",
                       no_args_is_help=True, add_completion=False)
 
@@ -80,8 +83,7 @@ def add_user(
         made = add_entry(path.expanduser(), user)
     except (CredentialsError, OSError) as exc:
         raise fail(str(exc)) from None
-    typer.echo(f"added {made.user!r} ({made.role}) to {made.path}; users: {', '.join(made.users)}\n"
-               f"copy the file to every machine of the stack again and restart its xneck processes"
+    typer.echo(f"added {made.user!r} ({made.role}) to {made.path}; users: {', '.join(made.users)}\n{REDISTRIBUTE}"
                + (f"; the viewer's machine: xneck bus export-user {made.path} {made.user} FILE" if made.role == "viewer"
                   else ""))
 
@@ -100,9 +102,8 @@ def remove_user(
         left = remove_entry(path.expanduser(), user)
     except (CredentialsError, OSError) as exc:
         raise fail(str(exc)) from None
-    typer.echo(f"removed {user!r} from {left.path}; users: {', '.join(left.users)}\n"
-               f"copy the file to every machine of the stack again and restart its xneck processes (the bridge's "
-               f"too): until then they still accept {user!r}")
+    typer.echo(f"removed {user!r} from {left.path}; users: {', '.join(left.users)}\n{REDISTRIBUTE}: until then "
+               f"they still accept {user!r}")
 
 
 @bus_app.command("export-user")
