@@ -58,6 +58,7 @@ app.command("server")(serve.server)
 app.command("up")(up.up)
 app.add_typer(camera.camera_app, name="camera")
 excitation.excitation_app.command("design")(excitation.design_command)
+excitation.excitation_app.command("bound")(excitation.bound_command)
 app.add_typer(excitation.excitation_app, name="excitation")
 for _kind in ("control", "identification", "design"):
     study.study_app.command(_kind)(getattr(study, f"study_{_kind}"))

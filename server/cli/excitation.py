@@ -177,3 +177,88 @@ def design_command(
                + ", ".join(f"{n} {r:.2f}" for n, r in ratios.items() if not n.startswith("c_a")))
     typer.echo(f"information ratio det F: ×{math.exp(d.log_det - b.log_det):.3g}; written {out} (scores {design_path.name})")
     typer.echo(f"run it: xneck campaign identification --trajectory {out}")
+
+
+def bound_command(
+    duration: float = typer.Option(97.0, "--duration", help="Duration the excitation may last (s), rests included; "
+                                   "97 s is the §5.2.2 identification trajectory's."),
+    target: float = typer.Option(0.5, "--target", help="σ ratio asked of every k and λ against the §5.2.2 "
+                                 "cycloids (issue 17: 0.5, halved)."),
+    t_max: float | None = typer.Option(None, "--t-max", help="Highest cable tension a design may use (N; default "
+                                       "f_max, the law's clamp)."),
+    trajectories: list[Path] | None = typer.Option(None, "--trajectory", help="A trajectory file (e.g. from "
+                                                   "`xneck excitation design`) to score beside the bound; repeat "
+                                                   "for several."),
+    as_json: bool = typer.Option(False, "--json", help="Print the figures as JSON."),
+    params_file: Path | None = PARAMS_OPTION,
+    overrides: list[str] | None = SET_OPTION,
+) -> None:
+    """The least σ of each k and λ any excitation of this duration could give, against the §5.2.2
+    cycloids (design model; Elfving's c-optimal bound, twin/identification/excitation_bound.py):
+    whether a σ ratio target is reachable at all, and the shortest record where it would be."""
+    from controller.trajectory import TrajectoryError, identification_trajectory, load_trajectory
+    from twin.identification.excitation import MIN_TENSION_N, REST_S, DesignError, score
+    from twin.identification.excitation_bound import sigma_bound
+
+    params = load_cli_params(params_file, overrides)
+    t_hi = params.limits.f_max if t_max is None else t_max
+    if not (math.isfinite(duration) and duration > 2 * REST_S):
+        raise fail(f"--duration must be a number of seconds above the two {REST_S:g} s rests, got {duration}")
+    if not (math.isfinite(target) and target > 0.0):
+        raise fail(f"--target must be a positive σ ratio, got {target}")
+    if not (math.isfinite(t_hi) and t_hi > MIN_TENSION_N):
+        raise fail(f"--t-max must be above the {MIN_TENSION_N:g} N slack threshold (N), got {t_hi}")
+    try:
+        problem = _problem(params, duration, 0.6)
+    except DesignError as exc:
+        raise fail(str(exc)) from None
+    paper = identification_trajectory()
+    base = score(problem, paper.waypoints_rad, paper.durations_s, paper.dwell_s)
+    moving = (duration - 2 * REST_S) / duration
+    try:
+        b = sigma_bound(problem.k, problem.lam, t_min_N=MIN_TENSION_N, t_max_N=t_hi, moving_fraction=moving)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    # Score.relative_sigma is per √s of record: σ over a record of D seconds is s/√D.
+    scale = math.sqrt(base.duration_s / duration)
+    nc = len(problem.k)
+    rows: dict[str, dict[str, object]] = {}
+    for name, s_b, design in ([(f"k({j + 1})", b.k[j], b.k_designs[j]) for j in range(nc)]
+                              + [(f"lambda({j + 1})", b.lam[j], b.lam_designs[j]) for j in range(nc)]):
+        ratio = s_b / base.relative_sigma[name] * scale
+        # σ_bound(D) = √(variance/(D − 2·rest)): the record where the ratio falls to the target
+        shortest = 2 * REST_S + design.variance * base.duration_s / (target * base.relative_sigma[name]) ** 2
+        rows[name] = {"cycloids_relative_sigma_per_sqrt_s": base.relative_sigma[name],
+                      "bound_relative_sigma_per_sqrt_s": float(s_b), "bound_ratio": float(ratio),
+                      "reachable": bool(ratio <= target), "support_tensions_N": list(design.tensions_N),
+                      "support_weights": list(design.weights), "shortest_duration_s": float(shortest)}
+    scored: dict[str, dict[str, float]] = {}
+    for path in trajectories or []:
+        try:
+            traj = load_trajectory(path)
+        except TrajectoryError as exc:
+            raise fail(str(exc)) from None
+        if traj.n_joints != params.n_joints:
+            raise fail(f"{path}: {traj.n_joints} joints, the robot has {params.n_joints}")
+        s = score(problem, traj.waypoints_rad, traj.durations_s, traj.dwell_s,
+                  traj.pretension_N if traj.has_pretension else None)
+        scored[str(path)] = {n: s.relative_sigma[n] / base.relative_sigma[n] * math.sqrt(base.duration_s / s.duration_s)
+                             for n in rows}
+    report = {"duration_s": duration, "cycloids_duration_s": base.duration_s, "target_ratio": target,
+              "t_min_N": MIN_TENSION_N, "t_max_N": t_hi, "moving_fraction": moving,
+              "reachable_all": all(r["reachable"] for r in rows.values()), "parameters": rows,
+              "trajectories_predicted_ratio": scored}
+    if as_json:
+        echo_json(report)
+        return
+    typer.echo(f"least σ any {duration:g} s excitation could give, against the §5.2.2 cycloids ({base.duration_s:.1f} s), "
+               f"design model: tensions anywhere in [{MIN_TENSION_N:g}, {t_hi:g}] N, every motor turning but the rests")
+    typer.echo(f"{'':12s}{'bound ratio':>12s}{'reachable':>11s}{'support (N)':>16s}{'target needs':>15s}"
+               + "".join(f"{Path(p).name[:14]:>16s}" for p in scored))
+    for name, r in rows.items():
+        t1, t2 = r["support_tensions_N"]  # type: ignore[misc]
+        typer.echo(f"{name:12s}{r['bound_ratio']:12.3f}{('yes' if r['reachable'] else 'NO'):>11s}"
+                   f"{f'{t1:.0f} / {t2:.0f}':>16s}{r['shortest_duration_s']:>13.0f} s"
+                   + "".join(f"{v[name]:16.3f}" for v in scored.values()))
+    verdict = "reachable on the design model" if report["reachable_all"] else "NOT reachable by any excitation"
+    typer.echo(f"target σ ratio {target:g} for every k and λ at {duration:g} s: {verdict}")
