@@ -133,7 +133,7 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="re-run every command, ignoring runs/*.json")
     ap.add_argument("--seeds", default="0,1,2", help="twin noise seeds of the identification campaigns")
     ap.add_argument("--md-only", action="store_true", help="only rewrite the page from the cached runs")
-    ap.add_argument("--steps", default="design,paper,control,table3,designed,cv-paper,cv-designed,creep,check,reach",
+    ap.add_argument("--steps", default="design,paper,control,table3,designed,cv-paper,cv-designed,creep,check,reach,bound",
                     help="which groups of commands to run (two processes may run different groups at once)")
     a = ap.parse_args()
     seeds = [int(s) for s in a.seeds.split(",") if s.strip()]
@@ -190,13 +190,16 @@ def main() -> None:
                              "--out", str((RUNS / f"{name}.json").relative_to(ROOT)).replace(".json", "-trajectory.json"),
                              "--json"], "reach")
              for name, extra in REACH}
+    scored = [*CHECK_FILES, *(str((RUNS / f"{name}-trajectory.json").relative_to(ROOT)) for name, _ in REACH)]
+    bound = go("bound", ["excitation", "bound", "--duration", f"{PAPER_DURATION_S:g}",
+                         *(a for f in scored for a in ("--trajectory", f)), "--json"], "bound")
     if not steps >= {"design", "paper", "control", "table3", "designed", "cv-paper", "cv-designed", "creep", "check",
-                     "reach"} \
+                     "reach", "bound"} \
             and not a.md_only:
         return  # a partial run: the page is written by a full or --md-only run
     version = _checkout()
     (DOCS / "identification.md").write_text(page(design, paper, designed, control, cv, table3, seeds, version,
-                                                 checks, reach, creep))
+                                                 checks, reach, creep, bound))
     print(f"wrote {DOCS / 'identification.md'}", file=sys.stderr)
 
 
@@ -279,8 +282,51 @@ def _run_checkouts(*groups) -> str:
     return ", ".join(f"{k} ({n} run{'s' if n > 1 else ''})" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
+def _bound_section(bound) -> list[str]:
+    """What no excitation can beat: `xneck excitation bound` (twin/identification/excitation_bound.py)."""
+    rep = (bound or {}).get("json")
+    if not rep:
+        return [] if not bound else [f"`{bound['command']}`: failed, {' '.join(bound.get('stderr_tail') or [])}", ""]
+    params = rep["parameters"]
+    files = list(rep["trajectories_predicted_ratio"])
+    md = ["### What no excitation can beat: the information bound", "",
+          f"`{bound['command']}` (twin/identification/excitation_bound.py). In the design model a cable's k",
+          "and λ entries depend on its tension alone: r_k = t·k²/(k + λt)², largest at t = k/λ (a cable",
+          "that stiffens with the load tells less about k the harder it is pulled), r_λ = t²·λ·k/(k + λt)².",
+          "Any trajectory's information on a cable's (k, λ) is then at most that of the best mixture of",
+          "tensions with its motor turning all the time but the rests; Elfving's c-optimal design gives",
+          "that mixture (two tensions per parameter). The bound lets every cable take any tension in",
+          f"[{rep['t_min_N']:g}, {rep['t_max_N']:g}] N at every instant with all four motors turning, which no trajectory can",
+          "(the tensions follow the joints and one internal force), so real designs stay well above it.",
+          "The last columns: the design model's predicted σ ratio of the trajectories of the sections above.", "",
+          "| parameter | least σ ratio any excitation could reach | halved? | its tensions (N), weights "
+          "| record that would allow halving (s) | "
+          + " | ".join(f"{Path(f).name.removesuffix('.json').removesuffix('-trajectory')}" for f in files) + " |",
+          "|---" * (5 + len(files)) + "|"]
+    for name, r in params.items():
+        (t1, t2), (w1, w2) = r["support_tensions_N"], r["support_weights"]
+        md.append(f"| {name} | {r['bound_ratio']:.3f} | {'yes' if r['reachable'] else '**no**'} | "
+                  f"{t1:.0f} ({w1:.2f}), {t2:.0f} ({w2:.2f}) | {r['shortest_duration_s']:.0f} | "
+                  + " | ".join(f"{rep['trajectories_predicted_ratio'][f][name]:.2f}" for f in files) + " |")
+    out = [n for n, r in params.items() if not r["reachable"]]
+    need = max(r["shortest_duration_s"] for r in params.values())
+    best = {n: min(v[n] for v in rep["trajectories_predicted_ratio"].values()) for n in params} if files else {}
+    md += ["", (f"At {rep['duration_s']:g} s no excitation can halve the σ of {', '.join(out)} on the model whose "
+                "predictions followed the campaigns (above): issue 17's target is out of reach as stated, "
+                f"whatever the design. Halving every σ would take a record of at least {need:.0f} s even on the "
+                "bound; the cycloids run four times (385 s) halve it (σ ∝ 1/√duration)."
+                if out else f"At {rep['duration_s']:g} s the bound does not exclude halving every σ.")
+           + (" The best of the designs above reach " + ", ".join(f"{n} {v:.2f}" for n, v in best.items()
+                                                                    if n.startswith("k")) + "." if best else ""),
+           "On the robot truth each motor's force scale (±5 %) adds a type-B part to k's σ that no",
+           "excitation reduces, and a noise on the tension rather than the stretch would let k's",
+           "information grow with the load: the bound is the design model's, checked against campaigns",
+           "on the damping-only truth.", ""]
+    return md
+
+
 def page(design, paper, designed, control, cv, table3, seeds, version: str = "", checks=None, reach=None,
-         creep=None) -> str:
+         creep=None, bound=None) -> str:
     truth = _truth()
     names = list(truth)
     md = [
@@ -293,7 +339,7 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
         "with stiction and asymmetry, BeagleBone timing) and, by default, measures α_IP on rendered",
         "camera frames. The truth of k and λ is the prototype parameter file's Table 2.",
         f"Page written {time.strftime('%Y-%m-%d %H:%M')} at `{version}`; its commands ran at "
-        f"{_run_checkouts(design, paper, designed, control, cv, table3, checks, reach, creep)} (each run's JSON in",
+        f"{_run_checkouts(design, paper, designed, control, cv, table3, checks, reach, creep, bound)} (each run's JSON in",
         "docs/identification/runs/ names its checkout; `-dirty`: with uncommitted changes in the tree).",
         "",
     ]
@@ -368,7 +414,12 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
     cond5 = math.isfinite(cond_ratio) and cond_ratio >= 5
     md += ["", f"**Target** (σ of every k and λ at least halved; condition number at least 5× lower): "
            f"σ halved for {sum(r <= 0.5 for r in ratios.values())}/{len(ratios)} parameters "
-           f"({'met' if halved else 'NOT met'}); condition number of the {which} regressor "
+           f"({'met' if halved else 'NOT met'}"
+           + (f"; no {bound['json']['duration_s']:g} s excitation can halve the σ of "
+              + ", ".join(n for n, r in bound["json"]["parameters"].items() if not r["reachable"])
+              + ", \"What no excitation can beat\" below"
+              if bound and bound.get("json") and not bound["json"]["reachable_all"] else "")
+           + f"); condition number of the {which} regressor "
            f"{'met' if cond5 else 'NOT met'} (ratio {_fmt(cond_ratio, '.2f')})"
            + (". The nonlinear fit's Jacobian cond (the variable row) measures how well its own parameters "
               "(friction shape, spring rates, creep) are seen, not the excitation's information"
@@ -421,6 +472,7 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
                "1/√duration: the cycloids run four times (385 s, within the 600 s a campaign may last) halve it;",
                "on the robot truth that brings λ within 10 % more often but leaves the biases",
                "(docs/identification-coverage.md, \"Longer records\").", ""]
+    md += _bound_section(bound)
     wide = [json.loads(f.read_text()) for f in sorted(RUNS.glob("designed-wide-*.json"))]
     wide_design = RUNS / "design-wide.json"
     if wide and wide_design.exists():
