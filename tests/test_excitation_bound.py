@@ -126,6 +126,7 @@ def test_cli_says_halving_every_sigma_at_the_paper_duration_is_out_of_reach(xnec
     (["--duration", "1.5"], "--duration must be"),
     (["--target", "-1"], "--target must be"),
     (["--t-max", "1"], "--t-max must be"),
+    (["--t-max", "1e308"], "--t-max must be"),
     (["--trajectory", "nope.json"], "cannot read the trajectory file"),
 ])
 def test_bad_cli_requests_are_refused_clearly(cli, args, message):

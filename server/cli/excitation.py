@@ -206,8 +206,9 @@ def bound_command(
         raise fail(f"--duration must be a number of seconds above the two {REST_S:g} s rests, got {duration}")
     if not (math.isfinite(target) and target > 0.0):
         raise fail(f"--target must be a positive σ ratio, got {target}")
-    if not (math.isfinite(t_hi) and t_hi > MIN_TENSION_N):
-        raise fail(f"--t-max must be above the {MIN_TENSION_N:g} N slack threshold (N), got {t_hi}")
+    if not (math.isfinite(t_hi) and MIN_TENSION_N < t_hi <= 10 * params.limits.f_max):
+        raise fail(f"--t-max must be above the {MIN_TENSION_N:g} N slack threshold and at most 10·f_max = "
+                   f"{10 * params.limits.f_max:g} N, got {t_hi}")
     try:
         problem = _problem(params, duration, 0.6)
     except DesignError as exc:
