@@ -34,6 +34,7 @@ import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -168,8 +169,8 @@ def _rogue_tcp(connect: list[str], seconds: float, count: int) -> None:
 
 
 def _start(role: str, seconds: float, listen: list[str], connect: list[str],
-           env: Mapping[str, str] | None, count: int = 0) -> subprocess.Popen[str]:
-    return subprocess.Popen([*PEER, role, str(seconds), ",".join(listen), ",".join(connect), str(count)],
+           env: Mapping[str, str] | None, count: int = 0, prefix: list[str] | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen([*(prefix or []), *PEER, role, str(seconds), ",".join(listen), ",".join(connect), str(count)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
                             env=None if env is None else dict(env))
 
@@ -282,7 +283,7 @@ def run_flood(flood: str, count: int, seconds: float, env: Mapping[str, str], ro
 
 
 def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mapping[str, str] | None = None,
-              unix_dir: Path | None = None) -> dict:
+              unix_dir: Path | None = None, board: Any = None) -> dict:
     """Peers that come and go: a publisher (the bridge) listens on a free loopback port and a
     control peer connects to it; once states flow, ``peers`` listener processes (each a console or
     a tool subscribing to every key) connect to the publisher one after another, each living
@@ -290,17 +291,24 @@ def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mappin
     periods and 4 s (0 peers and the churn's slots: the baseline).
     Returns the control peer's JSON line (module doc) with ``arrivals_s``, when each peer was
     started (s since the control peer's first state). With ``unix_dir``, every process listens on a
-    Unix socket there instead of loopback TCP. Every process is stopped on return."""
+    Unix socket there instead of loopback TCP. With ``board`` (benchmarks/_netns.py: another
+    network stack, as the BeagleBone's), the publisher runs in it and listens on TCP at its
+    address (the remote bridge's layout); the other processes stay on this machine, listening as
+    ``unix_dir`` says. Every process is stopped on return."""
     from bridge.session import free_tcp_port
 
     def listen_at(name: str) -> list[str]:
         return [ANY] if unix_dir is None else [f"unixsock-stream/{unix_dir / name}.sock"]
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}" if unix_dir is None else listen_at("publish")[0]
+    if board is not None:  # the bridge on its board: other machines reach it over TCP
+        endpoint = f"tcp/{board.board_ip}:{free_tcp_port()}"
+    else:
+        endpoint = f"tcp/127.0.0.1:{free_tcp_port()}" if unix_dir is None else listen_at("publish")[0]
     seconds = 4.0 + period_s * (peers if slots is None else slots)
     procs: list[subprocess.Popen[str]] = []
     try:
-        procs.append(_start("publish", seconds + 30.0, [endpoint], [], env))
+        procs.append(_start("publish", seconds + 30.0, [endpoint], [], env,
+                            prefix=None if board is None else board.exec_prefix))
         control = _start("control", seconds, listen_at("control"), [endpoint], env)
         procs.append(control)
         _expect(control, "ready")
