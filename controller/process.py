@@ -125,6 +125,8 @@ class ControllerNode:
             bus.check_motor_state(msg, n_motors, f_max)
             with self._gate_lock:
                 reason = self.gate.admit(msg, time.monotonic())
+                if self.gate.stepped_s is not None:
+                    self._clock_step = self.gate.stepped_s  # for the tick on this state (_on_state)
             if reason:
                 raise bus.BusDecodeError(reason)
 
@@ -135,6 +137,7 @@ class ControllerNode:
         self._live = self._done = False
         self._error: Exception | None = None
         self._last_key: tuple[str, float] = ("", -math.inf)
+        self._clock_step: float | None = None  # s the bound run's clock stepped (StateGate.stepped_s)
         self._last_wall = 0.0
         self._state: bus.MotorState | None = None
         self.times = TickTimes()
@@ -367,6 +370,7 @@ class ControllerNode:
                 svc.begin(self._own_trajectory, first.stamp_s)
             self._last_key, self._last_wall = (first.epoch, first.stamp_s), time.perf_counter()
             self._state = first
+            self._clock_step = None  # a step seen while waiting for the first state is no step of this run
             if self._service:
                 self._serve_requests(first.stamp_s)
             received_ns = self.states.latest_with_time()[1]  # monotonic: the wall clock's arrival time
@@ -429,10 +433,14 @@ class ControllerNode:
                     return
                 if self._stale_in_burst(state, arrival_ns):
                     return
+                step_s, self._clock_step = self._clock_step, None
                 if state.epoch != self._last_key[0]:
                     log.warning("bridge %s restarted (epoch %s): re-initialising from its state", state.bridge,
                                 state.epoch)
                     self.service.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge)
+                elif step_s is not None:
+                    log.warning("the clock of bridge %s stepped by %+.3g s", state.bridge, step_s)
+                    self.service.clock_stepped(step_s, state.stamp_s)
                 wall = time.perf_counter()
                 tick_s, self._last_wall, self._last_key, self._state = wall - self._last_wall, wall, key, state
                 self._react(state, arrival_ns, decoded_ns, tick_s)

@@ -239,10 +239,14 @@ class StateGate:
         self._taken = -math.inf  # when the last state was taken (a re-publication too)
         self._candidate: tuple[str, str, float, float] | None = None  # (bridge, epoch, stamp, when)
         self._n_taken = 0  # states taken so far
+        # s the bound run's clock stepped by, when the last state taken re-bound the gate to its own
+        # run on a stepped clock (None otherwise): the campaign on the old clock cannot go on
+        self.stepped_s: float | None = None
         # a run other than the bound one: [bridge, epoch, stamp, when, states, since, _n_taken then]
         self._rival: list | None = None
 
     def _bind(self, state: bus.MotorState, now_s: float) -> str:
+        self.stepped_s = None
         self.bridge, self.epoch = state.bridge, state.epoch
         self._stamp, self._wall = state.stamp_s, now_s
         self._taken, self._candidate, self._rival = now_s, None, None
@@ -288,14 +292,18 @@ class StateGate:
         if now_s - self._taken >= self.rebind_s and why:
             cand = self._candidate
             if cand is not None and not self._check(state, *cand, now_s):
-                return self._bind(state, now_s)
+                same_run = (state.bridge, state.epoch) == (self.bridge, self.epoch)
+                step_s = (cand[2] - self._stamp) - (cand[3] - self._wall)
+                self._bind(state, now_s)
+                self.stepped_s = step_s if same_run else None
+                return ""
             self._candidate = (state.bridge, state.epoch, state.stamp_s, now_s)
             return f"{why}; after {now_s - self._taken:.3g} s without a state, taken if the next one confirms it"
         if why:
             return why
         if state.stamp_s > self._stamp:
             self._stamp, self._wall = state.stamp_s, now_s
-        self._taken, self._candidate = now_s, None
+        self._taken, self._candidate, self.stepped_s = now_s, None, None
         self._n_taken += 1
         return ""
 
@@ -409,6 +417,24 @@ class CampaignService:
                       self._progress(stamp_s), self.ctl.estimator.alpha_hat)
         self._drop_waiting(f"the bridge restarted ({bridge})")
         self.initialise(theta_rad)
+
+    def clock_stepped(self, step_s: float, stamp_s: float) -> None:
+        """The bridge's clock stepped by ``step_s`` within one run (a wall clock set by NTP: the
+        BeagleBone has no RTC battery), now at ``stamp_s``. The trajectory runs on the states'
+        stamps, so a running campaign cannot go on: a step forward had it end ``finished`` at once
+        with most of its trajectory never run, a step back kept it going for as long again (audit
+        of 2026-11-27). It ends ``aborted`` with the reason; the estimate goes on (same encoders),
+        and what was timed on the old clock starts again."""
+        reason = f"the bridge's clock stepped by {step_s:+.3g} s"
+        last_stamp = self._theta_last[0] if self._theta_last is not None else stamp_s
+        if self.running:
+            self._end("aborted", f"{reason}: the campaign cannot continue", self._progress(last_stamp),
+                      self.ctl.estimator.alpha_hat)
+        self._drop_waiting(reason)
+        self._theta_last = self._hold_since = None
+        if self._check_armed_at is not None and math.isfinite(self._check_armed_at):
+            self._check_armed_at = stamp_s + ENCODER_CHECK_SETTLE_S
+        self._restart = True  # the law re-starts from the measurement, bumplessly
 
     # -- campaigns ----------------------------------------------------------------------------
     def begin(self, trajectory: Trajectory, stamp_s: float) -> None:

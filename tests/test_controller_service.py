@@ -378,6 +378,54 @@ def test_a_forged_state_after_a_stall_is_not_taken_and_a_stepped_clock_is():
     assert "back in time" in gate.admit(_state(5.806), now_s=100.806)
 
 
+@pytest.mark.parametrize("step_s", [100.0, -100.0])
+def test_a_campaign_on_a_bridge_clock_that_steps_ends_aborted_and_the_law_restarts_bumplessly(params, step_s):
+    """Audit of 2026-11-27: the gate re-binds to the bridge's own run once its wall clock stepped
+    (NTP; the BeagleBone has no RTC battery), and the trajectory runs on the states' stamps: 100 s
+    forward, a campaign 1.5 s into its 5.5 s ended 'finished' on the next tick, most of it never
+    run; 100 s back, it went on for 100 s more. The step ends it 'aborted' with the reason, and
+    the law re-starts from the measurement without a force step."""
+    traj = Trajectory.from_degrees([[0, 0, 0], [20, 10, 0], [0, 0, 0]], 2.0, 0.5, name="t")
+    loop, gate = Loop(params), StateGate()
+    off, wall0 = 0.0, 1000.0
+
+    def state(stamp_s: float) -> bus.MotorState:
+        return bus.MotorState(seq=1, stamp_s=stamp_s, theta_rad=loop.tick.theta_meas.tolist(),
+                              force_applied_N=[0.0] * 4, drive="active", epoch="e1", bridge="b1")
+
+    def ticks(seconds: float) -> None:
+        for _ in range(round(seconds * 500)):
+            stamp, now = loop.stamp_s + off, wall0 + loop.stamp_s
+            if gate.admit(state(stamp), now) == "":
+                if gate.stepped_s is not None:  # what ControllerNode._on_state does
+                    loop.svc.clock_stepped(gate.stepped_s, stamp)
+                out = loop.svc.control(loop.tick.theta_meas, stamp)
+                if out.law_ran:
+                    loop.svc.advance(stamp)
+            else:  # the process's loop holds on stale states
+                out = loop.svc.stale("stale state", 0.05)
+            loop.outputs.append(out)
+            loop.events += loop.svc.drain_events()
+            loop.tick = loop.twin.tick(out.force_N)
+
+    loop.svc.handle(_request("c", trajectory_json=traj.to_json()), loop.stamp_s)
+    ticks(1.5)
+    assert loop.svc.running
+    off = step_s
+    ticks(1.0)
+    final = [e for e in loop.events if e.event in ("finished", "aborted")]
+    assert [e.event for e in final] == ["aborted"] and "clock stepped by" in final[0].message, final
+    assert final[0].progress < 0.5, final[0].progress
+    assert not loop.svc.running and gate.stepped_s is None
+    forces = np.array([o.force_N for o in loop.outputs])
+    assert np.abs(np.diff(forces, axis=0)).max() <= LawConfig(law=2).force_rate_max_N_s / 500.0 + 1e-9
+    ticks(1.0)  # held where it is, and a new campaign runs on the new clock
+    loop.svc.handle(_request("c-2", trajectory_json=Trajectory.from_degrees([[0, 0, 0]], [], 0.2).to_json()),
+                    loop.stamp_s + off)
+    ticks(2.5)
+    assert [e.event for e in loop.events if e.campaign_id == "c-2"][-1] == "finished"
+
+
 def test_a_stray_run_seen_first_gives_way_to_the_bridge_that_states_at_the_control_rate():
     """Audit of 2026-11-26: the first state ever was bound whatever it was; a forged run seen first
     by a (re)starting controller and kept alive at 10 Hz deafened it to the real bridge (0 of 5000
