@@ -307,7 +307,7 @@ class ControllerNode:
             if isinstance(result, Refused):
                 log.warning("campaign %s: %s", req.campaign_id, result.reason)
                 self._reject_request(f"{req.campaign_id}: {result.reason}")
-            svc.prepared(result, req.campaign_id, req.kind, stamp_s)
+            svc.prepared(result, req, stamp_s)
         while True:
             try:
                 req = self._inbox.get_nowait()
@@ -319,8 +319,7 @@ class ControllerNode:
                 try:
                     self._to_prepare.put_nowait(req)
                 except queue.Full:
-                    svc.prepared(Refused("refused: the controller is busy preparing other campaigns"),
-                                 req.campaign_id, req.kind, stamp_s)
+                    svc.prepared(Refused("refused: the controller is busy preparing other campaigns"), req, stamp_s)
 
     # -- the loop -----------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> str:

@@ -351,7 +351,9 @@ class CampaignService:
         self.pretension_N = 0.0  # the floor added to t_min at the last tick (N, module docstring)
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._brake: tuple[float, np.ndarray, np.ndarray, float] | None = None  # (start stamp, α^d₀, α̇^d₀, duration)
-        self._starting: tuple[str, str] | None = None  # (campaign id, kind) being prepared
+        # the request being prepared: the object itself, since a stopped request's id may be reused
+        # by the next one before the stopped one's preparation ends (audit of 2026-11-27)
+        self._starting: bus.CampaignRequest | None = None
         self._next_jog: Prepared | None = None  # a jog waiting for the running jog to finish
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
@@ -483,8 +485,8 @@ class CampaignService:
             self._end("aborted", "stopped by the user", self._progress(stamp_s), self.ctl.estimator.alpha_hat)
             if brake is not None:
                 self._brake, self.hold_target = brake, brake[1] + brake[2] * (brake[3] / 2.0)
-        elif self._starting is not None and self._starting[0] == campaign_id:
-            self.refuse(campaign_id, self._starting[1], "stopped by the user before it started")
+        elif self._starting is not None and self._starting.campaign_id == campaign_id:
+            self.refuse(campaign_id, self._starting.kind, "stopped by the user before it started")
             self._starting, self.phase = None, "idle"
 
     def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
@@ -521,7 +523,7 @@ class CampaignService:
         if self.running and not (kind == "jog" and self.kind == "jog"):
             return f"the controller is running campaign {self.campaign_id}"
         if self._starting is not None:
-            return f"the controller is preparing campaign {self._starting[0]}"
+            return f"the controller is preparing campaign {self._starting.campaign_id}"
         if self.drive == "disabled":
             return f"drives disabled ({self.drive_reason or 'e-stop'}): release the e-stop first"
         return ""  # a latched hold too: a new campaign is how it is lifted
@@ -533,17 +535,18 @@ class CampaignService:
         if busy:
             self.refuse(req.campaign_id, req.kind, f"refused: {busy}")
             return False
-        self._starting, self.phase = (req.campaign_id, req.kind), "starting"
+        self._starting, self.phase = req, "starting"
         return True
 
-    def prepared(self, result: Prepared | Refused, campaign_id: str, kind: str, stamp_s: float) -> None:
-        """The preparation of ``campaign_id`` ended: start it, or pass the refusal on. Dropped if
-        the campaign was stopped meanwhile (it was answered then)."""
-        if self._starting is None or self._starting[0] != campaign_id:
+    def prepared(self, result: Prepared | Refused, req: bus.CampaignRequest, stamp_s: float) -> None:
+        """The preparation of request ``req`` ended: start it, or pass the refusal on. Dropped if
+        that request was stopped meanwhile (it was answered then), even when a later request
+        with the same id is being prepared now: only the very request prepared may start."""
+        if self._starting is not req:
             return
         self._starting, self.phase = None, "idle"
         if isinstance(result, Refused):
-            self.refuse(campaign_id, kind, result.reason)
+            self.refuse(req.campaign_id, req.kind, result.reason)
             return
         self.start(result, stamp_s)
 
@@ -589,7 +592,7 @@ class CampaignService:
             result: Prepared | Refused = prepare(req, self.params, self.law)
         except Refused as exc:
             result = exc
-        self.prepared(result, req.campaign_id, req.kind, stamp_s)
+        self.prepared(result, req, stamp_s)
 
     def _switch_law(self, law: LawConfig) -> None:
         """A new law continues from the current estimate (α̂, θ and, when both models are

@@ -88,6 +88,27 @@ def test_stop_aborts_the_running_campaign_and_a_second_start_is_refused(loop):
     assert loop.svc.phase == "aborted" and not loop.svc.running
 
 
+def test_a_request_stopped_while_prepared_never_starts_even_when_its_id_is_asked_again(loop, params):
+    """The process prepares off its loop: start X, stop X, start Y with X's id (another bus client,
+    a console restarted within its second), and X's preparation ends first. Only Y may run: X
+    ran instead when the service matched preparations by id alone (audit of 2026-11-27)."""
+    far = Trajectory.from_degrees([[0, 0, 0], [30, 0, 0]], 2.0, name="stopped one")
+    x, y = _request("jog-1", trajectory_json=far.to_json()), _request("jog-1")
+    svc = loop.svc
+    assert svc.request_start(x)
+    svc.stop("jog-1", loop.stamp_s)
+    assert svc.request_start(y)
+    svc.prepared(prepare(x, params, svc.law), x, loop.stamp_s)  # X's worker ends first: dropped
+    assert not svc.running and svc.phase == "starting"
+    svc.prepared(prepare(y, params, svc.law), y, loop.stamp_s)
+    assert svc.running and svc.campaign_id == "jog-1"
+    loop.run(NOD.duration_s + 0.2 + 0.1)
+    events = loop.events
+    assert [e.event for e in events][:2] == ["aborted", "started"], events
+    assert "stopped by the user before it started" in events[0].message
+    np.testing.assert_allclose(svc.hold_target, NOD.waypoints_rad[-1])  # Y's waypoint, not X's 30°
+
+
 def test_a_trajectory_beyond_the_limits_is_refused_with_the_reason(loop):
     reach = Trajectory.from_degrees([[0, 0, 0], [30, 70, 0]], 3.0)
     loop.svc.handle(_request("c-far", trajectory_json=reach.to_json()), loop.stamp_s)
