@@ -1,7 +1,10 @@
 """Replay of an archived campaign onto the bus, so the dashboard and the 3D view show it as live.
 
 Messages are published with their recorded log-time spacing divided by ``speed``. Keys that
-actuate anything (force commands, e-stop) are never replayed: a replay must not move a robot.
+actuate anything (force commands, e-stop, campaign requests) are never replayed: a replay must not
+move a robot. A campaign run by a controller service (``xneck up``) records the start request the
+console sent it; replayed, that request started the campaign again on the service, and the robot
+moved (audit of 2026-11-27).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from bridge import bus
 from bridge.archive import read_campaign
 from bridge.session import BusPublisher, publisher
 
-NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP})
+NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP, bus.CAMPAIGN_REQUEST})
 
 
 class Replay:

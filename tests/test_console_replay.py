@@ -133,3 +133,23 @@ def test_a_replay_whose_archive_does_not_read_leaves_the_robot_free(console) -> 
     assert r.status_code == 200, r.text
     a.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
     assert wait_until(lambda: _idle(a), 10, 0.2)
+
+
+def test_a_replay_never_republishes_a_campaign_request(tmp_path: Path) -> None:
+    """Audit of 2026-11-27: the recorder archives every key, the campaign request the console sent
+    a controller service (``xneck up``) included; a replay published it again and the service
+    started the campaign anew, moving the robot. Requests, like commands and e-stops, stay in the
+    archive."""
+    from controller.trajectory import control_test_trajectory
+    from server.replay import Replay
+
+    request = bus.CampaignRequest(seq=1, stamp_s=10.0, campaign_id="run-r", action="start", kind="control", law=2,
+                                  trajectory_json=control_test_trajectory().to_json())
+    state = bus.MotorState(seq=0, stamp_s=10.0, theta_rad=[0.0] * 4, force_applied_N=[5.0] * 4, drive="active",
+                           epoch="e", bridge="b")
+    path = write_campaign(tmp_path / "run-r.mcap", [(bus.CAMPAIGN_REQUEST, 10**18, request),
+                                                   (bus.MOTOR_STATE, 10**18 + 1, state)], {"campaign_id": "run-r"})
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[]) as session:
+        replay = Replay(session, "run-r", path)
+        assert replay.total == 1
+        assert [key for _, key, _ in replay._messages] == [bus.MOTOR_STATE]
