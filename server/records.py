@@ -90,11 +90,22 @@ class CampaignIndex:
         out = []
         for p in sorted(self.dir.glob("*.json")):
             try:
-                out.append(CampaignRecord.model_validate_json(p.read_text()))
+                rec = CampaignRecord.model_validate_json(p.read_text())
             except ValueError:
                 continue  # a foreign or damaged file is not a campaign; leave it alone
             except OSError as exc:
                 log.error("cannot read %s: %s", p, storage_reason(exc))
                 if errors is not None:
                     errors[p.name] = storage_reason(exc)
+                continue
+            # The id names the record's files (save, delete, the archive): one that is not its own
+            # file's name, e.g. "../../x", made start-up write outside the data directory (audit of
+            # 2026-11-27). Such a record is left alone and reported.
+            if rec.id != p.stem or not valid_id(rec.id):
+                reason = f"its id {rec.id[:120]!r} is not its file name {p.stem!r}"
+                log.error("not loading the campaign record %s: %s", p, reason)
+                if errors is not None:
+                    errors[p.name] = reason
+                continue
+            out.append(rec)
         return out

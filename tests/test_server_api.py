@@ -455,3 +455,23 @@ def test_choosing_an_active_set_that_does_not_load_is_a_422_with_the_loaders_mes
             assert f"{name}.toml" in r.json()["detail"][0]["msg"], r.text
         assert c.get("/api/params/active").json()["active"] == "prototype_3x"
         assert not (tmp_path / "params" / "active").exists()
+
+
+def test_a_record_whose_id_is_not_its_file_name_is_reported_and_nothing_is_written_outside(tmp_path) -> None:
+    """Audit of 2026-11-27: the id inside ``campaigns/<x>.json`` named the files start-up wrote: a
+    record ``{"id": "../../escaped", "status": "running"}`` made the console mark it interrupted and
+    save it as ``<data dir>/../escaped.json``, outside its data directory."""
+    import json
+
+    data = tmp_path / "data"
+    (data / "campaigns").mkdir(parents=True)
+    rec = {"id": "../../escaped", "kind": "control", "law": "law2", "trajectory": "t", "parameter_set": "p",
+           "target": "twin", "status": "running"}
+    (data / "campaigns" / "evil.json").write_text(json.dumps(rec))
+    (data / "campaigns" / "other.json").write_text(json.dumps({**rec, "id": "another-one"}))
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        assert c.get("/api/campaigns").json() == []
+        errors = c.get("/api/system/health").json()["recovery_errors"]
+        assert "is not its file name" in errors["evil.json"] and "another-one" in errors["other.json"], errors
+    assert sorted(p.name for p in tmp_path.rglob("*.json")) == ["evil.json", "other.json"]
+    assert json.loads((data / "campaigns" / "evil.json").read_text()) == rec  # left as it was
