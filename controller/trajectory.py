@@ -193,7 +193,10 @@ class Trajectory:
         for i in np.flatnonzero(~(np.isfinite(pre) & (pre >= 0.0))):
             raise TrajectoryError(f"waypoint {i} has a negative or non-finite pretension {pre[i]} N")
         # Departure from waypoint k = Σ_{j≤k} dwell_j + Σ_{j<k} T_j; the last one is the end.
-        depart = np.cumsum(dwell + np.append(0.0, durations))
+        with np.errstate(over="ignore"):
+            depart = np.cumsum(dwell + np.append(0.0, durations))
+        if not np.isfinite(depart[-1]):  # finite parts, an overflowing sum: a 500 in previews (audit of 2026-11-27)
+            raise TrajectoryError(f"the trajectory's total duration (moves and dwells) is not finite: {depart[-1]} s")
         arrive = depart - dwell
         for name, arr in (("waypoints_rad", w), ("durations_s", durations), ("dwell_s", dwell),
                           ("pretension_N", pre), ("_arrive", arrive), ("_depart", depart)):

@@ -194,6 +194,9 @@ def test_bad_files_are_rejected_with_context(tmp_path, content, suffix, message)
         ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]], "durations_s": [1, 1]}, "expected 1 segment duration"),
         ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]]}, "expected 1 segment duration .* got 0"),
         ({"waypoints_deg": [[0, 0, 0], [10, 0, 0]], "durations_s": 1, "dwell_s": [0, -1]}, "waypoint 1 has a negative"),
+        # finite parts whose sum overflows (audit of 2026-11-27: a 500 on POST /api/trajectories/validate)
+        ({"waypoints_deg": [[0, 0, 0], [0, 0, 0], [0, 0, 0]], "durations_s": [1e308, 1e308]}, "total duration .* not finite"),
+        ({"waypoints_deg": [[0, 0, 0], [0, 0, 0]], "durations_s": 1e308, "dwell_s": 1e308}, "total duration .* not finite"),
     ],
 )
 def test_malformed_trajectories_name_waypoint_or_segment(spec, message):
