@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from controller.laws import LawConfig
-from controller.trajectory import Trajectory, TrajectoryError
+from controller.trajectory import NAMED_TRAJECTORIES, Trajectory, TrajectoryError
 from server.auth import require_token
 from server.campaign_request import check_trajectory
 from server.paramsets import UnknownParameterSet
@@ -96,14 +96,21 @@ async def preview_in_3d(request: Request) -> Any:
     return {"duration_s": scene.preview(traj)}
 
 
-@router.get("/{name}")
+@router.get("/{name}", responses={404: {"description": "No such trajectory"},
+                                  422: {"description": "The stored file does not read as a trajectory; detail says why"}})
 def get_trajectory(name: str, request: Request) -> dict[str, Any]:
     """A trajectory in the user-file schema (JSON, degrees), with its duration."""
+    missing = HTTPException(status.HTTP_404_NOT_FOUND, f"no trajectory {name!r}")
+    if name not in NAMED_TRAJECTORIES:
+        try:
+            check_name(name)
+        except LibraryError:
+            raise missing from None
     try:
         traj = _library(request).get(name)
-    except (NotInLibrary, LibraryError):
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no trajectory {name!r}") from None
-    except TrajectoryError as exc:
+    except NotInLibrary:
+        raise missing from None
+    except (LibraryError, TrajectoryError) as exc:  # a file there that does not read: say so, not "no trajectory"
         raise HTTPException(422, f"stored trajectory {name!r}: {exc}") from None
     return {**traj.to_dict(), "duration_s": traj.duration_s}
 

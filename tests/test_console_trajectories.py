@@ -58,3 +58,29 @@ def test_the_checks_of_a_campaign_start_refuse_with_the_checkers_message(console
     assert v["ok"] and v["preview"]["duration_s"] == pytest.approx(5.5), v
     v = client.post("/api/trajectories/validate", json={"waypoints_deg": [[0, 0]], "bogus": 1}, headers=AUTH).json()
     assert not v["ok"] and v["preview"] is None and "bogus" in v["message"], v
+
+
+def test_a_total_duration_that_overflows_is_refused_not_a_500(console):
+    """Audit of 2026-11-27: moves and dwells each finite, their sum inf: validate's preview asked
+    time_grid for an infinite step and the console answered 500."""
+    client, _ = console
+    huge = {"waypoints_deg": [[0, 0, 0], [0, 0, 0], [0, 0, 0]], "durations_s": [1e308, 1e308]}
+    r = client.post("/api/trajectories/validate", json=huge, headers=AUTH)
+    assert r.status_code == 200, r.text
+    v = r.json()
+    assert not v["ok"] and v["preview"] is None and "not finite" in v["message"], v
+    r = client.put("/api/trajectories/huge", json=huge, headers=AUTH)
+    assert r.status_code == 422 and "not finite" in r.json()["detail"][0]["msg"], r.text
+
+
+def test_a_stored_file_that_does_not_read_is_a_422_not_no_such_trajectory(console):
+    """Audit of 2026-11-27: a file of the library that is not JSON (edited by hand, cut short)
+    answered 404 "no trajectory", while the list showed it with its error."""
+    client, data = console
+    (data / "trajectories").mkdir(parents=True, exist_ok=True)
+    (data / "trajectories" / "broken.json").write_bytes(b'{"waypoints_deg": [[0, 0')
+    r = client.get("/api/trajectories/broken")
+    assert r.status_code == 422 and "stored trajectory 'broken'" in r.json()["detail"], r.text
+    assert client.get("/api/trajectories/nothing-here").status_code == 404
+    assert client.get("/api/trajectories/.hidden").status_code == 404
+    assert client.get("/api/trajectories/control_test").status_code == 200
