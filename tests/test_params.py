@@ -105,3 +105,16 @@ def test_cli_model_rejects_bad_input_without_a_traceback(xneck):
     assert run.returncode == 2 and "needs 3 finite angles" in run.stderr and "Traceback" not in run.stderr
     run = xneck("model", "--alpha", "1", "2", "3", "--set", "geometry.b=0.3")
     assert run.returncode == 2 and "must be smaller than L" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_to_toml_reads_back_whatever_strings_a_set_holds(params):
+    """Audit of 2026-11-27: routing strings are split on any whitespace, so "1d\\n2b" is a valid
+    route; to_toml wrote the newline raw, and the TOML a campaign sends its controller service (and
+    records in its archive) did not parse. Names with quotes, backslashes and control characters too."""
+    data = params.to_dict()
+    data["cables"]["routing"] = ["1b", "1d\n2b", "1d\t2d\r3b", "1c\x0c2c\x1f3a"]
+    data["name"] = 'a "quoted" \\ name\x00\x7f é'
+    odd = params_from_dict(data)
+    assert odd.routes == params.routes
+    back = params_from_dict(tomllib.loads(odd.to_toml()))
+    assert back == odd

@@ -391,10 +391,25 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any, source: str) -> None
     node[last] = value
 
 
+def _toml_string(text: str) -> str:
+    """A TOML basic string of ``text``: quotes, backslashes and the control characters TOML forbids
+    raw (all but tab) escaped. A routing of "1d\\n2b" (split on any whitespace, so valid) was written
+    with a raw newline: the TOML sent to a controller service did not parse (audit of 2026-11-27)."""
+    out = []
+    for ch in text:
+        if ch in ('"', "\\"):
+            out.append("\\" + ch)
+        elif (ch < " " and ch != "\t") or ch == "\x7f":
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _to_toml(data: dict[str, Any], prefix: str = "") -> str:
     def value(v: Any) -> str:
         if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            return _toml_string(v)
         if isinstance(v, bool):
             return "true" if v else "false"
         if isinstance(v, (list, tuple)):
