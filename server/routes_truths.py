@@ -32,15 +32,19 @@ def list_truths(request: Request) -> dict[str, Any]:
     return {"truths": out}
 
 
-@router.get("/{name}", response_class=PlainTextResponse, responses={200: {"content": {"application/toml": {}}}})
+@router.get("/{name}", response_class=PlainTextResponse, responses={
+    200: {"content": {"application/toml": {}}}, 404: {"description": "No such truth file"},
+    422: {"description": "The stored file is not text; detail says why"}})
 def get_truth(name: str, request: Request) -> PlainTextResponse:
     """The truth file (TOML); "model" has none (no effect: the parameter file as it is)."""
     if name == "robot":
         return PlainTextResponse(ROBOT_TRUTH_FILE.read_text(), media_type="application/toml")
     try:
-        text = _store(request).path(name).read_text()
+        text = _store(request).path(name).read_bytes().decode("utf-8")
     except UnknownTruth:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no truth file {name!r}") from None
+    except UnicodeDecodeError as exc:  # a file put there by hand: a 500 before (audit of 2026-11-27)
+        raise HTTPException(422, f"truth file {name!r} is not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     return PlainTextResponse(text, media_type="application/toml")
 
 

@@ -416,3 +416,19 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
         stop_xneck_up(up)
     assert read_campaign(data / "campaigns" / f"{cid}.mcap").info["twin_truth"] == str(path.resolve())
     assert "twin (bench truth)" in (tmp_path / "up.log").read_text() or str(path.resolve()) in (tmp_path / "up.log").read_text()
+
+
+def test_a_stored_truth_file_that_is_not_text_is_a_422_not_a_500(tmp_path):
+    """Audit of 2026-11-27: GET /api/truths/{name} of a file put in <data dir>/truths by hand in
+    Latin-1 answered 500 (the list already said why it does not load)."""
+    import httpx
+    from server_harness import running_server
+
+    truths = tmp_path / "data" / "truths"
+    truths.mkdir(parents=True)
+    (truths / "latin.toml").write_bytes('name = "caf\xe9"\n'.encode("latin-1"))
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as c:
+        r = c.get("/api/truths/latin")
+        assert r.status_code == 422 and "not UTF-8" in r.json()["detail"], r.text
+        listed = {t["name"]: t for t in c.get("/api/truths").json()["truths"]}
+        assert "error" in listed["latin"], listed
