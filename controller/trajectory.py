@@ -465,11 +465,16 @@ CONTROL_TEST_WAYPOINTS_DEG: tuple[tuple[float, float, float], ...] = (
 """Waypoints of the control test of §7 / Fig. 10 (deg)."""
 
 
+#: The most samples :func:`recorded_excitation` draws: 2 hours at 500 Hz, far beyond a campaign (600 s at most).
+EXCITATION_SAMPLES_MAX = 3_600_000
+
+
 def recorded_excitation(trajectory_json: str, t: FloatArray) -> FloatArray | None:
     """α^d (rad) of a campaign's recorded trajectory (its archive's ``trajectory`` metadata, JSON)
     at the times ``t`` (s, from the first sample): the excitation whose spectrum sets the
     identification's filter cutoff (:mod:`twin.identification.record`). None when the record holds
-    no readable trajectory; the cutoff then comes from the encoders."""
+    no readable trajectory, or one that would take more than :data:`EXCITATION_SAMPLES_MAX` samples;
+    the cutoff then comes from the encoders."""
     if not trajectory_json or len(t) < 2:
         return None
     try:
@@ -477,6 +482,10 @@ def recorded_excitation(trajectory_json: str, t: FloatArray) -> FloatArray | Non
     except (TrajectoryError, ValueError, TypeError):
         return None
     dt = float(np.median(np.diff(t)))
+    # The archive's word, not the controller's: a dwell of 1e6 s or a step of 1e-12 s asked numpy
+    # for gigabytes (a MemoryError traceback from `xneck identify`; audit of 2026-11-27).
+    if not (math.isfinite(dt) and dt > 0 and traj.duration_s / dt <= EXCITATION_SAMPLES_MAX):
+        return None
     return traj.sample(np.arange(0.0, traj.duration_s, dt)).alpha
 
 

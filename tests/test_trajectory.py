@@ -313,3 +313,19 @@ def test_a_brake_comes_to_rest_from_speed_without_a_step_and_within_the_joint_li
     end = brake_at(near, fast, short, short)[0]
     assert end[0] <= math.radians(60.0) + 1e-12 and short < brake_duration_s(np.zeros(3), fast, math.radians(60.0))
     assert brake_duration_s(a0, np.zeros(3), math.radians(60.0)) > 0  # at rest: a short, smooth stop
+
+
+def test_a_recorded_trajectory_beyond_any_campaign_is_no_excitation_not_a_memory_error():
+    """Audit of 2026-11-27: ``xneck identify`` samples the archive's ``trajectory`` at the record's
+    rate; a dwell of 1e308 s failed with numpy's "Maximum allowed size exceeded", one of 1e6 s with a
+    MemoryError traceback (4 GB asked for). Such a trajectory gives no excitation (the cutoff then
+    comes from the encoders), as an unreadable one does."""
+    from controller.trajectory import recorded_excitation
+
+    t = np.arange(0.0, 2.0, 0.002)
+    one_pose = '{"waypoints_deg": [[0, 0, 0]], "durations_s": [], "dwell_s": %s}'
+    assert recorded_excitation(one_pose % "1e308", t) is None
+    assert recorded_excitation(one_pose % "1e6", t) is None
+    assert recorded_excitation(control_test_trajectory().to_json(), np.array([0.0, 1e-12, 2e-12])) is None
+    exc = recorded_excitation(control_test_trajectory().to_json(), t)
+    assert exc is not None and exc.shape == (int(round(13.0 / 0.002)), 3)
