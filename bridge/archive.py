@@ -658,16 +658,32 @@ def recover(path: str | os.PathLike[str]) -> RecoveryReport:
         out.abandon()
         tmp.unlink(missing_ok=True)
         raise
-    corrupt_copy = None
-    if damaged:
-        corrupt_copy = path.with_name(path.name + ".corrupt")
-        os.replace(path, corrupt_copy)
+    corrupt_copy = _keep_corrupt(path) if damaged else None
     os.replace(tmp, path)
     _fsync_dir(path.parent)
     return RecoveryReport(
         path=path, status="recovered", messages=salvage.kept, bytes_discarded=size - salvage.good_end,
         reason=stop_reason, corrupt_copy=corrupt_copy,
     )
+
+
+def _keep_corrupt(path: Path) -> Path:
+    """A hard link to the damaged ``path`` under the first free name of ``NAME.corrupt``,
+    ``NAME.corrupt.1``, …: a file damaged again after its recovery keeps both originals (the
+    second replaced the first before; audit of 2026-11-27). A link, not a rename, so the campaign
+    has a file under its name at every instant until the salvaged one replaces it."""
+    for i in range(10_000):
+        candidate = path.with_name(path.name + ".corrupt" + (f".{i}" if i else ""))
+        try:
+            os.link(path, candidate)
+        except FileExistsError:
+            continue
+        except OSError:  # no hard links there (FAT, some network mounts): a rename to a free name
+            if candidate.exists():
+                continue
+            os.rename(path, candidate)
+        return candidate
+    raise ArchiveError(path, "10000 damaged copies of it are kept already: nothing more is kept; remove some")
 
 
 class _Salvage:

@@ -215,6 +215,16 @@ def test_damage_inside_the_file_keeps_the_original(tmp_path: Path) -> None:
     assert report.corrupt_copy.read_bytes() == bytes(data)
     seqs = [m.seq for _, m in read_campaign(path).messages(bus.MOTOR_STATE)]
     assert seqs == [*range(PER_CHUNK), *range(2 * PER_CHUNK, 3 * PER_CHUNK)]
+    # Damaged again after its recovery (a failing disk): both originals are kept, none replaced.
+    first_copy = report.corrupt_copy
+    again = bytearray(path.read_bytes())
+    again[len(again) // 3] ^= 0xFF
+    path.write_bytes(bytes(again))
+    second = recover(path)
+    assert second.status == "recovered" and second.corrupt_copy is not None, second
+    assert second.corrupt_copy != first_copy and first_copy.read_bytes() == bytes(data)
+    assert second.corrupt_copy.read_bytes() == bytes(again)
+    assert recover(path).status == "valid"
 
 
 def test_a_damaged_first_chunk_loses_only_its_own_messages(tmp_path: Path) -> None:
