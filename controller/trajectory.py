@@ -86,6 +86,11 @@ CYCLOID_PEAK_VELOCITY = 2.0
 CYCLOID_PEAK_ACCELERATION = _TWO_PI
 
 
+#: The shortest move (s) a trajectory may hold: half a 500 Hz control period. Shorter ones are no
+#: move any loop tracks, and their cycloid's acceleration 2π·Δ/T² overflows.
+SEGMENT_MIN_S = 1e-3
+
+
 class TrajectoryError(ValueError):
     """A trajectory is malformed or unsafe; the message names the waypoint or segment and why."""
 
@@ -185,6 +190,13 @@ class Trajectory:
             raise TrajectoryError(
                 f"segment {i} (waypoint {i} → {i + 1}) has a non-positive or non-finite duration "
                 f"{durations[i]} s"
+            )
+        # A move of 1e-200 s, even one of zero length, made the force check's samples NaN (0·∞)
+        # and its refusal read "needs nan N" (audit of 2026-11-27); no loop tracks a move that short.
+        for i in np.flatnonzero(durations < SEGMENT_MIN_S):
+            raise TrajectoryError(
+                f"segment {i} (waypoint {i} → {i + 1}) lasts {durations[i]:.3g} s, under the shortest move "
+                f"{SEGMENT_MIN_S * 1e3:g} ms (half a control period at 500 Hz); use a dwell to wait"
             )
         dwell = np.zeros(k) if np.size(self.dwell_s) == 0 else _per_item(self.dwell_s, k, "dwell (one per waypoint)")
         for i in np.flatnonzero(~(np.isfinite(dwell) & (dwell >= 0.0))):

@@ -197,6 +197,9 @@ def test_bad_files_are_rejected_with_context(tmp_path, content, suffix, message)
         # finite parts whose sum overflows (audit of 2026-11-27: a 500 on POST /api/trajectories/validate)
         ({"waypoints_deg": [[0, 0, 0], [0, 0, 0], [0, 0, 0]], "durations_s": [1e308, 1e308]}, "total duration .* not finite"),
         ({"waypoints_deg": [[0, 0, 0], [0, 0, 0]], "durations_s": 1e308, "dwell_s": 1e308}, "total duration .* not finite"),
+        # a zero-length move of 1e-200 s was refused as "needs nan N on cable 1" (audit of 2026-11-27)
+        ({"waypoints_deg": [[0, 0, 0], [0, 0, 0], [10, 0, 0]], "durations_s": [1e-200, 2]},
+         r"segment 0 \(waypoint 0 → 1\) lasts 1e-200 s, under the shortest move 1 ms"),
     ],
 )
 def test_malformed_trajectories_name_waypoint_or_segment(spec, message):
