@@ -279,3 +279,159 @@ def test_a_negative_seed_or_count_is_a_usage_error(xneck, tmp_path, argv):
     assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
     assert ("--seed" if "--seed" in argv else "--max-ticks") in run.stderr
     assert not list(tmp_path.iterdir())  # no archive, no image
+
+
+# -- CLI audit of 2026-11-27 (audit-c) ----------------------------------------------------------------------
+
+
+def _commands():
+    """Every command of ``xneck`` (click's tree of the typer app), with its path."""
+    import typer.main
+
+    from server.cli import app
+
+    def walk(command, path):
+        yield path, command
+        for name, sub in getattr(command, "commands", {}).items():
+            yield from walk(sub, [*path, name])
+
+    return list(walk(typer.main.get_command(app), ["xneck"]))
+
+
+def test_help_texts_are_shown_as_written():
+    """Typer renders help as Rich markup: `a:b:n` came out as `a🅱n` (the :b: emoji) in `xneck study
+    --help`, and a `[word]` would vanish as a style tag."""
+    from rich.text import Text
+
+    for path, command in _commands():
+        for name, text in [("help", command.help or ""), *((p.name, getattr(p, "help", None) or "") for p in command.params)]:
+            assert Text.from_markup(text).plain == text, (" ".join(path), name, text)
+
+
+def test_the_camera_help_names_its_commands():
+    from server.cli.camera import camera_app
+
+    names = {c.name for c in camera_app.registered_commands}
+    listed = camera_app.info.help.split("and ")[-1].rstrip(".").split("/")
+    assert set(listed) == names, (listed, names)
+
+
+def _shell_blocks(text: str) -> list[str]:
+    lines, blocks, i = text.split("\n"), [], 0
+    while i < len(lines):
+        if lines[i].strip() in ("```sh", "```bash"):
+            j = next(k for k in range(i + 1, len(lines)) if lines[k].strip() == "```")
+            blocks.append("\n".join(lines[i + 1:j]))
+            i = j
+        i += 1
+    return blocks
+
+
+def test_the_docs_shell_commands_parse_and_name_existing_options():
+    """docs/studies.md's `--vary truth.friction.static_ratio=U(1.1,1.5)`, unquoted, was a shell
+    syntax error when pasted."""
+    import shlex
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    commands = dict((" ".join(path[1:]), c) for path, c in _commands())
+    checked = 0
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for block in _shell_blocks(doc.read_text()):
+            if "xneck" not in block:
+                continue
+            run = subprocess.run(["bash", "-n"], input=block, text=True, capture_output=True)
+            assert run.returncode == 0, (doc.name, run.stderr)
+            for line in block.replace("\\\n", " ").split("\n"):
+                words = shlex.split(line, comments=True)
+                if not words or words[0] != "xneck":
+                    continue
+                depth = max(n for n in range(1, len(words) + 1) if " ".join(words[1:n]) in commands)
+                command = commands[" ".join(words[1:depth])]
+                known = {o for p in command.params for o in (*p.opts, *p.secondary_opts)}
+                for word in words[depth:]:
+                    if word.startswith("--"):
+                        assert word.split("=")[0] in known, (doc.name, line, word)
+                checked += 1
+    assert checked >= 5
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["identify", "."], "cannot read campaign: .: not a regular file"),
+    (["identify", "/"], "cannot read campaign: /: not a regular file"),
+    (["camera", "align", "video.mp4", "."], ".: not a regular file"),
+])
+def test_a_campaign_that_is_a_folder_is_one_line(xneck, tmp_path, argv, said):
+    """The default --out is named after the campaign's file: '.' and '/' have no name (a ValueError
+    traceback from Path.with_name)."""
+    _refused(xneck(*argv, cwd=tmp_path), said)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("L", ["1e-200", "1e100", "1e200"])
+def test_kinematics_in_any_unit_of_length(xneck, L):
+    """Lengths are in any unit (kinematics.py): at L = 1e100 the IK's aspect was a NaN (a traceback),
+    at 1e200 the cuspidality sweep overflowed, at 1e-200 it found two solutions instead of four."""
+    ik = xneck("kinematics", "ik", "--L", L, "--b", str(0.5 * float(L)), "--x", "0",
+               "--y", L, "--json")
+    assert ik.returncode == 0, ik.stderr
+    reference = xneck("kinematics", "ik", "--L", "1", "--b", "0.5", "--x", "0", "--y", "1", "--json")
+    angles = lambda run: [s["theta_deg"] + [s["aspect"]] for s in _strict(run.stdout)["solutions"]]  # noqa: E731
+    assert angles(ik) == angles(reference)
+    cusp = xneck("kinematics", "cuspidal", "--L", L, "--b", str(0.5 * float(L)), "--json")
+    assert cusp.returncode == 0, cusp.stderr
+    doc = _strict(cusp.stdout)
+    assert doc["cuspidal"] is True and doc["max_ik_solutions_found"] == 4
+    assert doc["b_threshold_numeric"] == pytest.approx(float(L) / 6 ** 0.5, rel=1e-4)
+
+
+def test_a_checkerboard_too_large_to_draw_is_refused(xneck, tmp_path):
+    """At the options' upper ends the board asked numpy for 272 GiB: a MemoryError traceback."""
+    out = tmp_path / "board.png"
+    _refused(xneck("camera", "board", "--out", str(out), "--square", "0.2", "--dpi", "1200", "--columns", "30",
+                   "--rows", "30"), "311817×311817 px", "--dpi")
+    assert not out.exists()
+
+
+def test_a_study_with_an_unknown_alpha_ip_is_refused_before_it_runs(xneck, tmp_path):
+    """It ran every run (each failed) and wrote the study directory."""
+    _refused(xneck("study", "control", "--out", str(tmp_path / "st"), "--alpha-ip", "bogus"), "--alpha-ip",
+             "noise or camera")
+    assert not (tmp_path / "st").exists()
+
+
+def test_a_scheduler_that_is_no_address_is_one_line(xneck, tmp_path):
+    run = xneck("study", "control", "--out", str(tmp_path / "st"), "--scheduler", "bogus")
+    _refused(run, "--scheduler 'bogus'", "tcp://HOST:PORT")  # on a line of its own, after the progress line
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--params", "{tmp}/missing.toml"], "cannot read parameter file"),
+    (["--robot", "--driver-config", "{tmp}/missing.toml"], "cannot read the driver config"),
+])
+def test_up_refuses_files_that_do_not_load_before_anything_starts(xneck, tmp_path, argv, said):
+    """The stack started ("xneck is up"), then the bridge exited with the reason in its log; with
+    --robot the launcher then reported "DRIVES MAY BE ON"."""
+    run = xneck("up", *[a.format(tmp=tmp_path) for a in argv], "--data-dir", str(tmp_path / "data"),
+                "--port", "1", "--exit-after", "3", timeout=60)
+    _refused(run, said)
+    assert "xneck is up" not in run.stdout and not (tmp_path / "data").exists()
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--hub", "bogus"], "listen endpoint 'bogus'"),
+    (["--connect", "bogus"], "connect endpoint 'bogus'"),
+    (["--hub", "tcp/127.0.0.1:99999"], "at most 65535"),
+    (["--host", "no-such-host.invalid"], "--host no-such-host.invalid: cannot listen there"),
+])
+def test_server_refuses_an_unusable_endpoint_or_host_in_one_line(xneck, tmp_path, argv, said):
+    """Each was a traceback from the app's startup, after the URL was printed."""
+    run = xneck("server", *argv, "--port", "0", "--data-dir", str(tmp_path / "data"), timeout=60)
+    _refused(run, said)
+    assert "xneck console" not in run.stdout and not (tmp_path / "data").exists()
+
+
+def test_a_controller_campaign_kind_is_one_of_the_bus_kinds(xneck):
+    """It had no help and took any word, which went into every campaign event."""
+    _refused(xneck("controller", "--campaign-kind", "bogus", "--idle-timeout", "1"), "--campaign-kind 'bogus'",
+             "control, identification, jog")

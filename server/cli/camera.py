@@ -6,8 +6,8 @@
 - ``xneck camera render --alpha A1 A2 A3 --out F.png``: the twin's camera view at α (degrees).
 - ``xneck camera detect F.png [--calibration FILE] --json``: α measured on one frame.
 - ``xneck camera markers --out sheet.png`` / ``board --out board.png``: printable marker sheet
-  and calibration checkerboard; ``calibrate``: a calibration file from a checkerboard video and a
-  frame of the base plate.
+  and calibration checkerboard (the calibration itself is twin.camera.calibration's functions,
+  docs/camera.md: there is no ``calibrate`` command).
 - ``xneck camera align VIDEO CAMPAIGN.mcap``: offline time alignment of a video with a campaign.
 
 OpenCV is imported inside the commands (``xneck --help`` and the bridge never load it).
@@ -41,7 +41,7 @@ from server.cli.options import (
 )
 
 camera_app = typer.Typer(
-    help="α_IP from a camera: the bus process (--source), and render/detect/markers/calibrate/align.",
+    help="α_IP from a camera: the bus process (--source), and render/detect/markers/board/align.",
     add_completion=False,
     invoke_without_command=True,
 )
@@ -297,6 +297,9 @@ def markers(
     typer.echo(f"wrote {out} ({dpi} dpi, A4)")
 
 
+BOARD_MAX_PX = 16384  # a side of `xneck camera board`'s image: 1.39 m at 300 dpi (A0 is 1.19 m), 0.8 GB at most
+
+
 @camera_app.command("board")
 def board(
     out: Path = typer.Option(..., "--out", help="Output image (.png)."),
@@ -310,6 +313,13 @@ def board(
 
     if not (0.002 <= square <= 0.2):
         raise fail("--square must be between 0.002 and 0.2 m")
+    # The image is (corners + 3) squares a side (margins included): at the options' upper ends it
+    # asked numpy for 272 GiB, a MemoryError traceback. A sheet up to A0 at 300 dpi fits the limit.
+    px = round(square * dpi / 0.0254)
+    width, height = (columns + 3) * px, (rows + 3) * px
+    if max(width, height) > BOARD_MAX_PX:
+        raise fail(f"the board would be {width}×{height} px ({width / dpi * 0.0254:.2f}×{height / dpi * 0.0254:.2f} m "
+                   f"at {dpi} dpi), more than {BOARD_MAX_PX} px a side: lower --square, --dpi, --columns or --rows")
     _write_png(out, checkerboard((columns, rows), square, dpi))
     typer.echo(f"wrote {out}")
 
@@ -335,6 +345,8 @@ def align(
 
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
+    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
+        raise fail(f"{campaign}: {'not a regular file' if campaign.exists() else 'no such campaign file'}")
     target = out or campaign.with_name(campaign.stem + ".aligned.mcap")
     if target.exists():
         raise fail(f"{target}: exists already (choose another --out)")

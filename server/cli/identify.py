@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import POSITIVE, check_output, echo_json, write_failed
+from server.cli.options import POSITIVE, check_output, echo_json, fail, write_failed
 
 
 def identify(
@@ -56,6 +56,8 @@ def identify(
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params, parse_override
 
+    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
+        raise fail(f"cannot read campaign: {campaign}: {'not a regular file' if campaign.exists() else 'no such file'}")
     out_dir = out or campaign.with_name(campaign.stem + "_identification")
     check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
     data_b = _validation_campaign(validate) if validate is not None else None

@@ -39,16 +39,20 @@ def ik(
     L, b = _design(L, b)
     if not (np.isfinite(x) and np.isfinite(y)):
         raise typer.BadParameter(f"x and y must be finite, got x = {x}, y = {y}")
-    sols = ik_2x(x, y, L, b)
+    # Solved in units of L (the angles do not depend on the unit): L = 1e100 or 1e-200 overflowed
+    # or underflowed the quartic's terms, a traceback or a wrong aspect.
+    _, b1 = _design(1.0, b / L)
+    x1, y1 = x / L, y / L
+    sols = ik_2x(x1, y1, 1.0, b1)
     rows = []
     for th in sols:
-        res = float(np.linalg.norm(fk(th, L, b) - (x, y)))
+        res = float(np.linalg.norm(fk(th, 1.0, b1) - (x1, y1))) * L
         rows.append(
             {
                 "theta_deg": [round(float(v), 6) for v in np.degrees(th)],
                 "theta_rad": [float(v) for v in th],
                 "up": [bool(abs(v) < FLAT) for v in th],
-                "aspect": int(np.sign(det_jacobian_2x(th[0], th[1], L, b))),
+                "aspect": int(np.sign(det_jacobian_2x(th[0], th[1], 1.0, b1))),
                 "fk_residual": res,
             }
         )
@@ -77,14 +81,15 @@ def cuspidal(
     from twin.analysis.workspace import cuspidality_threshold_numeric, max_solutions_on_axis
 
     L, b = _design(L, b)
+    _, b1 = _design(1.0, b / L)  # in units of L, as ik: the numerical sweep overflowed for L = 1e200
     result = {
         "L": L,
         "b": b,
-        "cuspidal": is_cuspidal(L, b),
+        "cuspidal": is_cuspidal(1.0, b1),
         "condition": "b < L < b*sqrt(6)",
-        "b_threshold": cuspidal_threshold(L),
-        "b_threshold_numeric": cuspidality_threshold_numeric(L),
-        "max_ik_solutions_found": max_solutions_on_axis(L, b),
+        "b_threshold": cuspidal_threshold(1.0) * L,
+        "b_threshold_numeric": cuspidality_threshold_numeric(1.0) * L,
+        "max_ik_solutions_found": max_solutions_on_axis(1.0, b1),
     }
     if json_out:
         echo_json(result)

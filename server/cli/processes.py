@@ -278,13 +278,25 @@ def twin(
            connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False)
 
 
+def _check_campaign_kind(value: str) -> str:
+    """Typer callback: ``--campaign-kind`` is a bus.CampaignKind (it had no help and took any word)."""
+    from typing import get_args
+
+    from bridge.bus import CampaignKind
+
+    if value not in get_args(CampaignKind):
+        raise fail(f"--campaign-kind {value!r}: choose {', '.join(get_args(CampaignKind))}")
+    return value
+
+
 def controller(
     law: int = LAW_OPTION,
     no_pulleys: bool = NO_PULLEYS_OPTION,
     trajectory: str | None = TRAJECTORY_OPTION,
     lockstep: bool = typer.Option(False, "--lockstep", help="Wait as long as needed for each state (lockstep twin)."),
     campaign_id: str = typer.Option("", "--campaign-id", help="Id in the campaign events (default: random)."),
-    campaign_kind: str = typer.Option("control", "--campaign-kind"),
+    campaign_kind: str = typer.Option("control", "--campaign-kind", callback=_check_campaign_kind,
+                                      help="Kind in the campaign events: control, identification or jog."),
     idle_timeout: float = typer.Option(10.0, "--idle-timeout", callback=POSITIVE,
                                        help="Give up after this long without any state (s)."),
     listen: list[str] | None = LISTEN_OPTION,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import PORT_MAX, check_credentials
+from server.cli.options import PORT_MAX, check_credentials, check_endpoints, fail
 
 
 def server(
@@ -50,6 +50,20 @@ def server(
             typer.secho(f"error: --{'-'.join(map(str, err['loc'])).replace('_', '-')}: {err['msg']}", err=True, fg="red")
         raise typer.Exit(2) from None
     check_credentials(acts=False)  # a viewer's console watches; its routes that act refuse (server.auth.require_operator)
+    # A malformed --hub/--connect or a --host that does not resolve: one line now, not a traceback
+    # from the app's startup after the URL was printed.
+    check_endpoints([settings.hub], list(settings.connect) or None)
+    from server.cli.up import _port_taken, _tcp_address
+
+    why = _port_taken(settings.host, 0)  # the host alone: a busy --port is uvicorn's own one-line error
+    if why:
+        raise fail(f"--host {settings.host}: cannot listen there ({why})")
+    hub_address = _tcp_address(settings.hub)  # Zenoh's refusal came as a traceback from the app's startup
+    if hub_address is not None and hub_address[1] > PORT_MAX:
+        raise fail(f"--hub {settings.hub}: the port must be at most {PORT_MAX}")
+    why = _port_taken(*hub_address) if hub_address is not None and hub_address[1] else ""
+    if why:
+        raise fail(f"--hub {settings.hub}: cannot listen there ({why})")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         app = create_app(settings)

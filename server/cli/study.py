@@ -21,7 +21,7 @@ OUT = typer.Option(..., "--out", help="Study directory: Parquet rows (runs/law=<
 SAMPLES = typer.Option(None, "--samples", help="Random draws per grid point (default 1).")
 VARY = typer.Option(None, "--vary", help="PATH=SPEC, repeatable: a parameter-file path (friction.f_s, "
                     "cables.variable.k[2], geometry.b) or truth.<effect>.<key>; SPEC 10% (relative spread, "
-                    "U(0.9,1.1) x nominal), N(mu,sigma), U(a,b) or a grid a:b:n.")
+                    "U(0.9,1.1) x nominal), N(mu,sigma), U(a,b) or a grid first:last:n (n values, both ends included).")
 SEED = typer.Option(None, "--seed", help="Study seed: every run's draws and twin seed follow from it (default 0).")
 WORKERS = typer.Option(None, "--workers", help="Local Dask worker processes (default: this machine's cores).")
 SCHEDULER = typer.Option(None, "--scheduler", help="An existing Dask cluster, tcp://HOST:PORT (see docs/studies.md).")
@@ -42,10 +42,18 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
     if workers is not None and workers < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--workers")
     check_output(out, directory=True)  # before a cluster starts and runs are lost
+    line_open = [False]  # a progress line printed and not ended: an error starts on a line of its own
+
+    def progress(done: int, total: int, message: str) -> None:
+        line_open[0] = done < total
+        _progress(done, total, message)
+
     try:
         study = study_from(kind, **fields)
-        summary = run_study(study, out, workers=workers, scheduler=scheduler, progress=_progress)
+        summary = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress)
     except StudyError as exc:
+        if line_open[0]:
+            typer.echo("", err=True)
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(2) from None
     except OSError as exc:  # the disk filled or the folder went away since the check; finished rows are kept

@@ -57,7 +57,16 @@ from pathlib import Path
 import typer
 
 from server.child_processes import ENV_PARENT, exit_how, isolate, isolate_self, log_tail, stop_child, xneck_argv
-from server.cli.options import NON_NEGATIVE, PORT_MAX, check_credentials, check_endpoints, check_truth, fail, law_config
+from server.cli.options import (
+    NON_NEGATIVE,
+    PORT_MAX,
+    check_credentials,
+    check_endpoints,
+    check_truth,
+    fail,
+    law_config,
+    load_cli_params,
+)
 
 STOP_GRACE_S = 8.0
 LOG_LINES = 12  # of a child's log in an error message
@@ -315,6 +324,13 @@ def up(
     if alpha_ip not in ("noise", "camera"):
         raise fail(f"--alpha-ip must be noise or camera, not {alpha_ip!r}")
     law_config(law, False)  # a bad --law now, not as a controller that exits once the stack is up
+    # Likewise a --params or --driver-config that does not load: it was the bridge's exit once the
+    # stack was up ("xneck is up" printed first), and with --robot a failed --drives-off besides.
+    load_cli_params(params_file, None)
+    if robot and not no_bridge:
+        from server.cli.processes import _driver_table
+
+        _driver_table(driver_config)
     check_credentials()  # every child reads them: one line now, not a failure per process
     hub_address = _tcp_address(hub)
     if hub_address is not None and hub_address[1] > PORT_MAX:  # the socket module would raise OverflowError

@@ -177,6 +177,8 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
             return Client(scheduler, timeout=20), None
         except (OSError, TimeoutError) as exc:
             raise StudyError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        except ValueError as exc:  # not an address ('missing port number'): was a traceback
+            raise StudyError(f"--scheduler {scheduler!r}: not a scheduler address tcp://HOST:PORT ({exc})") from None
     cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
                            dashboard_address=None)  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
     return Client(cluster), cluster

@@ -233,6 +233,10 @@ def _checked_syntax(s: Study) -> Study:
         raise StudyError(f"settle_s must be in [0, 60] s, got {s.settle_s!r}")
     if not (isinstance(s.design_configurations, int) and 10 <= s.design_configurations <= 1_000_000):
         raise StudyError(f"design_configurations must be an integer in [10, 1e6], got {s.design_configurations!r}")
+    from twin.sim.sensors import ALPHA_IP_KINDS
+
+    if s.alpha_ip not in ALPHA_IP_KINDS:  # else every run failed, after the cluster had started
+        raise StudyError(f"--alpha-ip {s.alpha_ip!r}: choose {' or '.join(ALPHA_IP_KINDS)}")
     from twin.identification.pipeline import VARIABLE_ESTIMATORS
 
     if s.estimator not in VARIABLE_ESTIMATORS:
