@@ -154,6 +154,9 @@ def test_a_pretension_design_writes_a_schedule_the_campaign_accepts(cli, tmp_pat
     (("--box-deg", "40,70,20"), "--box-deg needs 3 amplitudes"),
     (("--box-deg", "forty"), "--box-deg must be numbers"),
     (("--holds", "some"), "holds must be none"),
+    # beyond what one campaign runs: they optimised for hours (audit of 2026-11-27)
+    (("--duration", "1e9"), "a campaign runs at most 600 s"),
+    (("--waypoints", "1000000"), "--waypoints 1000000: at most 98 in 97 s"),
 ])
 def test_bad_design_requests_are_refused_clearly(cli, tmp_path, args, message):
     r = cli.invoke(app, ["excitation", "design", "--out", str(tmp_path / "x.json"), *args])

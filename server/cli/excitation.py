@@ -111,9 +111,17 @@ def design_command(
 ) -> None:
     """Optimise an identification trajectory (D-optimal for friction and variable stiffness), compare
     it with the §5.2.2 cycloids, and write it for `xneck campaign identification --trajectory FILE`."""
-    from controller.trajectory import Trajectory, identification_trajectory
-    from twin.identification.excitation import DesignError, design, score
+    from controller.trajectory import Trajectory, TrajectoryLimits, identification_trajectory
+    from twin.identification.excitation import MIN_MOVE_S, DesignError, design, score
 
+    # What one campaign may run: a longer design (--duration 1e9, --waypoints 1000000) optimised for
+    # hours before its campaign would be refused (audit of 2026-11-27).
+    limits = TrajectoryLimits()
+    if math.isfinite(duration) and duration > limits.duration_max_s:
+        raise fail(f"--duration {duration:g} s: a campaign runs at most {limits.duration_max_s:g} s")
+    if waypoints is not None and math.isfinite(duration) and waypoints > min(limits.waypoints_max, duration / MIN_MOVE_S + 1):
+        raise fail(f"--waypoints {waypoints}: at most {int(min(limits.waypoints_max, duration / MIN_MOVE_S + 1))} "
+                   f"in {duration:g} s (moves of at least {MIN_MOVE_S:g} s, {limits.waypoints_max} waypoints a campaign)")
     if out.suffix.lower() != ".json":  # --trajectory reads a file by its suffix: JSON in a .toml would not load
         raise fail(f"--out must be a .json file (the trajectory is written as JSON), got {out}")
     check_output(out)  # before the design, which takes minutes
