@@ -431,6 +431,22 @@ def test_server_refuses_an_unusable_endpoint_or_host_in_one_line(xneck, tmp_path
     assert "xneck console" not in run.stdout and not (tmp_path / "data").exists()
 
 
+def test_server_refuses_a_viser_port_that_is_busy_or_its_own_port(xneck, tmp_path):
+    """viser took the next port without a word when its own was busy, so the 3D view was not where
+    it was asked, and took the console's port when that was next (uvicorn then failed)."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        p = busy.getsockname()[1]
+        run = xneck("server", "--viser-port", str(p), "--port", "0", "--data-dir", str(tmp_path / "data"), timeout=60)
+        _refused(run, f"--viser-port {p}: 127.0.0.1:{p} is in use")
+    run = xneck("server", "--viser-port", str(p), "--port", str(p), "--data-dir", str(tmp_path / "data"), timeout=60)
+    _refused(run, f"--viser-port {p} is the console's --port")
+    assert not (tmp_path / "data").exists()
+
+
 def test_a_controller_campaign_kind_is_one_of_the_bus_kinds(xneck):
     """It had no help and took any word, which went into every campaign event."""
     _refused(xneck("controller", "--campaign-kind", "bogus", "--idle-timeout", "1"), "--campaign-kind 'bogus'",

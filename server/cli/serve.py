@@ -64,6 +64,14 @@ def server(
     why = _port_taken(*hub_address) if hub_address is not None and hub_address[1] else ""
     if why:
         raise fail(f"--hub {settings.hub}: cannot listen there ({why})")
+    # viser takes the next port when its own is busy, without a word: the 3D view then took the
+    # console's --port when that was next, and uvicorn failed (audit of 2026-11-27). xneck up checks the same.
+    if settings.viser_port and settings.viser_port == settings.port:
+        raise fail(f"--viser-port {settings.viser_port} is the console's --port: choose another (0 = a free one)")
+    why = _port_taken(settings.host, settings.viser_port) if settings.viser_port else ""
+    if why:
+        raise fail(f"--viser-port {settings.viser_port}: {settings.host}:{settings.viser_port} is {why}: "
+                   f"choose another (0 = a free one)")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         app = create_app(settings)
