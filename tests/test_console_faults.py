@@ -19,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -331,8 +332,15 @@ def test_a_hangup_or_a_killed_xneck_up_leaves_no_part_of_the_stack_running(tmp_p
         up.send_signal(sig)
         up.wait(40)
         assert wait_until(lambda: _gone(children), 30, 0.2), [(p, _state(p)) for p in children]
+        folders = list(Path(tempfile.gettempdir()).glob(f"xneck-up-{up.pid}-*"))  # the control path's sockets
         if sig == signal.SIGHUP:
             assert "xneck stopped (SIGHUP)" in (tmp_path / "up.log").read_text()
+            assert not folders, folders
+        else:  # a kill -9 leaves its folder, named by its pid: the next xneck up removes it
+            assert len(folders) == 1, folders
+            from server.cli.up import _remove_stale_socket_folders
+
+            assert set(_remove_stale_socket_folders()) >= set(folders) and not folders[0].exists()
     finally:
         for p in children:
             with contextlib.suppress(ProcessLookupError):
@@ -340,3 +348,24 @@ def test_a_hangup_or_a_killed_xneck_up_leaves_no_part_of_the_stack_running(tmp_p
         if up.poll() is None:
             os.killpg(up.pid, signal.SIGKILL)
             up.wait(10)
+
+
+def test_only_this_users_socket_folders_of_dead_xneck_ups_are_removed(tmp_path: Path) -> None:
+    """What the next `xneck up` clears of a killed one's (server.cli.up._remove_stale_socket_folders)."""
+    from server.cli.up import _remove_stale_socket_folders
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = tmp_path / f"xneck-up-{dead.pid}-abc"
+    alive = tmp_path / f"xneck-up-{os.getpid()}-abc"
+    foreign = tmp_path / "xneck-up-abcdefgh"  # an older xneck's name, without a pid: not ours to judge
+    huge = tmp_path / f"xneck-up-{10**30}-abc"
+    for d in (stale, alive, foreign, huge):
+        d.mkdir()
+        (d / "bridge.sock").write_text("")
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    link = tmp_path / f"xneck-up-{dead.pid}-link"
+    link.symlink_to(target)
+    assert _remove_stale_socket_folders(tmp_path) == [stale]
+    assert not stale.exists() and alive.exists() and foreign.exists() and huge.exists() and target.exists()

@@ -85,6 +85,30 @@ PING_WATCHDOG_S = 0.4  # WATCHDOG_USEC given to the bridge: it pings every half 
 DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's import initialises the board)
 
 
+SOCKETS_PREFIX = "xneck-up-"  # + the pid of the xneck up that made the folder, "-", random
+
+
+def _remove_stale_socket_folders(root: Path | None = None) -> list[Path]:
+    """Remove the control path's socket folders (``SOCKETS_PREFIX<pid>-…`` in the temporary
+    directory) left by an ``xneck up`` that was killed (SIGKILL skips its clean-up): this user's
+    folders whose pid no longer runs. A pid taken by another process since keeps its folder (it
+    goes at a later start); a folder of another user, or without a pid, is never touched."""
+    root = Path(tempfile.gettempdir()) if root is None else root
+    removed = []
+    for folder in root.glob(f"{SOCKETS_PREFIX}*-*"):
+        pid_text = folder.name[len(SOCKETS_PREFIX):].partition("-")[0]
+        try:
+            if not pid_text.isdigit() or folder.is_symlink() or folder.stat().st_uid != os.getuid():
+                continue
+            os.kill(int(pid_text), 0)
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+        except (OSError, ValueError, OverflowError):  # gone meanwhile, or another user's pid: alive
+            continue
+    return removed
+
+
 def _port_taken(host: str, port: int) -> str:
     """Why ``host:port`` cannot be bound now ('' if it can). SO_REUSEADDR as the servers use it,
     so a port in TIME_WAIT counts as free but one with a listener does not."""
@@ -362,7 +386,8 @@ def up(
     # lease) blocks Zenoh's poller until the peer acknowledges (SO_LINGER, hard-coded in Zenoh), ~40
     # ms when its ACK is delayed, a bridge hold (benchmarks/peer_churn.py); a Unix socket's close does
     # not wait. The folder is this user's alone (0700), which loopback TCP ports are not.
-    sockets = Path(tempfile.mkdtemp(prefix="xneck-up-"))
+    _remove_stale_socket_folders()
+    sockets = Path(tempfile.mkdtemp(prefix=f"{SOCKETS_PREFIX}{os.getpid()}-"))
     bridge_at = bridge_at_option if no_bridge else f"unixsock-stream/{sockets / 'bridge.sock'}"
     controller_at = f"unixsock-stream/{sockets / 'controller.sock'}"
     control_path = [arg for at in (bridge_at, controller_at) if at for arg in ("--connect", at)]
