@@ -104,6 +104,12 @@ def _check_endpoints(what: str, endpoints: Sequence[str]) -> list[str]:
         proto, sep, address = str(e).partition("/")
         if not sep or not proto or not address:
             raise ValueError(f"{what} endpoint {e!r} is not of the form <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+        if proto in ("tcp", "udp", "tls", "quic"):
+            # Zenoh takes a port over 65535 and the link then fails as "nothing listens" or a
+            # traceback, far from its cause (audit of 2026-11-27)
+            port = address.partition("#")[0].rpartition(":")[2]
+            if port.isdigit() and int(port) > 65535:
+                raise ValueError(f"{what} endpoint {e!r}: the port must be at most 65535, got {port}")
         checked.append(str(e))
     return checked
 

@@ -161,6 +161,12 @@ def test_keys_and_config() -> None:
         zenoh_config(listen=["127.0.0.1:7447"])
     with pytest.raises(ValueError, match="mode"):
         zenoh_config(mode="server")
+    # Zenoh took a port over 65535: the link then failed as "nothing listens" (xneck bus check)
+    with pytest.raises(ValueError, match="port must be at most 65535, got 99999"):
+        zenoh_config(connect=["tcp/127.0.0.1:99999"])
+    with pytest.raises(ValueError, match="port must be at most 65535"):
+        zenoh_config(listen=["tls/[::1]:70000#iface=lo"])
+    zenoh_config(listen=["tcp/[::1]:65535", "unixsock-stream/a:99999", "tcp/localhost"])  # fine as they are
 
 
 def test_config_defaults_come_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
