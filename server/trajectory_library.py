@@ -56,8 +56,9 @@ def parse(body: bytes, content_type: str = "application/json") -> Trajectory:
 
 
 def preview(traj: Trajectory) -> dict[str, Any]:
-    """α^d(t) of ``traj`` for a plot: ``t_s`` and ``alpha_deg`` (one list per joint), at most
-    ``PREVIEW_MAX_POINTS`` samples, every waypoint time included."""
+    """α^d(t) of ``traj`` for a plot: ``t_s`` and ``alpha_deg`` (one list per joint), a grid of at
+    most ``PREVIEW_MAX_POINTS`` samples plus every waypoint's arrival and departure (so at most
+    4000 + 2 × 2000, the validation's waypoint limit)."""
     dt = max(1.0 / PREVIEW_HZ, traj.duration_s / PREVIEW_MAX_POINTS)
     t = traj.time_grid(dt) if traj.duration_s > 0 else np.zeros(1)
     alpha = np.degrees(traj.sample(t).alpha)
