@@ -54,6 +54,29 @@ def test_hac_sigma_covers_with_correlated_residuals_where_eq50_does_not():
     assert covered["hac"] / (2 * runs) >= 0.85, covered
 
 
+def test_a_hac_lag_spanning_much_of_a_short_record_flags_every_sigma_as_unreliable():
+    """The HAC lag's floor is the filter's memory (3 cutoff periods: 59 instants at 1.6 Hz, 938 at
+    a --cutoff-hz of 0.1); on a record of a few times that many instants Newey-West's σ is about
+    half the true one even with white residuals (coverage of ±2σ ~60 %), and a real campaign
+    (paper-0 at --cutoff-hz 0.1: lag 938 of 1809 instants) reported k with 4 % σ that was 5σ from
+    the 1.6 Hz fit, and used it. Such an estimate must say its σ cannot be trusted."""
+    rng = np.random.default_rng(23)
+    n, truth, runs = 100, np.array([2.0, -1.0]), 60
+    covered = 0
+    for _ in range(runs):
+        x = np.column_stack([np.sin(np.linspace(0, 2 * np.pi, n)) + 0.3 * rng.standard_normal(n), np.ones(n)])
+        y = x @ truth + rng.standard_normal(n)
+        est = least_squares(x, y, ("k(1)", "b(1)"), method="t", equations="t", n_samples=n, min_lag=59)
+        covered += int(np.sum(np.abs(est.values - truth) <= 2 * est.sigma))
+        assert est.hac_lag == 59 and est.sigma_unreliable
+        assert est.badly_identified.all() and all("σ unreliable" in est.reason(i) for i in range(2))
+    assert covered / (2 * runs) < 0.8, covered  # why: the σ is too small
+    long = least_squares(np.column_stack([np.sin(np.linspace(0, 20, 1000)), np.ones(1000)]),
+                         rng.standard_normal(1000), ("k(1)", "b(1)"), method="t", equations="t", n_samples=1000,
+                         min_lag=59)
+    assert not long.sigma_unreliable and "σ unreliable" not in long.reason(0)
+
+
 def test_bounded_solution_holds_a_damping_at_zero_and_says_so():
     rng = np.random.default_rng(3)
     n = 300

@@ -71,17 +71,30 @@ class Estimate:
         return physical & np.where(symbols == "k", self.values <= 0.0, self.values < 0.0)
 
     @property
+    def sigma_unreliable(self) -> bool:
+        """The HAC lag spans more than uncertainty.MAX_LAG_FRACTION of the instants: the filter's
+        memory (the lag's floor, rate/cutoff) is long for the record. Newey-West's σ is then biased
+        low whatever the residuals (about half the true σ at a lag of half the instants: the
+        weighted sums of the scores over windows that long nearly cancel), so no σ of this
+        estimate can be trusted."""
+        return self.hac_lag > uncertainty.MAX_LAG_FRACTION * self.n_samples
+
+    @property
     def badly_identified(self) -> NDArray[np.bool_]:
-        """Relative σ above the threshold (or not finite), or out of physical range: never used
-        silently."""
+        """Relative σ above the threshold (or not finite), out of physical range, or a σ that
+        cannot be trusted (:attr:`sigma_unreliable`): never used silently."""
         r = self.relative_sigma
-        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range | self.at_bound
+        return ~np.isfinite(r) | (r > self.threshold) | self.out_of_range | self.at_bound | self.sigma_unreliable
 
     def reason(self, i: int) -> str:
         """Why parameter ``i`` is badly identified ("" if it is not)."""
         r = self.relative_sigma[i]
         if self.values[i] == 0.0 and self.sigma[i] == 0.0:  # e.g. the output error's c_a, quasi-static
             return "not estimated: this estimator holds it at 0"
+        if self.sigma_unreliable:
+            return (f"σ unreliable: residuals taken as correlated over {self.hac_lag} of {self.n_samples} instants "
+                    f"(> {100 * uncertainty.MAX_LAG_FRACTION:g} %), the σ would be too small; record longer or "
+                    "with a higher filter cutoff")
         if self.at_bound[i]:  # first: at a bound of 0 its relative σ is infinite by construction
             return "held at its physical bound (the data pull it beyond)"
         if not np.isfinite(r) or r > self.threshold:

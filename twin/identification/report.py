@@ -86,7 +86,8 @@ def tables_text(estimates: Mapping[str, Estimate], proc: Processed, validation: 
         f"{proc.n} instants at {proc.rate_hz:.2f} Hz",
         "", table_1(estimates), "", table_2(estimates), "",
         f"! = badly identified (relative σ > {100 * estimates['variable'].threshold:g} %, or a value outside the "
-        "physical range, or held at a physical bound by the bounded solution): never used, the base value is "
+        "physical range, or held at a physical bound by the bounded solution, or a σ that cannot be trusted on a "
+        "record this short for its cutoff): never used, the base value is "
         "kept; b = at a bound; ±2σ = about 95 % confidence interval with the σ method named under each table",
     ]
     if kept_base:

@@ -23,7 +23,9 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-MAX_LAG_FRACTION = 0.2  # L never exceeds this fraction of the instants: the sum needs many lags' worth of data
+# L stays below this fraction of the instants (unless min_lag, the filter's memory, is longer: the
+# Estimate then flags its σ as unreliable, estimators.Estimate.sigma_unreliable): the sum needs many lags' worth of data.
+MAX_LAG_FRACTION = 0.2
 CORRELATION_FLOOR = 0.1  # residual autocorrelation below which two instants count as independent
 LAG_FACTOR = 2  # Bartlett weights halve the covariance at half the lag: sum over twice the correlation length
 
@@ -38,7 +40,7 @@ def instant_sums(rows: FloatArray, sample_index: IntArray, n_samples: int) -> Fl
 def correlation_lag(residual: FloatArray, sample_index: IntArray, n_samples: int, min_lag: int = 1) -> int:
     """Lags (instants) until the residuals' autocorrelation first drops below 0.1, each equation
     (row position within its instant) taken separately and the largest kept; at least ``min_lag``,
-    at most 10 % of the instants."""
+    at most :data:`MAX_LAG_FRACTION` of the instants (or ``min_lag`` if it is more)."""
     cap = max(min_lag, int(MAX_LAG_FRACTION * n_samples))
     order = np.argsort(sample_index, kind="stable")
     idx, res = sample_index[order], residual[order]
