@@ -7,6 +7,7 @@ Runs are the §7 loop on a short nod (0.6 s of simulated time) so that each cost
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
@@ -15,11 +16,12 @@ import sys
 import threading
 
 import httpx
+import numpy as np
 import pytest
 from server_harness import AUTH, running_server, wait_until
 
 from server.studies.execute import finished_ids, part_files, read_rows, run_study
-from server.studies.run import config_for, run_one
+from server.studies.run import config_for, identification_metrics, run_one
 from server.studies.spec import StudyError, expand, parse_vary, study_from
 
 NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [4, 4, 4], [0, 0, 0]], "durations_s": 0.25, "dwell_s": 0.05}
@@ -395,3 +397,35 @@ def test_a_run_whose_twin_stood_at_the_flat_singularity_is_diverged_not_finished
     row = run_one(config_for(s, "v"), run)
     assert row["outcome"] == "diverged" and "flat singularity" in row["message"], row["message"]
     assert row["flat_steps"] > 0
+
+
+def test_identification_metrics_of_a_twin_value_of_zero_are_undefined_not_a_divergence() -> None:
+    """A twin with linear cables (λ = 0, which the parameter file allows and a study may vary to,
+    e.g. cables.variable.lambda[1]=0:150:4) has no relative error for λ: it used to be inf, and the
+    run, whose identification had worked, was counted ``diverged`` (non-finite metrics) and left
+    out of the summary. The undefined values are None; the ±2σ coverage is value ± 2σ."""
+    from twin.identification.estimators import Estimate
+    from twin.identification.regressors import param_names
+    from twin.model.params import load_params
+
+    params = load_params(None, {"cables.variable.lambda": [0.0, 100.0, 100.0, 100.0]})
+    k, f_s = np.array(params.cables.variable.k), np.array(params.friction.f_s)
+
+    def est(names, values, sigma):
+        values, sigma = np.asarray(values, dtype=float), np.asarray(sigma, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return Estimate(method="m", equations="e", names=names, values=values, sigma=sigma,
+                            relative_sigma=sigma / np.abs(values), condition_number=1.0, residual_norm=1.0,
+                            n_rows=100, n_samples=100)
+
+    lam = [0.0, 103.0, 89.5, 100.0]  # λ(1) held at its bound 0, λ(3) 10.5 % low with a 1 % σ
+    variable = est(param_names("k", 4) + param_names("lambda", 4), [*(1.05 * k), *lam],
+                   [*(0.03 * k), 2.0, 2.0, 0.9, 2.0])
+    friction = est(param_names("f_s", 4), f_s, 0.01 * f_s)
+    m = identification_metrics({"friction": friction, "variable": variable}, params)
+    assert all(isinstance(x, float) and math.isfinite(x) for x in m.values() if x is not None), m
+    assert m["lambda_rel_error[1]"] is None and m["lambda_rel_sigma_max"] is None
+    assert m["lambda_rel_error_max"] == pytest.approx(0.105)
+    assert m["lambda_within_10pct_fraction"] == pytest.approx(2 / 3)  # over the three defined: 3 %, 10.5 %, 0 %
+    assert [m[f"lambda_covered[{i}]"] for i in range(1, 5)] == [1.0, 1.0, 0.0, 1.0]  # 0 ± 4 covers 0, 89.5 ± 1.8 not 100
+    assert m["k_rel_error_max"] == pytest.approx(0.05) and m["k_covered_fraction"] == 1.0  # 5 % off, σ 3 %
