@@ -278,7 +278,9 @@ def identification_metrics(est: dict[str, Any], params: Any) -> dict[str, Any]:
         rs = [_defined(x) for x in rsig]
         known = [x for x in err if x is not None]
         out[f"{name}_rel_error_max"] = max(known) if known else None
-        out[f"{name}_rel_sigma_max"] = None if None in rs else max(rs)  # an undefined one may be the largest
+        defined = [x for x in rs if x is not None]
+        # an undefined one may be the largest: no maximum then
+        out[f"{name}_rel_sigma_max"] = max(defined) if len(defined) == len(rs) and defined else None
         out.update({f"{name}_rel_error[{i + 1}]": x for i, x in enumerate(err)})
         # covered: the truth within the ±2σ the report gives (value ± 2σ), issue 17's coverage test
         covered = np.abs(values - true) <= 2.0 * sigma
