@@ -285,7 +285,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 if ev.event in ("finished", "aborted"):
                     outcome, message = ev.event, ev.message
                     break
-                continue
+            # Every turn, not only when no event came for 0.2 s: a lockstep twin's events (one per
+            # 0.5 s of campaign time) come faster than that on a quick machine, and a stop, the
+            # deadline or a dead child were then never seen (audit of 2026-11-27).
             dead = [n for n, p in procs.items() if p.poll() is not None]
             if dead:
                 # A controller that finished puts its last event just before it exits: under load

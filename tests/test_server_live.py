@@ -11,11 +11,12 @@ from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import AUTH, running_server, wait_until
+from server_harness import AUTH, running_server, start_campaign, wait_until
 from websockets.sync.client import connect
 
 from bridge import bus
 from bridge.archive import read_campaign
+from bridge.session import publisher
 from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
 
 
@@ -175,3 +176,39 @@ def test_a_stalled_live_client_does_not_hold_frames_back(console) -> None:
         assert all(c.queue.qsize() <= c.queue.maxsize for c in broadcaster.clients)
     finally:
         stalled.close()
+
+
+def test_a_stop_stops_a_campaign_whose_events_come_faster_than_the_runner_polls(console) -> None:
+    """A lockstep twin runs faster than real time: its progress events (one per 0.5 s of campaign
+    time) came every 0.2 s on the 2-CPU test machine and faster on a quicker one. The runner
+    looked at the stop (and its deadline) only when no event had come for 0.2 s, so a stop asked
+    while events kept coming was never seen: the campaign ran to its end (audit of 2026-11-27).
+    Here the events of a fast machine are added to the campaign's own: the stop still stops it."""
+    _base, client, app = console
+    cid = start_campaign(client, {"kind": "control", "law": 2, "waypoints": {
+        "name": "long", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0], [5, 5, 5], [0, 0, 0]],
+        "durations_s": 10.0, "dwell_s": 0.2}}, progress=0.01)
+    flooding = threading.Event()
+    events = publisher(app.state.session, bus.CAMPAIGN_EVENTS)
+
+    def flood() -> None:
+        seq = 0
+        while not flooding.is_set():
+            seq += 1
+            events.put(bus.CampaignEvent(seq=seq, stamp_s=time.time(), campaign_id=cid, kind="control",
+                                         event="progress", progress=0.01))
+            time.sleep(0.05)
+
+    flooder = threading.Thread(target=flood, daemon=True)
+    flooder.start()
+    try:
+        time.sleep(0.5)
+        assert client.post(f"/api/campaigns/{cid}/stop", headers=AUTH).status_code == 200
+        stopped = wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 10, 0.2)
+    finally:
+        flooding.set()
+        flooder.join(2)
+        events.close()
+        wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 120, 0.5)
+    rec = client.get(f"/api/campaigns/{cid}").json()
+    assert stopped and rec["status"] == "aborted" and rec["message"] == "stopped by the user", (stopped, rec["status"], rec["message"])
