@@ -138,6 +138,7 @@ class CampaignManager:
         self._replay_starting: tuple[str, float, threading.Event] | None = None
         self._estop_pub = publisher(session, bus.ESTOP)
         self._estop_seq = 0
+        self._estop_lock = threading.Lock()  # never with _lock held: publishing may block
         self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
         self.estop_reason = ""
         self._bridge_estop = bridge_estop  # server.live.bridge_estop: the bridge's latched e-stop, if fresh
@@ -302,6 +303,10 @@ class CampaignManager:
             busy = self._holder()
             if busy is not None:
                 raise busy
+            # Armed before the e-stop is checked: an e-stop whose publication is under way now sets
+            # this event when it returns, so the campaign it missed at the check ends at once (one
+            # armed after the record was written let it run: audit of 2026-11-27).
+            stop = self._stop = threading.Event()
             disabled = self._drives_disabled(spec.twin and not spec.service)  # a service drives the bus bridge
             if disabled:
                 raise DrivesDisabled(disabled)
@@ -322,8 +327,7 @@ class CampaignManager:
                 raise StorageError(f"cannot write the campaign record: {storage_reason(exc)}") from None
             self._records[cid] = rec
             self._running = cid
-            self._stop = threading.Event()
-            self._worker = threading.Thread(target=self._run, args=(cid, prepared), name=f"campaign:{cid}",
+            self._worker = threading.Thread(target=self._run, args=(cid, prepared, stop), name=f"campaign:{cid}",
                                             daemon=True)
             self._worker.start()
         return rec.model_copy()
@@ -343,9 +347,9 @@ class CampaignManager:
                     rec.message = f"{rec.message} (this record could not be saved: storage fault)"[:2000]
         return snapshot
 
-    def _run(self, cid: str, prepared: PreparedCampaign) -> None:
+    def _run(self, cid: str, prepared: PreparedCampaign, stop: threading.Event) -> None:
         try:
-            self._record_campaign(cid, prepared)
+            self._record_campaign(cid, prepared, stop)
         finally:  # whatever happened, the robot is free again
             with self._lock:
                 if self._running == cid:
@@ -353,7 +357,7 @@ class CampaignManager:
                 self._causes.pop(cid, None)
             self.release_reserve(keep=True)
 
-    def _record_campaign(self, cid: str, prepared: PreparedCampaign) -> None:
+    def _record_campaign(self, cid: str, prepared: PreparedCampaign, stop: threading.Event) -> None:
         path = self.index.mcap(cid)
         spec = prepared.spec
 
@@ -366,7 +370,7 @@ class CampaignManager:
         try:
             try:
                 result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
-                                      session=self.session, hub=self.hub, stop=self._stop)
+                                      session=self.session, hub=self.hub, stop=stop)
             finally:
                 with self._lock:
                     self._last_end = (cid, time.monotonic())
@@ -554,11 +558,12 @@ class CampaignManager:
     def estop(self, engaged: bool, reason: str) -> None:
         """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
         engaging, abort the running campaign and any replay."""
-        self._estop_seq += 1
-        self._estop_pub.put(bus.EStop(seq=self._estop_seq, stamp_s=time.time(), engaged=engaged,
-                                      reason=reason))
-        self.estop_engaged, self.estop_reason = engaged, reason
-        if engaged:
+        with self._estop_lock:  # two at once: what this console says is what it sent last
+            self._estop_seq += 1
+            self._estop_pub.put(bus.EStop(seq=self._estop_seq, stamp_s=time.time(), engaged=engaged,
+                                          reason=reason))
+            self.estop_engaged, self.estop_reason = engaged, reason
+        if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
             self._stop.set()
             self._cancel_starting_replay()
             if self._replay is not None:

@@ -9,6 +9,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -475,3 +476,47 @@ def test_a_record_whose_id_is_not_its_file_name_is_reported_and_nothing_is_writt
         assert "is not its file name" in errors["evil.json"] and "another-one" in errors["other.json"], errors
     assert sorted(p.name for p in tmp_path.rglob("*.json")) == ["evil.json", "other.json"]
     assert json.loads((data / "campaigns" / "evil.json").read_text()) == rec  # left as it was
+
+
+def test_an_estop_pressed_while_a_campaign_starts_stops_that_campaign(tmp_path) -> None:
+    """start() checked the e-stop, wrote the record, then armed the campaign's stop event; an
+    e-stop whose publication was under way at the check set the *previous* event when it came
+    back, so the new campaign ran on its own twin (which never heard the e-stop, published before
+    it existed) to its end while the console said engaged (audit of 2026-11-27). Here the
+    publication returns while the record is written: the campaign must end aborted."""
+    nod = {"kind": "control", "law": 2, "waypoints": {"name": "nod", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0]],
+                                                      "durations_s": 1.0, "dwell_s": 0.2}}
+    with (running_server(tmp_path, viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c):
+        manager = app.state.campaigns
+        save, put, estop = manager.index.save, manager._estop_pub.put, manager.estop
+        saving, pressed = threading.Event(), threading.Event()
+
+        def slow_put(msg) -> None:  # a publication that takes a while (a congested link)
+            saving.wait(10)
+            put(msg)
+
+        def estop_then_tell(engaged: bool, reason: str) -> None:
+            estop(engaged, reason)
+            pressed.set()
+
+        def save_while_pressed(rec) -> None:
+            save(rec)
+            if rec.status == "running" and not saving.is_set():
+                saving.set()
+                pressed.wait(2)
+
+        manager._estop_pub.put, manager.estop, manager.index.save = slow_put, estop_then_tell, save_while_pressed
+        answer: list[int] = []
+        press = threading.Thread(target=lambda: answer.append(c.post(
+            "/api/system/estop", json={"engaged": True, "reason": "pressed during the start"},
+            headers=AUTH).status_code))
+        press.start()
+        r = c.post("/api/campaigns", json=nod, headers=AUTH)
+        press.join(15)
+        assert answer == [200]
+        assert r.status_code == 201, r.text  # it got past the check: the e-stop must stop it
+        cid = r.json()["id"]
+        assert wait_until(lambda: c.get(f"/api/campaigns/{cid}").json()["status"] != "running", 60, 0.2)
+        rec = c.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] == "aborted", (rec["status"], rec["message"])
+        assert c.get("/api/system/health").json()["estop"]["engaged"] is True
