@@ -3,8 +3,12 @@ and an identification's parameter set saved to the console's sets."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+import contextlib
+import os
+from collections.abc import AsyncIterator
+from typing import Any, BinaryIO, Literal
 
+import anyio
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
@@ -17,6 +21,30 @@ from server.records import CampaignRecord, CampaignStatus, valid_id
 from server.results import FIGURES, control_tables, identification_tables, quality_tables, render_figure
 
 router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
+
+
+class OpenFileResponse(FileResponse):
+    """A :class:`FileResponse` (ranges and all) of a file the route has opened already: its size is
+    the open file's and its bytes are read from it, so a delete or an atomic rewrite of the path
+    while the response is under way changes nothing of it. A FileResponse by path stat'ed and
+    opened the file after the route had returned: a campaign deleted meanwhile was a 500 or a
+    transfer broken after its 200 (audit of 2026-11-27)."""
+
+    def __init__(self, file: BinaryIO, **kwargs: Any) -> None:
+        self._file = file
+        super().__init__(file.name, stat_result=os.fstat(file.fileno()), **kwargs)
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        scope = {**scope, "extensions": {k: v for k, v in scope.get("extensions", {}).items()
+                                         if k != "http.response.pathsend"}}  # by path: what this avoids
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._file.close()
+
+    @contextlib.asynccontextmanager
+    async def _open_file(self) -> AsyncIterator[anyio.AsyncFile[bytes]]:
+        yield anyio.AsyncFile(self._file)  # closed by __call__
 
 
 def _manager(request: Request) -> CampaignManager:
@@ -119,10 +147,12 @@ def download_mcap(campaign_id: str, request: Request) -> FileResponse:
     rec = _record(_manager(request), campaign_id)
     if rec.status == "running":
         raise HTTPException(status.HTTP_409_CONFLICT, "the campaign is still being recorded")
-    path = _manager(request).mcap_path(campaign_id)
-    if not path.exists():
-        raise HTTPException(status.HTTP_404_NOT_FOUND, "this campaign has no archive")
-    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+    path = _manager(request).index.mcap(campaign_id)
+    try:
+        file = open(path, "rb")  # noqa: SIM115 - the response closes it
+    except FileNotFoundError:  # none, or deleted since the record was read
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "this campaign has no archive") from None
+    return OpenFileResponse(file, media_type="application/octet-stream", filename=path.name)
 
 
 @router.get("/{campaign_id}/figures/{name}.png", response_class=FileResponse,
@@ -141,7 +171,11 @@ async def figure(campaign_id: str, name: str, request: Request) -> FileResponse:
             await run_in_threadpool(render_figure, manager.mcap_path(campaign_id), name, out)
         except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
             raise HTTPException(422, f"cannot draw {name}: {exc}") from None
-    return FileResponse(out, media_type="image/png")
+    try:
+        file = open(out, "rb")  # noqa: SIM115 - the response closes it
+    except FileNotFoundError:  # the campaign was deleted meanwhile
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign_id!r}") from None
+    return OpenFileResponse(file, media_type="image/png")
 
 
 class ParameterSetRequest(BaseModel, extra="forbid"):

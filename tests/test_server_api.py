@@ -520,3 +520,42 @@ def test_an_estop_pressed_while_a_campaign_starts_stops_that_campaign(tmp_path) 
         rec = c.get(f"/api/campaigns/{cid}").json()
         assert rec["status"] == "aborted", (rec["status"], rec["message"])
         assert c.get("/api/system/health").json()["estop"]["engaged"] is True
+
+
+def test_a_download_and_a_delete_at_once_give_the_whole_archive_or_a_404(tmp_path) -> None:
+    """The MCAP was a FileResponse by path, stat'ed and opened after the route had returned: a
+    delete in between made the download a 500, or a 200 whose body broke off (audit of
+    2026-11-27: 200 of 300 such pairs). The route now opens the file: whole, or 404. Ranges
+    still work."""
+    import json
+
+    data = tmp_path / "data"
+    (data / "campaigns").mkdir(parents=True)
+    ids = [f"control-20260101-000000-{i:04x}" for i in range(40)]
+    content = os.urandom(300_000)
+    for cid in ids:
+        (data / "campaigns" / f"{cid}.json").write_text(json.dumps({
+            "id": cid, "kind": "control", "law": "law2", "trajectory": "t", "parameter_set": "prototype_3x",
+            "target": "twin", "status": "finished"}))
+        (data / "campaigns" / f"{cid}.mcap").write_bytes(content)
+    with (running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as a,
+          httpx.Client(base_url=base, timeout=30) as b):
+        part = a.get(f"/api/campaigns/{ids[0]}/mcap", headers={"Range": "bytes=10-19"})
+        assert part.status_code == 206 and part.content == content[10:20]
+        seen = []
+        for cid in ids:
+            got: list[object] = []
+
+            def download(cid: str = cid, got: list[object] = got) -> None:
+                try:
+                    r = a.get(f"/api/campaigns/{cid}/mcap")
+                    got.append((r.status_code, r.content == content))
+                except httpx.HTTPError as exc:
+                    got.append(type(exc).__name__)
+
+            getter = threading.Thread(target=download)
+            getter.start()
+            assert b.delete(f"/api/campaigns/{cid}", headers=AUTH).status_code == 204
+            getter.join(30)
+            seen += got
+        assert set(seen) <= {(200, True), (404, False)}, seen
