@@ -136,12 +136,17 @@ class ParameterStore:
         return params
 
     def delete(self, name: str) -> None:
-        p = self.path(name)
-        if p is None:
-            raise ParameterError(f"{BUILTIN!r} is built in and cannot be deleted")
-        if name == self.active():
-            raise ParameterError(f"{name!r} is the active parameter set; choose another one first")
-        p.unlink()
+        """Raises :class:`UnknownParameterSet`, or :class:`ParameterError` for the built-in or the
+        active set. Under the store's lock, as :meth:`set_active`: a set being chosen active and
+        deleted at once was both (the active file then named a set that no longer existed), and
+        two deletes at once made the second a storage fault (audit of 2026-11-27)."""
+        with self._lock:
+            p = self.path(name)
+            if p is None:
+                raise ParameterError(f"{BUILTIN!r} is built in and cannot be deleted")
+            if name == self.active():
+                raise ParameterError(f"{name!r} is the active parameter set; choose another one first")
+            p.unlink()
 
     def _named(self) -> str:
         """The name the ``active`` file holds (``prototype_3x`` without one)."""
@@ -184,7 +189,7 @@ class ParameterStore:
     def set_active(self, name: str) -> None:
         """Raises :class:`UnknownParameterSet`, or :class:`ParameterError` with the loader's message:
         a set that does not load is never chosen (the console could not start on it)."""
-        self.load(name)
-        with self._lock:
+        with self._lock:  # not while it is deleted (:meth:`delete`)
+            self.load(name)
             atomic_write(self.dir / "active", (name + "\n").encode())
             self.fallback = None

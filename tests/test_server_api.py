@@ -559,3 +559,32 @@ def test_a_download_and_a_delete_at_once_give_the_whole_archive_or_a_404(tmp_pat
             getter.join(30)
             seen += got
         assert set(seen) <= {(200, True), (404, False)}, seen
+
+
+def test_a_parameter_set_chosen_and_deleted_at_once_is_one_or_the_other(tmp_path) -> None:
+    """Choosing a set active and deleting it at once did both (200 and 204; the active file then
+    named a set that no longer existed and the console quietly ran on prototype_3x), and of two
+    deletes at once the second was a 507 "storage fault" (audit of 2026-11-27: 94 and 33 of 200)."""
+    with (running_server(tmp_path, viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as a,
+          httpx.Client(base_url=base, timeout=30) as b):
+        text = app.state.params.text("prototype_3x")
+
+        def at_once(first, second) -> list[int]:
+            codes: list[int] = []
+            other = threading.Thread(target=lambda: codes.append(second().status_code))
+            other.start()
+            codes.insert(0, first().status_code)
+            other.join(30)
+            return codes
+
+        for i in range(40):
+            name = f"race-{i}"
+            assert a.put(f"/api/params/{name}", content=text, headers=AUTH).status_code == 201
+            chosen, deleted = at_once(lambda name=name: a.put("/api/params/active", json={"name": name}, headers=AUTH),
+                                      lambda name=name: b.delete(f"/api/params/{name}", headers=AUTH))
+            assert (chosen, deleted) in ((200, 409), (422, 204)), (chosen, deleted)
+            assert (a.get("/api/params/active").json()["active"] == name) == (chosen == 200)
+            assert a.put("/api/params/active", json={"name": "prototype_3x"}, headers=AUTH).status_code == 200
+            if chosen == 200:
+                assert sorted(at_once(lambda name=name: a.delete(f"/api/params/{name}", headers=AUTH),
+                                      lambda name=name: b.delete(f"/api/params/{name}", headers=AUTH))) == [204, 404]
