@@ -5,6 +5,7 @@ under artifacts/."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import httpx
 from browser_harness import ARTIFACTS, dashboard_page, needs_chromium
@@ -39,3 +40,86 @@ def test_dashboard_starts_a_campaign_and_shows_it_live(tmp_path: Path) -> None:
         page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
         assert "Table 3" in page.inner_text("#results")
         assert not errors, errors
+
+
+@needs_chromium
+def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_of_sight(tmp_path: Path) -> None:
+    """Anyone on the bus may publish: a peer posing as a bridge sends a MotorState with one force
+    too many and reasons of several kB (the bridge's own are cut to 200 characters, a peer's are
+    not), a Health with a huge last reject reason, and a camera grades one joint of three. The
+    page must keep its live view (before: every frame threw in onFrame, no frame reached the
+    safety code and it claimed LIVE STREAM LOST while frames came), its camera panel (before:
+    "console unreachable") and its e-stop button in sight and working on a laptop's screen
+    (before: the header grew taller than the window and hid the button)."""
+    import threading
+    import time
+
+    from bridge import bus
+    from bridge.session import liveliness_token, open_session, publisher
+
+    with running_server(tmp_path / "data", viser=False) as (base, app_):
+        app: Any = app_
+        n_motors, n_joints = app.state.default_params.n_cables, app.state.default_params.n_joints
+        session = open_session(connect=[app.state.hub])
+        token = liveliness_token(session, "bridge", "posing")
+        pubs = {key: publisher(session, key) for key in (bus.MOTOR_STATE, bus.CONTROLLER_STATUS, bus.CAMERA_ALPHA)}
+        health = session.declare_publisher(bus.health_key("bridge", "posing"))
+        stop = threading.Event()
+
+        def peer() -> None:
+            seq = 0
+            while not stop.is_set():
+                seq += 1
+                now = time.time()
+                pubs[bus.MOTOR_STATE].put(bus.MotorState(
+                    seq=seq, stamp_s=now, theta_rad=[0.0] * n_motors, force_applied_N=[10.0] * (n_motors + 1),
+                    drive="hold", hold_reason="held " * 400, epoch="e", bridge="posing", estop_engaged=True,
+                    estop_reason="because " * 500))
+                pubs[bus.CONTROLLER_STATUS].put(bus.ControllerStatus(
+                    seq=seq, stamp_s=now, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+                    saturated=[False] * n_motors, alpha_hat_rad=[0.01] * n_joints, alpha_d_rad=[0.02] * n_joints,
+                    e_rad=[0.01] * n_joints, holding=False))
+                pubs[bus.CAMERA_ALPHA].put(bus.CameraAlpha(
+                    seq=seq, stamp_s=now, capture_stamp_s=now, alpha_ip_rad=[0.1] * n_joints, confidence=[0.5],
+                    source="posing"))
+                if seq % 25 == 1:
+                    health.put(bus.encode(bus.Health(seq=seq, stamp_s=now, process="bridge", instance="posing",
+                                                     uptime_s=1.0, received={"ticks": seq}, rejected={},
+                                                     last_reject_reason="refused " * 6000)))
+                time.sleep(0.02)
+
+        thread = threading.Thread(target=peer, daemon=True)
+        thread.start()
+        try:
+            with dashboard_page(base) as (page, errors):
+                page.set_viewport_size({"width": 1280, "height": 720})
+                page.fill("#token", TOKEN)
+                page.dispatch_event("#token", "change")
+                page.wait_for_function("document.querySelector('#bridge-health').textContent.includes('refused refused')",
+                                       timeout=15000)
+                page.wait_for_function("window.xneckStats.points > 50", timeout=15000)
+                page.wait_for_timeout(2500)  # longer than the page waits before it calls the stream lost
+                assert page.evaluate("window.xneckSafety.banner") == ""
+                assert page.evaluate("window.xneckSafety.liveStateFresh()")  # the bridge's word reaches the banner
+                assert "E-STOP ENGAGED: because" in page.inner_text("#estop-state")
+                assert "unreachable" not in page.inner_text("#camera-state")
+                assert len(page.inner_text("#camera-alpha").splitlines()) == n_joints
+                for scroll in ("0", "document.body.scrollHeight"):
+                    page.evaluate(f"window.scrollTo(0, {scroll})")
+                    page.wait_for_timeout(200)
+                    box = page.locator("#estop").bounding_box()
+                    assert box is not None and box["y"] + box["height"] <= 720, box
+                    assert page.evaluate("""() => { const b = document.querySelector('#estop').getBoundingClientRect();
+                        return document.elementFromPoint(b.x + b.width / 2, b.y + b.height / 2).closest('#estop') !== null; }""")
+                page.screenshot(path=str(ARTIFACTS / "dashboard_hostile_bus.png"))
+                page.click("#estop")
+                assert wait_until(lambda: app.state.campaigns.estop_engaged, 10)
+                assert not errors, errors
+        finally:
+            stop.set()
+            thread.join(2)
+            for pub in pubs.values():
+                pub.close()
+            health.undeclare()
+            token.undeclare()
+            session.close()

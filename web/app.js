@@ -73,7 +73,9 @@ function push(p, x, ys) {
   }
   p.lastX = x;
   p.data[0].push(x);
-  ys.forEach((y, i) => p.data[i + 1].push(y));
+  // One value per series of the plot, whatever the message held: any peer on the bus may publish,
+  // and one force too many must not throw (it froze the live view, audit-d).
+  for (let i = 1; i < p.data.length; i++) p.data[i].push(ys[i - 1] === undefined ? null : ys[i - 1]);
   while (p.data[0].length > MAX_POINTS || (p.data[0].length && p.data[0][0] < x - HISTORY_S)) {
     for (const a of p.data) a.shift();
   }
@@ -100,19 +102,23 @@ function buildPlots() {
 function onFrame(frame) {
   stats.frames++;
   const s = frame.series || {};
-  if (s.state) push(forcePlot, s.state.stamp_s, s.state.force_applied_N);
-  if (s.status) {
-    stats.lastStamp = s.status.stamp_s;
-    const ip = s.camera ? s.camera.alpha_ip_rad : null;
-    jointPlots.forEach((p, j) => push(p, s.status.stamp_s,
-      [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG,
-       ip && ip[j] !== null ? ip[j] * DEG : null]));  // null: the camera missed this joint (a gap, not 0°)
-    $("#live-info").textContent = `${s.status.law}, t = ${s.status.stamp_s.toFixed(2)} s` +
-      (s.status.holding ? `, HOLD: ${s.status.hold_reason}` : "");
+  try {
+    if (s.state) push(forcePlot, s.state.stamp_s, s.state.force_applied_N);
+    if (s.status) {
+      stats.lastStamp = s.status.stamp_s;
+      const ip = s.camera ? s.camera.alpha_ip_rad : null;
+      jointPlots.forEach((p, j) => push(p, s.status.stamp_s,
+        [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG,
+         ip && ip[j] !== null ? ip[j] * DEG : null]));  // null: the camera missed this joint (a gap, not 0°)
+      $("#live-info").textContent = `${s.status.law}, t = ${s.status.stamp_s.toFixed(2)} s` +
+        (s.status.holding ? `, HOLD: ${s.status.hold_reason}` : "");
+    }
+    if (s.campaign && s.campaign.campaign_id === runningId) setProgress(s.campaign.progress, s.campaign.event);
+  } finally {
+    // Whatever a plot made of the frame, safety.js (the bridge's e-stop, "stream lost") and jog.js get it.
+    dirty = true;
+    window.dispatchEvent(new CustomEvent("xneck-frame", { detail: frame }));  // jog.js, console.js
   }
-  if (s.campaign && s.campaign.campaign_id === runningId) setProgress(s.campaign.progress, s.campaign.event);
-  dirty = true;
-  window.dispatchEvent(new CustomEvent("xneck-frame", { detail: frame }));  // jog.js, console.js
 }
 
 // Running: the last WINDOW_S seconds. Paused: the whole last minute, to zoom in by dragging

@@ -45,7 +45,8 @@
     if (!alpha) return;
     alpha.alpha_ip_rad.forEach((a, j) => {
       const row = document.createElement("div");
-      const conf = alpha.confidence.length ? alpha.confidence[j] : null;
+      const c = alpha.confidence[j];  // the publisher's grade; none, or a list of another length (any peer may publish)
+      const conf = typeof c === "number" ? c : null;
       if (a === null) {
         row.textContent = `α${j + 1}  missing`;
         row.style.color = "#c62828";
