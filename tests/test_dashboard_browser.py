@@ -46,13 +46,17 @@ def test_dashboard_starts_a_campaign_and_shows_it_live(tmp_path: Path) -> None:
 def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_of_sight(tmp_path: Path) -> None:
     """Anyone on the bus may publish: a peer posing as a bridge sends a MotorState with one force
     too many and reasons of several kB (the bridge's own are cut to 200 characters, a peer's are
-    not), a Health with a huge last reject reason, and a camera grades one joint of three. The
-    page must keep its live view (before: every frame threw in onFrame, no frame reached the
-    safety code and it claimed LIVE STREAM LOST while frames came), its camera panel (before:
-    "console unreachable") and its e-stop button in sight and working on a laptop's screen
+    not), a Health with a huge last reject reason, and a camera grades one joint of three and
+    sends a JPEG whose header is right and whose picture is cut. The page must keep its live view
+    (before: every frame threw in onFrame, no frame reached the safety code and it claimed LIVE
+    STREAM LOST while frames came), its camera panel (before: "console unreachable", and the α_IP
+    rows after the throw missing) and its e-stop button in sight and working on a laptop's screen
     (before: the header grew taller than the window and hid the button)."""
     import threading
     import time
+
+    import cv2
+    import numpy as np
 
     from bridge import bus
     from bridge.session import liveliness_token, open_session, publisher
@@ -62,7 +66,10 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
         n_motors, n_joints = app.state.default_params.n_cables, app.state.default_params.n_joints
         session = open_session(connect=[app.state.hub])
         token = liveliness_token(session, "bridge", "posing")
-        pubs = {key: publisher(session, key) for key in (bus.MOTOR_STATE, bus.CONTROLLER_STATUS, bus.CAMERA_ALPHA)}
+        pubs = {key: publisher(session, key) for key in (bus.MOTOR_STATE, bus.CONTROLLER_STATUS, bus.CAMERA_ALPHA,
+                                                          bus.CAMERA_FRAME)}
+        jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 128, np.uint8))[1].tobytes()
+        cut = jpeg[:len(jpeg) // 2]  # the header (and the size it declares) intact, the picture not
         health = session.declare_publisher(bus.health_key("bridge", "posing"))
         stop = threading.Event()
 
@@ -83,6 +90,8 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                     seq=seq, stamp_s=now, capture_stamp_s=now, alpha_ip_rad=[0.1] * n_joints, confidence=[0.5],
                     source="posing"))
                 if seq % 25 == 1:
+                    pubs[bus.CAMERA_FRAME].put(bus.CameraFrame(seq=seq, stamp_s=now, capture_stamp_s=now, width=64,
+                                                               height=48, data=cut))
                     health.put(bus.encode(bus.Health(seq=seq, stamp_s=now, process="bridge", instance="posing",
                                                      uptime_s=1.0, received={"ticks": seq}, rejected={},
                                                      last_reject_reason="refused " * 6000)))
@@ -102,6 +111,8 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                 assert page.evaluate("window.xneckSafety.banner") == ""
                 assert page.evaluate("window.xneckSafety.liveStateFresh()")  # the bridge's word reaches the banner
                 assert "E-STOP ENGAGED: because" in page.inner_text("#estop-state")
+                page.wait_for_function("document.querySelector('#camera-state').textContent.includes('damaged')",
+                                       timeout=5000)
                 assert "unreachable" not in page.inner_text("#camera-state")
                 assert len(page.inner_text("#camera-alpha").splitlines()) == n_joints
                 for scroll in ("0", "document.body.scrollHeight"):

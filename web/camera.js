@@ -10,7 +10,8 @@
   const BAR_COLORS = ["#ff3b30", "#30d158", "#0a84ff", "#ffd60a", "#40e0ff"];
   const REF_COLOR = "#ff2dd4";  // base-plate reference markers (magenta)
   const DEG = 180 / Math.PI;
-  const stats = { polls: 0, frames: 0, markers: 0, state: "none", key: null };
+  const stats = { polls: 0, frames: 0, markers: 0, state: "none", key: null, damaged: null };
+  const DAMAGED = ", picture damaged (not shown)";
   let dimmed = false;
   window.xneckCamera = stats;  // for tests and the curious
 
@@ -36,6 +37,14 @@
     stats.state = state;
     stateEl.textContent = text;
     stateEl.style.color = state === "live" ? "#2e7d32" : state === "stale" ? "#ef6c00" : "#777";
+  }
+
+  function dim() {
+    if (stats.frames > 0 && !dimmed) {  // the last picture stays, greyed: it is not now
+      ctx.fillStyle = "rgba(31,41,51,0.6)";
+      ctx.fillRect(0, 0, canvas.width, canvas.height);
+      dimmed = true;
+    }
   }
 
   function fmt(x, digits) { return x === null || x === undefined ? "–" : Number(x).toFixed(digits); }
@@ -96,7 +105,15 @@
     const r = await fetch(f.url, { cache: "no-store" });
     if (!r.ok) return;
     if (r.headers.get("X-Frame-Seq") !== String(f.seq)) return;  // a newer frame: its markers come next poll
-    const bitmap = await createImageBitmap(await r.blob());
+    let bitmap;
+    try { bitmap = await createImageBitmap(await r.blob()); } catch (e) {
+      // A JPEG whose header is right and whose picture is not (any peer may publish): said as
+      // such, not as the console being unreachable, fetched once, and the last picture greyed.
+      stats.damaged = `${f.seq}@${f.capture_stamp_s}`;
+      stateEl.textContent += DAMAGED;
+      if (stats.frames > 0) dim(); else blank("picture damaged");
+      return;
+    }
     canvas.width = f.width;
     canvas.height = f.height;
     ctx.drawImage(bitmap, 0, 0, f.width, f.height);
@@ -126,11 +143,9 @@
       }
       showAlpha(h && h.fresh ? s.alpha : null, h ? h.missing_fraction : null);
       if (!h || !h.fresh) {
-        if (stats.frames > 0 && !dimmed) {  // the last picture stays, greyed: it is not now
-          ctx.fillStyle = "rgba(31,41,51,0.6)";
-          ctx.fillRect(0, 0, canvas.width, canvas.height);
-          dimmed = true;
-        }
+        dim();
+      } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` === stats.damaged) {
+        stateEl.textContent += DAMAGED;
       } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` !== stats.key) {
         await loadFrame(s.frame);
       } else if (!s.frame && stats.frames === 0) {
