@@ -44,7 +44,7 @@ from server.campaigns import CampaignManager, StorageError
 from server.console import include_console_routes
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
-from server.live import Broadcaster, LiveBus, bridge_estop
+from server.live import Broadcaster, LiveBus, bridge_estop, receiver_checks
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.routes_jog import request_jog, stop_jog
@@ -101,6 +101,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.broadcaster = Broadcaster(state.live.values, settings.live_rate_hz)
             tasks.append(asyncio.create_task(state.broadcaster.run(), name="live-broadcaster"))
             active, state.default_params = state.params.load_active()
+            state.live.values.checks = receiver_checks(state.default_params.n_cables, state.default_params.n_joints)
+            state.camera.n_joints = state.default_params.n_joints
             if state.params.fallback is not None:
                 # A set that no longer loads must not keep the console (and its e-stop) down.
                 named, reason = state.params.fallback

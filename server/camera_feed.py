@@ -41,6 +41,7 @@ class CameraFeed:
         self.frames_received = 0
         self.frames_rejected = 0
         self.last_reject_reason = ""
+        self.n_joints: int | None = None  # when set, an α_IP message of another joint count is not counted
         self._subs = [] if session is None else [
             session.declare_subscriber(bus.CAMERA_FRAME, lambda s: self.put_frame(s.payload.to_bytes())),
             session.declare_subscriber(bus.CAMERA_ALPHA, lambda s: self.note_alpha(s.payload.to_bytes())),
@@ -59,6 +60,8 @@ class CameraFeed:
         """Counts a valid α_IP message (a refused one is the live store's to count)."""
         try:
             msg = bus.decode(bus.CameraAlpha, payload)
+            if self.n_joints is not None:
+                bus.check_camera_alpha(msg, self.n_joints)
         except bus.BusDecodeError:
             return
         with self._lock:

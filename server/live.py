@@ -73,6 +73,17 @@ BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the dr
 STATE_SAMPLE_PERIOD_S = 0.1
 
 
+def receiver_checks(n_motors: int, n_joints: int) -> dict[str, Callable[[Any], None]]:
+    """The range checks (:mod:`bridge.bus`) the console applies to what it shows and trusts: a
+    motor state of the robot's motor count with finite angles and non-negative finite forces (not
+    bounded by this console's f_max, which may be another set's than the bridge's), a camera
+    message of its joint count. Any peer may publish: a state with one force too many froze the
+    dashboard's live view, camera confidences of another length its camera panel (audit of
+    2026-11-27)."""
+    return {"state": lambda m: bus.check_motor_state(m, n_motors, math.inf),
+            "camera": lambda m: bus.check_camera_alpha(m, n_joints)}
+
+
 class LatestValues:
     """Thread-safe store of the latest message per series, fed by Zenoh callbacks.
 
@@ -91,6 +102,9 @@ class LatestValues:
         self._valid: dict[str, tuple[float, bus.BusMessage]] = {}
         self._version = 0
         self.rejected = 0
+        # series -> the receiver's range check of a decoded message (:func:`receiver_checks`): one
+        # that fails counts as rejected, as garbage does, and is never shown nor trusted
+        self.checks: dict[str, Callable[[Any], None]] = {}
         self._watch_lock = threading.Lock()  # orders the watched/unwatched hand-overs
         self._viewers: set[str] = set()
         self._on_watched: Callable[[bool], None] | None = None
@@ -164,6 +178,9 @@ class LatestValues:
             return cached[1]
         try:
             msg: bus.BusMessage | None = bus.decode(SERIES[series][0], payload)
+            check = self.checks.get(series)
+            if check is not None:
+                check(msg)
         except bus.BusDecodeError:
             msg = None
             self.rejected += 1

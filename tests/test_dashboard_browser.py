@@ -51,7 +51,9 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
     (before: every frame threw in onFrame, no frame reached the safety code and it claimed LIVE
     STREAM LOST while frames came), its camera panel (before: "console unreachable", and the α_IP
     rows after the throw missing) and its e-stop button in sight and working on a laptop's screen
-    (before: the header grew taller than the window and hid the button)."""
+    (before: the header grew taller than the window and hid the button). The states with a force
+    too many and the camera grades of one joint alternate with good ones: the console now rejects
+    them (server.live.receiver_checks) and the page shows the good ones."""
     import threading
     import time
 
@@ -79,7 +81,7 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                 seq += 1
                 now = time.time()
                 pubs[bus.MOTOR_STATE].put(bus.MotorState(
-                    seq=seq, stamp_s=now, theta_rad=[0.0] * n_motors, force_applied_N=[10.0] * (n_motors + 1),
+                    seq=seq, stamp_s=now, theta_rad=[0.0] * n_motors, force_applied_N=[10.0] * (n_motors + seq % 2),
                     drive="hold", hold_reason="held " * 400, epoch="e", bridge="posing", estop_engaged=True,
                     estop_reason="because " * 500))
                 pubs[bus.CONTROLLER_STATUS].put(bus.ControllerStatus(
@@ -87,7 +89,7 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                     saturated=[False] * n_motors, alpha_hat_rad=[0.01] * n_joints, alpha_d_rad=[0.02] * n_joints,
                     e_rad=[0.01] * n_joints, holding=False))
                 pubs[bus.CAMERA_ALPHA].put(bus.CameraAlpha(
-                    seq=seq, stamp_s=now, capture_stamp_s=now, alpha_ip_rad=[0.1] * n_joints, confidence=[0.5],
+                    seq=seq, stamp_s=now, capture_stamp_s=now, alpha_ip_rad=[0.1] * n_joints, confidence=[0.5] * (1 if seq % 2 else n_joints),
                     source="posing"))
                 if seq % 25 == 1:
                     pubs[bus.CAMERA_FRAME].put(bus.CameraFrame(seq=seq, stamp_s=now, capture_stamp_s=now, width=64,
@@ -122,6 +124,7 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                     assert box is not None and box["y"] + box["height"] <= 720, box
                     assert page.evaluate("""() => { const b = document.querySelector('#estop').getBoundingClientRect();
                         return document.elementFromPoint(b.x + b.width / 2, b.y + b.height / 2).closest('#estop') !== null; }""")
+                assert app.state.live.values.rejected > 0  # the wrong-sized ones never reached the page
                 page.screenshot(path=str(ARTIFACTS / "dashboard_hostile_bus.png"))
                 page.click("#estop")
                 assert wait_until(lambda: app.state.campaigns.estop_engaged, 10)

@@ -212,3 +212,36 @@ def test_a_stop_stops_a_campaign_whose_events_come_faster_than_the_runner_polls(
         wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 120, 0.5)
     rec = client.get(f"/api/campaigns/{cid}").json()
     assert stopped and rec["status"] == "aborted" and rec["message"] == "stopped by the user", (stopped, rec["status"], rec["message"])
+
+
+def test_the_console_shows_and_trusts_no_state_or_camera_message_of_another_robots_size() -> None:
+    """Any peer may publish: a MotorState with one force too many froze the dashboard's live view
+    and a CameraAlpha grading 1 joint of 3 its camera panel (audit of 2026-11-27). The console's
+    store rejects them as it does garbage (server.live.receiver_checks), keeping the last valid."""
+    from server.live import LatestValues, receiver_checks
+
+    values = LatestValues()
+    values.checks = receiver_checks(4, 3)
+
+    def state(forces: list[float], seq: int) -> bytes:
+        return bus.encode(bus.MotorState(seq=seq, stamp_s=seq * 0.002, theta_rad=[0.0] * 4, force_applied_N=forces,
+                                         drive="active", epoch="e1", bridge="b1"))
+
+    values.put_raw("state", state([10.0] * 4, 1))
+    assert values.latest_valid("state")[1].seq == 1
+    for bad in ([10.0] * 5, [10.0, -1.0, 10.0, 10.0], [10.0] * 3):  # (NaN does not even encode)
+        values.put_raw("state", state(bad, 2))
+        assert values.get("state") is None
+        assert values.latest_valid("state")[1].seq == 1  # the last valid one stands
+    assert values.rejected == 3
+    values.put_raw("state", state([0.0, 1e6, 5.0, 5.0], 3))  # another set's f_max is not this console's to judge
+    assert values.get("state").seq == 3
+
+    def camera(alpha: list[float | None], confidence: list[float]) -> bytes:
+        return bus.encode(bus.CameraAlpha(seq=1, stamp_s=0.1, capture_stamp_s=0.1, alpha_ip_rad=alpha,
+                                          confidence=confidence, source="peer"))
+
+    values.put_raw("camera", camera([0.1, 0.2, 0.3], [0.5]))
+    assert values.get("camera") is None
+    values.put_raw("camera", camera([0.1, None, 0.3], [0.5, 0.0, 0.9]))
+    assert values.get("camera").alpha_ip_rad == [0.1, None, 0.3]
