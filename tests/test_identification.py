@@ -12,6 +12,7 @@ positive null vector of Z, friction compensated): smooth, rich forces, as §5.2.
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -250,6 +251,21 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
     only_motor = archive.write_campaign(tmp_path / "m.mcap", [m for m in msgs if m[0] == bus.MOTOR_STATE], meta)
     with pytest.raises(IdentificationError, match=r"missing channel.*camera"):
         campaign_data_from_mcap(only_motor)
+
+    # A clock set back 10 s mid-record (received in order, stamped 10 s earlier): sorted, the two
+    # times interleaved and were fitted as one record without a word (audit of 2026-11-27).
+    half = d.t_s[len(d.t_s) // 2]
+
+    def stepped(m):
+        key, log_ns, msg = m
+        field = "stamp_s" if key == bus.MOTOR_STATE else "capture_stamp_s"
+        if getattr(msg, field) < half:
+            return m
+        return key, log_ns, msgspec.structs.replace(msg, **{field: getattr(msg, field) - 10.0})
+
+    back_in_time = archive.write_campaign(tmp_path / "s.mcap", [stepped(m) for m in msgs], meta)
+    with pytest.raises(IdentificationError, match=r"motor states' clock steps back by 10 s after state \d+"):
+        campaign_data_from_mcap(back_in_time)
 
 
 def test_a_record_with_a_missed_sample_is_resampled_not_a_crash():

@@ -40,6 +40,26 @@ MOTOR_TOPIC = "/xneck/motor/state"
 CAMERA_TOPIC = "/xneck/camera/alpha_ip"
 
 
+#: s a record's stamps may go back in receive order (a re-ordered message) before the record is
+#: taken for two times mixed: a clock set back while recording.
+CLOCK_STEP_BACK_S = 0.5
+
+
+def _refuse_clock_step_back(path: str | Path, what: str, stamps: np.ndarray) -> None:
+    """Raise :class:`IdentificationError` if ``stamps`` (receive order) go back by more than
+    :data:`CLOCK_STEP_BACK_S`: sorted, the samples of two moments interleave, and the fit took them
+    for one record ("well identified", k(1) 8 % off: audit of 2026-11-27)."""
+    if len(stamps) < 2:
+        return
+    steps = np.diff(stamps)
+    i = int(np.argmin(steps))
+    if steps[i] < -CLOCK_STEP_BACK_S:
+        raise IdentificationError(
+            f"{path}: the {what}' clock steps back by {-steps[i]:.3g} s after {what.split()[-1][:-1]} {i} "
+            f"(stamp {stamps[i]:.3f} s, then {stamps[i + 1]:.3f} s): a clock set back while recording mixes two "
+            "times; identify the part before or after it (the controller aborts a campaign whose bridge clock steps)")
+
+
 def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = None) -> CampaignData:
     """Campaign arrays from an archived campaign; with ``excitation``, α^d of its recorded
     trajectory too (the filter cutoff then follows the excitation). Raises
@@ -71,6 +91,8 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     if not measured.any():
         raise IdentificationError(f"{path}: no camera frame measures every joint")
     t_ip, alpha = t_ip[measured], alpha[measured]
+    for what, stamps in (("motor states", t), ("camera frames", t_ip)):
+        _refuse_clock_step_back(path, what, stamps)
     # Recorder order is receive order; the identification needs sample order. A lockstep twin
     # re-publishes its state while it waits for a command: keep one sample per time stamp.
     _, order = np.unique(t, return_index=True)
