@@ -131,6 +131,18 @@ def test_a_bad_validation_campaign_is_a_clear_error(campaigns, fit_a, tmp_path):
                        campaign="two-joints")
     with pytest.raises(IdentificationError, match="validation campaign two-joints: campaign has 3 motors"):
         cross_validate(fit_a, two, alpha_hat=False)
+    # and by the command before A is fitted (audit of 2026-11-27): three motors were refused only
+    # after A's fit and files, two joints as "excitation_alpha_rad must have shape (T, 2)"
+    three = CampaignData(other.t_s, other.theta_rad[:, :3], other.force_N[:, :3], other.t_ip_s, other.alpha_ip_rad,
+                         campaign="three-motors")
+    for name, data, said in (("three.mcap", three, "its record has 3 motors, the parameter set 'prototype-3x' 4: "
+                              "it is another robot's campaign"),
+                             ("two.mcap", two, "the recorded trajectory moves 3 joints and the camera measures 2")):
+        _write(tmp_path / name, data, identification_trajectory().to_json())
+        r = CliRunner().invoke(app, ["identify", str(a), "--validate", str(tmp_path / name), "--out", str(tmp_path / "t")])
+        assert r.exit_code == 2, r.output
+        assert said in r.stderr, r.stderr
+        assert not (tmp_path / "t").exists()
 
 
 def test_a_bad_creep_time_is_a_clear_error_and_writes_nothing(campaigns, tmp_path):

@@ -63,6 +63,13 @@ def identify(
     data_b = _validation_campaign(validate) if validate is not None else None
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
+        if data_b is not None:  # before the fit: it was refused after A's fit and files (audit of 2026-11-27)
+            sizes = {"motors": (data_b.theta_rad.shape[1], base.n_cables),
+                     "joints": (data_b.alpha_ip_rad.shape[1], base.n_joints)}
+            for what, (got, want) in sizes.items():
+                if got != want:
+                    raise IdentificationError(f"--validate {validate}: its record has {got} {what}, the parameter "
+                                              f"set {base.name!r} {want}: it is another robot's campaign")
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                                 alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds,

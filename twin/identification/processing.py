@@ -123,7 +123,10 @@ class CampaignData:
                 f"({t[0]:.2f}-{t[-1]:.2f} s): are both on the same clock?"
             )
         if self.excitation_alpha_rad is not None:
-            exc = _as_matrix("excitation_alpha_rad", self.excitation_alpha_rad, alpha.shape[1])
+            exc = _as_matrix("excitation_alpha_rad", self.excitation_alpha_rad, None)
+            if exc.shape[1] != alpha.shape[1]:  # "must have shape (T, 2)" said nothing of why (audit of 2026-11-27)
+                raise IdentificationError(f"the recorded trajectory moves {exc.shape[1]} joints and the camera "
+                                          f"measures {alpha.shape[1]}: not one robot's campaign")
             if len(exc) < MIN_SAMPLES or not np.all(np.isfinite(exc)):
                 raise IdentificationError(f"excitation_alpha_rad must hold at least {MIN_SAMPLES} finite rows, "
                                           f"got {len(exc)} rows, {int((~np.isfinite(exc)).sum())} non-finite values")
