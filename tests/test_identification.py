@@ -160,8 +160,10 @@ def test_bad_excitation_is_refused(short_campaign):
     exc[10, 1] = np.nan
     with pytest.raises(IdentificationError, match="excitation_alpha_rad"):
         CampaignData(**_with(short_campaign, excitation_alpha_rad=exc))
-    with pytest.raises(IdentificationError, match="excitation_alpha_rad must have shape"):
+    with pytest.raises(IdentificationError, match="the recorded trajectory moves 2 joints and the camera measures 3"):
         CampaignData(**_with(short_campaign, excitation_alpha_rad=np.zeros((1000, 2))))
+    with pytest.raises(IdentificationError, match=r"excitation_alpha_rad must have shape \(T, n\)"):
+        CampaignData(**_with(short_campaign, excitation_alpha_rad=np.zeros(1000)))
 
 
 def test_identified_parameter_set_round_trips(result, tmp_path, params):
@@ -199,6 +201,23 @@ def test_nan_is_refused(short_campaign):
     theta[1234, 2] = np.nan
     with pytest.raises(IdentificationError, match=r"NaN.*sample 1234"):
         CampaignData(**_with(short_campaign, theta_rad=theta))
+
+
+def test_a_sample_out_of_physical_reach_is_named_before_any_filter(short_campaign, params):
+    """One force sample of 1e300 N went through the filters as 32 lines of overflow warnings and
+    an error blaming the trajectory's excitation (audit of 2026-11-27)."""
+    import warnings
+
+    force = short_campaign.force_N.copy()
+    force[2000, 1] = 1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not one numpy warning on the way
+        with pytest.raises(IdentificationError, match=r"force sample 2000 \(t = 4\.00\d s\) .* beyond ±10 × f_max"):
+            preprocess(CampaignData(**_with(short_campaign, force_N=force)), params)
+        alpha = short_campaign.alpha_ip_rad.copy()
+        alpha[50, 0] = 7.0
+        with pytest.raises(IdentificationError, match=r"camera frame 50 .* beyond ±180°: a damaged record \(1 such"):
+            preprocess(CampaignData(**_with(short_campaign, alpha_ip_rad=alpha)), params)
 
 
 def test_shapes_and_times(short_campaign):

@@ -244,6 +244,33 @@ def _butter(x: FloatArray, cutoff_hz: float, rate_hz: float, order: int = 4) -> 
     return signal.sosfiltfilt(sos, x, axis=0)
 
 
+#: How far beyond the parameter set's f_max (or the joint limits) a recorded value may lie before
+#: the record is taken for damaged: margins for another set's limits and for camera noise.
+PLAUSIBLE_FORCE_FACTOR = 10.0
+PLAUSIBLE_ALPHA_RAD = np.pi
+
+
+def _check_plausible(data: CampaignData, params: Params) -> None:
+    """Raise :class:`IdentificationError` naming the first sample out of physical reach: a force
+    beyond ±``PLAUSIBLE_FORCE_FACTOR`` × f_max (a measured force may dip below 0 with its noise),
+    an α_IP beyond ±π. One force sample of
+    1e300 N went through the filters as 32 lines of numpy overflow warnings and an error blaming
+    the trajectory's excitation (audit of 2026-11-27)."""
+    f_max = float(params.limits.f_max)
+    bad = np.flatnonzero((np.abs(data.force_N) > PLAUSIBLE_FORCE_FACTOR * f_max).any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise IdentificationError(
+            f"force sample {i} (t = {data.t_s[i]:.3f} s) is {data.force_N[i].tolist()} N, beyond ±"
+            f"{PLAUSIBLE_FORCE_FACTOR:g} × f_max = {PLAUSIBLE_FORCE_FACTOR * f_max:g} N: a damaged record ({len(bad)} such samples)")
+    bad = np.flatnonzero((np.abs(data.alpha_ip_rad) > PLAUSIBLE_ALPHA_RAD).any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise IdentificationError(
+            f"camera frame {i} (t = {data.t_ip_s[i]:.3f} s) measures α = {np.degrees(data.alpha_ip_rad[i]).round(1).tolist()}°, "
+            f"beyond ±180°: a damaged record ({len(bad)} such frames)")
+
+
 def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
     """§5.2.1: zero-phase Butterworth (order 4, :func:`cutoff_rule` unless ``cutoff_hz``) on θ,
     f and α_IP; central differences; θ and f decimated from 500 Hz to 31.25 Hz (anti-aliased,
@@ -258,6 +285,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
             f"campaign has {data.n_cables} motors and {data.n_joints} camera angles, the parameter set "
             f"{params.name!r} has {m.n_cables} cables and {m.n_joints} joints"
         )
+    _check_plausible(data, params)
     t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
     rate = 1.0 / dt
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
