@@ -187,7 +187,7 @@ def test_a_hub_port_out_of_range_is_refused_before_anything_starts(xneck, tmp_pa
 
 @pytest.mark.parametrize("argv, said", [
     (["twin", "--listen", "bogus", "--lockstep", "--startup-timeout", "1"], "listen endpoint 'bogus'"),
-    (["twin", "--listen", "tcp/127.0.0.1:99999", "--lockstep", "--startup-timeout", "1"], "invalid port"),
+    (["twin", "--listen", "tcp/127.0.0.1:99999", "--lockstep", "--startup-timeout", "1"], "the port must be at most 65535, got 99999"),
     (["bridge", "--driver", "twin", "--connect", "bogus", "--lockstep", "--startup-timeout", "1"],
      "connect endpoint 'bogus'"),
     (["controller", "--connect", "bogus", "--idle-timeout", "1"], "connect endpoint 'bogus'"),
