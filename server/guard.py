@@ -19,7 +19,7 @@ In order, for HTTP and WebSocket requests:
 Every HTTP response carries :data:`SECURITY_HEADERS`: no page of the console may be framed (a page
 on another port of 127.0.0.1 framed the dashboard invisibly over its own button and one click
 released the e-stop: audit of 2026-11-26), nor its responses sniffed as another type, nor a
-referrer sent.
+referrer sent, nor a script run that is not the console's own file (:data:`CSP`).
 
 The routes keep their own ``require_token`` dependency (it documents the security scheme in
 OpenAPI and holds if this middleware is ever left out).
@@ -41,9 +41,17 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 MAX_JSON_DEPTH = 32
+#: Scripts only from the console itself, no plugins, no <base>: an injected value that ever reached
+#: the page as HTML could run nothing (the dashboard writes every value as text; defence in depth,
+#: audit of 2026-11-27). Styles are not limited (the page sets widths inline).
+CSP = b"script-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
+#: FastAPI's /docs and /redoc load their scripts from a CDN and start them inline: framing alone is
+#: refused there. They act only with a token typed into them.
+CSP_API_DOCS = b"frame-ancestors 'none'"
+API_DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc")
 SECURITY_HEADERS: tuple[tuple[bytes, bytes], ...] = (
     (b"x-frame-options", b"DENY"),
-    (b"content-security-policy", b"frame-ancestors 'none'"),
+    (b"content-security-policy", CSP),
     (b"x-content-type-options", b"nosniff"),
     (b"referrer-policy", b"no-referrer"),
 )
@@ -115,7 +123,7 @@ class ConsoleGuard:
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         if scope["type"] == "http":
-            send = _with_security_headers(send)
+            send = _with_security_headers(send, docs=scope.get("path", "") in API_DOCS_PATHS)
         refusal = self._refusal(scope, headers)
         if refusal is not None:
             await _deny(scope, receive, send, *refusal)
@@ -218,13 +226,15 @@ async def _send_json(send: Send, status: int, content: object, headers: dict[str
     await send({"type": f"{prefix}.body", "body": body})
 
 
-def _with_security_headers(send: Send) -> Send:
-    """``send`` that adds :data:`SECURITY_HEADERS` to the response's start (those not set)."""
+def _with_security_headers(send: Send, docs: bool = False) -> Send:
+    """``send`` that adds :data:`SECURITY_HEADERS` to the response's start (those not set); on
+    the API's own documentation pages (``docs``) the policy that only refuses framing."""
+    security = [(k, CSP_API_DOCS if docs and k == b"content-security-policy" else v) for k, v in SECURITY_HEADERS]
 
     async def sending(message: Message) -> None:
         if message["type"] == "http.response.start":
             present = {k.lower() for k, _ in message.get("headers", [])}
-            extra = [(k, v) for k, v in SECURITY_HEADERS if k not in present]
+            extra = [(k, v) for k, v in security if k not in present]
             message = {**message, "headers": [*message.get("headers", []), *extra]}
         await send(message)
 

@@ -137,3 +137,58 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
             health.undeclare()
             token.undeclare()
             session.close()
+
+
+@needs_chromium
+def test_the_dashboard_works_under_its_script_policy_and_an_injected_handler_runs_nothing(tmp_path: Path) -> None:
+    """server.guard.CSP (script-src 'self', no plugins, no <base>; audit of 2026-11-27): the page as
+    served, not bypassed, loads its plots, its 3D view and its live stream with no violation, and
+    markup injected as HTML (which the page never does: it writes values as text) runs no script."""
+    import time
+
+    from browser_harness import ARGS, CHROMIUM
+    from playwright.sync_api import sync_playwright
+
+    with running_server(tmp_path / "data") as (base, _app), sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1300})  # the policy in force
+            console: list[str] = []
+            errors: list[str] = []
+            page.on("console", lambda m: console.append(m.text))
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            r = page.goto(base + "/", wait_until="load")
+            assert r is not None and "script-src 'self'" in r.headers["content-security-policy"]
+
+            def until(expression: str, timeout_s: float) -> bool:  # page.evaluate: not eval in the page
+                end = time.monotonic() + timeout_s
+                while time.monotonic() < end:
+                    if page.evaluate(expression):
+                        return True
+                    time.sleep(0.2)
+                return False
+
+            assert until("document.querySelectorAll('#plot-joints .uplot').length === 3", 15)
+            page.fill("#token", TOKEN)
+            page.dispatch_event("#token", "change")
+            page.select_option("select[name=pace]", "lockstep")
+            page.click("#start")
+            assert until("window.xneckStats.points > 100", 60), page.evaluate("window.xneckStats")
+            page.frame_locator("#viser").locator("canvas").first.wait_for(state="attached", timeout=30000)
+            page.evaluate("""() => {
+                const d = document.createElement('div');
+                d.innerHTML = '<img src="data:," onerror="window.injected = 1"><a id="js" href="javascript:window.injected = 2">x</a>';
+                document.body.appendChild(d);
+            }""")
+            page.click("#js")
+            page.wait_for_timeout(500)
+            assert page.evaluate("window.injected") is None
+            refused = [m for m in console if "Content Security Policy" in m]
+            assert len(refused) >= 2 and all("inline" in m or "javascript:" in m.lower() or "'self'" in m
+                                             for m in refused), refused  # the injected ones only
+            assert not errors, errors
+        finally:
+            browser.close()
+        with httpx.Client(base_url=base, timeout=10) as c:
+            assert wait_until(lambda: c.get("/api/system/health").json()["running_campaign_id"] is None, 90, 0.5)
+            assert "script-src" not in c.get("/docs").headers["content-security-policy"]  # its CDN scripts run
