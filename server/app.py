@@ -40,7 +40,7 @@ from server import (
     routes_workspace,
 )
 from server.camera_feed import CameraFeed
-from server.campaigns import CampaignManager, StorageError
+from server.campaigns import CampaignManager, NotFound, StorageError
 from server.console import include_console_routes
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
@@ -162,6 +162,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         detail = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
                   for e in exc.errors()]
         return JSONResponse(status_code=422, content={"detail": detail})
+
+    @app.exception_handler(NotFound)
+    async def _not_found(request: Request, exc: NotFound) -> JSONResponse:
+        # A campaign deleted between a route's own lookup and a later one (stop, results, a set
+        # saved from it): gone, a 404 as at the first lookup, not a 500 (audit of 2026-11-27).
+        return JSONResponse(status_code=404, content={"detail": f"no campaign {exc.args[0] if exc.args else ''!r}"})
 
     @app.exception_handler(StorageError)
     async def _storage(request: Request, exc: StorageError) -> JSONResponse:

@@ -588,3 +588,21 @@ def test_a_parameter_set_chosen_and_deleted_at_once_is_one_or_the_other(tmp_path
             if chosen == 200:
                 assert sorted(at_once(lambda name=name: a.delete(f"/api/params/{name}", headers=AUTH),
                                       lambda name=name: b.delete(f"/api/params/{name}", headers=AUTH))) == [204, 404]
+
+
+def test_a_campaign_gone_between_two_lookups_of_a_route_is_a_404_not_a_500(tmp_path, monkeypatch) -> None:
+    """A delete between a route's own lookup and the manager's (stop, results, a set saved from
+    it) raised the manager's NotFound out of the route: a 500 (audit of 2026-11-27). The console
+    answers it as the first lookup would."""
+    from server.campaigns import NotFound
+
+    with running_server(tmp_path / "d", viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c:
+        cid = "control-20990101-000000-beef"
+        monkeypatch.setattr(app.state.campaigns, "get", lambda campaign_id: object())  # the route's own lookup finds it...
+
+        def gone(campaign_id):  # ...the manager's, a moment later, does not
+            raise NotFound(campaign_id)
+
+        monkeypatch.setattr(app.state.campaigns, "stop", gone)
+        r = c.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+        assert r.status_code == 404 and r.json()["detail"] == f"no campaign {cid!r}", r.text
