@@ -111,6 +111,34 @@ def test_jacobian_matches_finite_differences_and_eq12():
     np.testing.assert_allclose(det_jacobian_2x(t[:, 0], t[:, 1], L, b), np.linalg.det(J2), atol=1e-12)
 
 
+def test_jacobian_matches_the_closed_form_of_eq11():
+    """Eq. (11) term by term (prototype ratio b/L = 1/2). As extracted, the first numerator term of
+    ∂x/∂θ2 reads −sin(2θ1+θ2)·b²cosθ2·sinθ2; differentiating eq. (3) gives +: it must mirror the
+    −cos(2θ1+θ2)·b²cosθ2·sinθ2 of ∂y/∂θ2 (∂x/∂θ2 = −(l2' S + l2 C), ∂y/∂θ2 = l2' C − l2 S)."""
+    L, b = 0.1, 0.05
+    t = np.random.default_rng(7).uniform(-1.5, 1.5, (300, 2))
+    c1, s1, c2, s2 = np.cos(t[:, 0]), np.sin(t[:, 0]), np.cos(t[:, 1]), np.sin(t[:, 1])
+    S, C = np.sin(2 * t[:, 0] + t[:, 1]), np.cos(2 * t[:, 0] + t[:, 1])
+    r1, r2 = np.sqrt(L**2 - b**2 * c1**2), np.sqrt(L**2 - b**2 * c2**2)
+    eq11 = np.array([
+        [-(-2 * b**2 * c1**3 + L**2 * c1 + b**2 * c1 + 2 * r2 * C * r1) / r1,
+         -(+S * b**2 * c2 * s2 - C * c2**2 * b**2 + L**2 * C) / r2],  # sign of the first term corrected
+        [-(-2 * b**2 * c1**2 * s1 + L**2 * s1 + 2 * r2 * S * r1) / r1,
+         -(-C * b**2 * c2 * s2 - S * c2**2 * b**2 + L**2 * S) / r2],
+    ]).transpose(2, 0, 1)
+    np.testing.assert_allclose(jacobian(t, L, b), eq11, rtol=0, atol=1e-15)
+
+
+def test_limited_solution_counts_match_the_legends_of_figs_9_and_11():
+    """With |θ_i| < π/2: the prototype ratio b/L = 1/2 (Fig. 11, legend 1, 2 and 4 solutions) has a
+    small 4-solution swallowtail on the axis and no 3-solution region; b = 2/3 (Fig. 9, centre,
+    legend 1 to 4) has both."""
+    half = np.bincount(cartesian_counts(1.0, 0.5, n=300).limited.ravel(), minlength=5)
+    assert half[1] > half[2] > half[4] > 0 and half[3] == 0
+    two_thirds = np.bincount(cartesian_counts(1.0, 2 / 3, n=300).limited.ravel(), minlength=5)
+    assert np.all(two_thirds[1:] > 0)
+
+
 @pytest.mark.parametrize("b", [0.3, 2 / 3, 0.9])
 def test_det_vanishes_on_singularity_curves(b):
     L = 1.0
