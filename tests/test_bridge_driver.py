@@ -278,6 +278,19 @@ def test_bad_config_names_the_field(fields, message):
         config_from_dict(BeagleBoneConfig, fields)
 
 
+def test_a_config_for_another_motor_count_is_refused_before_the_board_is_touched(board, params):
+    """Audit of 2026-11-27: a 3-motor config with the 4-cable prototype's parameter set was
+    configured (three drives off, the board's encoders zeroed) and `--drives-off` reported "every
+    drive disabled" while the fourth enable line was never written."""
+    from server.cli.processes import make_driver
+
+    table = {"n_motors": 3, "encoder_channels": [1, 2, 3], "motor_channels": [1, 2, 3], "direction": [1, 1, 1],
+             "enable_pins": list(PINS[:3])}
+    with pytest.raises(DriverError, match=r"n_motors = 3, the parameter set 4 cables"):
+        make_driver("beaglebone", params, table)
+    assert board.calls == [] and board.pins == {}
+
+
 def test_missing_rcpy_is_a_clear_error(monkeypatch, params):
     monkeypatch.setitem(sys.modules, "rcpy", None)  # import rcpy raises ImportError
     drv = _driver(params)

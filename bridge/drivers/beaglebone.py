@@ -207,6 +207,12 @@ class BeagleBoneDriver(Driver):
 
     @classmethod
     def from_params(cls, config: BeagleBoneConfig, params: Any) -> BeagleBoneDriver:
+        # Before the board is opened: a config for fewer motors than the robot has cables would
+        # otherwise be configured (its drives off) and `--drives-off` would report "every drive
+        # disabled" with the others' enable lines never written.
+        if config.n_motors != params.n_cables:
+            raise DriverError(f"beaglebone: the driver config has n_motors = {config.n_motors}, the parameter set "
+                              f"{params.n_cables} cables: every drive must be wired in the config")
         return cls(config, Transmission.from_params(params), params.sensors.encoder_counts_per_rev)
 
     # -- conversions (pure, unit-tested against hand computation) ------------------------------
