@@ -118,6 +118,9 @@ class Driver(abc.ABC):
         self._state = Lifecycle.UNCONFIGURED
         self._lock = threading.RLock()
         self._tripped = False
+        #: Why the last :meth:`close` could not disable every drive ('' if it could): close never
+        #: raises, so a caller that reports the drives off must look here first.
+        self.close_error = ""
 
     @property
     def state(self) -> Lifecycle:
@@ -177,7 +180,8 @@ class Driver(abc.ABC):
             self._on_deactivate()
 
     def close(self) -> None:
-        """Disable the drives and release the hardware, from any state. Never raises."""
+        """Disable the drives and release the hardware, from any state. Never raises: a failure is
+        logged and kept in :attr:`close_error`."""
         with self._lock:
             if self._state is Lifecycle.CLOSED:
                 return
@@ -186,7 +190,8 @@ class Driver(abc.ABC):
             try:
                 if was is not Lifecycle.UNCONFIGURED:
                     self._on_close()
-            except Exception:  # close runs on the way out of a crash
+            except Exception as exc:  # close runs on the way out of a crash
+                self.close_error = f"{type(exc).__name__}: {exc}"
                 log.exception("%s: error while closing the driver", self.name)
 
     def trip(self) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 import types
 
@@ -305,6 +306,29 @@ def test_cli_beaglebone_without_rcpy_fails_cleanly(xneck):
     assert run.returncode == 2
     assert "rcpy" in run.stderr and "not installed" in run.stderr
     assert "Traceback" not in run.stderr + run.stdout
+
+
+def test_a_bridge_that_cannot_disable_a_drive_on_exit_says_so_and_fails(xneck, tmp_path):
+    """Audit of 2026-11-27: an enable line stuck high when the bridge exits (tests/fake_rcpy:
+    writes ignored, the line reads 1). Driver.close never raises, and the bridge logged "drives
+    disabled" and exited 0, so `xneck up --robot` (which runs --drives-off after a non-zero exit
+    only) told the operator nothing."""
+    from pathlib import Path
+
+    fake = Path(__file__).parent / "fake_rcpy"
+    env = {"PYTHONPATH": os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]),
+           "FAKE_RCPY_STUCK_HIGH": f"{PINS[3]}:2", "FAKE_RCPY_LOG": str(tmp_path / "rcpy.log")}
+    # The first write of the line (configure: off) works; the one on exit does not.
+    run = xneck("bridge", "--driver", "beaglebone", "--max-ticks", "5", "--listen", "tcp/127.0.0.1:0", env=env,
+                timeout=120)
+    out = run.stdout + run.stderr
+    assert run.returncode != 0, out[-3000:]
+    assert "DRIVES MAY BE ON" in out and f"enable line {PINS[3]} reads 1 after writing 0" in out, out[-3000:]
+    assert "drives disabled" not in out, out[-3000:]
+    # --drives-off, whose configure disables them and whose close disables them again, fails too
+    off = xneck("bridge", "--driver", "beaglebone", "--drives-off", env={**env, "FAKE_RCPY_STUCK_HIGH": f"{PINS[3]}:2"},
+                timeout=120)
+    assert off.returncode != 0 and "every drive disabled" not in off.stdout + off.stderr
 
 
 def test_twin_driver_steps_with_zero_force_unless_active(params):
