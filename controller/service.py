@@ -96,6 +96,11 @@ MOTOR_SPEED_MAX_RAD_S = 1600.0
 # (audit of 2026-11-26: −13 mm of parity 60 ms after an e-stop release at [35, −25, 20]°; the
 # slack was taken up after about 225 ms).
 ENCODER_CHECK_SETTLE_S = 0.5
+#: s a bridge run's clock must step by to end the running campaign (:meth:`CampaignService.clock_stepped`).
+#: Under load a twin's simulated clock and the controller's view of it drift apart and re-bind by
+#: up to about half a second (a fresh-clone CI run, 2026-11-27: +0.53 s aborted a healthy campaign
+#: under `xneck up`); a clock set by NTP at boot is off by far more.
+CLOCK_STEP_ABORT_S = 5.0
 BLEND_TOLERANCE_RAD = math.radians(0.05)  # |α̂ − α^d| below which the law re-starts without a blend
 JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog waits for it
 # N/s at which a pretension left over by an aborted campaign is let go (the law's floor and the
@@ -422,11 +427,14 @@ class CampaignService:
 
     def clock_stepped(self, step_s: float, stamp_s: float) -> None:
         """The bridge's clock stepped by ``step_s`` within one run (a wall clock set by NTP: the
-        BeagleBone has no RTC battery), now at ``stamp_s``. The trajectory runs on the states'
+        BeagleBone has no RTC battery), now at ``stamp_s``; a step under :data:`CLOCK_STEP_ABORT_S`
+        changes nothing here. The trajectory runs on the states'
         stamps, so a running campaign cannot go on: a step forward had it end ``finished`` at once
         with most of its trajectory never run, a step back kept it going for as long again (audit
         of 2026-11-27). It ends ``aborted`` with the reason; the estimate goes on (same encoders),
         and what was timed on the old clock starts again."""
+        if abs(step_s) < CLOCK_STEP_ABORT_S:
+            return  # a stall's catch-up, not a clock set: the campaign goes on, as before the check
         reason = f"the bridge's clock stepped by {step_s:+.3g} s"
         last_stamp = self._theta_last[0] if self._theta_last is not None else stamp_s
         if self.running:

@@ -399,27 +399,25 @@ def test_a_forged_state_after_a_stall_is_not_taken_and_a_stepped_clock_is():
     assert "back in time" in gate.admit(_state(5.806), now_s=100.806)
 
 
-@pytest.mark.parametrize("step_s", [100.0, -100.0])
-def test_a_campaign_on_a_bridge_clock_that_steps_ends_aborted_and_the_law_restarts_bumplessly(params, step_s):
-    """Audit of 2026-11-27: the gate re-binds to the bridge's own run once its wall clock stepped
-    (NTP; the BeagleBone has no RTC battery), and the trajectory runs on the states' stamps: 100 s
-    forward, a campaign 1.5 s into its 5.5 s ended 'finished' on the next tick, most of it never
-    run; 100 s back, it went on for 100 s more. The step ends it 'aborted' with the reason, and
-    the law re-starts from the measurement without a force step."""
-    traj = Trajectory.from_degrees([[0, 0, 0], [20, 10, 0], [0, 0, 0]], 2.0, 0.5, name="t")
-    loop, gate = Loop(params), StateGate()
-    off, wall0 = 0.0, 1000.0
+class _SteppingClock:
+    """The service on the simulator behind a StateGate whose bridge's clock steps by ``off`` (s)
+    when told: what ControllerNode._on_state does with the gate's word."""
 
-    def state(stamp_s: float) -> bus.MotorState:
-        return bus.MotorState(seq=1, stamp_s=stamp_s, theta_rad=loop.tick.theta_meas.tolist(),
+    def __init__(self, params) -> None:
+        self.loop, self.gate = Loop(params), StateGate()
+        self.off, self.wall0 = 0.0, 1000.0
+
+    def state(self, stamp_s: float) -> bus.MotorState:
+        return bus.MotorState(seq=1, stamp_s=stamp_s, theta_rad=self.loop.tick.theta_meas.tolist(),
                               force_applied_N=[0.0] * 4, drive="active", epoch="e1", bridge="b1")
 
-    def ticks(seconds: float) -> None:
+    def ticks(self, seconds: float) -> None:
+        loop = self.loop
         for _ in range(round(seconds * 500)):
-            stamp, now = loop.stamp_s + off, wall0 + loop.stamp_s
-            if gate.admit(state(stamp), now) == "":
-                if gate.stepped_s is not None:  # what ControllerNode._on_state does
-                    loop.svc.clock_stepped(gate.stepped_s, stamp)
+            stamp, now = loop.stamp_s + self.off, self.wall0 + loop.stamp_s
+            if self.gate.admit(self.state(stamp), now) == "":
+                if self.gate.stepped_s is not None:
+                    loop.svc.clock_stepped(self.gate.stepped_s, stamp)
                 out = loop.svc.control(loop.tick.theta_meas, stamp)
                 if out.law_ran:
                     loop.svc.advance(stamp)
@@ -429,22 +427,52 @@ def test_a_campaign_on_a_bridge_clock_that_steps_ends_aborted_and_the_law_restar
             loop.events += loop.svc.drain_events()
             loop.tick = loop.twin.tick(out.force_N)
 
-    loop.svc.handle(_request("c", trajectory_json=traj.to_json()), loop.stamp_s)
-    ticks(1.5)
+
+STEPPING_TRAJECTORY = Trajectory.from_degrees([[0, 0, 0], [20, 10, 0], [0, 0, 0]], 2.0, 0.5, name="t")
+
+
+@pytest.mark.parametrize("step_s", [100.0, -100.0])
+def test_a_campaign_on_a_bridge_clock_that_steps_ends_aborted_and_the_law_restarts_bumplessly(params, step_s):
+    """Audit of 2026-11-27: the gate re-binds to the bridge's own run once its wall clock stepped
+    (NTP; the BeagleBone has no RTC battery), and the trajectory runs on the states' stamps: 100 s
+    forward, a campaign 1.5 s into its 5.5 s ended 'finished' on the next tick, most of it never
+    run; 100 s back, it went on for 100 s more. The step ends it 'aborted' with the reason, and
+    the law re-starts from the measurement without a force step."""
+    run = _SteppingClock(params)
+    loop = run.loop
+    loop.svc.handle(_request("c", trajectory_json=STEPPING_TRAJECTORY.to_json()), loop.stamp_s)
+    run.ticks(1.5)
     assert loop.svc.running
-    off = step_s
-    ticks(1.0)
+    run.off = step_s
+    run.ticks(1.0)
     final = [e for e in loop.events if e.event in ("finished", "aborted")]
     assert [e.event for e in final] == ["aborted"] and "clock stepped by" in final[0].message, final
     assert final[0].progress < 0.5, final[0].progress
-    assert not loop.svc.running and gate.stepped_s is None
+    assert not loop.svc.running and run.gate.stepped_s is None
     forces = np.array([o.force_N for o in loop.outputs])
     assert np.abs(np.diff(forces, axis=0)).max() <= LawConfig(law=2).force_rate_max_N_s / 500.0 + 1e-9
-    ticks(1.0)  # held where it is, and a new campaign runs on the new clock
+    run.ticks(1.0)  # held where it is, and a new campaign runs on the new clock
     loop.svc.handle(_request("c-2", trajectory_json=Trajectory.from_degrees([[0, 0, 0]], [], 0.2).to_json()),
-                    loop.stamp_s + off)
-    ticks(2.5)
+                    loop.stamp_s + run.off)
+    run.ticks(2.5)
     assert [e.event for e in loop.events if e.campaign_id == "c-2"][-1] == "finished"
+
+
+def test_a_re_bind_of_half_a_second_under_load_does_not_end_the_campaign(params):
+    """A fresh-clone CI run (2026-11-27) under `xneck up`: the twin's clock and the controller's view
+    of it drifted 0.53 s apart under load, the gate re-bound, and the step check aborted a healthy
+    campaign. Steps under CLOCK_STEP_ABORT_S leave it running, as before the check."""
+    from controller.service import CLOCK_STEP_ABORT_S
+
+    run = _SteppingClock(params)
+    loop = run.loop
+    loop.svc.handle(_request("c", trajectory_json=STEPPING_TRAJECTORY.to_json()), loop.stamp_s)
+    run.ticks(1.5)
+    run.off = 0.5
+    assert run.off < CLOCK_STEP_ABORT_S
+    run.ticks(STEPPING_TRAJECTORY.duration_s)
+    final = [e for e in loop.events if e.event in ("finished", "aborted")]
+    assert [e.event for e in final] == ["finished"], final
 
 
 def test_a_stray_run_seen_first_gives_way_to_the_bridge_that_states_at_the_control_rate():
