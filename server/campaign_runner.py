@@ -308,7 +308,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
                     if disabled else ("aborted", STOPPED_BY_USER)
                 break
-            if services is not None and not services.alive():
+            # Once its events have stopped (0.2 s), as before the every-turn checks above: a service
+            # killed under `xneck up` is named by the supervisor, which needs that moment to tell the
+            # console the cause before the campaign ends on its side effect (CI of 2026-11-27).
+            if ev is None and services is not None and not services.alive():
                 outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
                 break
             if spec.service and not started and time.monotonic() > answer_deadline:
