@@ -87,6 +87,11 @@ class CampaignCreate(BaseModel):
         "a truth file the console knows (GET /api/truths; e.g. calibrated by `xneck twin calibrate`). Default: robot "
         "for identification, model for control. Under `xneck up` the stack's twin keeps the truth it was started "
         "with: another one is refused.")
+    alpha_ip: Literal["camera", "noise"] | None = Field(
+        None, description="A twin started for the campaign: its α_IP, measured on frames rendered from its truth by "
+        "the robot's detector (camera, 30 fps, with the exposure latency) or the true α plus the camera's white noise "
+        "(noise, cheaper), as `xneck campaign --alpha-ip`. Default: camera for identification, noise for control. "
+        "Under `xneck up` the stack's twin keeps its own (`xneck up --alpha-ip`).")
     estimator: str | None = Field(
         None, max_length=32, description="Identification only: Table 2's estimator of the campaign's analysis, as "
         "`xneck identify --estimator`: auto (default: the load-friction fit where the campaign rejects the paper's "
@@ -125,7 +130,7 @@ def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> t
     if target == "robot":
         if req.pace == "lockstep":
             raise RequestError(("pace",), "the robot runs in real time: lockstep is for the twin only")
-        for name in ("truth", "seed"):
+        for name in ("truth", "seed", "alpha_ip"):
             if getattr(req, name) is not None:
                 raise RequestError((name,), f"{name} applies to the twin only; the robot is the real thing")
         return target, "realtime", "", 0
@@ -141,6 +146,9 @@ def _resolve_target(req: CampaignCreate, settings: Settings, service: bool) -> t
     if req.seed is not None and req.seed != settings.twin_seed:
         raise RequestError(("seed",), f"the stack's twin runs with seed {settings.twin_seed} (`xneck up --seed`); it "
                            f"cannot change per campaign")
+    if req.alpha_ip is not None:
+        raise RequestError(("alpha_ip",), "the stack's twin measures α_IP as it was started (`xneck up --alpha-ip`); "
+                           "it cannot change per campaign")
     return target, "realtime", settings.twin_truth, settings.twin_seed
 
 
@@ -221,6 +229,7 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
         timeout_s=settings.campaign_timeout_s, params_file=params_file,
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
         truth=truth or "model", service=service, estimator=estimator, creep_time_s=req.creep_time_s,
+        alpha_ip=req.alpha_ip,
     )
     # The record names the truth ("model", "robot", a stored truth's name); the spec carries what the twin loads.
     return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target,

@@ -20,6 +20,12 @@ from twin.model.params import load_params
 
 XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter, whatever PATH says
 
+# The suite starts some hundreds of Python processes (stacks, campaigns, CLI runs); with
+# PYTHONDONTWRITEBYTECODE set (this machine's default environment does) each one compiled the
+# project's modules again, about 0.2 s of CPU apiece. Their bytecode is cached like any checkout's.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
+
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto`` (pyproject's addopts): the whole suite, or a folder of it, runs on two workers, one
@@ -80,10 +86,26 @@ def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
         if not got:
             warnings.warn(f"{request.node.name}: no turn on the CPUs after {TURN_TIMEOUT_S:.0f} s, running anyway",
                           stacklevel=1)
+        started = time.time()
         try:
             yield
         finally:
             fcntl.flock(turn, fcntl.LOCK_UN)
+            _timeline(request, exclusive, deadline - TURN_TIMEOUT_S, started)
+
+
+def _timeline(request: pytest.FixtureRequest, exclusive: bool, asked_monotonic: float, started: float) -> None:
+    """With ``XNECK_TEST_TIMELINE=FILE``, one line per module appended to FILE: worker, realtime or
+    not, seconds waited for its turn, wall-clock start and end (s since the epoch), module. The suite's
+    critical path, read with ``sort -k4 -n FILE``, is what to cut when CI's time grows."""
+    path = os.environ.get("XNECK_TEST_TIMELINE")
+    if not path:
+        return
+    waited = time.monotonic() - asked_monotonic - (time.time() - started)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    with open(path, "a") as f:
+        f.write(f"{worker} {'rt' if exclusive else '--'} {waited:7.1f} {started:.1f} {time.time():.1f} "
+                f"{request.node.nodeid}\n")
 
 
 @pytest.fixture(scope="session")

@@ -25,6 +25,26 @@ pytestmark = pytest.mark.e2e
 NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [5, 5, 5], [0, 0, 0]], "durations_s": 1.0, "dwell_s": 0.2}
 
 
+def _brisk_identification() -> dict:
+    """§5.2.2's 25 waypoints at the trajectory checker's speed and acceleration limits with short
+    stops, 39 s instead of 97 s, and α_IP as white noise instead of rendered frames: the save is what
+    this test is about; how well the full campaign identifies is tests/test_campaign.py's and
+    tests/test_camera_identification.py's."""
+    from controller.trajectory import IDENTIFICATION_AMPLITUDES_DEG
+
+    rows: list[list[float]] = [[0.0, 0.0, 0.0]]
+    for amp in IDENTIFICATION_AMPLITUDES_DEG:
+        a, na = [float(x) for x in amp], [-float(x) for x in amp]
+        rows += [a, na, [0.0, 0.0, 0.0], na, a, [0.0, 0.0, 0.0]]
+    return {"kind": "identification", "alpha_ip": "noise", "waypoints": {
+        "name": "identification-brisk", "waypoints_deg": rows, "durations_s": [1.25, 1.9, 1.25] * 8, "dwell_s": 0.3}}
+
+
+def _table_2(record: dict) -> dict[str, float]:
+    """Table 2's values (SI) of an identified campaign's record (the report `xneck identify --json` prints)."""
+    return {p["name"]: p["value"] for p in record["identification"]["table_2"]["parameters"]}
+
+
 def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_path: Path) -> None:
     proto = load_params()
     with running_server(tmp_path / "d", campaign_timeout_s=600) as (base, _app), \
@@ -47,8 +67,9 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         assert r.status_code == 409 and "no identification to save (analysis_failed" in r.json()["detail"], r.text
         assert save("identification-20990101-000000-beef", "x").status_code == 404
 
-        ident = start({"kind": "identification"})  # the §5.2.2 trajectory, the robot truth
+        ident = start(_brisk_identification())  # the robot truth
         assert ident["status"] in ("finished", "degraded") and ident["identification_status"] == "identified", ident
+        estimated = _table_2(ident)
         cid = ident["id"]
         assert save(cid, "lab-id", headers={}).status_code == 401  # the token is needed
         for bad in ("a/b", ".hidden", "prototype_3x"):
@@ -60,15 +81,21 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         assert out["name"] == "lab-id" and out["campaign"] == cid and out["base_parameter_set"] == ident["parameter_set"] == "prototype_3x"
         assert {f"cables.variable.k({j})" for j in range(1, 5)} <= set(out["used"]), out
         assert any(s.startswith("springs.k_left=[") for s in out["structure_set"]), out  # reported, not written
-        # The stored set: the identified k, λ (Table 2 is the robot truth's known answer), the
-        # campaign's structure, and a header naming the campaign.
+        # The stored set: the campaign's Table 2 k and λ as the console showed them (near the robot
+        # truth's known answer), the campaign's structure, and a header naming the campaign.
         text = client.get("/api/params/lab-id").text
         assert f"from campaign {cid}" in text.splitlines()[0], text[:300]
         saved = params_from_dict(tomllib.loads(text), "lab-id")
         k, lam = np.asarray(saved.cables.variable.k), np.asarray(saved.cables.variable.lam)
+        # A flagged estimate (Table 2's reason column) keeps the base set's value; the rest are Table 2's.
+        for values, symbol, kept in ((k, "k", proto.cables.variable.k), (lam, "lambda", proto.cables.variable.lam)):
+            for j in range(4):
+                name, table = f"cables.variable.{symbol}({j + 1})", estimated[f"{symbol}({j + 1})"]
+                assert values[j] == (out["used"][name] if name in out["used"] else kept[j]), (name, values, out)
+                assert name not in out["used"] or out["used"][name] == table, (name, out["used"], estimated)
         assert not np.allclose(k, proto.cables.variable.k)
-        assert np.abs(k / np.asarray(proto.cables.variable.k) - 1).max() < 0.10, k
-        assert np.abs(lam / np.asarray(proto.cables.variable.lam) - 1).max() < 0.10, lam
+        assert np.abs(k / np.asarray(proto.cables.variable.k) - 1).max() < 0.25, k
+        assert np.abs(lam / np.asarray(proto.cables.variable.lam) - 1).max() < 0.25, lam
         assert saved.springs == proto.springs and saved.geometry == proto.geometry
         # Never replaced; then chosen active as any set is.
         r = save(cid, "lab-id")

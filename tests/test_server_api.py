@@ -181,6 +181,28 @@ def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
     assert truth(kind="identification", truth="model") == "model" and truth(kind="control", truth="robot") == "robot"
 
 
+def test_a_spawned_twins_alpha_ip_is_chosen_per_campaign_and_refused_where_no_twin_is_spawned(tmp_path) -> None:
+    """``alpha_ip`` (as ``xneck campaign --alpha-ip``): camera by default for identification, noise
+    for control; the robot has no twin to ask and a stack's twin keeps the one it was started with."""
+    from server.campaign_request import CampaignCreate, RequestError, prepare
+    from server.paramsets import ParameterStore
+    from server.settings import Settings
+
+    store, settings = ParameterStore(tmp_path), Settings(data_dir=tmp_path)  # pyright: ignore[reportCallIssue] - env-filled
+
+    def source(service: bool = False, **kw) -> str:
+        return prepare(CampaignCreate(**kw), store, settings, service).spec.alpha_ip_source
+
+    assert source(kind="identification") == "camera" and source(kind="control") == "noise"
+    assert source(kind="identification", alpha_ip="noise") == "noise" and source(alpha_ip="camera") == "camera"
+    for service, kw, said in ((False, {"target": "robot"}, "twin only"), (True, {}, "xneck up --alpha-ip")):
+        with pytest.raises(RequestError) as err:
+            source(service, alpha_ip="noise", **kw)
+        assert err.value.loc == ("body", "alpha_ip") and said in err.value.msg, err.value.msg
+    with pytest.raises(ValueError, match="alpha_ip"):
+        CampaignCreate.model_validate({"alpha_ip": "perfect"})
+
+
 @pytest.mark.parametrize("body, loc, said", [
     ({"kind": "control", "estimator": "iv"}, "estimator", "identification campaigns"),
     ({"kind": "control", "creep_time_s": 2.0}, "creep_time_s", "identification campaigns"),
