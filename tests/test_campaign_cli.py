@@ -3,6 +3,8 @@ not a traceback (the campaigns themselves: tests/test_campaign.py, realtime)."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from typer.testing import CliRunner
 
@@ -40,3 +42,17 @@ def test_a_bad_creep_time_is_refused_before_the_campaign_runs(tmp_path, value, e
     assert "--creep-time-s" in r.stderr and said in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)
     assert not out.exists()
+
+
+def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_path, xneck) -> None:
+    bad = tmp_path / "reach.json"
+    bad.write_text(json.dumps({"name": "reach", "waypoints_deg": [[0, 0, 0], [30, 70, 0], [0, 0, 0]],
+                               "durations_s": [3.0, 3.0]}))
+    out = tmp_path / "never.mcap"
+    run = xneck("campaign", "control", "--trajectory", str(bad), "--out", str(out))
+    assert run.returncode == 2 and "waypoint 1" in run.stderr and "70" in run.stderr
+    assert not out.exists()
+    fast = tmp_path / "fast.json"
+    fast.write_text(json.dumps({"waypoints_deg": [[0, 0, 0], [50, 50, 50]], "durations_s": [0.2]}))
+    run = xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
+    assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()

@@ -1,5 +1,6 @@
-"""Issue 13, the console side, on the real processes and bus: ``xneck up`` refuses before starting
-anything (finding 5), one e-stop truth in the console (finding 4), honest outcomes (finding 7)."""
+"""Issue 13, the console side, on the real processes and bus: one e-stop truth in the console
+(finding 4), honest outcomes (finding 7). ``xneck up``'s refusals before it starts anything
+(finding 5) time nothing: tests/test_up_refusals.py, beside other modules."""
 
 from __future__ import annotations
 
@@ -7,15 +8,13 @@ import contextlib
 import json
 import os
 import signal
-import socket
-import subprocess
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 from server_harness import AUTH, running_server, wait_until
-from test_stack import ENV, PY, _alive_kinds, _healthy, _procs
+from test_stack import _alive_kinds, _healthy, _procs
 
 from bridge import bus
 from bridge.archive import read_campaign
@@ -23,50 +22,6 @@ from bridge.session import free_tcp_port, open_session
 from server.quality import THRESHOLDS, assess
 
 pytestmark = pytest.mark.realtime  # stalls and campaign quality judged from deadlines
-
-
-def _up_refused(tmp_path: Path, port: int, viser_port: int, hub_port: int) -> tuple[str, Path]:
-    """Run ``xneck up`` expecting a refusal: its stderr and its data directory."""
-    data = tmp_path / "second"
-    r = subprocess.run([*PY, "up", "--port", str(port), "--viser-port", str(viser_port), "--hub",
-                        f"tcp/127.0.0.1:{hub_port}", "--data-dir", str(data), "--exit-after", "5"],
-                       capture_output=True, text=True, env=ENV, timeout=60)
-    assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
-    lines = [line for line in r.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: xneck up refused to start: "), r.stderr
-    assert "xneck is up" not in r.stdout and "Traceback" not in r.stderr
-    assert not (data / "logs").exists(), "a child process was started"  # up creates the logs dir only to start them
-    return lines[0], data
-
-
-@pytest.mark.parametrize("taken", ["hub", "port", "viser"])
-def test_up_refuses_a_taken_port_before_starting_anything(tmp_path: Path, taken: str) -> None:
-    ports = {"hub": free_tcp_port(), "port": free_tcp_port(), "viser": free_tcp_port()}
-    with socket.socket() as squatter:  # another program holds the port
-        squatter.bind(("127.0.0.1", ports[taken]))
-        squatter.listen()
-        line, _ = _up_refused(tmp_path, ports["port"], ports["viser"], ports["hub"])
-    assert f"127.0.0.1:{ports[taken]}" in line
-    assert {"hub": "--hub", "port": "--port", "viser": "--viser-port"}[taken] in line
-
-
-def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> None:
-    """Finding 5: a second `xneck up` on the hub of a running stack joined its bus and started a
-    second bridge and controller before failing with a raw zenoh error."""
-    port, hub_port = free_tcp_port(), free_tcp_port()
-    hub = f"tcp/127.0.0.1:{hub_port}"
-    base = f"http://127.0.0.1:{port}"
-    with _procs() as spawn:
-        spawn(["server", "--port", str(port), "--data-dir", str(tmp_path / "first"), "--hub", hub, "--mode", "robot"],
-              tmp_path / "s.log")
-        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()
-        spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
-        assert wait_until(lambda: "bridge" in _alive_kinds(base), 120, 0.3)
-        line, _ = _up_refused(tmp_path, free_tcp_port(), free_tcp_port(), hub_port)
-        assert "another xneck stack answers on the hub" in line and "bridge/" in line, line
-        assert _alive_kinds(base) == {"bridge"}  # no second controller joined
-        time.sleep(0.5)
-    assert "drives enabled" not in (tmp_path / "b.log").read_text()
 
 
 # -- finding 4: one e-stop truth ------------------------------------------------------------------
