@@ -85,6 +85,13 @@ def synthetic(params):
     return _synthetic(params)
 
 
+@pytest.fixture(scope="module")
+def robot_campaign(params):
+    """The §5.2.2 campaign on the robot truth (seed CAMPAIGN_SEED), preprocessed: two tests' data,
+    simulated once (about 10 s)."""
+    return preprocess(simulate_campaign(CAMPAIGN_SEED, truth=load_truth("robot"))[0], params)
+
+
 def test_recovers_its_own_model_within_2_percent_and_2_sigma(synthetic, params):
     fit = fit_load_friction(synthetic, params, instruments=False)  # type: ignore[arg-type]
     est = fit.estimate
@@ -212,7 +219,7 @@ def test_the_paper_model_test_keeps_eqs_54_55_where_they_hold_and_rejects_them_w
         paper_model_test(dataclasses.replace(fit(), names=("k(1)",) * 28))
 
 
-def test_auto_keeps_the_load_friction_fit_where_the_lines_damping_is_heavy(params):
+def test_auto_keeps_the_load_friction_fit_where_the_lines_damping_is_heavy(params, robot_campaign):
     """The output error holds the line's damping at 0 (a quasi-static pose): on the robot truth
     with the paper's 3000 N·s/m its λ came out 30-50 % high. The load-friction fit that `auto` runs
     for its test also estimates c_a; where (c_a + 2σ)·rms ẋ_c exceeds 1 N on a cable, `auto` keeps
@@ -224,8 +231,7 @@ def test_auto_keeps_the_load_friction_fit_where_the_lines_damping_is_heavy(param
     assert "not quasi-static (threshold 1 N)" in est.estimator
     assert auto_choice(est.estimator)[0] == "loadfriction"
     # a held creep time is the load-friction fit's option: auto does not take the output error then
-    robot = preprocess(simulate_campaign(CAMPAIGN_SEED, truth=load_truth("robot"))[0], params)
-    held = identify_variable(robot, params, np.asarray(params.friction.f_s), estimator="auto", creep_time_s=2.0)
+    held = identify_variable(robot_campaign, params, np.asarray(params.friction.f_s), estimator="auto", creep_time_s=2.0)
     assert held.estimator.startswith("auto → loadfriction") and "which the output error fits itself" in held.estimator
 
 
@@ -256,10 +262,9 @@ def test_damping_check_bounds_the_damping_force_by_c_a_plus_two_sigma():
         damping_check(dataclasses.replace(est([1.0, 1.0], [1.0, 1.0]), names=("k(1)",) * 4), x_dot)
 
 
-def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params):
+def test_robot_truth_k_closer_than_iv_and_stiff_cables_within_10_percent(params, robot_campaign):
     """The full §5.2.2 campaign (shorter ones leave too few fast rows on some motors)."""
-    data = simulate_campaign(CAMPAIGN_SEED, truth=load_truth("robot"))[0]
-    proc = preprocess(data, params)
+    proc = robot_campaign
     k_true = np.array(params.cables.variable.k)
     # "auto" (the user's default): the robot's friction grows with the load, so the test rejects
     # the paper's model; the line's damping is light, so the output error is taken (its own tests:
