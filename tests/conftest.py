@@ -38,12 +38,14 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The ``realtime`` modules first, in file order, then the rest in file order (a stable sort).
+    """The ``background`` modules first (they start beside the first realtime one and use the CPU it
+    leaves), then the ``realtime`` modules, in file order, then the rest in file order (a stable sort).
     Each realtime module waits for the other worker's running module to end before it starts
     (``_cpu_turn``); scattered through the suite, the seven of them waited 204 s in all on
     2026-11-26 (pytest --durations' setup times) with one CPU idle. Together, they wait for each
     other only, which they would anyway."""
-    items.sort(key=lambda item: item.get_closest_marker("realtime") is None)
+    items.sort(key=lambda item: (item.get_closest_marker("background") is None,
+                                 item.get_closest_marker("realtime") is None))
 
 
 #: How long a module waits for its turn on the CPUs before it runs anyway (a stuck peer worker
@@ -74,6 +76,13 @@ def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
     On a 2-CPU machine a second worker's stacks and campaigns were what made those tests miss
     (CI: a hold 1 ms late, 27 states lost on the bus); the rest still runs two at a time."""
     exclusive = request.node.get_closest_marker("realtime") is not None
+    if request.node.get_closest_marker("background") is not None:
+        # Its heavy work runs at nice 19 (tests/test_architecture.py): beside a realtime module it
+        # gets only the CPU that module leaves idle, so it takes no turn and waits for none.
+        asked, started = time.monotonic(), time.time()
+        yield
+        _timeline(request, False, asked, started)
+        return
     root = Path(os.environ.get("XNECK_TEST_TURNS_DIR") or Path(tempfile.gettempdir()) / "xneck-test-turns")
     root.mkdir(parents=True, exist_ok=True)
     deadline = time.monotonic() + TURN_TIMEOUT_S

@@ -5,12 +5,17 @@ Each tool's configuration lives in pyproject.toml; a failure shows the tool's ow
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+# The tools run at nice 19: this module starts beside the realtime ones (tests/conftest.py) and
+# takes only the CPU they leave (about one of two), never theirs. Alone, nice changes nothing.
+pytestmark = pytest.mark.background
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -28,7 +33,8 @@ def _tool(name: str) -> str:
 
 
 def _run(argv: list[str], timeout_s: float) -> None:
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False)
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False,
+                          preexec_fn=lambda: os.nice(19))
     if done.returncode != 0:
         pytest.fail(f"{' '.join(argv)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}", pytrace=False)
 

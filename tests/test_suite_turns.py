@@ -43,25 +43,31 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
     (suite / "conftest.py").write_text(CONFTEST)
     # xdist's loadfile sends the module with the most tests first: the realtime one starts beside
     # a shared one, as it would without turns.
-    specs = [("test_a", "", 4, 0.1), ("test_b", "", 4, 0.1), ("test_rt", "pytestmark = pytest.mark.realtime", 8, 0.1),
+    # A background module (as many tests as the realtime one, so it is sent first, to the other
+    # worker) must not hold the realtime one back.
+    specs = [("test_0bg", "pytestmark = pytest.mark.background", 8, 0.2), ("test_a", "", 4, 0.1),
+             ("test_b", "", 4, 0.1), ("test_rt", "pytestmark = pytest.mark.realtime", 8, 0.1),
              ("test_c", "", 4, 0.1), ("test_d", "", 4, 0.1)]
     for name, mark, n, sleep in specs:
         (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
-    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n")
+    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n"
+                                      "    background: beside anything\n")
     spans = tmp_path / "spans.jsonl"
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
                           "-p", "no:randomly", str(suite)], capture_output=True, text=True, timeout=120, cwd=suite,
                          env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     rows = [json.loads(line) for line in spans.read_text().splitlines()]
-    assert len(rows) == 24
+    assert len(rows) == 32
 
     def window(module: str) -> tuple[float, float]:
         mine = [r for r in rows if r["module"] == module]
         return min(r["t0"] for r in mine), max(r["t1"] for r in mine)
 
     rt0, rt1 = window("test_rt")
-    others = [r for r in rows if r["module"] != "test_rt"]
+    bg0, bg1 = window("test_0bg")
+    assert rt0 < bg1 and bg0 < rt1, ((bg0, bg1), (rt0, rt1))  # side by side: the realtime one did not wait
+    others = [r for r in rows if r["module"] not in ("test_rt", "test_0bg")]
     overlapping = [r for r in others if r["t0"] < rt1 and r["t1"] > rt0]
     assert not overlapping, (rt0, rt1, overlapping)
     # The shared modules did overlap one another: the two workers both ran.
