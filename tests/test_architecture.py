@@ -5,7 +5,6 @@ Each tool's configuration lives in pyproject.toml; a failure shows the tool's ow
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -33,8 +32,9 @@ def _tool(name: str) -> str:
 
 
 def _run(argv: list[str], timeout_s: float) -> None:
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False,
-                          preexec_fn=lambda: os.nice(19))
+    # coreutils' nice, not preexec_fn=os.nice: a pytest worker has threads, and preexec_fn may deadlock then
+    niced = ["nice", "-n", "19", *argv] if shutil.which("nice") else argv
+    done = subprocess.run(niced, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False)
     if done.returncode != 0:
         pytest.fail(f"{' '.join(argv)} exited {done.returncode}:\n{done.stdout}\n{done.stderr}", pytrace=False)
 
