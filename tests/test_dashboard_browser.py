@@ -116,6 +116,10 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                 page.wait_for_function("document.querySelector('#camera-state').textContent.includes('damaged')",
                                        timeout=5000)
                 assert "unreachable" not in page.inner_text("#camera-state")
+                # The page lists α_IP only while the camera is fresh: a loaded machine (a fresh-clone CI run,
+                # 2026-11-27) starved this process's publishing thread past that once, and the list was empty.
+                page.wait_for_function(f"document.querySelector('#camera-alpha').children.length === {n_joints}",
+                                       timeout=15000)
                 assert len(page.inner_text("#camera-alpha").splitlines()) == n_joints
                 for scroll in ("0", "document.body.scrollHeight"):
                     page.evaluate(f"window.scrollTo(0, {scroll})")
