@@ -37,12 +37,12 @@ LEASE_S = 10.0  # Zenoh's transport lease: the stopped console's links close aft
 LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 
 
-def _holds_since(log: Path, since: float) -> list[str]:
-    """The bridge's hold lines logged at or after the wall-clock time ``since``."""
+def _holds_between(log: Path, since: float, until: float = float("inf")) -> list[str]:
+    """The bridge's hold lines logged in the wall-clock interval [``since``, ``until``)."""
     lines = []
     for line in log.read_text(errors="replace").splitlines():
         m = LOG_TIME.match(line)
-        if m and " hold: " in line and datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp() >= since:
+        if m and " hold: " in line and since <= datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp() < until:
             lines.append(line)
     return lines
 
@@ -70,17 +70,21 @@ def test_a_console_stopped_past_zenohs_timeouts_does_not_make_the_bridge_hold(tm
             time.sleep(STOP_S)
         finally:
             os.kill(server, signal.SIGCONT)
+            resumed_at = time.time()
         # Counted from the lease's end (10 s), when the links to the stopped console close and the
         # reconnect retries this test is about begin (the first at ~19 s). A hold or two at the stop's
         # very start (two of 11 ms, 0.1-0.6 s in, in one CI run of ef29ae4) is another effect, open:
-        # docs/safety.md, "Peers that stop reading".
-        holds = _holds_since(bridge_log, stopped_at + LEASE_S)
-        early = [h for h in _holds_since(bridge_log, stopped_at) if h not in holds]
+        # docs/safety.md, "Peers that stop reading". Counted until the console resumes: its links
+        # coming back are a peer joining (benchmarks/peer_churn.py), not this test's subject; one CI
+        # run (499017b) had holds at and after the SIGCONT, printed here when the test fails.
+        holds = _holds_between(bridge_log, stopped_at + LEASE_S, resumed_at)
+        early = _holds_between(bridge_log, stopped_at, stopped_at + LEASE_S)
         assert up.poll() is None, (tmp_path / "up.log").read_text()
         # The console comes back and sees the bridge's states again (its links were closed meanwhile).
         assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
         # The hub layout held at every retry, two or more in 34 s in every run seen (3 here before the
         # change); one hold is allowed, for a scheduling hiccup of this shared 2-CPU machine (CI of
         # 622a523: one hold, 11 ms, 30 s into the stop, no retry in the strace of a rerun).
-        assert len(holds) <= 1, "\n".join(holds + ["(before the lease's end:)"] + early)
+        late = _holds_between(bridge_log, resumed_at)
+        assert len(holds) <= 1, "\n".join(holds + ["(before the lease's end:)", *early, "(after the resume:)", *late])
 
