@@ -33,6 +33,7 @@ import datetime as dt
 import json
 import os
 import queue
+import shutil
 import subprocess
 import tempfile
 import threading
@@ -110,15 +111,20 @@ class CampaignResult:
     quality: dict[str, object] = field(default_factory=dict)  # server.quality: counters, thresholds, reasons
     analysis: str = ""  # identification: "identified" or why it failed (then outcome is analysis_failed)
     identification: dict[str, object] | None = None  # twin.identification.report.report_dict, when identified
+    logs_dir: str = ""  # the child processes' logs, kept when the campaign did not finish (else removed)
 
     def summary(self) -> dict[str, object]:
         out = {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
                "message": self.message, "law": self.law, "metrics": self.metrics, "quality": self.quality}
+        if self.logs_dir:
+            out["logs_dir"] = self.logs_dir
         return {**out, "analysis": self.analysis} if self.analysis else out
 
     def table(self) -> str:
         m = self.metrics
         lines = [f"campaign {self.campaign_id} ({self.law}): {self.outcome}  {self.message}", f"archive: {self.path}"]
+        if self.logs_dir:
+            lines.append(f"process logs: {self.logs_dir}")
         if m.get("ticks"):
             fmt = lambda v: "  ".join(f"{x:7.3f}" for x in v)  # noqa: E731
             lines += [
@@ -339,6 +345,12 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
                                 "degraded_reasons": "; ".join(reasons)})
     result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality)
+    # The children's logs matter only when something went wrong: kept then (and named), else removed,
+    # so that a lab's thousands of campaigns do not leave as many folders in the temporary directory.
+    if outcome == "finished":
+        shutil.rmtree(workdir, ignore_errors=True)
+    else:
+        result.logs_dir = str(workdir)
     try:
         result.metrics = metrics_from_archive(path)
     except ValueError as exc:

@@ -7,6 +7,7 @@ import contextlib
 import json
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,9 @@ def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
             assert msg_type is not None and c.schemas[bus.mcap_topic(key)] == bus.schema_name(msg_type)
         assert len(c.messages(bus.CONTROLLER_STATUS)) >= 0.95 * 7000
         assert result.metrics["camera_frames"] > 350
+        # a finished campaign leaves no folder of process logs behind (thousands of runs, thousands of folders)
+        assert result.logs_dir == "" and "logs_dir" not in result.summary()
+        assert not list(Path(tempfile.gettempdir()).glob(f"xneck-{result.campaign_id}-*"))
 
 
 def test_law_2_tracks_better_than_law_1_with_lower_mean_forces(campaigns):
@@ -218,3 +222,7 @@ def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(
     assert r.outcome == "aborted" and "no motor state from the bridge" in r.message, (r.outcome, r.message)
     assert took < 60
     assert read_campaign(r.path).info["outcome"] == "aborted"
+    # an aborted campaign keeps its processes' logs and says where
+    logs = Path(r.logs_dir)
+    assert (logs / "controller.log").is_file() and (logs / "twin.log").is_file(), r.logs_dir
+    assert r.summary()["logs_dir"] == r.logs_dir and f"process logs: {logs}" in r.table()
