@@ -19,15 +19,18 @@ from controller.laws import LawConfig
 from controller.trajectory import control_test_trajectory
 from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campaign
 
-pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # twin and controller processes on a real bus
+# Twin and controller processes on a real bus, in lockstep but for one test: not realtime, as a
+# lockstep run waits for its slowest process and its states, commands and statuses block rather
+# than drop (bridge.session.publisher), so a loaded machine makes it slower, not different. The
+# real-time campaign below asserts only its abort, which load does not change.
+pytestmark = [pytest.mark.e2e]
 
 
 
 @pytest.fixture(scope="module")
 def identification_run(tmp_path_factory):
     """`xneck campaign identification --twin` (see its test below), started before the control
-    campaigns so that it runs beside them: this module has the machine to itself (a realtime
-    turn, tests/conftest.py), and one lockstep campaign keeps about one CPU busy."""
+    campaigns so that it runs beside them: one lockstep campaign keeps about one CPU busy."""
     tmp = tmp_path_factory.mktemp("identification")
     out, damping = tmp / "ident.mcap", tmp / "damping.toml"
     damping.write_text('[cables]\nenabled = true\ncreep_ratio = { value = 0.0, source = "none: test" }\n'
