@@ -1,14 +1,20 @@
 from __future__ import annotations
 
+import contextlib
 import fcntl
+import functools
 import os
+import re
+import resource
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -38,14 +44,50 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The ``background`` modules first (they start beside the first realtime one and use the CPU it
-    leaves), then the ``realtime`` modules, in file order, then the rest in file order (a stable sort).
-    Each realtime module waits for the other worker's running module to end before it starts
-    (``_cpu_turn``); scattered through the suite, the seven of them waited 204 s in all on
-    2026-11-26 (pytest --durations' setup times) with one CPU idle. Together, they wait for each
-    other only, which they would anyway."""
-    items.sort(key=lambda item: (item.get_closest_marker("background") is None,
-                                 item.get_closest_marker("realtime") is None))
+    """Module order, which is xdist's dispatch order: the first ``background`` module, then the
+    ``realtime`` modules (one unit of work, :func:`pytest_xdist_make_scheduler`), then the other
+    background modules, then the rest, each group in file order (a stable sort). So one worker runs
+    the realtime chain while the other runs the background modules beside it, at nice 19 in the
+    CPU the chain leaves idle (about one of two), then both share the rest. Scattered through the
+    suite, the realtime modules waited 204 s in all for their turns (2026-11-26) with one CPU idle."""
+    background = sorted({str(item.path) for item in items if item.get_closest_marker("background") is not None})
+
+    def rank(item: pytest.Item) -> int:
+        if item.get_closest_marker("background") is not None:
+            return 0 if str(item.path) == background[0] else 2
+        return 1 if item.get_closest_marker("realtime") is not None else 3
+
+    items.sort(key=rank)
+
+
+REALTIME_UNIT = "realtime modules"
+_REALTIME_MARK = re.compile(r"^pytestmark\s*=.*\bmark\.realtime\b", re.MULTILINE)
+
+
+@functools.cache
+def _is_realtime_file(path: Path) -> bool:
+    """Whether the test module at ``path`` is marked ``realtime`` (its ``pytestmark`` line): xdist's
+    controller does not collect, so it cannot see the marker itself."""
+    try:
+        return bool(_REALTIME_MARK.search(path.read_text(errors="replace")))
+    except OSError:
+        return False
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadfile`` with every ``realtime`` module in one unit of work: they run one after
+    the other on one worker (they take turns anyway), so the other worker is free for the
+    background modules beside them instead of waiting for its next realtime module's turn."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class RealtimeTogether(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            scope = super()._split_scope(nodeid)
+            return REALTIME_UNIT if _is_realtime_file(config.rootpath / scope) else scope
+
+    return RealtimeTogether(config, log)
 
 
 #: How long a module waits for its turn on the CPUs before it runs anyway (a stuck peer worker
@@ -76,12 +118,16 @@ def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
     On a 2-CPU machine a second worker's stacks and campaigns were what made those tests miss
     (CI: a hold 1 ms late, 27 states lost on the bus); the rest still runs two at a time."""
     exclusive = request.node.get_closest_marker("realtime") is not None
-    if request.node.get_closest_marker("background") is not None:
-        # Its heavy work runs at nice 19 (tests/test_architecture.py): beside a realtime module it
-        # gets only the CPU that module leaves idle, so it takes no turn and waits for none.
+    if request.node.get_closest_marker("background") is not None and _may_renice():
+        # The whole worker at nice 19 (every thread, so its subprocesses too): beside a realtime
+        # module it gets only the CPU that module leaves idle, so it takes no turn and waits for none.
         asked, started = time.monotonic(), time.time()
-        yield
-        _timeline(request, False, asked, started)
+        saved = _renice_worker(BACKGROUND_NICE)
+        try:
+            yield
+        finally:
+            _restore_nice(saved)
+            _timeline(request, False, asked, started)
         return
     root = Path(os.environ.get("XNECK_TEST_TURNS_DIR") or Path(tempfile.gettempdir()) / "xneck-test-turns")
     root.mkdir(parents=True, exist_ok=True)
@@ -101,6 +147,45 @@ def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
         finally:
             fcntl.flock(turn, fcntl.LOCK_UN)
             _timeline(request, exclusive, deadline - TURN_TIMEOUT_S, started)
+
+
+BACKGROUND_NICE = 19
+
+
+def _may_renice() -> bool:
+    """Whether this worker may take its nice back down after a background module (root, or an
+    RLIMIT_NICE that allows it); else background modules take a shared turn like the others."""
+    if os.geteuid() == 0:
+        return True
+    soft, _hard = resource.getrlimit(resource.RLIMIT_NICE)
+    return soft == resource.RLIM_INFINITY or 20 - soft <= os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def _threads() -> list[int]:
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return [threading.get_native_id()]
+
+
+def _renice_worker(nice: int) -> dict[int, int]:
+    """Every thread of this process at ``nice`` (Linux nices threads, not processes); returns the
+    nice each had, for :func:`_restore_nice`."""
+    saved = {}
+    for tid in _threads():
+        with contextlib.suppress(OSError):
+            saved[tid] = os.getpriority(os.PRIO_PROCESS, tid)
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+    return saved
+
+
+def _restore_nice(saved: dict[int, int]) -> None:
+    """Threads back to their nice before :func:`_renice_worker`; those started meanwhile (which
+    inherited the background nice) to the main thread's."""
+    base = saved.get(os.getpid(), 0)
+    for tid in _threads():
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, tid, saved.get(tid, base))
 
 
 def _timeline(request: pytest.FixtureRequest, exclusive: bool, asked_monotonic: float, started: float) -> None:

@@ -15,6 +15,10 @@ from server.cli import app
 from server.cli.excitation import _problem
 from twin.identification.excitation import DesignError, design, score
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 
 @pytest.fixture
 def cli():

@@ -17,6 +17,10 @@ from server.cli.excitation import _problem
 from twin.identification.excitation import MIN_TENSION_N, REST_S, design, score
 from twin.identification.excitation_bound import c_optimal, rows, sigma_bound
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "identification"
 
 

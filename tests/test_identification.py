@@ -33,6 +33,10 @@ from twin.identification.pipeline import (
 from twin.model.params import load_params
 from twin.sim.truth import load_truth
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 SEEDS = (0, 1)
 PIPELINE_TRUTH = DAMPING_ONLY_TRUTH  # see the module docstring
 

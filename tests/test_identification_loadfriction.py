@@ -32,6 +32,10 @@ from twin.identification.report import table_2
 from twin.model.params import load_params
 from twin.sim.truth import load_truth
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 RATE_HZ = 31.25
 TRUE = {"k": 5000.0, "lambda": 100.0, "c_a": 40.0, "mu": 0.2, "F_0": 8.0, "beta": 0.05, "c_f": 0.5}
 TAU_S = 2.0

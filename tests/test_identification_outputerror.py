@@ -29,6 +29,10 @@ from twin.model.numeric import build
 from twin.model.params import load_params
 from twin.sim.truth import load_truth
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 CAMPAIGN_SEED = 9
 
 

@@ -24,6 +24,10 @@ from twin.identification.processing import CampaignData
 from twin.model.numeric import build
 from twin.model.params import load_params
 
+# Computation only, in this process and its `xneck` runs: it runs beside the realtime modules at
+# nice 19 (tests/conftest.py), in the CPU they leave.
+pytestmark = pytest.mark.background
+
 DYNAMICS_SEED = 5
 NOISE_SEEDS = tuple(range(501, 511))
 

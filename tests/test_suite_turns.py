@@ -22,6 +22,11 @@ _outer = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_outer)
 _cpu_turn = _outer._cpu_turn  # the fixture under test (autouse)
 """
+# And the suite's module order and scheduler (tests/conftest.py): the realtime modules in one unit.
+SCHEDULING = """
+pytest_collection_modifyitems = _outer.pytest_collection_modifyitems
+pytest_xdist_make_scheduler = _outer.pytest_xdist_make_scheduler
+"""
 
 MODULE = """
 import json, os, time
@@ -33,7 +38,8 @@ def test_span(k):
     t0 = time.time()
     time.sleep({sleep})
     with open(os.environ["SPANS"], "a") as f:
-        f.write(json.dumps({{"module": {name!r}, "t0": t0, "t1": time.time()}}) + "\\n")
+        f.write(json.dumps({{"module": {name!r}, "t0": t0, "t1": time.time(), "worker": os.environ.get("PYTEST_XDIST_WORKER"),
+                        "nice": os.getpriority(os.PRIO_PROCESS, 0)}}) + "\\n")
 """
 
 
@@ -73,3 +79,46 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
     # The shared modules did overlap one another: the two workers both ran.
     shared = sorted(others, key=lambda r: r["t0"])
     assert any(b["t0"] < a["t1"] and a["module"] != b["module"] for a, b in itertools.pairwise(shared)), shared
+
+
+def test_the_realtime_modules_run_on_one_worker_and_the_background_ones_beside_them(tmp_path: Path) -> None:
+    """tests/conftest.py's scheduler: the realtime modules are one unit of work, dispatched second,
+    so the other worker runs the background modules beside them (reniced) instead of waiting for
+    its next realtime module's turn; the shared modules come after. With xdist's loadfile alone
+    the two realtime modules went to both workers, and the second background module waited."""
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "conftest.py").write_text(CONFTEST + SCHEDULING)
+    specs = [("test_0bg", "pytestmark = pytest.mark.background", 4, 0.25), ("test_a", "", 2, 0.1),
+             ("test_rt1", "pytestmark = pytest.mark.realtime", 4, 0.25), ("test_1bg", "pytestmark = pytest.mark.background", 4, 0.25),
+             ("test_rt2", "pytestmark = pytest.mark.realtime", 4, 0.25), ("test_b", "", 2, 0.1)]
+    for name, mark, n, sleep in specs:
+        (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
+    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n"
+                                      "    background: beside anything\n")
+    spans = tmp_path / "spans.jsonl"
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "--no-loadscope-reorder",
+                          "-p", "no:cacheprovider", "-p", "no:randomly", str(suite)], capture_output=True, text=True,
+                         timeout=120, cwd=suite,
+                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    rows = [json.loads(line) for line in spans.read_text().splitlines()]
+    assert len(rows) == 20
+    workers = {m: {r["worker"] for r in rows if r["module"] == m} for m, *_ in specs}
+    assert len(workers["test_rt1"] | workers["test_rt2"]) == 1, workers  # one unit, one worker
+    rt = workers["test_rt1"]
+    assert workers["test_0bg"].isdisjoint(rt) and workers["test_1bg"].isdisjoint(rt), workers
+
+    def window(*modules: str) -> tuple[float, float]:
+        mine = [r for r in rows if r["module"] in modules]
+        return min(r["t0"] for r in mine), max(r["t1"] for r in mine)
+
+    rt0, rt1 = window("test_rt1", "test_rt2")
+    bg0, bg1 = window("test_0bg", "test_1bg")
+    assert bg1 <= rt1 + 0.5 and bg0 < rt0 + 0.5, ((bg0, bg1), (rt0, rt1))  # both beside the chain
+    # Reniced for the background modules (as root, or where RLIMIT_NICE allows it back), and back after.
+    if os.geteuid() == 0:
+        assert {r["nice"] for r in rows if r["module"].endswith("bg")} == {19}
+        assert {r["nice"] for r in rows if not r["module"].endswith("bg")} == {os.getpriority(os.PRIO_PROCESS, 0)}
+    shared = [r for r in rows if r["module"] in ("test_a", "test_b")]
+    assert not [r for r in shared if r["t0"] < rt1 and r["t1"] > rt0], (rt0, rt1, shared)
