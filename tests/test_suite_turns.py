@@ -43,10 +43,28 @@ def test_span(k):
 """
 
 
-def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> None:
+def _run_suite(tmp_path: Path, conftest: str, specs: list[tuple[str, str, int, float]], *args: str) -> list[dict]:
+    """Runs an inner suite of ``specs`` (module name, pytestmark line, tests, sleep s) on two
+    workers with ``conftest``; returns each test's span (module, t0, t1, worker, nice)."""
     suite = tmp_path / "suite"
     suite.mkdir()
-    (suite / "conftest.py").write_text(CONFTEST)
+    (suite / "conftest.py").write_text(conftest)
+    for name, mark, n, sleep in specs:
+        (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
+    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n"
+                                      "    background: beside anything\n")
+    spans = tmp_path / "spans.jsonl"
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", *args,
+                          "-p", "no:cacheprovider", "-p", "no:randomly", str(suite)], capture_output=True, text=True,
+                         timeout=120, cwd=suite,
+                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    rows = [json.loads(line) for line in spans.read_text().splitlines()]
+    assert len(rows) == sum(n for _, _, n, _ in specs)
+    return rows
+
+
+def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> None:
     # xdist's loadfile sends the module with the most tests first: the realtime one starts beside
     # a shared one, as it would without turns.
     # A background module (as many tests as the realtime one, so it is sent first, to the other
@@ -54,17 +72,7 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
     specs = [("test_0bg", "pytestmark = pytest.mark.background", 8, 0.2), ("test_a", "", 4, 0.1),
              ("test_b", "", 4, 0.1), ("test_rt", "pytestmark = pytest.mark.realtime", 8, 0.1),
              ("test_c", "", 4, 0.1), ("test_d", "", 4, 0.1)]
-    for name, mark, n, sleep in specs:
-        (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
-    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n"
-                                      "    background: beside anything\n")
-    spans = tmp_path / "spans.jsonl"
-    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
-                          "-p", "no:randomly", str(suite)], capture_output=True, text=True, timeout=120, cwd=suite,
-                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
-    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
-    rows = [json.loads(line) for line in spans.read_text().splitlines()]
-    assert len(rows) == 32
+    rows = _run_suite(tmp_path, CONFTEST, specs)
 
     def window(module: str) -> tuple[float, float]:
         mine = [r for r in rows if r["module"] == module]
@@ -86,24 +94,10 @@ def test_the_realtime_modules_run_on_one_worker_and_the_background_ones_beside_t
     so the other worker runs the background modules beside them (reniced) instead of waiting for
     its next realtime module's turn; the shared modules come after. With xdist's loadfile alone
     the two realtime modules went to both workers, and the second background module waited."""
-    suite = tmp_path / "suite"
-    suite.mkdir()
-    (suite / "conftest.py").write_text(CONFTEST + SCHEDULING)
     specs = [("test_0bg", "pytestmark = pytest.mark.background", 4, 0.25), ("test_a", "", 2, 0.1),
              ("test_rt1", "pytestmark = pytest.mark.realtime", 4, 0.25), ("test_1bg", "pytestmark = pytest.mark.background", 4, 0.25),
              ("test_rt2", "pytestmark = pytest.mark.realtime", 4, 0.25), ("test_b", "", 2, 0.1)]
-    for name, mark, n, sleep in specs:
-        (suite / f"{name}.py").write_text(MODULE.format(mark=mark, n=n, sleep=sleep, name=name))
-    (suite / "pytest.ini").write_text("[pytest]\nmarkers =\n    realtime: alone on the machine\n"
-                                      "    background: beside anything\n")
-    spans = tmp_path / "spans.jsonl"
-    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", "--no-loadscope-reorder",
-                          "-p", "no:cacheprovider", "-p", "no:randomly", str(suite)], capture_output=True, text=True,
-                         timeout=120, cwd=suite,
-                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
-    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
-    rows = [json.loads(line) for line in spans.read_text().splitlines()]
-    assert len(rows) == 20
+    rows = _run_suite(tmp_path, CONFTEST + SCHEDULING, specs, "--no-loadscope-reorder")
     workers = {m: {r["worker"] for r in rows if r["module"] == m} for m, *_ in specs}
     assert len(workers["test_rt1"] | workers["test_rt2"]) == 1, workers  # one unit, one worker
     rt = workers["test_rt1"]
