@@ -50,10 +50,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     the realtime chain while the other runs the background modules beside it, at nice 19 in the
     CPU the chain leaves idle (about one of two), then both share the rest. Scattered through the
     suite, the realtime modules waited 204 s in all for their turns (2026-11-26) with one CPU idle."""
+    renice = _may_renice()  # else a background module is an ordinary one (``_cpu_turn``)
     background = sorted({str(item.path) for item in items if item.get_closest_marker("background") is not None})
 
     def rank(item: pytest.Item) -> int:
-        if item.get_closest_marker("background") is not None:
+        if renice and item.get_closest_marker("background") is not None:
             return 0 if str(item.path) == background[0] else 2
         return 1 if item.get_closest_marker("realtime") is not None else 3
 
@@ -154,7 +155,8 @@ BACKGROUND_NICE = 19
 
 def _may_renice() -> bool:
     """Whether this worker may take its nice back down after a background module (root, or an
-    RLIMIT_NICE that allows it); else background modules take a shared turn like the others."""
+    RLIMIT_NICE that allows it); else background modules are ordinary ones, in order and turns:
+    slower, but a realtime module still runs alone."""
     if os.geteuid() == 0:
         return True
     soft, _hard = resource.getrlimit(resource.RLIMIT_NICE)
