@@ -46,9 +46,11 @@ def test_span(k):
 """
 
 
-def _run_suite(tmp_path: Path, conftest: str, specs: list[tuple[str, str, int, float]], *args: str) -> list[dict]:
+def _run_suite(tmp_path: Path, conftest: str, specs: list[tuple[str, str, int, float]], *args: str,
+               renice: bool = True) -> list[dict]:
     """Runs an inner suite of ``specs`` (module name, pytestmark line, tests, sleep s) on two
-    workers with ``conftest``; returns each test's span (module, t0, t1, worker, nice)."""
+    workers with ``conftest`` (``renice`` False: as where the worker cannot renice back, not
+    root); returns each test's span (module, t0, t1, worker, nice)."""
     suite = tmp_path / "suite"
     suite.mkdir()
     (suite / "conftest.py").write_text(conftest)
@@ -60,14 +62,16 @@ def _run_suite(tmp_path: Path, conftest: str, specs: list[tuple[str, str, int, f
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", *args,
                           "-p", "no:cacheprovider", "-p", "no:randomly", str(suite)], capture_output=True, text=True,
                          timeout=120, cwd=suite,
-                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns")})
+                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns"),
+                              "XNECK_TEST_RENICE": "1" if renice else "0"})
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     rows = [json.loads(line) for line in spans.read_text().splitlines()]
     assert len(rows) == sum(n for _, _, n, _ in specs)
     return rows
 
 
-def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> None:
+@pytest.mark.parametrize("renice", [True, False], ids=["renice", "no-renice"])
+def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path, renice: bool) -> None:
     # xdist's loadfile sends the module with the most tests first: the realtime one starts beside
     # a shared one, as it would without turns.
     # A background module (as many tests as the realtime one, so it is sent first, to the other
@@ -75,7 +79,8 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
     specs = [("test_0bg", "pytestmark = pytest.mark.background", 8, 0.2), ("test_a", "", 4, 0.1),
              ("test_b", "", 4, 0.1), ("test_rt", "pytestmark = pytest.mark.realtime", 8, 0.1),
              ("test_c", "", 4, 0.1), ("test_d", "", 4, 0.1)]
-    rows = _run_suite(tmp_path, CONFTEST, specs)
+    renice = renice and RENICE  # not root: no renicing either way
+    rows = _run_suite(tmp_path, CONFTEST, specs, renice=renice)
 
     def window(module: str) -> tuple[float, float]:
         mine = [r for r in rows if r["module"] == module]
@@ -83,16 +88,18 @@ def test_a_realtime_module_runs_alone_and_the_others_share(tmp_path: Path) -> No
 
     rt0, rt1 = window("test_rt")
     bg0, bg1 = window("test_0bg")
-    if RENICE:
+    if renice:
         assert rt0 < bg1 and bg0 < rt1, ((bg0, bg1), (rt0, rt1))  # side by side: the realtime one did not wait
-    else:  # a background module that could not be niced back is an ordinary one
+    else:  # a background module that could not be niced back is an ordinary one, at its nice
         assert bg1 <= rt0 or rt1 <= bg0, ((bg0, bg1), (rt0, rt1))
+        assert {r["nice"] for r in rows} == {os.getpriority(os.PRIO_PROCESS, 0)}
     others = [r for r in rows if r["module"] not in ("test_rt", "test_0bg")]
     overlapping = [r for r in others if r["t0"] < rt1 and r["t1"] > rt0]
     assert not overlapping, (rt0, rt1, overlapping)
-    # The shared modules did overlap one another: the two workers both ran.
+    # The shared modules did overlap one another: the two workers both ran (without renicing, one
+    # worker ran them all in a run of this small suite: the background module's turn moves them).
     shared = sorted(others, key=lambda r: r["t0"])
-    assert any(b["t0"] < a["t1"] and a["module"] != b["module"] for a, b in itertools.pairwise(shared)), shared
+    assert not renice or any(b["t0"] < a["t1"] and a["module"] != b["module"] for a, b in itertools.pairwise(shared)), shared
 
 
 def test_the_realtime_modules_run_on_one_worker_and_the_background_ones_beside_them(tmp_path: Path) -> None:
