@@ -1,9 +1,16 @@
 from __future__ import annotations
 
+import os
+
+# One BLAS thread per process, set before numpy loads (here, and in every process a test starts):
+# two workers on two CPUs already fill the machine, and OpenBLAS's second thread spins while it
+# waits. test_identification_loadfriction alone took 36.7 s of CPU with two threads, 30.3 s with
+# one; the whole suite's modules 1448 s with two, 1373 s with one (tests/conftest.py's timeline).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import contextlib
 import fcntl
 import functools
-import os
 import re
 import resource
 import subprocess
