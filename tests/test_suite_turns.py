@@ -68,7 +68,9 @@ def _run_suite(tmp_path: Path, conftest: str, specs: list[tuple[str, str, int, f
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadfile", *args,
                           "-p", "no:cacheprovider", "-p", "no:randomly", str(suite)], capture_output=True, text=True,
                          timeout=120, cwd=suite,
-                         env={**os.environ, "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns"),
+                         # not XNECK_TEST_TIMELINE: the inner suite's modules are not this suite's
+                         env={**{k: v for k, v in os.environ.items() if k != "XNECK_TEST_TIMELINE"},
+                              "SPANS": str(spans), "XNECK_TEST_TURNS_DIR": str(tmp_path / "turns"),
                               "XNECK_TEST_RENICE": "1" if renice else "0"})
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
     rows = [json.loads(line) for line in spans.read_text().splitlines()]
