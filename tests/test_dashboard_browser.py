@@ -116,11 +116,13 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                 page.wait_for_function("document.querySelector('#camera-state').textContent.includes('damaged')",
                                        timeout=5000)
                 assert "unreachable" not in page.inner_text("#camera-state")
-                # The page lists α_IP only while the camera is fresh: a loaded machine (a fresh-clone CI run,
-                # 2026-11-27) starved this process's publishing thread past that once, and the list was empty.
-                page.wait_for_function(f"document.querySelector('#camera-alpha').children.length === {n_joints}",
+                # The page lists α_IP only while the camera is fresh: a loaded machine (fresh-clone CI runs,
+                # 2026-11-27 and -28) starved this process's publishing thread past that, and the list was
+                # empty between two looks. One look in the page: n_joints rows, each with its text.
+                page.wait_for_function(f"""() => {{ const el = document.querySelector('#camera-alpha');
+                    return el.children.length === {n_joints}
+                        && el.innerText.split('\\n').filter(l => l.trim().startsWith('α')).length === {n_joints}; }}""",
                                        timeout=15000)
-                assert len(page.inner_text("#camera-alpha").splitlines()) == n_joints
                 for scroll in ("0", "document.body.scrollHeight"):
                     page.evaluate(f"window.scrollTo(0, {scroll})")
                     page.wait_for_timeout(200)
