@@ -48,7 +48,7 @@ import numpy as np
 
 from twin.model import xjoint
 from twin.model.cables import cable_terms
-from twin.model.compiled import bind, njit
+from twin.model.compiled import bind, kernel_array, njit
 from twin.model.dynamics import friction_into
 from twin.model.estimation import long_cable, short_cables, solve_into
 from twin.model.numeric import RIGID, Model, build
@@ -144,7 +144,7 @@ def _rows(x, n: int, name: str, lead: tuple[int, ...] | None) -> np.ndarray:
     a = np.asarray(x, dtype=float)
     if a.shape[-1:] != (n,) or (lead is not None and a.shape[:-1] != lead):
         raise ValueError(f"{name} must have shape (..., {n}) like the others, got {a.shape}")
-    return np.ascontiguousarray(a.reshape(-1, n))
+    return kernel_array(a.reshape(-1, n))
 
 
 def residuals(model: Model, theta_rad, alpha_hat_rad, force_N, theta_dot_rad_s=None) -> tuple[np.ndarray, np.ndarray]:

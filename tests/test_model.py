@@ -271,3 +271,39 @@ def test_long_neck_routing_from_data(params):
     assert Z.shape == (n, n + 1)
     assert np.all(np.tril(Z[:, :n], -1) == 0) and np.all(np.diag(Z[:, :n]) < 0) and np.all(Z[:, n] > 0)
     assert np.all(np.linalg.eigvalsh(dynamics.M(m, np.full(n, 0.3))) > 0)
+
+
+def test_read_only_inputs_and_any_shape_reuse_one_compiled_version_per_kernel(model):
+    """numba compiles a version per argument type, and a read-only array (an archive's columns, a
+    np.broadcast_to view) is another type: each batch kernel's first analysis of an archive compiled
+    it again (5-10 s each in a fresh checkout). The public functions hand their kernels one form."""
+    from twin.model import estimation
+    from twin.model.compiled import numba_enabled
+
+    if not numba_enabled():
+        pytest.skip("the kernels run as plain Python here")
+    a = np.full((5, model.n_joints), 0.1)
+    x = np.full((5, model.n_cables), 1e-3)
+    ro_a, ro_x = a.copy(), x.copy()
+    ro_a.flags.writeable = ro_x.flags.writeable = False
+
+    def calls(alpha, stretch):
+        dynamics.evaluate(model, alpha, alpha)
+        dynamics.evaluate(model, alpha)
+        dynamics.statics(model, alpha)
+        cables.batch(model, alpha, alpha)
+        dynamics.tension(model, stretch, stretch)
+        dynamics.f_friction(model, stretch)
+        estimation.alpha_hat_3(model, stretch[0])
+
+    kernels = (dynamics._evaluate_batch, dynamics._statics_batch, cables._cables_batch, xjoint._table,
+               dynamics.friction_shape, dynamics.cable_tension_law)
+    calls(a, x)
+    xjoint.jets(model.L, model.b, model.r, a)
+    before = [len(k.signatures) for k in kernels]
+    calls(ro_a, ro_x)
+    calls(np.broadcast_to(a[0], a.shape), np.broadcast_to(x[0], x.shape))
+    for shape in ((3,), (2, 3, 4, 5), ()):
+        xjoint.jets(model.L, model.b, model.r, np.zeros(shape))
+    dynamics.f_friction(model, np.asfortranarray(x))  # not C-contiguous
+    assert [len(k.signatures) for k in kernels] == before

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from twin.model import xjoint
-from twin.model.compiled import njit
+from twin.model.compiled import kernel_array, njit
 from twin.model.numeric import Model
 
 
@@ -54,8 +54,8 @@ def batch(model: Model, alpha, alpha_dot=None) -> tuple[np.ndarray, np.ndarray, 
     if alpha.shape[-1:] != (model.n_joints,):
         raise ValueError(f"alpha must have shape (..., {model.n_joints}), got {alpha.shape}")
     lead = alpha.shape[:-1]
-    a2 = np.ascontiguousarray(alpha.reshape(-1, model.n_joints))
-    ad2 = np.zeros_like(a2) if alpha_dot is None else np.ascontiguousarray(
+    a2 = kernel_array(alpha.reshape(-1, model.n_joints))
+    ad2 = np.zeros_like(a2) if alpha_dot is None else kernel_array(
         np.broadcast_to(np.asarray(alpha_dot, dtype=float), alpha.shape).reshape(-1, model.n_joints))
     lc, Z_, Zd = _cables_batch(model, a2, ad2)
     return (lc.reshape(lead + (model.n_cables,)), Z_.reshape(lead + Z_.shape[1:]), Zd.reshape(lead + Zd.shape[1:]))

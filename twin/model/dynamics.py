@@ -23,7 +23,7 @@ import numpy as np
 
 from twin.model import xjoint
 from twin.model.cables import cable_terms
-from twin.model.compiled import njit
+from twin.model.compiled import kernel_array, njit
 from twin.model.numeric import RIGID, Model
 
 
@@ -162,9 +162,9 @@ def _as_batch(model: Model, x, name: str, like=None) -> np.ndarray:
     arr = np.asarray(x, dtype=float)
     if arr.shape[-1:] != (n,):
         raise ValueError(f"{name} must have shape (..., {n}), got {arr.shape}")
-    if like is not None:
+    if like is not None and arr.shape != like.shape:
         arr = np.broadcast_to(arr, like.shape)
-    return np.ascontiguousarray(arr.reshape(-1, n))
+    return kernel_array(arr.reshape(-1, n))
 
 
 def evaluate(model: Model, alpha, alpha_dot=None) -> Terms:
@@ -250,13 +250,14 @@ def tension_into(m, x, x_dot, out):
 
 def f_friction(model: Model, theta_dot) -> np.ndarray:
     """Friction forces (N) at motor-shaft velocities θ̇ (..., n_cables) rad/s, eqs. 36-37."""
-    return model.f_s * friction_shape(model.c_s, model.friction_sign, np.asarray(theta_dot, dtype=float))
+    td = np.asarray(theta_dot, dtype=float)
+    return model.f_s * friction_shape(model.c_s, model.friction_sign, kernel_array(td.ravel())).reshape(td.shape)
 
 
 def tension(model: Model, x_c, x_c_dot) -> np.ndarray:
     """Cable tensions (N) from stretch x_c (m) and rate (m/s), eqs. 39/54, zero when slack."""
-    x = np.asarray(x_c, dtype=float)
-    xd = np.broadcast_to(np.asarray(x_c_dot, dtype=float), x.shape)
+    x = kernel_array(x_c)
+    xd = kernel_array(np.broadcast_to(np.asarray(x_c_dot, dtype=float), x.shape))
     if model.cable_model == RIGID:
         raise ValueError("the rigid cable model has no tension law: tensions follow from eq. 29")
     t = np.maximum(cable_tension_law(model.k, model.lam, model.c_a, x, xd), 0.0)
@@ -321,7 +322,7 @@ class Accelerations(NamedTuple):
 def accelerations(model: Model, alpha, theta, alpha_dot, theta_dot, f) -> Accelerations:
     """The full model with friction and elastic cables (eqs. 27-32) at one state."""
     N, nc = model.n_joints, model.n_cables
-    args = [np.ascontiguousarray(v, dtype=float) for v in (alpha, theta, alpha_dot, theta_dot, f)]
+    args = [kernel_array(v) for v in (alpha, theta, alpha_dot, theta_dot, f)]
     for name, v, n in zip(("alpha", "theta", "alpha_dot", "theta_dot", "f"), args, (N, nc, N, nc, nc)):
         if v.shape != (n,):
             raise ValueError(f"{name} must have shape ({n},), got {v.shape}")

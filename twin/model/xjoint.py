@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from twin.model import jet
-from twin.model.compiled import njit
+from twin.model.compiled import kernel_array, njit
 
 # Rows of the (N_ROWS, 3) jet table that joint_jets fills: (value, d/dα, d²/dα²) per quantity.
 L_LEFT, L_RIGHT, PSI = 0, 1, 2
@@ -89,8 +89,7 @@ def joint_jets(L, b, r, alpha_value, out):
 
 
 @njit(cache=True)
-def _table(L, b, r, alpha):
-    flat = alpha.ravel()
+def _table(L, b, r, flat):
     out = np.empty((flat.size, N_ROWS, 3))
     for k in range(flat.size):
         joint_jets(L, b, r, flat[k], out[k])
@@ -100,7 +99,8 @@ def _table(L, b, r, alpha):
 def jets(L: float, b: float, r: float, alpha: np.ndarray | float) -> np.ndarray:
     """Jet table for every angle of ``alpha`` (any shape, rad): shape alpha.shape + (N_ROWS, 3)."""
     alpha = np.asarray(alpha, dtype=float)
-    return _table(float(L), float(b), float(r), np.ascontiguousarray(alpha)).reshape(alpha.shape + (N_ROWS, 3))
+    flat = kernel_array(alpha.reshape(-1))  # one compiled version, whatever alpha's shape
+    return _table(float(L), float(b), float(r), flat).reshape(alpha.shape + (N_ROWS, 3))
 
 
 def side_lengths(L: float, b: float, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
