@@ -50,16 +50,17 @@ def identify(
                                               "its time constant\")."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
+    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
+        raise fail(f"cannot read campaign: {campaign}: {'not a regular file' if campaign.exists() else 'no such file'}")
+    out_dir = out or campaign.with_name(campaign.stem + "_identification")
+    check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
+    # After the checks: the pipeline's imports (scipy.signal, numba) take 2 s a refusal need not wait.
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import DEFAULT_THRESHOLD, IdentificationError, write_identified
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params, parse_override
 
-    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
-        raise fail(f"cannot read campaign: {campaign}: {'not a regular file' if campaign.exists() else 'no such file'}")
-    out_dir = out or campaign.with_name(campaign.stem + "_identification")
-    check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
     data_b = _validation_campaign(validate) if validate is not None else None
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
