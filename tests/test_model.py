@@ -306,4 +306,5 @@ def test_read_only_inputs_and_any_shape_reuse_one_compiled_version_per_kernel(mo
     for shape in ((3,), (2, 3, 4, 5), ()):
         xjoint.jets(model.L, model.b, model.r, np.zeros(shape))
     dynamics.f_friction(model, np.asfortranarray(x))  # not C-contiguous
+    dynamics.friction_shapes(model.c_s, model.friction_sign, x[:, ::2])
     assert [len(k.signatures) for k in kernels] == before

@@ -196,7 +196,7 @@ def _information(p: DesignProblem, alpha: FloatArray, alpha_dot: FloatArray, alp
     x_c = t_c / (p.k + p.lam * t_c)
     x_dot = np.gradient(x_c, h, axis=0) if len(x_c) > 1 else np.zeros_like(x_c)
     theta_dot = (zt_dot + x_dot) / m.rho
-    a = dynamics.friction_shape(m.c_s, m.friction_sign, theta_dot)
+    a = dynamics.friction_shapes(m.c_s, m.friction_sign, theta_dot)
     # The identification keeps the tension rows of turning motors only (regressors.moving_mask),
     # and the stretch's noise σ_x enters their residual t − kx − λxt as (k + λt)·σ_x: rows
     # weighted by 1/(1 + λt/k), the base noise being that at zero tension.

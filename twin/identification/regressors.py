@@ -40,7 +40,7 @@ def check_friction_excitation(proc: Processed, params: Params) -> None:
 
 def friction_shape(proc: Processed, params: Params) -> FloatArray:
     """a = (2/π)·arctan(c_s·θ̇) (eq. 37), or sign(θ̇) for the eq. 36 model, (n, n_cables)."""
-    return dynamics.friction_shape(params.friction.c_s, params.friction.model == "sign", proc.theta_dot)
+    return dynamics.friction_shapes(params.friction.c_s, params.friction.model == "sign", proc.theta_dot)
 
 
 def ia_over_rho(params: Params) -> float:

@@ -248,10 +248,16 @@ def tension_into(m, x, x_dot, out):
     return slack
 
 
+def friction_shapes(c_s: float, sign_law: bool, theta_dot) -> np.ndarray:
+    """:func:`friction_shape` at motor-shaft velocities θ̇ of any shape (rad/s), through one compiled
+    version of it whatever the shape and memory layout (twin.model.compiled.kernel_array)."""
+    td = np.asarray(theta_dot, dtype=float)
+    return friction_shape(float(c_s), bool(sign_law), kernel_array(td.reshape(-1))).reshape(td.shape)
+
+
 def f_friction(model: Model, theta_dot) -> np.ndarray:
     """Friction forces (N) at motor-shaft velocities θ̇ (..., n_cables) rad/s, eqs. 36-37."""
-    td = np.asarray(theta_dot, dtype=float)
-    return model.f_s * friction_shape(model.c_s, model.friction_sign, kernel_array(td.ravel())).reshape(td.shape)
+    return model.f_s * friction_shapes(model.c_s, model.friction_sign, theta_dot)
 
 
 def tension(model: Model, x_c, x_c_dot) -> np.ndarray:
