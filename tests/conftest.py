@@ -202,7 +202,9 @@ def _own_autogroup() -> Path | None:
 def _set_group_nice(group: Path | None, nice: int) -> None:
     """The autogroup's nice (any user may raise it; lowering it back to 0 needs no privilege either,
     only to go below 0); nothing where there is no autogroup."""
-    for _ in range(3 if group is not None else 0):
+    if group is None:
+        return
+    for _ in range(3):
         try:
             group.write_text(f"{nice}\n")
             return
