@@ -552,17 +552,26 @@ def read_campaign(path: str | os.PathLike[str]) -> Campaign:
             reader = SeekingReader(f, validate_crcs=True)
             for record in reader.iter_metadata():
                 metadata[record.name] = dict(record.metadata)  # the last record of a name wins
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
+            # In file order, then each topic sorted by log time: the order mcap's log_time_order=True
+            # gives (ties in file order; the sort is stable), without its Python heap, which took half
+            # of the read (1.4 of 2.7 s for a 14 s control campaign).
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
                 topic = channel.topic
                 if topic not in topics:
                     topics[topic] = []
                     schemas[topic] = schema.name if schema is not None else ""
                 topics[topic].append((message.log_time, _decode_archived(path, channel, message)))
+        for msgs in topics.values():
+            msgs.sort(key=_log_time)
     except ArchiveError:
         raise
     except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
         raise ArchiveError(path, f"damaged MCAP file ({type(exc).__name__}: {exc})") from None
     return Campaign(path=path, metadata=metadata, topics=topics, schemas=schemas)
+
+
+def _log_time(item: tuple[int, Any]) -> int:
+    return item[0]
 
 
 def _decode_archived(path: Path, channel: Channel, message: Message) -> Any:

@@ -85,6 +85,33 @@ def test_offline_campaign_round_trips_with_schemas(tmp_path: Path) -> None:
     assert report.status == "valid" and report.messages == 51 and path.read_bytes() == before
 
 
+def test_messages_come_back_in_log_time_order_as_mcap_orders_them(tmp_path: Path) -> None:
+    """A wall clock stepped back mid-campaign (NTP) leaves log times out of file order, across
+    chunks, with ties: read_campaign gives each topic in the order mcap's own log-time ordering
+    gives (time, then position in the file), which it no longer uses (its heap took half the read)."""
+    path = tmp_path / "stepped.mcap"
+    t0 = 1_700_000_000_000_000_000
+    rng = np.random.default_rng(7)
+    times = t0 + np.cumsum(rng.integers(0, 3, 400)) * 1_000_000  # ties where a step is 0
+    times[150:] -= 60_000_000  # the clock steps back 60 ms: 30-odd messages overlap
+    msgs: list[tuple[str, int, bus.BusMessage]] = []
+    for i, t in enumerate(times):
+        msgs.append((bus.MOTOR_STATE, int(t), motor_state(i)))
+        if i % 7 == 0:
+            msgs.append((bus.ESTOP, int(t), bus.EStop(seq=i, stamp_s=0.0, engaged=False, reason=str(i))))
+    write_campaign(path, msgs, {"campaign_id": "c-1"}, chunk_size=2048)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        assert len(reader.get_summary().chunk_indexes) > 5  # type: ignore[union-attr]
+        expected: dict[str, list[tuple[int, int]]] = {}
+        for _, channel, message in reader.iter_messages(log_time_order=True):
+            expected.setdefault(channel.topic, []).append((message.log_time, message.sequence))
+    campaign = read_campaign(path)
+    got = {topic: [(t, m.seq) for t, m in msgs] for topic, msgs in campaign.topics.items()}
+    assert got == expected
+    assert [s for _, s in got["/" + bus.MOTOR_STATE]] != sorted(s for _, s in got["/" + bus.MOTOR_STATE])  # the step shows
+
+
 def test_bad_files_give_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ArchiveError, match="no such file"):
         read_campaign(tmp_path / "missing.mcap")
