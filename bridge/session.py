@@ -21,9 +21,11 @@ Importing this module gives the process's Zenoh runtime :data:`ZENOH_RX_WORKERS`
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import os
+import random
 import re
 import socket
 import threading
@@ -293,8 +295,51 @@ def probe_link(endpoint: str, seconds: float = 3.0) -> str:
     return LINKED
 
 
+EPHEMERAL_PORTS_FILE = "/proc/sys/net/ipv4/ip_local_port_range"
+LISTEN_PORTS_FROM = 10000  # free ports are drawn from here up to the kernel's ephemeral range
+_handed_out: collections.deque[int] = collections.deque(maxlen=256)
+_handed_lock = threading.Lock()
+
+
+def _ephemeral_start() -> int:
+    """First port of the range the kernel gives outgoing connections (Linux: 32768)."""
+    try:
+        with open(EPHEMERAL_PORTS_FILE) as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def _bindable(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
 def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port free on ``host`` right now (for tests; another process may take it later)."""
+    """A TCP port free on ``host`` right now, for a listener started next (a hub, viser, a test's
+    console); another process may still take it before that listener binds.
+
+    Drawn at random below the kernel's ephemeral range, never twice by one process in its last 256
+    calls. Why: a port the kernel hands out for port 0 is one it also gives outgoing connections as
+    their local port, and on a busy machine one did, between the pick and the bind (a fresh-clone CI
+    run, 2026-11-28: the console of test_console_outcomes exited "address already in use"). Falls
+    back to the kernel's choice when that range is too small to draw from."""
+    top = _ephemeral_start()
+    rng = random.Random()
+    if top - LISTEN_PORTS_FROM >= 1000:
+        for _ in range(64):
+            port = rng.randrange(LISTEN_PORTS_FROM, top)
+            with _handed_lock:
+                if port in _handed_out:
+                    continue
+            if _bindable(host, port):
+                with _handed_lock:
+                    _handed_out.append(port)
+                return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
