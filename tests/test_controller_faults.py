@@ -21,6 +21,7 @@ from test_bridge_node import Collector
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session, publisher
+from controller.laws import LawConfig
 from controller.trajectory import Trajectory
 
 XNECK = [sys.executable, "-m", "server.cli"]
@@ -222,18 +223,35 @@ def test_estop_release_brings_no_force_step_and_no_wind_up(stack):
         time.sleep(1.0)
     finally:
         estop.close()
-    cmds = [(t, np.array(c.force_N), c.stamp_s) for t, c in stack.commands.timed() if t >= t_on]
+    sent = [(t, c) for t, c in stack.commands.timed() if t >= t_on]
+    cmds = [(t, np.array(c.force_N), c.stamp_s) for t, c in sent]
     # From the state on which the controller saw the e-stop (its stamp: on a loaded machine this
     # test's subscriber receives the last law commands after the status that says so).
     during = np.array([f for t, f, stamp in cmds if stamp >= stamp_dis and t <= t_off])
     # Nothing grows: the hold forces only follow α̂ as the neck settles on slack cables.
     assert len(during) > 100 and np.ptp(during, axis=0).max() < 8.0 and during.max() < 40.0, np.ptp(during, axis=0)
-    around = [(f, stamp) for t, f, stamp in cmds if t_off - 0.2 <= t <= t_off + 1.0]
-    # No step when the law takes over again, per controller tick: on a loaded machine this test's
-    # subscriber misses a few commands now and then, and the change across such a gap is several ticks'.
-    ticks = np.maximum(np.round(np.diff([stamp for _f, stamp in around]) / 0.002), 1.0)
-    per_tick = np.abs(np.diff([f for f, _stamp in around], axis=0)) / ticks[:, None]
-    assert per_tick.max() < 3.0, (per_tick.max(), ticks.max())
+    window = [(f, c) for (t, c), (_t, f, _stamp) in zip(sent, cmds, strict=True) if t_off - 0.2 <= t <= t_off + 1.0]
+    # No step when the law takes over again, per controller tick, over the law's answers to new
+    # states: on a loaded machine the bridge's states stall now and then, and the controller holds
+    # after 10 ms without one, re-answering the last state with the static hold forces (a few N from
+    # a moving law's: the fault campaign of CI at 2c0ceff saw 4.5 N); and this test's subscriber
+    # misses a few commands now and then, the change across such a gap being several ticks'.
+    law, newest = [], -np.inf
+    for f, c in window:
+        if c.stamp_s > newest:
+            law.append((f, c.stamp_s))
+            newest = c.stamp_s
+    ticks = np.maximum(np.round(np.diff([stamp for _f, stamp in law]) / 0.002), 1.0)
+    per_tick = np.abs(np.diff([f for f, _stamp in law], axis=0)) / ticks[:, None]
+    assert len(law) > 100 and per_tick.max() < 3.0, (per_tick.max(), ticks.max())
+    # Holds included, each command sent moves at most the law's force rate from the one before
+    # (controller/laws.py, LawConfig.force_rate_max_N_s), once the drives obey again.
+    step_N = LawConfig(law=2).force_rate_max_N_s / 500.0
+    last_off = max(s.stamp_s for t, s in stack.states.timed() if t >= t_on and s.drive == "disabled")
+    active = [(f, c.seq) for f, c in window if c.stamp_s > last_off]
+    sent_between = np.diff([seq for _f, seq in active])
+    moved = np.abs(np.diff([f for f, _seq in active], axis=0)).max(axis=1)
+    assert len(active) > 100 and np.all(moved <= step_N * sent_between + 1e-6), (moved.max(), sent_between.max())
     disabled = [s for t, s in stack.status.timed() if t_dis <= t <= t_off]
     assert disabled and all(s.holding and "drives disabled" in s.hold_reason for s in disabled), \
         [(s.holding, s.hold_reason) for s in disabled if not (s.holding and "drives disabled" in s.hold_reason)]
