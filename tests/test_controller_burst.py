@@ -29,9 +29,14 @@ def test_a_burst_of_stale_states_is_skipped_and_the_next_fresh_one_answered():
         answered: set[float] = set()
         sub = bridge_side.declare_subscriber(bus.MOTOR_COMMAND, lambda s: answered.add(
             bus.decode(bus.ForceCommand, s.payload.to_bytes()).stamp_s))
+        delivered: set[float] = set()  # what the bus brought the controller's session
+        probe = ctl_side.declare_subscriber(bus.MOTOR_STATE, lambda s: delivered.add(
+            round(bus.decode(bus.MotorState, s.payload.to_bytes()).stamp_s, 6)))
         node = ControllerNode(ctl_side, load_params(), LawConfig(law=2), None,
                               ControllerProcessConfig(exit_when_done=False, instance="c-burst"))
-        pub = publisher(bridge_side, bus.MOTOR_STATE)
+        # Blocking, unlike the bridge's: on a loaded machine the bus dropped up to 44 of the burst's
+        # 60 states at this end, and the burst is what this test is about.
+        pub = publisher(bridge_side, bus.MOTOR_STATE, block=True)
         stop = threading.Event()
         loop = threading.Thread(target=node.run, args=(stop,), daemon=True)
         loop.start()
@@ -46,12 +51,21 @@ def test_a_burst_of_stale_states_is_skipped_and_the_next_fresh_one_answered():
             assert wait_until(lambda: 0.122 in {round(s, 6) for s in answered}, 10, 0.01), (sorted(answered)[-5:], node._error, node.times.skipped)
             burst = {round(k * 0.002, 6) for k in range(1, 61)}
             answered_burst = burst & {round(s, 6) for s in answered}
-            # The first of the burst is answered (the bridge waits for a command), most of the rest not.
+            # The first of the burst is answered (the bridge waits for a command), most of the rest not:
+            # skipped as stale, or, when a loaded machine delivers them closer together than they
+            # were sent, refused by the gate as running ahead of the controller's clock (StateGate's
+            # skew_s). Those the bus brought, lest it drop some still.
             assert round(0.002, 6) in answered_burst
-            assert len(answered_burst) < 30 and node.times.skipped + node.times.window_skipped >= 30, answered_burst
+            arrived = len(burst & delivered)
+            refused = node.states.stats.rejected
+            assert refused == 0 or "ahead of the controller's clock" in node.states.stats.last_reject_reason
+            not_answered = node.times.skipped + node.times.window_skipped + refused
+            assert arrived >= 20 and len(answered_burst) < arrived / 2, (arrived, answered_burst)
+            assert not_answered >= arrived - len(answered_burst), (arrived, answered_burst, node.times.skipped, refused)
         finally:
             stop.set()
             loop.join(10)
             node.close()
             sub.undeclare()
+            probe.undeclare()
             pub.close()
