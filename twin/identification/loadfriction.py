@@ -60,6 +60,7 @@ from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Est
 from twin.identification.instruments import Simulated, simulated_stretch
 from twin.identification.processing import Processed
 from twin.identification.regressors import ia_over_rho, param_names
+from twin.model.compiled import kernel_array
 from twin.model.numeric import build
 from twin.model.params import Params
 
@@ -182,8 +183,8 @@ def _tension(p: FloatArray, x: FloatArray, xd: FloatArray, tau_s: float, h: floa
     absorbs more than the line's damping (the paper's 3000 N·s/m), and a creep fed by it went
     wrong with a heavy damping (docs/identification-coverage.md, "The creep driven by the tension it
     leaves"); with a real line's damping (40 N·s/m) the two drives give the same fit."""
-    return _creep_tension(float(p[0]), float(p[1]), float(p[2]), float(p[5]), np.ascontiguousarray(x, dtype=float),
-                          np.ascontiguousarray(xd, dtype=float), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
+    return _creep_tension(float(p[0]), float(p[1]), float(p[2]), float(p[5]), kernel_array(x),
+                          kernel_array(xd), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
 
 
 def _shape(c_f: float, theta_dot: FloatArray) -> FloatArray:
@@ -235,8 +236,8 @@ def _jacobian(p: FloatArray, scale: FloatArray, free: NDArray[np.bool_], x: Floa
     :func:`_residual` put in its place). Central differences cost 14 residuals per Jacobian and
     were a third of the robot-truth fit's time (benchmarks/identification.py)."""
     t_all, dt_all = _creep_tension_jacobian(
-        float(p[0]), float(p[1]), float(p[2]), float(p[5]), np.ascontiguousarray(x, dtype=float),
-        np.ascontiguousarray(xd, dtype=float), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
+        float(p[0]), float(p[1]), float(p[2]), float(p[5]), kernel_array(x),
+        kernel_array(xd), float(1.0 - np.exp(-h / tau_s)), MIN_STRETCH_FACTOR)
     t, dt = t_all[rows], dt_all[rows]
     mu, f0, w = p[3], p[4], theta_dot[rows]
     a = _shape(p[6], w)

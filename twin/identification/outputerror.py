@@ -72,6 +72,7 @@ from twin.identification.loadfriction import (
 from twin.identification.neck_sensitivity import PULLEY_STEP_M, Layout, Pass, creep_stretch_kernel, sensitivities
 from twin.identification.processing import Processed
 from twin.identification.regressors import param_names
+from twin.model.compiled import kernel_array
 from twin.model.numeric import Model, build
 from twin.model.params import Params
 
@@ -103,7 +104,7 @@ def creep_stretch(x_total: FloatArray, lam: FloatArray, beta: float, tau_s: floa
     β·x'/(1 − λx') with x' = ``x_total`` − c (loadfriction._creep_tension's element: its drive
     β·t_e/k is the same), at its equilibrium at the first sample; ``h`` the sample step (s)."""
     gain = 1.0 - np.exp(-h / tau_s)
-    return creep_stretch_kernel(np.ascontiguousarray(x_total, dtype=float), np.asarray(lam, dtype=float),
+    return creep_stretch_kernel(kernel_array(x_total), kernel_array(lam),
                                 float(beta), float(gain), MIN_STRETCH_FACTOR)
 
 
