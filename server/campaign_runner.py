@@ -42,6 +42,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -111,6 +112,7 @@ class CampaignResult:
     quality: dict[str, object] = field(default_factory=dict)  # server.quality: counters, thresholds, reasons
     analysis: str = ""  # identification: "identified" or why it failed (then outcome is analysis_failed)
     identification: dict[str, object] | None = None  # twin.identification.report.report_dict, when identified
+    identified_set: dict[str, Any] | None = None  # server.identified_sets.identified_set, when identified
     logs_dir: str = ""  # the child processes' logs, kept when the campaign did not finish (else removed)
 
     def summary(self) -> dict[str, object]:
@@ -358,21 +360,24 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     if spec.kind == "identification" and outcome in ("finished", "degraded"):
         if progress:
             progress(1.0, "identifying (twin.identification.pipeline)…")
-        analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides)
+        analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides,
+                               base_name=params.name)
     return result
 
 
 def analyse_identification(result: CampaignResult, params_file: Path | None, estimator: str = "auto",
-                           creep_time_s: float | None = None, overrides: tuple[str, ...] = ()) -> None:
-    """Identify a recorded identification campaign (:func:`server.results.identify_archive`, Table 2
+                           creep_time_s: float | None = None, overrides: tuple[str, ...] = (),
+                           base_name: str = "") -> None:
+    """Identify a recorded identification campaign (:func:`server.results.analyse_archive`, Table 2
     by ``estimator``, the creep time held at ``creep_time_s`` s if given, the parameter file with the
-    campaign's ``overrides``, as its controller ran) into ``result``; a failed
+    campaign's ``overrides``, as its controller ran) into ``result``, with the set it identified; a failed
     analysis makes the outcome ``analysis_failed`` with its reason, in the result and in the archive
     (module docstring)."""
-    from server.results import identify_archive
+    from server.results import analyse_archive
 
-    result.identification, result.analysis = identify_archive(result.path, params_file, estimator=estimator,
-                                                              creep_time_s=creep_time_s, overrides=overrides)
+    result.identification, result.analysis, result.identified_set = analyse_archive(
+        result.path, params_file, estimator=estimator, creep_time_s=creep_time_s, overrides=overrides,
+        base_name=base_name)
     if result.identification is not None:
         return
     run = result.message

@@ -33,6 +33,7 @@ written on a full disk.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import threading
@@ -46,6 +47,7 @@ from bridge import bus
 from bridge.archive import (
     CAMPAIGN,
     ArchiveError,
+    atomic_write,
     is_complete,
     iso_time,
     read_campaign,
@@ -59,6 +61,7 @@ from server.campaign_request import PreparedCampaign
 from server.campaign_runner import STOPPED_BY_USER, metrics_from_archive, new_campaign_id, run_campaign
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
+from server.identified_sets import CACHE_NAME
 from server.records import CampaignIndex, CampaignRecord
 from server.replay import Replay
 
@@ -380,6 +383,8 @@ class CampaignManager:
                                          "metrics": result.metrics or None, "quality": result.quality or None}
             if result.analysis:  # an identification campaign, analysed by the runner (issue 17: never finished if it failed)
                 fields["identification"], fields["identification_status"] = result.identification, result.analysis
+            if result.identified_set is not None:
+                self._keep_identified_set(cid, result.identified_set)
             if status in ("finished", "degraded"):
                 fields["progress"] = 1.0
         except (ArchiveError, OSError) as exc:  # a storage fault: an outcome, not a server state
@@ -498,6 +503,17 @@ class CampaignManager:
             for f in figs.iterdir():
                 f.unlink(missing_ok=True)
             figs.rmdir()
+
+    def _keep_identified_set(self, cid: str, identified: dict[str, object]) -> None:
+        """The set the analysis identified, for a save to copy (server.identified_sets): derived
+        data, so a storage fault only costs that save an identification of its own."""
+        try:
+            folder = self.index.figures(cid)
+            folder.mkdir(exist_ok=True)
+            atomic_write(folder / CACHE_NAME, json.dumps(identified).encode())
+        except OSError as exc:
+            log.warning("campaign %s: its identified set not kept (%s): a save identifies it again", cid,
+                        storage_reason(exc))
 
     # -- replay -----------------------------------------------------------------------------
     def replay(self, campaign_id: str, speed: float) -> dict[str, object]:

@@ -107,23 +107,39 @@ def identify_archive(path: Path, params_file: Path | None, *, estimator: str = "
     line's creep time held at ``creep_time_s`` s if given) on an archive: (report, status text).
     Never raises: an identification problem is a result to show, not a server error; the status of
     a failed one ends with the record's gaps explained (:mod:`server.record_gaps`), if it has any."""
+    report, text, _ = analyse_archive(path, params_file, estimator=estimator, creep_time_s=creep_time_s,
+                                      overrides=overrides)
+    return report, text
+
+
+def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "auto", creep_time_s: float | None = None,
+                    overrides: tuple[str, ...] = (), base_name: str = "") -> tuple[dict[str, Any] | None, str,
+                                                                                     dict[str, Any] | None]:
+    """:func:`identify_archive`, and the parameter set it identified as a save stores it
+    (:func:`server.identified_sets.identified_set`; None when it failed). ``base_name``: the name
+    the campaign ran its set under (the console's, which its archive records), if not the file's."""
+    import msgspec
+
     from controller.trajectory import recorded_excitation
+    from server.identified_sets import identified_set
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict
     from twin.model.params import load_params, parse_override
 
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides))
+        if base_name:
+            base = msgspec.structs.replace(base, name=base_name)
         ident = identify_record(path, base, excitation=recorded_excitation, with_validation=False,
                                 estimator=estimator, creep_time_s=creep_time_s)
-        return report_dict(ident.estimate, ident.processed), "identified"
+        return report_dict(ident.estimate, ident.processed), "identified", identified_set(ident, base.name)
     except Exception as exc:  # noqa: BLE001 - reported to the user
         text = f"identification failed: {type(exc).__name__}: {exc}"
     try:  # the gaps that broke it, explained (issue 17): which topic, which messages, what happened then
         gaps = explain_gaps(read_campaign(path))
     except Exception as exc:  # noqa: BLE001 - an unreadable archive: its reason is the failure above
         gaps = f"(record gaps not examined: {type(exc).__name__}: {exc})"
-    return None, f"{text}; {gaps}" if gaps else text
+    return None, f"{text}; {gaps}" if gaps else text, None
 
 
 def render_figure(mcap: Path, name: str, out: Path) -> Path:

@@ -190,18 +190,20 @@ class ParameterSetRequest(BaseModel, extra="forbid"):
 async def save_parameter_set(campaign_id: str, body: ParameterSetRequest, request: Request) -> dict[str, Any]:
     """Store an identification campaign's identified parameter set under ``name`` (what `xneck
     identify --out` writes: k, λ, f_s, c_a where well identified, the rest the campaign's set, a
-    header with the provenance), ready for ``PUT /api/params/active``. Identifies the archive again
-    (a few seconds). Returns which values were used, which kept their base value and why, and the
-    ``--set`` values of the output error's structure (reported, not written)."""
-    from server.identified_sets import NotIdentified, save_identified_set
+    header with the provenance), ready for ``PUT /api/params/active``: the set the campaign's
+    analysis identified (server.identified_sets; identified again if it was not kept). Returns which
+    values were used, which kept their base value and why, and the ``--set`` values of the output
+    error's structure (reported, not written)."""
+    from server.identified_sets import NotIdentified, cached_set, save_identified_set
     from twin.identification.pipeline import IdentificationError
     from twin.model.params import ParameterError
 
     manager = _manager(request)
     rec = _record(manager, campaign_id)
     try:
-        return await run_in_threadpool(save_identified_set, manager.mcap_path(campaign_id), rec,
-                                       request.app.state.params, body.name)
+        return await run_in_threadpool(lambda: save_identified_set(
+            manager.mcap_path(campaign_id), rec, request.app.state.params, body.name,
+            cached_set(manager.index.figures(campaign_id))))
     except (NotIdentified, FileExistsError) as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     except (ParameterError, IdentificationError) as exc:

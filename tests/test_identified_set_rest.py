@@ -71,6 +71,9 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         assert ident["status"] in ("finished", "degraded") and ident["identification_status"] == "identified", ident
         estimated = _table_2(ident)
         cid = ident["id"]
+        # The analysis kept the set it identified: a save copies it (server.identified_sets).
+        kept_set = list((tmp_path / "d").rglob(f"{cid}_figures/identified-set.json"))
+        assert len(kept_set) == 1, kept_set
         assert save(cid, "lab-id", headers={}).status_code == 401  # the token is needed
         for bad in ("a/b", ".hidden", "prototype_3x"):
             r = save(cid, bad)
@@ -102,7 +105,12 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         assert r.status_code == 409 and "exists" in r.json()["detail"], r.text
         assert client.put("/api/params/active", json={"name": "lab-id"}, headers=AUTH).status_code == 200
         assert client.get("/api/system/health").json()["parameter_set"]["active"] == "lab-id"
+        # Without the kept set (a record from before it was kept, a damaged file) the save
+        # identifies the archive again, on the set the archive records: the same set.
+        kept_set[0].write_text('{"toml": 1}')
         _save_from_the_dashboard(base, client, cid)
+        again = tomllib.loads(client.get("/api/params/from-dashboard").text)
+        assert again == tomllib.loads(text), (again, text)
 
 
 def _save_from_the_dashboard(base: str, client: httpx.Client, cid: str) -> None:
