@@ -6,8 +6,8 @@ The base is the set the campaign ran with, the analysis the one its record asked
 creep time), so the set saved is the one its tables showed. The campaign's own analysis keeps the
 set it identified beside the record (:data:`CACHE_NAME` in the campaign's figures folder, written by
 :mod:`server.campaigns`), so a save is a copy; without it (a record from before, a damaged file) the
-identification runs again on the archive with the archive's ``parameters_toml`` as base (9 s for a
-39 s campaign). Never overwrites a set. On the twin, the robot truth's robot stays the prototype's
+identification runs again on the archive with the archive's ``parameters_toml`` as base (seconds of
+CPU). Never overwrites a set. On the twin, the robot truth's robot stays the prototype's
 whatever set is active (twin/sim/truth.py, ``robot_params``), so a control campaign with the saved
 set against one with the base set compares what the controller believes, not two robots.
 """
