@@ -77,6 +77,11 @@ def save_identified_set(mcap: Path, rec: CampaignRecord, store: ParameterStore, 
     check_name(name)
     if name == BUILTIN or name in store.names():
         raise FileExistsError(f"a parameter set {name!r} exists: choose another name")
+    if cached is not None:
+        try:
+            store.validate(cached["toml"], f"{name}.toml")
+        except ParameterError:  # damaged in a way its shape does not show: identified again below
+            cached = None
     if cached is None:
         try:
             info = read_campaign(mcap).info

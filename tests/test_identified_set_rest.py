@@ -9,6 +9,7 @@ robot truth, its default), saves the set, and the set is what ``xneck identify``
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -107,7 +108,8 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         assert client.get("/api/system/health").json()["parameter_set"]["active"] == "lab-id"
         # Without the kept set (a record from before it was kept, a damaged file) the save
         # identifies the archive again, on the set the archive records: the same set.
-        kept_set[0].write_text('{"toml": 1}')
+        damaged = json.loads(kept_set[0].read_text())
+        kept_set[0].write_text(json.dumps({**damaged, "toml": damaged["toml"].replace("[cables", "[[cables", 1)}))
         _save_from_the_dashboard(base, client, cid)
         again = tomllib.loads(client.get("/api/params/from-dashboard").text)
         assert again == tomllib.loads(text), (again, text)
