@@ -16,7 +16,7 @@ import pytest
 from bridge import bus
 from bridge.archive import read_campaign
 from controller.laws import LawConfig
-from controller.trajectory import control_test_trajectory
+from controller.trajectory import Trajectory, control_test_trajectory
 from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campaign
 
 # Twin and controller processes on a real bus, in lockstep but for one test: not realtime, as a
@@ -24,6 +24,7 @@ from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campa
 # than drop (bridge.session.publisher), so a loaded machine makes it slower, not different. The
 # real-time campaign below asserts only its abort, which load does not change.
 pytestmark = [pytest.mark.e2e]
+NOD = Trajectory.from_degrees([[0, 0, 0], [10, 8, 6], [0, 0, 0]], 1.2, 0.4, name="nod")  # 3.2 s
 
 
 
@@ -57,11 +58,16 @@ def campaigns(params, tmp_path_factory, identification_run):
     lost 429 states of law 1 once (a fresh-clone CI run, 2026-11-25): a degraded campaign."""
     out = tmp_path_factory.mktemp("campaigns")
     laws = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
-            "no_pulleys": LawConfig(law=2, no_pulleys=True),
-            "law2_again": LawConfig(law=2)}  # test_lockstep_campaigns_repeat_exactly's, while the identification runs
-    return {name: run_campaign(CampaignSpec("control", law, control_test_trajectory(), seed=3, timeout_s=240), params,
+            "no_pulleys": LawConfig(law=2, no_pulleys=True)}
+    runs = {name: run_campaign(CampaignSpec("control", law, control_test_trajectory(), seed=3, timeout_s=240), params,
                                out / f"{name}.mcap")
             for name, law in laws.items()}
+    # test_lockstep_campaigns_repeat_exactly's, while the identification runs: a 3.2 s nod twice
+    # rather than the 13 s test again (the same stacks, a quarter of the time)
+    for name in ("nod", "nod_again"):
+        runs[name] = run_campaign(CampaignSpec("control", LawConfig(law=2), NOD, seed=3, timeout_s=240), params,
+                                  out / f"{name}.mcap")
+    return runs
 
 
 def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
@@ -74,8 +80,9 @@ def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
             assert len(c.messages(key)) > 0, (name, key)
             msg_type = bus.message_type(key)
             assert msg_type is not None and c.schemas[bus.mcap_topic(key)] == bus.schema_name(msg_type)
-        assert len(c.messages(bus.CONTROLLER_STATUS)) >= 0.95 * 7000
-        assert result.metrics["camera_frames"] > 350
+        if not name.startswith("nod"):  # the §7 test: 14 s with the settle
+            assert len(c.messages(bus.CONTROLLER_STATUS)) >= 0.95 * 7000
+            assert result.metrics["camera_frames"] > 350
         # a finished campaign leaves no folder of process logs behind (thousands of runs, thousands of folders)
         assert result.logs_dir == "" and "logs_dir" not in result.summary()
         assert not list(Path(tempfile.gettempdir()).glob(f"xneck-{result.campaign_id}-*"))
@@ -87,7 +94,7 @@ def test_law_2_tracks_better_than_law_1_with_lower_mean_forces(campaigns):
 
 
 def test_law_3_has_the_smallest_estimation_error_against_the_camera(campaigns):
-    ea = {k: r.metrics["e_alpha_mean_all_deg"] for k, r in campaigns.items()}
+    ea = {k: r.metrics["e_alpha_mean_all_deg"] for k, r in campaigns.items() if not k.startswith("nod")}
     assert ea["law3"] == min(ea.values())
 
 
@@ -99,16 +106,18 @@ def test_neglecting_the_pulleys_gives_larger_e_and_e_alpha(campaigns):
 def test_lockstep_campaigns_repeat_exactly(campaigns):
     """Same seed, same commands, same robot: every truth sample both archives hold is identical.
     (The recorder may miss a sample of a 500 Hz stream, so compare by time stamp.)"""
-    again = campaigns["law2_again"]
+    first, again = campaigns["nod"], campaigns["nod_again"]
 
     def truth(path):
         return {m.stamp_s: (m.alpha_rad, m.theta_rad) for _, m in read_campaign(path).messages(bus.TWIN_TRUTH)}
 
-    a, b = truth(campaigns["law2"].path), truth(again.path)
+    a, b = truth(first.path), truth(again.path)
     common = a.keys() & b.keys()
-    assert len(common) > 0.99 * max(len(a), len(b))
+    assert len(common) > 0.99 * max(len(a), len(b)) and len(common) > 1500  # 3.2 s at 500 Hz
     assert all(a[t] == b[t] for t in common)
-    assert again.metrics["e_mean_all_deg"] == pytest.approx(campaigns["law2"].metrics["e_mean_all_deg"], rel=1e-3)
+    moved = np.ptp([alpha for alpha, _theta in a.values()], axis=0)
+    assert np.degrees(moved).max() > 5.0, moved  # the neck nodded: not two records of a robot at rest
+    assert again.metrics["e_mean_all_deg"] == pytest.approx(first.metrics["e_mean_all_deg"], rel=1e-3)
 
 
 def test_cli_campaign_prints_json_metrics_and_records_into_the_data_directory(tmp_path, xneck, identification_run):
