@@ -514,6 +514,8 @@ class CampaignManager:
         except OSError as exc:
             log.warning("campaign %s: its identified set not kept (%s): a save identifies it again", cid,
                         storage_reason(exc))
+        except (TypeError, ValueError) as exc:  # not JSON: never the campaign's failure
+            log.warning("campaign %s: its identified set not kept (%s): a save identifies it again", cid, exc)
 
     # -- replay -----------------------------------------------------------------------------
     def replay(self, campaign_id: str, speed: float) -> dict[str, object]:
