@@ -11,6 +11,7 @@ Figures (matplotlib, Agg): ``tracking`` (α̂, α^d, α_IP per joint, deg, again
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,8 @@ import numpy as np
 from bridge import bus
 from bridge.archive import read_campaign
 from server.record_gaps import explain_gaps
+
+log = logging.getLogger(__name__)
 
 FIGURES = ("tracking", "forces")
 PYPLOT_LOCK = threading.Lock()  # pyplot's state machine is not thread-safe; every server figure takes it
@@ -132,9 +135,16 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
             base = msgspec.structs.replace(base, name=base_name)
         ident = identify_record(path, base, excitation=recorded_excitation, with_validation=False,
                                 estimator=estimator, creep_time_s=creep_time_s)
-        return report_dict(ident.estimate, ident.processed), "identified", identified_set(ident, base.name)
+        report = report_dict(ident.estimate, ident.processed)
     except Exception as exc:  # noqa: BLE001 - reported to the user
         text = f"identification failed: {type(exc).__name__}: {exc}"
+    else:
+        try:  # a save's convenience: never the analysis' failure (a save then identifies again)
+            kept = identified_set(ident, base.name)
+        except Exception:
+            log.warning("%s: the identified set not kept for a save", path, exc_info=True)
+            kept = None
+        return report, "identified", kept
     try:  # the gaps that broke it, explained (issue 17): which topic, which messages, what happened then
         gaps = explain_gaps(read_campaign(path))
     except Exception as exc:  # noqa: BLE001 - an unreadable archive: its reason is the failure above
