@@ -167,8 +167,8 @@ def _known_truth(name: str, settings: Settings) -> Truth:
 
 def _analysis_options(req: CampaignCreate) -> str:
     """The identification analysis's estimator (default auto) with its creep time checked
-    (twin.identification.pipeline.check_variable_options), or :class:`RequestError` naming the field."""
-    from twin.identification.pipeline import check_variable_options
+    (twin.identification.options.check_variable_options), or :class:`RequestError` naming the field."""
+    from twin.identification.options import check_variable_options
 
     if req.kind != "identification":
         for name in ("estimator", "creep_time_s"):

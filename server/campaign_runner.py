@@ -88,7 +88,7 @@ class CampaignSpec:
     creep_time_s: float | None = None  # the line's creep time constant held in that analysis (s); None: estimated
 
     def __post_init__(self) -> None:
-        from twin.identification.pipeline import check_variable_options
+        from twin.identification.options import check_variable_options
 
         if self.alpha_ip is not None and self.alpha_ip not in ALPHA_IP_KINDS:
             raise ValueError(f"alpha_ip must be one of {', '.join(ALPHA_IP_KINDS)}, got {self.alpha_ip!r}")

@@ -209,7 +209,7 @@ class CampaignManager:
 
     @staticmethod
     def _record_from_archive(cid: str, info: dict[str, str]) -> CampaignRecord:
-        from twin.identification.pipeline import VARIABLE_ESTIMATORS
+        from twin.identification.options import VARIABLE_ESTIMATORS
 
         estimator = info.get("estimator", "")  # from disk: kept only if it names an estimator
         return CampaignRecord(

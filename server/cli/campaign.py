@@ -116,7 +116,7 @@ def campaign_identification(
     the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
     from server.campaign_runner import CampaignSpec, run_campaign
     from server.cli.identify import identify
-    from twin.identification.pipeline import check_variable_options
+    from twin.identification.options import check_variable_options
 
     try:
         check_variable_options(estimator, creep_time_s)  # a bad τ fails before the campaign runs, not after

@@ -215,8 +215,8 @@ def check_new_archive(value: Path | None) -> Path | None:
 
 def check_estimator(value: str) -> str:
     """Typer callback: ``--estimator`` is one of the variable-stiffness estimators
-    (twin.identification.pipeline.VARIABLE_ESTIMATORS), refused before a campaign runs."""
-    from twin.identification.pipeline import VARIABLE_ESTIMATORS
+    (twin.identification.options.VARIABLE_ESTIMATORS), refused before a campaign runs."""
+    from twin.identification.options import VARIABLE_ESTIMATORS
 
     if value not in VARIABLE_ESTIMATORS:
         raise typer.BadParameter(f"{value!r}: choose {', '.join(VARIABLE_ESTIMATORS)}")

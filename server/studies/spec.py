@@ -157,7 +157,7 @@ class Study:
     params_file: str | None = None
     set: tuple[str, ...] = ()  # --set overrides of the base parameter file
     design_configurations: int = 2000  # design: random configurations per design (within the joint limit)
-    estimator: str = "auto"  # identification: Table 2's estimator (twin.identification.pipeline.VARIABLE_ESTIMATORS)
+    estimator: str = "auto"  # identification: Table 2's estimator (twin.identification.options.VARIABLE_ESTIMATORS)
 
     def varies(self) -> tuple[Vary, ...]:
         return tuple(parse_vary(v) for v in self.vary)
@@ -237,7 +237,7 @@ def _checked_syntax(s: Study) -> Study:
 
     if s.alpha_ip not in ALPHA_IP_KINDS:  # else every run failed, after the cluster had started
         raise StudyError(f"--alpha-ip {s.alpha_ip!r}: choose {' or '.join(ALPHA_IP_KINDS)}")
-    from twin.identification.pipeline import VARIABLE_ESTIMATORS
+    from twin.identification.options import VARIABLE_ESTIMATORS
 
     if s.estimator not in VARIABLE_ESTIMATORS:
         raise StudyError(f"--estimator {s.estimator!r}: choose {', '.join(VARIABLE_ESTIMATORS)}")

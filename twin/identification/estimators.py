@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twin.identification import uncertainty
+from twin.identification.options import ESTIMATOR_NAMES, ESTIMATORS
 from twin.identification.processing import IdentificationError
 
 FloatArray = NDArray[np.float64]
@@ -135,9 +136,6 @@ class Estimate:
         }
 
 
-ESTIMATORS = ("ols", "wls", "iv")
-ESTIMATOR_NAMES = {"ols": "ordinary least squares", "wls": "weighted least squares",
-                   "iv": "instrumental variables"}
 SIGMA_METHODS = ("hac", "white")
 POSITIVE = 1e-9  # lower bound standing for "> 0" (k, f_s) in lsq_linear, which needs closed bounds
 

@@ -58,6 +58,7 @@ from scipy import optimize
 from twin.identification import uncertainty
 from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
 from twin.identification.instruments import Simulated, simulated_stretch
+from twin.identification.options import check_creep_time
 from twin.identification.processing import Processed
 from twin.identification.regressors import ia_over_rho, param_names
 from twin.model.compiled import kernel_array
@@ -497,12 +498,8 @@ def creep_taus(creep_time_s: float | None) -> tuple[float, ...]:
     identification loop) and costs on law 1's campaigns (109 against 122 of 160, where the free τ
     absorbs part of the friction offset the model lacks): docs/identification-coverage.md, "The
     creep element and its time constant". Not a default."""
-    if creep_time_s is None:
-        return TAUS_S
-    tau = float(creep_time_s)
-    if not (np.isfinite(tau) and tau > 0):
-        raise ValueError(f"creep time constant must be a positive number of seconds, got {creep_time_s!r}")
-    return (tau,)
+    tau = check_creep_time(creep_time_s)
+    return TAUS_S if tau is None else (tau,)
 
 
 def _iv_taus(grid_s, moments, costs, taus, chosen, grid_values):

@@ -57,8 +57,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bridge.archive import atomic_write
-from twin.identification.estimators import DEFAULT_THRESHOLD, ESTIMATORS, Estimate, least_squares, physical_bounds
+from twin.identification.estimators import DEFAULT_THRESHOLD, Estimate, least_squares, physical_bounds
 from twin.identification.instruments import Simulated, simulated_stretch
+from twin.identification.options import (
+    NONLINEAR_ESTIMATORS,
+    VARIABLE_ESTIMATORS,
+    check_estimator,
+    check_variable_options,
+    creep_refusal,
+)
 from twin.identification.processing import (
     DECIMATION,
     CampaignData,
@@ -116,13 +123,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-ESTIMATOR_ALIASES = {"ls": "ols", "load-friction": "loadfriction"}  # "ls": eq. 49's name before issue 17
-# Table 2 only: eq. 55's friction replaced by one growing with the load, plus cable creep
-# (twin.identification.loadfriction, issues 16/17); Table 1 and f_s then use the default "iv".
-VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "outputerror", "auto")
-# "auto": the load-friction fit, kept when it rejects the paper's model (twin.identification.model_choice),
-# else "iv". The default of the user's commands (xneck identify, campaigns, the console).
-NONLINEAR_ESTIMATORS = ("loadfriction", "outputerror", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
 
 
 def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...], rows: tuple[IntArray, IntArray], *,
@@ -167,32 +167,6 @@ def _iterate_iv(proc: Processed, params: Params, cable_model: CableModelName, k:
     return dataclasses.replace(est, estimator=f"{est.estimator} (simulated model, not converged in {it} iterations)")
 
 
-def _check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> str:
-    name = ESTIMATOR_ALIASES.get(estimator, estimator)
-    if name not in allowed:
-        raise ValueError(f"estimator must be one of {', '.join(allowed)}, got {estimator!r}")
-    return name
-
-
-def _creep_refusal(name: str) -> str:
-    """Why estimator ``name`` takes no creep time held: outputerror fits its own, the linear ones have no creep."""
-    return "fits its own creep time" if name == "outputerror" else "has no creep term"
-
-
-def check_variable_options(estimator: str, creep_time_s: float | None = None) -> str:
-    """Table 2's estimator name (aliases resolved) and the creep time checked together, before any
-    data is read: what a campaign request (CLI, REST) validates before the robot moves. Raises
-    ValueError saying which value is wrong and why."""
-    from twin.identification.loadfriction import creep_taus
-
-    name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
-    creep_taus(creep_time_s)
-    if creep_time_s is not None and name not in ("loadfriction", "auto"):
-        raise ValueError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                         f"estimator {name!r} {_creep_refusal(name)}")
-    return name
-
-
 def identify_friction(proc: Processed, params: Params, *, threshold: float = DEFAULT_THRESHOLD,
                       estimator: str = "ols", sigma: str = "hac", bounded: bool = True) -> Estimate:
     """Dry friction f_s (N) alone, with rigid cables: eq. 38 with ẍ_c = 0 (the paper's eqs. 46-47
@@ -201,7 +175,7 @@ def identify_friction(proc: Processed, params: Params, *, threshold: float = DEF
     check_friction_excitation(proc, params)
     D, y = joint_rows(proc, params, elastic=False)
     nc = D.shape[-1]
-    est = _check_estimator(estimator)
+    est = check_estimator(estimator)
     return _solve(proc, D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), stacked_rows(proc.n, D.shape[1]),
                   method="friction", equations="eq. 38, rigid cables (eqs. 46-47)", threshold=threshold,
                   estimator="ols" if est == "iv" else est, sigma=sigma, bounded=bounded)
@@ -235,7 +209,7 @@ def identify_complete(
     mask = tension_mask(y_t - a * np.asarray(params.friction.f_s)) & moving_mask(proc, params)
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
-    est = _check_estimator(estimator)
+    est = check_estimator(estimator)
     (si_t, g_t), (si_j, g_j) = masked_rows(mask), stacked_rows(n, N)
     rows = (np.concatenate([si_t, si_j]), np.concatenate([g_t, nc + g_j]))
     names = param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc)
@@ -278,10 +252,10 @@ def identify_variable(
     line), held in the load-friction fit instead of chosen from the record (twin.identification.
     loadfriction.creep_taus); None (default): chosen.
     """
-    name = _check_estimator(estimator, VARIABLE_ESTIMATORS)
+    name = check_estimator(estimator, VARIABLE_ESTIMATORS)
     if creep_time_s is not None and name not in ("loadfriction", "auto"):
         raise IdentificationError(f"a creep time applies to the load-friction fit (estimator loadfriction or auto); "
-                                  f"estimator {name!r} {_creep_refusal(name)}")
+                                  f"estimator {name!r} {creep_refusal(name)}")
     if name == "outputerror":
         from twin.identification.outputerror import fit_output_error
 
@@ -306,7 +280,7 @@ def identify_variable(
 
     mask = tension_mask(t_c) & moving_mask(proc, params)
     W = rows(proc.x_c, proc.x_c * t_c, proc.x_c_dot)[mask]
-    est = _check_estimator(estimator)
+    est = check_estimator(estimator)
     names = param_names("k", nc) + param_names("lambda", nc) + param_names("c_a", nc)
 
     def solve(sim: Simulated | None) -> Estimate:
@@ -371,7 +345,7 @@ def identify_all(
     complete model's f_s absorbs the misfit of linear cables when the cables stiffen with tension).
     ``estimator="loadfriction"`` or ``"auto"`` is Table 2's alone: friction and Table 1 then use "iv".
     ``creep_time_s``: as :func:`identify_variable`."""
-    linear = "iv" if _check_estimator(estimator, VARIABLE_ESTIMATORS) in NONLINEAR_ESTIMATORS else estimator
+    linear = "iv" if check_estimator(estimator, VARIABLE_ESTIMATORS) in NONLINEAR_ESTIMATORS else estimator
     fric = identify_friction(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     comp = identify_complete(proc, params, threshold=threshold, estimator=linear, sigma=sigma, bounded=bounded)
     var = identify_variable(proc, params, fric.values, threshold=threshold, estimator=estimator, sigma=sigma,
