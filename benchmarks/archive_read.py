@@ -1,4 +1,4 @@
-"""Reading a campaign archive back (``bridge.archive.read_campaign``): what every campaign's
+"""Reading a campaign archive back (``bridge.archive_read.read_campaign``): what every campaign's
 metrics, the console's results page and ``xneck identify`` pay before they compute anything.
 
 Writes a synthetic campaign of the §7 control test's size (14 s at 500 Hz: motor states, commands,
@@ -19,7 +19,8 @@ from pathlib import Path
 import _timing  # (benchmarks/ is sys.path[0] when run as a script)
 
 from bridge import bus
-from bridge.archive import _decode_archived, read_campaign, write_campaign
+from bridge.archive import write_campaign
+from bridge.archive_read import decode_archived, read_campaign
 
 
 def synthetic(path: Path, seconds: float = 14.0) -> Path:
@@ -54,7 +55,7 @@ def baseline(path: Path) -> int:
     topics: dict[str, list] = {}
     with open(path, "rb") as f:
         for _, channel, message in SeekingReader(f, validate_crcs=True).iter_messages(log_time_order=True):
-            topics.setdefault(channel.topic, []).append((message.log_time, _decode_archived(path, channel, message)))
+            topics.setdefault(channel.topic, []).append((message.log_time, decode_archived(path, channel, message)))
     return sum(len(v) for v in topics.values())
 
 

@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
 from bridge import bus  # noqa: E402
-from bridge.archive import read_campaign  # noqa: E402
+from bridge.archive_read import read_campaign  # noqa: E402
 from bridge.session import free_tcp_port, open_session  # noqa: E402
 
 TOKEN = "bench-token"

@@ -48,7 +48,8 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.archive import CAMPAIGN, CampaignRecorder, is_complete, read_campaign
+from bridge.archive import CAMPAIGN, CampaignRecorder
+from bridge.archive_read import is_complete, read_campaign
 from bridge.session import free_tcp_port, open_session, payload_of, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics

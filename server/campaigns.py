@@ -10,7 +10,7 @@ identification campaign the identification tables, from the runner's analysis: a
 ``analysis_failed``) are computed, and the JSON record is final.
 
 At start-up :meth:`CampaignManager.recover_all` repairs what a crash left: an unfinished MCAP is
-recovered (:func:`bridge.archive.recover`) and its record marked ``interrupted``. It never touches
+recovered (:func:`bridge.archive_recovery.recover`) and its record marked ``interrupted``. It never touches
 an archive whose writer is alive (:func:`bridge.archive.writer_alive`), and a file it cannot
 repair (full or read-only disk, I/O error) is reported in :attr:`CampaignManager.recovery_errors`
 and on the record, never an exception: start-up goes on.
@@ -44,17 +44,9 @@ from pathlib import Path
 import zenoh
 
 from bridge import bus
-from bridge.archive import (
-    CAMPAIGN,
-    ArchiveError,
-    atomic_write,
-    is_complete,
-    iso_time,
-    read_campaign,
-    recover,
-    storage_reason,
-    writer_alive,
-)
+from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
+from bridge.archive_read import is_complete, read_campaign
+from bridge.archive_recovery import recover
 from bridge.session import publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from server.records import CampaignRecord
 
 TABLE_COLUMNS = ["campaign", "control law", "parameter set", "truth", "trajectory", "status",

@@ -63,7 +63,8 @@ def save_identified_set(mcap: Path, rec: CampaignRecord, store: ParameterStore, 
     :class:`NotIdentified`, :class:`twin.model.params.ParameterError` (a bad name),
     :class:`FileExistsError` (the name is taken), or
     :class:`twin.identification.pipeline.IdentificationError` (the archive does not identify)."""
-    from bridge.archive import ArchiveError, read_campaign
+    from bridge.archive import ArchiveError
+    from bridge.archive_read import read_campaign
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import IdentificationError
     from twin.identification.record import identify_record

@@ -15,7 +15,7 @@ each, what the archive says happened then:
   its holds, the bridge's holds with their reason (``MotorState.hold_reason``);
 - camera frames with a missing joint, and frames the camera dropped (``CameraAlpha.dropped``).
 
-Pure functions of a read :class:`bridge.archive.Campaign`.
+Pure functions of a read :class:`bridge.archive_read.Campaign`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bridge import bus
-from bridge.archive import RECORDER, Campaign
+from bridge.archive import RECORDER
+from bridge.archive_read import Campaign
 
 MAX_GAP_PERIODS = 5.0  # as twin.identification.pipeline._uniform: longer is lost data, not jitter
 CONTEXT_S = 0.05  # s before a gap in which holds and deadline misses are counted as its context

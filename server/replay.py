@@ -16,7 +16,7 @@ from pathlib import Path
 import zenoh
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import BusPublisher, publisher
 
 NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP, bus.CAMPAIGN_REQUEST})

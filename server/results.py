@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from server.record_gaps import explain_gaps
 
 log = logging.getLogger(__name__)

@@ -21,15 +21,9 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
-from bridge.archive import (
-    CAMPAIGN,
-    ArchiveError,
-    CampaignRecorder,
-    is_complete,
-    read_campaign,
-    recover,
-    write_campaign,
-)
+from bridge.archive import CAMPAIGN, ArchiveError, CampaignRecorder, write_campaign
+from bridge.archive_read import is_complete, read_campaign
+from bridge.archive_recovery import recover
 from bridge.session import free_tcp_port, open_session, publisher
 
 REPO = Path(__file__).resolve().parents[1]

@@ -124,7 +124,7 @@ def test_the_truth_file_keeps_its_provenance_and_the_held_out_prediction_errors(
 
 def test_a_recording_without_tensions_calibrates_on_encoders_and_camera(recordings, tmp_path):
     """The prototype has no tension sensor: θ and α_IP alone still find the cable damping."""
-    from bridge.archive import read_campaign
+    from bridge.archive_read import read_campaign
 
     camp = read_campaign(recordings[2])
     robot_like = tmp_path / "robot_like.mcap"

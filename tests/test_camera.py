@@ -414,7 +414,8 @@ def _excitation(t: np.ndarray) -> np.ndarray:
 
 def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, model) -> None:
     from bridge import bus
-    from bridge.archive import read_campaign, write_campaign
+    from bridge.archive import write_campaign
+    from bridge.archive_read import read_campaign
     from server.cli import app
 
     # The campaign: 20 s of truth at 100 Hz on its (simulated) clock.

@@ -26,7 +26,8 @@ from busutil import bus_pair, wait_until
 cv2 = pytest.importorskip("cv2")
 
 from bridge import bus  # noqa: E402
-from bridge.archive import IMAGE_TOPIC, CampaignRecorder, read_campaign  # noqa: E402
+from bridge.archive import IMAGE_TOPIC, CampaignRecorder  # noqa: E402
+from bridge.archive_read import read_campaign  # noqa: E402
 from bridge.session import open_session, publisher  # noqa: E402
 from twin.camera.detect import Detector  # noqa: E402
 from twin.camera.frames import FrameDecimator, frame_message  # noqa: E402

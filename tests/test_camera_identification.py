@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from bridge import bus
-from bridge.archive import read_campaign, write_campaign
+from bridge.archive import write_campaign
+from bridge.archive_read import read_campaign
 from controller.identification_loop import DAMPING_ONLY_TRUTH
 from controller.laws import LawConfig
 from controller.offline import run_closed_loop

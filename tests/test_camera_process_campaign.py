@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from controller.laws import LawConfig
 from controller.trajectory import load_trajectory
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from controller.laws import LawConfig
 from controller.trajectory import Trajectory, control_test_trajectory
 from server.campaign_runner import CampaignSpec, metrics_from_archive, run_campaign
@@ -167,7 +167,7 @@ def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, iden
     tension = doc["validation"]["tension_mean_error_N"]
     assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
     assert all(p["badly_identified"] for p in doc["table_2"]["parameters"] if p["name"].startswith("c_a"))
-    from bridge.archive import read_campaign
+    from bridge.archive_read import read_campaign
 
     assert read_campaign(out).info["twin_truth"] == str(damping.resolve())
 

@@ -29,7 +29,8 @@ from server_harness import AUTH, TOKEN, running_server, server_process, start_ca
 from test_stack import _alive_kinds
 
 from bridge import bus
-from bridge.archive import CampaignRecorder, is_complete, read_campaign
+from bridge.archive import CampaignRecorder
+from bridge.archive_read import is_complete, read_campaign
 from bridge.session import free_tcp_port, open_session
 
 PY = [sys.executable, "-m", "server.cli"]

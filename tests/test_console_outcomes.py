@@ -14,7 +14,7 @@ from server_harness import AUTH, running_server, wait_until
 from test_stack_faults import CONTROL, _estop, _robot_stack, _wait_end
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import open_session
 from server.quality import THRESHOLDS, assess
 

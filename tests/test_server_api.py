@@ -21,7 +21,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from bridge import bus
-from bridge.archive import is_complete, read_campaign
+from bridge.archive_read import is_complete, read_campaign
 
 
 @pytest.fixture(scope="module")

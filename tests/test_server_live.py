@@ -15,7 +15,7 @@ from server_harness import AUTH, running_server, start_campaign, wait_until
 from websockets.sync.client import connect
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import publisher
 from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
 

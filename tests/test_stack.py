@@ -20,7 +20,7 @@ import pytest
 from server_harness import AUTH, TOKEN, stop_process_groups, wait_until
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import free_tcp_port, open_session
 
 pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # the whole stack as processes, campaigns over the bus

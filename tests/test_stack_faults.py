@@ -17,7 +17,7 @@ from server_harness import AUTH, wait_until
 from test_stack import _alive_kinds, _healthy, _procs
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import free_tcp_port
 
 pytestmark = pytest.mark.realtime  # stalls and campaign quality judged from deadlines

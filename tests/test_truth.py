@@ -325,7 +325,7 @@ def test_truth_files_are_uploaded_validated_listed_and_run_over_rest(tmp_path):
     import httpx
     from server_harness import AUTH, running_server, wait_until
 
-    from bridge.archive import read_campaign
+    from bridge.archive_read import read_campaign
 
     with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=60) as client:
         put = lambda name, body: client.put(f"/api/truths/{name}", content=body, headers=AUTH)  # noqa: E731
@@ -386,7 +386,7 @@ def test_xneck_up_with_a_truth_file_runs_campaigns_that_record_it(tmp_path):
     from server_harness import AUTH, TOKEN, stop_xneck_up, wait_until
     from test_stack import _alive_kinds
 
-    from bridge.archive import read_campaign
+    from bridge.archive_read import read_campaign
     from bridge.session import free_tcp_port
 
     path = tmp_path / "bench.toml"

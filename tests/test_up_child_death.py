@@ -24,7 +24,7 @@ import httpx
 import pytest
 from server_harness import AUTH, running_server, server_process, start_campaign, stop_xneck_up, wait_until
 
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from bridge.session import free_tcp_port
 
 pytestmark = pytest.mark.e2e

@@ -34,7 +34,8 @@ class ReplayDriver(Driver):
         self._started = False
 
     def _on_configure(self) -> None:
-        from bridge.archive import ArchiveError, read_campaign
+        from bridge.archive import ArchiveError
+        from bridge.archive_read import read_campaign
 
         try:
             campaign = read_campaign(Path(self.config.path))

@@ -226,7 +226,7 @@ def diagnose(traj: Trajectory, seed: int) -> dict:
 
 def diagnose_archive(path: str) -> dict:
     """The rows of :func:`diagnose` on an identification campaign's archive (camera x only)."""
-    from bridge.archive import read_campaign
+    from bridge.archive_read import read_campaign
     from controller.trajectory import recorded_excitation
     from twin.identification.record import campaign_data_from_mcap
 

@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bridge import bus
-from bridge.archive import read_campaign
+from bridge.archive_read import read_campaign
 from twin.identification import loadfriction
 from twin.identification.processing import preprocess
 from twin.identification.record import campaign_data_from_mcap

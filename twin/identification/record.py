@@ -1,7 +1,7 @@
 """A recorded campaign as identification data, and the whole offline pipeline on it (3-X paper §5).
 
 :func:`identify_record` is the one pipeline that ``xneck identify``, ``xneck campaign identification``
-and the console's results all run. The MCAP is read with :func:`bridge.archive.read_campaign`; encoder angles and applied forces come
+and the console's results all run. The MCAP is read with :func:`bridge.archive_read.read_campaign`; encoder angles and applied forces come
 from ``/xneck/motor/state`` (``theta_rad``, ``force_applied_N``, ``stamp_s``), α_IP from
 ``/xneck/camera/alpha_ip`` (``alpha_ip_rad``, ``capture_stamp_s``).
 """
@@ -65,7 +65,8 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     trajectory too (the filter cutoff then follows the excitation). Raises
     :class:`IdentificationError` for a missing, truncated or damaged file and for missing or empty
     channels."""
-    from bridge.archive import ArchiveError, read_campaign
+    from bridge.archive import ArchiveError
+    from bridge.archive_read import read_campaign
 
     try:
         camp = read_campaign(path)

@@ -172,7 +172,8 @@ class Recording:
 def load_recording(path: str | Path, params: Params, span_s: float | None = None) -> Recording:
     """A campaign MCAP as a :class:`Recording` (the first ``span_s`` seconds of it), or
     :class:`CalibrationError` naming what is wrong with the file."""
-    from bridge.archive import ArchiveError, read_campaign  # the lower layer; imported when used
+    from bridge.archive import ArchiveError  # the lower layer; imported when used
+    from bridge.archive_read import read_campaign
 
     path = Path(path)
     try:

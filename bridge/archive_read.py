@@ -1,0 +1,132 @@
+"""Reading a campaign archive back (the file layout: :mod:`bridge.archive`).
+
+:func:`read_campaign` reads a finished file whole, each message of the contract decoded to its
+type and checked against its schema; a missing, non-MCAP, truncated or unfinished file, or a
+message that does not match, is an :class:`bridge.archive.ArchiveError` naming the file and why
+(an unfinished one is repaired by :func:`bridge.archive_recovery.recover`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Message
+
+from bridge import bus
+from bridge.archive import CAMPAIGN, CAMPAIGN_START, MAGIC, ArchiveError
+
+
+@dataclass
+class Campaign:
+    """A campaign read back. ``topics`` maps each MCAP topic to ``[(log_time_ns, message), ...]``
+    in log-time order; messages of the contract are decoded to their types, others (written by
+    other tools) to plain JSON values."""
+
+    path: Path
+    metadata: dict[str, dict[str, str]]
+    topics: dict[str, list[tuple[int, Any]]]
+    schemas: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def info(self) -> dict[str, str]:
+        """The ``xneck.campaign`` record (falls back to ``xneck.campaign.start``)."""
+        return self.metadata.get(CAMPAIGN) or self.metadata.get(CAMPAIGN_START, {})
+
+    def messages(self, key: str) -> list[tuple[int, Any]]:
+        """Messages of a key (``xneck/motor/state``) or topic (``/xneck/motor/state``)."""
+        return self.topics.get(bus.mcap_topic(key), [])
+
+    def series(self, key: str, field_name: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(log_time_ns int64 (N,), values (N, ...))`` of one field over a key's messages."""
+        msgs = self.messages(key)
+        t = np.array([t for t, _ in msgs], dtype=np.int64)
+        values = np.array([getattr(m, field_name) for _, m in msgs])
+        return t, values
+
+
+def check_file(path: Path) -> int:
+    if not path.exists():
+        raise ArchiveError(path, "no such file")
+    if not path.is_file():
+        raise ArchiveError(path, "not a regular file")
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC))
+    if head != MAGIC:
+        raise ArchiveError(path, "not an MCAP file (bad magic at the start)")
+    return size
+
+
+def is_complete(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is an MCAP file that was finished (magic at both ends). Raises
+    :class:`ArchiveError` if it is missing or not MCAP at all."""
+    path = Path(path)
+    size = check_file(path)
+    if size < 2 * len(MAGIC):
+        return False
+    with open(path, "rb") as f:
+        f.seek(size - len(MAGIC))
+        return f.read() == MAGIC
+
+
+def read_campaign(path: str | os.PathLike[str]) -> Campaign:
+    """Read a finished campaign file. Raises :class:`ArchiveError` for a missing, non-MCAP,
+    truncated or unfinished file (run :func:`recover` on the latter two), or a message that does
+    not match its schema."""
+    path = Path(path)
+    if not is_complete(path):
+        raise ArchiveError(path, "truncated or unfinished MCAP file (no footer): if its recording was "
+                                 "interrupted, copy it into <data dir>/campaigns/ and start `xneck server` (or "
+                                 "`xneck up`): the console repairs such files at start-up, as interrupted campaigns")
+    topics: dict[str, list[tuple[int, Any]]] = {}
+    schemas: dict[str, str] = {}
+    metadata: dict[str, dict[str, str]] = {}
+    try:
+        with open(path, "rb") as f:
+            reader = SeekingReader(f, validate_crcs=True)
+            for record in reader.iter_metadata():
+                metadata[record.name] = dict(record.metadata)  # the last record of a name wins
+            # In file order, then each topic sorted by log time: the order mcap's log_time_order=True
+            # gives (ties in file order; the sort is stable), without its Python heap, which took half
+            # of the read (1.4 of 2.7 s for a 14 s control campaign).
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
+                topic = channel.topic
+                if topic not in topics:
+                    topics[topic] = []
+                    schemas[topic] = schema.name if schema is not None else ""
+                topics[topic].append((message.log_time, decode_archived(path, channel, message)))
+        for msgs in topics.values():
+            msgs.sort(key=_log_time)
+    except ArchiveError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
+        raise ArchiveError(path, f"damaged MCAP file ({type(exc).__name__}: {exc})") from None
+    return Campaign(path=path, metadata=metadata, topics=topics, schemas=schemas)
+
+
+def _log_time(item: tuple[int, Any]) -> int:
+    return item[0]
+
+
+def decode_archived(path: Path, channel: Channel, message: Message) -> Any:
+    msg_type = bus.message_type(bus.key_of_topic(channel.topic))
+    if msg_type is None or channel.message_encoding != "json":
+        if channel.message_encoding == "json":
+            try:
+                return msgspec.json.decode(message.data)
+            except msgspec.DecodeError as exc:
+                raise ArchiveError(path, f"{channel.topic}: invalid JSON ({exc})") from None
+        return bytes(message.data)
+    try:
+        return bus.decode(msg_type, message.data)
+    except bus.BusDecodeError as exc:
+        raise ArchiveError(path, f"{channel.topic} at log time {message.log_time} ns: {exc.reason}") from None
+
+
+__all__ = ["Campaign", "check_file", "decode_archived", "is_complete", "read_campaign"]
