@@ -17,7 +17,7 @@ Safety: it commands the hold forces (Z f = g(α̂) with every cable at t_min, or
 Time and identity: the trajectory runs on the states' stamps (the twin's simulated time or the
 bridge's clock), from the start of the campaign. Only states of the bridge run the controller is
 bound to are taken, with stamps that neither go back nor run ahead of its own clock
-(:class:`controller.service.StateGate`); a restarted bridge (new epoch) is taken at once and
+(:class:`controller.state_gate.StateGate`); a restarted bridge (new epoch) is taken at once and
 the estimate starts again from it. Every command, holds included, carries the stamp and epoch of
 the state it answers and this controller's instance (the bridge obeys one owner). The neck must
 be straight when the bridge starts (eq. 20's zero: θ = 0 there).
@@ -54,7 +54,9 @@ import zenoh
 from bridge import bus
 from bridge.session import liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
-from controller.service import CampaignService, Output, Prepared, Refused, StateGate, prepare
+from controller.prepare import Prepared, Refused, prepare
+from controller.service import CampaignService, Output
+from controller.state_gate import StateGate
 from controller.timing import TickTimes, timing_message
 from controller.trajectory import Trajectory
 from twin.model.params import Params

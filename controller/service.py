@@ -44,18 +44,15 @@ as any jog or campaign does, through a re-start of the law too; a campaign asked
 starts when α^d rests. Faults (a latch, drives off, a new bridge run) hold at α̂ instead and answer
 a campaign waiting for the brake with the reason.
 
-Untrusted input: :func:`prepare` parses and validates a request (JSON text only, bounded waypoint
-count and duration, a time budget for the force check); :class:`StateGate` admits motor states
-of one bridge run on a clock consistent with the controller's own.
+Untrusted input: :func:`controller.prepare.prepare` parses and validates a request (JSON text only,
+bounded waypoint count and duration, a time budget for the force check);
+:class:`controller.state_gate.StateGate` admits motor states of one bridge run on a clock
+consistent with the controller's own.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import time
-import tomllib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -63,27 +60,21 @@ import numpy as np
 
 from bridge import bus
 from controller.encoder_check import THRESHOLD_M, EncoderConsistency
-from controller.laws import ComputedTorque, LawConfig, hold_forces, nominal_force_check
+from controller.laws import ComputedTorque, LawConfig, hold_forces
+from controller.prepare import Prepared, Refused, prepare
 from controller.trajectory import (
-    ForceCheck,
     Trajectory,
-    TrajectoryError,
-    TrajectoryLimits,
     approach,
     approach_duration_s,
     brake_at,
     brake_duration_s,
     cycloid_at,
-    trajectory_from_json,
-    validate,
 )
 from twin.model.estimation import alpha_hat_3
-from twin.model.params import Params, params_from_dict
+from twin.model.params import Params
 
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
 PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
-VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
-FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
 STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
 # No motor shaft turns faster: an encoder whose reading moved more than this allows between two
 # states is faulty (an offset, a runaway) and latches a hold (audit of 2026-11-26: a 60 rad step
@@ -140,177 +131,6 @@ def _sane(alpha: np.ndarray, limit: float, f: np.ndarray) -> bool:
     """Whether α̂ is finite and within ±``limit`` and the forces are finite: on plain floats, a
     fifth of the cost of numpy's reductions over a few values (20 µs per tick here, issue 21)."""
     return all(abs(a) <= limit for a in alpha.tolist()) and all(map(math.isfinite, f.tolist()))
-
-
-@dataclass(frozen=True)
-class Prepared:
-    """A campaign request turned into what the service runs: parameters, law and a validated
-    trajectory (before the approach from the present pose is prepended)."""
-
-    campaign_id: str
-    kind: str
-    params: Params
-    law: LawConfig
-    trajectory: Trajectory
-
-
-class Refused(Exception):
-    """A campaign request the service will not run; ``reason`` says why."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-
-
-def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) -> ForceCheck:
-    """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``: a validation whose
-    cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
-
-    def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
-            pretension: np.ndarray) -> tuple[np.ndarray, str]:
-        ok = np.ones(len(alpha), dtype=bool)
-        for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
-            if clock() > deadline:
-                raise Refused("refused: the force check did not finish within its time budget; "
-                              "ask for a shorter trajectory")
-            part = slice(k, k + FORCE_CHECK_CHUNK)
-            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part], pretension[part])
-            if not ok[part].all():
-                return ok, reason
-        return ok, ""
-
-    return run
-
-
-def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
-            budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic) -> Prepared:
-    """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
-    gives the gains and rate kept from the process's own law. Runs off the control loop (it may
-    take seconds), never longer than ``budget_s`` by ``clock``. Raises :class:`Refused` with the
-    reason for anything wrong, never another exception."""
-    deadline = clock() + budget_s
-    try:
-        if not req.trajectory_json:
-            raise ValueError("the request has no trajectory (trajectory_json is empty)")
-        params = robot
-        if req.parameters_toml:
-            params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
-            if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
-                raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
-                                 f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
-        new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
-        traj = trajectory_from_json(req.trajectory_json)
-        base = limits or TrajectoryLimits()
-        limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg),
-                                  alpha_dot_max_rad_s=base.alpha_dot_max_rad_s,
-                                  alpha_ddot_max_rad_s2=base.alpha_ddot_max_rad_s2,
-                                  duration_max_s=base.duration_max_s, waypoints_max=base.waypoints_max)
-        validate(traj, limits, params.n_joints, _budgeted(nominal_force_check(params, new_law), deadline, clock))
-    except Refused:
-        raise
-    except (ValueError, TrajectoryError, tomllib.TOMLDecodeError) as exc:
-        raise Refused(f"refused: {exc}") from None
-    except RecursionError:
-        raise Refused("refused: the parameter set is nested too deeply") from None
-    except Exception as exc:  # noqa: BLE001 - hostile input: any failure is a refusal, never a crash
-        raise Refused(f"refused: {type(exc).__name__}: {exc}") from None
-    return Prepared(req.campaign_id, req.kind, params, new_law, traj)
-
-
-class StateGate:
-    """Which motor states the controller takes (finding 3 of issue 13): those of one bridge run
-    (``bridge`` instance and ``epoch``), with stamps that never go back and never run ahead of the
-    controller's own clock by more than ``skew_s`` since the last state taken (a lockstep twin's
-    2 ms step per state is within it). Only after ``rebind_s`` without any state taken does the
-    gate start again: at once from a state that continues the bound run's clock, else from a
-    state of a new run (a restarted bridge) or of a stepped clock once the next state confirms it
-    (same run, not earlier, not ahead of it). A forged run or stamp beside a live bridge is never
-    taken, nor is a lone one that arrives first after a stall of the controller's CPU. ``now_s``:
-    a monotonic clock (s).
-
-    The first state ever is taken as it comes (there is nothing to compare it with), so a stray
-    run seen first could keep the gate, fed at a few Hz, away from the bridge (audit of
-    2026-11-26). With ``rate_hz`` (the law's), a rival run that for ``confirm_s`` states at half
-    that rate or more, consistently on its own clock, while the bound run gave fewer than a tenth
-    of it, is taken: a bridge states at the control rate. A run bound at that rate never gives way
-    to another, however fast."""
-
-    def __init__(self, skew_s: float = 0.05, rebind_s: float = 0.25, rate_hz: float | None = None,
-                 confirm_s: float = 0.1) -> None:
-        self.skew_s, self.rebind_s = skew_s, rebind_s
-        self.rate_hz, self.confirm_s = rate_hz, confirm_s
-        self.bridge = self.epoch = ""
-        self._stamp = self._wall = -math.inf  # the newest stamp taken, and when
-        self._taken = -math.inf  # when the last state was taken (a re-publication too)
-        self._candidate: tuple[str, str, float, float] | None = None  # (bridge, epoch, stamp, when)
-        self._n_taken = 0  # states taken so far
-        # s the bound run's clock stepped by, when the last state taken re-bound the gate to its own
-        # run on a stepped clock (None otherwise): the campaign on the old clock cannot go on
-        self.stepped_s: float | None = None
-        # a run other than the bound one: [bridge, epoch, stamp, when, states, since, _n_taken then]
-        self._rival: list | None = None
-
-    def _bind(self, state: bus.MotorState, now_s: float) -> str:
-        self.stepped_s = None
-        self.bridge, self.epoch = state.bridge, state.epoch
-        self._stamp, self._wall = state.stamp_s, now_s
-        self._taken, self._candidate, self._rival = now_s, None, None
-        self._n_taken += 1
-        return ""
-
-    def _rival_takes_over(self, state: bus.MotorState, now_s: float) -> bool:
-        """Count ``state`` (of another run than the bound one) for its run; True when that run
-        states at the control rate and the bound one does not (class docstring)."""
-        if self.rate_hz is None:
-            return False
-        r = self._rival
-        if r is None or self._check(state, r[0], r[1], r[2], r[3], now_s):
-            self._rival = [state.bridge, state.epoch, state.stamp_s, now_s, 1, now_s, self._n_taken]
-            return False
-        r[2], r[3], r[4] = max(r[2], state.stamp_s), now_s, r[4] + 1
-        elapsed = now_s - r[5]
-        expected = elapsed * self.rate_hz
-        return elapsed >= self.confirm_s and r[4] >= 0.5 * expected and self._n_taken - r[6] < 0.1 * expected
-
-    def _check(self, state: bus.MotorState, bridge: str, epoch: str, stamp: float, wall: float,
-               now_s: float) -> str:
-        """"" if ``state`` continues the run ``bridge``/``epoch`` last seen at ``stamp`` (its
-        clock) and ``wall`` (ours), else why not."""
-        if (state.bridge, state.epoch) != (bridge, epoch):
-            return (f"MotorState of bridge {state.bridge!r} run {state.epoch!r}: the controller is bound to "
-                    f"{bridge!r} run {epoch!r}, which is alive")
-        if state.stamp_s < stamp:
-            return f"MotorState stamp {state.stamp_s:.6g} s goes back in time (last {stamp:.6g} s)"
-        ahead = (state.stamp_s - stamp) - (now_s - wall)
-        if ahead > self.skew_s:
-            return (f"MotorState stamp {state.stamp_s:.6g} s runs {ahead:.3g} s ahead of the controller's clock "
-                    f"(at most {self.skew_s:g} s)")
-        return ""
-
-    def admit(self, state: bus.MotorState, now_s: float) -> str:
-        """"" if ``state`` is taken, else why not."""
-        if not self.epoch:
-            return self._bind(state, now_s)  # the first state ever: nothing to compare it with
-        why = self._check(state, self.bridge, self.epoch, self._stamp, self._wall, now_s)
-        if why and (state.bridge, state.epoch) != (self.bridge, self.epoch) and self._rival_takes_over(state, now_s):
-            return self._bind(state, now_s)
-        if now_s - self._taken >= self.rebind_s and why:
-            cand = self._candidate
-            if cand is not None and not self._check(state, *cand, now_s):
-                same_run = (state.bridge, state.epoch) == (self.bridge, self.epoch)
-                step_s = (cand[2] - self._stamp) - (cand[3] - self._wall)
-                self._bind(state, now_s)
-                self.stepped_s = step_s if same_run else None
-                return ""
-            self._candidate = (state.bridge, state.epoch, state.stamp_s, now_s)
-            return f"{why}; after {now_s - self._taken:.3g} s without a state, taken if the next one confirms it"
-        if why:
-            return why
-        if state.stamp_s > self._stamp:
-            self._stamp, self._wall = state.stamp_s, now_s
-        self._taken, self._candidate, self.stepped_s = now_s, None, None
-        self._n_taken += 1
-        return ""
 
 
 @dataclass

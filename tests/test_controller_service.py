@@ -13,7 +13,9 @@ import pytest
 from bridge import bus
 from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
 from controller.laws import LawConfig, hold_forces
-from controller.service import CampaignService, Refused, StateGate, prepare
+from controller.prepare import Refused, prepare
+from controller.service import CampaignService
+from controller.state_gate import StateGate
 from controller.trajectory import Trajectory
 from twin.sim.simulator import Twin, TwinConfig
 

@@ -1,0 +1,108 @@
+"""A campaign request turned into what the controller runs, or refused with the reason: the
+untrusted input of :class:`controller.service.CampaignService` (JSON text only, bounded waypoint
+count and duration, a time budget for the force check), validated off the control loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from bridge import bus
+from controller.laws import LawConfig, nominal_force_check
+from controller.trajectory import (
+    ForceCheck,
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    trajectory_from_json,
+    validate,
+)
+from twin.model.params import Params, params_from_dict
+
+VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
+FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A campaign request turned into what the service runs: parameters, law and a validated
+    trajectory (before the approach from the present pose is prepended)."""
+
+    campaign_id: str
+    kind: str
+    params: Params
+    law: LawConfig
+    trajectory: Trajectory
+
+
+class Refused(Exception):
+    """A campaign request the service will not run; ``reason`` says why."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) -> ForceCheck:
+    """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``: a validation whose
+    cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
+
+    def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
+            pretension: np.ndarray) -> tuple[np.ndarray, str]:
+        ok = np.ones(len(alpha), dtype=bool)
+        for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
+            if clock() > deadline:
+                raise Refused("refused: the force check did not finish within its time budget; "
+                              "ask for a shorter trajectory")
+            part = slice(k, k + FORCE_CHECK_CHUNK)
+            ok[part], reason = check(alpha[part], alpha_dot[part], alpha_ddot[part], pretension[part])
+            if not ok[part].all():
+                return ok, reason
+        return ok, ""
+
+    return run
+
+
+def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
+            budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic) -> Prepared:
+    """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
+    gives the gains and rate kept from the process's own law. Runs off the control loop (it may
+    take seconds), never longer than ``budget_s`` by ``clock``. Raises :class:`Refused` with the
+    reason for anything wrong, never another exception."""
+    deadline = clock() + budget_s
+    try:
+        if not req.trajectory_json:
+            raise ValueError("the request has no trajectory (trajectory_json is empty)")
+        params = robot
+        if req.parameters_toml:
+            params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
+            if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
+                raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
+                                 f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
+        new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
+        traj = trajectory_from_json(req.trajectory_json)
+        base = limits or TrajectoryLimits()
+        limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg),
+                                  alpha_dot_max_rad_s=base.alpha_dot_max_rad_s,
+                                  alpha_ddot_max_rad_s2=base.alpha_ddot_max_rad_s2,
+                                  duration_max_s=base.duration_max_s, waypoints_max=base.waypoints_max)
+        validate(traj, limits, params.n_joints, _budgeted(nominal_force_check(params, new_law), deadline, clock))
+    except Refused:
+        raise
+    except (ValueError, TrajectoryError, tomllib.TOMLDecodeError) as exc:
+        raise Refused(f"refused: {exc}") from None
+    except RecursionError:
+        raise Refused("refused: the parameter set is nested too deeply") from None
+    except Exception as exc:  # noqa: BLE001 - hostile input: any failure is a refusal, never a crash
+        raise Refused(f"refused: {type(exc).__name__}: {exc}") from None
+    return Prepared(req.campaign_id, req.kind, params, new_law, traj)
+
+
+__all__ = ["FORCE_CHECK_CHUNK", "VALIDATION_BUDGET_S", "Prepared", "Refused", "prepare"]
