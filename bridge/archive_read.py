@@ -50,7 +50,7 @@ class Campaign:
         return t, values
 
 
-def check_file(path: Path) -> int:
+def _check_file(path: Path) -> int:
     if not path.exists():
         raise ArchiveError(path, "no such file")
     if not path.is_file():
@@ -67,7 +67,7 @@ def is_complete(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is an MCAP file that was finished (magic at both ends). Raises
     :class:`ArchiveError` if it is missing or not MCAP at all."""
     path = Path(path)
-    size = check_file(path)
+    size = _check_file(path)
     if size < 2 * len(MAGIC):
         return False
     with open(path, "rb") as f:
@@ -129,4 +129,4 @@ def decode_archived(path: Path, channel: Channel, message: Message) -> Any:
         raise ArchiveError(path, f"{channel.topic} at log time {message.log_time} ns: {exc.reason}") from None
 
 
-__all__ = ["Campaign", "check_file", "decode_archived", "is_complete", "read_campaign"]
+__all__ = ["Campaign", "decode_archived", "is_complete", "read_campaign"]
