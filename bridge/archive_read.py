@@ -75,15 +75,24 @@ def is_complete(path: str | os.PathLike[str]) -> bool:
         return f.read() == MAGIC
 
 
-def read_campaign(path: str | os.PathLike[str]) -> Campaign:
-    """Read a finished campaign file. Raises :class:`ArchiveError` for a missing, non-MCAP,
-    truncated or unfinished file (run :func:`recover` on the latter two), or a message that does
-    not match its schema."""
+def check_finished(path: str | os.PathLike[str]) -> Path:
+    """``path`` if it is a finished MCAP file (what :func:`read_campaign` reads), else
+    :class:`ArchiveError` saying why (missing, not a regular file, not MCAP, truncated or
+    unfinished, with how to repair the latter). Reads 16 bytes: a command checks its input with it
+    before loading what the work needs."""
     path = Path(path)
     if not is_complete(path):
         raise ArchiveError(path, "truncated or unfinished MCAP file (no footer): if its recording was "
                                  "interrupted, copy it into <data dir>/campaigns/ and start `xneck server` (or "
                                  "`xneck up`): the console repairs such files at start-up, as interrupted campaigns")
+    return path
+
+
+def read_campaign(path: str | os.PathLike[str]) -> Campaign:
+    """Read a finished campaign file. Raises :class:`ArchiveError` for a missing, non-MCAP,
+    truncated or unfinished file (run :func:`recover` on the latter two), or a message that does
+    not match its schema."""
+    path = check_finished(path)
     topics: dict[str, list[tuple[int, Any]]] = {}
     schemas: dict[str, str] = {}
     metadata: dict[str, dict[str, str]] = {}
@@ -129,4 +138,4 @@ def decode_archived(path: Path, channel: Channel, message: Message) -> Any:
         raise ArchiveError(path, f"{channel.topic} at log time {message.log_time} ns: {exc.reason}") from None
 
 
-__all__ = ["Campaign", "decode_archived", "is_complete", "read_campaign"]
+__all__ = ["Campaign", "check_finished", "decode_archived", "is_complete", "read_campaign"]

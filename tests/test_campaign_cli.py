@@ -4,8 +4,6 @@ not a traceback (the campaigns themselves: tests/test_campaign.py, realtime)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 from typer.testing import CliRunner
@@ -59,19 +57,3 @@ def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_pat
     run = xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
     assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
 
-
-@pytest.mark.parametrize("argv", [["--estimator", "magic"], ["--creep-time-s", "-2"],
-                                  ["--trajectory", "{tmp}/bad.json"]])
-def test_a_refusal_loads_nothing_of_the_identification(tmp_path, argv):
-    """Refusing an identification campaign's bad option or trajectory needs the options' names, not
-    the pipeline (scipy.signal, seconds of import): twin.identification.options holds them."""
-    (tmp_path / "bad.json").write_text('{"waypoints_deg": "not a list"}')
-    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
-    run = subprocess.run([sys.executable, "-X", "importtime", "-m", "server.cli", "campaign", "identification", *argv,
-                          "--out", str(tmp_path / "never.mcap")], capture_output=True, text=True, timeout=60,
-                         stdin=subprocess.DEVNULL)
-    assert run.returncode == 2, run.stderr[-2000:]
-    imported = {line.rsplit("|", 1)[-1].strip() for line in run.stderr.splitlines() if line.startswith("import time:")}
-    assert not {"twin.identification.pipeline", "scipy.signal"} & imported
-    assert "twin.identification.options" in imported
-    assert not (tmp_path / "never.mcap").exists()

@@ -7,6 +7,8 @@ Every test runs the real command (the `xneck` fixture: a subprocess)."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -451,3 +453,31 @@ def test_a_controller_campaign_kind_is_one_of_the_bus_kinds(xneck):
     """It had no help and took any word, which went into every campaign event."""
     _refused(xneck("controller", "--campaign-kind", "bogus", "--idle-timeout", "1"), "--campaign-kind 'bogus'",
              "control, identification, jog")
+
+
+@pytest.mark.parametrize("argv", [
+    ["campaign", "identification", "--estimator", "magic"],
+    ["campaign", "identification", "--creep-time-s", "-2"],
+    ["campaign", "identification", "--trajectory", "{tmp}/bad.json"],
+    ["identify", "{campaign}", "--estimator", "magic"],
+    ["identify", "{campaign}", "--sigma", "gaussian"],
+    ["identify", "{campaign}", "--estimator", "iv", "--creep-time-s", "2"],
+    ["identify", "{tmp}/bad.json"],
+    ["identify", "{campaign}", "--validate", "{tmp}/bad.json"],
+])
+def test_an_identification_refusal_loads_nothing_of_the_identification(tmp_path, campaign, argv):
+    """A bad option, trajectory or file is refused before the identification's pipeline is loaded
+    (scipy.signal: seconds of import) or the archive read: the options' names and checks are
+    twin.identification.options, an archive's soundness bridge.archive_read.check_finished."""
+    (tmp_path / "bad.json").write_text('{"waypoints_deg": "not a list"}')
+    argv = [a.replace("{tmp}", str(tmp_path)).replace("{campaign}", str(campaign)) for a in argv]
+    out = tmp_path / ("never.mcap" if argv[0] == "campaign" else "never")
+    run = subprocess.run([sys.executable, "-X", "importtime", "-m", "server.cli", *argv, "--out", str(out)],
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert run.returncode == 2, run.stderr[-2000:]
+    imported = {line.rsplit("|", 1)[-1].strip() for line in run.stderr.splitlines() if line.startswith("import time:")}
+    assert not {"twin.identification.pipeline", "scipy.signal"} & imported
+    assert "twin.identification.options" in imported
+    said = [line for line in run.stderr.splitlines() if line.startswith("error:") or "Invalid value" in line]
+    assert said, run.stderr[-2000:]
+    assert not out.exists()

@@ -54,6 +54,21 @@ def identify(
         raise fail(f"cannot read campaign: {campaign}: {'not a regular file' if campaign.exists() else 'no such file'}")
     out_dir = out or campaign.with_name(campaign.stem + "_identification")
     check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
+    from bridge.archive import ArchiveError
+    from bridge.archive_read import check_finished
+    from twin.identification.options import check_sigma, check_variable_options
+
+    try:  # the options and the files, before the archive is read and the fit runs
+        check_variable_options(estimator, creep_time_s)
+        check_sigma(sigma)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    for what, path in (("campaign", campaign), ("validation campaign", validate)):
+        try:
+            if path is not None:
+                check_finished(path)
+        except ArchiveError as exc:
+            raise fail(f"cannot read {what}: {exc}") from None
     # After the checks: the pipeline's imports (scipy.signal, numba) take 2 s a refusal need not wait.
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import DEFAULT_THRESHOLD, IdentificationError, write_identified

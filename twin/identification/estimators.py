@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from twin.identification import uncertainty
-from twin.identification.options import ESTIMATOR_NAMES, ESTIMATORS
+from twin.identification.options import ESTIMATOR_NAMES, ESTIMATORS, check_sigma
 from twin.identification.processing import IdentificationError
 
 FloatArray = NDArray[np.float64]
@@ -136,7 +136,6 @@ class Estimate:
         }
 
 
-SIGMA_METHODS = ("hac", "white")
 POSITIVE = 1e-9  # lower bound standing for "> 0" (k, f_s) in lsq_linear, which needs closed bounds
 
 # Physical range of each symbol: k > 0, f_s > 0; λ, c_a ≥ 0 (issue 17). Others are free.
@@ -213,8 +212,7 @@ def least_squares(
     est_name = estimator or ("iv" if instruments is not None else "ols")
     if est_name not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {est_name!r}")
-    if sigma not in SIGMA_METHODS:
-        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    check_sigma(sigma)
     if est_name == "iv" and (instruments is None or instruments.shape != W.shape):
         raise ValueError("the IV estimator needs instruments shaped like W")
     _check_regressor(W, Y, names, method)

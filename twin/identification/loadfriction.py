@@ -56,9 +56,9 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from twin.identification import uncertainty
-from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
+from twin.identification.estimators import DEFAULT_THRESHOLD, Estimate
 from twin.identification.instruments import Simulated, simulated_stretch
-from twin.identification.options import check_creep_time
+from twin.identification.options import check_creep_time, check_sigma
 from twin.identification.processing import Processed
 from twin.identification.regressors import ia_over_rho, param_names
 from twin.model.compiled import kernel_array
@@ -412,8 +412,7 @@ def fit_load_friction(proc: Processed, params: Params, start: tuple[FloatArray, 
     file's (:func:`gear_losses`); (0, 0) is the fit without them, in which the paper's eqs. 54-55 are
     μ = β = 0 (twin.identification.model_choice tests that fit). Raises ValueError when a cable has fewer than :data:`MIN_ROWS` rows (its motor never
     turned fast while its cable was taut), for a bad ``start`` or an unknown ``sigma``."""
-    if sigma not in SIGMA_METHODS:
-        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    check_sigma(sigma)
     nc = params.n_cables
     _, rows = fit_rows(proc, params)
     counts = rows.sum(axis=0)

@@ -18,6 +18,9 @@ VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "outputerror", "auto")
 # "auto": the load-friction fit, kept when it rejects the paper's model (twin.identification.model_choice),
 # else "iv". The default of the user's commands (xneck identify, campaigns, the console).
 NONLINEAR_ESTIMATORS = ("loadfriction", "outputerror", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
+# σ of the estimates: Newey-West HAC for correlated residuals (twin.identification.uncertainty), or
+# eq. 50 as printed (white residuals; too small on filtered data).
+SIGMA_METHODS = ("hac", "white")
 
 
 def check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> str:
@@ -26,6 +29,13 @@ def check_estimator(estimator: str, allowed: tuple[str, ...] = ESTIMATORS) -> st
     if name not in allowed:
         raise ValueError(f"estimator must be one of {', '.join(allowed)}, got {estimator!r}")
     return name
+
+
+def check_sigma(sigma: str) -> str:
+    """``sigma`` if it is one of :data:`SIGMA_METHODS`, else ValueError naming them."""
+    if sigma not in SIGMA_METHODS:
+        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    return sigma
 
 
 def check_creep_time(creep_time_s: float | None) -> float | None:

@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from twin.identification import uncertainty
-from twin.identification.estimators import DEFAULT_THRESHOLD, SIGMA_METHODS, Estimate
+from twin.identification.estimators import DEFAULT_THRESHOLD, Estimate
 from twin.identification.instruments import neck_equilibrium
 from twin.identification.loadfriction import (
     BETA_BOUNDS,
@@ -70,6 +70,7 @@ from twin.identification.loadfriction import (
     gear_losses,
 )
 from twin.identification.neck_sensitivity import PULLEY_STEP_M, Layout, Pass, creep_stretch_kernel, sensitivities
+from twin.identification.options import check_sigma
 from twin.identification.processing import Processed
 from twin.identification.regressors import param_names
 from twin.model.compiled import kernel_array
@@ -192,8 +193,7 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     the load-friction fit's, as `auto` does; it saves iterations, the minimum is the same), else
     START_K_N_M, START_LAMBDA_PER_M (no prior). Raises ValueError when a
     cable has fewer than loadfriction.MIN_ROWS fast-motor rows, or for an unknown ``sigma``."""
-    if sigma not in SIGMA_METHODS:
-        raise ValueError(f"sigma must be one of {', '.join(SIGMA_METHODS)}, got {sigma!r}")
+    check_sigma(sigma)
     nc, N = params.n_cables, params.n_joints
     y, rows = fit_rows(proc, params)
     counts = rows.sum(axis=0)
