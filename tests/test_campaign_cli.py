@@ -57,3 +57,12 @@ def test_a_trajectory_beyond_the_limits_is_refused_before_anything_moves(tmp_pat
     run = xneck("campaign", "control", "--trajectory", str(fast), "--out", str(out))
     assert run.returncode == 2 and "segment 0" in run.stderr and not out.exists()
 
+
+
+def test_an_estimator_alias_is_taken_as_xneck_identify_takes_it():
+    """`xneck identify --estimator ls` was accepted while `xneck campaign identification` refused
+    it: the campaign's option resolves the aliases the identification knows, to the estimator's name."""
+    from server.cli.options import check_estimator
+
+    assert check_estimator("ls") == "ols" and check_estimator("load-friction") == "loadfriction"
+    assert check_estimator("auto") == "auto"

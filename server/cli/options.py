@@ -215,12 +215,15 @@ def check_new_archive(value: Path | None) -> Path | None:
 
 def check_estimator(value: str) -> str:
     """Typer callback: ``--estimator`` is one of the variable-stiffness estimators
-    (twin.identification.options.VARIABLE_ESTIMATORS), refused before a campaign runs."""
+    (twin.identification.options.VARIABLE_ESTIMATORS) or an alias of one, as ``xneck identify``
+    takes them; refused before a campaign runs. Returns the estimator's own name."""
     from twin.identification.options import VARIABLE_ESTIMATORS
+    from twin.identification.options import check_estimator as canonical
 
-    if value not in VARIABLE_ESTIMATORS:
-        raise typer.BadParameter(f"{value!r}: choose {', '.join(VARIABLE_ESTIMATORS)}")
-    return value
+    try:
+        return canonical(value, VARIABLE_ESTIMATORS)
+    except ValueError:
+        raise typer.BadParameter(f"{value!r}: choose {', '.join(VARIABLE_ESTIMATORS)}") from None
 
 
 ARCHIVE_OUT_OPTION = typer.Option(
