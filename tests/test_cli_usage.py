@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from bridge import archive, bus
+from bridge.session import free_tcp_port
 from controller.identification_loop import simulate_campaign
 from controller.trajectory import trajectory_by_name
 
@@ -96,6 +97,17 @@ def test_an_out_where_no_folder_can_be_made_is_refused_before_the_fit(xneck, tmp
 def test_a_data_directory_that_is_a_file_is_refused_before_a_campaign(xneck, a_file):
     _refused(xneck("campaign", "control", env={"XNECK_DATA_DIR": str(a_file)}), "data directory",
              f"{a_file} is not a directory")
+
+
+def test_up_takes_the_consoles_data_directory_from_the_environment(xneck, a_file, tmp_path):
+    """`xneck up` handed the console `--data-dir data` whatever XNECK_DATA_DIR said, while `xneck
+    campaign` records into XNECK_DATA_DIR as the console's directory: it now reads the variable too
+    (a file there is refused before anything starts; before, a stack started in ./data)."""
+    run = xneck("up", "--port", str(free_tcp_port()), "--hub", f"tcp/127.0.0.1:{free_tcp_port()}", "--exit-after",
+                "1", cwd=tmp_path, env={"XNECK_DATA_DIR": str(a_file)}, timeout=60)
+    assert run.returncode == 2, (run.stdout, run.stderr)
+    assert f"cannot use the data directory {a_file}" in run.stderr and "xneck is up" not in run.stdout
+    assert not (tmp_path / "data").exists()
 
 
 def test_the_out_check_leaves_no_folder_behind(xneck, tmp_path):

@@ -318,13 +318,19 @@ def up(
         None, "--bridge-at", help="With --no-bridge: the endpoint the remote bridge listens on (e.g. "
         "tcp/<board>:7447, the bridge started with --listen tcp/0.0.0.0:7447). The controller and the console "
         "connect to it, so the control path never retries a hung console (docs/safety.md)."),
-    host: str = typer.Option("127.0.0.1", "--host", help="Dashboard bind address."),
-    port: int = typer.Option(8000, "--port", min=1, max=PORT_MAX, help="Dashboard HTTP port (1-65535)."),
+    # The console's own variables (server.settings: XNECK_HOST, XNECK_PORT, XNECK_DATA_DIR), since up
+    # hands these to `xneck server` as options, which override them: a lab's XNECK_DATA_DIR was ignored
+    # by up while `xneck campaign` recorded into it as "the console's data directory".
+    host: str = typer.Option("127.0.0.1", "--host", envvar="XNECK_HOST", help="Dashboard bind address "
+                             "(default 127.0.0.1, $XNECK_HOST)."),
+    port: int = typer.Option(8000, "--port", min=1, max=PORT_MAX, envvar="XNECK_PORT",
+                             help="Dashboard HTTP port (1-65535; default 8000, $XNECK_PORT)."),
     viser_port: int = typer.Option(0, "--viser-port", min=0, max=PORT_MAX,
                                    help="Port of the 3D view (0: a free one; at most 65535)."),
     hub: str = typer.Option("tcp/127.0.0.1:7447", "--hub", help="Zenoh endpoint the server listens on and the "
                             "others connect to. Use tcp/0.0.0.0:7447 for a bridge on another machine."),
-    data_dir: Path = typer.Option(Path("data"), "--data-dir", help="Archives, parameter sets, token, logs."),
+    data_dir: Path = typer.Option(Path("data"), "--data-dir", envvar="XNECK_DATA_DIR",
+                                  help="Archives, parameter sets, token, logs (default ./data, $XNECK_DATA_DIR)."),
     law: int = typer.Option(2, "--law", help="Law the controller holds with between campaigns."),
     driver_config: Path | None = typer.Option(None, "--driver-config", help="BeagleBone wiring and ESCON points (TOML)."),
     seed: int = typer.Option(0, "--seed", min=0, max=2**31 - 1, help="Seed of the twin's sensor noise "
