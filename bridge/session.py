@@ -91,7 +91,7 @@ def zenoh_runtime_environment(environ: MutableMapping[str, str] = os.environ) ->
 zenoh_runtime_environment()
 
 
-def _endpoints_from_env(name: str) -> list[str] | None:
+def endpoints_from_env(name: str) -> list[str] | None:
     raw = os.environ.get(name, "").strip()
     if not raw:
         return None
@@ -140,9 +140,9 @@ def zenoh_config(
     if mode not in MODES:
         raise ValueError(f"zenoh mode {mode!r} is not one of {MODES}")
     if listen is None:
-        listen = _endpoints_from_env(ENV_LISTEN) or list(DEFAULT_LISTEN)
+        listen = endpoints_from_env(ENV_LISTEN) or list(DEFAULT_LISTEN)
     if connect is None:
-        connect = _endpoints_from_env(ENV_CONNECT) or []
+        connect = endpoints_from_env(ENV_CONNECT) or []
     listen = _check_endpoints("listen", listen)
     connect = _check_endpoints("connect", connect)
     if isinstance(credentials, str):

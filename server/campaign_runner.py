@@ -68,6 +68,10 @@ EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
 STOPPED_BY_USER = "stopped by the user"  # the outcome of a stop request (server.campaigns matches it)
 BRIDGE_SILENT_S = 3.0
 CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
+# s a robot campaign waits for a bridge on the bus before it gives up with the reason: a bridge that
+# runs is seen at once (its liveliness token), and the controller otherwise waited 120 s for a
+# first state, silently, on a command not connected to any bridge.
+BRIDGE_WAIT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -239,7 +243,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             if realtime:  # a lockstep twin runs flat out: no real-time priority for it (issue 21)
                 isolate(procs[name].pid, args[0])
 
-        camera_problem = ""  # a camera process that did not come up: the campaign does not start
+        not_up = ""  # a camera process (or a robot's bridge) that is not up: the campaign does not start
+        if not spec.twin and not spec.service:  # the robot's bridge, already on the bus: is it?
+            not_up = _wait_alive(session, f"{bus.PREFIX}/alive/bridge/*", stop, BRIDGE_WAIT_S, "bridge",
+                                         where=", ".join(spec.connect) or hub)
         if spec.service:
             requests = publisher(session, bus.CAMPAIGN_REQUEST)
             requests.put(bus.CampaignRequest(
@@ -253,25 +260,25 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             if camera_process:  # first, and waited for: the campaign's first seconds need α_IP too
                 spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout",
                                  str(CAMERA_STARTUP_S), "--instance", f"camera-{campaign_id}", *common])
-                camera_problem = _wait_alive(session, bus.liveliness_key("camera", f"camera-{campaign_id}"),
-                                             procs["camera"], logs["camera"], stop)
-            if spec.twin and not camera_problem:
+                not_up = _wait_alive(session, bus.liveliness_key("camera", f"camera-{campaign_id}"), stop,
+                                             CAMERA_STARTUP_S, "camera", child=(procs["camera"], logs["camera"]))
+            if spec.twin and not not_up:
                 alpha_ip = ["--no-camera"] if camera_process else ["--alpha-ip", spec.alpha_ip_source]
                 spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
                                "--truth", spec.truth, *alpha_ip, "--idle-timeout", "30", "--startup-timeout", "120",
                                "--instance", f"twin-{campaign_id}", *common])
             law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
-            if not camera_problem:
+            if not not_up:
                 spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
                                      *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
                                      "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
-        if camera_problem:
-            outcome, message = "aborted", camera_problem
+        if not_up:
+            outcome, message = "aborted", not_up
         deadline = time.monotonic() + spec.timeout_s
         answer_deadline = time.monotonic() + 10.0
         started = False
         dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
-        while not camera_problem:
+        while not not_up:
             try:
                 ev = events.get(timeout=0.2)
             except queue.Empty:
@@ -389,22 +396,26 @@ def analyse_identification(result: CampaignResult, params_file: Path | None, est
                                                        "analysis": result.analysis[:2000]}})
 
 
-def _wait_alive(session: zenoh.Session, key: str, proc: subprocess.Popen, log: Path, stop: threading.Event,
-                timeout_s: float = CAMERA_STARTUP_S) -> str:
-    """Wait for a child's liveliness token ``key``: '' once it is up, else why not (it exited,
-    it took longer than ``timeout_s``, or the campaign was stopped)."""
+def _wait_alive(session: zenoh.Session, key: str, stop: threading.Event, timeout_s: float, what: str, *,
+                child: tuple[subprocess.Popen, Path] | None = None, where: str = "") -> str:
+    """Wait for a liveliness token ``key``: a ``child``'s (its process and log), or, without one,
+    any process's the key matches on the bus reached at ``where``. '' once it is up, else why not
+    (the child exited, it took longer than ``timeout_s``, or the campaign was stopped)."""
     up = threading.Event()
     sub = session.liveliness().declare_subscriber(
         key, lambda sample: up.set() if sample.kind == zenoh.SampleKind.PUT else None, history=True)
     deadline = time.monotonic() + timeout_s
     try:
         while not up.wait(0.1):
-            if proc.poll() is not None:
-                return f"the camera exited with code {proc.returncode} before it was up: {log_tail(log, 3)}"
+            if child is not None and child[0].poll() is not None:
+                return f"the {what} exited with code {child[0].returncode} before it was up: {log_tail(child[1], 3)}"
             if stop.is_set():
                 return STOPPED_BY_USER
             if time.monotonic() > deadline:
-                return f"the camera was not up within {timeout_s:.0f} s: {log_tail(log, 3)}"
+                if child is None:
+                    return (f"no {what} on the bus at {where or 'the campaign hub'} within {timeout_s:.0f} s: "
+                            f"is it running, and listening there (e.g. xneck bridge --listen tcp/0.0.0.0:7447)?")
+                return f"the {what} was not up within {timeout_s:.0f} s: {log_tail(child[1], 3)}"
         return ""
     finally:
         sub.undeclare()

@@ -238,3 +238,41 @@ def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(
     logs = Path(r.logs_dir)
     assert (logs / "controller.log").is_file() and (logs / "twin.log").is_file(), r.logs_dir
     assert r.summary()["logs_dir"] == r.logs_dir and f"process logs: {logs}" in r.table()
+
+
+def test_a_robot_campaign_runs_against_the_bridge_it_connects_to(tmp_path, xneck):
+    """`xneck campaign control --robot --connect E` against a bridge listening at E (the twin driver
+    standing in for the BeagleBone): the campaign runs on it, paced by its clock. Without a bridge
+    there, it ends aborted within seconds, saying where it looked (it waited 120 s in silence)."""
+    import time
+
+    from bridge.session import free_tcp_port
+
+    nod = tmp_path / "nod.json"
+    nod.write_text(NOD.to_json())
+    nobody = f"tcp/127.0.0.1:{free_tcp_port()}"
+    t0 = time.monotonic()
+    run = xneck("campaign", "control", "--robot", "--connect", nobody, "--trajectory", str(nod), "--json",
+                "--out", str(tmp_path / "nobody.mcap"), timeout=120)
+    assert run.returncode == 1 and time.monotonic() - t0 < 100
+    summary = json.loads(run.stdout)
+    assert summary["outcome"] == "aborted" and f"no bridge on the bus at {nobody}" in summary["message"], summary
+    assert read_campaign(tmp_path / "nobody.mcap").info["outcome"] == "aborted"
+
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open(tmp_path / "bridge.log", "wb") as log:
+        bridge = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "twin", "--listen", hub],
+                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    try:
+        run = xneck("campaign", "control", "--robot", "--connect", hub, "--trajectory", str(nod), "--json",
+                    "--out", str(tmp_path / "robot.mcap"), timeout=180)
+    finally:
+        bridge.terminate()
+        bridge.wait(30)
+    summary = json.loads(run.stdout)
+    # realtime on a shared machine: a late tick may degrade it, nothing else may end it
+    assert summary["outcome"] in ("finished", "degraded"), (summary, (tmp_path / "bridge.log").read_text()[-2000:])
+    c = read_campaign(tmp_path / "robot.mcap")
+    assert c.info["target"] == "robot" and c.info["pace"] == "realtime"
+    theta = np.array([m.theta_rad for _, m in c.messages(bus.MOTOR_STATE)])
+    assert np.ptp(theta, axis=0).max() > 0.1  # the bridge's motors turned (rad): the nod ran on it

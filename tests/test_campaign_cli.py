@@ -66,3 +66,19 @@ def test_an_estimator_alias_is_taken_as_xneck_identify_takes_it():
 
     assert check_estimator("ls") == "ols" and check_estimator("load-friction") == "loadfriction"
     assert check_estimator("auto") == "auto"
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--robot"], "say where the robot's bridge listens"),
+    (["--connect", "tcp/127.0.0.1:7447"], "--connect applies to --robot"),
+    (["--robot", "--connect", "bogus"], "not of the form"),
+])
+def test_a_robot_campaign_must_say_where_the_bridge_is(tmp_path, monkeypatch, argv, said):
+    """`xneck campaign control --robot` opened a bus of its own that no bridge could find (its hub
+    on a random port, no --connect): it waited 120 s in silence, then said 'timed out'."""
+    monkeypatch.delenv("XNECK_ZENOH_CONNECT", raising=False)
+    out = tmp_path / "c.mcap"
+    r = CliRunner().invoke(app, ["campaign", "control", *argv, "--out", str(out)])
+    assert r.exit_code == 2, r.output
+    assert said in r.stderr
+    assert not out.exists()

@@ -16,10 +16,12 @@ from server.cli.options import (
     SET_OPTION,
     check_alpha_ip,
     check_credentials,
+    check_endpoints,
     check_estimator,
     check_output,
     check_truth,
     echo_json,
+    fail,
     law_config,
     load_checked_trajectory,
     load_cli_params,
@@ -29,6 +31,28 @@ CAMPAIGN_ALPHA_IP_OPTION = typer.Option(
     "camera", "--alpha-ip", callback=check_alpha_ip,
     help="The twin's α_IP: camera (measured on frames rendered from its truth by the robot's detector, 30 fps, "
          "with the exposure latency) or noise (the true α plus the camera's white noise).")
+
+
+ROBOT_CONNECT_OPTION = typer.Option(
+    None, "--connect", help="With --robot: Zenoh endpoint where the robot's bridge listens (repeatable), e.g. "
+    "tcp/<board>:7447. Default: $XNECK_ZENOH_CONNECT. A twin campaign runs on a bus of its own.")
+
+
+def robot_endpoints(twin: bool, connect: list[str] | None) -> tuple[str, ...]:
+    """Where a ``--robot`` campaign meets the bridge: ``--connect``, else XNECK_ZENOH_CONNECT;
+    refused (a usage error, before anything starts) when neither says, or for a twin campaign,
+    whose bus is its own. A campaign connected to no bridge waited for one in silence."""
+    from bridge.session import ENV_CONNECT, endpoints_from_env
+
+    if twin:
+        if connect:
+            raise fail("--connect applies to --robot: a twin campaign runs on a bus of its own")
+        return ()
+    given = list(connect or endpoints_from_env(ENV_CONNECT) or [])
+    if not given:
+        raise fail(f"--robot: say where the robot's bridge listens, --connect tcp/<board>:7447 (or {ENV_CONNECT})")
+    check_endpoints(None, given)
+    return tuple(given)
 
 
 campaign_app = typer.Typer(help="Run a campaign (identification or control), record it as MCAP, print its results.",
@@ -49,6 +73,7 @@ def campaign_control(
     alpha_ip: str = ALPHA_IP_OPTION,
     timeout: float = typer.Option(600.0, "--timeout", callback=POSITIVE,
                                   help="Abort the campaign after this many seconds (wall)."),
+    connect: list[str] | None = ROBOT_CONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -61,7 +86,8 @@ def campaign_control(
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
-                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip)
+                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip,
+                        connect=robot_endpoints(twin, connect))
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if as_json:
         echo_json(result.summary())
@@ -107,6 +133,7 @@ def campaign_identification(
                                   "keeps it; or iv, ols, wls, loadfriction, outputerror)."),
     creep_time_s: float | None = typer.Option(None, "--creep-time-s", help="The line's creep time constant (s) "
                                               "measured apart, as `xneck identify --creep-time-s`."),
+    connect: list[str] | None = ROBOT_CONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -130,7 +157,8 @@ def campaign_identification(
     traj = load_checked_trajectory(trajectory, params, config)
     spec = CampaignSpec(kind="identification", law=config, trajectory=traj, twin=twin,
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
-                        truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s)
+                        truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s,
+                        connect=robot_endpoints(twin, connect))
     result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
     if result.outcome not in ("finished", "degraded"):
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
