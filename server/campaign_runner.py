@@ -246,7 +246,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         not_up = ""  # a camera process (or a robot's bridge) that is not up: the campaign does not start
         if not spec.twin and not spec.service:  # the robot's bridge, already on the bus: is it?
             not_up = _wait_alive(session, f"{bus.PREFIX}/alive/bridge/*", stop, BRIDGE_WAIT_S, "bridge",
-                                         where=", ".join(spec.connect) or hub)
+                                 where=", ".join(spec.connect) or hub)
         if spec.service:
             requests = publisher(session, bus.CAMPAIGN_REQUEST)
             requests.put(bus.CampaignRequest(
@@ -261,7 +261,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout",
                                  str(CAMERA_STARTUP_S), "--instance", f"camera-{campaign_id}", *common])
                 not_up = _wait_alive(session, bus.liveliness_key("camera", f"camera-{campaign_id}"), stop,
-                                             CAMERA_STARTUP_S, "camera", child=(procs["camera"], logs["camera"]))
+                                     CAMERA_STARTUP_S, "camera", child=(procs["camera"], logs["camera"]))
             if spec.twin and not not_up:
                 alpha_ip = ["--no-camera"] if camera_process else ["--alpha-ip", spec.alpha_ip_source]
                 spawn("twin", ["twin", *(["--lockstep"] if lockstep else []), "--seed", str(spec.seed),
