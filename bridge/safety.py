@@ -19,8 +19,8 @@ Bumpless
     the commanding controller (a new owner's first command) and every tick after the bridge's own
     loop was held up longer than the command timeout (``Inputs.resumed_after_s``: a stalled CPU
     or process woke up to a command computed meanwhile) starts from the forces applied now and
-    moves at most ``max_force_step_N`` per tick until the command is reached; then commands pass
-    through, within the active rate bound.
+    moves at most ``max_force_step_N`` per tick until the command is reached (after a stall: a
+    command that arrived after it); then commands pass through, within the active rate bound.
 Active rate bound
     While ``active`` the forces move at most ``max_active_step_N`` per tick towards the newest
     command (default 10 N: the computed-torque law's own 5000 N/s at 500 Hz,
@@ -158,6 +158,7 @@ class Safety:
         self._hold_ready = True  # False while a hold keeps the applied forces, waiting for hold forces
         self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
+        self._stale_target = False  # after a stall of the loop, until a command arrives after it
         self._sender = ""  # the controller whose commands the applied forces follow
         self.clamped = self.holds = self.rate_limited = 0
         self._bounding = False  # in a run of ticks bounded by max_active_step_N (logged once per run)
@@ -199,10 +200,13 @@ class Safety:
             return Decision("active", np.array(self.force), True, "", self.estop_engaged, self.estop_reason,
                             self.take_events() if self._events else ())
         cfg = self.config
-        if inputs.resumed_after_s > cfg.command_timeout_s and self.drive == "active":
+        stalled = inputs.resumed_after_s > cfg.command_timeout_s and self.drive == "active"
+        if stalled:
             # A stall of the bridge itself is no silence of the controller (the watchdog never saw
             # it), but what it commands now was computed meanwhile: a step (audit of 2026-11-26).
-            self._bumpless = True
+            # The commands in hand predate the resume (the applied forces, often): the ramp goes on
+            # until one that answers the new states is reached (audit of 2026-11-28).
+            self._bumpless = self._stale_target = True
             self._log(logging.WARNING, f"the bridge's loop was held up {inputs.resumed_after_s * 1e3:.0f} ms: "
                                        f"ramping at {cfg.max_force_step_N:g} N per tick")
         was_disabled = self.drive == "disabled"
@@ -224,6 +228,7 @@ class Safety:
             self._sender = inputs.sender
             self.drive, self.hold_reason = "active", ""
             self._target = self.clamp(inputs.command_N)
+            self._stale_target = self._stale_target and stalled
         elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:
             age_s, unanswered = inputs.command_age_s, inputs.states_unanswered
             if age_s > cfg.command_timeout_s and (unanswered is None or unanswered >= cfg.command_timeout_states):
@@ -250,7 +255,7 @@ class Safety:
         if not self._bumpless:
             return self._within_rate(self._target)
         f = _step_towards(self.force, self._target, self.config.max_force_step_N)
-        if f == self._target:
+        if f == self._target and not self._stale_target:
             self._bumpless = False
             self._log(logging.INFO, "bumpless ramp done: commands pass through")
         return f

@@ -333,3 +333,26 @@ def test_a_bridge_loop_held_up_beyond_the_timeout_ramps_the_next_command():
     applied += [s.step(cmd([54.0, 30.0, 30.0, 6.0])).force_N for _ in range(40)]
     assert _max_step(applied) <= 1.0 + 1e-12
     assert applied[-1].tolist() == [54.0, 30.0, 30.0, 6.0]
+
+
+@pytest.mark.parametrize("at_resume", ["no command", "the command from before the stall"])
+def test_a_stall_ramps_until_a_command_computed_after_it_is_reached(at_resume):
+    """Audit of 2026-11-28 (a 1 s SIGSTOP of `xneck up`'s bridge mid-campaign, 3 resumes of 3): the
+    first tick after the stall had no new command, or the one sent before the stall, which equals
+    the applied forces, so the ramp ended at once ("bumpless ramp done") and the controller's
+    answers to the new states stepped the cables 10 N per tick. The ramp ends only on a command
+    that arrived after the resume."""
+    s = machine(max_force_step_N=1.0, command_timeout_states=5)
+    for _ in range(60):
+        s.step(cmd([30.0] * N, states_unanswered=0))
+    applied = [s.force]
+    first = (idle(age_s=1.0, states_unanswered=1, resumed_after_s=1.0) if at_resume == "no command"
+             else cmd([30.0] * N, age_s=0.0, resumed_after_s=1.0))
+    d = s.step(first)
+    assert d.drive == "active" and any("held up" in m for _lvl, m in d.events)
+    assert not any("ramp done" in m for _lvl, m in d.events)
+    applied.append(d.force_N)
+    answers = [[54.0, 30.0, 30.0, 6.0], [64.0, 28.0, 30.0, 2.0], [74.0, 26.0, 30.0, 2.0]]
+    applied += [s.step(cmd(answers[min(k, 2)], states_unanswered=0)).force_N for k in range(60)]
+    assert _max_step(applied) <= 1.0 + 1e-12
+    assert applied[-1].tolist() == answers[2]
