@@ -261,6 +261,7 @@ class RecorderStats:
     dropped: int
     rejected: dict[str, int]
     last_reject_reason: str
+    skipped: int = 0  # valid messages ``keep`` turned away (another bridge's or controller's)
 
 
 class CampaignRecorder:
@@ -270,7 +271,9 @@ class CampaignRecorder:
     The Zenoh callback only time-stamps and enqueues (bounded queue; a full queue drops and counts).
     A daemon writer thread decodes, writes, and closes the chunk every ``flush_period_s``.
     ``metadata`` (strings) should carry the :data:`CAMPAIGN_KEYS` known at start; it is written at
-    once as ``xneck.campaign.start``. Use as a context manager or call :meth:`stop`.
+    once as ``xneck.campaign.start``. ``keep(key, message)``, if given, says which decoded messages
+    are written (the others are counted, ``skipped``): a campaign's own bridge and controller only.
+    Use as a context manager or call :meth:`stop`.
     """
 
     def __init__(
@@ -284,8 +287,11 @@ class CampaignRecorder:
         flush_period_s: float = 1.0,
         chunk_size: int = CHUNK_SIZE,
         on_error: Callable[[BaseException], None] | None = None,
+        keep: Callable[[str, bus.BusMessage], bool] | None = None,
     ) -> None:
         self.path = Path(path)
+        self._keep = keep  # the writer thread's filter of decoded messages (None: all); counted as skipped
+        self._skipped = 0
         self._metadata = _check_metadata(self.path, metadata)
         self._metadata.setdefault("software_version", software_version())
         self._metadata.setdefault("start_time", iso_time())
@@ -370,7 +376,10 @@ class CampaignRecorder:
                         except bus.BusDecodeError as exc:
                             self._reject(key, exc.reason)
                         else:
-                            self._out.add(key, msg, payload, log_time_ns)
+                            if self._keep is None or self._keep(key, msg):
+                                self._out.add(key, msg, payload, log_time_ns)
+                            else:
+                                self._skipped += 1
                 if time.monotonic() - last_flush >= self._flush_period_s:
                     self._out.flush()
                     last_flush = time.monotonic()
@@ -385,7 +394,7 @@ class CampaignRecorder:
         with self._lock:
             return RecorderStats(
                 received=self._received, recorded=self._out.count, dropped=self._dropped,
-                rejected=dict(self._rejected), last_reject_reason=self._last_reason,
+                rejected=dict(self._rejected), last_reject_reason=self._last_reason, skipped=self._skipped,
             )
 
     def stop(self, outcome: str = "finished", extra_metadata: Mapping[str, str] | None = None,
@@ -427,7 +436,7 @@ class CampaignRecorder:
             self._out.writer.add_metadata(RECORDER, {
                 "received": str(stats.received), "recorded": str(stats.recorded), "dropped": str(stats.dropped),
                 "rejected": msgspec.json.encode(stats.rejected).decode(),
-                "last_reject_reason": stats.last_reject_reason,
+                "last_reject_reason": stats.last_reject_reason, "skipped": str(stats.skipped),
             })
             self._out.finish()
         except OSError as exc:  # the file stays as it is: recover() salvages its flushed chunks

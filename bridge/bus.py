@@ -54,6 +54,11 @@ CONTROLLER_STATUS = f"{PREFIX}/controller/status"
 CONTROLLER_TIMING = f"{PREFIX}/controller/timing"
 CAMPAIGN_EVENTS = f"{PREFIX}/campaign/events"
 CAMPAIGN_REQUEST = f"{PREFIX}/campaign/request"
+#: Requests addressed to one controller service: ``xneck/campaign/request/<instance>``
+#: (:func:`campaign_request_key`). The console addresses every request: with two services on the
+#: bus, both took a bare request, and the one the bridge does not obey aborted the console's
+#: campaign (audit of 2026-11-28).
+CAMPAIGN_REQUEST_TO = f"{PREFIX}/campaign/request/*"
 ESTOP = f"{PREFIX}/estop"
 HEALTH_ALL = f"{PREFIX}/health/*/*"
 ALIVE_ALL = f"{PREFIX}/alive/**"
@@ -360,9 +365,9 @@ REGISTRY: dict[str, type[BusMessage]] = {
 }
 
 #: Key patterns (``*`` = one chunk) -> message type, for keys that carry a process name.
-PATTERNS: dict[str, type[BusMessage]] = {HEALTH_ALL: Health}
+PATTERNS: dict[str, type[BusMessage]] = {HEALTH_ALL: Health, CAMPAIGN_REQUEST_TO: CampaignRequest}
 
-MESSAGE_TYPES: tuple[type[BusMessage], ...] = (*REGISTRY.values(), *PATTERNS.values())
+MESSAGE_TYPES: tuple[type[BusMessage], ...] = tuple(dict.fromkeys((*REGISTRY.values(), *PATTERNS.values())))
 
 #: The largest payload (bytes) a receiver decodes, by message type (others: ``PAYLOAD_MAX_BYTES``).
 #: Checked before a payload is copied out of Zenoh or parsed: a 20 MB ``ForceCommand`` held the
@@ -413,6 +418,13 @@ def parse_liveliness_key(key: str) -> tuple[str, str]:
     if len(parts) != 4 or parts[0] != PREFIX or parts[1] != "alive":
         raise ValueError(f"{key!r} is not a liveliness key ({PREFIX}/alive/<kind>/<instance>)")
     return parts[2], parts[3]
+
+
+def campaign_request_key(instance: str) -> str:
+    """Key of the campaign requests addressed to the controller service ``instance``:
+    ``xneck/campaign/request/<instance>`` (a service takes these and the bare
+    :data:`CAMPAIGN_REQUEST`; its peers never see them)."""
+    return f"{CAMPAIGN_REQUEST}/{_check_name('instance', instance)}"
 
 
 def health_key(kind: str, instance: str) -> str:
@@ -669,6 +681,7 @@ __all__ = [
     "CAMERA_FRAME",
     "CAMPAIGN_EVENTS",
     "CAMPAIGN_REQUEST",
+    "CAMPAIGN_REQUEST_TO",
     "CONTROLLER_STATUS",
     "CONTROLLER_TIMING",
     "ESTOP",
@@ -697,6 +710,7 @@ __all__ = [
     "MotorState",
     "Truth",
     "as_plain",
+    "campaign_request_key",
     "check_camera_alpha",
     "check_camera_frame",
     "check_force_command",

@@ -361,7 +361,8 @@ class BusPublisher(Generic[M]):
             key,
             encoding=zenoh.Encoding("application/json"),
             congestion_control=(
-                zenoh.CongestionControl.BLOCK if block or key in RELIABLE_KEYS else zenoh.CongestionControl.DROP
+                zenoh.CongestionControl.BLOCK if block or key in RELIABLE_KEYS or msg_type is bus.CampaignRequest
+                else zenoh.CongestionControl.DROP
             ),
             priority=zenoh.Priority.REAL_TIME if real_time else zenoh.Priority.DATA,
             express=real_time,

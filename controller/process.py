@@ -27,7 +27,8 @@ an ``aborted`` event; rejections are counted on ``xneck/health/controller/<insta
 
 Two ways to run: with ``--trajectory`` it runs that one campaign and exits; without, it is a
 service (what `xneck up` starts): it holds the neck where it is and runs the campaigns asked for
-on ``xneck/campaign/request``, one at a time, approaching each trajectory's first waypoint
+on ``xneck/campaign/request`` or addressed to it (``.../request/<instance>``, as the console
+sends them), one at a time, approaching each trajectory's first waypoint
 gently and continuing the estimate across laws.
 
 This module is only the bus shell: the campaign life cycle, the holds and the law live in the pure
@@ -169,7 +170,10 @@ class ControllerNode:
         if self._service:
             self._worker = threading.Thread(target=self._prepare_forever, name="campaign-prepare", daemon=True)
             self._worker.start()
-        self._request_sub = session.declare_subscriber(bus.CAMPAIGN_REQUEST, self._on_request) if self._service else None
+        # Bare requests (any service) and those addressed to this one; never a peer's (audit of 2026-11-28).
+        self._request_subs = [session.declare_subscriber(key, self._on_request)
+                              for key in (bus.CAMPAIGN_REQUEST, bus.campaign_request_key(self.instance))
+                              ] if self._service else []
         self._service_token = liveliness_token(session, "campaign-service", self.instance) if self._service else None
 
     @property
@@ -515,7 +519,7 @@ class ControllerNode:
     def close(self) -> None:
         closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._health.close,
                    self._timing.close, self._token.undeclare]
-        closers += [x.undeclare for x in (self._request_sub, self._service_token) if x is not None]
+        closers += [x.undeclare for x in (*self._request_subs, self._service_token) if x is not None]
         for closer in closers:
             with contextlib.suppress(Exception):  # the session may already be gone
                 closer()

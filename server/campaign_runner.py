@@ -50,13 +50,14 @@ import zenoh
 from bridge import bus
 from bridge.archive import CAMPAIGN, CampaignRecorder
 from bridge.archive_read import is_complete, read_campaign
-from bridge.session import free_tcp_port, open_session, payload_of, publisher
+from bridge.session import BusPublisher, free_tcp_port, open_session, payload_of, publisher
 from controller.laws import LawConfig
 from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
 from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
 from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
+from server.service_choice import alive_services, choose_service
 from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS
 
@@ -72,6 +73,7 @@ CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and t
 # runs is seen at once (its liveliness token), and the controller otherwise waited 120 s for a
 # first state, silently, on a command not connected to any bridge.
 BRIDGE_WAIT_S = 10.0
+OWNER_WAIT_S = 0.5  # s: with several controller services, for a state saying which one the bridge obeys
 
 
 @dataclass(frozen=True)
@@ -233,7 +235,10 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     monitor = CampaignMonitor(session)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}
-    recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set())  # a storage fault ends it
+    recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set(),  # a storage fault ends it
+                                keep=monitor.keep)
+    requests: BusPublisher[bus.BusMessage] | None = None  # service mode: to the controller service
+    requested = False  # a start request went out (a stop follows an abort)
     try:
         def spawn(name: str, args: list[str]) -> None:
             logs[name] = workdir / f"{name}.log"
@@ -248,11 +253,23 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             not_up = _wait_alive(session, f"{bus.PREFIX}/alive/bridge/*", stop, BRIDGE_WAIT_S, "bridge",
                                  where=", ".join(spec.connect) or hub)
         if spec.service:
-            requests = publisher(session, bus.CAMPAIGN_REQUEST)
-            requests.put(bus.CampaignRequest(
-                seq=1, stamp_s=time.time(), campaign_id=campaign_id, action="start", kind=spec.kind,
-                law=spec.law.law, no_pulleys=spec.law.no_pulleys, trajectory_json=spec.trajectory.to_json(),
-                parameters_toml=params.to_toml()))
+            # To one service: the one the bridge obeys, else the only one (server/service_choice.py).
+            alive = alive_services(session)
+            owners = monitor.owners()
+            give_up = time.monotonic() + OWNER_WAIT_S
+            while len(alive) > 1 and not owners & set(alive) and time.monotonic() < give_up:
+                time.sleep(0.02)  # the monitor was just made: the bridge's states say whom it obeys
+                owners = monitor.owners()
+            target, not_up = choose_service(alive, owners)
+            requests = publisher(session, bus.campaign_request_key(target) if target else bus.CAMPAIGN_REQUEST)
+            if target:
+                monitor.follow(target)
+            if not not_up:
+                requests.put(bus.CampaignRequest(
+                    seq=1, stamp_s=time.time(), campaign_id=campaign_id, action="start", kind=spec.kind,
+                    law=spec.law.law, no_pulleys=spec.law.no_pulleys, trajectory_json=spec.trajectory.to_json(),
+                    parameters_toml=params.to_toml()))
+                requested = True
         else:
             lockstep = spec.twin and not spec.realtime
             # A real-time twin cannot wait for the renderer: a camera process beside it measures its truth.
@@ -269,7 +286,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                                "--instance", f"twin-{campaign_id}", *common])
             law_args = ["--law", str(spec.law.law)] + (["--no-pulleys"] if spec.law.no_pulleys else [])
             if not not_up:
-                spawn("controller", ["controller", *law_args, "--trajectory", str(traj_file),
+                monitor.follow(f"controller-{campaign_id}")
+                spawn("controller", ["controller", *law_args, "--instance", f"controller-{campaign_id}",
+                                     "--trajectory", str(traj_file),
                                      *(["--lockstep"] if lockstep else []), "--campaign-id", campaign_id,
                                      "--campaign-kind", spec.kind, "--idle-timeout", "20", *common])
         if not_up:
@@ -335,11 +354,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 break
     finally:
         monitor.end()
-        if spec.service and outcome == "aborted":
+        if requests is not None and requested and outcome == "aborted":
             with contextlib.suppress(Exception):
                 requests.put(bus.CampaignRequest(seq=2, stamp_s=time.time(), campaign_id=campaign_id, action="stop"))
                 time.sleep(0.05)
-        if spec.service:
+        if requests is not None:
             requests.close()
         if services is not None:
             services.close()

@@ -77,6 +77,11 @@ class Presence:
         return [{"kind": k, "instance": i, "since_s": round(now - s, 3), "health": _health_view(health[(k, i, s)], now)}
                 for k, i, s in items]
 
+    def instances(self, kind: str) -> list[str]:
+        """The instances of ``kind`` alive on the bus."""
+        with self._lock:
+            return sorted(i for k, i, _ in self._alive.values() if k == kind)
+
     def any_alive(self, kind: str) -> bool:
         with self._lock:
             return any(k == kind for k, _, _ in self._alive.values())

@@ -32,6 +32,13 @@ Quality
       it can and its simulated time is exact by construction.
 
 The same counters go to the campaign's record (``quality``) and its MCAP metadata.
+
+One bridge, one controller
+    Once told the campaign's controller (:meth:`~CampaignMonitor.follow`), the monitor takes only
+    its commands, and only the states of the bridge run they answer (their ``epoch``); the
+    recorder keeps the same (:meth:`~CampaignMonitor.keep`). A second bridge on the bus (a lab's
+    robot bridge joining the twin's hub) had ended the campaign on its own disabled drives and
+    mixed its states and sequence numbers into the record (audit of 2026-11-28).
 """
 
 from __future__ import annotations
@@ -92,9 +99,35 @@ class CampaignMonitor:
         self.disabled_reason = ""
         self.rejected = 0
         self._timing: dict[str, Any] = {}  # the controller's own timing of this campaign (issue 21)
+        self._follow = ""  # the campaign's controller instance ('' until told: every sender)
+        self.epoch = ""  # the bridge run its commands answer ('' until one came: every bridge)
+        self.bridge = ""  # that run's bridge instance
+        self.foreign = 0  # states and commands of other bridges and controllers, not taken
+        self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing)]
+
+    # -- whose messages ------------------------------------------------------------------------
+    def follow(self, controller: str) -> None:
+        """Take only ``controller``'s commands from now on, and the states of the bridge run they answer."""
+        with self._lock:
+            self._follow = controller
+
+    def owners(self, within_s: float = 0.5) -> set[str]:
+        """The controllers the bridges on the bus obeyed within the last ``within_s`` s."""
+        now = time.monotonic()
+        with self._lock:
+            return {owner for owner, t in self._owners.values() if owner and now - t <= within_s}
+
+    def keep(self, key: str, msg: bus.BusMessage) -> bool:
+        """Whether the recorder keeps ``msg``: not a state of another bridge run than the
+        campaign's, nor a command of another controller (class docstring)."""
+        if isinstance(msg, bus.MotorState):
+            return not self.epoch or msg.epoch == self.epoch
+        if isinstance(msg, bus.ForceCommand):
+            return not self._follow or msg.sender == self._follow
+        return True
 
     # -- window -----------------------------------------------------------------------------
     def begin(self) -> None:
@@ -138,7 +171,15 @@ class CampaignMonitor:
             return
         engaged, reason = drive_estop(msg)
         with self._lock:
-            self._last_state_s = time.monotonic()
+            now = time.monotonic()
+            if len(self._owners) < 64 or msg.epoch in self._owners:  # a flood of forged epochs stays bounded
+                self._owners[msg.epoch] = (msg.owner, now)
+            if self.epoch and msg.epoch != self.epoch:
+                self.foreign += 1
+                return
+            if self.epoch:
+                self.bridge = msg.bridge
+            self._last_state_s = now
             # Drives are followed from the monitor's creation, the quality only within the window.
             if (engaged or msg.drive == "disabled") and not self.disabled_reason and not self._ended:
                 self.disabled_reason = reason
@@ -149,7 +190,14 @@ class CampaignMonitor:
         msg = self._decode(bus.ForceCommand, sample)
         now = time.monotonic()
         with self._lock:
-            if msg is None or not self._active:
+            if msg is None:
+                return
+            if self._follow and msg.sender != self._follow:
+                self.foreign += 1
+                return
+            if self._follow:
+                self.epoch = msg.epoch  # a restarted bridge's new run: its commands answer it
+            if not self._active:
                 return
             if self._commands.count == 0:
                 self._first_cmd_s = now
@@ -193,6 +241,7 @@ class CampaignMonitor:
                 "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
+                "foreign_messages": self.foreign,
             }
 
     def close(self) -> None:

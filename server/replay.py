@@ -19,7 +19,7 @@ from bridge import bus
 from bridge.archive_read import read_campaign
 from bridge.session import BusPublisher, publisher
 
-NEVER_REPLAYED = frozenset({bus.MOTOR_COMMAND, bus.ESTOP, bus.CAMPAIGN_REQUEST})
+NEVER_REPLAYED: frozenset[type[bus.BusMessage]] = frozenset({bus.ForceCommand, bus.EStop, bus.CampaignRequest})
 
 
 class Replay:
@@ -40,7 +40,8 @@ class Replay:
         self._messages: list[tuple[int, str, bus.BusMessage]] = []
         for topic, msgs in campaign.topics.items():
             key = bus.key_of_topic(topic)
-            if key in NEVER_REPLAYED or bus.message_type(key) is None:
+            msg_type = bus.message_type(key)  # by type: requests are also addressed to one service
+            if msg_type is None or msg_type in NEVER_REPLAYED:
                 continue
             self._messages += [(t, key, m) for t, m in msgs if isinstance(m, bus.BusMessage)]
         self._messages.sort(key=lambda x: x[0])

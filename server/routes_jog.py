@@ -10,7 +10,9 @@ Before anything is sent, the move from the controller's α̂ (its latest status)
 checked as a campaign is (:func:`server.campaign_request.check_trajectory`: joint limits, speed,
 acceleration, forces on the nominal path with the law that holds the neck): a 422 carries the
 checker's message. Refused with 409 while a campaign or a replay runs and while the drives are
-disabled (the bridge's e-stop, its one truth); 503 without a controller service or its status;
+disabled (the bridge's e-stop, its one truth) or when several controller services are on the bus
+and the bridge obeys none of them (``server/service_choice.py``: a jog goes to one service);
+503 without a controller service or its status;
 429 when jogs come faster than ``JOG_MIN_INTERVAL_S`` (the sliders send at most a few per second).
 """
 
@@ -32,6 +34,7 @@ from controller.laws import LawConfig
 from controller.trajectory import Trajectory, TrajectoryError, approach
 from server.auth import require_operator, require_token
 from server.campaign_request import check_trajectory
+from server.service_choice import choose_service
 
 router = APIRouter(prefix="/api/jog", tags=["jog"])
 
@@ -48,15 +51,23 @@ class JogDesk:
     """The console's jog state: the publisher of requests, the last jog and when it was sent."""
 
     def __init__(self, session: Any) -> None:
-        self.requests = publisher(session, bus.CAMPAIGN_REQUEST)
+        self.session = session
+        self.requests: dict[str, Any] = {}  # target service ('' : any) -> its publisher
+        self.target = ""  # the service the last jog went to (its stop goes there too)
         self.lock = threading.Lock()
         self.last_s = -math.inf
         self.last_id = ""
         self.seq = itertools.count(1)  # of the request messages
         self.ids = itertools.count(1)
 
-    def send(self, campaign_id: str, action: str, trajectory_json: str = "") -> None:
-        self.requests.put(bus.CampaignRequest(seq=next(self.seq), stamp_s=time.time(), campaign_id=campaign_id,
+    def send(self, campaign_id: str, action: str, trajectory_json: str = "", target: str | None = None) -> None:
+        """A request to the service ``target`` (None: the last jog's), bare if none is known."""
+        target = self.target if target is None else target
+        self.target = target
+        if target not in self.requests:
+            self.requests[target] = publisher(self.session, bus.campaign_request_key(target) if target
+                                              else bus.CAMPAIGN_REQUEST)
+        self.requests[target].put(bus.CampaignRequest(seq=next(self.seq), stamp_s=time.time(), campaign_id=campaign_id,
                                               action=action, kind="jog",  # pyright: ignore[reportArgumentType]
                                               trajectory_json=trajectory_json))
 
@@ -118,16 +129,19 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
     law = law_of(ctl.law if ctl is not None else "")
     params = state.default_params
     try:
-        target = jog_target(alpha_deg, params, law)
+        target_pose = jog_target(alpha_deg, params, law)
     except (TrajectoryError, ValueError) as exc:
         return _unacceptable(exc)
     if not state.presence.any_alive("campaign-service"):
         return status.HTTP_503_SERVICE_UNAVAILABLE, {"detail": "no controller service on the bus (start the "
                                                               "stack with `xneck up`)"}
+    target, ambiguous = choose_service(state.presence.instances("campaign-service"), bridge_owners(state))
+    if ambiguous:
+        return status.HTTP_409_CONFLICT, {"detail": ambiguous}
     if ctl is None:
         return status.HTTP_503_SERVICE_UNAVAILABLE, {"detail": "no recent controller status: α̂ is unknown"}
     try:
-        move = jog_move(target, ctl.alpha_hat_rad, params, law)
+        move = jog_move(target_pose, ctl.alpha_hat_rad, params, law)
     except (TrajectoryError, ValueError) as exc:
         return _unacceptable(exc)
     desk = desk_of(state)
@@ -138,10 +152,16 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
                                                                  f"{JOG_MIN_INTERVAL_S:g} s"}
         desk.last_s = now
         desk.last_id = f"jog-{time.strftime('%H%M%S')}-{next(desk.ids)}"
-        desk.send(desk.last_id, "start", target.to_json())
+        desk.send(desk.last_id, "start", target_pose.to_json(), target)
     return status.HTTP_202_ACCEPTED, {"jog_id": desk.last_id,
                                       "from_deg": [round(math.degrees(a), 3) for a in ctl.alpha_hat_rad],
                                       "to_deg": list(alpha_deg), "duration_s": move.duration_s}
+
+
+def bridge_owners(state: Any) -> set[str]:
+    """The controller the bridge obeys, from its latest fresh state (none if unknown)."""
+    msg = state.live.values.fresh("state", STATUS_MAX_AGE_S)
+    return {msg.owner} if msg is not None and getattr(msg, "owner", "") else set()
 
 
 def stop_jog(state: Any) -> list[str]:
@@ -158,7 +178,8 @@ def stop_jog(state: Any) -> list[str]:
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token), Depends(require_operator)],
-             responses={409: {"description": "A campaign or replay runs, or the e-stop is engaged"},
+             responses={409: {"description": "A campaign or replay runs, the e-stop is engaged, or several "
+                                             "controller services are on the bus and the bridge obeys none"},
                         422: {"description": "The move is out of the joint limits or the force range (the "
                                              "checker's message)"},
                         429: {"description": "Jogs come too fast"},

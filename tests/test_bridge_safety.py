@@ -345,7 +345,7 @@ def test_a_stall_ramps_until_a_command_computed_after_it_is_reached(at_resume):
     s = machine(max_force_step_N=1.0, command_timeout_states=5)
     for _ in range(60):
         s.step(cmd([30.0] * N, states_unanswered=0))
-    applied = [s.force]
+    applied = [np.array(s.force)]
     first = (idle(age_s=1.0, states_unanswered=1, resumed_after_s=1.0) if at_resume == "no command"
              else cmd([30.0] * N, age_s=0.0, resumed_after_s=1.0))
     d = s.step(first)

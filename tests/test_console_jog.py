@@ -127,8 +127,9 @@ def viser_console(tmp_path_factory):
         app: Any = app_
         session = open_session(connect=[app.state.hub])
         requests: list[bus.CampaignRequest] = []
-        sub = session.declare_subscriber(
-            bus.CAMPAIGN_REQUEST, lambda s: requests.append(bus.decode(bus.CAMPAIGN_REQUEST, s.payload.to_bytes())))
+        # The console addresses its requests to the one service on the bus (server/service_choice.py).
+        sub = session.declare_subscriber(bus.campaign_request_key("stand-in"), lambda s: requests.append(
+            bus.decode(bus.CampaignRequest, s.payload.to_bytes())))
         token = liveliness_token(session, "campaign-service", "stand-in")
         pub = publisher(session, bus.CONTROLLER_STATUS)
         stop = threading.Event()

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import typer
 
+from bridge.safety import INSTANCE_NAME
 from twin.model.params import ParameterError, Params, load_params, parse_override
 
 LISTEN_OPTION = typer.Option(
@@ -17,13 +18,24 @@ LISTEN_OPTION = typer.Option(
 CONNECT_OPTION = typer.Option(
     None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
 VERBOSE_OPTION = typer.Option(False, "--verbose", "-v", help="Debug logging.")
-INSTANCE_OPTION = typer.Option("", "--instance", help="Name on the bus (default: a random one).")
 
 
 def fail(message: str) -> typer.Exit:
     """Print one ``error:`` line; the caller raises the returned Exit (status 2, a usage error)."""
     typer.secho(f"error: {message}", err=True, fg="red")
     return typer.Exit(2)
+
+
+def _check_instance(ctx: typer.Context, value: str) -> str:
+    """An ``--instance`` is a key chunk and a file name: refused here, not as a traceback when the
+    process declares its token."""
+    if value and not ctx.resilient_parsing and not INSTANCE_NAME.fullmatch(value):
+        raise fail(f"--instance {value!r}: 1-64 letters, digits, '_', '.' or '-'")
+    return value
+
+
+INSTANCE_OPTION = typer.Option("", "--instance", callback=_check_instance,
+                               help="Name on the bus (default: a random one).")
 
 
 def number(low: float = 0.0, *, strict: bool = True, inf: bool = False):

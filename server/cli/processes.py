@@ -305,13 +305,15 @@ def controller(
                                       help="Kind in the campaign events: control, identification or jog."),
     idle_timeout: float = typer.Option(10.0, "--idle-timeout", callback=POSITIVE,
                                        help="Give up after this long without any state (s)."),
+    instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
 ) -> None:
-    """Run the controller on the bus: follows --trajectory, or holds the neck where it is."""
+    """Run the controller on the bus: follows --trajectory, or holds the neck where it is (a
+    service: runs the campaigns asked for on xneck/campaign/request and .../request/<instance>)."""
     from bridge.runtime import raise_priority, setup_logging, stop_on_signals
     from controller.process import ControllerNode, ControllerProcessConfig
 
@@ -323,7 +325,7 @@ def controller(
     traj = load_checked_trajectory(trajectory, params, config) if trajectory else None
     stop = stop_on_signals()
     cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
-                                  idle_timeout_s=idle_timeout, exit_when_done=traj is not None)
+                                  idle_timeout_s=idle_timeout, exit_when_done=traj is not None, instance=instance)
     with open_bus(listen, connect) as session:
         node = ControllerNode(session, params, config, traj, cfg)
         if not lockstep:

@@ -1,0 +1,89 @@
+"""A second controller service or a second bridge on the console's bus (audit of 2026-11-28), on
+the real processes and bus: the console's campaign runs on the controller the bridge obeys and is
+judged and recorded on the bridge run that controller answers; a stray ends nothing and mixes
+nothing into the archive. The choice of service itself is tested without a bus."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import AUTH, wait_until
+from test_stack import _procs
+from test_stack_faults import GENTLE, _robot_stack, _wait_end
+
+from bridge import bus
+from bridge.archive_read import read_campaign
+from server.service_choice import choose_service
+
+pytestmark = pytest.mark.e2e
+
+
+def _processes(base: str, kind: str) -> list[str]:
+    try:
+        listed = httpx.get(base + "/api/system/processes", timeout=2).json()["processes"]
+    except httpx.HTTPError:
+        return []
+    return sorted(p["instance"] for p in listed if p["kind"] == kind)
+
+
+def _campaign(base: str, body: dict) -> str:
+    r = httpx.post(base + "/api/campaigns", json=body, headers=AUTH, timeout=90)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def test_the_service_chosen_is_the_one_the_bridge_obeys_else_the_only_one_else_none_with_the_reason():
+    assert choose_service(["ctl-a", "ctl-b"], {"ctl-b"}) == ("ctl-b", "")
+    assert choose_service(["ctl-a"], set()) == ("ctl-a", "")
+    assert choose_service(["ctl-a"], {"someone-else"}) == ("ctl-a", "")  # it answers: refused by the bridge, said
+    assert choose_service([], {"ctl-a"}) == ("", "")  # nobody: the caller's wait for an answer says so
+    target, why = choose_service(["ctl-a", "ctl-b"], set())
+    assert target == "" and "2 controller services" in why and "ctl-a, ctl-b" in why and "obeys none" in why
+    target, why = choose_service(["ctl-a", "ctl-b"], {"ctl-x"})
+    assert target == "" and "obeys ctl-x" in why
+
+
+def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
+    """Both services took the console's request and the one the bridge does not obey aborted the
+    campaign at once, "the bridge obeys controller <the stack's>, not this one"."""
+    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+        stack_service = _processes(base, "campaign-service")
+        assert len(stack_service) == 1, stack_service
+        spawn(["controller", "--law", "2", "--instance", "stray-ctl", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
+              tmp_path / "stray.log")
+        assert wait_until(lambda: len(_processes(base, "campaign-service")) == 2, 60, 0.3)
+        rec = _wait_end(base, _campaign(base, GENTLE), 120)
+        assert rec["status"] in ("finished", "degraded"), rec
+        assert "obeys" not in (rec.get("message") or ""), rec
+        stray_log = (tmp_path / "stray.log").read_text()
+        assert rec["id"] not in stray_log, stray_log[-2000:]  # the request never reached it
+
+
+def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaign(tmp_path: Path) -> None:
+    """A stray twin bridge joined the hub mid-campaign and left: the console took its disabled
+    drives for the campaign's (aborted), counted 136 million messages lost across the two bridges'
+    sequences, and archived both bridges' states."""
+    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+        body = {**GENTLE, "waypoints": {**GENTLE["waypoints"], "durations_s": 4.0}}
+        cid = _campaign(base, body)
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json().get("progress", 0) > 0.05,
+                          60, 0.2)
+        stray = spawn(["bridge", "--driver", "twin", "--instance", "stray-bridge", "--listen", "tcp/127.0.0.1:0",
+                       "--connect", hub], tmp_path / "stray.log")
+        assert wait_until(lambda: "stray-bridge" in _processes(base, "bridge"), 60, 0.2)
+        time.sleep(1.0)  # its states on the bus beside the stack's
+        stray.send_signal(signal.SIGTERM)  # it disables its drives and says so as it leaves
+        assert stray.wait(20) is not None
+        rec = _wait_end(base, cid, 120)
+        assert rec["status"] in ("finished", "degraded"), rec
+        quality = rec["quality"]
+        assert quality["foreign_messages"] > 0, quality  # the stray was there, and set aside
+        assert quality["messages_lost"] < 1000, quality
+        campaign = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap")
+        bridges = {m.bridge for _, m in campaign.messages(bus.MOTOR_STATE)}
+        assert bridges and "stray-bridge" not in bridges, bridges
+        assert len(bridges) == 1, bridges
