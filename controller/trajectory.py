@@ -445,6 +445,8 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
         raise TrajectoryError(f"{where}cannot read the trajectory file ({err.strerror or err})") from None
     except UnicodeDecodeError as err:
         raise TrajectoryError(f"{where}not a UTF-8 text file (byte {err.start}: {err.reason})") from None
+    except RecursionError:  # tomllib recurses per nesting level (audit of 2026-11-28: a traceback)
+        raise TrajectoryError(f"{where}nested too deeply") from None
 
 
 def trajectory_from_json(text: str | bytes) -> Trajectory:
@@ -491,7 +493,7 @@ def recorded_excitation(trajectory_json: str, t: FloatArray) -> FloatArray | Non
         return None
     try:
         traj = load_trajectory(json.loads(trajectory_json))
-    except (TrajectoryError, ValueError, TypeError):
+    except (TrajectoryError, ValueError, TypeError, RecursionError):  # the archive's word: hostile until read
         return None
     dt = float(np.median(np.diff(t)))
     # The archive's word, not the controller's: a dwell of 1e6 s or a step of 1e-12 s asked numpy

@@ -49,7 +49,7 @@ def cached_set(folder: Path) -> dict[str, Any] | None:
     the save then identifies again)."""
     try:
         doc = json.loads((folder / CACHE_NAME).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # damaged, however: identified again (not a 500)
         return None
     if not isinstance(doc, dict) or any(not isinstance(doc.get(k), t) for k, t in _CACHE_KEYS.items()):
         return None

@@ -152,6 +152,11 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
     return None, f"{text}; {gaps}" if gaps else text, None
 
 
+#: Joints a figure draws at most (one axis each): an archive is hostile input, and a status of
+#: 2,000 angles drew for 32 s under ``PYPLOT_LOCK``, every other figure waiting (audit of 2026-11-28).
+FIGURE_MAX_JOINTS = 16
+
+
 def render_figure(mcap: Path, name: str, out: Path) -> Path:
     """Write figure ``name`` (one of :data:`FIGURES`) of an archive to ``out`` (PNG)."""
     import matplotlib
@@ -166,6 +171,9 @@ def render_figure(mcap: Path, name: str, out: Path) -> Path:
         if name == "tracking":
             frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
             n = len(status[0].alpha_hat_rad) if status else 3
+            if not 1 <= n <= FIGURE_MAX_JOINTS:  # the archive's word: 2,000 axes took 32 s and held the lock
+                raise ValueError(f"the record's controller status has {n} joints: no neck this console draws "
+                                 f"(at most {FIGURE_MAX_JOINTS})")
             fig, axes = plt.subplots(n, 1, figsize=(8, 2.2 * n), sharex=True, squeeze=False)
             t0 = status[0].stamp_s if status else 0.0
             t = np.array([m.stamp_s for m in status]) - t0

@@ -25,6 +25,9 @@ NAME = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}$")
 MAX_BYTES = 256 * 1024
 PREVIEW_HZ = 20.0  # samples per second of a preview
 PREVIEW_MAX_POINTS = 4000
+#: Joints a preview draws at most: a refused trajectory's preview of 10,000 joints was 160 MB and
+#: 2.5 GB of the console's memory (audit of 2026-11-28); necks have a few.
+PREVIEW_MAX_JOINTS = 16
 
 
 class LibraryError(ValueError):
@@ -55,10 +58,12 @@ def parse(body: bytes, content_type: str = "application/json") -> Trajectory:
     return load_trajectory(data)
 
 
-def preview(traj: Trajectory) -> dict[str, Any]:
+def preview(traj: Trajectory) -> dict[str, Any] | None:
     """α^d(t) of ``traj`` for a plot: ``t_s`` and ``alpha_deg`` (one list per joint), a grid of at
     most ``PREVIEW_MAX_POINTS`` samples plus every waypoint's arrival and departure (so at most
-    4000 + 2 × 2000, the validation's waypoint limit)."""
+    4000 + 2 × 2000, the validation's waypoint limit); None beyond ``PREVIEW_MAX_JOINTS`` joints."""
+    if traj.n_joints > PREVIEW_MAX_JOINTS:
+        return None
     dt = max(1.0 / PREVIEW_HZ, traj.duration_s / PREVIEW_MAX_POINTS)
     t = traj.time_grid(dt) if traj.duration_s > 0 else np.zeros(1)
     alpha = np.degrees(traj.sample(t).alpha)

@@ -125,6 +125,17 @@ def test_a_write_that_fails_after_the_fit_is_one_line_and_leaves_no_temporary_fi
     assert sorted(p.name for p in out.iterdir()) == ["fig4_torques.png"]
 
 
+@pytest.mark.parametrize("name", ["{tmp}/escaped/evil", "../../evil"])
+def test_a_parameter_set_name_that_is_no_file_name_is_refused_before_the_fit(xneck, campaign, tmp_path, name):
+    """Audit of 2026-11-28: the identified set's files are named after the set, so --set
+    name=/x/y (or a --params file's name) wrote them outside --out."""
+    name = name.format(tmp=tmp_path)
+    out = tmp_path / "a" / "b" / "id"
+    _refused(xneck("identify", str(campaign), "--no-alpha-hat", "--out", str(out), "--set", f"name={name}"),
+             "cannot name a file in --out")
+    assert not list(tmp_path.rglob("*evil*"))
+
+
 def test_workspace_maps_are_written_whole(xneck, tmp_path):
     out = tmp_path / "ws"
     (out / "3x_stiffness.png").mkdir(parents=True)

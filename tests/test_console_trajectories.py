@@ -84,3 +84,35 @@ def test_a_stored_file_that_does_not_read_is_a_422_not_no_such_trajectory(consol
     assert client.get("/api/trajectories/nothing-here").status_code == 404
     assert client.get("/api/trajectories/.hidden").status_code == 404
     assert client.get("/api/trajectories/control_test").status_code == 200
+
+
+def test_a_refused_trajectory_of_a_thousand_joints_gets_no_preview(console):
+    """Audit of 2026-11-28: a 40 KB body of 2 waypoints x 10,000 joints was refused ("the robot
+    has 3") with a 160 MB preview, 2.5 GB of the console's memory. Past PREVIEW_MAX_JOINTS there is
+    no preview to draw."""
+    client, _ = console
+    wide = {"name": "wide", "waypoints_deg": [[0.0] * 1000, [1.0] * 1000], "durations_s": [1e6]}
+    r = client.post("/api/trajectories/validate", json=wide, headers=AUTH)
+    assert r.status_code == 200, r.text
+    v = r.json()
+    assert v["ok"] is False and "1000" in v["message"] and v["preview"] is None
+    assert len(r.content) < 10_000
+    assert client.post("/api/trajectories/validate", json=NOD, headers=AUTH).json()["preview"]["alpha_deg"]
+
+
+def test_a_figure_of_an_archive_with_two_thousand_joints_is_refused_at_once(tmp_path):
+    """Audit of 2026-11-28: a first controller status of 2,000 angles (a 4 KB payload) drew
+    2,000 axes for 32 s under the figures' lock, every other figure waiting; the archive is
+    hostile input."""
+    from bridge import bus
+    from bridge.archive import write_campaign
+    from server.results import FIGURE_MAX_JOINTS, render_figure
+
+    n = 2000
+    status = bus.ControllerStatus(seq=1, stamp_s=0.0, law="law2", tick_s=0.002, compute_s=0.0, overruns=0,
+                                  deadline_misses=0, saturated=[False] * 4, alpha_hat_rad=[0.0] * n,
+                                  alpha_d_rad=[0.0] * n, e_rad=[0.0] * n, holding=False)
+    path = write_campaign(tmp_path / "wide.mcap", [(bus.CONTROLLER_STATUS, 1, status)], {"campaign_id": "wide"})
+    with pytest.raises(ValueError, match=f"2000 joints.*at most {FIGURE_MAX_JOINTS}"):
+        render_figure(path, "tracking", tmp_path / "fig.png")
+    assert not (tmp_path / "fig.png").exists()

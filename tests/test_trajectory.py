@@ -17,6 +17,7 @@ from controller.trajectory import (
     cycloid,
     identification_trajectory,
     load_trajectory,
+    recorded_excitation,
     trajectory_by_name,
     trajectory_json_schema,
     validate,
@@ -332,3 +333,30 @@ def test_a_recorded_trajectory_beyond_any_campaign_is_no_excitation_not_a_memory
     assert recorded_excitation(control_test_trajectory().to_json(), np.array([0.0, 1e-12, 2e-12])) is None
     exc = recorded_excitation(control_test_trajectory().to_json(), t)
     assert exc is not None and exc.shape == (int(round(13.0 / 0.002)), 3)
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".json"])
+def test_a_trajectory_file_nested_too_deeply_is_refused_not_a_traceback(tmp_path, suffix):
+    """Audit of 2026-11-28: a .toml file of 100,000 nested arrays raised RecursionError out of
+    `xneck controller/campaign/excitation --trajectory` (tomllib recurses per level); .json did not."""
+    deep = tmp_path / f"deep{suffix}"
+    deep.write_text(("waypoints_deg = " if suffix == ".toml" else '{"waypoints_deg": ')
+                    + "[" * 100_000 + "]" * 100_000 + ("\n" if suffix == ".toml" else "}"))
+    with pytest.raises(TrajectoryError, match=rf"deep\{suffix}: "):
+        load_trajectory(deep)
+
+
+def test_a_recorded_trajectory_nested_too_deeply_gives_no_excitation():
+    """Audit of 2026-11-28: an archive's `trajectory` metadata of 100,000 '[' raised RecursionError
+    out of `xneck identify` (and a 500 from the console's parameter-set route)."""
+    assert recorded_excitation("[" * 100_000, np.linspace(0.0, 1.0, 50)) is None
+
+
+def test_a_cached_identified_set_nested_too_deeply_is_identified_again(tmp_path):
+    """Audit of 2026-11-28: the console's cache of an identified set, damaged into 100,000 nested
+    arrays, raised RecursionError (a 500 on POST /api/campaigns/{id}/parameter-set); a damaged
+    cache is 'none kept', and the set is identified again."""
+    from server.identified_sets import CACHE_NAME, cached_set
+
+    (tmp_path / CACHE_NAME).write_text("[" * 100_000 + "]" * 100_000)
+    assert cached_set(tmp_path) is None

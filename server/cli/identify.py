@@ -3,6 +3,7 @@ campaign (3-X paper §5), Tables 1-2 printed, Figs. 4-8 and the identified param
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import typer
@@ -79,6 +80,10 @@ def identify(
     data_b = _validation_campaign(validate) if validate is not None else None
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
+        if not re.fullmatch(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}", base.name):
+            # it names the files written into --out: "/x/y" or "../z" wrote them elsewhere (audit of 2026-11-28)
+            raise ParameterError(f"parameter set name {base.name!r} cannot name a file in --out: use 1-64 letters, "
+                                 f"digits, '_', '.' or '-', not starting with '.' (--set name=...)")
         if data_b is not None:  # before the fit: it was refused after A's fit and files (audit of 2026-11-27)
             sizes = {"motors": (data_b.theta_rad.shape[1], base.n_cables),
                      "joints": (data_b.alpha_ip_rad.shape[1], base.n_joints)}
