@@ -29,6 +29,10 @@ class DataDirError(Exception):
     """The data directory cannot be used; the message is the one line ``xneck server`` prints."""
 
 
+class DataDirInUse(DataDirError):
+    """Another live process owns the data directory (its lock)."""
+
+
 class DataDirLock:
     """Exclusive ownership of a data directory by this process; :meth:`release` gives it back."""
 
@@ -45,7 +49,7 @@ class DataDirLock:
         except BlockingIOError:
             owner = _read_owner(fd)
             os.close(fd)
-            raise DataDirError(
+            raise DataDirInUse(
                 f"the data directory {self.dir} is in use by another xneck server (pid {owner.get('pid', '?')} on "
                 f"{owner.get('host', '?')}, since {owner.get('started_at', '?')}): stop it or choose another "
                 f"--data-dir") from None

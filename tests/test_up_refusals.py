@@ -58,3 +58,26 @@ def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> Non
         assert _alive_kinds(base) == {"bridge"}  # no second controller joined
         time.sleep(0.5)
     assert "drives enabled" not in (tmp_path / "b.log").read_text()
+
+
+def test_up_refuses_a_data_directory_in_use_before_starting_anything(tmp_path: Path) -> None:
+    """Audit of 2026-11-28: a second `xneck up` on the data directory of a running console started
+    its own console, which refused, and printed the tail of the shared logs/server.log: the first
+    console's lines, its API token among them."""
+    port = free_tcp_port()
+    data = tmp_path / "second"  # the directory _up_refused gives the second stack
+    with _procs() as spawn:
+        (data / "logs").mkdir(parents=True)  # as a first `xneck up` leaves it: its console's log there
+        spawn(["server", "--port", str(port), "--data-dir", str(data), "--hub", f"tcp/127.0.0.1:{free_tcp_port()}"],
+              data / "logs" / "server.log")
+        base = f"http://127.0.0.1:{port}"
+        assert wait_until(lambda: _healthy(base), 60, 0.3), (data / "logs" / "server.log").read_text()
+        log_before = (data / "logs" / "server.log").read_text()
+        r = subprocess.run([*PY, "up", "--port", str(free_tcp_port()), "--viser-port", str(free_tcp_port()), "--hub",
+                            f"tcp/127.0.0.1:{free_tcp_port()}", "--data-dir", str(data), "--exit-after", "5"],
+                           capture_output=True, text=True, env=ENV, timeout=60)
+        assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
+        lines = [line for line in r.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and "in use by another xneck server" in lines[0], r.stderr
+        assert f":{port}" in log_before and f":{port}" not in r.stderr + r.stdout  # none of the first's log
+        assert (data / "logs" / "server.log").read_text() == log_before  # nothing of a second console in it

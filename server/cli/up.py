@@ -42,6 +42,7 @@ zero-current set values; audit of 2026-11-26: a hung bridge's SIGKILL left them 
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -366,6 +367,17 @@ def up(
     if hub_address is not None and hub_address[1] > PORT_MAX:  # the socket module would raise OverflowError
         raise fail(f"--hub {hub}: the port must be at most {PORT_MAX}")
     refused = preflight(host, port, viser_port, hub)
+    if not refused:
+        # Before anything starts: a second stack on a data directory in use started a console that
+        # refused, and printed the tail of the shared logs/server.log, the first console's API
+        # token included (audit of 2026-11-28).
+        from server.datadir import DataDirError, DataDirInUse, DataDirLock
+
+        with contextlib.suppress(DataDirError):  # any other fault: the one line below, as before
+            try:
+                DataDirLock(Path(data_dir)).release()
+            except DataDirInUse as exc:
+                refused = str(exc)
     if refused:
         typer.secho(f"error: xneck up refused to start: {refused}", err=True, fg="red")
         raise typer.Exit(PREFLIGHT_EXIT)
