@@ -11,7 +11,10 @@ Life cycle of one campaign::
                          '--refused-----------> aborted (with the reason)
 
 ``finished`` and ``aborted`` are idle again for the next request. Between campaigns the law holds
-the neck at ``hold_target`` (the last waypoint, or where it was when the service started).
+the neck at ``hold_target`` (the last waypoint, or where it was when the service started). A
+campaign starts bumplessly from that hold, as a jog does: α^d approaches the first waypoint from
+where it rests, and the law (or the new law) goes on with its filtered velocities and its
+integral's share of the command (``_switch_law``).
 
 Holds: :meth:`CampaignService.hold` commands Z f = g(α) with every cable at t_min
 (:func:`controller.laws.hold_forces`) at α̂, or at the last sane α̂ when the estimate is not
@@ -280,8 +283,6 @@ class CampaignService:
             self._restart = True  # the law takes over from the new estimate, bumplessly
         self.latched = False
         self.ticks = self.overruns = self.deadline_misses = 0
-        if self.kind != "jog":  # a jog goes on with the law that holds the neck, integral and all
-            self.ctl.restart_integral()
         self._blend = self._brake = None
         self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
 
@@ -399,12 +400,13 @@ class CampaignService:
             return
         self.campaign_id, self.kind = prepared.campaign_id, prepared.kind
         start_at = self.ctl.estimator.alpha_hat
-        if prepared.kind == "jog":
-            # Bumpless: the law, its integral and α^d go on; the move starts where α^d rests
-            # (α̂ while the law is not running or re-starting).
-            if not self._restart and self._blend is None and self.drive == "active":
-                start_at = self.reference(stamp_s)[0]
-        else:
+        # Bumpless: the law, its integral and α^d go on; the move starts where α^d rests (α̂ while
+        # the law is not running or re-starting). A campaign as a jog: from an idle hold on the
+        # robot truth, starting at α̂ with a fresh integral stepped the forces 10 N a tick for
+        # several ticks (audit of 2026-11-28).
+        if not self._restart and self._blend is None and self.drive == "active":
+            start_at = self.reference(stamp_s)[0]
+        if prepared.kind != "jog":
             self.params = prepared.params
             self._switch_law(prepared.law)
         self.begin(approach(prepared.trajectory, start_at), stamp_s)
@@ -424,13 +426,17 @@ class CampaignService:
 
     def _switch_law(self, law: LawConfig) -> None:
         """A new law continues from the current estimate (α̂, θ and, when both models are
-        elastic, the predicted stretch), with a fresh integral."""
+        elastic, the predicted stretch), its filtered velocities and its integral's share of the
+        command (ki·∫e, eq. 59): a fresh integral dropped what held the neck against what the
+        model does not know, a force step at every campaign start (audit of 2026-11-28)."""
         old, old_ctl = self.ctl.estimator, self.ctl
         ctl = ComputedTorque(self.params, law)
         ctl.reset(alpha=old.alpha_hat, theta=old.theta)
         if ctl.model.cable_model == old_ctl.model.cable_model:
             ctl.estimator.x_c = old.x_c.copy()
         ctl.theta_dot = old_ctl.theta_dot.copy()
+        ctl.alpha_hat_dot = old_ctl.alpha_hat_dot.copy()
+        ctl.integral = old_ctl.integral * (old_ctl.ki / ctl.ki)
         ctl.f_prev = old_ctl.f_prev.copy()
         self.ctl, self.law = ctl, law
         if self.encoder_check is not None and self._encoder_check_params is not self.params:

@@ -564,3 +564,27 @@ def test_a_long_stale_gap_re_starts_the_law_and_a_short_one_does_not(loop):
     loop.svc.stale("stale state", 0.2)
     loop.run(0.002)
     np.testing.assert_allclose(loop.outputs[-1].alpha_d_rad, loop.outputs[-1].alpha_hat_rad, atol=1e-3)
+
+
+@pytest.mark.parametrize("law", [2, 1])
+def test_a_campaign_started_from_an_idle_hold_on_the_robot_truth_steps_no_force(params, law):
+    """Audit of 2026-11-28: under `xneck up` (robot truth) every campaign start stepped the cable
+    forces 10 N a tick for several ticks: the new law began with a fresh integral, dropping what
+    held the neck against the stiction and the model's errors, and at α̂ instead of where α^d
+    rested. The law's integral share, filtered velocities and α^d now go on."""
+    loop = Loop.__new__(Loop)
+    loop.twin = Twin(params, TwinConfig(camera=False, seed=1, truth="robot"))
+    loop.svc = CampaignService(params, LawConfig(law=2), service=True, settle_s=0.2)
+    loop.tick = loop.twin.tick(np.zeros(params.n_cables))
+    loop.svc.initialise(loop.tick.theta_meas)
+    loop.events, loop.outputs = [], []
+    loop.run(6.0)  # the idle hold's integral takes up what the model does not know
+    idle = np.array([o.force_N for o in loop.outputs[-500:]])
+    n0 = len(loop.outputs)
+    loop.svc.handle(_request(trajectory_json=NOD.to_json(), law=law), loop.stamp_s)
+    loop.run(0.5)
+    assert "started" in [e.event for e in loop.events]
+    forces = np.array([o.force_N for o in loop.outputs[n0 - 1:]])
+    idle_step = float(np.abs(np.diff(idle, axis=0)).max())
+    start_step = float(np.abs(np.diff(forces, axis=0)).max())
+    assert start_step <= max(2.0, 2 * idle_step), (start_step, idle_step)
