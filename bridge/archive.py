@@ -35,8 +35,11 @@ Crash safety
 Storage faults
     A write that fails (ENOSPC, EROFS, EIO) ends the recording: the writer thread stops, calls
     ``on_error`` (the campaign runner stops the campaign) and :meth:`CampaignRecorder.stop` raises
-    :class:`ArchiveError` naming the fault (:func:`storage_reason`). Small files next to the
-    archives (indexes, records) are written with :func:`atomic_write`.
+    :class:`ArchiveError` naming the fault (:func:`storage_reason`). The file is left unfinished,
+    its flushed chunks intact: :func:`bridge.archive_recovery.finish_in_place` finishes it where it
+    lies, with no room for a copy (the console does at once, outcome ``failed``), or
+    :func:`bridge.archive_recovery.recover` by a copy. Small files next to the archives (indexes,
+    records) are written with :func:`atomic_write`.
 """
 
 from __future__ import annotations

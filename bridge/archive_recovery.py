@@ -1,17 +1,49 @@
 """Recovering a campaign archive whose recording was cut short (a killed recorder, a crash, a
 damaged chunk): :func:`recover` rewrites it, in place and atomically, as a valid indexed file with
 every complete record it held and outcome ``interrupted`` (the file layout: :mod:`bridge.archive`).
+
+:func:`finish_in_place` finishes an unfinished file where it lies, for a disk with no room for a
+copy (a recording that failed on a full disk): it cuts the torn last record and writes the final
+records, the summary and the footer over it. It needs room only for those (about 20 kB for a
+campaign, most of it the schemas the summary repeats), where :func:`recover` needs the whole
+archive's size again; it refuses a file damaged inside (that is :func:`recover`'s work, which keeps
+the original). Both take the outcome from the caller when the caller knows how the campaign ended
+(``failed`` and the reason, from the console's record), else ``interrupted``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+import struct
+import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Header, Message, Metadata, Schema
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    McapRecord,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from bridge import bus
@@ -26,6 +58,7 @@ from bridge.archive import (
     ArchiveWriter,
     fsync_dir,
     iso_time,
+    storage_reason,
 )
 from bridge.archive_read import is_complete
 
@@ -50,29 +83,24 @@ class RecoveryReport:
     corrupt_copy: Path | None = None
 
 
-def recover(path: str | os.PathLike[str]) -> RecoveryReport:
+def recover(path: str | os.PathLike[str], outcome: str | None = None,
+            fields: Mapping[str, str] | None = None) -> RecoveryReport:
     """Make ``path`` a valid, indexed campaign file, in place; idempotent.
 
     A finished file is left untouched (status ``valid``). An unfinished one (recorder killed) is
     read sequentially; every message of a complete chunk and every metadata record is rewritten
     to a temporary file that atomically replaces the original. Unless the file already holds a
     final ``xneck.campaign`` record, one is added from ``xneck.campaign.start`` with outcome
-    ``interrupted`` and ``end_time`` the last message's log time. An ``xneck.recovery`` record
-    tells what was salvaged. Raises :class:`ArchiveError` if the file is missing or not MCAP.
+    ``interrupted`` and ``end_time`` the last message's log time. ``outcome`` and ``fields``
+    (strings, e.g. ``message``): how the campaign ended when the caller knows it (a campaign that
+    failed on a full disk), written into ``xneck.campaign`` instead (an outcome the file claimed
+    is kept as ``outcome_before`` in ``xneck.recovery``). An ``xneck.recovery`` record tells what
+    was salvaged. Raises :class:`ArchiveError` if the file is missing or not MCAP.
     """
     path = Path(path)
-    if is_complete(path):
-        try:
-            # MCAP-level check only: a message of another schema version is no reason to rewrite.
-            with open(path, "rb") as f:
-                reader = SeekingReader(f, validate_crcs=True)
-                for _ in reader.iter_metadata():
-                    pass
-                count = sum(1 for _ in reader.iter_messages(log_time_order=False))
-        except Exception:  # noqa: BLE001 - a footer but a damaged body: salvage below
-            pass
-        else:
-            return RecoveryReport(path=path, status="valid", messages=count)
+    valid = _valid(path)
+    if valid is not None:
+        return valid
     size = path.stat().st_size
     tmp = path.with_name(path.name + ".recovering")
     tmp.unlink(missing_ok=True)
@@ -85,16 +113,8 @@ def recover(path: str | os.PathLike[str]) -> RecoveryReport:
         recovery = {"recovered_at": iso_time(), "original_bytes": str(size),
                     "bytes_discarded": str(size - salvage.good_end), "messages": str(salvage.kept),
                     "reason": stop_reason}
-        final = salvage.held.get(CAMPAIGN)
-        if final is None:
-            final = dict(salvage.start_metadata)
-            last = salvage.last_log_ns
-            final["end_time"] = iso_time(last) if last is not None else final.get("start_time", "")
-            final["outcome"] = "interrupted"
-        elif salvage.lost_messages() and final.get("outcome") != "interrupted":
-            # A final record written before messages that never reached the disk is not the truth.
-            recovery["outcome_before"] = final.get("outcome", "")
-            final = {**final, "outcome": "interrupted"}
+        final = _final_record(salvage.held, salvage.start_metadata, salvage.last_log_ns, salvage.lost_messages(),
+                              outcome, fields, recovery)
         out.writer.add_metadata(CAMPAIGN, final)
         for name, record in salvage.held.items():
             if name != CAMPAIGN:
@@ -112,6 +132,243 @@ def recover(path: str | os.PathLike[str]) -> RecoveryReport:
         path=path, status="recovered", messages=salvage.kept, bytes_discarded=size - salvage.good_end,
         reason=stop_reason, corrupt_copy=corrupt_copy,
     )
+
+
+def _valid(path: Path) -> RecoveryReport | None:
+    """A ``valid`` report if ``path`` is a finished file whose records all read back, else None."""
+    if not is_complete(path):
+        return None
+    try:
+        # MCAP-level check only: a message of another schema version is no reason to rewrite.
+        with open(path, "rb") as f:
+            reader = SeekingReader(f, validate_crcs=True)
+            for _ in reader.iter_metadata():
+                pass
+            count = sum(1 for _ in reader.iter_messages(log_time_order=False))
+    except Exception:  # noqa: BLE001 - a footer but a damaged body: salvage
+        return None
+    return RecoveryReport(path=path, status="valid", messages=count)
+
+
+def _final_record(held: Mapping[str, Mapping[str, str]], start_metadata: Mapping[str, str], last_log_ns: int | None,
+                  lost_messages: bool, outcome: str | None, fields: Mapping[str, str] | None,
+                  recovery: dict[str, str]) -> dict[str, str]:
+    """The ``xneck.campaign`` record of a salvaged file (see :func:`recover`); notes in ``recovery``
+    an outcome the file claimed and the salvage replaces."""
+    claimed = held.get(CAMPAIGN)
+    if claimed is None:
+        final = dict(start_metadata)
+        final["end_time"] = iso_time(last_log_ns) if last_log_ns is not None else final.get("start_time", "")
+        final["outcome"] = "interrupted"
+    elif lost_messages and claimed.get("outcome") != "interrupted":
+        # A final record written before messages that never reached the disk is not the truth.
+        recovery["outcome_before"] = claimed.get("outcome", "")
+        final = {**claimed, "outcome": "interrupted"}
+    else:
+        final = dict(claimed)
+    if outcome is not None:
+        if claimed is not None and claimed.get("outcome", "") != outcome:
+            recovery.setdefault("outcome_before", claimed.get("outcome", ""))
+        final = {**final, **(fields or {}), "outcome": outcome}
+    return final
+
+
+def finish_in_place(path: str | os.PathLike[str], outcome: str | None = None,
+                    fields: Mapping[str, str] | None = None) -> RecoveryReport:
+    """Finish an unfinished campaign file where it lies, for a disk with no room for a copy.
+
+    Reads the file sequentially up to its last complete record (the one after it was torn by the
+    fault: a partial chunk, bytes an interrupted ``finish`` left), then writes over the torn part
+    the final ``xneck.campaign`` record (as :func:`recover` makes it, ``outcome`` and ``fields``
+    included), an ``xneck.recovery`` record (``method: in place``), the data end, a summary
+    (schemas, channels, statistics, chunk and metadata indexes) and the footer, fsynced: an indexed
+    file as :class:`bridge.archive.ArchiveWriter` finishes one. Space: only what it appends beyond
+    the torn part (about 20 kB), never a copy. A finished file is left untouched (``valid``).
+
+    Raises :class:`ArchiveError` for a file damaged inside (a record whose content fails its CRC
+    or does not parse, not merely cut short: :func:`recover` salvages around it and keeps the
+    original), one whose writer is alive, or a write that fails (the file is then cut back to its
+    last complete record: it stays unfinished, what it held intact, for a later :func:`recover`).
+    """
+    path = Path(path)
+    valid = _valid(path)
+    if valid is not None:
+        return valid
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except OSError as exc:
+        raise ArchiveError(path, f"cannot open it to finish it ({storage_reason(exc)})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ArchiveError(path, "its writer is alive: not finished in place") from None
+        size = os.fstat(fd).st_size
+        index = _Index()
+        stop_reason = index.scan(path, size)
+        if not index.header_seen:
+            raise ArchiveError(path, f"no readable MCAP header, nothing to finish ({stop_reason})")
+        recovery = {"recovered_at": iso_time(), "method": "in place", "original_bytes": str(size),
+                    "bytes_discarded": str(size - index.good_end), "messages": str(index.messages),
+                    "reason": stop_reason}
+        final = _final_record(index.held, index.start_metadata, index.last_ns, index.lost_messages(), outcome,
+                              fields, recovery)
+        tail = index.tail([(CAMPAIGN, final), (RECOVERY, recovery)])
+        try:
+            written = 0
+            while written < len(tail):  # over the torn part first: those pages are the file's already
+                written += os.pwrite(fd, tail[written:], index.good_end + written)
+            os.ftruncate(fd, index.good_end + len(tail))
+            os.fsync(fd)
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, index.good_end)
+                os.fsync(fd)
+            raise ArchiveError(path, f"cannot finish it in place ({storage_reason(exc)}): it is kept up to its "
+                                     f"last complete record, byte {index.good_end}") from exc
+    finally:
+        os.close(fd)  # drops the lock
+    return RecoveryReport(path=path, status="recovered", messages=index.messages,
+                          bytes_discarded=size - index.good_end, reason=stop_reason)
+
+
+_SUMMARY_RECORDS = (DataEnd, Footer, ChunkIndex, MetadataIndex, AttachmentIndex, Statistics, SummaryOffset)
+
+
+class _Index:
+    """What :func:`finish_in_place` needs of an unfinished file, read sequentially without copying:
+    its schemas and channels, an index of each complete chunk, metadata record and attachment, the
+    message statistics, and where its last complete record ends (``good_end``)."""
+
+    def __init__(self) -> None:
+        self.header_seen = False
+        self.good_end = len(MAGIC)
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.chunk_indexes: list[ChunkIndex] = []
+        self.metadata_indexes: list[MetadataIndex] = []
+        self.attachment_indexes: list[AttachmentIndex] = []
+        self.channel_counts: dict[int, int] = {}
+        self.messages = 0
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self.held: dict[str, dict[str, str]] = {}
+        self.start_metadata: dict[str, str] = {}
+        self._index_start = 0  # where the message indexes of the last chunk begin
+
+    def scan(self, path: Path, size: int) -> str:
+        """Index the complete records of ``path``; why reading stopped. Raises :class:`ArchiveError`
+        for damage inside the file (not the torn end of an interrupted write)."""
+        with open(path, "rb") as f:
+            start = len(MAGIC)
+            try:
+                for record in StreamReader(f, emit_chunks=True, validate_crcs=True).records:
+                    end = start + 9 + _declared_length(f, start)
+                    if end > size:  # mcap reads a short last record silently
+                        return f"truncated inside the record at byte {start}"
+                    if end != f.tell():  # the reader skipped a record it does not know: the offsets would be wrong
+                        raise ArchiveError(path, f"unknown or damaged record at byte {start}: not finished in place, "
+                                                 f"a copying recovery salvages around it")
+                    if isinstance(record, _SUMMARY_RECORDS):  # an interrupted finish: its summary is written anew
+                        return f"the data section ends at byte {start}"
+                    self._add(record, start, end)
+                    self.good_end = start = end
+            except ArchiveError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
+                if start == size:
+                    return "end of file at a record boundary"
+                if _runs_past_end(f, start, size):
+                    return f"truncated inside the record at byte {start}"
+                raise ArchiveError(path, f"damaged record at byte {start} ({type(exc).__name__}: {exc}): not "
+                                         f"finished in place, a copying recovery salvages around it") from None
+        return "end of file"
+
+    def _add(self, record: McapRecord, start: int, end: int) -> None:
+        if isinstance(record, Header):
+            self.header_seen = True
+        elif isinstance(record, Chunk):
+            for inner in breakup_chunk(record, validate_crc=True):  # a damaged chunk raises: see scan()
+                self._add(inner, 0, 0)
+            self.chunk_indexes.append(ChunkIndex(
+                message_start_time=record.message_start_time, message_end_time=record.message_end_time,
+                chunk_start_offset=start, chunk_length=end - start, message_index_offsets={}, message_index_length=0,
+                compression=record.compression, compressed_size=len(record.data),
+                uncompressed_size=record.uncompressed_size))
+            self._index_start = end
+        elif isinstance(record, MessageIndex):
+            if self.chunk_indexes:  # the last chunk's: they follow it
+                last = self.chunk_indexes[-1]
+                last.message_index_offsets[record.channel_id] = start
+                last.message_index_length = end - self._index_start
+        elif isinstance(record, Schema):
+            self.schemas.setdefault(record.id, record)
+        elif isinstance(record, Channel):
+            self.channels.setdefault(record.id, record)
+        elif isinstance(record, Message):
+            self.messages += 1
+            self.channel_counts[record.channel_id] = self.channel_counts.get(record.channel_id, 0) + 1
+            self.first_ns = record.log_time if self.first_ns is None else min(self.first_ns, record.log_time)
+            self.last_ns = record.log_time if self.last_ns is None else max(self.last_ns, record.log_time)
+        elif isinstance(record, Metadata):
+            self.metadata_indexes.append(MetadataIndex(offset=start, length=end - start, name=record.name))
+            if record.name in (CAMPAIGN, RECORDER):
+                self.held[record.name] = dict(record.metadata)
+            elif record.name == CAMPAIGN_START:
+                self.start_metadata = dict(record.metadata)
+        elif isinstance(record, Attachment):
+            self.attachment_indexes.append(AttachmentIndex(
+                offset=start, length=end - start, log_time=record.log_time, create_time=record.create_time,
+                data_size=len(record.data), name=record.name, media_type=record.media_type))
+
+    def lost_messages(self) -> bool:
+        recorded = self.held.get(RECORDER, {}).get("recorded", "")
+        return recorded.isdigit() and int(recorded) > self.messages
+
+    def tail(self, metadata: list[tuple[str, dict[str, str]]]) -> bytes:
+        """The bytes that finish the file after ``good_end``: ``metadata`` records, the data end,
+        the summary (what :meth:`mcap.writer.Writer.finish` writes) and the footer."""
+        data = RecordBuilder()
+        for name, record in metadata:
+            offset = self.good_end + data.count
+            Metadata(name=name, metadata=record).write(data)
+            self.metadata_indexes.append(MetadataIndex(offset=offset, length=self.good_end + data.count - offset,
+                                                       name=name))
+        DataEnd(data_section_crc=0).write(data)
+        summary_start = self.good_end + data.count
+        summary = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+        statistics = Statistics(
+            attachment_count=len(self.attachment_indexes), channel_count=len(self.channels),
+            channel_message_counts=dict(self.channel_counts), chunk_count=len(self.chunk_indexes),
+            message_count=self.messages, message_end_time=self.last_ns or 0, message_start_time=self.first_ns or 0,
+            metadata_count=len(self.metadata_indexes), schema_count=len(self.schemas))
+        groups: list[tuple[Opcode, list[McapRecord]]] = [
+            (Opcode.SCHEMA, list(self.schemas.values())), (Opcode.CHANNEL, list(self.channels.values())),
+            (Opcode.STATISTICS, [statistics]), (Opcode.CHUNK_INDEX, list(self.chunk_indexes)),
+            (Opcode.ATTACHMENT_INDEX, list(self.attachment_indexes)),
+            (Opcode.METADATA_INDEX, list(self.metadata_indexes))]
+        for opcode, records in groups:
+            group_start = summary.count
+            for record in records:
+                record.write(summary)
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + group_start,
+                                         group_length=summary.count - group_start))
+        summary_offset_start = summary_start + summary.count
+        for offset in offsets:
+            offset.write(summary)
+        summary_bytes = summary.end()
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start, summary_offset_start),
+                         zlib.crc32(summary_bytes))
+        footer = RecordBuilder()
+        Footer(summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc).write(footer)
+        return data.end() + summary_bytes + footer.end() + MAGIC
+
+
+def _declared_length(f: BinaryIO, offset: int) -> int:
+    """The length field of the record at ``offset`` (its content's bytes, after opcode and length)."""
+    head = os.pread(f.fileno(), 9, offset)
+    return int.from_bytes(head[1:], "little") if len(head) == 9 else 1 << 62
 
 
 def _keep_corrupt(path: Path) -> Path:
@@ -274,4 +531,4 @@ def _runs_past_end(f: BinaryIO, offset: int, size: int) -> bool:
     return offset + 9 + length > size
 
 
-__all__ = ["RecoveryReport", "recover"]
+__all__ = ["RecoveryReport", "finish_in_place", "recover"]

@@ -23,7 +23,7 @@ from mcap.writer import CompressionType, Writer
 from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, CampaignRecorder, write_campaign
 from bridge.archive_read import is_complete, read_campaign
-from bridge.archive_recovery import recover
+from bridge.archive_recovery import finish_in_place, recover
 from bridge.session import free_tcp_port, open_session, publisher
 
 REPO = Path(__file__).resolve().parents[1]
@@ -220,6 +220,48 @@ def test_truncated_files_are_rejected_then_recovered(tmp_path: Path) -> None:
         assert campaign.info["outcome"] == "interrupted" and campaign.info["campaign_id"] == "crash"
         assert "xneck.recovery" in campaign.metadata
         assert recover(path).status == "valid"  # idempotent
+
+
+def test_an_unfinished_file_is_finished_in_place_with_the_outcome_given(tmp_path: Path) -> None:
+    """What the console does to the archive of a campaign that failed on a full disk (audit of
+    2026-11-28): the file is cut after its last complete record and finished where it lies, no
+    copy; every complete chunk is kept byte for byte, the summary indexes them, and the final
+    record says the outcome and message given. Cut anywhere, the summary and footer included."""
+    full = tmp_path / "full.mcap"
+    chunks = _crashing_file(full, 4)
+    data = full.read_bytes()
+    cuts = {chunks[0][0] + 3, chunks[1][0] + 20, (chunks[1][0] + chunks[1][1]) // 2, chunks[2][1] - 1,
+            chunks[2][1], chunks[3][1] + 5, len(data) - 30, len(data) - 1}
+    for cut in sorted(cuts):
+        path = tmp_path / f"cut-{cut}.mcap"
+        path.write_bytes(data[:cut])
+        complete = sum(1 for _, end in chunks if end <= cut)
+        report = finish_in_place(path, "failed", {"message": "recording failed: No space left on device (ENOSPC)"})
+        assert report.status == "recovered" and report.messages == complete * PER_CHUNK, cut
+        kept = cut - report.bytes_discarded
+        assert path.read_bytes()[:kept] == data[:kept] and kept >= (chunks[complete - 1][1] if complete else 0)
+        campaign = read_campaign(path)
+        assert [m for _, m in campaign.messages(bus.MOTOR_STATE)] == [motor_state(i) for i in range(complete * PER_CHUNK)]
+        assert campaign.info["outcome"] == "failed" and "ENOSPC" in campaign.info["message"], cut
+        assert campaign.info["campaign_id"] == "crash" and campaign.metadata["xneck.recovery"]["method"] == "in place"
+        with open(path, "rb") as f:  # indexed as a writer indexes: the summary is what readers seek with
+            summary = make_reader(f).get_summary()
+        assert summary is not None and len(summary.chunk_indexes) == complete, cut
+        assert summary.statistics is not None and summary.statistics.message_count == complete * PER_CHUNK
+        assert recover(path).status == "valid"  # finished: nothing left to repair
+
+
+def test_a_file_damaged_inside_is_not_finished_in_place(tmp_path: Path) -> None:
+    """Damage is :func:`recover`'s work (it salvages around it and keeps the original): finishing
+    in place refuses it and leaves the file as it was."""
+    path = tmp_path / "damaged.mcap"
+    chunks = _crashing_file(path, 3)
+    data = bytearray(path.read_bytes()[: chunks[2][1]])
+    data[(chunks[1][0] + chunks[1][1]) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ArchiveError, match="damaged record"):
+        finish_in_place(path, "failed", {"message": "m"})
+    assert path.read_bytes() == bytes(data)
 
 
 def test_damage_inside_the_file_keeps_the_original(tmp_path: Path) -> None:
