@@ -19,6 +19,10 @@ pipeline's reason and the record's gaps explained (:mod:`server.record_gaps`), i
 the archive's ``xneck.campaign`` record (``outcome``, ``message``, ``analysis``), never ``finished``
 (issue 17).
 
+A storage fault while recording (the recorder's write failed: ENOSPC, EROFS, EIO) ends the run
+with :class:`RecordingFailed`, which carries the run's quality counters (the archive is left as the
+recorder left it: :mod:`server.campaigns` finishes it with the outcome ``failed``).
+
 α_IP of a twin started for a campaign (``alpha_ip``; default: ``camera`` for identification,
 ``noise`` for control): ``camera`` measures it on frames the twin renders from its truth with
 the robot's detector (``twin.camera``, issue 15) — inside a lockstep twin, every exposure of
@@ -48,7 +52,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.archive import CAMPAIGN, CampaignRecorder
+from bridge.archive import CAMPAIGN, ArchiveError, CampaignRecorder
 from bridge.archive_read import is_complete, read_campaign
 from bridge.session import BusPublisher, free_tcp_port, open_session, payload_of, publisher
 from controller.laws import LawConfig
@@ -106,6 +110,15 @@ class CampaignSpec:
     def alpha_ip_source(self) -> str:
         """The α_IP a spawned twin gives: as asked, else camera for identification, noise for control."""
         return self.alpha_ip or ("camera" if self.kind == "identification" else "noise")
+
+
+class RecordingFailed(ArchiveError):
+    """The recording of a campaign failed (a storage fault); ``quality`` holds the run's counters
+    (server.quality) as far as it got, for the record of the failed campaign."""
+
+    def __init__(self, cause: ArchiveError, quality: dict[str, object]) -> None:
+        super().__init__(cause.path, cause.reason)
+        self.quality = quality
 
 
 @dataclass
@@ -371,8 +384,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         if reasons:
             outcome, message = "degraded", "; ".join(reasons) + (f" ({message})" if message else "")
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
-        recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
-                                "degraded_reasons": "; ".join(reasons)})
+        try:
+            recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
+                                    "degraded_reasons": "; ".join(reasons)})
+        except ArchiveError as exc:  # a storage fault: the run's counters go with it to the record
+            raise RecordingFailed(exc, quality) from exc
     result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality)
     # The children's logs matter only when something went wrong: kept then (and named), else removed,
     # so that a lab's thousands of campaigns do not leave as many folders in the temporary directory.

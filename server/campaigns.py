@@ -27,7 +27,13 @@ Storage faults are campaign outcomes, not server states: a campaign starts only 
 recorded (:class:`StorageError`, a 507), one that hits ENOSPC/EROFS/EIO ends ``failed`` with the
 reason, and the robot is free again whatever happened. A small reserve file
 (``campaigns/.reserve``) is given up on such a fault so that the final record can still be
-written on a full disk.
+written on a full disk. The failed campaign's archive, which the recorder could not finish, is
+finished at once where it lies (:func:`bridge.archive_recovery.finish_in_place`: the final records,
+summary and footer written over its torn end, about 20 kB, where a copy would need the archive's
+size again), its ``xneck.campaign`` saying ``failed`` with the record's message and quality; one
+that cannot be finished yet (a read-only disk, no room at all) is named by :meth:`CampaignManager.
+archive_problem`, its download refused with that reason, and repaired at the next start, which
+writes the record's ``failed`` and message into it too.
 """
 
 from __future__ import annotations
@@ -46,11 +52,17 @@ import zenoh
 from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
 from bridge.archive_read import is_complete, read_campaign
-from bridge.archive_recovery import recover
+from bridge.archive_recovery import finish_in_place, recover
 from bridge.session import publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
-from server.campaign_runner import STOPPED_BY_USER, metrics_from_archive, new_campaign_id, run_campaign
+from server.campaign_runner import (
+    STOPPED_BY_USER,
+    RecordingFailed,
+    metrics_from_archive,
+    new_campaign_id,
+    run_campaign,
+)
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.identified_sets import CACHE_NAME
@@ -115,6 +127,7 @@ class CampaignManager:
         self.service_alive = service_alive
         self.min_free_bytes = min_free_bytes
         self.recovery_errors: dict[str, str] = {}  # file name -> why it could not be repaired
+        self._unfinished: dict[str, str] = {}  # campaign id -> why its archive could not be finished after a fault
         self._lock = threading.Lock()
         self._records: dict[str, CampaignRecord] = {}
         self._running: str | None = None
@@ -179,7 +192,18 @@ class CampaignManager:
             return False
         if complete and rec is not None and rec.status != "running":
             return False
-        report = recover(mcap)
+        outcome, fields = None, None
+        if rec is not None and rec.status == "failed":  # how it ended is known: its archive says it too
+            outcome, fields = "failed", self._failed_fields(rec.message, rec.quality)
+        try:
+            report = recover(mcap, outcome, fields)
+        except (ArchiveError, OSError) as exc:  # e.g. no room for a copy on a full disk: finished where it lies
+            try:
+                report = finish_in_place(mcap, outcome, fields)
+            except ArchiveError:
+                raise exc from None
+        with self._lock:
+            self._unfinished.pop(cid, None)
         info = {}
         with contextlib.suppress(ArchiveError):
             info = read_campaign(mcap).info
@@ -198,6 +222,54 @@ class CampaignManager:
         self._records[cid] = rec
         self._save_quietly(rec)
         return rec.status == "interrupted"
+
+    @staticmethod
+    def _failed_fields(message: str, quality: dict[str, object] | None) -> dict[str, str]:
+        """The ``xneck.campaign`` fields of a failed campaign's archive, as its record has them."""
+        fields = {"message": message[:2000]}
+        if quality:
+            fields["quality"] = json.dumps(quality)
+        return fields
+
+    def archive_problem(self, campaign_id: str) -> str:
+        """Why the archive of an ended campaign could not be finished or repaired ('' if none is known)."""
+        with self._lock:
+            why = self._unfinished.get(campaign_id, "")
+        return why or self.recovery_errors.get(f"{campaign_id}.mcap", "")
+
+    def _finish_failed_archive(self, cid: str, path: Path, message: str, quality: dict[str, object] | None) -> bool:
+        """Finish the archive of a campaign that failed on a storage fault, with outcome ``failed``
+        and its record's message and quality (module docstring); whether it is readable now, never
+        raises. In place first (the disk is full: it needs no copy), the copying :func:`recover` for
+        a file damaged inside; an archive finished already (the fault came after the recording) gets
+        only its final record amended, which needs a copy (:func:`server.archive_rewrite.rewrite_archive`)."""
+        fields = self._failed_fields(message, quality)
+        try:
+            if not path.exists():
+                return False
+            if is_complete(path):
+                try:
+                    rewrite_archive(path, amend={CAMPAIGN: {**fields, "outcome": "failed"}})
+                except Exception as exc:  # noqa: BLE001 - readable still, only its outcome not amended
+                    log.error("cannot write the outcome failed into the finished archive of %s: %s", cid,
+                              storage_reason(exc) if isinstance(exc, OSError) else exc)
+                return True
+            try:
+                report = finish_in_place(path, "failed", fields)
+            except ArchiveError as in_place:
+                try:
+                    report = recover(path, "failed", fields)
+                except Exception:  # noqa: BLE001 - the in-place attempt's reason is the one to tell
+                    raise in_place from None
+            log.warning("the archive of %s was finished after the fault (%s: %d messages kept; %s)", cid,
+                        report.status, report.messages, report.reason)
+            return True
+        except Exception as exc:  # noqa: BLE001 - the record is written whatever the archive allows
+            why = exc.reason if isinstance(exc, ArchiveError) else storage_reason(exc)
+            log.error("the archive of %s cannot be finished now (it is repaired at the next start): %s", cid, why)
+            with self._lock:
+                self._unfinished[cid] = why
+            return False
 
     @staticmethod
     def _record_from_archive(cid: str, info: dict[str, str]) -> CampaignRecord:
@@ -362,6 +434,7 @@ class CampaignManager:
                 rec.progress = max(rec.progress, min(max(float(fraction), 0.0), 1.0))
                 rec.message = message[:300]
 
+        storage_fault = False
         try:
             try:
                 result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
@@ -383,12 +456,19 @@ class CampaignManager:
             reason = exc.reason if isinstance(exc, ArchiveError) else storage_reason(exc)
             log.error("campaign %s failed: storage fault: %s", cid, reason)
             self.release_reserve()
-            fields = {"status": "failed", "message": f"storage fault while recording {path.name}: {reason}"}
+            storage_fault = True
+            # The counters of the run as far as it got (a record without them read as "no data").
+            quality = exc.quality if isinstance(exc, RecordingFailed) and exc.quality else None
+            fields = {"status": "failed", "message": f"storage fault while recording {path.name}: {reason}",
+                      "quality": quality}
+            if self._finish_failed_archive(cid, path, str(fields["message"]), quality):
+                with contextlib.suppress(Exception):  # the metrics of what was recorded, as for an interrupted one
+                    fields["metrics"] = metrics_from_archive(path)
         except Exception as exc:  # the record says what went wrong
             log.exception("campaign %s failed", cid)
             fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
-        try:
-            if path.exists() and is_complete(path):
+        try:  # not after a storage fault: the scene is added by a copy of the archive, on a disk that refused a write
+            if not storage_fault and path.exists() and is_complete(path):
                 fields["scene_messages"] = add_scene_channel(path, prepared.params)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
@@ -488,6 +568,7 @@ class CampaignManager:
                 if self._replay_starting is not None and self._replay_starting[0] == campaign_id:
                     raise Busy(campaign_id, "replay of")
                 self._records.pop(campaign_id, None)
+                self._unfinished.pop(campaign_id, None)
             for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):
                 p.unlink(missing_ok=True)
         figs = self.index.figures(campaign_id)

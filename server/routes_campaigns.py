@@ -14,6 +14,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+from bridge.archive import MAGIC
 from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
 from server.campaigns import Busy, CampaignManager, NotFound
@@ -140,18 +141,38 @@ def campaign_results(campaign_id: str, request: Request) -> dict[str, Any]:
             "mcap": f"/api/campaigns/{rec.id}/mcap"}
 
 
+def _unfinished_mcap(file: BinaryIO) -> bool:
+    """Whether the open ``file`` is an MCAP file, or its beginning, without the closing magic (no
+    footer: what a recording cut short leaves). A file that is no MCAP at all is not judged here."""
+    size = os.fstat(file.fileno()).st_size
+    if not MAGIC.startswith(os.pread(file.fileno(), len(MAGIC), 0)):
+        return False
+    return size < 2 * len(MAGIC) or os.pread(file.fileno(), len(MAGIC), size - len(MAGIC)) != MAGIC
+
+
 @router.get("/{campaign_id}/mcap", response_class=FileResponse,
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}}},
+                       503: {"description": "The archive is unfinished (its recording failed and it could not be "
+                                            "finished yet): the reason, and when it is repaired"}})
 def download_mcap(campaign_id: str, request: Request) -> FileResponse:
-    """The campaign's MCAP archive (readable by Foxglove; 409 while it is being recorded)."""
-    rec = _record(_manager(request), campaign_id)
+    """The campaign's MCAP archive (readable by Foxglove; 409 while it is being recorded, 503 while
+    an ended campaign's archive is unfinished: a file without its footer is not served as a 200)."""
+    manager = _manager(request)
+    rec = _record(manager, campaign_id)
     if rec.status == "running":
         raise HTTPException(status.HTTP_409_CONFLICT, "the campaign is still being recorded")
-    path = _manager(request).index.mcap(campaign_id)
+    path = manager.index.mcap(campaign_id)
     try:
         file = open(path, "rb")  # noqa: SIM115 - the response closes it
     except FileNotFoundError:  # none, or deleted since the record was read
         raise HTTPException(status.HTTP_404_NOT_FOUND, "this campaign has no archive") from None
+    if _unfinished_mcap(file):
+        file.close()
+        why = manager.archive_problem(campaign_id)
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
+                            "the campaign's archive is unfinished (no MCAP footer): nothing could read it"
+                            + (f"; it could not be finished: {why}" if why else "")
+                            + "; the console repairs it at its next start")
     return OpenFileResponse(file, media_type="application/octet-stream", filename=path.name)
 
 

@@ -25,11 +25,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from mcap.opcode import Opcode
 from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, stop_xneck_up, wait_until
 from test_stack import _alive_kinds
 
 from bridge import bus
-from bridge.archive import CampaignRecorder
+from bridge.archive import CAMPAIGN_START, ArchiveWriter, CampaignRecorder
 from bridge.archive_read import is_complete, read_campaign
 from bridge.session import free_tcp_port, open_session
 
@@ -98,6 +99,22 @@ def unfinished_mcap(path: Path, cid: str) -> Path:
         rec._out.abandon()  # as a SIGKILL would leave it: no footer
         for sub in rec._subs:
             sub.undeclare()
+    assert not is_complete(path)
+    return path
+
+
+def torn_mcap(path: Path, cid: str, messages: int) -> Path:
+    """An MCAP as a recorder that failed on a full disk leaves it: header, start metadata, flushed
+    chunks of incompressible messages, then the first bytes of a chunk it could not write."""
+    out = ArchiveWriter(path, chunk_size=64 * 1024)
+    out.writer.add_metadata(CAMPAIGN_START, {"campaign_id": cid, "kind": "control", "law": "law2"})
+    for i in range(messages):
+        msg = bus.EStop(seq=i, stamp_s=float(i), engaged=False, reason=os.urandom(100).hex())
+        out.add(bus.ESTOP, msg, bus.encode(msg), 1_000_000_000 + i)
+    out.flush()
+    out.abandon()
+    with open(path, "ab") as f:
+        f.write(bytes([Opcode.CHUNK]) + (1 << 20).to_bytes(8, "little") + os.urandom(3000))
     assert not is_complete(path)
     return path
 
@@ -190,6 +207,91 @@ def test_a_full_disk_ends_the_campaign_failed_and_the_next_start_is_a_507(tmp_pa
         assert c.get(f"/api/campaigns/{again.json()['id']}").json()["status"] == "aborted"
 
 
+
+def test_a_campaign_failed_on_a_full_disk_has_a_readable_archive_that_says_why(tmp_path: Path) -> None:
+    """Audit of 2026-11-28: on the full disk the console went on serving the failed campaign's MCAP
+    as a 200 without a footer (``read_campaign``: "truncated or unfinished"), its record said
+    progress 0.0 and quality null, and the restart's repair wrote ``outcome: interrupted`` with no
+    message into the archive while the record kept ``failed`` and ENOSPC. The console salvages the
+    archive in place as soon as the campaign has failed (the disk still full): the download is a
+    readable file whose ``xneck.campaign`` says ``failed`` with the record's reason, the record
+    keeps how far the run got and its quality counters, and a restart, the disk still full,
+    changes neither."""
+    with tmpfs(tmp_path / "data", "24m") as data:
+        with running_server(data, viser=False, min_free_mb=2.0) as (base, _app), \
+                httpx.Client(base_url=base, timeout=120) as c:
+            cid = start_campaign(c, progress=0.1)
+            fill(data)
+            assert wait_until(lambda: c.get(f"/api/campaigns/{cid}").json()["status"] != "running", 60, 0.2)
+            rec = c.get(f"/api/campaigns/{cid}").json()
+            assert rec["status"] == "failed" and "ENOSPC" in rec["message"], rec
+            download = c.get(f"/api/campaigns/{cid}/mcap")
+            assert download.status_code == 200, download.text
+            copy = tmp_path / "download.mcap"  # outside the full tmpfs
+            copy.write_bytes(download.content)
+            campaign = read_campaign(copy)
+            assert campaign.info["outcome"] == "failed" and campaign.info["message"] == rec["message"], campaign.info
+            assert campaign.metadata["xneck.recovery"]["method"] == "in place"  # no room for a copy was needed
+            assert rec["mcap_bytes"] == len(download.content)
+            assert len(campaign.messages(bus.CONTROLLER_STATUS)) > 0 and rec["metrics"]["ticks"] > 0, rec["metrics"]
+            assert rec["progress"] >= 0.1 and rec["quality"] is not None, rec  # how far it got; the run's counters
+        with running_server(data, viser=False, min_free_mb=2.0) as (base, _app), \
+                httpx.Client(base_url=base, timeout=120) as c:
+            again = c.get(f"/api/campaigns/{cid}").json()
+            assert (again["status"], again["message"]) == ("failed", rec["message"]), again
+            info = read_campaign(data / "campaigns" / f"{cid}.mcap").info
+            assert info["outcome"] == "failed" and info["message"] == rec["message"], info
+
+
+def test_restart_recovery_writes_a_failed_records_outcome_and_reason_into_its_archive(tmp_path: Path) -> None:
+    """A campaign that failed (e.g. on a full disk) whose archive could not be finished then: the
+    restart repairs the archive with the record's outcome and reason, not ``interrupted`` without
+    a message (audit of 2026-11-28)."""
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    cid = "control-failed"
+    unfinished_mcap(campaigns / f"{cid}.mcap", cid)
+    reason = f"storage fault while recording {cid}.mcap: recording failed: No space left on device (ENOSPC)"
+    (campaigns / f"{cid}.json").write_text(json.dumps({**record(cid, "failed"), "message": reason}))
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as c:
+        rec = c.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] == "failed" and rec["message"].startswith(reason), rec
+        download = c.get(f"/api/campaigns/{cid}/mcap")
+        assert download.status_code == 200, download.text
+    campaign = read_campaign(campaigns / f"{cid}.mcap")
+    assert campaign.info["outcome"] == "failed" and campaign.info["message"] == reason, campaign.info
+    assert "xneck.recovery" in campaign.metadata
+
+
+
+def test_a_failed_campaigns_archive_is_finished_in_place_where_a_copy_does_not_fit(tmp_path: Path) -> None:
+    """The restart's repair of a failed campaign's archive on a disk with 64 kB free, the archive
+    1.5 MB: the copy :func:`bridge.archive_recovery.recover` writes does not fit, finishing it where
+    it lies does (the torn end cut, final records, summary and footer written over it); every
+    flushed message is kept and the archive says ``failed`` with the record's reason."""
+    data = tmp_path / "data"
+    data.mkdir()
+    with tmpfs(data / "campaigns", "4m") as campaigns:
+        cid = "control-failed"
+        torn_mcap(campaigns / f"{cid}.mcap", cid, 5000)
+        reason = f"storage fault while recording {cid}.mcap: recording failed: No space left on device (ENOSPC)"
+        (campaigns / f"{cid}.json").write_text(json.dumps({**record(cid, "failed"), "message": reason}))
+        room = campaigns / "room.bin"
+        room.write_bytes(b"\0" * (64 * 1024))
+        fill(campaigns)
+        room.unlink()
+        with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as c:
+            assert c.get("/api/system/health").json()["recovery_errors"] == {}
+            rec = c.get(f"/api/campaigns/{cid}").json()
+            assert rec["status"] == "failed" and rec["message"].startswith(reason), rec
+            assert c.get(f"/api/campaigns/{cid}/mcap").status_code == 200
+        campaign = read_campaign(campaigns / f"{cid}.mcap")
+        assert campaign.info["outcome"] == "failed" and campaign.info["message"] == reason, campaign.info
+        assert campaign.metadata["xneck.recovery"]["method"] == "in place"
+        assert len(campaign.messages(bus.ESTOP)) == 5000
+        assert not list(campaigns.glob("*.recovering"))
+
+
 # -- finding 3 ---------------------------------------------------------------------------------------------------
 
 
@@ -209,6 +311,8 @@ def test_start_up_reports_recovery_errors_per_file_and_keeps_serving(tmp_path: P
             a = c.get("/api/campaigns/control-a").json()
             assert a["status"] == "interrupted" and "read-only" in a["message"].lower(), a
             assert c.get("/api/campaigns/control-c").json()["status"] == "finished"
+            unfinished = c.get("/api/campaigns/control-a/mcap")  # a 200 with it would be a file nothing reads
+            assert unfinished.status_code == 503 and "unfinished" in unfinished.json()["detail"], unfinished.status_code
             r = c.post("/api/campaigns", json={}, headers=AUTH)
             assert r.status_code == 507 and "read-only" in r.json()["detail"].lower(), r.text
         assert (campaigns / "control-a.mcap").read_bytes() == before
