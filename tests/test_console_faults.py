@@ -474,3 +474,29 @@ def test_only_this_users_socket_folders_of_dead_xneck_ups_are_removed(tmp_path: 
     link.symlink_to(target)
     assert _remove_stale_socket_folders(tmp_path) == [stale]
     assert not stale.exists() and alive.exists() and foreign.exists() and huge.exists() and target.exists()
+
+
+def test_a_cli_campaign_on_a_full_disk_is_one_error_line_and_a_readable_failed_archive(tmp_path: Path) -> None:
+    """Audit of 2026-11-28: `xneck campaign control --out` on a disk that filled mid-run ended in a
+    RecordingFailed traceback and an MCAP without a footer. Now one `error:` line (exit 1), and the
+    archive finished where it lies, outcome `failed` with the reason, as the console does."""
+    with tmpfs(tmp_path / "small", "24m") as small:
+        out = small / "run.mcap"
+        run = subprocess.Popen([sys.executable, "-m", "server.cli", "campaign", "control", "--twin", "--json",
+                                "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            assert wait_until(lambda: out.exists() and out.stat().st_size > 200_000 or run.poll() is not None, 120, 0.05)
+            fill(small)
+            stdout, stderr = run.communicate(timeout=180)
+        finally:
+            if run.poll() is None:
+                run.kill()
+        if "finished" in stdout and run.returncode == 0:
+            pytest.skip("the campaign ended before the disk was full (a fast machine)")
+        assert run.returncode == 1, (stdout, stderr)
+        assert "Traceback" not in stderr, stderr
+        errors = [line for line in stderr.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and "No space left" in errors[0] and "outcome failed" in errors[0], stderr
+        info = read_campaign(out).info
+        assert info["outcome"] == "failed" and "No space left" in info["message"], info

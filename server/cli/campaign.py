@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import typer
@@ -78,7 +80,7 @@ def campaign_control(
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
     """Run a control campaign (3-X paper §7), record it, print e, e_α, forces and saturation."""
-    from server.campaign_runner import CampaignSpec, run_campaign
+    from server.campaign_runner import CampaignSpec
 
     _check_default_archive(out)
     check_credentials()  # its processes meet on the bus
@@ -88,13 +90,58 @@ def campaign_control(
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
                         params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip,
                         connect=robot_endpoints(twin, connect))
-    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    result = _run_recorded(spec, params, out, as_json)
     if as_json:
         echo_json(result.summary())
     else:
         typer.echo(result.table())
     if result.outcome != "finished":
         raise typer.Exit(1)
+
+
+CLI_RESERVE_BYTES = 512 * 1024  # as the console's campaigns/.reserve (server.campaigns.RESERVE_BYTES)
+
+
+def _run_recorded(spec, params, out: Path | None, as_json: bool):
+    """:func:`server.campaign_runner.run_campaign`, a storage fault being one ``error:`` line (exit
+    1) and the archive finished where it lies with the outcome ``failed`` and the reason, as the
+    console does (a full disk was a traceback and an unreadable file: audit of 2026-11-28)."""
+    from bridge.archive import ArchiveError
+    from bridge.archive_read import is_complete
+    from bridge.archive_recovery import finish_in_place
+    from server.campaign_runner import RecordingFailed, default_archive, run_campaign
+
+    # Room for the final records on a full disk, given up on a fault (as the console's campaigns/.reserve).
+    reserve = (Path(out).parent if out else default_archive("reserve").parent) / f".xneck-reserve-{os.getpid()}"
+    try:
+        reserve.parent.mkdir(parents=True, exist_ok=True)
+        with open(reserve, "wb") as f:
+            f.write(b"\0" * CLI_RESERVE_BYTES)
+            os.fsync(f.fileno())
+    except OSError:  # no room even for it: the campaign's own start says so
+        reserve.unlink(missing_ok=True)
+    try:
+        return run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    except ArchiveError as exc:
+        reserve.unlink(missing_ok=True)
+        fields = {"message": f"recording failed: {exc.reason}"[:2000]}
+        if isinstance(exc, RecordingFailed) and exc.quality:
+            fields["quality"] = json.dumps(exc.quality)
+        if not exc.path.exists():
+            kept = "none was written"
+        elif is_complete(exc.path):
+            kept = f"{exc.path} is readable"
+        else:
+            try:
+                report = finish_in_place(exc.path, "failed", fields)
+                kept = f"{exc.path} finished where it lies, readable ({report.messages} messages, outcome failed)"
+            except ArchiveError as again:
+                kept = (f"{exc.path} left unfinished ({again.reason}): free some space, then "
+                        f"bridge.archive_recovery.recover repairs it (the console does at start-up)")
+        typer.secho(f"error: the campaign failed: {exc.reason}; archive: {kept}", err=True, fg="red")
+        raise typer.Exit(1) from None
+    finally:
+        reserve.unlink(missing_ok=True)
 
 
 def _check_default_archive(out: Path | None) -> None:
@@ -141,7 +188,7 @@ def campaign_identification(
     identify friction and cable stiffness from the archive (Tables 1-2, Figs. 4-8). A twin's α_IP
     is measured on frames it renders (--alpha-ip camera, issue 15). A failed identification ends
     the campaign analysis_failed (in the archive too), with its reason and the record's gaps explained."""
-    from server.campaign_runner import CampaignSpec, run_campaign
+    from server.campaign_runner import CampaignSpec
     from server.cli.identify import identify
     from twin.identification.options import check_variable_options
 
@@ -159,7 +206,7 @@ def campaign_identification(
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
                         truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s,
                         connect=robot_endpoints(twin, connect))
-    result = run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+    result = _run_recorded(spec, params, out, as_json)
     if result.outcome not in ("finished", "degraded"):
         typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
         if as_json:
