@@ -15,11 +15,11 @@ from typing import Any
 
 import msgspec
 import numpy as np
-from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 
 from bridge import bus
 from bridge.archive import CAMPAIGN, CAMPAIGN_START, MAGIC, ArchiveError
+from bridge.archive_chunks import BoundedReader
 
 
 @dataclass
@@ -98,7 +98,7 @@ def read_campaign(path: str | os.PathLike[str]) -> Campaign:
     metadata: dict[str, dict[str, str]] = {}
     try:
         with open(path, "rb") as f:
-            reader = SeekingReader(f, validate_crcs=True)
+            reader = BoundedReader(f, validate_crcs=True)  # a chunk is decompressed within bounds
             for record in reader.iter_metadata():
                 metadata[record.name] = dict(record.metadata)  # the last record of a name wins
             # In file order, then each topic sorted by log time: the order mcap's log_time_order=True

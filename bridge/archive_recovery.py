@@ -25,7 +25,6 @@ from typing import BinaryIO
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.reader import SeekingReader
 from mcap.records import (
     Attachment,
     AttachmentIndex,
@@ -44,7 +43,6 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import StreamReader, breakup_chunk
 
 from bridge import bus
 from bridge.archive import (
@@ -60,6 +58,7 @@ from bridge.archive import (
     iso_time,
     storage_reason,
 )
+from bridge.archive_chunks import BoundedReader, ChunkRefused, breakup_chunk, stream_records
 from bridge.archive_read import is_complete
 
 
@@ -68,8 +67,10 @@ class RecoveryReport:
     """What :func:`recover` did. ``status``: ``valid`` (finished file, untouched) or ``recovered``.
 
     ``bytes_discarded``: bytes after the last complete record (the chunk in progress at the
-    crash). A chunk whose content is damaged (CRC or decompression failure) but whose framing is
-    intact is skipped and reading goes on; damaged framing ends the salvage. ``corrupt_copy``: the
+    crash). A chunk whose content is damaged (CRC or decompression failure, or other than the size
+    it declares: :mod:`bridge.archive_chunks` never decompresses past that bound, so a
+    decompression bomb is such a chunk) but whose framing is intact is skipped and reading goes on;
+    damaged framing, or a record longer than ``MAX_RECORD_BYTES``, ends the salvage. ``corrupt_copy``: the
     original, kept only when something was damaged (not merely cut short), since a specialised
     tool might salvage more; a plain truncation keeps nothing, the discarded tail being an
     incomplete chunk. ``reason`` tells where reading stopped and which chunks were skipped.
@@ -141,7 +142,7 @@ def _valid(path: Path) -> RecoveryReport | None:
     try:
         # MCAP-level check only: a message of another schema version is no reason to rewrite.
         with open(path, "rb") as f:
-            reader = SeekingReader(f, validate_crcs=True)
+            reader = BoundedReader(f, validate_crcs=True)
             for _ in reader.iter_metadata():
                 pass
             count = sum(1 for _ in reader.iter_messages(log_time_order=False))
@@ -262,7 +263,7 @@ class _Index:
         with open(path, "rb") as f:
             start = len(MAGIC)
             try:
-                for record in StreamReader(f, emit_chunks=True, validate_crcs=True).records:
+                for record in stream_records(f, validate_crcs=True).records:
                     end = start + 9 + _declared_length(f, start)
                     if end > size:  # mcap reads a short last record silently
                         return f"truncated inside the record at byte {start}"
@@ -415,16 +416,17 @@ class _Salvage:
         """Returns why reading stopped, and whether it was damage rather than the end of the file."""
         with open(path, "rb") as f:
             try:
-                for record in StreamReader(f, emit_chunks=True, validate_crcs=True).records:
+                for record in stream_records(f, validate_crcs=True).records:
                     if isinstance(record, Chunk):
                         try:
                             inner = breakup_chunk(record, validate_crc=True)
-                        except Exception as exc:  # CRC or decompression failure
+                        except Exception as exc:  # CRC or decompression failure, or a bomb (ChunkRefused)
                             if f.tell() > size:
                                 raise
                             # The chunk's framing is intact (its length led to the next record):
                             # skip its content, carry on with the next chunk.
-                            self.skipped.append(f"chunk at byte {self.good_end} ({type(exc).__name__})")
+                            why = f"{type(exc).__name__}: {exc}" if isinstance(exc, ChunkRefused) else type(exc).__name__
+                            self.skipped.append(f"chunk at byte {self.good_end} ({why})")
                             self.damaged_chunks = True
                             inner = []
                         for r in inner:

@@ -14,10 +14,10 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from mcap.reader import SeekingReader
 from mcap.writer import Writer
 
 from bridge.archive import CHUNK_SIZE, COMPRESSION, PROFILE, software_version
+from bridge.archive_chunks import BoundedReader
 
 #: Called after each message is copied: (writer, schema, channel, message) of the source file.
 OnMessage = Callable[[Writer, Any, Any, Any], None]
@@ -34,7 +34,7 @@ def rewrite_archive(path: str | os.PathLike[str], *, begin: Callable[[Writer], O
     tmp.unlink(missing_ok=True)
     try:
         with open(path, "rb") as src, open(tmp, "xb") as dst:
-            reader = SeekingReader(src)
+            reader = BoundedReader(src)
             writer = Writer(dst, chunk_size=CHUNK_SIZE, compression=COMPRESSION)
             writer.start(profile=PROFILE, library=f"xneck/{software_version()}")
             after = begin(writer) if begin is not None else None

@@ -33,11 +33,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from mcap.reader import SeekingReader
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
 from bridge.archive import COMPRESSED_IMAGE_SCHEMA, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
+from bridge.archive_chunks import BoundedReader
 from twin.camera.detect import Detector
 from twin.camera.source import FileSource
 
@@ -115,7 +115,7 @@ def measure_video(path: str | Path, detector: Detector, max_frames: int | None =
 def _iter_raw(path: Path):
     try:
         with open(path, "rb") as f:
-            reader = SeekingReader(f, validate_crcs=True)
+            reader = BoundedReader(f, validate_crcs=True)
             yield from reader.iter_messages(log_time_order=True)
     except FileNotFoundError:
         raise AlignmentError(f"{path}: no such campaign file") from None
@@ -220,7 +220,7 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         raise AlignmentError("the output must be a new file, not the campaign itself")
     records = list(_iter_raw(campaign))
     with open(campaign, "rb") as f:
-        metadata = [(m.name, dict(m.metadata)) for m in SeekingReader(f).iter_metadata()]
+        metadata = [(m.name, dict(m.metadata)) for m in BoundedReader(f).iter_metadata()]
     # Campaign clock → recorder log time, from the motor states (for the new messages' log_time).
     stamps, logs = [], []
     for _schema, channel, message in records:
