@@ -32,6 +32,20 @@ the length cable j's encoder would have missed (for a stuck encoder j, r_j grows
 its cable moved since the freeze, with the sign of measured − true). :class:`EncoderConsistency`
 names the suspect from what the parity cannot give: a stuck reading does not change.
 
+Slack: the parity assumes every cable taut, carrying the stretch its force gives. A slack cable j
+is longer than its path by δ_j ≥ 0 and carries no stretch, so its e_j is −δ_j, and without the
+stretch term (the parity of the lengths alone, s_l = s + nᵀx/|n|) slack only ever lowers s_l, n
+being positive (a neck the cables can hold, eqs. 63-65). After an e-stop dropped a moving neck,
+three cables stayed slack (up to 20 mm of parity) for more than 10 s on the robot truth: the
+motors' stiction (19-24 N) exceeds the hold's forces (t_min = 8.5 N), so nothing winds them in
+until a move does, and a check blind to slack named a healthy encoder stuck 0.56 s after the
+release (audit of 2026-11-28). The drives only wind the slack in, so the service tells the check
+when they come back (``settling``): the check measures the slack then (the largest −s_l) and
+allows it, and only it, below −threshold while it lasts, shrinking it as s_l shows it taken up.
+A stuck encoder still grows the parity past that allowance (or above +threshold, where slack
+never goes) by the length its cable moves; once the slack is gone (s_l ≥ 0) the check looks
+away for ``SLACK_SETTLE_S`` (the cable's snap) and judges as always.
+
 What limits the threshold (docs/safety.md, "Stuck encoder", measured by
 ``docs/safety/encoder_residual.py``): the tension behind x is known only up to the motors'
 friction (stiction at rest: ± 1.3·f_s ≈ ±20 N, a few mm of stretch on the soft long cable), not
@@ -64,6 +78,12 @@ PERSISTENCE_S = 0.05
 # Encoders whose frozen readings account for the parity's growth within this fraction of the
 # threshold are named together: the one parity equation cannot tell them apart (module docstring).
 SUSPECT_TIE = 0.25
+# s the check looks away once the slack it allowed is taken up (module docstring, "Slack"): the
+# cable that snaps taut overshoots the stretch at rest (audit of 2026-11-28: the parity went from
+# −25 mm to +8.6 mm within 0.4 s, 20 ms of it above 8 mm, as a campaign's first move took up the
+# slack of an e-stop's fall), as the bridge's ramp does when the drives come back
+# (controller.service.ENCODER_CHECK_SETTLE_S, the same 0.5 s).
+SLACK_SETTLE_S = 0.5
 
 
 def detector_model(params: Params) -> Model:
@@ -179,7 +199,9 @@ class EncoderConsistency:
     ``persistence_s`` of the states' clock, or at once when an input is not finite. Only states
     with the cables under the forces given count (``active``: the drives active and obeying this
     controller); otherwise the persistence starts again (the cables of a disabled neck go slack,
-    and its encoders say nothing about α).
+    and its encoders say nothing about α). ``settling`` states (the drives just came back) are
+    not judged either: they measure the slack the check then allows (``slack_m``, m of parity,
+    module docstring "Slack") until the cables show it taken up.
 
     Suspects (``suspects``, encoder indices, most likely first): a stuck reading is constant, so
     among the encoders whose reading has not changed for ``persistence_s``, those whose freeze
@@ -200,13 +222,24 @@ class EncoderConsistency:
         N, nc = self.model.n_joints, self.model.n_cables
         self._theta, self._alpha, self._force, self._theta_dot = np.zeros(nc), np.zeros(N), np.zeros(nc), np.zeros(nc)
         work = _scratch(N, nc)
-        self.r = work[-1]  # written by the kernel
+        self._x, self._n, self.r = work[-3:]  # written by the kernel: stretch, null vector, residuals
         self._parity = bind(parity_into, self.model, short_cables(self.model), long_cable(self.model), self._theta,
                             self._alpha, self._force, self._theta_dot, *work)
+        self.slack_m = 0.0  # m of parity allowed below −threshold as the cables' slack (module docstring)
+        self._settling = False  # the last state was a settling one
+        self._taut_at = math.nan  # stamp at which the slack allowed was taken up (SLACK_SETTLE_S)
         self.reset()
 
+    def keep_slack(self, other: EncoderConsistency) -> None:
+        """Go on with the slack ``other`` allowed (module docstring, "Slack"): a check built anew
+        for a campaign's parameter set watches the same cables (audit of 2026-11-28: a campaign
+        started on slack cables from the console, which sends its set, latched "encoder 1 or 3
+        stuck" 50 ms in with the allowance left behind)."""
+        self.slack_m, self._settling, self._taut_at = other.slack_m, other._settling, other._taut_at
+
     def reset(self) -> None:
-        """Forget the history (a new bridge run, a new estimate)."""
+        """Forget the history (a new bridge run, a new estimate). The slack allowed stays: it is
+        the cables', not the readings' (the next settling state measures it afresh)."""
         nc = self.model.n_cables
         self.s = math.nan
         self.r[:] = math.nan
@@ -216,11 +249,14 @@ class EncoderConsistency:
         self._s_at_change = [math.nan] * nc  # m, the parity then
         self.suspects: list[int] = []
 
-    def update(self, theta_rad, alpha_hat_rad, force_N, theta_dot_rad_s, stamp_s: float, active: bool = True) -> str:
+    def update(self, theta_rad, alpha_hat_rad, force_N, theta_dot_rad_s, stamp_s: float, active: bool = True,
+               settling: bool = False) -> str:
         """One motor state: encoders θ (rad), α̂ (rad; the last estimate will do, even one tick
         old: the parity ignores α̂'s errors to first order), the forces applied over the last period
         (N), the motor velocities θ̇ (rad/s, the law's filtered ones) and the state's stamp (s).
-        Returns why the encoders cannot be right, "" when they can (class docstring)."""
+        ``settling``: the drives are back but the cables may still be slack: not judged, the slack
+        is measured (the first of a run of them starts the measure afresh). Returns why the
+        encoders cannot be right, "" when they can (class docstring)."""
         self._theta[:] = theta_rad
         self._alpha[:] = alpha_hat_rad
         self._force[:] = force_N
@@ -239,7 +275,25 @@ class EncoderConsistency:
         if not math.isfinite(s) or not math.isfinite(stamp):
             self._above_since = None
             return "encoder consistency: non-finite encoder angle, α̂, force, motor speed or stamp: encoder fault"
-        if not active or abs(s) <= self.threshold_m:
+        if settling:
+            if not self._settling:
+                self.slack_m, self._taut_at = 0.0, math.nan
+            self._settling = True
+            self.slack_m = max(self.slack_m, -self._lengths_parity(s))
+            self._above_since = None
+            return ""
+        self._settling = False
+        low = s  # the parity the lower bound judges
+        if active and self.slack_m > 0.0:
+            s_l = self._lengths_parity(s)
+            self.slack_m = min(self.slack_m, max(0.0, -s_l))  # the drives only take slack up
+            if self.slack_m == 0.0:
+                self._taut_at = stamp  # taut again: the snap's overshoot (SLACK_SETTLE_S)
+            else:
+                low = s_l + self.slack_m
+        # (a difference, not a deadline: a step of the bridge's clock back does not prolong it)
+        snap = 0.0 <= stamp - self._taut_at < SLACK_SETTLE_S
+        if not active or snap or (-self.threshold_m <= low and s <= self.threshold_m):
             self._above_since = None
             return ""
         if self._above_since is None:
@@ -248,6 +302,15 @@ class EncoderConsistency:
             return ""
         return self._reason(s, stamp)
 
+    def _lengths_parity(self, s: float) -> float:
+        """The parity of the lengths alone, s_l = s + nᵀx/|n| (m; module docstring, "Slack"), from
+        the kernel's last stretch x and null vector n."""
+        nx = nn = 0.0
+        for a, b in zip(self._n.tolist(), self._x.tolist(), strict=True):
+            nx += a * b
+            nn += a * a
+        return s + nx / math.sqrt(nn)
+
     def _reason(self, s: float, stamp: float) -> str:
         """The fault's reason, naming ``suspects`` (class docstring)."""
         growth = [abs(s - s0) if stamp - t >= self.persistence_s and math.isfinite(s0) else -math.inf
@@ -255,8 +318,10 @@ class EncoderConsistency:
         best = max(growth)
         order = sorted(range(len(growth)), key=lambda j: -growth[j])
         self.suspects = [j for j in order if growth[j] > -math.inf and growth[j] >= best - SUSPECT_TIE * self.threshold_m]
+        slack = (f", past the {self.slack_m * 1e3:.1f} mm allowed for the slack the cables had when the drives came back"
+                 if self.slack_m > 0.0 and s < 0.0 else "")
         what = (f"the four encoders disagree by {s * 1e3:+.1f} mm of cable (parity) "
-                f"(beyond {self.threshold_m * 1e3:.1f} mm for {self.persistence_s * 1e3:.0f} ms)")
+                f"(beyond {self.threshold_m * 1e3:.1f} mm for {self.persistence_s * 1e3:.0f} ms{slack})")
         if not self.suspects:
             return f"{what}; no encoder reading froze, suspect unknown: encoder fault"
         j = self.suspects[0]
@@ -267,5 +332,5 @@ class EncoderConsistency:
                 f"off; {what}: encoder fault")
 
 
-__all__ = ["PERSISTENCE_S", "SUSPECT_TIE", "THRESHOLD_M", "EncoderConsistency", "detector_model", "encoder_residual", "parity_into",
+__all__ = ["PERSISTENCE_S", "SLACK_SETTLE_S", "SUSPECT_TIE", "THRESHOLD_M", "EncoderConsistency", "detector_model", "encoder_residual", "parity_into",
            "residuals"]

@@ -85,10 +85,13 @@ STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the
 # without load (robot_truth.toml); twice that for margin.
 MOTOR_SPEED_MAX_RAD_S = 1600.0
 # s after the drives come back (first enable, e-stop release, another controller's hand-over)
-# before the stuck-encoder check looks again: the bridge's ramp takes up cables that went slack
-# meanwhile, and the stretch the check predicts from the forces is wrong until they are taut
-# (audit of 2026-11-26: −13 mm of parity 60 ms after an e-stop release at [35, −25, 20]°; the
-# slack was taken up after about 225 ms).
+# before the stuck-encoder check judges again: the bridge's ramp brings the forces back from zero,
+# the cables that went slack meanwhile snap taut or stay slack, and the stretch the check predicts
+# from the forces is wrong on them (audit of 2026-11-26: −13 mm of parity 60 ms after an e-stop
+# release at [35, −25, 20]°; the slack was taken up after about 225 ms). Over this window the
+# check measures the slack it then allows (``settling``; controller.encoder_check, "Slack"): a
+# moving neck dropped by an e-stop left three cables slack for more than 10 s, which no wait
+# covers (audit of 2026-11-28: "encoder 1 or 4 stuck" 0.55 s after the release, 3 runs of 3).
 ENCODER_CHECK_SETTLE_S = 0.5
 #: s a bridge run's clock must step by to end the running campaign (:meth:`CampaignService.clock_stepped`).
 #: Under load a twin's simulated clock and the controller's view of it drift apart and re-bind by
@@ -440,7 +443,10 @@ class CampaignService:
         ctl.f_prev = old_ctl.f_prev.copy()
         self.ctl, self.law = ctl, law
         if self.encoder_check is not None and self._encoder_check_params is not self.params:
+            old_check = self.encoder_check
             self.encoder_check = self._make_encoder_check()  # the new set's geometry (< 1 ms once loaded)
+            if self.encoder_check is not None:
+                self.encoder_check.keep_slack(old_check)  # the same cables, slack and all
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._limit = self._alpha_max + DIVERGENCE_MARGIN
 
@@ -475,27 +481,30 @@ class CampaignService:
         self._encoder_check_params = self.params  # which set it was built for (a campaign may bring another)
         return EncoderConsistency(self.params, self.encoder_threshold_m)
 
-    def _check_armed(self, active: bool, stamp_s: float) -> bool:
-        """Whether the stuck-encoder check may judge this state: the drives active, and, after
-        they were off, ``ENCODER_CHECK_SETTLE_S`` since they came back (cables taut again)."""
+    def _check_phase(self, active: bool, stamp_s: float) -> tuple[bool, bool]:
+        """(judged, settling) for this state: the stuck-encoder check judges it with the drives
+        active, except for ``ENCODER_CHECK_SETTLE_S`` after they came back (first enable, e-stop
+        release, hand-over, a bridge hold), over which it measures the slack the cables were left
+        with (``settling``) instead."""
         if not active:
             self._check_armed_at = math.inf
-            return False
+            return False, False
         if self._check_armed_at is None:
-            return True
+            return True, False
         if self._check_armed_at == math.inf:
             self._check_armed_at = stamp_s + ENCODER_CHECK_SETTLE_S
         if stamp_s < self._check_armed_at:
-            return False
+            return False, True
         self._check_armed_at = None
-        return True
+        return True, False
 
     def _encoder_fault(self, theta_rad: np.ndarray, stamp_s: float, force_applied_N: np.ndarray | None = None,
-                       active: bool = True) -> str:
+                       active: bool = True, settling: bool = False) -> str:
         """Why the encoders cannot be right ("" if they can): one moved more than a motor turns in
         the time since the last state (``MOTOR_SPEED_MAX_RAD_S``), or the four disagree with α̂
-        beyond what the cables' stretch and friction explain, for long enough: one is stuck
-        (:mod:`controller.encoder_check`, while the drives are ``active`` only)."""
+        beyond what the cables' stretch, friction and the slack left when the drives came back
+        explain, for long enough: one is stuck (:mod:`controller.encoder_check`, while the drives
+        are ``active`` only; ``settling``: :meth:`_check_phase`)."""
         last, theta = self._theta_last, [float(x) for x in theta_rad]
         self._theta_last = (stamp_s, theta)
         if last is not None:
@@ -509,7 +518,7 @@ class CampaignService:
         ctl = self.ctl
         force = ctl.f_prev if force_applied_N is None else force_applied_N  # what acted over the last period
         return self.encoder_check.update(theta_rad, ctl.estimator.alpha_hat, force, ctl.theta_dot, stamp_s,
-                                         active=active and not self.latched)
+                                         active=active and not self.latched, settling=settling and not self.latched)
 
     def _pretension(self, stamp_s: float | None) -> float:
         """The floor added to t_min this tick (N): the running trajectory's pretension at
@@ -595,7 +604,7 @@ class CampaignService:
         self.ticks += 1
         self.drive = drive
         fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N,
-                                    active=self._check_armed(drive == "active" and obeyed, stamp_s))
+                                    *self._check_phase(drive == "active" and obeyed, stamp_s))
         if fault and not self.latched:
             self.latched = True
             self._drop_waiting(fault)

@@ -30,14 +30,21 @@ class BridgeLoop:
     def stamp_s(self) -> float:
         return self.tick.t_s
 
-    def run(self, seconds: float, estop: tuple = (), drop_commands: bool = False) -> None:
+    def run(self, seconds: float, estop: tuple = (), drop_commands: bool = False,
+            stuck: dict[int, float] | None = None) -> None:
         """``seconds`` of 2 ms ticks; ``estop``: (engaged, reason) pairs for the first tick;
-        ``drop_commands``: the bridge gets none (its watchdog holds)."""
+        ``drop_commands``: the bridge gets none (its watchdog holds); ``stuck``: encoder index →
+        the reading (rad) it is frozen at, for the controller (a stuck encoder)."""
         pending = list(estop)
         for _ in range(round(seconds * 500)):
             drive = self.safety.drive
             self.svc.drive_reason = self.safety.estop_reason if drive == "disabled" else self.safety.hold_reason
-            out = self.svc.control(self.tick.theta_meas, self.stamp_s, drive, np.asarray(self.safety.force))
+            theta = self.tick.theta_meas
+            if stuck:
+                theta = theta.copy()
+                for j, reading in stuck.items():
+                    theta[j] = reading
+            out = self.svc.control(theta, self.stamp_s, drive, np.asarray(self.safety.force))
             self.outputs.append(out)
             if out.law_ran:
                 self.svc.advance(self.stamp_s)

@@ -11,6 +11,7 @@ import pytest
 
 from controller.encoder_check import (
     PERSISTENCE_S,
+    SLACK_SETTLE_S,
     THRESHOLD_M,
     EncoderConsistency,
     detector_model,
@@ -203,3 +204,131 @@ def test_no_stuck_encoder_fault_when_the_drives_come_back_from_an_estop_with_sla
     assert loop.safety.drive == "disabled"
     loop.run(3.0, estop=((False, "test"),))
     assert loop.safety.drive == "active" and not loop.svc.latched, loop.svc.hold_reason
+
+
+def _dropped_on_slack_cables(params, seed: int):
+    """The audit of 2026-11-28 (its `s8_estop_release_encoder.sh` on `xneck up`, 3 runs of 3): an
+    e-stop through the console 4.5 s into the §7 control test (law 2, robot truth), the neck
+    moving down from (50, 50, 50)°, released 2 s later. The neck falls with the drives off; the
+    three right cables go slack and the motors' stiction (19-24 N) holds their drums against the
+    hold's forces (t_min = 8.5 N) after the release. Returns the loop at the release."""
+    from bridge_loop import BridgeLoop
+    from test_controller_service import _request
+
+    loop = BridgeLoop(params, seed=seed)
+    loop.run(1.0)
+    loop.svc.handle(_request("c-1", trajectory_json=control_test_trajectory().to_json()), loop.stamp_s)
+    loop.run(4.5)
+    loop.run(2.0, estop=((True, "audit"),))
+    assert loop.safety.drive == "disabled"
+    return loop
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_no_stuck_encoder_fault_after_an_estop_drops_a_moving_neck_on_slack_cables(params, seed):
+    """Audit of 2026-11-28: "encoder 1 or 4 stuck ... −64.6 mm" about 0.55 s after the release,
+    with healthy encoders (here 0.56 s after it, "encoder 4 or 2 stuck"). The cables stay slack
+    for more than 10 s, so no wait after the release helps: the check allows the slack it measured
+    when the drives came back (controller/encoder_check.py, "Slack"), and the next campaign's
+    first move takes the slack up, snap and all, without a fault."""
+    from test_controller_service import _request
+
+    loop = _dropped_on_slack_cables(params, seed)
+    loop.run(5.0, estop=((False, "audit"),))
+    assert loop.safety.drive == "active" and not loop.svc.latched, loop.svc.hold_reason
+    # What the check saw: three cables still slack, the encoders beyond the threshold (what the
+    # check blind to slack latched on), all of it allowed as the slack of the release.
+    check = loop.svc.encoder_check
+    assert check is not None
+    assert loop.tick.slack[:3].all()
+    assert check.s < -THRESHOLD_M and check.slack_m > THRESHOLD_M
+    # The next campaign, with its parameter set as the console sends it (a set of its own: the
+    # service builds the check anew for its geometry, and the slack goes with it).
+    loop.svc.handle(_request("c-2", trajectory_json=control_test_trajectory().to_json(),
+                             parameters_toml=params.to_toml()), loop.stamp_s)
+    assert loop.svc.running and loop.svc.encoder_check is not check
+    check = loop.svc.encoder_check
+    assert check is not None and check.slack_m > THRESHOLD_M
+    ended: list = []
+    for _ in range(25):  # its approach from α̂, the 13 s trajectory and its settling
+        loop.run(1.0)
+        ended = [e for e in loop.events if e.campaign_id == "c-2" and e.event in ("finished", "aborted")]
+        if ended:
+            break
+    assert [e.event for e in ended] == ["finished"], [e.message for e in ended]
+    assert not loop.svc.latched and check.slack_m == 0.0  # taut again: the check is as before the e-stop
+
+
+@pytest.mark.parametrize("encoder", [0, 1, 2, 3])
+def test_a_stuck_encoder_on_the_slack_cables_of_an_estop_is_caught_once_the_neck_moves(params, encoder):
+    """The allowance for slack does not hide a stuck encoder: frozen 1 s after the release (the
+    check judging again, 15.8 mm of slack allowed), with the motors at rest it misses nothing and
+    says nothing; the next campaign's moves latch the hold within 2 s of its start (measured
+    0.46-1.32 s, seeds 0-2). The name is less sure than on taut cables: encoders 3 and 4 were
+    named first, 1 and 2 taken for each other 5 times in 6, their motors being at rest on the
+    slack too (a frozen reading of their own)."""
+    from test_controller_service import _request
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(1.0, estop=((False, "audit"),))
+    check = loop.svc.encoder_check
+    assert check is not None
+    assert not loop.svc.latched and check.slack_m > THRESHOLD_M
+    stuck = {encoder: float(loop.tick.theta_meas[encoder])}
+    loop.run(1.0, stuck=stuck)
+    assert not loop.svc.latched, loop.svc.hold_reason
+    loop.svc.handle(_request("c-2", trajectory_json=control_test_trajectory().to_json(),
+                             parameters_toml=params.to_toml()), loop.stamp_s)
+    t_start = loop.stamp_s
+    while not loop.svc.latched and loop.stamp_s < t_start + 2.0:
+        loop.run(0.002, stuck=stuck)
+    assert loop.svc.latched, f"encoder {encoder + 1} stuck, not detected within 2 s of the campaign's start"
+    why = loop.svc.hold_reason
+    assert "stuck" in why and why.endswith("encoder fault"), why
+    ended = [e for e in loop.events if e.campaign_id == "c-2" and e.event == "aborted"]
+    assert ended and "stuck" in ended[0].message
+
+
+def test_the_slack_measured_as_the_drives_come_back_is_allowed_and_only_it(params):
+    """EncoderConsistency alone (its module docstring, "Slack"): cable 1 paid out 30 mm beyond its
+    path while the drives were off. Measured while they come back (``settling``, zero force), that
+    slack is allowed once they apply forces again, though the parity is beyond the threshold. A
+    further shortfall of two thresholds (an encoder stuck while its motor winds in) latches after
+    the usual persistence; a parity above the threshold (an encoder stuck while its motor pays
+    out: slack only ever lowers it) ends the allowance and latches once the snap's
+    ``SLACK_SETTLE_S`` has passed."""
+    alpha_deg, force = [10, 20, -15], np.array([20, 20, 20, 30.0])
+    m, alpha, taut = _consistent(params, alpha_deg, force)  # the encoders of taut, stretched cables
+    still, dt = np.zeros(4), 0.002
+    slack = taut.copy()
+    slack[0] = _consistent(params, alpha_deg, np.zeros(4))[2][0] - 0.03 / m.rho  # no stretch, 30 mm slack
+
+    def settled(check):
+        for k in range(250):  # the service's settling window, forces ramping from zero (zero here)
+            assert check.update(slack, alpha, np.zeros(4), still, k * dt, active=False, settling=True) == ""
+        assert check.slack_m > THRESHOLD_M  # the parity of that slack alone is beyond the threshold
+        return 250 * dt
+
+    check = EncoderConsistency(params)
+    t = settled(check)
+    for k in range(100):
+        assert check.update(slack, alpha, force, still, t + k * dt) == "", check.s
+    assert check.s < -THRESHOLD_M and check.slack_m > THRESHOLD_M / 2  # allowed, not forgotten
+    t += 100 * dt
+    wound = slack.copy()
+    wound[1] -= 2 * THRESHOLD_M / m.rho / 0.4  # encoder 2 misses ≥ 2 thresholds of parity of winding in
+    reasons = [check.update(wound, alpha, force, still, t + k * dt) for k in range(40)]
+    first = next(k for k, why in enumerate(reasons) if why)
+    assert first * dt == pytest.approx(PERSISTENCE_S, abs=dt / 2)
+    assert "slack the cables had when the drives came back" in reasons[first]
+
+    check = EncoderConsistency(params)
+    t = settled(check)
+    assert check.update(slack, alpha, force, still, t) == ""
+    paid = slack.copy()
+    paid[1] += (-check.s + 2 * THRESHOLD_M) / m.rho / 0.4  # encoder 2 misses a paying out: s ≥ +thr
+    reasons = [check.update(paid, alpha, force, still, t + (1 + k) * dt) for k in range(400)]
+    assert check.slack_m == 0.0 and check.s > THRESHOLD_M
+    first = next(k for k, why in enumerate(reasons) if why)
+    assert first * dt == pytest.approx(SLACK_SETTLE_S + PERSISTENCE_S, abs=dt / 2)  # after the snap's settling
+    assert "slack" not in reasons[first] and reasons[first].endswith("encoder fault")
