@@ -486,7 +486,7 @@ def test_a_cli_campaign_on_a_full_disk_is_one_error_line_and_a_readable_failed_a
                                 "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
-            assert wait_until(lambda: out.exists() and out.stat().st_size > 200_000 or run.poll() is not None, 120, 0.05)
+            assert wait_until(lambda: (out.exists() and out.stat().st_size > 200_000) or run.poll() is not None, 120, 0.05)
             fill(small)
             stdout, stderr = run.communicate(timeout=180)
         finally:
