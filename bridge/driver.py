@@ -56,6 +56,13 @@ class DriverError(RuntimeError):
     reply); the message says why in words fit for an operator."""
 
 
+#: Hz: the loop rates a driver may run at. The bridge turns its command timeout and ramps into
+#: ticks at this rate: at 20 kHz the watchdog waited 200 states and most ticks overran, at 100 kHz
+#: the loop never slept (on the board's one core, at FIFO priority, above its bus threads), at
+#: 1 MHz the loop watchdog tripped (audit of 2026-11-28, a `rate_hz` in escon.toml).
+RATE_HZ_RANGE = (50.0, 2000.0)
+
+
 class DriverConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Base of every driver's configuration: typed, immutable, validated on construction.
 
@@ -71,8 +78,9 @@ class DriverConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     def __post_init__(self) -> None:
         if self.n_motors < 1:
             raise ValueError(f"n_motors must be >= 1, got {self.n_motors}")
-        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
-            raise ValueError(f"rate_hz must be a positive number (Hz), got {self.rate_hz}")
+        if not (math.isfinite(self.rate_hz) and RATE_HZ_RANGE[0] <= self.rate_hz <= RATE_HZ_RANGE[1]):
+            raise ValueError(f"rate_hz must be within [{RATE_HZ_RANGE[0]:g}, {RATE_HZ_RANGE[1]:g}] Hz (the controller's "
+                             f"500 Hz by default), got {self.rate_hz}")
         for name in self.__struct_fields__:
             value = getattr(self, name)
             values = value if isinstance(value, tuple) else (value,)

@@ -484,7 +484,16 @@ class BridgeNode:
             self.driver.close()  # disables the drives first of all
         finally:
             self.hold.stop()
-            self.mode, self.hold_reason = "disabled", ""
+            failed = getattr(self.driver, "close_error", "")
+            if failed:
+                # Not "disabled": an enable line that does not read off may still drive. The bus and
+                # the log say so even when the loop ended on that very fault (an e-stop whose
+                # disable failed: the last state said disabled and no line said DRIVES MAY BE ON;
+                # audit of 2026-11-28). "hold": drives that may be enabled, zero set values written.
+                self.mode, self.hold_reason = "hold", f"DRIVES MAY BE ON: they could not be disabled ({failed})"
+                log.error("bridge %s: %s", self.instance, self.hold_reason)
+            else:
+                self.mode, self.hold_reason = "disabled", ""
             self.force = np.zeros(self.driver.n_motors)
             for last in (self.publish_state, self.publish_health):
                 with contextlib.suppress(Exception):  # the session may already be gone

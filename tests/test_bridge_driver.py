@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import sys
 import types
 
@@ -487,3 +488,115 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
     assert steps.max() <= 1.0 + 1e-9, steps.max()
     assert seen[-1] == pytest.approx([81.0, 22.0, 8.0, 28.0]), state
     assert all(board.pins[p] == 0 for p in cfg.enable_pins)  # shutdown disabled the drives
+
+
+def test_drives_off_switches_the_lines_off_when_the_encoders_fail_to_initialise(xneck, tmp_path):
+    """Audit of 2026-11-28: rcpy's encoder module failing at import (upstream's C code returns NULL
+    when rc_encoder_eqep_init fails: a SystemError, not an ImportError) made `--drives-off` end in a
+    traceback before any enable line was written. The lines need rcpy.gpio alone."""
+    from pathlib import Path
+
+    fake = Path(__file__).parent / "fake_rcpy"
+    rlog = tmp_path / "rcpy.log"
+    env = {"PYTHONPATH": os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]),
+           "FAKE_RCPY_ENCODER_INIT_FAILS": "1", "FAKE_RCPY_LOG": str(rlog)}
+    off = xneck("bridge", "--driver", "beaglebone", "--drives-off", env=env, timeout=120)
+    out = off.stdout + off.stderr
+    assert off.returncode == 2 and "Traceback" not in out, out[-3000:]
+    assert "rcpy.encoder failed to initialise" in out and "the enable lines are off" in out, out[-3000:]
+    levels = {w[2]: w[3] for w in (line.split() for line in rlog.read_text().splitlines()) if w[1].startswith("gpio")}
+    assert all(levels.get(str(pin)) == "0" for pin in PINS), levels  # every enable line low (active high)
+
+
+@pytest.mark.parametrize(("table", "refused"), [
+    # one-sided, as cable forces only pull: motors 2 and 4 wind the other way and could never pull
+    ({"set_value_1": 0.10, "current_1_A": 0.0, "set_value_2": 0.90, "current_2_A": 5.0, "direction": [1, -1, 1, -1]},
+     "motor 2 (direction -1)"),
+    # ±0.5 A typed for ±5 A: the ESCONs would drive ten times the force the bridge reports
+    ({"current_1_A": -0.5, "current_2_A": 0.5}, "motor 1 (direction +1)"),
+])
+def test_an_escon_map_that_cannot_reach_f_max_in_every_direction_is_refused(board, params, table, refused):
+    """Audit of 2026-11-28: both configs were accepted and the drives enabled; commanding 100 N gave
+    0 A on two motors, or at most 22.9 N reported while the drives drove up to 229 N."""
+    from server.cli.processes import make_driver
+
+    with pytest.raises(DriverError, match=rf"{re.escape(refused)} needs set value .* outside \[0.1, 0.9\]"):
+        make_driver("beaglebone", params, {"n_motors": 4, **table})
+    assert board.calls == [] and board.pins == {}  # before the board is touched
+    make_driver("beaglebone", params, {"n_motors": 4, "direction": [1, -1, 1, -1]})  # the default map: both ways
+
+
+@pytest.mark.parametrize("rate_hz", [20_000.0, 1e6, 10.0])
+def test_a_driver_rate_out_of_range_is_refused(board, params, rate_hz):
+    """Audit of 2026-11-28: `rate_hz` in escon.toml was taken up to 1 MHz: the bridge's 10 ms
+    timeout became 200-1,000 unanswered states and its loop never slept."""
+    from server.cli.processes import make_driver
+
+    with pytest.raises(DriverError, match=r"rate_hz must be within \[50, 2000\] Hz"):
+        make_driver("beaglebone", params, {"n_motors": 4, "rate_hz": rate_hz})
+    assert board.calls == []
+
+
+def test_an_estop_whose_disable_fails_leaves_no_claim_that_the_drives_are_off(tmp_path):
+    """Audit of 2026-11-28: an enable line stuck high from its third write (configure off, enable
+    on, then the e-stop's off): the bridge exited on the fault with its last state on the bus saying
+    `disabled` and no line of its log saying DRIVES MAY BE ON."""
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from bridge import bus
+    from bridge.session import free_tcp_port, liveliness_token, open_session, publisher
+
+    fake = Path(__file__).parent / "fake_rcpy"
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XNECK_REALTIME": "0", "FAKE_RCPY_STUCK_HIGH": f"{PINS[0]}:3",
+           "PYTHONPATH": os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")])}
+    states: list[bus.MotorState] = []
+    with open_session(listen=[hub], connect=[]) as s:
+        sub = s.declare_subscriber(bus.MOTOR_STATE, lambda x: states.append(bus.decode(bus.MotorState, x.payload.to_bytes())))
+        token = liveliness_token(s, "controller", "test-ctl")
+        commands, estop = publisher(s, bus.MOTOR_COMMAND), publisher(s, bus.ESTOP)
+        with open(tmp_path / "bridge.log", "wb") as log:
+            proc = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "beaglebone", "--listen",
+                                     "tcp/127.0.0.1:0", "--connect", hub], stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            deadline = time.monotonic() + 60
+            while not states or states[-1].drive != "active":
+                assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "bridge.log").read_text()[-3000:]
+                if states:
+                    commands.put(bus.ForceCommand(seq=len(states), stamp_s=states[-1].stamp_s, force_N=[20.0] * 4,
+                                                  source="test", sender="test-ctl", epoch=states[-1].epoch))
+                time.sleep(0.002)
+            estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="operator"))
+            proc.wait(20)
+            time.sleep(0.3)  # the last state on its way
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            sub.undeclare()
+            token.undeclare()
+    out = (tmp_path / "bridge.log").read_text()
+    assert proc.returncode != 0, out[-3000:]
+    assert "DRIVES MAY BE ON" in out, out[-3000:]
+    last = states[-1]
+    assert last.drive != "disabled" and "DRIVES MAY BE ON" in last.hold_reason, last
+
+
+def test_a_pru_encoder_reading_minus_one_at_start_is_warned(board, params, caplog):
+    """Audit of 2026-11-28: channel 4 is the PRU's; without its firmware librobotcontrol reads -1
+    every time, which the driver zeroed as a count and nothing flagged."""
+    import logging
+
+    board.counts[4] = -1
+    drv = _driver(params)
+    with caplog.at_level(logging.WARNING, logger="xneck"):
+        drv.configure()
+    assert any("encoder channel 4 reads -1" in r.getMessage() for r in caplog.records), caplog.text
+    caplog.clear()
+    board.counts[4] = 0
+    with caplog.at_level(logging.WARNING, logger="xneck"):
+        _driver(params).configure()
+    assert not any("reads -1" in r.getMessage() for r in caplog.records)

@@ -168,21 +168,34 @@ class Transmission:
         return self.r_d / (self.R * self.k_t)
 
 
+#: The Blue's fourth quadrature counter is read by the PRU, not an eQEP (librobotcontrol).
+PRU_ENCODER_CHANNEL = 4
+
+
 class _Board:
     """The rcpy modules this driver calls, in one place (the layer the tests fake)."""
 
     def __init__(self) -> None:
         try:
             importlib.import_module("rcpy")  # initialises the board (librobotcontrol)
-            self.encoder = importlib.import_module("rcpy.encoder")
-            self.motor = importlib.import_module("rcpy.motor")
-            self.gpio = importlib.import_module("rcpy.gpio")
+            self.gpio = importlib.import_module("rcpy.gpio")  # first: the enable lines are all drives-off needs
         except ImportError as exc:
             raise DriverError(
                 "the beaglebone driver needs rcpy, the BeagleBone Blue's Python library (librobotcontrol), "
                 f"which is not installed here ({exc}). Run it on the board after `pip install rcpy`, "
                 "or choose --driver twin or --driver replay."
             ) from None
+        # The encoder and motor modules initialise hardware when imported (rcpy's C code returns
+        # NULL, a SystemError, when rc_encoder_eqep_init fails): a failure here must not stop the
+        # enable lines from being switched off (audit of 2026-11-28: --drives-off touched no line).
+        self.encoder: Any = None
+        self.motor: Any = None
+        self.failed: dict[str, str] = {}
+        for name in ("encoder", "motor"):
+            try:
+                setattr(self, name, importlib.import_module(f"rcpy.{name}"))
+            except Exception as exc:  # noqa: BLE001 - reported by the driver, after the lines are off
+                self.failed[name] = f"rcpy.{name} failed to initialise ({type(exc).__name__}: {exc})"
 
 
 class BeagleBoneDriver(Driver):
@@ -213,7 +226,23 @@ class BeagleBoneDriver(Driver):
         if config.n_motors != params.n_cables:
             raise DriverError(f"beaglebone: the driver config has n_motors = {config.n_motors}, the parameter set "
                               f"{params.n_cables} cables: every drive must be wired in the config")
-        return cls(config, Transmission.from_params(params), params.sensors.encoder_counts_per_rev)
+        transmission = Transmission.from_params(params)
+        # Every motor must reach the current of f_max in its own direction within the set values
+        # the ESCON accepts: the map is one for all four, the direction is per motor, and a map
+        # that cannot (one-sided, or ±0.5 A typed for ±5 A) was accepted, so that two cables
+        # never pulled, or the drives drove ten times the force reported (audit of 2026-11-28).
+        f_max = float(params.limits.f_max)
+        current = min(f_max * transmission.amps_per_newton, transmission.current_max)
+        lo, hi = config.set_value_min, config.set_value_max
+        for motor, sign in enumerate(config.direction, start=1):
+            value = config.set_value_at(sign * current)
+            if not lo - 1e-9 <= value <= hi + 1e-9:
+                raise DriverError(
+                    f"beaglebone: motor {motor} (direction {sign:+d}) needs set value {value:.4g} for {sign * current:.3g} A "
+                    f"(f_max = {f_max:g} N), outside [{lo:g}, {hi:g}]: the ESCON map (set_value_1 -> current_1_A = "
+                    f"{config.set_value_1:g} -> {config.current_1_A:g} A, set_value_2 -> current_2_A = "
+                    f"{config.set_value_2:g} -> {config.current_2_A:g} A) must reach ±{current:.3g} A")
+        return cls(config, transmission, params.sensors.encoder_counts_per_rev)
 
     # -- conversions (pure, unit-tested against hand computation) ------------------------------
     def set_values(self, force_N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -238,8 +267,19 @@ class BeagleBoneDriver(Driver):
         self._board = _Board()
         # Enable lines may float high at boot: force every drive off before anything else.
         self._drives_off()
+        if self._board.failed:
+            raise DriverError("beaglebone: " + "; ".join(self._board.failed.values())
+                              + ": the enable lines are off; check the board (librobotcontrol) and rcpy")
         self._offset = self._counts()
         self._offset_list = self._offset.tolist()
+        for ch, count in zip(self.config.encoder_channels, self._offset_list, strict=True):
+            if ch == PRU_ENCODER_CHANNEL and count == -1:
+                # librobotcontrol's rc_encoder_pru_read() answers -1 on every read when the PRU
+                # firmware is not running (rcpy ignores the failed init): a dead encoder read as a
+                # count, caught only once the neck moves (audit of 2026-11-28)
+                log.warning("beaglebone: encoder channel %d reads -1 at start, what librobotcontrol returns when "
+                            "the PRU encoder firmware is not running: check it (docs/bridge.md) before moving",
+                            PRU_ENCODER_CHANNEL)
         log.info("beaglebone: encoders %s zeroed at %s counts (the neck must be straight now)",
                  self.config.encoder_channels, self._offset.astype(int).tolist())
 
@@ -261,7 +301,9 @@ class BeagleBoneDriver(Driver):
     def _on_close(self) -> None:
         self._drives_off()
         try:
-            self._require_board().motor.disable()
+            board = self._require_board()
+            if board.motor is not None:
+                board.motor.disable()
         except Exception:
             log.exception("beaglebone: could not put the motor outputs in standby")
 
@@ -297,9 +339,12 @@ class BeagleBoneDriver(Driver):
                 self._set_enable(pin, False)
             except Exception as exc:  # noqa: BLE001 - try every drive, then report all failures
                 errors.append(f"enable pin {pin}: {exc}")
+        motor = board.motor  # None when rcpy.motor failed to initialise: the lines off are what count
         for ch in cfg.motor_channels:
+            if motor is None:
+                break
             try:
-                board.motor.set(ch, self._zero_duty)
+                motor.set(ch, self._zero_duty)
             except Exception as exc:  # noqa: BLE001 - try every drive, then report all failures
                 errors.append(f"motor output {ch}: {exc}")
         if errors:

@@ -126,8 +126,8 @@ def _drives_off(driver: str, driver_config: Path | None, params_file: Path | Non
     try:
         drv = make_driver(driver, params, _driver_table(driver_config))
         drv.configure()
-    except (DriverError, ValueError) as exc:
-        raise fail(f"could not disable the drives: {exc}") from None
+    except (DriverError, ValueError) as exc:  # the reason says whether the lines were switched off
+        raise fail(f"--drives-off: {exc}") from None
     drv.close()  # disables them once more, and must say so
     if drv.close_error:
         raise fail(f"could not disable the drives: {drv.close_error}")
