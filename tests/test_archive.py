@@ -200,13 +200,18 @@ def _crashing_file(path: Path, n_chunks: int) -> list[tuple[int, int]]:
     return [(c.chunk_start_offset, c.chunk_start_offset + c.chunk_length) for c in summary.chunk_indexes]
 
 
+def _cut_points(chunks: list[tuple[int, int]], size: int) -> list[int]:
+    """Where a crash may cut a file of four chunks: inside a chunk's header, in its middle, one
+    byte short of its end, at its end, in the message indexes, the summary and the footer."""
+    return sorted({chunks[0][0] + 3, chunks[1][0] + 20, (chunks[1][0] + chunks[1][1]) // 2, chunks[2][1] - 1,
+                   chunks[2][1], chunks[3][1] + 5, size - 30, size - 1})
+
+
 def test_truncated_files_are_rejected_then_recovered(tmp_path: Path) -> None:
     full = tmp_path / "full.mcap"
     chunks = _crashing_file(full, 4)
     data = full.read_bytes()
-    cuts = {chunks[0][0] + 3, chunks[1][0] + 20, (chunks[1][0] + chunks[1][1]) // 2, chunks[2][1] - 1,
-            chunks[2][1], chunks[3][1] + 5, len(data) - 30, len(data) - 1}
-    for cut in sorted(cuts):
+    for cut in _cut_points(chunks, len(data)):
         path = tmp_path / f"cut-{cut}.mcap"
         path.write_bytes(data[:cut])
         with pytest.raises(ArchiveError, match="truncated or unfinished"):
@@ -230,9 +235,7 @@ def test_an_unfinished_file_is_finished_in_place_with_the_outcome_given(tmp_path
     full = tmp_path / "full.mcap"
     chunks = _crashing_file(full, 4)
     data = full.read_bytes()
-    cuts = {chunks[0][0] + 3, chunks[1][0] + 20, (chunks[1][0] + chunks[1][1]) // 2, chunks[2][1] - 1,
-            chunks[2][1], chunks[3][1] + 5, len(data) - 30, len(data) - 1}
-    for cut in sorted(cuts):
+    for cut in _cut_points(chunks, len(data)):
         path = tmp_path / f"cut-{cut}.mcap"
         path.write_bytes(data[:cut])
         complete = sum(1 for _, end in chunks if end <= cut)
