@@ -56,6 +56,18 @@ RELIABLE_KEYS = frozenset({bus.ESTOP, bus.CAMPAIGN_EVENTS, bus.CAMPAIGN_REQUEST}
 #: Transmit queue of the real-time priority, in batches (one express message each); see zenoh_config.
 REAL_TIME_QUEUE_BATCHES = 16
 
+#: The Zenoh attachment of every message a replay republishes (server/replay.py): a recorded
+#: state is not the bridge's word now, and a console that took it for one showed the e-stop
+#: released while the bridge held it engaged (audit of 2026-11-28). :func:`replayed` tells it.
+REPLAYED = b"xneck-replay"
+
+
+def replayed(sample: zenoh.Sample) -> bool:
+    """Whether ``sample`` was republished by a replay (:data:`REPLAYED`)."""
+    attachment = sample.attachment
+    return attachment is not None and attachment.to_bytes() == REPLAYED
+
+
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64
@@ -368,12 +380,16 @@ class BusPublisher(Generic[M]):
             express=real_time,
         )
 
-    def put(self, msg: M) -> None:
-        """Encode and publish. Raises ``TypeError`` for a message of another type and
-        :class:`bus.BusEncodeError` for a non-finite float."""
+    def put(self, msg: M, *, attachment: bytes | None = None) -> None:
+        """Encode and publish (``attachment``: Zenoh's, e.g. :data:`REPLAYED`). Raises
+        ``TypeError`` for a message of another type and :class:`bus.BusEncodeError` for a
+        non-finite float."""
         if type(msg) is not self.msg_type:
             raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
-        self._pub.put(bus.encode(msg))
+        if attachment is None:
+            self._pub.put(bus.encode(msg))
+        else:
+            self._pub.put(bus.encode(msg), attachment=attachment)
 
     def put_bytes(self, data: bytes) -> None:
         """Publish a payload already made by :func:`bus.encode` from a message of this key's type
@@ -556,8 +572,9 @@ def subscribe_latest(
 
 
 __all__ = [
-    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS",
+    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
     "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "subscribe_latest", "zenoh_config",
+    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "subscribe_latest",
+    "zenoh_config",
     "zenoh_runtime_environment",
 ]

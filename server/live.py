@@ -47,6 +47,7 @@ import msgspec
 import zenoh
 
 from bridge import bus
+from bridge.session import replayed
 from server.quality import drive_estop
 
 #: Series name -> (key, fields forwarded to browsers).
@@ -309,7 +310,10 @@ class LiveBus:
     def _subscribe(self, name: str) -> None:
         sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(1))
         self._subs[name] = sub
-        self.values.add_source(name, sub.try_recv)
+        if name == "state":  # the bridge's word (e-stop, drives, freshness): never a replayed state
+            self.values.add_source(name, lambda: _live_only(sub.try_recv()))
+        else:
+            self.values.add_source(name, sub.try_recv)
 
     def _watched(self, watching: bool) -> None:
         with self._lock:
@@ -332,6 +336,11 @@ class LiveBus:
         for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()
+
+
+def _live_only(sample: Any) -> Any:
+    """``sample`` unless a replay republished it (bridge.session.REPLAYED): None then, as if none came."""
+    return None if sample is not None and replayed(sample) else sample
 
 
 @dataclass(eq=False)

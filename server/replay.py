@@ -17,7 +17,7 @@ import zenoh
 
 from bridge import bus
 from bridge.archive_read import read_campaign
-from bridge.session import BusPublisher, publisher
+from bridge.session import REPLAYED, BusPublisher, publisher
 
 NEVER_REPLAYED: frozenset[type[bus.BusMessage]] = frozenset({bus.ForceCommand, bus.EStop, bus.CampaignRequest})
 
@@ -76,7 +76,7 @@ class Replay:
                     return
                 if self._stop.is_set():
                     return
-                self._pubs[key].put(msg)
+                self._pubs[key].put(msg, attachment=REPLAYED)  # never the bridge's word now
                 self.published += 1
         except Exception as exc:  # noqa: BLE001 - shown in the status, not lost in a thread
             self.error = f"{type(exc).__name__}: {exc}"

@@ -16,7 +16,7 @@ from server_harness import AUTH, running_server, wait_until
 
 from bridge import bus
 from bridge.archive import write_campaign
-from bridge.session import open_session
+from bridge.session import open_session, publisher
 from server.records import CampaignIndex, CampaignRecord
 
 TICKS = 30_000  # 60 s at 500 Hz: reading the archive takes a good fraction of a second, the window of the race
@@ -153,3 +153,43 @@ def test_a_replay_never_republishes_a_campaign_request(tmp_path: Path) -> None:
         replay = Replay(session, "run-r", path)
         assert replay.total == 1
         assert [key for _, key, _ in replay._messages] == [bus.MOTOR_STATE]
+
+
+def test_a_replay_never_stands_for_the_bridge_whose_estop_is_engaged(console) -> None:
+    """Audit of 2026-11-28: with the bridge's e-stop engaged, a replay's recorded states (drive
+    active, no e-stop) on the live key made the console, and so the dashboard, show the e-stop
+    released and the drives active about a third of the time. Replayed messages carry the
+    REPLAYED attachment, and the bridge's word is never taken from them."""
+    a, _b, cid, _states, _data = console
+    stop = threading.Event()
+    session = open_session(connect=[a.get("/api/system/health").json()["hub"]])
+
+    def bridge() -> None:  # a bridge with its e-stop engaged, at the control rate
+        pub = publisher(session, bus.MOTOR_STATE)
+        k = 0
+        while not stop.is_set():
+            k += 1
+            pub.put(bus.MotorState(seq=k, stamp_s=time.time(), theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4,
+                                   drive="disabled", epoch="live", bridge="live-bridge", estop_engaged=True,
+                                   estop_reason="the live bridge"))
+            time.sleep(0.002)
+        pub.close()
+
+    thread = threading.Thread(target=bridge, daemon=True)
+    thread.start()
+    try:
+        assert wait_until(lambda: a.get("/api/system/health").json()["estop"].get("engaged") is True, 10)
+        r = a.post(f"/api/campaigns/{cid}/replay", json={"speed": 1.0}, headers=AUTH)
+        assert r.status_code == 200, r.text
+        seen = []
+        for _ in range(30):
+            seen.append(a.get("/api/system/health").json()["estop"])
+            time.sleep(0.1)
+        assert all(e.get("engaged") is True and e.get("source") == "bridge" for e in seen), \
+            [e for e in seen if not e.get("engaged")][:3]
+    finally:
+        a.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+        stop.set()
+        thread.join(5)
+        session.close()
+        assert wait_until(lambda: _idle(a), 20)
