@@ -315,6 +315,36 @@ def test_the_header_says_when_the_bus_settings_changed_since_the_start(console, 
     page.wait_for_function("document.querySelector('#bus-changed').hidden", timeout=15000)
 
 
+def test_an_estop_the_console_refuses_is_said_in_the_banner_until_one_is_sent(console):
+    """Audit of 2026-11-28: with a wrong token, Escape's "E-STOP NOT SENT: 403" was wiped by the
+    banner's 250 ms refresh (hidden in 27 of 30 looks), and the E-STOP button's error went to the
+    form, off screen. Both now stay in the sticky banner until an e-stop is sent."""
+    page = console.page
+    console.wait_idle()
+    page.fill("#token", "wrong-token")
+    page.dispatch_event("#token", "change")
+    try:
+        page.evaluate("window.scrollTo(0, document.body.scrollHeight)")
+        for act in (lambda: page.keyboard.press("Escape"), lambda: page.click("#estop")):
+            act()
+            page.wait_for_function("document.querySelector('#live-lost').textContent.includes('E-STOP NOT SENT')",
+                                   timeout=10000)
+            looks = []
+            for _ in range(12):
+                looks.append(page.evaluate("(() => { const b = document.querySelector('#live-lost'); "
+                                           "return !b.hidden && b.textContent.includes('E-STOP NOT SENT'); })()"))
+                page.wait_for_timeout(100)
+            assert all(looks), looks
+            assert page.locator("#live-lost").is_visible() and "403" in page.inner_text("#live-lost")
+        assert not console.app.state.live.values.get("state").estop_engaged  # nothing was sent
+    finally:
+        page.fill("#token", TOKEN)
+        page.dispatch_event("#token", "change")
+    page.click("#estop-release")  # a call the console takes clears the banner
+    page.wait_for_function("!document.querySelector('#live-lost').textContent.includes('NOT SENT') || "
+                           "document.querySelector('#live-lost').hidden", timeout=10000)
+
+
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped

@@ -193,12 +193,9 @@ $("#stop").addEventListener("click", async () => {
   if (!runningId) return;
   try { await api("POST", `/api/campaigns/${runningId}/stop`); } catch (e) { showError(e); }
 });
-$("#estop").addEventListener("click", async () => {
-  try { await api("POST", "/api/system/estop", { engaged: true, reason: "dashboard" }); } catch (e) { showError(e); }
-});
-$("#estop-release").addEventListener("click", async () => {
-  try { await api("POST", "/api/system/estop", { engaged: false, reason: "dashboard" }); } catch (e) { showError(e); }
-});
+// In the sticky banner, not the form's error line (off screen when scrolled): safety.js.
+$("#estop").addEventListener("click", () => window.xneckSafety.send(true, "dashboard"));
+$("#estop-release").addEventListener("click", () => window.xneckSafety.send(false, "dashboard"));
 $("#refresh").addEventListener("click", () => refreshList());
 
 function cell(text) { const td = document.createElement("td"); td.textContent = text; return td; }

@@ -8,14 +8,21 @@
 (() => {
   const STREAM_LOST_MS = 2000;   // no live frame for this long: the stream is lost
   const BRIDGE_SILENT_MS = 1500; // frames but no new motor state: the bridge is silent
-  const safety = (window.xneckSafety = { lastFrame: 0, lastState: 0, stateStamp: null, escapes: 0, banner: "" });
+  const safety = (window.xneckSafety = { lastFrame: 0, lastState: 0, stateStamp: null, escapes: 0, banner: "",
+                                         notSent: "" });
   // True while the live stream brings new motor states: they then show the e-stop (app.js).
   safety.liveStateFresh = () => safety.lastState > 0 && Date.now() - safety.lastState <= BRIDGE_SILENT_MS;
 
-  async function engage(reason) {
-    try { await api("POST", "/api/system/estop", { engaged: true, reason }); }
-    catch (e) { $("#live-lost").hidden = false; $("#live-lost").textContent = `E-STOP NOT SENT: ${e.message || e}`; }
-  }
+  // An e-stop (or release) the console refused stays said in the sticky banner until one is
+  // sent: the 250 ms refresh below had wiped it within a tick, and the button's error went to the
+  // form, off screen (audit of 2026-11-28).
+  safety.sendFailed = (what, e) => { safety.notSent = `${what} NOT SENT: ${e.message || e}`; render(); };
+  safety.sent = () => { safety.notSent = ""; render(); };
+  safety.send = async (engaged, reason) => {
+    try { await api("POST", "/api/system/estop", { engaged, reason }); safety.sent(); }
+    catch (e) { safety.sendFailed(engaged ? "E-STOP" : "E-STOP RELEASE", e); }
+  };
+  const engage = (reason) => safety.send(true, reason);
 
   document.addEventListener("keydown", (ev) => {
     if (ev.key !== "Escape") return;
@@ -34,7 +41,7 @@
     }
   });
 
-  setInterval(() => {
+  function render() {
     const now = Date.now(), box = $("#live-lost");
     let text = "";
     if (safety.lastFrame && now - safety.lastFrame > STREAM_LOST_MS) {
@@ -42,9 +49,11 @@
     } else if (safety.lastState && now - safety.lastState > BRIDGE_SILENT_MS) {
       text = `NO MOTOR STATE from the bridge for ${((now - safety.lastState) / 1000).toFixed(0)} s: the drives' state is unknown`;
     }
+    if (safety.notSent) text = text ? `${safety.notSent} · ${text}` : safety.notSent;
     safety.banner = text;
     box.hidden = !text;
     if (text) box.textContent = text;
-  }, 250);
+  }
+  setInterval(render, 250);
 })();
 
