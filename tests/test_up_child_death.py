@@ -173,3 +173,27 @@ def test_a_campaign_that_ended_of_the_cause_before_it_was_told_is_named_within_t
     assert info["outcome"] == "aborted" and info["message"] == named, info
     assert cause not in read_campaign(tmp_path / "d" / "campaigns" / f"{done}.mcap").info.get("message", "")
     assert json.loads((tmp_path / "d" / "campaigns" / f"{cid}.json").read_text())["message"] == named
+
+
+def test_ctrl_c_mid_campaign_ends_it_naming_the_operators_stop(tmp_path: Path) -> None:
+    """Audit of 2026-11-28: Ctrl-C to `xneck up` mid-campaign stopped the controller and the
+    bridge before the console, and the campaign recorded that side effect, "the drives were
+    disabled during the campaign: the bridge's drives are disabled"."""
+    cause = "xneck up was stopped (SIGINT)"
+    with _xneck_up(tmp_path) as (base, data, up):
+        def kinds() -> set[str]:
+            answer = _get(base + "/api/system/processes", 2)
+            return {p["kind"] for p in answer["processes"]} if answer else set()
+
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
+        auth = {"Authorization": f"Bearer {(data / 'token').read_text().strip()}"}
+        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=auth, timeout=90)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        assert wait_until(lambda: (_get(f"{base}/api/campaigns/{cid}") or {}).get("progress", 0) > 0.05, 60, 0.1)
+        up.send_signal(signal.SIGINT)  # what Ctrl-C in its terminal sends it
+        up.wait(60)
+    record = json.loads((data / "campaigns" / f"{cid}.json").read_text())
+    assert record["status"] == "aborted" and record["message"].startswith(cause), record["message"]
+    assert read_campaign(data / "campaigns" / f"{cid}.mcap").info["message"] == record["message"]
+    assert f"campaign {cid} aborted: {cause}" in (tmp_path / "up.log").read_text()

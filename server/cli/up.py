@@ -504,6 +504,14 @@ def up(
             if exit_after is not None and time.monotonic() - started > exit_after:
                 break
             time.sleep(0.2)
+        if code == 0 and procs.get("server") is not None and procs["server"].poll() is None:
+            # The operator's stop (Ctrl-C, SIGTERM, --exit-after) ends a running campaign with that
+            # cause before the controller and the bridge stop: it had recorded their stop's side
+            # effect, "the drives were disabled during the campaign" (audit of 2026-11-28).
+            why = f"xneck up was stopped ({stop['signal']})" if stop["signal"] else "xneck up reached --exit-after"
+            told = abort_campaign(url, _token(data_dir), why, 0.0)
+            if told != "no campaign was running":
+                typer.secho(told, err=True, fg="yellow")
     except RuntimeError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         code = 1
