@@ -315,6 +315,43 @@ def test_the_header_says_when_the_bus_settings_changed_since_the_start(console, 
     page.wait_for_function("document.querySelector('#bus-changed').hidden", timeout=15000)
 
 
+def test_a_campaign_or_replay_started_elsewhere_is_shown_and_stopped_and_a_hung_controller_is_said(console):
+    """Audit of 2026-11-28: a campaign started by REST (or another tab) after the page loaded never
+    appeared and the page's Stop silently did nothing; a replay was not shown and Stop could not end
+    it; a controller hung for 8 s left its last α̂ looking live, no banner."""
+    page, http = console.page, console.http
+    console.wait_idle()
+    slow = {"kind": "control", "law": 2, "waypoints": {"name": "slow", "waypoints_deg": [[0, 0, 0], [6, 4, 2], [0, 0, 0]],
+                                                       "durations_s": 8.0, "dwell_s": 0.5}}
+    r = http.post("/api/campaigns", json=slow, headers=AUTH)
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    page.wait_for_function(f"document.querySelector('#progress-text').textContent.includes('{cid}')", timeout=15000)
+    page.click("#stop")
+    assert wait_until(lambda: http.get(f"/api/campaigns/{cid}").json()["status"] != "running", 30, 0.2)
+    console.wait_idle()
+
+    r = http.post("/api/campaigns/run-a/replay", json={"speed": 0.2}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    page.wait_for_function("document.querySelector('#progress-text').textContent.includes('replay of run-a')",
+                           timeout=15000)
+    page.click("#stop")
+    assert wait_until(lambda: not (http.get("/api/system/health").json()["replay"] or {}).get("running"), 20, 0.2)
+
+    controller = console.procs[1]
+    os.kill(controller.pid, signal.SIGSTOP)
+    try:
+        page.wait_for_function("document.querySelector('#live-lost').textContent.includes('NO CONTROLLER STATUS')",
+                               timeout=15000)
+        assert page.locator("#live-lost").is_visible()
+    finally:
+        os.kill(controller.pid, signal.SIGCONT)
+    cleared = ("document.querySelector('#live-lost').hidden || "
+               "!document.querySelector('#live-lost').textContent.includes('NO CONTROLLER STATUS')")
+    assert wait_until(lambda: page.evaluate(cleared), 30, 0.2), \
+        (page.inner_text("#live-lost"), (console.tmp / "controller.log").read_text()[-1500:])
+
+
 def test_an_estop_the_console_refuses_is_said_in_the_banner_until_one_is_sent(console):
     """Audit of 2026-11-28: with a wrong token, Escape's "E-STOP NOT SENT: 403" was wiped by the
     banner's 250 ms refresh (hidden in 27 of 30 looks), and the E-STOP button's error went to the

@@ -12,6 +12,7 @@ const stats = (window.xneckStats = { frames: 0, points: 0, lastStamp: null });
 
 let config = null;
 let runningId = null;
+let replayId = null;  // the campaign a replay is republishing (health.replay), null if none runs
 
 function token() { return $("#token").value.trim(); }
 $("#token").value = localStorage.getItem("xneck-token") || "";
@@ -189,9 +190,12 @@ $("#start-form").addEventListener("submit", async (ev) => {
   } catch (e) { showError(e); }
 });
 
+// Stops the running campaign, whoever started it (this page, another, REST, a script), or else
+// the running replay (audit of 2026-11-28: both were beyond this button, which said nothing).
 $("#stop").addEventListener("click", async () => {
-  if (!runningId) return;
-  try { await api("POST", `/api/campaigns/${runningId}/stop`); } catch (e) { showError(e); }
+  const id = runningId || replayId;
+  if (!id) return showError("nothing is running: no campaign and no replay to stop");
+  try { await api("POST", `/api/campaigns/${id}/stop`); } catch (e) { showError(e); }
 });
 // In the sticky banner, not the form's error line (off screen when scrolled): safety.js.
 $("#estop").addEventListener("click", () => window.xneckSafety.send(true, "dashboard"));
@@ -375,6 +379,14 @@ async function pollStatus() {
     // banner blink off and on right after an engage.
     const safety = window.xneckSafety;
     if (!(safety && safety.liveStateFresh())) showEstop(h.estop);
+    if (!runningId && h.running_campaign_id) {  // started elsewhere: followed as this page's own
+      runningId = h.running_campaign_id;
+      refreshList();
+    }
+    const replay = h.replay && h.replay.running ? h.replay : null;
+    replayId = replay ? replay.campaign_id : null;
+    if (!runningId && replay) setProgress(replay.progress, `replay of ${replay.campaign_id}`);
+    else if (!runningId && $("#progress-text").textContent.startsWith("replay of")) setProgress(1, "replay ended:");
     if (runningId && h.running_campaign_id !== runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
       setProgress(rec.progress, `${rec.id} ${rec.status}`);
