@@ -78,20 +78,25 @@ def _xneck_up(tmp_path: Path):
         stop_xneck_up(up)
 
 
+def _start_gentle(base: str, data: Path, tmp_path: Path) -> str:
+    """Once the stack's bridge and controller service are up, start GENTLE through REST; its id."""
+    def kinds() -> set[str]:
+        answer = _get(base + "/api/system/processes", 2)
+        return {p["kind"] for p in answer["processes"]} if answer else set()
+
+    assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
+    auth = {"Authorization": f"Bearer {(data / 'token').read_text().strip()}"}
+    r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=auth, timeout=90)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
 @pytest.mark.parametrize("victim", ["bridge", "controller"])
 def test_a_child_killed_mid_campaign_under_xneck_up_ends_it_naming_the_child_and_signal(tmp_path: Path,
                                                                                        victim: str) -> None:
     cause = f"{victim} process exited (signal SIGKILL)"
     with _xneck_up(tmp_path) as (base, data, up):
-        def kinds() -> set[str]:
-            answer = _get(base + "/api/system/processes", 2)
-            return {p["kind"] for p in answer["processes"]} if answer else set()
-
-        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
-        auth = {"Authorization": f"Bearer {(data / 'token').read_text().strip()}"}
-        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=auth, timeout=90)
-        assert r.status_code == 201, r.text
-        cid = r.json()["id"]
+        cid = _start_gentle(base, data, tmp_path)
         last: dict = {}
 
         def under_way() -> bool:
@@ -181,15 +186,7 @@ def test_ctrl_c_mid_campaign_ends_it_naming_the_operators_stop(tmp_path: Path) -
     disabled during the campaign: the bridge's drives are disabled"."""
     cause = "xneck up was stopped (SIGINT)"
     with _xneck_up(tmp_path) as (base, data, up):
-        def kinds() -> set[str]:
-            answer = _get(base + "/api/system/processes", 2)
-            return {p["kind"] for p in answer["processes"]} if answer else set()
-
-        assert wait_until(lambda: {"bridge", "campaign-service"} <= kinds(), 90, 0.3), (tmp_path / "up.log").read_text()
-        auth = {"Authorization": f"Bearer {(data / 'token').read_text().strip()}"}
-        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=auth, timeout=90)
-        assert r.status_code == 201, r.text
-        cid = r.json()["id"]
+        cid = _start_gentle(base, data, tmp_path)
         assert wait_until(lambda: (_get(f"{base}/api/campaigns/{cid}") or {}).get("progress", 0) > 0.05, 60, 0.1)
         up.send_signal(signal.SIGINT)  # what Ctrl-C in its terminal sends it
         up.wait(60)
