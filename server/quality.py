@@ -101,7 +101,6 @@ class CampaignMonitor:
         self._timing: dict[str, Any] = {}  # the controller's own timing of this campaign (issue 21)
         self._follow = ""  # the campaign's controller instance ('' until told: every sender)
         self.epoch = ""  # the bridge run its commands answer ('' until one came: every bridge)
-        self.bridge = ""  # that run's bridge instance
         self.foreign = 0  # states and commands of other bridges and controllers, not taken
         self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
@@ -177,8 +176,6 @@ class CampaignMonitor:
             if self.epoch and msg.epoch != self.epoch:
                 self.foreign += 1
                 return
-            if self.epoch:
-                self.bridge = msg.bridge
             self._last_state_s = now
             # Drives are followed from the monitor's creation, the quality only within the window.
             if (engaged or msg.drive == "disabled") and not self.disabled_reason and not self._ended:
