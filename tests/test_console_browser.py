@@ -6,6 +6,7 @@ artifacts/ for a person to look at (docs/console.md lists them)."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import signal
@@ -350,6 +351,58 @@ def test_a_campaign_or_replay_started_elsewhere_is_shown_and_stopped_and_a_hung_
                "!document.querySelector('#live-lost').textContent.includes('NO CONTROLLER STATUS')")
     assert wait_until(lambda: page.evaluate(cleared), 30, 0.2), \
         (page.inner_text("#live-lost"), (console.tmp / "controller.log").read_text()[-1500:])
+
+
+def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(console):
+    """Audit of 2026-11-29: the form's error line (#error) kept a refusal's message after a later
+    action through it succeeded (stop, replay, delete, results), as if that one had failed. The
+    sticky safety banner has rules of its own (the e-stop test above)."""
+    page, http = console.page, console.http
+    console.wait_idle()
+    page.wait_for_function("runningId === null && replayId === null", timeout=15000)
+
+    def refused(action, text: str) -> None:
+        action()
+        page.wait_for_function(f"document.querySelector('#error').textContent.includes({text!r})", timeout=15000)
+
+    def cleared(action) -> None:
+        action()
+        page.wait_for_function("document.querySelector('#error').textContent === ''", timeout=15000)
+
+    def row_button(cid: str, label: str):
+        return lambda: page.locator(f'#campaigns tr[data-id="{cid}"] button', has_text=label).click(timeout=15000)
+
+    def refused_results() -> None:
+        refused(lambda: page.evaluate("showResults('no-such-run')"), "404")
+
+    page.select_option("#trajectory", "__custom")
+    try:
+        page.fill("textarea[name=waypoints]", json.dumps({**NOD, "waypoints_deg": [[0, 0, 0], [0, 75, 0], [0, 0, 0]]}))
+        refused(lambda: page.click("#start"), "out of the joint limits")
+        page.fill("textarea[name=waypoints]", json.dumps(NOD))
+        cleared(lambda: page.click("#start"))
+    finally:
+        page.select_option("#trajectory", "")
+    page.wait_for_function("runningId !== null", timeout=10000)
+    cid = page.evaluate("runningId")
+    refused(row_button("run-a", "replay"), "409")  # a campaign runs
+    cleared(lambda: page.click("#stop"))
+    assert wait_until(lambda: http.get(f"/api/campaigns/{cid}").json()["status"] != "running", 30, 0.2)
+    console.wait_idle()
+    page.evaluate("refreshList()")
+
+    refused_results()
+    cleared(row_button("run-a", "results"))
+    refused_results()
+    cleared(row_button("run-a", "replay"))
+    page.wait_for_function("replayId === 'run-a'", timeout=15000)
+    refused_results()
+    cleared(lambda: page.click("#stop"))
+    assert wait_until(lambda: not (http.get("/api/system/health").json()["replay"] or {}).get("running"), 20, 0.2)
+    refused_results()
+    page.once("dialog", lambda d: d.accept())
+    cleared(row_button(cid, "delete"))
+    assert http.get(f"/api/campaigns/{cid}").status_code == 404
 
 
 def test_an_estop_the_console_refuses_is_said_in_the_banner_until_one_is_sent(console):

@@ -38,6 +38,9 @@ async function api(method, path, body) {
   return data;
 }
 
+// The form's error line says why the last action through it failed; an action that succeeds
+// clears it (audit of 2026-11-29: a refused replay's 409 stood under the Stop that then worked).
+// The e-stop's refusals are in the sticky banner instead, with rules of their own (safety.js).
 function showError(e) { $("#error").textContent = e ? String(e.message || e) : ""; }
 
 // ---------------------------------------------------------------- live plots
@@ -186,6 +189,7 @@ $("#start-form").addEventListener("submit", async (ev) => {
     const rec = await api("POST", "/api/campaigns", body);
     runningId = rec.id;
     setProgress(0, `${rec.id} started`);
+    showError(null);
     refreshList();
   } catch (e) { showError(e); }
 });
@@ -195,7 +199,7 @@ $("#start-form").addEventListener("submit", async (ev) => {
 $("#stop").addEventListener("click", async () => {
   const id = runningId || replayId;
   if (!id) return showError("nothing is running: no campaign and no replay to stop");
-  try { await api("POST", `/api/campaigns/${id}/stop`); } catch (e) { showError(e); }
+  try { await api("POST", `/api/campaigns/${id}/stop`); showError(null); } catch (e) { showError(e); }
 });
 // In the sticky banner, not the form's error line (off screen when scrolled): safety.js.
 $("#estop").addEventListener("click", () => window.xneckSafety.send(true, "dashboard"));
@@ -219,11 +223,13 @@ async function refreshList() {
     const show = document.createElement("button"); show.textContent = "results";
     show.onclick = () => showResults(r.id);
     const replay = document.createElement("button"); replay.textContent = "replay";
-    replay.onclick = async () => { try { await api("POST", `/api/campaigns/${r.id}/replay`, { speed: 1.0 }); } catch (e) { showError(e); } };
+    replay.onclick = async () => {
+      try { await api("POST", `/api/campaigns/${r.id}/replay`, { speed: 1.0 }); showError(null); } catch (e) { showError(e); }
+    };
     const del = document.createElement("button"); del.textContent = "delete";
     del.onclick = async () => {
       if (!confirm(`Delete ${r.id}?`)) return;
-      try { await api("DELETE", `/api/campaigns/${r.id}`); refreshList(); } catch (e) { showError(e); }
+      try { await api("DELETE", `/api/campaigns/${r.id}`); showError(null); refreshList(); } catch (e) { showError(e); }
     };
     actions.append(show, replay, del);
     if (r.status !== "running") {
@@ -259,6 +265,7 @@ async function showResults(id) {
   box.replaceChildren();
   let res;
   try { res = await api("GET", `/api/campaigns/${id}/results`); } catch (e) { return showError(e); }
+  showError(null);
   const h = document.createElement("h3");
   h.textContent = `${res.id}: ${res.status}` + (res.identification_status ? ` (${res.identification_status})` : "");
   box.append(h);
