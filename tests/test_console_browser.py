@@ -140,6 +140,49 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     console.http.post(f"/api/campaigns/{cid}/stop", headers=AUTH)  # it ends while the next test starts
 
 
+REFUSED_POSE = [60.0, -60.0, 60.0]  # within the sliders' ±60°, but holding it needs 108 N > f_max: 422
+
+
+def _sliders(page) -> list[float]:
+    return page.evaluate("[...document.querySelectorAll('#jog-sliders input')].map((s) => Number(s.value))")
+
+
+def _refused_jog(page) -> str:
+    """Sliders 1 and 2 set to REFUSED_POSE without a jog, then slider 3 dragged there and released:
+    the console refuses the target. Returns the jog panel's error."""
+    sent = page.evaluate("window.xneckJog.sent")
+    page.evaluate("""([a, b]) => { const s = document.querySelectorAll('#jog-sliders input');
+        s[0].value = a; s[1].value = b; }""", REFUSED_POSE[:2])
+    _slide(page, 3, REFUSED_POSE[2])
+    page.wait_for_function("window.xneckJog.error.includes('422')", timeout=10000)
+    assert page.evaluate("window.xneckJog.sent") == sent + 1  # throttled: one jog for the drag and release
+    return page.evaluate("window.xneckJog.error")
+
+
+def test_a_refused_jog_puts_the_sliders_back_where_the_neck_goes(console):
+    """Audit of 2026-11-29: a jog target the console refused stayed on the sliders as if the neck
+    were going there. They go back to the last target accepted or, after "hold here", to α̂."""
+    page = console.page
+    console.wait_idle()  # the campaign the jog test stopped
+    page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
+    page.click("#jog-hold")  # the neck holds where it is: no jog target stands
+    page.wait_for_function("document.querySelector('#jog-status').textContent.startsWith('holding')", timeout=10000)
+    error = _refused_jog(page)
+    hat = page.evaluate("window.xneckJog.alphaHat")
+    assert np.abs(np.subtract(_sliders(page), hat)).max() < 0.6, (_sliders(page), hat, error)
+    assert "60.0°" not in page.inner_text("#jog-sliders"), page.inner_text("#jog-sliders")  # their values too
+    assert "[60.0, -60.0, 60.0]" in error and "forces out of bounds" in error, error
+
+    accepted = page.evaluate("window.xneckJog.accepted")
+    _slide(page, 1, 10.0)
+    page.wait_for_function(f"window.xneckJog.accepted > {accepted}", timeout=10000)
+    target = _sliders(page)
+    assert target[0] == 10.0, target
+    error = _refused_jog(page)
+    assert _sliders(page) == target, (_sliders(page), target, error)  # not α̂, still on its way
+    assert page.inner_text("#jog-status") == "" and "back to" in error, error
+
+
 def _camera_fitted(scene, client) -> bool:
     cam = client.camera
     distance = np.linalg.norm(np.asarray(cam.position) - scene.centre)

@@ -1,16 +1,28 @@
 // Jog: one slider per joint sends the target pose to POST /api/jog (the controller moves there by
 // its gentle approach and holds it). While a slider is dragged the newest target goes at most
 // every SEND_PERIOD_MS (the server refuses faster, 429); releasing it sends where it stopped, and
-// the neck holds there. "hold here" stops the move where the neck is. Uses api(), $ and DEG of app.js.
+// the neck holds there. "hold here" stops the move where the neck is. A target the console refuses
+// (409, 422, 503) leaves the sliders where the neck goes: the last target accepted or, with none
+// standing (none yet, "hold here", a campaign since), α̂. Uses api(), $, DEG and runningId of app.js.
 "use strict";
 
 (() => {
   const SEND_PERIOD_MS = 300;
-  const jog = (window.xneckJog = { sent: 0, accepted: 0, last: null, error: "", alphaHat: null });
+  // target: the last target accepted (deg) while it stands, null when none does.
+  const jog = (window.xneckJog = { sent: 0, accepted: 0, last: null, error: "", alphaHat: null, target: null });
   let sliders = [];
   let timer = null, lastSent = 0, inFlight = false, pending = false;
 
   function target() { return sliders.map((s) => Number(s.value)); }
+  const degrees = (alpha) => `[${alpha.map((a) => a.toFixed(1)).join(", ")}]°`;
+
+  function show(alpha) {  // the sliders and their values at alpha (deg)
+    alpha.forEach((a, j) => {
+      if (!sliders[j]) return;
+      sliders[j].value = a.toFixed(1);
+      sliders[j].nextSibling.textContent = Number(sliders[j].value).toFixed(1) + "°";
+    });
+  }
 
   function say(text, isError) {
     $("#jog-status").textContent = isError ? "" : text;
@@ -19,20 +31,30 @@
   }
 
   async function send() {
+    clearTimeout(timer); timer = null;
     if (inFlight) { pending = true; return; }
     inFlight = true; pending = false; lastSent = Date.now(); jog.sent++;
     const alpha = target();
     try {
       const r = await api("POST", "/api/jog", { alpha_deg: alpha });
-      jog.accepted++; jog.last = r;
-      say(`→ [${alpha.map((a) => a.toFixed(1)).join(", ")}]° in ${r.duration_s.toFixed(1)} s (${r.jog_id})`, false);
+      jog.accepted++; jog.last = r; jog.target = alpha;
+      say(`→ ${degrees(alpha)} in ${r.duration_s.toFixed(1)} s (${r.jog_id})`, false);
     } catch (e) {
       if (String(e.message).startsWith("429")) pending = true;  // too fast: the newest target goes next
-      else say(e.message || String(e), true);
+      else refused(alpha, e);
     } finally {
       inFlight = false;
       if (pending) schedule();
     }
+  }
+
+  // Audit of 2026-11-29: a refused target stayed on the sliders as if the neck were going there.
+  // Unless a newer target waits to be sent (a drag goes on), they go back to where it goes.
+  function refused(alpha, e) {
+    const back = pending || timer !== null ? null : jog.target || jog.alphaHat;
+    if (back) show(back);
+    say(`refused ${degrees(alpha)}: ${e.message || e}` + (back ? ` — back to ${degrees(target())}, ` +
+      (jog.target ? "the last target accepted" : "where the neck is") : ""), true);
   }
 
   function schedule() {
@@ -72,16 +94,18 @@
     jog.alphaHat.forEach((a, j) => {
       const el = document.getElementById(`jog-hat-${j + 1}`);
       if (el) el.textContent = `α̂ ${a.toFixed(1)}°`;
-      if (first && sliders[j]) {  // start from where the neck is, not from zero
-        sliders[j].value = a.toFixed(1);
-        sliders[j].nextSibling.textContent = Number(sliders[j].value).toFixed(1) + "°";
-      }
     });
+    if (first) show(jog.alphaHat);  // start from where the neck is, not from zero
+    if (runningId !== null) jog.target = null;  // a campaign has the neck: no jog target stands
   });
 
   $("#jog-hold").addEventListener("click", async () => {
-    clearTimeout(timer); pending = false;
-    try { const r = await api("POST", "/api/jog/stop"); say(`holding (${r.stopped.join(", ") || "nothing moving"})`, false); }
+    clearTimeout(timer); timer = null; pending = false;
+    try {
+      const r = await api("POST", "/api/jog/stop");
+      jog.target = null;  // the neck holds where it is
+      say(`holding (${r.stopped.join(", ") || "nothing moving"})`, false);
+    }
     catch (e) { say(e.message || String(e), true); }
   });
 })();
