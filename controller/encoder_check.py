@@ -37,9 +37,10 @@ is longer than its path by δ_j ≥ 0 and carries no stretch, so its e_j is −�
 stretch term (the parity of the lengths alone, s_l = s + nᵀx/|n|) slack only ever lowers s_l, n
 being positive (a neck the cables can hold, eqs. 63-65). After an e-stop dropped a moving neck,
 three cables stayed slack (up to 20 mm of parity) for more than 10 s on the robot truth: the
-motors' stiction (19-24 N) exceeds the hold's forces (t_min = 8.5 N), so nothing winds them in
-until a move does, and a check blind to slack named a healthy encoder stuck 0.56 s after the
-release (audit of 2026-11-28). The drives only wind the slack in, so the service tells the check
+motors' stiction (19-24 N) exceeds the hold's forces (t_min = 8.5 N), so nothing wound them in
+until a move did, and a check blind to slack named a healthy encoder stuck 0.56 s after the
+release (audit of 2026-11-28). (The controller now winds them in after a release,
+``controller.take_up``, in about 1.4 s: the check allows the slack meanwhile.) The drives only wind the slack in, so the service tells the check
 when they come back (``settling``): the check measures the slack then (the largest −s_l) and
 allows it, and only it, below −threshold while it lasts, shrinking it as s_l shows it taken up.
 A stuck encoder still grows the parity past that allowance (or above +threshold, where slack

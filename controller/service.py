@@ -32,7 +32,10 @@ again (also after a watchdog ``hold`` of the bridge, during which the law keeps 
 next command ends the hold, and after a long hold of the controller's own for stale states) the
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
-``aborted`` with the reason, and none starts while they are.
+``aborted`` with the reason, and none starts while they are. After an e-stop the law does not
+take over at once: the fall left cables slack that the hold's forces cannot wind in, and α̂ off
+the neck, so every cable's floor is first raised past the motors' friction at α̂ until the motors
+stop winding in (:mod:`controller.take_up`); a campaign asked for meanwhile starts after it.
 
 Jogs (kind ``jog``, the console's sliders): a jog is a campaign of one waypoint reached by the
 gentle approach from α̂. A jog asked for while a jog runs is prepared, then waits (the newest one
@@ -62,9 +65,11 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from bridge import bus
+from controller import take_up as take_up_rules
 from controller.encoder_check import THRESHOLD_M, EncoderConsistency
 from controller.laws import ComputedTorque, LawConfig, hold_forces
 from controller.prepare import Prepared, Refused, prepare
+from controller.take_up import TakeUp, take_up_peak_N
 from controller.trajectory import (
     Trajectory,
     approach,
@@ -190,6 +195,9 @@ class CampaignService:
         self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
         self._check_armed_at = math.inf  # the drives have not been active yet (ENCODER_CHECK_SETTLE_S)
         self._hold_since: float | None = None  # stamp of the first state of the bridge's current hold
+        self._estopped = False  # the drives were disabled (e-stop) since the law last held the neck
+        self._take_up: TakeUp | None = None  # the slack an e-stop left being taken up (controller.take_up)
+        self._hold_sent: np.ndarray | None = None  # N, the last hold's command (a take-up's rate bound)
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -341,6 +349,11 @@ class CampaignService:
             self.refuse(waiting.campaign_id, waiting.kind, f"dropped before it started: {reason}")
 
     @property
+    def taking_up(self) -> bool:
+        """The slack an e-stop left is (to be) taken up before the law holds the neck again."""
+        return self._take_up is not None or (self._estopped and self.drive != "disabled" and self._drives_off)
+
+    @property
     def braking(self) -> bool:
         """α^d is still coming to rest after a stop (:meth:`stop`)."""
         return self._brake is not None
@@ -394,9 +407,10 @@ class CampaignService:
         if busy:
             self.refuse(prepared.campaign_id, prepared.kind, f"refused: {busy}")
             return
-        if self._brake is not None:
-            # α^d is still coming to rest after a stop: the campaign starts from where it rests
-            # (advance()), as a jog waits for the running one, the newest one only.
+        if self._brake is not None or self.taking_up:
+            # α^d is still coming to rest after a stop, or the slack of an e-stop is being taken
+            # up: the campaign starts from where the neck then rests (advance()), as a jog waits
+            # for the running one, the newest one only.
             if self._next_jog is not None:
                 self.refuse(self._next_jog.campaign_id, self._next_jog.kind, f"superseded by {prepared.campaign_id}")
             self._next_jog = prepared
@@ -463,15 +477,21 @@ class CampaignService:
         """The forces that hold the neck still where it is (module docstring), with ``reason``.
         While the bridge obeys (it passes commands through), they keep the law's force rate from
         what was last sent, and the law resumes from what was sent (audit of 2026-11-26: a stale
-        gap's hold stepped 21.9 N in one tick, and the law's return another 21.9 N)."""
+        gap's hold stepped 21.9 N in one tick, and the law's return another 21.9 N). During a
+        take-up (:mod:`controller.take_up`) they carry its floor and motor damping, within its
+        tighter bound per tick, whatever the hold is for (a stale gap's too)."""
         self.hold_reason = reason
         alpha = self.hold_alpha().copy()  # the law's α̂ changes in place at its next tick
         f = hold_forces(self.params, alpha, self._pretension(None))
+        step = self.law.force_rate_max_N_s * self.ctl.dt
+        if self._take_up is not None:
+            f = np.clip(f + self._take_up.damping_N, self.params.limits.f_min, self.params.limits.f_max)
+            step = min(step, take_up_rules.FORCE_STEP_N)
         if self.drive == "active":
-            step = self.law.force_rate_max_N_s * self.ctl.dt
             f_prev = self.ctl.f_prev
             f = np.clip(f, f_prev - step, f_prev + step)
             f_prev[:] = f
+        self._hold_sent = f
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
 
@@ -527,6 +547,8 @@ class CampaignService:
         if self.trajectory is not None:
             if stamp_s is not None:
                 self.pretension_N = self.trajectory.pretension_at(stamp_s - self._t0)
+        elif self._take_up is not None:
+            self.pretension_N = self._take_up.level_N
         elif self.pretension_N > 0.0:
             self.pretension_N = max(0.0, self.pretension_N - PRETENSION_RELEASE_N_S * self.ctl.dt)
         return self.pretension_N
@@ -631,6 +653,8 @@ class CampaignService:
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
             self._restart = self._drives_off = True
+            if drive == "disabled":
+                self._estopped, self._take_up = True, None  # a take-up starts again at the release
             if not obeyed:
                 reason = self.drive_reason or "the bridge obeys another controller"
             else:
@@ -641,8 +665,16 @@ class CampaignService:
                 self._drop_waiting(reason)
             return self.hold(self.hold_reason if self.latched else reason)
         if self.latched:
+            self._take_up = None  # the latch's hold, at the last sane α̂; a new campaign lifts it
             self.reference(stamp_s)
             return self.hold(self.hold_reason)
+        if self._restart and drive == "active" and self._estopped:
+            self._estopped = False
+            peak = take_up_peak_N(self.params)
+            if peak > 0.0 and not self.running:
+                self._take_up = TakeUp(peak, take_up_rules.TAKE_UP_RATE_N_S, start_N=self.pretension_N)
+        if self._take_up is not None:
+            return self._taking_up(theta_rad, stamp_s, drive, force_applied_N)
         if self._restart and drive == "active":
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
@@ -661,6 +693,29 @@ class CampaignService:
         # The law's arrays change in place at its next tick: the Output keeps its own (a few µs).
         return Output(cmd.f.copy(), cmd.alpha_hat.copy(), np.array(a_d), cmd.e.copy(), cmd.saturated.copy(), True)
 
+    def _taking_up(self, theta_rad: np.ndarray, stamp_s: float, drive: str,
+                   force_applied_N: np.ndarray | None) -> Output:
+        """One state of the take-up after an e-stop (:mod:`controller.take_up`): α̂ follows the
+        encoders as with the drives off (the integral stays at zero), the command is the hold at
+        α̂ on the raised floor, and once the motors have wound the slack in the law takes over
+        from there at the next state (:meth:`_take_over`: α^d = α̂, a fresh integral; the floor
+        then falls back at ``PRETENSION_RELEASE_N_S``)."""
+        take_up = self._take_up
+        assert take_up is not None
+        applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
+        # The estimate takes the forces that acted; the hold's rate bound runs from what was sent
+        # (with the drives just back the bridge still ramps from zero: from there the first
+        # command had dropped 7 N).
+        sent = self.ctl.f_prev.copy() if self._hold_sent is None else self._hold_sent.copy()
+        self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
+        self.ctl.f_prev[:] = sent
+        take_up.damp(self.ctl.theta_dot, self.ctl.dt)
+        if drive != "active" or take_up.step(stamp_s):  # a bridge hold: wait, level kept
+            return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.peak_N:.0f} N")
+        self._take_up = None  # the law takes over at the next state (``_restart`` is still set)
+        self.pretension_N = take_up.level_N
+        return self.hold("")
+
     def count_timing(self, overrun: bool, deadline_missed: bool) -> None:
         """The shell's measure of the tick just commanded: compute over the period, command late."""
         self.overruns += int(overrun)
@@ -669,7 +724,7 @@ class CampaignService:
     def advance(self, stamp_s: float) -> None:
         """Progress events every 0.5 s of campaign time, ``finished`` after the settle time."""
         if self.trajectory is None:
-            if self._brake is None and self._next_jog is not None:  # one waited for a stop's brake
+            if self._brake is None and not self.taking_up and self._next_jog is not None:  # one waited for a brake or a take-up
                 waiting, self._next_jog = self._next_jog, None
                 self.start(waiting, stamp_s)
             return

@@ -270,11 +270,16 @@ def test_drives_off_send_only_hold_forces_and_re_enable_starts_from_the_estimate
     assert loop.svc.hold_reason.startswith("drives disabled")
     inactive = loop.run_drive(0.004, "inactive")  # released: the bridge waits for a command
     assert not inactive[-1].law_ran
-    back = loop.run_drive(0.2, "active")
-    assert back[0].law_ran
-    np.testing.assert_allclose(back[0].alpha_d_rad, back[0].alpha_hat_rad, atol=1e-3)  # α^d starts at α̂
+    # After an e-stop the slack is taken up first (controller/take_up.py, tests/test_take_up.py):
+    # holds on a rising floor, then the law from α̂.
+    back = loop.run_drive(0.1, "active")
+    assert not any(o.law_ran for o in back) and "slack" in loop.svc.hold_reason, loop.svc.hold_reason
+    back += loop.run_drive(3.9, "active")
+    first = next(k for k, o in enumerate(back) if o.law_ran)
+    assert all(o.law_ran for o in back[first:])
+    np.testing.assert_allclose(back[first].alpha_d_rad, back[first].alpha_hat_rad, atol=1e-3)  # α^d starts at α̂
     steps = np.abs(np.diff([o.force_N for o in [inactive[-1], *back]], axis=0)).max()
-    assert steps < 2.0, steps  # no force step when the law takes over again
+    assert steps < 2.0, steps  # no force step as the floor rises, nor when the law takes over again
     assert np.abs(back[-1].force_N - before).max() < 15.0
 
 
