@@ -195,6 +195,10 @@ class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     Per joint: ``alpha_rad``, ``alpha_dot_rad_s``. Per motor: ``theta_rad``, ``theta_dot_rad_s``.
     Per cable: ``tension_N``, ``elongation_m``, ``slack`` (cable tension at zero).
     ``near_singular`` flags a configuration close to a singular one of the mechanism.
+
+    Whose truth: not a field. The bridge that runs the twin names its run (``MotorState.epoch``)
+    in the Zenoh attachment (``bridge.session.RUN_PREFIX``, why there), and a campaign archive
+    holds only the truth of the run whose states it follows.
     """
 
     v: int = 1

@@ -30,6 +30,10 @@ E-stop
     the drives on the next tick (``drive = "disabled"``, zero force) and commands are ignored until
     ``EStop(engaged=false)``; then the drives are ``inactive`` until the next valid command. A
     payload on ``xneck/estop`` that cannot be decoded counts as engaged (fail safe).
+Driver messages
+    What the driver publishes beside the states (the twin's ``Truth`` and α_IP) carries this run's
+    ``epoch`` as its Zenoh attachment (:data:`bridge.session.RUN_PREFIX`): a ``Truth`` has no
+    identity field, and a stray twin's was archived beside the campaign twin's.
 Exit
     :meth:`BridgeNode.shutdown` (called from ``finally`` on Ctrl-C, SIGTERM or an exception, and
     from ``atexit`` as a backstop) disables the drives and publishes a last ``MotorState`` with
@@ -67,7 +71,7 @@ from bridge.driver import Driver, Lifecycle
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.runtime import SystemdNotify, raise_loop_thread
 from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
-from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, subscribe_latest
+from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, run_attachment, subscribe_latest
 
 log = logging.getLogger("xneck.bridge")
 
@@ -251,6 +255,7 @@ class BridgeNode:
         self.session = session
         self.instance = config.instance or f"bridge-{uuid.uuid4().hex[:6]}"
         self.epoch = uuid.uuid4().hex[:12]  # this run: commands for another run are refused
+        self._run = run_attachment(self.epoch)  # on its driver's messages (the twin's truth): their run
         n = driver.n_motors
         self.dt = driver.dt
         self.safety = Safety(SafetyConfig(
@@ -440,7 +445,7 @@ class BridgeNode:
             pub = self._extra_pubs.get(key)
             if pub is None:
                 pub = self._extra_pubs[key] = publisher(self.session, key, block=self.config.lockstep)
-            pub.put(msg)
+            pub.put(msg, attachment=self._run)  # whose truth this is (bridge.session.RUN_PREFIX)
         if decision.events:
             _log_events(decision.events)
         dt = time.perf_counter() - t0

@@ -68,6 +68,35 @@ def replayed(sample: zenoh.Sample) -> bool:
     return attachment is not None and attachment.to_bytes() == REPLAYED
 
 
+#: The Zenoh attachment of every message a bridge publishes beside its states (its driver's: the
+#: twin's ``Truth`` and α_IP), ``xneck-run:<epoch>``: the bridge run (``MotorState.epoch``) it
+#: comes from. A ``Truth`` carries no identity of its own, and a stray twin's was archived and
+#: shown beside the campaign twin's (audit of 2026-11-29); :func:`run_of` tells whose it is.
+#:
+#: An attachment, not a field or a key: a ``Truth`` field would be ``Truth`` v2, and a reader
+#: accepts exactly one version (``bridge.bus``, "Version rule"), so every archive recorded before
+#: would no longer read (``bridge.archive_read``); a key (``xneck/twin/truth/<epoch>``) would move
+#: the truth off ``/xneck/twin/truth``, where every analysis of an archive reads it. The payload
+#: and the archive's topics stay as they were; the recorder uses the run to keep only the
+#: campaign's twin's truth (``server.quality.CampaignMonitor.keep``), so what an archive holds
+#: needs no identity to be read. A replay's messages carry :data:`REPLAYED` instead: no run.
+RUN_PREFIX = b"xneck-run:"
+
+
+def run_attachment(epoch: str) -> bytes:
+    """The attachment naming the bridge run ``epoch`` (:data:`RUN_PREFIX`)."""
+    return RUN_PREFIX + epoch.encode()
+
+
+def run_of(sample: zenoh.Sample) -> str:
+    """The bridge run (epoch) ``sample`` says it comes from (:data:`RUN_PREFIX`), '' if none."""
+    attachment = sample.attachment
+    if attachment is None:
+        return ""
+    data = attachment.to_bytes()
+    return data[len(RUN_PREFIX):].decode("ascii", "replace") if data.startswith(RUN_PREFIX) else ""
+
+
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64
@@ -573,8 +602,9 @@ def subscribe_latest(
 
 __all__ = [
     "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
-    "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "subscribe_latest",
+    "RUN_PREFIX", "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
+    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
+    "subscribe_latest",
     "zenoh_config",
     "zenoh_runtime_environment",
 ]

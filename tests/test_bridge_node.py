@@ -650,6 +650,23 @@ def test_every_bridge_run_has_its_own_epoch(params):
     assert first.epoch and second.epoch and first.epoch != second.epoch
 
 
+def test_the_twins_truth_names_its_bridge_run_in_its_attachment_and_its_state_the_same(params):
+    """A Truth has no identity field: the bridge names its run (``MotorState.epoch``) in the Zenoh
+    attachment of what its driver publishes, so a console tells two twins' truths apart."""
+    from bridge.session import run_of
+
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params)
+        runs: list[str] = []
+        sub = hub_session.declare_subscriber(bus.TWIN_TRUTH, lambda s: runs.append(run_of(s)))
+        try:
+            assert wait_until(lambda: (node.tick(), len(runs) >= 3)[1], 10.0, 0.002)
+        finally:
+            sub.undeclare()
+            node.shutdown()
+    assert set(runs) == {node.epoch}, runs
+
+
 def test_an_estop_reason_from_the_bus_is_bounded_before_it_goes_into_every_state(params):
     # 5 kB: within the e-stop's payload bound (a larger payload is refused unread and engages,
     # test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages)
