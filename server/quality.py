@@ -39,6 +39,14 @@ One bridge, one controller
     recorder keeps the same (:meth:`~CampaignMonitor.keep`). A second bridge on the bus (a lab's
     robot bridge joining the twin's hub) had ended the campaign on its own disabled drives and
     mixed its states and sequence numbers into the record (audit of 2026-11-28).
+
+    The twin's ``Truth`` has no identity field: the bridge that runs the twin names its run in
+    the sample's attachment (:func:`bridge.session.run_of`), and only the truth of the run
+    followed is kept, so an archive holds one ground truth (a second twin's had been archived
+    beside it, interleaved: audit of 2026-11-29). Once that run is known, a truth that names
+    another run or none is set aside; so is what another run's driver publishes (a twin's α_IP),
+    while α_IP naming no run (a camera process) is kept. Set aside, counted:
+    ``foreign_messages`` (everything), ``foreign_truths`` (its truths).
 """
 
 from __future__ import annotations
@@ -52,7 +60,7 @@ from typing import Any
 import zenoh
 
 from bridge import bus
-from bridge.session import payload_of
+from bridge.session import payload_of, run_of
 
 
 @dataclass(frozen=True)
@@ -101,11 +109,14 @@ class CampaignMonitor:
         self._timing: dict[str, Any] = {}  # the controller's own timing of this campaign (issue 21)
         self._follow = ""  # the campaign's controller instance ('' until told: every sender)
         self.epoch = ""  # the bridge run its commands answer ('' until one came: every bridge)
-        self.foreign = 0  # states and commands of other bridges and controllers, not taken
+        self.foreign = 0  # states, commands, truths and α_IP of other bridges and controllers, not taken
+        self.foreign_truths = 0  # of which truths of another twin (or of none said)
         self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
-                      session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing)]
+                      session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
+                      session.declare_subscriber(bus.TWIN_TRUTH, self._on_run_message),
+                      session.declare_subscriber(bus.CAMERA_ALPHA, self._on_run_message)]
 
     # -- whose messages ------------------------------------------------------------------------
     def follow(self, controller: str) -> None:
@@ -119,14 +130,22 @@ class CampaignMonitor:
         with self._lock:
             return {owner for owner, t in self._owners.values() if owner and now - t <= within_s}
 
-    def keep(self, key: str, msg: bus.BusMessage) -> bool:
-        """Whether the recorder keeps ``msg``: not a state of another bridge run than the
-        campaign's, nor a command of another controller (class docstring)."""
+    def keep(self, key: str, msg: bus.BusMessage, run: str = "") -> bool:
+        """Whether the recorder keeps ``msg``, whose sample named the bridge run ``run`` ('' for
+        none): not a state of another bridge run than the campaign's, nor a command of another
+        controller, nor a truth not of the campaign's run, nor anything else another run's driver
+        published (module docstring)."""
         if isinstance(msg, bus.MotorState):
             return not self.epoch or msg.epoch == self.epoch
         if isinstance(msg, bus.ForceCommand):
             return not self._follow or msg.sender == self._follow
-        return True
+        return self._of_run(isinstance(msg, bus.Truth), run)
+
+    def _of_run(self, truth: bool, run: str) -> bool:
+        """Whether a sample naming the bridge run ``run`` is the campaign's: any until its run is
+        known; then a truth only of that run, anything else unless it names another."""
+        epoch = self.epoch  # one read: the command callback may move it to a restarted bridge's run
+        return not epoch or run == epoch or (not truth and not run)
 
     # -- window -----------------------------------------------------------------------------
     def begin(self) -> None:
@@ -201,6 +220,15 @@ class CampaignMonitor:
             self._last_cmd_s = now
             self._commands.add(msg.seq)
 
+    def _on_run_message(self, sample: zenoh.Sample) -> None:
+        """Counts the truths and α_IP of another twin (not decoded: the attachment says whose)."""
+        truth = str(sample.key_expr) == bus.TWIN_TRUTH
+        if self._of_run(truth, run_of(sample)):
+            return
+        with self._lock:
+            self.foreign += 1
+            self.foreign_truths += truth
+
     def _on_timing(self, sample: zenoh.Sample) -> None:
         msg = self._decode(bus.ControllerTiming, sample)
         with self._lock:
@@ -238,7 +266,7 @@ class CampaignMonitor:
                 "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
-                "foreign_messages": self.foreign,
+                "foreign_messages": self.foreign, "foreign_truths": self.foreign_truths,
             }
 
     def close(self) -> None:

@@ -169,6 +169,26 @@ def test_recorder_archives_every_channel_from_the_bus(
     assert times == sorted(times) and abs(times[0] / 1e9 - time.time()) < 60
 
 
+def test_a_truth_archived_before_runs_were_named_still_reads(tmp_path: Path) -> None:
+    """The twin's identity went into the Zenoh attachment (bridge.session.RUN_PREFIX), not into
+    Truth: a Truth v2 would have made every archive recorded before unreadable (one version per
+    reader). A truth as recorded then, bytes for bytes, reads as it did."""
+    recorded = (b'{"seq":7,"stamp_s":1.25,"v":1,"alpha_rad":[0.1,0.2,0.3],"alpha_dot_rad_s":[0.0,0.0,0.0],'
+                b'"theta_rad":[1.0,2.0,3.0,4.0],"theta_dot_rad_s":[0.0,0.0,0.0,0.0],"tension_N":[5.0,6.0,7.0,8.0],'
+                b'"elongation_m":[0.0,0.0,0.0,0.0],"slack":[false,false,false,false],"near_singular":false}')
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f, compression=CompressionType.LZ4)
+        writer.start(profile="xneck")
+        writer.add_metadata("xneck.campaign.start", {"campaign_id": "old"})
+        schema = writer.register_schema("xneck.Truth", "jsonschema", bus.json_schema_bytes(bus.Truth))
+        channel = writer.register_channel("/" + bus.TWIN_TRUTH, "json", schema)
+        writer.add_message(channel, 10**18, recorded, 10**18, 0)
+        writer.finish()
+    ((_, truth),) = read_campaign(path).messages(bus.TWIN_TRUTH)
+    assert (truth.seq, truth.stamp_s, truth.tension_N) == (7, 1.25, [5.0, 6.0, 7.0, 8.0])
+
+
 # --- crash recovery ------------------------------------------------------------------------------
 
 PER_CHUNK = 40

@@ -11,12 +11,16 @@ from pathlib import Path
 
 import httpx
 import pytest
+import zenoh
 from server_harness import AUTH, wait_until
 from test_stack import _procs
 from test_stack_faults import GENTLE, _robot_stack, _wait_end
 
 from bridge import bus
+from bridge.archive import CampaignRecorder
 from bridge.archive_read import read_campaign
+from bridge.session import REPLAYED, run_attachment
+from server.quality import CampaignMonitor
 from server.service_choice import choose_service
 
 pytestmark = pytest.mark.e2e
@@ -45,6 +49,49 @@ def test_the_service_chosen_is_the_one_the_bridge_obeys_else_the_only_one_else_n
     assert target == "" and "2 controller services" in why and "ctl-a, ctl-b" in why and "obeys none" in why
     target, why = choose_service(["ctl-a", "ctl-b"], {"ctl-x"})
     assert target == "" and "obeys ctl-x" in why
+
+
+def _truth(seq: int, stamp_s: float) -> bus.Truth:
+    zeros = [0.0] * 4
+    return bus.Truth(seq=seq, stamp_s=stamp_s, alpha_rad=[0.1, 0.2, 0.3], alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros,
+                     theta_dot_rad_s=zeros, tension_N=zeros, elongation_m=zeros, slack=[False] * 4, near_singular=False)
+
+
+def test_the_recorder_keeps_the_truth_of_the_run_the_campaigns_commands_answer_and_counts_the_others(
+    sessions, tmp_path: Path,
+) -> None:
+    """Once the followed controller's commands name their bridge run, a truth is kept only if its
+    sample names that run (bridge.session.run_of), and α_IP unless it names another run; what is
+    set aside is counted by the monitor and skipped by the recorder."""
+    a, b = sessions
+    path = tmp_path / "truths.mcap"
+    monitor = CampaignMonitor(b)
+    monitor.follow("ctl")
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2, keep=monitor.keep)
+    commands, truths, alphas = (a.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                                for k in (bus.MOTOR_COMMAND, bus.TWIN_TRUTH, bus.CAMERA_ALPHA))
+    try:
+        command = bus.ForceCommand(seq=1, stamp_s=0.0, force_N=[5.0] * 4, source="law2", sender="ctl", epoch="run-a")
+        assert wait_until(lambda: (commands.put(bus.encode(command)), monitor.epoch == "run-a")[1], 10, 0.02)
+        for k in range(1, 4):
+            truths.put(bus.encode(_truth(k, 10.0 + k)), attachment=run_attachment("run-a"))
+            truths.put(bus.encode(_truth(k, 0.1 * k)), attachment=run_attachment("run-b"))  # a stray twin's
+            truths.put(bus.encode(_truth(100 + k, 0.0)))  # says no run: whose?
+            truths.put(bus.encode(_truth(200 + k, 0.0)), attachment=REPLAYED)
+            alpha = bus.CameraAlpha(seq=k, stamp_s=0.0, capture_stamp_s=0.0, alpha_ip_rad=[0.1, 0.2, 0.3])
+            alphas.put(bus.encode(alpha), attachment=run_attachment("run-b"))  # the stray twin's α_IP
+            alphas.put(bus.encode(alpha))  # a camera process's
+        assert wait_until(lambda: recorder.stats.skipped >= 12 and monitor.counters()["foreign_truths"] >= 9, 10, 0.02)
+    finally:
+        recorder.stop("finished")
+        monitor.close()
+        for p in (commands, truths, alphas):
+            p.undeclare()
+    assert monitor.counters()["foreign_truths"] == 9 and monitor.counters()["foreign_messages"] == 12
+    campaign = read_campaign(path)
+    assert [(m.seq, m.stamp_s) for _, m in campaign.messages(bus.TWIN_TRUTH)] == [(1, 11.0), (2, 12.0), (3, 13.0)]
+    assert [m.seq for _, m in campaign.messages(bus.CAMERA_ALPHA)] == [1, 2, 3]
+    assert campaign.metadata["xneck.recorder"]["skipped"] == "12"
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
@@ -87,3 +134,4 @@ def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaig
         bridges = {m.bridge for _, m in campaign.messages(bus.MOTOR_STATE)}
         assert bridges and "stray-bridge" not in bridges, bridges
         assert len(bridges) == 1, bridges
+
