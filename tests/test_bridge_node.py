@@ -650,7 +650,7 @@ def test_every_bridge_run_has_its_own_epoch(params):
     assert first.epoch and second.epoch and first.epoch != second.epoch
 
 
-def test_the_twins_truth_names_its_bridge_run_in_its_attachment_and_its_state_the_same(params):
+def test_the_twins_truth_names_in_its_attachment_the_bridge_run_its_states_carry(params):
     """A Truth has no identity field: the bridge names its run (``MotorState.epoch``) in the Zenoh
     attachment of what its driver publishes, so a console tells two twins' truths apart."""
     from bridge.session import run_of
