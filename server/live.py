@@ -28,6 +28,13 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
         "estop":   {"engaged", "reason"}}}
 
 A series appears once its first message arrived; ``stamp_s`` lets a client drop repeats.
+
+``truth`` is one twin's: a ``Truth`` has no identity field, and a second twin on the hub made the
+series flip between two twins' clocks and poses (audit of 2026-11-29). Its samples name their
+bridge run in their attachment (:func:`bridge.session.run_of`); the series shows the newest truth
+of the run the newest command answers (``ForceCommand.epoch``, what a campaign follows), else of
+the newest state's run, each if under :data:`RUN_FOLLOW_MAX_AGE_S` old; a truth naming no run (a
+replay's) only when that run has none (the robot's bridge), any truth when no run is known.
 ``estop`` is what was last *sent* on ``xneck/estop`` (by anyone); whether the drives are really
 stopped is the bridge's word, ``state.estop_engaged``/``estop_reason`` (:func:`bridge_estop`).
 """
@@ -47,7 +54,7 @@ import msgspec
 import zenoh
 
 from bridge import bus
-from bridge.session import replayed
+from bridge.session import replayed, run_of
 from server.quality import drive_estop
 
 #: Series name -> (key, fields forwarded to browsers).
@@ -65,6 +72,13 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
 #: Series that only viewers read (:meth:`LatestValues.watch`); the others feed the console's own
 #: checks while nobody watches: the bridge's e-stop (``state``), jogs (``status``), the camera.
 VIEW_ONLY = frozenset({"command", "truth"})
+
+#: Series whose value is one bridge run's (module docstring): their samples queue in a ring this
+#: long, read whole at each read, so that the followed run's newest is found among another's.
+BY_RUN = frozenset({"truth"})
+BY_RUN_RING_SAMPLES = 32
+RUN_FOLLOW_MAX_AGE_S = 0.5  # s: an older command or state names no run to follow
+BY_RUN_MAX_RUNS = 8  # runs remembered per series (a flood of forged runs stays bounded)
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
@@ -96,6 +110,9 @@ class LatestValues:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._sources: dict[str, Callable[[], Any]] = {}  # series -> try_recv of its one-slot ring
+        self._run_sources: dict[str, Callable[[], Any]] = {}  # BY_RUN series -> try_recv of its ring
+        # BY_RUN series -> bridge run ('' : none named) -> (time.monotonic() taken, its newest payload)
+        self._by_run: dict[str, dict[str, tuple[float, bytes]]] = {}
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
@@ -140,16 +157,19 @@ class LatestValues:
         self._received_s[series] = now
         self._version += 1
 
-    def add_source(self, series: str, try_recv: Callable[[], Any]) -> None:
+    def add_source(self, series: str, try_recv: Callable[[], Any], by_run: bool = False) -> None:
         """Pull ``series`` from ``try_recv`` (a Zenoh ring's: the newest sample or None) whenever
-        a value is read, instead of having it pushed by a callback per sample."""
+        a value is read, instead of having it pushed by a callback per sample. ``by_run``: the
+        ring holds several samples, all read, and the value is the followed run's (module docstring)."""
         with self._lock:
-            self._sources[series] = try_recv
+            (self._run_sources if by_run else self._sources)[series] = try_recv
 
     def remove_source(self, series: str) -> None:
         """Stop pulling ``series`` and forget its value (a later viewer must not see a stale one)."""
         with self._lock:
             self._sources.pop(series, None)
+            self._run_sources.pop(series, None)
+            self._by_run.pop(series, None)
             if self._raw.pop(series, None) is not None:
                 self._version += 1
             self._received_s.pop(series, None)
@@ -169,6 +189,47 @@ class LatestValues:
                 continue
             if sample is not None:
                 self._store(series, sample.payload.to_bytes(), now)
+        for series, try_recv in self._run_sources.items():
+            if only is None or series == only:
+                self._pull_by_run(series, try_recv, now)
+
+    def _pull_by_run(self, series: str, try_recv: Callable[[], Any], now: float) -> None:
+        """(Under the lock, after the other series.) Read ``series``' ring whole, keep each run's
+        newest payload, and store the followed run's newest if it changed (module docstring)."""
+        newest: dict[str, Any] = {}
+        for _ in range(BY_RUN_RING_SAMPLES):
+            try:
+                sample = try_recv()
+            except Exception:  # noqa: BLE001 - a closed subscriber: nothing new, ever
+                break
+            if sample is None:
+                break
+            newest[run_of(sample)] = sample
+        runs = self._by_run.setdefault(series, {})
+        for run, sample in newest.items():
+            if run not in runs and len(runs) >= BY_RUN_MAX_RUNS:
+                del runs[min(runs, key=lambda r: runs[r][0])]
+            runs[run] = (now, sample.payload.to_bytes())
+        followed = self._followed_run(now)
+        chosen = runs.get(followed) if followed else None
+        if chosen is None and followed:
+            chosen = runs.get("")  # a truth naming no run (a replay's), when the run followed has none
+        if chosen is None and not followed and runs:
+            chosen = max(runs.values(), key=lambda item: item[0])
+        if chosen is not None and chosen[1] is not self._raw.get(series):
+            self._store(series, chosen[1], chosen[0])
+
+    def _followed_run(self, now: float) -> str:
+        """(Under the lock.) The bridge run the newest command answers, else the newest state's,
+        each if received within :data:`RUN_FOLLOW_MAX_AGE_S`; '' if none."""
+        for series in ("command", "state"):
+            payload, received = self._raw.get(series), self._received_s.get(series)
+            if payload is None or received is None or now - received > RUN_FOLLOW_MAX_AGE_S:
+                continue
+            msg = self._decode(series, payload)
+            if isinstance(msg, (bus.ForceCommand, bus.MotorState)):
+                return msg.epoch
+        return ""
 
     def put(self, series: str, msg: bus.BusMessage) -> None:
         self.put_raw(series, bus.encode(msg))
@@ -308,12 +369,13 @@ class LiveBus:
             self.values.latest_valid("state")
 
     def _subscribe(self, name: str) -> None:
-        sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(1))
+        ring = BY_RUN_RING_SAMPLES if name in BY_RUN else 1
+        sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(ring))
         self._subs[name] = sub
         if name == "state":  # the bridge's word (e-stop, drives, freshness): never a replayed state
             self.values.add_source(name, lambda: _live_only(sub.try_recv()))
         else:
-            self.values.add_source(name, sub.try_recv)
+            self.values.add_source(name, sub.try_recv, by_run=name in BY_RUN)
 
     def _watched(self, watching: bool) -> None:
         with self._lock:

@@ -5,6 +5,8 @@ nothing into the archive. The choice of service itself is tested without a bus."
 
 from __future__ import annotations
 
+import itertools
+import json
 import signal
 import time
 from pathlib import Path
@@ -15,6 +17,7 @@ import zenoh
 from server_harness import AUTH, wait_until
 from test_stack import _procs
 from test_stack_faults import GENTLE, _robot_stack, _wait_end
+from websockets.sync.client import connect
 
 from bridge import bus
 from bridge.archive import CampaignRecorder
@@ -135,3 +138,48 @@ def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaig
         assert bridges and "stray-bridge" not in bridges, bridges
         assert len(bridges) == 1, bridges
 
+
+def _live_truth_stamps(base: str, seconds: float) -> list[float]:
+    """``stamp_s`` of the dashboard's live ``truth`` series, frame after frame, for ``seconds``."""
+    stamps: list[float] = []
+    end = time.monotonic() + seconds
+    with connect(base.replace("http", "ws") + "/api/live", additional_headers=AUTH, open_timeout=10) as ws:
+        while time.monotonic() < end:
+            try:
+                frame = json.loads(ws.recv(timeout=1.0))
+            except TimeoutError:
+                continue
+            truth = frame.get("series", {}).get("truth")
+            if truth is not None:
+                stamps.append(truth["stamp_s"])
+    return stamps
+
+
+def test_a_second_twin_on_the_hub_leaves_its_truth_out_of_the_consoles_campaign_and_view(tmp_path: Path) -> None:
+    """A Truth carries no identity of its own: a stray twin's ``xneck/twin/truth`` was archived
+    beside the campaign twin's (two interleaved ground truths in one archive, which the docs'
+    analyses read as the one truth) and the dashboard's truth series flipped between them."""
+    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+        body = {**GENTLE, "waypoints": {**GENTLE["waypoints"], "durations_s": 4.0}}
+        cid = _campaign(base, body)
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json().get("progress", 0) > 0.05,
+                          60, 0.2)
+        stray = spawn(["twin", "--instance", "stray-twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
+                      tmp_path / "stray.log")
+        assert wait_until(lambda: "stray-twin" in _processes(base, "bridge"), 60, 0.2)
+        shown = _live_truth_stamps(base, 1.5)  # both twins' truths on the bus meanwhile
+        stray.send_signal(signal.SIGTERM)
+        assert stray.wait(20) is not None
+        rec = _wait_end(base, cid, 120)
+    assert rec["status"] in ("finished", "degraded"), rec
+    campaign = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap")
+    states = [m for _, m in campaign.messages(bus.MOTOR_STATE)]
+    truths = [m for _, m in campaign.messages(bus.TWIN_TRUTH)]
+    assert len({m.epoch for m in states}) == 1 and truths
+    seqs, stamps = [m.seq for m in truths], [m.stamp_s for m in truths]
+    assert all(b > a for a, b in itertools.pairwise(seqs)), "two truth sequences in the archive"
+    assert all(b > a for a, b in itertools.pairwise(stamps)), "two truth clocks in the archive"
+    first, last = min(m.stamp_s for m in states), max(m.stamp_s for m in states)
+    assert first - 0.5 <= stamps[0] and stamps[-1] <= last + 0.5, (first, last, stamps[0], stamps[-1])
+    assert shown and all(b >= a for a, b in itertools.pairwise(shown)), shown  # one twin's clock on the dashboard
+    assert rec["quality"]["foreign_truths"] > 0, rec["quality"]  # the stray's truth was there, and set aside
