@@ -9,6 +9,7 @@ import base64
 import json
 import math
 import re
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -592,6 +593,53 @@ def test_a_camera_behind_a_fast_twin_drops_frames_and_counts_every_one(params, m
     assert camera.frames + camera.queue_dropped + shutter.pending + shutter.discarded == shutter.exposures, (
         camera.frames, camera.queue_dropped, shutter)
     assert camera.dropped == camera.queue_dropped + shutter.dropped
+
+
+def test_a_camera_on_the_twin_renders_one_twins_truth_and_takes_the_next_only_once_it_is_silent(params, model) -> None:
+    """Two twins on the hub: their truths (two clocks, two poses) went into one shutter (audit of
+    2026-11-29). The camera renders the run it heard first (the attachment, bridge.session.run_of),
+    counts the other's as foreign, and follows another run only after FOLLOW_SILENT_S of silence."""
+    import threading
+
+    from busutil import bus_pair, run_in_thread, wait_until
+
+    from bridge import bus
+    from bridge.session import publisher, run_attachment
+    from twin.camera.process import FOLLOW_SILENT_S, CameraNode
+    from twin.camera.source import TwinShutter
+
+    zeros = [0.0] * params.n_cables
+
+    def truth(k: int, t: float, alpha: list[float]) -> bus.Truth:
+        return bus.Truth(seq=k, stamp_s=t, alpha_rad=alpha, alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros,
+                         theta_dot_rad_s=zeros, tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables,
+                         near_singular=False)
+
+    with bus_pair() as (_hub, hub, connect):
+        camera = CameraNode(connect(), detector_for(params), instance="one-twin")
+        shutter = TwinShutter(30.0, 0.05)
+        stop = threading.Event()
+        thread, out = run_in_thread(camera.run_twin, Renderer(model, seed=3), shutter, stop, None, 30.0)
+        pub = publisher(hub, bus.TWIN_TRUTH)
+        ours, stray = run_attachment("ours"), run_attachment("stray")
+        try:
+            assert wait_until(lambda: (pub.put(truth(0, 100.0, [0.2, 0.1, -0.1]), attachment=ours),
+                                       camera.truth_received > 0)[1], 10)
+            for k in range(1, 151):  # 0.3 s of both twins, about in real time
+                pub.put(truth(k, 100.0 + 0.002 * k, [0.2, 0.1, -0.1]), attachment=ours)
+                pub.put(truth(k, 0.002 * k, [-0.3, 0.0, 0.3]), attachment=stray)
+                time.sleep(0.002)
+            assert wait_until(lambda: camera.frames >= 3, 20), (camera.frames, shutter)
+            assert camera.run == "ours" and camera.truth_foreign > 0 and shutter.restarts == 0, (camera.run, shutter)
+            time.sleep(FOLLOW_SILENT_S + 0.2)  # our twin stops: the stray's is taken, on its own clock
+            assert wait_until(lambda: (pub.put(truth(200, 0.5, [-0.3, 0.0, 0.3]), attachment=stray),
+                                       camera.run == "stray")[1], 10)
+            assert shutter.restarts == 1
+        finally:
+            stop.set()
+            thread.join(30)
+            camera.close()
+    assert "error" not in out, out
 
 
 def test_a_video_declaring_frames_larger_than_any_camera_is_refused_before_decoding(tmp_path) -> None:

@@ -8,6 +8,14 @@ realistic latency, stamped on the bus clock (the truth's simulated time). Health
 ``xneck/health/camera/<instance>`` every second; the liveliness token says the camera is up.
 With ``frame_rate_hz`` > 0, a few frames per second also go out as JPEG on ``xneck/camera/frame``
 (:mod:`twin.camera.frames`) for the console's camera panel and the campaign archive.
+
+One twin at a time: a ``Truth`` has no identity field, and with a second twin on the hub the
+camera fed both twins' truths into one shutter, two clocks and two poses (audit of 2026-11-29).
+The bridge running a twin names its run in each truth's attachment (:func:`bridge.session.run_of`;
+'' for a publisher that names none); the camera renders the run whose truth it received first
+and sets the others aside (counted, ``foreign_truth`` in its health) until that run has been
+silent for :data:`FOLLOW_SILENT_S` (a twin that stopped or restarted: a restart is a new run),
+then follows the next run that speaks, its clock jump handled as any restart of the truth's clock.
 The Zenoh callback only decodes and schedules; rendering and detection run on the caller's thread.
 """
 
@@ -26,13 +34,15 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import liveliness_token, payload_of, publisher
+from bridge.session import liveliness_token, payload_of, publisher, run_of
 from twin.camera.detect import Detection, Detector
 from twin.camera.frames import FrameDecimator, frame_message
 from twin.camera.render import Renderer
 from twin.camera.source import Exposure, Frame, TwinShutter
 
 log = logging.getLogger("xneck.camera")
+
+FOLLOW_SILENT_S = 1.0  # s (wall clock) without the followed twin's truth before another's is taken
 
 
 class FrameSource(Protocol):
@@ -71,6 +81,8 @@ class CameraNode:
         self.clock_restarts = 0  # twin: the truth's clock jumped (a restarted twin) and the shutter started again
         self.truth_received = 0
         self.truth_rejected = 0
+        self.truth_foreign = 0  # twin: truths of another run than the one rendered (module docstring)
+        self.run = ""  # twin: the bridge run whose truth is rendered ('' until one came, or it names none)
         self._last_reject = ""
         self._queue: collections.deque[Exposure] = collections.deque()
         self._queue_frames = queue_frames
@@ -103,7 +115,8 @@ class CameraNode:
         self._last_health = now
         self._health.put(bus.Health(
             seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
-            received={bus.TWIN_TRUTH: self.truth_received, "frames": self.frames, "dropped": self.dropped,
+            received={bus.TWIN_TRUTH: self.truth_received, "foreign_truth": self.truth_foreign,
+                      "frames": self.frames, "dropped": self.dropped,
                       "missing_joints": self.missing_joints, "images": self.images,
                       "clock_restarts": self.clock_restarts},
             rejected={bus.TWIN_TRUTH: self.truth_rejected}, last_reject_reason=self._last_reject))
@@ -144,8 +157,20 @@ class CameraNode:
         without truth."""
         n = self.detector.n_joints
         last_truth = [time.monotonic()]
+        followed: list[str | None] = [None]  # the run rendered (None: none yet)
+
+        def foreign(run: str, now: float) -> bool:
+            """(Under the lock.) Another twin's truth while the one rendered speaks: counted."""
+            if followed[0] is None or run == followed[0] or now - last_truth[0] >= FOLLOW_SILENT_S:
+                return False
+            self.truth_foreign += 1
+            return True
 
         def on_truth(sample: zenoh.Sample) -> None:
+            run, now = run_of(sample), time.monotonic()
+            with self._cond:
+                if foreign(run, now):  # before decoding: a stray's 500 Hz costs no decode
+                    return
             try:
                 truth = bus.decode(bus.Truth, payload_of(sample, bus.Truth))
                 if len(truth.alpha_rad) != n:
@@ -156,8 +181,15 @@ class CameraNode:
                     self._last_reject = f"{sample.key_expr}: {exc.reason}"
                 return
             with self._cond:
+                if foreign(run, now):  # another run was taken meanwhile (callbacks may run at once)
+                    return
+                if followed[0] != run:
+                    if followed[0] is not None:
+                        log.warning("camera %s: the twin of run %r was silent for %.1f s: rendering run %r's truth now",
+                                    self.instance, followed[0], now - last_truth[0], run)
+                    followed[0] = self.run = run
                 self.truth_received += 1
-                last_truth[0] = time.monotonic()
+                last_truth[0] = now
                 for exposure in shutter.feed(truth.stamp_s, np.asarray(truth.alpha_rad)):
                     if len(self._queue) >= self._queue_frames:
                         self._queue.popleft()
