@@ -229,6 +229,7 @@ class CampaignService:
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
+        self._estopped, self._take_up, self._hold_sent = False, None, None  # a run's first enable takes none
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
             self.encoder_check.reset()

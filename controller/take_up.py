@@ -72,9 +72,12 @@ FORCE_STEP_N = 1.0
 
 def take_up_peak_N(params: Params) -> float:
     """The floor added to t_min at the take-up's peak (N, module docstring): 0 when t_min alone
-    is already past ``TAKE_UP_FRICTION_FACTOR``·max f_s."""
+    is already past ``TAKE_UP_FRICTION_FACTOR``·max f_s, and the floor never above half of
+    f_max (the distribution loads the long cable above the floor: 63 N for a 37.5 N floor on the
+    robot truth; an identified set with a large f_s must not ask for f_max)."""
     f_s = params.friction.f_s
-    return max(0.0, TAKE_UP_FRICTION_FACTOR * max(f_s, default=0.0) - params.limits.t_min)
+    floor = min(TAKE_UP_FRICTION_FACTOR * max(f_s, default=0.0), 0.5 * params.limits.f_max)
+    return max(0.0, floor - params.limits.t_min)
 
 
 @dataclass

@@ -163,6 +163,26 @@ def test_the_peak_follows_the_friction_the_controller_knows(params):
     assert take_up_peak_N(params) > 1.5 * max(params.friction.f_s) - params.limits.t_min  # past breakaway
 
 
+def test_the_peak_floor_stays_below_half_of_f_max_whatever_the_friction(params):
+    """An identified set with a large f_s (80 N) must not have the take-up ask for f_max."""
+    import msgspec
+
+    heavy = msgspec.structs.replace(params, friction=msgspec.structs.replace(params.friction, f_s=(80.0,) * 4))
+    assert take_up_peak_N(heavy) == pytest.approx(0.5 * params.limits.f_max - params.limits.t_min)
+
+
+def test_a_new_bridge_run_during_the_take_up_ends_it(params):
+    """A restarted bridge starts a new run: its encoders start again as calibrated, and its
+    first enable is not an e-stop's release."""
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.3, estop=((False, "audit"),))
+    assert loop.svc.taking_up
+    loop.svc.new_bridge_run(loop.tick.theta_meas, loop.stamp_s, "bridge-2")
+    assert not loop.svc.taking_up
+    loop.run(0.1)
+    assert not loop.svc.taking_up and loop.outputs[-1].law_ran
+
+
 @pytest.mark.parametrize("kw", [{"peak_N": -1.0, "rate_N_s": 1.0}, {"peak_N": math.nan, "rate_N_s": 1.0},
                                 {"peak_N": 1.0, "rate_N_s": 0.0}, {"peak_N": 1.0, "rate_N_s": math.inf}])
 def test_bad_take_up_settings_are_refused(kw):
