@@ -20,12 +20,11 @@ from typing import Any
 import zenoh
 
 from bridge import bus
-from server.live import LatestValues
+from server.live import LatestValues, fresh_camera
 
 #: A frame payload on the wire: base64 of the largest JPEG plus the JSON around it.
 MAX_FRAME_PAYLOAD = bus.FRAME_DATA_MAX_BYTES * 4 // 3 + 64 * 1024
 RATE_WINDOW_S = 2.0  # s over which the α_IP message rate is measured
-CAMERA_MAX_AGE_S = 1.0  # s: a camera silent for longer than this is reported stale
 
 
 class CameraFeed:
@@ -106,19 +105,19 @@ class CameraFeed:
                 sub.undeclare()
 
 
-def camera_health(values: LatestValues, feed: CameraFeed | None = None,
-                  max_age_s: float = CAMERA_MAX_AGE_S) -> dict[str, Any] | None:
+def camera_health(values: LatestValues, feed: CameraFeed | None = None) -> dict[str, Any] | None:
     """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
-    whether it arrived within ``max_age_s`` (``fresh``), the joints it reports missing (1-based),
-    the per-joint confidence and the frames the source dropped; with ``feed``, the α_IP rate
-    (``rate_hz``) and per joint the fraction of those messages that had it missing
-    (``missing_fraction``), both over the last :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
+    whether the camera is fresh (``fresh``: :func:`server.live.fresh_camera`, the rule of the live
+    frames and the 3D view too), the joints it reports missing (1-based), the per-joint confidence
+    and the frames the source dropped; with ``feed``, the α_IP rate (``rate_hz``) and per joint the
+    fraction of those messages that had it missing (``missing_fraction``), both over the last
+    :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
     without one) and the frames refused. None before any camera message."""
     msg = values.get("camera")
     if msg is None:
         return None
     out: dict[str, Any] = {
-        "source": msg.source, "stamp_s": msg.stamp_s, "fresh": values.fresh("camera", max_age_s) is not None,
+        "source": msg.source, "stamp_s": msg.stamp_s, "fresh": fresh_camera(values) is not None,
         "missing_joints": [i + 1 for i, a in enumerate(msg.alpha_ip_rad) if a is None],
         "confidence": list(msg.confidence), "dropped": msg.dropped,
     }

@@ -28,6 +28,9 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
         "estop":   {"engaged", "reason"}}}
 
 A series appears once its first message arrived; ``stamp_s`` lets a client drop repeats.
+``camera`` appears only while the camera is fresh (:func:`fresh_camera`, the rule of
+``/api/camera``'s ``fresh``): the dashboard plots α_IP at each new status time, and a stale
+camera's last α_IP had been drawn there as a live line (audit of 2026-11-29).
 
 ``truth`` is one twin's: a ``Truth`` has no identity field, and a second twin on the hub made the
 series flip between two twins' clocks and poses (audit of 2026-11-29). Its samples name their
@@ -46,7 +49,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -79,6 +82,11 @@ BY_RUN = frozenset({"truth"})
 BY_RUN_RING_SAMPLES = 32
 RUN_FOLLOW_MAX_AGE_S = 0.5  # s: an older command or state names no run to follow
 BY_RUN_MAX_RUNS = 8  # runs remembered per series (a flood of forged runs stays bounded)
+
+#: s: a camera whose latest α_IP arrived longer ago than this is stale (:func:`fresh_camera`).
+CAMERA_MAX_AGE_S = 1.0
+#: Series a live frame carries only while fresh: name -> the age (s) beyond which it is left out.
+LIVE_MAX_AGE_S: dict[str, float] = {"camera": CAMERA_MAX_AGE_S}
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
@@ -281,12 +289,22 @@ class LatestValues:
         with self._lock:
             return self._decode(series, payload)
 
-    def snapshot(self) -> tuple[int, dict[str, bus.BusMessage]]:
+    def _within(self, series: str, max_age_s: float, now: float) -> bool:
+        """(Under the lock.) Whether ``series``' latest payload arrived within ``max_age_s`` of ``now``."""
+        received = self._received_s.get(series)
+        return received is not None and now - received <= max_age_s
+
+    def snapshot(self, max_age_s: Mapping[str, float] | None = None) -> tuple[int, dict[str, bus.BusMessage]]:
+        """(version, the latest message of every series that decodes); ``max_age_s``: series ->
+        age (s) beyond which that series is left out, as :meth:`fresh` would answer None."""
         with self._lock:
             self._pull()
+            now = time.monotonic()
             version, raw = self._version, dict(self._raw)
             out = {}
             for series, payload in raw.items():
+                if max_age_s is not None and series in max_age_s and not self._within(series, max_age_s[series], now):
+                    continue
                 msg = self._decode(series, payload)
                 if msg is not None:
                     out[series] = msg
@@ -301,10 +319,17 @@ class LatestValues:
         """The latest message of ``series`` if it arrived within ``max_age_s`` and decodes, else None."""
         with self._lock:
             self._pull()
-            received = self._received_s.get(series)
-        if received is None or time.monotonic() - received > max_age_s:
-            return None
+            if not self._within(series, max_age_s, time.monotonic()):
+                return None
         return self.get(series)
+
+
+def fresh_camera(values: LatestValues) -> bus.CameraAlpha | None:
+    """The latest α_IP message while the camera is fresh (it arrived within
+    :data:`CAMERA_MAX_AGE_S` and is valid), else None. The one freshness rule of the camera:
+    ``/api/camera``'s and the health's ``fresh``, the live frames' ``camera`` (:data:`LIVE_MAX_AGE_S`)
+    and the 3D view's α_IP ghost."""
+    return values.fresh("camera", CAMERA_MAX_AGE_S)
 
 
 def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> dict[str, Any] | None:
@@ -442,7 +467,7 @@ class Broadcaster:
         self._watched.set()
         self.values.watch("browsers", True)
         # A new client gets the current state at once, not after the next change.
-        _, latest = self.values.snapshot()
+        _, latest = self.values.snapshot(LIVE_MAX_AGE_S)
         if latest:
             client.offer(self._encode(latest))
         return client
@@ -466,7 +491,7 @@ class Broadcaster:
                 await self._watched.wait()  # nobody watches: no read, no decode, no wake-up
                 next_t = time.monotonic()
             next_t += self.period_s
-            version, latest = self.values.snapshot()
+            version, latest = self.values.snapshot(LIVE_MAX_AGE_S)
             if version != last_version and self.clients and latest:
                 last_version = version
                 frame = self._encode(latest)

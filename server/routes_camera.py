@@ -12,7 +12,8 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, status
 from fastapi.responses import Response
 
-from server.camera_feed import CAMERA_MAX_AGE_S, camera_health
+from server.camera_feed import camera_health
+from server.live import fresh_camera
 
 router = APIRouter(prefix="/api/camera", tags=["camera"])
 
@@ -28,7 +29,7 @@ def camera(request: Request) -> dict[str, Any]:
     msg = s.live.values.get("camera")
     alpha = None if msg is None else {
         "alpha_ip_rad": msg.alpha_ip_rad, "confidence": msg.confidence, "source": msg.source, "stamp_s": msg.stamp_s,
-        "fresh": s.live.values.fresh("camera", CAMERA_MAX_AGE_S) is not None}
+        "fresh": fresh_camera(s.live.values) is not None}
     latest = s.camera.frame()
     frame = None
     if latest is not None:

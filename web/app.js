@@ -110,6 +110,7 @@ function onFrame(frame) {
     if (s.state) push(forcePlot, s.state.stamp_s, s.state.force_applied_N);
     if (s.status) {
       stats.lastStamp = s.status.stamp_s;
+      // The console sends α_IP only while the camera is fresh (server.live.fresh_camera): without it, a gap.
       const ip = s.camera ? s.camera.alpha_ip_rad : null;
       jointPlots.forEach((p, j) => push(p, s.status.stamp_s,
         [s.status.alpha_d_rad[j] * DEG, s.status.alpha_hat_rad[j] * DEG,

@@ -138,7 +138,9 @@
         if (h.fresh) {
           setState("live", `${h.source}: ${fmt(h.rate_hz, 0)} Hz${missing}, ${h.dropped} dropped, ${age}`);
         } else {
-          setState("stale", `no camera (${h.source} silent for ${fmt(h.age_s, 0)} s)`);
+          // Stale by the console's one rule (server.live.fresh_camera): the live frames carry no α_IP
+          // then, and the joint plots draw a gap.
+          setState("stale", `camera stale: ${h.source} silent for ${fmt(h.age_s, 0)} s`);
         }
       }
       showAlpha(h && h.fresh ? s.alpha : null, h ? h.missing_fraction : null);
