@@ -4,6 +4,9 @@ Drawn in the base frame (y up, metres; ``server.neck_geometry``): the neck at α
 status; the twin's truth when no controller runs) with bars, springs, pulleys and the four cables
 coloured by tension (blue 0 N → red f_max; the twin's tension, else the applied forces); ghosts
 of the bars at α^d (green) and α_IP (orange, camera); the base frame axes and a gravity arrow.
+The α_IP ghost is shown only while the camera is fresh (:func:`server.live.fresh_camera`, the rule
+of ``/api/camera``'s ``fresh``) and measures every joint: it had stayed at the last full pose after
+a joint went missing and after the camera fell silent (audit of 2026-11-29).
 
 The camera frames the neck's bounding volume over its joint range (:meth:`NeckDrawing.bounds`)
 when a browser connects, when its view changes shape (a resized card) and on "reset view"; the
@@ -43,7 +46,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from server.live import LatestValues
+from server.live import LatestValues, fresh_camera
 from server.neck_geometry import NeckDrawing, tension_colors
 from twin.camera.calibration import Calibration, twin_calibration
 from twin.model.params import Params
@@ -60,7 +63,6 @@ PREVIEW_HOLD_S = 1.0  # s the preview ghost stays at the last pose before it dis
 GRAVITY_RGB = (200, 30, 200)
 MOTOR_RGB = (60, 60, 60)
 CAMERA_RGB = (0, 120, 200)
-CAMERA_FRESH_S = 1.0  # s: the frustum is drawn while α_IP from a camera is younger than this
 CAMERA_FRUSTUM_SCALE_M = 0.06
 JOG_PERIOD_S = 0.3  # s between two jog targets sent while a slider moves
 FIT_MARGIN = 1.15  # the bounding box fills this much less than the view
@@ -336,9 +338,10 @@ class NeckScene:
             self.ghost_preview.visible = True
 
     def pose(self) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-        """(α̂, α^d, α_IP, tension) from the latest values (rad, rad, rad, N); None when unknown."""
+        """(α̂, α^d, α_IP, tension) from the latest values (rad, rad, rad, N); None when unknown, α_IP
+        also while the camera is stale (:func:`server.live.fresh_camera`)."""
         status, truth = self.values.get("status"), self.values.get("truth")
-        camera, state = self.values.get("camera"), self.values.get("state")
+        camera, state = fresh_camera(self.values), self.values.get("state")
         alpha_hat = np.asarray(status.alpha_hat_rad) if status else (np.asarray(truth.alpha_rad) if truth else None)
         alpha_d = np.asarray(status.alpha_d_rad) if status else None
         alpha_ip = np.asarray(camera.alpha_ip_rad, dtype=float) if camera else None  # a missing joint (null) → NaN
@@ -360,13 +363,18 @@ class NeckScene:
                     handle.points = g.cables[j]
                     if colors is not None:
                         handle.colors = np.broadcast_to(colors[j], g.cables[j].shape).copy()
-            camera = self.values.get("camera")
-            self.frustum.visible = bool(camera is not None and camera.source not in ("", "twin-noise")
-                                        and self.values.age_s("camera") < CAMERA_FRESH_S)
-            for handle, alpha in ((self.ghost_d, alpha_d), (self.ghost_ip, alpha_ip)):
-                if alpha is not None and alpha.shape == (n,) and np.all(np.isfinite(alpha)):
-                    handle.points = self.drawing.skeleton(alpha)
-                    handle.visible = True
+            camera = fresh_camera(self.values)
+            self.frustum.visible = bool(camera is not None and camera.source not in ("", "twin-noise"))
+            if alpha_d is not None and alpha_d.shape == (n,) and np.all(np.isfinite(alpha_d)):
+                self.ghost_d.points = self.drawing.skeleton(alpha_d)
+                self.ghost_d.visible = True
+            # α_IP only as the camera measures it now: hidden while a joint is missing (NaN) or the
+            # camera is stale (None), shown again at the next fresh frame measuring every joint.
+            if alpha_ip is not None and alpha_ip.shape == (n,) and np.all(np.isfinite(alpha_ip)):
+                self.ghost_ip.points = self.drawing.skeleton(alpha_ip)
+                self.ghost_ip.visible = True
+            else:
+                self.ghost_ip.visible = False
         self.updates += 1
 
     def watched(self) -> bool:
@@ -376,7 +384,7 @@ class NeckScene:
                     or self.server.get_clients())
 
     def _run(self) -> None:
-        last_version = -1
+        last_version: tuple[int, bool] | None = None
         while True:
             self._wake.wait(1.0 / (self.rate_hz if self.watched() else min(IDLE_RATE_HZ, self.rate_hz)))
             self._wake.clear()
@@ -387,7 +395,8 @@ class NeckScene:
                 self.draw_preview(time.monotonic())
             except Exception:  # a jog that cannot be sent must not kill the view thread
                 log.exception("jog or preview in the 3D view failed")
-            version = self.values.version()
+            # Redrawn on news, and when the camera turns stale: that is no news on the bus.
+            version = (self.values.version(), fresh_camera(self.values) is not None)
             if version == last_version:
                 continue
             last_version = version

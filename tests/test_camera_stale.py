@@ -177,3 +177,27 @@ def test_the_dashboard_draws_a_gap_and_says_camera_stale_when_the_camera_falls_s
     assert before and all(v is not None for v in before)
     assert "camera stale" in state_text, state_text
 
+
+def test_the_3d_view_hides_the_alpha_ip_ghost_while_a_joint_is_missing_or_the_camera_is_stale(tmp_path: Path) -> None:
+    """docs/camera.md: the 3D view hides the α_IP ghost while a joint is missing (it stayed at the
+    last full pose), and while the camera is stale (it stayed after the camera fell silent, with
+    the controller's status going on, and with the whole bus silent); fresh frames show it again."""
+    with running_server(tmp_path / "data") as (_base, app_), peers(hub_of(app_)) as p:
+        scene = cast(Any, app_).state.scene
+
+        def shown() -> bool:
+            return bool(scene.ghost_ip.visible)
+
+        p.camera.set()
+        assert wait_until(shown, 15, 0.05), "the ghost of a fresh camera measuring every joint"
+        p.missing = {1}
+        assert wait_until(lambda: not shown(), 5, 0.05), "joint 2 missing: the ghost stayed at the last full pose"
+        p.missing = set()
+        assert wait_until(shown, 5, 0.05)
+        p.camera.clear()
+        assert wait_until(lambda: not shown(), CAMERA_MAX_AGE_S + 4, 0.05), "a stale camera's ghost stayed"
+        p.camera.set()
+        assert wait_until(shown, 5, 0.05), "fresh frames show the ghost again"
+        p.status.clear()
+        p.camera.clear()  # nothing comes any more: the view still hides what is not now
+        assert wait_until(lambda: not shown(), CAMERA_MAX_AGE_S + 4, 0.05), "a stale camera's ghost stayed, bus silent"
