@@ -156,7 +156,7 @@ def camera(
     from bridge.runtime import setup_logging, stop_on_signals
     from twin.camera.detect import Detector
     from twin.camera.process import CameraNode
-    from twin.camera.source import FileSource, SourceError, TwinShutter, UsbSource, parse_source
+    from twin.camera.source import FileSource, SourceError, SourceLost, TwinShutter, UsbSource, parse_source
 
     try:
         kind, where = parse_source(source)
@@ -188,9 +188,11 @@ def camera(
         raise fail(str(exc)) from None
     stop = stop_on_signals()
     log = logging.getLogger("xneck.camera")
+    lost: SourceLost | None = None
     with open_bus(listen, connect) as session:
         node = CameraNode(session, detector, instance, frame_rate_hz=frame_rate_hz, jpeg_quality=jpeg_quality)
         log.info("camera %s up: --source %s", node.instance, source)
+        count = 0
         try:
             if renderer is not None and shutter is not None:
                 count = node.run_twin(renderer, shutter, stop, max_frames, idle_timeout)
@@ -201,6 +203,8 @@ def camera(
                 if kind == "file" and stop.wait(0.5):
                     return
                 count = node.run_source(frames, stop, max_frames, frames.fps if (kind == "file" and realtime) else None)
+        except SourceLost as exc:  # a live camera gone for good: not a normal end (exit 1, after the counts)
+            lost, count = exc, node.frames
         except RuntimeError as exc:
             raise fail(str(exc)) from None
         finally:
@@ -209,6 +213,9 @@ def camera(
                 frames.close()
         log.info("camera %s: %d frames, %d missing joints, %d dropped, %d JPEG frames", node.instance, count,
                  node.missing_joints, node.dropped, node.images)
+    if lost is not None:
+        typer.secho(f"error: {lost}", err=True, fg="red")
+        raise typer.Exit(1)
 
 
 @camera_app.command("render", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})

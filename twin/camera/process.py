@@ -127,24 +127,28 @@ class CameraNode:
                    pace_fps: float | None = None) -> int:
         """Read, detect, publish until the source ends, ``stop`` is set or ``max_frames`` were
         published. ``pace_fps`` replays a file at its frame rate (None: as fast as detection runs).
-        A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``."""
+        A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``. A live source
+        that is lost raises (:class:`twin.camera.source.SourceLost`): the last health counters are
+        published first."""
         started = time.monotonic()
-        while not stop.is_set() and (max_frames is None or self.frames < max_frames):
-            frame = source.read()
-            if frame is None:
-                break
-            if pace_fps:
-                delay = started + self.frames / pace_fps - time.monotonic()
-                if delay > 0 and stop.wait(delay):
+        try:
+            while not stop.is_set() and (max_frames is None or self.frames < max_frames):
+                frame = source.read()
+                if frame is None:
                     break
-            self.dropped = source.dropped
-            try:
-                found = self.detector.detect(frame.image)
-            except ValueError as exc:  # a frame of another size: the calibration does not fit
-                raise RuntimeError(f"{source.name}: {exc}") from None
-            stamp = frame.capture_s if source.name.startswith("file:") else time.time()
-            self.publish(found, frame.capture_s, stamp, source.name, frame.image)
-        self._maybe_health(force=True)
+                if pace_fps:
+                    delay = started + self.frames / pace_fps - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
+                        break
+                self.dropped = source.dropped
+                try:
+                    found = self.detector.detect(frame.image)
+                except ValueError as exc:  # a frame of another size: the calibration does not fit
+                    raise RuntimeError(f"{source.name}: {exc}") from None
+                stamp = frame.capture_s if source.name.startswith("file:") else time.time()
+                self.publish(found, frame.capture_s, stamp, source.name, frame.image)
+        finally:
+            self._maybe_health(force=True)
         return self.frames
 
     def run_twin(self, renderer: Renderer, shutter: TwinShutter, stop: threading.Event,

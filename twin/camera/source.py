@@ -4,6 +4,10 @@
   exposure's time stamp is the wall time at which the frame was grabbed minus the camera's
   latency (``latency_s``, half an exposure plus the transfer: measure it once with a visible sync
   event, see docs/camera.md); frames lost by the driver are counted from the gaps between grabs.
+  A failed grab or retrieve (common on USB: a corrupt frame, a bus hiccup) is retried every
+  :data:`RETRY_PAUSE_S` for up to :data:`RETRY_WINDOW_S`; a camera that gives no frame for that
+  long is lost, and ``read`` raises :class:`SourceLost` naming it and how long it had run (it
+  never returns None: a live camera has no normal end).
 - :class:`FileSource` (``file:VIDEO``): a recorded video, as the paper processed its videos
   offline (§4.2); time stamps are the video's own (frame index / fps, plus ``t0_s``).
 - :class:`TwinShutter` (``twin``): the exposure schedule of the twin's camera on the truth's
@@ -13,6 +17,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import time
@@ -25,9 +30,18 @@ import numpy as np
 
 from bridge import bus
 
+log = logging.getLogger("xneck.camera")
+
+RETRY_WINDOW_S = 1.0  # s: a live camera that gives no frame for this long, despite retries, is lost
+RETRY_PAUSE_S = 0.05  # s between two attempts after a failed grab (about 20 in the window)
+
 
 class SourceError(RuntimeError):
     """A frame source cannot be opened or used; the message says why."""
+
+
+class SourceLost(SourceError):
+    """A live source stopped giving frames and did not come back within its retry window."""
 
 
 @dataclass
@@ -101,17 +115,48 @@ class UsbSource:
         self.cap.set(cv2.CAP_PROP_FPS, fps)
         self.fps = float(self.cap.get(cv2.CAP_PROP_FPS)) or fps
         self.latency_s = float(latency_s)
+        self.retry_window_s = RETRY_WINDOW_S
         self.dropped = 0
+        self.frames = 0  # frames read
+        self.retries = 0  # failed grabs or retrieves that a later attempt got past
+        self._opened_s = self._last_frame_s = time.monotonic()
         self._last_grab_s: float | None = None
         self.name = f"usb:{device}"
 
-    def read(self) -> Frame | None:
+    def _grab(self) -> tuple[float, np.ndarray] | None:
         if not self.cap.grab():
             return None
         grabbed_s = time.time()
         ok, image = self.cap.retrieve()
-        if not ok or image is None:
-            return None
+        return (grabbed_s, image) if ok and image is not None else None
+
+    def _retry(self) -> tuple[float, np.ndarray]:
+        """After a failed grab: attempts every RETRY_PAUSE_S until one gives a frame, or raise
+        :class:`SourceLost` once ``retry_window_s`` has passed since the first failure."""
+        first = time.monotonic()
+        failures = 1
+        while True:
+            now = time.monotonic()
+            if now - first >= self.retry_window_s:
+                raise SourceLost(f"{self.name}: no frame for {now - self._last_frame_s:.1f} s ({failures} grabs failed), "
+                                 f"after {self._last_frame_s - self._opened_s:.1f} s running and {self.frames} frames: "
+                                 f"the camera was unplugged, or it stalled")
+            time.sleep(RETRY_PAUSE_S)
+            got = self._grab()
+            if got is not None:
+                self.retries += failures
+                log.warning("%s: %d grab(s) failed, a frame again after %.2f s", self.name, failures, time.monotonic() - first)
+                return got
+            failures += 1
+
+    def read(self) -> Frame:
+        """The next frame; :class:`SourceLost` once none came for ``retry_window_s`` (module doc)."""
+        got = self._grab()
+        if got is None:
+            got = self._retry()
+        grabbed_s, image = got
+        self.frames += 1
+        self._last_frame_s = time.monotonic()
         if self._last_grab_s is not None:
             missed = round((grabbed_s - self._last_grab_s) * self.fps) - 1
             self.dropped += max(0, missed)
