@@ -4,14 +4,21 @@
   (`source.RETRY_WINDOW_S`) and carries on; one that does not come back ends `xneck camera`
   non-zero, saying which camera and after how long. No USB camera exists here: a fake
   `cv2.VideoCapture` stands for it, the lowest layer, and everything above it is the real code.
+- A damaged video (`FileSource`): real files written by OpenCV, then damaged as a copy interrupted
+  or a bad sector would: an undecodable frame is skipped and the later frames keep their own time,
+  a frame the container's clock skips is counted, and a video that ends short of what its container
+  declares says by how much.
 """
 
 from __future__ import annotations
 
 import re
+import struct
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +26,7 @@ import pytest
 cv2 = pytest.importorskip("cv2")
 
 from twin.camera.render import Renderer  # noqa: E402
-from twin.camera.source import SourceError, UsbSource  # noqa: E402
+from twin.camera.source import FileSource, SourceError, UsbSource  # noqa: E402
 
 FPS = 30.0
 
@@ -144,3 +151,199 @@ def test_xneck_camera_on_a_usb_camera_unplugged_exits_1_naming_it(tmp_path, mode
                                          r"and 60 frames", errors[0]), done.stderr[-3000:]
     assert "Traceback" not in done.stderr and took < 60
     assert len(got) >= 20  # what it measured before the camera went was published
+
+
+# --- damaged video files --------------------------------------------------------------------------
+
+
+def write_video(path: Path, images) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, images[0].shape[1::-1])
+    for image in images:
+        writer.write(image)
+    writer.release()
+    return path
+
+
+def numbered(n: int) -> list[np.ndarray]:
+    """Small grey frames whose level says their number (k·8)."""
+    return [np.full((48, 64, 3), 8 * k, np.uint8) for k in range(n)]
+
+
+def number_of(image: np.ndarray) -> int:
+    return round(float(image.mean()) / 8)
+
+
+def avi_chunks(data: bytes) -> list[tuple[int, int]]:
+    """(offset, size) of each frame's chunk in an AVI's movi list (RIFF: tag, little-endian size, data, pad)."""
+    i, out = data.index(b"movi") + 4, []
+    while i + 8 <= len(data) and data[i:i + 4] != b"idx1":
+        size = struct.unpack("<I", data[i + 4:i + 8])[0]
+        if data[i + 2:i + 4] == b"dc":
+            out.append((i, size))
+        i += 8 + size + (size & 1)
+    return out
+
+
+def damaged(video: Path, name: str, how: str, k: int = 0) -> Path:
+    """A copy of ``video`` with frame ``k`` made ``undecodable`` (its JPEG zeroed, the container
+    intact), ``dropped`` (a zero-size chunk: a frame the recorder dropped, on the container's clock),
+    its chunk ``unframed`` (header zeroed: the container loses the frame and its time), or the file
+    ``truncated`` in the middle of frame k (a copy interrupted, a full card)."""
+    data = bytearray(video.read_bytes())
+    at, size = avi_chunks(bytes(data))[k]
+    if how == "truncated":
+        data = data[:at + 8 + size // 2]
+    else:
+        if how == "undecodable":
+            data[at + 8:at + 8 + size] = bytes(size)
+        elif how == "dropped":  # 00dc of size 0, then a JUNK chunk over the old data: nothing else moves
+            data[at + 4:at + 16] = struct.pack("<I", 0) + b"JUNK" + struct.pack("<I", size - 8)
+        else:
+            data[at:at + 8] = bytes(8)
+    out = video.with_name(name)
+    out.write_bytes(bytes(data))
+    return out
+
+
+def read_all(source: FileSource) -> list:
+    frames = []
+    while (f := source.read()) is not None:
+        frames.append(f)
+    source.close()
+    return frames
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory) -> Path:
+    return write_video(tmp_path_factory.mktemp("clip") / "clip.avi", numbered(30))
+
+
+def test_a_whole_video_is_read_on_its_own_clock_and_reports_nothing(clip) -> None:
+    source = FileSource(clip, t0_s=5.0)
+    frames = read_all(source)
+    assert [number_of(f.image) for f in frames] == list(range(30))
+    assert [f.capture_s for f in frames] == pytest.approx(5.0 + np.arange(30) / FPS)
+    assert source.declared == 30 and source.dropped == 0 and source.loss() is None
+
+
+def test_an_undecodable_frame_is_skipped_and_the_later_frames_keep_their_time(clip) -> None:
+    """Audit of 2026-11-29: the read that failed on it ended the video there (14 of 30 frames, no
+    word); where the reader did go on, every later frame was stamped a frame period early."""
+    source = FileSource(damaged(clip, "undecodable.avi", "undecodable", k=14))
+    frames = read_all(source)
+    numbers = [number_of(f.image) for f in frames]
+    assert numbers == [k for k in range(30) if k != 14]
+    assert [f.capture_s for f in frames] == pytest.approx(np.array(numbers) / FPS, abs=1e-6)
+    assert source.undecodable == 1 and source.dropped == 1
+    loss = source.loss()
+    assert loss is not None and loss.damaged
+    assert "29 of the 30 frames" in loss.text and "1 could not be decoded" in loss.text, loss.text
+
+
+def test_a_frame_the_container_skips_is_counted_and_the_later_frames_keep_their_time(clip) -> None:
+    """A zero-size chunk is a frame the recorder dropped: the container's clock (CAP_PROP_POS_MSEC)
+    steps over it, the frame index does not."""
+    source = FileSource(damaged(clip, "dropped.avi", "dropped", k=15))
+    frames = read_all(source)
+    numbers = [number_of(f.image) for f in frames]
+    assert numbers == [k for k in range(30) if k != 15]
+    assert [f.capture_s for f in frames] == pytest.approx(np.array(numbers) / FPS, abs=1e-6)
+    assert source.gaps == 1 and source.dropped == 1 and source.undecodable == 0
+    loss = source.loss()
+    assert loss is not None
+    assert not loss.damaged and "1 the container's clock skips" in loss.text, loss.text
+
+
+def test_a_truncated_video_says_how_many_frames_it_lacks(clip) -> None:
+    source = FileSource(damaged(clip, "trunc.avi", "truncated", k=12))
+    frames = read_all(source)
+    n = len(frames)
+    assert n in (12, 13) and [number_of(f.image) for f in frames] == list(range(n))
+    loss = source.loss()
+    assert loss is not None and loss.damaged and source.dropped == 30 - n
+    assert f"{n} of the 30 frames" in loss.text and f"{30 - n} missing" in loss.text, loss.text
+    assert f"after {(n - 1) / FPS:.3f} s" in loss.text
+
+
+def test_a_frame_whose_chunk_is_lost_is_counted_though_its_time_cannot_be(clip) -> None:
+    """The audit's hole.avi: the chunk's header is gone, the demuxer resynchronises on the next one
+    and numbers it as if nothing were missing. Nothing in the file says where: the count does."""
+    source = FileSource(damaged(clip, "unframed.avi", "unframed", k=15))
+    frames = read_all(source)
+    assert len(frames) == 29
+    loss = source.loss()
+    assert loss is not None
+    assert loss.damaged and "1 missing" in loss.text, loss.text
+
+
+def test_a_video_stopped_before_its_end_reports_no_loss(clip) -> None:
+    source = FileSource(damaged(clip, "trunc2.avi", "truncated", k=12))
+    assert source.read() is not None
+    source.close()
+    assert source.loss() is None  # not read to its end: nothing to compare with the container's count
+
+
+# --- `xneck camera --source file:` on damaged videos ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rendered_clip(tmp_path_factory, model) -> tuple[Path, np.ndarray]:
+    alphas = np.radians([[1.5 * k, -1.0 * k, 0.8 * k] for k in range(30)])
+    renderer = Renderer(model, seed=2)
+    path = tmp_path_factory.mktemp("rendered") / "run.avi"
+    return write_video(path, [renderer.render(a) for a in alphas]), alphas
+
+
+def run_camera_on(video: Path) -> tuple[subprocess.CompletedProcess, list]:
+    from busutil import bus_pair, wait_until
+
+    from bridge import bus
+
+    with bus_pair() as (hub, session, _connect):
+        got, lock = [], threading.Lock()
+
+        def collect(sample) -> None:
+            with lock:
+                got.append(bus.decode(bus.CAMERA_ALPHA, sample.payload.to_bytes()))
+
+        sub = session.declare_subscriber(bus.CAMERA_ALPHA, collect)
+        done = subprocess.run([sys.executable, "-m", "server.cli", "camera", "--source", f"file:{video}", "--fast",
+                               "--frame-rate-hz", "0", "--connect", hub], capture_output=True, text=True, timeout=120)
+        count = sum(1 for line in done.stderr.splitlines() if " INFO camera " in line and " frames, " in line)
+        wait_until(lambda: len(got) >= 10, 5.0)
+        time.sleep(0.3)
+        sub.undeclare()
+    assert count == 1, done.stderr
+    return done, sorted(got, key=lambda m: m.seq)
+
+
+def test_xneck_camera_on_a_truncated_video_warns_of_the_shortfall_and_exits_1(rendered_clip) -> None:
+    """Audit of 2026-11-29: 48 of 120 frames published, exit 0, no word."""
+    video, _alphas = rendered_clip
+    done, got = run_camera_on(damaged(video, "trunc.avi", "truncated", k=12))
+    warnings = [line for line in done.stderr.splitlines() if " WARNING " in line]
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert len(warnings) == 1 and "file:trunc.avi: " in warnings[0] and "of the 30 frames" in warnings[0], done.stderr
+    assert "missing after" in warnings[0] and "Traceback" not in done.stderr
+    n = len(got)
+    assert n in (12, 13) and f"{n} of the 30 frames" in warnings[0]
+    assert got[-1].dropped == 0  # the loss is known only at the end: the health counters carry it
+
+
+def test_xneck_camera_on_a_video_with_an_undecodable_frame_keeps_the_time_of_the_rest(rendered_clip) -> None:
+    video, alphas = rendered_clip
+    done, got = run_camera_on(damaged(video, "hole.avi", "undecodable", k=12))
+    assert done.returncode == 1 and "1 could not be decoded" in done.stderr, done.stderr[-3000:]
+    kept = [k for k in range(30) if k != 12]
+    assert len(got) == 29
+    assert [m.capture_stamp_s for m in got] == pytest.approx(np.array(kept) / FPS, abs=1e-6)
+    assert [m.dropped for m in got] == [0] * 12 + [1] * 17
+    for m, k in zip(got, kept):  # each frame's α is the α of the instant it is stamped with
+        assert np.degrees(np.abs(np.array(m.alpha_ip_rad) - alphas[k])).max() < 1.0
+
+
+def test_xneck_camera_on_a_whole_video_exits_0(rendered_clip) -> None:
+    video, _alphas = rendered_clip
+    done, got = run_camera_on(video)
+    assert done.returncode == 0 and " WARNING " not in done.stderr, done.stderr[-3000:]
+    assert len(got) == 30 and [m.capture_stamp_s for m in got] == pytest.approx(np.arange(30) / FPS, abs=1e-6)

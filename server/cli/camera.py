@@ -211,8 +211,15 @@ def camera(
             node.close()
             if frames is not None:
                 frames.close()
+        loss = frames.loss() if isinstance(frames, FileSource) else None
+        if loss is not None:
+            log.warning("%s", loss.text)
         log.info("camera %s: %d frames, %d missing joints, %d dropped, %d JPEG frames", node.instance, count,
                  node.missing_joints, node.dropped, node.images)
+    if loss is not None and loss.damaged:
+        # Everything that decoded was published, with its own time; the exit code is what tells a
+        # script that this video was not whole (a frame the recorder dropped is not damage: exit 0).
+        raise typer.Exit(1)
     if lost is not None:
         typer.secho(f"error: {lost}", err=True, fg="red")
         raise typer.Exit(1)

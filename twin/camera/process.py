@@ -47,7 +47,9 @@ FOLLOW_SILENT_S = 1.0  # s (wall clock) without the followed twin's truth before
 
 class FrameSource(Protocol):
     name: str
-    dropped: int
+
+    @property
+    def dropped(self) -> int: ...  # frames the source lost so far
 
     def read(self) -> Frame | None: ...
 
@@ -148,6 +150,7 @@ class CameraNode:
                 stamp = frame.capture_s if source.name.startswith("file:") else time.time()
                 self.publish(found, frame.capture_s, stamp, source.name, frame.image)
         finally:
+            self.dropped = source.dropped  # a file's missing end is known only now
             self._maybe_health(force=True)
         return self.frames
 

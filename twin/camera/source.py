@@ -9,7 +9,13 @@
   long is lost, and ``read`` raises :class:`SourceLost` naming it and how long it had run (it
   never returns None: a live camera has no normal end).
 - :class:`FileSource` (``file:VIDEO``): a recorded video, as the paper processed its videos
-  offline (§4.2); time stamps are the video's own (frame index / fps, plus ``t0_s``).
+  offline (§4.2); time stamps are the video's own, plus ``t0_s``: the container's time of each
+  frame (``CAP_PROP_POS_MSEC``) while it is available and consistent, else the frame count / fps.
+  A damaged video is read as far as it can be, never silently: a frame that cannot be decoded is
+  skipped and the frames after it keep their time (counted in ``undecodable``); a frame the
+  container's clock steps over (a zero-size AVI chunk: dropped when recorded) is counted in
+  ``gaps``; at the end the frames read are compared with the count the container declares
+  (``CAP_PROP_FRAME_COUNT``), and :meth:`FileSource.loss` says what is missing (a truncated file).
 - :class:`TwinShutter` (``twin``): the exposure schedule of the twin's camera on the truth's
   clock (simulated time): an exposure every 1/``rate_hz`` s, the frame ready ``latency_s`` later.
   The bus process (``twin.camera.process``) feeds it the twin's truth and renders each exposure.
@@ -64,8 +70,20 @@ def parse_source(text: str) -> tuple[str, str]:
     raise ValueError(f"--source {text!r}: expected usb:N, /dev/videoN, file:VIDEO or twin")
 
 
+@dataclass(frozen=True)
+class VideoLoss:
+    """What a video lacked (:meth:`FileSource.loss`): ``damaged`` when frames could not be decoded
+    or are missing from the file; ``text`` one line for the operator."""
+
+    damaged: bool
+    text: str
+
+
 class FileSource:
-    """Frames of a video file with their time stamps (constant frame rate assumed)."""
+    """Frames of a video file with their time stamps (the module doc: the container's clock, else
+    the frame count at the nominal frame rate)."""
+
+    BAD_READS_S = 1.0  # s of video: this many failed reads in a row end the video (a real end fails forever)
 
     def __init__(self, path: str | Path, t0_s: float = 0.0) -> None:
         path = Path(path)
@@ -86,17 +104,89 @@ class FileSource:
             raise SourceError(f"{path}: implausible frame rate {fps}")
         self.fps = fps
         self.t0_s = float(t0_s)
-        self.index = 0
-        self.dropped = 0
+        count = float(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.declared = int(count) if math.isfinite(count) and 1 <= count < 1e9 else 0  # 0: the container says none
+        self.frames = 0  # frames decoded
+        self.undecodable = 0  # reads that failed before a later frame decoded: skipped, their time kept
+        self.gaps = 0  # frames the container's clock steps over, beyond the failed reads (dropped when recorded)
+        self.ended = False  # read to its end (not stopped before)
+        self.container_clock = True  # stamps from the container's time; False once it was not consistent
+        self._last_s: float | None = None  # video time of the last frame decoded (s, without t0_s)
         self.name = f"file:{path.name}"
 
-    def read(self) -> Frame | None:
-        ok, image = self.cap.read()
-        if not ok or image is None:
+    @property
+    def missing(self) -> int:
+        """Once ended: frames the container declares that were neither read nor accounted for as
+        undecodable or skipped by its clock (cut from the end, or lost where nothing dates them)."""
+        if not self.ended or not self.declared:
+            return 0
+        return max(0, self.declared - self.frames - self.undecodable - self.gaps)
+
+    @property
+    def dropped(self) -> int:
+        """Frames lost so far (``CameraAlpha.dropped``): skipped, then, once ended, missing."""
+        return self.undecodable + self.gaps + self.missing
+
+    def _container_time(self) -> float | None:
+        """The container's time of the frame just decoded (s), if it is available and consistent:
+        later than the last frame's, and within the declared length (plus 1 s). OpenCV says 0 for
+        a frame without a time stamp."""
+        t = float(self.cap.get(cv2.CAP_PROP_POS_MSEC)) / 1000.0
+        if not math.isfinite(t) or t < 0.0 or (self._last_s is not None and t <= self._last_s + 1e-6):
             return None
-        frame = Frame(self.t0_s + self.index / self.fps, image)
-        self.index += 1
-        return frame
+        if self.declared and t > self.declared / self.fps + 1.0:
+            return None
+        return t
+
+    def read(self) -> Frame | None:
+        failed = 0
+        while True:
+            ok, image = self.cap.read()
+            if ok and image is not None:
+                break
+            failed += 1
+            accounted = self.frames + self.undecodable + self.gaps + failed
+            if (self.declared and accounted >= self.declared) or failed >= max(1, round(self.BAD_READS_S * self.fps)):
+                self.ended = True
+                return None
+        # By count: one period after the last frame for each frame decoded or failed since.
+        t = failed / self.fps if self._last_s is None else self._last_s + (1 + failed) / self.fps
+        if self.container_clock:
+            container = self._container_time()
+            if container is not None:
+                t = container
+            elif self._last_s is not None:  # mixed clocks would jump back and forth: the count from here on
+                self.container_clock = False
+                log.info("%s: frame %d has no consistent time in its container (%.3f ms after %.3f s): "
+                         "frames are stamped by their count from there", self.name, self.frames + 1,
+                         self.cap.get(cv2.CAP_PROP_POS_MSEC), self._last_s)
+        # Frames between the last one and this one: the failed reads first, the rest skipped by the clock.
+        lost = max(0, round(t * self.fps) if self._last_s is None else round((t - self._last_s) * self.fps) - 1)
+        self.undecodable += min(failed, lost)
+        self.gaps += lost - min(failed, lost)
+        self._last_s = t
+        self.frames += 1
+        return Frame(self.t0_s + t, image)
+
+    def loss(self) -> VideoLoss | None:
+        """What the video lacked, as far as it was read (None: nothing, or not read to its end and
+        nothing skipped so far)."""
+        if not (self.undecodable or self.gaps or self.missing):
+            return None
+        parts = []
+        if self.undecodable:
+            parts.append(f"{self.undecodable} could not be decoded and {'was' if self.undecodable == 1 else 'were'} "
+                         f"skipped, the frames after them keeping their time")
+        if self.gaps:
+            parts.append(f"{self.gaps} the container's clock skips (dropped when recorded)")
+        if self.missing:
+            last = -1.0 / self.fps if self._last_s is None else self._last_s
+            parts.append(f"{self.missing} missing after {last:.3f} s ({self.missing / self.fps:.3f} s of video): "
+                         f"cut from its end (a truncated file), or lost where the container keeps no time for "
+                         f"them (then the frames after them are stamped early by as much)")
+        read = (f"{self.frames} of the {self.declared} frames its container declares were read" if self.declared
+                else f"{self.frames} frames were read (the container declares no count)")
+        return VideoLoss(damaged=bool(self.undecodable or self.missing), text=f"{self.name}: {read}; " + "; ".join(parts))
 
     def close(self) -> None:
         self.cap.release()
