@@ -347,3 +347,46 @@ def test_xneck_camera_on_a_whole_video_exits_0(rendered_clip) -> None:
     done, got = run_camera_on(video)
     assert done.returncode == 0 and " WARNING " not in done.stderr, done.stderr[-3000:]
     assert len(got) == 30 and [m.capture_stamp_s for m in got] == pytest.approx(np.arange(30) / FPS, abs=1e-6)
+
+
+# --- `xneck camera align` on a damaged video ------------------------------------------------------
+
+
+def _excitation(t: np.ndarray) -> np.ndarray:
+    """Non-periodic multi-sines within ±45° (rad), one per joint."""
+    f = np.array([[0.23, 0.61], [0.31, 0.47], [0.17, 0.53]])
+    return np.radians(np.column_stack([27 * np.sin(2 * np.pi * f[j, 0] * t + j) + 18 * np.sin(2 * np.pi * f[j, 1] * t + 2 * j)
+                                       for j in range(3)]))
+
+
+def test_xneck_camera_align_says_how_many_frames_the_video_lost_and_keeps_the_time_of_the_rest(tmp_path, params, model) -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    from bridge import bus
+    from bridge.archive import write_campaign
+    from bridge.archive_read import read_campaign
+    from server.cli import app
+
+    t = np.arange(0.0, 12.0, 0.01)
+    zeros = [0.0] * params.n_cables
+    truths = [(bus.TWIN_TRUTH, int((1.7e9 + tk) * 1e9), bus.Truth(
+        seq=k + 1, stamp_s=float(tk), alpha_rad=a.tolist(), alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros, theta_dot_rad_s=zeros,
+        tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables, near_singular=False))
+        for k, (tk, a) in enumerate(zip(t, _excitation(t)))]
+    camp = write_campaign(tmp_path / "c.mcap", truths, {"campaign_id": "c1", "kind": "identification"})
+    offset, renderer = 3.25, Renderer(model, seed=8)
+    video = write_video(tmp_path / "run.avi", [renderer.render(_excitation(np.array([offset + k / FPS]))[0]) for k in range(90)])
+    hole = damaged(video, "hole.avi", "undecodable", k=30)
+    r = CliRunner().invoke(app, ["camera", "align", str(hole), str(camp), "--out", str(tmp_path / "a.mcap"), "--json", "--images", "0"])
+    assert r.exit_code == 0, r.output
+    prov = json.loads(r.stdout)
+    assert prov["frames"] == "89" and prov["frames_declared"] == "90" and prov["frames_lost"] == "1", prov
+    assert "warning: hole.avi: 89 of the 90 frames" in r.stderr and "1 could not be decoded" in r.stderr, r.stderr
+    assert abs(float(prov["offset_s"]) - offset) < 0.005
+    frames = [m for _, m in read_campaign(tmp_path / "a.mcap").messages(bus.CAMERA_ALPHA)]
+    kept = np.array([k for k in range(90) if k != 30])
+    assert np.abs(np.array([f.capture_stamp_s for f in frames]) - (offset + kept / FPS)).max() < 0.005
+    r = CliRunner().invoke(app, ["camera", "align", str(hole), str(camp), "--out", str(tmp_path / "b.mcap")])
+    assert r.exit_code == 0 and "89 of the 90 frames" in r.output, r.output

@@ -376,6 +376,8 @@ def align(
         raise fail(f"{target}: exists already (choose another --out)") from None
     except OSError as exc:
         raise write_failed(target, exc) from None
+    if measured.loss:  # the alignment used the frames that decoded, each at its own time
+        typer.secho(f"warning: {measured.loss.removeprefix('file:')}", err=True, fg="yellow")
     if json_out:
         echo_json({**provenance, "out": str(target)}, indent=None)
         return

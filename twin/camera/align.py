@@ -2,7 +2,10 @@
 was computed offline from the video, then put beside the encoder data).
 
 1. :func:`measure_video`: α_IP of every frame (``twin.camera.detect``), on the video's own clock
-   (frame index / fps); missing joints are NaN.
+   (:class:`twin.camera.source.FileSource`: the container's time, else frame count / fps; an
+   undecodable frame is skipped and the later ones keep their time); missing joints are NaN. The
+   frames the video lacked (undecodable, skipped by its clock, or missing from a truncated file)
+   are counted against what the container declares, and go into the provenance.
 2. :func:`campaign_reference`: the campaign's α on its clock (the motor states' ``stamp_s``): the
    twin's truth if recorded, else the controller's α̂ (eq. 33 from the encoders).
 3. :func:`align`: the campaign time of a frame is t_c = offset + (1 + drift)·t_video. A coarse
@@ -60,6 +63,9 @@ class VideoAlpha:
     alpha_rad: np.ndarray
     confidence: np.ndarray
     jpeg: dict[int, bytes] | None = None  # frame index -> JPEG of the frames kept for the archive
+    declared: int = 0  # frames the container declares (0: it declares none)
+    lost: int = 0  # frames the video lacked (FileSource.dropped)
+    loss: str = ""  # what it lacked, one line (FileSource.loss); "" for a whole video
 
 
 @dataclass
@@ -108,8 +114,9 @@ def measure_video(path: str | Path, detector: Detector, max_frames: int | None =
         source.close()
     if len(t) < 10:
         raise AlignmentError(f"{path}: {len(t)} frames; at least 10 are needed")
+    loss = source.loss()
     return VideoAlpha(Path(path).name, source.fps, np.array(t), np.array(alpha, dtype=float), np.array(conf, dtype=float),
-                      jpeg or None)
+                      jpeg or None, declared=source.declared, lost=source.dropped, loss="" if loss is None else loss.text)
 
 
 def _iter_raw(path: Path):
@@ -253,6 +260,7 @@ def write_aligned(campaign: str | Path, out: str | Path, video_path: str | Path,
         "campaign": campaign.name, "reference": reference,
         "offset_s": f"{alignment.offset_s:.6f}", "drift": f"{alignment.drift:.3e}",
         "rms_deg": f"{alignment.rms_deg:.4f}", "frames": str(len(video.t_s)), "frames_used": str(alignment.frames_used),
+        "frames_declared": str(video.declared), "frames_lost": str(video.lost), "video_loss": video.loss,
         "frames_written": str(len(new)), "missing_joints": str(int(np.isnan(video.alpha_rad).sum())),
         "runner_up_offset_s": f"{alignment.runner_up_offset_s:.6f}", "runner_up_rms_deg": f"{alignment.runner_up_rms_deg:.4f}",
         "replaced_camera_messages": str(replaced), "images": str(len(images)),
