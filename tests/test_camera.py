@@ -158,6 +158,28 @@ def test_calibration_files_are_validated(tmp_path) -> None:
         load_calibration(path)
 
 
+def test_a_calibration_file_that_is_not_one_is_refused_in_one_line(xneck, tmp_path) -> None:
+    """Audit of 2026-11-29: a JSON of 200,000 nested arrays (400 kB) made `xneck camera detect
+    --calibration` print a 54-line RecursionError traceback; undecodable bytes a UnicodeDecodeError.
+    Every command loads its calibration through `load_calibration`."""
+    deep, binary, huge = tmp_path / "deep.json", tmp_path / "binary.json", tmp_path / "huge.json"
+    deep.write_text("[" * 200_000 + "]" * 200_000)
+    binary.write_bytes(cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes())
+    huge.write_text(" " * (2 << 20) + "{}")
+    for path, says in ((deep, "nested too deeply"), (binary, "not UTF-8 text"), (huge, "larger than 1 MiB")):
+        with pytest.raises(CalibrationError, match=says):
+            load_calibration(path)
+    frame = tmp_path / "f.png"
+    cv2.imwrite(str(frame), np.zeros((720, 1280, 3), np.uint8))
+    for args in (("camera", "detect", str(frame), "--calibration", str(deep)),
+                 ("camera", "render", "--alpha", "1", "2", "3", "--out", str(tmp_path / "r.png"), "--calibration", str(deep)),
+                 ("camera", "detect", str(frame), "--calibration", str(binary))):
+        r = xneck(*args)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), r.stderr[-2000:]
+        assert str(tmp_path) in lines[0] and ("nested too deeply" in lines[0] or "not UTF-8" in lines[0]), lines
+
+
 def test_detector_rejects_frames_of_the_wrong_shape(params) -> None:
     detector = detector_for(params)
     for frame in (np.zeros((720, 1280), np.uint8), np.zeros((480, 640, 3), np.uint8), np.zeros((720, 1280, 3), np.float32)):

@@ -125,13 +125,33 @@ def calibration_from_dict(data: object) -> Calibration:
         raise CalibrationError(str(exc)) from None
 
 
+CALIBRATION_MAX_BYTES = 1 << 20  # a calibration file is about 600 bytes; a larger one is refused unread
+
+
 def load_calibration(path: str | Path) -> Calibration:
+    """The calibration in ``path``; :class:`CalibrationError` (one line, naming the file) for
+    anything else: unreadable, over :data:`CALIBRATION_MAX_BYTES`, not UTF-8, not JSON (nested too
+    deeply for the parser included: 200,000 nested arrays were a RecursionError traceback, audit of
+    2026-11-29), or not a valid calibration."""
     try:
-        return calibration_from_dict(json.loads(Path(path).read_text()))
+        with open(path, "rb") as f:
+            data = f.read(CALIBRATION_MAX_BYTES + 1)
     except OSError as exc:
         raise CalibrationError(f"{path}: cannot read ({exc.strerror})") from None
+    if len(data) > CALIBRATION_MAX_BYTES:
+        raise CalibrationError(f"{path}: larger than 1 MiB, not a calibration file")
+    try:
+        parsed = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not UTF-8 text, not a calibration file") from None
     except json.JSONDecodeError as exc:
         raise CalibrationError(f"{path}: not JSON ({exc})") from None
+    except RecursionError:
+        raise CalibrationError(f"{path}: not a calibration (JSON nested too deeply)") from None
+    try:
+        return calibration_from_dict(parsed)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
 
 
 def look_at_pose(target_xy: tuple[float, float], distance_m: float, tilt_deg: float = 0.0,
