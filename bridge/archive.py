@@ -20,7 +20,8 @@ Camera frames
     At most :data:`FRAME_QUEUE_MAX` frames wait for the writer; more are dropped and counted.
 
 What is recorded
-    Only payloads that decode as their key's type of the contract. Unknown keys and rejected
+    Only payloads that decode as their key's type of the contract (and, for α_IP, whose capture
+    is not after its publication: :func:`bridge.bus.check_camera_alpha_stamps`). Unknown keys and rejected
     payloads are not written (a schema-less channel would break plots and replays); they are
     counted per key in ``xneck.recorder`` with the last reason, so their existence is on record.
 
@@ -379,6 +380,8 @@ class CampaignRecorder:
                             msg = bus.decode(msg_type, payload)
                             if isinstance(msg, bus.CameraFrame):
                                 bus.check_camera_frame(msg)  # Foxglove would show garbage
+                            elif isinstance(msg, bus.CameraAlpha):
+                                bus.check_camera_alpha_stamps(msg)  # a stray's absurd capture: not a clock step
                         except bus.BusDecodeError as exc:
                             self._reject(key, exc.reason)
                         else:

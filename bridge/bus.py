@@ -28,7 +28,9 @@ Validation
     fields, and that every float is finite (JSON has no NaN/inf; ``msgspec`` rejects ``NaN`` tokens,
     ``null`` for a float and overflowing literals such as ``1e999``). Range checks that need the
     robot's parameters (list lengths, force limits) belong to the receiver; :func:`check_force_command`
-    is the shared one for commands. Both raise only :class:`BusDecodeError`.
+    is the shared one for commands. Checks between fields that an archive already recorded may
+    fail (a camera's capture after its publication: :func:`check_camera_alpha_stamps`) are not in
+    :func:`decode` either, so that such an archive still reads. All raise only :class:`BusDecodeError`.
 """
 
 from __future__ import annotations
@@ -145,7 +147,8 @@ class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=T
     missing); empty when the publisher does not grade (the twin's white-noise camera).
     ``source`` names the frames (``twin-noise``, ``twin-render``, ``usb:0``, ``file:run.mp4``) and
     ``dropped`` counts the frames the source lost since it started. See
-    :func:`check_camera_alpha` for the receiver's range check.
+    :func:`check_camera_alpha` for the receiver's range check, and :func:`check_camera_alpha_stamps`
+    for its time check (the capture not after the publication), which the archive's recorder applies.
     """
 
     v: int = 2
@@ -602,10 +605,34 @@ def check_motor_state(msg: MotorState, n_motors: int, f_max_N: float) -> None:
             raise BusDecodeError(f"MotorState: force_applied_N[{i}] = {f} N outside [0, {f_max_N}] N")
 
 
+#: s an exposure's ``capture_stamp_s`` may lie after the ``stamp_s`` of the message that reports it:
+#: the two come from one clock and every publisher stamps the capture at or before the
+#: publication (a video file: equal; the twin and a USB camera: a latency ≥ 0 before), so this
+#: only absorbs rounding. A capture any later is a stray's, or a broken publisher's.
+CAPTURE_AFTER_PUBLICATION_MAX_S = 1e-3
+
+
+def check_camera_alpha_stamps(msg: CameraAlpha) -> None:
+    """Time check of a camera message, which needs no robot parameter (the recorder runs it): both
+    stamps finite (a message decoded from the bus always has them so; one built in a process may
+    not) and the capture not after the publication beyond :data:`CAPTURE_AFTER_PUBLICATION_MAX_S`.
+    One stray α_IP stamped capture 1e9 s passed every check, was archived, and the identification
+    refused the whole record for a clock step (audit of 2026-11-29). Not part of :func:`decode`:
+    archives recorded before this check still read; their readers drop such a message.
+    Raises :class:`BusDecodeError`."""
+    capture, stamp = msg.capture_stamp_s, msg.stamp_s
+    if not (math.isfinite(capture) and math.isfinite(stamp)):
+        raise BusDecodeError(f"CameraAlpha: capture_stamp_s = {capture}, stamp_s = {stamp}: not finite")
+    if capture > stamp + CAPTURE_AFTER_PUBLICATION_MAX_S:
+        raise BusDecodeError(f"CameraAlpha: capture_stamp_s = {capture:.6g} s after its publication "
+                             f"stamp_s = {stamp:.6g} s (an exposure ends before the message that reports it)")
+
+
 def check_camera_alpha(msg: CameraAlpha, n_joints: int) -> None:
     """Range check of a decoded camera message (receiver side): ``n_joints`` angles within ±π, a
-    confidence per joint in [0, 1] (or none), 0 for every missing joint, ``dropped`` ≥ 0.
-    Raises :class:`BusDecodeError`."""
+    confidence per joint in [0, 1] (or none), 0 for every missing joint, ``dropped`` ≥ 0, and its
+    stamps (:func:`check_camera_alpha_stamps`). Raises :class:`BusDecodeError`."""
+    check_camera_alpha_stamps(msg)
     if len(msg.alpha_ip_rad) != n_joints:
         raise BusDecodeError(f"CameraAlpha: {len(msg.alpha_ip_rad)} angles for {n_joints} joints")
     for i, a in enumerate(msg.alpha_ip_rad):
@@ -686,6 +713,7 @@ __all__ = [
     "CAMPAIGN_EVENTS",
     "CAMPAIGN_REQUEST",
     "CAMPAIGN_REQUEST_TO",
+    "CAPTURE_AFTER_PUBLICATION_MAX_S",
     "CONTROLLER_STATUS",
     "CONTROLLER_TIMING",
     "ESTOP",
@@ -716,6 +744,7 @@ __all__ = [
     "as_plain",
     "campaign_request_key",
     "check_camera_alpha",
+    "check_camera_alpha_stamps",
     "check_camera_frame",
     "check_force_command",
     "check_motor_state",

@@ -414,6 +414,40 @@ def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
     assert seqs[-99:] == list(range(1, 100))
 
 
+def test_an_alpha_ip_captured_after_its_publication_is_rejected_not_recorded(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path,
+) -> None:
+    """Audit of 2026-11-29: a stray α_IP stamped capture 1e9 s was archived mid-campaign and the
+    identification then refused the whole record for a clock step. The recorder rejects it (counted,
+    with the reason) and records the camera's other frames."""
+    a, b = sessions
+    path = tmp_path / "alpha.mcap"
+    alphas = LosslessPublisher(a, bus.CAMERA_ALPHA)
+
+    def alpha(seq: int, **changes) -> bus.CameraAlpha:
+        msg = bus.CameraAlpha(seq=seq, stamp_s=seq / 30 + 0.05, capture_stamp_s=seq / 30, alpha_ip_rad=[0.1, 0.2, 0.3],
+                              source="twin-render")
+        return msgspec.structs.replace(msg, **changes)
+
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2)
+    try:
+        assert wait_until(lambda: (alphas.put(alpha(0)), recorder.stats.recorded > 0)[1])
+        for i in range(1, 30):
+            alphas.put(alpha(i))
+            if i == 10:
+                alphas.put(alpha(1, capture_stamp_s=1e9, source="stray"))
+                alphas.put(alpha(2, capture_stamp_s=1e300, source="stray"))
+        assert wait_until(lambda: sum(recorder.stats.rejected.values()) >= 2 and recorder.stats.recorded >= 30)
+    finally:
+        recorder.stop("finished")
+        alphas.close()
+    campaign = read_campaign(path)
+    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+    assert {m.source for m in frames} == {"twin-render"} and [m.seq for m in frames][-29:] == list(range(1, 30))
+    assert msgspec.json.decode(campaign.metadata["xneck.recorder"]["rejected"]) == {bus.CAMERA_ALPHA: 2}
+    assert "after its publication" in campaign.metadata["xneck.recorder"]["last_reject_reason"]
+
+
 RECORDER_SCRIPT = """
 import sys, time
 from bridge.session import open_session

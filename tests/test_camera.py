@@ -301,6 +301,27 @@ def test_camera_alpha_v2_carries_missing_joints_and_confidence() -> None:
     assert schema["properties"]["v"]["const"] == 2
 
 
+def test_a_camera_alpha_captured_after_its_publication_is_refused() -> None:
+    """A stray α_IP stamped capture 1e9 s (or 1e300 s) passed every check, was archived, and made
+    the identification refuse the whole record for a clock step (audit of 2026-11-29). An exposure
+    cannot end after the message that reports it: beyond a rounding tolerance it is refused."""
+    from bridge import bus
+
+    msg = bus.CameraAlpha(seq=1, stamp_s=10.05, capture_stamp_s=10.0, alpha_ip_rad=[0.1, 0.2, 0.3], source="twin-render")
+    bus.check_camera_alpha_stamps(msg)
+    bus.check_camera_alpha(msg, 3)
+    same = msgspec_replace(msg, capture_stamp_s=10.05 + 0.5 * bus.CAPTURE_AFTER_PUBLICATION_MAX_S)  # rounding
+    bus.check_camera_alpha(same, 3)
+    for capture in (1e9, 1e300, 10.05 + 2 * bus.CAPTURE_AFTER_PUBLICATION_MAX_S):
+        late = msgspec_replace(msg, capture_stamp_s=capture)
+        bus.decode(bus.CAMERA_ALPHA, bus.encode(late))  # structure: valid (archives recorded so far still read)
+        for check in (bus.check_camera_alpha_stamps, lambda m: bus.check_camera_alpha(m, 3)):
+            with pytest.raises(bus.BusDecodeError, match=r"capture_stamp_s = .* after its publication stamp_s = 10\.05"):
+                check(late)
+    with pytest.raises(bus.BusDecodeError, match="not finite"):  # built in a process, never decoded
+        bus.check_camera_alpha_stamps(msgspec_replace(msg, capture_stamp_s=-math.inf))
+
+
 def msgspec_replace(msg, **changes):
     import msgspec
 
