@@ -37,6 +37,7 @@ from server.paramsets import ParameterStore, UnknownParameterSet
 from server.settings import Settings
 from server.truthstore import TruthStore, UnknownTruth, truth_label
 from twin.model.params import ParameterError, Params
+from twin.sim.sensors import ALPHA_IP_SOURCES
 from twin.sim.truth import TruthError
 
 Target = Literal["twin", "robot"]
@@ -230,6 +231,9 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
         connect=tuple(settings.connect) if target == "robot" else (), realtime=pace == "realtime",
         truth=truth or "model", service=service, estimator=estimator, creep_time_s=req.creep_time_s,
         alpha_ip=req.alpha_ip,
+        # `xneck up`'s twin: the camera it was started with is the one its campaigns record
+        camera_source=ALPHA_IP_SOURCES[settings.twin_alpha_ip] if service and target == "twin" and settings.twin_alpha_ip
+        else None,
     )
     # The record names the truth ("model", "robot", a stored truth's name); the spec carries what the twin loads.
     return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target,

@@ -60,10 +60,10 @@ from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
 from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
-from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
+from server.quality import THRESHOLDS, CampaignMonitor, assess, camera_note, thresholds_dict
 from server.service_choice import alive_services, choose_service
 from twin.model.params import Params
-from twin.sim.sensors import ALPHA_IP_KINDS
+from twin.sim.sensors import ALPHA_IP_KINDS, ALPHA_IP_SOURCES
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
@@ -97,6 +97,9 @@ class CampaignSpec:
     alpha_ip: str | None = None  # a spawned twin's α_IP (module docstring); None: camera for identification, else noise
     estimator: str = "auto"  # Table 2's estimator of an identification's analysis (twin.identification.pipeline)
     creep_time_s: float | None = None  # the line's creep time constant held in that analysis (s); None: estimated
+    # The α_IP source (CameraAlpha.source) the campaign records when the console knows its camera
+    # without spawning it (`xneck up`'s twin); None: a spawned twin's, else the first seen (server.quality)
+    camera_source: str | None = None
 
     def __post_init__(self) -> None:
         from twin.identification.options import check_variable_options
@@ -110,6 +113,14 @@ class CampaignSpec:
     def alpha_ip_source(self) -> str:
         """The α_IP a spawned twin gives: as asked, else camera for identification, noise for control."""
         return self.alpha_ip or ("camera" if self.kind == "identification" else "noise")
+
+    @property
+    def recorded_camera(self) -> str | None:
+        """The ``CameraAlpha.source`` the campaign records, when known before it runs: ``camera_source``,
+        else that of the twin (and camera process) it spawns; None: the first seen (server.quality)."""
+        if self.camera_source is not None:
+            return self.camera_source
+        return ALPHA_IP_SOURCES[self.alpha_ip_source] if self.twin and not self.service else None
 
 
 class RecordingFailed(ArchiveError):
@@ -246,6 +257,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     services = _Services(session) if spec.service else None
     # Follows the bridge's drives from now on (the e-stop's one truth) and counts the quality.
     monitor = CampaignMonitor(session)
+    if spec.recorded_camera is not None:  # its camera, whichever α_IP comes first (a stray camera's)
+        monitor.expect_alpha_ip_source(spec.recorded_camera)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}
     recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set(),  # a storage fault ends it
@@ -383,6 +396,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         reasons = assess(counters, realtime) if outcome == "finished" else []
         if reasons:
             outcome, message = "degraded", "; ".join(reasons) + (f" ({message})" if message else "")
+        note = camera_note(counters)  # another camera's α_IP set aside: said, though the record is clean
+        if note:
+            message = f"{message}; {note}" if message else note
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
         try:
             recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
@@ -492,7 +508,10 @@ def metrics_from_archive(path: Path) -> dict[str, object]:
     status = [m for m in status if m.stamp_s in cmds]
     t = np.array([m.stamp_s for m in status])
     # A frame with a missing joint (the rendered camera's occlusions) measured nothing to compare with.
-    frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA) if None not in m.alpha_ip_rad]
+    # One camera: the recorder keeps one source (server.quality); of an archive recorded before it
+    # did, the first source's, as the recorder would have chosen.
+    alphas = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
+    frames = [m for m in alphas if m.source == alphas[0].source and None not in m.alpha_ip_rad]
     return campaign_metrics(
         t_s=t,
         alpha_hat=np.array([m.alpha_hat_rad for m in status]),

@@ -47,6 +47,17 @@ One bridge, one controller
     another run or none is set aside; so is what another run's driver publishes (a twin's α_IP),
     while α_IP naming no run (a camera process) is kept. Set aside, counted:
     ``foreign_messages`` (everything), ``foreign_truths`` (its truths).
+
+One camera
+    Any peer may publish α_IP, and two cameras did on one bus (`xneck up`'s twin's white noise and
+    an `xneck camera --source twin` beside it): both were archived, interleaved, the campaign's
+    e_α compared α̂ with both, and the identification fitted them as one camera (k(4) 4464 → 7530
+    N/m: audit of 2026-11-29). A campaign records the α_IP of one ``CameraAlpha.source``: the one
+    the runner knows it started (:meth:`~CampaignMonitor.expect_alpha_ip_source`: a spawned twin's
+    or camera process's, `xneck up`'s twin's), else the first the recorder sees. The others are
+    set aside and counted, in ``foreign_messages`` and per source in ``foreign_alpha_ip``
+    (``alpha_ip_source`` names the one recorded), and :func:`camera_note` says so in the
+    campaign's message.
 """
 
 from __future__ import annotations
@@ -112,6 +123,8 @@ class CampaignMonitor:
         self.foreign = 0  # states, commands, truths and α_IP of other bridges and controllers, not taken
         self.foreign_truths = 0  # of which truths of another twin (or of none said)
         self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
+        self._alpha_ip_source: str | None = None  # the camera recorded (None until known: module docstring)
+        self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
@@ -123,6 +136,12 @@ class CampaignMonitor:
         """Take only ``controller``'s commands from now on, and the states of the bridge run they answer."""
         with self._lock:
             self._follow = controller
+
+    def expect_alpha_ip_source(self, source: str) -> None:
+        """Record only the α_IP of ``source`` (``CameraAlpha.source``), the camera the campaign
+        started, whatever comes first (module docstring, "One camera")."""
+        with self._lock:
+            self._alpha_ip_source = source
 
     def owners(self, within_s: float = 0.5) -> set[str]:
         """The controllers the bridges on the bus obeyed within the last ``within_s`` s."""
@@ -139,7 +158,27 @@ class CampaignMonitor:
             return not self.epoch or msg.epoch == self.epoch
         if isinstance(msg, bus.ForceCommand):
             return not self._follow or msg.sender == self._follow
-        return self._of_run(isinstance(msg, bus.Truth), run)
+        if not self._of_run(isinstance(msg, bus.Truth), run):
+            return False  # counted by the subscriber (_on_run_message)
+        return self._one_camera(msg.source) if isinstance(msg, bus.CameraAlpha) else True
+
+    #: distinct foreign α_IP sources counted by name (a flood of forged names stays bounded), and
+    #: the length a name is cut to; the rest are counted under ``(others)``
+    FOREIGN_SOURCES_MAX, SOURCE_NAME_MAX = 8, 64
+
+    def _one_camera(self, source: str) -> bool:
+        """Whether α_IP of ``source`` is the campaign's camera: the expected one, else the first seen."""
+        with self._lock:
+            if self._alpha_ip_source is None:
+                self._alpha_ip_source = source
+            if source == self._alpha_ip_source:
+                return True
+            self.foreign += 1
+            name = source[: self.SOURCE_NAME_MAX]
+            if name not in self.foreign_alpha_ip and len(self.foreign_alpha_ip) >= self.FOREIGN_SOURCES_MAX:
+                name = "(others)"
+            self.foreign_alpha_ip[name] = self.foreign_alpha_ip.get(name, 0) + 1
+            return False
 
     def _of_run(self, truth: bool, run: str) -> bool:
         """Whether a sample naming the bridge run ``run`` is the campaign's: any until its run is
@@ -267,6 +306,7 @@ class CampaignMonitor:
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
                 "foreign_messages": self.foreign, "foreign_truths": self.foreign_truths,
+                "alpha_ip_source": self._alpha_ip_source, "foreign_alpha_ip": dict(self.foreign_alpha_ip),
             }
 
     def close(self) -> None:
@@ -314,8 +354,20 @@ def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds =
     return reasons
 
 
+def camera_note(counters: dict[str, Any]) -> str:
+    """The sentence a campaign's message gets when α_IP of other cameras was set aside (module
+    docstring, "One camera"); '' when there was none."""
+    foreign = counters.get("foreign_alpha_ip") or {}
+    if not foreign:
+        return ""
+    others = ", ".join(f"{name!r} ({n})" for name, n in sorted(foreign.items(), key=lambda kv: -kv[1]))
+    return (f"α_IP recorded from one camera, {counters.get('alpha_ip_source')!r}; {sum(foreign.values())} α_IP "
+            f"message(s) of another camera on the bus set aside: {others}")
+
+
 def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:
     return asdict(limits)
 
 
-__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "drive_estop", "thresholds_dict"]
+__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "camera_note", "drive_estop",
+           "thresholds_dict"]

@@ -42,6 +42,10 @@ class Settings(BaseSettings):
                             "stack's twin bridge simulates, model, robot or a truth file (twin/sim/truth.py).")
     twin_seed: int = Field(0, ge=0, le=2**31 - 1, description="With a controller service on the bus: the seed of "
                            "the stack's twin bridge.")
+    twin_alpha_ip: Literal["noise", "camera"] | None = Field(None, description="With a controller service on "
+                                                             "the bus: the α_IP of the stack's twin bridge (`xneck up "
+                                                             "--alpha-ip`), the one camera its campaigns record "
+                                                             "(server.quality); unset: the first camera seen.")
     min_free_mb: float = Field(64.0, ge=0, description="A campaign starts only with this much free space (MB) "
                                "in the archive directory (else 507).")
     allowed_hosts: list[str] = Field(default_factory=list, description="Host names the console answers to besides "

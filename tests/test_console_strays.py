@@ -8,6 +8,7 @@ from __future__ import annotations
 import itertools
 import json
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -95,6 +96,126 @@ def test_the_recorder_keeps_the_truth_of_the_run_the_campaigns_commands_answer_a
     assert [(m.seq, m.stamp_s) for _, m in campaign.messages(bus.TWIN_TRUTH)] == [(1, 11.0), (2, 12.0), (3, 13.0)]
     assert [m.seq for _, m in campaign.messages(bus.CAMERA_ALPHA)] == [1, 2, 3]
     assert campaign.metadata["xneck.recorder"]["skipped"] == "12"
+
+
+def _record_two_cameras(sessions, path: Path, expect: str | None) -> tuple[CampaignMonitor, CampaignRecorder]:
+    """A monitor and its recorder (expecting ``expect``'s α_IP if given) while two cameras publish on
+    the bus, naming no bridge run: 'twin-noise' first alone, then both interleaved, 10 frames each."""
+    a, b = sessions
+    monitor = CampaignMonitor(b)
+    if expect is not None:
+        monitor.expect_alpha_ip_source(expect)
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-2"}, flush_period_s=0.2, keep=monitor.keep)
+    alphas = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def alpha(seq: int, source: str) -> bytes:
+        return bus.encode(bus.CameraAlpha(seq=seq, stamp_s=seq / 30 + 0.05, capture_stamp_s=seq / 30,
+                                          alpha_ip_rad=[0.1, 0.2, 0.3], source=source))
+
+    try:
+        assert wait_until(lambda: (alphas.put(alpha(0, "twin-noise")), recorder.stats.received > 0)[1], 10, 0.05)
+        for k in range(1, 11):
+            alphas.put(alpha(k, "twin-render"))
+            alphas.put(alpha(k, "twin-noise"))
+        assert wait_until(lambda: recorder.stats.recorded + recorder.stats.skipped >= 21, 10, 0.02)
+    finally:
+        recorder.stop("finished")
+        monitor.close()
+        alphas.undeclare()
+    return monitor, recorder
+
+
+def test_the_recorder_keeps_one_camera_the_first_seen_and_counts_the_others(sessions, tmp_path: Path) -> None:
+    """Two α_IP publishers on the bus (`xneck up`'s twin's white noise and an `xneck camera --source
+    twin`) were both archived, interleaved, and the identification fitted both as one camera: k(4)
+    4464 → 7530 N/m (audit of 2026-11-29). A campaign records one camera, the first it sees."""
+    path = tmp_path / "cameras.mcap"
+    monitor, recorder = _record_two_cameras(sessions, path, None)
+    counters = monitor.counters()
+    assert counters["alpha_ip_source"] == "twin-noise", counters
+    assert counters["foreign_alpha_ip"] == {"twin-render": 10} and counters["foreign_messages"] == 10, counters
+    frames = [m for _, m in read_campaign(path).messages(bus.CAMERA_ALPHA)]
+    assert {m.source for m in frames} == {"twin-noise"} and [m.seq for m in frames][-10:] == list(range(1, 11))
+    assert recorder.stats.skipped == 10
+
+
+def test_the_recorder_keeps_the_camera_the_campaign_started_whichever_came_first(sessions, tmp_path: Path) -> None:
+    path = tmp_path / "cameras.mcap"
+    monitor, _ = _record_two_cameras(sessions, path, "twin-render")
+    counters = monitor.counters()
+    assert counters["alpha_ip_source"] == "twin-render", counters
+    assert counters["foreign_alpha_ip"]["twin-noise"] >= 10, counters
+    frames = [m for _, m in read_campaign(path).messages(bus.CAMERA_ALPHA)]
+    assert {m.source for m in frames} == {"twin-render"} and [m.seq for m in frames] == list(range(1, 11))
+
+
+def test_a_campaign_records_the_camera_of_its_twin_and_says_what_another_camera_sent(params, tmp_path: Path) -> None:
+    """A stray camera on the campaign's hub (any peer may publish α_IP): the campaign's archive, its
+    metrics and the identification read only the α_IP of the twin the runner started; the stray's
+    are counted and named in the campaign's quality and message."""
+    from busutil import bus_pair
+    from test_campaign import NOD
+
+    from controller.laws import LawConfig
+    from server.campaign_runner import CampaignSpec, run_campaign
+
+    stop = threading.Event()
+
+    def stray(session: zenoh.Session) -> None:
+        pub = session.declare_publisher(bus.CAMERA_ALPHA)
+        k = 0
+        while not stop.wait(1 / 30):
+            k += 1
+            pub.put(bus.encode(bus.CameraAlpha(seq=k, stamp_s=k / 30 + 0.05, capture_stamp_s=k / 30,
+                                               alpha_ip_rad=[0.3, 0.3, 0.3], source="usb:7")))
+        pub.undeclare()
+
+    with bus_pair() as (hub, session, connect):
+        thread = threading.Thread(target=stray, args=(connect(),), daemon=True)
+        thread.start()  # before the campaign's twin: the stray's α_IP is the first the recorder sees
+        try:
+            result = run_campaign(CampaignSpec("control", LawConfig(law=2), NOD, seed=3, timeout_s=240), params,
+                                  tmp_path / "nod.mcap", session=session, hub=hub)
+        finally:
+            stop.set()
+            thread.join(5)
+    assert result.outcome == "finished", result.message
+    campaign = read_campaign(result.path)
+    assert {m.source for _, m in campaign.messages(bus.CAMERA_ALPHA)} == {"twin-noise"}
+    e_alpha_max, foreign = result.metrics["e_alpha_max_deg"], result.quality["foreign_alpha_ip"]
+    assert isinstance(e_alpha_max, list) and max(e_alpha_max) < 10.0, result.metrics  # not the stray's 17°
+    assert result.quality["alpha_ip_source"] == "twin-noise", result.quality
+    assert isinstance(foreign, dict) and foreign.get("usb:7", 0) > 30, result.quality
+    assert "usb:7" in result.message and "twin-noise" in result.message, result.message
+    assert "usb:7" in campaign.info["message"] and json.loads(campaign.info["quality"])["alpha_ip_source"] == "twin-noise"
+
+
+def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_on_its_hub(tmp_path: Path) -> None:
+    """The audit's set-up (2026-11-29): `xneck up` (its twin's white-noise α_IP) and, on its hub, an
+    `xneck camera --source twin` as the README then suggested: a campaign archived both cameras,
+    interleaved. `xneck up` tells its console its twin's camera: that one is recorded, the other
+    set aside and said."""
+    from test_stack import _alive_kinds
+
+    from bridge.session import free_tcp_port
+
+    port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
+    base, data = f"http://127.0.0.1:{port}", tmp_path / "d"
+    with _procs() as spawn:
+        spawn(["up", "--port", str(port), "--hub", hub, "--data-dir", str(data)], tmp_path / "up.log")
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 180, 0.3), \
+            (tmp_path / "up.log").read_text()[-2000:]
+        spawn(["camera", "--source", "twin", "--frame-rate-hz", "0", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
+              tmp_path / "camera.log")
+        assert wait_until(lambda: "camera" in _alive_kinds(base), 120, 0.3), (tmp_path / "camera.log").read_text()
+        time.sleep(2.0)  # both cameras' α_IP on the hub
+        rec = _wait_end(base, _campaign(base, GENTLE), 120)
+    assert rec["status"] in ("finished", "degraded"), rec
+    campaign = read_campaign(data / "campaigns" / f"{rec['id']}.mcap")
+    assert {m.source for _, m in campaign.messages(bus.CAMERA_ALPHA)} == {"twin-noise"}
+    assert rec["quality"]["alpha_ip_source"] == "twin-noise", rec["quality"]
+    assert rec["quality"]["foreign_alpha_ip"].get("twin-render", 0) > 30, rec["quality"]
+    assert "'twin-render'" in rec["message"], rec["message"]
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:

@@ -23,6 +23,8 @@ def server(
     twin_truth: str | None = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
                                              "controller service is on the bus (xneck up passes it)."),
     twin_seed: int | None = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
+    twin_alpha_ip: str | None = typer.Option(None, "--twin-alpha-ip", help="α_IP of the stack's twin bridge, noise "
+                                             "or camera (likewise): the one camera its campaigns record."),
     min_free_mb: float | None = typer.Option(None, "--min-free-mb", help="Free space a campaign needs (MB, "
                                                 "default 64)."),
     allowed_host: list[str] | None = typer.Option(None, "--allowed-host", help="Host name the console answers "
@@ -42,6 +44,7 @@ def server(
 
     given = {"host": host, "port": port, "data_dir": data_dir, "pace": pace, "mode": mode, "hub": hub,
              "connect": connect, "viser_port": viser_port, "twin_truth": twin_truth, "twin_seed": twin_seed,
+             "twin_alpha_ip": twin_alpha_ip,
              "min_free_mb": min_free_mb, "allowed_hosts": allowed_host, "allowed_origins": allowed_origin}
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})

@@ -445,7 +445,9 @@ def up(
                          *control_path,
                          "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
                          # what this stack's twin bridge is, so that campaign requests are checked against it
-                         "--twin-truth", truth, "--twin-seed", str(seed)])
+                         "--twin-truth", truth, "--twin-seed", str(seed),
+                         # the one camera its campaigns record, whatever other α_IP is on the hub (server.quality)
+                         *(["--twin-alpha-ip", alpha_ip] if not robot and not no_bridge else [])])
         deadline = time.monotonic() + 60
         while not _healthy(url):
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:

@@ -32,6 +32,9 @@ def quantise_encoder(theta: np.ndarray, counts_per_rev: int) -> np.ndarray:
 
 
 ALPHA_IP_KINDS = ("noise", "camera")
+#: the ``CameraAlpha.source`` of each kind's α_IP (the rendered camera's, in the twin or in an
+#: `xneck camera --source twin` process beside it: twin.camera)
+ALPHA_IP_SOURCES = {"noise": "twin-noise", "camera": "twin-render"}
 
 
 class AlphaCamera(Protocol):
