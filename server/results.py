@@ -136,6 +136,7 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
         ident = identify_record(path, base, excitation=recorded_excitation, with_validation=False,
                                 estimator=estimator, creep_time_s=creep_time_s)
         report = report_dict(ident.estimate, ident.processed)
+        report["record_notes"] = list(ident.data.notes)  # stray messages the reader dropped, if any
     except Exception as exc:  # noqa: BLE001 - reported to the user
         text = f"identification failed: {type(exc).__name__}: {exc}"
     else:

@@ -271,6 +271,44 @@ def test_identify_json_and_provenance_are_strict_json(xneck, campaign, tmp_path)
     assert any(p["relative_sigma"] is None for p in provenance["parameters"])
 
 
+def _without_files(doc: dict) -> dict:
+    return {k: v for k, v in doc.items() if k not in ("files", "provenance", "record_notes")}
+
+
+def test_identify_refuses_two_cameras_and_reads_the_one_chosen_past_a_stray_frame(xneck, campaign, tmp_path):
+    """Audit of 2026-11-29: an archive holding the α_IP of two cameras was identified as one camera,
+    exit 0 (k(4) 4464 → 7530 N/m); one stray frame stamped 1e9 s got the whole record refused for a
+    clock step. The camera is chosen by name, the stray dropped and said, the tables those of the
+    clean record."""
+    import msgspec
+
+    from bridge.archive_read import read_campaign
+
+    original = read_campaign(campaign)
+    msgs = [(bus.key_of_topic(topic), t, m) for topic, items in original.topics.items() for t, m in items]
+    replace = msgspec.structs.replace
+    msgs = [(k, t, replace(m, source="twin-noise") if k == bus.CAMERA_ALPHA else m) for k, t, m in msgs]
+    frames = [(k, t, m) for k, t, m in msgs if k == bus.CAMERA_ALPHA]
+    second = [(k, t + 16_000_000, replace(m, source="usb:1", capture_stamp_s=m.capture_stamp_s + 1 / 60,
+                                          stamp_s=m.stamp_s + 1 / 60, alpha_ip_rad=[a + 0.05 for a in m.alpha_ip_rad]))
+              for k, t, m in frames]
+    k, t, m = frames[len(frames) // 2]
+    stray = (k, t + 1, replace(m, seq=1, capture_stamp_s=1e9, stamp_s=1e9 + 0.05))
+    mixed = tmp_path / "two.mcap"
+    archive.write_campaign(mixed, sorted([*msgs, *second, stray], key=lambda x: x[1]), original.info)
+    _refused(xneck("identify", str(mixed), "--out", str(tmp_path / "refused")), "2 cameras", "'usb:1'",
+             "--alpha-ip-source")
+    chosen = xneck("identify", str(mixed), "--alpha-ip-source", "twin-noise", "--json", "--no-alpha-hat",
+                   "--out", str(tmp_path / "chosen"))
+    assert chosen.returncode == 0, chosen.stderr
+    assert "note: 1 camera frame(s)" in chosen.stderr and "1e+09" in chosen.stderr, chosen.stderr
+    clean = xneck("identify", str(campaign), "--json", "--no-alpha-hat", "--out", str(tmp_path / "clean"))
+    assert clean.returncode == 0, clean.stderr
+    doc = _strict(chosen.stdout)
+    assert len(doc["record_notes"]) == 1 and "1 camera frame(s)" in doc["record_notes"][0]
+    assert _without_files(doc) == _without_files(_strict(clean.stdout))
+
+
 # -- 8. numbers that make no sense ---------------------------------------------------------------------------
 
 

@@ -49,6 +49,10 @@ def identify(
                                               "estimated from the campaign (default; on the twin the estimate does "
                                               "as well: docs/identification-coverage.md, \"The creep element and "
                                               "its time constant\")."),
+    alpha_ip_source: str | None = typer.Option(None, "--alpha-ip-source", help="The camera whose α_IP is read "
+                                               "(its CameraAlpha source: twin-render, twin-noise, usb:0, "
+                                               "file:NAME), in this campaign and --validate's: an archive holding "
+                                               "the α_IP of several cameras is refused without it, naming them."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
@@ -77,7 +81,7 @@ def identify(
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params, parse_override
 
-    data_b = _validation_campaign(validate) if validate is not None else None
+    data_b = _validation_campaign(validate, alpha_ip_source) if validate is not None else None
     try:
         base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
         if not re.fullmatch(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}", base.name):
@@ -94,10 +98,14 @@ def identify(
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                                 alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds,
-                                creep_time_s=creep_time_s)
+                                creep_time_s=creep_time_s, alpha_ip_source=alpha_ip_source)
     except (IdentificationError, ParameterError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
+    # What the reader set aside (stray messages), on stderr: --json's stdout stays one document.
+    for what, data in (("", ident.data), (f"--validate {validate}: ", data_b)):
+        for note in data.notes if data is not None else ():
+            typer.echo(f"note: {what}{note}", err=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
     try:
@@ -110,6 +118,7 @@ def identify(
         raise write_failed(out_dir, exc) from None
     if json_out:
         doc = report_dict(est, proc, val, prov)
+        doc["record_notes"] = list(ident.data.notes)
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
         if cross is not None:
             doc["cross_validation"] = cross[0]
@@ -124,14 +133,14 @@ def identify(
             typer.echo(cross[1])
 
 
-def _validation_campaign(path: Path):
+def _validation_campaign(path: Path, alpha_ip_source: str | None):
     """``--validate B`` read before anything is fitted: a bad B fails fast with its reason."""
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import IdentificationError
     from twin.identification.validation import load_validation_campaign
 
     try:
-        return load_validation_campaign(path, recorded_excitation)
+        return load_validation_campaign(path, recorded_excitation, alpha_ip_source=alpha_ip_source)
     except IdentificationError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -80,6 +80,8 @@ class CampaignData:
     excitation_alpha_rad (N, n_joints) or None: the excitation trajectory α^d, rad, sampled at the
         encoder rate, when known (a campaign archive records its trajectory). Only its spectrum is
         used, to set the filter cutoff (:func:`cutoff_rule`), so it need not be aligned with t_s.
+    notes: what the reader of an archive set aside and why (stray messages dropped:
+        :func:`twin.identification.record.campaign_data_from_mcap`), for the report; () if nothing.
 
     Raises :class:`IdentificationError` on wrong shapes, NaNs, non-increasing times, too few
     samples, or camera frames that do not cover the encoder record.
@@ -92,6 +94,7 @@ class CampaignData:
     alpha_ip_rad: FloatArray
     campaign: str = "unnamed"
     excitation_alpha_rad: FloatArray | None = None
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=float)

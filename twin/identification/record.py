@@ -4,10 +4,27 @@
 and the console's results all run. The MCAP is read with :func:`bridge.archive_read.read_campaign`; encoder angles and applied forces come
 from ``/xneck/motor/state`` (``theta_rad``, ``force_applied_N``, ``stamp_s``), α_IP from
 ``/xneck/camera/alpha_ip`` (``alpha_ip_rad``, ``capture_stamp_s``).
+
+What a shared bus may have put in an archive (audit of 2026-11-29):
+
+- One camera. The α_IP of two cameras, recorded interleaved, were fitted as one camera (k(4) 4464
+  → 7530 N/m, exit 0): an archive whose α_IP holds more than one ``CameraAlpha.source`` is
+  refused, naming them and how many of each, unless one is chosen (``alpha_ip_source``, ``xneck
+  identify --alpha-ip-source NAME``). Campaigns now record one camera (server.quality); archives
+  of one camera read as before, whatever its source is named ('' for early publishers).
+- Strays. One message stamped far off the others (a stray α_IP captured at 1e9 s) got the whole
+  record refused for a clock set back. A message whose stamp lies more than
+  :data:`CLOCK_STEP_BACK_S` from the median of the :data:`STRAY_WINDOW` received on either side
+  of it is dropped, counted and said (:attr:`CampaignData.notes`), as is an α_IP captured after
+  its publication (:func:`bridge.bus.check_camera_alpha_stamps`, which the recorder now applies).
+  A clock set back mid-record moves many messages at once, which that median follows: it is still
+  refused (:func:`_refuse_clock_step_back`), and so is a record with more strays than
+  :data:`STRAY_FRACTION_MAX` of its messages (at least :data:`STRAY_COUNT_MIN` pass).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -60,13 +77,78 @@ def _refuse_clock_step_back(path: str | Path, what: str, stamps: np.ndarray) -> 
             "times; identify the part before or after it (the controller aborts a campaign whose bridge clock steps)")
 
 
-def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = None) -> CampaignData:
+#: messages received on either side of each one whose median stamp it is compared with (module
+#: docstring): a run of at most this many strays is told from the record around it.
+STRAY_WINDOW = 5
+#: at most this fraction of a record's messages, or :data:`STRAY_COUNT_MIN`, are dropped as strays;
+#: more is a damaged record or clocks mixed, refused.
+STRAY_FRACTION_MAX = 0.01
+STRAY_COUNT_MIN = 3
+SOURCES_NAMED_MAX = 8  # cameras an error names (an archive is untrusted input)
+
+
+def _sources_text(counts: Counter[str]) -> str:
+    named = [f"{name[:64]!r} ({n} message{'' if n == 1 else 's'})" for name, n in counts.most_common(SOURCES_NAMED_MAX)]
+    more = len(counts) - len(named)
+    return ", ".join(named) + (f" and {more} more" if more > 0 else "")
+
+
+def _one_camera(path: str | Path, frames: list, source: str | None) -> list:
+    """The α_IP of one camera (module docstring): ``source``'s, else the only one recorded."""
+    counts = Counter(m.source for m in frames)
+    if source is None:
+        if len(counts) > 1:
+            raise IdentificationError(
+                f"{path}: {CAMERA_TOPIC} holds the α_IP of {len(counts)} cameras: {_sources_text(counts)}. "
+                "Two cameras on one bus were recorded interleaved, and fitted as one they give wrong parameters: "
+                "choose the campaign's camera (xneck identify --alpha-ip-source NAME)")
+        return frames
+    if source not in counts:
+        raise IdentificationError(f"{path}: no α_IP of {source[:64]!r} in {CAMERA_TOPIC}; it holds {_sources_text(counts)}")
+    return [m for m in frames if m.source == source]
+
+
+def _strays(stamps: np.ndarray) -> np.ndarray:
+    """Which of ``stamps`` (receive order) lie more than :data:`CLOCK_STEP_BACK_S` from the median
+    of the :data:`STRAY_WINDOW` messages on either side of each (and itself)."""
+    w = STRAY_WINDOW
+    if len(stamps) <= 2 * w:
+        return np.zeros(len(stamps), dtype=bool)
+    windows = np.lib.stride_tricks.sliding_window_view(np.pad(stamps, w, constant_values=np.nan), 2 * w + 1)
+    return np.abs(stamps - np.nanmedian(windows, axis=1)) > CLOCK_STEP_BACK_S
+
+
+def _drop_strays(path: str | Path, what: str, stamps: np.ndarray, notes: list[str]) -> np.ndarray:
+    """The mask of ``stamps`` to keep (module docstring); a note for those dropped, or
+    :class:`IdentificationError` when they are more than a stray or two."""
+    stray = _strays(stamps)
+    n = int(stray.sum())
+    if n == 0:
+        return ~stray
+    allowed = max(STRAY_COUNT_MIN, int(STRAY_FRACTION_MAX * len(stamps)))
+    shown = ", ".join(f"{x:.6g}" for x in stamps[stray][:3]) + (", …" if n > 3 else "")
+    if n > allowed:
+        raise IdentificationError(
+            f"{path}: {n} of {len(stamps)} {what} are stamped far off the others (more than {CLOCK_STEP_BACK_S} s "
+            f"from the median of the {2 * STRAY_WINDOW} received around each; stamps {shown} s): more than "
+            f"{allowed} strays, a damaged record or two clocks mixed")
+    notes.append(f"{n} {what[:-1]}(s) stamped far off the others dropped: stamp {shown} s (more than "
+                 f"{CLOCK_STEP_BACK_S} s from the median of the {2 * STRAY_WINDOW} received around each: a stray "
+                 "publisher's or a damaged message)")
+    return ~stray
+
+
+def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = None, *,
+                            alpha_ip_source: str | None = None) -> CampaignData:
     """Campaign arrays from an archived campaign; with ``excitation``, α^d of its recorded
-    trajectory too (the filter cutoff then follows the excitation). Raises
-    :class:`IdentificationError` for a missing, truncated or damaged file and for missing or empty
-    channels."""
+    trajectory too (the filter cutoff then follows the excitation). ``alpha_ip_source``: the
+    camera (``CameraAlpha.source``) whose α_IP is read, needed when the archive holds several;
+    stray messages are dropped and said in the data's ``notes`` (module docstring). Raises
+    :class:`IdentificationError` for a missing, truncated or damaged file, for missing or empty
+    channels, for the α_IP of several cameras none chosen, and for a clock set back."""
     from bridge.archive import ArchiveError
     from bridge.archive_read import read_campaign
+    from bridge.bus import CAPTURE_AFTER_PUBLICATION_MAX_S
 
     try:
         camp = read_campaign(path)
@@ -77,18 +159,32 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
         have = ", ".join(sorted(camp.topics)) or "none"
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
     motor = [m for _, m in camp.topics[MOTOR_TOPIC]]
-    frames = [m for _, m in camp.topics[CAMERA_TOPIC]]
+    notes: list[str] = []
     try:
+        frames = _one_camera(path, [m for _, m in camp.topics[CAMERA_TOPIC]], alpha_ip_source)
+        # Captured after its publication: refused by the recorder since, possibly in an older archive.
+        late = [m for m in frames if m.capture_stamp_s > m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
+        if late:
+            notes.append(f"{len(late)} camera frame(s) captured after its publication dropped: capture "
+                         f"{late[0].capture_stamp_s:.6g} s, published {late[0].stamp_s:.6g} s"
+                         f"{', …' if len(late) > 1 else ''} (an exposure ends before the message that reports it)")
+            frames = [m for m in frames if m.capture_stamp_s <= m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
         t = np.array([m.stamp_s for m in motor], dtype=float)
         theta = np.array([m.theta_rad for m in motor], dtype=float)
         force = np.array([m.force_applied_N for m in motor], dtype=float)
         t_ip = np.array([m.capture_stamp_s for m in frames], dtype=float)
         alpha = np.array([m.alpha_ip_rad for m in frames], dtype=float)
+    except IdentificationError:
+        raise
     except (AttributeError, ValueError) as exc:
         raise IdentificationError(f"{path}: motor or camera messages are malformed ({exc})") from None
+    keep = _drop_strays(path, "motor states", t, notes)
+    t, theta, force = t[keep], theta[keep], force[keep]
+    keep = _drop_strays(path, "camera frames", t_ip, notes)
+    t_ip, alpha = t_ip[keep], alpha[keep]
     # A camera frame with a missing joint (CameraAlpha v2: null, read as NaN) is a frame not measured:
     # drop it; the pipeline interpolates across short gaps and refuses long ones (_uniform).
-    measured = np.isfinite(alpha).all(axis=1) if alpha.ndim == 2 else np.zeros(len(frames), dtype=bool)
+    measured = np.isfinite(alpha).all(axis=1) if alpha.ndim == 2 else np.zeros(len(t_ip), dtype=bool)
     if not measured.any():
         raise IdentificationError(f"{path}: no camera frame measures every joint")
     t_ip, alpha = t_ip[measured], alpha[measured]
@@ -104,7 +200,7 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     if excitation is not None and trajectory_json and len(t) >= 2:
         alpha_d = excitation(trajectory_json, t[order])
     return CampaignData(t[order], theta[order], force[order], t_ip[order_ip], alpha[order_ip], campaign=campaign,
-                        excitation_alpha_rad=alpha_d)
+                        excitation_alpha_rad=alpha_d, notes=tuple(notes))
 
 
 class Identification(NamedTuple):
@@ -122,14 +218,16 @@ class Identification(NamedTuple):
 def identify_record(path: str | Path, base: Params, *, excitation: Excitation | None = None,
                     cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
                     with_validation: bool = True, alpha_hat: bool = True, estimator: str = "auto",
-                    sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None) -> Identification:
+                    sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None,
+                    alpha_ip_source: str | None = None) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
     (Tables 1-2) with ``estimator`` ("auto", the default: the load-friction fit where the campaign rejects
     eqs. 54-55, else "iv"; or "iv", "ols", "wls", "loadfriction", :func:`identify_all`), ``sigma``
     ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
     identified, and validate (Figs. 4-8). ``creep_time_s``: the line's creep time constant (s) held in
-    the load-friction fit (pipeline.identify_variable). Raises :class:`IdentificationError` with the reason."""
-    data = campaign_data_from_mcap(path, excitation)
+    the load-friction fit (pipeline.identify_variable). ``alpha_ip_source``: the camera read
+    (:func:`campaign_data_from_mcap`). Raises :class:`IdentificationError` with the reason."""
+    data = campaign_data_from_mcap(path, excitation, alpha_ip_source=alpha_ip_source)
     proc = preprocess(data, base, cutoff_hz)
     est = identify_all(proc, base, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded,
                        creep_time_s=creep_time_s)

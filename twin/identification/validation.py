@@ -83,11 +83,12 @@ def out_of_sample(fit: Identification, data: CampaignData, proc: Processed, *, a
     return dataclasses.replace(val, tension_force=tf, tension_stiffness=ts, tension_error=te)
 
 
-def load_validation_campaign(campaign_b: str | Path, excitation: Excitation | None = None) -> CampaignData:
-    """Campaign B read and checked, before anything is fitted on A (a bad B fails fast).
-    Raises :class:`IdentificationError` naming B."""
+def load_validation_campaign(campaign_b: str | Path, excitation: Excitation | None = None, *,
+                             alpha_ip_source: str | None = None) -> CampaignData:
+    """Campaign B read and checked, before anything is fitted on A (a bad B fails fast); its α_IP
+    of ``alpha_ip_source`` (:func:`campaign_data_from_mcap`). Raises :class:`IdentificationError` naming B."""
     try:
-        return campaign_data_from_mcap(campaign_b, excitation)
+        return campaign_data_from_mcap(campaign_b, excitation, alpha_ip_source=alpha_ip_source)
     except IdentificationError as exc:
         raise IdentificationError(f"validation campaign {campaign_b}: {exc}") from None
 

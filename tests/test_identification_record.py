@@ -1,0 +1,109 @@
+"""The identification's reader of an archived campaign (twin/identification/record.py) against what
+a shared bus puts in an archive (audit of 2026-11-29): the α_IP of two cameras, and single
+messages stamped far off the others. Archives written with the recorder's own writer and read back."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from bridge import bus
+from bridge.archive import write_campaign
+from twin.identification.pipeline import IdentificationError
+from twin.identification.record import campaign_data_from_mcap
+
+# Computation only: it runs beside the realtime modules at nice 19 (tests/conftest.py).
+pytestmark = pytest.mark.background
+
+N_STATES, N_FRAMES = 3000, 180  # 6 s at 500 Hz and 30 Hz
+
+
+def _states() -> list[tuple[str, int, bus.MotorState]]:
+    return [(bus.MOTOR_STATE, int(k * 2e6) + 1, bus.MotorState(
+        seq=k + 1, stamp_s=k * 0.002, theta_rad=[0.01 * math.sin(k / 100)] * 4, force_applied_N=[10.0] * 4,
+        drive="active", epoch="e", bridge="b")) for k in range(N_STATES)]
+
+
+def _frames(source: str = "twin-render", shift_s: float = 0.0, offset_rad: float = 0.0) -> list:
+    return [(bus.CAMERA_ALPHA, int((k / 30 + shift_s + 0.05) * 1e9) + 2, bus.CameraAlpha(
+        seq=k + 1, stamp_s=k / 30 + shift_s + 0.05, capture_stamp_s=k / 30 + shift_s, source=source,
+        alpha_ip_rad=[0.1 * math.sin(k / 10) + offset_rad, 0.2, 0.3])) for k in range(N_FRAMES)]
+
+
+def _archive(path: Path, *parts: list) -> Path:
+    msgs = sorted((m for part in parts for m in part), key=lambda m: m[1])
+    return write_campaign(path, msgs, {"campaign_id": path.stem})
+
+
+def _replace(item, **changes):
+    key, log_ns, msg = item
+    return key, log_ns, msgspec.structs.replace(msg, **changes)
+
+
+def test_an_archive_holding_two_cameras_is_refused_naming_them_and_read_with_the_one_chosen(tmp_path) -> None:
+    """Two α_IP publishers on the bus were recorded interleaved, and `xneck identify` fitted them as
+    one camera, exit 0: k(4) 4464 → 7530 N/m written into the identified set."""
+    one = campaign_data_from_mcap(_archive(tmp_path / "one.mcap", _states(), _frames()))
+    two = _archive(tmp_path / "two.mcap", _states(), _frames(), _frames("usb:1", 1 / 60, math.radians(3))[:150])
+    with pytest.raises(IdentificationError, match=r"α_IP of 2 cameras: 'twin-render' \(180 messages\), 'usb:1' "
+                                                  r"\(150 messages\).*--alpha-ip-source"):
+        campaign_data_from_mcap(two)
+    chosen = campaign_data_from_mcap(two, alpha_ip_source="twin-render")
+    np.testing.assert_array_equal(chosen.t_ip_s, one.t_ip_s)
+    np.testing.assert_array_equal(chosen.alpha_ip_rad, one.alpha_ip_rad)
+    assert len(campaign_data_from_mcap(two, alpha_ip_source="usb:1").t_ip_s) == 150
+    with pytest.raises(IdentificationError, match=r"no α_IP of 'usb:0'.*'twin-render' \(180 messages\), 'usb:1'"):
+        campaign_data_from_mcap(two, alpha_ip_source="usb:0")
+
+
+def test_an_archive_of_one_camera_reads_whatever_its_source_is_named(tmp_path) -> None:
+    """Archives recorded so far hold one camera; an older publisher named none (``source`` '')."""
+    for source in ("", "twin-noise"):
+        data = campaign_data_from_mcap(_archive(tmp_path / f"c{source}.mcap", _states(), _frames(source)))
+        assert len(data.t_ip_s) == N_FRAMES and data.notes == ()
+        assert len(campaign_data_from_mcap(tmp_path / f"c{source}.mcap", alpha_ip_source=source).t_ip_s) == N_FRAMES
+
+
+@pytest.mark.parametrize("capture_s", [1e9, 1e300, -1e9, 0.0])
+def test_one_frame_stamped_far_off_the_others_is_dropped_and_said_not_the_record_refused(tmp_path, capture_s) -> None:
+    """One stray α_IP stamped capture 1e9 s, recorded mid-campaign: the reader refused the whole
+    record, blaming a clock set back while recording."""
+    frames = _frames()
+    frames.insert(90, _replace(frames[90], seq=1000, capture_stamp_s=capture_s, stamp_s=max(capture_s, 0.0) + 0.05))
+    data = campaign_data_from_mcap(_archive(tmp_path / "c.mcap", _states(), frames))
+    clean = campaign_data_from_mcap(_archive(tmp_path / "clean.mcap", _states(), _frames()))
+    np.testing.assert_array_equal(data.t_ip_s, clean.t_ip_s)
+    assert len(data.notes) == 1 and "1 camera frame(s)" in data.notes[0] and f"{capture_s:.6g}" in data.notes[0], data.notes
+
+
+def test_a_frame_captured_after_its_publication_in_an_archive_recorded_before_the_check_is_dropped(tmp_path) -> None:
+    frames = _frames()
+    frames[100] = _replace(frames[100], capture_stamp_s=frames[100][2].stamp_s + 0.2)  # 0.15 s late: no outlier by time
+    data = campaign_data_from_mcap(_archive(tmp_path / "c.mcap", _states(), frames))
+    assert len(data.t_ip_s) == N_FRAMES - 1
+    assert len(data.notes) == 1 and "captured after its publication" in data.notes[0], data.notes
+
+
+def test_one_motor_state_stamped_far_off_the_others_is_dropped_and_said(tmp_path) -> None:
+    states = _states()
+    states[1500] = _replace(states[1500], stamp_s=1e9)
+    data = campaign_data_from_mcap(_archive(tmp_path / "c.mcap", states, _frames()))
+    assert len(data.t_s) == N_STATES - 1 and data.t_s[-1] < 6.0
+    assert len(data.notes) == 1 and "1 motor state(s)" in data.notes[0], data.notes
+
+
+def test_a_clock_set_back_is_still_refused_and_so_are_too_many_strays(tmp_path) -> None:
+    """Many frames on another clock are no stray: a camera clock stepped back 10 s halfway."""
+    frames = [_replace(f, capture_stamp_s=f[2].capture_stamp_s - 10.0, stamp_s=f[2].stamp_s - 10.0) if i >= 90 else f
+              for i, f in enumerate(_frames())]
+    with pytest.raises(IdentificationError, match=r"camera frames' clock steps back by 9.97 s after frame 89"):
+        campaign_data_from_mcap(_archive(tmp_path / "step.mcap", _states(), frames))
+    strays = _frames()
+    for i in range(10, 170, 20):  # 8 strays in 180 frames: more than a stray or two, a damaged record
+        strays[i] = _replace(strays[i], capture_stamp_s=1e9 + i, stamp_s=1e9 + i + 0.05)
+    with pytest.raises(IdentificationError, match=r"8 of 180 camera frames are stamped far off"):
+        campaign_data_from_mcap(_archive(tmp_path / "strays.mcap", _states(), strays))
