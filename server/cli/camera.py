@@ -145,7 +145,8 @@ def camera(
 ) -> None:
     """The camera on the bus: publish α_IP (xneck/camera/alpha_ip) measured on frames from --source.
 
-    With --source twin, run the twin without its white-noise camera (`xneck twin --no-camera`)."""
+    With --source twin, run the twin without its white-noise camera (`xneck twin --no-camera`);
+    `xneck up --alpha-ip camera` starts this process beside its twin so."""
     if ctx.invoked_subcommand is not None:
         return
     if source is None:
