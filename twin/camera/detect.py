@@ -19,6 +19,13 @@
    m = √(L² − b² cos²(α/2))), and the markers must be 2·offset apart. The residual grades the
    joint's ``confidence`` = exp(−½ (residual/σ)²); beyond ``outlier_m`` the joint is an outlier.
    A joint whose bar lacks a marker, or an outlier, is reported missing (None), never guessed.
+6. Camera moved: the base plate's four reference markers are compared with where the calibration
+   projects them (``Calibration.project`` of ``MarkerLayout.reference_m``). A camera bumped after
+   its extrinsic calibration measures α wrong with high confidence (panned 3°: 0.5° mean error,
+   confidence 0.93), which no check on the bars sees; the references, fixed on the plate, move
+   with the camera only. When the largest shift exceeds ``moved_px`` every joint is reported
+   missing, with the reason (``Detection.reason``). A frame where not all four are found cannot
+   be checked: the last verdict holds (a camera does not move back by itself).
 
 Speed: after a frame where every marker was found, the next frame is searched only in windows
 around the last centroids (a few percent of the pixels); any miss falls back to the full frame.
@@ -35,13 +42,24 @@ import numpy as np
 from twin.camera.calibration import Calibration, twin_calibration
 from twin.camera.layout import BAR_HUES_DEG, REFERENCE_HUE_DEG, MarkerLayout
 
+# Largest shift (px) of a reference marker from where the calibration projects it before the frame
+# is refused. Measured (``benchmarks/camera_moved.py``, docs/camera.md "Camera moved"): the unmoved
+# twin camera 0.07 px median, 0.13 px at most (noise 6, blur 1.6), 15× below; panned 1° 1.5 px
+# (α error 0.15° mean, 0.34° max, let through), 2° 3.2 px, 3° 4.8 px (0.45° mean, 0.98° max), 2.4× above.
+MOVED_PX = 2.0
+# What to do about it, in the reason: the extrinsics are solved from the same four markers.
+RECALIBRATE = ("redo the extrinsic calibration on a frame of the neck at rest (docs/camera.md, Calibration) "
+               "and restart the camera with it (--calibration)")
+
 
 @dataclass(frozen=True)
 class DetectorConfig:
     """Thresholds. ``chroma_min`` (grey levels) seeds a blob, ``chroma_floor`` is subtracted from
     the weights (noise on grey has chroma of a few levels); ``hue_tolerance_deg`` classifies;
     ``window_px`` is the half size of a tracking window; ``sigma_m`` grades the geometric residual,
-    ``outlier_m`` rejects a joint."""
+    ``outlier_m`` rejects a joint; ``moved_px``: the largest shift (px) of a base-plate reference
+    marker from its calibrated position before the camera is taken as moved (``math.inf``: never;
+    docs/camera.md, "Camera moved", for the measured shifts)."""
 
     chroma_min: float = 60.0
     chroma_floor: float = 18.0
@@ -51,6 +69,7 @@ class DetectorConfig:
     sigma_m: float = 0.002
     outlier_m: float = 0.006
     spacing_tolerance_m: float = 0.004
+    moved_px: float = MOVED_PX
 
 
 @dataclass
@@ -70,6 +89,8 @@ class Detection:
     markers_px: dict[tuple[int, int], tuple[float, float]] = field(default_factory=dict)
     reference_px: list[tuple[float, float]] = field(default_factory=list)
     residual_m: list[float | None] = field(default_factory=list)
+    reference_shift_px: float | None = None  # largest |found − calibrated| of the four references (None: not all four found)
+    reason: str = ""  # why every joint is missing when it is not the markers' fault (the camera moved), else ''
 
     @property
     def alpha_deg(self) -> list[float | None]:
@@ -116,12 +137,17 @@ class Detector:
         self.layout.check(n_joints, b_m)
         self.config = config or DetectorConfig()
         self.hues = list(BAR_HUES_DEG[: n_joints + 1]) + [REFERENCE_HUE_DEG]
+        # Where the calibration puts the base plate's references, in the order of Detection.reference_px.
+        self._reference_expected = self.calibration.project(self.layout.reference())
+        self._moved_px: float | None = None  # the last verdict: the shift of a moved camera, None if not moved
         self._last: list[np.ndarray] | None = None  # centroids of the last complete detection, per bar marker
         self._previous: list[np.ndarray] | None = None  # and of the one before (for the velocity)
         self.full_frames = 0
         self.windowed_frames = 0
 
     def reset(self) -> None:
+        """Forget the tracking windows (a jump in a video). The camera-moved verdict stays: the
+        camera's placement does not change with the video's time."""
         self._last = self._previous = None
 
     # --- segmentation ---------------------------------------------------------------------------
@@ -175,16 +201,18 @@ class Detector:
 
     def _windowed(self, image: np.ndarray) -> list[Blob] | None:
         """Blobs found in windows around each marker's predicted position (constant velocity from
-        the last two frames), or None if one was not found whole: no blob of its bar's colour in
-        its window, or a blob cut by the window's edge (its centroid would be biased)."""
+        the last two frames), and around each base-plate reference's calibrated position (so the
+        camera-moved check runs on tracked frames too), or None if one was not found whole: no blob
+        of its colour in its window, or a blob cut by the window's edge (its centroid would be biased)."""
         assert self._last is not None
         h, w = image.shape[:2]
         half = self.config.window_px
         found: list[Blob] = []
         previous = self._previous if self._previous is not None else self._last
-        for index, (last, before) in enumerate(zip(self._last, previous)):
-            hue = self.hues[index // 2]  # two markers per bar, in bar order
-            centre = 2.0 * last - before
+        bars = [(self.hues[index // 2], 2.0 * last - before)  # two markers per bar, in bar order
+                for index, (last, before) in enumerate(zip(self._last, previous))]
+        references = [(REFERENCE_HUE_DEG, centre) for centre in self._reference_expected]
+        for hue, centre in bars + references:
             x, y = round(centre[0]), round(centre[1])
             xa, ya, xb, yb = max(x - half, 0), max(y - half, 0), min(x + half, w), min(y + half, h)
             if xb - xa < 4 or yb - ya < 4:
@@ -311,6 +339,24 @@ class Detector:
             self._last = [np.array(markers[(k, s)]) for k in range(n + 1) for s in (0, 1)]
         else:
             self._last = self._previous = None
-        return Detection(alpha_rad=alpha, confidence=conf, markers_px=markers,
-                         reference_px=[(float(b.centre_px[0]), float(b.centre_px[1])) for b in refs],
-                         residual_m=residual)
+        reference_px = [(float(b.centre_px[0]), float(b.centre_px[1])) for b in refs]
+        shift = self._check_moved(reference_px)
+        reason = ""
+        if self._moved_px is not None:
+            # Every α would be measured through the wrong pose: none is reported (markers kept, for the picture).
+            reason = (f"camera moved {self._moved_px:.1f} px since its calibration (a base-plate reference marker "
+                      f"from where the calibration puts it; limit {self.config.moved_px:g} px): {RECALIBRATE}")
+            alpha = [None for _ in range(n)]
+            conf = [0.0] * n
+        return Detection(alpha_rad=alpha, confidence=conf, markers_px=markers, reference_px=reference_px,
+                         residual_m=residual, reference_shift_px=shift, reason=reason)
+
+    def _check_moved(self, reference_px: list[tuple[float, float]]) -> float | None:
+        """The largest shift (px) of the references from their calibrated positions, None unless
+        all four were found (the verdict then stays as it was); updates the verdict."""
+        expected = self._reference_expected
+        if len(reference_px) != len(expected):
+            return None
+        shift = float(np.max(np.hypot(*(np.asarray(reference_px) - expected).T)))
+        self._moved_px = shift if shift > self.config.moved_px else None
+        return shift
