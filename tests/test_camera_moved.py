@@ -9,7 +9,9 @@ the unmoved one (as ``benchmarks/camera_moved.py`` measures the threshold's marg
 
 from __future__ import annotations
 
+import logging
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -109,3 +111,56 @@ def test_a_hidden_reference_skips_the_check_and_keeps_the_last_verdict(params, m
     assert detector.detect(frame).reason
     found = detector.detect(cover_reference(frame, 0))
     assert found.reference_shift_px is None and found.alpha_rad == [None] * params.n_joints and found.reason
+
+
+def test_the_camera_process_says_it_once_per_episode_and_counts_it_in_its_health(params, model, caplog) -> None:
+    from busutil import bus_pair, wait_until
+
+    from bridge import bus
+    from twin.camera.process import CameraNode
+    from twin.camera.source import Frame
+
+    still, bumped = Renderer(model, seed=6), Renderer(model, moved(pan_deg=-6.0), seed=6)
+    alpha = np.radians([10.0, -10.0, 20.0])
+    frames = [still.render(alpha)] * 3 + [bumped.render(alpha)] * 4 + [still.render(alpha)] * 2 + [bumped.render(alpha)] * 3
+
+    class Source:
+        name, dropped, k = "file:bumped.avi", 0, 0
+
+        def read(self):
+            if self.k >= len(frames):
+                return None
+            self.k += 1
+            return Frame(self.k / 30.0, frames[self.k - 1])
+
+        def close(self) -> None:
+            pass
+
+    health: list[bus.Health] = []
+    with bus_pair() as (_hub, hub, connect):
+        sub = hub.declare_subscriber(bus.health_key("camera", "cam-test"),
+                                     lambda s: health.append(bus.decode(bus.Health, s.payload.to_bytes())))
+        camera = CameraNode(connect(), detector_for(params), instance="cam-test")
+        try:
+            with caplog.at_level(logging.INFO, logger="xneck.camera"):
+                assert wait_until(lambda: (camera._maybe_health(force=True), bool(health))[1], 10.0)
+                camera.run_source(Source(), threading.Event())
+                assert wait_until(lambda: any(h.rejected.get("camera_moved") == 7 for h in health), 10.0)
+        finally:
+            camera.close()
+            sub.undeclare()
+    said = [r.getMessage() for r in caplog.records if "since its calibration" in r.getMessage()]
+    assert len(said) == 2, said  # two episodes, each said once
+    assert "every joint is reported missing" in said[0]
+    assert sum("back where the calibration puts them" in r.getMessage() for r in caplog.records) == 1
+    assert camera.moved_frames == 7 and camera.missing_joints == 7 * params.n_joints
+    last = next(h for h in health if h.rejected.get("camera_moved") == 7)
+    assert last.last_reject_reason.startswith("camera moved")
+
+
+def test_xneck_camera_detect_says_why_every_joint_is_missing(xneck, tmp_path, model) -> None:
+    frame = tmp_path / "bumped.png"
+    cv2.imwrite(str(frame), Renderer(model, moved(pan_deg=-6.0), seed=1).render(np.radians([10.0, -20.0, 30.0])))
+    result = xneck("camera", "detect", str(frame), "--json")
+    assert result.returncode == 0, result.stderr
+    assert "camera moved" in result.stderr and "since its calibration" in result.stderr

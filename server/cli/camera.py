@@ -290,6 +290,8 @@ def detect(
         result = detector.detect(frame)
     except ValueError as exc:
         raise fail(f"{image}: {exc}") from None
+    if result.reason:  # every joint is missing, and not for a marker: say why (stderr, also with --json)
+        typer.secho(f"warning: {image}: {result.reason}", err=True, fg="yellow")
     if json_out:
         echo_json(result.as_json(), indent=None)
         return

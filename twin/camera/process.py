@@ -86,6 +86,8 @@ class CameraNode:
         self.truth_foreign = 0  # twin: truths of another run than the one rendered (module docstring)
         self.run = ""  # twin: the bridge run whose truth is rendered ('' until one came, or it names none)
         self._last_reject = ""
+        self.moved = False  # the detector finds the camera moved since its calibration (Detection.reason)
+        self.moved_frames = 0  # frames whose joints were withheld for it
         self._queue: collections.deque[Exposure] = collections.deque()
         self._queue_frames = queue_frames
         self._cond = threading.Condition()
@@ -97,6 +99,17 @@ class CameraNode:
         self._seq += 1
         self.frames += 1
         self.missing_joints += sum(a is None for a in found.alpha_rad)
+        if found.reason:  # the camera moved since its calibration: said once per episode, counted in the health
+            self.moved_frames += 1
+            self._last_reject = found.reason
+            if not self.moved:
+                self.moved = True
+                log.warning("camera %s: %s; every joint is reported missing until then", self.instance, found.reason)
+                self._maybe_health(force=True)
+        elif self.moved:
+            self.moved = False
+            log.warning("camera %s: the base-plate reference markers are back where the calibration puts them "
+                        "(%.1f px): α_IP measured again", self.instance, found.reference_shift_px or 0.0)
         msg = bus.CameraAlpha(seq=self._seq, stamp_s=float(stamp_s), capture_stamp_s=float(capture_s),
                               alpha_ip_rad=[None if a is None else float(a) for a in found.alpha_rad],
                               confidence=[float(c) for c in found.confidence], source=source, dropped=self.dropped)
@@ -121,7 +134,8 @@ class CameraNode:
                       "frames": self.frames, "dropped": self.dropped,
                       "missing_joints": self.missing_joints, "images": self.images,
                       "clock_restarts": self.clock_restarts},
-            rejected={bus.TWIN_TRUTH: self.truth_rejected}, last_reject_reason=self._last_reject))
+            rejected={bus.TWIN_TRUTH: self.truth_rejected, "camera_moved": self.moved_frames},
+            last_reject_reason=self._last_reject))
 
     # --- sources -------------------------------------------------------------------------------
 
