@@ -32,6 +32,9 @@ from server.studies.spec import RunSpec, Study, StudyError, Vary
 
 ROUTE_SHORT, ROUTE_LONG = "b", "a"  # cases of eqs. 3-6 where a short cable ends / the long one ends (prototype routing)
 TENSION_FROM_S = 0.2  # s: tension_min_N leaves out the first ticks, before the controller has tensioned the cables
+N_JOINTS = "geometry.n_joints"
+N_JOINTS_RANGE = (1, 12)  # the necks with_joints builds
+_N_JOINTS_HOW = f"vary it by a grid of whole numbers within {N_JOINTS_RANGE[0]} to {N_JOINTS_RANGE[1]} joints, e.g. {N_JOINTS}=2:5:4"
 
 
 @dataclass(frozen=True)
@@ -85,8 +88,9 @@ def with_joints(doc: dict[str, Any], n: int) -> dict[str, Any]:
     last joint repeated (or cut), one short cable per joint and one long cable (the prototype's
     routing: short cable i runs along 1d…(i−1)d ib, the long one 1c…(n−1)c na), per-cable values
     of the prototype's short cables repeated and its long cable's kept."""
-    if not 1 <= n <= 12:
-        raise StudyError(f"geometry.n_joints = {n}: choose 1 to 12 joints")
+    lo, hi = N_JOINTS_RANGE
+    if not lo <= n <= hi:
+        raise StudyError(f"{N_JOINTS} = {n}: choose {lo} to {hi} joints")
     out = copy.deepcopy(doc)
     out["geometry"]["n_joints"] = n
 
@@ -123,11 +127,13 @@ def apply_values(cfg: RunConfig, values: dict[str, float]) -> tuple[Any, Any]:
     doc = copy.deepcopy(cfg.params)
     truth_doc = copy.deepcopy(cfg.truth) if isinstance(cfg.truth, dict) else None
     varies = {v.label: v for v in cfg.study.varies()}
-    for label in sorted(values, key=lambda k: k != "geometry.n_joints"):  # resize first, then vary the joints
+    for label in sorted(values, key=lambda k: k != N_JOINTS):  # resize first, then vary the joints
         v, value = varies[label], values[label]
         where = f"--vary {v.text}"
-        if v.path == "geometry.n_joints":
-            doc = with_joints(doc, int(round(value)))
+        if v.path == N_JOINTS:
+            if not float(value).is_integer():  # never rounded: the row's x must be the neck that ran
+                raise StudyError(f"{where}: {value:g} is not a whole number of joints; {_N_JOINTS_HOW}")
+            doc = with_joints(doc, int(value))
         elif v.path.startswith("truth."):
             if truth_doc is None:
                 raise StudyError(f"{where}: truth paths need --truth robot or a truth file (the model truth has no values)")
@@ -145,11 +151,32 @@ def check_study(cfg: RunConfig) -> None:
     from twin.sim.truth import TruthError
 
     for v in cfg.study.varies():
+        if v.path == N_JOINTS:
+            check_n_joints(v)
         for x in v.extremes():
             try:
                 apply_values(cfg, {v.label: x})
             except (ParameterError, TruthError) as exc:
                 raise StudyError(f"--vary {v.text}: at {x:g}{' (factor)' if v.kind == 'relative' else ''}: {exc}") from None
+
+
+def check_n_joints(v: Vary) -> None:
+    """The number of joints takes whole values from a grid only, each a neck :func:`with_joints`
+    builds: a spread's factor (0.9-1.1) or a draw is no number of joints, and a grid point such as
+    2.5 would be rounded to another neck than the one its row names."""
+    lo, hi = N_JOINTS_RANGE
+    where = f"--vary {v.text}"
+    if v.kind != "grid":
+        what = {"relative": "a relative spread", "normal": "a normal draw", "uniform": "a uniform draw"}[v.kind]
+        raise StudyError(f"{where}: {what} gives no whole number of joints; {_N_JOINTS_HOW}")
+    points = v.grid().tolist()
+    fractional = [x for x in points if not float(x).is_integer()]
+    if fractional:
+        shown = ", ".join(f"{x:g}" for x in fractional[:5]) + (", ..." if len(fractional) > 5 else "")
+        raise StudyError(f"{where}: the grid's points {shown} are not whole numbers of joints; {_N_JOINTS_HOW}")
+    outside = [int(x) for x in points if not lo <= x <= hi]
+    if outside:
+        raise StudyError(f"{where}: {outside[0]} joints is outside the necks a study builds; {_N_JOINTS_HOW}")
 
 
 # --- one run --------------------------------------------------------------------------------------
