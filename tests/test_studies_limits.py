@@ -5,9 +5,12 @@ at once, and local workers capped at the CPUs the process may use."""
 from __future__ import annotations
 
 import re
+import threading
 
 import pytest
 
+from server.studies import execute
+from server.studies.execute import read_rows, run_study
 from server.studies.run import apply_values, config_for, run_one
 from server.studies.spec import StudyError, expand, study_from
 
@@ -41,3 +44,96 @@ def test_a_row_stores_the_number_of_joints_it_simulated() -> None:
                                                                                       (3.0, 3.0, "finished")]
     with pytest.raises(StudyError, match=r"2\.5 is not a whole number"):  # never rounded behind the row's back
         apply_values(cfg, {"geometry.n_joints": 2.5})
+
+
+# --- a large study, stopped -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    c = Client(cluster)
+    try:
+        yield c
+    finally:
+        c.close()
+        cluster.close()
+
+
+def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows(client, tmp_path, monkeypatch) -> None:
+    """Audit: 200,000 runs were all submitted before the first one was read (GBs in the scheduler),
+    and the stop cancelled them one by one (522 s). Here at most a few runs per worker are ever
+    submitted and not finished, and a stop cancels what is in flight in one call."""
+    study = study_from("design", samples=5000, vary=("geometry.b=0.03:0.06:2",), design_configurations=10)
+    total = len(expand(study))
+    limit = execute.in_flight_limit(2)
+    assert 2 <= limit <= 16
+    submitted: list[str] = []
+    cancels: list[int] = []
+    real_submit, real_cancel = client.submit, client.cancel
+
+    def submit(fn, *args, **kwargs):
+        submitted.append(kwargs["key"])
+        return real_submit(fn, *args, **kwargs)
+
+    def cancel(futures, *args, **kwargs):
+        cancels.append(len(futures))
+        return real_cancel(futures, *args, **kwargs)
+
+    monkeypatch.setattr(client, "submit", submit)
+    monkeypatch.setattr(client, "cancel", cancel)
+    stop = threading.Event()
+    in_flight: list[int] = []
+    seen: list[int] = []
+
+    def progress(done: int, _total: int, _message: str) -> None:
+        seen.append(done)
+        in_flight.append(len(submitted) - done)
+        if done >= 40:
+            stop.set()
+
+    summary = run_study(study, tmp_path, client=client, progress=progress, stop=stop)
+    rows = read_rows(tmp_path)
+    assert 40 <= len(rows) == summary["runs_done"] == max(seen) < total and not summary["complete"]
+    assert max(in_flight) <= limit, max(in_flight)  # never the whole study in the scheduler
+    assert len(submitted) <= len(rows) + limit
+    assert len(cancels) <= 1  # what was in flight, cancelled in one call
+    assert len(set(submitted)) == len(submitted)
+
+
+_release = threading.Event()
+_started = threading.Event()
+
+
+def _blocked_run(cfg, run):  # a run that takes until the test says (run on in-process workers)
+    _started.set()
+    _release.wait(120)
+    return run_one(cfg, run)
+
+
+def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) -> None:
+    """Audit: the stop was read only when a run finished. A stop while every worker is inside a
+    long run ends the study without waiting for them."""
+    from distributed import Client, LocalCluster
+
+    from server.studies import run as run_module
+
+    monkeypatch.setattr(run_module, "run_one", _blocked_run)
+    study = study_from("design", samples=50, vary=("geometry.b=0.03:0.06:2",), design_configurations=10)
+    stop = threading.Event()
+    _release.clear()
+    _started.clear()
+    cluster = LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    c = Client(cluster)
+    try:
+        threading.Thread(target=lambda: (_started.wait(60), stop.set()), daemon=True).start()
+        summary = run_study(study, tmp_path, client=c, stop=stop)
+        released_before = _release.is_set()
+        assert _started.is_set() and not released_before, "the study waited for runs in progress"
+        assert summary["runs_done"] == 0 and not summary["complete"]
+    finally:
+        _release.set()
+        c.close()
+        cluster.close()

@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import hashlib
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -169,6 +170,23 @@ def load_study(out: Path) -> Study:
         raise StudyError(f"{Path(out) / STUDY_FILE}: not a study definition ({type(exc).__name__}: {exc})") from None
 
 
+IN_FLIGHT_PER_WORKER = 4  # runs submitted and not finished, per worker: enough to keep each busy, never the study
+POLL_S = 0.25  # s: how often a stop is looked at while every run in flight is still running
+RESIZE_S = 5.0  # s: how often the window follows the cluster's size
+
+
+def in_flight_limit(workers: int) -> int:
+    """Runs submitted and not yet finished at most, for a cluster of ``workers`` single-threaded
+    workers (threads, for workers of several)."""
+    return IN_FLIGHT_PER_WORKER * max(1, workers)
+
+
+def _threads(client: Any) -> int:
+    """The cluster's worker threads now (the scheduler's totals, without the list of workers)."""
+    info = client.scheduler_info(n_workers=0)
+    return int(info.get("total_threads") or len(info.get("workers", {})))
+
+
 def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
     from distributed import Client, LocalCluster
 
@@ -190,8 +208,9 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     """Run every unfinished run of ``study`` into ``out`` and write its summary and figures.
 
     ``client``: an existing dask.distributed Client (else one on ``scheduler``, else a LocalCluster of
-    ``workers`` processes, default this machine's cores). ``stop``: set to stop early (the rows finished
-    so far are kept; a rerun goes on). Returns the summary (server.studies.report)."""
+    ``workers`` processes, default this machine's cores).
+    ``stop``: set to stop early: the runs in flight are cancelled, the rows finished so far are kept
+    and a rerun goes on. Returns the summary (server.studies.report)."""
     from server.studies.report import write_outputs
     from server.studies.run import config_for
 
@@ -225,39 +244,57 @@ def _finished_summary(out: Path, total: int) -> dict[str, Any] | None:
 def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
              scheduler: str | None, progress: Progress | None, stop: Event | None, flush_rows: int,
              flush_s: float) -> None:
-    from distributed import as_completed
+    from distributed import wait
 
     from server.studies.run import run_one
 
     own_client, cluster = client is None, None
     if own_client:
         client, cluster = _client(workers, scheduler)
-    futures: list[Any] = []
+    in_flight: set[Any] = set()
     pending: list[dict[str, Any]] = []
     last_flush = time.monotonic()
     t0 = time.monotonic()
     finished = 0
+    stopped = stop.is_set if stop is not None else (lambda: False)
     try:
         cfg_future = client.scatter(cfg, broadcast=True, hash=False)
         digest = cfg.study.digest()
-        futures = [client.submit(run_one, cfg_future, r, key=f"xneck-study-{digest}-{r.run_id}", pure=False) for r in todo]
-        for fut in as_completed(futures):
-            pending.append(fut.result())
-            fut.release()
-            finished += 1
-            if len(pending) >= flush_rows or time.monotonic() - last_flush >= flush_s:
-                write_batch(out, pending)
-                pending, last_flush = [], time.monotonic()
-            if progress:
-                rate = finished / max(time.monotonic() - t0, 1e-9)
-                progress(done + finished, total, f"{rate:.2f} runs/s")
-            if stop is not None and stop.is_set():
+        # a window of runs at a time, not the whole study: 200,000 futures took GBs in the scheduler,
+        # and a stop had to wait behind them (and cancel them one by one)
+        limit, sized = 0, -math.inf
+        queue = iter(todo)
+        while True:
+            if time.monotonic() - sized >= RESIZE_S:  # a cluster's workers may come (and go) while it runs
+                limit, sized = in_flight_limit(_threads(client)), time.monotonic()
+            while len(in_flight) < limit and not stopped():
+                r = next(queue, None)
+                if r is None:
+                    break
+                in_flight.add(client.submit(run_one, cfg_future, r, key=f"xneck-study-{digest}-{r.run_id}", pure=False))
+            if not in_flight or stopped():
                 break
+            try:  # wakes for a finished run or, every POLL_S, to look at the stop
+                waited: Any = wait(list(in_flight), timeout=POLL_S, return_when="FIRST_COMPLETED")  # sync: not a coroutine
+                done_now = waited.done
+            except TimeoutError:
+                continue
+            for fut in done_now:
+                in_flight.discard(fut)
+                pending.append(fut.result())
+                fut.release()
+                finished += 1
+                if len(pending) >= flush_rows or time.monotonic() - last_flush >= flush_s:
+                    write_batch(out, pending)
+                    pending, last_flush = [], time.monotonic()
+                if progress:
+                    rate = finished / max(time.monotonic() - t0, 1e-9)
+                    progress(done + finished, total, f"{rate:.2f} runs/s")
     finally:
         if pending:  # whatever finished is kept, also on Ctrl-C
             write_batch(out, pending)
-        for fut in futures:
-            fut.cancel()
+        if in_flight:  # a stop does not wait for the runs in progress: one call cancels them all
+            client.cancel(list(in_flight))
         if own_client:  # a client made here (on --scheduler too: it held a connection open) and its cluster
             client.close()
             if cluster is not None:
