@@ -7,6 +7,7 @@ only: a path on the console's disk is nothing a browser may choose.
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 from typing import Any, Literal
@@ -19,7 +20,16 @@ from starlette.concurrency import run_in_threadpool
 from server.auth import require_token
 from server.datadir import storage_problem
 from server.guard import document_responses
-from server.studies.service import DamagedStudy, StudyBusy, StudyError, StudyManager, UnknownStudy, study_or_error
+from server.studies.execute import check_workers
+from server.studies.service import (
+    SCHEDULER_ENV,
+    DamagedStudy,
+    StudyBusy,
+    StudyError,
+    StudyManager,
+    UnknownStudy,
+    study_or_error,
+)
 
 router = APIRouter(prefix="/api/studies", tags=["studies"])
 _lock = threading.Lock()
@@ -44,7 +54,8 @@ class StudyRequest(BaseModel):
     design_configurations: int = Field(2000, ge=10, le=100_000)
     estimator: Literal["auto", "iv", "ols", "wls", "loadfriction", "outputerror"] = Field(
         "auto", description="Identification: Table 2's estimator, as `xneck identify --estimator`.")
-    workers: int | None = Field(None, ge=1, le=64, description="Local Dask workers (default: the machine's cores)")
+    workers: int | None = Field(None, ge=1, le=64, description="Local Dask workers: default and at most the CPUs the "
+                                "console may use (its CPU affinity); more is refused with 422")
 
 
 def _manager(request: Request) -> StudyManager:
@@ -66,6 +77,11 @@ async def create_study(body: StudyRequest, request: Request) -> dict[str, Any]:
     """Check and start a study; every spec is checked before anything runs."""
     if any(len(v) > 200 for v in body.vary):
         raise HTTPException(422, "vary: each PATH=SPEC at most 200 characters")
+    if body.workers is not None and not os.environ.get(SCHEDULER_ENV):  # a local cluster: no more workers than CPUs
+        try:
+            check_workers(body.workers, "workers")
+        except StudyError as exc:
+            raise HTTPException(422, str(exc)) from None
     settings = request.app.state.settings
     folder = Path(settings.data_dir) / "studies"
     folder.mkdir(exist_ok=True)

@@ -4,10 +4,13 @@ at once, and local workers capped at the CPUs the process may use."""
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 
+import httpx
 import pytest
+from server_harness import AUTH, running_server
 
 from server.studies import execute
 from server.studies.execute import read_rows, run_study
@@ -137,3 +140,38 @@ def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) ->
         _release.set()
         c.close()
         cluster.close()
+
+
+# --- local workers --------------------------------------------------------------------------------
+
+
+def test_local_workers_are_capped_at_the_cpus_this_process_may_use(tmp_path) -> None:
+    cap = len(os.sched_getaffinity(0))
+    assert execute.local_worker_cap() == cap
+    study = study_from("design", vary=("geometry.b=0.03:0.06:2",), design_configurations=10)
+    with pytest.raises(StudyError, match=rf"--workers {cap + 1}: at most {cap}"):
+        run_study(study, tmp_path / "out", workers=cap + 1)
+    assert not (tmp_path / "out").exists()  # refused before the study directory or a cluster
+
+
+def test_the_api_refuses_too_many_workers_and_a_spread_number_of_joints_with_422(tmp_path) -> None:
+    cap = len(os.sched_getaffinity(0))
+    body = {"kind": "design", "vary": ["geometry.b=0.03:0.06:2"], "design_configurations": 10}
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as http:
+        for workers in (cap + 1, 64):
+            r = http.post("/api/studies", json={**body, "workers": workers}, headers=AUTH)
+            assert r.status_code == 422 and f"at most {cap}" in r.text, r.text
+        r = http.post("/api/studies", json={**body, "vary": ["geometry.n_joints=10%"]}, headers=AUTH)
+        assert r.status_code == 422 and "whole numbers" in r.text, r.text
+        assert http.get("/api/studies").json()["studies"] == []  # nothing started
+
+
+def test_the_command_line_refuses_too_many_workers_in_one_line(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    cap = len(os.sched_getaffinity(0))
+    result = CliRunner().invoke(app, ["study", "design", "--out", str(tmp_path / "x"), "--workers", str(cap + 1),
+                                      "--vary", "geometry.b=0.03:0.06:2"])
+    assert result.exit_code == 2 and f"at most {cap}" in result.output, result.output

@@ -23,7 +23,7 @@ VARY = typer.Option(None, "--vary", help="PATH=SPEC, repeatable: a parameter-fil
                     "cables.variable.k[2], geometry.b) or truth.<effect>.<key>; SPEC 10% (relative spread, "
                     "U(0.9,1.1) x nominal), N(mu,sigma), U(a,b) or a grid first:last:n (n values, both ends included).")
 SEED = typer.Option(None, "--seed", help="Study seed: every run's draws and twin seed follow from it (default 0).")
-WORKERS = typer.Option(None, "--workers", help="Local Dask worker processes (default: this machine's cores).")
+WORKERS = typer.Option(None, "--workers", help="Local Dask worker processes (default and at most: the CPUs this process may use).")
 SCHEDULER = typer.Option(None, "--scheduler", help="An existing Dask cluster, tcp://HOST:PORT (see docs/studies.md).")
 AS_JSON = typer.Option(False, "--json", help="Print the summary as JSON.")
 FILE = typer.Option(None, "--study", help="Study file (TOML) for anything the flags cannot say.")

@@ -175,6 +175,28 @@ POLL_S = 0.25  # s: how often a stop is looked at while every run in flight is s
 RESIZE_S = 5.0  # s: how often the window follows the cluster's size
 
 
+def local_worker_cap() -> int:
+    """Local worker processes at most: the CPUs this process may run on (its affinity, which a
+    container or ``taskset`` narrows; not os.cpu_count(), which counts the machine's). A run is
+    CPU-bound: a worker more than the CPUs only adds its memory (16 workers on 2 CPUs: 5 GB, load 21)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_workers(workers: int | None, option: str = "--workers") -> int:
+    """The local workers of a study: ``workers`` (default :func:`local_worker_cap`); above the cap,
+    :class:`StudyError` names it. Refused, not clamped: the study then runs as asked or not at all."""
+    cap = local_worker_cap()
+    if workers is None:
+        return cap
+    if not 1 <= workers <= cap:
+        raise StudyError(f"{option} {workers}: at most {cap} local workers, the CPUs this process may use "
+                         f"(a worker more only adds its memory); use --scheduler for a larger cluster")
+    return workers
+
+
 def in_flight_limit(workers: int) -> int:
     """Runs submitted and not yet finished at most, for a cluster of ``workers`` single-threaded
     workers (threads, for workers of several)."""
@@ -197,7 +219,7 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
             raise StudyError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         except ValueError as exc:  # not an address ('missing port number'): was a traceback
             raise StudyError(f"--scheduler {scheduler!r}: not a scheduler address tcp://HOST:PORT ({exc})") from None
-    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+    cluster = LocalCluster(n_workers=check_workers(workers), threads_per_worker=1, processes=True,
                            dashboard_address=None)  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
     return Client(cluster), cluster
 
@@ -208,13 +230,15 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     """Run every unfinished run of ``study`` into ``out`` and write its summary and figures.
 
     ``client``: an existing dask.distributed Client (else one on ``scheduler``, else a LocalCluster of
-    ``workers`` processes, default this machine's cores).
+    ``workers`` processes, default and at most the CPUs this process may use: :func:`check_workers`).
     ``stop``: set to stop early: the runs in flight are cancelled, the rows finished so far are kept
     and a rerun goes on. Returns the summary (server.studies.report)."""
     from server.studies.report import write_outputs
     from server.studies.run import config_for
 
     out = Path(out)
+    if client is None and not scheduler:
+        check_workers(workers)  # before the study directory exists or a cluster starts
     cfg = config_for(study, software_version())
     runs = expand(study)
     inputs = hashlib.sha256(json.dumps([cfg.params, cfg.truth, cfg.trajectory_json], sort_keys=True).encode()).hexdigest()[:16]
