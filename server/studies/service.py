@@ -2,7 +2,11 @@
 
 The same code as ``xneck study`` (server.studies.execute.run_study); progress is kept in memory
 while a study runs and read back from its directory otherwise (a study the console did not finish,
-e.g. across a restart, shows as ``stopped`` and resumes when created again with the same definition).
+e.g. across a restart, shows as ``stopped`` and resumes when created again with the same definition;
+one that failed keeps its state and error in ``DIR/state.json``). Reading costs what a page needs, not
+what the study holds (server.studies.rows: row counts from the Parquet footers); a summary older than
+the rows on disk (a study resumed, then the console killed) is marked ``summary_stale`` and recomputed
+in the background, one study at a time.
 The Dask cluster: ``XNECK_DASK_SCHEDULER`` (tcp://HOST:PORT, a cluster the lab runs) when set, else a
 LocalCluster of the request's ``workers`` (default: this machine's cores).
 """
@@ -38,6 +42,7 @@ class DamagedStudy(ValueError):
 
 
 LIST_KEYS = ("id", "kind", "state", "runs_done", "runs_total", "fraction", "error")
+STATE_FILE = "state.json"  # a failed study's state and error, for the console after a restart
 
 
 @dataclass
@@ -58,6 +63,9 @@ class StudyManager:
         self.root = Path(root)
         self._lock = threading.Lock()
         self._runs: dict[str, _Running] = {}
+        self._recompute: dict[str, threading.Thread] = {}  # stale summaries being recomputed, by study id
+        self._recomputed: dict[str, int] = {}  # the row count each study's last recompute was tried at
+        self._report_lock = threading.Lock()  # one recompute at a time (each reads all of its study's rows)
 
     def _dir(self, study_id: str) -> Path:
         """The directory of a known study (one this console started, maybe not on disk yet, or one on disk)."""
@@ -89,13 +97,38 @@ class StudyManager:
         def progress(done: int, total: int, message: str) -> None:
             run.done, run.message = done, message
 
+        folder = self.root / study_id
+        with self._lock:
+            recompute = self._recompute.get(study_id)
+        if recompute is not None:  # its stale summary being redrawn holds the directory's lock: let it end
+            recompute.join()
         try:
-            summary = run_study(run.study, self.root / study_id, workers=workers,
+            summary = run_study(run.study, folder, workers=workers,
                                 scheduler=os.environ.get(SCHEDULER_ENV) or None, progress=progress, stop=run.stop)
             run.done = summary["runs_done"]
             run.state = "complete" if summary["complete"] else "stopped"
+            with contextlib.suppress(OSError):
+                (folder / STATE_FILE).unlink(missing_ok=True)
         except Exception as exc:  # noqa: BLE001 - a study's failure (cluster lost, disk full) is its state, never the console's crash
             run.state, run.error = "failed", f"{type(exc).__name__}: {exc}"
+            self._persist_failure(folder, run.error)
+
+    @staticmethod
+    def _persist_failure(folder: Path, error: str) -> None:
+        """state.json: the failure and the rows it left, so a restarted console still says failed (and why)
+        while the directory holds those rows; written atomically, only in a directory holding a study."""
+        import json
+
+        from server.studies.execute import STUDY_FILE
+        from server.studies.rows import count_rows
+
+        with contextlib.suppress(OSError, StudyError):
+            if not (folder / STUDY_FILE).is_file():
+                return
+            tmp = folder / f".{STATE_FILE}.tmp"
+            tmp.write_text(json.dumps({"state": "failed", "error": error, "runs_done": count_rows(folder),
+                                       "time": time.time()}))
+            os.replace(tmp, folder / STATE_FILE)
 
     def stop(self, study_id: str) -> None:
         self._dir(study_id)
@@ -143,45 +176,68 @@ class StudyManager:
             raise DamagedStudy(f"study {study_id} is damaged: {exc}") from None
 
     def _progress(self, study_id: str, folder: Path, run: _Running | None) -> dict[str, Any]:
-        import json
+        from server.studies.execute import load_study
+        from server.studies.rows import count_rows
 
-        from server.studies.execute import finished_ids, load_study
-
-        summary_file = folder / "summary.json"
-        summary = None
-        if summary_file.is_file():
-            try:
-                summary = json.loads(summary_file.read_text())
-            except ValueError as exc:
-                raise StudyError(f"{summary_file}: not JSON ({exc})") from None
-            if not isinstance(summary, dict):
-                raise StudyError(f"{summary_file}: not a JSON object")
+        summary = _json_object(folder / "summary.json")
         figures = [f"/api/studies/{study_id}/figures/{n}" for n in (summary or {}).get("figures", [])]
+        on_disk = None
         if run is None:  # not run by this console (or before its restart): the directory says
             study = load_study(folder)
             total = run_count(study)  # a study.json edited to 10^12 runs must not fill the memory here
-            done = len(finished_ids(folder))
+            done = on_disk = count_rows(folder)  # the batches' footers, not their rows
             state, message, error = ("complete" if done >= total else "stopped"), "", ""
+            failed = _json_object(folder / STATE_FILE)
+            if failed and failed.get("state") == "failed" and failed.get("runs_done") == done:  # no row since
+                state, error = "failed", str(failed.get("error", ""))
         else:
             study, total, done, state, message, error = run.study, run.total, run.done, run.state, run.message, run.error
+        stale = False
+        if state != "running":
+            on_disk = count_rows(folder) if on_disk is None else on_disk
+            stale = on_disk > 0 and (summary is None or summary.get("runs_done") != on_disk)
+            if stale:
+                self._recompute_later(study_id, folder, study, total, on_disk)
         return {"id": study_id, "kind": study.kind, "state": state, "runs_done": done, "runs_total": total,
                 "fraction": done / total if total else 1.0, "message": message, "error": error,
                 "study": study.canonical(), "summary": summary if state != "running" else None,
-                "figures": figures if state != "running" else []}
+                "summary_stale": stale, "figures": figures if state != "running" else []}
+
+    def _recompute_later(self, study_id: str, folder: Path, study: Study, total: int, rows: int) -> None:
+        """The summary and figures of the rows on disk, in a thread: once per row count (a directory whose
+        rows do not read is not read again at every poll), never while this console runs that study, and
+        under the directory's lock (a study resumed meanwhile, here or by ``xneck study``, waits or wins)."""
+        with self._lock:
+            run = self._runs.get(study_id)
+            if (study_id in self._recompute or self._recomputed.get(study_id) == rows
+                    or (run is not None and run.state == "running")):
+                return
+            self._recomputed[study_id] = rows
+            thread = threading.Thread(target=self._redraw, args=(study_id, folder, study, total),
+                                      name=f"study-summary-{study_id}", daemon=True)
+            self._recompute[study_id] = thread
+            thread.start()
+
+    def _redraw(self, study_id: str, folder: Path, study: Study, total: int) -> None:
+        from server.studies.execute import study_dir
+        from server.studies.report import write_outputs
+
+        try:
+            with self._report_lock, contextlib.suppress(StudyError, OSError, ValueError), study_dir(study, folder):
+                write_outputs(folder, study, total)
+        finally:
+            with self._lock:
+                self._recompute.pop(study_id, None)
 
     def results(self, study_id: str, offset: int, limit: int) -> dict[str, Any]:
-        import math
-
-        from server.studies.execute import read_rows
+        from server.studies.rows import read_page
 
         folder = self._dir(study_id)
         try:
-            rows = read_rows(folder)
+            total, page = read_page(folder, offset, limit)  # the batches the page spans only
         except (StudyError, OSError) as exc:
             raise DamagedStudy(f"study {study_id} is damaged: {exc}") from None
-        page = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}
-                for r in rows[offset:offset + limit]]
-        return {"total": len(rows), "offset": offset, "rows": page}
+        return {"total": total, "offset": offset, "rows": page}
 
     def figure(self, study_id: str, name: str) -> Path:
         from server.studies.report import FIGURES
@@ -190,6 +246,21 @@ class StudyManager:
         if name not in FIGURES or not path.is_file():
             raise UnknownStudy(f"{study_id}/{name}")
         return path
+
+
+def _json_object(path: Path) -> dict[str, Any] | None:
+    """A JSON object file of the study directory, None when absent; StudyError when it is not one."""
+    import json
+
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+    except ValueError as exc:
+        raise StudyError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise StudyError(f"{path}: not a JSON object")
+    return doc
 
 
 def study_or_error(**fields: Any) -> Study:

@@ -1,0 +1,170 @@
+"""Reading studies from the console (audit of 2026-11-30): what a listing, a progress and a page of rows
+cost must not grow with the study (a 200,000-run directory took 8.6 s and 430 MB for one row), a summary
+older than the rows on disk is not served as theirs after a restart, a failed study stays failed across a
+restart, and outcomes are counted per law.
+
+The directories are written as the study thread writes them (``study_dir`` + ``write_batch``), no Dask."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import httpx
+import pyarrow.parquet as pq
+import pytest
+from server_harness import AUTH, running_server, wait_until
+
+from server.studies import execute
+from server.studies.execute import read_rows, study_dir, write_batch
+from server.studies.report import summarize, write_outputs
+from server.studies.spec import expand, study_from
+
+DESIGN = study_from("design", samples=60, vary=("geometry.b=0.03:0.06:2",), design_configurations=10)  # 120 runs
+
+
+def _design_rows(runs, feasible: float) -> list[dict]:
+    return [{"run_id": r.run_id, "law": 0, "seed": r.seed, "x:geometry.b": r.values["geometry.b"],
+             "feasible_fraction": feasible, "stable_fraction": 0.5, "k_min_median_N_m_per_rad": 1.0,
+             "k_max_median_N_m_per_rad": 2.0, "outcome": "finished", "message": "", "run_s": 0.01, "version": "x"}
+            for r in runs]
+
+
+def _on_disk(root: Path, sizes: list[int], feasible: float = 0.5) -> tuple[Path, list]:
+    """DESIGN's directory under ``root`` with batches of ``sizes`` rows (as the writer leaves them)."""
+    out = root / f"design-{DESIGN.digest()}"
+    runs = expand(DESIGN)
+    with study_dir(DESIGN, out):
+        i = 0
+        for n in sizes:
+            write_batch(out, _design_rows(runs[i:i + n], feasible))
+            i += n
+    return out, runs
+
+
+class _Opened:
+    """Counts the Parquet files whose data (read_table) or footer (read_metadata) are read."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.tables: list[str] = []
+        self.footers: list[str] = []
+        table, footer = pq.read_table, pq.read_metadata
+
+        def read_table(source, *a, **k):
+            self.tables.append(str(source))
+            return table(source, *a, **k)
+
+        def read_metadata(source, *a, **k):
+            self.footers.append(str(source))
+            return footer(source, *a, **k)
+
+        monkeypatch.setattr(pq, "read_table", read_table)
+        monkeypatch.setattr(pq, "read_metadata", read_metadata)
+
+        def whole_table(*_a, **_k):
+            raise AssertionError("a reading route read every row")
+
+        monkeypatch.setattr(execute, "read_rows", whole_table)
+        monkeypatch.setattr(execute, "finished_ids", whole_table)
+
+    def clear(self) -> None:
+        self.tables.clear()
+        self.footers.clear()
+
+
+def test_a_page_of_rows_reads_only_the_batches_it_spans_and_pages_across_their_boundaries(tmp_path, monkeypatch) -> None:
+    sizes = [32, 32, 7, 32, 1, 16]  # 120 rows; odd batches as a 2 s flush leaves them
+    out, runs = _on_disk(tmp_path / "data" / "studies", sizes)
+    expected = read_rows(out)  # the whole-table reader, before it is forbidden below
+    assert len(expected) == 120
+    (out / "summary.json").write_text(json.dumps(summarize(DESIGN, expected, 120)))  # its summary, up to date
+    sid = out.name
+    opened = _Opened(monkeypatch)
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        for offset, limit in ((0, 1), (31, 2), (60, 15), (70, 2), (71, 1), (103, 17), (119, 5), (0, 200), (120, 3),
+                              (500, 1)):
+            opened.clear()
+            r = http.get(f"/api/studies/{sid}/results", params={"offset": offset, "limit": limit})
+            assert r.status_code == 200, r.text
+            page = r.json()
+            assert page["total"] == 120 and page["offset"] == offset
+            assert page["rows"] == expected[offset:offset + limit], (offset, limit)
+            # only the batches the page spans are read
+            ends = [sum(sizes[:i + 1]) for i in range(len(sizes))]
+            spanned = sum(1 for i, end in enumerate(ends) if end > offset and end - sizes[i] < offset + limit)
+            assert len(opened.tables) == spanned, (offset, limit, opened.tables)
+        # the listing and a progress count the rows from the files' footers, once per file
+        opened.clear()
+        listed = http.get("/api/studies").json()["studies"]
+        assert [(s["id"], s["runs_done"], s["runs_total"], s["state"]) for s in listed] == [(sid, 120, 120, "complete")]
+        assert http.get(f"/api/studies/{sid}").json()["runs_done"] == 120
+        assert opened.tables == [] and opened.footers == []  # counted already (the pages above), nothing read again
+        # a new batch (the study resumed elsewhere): only its footer is read
+        more = _design_rows(runs[:1], 0.5)
+        more[0]["run_id"] = "extra"
+        write_batch(out, more)
+        opened.clear()
+        assert http.get(f"/api/studies/{sid}/results", params={"offset": 120, "limit": 5}).json()["total"] == 121
+        assert len(opened.footers) == 1 and len(opened.tables) == 1, opened.footers
+
+
+def test_a_batch_replaced_in_place_is_counted_again(tmp_path) -> None:
+    from server.studies.rows import count_rows, read_page
+
+    out, _ = _on_disk(tmp_path, [32, 32])
+    assert count_rows(out) == 64
+    first = execute.part_files(out)[0]
+    table = pq.read_table(first).slice(0, 5)
+    pq.write_table(table, first)  # same name, other size
+    assert count_rows(out) == 37
+    assert [r["run_id"] for r in read_page(out, 0, 6)[1]] == [r["run_id"] for r in read_rows(out)[:6]]
+
+
+def test_a_summary_older_than_the_rows_is_recomputed_after_a_restart(tmp_path) -> None:
+    # audit: stopped at 200 (summary written), resumed, the console killed at 900: a restarted console
+    # showed 900/1000 beside the summary and figures of the 200.
+    root = tmp_path / "data" / "studies"
+    study = study_from("design", samples=500, vary=("geometry.b=0.03:0.06:2",), design_configurations=10)
+    out = root / f"design-{study.digest()}"
+    runs = expand(study)
+    with study_dir(study, out):
+        write_batch(out, _design_rows(runs[:200], 0.2))
+        write_outputs(out, study, len(runs))
+        old_figure = (out / "figures" / "distributions.png").stat().st_mtime_ns
+        for i in range(200, 900, 32):
+            write_batch(out, _design_rows(runs[i:min(i + 32, 900)], 0.9))
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        p = http.get(f"/api/studies/{out.name}").json()
+        assert (p["state"], p["runs_done"], p["runs_total"]) == ("stopped", 900, 1000)
+        assert p["summary"] is None or p["summary_stale"], p  # never the 200 runs' summary as the 900's
+
+        def fresh() -> bool:
+            q = http.get(f"/api/studies/{out.name}").json()
+            return q["summary"] is not None and not q["summary_stale"] and q["summary"]["runs_done"] == 900
+
+        assert wait_until(fresh, 60)
+        p = http.get(f"/api/studies/{out.name}").json()
+        assert p["summary"]["metrics"]["0"]["feasible_fraction"]["median"] == 0.9
+        assert (out / "figures" / "distributions.png").stat().st_mtime_ns > old_figure
+        assert p["figures"]
+
+
+def test_a_failed_study_stays_failed_with_its_error_after_a_restart(tmp_path, monkeypatch) -> None:
+    data = tmp_path / "data"
+    body = {"kind": "design", "samples": 2, "vary": ["geometry.b=0.04:0.06:2"], "design_configurations": 10}
+
+    def lost(study, out, **_kw):
+        with study_dir(study, out):
+            write_batch(out, _design_rows(expand(study)[:1], 0.5))
+        raise OSError("the scheduler went away")
+
+    monkeypatch.setattr(execute, "run_study", lost)
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        sid = http.post("/api/studies", json=body, headers=AUTH).json()["id"]
+        assert wait_until(lambda: http.get(f"/api/studies/{sid}").json()["state"] == "failed", 30)
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        p = http.get(f"/api/studies/{sid}").json()
+        assert (p["state"], p["runs_done"]) == ("failed", 1), p
+        assert p["error"] == "OSError: the scheduler went away"
+        listed = http.get("/api/studies").json()["studies"]
+        assert listed[0]["state"] == "failed" and listed[0]["error"] == p["error"]
