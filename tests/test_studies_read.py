@@ -13,7 +13,8 @@ from pathlib import Path
 import httpx
 import pyarrow.parquet as pq
 import pytest
-from server_harness import AUTH, running_server, wait_until
+from browser_harness import dashboard_page, needs_chromium
+from server_harness import AUTH, TOKEN, running_server, server_process, wait_until
 
 from server.studies import execute
 from server.studies.execute import read_rows, study_dir, write_batch
@@ -168,3 +169,49 @@ def test_a_failed_study_stays_failed_with_its_error_after_a_restart(tmp_path, mo
         assert p["error"] == "OSError: the scheduler went away"
         listed = http.get("/api/studies").json()["studies"]
         assert listed[0]["state"] == "failed" and listed[0]["error"] == p["error"]
+
+
+def _half_diverged() -> tuple:
+    study = study_from("control", laws=(1, 2), samples=100, vary=("friction.f_s=10%",))
+    rows = [{"run_id": f"L{law}-{i}", "law": law, "run_s": 1.0, "x:friction.f_s": 1.0 + i / 1000,
+             "outcome": "diverged" if (law == 1 and i % 2) else "finished", "e_mean_all_deg": 0.1 + i / 1000,
+             "message": "", "version": "x"}
+            for law in (1, 2) for i in range(100)]
+    return study, rows
+
+
+def test_outcomes_are_counted_per_law_and_each_statistic_says_over_how_many_runs() -> None:
+    study, rows = _half_diverged()
+    s = summarize(study, rows, 200)
+    assert s["outcomes"] == {"finished": 150, "diverged": 50}
+    assert s["outcomes_per_law"] == {"1": {"finished": 50, "diverged": 50}, "2": {"finished": 100}}
+    assert (s["metrics"]["1"]["e_mean_all_deg"]["n"], s["metrics"]["1"]["e_mean_all_deg"]["of"]) == (50, 100)
+    assert (s["metrics"]["2"]["e_mean_all_deg"]["n"], s["metrics"]["2"]["e_mean_all_deg"]["of"]) == (100, 100)
+
+
+@needs_chromium
+def test_the_studies_card_shows_outcomes_per_law_and_over_how_many_runs(tmp_path) -> None:
+    study, rows = _half_diverged()
+    out = tmp_path / "data" / "studies" / f"control-{study.digest()}"
+    with study_dir(study, out):
+        for law in (1, 2):
+            write_batch(out, [r for r in rows if r["law"] == law])
+        write_outputs(out, study, 200)
+    with server_process(tmp_path / "data") as (base, _proc), \
+            dashboard_page(base, block=lambda url: not url.startswith(base) or "/api/workspace" in url) as (page, errors):
+        page.fill("#token", TOKEN)
+        page.dispatch_event("#token", "change")
+        page.wait_for_selector("#st-out table.ws-summary", timeout=30000)
+        text = page.inner_text("#st-out")
+        assert "law 1: 50 finished, 50 diverged" in text and "law 2: 100 finished" in text, text
+        assert "50 of 100" in page.inner_text("#st-out table.ws-summary")
+        assert not errors, errors
+
+
+def test_a_summary_json_names_per_law_outcomes_after_write_outputs(tmp_path) -> None:
+    study, rows = _half_diverged()
+    with study_dir(study, tmp_path):
+        write_batch(tmp_path, rows)
+        write_outputs(tmp_path, study, 200)
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert doc["outcomes_per_law"]["1"] == {"finished": 50, "diverged": 50}

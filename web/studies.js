@@ -57,15 +57,31 @@
     const table = document.createElement("table");
     table.className = "ws-summary";
     const head = table.insertRow();
-    ["", "metric", "median", "p5", "p95", "n"].forEach((t) => { const th = document.createElement("th"); th.textContent = t; head.appendChild(th); });
+    // n: the runs a statistic is over (finished, finite value) of the law's runs (every outcome)
+    ["", "metric", "median", "p5", "p95", "n of runs"].forEach((t) => { const th = document.createElement("th"); th.textContent = t; head.appendChild(th); });
     Object.entries(summary.metrics).forEach(([law, metrics]) => {
       Object.entries(metrics).forEach(([name, s]) => {
         if (!s) return;
         const tr = table.insertRow();
-        [law === "0" ? "design" : `law ${law}`, name, fmt(s.median), fmt(s.p5), fmt(s.p95), s.n].forEach((t) => { tr.insertCell().textContent = t; });
+        [lawName(law), name, fmt(s.median), fmt(s.p5), fmt(s.p95), s.of === undefined ? s.n : `${s.n} of ${s.of}`]
+          .forEach((t) => { tr.insertCell().textContent = t; });
       });
     });
     return table;
+  }
+
+  function lawName(law) { return law === "0" ? "design" : `law ${law}`; }
+
+  // What became of each law's runs ("law 1: 150 finished, 50 diverged"): the statistics are over the finished ones.
+  function outcomesPerLaw(summary) {
+    const div = document.createElement("div");
+    div.className = "st-outcomes";
+    Object.entries(summary.outcomes_per_law || {}).forEach(([law, counts]) => {
+      const line = document.createElement("div");
+      line.textContent = `${lawName(law)}: ` + Object.entries(counts).map(([o, n]) => `${n} ${o}`).join(", ");
+      div.appendChild(line);
+    });
+    return div;
   }
 
   function showStudy(p) {
@@ -74,12 +90,19 @@
     head.textContent = `${p.id}: ${p.state}, ${p.runs_done}/${p.runs_total} runs` + (p.message ? ` (${p.message})` : "");
     out.appendChild(head);
     if (p.summary) {
+      if (p.summary_stale) {  // rows added since it was written (a study resumed, then the console stopped)
+        const note = document.createElement("div");
+        note.className = "st-stale";
+        note.textContent = `summary of ${p.summary.runs_done} runs, ${p.runs_done} on disk: being recomputed`;
+        out.appendChild(note);
+      }
+      out.appendChild(outcomesPerLaw(p.summary));
       out.appendChild(summaryTable(p.summary));
       const figs = document.createElement("div");
       figs.className = "ws-figures";
       p.figures.forEach((url) => {
         const img = document.createElement("img");
-        img.src = url + "?v=" + p.runs_done; img.alt = url.split("/").pop(); img.style.maxWidth = "100%";
+        img.src = `${url}?v=${p.summary.runs_done}-${p.runs_done}`; img.alt = url.split("/").pop(); img.style.maxWidth = "100%";
         figs.appendChild(img);
       });
       out.appendChild(figs);
@@ -98,6 +121,7 @@
       live = r.studies.some((s) => s.state === "running") || (shown !== null && shown.state === "running");
       clearTimeout(timer);
       if (live) timer = setTimeout(refresh, POLL_MS);
+      else if (shown !== null && shown.summary_stale) timer = setTimeout(refresh, 2 * POLL_MS);  // until it is redrawn
     } catch (e) {
       showError(e);
       clearTimeout(timer);

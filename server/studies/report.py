@@ -34,11 +34,12 @@ def _column(rows: list[dict[str, Any]], key: str) -> np.ndarray:
     return np.array([np.nan if r.get(key) is None else float(r[key]) for r in rows], dtype=float)
 
 
-def _stats(x: np.ndarray) -> dict[str, float | int] | None:
+def _stats(x: np.ndarray, of: int | None = None) -> dict[str, float | int] | None:
+    """Statistics of the finite values; ``n`` of them, out of ``of`` runs (all outcomes) when given."""
     x = x[np.isfinite(x)]
     if x.size == 0:
         return None
-    return {"n": int(x.size), "mean": float(x.mean()), "median": float(np.median(x)), "p5": float(np.percentile(x, 5)),
+    return {"n": int(x.size), **({"of": of} if of is not None else {}), "mean": float(x.mean()), "median": float(np.median(x)), "p5": float(np.percentile(x, 5)),
             "p95": float(np.percentile(x, 95)), "min": float(x.min()), "max": float(x.max())}
 
 
@@ -63,19 +64,27 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float | None:
 
 
 def summarize(study: Study, rows: list[dict[str, Any]], total: int) -> dict[str, Any]:
-    """Counts, outcomes, per-law metric statistics, sensitivities, timing."""
+    """Counts, outcomes (all, and per law), per-law metric statistics, sensitivities, timing.
+
+    A law's statistics are over its finished runs with a finite value: each says how many (``n``) of
+    how many runs of that law (``of``, every outcome), so a law whose diverged half is left out does not
+    read like a law that lost none (``outcomes_per_law`` says what became of the others)."""
     inputs = [f"x:{v.label}" for v in study.varies()]
     metrics = METRICS[study.kind]
     ok = [r for r in rows if r.get("outcome") == "finished"]
     laws = sorted({int(r["law"]) for r in rows})
     outcomes: dict[str, int] = {}
+    per_law_outcomes: dict[str, dict[str, int]] = {str(law): {} for law in laws}
     for r in rows:
         outcomes[r["outcome"]] = outcomes.get(r["outcome"], 0) + 1
+        mine = per_law_outcomes[str(int(r["law"]))]
+        mine[r["outcome"]] = mine.get(r["outcome"], 0) + 1
     per_law: dict[str, Any] = {}
     sens: dict[str, Any] = {}
     for law in laws:
         lr = [r for r in ok if int(r["law"]) == law]
-        per_law[str(law)] = {m: _stats(_column(lr, m)) for m in metrics}
+        runs = sum(per_law_outcomes[str(law)].values())
+        per_law[str(law)] = {m: _stats(_column(lr, m), runs) for m in metrics}
         sens[str(law)] = {m: {i[2:]: spearman(_column(lr, i), _column(lr, m)) for i in inputs} for m in metrics}
     run_s = _column(rows, "run_s")
     failures = [{"run_id": r["run_id"], "outcome": r["outcome"], "message": r.get("message", "")}
@@ -83,7 +92,7 @@ def summarize(study: Study, rows: list[dict[str, Any]], total: int) -> dict[str,
     return {
         "digest": study.digest(), "kind": study.kind, "study": study.canonical(),
         "runs_total": total, "runs_done": len(rows), "complete": len(rows) >= total,
-        "outcomes": outcomes, "metrics": per_law, "sensitivity_spearman": sens,
+        "outcomes": outcomes, "outcomes_per_law": per_law_outcomes, "metrics": per_law, "sensitivity_spearman": sens,
         "run_s": _stats(run_s), "failures": failures,
         "versions": sorted({str(r.get("version")) for r in rows}),
     }
