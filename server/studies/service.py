@@ -8,7 +8,7 @@ what the study holds (server.studies.rows: row counts from the Parquet footers);
 the rows on disk (a study resumed, then the console killed) is marked ``summary_stale`` and recomputed
 in the background, one study at a time.
 The Dask cluster: ``XNECK_DASK_SCHEDULER`` (tcp://HOST:PORT, a cluster the lab runs) when set, else a
-LocalCluster of the request's ``workers`` (default: this machine's cores).
+LocalCluster of the request's ``workers`` (default and cap: the CPUs this process may use, ``os.sched_getaffinity``).
 """
 
 from __future__ import annotations
