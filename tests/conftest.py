@@ -264,6 +264,20 @@ def _timeline(request: pytest.FixtureRequest, exclusive: bool, asked_monotonic: 
                 f"{_cpu_s() - cpu_s:7.1f} {request.node.nodeid}\n")
 
 
+@pytest.fixture(scope="module")
+def dask_client():
+    """A local Dask cluster of two worker processes for a module's studies (server/studies)."""
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    c = Client(cluster)
+    try:
+        yield c
+    finally:
+        c.close()
+        cluster.close()
+
+
 @pytest.fixture(scope="session")
 def params():
     return load_params()

@@ -35,19 +35,6 @@ def nod(tmp_path_factory) -> str:
     return str(path)
 
 
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
-    c = Client(cluster)
-    try:
-        yield c
-    finally:
-        c.close()
-        cluster.close()
-
-
 def _study(nod: str, samples: int, **kw):
     return study_from("control", samples=samples, vary=VARY, laws=(1, 2), trajectory=nod, settle_s=0.1, **{"seed": 3, **kw})
 
@@ -185,9 +172,9 @@ def test_a_study_directory_refuses_a_study_whose_files_changed(nod, tmp_path) ->
         pass
 
 
-def test_a_small_study_end_to_end_on_two_workers(nod, client, tmp_path) -> None:
+def test_a_small_study_end_to_end_on_two_workers(nod, dask_client, tmp_path) -> None:
     s = _study(nod, 3)
-    summary = run_study(s, tmp_path, client=client)
+    summary = run_study(s, tmp_path, client=dask_client)
     rows = read_rows(tmp_path)
     assert sorted(r["run_id"] for r in rows) == sorted(r.run_id for r in expand(s))
     assert all(r["outcome"] == "finished" for r in rows), [r["message"] for r in rows]
@@ -199,7 +186,7 @@ def test_a_small_study_end_to_end_on_two_workers(nod, client, tmp_path) -> None:
     assert {"distributions.png", "sensitivity.png"} <= {p.name for p in (tmp_path / "figures").iterdir()}
     # a run again is the same row: deterministic from its seed, the twin on the sampled robot
     run = expand(s)[4]
-    again = client.submit(run_one, config_for(s, rows[0]["version"]), run, pure=False).result()
+    again = dask_client.submit(run_one, config_for(s, rows[0]["version"]), run, pure=False).result()
     row = next(r for r in rows if r["run_id"] == run.run_id)
     assert again["e_mean_all_deg"] == row["e_mean_all_deg"] and again["force_max_N[4]"] == row["force_max_N[4]"]
     assert row["x:friction.f_s"] == run.values["friction.f_s"] and row["version"]
@@ -207,15 +194,15 @@ def test_a_small_study_end_to_end_on_two_workers(nod, client, tmp_path) -> None:
     assert len({r["e_mean_all_deg"] for r in rows if r["law"] == 2}) == 3
     # another study in the same directory is refused (its rows would mix)
     with pytest.raises(StudyError, match="holds another study"):
-        run_study(_study(nod, 4), tmp_path, client=client)
+        run_study(_study(nod, 4), tmp_path, client=dask_client)
 
 
-def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, client, tmp_path) -> None:
+def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, dask_client, tmp_path) -> None:
     """`xneck study` on the cluster (--scheduler), SIGKILLed once its first batch is on disk; the
     rerun finishes the rest, never repeating a row; a third run has nothing to do."""
     s = _study(nod, 20)
     args = [sys.executable, "-m", "server.cli", "study", "control", "--out", str(tmp_path), "--samples", "20",
-            "--law", "1", "--law", "2", "--trajectory", nod, "--seed", "3", "--scheduler", client.scheduler.address]
+            "--law", "1", "--law", "2", "--trajectory", nod, "--seed", "3", "--scheduler", dask_client.scheduler.address]
     args += [x for v in VARY for x in ("--vary", v)]
     (tmp_path / "settle.toml").write_text("settle_s = 0.1\n")
     args += ["--study", str(tmp_path / "settle.toml")]
@@ -230,7 +217,7 @@ def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, 
     total = len(expand(s))
     assert 0 < len(partial) < total, (len(partial), proc.stderr.read().decode()[-2000:] if proc.stderr else "")
     (tmp_path / "runs" / "law=1" / ".part-crashed.parquet.tmp").write_bytes(b"half a file")  # a write cut short
-    summary = run_study(s, tmp_path, client=client)
+    summary = run_study(s, tmp_path, client=dask_client)
     ids = [r["run_id"] for r in read_rows(tmp_path)]
     import pyarrow.parquet as pq
 
@@ -238,13 +225,13 @@ def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, 
     assert stored == len(ids) == len(set(ids)) == total and summary["complete"]
     assert not list(tmp_path.glob("runs/*/.part-*"))
     files = part_files(tmp_path)
-    assert run_study(s, tmp_path, client=client)["runs_done"] == total
+    assert run_study(s, tmp_path, client=dask_client)["runs_done"] == total
     assert part_files(tmp_path) == files  # nothing left to run, nothing written
 
 
-def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, client, tmp_path) -> None:
+def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, dask_client, tmp_path) -> None:
     s = _study(nod, 8)
-    pids = client.run(os.getpid)
+    pids = dask_client.run(os.getpid)
     victim = next(iter(pids.values()))
     killed: list[int] = []
 
@@ -253,11 +240,11 @@ def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, client, tmp
             os.kill(victim, signal.SIGKILL)  # the nanny restarts it; the scheduler reschedules its task
             killed.append(done)
 
-    summary = run_study(s, tmp_path, client=client, progress=progress)
+    summary = run_study(s, tmp_path, client=dask_client, progress=progress)
     assert killed and killed[0] < len(expand(s))
     ids = [r["run_id"] for r in read_rows(tmp_path)]
     assert sorted(ids) == sorted(r.run_id for r in expand(s)) and summary["outcomes"] == {"finished": 16}
-    assert victim not in client.run(os.getpid).values()
+    assert victim not in dask_client.run(os.getpid).values()
 
 
 def test_an_identification_study_takes_an_estimator_and_counts_the_covered_intervals() -> None:
@@ -285,17 +272,17 @@ def test_an_identification_study_takes_an_estimator_and_counts_the_covered_inter
 
 
 
-def test_a_study_on_a_scheduler_leaves_no_client_of_its_own_connected(nod, client, tmp_path) -> None:
+def test_a_study_on_a_scheduler_leaves_no_client_of_its_own_connected(nod, dask_client, tmp_path) -> None:
     """The console runs studies in a thread on a configured scheduler: each used to leave its Client
     connected to the scheduler for as long as the console ran."""
 
     def clients() -> int:
-        return client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.clients))
+        return dask_client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.clients))
 
     before = clients()
     done: dict[str, object] = {}
     worker = threading.Thread(target=lambda: done.update(
-        summary=run_study(_study(nod, 2), tmp_path / "s", scheduler=client.scheduler.address)))
+        summary=run_study(_study(nod, 2), tmp_path / "s", scheduler=dask_client.scheduler.address)))
     worker.start()
     worker.join(120)
     assert not worker.is_alive() and done, "the study did not finish"
@@ -345,12 +332,12 @@ def test_a_damaged_study_directory_is_listed_as_damaged_and_the_others_still_are
         assert http.get(f"/api/studies/{good.name}/results").json()["total"] == 0
 
 
-def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, client, tmp_path, monkeypatch) -> None:
+def test_the_studies_api_creates_lists_reports_and_serves_figures(nod, dask_client, tmp_path, monkeypatch) -> None:
     """Last in this file: the console's own Client in its thread leaves dask's shared event loop
-    unusable to a Client of another thread (distributed 2026.8), so no test uses ``client`` after it."""
+    unusable to a Client of another thread (distributed 2026.8), so no test uses ``dask_client`` after it."""
     from server.studies.service import SCHEDULER_ENV
 
-    monkeypatch.setenv(SCHEDULER_ENV, client.scheduler.address)
+    monkeypatch.setenv(SCHEDULER_ENV, dask_client.scheduler.address)
     body = {"kind": "design", "samples": 2, "vary": ["geometry.b=0.04:0.06:2", "springs.k_left=10%"],
             "design_configurations": 50}
     with running_server(tmp_path / "data") as (base, _app), httpx.Client(base_url=base, timeout=30) as http:

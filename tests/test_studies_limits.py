@@ -52,20 +52,7 @@ def test_a_row_stores_the_number_of_joints_it_simulated() -> None:
 # --- a large study, stopped -----------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
-    c = Client(cluster)
-    try:
-        yield c
-    finally:
-        c.close()
-        cluster.close()
-
-
-def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows(client, tmp_path, monkeypatch) -> None:
+def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows(dask_client, tmp_path, monkeypatch) -> None:
     """Audit: 200,000 runs were all submitted before the first one was read (GBs in the scheduler),
     and the stop cancelled them one by one (522 s). Here at most a few runs per worker are ever
     submitted and not finished, and a stop cancels what is in flight in one call."""
@@ -75,7 +62,7 @@ def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows
     assert 2 <= limit <= 16
     submitted: list[str] = []
     cancels: list[int] = []
-    real_submit, real_cancel = client.submit, client.cancel
+    real_submit, real_cancel = dask_client.submit, dask_client.cancel
 
     def submit(fn, *args, **kwargs):
         submitted.append(kwargs["key"])
@@ -85,8 +72,8 @@ def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows
         cancels.append(len(futures))
         return real_cancel(futures, *args, **kwargs)
 
-    monkeypatch.setattr(client, "submit", submit)
-    monkeypatch.setattr(client, "cancel", cancel)
+    monkeypatch.setattr(dask_client, "submit", submit)
+    monkeypatch.setattr(dask_client, "cancel", cancel)
     stop = threading.Event()
     in_flight: list[int] = []
     seen: list[int] = []
@@ -97,7 +84,7 @@ def test_a_large_study_is_submitted_a_window_at_a_time_and_a_stop_keeps_its_rows
         if done >= 40:
             stop.set()
 
-    summary = run_study(study, tmp_path, client=client, progress=progress, stop=stop)
+    summary = run_study(study, tmp_path, client=dask_client, progress=progress, stop=stop)
     rows = read_rows(tmp_path)
     assert 40 <= len(rows) == summary["runs_done"] == max(seen) < total and not summary["complete"]
     assert max(in_flight) <= limit, max(in_flight)  # never the whole study in the scheduler
