@@ -22,7 +22,7 @@ import pytest
 
 from bridge.session import free_tcp_port
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # 500 Hz between peers, no gap of a second: a loaded machine makes gaps of its own
 
 _spec = importlib.util.spec_from_file_location(
     "_bus_peer", Path(__file__).resolve().parents[1] / "benchmarks" / "_bus_peer.py")
