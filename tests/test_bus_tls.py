@@ -158,8 +158,10 @@ def test_xneck_bus_tls_writes_a_folder_once_and_every_command_refuses_a_bad_one(
     path = tmp_path / "bus-tls"
 
     def xneck(*argv: str, env: dict[str, str] = ENV) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([*PY, *argv], capture_output=True, text=True, env=env, timeout=120,
-                              stdin=subprocess.DEVNULL)
+        # A data directory of its own: ./data is shared with whatever else runs from the checkout
+        # (a CI run saw `campaign control` refuse ./data/cli-campaigns, ENOENT, before the TLS check).
+        return subprocess.run([*PY, *argv], capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL,
+                              env={"XNECK_DATA_DIR": str(tmp_path / "data"), **env})
 
     r = xneck("bus", "tls", str(path), "--host", "127.0.0.1", "--host", "board.lab")
     assert r.returncode == 0 and f"{ENV_TLS}={path}" in r.stdout and "names 127.0.0.1, board.lab" in r.stdout, r.stderr

@@ -416,7 +416,10 @@ def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(consol
         return lambda: page.locator(f'#campaigns tr[data-id="{cid}"] button', has_text=label).click(timeout=15000)
 
     def refused_results() -> None:
-        refused(lambda: page.evaluate("showResults('no-such-run')"), "404")
+        # Read in the same task as the refusal: a replay ending meanwhile shows its own results
+        # (a success that clears the line), which a later poll would read instead (CI, 2026-11-29).
+        text = page.evaluate("async () => { await showResults('no-such-run'); return document.querySelector('#error').textContent; }")
+        assert "404" in text, text
 
     page.select_option("#trajectory", "__custom")
     try:
