@@ -92,6 +92,14 @@ ACTION_TIMEOUT_S = 1.0
 #: (max 12.7) for the same trip (benchmarks/loop_watchdog.py, docs/bridge.md). Only for the
 #: action: the process ends right after.
 ACTION_SWITCH_INTERVAL_S = 1e-6
+#: Python's switch interval while this thread's looks come late and the loop has not ticked (s),
+#: until a look sees a tick. A loop hung in a convoy makes the thread's own looks wait for the GIL
+#: as it makes the action's hand-backs wait (above), and late looks never fire (a stop of the
+#: whole process looks the same): a convoyed bridge on a loaded 2-CPU machine ran 30 s without a
+#: look in time and was never tripped (CI of 2026-11-29, ``test_the_action_gets_the_gil_from_a_loop_hung_in_a_convoy``).
+#: Asking for the GIL within microseconds makes the next look regular. A healthy loop after a
+#: stop of the process ticks before the next look, which puts the interval back: ≤ ``poll_s`` of it.
+HURRY_SWITCH_INTERVAL_S = 1e-6
 
 #: ``os._exit``, replaced by in-process tests (the action must not end the test run).
 _exit: Callable[[int], object] = os._exit
@@ -112,9 +120,9 @@ class LoopWatchdog:
     over ``stall_s`` of watching (module docstring). ``stall_s = 0``: off (:meth:`start` does
     nothing, the loop's stores stay as cheap). ``clock`` must be the loop's (``time.perf_counter``)."""
 
-    __slots__ = ("_loop_ident", "_loop_native_id", "_low_windows", "_seen", "_stop", "_thread", "_window_s", "_window_ticks", "clock",
-                 "fired", "last_tick_s", "max_credit_s", "min_ticks", "on_stall", "poll_s", "priority_note", "rare_ticks",
-                 "stall_s", "stalled_s", "ticks")
+    __slots__ = ("_loop_ident", "_loop_native_id", "_low_windows", "_seen", "_stop", "_switch_s", "_thread", "_window_s",
+                 "_window_ticks", "clock", "fired", "last_tick_s", "late_looks", "looks", "max_credit_s", "min_ticks", "on_stall",
+                 "poll_s", "priority_note", "rare_ticks", "stall_s", "stalled_s", "ticks")
 
     def __init__(self, stall_s: float, on_stall: Callable[[LoopWatchdog, float], object],
                  poll_s: float | None = None, clock: Callable[[], float] = time.perf_counter,
@@ -138,6 +146,9 @@ class LoopWatchdog:
         # Fewest ticks per ``stall_s`` of watching (0: no rate check, without a period).
         self.min_ticks = MIN_TICK_FRACTION * self.stall_s / period_s if period_s else 0.0
         self._window_s, self._window_ticks = 0.0, 0  # watched time and the tick count when the window began
+        self.looks = 0  # looks taken (the thread's)
+        self.late_looks = 0  # of them, later than ``max_credit_s`` without a tick (:meth:`pace`)
+        self._switch_s: float | None = None  # the switch interval to restore while hurried
         self.priority_note = ""  # why the thread could not be raised above the loop ('' if it was or need not be)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -183,6 +194,22 @@ class LoopWatchdog:
             return False
         self.fired, self.rare_ticks = True, came
         return True
+
+    def pace(self, seen_tick_s: float, gap_s: float) -> None:
+        """Before a look (:meth:`check`'s arguments): a look later than ``max_credit_s`` with no tick
+        since the last sets Python's switch interval to :data:`HURRY_SWITCH_INTERVAL_S` (a loop
+        convoying the GIL made it late); the first look that sees a tick puts it back."""
+        self.looks += 1
+        if seen_tick_s != self._seen:
+            if self._switch_s is not None:
+                sys.setswitchinterval(self._switch_s)
+                self._switch_s = None
+            return
+        if gap_s > self.max_credit_s and not self.fired:
+            self.late_looks += 1
+            if self._switch_s is None:
+                self._switch_s = sys.getswitchinterval()
+                sys.setswitchinterval(HURRY_SWITCH_INTERVAL_S)
 
     # -- the thread -----------------------------------------------------------------------------
     def start(self) -> None:
@@ -236,15 +263,21 @@ class LoopWatchdog:
             log.warning("loop watchdog: %s", self.priority_note)
         last = self.clock()
         self._window_ticks = self.ticks
-        while not self._stop.wait(self.poll_s):
-            now = self.clock()
-            if self.check(self.last_tick_s, now - last) or self.check_rate(self.ticks, now - last):
-                try:
-                    self.on_stall(self, now - self.last_tick_s)
-                except Exception:  # the action's own failure must still be seen
-                    log.exception("loop watchdog: its action failed")
-                return
-            last = now
+        try:
+            while not self._stop.wait(self.poll_s):
+                now = self.clock()
+                self.pace(self.last_tick_s, now - last)
+                if self.check(self.last_tick_s, now - last) or self.check_rate(self.ticks, now - last):
+                    try:
+                        self.on_stall(self, now - self.last_tick_s)
+                    except Exception:  # the action's own failure must still be seen
+                        log.exception("loop watchdog: its action failed")
+                    return
+                last = now
+        finally:  # stopped (or an action that returned: tests): the process's own interval again
+            if self._switch_s is not None:
+                sys.setswitchinterval(self._switch_s)
+                self._switch_s = None
 
     def _raise_above_loop(self) -> str:
         """Under SCHED_FIFO/RR, one priority above the loop's thread (Linux: per thread); '' if

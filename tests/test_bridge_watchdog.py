@@ -109,6 +109,43 @@ def test_a_tolerated_stall_then_a_stop_of_the_process_is_no_hang() -> None:
     assert not wd.fired and wd.stalled_s == 0.0
 
 
+def test_late_looks_without_a_tick_hurry_the_gil_until_a_tick_is_seen() -> None:
+    """CI of 2026-11-29: a loop convoying the GIL made every look late for 30 s, and late looks never
+    fire. A late look with no tick asks for the GIL within microseconds from then on; the first look
+    that sees a tick gives the process its own interval back (a stop of the whole process then costs
+    one look's time of it)."""
+    switch_s = sys.getswitchinterval()
+    wd = LoopWatchdog(0.5, lambda *_: None)
+    try:
+        seen = wd.last_tick_s
+        wd.pace(seen, 0.05)  # a regular look: nothing changes
+        assert sys.getswitchinterval() == switch_s and wd.late_looks == 0
+        wd.pace(seen, 0.4)  # late, no tick
+        assert sys.getswitchinterval() == loop_watchdog.HURRY_SWITCH_INTERVAL_S and wd.late_looks == 1
+        wd.check(seen, 0.4)
+        wd.pace(seen, 0.4)
+        assert wd.late_looks == 2 and sys.getswitchinterval() == loop_watchdog.HURRY_SWITCH_INTERVAL_S
+        wd.pace(seen + 1.0, 0.4)  # a tick came: late or not, the loop runs
+        assert sys.getswitchinterval() == switch_s and wd.looks == 4
+    finally:
+        sys.setswitchinterval(switch_s)
+
+
+def test_a_watchdog_stopped_while_hurried_gives_the_interval_back() -> None:
+    switch_s = sys.getswitchinterval()
+    ticks = {"t": 0.0}
+    wd = LoopWatchdog(0.5, lambda *_: None, poll_s=0.01, clock=lambda: ticks["t"])
+    try:
+        wd.start()
+        ticks["t"] = 1.0  # every look from now on is a second late, and no tick comes
+        assert wait_until(lambda: wd.late_looks > 0, 2.0)
+        assert sys.getswitchinterval() == loop_watchdog.HURRY_SWITCH_INTERVAL_S
+        wd.stop()
+        assert sys.getswitchinterval() == switch_s
+    finally:
+        sys.setswitchinterval(switch_s)
+
+
 def test_a_loop_that_ticks_rarely_fires_and_a_hang_is_left_to_the_stall_rule() -> None:
     """Audit of 2026-11-26: a loop ticking every 0.48 s (each just before the 0.5 s limit) kept
     every drive enabled for good. Fewer than 5 % of its ticks over two windows of the limit in a
@@ -221,7 +258,7 @@ def test_the_action_exits_even_when_tripping_fails(monkeypatch) -> None:
 
 
 _CONVOYED_ACTION = """
-import logging, os, threading, time
+import logging, os, sys, threading, time
 from bridge.loop_watchdog import LoopWatchdog, drives_off_and_exit
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 
@@ -245,7 +282,9 @@ def loop():  # hung in a convoy: a short call that releases the GIL, then a litt
 
 wd = LoopWatchdog(0.1, drives_off_and_exit(Driver()))
 threading.Thread(target=loop, daemon=True).start()
-time.sleep(30)
+time.sleep(20)
+print(f"never fired: {wd.looks} looks, {wd.late_looks} late, stalled {wd.stalled_s:.3f} s", file=sys.stderr, flush=True)
+os._exit(3)
 """
 
 
