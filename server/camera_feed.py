@@ -21,6 +21,8 @@ import zenoh
 
 from bridge import bus
 from server.live import LatestValues, fresh_camera
+from server.presence import Presence
+from twin.camera.process import MOVED_NOW
 
 #: A frame payload on the wire: base64 of the largest JPEG plus the JSON around it.
 MAX_FRAME_PAYLOAD = bus.FRAME_DATA_MAX_BYTES * 4 // 3 + 64 * 1024
@@ -105,14 +107,31 @@ class CameraFeed:
                 sub.undeclare()
 
 
-def camera_health(values: LatestValues, feed: CameraFeed | None = None) -> dict[str, Any] | None:
+def moved_reason(presence: Presence) -> str | None:
+    """Why every joint is missing when the camera moved since its calibration: the reason a camera
+    process alive on the bus gives in its latest health while it says it is moved
+    (:data:`twin.camera.process.MOVED_NOW`), e.g. "camera moved 4.8 px since its calibration
+    (…; limit 2 px): redo the extrinsic calibration …"; several moved cameras' joined by "; ",
+    each after its instance. None when no camera process says so (its references are back, or
+    it ended: its health goes with its liveliness token)."""
+    said = [(instance, h.last_reject_reason or "camera moved since its calibration")
+            for instance, h in presence.health("camera") if h.received.get(MOVED_NOW, 0) > 0]
+    if len(said) > 1:
+        return "; ".join(f"{instance}: {reason}" for instance, reason in said)
+    return said[0][1] if said else None
+
+
+def camera_health(values: LatestValues, feed: CameraFeed | None = None,
+                  presence: Presence | None = None) -> dict[str, Any] | None:
     """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
     whether the camera is fresh (``fresh``: :func:`server.live.fresh_camera`, the rule of the live
     frames and the 3D view too), the joints it reports missing (1-based), the per-joint confidence
     and the frames the source dropped; with ``feed``, the α_IP rate (``rate_hz``) and per joint the
     fraction of those messages that had it missing (``missing_fraction``), both over the last
     :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
-    without one) and the frames refused. None before any camera message."""
+    without one) and the frames refused; with ``presence``, ``moved_reason`` (:func:`moved_reason`:
+    why every joint is missing when the camera moved since its calibration, else null). None
+    before any camera message."""
     msg = values.get("camera")
     if msg is None:
         return None
@@ -127,4 +146,6 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None) -> dict[
         out.update({"rate_hz": rate_hz, "missing_fraction": missing_fraction, "age_s": feed.alpha_age_s(),
                     "frame_age_s": None if latest is None else latest[1],
                     "frames_received": feed.frames_received, "frames_rejected": feed.frames_rejected})
+    if presence is not None:
+        out["moved_reason"] = moved_reason(presence)
     return out

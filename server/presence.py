@@ -77,6 +77,11 @@ class Presence:
         return [{"kind": k, "instance": i, "since_s": round(now - s, 3), "health": _health_view(health[(k, i, s)], now)}
                 for k, i, s in items]
 
+    def health(self, kind: str) -> list[tuple[str, bus.Health]]:
+        """(instance, latest Health) of every process of ``kind`` alive that sent one, by instance."""
+        with self._lock:
+            return sorted(((i, h) for (k, i), (_t, h) in self._health.items() if k == kind), key=lambda ih: ih[0])
+
     def instances(self, kind: str) -> list[str]:
         """The instances of ``kind`` alive on the bus."""
         with self._lock:

@@ -20,7 +20,8 @@ router = APIRouter(prefix="/api/camera", tags=["camera"])
 
 @router.get("")
 def camera(request: Request) -> dict[str, Any]:
-    """Latest camera state: ``health`` (as in ``/api/system/health``, null without a camera),
+    """Latest camera state: ``health`` (as in ``/api/system/health``, null without a camera; its
+    ``moved_reason`` says why every joint is missing when the camera moved since its calibration),
     ``alpha`` (the latest α_IP message: ``alpha_ip_rad`` with null for a missing joint,
     ``confidence``, ``fresh``) and ``frame`` (the latest JPEG's metadata: time stamps, size, its
     age in s, the markers found on it as ``marker_bar`` and ``markers_px`` = x0, y0, x1, y1, … in
@@ -38,7 +39,7 @@ def camera(request: Request) -> dict[str, Any]:
                  "format": f.format, "width": f.width, "height": f.height, "bytes": len(f.data), "source": f.source,
                  "age_s": age_s, "marker_bar": f.marker_bar, "markers_px": f.markers_px,
                  "url": f"/api/camera/frame.jpg?seq={f.seq}"}
-    return {"health": camera_health(s.live.values, s.camera), "alpha": alpha, "frame": frame}
+    return {"health": camera_health(s.live.values, s.camera, s.presence), "alpha": alpha, "frame": frame}
 
 
 @router.get("/frame.jpg", response_class=Response,

@@ -41,7 +41,7 @@ def health(request: Request) -> dict[str, Any]:
         "parameter_set": s.params.active_status(),  # the active set; the one named instead and why it did not load
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
         "bridge": bridge_status(s.live.values),  # how old its latest motor state is: live or silent
-        "camera": camera_health(s.live.values, s.camera),  # detection health (issue 15); None without a camera
+        "camera": camera_health(s.live.values, s.camera, s.presence),  # detection health (issue 15); None without a camera
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }

@@ -12,11 +12,14 @@ from __future__ import annotations
 import logging
 import math
 import threading
+from typing import Any, cast
 
 import numpy as np
 import pytest
 
 cv2 = pytest.importorskip("cv2")
+
+from browser_harness import needs_chromium  # noqa: E402
 
 from twin.camera.calibration import look_at_pose, twin_calibration  # noqa: E402
 from twin.camera.detect import MOVED_PX, Detector  # noqa: E402
@@ -117,7 +120,7 @@ def test_the_camera_process_says_it_once_per_episode_and_counts_it_in_its_health
     from busutil import bus_pair, wait_until
 
     from bridge import bus
-    from twin.camera.process import CameraNode
+    from twin.camera.process import MOVED_NOW, CameraNode
     from twin.camera.source import Frame
 
     still, bumped = Renderer(model, seed=6), Renderer(model, moved(pan_deg=-6.0), seed=6)
@@ -155,7 +158,10 @@ def test_the_camera_process_says_it_once_per_episode_and_counts_it_in_its_health
     assert sum("back where the calibration puts them" in r.getMessage() for r in caplog.records) == 1
     assert camera.moved_frames == 7 and camera.missing_joints == 7 * params.n_joints
     last = next(h for h in health if h.rejected.get("camera_moved") == 7)
-    assert last.last_reject_reason.startswith("camera moved")
+    assert last.last_reject_reason.startswith("camera moved") and last.received[MOVED_NOW] == 1
+    # Said as it happens, both ways (the console shows the reason from it, and takes it away).
+    said_at = {(h.rejected.get("camera_moved"), h.received[MOVED_NOW]) for h in health}
+    assert {(1, 1), (4, 0), (5, 1)} <= said_at, said_at  # (frames withheld, moved now) when found moved, back, moved
 
 
 def test_xneck_camera_detect_says_why_every_joint_is_missing(xneck, tmp_path, model) -> None:
@@ -164,3 +170,105 @@ def test_xneck_camera_detect_says_why_every_joint_is_missing(xneck, tmp_path, mo
     result = xneck("camera", "detect", str(frame), "--json")
     assert result.returncode == 0, result.stderr
     assert "camera moved" in result.stderr and "since its calibration" in result.stderr
+
+
+# --- the console and the alignment say why ---------------------------------------------------------
+
+
+class BumpableCamera:
+    """The camera process (:class:`twin.camera.process.CameraNode`, its own Zenoh session) on
+    ``hub``, filming the still neck at 30 fps of wall time (5 JPEG frames a second for the card): through the moved camera while
+    ``bumped`` is set, else through the calibrated one. Started by :meth:`start`, ended by :meth:`close`."""
+
+    def __init__(self, hub: str, params, model) -> None:
+        from bridge.session import open_session
+        from twin.camera.process import CameraNode
+
+        alpha = np.radians([10.0, -10.0, 20.0])
+        self.frames = {False: Renderer(model, seed=7).render(alpha),
+                       True: Renderer(model, moved(pan_deg=-6.0), seed=7).render(alpha)}
+        self.bumped = threading.Event()
+        self._stop = threading.Event()
+        self._session = open_session(listen=["tcp/127.0.0.1:0"], connect=[hub])
+        self.node = CameraNode(self._session, detector_for(params), instance="bumped-cam", frame_rate_hz=5.0)
+        self._thread = threading.Thread(target=self.node.run_source, args=(self, self._stop), kwargs={"pace_fps": 30.0},
+                                        daemon=True)
+        self.name, self.dropped, self._k = "usb:0", 0, 0
+
+    def read(self):  # the FrameSource the node reads
+        from twin.camera.source import Frame
+
+        self._k += 1
+        return Frame(self._k / 30.0, self.frames[self.bumped.is_set()])
+
+    def start(self) -> BumpableCamera:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+        self.node.close()
+        self._session.close()
+
+
+def test_the_console_says_why_every_joint_is_missing_while_the_camera_is_moved(tmp_path, params, model) -> None:
+    """The camera process's health (``xneck/health/camera/<instance>``) carries the reason to the
+    console's camera data (``/api/camera``, ``/api/system/health``); it is cleared when the
+    references are back where the calibration puts them."""
+    import httpx
+    from server_harness import running_server, wait_until
+
+    with (running_server(tmp_path / "data", viser=False) as (base, app), httpx.Client(base_url=base, timeout=10) as c):
+        camera = BumpableCamera(cast(Any, app).state.hub, params, model)
+        camera.bumped.set()
+        camera.start()
+        try:
+            def reason() -> str | None:
+                health = c.get("/api/camera").json()["health"]
+                return None if health is None else health.get("moved_reason")
+
+            assert wait_until(lambda: bool(reason()), 20.0, 0.1), c.get("/api/camera").json()["health"]
+            moved_state = c.get("/api/camera").json()
+            system = c.get("/api/system/health").json()["camera"]
+            camera.bumped.clear()
+            assert wait_until(lambda: reason() is None and None not in c.get("/api/camera").json()["alpha"]["alpha_ip_rad"],
+                              10.0, 0.1), c.get("/api/camera").json()
+        finally:
+            camera.close()
+    said = moved_state["health"]["moved_reason"]
+    assert said.startswith("camera moved ") and " px since its calibration" in said and "--calibration" in said, said
+    assert float(said.split()[2]) > 2 * MOVED_PX  # the shift in px, as the detector measured it
+    assert moved_state["alpha"]["alpha_ip_rad"] == [None] * params.n_joints
+    assert moved_state["health"]["missing_joints"] == list(range(1, params.n_joints + 1))
+    assert system["moved_reason"].startswith("camera moved "), system  # /api/system/health's camera: the same
+
+
+@needs_chromium
+def test_the_camera_card_says_why_every_joint_is_missing_while_the_camera_is_moved(tmp_path, params, model) -> None:
+    """The dashboard's camera card shows the reason under the picture, beside the joints
+    ``missing``, and takes it away when the references are back."""
+    from browser_harness import ARTIFACTS, dashboard_page
+    from server_harness import running_server
+
+    with running_server(tmp_path / "data", viser=False) as (base, app), dashboard_page(base) as (page, errors):
+        camera = BumpableCamera(cast(Any, app).state.hub, params, model)
+        camera.bumped.set()
+        camera.start()
+        try:
+            page.wait_for_function("document.querySelector('#camera-reason')?.textContent.includes('camera moved')",
+                                   timeout=20000)
+            said = page.inner_text("#camera-reason")
+            alpha_text = page.inner_text("#camera-alpha")
+            page.locator("#camera").screenshot(path=str(ARTIFACTS / "camera_moved.png"))
+            camera.bumped.clear()
+            page.wait_for_function("!document.querySelector('#camera-reason').textContent"
+                                   " && !document.querySelector('#camera-alpha').textContent.includes('missing')",
+                                   timeout=10000)
+            shown = page.is_visible("#camera-reason")
+        finally:
+            camera.close()
+        assert not errors, errors
+    assert "camera moved " in said and " px since its calibration" in said and "redo the extrinsic calibration" in said, said
+    assert alpha_text.count("missing") == params.n_joints, alpha_text
+    assert not shown

@@ -1,6 +1,8 @@
 // The camera panel (issue 15): the latest camera frame with the markers the detector found drawn
 // over it, α_IP per joint with its confidence ("missing" for a joint the camera did not measure,
-// never a number), the detection health, and a clear "no camera" state.
+// never a number), the detection health, and a clear "no camera" state. A camera moved since its
+// calibration reports every joint missing: the card says why (health.moved_reason, from the camera
+// process's health on the bus) until its base-plate references are back.
 // Data: GET /api/camera (metadata, markers, α_IP, health) then GET /api/camera/frame.jpg; the
 // overlay is drawn only when the JPEG's X-Frame-Seq is the frame the markers belong to.
 (function () {
@@ -18,7 +20,9 @@
   const canvas = document.getElementById("camera-canvas");
   const stateEl = document.getElementById("camera-state");
   const alphaEl = document.getElementById("camera-alpha");
-  if (!canvas || !stateEl || !alphaEl) return;
+  const reasonEl = document.getElementById("camera-reason");
+  if (!canvas || !stateEl || !alphaEl || !reasonEl) return;
+  reasonEl.style.color = "#c62828";
   canvas.style.width = "100%";
   canvas.style.height = "auto";
   canvas.style.background = "#1f2933";
@@ -45,6 +49,11 @@
       ctx.fillRect(0, 0, canvas.width, canvas.height);
       dimmed = true;
     }
+  }
+
+  function showReason(reason) {  // why every joint is missing, when it is not the markers' fault
+    reasonEl.textContent = reason ? `every joint missing: ${reason}` : "";
+    reasonEl.hidden = !reason;
   }
 
   function fmt(x, digits) { return x === null || x === undefined ? "–" : Number(x).toFixed(digits); }
@@ -144,6 +153,7 @@
         }
       }
       showAlpha(h && h.fresh ? s.alpha : null, h ? h.missing_fraction : null);
+      showReason(h ? h.moved_reason : null);
       if (!h || !h.fresh) {
         dim();
       } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` === stats.damaged) {
@@ -155,6 +165,7 @@
       }
     } catch (e) {
       setState("none", "no camera (console unreachable)");
+      showReason(null);
     }
     stats.polls += 1;
     setTimeout(poll, POLL_MS);

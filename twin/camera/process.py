@@ -6,6 +6,10 @@ USB camera or a video file; :meth:`CameraNode.run_twin` renders the twin's truth
 :class:`twin.camera.source.TwinShutter`, so the twin's α_IP comes from real image processing with a
 realistic latency, stamped on the bus clock (the truth's simulated time). Health counters go to
 ``xneck/health/camera/<instance>`` every second; the liveliness token says the camera is up.
+A camera moved since its calibration (:attr:`twin.camera.detect.Detection.reason`) is said there
+as it happens, and again when the references are back: ``received[MOVED_NOW]`` is 1 while it is
+moved (a state, not a count) and ``last_reject_reason`` its reason then, which the console shows
+on its camera card (:func:`server.camera_feed.camera_health`).
 With ``frame_rate_hz`` > 0, a few frames per second also go out as JPEG on ``xneck/camera/frame``
 (:mod:`twin.camera.frames`) for the console's camera panel and the campaign archive.
 
@@ -43,6 +47,8 @@ from twin.camera.source import Exposure, Frame, TwinShutter
 log = logging.getLogger("xneck.camera")
 
 FOLLOW_SILENT_S = 1.0  # s (wall clock) without the followed twin's truth before another's is taken
+#: Health ``received`` key: 1 while the detector finds the camera moved since its calibration, else 0.
+MOVED_NOW = "camera_moved_now"
 
 
 class FrameSource(Protocol):
@@ -88,6 +94,7 @@ class CameraNode:
         self._last_reject = ""
         self.moved = False  # the detector finds the camera moved since its calibration (Detection.reason)
         self.moved_frames = 0  # frames whose joints were withheld for it
+        self._moved_reason = ""  # the latest frame's reason while moved
         self._queue: collections.deque[Exposure] = collections.deque()
         self._queue_frames = queue_frames
         self._cond = threading.Condition()
@@ -101,7 +108,7 @@ class CameraNode:
         self.missing_joints += sum(a is None for a in found.alpha_rad)
         if found.reason:  # the camera moved since its calibration: said once per episode, counted in the health
             self.moved_frames += 1
-            self._last_reject = found.reason
+            self._last_reject = self._moved_reason = found.reason
             if not self.moved:
                 self.moved = True
                 log.warning("camera %s: %s; every joint is reported missing until then", self.instance, found.reason)
@@ -110,6 +117,7 @@ class CameraNode:
             self.moved = False
             log.warning("camera %s: the base-plate reference markers are back where the calibration puts them "
                         "(%.1f px): α_IP measured again", self.instance, found.reference_shift_px or 0.0)
+            self._maybe_health(force=True)  # the console takes the reason away now, not at the next period
         msg = bus.CameraAlpha(seq=self._seq, stamp_s=float(stamp_s), capture_stamp_s=float(capture_s),
                               alpha_ip_rad=[None if a is None else float(a) for a in found.alpha_rad],
                               confidence=[float(c) for c in found.confidence], source=source, dropped=self.dropped)
@@ -133,9 +141,10 @@ class CameraNode:
             received={bus.TWIN_TRUTH: self.truth_received, "foreign_truth": self.truth_foreign,
                       "frames": self.frames, "dropped": self.dropped,
                       "missing_joints": self.missing_joints, "images": self.images,
-                      "clock_restarts": self.clock_restarts},
+                      "clock_restarts": self.clock_restarts, MOVED_NOW: int(self.moved)},
             rejected={bus.TWIN_TRUTH: self.truth_rejected, "camera_moved": self.moved_frames},
-            last_reject_reason=self._last_reject))
+            # while moved, its reason: a truth refused between two frames does not hide it
+            last_reject_reason=self._moved_reason if self.moved else self._last_reject))
 
     # --- sources -------------------------------------------------------------------------------
 
