@@ -272,3 +272,39 @@ def test_the_camera_card_says_why_every_joint_is_missing_while_the_camera_is_mov
     assert "camera moved " in said and " px since its calibration" in said and "redo the extrinsic calibration" in said, said
     assert alpha_text.count("missing") == params.n_joints, alpha_text
     assert not shown
+
+
+def test_xneck_camera_align_says_the_camera_moved_since_its_calibration(xneck, tmp_path, params, model) -> None:
+    """A video filmed by a camera moved since its calibration: every joint is missing on every
+    frame, and the alignment had failed with "never overlap"; it says the cause in one line, at
+    the first moved frame (a camera bumped part-way included)."""
+    from bridge import bus
+    from bridge.archive import write_campaign
+
+    t = np.arange(0.0, 3.0, 0.01)
+    zeros = [0.0] * params.n_cables
+    alpha = np.radians([10.0, -10.0, 20.0])
+    truths = [(bus.TWIN_TRUTH, int((1.7e9 + tk) * 1e9), bus.Truth(
+        seq=k + 1, stamp_s=float(tk), alpha_rad=(alpha * (1 + 0.1 * tk)).tolist(), alpha_dot_rad_s=[0.0] * 3,
+        theta_rad=zeros, theta_dot_rad_s=zeros, tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables,
+        near_singular=False)) for k, tk in enumerate(t)]
+    campaign = write_campaign(tmp_path / "c.mcap", truths, {"campaign_id": "c1", "kind": "identification"})
+    still, bumped = Renderer(model, seed=9), Renderer(model, moved(pan_deg=-6.0), seed=9)
+    out = tmp_path / "aligned.mcap"
+    for name, bumped_from in (("bumped.avi", 0), ("bumped-later.avi", 30)):  # from the start; bumped after 1 s
+        video = tmp_path / name
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (1280, 720))
+        for k in range(45):
+            writer.write((bumped if k >= bumped_from else still).render(alpha * (1 + 0.1 * (0.5 + k / 30.0))))
+        writer.release()
+        result = xneck("camera", "align", str(video), str(campaign), "--out", str(out))
+        assert result.returncode != 0 and not out.exists(), result
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in result.stderr, result.stderr
+        said = lines[0]
+        assert "camera moved " in said and " px since its calibration" in said, said
+        shift = float(said.split("camera moved ")[1].split()[0])
+        assert shift > 2 * MOVED_PX, said
+        assert f"found at {bumped_from / 30.0:.3f} s of the video (frame {bumped_from + 1})" in said, said
+        assert "redo the extrinsic calibration" in said and "--calibration" in said, said
+        assert "never overlap" not in said, said

@@ -5,7 +5,11 @@ was computed offline from the video, then put beside the encoder data).
    (:class:`twin.camera.source.FileSource`: the container's time, else frame count / fps; an
    undecodable frame is skipped and the later ones keep their time); missing joints are NaN. The
    frames the video lacked (undecodable, skipped by its clock, or missing from a truncated file)
-   are counted against what the container declares, and go into the provenance.
+   are counted against what the container declares, and go into the provenance. A video whose
+   camera the detector finds moved since its calibration (docs/camera.md, "Camera moved") is
+   refused at the first such frame, with the shift and what to do (:data:`RECALIBRATE_VIDEO`):
+   none of its joints is measured there, and the alignment would fail for want of α, or leave a
+   gap, without saying why.
 2. :func:`campaign_reference`: the campaign's α on its clock (the motor states' ``stamp_s``): the
    twin's truth if recorded, else the controller's α̂ (eq. 33 from the encoders).
 3. :func:`align`: the campaign time of a frame is t_c = offset + (1 + drift)·t_video. A coarse
@@ -41,10 +45,13 @@ from mcap.writer import CompressionType, Writer
 from bridge import bus
 from bridge.archive import COMPRESSED_IMAGE_SCHEMA, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
 from bridge.archive_chunks import BoundedReader
-from twin.camera.detect import Detector
+from twin.camera.detect import Detector, moved_reason
 from twin.camera.source import FileSource
 
 ALIGNMENT_METADATA = "xneck.camera.alignment"
+#: What to do about a video filmed by a camera moved since its calibration (:func:`measure_video`).
+RECALIBRATE_VIDEO = ("its α cannot be measured with this calibration: redo the extrinsic calibration on a frame of "
+                     "the video with the neck at rest (docs/camera.md, Calibration) and align again with --calibration")
 MOTOR_TOPIC = bus.mcap_topic(bus.MOTOR_STATE)
 CAMERA_TOPIC = bus.mcap_topic(bus.CAMERA_ALPHA)
 
@@ -90,17 +97,24 @@ class Alignment:
 
 def measure_video(path: str | Path, detector: Detector, max_frames: int | None = None,
                   image_rate_hz: float = 0.0, jpeg_quality: int = 75) -> VideoAlpha:
-    """α_IP of every frame; with ``image_rate_hz`` > 0, JPEGs of frames at about that rate too."""
+    """α_IP of every frame; with ``image_rate_hz`` > 0, JPEGs of frames at about that rate too.
+    Raises :class:`AlignmentError` at the first frame the detector finds the camera moved on (its
+    shift in px, its video time in s, and :data:`RECALIBRATE_VIDEO`)."""
     source = FileSource(path)
     t, alpha, conf = [], [], []
     jpeg: dict[int, bytes] = {}
     every = max(1, round(source.fps / image_rate_hz)) if image_rate_hz > 0 else 0
+    moved = ""
     try:
         while max_frames is None or len(t) < max_frames:
             frame = source.read()
             if frame is None:
                 break
             found = detector.detect(frame.image)
+            if found.reason:  # said here, not raised: this try re-words a ValueError
+                moved = moved_reason(detector.moved_px or math.nan, detector.config.moved_px, RECALIBRATE_VIDEO,
+                                     f", found at {frame.capture_s:.3f} s of the video (frame {len(t) + 1})")
+                break
             if every and len(t) % every == 0:
                 ok, buf = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
                 if ok:
@@ -112,6 +126,8 @@ def measure_video(path: str | Path, detector: Detector, max_frames: int | None =
         raise AlignmentError(f"{path}: {exc}") from None
     finally:
         source.close()
+    if moved:
+        raise AlignmentError(f"{path}: {moved}")
     if len(t) < 10:
         raise AlignmentError(f"{path}: {len(t)} frames; at least 10 are needed")
     loss = source.loss()
@@ -335,5 +351,5 @@ def _write_copy(path: Path, records: list, metadata: list, provenance: dict[str,
         writer.finish()
 
 
-__all__ = ["ALIGNMENT_METADATA", "Alignment", "AlignmentError", "Reference", "VideoAlpha", "align",
+__all__ = ["ALIGNMENT_METADATA", "RECALIBRATE_VIDEO", "Alignment", "AlignmentError", "Reference", "VideoAlpha", "align",
            "campaign_reference", "measure_video", "write_aligned"]

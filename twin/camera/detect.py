@@ -52,6 +52,14 @@ RECALIBRATE = ("redo the extrinsic calibration on a frame of the neck at rest (d
                "and restart the camera with it (--calibration)")
 
 
+def moved_reason(shift_px: float, limit_px: float = MOVED_PX, todo: str = RECALIBRATE, where: str = "") -> str:
+    """The one sentence of a camera moved since its calibration: the references' largest shift
+    ``shift_px`` (px) beyond ``limit_px`` (px), ``where`` it was found (e.g. ", found at 2.000 s of
+    the video"), and ``todo``, what to do about it (:data:`RECALIBRATE` for a live camera)."""
+    return (f"camera moved {shift_px:.1f} px since its calibration (a base-plate reference marker "
+            f"from where the calibration puts it; limit {limit_px:g} px){where}: {todo}")
+
+
 @dataclass(frozen=True)
 class DetectorConfig:
     """Thresholds. ``chroma_min`` (grey levels) seeds a blob, ``chroma_floor`` is subtracted from
@@ -144,6 +152,12 @@ class Detector:
         self._previous: list[np.ndarray] | None = None  # and of the one before (for the velocity)
         self.full_frames = 0
         self.windowed_frames = 0
+
+    @property
+    def moved_px(self) -> float | None:
+        """The verdict in force: the references' largest shift (px) of a camera moved since its
+        calibration, None while it is not (:attr:`Detection.reason` says it on every frame)."""
+        return self._moved_px
 
     def reset(self) -> None:
         """Forget the tracking windows (a jump in a video). The camera-moved verdict stays: the
@@ -344,8 +358,7 @@ class Detector:
         reason = ""
         if self._moved_px is not None:
             # Every α would be measured through the wrong pose: none is reported (markers kept, for the picture).
-            reason = (f"camera moved {self._moved_px:.1f} px since its calibration (a base-plate reference marker "
-                      f"from where the calibration puts it; limit {self.config.moved_px:g} px): {RECALIBRATE}")
+            reason = moved_reason(self._moved_px, self.config.moved_px)
             alpha = [None for _ in range(n)]
             conf = [0.0] * n
         return Detection(alpha_rad=alpha, confidence=conf, markers_px=markers, reference_px=reference_px,
