@@ -4,6 +4,7 @@ subprocess (the latter can be killed like a crashed server). Everything stops wi
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -11,10 +12,12 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import uvicorn
 from busutil import wait_until  # re-exported for the server tests
+from websockets.sync.client import connect
 
 from bridge.session import free_tcp_port
 from server.app import create_app
@@ -113,3 +116,32 @@ def start_campaign(client: httpx.Client, body: dict | None = None, progress: flo
     cid = r.json()["id"]
     assert wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["progress"] >= progress, timeout_s, 0.2)
     return cid
+
+
+class LiveSocket:
+    """The console's live WebSocket (``/api/live``) read in a thread: :meth:`on_frame` gets every
+    frame as it came (a test's subclass keeps what it checks); :meth:`close` within 3 s."""
+
+    def __init__(self, base: str) -> None:
+        self._stop = threading.Event()
+        self._ws = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def on_frame(self, frame: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                raw = self._ws.recv(timeout=0.5)
+            except TimeoutError:
+                continue
+            except Exception:  # noqa: BLE001 - closed
+                return
+            self.on_frame(json.loads(raw))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(3)
+        self._ws.close()

@@ -10,7 +10,6 @@ and the camera; its live WebSocket, the dashboard in Chromium, its viser scene.
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from collections.abc import Iterator
@@ -20,8 +19,7 @@ from typing import Any, cast
 
 import httpx
 from browser_harness import dashboard_page, needs_chromium
-from server_harness import running_server, wait_until
-from websockets.sync.client import connect
+from server_harness import LiveSocket, running_server, wait_until
 
 from bridge import bus
 from bridge.session import open_session, publisher
@@ -94,33 +92,18 @@ def peers(hub: str) -> Iterator[Peers]:
         p.close()
 
 
-class LiveFrames:
-    """The console's live WebSocket read in a thread: every frame as it came."""
+class LiveFrames(LiveSocket):
+    """Every frame's series as it came."""
 
     def __init__(self, base: str) -> None:
         self.frames: list[dict[str, Any]] = []
-        self._stop = threading.Event()
-        self._ws = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(base)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                raw = self._ws.recv(timeout=0.5)
-            except TimeoutError:
-                continue
-            except Exception:  # noqa: BLE001 - closed
-                return
-            self.frames.append(json.loads(raw)["series"])
+    def on_frame(self, frame: dict[str, Any]) -> None:
+        self.frames.append(frame["series"])
 
     def with_status(self, after_s: float, before_s: float = float("inf")) -> list[dict[str, Any]]:
         return [s for s in list(self.frames) if "status" in s and after_s < s["status"]["stamp_s"] < before_s]
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(3)
-        self._ws.close()
 
 
 def test_live_frames_carry_alpha_ip_only_while_the_camera_is_fresh(tmp_path: Path) -> None:

@@ -4,14 +4,13 @@ channel read back; one campaign at a time; replay onto the bus shows on the live
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from pathlib import Path
 
 import httpx
 import pytest
-from server_harness import AUTH, running_server, start_campaign, wait_until
+from server_harness import AUTH, LiveSocket, running_server, start_campaign, wait_until
 from websockets.sync.client import connect
 
 from bridge import bus
@@ -20,41 +19,25 @@ from bridge.session import publisher
 from server.foxglove_scene import SCENE_TOPIC, SCHEMA_NAME
 
 
-class LiveFollower:
-    """Reads the live WebSocket in a thread and keeps what the test checks."""
+class LiveFollower(LiveSocket):
+    """Keeps what the test checks of the live frames."""
 
     def __init__(self, base: str) -> None:
         self.frames = 0
         self.status_stamps: list[float] = []
         self.forces: list[list[float]] = []
         self.campaign_events: list[dict] = []
-        self._stop = threading.Event()
-        self._ws = connect(base.replace("http", "ws") + "/api/live", open_timeout=5)
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(base)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                raw = self._ws.recv(timeout=0.5)
-            except TimeoutError:
-                continue
-            except Exception:  # noqa: BLE001 - closed
-                return
-            frame = json.loads(raw)
-            self.frames += 1
-            s = frame["series"]
-            if "status" in s:
-                self.status_stamps.append(s["status"]["stamp_s"])
-            if "state" in s:
-                self.forces.append(s["state"]["force_applied_N"])
-            if "campaign" in s:
-                self.campaign_events.append(s["campaign"])
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(3)
-        self._ws.close()
+    def on_frame(self, frame: dict) -> None:
+        self.frames += 1
+        s = frame["series"]
+        if "status" in s:
+            self.status_stamps.append(s["status"]["stamp_s"])
+        if "state" in s:
+            self.forces.append(s["state"]["force_applied_N"])
+        if "campaign" in s:
+            self.campaign_events.append(s["campaign"])
 
 
 @pytest.fixture(scope="module")
