@@ -449,10 +449,11 @@ def test_camera_process_publishes_rendered_alpha_ip_from_the_twin_on_a_real_bus(
 # --- offline alignment ----------------------------------------------------------------------------
 
 
-def _excitation(t: np.ndarray) -> np.ndarray:
-    """A non-periodic multi-sine per joint within ±50° (rad), as an identification excitation."""
+def excitation(t: np.ndarray, first_deg: float = 28.0) -> np.ndarray:
+    """A non-periodic multi-sine per joint within ±(``first_deg`` + 18)° (rad), as an
+    identification excitation (also tests/test_camera_sources.py)."""
     f = np.array([[0.23, 0.61], [0.31, 0.47], [0.17, 0.53]])
-    return np.radians(np.column_stack([28 * np.sin(2 * np.pi * f[j, 0] * t + j) + 18 * np.sin(2 * np.pi * f[j, 1] * t + 2 * j)
+    return np.radians(np.column_stack([first_deg * np.sin(2 * np.pi * f[j, 0] * t + j) + 18 * np.sin(2 * np.pi * f[j, 1] * t + 2 * j)
                                        for j in range(3)]))
 
 
@@ -464,7 +465,7 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
 
     # The campaign: 20 s of truth at 100 Hz on its (simulated) clock.
     t = np.arange(0.0, 20.0, 0.01)
-    alpha = _excitation(t)
+    alpha = excitation(t)
     zeros = [0.0] * params.n_cables
     truths = [(bus.TWIN_TRUTH, int((1.7e9 + tk) * 1e9), bus.Truth(
         seq=k + 1, stamp_s=float(tk), alpha_rad=a.tolist(), alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros, theta_dot_rad_s=zeros,
@@ -476,7 +477,7 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
     video = tmp_path / "run.mp4"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (1280, 720))
     for k in range(300):
-        writer.write(renderer.render(_excitation(np.array([offset + k / 30.0]))[0]))
+        writer.write(renderer.render(excitation(np.array([offset + k / 30.0]))[0]))
     writer.release()
     out = tmp_path / "aligned.mcap"
     r = CliRunner().invoke(app, ["camera", "align", str(video), str(camp), "--out", str(out), "--json"])
@@ -500,7 +501,7 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
     t_ip = np.array([f.capture_stamp_s for f in frames])
     a_ip = np.array([f.alpha_ip_rad for f in frames], dtype=float)
     assert np.abs(t_ip - (offset + np.arange(300) / 30.0)).max() < 0.005
-    assert np.degrees(np.abs(a_ip - _excitation(t_ip))).max() < 1.0
+    assert np.degrees(np.abs(a_ip - excitation(t_ip))).max() < 1.0
     # Never overwrite; a campaign that the video does not overlap is refused with the reason.
     r = CliRunner().invoke(app, ["camera", "align", str(video), str(camp), "--out", str(out)])
     assert r.exit_code == 2 and "exists already" in r.output

@@ -25,6 +25,8 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
+from test_camera import excitation  # noqa: E402
+
 from twin.camera.render import Renderer  # noqa: E402
 from twin.camera.source import FileSource, SourceError, UsbSource  # noqa: E402
 
@@ -354,9 +356,7 @@ def test_xneck_camera_on_a_whole_video_exits_0(rendered_clip) -> None:
 
 def _excitation(t: np.ndarray) -> np.ndarray:
     """Non-periodic multi-sines within ±45° (rad), one per joint."""
-    f = np.array([[0.23, 0.61], [0.31, 0.47], [0.17, 0.53]])
-    return np.radians(np.column_stack([27 * np.sin(2 * np.pi * f[j, 0] * t + j) + 18 * np.sin(2 * np.pi * f[j, 1] * t + 2 * j)
-                                       for j in range(3)]))
+    return excitation(t, first_deg=27.0)
 
 
 def test_xneck_camera_align_says_how_many_frames_the_video_lost_and_keeps_the_time_of_the_rest(tmp_path, params, model) -> None:
