@@ -62,6 +62,10 @@ CAMPAIGN_REQUEST = f"{PREFIX}/campaign/request"
 #: campaign (audit of 2026-11-28).
 CAMPAIGN_REQUEST_TO = f"{PREFIX}/campaign/request/*"
 ESTOP = f"{PREFIX}/estop"
+#: The bridge's stamp clock, a Zenoh *queryable* the bridge serves (``session.get`` it; nothing is
+#: published there): each reply is one :class:`ClockReading`. A camera on another machine's clock
+#: measures its offset from it (:mod:`bridge.clock_sync`, docs/camera.md, "One clock").
+BRIDGE_CLOCK = f"{PREFIX}/bridge/clock"
 HEALTH_ALL = f"{PREFIX}/health/*/*"
 ALIVE_ALL = f"{PREFIX}/alive/**"
 ALL = f"{PREFIX}/**"
@@ -355,6 +359,22 @@ class Health(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     last_reject_reason: str = ""
 
 
+class ClockReading(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """One reply of the bridge's clock queryable (:data:`BRIDGE_CLOCK`).
+
+    ``stamp_s`` is the bridge's stamp clock when it replied: the clock of its ``MotorState.stamp_s``
+    (the driver's ``stamp_s()``: the board's wall clock in s for hardware, the simulated time of
+    the last tick for the twin). ``seq`` counts this bridge run's replies. ``epoch`` and
+    ``bridge`` are those of its ``MotorState`` (the run and the instance name), so the querier
+    knows which run it synchronised with and sees a restart. Not archived (a query's reply reaches
+    only the querier).
+    """
+
+    v: int = 1
+    epoch: Annotated[str, msgspec.Meta(max_length=64)]
+    bridge: Annotated[str, msgspec.Meta(max_length=128)]
+
+
 M = TypeVar("M", bound=BusMessage)
 
 #: Key expression -> message type, for every fixed key.
@@ -369,6 +389,7 @@ REGISTRY: dict[str, type[BusMessage]] = {
     CAMPAIGN_EVENTS: CampaignEvent,
     CAMPAIGN_REQUEST: CampaignRequest,
     ESTOP: EStop,
+    BRIDGE_CLOCK: ClockReading,
 }
 
 #: Key patterns (``*`` = one chunk) -> message type, for keys that carry a process name.
@@ -387,6 +408,7 @@ PAYLOAD_MAX_BYTES_BY_TYPE: dict[type[BusMessage], int] = {
     MotorState: REAL_TIME_PAYLOAD_MAX_BYTES,
     ForceCommand: REAL_TIME_PAYLOAD_MAX_BYTES,
     EStop: REAL_TIME_PAYLOAD_MAX_BYTES,
+    ClockReading: 1024,  # about 110 bytes: a larger reply is not a bridge's
     CameraFrame: 4 * (FRAME_DATA_MAX_BYTES // 3 + 1) + PAYLOAD_MAX_BYTES,
     CampaignRequest: TRAJECTORY_JSON_MAX_BYTES + PARAMETERS_TOML_MAX_BYTES + 4096,
 }
@@ -708,6 +730,7 @@ def as_plain(msg: BusMessage) -> Mapping[str, Any]:
 __all__ = [
     "ALIVE_ALL",
     "ALL",
+    "BRIDGE_CLOCK",
     "CAMERA_ALPHA",
     "CAMERA_FRAME",
     "CAMPAIGN_EVENTS",
@@ -734,6 +757,7 @@ __all__ = [
     "CameraFrame",
     "CampaignEvent",
     "CampaignRequest",
+    "ClockReading",
     "ControllerStatus",
     "ControllerTiming",
     "EStop",
