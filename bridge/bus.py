@@ -359,6 +359,11 @@ class Health(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     last_reject_reason: str = ""
 
 
+#: A bridge's instance name or epoch in a :class:`ClockReading`: what ``--instance`` accepts, bounded
+#: (a reply is untrusted: the querier names the run it synchronised with in its log and health).
+CLOCK_NAME_PATTERN = r"^[A-Za-z0-9_.\-]{1,64}$"
+
+
 class ClockReading(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """One reply of the bridge's clock queryable (:data:`BRIDGE_CLOCK`).
 
@@ -371,8 +376,8 @@ class ClockReading(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=
     """
 
     v: int = 1
-    epoch: Annotated[str, msgspec.Meta(max_length=64)]
-    bridge: Annotated[str, msgspec.Meta(max_length=128)]
+    epoch: Annotated[str, msgspec.Meta(pattern=CLOCK_NAME_PATTERN)]
+    bridge: Annotated[str, msgspec.Meta(pattern=CLOCK_NAME_PATTERN)]
 
 
 M = TypeVar("M", bound=BusMessage)

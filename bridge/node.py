@@ -39,6 +39,10 @@ Exit
     from ``atexit`` as a backstop) disables the drives and publishes a last ``MotorState`` with
     ``drive = "disabled"``. A SIGKILL cannot be caught: on hardware only the ESCONs' own enable
     logic remains.
+Clock
+    The bridge serves its stamp clock (the driver's ``stamp_s()``, that of every ``MotorState``) as
+    the queryable ``xneck/bridge/clock`` (:class:`bridge.clock_service.ClockService`), so a camera
+    on another machine's clock can put its stamps on the bridge's (docs/camera.md, "One clock").
 Loop watchdog
     Real time, ``loop_stall_s`` > 0 (``xneck bridge``: 0.5 s): when the loop makes no tick for
     that long while the process runs (hung in a call, a deadlock, an endless loop: the rules
@@ -67,6 +71,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
+from bridge.clock_service import ClockService
 from bridge.driver import Driver, Lifecycle
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.runtime import SystemdNotify, raise_loop_thread
@@ -299,6 +304,9 @@ class BridgeNode:
         self._extra_pubs: dict[str, BusPublisher] = {}
         self._health = session.declare_publisher(bus.health_key("bridge", self.instance))
         self._token = liveliness_token(session, "bridge", self.instance)
+        # The stamp clock of every state, served to whoever asks (a camera on another machine's
+        # clock): read on a Zenoh thread, nothing of the loop's state touched but the stamp.
+        self.clock = ClockService(session, driver.stamp_s, self.epoch, self.instance)
 
         self.mode: bus.DriveState = "inactive"
         self.hold_reason = ""
@@ -474,8 +482,9 @@ class BridgeNode:
             received={bus.MOTOR_COMMAND: stats.received, bus.ESTOP: estop_received, "ticks": self.ticks,
                       "overruns": self.overruns, "clamped": self.clamped, "holds": self.holds,
                       "rate_limited": self.rate_limited,
-                      "tick_max_us": int(self.tick_max_s * 1e6)},
-            rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected},
+                      "tick_max_us": int(self.tick_max_s * 1e6), bus.BRIDGE_CLOCK: self.clock.answered},
+            rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected,
+                      bus.BRIDGE_CLOCK: self.clock.refused + self.clock.failed},
             last_reject_reason=reason)))
 
     # -- exit -----------------------------------------------------------------------------------
@@ -504,7 +513,7 @@ class BridgeNode:
                 with contextlib.suppress(Exception):  # the session may already be gone
                     last()
             closers = [self.commands.close, self._controllers.undeclare, self._estop_sub.undeclare, self._state_pub.close,
-                       self._health.undeclare, self._token.undeclare]
+                       self._health.undeclare, self._token.undeclare, self.clock.close]
             closers += [p.close for p in self._extra_pubs.values()]
             for closer in closers:
                 with contextlib.suppress(Exception):  # close everything we can, whatever failed before

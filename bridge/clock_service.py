@@ -1,0 +1,132 @@
+"""The bridge's stamp clock on the bus: the queryable the bridge serves, and one query of it.
+
+:class:`ClockService` (the bridge): a Zenoh queryable on :data:`bridge.bus.BRIDGE_CLOCK` that
+answers each query with a :class:`bridge.bus.ClockReading`: ``stamp_s`` the driver's
+``stamp_s()`` at the reply, the clock of every ``MotorState.stamp_s`` (the board's wall clock for
+hardware; for the twin the simulated time of its last tick, which moves only as the loop ticks).
+The handler runs on a Zenoh thread beside the real-time loop: it reads the stamp (one call, no
+lock), encodes about 100 bytes and replies; it reads nothing else of the loop's state. A token
+bucket (:data:`RATE_PER_S` replies a second, bursts of :data:`BURST`) bounds what a peer flooding
+queries costs the bridge; queries beyond it get no reply and are counted (``refused``).
+
+:func:`query_clock` (the querier, a camera): one query, each reply stamped on the querier's clock
+when it left (``t0``) and came back (``t1``). Replies are untrusted (any peer may declare a
+queryable on the key): a payload too large, undecodable or of another version is counted with its
+reason and never used; so are error replies and replies beyond :data:`MAX_REPLIES`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import zenoh
+
+from bridge import bus
+from bridge.clock_sync import ClockSample
+
+log = logging.getLogger("xneck.bridge")
+
+RATE_PER_S = 200.0  # replies a second, sustained (a camera's burst of 8 every 10 s is 0.8)
+BURST = 64  # replies at once
+MAX_REPLIES = 16  # replies of one query taken (one per bridge on the bus; more is a flood)
+
+
+class ClockService:
+    """Serves ``stamp()`` (s) on :data:`bridge.bus.BRIDGE_CLOCK` for bridge run ``epoch`` of
+    instance ``bridge`` (module docstring). :meth:`close` undeclares it."""
+
+    def __init__(self, session: zenoh.Session, stamp: Callable[[], float], epoch: str, bridge: str,
+                 rate_per_s: float = RATE_PER_S, burst: int = BURST) -> None:
+        self._stamp, self.epoch, self.bridge = stamp, epoch, bridge
+        self.rate_per_s, self.burst = float(rate_per_s), float(burst)
+        self._tokens, self._refill_at = self.burst, time.monotonic()
+        self._lock = threading.Lock()  # the bucket: Zenoh may run two queries' callbacks at once
+        self._seq = itertools.count(1)
+        self.answered = self.refused = self.failed = 0
+        self._queryable = session.declare_queryable(bus.BRIDGE_CLOCK, self._on_query)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        # Zenoh thread: a few µs, never the loop's state beyond the stamp (module docstring).
+        now = time.monotonic()
+        with self._lock:
+            self._tokens = min(self.burst, self._tokens + (now - self._refill_at) * self.rate_per_s)
+            self._refill_at = now
+            if self._tokens < 1.0:
+                self.refused += 1
+                return
+            self._tokens -= 1.0
+        try:
+            reading = bus.ClockReading(seq=next(self._seq), stamp_s=float(self._stamp()), epoch=self.epoch, bridge=self.bridge)
+            query.reply(bus.BRIDGE_CLOCK, bus.encode(reading))
+            self.answered += 1
+        except Exception:  # noqa: BLE001 - a query must never take the bridge down (a stamp not yet finite, a closing session)
+            self.failed += 1
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):  # the session may be closed already
+            self._queryable.undeclare()
+
+
+@dataclass
+class ClockReply:
+    """A valid reply of one query: the reading and its round trip on the querier's clock."""
+
+    reading: bus.ClockReading
+    sample: ClockSample
+
+
+@dataclass
+class QueryResult:
+    """What one query got: ``replies`` (valid), ``rejected`` reasons (one per refused reply)."""
+
+    replies: list[ClockReply] = field(default_factory=list)
+    rejected: list[str] = field(default_factory=list)
+
+
+def _reply_text(err: object) -> str:
+    payload = getattr(err, "payload", None)
+    try:
+        text = payload.to_bytes()[:200].decode("utf-8", "replace") if payload is not None else str(err)
+    except Exception:  # noqa: BLE001 - an error reply is untrusted too
+        text = "?"
+    return text[:200]
+
+
+def query_clock(session: zenoh.Session, timeout_s: float = 0.5, clock: Callable[[], float] = time.time) -> QueryResult:
+    """Query :data:`bridge.bus.BRIDGE_CLOCK` once; every reply stamped on ``clock`` (s) when the
+    query left and when the reply was taken (module docstring). Returns within ``timeout_s`` (an
+    empty result when no bridge answers)."""
+    result = QueryResult()
+    t0 = clock()
+    # Every bridge's reply: not the "best matching" queryable's alone, and not consolidated into one
+    # (Zenoh's default keeps one reply per key: of two bridges on one hub the querier saw one).
+    replies = session.get(bus.BRIDGE_CLOCK, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                          timeout=timeout_s)
+    for reply in replies:
+        t1 = clock()
+        if len(result.replies) + len(result.rejected) >= MAX_REPLIES:
+            result.rejected.append(f"more than {MAX_REPLIES} replies to one query")
+            continue
+        ok = reply.ok
+        if ok is None:
+            result.rejected.append(f"error reply: {_reply_text(reply.err)}")
+            continue
+        try:
+            if str(ok.key_expr) != bus.BRIDGE_CLOCK:
+                raise bus.BusDecodeError(f"reply on {str(ok.key_expr)[:100]!r}, not {bus.BRIDGE_CLOCK}")
+            bus.check_payload_size(bus.ClockReading, len(ok.payload))
+            reading = bus.decode(bus.ClockReading, ok.payload.to_bytes())
+        except bus.BusDecodeError as exc:
+            result.rejected.append(exc.reason)
+            continue
+        result.replies.append(ClockReply(reading, ClockSample(t0, reading.stamp_s, t1)))
+    return result
+
+
+__all__ = ["BURST", "MAX_REPLIES", "RATE_PER_S", "ClockReply", "ClockService", "QueryResult", "query_clock"]
