@@ -143,7 +143,8 @@ def test_xneck_camera_on_a_usb_camera_unplugged_exits_1_naming_it(tmp_path, mode
         sub = session.declare_subscriber(bus.CAMERA_ALPHA, lambda s: got.append(s))
         t0 = time.monotonic()
         done = subprocess.run([sys.executable, "-c", SHIM, str(frame), "60", "camera", "--source", "usb:0",
-                               "--frame-rate-hz", "0", "--connect", hub], capture_output=True, text=True, timeout=120)
+                               "--frame-rate-hz", "0", "--clock", "local", "--connect", hub], capture_output=True, text=True,
+                              timeout=120)
         took = time.monotonic() - t0
         wait_until(lambda: len(got) >= 20, 5.0)
         sub.undeclare()

@@ -222,6 +222,18 @@ def test_a_bad_endpoint_is_one_line(xneck, argv, said):
     _refused(xneck(*argv, timeout=60), said)
 
 
+@pytest.mark.parametrize("argv, said", [
+    (["camera", "--source", "twin", "--clock", "bridge", "--max-frames", "1"], "--clock is for a live camera (usb:N)"),
+    (["camera", "--source", "file:{tmp}/v.avi", "--clock", "local"], "--clock is for a live camera (usb:N)"),
+    (["camera", "--source", "usb:0", "--clock", "sometimes"], "--clock 'sometimes': expected bridge, bridge:NAME"),
+    (["camera", "--source", "usb:0", "--clock", "bridge:a b"], "--clock 'bridge:a b': expected bridge, bridge:NAME"),
+])
+def test_the_camera_clock_option_is_checked_before_anything_opens(xneck, tmp_path, argv, said):
+    """``--clock``: a USB camera's stamps on the bridge's clock (docs/camera.md, "One clock"); a
+    video's and the twin's camera's stamps are their own clocks, so they refuse it."""
+    _refused(xneck(*[a.format(tmp=tmp_path) for a in argv], timeout=60), said)
+
+
 # -- 5, 6. the calibration's evaluation limit ------------------------------------------------------------
 
 

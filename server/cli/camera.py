@@ -2,7 +2,8 @@
 
 - ``xneck camera --source usb:N|/dev/videoN|file:VIDEO|twin``: the bus process publishing
   ``xneck/camera/alpha_ip`` from one detector (``twin.camera.detect``), and a few JPEG frames
-  per second on ``xneck/camera/frame`` (``--frame-rate-hz``); composed here.
+  per second on ``xneck/camera/frame`` (``--frame-rate-hz``); composed here. A USB camera's
+  exposures are stamped on the bridge's clock (``--clock bridge``, :mod:`twin.camera.clock`).
 - ``xneck camera render --alpha A1 A2 A3 --out F.png``: the twin's camera view at α (degrees).
 - ``xneck camera detect F.png [--calibration FILE] --json``: α measured on one frame.
 - ``xneck camera markers --out sheet.png`` / ``board --out board.png``: printable marker sheet
@@ -16,6 +17,7 @@ OpenCV is imported inside the commands (``xneck --help`` and the bridge never lo
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import typer
@@ -118,6 +120,28 @@ def _occluded(occlude: list[str] | None, n_joints: int) -> tuple[tuple[int, int]
     return tuple(covered)
 
 
+def _clock_choice(clock: str | None, kind: str) -> str | None:
+    """``--clock``: the bridge instance to synchronise with ('' for the one that answers), or None
+    for this machine's clock. A live source defaults to the bridge's; a video's stamps are its
+    own and the twin's its truth's, so those refuse the option."""
+    from bridge.safety import INSTANCE_NAME
+
+    if kind != "usb":
+        if clock is not None:
+            raise fail(f"--clock is for a live camera (usb:N): a {kind} source's stamps are "
+                       f"{'the video' if kind == 'file' else 'the twin truth'}'s own clock")
+        return None
+    text = "bridge" if clock is None else clock.strip()
+    if text == "local":
+        return None
+    if text == "bridge":
+        return ""
+    name = text.removeprefix("bridge:")
+    if text.startswith("bridge:") and INSTANCE_NAME.fullmatch(name):
+        return name
+    raise fail(f"--clock {clock!r}: expected bridge, bridge:NAME (the bridge's --instance) or local")
+
+
 @camera_app.callback()
 def camera(
     ctx: typer.Context,
@@ -136,6 +160,9 @@ def camera(
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after this many frames."),
     idle_timeout: float | None = typer.Option(None, "--idle-timeout", callback=POSITIVE,
                                               help="twin: stop after this long without truth (s)."),
+    clock: str | None = typer.Option(None, "--clock", help="usb: stamp exposures on the bridge's clock, measured over "
+                                     "the bus (bridge, or bridge:NAME for the bridge --instance NAME; the default) or on "
+                                     "this machine's (local: the bridge runs here). Not for file or twin sources."),
     instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
@@ -155,6 +182,7 @@ def camera(
     import logging
 
     from bridge.runtime import setup_logging, stop_on_signals
+    from twin.camera.clock import BridgeClock, ClockSyncError
     from twin.camera.detect import Detector
     from twin.camera.process import CameraNode
     from twin.camera.source import FileSource, SourceError, SourceLost, TwinShutter, UsbSource, parse_source
@@ -163,6 +191,7 @@ def camera(
         kind, where = parse_source(source)
     except ValueError as exc:
         raise fail(str(exc)) from None
+    clock_bridge = _clock_choice(clock, kind)  # None: this machine's clock
     setup_logging(verbose)
     check_endpoints(listen, connect)
     check_credentials()
@@ -184,14 +213,28 @@ def camera(
         elif kind == "file":
             frames = FileSource(where, t0)
         else:
-            frames = UsbSource(where, cal.width, cal.height, latency_s=lat)
+            # On the bridge's clock the grabs are stamped on the monotonic clock, which the offset maps.
+            frames = UsbSource(where, cal.width, cal.height, latency_s=lat,
+                               clock=time.time if clock_bridge is None else time.monotonic)
     except (SourceError, ValueError) as exc:
         raise fail(str(exc)) from None
     stop = stop_on_signals()
     log = logging.getLogger("xneck.camera")
     lost: SourceLost | None = None
     with open_bus(listen, connect) as session:
-        node = CameraNode(session, detector, instance, frame_rate_hz=frame_rate_hz, jpeg_quality=jpeg_quality)
+        bridge_clock = None
+        if clock_bridge is not None:
+            bridge_clock = BridgeClock(session, clock_bridge)
+            try:
+                bridge_clock.sync(stop=stop)
+            except ClockSyncError as exc:  # no bridge to stamp on: nothing published, one line, exit 1
+                assert frames is not None
+                frames.close()
+                typer.secho(f"error: {exc}", err=True, fg="red")
+                raise typer.Exit(1) from None
+            bridge_clock.start()
+        node = CameraNode(session, detector, instance, frame_rate_hz=frame_rate_hz, jpeg_quality=jpeg_quality,
+                          clock=bridge_clock)
         log.info("camera %s up: --source %s", node.instance, source)
         count = 0
         try:
@@ -209,6 +252,8 @@ def camera(
         except RuntimeError as exc:
             raise fail(str(exc)) from None
         finally:
+            if bridge_clock is not None:
+                bridge_clock.stop()
             node.close()
             if frames is not None:
                 frames.close()

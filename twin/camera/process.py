@@ -11,7 +11,9 @@ as it happens, and again when the references are back: ``received[MOVED_NOW]`` i
 moved (a state, not a count) and ``last_reject_reason`` its reason then, which the console shows
 on its camera card (:func:`server.camera_feed.camera_health`).
 With ``frame_rate_hz`` > 0, a few frames per second also go out as JPEG on ``xneck/camera/frame``
-(:mod:`twin.camera.frames`) for the console's camera panel and the campaign archive.
+(:mod:`twin.camera.frames`) for the console's camera panel and the campaign archive. A live
+camera's exposures are stamped on the bridge's clock when the node has a
+:class:`twin.camera.clock.BridgeClock` (``xneck camera --clock bridge``, the default for USB).
 
 One twin at a time: a ``Truth`` has no identity field, and with a second twin on the hub the
 camera fed both twins' truths into one shutter, two clocks and two poses (audit of 2026-11-29).
@@ -39,6 +41,7 @@ import zenoh
 
 from bridge import bus
 from bridge.session import liveliness_token, payload_of, publisher, run_of
+from twin.camera.clock import BridgeClock
 from twin.camera.detect import Detection, Detector
 from twin.camera.frames import FrameDecimator, frame_message
 from twin.camera.render import Renderer
@@ -68,8 +71,9 @@ class CameraNode:
     HEALTH_PERIOD_S = 1.0
 
     def __init__(self, session: zenoh.Session, detector: Detector, instance: str = "", queue_frames: int = 4,
-                 frame_rate_hz: float = 0.0, jpeg_quality: int = 75) -> None:
+                 frame_rate_hz: float = 0.0, jpeg_quality: int = 75, clock: BridgeClock | None = None) -> None:
         self.session = session
+        self.clock = clock  # a live source's stamps go onto the bridge's clock (run_source)
         self.detector = detector
         self.instance = instance or uuid.uuid4().hex[:8]
         self._pub = publisher(session, bus.CAMERA_ALPHA)
@@ -136,13 +140,18 @@ class CameraNode:
         if not force and now - self._last_health < self.HEALTH_PERIOD_S:
             return
         self._last_health = now
+        received = {bus.TWIN_TRUTH: self.truth_received, "foreign_truth": self.truth_foreign,
+                    "frames": self.frames, "dropped": self.dropped,
+                    "missing_joints": self.missing_joints, "images": self.images,
+                    "clock_restarts": self.clock_restarts, MOVED_NOW: int(self.moved)}
+        rejected = {bus.TWIN_TRUTH: self.truth_rejected, "camera_moved": self.moved_frames}
+        if self.clock is not None:  # the bridge clock's offset, uncertainty, run, steps (twin.camera.clock)
+            clock_received, clock_rejected = self.clock.health()
+            received.update(clock_received)
+            rejected.update(clock_rejected)
         self._health.put(bus.Health(
             seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
-            received={bus.TWIN_TRUTH: self.truth_received, "foreign_truth": self.truth_foreign,
-                      "frames": self.frames, "dropped": self.dropped,
-                      "missing_joints": self.missing_joints, "images": self.images,
-                      "clock_restarts": self.clock_restarts, MOVED_NOW: int(self.moved)},
-            rejected={bus.TWIN_TRUTH: self.truth_rejected, "camera_moved": self.moved_frames},
+            received=received, rejected=rejected,
             # while moved, its reason: a truth refused between two frames does not hide it
             last_reject_reason=self._moved_reason if self.moved else self._last_reject))
 
@@ -152,7 +161,10 @@ class CameraNode:
                    pace_fps: float | None = None) -> int:
         """Read, detect, publish until the source ends, ``stop`` is set or ``max_frames`` were
         published. ``pace_fps`` replays a file at its frame rate (None: as fast as detection runs).
-        A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``. A live source
+        A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``. A live source's
+        are this PC's wall clock, or, with ``clock`` (the node's), the bridge's: the source then
+        stamps its grabs on ``clock.local`` and both stamps get ``clock.offset_s`` added (one
+        value per exposure, so a re-sync never puts a capture after its publication). A live source
         that is lost raises (:class:`twin.camera.source.SourceLost`): the last health counters are
         published first."""
         started = time.monotonic()
@@ -170,8 +182,15 @@ class CameraNode:
                     found = self.detector.detect(frame.image)
                 except ValueError as exc:  # a frame of another size: the calibration does not fit
                     raise RuntimeError(f"{source.name}: {exc}") from None
-                stamp = frame.capture_s if source.name.startswith("file:") else time.time()
-                self.publish(found, frame.capture_s, stamp, source.name, frame.image)
+                capture = frame.capture_s
+                if source.name.startswith("file:"):
+                    stamp = capture
+                elif self.clock is not None:
+                    offset = self.clock.offset_s  # one read: the sync thread replaces it whole
+                    capture, stamp = capture + offset, self.clock.local() + offset
+                else:
+                    stamp = time.time()
+                self.publish(found, capture, stamp, source.name, frame.image)
         finally:
             self.dropped = source.dropped  # a file's missing end is known only now
             self._maybe_health(force=True)

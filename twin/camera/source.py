@@ -195,7 +195,10 @@ class FileSource:
 class UsbSource:
     """A V4L2 camera through OpenCV; ``read`` blocks until the next frame."""
 
-    def __init__(self, device: str, width: int = 1280, height: int = 720, fps: float = 30.0, latency_s: float = 0.05) -> None:
+    def __init__(self, device: str, width: int = 1280, height: int = 720, fps: float = 30.0, latency_s: float = 0.05,
+                 clock: Callable[[], float] = time.time) -> None:
+        """``clock`` (s) stamps each grab: this PC's wall clock by default, ``time.monotonic`` when
+        the camera maps its stamps onto the bridge's clock (:mod:`twin.camera.clock`)."""
         target: int | str = int(device) if device.isdigit() else device
         self.cap = cv2.VideoCapture(target, cv2.CAP_V4L2)
         if not self.cap.isOpened():
@@ -205,6 +208,7 @@ class UsbSource:
         self.cap.set(cv2.CAP_PROP_FPS, fps)
         self.fps = float(self.cap.get(cv2.CAP_PROP_FPS)) or fps
         self.latency_s = float(latency_s)
+        self.clock = clock
         self.retry_window_s = RETRY_WINDOW_S
         self.dropped = 0
         self.frames = 0  # frames read
@@ -216,7 +220,7 @@ class UsbSource:
     def _grab(self) -> tuple[float, np.ndarray] | None:
         if not self.cap.grab():
             return None
-        grabbed_s = time.time()
+        grabbed_s = self.clock()
         ok, image = self.cap.retrieve()
         return (grabbed_s, image) if ok and image is not None else None
 

@@ -1,0 +1,263 @@
+"""A live camera's stamps on the bridge's clock (docs/camera.md, "One clock").
+
+On the robot the bridge stamps its states with the BeagleBone's wall clock (no RTC battery: off by
+seconds until NTP syncs) and the USB camera grabbed on the PC's: nothing measured the offset, and
+`xneck identify` paired α_IP with the states by those stamps. Here a real bridge node on the fake
+board (rcpy faked at its lowest layer, tests/test_bridge_driver.py's FakeBoard) whose stamp clock
+runs 1000 s ahead serves its clock on a real loopback bus; the camera's sync finds the offset, and
+a USB camera (cv2.VideoCapture faked at the lowest layer) publishes α_IP captured on the bridge's
+clock. Without a bridge, `xneck camera --source usb:0` says so in one line and exits 1.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from busutil import bus_pair, wait_until
+from test_bridge_driver import FakeBoard
+
+from bridge import bus
+from bridge.clock_service import ClockService, query_clock
+from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver
+from bridge.node import BridgeConfig
+
+AHEAD_S = 1000.0
+
+
+class ShiftedBoardDriver(BeagleBoneDriver):
+    """The BeagleBone driver with the board's wall clock ``shift_s`` ahead of this machine's."""
+
+    shift_s = AHEAD_S
+
+    def stamp_s(self) -> float:
+        return time.time() + self.shift_s
+
+
+@pytest.fixture
+def board(monkeypatch):
+    b = FakeBoard()
+    for name, module in b.modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    return b
+
+
+@pytest.fixture
+def bridge(board, params):
+    """(hub endpoint, hub session, factory of sessions, the bridge node on the hub's session)."""
+    from server.cli.processes import bridge_node
+
+    with bus_pair() as (hub, session, connect):
+        driver = ShiftedBoardDriver.from_params(BeagleBoneConfig(), params)
+        node = bridge_node(session, driver, params, BridgeConfig(command_timeout_s=5.0, instance="beaglebone-1"))
+        try:
+            yield hub, session, connect, node
+        finally:
+            node.shutdown()
+
+
+def test_the_camera_finds_the_bridge_clock_1000_s_ahead_within_a_few_ms(bridge) -> None:
+    from twin.camera.clock import BridgeClock
+
+    _hub, _session, connect, node = bridge
+    clock = BridgeClock(connect(), burst=16)
+    clock.sync(wait_s=5.0)
+    assert (clock.bridge, clock.epoch) == ("beaglebone-1", node.epoch)
+    error = clock.wall_offset_s() - AHEAD_S
+    assert abs(error) < 0.005 and abs(error) <= clock.uncertainty_s + 1e-4, (error, clock.uncertainty_s)
+    # on the monotonic clock the camera stamps its grabs with, the offset maps it onto the bridge's
+    assert time.monotonic() + clock.offset_s == pytest.approx(node.driver.stamp_s(), abs=0.005)
+    received, rejected = clock.health()
+    assert received["clock_offset_us"] == pytest.approx(AHEAD_S * 1e6, abs=5000)
+    assert 0 <= received["clock_uncertainty_us"] < 5000 and received["clock_steps"] == 0
+    assert received[f"clock_run/beaglebone-1/{node.epoch}"] == 1 and rejected == {"clock_replies": 0, "clock_bursts": 0}
+    assert node.clock.answered >= 16  # the bridge's health counts them (bus.BRIDGE_CLOCK)
+
+
+def test_a_clock_set_on_the_board_is_a_step_and_a_restarted_bridge_is_synchronised_afresh(bridge, params, board) -> None:
+    from server.cli.processes import bridge_node
+    from twin.camera.clock import BridgeClock
+
+    _hub, session, connect, node = bridge
+    clock = BridgeClock(connect(), burst=4)
+    clock.sync(wait_s=5.0)
+    # NTP sets the board's clock 3 s forward: the next burst takes the new offset, counted as a step.
+    node.driver.shift_s = AHEAD_S + 3.0  # type: ignore[attr-defined]
+    assert clock.burst_once() == ""
+    assert clock.tracker.steps == 1 and clock.wall_offset_s() == pytest.approx(AHEAD_S + 3.0, abs=0.005)
+    # The bridge restarts (a new run, a new random name, the clock back where it was): re-synchronised.
+    node.shutdown()
+    driver = ShiftedBoardDriver.from_params(BeagleBoneConfig(), params)
+    second = bridge_node(session, driver, params, BridgeConfig(command_timeout_s=5.0))
+    try:
+        assert wait_until(lambda: clock.burst_once() == "", 5.0, 0.05)
+        assert (clock.bridge, clock.epoch) == (second.instance, second.epoch) and clock.resyncs == 1
+        assert clock.tracker.steps == 1  # a new run is not a step of the old one
+        assert clock.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+    finally:
+        second.shutdown()
+
+
+def test_two_bridges_without_a_name_are_refused_and_a_name_picks_one(bridge) -> None:
+    from twin.camera.clock import BridgeClock, ClockSyncError
+
+    _hub, _session, connect, _node = bridge
+    stray = ClockService(connect(), lambda: 5.0, "e0e0e0", "twin-7")  # a twin bridge on the same hub
+    try:
+        camera = connect()
+        assert wait_until(lambda: len({r.reading.bridge for r in query_clock(camera).replies}) == 2, 5.0, 0.05)
+        with pytest.raises(ClockSyncError, match=r"2 bridges answer on xneck/bridge/clock: beaglebone-1 \(run \w+\), "
+                                                 r"twin-7 \(run e0e0e0\); name the robot's with --clock bridge:NAME"):
+            BridgeClock(camera, burst=2).sync(wait_s=0.5)
+        named = BridgeClock(camera, "beaglebone-1", burst=4)
+        named.sync(wait_s=5.0)
+        assert named.bridge == "beaglebone-1" and named.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+    finally:
+        stray.close()
+
+
+def test_hostile_replies_are_counted_and_never_used(bridge) -> None:
+    """Any peer may declare a queryable on the key: garbage, a NaN stamp, an error reply, an
+    oversized payload, another key's reply. None moves the offset; each is counted."""
+    from twin.camera.clock import BridgeClock
+
+    _hub, _session, connect, _node = bridge
+    liar = connect()
+    answers = [b"not json", b'{"v":1,"seq":1,"stamp_s":NaN,"epoch":"x","bridge":"y"}',
+               b'{"v":2,"seq":1,"stamp_s":1.0,"epoch":"x","bridge":"y"}',
+               b'{"v":1,"seq":1,"stamp_s":1.0,"epoch":"x","bridge":"has space"}', b" " * 5000]
+    turn = [0]
+
+    def lie(query) -> None:
+        k = turn[0] = turn[0] + 1
+        if k % 3 == 0:
+            query.reply_err(b"no clock here")
+        else:
+            query.reply(bus.BRIDGE_CLOCK, answers[k % len(answers)])
+
+    queryable = liar.declare_queryable(bus.BRIDGE_CLOCK, lie)
+    try:
+        camera = connect()
+        assert wait_until(lambda: query_clock(camera).rejected != [], 5.0, 0.05)
+        clock = BridgeClock(camera, burst=8)
+        clock.sync(wait_s=5.0)
+        assert clock.bridge == "beaglebone-1" and clock.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+        assert clock.refused >= 8 and clock.last_problem
+        _received, rejected = clock.health()
+        assert rejected["clock_replies"] == clock.refused
+    finally:
+        queryable.undeclare()
+
+
+def test_a_flood_of_queries_is_bounded_by_the_bridge(bridge) -> None:
+    _hub, _session, connect, node = bridge
+    camera = connect()
+    assert wait_until(lambda: query_clock(camera).replies != [], 5.0, 0.05)
+    for _ in range(150):
+        query_clock(camera, 0.2)
+    assert node.clock.refused > 0 and node.clock.answered < 150 + 20
+
+
+# --- the USB camera's α_IP on the bridge's clock ---------------------------------------------------
+
+
+def test_a_usb_camera_publishes_alpha_ip_captured_on_the_bridge_clock(bridge, monkeypatch, params, model) -> None:
+    cv2 = pytest.importorskip("cv2")
+    from test_camera_sources import FakeCamera
+
+    from twin.camera.calibration import twin_calibration
+    from twin.camera.clock import BridgeClock
+    from twin.camera.detect import Detector
+    from twin.camera.process import CameraNode
+    from twin.camera.render import Renderer
+    from twin.camera.source import UsbSource
+
+    grabs: list[float] = []  # the board's clock at each grab
+
+    class Grabbing(FakeCamera):
+        image = Renderer(model, seed=1).render(np.radians([10.0, -20.0, 30.0]))
+
+        def grab(self) -> bool:
+            time.sleep(1 / 30)
+            grabs.append(time.time() + AHEAD_S)
+            return True
+
+    monkeypatch.setattr(cv2, "VideoCapture", Grabbing)
+    _hub, session, connect, _node = bridge
+    got: list[bus.CameraAlpha] = []
+    lock = threading.Lock()
+
+    def collect(sample) -> None:
+        with lock:
+            got.append(bus.decode(bus.CAMERA_ALPHA, sample.payload.to_bytes()))
+
+    sub = session.declare_subscriber(bus.CAMERA_ALPHA, collect)
+    camera_session = connect()
+    clock = BridgeClock(camera_session, burst=8)
+    clock.sync(wait_s=5.0)
+    cal = twin_calibration()
+    source = UsbSource("0", cal.width, cal.height, latency_s=0.05, clock=time.monotonic)
+    camera = CameraNode(camera_session, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal), clock=clock)
+    try:
+        camera.run_source(source, threading.Event(), max_frames=40)
+        assert wait_until(lambda: len(got) >= 10, 5.0)
+    finally:
+        sub.undeclare()
+        camera.close()
+        source.close()
+    with lock:
+        seen = sorted(got, key=lambda m: m.seq)
+    for msg in seen:
+        bus.check_camera_alpha(msg, 3)  # the capture not after its publication: one offset for both
+        grab = grabs[msg.seq - 1]
+        assert msg.capture_stamp_s == pytest.approx(grab - 0.05, abs=0.005), (msg.seq, msg.capture_stamp_s - grab)
+        assert msg.source == "usb:0" and all(a is not None for a in msg.alpha_ip_rad)
+    assert not math.isnan(clock.offset_s)
+
+
+# --- the command ----------------------------------------------------------------------------------
+
+SHIM = """
+import sys, time, cv2
+class Still:  # a USB camera that never stops (the test ends the process by its clock sync)
+    def __init__(self, *a): pass
+    def isOpened(self): return True
+    def set(self, *a): return True
+    def get(self, prop): return 30.0 if prop == cv2.CAP_PROP_FPS else 0.0
+    def grab(self): time.sleep(1 / 30); return True
+    def retrieve(self): return True, __import__('numpy').zeros((720, 1280, 3), 'uint8')
+    def release(self): pass
+cv2.VideoCapture = Still
+from server.cli import main
+main()
+"""
+
+
+def test_xneck_camera_on_a_usb_camera_without_a_bridge_says_so_and_exits_1() -> None:
+    with bus_pair() as (hub, _session, _connect):
+        t0 = time.monotonic()
+        done = subprocess.run([sys.executable, "-c", SHIM, "camera", "--source", "usb:0", "--frame-rate-hz", "0",
+                               "--connect", hub], capture_output=True, text=True, timeout=120)
+        took = time.monotonic() - t0
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error:")]
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert len(errors) == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert "no bridge answered on xneck/bridge/clock within 3 s" in errors[0], errors[0]
+    assert "--clock local" in errors[0], errors[0]
+    assert took < 30
+
+
+def test_xneck_camera_logs_the_bridge_clock_offset_once_at_start(bridge) -> None:
+    hub, *_ = bridge
+    done = subprocess.run([sys.executable, "-c", SHIM, "camera", "--source", "usb:0", "--frame-rate-hz", "0",
+                           "--max-frames", "3", "--connect", hub], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = [line for line in done.stderr.splitlines() if "camera clock: bridge beaglebone-1" in line]
+    assert len(lines) == 1, done.stderr[-3000:]
+    assert " is +1000.0" in lines[0] and " ms ahead of this PC's wall clock" in lines[0], lines[0]
+    assert done.stderr.index(lines[0]) < done.stderr.index(" up: --source usb:0")  # synchronised before the first frame
