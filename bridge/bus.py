@@ -12,7 +12,9 @@ Units and frames
     SI units, spelled in field names (``_rad``, ``_rad_s``, ``_N``, ``_m``, ``_s``). Per-motor and
     per-cable lists are in motor index order, the order of the robot's parameter file. Joint angles
     ``alpha`` are the X-joint angles, base to head. ``stamp_s`` is the sender's clock in seconds:
-    wall time (``time.time()``) for hardware processes, simulated time for the twin.
+    wall time (``time.time()``) for hardware processes, simulated time for the twin. A camera on
+    another machine than the bridge stamps on the bridge's clock, which the bridge serves on the
+    queryable :data:`BRIDGE_CLOCK` (:class:`ClockReading`).
 
 Version rule
     Every message carries ``v``, its schema version; the current one is the default of the ``v``
@@ -145,7 +147,8 @@ class CameraAlpha(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=T
     """X-joint angles measured by the camera (image processing, about 30 Hz).
 
     ``capture_stamp_s`` is the middle of the exposure, ``stamp_s`` the publication time, both on the
-    publisher's clock (wall time on hardware, simulated time for the twin; video time for a file).
+    bus clock: the twin's simulated time, the bridge's stamp clock for a USB camera (measured over
+    :data:`BRIDGE_CLOCK`; ``xneck camera --clock local``: the PC's wall clock), video time for a file.
     v2: ``alpha_ip_rad[i]`` is null for a joint the camera did not measure (a hidden marker, an
     outlier): missing, never guessed. ``confidence[i]`` in [0, 1] grades each joint (0 when
     missing); empty when the publisher does not grade (the twin's white-noise camera).
@@ -413,7 +416,7 @@ PAYLOAD_MAX_BYTES_BY_TYPE: dict[type[BusMessage], int] = {
     MotorState: REAL_TIME_PAYLOAD_MAX_BYTES,
     ForceCommand: REAL_TIME_PAYLOAD_MAX_BYTES,
     EStop: REAL_TIME_PAYLOAD_MAX_BYTES,
-    ClockReading: 1024,  # about 110 bytes: a larger reply is not a bridge's
+    ClockReading: 1024,  # at most 218 bytes (every field at its bound): a larger reply is not a bridge's
     CameraFrame: 4 * (FRAME_DATA_MAX_BYTES // 3 + 1) + PAYLOAD_MAX_BYTES,
     CampaignRequest: TRAJECTORY_JSON_MAX_BYTES + PARAMETERS_TOML_MAX_BYTES + 4096,
 }

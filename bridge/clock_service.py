@@ -5,7 +5,7 @@ answers each query with a :class:`bridge.bus.ClockReading`: ``stamp_s`` the driv
 ``stamp_s()`` at the reply, the clock of every ``MotorState.stamp_s`` (the board's wall clock for
 hardware; for the twin the simulated time of its last tick, which moves only as the loop ticks).
 The handler runs on a Zenoh thread beside the real-time loop: it reads the stamp (one call, no
-lock), encodes about 100 bytes and replies; it reads nothing else of the loop's state. A token
+lock), encodes one small message and replies; it reads nothing else of the loop's state. A token
 bucket (:data:`RATE_PER_S` replies a second, bursts of :data:`BURST`) bounds what a peer flooding
 queries costs the bridge; queries beyond it get no reply and are counted (``refused``).
 
