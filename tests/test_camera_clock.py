@@ -261,3 +261,21 @@ def test_xneck_camera_logs_the_bridge_clock_offset_once_at_start(bridge) -> None
     assert len(lines) == 1, done.stderr[-3000:]
     assert " is +1000.0" in lines[0] and " ms ahead of this PC's wall clock" in lines[0], lines[0]
     assert done.stderr.index(lines[0]) < done.stderr.index(" up: --source usb:0")  # synchronised before the first frame
+
+
+def test_the_sync_thread_takes_a_step_by_itself_and_stops_promptly(bridge) -> None:
+    from twin.camera.clock import BridgeClock
+
+    _hub, _session, connect, node = bridge
+    clock = BridgeClock(connect(), burst=4, period_s=0.2)
+    clock.sync(wait_s=5.0)
+    clock.start()
+    try:
+        node.driver.shift_s = AHEAD_S - 7.5  # type: ignore[attr-defined]  # the board's clock set back
+        assert wait_until(lambda: clock.tracker.steps == 1, 5.0, 0.05)
+        assert clock.wall_offset_s() == pytest.approx(AHEAD_S - 7.5, abs=0.005)
+        assert clock.health()[0]["clock_steps"] == 1
+    finally:
+        t0 = time.monotonic()
+        clock.stop()
+        assert time.monotonic() - t0 < 2.5

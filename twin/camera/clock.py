@@ -74,6 +74,7 @@ class BridgeClock:
         self.last_problem = ""
         self._synced_at = -math.inf  # local time of the last used burst
         self._stop = threading.Event()
+        self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
 
     # --- one burst ------------------------------------------------------------------------------
@@ -82,6 +83,8 @@ class BridgeClock:
         """One burst: the samples of each bridge run that answered (named one only, if named)."""
         runs: dict[tuple[str, str], list[ClockSample]] = {}
         for _ in range(self.burst):
+            if self._stop.is_set():  # stopping: a burst takes up to burst × query_timeout_s
+                break
             result = query_clock(self.session, self.query_timeout_s, self.local)
             self.refused += len(result.rejected)
             if result.rejected:
@@ -112,15 +115,15 @@ class BridgeClock:
             names = ", ".join(f"{b} (run {e})" for b, e in sorted(runs))
             return (f"{len(runs)} bridges answer on {bus.BRIDGE_CLOCK}: {names}; name the robot's with "
                     f"--clock bridge:NAME (its --instance)")
+        with self._lock:  # the tracker against health()'s reads on the camera's thread
+            return self._follow(chosen, current, runs[chosen])
+
+    def _follow(self, chosen: tuple[str, str], current: tuple[str, str], samples: list[ClockSample]) -> str:
         before = self.tracker.steps
         if chosen != current:
-            if self.bridge:
-                self.resyncs += 1
-                log.warning("camera clock: bridge %s (run %s) no longer answers, bridge %s (run %s) does: synchronising "
-                            "with it afresh", self.bridge, self.epoch, *chosen)
-            self.tracker.reset()
-        outcome = self.tracker.add_burst(runs[chosen])
-        self.refused += sum(1 for s in runs[chosen] if s.problem())
+            self.tracker.reset()  # the old run's offset says nothing of this one's
+        outcome = self.tracker.add_burst(samples)
+        self.refused += sum(1 for s in samples if s.problem())
         if not outcome.used or outcome.estimate is None:
             self.missed += 1
             if self.tracker.last_invalid:
@@ -136,6 +139,11 @@ class BridgeClock:
     def _take(self, run: tuple[str, str], est: OffsetEstimate) -> None:
         if run != (self.bridge, self.epoch):
             self.run_bursts = 0
+            if self.bridge:
+                self.resyncs += 1
+                log.warning("camera clock: bridge %s (run %s) no longer answers, bridge %s (run %s) does: synchronised "
+                            "with it afresh, %s this PC's wall clock", self.bridge, self.epoch, *run,
+                            _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.bridge, self.epoch = run
         self.run_bursts += 1
         self.uncertainty_s = est.uncertainty_s
@@ -168,7 +176,11 @@ class BridgeClock:
 
     def wall_offset_s(self) -> float:
         """bridge − this PC's ``time.time()`` (s), from ``offset_s`` (for people and health)."""
-        return self.offset_s - (time.time() - self.local()) if self.local is not time.time else self.offset_s
+        return self._to_wall(self.offset_s)
+
+    def _to_wall(self, offset_s: float) -> float:
+        """An offset from ``local`` as one from this PC's ``time.time()`` (s)."""
+        return offset_s - (time.time() - self.local()) if self.local is not time.time else offset_s
 
     def start(self) -> None:
         """Bursts every ``period_s`` on a daemon thread until :meth:`stop`."""
@@ -182,6 +194,8 @@ class BridgeClock:
                 why = self.burst_once()
             except Exception as exc:  # noqa: BLE001 - a closing session: the offset stays, the camera goes on
                 why = f"{type(exc).__name__}: {exc}"
+            if self._stop.is_set():
+                break
             if why and why != said:
                 log.warning("camera clock: %s; the last offset (%s this PC's, %.0f s old) stays", why, self.describe_offset(),
                             self.age_s())
@@ -203,6 +217,10 @@ class BridgeClock:
         the offset to this PC's wall clock and its uncertainty, the drift (ppb), the age of the
         last sync (s), the bursts, steps and re-syncs, and the run followed as
         ``clock_run/<bridge>/<epoch>`` (its bursts used); refused replies and missed bursts."""
+        with self._lock:
+            return self._health()
+
+    def _health(self) -> tuple[dict[str, int], dict[str, int]]:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
                     "clock_foreign": self.foreign}
         if math.isfinite(self.offset_s):

@@ -187,6 +187,8 @@ class CameraNode:
                     stamp = capture
                 elif self.clock is not None:
                     offset = self.clock.offset_s  # one read: the sync thread replaces it whole
+                    if not math.isfinite(offset):
+                        raise RuntimeError(f"{source.name}: the camera clock is not synchronised with a bridge yet")
                     capture, stamp = capture + offset, self.clock.local() + offset
                 else:
                     stamp = time.time()
