@@ -155,12 +155,22 @@ def test_hostile_replies_are_counted_and_never_used(bridge) -> None:
 
 
 def test_a_flood_of_queries_is_bounded_by_the_bridge(bridge) -> None:
-    _hub, _session, connect, node = bridge
+    """The bridge's own bucket (200 a second, bursts of 64) and a slow one, whose refusals a loaded
+    machine cannot hide: replies never exceed the burst plus the rate over the time taken."""
+    _hub, session, connect, node = bridge
     camera = connect()
     assert wait_until(lambda: query_clock(camera).replies != [], 5.0, 0.05)
-    for _ in range(150):
-        query_clock(camera, 0.2)
-    assert node.clock.refused > 0 and node.clock.answered < 150 + 20
+    slow = ClockService(session, time.time, "f00d", "slow-1", rate_per_s=5.0, burst=4)
+    try:
+        assert wait_until(lambda: len(query_clock(camera).replies) == 2, 5.0, 0.05)  # both reached
+        before, t0 = node.clock.answered, time.monotonic()
+        for _ in range(150):
+            query_clock(camera, 0.2)
+        took = time.monotonic() - t0
+        assert node.clock.answered - before <= 64 + 200 * took + 1
+        assert slow.answered <= 4 + 5 * (took + 5.0) + 1 and slow.refused > 0
+    finally:
+        slow.close()
 
 
 # --- the USB camera's α_IP on the bridge's clock ---------------------------------------------------
