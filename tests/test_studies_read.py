@@ -19,7 +19,7 @@ from server_harness import AUTH, TOKEN, running_server, server_process, wait_unt
 from server.studies import execute
 from server.studies.execute import read_rows, study_dir, write_batch
 from server.studies.report import summarize, write_outputs
-from server.studies.spec import expand, study_from
+from server.studies.spec import StudyRuns, expand, study_from
 
 DESIGN = study_from("design", samples=60, vary=("geometry.b=0.03:0.06:2",), design_configurations=10)  # 120 runs
 
@@ -31,7 +31,7 @@ def _design_rows(runs, feasible: float) -> list[dict]:
             for r in runs]
 
 
-def _on_disk(root: Path, sizes: list[int], feasible: float = 0.5) -> tuple[Path, list]:
+def _on_disk(root: Path, sizes: list[int], feasible: float = 0.5) -> tuple[Path, StudyRuns]:
     """DESIGN's directory under ``root`` with batches of ``sizes`` rows (as the writer leaves them)."""
     out = root / f"design-{DESIGN.digest()}"
     runs = expand(DESIGN)
