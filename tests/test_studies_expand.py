@@ -16,7 +16,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from server.studies.spec import MAX_RUNS, RunSpec, Study, expand, run_count, study_from
+from server.studies.spec import MAX_RUNS, RunSpec, Study, StudyRuns, expand, run_count, study_from
 
 pytestmark = pytest.mark.background  # computation only
 
@@ -134,3 +134,52 @@ def test_resuming_skips_the_finished_runs_in_order_without_building_them() -> No
     assert runs.count_finished(done) == 17
     assert list(runs.unfinished(done)) == [r for r in eager if r.run_id not in done]
     assert list(runs.unfinished(set())) == eager and list(runs.unfinished({r.run_id for r in eager})) == []
+
+
+def _builds(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Positions of the runs built (values drawn) from now on."""
+    built: list[int] = []
+    run = StudyRuns._run
+
+    def counted(self: StudyRuns, i: int) -> RunSpec:
+        built.append(i)
+        return run(self, i)
+
+    monkeypatch.setattr(StudyRuns, "_run", counted)
+    return built
+
+
+def test_a_resumed_study_builds_only_the_runs_it_submits(tmp_path, monkeypatch) -> None:
+    # run_study kept a list of the unfinished runs, built from the whole expansion, before the first
+    # window was submitted; and a finished study's rerun built every run to find nothing to do
+    from server.studies import execute
+
+    s = study_from("design", samples=100, vary=("geometry.b=0.03:0.06:20",), design_configurations=10)  # 2,000 runs
+    runs = expand(s)
+    out = tmp_path / "study"
+    built = _builds(monkeypatch)
+    seen: dict[str, object] = {}
+
+    def execute_window(cfg, todo, out_, total, done, *_a) -> None:  # the Dask part: takes a first window
+        seen.update(total=total, done=done, window=list(itertools.islice(todo, 8)))
+
+    monkeypatch.setattr(execute, "_execute", execute_window)
+    monkeypatch.setattr("server.studies.report.write_outputs", lambda out_, study, total: {"runs_total": total})
+    progress: list[tuple[int, int, str]] = []
+    assert execute.run_study(s, out, client=object(), progress=lambda *p: progress.append(p)) == {"runs_total": 2000}
+    assert progress == [(0, 2000, "starting")] and seen["window"] == _eager(s)[:8] and built == list(range(8))
+
+    built.clear()
+    with execute.study_dir(s, out):  # 1,500 rows on disk, another study's id among them
+        execute.write_batch(out, [{"run_id": runs.run_id(i), "law": 0} for i in range(1500)] + [{"run_id": "g9999-s00000", "law": 0}])
+    progress.clear()
+    assert execute.run_study(s, out, client=object(), progress=lambda *p: progress.append(p)) == {"runs_total": 2000}
+    assert progress == [(1500, 2000, "resuming")] and seen["total"] == 2000 and seen["done"] == 1500
+    assert seen["window"] == _eager(s)[1500:1508] and built == list(range(1500, 1508))
+
+    built.clear()
+    with execute.study_dir(s, out):
+        execute.write_batch(out, [{"run_id": runs.run_id(i), "law": 0} for i in range(1500, 2000)])
+    (out / "summary.json").write_text('{"runs_done": 2000, "kept": true}')
+    assert execute.run_study(s, out, client=object()) == {"runs_done": 2000, "kept": True}
+    assert built == []  # a finished study's rerun: nothing to build, nothing to run

@@ -23,7 +23,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from threading import Event
 from typing import Any
@@ -240,21 +240,22 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     if client is None and not scheduler:
         check_workers(workers)  # before the study directory exists or a cluster starts
     cfg = config_for(study, software_version())
-    runs = expand(study)
+    runs = expand(study)  # a view: each run is built when its window takes it
+    total = len(runs)
     inputs = hashlib.sha256(json.dumps([cfg.params, cfg.truth, cfg.trajectory_json], sort_keys=True).encode()).hexdigest()[:16]
     with study_dir(study, out, inputs):
         done = finished_ids(out)
-        todo = [r for r in runs if r.run_id not in done]
+        finished = runs.count_finished(done)  # by their ids: no run built
         if progress:
-            progress(len(runs) - len(todo), len(runs), "resuming" if done else "starting")
-        if not todo:
-            summary = _finished_summary(out, len(runs))
+            progress(finished, total, "resuming" if done else "starting")
+        if finished == total:
+            summary = _finished_summary(out, total)
             if summary is not None:  # a rerun of a finished study: nothing to run or draw again
                 return summary
         elif not (stop and stop.is_set()):
-            _execute(cfg, todo, out, len(runs), len(runs) - len(todo), client, workers, scheduler, progress, stop,
+            _execute(cfg, runs.unfinished(done), out, total, finished, client, workers, scheduler, progress, stop,
                      flush_rows, flush_s)
-        return write_outputs(out, study, len(runs))
+        return write_outputs(out, study, total)
 
 
 def _finished_summary(out: Path, total: int) -> dict[str, Any] | None:
@@ -265,7 +266,7 @@ def _finished_summary(out: Path, total: int) -> dict[str, Any] | None:
     return summary if summary.get("runs_done") == total else None
 
 
-def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
+def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
              scheduler: str | None, progress: Progress | None, stop: Event | None, flush_rows: int,
              flush_s: float) -> None:
     from distributed import wait
@@ -287,7 +288,7 @@ def _execute(cfg: Any, todo: list[RunSpec], out: Path, total: int, done: int, cl
         # a window of runs at a time, not the whole study: 200,000 futures took GBs in the scheduler,
         # and a stop had to wait behind them (and cancel them one by one)
         limit, sized = 0, -math.inf
-        queue = iter(todo)
+        queue = iter(todo)  # built one at a time as the window takes them
         while True:
             if time.monotonic() - sized >= RESIZE_S:  # a cluster's workers may come (and go) while it runs
                 limit, sized = in_flight_limit(_threads(client)), time.monotonic()
