@@ -321,6 +321,31 @@ def test_identify_refuses_two_cameras_and_reads_the_one_chosen_past_a_stray_fram
     assert _without_files(doc) == _without_files(_strict(clean.stdout))
 
 
+def test_identify_says_when_alpha_ip_is_stamped_off_the_encoders_time(xneck, campaign, tmp_path):
+    """A camera whose --latency (or clock) is off by 40 ms shifts every α_IP against θ and f, and the
+    fit went on with it in silence. `xneck identify` measures the delay from the record, warns on
+    stderr (also under --json) and puts it in the JSON; the unshifted record gets no warning."""
+    import msgspec
+
+    from bridge.archive_read import read_campaign
+
+    original = read_campaign(campaign)
+    replace = msgspec.structs.replace
+    msgs = [(bus.key_of_topic(topic), t, m) for topic, items in original.topics.items() for t, m in items]
+    late = [(k, t, replace(m, capture_stamp_s=m.capture_stamp_s + 0.04, stamp_s=m.stamp_s + 0.04))
+            if k == bus.CAMERA_ALPHA else (k, t, m) for k, t, m in msgs]
+    shifted = tmp_path / "late.mcap"
+    archive.write_campaign(shifted, late, original.info)
+    run = xneck("identify", str(shifted), "--json", "--no-alpha-hat", "--out", str(tmp_path / "late"))
+    assert run.returncode == 0, run.stderr
+    assert "warning: α_IP timing" in run.stderr and "ms late" in run.stderr and "--latency longer" in run.stderr, run.stderr
+    timing = _strict(run.stdout)["alpha_ip_timing"]
+    assert timing["resolved"] and 0.032 < timing["delay_s"] < 0.048, timing
+    clean = xneck("identify", str(campaign), "--no-alpha-hat", "--out", str(tmp_path / "clean"))
+    assert clean.returncode == 0, clean.stderr
+    assert "α_IP timing: best matched" in clean.stdout and "warning" not in clean.stderr, clean.stderr
+
+
 # -- 8. numbers that make no sense ---------------------------------------------------------------------------
 
 

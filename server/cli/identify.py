@@ -108,6 +108,11 @@ def identify(
             typer.echo(f"note: {what}{note}", err=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
+    from twin.identification.timing import WARN_DELAY_S, alpha_ip_timing
+
+    timing = alpha_ip_timing(ident.data)
+    if timing.resolved and abs(timing.delay_s) > WARN_DELAY_S:  # also under --json: the fit used shifted α_IP
+        typer.echo(f"warning: {timing.text()}", err=True)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         figures = write_figures(val, out_dir) if val is not None else []
@@ -119,6 +124,7 @@ def identify(
     if json_out:
         doc = report_dict(est, proc, val, prov)
         doc["record_notes"] = list(ident.data.notes)
+        doc["alpha_ip_timing"] = timing.as_dict()
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
         if cross is not None:
             doc["cross_validation"] = cross[0]
@@ -127,6 +133,7 @@ def identify(
         typer.echo(tables_text(est, proc, val, prov.kept_base))
         typer.echo("")
         typer.echo("\n".join(report.lines()))
+        typer.echo(timing.text())
         typer.echo(f"parameter set: {toml_path} (provenance {prov_path.name}); figures: {out_dir}")
         if cross is not None:
             typer.echo("")

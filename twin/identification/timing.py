@@ -1,0 +1,106 @@
+"""Whether α_IP is on the encoders' time: the delay at which the camera best matches the motors.
+
+The identification pairs each camera frame with the motor states at its capture stamp
+(``CameraAlpha.capture_stamp_s``). A live camera's stamp is its grab time minus a latency that is
+a guess until measured (``xneck camera --latency``, 50 ms by default) plus the bridge's clock offset
+(docs/camera.md, "One clock"); either wrong by d shifts every α_IP by d against θ and f, and at the
+excitation's 86°/s 20 ms is 1.7°: k and λ come out biased with nothing else to show it.
+
+This module measures the shift from the record itself. Over one campaign the joint angles are
+close to a linear function of the motor angles and the cable forces (the cables' lengths follow
+θ, their stretch the tensions, eqs. 20-22), so α_IP(t) ≈ A·θ(t − τ) + C·f(t − τ) + b is fitted by
+least squares for each τ of a grid and the τ of least residual is the camera's delay against the
+encoders: τ > 0 means α_IP is stamped τ late (its latency set τ too short, or its clock τ ahead).
+The map is not the model (it is fitted per τ, nothing of the parameter set enters), so the check
+holds whatever the parameters; a nonlinear remainder raises the residual at every τ alike and
+moves its minimum little.
+
+Times in s, angles in rad (degrees in the report's text only).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from twin.identification.processing import CampaignData
+
+#: s searched either side of the stamps as recorded: above a camera's latency guess's error (the
+#: default 50 ms entirely wrong) and a frame period's several, below the excitation's period.
+MAX_DELAY_S = 0.25
+#: s between the delays tried before the parabola's refinement around the least residual.
+STEP_S = 0.002
+#: |τ| (s) above which the report warns: half a frame at 30 fps. Below it the camera's own
+#: quantisation of its capture time dominates.
+WARN_DELAY_S = 1.0 / 60.0
+#: The residual at the stamps as recorded must exceed the least one by this factor for a delay
+#: to be reported as one: a flat residual (a record with little motion) says nothing.
+MIN_CONTRAST = 1.02
+
+
+class AlphaIpTiming(NamedTuple):
+    """What :func:`alpha_ip_timing` found (s, and the fitted map's residuals in rad)."""
+
+    delay_s: float  # τ of least residual: α_IP stamped this much late (negative: early)
+    rms_rad: float  # residual at τ
+    rms_at_stamps_rad: float  # residual at τ = 0, the stamps as recorded
+    frames: int  # camera frames used (those whose shifted time lies inside the encoder record)
+    resolved: bool  # whether the residual's minimum stands out (:data:`MIN_CONTRAST`)
+
+    def text(self) -> str:
+        """One line for the identification's output."""
+        head = (f"α_IP timing: best matched by the encoders and forces {self.delay_s * 1e3:+.1f} ms from its stamps "
+                f"(rms {np.degrees(self.rms_rad):.2f}° there, {np.degrees(self.rms_at_stamps_rad):.2f}° as stamped; "
+                f"{self.frames} frames)")
+        if not self.resolved:
+            return head + ": the record is too short or moves too little to tell a delay"
+        if abs(self.delay_s) > WARN_DELAY_S:
+            late = "late" if self.delay_s > 0 else "early"
+            return (head + f": WARNING, α_IP looks stamped {abs(self.delay_s) * 1e3:.0f} ms {late}: set the camera's "
+                    f"--latency {'longer' if self.delay_s > 0 else 'shorter'} by that much, or check its clock "
+                    f"(docs/camera.md, One clock), and record again")
+        return head
+
+    def as_dict(self) -> dict[str, float | int | bool]:
+        return {"delay_s": self.delay_s, "rms_deg": float(np.degrees(self.rms_rad)),
+                "rms_at_stamps_deg": float(np.degrees(self.rms_at_stamps_rad)), "frames": self.frames,
+                "resolved": self.resolved, "warn_above_s": WARN_DELAY_S}
+
+
+def _residual(t: np.ndarray, signals: np.ndarray, t_ip: np.ndarray, alpha: np.ndarray, tau_s: float) -> float:
+    """RMS residual (rad) of the best linear map from ``signals`` (θ and f, sampled at ``t``) at
+    t − τ to ``alpha`` at ``t_ip`` (every t_ip − τ inside ``t``'s span)."""
+    ts = t_ip - tau_s
+    X = np.column_stack([*(np.interp(ts, t, x) for x in signals.T), np.ones(len(ts))])
+    coef, *_ = np.linalg.lstsq(X, alpha, rcond=None)
+    r = alpha - X @ coef
+    return float(np.sqrt(np.mean(r * r)))
+
+
+def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s: float = STEP_S) -> AlphaIpTiming:
+    """The delay of α_IP against the encoders and forces (module docstring): the residual on a grid
+    of ±``max_delay_s`` every ``step_s``, refined by a parabola through the least one and its two
+    neighbours. The same frames count at every τ: those at least ``max_delay_s`` inside the
+    encoder record."""
+    t = data.t_s
+    keep = (data.t_ip_s >= t[0] + max_delay_s) & (data.t_ip_s <= t[-1] - max_delay_s)
+    t_ip, alpha = data.t_ip_s[keep], data.alpha_ip_rad[keep]
+    signals = np.concatenate([data.theta_rad, data.force_N], axis=1)
+    if len(t_ip) < 3 * (signals.shape[1] + 1):  # too few frames to fit the map with a residual to compare
+        return AlphaIpTiming(0.0, float("nan"), float("nan"), len(t_ip), False)
+    taus = np.arange(-max_delay_s, max_delay_s + step_s / 2, step_s)
+    rms = np.array([_residual(t, signals, t_ip, alpha, float(tau)) for tau in taus])
+    i = int(np.argmin(rms))
+    delay = float(taus[i])
+    interior = 0 < i < len(taus) - 1
+    if interior:
+        # Parabola through three points: the vertex, within one step of the grid's least.
+        y0, y1, y2 = rms[i - 1], rms[i], rms[i + 1]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            delay += float(np.clip(0.5 * (y0 - y2) / den, -1.0, 1.0)) * step_s
+    at_delay = min(_residual(t, signals, t_ip, alpha, delay), float(rms[i]))
+    at_stamps = _residual(t, signals, t_ip, alpha, 0.0)
+    resolved = interior and bool(rms.max() > MIN_CONTRAST * rms.min())
+    return AlphaIpTiming(delay, at_delay, at_stamps, len(t_ip), resolved)
