@@ -127,6 +127,7 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
     from server.identified_sets import identified_set
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict
+    from twin.identification.timing import alpha_ip_timing
     from twin.model.params import load_params, parse_override
 
     try:
@@ -137,6 +138,7 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
                                 estimator=estimator, creep_time_s=creep_time_s)
         report = report_dict(ident.estimate, ident.processed)
         report["record_notes"] = list(ident.data.notes)  # stray messages the reader dropped, if any
+        report["alpha_ip_timing"] = alpha_ip_timing(ident.data).as_dict()  # α_IP's delay against the encoders
     except Exception as exc:  # noqa: BLE001 - reported to the user
         text = f"identification failed: {type(exc).__name__}: {exc}"
     else:

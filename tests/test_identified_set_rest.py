@@ -71,6 +71,8 @@ def test_an_identification_is_saved_as_a_parameter_set_and_chosen_active(tmp_pat
         ident = start(_brisk_identification())  # the robot truth
         assert ident["status"] in ("finished", "degraded") and ident["identification_status"] == "identified", ident
         estimated = _table_2(ident)
+        timing = ident["identification"]["alpha_ip_timing"]  # α_IP's delay against the encoders, as `xneck identify` says it
+        assert timing["frames"] > 100 and abs(timing["delay_s"]) < timing["warn_above_s"], timing
         cid = ident["id"]
         # The analysis kept the set it identified: a save copies it (server.identified_sets).
         kept_set = list((tmp_path / "d").rglob(f"{cid}_figures/identified-set.json"))
