@@ -90,10 +90,10 @@ def test_a_clock_set_on_the_board_is_a_step_and_a_restarted_bridge_is_synchronis
     node.driver.shift_s = AHEAD_S + 3.0  # type: ignore[attr-defined]
     assert clock.burst_once() == ""
     assert clock.tracker.steps == 1 and clock.wall_offset_s() == pytest.approx(AHEAD_S + 3.0, abs=0.005)
-    # The bridge restarts (a new run, a new random name, the clock back where it was): re-synchronised.
+    # The bridge restarts (a new run of the same instance, the clock back where it was): re-synchronised.
     node.shutdown()
     driver = ShiftedBoardDriver.from_params(BeagleBoneConfig(), params)
-    second = bridge_node(session, driver, params, BridgeConfig(command_timeout_s=5.0))
+    second = bridge_node(session, driver, params, BridgeConfig(command_timeout_s=5.0, instance="beaglebone-1"))
     try:
         assert wait_until(lambda: clock.burst_once() == "", 5.0, 0.05)
         assert (clock.bridge, clock.epoch) == (second.instance, second.epoch) and clock.resyncs == 1
@@ -101,6 +101,43 @@ def test_a_clock_set_on_the_board_is_a_step_and_a_restarted_bridge_is_synchronis
         assert clock.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
     finally:
         second.shutdown()
+
+
+def test_another_bridge_answering_alone_is_foreign_and_never_adopted() -> None:
+    """Audit of 2026-11-29 (a2_benign.py): the robot's link drops for one burst while a twin bridge
+    on the hub answers alone: the camera had taken the twin's clock for a restart and kept it once
+    the robot was back. Only a new run of the followed instance is a restart."""
+    from twin.camera.clock import BridgeClock
+
+    with bus_pair() as (_hub, _session, connect):
+        robot_session = connect()
+        robot = ClockService(robot_session, lambda: time.time() + AHEAD_S, "aaaa11112222", "beaglebone-1")
+        camera = BridgeClock(connect(), burst=4)
+        camera.sync(wait_s=5.0)
+        twin = ClockService(connect(), lambda: 5.0, "bbbb33334444", "twin-7")
+        try:
+            assert wait_until(lambda: len(query_clock(camera.session).replies) == 2, 5.0, 0.05)
+            robot.close()  # the link drops
+            assert wait_until(lambda: len(query_clock(camera.session).replies) == 1, 5.0, 0.05)
+            why = camera.burst_once()
+            assert "twin-7 (run bbbb33334444) answers alone" in why and "not followed" in why, why
+            assert (camera.bridge, camera.epoch) == ("beaglebone-1", "aaaa11112222") and camera.resyncs == 0
+            assert camera.foreign >= 4 and camera.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+            robot = ClockService(robot_session, lambda: time.time() + AHEAD_S, "aaaa11112222", "beaglebone-1")
+            assert wait_until(lambda: len(query_clock(camera.session).replies) == 2, 5.0, 0.05)
+            assert camera.burst_once() == "" and camera.bridge == "beaglebone-1"
+            assert camera.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+            # a new run of the followed instance alone is a restart: synchronised afresh
+            robot.close()
+            robot = ClockService(robot_session, lambda: time.time() + AHEAD_S + 2.0, "cccc55556666", "beaglebone-1")
+            twin.close()
+            assert wait_until(lambda: [r.reading.epoch for r in query_clock(camera.session).replies] == ["cccc55556666"],
+                              5.0, 0.05)
+            assert camera.burst_once() == "" and (camera.bridge, camera.epoch) == ("beaglebone-1", "cccc55556666")
+            assert camera.resyncs == 1 and camera.wall_offset_s() == pytest.approx(AHEAD_S + 2.0, abs=0.005)
+        finally:
+            twin.close()
+            robot.close()
 
 
 def test_two_bridges_without_a_name_are_refused_and_a_name_picks_one(bridge) -> None:

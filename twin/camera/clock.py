@@ -9,11 +9,13 @@ step moves) in bursts of :data:`BURST` queries (the shortest round trip of each:
 a few seconds) and then every :data:`PERIOD_S` on a thread of its own (:meth:`BridgeClock.start`).
 An exposure grabbed at monotonic time t is stamped ``t − latency + offset_s``.
 
-Which bridge: the one that answers (a name given, ``--clock bridge:NAME``: that instance only).
-Several answering without a name is refused at start. A bridge run that changes (a restart: a new
-``epoch``, perhaps a new random name while no other bridge answers) is synchronised afresh
-(``resyncs``), the offset of the old run forgotten; another bridge answering beside the followed
-one is set aside (``foreign``). A step of the offset within one run (the board's clock set by NTP)
+Which bridge: the one that answers at start (a name given, ``--clock bridge:NAME``: that instance
+only). Several answering without a name is refused at start. From then on the camera follows that
+bridge *instance*: a new run of it (a restart: a new ``epoch``, same name) is synchronised afresh
+(``resyncs``), the offset of the old run forgotten; another instance's replies, beside the followed
+one or alone (a twin bridge on the hub while the robot's link drops), are set aside (``foreign``),
+never adopted: the last offset stays, with a warning. A bridge started without ``--instance`` has
+a random name at each start: after its restart the camera must be restarted too. A step of the offset within one run (the board's clock set by NTP)
 is taken at once and counted (``steps``), with a warning. When no burst succeeds, the last offset
 is kept (``clock_age_s`` in the health says since when).
 """
@@ -110,6 +112,14 @@ class BridgeClock:
             self.foreign += sum(len(v) for k, v in runs.items() if k != current)
         elif len(runs) == 1:
             chosen = next(iter(runs))
+            if self.bridge and chosen[0] != self.bridge:
+                # Another instance alone is not a restart of the followed one (a twin bridge on the hub
+                # while the robot's link drops): its clock is not the robot's; the last offset stays.
+                self.foreign += len(runs[chosen])
+                self.missed += 1
+                return (f"bridge {self.bridge} (run {self.epoch}) did not answer on {bus.BRIDGE_CLOCK} and "
+                        f"bridge {chosen[0]} (run {chosen[1]}) answers alone: not followed (only a new run of "
+                        f"{self.bridge} is; restart the camera to follow another bridge)")
         else:
             self.missed += 1
             names = ", ".join(f"{b} (run {e})" for b, e in sorted(runs))
@@ -141,8 +151,8 @@ class BridgeClock:
             self.run_bursts = 0
             if self.bridge:
                 self.resyncs += 1
-                log.warning("camera clock: bridge %s (run %s) no longer answers, bridge %s (run %s) does: synchronised "
-                            "with it afresh, %s this PC's wall clock", self.bridge, self.epoch, *run,
+                log.warning("camera clock: bridge %s: run %s no longer answers, run %s does (a restart): synchronised "
+                            "with it afresh, %s this PC's wall clock", self.bridge, self.epoch, run[1],
                             _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.bridge, self.epoch = run
         self.run_bursts += 1
