@@ -267,6 +267,129 @@ def test_a_usb_camera_publishes_alpha_ip_captured_on_the_bridge_clock(bridge, mo
     assert not math.isnan(clock.offset_s)
 
 
+def test_the_states_of_the_bridge_show_a_clock_set_at_once_and_no_alpha_ip_is_stamped_with_the_old_offset(
+        bridge, monkeypatch, params, model) -> None:
+    """Audit of 2026-11-29 (e_steplag.py): the board's clock set 3 s forward left α_IP on the old
+    offset until the next burst, up to 10 s later. The camera watches the bridge's MotorStates: the
+    jump is seen at once, a burst run, and no frame goes out stamped with the old offset."""
+    cv2 = pytest.importorskip("cv2")
+    from test_camera_sources import FakeCamera
+
+    from twin.camera.calibration import twin_calibration
+    from twin.camera.clock import BridgeClock
+    from twin.camera.detect import Detector
+    from twin.camera.process import CameraNode
+    from twin.camera.render import Renderer
+    from twin.camera.source import UsbSource
+
+    _hub, session, connect, node = bridge
+    driver = node.driver
+    grabs: list[float] = []  # the board's clock at each grab
+    stepped: list[float] = []  # time.monotonic() when the board's clock was set
+
+    class Grabbing(FakeCamera):
+        image = Renderer(model, seed=1).render(np.radians([10.0, -20.0, 30.0]))
+
+        def grab(self) -> bool:
+            time.sleep(1 / 30)
+            if len(grabs) == 15:  # NTP sets the board's clock 3 s forward while the camera runs
+                driver.shift_s = AHEAD_S + 3.0  # type: ignore[attr-defined]
+                stepped.append(time.monotonic())
+                time.sleep(0.02)  # the grab is timed after the step
+            grabs.append(time.time() + driver.shift_s)  # type: ignore[attr-defined]
+            return True
+
+    monkeypatch.setattr(cv2, "VideoCapture", Grabbing)
+    got: list[bus.CameraAlpha] = []
+    lock = threading.Lock()
+
+    def collect(sample) -> None:
+        with lock:
+            got.append(bus.decode(bus.CAMERA_ALPHA, sample.payload.to_bytes()))
+
+    stop = threading.Event()
+
+    def ticking() -> None:  # the bridge's loop at 500 Hz: its MotorStates on the bus
+        while not stop.is_set():
+            node.tick()
+            time.sleep(0.002)
+
+    loop = threading.Thread(target=ticking, daemon=True)
+    loop.start()
+    sub = session.declare_subscriber(bus.CAMERA_ALPHA, collect)
+    camera_session = connect()
+    clock = BridgeClock(camera_session, burst=8)  # a burst every 10 s (the default)
+    clock.sync(wait_s=5.0)
+    clock.start()
+    cal = twin_calibration()
+    source = UsbSource("0", cal.width, cal.height, latency_s=0.05, clock=time.monotonic)
+    camera = CameraNode(camera_session, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal), clock=clock)
+    try:
+        camera.run_source(source, threading.Event(), max_frames=40)
+        assert wait_until(lambda: len(got) >= 40, 5.0)
+    finally:
+        stop.set()
+        loop.join(2.0)
+        clock.stop()
+        sub.undeclare()
+        camera.close()
+        source.close()
+    with lock:
+        seen = sorted(got, key=lambda m: m.seq)
+    assert len(seen) == 40
+    for msg in seen:  # every α_IP published on the board's clock at its grab, before the step or after
+        bus.check_camera_alpha(msg, 3)
+    # frames may be dropped meanwhile (counted): each published one matches its grab on the board's clock
+    errors = [min(abs(msg.capture_stamp_s - (g - 0.05)) for g in grabs) for msg in seen]
+    assert max(errors) < 0.005, errors
+    assert stepped and clock.tracker.steps == 1 and clock.jumps >= 1  # long before the next burst, 10 s on
+    assert clock.wall_offset_s() == pytest.approx(AHEAD_S + 3.0, abs=0.005)
+    assert camera.clock_dropped == len(grabs) - 40  # frames not published meanwhile, counted
+    assert -1.0 < seen[-1].capture_stamp_s - (time.time() + AHEAD_S + 3.0) < 0.0
+
+
+def test_a_jump_of_the_states_stamps_holds_the_offset_until_a_burst_begun_after_it() -> None:
+    """The state watcher on its own (no bus): one state ahead is a jump, states behind only when
+    STATE_WINDOW in a row are (a delay spike is not), a new run of the followed bridge is one; the
+    offset is withheld from the jump until a burst begun after it is used."""
+    from bridge.clock_sync import OffsetEstimate
+    from twin.camera.clock import STATE_WINDOW, BridgeClock
+
+    now = [100.0]
+    clock = BridgeClock(None, local=lambda: now[0])  # type: ignore[arg-type]  # no bus: note_state fed by hand
+    clock._burst_started = 99.0
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.0, 0.0005, 99.0, 8))
+    assert clock.offset_for(99.5) == 1000.0
+    t = 100.0
+    for k in range(50):  # states 1 ms late, and a 200 ms delay spike of 5 states
+        t += 0.002
+        late = 0.2 if 20 <= k < 25 else 0.001
+        assert not clock.note_state("beaglebone-1", "e1", t + 1000.0 - late, t)
+    assert not clock.note_state("twin-7", "x", t + 5.0, t)  # another bridge's states say nothing
+    assert clock.jumps == 0 and clock.offset_for(t) == 1000.0
+    # the board's clock set 3 s back: STATE_WINDOW states in a row behind
+    good = t
+    for k in range(STATE_WINDOW):
+        t += 0.002
+        assert clock.note_state("beaglebone-1", "e1", t + 997.0, t) == (k == STATE_WINDOW - 1)
+    assert clock.jumps == 1 and clock.offset_for(good - 0.5) is None and clock.offset_for(t) is None
+    assert clock.health()[0]["clock_resyncing"] == 1
+    # a burst begun before the jump does not clear it; one begun after does, from its start
+    clock._burst_started = good - 1.0
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(997.0, 0.0005, t, 8))
+    assert clock.offset_for(t) is None
+    clock._burst_started = t + 0.01
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(997.0, 0.0005, t + 0.01, 8))
+    assert clock.offset_for(t) is None  # captured before the re-sync began: its offset was the old one
+    assert clock.offset_for(t + 0.02) == 997.0 and clock.health()[0]["clock_resyncing"] == 0
+    # one state ahead by more than a step is a jump; so is a new run of the followed instance
+    t += 0.05
+    assert clock.note_state("beaglebone-1", "e1", t + 997.0 + 0.2, t) and clock.jumps == 2
+    clock._burst_started = t + 0.01
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(997.2, 0.0005, t + 0.01, 8))
+    assert clock.note_state("beaglebone-1", "e2", t + 997.2, t + 0.02) and clock.jumps == 3
+
+
 # --- the command ----------------------------------------------------------------------------------
 
 SHIM = """

@@ -18,10 +18,23 @@ never adopted: the last offset stays, with a warning. A bridge started without `
 a random name at each start: after its restart the camera must be restarted too. A step of the offset within one run (the board's clock set by NTP)
 is taken at once and counted (``steps``), with a warning. When no burst succeeds, the last offset
 is kept (``clock_age_s`` in the health says since when).
+
+A clock set between two bursts (NTP's first sync on the board, a reboot) would leave the stamps on
+the old offset until the next burst, up to :data:`PERIOD_S` later (audit of 2026-11-29: 78 of 108
+α_IP 3 s off). So the sync thread also watches the followed bridge's ``MotorState`` (500 Hz, small):
+``stamp_s`` − this process's monotonic time at its arrival is the offset less the state's delay
+(≥ 0). A state more than the step threshold plus the uncertainty *ahead* of the offset (one suffices:
+a delay only lowers it), or :data:`STATE_WINDOW` in a row all as far *behind* it (a delay spike
+does not last that long), or a new ``epoch`` of the followed instance is a *jump*
+(``clock_jumps``): a burst is run at once. From the jump (less :data:`JUMP_MARGIN_S`) until a burst
+begun after it is used, :meth:`BridgeClock.offset_for` gives no offset: the camera drops those
+frames and counts them (``rejected["clock_frames"]``) rather than stamping them with an offset known
+wrong, and frames captured before that burst began are dropped too (their offset is the old one).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
@@ -40,6 +53,9 @@ BURST = 8  # queries per burst
 PERIOD_S = 10.0  # s between bursts after the first sync
 WAIT_S = 3.0  # s the first sync waits for a bridge to answer
 QUERY_TIMEOUT_S = 0.5  # s one query waits for replies
+STATE_WINDOW = 10  # MotorStates (20 ms at 500 Hz) all behind the offset by more than a step: a jump back
+JUMP_MARGIN_S = 0.01  # s before the last state on the old offset from which frames are not trusted
+TRIGGER_MIN_S = 1.0  # s at least between two bursts that states triggered
 
 
 class ClockSyncError(RuntimeError):
@@ -75,6 +91,15 @@ class BridgeClock:
         self.run_bursts = 0  # bursts used on the run followed now
         self.last_problem = ""
         self._synced_at = -math.inf  # local time of the last used burst
+        # The followed bridge's states (module docstring): a jump of their stamps wakes the sync thread.
+        self.jumps = 0  # jumps seen on the states
+        self._behind = 0  # states in a row behind the offset by more than a step
+        self._last_good_at = -math.inf  # local arrival of the last state on the offset
+        self._suspect_since: float | None = None  # local time from which the offset is known wrong
+        self._valid_from = -math.inf  # local time from which the present offset holds (a re-sync after a jump)
+        self._burst_started = -math.inf  # local time the running burst began
+        self._states: zenoh.Subscriber | None = None
+        self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -100,6 +125,7 @@ class BridgeClock:
 
     def burst_once(self) -> str:
         """Query a burst and take it; '' when the offset was updated, else why not (a sentence)."""
+        self._burst_started = self.local()
         runs = self._collect()
         if not runs:
             self.missed += 1
@@ -155,6 +181,12 @@ class BridgeClock:
                             "with it afresh, %s this PC's wall clock", self.bridge, self.epoch, run[1],
                             _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.bridge, self.epoch = run
+        if self._suspect_since is not None and self._burst_started >= self._suspect_since:
+            self._suspect_since = None  # a burst begun after the jump: its offset holds from its start
+            self._valid_from = self._burst_started
+            self._behind = 0
+            log.warning("camera clock: re-synchronised with bridge %s after the jump of its states' stamps: %s this PC's "
+                        "wall clock", self.bridge, _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.run_bursts += 1
         self.uncertainty_s = est.uncertainty_s
         self.offset_s = est.offset_s  # the one value an exposure reads
@@ -192,14 +224,81 @@ class BridgeClock:
         """An offset from ``local`` as one from this PC's ``time.time()`` (s)."""
         return offset_s - (time.time() - self.local()) if self.local is not time.time else offset_s
 
-    def start(self) -> None:
-        """Bursts every ``period_s`` on a daemon thread until :meth:`stop`."""
+    def start(self, watch_states: bool = True) -> None:
+        """Bursts every ``period_s`` on a daemon thread until :meth:`stop`, and at once when the
+        followed bridge's states jump (``watch_states``, module docstring)."""
+        if watch_states:
+            self._states = self.session.declare_subscriber(bus.MOTOR_STATE, self._on_state)
         self._thread = threading.Thread(target=self._run, name="xneck-camera-clock", daemon=True)
         self._thread.start()
 
+    # --- the followed bridge's states -------------------------------------------------------------
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        # Zenoh thread, 500 Hz: decode, compare, at most wake the sync thread.
+        now = self.local()
+        try:
+            bus.check_payload_size(bus.MotorState, len(sample.payload))
+            state = bus.decode(bus.MotorState, sample.payload.to_bytes())
+        except bus.BusDecodeError:
+            return  # not the followed bridge's to judge: the console counts refused states
+        self.note_state(state.bridge, state.epoch, state.stamp_s, now)
+
+    def note_state(self, bridge: str, epoch: str, stamp_s: float, now_s: float) -> bool:
+        """One state of ``bridge`` run ``epoch`` stamped ``stamp_s`` (its clock), arrived at local
+        ``now_s``: True when it shows a jump (module docstring; the sync thread is woken)."""
+        with self._lock:
+            if not self.bridge or bridge != self.bridge or not math.isfinite(self.offset_s) or not math.isfinite(stamp_s):
+                return False
+            if self._suspect_since is not None:
+                return False  # a burst is on its way
+            if epoch != self.epoch:
+                why = f"a new run {epoch} of bridge {bridge} (a restart)"
+            else:
+                seen = stamp_s - now_s - self.offset_s  # −(the state's delay) when the offset holds
+                bound = self.tracker.step_s + self._uncertainty(now_s)
+                self._behind = self._behind + 1 if seen < -bound else 0
+                if seen > bound:
+                    why = f"a state stamped {seen:+.3f} s off the offset"
+                elif self._behind >= STATE_WINDOW:
+                    why = f"{self._behind} states in a row stamped {seen:+.3f} s off the offset"
+                else:
+                    if self._behind == 0:
+                        self._last_good_at = now_s
+                    return False
+            self.jumps += 1
+            good = self._last_good_at if math.isfinite(self._last_good_at) else now_s
+            self._suspect_since = min(now_s, good) - JUMP_MARGIN_S
+        log.warning("camera clock: bridge %s: %s: its clock was set (or it restarted); no α_IP is published until the "
+                    "camera is re-synchronised (now)", bridge, why)
+        self._wake.set()
+        return True
+
+    def offset_for(self, capture_local_s: float) -> float | None:
+        """The offset for a frame captured at local ``capture_local_s`` and published now; None
+        while a jump waits for its re-sync, for a frame captured before the re-sync after one,
+        and before the first sync (module docstring)."""
+        with self._lock:
+            if self._suspect_since is not None or capture_local_s < self._valid_from or not math.isfinite(self.offset_s):
+                return None
+            return self.offset_s
+
+    def _uncertainty(self, now_s: float) -> float:
+        return self.uncertainty_s if math.isfinite(self.uncertainty_s) else 0.0
+
     def _run(self) -> None:
         said = ""
-        while not self._stop.wait(self.period_s):
+        last = -math.inf
+        while not self._stop.is_set():
+            with self._lock:  # an offset known wrong is retried sooner than every period
+                wait_s = self.period_s if self._suspect_since is None else min(self.period_s, TRIGGER_MIN_S)
+            woken = self._wake.wait(wait_s)
+            if woken:  # states jumped: at once, but not more often than TRIGGER_MIN_S
+                self._stop.wait(max(0.0, last + TRIGGER_MIN_S - time.monotonic()))
+                self._wake.clear()
+            if self._stop.is_set():
+                break
+            last = time.monotonic()
             try:
                 why = self.burst_once()
             except Exception as exc:  # noqa: BLE001 - a closing session: the offset stays, the camera goes on
@@ -215,6 +314,10 @@ class BridgeClock:
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
+        self._wake.set()
+        if self._states is not None:
+            with contextlib.suppress(Exception):  # the session may be closed already
+                self._states.undeclare()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
 
@@ -232,7 +335,8 @@ class BridgeClock:
 
     def _health(self) -> tuple[dict[str, int], dict[str, int]]:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
-                    "clock_foreign": self.foreign}
+                    "clock_foreign": self.foreign, "clock_jumps": self.jumps,
+                    "clock_resyncing": int(self._suspect_since is not None)}
         if math.isfinite(self.offset_s):
             drift = self.tracker.drift()
             received.update({"clock_offset_us": round(self.wall_offset_s() * 1e6),
@@ -244,4 +348,4 @@ class BridgeClock:
         return received, {"clock_replies": self.refused, "clock_bursts": self.missed}
 
 
-__all__ = ["BURST", "PERIOD_S", "WAIT_S", "BridgeClock", "ClockSyncError"]
+__all__ = ["BURST", "PERIOD_S", "STATE_WINDOW", "WAIT_S", "BridgeClock", "ClockSyncError"]

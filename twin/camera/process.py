@@ -91,6 +91,7 @@ class CameraNode:
         self.dropped = 0  # frames the source lost, as published in CameraAlpha.dropped
         self.queue_dropped = 0  # twin: exposures dropped because rendering fell behind
         self.clock_restarts = 0  # twin: the truth's clock jumped (a restarted twin) and the shutter started again
+        self.clock_dropped = 0  # live: frames not published while the bridge clock was re-synchronised after a jump
         self.truth_received = 0
         self.truth_rejected = 0
         self.truth_foreign = 0  # twin: truths of another run than the one rendered (module docstring)
@@ -149,6 +150,7 @@ class CameraNode:
             clock_received, clock_rejected = self.clock.health()
             received.update(clock_received)
             rejected.update(clock_rejected)
+            rejected["clock_frames"] = self.clock_dropped
         self._health.put(bus.Health(
             seq=self._seq, stamp_s=time.time(), process="camera", instance=self.instance, uptime_s=now - self._started,
             received=received, rejected=rejected,
@@ -164,7 +166,9 @@ class CameraNode:
         A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``. A live source's
         are this PC's wall clock, or, with ``clock`` (the node's), the bridge's: the source then
         stamps its grabs on ``clock.local`` and both stamps get ``clock.offset_s`` added (one
-        value per exposure, so a re-sync never puts a capture after its publication). A live source
+        value per exposure, so a re-sync never puts a capture after its publication); while the
+        bridge's clock jumped and is being re-synchronised, frames are dropped and counted
+        (``clock_dropped``, :meth:`twin.camera.clock.BridgeClock.offset_for`). A live source
         that is lost raises (:class:`twin.camera.source.SourceLost`): the last health counters are
         published first."""
         started = time.monotonic()
@@ -186,9 +190,13 @@ class CameraNode:
                 if source.name.startswith("file:"):
                     stamp = capture
                 elif self.clock is not None:
-                    offset = self.clock.offset_s  # one read: the sync thread replaces it whole
-                    if not math.isfinite(offset):
+                    if not math.isfinite(self.clock.offset_s):
                         raise RuntimeError(f"{source.name}: the camera clock is not synchronised with a bridge yet")
+                    offset = self.clock.offset_for(capture)  # one value for both stamps
+                    if offset is None:  # the bridge's clock jumped and the re-sync is not done: not stamped wrong
+                        self.clock_dropped += 1
+                        self._maybe_health()
+                        continue
                     capture, stamp = capture + offset, self.clock.local() + offset
                 else:
                     stamp = time.time()
