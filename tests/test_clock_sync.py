@@ -93,3 +93,37 @@ def test_reset_forgets_the_offset_but_keeps_the_counts() -> None:
     assert tracker.offset_s is None and tracker.invalid == 1 and tracker.bursts == 1
     # and the next clock is not a step of the old one
     assert tracker.add_burst([sample(1.0, 500.0, 0.001, 0.001)]).step_s is None and tracker.steps == 0
+
+
+def test_a_worse_burst_overlapping_a_tighter_estimate_does_not_replace_it() -> None:
+    """Audit of 2026-11-29 (d_worse.py): a burst whose every reply was delayed 80 ms on one leg (a
+    GIL, a Wi-Fi retry) replaced a 0.2 ms estimate whole, moving the offset 40 ms silently. As NTP:
+    the previous estimate, its uncertainty grown by its age × the drift bound, stays when it is
+    the tighter and the two overlap; the burst still counts (and feeds the drift, weighted)."""
+    tracker = ClockTracker(drift_bound=100e-6)
+    assert tracker.add_burst([sample(0.0, 1000.0, 0.0002, 0.0002)]).used
+    outcome = tracker.add_burst([sample(10.0 + k, 1000.0, 0.0799, 0.0001) for k in range(8)])
+    assert outcome.used and outcome.kept and outcome.step_s is None and tracker.kept == 1
+    assert tracker.offset_s == pytest.approx(1000.0, abs=1e-9)
+    assert outcome.estimate is not None and outcome.estimate.uncertainty_s == pytest.approx(0.04, abs=1e-6)
+    age = outcome.estimate.at_s - 0.0002  # its round trip's middle less the first one's
+    assert tracker.uncertainty_s == pytest.approx(0.0002 + 100e-6 * age, abs=1e-9)  # aged, not the burst's 40 ms
+    # a tighter burst replaces it, and the estimate ages from there
+    assert not tracker.add_burst([sample(20.0, 1000.0003, 0.0001, 0.0001)]).kept
+    assert tracker.offset_s == pytest.approx(1000.0003) and tracker.uncertainty_s == pytest.approx(0.0001)
+    assert tracker.uncertainty_at(30.0001) == pytest.approx(0.0001 + 100e-6 * 10.0, abs=1e-9)
+    # a worse burst that does not overlap the aged estimate (but is no step) is taken: one of them is wrong
+    far = tracker.add_burst([sample(30.0, 1000.03, 0.005, 0.005)])
+    assert not far.kept and far.step_s is None and tracker.offset_s == pytest.approx(1000.03)
+    # beyond both uncertainties and the step threshold it is a step, as before
+    assert tracker.add_burst([sample(40.0, 1003.0, 0.02, 0.02)]).step_s == pytest.approx(2.97)
+
+
+def test_the_drift_fit_weights_each_burst_by_its_uncertainty() -> None:
+    # tight bursts on a 40 ppm line, one loose burst 20 ms off it (within its 30 ms): the fit stays on the line
+    tracker = ClockTracker(drift_min_span_s=20.0)
+    for k in range(6):
+        tracker.add_burst([sample(10.0 * k, 5.0 + 40e-6 * 10.0 * k, 0.0002, 0.0002)])
+    tracker.add_burst([sample(60.0, 5.0 + 40e-6 * 60.0 + 0.02, 0.03, 0.03)])
+    d = tracker.drift()
+    assert d is not None and d == pytest.approx(40e-6, rel=0.02)

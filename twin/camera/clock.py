@@ -71,7 +71,9 @@ def _fmt_offset(offset_s: float, uncertainty_s: float) -> str:
 class BridgeClock:
     """The offset of the bridge's stamp clock from ``local`` (module docstring).
 
-    ``offset_s`` is bridge − local (s), replaced whole by each burst (read it once per exposure).
+    ``offset_s`` is bridge − local (s), replaced whole by each burst used (read it once per
+    exposure; a burst worse than the current estimate aged and overlapping it leaves it:
+    :class:`bridge.clock_sync.ClockTracker`, ``kept``).
     ``bridge``/``epoch`` name the run it follows. Counters: ``bursts`` used, ``missed`` (no usable
     reply), ``steps``, ``resyncs``, ``foreign`` (replies of another bridge), ``refused`` (invalid
     replies: undecodable, non-finite, a local clock that went back).
@@ -165,7 +167,9 @@ class BridgeClock:
             if self.tracker.last_invalid:
                 self.last_problem = self.tracker.last_invalid
             return f"bridge {chosen[0]}: {outcome.reason}"
-        self._take(chosen, outcome.estimate)
+        taken = self.tracker.last  # the burst's, or the previous one kept (tighter, aged, and overlapping it)
+        assert taken is not None
+        self._take(chosen, taken)
         if self.tracker.steps != before and self.tracker.last_step is not None:
             old, new = self.tracker.last_step
             log.warning("camera clock: the offset to bridge %s stepped by %+.3f s (a clock was set: NTP on the board, "
@@ -335,7 +339,7 @@ class BridgeClock:
 
     def _health(self) -> tuple[dict[str, int], dict[str, int]]:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
-                    "clock_foreign": self.foreign, "clock_jumps": self.jumps,
+                    "clock_foreign": self.foreign, "clock_jumps": self.jumps, "clock_kept": self.tracker.kept,
                     "clock_resyncing": int(self._suspect_since is not None)}
         if math.isfinite(self.offset_s):
             drift = self.tracker.drift()
