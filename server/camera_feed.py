@@ -121,6 +121,24 @@ def moved_reason(presence: Presence) -> str | None:
     return said[0][1] if said else None
 
 
+def clock_status(presence: Presence) -> dict[str, Any] | None:
+    """The bridge clock of a live camera (``xneck camera --clock bridge``, twin/camera/clock.py) as
+    its latest health says it: ``offset_us`` (bridge − that PC's wall clock), ``uncertainty_us``
+    (grown with the age of its last sync), ``age_s`` (since that sync), ``stale`` (no sync for
+    over a minute: the stamps may be off by more than said), ``resyncing`` (the bridge's clock
+    jumped and the camera publishes nothing until re-synchronised), ``bridge`` (the instance
+    followed). None when no camera process alive says one (a twin's camera, ``--clock local``)."""
+    for _instance, h in presence.health("camera"):
+        r = h.received
+        if "clock_offset_us" not in r:
+            continue
+        bridge = next((k.split("/")[1] for k in r if k.startswith("clock_run/") and k.count("/") == 2), "")
+        return {"offset_us": r["clock_offset_us"], "uncertainty_us": r.get("clock_uncertainty_us"),
+                "age_s": r.get("clock_age_s"), "stale": bool(r.get("clock_stale", 0)),
+                "resyncing": bool(r.get("clock_resyncing", 0)), "bridge": bridge}
+    return None
+
+
 def camera_health(values: LatestValues, feed: CameraFeed | None = None,
                   presence: Presence | None = None) -> dict[str, Any] | None:
     """Detection health for ``/api/system/health`` from the latest ``CameraAlpha``: its source,
@@ -130,8 +148,9 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
     fraction of those messages that had it missing (``missing_fraction``), both over the last
     :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
     without one) and the frames refused; with ``presence``, ``moved_reason`` (:func:`moved_reason`:
-    why every joint is missing when the camera moved since its calibration, else null). None
-    before any camera message."""
+    why every joint is missing when the camera moved since its calibration, else null) and
+    ``clock`` (:func:`clock_status`: a live camera's bridge clock, else null). None before any
+    camera message."""
     msg = values.get("camera")
     if msg is None:
         return None
@@ -148,4 +167,5 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
                     "frames_received": feed.frames_received, "frames_rejected": feed.frames_rejected})
     if presence is not None:
         out["moved_reason"] = moved_reason(presence)
+        out["clock"] = clock_status(presence)
     return out

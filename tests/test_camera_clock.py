@@ -390,6 +390,43 @@ def test_a_jump_of_the_states_stamps_holds_the_offset_until_a_burst_begun_after_
     assert clock.note_state("beaglebone-1", "e2", t + 997.2, t + 0.02) and clock.jumps == 3
 
 
+def test_without_syncs_the_uncertainty_grows_and_after_a_minute_the_clock_is_stale(caplog) -> None:
+    """Audit of 2026-11-29 (f_stale.py): with the bridge gone the camera stamped on the last offset
+    forever with its fresh uncertainty. It now grows by 100 ppm of its age; after STALE_S a warning
+    (once) and ``clock_stale`` in the health, which the console's camera card shows."""
+    from bridge.clock_sync import OffsetEstimate
+    from server.camera_feed import clock_status
+    from twin.camera.clock import STALE_S, BridgeClock
+
+    now = [100.0]
+    clock = BridgeClock(None, local=lambda: now[0])  # type: ignore[arg-type]  # no bus
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.0, 0.0002, 100.0, 8))
+    assert clock.uncertainty_s == pytest.approx(0.0002) and not clock.stale() and not clock.check_stale()
+    now[0] += 50.0
+    assert clock.uncertainty_s == pytest.approx(0.0002 + 100e-6 * 50.0)  # 5.2 ms after 50 s
+    received, _ = clock.health()
+    assert received["clock_uncertainty_us"] == 5200 and received["clock_stale"] == 0
+    now[0] += STALE_S
+    with caplog.at_level("WARNING", logger="xneck.camera"):
+        assert clock.check_stale() and not clock.check_stale()  # said once
+    assert [r.getMessage() for r in caplog.records if "no sync with bridge beaglebone-1" in r.getMessage()]
+    received, _ = clock.health()
+    assert received["clock_stale"] == 1 and received["clock_age_s"] == 110
+
+    class Presence:  # the console's view of the camera process's health
+        def health(self, kind: str):
+            assert kind == "camera"
+            return [("cam-1", bus.Health(seq=1, stamp_s=0.0, process="camera", instance="cam-1", uptime_s=1.0,
+                                         received=received, rejected={}))]
+
+    status = clock_status(Presence())  # type: ignore[arg-type]
+    assert status == {"offset_us": received["clock_offset_us"], "uncertainty_us": 11200, "age_s": 110, "stale": True,
+                      "resyncing": False, "bridge": "beaglebone-1"}
+    # a sync makes it fresh again
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.0, 0.0003, now[0], 8))
+    assert not clock.stale() and clock.uncertainty_s == pytest.approx(0.0003) and clock.health()[0]["clock_stale"] == 0
+
+
 # --- the command ----------------------------------------------------------------------------------
 
 SHIM = """

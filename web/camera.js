@@ -133,6 +133,16 @@
     stats.key = `${f.seq}@${f.capture_stamp_s}`;
   }
 
+  // A live camera's bridge clock (server/camera_feed.py clock_status): its uncertainty and the age of
+  // its last sync; a stale or re-synchronising clock said in words.
+  function clockText(c) {
+    if (!c) return "";
+    const u = c.uncertainty_us === null || c.uncertainty_us === undefined ? "?" : fmt(c.uncertainty_us / 1000, 1);
+    if (c.resyncing) return `; clock of ${c.bridge} jumped: re-synchronising (no α_IP meanwhile)`;
+    if (c.stale) return `; clock STALE: no sync with ${c.bridge} for ${c.age_s} s (± ${u} ms)`;
+    return `; clock ± ${u} ms, synced ${c.age_s} s ago`;
+  }
+
   async function poll() {
     try {
       const r = await fetch("/api/camera", { cache: "no-store" });
@@ -145,7 +155,7 @@
         const missing = h.missing_joints.length ? `, missing joint ${h.missing_joints.join(", ")}` : "";
         const age = h.frame_age_s === null || h.frame_age_s === undefined ? "no picture" : `picture ${fmt(h.frame_age_s, 1)} s old`;
         if (h.fresh) {
-          setState("live", `${h.source}: ${fmt(h.rate_hz, 0)} Hz${missing}, ${h.dropped} dropped, ${age}`);
+          setState("live", `${h.source}: ${fmt(h.rate_hz, 0)} Hz${missing}, ${h.dropped} dropped, ${age}${clockText(h.clock)}`);
         } else {
           // Stale by the console's one rule (server.live.fresh_camera): the live frames carry no α_IP
           // then, and the joint plots draw a gap.

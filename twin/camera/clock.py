@@ -17,7 +17,9 @@ one or alone (a twin bridge on the hub while the robot's link drops), are set as
 never adopted: the last offset stays, with a warning. A bridge started without ``--instance`` has
 a random name at each start: after its restart the camera must be restarted too. A step of the offset within one run (the board's clock set by NTP)
 is taken at once and counted (``steps``), with a warning. When no burst succeeds, the last offset
-is kept (``clock_age_s`` in the health says since when).
+is kept (``clock_age_s`` in the health says since when), its uncertainty growing by 100 ppm of its
+age (``uncertainty_s``: a crystal's worst drift); after :data:`STALE_S` without a sync a warning
+says so once and the health carries ``clock_stale`` = 1.
 
 A clock set between two bursts (NTP's first sync on the board, a reboot) would leave the stamps on
 the old offset until the next burst, up to :data:`PERIOD_S` later (audit of 2026-11-29: 78 of 108
@@ -56,6 +58,7 @@ QUERY_TIMEOUT_S = 0.5  # s one query waits for replies
 STATE_WINDOW = 10  # MotorStates (20 ms at 500 Hz) all behind the offset by more than a step: a jump back
 JUMP_MARGIN_S = 0.01  # s before the last state on the old offset from which frames are not trusted
 TRIGGER_MIN_S = 1.0  # s at least between two bursts that states triggered
+STALE_S = 60.0  # s without a burst used: the offset is stale (warned once, clock_stale in the health)
 
 
 class ClockSyncError(RuntimeError):
@@ -87,7 +90,8 @@ class BridgeClock:
         self.burst, self.period_s, self.query_timeout_s, self.local = burst, period_s, query_timeout_s, local
         self.tracker = ClockTracker()
         self.offset_s = math.nan  # bridge − local (s); NaN before the first sync
-        self.uncertainty_s = math.nan
+        self._uncertainty_s, self._measured_at = math.nan, -math.inf  # the estimate's, and its local time
+        self._stale_said = False
         self.bridge = self.epoch = ""
         self.bursts = self.missed = self.resyncs = self.foreign = self.refused = 0
         self.run_bursts = 0  # bursts used on the run followed now
@@ -192,7 +196,8 @@ class BridgeClock:
             log.warning("camera clock: re-synchronised with bridge %s after the jump of its states' stamps: %s this PC's "
                         "wall clock", self.bridge, _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.run_bursts += 1
-        self.uncertainty_s = est.uncertainty_s
+        self._uncertainty_s, self._measured_at = est.uncertainty_s, est.at_s
+        self._stale_said = False
         self.offset_s = est.offset_s  # the one value an exposure reads
         self.bursts += 1
         self._synced_at = self.local()
@@ -288,7 +293,29 @@ class BridgeClock:
             return self.offset_s
 
     def _uncertainty(self, now_s: float) -> float:
-        return self.uncertainty_s if math.isfinite(self.uncertainty_s) else 0.0
+        u = self._uncertainty_s + self.tracker.drift_bound * max(0.0, now_s - self._measured_at)
+        return u if math.isfinite(u) else 0.0
+
+    @property
+    def uncertainty_s(self) -> float:
+        """± s of ``offset_s`` now: the estimate's, grown by the drift bound (100 ppm) × its age;
+        NaN before the first sync."""
+        u = self._uncertainty_s + self.tracker.drift_bound * max(0.0, self.local() - self._measured_at)
+        return u if math.isfinite(u) else math.nan
+
+    def stale(self) -> bool:
+        """No burst used for more than :data:`STALE_S` (after a first sync)."""
+        return math.isfinite(self.offset_s) and self.age_s() > STALE_S
+
+    def check_stale(self) -> bool:
+        """Warn once when the offset turns stale (again after each sync); True when it warned."""
+        if not self.stale() or self._stale_said:
+            return False
+        self._stale_said = True
+        log.warning("camera clock: no sync with bridge %s for %.0f s: α_IP is stamped on an offset %.0f s old, "
+                    "± %.1f ms by now (100 ppm of drift a second); the camera's health says clock_stale",
+                    self.bridge, self.age_s(), self.age_s(), self.uncertainty_s * 1e3)
+        return True
 
     def _run(self) -> None:
         said = ""
@@ -315,6 +342,7 @@ class BridgeClock:
             elif not why and said:
                 log.warning("camera clock: bridge %s answers again: %s this PC's", self.bridge, self.describe_offset())
             said = why
+            self.check_stale()
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
@@ -340,7 +368,7 @@ class BridgeClock:
     def _health(self) -> tuple[dict[str, int], dict[str, int]]:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
                     "clock_foreign": self.foreign, "clock_jumps": self.jumps, "clock_kept": self.tracker.kept,
-                    "clock_resyncing": int(self._suspect_since is not None)}
+                    "clock_resyncing": int(self._suspect_since is not None), "clock_stale": int(self.stale())}
         if math.isfinite(self.offset_s):
             drift = self.tracker.drift()
             received.update({"clock_offset_us": round(self.wall_offset_s() * 1e6),
@@ -352,4 +380,4 @@ class BridgeClock:
         return received, {"clock_replies": self.refused, "clock_bursts": self.missed}
 
 
-__all__ = ["BURST", "PERIOD_S", "STATE_WINDOW", "WAIT_S", "BridgeClock", "ClockSyncError"]
+__all__ = ["BURST", "PERIOD_S", "STALE_S", "STATE_WINDOW", "WAIT_S", "BridgeClock", "ClockSyncError"]
