@@ -12,7 +12,11 @@ queries costs the bridge; queries beyond it get no reply and are counted (``refu
 :func:`query_clock` (the querier, a camera): one query, each reply stamped on the querier's clock
 when it left (``t0``) and came back (``t1``). Replies are untrusted (any peer may declare a
 queryable on the key): a payload too large, undecodable or of another version is counted with its
-reason and never used; so are error replies and replies beyond :data:`MAX_REPLIES`.
+reason and never used; so are error replies, replies of one peer beyond :data:`MAX_PER_REPLIER`
+(its Zenoh id, ``reply.replier_id``: a bridge answers once) and valid replies beyond
+:data:`MAX_REPLIES`. Refused replies never use up the valid ones' room: one peer answering each
+query with 16 junk replies had the bridge's reply behind them refused (audit of 2026-11-29). Each
+valid reply names its replier (``ClockReply.replier``), so a run claimed by two peers is told.
 """
 
 from __future__ import annotations
@@ -34,7 +38,9 @@ log = logging.getLogger("xneck.bridge")
 
 RATE_PER_S = 200.0  # replies a second, sustained (a camera's burst of 8 every 10 s is 0.8)
 BURST = 64  # replies at once
-MAX_REPLIES = 16  # replies of one query taken (one per bridge on the bus; more is a flood)
+MAX_REPLIES = 16  # valid replies of one query taken (one per bridge on the bus; more is a flood)
+MAX_PER_REPLIER = 2  # replies of one peer to one query looked at (a bridge sends one)
+MAX_REASONS = 16  # refusal reasons kept per query (all are counted)
 
 
 class ClockService:
@@ -75,18 +81,27 @@ class ClockService:
 
 @dataclass
 class ClockReply:
-    """A valid reply of one query: the reading and its round trip on the querier's clock."""
+    """A valid reply of one query: the reading, its round trip on the querier's clock, and the
+    Zenoh id of the session that sent it ('' if Zenoh does not say)."""
 
     reading: bus.ClockReading
     sample: ClockSample
+    replier: str = ""
 
 
 @dataclass
 class QueryResult:
-    """What one query got: ``replies`` (valid), ``rejected`` reasons (one per refused reply)."""
+    """What one query got: ``replies`` (valid), ``refused`` (replies refused) and the ``rejected``
+    reasons (the first :data:`MAX_REASONS` of them)."""
 
     replies: list[ClockReply] = field(default_factory=list)
     rejected: list[str] = field(default_factory=list)
+    refused: int = 0
+
+    def refuse(self, reason: str) -> None:
+        self.refused += 1
+        if len(self.rejected) < MAX_REASONS:
+            self.rejected.append(reason)
 
 
 def _reply_text(err: object) -> str:
@@ -96,6 +111,15 @@ def _reply_text(err: object) -> str:
     except Exception:  # noqa: BLE001 - an error reply is untrusted too
         text = "?"
     return text[:200]
+
+
+def _replier(reply: zenoh.Reply) -> str:
+    """The Zenoh id of the session that sent ``reply`` ('' if unknown)."""
+    try:
+        rid = reply.replier_id
+        return "" if rid is None else str(rid.zid)
+    except Exception:  # noqa: BLE001 - an older Zenoh: no id, the run key is the reading's alone
+        return ""
 
 
 def query_clock(session: zenoh.Session, timeout_s: float = 0.5, clock: Callable[[], float] = time.time) -> QueryResult:
@@ -108,14 +132,20 @@ def query_clock(session: zenoh.Session, timeout_s: float = 0.5, clock: Callable[
     # (Zenoh's default keeps one reply per key: of two bridges on one hub the querier saw one).
     replies = session.get(bus.BRIDGE_CLOCK, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                           timeout=timeout_s)
+    per_replier: dict[str, int] = {}
     for reply in replies:
         t1 = clock()
-        if len(result.replies) + len(result.rejected) >= MAX_REPLIES:
-            result.rejected.append(f"more than {MAX_REPLIES} replies to one query")
+        replier = _replier(reply)
+        seen = per_replier[replier] = per_replier.get(replier, 0) + 1
+        if seen > MAX_PER_REPLIER:
+            result.refuse(f"peer {replier or '?'}: more than {MAX_PER_REPLIER} replies to one query")
+            continue
+        if len(result.replies) >= MAX_REPLIES:
+            result.refuse(f"more than {MAX_REPLIES} valid replies to one query")
             continue
         ok = reply.ok
         if ok is None:
-            result.rejected.append(f"error reply: {_reply_text(reply.err)}")
+            result.refuse(f"error reply: {_reply_text(reply.err)}")
             continue
         try:
             if str(ok.key_expr) != bus.BRIDGE_CLOCK:
@@ -123,10 +153,10 @@ def query_clock(session: zenoh.Session, timeout_s: float = 0.5, clock: Callable[
             bus.check_payload_size(bus.ClockReading, len(ok.payload))
             reading = bus.decode(bus.ClockReading, ok.payload.to_bytes())
         except bus.BusDecodeError as exc:
-            result.rejected.append(exc.reason)
+            result.refuse(exc.reason)
             continue
-        result.replies.append(ClockReply(reading, ClockSample(t0, reading.stamp_s, t1)))
+        result.replies.append(ClockReply(reading, ClockSample(t0, reading.stamp_s, t1), replier))
     return result
 
 
-__all__ = ["BURST", "MAX_REPLIES", "RATE_PER_S", "ClockReply", "ClockService", "QueryResult", "query_clock"]
+__all__ = ["BURST", "MAX_PER_REPLIER", "MAX_REPLIES", "RATE_PER_S", "ClockReply", "ClockService", "QueryResult", "query_clock"]

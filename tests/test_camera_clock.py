@@ -191,6 +191,42 @@ def test_hostile_replies_are_counted_and_never_used(bridge) -> None:
         queryable.undeclare()
 
 
+def test_a_peer_crowding_each_query_with_junk_replies_does_not_hide_the_bridge() -> None:
+    """Audit of 2026-11-29 (c_crowd.py, c2_crowd.py): 16 junk replies per query counted toward the
+    16 replies taken, so the bridge's reply after them was refused and the camera could not start,
+    told that no bridge answered. The cap is per replier and on valid replies; the error says what
+    was refused."""
+    from twin.camera.clock import BridgeClock, ClockSyncError
+
+    with bus_pair() as (_hub, _session, connect):
+        camera = connect()
+        liar = connect()
+
+        def spam(query) -> None:
+            for _ in range(16):
+                query.reply(bus.BRIDGE_CLOCK, b"x")
+
+        queryable = liar.declare_queryable(bus.BRIDGE_CLOCK, spam)
+        try:
+            assert wait_until(lambda: query_clock(camera).rejected != [], 5.0, 0.05)
+            with pytest.raises(ClockSyncError) as err:  # the junk alone: said as such
+                BridgeClock(camera, burst=2).sync(wait_s=0.3)
+            assert "no bridge answered" not in str(err.value) and "no valid reply" in str(err.value), err.value
+            assert "replies refused" in str(err.value) and "start the bridge first" not in str(err.value), err.value
+            robot = ClockService(connect(), lambda: time.time() + 0.002 + AHEAD_S, "aaaa11112222", "beaglebone-1")
+            try:
+                assert wait_until(lambda: query_clock(camera).replies != [], 5.0, 0.05)
+                got = sum(len(query_clock(camera).replies) for _ in range(10))
+                assert got == 10
+                clock = BridgeClock(camera, burst=8)
+                clock.sync(wait_s=3.0)
+                assert clock.bridge == "beaglebone-1" and clock.refused >= 8
+            finally:
+                robot.close()
+        finally:
+            queryable.undeclare()
+
+
 def test_a_flood_of_queries_is_bounded_by_the_bridge(bridge) -> None:
     """The bridge's own bucket (200 a second, bursts of 64) and a slow one, whose refusals a loaded
     machine cannot hide: replies never exceed the burst plus the rate over the time taken."""

@@ -104,6 +104,7 @@ class BridgeClock:
         self._suspect_since: float | None = None  # local time from which the offset is known wrong
         self._valid_from = -math.inf  # local time from which the present offset holds (a re-sync after a jump)
         self._burst_started = -math.inf  # local time the running burst began
+        self._burst_refused = 0  # replies refused in the running burst
         self._states: zenoh.Subscriber | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -119,7 +120,8 @@ class BridgeClock:
             if self._stop.is_set():  # stopping: a burst takes up to burst × query_timeout_s
                 break
             result = query_clock(self.session, self.query_timeout_s, self.local)
-            self.refused += len(result.rejected)
+            self.refused += result.refused
+            self._burst_refused += result.refused
             if result.rejected:
                 self.last_problem = result.rejected[-1]
             for reply in result.replies:
@@ -132,12 +134,17 @@ class BridgeClock:
     def burst_once(self) -> str:
         """Query a burst and take it; '' when the offset was updated, else why not (a sentence)."""
         self._burst_started = self.local()
+        self._burst_refused = 0
         runs = self._collect()
         if not runs:
             self.missed += 1
+            refused = f"{self._burst_refused} replies refused, last: {self.last_problem}"
+            if self._burst_refused:  # something answered: not "no bridge"
+                named = f" from bridge {self.name!r}" if self.name else ""
+                return f"no valid reply{named} on {bus.BRIDGE_CLOCK} ({refused})"
             named = f"bridge {self.name!r}" if self.name else "no bridge"
-            why = f"{named} answered on {bus.BRIDGE_CLOCK}" if not self.name else f"{named} did not answer on {bus.BRIDGE_CLOCK}"
-            return why + (f" ({self.refused} replies refused, last: {self.last_problem})" if self.refused else "")
+            return f"{named} answered on {bus.BRIDGE_CLOCK}" if not self.name else f"{named} did not answer on {bus.BRIDGE_CLOCK}"
+
         current = (self.bridge, self.epoch)
         if current in runs:
             chosen = current
@@ -213,13 +220,19 @@ class BridgeClock:
             if not why:
                 break
             if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
-                raise ClockSyncError(f"camera clock: {why} within {wait_s:g} s. The camera stamps its exposures on "
-                                     f"the bridge's clock (--clock bridge): start the bridge first, or, if the bridge "
-                                     f"runs on this machine (one clock), use --clock local")
+                raise ClockSyncError(f"camera clock: {why} within {wait_s:g} s. {self._hint()}")
             time.sleep(0.1)
         log.info("camera clock: bridge %s (run %s) is %s this PC's wall clock (shortest round trip of %d "
                  "queries; re-synchronised every %g s)", self.bridge, self.epoch, self.describe_offset(), self.burst,
                  self.period_s)
+
+    def _hint(self) -> str:
+        """What to do when the first sync failed (its last burst says why)."""
+        if self._burst_refused:
+            return (f"A peer answers on {bus.BRIDGE_CLOCK} with replies the camera refuses (not a bridge, or "
+                    f"another version): find it, or, if the bridge runs on this machine (one clock), use --clock local")
+        return ("The camera stamps its exposures on the bridge's clock (--clock bridge): start the bridge first, or, "
+                "if the bridge runs on this machine (one clock), use --clock local")
 
     def describe_offset(self) -> str:
         """The offset against this PC's wall clock, e.g. ``+12.345 s ± 0.4 ms ahead of``."""
