@@ -227,6 +227,34 @@ def test_a_peer_crowding_each_query_with_junk_replies_does_not_hide_the_bridge()
             queryable.undeclare()
 
 
+def test_a_peer_claiming_the_followed_run_is_told_and_never_moves_the_offset() -> None:
+    """Audit of 2026-11-29 (b_spoof.py): a queryable answering with the followed bridge's name and
+    epoch (readable in any MotorState) and a stamp 40 ms off, nearer the camera, won every burst.
+    The run is known by the replier's Zenoh id too: two peers claiming one run refuse the burst
+    (said), and the impostor alone is not followed."""
+    from twin.camera.clock import BridgeClock
+
+    with bus_pair() as (_hub, _session, connect):
+        robot = ClockService(connect(), lambda: time.time() + AHEAD_S, "aaaa11112222", "beaglebone-1")
+        camera = BridgeClock(connect(), burst=4)
+        camera.sync(wait_s=5.0)
+        liar = ClockService(connect(), lambda: time.time() + AHEAD_S + 0.040, "aaaa11112222", "beaglebone-1")
+        try:
+            assert wait_until(lambda: len(query_clock(camera.session).replies) == 2, 5.0, 0.05)
+            why = camera.burst_once()
+            assert "2 peers answer as bridge beaglebone-1 run aaaa11112222" in why, why
+            assert camera.impostors == 1 and camera.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005)
+            assert camera.health()[0]["clock_impostors"] == 1
+            robot.close()
+            assert wait_until(lambda: len(query_clock(camera.session).replies) == 1, 5.0, 0.05)
+            why = camera.burst_once()
+            assert "answers as bridge beaglebone-1 run aaaa11112222 from another peer" in why, why
+            assert camera.wall_offset_s() == pytest.approx(AHEAD_S, abs=0.005) and camera.resyncs == 0
+        finally:
+            liar.close()
+            robot.close()
+
+
 def test_a_flood_of_queries_is_bounded_by_the_bridge(bridge) -> None:
     """The bridge's own bucket (200 a second, bursts of 64) and a slow one, whose refusals a loaded
     machine cannot hide: replies never exceed the burst plus the rate over the time taken."""

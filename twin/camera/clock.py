@@ -14,7 +14,10 @@ only). Several answering without a name is refused at start. From then on the ca
 bridge *instance*: a new run of it (a restart: a new ``epoch``, same name) is synchronised afresh
 (``resyncs``), the offset of the old run forgotten; another instance's replies, beside the followed
 one or alone (a twin bridge on the hub while the robot's link drops), are set aside (``foreign``),
-never adopted: the last offset stays, with a warning. A bridge started without ``--instance`` has
+never adopted: the last offset stays, with a warning. A run is also known by the Zenoh id of the
+session that replies (``reply.replier_id``): a burst in which two peers claim one run (an impostor
+reading the name and epoch off a ``MotorState``) is refused and said (``impostors``), and a peer
+other than the followed run's claiming it alone is not followed. A bridge started without ``--instance`` has
 a random name at each start: after its restart the camera must be restarted too. A step of the offset within one run (the board's clock set by NTP)
 is taken at once and counted (``steps``), with a warning. When no burst succeeds, the last offset
 is kept (``clock_age_s`` in the health says since when), its uncertainty growing by 100 ppm of its
@@ -92,7 +95,8 @@ class BridgeClock:
         self.offset_s = math.nan  # bridge − local (s); NaN before the first sync
         self._uncertainty_s, self._measured_at = math.nan, -math.inf  # the estimate's, and its local time
         self._stale_said = False
-        self.bridge = self.epoch = ""
+        self.bridge = self.epoch = self.replier = ""  # the run followed, and the Zenoh id of its session
+        self.impostors = 0  # bursts refused because another peer claimed the followed run
         self.bursts = self.missed = self.resyncs = self.foreign = self.refused = 0
         self.run_bursts = 0  # bursts used on the run followed now
         self.last_problem = ""
@@ -113,9 +117,10 @@ class BridgeClock:
 
     # --- one burst ------------------------------------------------------------------------------
 
-    def _collect(self) -> dict[tuple[str, str], list[ClockSample]]:
-        """One burst: the samples of each bridge run that answered (named one only, if named)."""
-        runs: dict[tuple[str, str], list[ClockSample]] = {}
+    def _collect(self) -> dict[tuple[str, str, str], list[ClockSample]]:
+        """One burst: the samples of each bridge run that answered (named one only, if named), by
+        (bridge, epoch, replier's Zenoh id)."""
+        runs: dict[tuple[str, str, str], list[ClockSample]] = {}
         for _ in range(self.burst):
             if self._stop.is_set():  # stopping: a burst takes up to burst × query_timeout_s
                 break
@@ -128,7 +133,7 @@ class BridgeClock:
                 r = reply.reading
                 if self.name and r.bridge != self.name:
                     continue
-                runs.setdefault((r.bridge, r.epoch), []).append(reply.sample)
+                runs.setdefault((r.bridge, r.epoch, reply.replier), []).append(reply.sample)
         return runs
 
     def burst_once(self) -> str:
@@ -145,12 +150,31 @@ class BridgeClock:
             named = f"bridge {self.name!r}" if self.name else "no bridge"
             return f"{named} answered on {bus.BRIDGE_CLOCK}" if not self.name else f"{named} did not answer on {bus.BRIDGE_CLOCK}"
 
-        current = (self.bridge, self.epoch)
+        claims: dict[tuple[str, str], list[str]] = {}
+        for b, e, r in runs:
+            claims.setdefault((b, e), []).append(r)
+        for (b, e), repliers in sorted(claims.items()):
+            if len(repliers) > 1:  # a run is one bridge's session: one of them is not the bridge
+                self.missed += 1
+                self.impostors += 1
+                self.last_problem = (f"{len(repliers)} peers answer as bridge {b} run {e} (Zenoh ids "
+                                     f"{', '.join(sorted(repliers))}): one is not that bridge; burst refused, the last "
+                                     f"offset stays")
+                return self.last_problem
+        current = (self.bridge, self.epoch, self.replier)
         if current in runs:
             chosen = current
             self.foreign += sum(len(v) for k, v in runs.items() if k != current)
         elif len(runs) == 1:
             chosen = next(iter(runs))
+            if self.bridge and chosen[:2] == (self.bridge, self.epoch):
+                # the followed run from another session: a run never changes its session
+                self.foreign += len(runs[chosen])
+                self.missed += 1
+                self.impostors += 1
+                return (f"bridge {self.bridge} (Zenoh id {self.replier or '?'}) did not answer and a peer (Zenoh id "
+                        f"{chosen[2] or '?'}) answers as bridge {self.bridge} run {self.epoch} from another peer: "
+                        f"not followed")
             if self.bridge and chosen[0] != self.bridge:
                 # Another instance alone is not a restart of the followed one (a twin bridge on the hub
                 # while the robot's link drops): its clock is not the robot's; the last offset stays.
@@ -161,13 +185,13 @@ class BridgeClock:
                         f"{self.bridge} is; restart the camera to follow another bridge)")
         else:
             self.missed += 1
-            names = ", ".join(f"{b} (run {e})" for b, e in sorted(runs))
+            names = ", ".join(f"{b} (run {e})" for b, e, _r in sorted(runs))
             return (f"{len(runs)} bridges answer on {bus.BRIDGE_CLOCK}: {names}; name the robot's with "
                     f"--clock bridge:NAME (its --instance)")
         with self._lock:  # the tracker against health()'s reads on the camera's thread
             return self._follow(chosen, current, runs[chosen])
 
-    def _follow(self, chosen: tuple[str, str], current: tuple[str, str], samples: list[ClockSample]) -> str:
+    def _follow(self, chosen: tuple[str, str, str], current: tuple[str, str, str], samples: list[ClockSample]) -> str:
         before = self.tracker.steps
         if chosen != current:
             self.tracker.reset()  # the old run's offset says nothing of this one's
@@ -187,7 +211,8 @@ class BridgeClock:
                         "or this PC's): exposures are stamped with the new offset from now on", chosen[0], new - old)
         return ""
 
-    def _take(self, run: tuple[str, str], est: OffsetEstimate) -> None:
+    def _take(self, key: tuple[str, ...], est: OffsetEstimate) -> None:
+        run = (key[0], key[1])
         if run != (self.bridge, self.epoch):
             self.run_bursts = 0
             if self.bridge:
@@ -196,6 +221,7 @@ class BridgeClock:
                             "with it afresh, %s this PC's wall clock", self.bridge, self.epoch, run[1],
                             _fmt_offset(self._to_wall(est.offset_s), est.uncertainty_s))
         self.bridge, self.epoch = run
+        self.replier = key[2] if len(key) > 2 else ""
         if self._suspect_since is not None and self._burst_started >= self._suspect_since:
             self._suspect_since = None  # a burst begun after the jump: its offset holds from its start
             self._valid_from = self._burst_started
@@ -381,6 +407,7 @@ class BridgeClock:
     def _health(self) -> tuple[dict[str, int], dict[str, int]]:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
                     "clock_foreign": self.foreign, "clock_jumps": self.jumps, "clock_kept": self.tracker.kept,
+                    "clock_impostors": self.impostors,
                     "clock_resyncing": int(self._suspect_since is not None), "clock_stale": int(self.stale())}
         if math.isfinite(self.offset_s):
             drift = self.tracker.drift()
