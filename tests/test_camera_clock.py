@@ -491,6 +491,46 @@ def test_without_syncs_the_uncertainty_grows_and_after_a_minute_the_clock_is_sta
     assert not clock.stale() and clock.uncertainty_s == pytest.approx(0.0003) and clock.health()[0]["clock_stale"] == 0
 
 
+def test_a_camera_node_on_the_bridge_clock_times_its_usb_source_on_the_clocks_local_time(monkeypatch, params) -> None:
+    """Audit of 2026-11-29 (i_footgun.py): CameraNode with a BridgeClock trusted the source to time
+    its grabs on the clock's monotonic time, but UsbSource's default is the wall clock: captures
+    went out ~1.8e9 s after their publication. The node sets the source's clock."""
+    cv2 = pytest.importorskip("cv2")
+    from test_camera_sources import FakeCamera
+
+    from twin.camera.calibration import twin_calibration
+    from twin.camera.clock import BridgeClock
+    from twin.camera.detect import Detector
+    from twin.camera.process import CameraNode
+    from twin.camera.source import UsbSource
+
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCamera)
+    with bus_pair() as (_hub, session, connect):
+        robot = ClockService(connect(), lambda: time.time() + AHEAD_S, "aaaa11112222", "beaglebone-1")
+        got: list[bus.CameraAlpha] = []
+        sub = session.declare_subscriber(bus.CAMERA_ALPHA,
+                                         lambda smp: got.append(bus.decode(bus.CAMERA_ALPHA, smp.payload.to_bytes())))
+        camera_session = connect()
+        clock = BridgeClock(camera_session, burst=4)
+        clock.sync(wait_s=5.0)
+        cal = twin_calibration()
+        source = UsbSource("0", cal.width, cal.height, latency_s=0.05)  # the default clock: the wall clock
+        camera = CameraNode(camera_session, Detector(params.n_joints, params.geometry.L, params.geometry.b, cal),
+                            clock=clock)
+        try:
+            camera.run_source(source, threading.Event(), max_frames=3)
+            assert source.clock is clock.local
+            assert wait_until(lambda: len(got) >= 3, 5.0)
+            for msg in got:
+                bus.check_camera_alpha_stamps(msg)
+                assert msg.capture_stamp_s == pytest.approx(time.time() + AHEAD_S, abs=1.0)
+        finally:
+            sub.undeclare()
+            camera.close()
+            source.close()
+            robot.close()
+
+
 # --- the command ----------------------------------------------------------------------------------
 
 SHIM = """

@@ -164,14 +164,25 @@ class CameraNode:
         """Read, detect, publish until the source ends, ``stop`` is set or ``max_frames`` were
         published. ``pace_fps`` replays a file at its frame rate (None: as fast as detection runs).
         A video file's time stamps are its own: ``stamp_s`` = ``capture_stamp_s``. A live source's
-        are this PC's wall clock, or, with ``clock`` (the node's), the bridge's: the source then
-        stamps its grabs on ``clock.local`` and both stamps get ``clock.offset_s`` added (one
+        are this PC's wall clock, or, with ``clock`` (the node's), the bridge's: the source's
+        ``clock`` is then set to ``clock.local`` (a live source without one is refused) and both
+        stamps get ``clock.offset_s`` added (one
         value per exposure, so a re-sync never puts a capture after its publication); while the
         bridge's clock jumped and is being re-synchronised, frames are dropped and counted
         (``clock_dropped``, :meth:`twin.camera.clock.BridgeClock.offset_for`). A live source
         that is lost raises (:class:`twin.camera.source.SourceLost`): the last health counters are
         published first."""
         started = time.monotonic()
+        if self.clock is not None and not source.name.startswith("file:"):
+            # The offset maps the clock's local time: the grabs must be timed on it (UsbSource's
+            # default is the wall clock: captures went out 1.8e9 s after their publication).
+            if not hasattr(source, "clock"):
+                raise ValueError(f"{source.name}: a live source on the bridge's clock must time its grabs on a "
+                                 f"settable 'clock' (the BridgeClock's local time)")
+            if source.clock is not self.clock.local:  # type: ignore[attr-defined]
+                log.info("camera %s: %s times its grabs on the bridge clock's local time (monotonic)",
+                         self.instance, source.name)
+                source.clock = self.clock.local  # type: ignore[attr-defined]
         try:
             while not stop.is_set() and (max_frames is None or self.frames < max_frames):
                 frame = source.read()
