@@ -531,6 +531,25 @@ def test_a_camera_node_on_the_bridge_clock_times_its_usb_source_on_the_clocks_lo
             robot.close()
 
 
+def test_a_bridge_up_without_a_clock_is_named_with_update_it() -> None:
+    """Audit of 2026-11-29 (j_oldbridge.py): a bridge of the previous version (alive, no clock
+    served) got the hint 'start the bridge first'."""
+    from bridge.session import liveliness_token
+    from twin.camera.clock import BridgeClock, ClockSyncError
+
+    with bus_pair() as (_hub, session, connect):
+        token = liveliness_token(session, "bridge", "beaglebone-1")
+        try:
+            camera = connect()
+            with pytest.raises(ClockSyncError) as err:
+                BridgeClock(camera, burst=2, query_timeout_s=0.2).sync(wait_s=0.5)
+            text = str(err.value)
+            assert "bridge beaglebone-1 is up but serves no clock: update it, or use --clock local" in text, text
+            assert "start the bridge first" not in text, text
+        finally:
+            token.undeclare()
+
+
 # --- the command ----------------------------------------------------------------------------------
 
 SHIM = """

@@ -257,8 +257,25 @@ class BridgeClock:
         if self._burst_refused:
             return (f"A peer answers on {bus.BRIDGE_CLOCK} with replies the camera refuses (not a bridge, or "
                     f"another version): find it, or, if the bridge runs on this machine (one clock), use --clock local")
+        alive = [b for b in self._alive_bridges() if not self.name or b == self.name]
+        if alive:  # up, but not answering: a bridge of before the clock was served
+            names = ", ".join(f"bridge {b}" for b in alive)
+            return (f"{names} {'is' if len(alive) == 1 else 'are'} up but serves no clock: update it, or use --clock "
+                    f"local (if it runs on this machine)")
         return ("The camera stamps its exposures on the bridge's clock (--clock bridge): start the bridge first, or, "
                 "if the bridge runs on this machine (one clock), use --clock local")
+
+    def _alive_bridges(self, timeout_s: float = 0.5) -> list[str]:
+        """The bridge instances whose liveliness token is on the bus (``xneck/alive/bridge/*``)."""
+        found: set[str] = set()
+        try:
+            for reply in self.session.liveliness().get(f"{bus.PREFIX}/alive/bridge/*", timeout=timeout_s):
+                if reply.ok is not None:
+                    with contextlib.suppress(ValueError):
+                        found.add(bus.parse_liveliness_key(str(reply.ok.key_expr))[1])
+        except Exception:  # noqa: BLE001 - only a hint: a closing session gives none
+            return []
+        return sorted(found)
 
     def describe_offset(self) -> str:
         """The offset against this PC's wall clock, e.g. ``+12.345 s ± 0.4 ms ahead of``."""
