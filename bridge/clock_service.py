@@ -6,8 +6,12 @@ answers each query with a :class:`bridge.bus.ClockReading`: ``stamp_s`` the driv
 hardware; for the twin the simulated time of its last tick, which moves only as the loop ticks).
 The handler runs on a Zenoh thread beside the real-time loop: it reads the stamp (one call, no
 lock), encodes one small message and replies; it reads nothing else of the loop's state. A token
-bucket (:data:`RATE_PER_S` replies a second, bursts of :data:`BURST`) bounds what a peer flooding
-queries costs the bridge; queries beyond it get no reply and are counted (``refused``).
+bucket (:data:`RATE_PER_S` replies a second, bursts of :data:`BURST`) bounds the *replies* a peer
+flooding queries gets (their encoding and sending); queries beyond it get no reply and are counted
+(``refused``). It does not bound the callbacks: every query of a flood still runs :meth:`_on_query`
+(the bucket's arithmetic under its lock, in Python, under the GIL of the process whose 500 Hz loop
+it shares), so a flood still costs the bridge CPU and GIL time per query, refused or not (audit of
+2026-11-29, its g_flood.py). Keep the bus of the robot closed to peers you do not trust.
 
 :func:`query_clock` (the querier, a camera): one query, each reply stamped on the querier's clock
 when it left (``t0``) and came back (``t1``). Replies are untrusted (any peer may declare a
