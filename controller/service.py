@@ -21,7 +21,9 @@ Holds: :meth:`CampaignService.hold` commands Z f = g(α) with every cable at t_m
 (non-finite or beyond the joint limits). A diverging estimate latches the hold until the next
 campaign starts. A trajectory's pretension (raised floor, controller.trajectory) is followed while
 the campaign runs; once it stops, the floor falls back to t_min at ``PRETENSION_RELEASE_N_S``,
-in the law and in the hold alike, so an abort at high tension drops no force in one tick.
+in the law and in the hold alike, so an abort at high tension drops no force in one tick. A
+campaign that starts on a raised floor (an aborted campaign's, a take-up's) lets it go at that
+rate too, under its own pretension.
 
 Drives and re-starts (issue 13): while the bridge says the drives are ``disabled`` (e-stop) or
 ``inactive`` (until a command enables them) the law does not run: α̂ follows the encoders and the
@@ -185,6 +187,9 @@ class CampaignService:
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
         self.pretension_N = 0.0  # the floor added to t_min at the last tick (N, module docstring)
+        # N, the floor in force when the running campaign started (a take-up's, an aborted
+        # campaign's), let go at PRETENSION_RELEASE_N_S under the trajectory's own pretension
+        self._leftover_N = 0.0
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
         self._brake: tuple[float, np.ndarray, np.ndarray, float] | None = None  # (start stamp, α^d₀, α̇^d₀, duration)
         # the request being prepared: the object itself, since a stopped request's id may be reused
@@ -290,6 +295,7 @@ class CampaignService:
         self._total = trajectory.duration_s + (JOG_SETTLE_S if self.kind == "jog" else self.settle_s)
         self._next_progress = 0.0
         self.outcome = ""
+        self._leftover_N = self.pretension_N  # let go under the trajectory's (``_pretension``)
         if self.latched:
             self._reestimate()
             self._restart = True  # the law takes over from the new estimate, bumplessly
@@ -544,10 +550,14 @@ class CampaignService:
     def _pretension(self, stamp_s: float | None) -> float:
         """The floor added to t_min this tick (N): the running trajectory's pretension at
         ``stamp_s`` (``None``: a hold within the campaign keeps the last one, so the law resumes
-        where it was), else, with no campaign, the last one let go at ``PRETENSION_RELEASE_N_S``."""
+        where it was), else, with no campaign, the last one let go at ``PRETENSION_RELEASE_N_S``.
+        A campaign that starts on a raised floor (a take-up's, an aborted campaign's) lets it go
+        at that rate too, under its own pretension: dropping it to the trajectory's stepped the
+        forces by 10 N a tick for three ticks (audit of 2026-11-29)."""
         if self.trajectory is not None:
             if stamp_s is not None:
-                self.pretension_N = self.trajectory.pretension_at(stamp_s - self._t0)
+                self._leftover_N = max(0.0, self._leftover_N - PRETENSION_RELEASE_N_S * self.ctl.dt)
+                self.pretension_N = max(self.trajectory.pretension_at(stamp_s - self._t0), self._leftover_N)
         elif self._take_up is not None:
             self.pretension_N = self._take_up.level_N
         elif self.pretension_N > 0.0:

@@ -166,3 +166,29 @@ def test_a_short_hold_within_the_campaign_keeps_the_floor(params):
         held = loop.svc.stale("no state", 0.02)
     assert loop.svc.pretension_N == pytest.approx(40.0)
     np.testing.assert_allclose(held.force_N, hold_forces(params, loop.svc.hold_alpha(), 40.0))
+
+
+def test_a_campaign_started_right_after_an_abort_at_high_tension_lets_the_floor_go_gently(params):
+    """Audit of 2026-11-29: the next campaign's pretension (none) replaced the floor the aborted
+    one left (40 N) at its first tick. It is now let go at ``PRETENSION_RELEASE_N_S`` under it."""
+    loop = _Loop(params)
+    loop.svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="squeeze", action="start",
+                                        trajectory_json=SQUEEZE.to_json()), loop.tick.t_s)
+    loop.run(3.0)
+    loop.svc.handle(bus.CampaignRequest(seq=2, stamp_s=0.0, campaign_id="squeeze", action="stop"), loop.tick.t_s)
+    loop.run(0.01)
+    n_before = len(loop.forces)
+    plain = Trajectory.from_degrees([[0, 0, 0], [5, 0, 0]], 2.0, 0.5, "plain")
+    loop.svc.handle(bus.CampaignRequest(seq=3, stamp_s=0.0, campaign_id="next", action="start",
+                                        trajectory_json=plain.to_json()), loop.tick.t_s)
+    while not loop.svc.running:  # it waits for the stop's brake
+        loop.run(0.002)
+        assert len(loop.forces) < n_before + 500
+    floors = []
+    for _ in range(round(1.0 / 0.002)):
+        loop.run(0.002)
+        floors.append(loop.svc.pretension_N)
+    assert floors[0] > 35.0 and floors[-1] == 0.0
+    assert min(np.diff(floors)) >= -PRETENSION_RELEASE_N_S * 0.002 - 1e-9
+    steps = np.abs(np.diff(np.array(loop.forces[n_before - 1:]), axis=0)).max()
+    assert steps < 2.0, steps

@@ -188,3 +188,38 @@ def test_a_new_bridge_run_during_the_take_up_ends_it(params):
 def test_bad_take_up_settings_are_refused(kw):
     with pytest.raises(ValueError):
         TakeUp(**kw)
+
+
+@pytest.mark.parametrize("kind", ["control", "jog"])
+def test_a_campaign_that_waited_for_the_take_up_starts_without_a_step(params, kind):
+    """Audit of 2026-11-29: the waiting campaign started at the hand-over and its trajectory's
+    pretension (none) replaced the take-up's floor (29 N) at once: three 10 N steps of the applied
+    forces. The floor left over is now let go at ``PRETENSION_RELEASE_N_S`` under the
+    trajectory's own, as after an aborted campaign's."""
+    from test_controller_service import _request as request
+
+    from controller.service import PRETENSION_RELEASE_N_S
+    from controller.trajectory import Trajectory
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.2, estop=((False, "audit"),))
+    req = (_request("c-2") if kind == "control" else
+           request("c-2", kind="jog", trajectory_json=Trajectory.from_degrees([[10.0, 10.0, 10.0]], [], 0.0,
+                                                                              "jog").to_json()))
+    loop.svc.handle(req, loop.stamp_s)
+    start = len(loop.applied) - 1
+    for _ in range(round(4.0 / DT)):
+        loop.run(DT)
+        if loop.svc.running:
+            break
+    assert loop.svc.running and loop.svc.pretension_N > 20.0
+    started = len(loop.applied)
+    floors = []
+    for _ in range(round(1.0 / DT)):
+        loop.run(DT)
+        floors.append(loop.svc.pretension_N)
+    assert min(np.diff(floors)) >= -PRETENSION_RELEASE_N_S * DT - 1e-9 and floors[-1] == 0.0
+    # the take-up and the campaign's first 0.3 s (later on, the control test's moves step the
+    # law's forces by 2-3 N a tick with or without the take-up before)
+    applied = np.array(loop.applied[start:started + round(0.3 / DT)])
+    assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
