@@ -203,6 +203,9 @@ class CampaignService:
         self._estopped = False  # the drives were disabled (e-stop) since the law last held the neck
         self._take_up: TakeUp | None = None  # the slack an e-stop left being taken up (controller.take_up)
         self._hold_sent: np.ndarray | None = None  # N, the last hold's command (a take-up's rate bound)
+        # a take-up ended (or was cut short) and the command still moves at most its FORCE_STEP_N a
+        # tick, until it meets what the law or the hold asks (``_wind_down_bound``)
+        self._wind_down = False
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -235,6 +238,7 @@ class CampaignService:
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
         self._estopped, self._take_up, self._hold_sent = False, None, None  # a run's first enable takes none
+        self._wind_down = False
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
             self.encoder_check.reset()
@@ -496,11 +500,22 @@ class CampaignService:
             step = min(step, take_up_rules.FORCE_STEP_N)
         if self.drive == "active":
             f_prev = self.ctl.f_prev
-            f = np.clip(f, f_prev - step, f_prev + step)
+            f = self._wind_down_bound(f, f_prev) if self._wind_down else np.clip(f, f_prev - step, f_prev + step)
             f_prev[:] = f
         self._hold_sent = f
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
+
+    def _wind_down_bound(self, f: np.ndarray, sent: np.ndarray) -> np.ndarray:
+        """``f`` within the take-up's ``FORCE_STEP_N`` of ``sent`` (the last command) while a take-up
+        winds down (ended, or cut short by a latch), which it does until ``f`` is met within that
+        step: the damping and the command's lag are let go at the take-up's rate, never at the
+        law's (10 N a tick)."""
+        step = take_up_rules.FORCE_STEP_N
+        if float(np.max(np.abs(f - sent))) <= step:
+            self._wind_down = False
+            return f
+        return np.clip(f, sent - step, sent + step)
 
     def _make_encoder_check(self) -> EncoderConsistency | None:
         if self.encoder_threshold_m is None:
@@ -666,6 +681,7 @@ class CampaignService:
             self._restart = self._drives_off = True
             if drive == "disabled":
                 self._estopped, self._take_up = True, None  # a take-up starts again at the release
+                self._wind_down = False  # the bridge ramps from zero at the release
             if not obeyed:
                 reason = self.drive_reason or "the bridge obeys another controller"
             else:
@@ -676,7 +692,10 @@ class CampaignService:
                 self._drop_waiting(reason)
             return self.hold(self.hold_reason if self.latched else reason)
         if self.latched:
-            self._take_up = None  # the latch's hold, at the last sane α̂; a new campaign lifts it
+            if self._take_up is not None:  # the latch's hold, at the last sane α̂; a new campaign lifts it
+                # Cut short: its damping (up to 44 N) is let go at its rate, not dropped (audit of
+                # 2026-11-29: 10 N a tick for 5-6 ticks).
+                self._take_up, self._wind_down = None, True
             self.reference(stamp_s)
             return self.hold(self.hold_reason)
         if self._restart and drive == "active" and self._estopped:
@@ -689,7 +708,11 @@ class CampaignService:
         if self._restart and drive == "active":
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
+        sent = self.ctl.f_prev.copy() if self._wind_down else None
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s))
+        if sent is not None:
+            cmd.f[:] = self._wind_down_bound(cmd.f, sent)
+            self.ctl.f_prev[:] = cmd.f
         if not _sane(cmd.alpha_hat, self._limit, cmd.f):
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
@@ -723,7 +746,10 @@ class CampaignService:
         take_up.damp(self.ctl.theta_dot, self.ctl.dt)
         if drive != "active" or take_up.step(stamp_s):  # a bridge hold: wait, level kept
             return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.peak_N:.0f} N")
-        self._take_up = None  # the law takes over at the next state (``_restart`` is still set)
+        # The law takes over at the next state (``_restart`` is still set), from this command at
+        # the take-up's rate: a motor still turning at ``PEAK_MAX_S`` left up to 10 N of damping
+        # in it, which the law's first command dropped at once (audit of 2026-11-29).
+        self._take_up, self._wind_down = None, True
         self.pretension_N = take_up.level_N
         return self.hold("")
 

@@ -223,3 +223,56 @@ def test_a_campaign_that_waited_for_the_take_up_starts_without_a_step(params, ki
     # law's forces by 2-3 N a tick with or without the take-up before)
     applied = np.array(loop.applied[start:started + round(0.3 / DT)])
     assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
+
+
+@pytest.mark.parametrize("at_s", [0.8, 1.2])
+def test_an_encoder_fault_during_the_take_up_lets_its_damping_go_at_its_rate(params, at_s):
+    """Audit of 2026-11-29: an encoder fault latching while the drums wound in dropped the take-up
+    at once, its damping (up to 44 N) with it, under the law's bound: 10 N a tick for 5-6 ticks.
+    The cut-short take-up now winds down: the command moves 1 N a tick at most until it reaches
+    the latch's plain hold."""
+    from controller.laws import hold_forces
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(at_s, estop=((False, "audit"),))
+    assert loop.svc.taking_up and np.abs(loop.svc._take_up.damping_N).max() > 10.0
+    start = len(loop.applied) - 1
+    loop.run(DT, stuck={0: float(loop.tick.theta_meas[0]) + 100.0})  # one faulty reading
+    assert loop.svc.latched and "encoder 1" in loop.svc.hold_reason
+    loop.run(0.5)
+    applied = np.array(loop.applied[start:])
+    assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
+    out = loop.outputs[-1]  # then the latch's hold, plain
+    np.testing.assert_allclose(out.force_N, hold_forces(params, loop.svc.hold_alpha(), loop.svc.pretension_N))
+
+
+class _Drifting:
+    """Encoder 4's reading creeping at ``rate`` rad/s from now on (a drum, an encoder creeping):
+    the motors never look still and the take-up ends on its ``PEAK_MAX_S``."""
+
+    def __init__(self, loop, rate: float):
+        self.loop, self.rate, self.off = loop, rate, 0.0
+
+    def run(self, seconds: float) -> None:
+        for _ in range(round(seconds / DT)):
+            self.off += self.rate * DT
+            self.loop.run(DT, stuck={3: float(self.loop.tick.theta_meas[3]) + self.off})
+
+
+@pytest.mark.parametrize("rate", [1.0, 4.0])
+def test_a_take_up_ending_on_its_time_limit_hands_over_without_a_step(params, rate):
+    """Audit of 2026-11-29: ended by ``PEAK_MAX_S`` with a motor still turning, the take-up handed
+    over with its damping in the last command (up to 10 N): the law's first command dropped it at
+    once. The hand-over now moves 1 N a tick at most until the law's command is met."""
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(DT, estop=((False, "audit"),))
+    start = len(loop.applied) - 1
+    drift = _Drifting(loop, rate)
+    drift.run(0.1)
+    while loop.svc.taking_up:
+        drift.run(DT)
+        assert len(loop.applied) - start < round(6.0 / DT)
+    drift.run(0.3)
+    applied = np.array(loop.applied[start:])
+    assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
+    assert loop.outputs[-1].law_ran and not loop.svc.latched
