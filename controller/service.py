@@ -279,6 +279,10 @@ class CampaignService:
         and what was timed on the old clock starts again."""
         if abs(step_s) < CLOCK_STEP_ABORT_S:
             return  # a stall's catch-up, not a clock set: the campaign goes on, as before the check
+        if self._take_up is not None:
+            # it goes on, on the new clock: forward, its floor had jumped to the peak and its time
+            # limit ended it at once, handing over with 10 N steps (audit of 2026-11-29)
+            self._take_up.clock_stepped(step_s)
         reason = f"the bridge's clock stepped by {step_s:+.3g} s"
         last_stamp = self._theta_last[0] if self._theta_last is not None else stamp_s
         if self.running:

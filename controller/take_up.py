@@ -87,6 +87,9 @@ class TakeUp:
     ``level_N`` is the floor added to t_min this tick: it starts at ``start_N`` (the floor in
     force, so nothing steps), rises at ``rate_N_s`` to ``peak_N``, and the take-up is done once
     every motor has been still for ``STILL_FOR_S`` at the peak, or after ``PEAK_MAX_S`` there.
+    Times are sums of the positive steps between the states' stamps (a clock stepping back had
+    held a take-up for as long as it stepped: audit of 2026-11-29), and a step the controller is
+    told of (:meth:`clock_stepped`) is no time spent.
     """
 
     peak_N: float
@@ -94,8 +97,8 @@ class TakeUp:
     start_N: float = 0.0
     level_N: float = field(init=False)
     _last_s: float = field(init=False, default=math.nan)
-    _peak_at: float = field(init=False, default=math.nan)
-    _still_since: float = field(init=False, default=math.nan)
+    _at_peak_s: float = field(init=False, default=math.nan)  # s since the peak was reached (nan: not yet)
+    _still_s: float = field(init=False, default=math.nan)  # s every motor has been still (nan: one turns)
     done_reason: str = field(init=False, default="")
     _theta_dot_f: np.ndarray | None = field(init=False, default=None)
 
@@ -129,6 +132,10 @@ class TakeUp:
     def done(self) -> bool:
         return bool(self.done_reason)
 
+    def clock_stepped(self, step_s: float) -> None:
+        """The states' clock stepped by ``step_s`` (s) since the last state: not time spent here."""
+        self._last_s += step_s
+
     def step(self, stamp_s: float) -> bool:
         """One state at ``stamp_s``, after :meth:`damp` took its motor speeds: raise the floor,
         and say whether the take-up goes on (False once done)."""
@@ -140,15 +147,14 @@ class TakeUp:
             self.level_N = min(self.peak_N, self.level_N + self.rate_N_s * dt)
             if self.level_N < self.peak_N:
                 return True
-        if math.isnan(self._peak_at):
-            self._peak_at = stamp_s
+        self._at_peak_s = 0.0 if math.isnan(self._at_peak_s) else self._at_peak_s + dt
         still = self._theta_dot_f is not None and bool(np.all(np.abs(self._theta_dot_f) < STILL_RAD_S))
         if not still:
-            self._still_since = math.nan
-        elif math.isnan(self._still_since):
-            self._still_since = stamp_s
-        if still and stamp_s - self._still_since >= STILL_FOR_S:
+            self._still_s = math.nan
+        else:
+            self._still_s = 0.0 if math.isnan(self._still_s) else self._still_s + dt
+        if still and self._still_s >= STILL_FOR_S:
             self.done_reason = "taut"
-        elif stamp_s - self._peak_at >= PEAK_MAX_S:
+        elif self._at_peak_s >= PEAK_MAX_S:
             self.done_reason = f"a motor still turned after {PEAK_MAX_S:g} s at the peak"
         return not self.done

@@ -276,3 +276,62 @@ def test_a_take_up_ending_on_its_time_limit_hands_over_without_a_step(params, ra
     applied = np.array(loop.applied[start:])
     assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
     assert loop.outputs[-1].law_ran and not loop.svc.latched
+
+
+def test_a_clock_stepping_back_does_not_defeat_the_time_limit():
+    """Audit of 2026-11-29: the time at the peak was the stamp less the stamp it was reached at,
+    so a clock stepping back an hour kept a take-up with a turning motor going for an hour. It
+    is now the sum of the positive steps between states (as controller/encoder_check.py)."""
+    t = TakeUp(peak_N=1.0, rate_N_s=100.0)
+    stamp, turning, ticks = 0.0, np.array([5.0, 0.0, 0.0, 0.0]), 0
+    t.damp(turning, DT)
+    while t.step(stamp):
+        t.damp(turning, DT)
+        stamp += DT
+        ticks += 1
+        if ticks == round(1.0 / DT):
+            stamp -= 3600.0  # that tick counts as no time
+        assert ticks * DT < 0.01 + rules.PEAK_MAX_S + 3 * DT
+    assert "still turned" in t.done_reason
+
+
+def test_a_told_clock_step_shifts_the_take_up_with_it():
+    """A step the controller is told of (``clock_stepped``) is no time spent: forward, the floor had
+    jumped to its peak and the time limit ended the take-up at once (audit of 2026-11-29)."""
+    t = TakeUp(peak_N=10.0, rate_N_s=20.0)
+    t.damp(np.array([5.0, 0.0, 0.0, 0.0]), DT)
+    for k in range(50):
+        assert t.step(k * DT)
+    level = t.level_N
+    t.clock_stepped(3600.0)
+    assert t.step(3600.0 + 50 * DT)
+    assert t.level_N == pytest.approx(level + 20.0 * DT)
+
+
+def test_a_clock_step_during_the_take_up_neither_ends_it_nor_steps_the_forces(params):
+    """Audit of 2026-11-29: the bridge's clock set forward an hour 1.6 s into the take-up (at its
+    peak) ended it on its time limit at once, handing over with up to 10 N steps."""
+    from bridge_loop import BridgeLoop
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(1.6, estop=((False, "audit"),))
+    assert loop.svc.taking_up
+    start = len(loop.applied) - 1
+
+    class Shifted(BridgeLoop):
+        @property
+        def stamp_s(self) -> float:
+            return self.tick.t_s + 3600.0
+
+    loop.__class__ = Shifted
+    loop.svc.clock_stepped(3600.0, loop.stamp_s)
+    loop.run(0.1)
+    assert loop.svc.taking_up  # the motors still wind in
+    for _ in range(round(3.0 / DT)):
+        loop.run(DT)
+        if not loop.svc.taking_up:
+            break
+    loop.run(0.3)
+    assert not loop.tick.slack.any() and loop.outputs[-1].law_ran
+    applied = np.array(loop.applied[start:])
+    assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
