@@ -748,7 +748,10 @@ class CampaignService:
         self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
         self.ctl.f_prev[:] = sent
         take_up.damp(self.ctl.theta_dot, self.ctl.dt)
-        if drive != "active" or take_up.step(stamp_s):  # a bridge hold: wait, level kept
+        # the floor at which the hold at α̂ stays PEAK_FORCE_FRACTION under f_max (audit of
+        # 2026-11-29: the distribution loaded cables to f_max at ordinary poses)
+        cap = take_up_rules.floor_cap_N(self.params, self.hold_alpha()) if drive == "active" else math.inf
+        if drive != "active" or take_up.step(stamp_s, cap):  # a bridge hold: wait, level kept
             return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.peak_N:.0f} N")
         # The law takes over at the next state (``_restart`` is still set), from this command at
         # the take-up's rate: a motor still turning at ``PEAK_MAX_S`` left up to 10 N of damping

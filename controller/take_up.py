@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from controller.laws import _hold_model  # pyright: ignore[reportPrivateUsage]
+from twin.model import dynamics
 from twin.model.params import Params
 
 #: The floor's peak over the largest f_s (module docstring): above the 1.5 breakaway ratio with a
@@ -65,6 +67,11 @@ DAMPING_N_S_RAD = 2.0
 #: stillness test read: on the law's θ̇ alone the encoders' counts made the damping chatter
 #: (668 steps above 1 N in 3 s) and the motors never looked still.
 DAMPING_FILTER_HZ = 50.0
+#: The largest force the hold may ask of any cable at the take-up's floor, over f_max: the
+#: distribution loads the other cables 1.7-2.7× the floor, and the 37.5 N floor drove cables to
+#: f_max at 357 of 729 poses of a ±60° grid (audit of 2026-11-29; the peak of a 30° pose reached
+#: it). The rest (20 N) is room for the damping, which adds to a back-driven motor's cable.
+PEAK_FORCE_FRACTION = 0.8
 #: N per tick the take-up's command may change by (the bridge's enable ramp, 1 N a tick): the
 #: law's own bound (10 N) let the damping step the cables.
 FORCE_STEP_N = 1.0
@@ -73,11 +80,39 @@ FORCE_STEP_N = 1.0
 def take_up_peak_N(params: Params) -> float:
     """The floor added to t_min at the take-up's peak (N, module docstring): 0 when t_min alone
     is already past ``TAKE_UP_FRICTION_FACTOR``·max f_s, and the floor never above half of
-    f_max (the distribution loads the long cable above the floor: 63 N for a 37.5 N floor on the
-    robot truth; an identified set with a large f_s must not ask for f_max)."""
+    f_max (an identified set with a large f_s must not ask for f_max). The distribution loads
+    other cables above the floor, 1.7-2.7× at tilted poses: :func:`floor_cap_N` lowers it where
+    they would pass ``PEAK_FORCE_FRACTION``·f_max."""
     f_s = params.friction.f_s
     floor = min(TAKE_UP_FRICTION_FACTOR * max(f_s, default=0.0), 0.5 * params.limits.f_max)
     return max(0.0, floor - params.limits.t_min)
+
+
+def floor_cap_N(params: Params, alpha_rad: np.ndarray) -> float:
+    """The largest floor added to t_min (N, >= 0) at which the hold at α
+    (:func:`controller.laws.hold_forces`) asks no cable above ``PEAK_FORCE_FRACTION``·f_max; 0 at
+    a pose where the distribution is not possible (n <= 0, eq. 63).
+
+    In closed form, from the distribution (eqs. 63-65, :func:`controller.distribution.distribute`):
+    with p = Z₁⁻¹g and n = −Z₁⁻¹Z₂, the short cables carry p + n·f_long and the long one
+    f_long = max(L, maxᵢ (L − pᵢ)/nᵢ) at a floor L, so every force is at most M iff f_long <= F* =
+    min(M, minᵢ (M − pᵢ)/nᵢ), i.e. L <= min(F*, minᵢ pᵢ + nᵢF*). One model evaluation and two
+    3×3 solves: as cheap as the hold itself, so it runs every tick at α̂."""
+    m, short, long = _hold_model(params)
+    terms = dynamics.evaluate(m, np.asarray(alpha_rad, dtype=float))
+    Z = terms.Z
+    Z1 = Z[:, short]
+    try:
+        pn = np.linalg.solve(Z1, np.column_stack((terms.g, -Z[:, long])))
+    except np.linalg.LinAlgError:
+        return 0.0
+    p, n = pn[:, 0], pn[:, 1]
+    if not (np.all(n > 0.0) and np.all(np.isfinite(p))):
+        return 0.0
+    top = PEAK_FORCE_FRACTION * m.f_max
+    f_long = min(top, float(np.min((top - p) / n)))
+    floor = min(f_long, float(np.min(p + n * f_long)))
+    return max(0.0, floor - max(m.t_min, m.f_min))
 
 
 @dataclass
@@ -136,17 +171,22 @@ class TakeUp:
         """The states' clock stepped by ``step_s`` (s) since the last state: not time spent here."""
         self._last_s += step_s
 
-    def step(self, stamp_s: float) -> bool:
+    def step(self, stamp_s: float, cap_N: float = math.inf) -> bool:
         """One state at ``stamp_s``, after :meth:`damp` took its motor speeds: raise the floor,
-        and say whether the take-up goes on (False once done)."""
+        and say whether the take-up goes on (False once done). ``cap_N``: the floor at which the
+        hold at α̂ reaches ``PEAK_FORCE_FRACTION``·f_max (:func:`floor_cap_N`); the floor never
+        stays above it, and reaching it counts as the peak."""
         if self.done:
             return False
         dt = 0.0 if math.isnan(self._last_s) else max(0.0, stamp_s - self._last_s)
         self._last_s = stamp_s
-        if self.level_N < self.peak_N:
-            self.level_N = min(self.peak_N, self.level_N + self.rate_N_s * dt)
-            if self.level_N < self.peak_N:
-                return True
+        target = max(0.0, min(self.peak_N, cap_N))
+        if self.level_N > target:
+            self.level_N = target  # the command follows at FORCE_STEP_N a tick (the service's hold)
+        elif self.level_N < target:
+            self.level_N = min(target, self.level_N + self.rate_N_s * dt)
+        if self.level_N < target and math.isnan(self._at_peak_s):
+            return True
         self._at_peak_s = 0.0 if math.isnan(self._at_peak_s) else self._at_peak_s + dt
         still = self._theta_dot_f is not None and bool(np.all(np.abs(self._theta_dot_f) < STILL_RAD_S))
         if not still:

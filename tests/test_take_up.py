@@ -335,3 +335,62 @@ def test_a_clock_step_during_the_take_up_neither_ends_it_nor_steps_the_forces(pa
     assert not loop.tick.slack.any() and loop.outputs[-1].law_ran
     applied = np.array(loop.applied[start:])
     assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_the_floor_cap_keeps_the_hold_under_its_margin_of_f_max(params):
+    """The take-up's floor at 2·max f_s had the distribution load other cables 1.7-2.7× as much:
+    f_max at 357 of 729 poses of a ±60° grid (audit of 2026-11-29). :func:`floor_cap_N` is the
+    floor at which the hold's largest force is ``PEAK_FORCE_FRACTION``·f_max."""
+    import itertools
+
+    from controller.laws import hold_forces
+
+    top = rules.PEAK_FORCE_FRACTION * params.limits.f_max
+    grid = np.radians(np.arange(-60.0, 61.0, 20.0))
+    capped = 0
+    for alpha in itertools.product(grid, grid, grid):
+        a = np.array(alpha)
+        cap = rules.floor_cap_N(params, a)
+        if hold_forces(params, a).max() >= top:
+            assert cap == 0.0
+            continue
+        assert hold_forces(params, a, cap).max() == pytest.approx(top, abs=1e-6)
+        assert hold_forces(params, a, cap + 0.5).max() > top
+        capped += cap < take_up_peak_N(params)
+    assert capped > 0
+
+
+def test_the_floor_follows_a_cap_below_its_peak_and_reaching_it_is_the_peak():
+    t = TakeUp(peak_N=10.0, rate_N_s=20.0, start_N=8.0)
+    t.damp(np.zeros(4), DT)
+    assert t.step(0.0, cap_N=5.0) and t.level_N == 5.0  # dropped to it (the hold's command: 1 N a tick)
+    stamp = 0.0
+    while t.step(stamp, cap_N=5.0):
+        t.damp(np.zeros(4), DT)
+        stamp += DT
+        assert t.level_N == 5.0
+    assert t.done_reason == "taut" and stamp == pytest.approx(rules.STILL_FOR_S, abs=2 * DT)
+
+
+def test_the_take_up_at_a_tilted_pose_keeps_every_cable_under_its_margin_of_f_max(params):
+    """Audit of 2026-11-29: jogged to (−30, 0, 30)°, e-stopped 0.1 s and released, the take-up's
+    peak drove cable 1 to f_max (100 N) for 26 ticks."""
+    from bridge_loop import BridgeLoop
+    from test_controller_service import _request as request
+
+    from controller.trajectory import Trajectory
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(0.5)
+    jog = Trajectory.from_degrees([[-30.0, 0.0, 30.0]], [], 0.0, "jog")
+    loop.svc.handle(request("j", kind="jog", trajectory_json=jog.to_json()), loop.stamp_s)
+    for _ in range(20):
+        loop.run(0.5)
+        if _ended(loop, "j"):
+            break
+    loop.run(0.1, estop=((True, "x"),))
+    start = len(loop.applied)
+    loop.run(4.0, estop=((False, "x"),))
+    applied = np.array(loop.applied[start:])
+    assert applied.max() <= rules.PEAK_FORCE_FRACTION * params.limits.f_max + 1.0
+    assert loop.outputs[-1].law_ran and not loop.svc.latched
