@@ -304,13 +304,17 @@ class CampaignService:
         self._next_progress = 0.0
         self.outcome = ""
         self._leftover_N = self.pretension_N  # let go under the trajectory's (``_pretension``)
+        self._lift_latch()
+        self.ticks = self.overruns = self.deadline_misses = 0
+        self._blend = self._brake = None
+        self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
+
+    def _lift_latch(self) -> None:
+        """A new campaign lifts a latched hold: α̂ again from the encoders (:meth:`_reestimate`)."""
         if self.latched:
             self._reestimate()
             self._restart = True  # the law takes over from the new estimate, bumplessly
         self.latched = False
-        self.ticks = self.overruns = self.deadline_misses = 0
-        self._blend = self._brake = None
-        self._event("started", message=f"{self.law.name}, trajectory {trajectory.name}")
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:
         self.outcome = outcome
@@ -366,7 +370,8 @@ class CampaignService:
     @property
     def taking_up(self) -> bool:
         """The slack an e-stop left is (to be) taken up before the law holds the neck again."""
-        return self._take_up is not None or (self._estopped and self.drive != "disabled" and self._drives_off)
+        return self._take_up is not None or (self._estopped and self.drive != "disabled" and self._drives_off
+                                             and not self.latched)
 
     @property
     def braking(self) -> bool:
@@ -422,6 +427,11 @@ class CampaignService:
         if busy:
             self.refuse(prepared.campaign_id, prepared.kind, f"refused: {busy}")
             return
+        if self.latched and self._estopped:
+            # The e-stop's release found the hold latched, and the take-up it owes waited for the
+            # latch: every campaign waited for it forever (audit of 2026-11-29). This one lifts the
+            # latch now, and starts after the take-up.
+            self._lift_latch()
         if self._brake is not None or self.taking_up:
             # α^d is still coming to rest after a stop, or the slack of an e-stop is being taken
             # up: the campaign starts from where the neck then rests (advance()), as a jog waits

@@ -394,3 +394,32 @@ def test_the_take_up_at_a_tilted_pose_keeps_every_cable_under_its_margin_of_f_ma
     applied = np.array(loop.applied[start:])
     assert applied.max() <= rules.PEAK_FORCE_FRACTION * params.limits.f_max + 1.0
     assert loop.outputs[-1].law_ran and not loop.svc.latched
+
+
+def test_a_campaign_after_a_latch_an_estop_and_its_release_starts(params):
+    """Audit of 2026-11-29: the release found the hold latched (a stuck encoder), returned before
+    the take-up the e-stop owed was started or given up, and every new campaign waited for it
+    forever. The campaign (what lifts a latch) now lifts it, and starts after the take-up."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(1.0)
+    loop.svc.handle(_request("c-1"), loop.stamp_s)
+    loop.run(1.0)
+    frozen = float(loop.tick.theta_meas[0])
+    for _ in range(5):
+        loop.run(1.0, stuck={0: frozen})
+        if loop.svc.latched:
+            break
+    assert loop.svc.latched
+    loop.run(1.0, estop=((True, "operator"),))
+    loop.run(0.5, estop=((False, "operator"),))
+    loop.svc.handle(_request("c-2"), loop.stamp_s)
+    reasons = set()
+    for _ in range(round(5.0 / DT)):
+        loop.run(DT)
+        reasons.add(loop.svc.hold_reason.split(":")[0])
+        if loop.svc.running:
+            break
+    assert loop.svc.running and not loop.svc.latched, [e.message for e in loop.events if e.campaign_id == "c-2"]
+    assert "taking up the cables' slack after the e-stop" in reasons
