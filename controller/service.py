@@ -762,13 +762,17 @@ class CampaignService:
         # 2026-11-29: the distribution loaded cables to f_max at ordinary poses)
         cap = take_up_rules.floor_cap_N(self.params, self.hold_alpha()) if drive == "active" else math.inf
         if drive != "active" or take_up.step(stamp_s, cap):  # a bridge hold: wait, level kept
-            return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.peak_N:.0f} N")
+            waiting = self._next_jog
+            return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.level_N:.0f} N "
+                             f"(peak {take_up.peak_N:.0f} N)"
+                             + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else ""))
         # The law takes over at the next state (``_restart`` is still set), from this command at
         # the take-up's rate: a motor still turning at ``PEAK_MAX_S`` left up to 10 N of damping
         # in it, which the law's first command dropped at once (audit of 2026-11-29).
         self._take_up, self._wind_down = None, True
         self.pretension_N = take_up.level_N
-        return self.hold("")
+        # said once, in the status and the process's log (a new hold reason): how it ended
+        return self.hold(f"the cables' slack is taken up ({take_up.done_reason}): the law takes over")
 
     def count_timing(self, overrun: bool, deadline_missed: bool) -> None:
         """The shell's measure of the tick just commanded: compute over the period, command late."""

@@ -423,3 +423,22 @@ def test_a_campaign_after_a_latch_an_estop_and_its_release_starts(params):
             break
     assert loop.svc.running and not loop.svc.latched, [e.message for e in loop.events if e.campaign_id == "c-2"]
     assert "taking up the cables' slack after the e-stop" in reasons
+
+
+def test_the_status_says_the_floor_now_a_waiting_campaign_and_how_the_take_up_ended(params):
+    """Audit of 2026-11-29: the status gave the peak, not the floor now; a waiting campaign was
+    nowhere to be seen; and how the take-up ended (taut, or its time limit) was never said. The
+    hold's reason (the status, and the process's log when it changes) now says all three."""
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.3, estop=((False, "audit"),))
+    loop.svc.handle(_request("c-2"), loop.stamp_s)
+    loop.run(DT)
+    reason = loop.svc.hold_reason
+    level = loop.svc._take_up.level_N
+    assert f"floor t_min + {level:.0f} N" in reason and "c-2" in reason, reason
+    reasons = []
+    while not loop.svc.running:
+        loop.run(DT)
+        reasons.append(loop.svc.hold_reason)
+        assert len(reasons) < round(4.0 / DT)
+    assert any("slack is taken up (taut)" in r for r in reasons), reasons[-5:]
