@@ -37,7 +37,9 @@ trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. A c
 ``aborted`` with the reason, and none starts while they are. After an e-stop the law does not
 take over at once: the fall left cables slack that the hold's forces cannot wind in, and α̂ off
 the neck, so every cable's floor is first raised past the motors' friction at α̂ until the motors
-stop winding in (:mod:`controller.take_up`); a campaign asked for meanwhile starts after it.
+stop winding in (:mod:`controller.take_up`); a campaign asked for meanwhile starts after it. A
+take-up that ends, or that a latch cuts short, winds down: the command keeps its 1 N a tick
+until it meets the law's or the hold's.
 
 Jogs (kind ``jog``, the console's sliders): a jog is a campaign of one waypoint reached by the
 gentle approach from α̂. A jog asked for while a jog runs is prepared, then waits (the newest one
