@@ -235,7 +235,8 @@ def test_an_encoder_fault_during_the_take_up_lets_its_damping_go_at_its_rate(par
 
     loop = _dropped_on_slack_cables(params, 0)
     loop.run(at_s, estop=((False, "audit"),))
-    assert loop.svc.taking_up and np.abs(loop.svc._take_up.damping_N).max() > 10.0
+    take_up = loop.svc._take_up
+    assert take_up is not None and np.abs(take_up.damping_N).max() > 10.0
     start = len(loop.applied) - 1
     loop.run(DT, stuck={0: float(loop.tick.theta_meas[0]) + 100.0})  # one faulty reading
     assert loop.svc.latched and "encoder 1" in loop.svc.hold_reason
@@ -434,7 +435,9 @@ def test_the_status_says_the_floor_now_a_waiting_campaign_and_how_the_take_up_en
     loop.svc.handle(_request("c-2"), loop.stamp_s)
     loop.run(DT)
     reason = loop.svc.hold_reason
-    level = loop.svc._take_up.level_N
+    take_up = loop.svc._take_up
+    assert take_up is not None
+    level = take_up.level_N
     assert f"floor t_min + {level:.0f} N" in reason and "c-2" in reason, reason
     reasons = []
     while not loop.svc.running:
