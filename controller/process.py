@@ -370,7 +370,7 @@ class ControllerNode:
             svc.refuse(svc.campaign_id, svc.kind, f"no motor state within {cfg.startup_timeout_s} s of start")
             return svc.outcome
         with self._tick_lock:
-            svc.initialise(np.asarray(first.theta_rad))
+            svc.initialise(np.asarray(first.theta_rad), np.asarray(first.force_applied_N))
             if self._own_trajectory is not None:
                 svc.begin(self._own_trajectory, first.stamp_s)
             self._last_key, self._last_wall = (first.epoch, first.stamp_s), time.perf_counter()

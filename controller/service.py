@@ -82,7 +82,7 @@ from controller.trajectory import (
     brake_duration_s,
     cycloid_at,
 )
-from twin.model.estimation import alpha_hat_3
+from twin.model.estimation import alpha_hat_3, static_elongation
 from twin.model.params import Params
 
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
@@ -231,11 +231,23 @@ class CampaignService:
         self.ctl.step(zc, z, z, z)
         self.ctl.observe(zc, zc)
         hold_forces(self.params, z)
+        alpha_hat_3(self.ctl.model, zc)  # eq. 33: a first state off zero (initialise), a latch's re-estimate
 
-    def initialise(self, theta_rad: np.ndarray) -> None:
-        """The first state of a bridge run: the estimate starts from the encoders (the neck
-        straight, eq. 20's zero), and the service holds there."""
-        self.ctl.reset(theta=np.asarray(theta_rad, dtype=float))
+    def initialise(self, theta_rad: np.ndarray, force_N: np.ndarray | None = None) -> None:
+        """The first state this service sees of a bridge run: the estimate starts from the encoders'
+        absolute reading (eq. 33, with the stretch the state's forces ``force_N`` hold at rest,
+        eq. 58), and the service holds there. At a bridge's start the encoders read zero with the
+        neck straight (eq. 20), which gives α̂ = 0 as before; a controller restarted while the
+        bridge runs meets a bent neck, which it had taken for straight: α̂ 45° off the neck
+        45° up (audit of 2026-11-29)."""
+        theta = np.asarray(theta_rad, dtype=float)
+        model = self.ctl.model
+        x_c = static_elongation(model, force_N) if force_N is not None else np.zeros(model.n_cables)
+        alpha = alpha_hat_3(model, theta, x_c) if (np.any(theta) or np.any(x_c)) else None
+        if alpha is not None and not np.all(np.isfinite(alpha)):
+            alpha, x_c = None, np.zeros(model.n_cables)
+        self.ctl.reset(alpha=alpha, theta=theta)
+        self.ctl.estimator.x_c[:] = x_c
         self.last_sane = self.ctl.estimator.alpha_hat.copy()
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None

@@ -593,3 +593,33 @@ def test_a_campaign_started_from_an_idle_hold_on_the_robot_truth_steps_no_force(
     idle_step = float(np.abs(np.diff(idle, axis=0)).max())
     start_step = float(np.abs(np.diff(forces, axis=0)).max())
     assert start_step <= max(2.0, 2 * idle_step), (start_step, idle_step)
+
+
+@pytest.mark.parametrize("law", [2, 3])
+def test_a_controller_restarted_while_the_bridge_runs_starts_from_where_the_neck_is(params, law) -> None:
+    """Audit of 2026-11-29: a controller process started while the bridge ran (a crash and its
+    restart, a redeploy) took the neck for straight whatever the encoders read: α̂ 0 with the
+    neck 45° up, so its hold's feed-forward and the next campaign's approach started from a pose
+    the neck was not in. It starts from the encoders' absolute reading (eq. 33) with the stretch
+    the state's forces hold (eq. 58 at rest) and holds the neck where it is."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bridge_loop import BridgeLoop
+
+    from controller.trajectory import control_test_trajectory
+
+    loop = BridgeLoop(params, seed=0, law=law)
+    loop.run(1.0)
+    loop.svc.handle(_request("c-1", trajectory_json=control_test_trajectory().to_json(), law=law), loop.stamp_s)
+    loop.run(3.0)
+    bent = loop.tick.alpha.copy()
+    assert np.degrees(bent).min() > 15.0  # the neck is well up
+    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5)  # the new process, on its first state
+    svc.initialise(loop.tick.theta_meas, loop.applied[-1])
+    assert np.degrees(np.abs(svc.ctl.estimator.alpha_hat - bent)).max() < 8.0, np.degrees(svc.ctl.estimator.alpha_hat)
+    loop.svc = svc
+    loop.run(1.0)
+    assert np.degrees(np.abs(loop.tick.alpha - bent)).max() < 8.0, np.degrees(loop.tick.alpha)  # held there
+    assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - loop.tick.alpha)).max() < 8.0

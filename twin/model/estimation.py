@@ -226,6 +226,16 @@ def _vector(x, n: int, name: str) -> np.ndarray:
     return v
 
 
+def static_elongation(model: Model, f: np.ndarray) -> np.ndarray:
+    """Eq. 58 at rest: the stretch x_c (m) at which a cable held at tension f (N) stops creeping,
+    t/(k + λ·t) with t = f (no friction at rest), never below 0; zeros for rigid cables. What a
+    controller joining a running bridge takes as the stretch its first state's forces hold."""
+    if model.cable_model == RIGID:
+        return np.zeros(model.n_cables)
+    t = np.maximum(_vector(f, model.n_cables, "f"), 0.0)
+    return t / (np.asarray(model.k, dtype=float) + np.asarray(model.lam, dtype=float) * t)
+
+
 def predict_elongation(model: Model, x_c: np.ndarray, f: np.ndarray, theta_dot: np.ndarray, dt: float) -> np.ndarray:
     """Eq. 58: x_c(t+Δt) = x_c + Δt/c_a·(t − (k + λ·t)·x_c) with t = f − f_friction(θ̇), never
     below 0 (a cable does not push). Rigid cables: zeros. Vectors of n_cables; the work is
