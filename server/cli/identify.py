@@ -108,10 +108,10 @@ def identify(
             typer.echo(f"note: {what}{note}", err=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
-    from twin.identification.timing import WARN_DELAY_S, alpha_ip_timing
+    from twin.identification.timing import alpha_ip_timing
 
     timing = alpha_ip_timing(ident.data)
-    if timing.resolved and abs(timing.delay_s) > WARN_DELAY_S:  # also under --json: the fit used shifted α_IP
+    if timing.warn:  # also under --json: the fit used shifted α_IP
         typer.echo(f"warning: {timing.text()}", err=True)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

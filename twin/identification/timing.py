@@ -20,7 +20,7 @@ Times in s, angles in rad (degrees in the report's text only).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -34,38 +34,69 @@ STEP_S = 0.002
 #: |τ| (s) above which the report warns: half a frame at 30 fps. Below it the camera's own
 #: quantisation of its capture time dominates.
 WARN_DELAY_S = 1.0 / 60.0
-#: The residual at the stamps as recorded must exceed the least one by this factor for a delay
-#: to be reported as one: a flat residual (a record with little motion) says nothing.
+#: The residual at the stamps as recorded must exceed the least one by this factor, and by
+#: :data:`MIN_DIFFERENCE_RAD`, for the stamps to count as off: a noisy minimum a few ms away is no
+#: delay (audit of 2026-11-29: 6° of camera noise put it 28 ms away at 5.907° against 5.914°).
 MIN_CONTRAST = 1.02
+#: rad the residual must vary by over the grid for the record to tell anything (a frozen camera,
+#: a still neck), and by which the residual as stamped must exceed the least one (above).
+MIN_DIFFERENCE_RAD = float(np.radians(0.005))
+
+Verdict = Literal["aligned", "delayed", "out_of_range", "uninformative"]
 
 
 class AlphaIpTiming(NamedTuple):
-    """What :func:`alpha_ip_timing` found (s, and the fitted map's residuals in rad)."""
+    """What :func:`alpha_ip_timing` found (s, and the fitted map's residuals in rad). ``verdict``:
+    ``aligned`` (the stamps do as well as any delay), ``delayed`` (the least residual is at τ and
+    the stamps do measurably worse), ``out_of_range`` (the least residual is at the grid's edge,
+    ±``searched_s``, and the stamps do measurably worse: |τ| at least that), ``uninformative``
+    (too few frames, or a residual flat over the grid: a still neck, a frozen camera)."""
 
     delay_s: float  # τ of least residual: α_IP stamped this much late (negative: early)
     rms_rad: float  # residual at τ
     rms_at_stamps_rad: float  # residual at τ = 0, the stamps as recorded
-    frames: int  # camera frames used (those whose shifted time lies inside the encoder record)
-    resolved: bool  # whether the residual's minimum stands out (:data:`MIN_CONTRAST`)
+    frames: int  # camera frames used (those at least ``searched_s`` inside the encoder record)
+    verdict: Verdict
+    searched_s: float = MAX_DELAY_S
+
+    @property
+    def resolved(self) -> bool:
+        """Whether the record tells the delay (or that there is none)."""
+        return self.verdict != "uninformative"
+
+    @property
+    def warn(self) -> bool:
+        """Whether the stamps are off by more than :data:`WARN_DELAY_S`, measurably."""
+        return self.verdict == "out_of_range" or (self.verdict == "delayed" and abs(self.delay_s) > WARN_DELAY_S)
 
     def text(self) -> str:
         """One line for the identification's output."""
-        head = (f"α_IP timing: best matched by the encoders and forces {self.delay_s * 1e3:+.1f} ms from its stamps "
-                f"(rms {np.degrees(self.rms_rad):.2f}° there, {np.degrees(self.rms_at_stamps_rad):.2f}° as stamped; "
+        if self.verdict == "uninformative":
+            return (f"α_IP timing: the record is too short or moves too little to tell a delay ({self.frames} frames)")
+        where = (f"{'+' if self.delay_s > 0 else '-'}{self.searched_s * 1e3:.0f} ms or more (the edge of the "
+                 f"search)" if self.verdict == "out_of_range" else f"{self.delay_s * 1e3:+.1f} ms")
+        head = (f"α_IP timing: best matched by the encoders and forces {where} from its stamps (rms "
+                f"{np.degrees(self.rms_rad):.2f}° there, {np.degrees(self.rms_at_stamps_rad):.2f}° as stamped; "
                 f"{self.frames} frames)")
-        if not self.resolved:
-            return head + ": the record is too short or moves too little to tell a delay"
-        if abs(self.delay_s) > WARN_DELAY_S:
-            late = "late" if self.delay_s > 0 else "early"
-            return (head + f": WARNING, α_IP looks stamped {abs(self.delay_s) * 1e3:.0f} ms {late}: set the camera's "
-                    f"--latency {'longer' if self.delay_s > 0 else 'shorter'} by that much, or check its clock "
-                    f"(docs/camera.md, One clock), and record again")
-        return head
+        if self.verdict == "aligned":
+            return head + ": consistent with its stamps"
+        if not self.warn:
+            return head
+        late = "late" if self.delay_s > 0 else "early"
+        by = f"at least {self.searched_s * 1e3:.0f}" if self.verdict == "out_of_range" else f"{abs(self.delay_s) * 1e3:.0f}"
+        return (head + f": WARNING, α_IP looks stamped {by} ms {late}: set the camera's --latency "
+                f"{'longer' if self.delay_s > 0 else 'shorter'} by that much, or check its clock "
+                f"(docs/camera.md, One clock), and record again")
 
-    def as_dict(self) -> dict[str, float | int | bool]:
-        return {"delay_s": self.delay_s, "rms_deg": float(np.degrees(self.rms_rad)),
-                "rms_at_stamps_deg": float(np.degrees(self.rms_at_stamps_rad)), "frames": self.frames,
-                "resolved": self.resolved, "warn_above_s": WARN_DELAY_S}
+    def as_dict(self) -> dict[str, float | int | bool | str | None]:
+        """For JSON (a non-finite residual, too few frames, is null: strict JSON has no NaN)."""
+        def finite(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        return {"delay_s": self.delay_s, "rms_deg": finite(np.degrees(self.rms_rad)),
+                "rms_at_stamps_deg": finite(np.degrees(self.rms_at_stamps_rad)), "frames": self.frames,
+                "verdict": self.verdict, "resolved": self.resolved, "warn": self.warn,
+                "warn_above_s": WARN_DELAY_S, "searched_s": self.searched_s}
 
 
 def _residual(t: np.ndarray, signals: np.ndarray, t_ip: np.ndarray, alpha: np.ndarray, tau_s: float) -> float:
@@ -88,7 +119,7 @@ def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s
     t_ip, alpha = data.t_ip_s[keep], data.alpha_ip_rad[keep]
     signals = np.concatenate([data.theta_rad, data.force_N], axis=1)
     if len(t_ip) < 3 * (signals.shape[1] + 1):  # too few frames to fit the map with a residual to compare
-        return AlphaIpTiming(0.0, float("nan"), float("nan"), len(t_ip), False)
+        return AlphaIpTiming(0.0, float("nan"), float("nan"), len(t_ip), "uninformative", max_delay_s)
     taus = np.arange(-max_delay_s, max_delay_s + step_s / 2, step_s)
     rms = np.array([_residual(t, signals, t_ip, alpha, float(tau)) for tau in taus])
     i = int(np.argmin(rms))
@@ -102,5 +133,11 @@ def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s
             delay += float(np.clip(0.5 * (y0 - y2) / den, -1.0, 1.0)) * step_s
     at_delay = min(_residual(t, signals, t_ip, alpha, delay), float(rms[i]))
     at_stamps = _residual(t, signals, t_ip, alpha, 0.0)
-    resolved = interior and bool(rms.max() > MIN_CONTRAST * rms.min())
-    return AlphaIpTiming(delay, at_delay, at_stamps, len(t_ip), resolved)
+    verdict: Verdict
+    if not (rms.max() > MIN_CONTRAST * rms.min() and rms.max() - rms.min() > MIN_DIFFERENCE_RAD):
+        verdict = "uninformative"
+    elif not (at_stamps > MIN_CONTRAST * at_delay and at_stamps - at_delay > MIN_DIFFERENCE_RAD):
+        verdict = "aligned"
+    else:
+        verdict = "delayed" if interior else "out_of_range"
+    return AlphaIpTiming(delay, at_delay, at_stamps, len(t_ip), verdict, max_delay_s)
