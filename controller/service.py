@@ -242,13 +242,16 @@ class CampaignService:
         45° up (audit of 2026-11-29)."""
         theta = np.asarray(theta_rad, dtype=float)
         model = self.ctl.model
-        x_c = static_elongation(model, force_N) if force_N is not None else np.zeros(model.n_cables)
-        alpha = alpha_hat_3(model, theta, x_c) if (np.any(theta) or np.any(x_c)) else None
+        forces_ok = force_N is not None and bool(np.all(np.isfinite(force_N)))
+        x_c = static_elongation(model, np.asarray(force_N)) if forces_ok else np.zeros(model.n_cables)
+        absolute = bool(np.all(np.isfinite(theta))) and (np.any(theta) or np.any(x_c))
+        alpha = alpha_hat_3(model, theta, x_c) if absolute else None
         if alpha is not None and not np.all(np.isfinite(alpha)):
             alpha, x_c = None, np.zeros(model.n_cables)
         self.ctl.reset(alpha=alpha, theta=theta)
         self.ctl.estimator.x_c[:] = x_c
-        self.last_sane = self.ctl.estimator.alpha_hat.copy()
+        # held within the joint limits, as after a latch's re-estimate: eq. 33 answers any reading
+        self.last_sane = np.clip(self.ctl.estimator.alpha_hat, -self._alpha_max, self._alpha_max)
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
         self._estopped, self._take_up, self._hold_sent = False, None, None  # a run's first enable takes none

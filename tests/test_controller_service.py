@@ -623,3 +623,13 @@ def test_a_controller_restarted_while_the_bridge_runs_starts_from_where_the_neck
     loop.run(1.0)
     assert np.degrees(np.abs(loop.tick.alpha - bent)).max() < 8.0, np.degrees(loop.tick.alpha)  # held there
     assert np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - loop.tick.alpha)).max() < 8.0
+
+
+def test_a_first_state_far_off_any_pose_is_held_within_the_joint_limits(params) -> None:
+    """Audit of 2026-11-29: eq. 33 answers any encoder reading, and a first state read 50 rad off
+    gave a hold target of (−135, 84, −107)°; a non-finite force is not taken for a stretch."""
+    svc = CampaignService(params, LawConfig(law=3), settle_s=0.5)
+    svc.initialise(np.array([50.0, -50.0, 50.0, -50.0]), np.array([10.0, math.nan, 10.0, 10.0]))
+    limit = math.radians(params.limits.alpha_max_deg)
+    assert np.all(np.abs(svc.hold_target) <= limit + 1e-12), np.degrees(svc.hold_target)
+    assert np.all(svc.ctl.estimator.x_c == 0.0)
