@@ -29,8 +29,10 @@ from twin.identification.processing import CampaignData
 #: s searched either side of the stamps as recorded: above a camera's latency guess's error (the
 #: default 50 ms entirely wrong) and a frame period's several, below the excitation's period.
 MAX_DELAY_S = 0.25
-#: s between the delays tried before the parabola's refinement around the least residual.
+#: s between the delays tried around the coarse grid's least residual, before the parabola.
 STEP_S = 0.002
+#: s between the delays of the first, coarse pass over ±``MAX_DELAY_S``.
+COARSE_STEP_S = 0.01
 #: |τ| (s) above which the report warns: half a frame at 30 fps. Below it the camera's own
 #: quantisation of its capture time dominates.
 WARN_DELAY_S = 1.0 / 60.0
@@ -111,8 +113,8 @@ def _residual(t: np.ndarray, signals: np.ndarray, t_ip: np.ndarray, alpha: np.nd
 
 def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s: float = STEP_S) -> AlphaIpTiming:
     """The delay of α_IP against the encoders and forces (module docstring): the residual on a grid
-    of ±``max_delay_s`` every ``step_s``, refined by a parabola through the least one and its two
-    neighbours. The same frames count at every τ: those at least ``max_delay_s`` inside the
+    of ±``max_delay_s`` every :data:`COARSE_STEP_S`, then every ``step_s`` within one coarse step of
+    its least, refined by a parabola through the least one and its two neighbours. The same frames count at every τ: those at least ``max_delay_s`` inside the
     encoder record."""
     t = data.t_s
     keep = (data.t_ip_s >= t[0] + max_delay_s) & (data.t_ip_s <= t[-1] - max_delay_s)
@@ -120,18 +122,29 @@ def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s
     signals = np.concatenate([data.theta_rad, data.force_N], axis=1)
     if len(t_ip) < 3 * (signals.shape[1] + 1):  # too few frames to fit the map with a residual to compare
         return AlphaIpTiming(0.0, float("nan"), float("nan"), len(t_ip), "uninformative", max_delay_s)
-    taus = np.arange(-max_delay_s, max_delay_s + step_s / 2, step_s)
-    rms = np.array([_residual(t, signals, t_ip, alpha, float(tau)) for tau in taus])
-    i = int(np.argmin(rms))
-    delay = float(taus[i])
-    interior = 0 < i < len(taus) - 1
-    if interior:
+    def residuals(taus: np.ndarray) -> np.ndarray:
+        return np.array([_residual(t, signals, t_ip, alpha, float(tau)) for tau in taus])
+
+    # Coarse, then fine around the coarse least: the residual is smooth over tens of ms (the
+    # excitation's bandwidth is a few Hz), and a 1 h record took 29 s at the fine step throughout.
+    coarse_taus = np.linspace(-max_delay_s, max_delay_s, 2 * max(1, round(max_delay_s / COARSE_STEP_S)) + 1)
+    rms = residuals(coarse_taus)
+    c = int(np.argmin(rms))
+    interior = 0 < c < len(coarse_taus) - 1
+    lo = max(-max_delay_s, float(coarse_taus[c]) - COARSE_STEP_S)
+    hi = min(max_delay_s, float(coarse_taus[c]) + COARSE_STEP_S)
+    fine_taus = np.arange(lo, hi + step_s / 2, step_s)
+    fine = residuals(fine_taus)
+    i = int(np.argmin(fine))
+    delay = float(fine_taus[i])
+    if 0 < i < len(fine_taus) - 1:
         # Parabola through three points: the vertex, within one step of the grid's least.
-        y0, y1, y2 = rms[i - 1], rms[i], rms[i + 1]
+        y0, y1, y2 = fine[i - 1], fine[i], fine[i + 1]
         den = y0 - 2 * y1 + y2
         if den > 0:
             delay += float(np.clip(0.5 * (y0 - y2) / den, -1.0, 1.0)) * step_s
-    at_delay = min(_residual(t, signals, t_ip, alpha, delay), float(rms[i]))
+    rms = np.concatenate([rms, fine])
+    at_delay = min(_residual(t, signals, t_ip, alpha, delay), float(fine[i]))
     at_stamps = _residual(t, signals, t_ip, alpha, 0.0)
     verdict: Verdict
     if not (rms.max() > MIN_CONTRAST * rms.min() and rms.max() - rms.min() > MIN_DIFFERENCE_RAD):
