@@ -197,4 +197,11 @@ class TakeUp:
             self.done_reason = "taut"
         elif self._at_peak_s >= PEAK_MAX_S:
             self.done_reason = f"a motor still turned after {PEAK_MAX_S:g} s at the peak"
+        if self.done and target < self.peak_N:
+            # Capped by f_max's margin at this pose (floor_cap_N): motors that stopped there may
+            # have stopped on their friction, not on taut cables (audit of 2026-11-29: the cap sits
+            # under the breakaway at 384 of 729 poses of a ±60° grid). Said, not hidden as "taut".
+            self.done_reason = (f"the floor was capped at t_min + {target:.0f} N by f_max's margin at this pose, "
+                                f"under the t_min + {self.peak_N:.0f} N the motors' friction asks: a cable may still be "
+                                f"slack (check α̂ against the camera; a move towards the straight neck takes it up)")
         return not self.done

@@ -370,7 +370,9 @@ def test_the_floor_follows_a_cap_below_its_peak_and_reaching_it_is_the_peak():
         t.damp(np.zeros(4), DT)
         stamp += DT
         assert t.level_N == 5.0
-    assert t.done_reason == "taut" and stamp == pytest.approx(rules.STILL_FOR_S, abs=2 * DT)
+    assert stamp == pytest.approx(rules.STILL_FOR_S, abs=2 * DT)
+    # Still at a capped floor is not "taut": the motors may have stopped on their friction.
+    assert t.done_reason.startswith("the floor was capped at t_min + 5 N") and "may still be slack" in t.done_reason
 
 
 def test_the_take_up_at_a_tilted_pose_keeps_every_cable_under_its_margin_of_f_max(params):
