@@ -317,3 +317,15 @@ def xneck() -> XneckRunner:
                               env={**os.environ, **(env or {})})
 
     return run
+
+
+@pytest.fixture
+def board(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """The BeagleBone's hardware library (rcpy) faked at its lowest layer and installed in
+    ``sys.modules`` for the test: tests/test_bridge_driver.py's ``FakeBoard``."""
+    from test_bridge_driver import FakeBoard
+
+    b = FakeBoard()
+    for name, module in b.modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    return b

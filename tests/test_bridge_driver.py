@@ -67,14 +67,6 @@ class FakeBoard:
         return {"rcpy": rcpy, "rcpy.encoder": encoder, "rcpy.motor": motor, "rcpy.gpio": gpio}
 
 
-@pytest.fixture
-def board(monkeypatch):
-    b = FakeBoard()
-    for name, module in b.modules().items():
-        monkeypatch.setitem(sys.modules, name, module)
-    return b
-
-
 PINS = (57, 49, 116, 113)
 # Prototype constants by hand (prototype_3x.toml): r_d = 0.020 m, R = 25, k_t = 0.0367 N·m/A; no gear
 # efficiency (its losses are in the identified friction f_s).

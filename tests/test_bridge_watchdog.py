@@ -31,7 +31,6 @@ import numpy as np
 import pytest
 from busutil import bus_pair, run_in_thread, wait_until
 from fake_board_log import board_log, levels
-from test_bridge_driver import FakeBoard
 
 from bridge import bus, loop_watchdog
 from bridge.driver import DriverError, Lifecycle
@@ -303,14 +302,6 @@ def test_the_action_gets_the_gil_from_a_loop_hung_in_a_convoy() -> None:
     assert "Thread 0x" not in r.stderr  # no faulthandler dump
 
 # -- the latch in the drivers ------------------------------------------------------------------------
-
-
-@pytest.fixture
-def board(monkeypatch) -> FakeBoard:
-    b = FakeBoard()
-    for name, module in b.modules().items():
-        monkeypatch.setitem(sys.modules, name, module)
-    return b
 
 
 def test_a_tripped_beaglebone_driver_is_off_for_good_and_trip_takes_no_lock(board, params) -> None:

@@ -20,7 +20,6 @@ import time
 import numpy as np
 import pytest
 from busutil import bus_pair, wait_until
-from test_bridge_driver import FakeBoard
 
 from bridge import bus
 from bridge.clock_service import ClockService, query_clock
@@ -37,14 +36,6 @@ class ShiftedBoardDriver(BeagleBoneDriver):
 
     def stamp_s(self) -> float:
         return time.time() + self.shift_s
-
-
-@pytest.fixture
-def board(monkeypatch):
-    b = FakeBoard()
-    for name, module in b.modules().items():
-        monkeypatch.setitem(sys.modules, name, module)
-    return b
 
 
 @pytest.fixture
