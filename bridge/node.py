@@ -74,6 +74,7 @@ from bridge import bus
 from bridge.clock_service import ClockService
 from bridge.driver import Driver, Lifecycle
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
+from bridge.motor_speed import MotorSpeed
 from bridge.runtime import SystemdNotify, raise_loop_thread
 from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, run_attachment, subscribe_latest
@@ -108,6 +109,8 @@ class BridgeConfig:
     # Real time: no tick for this long while the process runs -> drives tripped off, exit 70 (0: off,
     # for in-process callers such as tests, whose process it would end; `xneck bridge`: 0.5 s).
     loop_stall_s: float = 0.0
+    # N·s/rad on each motor's speed while holding (bridge.safety, "Hold damping"; 0: off)
+    hold_damping_N_s_rad: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N",
@@ -268,7 +271,8 @@ class BridgeNode:
             # the states a controller answering on time would have answered within the timeout
             command_timeout_states=max(1, int(config.command_timeout_s / self.dt + 1e-9)),
             hold_ramp_ticks=max(1, round(config.hold_ramp_s / self.dt)), max_force_step_N=config.max_force_step_N,
-            max_active_step_N=config.max_force_rate_N_s * self.dt, watchdog=not config.lockstep))
+            max_active_step_N=config.max_force_rate_N_s * self.dt, watchdog=not config.lockstep,
+            hold_damping_N_s_rad=config.hold_damping_N_s_rad))
         self.f_min, self.f_max = f_min, f_max
         self.force = np.zeros(n)  # N, what the drives apply now
         # Holds need the watchdog: lockstep never holds. The first hold forces (and whatever the
@@ -312,6 +316,8 @@ class BridgeNode:
         self.hold_reason = ""
         self.theta = driver.read()
         self._theta_list = self.theta.tolist()  # the same angles as plain floats (the hold, the state)
+        self.speed = MotorSpeed(n, self.dt)  # the motors' speeds, for a hold's damping (bridge.safety)
+        self.speed.update(self._theta_list)
         self._consumed_ns = 0  # receive time of the newest command already shown to the safety rules
         # States published since the newest valid command arrived: the watchdog holds only once the
         # controller has had states to answer, not after a stall of the CPU it shares with the bridge.
@@ -437,7 +443,8 @@ class BridgeNode:
             command_age_s=(time.monotonic_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
             sender=fresh.sender if fresh is not None else "", resumed_after_s=held_up_s,
             # a tick with a valid command neither starts nor continues a hold
-            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered))
+            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered,
+            speed_rad_s=self.speed.rad_s))
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
             self._follow()  # something to follow (else nothing changed: the steady state, cheaper)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \
@@ -445,6 +452,7 @@ class BridgeNode:
         self.driver.step()
         self.theta = self.driver.read()
         self._theta_list = self.theta.tolist()
+        self.speed.update(self._theta_list)
         self.hold.offer(self._theta_list)
         self.ticks += 1
         self.publish_state()

@@ -36,6 +36,14 @@ Watchdog
     fresh; without them the hold keeps the applied forces (within [f_min, f_max]) and moves to
     the hold forces once they come, at most ``max_force_step_N`` per tick. The next valid command
     resumes ``active``.
+Hold damping
+    While holding, each motor is damped on its low-passed speed (``Inputs.speed_rad_s``,
+    :mod:`bridge.motor_speed`): ``hold_damping_N_s_rad`` per rad/s beyond a dead band of
+    ``hold_damping_deadband_rad_s`` (the encoders' counts), the damping moving at most
+    ``max_force_step_N`` per tick, the forces kept within [f_min, f_max]. A hold on cables an
+    e-stop left slack (the controller gone while it took the slack up) otherwise let the drums wind
+    in unloaded and the neck snapped up at 224-600°/s; damped, 57-66°/s (robot truth, session 37,
+    tests/test_bridge_hold_damping.py). A neck at rest is not damped: its forces are the hold's.
 Speed
     One step runs in every 2 ms tick of a Cortex-A8: the forces are plain floats, not numpy arrays
     (numpy's per-call overhead on four values is most of a tick, benchmarks/bridge_tick.py), and
@@ -89,6 +97,12 @@ class SafetyConfig:
     max_force_step_N: float = 1.0  # after an enable: the most any force may change in one tick
     max_active_step_N: float = 10.0  # while active: the most any force may change in one tick (inf: off)
     watchdog: bool = True  # off in lockstep, where time stands still without commands
+    # N·s/rad on each motor's speed while holding (module docstring, "Hold damping"): 1 held the
+    # snap of a hold on slack cables to 57-66°/s on the robot truth; 2 chattered (450-620 ticks of
+    # changing force in the 2 s after, at rest) and let 83-90°/s through. 0: off.
+    hold_damping_N_s_rad: float = 1.0
+    # rad/s of motor speed not damped: a count's flicker low-passed (1.5 rad/s raw at 500 Hz)
+    hold_damping_deadband_rad_s: float = 2.0
 
     def __post_init__(self) -> None:
         f_min, f_max = self.f_min_N, self.f_max_N
@@ -101,6 +115,10 @@ class SafetyConfig:
             raise ValueError(f"max_force_step_N must be a positive force (N), got {self.max_force_step_N}")
         if not self.max_active_step_N > 0:  # inf allowed: no bound; NaN fails the comparison
             raise ValueError(f"max_active_step_N must be a positive force (N) or inf, got {self.max_active_step_N}")
+        for name in ("hold_damping_N_s_rad", "hold_damping_deadband_rad_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")
         if not (math.isfinite(self.command_timeout_s) and self.command_timeout_s > 0):
             raise ValueError(f"command_timeout_s must be a positive number of seconds, got {self.command_timeout_s}")
 
@@ -114,7 +132,8 @@ class Inputs(NamedTuple):
     command (None if none ever arrived). ``states_unanswered``: states published since the newest
     valid command arrived (None: not counted, the age alone decides). ``estop``: e-stop events since
     the last step. ``hold_N``: fresh hold forces of the encoder angles (computed off the tick), None
-    when there are none.
+    when there are none. ``speed_rad_s``: the motors' low-passed speeds (rad/s at the shaft,
+    :class:`bridge.motor_speed.MotorSpeed`) for a hold's damping, None: not damped.
     """
 
     command_N: Sequence[float] | None = None
@@ -125,6 +144,7 @@ class Inputs(NamedTuple):
     estop: Sequence[EStopEvent] = ()
     hold_N: Sequence[float] | None = None
     states_unanswered: int | None = None
+    speed_rad_s: Sequence[float] | None = None
 
 
 class Decision(NamedTuple):
@@ -156,6 +176,8 @@ class Safety:
         self._ramp_from = self._ramp_to = self._zero
         self._ramp_k = 0  # ticks into the linear hold ramp; -1: bounded steps to hold forces found late
         self._hold_ready = True  # False while a hold keeps the applied forces, waiting for hold forces
+        self._hold_force = self._zero  # N, the hold's undamped forces at the last step
+        self._damping = self._zero  # N, the damping added to them (module docstring, "Hold damping")
         self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
         self._stale_target = False  # after a stall of the loop, until a command arrives after it
@@ -237,7 +259,7 @@ class Safety:
         if self.drive == "active":
             self.force = self._towards_target()
         elif self.drive == "hold":
-            self.force = self._hold_step(inputs.hold_N)
+            self.force = self._damped(self._hold_step(inputs.hold_N), inputs.speed_rad_s)
         else:
             self.force = self._zero
         return Decision(self.drive, np.array(self.force), self.enabled,
@@ -302,6 +324,7 @@ class Safety:
         self.drive, self.hold_reason = "hold", reason
         self.holds += 1
         self._ramp_from, self._ramp_k = self.force, 0
+        self._hold_force, self._damping = self.force, self._zero
         target = self.hold_target(hold_N)
         self._hold_ready = target is not None
         if target is None:  # the applied forces (within [f_min, f_max]) until hold forces are ready
@@ -324,11 +347,27 @@ class Safety:
                 self._log(logging.INFO, f"hold forces ready: moving to {[round(x, 2) for x in target]} N "
                                         f"at {self.config.max_force_step_N:g} N per tick")
         if self._ramp_k < 0:
-            return _step_towards(self.force, self._ramp_to, self.config.max_force_step_N)
+            return _step_towards(self._hold_force, self._ramp_to, self.config.max_force_step_N)
         n_ramp = self.config.hold_ramp_ticks
         self._ramp_k = min(self._ramp_k + 1, n_ramp)
         w = self._ramp_k / n_ramp
         return [(1.0 - w) * a + w * b for a, b in zip(self._ramp_from, self._ramp_to, strict=True)]
+
+    def _damped(self, hold: list[float], speed_rad_s: Sequence[float] | None) -> list[float]:
+        """The hold's forces ``hold`` with each motor damped on its speed (module docstring,
+        "Hold damping"), the damping moving at most ``max_force_step_N`` per tick."""
+        self._hold_force = hold
+        cfg = self.config
+        c, band = cfg.hold_damping_N_s_rad, cfg.hold_damping_deadband_rad_s
+        if speed_rad_s is None or len(speed_rad_s) != cfg.n_motors or c == 0.0:
+            wanted = self._zero  # no speeds (a caller that gives none): the damping is let go
+        else:
+            wanted = [0.0 if not math.isfinite(v) or -band <= v <= band else -c * (v - band if v > 0 else v + band)
+                      for v in speed_rad_s]
+        if wanted == self._damping == self._zero:
+            return hold
+        self._damping = _step_towards(self._damping, wanted, cfg.max_force_step_N)
+        return self._in_range([h + d for h, d in zip(hold, self._damping, strict=True)])
 
     def _log(self, level: int, message: str) -> None:
         self._events.append((level, message))

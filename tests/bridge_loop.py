@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from bridge.motor_speed import MotorSpeed
 from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import LawConfig, hold_forces
+from controller.laws import LawConfig, encoder_hold_forces
 from controller.service import CampaignService
 from twin.sim.simulator import Twin, TwinConfig
 
@@ -22,6 +23,11 @@ class BridgeLoop:
                                           f_max_N=params.limits.f_max, max_force_step_N=1.0))
         self.tick = self.twin.tick(np.zeros(params.n_cables))
         self.svc.initialise(self.tick.theta_meas)
+        # the bridge's hold as its node makes it: the rule of the encoders' angles, each motor
+        # damped on its speed (bridge/safety.py, "Hold damping")
+        self.hold_rule = encoder_hold_forces(params)
+        self.speed = MotorSpeed(params.n_cables, 0.002)
+        self.speed.update(self.tick.theta_meas.tolist())
         self.events: list = []
         self.outputs: list = []
         self.applied: list = []
@@ -49,11 +55,12 @@ class BridgeLoop:
             if out.law_ran:
                 self.svc.advance(self.stamp_s)
             self.events += self.svc.drain_events()
-            hold = hold_forces(self.params, np.clip(out.alpha_hat_rad, -1.0, 1.0)).tolist()
+            hold = self.hold_rule(self.tick.theta_meas).tolist()
             d = self.safety.step(Inputs(command_N=None if drop_commands else out.force_N.tolist(),
                                         command_age_s=0.02 if drop_commands else 0.0,
                                         states_unanswered=5 if drop_commands else 0,
-                                        estop=tuple(pending), hold_N=hold, sender="c"))
+                                        estop=tuple(pending), hold_N=hold, sender="c", speed_rad_s=self.speed.rad_s))
             pending = []
             self.applied.append(np.asarray(d.force_N, dtype=float))
             self.tick = self.twin.tick(np.asarray(d.force_N))
+            self.speed.update(self.tick.theta_meas.tolist())

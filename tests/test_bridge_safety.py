@@ -356,3 +356,42 @@ def test_a_stall_ramps_until_a_command_computed_after_it_is_reached(at_resume):
     applied += [s.step(cmd(answers[min(k, 2)], states_unanswered=0)).force_N for k in range(60)]
     assert _max_step(applied) <= 1.0 + 1e-12
     assert applied[-1].tolist() == answers[2]
+
+
+def _holding(s: Safety, force: float = 30.0) -> None:
+    for _ in range(100):
+        s.step(cmd(np.full(N, force)))
+    for k in range(10):  # into the hold, past its 5-tick ramp
+        s.step(idle(age_s=0.011 + 0.002 * k))
+    assert s.drive == "hold" and s.force == HOLD.tolist()
+
+
+def test_a_hold_damps_each_motor_beyond_its_dead_band_at_a_bounded_rate():
+    """bridge/safety.py, "Hold damping": −c·(|v| − band) against each motor's speed, reached at
+    max_force_step_N a tick, let go the same way; none within the dead band or without speeds."""
+    s = machine(hold_damping_N_s_rad=1.0, hold_damping_deadband_rad_s=2.0)
+    _holding(s)
+    speeds = [12.0, -7.0, 1.5, math.nan]  # winding in fast, paying out, a count's flicker, no reading
+    steps = [s.step(idle(age_s=0.05, speed_rad_s=speeds)).force_N for _ in range(15)]
+    assert np.abs(np.diff(np.vstack([HOLD, *steps]), axis=0)).max() <= 1.0 + 1e-12
+    # 10 N off the first (held at f_min = 2 N), 5 N onto the second, none on the others
+    assert steps[-1].tolist() == pytest.approx([2.0, 17.0, 14.0, 16.0])
+    for _ in range(15):  # at rest again: the damping is let go at the same rate
+        d = s.step(idle(age_s=0.05, speed_rad_s=[0.0] * N))
+    assert d.force_N.tolist() == HOLD.tolist()
+
+
+def test_a_command_after_a_damped_hold_starts_from_the_applied_forces():
+    s = machine()
+    _holding(s)
+    for _ in range(5):
+        applied = s.step(idle(age_s=0.05, speed_rad_s=[20.0, 0.0, 0.0, 0.0])).force_N
+    d = s.step(cmd(np.full(N, 30.0)))
+    assert d.drive == "active" and np.abs(d.force_N - applied).max() <= 1.0 + 1e-12
+
+
+@pytest.mark.parametrize("bad", [{"hold_damping_N_s_rad": -1.0}, {"hold_damping_N_s_rad": math.nan},
+                                 {"hold_damping_deadband_rad_s": math.inf}])
+def test_bad_hold_damping_settings_are_refused(bad):
+    with pytest.raises(ValueError, match="hold_damping"):
+        machine(**bad)

@@ -1,0 +1,79 @@
+"""The bridge's hold on cables an e-stop left slack (bridge/safety.py, "Hold damping";
+bridge/motor_speed.py). Session 37: the controller gone while it took up the slack of an e-stop
+(controller/take_up.py), the bridge's watchdog held with its rule (eq. 33 from the encoders, which
+slack cables make wrong), the slack cables' drums broke free and wound in unloaded, and the neck
+snapped up at 224-600°/s on the robot truth. Each motor is now damped while the bridge holds."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from bridge.motor_speed import MotorSpeed
+from bridge.safety import Inputs
+from controller.laws import encoder_hold_forces
+
+DT = 0.002
+
+
+def _held_by_the_bridge(params, seed: int, gone_at_s: float, damping_N_s_rad: float | None = None):
+    """The e-stop of the take-up tests, released; the controller stops ``gone_at_s`` into the
+    take-up and the bridge holds for 3 s as its node does: the hold rule of the encoders' angles,
+    the speeds of :class:`MotorSpeed`. Returns (peak joint speed °/s, the loop, the hold rule)."""
+    from test_take_up import _dropped_on_slack_cables
+
+    loop = _dropped_on_slack_cables(params, seed)
+    loop.run(gone_at_s, estop=((False, "audit"),))
+    assert loop.svc.taking_up
+    safety = loop.safety
+    if damping_N_s_rad is not None:
+        safety.config = dataclasses.replace(safety.config, hold_damping_N_s_rad=damping_N_s_rad)
+    rule = encoder_hold_forces(params)
+    speed = MotorSpeed(params.n_cables, DT)
+    speed.update(loop.tick.theta_meas.tolist())
+    peak = 0.0
+    for _ in range(round(3.0 / DT)):
+        d = safety.step(Inputs(command_age_s=0.02, states_unanswered=5, hold_N=rule(loop.tick.theta_meas).tolist(),
+                               speed_rad_s=speed.rad_s))
+        assert d.drive == "hold"
+        loop.tick = loop.twin.tick(np.asarray(d.force_N))
+        speed.update(loop.tick.theta_meas.tolist())
+        peak = max(peak, math.degrees(float(np.abs(loop.tick.alpha_dot).max())))
+    return peak, loop, rule
+
+
+@pytest.mark.parametrize(("seed", "gone_at_s"), [(0, 0.05), (1, 0.6)])
+def test_a_hold_on_slack_cables_does_not_snap_the_neck(params, seed, gone_at_s):
+    """Before: 600°/s (gone at 0.05 s) and 498°/s (0.6 s). Now within the trajectories' 86°/s,
+    and at rest the damping is let go: the forces are the hold's own."""
+    peak, loop, rule = _held_by_the_bridge(params, seed, gone_at_s)
+    assert peak <= 86.0, peak
+    at_rest = list(loop.safety.force)
+    d = loop.safety.step(Inputs(command_age_s=0.02, states_unanswered=5, hold_N=rule(loop.tick.theta_meas).tolist(),
+                                speed_rad_s=[0.0] * params.n_cables))
+    assert d.force_N.tolist() == at_rest  # no damping left to let go
+
+
+def test_without_the_damping_the_same_hold_snaps_the_neck(params):
+    """The finding itself, kept as the reference the damping is measured against."""
+    peak, _loop, _rule = _held_by_the_bridge(params, 0, 0.05, damping_N_s_rad=0.0)
+    assert peak > 200.0, peak
+
+
+def test_motor_speeds_are_low_passed_differences_and_survive_a_bad_reading():
+    speed = MotorSpeed(2, DT, cutoff_hz=20.0)
+    speed.update([0.0, 0.0])
+    for k in range(1, 200):
+        v = speed.update([0.01 * k, -0.02 * k])  # 5 rad/s and -10 rad/s
+    assert v == pytest.approx([5.0, -10.0], rel=1e-6)
+    first = MotorSpeed(1, DT, cutoff_hz=20.0)
+    first.update([0.0])
+    one_count = first.update([2 * math.pi / 2048])[0]
+    assert 0.0 < one_count < 0.25 * (2 * math.pi / 2048) / DT  # a count's flicker, filtered
+    assert speed.update([math.nan, 0.0]) == [0.0, 0.0]  # restarts rather than carry NaN
+    assert speed.update([1.0, 1.0]) == [0.0, 0.0]
+    with pytest.raises(ValueError):
+        MotorSpeed(2, 0.0)
