@@ -39,7 +39,10 @@ take over at once: the fall left cables slack that the hold's forces cannot wind
 the neck, so every cable's floor is first raised past the motors' friction at α̂ until the motors
 stop winding in (:mod:`controller.take_up`); a campaign asked for meanwhile starts after it. A
 take-up that ends, or that a latch cuts short, winds down: the command keeps its 1 N a tick
-until it meets the law's or the hold's.
+until it meets the law's or the hold's. A service that joins a bridge run under way (a
+controller restarted) cannot know whether an e-stop left slack: it takes one up too before its
+law runs, and re-reads α̂ from the taut cables after it when its first state showed slack
+(:meth:`CampaignService.initialise`).
 
 Jogs (kind ``jog``, the console's sliders): a jog is a campaign of one waypoint reached by the
 gentle approach from α̂. A jog asked for while a jog runs is prepared, then waits (the newest one
@@ -70,7 +73,7 @@ import numpy as np
 
 from bridge import bus
 from controller import take_up as take_up_rules
-from controller.encoder_check import THRESHOLD_M, EncoderConsistency
+from controller.encoder_check import THRESHOLD_M, EncoderConsistency, detector_model, residuals
 from controller.laws import ComputedTorque, LawConfig, hold_forces
 from controller.prepare import Prepared, Refused, prepare
 from controller.take_up import TakeUp, take_up_peak_N
@@ -141,6 +144,14 @@ class Output(NamedTuple):
     saturated: np.ndarray  # (n_cables,) bool
     law_ran: bool  # False for a hold
 
+#: m of cable at the drums (ρ·|θ|) beyond which a first reading is a run under way, not the
+#: calibrated neck of a bridge's start (eq. 20): past the gears' backlash, which a start's reading
+#: can show (0.44 rad at the shaft on the robot truth, 0.35 mm of cable), with a margin.
+UNDER_WAY_M = 1e-3
+#: N of applied force above which a first state is a run under way: a bridge starts with its
+#: drives inactive, at zero force.
+UNDER_WAY_N = 0.5
+
 
 def _sane(alpha: np.ndarray, limit: float, f: np.ndarray) -> bool:
     """Whether α̂ is finite and within ±``limit`` and the forces are finite: on plain floats, a
@@ -208,6 +219,14 @@ class CampaignService:
         # a take-up ended (or was cut short) and the command still moves at most its FORCE_STEP_N a
         # tick, until it meets what the law or the hold asks (``_wind_down_bound``)
         self._wind_down = False
+        # the take-up was for a run joined under way (initialise), not an e-stop this service saw
+        self._joined = False
+        # α̂ came from a reading of slack cables (a run joined under way whose first parity showed
+        # slack, initialise): the take-up ends by re-estimating it from the taut cables
+        self._reestimate_when_taut = False
+        # the model of eq. 33's stretch (eq. 58 at rest) and of the parity: the parameter file's
+        # cables whatever the law's (law 2's rigid eq. 33 started 3-5.5° off on the robot truth)
+        self._stretch_model = detector_model(self.params)
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -239,22 +258,32 @@ class CampaignService:
         eq. 58), and the service holds there. At a bridge's start the encoders read zero with the
         neck straight (eq. 20), which gives α̂ = 0 as before; a controller restarted while the
         bridge runs meets a bent neck, which it had taken for straight: α̂ 45° off the neck
-        45° up (audit of 2026-11-29)."""
+        45° up (audit of 2026-11-29). A run met under way (beyond ``UNDER_WAY_M`` of cable or
+        ``UNDER_WAY_N`` of force) owes a take-up, its cables possibly slack from an e-stop this
+        service never saw; with slack seen in the first state (:meth:`_slack_seen`) the take-up
+        ends by reading α̂ again (:meth:`_reestimate_taut`). Session 37: restarted 0.3 s into a
+        take-up, the cables stayed slack and α̂ 31° off 6 s later (docs/safety.md)."""
         theta = np.asarray(theta_rad, dtype=float)
         model = self.ctl.model
         forces_ok = force_N is not None and bool(np.all(np.isfinite(force_N)))
-        x_c = static_elongation(model, np.asarray(force_N)) if forces_ok else np.zeros(model.n_cables)
-        absolute = bool(np.all(np.isfinite(theta))) and (np.any(theta) or np.any(x_c))
-        alpha = alpha_hat_3(model, theta, x_c) if absolute else None
-        if alpha is not None and not np.all(np.isfinite(alpha)):
-            alpha, x_c = None, np.zeros(model.n_cables)
+        f = np.asarray(force_N, dtype=float) if forces_ok else np.zeros(model.n_cables)
+        absolute = bool(np.all(np.isfinite(theta))) and (np.any(theta) or np.any(f > 0.0))
+        alpha = self._absolute_alpha(theta, f) if absolute else None
+        x_c = static_elongation(model, f) if alpha is not None else np.zeros(model.n_cables)
         self.ctl.reset(alpha=alpha, theta=theta)
         self.ctl.estimator.x_c[:] = x_c
         # held within the joint limits, as after a latch's re-estimate: eq. 33 answers any reading
         self.last_sane = np.clip(self.ctl.estimator.alpha_hat, -self._alpha_max, self._alpha_max)
         self.hold_target = self.last_sane.copy()
         self._restart, self._blend, self._brake, self._theta_last = True, None, None, None
-        self._estopped, self._take_up, self._hold_sent = False, None, None  # a run's first enable takes none
+        # A run's first enable takes none (the encoders' zero is the calibrated, taut neck), but a
+        # run joined under way may have had an e-stop this service never saw, or its take-up cut
+        # short (a controller restarted): its cables could be slack, below the motors' stiction,
+        # and α̂ from them 12-28° off (session 37). It takes the slack up as after a release.
+        self._joined = bool(np.max(f) > UNDER_WAY_N) or bool(
+            np.all(np.isfinite(theta)) and model.rho * np.max(np.abs(theta), initial=0.0) > UNDER_WAY_M)
+        self._reestimate_when_taut = alpha is not None and self._joined and self._slack_seen(theta, alpha, f)
+        self._estopped, self._take_up, self._hold_sent = self._joined, None, None
         self._wind_down = False
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
@@ -273,6 +302,47 @@ class CampaignService:
             return
         self.ctl.reset(alpha=alpha, theta=theta)
         self.ctl.f_prev[:] = f_sent
+        if self.encoder_check is not None:
+            self.encoder_check.reset()
+        self.last_sane = np.clip(alpha, -self._alpha_max, self._alpha_max)
+
+    def _absolute_alpha(self, theta: np.ndarray, force_N: np.ndarray,
+                        guess: np.ndarray | None = None) -> np.ndarray | None:
+        """Eq. 33 on the encoders' reading ``theta`` with the stretch ``force_N`` holds at rest
+        (eq. 58, on Table 1's variable stiffness whatever the law's cable model: a restarted law 2
+        started 3-5.5° off on the robot truth with its rigid cables, 2026-11-29); None if it has
+        no finite answer."""
+        model = self._stretch_model
+        alpha = alpha_hat_3(model, theta, static_elongation(model, force_N), guess=guess)
+        return alpha if np.all(np.isfinite(alpha)) else None
+
+    def _take_up_cause(self) -> str:
+        return ("the controller started on a bridge run under way, which may have left it" if self._joined
+                else "after the e-stop")
+
+    def _slack_seen(self, theta: np.ndarray, alpha: np.ndarray, force_N: np.ndarray) -> bool:
+        """The four encoders disagree with eq. 33's α̂ the way slack does (the parity of
+        :mod:`controller.encoder_check` below −``THRESHOLD_M``, past what taut cables showed:
+        5.83 mm at most in motion). A restart on the slack of an e-stop read −16 mm, on taut
+        cables at rest 0.4-1.8 mm (robot truth, seeds 0-2, session 37)."""
+        s = float(residuals(self._stretch_model, theta, alpha, force_N)[0])
+        return math.isfinite(s) and s < -THRESHOLD_M
+
+    def _reestimate_taut(self, theta: np.ndarray, force_N: np.ndarray) -> None:
+        """α̂ again from the encoders' absolute reading (eq. 33) with the stretch the forces hold
+        at rest (eq. 58), once a take-up has the cables taut and the motors still. A run joined
+        under way started α̂ from cables that may have been slack (28° off on the robot truth, the
+        restart of session 37), and the incremental estimate (eq. 35) kept that offset after they
+        were wound in (12° off 10 s later); taut and still, eq. 33 reads the neck again (3-4° on
+        that truth, the law's usual error). The forces sent stay as they were (bumpless)."""
+        alpha = self._absolute_alpha(theta, force_N, guess=self.ctl.estimator.alpha_hat)
+        self._reestimate_when_taut = False
+        if alpha is None:
+            return  # the incremental estimate goes on: the hold's divergence checks still watch it
+        f_sent = self.ctl.f_prev.copy()
+        self.ctl.reset(alpha=alpha, theta=theta)
+        self.ctl.f_prev[:] = f_sent
+        self.ctl.estimator.x_c[:] = static_elongation(self.ctl.model, force_N)
         if self.encoder_check is not None:
             self.encoder_check.reset()
         self.last_sane = np.clip(alpha, -self._alpha_max, self._alpha_max)
@@ -387,8 +457,8 @@ class CampaignService:
     @property
     def taking_up(self) -> bool:
         """The slack an e-stop left is (to be) taken up before the law holds the neck again."""
-        return self._take_up is not None or (self._estopped and self.drive != "disabled" and self._drives_off
-                                             and not self.latched)
+        return self._take_up is not None or (self._estopped and self.drive != "disabled"
+                                             and (self._drives_off or self._joined) and not self.latched)
 
     @property
     def braking(self) -> bool:
@@ -706,12 +776,18 @@ class CampaignService:
                 self._hold_since = stamp_s
             if stamp_s - self._hold_since >= STALE_RESTART_S:
                 self._restart = True
+            if self._joined and self._estopped and not self.running:
+                # A run joined during the bridge's hold (the controller restarted: the bridge held
+                # since its commands stopped) owes a take-up before the law runs: the hold at α̂
+                # ends the bridge's, and the take-up starts at the first active state.
+                return self.hold(f"taking up the cables' slack {self._take_up_cause()}: waiting for the drives")
         elif drive != "active":
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
             self._restart = self._drives_off = True
             if drive == "disabled":
                 self._estopped, self._take_up = True, None  # a take-up starts again at the release
+                self._joined = False  # that take-up is the e-stop's (a re-estimate owed stays owed)
                 self._wind_down = False  # the bridge ramps from zero at the release
             if not obeyed:
                 reason = self.drive_reason or "the bridge obeys another controller"
@@ -734,6 +810,8 @@ class CampaignService:
             peak = take_up_peak_N(self.params)
             if peak > 0.0 and not self.running:
                 self._take_up = TakeUp(peak, take_up_rules.TAKE_UP_RATE_N_S, start_N=self.pretension_N)
+            else:  # none (a campaign of its own runs, or the take-up is off): nothing is owed
+                self._joined = self._reestimate_when_taut = False
         if self._take_up is not None:
             return self._taking_up(theta_rad, stamp_s, drive, force_applied_N)
         if self._restart and drive == "active":
@@ -780,7 +858,7 @@ class CampaignService:
         cap = take_up_rules.floor_cap_N(self.params, self.hold_alpha()) if drive == "active" else math.inf
         if drive != "active" or take_up.step(stamp_s, cap):  # a bridge hold: wait, level kept
             waiting = self._next_jog
-            return self.hold(f"taking up the cables' slack after the e-stop: floor t_min + {take_up.level_N:.0f} N "
+            return self.hold(f"taking up the cables' slack {self._take_up_cause()}: floor t_min + {take_up.level_N:.0f} N "
                              f"(peak {take_up.peak_N:.0f} N)"
                              + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else ""))
         # The law takes over at the next state (``_restart`` is still set), from this command at
@@ -788,6 +866,9 @@ class CampaignService:
         # in it, which the law's first command dropped at once (audit of 2026-11-29).
         self._take_up, self._wind_down = None, True
         self.pretension_N = take_up.level_N
+        if self._reestimate_when_taut:
+            self._reestimate_taut(np.asarray(theta_rad, dtype=float), applied)
+        self._joined = False
         # said once, in the status and the process's log (a new hold reason): how it ended
         return self.hold(f"the cables' slack is taken up ({take_up.done_reason}): the law takes over")
 

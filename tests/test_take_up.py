@@ -173,11 +173,12 @@ def test_the_peak_floor_stays_below_half_of_f_max_whatever_the_friction(params):
 
 def test_a_new_bridge_run_during_the_take_up_ends_it(params):
     """A restarted bridge starts a new run: its encoders start again as calibrated, and its
-    first enable is not an e-stop's release."""
+    first enable is not an e-stop's release. (A new run met under way is judged as a controller's
+    start is: test_a_controller_restarted_during_the_take_up_takes_the_slack_up.)"""
     loop = _dropped_on_slack_cables(params, 0)
     loop.run(0.3, estop=((False, "audit"),))
     assert loop.svc.taking_up
-    loop.svc.new_bridge_run(loop.tick.theta_meas, loop.stamp_s, "bridge-2")
+    loop.svc.new_bridge_run(np.zeros(params.n_cables), loop.stamp_s, "bridge-2")
     assert not loop.svc.taking_up
     loop.run(0.1)
     assert not loop.svc.taking_up and loop.outputs[-1].law_ran
@@ -447,3 +448,65 @@ def test_the_status_says_the_floor_now_a_waiting_campaign_and_how_the_take_up_en
         reasons.append(loop.svc.hold_reason)
         assert len(reasons) < round(4.0 / DT)
     assert any("slack is taken up (taut)" in r for r in reasons), reasons[-5:]
+
+
+def _restarted_controller(loop, params, gone_s: float = 0.2) -> None:
+    """The controller process dies (the bridge's watchdog holds the forces) and a new one joins the
+    bridge's run, as controller/process.py starts: α̂ from the first state it sees (eq. 33)."""
+    from controller.laws import LawConfig
+    from controller.service import CampaignService
+
+    loop.run(gone_s, drop_commands=True)
+    loop.svc = CampaignService(params, LawConfig(law=2), settle_s=0.5)
+    loop.svc.initialise(loop.tick.theta_meas, np.asarray(loop.safety.force))
+
+
+def test_a_controller_restarted_during_the_take_up_takes_the_slack_up(params):
+    """Session 36's leftover: a controller restarted while the slack of an e-stop was being taken
+    up knew nothing of the e-stop; its law held α̂ at t_min, below the motors' stiction, and the
+    cables stayed slack. A controller joining a bridge run under way cannot know what the cables
+    went through: it takes the slack up first, as after a release, bumplessly."""
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.3, estop=((False, "audit"),))
+    assert loop.svc.taking_up and loop.tick.slack.any()
+    _restarted_controller(loop, params)
+    assert loop.tick.slack.any()
+    start = len(loop.applied) - 1
+    reasons, speeds = [], []
+    for _ in range(round(3.0 / DT)):
+        loop.run(DT)
+        reasons.append(loop.svc.hold_reason)
+        speeds.append(float(np.abs(loop.tick.alpha_dot).max()))
+    assert any("slack" in r and "started" in r for r in reasons), reasons[:3]
+    # from the new controller's own commands on (the bridge's hold while none came is its own
+    # test: test_bridge_hold_damping)
+    assert math.degrees(max(speeds[round(0.1 / DT):])) <= 86.0
+    assert not loop.tick.slack.any(), loop.tick.slack
+    assert loop.outputs[-1].law_ran and loop.svc.hold_reason == ""
+    err_deg = np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - loop.tick.alpha))
+    assert err_deg.max() <= 5.0, err_deg
+    assert np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_a_controller_restarted_on_taut_cables_takes_up_without_moving_the_neck(params):
+    """The take-up a restarted controller runs when nothing was slack: the floor rises, no motor
+    turns, the law takes over within its time limit, and the neck stays where it was held."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(1.0)
+    loop.svc.handle(_request("c-1"), loop.stamp_s)
+    loop.run(3.0)
+    loop.svc.stop("c-1", loop.stamp_s)
+    loop.run(2.0)
+    assert not loop.svc.running and not loop.tick.slack.any()
+    _restarted_controller(loop, params)
+    held = loop.tick.alpha.copy()
+    start = len(loop.applied) - 1
+    taking_up = False
+    for _ in range(round(4.0 / DT)):
+        loop.run(DT)
+        taking_up |= loop.svc.taking_up
+        assert np.degrees(np.abs(loop.tick.alpha - held)).max() <= 2.0
+    assert taking_up and loop.outputs[-1].law_ran and not loop.tick.slack.any()
+    assert np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max() <= 1.0 + 1e-9
