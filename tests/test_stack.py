@@ -143,15 +143,21 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
     age_ms, unanswered = int(why.group(1)), int(why.group(2))
     assert age_ms <= 10 + 6 or unanswered == 5, holds[0]
     settled = [s for s in holds if s[0] >= holds[0][0] + 0.012]
-    assert settled and all(np.allclose(s[2], settled[-1][2], atol=1e-6) for s in settled)  # at the hold forces
+    assert settled
     # No force step into the hold, on any machine: a linear ramp over hold_ramp_s (5 ticks) from the
-    # applied forces to the hold forces (per tick of the bridge's clock, whatever the recorder missed).
+    # applied forces to the hold forces (per tick of the bridge's clock, whatever the recorder
+    # missed), plus the hold's damping of the still moving neck, which moves at most 1 N a tick
+    # (bridge/safety.py, "Hold damping") and goes on after the ramp until the neck rests.
     i = states.index(holds[0])
     into = [s for s in states[max(i - 1, 0):] if s[0] <= settled[0][0]]
     span = np.abs(np.asarray(into[-1][2]) - np.asarray(into[0][2])).max()
     for a, b in itertools.pairwise(into):
         ticks = max(round((b[0] - a[0]) / 0.002), 1)
-        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * span / 5 + 1e-6, (a, b, span)
+        # the ramp's fifth of a span the damping shifts by up to 6 N (1.2 N), and the damping's 1 N
+        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * (span / 5 + 2.2) + 1e-6, (a, b, span)
+    for a, b in itertools.pairwise(settled):
+        ticks = max(round((b[0] - a[0]) / 0.002), 1)
+        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * 1.0 + 1e-6, (a, b)
     alpha = np.array([m.alpha_rad for _, m in campaign.messages(bus.TWIN_TRUTH)])
     assert np.degrees(np.abs(alpha)).max() <= 60.0
 
