@@ -126,7 +126,8 @@ def clock_status(presence: Presence) -> dict[str, Any] | None:
     its latest health says it: ``offset_us`` (bridge − that PC's wall clock), ``uncertainty_us``
     (grown with the age of its last sync), ``age_s`` (since that sync), ``stale`` (no sync for
     over a minute: the stamps may be off by more than said), ``resyncing`` (the bridge's clock
-    jumped and the camera publishes nothing until re-synchronised), ``bridge`` (the instance
+    jumped and the camera publishes nothing until re-synchronised), ``uncertain`` (too long without
+    a sync: the camera publishes nothing until the bridge answers again), ``bridge`` (the instance
     followed). None when no camera process alive says one (a twin's camera, ``--clock local``)."""
     for _instance, h in presence.health("camera"):
         r = h.received
@@ -135,7 +136,8 @@ def clock_status(presence: Presence) -> dict[str, Any] | None:
         bridge = next((k.split("/")[1] for k in r if k.startswith("clock_run/") and k.count("/") == 2), "")
         return {"offset_us": r["clock_offset_us"], "uncertainty_us": r.get("clock_uncertainty_us"),
                 "age_s": r.get("clock_age_s"), "stale": bool(r.get("clock_stale", 0)),
-                "resyncing": bool(r.get("clock_resyncing", 0)), "bridge": bridge}
+                "resyncing": bool(r.get("clock_resyncing", 0)), "uncertain": bool(r.get("clock_uncertain", 0)),
+                "bridge": bridge}
     return None
 
 

@@ -476,7 +476,7 @@ def test_without_syncs_the_uncertainty_grows_and_after_a_minute_the_clock_is_sta
 
     status = clock_status(Presence())  # type: ignore[arg-type]
     assert status == {"offset_us": received["clock_offset_us"], "uncertainty_us": 11200, "age_s": 110, "stale": True,
-                      "resyncing": False, "bridge": "beaglebone-1"}
+                      "resyncing": False, "uncertain": False, "bridge": "beaglebone-1"}
     # a sync makes it fresh again
     clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.0, 0.0003, now[0], 8))
     assert not clock.stale() and clock.uncertainty_s == pytest.approx(0.0003) and clock.health()[0]["clock_stale"] == 0
@@ -600,3 +600,29 @@ def test_the_sync_thread_takes_a_step_by_itself_and_stops_promptly(bridge) -> No
         t0 = time.monotonic()
         clock.stop()
         assert time.monotonic() - t0 < 2.5
+
+
+def test_beyond_its_uncertainty_budget_the_clock_stamps_no_frame_until_a_sync(caplog) -> None:
+    """Session 37: a stale clock stamped for ever, its α_IP published as on time however uncertain
+    its offset had grown. Past ``max_uncertainty_s`` (10 ms: about 100 s without a sync at 100 ppm)
+    :meth:`offset_for` gives none, said once and in the health; a sync stamps again."""
+    from bridge.clock_sync import OffsetEstimate
+    from twin.camera.clock import MAX_UNCERTAINTY_S, BridgeClock
+
+    now = [100.0]
+    clock = BridgeClock(None, local=lambda: now[0])  # type: ignore[arg-type]  # no bus
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.0, 0.0002, 100.0, 8))
+    within = (MAX_UNCERTAINTY_S - 0.0002) / 100e-6  # s of age the budget allows
+    now[0] += within - 1.0
+    assert clock.offset_for(now[0]) == 1000.0  # stale (over 60 s) but within the budget: stamped
+    assert clock.stale() and clock.health()[0]["clock_uncertain"] == 0
+    now[0] += 2.0
+    with caplog.at_level("WARNING", logger="xneck.camera"):
+        assert clock.offset_for(now[0]) is None and clock.offset_for(now[0] + 0.03) is None
+    said = [r.getMessage() for r in caplog.records if "no α_IP is stamped" in r.getMessage()]
+    assert len(said) == 1 and "beyond 10 ms" in said[0], said
+    assert clock.health()[0]["clock_uncertain"] == 1
+    clock._take(("beaglebone-1", "e1"), OffsetEstimate(1000.001, 0.0003, now[0], 8))
+    assert clock.offset_for(now[0] + 0.01) == 1000.001 and clock.health()[0]["clock_uncertain"] == 0
+    with pytest.raises(ValueError, match="max_uncertainty_s"):
+        BridgeClock(None, max_uncertainty_s=0.0)  # type: ignore[arg-type]

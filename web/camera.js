@@ -139,6 +139,7 @@
     if (!c) return "";
     const u = c.uncertainty_us === null || c.uncertainty_us === undefined ? "?" : fmt(c.uncertainty_us / 1000, 1);
     if (c.resyncing) return `; clock of ${c.bridge} jumped: re-synchronising (no α_IP meanwhile)`;
+    if (c.uncertain) return `; clock of ${c.bridge} ± ${u} ms after ${c.age_s} s without a sync: no α_IP until it answers`;
     if (c.stale) return `; clock STALE: no sync with ${c.bridge} for ${c.age_s} s (± ${u} ms)`;
     return `; clock ± ${u} ms, synced ${c.age_s} s ago`;
   }

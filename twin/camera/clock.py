@@ -22,7 +22,11 @@ a random name at each start: after its restart the camera must be restarted too.
 is taken at once and counted (``steps``), with a warning. When no burst succeeds, the last offset
 is kept (``clock_age_s`` in the health says since when), its uncertainty growing by 100 ppm of its
 age (``uncertainty_s``: a crystal's worst drift); after :data:`STALE_S` without a sync a warning
-says so once and the health carries ``clock_stale`` = 1.
+says so once and the health carries ``clock_stale`` = 1. Once the uncertainty passes
+``max_uncertainty_s`` (:data:`MAX_UNCERTAINTY_S`, about 100 s without a sync) no frame is stamped
+any more: :meth:`BridgeClock.offset_for` gives none (frames dropped and counted, a warning once,
+``clock_uncertain`` = 1 in the health) until a burst succeeds (session 37: a stale clock had stamped
+on for ever, its α_IP published as on time).
 
 A clock set between two bursts (NTP's first sync on the board, a reboot) would leave the stamps on
 the old offset until the next burst, up to :data:`PERIOD_S` later (audit of 2026-11-29: 78 of 108
@@ -62,6 +66,10 @@ STATE_WINDOW = 10  # MotorStates (20 ms at 500 Hz) all behind the offset by more
 JUMP_MARGIN_S = 0.01  # s before the last state on the old offset from which frames are not trusted
 TRIGGER_MIN_S = 1.0  # s at least between two bursts that states triggered
 STALE_S = 60.0  # s without a burst used: the offset is stale (warned once, clock_stale in the health)
+#: s of offset uncertainty beyond which no frame is stamped (module docstring): 10 ms of a neck at the
+#: trajectories' 86°/s is 0.9° of α_IP, and more than half a 30 Hz frame (16.7 ms) is what
+#: ``xneck identify``'s timing check calls delayed.
+MAX_UNCERTAINTY_S = 0.010
 
 
 class ClockSyncError(RuntimeError):
@@ -86,9 +94,12 @@ class BridgeClock:
     """
 
     def __init__(self, session: zenoh.Session, bridge: str = "", burst: int = BURST, period_s: float = PERIOD_S,
-                 query_timeout_s: float = QUERY_TIMEOUT_S, local: Callable[[], float] = time.monotonic) -> None:
-        if burst < 1 or not (period_s > 0 and query_timeout_s > 0):
-            raise ValueError("burst must be >= 1, period_s and query_timeout_s > 0 s")
+                 query_timeout_s: float = QUERY_TIMEOUT_S, local: Callable[[], float] = time.monotonic,
+                 max_uncertainty_s: float = MAX_UNCERTAINTY_S) -> None:
+        if burst < 1 or not (period_s > 0 and query_timeout_s > 0 and max_uncertainty_s > 0):
+            raise ValueError("burst must be >= 1, period_s, query_timeout_s and max_uncertainty_s > 0 s")
+        self.max_uncertainty_s = max_uncertainty_s
+        self._uncertain = False  # frames refused for the offset's uncertainty (said once per episode)
         self.session, self.name = session, bridge
         self.burst, self.period_s, self.query_timeout_s, self.local = burst, period_s, query_timeout_s, local
         self.tracker = ClockTracker()
@@ -231,6 +242,9 @@ class BridgeClock:
         self.run_bursts += 1
         self._uncertainty_s, self._measured_at = est.uncertainty_s, est.at_s
         self._stale_said = False
+        if self._uncertain:
+            self._uncertain = False
+            log.warning("camera clock: bridge %s synchronised again: α_IP is stamped again", self.bridge)
         self.offset_s = est.offset_s  # the one value an exposure reads
         self.bursts += 1
         self._synced_at = self.local()
@@ -346,6 +360,14 @@ class BridgeClock:
         with self._lock:
             if self._suspect_since is not None or capture_local_s < self._valid_from or not math.isfinite(self.offset_s):
                 return None
+            if self._uncertainty(capture_local_s) > self.max_uncertainty_s:
+                if not self._uncertain:
+                    self._uncertain = True
+                    log.warning("camera clock: the offset to bridge %s is ± %.1f ms after %.0f s without a sync, "
+                                "beyond %.0f ms: no α_IP is stamped until it answers again (frames dropped, "
+                                "clock_uncertain in the health)", self.bridge,
+                                self._uncertainty(capture_local_s) * 1e3, self.age_s(), self.max_uncertainty_s * 1e3)
+                return None
             return self.offset_s
 
     def _uncertainty(self, now_s: float) -> float:
@@ -425,7 +447,8 @@ class BridgeClock:
         received = {"clock_bursts": self.bursts, "clock_steps": self.tracker.steps, "clock_resyncs": self.resyncs,
                     "clock_foreign": self.foreign, "clock_jumps": self.jumps, "clock_kept": self.tracker.kept,
                     "clock_impostors": self.impostors,
-                    "clock_resyncing": int(self._suspect_since is not None), "clock_stale": int(self.stale())}
+                    "clock_resyncing": int(self._suspect_since is not None), "clock_stale": int(self.stale()),
+                    "clock_uncertain": int(self._uncertain)}
         if math.isfinite(self.offset_s):
             drift = self.tracker.drift()
             received.update({"clock_offset_us": round(self.wall_offset_s() * 1e6),
@@ -437,4 +460,4 @@ class BridgeClock:
         return received, {"clock_replies": self.refused, "clock_bursts": self.missed}
 
 
-__all__ = ["BURST", "PERIOD_S", "STALE_S", "STATE_WINDOW", "WAIT_S", "BridgeClock", "ClockSyncError"]
+__all__ = ["BURST", "MAX_UNCERTAINTY_S", "PERIOD_S", "STALE_S", "STATE_WINDOW", "WAIT_S", "BridgeClock", "ClockSyncError"]
