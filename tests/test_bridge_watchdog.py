@@ -712,6 +712,28 @@ def test_the_cli_default_guards_real_drives_only() -> None:
     assert default_loop_stall_s("twin") == default_loop_stall_s("replay") == 0.0
 
 
+def test_the_robots_bridge_keeps_its_name_across_restarts() -> None:
+    """Session 37: without ``--instance`` (the systemd unit of docs/bridge.md gives none) the
+    robot's bridge had a random name at each start, and a camera following its clock refused the
+    restarted bridge as foreign. The board's bridge is now ``beaglebone-<hostname>``, the same at
+    each start; the twin and replays keep a random one (several may run on one machine)."""
+    from bridge.safety import INSTANCE_NAME
+    from server.cli.processes import default_instance
+
+    assert default_instance("beaglebone", "beaglebone") == "beaglebone-beaglebone"
+    assert default_instance("beaglebone") == default_instance("beaglebone")
+    odd = default_instance("beaglebone", "lab bone/2 é" + "x" * 80)
+    assert INSTANCE_NAME.fullmatch(odd) and odd.startswith("beaglebone-lab-bone-2")
+    assert INSTANCE_NAME.fullmatch(default_instance("beaglebone", ""))
+    assert default_instance("twin") == default_instance("replay") == ""
+
+
+def test_hold_damping_is_validated() -> None:
+    r = subprocess.run([*XNECK, "bridge", "--driver", "twin", "--hold-damping", "-1"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "--hold-damping" in r.stderr, r.stderr
+
+
 def test_systemd_notify_from_the_environment() -> None:
     assert SystemdNotify.from_environ({}) is None
     assert SystemdNotify.from_environ({"NOTIFY_SOCKET": "vsock:2:1234"}) is None

@@ -10,6 +10,8 @@ here, so the bridge package itself depends on neither. Heavy imports stay inside
 from __future__ import annotations
 
 import logging
+import re
+import socket
 import tomllib
 from pathlib import Path
 
@@ -134,6 +136,18 @@ def _drives_off(driver: str, driver_config: Path | None, params_file: Path | Non
     log.info("bridge --drives-off: every drive disabled (enable lines off, zero-current set values)")
 
 
+def default_instance(driver: str, hostname: str | None = None) -> str:
+    """The bridge's name on the bus when ``--instance`` is not given: ``beaglebone-<hostname>`` for
+    the robot's board, the same at each start, so a camera following its clock (docs/camera.md,
+    "One clock") and the console know it again after systemd restarts it (a random name made the
+    camera refuse the restarted bridge as foreign); "" (a random name) for the twin and replays,
+    of which one machine may run several."""
+    if driver != "beaglebone":
+        return ""
+    host = re.sub(r"[^A-Za-z0-9_.\-]", "-", hostname if hostname is not None else socket.gethostname())
+    return f"beaglebone-{host or 'board'}"[:64]
+
+
 def default_loop_stall_s(driver: str) -> float:
     """``--loop-stall`` when not given (s): the loop watchdog guards real drives only. On the twin
     a stall is the machine's load, not a motor left driving: twice in full-suite runs on the
@@ -156,6 +170,9 @@ def bridge(
                                           help="Hold after this long without a valid command (s)."),
     hold_ramp: float = typer.Option(0.010, "--hold-ramp", callback=NON_NEGATIVE,
                                     help="Ramp to the hold forces over this long (s)."),
+    hold_damping: float = typer.Option(
+        1.0, "--hold-damping", callback=NON_NEGATIVE,
+        help="While holding, damp each motor this much on its speed (N·s/rad at the shaft; 0: off; docs/bridge.md)."),
     max_force_step: float = typer.Option(
         1.0, "--max-force-step", callback=POSITIVE, help="After any enable, ramp the forces at most this much per tick (N)."),
     max_force_rate: float = typer.Option(
@@ -214,7 +231,7 @@ def bridge(
                               max_force_step_N=max_force_step, max_force_rate_N_s=max_force_rate,
                               loop_stall_s=loop_stall,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
-                              instance=instance)
+                              instance=instance or default_instance(driver), hold_damping_N_s_rad=hold_damping)
     except ValueError as exc:
         raise fail(str(exc)) from None
     try:
