@@ -22,6 +22,16 @@ from collections.abc import Sequence
 #: Hz of the low-pass: the damping's speeds (robot truth, session 37: 50 Hz and 20 Hz held the
 #: snap to the same 57-66°/s; 20 Hz leaves less of the counts' flicker).
 CUTOFF_HZ = 20.0
+#: rad/s at the motor shaft no reading can mean (the EC-max 40 turns about 785 rad/s without load,
+#: twice that for margin: controller.service's MOTOR_SPEED_MAX_RAD_S): a change of the
+#: reading faster than this is a bad reading (an encoder glitch, a jump of its count), not a speed,
+#: and the filter starts again at zero. Session 37's audit: one reading 1e4 rad off had the hold's
+#: damping push a cable 33 N for 168 ms and move the neck 3.7°.
+MAX_SPEED_RAD_S = 1600.0
+#: s between two readings beyond which the filter starts again rather than divide by it: the
+#: hardware's stamps are the wall clock, which NTP may step (the BeagleBone has no RTC battery), and
+#: the loop watchdog trips after a 0.5 s stall anyway (bridge.loop_watchdog).
+MAX_GAP_S = 0.5
 
 
 class MotorSpeed:
@@ -34,21 +44,46 @@ class MotorSpeed:
             raise ValueError(f"dt_s must be a positive period (s), got {dt_s}")
         if not (math.isfinite(cutoff_hz) and cutoff_hz > 0):
             raise ValueError(f"cutoff_hz must be a positive frequency (Hz), got {cutoff_hz}")
-        self.dt_s = dt_s
-        self._gain = 1.0 - math.exp(-2.0 * math.pi * cutoff_hz * dt_s)
-        self.rad_s: list[float] = [0.0] * n_motors  # never mutated in place: a reader keeps its list
+        self.dt_s, self.cutoff_hz = dt_s, cutoff_hz
+        self._gain = self._gain_of(dt_s)
+        self._zeros = [0.0] * n_motors  # shared, never mutated
+        self.rad_s: list[float] = self._zeros  # never mutated in place: a reader keeps its list
+        self.bad_readings = 0  # readings that restarted the filter (non-finite, or beyond MAX_SPEED_RAD_S)
         self._last: list[float] | None = None
+        self._last_stamp_s = math.nan
 
-    def update(self, theta_rad: Sequence[float]) -> list[float]:
-        """Take this tick's reading; returns the speeds. A reading that is not finite (a failing
-        encoder) restarts the filter at zero speed rather than carrying NaN into the forces."""
+    def _gain_of(self, dt_s: float) -> float:
+        return 1.0 - math.exp(-2.0 * math.pi * self.cutoff_hz * dt_s)
+
+    def update(self, theta_rad: Sequence[float], stamp_s: float | None = None) -> list[float]:
+        """Take this tick's reading (``stamp_s``: its time on the driver's clock, s; None: one
+        period after the last); returns the speeds. A late tick (the loop skips whole periods after
+        one, bridge.node.run_realtime) is divided by the time that passed, not by one period. A
+        reading that is not finite, or that moved faster than :data:`MAX_SPEED_RAD_S`, restarts the
+        filter at zero speed rather than carry it into the forces."""
         last = self._last
-        theta = list(theta_rad)
-        if last is None or len(theta) != len(last) or not all(map(math.isfinite, theta)):
-            self._last = theta if all(map(math.isfinite, theta)) else None
-            self.rad_s = [0.0] * len(self.rad_s)
-            return self.rad_s
-        g, dt = self._gain, self.dt_s
-        self.rad_s = [v + g * ((t - p) / dt - v) for v, t, p in zip(self.rad_s, theta, last, strict=True)]
+        theta = theta_rad if isinstance(theta_rad, list) else list(theta_rad)  # the node's: a new list each tick
+        dt = self.dt_s
+        if stamp_s is not None:
+            dt = stamp_s - self._last_stamp_s
+            self._last_stamp_s = stamp_s
         self._last = theta
+        if last is None or len(theta) != len(last) or not (0.0 < dt <= MAX_GAP_S):  # NaN: the first stamp
+            return self._restart(theta)
+        g = self._gain if dt == self.dt_s else self._gain_of(dt)
+        lim = MAX_SPEED_RAD_S * dt
+        out = []
+        for v, t, p in zip(self.rad_s, theta, last):  # one loop, no temporaries: every tick on a Cortex-A8
+            d = t - p
+            if not -lim <= d <= lim:  # beyond a motor's speed, or NaN
+                self.bad_readings += 1
+                return self._restart(theta)
+            out.append(v + g * (d / dt - v))
+        self.rad_s = out
+        return out
+
+    def _restart(self, theta: list[float]) -> list[float]:
+        if not all(map(math.isfinite, theta)):
+            self._last = None
+        self.rad_s = self._zeros
         return self.rad_s

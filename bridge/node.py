@@ -452,7 +452,7 @@ class BridgeNode:
         self.driver.step()
         self.theta = self.driver.read()
         self._theta_list = self.theta.tolist()
-        self.speed.update(self._theta_list)
+        self.speed.update(self._theta_list, self.driver.stamp_s())  # a late tick: divided by the time it took
         self.hold.offer(self._theta_list)
         self.ticks += 1
         self.publish_state()

@@ -40,7 +40,8 @@ Hold damping
     While holding, each motor is damped on its low-passed speed (``Inputs.speed_rad_s``,
     :mod:`bridge.motor_speed`): ``hold_damping_N_s_rad`` per rad/s beyond a dead band of
     ``hold_damping_deadband_rad_s`` (the encoders' counts), the damping moving at most
-    ``max_force_step_N`` per tick, the forces kept within [f_min, f_max]. A hold on cables an
+    ``max_force_step_N`` per tick, at most ``hold_damping_max_N`` either way and never past the
+    room [f_min, f_max] leaves each hold force (no wind-up while a force is clamped). A hold on cables an
     e-stop left slack (the controller gone while it took the slack up) otherwise let the drums wind
     in unloaded and the neck snapped up at 224-600°/s; damped, 57-66°/s (robot truth, session 37,
     tests/test_bridge_hold_damping.py). A neck at rest is not damped: its forces are the hold's.
@@ -103,6 +104,10 @@ class SafetyConfig:
     hold_damping_N_s_rad: float = 1.0
     # rad/s of motor speed not damped: a count's flicker low-passed (1.5 rad/s raw at 500 Hz)
     hold_damping_deadband_rad_s: float = 2.0
+    # N, the most the damping adds to or takes from a force (session 37's audit: unbounded, a bad
+    # reading could push a cable 48 N for 0.6 s). The snap of the slack drums needs about 30: capped
+    # at 15 N the neck reached 224°/s, at 30 N 59°/s (docs/safety/controller_gone.py's case, seed 0).
+    hold_damping_max_N: float = 30.0
 
     def __post_init__(self) -> None:
         f_min, f_max = self.f_min_N, self.f_max_N
@@ -115,7 +120,7 @@ class SafetyConfig:
             raise ValueError(f"max_force_step_N must be a positive force (N), got {self.max_force_step_N}")
         if not self.max_active_step_N > 0:  # inf allowed: no bound; NaN fails the comparison
             raise ValueError(f"max_active_step_N must be a positive force (N) or inf, got {self.max_active_step_N}")
-        for name in ("hold_damping_N_s_rad", "hold_damping_deadband_rad_s"):
+        for name in ("hold_damping_N_s_rad", "hold_damping_deadband_rad_s", "hold_damping_max_N"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
@@ -358,16 +363,29 @@ class Safety:
         "Hold damping"), the damping moving at most ``max_force_step_N`` per tick."""
         self._hold_force = hold
         cfg = self.config
-        c, band = cfg.hold_damping_N_s_rad, cfg.hold_damping_deadband_rad_s
+        c, band, cap, step = cfg.hold_damping_N_s_rad, cfg.hold_damping_deadband_rad_s, cfg.hold_damping_max_N, \
+            cfg.max_force_step_N
         if speed_rad_s is None or len(speed_rad_s) != cfg.n_motors or c == 0.0:
-            wanted = self._zero  # no speeds (a caller that gives none): the damping is let go
-        else:
-            wanted = [0.0 if not math.isfinite(v) or -band <= v <= band else -c * (v - band if v > 0 else v + band)
-                      for v in speed_rad_s]
-        if wanted == self._damping == self._zero:
-            return hold
-        self._damping = _step_towards(self._damping, wanted, cfg.max_force_step_N)
-        return self._in_range([h + d for h, d in zip(hold, self._damping, strict=True)])
+            if self._damping is self._zero:
+                return hold
+            speed_rad_s = self._zero  # no speeds (a caller that gives none): the damping is let go
+        lo, hi = cfg.f_min_N, cfg.f_max_N
+        damping, force, active = [], [], False
+        # One loop, plain floats (a hold tick on a Cortex-A8): the damping wanted against the speed
+        # beyond the dead band, reached at ``step`` a tick, within ±cap and within the room the force
+        # range leaves the hold force, so a clamped force does not wind it up (it had held loaded
+        # cables at f_min 140-200 ms after a glitch, session 37's audit).
+        for h, d, v in zip(hold, self._damping, speed_rad_s):
+            w = -c * (v - band) if v > band else -c * (v + band) if v < -band else 0.0  # NaN: 0
+            d = w if d - step <= w <= d + step else d + step if w > d else d - step
+            room_lo, room_hi = lo - h, hi - h
+            d = max(room_lo if room_lo > -cap else -cap, min(room_hi if room_hi < cap else cap, d))
+            active = active or d != 0.0
+            damping.append(d)
+            f = h + d
+            force.append(lo if f < lo else hi if f > hi else f)
+        self._damping = damping if active else self._zero
+        return force
 
     def _log(self, level: int, message: str) -> None:
         self._events.append((level, message))

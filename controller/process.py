@@ -372,7 +372,7 @@ class ControllerNode:
         with self._tick_lock:
             svc.initialise(np.asarray(first.theta_rad), np.asarray(first.force_applied_N))
             if self._own_trajectory is not None:
-                svc.begin(self._own_trajectory, first.stamp_s)
+                svc.begin_own(self._own_trajectory, first.stamp_s)
             self._last_key, self._last_wall = (first.epoch, first.stamp_s), time.perf_counter()
             self._state = first
             self._clock_step = None  # a step seen while waiting for the first state is no step of this run

@@ -151,6 +151,13 @@ UNDER_WAY_M = 1e-3
 #: N of applied force above which a first state is a run under way: a bridge starts with its
 #: drives inactive, at zero force.
 UNDER_WAY_N = 0.5
+#: m of parity (controller.encoder_check) below which a first state under way shows slack, and the
+#: take-up it owes ends by reading α̂ again (session 37's audit, robot truth, seeds 0-2): a restart
+#: on the slack of an e-stop read −16 mm early in its take-up, −5.3 to −8.1 mm late in it (one
+#: cable slack, α̂ 12-22° off; missed at 9 mm, it was still 6-9° off 6 s later); taut joins, at
+#: rest or killed at 22-53°/s, −3.1 to +2.4 mm. A false alarm costs about 2° (eq. 33 read at the
+#: take-up's peak floor), a miss up to 9°.
+SLACK_SEEN_M = 4.0e-3
 
 
 def _sane(alpha: np.ndarray, limit: float, f: np.ndarray) -> bool:
@@ -227,6 +234,7 @@ class CampaignService:
         # the model of eq. 33's stretch (eq. 58 at rest) and of the parity: the parameter file's
         # cables whatever the law's (law 2's rigid eq. 33 started 3-5.5° off on the robot truth)
         self._stretch_model = detector_model(self.params)
+        self._own_waiting: Trajectory | None = None  # the process's own campaign, behind a take-up (begin_own)
 
     # -- outputs to the shell -----------------------------------------------------------------
     def drain_events(self) -> list[Event]:
@@ -321,12 +329,10 @@ class CampaignService:
                 else "after the e-stop")
 
     def _slack_seen(self, theta: np.ndarray, alpha: np.ndarray, force_N: np.ndarray) -> bool:
-        """The four encoders disagree with eq. 33's α̂ the way slack does (the parity of
-        :mod:`controller.encoder_check` below −``THRESHOLD_M``, past what taut cables showed:
-        5.83 mm at most in motion). A restart on the slack of an e-stop read −16 mm, on taut
-        cables at rest 0.4-1.8 mm (robot truth, seeds 0-2, session 37)."""
+        """The four encoders disagree with eq. 33's α̂ the way slack does: the parity of
+        :mod:`controller.encoder_check` below −:data:`SLACK_SEEN_M`."""
         s = float(residuals(self._stretch_model, theta, alpha, force_N)[0])
-        return math.isfinite(s) and s < -THRESHOLD_M
+        return math.isfinite(s) and s < -SLACK_SEEN_M
 
     def _reestimate_taut(self, theta: np.ndarray, force_N: np.ndarray) -> None:
         """α̂ again from the encoders' absolute reading (eq. 33) with the stretch the forces hold
@@ -382,6 +388,17 @@ class CampaignService:
         self._restart = True  # the law re-starts from the measurement, bumplessly
 
     # -- campaigns ----------------------------------------------------------------------------
+    def begin_own(self, trajectory: Trajectory, stamp_s: float) -> None:
+        """The process's own campaign (``xneck controller --trajectory``, controller/process.py),
+        from its first state: at once on a bridge's fresh run; on a run joined under way, after the
+        take-up it owes, approaching the first waypoint from α̂ then (:meth:`advance`). Begun at once,
+        it had run its trajectory on the slack of an e-stop: the neck past 60°, α̂ 18° off at its
+        ``finished`` (session 37's audit)."""
+        if self._joined and self._estopped:
+            self._own_waiting = trajectory
+            return
+        self.begin(trajectory, stamp_s)
+
     def begin(self, trajectory: Trajectory, stamp_s: float) -> None:
         """Run ``trajectory`` from ``stamp_s`` (the states' clock) on; the counters start at zero."""
         self.trajectory = trajectory
@@ -453,6 +470,9 @@ class CampaignService:
         if self._next_jog is not None and not self.running:
             waiting, self._next_jog = self._next_jog, None
             self.refuse(waiting.campaign_id, waiting.kind, f"dropped before it started: {reason}")
+        if self._own_waiting is not None:
+            self._own_waiting = None
+            self._end("aborted", f"dropped before it started: {reason}", 0.0, self.hold_alpha())
 
     @property
     def taking_up(self) -> bool:
@@ -758,7 +778,7 @@ class CampaignService:
             self.latched = True
             self._drop_waiting(fault)
             out = self.hold(fault)
-            if self.running or not self.service:
+            if self.running or (not self.service and not self.outcome):  # not ended by _drop_waiting
                 self._end("aborted", fault, self._progress(stamp_s) if self.running else 0.0, self.hold_alpha())
             return out
         if not obeyed:
@@ -826,7 +846,7 @@ class CampaignService:
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
             self._drop_waiting(self.hold_reason)
-            if self.running or not self.service:
+            if self.running or (not self.service and not self.outcome):  # not ended by _drop_waiting
                 self._end("aborted", self.hold_reason, self._progress(stamp_s) if self.running else 0.0,
                           self.last_sane)
             return out
@@ -858,9 +878,10 @@ class CampaignService:
         cap = take_up_rules.floor_cap_N(self.params, self.hold_alpha()) if drive == "active" else math.inf
         if drive != "active" or take_up.step(stamp_s, cap):  # a bridge hold: wait, level kept
             waiting = self._next_jog
+            own = f"; {self.kind} {self.campaign_id} waits for it" if self._own_waiting is not None else ""
             return self.hold(f"taking up the cables' slack {self._take_up_cause()}: floor t_min + {take_up.level_N:.0f} N "
                              f"(peak {take_up.peak_N:.0f} N)"
-                             + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else ""))
+                             + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else own))
         # The law takes over at the next state (``_restart`` is still set), from this command at
         # the take-up's rate: a motor still turning at ``PEAK_MAX_S`` left up to 10 N of damping
         # in it, which the law's first command dropped at once (audit of 2026-11-29).
@@ -880,7 +901,10 @@ class CampaignService:
     def advance(self, stamp_s: float) -> None:
         """Progress events every 0.5 s of campaign time, ``finished`` after the settle time."""
         if self.trajectory is None:
-            if self._brake is None and not self.taking_up and self._next_jog is not None:  # one waited for a brake or a take-up
+            if self._brake is None and not self.taking_up and self._own_waiting is not None:  # begin_own
+                own, self._own_waiting = self._own_waiting, None
+                self.begin(approach(own, self.ctl.estimator.alpha_hat), stamp_s)
+            elif self._brake is None and not self.taking_up and self._next_jog is not None:  # one waited for a brake or a take-up
                 waiting, self._next_jog = self._next_jog, None
                 self.start(waiting, stamp_s)
             return

@@ -77,3 +77,60 @@ def test_motor_speeds_are_low_passed_differences_and_survive_a_bad_reading():
     assert speed.update([1.0, 1.0]) == [0.0, 0.0]
     with pytest.raises(ValueError):
         MotorSpeed(2, 0.0)
+
+
+def test_a_reading_no_motor_can_make_restarts_the_speeds_and_stamps_time_them():
+    """Session 37's audit: a reading 1e4 rad off (an encoder glitch) read as a speed had the
+    hold's damping push a cable 33 N for 168 ms; a tick 40 ms late divided by 2 ms read a motor at
+    1.5 rad/s as 7.8 rad/s."""
+    from bridge.motor_speed import MAX_GAP_S, MAX_SPEED_RAD_S
+
+    speed = MotorSpeed(1, DT)
+    speed.update([0.0], 0.0)
+    speed.update([0.0], DT)
+    assert speed.update([1e4], 2 * DT) == [0.0] and speed.bad_readings == 1  # a glitch
+    assert speed.update([0.0], 3 * DT) == [0.0] and speed.bad_readings == 2  # and back
+    assert speed.update([MAX_SPEED_RAD_S * DT * 0.9], 4 * DT)[0] > 0.0  # fast, but a motor can
+    steady = MotorSpeed(1, DT)
+    t = 0.0
+    for k in range(300):  # 1.5 rad/s, one tick in ten 40 ms late
+        t += 0.040 if k % 10 == 9 else DT
+        v = steady.update([1.5 * t], t)[0]
+        assert abs(v - 1.5) < 0.05 or k < 100, (k, v)
+    assert steady.update([1.5 * t], t) == [0.0]  # no time passed: starts again
+    steady.update([0.0], t + MAX_GAP_S + 0.1)
+    assert steady.update([0.0], t + MAX_GAP_S + 0.1 + DT) == [0.0]
+
+
+def test_a_bad_reading_during_a_hold_barely_moves_the_forces_and_not_the_neck(params):
+    """Held at a 30° jog's pose, one reading 1e4 rad off, then one 3 rad off (the most a motor
+    can turn in a tick, 1600 rad/s), against the same hold without them."""
+    from bridge_loop import BridgeLoop
+    from test_controller_service import _request
+
+    from controller.trajectory import Trajectory
+
+    def held(glitch: dict[int, float]) -> tuple[np.ndarray, np.ndarray]:
+        loop = BridgeLoop(params, seed=0)
+        loop.run(0.5)
+        jog = Trajectory.from_degrees([[30.0, 0.0, 0.0]], [], 0.0, "jog").to_json()
+        loop.svc.handle(_request("j1", kind="jog", trajectory_json=jog), loop.stamp_s)
+        loop.run(4.0)
+        forces, alphas = [], []
+        for k in range(round(0.6 / DT)):
+            d = loop.safety.step(Inputs(command_age_s=0.02, states_unanswered=5,
+                                        hold_N=loop.hold_rule(loop.tick.theta_meas).tolist(),
+                                        speed_rad_s=loop.speed.rad_s))
+            loop.tick = loop.twin.tick(np.asarray(d.force_N))
+            reading = loop.tick.theta_meas.tolist()
+            reading[3] += glitch.get(k, 0.0)
+            loop.speed.update(reading)
+            forces.append(d.force_N)
+            alphas.append(loop.tick.alpha.copy())
+        return np.array(forces), np.array(alphas)
+
+    f0, a0 = held({})
+    f1, a1 = held({100: 1e4, 200: 3.0})
+    df = np.abs(f1 - f0).max(axis=1)
+    assert df.max() <= 10.0 and (df > 1.0).sum() * DT <= 0.04, (df.max(), (df > 1.0).sum())
+    assert np.degrees(np.abs(a1 - a0)).max() <= 0.1

@@ -395,3 +395,15 @@ def test_a_command_after_a_damped_hold_starts_from_the_applied_forces():
 def test_bad_hold_damping_settings_are_refused(bad):
     with pytest.raises(ValueError, match="hold_damping"):
         machine(**bad)
+
+
+def test_the_hold_damping_is_capped_and_does_not_wind_up_against_the_force_range():
+    """Session 37's audit: unbounded, the damping pushed a cable 48 N; clamped at f_min it kept
+    growing, and the cable sat at f_min 140-200 ms after the speed had gone."""
+    s = machine(hold_damping_max_N=30.0)
+    _holding(s)
+    for _ in range(60):  # a motor paying out at 100 rad/s, another winding in as fast
+        d = s.step(idle(age_s=0.05, speed_rad_s=[-100.0, 100.0, 0.0, 0.0]))
+    assert d.force_N.tolist() == pytest.approx([10.0 + 30.0, 2.0, 14.0, 16.0])  # capped; floored at f_min
+    d = s.step(idle(age_s=0.05, speed_rad_s=[0.0] * N))
+    assert d.force_N.tolist() == pytest.approx([39.0, 3.0, 14.0, 16.0])  # at once back up from f_min: no wind-up

@@ -510,3 +510,65 @@ def test_a_controller_restarted_on_taut_cables_takes_up_without_moving_the_neck(
         assert np.degrees(np.abs(loop.tick.alpha - held)).max() <= 2.0
     assert taking_up and loop.outputs[-1].law_ran and not loop.tick.slack.any()
     assert np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max() <= 1.0 + 1e-9
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_controller_restarted_late_in_the_take_up_still_reads_alpha_hat_again(params, seed):
+    """Session 37's audit: restarted 1.2 s into the take-up, one cable still slack, the first
+    state's parity read −5.3 to −8.1 mm, above the first threshold (−9 mm): no re-estimate was
+    owed and α̂, 12-22° off at the join, was still 6-9° off 6 s later."""
+    loop = _dropped_on_slack_cables(params, seed)
+    loop.run(1.2, estop=((False, "audit"),))
+    assert loop.tick.slack.any() and loop.svc.taking_up
+    _restarted_controller(loop, params)
+    assert loop.svc._reestimate_when_taut  # owed from the first state
+    loop.run(6.0)
+    assert not loop.tick.slack.any() and loop.outputs[-1].law_ran
+    err_deg = np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - loop.tick.alpha))
+    assert err_deg.max() <= 5.0, err_deg
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_campaign_process_joining_after_an_estop_runs_after_the_take_up(params, seed):
+    """Session 37's audit: a campaign process (its own trajectory, controller/process.py) joined
+    the run just after an e-stop's release, began at once on three slack cables with α̂ 33° off,
+    drove the neck to 62° (the joint limit is 60°) and ended ``finished`` with α̂ 18° off. It now
+    waits for the take-up (its status says so), then approaches its first waypoint from α̂."""
+    from controller.laws import LawConfig
+    from controller.service import CampaignService
+
+    loop = _dropped_on_slack_cables(params, seed)
+    loop.run(DT, estop=((False, "audit"),))
+    loop.svc = svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=False, campaign_id="c-own")
+    svc.initialise(loop.tick.theta_meas, np.asarray(loop.safety.force))
+    svc.begin_own(control_test_trajectory(), loop.stamp_s)
+    assert not svc.running and svc.taking_up
+    loop.run(0.5)
+    assert not svc.running and "c-own waits for it" in svc.hold_reason, svc.hold_reason
+    alpha_max = 0.0
+    for _ in range(30):
+        loop.run(1.0)
+        alpha_max = max(alpha_max, float(np.degrees(np.abs(loop.tick.alpha)).max()))
+        if svc.outcome:
+            break
+    ended = [e for e in loop.events if e.campaign_id == "c-own" and e.event in ("finished", "aborted")]
+    assert [e.event for e in ended] == ["finished"], [e.message for e in ended]
+    assert alpha_max <= params.limits.alpha_max_deg, alpha_max
+    err_deg = np.degrees(np.abs(loop.outputs[-1].alpha_hat_rad - loop.tick.alpha))
+    assert err_deg.max() <= 5.0, err_deg
+
+
+def test_an_estop_while_a_campaign_process_waits_for_the_take_up_aborts_it_once(params):
+    from controller.laws import LawConfig
+    from controller.service import CampaignService
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(DT, estop=((False, "audit"),))
+    loop.svc = svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=False, campaign_id="c-own")
+    svc.initialise(loop.tick.theta_meas, np.asarray(loop.safety.force))
+    svc.begin_own(control_test_trajectory(), loop.stamp_s)
+    loop.run(0.3)
+    loop.run(0.1, estop=((True, "again"),))
+    ended = [e for e in loop.events if e.campaign_id == "c-own" and e.event in ("finished", "aborted")]
+    assert [e.event for e in ended] == ["aborted"] and "before it started" in ended[0].message, ended
+    assert svc.outcome == "aborted" and not svc.running

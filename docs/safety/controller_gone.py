@@ -48,7 +48,7 @@ class GoneLoop(Loop):
 
     def step(self, estop: tuple = ()) -> None:
         super().step(estop)
-        self.speed.update(self.tick.theta_meas.tolist())
+        self.speed.update(self.tick.theta_meas.tolist())  # as the node: every tick
 
     def held(self, seconds: float) -> None:
         """The bridge's watchdog hold: no command, the states unanswered."""
