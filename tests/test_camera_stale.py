@@ -147,7 +147,10 @@ def test_the_dashboard_draws_a_gap_and_says_camera_stale_when_the_camera_falls_s
         time.sleep(1.0)
         p.camera.clear()
         off_s = p.now()
-        time.sleep(CAMERA_MAX_AGE_S + SETTLE_S + 2.0)
+        # ten status points past the camera's staleness: 2 s idle, longer on a loaded machine (the
+        # fresh-clone CI of session 37 saw 6 in 2 s)
+        page.wait_for_function("(th) => jointPlots[0].data[0].filter((t) => t > th).length >= 10",
+                               arg=off_s + CAMERA_MAX_AGE_S + SETTLE_S, timeout=20000)
         page.wait_for_function("window.xneckCamera.state === 'stale'", timeout=5000)
         state_text = page.inner_text("#camera-state")
         t_s, ip_deg = page.evaluate("[jointPlots[0].data[0].slice(), jointPlots[0].data[3].slice()]")
@@ -183,4 +186,6 @@ def test_the_3d_view_hides_the_alpha_ip_ghost_while_a_joint_is_missing_or_the_ca
         assert wait_until(shown, 5, 0.05), "fresh frames show the ghost again"
         p.status.clear()
         p.camera.clear()  # nothing comes any more: the view still hides what is not now
-        assert wait_until(lambda: not shown(), CAMERA_MAX_AGE_S + 4, 0.05), "a stale camera's ghost stayed, bus silent"
+        # the view redraws once a second while nobody watches (server/scene.py IDLE_RATE_HZ); a loaded
+        # machine delays that (the fresh-clone CI of session 37 missed 5 s once)
+        assert wait_until(lambda: not shown(), CAMERA_MAX_AGE_S + 12, 0.05), "a stale camera's ghost stayed, bus silent"
