@@ -20,7 +20,7 @@ import math
 from collections.abc import Sequence
 
 #: Hz of the low-pass: the damping's speeds (robot truth, session 37: 50 Hz and 20 Hz held the
-#: snap to the same 57-66°/s; 20 Hz leaves less of the counts' flicker).
+#: snap to the same 57-66°/s in its tuning runs; 20 Hz leaves less of the counts' flicker).
 CUTOFF_HZ = 20.0
 #: rad/s at the motor shaft no reading can mean (the EC-max 40 turns about 785 rad/s without load,
 #: twice that for margin: controller.service's MOTOR_SPEED_MAX_RAD_S): a change of the

@@ -43,8 +43,9 @@ Hold damping
     ``max_force_step_N`` per tick, at most ``hold_damping_max_N`` either way and never past the
     room [f_min, f_max] leaves each hold force (no wind-up while a force is clamped). A hold on cables an
     e-stop left slack (the controller gone while it took the slack up) otherwise let the drums wind
-    in unloaded and the neck snapped up at 224-600°/s; damped, 57-66°/s (robot truth, session 37,
-    tests/test_bridge_hold_damping.py). A neck at rest is not damped: its forces are the hold's.
+    in unloaded and the neck snapped up at 494-599°/s; damped, 53-59°/s (robot truth,
+    docs/safety/controller_gone.py; tests/test_bridge_hold_damping.py). A neck at rest is not
+    damped: its forces are the hold's.
 Speed
     One step runs in every 2 ms tick of a Cortex-A8: the forces are plain floats, not numpy arrays
     (numpy's per-call overhead on four values is most of a tick, benchmarks/bridge_tick.py), and
@@ -99,8 +100,9 @@ class SafetyConfig:
     max_active_step_N: float = 10.0  # while active: the most any force may change in one tick (inf: off)
     watchdog: bool = True  # off in lockstep, where time stands still without commands
     # N·s/rad on each motor's speed while holding (module docstring, "Hold damping"): 1 held the
-    # snap of a hold on slack cables to 57-66°/s on the robot truth; 2 chattered (450-620 ticks of
-    # changing force in the 2 s after, at rest) and let 83-90°/s through. 0: off.
+    # snap of a hold on slack cables to 57-66°/s in session 37's tuning runs (robot truth); 2
+    # chattered (450-620 ticks of changing force in the 2 s after, at rest) and let 83-90°/s
+    # through. 0: off.
     hold_damping_N_s_rad: float = 1.0
     # rad/s of motor speed not damped: a count's flicker low-passed (1.5 rad/s raw at 500 Hz)
     hold_damping_deadband_rad_s: float = 2.0

@@ -15,6 +15,8 @@ controller.laws.encoder_hold_forces, and each motor damped on bridge.motor_speed
    from the first state it sees) and runs 6 s; "unrecognised" is the same with the join not
    recognised as a run under way (controller.service.UNDER_WAY_M and UNDER_WAY_N infinite: no
    take-up, no re-estimate, as before session 37).
+3. Restarted on taut cables: no e-stop; the control test stopped 3 s in, the neck held 2 s, then
+   the controller gone 0.2 s and a new one joining: the take-up it owes anyway, what it costs.
 """
 
 from __future__ import annotations
@@ -31,11 +33,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from take_up import DT, Loop, print_result, summary
 
+from bridge import bus
 from bridge.motor_speed import MotorSpeed
 from bridge.safety import Inputs
 from controller import service as service_module
 from controller.laws import LawConfig, encoder_hold_forces
 from controller.service import CampaignService
+from controller.trajectory import control_test_trajectory
 
 
 class GoneLoop(Loop):
@@ -96,6 +100,26 @@ def restarted(seed: int, gone_s: float, recognised: bool) -> dict:
             "largest applied step (N/tick)": end["largest applied step (N/tick)"]}
 
 
+def restarted_taut(seed: int) -> dict:
+    loop = GoneLoop(seed, 1.0)
+    loop.run(1.0)
+    loop.svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="c-1", action="start",
+                                        trajectory_json=control_test_trajectory().to_json()), loop.tick.t_s)
+    loop.run(3.0)
+    loop.svc.stop("c-1", loop.tick.t_s)
+    loop.run(2.0)
+    loop.held(0.2)
+    loop.svc = CampaignService(loop.params, LawConfig(law=2), settle_s=0.5)
+    loop.svc.initialise(loop.tick.theta_meas, np.asarray(loop.safety.force))
+    since, alpha0, slack0 = loop.tick.t_s, loop.tick.alpha.copy(), int(loop.tick.slack.sum())
+    loop.run(4.0)
+    end = summary(loop.rows, since, alpha0)
+    return {"slack at the join": slack0, "law from (s)": end["law from (s)"], "moved (deg)": end["moved (deg)"],
+            "peak joint speed (deg/s)": end["peak joint speed (deg/s)"],
+            "α̂ error at the end (deg)": end["α̂ error at the end (deg)"],
+            "largest applied step (N/tick)": end["largest applied step (N/tick)"]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description="The controller gone during the take-up of an e-stop's slack.")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -112,6 +136,9 @@ def main() -> None:
         for seed in args.seeds:
             print_result(f"{'recognised' if recognised else 'unrecognised'}, seed {seed}, gone 0.3 s in",
                          restarted(seed, 0.3, recognised))
+    print("## 3. restarted on taut cables (no e-stop)")
+    for seed in args.seeds:
+        print_result(f"seed {seed}", restarted_taut(seed))
 
 
 if __name__ == "__main__":
