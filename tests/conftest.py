@@ -319,6 +319,13 @@ def xneck() -> XneckRunner:
     return run
 
 
+@pytest.fixture(autouse=True)
+def _board_lock(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test its own board lock (bridge/drivers/board_lock.py): the fake boards of tests that
+    xdist runs at once are not one board. Subprocesses inherit it with the environment."""
+    monkeypatch.setenv("XNECK_BOARD_LOCK", str(tmp_path_factory.mktemp("board") / "board.lock"))
+
+
 @pytest.fixture
 def board(monkeypatch: pytest.MonkeyPatch) -> Any:
     """The BeagleBone's hardware library (rcpy) faked at its lowest layer and installed in

@@ -588,7 +588,36 @@ def test_a_pru_encoder_reading_minus_one_at_start_is_warned(board, params, caplo
         drv.configure()
     assert any("encoder channel 4 reads -1" in r.getMessage() for r in caplog.records), caplog.text
     caplog.clear()
+    drv.close()  # one bridge per board (bridge/drivers/board_lock.py)
     board.counts[4] = 0
     with caplog.at_level(logging.WARNING, logger="xneck"):
         _driver(params).configure()
     assert not any("reads -1" in r.getMessage() for r in caplog.records)
+
+
+def test_a_second_driver_on_one_board_is_refused_before_it_touches_a_pin(board, params):
+    """Session 37: a second ``xneck bridge --driver beaglebone`` on the board a bridge drives turned
+    every drive off and zeroed its encoders in its ``configure`` while the first went on ``active``
+    (then both wrote the same pins). The board's lock refuses it, naming the holder; the first
+    bridge's drives stay on; once it closes, the board is free; ``--drives-off`` (an off switch)
+    is not refused."""
+    first = _driver(params)
+    first.configure()
+    first.activate()
+    first.write(np.full(4, 20.0))
+    first.step()
+    assert [board.pins.get(p) for p in PINS] == [1, 1, 1, 1]
+    calls = len(board.calls)
+    second = _driver(params)
+    with pytest.raises(DriverError, match=f"another xneck bridge drives this board \\(pid {os.getpid()}"):
+        second.configure()
+    assert len(board.calls) == calls and [board.pins.get(p) for p in PINS] == [1, 1, 1, 1]  # nothing written
+    off = _driver(params)
+    off.exclusive = False
+    off.configure()  # the off switch acts
+    assert [board.pins.get(p) for p in PINS] == [0, 0, 0, 0]
+    off.close()
+    first.close()
+    third = _driver(params)
+    third.configure()  # the board is free again
+    third.close()

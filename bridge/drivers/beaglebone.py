@@ -45,6 +45,7 @@ from typing import Any, Literal
 import numpy as np
 
 from bridge.driver import Driver, DriverConfig, DriverError
+from bridge.drivers import board_lock
 
 log = logging.getLogger("xneck.bridge.beaglebone")
 
@@ -217,6 +218,10 @@ class BeagleBoneDriver(Driver):
         self._sign_list = self._sign.tolist()
         self._zero_duty = config.duty_of(config.set_value_at(0.0))
         self._warned_inverted = False  # an rcpy whose gpio.set_value raises on success (_set_enable)
+        # One bridge per board (bridge.drivers.board_lock); `--drives-off` only switches drives off
+        # and may run beside a bridge, as an off switch
+        self.exclusive = True
+        self._lock_fd: int | None = None
 
     @classmethod
     def from_params(cls, config: BeagleBoneConfig, params: Any) -> BeagleBoneDriver:
@@ -264,6 +269,8 @@ class BeagleBoneDriver(Driver):
 
     # -- hooks ---------------------------------------------------------------------------------
     def _on_configure(self) -> None:
+        if self.exclusive and self._lock_fd is None:
+            self._lock_fd = board_lock.claim()  # before any pin: a second bridge writes nothing
         self._board = _Board()
         # Enable lines may float high at boot: force every drive off before anything else.
         self._drives_off()
@@ -306,6 +313,9 @@ class BeagleBoneDriver(Driver):
                 board.motor.disable()
         except Exception:
             log.exception("beaglebone: could not put the motor outputs in standby")
+        finally:
+            board_lock.release(self._lock_fd)
+            self._lock_fd = None
 
     def _on_read(self) -> np.ndarray:
         board, rad_per_count = self._require_board(), 2.0 * math.pi / self.counts_per_rev

@@ -127,6 +127,10 @@ def _drives_off(driver: str, driver_config: Path | None, params_file: Path | Non
     params = load_cli_params(params_file, overrides)
     try:
         drv = make_driver(driver, params, _driver_table(driver_config))
+        from bridge.drivers.beaglebone import BeagleBoneDriver
+
+        if isinstance(drv, BeagleBoneDriver):
+            drv.exclusive = False  # an off switch, also beside a running bridge (bridge.drivers.board_lock)
         drv.configure()
     except (DriverError, ValueError) as exc:  # the reason says whether the lines were switched off
         raise fail(f"--drives-off: {exc}") from None
