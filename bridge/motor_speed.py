@@ -4,7 +4,7 @@ A hold's forces are those that keep the neck still where the encoders say it is 
 63-65, :func:`controller.laws.encoder_hold_forces`). On cables an e-stop left slack, what the
 encoders say is not where the neck is, and the hold's forces break the stiction of the slack
 cables' drums, which then wind in without load: with the controller gone during the take-up of an
-e-stop's slack (``controller.take_up``), the neck snapped up at 224-600°/s on the robot truth
+e-stop's slack (``controller.take_up``), the neck snapped up at 494-599°/s on the robot truth
 (session 37; the trajectories' bound is 86°/s). :class:`bridge.safety.Safety` damps each motor
 while it holds, from these speeds.
 

@@ -2,7 +2,7 @@
 bridge/motor_speed.py). Session 37: the controller gone while it took up the slack of an e-stop
 (controller/take_up.py), the bridge's watchdog held with its rule (eq. 33 from the encoders, which
 slack cables make wrong), the slack cables' drums broke free and wound in unloaded, and the neck
-snapped up at 224-600°/s on the robot truth. Each motor is now damped while the bridge holds."""
+snapped up at 494-599°/s on the robot truth (docs/safety/controller_gone.py). Each motor is now damped while the bridge holds."""
 
 from __future__ import annotations
 
