@@ -67,6 +67,11 @@ from twin.sim.sensors import ALPHA_IP_KINDS, ALPHA_IP_SOURCES
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
+# s a vanished controller service's campaign waits for its cause before it ends on the vanishing:
+# ``xneck up`` polls its children every 0.2 s, then tells the console (CI of 2026-11-29: the runner
+# ended first and REST showed the side effect). Nothing physical waits on it: the bridge's watchdog
+# holds the robot 10 ms after the last command, whatever the campaign's record says.
+SERVICE_GONE_GRACE_S = 1.5
 # s without a motor state from the bridge that end a started campaign (the bridge is gone or hung;
 # the controller holds meanwhile, the bridge's watchdog too): longer than any stall of a loaded
 # machine seen in the suite, far shorter than the campaign's timeout.
@@ -323,6 +328,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         answer_deadline = time.monotonic() + 10.0
         started = False
         dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
+        gone_since = 0.0  # when the controller service was first seen gone (its cause may be on the way)
         while not not_up:
             try:
                 ev = events.get(timeout=0.2)
@@ -369,12 +375,16 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
                     if disabled else ("aborted", STOPPED_BY_USER)
                 break
-            # Once its events have stopped (0.2 s), as before the every-turn checks above: a service
-            # killed under `xneck up` is named by the supervisor, which needs that moment to tell the
-            # console the cause before the campaign ends on its side effect (CI of 2026-11-27).
+            # Once its events have stopped (0.2 s), and SERVICE_GONE_GRACE_S after: a service killed
+            # under `xneck up` is named by the supervisor, which needs that time to tell the console
+            # the cause before the campaign ends on its side effect (CI of 2026-11-27, 2026-11-29).
             if ev is None and services is not None and not services.alive():
-                outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
-                break
+                gone_since = gone_since or time.monotonic()
+                if time.monotonic() - gone_since >= SERVICE_GONE_GRACE_S:
+                    outcome, message = "aborted", f"the controller service vanished from the bus ({services.gone})"
+                    break
+            else:
+                gone_since = 0.0
             if spec.service and not started and time.monotonic() > answer_deadline:
                 outcome, message = "aborted", "no controller service answered the campaign request"
                 break

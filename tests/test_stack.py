@@ -162,6 +162,44 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
     assert np.degrees(np.abs(alpha)).max() <= 60.0
 
 
+def test_a_vanished_controller_service_leaves_the_supervisor_time_to_name_the_cause(tmp_path: Path) -> None:
+    """CI of 2026-11-29: under ``xneck up``, a SIGKILLed controller's campaign ended "the controller
+    service vanished from the bus" 0.2 s after its events stopped, before the supervisor (which polls
+    its children every 0.2 s) told the cause; REST showed the side effect until then. The runner now
+    waits :data:`server.campaign_runner.SERVICE_GONE_GRACE_S` for a cause before ending on the
+    vanishing: told 0.5 s after the kill, the campaign never shows anything but the cause."""
+    from server.campaign_runner import SERVICE_GONE_GRACE_S
+
+    cause = "controller process exited (signal SIGKILL)"
+    port, hub_port = free_tcp_port(), free_tcp_port()
+    hub = f"tcp/127.0.0.1:{hub_port}"
+    base = f"http://127.0.0.1:{port}"
+    with _procs() as spawn:
+        spawn(["server", "--port", str(port), "--data-dir", str(tmp_path / "d"), "--hub", hub, "--mode", "robot"],
+              tmp_path / "s.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3)
+        spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
+        ctl = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "c.log")
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
+        cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.2)
+        os.killpg(ctl.pid, signal.SIGKILL)
+        killed = time.monotonic()
+        seen: list[str] = []
+        while time.monotonic() - killed < 0.5:  # the supervisor's poll, its log tail and its request
+            rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=2).json()
+            if rec["status"] != "running":
+                seen.append(rec["message"])
+            time.sleep(0.02)
+        # what REST said in the supervisor's time (and how long that took here: past the grace, late)
+        assert not seen, (seen, time.monotonic() - killed, SERVICE_GONE_GRACE_S)
+        told = httpx.post(base + "/api/system/abort", json={"reason": cause, "ended_within_s": 5}, headers=AUTH,
+                          timeout=30).json()
+        rec = _wait_status(base, cid, {"finished", "degraded", "aborted", "failed"}, 30)
+    assert told["campaign_id"] == cid and told["message"].startswith(cause), told
+    assert rec["status"] == "aborted" and rec["message"].startswith(cause), rec
+
+
 def test_a_server_killed_and_restarted_mid_campaign(tmp_path: Path) -> None:
     port, hub_port, bridge_port = free_tcp_port(), free_tcp_port(), free_tcp_port()
     hub = f"tcp/127.0.0.1:{hub_port}"
