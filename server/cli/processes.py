@@ -216,6 +216,7 @@ def bridge(
 
         prefer_plain_python()
     from bridge.driver import DriverError
+    from bridge.instance_check import NameTaken, check_name_free
     from bridge.node import BridgeConfig, run_lockstep, run_realtime
     from bridge.runtime import SystemdNotify, raise_priority, setup_logging, stop_on_signals
 
@@ -250,7 +251,10 @@ def bridge(
         stop = stop_on_signals()
         with open_bus(listen, connect) as session:
             try:
+                check_name_free(session, config.instance)  # before our own token (bridge.instance_check)
                 node = bridge_node(session, drv, params, config)
+            except NameTaken as exc:
+                raise fail(f"bridge not started, drives left off: {exc}") from None
             except ValueError as exc:
                 raise fail(str(exc)) from None
             mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz, " + (
