@@ -60,7 +60,7 @@
     if (safety.notSent) text = text ? `${safety.notSent} · ${text}` : safety.notSent;
     safety.banner = text;
     box.hidden = !text;
-    if (text) box.textContent = text;
+    box.textContent = text;  // a hidden banner keeps no old text to be read as present
   }
   setInterval(render, 250);
 })();
