@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from server_harness import wait_until
-from test_stack import ENV, PY, _alive_kinds, _healthy, _procs
+from test_stack import ENV, PY, _alive_kinds, _healthy, _procs, _robot_console
 
 from bridge.session import free_tcp_port
 
@@ -44,15 +44,8 @@ def test_up_refuses_a_taken_port_before_starting_anything(tmp_path: Path, taken:
 def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> None:
     """Finding 5: a second `xneck up` on the hub of a running stack joined its bus and started a
     second bridge and controller before failing with a raw zenoh error."""
-    port, hub_port = free_tcp_port(), free_tcp_port()
-    hub = f"tcp/127.0.0.1:{hub_port}"
-    base = f"http://127.0.0.1:{port}"
     with _procs() as spawn:
-        spawn(["server", "--port", str(port), "--data-dir", str(tmp_path / "first"), "--hub", hub, "--mode", "robot"],
-              tmp_path / "s.log")
-        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()
-        spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
-        assert wait_until(lambda: "bridge" in _alive_kinds(base), 120, 0.3)
+        base, hub_port, _ = _robot_console(spawn, tmp_path, tmp_path / "first", controller=False)
         line, _ = _up_refused(tmp_path, free_tcp_port(), free_tcp_port(), hub_port)
         assert "another xneck stack answers on the hub" in line and "bridge/" in line, line
         assert _alive_kinds(base) == {"bridge"}  # no second controller joined
