@@ -62,7 +62,7 @@ def test_a_live_bridge_of_the_name_is_refused_at_once_others_names_and_no_peer_p
     token = liveliness_token(other, "bridge", "dup")
     publisher = _publish(other, "dup", stop)
     try:
-        # on the states, not at the end of the lease wait (whose reason is "published no motor state")
+        # on the states, not at the end of the lease wait (whose reason is "sent nothing for")
         with pytest.raises(NameTaken, match=r"another bridge named 'dup' is on this bus \(its motor states arrive"):
             check_name_free(mine, "dup", lease_wait_s=30)
         check_name_free(mine, "not-dup", lease_wait_s=30)  # another bridge's states and token: free
@@ -83,7 +83,7 @@ def test_a_silent_token_is_waited_for_then_refused_and_a_token_that_goes_frees_t
     ends), or a hung bridge. Waited for; refused if it stays, started once it goes."""
     other, mine = linked
     token = liveliness_token(other, "bridge", "dup")
-    with pytest.raises(NameTaken, match="published no motor state"):
+    with pytest.raises(NameTaken, match="sent nothing for"):
         check_name_free(mine, "dup", lease_wait_s=0.5)
     timer = threading.Timer(0.5, token.undeclare)
     timer.start()
@@ -118,5 +118,61 @@ def test_a_second_xneck_bridge_of_a_running_bridges_name_exits_2_and_the_first_r
         assert first.poll() is None
     finally:
         stop_process_groups([first])
+        sub.undeclare()
+        hub.close()
+
+
+def test_a_controller_of_the_name_is_refused_on_its_commands_or_its_health(linked) -> None:
+    """Audit of 2026-11-29 (session 39): a second ``xneck controller --instance C`` ran beside the
+    first, the bridge obeyed both as one owner and the forces swung 10 N a tick."""
+    other, mine = linked
+    token = liveliness_token(other, "controller", "ctA")
+    try:
+        command = bus.encode(bus.ForceCommand(seq=1, stamp_s=0.0, force_N=[10.0] * 4, source="law2", sender="ctA",
+                                              epoch="e-test"))
+        beat = threading.Timer(0.1, lambda: other.put(bus.MOTOR_COMMAND, command))
+        beat.start()
+        with pytest.raises(NameTaken, match=r"another controller named 'ctA' is on this bus \(its force commands arrive"):
+            check_name_free(mine, "ctA", kind="controller", lease_wait_s=30)
+        beat.join(5)
+        # no bridge, no commands: its health (about 1 Hz) says it is alive
+        beat = threading.Timer(0.6, lambda: other.put(bus.health_key("controller", "ctA"), b"{}"))
+        beat.start()
+        with pytest.raises(NameTaken, match=r"\(its health arrives\)"):
+            check_name_free(mine, "ctA", kind="controller", lease_wait_s=30)
+        beat.join(5)
+        check_name_free(mine, "ctB", kind="controller")
+    finally:
+        token.undeclare()
+    with pytest.raises(ValueError, match="no name check"):
+        check_name_free(mine, "x", kind="camera")
+
+
+@pytest.mark.e2e
+def test_a_second_xneck_controller_of_a_running_controllers_name_exits_2(tmp_path: Path) -> None:
+    hub_at = f"tcp/127.0.0.1:{free_tcp_port()}"
+    hub = open_session(listen=[hub_at], connect=[], credentials=None, tls=None)
+    owners: dict[str, int] = {}
+    sub = hub.declare_subscriber(bus.MOTOR_STATE, lambda s: owners.__setitem__(
+        o := bus.decode(bus.MotorState, s.payload.to_bytes()).owner, owners.get(o, 0) + 1))
+    common = ["--listen", "tcp/127.0.0.1:0", "--connect", hub_at]
+    procs: list[subprocess.Popen] = []
+    try:
+        for name, argv in (("bridge", ["bridge", "--driver", "twin", "--max-ticks", "60000"]),
+                           ("controller", ["controller", "--law", "2", "--instance", "ctA"])):
+            with open(tmp_path / f"{name}.log", "wb") as log:
+                procs.append(subprocess.Popen([*PY, *argv, *common], stdout=log, stderr=subprocess.STDOUT,
+                                              stdin=subprocess.DEVNULL, env=ENV, start_new_session=True))
+        assert wait_until(lambda: owners.get("ctA", 0) > 100, 120, 0.1), (tmp_path / "controller.log").read_text()
+        second = subprocess.run([*PY, "controller", "--law", "2", "--instance", "ctA", *common], capture_output=True,
+                                text=True, env=ENV, timeout=120, stdin=subprocess.DEVNULL)
+        assert second.returncode == 2, second.stdout + second.stderr
+        assert "controller not started: another controller named 'ctA' is on this bus" in second.stderr
+        assert "controller ctA up" not in second.stdout + second.stderr
+        before = owners["ctA"]
+        assert wait_until(lambda: owners["ctA"] > before + 100, 30, 0.05)  # the first drives on
+        assert all(p.poll() is None for p in procs)
+    finally:
+        stop_process_groups(procs)
         sub.undeclare()
         hub.close()

@@ -339,6 +339,7 @@ def controller(
 ) -> None:
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is (a
     service: runs the campaigns asked for on xneck/campaign/request and .../request/<instance>)."""
+    from bridge.instance_check import NameTaken, check_name_free
     from bridge.runtime import raise_priority, setup_logging, stop_on_signals
     from controller.process import ControllerNode, ControllerProcessConfig
 
@@ -352,6 +353,10 @@ def controller(
     cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
                                   idle_timeout_s=idle_timeout, exit_when_done=traj is not None, instance=instance)
     with open_bus(listen, connect) as session:
+        try:
+            check_name_free(session, instance, kind="controller")  # before its tokens (bridge.instance_check)
+        except NameTaken as exc:
+            raise fail(f"controller not started: {exc}") from None
         node = ControllerNode(session, params, config, traj, cfg)
         if not lockstep:
             raise_priority()
