@@ -31,7 +31,8 @@ Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only) while at least
     ``command_timeout_states`` states went out unanswered (the node counts them), the forces ramp
     linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder
-    angles (``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
+    angles, no force faster than ``max_active_step_N`` per tick (a longer ramp from far: from f_max
+    the 5 ticks had taken 18 N a tick; ``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
     tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the tick's facts when
     fresh; without them the hold keeps the applied forces (within [f_min, f_max]) and moves to
     the hold forces once they come, at most ``max_force_step_N`` per tick. The next valid command
@@ -358,7 +359,9 @@ class Safety:
         n_ramp = self.config.hold_ramp_ticks
         self._ramp_k = min(self._ramp_k + 1, n_ramp)
         w = self._ramp_k / n_ramp
-        return [(1.0 - w) * a + w * b for a, b in zip(self._ramp_from, self._ramp_to, strict=True)]
+        linear = [(1.0 - w) * a + w * b for a, b in zip(self._ramp_from, self._ramp_to, strict=True)]
+        # no faster than any command may move them: from f_max the 5 ticks had taken 18 N a tick
+        return _step_towards(self._hold_force, linear, self.config.max_active_step_N)
 
     def _damped(self, hold: list[float], speed_rad_s: Sequence[float] | None) -> list[float]:
         """The hold's forces ``hold`` with each motor damped on its speed (module docstring,

@@ -68,6 +68,21 @@ def test_watchdog_ramps_linearly_to_the_hold_forces_then_a_command_leaves_the_ho
     assert any("leaving hold" in m for _lvl, m in d.events)
 
 
+def test_the_ramp_into_a_hold_moves_no_force_faster_than_the_active_rate_bound():
+    """Audit of 2026-11-29 (session 39): two controllers of one name drove the forces to f_max, and
+    the hold's 5-tick linear ramp from there took 18-19 N a tick, beyond the 10 N per tick any
+    command may move them. The ramp keeps its 5 ticks when it can, and takes longer when not."""
+    s = machine(max_active_step_N=10.0)
+    start = np.array([100.0, 100.0, 20.0, 100.0])
+    for _ in range(200):  # past the start-up ramp
+        s.step(cmd(start))
+    applied = [s.step(cmd(start)).force_N]
+    applied += [s.step(idle(age_s=0.011 + 0.002 * k)).force_N for k in range(15)]
+    assert _max_step(applied) <= 10.0 + 1e-9, np.diff(np.array(applied), axis=0)
+    assert applied[-1].tolist() == HOLD.tolist()  # reached: 90 N at 10 N a tick is 9 ticks
+    assert applied[5][2] == pytest.approx(HOLD[2])  # a 6 N gap still ramps linearly over 5 ticks
+
+
 def test_a_stall_of_the_loops_cpu_is_not_a_silent_controller():
     # The 10-minute idle soak (benchmarks/console_load.py --idle 600) held once or twice: the
     # VM took the loop's CPU, which the bridge and the controller share, for tens of ms. The
@@ -137,7 +152,7 @@ def test_hold_forces_are_kept_within_the_force_range():
     s = machine()
     for _ in range(100):
         s.step(cmd([30.0] * N))
-    for k in range(6):
+    for k in range(8):  # 30 -> 100 N at most 10 N a tick: 7 ticks
         d = s.step(idle(age_s=0.02 + k, hold=np.array([0.5, 12.0, 150.0, 16.0])))
     assert d.force_N.tolist() == [2.0, 12.0, 100.0, 16.0]
 
@@ -216,7 +231,7 @@ def test_every_enable_is_bumpless_then_commands_pass_through():
     # (clamped), in both directions.
     assert s.step(cmd([75.0, 30.0, 1.0, 36.0])).force_N.tolist() == [75.0, 30.0, 2.0, 36.0]
     # Leaving a hold: from the hold forces, at the bounded rate.
-    hold = [s.step(idle(age_s=0.02 + k)).force_N for k in range(6)]
+    hold = [s.step(idle(age_s=0.02 + k)).force_N for k in range(8)]  # 75 -> 10 N: 7 ticks of 10 N at most
     assert hold[-1].tolist() == HOLD.tolist()
     leave = [s.step(cmd(FINDING_1)).force_N for _ in range(100)]
     assert _max_step([hold[-1], *leave]) <= 1.0 + 1e-12
