@@ -234,6 +234,66 @@ def test_shapes_and_times(short_campaign):
         CampaignData(**_with(d, t_s=t))
 
 
+def _messages_of(data: CampaignData) -> list:
+    """The archive messages of a record: its motor states and camera frames, in time order."""
+    from bridge import bus
+
+    msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
+                                                          force_applied_N=list(f), drive="active", epoch="e", bridge="b"))
+            for k, (t, th, f) in enumerate(zip(data.t_s, data.theta_rad, data.force_N))]
+    msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
+                                                                 capture_stamp_s=float(t)))
+             for k, (t, a) in enumerate(zip(data.t_ip_s, data.alpha_ip_rad))]
+    msgs.sort(key=lambda m: m[1])
+    return msgs
+
+
+def _mcap_of(data: CampaignData, path):
+    from bridge.archive import write_campaign
+
+    return write_campaign(path, _messages_of(data), {"campaign_id": data.campaign, "kind": "identification"})
+
+
+def test_a_record_with_a_gap_names_the_span_to_fit_and_xneck_identify_window_fits_it(short_campaign, params, tmp_path,
+                                                                                 xneck):
+    """Audit of 2026-11-29 (session 39): a realtime identification on a loaded machine lost 0.29 s
+    of states on the bus and its analysis failed with "split the campaign or recover the data",
+    which no command does. The error now names the longest span free of gaps in both records and
+    the option that fits it alone."""
+    import re
+
+    d = short_campaign
+    keep = np.ones(len(d.t_s), dtype=bool)
+    keep[2000:2150] = False  # 0.3 s lost at t = 4 s: the 7.7 s after it are the longest span
+    gappy = CampaignData(**_with(d, t_s=d.t_s[keep], theta_rad=d.theta_rad[keep], force_N=d.force_N[keep]))
+    with pytest.raises(IdentificationError, match=r"1 gap\(s\) in the record, the first 0\.302 s long") as err:
+        preprocess(gappy, params)
+    window = re.search(r"t = ([\d.]+)-([\d.]+) s \(7\.6 s of 12\.0 s\): identify it alone with --window (\S+)$",
+                       str(err.value))
+    assert window, str(err.value)
+    t0, t1 = float(window.group(1)), float(window.group(2))
+    assert 4.0 + 0.3 <= t0 < 4.32 and window.group(3) == f"{t0:.2f}:{t1:.2f}"
+    part = gappy.window(t0, t1)
+    assert part.t_s[0] >= t0 and part.t_s[-1] <= t1 and part.t_ip_s[0] >= t0 and part.t_ip_s[-1] <= t1
+    assert part.notes[-1].startswith(f"fitted on t = {t0:g}-{t1:g} s of the record")
+    assert len(preprocess(part, params).t_s) > 100  # fits, where the whole record was refused
+    with pytest.raises(IdentificationError, match="start must be a time before the end"):
+        gappy.window(t1, t0)
+    with pytest.raises(IdentificationError, match="holds no encoder sample"):
+        gappy.window(100.0, 200.0)
+
+    path = _mcap_of(gappy, tmp_path / "gappy.mcap")
+    refused = xneck("identify", str(path), "--no-alpha-hat", "--out", str(tmp_path / "a"))
+    assert refused.returncode == 2 and f"--window {window.group(3)}" in refused.stderr, refused.stderr
+    fitted = xneck("identify", str(path), "--no-alpha-hat", "--out", str(tmp_path / "b"), "--window", window.group(3))
+    assert fitted.returncode == 0, fitted.stderr[-2000:]
+    assert f"note: fitted on t = {t0:g}-{t1:g} s of the record" in fitted.stderr
+    assert (tmp_path / "b" / f"{params.name}-identified.toml").is_file()
+    for bad in ("4", "a:b", "5:4", "nan:5"):
+        r = xneck("identify", str(path), "--window", bad, "--out", str(tmp_path / "c"))
+        assert r.returncode == 2 and "--window" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_motors_that_never_move_are_rank_deficient(params):
     data, _ = simulate_campaign(0, duration_s=8.0, still=True)
     proc = preprocess(data, params)
@@ -247,13 +307,7 @@ def test_mcap_round_trip_and_errors(tmp_path, short_campaign, params):
     from twin.identification.record import campaign_data_from_mcap
 
     d = short_campaign
-    msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
-                                                          force_applied_N=list(f), drive="active", epoch="e", bridge="b"))
-            for k, (t, th, f) in enumerate(zip(d.t_s, d.theta_rad, d.force_N))]
-    msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
-                                                                 capture_stamp_s=float(t)))
-             for k, (t, a) in enumerate(zip(d.t_ip_s, d.alpha_ip_rad))]
-    msgs.sort(key=lambda m: m[1])
+    msgs = _messages_of(d)
     meta = {"campaign_id": "c42", "kind": "identification"}
     path = archive.write_campaign(tmp_path / "c.mcap", msgs, meta)
     back = campaign_data_from_mcap(path)

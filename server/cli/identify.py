@@ -3,6 +3,7 @@ campaign (3-X paper §5), Tables 1-2 printed, Figs. 4-8 and the identified param
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -53,6 +54,9 @@ def identify(
                                                "(its CameraAlpha source: twin-render, twin-noise, usb:0, "
                                                "file:NAME), in this campaign and --validate's: an archive holding "
                                                "the α_IP of several cameras is refused without it, naming them."),
+    window: str | None = typer.Option(None, "--window", help="START:END (s, on the record's clock, as its "
+                                      "error or report gives times): fit only this span, e.g. the one without gaps "
+                                      "that a refused campaign's error names."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
@@ -66,6 +70,7 @@ def identify(
     try:  # the options and the files, before the archive is read and the fit runs
         check_variable_options(estimator, creep_time_s)
         check_sigma(sigma)
+        window_s = _window(window) if window is not None else None
     except ValueError as exc:
         raise fail(str(exc)) from None
     for what, path in (("campaign", campaign), ("validation campaign", validate)):
@@ -98,7 +103,7 @@ def identify(
         ident = identify_record(campaign, base, excitation=recorded_excitation, cutoff_hz=cutoff_hz,
                                 threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                                 alpha_hat=not no_alpha_hat, estimator=estimator, sigma=sigma, bounded=not no_bounds,
-                                creep_time_s=creep_time_s, alpha_ip_source=alpha_ip_source)
+                                creep_time_s=creep_time_s, alpha_ip_source=alpha_ip_source, window_s=window_s)
     except (IdentificationError, ParameterError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
@@ -170,3 +175,17 @@ def _cross_validate(ident, data_b, campaign_b: Path, out_dir: Path, *, alpha_hat
     doc["files"] = [str(p) for p in figures]
     text = comparison_text(doc["errors"], f"{ident.data.campaign}", f"{cv.data.campaign} ({campaign_b})")
     return doc, text + f"\nfigures on the validation campaign: {out_dir / 'validation'}"
+
+
+def _window(text: str) -> tuple[float, float]:
+    """``--window START:END`` as two finite times (s), the start first; ValueError says why."""
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        t0, t1 = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise ValueError(f"--window {text!r}: give START:END in seconds, e.g. --window 1.5:77.5") from None
+    if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1):
+        raise ValueError(f"--window {text!r}: START must be a finite time before END")
+    return t0, t1

@@ -8,7 +8,7 @@ decimation to 31.25 Hz, and the stretch x_c of eq. 27 (our sign, docs/model.md).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -149,6 +149,61 @@ class CampaignData:
     def rate_hz(self) -> float:
         return float(1.0 / np.median(np.diff(self.t_s)))
 
+    def window(self, t0_s: float, t1_s: float) -> CampaignData:
+        """The record between ``t0_s`` and ``t1_s`` (s, on the record's clock: the times its
+        gaps are reported at), encoders and camera alike; a note says so. For a campaign whose
+        record has gaps (:func:`longest_common_span`): ``xneck identify --window``."""
+        if not (math.isfinite(t0_s) and math.isfinite(t1_s) and t0_s < t1_s):
+            raise IdentificationError(f"window {t0_s:g}-{t1_s:g} s: the start must be a time before the end")
+        keep = (self.t_s >= t0_s) & (self.t_s <= t1_s)
+        keep_ip = (self.t_ip_s >= t0_s) & (self.t_ip_s <= t1_s)
+        if not keep.any():
+            raise IdentificationError(f"window {t0_s:g}-{t1_s:g} s holds no encoder sample: the record spans "
+                                      f"t = {self.t_s[0]:.2f}-{self.t_s[-1]:.2f} s")
+        note = f"fitted on t = {t0_s:g}-{t1_s:g} s of the record (t = {self.t_s[0]:.2f}-{self.t_s[-1]:.2f} s)"
+        return replace(self, t_s=self.t_s[keep], theta_rad=self.theta_rad[keep], force_N=self.force_N[keep],
+                       t_ip_s=self.t_ip_s[keep_ip], alpha_ip_rad=self.alpha_ip_rad[keep_ip],
+                       notes=(*self.notes, note))
+
+
+def gap_free_spans(t: FloatArray, max_gap: float = 5.0) -> list[tuple[float, float]]:
+    """The spans (s) of ``t`` between gaps longer than ``max_gap`` median periods."""
+    cuts = np.flatnonzero(np.diff(t) > max_gap * float(np.median(np.diff(t))))
+    starts = [0, *(cuts + 1)]
+    ends = [*cuts, len(t) - 1]
+    return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends, strict=True)]
+
+
+def longest_common_span(data: CampaignData, max_gap: float = 5.0) -> tuple[float, float]:
+    """The longest span (s) free of gaps in both the encoder/force and the camera record, rounded
+    inwards to 10 ms so that a window given with two decimals stays inside it; (nan, nan) if none."""
+    best = (math.nan, math.nan)
+    for a0, a1 in gap_free_spans(data.t_s, max_gap):
+        for b0, b1 in gap_free_spans(data.t_ip_s, max_gap):
+            lo, hi = math.ceil(max(a0, b0) * 100) / 100, math.floor(min(a1, b1) * 100) / 100
+            if hi > lo and (math.isnan(best[0]) or hi - lo > best[1] - best[0]):
+                best = (lo, hi)
+    return best
+
+
+def _check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
+    """Refuse a record with gaps (lost data, not jitter), saying which span could be fitted alone."""
+    for what, t in (("encoder/force record", data.t_s), ("camera record", data.t_ip_s)):
+        dt = float(np.median(np.diff(t)))
+        gaps = np.diff(t) > max_gap * dt
+        if not gaps.any():
+            continue
+        k = int(np.flatnonzero(gaps)[0])
+        lo, hi = longest_common_span(data, max_gap)
+        total = float(max(data.t_s[-1], data.t_ip_s[-1]) - min(data.t_s[0], data.t_ip_s[0]))
+        hint = (f"the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s ({hi - lo:.1f} s of "
+                f"{total:.1f} s): identify it alone with --window {lo:.2f}:{hi:.2f}") if math.isfinite(lo) else \
+            "no span is free of gaps in both records"
+        raise IdentificationError(
+            f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
+            f"(sampling period {dt * 1e3:.2f} ms); {hint}"
+        )
+
 
 # --- processing (§5.2.1) ----------------------------------------------------------------------
 
@@ -232,7 +287,7 @@ def _uniform(t: FloatArray, x: FloatArray, what: str, max_gap: float = 5.0) -> t
         k = int(np.flatnonzero(gaps)[0])
         raise IdentificationError(
             f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
-            f"(sampling period {dt * 1e3:.2f} ms); split the campaign or recover the data"
+            f"(sampling period {dt * 1e3:.2f} ms)"
         )
     n = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
@@ -289,6 +344,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
             f"{params.name!r} has {m.n_cables} cables and {m.n_joints} joints"
         )
     _check_plausible(data, params)
+    _check_gaps(data)
     t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
     rate = 1.0 / dt
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")

@@ -219,15 +219,20 @@ def identify_record(path: str | Path, base: Params, *, excitation: Excitation | 
                     cutoff_hz: float | None = None, threshold: float = DEFAULT_THRESHOLD,
                     with_validation: bool = True, alpha_hat: bool = True, estimator: str = "auto",
                     sigma: str = "hac", bounded: bool = True, creep_time_s: float | None = None,
-                    alpha_ip_source: str | None = None) -> Identification:
+                    alpha_ip_source: str | None = None,
+                    window_s: tuple[float, float] | None = None) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
     (Tables 1-2) with ``estimator`` ("auto", the default: the load-friction fit where the campaign rejects
     eqs. 54-55, else "iv"; or "iv", "ols", "wls", "loadfriction", :func:`identify_all`), ``sigma``
     ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
     identified, and validate (Figs. 4-8). ``creep_time_s``: the line's creep time constant (s) held in
     the load-friction fit (pipeline.identify_variable). ``alpha_ip_source``: the camera read
-    (:func:`campaign_data_from_mcap`). Raises :class:`IdentificationError` with the reason."""
+    (:func:`campaign_data_from_mcap`). ``window_s``: fit only the record between these times (s,
+    :meth:`CampaignData.window`), e.g. the span without gaps an error named. Raises
+    :class:`IdentificationError` with the reason."""
     data = campaign_data_from_mcap(path, excitation, alpha_ip_source=alpha_ip_source)
+    if window_s is not None:
+        data = data.window(*window_s)
     proc = preprocess(data, base, cutoff_hz)
     est = identify_all(proc, base, threshold=threshold, estimator=estimator, sigma=sigma, bounded=bounded,
                        creep_time_s=creep_time_s)
