@@ -97,6 +97,28 @@ def run_of(sample: zenoh.Sample) -> str:
     return data[len(RUN_PREFIX):].decode("ascii", "replace") if data.startswith(RUN_PREFIX) else ""
 
 
+#: The Zenoh attachment of what a camera process publishes (its α_IP and frames),
+#: ``xneck-camera:<instance>``: the camera it comes from. ``CameraAlpha.source`` names the kind of
+#: source (``twin-render``, ``usb:0``), not the camera: two cameras of one kind on one bus had their
+#: α_IP archived as one camera's (audit of 2026-11-29); :func:`camera_of` tells whose it is. An
+#: attachment for the reasons of :data:`RUN_PREFIX`: the payload and the archive stay as they were.
+CAMERA_PREFIX = b"xneck-camera:"
+
+
+def camera_attachment(instance: str) -> bytes:
+    """The attachment naming the camera process ``instance`` (:data:`CAMERA_PREFIX`)."""
+    return CAMERA_PREFIX + instance.encode()
+
+
+def camera_of(sample: zenoh.Sample) -> str:
+    """The camera instance ``sample`` says it comes from (:data:`CAMERA_PREFIX`), '' if none."""
+    attachment = sample.attachment
+    if attachment is None:
+        return ""
+    data = attachment.to_bytes()
+    return data[len(CAMERA_PREFIX):].decode("ascii", "replace") if data.startswith(CAMERA_PREFIX) else ""
+
+
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64
@@ -601,9 +623,9 @@ def subscribe_latest(
 
 
 __all__ = [
-    "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
+    "CAMERA_PREFIX", "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
     "RUN_PREFIX", "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
+    "camera_attachment", "camera_of", "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
     "subscribe_latest",
     "zenoh_config",
     "zenoh_runtime_environment",
