@@ -10,6 +10,7 @@ Real Zenoh sessions on loopback; the last test runs the audit's processes."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from pathlib import Path
 
@@ -185,4 +186,4 @@ def test_xneck_ups_camera_campaign_records_its_camera_beside_a_second_camera_of_
     assert "twin-render@second-cam" in rec["message"], rec["message"]
     campaign = read_campaign(data / "campaigns" / f"{rec['id']}.mcap")
     stamps = [m.stamp_s for _, m in campaign.messages(bus.CAMERA_ALPHA)]
-    assert stamps and all(b > a for a, b in zip(stamps, stamps[1:])), "two cameras' α_IP interleaved"
+    assert stamps and all(b > a for a, b in itertools.pairwise(stamps)), "two cameras' α_IP interleaved"

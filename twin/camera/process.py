@@ -23,6 +23,11 @@ and sets the others aside (counted, ``foreign_truth`` in its health) until that 
 silent for :data:`FOLLOW_SILENT_S` (a twin that stopped or restarted: a restart is a new run),
 then follows the next run that speaks, its clock jump handled as any restart of the truth's clock.
 The Zenoh callback only decodes and schedules; rendering and detection run on the caller's thread.
+
+One camera, its name: ``CameraAlpha.source`` says the kind of camera (``twin-render``, ``usb:0``),
+which two cameras share; each α_IP and frame carries the node's ``instance`` as its Zenoh
+attachment (:func:`bridge.session.camera_attachment`), so a campaign records one camera's
+(``server.quality``, "One camera") and the console says when two publish.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import liveliness_token, payload_of, publisher, run_of
+from bridge.session import camera_attachment, liveliness_token, payload_of, publisher, run_of
 from twin.camera.clock import BridgeClock
 from twin.camera.detect import Detection, Detector
 from twin.camera.frames import FrameDecimator, frame_message
@@ -77,6 +82,7 @@ class CameraNode:
         self.detector = detector
         self.instance = instance or uuid.uuid4().hex[:8]
         self._pub = publisher(session, bus.CAMERA_ALPHA)
+        self._attachment = camera_attachment(self.instance)  # on its α_IP and frames: this camera (module docstring)
         self._health = publisher(session, bus.health_key("camera", self.instance))
         self._frames = publisher(session, bus.CAMERA_FRAME) if frame_rate_hz > 0 else None
         self._decimator = FrameDecimator(frame_rate_hz)
@@ -126,10 +132,11 @@ class CameraNode:
         msg = bus.CameraAlpha(seq=self._seq, stamp_s=float(stamp_s), capture_stamp_s=float(capture_s),
                               alpha_ip_rad=[None if a is None else float(a) for a in found.alpha_rad],
                               confidence=[float(c) for c in found.confidence], source=source, dropped=self.dropped)
-        self._pub.put(msg)
+        self._pub.put(msg, attachment=self._attachment)
         if image is not None and self._frames is not None and self._decimator.due(capture_s):
             try:
-                self._frames.put(frame_message(self.images + 1, image, found, capture_s, stamp_s, source, self._jpeg_quality))
+                self._frames.put(frame_message(self.images + 1, image, found, capture_s, stamp_s, source, self._jpeg_quality),
+                                 attachment=self._attachment)
                 self.images += 1
             except ValueError as exc:  # too large a JPEG: α_IP goes on, the console shows no picture
                 log.warning("camera %s: frame not published: %s", self.instance, exc)
