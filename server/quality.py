@@ -58,6 +58,14 @@ One camera
     set aside and counted, in ``foreign_messages`` and per source in ``foreign_alpha_ip``
     (``alpha_ip_source`` names the one recorded), and :func:`camera_note` says so in the
     campaign's message.
+
+    A source is a kind of camera, which two share (two `xneck camera --source twin`, two ``usb:0``
+    on two PCs: both archived as one, audit of 2026-11-29). A camera process names itself in its
+    α_IP's attachment (:func:`bridge.session.camera_of`): of the source recorded, the camera
+    expected, else the first named, is recorded (``alpha_ip_camera``); another camera's α_IP is
+    set aside as above, counted as ``<source>@<camera>``, and so are its frames
+    (``foreign_messages``). α_IP naming no camera (a twin's white noise, an older camera process,
+    a replay) is told by its source alone, as before.
 """
 
 from __future__ import annotations
@@ -124,7 +132,8 @@ class CampaignMonitor:
         self.foreign_truths = 0  # of which truths of another twin (or of none said)
         self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
         self._alpha_ip_source: str | None = None  # the camera recorded (None until known: module docstring)
-        self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source
+        self._alpha_ip_camera = ""  # the camera process recorded ('' until one named itself: module docstring)
+        self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source[@camera]
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
@@ -137,11 +146,12 @@ class CampaignMonitor:
         with self._lock:
             self._follow = controller
 
-    def expect_alpha_ip_source(self, source: str) -> None:
-        """Record only the α_IP of ``source`` (``CameraAlpha.source``), the camera the campaign
-        started, whatever comes first (module docstring, "One camera")."""
+    def expect_alpha_ip_source(self, source: str, camera: str = "") -> None:
+        """Record only the α_IP of ``source`` (``CameraAlpha.source``) and, if given, of the camera
+        process ``camera`` (its instance), the camera the campaign started, whatever comes first
+        (module docstring, "One camera")."""
         with self._lock:
-            self._alpha_ip_source = source
+            self._alpha_ip_source, self._alpha_ip_camera = source, camera
 
     def owners(self, within_s: float = 0.5) -> set[str]:
         """The controllers the bridges on the bus obeyed within the last ``within_s`` s."""
@@ -149,36 +159,54 @@ class CampaignMonitor:
         with self._lock:
             return {owner for owner, t in self._owners.values() if owner and now - t <= within_s}
 
-    def keep(self, key: str, msg: bus.BusMessage, run: str = "") -> bool:
-        """Whether the recorder keeps ``msg``, whose sample named the bridge run ``run`` ('' for
-        none): not a state of another bridge run than the campaign's, nor a command of another
-        controller, nor a truth not of the campaign's run, nor anything else another run's driver
-        published (module docstring)."""
+    def keep(self, key: str, msg: bus.BusMessage, run: str = "", camera: str = "") -> bool:
+        """Whether the recorder keeps ``msg``, whose sample named the bridge run ``run`` and the
+        camera process ``camera`` ('' for none): not a state of another bridge run than the
+        campaign's, nor a command of another controller, nor a truth not of the campaign's run, nor
+        anything else another run's driver published, nor another camera's α_IP or frame (module
+        docstring)."""
         if isinstance(msg, bus.MotorState):
             return not self.epoch or msg.epoch == self.epoch
         if isinstance(msg, bus.ForceCommand):
             return not self._follow or msg.sender == self._follow
         if not self._of_run(isinstance(msg, bus.Truth), run):
             return False  # counted by the subscriber (_on_run_message)
-        return self._one_camera(msg.source) if isinstance(msg, bus.CameraAlpha) else True
+        if isinstance(msg, bus.CameraAlpha):
+            return self._one_camera(msg.source, camera)
+        return self._camera_frame(msg.source, camera) if isinstance(msg, bus.CameraFrame) else True
 
     #: distinct foreign α_IP sources counted by name (a flood of forged names stays bounded), and
     #: the length a name is cut to; the rest are counted under ``(others)``
     FOREIGN_SOURCES_MAX, SOURCE_NAME_MAX = 8, 64
 
-    def _one_camera(self, source: str) -> bool:
-        """Whether α_IP of ``source`` is the campaign's camera: the expected one, else the first seen."""
+    def _one_camera(self, source: str, camera: str) -> bool:
+        """Whether α_IP of ``source`` from the camera process ``camera`` ('' if it names none) is the
+        campaign's camera: the expected one, else the first seen (module docstring, "One camera")."""
         with self._lock:
             if self._alpha_ip_source is None:
                 self._alpha_ip_source = source
             if source == self._alpha_ip_source:
-                return True
+                if not camera:
+                    return True  # no name to tell it by: its source is the campaign's
+                if not self._alpha_ip_camera:
+                    self._alpha_ip_camera = camera
+                if camera == self._alpha_ip_camera:
+                    return True
             self.foreign += 1
-            name = source[: self.SOURCE_NAME_MAX]
+            name = _camera_name(source, camera)[: self.SOURCE_NAME_MAX]
             if name not in self.foreign_alpha_ip and len(self.foreign_alpha_ip) >= self.FOREIGN_SOURCES_MAX:
                 name = "(others)"
             self.foreign_alpha_ip[name] = self.foreign_alpha_ip.get(name, 0) + 1
             return False
+
+    def _camera_frame(self, source: str, camera: str) -> bool:
+        """Whether a frame of ``source`` from the camera process ``camera`` may be the recorded
+        camera's: not if the α_IP recorded is of another source or names another camera."""
+        with self._lock:
+            other = (self._alpha_ip_source not in (None, source)
+                     or bool(camera and self._alpha_ip_camera and camera != self._alpha_ip_camera))
+            self.foreign += other
+            return not other
 
     def _of_run(self, truth: bool, run: str) -> bool:
         """Whether a sample naming the bridge run ``run`` is the campaign's: any until its run is
@@ -306,7 +334,8 @@ class CampaignMonitor:
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
                 "foreign_messages": self.foreign, "foreign_truths": self.foreign_truths,
-                "alpha_ip_source": self._alpha_ip_source, "foreign_alpha_ip": dict(self.foreign_alpha_ip),
+                "alpha_ip_source": self._alpha_ip_source, "alpha_ip_camera": self._alpha_ip_camera,
+                "foreign_alpha_ip": dict(self.foreign_alpha_ip),
             }
 
     def close(self) -> None:
@@ -361,8 +390,14 @@ def camera_note(counters: dict[str, Any]) -> str:
     if not foreign:
         return ""
     others = ", ".join(f"{name!r} ({n})" for name, n in sorted(foreign.items(), key=lambda kv: -kv[1]))
-    return (f"α_IP recorded from one camera, {counters.get('alpha_ip_source')!r}; {sum(foreign.values())} α_IP "
+    recorded = _camera_name(str(counters.get("alpha_ip_source")), str(counters.get("alpha_ip_camera") or ""))
+    return (f"α_IP recorded from one camera, {recorded!r}; {sum(foreign.values())} α_IP "
             f"message(s) of another camera on the bus set aside: {others}")
+
+
+def _camera_name(source: str, camera: str) -> str:
+    """A camera as the campaign's quality names it: ``<source>@<camera>``, or its source if it names none."""
+    return f"{source}@{camera}" if camera else source
 
 
 def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:

@@ -79,7 +79,8 @@ def test_the_camera_the_campaign_started_is_recorded_whichever_instance_came_fir
     monitor, _ = _record(sessions, path, ("twin-render", "cam-b"))
     counters = monitor.counters()
     assert counters["alpha_ip_camera"] == "cam-b", counters
-    assert counters["foreign_alpha_ip"] == {"twin-render@cam-a": 11}, counters
+    foreign = counters["foreign_alpha_ip"]  # cam-a's first α_IP, put until the recorder heard one, and 10 more
+    assert foreign.keys() == {"twin-render@cam-a"} and foreign["twin-render@cam-a"] >= 11, counters
     seqs = [m.seq for _, m in read_campaign(path).messages(bus.CAMERA_ALPHA)]
     assert seqs == [*range(101, 111), *range(201, 206)], seqs
 
