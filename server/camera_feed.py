@@ -1,5 +1,10 @@
 """The camera as the console sees it: the latest JPEG frame, the α_IP message rate, detection health.
 
+The cameras publishing α_IP are told apart by the camera process (or bridge run) their samples
+name (:func:`bridge.session.camera_of`, :func:`~bridge.session.run_of`), not by their source,
+which two cameras share: two on the bus are named in the health, with a warning (their α_IP
+were counted as one camera's rate, 59.5 Hz, and nothing said: audit of 2026-11-29).
+
 Zenoh callbacks only store (the newest frame's raw payload, arrival times of α_IP messages);
 a frame is decoded and checked (:func:`bridge.bus.check_camera_frame`) when the console reads
 it, at most once, so a flood costs the bus callbacks nothing but a copy; a refused frame leaves
@@ -20,8 +25,10 @@ from typing import Any
 import zenoh
 
 from bridge import bus
+from bridge.session import camera_of, run_of
 from server.live import LatestValues, fresh_camera
 from server.presence import Presence
+from server.quality import camera_name
 from twin.camera.process import MOVED_NOW
 
 #: A frame payload on the wire: base64 of the largest JPEG plus the JSON around it.
@@ -37,15 +44,16 @@ class CameraFeed:
         self._raw: bytes | None = None
         self._received_s = -math.inf
         self._good: tuple[bus.CameraFrame, float] | None = None  # the latest valid frame, its arrival
-        # (arrival, which joints were missing) of the latest valid α_IP messages
-        self._alpha: collections.deque[tuple[float, tuple[bool, ...]]] = collections.deque(maxlen=512)
+        # (arrival, which joints were missing, the camera's name) of the latest valid α_IP messages
+        self._alpha: collections.deque[tuple[float, tuple[bool, ...], str]] = collections.deque(maxlen=512)
         self.frames_received = 0
         self.frames_rejected = 0
         self.last_reject_reason = ""
         self.n_joints: int | None = None  # when set, an α_IP message of another joint count is not counted
         self._subs = [] if session is None else [
             session.declare_subscriber(bus.CAMERA_FRAME, lambda s: self.put_frame(s.payload.to_bytes())),
-            session.declare_subscriber(bus.CAMERA_ALPHA, lambda s: self.note_alpha(s.payload.to_bytes())),
+            session.declare_subscriber(bus.CAMERA_ALPHA,
+                                       lambda s: self.note_alpha(s.payload.to_bytes(), camera_of(s) or run_of(s))),
         ]
 
     def put_frame(self, payload: bytes) -> None:
@@ -57,8 +65,9 @@ class CameraFeed:
             self._raw, self._received_s = payload, time.monotonic()
             self.frames_received += 1
 
-    def note_alpha(self, payload: bytes) -> None:
-        """Counts a valid α_IP message (a refused one is the live store's to count)."""
+    def note_alpha(self, payload: bytes, camera: str = "") -> None:
+        """Counts a valid α_IP message of the camera process or bridge run ``camera`` ('' if its
+        sample names none; a refused one is the live store's to count)."""
         try:
             msg = bus.decode(bus.CameraAlpha, payload)
             if self.n_joints is not None:
@@ -66,7 +75,7 @@ class CameraFeed:
         except bus.BusDecodeError:
             return
         with self._lock:
-            self._alpha.append((time.monotonic(), tuple(a is None for a in msg.alpha_ip_rad)))
+            self._alpha.append((time.monotonic(), tuple(a is None for a in msg.alpha_ip_rad), camera_name(msg.source, camera)))
 
     def frame(self) -> tuple[bus.CameraFrame, float] | None:
         """The latest valid frame and its age (s since it arrived), or None. A refused frame
@@ -91,10 +100,17 @@ class CameraFeed:
         of them that had it missing (empty without a message)."""
         now = time.monotonic()
         with self._lock:
-            recent = [missing for t, missing in self._alpha if now - t <= window_s]
+            recent = [missing for t, missing, _ in self._alpha if now - t <= window_s]
         n_joints = min((len(m) for m in recent), default=0)
         fractions = [sum(m[j] for m in recent) / len(recent) for j in range(n_joints)]
         return len(recent) / window_s, fractions
+
+    def cameras(self, window_s: float = RATE_WINDOW_S) -> list[str]:
+        """The cameras whose α_IP came over the last ``window_s`` (sorted names, ``<source>@<camera>``
+        or the source of one that names none: :func:`server.quality.camera_name`)."""
+        now = time.monotonic()
+        with self._lock:
+            return sorted({name for t, _, name in self._alpha if now - t <= window_s})
 
     def alpha_age_s(self) -> float | None:
         """s since the latest valid α_IP message, None before any."""
@@ -149,7 +165,9 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
     and the frames the source dropped; with ``feed``, the α_IP rate (``rate_hz``) and per joint the
     fraction of those messages that had it missing (``missing_fraction``), both over the last
     :data:`RATE_WINDOW_S`, the age of the latest α_IP message and of the latest JPEG frame (s, null
-    without one) and the frames refused; with ``presence``, ``moved_reason`` (:func:`moved_reason`:
+    without one), the frames refused, the ``cameras`` that published α_IP over that window
+    (:meth:`CameraFeed.cameras`) and a ``warning`` when there are two or more (null otherwise: a
+    campaign records one of them, and the rate counts all); with ``presence``, ``moved_reason`` (:func:`moved_reason`:
     why every joint is missing when the camera moved since its calibration, else null) and
     ``clock`` (:func:`clock_status`: a live camera's bridge clock, else null). None before any
     camera message."""
@@ -164,7 +182,10 @@ def camera_health(values: LatestValues, feed: CameraFeed | None = None,
     if feed is not None:
         latest = feed.frame()
         rate_hz, missing_fraction = feed.alpha_window()
-        out.update({"rate_hz": rate_hz, "missing_fraction": missing_fraction, "age_s": feed.alpha_age_s(),
+        cameras = feed.cameras()
+        warning = (f"{len(cameras)} cameras publish α_IP ({', '.join(cameras)}): a campaign records one, "
+                   f"the rate counts all" if len(cameras) > 1 else None)
+        out.update({"cameras": cameras, "warning": warning, "rate_hz": rate_hz, "missing_fraction": missing_fraction, "age_s": feed.alpha_age_s(),
                     "frame_age_s": None if latest is None else latest[1],
                     "frames_received": feed.frames_received, "frames_rejected": feed.frames_rejected})
     if presence is not None:

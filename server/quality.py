@@ -193,7 +193,7 @@ class CampaignMonitor:
                 if camera == self._alpha_ip_camera:
                     return True
             self.foreign += 1
-            name = _camera_name(source, camera)[: self.SOURCE_NAME_MAX]
+            name = camera_name(source, camera)[: self.SOURCE_NAME_MAX]
             if name not in self.foreign_alpha_ip and len(self.foreign_alpha_ip) >= self.FOREIGN_SOURCES_MAX:
                 name = "(others)"
             self.foreign_alpha_ip[name] = self.foreign_alpha_ip.get(name, 0) + 1
@@ -390,12 +390,12 @@ def camera_note(counters: dict[str, Any]) -> str:
     if not foreign:
         return ""
     others = ", ".join(f"{name!r} ({n})" for name, n in sorted(foreign.items(), key=lambda kv: -kv[1]))
-    recorded = _camera_name(str(counters.get("alpha_ip_source")), str(counters.get("alpha_ip_camera") or ""))
+    recorded = camera_name(str(counters.get("alpha_ip_source")), str(counters.get("alpha_ip_camera") or ""))
     return (f"α_IP recorded from one camera, {recorded!r}; {sum(foreign.values())} α_IP "
             f"message(s) of another camera on the bus set aside: {others}")
 
 
-def _camera_name(source: str, camera: str) -> str:
+def camera_name(source: str, camera: str) -> str:
     """A camera as the campaign's quality names it: ``<source>@<camera>``, or its source if it names none."""
     return f"{source}@{camera}" if camera else source
 
@@ -404,5 +404,5 @@ def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:
     return asdict(limits)
 
 
-__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "camera_note", "drive_estop",
+__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "camera_name", "camera_note", "drive_estop",
            "thresholds_dict"]

@@ -51,9 +51,12 @@
     }
   }
 
-  function showReason(reason) {  // why every joint is missing, when it is not the markers' fault
-    reasonEl.textContent = reason ? `every joint missing: ${reason}` : "";
-    reasonEl.hidden = !reason;
+  // Why every joint is missing, when it is not the markers' fault; and a second camera on the bus
+  // (health.warning: its α_IP was shown as this one's rate, and a campaign records only one).
+  function showReason(reason, warning) {
+    const said = [reason ? `every joint missing: ${reason}` : "", warning || ""].filter(Boolean);
+    reasonEl.textContent = said.join("; ");
+    reasonEl.hidden = said.length === 0;
   }
 
   function fmt(x, digits) { return x === null || x === undefined ? "–" : Number(x).toFixed(digits); }
@@ -164,7 +167,7 @@
         }
       }
       showAlpha(h && h.fresh ? s.alpha : null, h ? h.missing_fraction : null);
-      showReason(h ? h.moved_reason : null);
+      showReason(h ? h.moved_reason : null, h ? h.warning : null);
       if (!h || !h.fresh) {
         dim();
       } else if (s.frame && `${s.frame.seq}@${s.frame.capture_stamp_s}` === stats.damaged) {
