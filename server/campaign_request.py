@@ -234,6 +234,7 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
         # `xneck up`'s twin: the camera it was started with is the one its campaigns record
         camera_source=ALPHA_IP_SOURCES[settings.twin_alpha_ip] if service and target == "twin" and settings.twin_alpha_ip
         else None,
+        camera_instance=(settings.twin_camera or "") if service and target == "twin" else "",
     )
     # The record names the truth ("model", "robot", a stored truth's name); the spec carries what the twin loads.
     return PreparedCampaign(spec=spec, params=params, parameter_set=name, pace=pace, target=target,

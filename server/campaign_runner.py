@@ -105,6 +105,7 @@ class CampaignSpec:
     # The α_IP source (CameraAlpha.source) the campaign records when the console knows its camera
     # without spawning it (`xneck up`'s twin); None: a spawned twin's, else the first seen (server.quality)
     camera_source: str | None = None
+    camera_instance: str = ""  # the camera process of that source it records (`xneck up`'s); '': the first seen
 
     def __post_init__(self) -> None:
         from twin.identification.options import check_variable_options
@@ -118,6 +119,12 @@ class CampaignSpec:
     def alpha_ip_source(self) -> str:
         """The α_IP a spawned twin gives: as asked, else camera for identification, noise for control."""
         return self.alpha_ip or ("camera" if self.kind == "identification" else "noise")
+
+    @property
+    def spawns_camera(self) -> bool:
+        """Whether the campaign spawns a camera process beside its twin: a real-time twin cannot
+        wait for the renderer (its α_IP "camera")."""
+        return self.twin and not self.service and self.realtime and self.alpha_ip_source == "camera"
 
     @property
     def recorded_camera(self) -> str | None:
@@ -263,7 +270,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     # Follows the bridge's drives from now on (the e-stop's one truth) and counts the quality.
     monitor = CampaignMonitor(session)
     if spec.recorded_camera is not None:  # its camera, whichever α_IP comes first (a stray camera's)
-        monitor.expect_alpha_ip_source(spec.recorded_camera)
+        # the camera process it spawns, not another of its source on the hub (server.quality, "One camera")
+        spawned = f"camera-{campaign_id}" if spec.spawns_camera else ""
+        monitor.expect_alpha_ip_source(spec.recorded_camera, spec.camera_instance or spawned)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}
     recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set(),  # a storage fault ends it
@@ -304,7 +313,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         else:
             lockstep = spec.twin and not spec.realtime
             # A real-time twin cannot wait for the renderer: a camera process beside it measures its truth.
-            camera_process = spec.twin and not lockstep and spec.alpha_ip_source == "camera"
+            camera_process = spec.spawns_camera
             if camera_process:  # first, and waited for: the campaign's first seconds need α_IP too
                 spawn("camera", ["camera", "--source", "twin", "--seed", str(spec.seed), "--idle-timeout",
                                  str(CAMERA_STARTUP_S), "--instance", f"camera-{campaign_id}", *common])

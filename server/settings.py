@@ -46,6 +46,10 @@ class Settings(BaseSettings):
                                                              "the bus: the α_IP of the stack's twin bridge (`xneck up "
                                                              "--alpha-ip`), the one camera its campaigns record "
                                                              "(server.quality); unset: the first camera seen.")
+    twin_camera: str | None = Field(None, min_length=1, max_length=64, description="With a controller service on the "
+                                    "bus: the instance of the stack's camera process (`xneck up --alpha-ip camera`), "
+                                    "the one camera of its source its campaigns record (server.quality); unset: the "
+                                    "first of that source seen.")
     min_free_mb: float = Field(64.0, ge=0, description="A campaign starts only with this much free space (MB) "
                                "in the archive directory (else 507).")
     allowed_hosts: list[str] = Field(default_factory=list, description="Host names the console answers to besides "

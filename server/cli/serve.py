@@ -25,6 +25,8 @@ def server(
     twin_seed: int | None = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
     twin_alpha_ip: str | None = typer.Option(None, "--twin-alpha-ip", help="α_IP of the stack's twin bridge, noise "
                                              "or camera (likewise): the one camera its campaigns record."),
+    twin_camera: str | None = typer.Option(None, "--twin-camera", help="Instance of the stack's camera process "
+                                           "(likewise): of two cameras of one source, the one recorded."),
     min_free_mb: float | None = typer.Option(None, "--min-free-mb", help="Free space a campaign needs (MB, "
                                                 "default 64)."),
     allowed_host: list[str] | None = typer.Option(None, "--allowed-host", help="Host name the console answers "
@@ -44,7 +46,7 @@ def server(
 
     given = {"host": host, "port": port, "data_dir": data_dir, "pace": pace, "mode": mode, "hub": hub,
              "connect": connect, "viser_port": viser_port, "twin_truth": twin_truth, "twin_seed": twin_seed,
-             "twin_alpha_ip": twin_alpha_ip,
+             "twin_alpha_ip": twin_alpha_ip, "twin_camera": twin_camera,
              "min_free_mb": min_free_mb, "allowed_hosts": allowed_host, "allowed_origins": allowed_origin}
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})

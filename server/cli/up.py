@@ -439,6 +439,8 @@ def up(
     watch = _LoopPings() if robot and not no_bridge else None
     driver: list[str] = []
     bridge_instance = f"bridge-up-{os.getpid()}"
+    camera = alpha_ip == "camera" and not robot and not no_bridge
+    camera_instance = f"camera-up-{os.getpid()}"  # named to the console: another twin-render camera is not it
     drives_set_off = False
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
@@ -447,15 +449,16 @@ def up(
                          # what this stack's twin bridge is, so that campaign requests are checked against it
                          "--twin-truth", truth, "--twin-seed", str(seed),
                          # the one camera its campaigns record, whatever other α_IP is on the hub (server.quality)
-                         *(["--twin-alpha-ip", alpha_ip] if not robot and not no_bridge else [])])
+                         *(["--twin-alpha-ip", alpha_ip] if not robot and not no_bridge else []),
+                         *(["--twin-camera", camera_instance] if camera else [])])
         deadline = time.monotonic() + 60
         while not _healthy(url):
             if procs["server"].poll() is not None or time.monotonic() > deadline or stop["signal"]:
                 raise RuntimeError(f"the server did not come up:\n{log_tail(log_files['server'], LOG_LINES)}")
             time.sleep(0.2)
-        camera = alpha_ip == "camera" and not robot and not no_bridge
         if camera:  # before the twin, so its first truth is seen; off the loop's CPU like the console
-            start("camera", ["camera", "--source", "twin", "--seed", str(seed), *common, *param_args])
+            start("camera", ["camera", "--source", "twin", "--seed", str(seed), "--instance", camera_instance,
+                             *common, *param_args])
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
