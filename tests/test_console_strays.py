@@ -214,8 +214,10 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
     campaign = read_campaign(data / "campaigns" / f"{rec['id']}.mcap")
     assert {m.source for _, m in campaign.messages(bus.CAMERA_ALPHA)} == {"twin-noise"}
     assert rec["quality"]["alpha_ip_source"] == "twin-noise", rec["quality"]
-    assert rec["quality"]["foreign_alpha_ip"].get("twin-render", 0) > 30, rec["quality"]
-    assert "'twin-render'" in rec["message"], rec["message"]
+    # the stray camera process names itself (source@instance, tests/test_camera_identity.py)
+    stray = {k: n for k, n in rec["quality"]["foreign_alpha_ip"].items() if k.startswith("twin-render@")}
+    assert sum(stray.values()) > 30, rec["quality"]
+    assert f"'{next(iter(stray))}'" in rec["message"], rec["message"]
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
