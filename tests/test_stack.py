@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import httpx
 import numpy as np
@@ -73,18 +74,27 @@ def _procs():
         stop_process_groups(started)
 
 
-def _robot_console(spawn, tmp_path: Path, data: Path, *, controller: bool = True) -> tuple[str, int, subprocess.Popen | None]:
+class RobotConsole(NamedTuple):
+    base: str  # the console's base URL
+    hub_port: int
+    controller: subprocess.Popen | None
+    server: subprocess.Popen
+    server_args: list[str]  # to start the console again as it was (a restart)
+
+
+def _robot_console(spawn, tmp_path: Path, data: Path, *, controller: bool = True) -> RobotConsole:
     """A console in robot mode with a twin bridge (and a controller service) connected to its hub,
-    all alive on the bus: the console's base URL, its hub's port and the controller's process."""
+    all alive on the bus."""
     port, hub_port = free_tcp_port(), free_tcp_port()
     hub, base = f"tcp/127.0.0.1:{hub_port}", f"http://127.0.0.1:{port}"
-    spawn(["server", "--port", str(port), "--data-dir", str(data), "--hub", hub, "--mode", "robot"], tmp_path / "s.log")
+    server_args = ["server", "--port", str(port), "--data-dir", str(data), "--hub", hub, "--mode", "robot"]
+    server = spawn(server_args, tmp_path / "s.log")
     assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()
     spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
     ctl = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
                 tmp_path / "c.log") if controller else None
     assert wait_until(lambda: {"bridge", "campaign-service" if controller else "bridge"} <= _alive_kinds(base), 120, 0.3)
-    return base, hub_port, ctl
+    return RobotConsole(base, hub_port, ctl, server, server_args)
 
 
 def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) -> None:
@@ -123,7 +133,7 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
 def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign_aborted(tmp_path: Path) -> None:
     data = tmp_path / "d"
     with _procs() as spawn:
-        base, _, ctl = _robot_console(spawn, tmp_path, data)
+        base, _, ctl, *_ = _robot_console(spawn, tmp_path, data)
         assert ctl is not None
         cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.3, 60, 0.2)
@@ -180,7 +190,7 @@ def test_a_vanished_controller_service_leaves_the_supervisor_time_to_name_the_ca
 
     cause = "controller process exited (signal SIGKILL)"
     with _procs() as spawn:
-        base, _, ctl = _robot_console(spawn, tmp_path, tmp_path / "d")
+        base, _, ctl, *_ = _robot_console(spawn, tmp_path, tmp_path / "d")
         assert ctl is not None
         cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.2)

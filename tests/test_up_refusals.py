@@ -45,7 +45,7 @@ def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> Non
     """Finding 5: a second `xneck up` on the hub of a running stack joined its bus and started a
     second bridge and controller before failing with a raw zenoh error."""
     with _procs() as spawn:
-        base, hub_port, _ = _robot_console(spawn, tmp_path, tmp_path / "first", controller=False)
+        base, hub_port, *_ = _robot_console(spawn, tmp_path, tmp_path / "first", controller=False)
         line, _ = _up_refused(tmp_path, free_tcp_port(), free_tcp_port(), hub_port)
         assert "another xneck stack answers on the hub" in line and "bridge/" in line, line
         assert _alive_kinds(base) == {"bridge"}  # no second controller joined
