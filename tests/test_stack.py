@@ -259,3 +259,55 @@ def test_a_server_killed_and_restarted_mid_campaign(tmp_path: Path) -> None:
     path.write_bytes(mcap.content)
     c = read_campaign(path)
     assert c.info["outcome"] == "interrupted" and len(c.messages(bus.MOTOR_STATE)) > 100
+
+
+def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_and_stopped(tmp_path: Path) -> None:
+    """Audit of 2026-11-29: a console SIGKILLed during a campaign of the controller service (which
+    runs it on by itself) and restarted as it was recovered the record ``interrupted``, showed nothing
+    running, answered a stop 200 while the neck went on moving for 25 s, and took a new campaign
+    that the controller then refused. Now the restarted console shows the campaign still running on
+    that controller, unrecorded since the restart; a new campaign is refused naming it; and the
+    stop stops it on the controller and says so."""
+    long = {"kind": "control", "law": 2, "waypoints": {
+        "name": "long", "waypoints_deg": [[0, 0, 0], [20, 20, 20], [0, 0, 0], [-20, -20, -20], [0, 0, 0]],
+        "durations_s": 10.0, "dwell_s": 1.0}}  # about 45 s: a restart and the bus's reconnection fit in it
+    with _procs() as spawn:
+        console = _robot_console(spawn, tmp_path, tmp_path / "d")
+        base = console.base
+        cid = httpx.post(base + "/api/campaigns", json=long, headers=AUTH, timeout=10).json()["id"]
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.02, 60, 0.2)
+        os.killpg(console.server.pid, signal.SIGKILL)
+        console.server.wait(10)
+        spawn(console.server_args, tmp_path / "s2.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s2.log").read_text()[-2000:]
+
+        def health() -> dict:
+            return httpx.get(base + "/api/system/health", timeout=5).json()
+
+        # once the controller has linked to the new console's hub again, its status names the campaign
+        assert wait_until(lambda: health()["running_campaign_id"] == cid, 30, 0.3), health()
+        elsewhere = health()["unrecorded_campaign"]
+        controller = elsewhere["controller"]
+        assert elsewhere["id"] == cid and controller.startswith("controller-"), elsewhere
+        rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()
+        assert rec["status"] == "interrupted" and rec["running_on"] == controller, rec
+        assert f"still running on controller {controller}, not recorded since the console's restart" in \
+            rec["message"], rec
+        refused = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
+        assert refused.status_code == 409, refused.text
+        assert cid in refused.json()["detail"] and controller in refused.json()["detail"], refused.text
+        stopped = httpx.post(f"{base}/api/campaigns/{cid}/stop", headers=AUTH, timeout=15)
+        assert stopped.status_code == 200, stopped.text
+        assert f"stopped on controller {controller}" in stopped.json()["message"], stopped.json()
+        # The controller's own word: alive, and none of its statuses names the campaign any more.
+        statuses: list[bus.ControllerStatus] = []
+        with open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{console.hub_port}"]) as s:
+            sub = s.declare_subscriber(bus.CONTROLLER_STATUS, lambda x: statuses.append(
+                bus.decode(bus.ControllerStatus, x.payload.to_bytes())))
+            assert wait_until(lambda: len(statuses) > 250, 20, 0.1), len(statuses)
+            sub.undeclare()
+        assert not [m for m in statuses if m.campaign_id == cid], "the controller still runs the campaign"
+        assert health()["running_campaign_id"] is None and health()["unrecorded_campaign"] is None
+        rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()
+        assert rec["status"] == "interrupted" and rec["running_on"] == "", rec
+        assert f"stopped on controller {controller}" in rec["message"], rec
