@@ -15,6 +15,14 @@ an archive whose writer is alive (:func:`bridge.archive.writer_alive`), and a fi
 repair (full or read-only disk, I/O error) is reported in :attr:`CampaignManager.recovery_errors`
 and on the record, never an exception: start-up goes on.
 
+A campaign that a controller service runs on by itself after this console crashed (the console's
+requests only started it) is one the console no longer records: its record is recovered
+``interrupted`` like any other, and :meth:`CampaignManager.unrecorded` tells, from the
+controller's status on the bus, that it is still running on that controller. While it is, the
+record says so (``running_on``, its message), a new campaign is refused with
+:class:`RunningElsewhere`, and :meth:`CampaignManager.stop` sends the controller the stop request
+the console's own campaigns send, and waits for its answer (:class:`NotStopped` if none comes).
+
 A campaign ended by a cause the console cannot see itself (a child of ``xneck up`` that died: the
 supervisor knows which and how) is named by :meth:`CampaignManager.abort`: the running campaign is
 stopped and ends ``aborted`` with the cause first in its record and in its archive's
@@ -53,7 +61,7 @@ from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
 from bridge.archive_read import is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
-from bridge.session import publisher
+from bridge.session import payload_of, publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import (
@@ -74,6 +82,11 @@ log = logging.getLogger("xneck.campaigns")
 RESERVE_BYTES = 512 * 1024  # given up on a storage fault, room for the final records
 DEFAULT_MIN_FREE_BYTES = 64_000_000
 ABORT_WAIT_S = 10.0  # s :meth:`CampaignManager.abort` waits for the stopped campaign's record to be final
+# s a controller gets to answer the stop of a campaign it runs unrecorded: it answers on its next
+# tick (2 ms); the rest is a loaded machine's and the bus's. The request is sent again every
+# STOP_RESEND_S (the bus may drop one; a second stop of the same campaign changes nothing).
+STOP_ANSWER_S = 3.0
+STOP_RESEND_S = 0.5
 
 
 class Busy(Exception):
@@ -91,6 +104,19 @@ class DrivesDisabled(Busy):
     def __init__(self, reason: str) -> None:
         super().__init__("estop", "e-stop")
         self.reason = reason
+
+
+class RunningElsewhere(Busy):
+    """A campaign of this console's runs on the controller service ``controller`` unrecorded (the
+    console was restarted during it): the robot is that campaign's until it ends or is stopped."""
+
+    def __init__(self, running_id: str, controller: str) -> None:
+        super().__init__(running_id)
+        self.controller = controller
+
+
+class NotStopped(Exception):
+    """A stop the console could not carry out; the message says why and what still runs."""
 
 
 class NotFound(KeyError):
@@ -117,7 +143,8 @@ class CampaignManager:
                  on_finish: Callable[[CampaignRecord], None] | None = None,
                  service_alive: Callable[[], bool] = lambda: False,
                  min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
-                 bridge_estop: Callable[[], dict[str, object] | None] = lambda: None) -> None:
+                 bridge_estop: Callable[[], dict[str, object] | None] = lambda: None,
+                 bus_campaign: Callable[[], tuple[str, str] | None] = lambda: None) -> None:
         self.index = CampaignIndex(Path(data_dir) / "campaigns")
         self.session = session
         self.hub = hub
@@ -150,6 +177,8 @@ class CampaignManager:
         self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
         self.estop_reason = ""
         self._bridge_estop = bridge_estop  # server.live.bridge_estop: the bridge's latched e-stop, if fresh
+        self._bus_campaign = bus_campaign  # server.live.bus_campaign: (id, controller) a controller runs now
+        self._noted_elsewhere: set[str] = set()  # ids whose record says already that a controller went on with them
 
     # -- start-up ---------------------------------------------------------------------------
     def recover_all(self) -> list[str]:
@@ -325,17 +354,52 @@ class CampaignManager:
     def running_id(self) -> str | None:
         return self._running
 
+    def unrecorded(self) -> tuple[str, str] | None:
+        """``(id, controller)`` of a campaign of this console's that a controller on the bus runs
+        now while this console does not record it: one it was running when it crashed (recovered
+        ``interrupted``), which the controller service went on with. None if there is none (a
+        replay of the campaign republishes its statuses: not the controller's word). The first time
+        it is seen, its record says for good that the controller went on with it."""
+        seen = self._bus_campaign()
+        if seen is None:
+            return None
+        cid, controller = seen
+        with self._lock:
+            rec = self._records.get(cid)
+            replayed = (self._replay is not None and self._replay.campaign_id == cid and self._replay.running) or \
+                (self._replay_starting is not None and self._replay_starting[0] == cid)
+            if rec is None or rec.status != "interrupted" or cid == self._running or replayed:
+                return None
+            first = cid not in self._noted_elsewhere
+            self._noted_elsewhere.add(cid)
+            message = rec.message
+        if first:
+            self._update(cid, message=f"{message}; the controller {controller or '(unknown)'} went on running it "
+                                      f"after the console's restart, not recorded"[:2000])
+        return seen
+
+    @staticmethod
+    def _running_on(rec: CampaignRecord, elsewhere: tuple[str, str] | None) -> CampaignRecord:
+        """``rec`` as shown while ``elsewhere`` (:meth:`unrecorded`) is that campaign: ``running_on``
+        and its message say that it runs on; never stored (it is true only while it runs)."""
+        if elsewhere is not None and elsewhere[0] == rec.id:
+            rec.running_on = elsewhere[1] or "(unknown)"
+            rec.message = f"still running on controller {rec.running_on}, not recorded since the console's " \
+                          f"restart: stop it here; {rec.message}"[:2000]
+        return rec
+
     def get(self, campaign_id: str) -> CampaignRecord:
         with self._lock:
             rec = self._records.get(campaign_id)
         if rec is None:
             raise NotFound(campaign_id)
-        return rec.model_copy()
+        return self._running_on(rec.model_copy(), self.unrecorded())
 
     def list(self, status: str | None = None, kind: str | None = None, law: str | None = None,
              limit: int = 100) -> list[CampaignRecord]:
+        elsewhere = self.unrecorded()
         with self._lock:
-            recs = [r.model_copy() for r in self._records.values()]
+            recs = [self._running_on(r.model_copy(), elsewhere) for r in self._records.values()]
         recs = [r for r in recs if (status is None or r.status == status) and (kind is None or r.kind == kind)
                 and (law is None or r.law == law)]
         recs.sort(key=lambda r: r.created_at, reverse=True)
@@ -366,10 +430,13 @@ class CampaignManager:
         checked by :func:`server.campaign_request.prepare`). Raises :class:`Busy` or
         :class:`StorageError`."""
         spec = prepared.spec
+        elsewhere = self.unrecorded()  # outside the lock: it may write the record
         with self._lock:
             busy = self._holder()
             if busy is not None:
                 raise busy
+            if elsewhere is not None:  # the controller would refuse it; this names why, and nothing is recorded
+                raise RunningElsewhere(*elsewhere)
             # Armed before the e-stop is checked: an e-stop whose publication is under way now sets
             # this event when it returns, so the campaign it missed at the check ends at once (one
             # armed after the record was written let it run: audit of 2026-11-27).
@@ -539,6 +606,9 @@ class CampaignManager:
             return None
 
     def stop(self, campaign_id: str) -> CampaignRecord:
+        """Stop ``campaign_id``: this console's running campaign or replay, or a campaign of its
+        that a controller runs unrecorded (:meth:`unrecorded`; raises :class:`NotStopped` if that
+        controller does not answer). A campaign that runs nowhere is left as it is."""
         rec = self.get(campaign_id)
         with self._lock:
             starting = self._replay_starting
@@ -548,7 +618,53 @@ class CampaignManager:
             starting[2].set()  # it never starts
         elif self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
             self._replay.stop()
+        elif rec.running_on:
+            return self._stop_elsewhere(campaign_id, "" if rec.running_on == "(unknown)" else rec.running_on)
         return rec
+
+    def _stop_elsewhere(self, campaign_id: str, controller: str) -> CampaignRecord:
+        """Stop the campaign ``controller`` runs unrecorded with the stop request this console's own
+        campaigns send (server.campaign_runner), addressed to it (bare when it is unknown: a
+        service stops only the campaign it runs), and wait up to :data:`STOP_ANSWER_S` s for its
+        end event. The record then says how it ended; :class:`NotStopped` if nothing answered
+        and the controller's status still names the campaign."""
+        answer: list[bus.CampaignEvent] = []
+        answered = threading.Event()
+
+        def on_event(sample: zenoh.Sample) -> None:
+            try:
+                ev = bus.decode(bus.CampaignEvent, payload_of(sample, bus.CampaignEvent))
+            except bus.BusDecodeError:
+                return
+            if ev.campaign_id == campaign_id and ev.event in ("finished", "aborted"):
+                answer.append(ev)
+                answered.set()
+
+        sub = self.session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
+        requests = publisher(self.session, bus.campaign_request_key(controller) if controller else bus.CAMPAIGN_REQUEST)
+        try:
+            give_up = time.monotonic() + STOP_ANSWER_S
+            seq = 0
+            while not answered.is_set() and time.monotonic() < give_up:
+                seq += 1
+                requests.put(bus.CampaignRequest(seq=seq, stamp_s=time.time(), campaign_id=campaign_id,
+                                                 action="stop"))
+                answered.wait(STOP_RESEND_S)
+        finally:
+            requests.close()
+            sub.undeclare()
+        name = controller or "(unknown)"
+        if answer:
+            said = f"{answer[0].event}" + (f": {answer[0].message}" if answer[0].message else "")
+            note = f"stopped on controller {name} from this console after its restart ({said})"
+        elif self.unrecorded() is None:  # it ended meanwhile, its end event before the subscription
+            note = f"ended on controller {name} as this console asked it to stop after its restart"
+        else:
+            raise NotStopped(f"campaign {campaign_id} is still running on controller {name}, unrecorded: the "
+                             f"controller did not answer the stop within {STOP_ANSWER_S:.0f} s; use the e-stop")
+        with self._lock:
+            message = self._records[campaign_id].message  # as stored: not get()'s "still running"
+        return self._update(campaign_id, message=f"{note}; {message}"[:2000])
 
     def wait_idle(self, timeout_s: float) -> bool:
         worker = self._worker
@@ -558,11 +674,13 @@ class CampaignManager:
         return True
 
     def delete(self, campaign_id: str) -> None:
-        self.get(campaign_id)
+        running_on = self.get(campaign_id).running_on  # one a controller runs unrecorded: stopped first
         with self._final_lock:  # not while abort names a cause in its record and archive
             with self._lock:
                 if self._running == campaign_id:
                     raise Busy(campaign_id)
+                if running_on:
+                    raise RunningElsewhere(campaign_id, running_on)
                 if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
                     raise Busy(campaign_id, "replay of")
                 if self._replay_starting is not None and self._replay_starting[0] == campaign_id:

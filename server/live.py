@@ -344,6 +344,19 @@ def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S
     return {"engaged": engaged, "reason": reason, "drive": state.drive, "source": "bridge"}
 
 
+def bus_campaign(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tuple[str, str] | None:
+    """``(campaign id, controller)`` of the campaign a controller on the bus runs now, whoever
+    started it, as its latest ``ControllerStatus`` (arrived within ``max_age_s`` s) says;
+    ``controller`` is the instance the bridge obeys in its fresh ``MotorState`` (``owner``: the one
+    whose commands move the robot; the status does not name its sender), "" if unknown. None when
+    no fresh status names a campaign (a replay's statuses are the caller's to set aside)."""
+    status = values.fresh("status", max_age_s)
+    if status is None or not status.campaign_id:
+        return None
+    state = values.fresh("state", max_age_s)
+    return status.campaign_id, state.owner if state is not None else ""
+
+
 def bridge_status(values: LatestValues) -> dict[str, Any]:
     """The bridge as its latest valid ``MotorState`` shows it, for ``/api/system/health``:
     ``state_age_s``, seconds since that state arrived (monotonic clock, to within

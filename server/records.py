@@ -58,6 +58,9 @@ class CampaignRecord(BaseModel):
     identification_status: str = ""
     scene_messages: int = 0
     mcap_bytes: int = 0
+    running_on: str = Field(default="", max_length=256, description="The controller service that still runs this "
+                            "campaign though this console does not record it (it was restarted during it); "
+                            "POST .../stop stops it there. Empty otherwise; true only while it runs.")
 
 
 def valid_id(campaign_id: str) -> bool:

@@ -17,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from bridge.archive import MAGIC
 from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
-from server.campaigns import Busy, CampaignManager, NotFound
+from server.campaigns import Busy, CampaignManager, NotFound, NotStopped, RunningElsewhere
 from server.records import CampaignRecord, CampaignStatus, valid_id
 from server.results import FIGURES, control_tables, identification_tables, quality_tables, render_figure
 
@@ -62,10 +62,15 @@ def _record(manager: CampaignManager, campaign_id: str) -> CampaignRecord:
 
 
 def _conflict(exc: Busy) -> JSONResponse:
+    if isinstance(exc, RunningElsewhere):
+        detail = (f"campaign {exc.running_id} is still running on controller {exc.controller or '(unknown)'}, not "
+                  f"recorded since this console's restart: stop it first (POST /api/campaigns/{exc.running_id}/stop)")
+    elif exc.running_id == "estop":
+        detail = f"the drives are disabled ({getattr(exc, 'reason', '') or 'e-stop engaged'}): release the e-stop first"
+    else:
+        detail = f"{exc.what} {exc.running_id} is running"
     return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
-        "detail": f"{exc.what} {exc.running_id} is running" if exc.running_id != "estop"
-        else f"the drives are disabled ({getattr(exc, 'reason', '') or 'e-stop engaged'}): release the e-stop first",
-        "running_campaign_id": exc.running_id})
+        "detail": detail, "running_campaign_id": exc.running_id})
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
@@ -109,11 +114,18 @@ def get_campaign(campaign_id: str, request: Request) -> CampaignRecord:
 
 
 @router.post("/{campaign_id}/stop", response_model=CampaignRecord,
-             dependencies=[Depends(require_token), Depends(require_operator)])
-def stop_campaign(campaign_id: str, request: Request) -> CampaignRecord:
-    """Ask a running campaign (or replay) to stop; it ends as ``aborted`` within a few seconds."""
+             dependencies=[Depends(require_token), Depends(require_operator)],
+             responses={409: {"description": "A controller runs the campaign unrecorded and did not answer the "
+                                             "stop: the reason"}})
+def stop_campaign(campaign_id: str, request: Request) -> Any:
+    """Ask a running campaign (or replay) to stop; it ends as ``aborted`` within a few seconds. A
+    campaign a controller runs on unrecorded (``running_on``: this console was restarted during it)
+    is stopped on that controller before the answer, whose message says so."""
     _record(_manager(request), campaign_id)
-    return _manager(request).stop(campaign_id)
+    try:
+        return _manager(request).stop(campaign_id)
+    except NotStopped as exc:
+        return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={"detail": str(exc)})
 
 
 @router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Depends(require_token)],

@@ -28,15 +28,22 @@ def health(request: Request) -> dict[str, Any]:
     before any; it grows while the bridge is silent) and its ``drive``, ``owner`` and ``instance``
     as of that state. ``bus``: who may link to the console's session (bridge.session.access_summary;
     ``open`` when anyone on the network may; ``changed_since_start``, its credentials and TLS files
-    replaced since it started, which its session does not apply until a restart). ``uptime_s`` in
-    seconds."""
+    replaced since it started, which its session does not apply until a restart).
+    ``unrecorded_campaign``: ``{"id", "controller"}`` of a campaign of this console's that a
+    controller service still runs though the console no longer records it (it was restarted during
+    it; ``running_campaign_id`` names it too), else null. ``uptime_s`` in seconds."""
     s = request.app.state
+    elsewhere = s.campaigns.unrecorded()
     return {
         "status": "ok", "version": software_version(), "uptime_s": time.monotonic() - s.started,
         "mode": s.settings.mode, "pace": s.settings.pace, "hub": s.hub,
         "bus": {**s.bus_access, "changed_since_start": small_file.changed(s.bus_files)},
         "viser_port": s.scene.port if s.scene else None,
-        "running_campaign_id": s.campaigns.running_id, "replay": s.campaigns.replay_status(),
+        # a campaign of this console's that a controller runs on unrecorded (it was restarted during
+        # it) is the running one too: the dashboard follows it and its Stop stops it
+        "running_campaign_id": s.campaigns.running_id or (elsewhere[0] if elsewhere else None),
+        "unrecorded_campaign": {"id": elsewhere[0], "controller": elsewhere[1]} if elsewhere else None,
+        "replay": s.campaigns.replay_status(),
         "recovery_errors": s.campaigns.recovery_errors,  # file -> why start-up could not repair it
         "parameter_set": s.params.active_status(),  # the active set; the one named instead and why it did not load
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one

@@ -178,6 +178,31 @@ def test_recovery_never_touches_an_archive_whose_writer_is_alive(tmp_path: Path)
     assert json.loads((campaigns / f"{cid}.json").read_text())["status"] == "running"
 
 
+def test_a_stop_no_controller_answers_is_refused_and_says_what_still_runs(tmp_path: Path) -> None:
+    """A campaign the bus says a controller runs on unrecorded (a console restarted during it; the
+    real processes: tests/test_stack.py::test_a_campaign_its_controller_runs_on_through_a_console_
+    restart_is_shown_and_stopped) whose controller does not answer the stop: NotStopped (a 409 at
+    REST), naming the controller, never a stop that seems to work while the neck moves on."""
+    from server.campaigns import STOP_ANSWER_S, CampaignManager, NotStopped
+
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    cid = "control-orphan"
+    (campaigns / f"{cid}.json").write_text(json.dumps({**record(cid, "interrupted"), "message": "recovered"}))
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub]) as s:
+        manager = CampaignManager(tmp_path / "data", s, hub, bus_campaign=lambda: (cid, "controller-gone"))
+        try:
+            manager.recover_all()
+            assert manager.get(cid).running_on == "controller-gone"
+            with pytest.raises(NotStopped, match=f"{cid} is still running on controller controller-gone") as why:
+                manager.stop(cid)
+            assert f"did not answer the stop within {STOP_ANSWER_S:.0f} s" in str(why.value)
+            assert manager.get(cid).status == "interrupted"
+        finally:
+            manager.close()
+
+
 # -- finding 2 ---------------------------------------------------------------------------------------------------
 
 
