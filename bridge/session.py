@@ -88,13 +88,18 @@ def run_attachment(epoch: str) -> bytes:
     return RUN_PREFIX + epoch.encode()
 
 
-def run_of(sample: zenoh.Sample) -> str:
-    """The bridge run (epoch) ``sample`` says it comes from (:data:`RUN_PREFIX`), '' if none."""
+def _named(sample: zenoh.Sample, prefix: bytes) -> str:
+    """What ``sample``'s attachment names after ``prefix``, '' if it has no such attachment."""
     attachment = sample.attachment
     if attachment is None:
         return ""
     data = attachment.to_bytes()
-    return data[len(RUN_PREFIX):].decode("ascii", "replace") if data.startswith(RUN_PREFIX) else ""
+    return data[len(prefix):].decode("ascii", "replace") if data.startswith(prefix) else ""
+
+
+def run_of(sample: zenoh.Sample) -> str:
+    """The bridge run (epoch) ``sample`` says it comes from (:data:`RUN_PREFIX`), '' if none."""
+    return _named(sample, RUN_PREFIX)
 
 
 #: The Zenoh attachment of what a camera process publishes (its α_IP and frames),
@@ -112,11 +117,7 @@ def camera_attachment(instance: str) -> bytes:
 
 def camera_of(sample: zenoh.Sample) -> str:
     """The camera instance ``sample`` says it comes from (:data:`CAMERA_PREFIX`), '' if none."""
-    attachment = sample.attachment
-    if attachment is None:
-        return ""
-    data = attachment.to_bytes()
-    return data[len(CAMERA_PREFIX):].decode("ascii", "replace") if data.startswith(CAMERA_PREFIX) else ""
+    return _named(sample, CAMERA_PREFIX)
 
 
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes

@@ -8,6 +8,7 @@ import re
 
 import numpy as np
 import pytest
+from test_identification import _messages_of
 
 from bridge import archive, bus
 from controller.identification_loop import simulate_campaign
@@ -17,14 +18,7 @@ DURATION_S = 13.0  # the shortest record the pipeline identifies: a move out, ba
 
 
 def _write(path, data, trajectory_json: str) -> None:
-    msgs = [(bus.MOTOR_STATE, int(t * 1e9), bus.MotorState(seq=k, stamp_s=float(t), theta_rad=list(th),
-                                                          force_applied_N=list(f), drive="active", epoch="e", bridge="b"))
-            for k, (t, th, f) in enumerate(zip(data.t_s, data.theta_rad, data.force_N))]
-    msgs += [(bus.CAMERA_ALPHA, int(t * 1e9) + 1, bus.CameraAlpha(seq=k, stamp_s=float(t), alpha_ip_rad=list(a),
-                                                                 capture_stamp_s=float(t)))
-             for k, (t, a) in enumerate(zip(data.t_ip_s, data.alpha_ip_rad))]
-    msgs.sort(key=lambda m: m[1])
-    archive.write_campaign(path, msgs, {"campaign_id": path.stem, "kind": "identification",
+    archive.write_campaign(path, _messages_of(data), {"campaign_id": path.stem, "kind": "identification",
                                         "trajectory": trajectory_json})
 
 
