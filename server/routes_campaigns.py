@@ -102,8 +102,13 @@ def list_campaigns(request: Request,
                    status_: CampaignStatus | None =
                    Query(None, alias="status"),
                    kind: Literal["identification", "control"] | None = None,
-                   law: str | None = Query(None, description="Law name, e.g. law2"),
+                   law: str | None = Query(None, pattern=r"^(law)?[123](-no-pulleys)?$",
+                                           description="Control law: 1, 2 or 3 as the POST body's `law`, or the "
+                                           "record's name (law1..law3, law2-no-pulleys...)"),
                    limit: int = Query(100, ge=1, le=1000)) -> list[CampaignRecord]:
+    # A number is the body's law (audit of 2026-11-29: ?law=2 was a silent [], ?law=7 too).
+    if law is not None and not law.startswith("law"):
+        law = f"law{law}"
     return _manager(request).list(status_, kind, law, limit)
 
 

@@ -628,3 +628,30 @@ def test_a_campaign_gone_between_two_lookups_of_a_route_is_a_404_not_a_500(tmp_p
         monkeypatch.setattr(app.state.campaigns, "stop", gone)
         r = c.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
         assert r.status_code == 404 and r.json()["detail"] == f"no campaign {cid!r}", r.text
+
+
+def test_the_law_filter_takes_the_bodys_numbers_and_refuses_what_names_no_law(tmp_path) -> None:
+    """Audit of 2026-11-29: ``GET /api/campaigns?law=2`` (the POST body's ``"law": 2``) and
+    ``?law=7`` silently answered [] while ``?law=law2`` worked and ``?status=bogus`` was a 422.
+    1|2|3 and law1..law3 (with ``-no-pulleys``, as records name them) filter; anything else is a 422."""
+    import json
+
+    data = tmp_path / "data"
+    (data / "campaigns").mkdir(parents=True)
+    for cid, law in (("c1", "law1"), ("c2", "law2"), ("c2np", "law2-no-pulleys")):
+        rec = {"id": cid, "kind": "control", "law": law, "trajectory": "t", "parameter_set": "p",
+               "target": "twin", "status": "finished"}
+        (data / "campaigns" / f"{cid}.json").write_text(json.dumps(rec))
+    with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        def ids(law: str) -> set[str]:
+            r = c.get("/api/campaigns", params={"law": law})
+            assert r.status_code == 200, (law, r.text)
+            return {rec["id"] for rec in r.json()}
+
+        assert ids("2") == ids("law2") == {"c2"}
+        assert ids("1") == ids("law1") == {"c1"}
+        assert ids("3") == ids("law3") == set()
+        assert ids("law2-no-pulleys") == {"c2np"}
+        for bad in ("7", "law7", "0", "two", "law2-pulleys", ""):
+            assert ["query", "law"] in _loc(c.get("/api/campaigns", params={"law": bad})), bad
+        assert ["query", "status"] in _loc(c.get("/api/campaigns", params={"status": "bogus"}))
