@@ -325,3 +325,30 @@ def test_who_may_link_is_summarised_for_the_console(tmp_path: Path, monkeypatch:
     assert bus_state == {"credentials": True, "user": "ctl", "role": "operator", "viewers": [], "exposed": [],
                          "remote": [], "open": False, "encrypted": False, "changed_since_start": []}, bus_state
     assert changed == [str(creds.path)], changed
+
+
+def test_xneck_bus_creates_the_missing_folder_of_the_files_it_writes(tmp_path: Path) -> None:
+    """Audit of 2026-11-29: the docs' first distributed step, ``xneck bus credentials
+    ~/.config/xneck/bus-credentials``, failed on a fresh PC with ``~/.config/xneck is not a
+    directory`` (it did not exist). A missing folder is created (mode 700); something in the way
+    that is not a folder is still refused, by its name."""
+    home = tmp_path / "home"
+    home.mkdir()
+
+    def xneck(*argv: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*PY, *argv], capture_output=True, text=True, env=ENV | {"HOME": str(home)},
+                              timeout=60, stdin=subprocess.DEVNULL)
+
+    r = xneck("bus", "credentials", "~/.config/xneck/bus-credentials")
+    made = home / ".config" / "xneck" / "bus-credentials"
+    assert r.returncode == 0 and f"{ENV_CREDENTIALS}={made}" in r.stdout, r.stdout + r.stderr
+    assert made.parent.stat().st_mode & 0o777 == 0o700 and made.stat().st_mode & 0o777 == 0o600
+    r = xneck("bus", "export-user", str(made), "xneck", str(tmp_path / "for" / "laptop" / "creds"))
+    assert r.returncode == 0 and load(tmp_path / "for" / "laptop" / "creds").users == ("xneck",), r.stderr
+    assert (tmp_path / "for" / "laptop").stat().st_mode & 0o777 == 0o700
+    (tmp_path / "a-file").write_text("")
+    for argv in (["credentials", str(tmp_path / "a-file" / "sub" / "creds")],
+                 ["export-user", str(made), "xneck", str(tmp_path / "a-file" / "creds")]):
+        r = xneck("bus", *argv)
+        assert r.returncode == 2 and f"{tmp_path / 'a-file'} is not a directory" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

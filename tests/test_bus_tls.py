@@ -205,3 +205,17 @@ def test_xneck_bus_check_says_the_settings_and_whether_each_endpoint_links(tmp_p
     (lab.path / "node.key").chmod(0o644)
     r = check(ep)
     assert r.returncode == 2 and "chmod 600" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_xneck_bus_tls_creates_the_missing_folder_above_its_own(tmp_path: Path) -> None:
+    """Audit of 2026-11-29: on a fresh PC ``~/.config/xneck`` does not exist; ``xneck bus tls
+    ~/.config/xneck/bus-tls`` creates it (mode 700) as credentials does; a file in the way is named."""
+    path = tmp_path / "config" / "xneck" / "bus-tls"
+    r = subprocess.run([*PY, "bus", "tls", str(path), "--host", "127.0.0.1"], capture_output=True, text=True,
+                       env=ENV, timeout=120, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0 and load(path).hosts == ("127.0.0.1",), r.stderr
+    assert path.parent.stat().st_mode & 0o777 == 0o700
+    (tmp_path / "a-file").write_text("")
+    r = subprocess.run([*PY, "bus", "tls", str(tmp_path / "a-file" / "bus-tls"), "--host", "127.0.0.1"],
+                       capture_output=True, text=True, env=ENV, timeout=120, stdin=subprocess.DEVNULL)
+    assert r.returncode == 2 and f"{tmp_path / 'a-file'} is not a directory" in r.stderr, r.stderr

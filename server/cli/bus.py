@@ -37,13 +37,32 @@ def link_report(endpoint: str) -> tuple[str, str]:
 #: What every change to the lab's credentials file needs: Zenoh reads it once, at start.
 REDISTRIBUTE = "copy the file to every machine of the stack again and restart its xneck processes (the bridge's too)"
 
+
+def make_parent(path: Path) -> None:
+    """Create the missing folder ``path`` goes into (mode 700: it holds secrets), as ``mkdir -p``
+    would; or fail naming what is in the way. On a fresh PC ``~/.config/xneck`` does not exist, and
+    the docs' first distributed step writes there (audit of 2026-11-29)."""
+    parent = path.parent
+    if parent.is_dir():
+        return
+    for above in (parent, *parent.parents):
+        if above.exists() or above.is_symlink():
+            if not above.is_dir():
+                raise fail(f"{above} is not a directory (the folder of {path})")
+            break
+    try:
+        parent.mkdir(mode=0o700, parents=True)
+    except OSError as exc:
+        raise fail(f"cannot create the folder {parent}: {exc.strerror or exc}") from None
+
 bus_app = typer.Typer(help="The bus's access: credentials that keep strangers on the network off it.",
                       no_args_is_help=True, add_completion=False)
 
 
 @bus_app.command("credentials")
 def credentials(
-    path: Path = typer.Argument(..., help="File to create (never replaced), e.g. ~/.config/xneck/bus-credentials."),
+    path: Path = typer.Argument(..., help="File to create (never replaced; a missing folder is created, mode 700), e.g. "
+                                   "~/.config/xneck/bus-credentials."),
     user: str = typer.Option("xneck", "--user", help="The entry's user name (letters, digits, _.-)."),
 ) -> None:
     """Create a credentials file (one user and a random 256-bit password, mode 600). Copy it to every
@@ -53,8 +72,7 @@ def credentials(
     from bridge.bus_credentials import ENV_CREDENTIALS, CredentialsError, write_new
 
     path = path.expanduser()
-    if not path.parent.is_dir():
-        raise fail(f"{path.parent} is not a directory")
+    make_parent(path)
     try:
         made = write_new(path, user)
     except FileExistsError:
@@ -118,8 +136,7 @@ def export_user(
     from bridge.bus_credentials import ENV_CREDENTIALS, CredentialsError, export_entry
 
     out = out.expanduser()
-    if not out.parent.is_dir():
-        raise fail(f"{out.parent} is not a directory")
+    make_parent(out)
     try:
         made = export_entry(path.expanduser(), user, out)
     except FileExistsError:
@@ -144,8 +161,7 @@ def tls(
     from bridge.bus_tls import CA_KEY, ENV_TLS, TlsError, write_new
 
     path = path.expanduser()
-    if not path.parent.is_dir():
-        raise fail(f"{path.parent} is not a directory")
+    make_parent(path)
     try:
         made = write_new(path, host, days)
     except FileExistsError:
