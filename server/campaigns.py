@@ -98,11 +98,13 @@ class Busy(Exception):
         self.what = what
 
 
-class DrivesDisabled(Busy):
-    """The drives a campaign would use are disabled (the bridge's e-stop); ``reason`` is the bridge's."""
+class DrivesDisabled(Exception):
+    """The drives a campaign would use are disabled (the bridge's e-stop); ``reason`` is the bridge's.
+    Not a :class:`Busy`: no campaign holds the robot (it was one named ``estop``, a fake id the
+    409 reported while the health said none ran: audit of 2026-11-29)."""
 
     def __init__(self, reason: str) -> None:
-        super().__init__("estop", "e-stop")
+        super().__init__(f"the drives are disabled ({reason or 'e-stop engaged'})")
         self.reason = reason
 
 

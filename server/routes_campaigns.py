@@ -17,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from bridge.archive import MAGIC
 from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
-from server.campaigns import Busy, CampaignManager, NotFound, NotStopped, RunningElsewhere
+from server.campaigns import Busy, CampaignManager, DrivesDisabled, NotFound, NotStopped, RunningElsewhere
 from server.records import CampaignRecord, CampaignStatus, valid_id
 from server.results import FIGURES, control_tables, identification_tables, quality_tables, render_figure
 
@@ -61,21 +61,26 @@ def _record(manager: CampaignManager, campaign_id: str) -> CampaignRecord:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign_id!r}") from None
 
 
-def _conflict(exc: Busy) -> JSONResponse:
+def _conflict(exc: Busy | DrivesDisabled) -> JSONResponse:
+    """409: what holds the robot (``running_campaign_id``, null when it is the e-stop) and whether
+    the e-stop refused it (``estop``)."""
+    if isinstance(exc, DrivesDisabled):
+        return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
+            "detail": f"{exc}: release the e-stop first", "running_campaign_id": None, "estop": True})
     if isinstance(exc, RunningElsewhere):
         detail = (f"campaign {exc.running_id} is still running on controller {exc.controller or '(unknown)'}, not "
                   f"recorded since this console's restart: stop it first (POST /api/campaigns/{exc.running_id}/stop)")
-    elif exc.running_id == "estop":
-        detail = f"the drives are disabled ({getattr(exc, 'reason', '') or 'e-stop engaged'}): release the e-stop first"
     else:
         detail = f"{exc.what} {exc.running_id} is running"
     return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
-        "detail": detail, "running_campaign_id": exc.running_id})
+        "detail": detail, "running_campaign_id": exc.running_id, "estop": False})
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
              dependencies=[Depends(require_token), Depends(require_operator)],
-             responses={409: {"description": "Another campaign is running (its id in running_campaign_id)"},
+             responses={409: {"description": "Another campaign or a replay is running (its id in "
+                                             "running_campaign_id, estop false), or the e-stop disables the "
+                                             "drives (running_campaign_id null, estop true)"},
                         422: {"description": "Invalid body, or a choice this console cannot honour; loc names "
                                              "the field"},
                         507: {"description": "The archive cannot be written (free space with the figures, "
@@ -93,7 +98,7 @@ async def create_campaign(body: CampaignCreate, request: Request) -> Any:
         return JSONResponse(status_code=422, content={"detail": exc.detail()})
     try:
         return manager.start(prepared)
-    except Busy as exc:
+    except (Busy, DrivesDisabled) as exc:
         return _conflict(exc)
 
 

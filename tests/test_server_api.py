@@ -130,6 +130,9 @@ def test_estop_is_published_and_blocks_new_campaigns(client) -> None:
     assert client.get("/api/system/health").json()["estop"]["engaged"] is True
     r = client.post("/api/campaigns", json={}, headers=AUTH)
     assert r.status_code == 409 and "e-stop" in r.json()["detail"]
+    # Audit of 2026-11-29: the 409 named a fake campaign "estop" while the health said none ran.
+    assert r.json()["running_campaign_id"] is None and r.json()["estop"] is True, r.json()
+    assert client.get("/api/system/health").json()["running_campaign_id"] is None
     client.post("/api/system/estop", json={"engaged": False}, headers=AUTH)
     assert client.get("/api/system/health").json()["estop"]["engaged"] is False
 

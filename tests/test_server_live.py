@@ -60,6 +60,7 @@ def test_control_campaign_end_to_end(console, tmp_path: Path) -> None:
         # One campaign at a time: a second start gets 409 naming the running one; it cannot be deleted.
         second = client.post("/api/campaigns", json={"kind": "control"}, headers=AUTH)
         assert second.status_code == 409 and second.json()["running_campaign_id"] == cid
+        assert second.json()["estop"] is False
         assert client.delete(f"/api/campaigns/{cid}", headers=AUTH).status_code == 409
         assert client.get(f"/api/campaigns/{cid}/mcap").status_code == 409
 
