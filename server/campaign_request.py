@@ -95,8 +95,10 @@ class CampaignCreate(BaseModel):
         "Under `xneck up` the stack's twin keeps its own (`xneck up --alpha-ip`).")
     estimator: str | None = Field(
         None, max_length=32, description="Identification only: Table 2's estimator of the campaign's analysis, as "
-        "`xneck identify --estimator`: auto (default: the load-friction fit where the campaign rejects the paper's "
-        "model, else iv), iv, ols, wls or loadfriction.")
+        "`xneck identify --estimator`: auto (the default: where the campaign's motor friction grows with the load, "
+        "i.e. it rejects the paper's model, outputerror if the load-friction fit finds the line's damping light "
+        "enough for a quasi-static pose and no creep_time_s is held, else loadfriction; iv where it keeps the "
+        "paper's model), iv, ols, wls, loadfriction or outputerror.")
     creep_time_s: float | None = Field(
         None, description="Identification only: the cable line's creep time constant (s) measured apart (a bench "
         "creep test), held in the load-friction fit instead of estimated from the record; with estimator auto or "

@@ -658,3 +658,19 @@ def test_the_law_filter_takes_the_bodys_numbers_and_refuses_what_names_no_law(tm
         for bad in ("7", "law7", "0", "two", "law2-pulleys", ""):
             assert ["query", "law"] in _loc(c.get("/api/campaigns", params={"law": bad})), bad
         assert ["query", "status"] in _loc(c.get("/api/campaigns", params={"status": "bogus"}))
+
+
+def test_the_estimator_description_names_every_estimator_a_campaign_accepts(client) -> None:
+    """Audit of 2026-11-29: POST /api/campaigns's ``estimator`` described auto as "the load-friction
+    fit ..., else iv" and listed no ``outputerror``, which it accepts and auto takes where the line's
+    damping is light. The OpenAPI text names every estimator accepted and auto's choices."""
+    import re
+
+    from twin.identification.options import VARIABLE_ESTIMATORS
+
+    spec = client.get("/openapi.json").json()
+    text = spec["components"]["schemas"]["CampaignCreate"]["properties"]["estimator"]["description"]
+    named = set(re.findall(r"[a-z]+", text))
+    assert set(VARIABLE_ESTIMATORS) <= named, (set(VARIABLE_ESTIMATORS) - named, text)
+    auto_rule = text[text.index("auto"):text.index(")")]
+    assert {"outputerror", "loadfriction", "iv"} <= set(re.findall(r"[a-z]+", auto_rule)), auto_rule

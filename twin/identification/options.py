@@ -15,8 +15,10 @@ ESTIMATOR_ALIASES = {"ls": "ols", "load-friction": "loadfriction"}  # "ls": eq. 
 # Table 2 only: eq. 55's friction replaced by one growing with the load, plus cable creep
 # (twin.identification.loadfriction, issues 16/17); Table 1 and f_s then use the default "iv".
 VARIABLE_ESTIMATORS = (*ESTIMATORS, "loadfriction", "outputerror", "auto")
-# "auto": the load-friction fit, kept when it rejects the paper's model (twin.identification.model_choice),
-# else "iv". The default of the user's commands (xneck identify, campaigns, the console).
+# "auto": where the load-friction fit rejects the paper's model (twin.identification.model_choice), the output
+# error if that fit finds the line's damping light and no creep time is held, else the load-friction fit; "iv"
+# where it keeps the paper's model (pipeline._identify_variable_auto). The default of the user's commands
+# (xneck identify, campaigns, the console).
 NONLINEAR_ESTIMATORS = ("loadfriction", "outputerror", "auto")  # Table 2's alone: Table 1 and f_s then use "iv"
 # σ of the estimates: Newey-West HAC for correlated residuals (twin.identification.uncertainty), or
 # eq. 50 as printed (white residuals; too small on filtered data).

@@ -33,8 +33,9 @@ bounded to the physical range (k, f_s > 0; λ, c_a ≥ 0; scipy.optimize.lsq_lin
 held at a bound reported); Table 2 alternatively with ``estimator="loadfriction"``
 (twin.identification.loadfriction: motor friction growing with the load and cable creep, fitted on
 the forces by nonlinear IDIM-IV, see docs/identification-coverage.md), or ``"auto"``, the default
-of the user's commands (twin.identification.record): the load-friction fit where its friction
-grows with the load (a test of μ = 0, twin.identification.model_choice), else IDIM-IV. These functions keep "iv" as
+of the user's commands (twin.identification.record): where the friction grows with the load (a test of
+μ = 0, twin.identification.model_choice) the output error if the line's damping is light and no creep time
+is held, else the load-friction fit; IDIM-IV where it does not. These functions keep "iv" as
 their default: they are the paper's pipeline. σ: eq. 50's σ_ρ²(WᵀW)⁻¹ assumes white residuals and is several times
 too small on filtered, decimated data; the default is the Newey-West HAC sandwich
 (twin.identification.uncertainty), with ±2σ intervals. A parameter whose relative σ exceeds

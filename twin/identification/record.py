@@ -222,8 +222,9 @@ def identify_record(path: str | Path, base: Params, *, excitation: Excitation | 
                     alpha_ip_source: str | None = None,
                     window_s: tuple[float, float] | None = None) -> Identification:
     """The offline pipeline on an archived campaign: read, process (filter, decimate), estimate
-    (Tables 1-2) with ``estimator`` ("auto", the default: the load-friction fit where the campaign rejects
-    eqs. 54-55, else "iv"; or "iv", "ols", "wls", "loadfriction", :func:`identify_all`), ``sigma``
+    (Tables 1-2) with ``estimator`` ("auto", the default: where the campaign rejects eqs. 54-55, the output
+    error if the line's damping is light and no creep time is held, else the load-friction fit; "iv" where
+    it keeps them; or "iv", "ols", "wls", "loadfriction", "outputerror", :func:`identify_all`), ``sigma``
     ("hac" or "white") and physical bounds unless ``bounded`` is False, keep what is well
     identified, and validate (Figs. 4-8). ``creep_time_s``: the line's creep time constant (s) held in
     the load-friction fit (pipeline.identify_variable). ``alpha_ip_source``: the camera read
