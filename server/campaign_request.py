@@ -75,7 +75,8 @@ class CampaignCreate(BaseModel):
     kind: Literal["identification", "control"] = "control"
     law: Literal[1, 2, 3] | None = Field(None, description="Control law 1, 2 or 3 (default: 2; 1 for identification).")
     no_pulleys: bool = Field(False, description="Neglect the pulleys in the controller's model (Table 3).")
-    trajectory: str | None = Field(None, description=f"Built-in trajectory: {', '.join(NAMED_TRAJECTORIES)}.")
+    trajectory: str | None = Field(None, description=f"Built-in trajectory ({', '.join(NAMED_TRAJECTORIES)}) or "
+                                   "one saved in the console's library (PUT /api/trajectories/{name}).")
     waypoints: WaypointsIn | None = Field(None, description="A user trajectory instead of a built-in one.")
     parameter_set: str | None = Field(None, description="Parameter set name (default: the active one).")
     target: Literal["twin", "robot"] | None = Field(None, description="Default: the server's mode.")
@@ -168,6 +169,34 @@ def _known_truth(name: str, settings: Settings) -> Truth:
         raise RequestError(("truth",), f"truth {name!r} does not load: {exc}") from None
 
 
+def _named_trajectory(name: str, settings: Settings) -> Trajectory:
+    """A built-in trajectory or one of the console's library (``PUT /api/trajectories/{name}``), or
+    :class:`RequestError` on ``trajectory``. A library name starts what its waypoints sent inline
+    would: the caller runs the same checks (audit of 2026-11-29: a saved trajectory was "unknown")."""
+    from server.trajectory_library import NAME, LibraryError, NotInLibrary, TrajectoryLibrary
+
+    loc = ("trajectory",)
+    if name in NAMED_TRAJECTORIES:
+        try:
+            return trajectory_by_name(name)
+        except TrajectoryError as exc:
+            raise RequestError(loc, str(exc)) from None
+    library = TrajectoryLibrary(settings.data_dir)
+    if NAME.fullmatch(name):  # else no file of the library can have it
+        try:
+            return library.get(name)
+        except NotInLibrary:
+            pass
+        except (LibraryError, TrajectoryError, OSError) as exc:  # there, but it does not read
+            raise RequestError(loc, f"stored trajectory {name!r}: {exc}") from None
+    try:
+        saved = library.names()
+    except OSError:
+        saved = []
+    raise RequestError(loc, f"unknown trajectory {name!r}; built in: {', '.join(NAMED_TRAJECTORIES)}; in the "
+                       f"library: {', '.join(saved) or 'none'}")
+
+
 def _analysis_options(req: CampaignCreate) -> str:
     """The identification analysis's estimator (default auto) with its creep time checked
     (twin.identification.options.check_variable_options), or :class:`RequestError` naming the field."""
@@ -218,10 +247,7 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
     else:
         loc = ("trajectory",)
         default = "identification" if req.kind == "identification" else "control_test"
-        try:
-            traj = trajectory_by_name(req.trajectory or default)
-        except TrajectoryError as exc:
-            raise RequestError(loc, str(exc)) from None
+        traj = _named_trajectory(req.trajectory or default, settings)
     try:
         check_trajectory(traj, params, law)
     except TrajectoryError as exc:

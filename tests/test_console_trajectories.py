@@ -3,9 +3,11 @@ TOML), names that cannot leave the library's directory, and the checks a campaig
 
 from __future__ import annotations
 
+import json
+
 import httpx
 import pytest
-from server_harness import AUTH, running_server
+from server_harness import AUTH, running_server, wait_until
 
 NOD = {"name": "nod", "waypoints_deg": [[0, 0, 0], [20, 10, 0], [0, 0, 0]], "durations_s": 2.0, "dwell_s": 0.5}
 NOD_TOML = b'name = "nod"\nwaypoints_deg = [[0, 0, 0], [20, 10, 0], [0, 0, 0]]\ndurations_s = 2.0\ndwell_s = 0.5\n'
@@ -116,3 +118,30 @@ def test_a_figure_of_an_archive_with_two_thousand_joints_is_refused_at_once(tmp_
     with pytest.raises(ValueError, match=f"2000 joints.*at most {FIGURE_MAX_JOINTS}"):
         render_figure(path, "tracking", tmp_path / "fig.png")
     assert not (tmp_path / "fig.png").exists()
+
+
+def test_a_library_trajectory_starts_as_a_campaign_by_name_with_the_same_checks(console):
+    """Audit of 2026-11-29: ``POST /api/campaigns {"trajectory": "nod"}`` for a trajectory saved with
+    ``PUT /api/trajectories/nod`` (201) answered 422 "unknown trajectory 'nod'; known:
+    identification, control_test". A library name starts it as its waypoints sent inline would,
+    the same checks refusing what they refuse; a name in neither is a 422 listing both."""
+    client, data = console
+    assert client.put("/api/trajectories/nod-run", json=NOD, headers=AUTH).status_code == 201
+    r = client.post("/api/campaigns", json={"kind": "control", "trajectory": "nod-run"}, headers=AUTH, timeout=60)
+    assert r.status_code == 201, r.text
+    rec = r.json()
+    try:
+        assert rec["trajectory"] == "nod-run" and rec["trajectory_spec"]["waypoints_deg"] == NOD["waypoints_deg"], rec
+    finally:
+        client.post(f"/api/campaigns/{rec['id']}/stop", headers=AUTH, timeout=60)
+        assert wait_until(lambda: client.get(f"/api/campaigns/{rec['id']}").json()["status"] != "running", 60, 0.3)
+    # Stored beside the library's checks (by hand): the campaign's own checks still refuse it.
+    far = {**NOD, "name": "far-by-hand", "waypoints_deg": [[0, 0, 0], [20, 75, 0], [0, 0, 0]]}
+    (data / "trajectories" / "far-by-hand.json").write_text(json.dumps(far))
+    r = client.post("/api/campaigns", json={"trajectory": "far-by-hand"}, headers=AUTH, timeout=60)
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "trajectory"], r.text
+    assert "out of the joint limits" in r.json()["detail"][0]["msg"], r.text
+    r = client.post("/api/campaigns", json={"trajectory": "no-such-one"}, headers=AUTH, timeout=60)
+    msg = r.json()["detail"][0]["msg"]
+    assert r.status_code == 422 and "unknown trajectory 'no-such-one'" in msg and "nod-run" in msg, r.text
+    assert "control_test" in msg, msg
