@@ -126,9 +126,10 @@ def load(path: str | os.PathLike[str], user: str | None = None) -> Credentials:
     return Credentials(path=p, user=chosen, password=entries[chosen], users=tuple(entries))
 
 
-def _entries(p: Path) -> dict[str, str]:
-    """The ``user: password`` entries of the file ``p``, in file order, checked (see :func:`load`)."""
-    where = f"{ENV_CREDENTIALS} {p}"
+def _entries(p: Path, where: str | None = None) -> dict[str, str]:
+    """The ``user: password`` entries of the file ``p``, in file order, checked (see :func:`load`);
+    ``where`` names it in the errors (default: as :data:`ENV_CREDENTIALS` names it)."""
+    where = where or f"{ENV_CREDENTIALS} {p}"
     text = read_checked(p, where, CredentialsError, kind="credentials file", max_bytes=MAX_FILE_BYTES)
     entries: dict[str, str] = {}
     for n, line in enumerate(text.splitlines(), start=1):
@@ -174,6 +175,12 @@ def write_new(path: str | os.PathLike[str], user: str = "xneck") -> Credentials:
 
 
 
+def _argument(p: Path) -> str:
+    """How the errors name a file the caller was given (``xneck bus add-user FILE``), not read from
+    :data:`ENV_CREDENTIALS`: the variable named a file the user never set it to (audit of 2026-11-29)."""
+    return f"credentials file {p}"
+
+
 def add_entry(path: str | os.PathLike[str], user: str) -> Credentials:
     """Add ``user`` with a new random password (256 bits) to the credentials file ``path`` (which
     must be usable, :func:`load`), replacing it at once (never half-written, mode 600 kept). Raises
@@ -181,9 +188,9 @@ def add_entry(path: str | os.PathLike[str], user: str) -> Credentials:
     if not _USER.fullmatch(user):
         raise CredentialsError(f"user {user!r} is not 1-64 letters, digits or _.-")
     p = Path(path).expanduser()
-    entries = _entries(p)
+    entries = _entries(p, _argument(p))
     if user in entries:
-        raise CredentialsError(f"{ENV_CREDENTIALS} {p} already lists {user!r}")
+        raise CredentialsError(f"{_argument(p)} already lists {user!r}")
     entries[user] = secrets.token_urlsafe(32)
     _replace(p, entries)
     return load(p, user)
@@ -194,9 +201,9 @@ def remove_entry(path: str | os.PathLike[str], user: str) -> Credentials:
     replacing it at once (mode 600 kept); returns the file's credentials, presenting its first
     remaining entry. Raises CredentialsError for an unusable file, an unknown user or the last entry."""
     p = Path(path).expanduser()
-    entries = _entries(p)
+    entries = _entries(p, _argument(p))
     if user not in entries:
-        raise CredentialsError(f"{ENV_CREDENTIALS} {p} does not list {user!r} (users: {', '.join(entries)})")
+        raise CredentialsError(f"{_argument(p)} does not list {user!r} (users: {', '.join(entries)})")
     if len(entries) == 1:
         raise CredentialsError(f"{user!r} is the last entry of {p}: remove the file instead")
     del entries[user]
@@ -227,9 +234,9 @@ def export_entry(path: str | os.PathLike[str], user: str, out: str | os.PathLike
     learn the other passwords (a viewer's). Raises CredentialsError for an unusable file or an
     unknown user."""
     p = Path(path).expanduser()
-    entries = _entries(p)
+    entries = _entries(p, _argument(p))
     if user not in entries:
-        raise CredentialsError(f"{ENV_CREDENTIALS} {p} does not list {user!r} (users: {', '.join(entries)})")
+        raise CredentialsError(f"{_argument(p)} does not list {user!r} (users: {', '.join(entries)})")
     o = Path(out).expanduser()
     fd = os.open(o, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w", encoding="ascii") as f:

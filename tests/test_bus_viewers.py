@@ -202,6 +202,11 @@ def test_xneck_bus_adds_and_exports_users_and_a_viewer_cannot_start_what_acts(tm
     assert r.returncode == 0 and "added 'viewer-alice' (viewer)" in r.stdout and "export-user" in r.stdout, r.stderr
     r = xneck("bus", "add-user", str(lab), "viewer-alice")
     assert r.returncode == 2 and "already lists 'viewer-alice'" in r.stderr, r.stderr
+    # Audit of 2026-11-29: the file came from the command line, not from XNECK_ZENOH_CREDENTIALS.
+    assert f"credentials file {lab} already lists" in r.stderr and ENV_CREDENTIALS not in r.stderr, r.stderr
+    r = xneck("bus", "add-user", str(tmp_path / "missing"), "viewer-x")
+    assert r.returncode == 2 and f"credentials file {tmp_path / 'missing'}" in r.stderr, r.stderr
+    assert ENV_CREDENTIALS not in r.stderr, r.stderr
     out = tmp_path / "alice"
     r = xneck("bus", "export-user", str(lab), "viewer-alice", str(out))
     assert r.returncode == 0 and f"{ENV_CREDENTIALS}={out}" in r.stdout, r.stdout + r.stderr
@@ -213,6 +218,10 @@ def test_xneck_bus_adds_and_exports_users_and_a_viewer_cannot_start_what_acts(tm
     assert r.returncode == 0 and "removed 'viewer-bob'" in r.stdout and "users: op, viewer-alice" in r.stdout, r.stderr
     r = xneck("bus", "remove-user", str(lab), "viewer-bob")
     assert r.returncode == 2 and "does not list 'viewer-bob'" in r.stderr, r.stderr
+    assert f"credentials file {lab} does not list" in r.stderr and ENV_CREDENTIALS not in r.stderr, r.stderr
+    r = xneck("bus", "export-user", str(lab), "viewer-bob", str(tmp_path / "bob"))
+    assert r.returncode == 2 and f"credentials file {lab} does not list" in r.stderr, r.stderr
+    assert ENV_CREDENTIALS not in r.stderr, r.stderr
     for env in (ENV | {ENV_CREDENTIALS: str(out)}, ENV | {ENV_CREDENTIALS: str(lab), ENV_USER: "viewer-alice"}):
         for argv in (["up", "--exit-after", "1"], ["bridge", "--driver", "twin"], ["controller"], ["twin"],
                      ["camera", "--source", "twin"], ["campaign", "control"], ["campaign", "identification"]):
