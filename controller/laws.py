@@ -74,7 +74,7 @@ class Command(NamedTuple):
     alpha_hat: np.ndarray  # (N,) rad
     e: np.ndarray  # (N,) rad, α^d − α̂
     saturated: np.ndarray  # (n_cables,) bool
-    gamma_d: np.ndarray  # (N,) N·m/rad
+    gamma_d: np.ndarray  # (N,) N·m
 
 
 class ComputedTorque:

@@ -43,7 +43,7 @@ from twin.sim.truth import EFFECTS, load_truth
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
 PAPER = {"law1": (0.52, 2.19), "law2": (0.37, 1.51), "law3": (0.66, 1.09)}  # §7: mean e, e_α (deg), prototype
-PAPER_GAMMA_RF = 0.18  # N·m/rad, §5.3: mean |Γ_m − Γ_rf| on the prototype
+PAPER_GAMMA_RF = 0.18  # N·m, §5.3: mean |Γ_m − Γ_rf| on the prototype
 LAWS = {"law1": LawConfig(law=1), "law2": LawConfig(law=2), "law3": LawConfig(law=3),
         "no pulleys": LawConfig(law=2, no_pulleys=True)}
 SEED = 11
@@ -203,7 +203,7 @@ def write(results: dict, ident: dict, ranges: list, ident_ranges: list | None = 
         "",
         "## Identification (law 1's §5.2.2 campaign, seed 0, as `xneck campaign identification` runs it):",
         "relative error of the identified values against",
-        "the truth's Table 1 f_s and Table 2 k, λ; Γ_rf residual (mean |Γ_m − Γ_rf|, N·m/rad; prototype 0.18).",
+        "the truth's Table 1 f_s and Table 2 k, λ; Γ_rf residual (mean |Γ_m − Γ_rf|, N·m; prototype 0.18).",
         "The paper's pipeline (IDIM-IV, eqs. 44-45, 55), then Table 2 as `xneck identify` reports it by default",
         "(`--estimator auto`: where the friction grows with the load, the neck's output error if the line's damping",
         "is light, else the load-friction fit; IDIM-IV where it does not):",
@@ -336,7 +336,7 @@ def identification_notes(ident: dict) -> list[str]:
     "- **Identification does not keep its known answer with the robot's friction.** The paper's arctan",
     f"  regressor (eqs. 44-45, 55) fits f_s within {_span(rb['f_s'])} of Table 1, but the tensions it reconstructs",
     f"  carry the friction-shape error, and k comes out {_span(rb['k'])}, λ {_span(rb['lam'])} off",
-    f"  (law 1's campaign); the Γ_rf residual is {rb['gamma_rf']:.2f} N·m/rad against the prototype's 0.18.",
+    f"  (law 1's campaign); the Γ_rf residual is {rb['gamma_rf']:.2f} N·m against the prototype's 0.18.",
     f"  The default `auto` takes `{rb['auto']}` there: k {_span(rb['k_auto'])}, λ",
     f"  {_span(rb['lam_auto'])} on this campaign; over 20-seed runs docs/identification-coverage.md (\"`auto`",
     "  takes the output error\"). On the friction-alone row: that truth keeps the model's cable damping",

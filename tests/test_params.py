@@ -98,6 +98,10 @@ def test_cli_model_prints_the_model_at_one_configuration(model, xneck):
     assert len(out["spring_left_m"]) == 3 and np.all(np.linalg.eigvalsh(out["M_kg_m2"]) > 0)
     human = xneck("model", "--alpha", "40", "30", "20")
     assert "-30.32" in human.stdout and "Z = −∂l_c/∂α" in human.stdout
+    # Audit of 2026-11-29: g, a generalised force conjugate to α in rad, is in N·m (its JSON key
+    # g_N_m); N·m/rad is a stiffness's unit (twin.analysis.statics).
+    assert "g, springs + gravity (N·m)" in human.stdout and "N·m/rad" not in human.stdout, human.stdout
+    assert "g_N_m" in out
 
 
 def test_cli_model_rejects_bad_input_without_a_traceback(xneck):

@@ -54,7 +54,7 @@ def test_validate_prints_in_sample_and_out_of_sample_columns(campaigns, tmp_path
         m = re.match(r"(.+?)\s+(-?\d+\.\d{3})\s+(-?\d+\.\d{3})$", line)
         if m:
             rows[m.group(1).strip()] = (float(m.group(2)), float(m.group(3)))
-    for name in ("torque |Γ_m − Γ_rf| (N·m/rad), eqs. 51-53", "tension (linear cables, eq. 42) (N)",
+    for name in ("torque |Γ_m − Γ_rf| (N·m), eqs. 51-53", "tension (linear cables, eq. 42) (N)",
                  "tension (variable cables, eq. 42) (N)"):
         assert name in rows, (name, text)
         a_err, b_err = rows[name]
@@ -167,3 +167,15 @@ def test_a_bad_parameter_override_is_a_clear_error_and_writes_nothing(campaigns,
     assert r.exit_code == 2, r.output
     assert said in r.stderr, r.stderr
     assert not (tmp_path / "c").exists()
+
+
+def test_torques_are_reported_in_newton_metres_not_a_stiffnesss_unit() -> None:
+    """Audit of 2026-11-29: the torque errors |Γ_m − Γ_rf|, |Γ_m − Γ_r| (generalised forces
+    conjugate to α in rad, N·m as twin.model.dynamics states) were labelled N·m/rad, a stiffness's unit."""
+    import inspect
+
+    from twin.identification import report, validation
+
+    names = [name for name, _ in validation._ROWS]
+    assert all("(N·m)" in n and "N·m/rad" not in n for n in names), names
+    assert "N·m/rad" not in inspect.getsource(report), "report.py labels a torque N·m/rad"

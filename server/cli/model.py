@@ -64,7 +64,7 @@ def model(
     typer.echo(f"motor angles θ, rigid cables (rad)  : {fmt(theta)}")
     typer.echo(f"spring lengths left  (mm)           : {fmt(ll, 1e3)}")
     typer.echo(f"spring lengths right (mm)           : {fmt(lr, 1e3)}")
-    typer.echo(f"g, springs + gravity (N·m/rad)      : {fmt(terms.g, 1, 4)}")
+    typer.echo(f"g, springs + gravity (N·m)          : {fmt(terms.g, 1, 4)}")
     typer.echo("Z = −∂l_c/∂α (mm/rad), rows = joints, columns = cables")
     for row in terms.Z:
         typer.echo("    " + fmt(row, 1e3, 2))

@@ -190,7 +190,7 @@ def _chain_terms(d: Design, half_alpha: NDArray[np.float64]) -> _ChainTerms:
 
 
 def potential_gradient(d: Design, half_alpha: ArrayLike) -> NDArray[np.float64]:
-    """∂(U_springs + U_gravity)/∂θ (N·m/rad), eq. (16a)-(16b), shape (..., N).
+    """∂(U_springs + U_gravity)/∂θ (N·m), eq. (16a)-(16b), shape (..., N).
 
     At equilibrium the cables balance it: −Σ f ∂l/∂θ equals this (right-hand side of eq. (21)).
     """

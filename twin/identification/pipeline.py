@@ -566,7 +566,7 @@ class AlphaHat:
 class Validation:
     """Checks of the identified models (Figs. 4-8).
 
-    Torques (N·m/rad) at the identification instants: Γ_m = Z·f, Γ_rf and Γ_r (eqs. 51-53, our
+    Torques (N·m) at the identification instants: Γ_m = Z·f, Γ_rf and Γ_r (eqs. 51-53, our
     sign) and the mean absolute errors |Γ_m − Γ_rf|, |Γ_m − Γ_r|. Tension (N), both sides of
     eq. 42: ``tension_force[model]`` from the forces (RHS) and ``tension_stiffness[model]`` from
     the cable model (LHS, eq. 39 or 54), for "linear" and "variable", with mean absolute errors

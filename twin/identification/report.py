@@ -94,8 +94,8 @@ def tables_text(estimates: Mapping[str, Estimate], proc: Processed, validation: 
         parts.append("kept at base value: " + ", ".join(kept_base))
     if validation is not None:
         parts += ["", "Validation"]
-        parts.append(f"  torque mean error |Γ_m − Γ_rf| {validation.gamma_rf_error:.3f} N·m/rad, "
-                     f"|Γ_m − Γ_r| {validation.gamma_r_error:.3f} N·m/rad (eqs. 51-53)")
+        parts.append(f"  torque mean error |Γ_m − Γ_rf| {validation.gamma_rf_error:.3f} N·m, "
+                     f"|Γ_m − Γ_r| {validation.gamma_r_error:.3f} N·m (eqs. 51-53)")
         for name, err in validation.tension_error.items():
             parts.append(f"  tension mean error ({name} cables, eq. 42 both sides): {err:.2f} N")
         for (meth, model), a in validation.alpha_hat.items():
@@ -139,11 +139,11 @@ def write_figures(validation: Validation, out_dir: str | Path) -> list[Path]:
         ax.plot(t, validation.gamma_m[:, i], "b", lw=0.8, label="Γ_m = Z·f")
         ax.plot(t, validation.gamma_rf[:, i], "g", lw=0.8, label="Γ_rf (friction)")
         ax.plot(t, validation.gamma_r[:, i], "r", lw=0.8, label="Γ_r (no friction)")
-        ax.set_ylabel(f"joint {i + 1} (N·m/rad)")
+        ax.set_ylabel(f"joint {i + 1} (N·m)")
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("t (s)")
     fig.suptitle(f"Fig. 4: torques; mean error {validation.gamma_rf_error:.3f} with friction, "
-                 f"{validation.gamma_r_error:.3f} without (N·m/rad)")
+                 f"{validation.gamma_r_error:.3f} without (N·m)")
     paths.append(_save(fig, out / "fig4_torques.png", plt))
 
     for model, fig_name in (("linear", "fig5_tension_linear.png"), ("variable", "fig7_tension_variable.png")):

@@ -107,8 +107,8 @@ def cross_validate(fit: Identification, data: CampaignData, *, cutoff_hz: float 
 
 
 _ROWS = (
-    ("torque |Γ_m − Γ_rf| (N·m/rad), eqs. 51-53", lambda v: v.gamma_rf_error),
-    ("torque |Γ_m − Γ_r| (N·m/rad), no friction", lambda v: v.gamma_r_error),
+    ("torque |Γ_m − Γ_rf| (N·m), eqs. 51-53", lambda v: v.gamma_rf_error),
+    ("torque |Γ_m − Γ_r| (N·m), no friction", lambda v: v.gamma_r_error),
 )
 
 

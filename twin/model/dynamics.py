@@ -3,7 +3,8 @@ friction, cable tension and the full model with friction and elastic cables.
 
 Frames and units: base frame at the middle of the first base bar, y up (gravity along −y), the
 neck straight up at α = 0; α in rad, θ at the motor shaft in rad, forces f and tensions t in N
-along the cables, generalised forces in N·m/rad.
+along the cables, generalised forces (torques conjugate to angles in rad) in N·m; N·m/rad is a
+stiffness.
 
 M_m and c_m come from the kinetic energy of every bar (two diagonals and the top bar of each
 joint; bars are rigid bodies with a mass and an inertia about their centre of mass):
