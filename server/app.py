@@ -119,7 +119,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),
                                               bridge_estop=lambda: bridge_estop(state.live.values),
-                                              bus_campaign=lambda: bus_campaign(state.live.values))
+                                              bus_campaign=lambda: bus_campaign(state.live))
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))

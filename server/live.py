@@ -344,16 +344,18 @@ def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S
     return {"engaged": engaged, "reason": reason, "drive": state.drive, "source": "bridge"}
 
 
-def bus_campaign(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tuple[str, str] | None:
+def bus_campaign(live: LiveBus, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tuple[str, str] | None:
     """``(campaign id, controller)`` of the campaign a controller on the bus runs now, whoever
-    started it, as its latest ``ControllerStatus`` (arrived within ``max_age_s`` s) says;
-    ``controller`` is the instance the bridge obeys in its fresh ``MotorState`` (``owner``: the one
-    whose commands move the robot; the status does not name its sender), "" if unknown. None when
-    no fresh status names a campaign (a replay's statuses are the caller's to set aside)."""
-    status = values.fresh("status", max_age_s)
+    started it, as its latest live ``ControllerStatus`` (arrived within ``max_age_s`` s, never a
+    replay's: :meth:`LiveBus.live_status`) says; ``controller`` is the instance the bridge obeys in
+    its fresh ``MotorState`` (``owner``: the one whose commands move the robot; the status does not
+    name its sender), "" if unknown. None when no fresh live status names a campaign. A replay's
+    statuses had made the console show a replayed campaign running on the controller that owned
+    the bridge, refuse new campaigns and write so in its record (audit of 2026-11-29)."""
+    status = live.live_status(max_age_s)
     if status is None or not status.campaign_id:
         return None
-    state = values.fresh("state", max_age_s)
+    state = live.values.fresh("state", max_age_s)
     return status.campaign_id, state.owner if state is not None else ""
 
 
@@ -396,11 +398,30 @@ class LiveBus:
             if name not in VIEW_ONLY:
                 self._subscribe(name)
         self.values.on_watched(self._watched)
+        # The controller's own word on what it runs (server.campaigns, unrecorded campaigns): the view's
+        # "status" series shows a replay's statuses too. Bytes kept as they come, decoded when asked.
+        self._live_status: tuple[bytes, float] | None = None
+        self._status_sub = session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status)
         # The bridge's state is taken off its ring every STATE_SAMPLE_PERIOD_S s (one sample, one
         # decode: 10 per second, not the bus's 500), so its age is right whoever reads it and when.
         self._stop_sampling = threading.Event()
         self._sampler = threading.Thread(target=self._sample_state, name="live-state-sampler", daemon=True)
         self._sampler.start()
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        if not replayed(sample) and len(sample.payload) <= bus.max_payload_bytes(bus.ControllerStatus):
+            self._live_status = (sample.payload.to_bytes(), time.monotonic())
+
+    def live_status(self, max_age_s: float) -> bus.ControllerStatus | None:
+        """The newest ``ControllerStatus`` a controller published (not a replay), if it arrived
+        within ``max_age_s`` s and decodes; else None."""
+        latest = self._live_status
+        if latest is None or time.monotonic() - latest[1] > max_age_s:
+            return None
+        try:
+            return bus.decode(bus.ControllerStatus, latest[0])
+        except bus.BusDecodeError:
+            return None
 
     def _sample_state(self) -> None:
         while not self._stop_sampling.wait(STATE_SAMPLE_PERIOD_S):
@@ -430,6 +451,8 @@ class LiveBus:
     def close(self) -> None:
         self._stop_sampling.set()
         self._sampler.join(5.0)
+        with contextlib.suppress(Exception):
+            self._status_sub.undeclare()
         with self._lock:
             self._closed = True
             subs, self._subs = list(self._subs.values()), {}

@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -201,6 +202,42 @@ def test_a_stop_no_controller_answers_is_refused_and_says_what_still_runs(tmp_pa
             assert manager.get(cid).status == "interrupted"
         finally:
             manager.close()
+
+
+def test_a_replays_controller_statuses_never_make_a_campaign_look_run_unrecorded(tmp_path: Path) -> None:
+    """Audit of 2026-11-29 (session 39): a replay of an interrupted campaign republished its
+    controller's statuses, and the console took them for a controller still running it: running on
+    the controller that owned the bridge, new campaigns refused (409), a false note written in its
+    record for good. Replayed statuses are never the controller's word; live ones still are."""
+    from bridge.session import REPLAYED
+
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    cid = "control-replayed"
+    (campaigns / f"{cid}.json").write_text(json.dumps({**record(cid, "interrupted"), "message": "recovered"}))
+    status = bus.encode(bus.ControllerStatus(
+        seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0, saturated=[False] * 4,
+        alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False, campaign_id=cid))
+    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
+                                      drive="active", epoch="e-live", bridge="b-live", owner="ctl-live"))
+
+    def publish(peer, attachment: bytes | None, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            peer.put(bus.MOTOR_STATE, state)
+            peer.put(bus.CONTROLLER_STATUS, status, attachment=attachment)
+            time.sleep(0.01)
+
+    with running_server(tmp_path / "data", viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c, \
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        assert wait_until(lambda: (peer.put(bus.MOTOR_STATE, state), c.get("/api/system/health").json()["bridge"]
+                                   ["owner"] == "ctl-live")[1], 20, 0.1)
+        publish(peer, REPLAYED, 1.5)
+        health, rec = c.get("/api/system/health").json(), c.get(f"/api/campaigns/{cid}").json()
+        assert health["unrecorded_campaign"] is None and health["running_campaign_id"] is None, health
+        assert not rec.get("running_on") and rec["message"] == "recovered", rec
+        publish(peer, None, 0.3)  # the same statuses, live: a controller does run it
+        assert c.get("/api/system/health").json()["unrecorded_campaign"] == {"id": cid, "controller": "ctl-live"}
 
 
 # -- finding 2 ---------------------------------------------------------------------------------------------------
