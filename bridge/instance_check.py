@@ -37,7 +37,7 @@ from collections.abc import Callable
 import zenoh
 
 from bridge import bus
-from bridge.session import payload_of
+from bridge.session import payload_of, replayed
 
 #: s: how long a process watches for another of its name once it has a peer. States and commands
 #: come at 500 Hz and a linked peer's token within 5-15 ms (measured on loopback through a hub,
@@ -71,10 +71,11 @@ class NameTaken(RuntimeError):
 
 
 def check_name_free(session: zenoh.Session, name: str, *, kind: str = "bridge", watch_s: float = WATCH_S,
-                    lease_wait_s: float = LEASE_WAIT_S) -> None:
+                    lease_wait_s: float = LEASE_WAIT_S, stop: threading.Event | None = None) -> None:
     """Return when no other ``kind`` process (``bridge`` or ``controller``) named ``name`` is on the
     bus of ``session``; raise :class:`NameTaken` when one is (module docstring). Blocks at most
-    ``watch_s`` when the name is free and ``watch_s + lease_wait_s`` (s) when a silent token holds it."""
+    ``watch_s`` when the name is free and ``watch_s + lease_wait_s`` (s) when a silent token holds it;
+    returns at once once ``stop`` is set (a SIGTERM during the wait: the caller then stops)."""
     if kind not in EVIDENCE:
         raise ValueError(f"no name check for a {kind!r} (one of {', '.join(EVIDENCE)})")
     if not name or not list(session.info.peers_zid()):
@@ -85,6 +86,8 @@ def check_name_free(session: zenoh.Session, name: str, *, kind: str = "bridge", 
 
     def listener(what: str, test: Callable[[zenoh.Sample], bool]) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
+            if replayed(sample):
+                return  # a replay republishes a recorded process's messages under its name: not that process
             try:
                 if not test(sample):
                     return
@@ -107,7 +110,8 @@ def check_name_free(session: zenoh.Session, name: str, *, kind: str = "bridge", 
                 return
             deadline = time.monotonic() + lease_wait_s
             while token["alive"] and not spoke.wait(0.05) and time.monotonic() < deadline:
-                pass
+                if stop is not None and stop.is_set():
+                    return
             if not token["alive"] and not spoke.is_set():
                 return
         why = heard[0] if heard else (

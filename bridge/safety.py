@@ -31,8 +31,9 @@ Watchdog
     When no valid command arrived for ``command_timeout_s`` (real time only) while at least
     ``command_timeout_states`` states went out unanswered (the node counts them), the forces ramp
     linearly over ``hold_ramp_ticks`` from those applied to the hold forces of the encoder
-    angles, no force faster than ``max_active_step_N`` per tick (a longer ramp from far: from f_max
-    the 5 ticks had taken 18 N a tick; ``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
+    angles, the ramp no faster than ``max_active_step_N`` per tick (a longer ramp from far: from f_max
+    the 5 ticks had taken 18 N a tick; the damping below adds at most ``max_force_step_N``;
+    ``drive = "hold"``, ``hold_reason`` says why). The hold forces are computed off the
     tick (the node's :class:`bridge.node.HoldWorker`) and handed in with the tick's facts when
     fresh; without them the hold keeps the applied forces (within [f_min, f_max]) and moves to
     the hold forces once they come, at most ``max_force_step_N`` per tick. The next valid command

@@ -21,7 +21,7 @@ from test_up_child_death import ENV, PY
 
 from bridge import bus
 from bridge.instance_check import NameTaken, check_name_free
-from bridge.session import free_tcp_port, liveliness_token, open_session
+from bridge.session import REPLAYED, free_tcp_port, liveliness_token, open_session
 
 
 def _state(name: str, seq: int) -> bytes:
@@ -91,6 +91,46 @@ def test_a_silent_token_is_waited_for_then_refused_and_a_token_that_goes_frees_t
         check_name_free(mine, "dup", lease_wait_s=30)  # returns once the token is gone
     finally:
         timer.join(5)
+
+
+def test_a_replay_of_the_names_states_is_no_process_of_that_name(linked) -> None:
+    """Audit of 2026-11-29 (session 39): a console replaying a campaign republishes its bridge's
+    states under the bridge's name; a bridge of that name started meanwhile (the board's, after the
+    operator looked at what happened) was refused as if a second board were on the bus."""
+    other, mine = linked
+    stop = threading.Event()
+
+    def replay() -> None:
+        seq = 0
+        while not stop.is_set():
+            other.put(bus.MOTOR_STATE, _state("dup", seq), attachment=REPLAYED)
+            other.put(bus.health_key("bridge", "dup"), b"{}", attachment=REPLAYED)
+            seq += 1
+            time.sleep(0.002)
+
+    thread = threading.Thread(target=replay, daemon=True)
+    thread.start()
+    try:
+        check_name_free(mine, "dup", lease_wait_s=30)
+    finally:
+        stop.set()
+        thread.join(5)
+
+
+def test_a_signal_ends_the_wait_for_a_silent_token(linked) -> None:
+    """Audit of 2026-11-29 (session 39): SIGTERM or Ctrl-C during the lease wait was ignored for up to
+    12 s, beyond a supervisor's grace. The stop event (bridge.runtime.stop_on_signals) ends it."""
+    other, mine = linked
+    token = liveliness_token(other, "bridge", "dup")
+    stop = threading.Event()
+    timer = threading.Timer(0.5, stop.set)
+    timer.start()
+    try:
+        check_name_free(mine, "dup", lease_wait_s=30, stop=stop)  # returns: the caller sees stop and stops
+        assert stop.is_set()  # returned on the stop: the lease wait's end would have raised NameTaken
+    finally:
+        timer.join(5)
+        token.undeclare()
 
 
 @pytest.mark.e2e

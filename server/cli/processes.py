@@ -217,8 +217,8 @@ def bridge(
         prefer_plain_python()
     from bridge.driver import DriverError
     from bridge.instance_check import NameTaken, check_name_free
-    from bridge.node import BridgeConfig, run_lockstep, run_realtime
-    from bridge.runtime import SystemdNotify, raise_priority, setup_logging, stop_on_signals
+    from bridge.node import BridgeConfig
+    from bridge.runtime import setup_logging, stop_on_signals
 
     setup_logging(verbose)
     if loop_stall is None:
@@ -250,33 +250,44 @@ def bridge(
         # After configure: importing rcpy installs its own SIGINT/SIGTERM handlers, ours must win.
         stop = stop_on_signals()
         with open_bus(listen, connect) as session:
-            try:
-                check_name_free(session, config.instance)  # before our own token (bridge.instance_check)
-                node = bridge_node(session, drv, params, config)
+            try:  # before our own token (bridge.instance_check); a signal ends its wait
+                check_name_free(session, config.instance, stop=stop)
+                node = None if stop.is_set() else bridge_node(session, drv, params, config)
             except NameTaken as exc:
                 raise fail(f"bridge not started, drives left off: {exc}") from None
             except ValueError as exc:
                 raise fail(str(exc)) from None
-            mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz, " + (
-                f"loop watchdog {loop_stall:g} s" if loop_stall else "no loop watchdog")
-            log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
-                     command_timeout * 1e3)
-            if not lockstep:
-                raise_priority()
-            try:
-                ticks = run_lockstep(node, stop) if lockstep else run_realtime(node, stop, SystemdNotify.from_environ())
-            finally:
-                node.shutdown()
-            stats = node.commands.stats
-            log.info("bridge %s stopped after %d ticks, %s; commands accepted %d, rejected %d, "
-                     "clamped %d, holds %d, overruns %d", node.instance, ticks,
-                     "DRIVES MAY BE ON" if drv.close_error else "drives disabled", stats.accepted, stats.rejected,
-                     node.clamped, node.holds, node.overruns)
+            if node is None:
+                log.info("bridge %s not started: stopped by a signal during its name check", config.instance)
+            else:
+                _run_bridge(node, drv, stop, lockstep, loop_stall, command_timeout)
     finally:
         drv.close()
     if drv.close_error:
         # Not a clean exit: a supervisor (xneck up --robot) runs --drives-off after a non-zero one only.
         raise fail(f"DRIVES MAY BE ON: the bridge could not disable them on exit ({drv.close_error})")
+
+
+def _run_bridge(node, drv, stop, lockstep: bool, loop_stall: float, command_timeout: float) -> None:
+    """``xneck bridge``'s loop once its node is up, to the stop, and its closing line."""
+    from bridge.node import run_lockstep, run_realtime
+    from bridge.runtime import SystemdNotify, raise_priority
+
+    mode = "lockstep" if lockstep else f"real time, {1 / drv.dt:.0f} Hz, " + (
+        f"loop watchdog {loop_stall:g} s" if loop_stall else "no loop watchdog")
+    log.info("bridge %s up: driver %s (%s), command timeout %.0f ms", node.instance, drv.name, mode,
+             command_timeout * 1e3)
+    if not lockstep:
+        raise_priority()
+    try:
+        ticks = run_lockstep(node, stop) if lockstep else run_realtime(node, stop, SystemdNotify.from_environ())
+    finally:
+        node.shutdown()
+    stats = node.commands.stats
+    log.info("bridge %s stopped after %d ticks, %s; commands accepted %d, rejected %d, "
+             "clamped %d, holds %d, overruns %d", node.instance, ticks,
+             "DRIVES MAY BE ON" if drv.close_error else "drives disabled", stats.accepted, stats.rejected,
+             node.clamped, node.holds, node.overruns)
 
 
 def twin(
@@ -353,10 +364,13 @@ def controller(
     cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
                                   idle_timeout_s=idle_timeout, exit_when_done=traj is not None, instance=instance)
     with open_bus(listen, connect) as session:
-        try:
-            check_name_free(session, instance, kind="controller")  # before its tokens (bridge.instance_check)
+        try:  # before its tokens (bridge.instance_check); a signal ends its wait
+            check_name_free(session, instance, kind="controller", stop=stop)
         except NameTaken as exc:
             raise fail(f"controller not started: {exc}") from None
+        if stop.is_set():
+            logging.getLogger("xneck.controller").info("controller %s not started: stopped by a signal", instance)
+            return
         node = ControllerNode(session, params, config, traj, cfg)
         if not lockstep:
             raise_priority()
