@@ -60,7 +60,7 @@ from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
 from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
-from server.quality import THRESHOLDS, CampaignMonitor, assess, camera_note, thresholds_dict
+from server.quality import THRESHOLDS, TWIN_CAMERA, CampaignMonitor, assess, camera_note, thresholds_dict
 from server.service_choice import alive_services, choose_service
 from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS, ALPHA_IP_SOURCES
@@ -271,7 +271,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
     monitor = CampaignMonitor(session)
     if spec.recorded_camera is not None:  # its camera, whichever α_IP comes first (a stray camera's)
         # the camera process it spawns, not another of its source on the hub (server.quality, "One camera")
-        spawned = f"camera-{campaign_id}" if spec.spawns_camera else ""
+        # or, when its own twin publishes the α_IP (rendered in lockstep, or noise), the twin's
+        spawned = f"camera-{campaign_id}" if spec.spawns_camera else TWIN_CAMERA if spec.twin and not spec.service \
+            and spec.camera_source is None else ""
         monitor.expect_alpha_ip_source(spec.recorded_camera, spec.camera_instance or spawned)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}

@@ -134,11 +134,15 @@ class CampaignMonitor:
         self._alpha_ip_source: str | None = None  # the camera recorded (None until known: module docstring)
         self._alpha_ip_camera = ""  # the camera process recorded ('' until one named itself: module docstring)
         self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source[@camera]
+        self._camera_expected = False  # the camera recorded was named by the runner, not adopted
+        self._cameras_alive: set[str] = set()  # camera processes whose liveliness token is up
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
                       session.declare_subscriber(bus.TWIN_TRUTH, self._on_run_message),
-                      session.declare_subscriber(bus.CAMERA_ALPHA, self._on_run_message)]
+                      session.declare_subscriber(bus.CAMERA_ALPHA, self._on_run_message),
+                      session.liveliness().declare_subscriber(f"{bus.PREFIX}/alive/camera/*", self._on_camera_token,
+                                                              history=True)]
 
     # -- whose messages ------------------------------------------------------------------------
     def follow(self, controller: str) -> None:
@@ -152,6 +156,20 @@ class CampaignMonitor:
         (module docstring, "One camera")."""
         with self._lock:
             self._alpha_ip_source, self._alpha_ip_camera = source, camera
+            self._camera_expected = bool(camera)
+
+    def _on_camera_token(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: a camera process appeared or went (its instance is the key's last chunk).
+        try:
+            _kind, name = bus.parse_liveliness_key(str(sample.key_expr))
+        except ValueError:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                if len(self._cameras_alive) < 64:  # a flood of forged tokens stays bounded
+                    self._cameras_alive.add(name)
+            else:
+                self._cameras_alive.discard(name)
 
     def owners(self, within_s: float = 0.5) -> set[str]:
         """The controllers the bridges on the bus obeyed within the last ``within_s`` s."""
@@ -172,7 +190,8 @@ class CampaignMonitor:
         if not self._of_run(isinstance(msg, bus.Truth), run):
             return False  # counted by the subscriber (_on_run_message)
         if isinstance(msg, bus.CameraAlpha):
-            return self._one_camera(msg.source, camera)
+            # the campaign's own twin's α_IP (rendered or noise, in its driver) carries its run
+            return self._one_camera(msg.source, camera or (TWIN_CAMERA if run else ""))
         return self._camera_frame(msg.source, camera) if isinstance(msg, bus.CameraFrame) else True
 
     #: distinct foreign α_IP sources counted by name (a flood of forged names stays bounded), and
@@ -188,7 +207,7 @@ class CampaignMonitor:
             if source == self._alpha_ip_source:
                 if not camera:
                     return True  # no name to tell it by: its source is the campaign's
-                if not self._alpha_ip_camera:
+                if not self._alpha_ip_camera or self._handed_over(camera):
                     self._alpha_ip_camera = camera
                 if camera == self._alpha_ip_camera:
                     return True
@@ -198,6 +217,14 @@ class CampaignMonitor:
                 name = "(others)"
             self.foreign_alpha_ip[name] = self.foreign_alpha_ip.get(name, 0) + 1
             return False
+
+    def _handed_over(self, camera: str) -> bool:
+        """(Under the lock.) Whether the camera adopted (the first seen, not one the runner named)
+        is gone and ``camera``, alive, takes its place: a camera process restarted mid-campaign
+        under a new name (its default name is random) had all its later α_IP set aside (audit of
+        2026-11-29)."""
+        return (not self._camera_expected and self._alpha_ip_camera not in ("", TWIN_CAMERA)
+                and self._alpha_ip_camera not in self._cameras_alive and camera in self._cameras_alive)
 
     def _camera_frame(self, source: str, camera: str) -> bool:
         """Whether a frame of ``source`` from the camera process ``camera`` may be the recorded
@@ -395,6 +422,13 @@ def camera_note(counters: dict[str, Any]) -> str:
             f"message(s) of another camera on the bus set aside: {others}")
 
 
+#: The camera name of α_IP that carries a bridge run's attachment instead of a camera's: the
+#: campaign's twin's own camera (rendered in its driver, or its white noise). A runner whose twin
+#: renders its camera expects it (server.campaign_runner): a stray camera process of the same source
+#: was adopted first and both recorded, interleaved (audit of 2026-11-29).
+TWIN_CAMERA = "twin"
+
+
 def camera_name(source: str, camera: str) -> str:
     """A camera as the campaign's quality names it: ``<source>@<camera>``, or its source if it names none."""
     return f"{source}@{camera}" if camera else source
@@ -404,5 +438,5 @@ def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:
     return asdict(limits)
 
 
-__all__ = ["THRESHOLDS", "CampaignMonitor", "QualityThresholds", "assess", "camera_name", "camera_note", "drive_estop",
+__all__ = ["THRESHOLDS", "TWIN_CAMERA", "CampaignMonitor", "QualityThresholds", "assess", "camera_name", "camera_note", "drive_estop",
            "thresholds_dict"]

@@ -85,6 +85,56 @@ def test_the_camera_the_campaign_started_is_recorded_whichever_instance_came_fir
     assert seqs == [*range(101, 111), *range(201, 206)], seqs
 
 
+def test_a_twin_rendering_its_own_camera_is_recorded_not_a_stray_camera_of_its_source(sessions) -> None:
+    """Audit of 2026-11-29 (of this change): a lockstep twin renders its α_IP in its driver (the
+    samples carry its run, not a camera's name); a stray ``xneck camera --source twin`` on the hub
+    was adopted as the first *named* camera, and both were recorded, interleaved. The runner now
+    expects the twin's own camera (``TWIN_CAMERA``)."""
+    from server.quality import TWIN_CAMERA
+
+    _, b = sessions
+    monitor = CampaignMonitor(b)
+    try:
+        monitor.expect_alpha_ip_source("twin-render", TWIN_CAMERA)
+        alpha = bus.decode(bus.CameraAlpha, _alpha(1))
+        assert not monitor.keep(bus.CAMERA_ALPHA, alpha, camera="stray")  # first, and still not the campaign's
+        assert monitor.keep(bus.CAMERA_ALPHA, alpha, run="run-1")
+        assert not monitor.keep(bus.CAMERA_ALPHA, alpha, camera="stray")
+        counters = monitor.counters()
+        assert counters["alpha_ip_camera"] == TWIN_CAMERA and counters["foreign_alpha_ip"] == {"twin-render@stray": 2}
+    finally:
+        monitor.close()
+
+
+def test_an_adopted_camera_restarted_under_a_new_name_goes_on_being_recorded(sessions) -> None:
+    """Audit of 2026-11-29 (of this change): a camera process's default name is random, so one
+    restarted mid-campaign came back as another camera and all its later α_IP were set aside. The
+    camera adopted (none named by the runner) hands over to a live one once its own token is gone;
+    while it lives, a second camera is still set aside."""
+    from bridge.session import liveliness_token
+
+    a, b = sessions
+    monitor = CampaignMonitor(b)
+    alpha = bus.decode(bus.CameraAlpha, _alpha(1, "usb:0"))
+    old = liveliness_token(a, "camera", "cam-old")
+    new = None
+    try:
+        assert wait_until(lambda: "cam-old" in monitor._cameras_alive, 10, 0.02)
+        assert monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-old")
+        new = liveliness_token(a, "camera", "cam-new")
+        assert wait_until(lambda: "cam-new" in monitor._cameras_alive, 10, 0.02)
+        assert not monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-new")  # two alive: the first stays
+        old.undeclare()
+        assert wait_until(lambda: "cam-old" not in monitor._cameras_alive, 10, 0.02)
+        assert monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-new")  # the restarted camera
+        assert not monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-old")  # a late sample of the old one
+        assert monitor.counters()["alpha_ip_camera"] == "cam-new"
+    finally:
+        monitor.close()
+        if new is not None:
+            new.undeclare()
+
+
 def test_a_camera_process_names_itself_on_its_alpha_ip_and_frames(params) -> None:
     """What `xneck camera` publishes carries ``xneck-camera:<instance>``; a bridge's driver's α_IP
     keeps its run (bridge.session.run_of), not a camera name."""
