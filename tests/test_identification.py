@@ -292,6 +292,13 @@ def test_a_record_with_a_gap_names_the_span_to_fit_and_xneck_identify_window_fit
     for bad in ("4", "a:b", "5:4", "nan:5"):
         r = xneck("identify", str(path), "--window", bad, "--out", str(tmp_path / "c"))
         assert r.returncode == 2 and "--window" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    # the gappy record as --validate's: refused before A's fit, the --window hint not offered for it
+    # (following it windowed A and refused B again: audit of 2026-11-29)
+    whole = _mcap_of(d, tmp_path / "whole.mcap")
+    r = xneck("identify", str(whole), "--no-alpha-hat", "--out", str(tmp_path / "d"), "--validate", str(path))
+    assert r.returncode == 2 and "1 gap(s) in the record" in r.stderr, r.stderr
+    assert "--window applies to the identified campaign, not to --validate's" in r.stderr
+    assert "identify it alone" not in r.stderr and not (tmp_path / "d").exists()
 
 
 def test_motors_that_never_move_are_rank_deficient(params):

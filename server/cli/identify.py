@@ -149,13 +149,28 @@ def _validation_campaign(path: Path, alpha_ip_source: str | None):
     """``--validate B`` read before anything is fitted: a bad B fails fast with its reason."""
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import IdentificationError
+    from twin.identification.processing import check_gaps
     from twin.identification.validation import load_validation_campaign
 
     try:
-        return load_validation_campaign(path, recorded_excitation, alpha_ip_source=alpha_ip_source)
+        data = load_validation_campaign(path, recorded_excitation, alpha_ip_source=alpha_ip_source)
     except IdentificationError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
+    try:
+        check_gaps(data)  # here, before A's fit and files: it was found after them (audit of 2026-11-29)
+    except IdentificationError as exc:
+        typer.echo(f"error: validation campaign {data.campaign}: {_not_for_validation(str(exc))}", err=True)
+        raise typer.Exit(2) from None
+    return data
+
+
+def _not_for_validation(message: str) -> str:
+    """A pipeline error about the --validate campaign, whose hint to fit a span alone (--window) is
+    for the identified campaign: following it windowed A and refused B again."""
+    return re.sub(r"identify it alone with --window \S+",
+                  "--window applies to the identified campaign, not to --validate's: validate on another campaign",
+                  message)
 
 
 def _cross_validate(ident, data_b, campaign_b: Path, out_dir: Path, *, alpha_hat: bool) -> tuple[dict, str]:
@@ -168,7 +183,7 @@ def _cross_validate(ident, data_b, campaign_b: Path, out_dir: Path, *, alpha_hat
     try:
         cv = cross_validate(ident, data_b, alpha_hat=alpha_hat)
     except IdentificationError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        typer.echo(f"error: {_not_for_validation(str(exc))}", err=True)
         raise typer.Exit(2) from None
     doc = summary(cv)
     figures = write_figures(cv.validation, out_dir / "validation")

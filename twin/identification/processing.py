@@ -186,7 +186,7 @@ def longest_common_span(data: CampaignData, max_gap: float = 5.0) -> tuple[float
     return best
 
 
-def _check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
+def check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
     """Refuse a record with gaps (lost data, not jitter), saying which span could be fitted alone."""
     for what, t in (("encoder/force record", data.t_s), ("camera record", data.t_ip_s)):
         dt = float(np.median(np.diff(t)))
@@ -344,7 +344,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
             f"{params.name!r} has {m.n_cables} cables and {m.n_joints} joints"
         )
     _check_plausible(data, params)
-    _check_gaps(data)
+    check_gaps(data)
     t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
     rate = 1.0 / dt
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
