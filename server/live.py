@@ -399,8 +399,9 @@ class LiveBus:
                 self._subscribe(name)
         self.values.on_watched(self._watched)
         # The controller's own word on what it runs (server.campaigns, unrecorded campaigns): the view's
-        # "status" series shows a replay's statuses too. Bytes kept as they come, decoded when asked.
-        self._live_status: tuple[bytes, float] | None = None
+        # "status" series shows a replay's statuses too. The newest kept as it comes (500 a second),
+        # copied and decoded only when asked.
+        self._live_status: tuple[zenoh.Sample, float] | None = None
         self._status_sub = session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status)
         # The bridge's state is taken off its ring every STATE_SAMPLE_PERIOD_S s (one sample, one
         # decode: 10 per second, not the bus's 500), so its age is right whoever reads it and when.
@@ -410,7 +411,7 @@ class LiveBus:
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         if not replayed(sample) and len(sample.payload) <= bus.max_payload_bytes(bus.ControllerStatus):
-            self._live_status = (sample.payload.to_bytes(), time.monotonic())
+            self._live_status = (sample, time.monotonic())
 
     def live_status(self, max_age_s: float) -> bus.ControllerStatus | None:
         """The newest ``ControllerStatus`` a controller published (not a replay), if it arrived
@@ -419,7 +420,7 @@ class LiveBus:
         if latest is None or time.monotonic() - latest[1] > max_age_s:
             return None
         try:
-            return bus.decode(bus.ControllerStatus, latest[0])
+            return bus.decode(bus.ControllerStatus, latest[0].payload.to_bytes())
         except bus.BusDecodeError:
             return None
 
