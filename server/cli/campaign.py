@@ -218,4 +218,5 @@ def campaign_identification(
         typer.echo(f"campaign {result.campaign_id} recorded in {result.path}; identifying…")
     identify(result.path, json_out=as_json, out=None, params_file=params_file, overrides=overrides, cutoff_hz=None,
              threshold=None, no_alpha_hat=False, validate=None, estimator=estimator, sigma="hac", no_bounds=False,
-             creep_time_s=creep_time_s, alpha_ip_source=None)  # the campaign recorded one camera (server.quality)
+             creep_time_s=creep_time_s, alpha_ip_source=None,  # the campaign recorded one camera (server.quality)
+             window=None)
