@@ -136,6 +136,7 @@ class CampaignMonitor:
         self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source[@camera]
         self._camera_expected = False  # the camera recorded was named by the runner, not adopted
         self._cameras_alive: set[str] = set()  # camera processes whose liveliness token is up
+        self._cameras_gone: set[str] = set()  # ... whose token went (seen up, then down)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
@@ -168,8 +169,10 @@ class CampaignMonitor:
             if sample.kind == zenoh.SampleKind.PUT:
                 if len(self._cameras_alive) < 64:  # a flood of forged tokens stays bounded
                     self._cameras_alive.add(name)
-            else:
+                self._cameras_gone.discard(name)
+            elif name in self._cameras_alive:
                 self._cameras_alive.discard(name)
+                self._cameras_gone.add(name)
 
     def owners(self, within_s: float = 0.5) -> set[str]:
         """The controllers the bridges on the bus obeyed within the last ``within_s`` s."""
@@ -223,8 +226,9 @@ class CampaignMonitor:
         is gone and ``camera``, alive, takes its place: a camera process restarted mid-campaign
         under a new name (its default name is random) had all its later α_IP set aside (audit of
         2026-11-29)."""
-        return (not self._camera_expected and self._alpha_ip_camera not in ("", TWIN_CAMERA)
-                and self._alpha_ip_camera not in self._cameras_alive and camera in self._cameras_alive)
+        # gone, not merely unseen: a token the subscriber has not yet heard of is no camera gone
+        return (not self._camera_expected and self._alpha_ip_camera in self._cameras_gone
+                and camera in self._cameras_alive)
 
     def _camera_frame(self, source: str, camera: str) -> bool:
         """Whether a frame of ``source`` from the camera process ``camera`` may be the recorded

@@ -129,6 +129,14 @@ def test_an_adopted_camera_restarted_under_a_new_name_goes_on_being_recorded(ses
         assert monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-new")  # the restarted camera
         assert not monitor.keep(bus.CAMERA_ALPHA, alpha, camera="cam-old")  # a late sample of the old one
         assert monitor.counters()["alpha_ip_camera"] == "cam-new"
+        # a camera whose token was never seen is not taken for gone: no handover to another then
+        unseen = CampaignMonitor(b)
+        try:
+            assert unseen.keep(bus.CAMERA_ALPHA, alpha, camera="cam-unseen")
+            assert wait_until(lambda: "cam-new" in unseen._cameras_alive, 10, 0.02)
+            assert not unseen.keep(bus.CAMERA_ALPHA, alpha, camera="cam-new")
+        finally:
+            unseen.close()
     finally:
         monitor.close()
         if new is not None:
