@@ -11,7 +11,7 @@ import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 TOKEN_FILE = "token"
@@ -59,6 +59,15 @@ class Settings(BaseSettings):
                                        "to read live data besides the console's own.")
     workspace_grid: int = Field(31, ge=5, le=61, description="Points per α axis of the 3-X workspace maps "
                                 "(odd, over ±90°); the cost grows with its cube (31: ≈2 s on 2 cores).")
+
+    @field_validator("twin_camera")
+    @classmethod
+    def _camera_with_its_source(cls, camera: str | None, info: ValidationInfo) -> str | None:
+        # the camera process named is of the source --twin-alpha-ip camera records: alone it was ignored
+        if camera is not None and info.data.get("twin_alpha_ip") != "camera":
+            raise ValueError("names the stack's camera process, whose α_IP the campaigns record only with "
+                             "--twin-alpha-ip camera (xneck up --alpha-ip camera sets both)")
+        return camera
 
     @field_validator("twin_truth")
     @classmethod

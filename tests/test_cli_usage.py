@@ -523,6 +523,9 @@ def test_up_refuses_files_that_do_not_load_before_anything_starts(xneck, tmp_pat
     (["--connect", "bogus"], "connect endpoint 'bogus'"),
     (["--hub", "tcp/127.0.0.1:99999"], "at most 65535"),
     (["--host", "no-such-host.invalid"], "--host no-such-host.invalid: cannot listen there"),
+    # named without its source, the camera process was silently not the campaigns' (audit of 2026-11-29)
+    (["--twin-camera", "cam-x"], "--twin-camera: Value error, names the stack's camera process"),
+    (["--twin-camera", "cam-x", "--twin-alpha-ip", "noise"], "only with --twin-alpha-ip camera"),
 ])
 def test_server_refuses_an_unusable_endpoint_or_host_in_one_line(xneck, tmp_path, argv, said):
     """Each was a traceback from the app's startup, after the URL was printed."""
