@@ -385,7 +385,8 @@ def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
 
 class LiveBus:
     """Subscribes to the live series on a session and keeps only the newest message of each, in a
-    one-slot ring per series read on demand; the ``VIEW_ONLY`` ones while a viewer watches
+    one-slot ring per series read on demand (the bridge's state: the newest live one of a ring of
+    :data:`BY_RUN_RING_SAMPLES`, behind a replay's); the ``VIEW_ONLY`` ones while a viewer watches
     (module docstring)."""
 
     def __init__(self, session: zenoh.Session) -> None:
@@ -429,11 +430,11 @@ class LiveBus:
             self.values.latest_valid("state")
 
     def _subscribe(self, name: str) -> None:
-        ring = BY_RUN_RING_SAMPLES if name in BY_RUN else 1
+        ring = BY_RUN_RING_SAMPLES if name in BY_RUN or name == "state" else 1
         sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(ring))
         self._subs[name] = sub
         if name == "state":  # the bridge's word (e-stop, drives, freshness): never a replayed state
-            self.values.add_source(name, lambda: _live_only(sub.try_recv()))
+            self.values.add_source(name, lambda: _newest_live(sub.try_recv, ring))
         else:
             self.values.add_source(name, sub.try_recv, by_run=name in BY_RUN)
 
@@ -462,9 +463,19 @@ class LiveBus:
                 sub.undeclare()
 
 
-def _live_only(sample: Any) -> Any:
-    """``sample`` unless a replay republished it (bridge.session.REPLAYED): None then, as if none came."""
-    return None if sample is not None and replayed(sample) else sample
+def _newest_live(try_recv: Callable[[], Any], limit: int) -> Any:
+    """The newest sample of a ring (at most ``limit`` read) that no replay republished
+    (bridge.session.REPLAYED); None if none is. A ring of one had lost the live state whenever a
+    replayed one was newest when it was read, and a run of such reads made the bridge look silent
+    (the health fell back to the console's e-stop: fresh-clone CI of session 39)."""
+    newest = None
+    for _ in range(limit):
+        sample = try_recv()
+        if sample is None:
+            break
+        if not replayed(sample):
+            newest = sample
+    return newest
 
 
 @dataclass(eq=False)

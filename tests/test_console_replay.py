@@ -193,3 +193,30 @@ def test_a_replay_never_stands_for_the_bridge_whose_estop_is_engaged(console) ->
         thread.join(5)
         session.close()
         assert wait_until(lambda: _idle(a), 20)
+
+
+def test_the_bridges_state_is_its_newest_live_one_even_behind_replayed_ones(sessions) -> None:
+    """Fresh-clone CI of session 39: during a replay, /api/system/health once showed the console's
+    own e-stop (the bridge's word lost): the live state's ring held one sample, and whenever a
+    replayed state was the newest when it was read, no live state was taken; a run of such reads
+    made the bridge's state look stale. The newest live state is taken from behind replayed ones."""
+    from bridge.session import REPLAYED
+    from server.live import LiveBus
+
+    a, b = sessions
+    live = LiveBus(b)
+    try:
+        def state(k: int, epoch: str) -> bytes:
+            return bus.encode(bus.MotorState(seq=k, stamp_s=float(k), theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4,
+                                             drive="disabled", epoch=epoch, bridge=epoch, estop_engaged=epoch == "live"))
+
+        for k in range(1, 20):  # every read finds replayed states newest, the live one just behind
+            a.put(bus.MOTOR_STATE, state(k, "live"))
+            for j in range(3):
+                a.put(bus.MOTOR_STATE, state(100 * k + j, "replay"), attachment=REPLAYED)
+            time.sleep(0.02)
+        assert wait_until(lambda: (live.values.latest_valid("state") or (0, None))[1] is not None, 5, 0.05)
+        got = live.values.latest_valid("state")
+        assert got is not None and got[1].epoch == "live" and got[1].seq >= 10, got
+    finally:
+        live.close()
