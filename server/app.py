@@ -44,7 +44,7 @@ from server.campaigns import CampaignManager, NotFound, StorageError
 from server.console import include_console_routes
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
-from server.live import Broadcaster, LiveBus, bridge_estop, bus_campaign, receiver_checks
+from server.live import Broadcaster, LiveBus, bridge_estop, bus_campaign, bus_settled, receiver_checks
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.routes_jog import request_jog, stop_jog
@@ -119,7 +119,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),
                                               bridge_estop=lambda: bridge_estop(state.live.values),
-                                              bus_campaign=lambda: bus_campaign(state.live))
+                                              bus_campaign=lambda: bus_campaign(state.live),
+                                              bus_heard=lambda: bus_settled(state.live))
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))

@@ -87,6 +87,10 @@ ABORT_WAIT_S = 10.0  # s :meth:`CampaignManager.abort` waits for the stopped cam
 # STOP_RESEND_S (the bus may drop one; a second stop of the same campaign changes nothing).
 STOP_ANSWER_S = 3.0
 STOP_RESEND_S = 0.5
+#: s from the console's start within which a campaign recovered ``interrupted`` may still turn out
+#: to run on a controller that has not linked back yet (Zenoh retries a lost link every 1-4 s):
+#: a stop of it, or a new campaign, waits until a live controller status was heard or this passed.
+BUS_SETTLE_S = 8.0
 
 
 class Busy(Exception):
@@ -146,7 +150,8 @@ class CampaignManager:
                  service_alive: Callable[[], bool] = lambda: False,
                  min_free_bytes: int = DEFAULT_MIN_FREE_BYTES,
                  bridge_estop: Callable[[], dict[str, object] | None] = lambda: None,
-                 bus_campaign: Callable[[], tuple[str, str] | None] = lambda: None) -> None:
+                 bus_campaign: Callable[[], tuple[str, str] | None] = lambda: None,
+                 bus_heard: Callable[[], bool] = lambda: True) -> None:
         self.index = CampaignIndex(Path(data_dir) / "campaigns")
         self.session = session
         self.hub = hub
@@ -181,6 +186,11 @@ class CampaignManager:
         self._bridge_estop = bridge_estop  # server.live.bridge_estop: the bridge's latched e-stop, if fresh
         self._bus_campaign = bus_campaign  # server.live.bus_campaign: (id, controller) a controller runs now
         self._noted_elsewhere: set[str] = set()  # ids whose record says already that a controller went on with them
+        # server.live.LiveBus.heard_status: a live controller status arrived since the start, so
+        # :meth:`unrecorded` knows whether a controller runs a campaign recovered at this start
+        self._bus_heard = bus_heard
+        self._started_s = time.monotonic()
+        self._recovered_now: set[str] = set()  # ids recover_all marked interrupted at this start
 
     # -- start-up ---------------------------------------------------------------------------
     def recover_all(self) -> list[str]:
@@ -208,7 +218,23 @@ class CampaignManager:
                 self._save_quietly(rec)
                 interrupted.append(rec.id)
         self.release_reserve(keep=True)
+        self._recovered_now.update(interrupted)
         return interrupted
+
+    def _await_bus(self) -> None:
+        """Wait, after a start that recovered campaigns a crash interrupted, until a live controller
+        status was heard or :data:`BUS_SETTLE_S` s passed since the start: before, a controller still
+        running one of them may not have linked back yet, and :meth:`unrecorded` would say that
+        none runs (a stop answered 200 doing nothing while the neck moved on; session 39)."""
+        if not self._recovered_now:
+            return
+        deadline = self._started_s + BUS_SETTLE_S
+        if not self._bus_heard() and time.monotonic() < deadline:
+            log.info("waiting up to %.1f s for a controller on the bus: it may still run %s", deadline - time.monotonic(),
+                     ", ".join(sorted(self._recovered_now)))
+        while not self._bus_heard() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self._recovered_now.clear()  # heard, or waited for long enough: no later call waits
 
     def _recover_one(self, mcap: Path) -> bool:
         cid = mcap.stem
@@ -432,6 +458,7 @@ class CampaignManager:
         checked by :func:`server.campaign_request.prepare`). Raises :class:`Busy` or
         :class:`StorageError`."""
         spec = prepared.spec
+        self._await_bus()
         elsewhere = self.unrecorded()  # outside the lock: it may write the record
         with self._lock:
             busy = self._holder()
@@ -610,7 +637,10 @@ class CampaignManager:
     def stop(self, campaign_id: str) -> CampaignRecord:
         """Stop ``campaign_id``: this console's running campaign or replay, or a campaign of its
         that a controller runs unrecorded (:meth:`unrecorded`; raises :class:`NotStopped` if that
-        controller does not answer). A campaign that runs nowhere is left as it is."""
+        controller does not answer). A campaign that runs nowhere is left as it is. Right after a
+        start that recovered it, this first waits for the bus (:meth:`_await_bus`)."""
+        if campaign_id in self._recovered_now:
+            self._await_bus()
         rec = self.get(campaign_id)
         with self._lock:
             starting = self._replay_starting

@@ -359,6 +359,17 @@ def bus_campaign(live: LiveBus, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tu
     return status.campaign_id, state.owner if state is not None else ""
 
 
+def bus_settled(live: LiveBus) -> bool:
+    """Whether this console's bus can tell if a controller runs a campaign (:func:`bus_campaign`):
+    a controller's live status arrived since the start, or the bridge's fresh state obeys no
+    controller (``owner`` ""), so that none drives one. Before, a controller that has not linked
+    back to a restarted console looks like none (:meth:`server.campaigns.CampaignManager._await_bus`)."""
+    if live.heard_status():
+        return True
+    state = live.values.fresh("state", BRIDGE_STATE_MAX_AGE_S)
+    return state is not None and not state.owner
+
+
 def bridge_status(values: LatestValues) -> dict[str, Any]:
     """The bridge as its latest valid ``MotorState`` shows it, for ``/api/system/health``:
     ``state_age_s``, seconds since that state arrived (monotonic clock, to within
@@ -413,6 +424,11 @@ class LiveBus:
     def _on_status(self, sample: zenoh.Sample) -> None:
         if not replayed(sample) and len(sample.payload) <= bus.max_payload_bytes(bus.ControllerStatus):
             self._live_status = (sample, time.monotonic())
+
+    def heard_status(self) -> bool:
+        """Whether a controller's live ``ControllerStatus`` (not a replay's) arrived since this
+        console started: its bus has linked to a controller."""
+        return self._live_status is not None
 
     def live_status(self, max_age_s: float) -> bus.ControllerStatus | None:
         """The newest ``ControllerStatus`` a controller published (not a replay), if it arrived

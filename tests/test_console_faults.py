@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -238,6 +239,80 @@ def test_a_replays_controller_statuses_never_make_a_campaign_look_run_unrecorded
         assert not rec.get("running_on") and rec["message"] == "recovered", rec
         publish(peer, None, 0.3)  # the same statuses, live: a controller does run it
         assert c.get("/api/system/health").json()["unrecorded_campaign"] == {"id": cid, "controller": "ctl-live"}
+
+
+@pytest.mark.parametrize("action", ["stop", "new campaign"])
+def test_what_is_asked_before_the_restarted_consoles_bus_linked_knows_the_campaign_running_on(
+        tmp_path: Path, action: str) -> None:
+    """Session 39's open point: right after a console's restart, before the controller still running
+    its campaign has linked back to the console's hub (Zenoh retries every 1-4 s), the recovered
+    record showed nothing running: a stop answered 200 doing nothing while the neck went on, and a
+    new campaign was taken (the controller would refuse it). Now, after a start that recovered a
+    campaign ``interrupted``, both wait for the bus (the first live controller status, at most
+    ``BUS_SETTLE_S`` s from the start): the stop stops it there, the new campaign is a 409."""
+    from server.campaigns import BUS_SETTLE_S
+
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    cid = "control-late-link"  # the console was killed while it ran: recovered ``interrupted`` at the start
+    (campaigns / f"{cid}.json").write_text(json.dumps(record(cid, "running")))
+    stopped = threading.Event()
+
+    def status() -> bytes:
+        return bus.encode(bus.ControllerStatus(
+            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+            saturated=[False] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False,
+            campaign_id="" if stopped.is_set() else cid))
+
+    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
+                                      drive="active", epoch="e-live", bridge="b-live", owner="ctl-late"))
+
+    def on_request(sample) -> None:
+        req = bus.decode(bus.CampaignRequest, sample.payload.to_bytes())
+        if req.action == "stop" and req.campaign_id == cid and not stopped.is_set():
+            stopped.set()
+            peer.put(bus.CAMPAIGN_EVENTS, bus.encode(bus.CampaignEvent(seq=1, stamp_s=2.0, campaign_id=cid, kind="control",
+                                                                       event="aborted", message="stopped")))
+
+    with running_server(tmp_path / "data", viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c, \
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
+        peer.declare_subscriber(bus.CAMPAIGN_REQUEST, on_request)
+        quiet = threading.Event()
+
+        def controller_links_late() -> None:  # as a controller whose Zenoh retry comes 1 s later
+            if quiet.wait(1.0):
+                return
+            while not quiet.is_set():
+                peer.put(bus.MOTOR_STATE, state)
+                peer.put(bus.CONTROLLER_STATUS, status())
+                time.sleep(0.01)
+
+        linker = threading.Thread(target=controller_links_late, daemon=True)
+        linker.start()
+        answer = httpx.Response(0)
+        try:
+            assert c.get("/api/system/health").json()["unrecorded_campaign"] is None  # not linked yet
+            t0 = time.monotonic()
+            if action == "stop":
+                answer = c.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
+            else:
+                answer = c.post("/api/campaigns", json={"kind": "control"}, headers=AUTH)
+            waited = time.monotonic() - t0
+        finally:
+            quiet.set()
+            linker.join(5)
+            if answer.status_code == 201:  # taken (the finding): not left running
+                c.post(f"/api/campaigns/{answer.json()['id']}/stop", headers=AUTH)
+                app.state.campaigns.wait_idle(60)
+        assert waited < BUS_SETTLE_S + 4.0
+        if action == "stop":
+            assert answer.status_code == 200, answer.text
+            assert stopped.is_set(), "the stop never reached the controller"
+            assert "stopped on controller ctl-late" in answer.json()["message"], answer.json()
+        else:
+            assert answer.status_code == 409, answer.text
+            assert cid in answer.json()["detail"] and "ctl-late" in answer.json()["detail"], answer.text
 
 
 # -- finding 2 ---------------------------------------------------------------------------------------------------

@@ -266,8 +266,9 @@ def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_an
     runs it on by itself) and restarted as it was recovered the record ``interrupted``, showed nothing
     running, answered a stop 200 while the neck went on moving for 25 s, and took a new campaign
     that the controller then refused. Now the restarted console shows the campaign still running on
-    that controller, unrecorded since the restart; a new campaign is refused naming it; and the
-    stop stops it on the controller and says so."""
+    that controller, unrecorded since the restart; a new campaign is refused naming it, even one
+    asked for at once, before the controller linked back (it had been taken, 2 of 2: session 40);
+    and the stop stops it on the controller and says so."""
     long = {"kind": "control", "law": 2, "waypoints": {
         "name": "long", "waypoints_deg": [[0, 0, 0], [20, 20, 20], [0, 0, 0], [-20, -20, -20], [0, 0, 0]],
         "durations_s": 10.0, "dwell_s": 1.0}}  # about 45 s: a restart and the bus's reconnection fit in it
@@ -284,7 +285,12 @@ def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_an
         def health() -> dict:
             return httpx.get(base + "/api/system/health", timeout=5).json()
 
-        # once the controller has linked to the new console's hub again, its status names the campaign
+        # At once, before the controller has linked to the new console's hub again: a new campaign
+        # waits for the bus (server.campaigns.BUS_SETTLE_S) and is refused, naming the one running on.
+        refused = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=20)
+        assert refused.status_code == 409, refused.text
+        assert cid in refused.json()["detail"], refused.text
+        # its status names the campaign
         assert wait_until(lambda: health()["running_campaign_id"] == cid, 30, 0.3), health()
         elsewhere = health()["unrecorded_campaign"]
         controller = elsewhere["controller"]
@@ -293,9 +299,7 @@ def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_an
         assert rec["status"] == "interrupted" and rec["running_on"] == controller, rec
         assert f"still running on controller {controller}, not recorded since the console's restart" in \
             rec["message"], rec
-        refused = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
-        assert refused.status_code == 409, refused.text
-        assert cid in refused.json()["detail"] and controller in refused.json()["detail"], refused.text
+        assert controller in refused.json()["detail"], refused.text
         stopped = httpx.post(f"{base}/api/campaigns/{cid}/stop", headers=AUTH, timeout=15)
         assert stopped.status_code == 200, stopped.text
         assert f"stopped on controller {controller}" in stopped.json()["message"], stopped.json()
