@@ -120,6 +120,23 @@ def camera_of(sample: zenoh.Sample) -> str:
     return _named(sample, CAMERA_PREFIX)
 
 
+#: The Zenoh attachment of a controller's ``ControllerStatus``, ``xneck-controller:<instance>``: the
+#: controller it comes from. The status has no sender field; with a second controller on the bus
+#: the console took the newest status of either for the campaign the bridge's owner runs (session
+#: 40). An attachment for the reasons of :data:`RUN_PREFIX`.
+CONTROLLER_PREFIX = b"xneck-controller:"
+
+
+def controller_attachment(instance: str) -> bytes:
+    """The attachment naming the controller ``instance`` (:data:`CONTROLLER_PREFIX`)."""
+    return CONTROLLER_PREFIX + instance.encode()
+
+
+def controller_of(sample: zenoh.Sample) -> str:
+    """The controller instance ``sample`` says it comes from (:data:`CONTROLLER_PREFIX`), '' if none."""
+    return _named(sample, CONTROLLER_PREFIX)
+
+
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64

@@ -53,7 +53,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
-from bridge.session import liveliness_token, payload_of, publisher, subscribe_latest
+from bridge.session import controller_attachment, liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.prepare import Prepared, Refused, prepare
 from controller.service import CampaignService, Output
@@ -150,6 +150,7 @@ class ControllerNode:
                                        direct=True)
         self._cmd = publisher(session, bus.MOTOR_COMMAND, block=config.lockstep)
         self._status = publisher(session, bus.CONTROLLER_STATUS, block=config.lockstep)
+        self._named = controller_attachment(self.instance)  # its statuses name it (server.live.bus_campaign)
         self._timing = publisher(session, bus.CONTROLLER_TIMING)
         self._events = publisher(session, bus.CAMPAIGN_EVENTS)
         self._health = publisher(session, bus.health_key("controller", self.instance))
@@ -234,7 +235,7 @@ class ControllerNode:
             alpha_hat_rad=_finite_list(out.alpha_hat_rad), alpha_d_rad=out.alpha_d_rad.tolist(),
             e_rad=_finite_list(out.e_rad),
             holding=not out.law_ran, hold_reason="" if out.law_ran else svc.hold_reason,
-            campaign_id=svc.campaign_id if svc.running else "", ticks=svc.ticks))
+            campaign_id=svc.campaign_id if svc.running else "", ticks=svc.ticks), attachment=self._named)
 
     def publish_health(self, stamp_s: float) -> None:
         """Counters on ``xneck/health/controller/<instance>``: states and requests received and

@@ -57,7 +57,7 @@ import msgspec
 import zenoh
 
 from bridge import bus
-from bridge.session import replayed, run_of
+from bridge.session import controller_of, replayed, run_of
 from server.quality import drive_estop
 
 #: Series name -> (key, fields forwarded to browsers).
@@ -82,6 +82,7 @@ BY_RUN = frozenset({"truth"})
 BY_RUN_RING_SAMPLES = 32
 RUN_FOLLOW_MAX_AGE_S = 0.5  # s: an older command or state names no run to follow
 BY_RUN_MAX_RUNS = 8  # runs remembered per series (a flood of forged runs stays bounded)
+STATUS_MAX_CONTROLLERS = 8  # controllers whose newest live status is kept (LiveBus.live_statuses)
 
 #: s: a camera whose latest α_IP arrived longer ago than this is stale (:func:`fresh_camera`).
 CAMERA_MAX_AGE_S = 1.0
@@ -347,16 +348,22 @@ def bridge_estop(values: LatestValues, max_age_s: float = BRIDGE_STATE_MAX_AGE_S
 def bus_campaign(live: LiveBus, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tuple[str, str] | None:
     """``(campaign id, controller)`` of the campaign a controller on the bus runs now, whoever
     started it, as its latest live ``ControllerStatus`` (arrived within ``max_age_s`` s, never a
-    replay's: :meth:`LiveBus.live_status`) says; ``controller`` is the instance the bridge obeys in
-    its fresh ``MotorState`` (``owner``: the one whose commands move the robot; the status does not
-    name its sender), "" if unknown. None when no fresh live status names a campaign. A replay's
+    replay's: :meth:`LiveBus.live_statuses`) says: the status of the instance the bridge obeys in
+    its fresh ``MotorState`` (``owner``: the one whose commands move the robot) if it names one,
+    else another controller's; ``controller`` is the status's sender (its attachment,
+    :func:`bridge.session.controller_of`), else that owner, "" if unknown. With a second, idle
+    controller on the bus the newest status of either had been taken (session 40). None when no
+    fresh live status names a campaign. A replay's
     statuses had made the console show a replayed campaign running on the controller that owned
     the bridge, refuse new campaigns and write so in its record (audit of 2026-11-29)."""
-    status = live.live_status(max_age_s)
-    if status is None or not status.campaign_id:
+    running = {name: st for name, st in live.live_statuses(max_age_s).items() if st.campaign_id}
+    if not running:
         return None
     state = live.values.fresh("state", max_age_s)
-    return status.campaign_id, state.owner if state is not None else ""
+    owner = state.owner if state is not None else ""
+    # the bridge's owner's first (the controller whose commands move the robot), then the others'
+    name = owner if owner in running else "" if "" in running else sorted(running)[0]
+    return running[name].campaign_id, name or owner
 
 
 def bus_settled(live: LiveBus) -> bool:
@@ -413,7 +420,10 @@ class LiveBus:
         # The controller's own word on what it runs (server.campaigns, unrecorded campaigns): the view's
         # "status" series shows a replay's statuses too. The newest kept as it comes (500 a second),
         # copied and decoded only when asked.
-        self._live_status: tuple[zenoh.Sample, float] | None = None
+        # controller instance (its attachment, "" for none) -> (newest status, time.monotonic()):
+        # a second controller's statuses must not hide the one the bridge obeys (session 40)
+        self._live_status: dict[str, tuple[zenoh.Sample, float]] = {}
+        self._status_lock = threading.Lock()  # Zenoh may call _on_status on several threads at once
         self._status_sub = session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status)
         # The bridge's state is taken off its ring every STATE_SAMPLE_PERIOD_S s (one sample, one
         # decode: 10 per second, not the bus's 500), so its age is right whoever reads it and when.
@@ -422,18 +432,36 @@ class LiveBus:
         self._sampler.start()
 
     def _on_status(self, sample: zenoh.Sample) -> None:
-        if not replayed(sample) and len(sample.payload) <= bus.max_payload_bytes(bus.ControllerStatus):
-            self._live_status = (sample, time.monotonic())
+        if replayed(sample) or len(sample.payload) > bus.max_payload_bytes(bus.ControllerStatus):
+            return
+        name, statuses = controller_of(sample), self._live_status
+        with self._status_lock:
+            if name not in statuses and len(statuses) >= STATUS_MAX_CONTROLLERS:  # a flood of forged names
+                statuses.pop(min(statuses, key=lambda k: statuses[k][1]))
+            statuses[name] = (sample, time.monotonic())
 
     def heard_status(self) -> bool:
         """Whether a controller's live ``ControllerStatus`` (not a replay's) arrived since this
         console started: its bus has linked to a controller."""
-        return self._live_status is not None
+        return bool(self._live_status)
+
+    def live_statuses(self, max_age_s: float) -> dict[str, bus.ControllerStatus]:
+        """Controller instance ("" for a status naming none) -> its newest ``ControllerStatus``
+        (not a replay's) that arrived within ``max_age_s`` s and decodes."""
+        now, out = time.monotonic(), {}
+        with self._status_lock:
+            latest = list(self._live_status.items())
+        for name, (sample, at) in latest:
+            if now - at <= max_age_s:
+                with contextlib.suppress(bus.BusDecodeError):
+                    out[name] = bus.decode(bus.ControllerStatus, sample.payload.to_bytes())
+        return out
 
     def live_status(self, max_age_s: float) -> bus.ControllerStatus | None:
-        """The newest ``ControllerStatus`` a controller published (not a replay), if it arrived
+        """The newest ``ControllerStatus`` any controller published (not a replay), if it arrived
         within ``max_age_s`` s and decodes; else None."""
-        latest = self._live_status
+        with self._status_lock:
+            latest = max(self._live_status.values(), key=lambda v: v[1], default=None)
         if latest is None or time.monotonic() - latest[1] > max_age_s:
             return None
         try:
