@@ -70,6 +70,25 @@ def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) ->
     return run
 
 
+#: The robot's limits a campaign's parameter set may tighten but never widen: name -> whether a
+#: larger value is the wider one (a joint range, a largest force) or the narrower (the floors).
+LIMITS_NOT_WIDENED = {"alpha_max_deg": True, "f_max": True, "t_min": False, "f_min": False}
+
+
+def check_limits_within(params: Params, robot: Params) -> None:
+    """Raise ValueError if the parameter set ``params`` (a campaign's) widens a limit of ``robot``
+    (the process's ``--params``), naming it: the service adopts the campaign's set, its joint
+    limit (the divergence latch, trajectory validation) and its forces. A set with alpha_max_deg 85
+    and f_max 400 N had taken the neck to 72° against the robot's 60° (audit of 2026-11-29)."""
+    for name, larger_is_wider in LIMITS_NOT_WIDENED.items():
+        value, own = getattr(params.limits, name), getattr(robot.limits, name)
+        if (value > own) if larger_is_wider else (value < own):
+            unit = "°" if name.endswith("_deg") else " N"
+            raise ValueError(f"parameter set {params.name!r} has {name} {value:g}{unit}, beyond the robot's {own:g}{unit} "
+                             f"(`xneck controller --params`): a campaign's set may tighten the robot's limits, "
+                             f"never widen them")
+
+
 def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
             budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic) -> Prepared:
     """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
@@ -86,6 +105,7 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
             if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
+            check_limits_within(params, robot)
         new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
         traj = trajectory_from_json(req.trajectory_json)
         base = limits or TrajectoryLimits()
@@ -105,4 +125,5 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
 
 
-__all__ = ["FORCE_CHECK_CHUNK", "VALIDATION_BUDGET_S", "Prepared", "Refused", "prepare"]
+__all__ = ["FORCE_CHECK_CHUNK", "LIMITS_NOT_WIDENED", "VALIDATION_BUDGET_S", "Prepared", "Refused",
+           "check_limits_within", "prepare"]

@@ -539,6 +539,36 @@ def test_hostile_parameter_sets_are_refused(params):
             prepare(_request(parameters_toml=toml), params, LawConfig())
 
 
+@pytest.mark.parametrize("widened", ["alpha_max_deg = 85.0", "f_max = 400.0", "t_min = 2.0", "f_min = 0.5"])
+def test_a_campaigns_parameter_set_never_widens_the_robots_limits(params, widened):
+    """Audit of 2026-11-29 (session 40): a request's parameter set with alpha_max_deg 85 and f_max
+    400 N had its 80° trajectory validated against its own limits, then adopted: the neck reached
+    72° against the robot's 60°, and the campaign ``finished``. A set may tighten the robot's
+    limits (the process's ``--params``), never widen them."""
+    name, value = (x.strip() for x in widened.split("="))
+    own = getattr(params.limits, name)
+    toml = "\n".join(f"{name} = {value}" if line.split("=")[0].strip() == name and line.lstrip().startswith(name)
+                     and "[" not in line else line for line in params.to_toml().splitlines())
+    assert toml != params.to_toml(), "the set's limit was not replaced"
+    with pytest.raises(Refused, match=f"{name} .*beyond the robot.s {own:g}"):
+        prepare(_request(parameters_toml=toml), params, LawConfig())
+    far = Trajectory.from_degrees([[0, 0, 0], [80, 0, 0]], 4.0, 1.0, name="far")
+    if name == "alpha_max_deg":  # the audit's case, run: refused, and the service's own limits unchanged
+        svc = CampaignService(params, LawConfig(law=2), service=True, settle_s=0.2)
+        with pytest.raises(Refused):
+            prepare(_request(parameters_toml=toml, trajectory_json=far.to_json()), params, LawConfig())
+        assert svc.params.limits.alpha_max_deg == own
+
+
+def test_a_campaigns_parameter_set_may_tighten_the_robots_limits(params):
+    toml = params.to_toml().replace(f"alpha_max_deg = {params.limits.alpha_max_deg!r}", "alpha_max_deg = 30.0")
+    assert "alpha_max_deg = 30.0" in toml
+    far = Trajectory.from_degrees([[0, 0, 0], [40, 0, 0]], 4.0, 1.0, name="far")
+    with pytest.raises(Refused, match="exceeds"):
+        prepare(_request(parameters_toml=toml, trajectory_json=far.to_json()), params, LawConfig())
+    assert prepare(_request(parameters_toml=toml), params, LawConfig()).params.limits.alpha_max_deg == 30.0
+
+
 def test_validation_past_its_time_budget_is_refused(params):
     from controller.trajectory import identification_trajectory
 
