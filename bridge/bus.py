@@ -64,6 +64,13 @@ CAMPAIGN_REQUEST = f"{PREFIX}/campaign/request"
 #: campaign (audit of 2026-11-28).
 CAMPAIGN_REQUEST_TO = f"{PREFIX}/campaign/request/*"
 ESTOP = f"{PREFIX}/estop"
+#: Liveliness tokens of an engaged e-stop, ``xneck/estop/engaged/<holder>`` (:func:`estop_token_key`):
+#: whoever engages the e-stop (the console) declares one before it publishes the ``EStop`` and
+#: keeps it until it releases. An ``EStop`` reaches only the bridges linked when it is sent, and
+#: the bridge's latch lived in its memory: a bridge restarted (or started) under an engaged e-stop
+#: came up ``inactive`` and a running controller enabled it (audit of the e-stop, S3). A bridge
+#: starts latched while any such token is alive, and releases only when none is (docs/safety.md).
+ESTOP_ENGAGED_ALL = f"{PREFIX}/estop/engaged/*"
 #: The bridge's stamp clock, a Zenoh *queryable* the bridge serves (``session.get`` it; nothing is
 #: published there): each reply is one :class:`ClockReading`. A camera on another machine's clock
 #: measures its offset from it (:mod:`bridge.clock_sync`, docs/camera.md, "One clock").
@@ -457,6 +464,20 @@ def parse_liveliness_key(key: str) -> tuple[str, str]:
     return parts[2], parts[3]
 
 
+def estop_token_key(holder: str) -> str:
+    """Key of the liveliness token ``holder`` keeps while it holds the e-stop engaged:
+    ``xneck/estop/engaged/<holder>`` (:data:`ESTOP_ENGAGED_ALL`)."""
+    return f"{ESTOP_ENGAGED_ALL[:-2]}/{_check_name('e-stop holder', holder)}"
+
+
+def parse_estop_token_key(key: str) -> str:
+    """The holder named by an e-stop token's key; ``ValueError`` if ``key`` is not one."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or "/".join(parts[:3]) != ESTOP_ENGAGED_ALL[:-2] or not _NAME.fullmatch(parts[3]):
+        raise ValueError(f"{key!r} is not an e-stop token key ({ESTOP_ENGAGED_ALL})")
+    return parts[3]
+
+
 def campaign_request_key(instance: str) -> str:
     """Key of the campaign requests addressed to the controller service ``instance``:
     ``xneck/campaign/request/<instance>`` (a service takes these and the bare
@@ -748,6 +769,7 @@ __all__ = [
     "CONTROLLER_STATUS",
     "CONTROLLER_TIMING",
     "ESTOP",
+    "ESTOP_ENGAGED_ALL",
     "HEALTH_ALL",
     "MESSAGE_TYPES",
     "MOTOR_COMMAND",
@@ -783,6 +805,7 @@ __all__ = [
     "check_payload_size",
     "decode",
     "encode",
+    "estop_token_key",
     "health_key",
     "json_schema",
     "json_schema_bytes",
@@ -791,6 +814,7 @@ __all__ = [
     "max_payload_bytes",
     "mcap_topic",
     "message_type",
+    "parse_estop_token_key",
     "parse_liveliness_key",
     "schema_name",
     "schema_version",

@@ -29,7 +29,11 @@ E-stop
     ``EStop(engaged=true)`` on ``xneck/estop`` (the console's button publishes the same) disables
     the drives on the next tick (``drive = "disabled"``, zero force) and commands are ignored until
     ``EStop(engaged=false)``; then the drives are ``inactive`` until the next valid command. A
-    payload on ``xneck/estop`` that cannot be decoded counts as engaged (fail safe).
+    payload on ``xneck/estop`` that cannot be decoded counts as engaged (fail safe). Whoever
+    engages also holds a liveliness token (``xneck/estop/engaged/<holder>``) until it releases: the
+    node asks for those alive before its first tick and follows them after, so a bridge started or
+    relinked under an engaged e-stop is latched too, and a release acts only when no holder but its
+    sender is left (:class:`bridge.safety.EStopHolders`, docs/safety.md).
 Driver messages
     What the driver publishes beside the states (the twin's ``Truth`` and α_IP) carries this run's
     ``epoch`` as its Zenoh attachment (:data:`bridge.session.RUN_PREFIX`): a ``Truth`` has no
@@ -76,14 +80,26 @@ from bridge.driver import Driver, Lifecycle
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
 from bridge.runtime import SystemdNotify, raise_loop_thread
-from bridge.safety import HoldForces, Inputs, Ownership, Safety, SafetyConfig
-from bridge.session import BusPublisher, liveliness_token, payload_of, publisher, run_attachment, subscribe_latest
+from bridge.safety import EStopHolders, HoldForces, Inputs, Ownership, Safety, SafetyConfig
+from bridge.session import (
+    BusPublisher,
+    estop_holder_of,
+    liveliness_token,
+    payload_of,
+    publisher,
+    run_attachment,
+    subscribe_latest,
+)
 
 log = logging.getLogger("xneck.bridge")
 
 #: The real-time loop's GIL switch interval (s), instead of Python's 5 ms: a thread computing in
 #: Python (the hold worker, a Zenoh callback) hands the GIL to a waking tick within this.
 SWITCH_INTERVAL_S = 2e-4
+
+#: s the start waits for the answer to "which e-stop tokens are alive": Zenoh answers a liveliness
+#: query from the tokens it knows (0.1 ms on loopback), so this bounds only a sick session.
+ESTOP_QUERY_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -304,6 +320,12 @@ class BridgeNode:
         self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
         self.estop_received = self.estop_rejected = 0
         self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
+        # An engaged e-stop's holders (bridge.safety, "E-stop holders"): followed from now on, and
+        # asked for before the first tick, so this run starts latched if one is alive.
+        self.estop_holders = EStopHolders()
+        self._estop_tokens = session.liveliness().declare_subscriber(bus.ESTOP_ENGAGED_ALL, self._on_estop_token,
+                                                                    history=True)
+        self._latch_for_holders(session)
         self._state_pub = publisher(session, bus.MOTOR_STATE, block=config.lockstep)
         self._extra_pubs: dict[str, BusPublisher] = {}
         self._health = session.declare_publisher(bus.health_key("bridge", self.instance))
@@ -312,7 +334,7 @@ class BridgeNode:
         # clock): read on a Zenoh thread, nothing of the loop's state touched but the stamp.
         self.clock = ClockService(session, driver.stamp_s, self.epoch, self.instance)
 
-        self.mode: bus.DriveState = "inactive"
+        self.mode: bus.DriveState = self.safety.drive  # "disabled" if started under an engaged e-stop
         self.hold_reason = ""
         self.theta = driver.read()
         self._theta_list = self.theta.tolist()  # the same angles as plain floats (the hold, the state)
@@ -380,10 +402,48 @@ class BridgeNode:
             valid = False
         with self._estop_lock:
             # Queue before counting: whoever sees the count (tests, health) may rely on the next tick
-            # applying the event, and the tick looks at the queue without the lock.
-            self._estop_events.append(event)
+            # applying the event, and the tick looks at the queue without the lock. A release is
+            # refused while another e-stop holder's token is alive (bridge.safety.EStopHolders).
+            applied = self.estop_holders.message(event, _bounded(estop_holder_of(sample), 64))
+            if applied is not None:
+                self._estop_events.append(applied)
+            held = sorted(self.estop_holders.holders) if applied is None else []
             self.estop_received += 1
             self.estop_rejected += 0 if valid else 1
+        if held:
+            log.warning("e-stop release (%s) refused: %s still hold the e-stop engaged", event[1], ", ".join(held))
+
+    def _on_estop_token(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: an e-stop holder's token appeared (engaged) or vanished.
+        try:
+            holder = _bounded(bus.parse_estop_token_key(str(sample.key_expr)), 64)
+        except ValueError:
+            return
+        with self._estop_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._estop_events.append(self.estop_holders.appeared(holder))
+            else:
+                self.estop_holders.vanished(holder)
+        if sample.kind != zenoh.SampleKind.PUT:
+            log.info("e-stop holder %r let go (a latched e-stop stays until it is released)", holder)
+
+    def _latch_for_holders(self, session: zenoh.Session) -> None:
+        """Start latched if an e-stop token is alive (asked, not waited for from the subscriber:
+        its history may come after the first commands)."""
+        holders = []
+        try:
+            for reply in session.liveliness().get(bus.ESTOP_ENGAGED_ALL, timeout=ESTOP_QUERY_S):
+                token = reply.ok  # None: an error reply
+                if token is not None:
+                    with contextlib.suppress(ValueError):  # not a token's key
+                        holders.append(_bounded(bus.parse_estop_token_key(str(token.key_expr)), 64))
+        except Exception as exc:  # noqa: BLE001 - the subscriber still follows the tokens
+            log.error("could not ask for the e-stop's holders (%s: %s): following them as they come", type(exc).__name__, exc)
+        with self._estop_lock:
+            events = [self.estop_holders.appeared(h) for h in sorted(set(holders))]
+        if events:
+            self.safety.apply_estop(events)
+            _log_events(self.safety.take_events())
 
     def _take_estop_events(self) -> list[tuple[bool, str]]:
         with self._estop_lock:
@@ -520,7 +580,8 @@ class BridgeNode:
             for last in (self.publish_state, self.publish_health):
                 with contextlib.suppress(Exception):  # the session may already be gone
                     last()
-            closers = [self.commands.close, self._controllers.undeclare, self._estop_sub.undeclare, self._state_pub.close,
+            closers = [self.commands.close, self._controllers.undeclare, self._estop_sub.undeclare,
+                       self._estop_tokens.undeclare, self._state_pub.close,
                        self._health.undeclare, self._token.undeclare, self.clock.close]
             closers += [p.close for p in self._extra_pubs.values()]
             for closer in closers:

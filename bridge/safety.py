@@ -57,6 +57,16 @@ E-stop
     until it is released; then the drives are ``inactive`` until the next valid command. A command
     in a tick whose events engage (or release) the e-stop is ignored: it may predate them. The node
     turns an undecodable e-stop payload into an engaged event (fail safe).
+E-stop holders
+    Whoever engages the e-stop keeps a liveliness token on the bus until it releases
+    (:data:`bridge.bus.ESTOP_ENGAGED_ALL`), so a bridge that starts, or links back, after the
+    ``EStop`` went out still sees it: each token that appears is an engaged event naming its
+    holder, and the node asks for the tokens alive before its first tick (it starts latched). A
+    release takes effect only when no holder but its sender is left (:class:`EStopHolders`):
+    another's release does not end an e-stop a console still holds. A holder that vanishes (it
+    released, crashed or lost its link) releases nothing: the latch stays until an explicit
+    release, since only the bridges that did not see the engage need the token (audit of the
+    e-stop, S3).
 """
 
 from __future__ import annotations
@@ -403,6 +413,47 @@ def _step_towards(force: list[float], target: list[float], step: float) -> list[
     return [f + min(max(t - f, -step), step) for f, t in zip(force, target, strict=True)]
 
 
+class EStopHolders:
+    """Who holds the e-stop engaged (their liveliness tokens), and whether a release may act
+    (module docstring, "E-stop holders"). The node feeds it the tokens as they appear and vanish
+    and every decoded e-stop message, and queues the events it answers. Not thread-safe: the node
+    calls it under its e-stop lock.
+
+    A holder releases by dropping its token and publishing the release, which names it
+    (:func:`bridge.session.estop_holder_of`). The two may arrive in either order (a liveliness
+    subscriber and a sample subscriber have callback threads of their own), so the release of a
+    holder counts as its letting go: it acts when no *other* holder is left. A release that names
+    no holder acts only when none is left. A holder's token that vanishes releases nothing.
+    """
+
+    def __init__(self) -> None:
+        self.holders: set[str] = set()
+
+    @staticmethod
+    def reason(holder: str) -> str:
+        """The e-stop reason of a holder's token (a token carries no text of its own)."""
+        return f"e-stop engaged by {holder} (it holds the e-stop token)"
+
+    def appeared(self, holder: str) -> EStopEvent:
+        """A holder's token appeared: an engaged event."""
+        self.holders.add(holder)
+        return True, self.reason(holder)
+
+    def vanished(self, holder: str) -> None:
+        """A holder's token vanished: it holds no longer, and nothing is released."""
+        self.holders.discard(holder)
+
+    def message(self, event: EStopEvent, holder: str = "") -> EStopEvent | None:
+        """An e-stop message's event as it is to be applied, from ``holder`` ('' if it names
+        none): an engage as it is; a release if no holder but ``holder`` is left, else None
+        (refused: :attr:`holders` says who holds it)."""
+        engaged, _reason = event
+        if engaged:
+            return event
+        self.holders.discard(holder)
+        return None if self.holders else event
+
+
 class Ownership:
     """One controller owns the bridge at a time (issue 13, finding 5), decided from facts only.
 
@@ -447,4 +498,4 @@ class Ownership:
         return ""
 
 
-__all__ = ["Decision", "EStopEvent", "HoldForces", "Inputs", "Ownership", "Safety", "SafetyConfig"]
+__all__ = ["Decision", "EStopEvent", "EStopHolders", "HoldForces", "Inputs", "Ownership", "Safety", "SafetyConfig"]

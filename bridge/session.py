@@ -137,6 +137,23 @@ def controller_of(sample: zenoh.Sample) -> str:
     return _named(sample, CONTROLLER_PREFIX)
 
 
+#: The Zenoh attachment of an ``EStop`` sent by an e-stop holder, ``xneck-estop-holder:<holder>``: the
+#: holder whose token (:data:`bridge.bus.ESTOP_ENGAGED_ALL`) its release lets go of, since the token's
+#: vanishing and the release reach a bridge in either order (:class:`bridge.safety.EStopHolders`). An
+#: attachment for the reasons of :data:`RUN_PREFIX`: the payload and the archive stay as they were.
+ESTOP_HOLDER_PREFIX = b"xneck-estop-holder:"
+
+
+def estop_holder_attachment(holder: str) -> bytes:
+    """The attachment naming the e-stop holder ``holder`` (:data:`ESTOP_HOLDER_PREFIX`)."""
+    return ESTOP_HOLDER_PREFIX + holder.encode()
+
+
+def estop_holder_of(sample: zenoh.Sample) -> str:
+    """The e-stop holder ``sample`` says it comes from (:data:`ESTOP_HOLDER_PREFIX`), '' if none."""
+    return _named(sample, ESTOP_HOLDER_PREFIX)
+
+
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64
@@ -641,9 +658,9 @@ def subscribe_latest(
 
 
 __all__ = [
-    "CAMERA_PREFIX", "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
+    "CAMERA_PREFIX", "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "ESTOP_HOLDER_PREFIX", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
     "RUN_PREFIX", "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "camera_attachment", "camera_of", "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
+    "camera_attachment", "camera_of", "estop_holder_attachment", "estop_holder_of", "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
     "subscribe_latest",
     "zenoh_config",
     "zenoh_runtime_environment",

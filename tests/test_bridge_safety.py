@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
+from bridge.safety import EStopHolders, Inputs, Ownership, Safety, SafetyConfig
 
 N = 4
 HOLD = np.array([10.0, 12.0, 14.0, 16.0])  # the hold forces the node's worker has ready
@@ -219,6 +219,34 @@ def test_estop_release_ramps_to_the_first_commands_at_the_bounded_rate():
     steps = np.abs(np.diff(np.array(applied[2:]), axis=0))
     assert steps.max() <= 1.0 + 1e-12, steps.max()
     assert applied[-1].tolist() == [100.0, 48.0, 8.0, 54.0]  # reached, then passed through
+
+
+def test_an_estop_holders_token_engages_and_a_release_needs_no_other_holder_left():
+    """Audit S3: the e-stop's holders (their liveliness tokens) keep it engaged for a bridge that
+    never saw the EStop. A release acts when no holder but its sender is left, whichever of the
+    sender's token drop and release comes first; a token that vanishes releases nothing."""
+    h = EStopHolders()
+    assert h.appeared("console-a") == (True, "e-stop engaged by console-a (it holds the e-stop token)")
+    h.appeared("console-b")
+    assert h.message((True, "button"), "console-a") == (True, "button")  # an engage acts as it is
+    assert h.message((False, "cleared"), "console-a") is None  # console-b holds it still
+    assert h.message((False, "someone"), "") is None
+    h.vanished("console-b")  # crashed: releases nothing by itself...
+    assert h.holders == set()
+    assert h.message((False, "cleared"), "") == (False, "cleared")  # ...an explicit release does
+    # The holder's release before its token's drop (two callback threads): it counts as letting go.
+    h.appeared("console-a")
+    assert h.message((False, "cleared"), "console-a") == (False, "cleared")
+    h.vanished("console-a")
+    assert h.holders == set()
+    # Applied in Safety: a holder's engage latches like any other; its release ends it.
+    s = machine()
+    s.step(cmd([20.0] * N))
+    assert s.step(idle(age_s=0.0, estop=[h.appeared("console-a")])).drive == "disabled"
+    assert s.estop_reason == "e-stop engaged by console-a (it holds the e-stop token)"
+    assert s.step(cmd([20.0] * N)).drive == "disabled"
+    release = h.message((False, "cleared"), "console-a")
+    assert release is not None and s.step(idle(age_s=0.0, estop=[release])).drive == "inactive"
 
 
 def test_every_enable_is_bumpless_then_commands_pass_through():
