@@ -52,6 +52,7 @@ import logging
 import os
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 
@@ -61,7 +62,7 @@ from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
 from bridge.archive_read import is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
-from bridge.session import payload_of, publisher
+from bridge.session import estop_holder_attachment, payload_of, publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import (
@@ -183,6 +184,15 @@ class CampaignManager:
         self._estop_lock = threading.Lock()  # never with _lock held: publishing may block
         self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
         self.estop_reason = ""
+        # This console's hold on the e-stop it engaged (bridge.bus.ESTOP_ENGAGED_ALL): a liveliness
+        # token from the engage to the release, so a bridge that starts or links back meanwhile starts
+        # latched (the EStop message reaches only the bridges linked when it goes out: audit S3).
+        self.estop_holder = f"console-{uuid.uuid4().hex[:6]}"
+        self._estop_token: zenoh.LivelinessToken | None = None
+        self._holders_lock = threading.Lock()
+        self._estop_others: set[str] = set()  # the other holders alive on the bus (another console)
+        self._estop_holders_sub = session.liveliness().declare_subscriber(
+            bus.ESTOP_ENGAGED_ALL, self._on_estop_token, history=True)
         self._bridge_estop = bridge_estop  # server.live.bridge_estop: the bridge's latched e-stop, if fresh
         self._bus_campaign = bus_campaign  # server.live.bus_campaign: (id, controller) a controller runs now
         self._noted_elsewhere: set[str] = set()  # ids whose record says already that a controller went on with them
@@ -778,37 +788,78 @@ class CampaignManager:
         return replay.status() if replay is not None else None
 
     # -- e-stop -----------------------------------------------------------------------------
+    def _on_estop_token(self, sample: zenoh.Sample) -> None:
+        # Zenoh callback thread: another holder's e-stop token appeared or vanished.
+        try:
+            holder = bus.parse_estop_token_key(str(sample.key_expr))
+        except ValueError:
+            return
+        if holder == self.estop_holder:  # this console's own: estop_engaged says it, without a lag
+            return
+        with self._holders_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._estop_others.add(holder[:64])
+            else:
+                self._estop_others.discard(holder[:64])
+
+    def _held_elsewhere(self) -> str:
+        """'' unless another holder keeps an e-stop engaged on the bus; then the reason, naming it."""
+        with self._holders_lock:
+            others = sorted(self._estop_others)
+        return f"e-stop engaged by {', '.join(others)} (it holds the e-stop token)" if others else ""
+
     def estop_status(self) -> dict[str, object]:
         """The e-stop as the console shows it: the bridge's latched state from its latest
         ``MotorState`` when one is fresh (the one truth: it also counts e-stops engaged by others
-        or by a malformed message), else what this console last sent (``source`` says which)."""
+        or by a malformed message), else what this console last sent, or an e-stop another holds
+        on the bus (its token: the next bridge starts latched) (``source`` says which)."""
         truth = self._bridge_estop()
         if truth is not None:
             return truth
-        return {"engaged": self.estop_engaged, "reason": self.estop_reason if self.estop_engaged else "",
+        elsewhere = "" if self.estop_engaged else self._held_elsewhere()
+        return {"engaged": self.estop_engaged or bool(elsewhere),
+                "reason": self.estop_reason if self.estop_engaged else elsewhere,
                 "drive": None, "source": "console"}
 
     def _drives_disabled(self, own_twin: bool) -> str:
         """Why a campaign cannot start on the drives (''if it can): the bridge's disabled drives
-        when it drives the bridge on the bus, this console's e-stop when it starts its own twin."""
+        when it drives the bridge on the bus, else this console's e-stop or one another holds on
+        the bus (the twin it would start would start latched: bridge.bus.ESTOP_ENGAGED_ALL)."""
         truth = None if own_twin else self._bridge_estop()
         if truth is not None:
             return str(truth["reason"]) if truth["engaged"] or truth["drive"] == "disabled" else ""
-        return (self.estop_reason or "e-stop engaged") if self.estop_engaged else ""
+        return (self.estop_reason or "e-stop engaged") if self.estop_engaged else self._held_elsewhere()
 
     def estop(self, engaged: bool, reason: str) -> None:
         """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
         engaging, abort the running campaign and any replay."""
         with self._estop_lock:  # two at once: what this console says is what it sent last
+            if not engaged:
+                self._hold_estop(False)  # before the release: the bridge releases once no holder is left
             self._estop_seq += 1
             self._estop_pub.put(bus.EStop(seq=self._estop_seq, stamp_s=time.time(), engaged=engaged,
-                                          reason=reason))
+                                          reason=reason), attachment=estop_holder_attachment(self.estop_holder))
             self.estop_engaged, self.estop_reason = engaged, reason
+            if engaged:
+                self._hold_estop(True)  # after the engage: the bridges up now must not wait for it
         if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
             self._stop.set()
             self._cancel_starting_replay()
             if self._replay is not None:
                 self._replay.stop()
+
+    def _hold_estop(self, hold: bool) -> None:
+        """Declare (or drop) this console's e-stop token. A failure is logged, never raised: the
+        e-stop message goes out (or went out) whatever becomes of the token."""
+        try:
+            if hold and self._estop_token is None:
+                self._estop_token = self.session.liveliness().declare_token(bus.estop_token_key(self.estop_holder))
+            elif not hold and self._estop_token is not None:
+                token, self._estop_token = self._estop_token, None
+                token.undeclare()
+        except Exception as exc:  # noqa: BLE001 - see the docstring
+            log.error("e-stop token %s could not be %s (%s: %s)", bus.estop_token_key(self.estop_holder),
+                      "declared" if hold else "dropped", type(exc).__name__, exc)
 
     def _cancel_starting_replay(self) -> None:
         with self._lock:
@@ -823,3 +874,7 @@ class CampaignManager:
         self.wait_idle(timeout_s)
         with contextlib.suppress(Exception):
             self._estop_pub.close()
+        # The token goes with this console (as in a crash): bridges latched stay latched until a release.
+        for closer in ((lambda: self._hold_estop(False)), self._estop_holders_sub.undeclare):
+            with contextlib.suppress(Exception):
+                closer()

@@ -1,0 +1,156 @@
+"""An engaged e-stop outlives the bridge run that saw it (audit of the e-stop, finding S3).
+
+The latch lived only in the bridge's memory and the console published its e-stop once: a bridge
+restarted under an engaged e-stop came up ``inactive`` and the still-running controller's first
+commands took it ``active``; an e-stop pressed while no bridge was up never arrived. Now whoever
+engages holds a liveliness token (``xneck/estop/engaged/<holder>``) until it releases, and a bridge
+starts latched while one is alive (docs/safety.md, "E-stop").
+
+Real parts only: the console's own :class:`server.campaigns.CampaignManager` engages and releases,
+the bridge is a :class:`bridge.node.BridgeNode` on the twin driver, all over real Zenoh sessions on
+127.0.0.1; the ticks are driven by hand so each assertion is about one tick.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from busutil import bus_pair, wait_until
+from test_bridge_node import Collector, _as_controller, _command, _node, _put_until
+
+from bridge import bus
+from bridge.driver import Lifecycle
+from bridge.session import publisher
+from server.campaigns import CampaignManager
+
+
+def _states(collector: Collector) -> list[bus.MotorState]:
+    return [m for m in collector.messages() if isinstance(m, bus.MotorState)]
+
+
+def _send(node, pub, seq: int, force: list[float]) -> None:
+    """One command of the test controller answering ``node``'s run, accepted before returning."""
+    n = node.commands.stats.accepted
+    assert _put_until(pub, _command(seq, force, node.epoch), lambda: node.commands.stats.accepted > n), \
+        node.commands.stats.last_reject_reason
+
+
+def _stays_disabled(node, pub, ticks: int = 40, first_seq: int = 100) -> None:
+    """The controller keeps commanding 30 N; the bridge must not move a motor."""
+    for k in range(ticks):
+        _send(node, pub, first_seq + k, [30.0] * 4)
+        node.tick()
+        assert node.mode == "disabled", (k, node.mode, node.force.tolist())
+        assert node.force.tolist() == [0.0] * 4 and node.driver.state is not Lifecycle.ACTIVE
+    assert node.safety.estop_engaged and node.estop_reason
+
+
+def test_a_bridge_restarted_under_an_engaged_estop_starts_disabled_and_ignores_commands(params, tmp_path: Path):
+    """S3, runs 1-2: the console engaged, the bridge restarted, the controller went on commanding."""
+    with bus_pair() as (hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        console = CampaignManager(tmp_path / "data", hub_session, hub)
+        cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        states = Collector(hub_session, bus.MOTOR_STATE)
+        first = _node(connect(), params, command_timeout_s=5.0)
+        try:
+            _send(first, cmd_pub, 1, [30.0] * 4)
+            first.tick()
+            assert first.mode == "active"
+            console.estop(True, "operator e-stop")
+            assert wait_until(lambda: first.estop_received >= 1, 5.0)
+            first.tick()
+            assert first.mode == "disabled"
+        finally:
+            first.shutdown()
+        second = _node(connect(), params, command_timeout_s=5.0)
+        try:
+            # Latched before its first tick: nothing the controller sends can come first.
+            assert second.mode == "disabled" and second.safety.estop_engaged, second.mode
+            assert "console" in second.estop_reason, second.estop_reason
+            _stays_disabled(second, cmd_pub)
+            assert wait_until(lambda: any(s.epoch == second.epoch for s in _states(states)), 5.0)
+            mine = [s for s in _states(states) if s.epoch == second.epoch]
+            assert all(s.drive == "disabled" and s.estop_engaged and s.estop_reason for s in mine), mine[0]
+        finally:
+            second.shutdown()
+            states.close()
+            console.close()
+
+
+def test_an_estop_engaged_while_no_bridge_is_up_holds_the_next_one_and_its_release_enables_bumplessly(
+        params, tmp_path: Path):
+    """S3, run 3, and the way out: the e-stop pressed while no bridge was up holds the next bridge
+    (lockstep too: its first state, before any command, says disabled); the console's release
+    lets it go ``inactive`` and the next commands enable it at the bumpless 1 N per tick."""
+    with bus_pair() as (hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        console = CampaignManager(tmp_path / "data", hub_session, hub)
+        cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        console.estop(True, "pressed while the bridge was down")
+        time.sleep(0.1)
+        lockstep = _node(connect(), params, lockstep=True)
+        try:
+            assert lockstep.mode == "disabled" and lockstep.safety.estop_engaged
+        finally:
+            lockstep.shutdown()
+        node = _node(connect(), params, command_timeout_s=5.0)
+        try:
+            assert node.mode == "disabled"
+            _stays_disabled(node, cmd_pub)
+            n = node.estop_received
+            console.estop(False, "cleared")
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+            node.tick()
+            assert node.mode == "inactive" and not node.safety.estop_engaged and node.estop_reason == ""
+            applied = []
+            for k in range(40):
+                _send(node, cmd_pub, 200 + k, [30.0] * 4)
+                node.tick()
+                applied.append(node.force.copy())
+            assert node.mode == "active"
+            assert applied[0].tolist() == [1.0] * 4  # from zero, not a step to 30 N
+            assert np.abs(np.diff(np.array([[0.0] * 4, *applied]), axis=0)).max() <= 1.0 + 1e-9
+            assert node.force.tolist() == [30.0] * 4
+        finally:
+            node.shutdown()
+            console.close()
+
+
+def test_a_release_needs_every_holder_gone_and_a_vanished_holder_releases_nothing(params, tmp_path: Path):
+    """Someone else's release does not end the e-stop a live console holds; a console that
+    vanishes (crash, link lost) takes its token with it but the latch of a bridge that saw the
+    e-stop stays until an explicit release; that release then ends it."""
+    with bus_pair() as (hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        other_estop = publisher(hub_session, bus.ESTOP)
+        console_session = connect()
+        console = CampaignManager(tmp_path / "data", console_session, hub)
+        node = _node(connect(), params, command_timeout_s=5.0)
+        try:
+            _send(node, cmd_pub, 1, [20.0] * 4)
+            node.tick()
+            console.estop(True, "operator e-stop")
+            assert wait_until(lambda: node.estop_received >= 1, 5.0)
+            node.tick()
+            assert node.mode == "disabled"
+            n = node.estop_received
+            other_estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="someone else's release"))
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+            time.sleep(0.2)
+            _stays_disabled(node, cmd_pub, ticks=10)
+            console.close()
+            console_session.close()  # the console is gone: its token with it
+            time.sleep(0.3)
+            _stays_disabled(node, cmd_pub, ticks=10, first_seq=300)
+            n = node.estop_received
+            other_estop.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=False, reason="released by the operator"))
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+            time.sleep(0.05)
+            node.tick()
+            assert node.mode == "inactive" and not node.safety.estop_engaged
+        finally:
+            node.shutdown()
