@@ -13,11 +13,14 @@ the bridge is a :class:`bridge.node.BridgeNode` on the twin driver, all over rea
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 from busutil import bus_pair, wait_until
+from server_harness import AUTH, running_server
 from test_bridge_node import Collector, _as_controller, _command, _node, _put_until
 
 from bridge import bus
@@ -153,4 +156,45 @@ def test_a_release_needs_every_holder_gone_and_a_vanished_holder_releases_nothin
             node.tick()
             assert node.mode == "inactive" and not node.safety.estop_engaged
         finally:
+            node.shutdown()
+
+
+def test_a_console_started_while_the_bridge_is_latched_shows_it_engaged_and_can_release_it(params, tmp_path: Path):
+    """The console that engaged crashed (its token gone with it): the bridge stays latched, a
+    console started afterwards shows the bridge's word (engaged, the reason), and its release,
+    with no holder left, ends the e-stop."""
+    with bus_pair() as (hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        node = _node(connect(), params, command_timeout_s=5.0)
+        stop = threading.Event()
+
+        def loop() -> None:  # the bridge's ticks, slow: states for the console to read
+            while not stop.wait(0.01):
+                node.tick()
+
+        ticking = threading.Thread(target=loop, daemon=True)
+        ticking.start()
+        try:
+            crashed_session = connect()
+            crashed = CampaignManager(tmp_path / "first", crashed_session, hub)
+            crashed.estop(True, "operator e-stop")
+            assert wait_until(lambda: node.mode == "disabled", 5.0)
+            crashed_session.close()  # no release: the console is gone, its token with it
+            time.sleep(0.3)
+            assert node.mode == "disabled"
+
+            def shown(base: str) -> dict:
+                return httpx.get(base + "/api/system/health", timeout=5).json()["estop"]
+
+            with running_server(tmp_path / "second", viser=False, connect=[hub]) as (base, _app):
+                assert wait_until(lambda: shown(base).get("source") == "bridge", 20, 0.1), shown(base)
+                assert shown(base)["engaged"] is True and shown(base)["reason"] == "operator e-stop", shown(base)
+                r = httpx.post(base + "/api/system/estop", json={"engaged": False, "reason": "cleared"}, headers=AUTH,
+                               timeout=5)
+                assert r.status_code == 200, r.text
+                assert wait_until(lambda: not shown(base)["engaged"], 10, 0.1), shown(base)
+                assert node.mode == "inactive"
+        finally:
+            stop.set()
+            ticking.join(5)
             node.shutdown()

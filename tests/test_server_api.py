@@ -516,9 +516,9 @@ def test_an_estop_pressed_while_a_campaign_starts_stops_that_campaign(tmp_path) 
         save, put, estop = manager.index.save, manager._estop_pub.put, manager.estop
         saving, pressed = threading.Event(), threading.Event()
 
-        def slow_put(msg) -> None:  # a publication that takes a while (a congested link)
+        def slow_put(msg, **kwargs) -> None:  # a publication that takes a while (a congested link)
             saving.wait(10)
-            put(msg)
+            put(msg, **kwargs)  # the attachment naming the console, the e-stop's holder
 
         def estop_then_tell(engaged: bool, reason: str) -> None:
             estop(engaged, reason)
