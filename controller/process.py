@@ -37,7 +37,9 @@ state machine :class:`controller.service.CampaignService`.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import functools
 import gc
 import logging
 import math
@@ -66,6 +68,9 @@ log = logging.getLogger("xneck.controller")
 
 LOCKSTEP_RESEND_S = 0.1  # s without a new state before the last command is sent again
 LAG_FLOOR_RELAX_NS = 2_000  # ns per state the floor of arrival − stamp lets up (clock drift up to 1 ms/s)
+# Start requests waiting for the loop, per key (the bare one, this service's own): a flood on one
+# key is rejected beyond this, and cannot crowd out the other key's requests, nor any stop.
+REQUEST_QUEUE = 16
 
 
 def below_the_tick() -> None:
@@ -164,7 +169,17 @@ class ControllerNode:
         self.requests_received = self.requests_rejected = self._states_rejected_seen = 0
         self._reject_logged_at, self._rejects_unlogged = -math.inf, 0
         self.last_reject = ""  # the latest reason a state or a request was rejected
-        self._inbox: queue.Queue[bus.CampaignRequest] = queue.Queue(maxsize=16)
+        # Start requests wait for the loop in one queue per key, as (arrival number, request): a
+        # flood on the bare key (any peer may put there) cannot crowd out the console's requests
+        # addressed to this service (audit of 2026-11-30: ~70 000 starts/s on the bare key, and the
+        # console's one stop was rejected "too many requests waiting", its campaign never ended).
+        self._arrivals = 0
+        self._starts: dict[bool, collections.deque[tuple[int, bus.CampaignRequest]]] = {
+            False: collections.deque(), True: collections.deque()}  # by "addressed to this service"
+        # Stops never queue behind starts: the latest arrival number of a stop per campaign id,
+        # kept only for an id a stop can concern (:meth:`_stop_may_matter`), so at most a few.
+        self._stops: dict[str, int] = {}
+        self._stoppable: frozenset[str] = frozenset()  # ids the service may stop (set by the loop)
         self._to_prepare: queue.Queue[bus.CampaignRequest | None] = queue.Queue(maxsize=4)
         self._prepared: queue.Queue[tuple[bus.CampaignRequest, Prepared | Refused]] = queue.Queue()
         self._worker: threading.Thread | None = None
@@ -172,8 +187,9 @@ class ControllerNode:
             self._worker = threading.Thread(target=self._prepare_forever, name="campaign-prepare", daemon=True)
             self._worker.start()
         # Bare requests (any service) and those addressed to this one; never a peer's (audit of 2026-11-28).
-        self._request_subs = [session.declare_subscriber(key, self._on_request)
-                              for key in (bus.CAMPAIGN_REQUEST, bus.campaign_request_key(self.instance))
+        self._request_subs = [session.declare_subscriber(key, functools.partial(self._on_request, addressed=addressed))
+                              for key, addressed in ((bus.CAMPAIGN_REQUEST, False),
+                                                     (bus.campaign_request_key(self.instance), True))
                               ] if self._service else []
         self._service_token = liveliness_token(session, "campaign-service", self.instance) if self._service else None
 
@@ -272,19 +288,40 @@ class ControllerNode:
             log.warning("campaign request rejected: %s%s", reason,
                         f" (and {since} more in the last second)" if since else "")
 
-    def _on_request(self, sample: zenoh.Sample) -> None:
+    def _on_request(self, sample: zenoh.Sample, addressed: bool) -> None:
+        """A campaign request on the bare key or, ``addressed``, on this service's own: a start
+        waits in that key's queue (rejected when it is full), a stop is kept aside for the loop,
+        where no start can crowd it out (module docstring of :mod:`controller.process`)."""
         # Zenoh's callback thread: bounded work only, and nothing may escape (a raise here would
         # be a stack trace in Zenoh's thread, and a flood of them a dead service).
         try:
             with self._req_lock:
                 self.requests_received += 1
-            self._inbox.put_nowait(bus.decode(bus.CampaignRequest, payload_of(sample, bus.CampaignRequest)))
+            req = bus.decode(bus.CampaignRequest, payload_of(sample, bus.CampaignRequest))
+            with self._req_lock:
+                self._arrivals += 1
+                if req.action == "stop":
+                    if self._stop_may_matter(req.campaign_id):
+                        self._stops[req.campaign_id] = self._arrivals
+                    return
+                starts = self._starts[addressed]
+                full = len(starts) >= REQUEST_QUEUE
+                if not full:
+                    starts.append((self._arrivals, req))
+            if full:
+                self._reject_request("too many requests waiting" + ("" if addressed else " on the bare key"))
         except bus.BusDecodeError as exc:
             self._reject_request(exc.reason)
-        except queue.Full:
-            self._reject_request("too many requests waiting")
         except Exception as exc:  # noqa: BLE001 - see above
             self._reject_request(f"{type(exc).__name__}: {exc}")
+
+    def _stop_may_matter(self, campaign_id: str) -> bool:
+        """Whether a stop of ``campaign_id`` may stop anything (under the request lock): a campaign
+        the service runs, prepares or holds waiting, as the loop last saw it, or a start waiting
+        in a queue. Any other stop changes nothing (:meth:`CampaignService.stop`), and a flood of
+        them is not kept: what is kept is bounded by those ids."""
+        return campaign_id in self._stoppable or any(
+            r.campaign_id == campaign_id for starts in self._starts.values() for _, r in starts)
 
     def _prepare_forever(self) -> None:
         """Worker thread: parse and validate start requests off the 500 Hz loop (within the
@@ -303,8 +340,9 @@ class ControllerNode:
             self._prepared.put((req, result))
 
     def _serve_requests(self, stamp_s: float) -> None:
-        """Service mode, between two ticks: stop requests at once, start requests to the worker,
-        prepared campaigns started."""
+        """Service mode, between two ticks (under the tick lock): prepared campaigns started, then
+        the requests that arrived since the last turn in the order they arrived, stops at once,
+        starts to the worker."""
         svc = self.service
         while True:
             try:
@@ -315,18 +353,27 @@ class ControllerNode:
                 log.warning("campaign %s: %s", req.campaign_id, result.reason)
                 self._reject_request(f"{req.campaign_id}: {result.reason}")
             svc.prepared(result, req, stamp_s)
-        while True:
-            try:
-                req = self._inbox.get_nowait()
-            except queue.Empty:
-                return
-            if req.action == "stop":
-                svc.stop(req.campaign_id, stamp_s)
+        with self._req_lock:
+            starts = [*self._starts[False], *self._starts[True]]
+            for waiting in self._starts.values():
+                waiting.clear()
+            stops, self._stops = self._stops, {}
+            # Until the service has seen them, a stop of these may matter too.
+            self._stoppable |= {r.campaign_id for _, r in starts}
+        # In the order they arrived: a stop stops the start of its id before it, not one after
+        # (an id may be asked again once stopped).
+        todo: list[tuple[int, bus.CampaignRequest | str]] = [*starts, *((n, cid) for cid, n in stops.items())]
+        for _, req in sorted(todo, key=lambda item: item[0]):
+            if isinstance(req, str):
+                svc.stop(req, stamp_s)
             elif svc.request_start(req):
                 try:
                     self._to_prepare.put_nowait(req)
                 except queue.Full:
                     svc.prepared(Refused("refused: the controller is busy preparing other campaigns"), req, stamp_s)
+        stoppable = svc.stoppable()  # what a stop may concern from now on (the tick keeps it a superset)
+        with self._req_lock:
+            self._stoppable = stoppable
 
     # -- the loop -----------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> str:

@@ -452,6 +452,15 @@ class CampaignService:
             self.refuse(campaign_id, self._starting.kind, "stopped by the user before it started")
             self._starting, self.phase = None, "idle"
 
+    def stoppable(self) -> frozenset[str]:
+        """The campaign ids a stop request may concern now (:meth:`stop`): the running campaign,
+        the one being prepared, the one waiting to start. The shell keeps stops of these only, so
+        a flood of stops of other ids takes no room (:mod:`controller.process`)."""
+        ids = {self._next_jog.campaign_id if self._next_jog is not None else "",
+               self._starting.campaign_id if self._starting is not None else "",
+               self.campaign_id if self.running else ""}
+        return frozenset(ids - {""})
+
     def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
         """A controlled stop from where α^d is at ``stamp_s`` (:func:`controller.trajectory.brake_at`),
         while the law tracks it (drives active, no hold, no re-start due); ``None`` otherwise (the

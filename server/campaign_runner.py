@@ -83,6 +83,13 @@ CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and t
 # first state, silently, on a command not connected to any bridge.
 BRIDGE_WAIT_S = 10.0
 OWNER_WAIT_S = 0.5  # s: with several controller services, for a state saying which one the bridge obeys
+# A campaign this runner ends on a controller service (a stop, a timeout, a silent bridge) is sent
+# its stop again every STOP_RESEND_S until its end event comes, for STOP_ANSWER_S at most: one
+# stop can be lost (the bus drops it; a flood of requests once had the service reject it, audit of
+# 2026-11-30), and a second stop of the same campaign changes nothing. As server.campaigns does
+# for a campaign stopped after the console's restart (its own constants, of the same values).
+STOP_ANSWER_S = 3.0
+STOP_RESEND_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -338,6 +345,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         deadline = time.monotonic() + spec.timeout_s
         answer_deadline = time.monotonic() + 10.0
         started = False
+        ended = False  # the controller's end event of the campaign came: no stop is owed
         dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
         gone_since = 0.0  # when the controller service was first seen gone (its cause may be on the way)
         while not not_up:
@@ -361,7 +369,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 if progress:
                     progress(ev.progress, ev.event if not ev.message else f"{ev.event}: {ev.message}")
                 if ev.event in ("finished", "aborted"):
-                    outcome, message = ev.event, ev.message
+                    outcome, message, ended = ev.event, ev.message, True
                     break
             # Every turn, not only when no event came for 0.2 s: a lockstep twin's events (one per
             # 0.5 s of campaign time) come faster than that on a quick machine, and a stop, the
@@ -401,10 +409,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
                 break
     finally:
         monitor.end()
-        if requests is not None and requested and outcome == "aborted":
+        # Not when the service vanished: nothing would answer (it ended the campaign with it).
+        if requests is not None and requested and outcome == "aborted" and not ended \
+                and (services is None or services.alive()):
             with contextlib.suppress(Exception):
-                requests.put(bus.CampaignRequest(seq=2, stamp_s=time.time(), campaign_id=campaign_id, action="stop"))
-                time.sleep(0.05)
+                _stop_until_ended(requests, events, campaign_id)
         if requests is not None:
             requests.close()
         if services is not None:
@@ -443,6 +452,29 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides,
                                base_name=params.name)
     return result
+
+
+def _stop_until_ended(requests: BusPublisher[bus.BusMessage], events: queue.Queue[bus.CampaignEvent],
+                      campaign_id: str) -> bus.CampaignEvent | None:
+    """Send the stop of ``campaign_id`` on ``requests`` until its end event (finished, aborted)
+    comes on ``events``, every :data:`STOP_RESEND_S`, for :data:`STOP_ANSWER_S` at most; the end
+    event, or None if none came (the bridge's watchdog holds the robot once the controller's
+    commands stop, whatever the record says)."""
+    give_up = time.monotonic() + STOP_ANSWER_S
+    seq = 1  # the start request was 1
+    while True:
+        seq += 1
+        requests.put(bus.CampaignRequest(seq=seq, stamp_s=time.time(), campaign_id=campaign_id, action="stop"))
+        resend_at = min(time.monotonic() + STOP_RESEND_S, give_up)
+        while (left := resend_at - time.monotonic()) > 0:
+            try:
+                ev = events.get(timeout=left)
+            except queue.Empty:
+                break
+            if ev.event in ("finished", "aborted"):
+                return ev
+        if time.monotonic() >= give_up:
+            return None
 
 
 def analyse_identification(result: CampaignResult, params_file: Path | None, estimator: str = "auto",
