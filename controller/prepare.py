@@ -50,14 +50,23 @@ class Refused(Exception):
         self.reason = reason
 
 
-def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float]) -> ForceCheck:
-    """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``: a validation whose
-    cost grows with the trajectory cannot hold the worker (or the GIL) for long."""
+class GivenUp(Refused):
+    """A preparation given up because its request is no longer wanted (stopped, superseded):
+    nobody waits for its answer (the stop answered the request)."""
+
+
+def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float],
+              wanted: Callable[[], bool] | None = None) -> ForceCheck:
+    """``check`` run in chunks, refusing once ``clock()`` passes ``deadline``, and giving up once
+    ``wanted()`` says the request is no longer wanted: a validation whose cost grows with the
+    trajectory cannot hold the worker (or the GIL) for long, nor for nothing."""
 
     def run(alpha: np.ndarray, alpha_dot: np.ndarray, alpha_ddot: np.ndarray,
             pretension: np.ndarray) -> tuple[np.ndarray, str]:
         ok = np.ones(len(alpha), dtype=bool)
         for k in range(0, len(alpha), FORCE_CHECK_CHUNK):
+            if wanted is not None and not wanted():
+                raise GivenUp("given up: the request was stopped or superseded while it was prepared")
             if clock() > deadline:
                 raise Refused("refused: the force check did not finish within its time budget; "
                               "ask for a shorter trajectory")
@@ -90,11 +99,14 @@ def check_limits_within(params: Params, robot: Params) -> None:
 
 
 def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
-            budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic) -> Prepared:
+            budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic,
+            wanted: Callable[[], bool] | None = None) -> Prepared:
     """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
     gives the gains and rate kept from the process's own law. Runs off the control loop (it may
-    take seconds), never longer than ``budget_s`` by ``clock``. Raises :class:`Refused` with the
-    reason for anything wrong, never another exception."""
+    take seconds), never longer than ``budget_s`` by ``clock``; ``wanted`` is asked at each look
+    at the budget (every ``FORCE_CHECK_CHUNK`` samples, about 15 ms): once it says False, the
+    preparation ends with :class:`GivenUp`. Raises :class:`Refused` with the reason for anything
+    wrong, never another exception."""
     deadline = clock() + budget_s
     try:
         if not req.trajectory_json:
@@ -113,7 +125,8 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
                                   alpha_dot_max_rad_s=base.alpha_dot_max_rad_s,
                                   alpha_ddot_max_rad_s2=base.alpha_ddot_max_rad_s2,
                                   duration_max_s=base.duration_max_s, waypoints_max=base.waypoints_max)
-        validate(traj, limits, params.n_joints, _budgeted(nominal_force_check(params, new_law), deadline, clock))
+        validate(traj, limits, params.n_joints,
+                 _budgeted(nominal_force_check(params, new_law), deadline, clock, wanted))
     except Refused:
         raise
     except (ValueError, TrajectoryError, tomllib.TOMLDecodeError) as exc:
@@ -125,5 +138,5 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
 
 
-__all__ = ["FORCE_CHECK_CHUNK", "LIMITS_NOT_WIDENED", "VALIDATION_BUDGET_S", "Prepared", "Refused",
+__all__ = ["FORCE_CHECK_CHUNK", "LIMITS_NOT_WIDENED", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused",
            "check_limits_within", "prepare"]

@@ -461,6 +461,12 @@ class CampaignService:
                self.campaign_id if self.running else ""}
         return frozenset(ids - {""})
 
+    def wants(self, req: bus.CampaignRequest) -> bool:
+        """Whether the preparation of request ``req`` is still worth finishing: it is the very
+        request being prepared, not stopped or superseded meanwhile (:meth:`prepared` would drop
+        its result). One attribute read: the shell's worker asks it without the tick lock."""
+        return self._starting is req
+
     def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
         """A controlled stop from where α^d is at ``stamp_s`` (:func:`controller.trajectory.brake_at`),
         while the law tracks it (drives active, no hold, no re-start due); ``None`` otherwise (the

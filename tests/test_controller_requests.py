@@ -19,10 +19,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import pytest
 from busutil import wait_until
 from test_bridge_node import Collector
 
+import controller.process as process
 from bridge import bus
 from bridge.session import BusPublisher, free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
@@ -35,6 +37,15 @@ INSTANCE = "c-requests"
 # Long enough to be running whenever the tests look: they stop it.
 LONG = Trajectory.from_degrees([[0, 0, 0], [6, 3, 0], [0, 0, 0]], 30.0, name="long")
 JOG = Trajectory.from_degrees([[2, 2, 2]], [], name="jog")
+NOD = Trajectory.from_degrees([[0, 0, 0], [8, 4, 0], [0, 0, 0]], 1.0, 0.2, name="nod")
+
+
+def _big() -> str:
+    """The audit's s12 request: 2000 waypoints over 600 s, valid, whose force check samples the
+    path 60 000 times (about 3 s of preparation on an idle machine, 8 s at most: its budget)."""
+    rng = np.random.default_rng(0)
+    w = np.clip(np.cumsum(rng.choice([-1.5, 1.5], size=(2000, 3)), axis=0), -50, 50)
+    return Trajectory.from_degrees(w, 0.3, 0.0, name="big").to_json()
 
 
 class _PausableWake:
@@ -191,6 +202,46 @@ def test_a_flood_on_the_bare_key_does_not_crowd_out_a_request_addressed_to_the_s
     finally:
         stack.request("victim-2", action="stop")
     assert stack.wait_event("victim-2", ("finished", "aborted"), 10).event == "aborted"
+
+
+def test_a_request_stopped_while_it_is_prepared_is_cut_short_and_the_next_one_starts(stack, monkeypatch):
+    """Finding 4: a big request stopped while the worker prepares it is given up at its next look
+    at the budget, and those stopped before the worker came to them are never prepared: the
+    next request starts at once, not after the seconds of preparation nobody wants any more."""
+    calls: list[tuple[str, str]] = []  # (campaign id, "begun" / "prepared" / the refusal)
+    real = process.prepare
+
+    def watched(req: bus.CampaignRequest, *args: Any, **kwargs: Any) -> Any:
+        calls.append((req.campaign_id, "begun"))
+        try:
+            result = real(req, *args, **kwargs)
+        except process.Refused as exc:
+            calls.append((req.campaign_id, exc.reason))
+            raise
+        calls.append((req.campaign_id, "prepared"))
+        return result
+
+    monkeypatch.setattr(process, "prepare", watched)
+    big = _big()
+    assert wait_until(lambda: not stack.node.service.running and not stack.node.service.braking, 30, 0.05)
+    stack.request("big-1", trajectory_json=big)
+    assert wait_until(lambda: ("big-1", "begun") in calls, 30, 0.01), stack.answers("big-1")
+    # Each start is taken once the one before is stopped: all of them wait for the worker.
+    stack.request("big-1", action="stop")
+    stack.request("big-2", trajectory_json=big)
+    stack.request("big-2", action="stop")
+    stack.request("big-3", trajectory_json=big)
+    stack.request("big-3", action="stop")
+    stack.request("next", trajectory_json=NOD.to_json())
+    stack.wait_event("next", ("started",), 60)
+    for k in (1, 2, 3):
+        ev = stack.wait_event(f"big-{k}", ("aborted",), 10)
+        assert "stopped by the user before it started" in ev.message, ev
+    ended = dict(c for c in calls if c[1] != "begun")
+    assert ended.get("big-1") not in (None, "prepared"), calls  # cut short while it was prepared
+    assert not [c for c in calls if c[0] in ("big-2", "big-3")], calls  # stopped before: never prepared
+    stack.request("next", action="stop")
+    stack.wait_event("next", ("finished", "aborted"), 30)
 
 
 def test_the_console_sends_its_stop_again_until_the_campaign_ends():
