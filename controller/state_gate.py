@@ -15,9 +15,13 @@ class StateGate:
     2 ms step per state is within it). Only after ``rebind_s`` without any state taken does the
     gate start again: at once from a state that continues the bound run's clock, else from a
     state of a new run (a restarted bridge) or of a stepped clock once the next state confirms it
-    (same run, not earlier, not ahead of it). A forged run or stamp beside a live bridge is never
-    taken, nor is a lone one that arrives first after a stall of the controller's CPU. ``now_s``:
-    a monotonic clock (s).
+    (same run, not earlier, not ahead of it). Another run, or a stamp off the bound run's clock,
+    beside a live bridge is never taken, nor is a lone one that arrives first after a stall of the
+    controller's CPU. A state that copies the live run's bridge and epoch (both in every state on
+    the bus) with a stamp a little ahead is taken: the gate tells runs and clocks apart, not a
+    forger from the bridge (20 Hz of such states kept the real bridge's refused, audit of
+    2026-11-29); the bus's credentials keep strangers off it (docs/safety.md, "Who may link to the
+    bridge"). ``now_s``: a monotonic clock (s).
 
     The first state ever is taken as it comes (there is nothing to compare it with), so a stray
     run seen first could keep the gate, fed at a few Hz, away from the bridge (audit of
