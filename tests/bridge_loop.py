@@ -5,6 +5,8 @@ the bridge's enable ramp, its e-stop and its watchdog hold)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from bridge.motor_speed import MotorSpeed
@@ -37,12 +39,22 @@ class BridgeLoop:
         return self.tick.t_s
 
     def run(self, seconds: float, estop: tuple = (), drop_commands: bool = False,
-            stuck: dict[int, float] | None = None) -> None:
+            stuck: dict[int, float] | None = None, unanswered: Callable[[int], bool] | None = None) -> None:
         """``seconds`` of 2 ms ticks; ``estop``: (engaged, reason) pairs for the first tick;
         ``drop_commands``: the bridge gets none (its watchdog holds); ``stuck``: encoder index →
-        the reading (rad) it is frozen at, for the controller (a stuck encoder)."""
+        the reading (rad) it is frozen at, for the controller (a stuck encoder); ``unanswered``:
+        tick index (from 0 in this call) → whether the controller never sees that state (the
+        process skipping a burst's stale states, the state gate or Zenoh dropping one): the bridge
+        re-applies the last command meanwhile, its age and the states unanswered counting up."""
         pending = list(estop)
-        for _ in range(round(seconds * 500)):
+        since = 0  # states unanswered since the last command
+        for k in range(round(seconds * 500)):
+            if unanswered is not None and unanswered(k) and self.outputs:
+                since += 1
+                self._bridge_tick(self.outputs[-1].force_N.tolist(), 0.002 * since, since, tuple(pending))
+                pending = []
+                continue
+            since = 0
             drive = self.safety.drive
             self.svc.drive_reason = self.safety.estop_reason if drive == "disabled" else self.safety.hold_reason
             theta = self.tick.theta_meas
@@ -55,12 +67,15 @@ class BridgeLoop:
             if out.law_ran:
                 self.svc.advance(self.stamp_s)
             self.events += self.svc.drain_events()
-            hold = self.hold_rule(self.tick.theta_meas).tolist()
-            d = self.safety.step(Inputs(command_N=None if drop_commands else out.force_N.tolist(),
-                                        command_age_s=0.02 if drop_commands else 0.0,
-                                        states_unanswered=5 if drop_commands else 0,
-                                        estop=tuple(pending), hold_N=hold, sender="c", speed_rad_s=self.speed.rad_s))
+            self._bridge_tick(None if drop_commands else out.force_N.tolist(), 0.02 if drop_commands else 0.0,
+                              5 if drop_commands else 0, tuple(pending))
             pending = []
-            self.applied.append(np.asarray(d.force_N, dtype=float))
-            self.tick = self.twin.tick(np.asarray(d.force_N))
-            self.speed.update(self.tick.theta_meas.tolist())
+
+    def _bridge_tick(self, command: list[float] | None, age_s: float, unanswered: int, estop: tuple) -> None:
+        """The bridge's safety rules on ``command`` (None: none came), then one twin period."""
+        hold = self.hold_rule(self.tick.theta_meas).tolist()
+        d = self.safety.step(Inputs(command_N=command, command_age_s=age_s, states_unanswered=unanswered,
+                                    estop=estop, hold_N=hold, sender="c", speed_rad_s=self.speed.rad_s))
+        self.applied.append(np.asarray(d.force_N, dtype=float))
+        self.tick = self.twin.tick(np.asarray(d.force_N))
+        self.speed.update(self.tick.theta_meas.tolist())
