@@ -14,6 +14,30 @@ The laws differ only in the controller's model (§6.3, Table 3):
 
 Beyond the paper, every law bounds the rate of its commanded forces (``LawConfig.force_rate_max_N_s``):
 an encoder that jumps (a slack cable crossing the gear backlash) must not step the cables.
+
+Time step: a tick told the stamp of its state (the bridge's clock; a lockstep twin's simulated
+time) differentiates θ and α̂, integrates e and predicts the stretch (eq. 58) over the time since
+the last state the law took, not over 1/rate_hz. States the controller never answers (the process
+skipping a burst's stale ones when it is behind, the state gate refusing one, Zenoh dropping one)
+had it divide two periods' increment by one: θ̇ and α̂̇ doubled for a tick, the k_v term of eq. 59
+spiked, and law 2's control test stepped its commands by the 10 N rate bound 74 times with 5 % of
+the states missed singly, never with none (audit; tests/test_laws_missed_states.py). How the gap
+is taken (:meth:`ComputedTorque.tick_time`):
+
+- the velocity filters divide by the whole gap (the mean velocity over it, however long) and their
+  low-pass weight is that of the gap, so across a long one they restart from that mean rather
+  than spike;
+- the integral and eq. 58 take the gap bounded by ``MAX_STEP_PERIODS`` periods: beyond them the
+  process was holding on stale states (``stale_s``, 10 ms), not controlling, and its integral is
+  not to wind up over a hold (after ``STALE_RESTART_S`` the service re-starts it anyway);
+- no gap is known (the first state, after a reset: a new bridge run, a re-estimate; a tick without a
+  stamp: the offline loop, tests), or the stamps do not advance: one period, as before; a clock step
+  the controller is told of is taken out of the gap (:meth:`ComputedTorque.clock_stepped`);
+- a gap within ``PERIOD_TOLERANCE_S`` of the period is the period itself, so a steady clock (a
+  twin without timing jitter, stamps k·2 ms rounded) gives the very numbers of a fixed period.
+
+The rate bound stays per command (``force_rate_max_N_s``/rate_hz): what the bridge is sent in one
+message is what may step the cables.
 """
 
 from __future__ import annotations
@@ -33,6 +57,12 @@ from twin.model.numeric import Model, build
 from twin.model.params import Params
 
 LAWS = (1, 2, 3)
+#: periods of a gap between states over which the integral and eq. 58 still run (module docstring,
+#: "Time step"): 10 ms at 500 Hz, the process's ``stale_s``, beyond which it holds.
+MAX_STEP_PERIODS = 5
+#: s within which a gap between stamps is the nominal period (float rounding of stamps, 0.24 µs on
+#: a wall clock's epoch seconds; a bridge's real jitter is of order 0.1 ms).
+PERIOD_TOLERANCE_S = 1e-6
 
 
 @dataclass(frozen=True)
@@ -90,10 +120,12 @@ class ComputedTorque:
         self.estimator = PseudoInverseEstimator(self.model, self.dt)
         self.reset()
 
-    def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None) -> None:
+    def reset(self, alpha: np.ndarray | None = None, theta: np.ndarray | None = None,
+              stamp_s: float | None = None) -> None:
         """Start again at α̂ = ``alpha`` with the encoders at ``theta`` (default: zeros, the
-        straight neck of eq. 20). The state lives in arrays allocated here, which every tick
-        updates in place (:mod:`controller.kernel`)."""
+        straight neck of eq. 20), read at ``stamp_s`` (s; None: unknown, the next tick then spans
+        one period). The state lives in arrays allocated here, which every tick updates in place
+        (:mod:`controller.kernel`)."""
         m = self.model
         self.estimator.reset(alpha, theta)
         self.integral = np.zeros(m.n_joints)
@@ -104,24 +136,57 @@ class ComputedTorque:
         self._theta_prev = np.zeros(m.n_cables) if theta is None else np.array(theta, dtype=float)
         self._work = kernel.scratch(m.n_joints, m.n_cables)
         self._gains = np.array([self.kp, self.kv, self.ki, self.dt, self._beta,
-                                self.config.force_rate_max_N_s * self.dt])
+                                self.config.force_rate_max_N_s * self.dt, self.dt])
+        self._stamp_prev = math.nan  # s, the stamp of the state θ_prev was read at (nan: unknown)
+        self.gap_s = self.dt  # s, the time the last tick's estimate spanned (tick_time)
         self._theta = np.zeros(m.n_cables)
         self._ref = (np.zeros(m.n_joints), np.zeros(m.n_joints), np.zeros(m.n_joints))
         self._out = (np.zeros(m.n_cables), np.zeros(m.n_cables, dtype=np.bool_), np.zeros(m.n_joints),
                      np.zeros(m.n_joints))
         self._alpha_out = np.zeros(m.n_joints)
+        if stamp_s is not None:
+            self._stamp_prev = float(stamp_s)
+
+    def tick_time(self, stamp_s: float | None) -> float:
+        """Take the time since the last state for a tick on the state stamped ``stamp_s`` (s; None:
+        unknown) and set the gains with it (module docstring, "Time step"): the gap (s), also kept
+        in :attr:`gap_s`. A handful of float operations, one ``exp`` when the gap is not the period."""
+        prev = self._stamp_prev
+        self._stamp_prev = math.nan if stamp_s is None else stamp_s
+        gap = self.dt if stamp_s is None else stamp_s - prev  # nan when prev is unknown
+        if not gap > 0.0 or not math.isfinite(gap) or abs(gap - self.dt) <= PERIOD_TOLERANCE_S:
+            gap = self.dt
+        g = self._gains
+        if gap != g[6]:
+            g[3] = min(gap, MAX_STEP_PERIODS * self.dt)
+            g[4] = self._beta if gap == self.dt else 1.0 - math.exp(-2 * math.pi * self.config.velocity_filter_hz * gap)
+            g[6] = gap
+        self.gap_s = gap
+        return gap
+
+    @property
+    def stamp_s(self) -> float | None:
+        """The stamp (s) of the last state the law took, None if unknown."""
+        return None if math.isnan(self._stamp_prev) else self._stamp_prev
+
+    def clock_stepped(self, step_s: float) -> None:
+        """The states' clock stepped by ``step_s`` (s) since the last state (the state gate's
+        ``stepped_s``): not time that passed, so it is taken out of the next gap."""
+        self._stamp_prev += step_s
 
     def _state(self) -> tuple[np.ndarray, ...]:
         est = self.estimator
         return (self._theta_prev, self.theta_dot, est.alpha_hat, self.alpha_hat_dot, est.theta, est.x_c, self.f_prev,
                 self.integral)
 
-    def observe(self, theta: np.ndarray, f_applied: np.ndarray) -> np.ndarray:
+    def observe(self, theta: np.ndarray, f_applied: np.ndarray, stamp_s: float | None = None) -> np.ndarray:
         """Follow the measured state without commanding (drives off, or the bridge holding): α̂
         and the velocity filters take the encoders θ (rad) and the forces ``f_applied`` (N) the
         drives really apply, and the integral stays at zero, so nothing winds up and the next
-        :meth:`step` starts from the measurement (bumpless re-start). Returns α̂ (rad)."""
+        :meth:`step` starts from the measurement (bumpless re-start). ``stamp_s``: the state's
+        stamp (s; module docstring, "Time step"). Returns α̂ (rad)."""
         self.f_prev[:] = f_applied
+        self.tick_time(stamp_s)
         self._estimate(theta)
         self.integral[:] = 0.0
         return self.estimator.alpha_hat.copy()
@@ -136,17 +201,21 @@ class ComputedTorque:
         filtered θ̇ and α̂̇ (:func:`controller.kernel.estimate`)."""
         self._theta[:] = theta
         w, est = self._work, self.estimator
-        kernel.estimate(self.model, self.dt, self._beta, self._has_prev, self._theta, self._theta_prev, self.theta_dot,
+        g = self._gains
+        kernel.estimate(self.model, g[3], g[6], g[4], self._has_prev, self._theta, self._theta_prev, self.theta_dot,
                         est.alpha_hat, self.alpha_hat_dot, est.theta, est.x_c, self.f_prev, w[0], w[1], w[2], w[3],
                         w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
         self._has_prev = True
 
     def step(self, theta: np.ndarray, alpha_d: np.ndarray, alpha_d_dot: np.ndarray, alpha_d_ddot: np.ndarray,
-             pretension_N: float = 0.0) -> Command:
+             pretension_N: float = 0.0, stamp_s: float | None = None) -> Command:
         """One control tick from the encoder angles θ (rad) and the desired α^d, α̇^d, α̈^d: one
         call of the compiled :func:`controller.kernel.law_tick`. ``pretension_N`` raises every
-        cable's floor t_min (eq. 65; a trajectory's pretension). The arrays of the returned
-        :class:`Command` are the law's own and change at the next tick: copy what you keep."""
+        cable's floor t_min (eq. 65; a trajectory's pretension). ``stamp_s``: the state's stamp
+        (s), whose gap from the last one the tick spans (module docstring, "Time step"; None: one
+        period). The arrays of the returned :class:`Command` are the law's own and change at the
+        next tick: copy what you keep."""
+        self.tick_time(stamp_s)
         self._theta[:] = theta
         a, ad, add = self._ref
         a[:], ad[:], add[:] = alpha_d, alpha_d_dot, alpha_d_ddot

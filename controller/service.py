@@ -303,12 +303,12 @@ class CampaignService:
         tick (audit of 2026-11-26). The forces of the last period stay those sent."""
         if self._theta_last is None:
             return
-        theta = np.array(self._theta_last[1])
+        stamp, theta = self._theta_last[0], np.array(self._theta_last[1])
         f_sent = self.ctl.f_prev.copy()
         alpha = alpha_hat_3(self.ctl.model, theta)
         if not np.all(np.isfinite(alpha)):
             return
-        self.ctl.reset(alpha=alpha, theta=theta)
+        self.ctl.reset(alpha=alpha, theta=theta, stamp_s=stamp)  # the next gap from that state's stamp
         self.ctl.f_prev[:] = f_sent
         if self.encoder_check is not None:
             self.encoder_check.reset()
@@ -334,7 +334,7 @@ class CampaignService:
         s = float(residuals(self._stretch_model, theta, alpha, force_N)[0])
         return math.isfinite(s) and s < -SLACK_SEEN_M
 
-    def _reestimate_taut(self, theta: np.ndarray, force_N: np.ndarray) -> None:
+    def _reestimate_taut(self, theta: np.ndarray, force_N: np.ndarray, stamp_s: float | None = None) -> None:
         """α̂ again from the encoders' absolute reading (eq. 33) with the stretch the forces hold
         at rest (eq. 58), once a take-up has the cables taut and the motors still. A run joined
         under way started α̂ from cables that may have been slack (28° off on the robot truth, the
@@ -346,7 +346,7 @@ class CampaignService:
         if alpha is None:
             return  # the incremental estimate goes on: the hold's divergence checks still watch it
         f_sent = self.ctl.f_prev.copy()
-        self.ctl.reset(alpha=alpha, theta=theta)
+        self.ctl.reset(alpha=alpha, theta=theta, stamp_s=stamp_s)  # the next gap from this state's stamp
         self.ctl.f_prev[:] = f_sent
         self.ctl.estimator.x_c[:] = static_elongation(self.ctl.model, force_N)
         if self.encoder_check is not None:
@@ -370,6 +370,9 @@ class CampaignService:
         with most of its trajectory never run, a step back kept it going for as long again (audit
         of 2026-11-27). It ends ``aborted`` with the reason; the estimate goes on (same encoders),
         and what was timed on the old clock starts again."""
+        # Whatever its size the step is no time that passed: the law's next gap (controller.laws,
+        # "Time step") leaves it out, as the take-up's times do.
+        self.ctl.clock_stepped(step_s)
         if abs(step_s) < CLOCK_STEP_ABORT_S:
             return  # a stall's catch-up, not a clock set: the campaign goes on, as before the check
         if self._take_up is not None:
@@ -595,7 +598,7 @@ class CampaignService:
         model does not know, a force step at every campaign start (audit of 2026-11-28)."""
         old, old_ctl = self.ctl.estimator, self.ctl
         ctl = ComputedTorque(self.params, law)
-        ctl.reset(alpha=old.alpha_hat, theta=old.theta)
+        ctl.reset(alpha=old.alpha_hat, theta=old.theta, stamp_s=old_ctl.stamp_s)  # the next gap from the same state
         if ctl.model.cable_model == old_ctl.model.cable_model:
             ctl.estimator.x_c = old.x_c.copy()
         ctl.theta_dot = old_ctl.theta_dot.copy()
@@ -818,7 +821,7 @@ class CampaignService:
                 return self.hold(f"taking up the cables' slack {self._take_up_cause()}: waiting for the drives")
         elif drive != "active":
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
-            self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
+            self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
             self._restart = self._drives_off = True
             if drive == "disabled":
                 self._estopped, self._take_up = True, None  # a take-up starts again at the release
@@ -853,7 +856,7 @@ class CampaignService:
             self._take_over(stamp_s)
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
         sent = self.ctl.f_prev.copy() if self._wind_down else None
-        cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s))
+        cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s), stamp_s)
         if sent is not None:
             cmd.f[:] = self._wind_down_bound(cmd.f, sent)
             self.ctl.f_prev[:] = cmd.f
@@ -885,9 +888,9 @@ class CampaignService:
         # (with the drives just back the bridge still ramps from zero: from there the first
         # command had dropped 7 N).
         sent = self.ctl.f_prev.copy() if self._hold_sent is None else self._hold_sent.copy()
-        self.ctl.observe(np.asarray(theta_rad, dtype=float), applied)
+        self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
         self.ctl.f_prev[:] = sent
-        take_up.damp(self.ctl.theta_dot, self.ctl.dt)
+        take_up.damp(self.ctl.theta_dot, self.ctl.gap_s)  # its low-pass over the time the speeds span
         # the floor at which the hold at α̂ stays PEAK_FORCE_FRACTION under f_max (audit of
         # 2026-11-29: the distribution loaded cables to f_max at ordinary poses)
         cap = take_up_rules.floor_cap_N(self.params, self.hold_alpha()) if drive == "active" else math.inf
@@ -903,7 +906,7 @@ class CampaignService:
         self._take_up, self._wind_down = None, True
         self.pretension_N = take_up.level_N
         if self._reestimate_when_taut:
-            self._reestimate_taut(np.asarray(theta_rad, dtype=float), applied)
+            self._reestimate_taut(np.asarray(theta_rad, dtype=float), applied, stamp_s)
         self._joined = False
         # said once, in the status and the process's log (a new hold reason): how it ended
         return self.hold(f"the cables' slack is taken up ({take_up.done_reason}): the law takes over")
