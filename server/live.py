@@ -22,7 +22,7 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
                     "law", "tick_s", "deadline_misses", "overruns"},
         "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason"},
         "command": {"stamp_s", "force_N"},
-        "camera":  {"stamp_s", "alpha_ip_rad", "confidence", "source"},  (alpha_ip_rad[i] null: joint missing)
+        "camera":  {"stamp_s", "alpha_ip_rad", "confidence", "source", "instance"},  (alpha_ip_rad[i] null: joint missing)
         "truth":   {"stamp_s", "alpha_rad", "tension_N"},
         "campaign":{"campaign_id", "kind", "event", "progress", "message"},
         "estop":   {"engaged", "reason"}}}
@@ -31,6 +31,20 @@ A series appears once its first message arrived; ``stamp_s`` lets a client drop 
 ``camera`` appears only while the camera is fresh (:func:`fresh_camera`, the rule of
 ``/api/camera``'s ``fresh``): the dashboard plots α_IP at each new status time, and a stale
 camera's last α_IP had been drawn there as a live line (audit of 2026-11-29).
+
+``camera`` is one camera's: two cameras may publish α_IP on one hub (`xneck up`'s and a second
+`xneck camera --source twin` or ``usb:0``), and the series flipped between them at each read, the
+dashboard's α_IP line jumping between two sources. A camera is told by its samples' attachment
+(as the console's camera health tells them apart, :mod:`server.camera_feed`): the camera process
+that names itself (:func:`bridge.session.camera_of`), else the bridge run whose twin published it
+(:func:`~bridge.session.run_of`), else none (an older camera process, a replay); ``instance`` is
+that name ('' for none). Their samples queue in a ring of :data:`BY_RUN_RING_SAMPLES`, each
+camera's newest kept (at most :data:`BY_CAMERA_MAX_CAMERAS`), and the series shows the newest of
+the camera followed: the one :attr:`LatestValues.prefer_camera` names while it is fresh (the
+camera the running campaign records, else the stack's own: ``server.app``; ``TWIN_CAMERA``: the
+twin of the run the truth follows), else the one followed so far while it sent within
+:data:`CAMERA_FOLLOW_MAX_AGE_S`, else, among those that did, the one heard of first. A camera
+gone silent thus hands over to a live one before the series goes stale.
 
 ``truth`` is one twin's: a ``Truth`` has no identity field, and a second twin on the hub made the
 series flip between two twins' clocks and poses (audit of 2026-11-29). Its samples name their
@@ -51,14 +65,14 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any, TypeVar, cast
 
 import msgspec
 import zenoh
 
 from bridge import bus
-from bridge.session import controller_of, replayed, run_of
-from server.quality import drive_estop
+from bridge.session import camera_of, controller_of, replayed, run_of
+from server.quality import TWIN_CAMERA, drive_estop
 
 #: Series name -> (key, fields forwarded to browsers).
 SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -66,7 +80,7 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
                                        "law", "tick_s", "deadline_misses", "overruns")),
     "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason")),
     "command": (bus.MOTOR_COMMAND, ("stamp_s", "force_N")),
-    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad", "confidence", "source")),
+    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad", "confidence", "source")),  # + "instance": frame_of
     "truth": (bus.TWIN_TRUTH, ("stamp_s", "alpha_rad", "tension_N")),
     "campaign": (bus.CAMPAIGN_EVENTS, ("campaign_id", "kind", "event", "progress", "message")),
     "estop": (bus.ESTOP, ("engaged", "reason")),
@@ -84,10 +98,20 @@ RUN_FOLLOW_MAX_AGE_S = 0.5  # s: an older command or state names no run to follo
 BY_RUN_MAX_RUNS = 8  # runs remembered per series (a flood of forged runs stays bounded)
 STATUS_MAX_CONTROLLERS = 8  # controllers whose newest live status is kept (LiveBus.live_statuses)
 
+#: Series whose value is one camera's (module docstring): a ring of BY_RUN_RING_SAMPLES, each
+#: camera's newest kept.
+BY_CAMERA = frozenset({"camera"})
+#: s: the camera followed hands over to another that sent within this (under CAMERA_MAX_AGE_S, so
+#: that the series stays fresh through a hand-over; a camera sends at 30-60 Hz).
+CAMERA_FOLLOW_MAX_AGE_S = 0.5
+BY_CAMERA_MAX_CAMERAS = 8  # cameras remembered (a flood of forged names stays bounded)
+
 #: s: a camera whose latest α_IP arrived longer ago than this is stale (:func:`fresh_camera`).
 CAMERA_MAX_AGE_S = 1.0
 #: Series a live frame carries only while fresh: name -> the age (s) beyond which it is left out.
 LIVE_MAX_AGE_S: dict[str, float] = {"camera": CAMERA_MAX_AGE_S}
+
+_K = TypeVar("_K")
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
@@ -122,6 +146,17 @@ class LatestValues:
         self._run_sources: dict[str, Callable[[], Any]] = {}  # BY_RUN series -> try_recv of its ring
         # BY_RUN series -> bridge run ('' : none named) -> (time.monotonic() taken, its newest payload)
         self._by_run: dict[str, dict[str, tuple[float, bytes]]] = {}
+        self._camera_sources: dict[str, Callable[[], Any]] = {}  # BY_CAMERA series -> try_recv of its ring
+        # BY_CAMERA series -> camera (:func:`_camera_key`) -> (time.monotonic() first taken, of its
+        # newest, its newest payload)
+        self._by_camera: dict[str, dict[tuple[str, str], tuple[float, float, bytes]]] = {}
+        self._camera_followed: dict[str, tuple[str, str]] = {}  # BY_CAMERA series -> the camera shown
+        self._named: dict[str, str] = {}  # BY_CAMERA series -> the camera its stored payload is of ('' : none named)
+        #: The camera the ``camera`` series shows while it is fresh (module docstring): a camera
+        #: process's instance, :data:`~server.quality.TWIN_CAMERA` (the twin's own) or '' (none).
+        #: Called at every read, under this store's lock: it must take no lock held while this store
+        #: is read (a read of an attribute or two, not a call into a locked object).
+        self.prefer_camera: Callable[[], str] | None = None
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
@@ -166,12 +201,15 @@ class LatestValues:
         self._received_s[series] = now
         self._version += 1
 
-    def add_source(self, series: str, try_recv: Callable[[], Any], by_run: bool = False) -> None:
+    def add_source(self, series: str, try_recv: Callable[[], Any], by_run: bool = False,
+                   by_camera: bool = False) -> None:
         """Pull ``series`` from ``try_recv`` (a Zenoh ring's: the newest sample or None) whenever
         a value is read, instead of having it pushed by a callback per sample. ``by_run``: the
-        ring holds several samples, all read, and the value is the followed run's (module docstring)."""
+        ring holds several samples, all read, and the value is the followed run's; ``by_camera``:
+        likewise, the followed camera's (module docstring)."""
         with self._lock:
-            (self._run_sources if by_run else self._sources)[series] = try_recv
+            sources = self._run_sources if by_run else self._camera_sources if by_camera else self._sources
+            sources[series] = try_recv
 
     def remove_source(self, series: str) -> None:
         """Stop pulling ``series`` and forget its value (a later viewer must not see a stale one)."""
@@ -179,6 +217,10 @@ class LatestValues:
             self._sources.pop(series, None)
             self._run_sources.pop(series, None)
             self._by_run.pop(series, None)
+            self._camera_sources.pop(series, None)
+            self._by_camera.pop(series, None)
+            self._camera_followed.pop(series, None)
+            self._named.pop(series, None)
             if self._raw.pop(series, None) is not None:
                 self._version += 1
             self._received_s.pop(series, None)
@@ -201,21 +243,15 @@ class LatestValues:
         for series, try_recv in self._run_sources.items():
             if only is None or series == only:
                 self._pull_by_run(series, try_recv, now)
+        for series, try_recv in self._camera_sources.items():
+            if only is None or series == only:
+                self._pull_by_camera(series, try_recv, now)
 
     def _pull_by_run(self, series: str, try_recv: Callable[[], Any], now: float) -> None:
         """(Under the lock, after the other series.) Read ``series``' ring whole, keep each run's
         newest payload, and store the followed run's newest if it changed (module docstring)."""
-        newest: dict[str, Any] = {}
-        for _ in range(BY_RUN_RING_SAMPLES):
-            try:
-                sample = try_recv()
-            except Exception:  # noqa: BLE001 - a closed subscriber: nothing new, ever
-                break
-            if sample is None:
-                break
-            newest[run_of(sample)] = sample
         runs = self._by_run.setdefault(series, {})
-        for run, sample in newest.items():
+        for run, sample in _newest_by(try_recv, run_of).items():
             if run not in runs and len(runs) >= BY_RUN_MAX_RUNS:
                 del runs[min(runs, key=lambda r: runs[r][0])]
             runs[run] = (now, sample.payload.to_bytes())
@@ -227,6 +263,52 @@ class LatestValues:
             chosen = max(runs.values(), key=lambda item: item[0])
         if chosen is not None and chosen[1] is not self._raw.get(series):
             self._store(series, chosen[1], chosen[0])
+
+    def _pull_by_camera(self, series: str, try_recv: Callable[[], Any], now: float) -> None:
+        """(Under the lock, after the other series.) Read ``series``' ring whole, keep each camera's
+        newest payload, and store the followed camera's newest if it changed (module docstring)."""
+        cameras = self._by_camera.setdefault(series, {})
+        followed = self._camera_followed.get(series)
+        for camera, sample in _newest_by(try_recv, _camera_key).items():
+            known = cameras.get(camera)
+            if known is None and len(cameras) >= BY_CAMERA_MAX_CAMERAS:  # the one followed stays
+                del cameras[min((c for c in cameras if c != followed), key=lambda c: cameras[c][1])]
+            cameras[camera] = (now if known is None else known[0], now, sample.payload.to_bytes())
+        if not cameras:
+            return
+        followed = self._camera_followed[series] = self._follow_camera(cameras, followed, now)
+        _, received, payload = cameras[followed]
+        if payload is not self._raw.get(series):
+            self._store(series, payload, received)
+            self._named[series] = followed[0] or followed[1]
+
+    def _follow_camera(self, cameras: Mapping[tuple[str, str], tuple[float, float, bytes]],
+                       followed: tuple[str, str] | None, now: float) -> tuple[str, str]:
+        """(Under the lock.) The camera to show (module docstring): the one preferred, else the
+        one ``followed``, each if it sent within :data:`CAMERA_FOLLOW_MAX_AGE_S`, else the first
+        heard of among those that did; the one followed (else the newest) when none did."""
+        fresh = [c for c, (_, received, _) in cameras.items() if now - received <= CAMERA_FOLLOW_MAX_AGE_S]
+        preferred = self._preferred_cameras(fresh, now)
+        if preferred:
+            return min(preferred, key=lambda c: cameras[c][0])
+        if followed is not None and followed in cameras and (followed in fresh or not fresh):
+            return followed
+        return min(fresh, key=lambda c: cameras[c][0]) if fresh else max(cameras, key=lambda c: cameras[c][1])
+
+    def _preferred_cameras(self, fresh: list[tuple[str, str]], now: float) -> list[tuple[str, str]]:
+        """(Under the lock.) Those of the ``fresh`` cameras that :attr:`prefer_camera` names; a
+        twin's own (:data:`~server.quality.TWIN_CAMERA`): the one of the run the truth follows
+        (:meth:`_followed_run`), any twin's while no run is followed."""
+        try:
+            prefer = self.prefer_camera() if self.prefer_camera is not None else ""
+        except Exception:  # noqa: BLE001 - a hook that fails prefers nothing; reads go on
+            prefer = ""
+        if not prefer:
+            return []
+        if prefer != TWIN_CAMERA:
+            return [c for c in fresh if c[0] == prefer]
+        run = self._followed_run(now)
+        return [c for c in fresh if not c[0] and c[1] and (c[1] == run or not run)]
 
     def _followed_run(self, now: float) -> str:
         """(Under the lock.) The bridge run the newest command answers, else the newest state's,
@@ -299,16 +381,28 @@ class LatestValues:
         """(version, the latest message of every series that decodes); ``max_age_s``: series ->
         age (s) beyond which that series is left out, as :meth:`fresh` would answer None."""
         with self._lock:
-            self._pull()
-            now = time.monotonic()
-            version, raw = self._version, dict(self._raw)
-            out = {}
-            for series, payload in raw.items():
-                if max_age_s is not None and series in max_age_s and not self._within(series, max_age_s[series], now):
-                    continue
-                msg = self._decode(series, payload)
-                if msg is not None:
-                    out[series] = msg
+            return self._snapshot(max_age_s)
+
+    def live_series(self, max_age_s: Mapping[str, float] | None = None) -> tuple[int, dict[str, dict[str, Any]]]:
+        """(version, the ``series`` part of a live frame): :func:`frame_of` of a :meth:`snapshot`,
+        the camera's entry naming the camera it is of, taken in the same read."""
+        with self._lock:
+            version, latest = self._snapshot(max_age_s)
+            named = {series: self._named.get(series, "") for series in BY_CAMERA if series in latest}
+        return version, frame_of(latest, named)
+
+    def _snapshot(self, max_age_s: Mapping[str, float] | None) -> tuple[int, dict[str, bus.BusMessage]]:
+        """(Under the lock.) :meth:`snapshot`."""
+        self._pull()
+        now = time.monotonic()
+        version, raw = self._version, dict(self._raw)
+        out = {}
+        for series, payload in raw.items():
+            if max_age_s is not None and series in max_age_s and not self._within(series, max_age_s[series], now):
+                continue
+            msg = self._decode(series, payload)
+            if msg is not None:
+                out[series] = msg
         return version, out
 
     def version(self) -> int:
@@ -392,12 +486,16 @@ def bridge_status(values: LatestValues) -> dict[str, Any]:
             "owner": state.owner, "instance": state.bridge}
 
 
-def frame_of(values: dict[str, bus.BusMessage]) -> dict[str, Any]:
-    """The ``series`` part of a live frame from the latest messages."""
+def frame_of(values: dict[str, bus.BusMessage], instances: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The ``series`` part of a live frame from the latest messages; a camera's entry names its
+    camera, ``instance``: ``instances``' (series -> name, :meth:`LatestValues.live_series`), '' if
+    none (module docstring)."""
     out: dict[str, Any] = {}
     for name, msg in values.items():
         fields = SERIES[name][1]
         out[name] = {f: getattr(msg, f) for f in fields}
+        if name in BY_CAMERA:
+            out[name]["instance"] = (instances or {}).get(name, "")
     return out
 
 
@@ -474,13 +572,13 @@ class LiveBus:
             self.values.latest_valid("state")
 
     def _subscribe(self, name: str) -> None:
-        ring = BY_RUN_RING_SAMPLES if name in BY_RUN or name == "state" else 1
+        ring = BY_RUN_RING_SAMPLES if name in BY_RUN or name in BY_CAMERA or name == "state" else 1
         sub = self._session.declare_subscriber(SERIES[name][0], zenoh.handlers.RingChannel(ring))
         self._subs[name] = sub
         if name == "state":  # the bridge's word (e-stop, drives, freshness): never a replayed state
             self.values.add_source(name, lambda: _newest_live(sub.try_recv, ring))
         else:
-            self.values.add_source(name, sub.try_recv, by_run=name in BY_RUN)
+            self.values.add_source(name, sub.try_recv, by_run=name in BY_RUN, by_camera=name in BY_CAMERA)
 
     def _watched(self, watching: bool) -> None:
         with self._lock:
@@ -505,6 +603,27 @@ class LiveBus:
         for sub in subs:
             with contextlib.suppress(Exception):
                 sub.undeclare()
+
+
+def _newest_by(try_recv: Callable[[], Any], key: Callable[[Any], _K]) -> dict[_K, Any]:
+    """The newest sample of each ``key(sample)`` among a ring's (at most :data:`BY_RUN_RING_SAMPLES`
+    read; a closed subscriber has none)."""
+    newest: dict[_K, Any] = {}
+    for _ in range(BY_RUN_RING_SAMPLES):
+        try:
+            sample = try_recv()
+        except Exception:  # noqa: BLE001 - a closed subscriber: nothing new, ever
+            break
+        if sample is None:
+            break
+        newest[key(sample)] = sample
+    return newest
+
+
+def _camera_key(sample: zenoh.Sample) -> tuple[str, str]:
+    """The camera an α_IP sample is of (module docstring): (the camera process it names, the bridge
+    run it names), each '' if none."""
+    return camera_of(sample), run_of(sample)
 
 
 def _newest_live(try_recv: Callable[[], Any], limit: int) -> Any:
@@ -559,7 +678,7 @@ class Broadcaster:
         self._watched.set()
         self.values.watch("browsers", True)
         # A new client gets the current state at once, not after the next change.
-        _, latest = self.values.snapshot(LIVE_MAX_AGE_S)
+        _, latest = self.values.live_series(LIVE_MAX_AGE_S)
         if latest:
             client.offer(self._encode(latest))
         return client
@@ -570,10 +689,10 @@ class Broadcaster:
             self._watched.clear()
             self.values.watch("browsers", False)
 
-    def _encode(self, latest: dict[str, bus.BusMessage]) -> bytes:
+    def _encode(self, series: dict[str, dict[str, Any]]) -> bytes:
         self.frames_sent += 1
         return self._encoder.encode({"type": "live", "seq": self.frames_sent, "wall_s": time.time(),
-                                     "series": frame_of(latest)})
+                                     "series": series})
 
     async def run(self) -> None:
         last_version = -1
@@ -583,7 +702,7 @@ class Broadcaster:
                 await self._watched.wait()  # nobody watches: no read, no decode, no wake-up
                 next_t = time.monotonic()
             next_t += self.period_s
-            version, latest = self.values.snapshot(LIVE_MAX_AGE_S)
+            version, latest = self.values.live_series(LIVE_MAX_AGE_S)
             if version != last_version and self.clients and latest:
                 last_version = version
                 frame = self._encode(latest)
