@@ -14,8 +14,9 @@ import zenoh
 from busutil import wait_until
 
 from bridge import bus
-from bridge.session import camera_attachment
-from server.live import LIVE_MAX_AGE_S, LiveBus
+from bridge.session import camera_attachment, run_attachment
+from server.live import BY_CAMERA_MAX_CAMERAS, CAMERA_FOLLOW_MAX_AGE_S, LIVE_MAX_AGE_S, LiveBus
+from server.quality import TWIN_CAMERA
 
 #: each camera's α_IP (rad), told apart by their first joint's
 ALPHA = {"cam-a": 0.1, "cam-b": 0.5, "": 0.9}
@@ -61,6 +62,137 @@ def test_two_cameras_publishing_alpha_ip_the_live_series_shows_one_of_them(sessi
             shown.append(_camera_shown(live))
         assert set(shown) == {"cam-a"}, shown
         assert (_shown(live) or {}).get("instance") == "cam-a"  # the frame says which camera it shows
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def _first(live: LiveBus, pub: Any, camera: str) -> None:
+    """Until ``camera``'s α_IP is shown (the subscription is known to the publisher)."""
+    assert wait_until(lambda: (_put(pub, 0, camera), _camera_shown(live) == camera)[1], 10, 0.05), _shown(live)
+
+
+def test_a_camera_gone_silent_hands_over_to_a_live_one_before_the_series_goes_stale(sessions) -> None:
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        _first(live, pub, "cam-a")
+        for k in range(1, 11):  # both
+            _put(pub, k, "cam-b")
+            _put(pub, 100 + k, "cam-a")
+            time.sleep(0.01)
+            assert _camera_shown(live) == "cam-a"
+        silent_since = time.monotonic()  # cam-a stops; cam-b goes on at 30 Hz
+        shown = []
+        while time.monotonic() - silent_since < CAMERA_FOLLOW_MAX_AGE_S + 1.0:
+            _put(pub, 200, "cam-b")
+            time.sleep(1 / 30)
+            shown.append(_camera_shown(live))
+        # never left out (stale), cam-a until it had been silent for the follow age, then cam-b for good
+        assert None not in shown and "cam-b" in shown, shown
+        handed = shown.index("cam-b")
+        assert set(shown[:handed]) <= {"cam-a"} and set(shown[handed:]) == {"cam-b"}, shown
+        for k in range(10):  # cam-a back: the camera followed now is cam-b
+            _put(pub, 300 + k, "cam-a")
+            _put(pub, 300 + k, "cam-b")
+            time.sleep(0.01)
+            assert _camera_shown(live) == "cam-b"
+        assert (_shown(live) or {}).get("instance") == "cam-b"
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def test_alpha_ip_naming_no_camera_is_shown_when_it_is_the_only_camera(sessions) -> None:
+    """An older camera process, or a replay, names no camera in its samples."""
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        _first(live, pub, "")
+        assert (_shown(live) or {}).get("instance") == ""
+        for k in range(1, 21):  # a named camera beside it: the one shown stays
+            _put(pub, k, "cam-a")
+            _put(pub, k, "")
+            time.sleep(0.01)
+            assert _camera_shown(live) == ""
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def test_the_camera_preferred_is_shown_while_it_sends_whichever_came_first(sessions) -> None:
+    """The console prefers the camera its running campaign records (server.app)."""
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    prefer = {"camera": ""}
+    live.values.prefer_camera = lambda: prefer["camera"]
+    try:
+        _first(live, pub, "cam-a")
+        prefer["camera"] = "cam-b"
+        _put(pub, 1, "cam-a")
+        assert _camera_shown(live) == "cam-a"  # the camera preferred has not sent: the one followed stays
+        shown = []
+        for k in range(1, 31):
+            _put(pub, k, "cam-b")
+            _put(pub, 100 + k, "cam-a")
+            time.sleep(0.01)
+            shown.append(_camera_shown(live))
+        assert set(shown[3:]) == {"cam-b"}, shown
+        prefer["camera"] = ""  # the campaign ended: the one followed stays
+        for k in range(10):
+            _put(pub, k, "cam-a")
+            _put(pub, k, "cam-b")
+            time.sleep(0.01)
+            assert _camera_shown(live) == "cam-b"
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def test_the_twins_own_camera_preferred_is_the_one_of_the_run_followed(sessions) -> None:
+    """`xneck up --alpha-ip noise`: the stack's camera is its twin bridge's white noise, whose samples
+    name the bridge run (run_attachment); a second twin's and a camera process's are not it."""
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    states = a.declare_publisher(bus.MOTOR_STATE)
+    live.values.prefer_camera = lambda: TWIN_CAMERA
+    ours = bus.MotorState(seq=1, stamp_s=0.0, theta_rad=[0.0] * 4, force_applied_N=[1.0] * 4, drive="active",
+                          epoch="ours", bridge="b")
+    try:
+        _first(live, pub, "cam-a")
+        assert (_shown(live) or {}).get("instance") == "cam-a"
+        shown = []
+        for k in range(1, 41):
+            states.put(bus.encode(ours))
+            pub.put(_alpha(k, "cam-b"), attachment=run_attachment("stray"))
+            pub.put(_alpha(k, ""), attachment=run_attachment("ours"))
+            _put(pub, k, "cam-a")
+            time.sleep(0.01)
+            shown.append((_shown(live) or {}).get("instance"))
+        assert set(shown[5:]) == {"ours"}, shown
+    finally:
+        states.undeclare()
+        pub.undeclare()
+        live.close()
+
+
+def test_a_flood_of_forged_camera_names_stays_bounded_and_the_camera_followed_stays(sessions) -> None:
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    try:
+        _first(live, pub, "cam-a")
+        for k in range(200):
+            pub.put(_alpha(k, "cam-b"), attachment=camera_attachment(f"forged-{k}"))
+            if k % 10 == 0:
+                _put(pub, k, "cam-a")
+                time.sleep(0.005)
+                assert _camera_shown(live) == "cam-a"
+        assert len(live.values._by_camera["camera"]) <= BY_CAMERA_MAX_CAMERAS
     finally:
         pub.undeclare()
         live.close()
