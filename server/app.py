@@ -47,6 +47,7 @@ from server.guard import ConsoleGuard, document_responses
 from server.live import Broadcaster, LiveBus, bridge_estop, bus_campaign, bus_settled, receiver_checks
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
+from server.quality import TWIN_CAMERA
 from server.routes_jog import request_jog, stop_jog
 from server.routes_studies import router as studies_router
 from server.settings import Settings, resolve_token
@@ -121,6 +122,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                               bridge_estop=lambda: bridge_estop(state.live.values),
                                               bus_campaign=lambda: bus_campaign(state.live),
                                               bus_heard=lambda: bus_settled(state.live))
+            # The live α_IP is one camera's (server.live): the one the running campaign records, else
+            # the stack's own (`xneck up`'s camera process, or its twin's white noise), else the first seen.
+            own_camera = settings.twin_camera or (TWIN_CAMERA if settings.twin_alpha_ip == "noise" else "")
+            state.live.values.prefer_camera = lambda: state.campaigns.recorded_camera() or own_camera
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))

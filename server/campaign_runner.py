@@ -221,11 +221,15 @@ def run_campaign(
     spec: CampaignSpec, params: Params, out: Path | None = None,
     progress: Callable[[float, str], None] | None = None, campaign_id: str | None = None,
     session: zenoh.Session | None = None, hub: str | None = None, stop: threading.Event | None = None,
+    on_monitor: Callable[[CampaignMonitor | None], None] | None = None,
 ) -> CampaignResult:
     """Run one campaign end to end (module docstring). Never leaves a child process behind.
 
     ``session``/``hub``: run on an existing session that listens on ``hub`` (the server does, so
     it sees the live traffic); by default a private hub is opened. ``stop``: set it to abort.
+    ``on_monitor``: called with the campaign's :class:`~server.quality.CampaignMonitor` once it
+    knows the camera expected, and with None once it is closed (the console's live view shows the
+    camera the campaign records: :attr:`server.live.LatestValues.prefer_camera`).
     """
     campaign_id = campaign_id or new_campaign_id(spec.kind)
     path = Path(out) if out else default_archive(campaign_id)
@@ -237,11 +241,11 @@ def run_campaign(
     if session is None:
         hub = f"tcp/127.0.0.1:{free_tcp_port()}"
         with open_session(listen=[hub], connect=list(spec.connect)) as own:
-            return _run(spec, params, path, progress, campaign_id, own, hub, stop or threading.Event())
-    return _run(spec, params, path, progress, campaign_id, session, hub, stop or threading.Event())
+            return _run(spec, params, path, progress, campaign_id, own, hub, stop or threading.Event(), on_monitor)
+    return _run(spec, params, path, progress, campaign_id, session, hub, stop or threading.Event(), on_monitor)
 
 
-def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> CampaignResult:
+def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monitor=None) -> CampaignResult:
     workdir = Path(tempfile.mkdtemp(prefix=f"xneck-{campaign_id}-"))
     traj_file = workdir / "trajectory.json"
     traj_file.write_text(spec.trajectory.to_json())
@@ -282,6 +286,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
         spawned = f"camera-{campaign_id}" if spec.spawns_camera else TWIN_CAMERA if spec.twin and not spec.service \
             and spec.camera_source is None else ""
         monitor.expect_alpha_ip_source(spec.recorded_camera, spec.camera_instance or spawned)
+    if on_monitor is not None:
+        on_monitor(monitor)
     realtime = spec.realtime or not spec.twin
     quality: dict[str, object] = {}
     recorder = CampaignRecorder(session, path, metadata, on_error=lambda _exc: stop.set(),  # a storage fault ends it
@@ -422,6 +428,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop) -> Campa
             stop_child(p, STOP_GRACE_S)
         sub.undeclare()
         monitor.close()
+        if on_monitor is not None:
+            on_monitor(None)
         counters = monitor.counters(recorder.stats.dropped)
         reasons = assess(counters, realtime) if outcome == "finished" else []
         if reasons:

@@ -75,6 +75,7 @@ from server.campaign_runner import (
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
 from server.identified_sets import CACHE_NAME
+from server.quality import CampaignMonitor
 from server.records import CampaignIndex, CampaignRecord
 from server.replay import Replay
 
@@ -201,6 +202,7 @@ class CampaignManager:
         self._bus_heard = bus_heard
         self._started_s = time.monotonic()
         self._recovered_now: set[str] = set()  # ids recover_all marked interrupted at this start
+        self._monitor: CampaignMonitor | None = None  # the running campaign's (its runner's), while it has one
 
     # -- start-up ---------------------------------------------------------------------------
     def recover_all(self) -> list[str]:
@@ -392,6 +394,18 @@ class CampaignManager:
     def running_id(self) -> str | None:
         return self._running
 
+    def recorded_camera(self) -> str:
+        """The camera whose α_IP the running campaign records (:meth:`CampaignMonitor.recorded_camera`:
+        an instance, :data:`~server.quality.TWIN_CAMERA`), '' when none runs or it knows none yet.
+        Takes no lock: the live view asks it at every read under its own
+        (:attr:`server.live.LatestValues.prefer_camera`), and this manager reads the live view
+        under its lock (the bridge's e-stop)."""
+        monitor = self._monitor
+        return monitor.recorded_camera() if monitor is not None else ""
+
+    def _on_monitor(self, monitor: CampaignMonitor | None) -> None:
+        self._monitor = monitor
+
     def unrecorded(self) -> tuple[str, str] | None:
         """``(id, controller)`` of a campaign of this console's that a controller on the bus runs
         now while this console does not record it: one it was running when it crashed (recovered
@@ -524,6 +538,7 @@ class CampaignManager:
         try:
             self._record_campaign(cid, prepared, stop)
         finally:  # whatever happened, the robot is free again
+            self._monitor = None
             with self._lock:
                 if self._running == cid:
                     self._running = None
@@ -544,7 +559,7 @@ class CampaignManager:
         try:
             try:
                 result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
-                                      session=self.session, hub=self.hub, stop=stop)
+                                      session=self.session, hub=self.hub, stop=stop, on_monitor=self._on_monitor)
             finally:
                 with self._lock:
                     self._last_end = (cid, time.monotonic())

@@ -159,6 +159,13 @@ class CampaignMonitor:
             self._alpha_ip_source, self._alpha_ip_camera = source, camera
             self._camera_expected = bool(camera)
 
+    def recorded_camera(self) -> str:
+        """The camera process whose α_IP is recorded (module docstring, "One camera"): its instance,
+        :data:`TWIN_CAMERA` for the campaign's twin's own, '' until one named itself (or when only
+        the source tells). Takes no lock (one attribute read): the console's live view asks it at
+        every read, under a lock of its own (:attr:`server.live.LatestValues.prefer_camera`)."""
+        return self._alpha_ip_camera
+
     def _on_camera_token(self, sample: zenoh.Sample) -> None:
         # Zenoh callback thread: a camera process appeared or went (its instance is the key's last chunk).
         try:
