@@ -213,8 +213,9 @@ def test_camera_health_names_the_cameras_and_warns_of_a_second() -> None:
 def test_xneck_ups_camera_campaign_records_its_camera_beside_a_second_camera_of_the_same_source(tmp_path: Path) -> None:
     """The audit's set-up: `xneck up --alpha-ip camera` and a second `xneck camera --source twin`
     (the same source string) on its hub. The campaign records `xneck up`'s camera, names the other,
-    and the console's camera health warns of two cameras."""
-    from test_console_strays import _campaign
+    and the console's camera health warns of two cameras; the dashboard's live α_IP is `xneck up`'s
+    camera's only, before and during the campaign (it flipped between both)."""
+    from test_console_strays import _campaign, _live_cameras
     from test_stack import _alive_kinds, _procs
     from test_stack_faults import GENTLE, _wait_end
 
@@ -236,10 +237,12 @@ def test_xneck_ups_camera_campaign_records_its_camera_beside_a_second_camera_of_
         assert wait_until(two, 120, 0.5), (tmp_path / "camera.log").read_text()[-2000:]
         health = httpx.get(base + "/api/camera", timeout=5).json()["health"]
         assert "2 cameras" in health["warning"], health
-        time.sleep(1.0)
-        rec = _wait_end(base, _campaign(base, GENTLE), 180)
+        with _live_cameras(base) as live:
+            time.sleep(1.0)
+            rec = _wait_end(base, _campaign(base, GENTLE), 180)
     assert rec["status"] in ("finished", "degraded"), rec
     quality = rec["quality"]
+    assert len(live) > 30 and set(live) == {quality["alpha_ip_camera"]}, (set(live), quality["alpha_ip_camera"])
     assert quality["alpha_ip_source"] == "twin-render" and quality["alpha_ip_camera"] != "second-cam", quality
     assert quality["foreign_alpha_ip"].get("twin-render@second-cam", 0) > 30, quality
     assert "twin-render@second-cam" in rec["message"], rec["message"]

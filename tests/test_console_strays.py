@@ -5,11 +5,13 @@ nothing into the archive. The choice of service itself is tested without a bus."
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -36,6 +38,36 @@ def _processes(base: str, kind: str) -> list[str]:
     except httpx.HTTPError:
         return []
     return sorted(p["instance"] for p in listed if p["kind"] == kind)
+
+
+@contextlib.contextmanager
+def _live_cameras(base: str) -> Iterator[list[str]]:
+    """The ``instance`` of the dashboard's live ``camera`` series (the camera its α_IP is of,
+    server/live.py), frame after frame, while in the block."""
+    seen: list[str] = []
+    stop = threading.Event()
+    ws = connect(base.replace("http", "ws") + "/api/live", additional_headers=AUTH, open_timeout=10)
+
+    def read() -> None:
+        while not stop.is_set():
+            try:
+                frame = json.loads(ws.recv(timeout=0.5))
+            except TimeoutError:
+                continue
+            except Exception:  # noqa: BLE001 - closed
+                return
+            camera = frame.get("series", {}).get("camera")
+            if camera is not None:
+                seen.append(camera["instance"])
+
+    thread = threading.Thread(target=read, daemon=True)
+    thread.start()
+    try:
+        yield seen
+    finally:
+        stop.set()
+        thread.join(3)
+        ws.close()
 
 
 def _campaign(base: str, body: dict) -> str:
@@ -194,7 +226,7 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
     """The audit's set-up (2026-11-29): `xneck up` (its twin's white-noise α_IP) and, on its hub, an
     `xneck camera --source twin` as the README then suggested: a campaign archived both cameras,
     interleaved. `xneck up` tells its console its twin's camera: that one is recorded, the other
-    set aside and said."""
+    set aside and said, and the dashboard's live α_IP is that one's only (it flipped between both)."""
     from test_stack import _alive_kinds
 
     from bridge.session import free_tcp_port
@@ -209,7 +241,8 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
               tmp_path / "camera.log")
         assert wait_until(lambda: "camera" in _alive_kinds(base), 120, 0.3), (tmp_path / "camera.log").read_text()
         time.sleep(2.0)  # both cameras' α_IP on the hub
-        rec = _wait_end(base, _campaign(base, GENTLE), 120)
+        with _live_cameras(base) as live:
+            rec = _wait_end(base, _campaign(base, GENTLE), 120)
     assert rec["status"] in ("finished", "degraded"), rec
     campaign = read_campaign(data / "campaigns" / f"{rec['id']}.mcap")
     assert {m.source for _, m in campaign.messages(bus.CAMERA_ALPHA)} == {"twin-noise"}
@@ -218,6 +251,8 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
     stray = {k: n for k, n in rec["quality"]["foreign_alpha_ip"].items() if k.startswith("twin-render@")}
     assert sum(stray.values()) > 30, rec["quality"]
     assert f"'{next(iter(stray))}'" in rec["message"], rec["message"]
+    # the twin's own: its α_IP names its bridge run, not a camera process
+    assert len(live) > 30 and len(set(live)) == 1 and f"twin-render@{live[0]}" not in stray, set(live)
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
