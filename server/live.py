@@ -39,8 +39,8 @@ dashboard's α_IP line jumping between two sources. A camera is told by its samp
 that names itself (:func:`bridge.session.camera_of`), else the bridge run whose twin published it
 (:func:`~bridge.session.run_of`), else none (an older camera process, a replay); ``instance`` is
 that name ('' for none). Their samples queue in a ring of :data:`BY_RUN_RING_SAMPLES`, each
-camera's newest kept (at most :data:`BY_CAMERA_MAX_CAMERAS`), and the series shows the newest of
-the camera followed: the one :attr:`LatestValues.prefer_camera` names while it is fresh (the
+camera's newest valid message kept (at most :data:`BY_CAMERA_MAX_CAMERAS`; a camera sending only
+what the console refuses is never followed), and the series shows the newest of the camera followed: the one :attr:`LatestValues.prefer_camera` names while it is fresh (the
 camera the running campaign records, else the stack's own: ``server.app``; ``TWIN_CAMERA``: the
 twin of the run the truth follows), else the one followed so far while it sent within
 :data:`CAMERA_FOLLOW_MAX_AGE_S`, else, among those that did, the one heard of first. A camera
@@ -148,8 +148,8 @@ class LatestValues:
         self._by_run: dict[str, dict[str, tuple[float, bytes]]] = {}
         self._camera_sources: dict[str, Callable[[], Any]] = {}  # BY_CAMERA series -> try_recv of its ring
         # BY_CAMERA series -> camera (:func:`_camera_key`) -> (time.monotonic() first taken, of its
-        # newest, its newest payload)
-        self._by_camera: dict[str, dict[tuple[str, str], tuple[float, float, bytes]]] = {}
+        # newest valid payload, that payload, its message)
+        self._by_camera: dict[str, dict[tuple[str, str], tuple[float, float, bytes, bus.BusMessage]]] = {}
         self._camera_followed: dict[str, tuple[str, str]] = {}  # BY_CAMERA series -> the camera shown
         self._named: dict[str, str] = {}  # BY_CAMERA series -> the camera its stored payload is of ('' : none named)
         #: The camera the ``camera`` series shows while it is fresh (module docstring): a camera
@@ -266,28 +266,36 @@ class LatestValues:
 
     def _pull_by_camera(self, series: str, try_recv: Callable[[], Any], now: float) -> None:
         """(Under the lock, after the other series.) Read ``series``' ring whole, keep each camera's
-        newest payload, and store the followed camera's newest if it changed (module docstring)."""
+        newest valid payload, and store the followed camera's newest if it changed (module
+        docstring). Each camera's newest is decoded here, so that a camera sending only what is
+        refused (counted in :attr:`rejected`) is never followed, and one that sends some keeps its
+        last valid payload and its age; the one stored is decoded once."""
         cameras = self._by_camera.setdefault(series, {})
         followed = self._camera_followed.get(series)
         for camera, sample in _newest_by(try_recv, _camera_key).items():
+            payload = sample.payload.to_bytes()
+            msg = self._decode(series, payload)
+            if msg is None:
+                continue
             known = cameras.get(camera)
             if known is None and len(cameras) >= BY_CAMERA_MAX_CAMERAS:  # the one followed stays
                 del cameras[min((c for c in cameras if c != followed), key=lambda c: cameras[c][1])]
-            cameras[camera] = (now if known is None else known[0], now, sample.payload.to_bytes())
+            cameras[camera] = (now if known is None else known[0], now, payload, msg)
         if not cameras:
             return
         followed = self._camera_followed[series] = self._follow_camera(cameras, followed, now)
-        _, received, payload = cameras[followed]
+        _, received, payload, msg = cameras[followed]
         if payload is not self._raw.get(series):
             self._store(series, payload, received)
+            self._decoded[series] = (payload, msg)
             self._named[series] = followed[0] or followed[1]
 
-    def _follow_camera(self, cameras: Mapping[tuple[str, str], tuple[float, float, bytes]],
+    def _follow_camera(self, cameras: Mapping[tuple[str, str], tuple[float, float, bytes, bus.BusMessage]],
                        followed: tuple[str, str] | None, now: float) -> tuple[str, str]:
         """(Under the lock.) The camera to show (module docstring): the one preferred, else the
         one ``followed``, each if it sent within :data:`CAMERA_FOLLOW_MAX_AGE_S`, else the first
         heard of among those that did; the one followed (else the newest) when none did."""
-        fresh = [c for c, (_, received, _) in cameras.items() if now - received <= CAMERA_FOLLOW_MAX_AGE_S]
+        fresh = [c for c, (_, received, _, _) in cameras.items() if now - received <= CAMERA_FOLLOW_MAX_AGE_S]
         preferred = self._preferred_cameras(fresh, now)
         if preferred:
             return min(preferred, key=lambda c: cameras[c][0])

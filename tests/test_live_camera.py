@@ -15,7 +15,7 @@ from busutil import wait_until
 
 from bridge import bus
 from bridge.session import camera_attachment, run_attachment
-from server.live import BY_CAMERA_MAX_CAMERAS, CAMERA_FOLLOW_MAX_AGE_S, LIVE_MAX_AGE_S, LiveBus
+from server.live import BY_CAMERA_MAX_CAMERAS, CAMERA_FOLLOW_MAX_AGE_S, LIVE_MAX_AGE_S, LiveBus, receiver_checks
 from server.quality import TWIN_CAMERA
 
 #: each camera's α_IP (rad), told apart by their first joint's
@@ -193,6 +193,30 @@ def test_a_flood_of_forged_camera_names_stays_bounded_and_the_camera_followed_st
                 time.sleep(0.005)
                 assert _camera_shown(live) == "cam-a"
         assert len(live.values._by_camera["camera"]) <= BY_CAMERA_MAX_CAMERAS
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def test_a_camera_sending_only_what_the_console_refuses_is_never_the_one_shown(sessions) -> None:
+    """Any peer may publish: a camera of another robot's joint count, heard of first, had kept the
+    series empty while a valid camera sent."""
+    a, b = sessions
+    live = LiveBus(b)
+    live.values.checks = receiver_checks(4, 3)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    two_joints = bus.encode(bus.CameraAlpha(seq=1, stamp_s=1.0, capture_stamp_s=1.0, alpha_ip_rad=[0.7, 0.7],
+                                            source="usb:0"))
+    try:
+        def refused() -> bool:
+            pub.put(two_joints, attachment=camera_attachment("cam-2x"))
+            return _shown(live) is None and live.values.rejected > 0  # taken, refused, not shown
+        assert wait_until(refused, 10, 0.05)
+        for k in range(1, 21):
+            pub.put(two_joints, attachment=camera_attachment("cam-2x"))
+            _put(pub, k, "cam-a")
+            time.sleep(0.01)
+            assert _camera_shown(live) == "cam-a", _shown(live)
     finally:
         pub.undeclare()
         live.close()
