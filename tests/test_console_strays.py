@@ -70,6 +70,18 @@ def _live_cameras(base: str) -> Iterator[list[str]]:
         ws.close()
 
 
+def _assert_one_camera_shown(live: list[str], camera: str | None = None) -> str:
+    """The live α_IP of ``live`` (:func:`_live_cameras`) is one camera's (``camera``'s if given),
+    which this returns: it had flipped at nearly every frame between two. A camera starved past the
+    follow age on a loaded machine rightly hands over and back (server/live.py), so a few switches
+    may be seen, not more."""
+    assert len(live) > 30, live
+    runs = [(name, len(list(frames))) for name, frames in itertools.groupby(live)]
+    shown = max({name for name, _ in runs}, key=live.count) if camera is None else camera
+    assert len(runs) <= 5 and live.count(shown) >= 0.9 * len(live), runs
+    return shown
+
+
 def _campaign(base: str, body: dict) -> str:
     r = httpx.post(base + "/api/campaigns", json=body, headers=AUTH, timeout=90)
     assert r.status_code == 201, r.text
@@ -252,7 +264,8 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
     assert sum(stray.values()) > 30, rec["quality"]
     assert f"'{next(iter(stray))}'" in rec["message"], rec["message"]
     # the twin's own: its α_IP names its bridge run, not a camera process
-    assert len(live) > 30 and len(set(live)) == 1 and f"twin-render@{live[0]}" not in stray, set(live)
+    shown = _assert_one_camera_shown(live)
+    assert f"twin-render@{shown}" not in stray, (shown, stray)
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
