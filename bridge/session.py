@@ -83,75 +83,48 @@ def replayed(sample: zenoh.Sample) -> bool:
 RUN_PREFIX = b"xneck-run:"
 
 
-def run_attachment(epoch: str) -> bytes:
-    """The attachment naming the bridge run ``epoch`` (:data:`RUN_PREFIX`)."""
-    return RUN_PREFIX + epoch.encode()
+@dataclass(frozen=True)
+class SenderAttachment:
+    """A Zenoh attachment that names where a message comes from: ``prefix`` + an ASCII name. The
+    payload and the archive stay as they were (:data:`RUN_PREFIX`, why an attachment)."""
+
+    prefix: bytes
+
+    def attachment(self, name: str) -> bytes:
+        """The attachment naming ``name``."""
+        return self.prefix + name.encode()
+
+    def of(self, sample: zenoh.Sample) -> str:
+        """What ``sample``'s attachment names after the prefix, '' if it has no such attachment."""
+        attachment = sample.attachment
+        if attachment is None:
+            return ""
+        data = attachment.to_bytes()
+        return data[len(self.prefix):].decode("ascii", "replace") if data.startswith(self.prefix) else ""
 
 
-def _named(sample: zenoh.Sample, prefix: bytes) -> str:
-    """What ``sample``'s attachment names after ``prefix``, '' if it has no such attachment."""
-    attachment = sample.attachment
-    if attachment is None:
-        return ""
-    data = attachment.to_bytes()
-    return data[len(prefix):].decode("ascii", "replace") if data.startswith(prefix) else ""
-
-
-def run_of(sample: zenoh.Sample) -> str:
-    """The bridge run (epoch) ``sample`` says it comes from (:data:`RUN_PREFIX`), '' if none."""
-    return _named(sample, RUN_PREFIX)
-
+RUN = SenderAttachment(RUN_PREFIX)
+#: The bridge run (epoch) a sample says it comes from, '' if none; and the attachment naming one.
+run_of, run_attachment = RUN.of, RUN.attachment
 
 #: The Zenoh attachment of what a camera process publishes (its α_IP and frames),
 #: ``xneck-camera:<instance>``: the camera it comes from. ``CameraAlpha.source`` names the kind of
 #: source (``twin-render``, ``usb:0``), not the camera: two cameras of one kind on one bus had their
-#: α_IP archived as one camera's (audit of 2026-11-29); :func:`camera_of` tells whose it is. An
-#: attachment for the reasons of :data:`RUN_PREFIX`: the payload and the archive stay as they were.
-CAMERA_PREFIX = b"xneck-camera:"
-
-
-def camera_attachment(instance: str) -> bytes:
-    """The attachment naming the camera process ``instance`` (:data:`CAMERA_PREFIX`)."""
-    return CAMERA_PREFIX + instance.encode()
-
-
-def camera_of(sample: zenoh.Sample) -> str:
-    """The camera instance ``sample`` says it comes from (:data:`CAMERA_PREFIX`), '' if none."""
-    return _named(sample, CAMERA_PREFIX)
-
+#: α_IP archived as one camera's (audit of 2026-11-29); :func:`camera_of` tells whose it is.
+CAMERA = SenderAttachment(b"xneck-camera:")
+camera_of, camera_attachment = CAMERA.of, CAMERA.attachment
 
 #: The Zenoh attachment of a controller's ``ControllerStatus``, ``xneck-controller:<instance>``: the
 #: controller it comes from. The status has no sender field; with a second controller on the bus
-#: the console took the newest status of either for the campaign the bridge's owner runs (session
-#: 40). An attachment for the reasons of :data:`RUN_PREFIX`.
-CONTROLLER_PREFIX = b"xneck-controller:"
-
-
-def controller_attachment(instance: str) -> bytes:
-    """The attachment naming the controller ``instance`` (:data:`CONTROLLER_PREFIX`)."""
-    return CONTROLLER_PREFIX + instance.encode()
-
-
-def controller_of(sample: zenoh.Sample) -> str:
-    """The controller instance ``sample`` says it comes from (:data:`CONTROLLER_PREFIX`), '' if none."""
-    return _named(sample, CONTROLLER_PREFIX)
-
+#: the console took the newest status of either for the campaign the bridge's owner runs (session 40).
+CONTROLLER = SenderAttachment(b"xneck-controller:")
+controller_of, controller_attachment = CONTROLLER.of, CONTROLLER.attachment
 
 #: The Zenoh attachment of an ``EStop`` sent by an e-stop holder, ``xneck-estop-holder:<holder>``: the
 #: holder whose token (:data:`bridge.bus.ESTOP_ENGAGED_ALL`) its release lets go of, since the token's
-#: vanishing and the release reach a bridge in either order (:class:`bridge.safety.EStopHolders`). An
-#: attachment for the reasons of :data:`RUN_PREFIX`: the payload and the archive stay as they were.
-ESTOP_HOLDER_PREFIX = b"xneck-estop-holder:"
-
-
-def estop_holder_attachment(holder: str) -> bytes:
-    """The attachment naming the e-stop holder ``holder`` (:data:`ESTOP_HOLDER_PREFIX`)."""
-    return ESTOP_HOLDER_PREFIX + holder.encode()
-
-
-def estop_holder_of(sample: zenoh.Sample) -> str:
-    """The e-stop holder ``sample`` says it comes from (:data:`ESTOP_HOLDER_PREFIX`), '' if none."""
-    return _named(sample, ESTOP_HOLDER_PREFIX)
+#: vanishing and the release reach a bridge in either order (:class:`bridge.safety.EStopHolders`).
+ESTOP_HOLDER = SenderAttachment(b"xneck-estop-holder:")
+estop_holder_of, estop_holder_attachment = ESTOP_HOLDER.of, ESTOP_HOLDER.attachment
 
 
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
@@ -658,10 +631,10 @@ def subscribe_latest(
 
 
 __all__ = [
-    "CAMERA_PREFIX", "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "ESTOP_HOLDER_PREFIX", "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED",
-    "RUN_PREFIX", "ZENOH_RX_WORKERS", "BusPublisher", "LatestSubscriber", "ReceiveStats",
-    "camera_attachment", "camera_of", "estop_holder_attachment", "estop_holder_of", "free_tcp_port", "liveliness_token", "open_session", "payload_of", "publisher", "replayed", "run_attachment", "run_of",
-    "subscribe_latest",
-    "zenoh_config",
+    "CAMERA", "CONTROLLER", "DEFAULT_LISTEN", "ENV_CONNECT", "ENV_LISTEN", "ENV_ZENOH_RUNTIME", "ESTOP_HOLDER",
+    "REAL_TIME_KEYS", "RELIABLE_KEYS", "REPLAYED", "RUN", "RUN_PREFIX", "ZENOH_RX_WORKERS", "BusPublisher",
+    "LatestSubscriber", "ReceiveStats", "SenderAttachment", "camera_attachment", "camera_of", "controller_attachment",
+    "controller_of", "estop_holder_attachment", "estop_holder_of", "free_tcp_port", "liveliness_token", "open_session",
+    "payload_of", "publisher", "replayed", "run_attachment", "run_of", "subscribe_latest", "zenoh_config",
     "zenoh_runtime_environment",
 ]
