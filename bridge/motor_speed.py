@@ -28,6 +28,12 @@ CUTOFF_HZ = 20.0
 #: and the filter starts again at zero. Session 37's audit: one reading 1e4 rad off had the hold's
 #: damping push a cable 33 N for 168 ms and move the neck 3.7°.
 MAX_SPEED_RAD_S = 1600.0
+#: Readings after a bad one (its own included) before the angles are trusted again
+#: (:attr:`MotorSpeed.trusted`): a glitch may hold its wrong count for a few ticks, each consistent
+#: with the last, and the reading back to normal is itself a jump (audit of 2026-11-29: motor 1 read
+#: 1e4 rad off for 3 ticks, and the bridge's hold forces were computed there). 5 readings: 10 ms at
+#: 500 Hz, the command timeout.
+TRUST_AFTER_READINGS = 5
 #: s between two readings beyond which the filter starts again rather than divide by it: the
 #: hardware's stamps are the wall clock, which NTP may step (the BeagleBone has no RTC battery), and
 #: the loop watchdog trips after a 0.5 s stall anyway (bridge.loop_watchdog).
@@ -49,8 +55,17 @@ class MotorSpeed:
         self._zeros = [0.0] * n_motors  # shared, never mutated
         self.rad_s: list[float] = self._zeros  # never mutated in place: a reader keeps its list
         self.bad_readings = 0  # readings that restarted the filter (non-finite, or beyond MAX_SPEED_RAD_S)
+        self._since_bad = TRUST_AFTER_READINGS  # readings since the last bad one
         self._last: list[float] | None = None
         self._last_stamp_s = math.nan
+
+    @property
+    def trusted(self) -> bool:
+        """Whether the last reading is one to compute from: finite, and neither it nor any of the
+        :data:`TRUST_AFTER_READINGS` - 1 readings before it was bad (non-finite, or a change faster
+        than :data:`MAX_SPEED_RAD_S`). The bridge computes its hold forces from trusted readings
+        only (bridge.node.HoldWorker)."""
+        return self._since_bad >= TRUST_AFTER_READINGS
 
     def _gain_of(self, dt_s: float) -> float:
         return 1.0 - math.exp(-2.0 * math.pi * self.cutoff_hz * dt_s)
@@ -68,6 +83,7 @@ class MotorSpeed:
             dt = stamp_s - self._last_stamp_s
             self._last_stamp_s = stamp_s
         self._last = theta
+        self._since_bad += 1
         if last is None or len(theta) != len(last) or not (0.0 < dt <= MAX_GAP_S):  # NaN: the first stamp
             return self._restart(theta)
         g = self._gain if dt == self.dt_s else self._gain_of(dt)
@@ -77,6 +93,7 @@ class MotorSpeed:
             d = t - p
             if not -lim <= d <= lim:  # beyond a motor's speed, or NaN
                 self.bad_readings += 1
+                self._since_bad = 0
                 return self._restart(theta)
             out.append(v + g * (d / dt - v))
         self.rad_s = out
@@ -85,5 +102,6 @@ class MotorSpeed:
     def _restart(self, theta: list[float]) -> list[float]:
         if not all(map(math.isfinite, theta)):
             self._last = None
+            self._since_bad = 0
         self.rad_s = self._zeros
         return self.rad_s

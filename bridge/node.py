@@ -21,8 +21,11 @@ Watchdog
     from the encoders (eq. 33, :func:`twin.model.estimation.alpha_hat_3`);
     ``drive = "hold"`` and ``hold_reason`` says why. The next valid command resumes ``active``.
     The hold forces are never computed in a tick (:class:`HoldWorker` keeps them fresh on a
-    thread of its own); without fresh ones (of angles read at most 0.1 s before) the hold keeps
-    the applied forces until they come.
+    thread of its own, from readings :class:`bridge.motor_speed.MotorSpeed` trusts: none within 5
+    ticks of an encoder glitch); without fresh ones of these angles (read at most 0.1 s before,
+    within 0.2 rad of the angles read now plus what the motors turn meanwhile at their speed) the
+    hold keeps the applied forces until they come, then moves to them at ``max_force_step_N`` per
+    tick.
     Lockstep (twin only): one tick per new command, so simulated time stands still without
     commands and nothing can drift; the watchdog is off there.
 E-stop
@@ -166,9 +169,10 @@ class HoldWorker:
 
     The hold rule (eq. 33 + eqs. 63-65) costs 1-3 ms in plain Python here and 20-50 ms on the
     BeagleBone's Cortex-A8, 10-25 periods: the tick that starts a hold must find it done. The
-    tick hands over its angles (:meth:`offer`, one attribute store) and asks :meth:`ready`: the
-    forces computed from angles read at most ``max_age_s`` ago, else None (stale forces are never
-    used; a hold then keeps the applied forces until fresh ones come). A thread of low priority
+    tick hands over its angles when the encoders' reading is trusted (:meth:`offer`, one attribute
+    store) and asks :meth:`ready` with the angles it read: the forces computed from angles read at
+    most ``max_age_s`` ago and near these, else None (stale forces, or those of other angles, are
+    never used; a hold then keeps the applied forces until fresh ones come). A thread of low priority
     wakes every ``poll_s``: when the angles moved more than ``tolerance_rad`` (any motor) from
     those of its last computation it computes again, at most once per ``refresh_s``; otherwise
     the forces it has still describe the angles and it only renews their time, so a still neck
@@ -190,7 +194,8 @@ class HoldWorker:
         self.tolerance_rad, self.refresh_s, self.max_age_s, self.poll_s = tolerance_rad, refresh_s, max_age_s, poll_s
         self._theta: list[float] | None = None  # the latest angles offered (a new list each time)
         self._tried: list[float] | None = None  # the angles of the last computation
-        self._ready: tuple[float, list[float]] | None = None  # (monotonic time of the angles, forces)
+        # (monotonic time of the angles, forces, the angles computed at)
+        self._ready: tuple[float, list[float], list[float]] | None = None
         self.computed = self.failed = 0
         self._last_log_s = -math.inf
         self._stop = threading.Event()
@@ -200,12 +205,27 @@ class HoldWorker:
         """The latest encoder angles (rad); the list must not be changed afterwards."""
         self._theta = theta_rad
 
-    def ready(self, now_s: float) -> list[float] | None:
+    def ready(self, now_s: float, theta_rad: Sequence[float] | None = None,
+              speed_rad_s: Sequence[float] | None = None) -> list[float] | None:
         """Hold forces (N) of angles read at most ``max_age_s`` before ``now_s`` (time.monotonic),
-        else None."""
-        ready = self._ready  # one read: the worker replaces the pair whole
-        if ready is None or now_s - ready[0] > self.max_age_s:
+        else None. With ``theta_rad`` (the angles read now, rad): None as well unless the forces'
+        angles are within ``tolerance_rad`` of them, plus what each motor turns at ``speed_rad_s``
+        (rad/s, the low-passed speeds; none: 0) in the forces' age. Fresh forces of other angles
+        (an encoder glitch the worker was shown, audit of 2026-11-29: 70.6 N on a cable for a whole
+        hold) are not these angles' forces; those of a neck that moves on are."""
+        ready = self._ready  # one read: the worker replaces the triple whole
+        if ready is None:
             return None
+        age = now_s - ready[0]
+        if age > self.max_age_s:
+            return None
+        if theta_rad is not None:
+            tol = self.tolerance_rad
+            speed = speed_rad_s if speed_rad_s is not None and len(speed_rad_s) == len(theta_rad) else None
+            for k, (x, y) in enumerate(zip(theta_rad, ready[2], strict=True)):
+                v = speed[k] if speed is not None else 0.0
+                if not abs(x - y) <= tol + abs(v) * max(age, 0.0):  # NaN: not within
+                    return None
         return ready[1]
 
     def compute(self, theta_rad: list[float]) -> bool:
@@ -224,7 +244,7 @@ class HoldWorker:
                 log.error("hold forces failed at θ = %s rad (%s: %s; %d failures): a hold there keeps the "
                           "applied forces", [round(x, 3) for x in theta_rad], type(exc).__name__, exc, self.failed)
             return False
-        self._ready = (read_s, f.tolist())
+        self._ready = (read_s, f.tolist(), list(theta_rad))
         self.computed += 1
         return True
 
@@ -247,7 +267,7 @@ class HoldWorker:
             now = time.monotonic()
             if tried is not None and _within(theta, tried, self.tolerance_rad):
                 if ready is not None:
-                    self._ready = (now, ready[1])  # still these angles' forces
+                    self._ready = (now, ready[1], ready[2])  # still these angles' forces
             elif now - last >= self.refresh_s:
                 last = now
                 self.compute(theta)
@@ -503,7 +523,8 @@ class BridgeNode:
             command_age_s=(time.monotonic_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
             sender=fresh.sender if fresh is not None else "", resumed_after_s=held_up_s,
             # a tick with a valid command neither starts nor continues a hold
-            hold_N=self.hold.ready(time.monotonic()) if fresh is None else None, states_unanswered=self._unanswered,
+            hold_N=self.hold.ready(time.monotonic(), self._theta_list, self.speed.rad_s) if fresh is None else None,
+            states_unanswered=self._unanswered,
             speed_rad_s=self.speed.rad_s))
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
             self._follow()  # something to follow (else nothing changed: the steady state, cheaper)
@@ -513,7 +534,8 @@ class BridgeNode:
         self.theta = self.driver.read()
         self._theta_list = self.theta.tolist()
         self.speed.update(self._theta_list, self.driver.stamp_s())  # a late tick: divided by the time it took
-        self.hold.offer(self._theta_list)
+        if self.speed.trusted:  # never hold forces of a glitch's angles (bridge.motor_speed.TRUST_AFTER_READINGS)
+            self.hold.offer(self._theta_list)
         self.ticks += 1
         self.publish_state()
         self._unanswered += 1
