@@ -140,3 +140,48 @@ def test_a_reading_is_trusted_again_only_some_readings_after_a_glitch():
         seen.append(speed.trusted)
     # the glitch's plateau (consistent with itself) and the jump back are not trusted; 5 readings later they are
     assert seen == [False] * 3 + [False] * 5 + [True]
+
+
+# -- failed encoder reads (finding 2) --------------------------------------------------------------
+
+
+class HealthOf:
+    """The bridge's Health messages, as the hub receives them."""
+
+    def __init__(self, hub, node: BridgeNode) -> None:
+        self.items: list[bus.Health] = []
+        self._sub = hub.declare_subscriber(bus.health_key("bridge", node.instance),
+                                           lambda s: self.items.append(bus.decode(bus.Health, s.payload.to_bytes())))
+
+
+def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(board, params):
+    """One read of the encoders that fails (the board library raises OSError) had ended the loop
+    and dropped every cable from 30 N to 0 (audit of 2026-11-29). A few in a row reuse the last
+    angles and keep the forces; one more than ``max_read_errors`` in a row ends the loop as before,
+    the drives off, the reason in the log and the bridge's Health."""
+    with _rig(board, params, command_timeout_s=5.0) as rig:  # no watchdog between these ticks
+        node = rig.node
+        health = HealthOf(rig.hub, node)
+        rig.answered_ticks([30.0] * 4, 40)
+        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4)
+        theta, states = node.theta.copy(), node._seq["state"]
+        board.failing_reads = 1
+        rig.send([30.0] * 4)
+        node.tick()
+        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4) and board.motors_enabled
+        assert node.read_errors == 1 and node.theta.tolist() == theta.tolist()
+        assert node._seq["state"] == states  # no state of angles not read
+        rig.answered_ticks([30.0] * 4, 3)  # reads again
+        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4)
+        n = node.config.max_read_errors
+        board.failing_reads = n
+        for _ in range(n):
+            node.tick()
+        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4) and node.read_errors == 1 + n
+        board.failing_reads = 1  # one more in a row
+        with pytest.raises(OSError, match="EIO"):
+            node.tick()
+        node.shutdown()  # what run_realtime's caller does then
+        assert node.mode == "disabled" and not board.motors_enabled
+        assert wait_until(lambda: any("encoder" in h.last_reject_reason and h.rejected.get("encoder_read") == n + 2
+                                      for h in health.items), 2.0), [h.last_reject_reason for h in health.items]

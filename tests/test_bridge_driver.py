@@ -31,6 +31,7 @@ class FakeBoard:
         self.pins: dict[int, int] = {}
         self.motors_enabled = False
         self.calls: list[tuple] = []
+        self.failing_reads = 0  # the next this many encoder reads raise OSError (EIO), as a flaky eQEP may
 
     def modules(self) -> dict[str, types.ModuleType]:
         rcpy = types.ModuleType("rcpy")
@@ -41,6 +42,9 @@ class FakeBoard:
         def enc_get(channel):
             if channel not in self.counts:
                 raise ValueError(f"no encoder channel {channel}")
+            if self.failing_reads > 0:
+                self.failing_reads -= 1
+                raise OSError(5, "EIO: encoder read failed (fake board)")
             return self.counts[channel]
 
         def motor_set(channel, duty):
