@@ -37,6 +37,8 @@ E-stop
     node asks for those alive before its first tick and follows them after, so a bridge started or
     relinked under an engaged e-stop is latched too, and a release acts only when no holder but its
     sender is left (:class:`bridge.safety.EStopHolders`, docs/safety.md).
+    An engage is never lost to the messages after it (a queue of 64 had dropped it under a
+    flood): the tick after it shows it, and releases that came after it apply from the next tick on.
 Encoder reads
     A read of the encoders that fails (``OSError``: the board library's, a transient eQEP or bus
     error) does not end the loop: the tick keeps the last angles, publishes no state (none was
@@ -352,6 +354,9 @@ class BridgeNode:
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
         self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
+        # The reason of the newest engage since the last tick: the bounded queue drops its oldest
+        # events, and an engage followed by 64 more messages had been lost (audit of 2026-11-29).
+        self._estop_engage: str | None = None
         self.estop_received = self.estop_rejected = 0
         self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
         # An engaged e-stop's holders (bridge.safety, "E-stop holders"): followed from now on, and
@@ -444,12 +449,19 @@ class BridgeNode:
             # refused while another e-stop holder's token is alive (bridge.safety.EStopHolders).
             applied = self.estop_holders.message(event, _bounded(estop_holder_of(sample), 64))
             if applied is not None:
-                self._estop_events.append(applied)
+                self._queue_estop(applied)
             held = sorted(self.estop_holders.holders) if applied is None else []
             self.estop_received += 1
             self.estop_rejected += 0 if valid else 1
         if held:
             log.warning("e-stop release (%s) refused: %s still hold the e-stop engaged", event[1], ", ".join(held))
+
+    def _queue_estop(self, event: tuple[bool, str]) -> None:
+        """Queue an e-stop event for the next tick (under ``_estop_lock``); an engage is also kept
+        apart, so that no overflow of the queue removes it (:meth:`_take_estop_events`)."""
+        self._estop_events.append(event)
+        if event[0]:
+            self._estop_engage = event[1]
 
     def _on_estop_token(self, sample: zenoh.Sample) -> None:
         # Zenoh callback thread: an e-stop holder's token appeared (engaged) or vanished.
@@ -459,7 +471,7 @@ class BridgeNode:
             return
         with self._estop_lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._estop_events.append(self.estop_holders.appeared(holder))
+                self._queue_estop(self.estop_holders.appeared(holder))
             else:
                 self.estop_holders.vanished(holder)
         if sample.kind != zenoh.SampleKind.PUT:
@@ -484,10 +496,19 @@ class BridgeNode:
             _log_events(self.safety.take_events())
 
     def _take_estop_events(self) -> list[tuple[bool, str]]:
+        """The e-stop events to apply now, in order. After an engage, only the events up to the
+        newest engage (the engage itself if the queue dropped it): the releases after it stay
+        queued for the next tick, so at least one state shows every engage (drives disabled) and
+        no flood of messages after it can remove it."""
         with self._estop_lock:
             events = list(self._estop_events)
             self._estop_events.clear()
-        return events
+            engage, self._estop_engage = self._estop_engage, None
+            if engage is None:
+                return events
+            last = max((k for k, (engaged, _) in enumerate(events) if engaged), default=-1)
+            self._estop_events.extend(events[last + 1:])  # released on the next tick at the earliest
+        return events[:last + 1] if last >= 0 else [(True, engage)]
 
     def process_estop(self) -> bool:
         """Apply queued e-stop events now (between ticks); True if the drive state changed."""

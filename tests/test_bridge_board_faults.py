@@ -74,6 +74,11 @@ def _rig(board, params, **config) -> Iterator[Rig]:
             node.shutdown()
 
 
+def _drives_on(board) -> bool:
+    """Whether any ESCON's enable line is high (the BeagleBone driver's enable pins)."""
+    return any(board.pins.values())
+
+
 def _counts(node: BridgeNode, rad: float) -> int:
     return int(rad / (2 * math.pi) * node.driver.counts_per_rev)  # pyright: ignore[reportAttributeAccessIssue]
 
@@ -168,7 +173,7 @@ def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(
         board.failing_reads = 1
         rig.send([30.0] * 4)
         node.tick()
-        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4) and board.motors_enabled
+        assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4) and _drives_on(board)
         assert node.read_errors == 1 and node.theta.tolist() == theta.tolist()
         assert node._seq["state"] == states  # no state of angles not read
         rig.answered_ticks([30.0] * 4, 3)  # reads again
@@ -182,6 +187,30 @@ def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(
         with pytest.raises(OSError, match="EIO"):
             node.tick()
         node.shutdown()  # what run_realtime's caller does then
-        assert node.mode == "disabled" and not board.motors_enabled
+        assert node.mode == "disabled" and not _drives_on(board)
         assert wait_until(lambda: any("encoder" in h.last_reject_reason and h.rejected.get("encoder_read") == n + 2
                                       for h in health.items), 2.0), [h.last_reject_reason for h in health.items]
+
+
+# -- a flood of e-stop messages (finding 3) --------------------------------------------------------
+
+
+@pytest.mark.parametrize("releases", [3, 64])
+def test_an_estop_engage_is_never_lost_to_the_messages_after_it(board, params, releases):
+    """An engage followed, before the next tick, by 64 more e-stop messages had been dropped from
+    the bounded queue, the drives left driving 30 N (audit of 2026-11-29). The tick after an
+    engage shows it (drives disabled) whatever came after it; the releases count from the next."""
+    with _rig(board, params, command_timeout_s=5.0) as rig:
+        node = rig.node
+        rig.answered_ticks([30.0] * 4, 40)
+        base = node.estop_received
+        rig.estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="operator pressed e-stop"))
+        for k in range(releases):
+            rig.estop.put(bus.EStop(seq=2 + k, stamp_s=time.time(), engaged=False, reason="release spam"))
+        assert wait_until(lambda: node.estop_received >= base + 1 + releases, 5.0)
+        rig.send([30.0] * 4)
+        node.tick()
+        assert node.mode == "disabled" and node.safety.estop_engaged and not _drives_on(board)
+        assert node.safety.estop_reason == "operator pressed e-stop" and node.force.tolist() == [0.0] * 4
+        node.tick()  # then the releases that came after it
+        assert node.mode == "inactive" and not _drives_on(board) and node.force.tolist() == [0.0] * 4
