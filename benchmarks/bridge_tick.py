@@ -30,6 +30,7 @@ Run: ``.venv/bin/python benchmarks/bridge_tick.py [--ticks 5000]``.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -71,7 +72,13 @@ def write_replay(path: Path, n: int = 1000) -> Path:
 def _command(node, seq: int, force_N: list[float]) -> bus.ForceCommand:
     # From ForceCommand v2 on, a command names its sender and answers the bridge's epoch.
     extra: dict[str, Any] = {"sender": "bench", "epoch": node.epoch} if "epoch" in bus.ForceCommand.__struct_fields__ else {}
-    return bus.ForceCommand(seq=seq, stamp_s=time.time(), force_N=force_N, source="benchmark", **extra)
+    # It answers the node's newest state (a bridge that checks it refuses others; older ones have none).
+    stamp = getattr(node, "last_state_stamp_s", None)
+    if stamp is not None and math.isnan(stamp):
+        node.publish_state()
+        stamp = node.last_state_stamp_s
+    return bus.ForceCommand(seq=seq, stamp_s=time.time() if stamp is None else stamp, force_N=force_N,
+                            source="benchmark", **extra)
 
 
 _REF_STATE = {"v": 2, "seq": 1, "stamp_s": 0.0, "theta_rad": [0.1, 0.2, 0.3, 0.4], "drive": "active",

@@ -95,8 +95,8 @@ def hang_to_off_s(mode: str, workdir: Path) -> tuple[float, str]:
             k = 0
             while not any(s.drive == "active" for s in states[-5:]):
                 k += 1
-                pub.put(bus.ForceCommand(seq=k, stamp_s=time.time(), force_N=[20.0] * 4, source="bench",
-                                         sender="wd-bench", epoch=states[-1].epoch))
+                pub.put(bus.ForceCommand(seq=k, stamp_s=states[-1].stamp_s, force_N=[20.0] * 4, source="bench",
+                                         sender="wd-bench", epoch=states[-1].epoch))  # answers the newest state
                 time.sleep(0.002)
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError(f"the bridge did not enable its drives: {log.read_text()[-2000:]}")

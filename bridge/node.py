@@ -7,8 +7,13 @@ disable, write the forces, step, read the encoders) → bus out (``MotorState`` 
 
 Commands
     A ``ForceCommand`` is valid when it decodes and every force lies in [0, f_max] with one force
-    per motor (:func:`bridge.bus.check_force_command`); anything else is counted as rejected and
-    never moves a motor. Valid forces are clamped to [f_min, f_max] (a cable must stay taut).
+    per motor (:func:`bridge.bus.check_force_command`), and it answers one of the newest states
+    this run published: its ``stamp_s`` is that state's (the contract of ``ForceCommand``), one of
+    the last 2 × ``command_timeout_s`` / period (10 at 500 Hz: twice the states a controller may
+    leave unanswered before the watchdog holds); anything else is counted as rejected (a
+    command of a state gone, ``Health.rejected["command_stale_state"]``) and never moves a motor,
+    so a command path that lags ends in the watchdog's hold (audit of 2026-11-29: a command
+    answering a state 5 s old, or one 1e9 s ahead, had been obeyed). Valid forces are clamped to [f_min, f_max] (a cable must stay taut).
 Activation
     The drives start disabled (``inactive``: angles published, zero force). The first valid
     command enables them (``active``).
@@ -343,6 +348,12 @@ class BridgeNode:
 
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
+            if cmd.epoch == self.epoch and cmd.stamp_s not in self._state_stamps:
+                # (another run's command: refused by its epoch below, the clearer reason)
+                self.commands_stale += 1
+                raise bus.BusDecodeError(
+                    f"ForceCommand from {cmd.sender!r}: answers no state of the last {len(self._state_stamps)} this "
+                    f"bridge published (stamp_s {cmd.stamp_s!r}; newest {self.last_state_stamp_s!r})")
             with self._owner_lock:
                 before = self.ownership.owner
                 reason = self.ownership.admit(cmd.sender, cmd.epoch)
@@ -351,6 +362,12 @@ class BridgeNode:
             if before != cmd.sender:
                 log.info("controller %r owns the bridge now", cmd.sender)
 
+        # The stamps of the newest states published (module docstring, "Commands"): a fixed list
+        # whose items the loop replaces and the callback reads (no lock; no item ever missing).
+        self._state_stamps: list[float | None] = [None] * (2 * self.safety.config.command_timeout_states)
+        self._stamp_k = 0
+        self.commands_stale = 0  # commands refused for answering no recent state
+        self.last_state_stamp_s = math.nan  # s, the stamp of the newest state published
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
         self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
@@ -615,8 +632,14 @@ class BridgeNode:
     # -- outputs --------------------------------------------------------------------------------
     def publish_state(self) -> None:
         self._seq["state"] += 1
+        stamp = self.driver.stamp_s()
+        if stamp != self.last_state_stamp_s:  # a lockstep bridge re-publishes its waiting state
+            # recorded before the state goes out: an answer may arrive before put() returns
+            self._stamp_k = (self._stamp_k + 1) % len(self._state_stamps)
+            self._state_stamps[self._stamp_k] = stamp
+            self.last_state_stamp_s = stamp
         self._state_pub.put(bus.MotorState(
-            seq=self._seq["state"], stamp_s=self.driver.stamp_s(), theta_rad=self._theta_list,
+            seq=self._seq["state"], stamp_s=stamp, theta_rad=self._theta_list,
             force_applied_N=self.force.tolist(), drive=self.mode,
             hold_reason=self.hold_reason if self.mode == "hold" else "", epoch=self.epoch, bridge=self.instance,
             # one attribute read (a str): the lock only guards the callback's read-modify-write
@@ -636,7 +659,8 @@ class BridgeNode:
                       "rate_limited": self.rate_limited,
                       "tick_max_us": int(self.tick_max_s * 1e6), bus.BRIDGE_CLOCK: self.clock.answered},
             rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected,
-                      bus.BRIDGE_CLOCK: self.clock.refused + self.clock.failed, "encoder_read": self.read_errors},
+                      bus.BRIDGE_CLOCK: self.clock.refused + self.clock.failed, "encoder_read": self.read_errors,
+                      "command_stale_state": self.commands_stale},
             last_reject_reason=self.fault or reason)))
 
     # -- exit -----------------------------------------------------------------------------------

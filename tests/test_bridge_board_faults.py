@@ -35,24 +35,29 @@ class Rig:
         self.seq = 0
 
     def command(self, force, stamp_s: float | None = None) -> bus.ForceCommand:
-        """A command of controller ``test`` (stamped ``stamp_s``, default now)."""
+        """A command of controller ``test`` answering the node's latest state (or ``stamp_s``)."""
         self.seq += 1
         if stamp_s is None:
-            stamp_s = time.time()
+            stamp_s = self.node.last_state_stamp_s
         return bus.ForceCommand(seq=self.seq, stamp_s=stamp_s, force_N=[float(f) for f in force], source="test",
                                 sender="test", epoch=self.node.epoch)
 
     def send(self, force) -> None:
-        """Publish a command until the node took it."""
-        node = self.node
-        n = node.commands.stats.accepted
-        msg = self.command(force)
+        """Publish a command answering the latest state until the node took it."""
+        if not self.put(self.command(force)):
+            raise AssertionError(f"command not accepted: {self.node.commands.stats.last_reject_reason}")
+
+    def put(self, msg: bus.ForceCommand) -> bool:
+        """Publish ``msg`` until the node took it (True) or refused it (False): the first
+        messages on a fresh route may be lost."""
+        commands = self.node.commands
+        before = commands.stats
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline:
             self.pub.put(msg)
-            if wait_until(lambda: node.commands.stats.accepted > n, 0.02, 0.001):
-                return
-        raise AssertionError(f"command not accepted: {node.commands.stats.last_reject_reason}")
+            if wait_until(lambda: commands.stats.received > before.received, 0.02, 0.001):
+                return commands.stats.accepted > before.accepted
+        raise AssertionError("the command never arrived")
 
     def answered_ticks(self, force, n: int) -> None:
         """``n`` ticks about one period apart, each state answered with ``force``."""
@@ -69,6 +74,7 @@ def _rig(board, params, **config) -> Iterator[Rig]:
         node = bridge_node(connect(), BeagleBoneDriver.from_params(BeagleBoneConfig(), params), params,
                            BridgeConfig(**config))
         try:
+            node.tick()  # the first state, for a controller to answer (drives inactive)
             yield Rig(node, board, hub)
         finally:
             node.shutdown()
@@ -93,7 +99,6 @@ def test_an_encoder_glitch_before_a_hold_does_not_set_its_forces(board, params, 
     not those of the glitched angles (70.6 N on cable 1 for the whole hold, before the fix)."""
     with _rig(board, params, command_timeout_s=0.010) as rig:
         node = rig.node
-        node.tick()  # its angles offered: the worker keeps their hold forces fresh
         assert wait_until(lambda: node.hold.ready(time.monotonic()) is not None, 2.0)
         rest = node.hold.ready(time.monotonic())
         assert rest is not None
@@ -214,3 +219,41 @@ def test_an_estop_engage_is_never_lost_to_the_messages_after_it(board, params, r
         assert node.safety.estop_reason == "operator pressed e-stop" and node.force.tolist() == [0.0] * 4
         node.tick()  # then the releases that came after it
         assert node.mode == "inactive" and not _drives_on(board) and node.force.tolist() == [0.0] * 4
+
+
+# -- commands that answer no recent state (finding 4) ----------------------------------------------
+
+
+def test_a_command_answering_no_recent_state_is_no_command(board, params):
+    """A command carries the stamp of the state it answers (bridge.bus.ForceCommand). One of this
+    run answering a state 5 s old, or one never published (1e9 s ahead), had been obeyed (audit of
+    2026-11-29): now it is refused, counted with its reason, and the watchdog holds as for silence."""
+    with _rig(board, params, command_timeout_s=0.010) as rig:
+        node = rig.node
+        health = HealthOf(rig.hub, node)
+        rig.answered_ticks([30.0] * 4, 40)
+        assert node.mode == "active"
+        for label, stamp in (("5 s old", node.last_state_stamp_s - 5.0), ("never published", node.last_state_stamp_s + 1e9)):
+            for _ in range(10):
+                assert not rig.put(rig.command([40.0] * 4, stamp_s=stamp)), label
+                node.tick()
+                time.sleep(DT)
+            assert node.mode == "hold" and max(node.force.tolist()) < 35.0, (label, node.mode, node.force.tolist())
+            assert "answers no state" in node.commands.stats.last_reject_reason
+            rig.answered_ticks([30.0] * 4, 60)  # answers to real states: active again
+            assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4)
+        node.publish_health()
+        assert wait_until(lambda: any(h.rejected.get("command_stale_state") == 20 for h in health.items), 2.0)
+
+
+def test_a_controller_answering_a_state_a_few_ticks_old_is_obeyed(board, params):
+    """The states a command may lag without a hold (the watchdog's 5 at 500 Hz) are answered."""
+    with _rig(board, params, command_timeout_s=5.0) as rig:
+        node = rig.node
+        stamps = []
+        for k in range(60):
+            node.tick()
+            stamps.append(node.last_state_stamp_s)
+            if k >= 5:
+                assert rig.put(rig.command([20.0] * 4, stamp_s=stamps[-6])), node.commands.stats.last_reject_reason
+        assert node.mode == "active" and node.commands.stats.rejected == 0

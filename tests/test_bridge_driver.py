@@ -439,7 +439,10 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
                 return stats.accepted if sender == "ctl" else stats.received
 
             n = count()
-            msg = bus.ForceCommand(seq=seq, stamp_s=0.0, force_N=force, source="law2", sender=sender, epoch=node.epoch)
+            if math.isnan(node.last_state_stamp_s):
+                node.publish_state()  # a state to answer
+            msg = bus.ForceCommand(seq=seq, stamp_s=node.last_state_stamp_s, force_N=force, source="law2", sender=sender,
+                                   epoch=node.epoch)
             for _ in range(250):  # the first messages on a fresh route may be lost
                 cmd_pub.put(msg)
                 if wait_until(lambda: count() > n, 0.02, 0.002):

@@ -54,6 +54,10 @@ class Collector:
         with self._lock:
             return [m for _, m in self.items]
 
+    def latest(self):
+        with self._lock:
+            return self.items[-1][1]
+
     def timed(self):
         with self._lock:
             return list(self.items)
@@ -67,10 +71,20 @@ def _node(session, params, **config) -> BridgeNode:
     return bridge_node(session, driver, params, BridgeConfig(**config))
 
 
-def _command(seq, force, epoch, source="law2", sender="test"):
-    """A command of controller ``sender`` answering bridge run ``epoch`` (the bridge obeys only
-    its owner, a controller with a live token: see :func:`_as_controller`)."""
-    return bus.ForceCommand(seq=seq, stamp_s=time.time(), force_N=[float(f) for f in force], source=source,
+def _command(seq, force, answers, source="law2", sender="test"):
+    """A command of controller ``sender`` answering ``answers``: a node's newest state (one is
+    published first if it has none yet), a ``MotorState``, or a bridge epoch (a run's stamp made
+    up: for commands refused by their epoch). The bridge obeys only its owner, a controller with
+    a live token (:func:`_as_controller`), and only answers to its newest states."""
+    if isinstance(answers, BridgeNode):
+        if math.isnan(answers.last_state_stamp_s):
+            answers.publish_state()
+        epoch, stamp = answers.epoch, answers.last_state_stamp_s
+    elif isinstance(answers, bus.MotorState):
+        epoch, stamp = answers.epoch, answers.stamp_s
+    else:
+        epoch, stamp = answers, time.time()
+    return bus.ForceCommand(seq=seq, stamp_s=stamp, force_N=[float(f) for f in force], source=source,
                             sender=sender, epoch=epoch)
 
 
@@ -126,7 +140,7 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
             node.tick()
             assert node.mode == "inactive" and node.driver.state is Lifecycle.INACTIVE
             assert node.force.tolist() == [0.0] * 4
-            assert _put_until(pub, _command(1, [0.5, 50.0, 100.0, 0.0], node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(pub, _command(1, [0.5, 50.0, 100.0, 0.0], node), lambda: node.commands.stats.accepted >= 1)
             node.tick()
             assert node.mode == "active" and node.driver.state is Lifecycle.ACTIVE
             assert node.force.tolist() == [1.0, 1.0, 1.0, 1.0]  # bumpless: 1 N per tick from zero
@@ -134,8 +148,8 @@ def test_valid_commands_are_clamped_and_bad_ones_never_move_a_motor(params):
                 node.tick()
             assert node.force.tolist() == [2.0, 50.0, 100.0, 2.0]  # raised to f_min = 2 N
             assert node.clamped == 1
-            for bad in (_command(2, [10.0, 10.0, 100.5, 10.0], node.epoch), _command(3, [10.0, -0.1, 10.0, 10.0], node.epoch),
-                        _command(4, [10.0, 10.0, 10.0], node.epoch)):
+            for bad in (_command(2, [10.0, 10.0, 100.5, 10.0], node), _command(3, [10.0, -0.1, 10.0, 10.0], node),
+                        _command(4, [10.0, 10.0, 10.0], node)):
                 pub.put(bad)
             pub._pub.put(b'{"v":2,"seq":5,"stamp_s":0,"force_N":[NaN,1,1,1],"source":"x","sender":"test","epoch":"%s"}'
                          % node.epoch.encode())
@@ -156,7 +170,7 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
         estop_pub = publisher(hub_session, bus.ESTOP)
         states = Collector(hub_session, bus.MOTOR_STATE)
         try:
-            assert _put_until(cmd_pub, _command(1, [20.0] * 4, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(cmd_pub, _command(1, [20.0] * 4, node), lambda: node.commands.stats.accepted >= 1)
             node.tick()
             assert node.mode == "active"
             assert _put_until(estop_pub, bus.EStop(seq=0, stamp_s=time.time(), engaged=False, reason="route check"),
@@ -173,7 +187,7 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             assert engaged.estop_engaged and engaged.estop_reason == "console button"
             # Commands are ignored while engaged.
             n = node.commands.stats.accepted
-            cmd_pub.put(_command(2, [30.0] * 4, node.epoch))
+            cmd_pub.put(_command(2, [30.0] * 4, node))
             assert wait_until(lambda: node.commands.stats.accepted == n + 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.driver.state is Lifecycle.INACTIVE
@@ -182,7 +196,7 @@ def test_estop_disables_the_drives_within_one_tick_until_released(params):
             assert wait_until(lambda: len(node._estop_events) == 1, 5.0)
             node.tick()
             assert node.mode == "inactive" and node.driver.state is Lifecycle.INACTIVE
-            cmd_pub.put(_command(3, [25.0] * 4, node.epoch))
+            cmd_pub.put(_command(3, [25.0] * 4, node))
             assert wait_until(lambda: node.commands.stats.accepted == n + 2, 5.0)
             node.tick()
             assert node.mode == "active" and node.force.tolist() == [1.0] * 4  # bumpless from zero
@@ -221,7 +235,7 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
             time.sleep(DT)
 
         try:
-            assert _put_until(cmd_pub, _command(1, [9.0] * 4, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(cmd_pub, _command(1, [9.0] * 4, node), lambda: node.commands.stats.accepted >= 1)
             for _ in range(20):
                 tick()
             assert node.force.tolist() == [9.0] * 4
@@ -236,7 +250,7 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
             assert node.mode == "inactive"
             for k, force in enumerate([[81.0, 22.0, 8.0, 28.0]] + [[100.0, 48.0, 8.0, 54.0]] * 3):
                 n = node.commands.stats.accepted
-                cmd_pub.put(_command(2 + k, force, node.epoch))
+                cmd_pub.put(_command(2 + k, force, node))
                 assert wait_until(lambda: node.commands.stats.accepted > n, 5.0)
                 tick()
             for _ in range(120):
@@ -265,11 +279,11 @@ def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_
         states = Collector(hub_session, bus.MOTOR_STATE)
         health = Collector(hub_session, bus.health_key("bridge", node.instance), bus.Health)
         try:
-            assert _put_until(pub_a, _command(1, [20.0] * 4, node.epoch, sender="ctl-a"), lambda: node.owner == "ctl-a")
+            assert _put_until(pub_a, _command(1, [20.0] * 4, node, sender="ctl-a"), lambda: node.owner == "ctl-a")
             node.tick()
             assert node.mode == "active"
             n = node.commands.stats.rejected
-            assert _put_until(pub_b, _command(1, [60.0] * 4, node.epoch, sender="ctl-b"),
+            assert _put_until(pub_b, _command(1, [60.0] * 4, node, sender="ctl-b"),
                               lambda: node.commands.stats.rejected > n)
             assert node.commands.stats.last_reject_reason.endswith("bridge owned by ctl-a")
             assert node.commands.latest().sender == "ctl-a"  # a refused command never replaces the owner's
@@ -286,7 +300,7 @@ def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_
             assert (state.owner, state.epoch, state.bridge) == ("ctl-a", node.epoch, node.instance)
             ctl_a.close()  # the owner's session ends: its liveliness token vanishes
             assert wait_until(lambda: node.owner == "", 5.0)
-            assert _put_until(pub_b, _command(2, [30.0] * 4, node.epoch, sender="ctl-b"), lambda: node.owner == "ctl-b")
+            assert _put_until(pub_b, _command(2, [30.0] * 4, node, sender="ctl-b"), lambda: node.owner == "ctl-b")
             node.tick()
             assert wait_until(lambda: states.messages()[-1].owner == "ctl-b", 5.0)
         finally:
@@ -300,7 +314,7 @@ def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_
 def _send_and_tick(node, pub, seq, force, sender):
     """Publish one command of ``sender`` until the node has taken it, then tick once."""
     n = node.commands.stats.accepted
-    assert _put_until(pub, _command(seq, force, node.epoch, sender=sender), lambda: node.commands.stats.accepted > n,
+    assert _put_until(pub, _command(seq, force, node, sender=sender), lambda: node.commands.stats.accepted > n,
                       timeout_s=5.0), node.commands.stats.last_reject_reason
     node.tick()
 
@@ -404,7 +418,7 @@ def test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages(p
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
             _send_and_tick(node, pub, 1, [20.0] * 4, "test")
-            huge = bus.encode(_command(2, [60.0] * 4, node.epoch)).replace(b'"source":"law2"',
+            huge = bus.encode(_command(2, [60.0] * 4, node)).replace(b'"source":"law2"',
                                                                            b'"source":"' + b"x" * 2_000_000 + b'"')
             n = node.commands.stats.rejected
             hub_session.put(bus.MOTOR_COMMAND, huge)
@@ -429,7 +443,7 @@ def test_a_bridge_woken_from_a_stall_ramps_to_the_command_computed_meanwhile(par
     with _node_at_30_N(params) as (node, pub):
         applied = [node.force.copy()]
         n = node.commands.stats.accepted
-        assert _put_until(pub, _command(100, [54.0, 30.0, 30.0, 6.0], node.epoch), lambda: node.commands.stats.accepted > n)
+        assert _put_until(pub, _command(100, [54.0, 30.0, 30.0, 6.0], node), lambda: node.commands.stats.accepted > n)
         node.tick(held_up_s=6.0)  # past this node's command timeout (5 s here, 10 ms by default)
         applied.append(node.force.copy())
         for _ in range(30):
@@ -548,10 +562,10 @@ def test_the_tick_that_starts_a_hold_uses_hold_forces_computed_off_the_tick(para
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         f_cmd = hold_forces(params, np.zeros(3)) + 5.0
         try:
-            assert _put_until(pub, _command(1, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(pub, _command(1, f_cmd, node), lambda: node.commands.stats.accepted >= 1)
             for _ in range(60):  # past the bumpless ramp from zero; the twin's neck moves meanwhile
                 tick(node)
-                pub.put(_command(2, f_cmd, node.epoch))
+                pub.put(_command(2, f_cmd, node))
             assert node.mode == "active" and node.force.tolist() == pytest.approx(f_cmd.tolist())
             time.sleep(0.05)
             tick(node)  # takes the last command (in flight a moment ago)
@@ -595,11 +609,11 @@ def test_a_stall_of_the_loops_cpu_starts_no_hold_a_silent_controller_does(params
             nonlocal k
             k += 1
             seen = node.commands.stats.accepted
-            pub.put(_command(k, f_cmd, node.epoch))
+            pub.put(_command(k, f_cmd, node))
             assert wait_until(lambda: node.commands.stats.accepted > seen, 2.0)
 
         try:
-            assert _put_until(pub, _command(k, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(pub, _command(k, f_cmd, node), lambda: node.commands.stats.accepted >= 1)
             for _ in range(40):  # past the bumpless ramp from zero, every state answered
                 node.tick()
                 answer()
@@ -630,10 +644,10 @@ def test_without_hold_forces_ready_the_hold_keeps_the_present_forces(params):
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         f_cmd = [20.0, 15.0, 10.0, 12.0]
         try:
-            assert _put_until(pub, _command(1, f_cmd, node.epoch), lambda: node.commands.stats.accepted >= 1)
+            assert _put_until(pub, _command(1, f_cmd, node), lambda: node.commands.stats.accepted >= 1)
             for _ in range(40):
                 tick(node)
-                pub.put(_command(2, f_cmd, node.epoch))
+                pub.put(_command(2, f_cmd, node))
             time.sleep(0.05)
             for _ in range(10):
                 tick(node)
@@ -744,7 +758,7 @@ def test_watchdog_ramps_to_the_hold_forces_when_commands_stop(params):
             k = 0
             while time.perf_counter() < t_end:
                 k += 1
-                pub.put(_command(k, f_cmd, node.epoch))
+                pub.put(_command(k, f_cmd, node))
                 time.sleep(DT)
             assert wait_until(lambda: sum(s.drive == "hold" for s in states.messages()) > 30, 5.0)
         finally:
@@ -782,7 +796,7 @@ def test_estop_in_real_time_takes_effect_on_the_next_tick(params):
         cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
         estop_pub = publisher(hub_session, bus.ESTOP)
         try:
-            first = _command(1, [20.0] * 4, node.epoch)
+            first = _command(1, [20.0] * 4, node)
             # the first messages on a fresh route may be lost: repeat the command until the drive is active
             assert wait_until(lambda: (cmd_pub.put(first), any(s.drive == "active" for s in states.messages()))[1],
                               10.0, 0.02)
@@ -816,16 +830,16 @@ def test_sigterm_leaves_the_drives_disabled(tmp_path):
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
             assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
-            epoch = _epoch(states)
+            _epoch(states)  # a state of the bridge, to answer
             k = 0
             while not any(s.drive == "active" for s in states.messages()[-5:]):
                 k += 1
-                pub.put(_command(k, [20.0] * 4, epoch))
+                pub.put(_command(k, [20.0] * 4, states.latest()))
                 time.sleep(DT)
                 assert k < 5000
             for _ in range(50):
                 k += 1
-                pub.put(_command(k, [20.0] * 4, epoch))
+                pub.put(_command(k, [20.0] * 4, states.latest()))
                 time.sleep(DT)
             rc = _stop_process(proc)
         finally:
@@ -924,14 +938,14 @@ def test_flood_of_malformed_commands_is_counted_and_the_valid_controller_obeyed(
         valid = [20.0, 25.0, 30.0, 1.0]  # the last one is clamped to f_min
         try:
             assert wait_until(lambda: len(states.messages()) > 0, 30.0), (tmp_path / "bridge.log").read_text()
-            epoch = _epoch(states)
+            _epoch(states)  # a state of the bridge, to answer
             flood = subprocess.Popen([sys.executable, "-c", FLOOD, hub, "3.0"], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
             k = 0
             start = time.perf_counter()
             while flood.poll() is None and time.perf_counter() - start < 15:
                 k += 1
-                pub.put(_command(k, valid, epoch, sender="valid-controller"))
+                pub.put(_command(k, valid, states.latest(), sender="valid-controller"))
                 time.sleep(DT)
             flood_out, flood_err = flood.communicate(timeout=10)
             assert flood.returncode == 0, flood_err
@@ -993,7 +1007,7 @@ def test_lockstep_ticks_once_per_command_and_never_holds(params):
             last = 0.0
             for k in range(1, 21):
                 for _attempt in range(20):  # resend on loss, as the controller does
-                    pub.put(_command(k, [15.0] * 4, node.epoch))
+                    pub.put(_command(k, [15.0] * 4, node))
                     got = states.wait(0.25, lambda s: s.stamp_s > last + 1e-9)
                     if got is not None and got.stamp_s > last + 1e-9:
                         break

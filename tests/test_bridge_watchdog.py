@@ -415,10 +415,11 @@ def test_a_hung_loop_trips_the_twin_and_the_loop_cannot_drive_again(params, monk
         pub = publisher(hub_session, bus.MOTOR_COMMAND)
         try:
             k = 0
+            assert wait_until(lambda: node.ticks > 0, 5.0)  # a state to answer
             while node.mode != "active" or node.force.min() < 19.0:  # past the 1 N-per-tick ramp
                 k += 1
-                pub.put(bus.ForceCommand(seq=k, stamp_s=time.time(), force_N=[20.0] * 4, source="test",
-                                         sender="test", epoch=node.epoch))
+                pub.put(bus.ForceCommand(seq=k, stamp_s=node.last_state_stamp_s, force_N=[20.0] * 4, source="test",
+                                         sender="test", epoch=node.epoch))  # answering its newest state
                 time.sleep(0.002)
                 assert k < 5000
             hang.set()
@@ -496,11 +497,12 @@ class _RobotBridge:
         """Command until the drives are active (every enable line high, set by the bridge), then
         stop commanding: the bridge holds, drives still enabled."""
         assert wait_until(lambda: bool(self.states), 60.0), self.log.read_text()
-        epoch, k = self.states[-1][1].epoch, 0
+        k = 0
         while not any(s.drive == "active" for _, s in self.states[-5:]):
             k += 1
-            self._pub.put(bus.ForceCommand(seq=k, stamp_s=time.time(), force_N=[20.0] * 4, source="test",
-                                           sender="wd-test", epoch=epoch))
+            state = self.states[-1][1]  # the newest state, answered
+            self._pub.put(bus.ForceCommand(seq=k, stamp_s=state.stamp_s, force_N=[20.0] * 4, source="test",
+                                           sender="wd-test", epoch=state.epoch))
             time.sleep(0.002)
             assert k < 10000 and self.proc.poll() is None, self.log.read_text()
         assert wait_until(lambda: self.states[-1][1].drive == "hold", 2.0)

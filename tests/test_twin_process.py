@@ -138,8 +138,10 @@ def test_slack_is_reported_on_the_bus_when_forces_are_cut(params, model):
         try:
             assert states.wait(10.0) is not None
             for k in range(300):
-                pub.put(bus.ForceCommand(seq=k + 1, stamp_s=0.0, force_N=list(f) if k < 100 else [0.0] * 4, source="t",
-                                         sender="t", epoch=node.epoch))
+                answered = states.latest()  # the state waiting for this command
+                assert answered is not None
+                pub.put(bus.ForceCommand(seq=k + 1, stamp_s=answered.stamp_s, force_N=list(f) if k < 100 else [0.0] * 4,
+                                         source="t", sender="t", epoch=node.epoch))
                 assert states.wait(2.0, lambda s, n=k + 1: s.stamp_s >= n * 0.002 - 1e-9) is not None
             assert wait_until(lambda: len(truths) >= 290, 3.0)
         finally:
