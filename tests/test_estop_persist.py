@@ -36,7 +36,7 @@ def _states(collector: Collector) -> list[bus.MotorState]:
 def _send(node, pub, seq: int, force: list[float]) -> None:
     """One command of the test controller answering ``node``'s run, accepted before returning."""
     n = node.commands.stats.accepted
-    assert _put_until(pub, _command(seq, force, node.epoch), lambda: node.commands.stats.accepted > n), \
+    assert _put_until(pub, _command(seq, force, node), lambda: node.commands.stats.accepted > n), \
         node.commands.stats.last_reject_reason
 
 
