@@ -21,6 +21,7 @@ from controller.trajectory import (
     Trajectory,
     TrajectoryError,
     TrajectoryLimits,
+    approach,
     trajectory_from_json,
     validate,
 )
@@ -98,15 +99,31 @@ def check_limits_within(params: Params, robot: Params) -> None:
                              f"never widen them")
 
 
+def approach_move(traj: Trajectory, alpha_from_rad: np.ndarray,
+                  alpha_max_rad: float | tuple[float, ...] | np.ndarray) -> Trajectory | None:
+    """The move :func:`controller.trajectory.approach` prepends to ``traj`` from ``alpha_from_rad``
+    (clipped to ±``alpha_max_rad``: an estimate a little past the limit is where the neck is), as
+    a trajectory of its own; None if the neck is already at the first waypoint. Two poses that each
+    pass validation may not be joined by a straight move: 14 of 399 random pairs asked a cable more
+    than f_max on the way, up to 118 N (audit of 2026-11-29)."""
+    start = np.clip(np.asarray(alpha_from_rad, dtype=np.float64), -np.asarray(alpha_max_rad), np.asarray(alpha_max_rad))
+    first = Trajectory(waypoints_rad=traj.waypoints_rad[:1], durations_s=np.zeros(0), dwell_s=np.zeros(1),
+                       name=traj.name, pretension_N=traj.pretension_N[:1])
+    lead = approach(first, start)
+    return None if lead is first else lead
+
+
 def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
             budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic,
-            wanted: Callable[[], bool] | None = None) -> Prepared:
+            wanted: Callable[[], bool] | None = None, alpha_from_rad: np.ndarray | None = None) -> Prepared:
     """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
     gives the gains and rate kept from the process's own law. Runs off the control loop (it may
     take seconds), never longer than ``budget_s`` by ``clock``; ``wanted`` is asked at each look
     at the budget (every ``FORCE_CHECK_CHUNK`` samples, about 15 ms): once it says False, the
-    preparation ends with :class:`GivenUp`. Raises :class:`Refused` with the reason for anything
-    wrong, never another exception."""
+    preparation ends with :class:`GivenUp`. ``alpha_from_rad``: the pose the campaign will start
+    from (α̂, or the target of the jog it waits for); the approach the service prepends from it
+    (:func:`controller.trajectory.approach`) is validated too (:func:`approach_move`). Raises
+    :class:`Refused` with the reason for anything wrong, never another exception."""
     deadline = clock() + budget_s
     try:
         if not req.trajectory_json:
@@ -125,8 +142,16 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
                                   alpha_dot_max_rad_s=base.alpha_dot_max_rad_s,
                                   alpha_ddot_max_rad_s2=base.alpha_ddot_max_rad_s2,
                                   duration_max_s=base.duration_max_s, waypoints_max=base.waypoints_max)
-        validate(traj, limits, params.n_joints,
-                 _budgeted(nominal_force_check(params, new_law), deadline, clock, wanted))
+        check = _budgeted(nominal_force_check(params, new_law), deadline, clock, wanted)
+        validate(traj, limits, params.n_joints, check)
+        lead = None if alpha_from_rad is None else approach_move(traj, alpha_from_rad, limits.alpha_max_rad)
+        if lead is not None:
+            try:
+                validate(lead, limits, params.n_joints, check)
+            except TrajectoryError as exc:
+                raise Refused(f"refused: the move from the present pose "
+                              f"{np.round(np.degrees(lead.waypoints_rad[0]), 1).tolist()}° to the first waypoint: "
+                              f"{exc}; go there through a pose in between") from None
     except Refused:
         raise
     except (ValueError, TrajectoryError, tomllib.TOMLDecodeError) as exc:
@@ -139,4 +164,4 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
 
 
 __all__ = ["FORCE_CHECK_CHUNK", "LIMITS_NOT_WIDENED", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused",
-           "check_limits_within", "prepare"]
+           "approach_move", "check_limits_within", "prepare"]

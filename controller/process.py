@@ -344,7 +344,8 @@ class ControllerNode:
                     self.preparations_skipped += 1
                 continue
             try:
-                result: Prepared | Refused = prepare(req, self._robot, self.service.law, wanted=wanted)
+                result: Prepared | Refused = prepare(req, self._robot, self.service.law, wanted=wanted,
+                                                      alpha_from_rad=self.service.start_pose())
             except GivenUp:
                 with self._req_lock:
                     self.preparations_cut += 1

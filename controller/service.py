@@ -470,6 +470,15 @@ class CampaignService:
         its result). One attribute read: the shell's worker asks it without the tick lock."""
         return self._starting is req
 
+    def start_pose(self) -> np.ndarray:
+        """Where a campaign asked for now would start (rad): the last waypoint of the running
+        jog (a jog waits for it and starts there), else α̂. Read by the shell's worker without
+        the tick lock, to validate the approach (:func:`controller.prepare.approach_move`)."""
+        traj = self.trajectory
+        if self.running and self.kind == "jog" and traj is not None:
+            return np.array(traj.waypoints_rad[-1], dtype=np.float64)
+        return np.array(self.ctl.estimator.alpha_hat, dtype=np.float64)
+
     def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
         """A controlled stop from where α^d is at ``stamp_s`` (:func:`controller.trajectory.brake_at`),
         while the law tracks it (drives active, no hold, no re-start due); ``None`` otherwise (the

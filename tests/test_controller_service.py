@@ -569,6 +569,23 @@ def test_a_campaigns_parameter_set_may_tighten_the_robots_limits(params):
     assert prepare(_request(parameters_toml=toml), params, LawConfig()).params.limits.alpha_max_deg == 30.0
 
 
+def test_the_approach_from_the_present_pose_is_validated_too(params):
+    """Audit of 2026-11-29 (session 40): the move the service prepends from α̂ to the first
+    waypoint was never validated; between (20, 23, −40)° and (−57, −52, 56)°, each a valid pose,
+    it asked a cable up to 118 N (f_max 100 N). A request from such a pose is refused, saying
+    which move and how to go; from near the first waypoint, or without a pose, it is accepted."""
+    there = Trajectory.from_degrees([[-57, -52, 56]], [], name="far jog")
+    req = _request(trajectory_json=there.to_json(), kind="jog")
+    assert prepare(req, params, LawConfig()).trajectory.n_waypoints == 1  # the pose alone is valid
+    with pytest.raises(Refused, match=r"the move from the present pose \[20.0, 23.0, -40.0\]° to the first "
+                                      r"waypoint: .*f_max.*; go there through a pose in between"):
+        prepare(req, params, LawConfig(), alpha_from_rad=np.radians([20.0, 23.0, -40.0]))
+    assert prepare(req, params, LawConfig(), alpha_from_rad=np.radians([-56.8, -52.0, 56.0])).trajectory is not None
+    gentle = Trajectory.from_degrees([[10, 5, 0]], [], name="near jog")
+    assert prepare(_request(trajectory_json=gentle.to_json(), kind="jog"), params, LawConfig(),
+                   alpha_from_rad=np.radians([20.0, 23.0, -40.0])).trajectory is not None
+
+
 def test_validation_past_its_time_budget_is_refused(params):
     from controller.trajectory import identification_trajectory
 
