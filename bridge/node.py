@@ -89,6 +89,7 @@ import time
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -96,6 +97,7 @@ import zenoh
 from bridge import bus
 from bridge.clock_service import ClockService
 from bridge.driver import Driver, Lifecycle
+from bridge.estop_latch import LatchFile, read_latch
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
 from bridge.runtime import SystemdNotify, raise_loop_thread
@@ -149,6 +151,9 @@ class BridgeConfig:
     # encoder reads that may fail (OSError) in a row, each tick then keeping the last angles; one
     # more ends the loop, drives off (module docstring, "Encoder reads"). 3: 6 ms at 500 Hz.
     max_read_errors: int = 3
+    # The e-stop latch file (bridge.estop_latch; None: none): a bridge restarted under an engaged
+    # e-stop whose holder is gone starts latched. `xneck bridge --driver beaglebone`: on by default.
+    estop_latch_path: Path | None = None
 
     def __post_init__(self) -> None:
         for name in ("command_timeout_s", "republish_s", "health_period_s", "max_force_step_N",
@@ -382,6 +387,10 @@ class BridgeNode:
         self._estop_tokens = session.liveliness().declare_subscriber(bus.ESTOP_ENGAGED_ALL, self._on_estop_token,
                                                                     history=True)
         self._latch_for_holders(session)
+        self.latch_file: LatchFile | None = None
+        self._latched_on_disk = False
+        if config.estop_latch_path is not None:
+            self._latch_from_disk(Path(config.estop_latch_path))
         self._state_pub = publisher(session, bus.MOTOR_STATE, block=config.lockstep)
         self._extra_pubs: dict[str, BusPublisher] = {}
         self._health = session.declare_publisher(bus.health_key("bridge", self.instance))
@@ -494,6 +503,18 @@ class BridgeNode:
         if sample.kind != zenoh.SampleKind.PUT:
             log.info("e-stop holder %r let go (a latched e-stop stays until it is released)", holder)
 
+    def _latch_from_disk(self, path: Path) -> None:
+        """Start latched if the e-stop latch file says so (:mod:`bridge.estop_latch`), and keep
+        it up to date from now on (:meth:`_follow`)."""
+        reason = read_latch(path)
+        self.latch_file = LatchFile(path)
+        self._latched_on_disk = reason is not None
+        if reason is not None:
+            log.warning("e-stop latched before this bridge started (%s: %s): the drives stay disabled until "
+                        "a release", path, reason)
+            self.safety.apply_estop([(True, _bounded(f"e-stop latched before this bridge started: {reason}"))])
+            _log_events(self.safety.take_events())
+
     def _latch_for_holders(self, session: zenoh.Session) -> None:
         """Start latched if an e-stop token is alive (asked, not waited for from the subscriber:
         its history may come after the first commands)."""
@@ -550,6 +571,9 @@ class BridgeNode:
         self.hold_reason = self.safety.hold_reason if self.mode == "hold" else ""
         if not self.safety.enabled:
             self.force = np.zeros(self.driver.n_motors)
+        if self.latch_file is not None and self.safety.estop_engaged != self._latched_on_disk:
+            self._latched_on_disk = self.safety.estop_engaged  # written off the tick (bridge.estop_latch)
+            self.latch_file.set(self._latched_on_disk, self.safety.estop_reason)
 
     def _source_text(self, cmd: bus.ForceCommand) -> str:
         """``sender (law)`` of a command, for the log: formatted once per sender and law, not per
@@ -674,6 +698,8 @@ class BridgeNode:
             self.driver.close()  # disables the drives first of all
         finally:
             self.hold.stop()
+            if self.latch_file is not None:
+                self.latch_file.close()  # what the e-stop last did is on disk before the process ends
             failed = getattr(self.driver, "close_error", "")
             if failed:
                 # Not "disabled": an enable line that does not read off may still drive. The bus and

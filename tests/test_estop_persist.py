@@ -198,3 +198,71 @@ def test_a_console_started_while_the_bridge_is_latched_shows_it_engaged_and_can_
             stop.set()
             ticking.join(5)
             node.shutdown()
+
+
+def test_a_bridge_restarted_after_its_estop_holder_is_gone_starts_latched_from_its_latch_file(
+        params, tmp_path: Path):
+    """Session 40: the e-stop's token reaches a bridge started later only while its holder lives.
+    The console engaged, then crashed (its token gone), then the bridge restarted: the new bridge
+    came up ``inactive`` and obeyed the controller. With its latch file (``--estop-latch``, on by
+    default on the board) it starts latched; a release clears the file, and the next start is free."""
+    latch = tmp_path / "state" / "estop-board"
+    with bus_pair() as (hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        cmd_pub = publisher(hub_session, bus.MOTOR_COMMAND)
+        console_session = connect()
+        console = CampaignManager(tmp_path / "data", console_session, hub)
+        first = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            _send(first, cmd_pub, 1, [30.0] * 4)
+            first.tick()
+            console.estop(True, "operator e-stop")
+            assert wait_until(lambda: first.estop_received >= 1, 5.0)
+            first.tick()
+            assert first.mode == "disabled"
+            assert wait_until(latch.exists, 5.0), "the latch was never written"
+        finally:
+            console.close()
+            console_session.close()  # the holder is gone: its token with it
+            first.shutdown()
+        assert "operator e-stop" in latch.read_text()
+        second = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            assert second.mode == "disabled" and second.safety.estop_engaged, second.mode
+            assert "latched before this bridge started" in second.estop_reason, second.estop_reason
+            _stays_disabled(second, cmd_pub)
+            n = second.estop_received
+            publisher(hub_session, bus.ESTOP).put(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="cleared"))
+            assert wait_until(lambda: second.estop_received > n, 5.0)
+            second.tick()
+            assert second.mode == "inactive" and not second.safety.estop_engaged
+            assert wait_until(lambda: not latch.exists(), 5.0), "the release left the latch on disk"
+        finally:
+            second.shutdown()
+        third = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            _send(third, cmd_pub, 300, [30.0] * 4)
+            third.tick()
+            assert third.mode == "active", third.mode
+        finally:
+            third.shutdown()
+
+
+def test_a_latch_file_that_cannot_be_read_is_an_engaged_estop(params, tmp_path: Path):
+    latch = tmp_path / "estop-board"
+    latch.mkdir()  # not a file: unreadable as a latch
+    with bus_pair() as (_hub, _hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            assert node.mode == "disabled" and "cannot be read" in node.estop_reason, node.estop_reason
+        finally:
+            node.shutdown()
+
+
+def test_the_board_bridge_keeps_its_latch_by_default_the_twin_none(tmp_path: Path, monkeypatch):
+    from server.cli.processes import latch_path
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert latch_path(None, "beaglebone", "beaglebone-neck") == tmp_path / "xneck" / "estop-beaglebone-neck"
+    assert latch_path(None, "twin", "") is None and latch_path("none", "beaglebone", "b") is None
+    assert latch_path(str(tmp_path / "l"), "twin", "") == tmp_path / "l"

@@ -152,6 +152,17 @@ def default_instance(driver: str, hostname: str | None = None) -> str:
     return f"beaglebone-{host or 'board'}"[:64]
 
 
+def latch_path(option: str | None, driver: str, instance: str) -> Path | None:
+    """The e-stop latch file of ``--estop-latch`` (bridge.estop_latch): the board's default for
+    ``--driver beaglebone`` when not given, none for the twin and replays (a test machine runs many,
+    under random names) and for 'none'."""
+    from bridge.estop_latch import default_latch_path
+
+    if option is None:
+        return default_latch_path(instance) if driver == "beaglebone" else None
+    return None if option.strip().lower() == "none" else Path(option).expanduser()
+
+
 def default_loop_stall_s(driver: str) -> float:
     """``--loop-stall`` when not given (s): the loop watchdog guards real drives only. On the twin
     a stall is the machine's load, not a motor left driving: twice in full-suite runs on the
@@ -203,6 +214,10 @@ def bridge(
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
+    estop_latch: str | None = typer.Option(
+        None, "--estop-latch", help="File keeping an engaged e-stop across restarts of this bridge (docs/safety.md, "
+        "rule 4): a bridge that finds it starts latched until a release. Default: "
+        "$XDG_STATE_HOME/xneck/estop-<instance> with --driver beaglebone, none for the twin and replay; 'none': off."),
     drives_off: bool = typer.Option(
         False, "--drives-off", help="Only disable the drives (enable lines off, zero-current set values) and exit, "
         "joining no bus: for after a bridge was killed, which could not (systemd ExecStopPost, xneck up --robot)."),
@@ -236,7 +251,8 @@ def bridge(
                               max_force_step_N=max_force_step, max_force_rate_N_s=max_force_rate,
                               loop_stall_s=loop_stall,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
-                              instance=instance or default_instance(driver), hold_damping_N_s_rad=hold_damping)
+                              instance=instance or default_instance(driver), hold_damping_N_s_rad=hold_damping,
+                              estop_latch_path=latch_path(estop_latch, driver, instance or default_instance(driver)))
     except ValueError as exc:
         raise fail(str(exc)) from None
     try:
