@@ -97,7 +97,9 @@ async def create_campaign(body: CampaignCreate, request: Request) -> Any:
     except RequestError as exc:
         return JSONResponse(status_code=422, content={"detail": exc.detail()})
     try:
-        return manager.start(prepared)
+        # Off the event loop: after a crash recovery start() may wait seconds for the bus, and on
+        # the loop that wait had held the e-stop's answer back 5 s (review of session 40).
+        return await run_in_threadpool(manager.start, prepared)
     except (Busy, DrivesDisabled) as exc:
         return _conflict(exc)
 

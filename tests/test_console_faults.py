@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import logging
 import os
 import signal
 import socket
@@ -681,3 +682,30 @@ def test_a_cli_campaign_on_a_full_disk_is_one_error_line_and_a_readable_failed_a
         assert len(errors) == 1 and "No space left" in errors[0] and "outcome failed" in errors[0], stderr
         info = read_campaign(out).info
         assert info["outcome"] == "failed" and "No space left" in info["message"], info
+
+
+def test_the_estop_answers_while_a_new_campaign_waits_for_the_bus(tmp_path: Path, caplog) -> None:
+    """Review of session 40: a campaign asked for right after a crash recovery waits (up to
+    ``BUS_SETTLE_S``) for the bus, and that wait ran on the console's event loop: the e-stop,
+    pressed meanwhile, was answered 5 s later, after the campaign. It must be answered while
+    the campaign still waits."""
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    (campaigns / "control-crashed.json").write_text(json.dumps(record("control-crashed", "running")))
+    with running_server(tmp_path / "data", viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c:
+        answer: list[httpx.Response] = []
+        asking = threading.Thread(target=lambda: answer.append(
+            c.post("/api/campaigns", json={"kind": "control"}, headers=AUTH)), daemon=True)
+        with caplog.at_level(logging.INFO, logger="xneck.campaigns"):
+            asking.start()
+            # the campaign's request validated and waiting for the bus (nothing links: up to 8 s)
+            assert wait_until(lambda: "waiting up to" in caplog.text, 20, 0.02), caplog.text[-2000:]
+        estop = c.post("/api/system/estop", json={"engaged": True, "reason": "pressed while it waits"}, headers=AUTH)
+        waiting = asking.is_alive()
+        asking.join(30)
+        c.post("/api/system/estop", json={"engaged": False, "reason": "done"}, headers=AUTH)
+        if answer and answer[0].status_code == 201:
+            c.post(f"/api/campaigns/{answer[0].json()['id']}/stop", headers=AUTH)
+            app.state.campaigns.wait_idle(60)
+        assert estop.status_code == 200, estop.text
+        assert waiting, "the e-stop was answered only after the campaign's wait for the bus"
