@@ -29,11 +29,13 @@ log = logging.getLogger("xneck.bridge")
 LATCH_MAX_BYTES = 4096  # a latch file is one line: larger is not one
 
 
-def default_latch_path(instance: str) -> Path:
-    """Where the board's bridge keeps its latch: ``$XDG_STATE_HOME/xneck/estop-<instance>``
-    (``~/.local/state`` when unset), one file per bridge name."""
+def default_latch_path() -> Path:
+    """Where the board's bridge keeps its latch: ``$XDG_STATE_HOME/xneck/estop-board``
+    (``~/.local/state`` when unset). One per board, whatever the bridge's name: a board runs one
+    bridge (its lock), and ``xneck up --robot`` names its bridge anew at each start (a latch per
+    name was never read again; review of session 40)."""
     state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-    return Path(state) / "xneck" / f"estop-{instance or 'bridge'}"
+    return Path(state) / "xneck" / "estop-board"
 
 
 def read_latch(path: Path) -> str | None:

@@ -263,6 +263,7 @@ def test_the_board_bridge_keeps_its_latch_by_default_the_twin_none(tmp_path: Pat
     from server.cli.processes import latch_path
 
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
-    assert latch_path(None, "beaglebone", "beaglebone-neck") == tmp_path / "xneck" / "estop-beaglebone-neck"
-    assert latch_path(None, "twin", "") is None and latch_path("none", "beaglebone", "b") is None
-    assert latch_path(str(tmp_path / "l"), "twin", "") == tmp_path / "l"
+    # one per board, whatever the bridge's name (xneck up --robot names it anew at each start)
+    assert latch_path(None, "beaglebone") == tmp_path / "xneck" / "estop-board"
+    assert latch_path(None, "twin") is None and latch_path("none", "beaglebone") is None
+    assert latch_path(str(tmp_path / "l"), "twin") == tmp_path / "l"

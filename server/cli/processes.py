@@ -152,14 +152,14 @@ def default_instance(driver: str, hostname: str | None = None) -> str:
     return f"beaglebone-{host or 'board'}"[:64]
 
 
-def latch_path(option: str | None, driver: str, instance: str) -> Path | None:
+def latch_path(option: str | None, driver: str) -> Path | None:
     """The e-stop latch file of ``--estop-latch`` (bridge.estop_latch): the board's default for
     ``--driver beaglebone`` when not given, none for the twin and replays (a test machine runs many,
     under random names) and for 'none'."""
     from bridge.estop_latch import default_latch_path
 
     if option is None:
-        return default_latch_path(instance) if driver == "beaglebone" else None
+        return default_latch_path() if driver == "beaglebone" else None
     return None if option.strip().lower() == "none" else Path(option).expanduser()
 
 
@@ -217,7 +217,7 @@ def bridge(
     estop_latch: str | None = typer.Option(
         None, "--estop-latch", help="File keeping an engaged e-stop across restarts of this bridge (docs/safety.md, "
         "rule 4): a bridge that finds it starts latched until a release. Default: "
-        "$XDG_STATE_HOME/xneck/estop-<instance> with --driver beaglebone, none for the twin and replay; 'none': off."),
+        "$XDG_STATE_HOME/xneck/estop-board with --driver beaglebone, none for the twin and replay; 'none': off."),
     drives_off: bool = typer.Option(
         False, "--drives-off", help="Only disable the drives (enable lines off, zero-current set values) and exit, "
         "joining no bus: for after a bridge was killed, which could not (systemd ExecStopPost, xneck up --robot)."),
@@ -252,7 +252,7 @@ def bridge(
                               loop_stall_s=loop_stall,
                               idle_timeout_s=idle_timeout, startup_timeout_s=startup_timeout, max_ticks=max_ticks,
                               instance=instance or default_instance(driver), hold_damping_N_s_rad=hold_damping,
-                              estop_latch_path=latch_path(estop_latch, driver, instance or default_instance(driver)))
+                              estop_latch_path=latch_path(estop_latch, driver))
     except ValueError as exc:
         raise fail(str(exc)) from None
     try:
