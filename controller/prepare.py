@@ -12,6 +12,7 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import msgspec
 import numpy as np
 
 from bridge import bus
@@ -25,7 +26,7 @@ from controller.trajectory import (
     trajectory_from_json,
     validate,
 )
-from twin.model.params import Params, params_from_dict
+from twin.model.params import Limits, Params, params_from_dict
 
 VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
 FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
@@ -80,23 +81,19 @@ def _budgeted(check: ForceCheck, deadline: float, clock: Callable[[], float],
     return run
 
 
-#: The robot's limits a campaign's parameter set may tighten but never widen: name -> whether a
-#: larger value is the wider one (a joint range, a largest force) or the narrower (the floors).
-LIMITS_NOT_WIDENED = {"alpha_max_deg": True, "f_max": True, "t_min": False, "f_min": False}
-
-
-def check_limits_within(params: Params, robot: Params) -> None:
-    """Raise ValueError if the parameter set ``params`` (a campaign's) widens a limit of ``robot``
-    (the process's ``--params``), naming it: the service adopts the campaign's set, its joint
-    limit (the divergence latch, trajectory validation) and its forces. A set with alpha_max_deg 85
-    and f_max 400 N had taken the neck to 72° against the robot's 60° (audit of 2026-11-29)."""
-    for name, larger_is_wider in LIMITS_NOT_WIDENED.items():
-        value, own = getattr(params.limits, name), getattr(robot.limits, name)
-        if (value > own) if larger_is_wider else (value < own):
-            unit = "°" if name.endswith("_deg") else " N"
-            raise ValueError(f"parameter set {params.name!r} has {name} {value:g}{unit}, beyond the robot's {own:g}{unit} "
-                             f"(`xneck controller --params`): a campaign's set may tighten the robot's limits, "
-                             f"never widen them")
+def within_robot_limits(params: Params, robot: Params) -> Params:
+    """The parameter set ``params`` (a campaign's) with each limit no wider than ``robot``'s (the
+    process's ``--params``): alpha_max_deg and f_max no larger, t_min and f_min no smaller. The
+    service adopts the campaign's set, its joint limit (the divergence latch, validation) and its
+    forces: a set with alpha_max_deg 85 and f_max 400 N had taken the neck to 72° against the
+    robot's 60° (audit of 2026-11-29). Taken, not refused: a console whose active set is not the
+    robot's file (`xneck up --params` passes it to the bridge and controller only) sends its own
+    with every campaign, and a tighter robot file had made every campaign refused (review of
+    session 40)."""
+    a, b = params.limits, robot.limits
+    limits = Limits(t_min=max(a.t_min, b.t_min), f_min=max(a.f_min, b.f_min), f_max=min(a.f_max, b.f_max),
+                    alpha_max_deg=min(a.alpha_max_deg, b.alpha_max_deg))
+    return params if limits == a else msgspec.structs.replace(params, limits=limits)
 
 
 def approach_move(traj: Trajectory, alpha_from_rad: np.ndarray,
@@ -134,7 +131,7 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
             if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
-            check_limits_within(params, robot)
+            params = within_robot_limits(params, robot)
         new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
         traj = trajectory_from_json(req.trajectory_json)
         base = limits or TrajectoryLimits()
@@ -163,5 +160,5 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
 
 
-__all__ = ["FORCE_CHECK_CHUNK", "LIMITS_NOT_WIDENED", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused",
-           "approach_move", "check_limits_within", "prepare"]
+__all__ = ["FORCE_CHECK_CHUNK", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused", "approach_move", "prepare",
+           "within_robot_limits"]

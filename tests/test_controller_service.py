@@ -7,6 +7,7 @@ import json
 import math
 from typing import Literal
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -543,21 +544,31 @@ def test_hostile_parameter_sets_are_refused(params):
 def test_a_campaigns_parameter_set_never_widens_the_robots_limits(params, widened):
     """Audit of 2026-11-29 (session 40): a request's parameter set with alpha_max_deg 85 and f_max
     400 N had its 80° trajectory validated against its own limits, then adopted: the neck reached
-    72° against the robot's 60°, and the campaign ``finished``. A set may tighten the robot's
-    limits (the process's ``--params``), never widen them."""
+    72° against the robot's 60°, and the campaign ``finished``. The campaign's set is taken with
+    each limit no wider than the robot's (the process's ``--params``)."""
     name, value = (x.strip() for x in widened.split("="))
     own = getattr(params.limits, name)
     toml = "\n".join(f"{name} = {value}" if line.split("=")[0].strip() == name and line.lstrip().startswith(name)
                      and "[" not in line else line for line in params.to_toml().splitlines())
     assert toml != params.to_toml(), "the set's limit was not replaced"
-    with pytest.raises(Refused, match=f"{name} .*beyond the robot.s {own:g}"):
-        prepare(_request(parameters_toml=toml), params, LawConfig())
-    far = Trajectory.from_degrees([[0, 0, 0], [80, 0, 0]], 4.0, 1.0, name="far")
-    if name == "alpha_max_deg":  # the audit's case, run: refused, and the service's own limits unchanged
-        svc = CampaignService(params, LawConfig(law=2), service=True, settle_s=0.2)
-        with pytest.raises(Refused):
+    assert getattr(prepare(_request(parameters_toml=toml), params, LawConfig()).params.limits, name) == own
+    if name == "alpha_max_deg":  # the audit's case: validated against the robot's 60°
+        far = Trajectory.from_degrees([[0, 0, 0], [80, 0, 0]], 4.0, 1.0, name="far")
+        with pytest.raises(Refused, match="exceeds"):
             prepare(_request(parameters_toml=toml, trajectory_json=far.to_json()), params, LawConfig())
-        assert svc.params.limits.alpha_max_deg == own
+
+
+def test_a_robot_file_tighter_than_the_consoles_set_tightens_its_campaigns(params):
+    """Review of session 40: `xneck up --params robot.toml` gives the file to the bridge and the
+    controller, not to the console, which sends its own set with every campaign: with a robot
+    file of alpha_max_deg 55 every campaign was refused ("beyond the robot's 55°"). It is prepared
+    with the robot's limits."""
+    robot = msgspec.structs.replace(params, limits=msgspec.structs.replace(params.limits, alpha_max_deg=55.0))
+    ok = prepare(_request(parameters_toml=params.to_toml()), robot, LawConfig())
+    assert ok.params.limits.alpha_max_deg == 55.0 and ok.params.limits.f_max == params.limits.f_max
+    far = Trajectory.from_degrees([[0, 0, 0], [58, 0, 0]], 4.0, 1.0, name="past the robot's 55")
+    with pytest.raises(Refused, match="exceeds"):
+        prepare(_request(parameters_toml=params.to_toml(), trajectory_json=far.to_json()), robot, LawConfig())
 
 
 def test_a_campaigns_parameter_set_may_tighten_the_robots_limits(params):
