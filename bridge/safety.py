@@ -222,6 +222,11 @@ class Safety:
                 self.force = self._zero
                 changed = True
                 self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
+            elif engaged and self.estop_engaged and self.estop_reason.endswith(TOKEN_REASON_TAIL) \
+                    and not reason.endswith(TOKEN_REASON_TAIL):
+                # The holder's own words, come after its token (they travel apart): the operator's
+                # reason ("Escape key") had been lost to the token's (browser test, CI of session 40).
+                self.estop_reason = reason
             elif not engaged and self.drive == "disabled":
                 self.drive, self.estop_reason, self.estop_engaged = "inactive", "", False
                 changed = True
@@ -413,6 +418,11 @@ def _step_towards(force: list[float], target: list[float], step: float) -> list[
     return [f + min(max(t - f, -step), step) for f, t in zip(force, target, strict=True)]
 
 
+#: How a holder's token's e-stop reason ends (:meth:`EStopHolders.reason`): a message's reason
+#: replaces it once it comes (:meth:`Safety.apply_estop`).
+TOKEN_REASON_TAIL = " (it holds the e-stop token)"
+
+
 class EStopHolders:
     """Who holds the e-stop engaged (their liveliness tokens), and whether a release may act
     (module docstring, "E-stop holders"). The node feeds it the tokens as they appear and vanish
@@ -432,7 +442,7 @@ class EStopHolders:
     @staticmethod
     def reason(holder: str) -> str:
         """The e-stop reason of a holder's token (a token carries no text of its own)."""
-        return f"e-stop engaged by {holder} (it holds the e-stop token)"
+        return f"e-stop engaged by {holder}{TOKEN_REASON_TAIL}"
 
     def appeared(self, holder: str) -> EStopEvent:
         """A holder's token appeared: an engaged event."""

@@ -450,3 +450,18 @@ def test_the_hold_damping_is_capped_and_does_not_wind_up_against_the_force_range
     assert d.force_N.tolist() == pytest.approx([10.0 + 30.0, 2.0, 14.0, 16.0])  # capped; floored at f_min
     d = s.step(idle(age_s=0.05, speed_rad_s=[0.0] * N))
     assert d.force_N.tolist() == pytest.approx([39.0, 3.0, 14.0, 16.0])  # at once back up from f_min: no wind-up
+
+
+def test_the_holders_own_reason_replaces_its_tokens_whichever_comes_first():
+    """CI of session 40: the console's e-stop message and its token travel apart; when the token
+    came first the bridge kept its generic reason and the operator's ("Escape key") was lost.
+    The message's reason replaces the token's; a token coming after a message changes nothing."""
+    h = EStopHolders()
+    for first, second, shown in (("token", "message", "Escape key"), ("message", "token", "Escape key")):
+        s = machine()
+        s.step(cmd([20.0] * N))
+        events = {"token": h.appeared("console-a"), "message": h.message((True, "Escape key"), "console-a")}
+        assert s.step(idle(age_s=0.0, estop=[events[first]])).drive == "disabled"
+        assert s.step(idle(age_s=0.0, estop=[events[second]])).drive == "disabled"
+        assert s.estop_reason == shown, (first, s.estop_reason)
+        h.vanished("console-a")
