@@ -327,6 +327,11 @@ function bridgeAge(b) {
     (b.drive === "hold" && b.hold_reason ? ` (${b.hold_reason})` : "");
 }
 
+// ``text`` cut to ``n`` characters, an ellipsis marking the cut (the whole text is in /api/system/health).
+function clip(text, n) {
+  return text.length > n ? `${text.slice(0, n - 1)}…` : text;
+}
+
 // The bridge's own counters (its Health, about 1 Hz): what a commissioning engineer watches.
 function bridgeHealth(procs) {
   const b = procs.processes.find((p) => p.kind === "bridge" && p.health);
@@ -335,7 +340,8 @@ function bridgeHealth(procs) {
   const refused = Object.values(b.health.rejected || {}).reduce((a, x) => a + x, 0);
   return `bridge ${b.instance}: ${n(r.ticks)} ticks, ${n(r.overruns)} overruns, ${n(r.holds)} holds, ` +
     `${n(r.clamped)} clamped, ${n(r.rate_limited)} rate-bounded, ${refused} refused` +
-    (b.health.last_reject_reason ? ` (last: ${b.health.last_reject_reason})` : "") +
+    // cut: a long reason wrapped the header and pushed the e-stop button down (CI of session 40)
+    (b.health.last_reject_reason ? ` (last: ${clip(b.health.last_reject_reason, 80)})` : "") +
     (b.health.age_s > 3 ? ` — counters ${b.health.age_s.toFixed(0)} s old` : "");
 }
 
