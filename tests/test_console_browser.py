@@ -509,7 +509,7 @@ def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_s
     # in view at the top: the header's lines above it vary with the bridge's counters and reasons
     box, view = page.locator("#estop").bounding_box(), page.viewport_size
     assert page.locator("#estop").is_visible() and box is not None and view is not None
-    assert 0 <= box["y"] and box["y"] + box["height"] <= 0.25 * view["height"], (box, view)
+    assert box["y"] >= 0 and box["y"] + box["height"] <= 0.25 * view["height"], (box, view)
     console.shot("console_estop.png")
     http.post("/api/system/estop", json={"engaged": False, "reason": "test"}, headers=AUTH)
     page.wait_for_function("document.querySelector('#estop-state').hidden", timeout=10000)
