@@ -470,13 +470,16 @@ def bus_campaign(live: LiveBus, max_age_s: float = BRIDGE_STATE_MAX_AGE_S) -> tu
 
 def bus_settled(live: LiveBus) -> bool:
     """Whether this console's bus can tell if a controller runs a campaign (:func:`bus_campaign`):
-    a controller's live status arrived since the start, or the bridge's fresh state obeys no
-    controller (``owner`` ""), so that none drives one. Before, a controller that has not linked
-    back to a restarted console looks like none (:meth:`server.campaigns.CampaignManager._await_bus`)."""
-    if live.heard_status():
-        return True
+    the bridge's fresh state obeys no controller (``owner`` "", so none drives one), or the
+    controller it obeys has been heard (its live status arrived since the start; a status naming
+    no controller, from an older one, counts too); with no fresh state, any controller heard.
+    Before, a controller that has not linked back to a restarted console looks like none
+    (:meth:`server.campaigns.CampaignManager._await_bus`), and a second, idle controller heard
+    first is not the one that may run it (review of session 40)."""
     state = live.values.fresh("state", BRIDGE_STATE_MAX_AGE_S)
-    return state is not None and not state.owner
+    if state is None:
+        return live.heard_status()
+    return not state.owner or live.heard_from(state.owner) or live.heard_from("")
 
 
 def bridge_status(values: LatestValues) -> dict[str, Any]:
@@ -550,6 +553,12 @@ class LiveBus:
         """Whether a controller's live ``ControllerStatus`` (not a replay's) arrived since this
         console started: its bus has linked to a controller."""
         return bool(self._live_status)
+
+    def heard_from(self, controller: str) -> bool:
+        """Whether a live status of ``controller`` ("" : one naming none) arrived since this
+        console started (kept while it is among the newest :data:`STATUS_MAX_CONTROLLERS`)."""
+        with self._status_lock:
+            return controller in self._live_status
 
     def live_statuses(self, max_age_s: float) -> dict[str, bus.ControllerStatus]:
         """Controller instance ("" for a status naming none) -> its newest ``ControllerStatus``
