@@ -437,6 +437,13 @@ class CampaignService:
             self.refuse(waiting.campaign_id, waiting.kind, f"dropped: jog {self.campaign_id} ended {outcome} ({message})")
         elif waiting is not None:
             self._next_jog = waiting  # started by advance() once this one has ended
+        starting = self._starting
+        if starting is not None and outcome != "finished" and self.kind == "jog":
+            # Being prepared behind this jog: its approach is validated from this jog's target
+            # (start_pose), where the neck will not be (review of session 40).
+            self.refuse(starting.campaign_id, starting.kind, f"dropped: jog {self.campaign_id} ended {outcome} "
+                                                             f"({message}) before it reached the pose its approach was checked from")
+            self._starting = None
 
     def _progress(self, stamp_s: float) -> float:
         return min(max((stamp_s - self._t0) / self._total, 0.0), 1.0)

@@ -691,3 +691,32 @@ def test_a_first_state_far_off_any_pose_is_held_within_the_joint_limits(params) 
     limit = math.radians(params.limits.alpha_max_deg)
     assert np.all(np.abs(svc.hold_target) <= limit + 1e-12), np.degrees(svc.hold_target)
     assert np.all(svc.ctl.estimator.x_c == 0.0)
+
+
+def test_a_jog_prepared_behind_a_jog_that_ends_aborted_is_dropped(params):
+    """Review of session 40: jog B, asked for while jog A runs, has its approach validated from
+    A's target (``start_pose``). A then ended ``aborted`` while B was still being prepared, and B
+    started from where A had stopped: an approach nobody validated. B is dropped with A's end, as
+    a jog already waiting for A is."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params)
+    svc = loop.svc
+    loop.run(1.0)
+
+    def jog(cid: str, deg: list[float]) -> bus.CampaignRequest:
+        return _request(cid, trajectory_json=Trajectory.from_degrees([deg], [], 0.0, "jog").to_json(), kind="jog")
+
+    svc.handle(jog("jog-a", [40.0, 0.0, 0.0]), loop.stamp_s)
+    loop.run(0.4)
+    assert svc.running and svc.campaign_id == "jog-a"
+    b = jog("jog-b", [-20.0, 15.0, 0.0])
+    assert svc.request_start(b)  # the shell's worker prepares it ...
+    validated_from = svc.start_pose()  # ... its approach from A's target
+    assert np.allclose(np.degrees(validated_from), [40.0, 0.0, 0.0])
+    svc.stop("jog-a", loop.stamp_s)  # A ends aborted meanwhile
+    svc.prepared(prepare(b, params, LawConfig(law=2), alpha_from_rad=validated_from), b, loop.stamp_s)
+    loop.run(2.0)
+    assert not (svc.running and svc.campaign_id == "jog-b")
+    ends = [e for e in loop.events if e.campaign_id == "jog-b" and e.event in ("started", "aborted")]
+    assert [e.event for e in ends] == ["aborted"] and "jog jog-a ended aborted" in ends[0].message, ends
