@@ -40,6 +40,16 @@ def _send(node, pub, seq: int, force: list[float]) -> None:
         node.commands.stats.last_reject_reason
 
 
+def _engaged_while_active(node, console, pub) -> None:
+    """The node active under the test controller's 30 N, then the console's e-stop: disabled."""
+    _send(node, pub, 1, [30.0] * 4)
+    node.tick()
+    console.estop(True, "operator e-stop")
+    assert wait_until(lambda: node.estop_received >= 1, 5.0)
+    node.tick()
+    assert node.mode == "disabled"
+
+
 def _stays_disabled(node, pub, ticks: int = 40, first_seq: int = 100) -> None:
     """The controller keeps commanding 30 N; the bridge must not move a motor."""
     for k in range(ticks):
@@ -134,12 +144,7 @@ def test_a_release_needs_every_holder_gone_and_a_vanished_holder_releases_nothin
         console = CampaignManager(tmp_path / "data", console_session, hub)
         node = _node(connect(), params, command_timeout_s=5.0)
         try:
-            _send(node, cmd_pub, 1, [20.0] * 4)
-            node.tick()
-            console.estop(True, "operator e-stop")
-            assert wait_until(lambda: node.estop_received >= 1, 5.0)
-            node.tick()
-            assert node.mode == "disabled"
+            _engaged_while_active(node, console, cmd_pub)
             n = node.estop_received
             other_estop.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="someone else's release"))
             assert wait_until(lambda: node.estop_received > n, 5.0)
@@ -217,12 +222,7 @@ def test_a_bridge_restarted_after_its_estop_holder_is_gone_starts_latched_from_i
         console = CampaignManager(tmp_path / "data", console_session, hub)
         first = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
         try:
-            _send(first, cmd_pub, 1, [30.0] * 4)
-            first.tick()
-            console.estop(True, "operator e-stop")
-            assert wait_until(lambda: first.estop_received >= 1, 5.0)
-            first.tick()
-            assert first.mode == "disabled"
+            _engaged_while_active(first, console, cmd_pub)
             assert wait_until(latch.exists, 5.0), "the latch was never written"
         finally:
             console.close()
