@@ -333,7 +333,7 @@ def twin(
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
            hold_ramp=0.010, hold_damping=1.0, max_force_step=1.0, max_force_rate=5000.0, loop_stall=None, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
-           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False)
+           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False, estop_latch=None)
 
 
 def _check_campaign_kind(value: str) -> str:
