@@ -125,7 +125,8 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
     busy = busy_reason(state)
     if busy:
         return status.HTTP_409_CONFLICT, {"detail": busy}
-    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
+    target, ambiguous = choose_service(state.presence.instances("campaign-service"), bridge_owners(state))
+    ctl = service_status(state, target)
     law = law_of(ctl.law if ctl is not None else "")
     params = state.default_params
     try:
@@ -135,7 +136,6 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
     if not state.presence.any_alive("campaign-service"):
         return status.HTTP_503_SERVICE_UNAVAILABLE, {"detail": "no controller service on the bus (start the "
                                                               "stack with `xneck up`)"}
-    target, ambiguous = choose_service(state.presence.instances("campaign-service"), bridge_owners(state))
     if ambiguous:
         return status.HTTP_409_CONFLICT, {"detail": ambiguous}
     if ctl is None:
@@ -158,6 +158,15 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
                                       "to_deg": list(alpha_deg), "duration_s": move.duration_s}
 
 
+def service_status(state: Any, service: str) -> bus.ControllerStatus | None:
+    """The fresh live status of the controller ``service`` (the campaign service a jog goes to:
+    the one the bridge obeys), else one naming no controller; None if neither. The newest status
+    of any controller had set the jog's start: a second controller on the bus answering after the
+    bridge's owner put it at its own α̂ (review of session 40)."""
+    statuses = state.live.live_statuses(STATUS_MAX_AGE_S)
+    return statuses.get(service) or statuses.get("")
+
+
 def bridge_owners(state: Any) -> set[str]:
     """The controller the bridge obeys, from its latest fresh state (none if unknown)."""
     msg = state.live.values.fresh("state", STATUS_MAX_AGE_S)
@@ -168,9 +177,9 @@ def stop_jog(state: Any) -> list[str]:
     """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
     (the controller then holds α̂). Returns the ids stopped."""
     desk = desk_of(state)
-    ctl = state.live.values.fresh("status", STATUS_MAX_AGE_S)
-    running = ctl.campaign_id if ctl is not None and ctl.campaign_id.startswith("jog-") else ""
-    stopped = [cid for cid in dict.fromkeys((desk.last_id, running)) if cid]
+    running = [st.campaign_id for st in state.live.live_statuses(STATUS_MAX_AGE_S).values()
+               if st.campaign_id.startswith("jog-")]  # every controller's: one stop must not miss one
+    stopped = [cid for cid in dict.fromkeys((desk.last_id, *running)) if cid]
     with desk.lock:
         for cid in stopped:
             desk.send(cid, "stop")

@@ -5,6 +5,7 @@ The jog that moves the neck is in tests/test_console_browser.py (a real stack)."
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from typing import Any
@@ -214,3 +215,51 @@ def test_a_refusal_reason_from_the_bus_reaches_the_viser_panel_as_plain_text():
     detail_list = jog_status_markdown(422, {"detail": [{"msg": "<b>x</b>"}, "y"]})
     assert "<b>" not in detail_list and "&lt;b&gt;x&lt;/b&gt;; y" in detail_list
     assert jog_status_markdown(202, {"jog_id": "jog-1"}) == "→ jog-1"
+
+
+def test_a_jog_starts_from_the_alpha_hat_of_the_controller_the_bridge_obeys(console):
+    """Session 40's review: the jog took α̂ from the newest status of any controller. A second
+    controller on the bus (started by hand with another parameter set, or one whose encoders
+    were zeroed elsewhere) answering after the bridge's owner set the start of the move, and of
+    its check, to a pose the neck is not in. The jog now reads the status of the service it sends
+    the jog to (the one the bridge obeys)."""
+    from bridge.session import controller_attachment
+
+    client, app = console
+
+    def status(alpha_deg: float) -> bytes:
+        return bus.encode(bus.ControllerStatus(
+            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+            saturated=[False] * 4, alpha_hat_rad=[math.radians(alpha_deg), 0.0, 0.0], alpha_d_rad=[0.0] * 3,
+            e_rad=[0.0] * 3, holding=True))
+
+    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
+                                      drive="active", epoch="e-jog", bridge="b-jog", owner="ctl-owner"))
+    owner, other = status(2.0), status(25.0)
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        tokens = [liveliness_token(peer, "campaign-service", name) for name in ("ctl-owner", "ctl-other")]
+        quiet = threading.Event()
+
+        def two_controllers() -> None:  # the owner answers first, the other one after it, every time
+            while not quiet.is_set():
+                peer.put(bus.MOTOR_STATE, state)
+                peer.put(bus.CONTROLLER_STATUS, owner, attachment=controller_attachment("ctl-owner"))
+                peer.put(bus.CONTROLLER_STATUS, other, attachment=controller_attachment("ctl-other"))
+                time.sleep(0.01)
+
+        sender = threading.Thread(target=two_controllers, daemon=True)
+        sender.start()
+        try:
+            def jog() -> httpx.Response:
+                return client.post("/api/jog", json={"alpha_deg": [4, 0, 0]}, headers=AUTH)
+
+            assert wait_until(lambda: jog().status_code not in (503, 429), 20, 0.6)
+            time.sleep(0.2)  # the route allows one jog per JOG_MIN_INTERVAL_S (0.1 s)
+            r = jog()
+        finally:
+            quiet.set()
+            sender.join(5)
+            for token in tokens:
+                token.undeclare()
+        assert r.status_code == 202, r.text
+        assert r.json()["from_deg"][0] == pytest.approx(2.0, abs=1e-6), r.json()
