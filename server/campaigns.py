@@ -62,7 +62,8 @@ from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
 from bridge.archive_read import is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
-from bridge.session import estop_holder_attachment, payload_of, publisher
+from bridge.estop_holder import EStopHolder
+from bridge.session import payload_of, publisher
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import (
@@ -180,16 +181,14 @@ class CampaignManager:
         # (campaign id, speed, cancelled) of a replay whose archive is being read: it holds the robot
         # already, so that no campaign or second replay starts in the second the read takes.
         self._replay_starting: tuple[str, float, threading.Event] | None = None
-        self._estop_pub = publisher(session, bus.ESTOP)
-        self._estop_seq = 0
         self._estop_lock = threading.Lock()  # never with _lock held: publishing may block
         self.estop_engaged = False  # what this console last sent; the bridge's word is bridge_estop()
         self.estop_reason = ""
-        # This console's hold on the e-stop it engaged (bridge.bus.ESTOP_ENGAGED_ALL): a liveliness
-        # token from the engage to the release, so a bridge that starts or links back meanwhile starts
-        # latched (the EStop message reaches only the bridges linked when it goes out: audit S3).
+        # This console's hold on the e-stop it engaged (bridge.estop_holder): a liveliness token from
+        # the engage to the release, so a bridge that starts or links back meanwhile starts latched
+        # (the EStop message reaches only the bridges linked when it goes out: audit S3).
         self.estop_holder = f"console-{uuid.uuid4().hex[:6]}"
-        self._estop_token: zenoh.LivelinessToken | None = None
+        self._estop = EStopHolder(session, self.estop_holder)
         self._holders_lock = threading.Lock()
         self._estop_others: set[str] = set()  # the other holders alive on the bus (another console)
         self._estop_holders_sub = session.liveliness().declare_subscriber(
@@ -849,32 +848,13 @@ class CampaignManager:
         """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
         engaging, abort the running campaign and any replay."""
         with self._estop_lock:  # two at once: what this console says is what it sent last
-            if not engaged:
-                self._hold_estop(False)  # before the release: the bridge releases once no holder is left
-            self._estop_seq += 1
-            self._estop_pub.put(bus.EStop(seq=self._estop_seq, stamp_s=time.time(), engaged=engaged,
-                                          reason=reason), attachment=estop_holder_attachment(self.estop_holder))
+            (self._estop.engage if engaged else self._estop.release)(reason)
             self.estop_engaged, self.estop_reason = engaged, reason
-            if engaged:
-                self._hold_estop(True)  # after the engage: the bridges up now must not wait for it
         if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
             self._stop.set()
             self._cancel_starting_replay()
             if self._replay is not None:
                 self._replay.stop()
-
-    def _hold_estop(self, hold: bool) -> None:
-        """Declare (or drop) this console's e-stop token. A failure is logged, never raised: the
-        e-stop message goes out (or went out) whatever becomes of the token."""
-        try:
-            if hold and self._estop_token is None:
-                self._estop_token = self.session.liveliness().declare_token(bus.estop_token_key(self.estop_holder))
-            elif not hold and self._estop_token is not None:
-                token, self._estop_token = self._estop_token, None
-                token.undeclare()
-        except Exception as exc:  # noqa: BLE001 - see the docstring
-            log.error("e-stop token %s could not be %s (%s: %s)", bus.estop_token_key(self.estop_holder),
-                      "declared" if hold else "dropped", type(exc).__name__, exc)
 
     def _cancel_starting_replay(self) -> None:
         with self._lock:
@@ -887,9 +867,7 @@ class CampaignManager:
         if self._replay is not None:
             self._replay.stop()
         self.wait_idle(timeout_s)
-        with contextlib.suppress(Exception):
-            self._estop_pub.close()
         # The token goes with this console (as in a crash): bridges latched stay latched until a release.
-        for closer in ((lambda: self._hold_estop(False)), self._estop_holders_sub.undeclare):
+        for closer in (self._estop.close, self._estop_holders_sub.undeclare):
             with contextlib.suppress(Exception):
                 closer()

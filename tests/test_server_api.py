@@ -513,7 +513,7 @@ def test_an_estop_pressed_while_a_campaign_starts_stops_that_campaign(tmp_path) 
                                                       "durations_s": 1.0, "dwell_s": 0.2}}
     with (running_server(tmp_path, viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c):
         manager = app.state.campaigns
-        save, put, estop = manager.index.save, manager._estop_pub.put, manager.estop
+        save, put, estop = manager.index.save, manager._estop._pub.put, manager.estop
         saving, pressed = threading.Event(), threading.Event()
 
         def slow_put(msg, **kwargs) -> None:  # a publication that takes a while (a congested link)
@@ -530,7 +530,7 @@ def test_an_estop_pressed_while_a_campaign_starts_stops_that_campaign(tmp_path) 
                 saving.set()
                 pressed.wait(2)
 
-        manager._estop_pub.put, manager.estop, manager.index.save = slow_put, estop_then_tell, save_while_pressed
+        manager._estop._pub.put, manager.estop, manager.index.save = slow_put, estop_then_tell, save_while_pressed
         answer: list[int] = []
         press = threading.Thread(target=lambda: answer.append(c.post(
             "/api/system/estop", json={"engaged": True, "reason": "pressed during the start"},
