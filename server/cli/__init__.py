@@ -15,6 +15,7 @@ from server.cli import (
     calibrate,
     camera,
     campaign,
+    estop,
     excitation,
     identify,
     kinematics,
@@ -64,6 +65,7 @@ for _kind in ("control", "identification", "design"):
     study.study_app.command(_kind)(getattr(study, f"study_{_kind}"))
 app.add_typer(study.study_app, name="study")
 app.add_typer(bus.bus_app, name="bus")
+app.add_typer(estop.estop_app, name="estop")
 
 
 def main() -> None:

@@ -1,0 +1,313 @@
+"""`xneck estop engage|release|status`: the e-stop from a terminal, beside the console's button.
+
+The same e-stop as the console's (docs/safety.md, "E-stop"): this command is an e-stop holder
+(:class:`bridge.estop_holder.EStopHolder`). It connects straight to the bridge (or to the hub of
+an ``xneck up`` stack), so it works when the console is down or hung, over SSH, or from a script
+a lab wires to a button on the PC. Every answer is the bridges' own word: their ``MotorState``
+(``estop_engaged``, ``drive``) heard after the message went out, never what was sent.
+
+- ``engage`` ends once a bridge has confirmed (exit 0), or after ``--wait-s`` with none (exit 1:
+  the e-stop reached no bridge). With ``--hold`` it then keeps holding the e-stop until Ctrl-C or
+  SIGTERM, so a bridge that starts or links back meanwhile starts latched. On leaving, the
+  bridges latched stay latched (a holder that goes releases nothing).
+- ``release`` lets go of the e-stop; a bridge obeys only when no other holder is left (the
+  console's engaged button holds it): it then names the holders, exit 1.
+- ``status`` prints each bridge's e-stop and drive, and the holders alive on the bus.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import typer
+
+from server.cli.options import check_credentials, echo_json, open_bus
+
+#: Where ``xneck up`` puts its hub: the e-stop's default when neither --connect nor the environment names one.
+DEFAULT_HUB = "tcp/127.0.0.1:7447"
+QUERY_TIMEOUT_S = 1.0  # s: the liveliness query for the holders alive
+
+CONNECT_OPTION = typer.Option(
+    None, "--connect", help="Zenoh endpoint of the robot's bridge (best: fewest hops) or of the stack's hub "
+    f"(repeatable). Default: $XNECK_ZENOH_CONNECT, else {DEFAULT_HUB} (xneck up's hub).")
+WAIT_OPTION = typer.Option(3.0, "--wait-s", min=0.1, max=60.0,
+                           help="How long to wait for the bridges' answer, in seconds.")
+JSON_OPTION = typer.Option(False, "--json", help="Print the outcome as JSON.")
+
+estop_app = typer.Typer(help="The e-stop from a terminal (the console's e-stop): engage, release, status.",
+                        no_args_is_help=True, add_completion=False)
+
+
+@dataclass(frozen=True)
+class BridgeWord:
+    """What one bridge's latest ``MotorState`` says of the e-stop, and when it arrived (monotonic s)."""
+
+    bridge: str
+    engaged: bool
+    reason: str
+    drive: str
+    owner: str
+    heard_s: float
+
+    def line(self) -> str:
+        estop = f"e-stop engaged ({self.reason})" if self.engaged else "e-stop released"
+        return f"bridge {self.bridge}: {estop}, drives {self.drive}" + (f", obeys {self.owner}" if self.owner else "")
+
+    def to_json(self) -> dict[str, object]:
+        return {"bridge": self.bridge, "engaged": self.engaged, "reason": self.reason, "drive": self.drive,
+                "owner": self.owner}
+
+
+class BridgeWatch:
+    """The newest ``MotorState`` of every bridge on the bus (live ones: a replay's are skipped),
+    kept from the Zenoh callback thread; at most :attr:`MAX_BRIDGES` (the first heard)."""
+
+    MAX_BRIDGES = 16
+
+    def __init__(self, session) -> None:
+        from bridge import bus
+
+        self._lock = threading.Lock()
+        self._words: dict[str, BridgeWord] = {}
+        self._changed = threading.Condition(self._lock)
+        self._sub = session.declare_subscriber(bus.MOTOR_STATE, self._on_state)
+
+    def _on_state(self, sample) -> None:
+        from bridge import bus
+        from bridge.session import replayed
+
+        if replayed(sample):
+            return
+        try:
+            msg = bus.decode(bus.MotorState, sample.payload.to_bytes())
+        except bus.BusDecodeError:
+            return
+        word = BridgeWord(msg.bridge[:64], msg.estop_engaged, msg.estop_reason[:200], msg.drive, msg.owner[:64],
+                          time.monotonic())
+        with self._lock:
+            if word.bridge in self._words or len(self._words) < self.MAX_BRIDGES:
+                self._words[word.bridge] = word
+                self._changed.notify_all()
+
+    def words(self, since_s: float = -1.0) -> list[BridgeWord]:
+        """Every bridge's newest word heard after ``since_s`` (monotonic s), by name."""
+        with self._lock:
+            return sorted((w for w in self._words.values() if w.heard_s > since_s), key=lambda w: w.bridge)
+
+    def wait(self, done: Callable[[list[BridgeWord]], bool], since_s: float, timeout_s: float) -> list[BridgeWord]:
+        """Wait until ``done(words)`` holds for the words heard after ``since_s``, at most
+        ``timeout_s`` s; returns those words (whether or not it held)."""
+        end = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                words = sorted((w for w in self._words.values() if w.heard_s > since_s), key=lambda w: w.bridge)
+                left = end - time.monotonic()
+                if done(words) or left <= 0:
+                    return words
+                self._changed.wait(min(left, 0.1))
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def send_until(watch: BridgeWatch, send: Callable[[], None], needs: Callable[[BridgeWord], bool], since_s: float,
+               timeout_s: float, resend_s: float = 0.1) -> list[BridgeWord]:
+    """Call ``send`` now, and again (at most every ``resend_s`` s) while a bridge heard after
+    ``since_s`` still ``needs`` it, until none does (and one was heard) or ``timeout_s`` s have
+    passed; returns the bridges' words. A message published before this session has linked to
+    the bridge goes nowhere (Zenoh has no route yet; the token, declared, reaches it later): the
+    first test of this command had its reason lost so."""
+    end = time.monotonic() + timeout_s
+    send()
+    sent_s = time.monotonic()
+    while True:
+        words = watch.wait(lambda ws: bool(ws) and not any(needs(w) for w in ws), since_s,
+                           min(resend_s, max(0.0, end - time.monotonic())))
+        if (words and not any(needs(w) for w in words)) or time.monotonic() >= end:
+            return words
+        if any(needs(w) for w in words) and time.monotonic() - sent_s >= resend_s:
+            send()
+            sent_s = time.monotonic()
+
+
+def holders_alive(session) -> list[str]:
+    """The e-stop holders whose tokens are alive on the bus (a liveliness query)."""
+    from bridge import bus
+
+    found = set()
+    for reply in session.liveliness().get(bus.ESTOP_ENGAGED_ALL, timeout=QUERY_TIMEOUT_S):
+        if reply.ok is not None:
+            try:
+                found.add(bus.parse_estop_token_key(str(reply.ok.key_expr))[:64])
+            except ValueError:
+                continue
+    return sorted(found)
+
+
+def holder_name() -> str:
+    """This command's holder name: ``cli-<host>-<6 hex>`` (the host cut to the key's characters)."""
+    host = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname())[:24] or "host"
+    return f"cli-{host}-{uuid.uuid4().hex[:6]}"
+
+
+def _endpoints(connect: list[str] | None) -> list[str]:
+    from bridge.session import ENV_CONNECT, endpoints_from_env
+
+    return list(connect or endpoints_from_env(ENV_CONNECT) or [DEFAULT_HUB])
+
+
+def _report(as_json: bool, ok: bool, outcome: str, words: list[BridgeWord], holders: list[str],
+            endpoints: list[str], message: str) -> None:
+    """Print the outcome (``--json``: one object on stdout; else the bridges' lines, then the
+    message, on stderr in red when not ``ok``); the caller exits 1 when not ``ok``."""
+    if as_json:
+        echo_json({"ok": ok, "outcome": outcome, "message": message, "bridges": [w.to_json() for w in words],
+                   "holders": holders, "connect": endpoints})
+        return
+    for w in words:
+        typer.echo(w.line())
+    if holders:
+        typer.echo(f"e-stop holders on the bus: {', '.join(holders)}")
+    typer.secho(message if ok else f"error: {message}", err=not ok, fg=None if ok else "red")
+
+
+def _no_bridge(endpoints: list[str], wait_s: float) -> str:
+    return (f"no bridge state heard within {wait_s:g} s through {', '.join(endpoints)}: is the bridge (or the "
+            "stack) up, and is this its endpoint (--connect)?")
+
+
+@estop_app.command("engage")
+def engage(
+    reason: str = typer.Option("", "--reason", help="Why (shown by the console and the bridge's state)."),
+    hold: bool = typer.Option(False, "--hold", help="Keep holding the e-stop until Ctrl-C or SIGTERM, so that a "
+                              "bridge that starts or links back meanwhile starts latched."),
+    connect: list[str] | None = CONNECT_OPTION,
+    wait_s: float = WAIT_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Engage the e-stop (every bridge that hears it disables its drives).
+
+    The drives stay disabled, whatever the controller commands, until a release. Exit 0 once a
+    bridge confirms, 1 if none does within --wait-s."""
+    from bridge.estop_holder import EStopHolder
+    from bridge.safety import EStopHolders
+
+    check_credentials(acts=True)
+    endpoints = _endpoints(connect)
+    name = holder_name()
+    why = reason.strip()[:200] or f"xneck estop engage ({name})"
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if hold else {}
+    with open_bus(None, endpoints) as session:
+        watch, holder = BridgeWatch(session), EStopHolder(session, name)
+
+        def needs(w: BridgeWord) -> bool:  # not latched, or latched by the token alone (no reason yet)
+            return not w.engaged or w.reason == EStopHolders.reason(name)
+
+        try:
+            sent_s = time.monotonic()
+            words = send_until(watch, lambda: holder.engage(why), needs, sent_s, wait_s)
+            confirmed = [w for w in words if w.engaged]
+            if hold:
+                typer.echo(f"holding the e-stop as {name} (Ctrl-C to let go: the bridges latched stay latched)")
+                for w in confirmed:
+                    typer.echo(w.line())
+                seen = {w.bridge for w in confirmed}
+                while not stop.wait(0.2):  # the bridges that start or link back meanwhile
+                    words = watch.words(sent_s)
+                    if any(needs(w) for w in words):
+                        holder.engage(why)  # its reason, which the token does not carry
+                    for w in words:
+                        if w.engaged and w.bridge not in seen and not needs(w):
+                            seen.add(w.bridge)
+                            typer.echo(w.line())
+                confirmed = [w for w in watch.words(sent_s) if w.engaged] or confirmed
+        finally:
+            holder.close()
+            watch.close()
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+        if confirmed:
+            _report(as_json, True, "engaged", confirmed, [], endpoints,
+                    f"e-stop engaged by {name}: {len(confirmed)} bridge(s) confirmed; release with "
+                    "`xneck estop release` or the console's button")
+            return
+        _report(as_json, False, "unconfirmed", words, [], endpoints,
+                f"{_no_bridge(endpoints, wait_s) if not words else 'no bridge confirmed the e-stop'}; it "
+                "latches only the bridges that heard it: use --hold to keep it held for a bridge that starts later")
+        raise typer.Exit(1)
+
+
+@estop_app.command("release")
+def release(
+    reason: str = typer.Option("", "--reason", help="Why (kept in the bridge's log)."),
+    connect: list[str] | None = CONNECT_OPTION,
+    wait_s: float = WAIT_OPTION,
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Release the e-stop, unless another holder keeps it engaged.
+
+    The bridges' drives go inactive until the controller's next command (the controller then
+    takes the cables up gently). A bridge obeys only when no other holder (the console's engaged
+    button, another terminal's --hold) is left. Exit 0 once every bridge heard has released, 1
+    otherwise."""
+    from bridge.estop_holder import EStopHolder
+
+    check_credentials(acts=True)
+    endpoints = _endpoints(connect)
+    name = holder_name()
+    with open_bus(None, endpoints) as session:
+        watch, holder = BridgeWatch(session), EStopHolder(session, name)
+        try:
+            why = reason.strip()[:200] or f"xneck estop release ({name})"
+            words = send_until(watch, lambda: holder.release(why), lambda w: w.engaged, time.monotonic(), wait_s,
+                               resend_s=0.25)
+            holders = holders_alive(session) if any(w.engaged for w in words) or not words else []
+        finally:
+            holder.close()
+            watch.close()
+    if not words:
+        _report(as_json, False, "no bridge", words, holders, endpoints, _no_bridge(endpoints, wait_s))
+        raise typer.Exit(1)
+    still = [w.bridge for w in words if w.engaged]
+    if still:
+        held = (f"held by {', '.join(holders)}: release it there (the console's button, or stop that --hold)"
+                if holders else "the bridge did not release it (see its log)")
+        _report(as_json, False, "engaged", words, holders, endpoints, f"e-stop still engaged on {', '.join(still)}: {held}")
+        raise typer.Exit(1)
+    _report(as_json, True, "released", words, holders, endpoints,
+            "e-stop released: the drives stay inactive until the controller's next command")
+
+
+@estop_app.command("status")
+def status(
+    connect: list[str] | None = CONNECT_OPTION,
+    wait_s: float = typer.Option(1.0, "--wait-s", min=0.1, max=60.0, help="How long to listen, in seconds."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Show each bridge's e-stop and drives, and the e-stop holders on the bus.
+
+    Each bridge's newest state heard within --wait-s. Exit 0 when a bridge was heard, 1 when
+    none was."""
+    check_credentials(acts=False)
+    endpoints = _endpoints(connect)
+    with open_bus(None, endpoints) as session:
+        watch = BridgeWatch(session)
+        try:
+            time.sleep(wait_s)
+            words, holders = watch.words(), holders_alive(session)
+        finally:
+            watch.close()
+    if not words:
+        _report(as_json, False, "no bridge", words, holders, endpoints, _no_bridge(endpoints, wait_s))
+        raise typer.Exit(1)
+    engaged = [w.bridge for w in words if w.engaged]
+    _report(as_json, True, "heard", words, holders, endpoints,
+            f"e-stop engaged on {', '.join(engaged)}" if engaged else "e-stop released on every bridge heard")
