@@ -44,7 +44,16 @@ from server.campaigns import CampaignManager, NotFound, StorageError
 from server.console import include_console_routes
 from server.datadir import DataDirError, DataDirLock
 from server.guard import ConsoleGuard, document_responses
-from server.live import Broadcaster, LiveBus, bridge_estop, bus_campaign, bus_settled, receiver_checks
+from server.live import (
+    CHOSEN_CAMPAIGN,
+    CHOSEN_STACK,
+    Broadcaster,
+    LiveBus,
+    bridge_estop,
+    bus_campaign,
+    bus_settled,
+    receiver_checks,
+)
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.quality import TWIN_CAMERA
@@ -124,8 +133,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                               bus_heard=lambda: bus_settled(state.live))
             # The live α_IP is one camera's (server.live): the one the running campaign records, else
             # the stack's own (`xneck up`'s camera process, or its twin's white noise), else the first seen.
+            # The dashboard says which camera it is and why (server.live.CHOSEN).
             own_camera = settings.twin_camera or (TWIN_CAMERA if settings.twin_alpha_ip == "noise" else "")
-            state.live.values.prefer_camera = lambda: state.campaigns.recorded_camera() or own_camera
+
+            def prefer_camera() -> tuple[str, str]:
+                recorded = state.campaigns.recorded_camera()
+                return (recorded, CHOSEN_CAMPAIGN) if recorded else (own_camera, CHOSEN_STACK)
+
+            state.live.values.prefer_camera = prefer_camera
             recovered = state.campaigns.recover_all()
             if recovered:
                 log.warning("recovered interrupted campaigns: %s", ", ".join(recovered))

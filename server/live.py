@@ -22,7 +22,8 @@ Frame (JSON, SI units; the dashboard converts to degrees)::
                     "law", "tick_s", "deadline_misses", "overruns"},
         "state":   {"stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason"},
         "command": {"stamp_s", "force_N"},
-        "camera":  {"stamp_s", "alpha_ip_rad", "confidence", "source", "instance"},  (alpha_ip_rad[i] null: joint missing)
+        "camera":  {"stamp_s", "alpha_ip_rad", "confidence", "source", "instance", "chosen"},
+                   (alpha_ip_rad[i] null: joint missing)
         "truth":   {"stamp_s", "alpha_rad", "tension_N"},
         "campaign":{"campaign_id", "kind", "event", "progress", "message"},
         "estop":   {"engaged", "reason"}}}
@@ -38,13 +39,15 @@ dashboard's α_IP line jumping between two sources. A camera is told by its samp
 (as the console's camera health tells them apart, :mod:`server.camera_feed`): the camera process
 that names itself (:func:`bridge.session.camera_of`), else the bridge run whose twin published it
 (:func:`~bridge.session.run_of`), else none (an older camera process, a replay); ``instance`` is
-that name ('' for none). Their samples queue in a ring of :data:`BY_RUN_RING_SAMPLES`, each
-camera's newest valid message kept (at most :data:`BY_CAMERA_MAX_CAMERAS`; a camera sending only
+that name ('' for none; cut to :data:`INSTANCE_MAX_CHARS`: any peer may name itself), and
+``chosen`` why that camera is the one followed (:data:`CHOSEN`). Their samples queue in a ring of
+:data:`BY_RUN_RING_SAMPLES`, each camera's newest valid message kept (at most :data:`BY_CAMERA_MAX_CAMERAS`; a camera sending only
 what the console refuses is never followed), and the series shows the newest of the camera followed: the one :attr:`LatestValues.prefer_camera` names while it is fresh (the
 camera the running campaign records, else the stack's own: ``server.app``; ``TWIN_CAMERA``: the
 twin of the run the truth follows), else the one followed so far while it sent within
 :data:`CAMERA_FOLLOW_MAX_AGE_S`, else, among those that did, the one heard of first. A camera
-gone silent thus hands over to a live one before the series goes stale.
+gone silent thus hands over to a live one before the series goes stale. The dashboard says which
+camera the α_IP drawn is of, and why (``web/app.js``).
 
 ``truth`` is one twin's: a ``Truth`` has no identity field, and a second twin on the hub made the
 series flip between two twins' clocks and poses (audit of 2026-11-29). Its samples name their
@@ -80,7 +83,7 @@ SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
                                        "law", "tick_s", "deadline_misses", "overruns")),
     "state": (bus.MOTOR_STATE, ("stamp_s", "force_applied_N", "theta_rad", "drive", "estop_engaged", "estop_reason")),
     "command": (bus.MOTOR_COMMAND, ("stamp_s", "force_N")),
-    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad", "confidence", "source")),  # + "instance": frame_of
+    "camera": (bus.CAMERA_ALPHA, ("stamp_s", "alpha_ip_rad", "confidence", "source")),  # + "instance", "chosen": frame_of
     "truth": (bus.TWIN_TRUTH, ("stamp_s", "alpha_rad", "tension_N")),
     "campaign": (bus.CAMPAIGN_EVENTS, ("campaign_id", "kind", "event", "progress", "message")),
     "estop": (bus.ESTOP, ("engaged", "reason")),
@@ -105,6 +108,15 @@ BY_CAMERA = frozenset({"camera"})
 #: that the series stays fresh through a hand-over; a camera sends at 30-60 Hz).
 CAMERA_FOLLOW_MAX_AGE_S = 0.5
 BY_CAMERA_MAX_CAMERAS = 8  # cameras remembered (a flood of forged names stays bounded)
+#: Why the camera followed is the one the ``camera`` series shows (a live frame's ``camera.chosen``):
+#: the one the running campaign records, the stack's own (the two :attr:`LatestValues.prefer_camera`
+#: names), the first heard of among those sending (none was followed yet, or the one followed went
+#: silent: a hand-over), or the one shown so far, kept (it was preferred and no longer is).
+CHOSEN_CAMPAIGN, CHOSEN_STACK, CHOSEN_FIRST, CHOSEN_CURRENT = "campaign", "stack", "first", "current"
+CHOSEN = (CHOSEN_CAMPAIGN, CHOSEN_STACK, CHOSEN_FIRST, CHOSEN_CURRENT)
+#: characters of a camera's name a live frame carries: a peer naming itself with kilobytes sent
+#: them to every browser 30 times a second
+INSTANCE_MAX_CHARS = 64
 
 #: s: a camera whose latest α_IP arrived longer ago than this is stale (:func:`fresh_camera`).
 CAMERA_MAX_AGE_S = 1.0
@@ -151,12 +163,14 @@ class LatestValues:
         # newest valid payload, that payload, its message)
         self._by_camera: dict[str, dict[tuple[str, str], tuple[float, float, bytes, bus.BusMessage]]] = {}
         self._camera_followed: dict[str, tuple[str, str]] = {}  # BY_CAMERA series -> the camera shown
+        self._camera_chosen: dict[str, str] = {}  # BY_CAMERA series -> why it is (:data:`CHOSEN`)
         self._named: dict[str, str] = {}  # BY_CAMERA series -> the camera its stored payload is of ('' : none named)
-        #: The camera the ``camera`` series shows while it is fresh (module docstring): a camera
-        #: process's instance, :data:`~server.quality.TWIN_CAMERA` (the twin's own) or '' (none).
-        #: Called at every read, under this store's lock: it must take no lock held while this store
-        #: is read (a read of an attribute or two, not a call into a locked object).
-        self.prefer_camera: Callable[[], str] | None = None
+        #: The camera the ``camera`` series shows while it is fresh (module docstring) and why:
+        #: (a camera process's instance, :data:`~server.quality.TWIN_CAMERA` (the twin's own) or ''
+        #: (none); :data:`CHOSEN_CAMPAIGN` or :data:`CHOSEN_STACK`). Called at every read, under this
+        #: store's lock: it must take no lock held while this store is read (a read of an attribute
+        #: or two, not a call into a locked object).
+        self.prefer_camera: Callable[[], tuple[str, str]] | None = None
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
@@ -220,6 +234,7 @@ class LatestValues:
             self._camera_sources.pop(series, None)
             self._by_camera.pop(series, None)
             self._camera_followed.pop(series, None)
+            self._camera_chosen.pop(series, None)
             self._named.pop(series, None)
             if self._raw.pop(series, None) is not None:
                 self._version += 1
@@ -283,7 +298,9 @@ class LatestValues:
             cameras[camera] = (now if known is None else known[0], now, payload, msg)
         if not cameras:
             return
-        followed = self._camera_followed[series] = self._follow_camera(cameras, followed, now)
+        followed, self._camera_chosen[series] = self._follow_camera(cameras, followed,
+                                                                    self._camera_chosen.get(series, CHOSEN_FIRST), now)
+        self._camera_followed[series] = followed
         _, received, payload, msg = cameras[followed]
         if payload is not self._raw.get(series):
             self._store(series, payload, received)
@@ -291,32 +308,29 @@ class LatestValues:
             self._named[series] = followed[0] or followed[1]
 
     def _follow_camera(self, cameras: Mapping[tuple[str, str], tuple[float, float, bytes, bus.BusMessage]],
-                       followed: tuple[str, str] | None, now: float) -> tuple[str, str]:
-        """(Under the lock.) The camera to show (module docstring): the one preferred, else the
-        one ``followed``, each if it sent within :data:`CAMERA_FOLLOW_MAX_AGE_S`, else the first
-        heard of among those that did; the one followed (else the newest) when none did."""
+                       followed: tuple[str, str] | None, chosen: str, now: float) -> tuple[tuple[str, str], str]:
+        """(Under the lock.) The camera to show (module docstring) and why (:data:`CHOSEN`;
+        ``chosen``: why the one ``followed`` was): the one preferred, else the one ``followed``,
+        each if it sent within :data:`CAMERA_FOLLOW_MAX_AGE_S`, else the first heard of among
+        those that did; the one followed (else the newest) when none did."""
         fresh = [c for c, (_, received, _, _) in cameras.items() if now - received <= CAMERA_FOLLOW_MAX_AGE_S]
-        preferred = self._preferred_cameras(fresh, now)
-        if preferred:
-            return min(preferred, key=lambda c: cameras[c][0])
-        if followed is not None and followed in cameras and (followed in fresh or not fresh):
-            return followed
-        return min(fresh, key=lambda c: cameras[c][0]) if fresh else max(cameras, key=lambda c: cameras[c][1])
-
-    def _preferred_cameras(self, fresh: list[tuple[str, str]], now: float) -> list[tuple[str, str]]:
-        """(Under the lock.) Those of the ``fresh`` cameras that :attr:`prefer_camera` names; a
-        twin's own (:data:`~server.quality.TWIN_CAMERA`): the one of the run the truth follows
-        (:meth:`_followed_run`), any twin's while no run is followed."""
         try:
-            prefer = self.prefer_camera() if self.prefer_camera is not None else ""
+            prefer, why = self.prefer_camera() if self.prefer_camera is not None else ("", "")
         except Exception:  # noqa: BLE001 - a hook that fails prefers nothing; reads go on
-            prefer = ""
-        if not prefer:
-            return []
-        if prefer != TWIN_CAMERA:
-            return [c for c in fresh if c[0] == prefer]
-        run = self._followed_run(now)
-        return [c for c in fresh if not c[0] and c[1] and (c[1] == run or not run)]
+            prefer, why = "", ""
+        run = self._followed_run(now) if prefer == TWIN_CAMERA else ""
+        preferred = [c for c in fresh if _prefers(prefer, run, c)]
+        if preferred:
+            return min(preferred, key=lambda c: cameras[c][0]), why
+        if followed is not None and followed in cameras and (followed in fresh or not fresh):
+            # kept: it is still the first heard of, or still the one preferred (silent a moment), or
+            # it was preferred and is no longer (a campaign ended): the one shown so far
+            if chosen in (CHOSEN_CAMPAIGN, CHOSEN_STACK) and not (chosen == why and _prefers(prefer, run, followed)):
+                chosen = CHOSEN_CURRENT
+            return followed, chosen
+        if fresh:
+            return min(fresh, key=lambda c: cameras[c][0]), CHOSEN_FIRST
+        return max(cameras, key=lambda c: cameras[c][1]), CHOSEN_CURRENT
 
     def _followed_run(self, now: float) -> str:
         """(Under the lock.) The bridge run the newest command answers, else the newest state's,
@@ -396,7 +410,8 @@ class LatestValues:
         the camera's entry naming the camera it is of, taken in the same read."""
         with self._lock:
             version, latest = self._snapshot(max_age_s)
-            named = {series: self._named.get(series, "") for series in BY_CAMERA if series in latest}
+            named = {series: (self._named.get(series, ""), self._camera_chosen.get(series, CHOSEN_FIRST))
+                     for series in BY_CAMERA if series in latest}
         return version, frame_of(latest, named)
 
     def _snapshot(self, max_age_s: Mapping[str, float] | None) -> tuple[int, dict[str, bus.BusMessage]]:
@@ -497,16 +512,20 @@ def bridge_status(values: LatestValues) -> dict[str, Any]:
             "owner": state.owner, "instance": state.bridge}
 
 
-def frame_of(values: dict[str, bus.BusMessage], instances: Mapping[str, str] | None = None) -> dict[str, Any]:
+def frame_of(values: dict[str, bus.BusMessage], instances: Mapping[str, tuple[str, str]] | None = None) -> dict[str, Any]:
     """The ``series`` part of a live frame from the latest messages; a camera's entry names its
-    camera, ``instance``: ``instances``' (series -> name, :meth:`LatestValues.live_series`), '' if
-    none (module docstring)."""
+    camera and why it is the one followed, ``instance`` and ``chosen``: ``instances``' (series ->
+    (name, why), :meth:`LatestValues.live_series`), ('', :data:`CHOSEN_FIRST`) if none (module
+    docstring). The name is cut to :data:`INSTANCE_MAX_CHARS`, an ellipsis ending one cut."""
     out: dict[str, Any] = {}
     for name, msg in values.items():
         fields = SERIES[name][1]
         out[name] = {f: getattr(msg, f) for f in fields}
         if name in BY_CAMERA:
-            out[name]["instance"] = (instances or {}).get(name, "")
+            instance, chosen = (instances or {}).get(name, ("", CHOSEN_FIRST))
+            if len(instance) > INSTANCE_MAX_CHARS:
+                instance = instance[:INSTANCE_MAX_CHARS - 1] + "…"
+            out[name]["instance"], out[name]["chosen"] = instance, chosen
     return out
 
 
@@ -635,6 +654,17 @@ def _newest_by(try_recv: Callable[[], Any], key: Callable[[Any], _K]) -> dict[_K
             break
         newest[key(sample)] = sample
     return newest
+
+
+def _prefers(prefer: str, run: str, camera: tuple[str, str]) -> bool:
+    """Whether ``prefer`` (:attr:`LatestValues.prefer_camera`'s camera) names ``camera``
+    (:func:`_camera_key`); a twin's own (:data:`~server.quality.TWIN_CAMERA`): the one of the bridge
+    run ``run`` (the one the truth follows, :meth:`LatestValues._followed_run`), any twin's if ''."""
+    if not prefer:
+        return False
+    if prefer != TWIN_CAMERA:
+        return camera[0] == prefer
+    return not camera[0] and bool(camera[1]) and (camera[1] == run or not run)
 
 
 def _camera_key(sample: zenoh.Sample) -> tuple[str, str]:

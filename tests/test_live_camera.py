@@ -15,7 +15,19 @@ from busutil import wait_until
 
 from bridge import bus
 from bridge.session import camera_attachment, run_attachment
-from server.live import BY_CAMERA_MAX_CAMERAS, CAMERA_FOLLOW_MAX_AGE_S, LIVE_MAX_AGE_S, LiveBus, receiver_checks
+from server.live import (
+    BY_CAMERA_MAX_CAMERAS,
+    CAMERA_FOLLOW_MAX_AGE_S,
+    CHOSEN_CAMPAIGN,
+    CHOSEN_CURRENT,
+    CHOSEN_FIRST,
+    CHOSEN_STACK,
+    INSTANCE_MAX_CHARS,
+    LIVE_MAX_AGE_S,
+    LiveBus,
+    frame_of,
+    receiver_checks,
+)
 from server.quality import TWIN_CAMERA
 
 #: each camera's α_IP (rad), told apart by their first joint's
@@ -128,7 +140,7 @@ def test_the_camera_preferred_is_shown_while_it_sends_whichever_came_first(sessi
     live = LiveBus(b)
     pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
     prefer = {"camera": ""}
-    live.values.prefer_camera = lambda: prefer["camera"]
+    live.values.prefer_camera = lambda: (prefer["camera"], CHOSEN_CAMPAIGN)
     try:
         _first(live, pub, "cam-a")
         prefer["camera"] = "cam-b"
@@ -153,6 +165,47 @@ def test_the_camera_preferred_is_shown_while_it_sends_whichever_came_first(sessi
         live.close()
 
 
+def test_the_frame_says_which_camera_it_follows_and_why(sessions) -> None:
+    """The dashboard names the camera whose α_IP it draws, and why it is that one (server.app's
+    preferences: the campaign's, else the stack's own; else the first heard of; else the one kept)."""
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+    prefer = ("", CHOSEN_STACK)  # a stack with no camera of its own, no campaign
+    live.values.prefer_camera = lambda: prefer
+
+    def named(k: int) -> tuple[str, str]:
+        _put(pub, k, "cam-a")
+        _put(pub, k, "cam-b")
+        time.sleep(0.01)
+        shown = _shown(live) or {}
+        return shown.get("instance", ""), shown.get("chosen", "")
+
+    try:
+        _first(live, pub, "cam-a")
+        assert wait_until(lambda: named(1) == ("cam-a", CHOSEN_FIRST), 5, 0)
+        prefer = ("cam-b", CHOSEN_CAMPAIGN)  # a campaign records cam-b
+        assert wait_until(lambda: named(2) == ("cam-b", CHOSEN_CAMPAIGN), 5, 0)
+        prefer = ("cam-b", CHOSEN_STACK)  # it ended; cam-b is the stack's own
+        assert wait_until(lambda: named(3) == ("cam-b", CHOSEN_STACK), 5, 0)
+        prefer = ("cam-a", CHOSEN_STACK)
+        assert wait_until(lambda: named(4) == ("cam-a", CHOSEN_STACK), 5, 0)
+        prefer = ("", CHOSEN_STACK)  # preferred no longer: kept, as the one shown so far
+        assert wait_until(lambda: named(5) == ("cam-a", CHOSEN_CURRENT), 5, 0)
+    finally:
+        pub.undeclare()
+        live.close()
+
+
+def test_a_long_camera_name_is_cut_in_the_frame() -> None:
+    """Any peer may name itself: kilobytes of a name went to every browser 30 times a second."""
+    msg = bus.decode(bus.CAMERA_ALPHA, _alpha(1, "cam-a"))
+    shown = frame_of({"camera": msg}, {"camera": ("<b>" + "x" * 5000, CHOSEN_FIRST)})["camera"]
+    assert shown["instance"] == ("<b>" + "x" * 5000)[:INSTANCE_MAX_CHARS - 1] + "…"
+    assert shown["chosen"] == CHOSEN_FIRST
+    assert frame_of({"camera": msg})["camera"]["instance"] == ""  # none named
+
+
 def test_the_twins_own_camera_preferred_is_the_one_of_the_run_followed(sessions) -> None:
     """`xneck up --alpha-ip noise`: the stack's camera is its twin bridge's white noise, whose samples
     name the bridge run (run_attachment); a second twin's and a camera process's are not it."""
@@ -160,7 +213,7 @@ def test_the_twins_own_camera_preferred_is_the_one_of_the_run_followed(sessions)
     live = LiveBus(b)
     pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
     states = a.declare_publisher(bus.MOTOR_STATE)
-    live.values.prefer_camera = lambda: TWIN_CAMERA
+    live.values.prefer_camera = lambda: (TWIN_CAMERA, CHOSEN_STACK)
     ours = bus.MotorState(seq=1, stamp_s=0.0, theta_rad=[0.0] * 4, force_applied_N=[1.0] * 4, drive="active",
                           epoch="ours", bridge="b")
     try:
