@@ -22,10 +22,11 @@ from browser_harness import dashboard_page, needs_chromium
 from server_harness import LiveSocket, running_server, wait_until
 
 from bridge import bus
-from bridge.session import open_session, publisher
+from bridge.session import camera_attachment, open_session, publisher
 from server.live import CAMERA_MAX_AGE_S
 
 N_JOINTS = 3
+CAMERA = "cam-lab1"  # the camera process the peer poses as
 SETTLE_S = 0.5  # s beyond CAMERA_MAX_AGE_S a loaded machine may take to see the camera stale
 
 
@@ -68,7 +69,8 @@ class Peers:
                 cam_seq += 1
                 ip: list[float | None] = [None if j in self.missing else a[j] for j in range(N_JOINTS)]
                 self._camera.put(bus.CameraAlpha(seq=cam_seq, stamp_s=t, capture_stamp_s=t - 0.05, alpha_ip_rad=ip,
-                                                 confidence=[0.0 if x is None else 1.0 for x in ip], source="usb:0"))
+                                                 confidence=[0.0 if x is None else 1.0 for x in ip], source="usb:0"),
+                                 attachment=camera_attachment(CAMERA))
 
     def close(self) -> None:
         self._stop.set()
@@ -137,13 +139,16 @@ def test_live_frames_carry_alpha_ip_only_while_the_camera_is_fresh(tmp_path: Pat
 @needs_chromium
 def test_the_dashboard_draws_a_gap_and_says_camera_stale_when_the_camera_falls_silent(tmp_path: Path) -> None:
     """The joint plots' α_IP: a line while the camera publishes, a gap (null), not the last value
-    drawn flat at each new status time, once it is stale; the camera panel says "camera stale"."""
+    drawn flat at each new status time, once it is stale; the camera panel says "camera stale", and
+    the live panel which camera the α_IP drawn is of, "no camera" once none is fresh."""
     with (running_server(tmp_path / "data", viser=False) as (base, app_), peers(hub_of(app_)) as p,
           dashboard_page(base) as (page, errors)):
         page.wait_for_function("document.querySelectorAll('#plot-joints .uplot').length === 3", timeout=15000)
         p.camera.set()
         page.wait_for_function("jointPlots[0].data[3].some((v) => v !== null)", timeout=15000)
         page.wait_for_function("document.querySelector('#camera-state').textContent.includes('usb:0')", timeout=10000)
+        page.wait_for_function("(t) => document.querySelector('#live-camera').textContent === t",
+                               arg=f"α_IP: camera {CAMERA} (first seen)", timeout=10000)
         time.sleep(1.0)
         p.camera.clear()
         off_s = p.now()
@@ -153,6 +158,7 @@ def test_the_dashboard_draws_a_gap_and_says_camera_stale_when_the_camera_falls_s
                                arg=off_s + CAMERA_MAX_AGE_S + SETTLE_S, timeout=20000)
         page.wait_for_function("window.xneckCamera.state === 'stale'", timeout=5000)
         state_text = page.inner_text("#camera-state")
+        page.wait_for_function("document.querySelector('#live-camera').textContent === 'α_IP: no camera'", timeout=5000)
         t_s, ip_deg = page.evaluate("[jointPlots[0].data[0].slice(), jointPlots[0].data[3].slice()]")
         assert not errors, errors
     stale = [v for t, v in zip(t_s, ip_deg, strict=True) if t > off_s + CAMERA_MAX_AGE_S + SETTLE_S]

@@ -42,16 +42,22 @@ def test_dashboard_starts_a_campaign_and_shows_it_live(tmp_path: Path) -> None:
         assert not errors, errors
 
 
+#: a peer's camera name: markup that runs a script if written as HTML, and kilobytes
+HOSTILE_CAMERA = '<img src=x onerror="window.pwned = 1">' + "x" * 4000
+
+
 @needs_chromium
 def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_of_sight(tmp_path: Path) -> None:
     """Anyone on the bus may publish: a peer posing as a bridge sends a MotorState with one force
     too many and reasons of several kB (the bridge's own are cut to 200 characters, a peer's are
-    not), a Health with a huge last reject reason, and a camera grades one joint of three and
-    sends a JPEG whose header is right and whose picture is cut. The page must keep its live view
+    not), a Health with a huge last reject reason, and a camera naming itself with markup and
+    kilobytes grades one joint of three and sends a JPEG whose header is right and whose picture is
+    cut. The page must keep its live view
     (before: every frame threw in onFrame, no frame reached the safety code and it claimed LIVE
     STREAM LOST while frames came), its camera panel (before: "console unreachable", and the α_IP
     rows after the throw missing) and its e-stop button in sight and working on a laptop's screen
-    (before: the header grew taller than the window and hid the button). The states with a force
+    (before: the header grew taller than the window and hid the button); the live panel names the
+camera as text, cut. The states with a force
     too many and the camera grades of one joint alternate with good ones: the console now rejects
     them (server.live.receiver_checks) and the page shows the good ones."""
     import threading
@@ -61,7 +67,7 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
     import numpy as np
 
     from bridge import bus
-    from bridge.session import liveliness_token, open_session, publisher
+    from bridge.session import camera_attachment, liveliness_token, open_session, publisher
 
     with running_server(tmp_path / "data", viser=False) as (base, app_):
         app: Any = app_
@@ -90,7 +96,7 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                     e_rad=[0.01] * n_joints, holding=False))
                 pubs[bus.CAMERA_ALPHA].put(bus.CameraAlpha(
                     seq=seq, stamp_s=now, capture_stamp_s=now, alpha_ip_rad=[0.1] * n_joints, confidence=[0.5] * (1 if seq % 2 else n_joints),
-                    source="posing"))
+                    source="posing"), attachment=camera_attachment(HOSTILE_CAMERA))
                 if seq % 25 == 1:
                     pubs[bus.CAMERA_FRAME].put(bus.CameraFrame(seq=seq, stamp_s=now, capture_stamp_s=now, width=64,
                                                                height=48, data=cut))
@@ -127,6 +133,13 @@ def test_hostile_bus_values_neither_freeze_the_live_view_nor_push_the_estop_out_
                     return el.children.length === {n_joints}
                         && el.innerText.split('\\n').filter(l => l.trim().startsWith('α')).length === {n_joints}; }}""",
                                        timeout=15000)
+                # The camera the α_IP is of, its name written as text (no element made of it), cut.
+                page.wait_for_function("document.querySelector('#live-camera').textContent"
+                                       ".startsWith('α_IP: camera <img src=x')", timeout=15000)
+                camera_text = page.inner_text("#live-camera")
+                assert camera_text.endswith("… (first seen)") and len(camera_text) < 80, camera_text
+                assert page.evaluate("document.querySelector('#live-camera').children.length === 0"
+                                     " && window.pwned === undefined")
                 for scroll in ("0", "document.body.scrollHeight"):
                     page.evaluate(f"window.scrollTo(0, {scroll})")
                     page.wait_for_timeout(200)

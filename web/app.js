@@ -107,6 +107,7 @@ function onFrame(frame) {
   stats.frames++;
   const s = frame.series || {};
   try {
+    showLiveCamera(s.camera);
     if (s.state) push(forcePlot, s.state.stamp_s, s.state.force_applied_N);
     if (s.status) {
       stats.lastStamp = s.status.stamp_s;
@@ -124,6 +125,27 @@ function onFrame(frame) {
     dirty = true;
     window.dispatchEvent(new CustomEvent("xneck-frame", { detail: frame }));  // jog.js, console.js
   }
+}
+
+// Which camera the α_IP drawn is of, and why the console follows that one (server.live: "instance",
+// "chosen"). The name comes from the bus (any peer names itself): written as text, cut to fit; the
+// whole name is in the tooltip.
+const CAMERA_CHOSEN = { campaign: "campaign's", stack: "stack's own", first: "first seen", current: "kept" };
+const CAMERA_NAME_MAX = 32;
+let liveCameraText = null;
+function showLiveCamera(cam) {
+  let text = "α_IP: no camera", name = "";
+  if (cam) {
+    name = typeof cam.instance === "string" ? cam.instance : "";
+    const shown = !name ? "(unnamed)" : name.length > CAMERA_NAME_MAX ? name.slice(0, CAMERA_NAME_MAX - 1) + "…" : name;
+    const why = Object.hasOwn(CAMERA_CHOSEN, cam.chosen) ? ` (${CAMERA_CHOSEN[cam.chosen]})` : "";
+    text = `α_IP: camera ${shown}${why}`;
+  }
+  if (text + "\n" + name === liveCameraText) return;
+  liveCameraText = text + "\n" + name;
+  const el = $("#live-camera");
+  el.textContent = text;
+  el.title = name ? `The α_IP drawn is camera ${name}'s` : "The camera whose α_IP the joint plots draw, and why that one";
 }
 
 // Running: the last WINDOW_S seconds. Paused: the whole last minute, to zoom in by dragging
