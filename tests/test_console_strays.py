@@ -41,9 +41,10 @@ def _processes(base: str, kind: str) -> list[str]:
 
 
 @contextlib.contextmanager
-def _live_cameras(base: str) -> Iterator[list[str]]:
+def _live_cameras(base: str, chosen: list[str] | None = None) -> Iterator[list[str]]:
     """The ``instance`` of the dashboard's live ``camera`` series (the camera its α_IP is of,
-    server/live.py), frame after frame, while in the block."""
+    server/live.py), frame after frame, while in the block; into ``chosen``, if given, its
+    ``chosen`` (why that camera) alike."""
     seen: list[str] = []
     stop = threading.Event()
     ws = connect(base.replace("http", "ws") + "/api/live", additional_headers=AUTH, open_timeout=10)
@@ -59,6 +60,8 @@ def _live_cameras(base: str) -> Iterator[list[str]]:
             camera = frame.get("series", {}).get("camera")
             if camera is not None:
                 seen.append(camera["instance"])
+                if chosen is not None:
+                    chosen.append(camera["chosen"])
 
     thread = threading.Thread(target=read, daemon=True)
     thread.start()
@@ -253,7 +256,8 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
               tmp_path / "camera.log")
         assert wait_until(lambda: "camera" in _alive_kinds(base), 120, 0.3), (tmp_path / "camera.log").read_text()
         time.sleep(2.0)  # both cameras' α_IP on the hub
-        with _live_cameras(base) as live:
+        chosen: list[str] = []
+        with _live_cameras(base, chosen) as live:
             rec = _wait_end(base, _campaign(base, GENTLE), 120)
     assert rec["status"] in ("finished", "degraded"), rec
     campaign = read_campaign(data / "campaigns" / f"{rec['id']}.mcap")
@@ -266,6 +270,9 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
     # the twin's own: its α_IP names its bridge run, not a camera process
     shown = _assert_one_camera_shown(live)
     assert f"twin-render@{shown}" not in stray, (shown, stray)
+    # and the dashboard says why: the campaign's while it runs, the stack's own around it (server.app)
+    assert "campaign" in chosen and chosen.count("campaign") + chosen.count("stack") >= 0.9 * len(chosen), \
+        {why: chosen.count(why) for why in set(chosen)}
 
 
 def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
