@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -76,6 +77,8 @@ import zenoh
 from bridge import bus
 from bridge.session import camera_of, controller_of, replayed, run_of
 from server.quality import TWIN_CAMERA, drive_estop
+
+log = logging.getLogger("xneck.server")
 
 #: Series name -> (key, fields forwarded to browsers).
 SERIES: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -171,6 +174,7 @@ class LatestValues:
         #: store's lock: it must take no lock held while this store is read (a read of an attribute
         #: or two, not a call into a locked object).
         self.prefer_camera: Callable[[], tuple[str, str]] | None = None
+        self._prefer_failed = False  # logged once
         self._raw: dict[str, bytes] = {}
         self._received_s: dict[str, float] = {}  # series -> time.monotonic() of its latest payload
         self._decoded: dict[str, tuple[bytes, bus.BusMessage | None]] = {}
@@ -316,8 +320,12 @@ class LatestValues:
         fresh = [c for c, (_, received, _, _) in cameras.items() if now - received <= CAMERA_FOLLOW_MAX_AGE_S]
         try:
             prefer, why = self.prefer_camera() if self.prefer_camera is not None else ("", "")
-        except Exception:  # noqa: BLE001 - a hook that fails prefers nothing; reads go on
+        except Exception as exc:  # noqa: BLE001 - a hook that fails prefers nothing; reads go on
             prefer, why = "", ""
+            if not self._prefer_failed:  # once: it runs at every read (helper's review, session 41)
+                self._prefer_failed = True
+                log.error("the live view's camera preference failed (%s: %s): following the first camera heard",
+                          type(exc).__name__, exc)
         run = self._followed_run(now) if prefer == TWIN_CAMERA else ""
         preferred = [c for c in fresh if _prefers(prefer, run, c)]
         if preferred:

@@ -275,3 +275,28 @@ def test_a_camera_sending_only_what_the_console_refuses_is_never_the_one_shown(s
     finally:
         pub.undeclare()
         live.close()
+
+
+def test_a_camera_preference_that_fails_follows_the_first_camera_and_says_so_once(sessions, caplog) -> None:
+    """A hook that raised was swallowed without a word (helper's review, session 41): the view
+    went on with the first camera heard and nobody knew why the campaign's was not shown."""
+    a, b = sessions
+    live = LiveBus(b)
+    pub = a.declare_publisher(bus.CAMERA_ALPHA, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def broken() -> tuple[str, str]:
+        raise RuntimeError("campaign manager gone")
+
+    live.values.prefer_camera = broken
+    try:
+        with caplog.at_level("ERROR", logger="xneck.server"):
+            _first(live, pub, "cam-a")
+            for k in range(5):
+                _put(pub, k, "cam-b")
+                assert _camera_shown(live) == "cam-a"
+        failed = [r for r in caplog.records if "camera preference failed" in r.getMessage()]
+        assert len(failed) == 1 and "campaign manager gone" in failed[0].getMessage(), caplog.text
+        assert _shown(live)["chosen"] == CHOSEN_FIRST
+    finally:
+        pub.undeclare()
+        live.close()
