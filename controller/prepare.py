@@ -30,6 +30,9 @@ from twin.model.params import Limits, Params, params_from_dict
 
 VALIDATION_BUDGET_S = 8.0  # s a request's validation may take (the console waits 10 s for an answer)
 FORCE_CHECK_CHUNK = 256  # samples of the force check between two looks at the budget
+#: s a request waits for the pose it would start from while an e-stop's slack is taken up (a
+#: take-up lasts a few seconds; one the bridge holds meanwhile waits with it)
+START_POSE_WAIT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,28 @@ def approach_move(traj: Trajectory, alpha_from_rad: np.ndarray,
     return None if lead is first else lead
 
 
+def start_pose_when_known(start_pose: Callable[[], np.ndarray | None], wanted: Callable[[], bool],
+                          max_wait_s: float = START_POSE_WAIT_S, clock: Callable[[], float] = time.monotonic,
+                          sleep: Callable[[float], None] = time.sleep, poll_s: float = 0.02) -> np.ndarray:
+    """The pose a campaign asked for now will start from (``start_pose``:
+    :meth:`controller.service.CampaignService.start_pose`), once it is known: while the slack of
+    an e-stop is taken up it is not (α̂ is off by the slack), and the approach validated from the
+    slack α̂ was not the move the campaign then made from where the take-up left the neck
+    (session 41). Raises :class:`GivenUp` once ``wanted`` says False meanwhile, :class:`Refused`
+    after ``max_wait_s`` s (by ``clock``) without a pose."""
+    give_up = clock() + max_wait_s
+    while True:
+        pose = start_pose()
+        if pose is not None:
+            return pose
+        if not wanted():
+            raise GivenUp("stopped or superseded while the cables' slack was taken up")
+        if clock() >= give_up:
+            raise Refused(f"refused: the cables' slack after the e-stop was still being taken up after {max_wait_s:g} s "
+                          "(the pose the campaign would start from is not known): ask again once the neck holds")
+        sleep(poll_s)
+
+
 def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: TrajectoryLimits | None = None,
             budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic,
             wanted: Callable[[], bool] | None = None, alpha_from_rad: np.ndarray | None = None) -> Prepared:
@@ -160,5 +185,6 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
     return Prepared(req.campaign_id, req.kind, params, new_law, traj)
 
 
-__all__ = ["FORCE_CHECK_CHUNK", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused", "approach_move", "prepare",
+__all__ = ["FORCE_CHECK_CHUNK", "START_POSE_WAIT_S", "VALIDATION_BUDGET_S", "GivenUp", "Prepared", "Refused",
+           "approach_move", "prepare", "start_pose_when_known",
            "within_robot_limits"]

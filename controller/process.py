@@ -57,7 +57,7 @@ import zenoh
 from bridge import bus
 from bridge.session import controller_attachment, liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
-from controller.prepare import GivenUp, Prepared, Refused, prepare
+from controller.prepare import GivenUp, Prepared, Refused, prepare, start_pose_when_known
 from controller.service import CampaignService, Output
 from controller.state_gate import StateGate
 from controller.timing import TickTimes, timing_message
@@ -344,8 +344,9 @@ class ControllerNode:
                     self.preparations_skipped += 1
                 continue
             try:
+                start_from = start_pose_when_known(self.service.start_pose, wanted)
                 result: Prepared | Refused = prepare(req, self._robot, self.service.law, wanted=wanted,
-                                                      alpha_from_rad=self.service.start_pose())
+                                                      alpha_from_rad=start_from)
             except GivenUp:
                 with self._req_lock:
                     self.preparations_cut += 1

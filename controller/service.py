@@ -477,13 +477,20 @@ class CampaignService:
         its result). One attribute read: the shell's worker asks it without the tick lock."""
         return self._starting is req
 
-    def start_pose(self) -> np.ndarray:
+    def start_pose(self) -> np.ndarray | None:
         """Where a campaign asked for now would start (rad): the last waypoint of the running
-        jog (a jog waits for it and starts there), else α̂. Read by the shell's worker without
-        the tick lock, to validate the approach (:func:`controller.prepare.approach_move`)."""
-        traj = self.trajectory
+        jog (a jog waits for it and starts there), where a stop's brake brings α^d to rest, else
+        α̂; None while the slack of an e-stop is being taken up: α̂ is off by the slack (5-13°,
+        docs/safety.md "After an e-stop") until the take-up has wound it in, and the campaign
+        waits for it anyway. Read by the shell's worker without the tick lock, to validate the
+        approach (:func:`controller.prepare.approach_move`, :func:`controller.prepare.start_pose_when_known`)."""
+        traj, brake = self.trajectory, self._brake
         if self.running and self.kind == "jog" and traj is not None:
             return np.array(traj.waypoints_rad[-1], dtype=np.float64)
+        if self.taking_up:
+            return None
+        if brake is not None:
+            return np.array(self.hold_target, dtype=np.float64)
         return np.array(self.ctl.estimator.alpha_hat, dtype=np.float64)
 
     def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:

@@ -713,6 +713,7 @@ def test_a_jog_prepared_behind_a_jog_that_ends_aborted_is_dropped(params):
     b = jog("jog-b", [-20.0, 15.0, 0.0])
     assert svc.request_start(b)  # the shell's worker prepares it ...
     validated_from = svc.start_pose()  # ... its approach from A's target
+    assert validated_from is not None
     assert np.allclose(np.degrees(validated_from), [40.0, 0.0, 0.0])
     svc.stop("jog-a", loop.stamp_s)  # A ends aborted meanwhile
     svc.prepared(prepare(b, params, LawConfig(law=2), alpha_from_rad=validated_from), b, loop.stamp_s)
@@ -720,3 +721,27 @@ def test_a_jog_prepared_behind_a_jog_that_ends_aborted_is_dropped(params):
     assert not (svc.running and svc.campaign_id == "jog-b")
     ends = [e for e in loop.events if e.campaign_id == "jog-b" and e.event in ("started", "aborted")]
     assert [e.event for e in ends] == ["aborted"] and "jog jog-a ended aborted" in ends[0].message, ends
+
+
+def test_a_campaign_asked_for_during_a_stops_brake_is_checked_from_where_the_brake_rests(params):
+    """A stop brakes α^d to rest (``controller.trajectory.brake_at``) and a campaign asked for
+    meanwhile starts from there; its approach had been checked from α̂ on the way (session 41)."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params)
+    svc = loop.svc
+    loop.run(1.0)
+    svc.handle(_request("jog-a", trajectory_json=Trajectory.from_degrees([[40.0, 0.0, 0.0]], [], 0.0, "jog").to_json(),
+                        kind="jog"), loop.stamp_s)
+    loop.run(1.5)  # mid-move
+    assert svc.running
+    svc.stop("jog-a", loop.stamp_s)
+    assert svc.braking
+    validated_from = svc.start_pose()
+    on_the_way = np.array(svc.ctl.estimator.alpha_hat)
+    while svc.braking:
+        loop.run(0.002)
+    rest = np.asarray(svc.reference(loop.stamp_s)[0])
+    assert validated_from is not None
+    assert np.degrees(np.abs(validated_from - rest)).max() < 0.05, np.degrees([validated_from, rest])
+    assert np.degrees(np.abs(on_the_way - rest)).max() > 0.5  # what the old check had started from

@@ -572,3 +572,53 @@ def test_an_estop_while_a_campaign_process_waits_for_the_take_up_aborts_it_once(
     ended = [e for e in loop.events if e.campaign_id == "c-own" and e.event in ("finished", "aborted")]
     assert [e.event for e in ended] == ["aborted"] and "before it started" in ended[0].message, ended
     assert svc.outcome == "aborted" and not svc.running
+
+
+def test_a_campaign_asked_for_during_the_take_up_is_checked_from_where_the_take_up_leaves_the_neck(params):
+    """Session 40's open point: the approach of a campaign asked for during the take-up was
+    validated from α̂ then, off by the slack, and run from where the take-up left the neck, a
+    move nobody checked. The pose is now known only once the slack is wound in; the preparation
+    waits for it (the shell's worker, :func:`controller.prepare.start_pose_when_known`)."""
+    from test_controller_service import _request as request
+
+    from controller.laws import LawConfig
+    from controller.prepare import prepare, start_pose_when_known
+    from controller.trajectory import Trajectory
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.2, estop=((False, "audit"),))
+    assert loop.svc.taking_up and loop.svc.start_pose() is None
+    slack_alpha = np.array(loop.svc.ctl.estimator.alpha_hat)
+    req = request("jog-t", kind="jog", trajectory_json=Trajectory.from_degrees([[10.0, 10.0, 10.0]], [], 0.0,
+                                                                                "jog").to_json())
+    assert loop.svc.request_start(req)
+    clock = {"s": 0.0}
+
+    def one_tick(_s: float) -> None:  # the worker's wait, as the loop goes on meanwhile
+        loop.run(DT)
+        clock["s"] += DT
+
+    pose = start_pose_when_known(loop.svc.start_pose, lambda: loop.svc.wants(req), clock=lambda: clock["s"],
+                                 sleep=one_tick)
+    assert not loop.svc.taking_up and not loop.tick.slack.any()
+    assert math.degrees(np.abs(pose - slack_alpha).max()) > 2.0  # what the old check had started from
+    loop.svc.prepared(prepare(req, params, LawConfig(law=2), alpha_from_rad=pose), req, loop.stamp_s)
+    assert loop.svc.running and loop.svc.trajectory is not None
+    started_at = np.asarray(loop.svc.trajectory.waypoints_rad[0])
+    assert math.degrees(np.abs(started_at - pose).max()) < 0.5, np.degrees([started_at, pose])
+
+
+def test_a_take_up_that_never_ends_refuses_the_waiting_preparation_and_a_stop_gives_it_up():
+    from controller.prepare import GivenUp, Refused, start_pose_when_known
+
+    clock = {"s": 0.0}
+
+    def later(s: float) -> None:
+        clock["s"] += s
+
+    with pytest.raises(Refused, match="still being taken up after 30 s"):
+        start_pose_when_known(lambda: None, lambda: True, clock=lambda: clock["s"], sleep=later)
+    asked = iter([True, True, False])
+    with pytest.raises(GivenUp):
+        start_pose_when_known(lambda: None, lambda: next(asked), clock=lambda: clock["s"], sleep=later)
+    assert start_pose_when_known(lambda: np.zeros(3), lambda: False).tolist() == [0.0, 0.0, 0.0]
