@@ -420,6 +420,7 @@ class BridgeNode:
         self._source_key: tuple[str, str] = ("", "")
         self._source = ""
         self.ticks = self.overruns = 0
+        self.periods_skipped = 0  # real-time periods in which no tick started (:func:`pace`)
         self.read_errors = 0  # encoder reads that failed (module docstring, "Encoder reads")
         self._read_errors_in_row = 0
         self._read_error_logged_s = -math.inf
@@ -687,8 +688,8 @@ class BridgeNode:
             seq=self._seq["health"], stamp_s=self.driver.stamp_s(), process="bridge", instance=self.instance,
             uptime_s=time.monotonic() - self._started,
             received={bus.MOTOR_COMMAND: stats.received, bus.ESTOP: estop_received, "ticks": self.ticks,
-                      "overruns": self.overruns, "clamped": self.clamped, "holds": self.holds,
-                      "rate_limited": self.rate_limited,
+                      "overruns": self.overruns, "periods_skipped": self.periods_skipped, "clamped": self.clamped,
+                      "holds": self.holds, "rate_limited": self.rate_limited,
                       "tick_max_us": int(self.tick_max_s * 1e6), bus.BRIDGE_CLOCK: self.clock.answered},
             rejected={bus.MOTOR_COMMAND: stats.rejected, bus.ESTOP: estop_rejected,
                       bus.BRIDGE_CLOCK: self.clock.refused + self.clock.failed, "encoder_read": self.read_errors,
@@ -736,13 +737,29 @@ class BridgeNode:
         self.driver.close()
 
 
+def pace(now: float, due: float, dt: float) -> int | None:
+    """The real-time loop's arithmetic after a tick that ended at ``now``, the next one being due
+    at ``due`` (period ``dt``): None when it ended in time (the loop sleeps until ``due``), else the
+    tick overran and this many whole periods are skipped (``floor((now - due) / dt)``, 0 or more):
+    the loop moves ``due`` on by as many periods and ticks at once, never catching up.
+
+    The skipped periods are those in which no tick started: a tick that starts on time and stalls
+    600 ms at ``dt`` = 2 ms spans 300 periods, its own (the overrun) and 299 skipped; the next
+    tick starts on time at 600 ms. So ticks + periods skipped = periods elapsed."""
+    if now <= due:
+        return None
+    return math.floor((now - due) / dt)
+
+
 def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify | None = None) -> int:
     """Ticks paced by the clock at the driver's rate. A tick that ends after the next one was due
     is an overrun (counted, reported in ``Health``); whole periods lost are skipped, never caught
-    up. With ``config.loop_stall_s`` > 0 a :class:`bridge.loop_watchdog.LoopWatchdog` watches the
-    ticks (each stores its time and count: about 10 ns) and, should they stop, trips the driver and ends the process
-    (code 70). ``systemd``: told ``READY=1`` as the loop starts and pinged (``WATCHDOG=1``) from
-    this thread every ``ping_period_s``. Returns the number of ticks run."""
+    up, and counted too (``periods_skipped`` in ``Health``: the one overrun of a 600 ms stall
+    lost 299 ticks; :func:`pace`). With ``config.loop_stall_s`` > 0 a
+    :class:`bridge.loop_watchdog.LoopWatchdog` watches the ticks (each stores its time and count:
+    about 10 ns) and, should they stop, trips the driver and ends the process (code 70).
+    ``systemd``: told ``READY=1`` as the loop starts and pinged (``WATCHDOG=1``) from this thread
+    every ``ping_period_s``. Returns the number of ticks run."""
     cfg, dt = node.config, node.dt
     driver = node.driver
     watchdog = LoopWatchdog(cfg.loop_stall_s, drives_off_and_exit(driver), period_s=dt)
@@ -771,12 +788,14 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
             watchdog.last_tick_s = now  # the loop watchdog's per-tick cost: two stores
             watchdog.ticks = k
             due = start + k * dt
-            if now > due:
-                node.overruns += 1
-                if now > due + dt:
-                    start += math.floor((now - due) / dt) * dt
-            else:
+            skipped = pace(now, due, dt)
+            if skipped is None:
                 time.sleep(due - now)
+            else:
+                node.overruns += 1
+                if skipped:
+                    node.periods_skipped += skipped
+                    start += skipped * dt
             if now >= next_health:
                 node.publish_health()
                 next_health = now + cfg.health_period_s

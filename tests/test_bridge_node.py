@@ -20,7 +20,7 @@ from busutil import bus_pair, run_in_thread, wait_until
 
 from bridge import bus
 from bridge.driver import Lifecycle
-from bridge.node import BridgeConfig, BridgeNode, HoldWorker, run_realtime
+from bridge.node import BridgeConfig, BridgeNode, HoldWorker, pace, run_realtime
 from bridge.session import liveliness_token, publisher, subscribe_latest
 from controller.laws import encoder_hold_forces, hold_forces
 from server.cli.processes import bridge_node
@@ -458,7 +458,7 @@ def test_a_bridge_woken_from_a_stall_ramps_to_the_command_computed_meanwhile(par
     class Recorder:
         config, dt = BridgeConfig(max_ticks=20), 0.002
         driver = type("D", (), {"exhausted": False})()
-        overruns = 0
+        overruns = periods_skipped = 0
 
         def tick(self, held_up_s=0.0):
             seen.append(held_up_s)
@@ -476,6 +476,62 @@ def test_a_bridge_woken_from_a_stall_ramps_to_the_command_computed_meanwhile(par
     monkeypatch.setattr("bridge.node.time.sleep", sleep)
     run_realtime(Recorder(), threading.Event())  # type: ignore[arg-type]
     assert max(seen) >= 0.045 and sorted(seen)[-2] < 0.01, seen
+
+
+def test_the_pace_of_the_real_time_loop_counts_the_periods_a_stall_skipped():
+    """A tick that ends after the next one was due is one overrun; the whole periods it lost are
+    skipped and counted (they had shown as that one overrun: a 600 ms stall at 500 Hz was 1 of
+    ~300 periods without a tick). A tick that starts on time (t = 0) and stalls 600 ms: 299
+    periods skipped, and the next tick starts on the slot at 600 ms."""
+    dt = 0.002
+    assert pace(0.0019, dt, dt) is None and pace(dt, dt, dt) is None  # in time: the loop sleeps
+    assert pace(0.0035, dt, dt) == 0  # late, within a period: an overrun, nothing skipped
+    assert pace(0.0041, dt, dt) == 1
+    assert pace(0.6, dt, dt) == 299 and pace(0.6003, dt, dt) == 299 and pace(0.6021, dt, dt) == 300
+
+
+def test_a_stalled_tick_shows_in_health_as_one_overrun_and_the_periods_it_skipped(params, monkeypatch):
+    """The loop on an injected clock (no wall time): ten ticks of 0.3 ms each, the fourth stalls
+    600 ms. Health carries 1 overrun and 299 periods skipped; the tick after the stall starts on
+    its slot (not late by the stall) and the loop does not catch up."""
+
+    class Clock:  # the loop's perf_counter and sleep; everything else is the real time module
+        now = 0.0
+
+        def perf_counter(self):
+            return self.now
+
+        def sleep(self, s):
+            self.now += max(s, 0.0)
+
+        def __getattr__(self, name):
+            return getattr(time, name)
+
+    clock = Clock()
+    monkeypatch.setattr("bridge.node.time", clock)
+    with bus_pair() as (_hub, _hub_session, connect):
+        node = _node(connect(), params, max_ticks=10)
+        health = Collector(node.session, bus.health_key("bridge", node.instance))
+        real_tick, late = node.tick, []
+
+        def tick(held_up_s=0.0):
+            late.append(held_up_s)
+            real_tick(held_up_s)
+            clock.now += 0.0003 + (0.6 if len(late) == 4 else 0.0)
+
+        monkeypatch.setattr(node, "tick", tick)
+        try:
+            assert run_realtime(node, threading.Event()) == 10
+            node.publish_health()
+            assert wait_until(lambda: any(m.received.get("periods_skipped") for m in health.messages()), 5.0)
+            received = health.messages()[-1].received
+        finally:
+            health.close()
+            node.shutdown()
+    assert (node.overruns, node.periods_skipped) == (1, 299)
+    assert (received["overruns"], received["periods_skipped"]) == (1, 299)
+    assert max(late) < 0.001, late  # the tick after the stall: on its slot, 0.3 ms late
+    assert node.dt == DT and clock.now == pytest.approx((10 + 299) * DT)  # ticks + skipped = periods elapsed
 
 # -- the hold forces off the tick (issue 20) ------------------------------------------------------
 
