@@ -301,9 +301,9 @@ def _run_bridge(node, drv, stop, lockstep: bool, loop_stall: float, command_time
         node.shutdown()
     stats = node.commands.stats
     log.info("bridge %s stopped after %d ticks, %s; commands accepted %d, rejected %d, "
-             "clamped %d, holds %d, overruns %d", node.instance, ticks,
+             "clamped %d, holds %d, overruns %d, periods skipped %d", node.instance, ticks,
              "DRIVES MAY BE ON" if drv.close_error else "drives disabled", stats.accepted, stats.rejected,
-             node.clamped, node.holds, node.overruns)
+             node.clamped, node.holds, node.overruns, node.periods_skipped)
 
 
 def twin(
