@@ -31,7 +31,7 @@ is taken (:meth:`ComputedTorque.tick_time`):
   process was holding on stale states (``stale_s``, 10 ms), not controlling, and its integral is
   not to wind up over a hold (after ``STALE_RESTART_S`` the service re-starts it anyway);
 - no gap is known (the first state, after a reset: a new bridge run, a re-estimate; a tick without a
-  stamp: the offline loop, tests), or the stamps do not advance: one period, as before; a clock step
+  stamp: the warm-up, tests), or the stamps do not advance: one period, as before; a clock step
   the controller is told of is taken out of the gap (:meth:`ComputedTorque.clock_stepped`);
 - a gap within ``PERIOD_TOLERANCE_S`` of the period is the period itself, so a steady clock (a
   twin without timing jitter, stamps k·2 ms rounded) gives the very numbers of a fixed period.

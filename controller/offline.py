@@ -68,7 +68,10 @@ def run_closed_loop(
 
     On the twin's clock, as on the bus: each tick's α^d is the trajectory at the stamp of the state
     the law acts on, and ``t_s`` holds those stamps, the clock of the camera frames too (with the
-    robot's timing jitter the periods vary, and a nominal k·dt drifts from the frames)."""
+    robot's timing jitter the periods vary, and a nominal k·dt drifts from the frames). The law is
+    told each stamp (``ComputedTorque.step``'s ``stamp_s``), as in ``controller.service``: it
+    differentiates and integrates over the twin's actual period, so an offline run and a bus run
+    do the same arithmetic; on a steady clock (no jitter) that is the fixed period, bit for bit."""
     twin = Twin(params, twin_config)
     ctl = ComputedTorque(params if model is None else model, law)
     n = int(round((trajectory.duration_s + settle_s) * twin_config.rate_hz))
@@ -85,7 +88,8 @@ def run_closed_loop(
         t[k] = tick.t_s
         a_d, a_d_dot, a_d_ddot = trajectory.sample_at(t[k])
         alpha_d[k] = a_d
-        cmd = ctl.step(tick.theta_meas, a_d, a_d_dot, a_d_ddot, trajectory.pretension_at(t[k]))
+        # the stamp as the service gives it: the law spans the twin's real period (jitter included)
+        cmd = ctl.step(tick.theta_meas, a_d, a_d_dot, a_d_ddot, trajectory.pretension_at(t[k]), t[k])
         tick = twin.tick(cmd.f)
         flat_steps += int(tick.flat)
         out["alpha_hat"][k], out["force_N"][k], saturated[k] = cmd.alpha_hat, cmd.f, cmd.saturated

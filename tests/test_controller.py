@@ -114,8 +114,14 @@ def runs(params, request):
             for k, c in cfgs.items()}
 
 
-def test_law_2_tracks_better_than_law_1_with_lower_forces(runs):
-    assert runs["law2"]["e_mean_all_deg"] < runs["law1"]["e_mean_all_deg"]
+def test_law_2_tracks_better_than_law_1_with_lower_forces(runs, request):
+    """On the model. On the robot truth law 2 only has the lower forces (21.9 N against 27.3 N):
+    law 1 tracks as well or a little better (e 0.47° against 0.48° at seed 11, better on 4 of
+    seeds 11-15, and 0.464° against 0.478° without the timing jitter). Law 2 had led there only
+    while the offline loop ran the law on a fixed period, which read the twin's period jitter as
+    velocity and hurt law 1 most (0.51° against 0.51°)."""
+    if "truth-model" in request.node.callspec.id:
+        assert runs["law2"]["e_mean_all_deg"] < runs["law1"]["e_mean_all_deg"]
     assert runs["law2"]["force_mean_all_N"] < runs["law1"]["force_mean_all_N"]
 
 
@@ -134,6 +140,45 @@ def test_every_law_stays_within_force_limits(runs):
     whether a law needed more: no tick may have saturated on the §7 trajectory."""
     for name, m in runs.items():
         assert m["saturated_ticks"] == 0 and m["camera_frames"] > 300, (name, m["saturated_ticks"])
+
+
+def _short_run(params, truth, monkeypatch=None, stamps=True):
+    """A 3.5 s closed loop; ``stamps`` False: the law is told no stamp (a fixed period, as the
+    offline loop was before it passed them)."""
+    from controller.laws import ComputedTorque
+    from controller.trajectory import Trajectory
+
+    told = []
+    if monkeypatch is not None:
+        real = ComputedTorque.step
+
+        def step(self, theta, a, ad, add, pretension_N=0.0, stamp_s=None):
+            told.append(stamp_s)
+            return real(self, theta, a, ad, add, pretension_N, stamp_s if stamps else None)
+
+        monkeypatch.setattr(ComputedTorque, "step", step)
+    traj = Trajectory.from_degrees([[0, 0, 0], [20, 10, 5], [0, 0, 0]], 1.5, 0.2)
+    return run_closed_loop(params, LawConfig(law=2), traj, TwinConfig(seed=3, truth=truth), settle_s=0.5), told
+
+
+def test_the_offline_law_is_told_each_states_stamp_as_on_the_bus(params, monkeypatch):
+    """The service gives the law each state's stamp (controller.service; tests/test_laws_missed_states.py),
+    so it differentiates and integrates over the real period: the offline loop does the same.
+    With the robot's timing jitter that changes the run; on a steady clock it is bit-identical
+    to the fixed period it ran on before."""
+    from twin.sim.truth import load_truth
+
+    jitter = load_truth("robot").only("timing")
+    run, told = _short_run(params, jitter, monkeypatch)
+    assert told == run.t_s.tolist()
+    monkeypatch.undo()
+    fixed, _ = _short_run(params, jitter, monkeypatch, stamps=False)
+    assert np.array_equal(fixed.t_s, run.t_s) and not np.array_equal(fixed.force_N, run.force_N)
+    monkeypatch.undo()
+    steady, _ = _short_run(params, "model")
+    steady_fixed, _ = _short_run(params, "model", monkeypatch, stamps=False)
+    for name in ("t_s", "alpha_hat", "force_N", "alpha", "saturated"):
+        assert np.array_equal(getattr(steady, name), getattr(steady_fixed, name)), name
 
 
 def test_the_offline_loop_runs_on_the_twins_clock(params):

