@@ -445,6 +445,18 @@ def check_payload_size(msg_type: type[BusMessage], n_bytes: int) -> None:
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def plain_text(text: str, n: int = 200) -> str:
+    """A reason or name as it may be logged, shown and encoded: what does not encode as UTF-8 (a
+    Latin-1 terminal's bytes, which Python keeps as lone surrogates) becomes "?", each control
+    character a space (a newline forged a log line, an escape sequence drove the terminal: review
+    of session 41), cut to ``n`` characters ("..." at the end when cut)."""
+    text = _CONTROL.sub(" ", text.encode("utf-8", "replace").decode("utf-8"))
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
 def _check_name(what: str, name: str) -> str:
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(f"{what} {name!r} must be non-empty and use only letters, digits, '_', '.', '-'")
@@ -816,6 +828,7 @@ __all__ = [
     "message_type",
     "parse_estop_token_key",
     "parse_liveliness_key",
+    "plain_text",
     "schema_name",
     "schema_version",
 ]

@@ -23,6 +23,8 @@ from bridge.session import estop_holder_attachment, publisher
 
 log = logging.getLogger("xneck.estop")
 
+REASON_MAX_CHARS = 200  # what a bridge keeps of a reason (bridge.node)
+
 
 class EStopHolder:
     """Engage and release the e-stop on ``session`` as holder ``name`` (letters, digits, ``._-``).
@@ -49,10 +51,14 @@ class EStopHolder:
 
     def engage(self, reason: str) -> None:
         """Publish an engaged ``EStop``, then hold the token (the bridges up now latch at once on
-        the message and need not wait for the token's propagation)."""
+        the message and need not wait for the token's propagation). The token is held even if the
+        publication fails: an engage must not be lost whole to one error (review of session 41:
+        a reason that did not encode had sent neither)."""
         with self._lock:
-            self._put(True, reason)
-            self._hold(True)
+            try:
+                self._put(True, reason)
+            finally:
+                self._hold(True)
 
     def release(self, reason: str) -> None:
         """Drop the token, then publish the release (a bridge obeys it once no other holder is
@@ -71,8 +77,8 @@ class EStopHolder:
 
     def _put(self, engaged: bool, reason: str) -> None:
         self._seq += 1
-        self._pub.put(bus.EStop(seq=self._seq, stamp_s=time.time(), engaged=engaged, reason=reason),
-                      attachment=self._attachment)
+        self._pub.put(bus.EStop(seq=self._seq, stamp_s=time.time(), engaged=engaged,
+                                reason=bus.plain_text(reason, REASON_MAX_CHARS)), attachment=self._attachment)
 
     def _hold(self, hold: bool) -> None:
         try:

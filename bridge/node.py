@@ -177,8 +177,9 @@ class BridgeConfig:
 
 
 def _bounded(text: str, n: int = 200) -> str:
-    """A string from the bus, cut to ``n`` characters: it goes into every state and the log."""
-    return text if len(text) <= n else text[: n - 3] + "..."
+    """A string from the bus, cut to ``n`` characters and without control characters
+    (:func:`bridge.bus.plain_text`): it goes into every state and the log."""
+    return bus.plain_text(text, n)
 
 
 def _demote_this_thread() -> None:
@@ -482,13 +483,18 @@ class BridgeNode:
             # Queue before counting: whoever sees the count (tests, health) may rely on the next tick
             # applying the event, and the tick looks at the queue without the lock. A release is
             # refused while another e-stop holder's token is alive (bridge.safety.EStopHolders).
-            applied = self.estop_holders.message(event, _bounded(estop_holder_of(sample), 64))
+            sender = _bounded(estop_holder_of(sample), 64)
+            applied = self.estop_holders.message(event, sender)
             if applied is not None:
                 self._queue_estop(applied)
             held = sorted(self.estop_holders.holders) if applied is None else []
+            waits = applied is None and self.estop_holders.waits_for(sender)
             self.estop_received += 1
             self.estop_rejected += 0 if valid else 1
-        if held:
+        if waits:
+            log.info("e-stop release (%s) of %s: acts once its token is gone (still held: %s)", event[1], sender,
+                     ", ".join(held))
+        elif held:
             log.warning("e-stop release (%s) refused: %s still hold the e-stop engaged", event[1], ", ".join(held))
 
     def _queue_estop(self, event: tuple[bool, str]) -> None:
@@ -507,8 +513,8 @@ class BridgeNode:
         with self._estop_lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._queue_estop(self.estop_holders.appeared(holder))
-            else:
-                self.estop_holders.vanished(holder)
+            elif (released := self.estop_holders.vanished(holder)) is not None:
+                self._queue_estop(released)  # its own release came before its token went
         if sample.kind != zenoh.SampleKind.PUT:
             log.info("e-stop holder %r let go (a latched e-stop stays until it is released)", holder)
 

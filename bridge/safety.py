@@ -62,7 +62,8 @@ E-stop holders
     (:data:`bridge.bus.ESTOP_ENGAGED_ALL`), so a bridge that starts, or links back, after the
     ``EStop`` went out still sees it: each token that appears is an engaged event naming its
     holder, and the node asks for the tokens alive before its first tick (it starts latched). A
-    release takes effect only when no holder but its sender is left (:class:`EStopHolders`):
+    release takes effect only when no holder is left, its sender's token gone too (a release
+    naming a holder whose token lives waits for that token to vanish: :class:`EStopHolders`):
     another's release does not end an e-stop a console still holds. A holder that vanishes (it
     released, crashed or lost its link) releases nothing: the latch stays until an explicit
     release, since only the bridges that did not see the engage need the token (audit of the
@@ -74,6 +75,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -423,6 +425,12 @@ def _step_towards(force: list[float], target: list[float], step: float) -> list[
 TOKEN_REASON_TAIL = " (it holds the e-stop token)"
 
 
+#: s a release naming a holder whose token is still alive waits for that token to go
+#: (:class:`EStopHolders`): the holder drops its token, then releases, and the two may arrive
+#: in either order; a release naming a holder that keeps its token is a forgery, or stale.
+RELEASE_TOKEN_WAIT_S = 2.0
+
+
 class EStopHolders:
     """Who holds the e-stop engaged (their liveliness tokens), and whether a release may act
     (module docstring, "E-stop holders"). The node feeds it the tokens as they appear and vanish
@@ -431,13 +439,18 @@ class EStopHolders:
 
     A holder releases by dropping its token and publishing the release, which names it
     (:func:`bridge.session.estop_holder_of`). The two may arrive in either order (a liveliness
-    subscriber and a sample subscriber have callback threads of their own), so the release of a
-    holder counts as its letting go: it acts when no *other* holder is left. A release that names
-    no holder acts only when none is left. A holder's token that vanishes releases nothing.
+    subscriber and a sample subscriber have callback threads of their own): a release naming a
+    holder whose token is still alive acts when that token vanishes, within
+    :data:`RELEASE_TOKEN_WAIT_S`, if no other holder is left then. It had acted at once, so that
+    anyone on the bus could release a live console's e-stop by naming it (holder names are
+    public; review of session 41). A release that names no holder, or one whose token is gone,
+    acts when none is left. A holder's token that vanishes releases nothing by itself.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.holders: set[str] = set()
+        self._clock = clock
+        self._pending: dict[str, tuple[float, EStopEvent]] = {}  # holder -> (when, its release)
 
     @staticmethod
     def reason(holder: str) -> str:
@@ -449,18 +462,31 @@ class EStopHolders:
         self.holders.add(holder)
         return True, self.reason(holder)
 
-    def vanished(self, holder: str) -> None:
-        """A holder's token vanished: it holds no longer, and nothing is released."""
+    def vanished(self, holder: str) -> EStopEvent | None:
+        """A holder's token vanished: it holds no longer. Its own release, if it came first
+        (within :data:`RELEASE_TOKEN_WAIT_S`), is returned to act now when no other holder is
+        left; else None: a vanishing token releases nothing."""
         self.holders.discard(holder)
+        pending = self._pending.pop(holder, None)
+        if pending is None or self._clock() - pending[0] > RELEASE_TOKEN_WAIT_S:
+            return None
+        return None if self.holders else pending[1]
+
+    def waits_for(self, holder: str) -> bool:
+        """Whether a release naming ``holder`` waits for its token to go."""
+        return holder in self._pending
 
     def message(self, event: EStopEvent, holder: str = "") -> EStopEvent | None:
         """An e-stop message's event as it is to be applied, from ``holder`` ('' if it names
-        none): an engage as it is; a release if no holder but ``holder`` is left, else None
-        (refused: :attr:`holders` says who holds it)."""
+        none): an engage as it is; a release if no holder is left (``holder``'s token being
+        gone already), else None: refused (:attr:`holders` says who holds it), or kept until
+        ``holder``'s token vanishes (:meth:`vanished`)."""
         engaged, _reason = event
         if engaged:
             return event
-        self.holders.discard(holder)
+        if holder and holder in self.holders:
+            self._pending[holder] = (self._clock(), event)
+            return None
         return None if self.holders else event
 
 

@@ -846,15 +846,20 @@ class CampaignManager:
 
     def estop(self, engaged: bool, reason: str) -> None:
         """Publish the e-stop (the bridge holds and ignores commands while engaged) and, when
-        engaging, abort the running campaign and any replay."""
-        with self._estop_lock:  # two at once: what this console says is what it sent last
-            (self._estop.engage if engaged else self._estop.release)(reason)
-            self.estop_engaged, self.estop_reason = engaged, reason
-        if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
-            self._stop.set()
-            self._cancel_starting_replay()
-            if self._replay is not None:
-                self._replay.stop()
+        engaging, abort the running campaign and any replay. An engage whose publication raises
+        still holds its token (bridge.estop_holder) and still aborts, then raises."""
+        try:
+            with self._estop_lock:  # two at once: what this console says is what it sent last
+                try:
+                    (self._estop.engage if engaged else self._estop.release)(bus.plain_text(reason))
+                finally:
+                    self.estop_engaged, self.estop_reason = engaged, bus.plain_text(reason)
+        finally:
+            if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
+                self._stop.set()
+                self._cancel_starting_replay()
+                if self._replay is not None:
+                    self._replay.stop()
 
     def _cancel_starting_replay(self) -> None:
         with self._lock:

@@ -230,14 +230,16 @@ def test_an_estop_holders_token_engages_and_a_release_needs_no_other_holder_left
     h.appeared("console-b")
     assert h.message((True, "button"), "console-a") == (True, "button")  # an engage acts as it is
     assert h.message((False, "cleared"), "console-a") is None  # console-b holds it still
+    assert h.vanished("console-a") is None  # console-a let go: console-b holds it still
     assert h.message((False, "someone"), "") is None
     h.vanished("console-b")  # crashed: releases nothing by itself...
     assert h.holders == set()
     assert h.message((False, "cleared"), "") == (False, "cleared")  # ...an explicit release does
-    # The holder's release before its token's drop (two callback threads): it counts as letting go.
+    # The holder's release before its token's drop (two callback threads): it acts once the
+    # token is gone (review of session 41: anyone could name a live holder in a release).
     h.appeared("console-a")
-    assert h.message((False, "cleared"), "console-a") == (False, "cleared")
-    h.vanished("console-a")
+    assert h.message((False, "cleared"), "console-a") is None
+    assert h.vanished("console-a") == (False, "cleared")
     assert h.holders == set()
     # Applied in Safety: a holder's engage latches like any other; its release ends it.
     s = machine()
@@ -245,8 +247,35 @@ def test_an_estop_holders_token_engages_and_a_release_needs_no_other_holder_left
     assert s.step(idle(age_s=0.0, estop=[h.appeared("console-a")])).drive == "disabled"
     assert s.estop_reason == "e-stop engaged by console-a (it holds the e-stop token)"
     assert s.step(cmd([20.0] * N)).drive == "disabled"
-    release = h.message((False, "cleared"), "console-a")
+    assert h.message((False, "cleared"), "console-a") is None
+    release = h.vanished("console-a")
     assert release is not None and s.step(idle(age_s=0.0, estop=[release])).drive == "inactive"
+
+
+def test_a_release_naming_a_live_holder_waits_for_its_token_and_a_forged_one_never_acts():
+    """Review of session 41: a release whose attachment named the console, its token alive, was
+    obeyed at once: anyone on the bus could release the console's e-stop (holder names are
+    public: a liveliness query finds them). It now acts only once that token is gone, within
+    ``RELEASE_TOKEN_WAIT_S`` of the release (the holder drops its token, then releases: the two
+    may arrive in either order); a forged release then expires."""
+    from bridge.safety import RELEASE_TOKEN_WAIT_S
+
+    now = {"s": 0.0}
+    h = EStopHolders(clock=lambda: now["s"])
+    h.appeared("console-a")
+    assert h.message((False, "forged"), "console-a") is None  # its token lives: not yet
+    now["s"] += RELEASE_TOKEN_WAIT_S + 0.1
+    assert h.vanished("console-a") is None  # the console crashed much later: the forgery expired
+    h.appeared("console-a")
+    h.appeared("console-b")
+    assert h.message((False, "cleared"), "console-a") is None
+    assert h.vanished("console-a") is None  # console-b still holds it
+    assert h.message((False, "cleared by b"), "console-b") is None
+    assert h.vanished("console-b") == (False, "cleared by b")
+    # the token gone first: the release acts at once
+    h.appeared("console-c")
+    assert h.vanished("console-c") is None
+    assert h.message((False, "cleared by c"), "console-c") == (False, "cleared by c")
 
 
 def test_every_enable_is_bumpless_then_commands_pass_through():
