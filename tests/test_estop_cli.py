@@ -109,20 +109,22 @@ def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(pa
     that starts then comes up latched; SIGTERM ends the command and the bridge stays latched."""
     with bus_pair() as (hub, _hub_session, connect):
         proc = subprocess.Popen([sys.executable, "-m", "server.cli", "estop", "engage", "--hold", "--wait-s", "0.3",
-                                 "--connect", hub, "--reason", "before the bridge"], stdout=subprocess.PIPE,
+                                 "--connect", hub, "--reason", "before the bridge", "--json"], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, env=_env())
         node = None
         try:
-            assert proc.stdout is not None
-            assert "holding the e-stop as cli-" in proc.stdout.readline()
+            assert proc.stderr is not None  # with --json the progress lines go to stderr
+            assert "holding the e-stop as cli-" in proc.stderr.readline()
             node = _node(connect(), params, command_timeout_s=5.0)
             assert node.safety.estop_engaged and node.mode == "disabled"  # latched before its first tick
             with _ticking(node):
                 assert wait_until(lambda: node.estop_reason == "before the bridge", 5), node.estop_reason
                 proc.send_signal(signal.SIGTERM)
-                out, err = proc.communicate(timeout=20)
+                proc.wait(20)  # what it printed is small: no pipe fills meanwhile
+                out, err = proc.stdout.read(), proc.stderr.read()  # past what readline() buffered
                 assert proc.returncode == 0, err  # a bridge confirmed while it held
-                assert "bridge " in out and "e-stop engaged (before the bridge)" in out, out
+                answer = json.loads(out)  # stdout is the one JSON object (review of session 41)
+                assert answer["ok"] and [b["reason"] for b in answer["bridges"]] == ["before the bridge"], answer
                 assert wait_until(lambda: not node.estop_holders.holders, 5)
                 time.sleep(0.05)
                 assert node.safety.estop_engaged and node.mode == "disabled"
@@ -140,3 +142,121 @@ def test_no_bridge_is_a_clear_error_and_exit_1():
         r = _xneck(*args, "--connect", nobody)
         assert r.returncode == 1, (args, r.stdout, r.stderr)
         assert f"no bridge state heard within 0.3 s through {nobody}" in r.stderr, (args, r.stderr)
+
+
+def test_a_bridge_heard_that_does_not_latch_makes_the_engage_fail_naming_it(params):
+    """Review of session 41: a bridge heard and never latched (here a peer stating as bridge
+    "deaf") was left out and the engage reported success."""
+    from bridge import bus
+    from bridge.session import publisher
+
+    with bus_pair() as (hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        deaf = publisher(hub_session, bus.MOTOR_STATE)
+        quiet = threading.Event()
+
+        def deaf_bridge() -> None:
+            k = 0
+            while not quiet.is_set():
+                k += 1
+                deaf.put(bus.MotorState(seq=k, stamp_s=time.time(), theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
+                                        drive="active", epoch="e-deaf", bridge="deaf"))
+                time.sleep(0.01)
+
+        sender = threading.Thread(target=deaf_bridge, daemon=True)
+        sender.start()
+        try:
+            with _ticking(node):
+                r = _xneck("engage", "--connect", hub, "--wait-s", "1", "--json")
+                assert r.returncode == 1, r.stdout + r.stderr
+                out = json.loads(r.stdout)
+                assert out["outcome"] == "partial" and "NOT on deaf" in out["message"], out
+                assert {b["bridge"]: b["engaged"] for b in out["bridges"]} == {node.instance: True, "deaf": False}
+                assert node.safety.estop_engaged
+        finally:
+            quiet.set()
+            sender.join(5)
+            node.shutdown()
+
+
+def test_a_latin1_reason_and_the_bridges_listen_endpoint_in_the_environment_still_engage(params):
+    """Review of session 41: a ``--reason`` typed in a Latin-1 terminal (bytes Python keeps as
+    lone surrogates) failed to encode and sent nothing; a shell sharing the bridge's environment
+    (``XNECK_ZENOH_LISTEN`` = the bridge's port) had the command bind that port and fail."""
+    with bus_pair() as (hub, _hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        try:
+            with _ticking(node):
+                r = subprocess.run([sys.executable, "-m", "server.cli", "estop", "engage", "--connect", hub,
+                                    "--reason", b"c\xe2ble coinc\xe9\n\x1b[2Jforged"], capture_output=True,
+                                   env={**_env(), "XNECK_ZENOH_LISTEN": hub}, timeout=60, check=False)
+                assert r.returncode == 0, r.stderr
+                assert node.safety.estop_engaged and node.estop_reason == "c?ble coinc?  [2Jforged", node.estop_reason
+        finally:
+            node.shutdown()
+
+
+def test_the_default_endpoint_is_the_bridge_of_the_one_xneck_up_running(tmp_path):
+    """Not the hub: the console hosting it may be what hangs (review of session 41)."""
+    from server.cli.up import BRIDGE_ENDPOINT_FILE, SOCKETS_PREFIX, stack_bridge_endpoints
+
+    mine = tmp_path / f"{SOCKETS_PREFIX}{os.getpid()}-abc"
+    mine.mkdir()
+    (mine / BRIDGE_ENDPOINT_FILE).write_text("unixsock-stream//tmp/x/bridge.sock\n")
+    dead = tmp_path / f"{SOCKETS_PREFIX}999999999-abc"  # no such pid
+    dead.mkdir()
+    (dead / BRIDGE_ENDPOINT_FILE).write_text("tcp/127.0.0.1:1")
+    (tmp_path / f"{SOCKETS_PREFIX}1-nofile").mkdir()  # pid 1 runs, but wrote no endpoint
+    assert stack_bridge_endpoints(tmp_path) == {os.getpid(): "unixsock-stream//tmp/x/bridge.sock"}
+
+
+def test_an_engage_whose_message_fails_still_holds_the_token(params):
+    """The holder's engage published first and declared its token after: a publication that
+    raised (a reason that did not encode, a closed publisher) lost both (review of session 41)."""
+    import pytest
+
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        holder = EStopHolder(hub_session, "console-failing")
+
+        def broken(*_a, **_k) -> None:
+            raise OSError("link gone")
+
+        holder._pub.put = broken  # pyright: ignore[reportAttributeAccessIssue]
+        try:
+            with _ticking(node):
+                with pytest.raises(OSError):
+                    holder.engage("operator e-stop")
+                assert holder.holds
+                assert wait_until(lambda: node.safety.estop_engaged, 5)
+                assert "console-failing" in node.estop_reason
+        finally:
+            holder.close()
+            node.shutdown()
+
+
+def test_a_release_forged_in_a_live_holders_name_does_not_end_its_estop(params):
+    """Review of session 41: any peer's release whose attachment named the console (its name is
+    public: ``xneck estop status`` prints it) ended the e-stop the console still held."""
+    from bridge import bus
+    from bridge.session import estop_holder_attachment, publisher
+
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        console = EStopHolder(hub_session, "console-abc123")
+        forger = publisher(connect(), bus.ESTOP)
+        try:
+            with _ticking(node):
+                console.engage("operator e-stop")
+                assert wait_until(lambda: "console-abc123" in node.estop_holders.holders, 5)
+                n = node.estop_received
+                forger.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="forged"),
+                           attachment=estop_holder_attachment("console-abc123"))
+                assert wait_until(lambda: node.estop_received > n, 5)
+                time.sleep(0.1)
+                assert node.safety.estop_engaged and node.mode == "disabled"
+                console.release("cleared at the console")  # its token goes, then its release
+                assert wait_until(lambda: not node.safety.estop_engaged, 5)
+        finally:
+            console.close()
+            node.shutdown()

@@ -17,22 +17,26 @@ a lab wires to a button on the PC. Every answer is the bridges' own word: their 
 
 from __future__ import annotations
 
+import contextlib
 import re
 import signal
 import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import typer
 
-from server.cli.options import check_credentials, echo_json, open_bus
+from server.cli.options import check_credentials, echo_json, fail, open_bus
 
 #: Where ``xneck up`` puts its hub: the e-stop's default when neither --connect nor the environment names one.
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 QUERY_TIMEOUT_S = 1.0  # s: the liveliness query for the holders alive
+CLOSE_WAIT_S = 1.0  # s the session's close is waited for (_bus)
+SETTLE_S = 0.3  # s an answer listens at least: every bridge on the bus states 150 times meanwhile (send_until)
 
 CONNECT_OPTION = typer.Option(
     None, "--connect", help="Zenoh endpoint of the robot's bridge (best: fewest hops) or of the stack's hub "
@@ -89,8 +93,9 @@ class BridgeWatch:
             msg = bus.decode(bus.MotorState, sample.payload.to_bytes())
         except bus.BusDecodeError:
             return
-        word = BridgeWord(msg.bridge[:64], msg.estop_engaged, msg.estop_reason[:200], msg.drive, msg.owner[:64],
-                          time.monotonic())
+        # plain text: a peer's escape sequences must not drive the operator's terminal
+        word = BridgeWord(bus.plain_text(msg.bridge, 64), msg.estop_engaged, bus.plain_text(msg.estop_reason),
+                          msg.drive, bus.plain_text(msg.owner, 64), time.monotonic())
         with self._lock:
             if word.bridge in self._words or len(self._words) < self.MAX_BRIDGES:
                 self._words[word.bridge] = word
@@ -118,19 +123,25 @@ class BridgeWatch:
 
 
 def send_until(watch: BridgeWatch, send: Callable[[], None], needs: Callable[[BridgeWord], bool], since_s: float,
-               timeout_s: float, resend_s: float = 0.1) -> list[BridgeWord]:
+               timeout_s: float, resend_s: float = 0.1, settle_s: float = SETTLE_S) -> list[BridgeWord]:
     """Call ``send`` now, and again (at most every ``resend_s`` s) while a bridge heard after
-    ``since_s`` still ``needs`` it, until none does (and one was heard) or ``timeout_s`` s have
-    passed; returns the bridges' words. A message published before this session has linked to
-    the bridge goes nowhere (Zenoh has no route yet; the token, declared, reaches it later): the
-    first test of this command had its reason lost so."""
+    ``since_s`` still ``needs`` it, until none does (one heard, and ``settle_s`` s gone since
+    ``since_s``, so that every bridge on the bus has been heard: a second bridge, heard later,
+    that did not latch had been left out of a success; review of session 41) or ``timeout_s`` s
+    have passed; returns the bridges' words. A message published before this session has linked
+    to the bridge goes nowhere (Zenoh has no route yet; the token, declared, reaches it later):
+    the first test of this command had its reason lost so."""
     end = time.monotonic() + timeout_s
+    settled = since_s + min(settle_s, timeout_s)
     send()
     sent_s = time.monotonic()
+
+    def done(words: list[BridgeWord]) -> bool:
+        return bool(words) and not any(needs(w) for w in words) and time.monotonic() >= settled
+
     while True:
-        words = watch.wait(lambda ws: bool(ws) and not any(needs(w) for w in ws), since_s,
-                           min(resend_s, max(0.0, end - time.monotonic())))
-        if (words and not any(needs(w) for w in words)) or time.monotonic() >= end:
+        words = watch.wait(done, since_s, min(resend_s, max(0.0, end - time.monotonic())))
+        if done(words) or time.monotonic() >= end:
             return words
         if any(needs(w) for w in words) and time.monotonic() - sent_s >= resend_s:
             send()
@@ -158,9 +169,35 @@ def holder_name() -> str:
 
 
 def _endpoints(connect: list[str] | None) -> list[str]:
+    """``--connect``, else ``$XNECK_ZENOH_CONNECT``, else the bridge of the one ``xneck up`` this
+    user runs (not its hub: the console that hosts it may be what hangs; review of session 41: a
+    hung console's hub reached no bridge), else :data:`DEFAULT_HUB`."""
     from bridge.session import ENV_CONNECT, endpoints_from_env
+    from server.cli.up import stack_bridge_endpoints
 
-    return list(connect or endpoints_from_env(ENV_CONNECT) or [DEFAULT_HUB])
+    given = list(connect or endpoints_from_env(ENV_CONNECT) or [])
+    if given:
+        return given
+    stacks = stack_bridge_endpoints()
+    if len(stacks) > 1:
+        raise fail(f"{len(stacks)} xneck up stacks run here (pids {', '.join(map(str, sorted(stacks)))}, bridges "
+                   f"{', '.join(stacks[pid] for pid in sorted(stacks))}): say which bridge with --connect")
+    return list(stacks.values()) or [DEFAULT_HUB]
+
+
+@contextlib.contextmanager
+def _bus(endpoints: list[str]) -> Iterator[Any]:
+    """This command's session: it connects to ``endpoints`` and listens on an ephemeral loopback
+    port whatever ``XNECK_ZENOH_LISTEN`` says (a shell of the board's, sharing the bridge's
+    environment, had it bind the bridge's own port and fail: review of session 41). Its close is
+    waited for :data:`CLOSE_WAIT_S` s at most: a hung peer held it 7 s after the answer."""
+    session = open_bus(["tcp/127.0.0.1:0"], endpoints)
+    try:
+        yield session
+    finally:
+        closer = threading.Thread(target=session.close, daemon=True)
+        closer.start()
+        closer.join(CLOSE_WAIT_S)
 
 
 def _report(as_json: bool, ok: bool, outcome: str, words: list[BridgeWord], holders: list[str],
@@ -196,16 +233,17 @@ def engage(
 
     The drives stay disabled, whatever the controller commands, until a release. Exit 0 once a
     bridge confirms, 1 if none does within --wait-s."""
+    from bridge import bus
     from bridge.estop_holder import EStopHolder
     from bridge.safety import EStopHolders
 
     check_credentials(acts=True)
     endpoints = _endpoints(connect)
     name = holder_name()
-    why = reason.strip()[:200] or f"xneck estop engage ({name})"
+    why = bus.plain_text(reason.strip()) or f"xneck estop engage ({name})"
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if hold else {}
-    with open_bus(None, endpoints) as session:
+    with _bus(endpoints) as session:
         watch, holder = BridgeWatch(session), EStopHolder(session, name)
 
         def needs(w: BridgeWord) -> bool:  # not latched, or latched by the token alone (no reason yet)
@@ -216,9 +254,10 @@ def engage(
             words = send_until(watch, lambda: holder.engage(why), needs, sent_s, wait_s)
             confirmed = [w for w in words if w.engaged]
             if hold:
-                typer.echo(f"holding the e-stop as {name} (Ctrl-C to let go: the bridges latched stay latched)")
+                say = (lambda line: typer.echo(line, err=True)) if as_json else typer.echo  # --json: one object out
+                say(f"holding the e-stop as {name} (Ctrl-C to let go: the bridges latched stay latched)")
                 for w in confirmed:
-                    typer.echo(w.line())
+                    say(w.line())
                 seen = {w.bridge for w in confirmed}
                 while not stop.wait(0.2):  # the bridges that start or link back meanwhile
                     words = watch.words(sent_s)
@@ -227,22 +266,29 @@ def engage(
                     for w in words:
                         if w.engaged and w.bridge not in seen and not needs(w):
                             seen.add(w.bridge)
-                            typer.echo(w.line())
-                confirmed = [w for w in watch.words(sent_s) if w.engaged] or confirmed
+                            say(w.line())
+                words = watch.words(sent_s) or words
+                confirmed = [w for w in words if w.engaged]
         finally:
             holder.close()
             watch.close()
             for s, handler in previous.items():
                 signal.signal(s, handler)
-        if confirmed:
-            _report(as_json, True, "engaged", confirmed, [], endpoints,
-                    f"e-stop engaged by {name}: {len(confirmed)} bridge(s) confirmed; release with "
-                    "`xneck estop release` or the console's button")
-            return
-        _report(as_json, False, "unconfirmed", words, [], endpoints,
-                f"{_no_bridge(endpoints, wait_s) if not words else 'no bridge confirmed the e-stop'}; it "
-                "latches only the bridges that heard it: use --hold to keep it held for a bridge that starts later")
+    deaf = [w.bridge for w in words if not w.engaged]
+    if confirmed and not deaf:
+        _report(as_json, True, "engaged", words, [], endpoints,
+                f"e-stop engaged by {name}: {len(confirmed)} bridge(s) confirmed; release with "
+                "`xneck estop release` or the console's button")
+        return
+    if confirmed:  # a bridge heard and not latched must not pass for an e-stop done (review of session 41)
+        _report(as_json, False, "partial", words, [], endpoints,
+                f"e-stop engaged on {', '.join(w.bridge for w in confirmed)} but NOT on {', '.join(deaf)} (heard, "
+                f"not latched within {wait_s:g} s): cut that bridge's power or stop it")
         raise typer.Exit(1)
+    _report(as_json, False, "unconfirmed", words, [], endpoints,
+            f"{_no_bridge(endpoints, wait_s) if not words else 'no bridge confirmed the e-stop'}; it "
+            "latches only the bridges that heard it: use --hold to keep it held for a bridge that starts later")
+    raise typer.Exit(1)
 
 
 @estop_app.command("release")
@@ -258,15 +304,16 @@ def release(
     takes the cables up gently). A bridge obeys only when no other holder (the console's engaged
     button, another terminal's --hold) is left. Exit 0 once every bridge heard has released, 1
     otherwise."""
+    from bridge import bus
     from bridge.estop_holder import EStopHolder
 
     check_credentials(acts=True)
     endpoints = _endpoints(connect)
     name = holder_name()
-    with open_bus(None, endpoints) as session:
+    with _bus(endpoints) as session:
         watch, holder = BridgeWatch(session), EStopHolder(session, name)
         try:
-            why = reason.strip()[:200] or f"xneck estop release ({name})"
+            why = bus.plain_text(reason.strip()) or f"xneck estop release ({name})"
             words = send_until(watch, lambda: holder.release(why), lambda w: w.engaged, time.monotonic(), wait_s,
                                resend_s=0.25)
             holders = holders_alive(session) if any(w.engaged for w in words) or not words else []
@@ -298,7 +345,7 @@ def status(
     none was."""
     check_credentials(acts=False)
     endpoints = _endpoints(connect)
-    with open_bus(None, endpoints) as session:
+    with _bus(endpoints) as session:
         watch = BridgeWatch(session)
         try:
             time.sleep(wait_s)

@@ -87,6 +87,7 @@ DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's im
 
 
 SOCKETS_PREFIX = "xneck-up-"  # + the pid of the xneck up that made the folder, "-", random
+BRIDGE_ENDPOINT_FILE = "bridge.endpoint"  # in that folder: where its bridge listens (stack_bridge_endpoints)
 
 
 def _remove_stale_socket_folders(root: Path | None = None) -> list[Path]:
@@ -108,6 +109,26 @@ def _remove_stale_socket_folders(root: Path | None = None) -> list[Path]:
         except (OSError, ValueError, OverflowError):  # gone meanwhile, or another user's pid: alive
             continue
     return removed
+
+
+def stack_bridge_endpoints(root: Path | None = None) -> dict[int, str]:
+    """The bridge endpoint of each ``xneck up`` of this user that runs now (its pid -> what it
+    wrote in its socket folder's :data:`BRIDGE_ENDPOINT_FILE`): where ``xneck estop`` reaches the
+    bridge without the console, which may be the one that hangs (review of session 41)."""
+    root = Path(tempfile.gettempdir()) if root is None else root
+    found: dict[int, str] = {}
+    for folder in sorted(root.glob(f"{SOCKETS_PREFIX}*-*")):
+        pid_text = folder.name[len(SOCKETS_PREFIX):].partition("-")[0]
+        try:
+            if not pid_text.isdigit() or folder.is_symlink() or folder.stat().st_uid != os.getuid():
+                continue
+            os.kill(int(pid_text), 0)
+            endpoint = (folder / BRIDGE_ENDPOINT_FILE).read_text(encoding="utf-8").strip()
+        except (OSError, ValueError, OverflowError, UnicodeDecodeError):  # gone, another user's, no file
+            continue
+        if endpoint and len(endpoint) < 1000:
+            found[int(pid_text)] = endpoint
+    return found
 
 
 def _port_taken(host: str, port: int) -> str:
@@ -409,6 +430,8 @@ def up(
     bridge_at = bridge_at_option if no_bridge else f"unixsock-stream/{sockets / 'bridge.sock'}"
     controller_at = f"unixsock-stream/{sockets / 'controller.sock'}"
     control_path = [arg for at in (bridge_at, controller_at) if at for arg in ("--connect", at)]
+    estop_at = bridge_at or connect_to  # a bridge without --bridge-at connects to the hub
+    (sockets / BRIDGE_ENDPOINT_FILE).write_text(estop_at + "\n", encoding="utf-8")
     param_args = ["--params", str(params_file)] if params_file else []
     url = f"http://{host}:{port}/"
     procs: dict[str, subprocess.Popen] = {}
@@ -477,6 +500,7 @@ def up(
             typer.echo("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
                        "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
         typer.echo(f"  {_bus_access(hub, no_bridge)}")
+        typer.echo(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
