@@ -543,7 +543,22 @@ class CampaignService:
 
     def request_start(self, req: bus.CampaignRequest) -> bool:
         """A start request arrived: True if it is to be prepared (the service is ``starting``);
-        otherwise it was refused with the reason."""
+        otherwise it was refused with the reason. During a take-up the request being prepared
+        waits for the pose it will start from (:meth:`start_pose`), seconds maybe: a newer one
+        supersedes it, the newest only, as behind a stop's brake (a slider dragged on right
+        after a release had ended at its first position: review of session 41)."""
+        waiting = self._starting
+        if waiting is not None and self.taking_up and not self.running:
+            self._starting = None  # busy_reason without it
+            busy = self.busy_reason(req.kind)
+            if busy:
+                self._starting = waiting
+                self.refuse(req.campaign_id, req.kind, f"refused: {busy}")
+                return False
+            self.refuse(waiting.campaign_id, waiting.kind, f"superseded by {req.campaign_id} (asked for while the "
+                                                           "cables' slack was taken up)")
+            self._starting, self.phase = req, "starting"
+            return True
         busy = self.busy_reason(req.kind)
         if busy:
             self.refuse(req.campaign_id, req.kind, f"refused: {busy}")

@@ -622,3 +622,33 @@ def test_a_take_up_that_never_ends_refuses_the_waiting_preparation_and_a_stop_gi
     with pytest.raises(GivenUp):
         start_pose_when_known(lambda: None, lambda: next(asked), clock=lambda: clock["s"], sleep=later)
     assert start_pose_when_known(lambda: np.zeros(3), lambda: False).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_the_newest_campaign_asked_for_during_the_take_up_is_the_one_that_runs(params):
+    """Review of session 41: with the preparation waiting for the take-up, a second request (a
+    slider dragged on right after a release) was refused ("preparing campaign jog-A") and the
+    first one ran; before, the newest one superseded it, as behind a stop's brake."""
+    from test_controller_service import _request as request
+
+    from controller.laws import LawConfig
+    from controller.prepare import prepare
+    from controller.trajectory import Trajectory
+
+    def jog(cid: str, deg: list[float]):
+        return request(cid, kind="jog", trajectory_json=Trajectory.from_degrees([deg], [], 0.0, "jog").to_json())
+
+    loop = _dropped_on_slack_cables(params, 0)
+    loop.run(0.2, estop=((False, "audit"),))
+    svc = loop.svc
+    a, b = jog("jog-A", [10.0, 0.0, 0.0]), jog("jog-B", [-10.0, 5.0, 0.0])
+    assert svc.request_start(a)  # the worker waits for the take-up with it
+    loop.run(0.3)
+    assert svc.taking_up and svc.request_start(b)
+    assert not svc.wants(a) and svc.wants(b)  # the worker gives A up
+    loop.run(DT)  # the answers go out with the next state's
+    superseded = [e for e in loop.events if e.campaign_id == "jog-A"]
+    assert [e.event for e in superseded] == ["aborted"] and "superseded by jog-B" in superseded[0].message
+    while svc.start_pose() is None:
+        loop.run(DT)
+    svc.prepared(prepare(b, params, LawConfig(law=2), alpha_from_rad=svc.start_pose()), b, loop.stamp_s)
+    assert svc.running and svc.campaign_id == "jog-B"
