@@ -177,13 +177,18 @@ def stop_jog(state: Any) -> list[str]:
     """Stop jogging where the neck is: the waiting jog is dropped and the running one stopped
     (the controller then holds α̂). Returns the ids stopped."""
     desk = desk_of(state)
-    running = [st.campaign_id for st in state.live.live_statuses(STATUS_MAX_AGE_S).values()
-               if st.campaign_id.startswith("jog-")]  # every controller's: one stop must not miss one
-    stopped = [cid for cid in dict.fromkeys((desk.last_id, *running)) if cid]
+    # every controller's running jog, each stop to the controller that runs it (a service takes
+    # the bare key and its own only: review of session 41 had them all go to the last jog's)
+    running = {st.campaign_id: name for name, st in state.live.live_statuses(STATUS_MAX_AGE_S).items()
+               if st.campaign_id.startswith("jog-")}
     with desk.lock:
-        for cid in stopped:
-            desk.send(cid, "stop")
-    return stopped
+        last_target = desk.target
+        sends = [(desk.last_id, last_target)] if desk.last_id else []
+        sends += [(cid, name) for cid, name in running.items() if (cid, name) != (desk.last_id, last_target)]
+        for cid, target in sends:
+            desk.send(cid, "stop", target=target)
+        desk.target = last_target  # send() keeps the target it was given: the last jog's stays
+    return list(dict.fromkeys(cid for cid, _ in sends))
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token), Depends(require_operator)],

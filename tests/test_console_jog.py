@@ -263,3 +263,55 @@ def test_a_jog_starts_from_the_alpha_hat_of_the_controller_the_bridge_obeys(cons
                 token.undeclare()
         assert r.status_code == 202, r.text
         assert r.json()["from_deg"][0] == pytest.approx(2.0, abs=1e-6), r.json()
+
+
+def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
+    """Review of session 41: the stop of a jog another controller runs (another console's) went
+    to the key of this console's last jog's controller, which it does not read."""
+    from bridge.session import controller_attachment
+
+    client, app = console
+
+    def status(campaign_id: str) -> bytes:
+        return bus.encode(bus.ControllerStatus(
+            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+            saturated=[False] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False,
+            campaign_id=campaign_id))
+
+    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
+                                      drive="active", epoch="e-jog", bridge="b-jog", owner="ctl-owner"))
+    seen: list[tuple[str, str, str]] = []
+
+    def on_request(sample) -> None:
+        req = bus.decode(bus.CampaignRequest, sample.payload.to_bytes())
+        seen.append((str(sample.key_expr), req.campaign_id, req.action))
+
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
+        tokens = [liveliness_token(peer, "campaign-service", name) for name in ("ctl-owner", "ctl-other")]
+        quiet = threading.Event()
+
+        def two_controllers() -> None:  # the owner idle, the other one running a jog of its own
+            while not quiet.is_set():
+                peer.put(bus.MOTOR_STATE, state)
+                peer.put(bus.CONTROLLER_STATUS, status(""), attachment=controller_attachment("ctl-owner"))
+                peer.put(bus.CONTROLLER_STATUS, status("jog-120000-9"), attachment=controller_attachment("ctl-other"))
+                time.sleep(0.01)
+
+        sender = threading.Thread(target=two_controllers, daemon=True)
+        sender.start()
+        try:
+            assert wait_until(lambda: client.post("/api/jog", json={"alpha_deg": [3, 0, 0]},
+                                                  headers=AUTH).status_code == 202, 20, 0.3)
+            r = client.post("/api/jog/stop", headers=AUTH)
+            assert r.status_code == 200 and "jog-120000-9" in r.json()["stopped"], r.text
+            assert wait_until(lambda: any(a == "stop" and c == "jog-120000-9" for _, c, a in seen), 5)
+        finally:
+            quiet.set()
+            sender.join(5)
+            for token in tokens:
+                token.undeclare()
+        stops = {(key.rsplit("/", 1)[-1], cid) for key, cid, action in seen if action == "stop"}
+        assert ("ctl-other", "jog-120000-9") in stops, seen
+        mine = [cid for key, cid, action in seen if action == "start"]
+        assert mine and (("ctl-owner", mine[-1]) in stops), seen  # this console's own jog: to its controller
