@@ -318,7 +318,24 @@ def notes(results: dict, ranges: list, ident: dict | None = None) -> list[str]:
         f"  prototype ({r['law3']:.2f}° against {PAPER['law3'][0]:.2f}°), law 2 {worse('law2')} worse ({r['law2']:.2f}° "
         f"against {PAPER['law2'][0]:.2f}°). {pulleys};",
         f"  {flip_text}.",
+        *law2_note(results[ROBOT]),
         *identification_notes(ident or {}),
+    ]
+
+
+def law2_note(robot: dict) -> list[str]:
+    """A note when law 2 does not track best on the whole robot truth (words written 2026-11-29,
+    session 41, when the offline loop began to pass the law each state's stamp)."""
+    if findings(robot)["law 2 tracks best"]:
+        return []
+    e = {k: robot[k]["e_mean_all_deg"] for k in ("law1", "law2")}
+    f = {k: robot[k]["force_mean_all_N"] for k in ("law1", "law2")}
+    return [
+        f"- **Law 2 does not track best on the whole robot truth** (law 1 {e['law1']:.2f}° against law 2's "
+        f"{e['law2']:.2f}°; law 2's mean force {f['law2']:.1f} N against law 1's {f['law1']:.1f} N), though",
+        "  each effect alone keeps the finding (table) and the prototype's law 2 led law 1 by 0.15°. The offline",
+        "  loop had shown law 2 ahead only while it ran the law on a fixed period, which read the twin's timing",
+        "  jitter as velocity and hurt law 1 most; it now passes each state's stamp, as the bus controller does.",
     ]
 
 
