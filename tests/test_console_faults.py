@@ -29,6 +29,7 @@ from pathlib import Path
 import httpx
 import msgspec
 import pytest
+from busutil import bridge_state, controller_status, two_controllers
 from mcap.opcode import Opcode
 from server_harness import AUTH, TOKEN, running_server, server_process, start_campaign, stop_xneck_up, wait_until
 from test_stack import _alive_kinds
@@ -249,41 +250,16 @@ def test_a_second_controllers_statuses_never_hide_the_campaign_one_runs_unrecord
     runs on unrecorded after a console restart showed up in every other read only: a stop then
     found it running nowhere and answered 200 doing nothing. Statuses now name their controller
     (``bridge.session.controller_attachment``) and the console keeps each one's newest."""
-    from bridge.session import controller_attachment
-
     campaigns = tmp_path / "data" / "campaigns"
     campaigns.mkdir(parents=True)
     cid = "control-two-controllers"
     (campaigns / f"{cid}.json").write_text(json.dumps({**record(cid, "interrupted"), "message": "recovered"}))
-
-    def status(campaign_id: str) -> bytes:
-        return bus.encode(bus.ControllerStatus(
-            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
-            saturated=[False] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False,
-            campaign_id=campaign_id))
-
-    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
-                                      drive="active", epoch="e-live", bridge="b-live", owner="ctl-owner"))
-    running, idle = status(cid), status("")
     with running_server(tmp_path / "data", viser=False) as (base, app), httpx.Client(base_url=base, timeout=30) as c, \
-            open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
-        quiet = threading.Event()
-
-        def two_controllers() -> None:  # the owner runs the campaign; the other, idle, answers after it
-            while not quiet.is_set():
-                peer.put(bus.MOTOR_STATE, state)
-                peer.put(bus.CONTROLLER_STATUS, running, attachment=controller_attachment("ctl-owner"))
-                peer.put(bus.CONTROLLER_STATUS, idle, attachment=controller_attachment("ctl-other"))
-                time.sleep(0.005)
-
-        sender = threading.Thread(target=two_controllers, daemon=True)
-        sender.start()
-        try:
-            assert wait_until(lambda: c.get("/api/system/health").json()["bridge"]["owner"] == "ctl-owner", 20, 0.1)
-            seen = [c.get("/api/system/health").json()["unrecorded_campaign"] for _ in range(40)]
-        finally:
-            quiet.set()
-            sender.join(5)
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer, \
+            two_controllers(peer, bridge_state("ctl-owner", "e-live", "b-live"), controller_status(cid),
+                            controller_status(), period_s=0.005):  # the owner runs it; the other, idle, after it
+        assert wait_until(lambda: c.get("/api/system/health").json()["bridge"]["owner"] == "ctl-owner", 20, 0.1)
+        seen = [c.get("/api/system/health").json()["unrecorded_campaign"] for _ in range(40)]
         assert all(s == {"id": cid, "controller": "ctl-owner"} for s in seen), seen
 
 

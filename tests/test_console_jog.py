@@ -15,6 +15,7 @@ import msgspec
 import pytest
 import viser
 import zstandard
+from busutil import bridge_state, controller_status, two_controllers
 from server_harness import AUTH, TOKEN, running_server, wait_until
 from websockets.sync.client import connect
 
@@ -223,42 +224,20 @@ def test_a_jog_starts_from_the_alpha_hat_of_the_controller_the_bridge_obeys(cons
     were zeroed elsewhere) answering after the bridge's owner set the start of the move, and of
     its check, to a pose the neck is not in. The jog now reads the status of the service it sends
     the jog to (the one the bridge obeys)."""
-    from bridge.session import controller_attachment
-
     client, app = console
-
-    def status(alpha_deg: float) -> bytes:
-        return bus.encode(bus.ControllerStatus(
-            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
-            saturated=[False] * 4, alpha_hat_rad=[math.radians(alpha_deg), 0.0, 0.0], alpha_d_rad=[0.0] * 3,
-            e_rad=[0.0] * 3, holding=True))
-
-    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
-                                      drive="active", epoch="e-jog", bridge="b-jog", owner="ctl-owner"))
-    owner, other = status(2.0), status(25.0)
+    owner = controller_status(alpha_hat_rad=(math.radians(2.0), 0.0, 0.0))
+    other = controller_status(alpha_hat_rad=(math.radians(25.0), 0.0, 0.0))
     with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
         tokens = [liveliness_token(peer, "campaign-service", name) for name in ("ctl-owner", "ctl-other")]
-        quiet = threading.Event()
-
-        def two_controllers() -> None:  # the owner answers first, the other one after it, every time
-            while not quiet.is_set():
-                peer.put(bus.MOTOR_STATE, state)
-                peer.put(bus.CONTROLLER_STATUS, owner, attachment=controller_attachment("ctl-owner"))
-                peer.put(bus.CONTROLLER_STATUS, other, attachment=controller_attachment("ctl-other"))
-                time.sleep(0.01)
-
-        sender = threading.Thread(target=two_controllers, daemon=True)
-        sender.start()
         try:
-            def jog() -> httpx.Response:
-                return client.post("/api/jog", json={"alpha_deg": [4, 0, 0]}, headers=AUTH)
+            with two_controllers(peer, bridge_state("ctl-owner"), owner, other):  # the owner answers first
+                def jog() -> httpx.Response:
+                    return client.post("/api/jog", json={"alpha_deg": [4, 0, 0]}, headers=AUTH)
 
-            assert wait_until(lambda: jog().status_code not in (503, 429), 20, 0.6)
-            time.sleep(0.2)  # the route allows one jog per JOG_MIN_INTERVAL_S (0.1 s)
-            r = jog()
+                assert wait_until(lambda: jog().status_code not in (503, 429), 20, 0.6)
+                time.sleep(0.2)  # the route allows one jog per JOG_MIN_INTERVAL_S (0.1 s)
+                r = jog()
         finally:
-            quiet.set()
-            sender.join(5)
             for token in tokens:
                 token.undeclare()
         assert r.status_code == 202, r.text
@@ -268,18 +247,7 @@ def test_a_jog_starts_from_the_alpha_hat_of_the_controller_the_bridge_obeys(cons
 def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
     """Review of session 41: the stop of a jog another controller runs (another console's) went
     to the key of this console's last jog's controller, which it does not read."""
-    from bridge.session import controller_attachment
-
     client, app = console
-
-    def status(campaign_id: str) -> bytes:
-        return bus.encode(bus.ControllerStatus(
-            seq=1, stamp_s=1.0, law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
-            saturated=[False] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3, holding=False,
-            campaign_id=campaign_id))
-
-    state = bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
-                                      drive="active", epoch="e-jog", bridge="b-jog", owner="ctl-owner"))
     seen: list[tuple[str, str, str]] = []
 
     def on_request(sample) -> None:
@@ -289,26 +257,15 @@ def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
     with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
         peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
         tokens = [liveliness_token(peer, "campaign-service", name) for name in ("ctl-owner", "ctl-other")]
-        quiet = threading.Event()
-
-        def two_controllers() -> None:  # the owner idle, the other one running a jog of its own
-            while not quiet.is_set():
-                peer.put(bus.MOTOR_STATE, state)
-                peer.put(bus.CONTROLLER_STATUS, status(""), attachment=controller_attachment("ctl-owner"))
-                peer.put(bus.CONTROLLER_STATUS, status("jog-120000-9"), attachment=controller_attachment("ctl-other"))
-                time.sleep(0.01)
-
-        sender = threading.Thread(target=two_controllers, daemon=True)
-        sender.start()
-        try:
-            assert wait_until(lambda: client.post("/api/jog", json={"alpha_deg": [3, 0, 0]},
-                                                  headers=AUTH).status_code == 202, 20, 0.3)
-            r = client.post("/api/jog/stop", headers=AUTH)
-            assert r.status_code == 200 and "jog-120000-9" in r.json()["stopped"], r.text
-            assert wait_until(lambda: any(a == "stop" and c == "jog-120000-9" for _, c, a in seen), 5)
+        try:  # the owner idle, the other one running a jog of its own
+            with two_controllers(peer, bridge_state("ctl-owner"), controller_status(),
+                                 controller_status("jog-120000-9")):
+                assert wait_until(lambda: client.post("/api/jog", json={"alpha_deg": [3, 0, 0]},
+                                                      headers=AUTH).status_code == 202, 20, 0.3)
+                r = client.post("/api/jog/stop", headers=AUTH)
+                assert r.status_code == 200 and "jog-120000-9" in r.json()["stopped"], r.text
+                assert wait_until(lambda: any(a == "stop" and c == "jog-120000-9" for _, c, a in seen), 5)
         finally:
-            quiet.set()
-            sender.join(5)
             for token in tokens:
                 token.undeclare()
         stops = {(key.rsplit("/", 1)[-1], cid) for key, cid, action in seen if action == "stop"}

@@ -7,17 +7,15 @@ no way to latch the bridge but its power (session 40's open point)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 
-from busutil import bus_pair, wait_until
+from busutil import bus_pair, repeating, wait_until
 from test_bridge_node import _node
 
 from bridge.estop_holder import EStopHolder
@@ -34,23 +32,9 @@ def _xneck(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[s
                           env=_env(), timeout=timeout_s, check=False)
 
 
-@contextmanager
-def _ticking(node) -> Iterator[None]:
+def _ticking(node):
     """The node's ticks every 5 ms in a thread (each publishes its state), as the bridge's loop."""
-    stop = threading.Event()
-
-    def loop() -> None:
-        while not stop.is_set():
-            node.tick()
-            time.sleep(0.005)
-
-    th = threading.Thread(target=loop, daemon=True)
-    th.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        th.join(5)
+    return repeating(node.tick, 0.005)
 
 
 def test_engage_latches_the_bridge_and_release_lets_it_go_each_answered_by_the_bridges_word(params):
@@ -153,20 +137,14 @@ def test_a_bridge_heard_that_does_not_latch_makes_the_engage_fail_naming_it(para
     with bus_pair() as (hub, hub_session, connect):
         node = _node(connect(), params, command_timeout_s=5.0)
         deaf = publisher(hub_session, bus.MOTOR_STATE)
-        quiet = threading.Event()
+        seq = itertools.count(1)
 
         def deaf_bridge() -> None:
-            k = 0
-            while not quiet.is_set():
-                k += 1
-                deaf.put(bus.MotorState(seq=k, stamp_s=time.time(), theta_rad=[0.0] * 4, force_applied_N=[10.0] * 4,
-                                        drive="active", epoch="e-deaf", bridge="deaf"))
-                time.sleep(0.01)
+            deaf.put(bus.MotorState(seq=next(seq), stamp_s=time.time(), theta_rad=[0.0] * 4,
+                                    force_applied_N=[10.0] * 4, drive="active", epoch="e-deaf", bridge="deaf"))
 
-        sender = threading.Thread(target=deaf_bridge, daemon=True)
-        sender.start()
         try:
-            with _ticking(node):
+            with _ticking(node), repeating(deaf_bridge, 0.01):
                 r = _xneck("engage", "--connect", hub, "--wait-s", "1", "--json")
                 assert r.returncode == 1, r.stdout + r.stderr
                 out = json.loads(r.stdout)
@@ -174,8 +152,6 @@ def test_a_bridge_heard_that_does_not_latch_makes_the_engage_fail_naming_it(para
                 assert {b["bridge"]: b["engaged"] for b in out["bridges"]} == {node.instance: True, "deaf": False}
                 assert node.safety.estop_engaged
         finally:
-            quiet.set()
-            sender.join(5)
             node.shutdown()
 
 
