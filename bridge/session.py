@@ -83,6 +83,11 @@ def replayed(sample: zenoh.Sample) -> bool:
 RUN_PREFIX = b"xneck-run:"
 
 
+#: Characters of a sender's name an attachment may give (:meth:`SenderAttachment.of`): twice an
+#: instance name's (bridge.safety.INSTANCE_NAME, 64).
+NAME_MAX_CHARS = 128
+
+
 @dataclass(frozen=True)
 class SenderAttachment:
     """A Zenoh attachment that names where a message comes from: ``prefix`` + an ASCII name. The
@@ -95,12 +100,18 @@ class SenderAttachment:
         return self.prefix + name.encode()
 
     def of(self, sample: zenoh.Sample) -> str:
-        """What ``sample``'s attachment names after the prefix, '' if it has no such attachment."""
+        """What ``sample``'s attachment names after the prefix, '' if it has no such attachment;
+        as plain text of :data:`NAME_MAX_CHARS` at most (:func:`bridge.bus.plain_text`): any peer
+        may name itself, and the names are kept, logged and shown (a camera's 4000 characters
+        went to the camera API: review of session 41)."""
         attachment = sample.attachment
         if attachment is None:
             return ""
         data = attachment.to_bytes()
-        return data[len(self.prefix):].decode("ascii", "replace") if data.startswith(self.prefix) else ""
+        if not data.startswith(self.prefix):
+            return ""
+        return bus.plain_text(data[len(self.prefix):len(self.prefix) + 4 * NAME_MAX_CHARS].decode("ascii", "replace"),
+                              NAME_MAX_CHARS)
 
 
 RUN = SenderAttachment(RUN_PREFIX)

@@ -304,3 +304,20 @@ def test_peers_do_not_relay_so_every_pair_needs_a_link_of_its_own() -> None:
 
     assert delivered([]) == 0
     assert delivered(["tcp/127.0.0.1:0"]) >= 20
+
+
+def test_a_senders_name_from_an_attachment_is_bounded_plain_text():
+    """Any peer may name itself: a camera's 4000-character name (a newline and an escape in it)
+    went into the camera API and the logs (review of session 41)."""
+    from types import SimpleNamespace
+
+    from bridge.session import NAME_MAX_CHARS, camera_attachment, camera_of, controller_of
+
+    def sample(attachment: bytes | None):
+        return SimpleNamespace(attachment=None if attachment is None else SimpleNamespace(to_bytes=lambda: attachment))
+
+    assert camera_of(sample(camera_attachment("cam-lab1"))) == "cam-lab1"
+    assert camera_of(sample(None)) == "" and controller_of(sample(camera_attachment("cam-lab1"))) == ""
+    name = camera_of(sample(camera_attachment("cam\n\x1b[2J" + "x" * 4000)))
+    assert len(name) == NAME_MAX_CHARS and name.startswith("cam  [2Jxx") and name.endswith("...")
+    assert camera_of(sample(b"xneck-camera:caf\xc3\xa9")) == "caf\ufffd\ufffd"  # not ASCII: shown, not trusted
