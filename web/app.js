@@ -360,7 +360,9 @@ function bridgeHealth(procs) {
   if (!b) return "";
   const r = b.health.received, n = (x) => (x === undefined ? "–" : x);
   const refused = Object.values(b.health.rejected || {}).reduce((a, x) => a + x, 0);
-  return `bridge ${b.instance}: ${n(r.ticks)} ticks, ${n(r.overruns)} overruns, ${n(r.holds)} holds, ` +
+  // the periods a stalled tick skipped (bridge.node.pace): one overrun may have lost hundreds
+  const skipped = r.periods_skipped ? ` (${r.periods_skipped} periods skipped)` : "";
+  return `bridge ${b.instance}: ${n(r.ticks)} ticks, ${n(r.overruns)} overruns${skipped}, ${n(r.holds)} holds, ` +
     `${n(r.clamped)} clamped, ${n(r.rate_limited)} rate-bounded, ${refused} refused` +
     // cut: a long reason wrapped the header and pushed the e-stop button down (CI of session 40)
     (b.health.last_reject_reason ? ` (last: ${clip(b.health.last_reject_reason, 80)})` : "") +
