@@ -6,6 +6,7 @@ import logging
 import os
 import re
 import threading
+from typing import Any
 
 import msgspec
 import pytest
@@ -313,7 +314,7 @@ def test_a_senders_name_from_an_attachment_is_bounded_plain_text():
 
     from bridge.session import NAME_MAX_CHARS, camera_attachment, camera_of, controller_of
 
-    def sample(attachment: bytes | None):
+    def sample(attachment: bytes | None) -> Any:  # a zenoh.Sample's attachment, and nothing else
         return SimpleNamespace(attachment=None if attachment is None else SimpleNamespace(to_bytes=lambda: attachment))
 
     assert camera_of(sample(camera_attachment("cam-lab1"))) == "cam-lab1"
