@@ -102,7 +102,7 @@ from bridge.estop_latch import LatchFile, read_latch
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
 from bridge.runtime import SystemdNotify, raise_loop_thread
-from bridge.safety import EStopHolders, HoldForces, Inputs, Ownership, Safety, SafetyConfig
+from bridge.safety import RELEASE_TOKEN_WAIT_S, EStopHolders, HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import (
     BusPublisher,
     estop_holder_of,
@@ -511,11 +511,17 @@ class BridgeNode:
         except ValueError:
             return
         with self._estop_lock:
+            expired = ""
             if sample.kind == zenoh.SampleKind.PUT:
                 self._queue_estop(self.estop_holders.appeared(holder))
             elif (released := self.estop_holders.vanished(holder)) is not None:
                 self._queue_estop(released)  # its own release came before its token went
-        if sample.kind != zenoh.SampleKind.PUT:
+            else:
+                expired, self.estop_holders.expired = self.estop_holders.expired, ""
+        if expired:
+            log.warning("e-stop release (%s) of %r not applied: its token went more than %g s after it; release "
+                        "again", expired, holder, RELEASE_TOKEN_WAIT_S)
+        elif sample.kind != zenoh.SampleKind.PUT:
             log.info("e-stop holder %r let go (a latched e-stop stays until it is released)", holder)
 
     def _latch_from_disk(self, path: Path) -> None:

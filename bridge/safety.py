@@ -444,13 +444,18 @@ class EStopHolders:
     :data:`RELEASE_TOKEN_WAIT_S`, if no other holder is left then. It had acted at once, so that
     anyone on the bus could release a live console's e-stop by naming it (holder names are
     public; review of session 41). A release that names no holder, or one whose token is gone,
-    acts when none is left. A holder's token that vanishes releases nothing by itself.
+    acts when none is left. A holder's token that vanishes releases nothing by itself, and an
+    engage drops every release still waiting (it came before, and must not undo the engage).
+    What is left: a forged release naming a live holder acts if that holder's link drops within
+    :data:`RELEASE_TOKEN_WAIT_S` after it (holder names are public; credentials keep forgers off
+    the bus: docs/safety.md).
     """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.holders: set[str] = set()
         self._clock = clock
         self._pending: dict[str, tuple[float, EStopEvent]] = {}  # holder -> (when, its release)
+        self.expired = ""  # the reason of the last release that waited too long for its token ('' none)
 
     @staticmethod
     def reason(holder: str) -> str:
@@ -458,17 +463,23 @@ class EStopHolders:
         return f"e-stop engaged by {holder}{TOKEN_REASON_TAIL}"
 
     def appeared(self, holder: str) -> EStopEvent:
-        """A holder's token appeared: an engaged event."""
+        """A holder's token appeared: an engaged event. A release still waiting for a token is
+        dropped: it came before this engage and must not undo it."""
         self.holders.add(holder)
+        self._pending.clear()
         return True, self.reason(holder)
 
     def vanished(self, holder: str) -> EStopEvent | None:
         """A holder's token vanished: it holds no longer. Its own release, if it came first
-        (within :data:`RELEASE_TOKEN_WAIT_S`), is returned to act now when no other holder is
-        left; else None: a vanishing token releases nothing."""
+        (within :data:`RELEASE_TOKEN_WAIT_S`, no engage since), is returned to act now when no
+        other holder is left; else None: a vanishing token releases nothing. A release that
+        waited longer is :attr:`expired` (the node warns: release again)."""
         self.holders.discard(holder)
         pending = self._pending.pop(holder, None)
-        if pending is None or self._clock() - pending[0] > RELEASE_TOKEN_WAIT_S:
+        if pending is None:
+            return None
+        if self._clock() - pending[0] > RELEASE_TOKEN_WAIT_S:
+            self.expired = pending[1][1]
             return None
         return None if self.holders else pending[1]
 
@@ -483,6 +494,9 @@ class EStopHolders:
         ``holder``'s token vanishes (:meth:`vanished`)."""
         engaged, _reason = event
         if engaged:
+            # A release still waiting for a token came before this engage: it must not undo it
+            # when that token goes (review of session 41: a re-engage, or another's, undone).
+            self._pending.clear()
             return event
         if holder and holder in self.holders:
             self._pending[holder] = (self._clock(), event)

@@ -494,3 +494,34 @@ def test_the_holders_own_reason_replaces_its_tokens_whichever_comes_first():
         assert s.step(idle(age_s=0.0, estop=[events[second]])).drive == "disabled"
         assert s.estop_reason == shown, (first, s.estop_reason)
         h.vanished("console-a")
+
+
+def test_an_engage_after_a_release_waiting_for_its_token_is_never_undone_by_it():
+    """Review of session 41 (the fix's review): a release waiting for its holder's token was
+    applied when the token went even after a newer engage: the holder's own quick re-engage (the
+    drives free for the ticks until its new token came), or another operator's engage, undone."""
+    from bridge.safety import RELEASE_TOKEN_WAIT_S
+
+    now = {"s": 0.0}
+    # (b) the holder releases and re-engages at once: release, engage message, old token gone
+    h = EStopHolders(clock=lambda: now["s"])
+    h.appeared("console-a")
+    assert h.message((False, "cleared"), "console-a") is None
+    assert h.message((True, "pressed again"), "console-a") == (True, "pressed again")
+    assert h.vanished("console-a") is None
+    # (c) another engages meanwhile (its token comes and goes: a terminal without --hold)
+    h = EStopHolders(clock=lambda: now["s"])
+    h.appeared("console-a")
+    assert h.message((False, "cleared"), "console-a") is None
+    assert h.message((True, "terminal"), "cli-b") == (True, "terminal")
+    h.appeared("cli-b")
+    h.vanished("cli-b")
+    now["s"] += 0.5
+    assert h.vanished("console-a") is None
+    # a release whose token goes too late is said expired (the node warns: release again)
+    h = EStopHolders(clock=lambda: now["s"])
+    h.appeared("console-a")
+    assert h.message((False, "cleared"), "console-a") is None
+    now["s"] += RELEASE_TOKEN_WAIT_S + 1.0
+    assert h.vanished("console-a") is None and h.expired == "cleared"
+    assert h.message((False, "again"), "console-a") == (False, "again")  # the next one acts
