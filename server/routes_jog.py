@@ -19,6 +19,7 @@ and the bridge obeys none of them (``server/service_choice.py``: a jog goes to o
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import threading
 import time
@@ -29,6 +30,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from bridge import bus
+from bridge.safety import INSTANCE_NAME
 from bridge.session import publisher
 from controller.laws import LawConfig
 from controller.trajectory import Trajectory, TrajectoryError, approach
@@ -36,6 +38,7 @@ from server.auth import require_operator, require_token
 from server.campaign_request import check_trajectory
 from server.service_choice import choose_service
 
+log = logging.getLogger("xneck.server")
 router = APIRouter(prefix="/api/jog", tags=["jog"])
 
 JOG_MIN_INTERVAL_S = 0.1  # s between two accepted jogs
@@ -179,16 +182,25 @@ def stop_jog(state: Any) -> list[str]:
     desk = desk_of(state)
     # every controller's running jog, each stop to the controller that runs it (a service takes
     # the bare key and its own only: review of session 41 had them all go to the last jog's)
-    running = {st.campaign_id: name for name, st in state.live.live_statuses(STATUS_MAX_AGE_S).items()
-               if st.campaign_id.startswith("jog-")}
+    # A name that is no instance name (any peer names itself) goes to the bare key, which every
+    # service reads: it had raised and left every later stop sending nothing (review of the fix).
+    running = {st.campaign_id: name if INSTANCE_NAME.fullmatch(name) else ""
+               for name, st in state.live.live_statuses(STATUS_MAX_AGE_S).items() if st.campaign_id.startswith("jog-")}
     with desk.lock:
         last_target = desk.target
         sends = [(desk.last_id, last_target)] if desk.last_id else []
         sends += [(cid, name) for cid, name in running.items() if (cid, name) != (desk.last_id, last_target)]
-        for cid, target in sends:
-            desk.send(cid, "stop", target=target)
-        desk.target = last_target  # send() keeps the target it was given: the last jog's stays
-    return list(dict.fromkeys(cid for cid, _ in sends))
+        stopped = []
+        try:
+            for cid, target in sends:
+                try:
+                    desk.send(cid, "stop", target=target)
+                    stopped.append(cid)
+                except Exception as exc:  # noqa: BLE001 - one stop that cannot go must not keep the others
+                    log.error("jog %s: its stop could not be sent to %r (%s: %s)", cid, target, type(exc).__name__, exc)
+        finally:
+            desk.target = last_target  # send() keeps the target it was given: the last jog's stays
+    return list(dict.fromkeys(stopped))
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token), Depends(require_operator)],

@@ -15,7 +15,7 @@ import msgspec
 import pytest
 import viser
 import zstandard
-from busutil import bridge_state, controller_status, two_controllers
+from busutil import bridge_state, controller_status, repeating, two_controllers
 from server_harness import AUTH, TOKEN, running_server, wait_until
 from websockets.sync.client import connect
 
@@ -272,3 +272,33 @@ def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
         assert ("ctl-other", "jog-120000-9") in stops, seen
         mine = [cid for key, cid, action in seen if action == "start"]
         assert mine and (("ctl-owner", mine[-1]) in stops), seen  # this console's own jog: to its controller
+
+
+def test_a_controller_status_naming_no_instance_does_not_stop_the_jog_stops(console):
+    """Review of the fix: a peer's status whose controller name is no instance name ("forged
+    name") made the stop raise before the next controller's stop, and every later stop sent
+    nothing. Its stop goes to the bare key; the others to their controllers."""
+    from bridge.session import controller_attachment
+
+    client, app = console
+    seen: list[tuple[str, str, str]] = []
+
+    def on_request(sample) -> None:
+        req = bus.decode(bus.CampaignRequest, sample.payload.to_bytes())
+        seen.append((str(sample.key_expr), req.campaign_id, req.action))
+
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
+        peer.declare_subscriber(bus.CAMPAIGN_REQUEST, on_request)
+        forged = controller_status("jog-120000-6")
+
+        def forger() -> None:
+            peer.put(bus.CONTROLLER_STATUS, forged, attachment=controller_attachment("forged name"))
+
+        with two_controllers(peer, bridge_state("ctl-owner"), controller_status(), controller_status("jog-120000-9")), \
+                repeating(forger, 0.01):
+            assert wait_until(lambda: {"jog-120000-6", "jog-120000-9"} <= set(
+                client.post("/api/jog/stop", headers=AUTH).json()["stopped"]), 20, 0.3)
+            assert wait_until(lambda: {("xneck/campaign/request", "jog-120000-6"),
+                                       ("xneck/campaign/request/ctl-other", "jog-120000-9")}
+                              <= {(k, c) for k, c, a in seen if a == "stop"}, 5), seen
