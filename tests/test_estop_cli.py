@@ -173,17 +173,25 @@ def test_a_latin1_reason_and_the_bridges_listen_endpoint_in_the_environment_stil
 
 
 def test_the_default_endpoint_is_the_bridge_of_the_one_xneck_up_running(tmp_path):
-    """Not the hub: the console hosting it may be what hangs (review of session 41)."""
+    """Not the hub: the console hosting it may be what hangs (review of session 41). A folder a
+    killed stack left, whose pid another process has taken since, is no stack (the fix's review:
+    it had made two stacks of one and the engage sent nothing)."""
     from server.cli.up import BRIDGE_ENDPOINT_FILE, SOCKETS_PREFIX, stack_bridge_endpoints
 
-    mine = tmp_path / f"{SOCKETS_PREFIX}{os.getpid()}-abc"
-    mine.mkdir()
-    (mine / BRIDGE_ENDPOINT_FILE).write_text("unixsock-stream//tmp/x/bridge.sock\n")
-    dead = tmp_path / f"{SOCKETS_PREFIX}999999999-abc"  # no such pid
-    dead.mkdir()
-    (dead / BRIDGE_ENDPOINT_FILE).write_text("tcp/127.0.0.1:1")
-    (tmp_path / f"{SOCKETS_PREFIX}1-nofile").mkdir()  # pid 1 runs, but wrote no endpoint
-    assert stack_bridge_endpoints(tmp_path) == {os.getpid(): "unixsock-stream//tmp/x/bridge.sock"}
+    up = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "xneck", "up"])  # argv as xneck up's
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # took a dead stack's pid
+    try:
+        for pid, endpoint in ((up.pid, "unixsock-stream//tmp/x/bridge.sock"), (other.pid, "unixsock-stream//tmp/y"),
+                              (999999999, "tcp/127.0.0.1:1")):  # no such pid
+            folder = tmp_path / f"{SOCKETS_PREFIX}{pid}-abc"
+            folder.mkdir()
+            (folder / BRIDGE_ENDPOINT_FILE).write_text(endpoint + "\n")
+        (tmp_path / f"{SOCKETS_PREFIX}{up.pid}-nofile").mkdir()  # a stack that wrote no endpoint
+        assert stack_bridge_endpoints(tmp_path) == {up.pid: "unixsock-stream//tmp/x/bridge.sock"}
+    finally:
+        for proc in (up, other):
+            proc.kill()
+            proc.wait(10)
 
 
 def test_an_engage_whose_message_fails_still_holds_the_token(params):

@@ -168,10 +168,12 @@ def holder_name() -> str:
     return f"cli-{host}-{uuid.uuid4().hex[:6]}"
 
 
-def _endpoints(connect: list[str] | None) -> list[str]:
+def _endpoints(connect: list[str] | None, every_stack: bool = False) -> list[str]:
     """``--connect``, else ``$XNECK_ZENOH_CONNECT``, else the bridge of the one ``xneck up`` this
     user runs (not its hub: the console that hosts it may be what hangs; review of session 41: a
-    hung console's hub reached no bridge), else :data:`DEFAULT_HUB`."""
+    hung console's hub reached no bridge), else :data:`DEFAULT_HUB`. With several stacks: every
+    one's bridge when ``every_stack`` (an engage: reaching too many bridges is the safe side),
+    else an error asking for ``--connect``."""
     from bridge.session import ENV_CONNECT, endpoints_from_env
     from server.cli.up import stack_bridge_endpoints
 
@@ -179,6 +181,8 @@ def _endpoints(connect: list[str] | None) -> list[str]:
     if given:
         return given
     stacks = stack_bridge_endpoints()
+    if len(stacks) > 1 and every_stack:
+        return [stacks[pid] for pid in sorted(stacks)]
     if len(stacks) > 1:
         raise fail(f"{len(stacks)} xneck up stacks run here (pids {', '.join(map(str, sorted(stacks)))}, bridges "
                    f"{', '.join(stacks[pid] for pid in sorted(stacks))}): say which bridge with --connect")
@@ -238,7 +242,7 @@ def engage(
     from bridge.safety import EStopHolders
 
     check_credentials(acts=True)
-    endpoints = _endpoints(connect)
+    endpoints = _endpoints(connect, every_stack=True)
     name = holder_name()
     why = bus.plain_text(reason.strip()) or f"xneck estop engage ({name})"
     stop = threading.Event()

@@ -126,9 +126,21 @@ def stack_bridge_endpoints(root: Path | None = None) -> dict[int, str]:
             endpoint = (folder / BRIDGE_ENDPOINT_FILE).read_text(encoding="utf-8").strip()
         except (OSError, ValueError, OverflowError, UnicodeDecodeError):  # gone, another user's, no file
             continue
-        if endpoint and len(endpoint) < 1000:
+        if endpoint and len(endpoint) < 1000 and _runs_xneck_up(int(pid_text)):
             found[int(pid_text)] = endpoint
     return found
+
+
+def _runs_xneck_up(pid: int) -> bool:
+    """Whether process ``pid`` is an ``xneck up`` (its command line, where /proc has it): a folder
+    a killed stack left keeps its pid, which another process may have taken since (review of
+    session 41: a ``sleep`` there made ``xneck estop`` see two stacks and send nothing)."""
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return not Path("/proc/self").exists()  # no /proc: alive is all that can be told
+    words = [a.decode("utf-8", "replace") for a in argv if a]
+    return "up" in words and any(w.endswith("xneck") or w == "server.cli" for w in words)
 
 
 def _port_taken(host: str, port: int) -> str:
