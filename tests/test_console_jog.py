@@ -244,18 +244,25 @@ def test_a_jog_starts_from_the_alpha_hat_of_the_controller_the_bridge_obeys(cons
         assert r.json()["from_deg"][0] == pytest.approx(2.0, abs=1e-6), r.json()
 
 
-def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
-    """Review of session 41: the stop of a jog another controller runs (another console's) went
-    to the key of this console's last jog's controller, which it does not read."""
-    client, app = console
+def _requests_seen(peer) -> list[tuple[str, str, str]]:
+    """(key, campaign id, action) of every campaign request ``peer`` hears, bare or addressed."""
     seen: list[tuple[str, str, str]] = []
 
     def on_request(sample) -> None:
         req = bus.decode(bus.CampaignRequest, sample.payload.to_bytes())
         seen.append((str(sample.key_expr), req.campaign_id, req.action))
 
+    peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
+    peer.declare_subscriber(bus.CAMPAIGN_REQUEST, on_request)
+    return seen
+
+
+def test_a_jog_stop_goes_to_each_controller_running_a_jog(console):
+    """Review of session 41: the stop of a jog another controller runs (another console's) went
+    to the key of this console's last jog's controller, which it does not read."""
+    client, app = console
     with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
-        peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
+        seen = _requests_seen(peer)
         tokens = [liveliness_token(peer, "campaign-service", name) for name in ("ctl-owner", "ctl-other")]
         try:  # the owner idle, the other one running a jog of its own
             with two_controllers(peer, bridge_state("ctl-owner"), controller_status(),
@@ -281,15 +288,8 @@ def test_a_controller_status_naming_no_instance_does_not_stop_the_jog_stops(cons
     from bridge.session import controller_attachment
 
     client, app = console
-    seen: list[tuple[str, str, str]] = []
-
-    def on_request(sample) -> None:
-        req = bus.decode(bus.CampaignRequest, sample.payload.to_bytes())
-        seen.append((str(sample.key_expr), req.campaign_id, req.action))
-
     with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
-        peer.declare_subscriber(f"{bus.CAMPAIGN_REQUEST}/**", on_request)
-        peer.declare_subscriber(bus.CAMPAIGN_REQUEST, on_request)
+        seen = _requests_seen(peer)
         forged = controller_status("jog-120000-6")
 
         def forger() -> None:
