@@ -254,11 +254,14 @@ def test_the_console_sends_its_stop_again_until_the_campaign_ends():
         stops: list[bus.CampaignRequest] = []
         answer = publisher(service, bus.CAMPAIGN_EVENTS, block=True)
 
+        answered = threading.Event()
+
         def on_request(sample: Any) -> None:  # a service that loses the first two stops
             stops.append(bus.decode(bus.CampaignRequest, sample.payload.to_bytes()))
             if len(stops) == 3:
                 answer.put(bus.CampaignEvent(seq=1, stamp_s=time.time(), campaign_id="c-lost", kind="control",
                                              event="aborted", message="stopped by the user"))
+                answered.set()
 
         sub = service.declare_subscriber(bus.campaign_request_key(INSTANCE), on_request)
         events: queue.Queue[bus.CampaignEvent] = queue.Queue()
@@ -272,6 +275,9 @@ def test_the_console_sends_its_stop_again_until_the_campaign_ends():
             requests.close()
             seen.undeclare()
             sub.undeclare()
+            # the event may arrive before put() has returned on the callback's thread: closing the
+            # publisher under it raised "Already borrowed" (final CI of session 41)
+            answered.wait(5)
             answer.close()
     assert ev is not None and ev.event == "aborted", stops
     assert len(stops) == 3 and all(s.action == "stop" and s.campaign_id == "c-lost" for s in stops)
