@@ -100,7 +100,13 @@ def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(pa
             assert proc.stderr is not None  # with --json the progress lines go to stderr
             assert "holding the e-stop as cli-" in proc.stderr.readline()
             node = _node(connect(), params, command_timeout_s=5.0)
-            assert node.safety.estop_engaged and node.mode == "disabled"  # latched before its first tick
+            # latched once the command's token reaches the new bridge: at its start when the link is
+            # up then, else when it comes (final CI of session 41, loaded: after the start; no
+            # command here, so the drives stay off meanwhile: docs/safety.md rule 4)
+            node.tick()
+            assert wait_until(lambda: node.safety.estop_engaged, 10)
+            node.tick()
+            assert node.mode == "disabled"
             with _ticking(node):
                 assert wait_until(lambda: node.estop_reason == "before the bridge", 5), node.estop_reason
                 proc.send_signal(signal.SIGTERM)
