@@ -141,6 +141,12 @@ estop_holder_of, estop_holder_attachment = ESTOP_HOLDER.of, ESTOP_HOLDER.attachm
 #: Sessions a process accepts (Zenoh's default: 1000). A stack links every pair of its processes
 #: (gossip), a dozen at most; each session of a subscriber costs the bridge a send per state (500 Hz).
 MAX_SESSIONS = 64
+#: Back-off of a lost or not-yet-listening connect endpoint, ms: first retry, cap. Zenoh's default
+#: (1000 ms doubling to 4000 ms) left a process that started before its peer unlinked for up to
+#: 4 s: a bridge started while an ``xneck estop engage --hold`` connected to it ran that long
+#: unlatched, a controller restarted with its bridge that long deaf. Retrying a loopback or lab
+#: endpoint every 0.5 s costs one refused SYN; ``docs/safety/relink.py`` measures both.
+CONNECT_RETRY_MS = (100, 500)
 #: Read the credentials from the environment (zenoh_config's default).
 FROM_ENV = "env"
 
@@ -244,6 +250,9 @@ def zenoh_config(
     conf.insert_json5("scouting/gossip/autoconnect", '{router: [], peer: ["router", "peer"]}')
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
+    first_ms, cap_ms = CONNECT_RETRY_MS
+    conf.insert_json5("connect/retry", json.dumps(
+        {"period_init_ms": first_ms, "period_max_ms": cap_ms, "period_increase_factor": 2}))
     # A busy listen port is a configuration error that must not go unnoticed.
     conf.insert_json5("listen/exit_on_failure", "true")
     # The control path's express messages are one batch each, and Zenoh queues 2 batches per

@@ -91,7 +91,7 @@ ABORT_WAIT_S = 10.0  # s :meth:`CampaignManager.abort` waits for the stopped cam
 STOP_ANSWER_S = 3.0
 STOP_RESEND_S = 0.5
 #: s from the console's start within which a campaign recovered ``interrupted`` may still turn out
-#: to run on a controller that has not linked back yet (Zenoh retries a lost link every 1-4 s):
+#: to run on a controller that has not linked back yet (bridge.session.CONNECT_RETRY_MS; a restart):
 #: a stop of it, or a new campaign, waits until a live controller status was heard or this passed.
 BUS_SETTLE_S = 8.0
 

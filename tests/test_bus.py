@@ -15,6 +15,7 @@ from busutil import wait_until
 
 from bridge import bus
 from bridge.session import (
+    CONNECT_RETRY_MS,
     free_tcp_port,
     liveliness_token,
     open_session,
@@ -203,6 +204,26 @@ def test_the_control_path_queue_rides_out_a_starved_sender() -> None:
     assert sizes["real_time"] == 16 and sizes["real_time"] * 0.002 >= 0.030
     assert sizes["data"] == msgspec.json.decode(zenoh.Config().get_json("transport/link/tx/queue/size"))["data"]
     zenoh.open(conf).close()  # Zenoh accepts it
+
+
+def test_a_lost_link_is_retried_within_half_a_second() -> None:
+    """Zenoh's default back-off (1 s doubling to 4 s) left a bridge started under an ``xneck estop
+    engage --hold`` unlatched until the command's session came back; every process retries a
+    connect endpoint from 0.1 s, at most every 0.5 s (docs/safety/relink.py measures it)."""
+    retry = msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("connect/retry"))
+    assert (retry["period_init_ms"], retry["period_max_ms"]) == CONNECT_RETRY_MS == (100, 500)
+    assert retry["period_increase_factor"] > 1
+
+
+def test_a_session_started_before_its_peer_links_once_the_peer_listens() -> None:
+    port = free_tcp_port()
+    heard = threading.Event()
+    with open_session(listen=[], connect=[f"tcp/127.0.0.1:{port}"], credentials=None, tls=None) as early:
+        early.declare_subscriber("xneck-test/relink", lambda _s: heard.set())
+        threading.Event().wait(1.2)  # past Zenoh's first retry: the second is the back-off's
+        with open_session(listen=[f"tcp/127.0.0.1:{port}"], connect=[], credentials=None, tls=None) as late:
+            pub = late.declare_publisher("xneck-test/relink")
+            assert wait_until(lambda: (pub.put(b"x"), heard.is_set())[1], 10.0), "the early session never linked"
 
 
 # --- on the bus ----------------------------------------------------------------------------------
