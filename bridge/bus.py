@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import re
+import unicodedata
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -445,15 +446,20 @@ def check_payload_size(msg_type: type[BusMessage], n_bytes: int) -> None:
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
-_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+#: Unicode categories shown as a space: controls, format characters (bidi overrides such as U+202E
+#: reversed the rest of a log line, zero-width ones made two holder names look alike: review of
+#: session 42) and line/paragraph separators (a log viewer's new line).
+_NOT_PLAIN = frozenset({"Cc", "Cf", "Zl", "Zp"})
 
 
 def plain_text(text: str, n: int = 200) -> str:
     """A reason or name as it may be logged, shown and encoded: what does not encode as UTF-8 (a
-    Latin-1 terminal's bytes, which Python keeps as lone surrogates) becomes "?", each control
-    character a space (a newline forged a log line, an escape sequence drove the terminal: review
-    of session 41), cut to ``n`` characters ("..." at the end when cut)."""
-    text = _CONTROL.sub(" ", text.encode("utf-8", "replace").decode("utf-8"))
+    Latin-1 terminal's bytes, which Python keeps as lone surrogates) becomes "?", each control,
+    format or line-separator character a space (a newline forged a log line, an escape sequence
+    drove the terminal, review of session 41; a bidi override reversed the log line, session 42),
+    cut to ``n`` characters ("..." at the end when cut)."""
+    text = text[: n + 1].encode("utf-8", "replace").decode("utf-8")  # one character for one
+    text = "".join(" " if unicodedata.category(c) in _NOT_PLAIN else c for c in text)
     return text if len(text) <= n else text[: n - 3] + "..."
 
 

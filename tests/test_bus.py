@@ -343,3 +343,14 @@ def test_a_senders_name_from_an_attachment_is_bounded_plain_text():
     name = camera_of(sample(camera_attachment("cam\n\x1b[2J" + "x" * 4000)))
     assert len(name) == NAME_MAX_CHARS and name.startswith("cam  [2Jxx") and name.endswith("...")
     assert camera_of(sample(b"xneck-camera:caf\xc3\xa9")) == "caf\ufffd\ufffd"  # not ASCII: shown, not trusted
+
+
+def test_plain_text_shows_no_bidi_override_zero_width_or_line_separator():
+    """A reason with U+202E reversed the rest of the bridge's log line, a holder name with a
+    zero-width space looked like another's, U+2028 was a new line to log viewers (review of session
+    42): each becomes a space, as controls do; what does not encode becomes "?"."""
+    spoof = "operator\u202e\u200bconsole\u2028next\u2066x\ud800\x1b[2J"
+    text = bus.plain_text(spoof)
+    assert text == "operator  console next x? [2J"
+    assert bus.plain_text("é" * 300, 10) == "é" * 7 + "..." and bus.plain_text("x" * 10, 10) == "x" * 10
+    assert bus.plain_text("x" * 10**7, 20) == "x" * 17 + "..."  # a huge one is cut first, not scanned

@@ -56,7 +56,7 @@ def first_message_s(delay_s: float, xneck_retry: bool) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--trials", type=int, default=2, help="trials per delay (default 2)")
     args = ap.parse_args()
     if args.trials < 1:
