@@ -182,10 +182,16 @@ def test_a_trajectory_of_another_type_names_what_to_give_not_a_function(xneck, t
 # -- 10. a truncated archive: what the user can do -------------------------------------------------------
 
 
-def test_a_truncated_archive_says_how_to_recover_it(xneck, campaign, tmp_path):
+@pytest.mark.parametrize("command", ["identify", "camera align"])
+def test_a_truncated_archive_says_how_to_recover_it(xneck, campaign, tmp_path, command):
+    """``camera align`` read the archive its own way: a truncated one was "RecordLengthLimitExceeded
+    ... (opcode 49)" (audit of session 42)."""
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(campaign.read_bytes()[:-200])
-    line = _refused(xneck("identify", str(cut), "--out", str(tmp_path / "id")), "no footer")
+    argv = (["identify", str(cut), "--out", str(tmp_path / "id")] if command == "identify" else
+            ["camera", "align", str(tmp_path / "video.mp4"), str(cut), "--out", str(tmp_path / "a.mcap")])
+    (tmp_path / "video.mp4").write_bytes(b"not a video")
+    line = _refused(xneck(*argv), "no footer")
     assert "campaigns/" in line and "xneck server" in line and "recover()" not in line
 
 

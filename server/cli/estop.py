@@ -39,8 +39,9 @@ CLOSE_WAIT_S = 1.0  # s the session's close is waited for (_bus)
 SETTLE_S = 0.3  # s an answer listens at least: every bridge on the bus states 150 times meanwhile (send_until)
 
 CONNECT_OPTION = typer.Option(
-    None, "--connect", help="Zenoh endpoint of the robot's bridge (best: fewest hops) or of the stack's hub "
-    f"(repeatable). Default: $XNECK_ZENOH_CONNECT, else {DEFAULT_HUB} (xneck up's hub).")
+    None, "--connect", help="Zenoh endpoint of the robot's bridge (best: fewest hops; repeatable). Default: the "
+    "bridge of the `xneck up` you run (printed at its start; with several, engage reaches each, release and status "
+    f"ask for --connect), else $XNECK_ZENOH_CONNECT, else {DEFAULT_HUB}.")
 WAIT_OPTION = typer.Option(3.0, "--wait-s", min=0.1, max=60.0,
                            help="How long to wait for the bridges' answer, in seconds.")
 JSON_OPTION = typer.Option(False, "--json", help="Print the outcome as JSON.")
@@ -235,8 +236,9 @@ def engage(
 ) -> None:
     """Engage the e-stop (every bridge that hears it disables its drives).
 
-    The drives stay disabled, whatever the controller commands, until a release. Exit 0 once a
-    bridge confirms, 1 if none does within --wait-s."""
+    The drives stay disabled, whatever the controller commands, until a release. Exit 0 once
+    every bridge heard is latched; 1 if one heard did not latch (partial) or none answers within
+    --wait-s."""
     from bridge import bus
     from bridge.estop_holder import EStopHolder
     from bridge.safety import EStopHolders

@@ -43,8 +43,9 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
-from bridge.archive import COMPRESSED_IMAGE_SCHEMA, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
+from bridge.archive import COMPRESSED_IMAGE_SCHEMA, ArchiveError, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
 from bridge.archive_chunks import BoundedReader
+from bridge.archive_read import check_finished
 from twin.camera.detect import Detector, moved_reason
 from twin.camera.source import FileSource
 
@@ -136,6 +137,10 @@ def measure_video(path: str | Path, detector: Detector, max_frames: int | None =
 
 
 def _iter_raw(path: Path):
+    try:
+        check_finished(path)  # a truncated file: the console repairs it (a raw reader's error said nothing)
+    except ArchiveError as exc:
+        raise AlignmentError(str(exc)) from None
     try:
         with open(path, "rb") as f:
             reader = BoundedReader(f, validate_crcs=True)
