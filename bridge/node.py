@@ -99,6 +99,7 @@ from bridge import bus
 from bridge.clock_service import ClockService
 from bridge.driver import Driver, Lifecycle
 from bridge.estop_latch import LatchFile, read_latch
+from bridge.log_limit import LogLimit
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
 from bridge.runtime import SystemdNotify, raise_loop_thread
@@ -174,6 +175,11 @@ class BridgeConfig:
             raise ValueError(f"hold_ramp_s must be >= 0 s, got {self.hold_ramp_s}")
         if not (self.loop_stall_s == 0 or (math.isfinite(self.loop_stall_s) and self.loop_stall_s >= MIN_STALL_S)):
             raise ValueError(f"loop_stall_s must be 0 (off) or at least {MIN_STALL_S} s, got {self.loop_stall_s}")
+
+
+def _holders_text(holders: list[str], n: int = 5) -> str:
+    """The holders named in a log line: the first ``n`` and how many more (any peer may hold)."""
+    return ", ".join(holders[:n]) + (f" and {len(holders) - n} more" if len(holders) > n else "")
 
 
 def _bounded(text: str, n: int = 200) -> str:
@@ -385,6 +391,8 @@ class BridgeNode:
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
         self._estop_events: collections.deque[tuple[bool, str]] = collections.deque(maxlen=64)
+        # Lines any peer can cause, one a second at most (bridge.log_limit).
+        self._refusals_logged, self._tokens_logged = LogLimit(), LogLimit()
         # The reason of the newest engage since the last tick: the bounded queue drops its oldest
         # events, and an engage followed by 64 more messages had been lost (audit of 2026-11-29).
         self._estop_engage: str | None = None
@@ -479,11 +487,11 @@ class BridgeNode:
         except bus.BusDecodeError as exc:
             event = (True, _bounded(f"malformed e-stop message: {exc.reason}"))
             valid = False
+        sender = _bounded(estop_holder_of(sample), 64)  # outside the lock: the tick takes it
         with self._estop_lock:
             # Queue before counting: whoever sees the count (tests, health) may rely on the next tick
             # applying the event, and the tick looks at the queue without the lock. A release is
             # refused while another e-stop holder's token is alive (bridge.safety.EStopHolders).
-            sender = _bounded(estop_holder_of(sample), 64)
             applied = self.estop_holders.message(event, sender)
             if applied is not None:
                 self._queue_estop(applied)
@@ -491,11 +499,14 @@ class BridgeNode:
             waits = applied is None and self.estop_holders.waits_for(sender)
             self.estop_received += 1
             self.estop_rejected += 0 if valid else 1
-        if waits:
-            log.info("e-stop release (%s) of %s: acts once its token is gone (still held: %s)", event[1], sender,
-                     ", ".join(held))
-        elif held:
-            log.warning("e-stop release (%s) refused: %s still hold the e-stop engaged", event[1], ", ".join(held))
+        if (waits or held) and (n := self._refusals_logged.allow()) is not None:
+            who = _holders_text(held)
+            if waits:
+                log.info("e-stop release (%s) of %s: acts once its token is gone (still held: %s)%s", event[1], sender,
+                         who, LogLimit.tail(n))
+            else:
+                log.warning("e-stop release (%s) refused: %s still hold the e-stop engaged%s", event[1], who,
+                            LogLimit.tail(n))
 
     def _queue_estop(self, event: tuple[bool, str]) -> None:
         """Queue an e-stop event for the next tick (under ``_estop_lock``); an engage is also kept
@@ -521,8 +532,8 @@ class BridgeNode:
         if expired:
             log.warning("e-stop release (%s) of %r not applied: its token went more than %g s after it; release "
                         "again", expired, holder, RELEASE_TOKEN_WAIT_S)
-        elif sample.kind != zenoh.SampleKind.PUT:
-            log.info("e-stop holder %r let go (a latched e-stop stays until it is released)", holder)
+        elif sample.kind != zenoh.SampleKind.PUT and (n := self._tokens_logged.allow()) is not None:
+            log.info("e-stop holder %r let go (a latched e-stop stays until it is released)%s", holder, LogLimit.tail(n))
 
     def _latch_from_disk(self, path: Path) -> None:
         """Start latched if the e-stop latch file says so (:mod:`bridge.estop_latch`), and keep

@@ -97,6 +97,15 @@ EStopEvent = tuple[bool, str]
 """(engaged, reason) of one e-stop message, in arrival order."""
 
 
+class HolderWords(str):
+    """The reason of an engage sent by a live e-stop holder (:meth:`EStopHolders.message`): only
+    it may replace the generic reason of that holder's token (:meth:`Safety.apply_estop`). Any
+    peer's engage had replaced it, so that ``xneck estop status`` and every state showed a
+    stranger's "cleared, safe to release" (audit of session 42)."""
+
+    __slots__ = ()
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
     """The numbers of the rules. Forces in N, times in s."""
@@ -225,10 +234,10 @@ class Safety:
                 changed = True
                 self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
             elif engaged and self.estop_engaged and self.estop_reason.endswith(TOKEN_REASON_TAIL) \
-                    and not reason.endswith(TOKEN_REASON_TAIL):
+                    and isinstance(reason, HolderWords):
                 # The holder's own words, come after its token (they travel apart): the operator's
                 # reason ("Escape key") had been lost to the token's (browser test, CI of session 40).
-                self.estop_reason = reason
+                self.estop_reason = str(reason)
             elif not engaged and self.drive == "disabled":
                 self.drive, self.estop_reason, self.estop_engaged = "inactive", "", False
                 changed = True
@@ -492,12 +501,12 @@ class EStopHolders:
         none): an engage as it is; a release if no holder is left (``holder``'s token being
         gone already), else None: refused (:attr:`holders` says who holds it), or kept until
         ``holder``'s token vanishes (:meth:`vanished`)."""
-        engaged, _reason = event
+        engaged, reason = event
         if engaged:
             # A release still waiting for a token came before this engage: it must not undo it
             # when that token goes (review of session 41: a re-engage, or another's, undone).
             self._pending.clear()
-            return event
+            return (True, HolderWords(reason)) if holder and holder in self.holders else event
         if holder and holder in self.holders:
             self._pending[holder] = (self._clock(), event)
             return None
@@ -548,4 +557,4 @@ class Ownership:
         return ""
 
 
-__all__ = ["Decision", "EStopEvent", "EStopHolders", "HoldForces", "Inputs", "Ownership", "Safety", "SafetyConfig"]
+__all__ = ["Decision", "EStopEvent", "EStopHolders", "HoldForces", "HolderWords", "Inputs", "Ownership", "Safety", "SafetyConfig"]

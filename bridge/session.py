@@ -88,6 +88,12 @@ RUN_PREFIX = b"xneck-run:"
 NAME_MAX_CHARS = 128
 
 
+#: Bytes of an attachment read for a sender's name at most; a longer one names no sender and is not
+#: copied: a peer's 50 MB attachments on e-stop messages, copied under the bridge's e-stop lock,
+#: stretched its ticks to 110 ms (audit of session 42).
+MAX_ATTACHMENT_BYTES = 16384
+
+
 @dataclass(frozen=True)
 class SenderAttachment:
     """A Zenoh attachment that names where a message comes from: ``prefix`` + an ASCII name. The
@@ -103,9 +109,10 @@ class SenderAttachment:
         """What ``sample``'s attachment names after the prefix, '' if it has no such attachment;
         as plain text of :data:`NAME_MAX_CHARS` at most (:func:`bridge.bus.plain_text`): any peer
         may name itself, and the names are kept, logged and shown (a camera's 4000 characters
-        went to the camera API: review of session 41)."""
+        went to the camera API: review of session 41). An attachment longer than
+        :data:`MAX_ATTACHMENT_BYTES` names nobody ('')."""
         attachment = sample.attachment
-        if attachment is None:
+        if attachment is None or len(attachment) > MAX_ATTACHMENT_BYTES:
             return ""
         data = attachment.to_bytes()
         if not data.startswith(self.prefix):

@@ -496,6 +496,22 @@ def test_the_holders_own_reason_replaces_its_tokens_whichever_comes_first():
         h.vanished("console-a")
 
 
+def test_only_a_holders_own_engage_replaces_its_tokens_reason():
+    """Audit of session 42: any peer's engage replaced the reason of an e-stop held through a
+    token ("test stop by console-abc123, cleared - safe to release" in every state, the holder
+    still holding). A stranger's engage, named or not, leaves it; the holder's own replaces it."""
+    h = EStopHolders()
+    s = machine()
+    s.step(cmd([20.0] * N))
+    assert s.step(idle(age_s=0.0, estop=[h.appeared("console-a")])).drive == "disabled"
+    token_reason = s.estop_reason
+    for stranger in ("", "cli-x", "console-b"):
+        s.step(idle(age_s=0.0, estop=[h.message((True, "cleared, safe to release"), stranger)]))
+        assert s.estop_reason == token_reason, stranger
+    s.step(idle(age_s=0.0, estop=[h.message((True, "Escape key"), "console-a")]))
+    assert s.estop_reason == "Escape key" and type(s.estop_reason) is str
+
+
 def test_an_engage_after_a_release_waiting_for_its_token_is_never_undone_by_it():
     """Review of session 41 (the fix's review): a release waiting for its holder's token was
     applied when the token went even after a newer engage: the holder's own quick re-engage (the

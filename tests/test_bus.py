@@ -333,16 +333,19 @@ def test_a_senders_name_from_an_attachment_is_bounded_plain_text():
     went into the camera API and the logs (review of session 41)."""
     from types import SimpleNamespace
 
-    from bridge.session import NAME_MAX_CHARS, camera_attachment, camera_of, controller_of
+    from bridge.session import MAX_ATTACHMENT_BYTES, NAME_MAX_CHARS, camera_attachment, camera_of, controller_of
 
     def sample(attachment: bytes | None) -> Any:  # a zenoh.Sample's attachment, and nothing else
-        return SimpleNamespace(attachment=None if attachment is None else SimpleNamespace(to_bytes=lambda: attachment))
+        return SimpleNamespace(attachment=None if attachment is None else zenoh.ZBytes(attachment))
 
     assert camera_of(sample(camera_attachment("cam-lab1"))) == "cam-lab1"
     assert camera_of(sample(None)) == "" and controller_of(sample(camera_attachment("cam-lab1"))) == ""
     name = camera_of(sample(camera_attachment("cam\n\x1b[2J" + "x" * 4000)))
     assert len(name) == NAME_MAX_CHARS and name.startswith("cam  [2Jxx") and name.endswith("...")
     assert camera_of(sample(b"xneck-camera:caf\xc3\xa9")) == "caf\ufffd\ufffd"  # not ASCII: shown, not trusted
+    # A 50 MB attachment was copied whole under the bridge's e-stop lock (audit of session 42).
+    assert camera_of(sample(camera_attachment("c" * (MAX_ATTACHMENT_BYTES - len(b"xneck-camera:"))))).startswith("ccc")
+    assert camera_of(sample(camera_attachment("c" * (MAX_ATTACHMENT_BYTES + 1)))) == ""
 
 
 def test_plain_text_shows_no_bidi_override_zero_width_or_line_separator():

@@ -271,3 +271,47 @@ def test_the_board_bridge_keeps_its_latch_by_default_the_twin_none(tmp_path: Pat
     assert latch_path(None, "beaglebone") == tmp_path / "xneck" / "estop-board"
     assert latch_path(None, "twin") is None and latch_path("none", "beaglebone") is None
     assert latch_path(str(tmp_path / "l"), "twin") == tmp_path / "l"
+
+
+def test_a_flood_of_refused_releases_and_churning_tokens_logs_a_line_a_period(params, caplog) -> None:
+    """Audit of session 42: each refused release wrote a log line (22.5 MB in 5 s, ticks stretched
+    to 24 ms) and each holder token let go another (2000 lines, a 63 ms tick). One line a period
+    (bridge.log_limit; an hour here, so that the count does not depend on the machine's speed),
+    the rest counted; the e-stop stays engaged throughout."""
+    import logging
+
+    from bridge.estop_holder import EStopHolder
+    from bridge.log_limit import LogLimit
+
+    caplog.set_level(logging.INFO, logger="xneck.bridge")
+    with bus_pair() as (_hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        node._refusals_logged, node._tokens_logged = LogLimit(3600.0), LogLimit(3600.0)
+        console = EStopHolder(hub_session, "console-abc123")
+        pub = publisher(hub_session, bus.ESTOP)
+        try:
+            console.engage("operator e-stop")
+            assert wait_until(lambda: "console-abc123" in node.estop_holders.holders, 10)
+            node.tick()
+            assert node.mode == "disabled"
+            n0 = node.estop_received
+            for k in range(200):
+                pub.put(bus.EStop(seq=k + 1, stamp_s=time.time(), engaged=False, reason=f"forged {k}"))
+            assert wait_until(lambda: node.estop_received >= n0 + 200, 10)
+            node.tick()
+            assert node.mode == "disabled" and node.safety.estop_engaged
+            churn = connect()
+            tokens = [churn.liveliness().declare_token(bus.estop_token_key(f"stranger-{k}")) for k in range(50)]
+            assert wait_until(lambda: len(node.estop_holders.holders) == 51, 10)
+            for token in tokens:
+                token.undeclare()
+            assert wait_until(lambda: node.estop_holders.holders == {"console-abc123"}, 10)
+            node.tick()
+            assert node.mode == "disabled"
+        finally:
+            console.close()
+            node.shutdown()
+    refused = [r for r in caplog.records if "refused" in r.getMessage() and "e-stop release" in r.getMessage()]
+    let_go = [r for r in caplog.records if "let go" in r.getMessage()]
+    assert len(refused) == 1 and node._refusals_logged.suppressed == 199, [r.getMessage() for r in refused]
+    assert len(let_go) == 1 and node._tokens_logged.suppressed == 50  # the strangers, then the console

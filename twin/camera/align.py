@@ -43,7 +43,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
-from bridge.archive import COMPRESSED_IMAGE_SCHEMA, ArchiveError, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, compressed_image
+from bridge.archive import COMPRESSED_IMAGE_SCHEMA, IMAGE_SCHEMA_NAME, IMAGE_TOPIC, ArchiveError, compressed_image
 from bridge.archive_chunks import BoundedReader
 from bridge.archive_read import check_finished
 from twin.camera.detect import Detector, moved_reason
