@@ -459,7 +459,8 @@ def plain_text(text: str, n: int = 200) -> str:
     drove the terminal, review of session 41; a bidi override reversed the log line, session 42),
     cut to ``n`` characters ("..." at the end when cut)."""
     text = text[: n + 1].encode("utf-8", "replace").decode("utf-8")  # one character for one
-    text = "".join(" " if unicodedata.category(c) in _NOT_PLAIN else c for c in text)
+    if not text.isprintable():  # the common case in C: nothing to replace (printable is none of them)
+        text = "".join(" " if unicodedata.category(c) in _NOT_PLAIN else c for c in text)
     return text if len(text) <= n else text[: n - 3] + "..."
 
 
