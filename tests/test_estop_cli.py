@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 
 from busutil import bus_pair, repeating, wait_until
 from test_bridge_node import _node
@@ -247,6 +248,102 @@ def test_a_release_forged_in_a_live_holders_name_does_not_end_its_estop(params):
                 assert node.safety.estop_engaged and node.mode == "disabled"
                 console.release("cleared at the console")  # its token goes, then its release
                 assert wait_until(lambda: not node.safety.estop_engaged, 5)
+        finally:
+            console.close()
+            node.shutdown()
+
+
+def _fake_states(session, states: list[dict]) -> Callable[[], None]:
+    """A peer's step publishing ``states`` (made-up ``MotorState`` fields: bridge, epoch,
+    estop_engaged, drive) on the bridges' key, encoded once: a hostile or misconfigured peer."""
+    from bridge import bus
+
+    pub = session.declare_publisher(bus.MOTOR_STATE)
+    payloads = [bus.encode(bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4, **s))
+                for s in states]
+
+    def step() -> None:
+        for p in payloads:
+            pub.put(p)
+
+    return step
+
+
+def test_more_bridges_than_the_cap_fail_every_command_as_crowded(params):
+    """Audit of session 42: 16 made-up bridges heard first filled the CLI's 16 places; ``status``
+    listed only them and ``release`` said "released" (exit 0) while the real bridge stayed latched."""
+    with bus_pair() as (hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        console = EStopHolder(hub_session, "console-abc123")
+        flood = _fake_states(connect(), [{"bridge": f"a{k:02d}", "epoch": "e", "drive": "inactive"} for k in range(16)])
+        try:
+            with _ticking(node), repeating(flood, 0.002):
+                console.engage("operator e-stop")
+                assert wait_until(lambda: node.safety.estop_engaged, 5)
+                for command in ("status", "release", "engage"):
+                    r = _xneck(command, "--connect", hub, "--wait-s", "1", "--json")
+                    assert r.returncode == 1, (command, r.stdout, r.stderr)
+                    out = json.loads(r.stdout)
+                    assert not out["ok"] and out["outcome"] == "crowded", (command, out)
+                    assert "more than 16 bridges answered" in out["message"], (command, out)
+                    assert out["bridges_heard"] == 17 and len(out["bridges"]) == 16, (command, out)
+                    assert out["unlisted"] == 1, (command, out)
+                assert node.safety.estop_engaged and node.mode == "disabled"
+        finally:
+            console.close()
+            node.shutdown()
+
+
+def test_states_with_an_invalid_bridge_name_are_ignored_counted_and_never_listed(params):
+    """A name no bridge can have (a zero-width character making a near twin of the real bridge's,
+    a space, a slash, none, too long; or a run id as bad) is no bridge's word: an engage is not
+    made partial by it and no listing shows it; the report counts it."""
+    with bus_pair() as (hub, _hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        bad = [node.instance + "\u200b", "has space", "a/b", "", "x" * 65, "tw\x1b[2Jin"]
+        junk = _fake_states(connect(), [{"bridge": b, "epoch": "e", "drive": "active"} for b in bad]
+                            + [{"bridge": "good-name", "epoch": "e\u200b", "drive": "active"}])
+        try:
+            with _ticking(node), repeating(junk, 0.005):
+                r = _xneck("engage", "--connect", hub, "--wait-s", "1", "--json")
+                assert r.returncode == 0, r.stdout + r.stderr
+                out = json.loads(r.stdout)
+                assert out["outcome"] == "engaged" and [b["bridge"] for b in out["bridges"]] == [node.instance], out
+                assert out["invalid_states"] > 0 and "with an invalid bridge name" in out["message"], out
+                r = _xneck("status", "--connect", hub, "--wait-s", "0.5")
+                assert r.returncode == 0, r.stdout + r.stderr
+                assert [line.split(":")[0] for line in r.stdout.splitlines() if line.startswith("bridge ")] == [
+                    f"bridge {node.instance}"], r.stdout
+                assert "with an invalid bridge name" in r.stdout and "good-name" not in r.stdout, r.stdout
+                r = _xneck("release", "--connect", hub, "--wait-s", "1", "--json")
+                assert r.returncode == 0, r.stdout + r.stderr
+                assert json.loads(r.stdout)["outcome"] == "released"
+                assert not node.safety.estop_engaged
+        finally:
+            node.shutdown()
+
+
+def test_two_runs_answering_under_one_bridge_name_are_a_conflict_never_a_success(params):
+    """A second process stating as the real bridge (another epoch), released while the real one
+    is latched: its word must not pass for the bridge's (a release "released", an engage confirmed
+    or not by whichever state came last)."""
+    with bus_pair() as (hub, hub_session, connect):
+        node = _node(connect(), params, command_timeout_s=5.0)
+        console = EStopHolder(hub_session, "console-abc123")
+        impostor = _fake_states(connect(), [{"bridge": node.instance, "epoch": "e-impostor", "drive": "inactive"}])
+        try:
+            with _ticking(node), repeating(impostor, 0.002):
+                console.engage("operator e-stop")
+                assert wait_until(lambda: node.safety.estop_engaged, 5)
+                for command in ("release", "status", "engage"):
+                    r = _xneck(command, "--connect", hub, "--wait-s", "1", "--json")
+                    assert r.returncode == 1, (command, r.stdout, r.stderr)
+                    out = json.loads(r.stdout)
+                    assert not out["ok"] and out["outcome"] == "conflict", (command, out)
+                    assert out["conflicts"] == [node.instance] and node.instance in out["message"], (command, out)
+                    runs = {b["epoch"]: (b["engaged"], b["conflict"]) for b in out["bridges"]}
+                    assert runs == {node.epoch: (True, True), "e-impostor": (False, True)}, (command, out)
+                assert node.safety.estop_engaged and node.mode == "disabled"
         finally:
             console.close()
             node.shutdown()
