@@ -241,9 +241,10 @@ def test_a_release_forged_in_a_live_holders_name_does_not_end_its_estop(params):
                 console.engage("operator e-stop")
                 assert wait_until(lambda: "console-abc123" in node.estop_holders.holders, 5)
                 n = node.estop_received
-                forger.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="forged"),
-                           attachment=estop_holder_attachment("console-abc123"))
-                assert wait_until(lambda: node.estop_received > n, 5)
+                forged = bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="forged")
+                # Sent until heard: a put before the forger's session has linked goes nowhere.
+                assert wait_until(lambda: (forger.put(forged, attachment=estop_holder_attachment("console-abc123")),
+                                           node.estop_received > n)[1], 5, 0.05)
                 time.sleep(0.1)
                 assert node.safety.estop_engaged and node.mode == "disabled"
                 console.release("cleared at the console")  # its token goes, then its release
