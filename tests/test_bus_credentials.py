@@ -219,9 +219,11 @@ def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(t
         assert "links only with holders of" in bridge_log.read_text()
 
         latest: dict[str, bus.MotorState] = {}
+        seen: list[bus.MotorState] = []
 
         def on_state(sample) -> None:
             latest["state"] = bus.decode(bus.MotorState, sample.payload.to_bytes())
+            seen.append(latest["state"])
 
         stranger_states = _Collector()
         engage = bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="stranger")
@@ -232,9 +234,11 @@ def test_a_bridge_with_credentials_ignores_a_stranger_and_obeys_its_controller(t
             for _ in range(10):
                 publisher(stranger, bus.ESTOP).put(engage)
                 time.sleep(0.2)
-            state = latest["state"]
             assert (_links(stranger), stranger_states.keys) == (0, [])
-            assert state.drive == "active" and not state.estop_engaged, state
+            # Never latched nor disabled by the stranger; a hold of a loaded machine's late answer
+            # may come and go (CI of session 42: one state said 'hold').
+            assert not [m for m in seen if m.estop_engaged or m.drive == "disabled"], seen[-1]
+            assert any(m.drive == "active" for m in seen[-50:]), seen[-1]
             publisher(lab, bus.ESTOP).put(msgspec.structs.replace(engage, reason="lab"))
             assert wait_until(lambda: latest["state"].estop_engaged, 5, 0.02), latest["state"]
             assert latest["state"].estop_reason == "lab"
