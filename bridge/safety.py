@@ -98,12 +98,18 @@ EStopEvent = tuple[bool, str]
 
 
 class HolderWords(str):
-    """The reason of an engage sent by a live e-stop holder (:meth:`EStopHolders.message`): only
-    it may replace the generic reason of that holder's token (:meth:`Safety.apply_estop`). Any
-    peer's engage had replaced it, so that ``xneck estop status`` and every state showed a
-    stranger's "cleared, safe to release" (audit of session 42)."""
+    """The reason of an engage that names its sender, a would-be e-stop holder
+    (:meth:`EStopHolders.message`): only its ``sender``'s own words may replace the generic
+    reason of that holder's token (:meth:`Safety.apply_estop`), whichever of the token and the
+    message arrives first. Any peer's engage had replaced it, so that ``xneck estop status`` and
+    every state showed a stranger's "cleared, safe to release" (audit of session 42)."""
 
-    __slots__ = ()
+    sender: str
+
+    def __new__(cls, text: str, sender: str) -> HolderWords:
+        words = super().__new__(cls, text)
+        words.sender = sender
+        return words
 
 
 @dataclass(frozen=True)
@@ -228,13 +234,13 @@ class Safety:
         changed = False
         for engaged, reason in events:
             if engaged and self.drive != "disabled":
-                self.drive, self.hold_reason, self.estop_reason = "disabled", "", reason
+                self.drive, self.hold_reason, self.estop_reason = "disabled", "", str(reason)  # not HolderWords: encoded
                 self.estop_engaged = True
                 self.force = self._zero
                 changed = True
                 self._log(logging.WARNING, f"e-stop engaged ({reason}): drives disabled")
-            elif engaged and self.estop_engaged and self.estop_reason.endswith(TOKEN_REASON_TAIL) \
-                    and isinstance(reason, HolderWords):
+            elif engaged and self.estop_engaged and isinstance(reason, HolderWords) \
+                    and self.estop_reason == EStopHolders.reason(reason.sender):
                 # The holder's own words, come after its token (they travel apart): the operator's
                 # reason ("Escape key") had been lost to the token's (browser test, CI of session 40).
                 self.estop_reason = str(reason)
@@ -498,7 +504,8 @@ class EStopHolders:
 
     def message(self, event: EStopEvent, holder: str = "") -> EStopEvent | None:
         """An e-stop message's event as it is to be applied, from ``holder`` ('' if it names
-        none): an engage as it is; a release if no holder is left (``holder``'s token being
+        none): an engage as it is, its reason :class:`HolderWords` when it names ``holder``; a
+        release if no holder is left (``holder``'s token being
         gone already), else None: refused (:attr:`holders` says who holds it), or kept until
         ``holder``'s token vanishes (:meth:`vanished`)."""
         engaged, reason = event
@@ -506,7 +513,7 @@ class EStopHolders:
             # A release still waiting for a token came before this engage: it must not undo it
             # when that token goes (review of session 41: a re-engage, or another's, undone).
             self._pending.clear()
-            return (True, HolderWords(reason)) if holder and holder in self.holders else event
+            return (True, HolderWords(reason, holder)) if holder else event
         if holder and holder in self.holders:
             self._pending[holder] = (self._clock(), event)
             return None

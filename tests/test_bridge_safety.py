@@ -510,6 +510,21 @@ def test_only_a_holders_own_engage_replaces_its_tokens_reason():
         assert s.estop_reason == token_reason, stranger
     s.step(idle(age_s=0.0, estop=[h.message((True, "Escape key"), "console-a")]))
     assert s.estop_reason == "Escape key" and type(s.estop_reason) is str
+    # The holder's words taken before its token was known, applied after it (a bridge that starts
+    # under `xneck estop engage --hold`: the token from its start-up query, the message queued;
+    # CI of session 42): still the holder's own.
+    h, s = EStopHolders(), machine()
+    s.step(cmd([20.0] * N))
+    words = h.message((True, "before the bridge"), "cli-a")
+    s.apply_estop([h.appeared("cli-a")])
+    s.step(idle(age_s=0.0, estop=[words]))
+    assert s.estop_reason == "before the bridge"
+    # A named engage that disables: its reason goes into every state as a plain str (msgspec
+    # encodes no str subclass: the bridge had published no state after one).
+    s = machine()
+    s.step(cmd([20.0] * N))
+    s.step(idle(age_s=0.0, estop=[EStopHolders().message((True, "first words"), "cli-b")]))
+    assert s.drive == "disabled" and type(s.estop_reason) is str
 
 
 def test_an_engage_after_a_release_waiting_for_its_token_is_never_undone_by_it():

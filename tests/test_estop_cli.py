@@ -331,7 +331,10 @@ def test_two_runs_answering_under_one_bridge_name_are_a_conflict_never_a_success
     with bus_pair() as (hub, hub_session, connect):
         node = _node(connect(), params, command_timeout_s=5.0)
         console = EStopHolder(hub_session, "console-abc123")
-        impostor = _fake_states(connect(), [{"bridge": node.instance, "epoch": "e-impostor", "drive": "inactive"}])
+        # On the hub's session: the commands link to the hub first, so they hear the impostor at
+        # once; from a session of its own it was heard only once gossip had linked the two, after
+        # an engage had settled on the real bridge alone (CI of session 42).
+        impostor = _fake_states(hub_session, [{"bridge": node.instance, "epoch": "e-impostor", "drive": "inactive"}])
         try:
             with _ticking(node), repeating(impostor, 0.002):
                 console.engage("operator e-stop")
