@@ -14,7 +14,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from busutil import bus_pair, repeating, wait_until
 from test_bridge_node import _node
@@ -270,26 +270,35 @@ def _fake_states(session, states: list[dict]) -> Callable[[], None]:
     return step
 
 
+def _each_command_under_a_console_estop(node, console, hub: str, outcome: str) -> Iterator[tuple[str, dict]]:
+    """With ``console`` engaging the e-stop on ``node``: run status, release and engage through
+    ``hub``, check each fails with ``outcome`` (exit 1), and give its JSON for the caller's
+    checks; the bridge stays latched throughout."""
+    console.engage("operator e-stop")
+    assert wait_until(lambda: node.safety.estop_engaged, 5)
+    for command in ("status", "release", "engage"):
+        r = _xneck(command, "--connect", hub, "--wait-s", "1", "--json")
+        assert r.returncode == 1, (command, r.stdout, r.stderr)
+        out = json.loads(r.stdout)
+        assert not out["ok"] and out["outcome"] == outcome, (command, out)
+        yield command, out
+    assert node.safety.estop_engaged and node.mode == "disabled"
+
+
 def test_more_bridges_than_the_cap_fail_every_command_as_crowded(params):
     """Audit of session 42: 16 made-up bridges heard first filled the CLI's 16 places; ``status``
     listed only them and ``release`` said "released" (exit 0) while the real bridge stayed latched."""
     with bus_pair() as (hub, hub_session, connect):
         node = _node(connect(), params, command_timeout_s=5.0)
         console = EStopHolder(hub_session, "console-abc123")
-        flood = _fake_states(connect(), [{"bridge": f"a{k:02d}", "epoch": "e", "drive": "inactive"} for k in range(16)])
+        # On the hub's session, which the commands link to first (see the conflict test below).
+        flood = _fake_states(hub_session, [{"bridge": f"a{k:02d}", "epoch": "e", "drive": "inactive"} for k in range(16)])
         try:
             with _ticking(node), repeating(flood, 0.002):
-                console.engage("operator e-stop")
-                assert wait_until(lambda: node.safety.estop_engaged, 5)
-                for command in ("status", "release", "engage"):
-                    r = _xneck(command, "--connect", hub, "--wait-s", "1", "--json")
-                    assert r.returncode == 1, (command, r.stdout, r.stderr)
-                    out = json.loads(r.stdout)
-                    assert not out["ok"] and out["outcome"] == "crowded", (command, out)
+                for command, out in _each_command_under_a_console_estop(node, console, hub, "crowded"):
                     assert "more than 16 bridges answered" in out["message"], (command, out)
                     assert out["bridges_heard"] == 17 and len(out["bridges"]) == 16, (command, out)
                     assert out["unlisted"] == 1, (command, out)
-                assert node.safety.estop_engaged and node.mode == "disabled"
         finally:
             console.close()
             node.shutdown()
@@ -337,17 +346,10 @@ def test_two_runs_answering_under_one_bridge_name_are_a_conflict_never_a_success
         impostor = _fake_states(hub_session, [{"bridge": node.instance, "epoch": "e-impostor", "drive": "inactive"}])
         try:
             with _ticking(node), repeating(impostor, 0.002):
-                console.engage("operator e-stop")
-                assert wait_until(lambda: node.safety.estop_engaged, 5)
-                for command in ("release", "status", "engage"):
-                    r = _xneck(command, "--connect", hub, "--wait-s", "1", "--json")
-                    assert r.returncode == 1, (command, r.stdout, r.stderr)
-                    out = json.loads(r.stdout)
-                    assert not out["ok"] and out["outcome"] == "conflict", (command, out)
+                for command, out in _each_command_under_a_console_estop(node, console, hub, "conflict"):
                     assert out["conflicts"] == [node.instance] and node.instance in out["message"], (command, out)
                     runs = {b["epoch"]: (b["engaged"], b["conflict"]) for b in out["bridges"]}
                     assert runs == {node.epoch: (True, True), "e-impostor": (False, True)}, (command, out)
-                assert node.safety.estop_engaged and node.mode == "disabled"
         finally:
             console.close()
             node.shutdown()
