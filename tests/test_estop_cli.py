@@ -89,9 +89,23 @@ def test_release_refuses_to_end_an_estop_another_holder_keeps_and_names_it(param
             node.shutdown()
 
 
+def _line(stream, timeout_s: float = 15.0) -> str:
+    """The next line of a child's pipe, or '' after ``timeout_s`` (a line that never comes must
+    fail the test, not hang it: the restart check hung so before its fix)."""
+    import threading
+
+    got: list[str] = []
+    reader = threading.Thread(target=lambda: got.append(stream.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout_s)
+    return got[0] if got else ""
+
+
 def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(params):
     """``--hold`` with no bridge up: nothing confirms, the command keeps its token; the bridge
-    that starts then comes up latched; SIGTERM ends the command and the bridge stays latched."""
+    that starts then comes up latched, and so does its restart under the same name (systemd's:
+    review of session 42, the two runs had ended the hold as a 'conflict', exit 1); SIGTERM ends
+    the command and the bridge stays latched."""
     with bus_pair() as (hub, _hub_session, connect):
         proc = subprocess.Popen([sys.executable, "-m", "server.cli", "estop", "engage", "--hold", "--wait-s", "0.3",
                                  "--connect", hub, "--reason", "before the bridge", "--json"], stdout=subprocess.PIPE,
@@ -99,8 +113,8 @@ def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(pa
         node = None
         try:
             assert proc.stderr is not None  # with --json the progress lines go to stderr
-            assert "holding the e-stop as cli-" in proc.stderr.readline()
-            node = _node(connect(), params, command_timeout_s=5.0)
+            assert "holding the e-stop as cli-" in _line(proc.stderr)
+            node = _node(connect(), params, command_timeout_s=5.0, instance="beaglebone-lab")
             # latched once the command's token reaches the new bridge: at its start when the link is
             # up then, else when it comes (final CI of session 41, loaded: after the start; no
             # command here, so the drives stay off meanwhile: docs/safety.md rule 4)
@@ -110,12 +124,19 @@ def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(pa
             assert node.mode == "disabled"
             with _ticking(node):
                 assert wait_until(lambda: node.estop_reason == "before the bridge", 5), node.estop_reason
+                assert "bridge beaglebone-lab: e-stop engaged (before the bridge)" in _line(proc.stderr)
+            node.shutdown()  # the board's bridge restarted: a new run under its name
+            first_epoch, node = node.epoch, _node(connect(), params, command_timeout_s=5.0, instance="beaglebone-lab")
+            with _ticking(node):
+                assert wait_until(lambda: node.estop_reason == "before the bridge", 10), node.estop_reason
+                assert "bridge beaglebone-lab: e-stop engaged (before the bridge)" in _line(proc.stderr)
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(20)  # what it printed is small: no pipe fills meanwhile
-                out, err = proc.stdout.read(), proc.stderr.read()  # past what readline() buffered
+                out, err = proc.stdout.read(), proc.stderr.read()  # past what _line's readline() buffered
                 assert proc.returncode == 0, err  # a bridge confirmed while it held
                 answer = json.loads(out)  # stdout is the one JSON object (review of session 41)
                 assert answer["ok"] and [b["reason"] for b in answer["bridges"]] == ["before the bridge"], answer
+                assert answer["bridges"][0]["epoch"] == node.epoch != first_epoch and not answer["conflicts"], answer
                 assert wait_until(lambda: not node.estop_holders.holders, 5)
                 time.sleep(0.05)
                 assert node.safety.estop_engaged and node.mode == "disabled"

@@ -67,6 +67,7 @@ class BridgeWord:
     heard_s: float
     epoch: str = ""
     conflict: bool = False
+    first_s: float = 0.0  # when this run was first heard (monotonic s)
 
     def line(self) -> str:
         estop = f"e-stop engaged ({self.reason})" if self.engaged else "e-stop released"
@@ -157,13 +158,25 @@ class BridgeWatch:
                     self._unlisted_more = True
                 return
             runs = self._runs.setdefault(word.bridge, {})
-            if word.epoch in runs or len(runs) < self.MAX_RUNS:  # past them the name is a conflict anyway
-                runs[word.epoch] = word
-                self._changed.notify_all()
+            if (old := runs.get(word.epoch)) is not None:
+                runs[word.epoch] = replace(word, first_s=old.first_s)
+            else:
+                if len(runs) >= self.MAX_RUNS:  # a --hold through many restarts: forget the superseded
+                    runs = self._runs[word.bridge] = {w.epoch: w for w in self._current(runs)}
+                if len(runs) < self.MAX_RUNS:  # past them the name is a conflict anyway
+                    runs[word.epoch] = replace(word, first_s=word.heard_s)
+            self._changed.notify_all()
+
+    @staticmethod
+    def _current(runs: dict[str, BridgeWord]) -> list[BridgeWord]:
+        """The runs of one name still answering: a run not heard since a newer one's first state
+        was superseded (a bridge restarted: systemd keeps its name), not a second process under
+        its name; review of session 42: a restart during ``engage --hold`` ended as a conflict."""
+        return [w for w in runs.values() if not any(o.first_s > w.heard_s for o in runs.values())]
 
     def _heard(self, since_s: float) -> Heard:  # under the lock
-        words = [replace(w, conflict=len(runs) > 1) for runs in self._runs.values() for w in runs.values()
-                 if w.heard_s > since_s]
+        current = [self._current(runs) for runs in self._runs.values()]
+        words = [replace(w, conflict=len(ws) > 1) for ws in current for w in ws if w.heard_s > since_s]
         return Heard(sorted(words, key=lambda w: (w.bridge, w.epoch)), len(self._runs), len(self._unlisted),
                      self._unlisted_more, self._invalid)
 
@@ -354,14 +367,14 @@ def engage(
                 say(f"holding the e-stop as {name} (Ctrl-C to let go: the bridges latched stay latched)")
                 for w in confirmed:
                     say(w.line())
-                seen = {w.bridge for w in confirmed}
+                seen = {(w.bridge, w.epoch) for w in confirmed}  # a restarted bridge's new run is said too
                 while not stop.wait(0.2):  # the bridges that start or link back meanwhile
                     words = watch.words(sent_s)
                     if any(needs(w) for w in words):
                         holder.engage(why)  # its reason, which the token does not carry
                     for w in words:
-                        if w.engaged and w.bridge not in seen and not needs(w):
-                            seen.add(w.bridge)
+                        if w.engaged and (w.bridge, w.epoch) not in seen and not needs(w):
+                            seen.add((w.bridge, w.epoch))
                             say(w.line())
                 heard = watch.heard(sent_s)  # words are never dropped: every one heard since the send
         finally:
