@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import math
 import re
-import unicodedata
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -446,21 +445,21 @@ def check_payload_size(msg_type: type[BusMessage], n_bytes: int) -> None:
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
-#: Unicode categories shown as a space: controls, format characters (bidi overrides such as U+202E
-#: reversed the rest of a log line, zero-width ones made two holder names look alike: review of
-#: session 42) and line/paragraph separators (a log viewer's new line).
-_NOT_PLAIN = frozenset({"Cc", "Cf", "Zl", "Zp"})
+#: Characters shown as a space besides the controls (Unicode Cc): the bidi controls (U+202E
+#: reversed the rest of a log line: review of session 42), the invisible ones that make two names
+#: look alike (zero-width space, word joiner, BOM) and the line and paragraph separators (a log
+#: viewer's new line). The zero-width joiners, soft hyphen and tags of emoji and scripts stay.
+_NOT_PLAIN = re.compile("[\x00-\x1f\x7f-\x9f\u061c\u200b\u200e\u200f\u2028-\u202e\u2060-\u2064"
+                        "\u2066-\u2069\ufeff]")
 
 
 def plain_text(text: str, n: int = 200) -> str:
     """A reason or name as it may be logged, shown and encoded: what does not encode as UTF-8 (a
     Latin-1 terminal's bytes, which Python keeps as lone surrogates) becomes "?", each control,
-    format or line-separator character a space (a newline forged a log line, an escape sequence
-    drove the terminal, review of session 41; a bidi override reversed the log line, session 42),
-    cut to ``n`` characters ("..." at the end when cut)."""
-    text = text[: n + 1].encode("utf-8", "replace").decode("utf-8")  # one character for one
-    if not text.isprintable():  # the common case in C: nothing to replace (printable is none of them)
-        text = "".join(" " if unicodedata.category(c) in _NOT_PLAIN else c for c in text)
+    bidi, invisible or line-separator character a space (:data:`_NOT_PLAIN`: a newline forged a
+    log line, an escape sequence drove the terminal, review of session 41; a bidi override
+    reversed the log line, session 42), cut to ``n`` characters ("..." at the end when cut)."""
+    text = _NOT_PLAIN.sub(" ", text[: n + 1].encode("utf-8", "replace").decode("utf-8"))  # one for one
     return text if len(text) <= n else text[: n - 3] + "..."
 
 

@@ -151,9 +151,11 @@ MAX_SESSIONS = 64
 #: Back-off of a lost or not-yet-listening connect endpoint, ms: first retry, cap. Zenoh's default
 #: (1000 ms doubling to 4000 ms) left a process that started before its peer unlinked for up to
 #: 4 s: a bridge started while an ``xneck estop engage --hold`` connected to it ran that long
-#: unlatched, a controller restarted with its bridge that long deaf. Retrying a loopback or lab
-#: endpoint every 0.5 s costs one refused SYN; ``docs/safety/relink.py`` measures both.
-CONNECT_RETRY_MS = (100, 500)
+#: unlatched, a controller restarted with its bridge that long deaf. A retry costs one refused SYN,
+#: or a whole handshake against a peer that accepts and then refuses (wrong credentials, a full
+#: session table; TLS on the board's one core): at most one a second (a 0.5 s cap made 23 in 10 s
+#: against Zenoh's 4, review of session 42). ``docs/safety/relink.py`` measures both.
+CONNECT_RETRY_MS = (100, 1000)
 #: Read the credentials from the environment (zenoh_config's default).
 FROM_ENV = "env"
 

@@ -206,12 +206,12 @@ def test_the_control_path_queue_rides_out_a_starved_sender() -> None:
     zenoh.open(conf).close()  # Zenoh accepts it
 
 
-def test_a_lost_link_is_retried_within_half_a_second() -> None:
+def test_a_lost_link_is_retried_within_a_second() -> None:
     """Zenoh's default back-off (1 s doubling to 4 s) left a bridge started under an ``xneck estop
     engage --hold`` unlatched until the command's session came back; every process retries a
-    connect endpoint from 0.1 s, at most every 0.5 s (docs/safety/relink.py measures it)."""
+    connect endpoint from 0.1 s, at most every 1 s (docs/safety/relink.py measures it)."""
     retry = msgspec.json.decode(zenoh_config(listen=[], connect=[]).get_json("connect/retry"))
-    assert (retry["period_init_ms"], retry["period_max_ms"]) == CONNECT_RETRY_MS == (100, 500)
+    assert (retry["period_init_ms"], retry["period_max_ms"]) == CONNECT_RETRY_MS == (100, 1000)
     assert retry["period_increase_factor"] > 1
 
 
@@ -357,3 +357,6 @@ def test_plain_text_shows_no_bidi_override_zero_width_or_line_separator():
     assert text == "operator  console next x? [2J"
     assert bus.plain_text("é" * 300, 10) == "é" * 7 + "..." and bus.plain_text("x" * 10, 10) == "x" * 10
     assert bus.plain_text("x" * 10**7, 20) == "x" * 17 + "..."  # a huge one is cut first, not scanned
+    # What scripts and emoji need stays (review of session 42: every format character had gone).
+    for kept in ("👨\u200d👩\u200d👧 family", "می\u200cخواهم", "soft\xadhyphen", "café ✓ 🚨 a\xa0b"):
+        assert bus.plain_text(kept) == kept

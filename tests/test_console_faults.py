@@ -267,7 +267,7 @@ def test_a_second_controllers_statuses_never_hide_the_campaign_one_runs_unrecord
 def test_what_is_asked_before_the_restarted_consoles_bus_linked_knows_the_campaign_running_on(
         tmp_path: Path, action: str) -> None:
     """Session 39's open point: right after a console's restart, before the controller still running
-    its campaign has linked back to the console's hub (Zenoh retries every 1-4 s), the recovered
+    its campaign has linked back to the console's hub (Zenoh retried every 1-4 s, 0.1-1 s since session 42), the recovered
     record showed nothing running: a stop answered 200 doing nothing while the neck went on, and a
     new campaign was taken (the controller would refuse it). Now, after a start that recovered a
     campaign ``interrupted``, both wait for the bus (the first live controller status, at most
