@@ -359,6 +359,12 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
                 ev = events.get(timeout=0.2)
             except queue.Empty:
                 ev = None
+            if ev is not None and ev.event in ("finished", "aborted"):
+                # The controller's end, taken off the queue here even when the drives' word below
+                # ends the loop first: else the stop that follows waited STOP_ANSWER_S for an end
+                # already consumed, the campaign shown running 3.5 s into an e-stop (user audit of
+                # session 42: a start meanwhile got 409 "running", not the e-stop's refusal).
+                ended = True
             disabled = monitor.drives_disabled()
             if disabled:
                 outcome, message = "aborted", f"the drives were disabled during the campaign: {disabled}"

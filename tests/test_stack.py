@@ -125,9 +125,36 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
         # there in lockstep (docs/twin-fidelity.md; the prototype: 0.37°), not the model truth's 0.04°.
         assert rec["truth"] == "robot", rec
         assert 0.1 < rec["metrics"]["e_mean_all_deg"] < 1.5, rec["metrics"]
+        _estop_mid_campaign_ends_it_at_once(base, f"tcp/127.0.0.1:{hub_port}")
         up.send_signal(signal.SIGTERM)
         assert up.wait(30) == 0
     assert "xneck stopped (SIGTERM)" in (tmp_path / "up.log").read_text()
+
+
+def _estop_mid_campaign_ends_it_at_once(base: str, hub: str) -> None:
+    """User audit of session 42, on `xneck up`: the campaign service's end of its campaign, taken
+    off the queue in the turn that also saw the drives disabled, was waited for again: the console
+    resent its stop for 3 s (STOP_ANSWER_S, 6-7 stops), the record said running 3.5 s into the
+    e-stop (3.82 s by hand) and a start meanwhile got 409 'running', not the e-stop's refusal."""
+    from bridge.estop_holder import EStopHolder
+
+    stops: list[bus.CampaignRequest] = []
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[hub]) as s:
+        s.declare_subscriber(bus.CAMPAIGN_REQUEST_TO,  # addressed to the campaign service
+                             lambda m: stops.append(bus.decode(bus.CampaignRequest, m.payload.to_bytes())))
+        holder = EStopHolder(s, "cli-test-midcampaign")
+        r = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.1)
+        try:
+            holder.engage("mid-campaign")
+            rec = _wait_status(base, cid, {"finished", "degraded", "aborted", "failed"}, 20)
+        finally:
+            holder.release("done")
+            holder.close()
+    assert rec["status"] == "aborted" and "mid-campaign" in rec["message"], rec
+    assert len([q for q in stops if q.action == "stop" and q.campaign_id == cid]) <= 1, stops
 
 
 def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign_aborted(tmp_path: Path) -> None:
