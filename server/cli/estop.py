@@ -450,7 +450,7 @@ def release(
         _report(as_json, False, "engaged", heard, holders, endpoints, f"e-stop still engaged on {', '.join(still)}: {held}")
         raise typer.Exit(1)
     _report(as_json, True, "released", heard, holders, endpoints,
-            "e-stop released: the drives stay inactive until the controller's next command")
+            "e-stop released: the drives come back with the controller's next command (it takes up the cables' slack first)")
 
 
 @estop_app.command("status")
