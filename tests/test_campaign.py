@@ -257,6 +257,8 @@ def test_a_robot_campaign_runs_against_the_bridge_it_connects_to(tmp_path, xneck
     assert run.returncode == 1 and time.monotonic() - t0 < 100
     summary = json.loads(run.stdout)
     assert summary["outcome"] == "aborted" and f"no bridge on the bus at {nobody}" in summary["message"], summary
+    # one error line on stderr, as an identification's (audit of session 42: only in the table)
+    assert f"error: campaign {summary['campaign_id']} aborted: no bridge on the bus" in run.stderr, run.stderr
     assert read_campaign(tmp_path / "nobody.mcap").info["outcome"] == "aborted"
 
     hub = f"tcp/127.0.0.1:{free_tcp_port()}"

@@ -347,7 +347,7 @@ def detect(
 @camera_app.command("markers")
 def markers(
     out: Path = typer.Option(..., "--out", help="Output image (.png), an A4 sheet."),
-    dpi: int = typer.Option(300, "--dpi", min=72, max=1200),
+    dpi: int = typer.Option(300, "--dpi", min=72, max=1200, help="Print resolution, dots per inch (print the sheet unscaled)."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -368,7 +368,7 @@ def board(
     columns: int = typer.Option(9, "--columns", min=3, max=30, help="Inner corners per row."),
     rows: int = typer.Option(6, "--rows", min=3, max=30, help="Inner corners per column."),
     square: float = typer.Option(0.02, "--square", help="Square size, m."),
-    dpi: int = typer.Option(300, "--dpi", min=72, max=1200),
+    dpi: int = typer.Option(300, "--dpi", min=72, max=1200, help="Print resolution, dots per inch (print the sheet unscaled)."),
 ) -> None:
     """A printable checkerboard for the intrinsic calibration."""
     from twin.camera.render import checkerboard

@@ -96,6 +96,11 @@ def campaign_control(
     else:
         typer.echo(result.table())
     if result.outcome != "finished":
+        # on stderr as `campaign identification` says it: a script looking for `error:` had missed
+        # a control test's abort, printed only in the table (audit of session 42)
+        kind = "warning" if result.outcome == "degraded" else "error"
+        typer.secho(f"{kind}: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True,
+                    fg="yellow" if kind == "warning" else "red")
         raise typer.Exit(1)
 
 
@@ -166,9 +171,9 @@ def campaign_identification(
     out: Path | None = ARCHIVE_OUT_OPTION,
     as_json: bool = typer.Option(False, "--json", help="Print the identification tables as JSON."),
     seed: int = typer.Option(0, "--seed", min=0, help="Seed of the twin's sensor noise (≥ 0)."),
-    truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: a real "
-                              "line's small cable damping, unknown to the model (robot), or the parameter file as "
-                              "it is (model, an identity check)."),
+    truth: str = typer.Option("robot", "--truth", callback=check_truth, help="What the twin simulates: the robot's "
+                              "unmodelled physics (robot: twin/sim/robot_truth.toml, the default), the parameter file "
+                              "as it is (model, an identity check), or a truth FILE; see twin/sim/truth.py."),
     alpha_ip: str = CAMPAIGN_ALPHA_IP_OPTION,
     timeout: float = typer.Option(900.0, "--timeout", callback=POSITIVE,
                                   help="Abort the campaign after this many seconds (wall)."),

@@ -29,8 +29,8 @@ def _design(L: float, b: float) -> tuple[float, float]:
 
 @kinematics_app.command("ik")
 def ik(
-    L: float = typer.Option(..., "--L", help="Diagonal bar length."),
-    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L."),
+    L: float = typer.Option(..., "--L", help="Diagonal bar length (any unit: x, y and the outputs are in it)."),
+    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L (the unit of L)."),
     x: float = typer.Option(..., "--x", help="Target x of the top-bar middle (unit of L)."),
     y: float = typer.Option(..., "--y", help="Target y of the top-bar middle (unit of L)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
@@ -72,8 +72,8 @@ def ik(
 
 @kinematics_app.command("cuspidal")
 def cuspidal(
-    L: float = typer.Option(..., "--L", help="Diagonal bar length."),
-    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L."),
+    L: float = typer.Option(..., "--L", help="Diagonal bar length (any unit: x, y and the outputs are in it)."),
+    b: float = typer.Option(..., "--b", help="Base/top bar length, 0 < b < L (the unit of L)."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of text."),
 ) -> None:
     """Is the 2-X chain cuspidal? Closed form b < L < b√6 (section 2.6), checked by counting IK
