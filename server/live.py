@@ -53,7 +53,9 @@ camera the α_IP drawn is of, and why (``web/app.js``).
 series flip between two twins' clocks and poses (audit of 2026-11-29). Its samples name their
 bridge run in their attachment (:func:`bridge.session.run_of`); the series shows the newest truth
 of the run the newest command answers (``ForceCommand.epoch``, what a campaign follows), else of
-the newest state's run, each if under :data:`RUN_FOLLOW_MAX_AGE_S` old; a truth naming no run (a
+the run shown last while its truth keeps coming (a second twin's states had made the series flip
+once the campaign's commands stopped), else of the newest state's run, each if under
+:data:`RUN_FOLLOW_MAX_AGE_S` old; a truth naming no run (a
 replay's) only when that run has none (the robot's bridge), any truth when no run is known.
 ``estop`` is what was last *sent* on ``xneck/estop`` (by anyone); whether the drives are really
 stopped is the bridge's word, ``state.estop_engaged``/``estop_reason`` (:func:`bridge_estop`).
@@ -161,6 +163,7 @@ class LatestValues:
         self._run_sources: dict[str, Callable[[], Any]] = {}  # BY_RUN series -> try_recv of its ring
         # BY_RUN series -> bridge run ('' : none named) -> (time.monotonic() taken, its newest payload)
         self._by_run: dict[str, dict[str, tuple[float, bytes]]] = {}
+        self._last_run: dict[str, str] = {}  # BY_RUN series -> the run it showed last
         self._camera_sources: dict[str, Callable[[], Any]] = {}  # BY_CAMERA series -> try_recv of its ring
         # BY_CAMERA series -> camera (:func:`_camera_key`) -> (time.monotonic() first taken, of its
         # newest valid payload, that payload, its message)
@@ -274,7 +277,15 @@ class LatestValues:
             if run not in runs and len(runs) >= BY_RUN_MAX_RUNS:
                 del runs[min(runs, key=lambda r: runs[r][0])]
             runs[run] = (now, sample.payload.to_bytes())
-        followed = self._followed_run(now)
+        followed, by_command = self._followed_run(now)
+        last = self._last_run.get(series, "")
+        if not by_command and last and last in runs and now - runs[last][0] <= RUN_FOLLOW_MAX_AGE_S:
+            # No command names a run (a campaign ended, a jog stopped): the newest state is any
+            # bridge's, and with a second twin on the hub the series flipped between the two (CI of
+            # session 42); the run shown stays while its truth keeps coming.
+            followed = last
+        if followed:
+            self._last_run[series] = followed
         chosen = runs.get(followed) if followed else None
         if chosen is None and followed:
             chosen = runs.get("")  # a truth naming no run (a replay's), when the run followed has none
@@ -326,7 +337,7 @@ class LatestValues:
                 self._prefer_failed = True
                 log.error("the live view's camera preference failed (%s: %s): following the first camera heard",
                           type(exc).__name__, exc)
-        run = self._followed_run(now) if prefer == TWIN_CAMERA else ""
+        run = self._followed_run(now)[0] if prefer == TWIN_CAMERA else ""
         preferred = [c for c in fresh if _prefers(prefer, run, c)]
         if preferred:
             return min(preferred, key=lambda c: cameras[c][0]), why
@@ -340,17 +351,18 @@ class LatestValues:
             return min(fresh, key=lambda c: cameras[c][0]), CHOSEN_FIRST
         return max(cameras, key=lambda c: cameras[c][1]), CHOSEN_CURRENT
 
-    def _followed_run(self, now: float) -> str:
+    def _followed_run(self, now: float) -> tuple[str, bool]:
         """(Under the lock.) The bridge run the newest command answers, else the newest state's,
-        each if received within :data:`RUN_FOLLOW_MAX_AGE_S`; '' if none."""
+        each if received within :data:`RUN_FOLLOW_MAX_AGE_S` ('' if none), and whether a command
+        named it."""
         for series in ("command", "state"):
             payload, received = self._raw.get(series), self._received_s.get(series)
             if payload is None or received is None or now - received > RUN_FOLLOW_MAX_AGE_S:
                 continue
             msg = self._decode(series, payload)
             if isinstance(msg, (bus.ForceCommand, bus.MotorState)):
-                return msg.epoch
-        return ""
+                return msg.epoch, series == "command"
+        return "", False
 
     def put(self, series: str, msg: bus.BusMessage) -> None:
         self.put_raw(series, bus.encode(msg))

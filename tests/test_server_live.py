@@ -229,3 +229,43 @@ def test_the_console_shows_and_trusts_no_state_or_camera_message_of_another_robo
     assert values.get("camera") is None
     values.put_raw("camera", camera([0.1, None, 0.3], [0.5, 0.0, 0.9]))
     assert values.get("camera").alpha_ip_rad == [0.1, None, 0.3]
+
+
+def test_the_truth_shown_stays_the_runs_when_no_command_names_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CI of session 42: with a second twin on the hub, once the campaign's commands stopped the
+    truth followed the newest state's run, any bridge's, and flipped between the two twins; the run
+    shown stays while its truth comes, and is left once it falls silent."""
+    from types import SimpleNamespace
+
+    import zenoh
+
+    from bridge.session import run_attachment
+    from server import live
+
+    monkeypatch.setattr(live, "RUN_FOLLOW_MAX_AGE_S", 0.2)
+    ring: list = []
+    values = live.LatestValues()
+    values.add_source("truth", lambda: ring.pop(0) if ring else None, by_run=True)
+
+    def truth(run: str, stamp_s: float) -> SimpleNamespace:
+        msg = bus.Truth(seq=1, stamp_s=stamp_s, alpha_rad=[0.0] * 3, alpha_dot_rad_s=[0.0] * 3, theta_rad=[0.0] * 4,
+                        theta_dot_rad_s=[0.0] * 4, tension_N=[1.0] * 4, elongation_m=[0.0] * 4, slack=[False] * 4,
+                        near_singular=False)
+        return SimpleNamespace(payload=zenoh.ZBytes(bus.encode(msg)), attachment=zenoh.ZBytes(run_attachment(run)))
+
+    def state(run: str) -> None:
+        values.put("state", bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4,
+                                                force_applied_N=[0.0] * 4, drive="active", epoch=run,
+                                                bridge=f"b-{run}"))
+
+    state("campaign")
+    ring[:] = [truth("campaign", 4.0), truth("stray", 0.6)]
+    assert values.get("truth").stamp_s == 4.0
+    for k in range(5):  # the stray's state is the newest now and then; the campaign's truth keeps coming
+        state("stray" if k % 2 == 0 else "campaign")
+        ring[:] = [truth("stray", 0.7 + k), truth("campaign", 4.1 + k)]
+        assert values.get("truth").stamp_s == 4.1 + k, k
+    time.sleep(0.3)  # the campaign's twin gone silent: the stray's is the one left
+    state("stray")
+    ring[:] = [truth("stray", 9.0)]
+    assert values.get("truth").stamp_s == 9.0
