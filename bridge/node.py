@@ -234,7 +234,7 @@ class HoldWorker:
         # (monotonic time of the angles, forces, the angles computed at)
         self._ready: tuple[float, list[float], list[float]] | None = None
         self.computed = self.failed = 0
-        self._last_log_s = -math.inf
+        self._failures_logged = LogLimit(self.LOG_PERIOD_S)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -275,9 +275,7 @@ class HoldWorker:
         except Exception as exc:  # noqa: BLE001 - a failing hold rule must not fail a hold (nor this thread)
             self._ready = None
             self.failed += 1
-            now = time.monotonic()
-            if now - self._last_log_s >= self.LOG_PERIOD_S:
-                self._last_log_s = now
+            if self._failures_logged.allow() is not None:  # the count says the rest
                 log.error("hold forces failed at θ = %s rad (%s: %s; %d failures): a hold there keeps the "
                           "applied forces", [round(x, 3) for x in theta_rad], type(exc).__name__, exc, self.failed)
             return False
@@ -432,7 +430,7 @@ class BridgeNode:
         self.periods_skipped = 0  # real-time periods in which no tick started (:func:`pace`)
         self.read_errors = 0  # encoder reads that failed (module docstring, "Encoder reads")
         self._read_errors_in_row = 0
-        self._read_error_logged_s = -math.inf
+        self._read_errors_logged = LogLimit(1.0)
         self.fault = ""  # why the loop ended, for the last Health (a read failure too many)
         self.tick_max_s = 0.0
         self._seq = {"state": 0, "health": 0}
@@ -680,9 +678,7 @@ class BridgeNode:
                                       f"({type(exc).__name__}: {exc}): the loop ends, drives off")
                 log.error("bridge %s: %s", self.instance, self.fault)
                 raise
-            now = time.monotonic()
-            if now - self._read_error_logged_s >= 1.0:
-                self._read_error_logged_s = now
+            if self._read_errors_logged.allow() is not None:  # the count says the rest
                 log.warning("encoder read failed (%s: %s; %d in all): keeping the last angles and the forces",
                             type(exc).__name__, exc, self.read_errors)
             return False

@@ -55,6 +55,7 @@ import numpy as np
 import zenoh
 
 from bridge import bus
+from bridge.log_limit import LogLimit
 from bridge.session import controller_attachment, liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.prepare import GivenUp, Prepared, Refused, prepare, start_pose_when_known
@@ -167,7 +168,7 @@ class ControllerNode:
         # validating a trajectory may take seconds), started by the loop between two ticks.
         self._req_lock = threading.Lock()
         self.requests_received = self.requests_rejected = self._states_rejected_seen = 0
-        self._reject_logged_at, self._rejects_unlogged = -math.inf, 0
+        self._rejects_logged = LogLimit(1.0)
         self.last_reject = ""  # the latest reason a state or a request was rejected
         # Start requests wait for the loop in one queue per key, as (arrival number, request): a
         # flood on the bare key (any peer may put there) cannot crowd out the console's requests
@@ -277,18 +278,10 @@ class ControllerNode:
         with self._req_lock:
             self.requests_rejected += 1
             self.last_reject = f"{bus.CAMPAIGN_REQUEST}: {reason}"
-            # A flood must not turn into a flood of log lines (CPU the loop needs): at most one
-            # line a second, with how many were rejected since; Health has every count.
-            now = time.monotonic()
-            quiet = now - self._reject_logged_at < 1.0
-            if not quiet:
-                self._reject_logged_at = now
-                since, self._rejects_unlogged = self._rejects_unlogged, 0
-            else:
-                self._rejects_unlogged += 1
-        if not quiet:
-            log.warning("campaign request rejected: %s%s", reason,
-                        f" (and {since} more in the last second)" if since else "")
+        # A flood must not turn into a flood of log lines (CPU the loop needs): at most one
+        # line a second, with how many were rejected since; Health has every count.
+        if (held := self._rejects_logged.allow()) is not None:
+            log.warning("campaign request rejected: %s%s", reason, LogLimit.tail(held))
 
     def _on_request(self, sample: zenoh.Sample, addressed: bool) -> None:
         """A campaign request on the bare key or, ``addressed``, on this service's own: a start

@@ -16,6 +16,7 @@ from busutil import bus_pair, wait_until
 
 from bridge import bus
 from bridge.drivers.beaglebone import BeagleBoneConfig, BeagleBoneDriver
+from bridge.log_limit import LogLimit
 from bridge.motor_speed import MotorSpeed
 from bridge.node import BridgeConfig, BridgeNode, HoldWorker
 from bridge.session import liveliness_token, publisher
@@ -164,13 +165,15 @@ class HealthOf:
                                            lambda s: self.items.append(bus.decode(bus.Health, s.payload.to_bytes())))
 
 
-def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(board, params):
+def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(board, params, caplog):
     """One read of the encoders that fails (the board library raises OSError) had ended the loop
     and dropped every cable from 30 N to 0 (audit of 2026-11-29). A few in a row reuse the last
     angles and keep the forces; one more than ``max_read_errors`` in a row ends the loop as before,
     the drives off, the reason in the log and the bridge's Health."""
     with _rig(board, params, command_timeout_s=5.0) as rig:  # no watchdog between these ticks
         node = rig.node
+        now = [0.0]  # the log limit's clock: one line a second (bridge.log_limit), whatever the machine's speed
+        node._read_errors_logged = LogLimit(1.0, clock=lambda: now[0])
         health = HealthOf(rig.hub, node)
         rig.answered_ticks([30.0] * 4, 40)
         assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4)
@@ -188,6 +191,8 @@ def test_a_failed_encoder_read_keeps_the_drives_and_too_many_in_a_row_trip_them(
         for _ in range(n):
             node.tick()
         assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4) and node.read_errors == 1 + n
+        read_lines = [r.getMessage() for r in caplog.records if "encoder read failed" in r.getMessage()]
+        assert len(read_lines) == 1 and node._read_errors_logged.suppressed == n, read_lines  # counted, not logged
         board.failing_reads = 1  # one more in a row
         with pytest.raises(OSError, match="EIO"):
             node.tick()
