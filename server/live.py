@@ -337,7 +337,7 @@ class LatestValues:
                 self._prefer_failed = True
                 log.error("the live view's camera preference failed (%s: %s): following the first camera heard",
                           type(exc).__name__, exc)
-        run = self._followed_run(now)[0] if prefer == TWIN_CAMERA else ""
+        run = self._run_shown(now) if prefer == TWIN_CAMERA else ""
         preferred = [c for c in fresh if _prefers(prefer, run, c)]
         if preferred:
             return min(preferred, key=lambda c: cameras[c][0]), why
@@ -350,6 +350,20 @@ class LatestValues:
         if fresh:
             return min(fresh, key=lambda c: cameras[c][0]), CHOSEN_FIRST
         return max(cameras, key=lambda c: cameras[c][1]), CHOSEN_CURRENT
+
+    def _run_shown(self, now: float) -> str:
+        """(Under the lock, after the BY_RUN series were pulled.) The bridge run the truth shows
+        (:meth:`_pull_by_run`: the one a command names, else the one shown while its truth keeps
+        coming, else the newest state's), so that the twin's own camera follows the same twin: by
+        the newest state alone it flipped between two twins once a campaign ended, as the truth had."""
+        followed, by_command = self._followed_run(now)
+        if by_command:
+            return followed
+        for series, last in self._last_run.items():
+            runs = self._by_run.get(series, {})
+            if last in runs and now - runs[last][0] <= RUN_FOLLOW_MAX_AGE_S:
+                return last
+        return followed
 
     def _followed_run(self, now: float) -> tuple[str, bool]:
         """(Under the lock.) The bridge run the newest command answers, else the newest state's,
@@ -679,7 +693,7 @@ def _newest_by(try_recv: Callable[[], Any], key: Callable[[Any], _K]) -> dict[_K
 def _prefers(prefer: str, run: str, camera: tuple[str, str]) -> bool:
     """Whether ``prefer`` (:attr:`LatestValues.prefer_camera`'s camera) names ``camera``
     (:func:`_camera_key`); a twin's own (:data:`~server.quality.TWIN_CAMERA`): the one of the bridge
-    run ``run`` (the one the truth follows, :meth:`LatestValues._followed_run`), any twin's if ''."""
+    run ``run`` (the one the truth shows, :meth:`LatestValues._run_shown`), any twin's if ''."""
     if not prefer:
         return False
     if prefer != TWIN_CAMERA:

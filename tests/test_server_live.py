@@ -269,3 +269,50 @@ def test_the_truth_shown_stays_the_runs_when_no_command_names_one(monkeypatch: p
     state("stray")
     ring[:] = [truth("stray", 9.0)]
     assert values.get("truth").stamp_s == 9.0
+
+
+def test_the_twins_own_camera_shown_stays_the_runs_the_truth_shows(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Follow-up of session 42: the stack's own camera (a twin's, preferred) was picked by the
+    newest state's run, so with a second twin on the hub it flipped between the two twins' α_IP
+    once the campaign's commands stopped, while the truth beside it stayed; it follows the truth's run."""
+    from types import SimpleNamespace
+
+    import zenoh
+
+    from bridge.session import run_attachment
+    from server import live
+    from server.quality import TWIN_CAMERA
+
+    monkeypatch.setattr(live, "RUN_FOLLOW_MAX_AGE_S", 0.2)
+    truths: list = []
+    alphas: list = []
+    values = live.LatestValues()
+    values.add_source("truth", lambda: truths.pop(0) if truths else None, by_run=True)
+    values.add_source("camera", lambda: alphas.pop(0) if alphas else None, by_camera=True)
+    values.prefer_camera = lambda: (TWIN_CAMERA, live.CHOSEN_STACK)
+
+    def sample(msg: bus.BusMessage, run: str) -> SimpleNamespace:
+        return SimpleNamespace(payload=zenoh.ZBytes(bus.encode(msg)), attachment=zenoh.ZBytes(run_attachment(run)))
+
+    def truth(run: str, stamp_s: float) -> SimpleNamespace:
+        return sample(bus.Truth(seq=1, stamp_s=stamp_s, alpha_rad=[0.0] * 3, alpha_dot_rad_s=[0.0] * 3,
+                                theta_rad=[0.0] * 4, theta_dot_rad_s=[0.0] * 4, tension_N=[1.0] * 4,
+                                elongation_m=[0.0] * 4, slack=[False] * 4, near_singular=False), run)
+
+    def alpha(run: str, stamp_s: float) -> SimpleNamespace:
+        return sample(bus.CameraAlpha(seq=1, stamp_s=stamp_s, capture_stamp_s=stamp_s, alpha_ip_rad=[0.0] * 3,
+                                      source="twin-noise"), run)
+
+    def state(run: str) -> None:
+        values.put("state", bus.MotorState(seq=1, stamp_s=1.0, theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4,
+                                           drive="active", epoch=run, bridge=f"b-{run}"))
+
+    state("campaign")
+    truths[:], alphas[:] = [truth("campaign", 4.0)], [alpha("campaign", 4.0), alpha("stray", 0.6)]
+    assert values.get("camera").stamp_s == 4.0
+    for k in range(5):  # the stray's state is the newest now and then; the campaign's twin keeps sending
+        state("stray" if k % 2 == 0 else "campaign")
+        truths[:] = [truth("stray", 0.7 + k), truth("campaign", 4.1 + k)]
+        alphas[:] = [alpha("stray", 0.7 + k), alpha("campaign", 4.1 + k)]
+        assert values.get("truth").stamp_s == 4.1 + k, k
+        assert values.get("camera").stamp_s == 4.1 + k, k
