@@ -5,6 +5,7 @@ artifacts/ for a person to look at (docs/console.md lists them)."""
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import json
 import os
@@ -293,6 +294,46 @@ def test_the_header_shows_the_bridges_health_counters(console):
     ticks = int(re.search(r"(\d+) ticks", text).group(1))  # type: ignore[union-attr]
     page.wait_for_function(f"parseInt(document.querySelector('#bridge-health').textContent.split(': ')[1]) > {ticks}",
                            timeout=15000)  # counting, about once a second
+
+
+#: What the camera canvas shows (web/camera.js): the canvas pixels in its strips ``edge`` canvas px
+#: wide at both sides that are brighter than its background (text reaching an edge is cut there),
+#: those of the middle (the text at all), and the font the text was drawn in, in screen px (the
+#: canvas is scaled to its card's width).
+CANVAS_TEXT = """(edge) => {
+  const c = document.getElementById('camera-canvas'), ctx = c.getContext('2d');
+  const lit = (x0, x1) => { const d = ctx.getImageData(x0, 0, x1 - x0, c.height).data; let n = 0;
+    for (let i = 0; i < d.length; i += 4) if (d[i] > 90) n++; return n; };
+  const px = parseFloat(ctx.font);
+  return { edges: lit(0, edge) + lit(c.width - edge, c.width), middle: lit(edge, c.width - edge),
+           screenPx: px * c.clientWidth / c.width, cssWidth: c.clientWidth, font: ctx.font };
+}"""
+
+
+def test_the_camera_panels_no_picture_text_fits_the_canvas_at_any_width(console):
+    """User audit of session 42: the twin's white-noise α_IP (no picture) was said on the canvas in a
+    font so large that both ends were cut ("o picture: twin-noise sends α_IP onl"). At a wide and
+    a narrow card (about 360 px) and a narrower one, nothing is drawn at the canvas's edges and the
+    text stays legible on screen."""
+    page = console.page
+    page.wait_for_function("window.xneckCamera.state === 'live' && "
+                           "document.querySelector('#camera-state').textContent.includes('no picture')", timeout=20000)
+    seen = {}
+    try:
+        for width in (1400, 800, 560):
+            page.set_viewport_size({"width": width, "height": 1000})
+            polls = page.evaluate("window.xneckCamera.polls")
+            page.wait_for_function(f"window.xneckCamera.polls >= {polls + 2}", timeout=10000)  # redrawn at this width
+            seen[width] = page.evaluate(CANVAS_TEXT, 16)  # 2.5 % of the 640 px canvas
+            png = page.evaluate("document.getElementById('camera-canvas').toDataURL('image/png')")
+            (ARTIFACTS / f"console_camera_{width}.png").write_bytes(base64.b64decode(png.split(",", 1)[1]))
+    finally:
+        page.set_viewport_size({"width": 1400, "height": 1000})
+    assert 330 <= seen[800]["cssWidth"] <= 380, seen  # the narrow card of the audit's request
+    for width, s in seen.items():
+        assert s["middle"] > 200, (width, s)  # the text is drawn
+        assert s["edges"] == 0, (width, s)  # ... and not cut at either side
+        assert s["screenPx"] >= 12, (width, s)  # legible
 
 
 def test_the_header_says_when_the_bus_is_open_to_the_network(console):

@@ -28,13 +28,55 @@
   canvas.style.background = "#1f2933";
   const ctx = canvas.getContext("2d");
 
+  // A text said on the canvas (no camera, no picture...) fitted to it at any panel width (user audit
+  // of session 42: "no picture: twin-noise sends α_IP only" was cut at both ends): on one line in the
+  // largest font up to a tenth of the canvas's height that fits 90 % of its width; where that font
+  // would be under MIN_SCREEN_PX on screen (the canvas is scaled to its card), the words wrapped onto
+  // lines in the font that is (or the largest that fits, for a word too long to fit at all).
+  const MIN_SCREEN_PX = 12;
+  const fontOf = (px) => `${px}px system-ui, sans-serif`;
+
+  function wrap(words, px, maxWidth) {
+    ctx.font = fontOf(px);
+    const lines = [];
+    for (const w of words) {
+      const line = lines.length ? `${lines[lines.length - 1]} ${w}` : w;
+      if (lines.length && ctx.measureText(line).width <= maxWidth) lines[lines.length - 1] = line;
+      else lines.push(w);
+    }
+    return lines;
+  }
+
+  function fitText(text) {
+    const maxWidth = 0.9 * canvas.width, maxHeight = 0.9 * canvas.height;
+    const scale = canvas.clientWidth > 0 ? canvas.clientWidth / canvas.width : 1;  // screen px per canvas px
+    let px = Math.max(1, Math.round(canvas.height / 10));
+    ctx.font = fontOf(px);
+    const width = ctx.measureText(text).width;
+    if (width <= maxWidth) return { px, lines: [text] };
+    const oneLine = Math.floor(px * maxWidth / width);
+    if (oneLine * scale >= MIN_SCREEN_PX) return { px: oneLine, lines: [text] };
+    px = Math.min(px, Math.ceil(MIN_SCREEN_PX / scale));
+    const words = text.split(/\s+/).filter(Boolean);
+    for (; px > 1; px--) {
+      const lines = wrap(words, px, maxWidth);
+      if (lines.length * 1.25 * px <= maxHeight && lines.every((l) => ctx.measureText(l).width <= maxWidth)) {
+        return { px, lines };
+      }
+    }
+    return { px: 1, lines: [text] };
+  }
+
   function blank(text) {
     ctx.fillStyle = "#1f2933";
     ctx.fillRect(0, 0, canvas.width, canvas.height);
     ctx.fillStyle = "#cfd6dd";
-    ctx.font = `${Math.round(canvas.height / 10)}px system-ui, sans-serif`;
+    const { px, lines } = fitText(text);
+    ctx.font = fontOf(px);
     ctx.textAlign = "center";
-    ctx.fillText(text, canvas.width / 2, canvas.height / 2);
+    ctx.textBaseline = "middle";
+    const step = 1.25 * px;
+    lines.forEach((line, k) => ctx.fillText(line, canvas.width / 2, canvas.height / 2 + (k - (lines.length - 1) / 2) * step));
   }
 
   function setState(state, text) {
