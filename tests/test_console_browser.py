@@ -416,6 +416,25 @@ def test_a_campaign_or_replay_started_elsewhere_is_shown_and_stopped_and_a_hung_
     page.click("#stop")
     assert wait_until(lambda: http.get(f"/api/campaigns/{cid}").json()["status"] != "running", 30, 0.2)
     console.wait_idle()
+    # User audit of session 42: after a campaign aborted, the bar said "idle" (a page loaded after
+    # it) or only "<id> aborted": it keeps the campaign's end, outcome and message, styled as a
+    # failure, on this page and on one loaded now (from the campaigns' records).
+    rec = http.get(f"/api/campaigns/{cid}").json()
+    assert rec["status"] == "aborted" and rec["message"], rec
+    for shown in (page, page.context.browser.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)):
+        try:
+            if shown is not page:
+                shown.goto(console.base + "/", wait_until="load")
+            shown.wait_for_function("(m) => document.querySelector('#progress-text').textContent.includes(m)",
+                                    arg=rec["message"], timeout=15000)
+            ended = shown.inner_text("#progress-text")
+            assert cid in ended and "aborted" in ended, ended
+            assert shown.get_attribute(".progress", "data-outcome") == "failure", ended
+            if shown is page:
+                console.shot("console_campaign_ended.png", "#control")
+        finally:
+            if shown is not page:
+                shown.close()
 
     r = http.post("/api/campaigns/run-a/replay", json={"speed": 0.2}, headers=AUTH)
     assert r.status_code == 200, r.text

@@ -175,10 +175,28 @@ function connectLive() {
 }
 
 // ---------------------------------------------------------------- campaigns
-function setProgress(fraction, text) {
+// The bar: the running campaign or replay, else the last campaign's end (outcome, message, when),
+// kept until a new campaign or a replay starts (user audit of session 42: after an e-stop aborted a
+// campaign it said "idle", or only "<id> aborted"). endedShown: the campaign whose end it shows.
+let endedShown = null;
+function setProgress(fraction, text, outcome = null) {
   const pct = Math.round(100 * (fraction || 0));
   $("#progress-bar").style.width = pct + "%";
-  $("#progress-text").textContent = `${text || ""} ${pct}%`;
+  const el = $("#progress-text");
+  el.textContent = outcome ? text : `${text || ""} ${pct}%`;
+  el.title = outcome ? text : "";  // the whole message where the bar cuts it
+  if (outcome) $(".progress").dataset.outcome = outcome; else delete $(".progress").dataset.outcome;
+  if (!outcome) endedShown = null;
+}
+
+// An ended campaign's record (server/records.py) on the bar: its status styled as the table's.
+const OUTCOME = { finished: "success", degraded: "warning", analysis_failed: "warning", interrupted: "warning" };
+function showEnded(rec) {
+  const pct = Math.round(100 * (rec.progress || 0));
+  const when = rec.ended_at ? ` (ended ${rec.ended_at.slice(0, 19).replace("T", " ")} UTC)` : "";
+  setProgress(rec.progress, `${rec.id} ${rec.status} at ${pct}%${rec.message ? ": " + rec.message : ""}${when}`,
+    OUTCOME[rec.status] || "failure");
+  endedShown = rec.id;
 }
 
 $("#trajectory").addEventListener("change", () => {
@@ -262,6 +280,14 @@ async function refreshList() {
     tr.append(actions);
     tbody.append(tr);
     if (r.status === "running") { runningId = r.id; setProgress(r.progress, r.id); }
+  }
+  // A page loaded after a campaign ended shows that end too (the records are the console's truth, and
+  // an operator opening the page after an e-stop wants to know what it did); so does a bar whose
+  // shown campaign was deleted: the newest one's, or idle.
+  const untouched = $("#progress-text").textContent === "idle";
+  if (!runningId && !replayId && (untouched || (endedShown && !list.some((r) => r.id === endedShown)))) {
+    if (list.length && list[0].status !== "running") showEnded(list[0]);
+    else if (endedShown) { setProgress(0, ""); $("#progress-text").textContent = "idle"; }  // none left
   }
 }
 
@@ -427,8 +453,8 @@ async function pollStatus() {
     else if (!runningId && $("#progress-text").textContent.startsWith("replay of")) setProgress(1, "replay ended:");
     if (runningId && h.running_campaign_id !== runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
-      setProgress(rec.progress, `${rec.id} ${rec.status}`);
-      if (rec.status !== "running") { runningId = null; refreshList(); showResults(rec.id); }
+      if (rec.status !== "running") { runningId = null; showEnded(rec); refreshList(); showResults(rec.id); }
+      else setProgress(rec.progress, `${rec.id} ${rec.status}`);
     } else if (runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
       setProgress(rec.progress, `${rec.id} ${rec.message}`);
