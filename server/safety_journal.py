@@ -1,0 +1,254 @@
+"""The console's safety journal: an append-only JSON Lines file of every e-stop this console sent
+and every transition of a bridge's state it saw (user audit of ``xneck up``, session 42: an
+e-stop engaged and released between two campaigns was in no record the console keeps).
+
+File: ``<data_dir>/safety/journal.jsonl``, one JSON object a line, newest last. Each line has:
+
+- ``time``: wall-clock time the line was made, ISO 8601 in UTC with microseconds;
+- ``stamp_s``: the same instant in seconds since the Unix epoch (``time.time()``);
+- ``event``: what happened (``estop_sent``, from the console's REST route; ``bridge_run`` and
+  ``bridge_state``, from :mod:`server.bridge_transitions`), then the event's own fields.
+
+Written by a thread of its own from a bounded queue (:data:`QUEUE_LINES`): neither the e-stop's
+route nor the bus's state path waits for the disk, and neither ever sees a write fail. Each line
+is one ``write`` to the file opened in append mode for it (a few lines a second at most: the file
+moved or deleted meanwhile is made again, not written to where it went), so a crash of the
+console loses no line written (not fsync'd: a power cut may lose the last seconds, as the page
+cache does).
+
+Bounded: at :data:`MAX_BYTES` the file is renamed ``journal.1.jsonl`` (the one before it goes)
+and a new one starts, so a flapping or forged e-stop cannot fill the disk (10 MB at most, both).
+A write that fails (disk full, read-only, the path taken by a directory) is counted in
+:attr:`SafetyJournal.write_errors`, its reason kept in :attr:`SafetyJournal.last_error`, and
+logged at most once every :data:`FAILURE_LOG_PERIOD_S` (:class:`bridge.log_limit.LogLimit`); the
+next line tries again (a disk freed meanwhile is written to again).
+
+Reading (:func:`read_journal`) takes the newest lines of the two files; a last line without its
+newline (torn by a crash mid-write) and lines that are not a JSON object naming an ``event`` are
+skipped and counted. A line written after a torn one first ends it (a newline), so it is whole
+itself.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from bridge.archive import iso_time, storage_reason
+from bridge.log_limit import LogLimit
+
+log = logging.getLogger("xneck.server")
+
+JOURNAL_DIR = "safety"  # under the console's data directory
+JOURNAL_FILE = "journal.jsonl"
+PREVIOUS_FILE = "journal.1.jsonl"  # the file before the current one (one kept)
+MAX_BYTES = 5_000_000  # a file is rotated before a line would take it past this (bytes)
+QUEUE_LINES = 1000  # lines waiting for the writer; beyond, a line is dropped and counted
+FAILURE_LOG_PERIOD_S = 60.0  # s: at most one log line a period about writes that fail
+READ_MAX_LINES = 1000  # lines one read returns at most (GET /api/system/safety-journal?limit=)
+#: bytes read back from the end of a file at most: a garbage line of a gigabyte (someone else's
+#: writes) must not be read whole to find the lines after it
+READ_MAX_BYTES = 2 * MAX_BYTES
+READ_BLOCK_BYTES = 64 * 1024  # read back from the end in blocks of this many bytes
+LINE_MAX_BYTES = 64 * 1024  # a longer line is no line of the journal's (about 1 kB): skipped unread
+
+
+class SafetyJournal:
+    """The journal of one data directory (module docstring); :meth:`record` never raises."""
+
+    def __init__(self, data_dir: Path, max_bytes: int = MAX_BYTES) -> None:
+        self.dir = Path(data_dir) / JOURNAL_DIR
+        self.path = self.dir / JOURNAL_FILE
+        self.previous = self.dir / PREVIOUS_FILE
+        self.max_bytes = max_bytes
+        self.written = 0  # lines written since start
+        self.write_errors = 0  # lines that could not be written (each tried once)
+        self.dropped = 0  # lines dropped: the queue was full (the writer stuck on the disk) or closed
+        self.last_error = ""  # why the last write failed ("" if none did)
+        self._limit = LogLimit(FAILURE_LOG_PERIOD_S)
+        self._queue: deque[bytes] = deque()
+        self._cond = threading.Condition()
+        self._writing = False
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="safety-journal", daemon=True)
+        self._thread.start()
+
+    # -- producers (any thread) -------------------------------------------------------------------
+    def record(self, event: str, **fields: Any) -> None:
+        """Queue one line: ``time``, ``stamp_s`` (now), ``event`` and ``fields`` (JSON values; a
+        value that is not one is written as its ``str``). Never raises, never waits for the disk."""
+        try:
+            now_ns = time.time_ns()
+            line = {"time": iso_time(now_ns), "stamp_s": now_ns / 1e9, "event": event, **fields}
+            data = (json.dumps(line, ensure_ascii=False, allow_nan=False, default=str) + "\n").encode("utf-8", "replace")
+        except (TypeError, ValueError) as exc:  # a NaN (no JSON has it): a caller's bug
+            self._failed(f"line not encoded ({type(exc).__name__}: {exc})")
+            return
+        with self._cond:
+            if self._closed or len(self._queue) >= QUEUE_LINES:
+                self.dropped += 1
+                return
+            self._queue.append(data)
+            self._cond.notify()
+
+    def flush(self, timeout_s: float = 1.0) -> bool:
+        """Wait until every line queued so far was written (or failed); False after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._queue or self._writing:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def status(self) -> dict[str, Any]:
+        """Counters for the health and the journal's route: ``written``, ``write_errors``,
+        ``dropped`` (lines), ``last_error`` ("" if no write failed)."""
+        return {"written": self.written, "write_errors": self.write_errors, "dropped": self.dropped,
+                "last_error": self.last_error}
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Write what is queued (within ``timeout_s``) and stop the writer; lines recorded after
+        are dropped (counted)."""
+        self.flush(timeout_s)
+        with self._cond:
+            self._closed = True
+            self.dropped += len(self._queue)
+            self._queue.clear()
+            self._cond.notify_all()
+        self._thread.join(timeout_s)
+
+    # -- the writer thread ------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._closed:
+                    self._cond.wait()
+                if not self._queue:  # closed and nothing left
+                    break
+                data = self._queue.popleft()
+                self._writing = True
+            try:
+                self._write(data)
+            finally:
+                with self._cond:
+                    self._writing = False
+                    self._cond.notify_all()
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd = _open_append(self.path)
+            try:
+                size = os.fstat(fd).st_size
+                if size and size + len(data) > self.max_bytes:
+                    os.close(fd)
+                    fd = -1
+                    os.replace(self.path, self.previous)
+                    fd = _open_append(self.path)
+                elif size and os.pread(fd, 1, size - 1) != b"\n":
+                    data = b"\n" + data  # end the line a crash tore: this one is whole
+                os.write(fd, data)  # one write of the whole line: O_APPEND, unbuffered
+            finally:
+                if fd >= 0:
+                    os.close(fd)
+            self.written += 1
+        except OSError as exc:
+            self._failed(storage_reason(exc))
+
+    def _failed(self, reason: str) -> None:
+        self.write_errors += 1
+        self.last_error = reason
+        held = self._limit.allow()
+        if held is not None:
+            log.error("the safety journal %s could not be written: %s%s", self.path, reason, LogLimit.tail(held))
+
+
+def _open_append(path: Path) -> int:
+    return os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+
+
+def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any]], int]:
+    """(the newest ``limit`` events of the journal, oldest first, each a line parsed; the number
+    of lines skipped among those read: a torn last line, lines that are not a JSON object with a
+    string ``event``). Lines written meanwhile may or may not be in it."""
+    newest_first: list[dict[str, Any]] = []
+    skipped = 0
+    for path in (journal.path, journal.previous):  # newest file first
+        for raw in _lines_backward(path):
+            if len(newest_first) >= limit:
+                break
+            event = _parse(raw) if raw is not None else None
+            if event is None:
+                skipped += 1
+            else:
+                newest_first.append(event)
+    return newest_first[::-1], skipped
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")  # NaN, Infinity: the route's JSON answer could not carry them
+
+
+def _parse(raw: bytes) -> dict[str, Any] | None:
+    try:
+        event = json.loads(raw, parse_constant=_no_constant)
+    except (ValueError, RecursionError):  # not JSON, not UTF-8, NaN; nested beyond Python's stack
+        return None
+    return event if isinstance(event, dict) and isinstance(event.get("event"), str) else None
+
+
+def _lines_backward(path: Path) -> Iterator[bytes | None]:
+    """The lines of ``path``, last first, blank ones left out; None for a line skipped unread: the
+    last one without its newline (torn), one longer than :data:`LINE_MAX_BYTES`. Reads back from
+    the end in blocks, at most :data:`READ_MAX_BYTES` (a line begun before that is left out); a
+    missing or unreadable file has none."""
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below, on every path
+    except OSError:  # missing, or a directory where the file should be: nothing to read there
+        return
+    with f:
+        try:
+            pos = end = f.seek(0, os.SEEK_END)
+            if end == 0:
+                return
+            f.seek(end - 1)
+            torn = f.read(1) != b"\n"
+            first = True  # the next segment is the one after the file's last newline
+            tail = b""  # the end of a line whose start is not read yet
+            dropping = False  # the line being read is too long: its start is dropped too
+            while pos > 0 and end - pos < READ_MAX_BYTES:
+                step = min(READ_BLOCK_BYTES, pos)
+                pos -= step
+                f.seek(pos)
+                parts = (f.read(step) + tail).split(b"\n")
+                tail, complete = parts[0], parts[1:]
+                if dropping and complete:
+                    complete, dropping = complete[:-1], False  # the too long line's start
+                elif dropping:
+                    tail = b""  # more of the too long line
+                for line in reversed(complete):
+                    if first:  # b"" after the last newline, unless the line there is torn
+                        first = False
+                        if torn:
+                            yield None
+                    elif line.strip():
+                        yield line
+                if len(tail) > LINE_MAX_BYTES:
+                    first, tail, dropping = False, b"", True
+                    yield None
+            if pos == 0 and not dropping:
+                if first:  # no newline in the whole file
+                    yield None
+                elif tail.strip():
+                    yield tail
+        except OSError:
+            return

@@ -1,0 +1,181 @@
+"""The console's safety journal (server.safety_journal) and the bridge transitions it is fed
+(server.bridge_transitions), without a bus: synthetic MotorStates on a fake clock, the file in a
+temporary directory. The console's REST e-stops and a real bus's states: tests/test_server_api.py."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from bridge import bus
+from server import bridge_transitions as bt
+from server.bridge_transitions import BridgeTransitions
+from server.safety_journal import SafetyJournal, read_journal
+
+
+def state(seq: int, drive: str = "inactive", engaged: bool = False, reason: str = "", hold_reason: str = "",
+          bridge: str = "bridge-a", epoch: str = "run-1") -> bus.MotorState:
+    return bus.MotorState(seq=seq, stamp_s=seq * 0.002, theta_rad=[0.0] * 4, force_applied_N=[0.0] * 4,
+                          drive=drive, hold_reason=hold_reason, epoch=epoch, bridge=bridge,  # pyright: ignore[reportArgumentType]
+                          estop_engaged=engaged, estop_reason=reason)
+
+
+class Detector:
+    """A BridgeTransitions whose lines are kept in a list, on a clock the test moves."""
+
+    def __init__(self, **kwargs) -> None:
+        self.now = 0.0
+        self.lines: list[dict] = []
+        self.t = BridgeTransitions(lambda event, **f: self.lines.append({"event": event, **f}),
+                                   clock=lambda: self.now, **kwargs)
+
+    def see(self, *states: bus.MotorState, dt: float = 0.1) -> None:
+        for s in states:
+            self.now += dt
+            self.t.observe(s)
+
+
+@pytest.fixture
+def journal(tmp_path: Path):
+    j = SafetyJournal(tmp_path)
+    yield j
+    j.close()
+
+
+def test_an_estop_engaged_and_released_is_one_line_each_and_a_state_seen_again_none() -> None:
+    d = Detector()
+    first = state(1)
+    d.see(first, first, first, state(2), state(3))  # the same state again, and new ones saying the same
+    assert [line["event"] for line in d.lines] == ["bridge_run"]
+    assert d.lines[0]["previous_epoch"] == "" and d.lines[0]["drive"] == "inactive"
+    engaged = state(4, "disabled", True, "console-1a2b3c: operator pressed Escape")
+    d.see(engaged, engaged, state(5, "disabled", True, "console-1a2b3c: operator pressed Escape"),
+          state(6), state(7))
+    assert [line["event"] for line in d.lines] == ["bridge_run", "bridge_state", "bridge_state"]
+    on, off = d.lines[1], d.lines[2]
+    assert on["changed"] == ["estop", "estop_reason", "drive"] and on["estop_engaged"] is True
+    assert on["estop_reason"] == "console-1a2b3c: operator pressed Escape" and on["was"]["drive"] == "inactive"
+    assert off["changed"] == ["estop", "estop_reason", "drive"] and off["estop_engaged"] is False
+    assert off["drive"] == "inactive" and off["was"]["estop_engaged"] is True
+    assert all(line["bridge"] == "bridge-a" and line["epoch"] == "run-1" and line["suppressed"] == 0
+               for line in d.lines)
+    assert on["bridge_stamp_s"] == pytest.approx(4 * 0.002)
+
+
+def test_drive_changes_name_the_hold_reason_and_a_restart_names_the_run_before() -> None:
+    d = Detector()
+    d.see(state(1), state(2, "active"), state(3, "hold", hold_reason="stale states"),
+          state(4, "hold", hold_reason="no command"), state(1, epoch="run-2"))
+    assert [line.get("changed") for line in d.lines] == [None, ["drive"], ["drive", "hold_reason"], ["hold_reason"],
+                                                        None]
+    assert d.lines[2]["hold_reason"] == "stale states" and d.lines[3]["was"]["hold_reason"] == "stale states"
+    restart = d.lines[4]
+    assert restart["event"] == "bridge_run" and restart["epoch"] == "run-2" and restart["previous_epoch"] == "run-1"
+
+
+def test_a_flood_of_flipping_states_writes_a_bounded_number_of_lines_that_count_the_rest() -> None:
+    """A forged peer flipping the e-stop at 500 Hz for 10 s, each state seen (the console sees at
+    most 10 a second; the worst case): a few lines a second, and every transition accounted for."""
+    d = Detector()
+    n = 5000
+    d.see(*(state(i, "disabled" if i % 2 else "inactive", engaged=bool(i % 2), reason="forged" if i % 2 else "")
+            for i in range(n)), dt=0.002)
+    flipped = n - 1
+    seconds = n * 0.002
+    assert len(d.lines) <= bt.BURST_LINES + seconds * bt.LINES_PER_S + 1, len(d.lines)
+    d.now += 10.0
+    d.t.observe(state(n - 1, "disabled", True, "forged"))  # the same look: no transition, the owed line goes
+    shown = sum(1 for line in d.lines if line.get("changed"))
+    assert shown + sum(line["suppressed"] for line in d.lines) == flipped
+    assert d.t.suppressed == flipped - shown > 4000
+    assert any(line["event"] == "bridge_state" and line["changed"] == [] and line["suppressed"] > 0
+               for line in d.lines)  # flapped and back: said, with its count
+
+
+def test_forged_runs_and_names_stay_bounded_and_their_text_is_cleaned() -> None:
+    d = Detector()
+    d.see(*(state(1, bridge=f"forger-{i}", epoch=f"e{i}") for i in range(200)), dt=0.001)
+    assert len(d.t._runs) == bt.MAX_RUNS and d.t.runs_forgotten == 200 - bt.MAX_RUNS
+    assert len(d.t._buckets) <= bt.MAX_RUNS
+    assert len(d.lines) <= bt.ALL_BURST_LINES + 0.2 * bt.ALL_LINES_PER_S + 1
+    d.see(state(2, "hold", bridge="b\x1b[2J\u202e" + "x" * 5000, epoch="e" * 5000, hold_reason="\n" + "r" * 5000),
+          dt=100.0)
+    line = d.lines[-1]
+    assert len(line["bridge"]) <= bt.NAME_MAX_CHARS and "\x1b" not in line["bridge"] and "\u202e" not in line["bridge"]
+    assert len(line["epoch"]) <= bt.NAME_MAX_CHARS
+    assert len(line["hold_reason"]) <= bt.REASON_MAX_CHARS and "\n" not in line["hold_reason"]
+
+
+def test_lines_are_read_back_newest_last_skipping_a_torn_line_and_garbage(journal: SafetyJournal) -> None:
+    for i in range(5):
+        journal.record("estop_sent", engaged=bool(i % 2), reason=f"r{i}")
+    assert journal.flush(5)
+    with open(journal.path, "ab") as f:
+        f.write(b"not json\n[1, 2]\n{\"no\": \"event\"}\n{\"event\": \"x\", \"v\": NaN}\n\n")
+        f.write(b'{"time": "2026-01-01T00:00:00+00:00", "event": "estop_sen')  # a crash mid-line
+    events, skipped = read_journal(journal, 100)
+    assert [e["reason"] for e in events] == ["r0", "r1", "r2", "r3", "r4"] and skipped == 5
+    assert all(e["event"] == "estop_sent" and isinstance(e["stamp_s"], float) and e["time"].endswith("+00:00")
+               for e in events)
+    assert [e["reason"] for e in read_journal(journal, 2)[0]] == ["r3", "r4"]
+    journal.record("estop_sent", engaged=False, reason="after the crash")
+    assert journal.flush(5)
+    events, skipped = read_journal(journal, 100)  # the torn line was ended: the next one is whole
+    assert events[-1]["reason"] == "after the crash" and skipped == 5
+
+
+def test_the_journal_rotates_at_its_cap_and_keeps_one_previous_file(tmp_path: Path) -> None:
+    j = SafetyJournal(tmp_path, max_bytes=4000)
+    try:
+        for i in range(200):
+            j.record("bridge_state", i=i, reason="x" * 50)
+        assert j.flush(10)
+    finally:
+        j.close()
+    assert j.path.stat().st_size <= 4000 and j.previous.stat().st_size <= 4000
+    assert sorted(p.name for p in j.dir.iterdir()) == ["journal.1.jsonl", "journal.jsonl"]
+    events, skipped = read_journal(j, 1000)
+    assert skipped == 0 and [e["i"] for e in events] == list(range(200 - len(events), 200)) and len(events) > 40
+
+
+def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJournal, caplog) -> None:
+    journal.dir.mkdir(parents=True)
+    journal.path.mkdir()  # a directory where the file should be
+    for i in range(3):
+        journal.record("estop_sent", engaged=True, reason=f"r{i}")  # does not raise
+    assert journal.flush(5)
+    assert journal.write_errors == 3 and "directory" in journal.last_error.lower()
+    assert sum("safety journal" in r.getMessage() for r in caplog.records) == 1  # once a period
+    assert read_journal(journal, 10) == ([], 0)
+    os.rmdir(journal.path)
+    journal.record("estop_sent", engaged=False, reason="disk back")
+    assert journal.flush(5)
+    assert [e["reason"] for e in read_journal(journal, 10)[0]] == ["disk back"] and journal.written == 1
+    journal.record("estop_sent", value=float("nan"))  # no JSON carries it: counted, not raised
+    assert journal.write_errors == 4
+    assert json.loads(journal.path.read_text().splitlines()[-1])["reason"] == "disk back"
+
+
+def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Path, monkeypatch) -> None:
+    """Lines across block boundaries, blank lines, a torn end, lines too long to read."""
+    import random
+
+    from server import safety_journal as sj
+
+    monkeypatch.setattr(sj, "READ_BLOCK_BYTES", 7)
+    monkeypatch.setattr(sj, "LINE_MAX_BYTES", 30)
+    rng = random.Random(0)
+    path = tmp_path / "j"
+    for _ in range(300):
+        lines = [b"x" * rng.choice([0, 1, 5, 6, 7, 8, 20, 40, 100]) for _ in range(rng.randint(0, 8))]
+        data = b"\n".join(lines) + (b"\n" if rng.random() < 0.5 else b"")
+        path.write_bytes(data)
+        expected: list[bytes | None] = []
+        *whole, last = data.split(b"\n")
+        if last:
+            expected.append(None)  # torn
+        expected += [None if len(line) > 30 else line for line in reversed(whole) if line]
+        assert list(sj._lines_backward(path)) == expected, data
