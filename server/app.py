@@ -2,9 +2,10 @@
 
 Lifespan (start-up, in order): one Zenoh session listening on the hub endpoint (campaign
 processes connect to it; ``settings.connect`` reaches a robot's bridge), liveliness presence, the
-live fan-out and its broadcaster task, the viser 3D view (its own thread and port), the campaign
-manager — which first recovers archives a crash left unfinished (per-file errors are logged and
-shown on the records, they never stop start-up). Shutdown reverses it; the session is closed
+safety journal (server.safety_journal, fed by the live state's sampler), the live fan-out and its
+broadcaster task, the viser 3D view (its own thread and port), the campaign manager — which first
+recovers archives a crash left unfinished (per-file errors are logged and shown on the records,
+they never stop start-up). Shutdown reverses it; the session is closed
 last so no Zenoh callback outlives its objects.
 
 Before all that, :func:`create_app` takes the data directory (:class:`server.datadir.DataDirLock`:
@@ -39,6 +40,7 @@ from server import (
     routes_truths,
     routes_workspace,
 )
+from server.bridge_transitions import BridgeTransitions
 from server.camera_feed import CameraFeed
 from server.campaigns import CampaignManager, NotFound, StorageError
 from server.console import include_console_routes
@@ -59,6 +61,7 @@ from server.presence import Presence
 from server.quality import TWIN_CAMERA
 from server.routes_jog import request_jog, stop_jog
 from server.routes_studies import router as studies_router
+from server.safety_journal import SafetyJournal
 from server.settings import Settings, resolve_token
 from server.workspace_maps import WorkspaceCache
 
@@ -106,7 +109,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tasks: list[asyncio.Task] = []
         try:
             state.presence = Presence(session)
+            # every e-stop this console sends (routes_system) and every transition of a bridge's
+            # state it sees (the live state's sampler): user audit of session 42
+            state.journal = SafetyJournal(data_dir)
+            state.transitions = BridgeTransitions(state.journal.record)
             state.live = LiveBus(session)
+            state.live.on_state = state.transitions.observe
             state.camera = CameraFeed(session)
             state.broadcaster = Broadcaster(state.live.values, settings.live_rate_hz)
             tasks.append(asyncio.create_task(state.broadcaster.run(), name="live-broadcaster"))
@@ -156,7 +164,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 await asyncio.to_thread(state.campaigns.close)
             if state.scene is not None:
                 state.scene.close()
-            for name in ("live", "camera", "presence"):
+            for name in ("live", "camera", "presence", "journal"):  # the journal after the state's sampler
                 obj = getattr(state, name, None)
                 if obj is not None:
                     obj.close()

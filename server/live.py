@@ -590,6 +590,10 @@ class LiveBus:
         # The bridge's state is taken off its ring every STATE_SAMPLE_PERIOD_S s (one sample, one
         # decode: 10 per second, not the bus's 500), so its age is right whoever reads it and when.
         self._stop_sampling = threading.Event()
+        #: Called with each state sampled (the same object again while no newer came), on the
+        #: sampler's thread: server.bridge_transitions for the safety journal. It must not block.
+        self.on_state: Callable[[bus.MotorState], None] | None = None
+        self._on_state_failed = False  # logged once
         self._sampler = threading.Thread(target=self._sample_state, name="live-state-sampler", daemon=True)
         self._sampler.start()
 
@@ -639,7 +643,17 @@ class LiveBus:
 
     def _sample_state(self) -> None:
         while not self._stop_sampling.wait(STATE_SAMPLE_PERIOD_S):
-            self.values.latest_valid("state")
+            latest = self.values.latest_valid("state")
+            hook = self.on_state
+            if hook is None or latest is None:
+                continue
+            try:
+                hook(cast(bus.MotorState, latest[1]))  # SERIES["state"] decodes MotorState only
+            except Exception as exc:  # noqa: BLE001 - a failing hook must not stop the sampling (the state's age)
+                if not self._on_state_failed:  # once: it runs 10 times a second
+                    self._on_state_failed = True
+                    log.error("the bridge state's hook failed (%s: %s): the safety journal misses transitions",
+                              type(exc).__name__, exc)
 
     def _subscribe(self, name: str) -> None:
         ring = BY_RUN_RING_SAMPLES if name in BY_RUN or name in BY_CAMERA or name == "state" else 1

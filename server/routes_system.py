@@ -1,15 +1,16 @@
-"""``/api/system``: health, processes alive on the bus, mode, e-stop, abort with a cause; ``/api/config`` for
-the dashboard."""
+"""``/api/system``: health, processes alive on the bus, mode, e-stop, the safety journal, abort with a
+cause; ``/api/config`` for the dashboard."""
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
 
-from bridge import small_file
+from bridge import bus, small_file
 from bridge.archive import software_version
 from controller.laws import LAWS
 from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
@@ -17,8 +18,13 @@ from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
 from server.live import bridge_status
+from server.safety_journal import READ_MAX_LINES, read_journal
+
+log = logging.getLogger("xneck.server")
 
 router = APIRouter(tags=["system"])
+
+USER_AGENT_MAX_CHARS = 120  # of a client's User-Agent as journalled and logged
 
 
 @router.get("/api/system/health")
@@ -49,6 +55,7 @@ def health(request: Request) -> dict[str, Any]:
         "estop": s.campaigns.estop_status(),  # the bridge's latched e-stop when it reports one
         "bridge": bridge_status(s.live.values),  # how old its latest motor state is: live or silent
         "camera": camera_health(s.live.values, s.camera, s.presence),  # detection health (issue 15); None without a camera
+        "safety_journal": _journal_status(s),  # lines written, failed, dropped; transitions suppressed
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }
@@ -83,8 +90,55 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
     sent; ``/api/system/health`` shows what the bridge reports (``estop.source``)."""
-    request.app.state.campaigns.estop(body.engaged, body.reason)
+    s = request.app.state
+    sent = {"engaged": body.engaged, "reason": bus.plain_text(body.reason), **_requester(request),
+            "holder": s.campaigns.estop_holder}
+    log.warning("e-stop %s by %s (%s, %s): %r", "engaged" if body.engaged else "released", sent["client"],
+                sent["auth"], sent["user_agent"] or "no user agent", sent["reason"])
+    error = "unexpected error"
+    try:
+        s.campaigns.estop(body.engaged, body.reason)
+        error = ""
+    except Exception as exc:
+        error = bus.plain_text(f"{type(exc).__name__}: {exc}")
+        raise
+    finally:  # queued, never written here: a journal that cannot write does not fail the e-stop
+        s.journal.record("estop_sent", **sent, published=not error, error=error)
     return {"engaged": body.engaged, "reason": body.reason}
+
+
+def _requester(request: Request) -> dict[str, Any]:
+    """Who sent a request, as the console knows it: ``client``, the peer's address ``host:port``
+    (a proxy's if one is in between: no forwarded header is trusted); ``user_agent`` (cut);
+    ``auth``, what allowed it (the console's one bearer token: not a person); ``bus_user`` and
+    ``bus_role``, the console's own bus identity (bridge.session.access_summary; null user
+    without credentials), under which the e-stop reaches the bridge."""
+    peer = request.client
+    access = getattr(request.app.state, "bus_access", None) or {}
+    return {"client": f"{peer.host}:{peer.port}" if peer is not None else "unknown",
+            "user_agent": bus.plain_text(request.headers.get("user-agent", ""), USER_AGENT_MAX_CHARS),
+            "auth": "bearer token", "bus_user": access.get("user"), "bus_role": access.get("role")}
+
+
+def _journal_status(s: Any) -> dict[str, Any]:
+    return {**s.journal.status(), **s.transitions.status()}
+
+
+@router.get("/api/system/safety-journal")
+def safety_journal(request: Request,
+                   limit: int = Query(100, ge=1, le=READ_MAX_LINES,
+                                      description="How many of the newest events to return.")) -> dict[str, Any]:
+    """The console's safety journal (docs/console.md, "Safety journal"; server.safety_journal):
+    ``events``, the newest ``limit`` lines, oldest first, each as written (``time`` ISO 8601
+    UTC, ``stamp_s`` s since the epoch, ``event``: ``estop_sent``, ``bridge_run``,
+    ``bridge_state``, and its fields); ``skipped``, lines read that are not events (a line torn
+    by a crash, garbage); ``journal``, the counters since the console started (``written``,
+    ``write_errors``, ``last_error``, ``dropped`` lines; ``suppressed`` transitions no line
+    shows, ``runs_forgotten``). Open like the other reads (no token)."""
+    s = request.app.state
+    s.journal.flush(0.5)  # what was queued before this request, written (a moment at most)
+    events, skipped = read_journal(s.journal, limit)
+    return {"events": events, "skipped": skipped, "journal": _journal_status(s)}
 
 
 class AbortRequest(BaseModel):

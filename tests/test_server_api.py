@@ -10,6 +10,7 @@ import os
 import signal
 import socket
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +26,15 @@ from bridge.archive_read import is_complete, read_campaign
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with (running_server(tmp_path_factory.mktemp("api"), viser=False) as (base, _app),
+def console(tmp_path_factory):
+    with (running_server(tmp_path_factory.mktemp("api"), viser=False) as (base, app),
           httpx.Client(base_url=base, timeout=30) as c):
-        yield c
+        yield c, app
+
+
+@pytest.fixture(scope="module")
+def client(console):
+    return console[0]
 
 
 def _loc(r: httpx.Response) -> list[list]:
@@ -674,3 +680,131 @@ def test_the_estimator_description_names_every_estimator_a_campaign_accepts(clie
     assert set(VARIABLE_ESTIMATORS) <= named, (set(VARIABLE_ESTIMATORS) - named, text)
     auto_rule = text[text.index("auto"):text.index(")")]
     assert {"outputerror", "loadfriction", "iv"} <= set(re.findall(r"[a-z]+", auto_rule)), auto_rule
+
+
+# -- the safety journal (server.safety_journal; user audit of session 42) ------------------------------
+
+
+def _journal(client: httpx.Client, bridge: str | None = None, limit: int = 1000) -> list[dict]:
+    r = client.get("/api/system/safety-journal", params={"limit": limit})
+    assert r.status_code == 200, r.text
+    events = r.json()["events"]
+    return [e for e in events if bridge is None or e.get("bridge") == bridge]
+
+
+def test_estops_sent_between_campaigns_are_journalled_with_reason_and_client(client) -> None:
+    """An e-stop engaged and released between two campaigns was in no record the console keeps."""
+    for engaged, reason in ((True, "journal: pressed between campaigns"), (False, "journal: cleared")):
+        r = client.post("/api/system/estop", json={"engaged": engaged, "reason": reason}, headers=AUTH)
+        assert r.status_code == 200, r.text
+    sent = [e for e in _journal(client) if e["event"] == "estop_sent"][-2:]
+    assert [(e["engaged"], e["reason"]) for e in sent] == [(True, "journal: pressed between campaigns"),
+                                                           (False, "journal: cleared")]
+    for e in sent:
+        assert e["client"].startswith("127.0.0.1:") and "httpx" in e["user_agent"], e
+        assert e["auth"] == "bearer token" and e["bus_role"] == "operator" and e["holder"].startswith("console-"), e
+        assert e["published"] is True and e["error"] == "" and e["time"].endswith("+00:00"), e
+        assert isinstance(e["stamp_s"], float)
+    assert sent[0]["stamp_s"] <= sent[1]["stamp_s"]
+
+
+def test_the_journals_limit_is_validated(client) -> None:
+    for bad in ("0", "1001", "-1", "many"):
+        r = client.get("/api/system/safety-journal", params={"limit": bad})
+        assert ["query", "limit"] in _loc(r), bad
+    r = client.get("/api/system/safety-journal", params={"limit": 1})
+    assert r.status_code == 200 and len(r.json()["events"]) <= 1
+    assert set(r.json()["journal"]) >= {"written", "write_errors", "dropped", "suppressed", "runs_forgotten"}
+    assert "safety_journal" in client.get("/api/system/health").json()
+
+
+class _StatePublisher:
+    """A made-up bridge publishing ``MotorState`` on the console's hub from a thread, ``look`` as the
+    test sets it; ``vary`` makes each state's hold reason its own (a forged peer flipping at every
+    message)."""
+
+    def __init__(self, client: httpx.Client, n_motors: int, bridge: str, rate_hz: float, vary: bool = False) -> None:
+        from bridge.session import open_session
+
+        self.look: dict[str, Any] = {"drive": "inactive"}
+        self.sent = 0
+        self._stop = threading.Event()
+        hub = client.get("/api/system/health").json()["hub"]
+        self._session = open_session(listen=["tcp/127.0.0.1:0"], connect=[hub])
+        self._n, self._bridge, self._period, self._vary = n_motors, bridge, 1.0 / rate_hz, vary
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        for seq in itertools.count(1):
+            if self._stop.wait(self._period):
+                return
+            look = {**self.look, **({"hold_reason": f"flap {seq}", "drive": "hold"} if self._vary else {})}
+            self._session.put(bus.MOTOR_STATE, bus.encode(bus.MotorState(
+                seq=seq, stamp_s=seq * self._period, theta_rad=[0.0] * self._n, force_applied_N=[1.0] * self._n,
+                epoch="journal-run-1", bridge=self._bridge, **look)))
+            self.sent += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._session.close()
+
+
+def test_a_bridges_estop_engaged_and_released_is_journalled_once_each(console: tuple[httpx.Client, Any]) -> None:
+    client, app = console
+    pub = _StatePublisher(client, app.state.default_params.n_cables, "journal-bridge", 100)
+    try:
+        assert wait_until(lambda: _journal(client, "journal-bridge"), 15, 0.2)
+        pub.look = {"drive": "disabled", "estop_engaged": True, "estop_reason": "console-abc: pressed on the robot"}
+        assert wait_until(lambda: len(_journal(client, "journal-bridge")) >= 2, 15, 0.2)
+        pub.look = {"drive": "inactive"}
+        assert wait_until(lambda: len(_journal(client, "journal-bridge")) >= 3, 15, 0.2)
+        time.sleep(0.5)  # more states saying the same: no more lines
+    finally:
+        pub.close()
+    run, on, off = _journal(client, "journal-bridge")
+    assert run["event"] == "bridge_run" and run["epoch"] == "journal-run-1" and run["drive"] == "inactive"
+    assert on["event"] == "bridge_state" and on["estop_engaged"] is True and on["drive"] == "disabled"
+    assert on["estop_reason"] == "console-abc: pressed on the robot" and "estop" in on["changed"]
+    assert off["estop_engaged"] is False and off["drive"] == "inactive" and off["was"]["estop_engaged"] is True
+    assert all(e["suppressed"] == 0 for e in (run, on, off))
+
+
+def test_a_flood_of_flipping_states_writes_a_bounded_number_of_lines(console: tuple[httpx.Client, Any]) -> None:
+    from server.bridge_transitions import BURST_LINES, LINES_PER_S
+
+    client, app = console
+    start = time.monotonic()
+    pub = _StatePublisher(client, app.state.default_params.n_cables, "journal-forger", 500, vary=True)
+    try:
+        # flipping on: lines come at the bucket's pace, the flips between them counted
+        assert wait_until(lambda: any(e["suppressed"] > 0 for e in _journal(client, "journal-forger")), 20, 0.2)
+    finally:
+        pub.close()
+    elapsed = time.monotonic() - start
+    lines = _journal(client, "journal-forger")
+    assert pub.sent > 200 and len(lines) <= BURST_LINES + elapsed * LINES_PER_S + 1, (pub.sent, len(lines), elapsed)
+    assert client.get("/api/system/safety-journal").json()["journal"]["suppressed"] > 0
+
+
+def test_an_estop_goes_out_when_the_journal_cannot_be_written(console: tuple[httpx.Client, Any]) -> None:
+    """A directory where the journal's file should be: every write fails; the e-stop does not."""
+    client, app = console
+    journal = app.state.journal
+    assert journal.flush(5)
+    kept = journal.path.with_name("kept.jsonl")
+    journal.path.rename(kept)
+    journal.path.mkdir()
+    try:
+        errors = journal.write_errors
+        for engaged in (True, False):
+            r = client.post("/api/system/estop", json={"engaged": engaged, "reason": "journal unwritable"},
+                            headers=AUTH)
+            assert r.status_code == 200 and r.json()["engaged"] is engaged, r.text
+        assert client.get("/api/system/health").json()["estop"]["engaged"] is False
+        status = client.get("/api/system/safety-journal").json()["journal"]
+        assert status["write_errors"] >= errors + 2 and "directory" in status["last_error"].lower(), status
+    finally:
+        journal.path.rmdir()
+        kept.rename(journal.path)
