@@ -9,9 +9,10 @@ exactly what the file holds.
 
 It also follows the bridge's ``MotorState`` (:class:`server.quality.CampaignMonitor`): drives
 disabled during the campaign (the bridge's e-stop) abort it with the bridge's reason, and a
-finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` ends
-``degraded`` with its reasons, in the result and in the MCAP metadata (``quality``, JSON, and
-``degraded_reasons``).
+finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` (an
+identification's: also its cables at f_max) ends ``degraded`` with its reasons, in the result and
+in the MCAP metadata (``quality``, JSON, and ``degraded_reasons``); a degraded identification is
+analysed as a finished one.
 
 An identification campaign is analysed here, once its archive is finished (:func:`analyse_identification`,
 the console's and the CLI's one analysis): one whose analysis fails ends ``analysis_failed`` with the
@@ -437,7 +438,9 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         if on_monitor is not None:
             on_monitor(None)
         counters = monitor.counters(recorder.stats.dropped)
-        reasons = assess(counters, realtime) if outcome == "finished" else []
+        # an identification's cables at f_max are judged too (its forces are the fit's input: server.quality)
+        reasons = assess(counters, realtime, identification=spec.kind == "identification") \
+            if outcome == "finished" else []
         if reasons:
             outcome, message = "degraded", "; ".join(reasons) + (f" ({message})" if message else "")
         note = camera_note(counters)  # another camera's α_IP set aside: said, though the record is clean

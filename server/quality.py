@@ -3,7 +3,7 @@ the bus while it runs, and the thresholds that make its outcome ``degraded`` (is
 and 7).
 
 :class:`CampaignMonitor` subscribes to the bridge's ``MotorState`` and the controller's
-``ForceCommand`` on the campaign's session; its callbacks only decode and update counters under a
+``ForceCommand`` and ``ControllerStatus`` on the campaign's session; its callbacks only decode and update counters under a
 lock. The campaign runner marks the window (:meth:`~CampaignMonitor.begin` at the controller's
 first event, :meth:`~CampaignMonitor.end` at its last), hands it the controller's own counts of
 the campaign (:meth:`~CampaignMonitor.note_event`: ``CampaignEvent`` v2 carries ``ticks``,
@@ -30,6 +30,15 @@ Quality
       :attr:`QualityThresholds.rate_min_fraction` (95 %) of :attr:`QualityThresholds.nominal_rate_hz`
       (500 Hz, the prototype's control rate). Real-time campaigns only: lockstep runs as fast as
       it can and its simulated time is exact by construction.
+    - **cables at f_max**: ticks of the law (the campaign's controller's ``ControllerStatus``, holds
+      excluded: ``law_ticks``) with a cable saturated (``saturated_ticks``; per cable
+      ``saturated_by_cable``), at most :attr:`QualityThresholds.saturated_fraction_max` (1 %) of
+      them. Identification campaigns only: their forces are the fit's input, and a clipped force
+      is not the tension the fit assumes (on the prototype the forces are open-loop current
+      commands: the ESCON current loop saturates), nor was the excitation tracked as designed
+      (user audit of session 42: 11 % of a campaign's ticks at f_max, ``finished``). A control
+      campaign's saturation is its law's performance (its metrics' ``saturated_ticks``, Fig. 14):
+      counted, not judged.
 
 The same counters go to the campaign's record (``quality``) and its MCAP metadata.
 
@@ -79,7 +88,7 @@ from typing import Any
 import zenoh
 
 from bridge import bus
-from bridge.session import payload_of, run_of
+from bridge.session import controller_of, payload_of, run_of
 
 
 @dataclass(frozen=True)
@@ -90,6 +99,7 @@ class QualityThresholds:
     lost_fraction_max: float = 0.001  # messages missing from the record per message expected
     rate_min_fraction: float = 0.95  # of the nominal rate, wall clock
     nominal_rate_hz: float = 500.0  # the prototype's control rate
+    saturated_fraction_max: float = 0.01  # law ticks with a cable at f_max, per law tick (identification)
 
 
 THRESHOLDS = QualityThresholds()
@@ -123,6 +133,8 @@ class CampaignMonitor:
         self._last_state_s: float | None = None  # time.monotonic() of the newest MotorState, any time
         self._began_s: float | None = None
         self._controller = {"controller_ticks": 0, "overruns": 0, "deadline_misses": 0}  # its counts, this campaign
+        self._law_ticks = self._saturated_ticks = 0  # the law's ticks in the window, those with a cable at f_max
+        self._saturated_by_cable: list[int] = []
         self.disabled_reason = ""
         self.rejected = 0
         self._timing: dict[str, Any] = {}  # the controller's own timing of this campaign (issue 21)
@@ -139,6 +151,7 @@ class CampaignMonitor:
         self._cameras_gone: set[str] = set()  # ... whose token went (seen up, then down)
         self._subs = [session.declare_subscriber(bus.MOTOR_STATE, self._on_state),
                       session.declare_subscriber(bus.MOTOR_COMMAND, self._on_command),
+                      session.declare_subscriber(bus.CONTROLLER_STATUS, self._on_status),
                       session.declare_subscriber(bus.CONTROLLER_TIMING, self._on_timing),
                       session.declare_subscriber(bus.TWIN_TRUTH, self._on_run_message),
                       session.declare_subscriber(bus.CAMERA_ALPHA, self._on_run_message),
@@ -325,6 +338,26 @@ class CampaignMonitor:
             self._last_cmd_s = now
             self._commands.add(msg.seq)
 
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        """Counts the law's ticks with a cable at f_max (module docstring): of the followed controller
+        (its status names it in the attachment), within the window, holds excluded."""
+        with self._lock:
+            if not self._active or (self._follow and controller_of(sample) != self._follow):
+                return  # not decoded: neither the campaign's nor counted as foreign (its commands are)
+        msg = self._decode(bus.ControllerStatus, sample)
+        if msg is None or msg.holding:
+            return
+        with self._lock:
+            if not self._active:
+                return
+            self._law_ticks += 1
+            if any(msg.saturated):
+                self._saturated_ticks += 1
+                if len(self._saturated_by_cable) < len(msg.saturated):
+                    self._saturated_by_cable += [0] * (len(msg.saturated) - len(self._saturated_by_cable))
+                for j, clipped in enumerate(msg.saturated):
+                    self._saturated_by_cable[j] += clipped
+
     def _on_run_message(self, sample: zenoh.Sample) -> None:
         """Counts the truths and α_IP of another twin (not decoded: the attachment says whose)."""
         truth = str(sample.key_expr) == bus.TWIN_TRUTH
@@ -374,6 +407,8 @@ class CampaignMonitor:
                 "foreign_messages": self.foreign, "foreign_truths": self.foreign_truths,
                 "alpha_ip_source": self._alpha_ip_source, "alpha_ip_camera": self._alpha_ip_camera,
                 "foreign_alpha_ip": dict(self.foreign_alpha_ip),
+                "law_ticks": self._law_ticks, "saturated_ticks": self._saturated_ticks,
+                "saturated_by_cable": list(self._saturated_by_cable),
             }
 
     def close(self) -> None:
@@ -398,8 +433,10 @@ def drive_estop(state: bus.MotorState) -> tuple[bool, str]:
     return False, ""
 
 
-def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds = THRESHOLDS) -> list[str]:
-    """The reasons (sentences) a campaign with these counters is degraded; [] if none."""
+def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds = THRESHOLDS, *,
+           identification: bool = False) -> list[str]:
+    """The reasons (sentences) a campaign with these counters is degraded; [] if none.
+    ``identification``: the campaign is one (its cables at f_max are judged: module docstring)."""
     reasons = []
     ticks = int(counters.get("ticks", 0))
     expected = ticks + int(counters.get("states", 0)) + int(counters.get("messages_lost", 0))
@@ -418,7 +455,22 @@ def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds =
         if ticks > 1 and rate < floor:
             reasons.append(f"rate {rate:.0f} Hz below {100 * limits.rate_min_fraction:.0f} % of the nominal "
                            f"{limits.nominal_rate_hz:.0f} Hz ({floor:.0f} Hz)")
+    if identification:
+        reasons += _saturation(counters, limits)
     return reasons
+
+
+def _saturation(counters: dict[str, Any], limits: QualityThresholds) -> list[str]:
+    """The reason an identification whose cables sat at f_max is degraded (module docstring), if so."""
+    law_ticks, saturated = int(counters.get("law_ticks", 0)), int(counters.get("saturated_ticks", 0))
+    if not law_ticks or saturated / law_ticks <= limits.saturated_fraction_max:
+        return []
+    by_cable = [int(n) for n in counters.get("saturated_by_cable") or []]
+    most = f", cable {by_cable.index(max(by_cable)) + 1} most ({max(by_cable)} ticks; by cable " \
+           f"{', '.join(map(str, by_cable))})" if by_cable else ""
+    return [f"cables at f_max in {100 * saturated / law_ticks:.1f} % of ticks ({saturated} of {law_ticks}, "
+            f"> {100 * limits.saturated_fraction_max:g} %){most}: the forces the identification fits were clipped "
+            f"and its excitation was not tracked as designed"]
 
 
 def camera_note(counters: dict[str, Any]) -> str:

@@ -75,6 +75,9 @@ def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
         ["state-to-command latency p50 / p99 (ms)", f"{q.get('latency_p50_ms', '–')} / {q.get('latency_p99_ms', '–')}",
          "the controller's own, upper bin edges"],
     ]
+    if "law_ticks" in q:  # recorded since the count (user audit of session 42)
+        rows.append(["law ticks with a cable at f_max", f"{q.get('saturated_ticks')} / {q['law_ticks']}",
+                     f"≤ {100 * t.get('saturated_fraction_max', 0):g} % (identification only)"])
     reasons = q.get("reasons") or []
     return [_table("Real-time quality (server.quality)", ["", "this run", "threshold"], rows,
                    ("degraded: " + "; ".join(reasons)) if reasons else "within the thresholds")]

@@ -1,0 +1,142 @@
+"""What an identification campaign's record says of its own run (user audit of session 42, `xneck up`):
+the ticks its cables sat at f_max make it ``degraded`` (the forces the fit assumes were clipped),
+counted by the console from its controller's statuses (server.quality)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import zenoh
+from busutil import bus_pair, wait_until
+
+from bridge import bus
+from bridge.archive_read import read_campaign
+from bridge.session import controller_attachment
+from server.quality import THRESHOLDS, CampaignMonitor, assess
+
+
+def _status(seq: int, saturated: tuple[bool, ...], holding: bool = False) -> bytes:
+    return bus.encode(bus.ControllerStatus(
+        seq=seq, stamp_s=seq * 0.002, law="law1", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+        saturated=list(saturated), alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3,
+        holding=holding, hold_reason="drives disabled" if holding else "", campaign_id="c-id", ticks=seq))
+
+
+NONE, CABLE_2, CABLES_2_4, ALL = (False,) * 4, (False, True, False, False), (False, True, False, True), (True,) * 4
+
+
+def test_the_monitor_counts_the_ticks_its_controllers_cables_sat_at_f_max(sessions) -> None:
+    """Only the followed controller's statuses within the campaign's window, holds excluded: another
+    controller on the bus (or one naming none) and the ticks before and after are not the campaign's."""
+    a, b = sessions
+    monitor = CampaignMonitor(b)
+    last = [-1]
+    # declared after the monitor's: once it has a sample, the monitor's callback has taken it (and the ones before)
+    probe = b.declare_subscriber(bus.CONTROLLER_STATUS, lambda s: last.__setitem__(
+        0, bus.decode(bus.ControllerStatus, s.payload.to_bytes()).seq))
+    pub = a.declare_publisher(bus.CONTROLLER_STATUS, congestion_control=zenoh.CongestionControl.BLOCK)
+    own, other = controller_attachment("ctl-own"), controller_attachment("ctl-other")
+
+    def taken(marker: int) -> bool:
+        """Another controller's status numbered ``marker`` put last: whether it (and all before) came."""
+        pub.put(_status(marker, ALL), attachment=other)
+        return wait_until(lambda: last[0] == marker, 10, 0.01)
+
+    try:
+        monitor.follow("ctl-own")
+        assert wait_until(lambda: taken(10_000), 10, 0.05)  # the route is up (a put before it is lost)
+        for k in range(5):
+            pub.put(_status(k, ALL), attachment=own)  # before the window
+        assert taken(10_001)
+        monitor.begin()
+        for k in range(100):
+            pub.put(_status(k, CABLES_2_4 if k < 3 else CABLE_2 if k < 13 else NONE), attachment=own)
+            pub.put(_status(k, ALL), attachment=other)  # another controller's, saturated
+        for k in range(4):
+            pub.put(_status(k, ALL, holding=True), attachment=own)  # the hold's forces are not the law's
+            pub.put(_status(k, ALL))  # a status naming no controller
+        assert taken(10_002)
+        monitor.end()
+        for k in range(5):
+            pub.put(_status(k, ALL), attachment=own)  # after the window
+        assert taken(10_003)
+        counters = monitor.counters()
+    finally:
+        pub.undeclare()
+        probe.undeclare()
+        monitor.close()
+    assert counters["law_ticks"] == 100 and counters["saturated_ticks"] == 13, counters
+    assert counters["saturated_by_cable"] == [0, 13, 0, 3], counters
+    reasons = assess(counters, realtime=False, identification=True)
+    assert reasons == ["cables at f_max in 13.0 % of ticks (13 of 100, > 1 %), cable 2 most (13 ticks; by cable "
+                       "0, 13, 0, 3): the forces the identification fits were clipped and its excitation was "
+                       "not tracked as designed"], reasons
+    assert assess(counters, realtime=False) == []  # a control campaign's saturation is its law's performance
+
+
+def test_an_identification_with_cables_at_f_max_beyond_the_threshold_is_degraded() -> None:
+    """The audit's run: 11.2 % of its ticks with a cable at f_max, ``finished`` without a word."""
+    ok = {"ticks": 5000, "states": 5000, "rate_hz": 499.0, "deadline_misses": 0, "record_gaps": 0,
+          "messages_lost": 0, "law_ticks": 5000, "saturated_ticks": 50, "saturated_by_cable": [0, 50, 0, 0]}
+    assert THRESHOLDS.saturated_fraction_max == 0.01
+    assert assess(ok, realtime=True, identification=True) == []  # 1 %: at the threshold, not beyond
+    audit = {**ok, "saturated_ticks": 560, "saturated_by_cable": [3, 512, 0, 77]}
+    reasons = assess(audit, realtime=True, identification=True)
+    assert len(reasons) == 1 and reasons[0].startswith("cables at f_max in 11.2 % of ticks (560 of 5000, > 1 %), "
+                                                       "cable 2 most (512 ticks; by cable 3, 512, 0, 77)"), reasons
+    assert assess(audit, realtime=True) == [] and assess(audit, realtime=True, identification=False) == []
+    # a record made before the count (no law_ticks): nothing to judge, nothing said
+    assert assess({k: v for k, v in audit.items() if k != "law_ticks"}, realtime=True, identification=True) == []
+
+
+# -- end to end: `xneck up`'s path (a twin bridge and a controller service on the console's hub) ----------
+
+@pytest.fixture(scope="module")
+def service_identification(tmp_path_factory):
+    """An identification campaign as `xneck up`'s console runs it (``service=True``, real time, its
+    twin's white-noise camera named), through a twin bridge and a controller service as processes;
+    its parameter set tightens f_max to 20 N: the 3.2 s nod's nominal forces stay under 15 N
+    (validated), law 1's from rest do not (about 85 % of its ticks at f_max on the twin)."""
+    from test_campaign import NOD
+    from test_stack import _procs
+
+    from controller.laws import LawConfig
+    from server.campaign_runner import CampaignSpec, run_campaign
+    from server.service_choice import alive_services
+    from twin.model.params import load_params
+
+    tmp = tmp_path_factory.mktemp("service-identification")
+    params = load_params(overrides={"limits.f_max": 20.0})
+    with bus_pair() as (hub, session, _connect), _procs() as spawn:
+        states = [0]
+        sub = session.declare_subscriber(bus.MOTOR_STATE, lambda _s: states.__setitem__(0, states[0] + 1))
+        try:
+            spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "bridge.log")
+            spawn(["controller", "--law", "1", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "controller.log")
+            assert wait_until(lambda: states[0] > 0 and bool(alive_services(session)), 120, 0.3), \
+                [(tmp / f"{n}.log").read_text()[-1500:] for n in ("bridge", "controller")]
+        finally:
+            sub.undeclare()
+        spec = CampaignSpec("identification", LawConfig(law=1), NOD, seed=3, timeout_s=120, realtime=True,
+                            service=True, camera_source="twin-noise")
+        return run_campaign(spec, params, tmp / "ident.mcap", session=session, hub=hub)
+
+
+@pytest.mark.e2e
+def test_an_identification_through_the_service_whose_cables_sat_at_f_max_says_so(service_identification) -> None:
+    """The audit's case end to end: the console counts the service's statuses, the campaign is degraded
+    with the reason (in its message whatever its analysis then says: this nod is no excitation, its
+    analysis fails), in its quality and in the archive's metadata."""
+    result = service_identification
+    q = result.quality
+    assert q["law_ticks"] > 500 and q["saturated_ticks"] > 0.5 * q["law_ticks"], q
+    assert len(q["saturated_by_cable"]) == 4 and sum(q["saturated_by_cable"]) >= q["saturated_ticks"], q
+    said = [r for r in q["reasons"] if r.startswith("cables at f_max in ")]
+    assert len(said) == 1 and "the forces the identification fits were clipped" in said[0], q["reasons"]
+    assert result.outcome in ("degraded", "analysis_failed"), (result.outcome, result.message)
+    assert said[0] in result.message, result.message
+    info = read_campaign(result.path).info
+    assert said[0] in info["degraded_reasons"] and json.loads(info["quality"])["reasons"] == q["reasons"]
+    assert said[0] in info["message"], info["message"]
+
