@@ -409,9 +409,12 @@ class CampaignRecorder:
             )
 
     def stop(self, outcome: str = "finished", extra_metadata: Mapping[str, str] | None = None,
-             timeout_s: float = 10.0) -> Path:
+             timeout_s: float = 10.0, *, final_metadata: Callable[[], Mapping[str, str]] | None = None) -> Path:
         """Stop recording, write the ``xneck.campaign`` and ``xneck.recorder`` records and finish
-        the file. ``extra_metadata`` (strings) is merged into ``xneck.campaign``. Idempotent."""
+        the file. ``extra_metadata`` (strings) is merged into ``xneck.campaign``, then what
+        ``final_metadata`` returns, asked once the writer has written its last message: what says
+        what the file holds (the α_IP recorded, server.campaign_runner) is not asked while a
+        backlog still waits. Idempotent."""
         if self._stopped:
             return self.path
         self._stopped = True
@@ -436,6 +439,8 @@ class CampaignRecorder:
             raise ArchiveError(self.path, f"recording failed: {storage_reason(self._error)}") from self._error
         final = dict(self._metadata)
         final.update(_check_metadata(self.path, extra_metadata or {}))
+        if final_metadata is not None:
+            final.update(_check_metadata(self.path, final_metadata()))
         final["end_time"] = iso_time()
         final["outcome"] = outcome
         stats = self.stats

@@ -28,7 +28,8 @@ recorder left it: :mod:`server.campaigns` finishes it with the outcome ``failed`
 ``noise`` for control): ``camera`` measures it on frames the twin renders from its truth with
 the robot's detector (``twin.camera``, issue 15) — inside a lockstep twin, every exposure of
 simulated time, deterministic for the seed; beside a real-time twin, a separate ``xneck camera
---source twin`` process —; ``noise`` is the true α plus the camera's white noise.
+--source twin`` process —; ``noise`` is the true α plus the camera's white noise. The finished
+archive's ``alpha_ip`` says the α_IP recorded, whoever started the camera (:func:`alpha_ip_recorded`).
 """
 
 from __future__ import annotations
@@ -258,7 +259,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         "target": "twin" if spec.twin else "robot", "seed": str(spec.seed),
         "pace": "realtime" if spec.realtime or not spec.twin else "lockstep",
         "twin_truth": spec.truth if spec.twin else "",  # a service's twin: the truth the console was told
-        "alpha_ip": spec.alpha_ip_source if spec.twin and not spec.service else "",  # a service's twin: as started
+        # the α_IP asked of a spawned twin; the finished record says the one recorded (alpha_ip_recorded)
+        "alpha_ip": spec.alpha_ip_source if spec.twin and not spec.service else "",
         "parameters_toml": params.to_toml(),
     }
     if spec.kind == "identification":  # how its analysis is asked to run (the archive's reader may refit it otherwise)
@@ -449,7 +451,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
         try:
             recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
-                                    "degraded_reasons": "; ".join(reasons)})
+                                    "degraded_reasons": "; ".join(reasons)},
+                          final_metadata=lambda: {"alpha_ip": alpha_ip_recorded(monitor.recorded_alpha_ip())})
         except ArchiveError as exc:  # a storage fault: the run's counters go with it to the record
             raise RecordingFailed(exc, quality) from exc
     result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality)
@@ -469,6 +472,21 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides,
                                base_name=params.name)
     return result
+
+
+#: The twin's α_IP kind (:data:`ALPHA_IP_KINDS`) of each twin camera's ``CameraAlpha.source``.
+_KIND_OF_SOURCE = {source: kind for kind, source in ALPHA_IP_SOURCES.items()}
+
+
+def alpha_ip_recorded(source: str) -> str:
+    """The archive's ``alpha_ip`` of a campaign that recorded the α_IP of ``source`` ('' for none):
+    a twin camera's kind (``camera``, ``noise``: what a spawned twin is asked), another camera's
+    source (``usb:0``), ``none`` when it recorded none. Written when the recording ends, whoever
+    started the camera: a campaign through `xneck up`'s controller service had said "" (user audit
+    of session 42)."""
+    if not source:
+        return "none"
+    return _KIND_OF_SOURCE.get(source, source[: CampaignMonitor.SOURCE_NAME_MAX])
 
 
 def _stop_until_ended(requests: BusPublisher[bus.BusMessage], events: queue.Queue[bus.CampaignEvent],

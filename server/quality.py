@@ -146,6 +146,7 @@ class CampaignMonitor:
         self._alpha_ip_source: str | None = None  # the camera recorded (None until known: module docstring)
         self._alpha_ip_camera = ""  # the camera process recorded ('' until one named itself: module docstring)
         self.foreign_alpha_ip: dict[str, int] = {}  # α_IP of other cameras set aside, per source[@camera]
+        self._alpha_ip_kept = 0  # α_IP of the camera recorded that the recorder kept
         self._camera_expected = False  # the camera recorded was named by the runner, not adopted
         self._cameras_alive: set[str] = set()  # camera processes whose liveliness token is up
         self._cameras_gone: set[str] = set()  # ... whose token went (seen up, then down)
@@ -178,6 +179,13 @@ class CampaignMonitor:
         the source tells). Takes no lock (one attribute read): the console's live view asks it at
         every read, under a lock of its own (:attr:`server.live.LatestValues.prefer_camera`)."""
         return self._alpha_ip_camera
+
+    def recorded_alpha_ip(self) -> str:
+        """The ``CameraAlpha.source`` of the α_IP the recorder kept (:meth:`keep`), '' if it kept
+        none: a camera expected that sent nothing recorded nothing. Ask it once the recorder has
+        written its last message (:meth:`bridge.archive.CampaignRecorder.stop`'s ``final_metadata``)."""
+        with self._lock:
+            return (self._alpha_ip_source or "") if self._alpha_ip_kept else ""
 
     def _on_camera_token(self, sample: zenoh.Sample) -> None:
         # Zenoh callback thread: a camera process appeared or went (its instance is the key's last chunk).
@@ -229,10 +237,12 @@ class CampaignMonitor:
                 self._alpha_ip_source = source
             if source == self._alpha_ip_source:
                 if not camera:
+                    self._alpha_ip_kept += 1
                     return True  # no name to tell it by: its source is the campaign's
                 if not self._alpha_ip_camera or self._handed_over(camera):
                     self._alpha_ip_camera = camera
                 if camera == self._alpha_ip_camera:
+                    self._alpha_ip_kept += 1
                     return True
             self.foreign += 1
             name = camera_name(source, camera)[: self.SOURCE_NAME_MAX]

@@ -387,6 +387,34 @@ def test_the_recorder_writes_its_last_chunk_before_its_final_records(
     assert read_campaign(path).info["outcome"] == "finished"
 
 
+def test_final_metadata_is_asked_once_the_writer_has_written_its_last_message(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path,
+) -> None:
+    """What says what the file holds (a campaign's α_IP recorded, user audit of session 42) is asked
+    after the backlog, not before: here a writer slowed by its filter still has messages queued."""
+    a, b = sessions
+    path = tmp_path / "backlog.mcap"
+    states = LosslessPublisher(a, bus.MOTOR_STATE)
+    kept = [0]
+
+    def keep(_key: str, _msg: bus.BusMessage, _run: str, _camera: str) -> bool:
+        time.sleep(0.002)
+        kept[0] += 1
+        return True
+
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2, keep=keep)
+    try:
+        assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.received > 0)[1])
+        for i in range(1, 300):
+            states.put(motor_state(i))
+        assert wait_until(lambda: recorder.stats.received >= 300)
+    finally:
+        recorder.stop("finished", {"kept": "at the stop"}, final_metadata=lambda: {"kept": str(kept[0])})
+        states.close()
+    campaign = read_campaign(path)
+    assert campaign.info["kept"] == str(len(campaign.messages(bus.MOTOR_STATE))) == str(recorder.stats.recorded)
+
+
 def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
     sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path,
 ) -> None:

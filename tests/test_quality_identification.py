@@ -140,3 +140,43 @@ def test_an_identification_through_the_service_whose_cables_sat_at_f_max_says_so
     assert said[0] in info["degraded_reasons"] and json.loads(info["quality"])["reasons"] == q["reasons"]
     assert said[0] in info["message"], info["message"]
 
+
+
+# -- the α_IP the archive says it holds (user audit of session 42: "" through the service) ---------------
+
+@pytest.mark.e2e
+def test_an_identification_through_the_service_names_the_alpha_ip_it_recorded(service_identification) -> None:
+    """Through `xneck up`'s controller service the archive's ``alpha_ip`` was "", though the console
+    knew the camera it recorded: the finished record says it, as a spawned twin's does."""
+    result = service_identification
+    campaign = read_campaign(result.path)
+    assert {m.source for _, m in campaign.messages(bus.CAMERA_ALPHA)} == {"twin-noise"}
+    assert campaign.info["alpha_ip"] == "noise", campaign.info.get("alpha_ip")
+    assert result.quality["alpha_ip_source"] == "twin-noise", result.quality
+
+
+def test_a_campaign_that_recorded_no_alpha_ip_says_none(tmp_path) -> None:
+    """No α_IP recorded at all is said, not "": here a robot campaign stopped while it waited for its
+    bridge (its archive written all the same)."""
+    import threading
+
+    from test_campaign import NOD
+
+    from controller.laws import LawConfig
+    from server.campaign_runner import STOPPED_BY_USER, CampaignSpec, run_campaign
+    from twin.model.params import load_params
+
+    stop = threading.Event()
+    stop.set()
+    with bus_pair() as (hub, session, _connect):
+        result = run_campaign(CampaignSpec("identification", LawConfig(law=1), NOD, twin=False, timeout_s=30),
+                              load_params(), tmp_path / "nobody.mcap", session=session, hub=hub, stop=stop)
+    assert (result.outcome, result.message) == ("aborted", STOPPED_BY_USER)
+    assert read_campaign(result.path).info["alpha_ip"] == "none"
+
+
+def test_the_alpha_ip_recorded_is_named_by_its_kind_or_else_its_source() -> None:
+    from server.campaign_runner import alpha_ip_recorded
+
+    assert [alpha_ip_recorded(s) for s in ("twin-noise", "twin-render", "usb:0", "")] == \
+        ["noise", "camera", "usb:0", "none"]
