@@ -13,7 +13,8 @@ from busutil import bus_pair, wait_until
 from bridge import bus
 from bridge.archive_read import read_campaign
 from bridge.session import controller_attachment
-from server.quality import THRESHOLDS, CampaignMonitor, assess
+from server.quality import THRESHOLDS, CampaignMonitor, assess, thresholds_dict
+from server.results import quality_tables
 
 
 def _status(seq: int, saturated: tuple[bool, ...], holding: bool = False) -> bytes:
@@ -88,6 +89,10 @@ def test_an_identification_with_cables_at_f_max_beyond_the_threshold_is_degraded
     assert assess(audit, realtime=True) == [] and assess(audit, realtime=True, identification=False) == []
     # a record made before the count (no law_ticks): nothing to judge, nothing said
     assert assess({k: v for k, v in audit.items() if k != "law_ticks"}, realtime=True, identification=True) == []
+    # the console's results table shows the count and the threshold (REST /results, the dashboard)
+    (table,) = quality_tables({**audit, "realtime": True, "reasons": reasons, "thresholds": thresholds_dict()})
+    assert ["law ticks with a cable at f_max", "560 / 5000", "≤ 1 % (identification only)"] in table["rows"], table
+    assert table["note"] == "degraded: " + reasons[0]
 
 
 # -- end to end: `xneck up`'s path (a twin bridge and a controller service on the console's hub) ----------
