@@ -9,10 +9,10 @@ exactly what the file holds.
 
 It also follows the bridge's ``MotorState`` (:class:`server.quality.CampaignMonitor`): drives
 disabled during the campaign (the bridge's e-stop) abort it with the bridge's reason, and a
-finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` (an
-identification's: also its cables at f_max) ends ``degraded`` with its reasons, in the result and
-in the MCAP metadata (``quality``, JSON, and ``degraded_reasons``); a degraded identification is
-analysed as a finished one.
+finished campaign whose real-time quality breaks :data:`server.quality.THRESHOLDS` ends
+``degraded`` with its reasons, in the result and in the MCAP metadata (``quality``, JSON, and
+``degraded_reasons``); a degraded identification is analysed as a finished one, and one whose
+cables sat at f_max says so in its message (:func:`server.quality.saturation_note`).
 
 An identification campaign is analysed here, once its archive is finished (:func:`analyse_identification`,
 the console's and the CLI's one analysis): one whose analysis fails ends ``analysis_failed`` with the
@@ -62,7 +62,15 @@ from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
 from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
-from server.quality import THRESHOLDS, TWIN_CAMERA, CampaignMonitor, assess, camera_note, thresholds_dict
+from server.quality import (
+    THRESHOLDS,
+    TWIN_CAMERA,
+    CampaignMonitor,
+    assess,
+    camera_note,
+    saturation_note,
+    thresholds_dict,
+)
 from server.service_choice import alive_services, choose_service
 from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS, ALPHA_IP_SOURCES
@@ -440,12 +448,12 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         if on_monitor is not None:
             on_monitor(None)
         counters = monitor.counters(recorder.stats.dropped)
-        # an identification's cables at f_max are judged too (its forces are the fit's input: server.quality)
-        reasons = assess(counters, realtime, identification=spec.kind == "identification") \
-            if outcome == "finished" else []
+        reasons = assess(counters, realtime) if outcome == "finished" else []
         if reasons:
             outcome, message = "degraded", "; ".join(reasons) + (f" ({message})" if message else "")
         note = camera_note(counters)  # another camera's α_IP set aside: said, though the record is clean
+        if spec.kind == "identification" and (clipped := saturation_note(counters)):  # said, not judged
+            note = f"{note}; {clipped}" if note else clipped
         if note:
             message = f"{message}; {note}" if message else note
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}

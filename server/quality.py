@@ -30,15 +30,18 @@ Quality
       :attr:`QualityThresholds.rate_min_fraction` (95 %) of :attr:`QualityThresholds.nominal_rate_hz`
       (500 Hz, the prototype's control rate). Real-time campaigns only: lockstep runs as fast as
       it can and its simulated time is exact by construction.
-    - **cables at f_max**: ticks of the law (the campaign's controller's ``ControllerStatus``, holds
-      excluded: ``law_ticks``) with a cable saturated (``saturated_ticks``; per cable
-      ``saturated_by_cable``), at most :attr:`QualityThresholds.saturated_fraction_max` (1 %) of
-      them. Identification campaigns only: their forces are the fit's input, and a clipped force
-      is not the tension the fit assumes (on the prototype the forces are open-loop current
-      commands: the ESCON current loop saturates), nor was the excitation tracked as designed
-      (user audit of session 42: 11 % of a campaign's ticks at f_max, ``finished``). A control
-      campaign's saturation is its law's performance (its metrics' ``saturated_ticks``, Fig. 14):
-      counted, not judged.
+
+Cables at f_max (said, not judged)
+    The law's ticks (the campaign's controller's ``ControllerStatus``, holds excluded:
+    ``law_ticks``) with a cable saturated (``saturated_ticks``; per cable ``saturated_by_cable``)
+    are counted for every campaign. An identification's message says so when they are more than
+    :data:`SATURATION_NOTE_FRACTION` (1 %) of them (:func:`saturation_note`; user audit of session
+    42: 11 % of a campaign's ticks at f_max, ``finished`` without a word). It is a note, not a
+    reason to degrade: the force recorded is the force applied (f_max asks 2.2 A of the ESCON's 5 A
+    on the prototype, ρ·f_max/k_t: its current loop does not saturate there), so the fit's data
+    stand; what saturation changes is the excitation, which the law tracked less closely than
+    designed, and the fit's σ says what that cost. A control campaign's saturation is its law's
+    performance (its metrics' ``saturated_ticks``, Fig. 14).
 
 The same counters go to the campaign's record (``quality``) and its MCAP metadata.
 
@@ -99,10 +102,12 @@ class QualityThresholds:
     lost_fraction_max: float = 0.001  # messages missing from the record per message expected
     rate_min_fraction: float = 0.95  # of the nominal rate, wall clock
     nominal_rate_hz: float = 500.0  # the prototype's control rate
-    saturated_fraction_max: float = 0.01  # law ticks with a cable at f_max, per law tick (identification)
 
 
 THRESHOLDS = QualityThresholds()
+#: An identification's message notes its cables at f_max beyond this fraction of the law's ticks
+#: (module docstring, "Cables at f_max").
+SATURATION_NOTE_FRACTION = 0.01
 
 
 class _SeqCounter:
@@ -443,10 +448,8 @@ def drive_estop(state: bus.MotorState) -> tuple[bool, str]:
     return False, ""
 
 
-def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds = THRESHOLDS, *,
-           identification: bool = False) -> list[str]:
-    """The reasons (sentences) a campaign with these counters is degraded; [] if none.
-    ``identification``: the campaign is one (its cables at f_max are judged: module docstring)."""
+def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds = THRESHOLDS) -> list[str]:
+    """The reasons (sentences) a campaign with these counters is degraded; [] if none."""
     reasons = []
     ticks = int(counters.get("ticks", 0))
     expected = ticks + int(counters.get("states", 0)) + int(counters.get("messages_lost", 0))
@@ -465,22 +468,22 @@ def assess(counters: dict[str, Any], realtime: bool, limits: QualityThresholds =
         if ticks > 1 and rate < floor:
             reasons.append(f"rate {rate:.0f} Hz below {100 * limits.rate_min_fraction:.0f} % of the nominal "
                            f"{limits.nominal_rate_hz:.0f} Hz ({floor:.0f} Hz)")
-    if identification:
-        reasons += _saturation(counters, limits)
     return reasons
 
 
-def _saturation(counters: dict[str, Any], limits: QualityThresholds) -> list[str]:
-    """The reason an identification whose cables sat at f_max is degraded (module docstring), if so."""
+def saturation_note(counters: dict[str, Any], fraction: float = SATURATION_NOTE_FRACTION) -> str:
+    """The sentence an identification's message gets when its cables sat at f_max in more than
+    ``fraction`` of the law's ticks (module docstring, "Cables at f_max"); '' otherwise, and for a
+    record made before the count (no ``law_ticks``)."""
     law_ticks, saturated = int(counters.get("law_ticks", 0)), int(counters.get("saturated_ticks", 0))
-    if not law_ticks or saturated / law_ticks <= limits.saturated_fraction_max:
-        return []
+    if not law_ticks or saturated / law_ticks <= fraction:
+        return ""
     by_cable = [int(n) for n in counters.get("saturated_by_cable") or []]
     most = f", cable {by_cable.index(max(by_cable)) + 1} most ({max(by_cable)} ticks; by cable " \
            f"{', '.join(map(str, by_cable))})" if by_cable else ""
-    return [f"cables at f_max in {100 * saturated / law_ticks:.1f} % of ticks ({saturated} of {law_ticks}, "
-            f"> {100 * limits.saturated_fraction_max:g} %){most}: the forces the identification fits were clipped "
-            f"and its excitation was not tracked as designed"]
+    return (f"cables at f_max in {100 * saturated / law_ticks:.1f} % of the law's ticks ({saturated} of {law_ticks}, "
+            f"> {100 * fraction:g} %){most}: the law asked more than f_max, so the excitation was tracked less "
+            f"closely than designed (the forces recorded are those applied: the fit's data stand, its σ says the cost)")
 
 
 def camera_note(counters: dict[str, Any]) -> str:
@@ -511,5 +514,5 @@ def thresholds_dict(limits: QualityThresholds = THRESHOLDS) -> dict[str, float]:
     return asdict(limits)
 
 
-__all__ = ["THRESHOLDS", "TWIN_CAMERA", "CampaignMonitor", "QualityThresholds", "assess", "camera_name", "camera_note", "drive_estop",
-           "thresholds_dict"]
+__all__ = ["SATURATION_NOTE_FRACTION", "THRESHOLDS", "TWIN_CAMERA", "CampaignMonitor", "QualityThresholds", "assess", "camera_name", "camera_note", "drive_estop",
+           "saturation_note", "thresholds_dict"]

@@ -20,6 +20,7 @@ import numpy as np
 
 from bridge import bus
 from bridge.archive_read import read_campaign
+from server.quality import SATURATION_NOTE_FRACTION
 from server.record_gaps import explain_gaps
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
     ]
     if "law_ticks" in q:  # recorded since the count (user audit of session 42)
         rows.append(["law ticks with a cable at f_max", f"{q.get('saturated_ticks')} / {q['law_ticks']}",
-                     f"≤ {100 * t.get('saturated_fraction_max', 0):g} % (identification only)"])
+                     f"an identification's message notes more than {100 * SATURATION_NOTE_FRACTION:g} %"])
     reasons = q.get("reasons") or []
     return [_table("Real-time quality (server.quality)", ["", "this run", "threshold"], rows,
                    ("degraded: " + "; ".join(reasons)) if reasons else "within the thresholds")]
