@@ -64,7 +64,7 @@ import zenoh
 from mcap.writer import CompressionType, Writer
 
 from bridge import bus
-from bridge.session import camera_of, run_of
+from bridge.session import camera_of, controller_of, run_of
 
 try:  # lz4 comes with mcap; keep the archive writable without it.
     import lz4.frame  # noqa: F401
@@ -276,11 +276,12 @@ class CampaignRecorder:
     The Zenoh callback only time-stamps and enqueues (bounded queue; a full queue drops and counts).
     A daemon writer thread decodes, writes, and closes the chunk every ``flush_period_s``.
     ``metadata`` (strings) should carry the :data:`CAMPAIGN_KEYS` known at start; it is written at
-    once as ``xneck.campaign.start``. ``keep(key, message, run, camera)``, if given, says which
+    once as ``xneck.campaign.start``. ``keep(key, message, run, camera, controller)``, if given, says which
     decoded messages are written (the others are counted, ``skipped``): a campaign's own bridge and
     controller only, its twin's truth and one camera; ``run`` is the bridge run the sample names in
     its attachment (:func:`bridge.session.run_of`: the twin's ``Truth``), ``camera`` the camera
-    process it names (:func:`bridge.session.camera_of`: its α_IP), each '' if none.
+    process it names (:func:`bridge.session.camera_of`: its α_IP), ``controller`` the controller a
+    ``ControllerStatus`` names (:func:`bridge.session.controller_of`), each '' if none.
     Use as a context manager or call :meth:`stop`.
     """
 
@@ -295,7 +296,7 @@ class CampaignRecorder:
         flush_period_s: float = 1.0,
         chunk_size: int = CHUNK_SIZE,
         on_error: Callable[[BaseException], None] | None = None,
-        keep: Callable[[str, bus.BusMessage, str, str], bool] | None = None,
+        keep: Callable[[str, bus.BusMessage, str, str, str], bool] | None = None,
     ) -> None:
         self.path = Path(path)
         self._keep = keep  # the writer thread's filter of decoded messages (None: all); counted as skipped
@@ -304,7 +305,7 @@ class CampaignRecorder:
         self._metadata.setdefault("software_version", software_version())
         self._metadata.setdefault("start_time", iso_time())
         self._flush_period_s = flush_period_s
-        self._queue: queue.Queue[tuple[str, bytes, int, str, str] | None] = queue.Queue(maxsize=queue_size)
+        self._queue: queue.Queue[tuple[str, bytes, int, str, str, str] | None] = queue.Queue(maxsize=queue_size)
         self._received = self._dropped = 0
         self._frames_queued = 0
         self._rejected: dict[str, int] = {}
@@ -339,7 +340,8 @@ class CampaignRecorder:
             if msg_type is not None:  # a huge payload is refused before it is copied (bus.PAYLOAD_MAX_BYTES)
                 bus.check_payload_size(msg_type, len(sample.payload))
             run, camera = (run_of(sample), camera_of(sample)) if self._keep else ("", "")
-            self._queue.put_nowait((key, sample.payload.to_bytes(), now_ns, run, camera))
+            controller = controller_of(sample) if self._keep and key == bus.CONTROLLER_STATUS else ""
+            self._queue.put_nowait((key, sample.payload.to_bytes(), now_ns, run, camera, controller))
         except bus.BusDecodeError as exc:
             with self._lock:
                 self._received += 1
@@ -370,7 +372,7 @@ class CampaignRecorder:
                 if item is None:
                     return
                 if item:
-                    key, payload, log_time_ns, run, camera = item
+                    key, payload, log_time_ns, run, camera, controller = item
                     if key == bus.CAMERA_FRAME:
                         with self._lock:
                             self._frames_queued -= 1
@@ -387,7 +389,7 @@ class CampaignRecorder:
                         except bus.BusDecodeError as exc:
                             self._reject(key, exc.reason)
                         else:
-                            if self._keep is None or self._keep(key, msg, run, camera):
+                            if self._keep is None or self._keep(key, msg, run, camera, controller):
                                 self._out.add(key, msg, payload, log_time_ns)
                             else:
                                 self._skipped += 1

@@ -47,8 +47,9 @@ The same counters go to the campaign's record (``quality``) and its MCAP metadat
 
 One bridge, one controller
     Once told the campaign's controller (:meth:`~CampaignMonitor.follow`), the monitor takes only
-    its commands, and only the states of the bridge run they answer (their ``epoch``); the
-    recorder keeps the same (:meth:`~CampaignMonitor.keep`). A second bridge on the bus (a lab's
+    its commands and statuses (a status names its controller in its attachment), and only the
+    states of the bridge run they answer (their ``epoch``); the recorder keeps the same
+    (:meth:`~CampaignMonitor.keep`; another controller's statuses had been archived too, session 43). A second bridge on the bus (a lab's
     robot bridge joining the twin's hub) had ended the campaign on its own disabled drives and
     mixed its states and sequence numbers into the record (audit of 2026-11-28).
 
@@ -213,16 +214,20 @@ class CampaignMonitor:
         with self._lock:
             return {owner for owner, t in self._owners.values() if owner and now - t <= within_s}
 
-    def keep(self, key: str, msg: bus.BusMessage, run: str = "", camera: str = "") -> bool:
-        """Whether the recorder keeps ``msg``, whose sample named the bridge run ``run`` and the
-        camera process ``camera`` ('' for none): not a state of another bridge run than the
-        campaign's, nor a command of another controller, nor a truth not of the campaign's run, nor
-        anything else another run's driver published, nor another camera's α_IP or frame (module
-        docstring)."""
+    def keep(self, key: str, msg: bus.BusMessage, run: str = "", camera: str = "", controller: str = "") -> bool:
+        """Whether the recorder keeps ``msg``, whose sample named the bridge run ``run``, the
+        camera process ``camera`` and the controller ``controller`` ('' for none): not a state of
+        another bridge run than the campaign's, nor a command or status of another controller, nor
+        a truth not of the campaign's run, nor anything else another run's driver published, nor
+        another camera's α_IP or frame (module docstring)."""
         if isinstance(msg, bus.MotorState):
             return not self.epoch or msg.epoch == self.epoch
         if isinstance(msg, bus.ForceCommand):
             return not self._follow or msg.sender == self._follow
+        if isinstance(msg, bus.ControllerStatus):
+            # another controller's statuses had been archived, and its saturation counted in the
+            # campaign's metrics (helper's finding, session 43)
+            return not self._follow or controller == self._follow
         if not self._of_run(isinstance(msg, bus.Truth), run):
             return False  # counted by the subscriber (_on_run_message)
         if isinstance(msg, bus.CameraAlpha):

@@ -397,7 +397,7 @@ def test_final_metadata_is_asked_once_the_writer_has_written_its_last_message(
     states = LosslessPublisher(a, bus.MOTOR_STATE)
     kept = [0]
 
-    def keep(_key: str, _msg: bus.BusMessage, _run: str, _camera: str) -> bool:
+    def keep(_key: str, _msg: bus.BusMessage, _run: str, _camera: str, _controller: str = "") -> bool:
         time.sleep(0.002)
         kept[0] += 1
         return True

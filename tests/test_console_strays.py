@@ -25,7 +25,7 @@ from websockets.sync.client import connect
 from bridge import bus
 from bridge.archive import CampaignRecorder
 from bridge.archive_read import read_campaign
-from bridge.session import REPLAYED, run_attachment
+from bridge.session import REPLAYED, controller_attachment, run_attachment
 from server.quality import CampaignMonitor
 from server.service_choice import choose_service
 
@@ -143,6 +143,36 @@ def test_the_recorder_keeps_the_truth_of_the_run_the_campaigns_commands_answer_a
     assert [(m.seq, m.stamp_s) for _, m in campaign.messages(bus.TWIN_TRUTH)] == [(1, 11.0), (2, 12.0), (3, 13.0)]
     assert [m.seq for _, m in campaign.messages(bus.CAMERA_ALPHA)] == [1, 2, 3]
     assert campaign.metadata["xneck.recorder"]["skipped"] == "12"
+
+
+def test_the_recorder_keeps_the_statuses_of_the_campaigns_controller_only(sessions, tmp_path: Path) -> None:
+    """A second controller on the hub (another stack's) had its statuses archived with the
+    campaign's, and its saturation counted in the campaign's metrics (helper's finding, session
+    43): once the campaign's controller is known, a status is kept only if its sample names it."""
+    a, b = sessions
+    path = tmp_path / "statuses.mcap"
+    monitor = CampaignMonitor(b)
+    monitor.follow("ctl")
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-3"}, flush_period_s=0.2, keep=monitor.keep)
+    statuses = a.declare_publisher(bus.CONTROLLER_STATUS, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def status(seq: int, saturated: bool) -> bytes:
+        return bus.encode(bus.ControllerStatus(
+            seq=seq, stamp_s=seq * 0.002, law="law1", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+            saturated=[saturated] * 4, alpha_hat_rad=[0.0] * 3, alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3,
+            holding=False, hold_reason="", campaign_id="", ticks=seq))
+
+    try:
+        for k in range(1, 4):
+            statuses.put(status(k, False), attachment=controller_attachment("ctl"))
+            statuses.put(status(100 + k, True), attachment=controller_attachment("other"))  # the second stack's
+            statuses.put(status(200 + k, True))  # names no controller
+        assert wait_until(lambda: recorder.stats.skipped >= 6, 10, 0.02), recorder.stats
+    finally:
+        recorder.stop("finished")
+        monitor.close()
+        statuses.undeclare()
+    assert [m.seq for _, m in read_campaign(path).messages(bus.CONTROLLER_STATUS)] == [1, 2, 3]
 
 
 def _record_two_cameras(sessions, path: Path, expect: str | None) -> tuple[CampaignMonitor, CampaignRecorder]:
