@@ -32,6 +32,14 @@ per bridge name (:data:`BURST_LINES` at once, then :data:`LINES_PER_S`) and in a
 A transition over the limit is not written: it is counted, and the run's state as it is then is
 written once the limit allows (coalesced), with that count in ``suppressed``; a forged peer
 flipping a state at 500 Hz thus writes a few lines a second, not 500.
+
+Lines owed are paid in the order they became owed (the oldest debt first), except that a known
+run's e-stop change (``estop_engaged`` or ``estop_reason``) goes before all others: a forger
+announcing new runs faster than the limit writes their first lines cannot delay a bridge's
+e-stop engage or release by more than a line or two (review of session 43: the runs seen least
+recently were paid first, and a live bridge, always the most recent, was starved).
+:meth:`BridgeTransitions.status` says how many lines are
+owed now and how long the oldest has waited.
 """
 
 from __future__ import annotations
@@ -96,6 +104,8 @@ class _Run:
     previous_epoch: str = ""  # the same bridge's run seen before this one ("" if none)
     transitions: int = 0  # transitions seen since the run's last line (its first: before it)
     owed: bool = False  # a line is owed (rate-limited so far)
+    owed_since: float = 0.0  # clock time the owed line became owed (s; meaningless unless owed)
+    estop_changed: bool = False  # a known run's e-stop changed since its last line: its owed line goes first
     keys: tuple[str, str] = field(default=("", ""))  # (bridge, epoch) as received
 
 
@@ -113,14 +123,20 @@ class BridgeTransitions:
         self._lock = threading.Lock()
         self._last: bus.MotorState | None = None  # the state observed last (the sampler sees it again and again)
         self._runs: dict[tuple[str, str], _Run] = {}
-        self._owed: set[tuple[str, str]] = set()  # runs owed a line
+        self._owed: dict[tuple[str, str], None] = {}  # runs owed a line, in the order they became owed
         self._buckets: dict[str, Bucket] = {}  # bridge name -> its bucket (at most max_runs)
         self._all = Bucket(ALL_BURST_LINES, ALL_LINES_PER_S, clock())
         self.suppressed = 0  # transitions no line shows, in all (a forgotten run's owed ones too)
         self.runs_forgotten = 0  # runs forgotten to keep max_runs
 
-    def status(self) -> dict[str, int]:
-        return {"suppressed": self.suppressed, "runs_forgotten": self.runs_forgotten}
+    def status(self) -> dict[str, Any]:
+        """``suppressed``, ``runs_forgotten`` (since start); ``owed``, the lines owed now (rate-limited
+        so far) and ``oldest_owed_s``, how long the oldest of them has waited (s; null if none)."""
+        with self._lock:
+            oldest = next(iter(self._owed), None)
+            waited = None if oldest is None else round(self._clock() - self._runs[oldest].owed_since, 3)
+            return {"suppressed": self.suppressed, "runs_forgotten": self.runs_forgotten, "owed": len(self._owed),
+                    "oldest_owed_s": waited}
 
     def observe(self, state: bus.MotorState) -> None:
         """The newest state the console has of a bridge (the same object again while none newer came)."""
@@ -135,14 +151,16 @@ class BridgeTransitions:
             if run is not None:
                 run.seen, run.stamp_s = now, state.stamp_s
                 if look != run.look:
+                    if look[:2] != run.look[:2] and run.written is not None:
+                        run.estop_changed = True
                     run.look = look
                     run.transitions += 1
-                    self._owe(key, run)
+                    self._owe(key, run, now)
             else:
                 self._runs[key] = run = _Run(look, None, state.stamp_s, now, self._previous_epoch(state.bridge),
                                              keys=key)
                 self._forget_beyond(key)
-                self._owe(key, run)
+                self._owe(key, run, now)
             if self._owed:
                 self._pay(now)
 
@@ -150,9 +168,10 @@ class BridgeTransitions:
         runs = [r for r in self._runs.values() if r.keys[0] == bridge]
         return max(runs, key=lambda r: r.seen).keys[1] if runs else ""
 
-    def _owe(self, key: tuple[str, str], run: _Run) -> None:
-        run.owed = True  # a line still owed: this transition is folded into it
-        self._owed.add(key)
+    def _owe(self, key: tuple[str, str], run: _Run, now: float) -> None:
+        if not run.owed:  # a line still owed keeps its place: this transition is folded into it
+            run.owed, run.owed_since = True, now
+            self._owed[key] = None
 
     @staticmethod
     def _suppressed(run: _Run) -> int:
@@ -167,28 +186,32 @@ class BridgeTransitions:
             gone = self._runs.pop(oldest)
             if gone.owed:  # its owed line is never written: all its transitions since are lost
                 self.suppressed += gone.transitions
-            self._owed.discard(oldest)
+            self._owed.pop(oldest, None)
             self.runs_forgotten += 1
         names = {k[0] for k in self._runs}
         for name in [n for n in self._buckets if n not in names]:
             del self._buckets[name]
 
     def _pay(self, now: float) -> None:
-        """Write the lines owed that the buckets allow, the runs seen least recently first."""
-        for key in sorted(self._owed, key=lambda k: self._runs[k].seen):
+        """Write the lines owed that the buckets allow: the known runs' e-stop changes first, then
+        the oldest debt first (module docstring)."""
+        urgent = [k for k in self._owed if self._runs[k].estop_changed]
+        for key in [*urgent, *(k for k in self._owed if not self._runs[k].estop_changed)]:
+            if not self._all.ready(now):
+                return
             run = self._runs[key]
             bucket = self._buckets.get(key[0])
             if bucket is None:
                 bucket = self._buckets[key[0]] = Bucket(BURST_LINES, LINES_PER_S, now)
-            if not (bucket.ready(now) and self._all.ready(now)):
+            if not bucket.ready(now):
                 continue
             bucket.take()
             self._all.take()
             suppressed = self._suppressed(run)
             self.suppressed += suppressed
             self._line(run, suppressed)
-            run.written, run.transitions, run.owed = run.look, 0, False
-            self._owed.discard(key)
+            run.written, run.transitions, run.owed, run.estop_changed = run.look, 0, False, False
+            del self._owed[key]
 
     def _line(self, run: _Run, suppressed: int) -> None:
         fields: dict[str, Any] = {"bridge": bus.plain_text(run.keys[0], NAME_MAX_CHARS),

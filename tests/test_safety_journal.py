@@ -29,8 +29,12 @@ class Detector:
     def __init__(self, **kwargs) -> None:
         self.now = 0.0
         self.lines: list[dict] = []
-        self.t = BridgeTransitions(lambda event, **f: self.lines.append({"event": event, **f}),
-                                   clock=lambda: self.now, **kwargs)
+        self.at: list[float] = []  # the clock's time of each line
+        self.t = BridgeTransitions(self._emit, clock=lambda: self.now, **kwargs)
+
+    def _emit(self, event: str, **fields) -> None:
+        self.lines.append({"event": event, **fields})
+        self.at.append(self.now)
 
     def see(self, *states: bus.MotorState, dt: float = 0.1) -> None:
         for s in states:
@@ -107,6 +111,34 @@ def test_forged_runs_and_names_stay_bounded_and_their_text_is_cleaned() -> None:
     assert len(line["bridge"]) <= bt.NAME_MAX_CHARS and "\x1b" not in line["bridge"] and "\u202e" not in line["bridge"]
     assert len(line["epoch"]) <= bt.NAME_MAX_CHARS
     assert len(line["hold_reason"]) <= bt.REASON_MAX_CHARS and "\n" not in line["hold_reason"]
+
+
+def test_a_live_bridges_lines_are_written_among_forged_new_runs() -> None:
+    """Review of session 43: owed lines were paid to the runs seen least recently first, so a bridge
+    seen at every other sample (always the most recent) was starved by a forger announcing 5 new
+    runs a second: its e-stop release was never written, nor counted. Now the oldest debt goes
+    first, a known run's e-stop change before anything else, and the health says what is owed."""
+    d = Detector()
+    for k in range(700):  # 70 s, the sampler's 10 states a second: the real bridge's and a forger's in turn
+        if k % 2:
+            d.see(state(k, "inactive", bridge=f"forged-{k}", epoch=f"e{k}"))
+            continue
+        engaged = 100 <= k < 200  # engaged at 10 s, released at 20 s
+        drive = "disabled" if engaged else "hold" if k >= 300 else "active"  # a hold at 30 s: no e-stop, no hurry
+        d.see(state(k, drive, engaged, "operator" if engaged else "", "stale states" if k >= 300 else "",
+                    bridge="real-bridge", epoch="real-run"))
+    real = [(at, line) for at, line in zip(d.at, d.lines, strict=True) if line["bridge"] == "real-bridge"]
+    changes = [(round(at, 1), line["changed"]) for at, line in real if line["event"] == "bridge_state"]
+    on = [at for at, line in real if line.get("changed") and "estop" in line["changed"] and line["estop_engaged"]]
+    off = [at for at, line in real if line.get("changed") and "estop" in line["changed"] and not line["estop_engaged"]]
+    hold = [at for at, line in real if line.get("changed") and line["drive"] == "hold"]
+    assert len(on) == 1 and 10.0 <= on[0] <= 11.0, changes
+    assert len(off) == 1 and 20.0 <= off[0] <= 21.0, changes
+    assert len(hold) == 1 and 30.0 <= hold[0] <= 30.0 + bt.MAX_RUNS / bt.ALL_LINES_PER_S + 1, changes
+    assert all(line["suppressed"] == 0 for _, line in real)
+    status = d.t.status()
+    assert 0 < status["owed"] < bt.MAX_RUNS, status  # forged runs' first lines waiting, bounded
+    assert 0 < status["oldest_owed_s"] <= bt.MAX_RUNS / bt.ALL_LINES_PER_S + 1, status
 
 
 def test_lines_are_read_back_newest_last_skipping_a_torn_line_and_garbage(journal: SafetyJournal) -> None:
