@@ -37,8 +37,9 @@ Lines owed are paid in the order they became owed (the oldest debt first), excep
 run's e-stop change (``estop_engaged`` or ``estop_reason``) goes before all others: a forger
 announcing new runs faster than the limit writes their first lines cannot delay a bridge's
 e-stop engage or release by more than a line or two (review of session 43: the runs seen least
-recently were paid first, and a live bridge, always the most recent, was starved).
-:meth:`BridgeTransitions.status` says how many lines are
+recently were paid first, and a live bridge, always the most recent, was starved). A run
+forgotten while its line is owed counts that line's transitions, its first line included, in
+:attr:`BridgeTransitions.suppressed`; :meth:`BridgeTransitions.status` says how many lines are
 owed now and how long the oldest has waited.
 """
 
@@ -184,8 +185,9 @@ class BridgeTransitions:
         while len(self._runs) > self.max_runs:
             oldest = min((k for k in self._runs if k != keep), key=lambda k: self._runs[k].seen)
             gone = self._runs.pop(oldest)
-            if gone.owed:  # its owed line is never written: all its transitions since are lost
-                self.suppressed += gone.transitions
+            if gone.owed:  # its owed line is never written: all its transitions since are lost,
+                # its first appearance too if that line was the one owed
+                self.suppressed += gone.transitions + (gone.written is None)
             self._owed.pop(oldest, None)
             self.runs_forgotten += 1
         names = {k[0] for k in self._runs}

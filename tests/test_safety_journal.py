@@ -141,6 +141,16 @@ def test_a_live_bridges_lines_are_written_among_forged_new_runs() -> None:
     assert 0 < status["oldest_owed_s"] <= bt.MAX_RUNS / bt.ALL_LINES_PER_S + 1, status
 
 
+def test_a_forgotten_runs_owed_first_line_is_counted_as_suppressed() -> None:
+    """Review of session 43: a run forgotten before its first line was written added 0 to
+    ``suppressed``: every run seen is a line written, a line owed or a count."""
+    d = Detector()
+    d.see(*(state(1, bridge=f"forger-{i}", epoch=f"e{i}") for i in range(200)), dt=0.001)
+    status = d.t.status()
+    assert status["runs_forgotten"] == 200 - bt.MAX_RUNS and status["suppressed"] > 150, status
+    assert len(d.lines) + status["suppressed"] + status["owed"] == 200, (len(d.lines), status)
+
+
 def test_lines_are_read_back_newest_last_skipping_a_torn_line_and_garbage(journal: SafetyJournal) -> None:
     for i in range(5):
         journal.record("estop_sent", engaged=bool(i % 2), reason=f"r{i}")
