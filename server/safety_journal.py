@@ -240,6 +240,8 @@ def _lines_backward(path: Path) -> Iterator[bytes | None]:
                         first = False
                         if torn:
                             yield None
+                    elif len(line) > LINE_MAX_BYTES:  # its start was in ``tail``, its end in this block
+                        yield None
                     elif line.strip():
                         yield line
                 if len(tail) > LINE_MAX_BYTES:

@@ -201,23 +201,28 @@ def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJo
     assert json.loads(journal.path.read_text().splitlines()[-1])["reason"] == "disk back"
 
 
-def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Path, monkeypatch) -> None:
-    """Lines across block boundaries, blank lines, a torn end, lines too long to read."""
+@pytest.mark.parametrize(("block", "line_max"), [(7, 30), (8, 16)])
+def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Path, monkeypatch, block: int,
+                                                                    line_max: int) -> None:
+    """Lines across block boundaries, blank lines, a torn end, lines too long to read: none longer
+    than the cap is returned (review of session 43: with blocks shorter than the cap, a line up to
+    twice the cap came through)."""
     import random
 
     from server import safety_journal as sj
 
-    monkeypatch.setattr(sj, "READ_BLOCK_BYTES", 7)
-    monkeypatch.setattr(sj, "LINE_MAX_BYTES", 30)
+    monkeypatch.setattr(sj, "READ_BLOCK_BYTES", block)
+    monkeypatch.setattr(sj, "LINE_MAX_BYTES", line_max)
     rng = random.Random(0)
     path = tmp_path / "j"
-    for _ in range(300):
-        lines = [b"x" * rng.choice([0, 1, 5, 6, 7, 8, 20, 40, 100]) for _ in range(rng.randint(0, 8))]
+    for _ in range(1000):
+        lines = [b"x" * rng.choice([0, 1, 5, 6, 7, 8, 9, 15, 16, 17, 20, 23, 25, 30, 31, 40, 100])
+                 for _ in range(rng.randint(0, 8))]
         data = b"\n".join(lines) + (b"\n" if rng.random() < 0.5 else b"")
         path.write_bytes(data)
         expected: list[bytes | None] = []
         *whole, last = data.split(b"\n")
         if last:
             expected.append(None)  # torn
-        expected += [None if len(line) > 30 else line for line in reversed(whole) if line]
+        expected += [None if len(line) > line_max else line for line in reversed(whole) if line]
         assert list(sj._lines_backward(path)) == expected, data
