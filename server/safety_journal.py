@@ -58,6 +58,9 @@ READ_MAX_LINES = 1000  # lines one read returns at most (GET /api/system/safety-
 READ_MAX_BYTES = 2 * MAX_BYTES
 READ_BLOCK_BYTES = 64 * 1024  # read back from the end in blocks of this many bytes
 LINE_MAX_BYTES = 64 * 1024  # a longer line is no line of the journal's (about 1 kB): skipped unread
+#: lines a read examines beyond the events it returns, at most: millions of short garbage lines
+#: (someone else's writes) must not cost a read seconds of CPU
+READ_MAX_SKIPPED = 10_000
 
 
 class SafetyJournal:
@@ -179,12 +182,16 @@ def _open_append(path: Path) -> int:
 def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any]], int]:
     """(the newest ``limit`` events of the journal, oldest first, each a line parsed; the number
     of lines skipped among those read: a torn last line, lines that are not a JSON object with a
-    string ``event``). Lines written meanwhile may or may not be in it."""
+    string ``event``). Lines written meanwhile may or may not be in it. A read gives up after
+    :data:`READ_MAX_SKIPPED` lines skipped (at most ``limit`` + that many examined): events
+    beyond that much garbage are not found."""
     newest_first: list[dict[str, Any]] = []
     skipped = 0
     for path in (journal.path, journal.previous):  # newest file first
+        if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
+            break
         for raw in _lines_backward(path):
-            if len(newest_first) >= limit:
+            if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
                 break
             event = _parse(raw) if raw is not None else None
             if event is None:
