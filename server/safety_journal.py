@@ -23,14 +23,16 @@ A write that fails (disk full, read-only, the path taken by a directory) is coun
 logged at most once every :data:`FAILURE_LOG_PERIOD_S` (:class:`bridge.log_limit.LogLimit`); the
 next line tries again (a disk freed meanwhile is written to again).
 
-Reading (:func:`read_journal`) takes the newest lines of the two files; a last line without its
-newline (torn by a crash mid-write) and lines that are not a JSON object naming an ``event`` are
-skipped and counted. A line written after a torn one first ends it (a newline), so it is whole
+Reading (:func:`read_journal`) takes the newest lines of the two files, both opened under the lock
+the writer holds while it rotates (a rotation between two opens had made a read return a file
+twice: review of session 43); a last line without its newline (torn by a crash mid-write) and
+lines that are not a JSON object naming an ``event`` are skipped and counted. A line written after a torn one first ends it (a newline), so it is whole
 itself.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -39,7 +41,7 @@ import time
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from bridge.archive import iso_time, storage_reason
 from bridge.log_limit import LogLimit
@@ -80,6 +82,9 @@ class SafetyJournal:
         self._cond = threading.Condition()
         self._writing = False
         self._closed = False
+        #: held while the writer rotates and while a read opens both files: a read has the two files
+        #: of one moment, never the same file twice (or a gap) when a rotation comes between its opens
+        self._files_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="safety-journal", daemon=True)
         self._thread.start()
 
@@ -129,6 +134,16 @@ class SafetyJournal:
             self._cond.notify_all()
         self._thread.join(timeout_s)
 
+    def open_for_reading(self) -> list[BinaryIO]:
+        """The current file and the previous one, those that exist, opened together (no rotation
+        between the two opens) for reading; the caller closes them."""
+        files: list[BinaryIO] = []
+        with self._files_lock:
+            for path in (self.path, self.previous):
+                with contextlib.suppress(OSError):  # missing, or a directory where the file should be
+                    files.append(open(path, "rb"))  # noqa: SIM115 - the caller closes them
+        return files
+
     # -- the writer thread ------------------------------------------------------------------------
     def _run(self) -> None:
         while True:
@@ -155,8 +170,9 @@ class SafetyJournal:
                 if size and size + len(data) > self.max_bytes:
                     os.close(fd)
                     fd = -1
-                    os.replace(self.path, self.previous)
-                    fd = _open_append(self.path)
+                    with self._files_lock:
+                        os.replace(self.path, self.previous)
+                        fd = _open_append(self.path)
                 elif size and os.pread(fd, 1, size - 1) != b"\n":
                     data = b"\n" + data  # end the line a crash tore: this one is whole
                 os.write(fd, data)  # one write of the whole line: O_APPEND, unbuffered
@@ -187,17 +203,22 @@ def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any
     beyond that much garbage are not found."""
     newest_first: list[dict[str, Any]] = []
     skipped = 0
-    for path in (journal.path, journal.previous):  # newest file first
-        if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
-            break
-        for raw in _lines_backward(path):
+    files = journal.open_for_reading()
+    try:
+        for f in files:  # newest file first
             if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
                 break
-            event = _parse(raw) if raw is not None else None
-            if event is None:
-                skipped += 1
-            else:
-                newest_first.append(event)
+            for raw in _lines_backward(f):
+                if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
+                    break
+                event = _parse(raw) if raw is not None else None
+                if event is None:
+                    skipped += 1
+                else:
+                    newest_first.append(event)
+    finally:
+        for f in files:
+            f.close()
     return newest_first[::-1], skipped
 
 
@@ -213,51 +234,46 @@ def _parse(raw: bytes) -> dict[str, Any] | None:
     return event if isinstance(event, dict) and isinstance(event.get("event"), str) else None
 
 
-def _lines_backward(path: Path) -> Iterator[bytes | None]:
-    """The lines of ``path``, last first, blank ones left out; None for a line skipped unread: the
-    last one without its newline (torn), one longer than :data:`LINE_MAX_BYTES`. Reads back from
-    the end in blocks, at most :data:`READ_MAX_BYTES` (a line begun before that is left out); a
-    missing or unreadable file has none."""
+def _lines_backward(f: BinaryIO) -> Iterator[bytes | None]:
+    """The lines of the file ``f``, last first, blank ones left out; None for a line skipped unread:
+    the last one without its newline (torn), one longer than :data:`LINE_MAX_BYTES`. Reads back from
+    the end in blocks, at most :data:`READ_MAX_BYTES` (a line begun before that is left out); an
+    unreadable file has none."""
     try:
-        f = open(path, "rb")  # noqa: SIM115 - closed below, on every path
-    except OSError:  # missing, or a directory where the file should be: nothing to read there
-        return
-    with f:
-        try:
-            pos = end = f.seek(0, os.SEEK_END)
-            if end == 0:
-                return
-            f.seek(end - 1)
-            torn = f.read(1) != b"\n"
-            first = True  # the next segment is the one after the file's last newline
-            tail = b""  # the end of a line whose start is not read yet
-            dropping = False  # the line being read is too long: its start is dropped too
-            while pos > 0 and end - pos < READ_MAX_BYTES:
-                step = min(READ_BLOCK_BYTES, pos)
-                pos -= step
-                f.seek(pos)
-                parts = (f.read(step) + tail).split(b"\n")
-                tail, complete = parts[0], parts[1:]
-                if dropping and complete:
-                    complete, dropping = complete[:-1], False  # the too long line's start
-                elif dropping:
-                    tail = b""  # more of the too long line
-                for line in reversed(complete):
-                    if first:  # b"" after the last newline, unless the line there is torn
-                        first = False
-                        if torn:
-                            yield None
-                    elif len(line) > LINE_MAX_BYTES:  # its start was in ``tail``, its end in this block
-                        yield None
-                    elif line.strip():
-                        yield line
-                if len(tail) > LINE_MAX_BYTES:
-                    first, tail, dropping = False, b"", True
-                    yield None
-            if pos == 0 and not dropping:
-                if first:  # no newline in the whole file
-                    yield None
-                elif tail.strip():
-                    yield tail
-        except OSError:
+        pos = end = f.seek(0, os.SEEK_END)
+        if end == 0:
             return
+        f.seek(end - 1)
+        torn = f.read(1) != b"\n"
+        first = True  # the next segment is the one after the file's last newline
+        tail = b""  # the end of a line whose start is not read yet
+        dropping = False  # the line being read is too long: its start is dropped too
+        while pos > 0 and end - pos < READ_MAX_BYTES:
+            step = min(READ_BLOCK_BYTES, pos)
+            pos -= step
+            f.seek(pos)
+            parts = (f.read(step) + tail).split(b"\n")
+            tail, complete = parts[0], parts[1:]
+            if dropping and complete:
+                complete, dropping = complete[:-1], False  # the too long line's start
+            elif dropping:
+                tail = b""  # more of the too long line
+            for line in reversed(complete):
+                if first:  # b"" after the last newline, unless the line there is torn
+                    first = False
+                    if torn:
+                        yield None
+                elif len(line) > LINE_MAX_BYTES:  # its start was in ``tail``, its end in this block
+                    yield None
+                elif line.strip():
+                    yield line
+            if len(tail) > LINE_MAX_BYTES:
+                first, tail, dropping = False, b"", True
+                yield None
+        if pos == 0 and not dropping:
+            if first:  # no newline in the whole file
+                yield None
+            elif tail.strip():
+                yield tail
+    except OSError:
+        return

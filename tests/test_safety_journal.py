@@ -196,6 +196,34 @@ def test_the_journal_rotates_at_its_cap_and_keeps_one_previous_file(tmp_path: Pa
     assert skipped == 0 and [e["i"] for e in events] == list(range(200 - len(events), 200)) and len(events) > 40
 
 
+def test_a_read_racing_a_rotation_has_neither_duplicates_nor_gaps(tmp_path: Path, monkeypatch) -> None:
+    """Review of session 43: a read opened the current file, then the previous one; a rotation
+    between them made it read the same file twice. The rotation here comes right after the read
+    has read the current file."""
+    from server import safety_journal as sj
+
+    j = SafetyJournal(tmp_path, max_bytes=3000)
+    try:
+        for i in range(30):  # two files
+            j.record("bridge_state", i=i, reason="x" * 50)
+        assert j.flush(10) and j.previous.exists()
+        read_back = sj._lines_backward
+        rotated: list[bool] = []
+
+        def rotate_after_the_first_file(*args):
+            yield from read_back(*args)
+            if not rotated:
+                rotated.append(True)
+                j.record("bridge_state", i=30, reason="x" * 3000)  # over the cap: the file rotates first
+                assert j.flush(10)
+
+        monkeypatch.setattr(sj, "_lines_backward", rotate_after_the_first_file)
+        events = read_journal(j, 1000)[0]
+    finally:
+        j.close()
+    assert rotated and [e["i"] for e in events] == list(range(30 - len(events), 30)) and len(events) > 20
+
+
 def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJournal, caplog) -> None:
     journal.dir.mkdir(parents=True)
     journal.path.mkdir()  # a directory where the file should be
@@ -238,4 +266,5 @@ def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Pa
         if last:
             expected.append(None)  # torn
         expected += [None if len(line) > line_max else line for line in reversed(whole) if line]
-        assert list(sj._lines_backward(path)) == expected, data
+        with open(path, "rb") as f:
+            assert list(sj._lines_backward(f)) == expected, data
