@@ -7,6 +7,8 @@ import logging
 import time
 from typing import Any
 
+import anyio
+import anyio.to_thread
 from fastapi import APIRouter, Depends, Query, Request
 from pydantic import BaseModel, Field
 
@@ -18,13 +20,16 @@ from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
 from server.live import bridge_status
-from server.safety_journal import READ_MAX_LINES, read_journal
+from server.safety_journal import READ_MAX_LINES, SafetyJournal, read_journal
 
 log = logging.getLogger("xneck.server")
 
 router = APIRouter(tags=["system"])
 
 USER_AGENT_MAX_CHARS = 120  # of a client's User-Agent as journalled and logged
+#: threads reading the safety journal at once, their own: never those of the pool the sync routes
+#: (the e-stop's POST) run in, whatever the disk does and however many GETs (no token) wait
+JOURNAL_READERS = 2
 
 
 @router.get("/api/system/health")
@@ -125,7 +130,7 @@ def _journal_status(s: Any) -> dict[str, Any]:
 
 
 @router.get("/api/system/safety-journal")
-def safety_journal(request: Request,
+async def safety_journal(request: Request,
                    limit: int = Query(100, ge=1, le=READ_MAX_LINES,
                                       description="How many of the newest events to return.")) -> dict[str, Any]:
     """The console's safety journal (docs/console.md, "Safety journal"; server.safety_journal):
@@ -134,11 +139,21 @@ def safety_journal(request: Request,
     ``bridge_state``, and its fields); ``skipped``, lines read that are not events (a line torn
     by a crash, garbage); ``journal``, the counters since the console started (``written``,
     ``write_errors``, ``last_error``, ``dropped`` lines; ``suppressed`` transitions no line
-    shows, ``runs_forgotten``). Open like the other reads (no token)."""
+    shows, ``runs_forgotten``, ``owed`` lines and ``oldest_owed_s``); ``unreadable``, a line per
+    file not read (``"journal.jsonl: a FIFO, not a regular file: not read"``: what is at its path
+    is refused, never waited on). Open like the other reads (no token): read on
+    :data:`JOURNAL_READERS` threads of its own, so no number of GETs delays the e-stop's POST."""
     s = request.app.state
-    s.journal.flush(0.5)  # what was queued before this request, written (a moment at most)
-    events, skipped = read_journal(s.journal, limit)
-    return {"events": events, "skipped": skipped, "journal": _journal_status(s)}
+    readers = getattr(s, "journal_readers", None)
+    if readers is None:  # made in the app's event loop, once (no await between the test and the set)
+        readers = s.journal_readers = anyio.CapacityLimiter(JOURNAL_READERS)
+    events, skipped, unreadable = await anyio.to_thread.run_sync(_read_journal, s.journal, limit, limiter=readers)
+    return {"events": events, "skipped": skipped, "unreadable": unreadable, "journal": _journal_status(s)}
+
+
+def _read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any]], int, list[str]]:
+    journal.flush(0.5)  # what was queued before this request, written (a moment at most)
+    return read_journal(journal, limit)
 
 
 class AbortRequest(BaseModel):

@@ -26,16 +26,19 @@ next line tries again (a disk freed meanwhile is written to again).
 Reading (:func:`read_journal`) takes the newest lines of the two files, both opened under the lock
 the writer holds while it rotates (a rotation between two opens had made a read return a file
 twice: review of session 43); a last line without its newline (torn by a crash mid-write) and
-lines that are not a JSON object naming an ``event`` are skipped and counted. A line written after a torn one first ends it (a newline), so it is whole
+lines that are not a JSON object naming an ``event`` are skipped and counted. What is at a
+file's path is opened non-blocking without following a symbolic link, and refused unless it is a
+regular file (a FIFO had blocked the read in ``open``: review of session 43). A line written after a torn one first ends it (a newline), so it is whole
 itself.
 """
 
 from __future__ import annotations
 
-import contextlib
+import errno
 import json
 import logging
 import os
+import stat
 import threading
 import time
 from collections import deque
@@ -134,15 +137,24 @@ class SafetyJournal:
             self._cond.notify_all()
         self._thread.join(timeout_s)
 
-    def open_for_reading(self) -> list[BinaryIO]:
-        """The current file and the previous one, those that exist, opened together (no rotation
-        between the two opens) for reading; the caller closes them."""
+    def open_for_reading(self) -> tuple[list[BinaryIO], list[str]]:
+        """(the current file and the previous one, those that exist, opened together for reading:
+        no rotation between the two opens; the caller closes them, one line per file refused:
+        ``"journal.jsonl: a FIFO, not a regular file: not read"``). Never waits on what is at a
+        path: opened non-blocking, a symbolic link not followed, anything but a regular file refused."""
         files: list[BinaryIO] = []
+        refused: list[str] = []
         with self._files_lock:
             for path in (self.path, self.previous):
-                with contextlib.suppress(OSError):  # missing, or a directory where the file should be
-                    files.append(open(path, "rb"))  # noqa: SIM115 - the caller closes them
-        return files
+                try:
+                    fd = _open_regular(path, os.O_RDONLY)
+                except FileNotFoundError:
+                    continue
+                except OSError as exc:
+                    refused.append(f"{path.name}: {_refusal(exc)}: not read")
+                    continue
+                files.append(os.fdopen(fd, "rb"))
+        return files, refused
 
     # -- the writer thread ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -195,15 +207,56 @@ def _open_append(path: Path) -> int:
     return os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
 
 
-def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any]], int]:
+class NotRegularFile(OSError):
+    """What is at the journal's path is no regular file (a FIFO, a device, a directory, a symbolic
+    link): refused, neither read nor written (a FIFO would block, a link write elsewhere)."""
+
+    def __init__(self, what: str) -> None:
+        super().__init__(errno.EINVAL, what)
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+               (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def _open_regular(path: Path, flags: int, mode: int = 0o644) -> int:
+    """``os.open(path, flags)`` that never blocks (``O_NONBLOCK``: a FIFO's open waits for its other
+    end without it), follows no symbolic link (``O_NOFOLLOW``) and refuses anything but a regular
+    file (:class:`NotRegularFile`)."""
+    try:
+        fd = os.open(path, flags | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOFOLLOW", 0), mode)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:  # O_NOFOLLOW: the path is a symbolic link
+            raise NotRegularFile("a symbolic link, not followed") from exc
+        if exc.errno == errno.EISDIR:
+            raise NotRegularFile("a directory, not a regular file") from exc
+        raise
+    try:
+        kind = os.fstat(fd).st_mode
+        if not stat.S_ISREG(kind):
+            what = next((name for test, name in _FILE_KINDS if test(kind)), "something")
+            raise NotRegularFile(f"{what}, not a regular file")
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _refusal(exc: OSError) -> str:
+    """Why a file was not read or written, in one line."""
+    return exc.strerror or str(exc) if isinstance(exc, NotRegularFile) else storage_reason(exc)
+
+
+def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any]], int, list[str]]:
     """(the newest ``limit`` events of the journal, oldest first, each a line parsed; the number
     of lines skipped among those read: a torn last line, lines that are not a JSON object with a
-    string ``event``). Lines written meanwhile may or may not be in it. A read gives up after
+    string ``event``; a line per file refused or unreadable, :meth:`SafetyJournal.open_for_reading`).
+    Lines written meanwhile may or may not be in it. A read gives up after
     :data:`READ_MAX_SKIPPED` lines skipped (at most ``limit`` + that many examined): events
     beyond that much garbage are not found."""
     newest_first: list[dict[str, Any]] = []
     skipped = 0
-    files = journal.open_for_reading()
+    files, refused = journal.open_for_reading()
     try:
         for f in files:  # newest file first
             if len(newest_first) >= limit or skipped >= READ_MAX_SKIPPED:
@@ -219,7 +272,7 @@ def read_journal(journal: SafetyJournal, limit: int) -> tuple[list[dict[str, Any
     finally:
         for f in files:
             f.close()
-    return newest_first[::-1], skipped
+    return newest_first[::-1], skipped, refused
 
 
 def _no_constant(name: str) -> Any:

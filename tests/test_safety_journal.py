@@ -158,14 +158,14 @@ def test_lines_are_read_back_newest_last_skipping_a_torn_line_and_garbage(journa
     with open(journal.path, "ab") as f:
         f.write(b"not json\n[1, 2]\n{\"no\": \"event\"}\n{\"event\": \"x\", \"v\": NaN}\n\n")
         f.write(b'{"time": "2026-01-01T00:00:00+00:00", "event": "estop_sen')  # a crash mid-line
-    events, skipped = read_journal(journal, 100)
+    events, skipped, _ = read_journal(journal, 100)
     assert [e["reason"] for e in events] == ["r0", "r1", "r2", "r3", "r4"] and skipped == 5
     assert all(e["event"] == "estop_sent" and isinstance(e["stamp_s"], float) and e["time"].endswith("+00:00")
                for e in events)
     assert [e["reason"] for e in read_journal(journal, 2)[0]] == ["r3", "r4"]
     journal.record("estop_sent", engaged=False, reason="after the crash")
     assert journal.flush(5)
-    events, skipped = read_journal(journal, 100)  # the torn line was ended: the next one is whole
+    events, skipped, _ = read_journal(journal, 100)  # the torn line was ended: the next one is whole
     assert events[-1]["reason"] == "after the crash" and skipped == 5
 
 
@@ -178,7 +178,7 @@ def test_a_read_examines_a_bounded_number_of_lines(journal: SafetyJournal) -> No
     assert journal.flush(5)
     with open(journal.path, "ab") as f:
         f.write(b"x\n" * 30_000)
-    events, skipped = read_journal(journal, 10)
+    events, skipped, _ = read_journal(journal, 10)
     assert events == [] and skipped == sj.READ_MAX_SKIPPED
 
 
@@ -192,7 +192,7 @@ def test_the_journal_rotates_at_its_cap_and_keeps_one_previous_file(tmp_path: Pa
         j.close()
     assert j.path.stat().st_size <= 4000 and j.previous.stat().st_size <= 4000
     assert sorted(p.name for p in j.dir.iterdir()) == ["journal.1.jsonl", "journal.jsonl"]
-    events, skipped = read_journal(j, 1000)
+    events, skipped, _ = read_journal(j, 1000)
     assert skipped == 0 and [e["i"] for e in events] == list(range(200 - len(events), 200)) and len(events) > 40
 
 
@@ -224,6 +224,128 @@ def test_a_read_racing_a_rotation_has_neither_duplicates_nor_gaps(tmp_path: Path
     assert rotated and [e["i"] for e in events] == list(range(30 - len(events), 30)) and len(events) > 20
 
 
+def test_a_journal_path_that_is_no_regular_file_is_refused_never_waited_on(journal: SafetyJournal) -> None:
+    """Review of session 43: a FIFO where the file should be blocked the read in ``open`` (a GET of
+    no token held a worker thread for as long as no one wrote to it). A FIFO, a symbolic link, a
+    directory: refused at once, and said."""
+    import threading
+
+    journal.dir.mkdir(parents=True)
+    os.mkfifo(journal.path)
+    answer: list = []
+    reader = threading.Thread(target=lambda: answer.append(read_journal(journal, 10)), daemon=True)
+    reader.start()
+    reader.join(5)
+    blocked = reader.is_alive()
+    if blocked:  # the old read, stuck in open(): a writer lets it go
+        os.close(os.open(journal.path, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(5)
+    assert not blocked, "the read waited on a FIFO"
+    assert answer[0] == ([], 0, ["journal.jsonl: a FIFO, not a regular file: not read"]), answer
+    os.unlink(journal.path)
+    other = journal.dir / "elsewhere.jsonl"
+    other.write_text('{"event": "estop_sent", "reason": "not the journal"}\n')
+    os.symlink(other, journal.path)
+    assert read_journal(journal, 10) == ([], 0, ["journal.jsonl: a symbolic link, not followed: not read"])
+    os.unlink(journal.path)
+    journal.path.mkdir()
+    assert read_journal(journal, 10) == ([], 0, ["journal.jsonl: a directory, not a regular file: not read"])
+
+
+def _route_app(journal: object, campaigns: object):
+    """The system routes alone on an app whose state has what the e-stop and journal routes use."""
+    from fastapi import FastAPI
+
+    from server import routes_system
+
+    class Transitions:
+        def status(self) -> dict:
+            return {"suppressed": 0, "runs_forgotten": 0, "owed": 0, "oldest_owed_s": None}
+
+    app = FastAPI()
+    app.include_router(routes_system.router)
+    app.state.journal, app.state.transitions, app.state.campaigns, app.state.token = (
+        journal, Transitions(), campaigns, "tok")
+    return app
+
+
+class _Campaigns:
+    estop_holder = "console-test"
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[bool, str]] = []
+
+    def estop(self, engaged: bool, reason: str) -> None:
+        self.sent.append((engaged, reason))
+
+
+def test_journal_reads_never_take_the_threads_an_estop_needs(journal: SafetyJournal, monkeypatch) -> None:
+    """Review of session 43: the journal's GET was a sync route: 40 reads stuck on the disk (or a
+    FIFO) took every thread of the pool the e-stop's POST runs in, and it waited. Reads now run on
+    a few threads of their own; the e-stop goes out while 40 of them wait."""
+    import asyncio
+    import threading
+
+    import httpx
+
+    from server import routes_system
+
+    release = threading.Event()
+    entered: list[int] = []
+    read = routes_system.read_journal
+
+    def stuck(journal: SafetyJournal, limit: int):
+        entered.append(limit)
+        release.wait(30)
+        return read(journal, limit)
+
+    monkeypatch.setattr(routes_system, "read_journal", stuck)
+    campaigns = _Campaigns()
+    app = _route_app(journal, campaigns)
+
+    async def main() -> bool:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+            gets = [asyncio.create_task(c.get("/api/system/safety-journal")) for _ in range(40)]
+            for _ in range(200):  # the reads under way
+                await asyncio.sleep(0.01)
+                if len(entered) >= 2:
+                    break
+            await asyncio.sleep(0.2)
+            post = asyncio.create_task(c.post("/api/system/estop", json={"engaged": True, "reason": "x"},
+                                              headers={"Authorization": "Bearer tok"}))
+            done, _ = await asyncio.wait([post], timeout=10)
+            release.set()
+            answers = await asyncio.gather(*gets)
+            await post
+            assert all(r.status_code == 200 for r in answers)
+            return bool(done)
+
+    assert asyncio.run(main()), "the e-stop waited for the journal's reads"
+    assert campaigns.sent == [(True, "x")] and len(entered) == 40
+
+
+def test_the_journals_route_says_a_file_it_refused(journal: SafetyJournal) -> None:
+    import asyncio
+
+    import httpx
+
+    journal.record("estop_sent", engaged=True, reason="kept")
+    assert journal.flush(5)
+    os.replace(journal.path, journal.previous)
+    os.mkfifo(journal.path)
+
+    async def main() -> httpx.Response:
+        app = _route_app(journal, _Campaigns())
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+            return await asyncio.wait_for(c.get("/api/system/safety-journal"), 10)
+
+    r = asyncio.run(main())
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert [e["reason"] for e in body["events"]] == ["kept"]
+    assert body["unreadable"] == ["journal.jsonl: a FIFO, not a regular file: not read"], body
+
+
 def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJournal, caplog) -> None:
     journal.dir.mkdir(parents=True)
     journal.path.mkdir()  # a directory where the file should be
@@ -232,7 +354,7 @@ def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJo
     assert journal.flush(5)
     assert journal.write_errors == 3 and "directory" in journal.last_error.lower()
     assert sum("safety journal" in r.getMessage() for r in caplog.records) == 1  # once a period
-    assert read_journal(journal, 10) == ([], 0)
+    assert read_journal(journal, 10) == ([], 0, ["journal.jsonl: a directory, not a regular file: not read"])
     os.rmdir(journal.path)
     journal.record("estop_sent", engaged=False, reason="disk back")
     assert journal.flush(5)
