@@ -11,14 +11,16 @@ File: ``<data_dir>/safety/journal.jsonl``, one JSON object a line, newest last. 
 
 Written by a thread of its own from a bounded queue (:data:`QUEUE_LINES`): neither the e-stop's
 route nor the bus's state path waits for the disk, and neither ever sees a write fail. Each line
-is one ``write`` to the file opened in append mode for it (a few lines a second at most: the file
-moved or deleted meanwhile is made again, not written to where it went), so a crash of the
-console loses no line written (not fsync'd: a power cut may lose the last seconds, as the page
+is one ``write`` (the rest written after a short one) to the file opened in append mode for it
+(a few lines a second at most: the file moved or deleted meanwhile is made again, not written to
+where it went), so a crash of the console loses no line written (not fsync'd: a power cut may lose the last seconds, as the page
 cache does).
 
 Bounded: at :data:`MAX_BYTES` the file is renamed ``journal.1.jsonl`` (the one before it goes)
 and a new one starts, so a flapping or forged e-stop cannot fill the disk (10 MB at most, both).
-A write that fails (disk full, read-only, the path taken by a directory) is counted in
+The file is opened without following a symbolic link and refused unless it is a regular file
+(review of session 43: a link at its path was followed, a FIFO written into). A write that
+fails (disk full, read-only, the path taken by a directory, a link, a FIFO) is counted in
 :attr:`SafetyJournal.write_errors`, its reason kept in :attr:`SafetyJournal.last_error`, and
 logged at most once every :data:`FAILURE_LOG_PERIOD_S` (:class:`bridge.log_limit.LogLimit`); the
 next line tries again (a disk freed meanwhile is written to again).
@@ -187,13 +189,13 @@ class SafetyJournal:
                         fd = _open_append(self.path)
                 elif size and os.pread(fd, 1, size - 1) != b"\n":
                     data = b"\n" + data  # end the line a crash tore: this one is whole
-                os.write(fd, data)  # one write of the whole line: O_APPEND, unbuffered
+                _write_all(fd, data)  # one write of the whole line as a rule: O_APPEND, unbuffered
             finally:
                 if fd >= 0:
                     os.close(fd)
             self.written += 1
         except OSError as exc:
-            self._failed(storage_reason(exc))
+            self._failed(_refusal(exc))
 
     def _failed(self, reason: str) -> None:
         self.write_errors += 1
@@ -204,7 +206,20 @@ class SafetyJournal:
 
 
 def _open_append(path: Path) -> int:
-    return os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+    """The journal's file opened to append (made if missing); a symbolic link, a FIFO, anything but
+    a regular file is refused (:class:`NotRegularFile`: a failed write), never followed or waited on."""
+    return _open_regular(path, os.O_RDWR | os.O_APPEND | os.O_CREAT)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    """All of ``data``: a write that takes part of it (a signal, the disk's last bytes) is
+    followed by one for the rest; one that takes none, or fails, raises (a failed write)."""
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        if n <= 0:
+            raise OSError(errno.EIO, f"a write took {n} bytes of {len(view)}")
+        view = view[n:]
 
 
 class NotRegularFile(OSError):

@@ -364,6 +364,40 @@ def test_a_write_that_fails_is_counted_and_logged_never_raised(journal: SafetyJo
     assert json.loads(journal.path.read_text().splitlines()[-1])["reason"] == "disk back"
 
 
+def test_the_writer_follows_no_link_writes_no_fifo_and_writes_whole_lines(journal: SafetyJournal, caplog,
+                                                                         monkeypatch) -> None:
+    """Review of session 43: the writer followed a symbolic link at the journal's path (appending to
+    whatever it named) and wrote into a FIFO; a short ``os.write`` counted as a line written."""
+    journal.dir.mkdir(parents=True)
+    victim = journal.dir / "victim.txt"
+    victim.write_text("someone else's file\n")
+    os.symlink(victim, journal.path)
+    journal.record("estop_sent", reason="through a link")
+    assert journal.flush(5)
+    assert victim.read_text() == "someone else's file\n"
+    assert journal.write_errors == 1 and journal.written == 0 and "symbolic link" in journal.last_error
+    os.unlink(journal.path)
+    os.mkfifo(journal.path)
+    for i in range(3):
+        journal.record("estop_sent", n=i)
+    assert journal.flush(5)
+    assert journal.write_errors == 4 and journal.written == 0 and "FIFO" in journal.last_error, journal.status()
+    assert sum("safety journal" in r.getMessage() for r in caplog.records) == 1  # once a period
+    os.unlink(journal.path)
+
+    write = os.write
+
+    def short(fd: int, data) -> int:  # a line goes out in two writes (a signal, a full disk's last bytes)
+        data = bytes(data)
+        return write(fd, data[: len(data) // 2] if data.startswith(b'{"time"') else data)
+
+    monkeypatch.setattr(os, "write", short)
+    journal.record("estop_sent", reason="in two writes")
+    assert journal.flush(5)
+    monkeypatch.undo()
+    assert [e["reason"] for e in read_journal(journal, 10)[0]] == ["in two writes"] and journal.written == 1
+
+
 @pytest.mark.parametrize(("block", "line_max"), [(7, 30), (8, 16)])
 def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Path, monkeypatch, block: int,
                                                                     line_max: int) -> None:
