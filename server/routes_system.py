@@ -94,12 +94,10 @@ class EStopRequest(BaseModel):
 def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
-    sent; ``/api/system/health`` shows what the bridge reports (``estop.source``)."""
+    sent; ``/api/system/health`` shows what the bridge reports (``estop.source``). Published
+    first, then logged and journalled (a failed publication too): a log handler that blocks does
+    not delay the e-stop (review of session 43)."""
     s = request.app.state
-    sent = {"engaged": body.engaged, "reason": bus.plain_text(body.reason), **_requester(request),
-            "holder": s.campaigns.estop_holder}
-    log.warning("e-stop %s by %s (%s, %s): %r", "engaged" if body.engaged else "released", sent["client"],
-                sent["auth"], sent["user_agent"] or "no user agent", sent["reason"])
     error = "unexpected error"
     try:
         s.campaigns.estop(body.engaged, body.reason)
@@ -107,7 +105,13 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     except Exception as exc:
         error = bus.plain_text(f"{type(exc).__name__}: {exc}")
         raise
-    finally:  # queued, never written here: a journal that cannot write does not fail the e-stop
+    finally:
+        sent = {"engaged": body.engaged, "reason": bus.plain_text(body.reason), **_requester(request),
+                "holder": s.campaigns.estop_holder}
+        log.warning("e-stop %s by %s (%s, %s): %r%s", "engaged" if body.engaged else "released", sent["client"],
+                    sent["auth"], sent["user_agent"] or "no user agent", sent["reason"],
+                    f"; NOT PUBLISHED: {error}" if error else "")
+        # queued, never written here: a journal that cannot write does not fail the e-stop
         s.journal.record("estop_sent", **sent, published=not error, error=error)
     return {"engaged": body.engaged, "reason": body.reason}
 

@@ -324,6 +324,56 @@ def test_journal_reads_never_take_the_threads_an_estop_needs(journal: SafetyJour
     assert campaigns.sent == [(True, "x")] and len(entered) == 40
 
 
+def test_an_estop_is_published_before_it_is_logged_or_journalled(caplog) -> None:
+    """Review of session 43: the e-stop's route logged and built its journal line before it
+    published: a log handler that blocks (a full pipe, a slow disk) delayed the e-stop. A
+    publication that fails is still logged and journalled."""
+    import asyncio
+    import logging
+
+    import httpx
+
+    campaigns = _Campaigns()
+    seen: list[tuple[str, int]] = []  # (what, e-stops published when it happened)
+
+    class Journal:
+        def record(self, event: str, **fields) -> None:
+            seen.append((f"journal {fields['published']} {fields['error']}", len(campaigns.sent)))
+
+        def status(self) -> dict:
+            return {}
+
+    class Watch(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.getMessage().startswith("e-stop"):
+                seen.append(("log", len(campaigns.sent)))
+
+    watch = Watch()
+    logging.getLogger("xneck.server").addHandler(watch)
+    app = _route_app(Journal(), campaigns)
+
+    async def post(c: httpx.AsyncClient, engaged: bool) -> httpx.Response:
+        return await c.post("/api/system/estop", json={"engaged": engaged, "reason": "x"},
+                            headers={"Authorization": "Bearer tok"})
+
+    async def main() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            assert (await post(c, True)).status_code == 200
+            campaigns.estop = broken  # pyright: ignore[reportAttributeAccessIssue]
+            return await post(c, False)
+
+    def broken(engaged: bool, reason: str) -> None:
+        raise RuntimeError("bus closed")
+
+    try:
+        failed = asyncio.run(main())
+    finally:
+        logging.getLogger("xneck.server").removeHandler(watch)
+    assert failed.status_code == 500
+    assert seen == [("log", 1), ("journal True ", 1), ("log", 1), ("journal False RuntimeError: bus closed", 1)], seen
+
+
 def test_the_journals_route_says_a_file_it_refused(journal: SafetyJournal) -> None:
     import asyncio
 
