@@ -290,7 +290,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
     sub = session.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
     services = _Services(session) if spec.service else None
     # Follows the bridge's drives from now on (the e-stop's one truth) and counts the quality.
-    monitor = CampaignMonitor(session)
+    monitor = CampaignMonitor(session, n_cables=params.n_cables)
     if spec.recorded_camera is not None:  # its camera, whichever α_IP comes first (a stray camera's)
         # the camera process it spawns, not another of its source on the hub (server.quality, "One camera")
         # or, when its own twin publishes the α_IP (rendered in lockstep, or noise), the twin's

@@ -41,7 +41,12 @@ Cables at f_max (said, not judged)
     on the prototype, ρ·f_max/k_t: its current loop does not saturate there), so the fit's data
     stand; what saturation changes is the excitation, which the law tracked less closely than
     designed, and the fit's σ says what that cost. A control campaign's saturation is its law's
-    performance (its metrics' ``saturated_ticks``, Fig. 14).
+    performance (its metrics' ``saturated_ticks``, Fig. 14). A status counts only when it has one
+    ``saturated`` flag per cable of the robot (the runner tells the monitor how many; else the
+    first status counted sets it): any peer may name the followed controller, and a forged status
+    of 13 000 flags had cost a millisecond under the monitor's lock and grown
+    ``saturated_by_cable`` to 13 000 counts in the record (review of session 43). Others are
+    counted in ``rejected_payloads``.
 
 The same counters go to the campaign's record (``quality``) and its MCAP metadata.
 
@@ -131,8 +136,11 @@ class CampaignMonitor:
     """Follows the drives and counts the real-time quality of one campaign (module docstring).
     Close it (or use it as a context manager)."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, session: zenoh.Session, n_cables: int | None = None) -> None:
+        """``n_cables``: the robot's cables (a controller status with another number of ``saturated``
+        flags is rejected; None: the first status counted says it)."""
         self._lock = threading.Lock()
+        self._n_cables = n_cables
         self._active = self._ended = False
         self._states, self._commands = _SeqCounter(), _SeqCounter()
         self._first_cmd_s = self._last_cmd_s = 0.0
@@ -369,6 +377,11 @@ class CampaignMonitor:
             return
         with self._lock:
             if not self._active:
+                return
+            if self._n_cables is None and msg.saturated:
+                self._n_cables = len(msg.saturated)
+            if len(msg.saturated) != self._n_cables:  # not the robot's cables: forged, or another robot's
+                self.rejected += 1
                 return
             self._law_ticks += 1
             if any(msg.saturated):

@@ -77,6 +77,53 @@ def test_the_monitor_counts_the_ticks_its_controllers_cables_sat_at_f_max(sessio
     assert assess(counters, realtime=False) == []  # said, not a reason to degrade
 
 
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    """What the monitor's callback reads of a Zenoh sample: its payload and attachment."""
+
+    def __init__(self, payload: bytes, attachment: bytes) -> None:
+        self.payload, self.attachment = _Bytes(payload), _Bytes(attachment)
+
+
+def test_a_status_whose_cables_are_not_the_robots_is_rejected() -> None:
+    """Review of session 43: any peer may name the followed controller in its attachment; a forged
+    status with 13 000 ``saturated`` entries cost a millisecond under the monitor's lock and grew
+    ``saturated_by_cable`` (the record, the MCAP metadata) to 13 000 counts. A status counts only
+    when it has a flag per cable of the robot (told, else the first status's), others are rejected."""
+    from unittest.mock import MagicMock
+
+    own = controller_attachment("ctl-own")
+    forged = _Sample(_status(1, (True,) * 13_000), own)
+    for n_cables, first in ((None, CABLE_2), (4, None)):
+        monitor = CampaignMonitor(MagicMock(), **({} if n_cables is None else {"n_cables": n_cables}))
+        try:
+            monitor.follow("ctl-own")
+            monitor.begin()
+            if first is not None:
+                monitor._on_status(_Sample(_status(0, first), own))  # pyright: ignore[reportArgumentType]
+            for k in range(3):
+                monitor._on_status(forged)  # pyright: ignore[reportArgumentType]
+                monitor._on_status(_Sample(_status(k, (True, False)), own))  # pyright: ignore[reportArgumentType]
+                monitor._on_status(_Sample(_status(k, CABLES_2_4), own))  # pyright: ignore[reportArgumentType]
+            counters = monitor.counters()
+        finally:
+            monitor.close()
+        law_ticks = 3 + (first is not None)
+        assert counters["law_ticks"] == law_ticks and counters["saturated_ticks"] == law_ticks, (n_cables, counters)
+        assert counters["saturated_by_cable"] == [0, law_ticks, 0, 3], (n_cables, counters)
+        assert counters["rejected_payloads"] == 6, (n_cables, counters)
+
+
 def test_an_identification_with_cables_at_f_max_beyond_one_percent_says_so() -> None:
     """The audit's run: 11.2 % of its ticks with a cable at f_max, ``finished`` without a word."""
     ok = {"ticks": 5000, "states": 5000, "rate_hz": 499.0, "deadline_misses": 0, "record_gaps": 0,
