@@ -459,6 +459,24 @@ def test_a_campaign_or_replay_started_elsewhere_is_shown_and_stopped_and_a_hung_
         (page.inner_text("#live-lost"), (console.tmp / "controller.log").read_text()[-1500:])
 
 
+def test_the_idle_bar_shows_the_newest_campaigns_end_not_an_older_one(console):
+    """Review of session 43: with nothing running, the bar took the newest record's end only when it
+    said "idle" or its campaign was deleted; a campaign started elsewhere that ended between two
+    polls (never seen running) left it on an older campaign's end. The bar is put on an older end
+    here, as that left it, and the list refreshed: it shows the newest."""
+    page, http = console.page, console.http
+    console.wait_idle()
+    page.wait_for_function("runningId === null && replayId === null", timeout=15000)
+    records = http.get("/api/campaigns", params={"limit": 50}).json()
+    assert len(records) >= 2 and records[0]["status"] != "running", records
+    newest, older = records[0]["id"], records[1]["id"]
+    page.evaluate("(id) => api('GET', `/api/campaigns/${id}`).then(showEnded)", older)
+    page.wait_for_function("(id) => endedShown === id", arg=older, timeout=5000)
+    page.evaluate("refreshList()")
+    page.wait_for_function("(id) => endedShown === id && document.querySelector('#progress-text').textContent"
+                           ".includes(id)", arg=newest, timeout=10000)
+
+
 def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(console):
     """Audit of 2026-11-29: the form's error line (#error) kept a refusal's message after a later
     action through it succeeded (stop, replay, delete, results), as if that one had failed. The

@@ -281,12 +281,12 @@ async function refreshList() {
     tbody.append(tr);
     if (r.status === "running") { runningId = r.id; setProgress(r.progress, r.id); }
   }
-  // A page loaded after a campaign ended shows that end too (the records are the console's truth, and
-  // an operator opening the page after an e-stop wants to know what it did); so does a bar whose
-  // shown campaign was deleted: the newest one's, or idle.
-  const untouched = $("#progress-text").textContent === "idle";
-  if (!runningId && !replayId && (untouched || (endedShown && !list.some((r) => r.id === endedShown)))) {
-    if (list.length && list[0].status !== "running") showEnded(list[0]);
+  // While nothing runs, the bar shows the newest campaign's end (the records are the console's truth,
+  // and an operator opening the page after an e-stop wants to know what it did): on a page loaded
+  // after it ended, when the campaign shown was deleted, and when one started elsewhere ended
+  // between two polls, never seen running (review of session 43: the bar kept an older end).
+  if (!runningId && !replayId) {
+    if (list.length && list[0].status !== "running") { if (list[0].id !== endedShown) showEnded(list[0]); }
     else if (endedShown) { setProgress(0, ""); $("#progress-text").textContent = "idle"; }  // none left
   }
 }
