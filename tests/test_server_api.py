@@ -714,7 +714,9 @@ def test_the_journals_limit_is_validated(client) -> None:
         assert ["query", "limit"] in _loc(r), bad
     r = client.get("/api/system/safety-journal", params={"limit": 1})
     assert r.status_code == 200 and len(r.json()["events"]) <= 1
-    assert set(r.json()["journal"]) >= {"written", "write_errors", "dropped", "suppressed", "runs_forgotten"}
+    assert set(r.json()["journal"]) >= {"written", "write_errors", "dropped", "suppressed", "runs_forgotten", "owed",
+                                        "oldest_owed_s"}
+    assert r.json()["unreadable"] == []
     assert "safety_journal" in client.get("/api/system/health").json()
 
 
@@ -803,8 +805,10 @@ def test_an_estop_goes_out_when_the_journal_cannot_be_written(console: tuple[htt
                             headers=AUTH)
             assert r.status_code == 200 and r.json()["engaged"] is engaged, r.text
         assert client.get("/api/system/health").json()["estop"]["engaged"] is False
-        status = client.get("/api/system/safety-journal").json()["journal"]
+        answer = client.get("/api/system/safety-journal").json()
+        status = answer["journal"]
         assert status["write_errors"] >= errors + 2 and "directory" in status["last_error"].lower(), status
+        assert answer["unreadable"] == ["journal.jsonl: a directory, not a regular file: not read"], answer
     finally:
         journal.path.rmdir()
         kept.rename(journal.path)
