@@ -90,8 +90,12 @@ SLACK_SETTLE_S = 0.5
 def detector_model(params: Params) -> Model:
     """The model the check runs on, whatever the law: the parameter file's cable model (Table 2's
     variable stiffness for the prototype), its friction (eq. 37) and pulleys. A law's own model
-    may be rigid (laws 1-2), which would leave the whole stretch in the residual."""
-    return build(params, None, friction=True, pulleys=True)
+    may be rigid (laws 1-2), which would leave the whole stretch in the residual; so would a
+    parameter set that says its cables are rigid (a campaign's own set: every campaign aborted
+    on a stuck-encoder fault within 0.05-11.5 s, audit of session 43): the real cables stretch
+    whatever a set says, and the check then takes the set's variable-stiffness section."""
+    model = "variable" if params.cables.model == "rigid" else None
+    return build(params, model, friction=True, pulleys=True)
 
 
 @njit(cache=True)

@@ -83,6 +83,24 @@ def test_the_residual_vanishes_on_consistent_readings_and_names_a_cable_length_e
     assert one.shape == (4,) and np.abs(one).max() < 1e-12
 
 
+def test_a_set_that_says_its_cables_are_rigid_is_checked_on_their_stretch_all_the_same(params):
+    """A campaign's own parameter set with ``cables.model = "rigid"`` built a check that predicted
+    no stretch: every campaign then aborted on a stuck-encoder fault (0.05-11.5 s in, laws 1-3;
+    audit of session 43). The real cables stretch whatever a set says: the check takes the set's
+    variable-stiffness section, and readings consistent with it leave no residual."""
+    import tomllib
+
+    from twin.model.params import params_from_dict
+
+    raw = tomllib.loads(params.to_toml())
+    raw["cables"]["model"] = "rigid"
+    rigid = params_from_dict(raw, "rigid-set")
+    _, alpha, theta = _consistent(params, [[20, -10, 30]], [[30, 25, 20, 40]])
+    force = np.array([[30, 25, 20, 40]], dtype=float)
+    s, r = residuals(detector_model(rigid), theta, alpha, force)
+    assert np.abs(s).max() < 1e-12 and np.abs(r).max() < 1e-12, (s, r)
+
+
 def test_the_residual_is_near_zero_on_the_model_truth(params):
     """On the twin of the parameter file the check's only error is its stretch at rest, where the
     model's 3000 N·s/m cable damper carries part of the tension while moving (3.5 mm measured,
