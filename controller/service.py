@@ -612,8 +612,14 @@ class CampaignService:
         if not self._restart and self._blend is None and self.drive == "active":
             start_at = self.reference(stamp_s)[0]
         if prepared.kind != "jog":
+            old_limits, old_law = self.params.limits, self.law
             self.params = prepared.params
             self._switch_law(prepared.law)
+            if self.drive == "active" and (prepared.params.limits != old_limits or prepared.law != old_law):
+                # Another floor (t_min, f_min) or law starts from the last command at the
+                # take-up's 1 N a tick: a set raising t_min stepped 10 N a tick for 2 ticks, law
+                # 2 → 3 one tick of 7 N (its stretch estimate starts anew; audit of session 43).
+                self._wind_down = True
         self.begin(approach(prepared.trajectory, start_at), stamp_s)
 
     def handle(self, req: bus.CampaignRequest, stamp_s: float) -> None:

@@ -653,6 +653,30 @@ def test_a_campaign_started_from_an_idle_hold_on_the_robot_truth_steps_no_force(
     assert start_step <= max(2.0, 2 * idle_step), (start_step, idle_step)
 
 
+@pytest.mark.parametrize(("limit", "value"), [("t_min", 30.0), ("f_min", 15.0)])
+def test_a_campaign_with_another_floor_or_law_starts_from_the_last_command(params, limit, value):
+    """Audit of session 43: a campaign's own parameter set raising t_min to 30 N stepped the forces
+    10 N a tick for 2 ticks at its start, f_min 15 N 9.35 N in one tick (law 2 → 3 at a held pose
+    one tick of 7 N: the stretch estimate starts anew): another floor or law starts from the last
+    command at 1 N a tick."""
+    import tomllib
+
+    from twin.model.params import params_from_dict
+
+    loop = Loop(params)
+    loop.run(2.0)
+    n0 = len(loop.outputs)
+    raw = tomllib.loads(params.to_toml())
+    raw["limits"][limit] = value
+    loop.svc.handle(_request(law=2, parameters_toml=params_from_dict(raw, f"{limit} {value}").to_toml()), loop.stamp_s)
+    loop.run(0.3)
+    assert "started" in [e.event for e in loop.events], loop.events
+    forces = np.array([o.force_N for o in loop.outputs[n0 - 1:]])
+    step = float(np.abs(np.diff(forces, axis=0)).max())
+    assert step <= 1.0 + 1e-9, step
+    assert forces[-1].min() > value - 5.0, forces[-1]  # the new floor (a tension: ± friction) reached at that rate
+
+
 @pytest.mark.parametrize("law", [2, 3])
 def test_a_controller_restarted_while_the_bridge_runs_starts_from_where_the_neck_is(params, law) -> None:
     """Audit of 2026-11-29: a controller process started while the bridge ran (a crash and its
