@@ -219,7 +219,12 @@ class CampaignService:
         self._alpha_max = math.radians(self.params.limits.alpha_max_deg)
         self._theta_last: tuple[float, list[float]] | None = None  # (stamp s, θ rad) of the last state
         self._check_armed_at = math.inf  # the drives have not been active yet (ENCODER_CHECK_SETTLE_S)
-        self._hold_since: float | None = None  # stamp of the first state of the bridge's current hold
+        # s of the bridge's watchdog hold summed over its recent holds, and the stamp of the first
+        # state of the present run of active ones (None: not active), which clears the sum once it
+        # lasts STALE_RESTART_S (a run of short holds re-starts the law as one long one does)
+        self._held_s = 0.0
+        self._active_since: float | None = None
+        self._bridge_held = False  # the bridge's watchdog held since the law last ran with it active
         self._estopped = False  # the drives were disabled (e-stop) since the law last held the neck
         self._take_up: TakeUp | None = None  # the slack an e-stop left being taken up (controller.take_up)
         self._hold_sent: np.ndarray | None = None  # N, the last hold's command (a take-up's rate bound)
@@ -385,7 +390,8 @@ class CampaignService:
             self._end("aborted", f"{reason}: the campaign cannot continue", self._progress(last_stamp),
                       self.ctl.estimator.alpha_hat)
         self._drop_waiting(reason)
-        self._theta_last = self._hold_since = None
+        self._theta_last = self._active_since = None
+        self._held_s = 0.0
         if self._check_armed_at is not None and math.isfinite(self._check_armed_at):
             self._check_armed_at = stamp_s + ENCODER_CHECK_SETTLE_S
         self._restart = True  # the law re-starts from the measurement, bumplessly
@@ -681,7 +687,7 @@ class CampaignService:
         if self._take_up is not None:
             f = np.clip(f + self._take_up.damping_N, self.params.limits.f_min, self.params.limits.f_max)
             step = min(step, take_up_rules.FORCE_STEP_N)
-        if self.drive == "active":
+        if self.drive in ("active", "hold"):  # a command ends the bridge's hold, which ramps to it
             f_prev = self.ctl.f_prev
             f = self._wind_down_bound(f, f_prev) if self._wind_down else np.clip(f, f_prev - step, f_prev + step)
             f_prev[:] = f
@@ -834,6 +840,7 @@ class CampaignService:
         campaign it runs is aborted."""
         self.ticks += 1
         self.drive = drive
+        gap_s = max(stamp_s - self._theta_last[0], 0.0) if self._theta_last is not None else 0.0
         fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N,
                                     *self._check_phase(drive == "active" and obeyed, stamp_s))
         if fault and not self.latched:
@@ -845,19 +852,42 @@ class CampaignService:
             return out
         if not obeyed:
             drive = "inactive"
-        if drive != "hold":
-            self._hold_since = None
+        if drive == "active":
+            if self._active_since is None:
+                self._active_since = stamp_s
+            if stamp_s - self._active_since >= STALE_RESTART_S:
+                self._held_s = 0.0
+        else:
+            self._active_since = None
         if drive == "hold":
             # The bridge's watchdog holds because our commands came late: the next one ends the
             # hold (the bridge ramps to it), so the law keeps running (a hold command here would be
-            # one more step). After a long hold it re-starts from the measurement once the bridge
-            # obeys again; after a short one (a tick or two late) it goes on, as after a short gap
-            # of the states: re-starting stepped the commands 8.6 N a tick (α^d to α̂, a fresh
-            # integral) for what the bridge's ramp had already smoothed.
-            if self._hold_since is None:
-                self._hold_since = stamp_s
-            if stamp_s - self._hold_since >= STALE_RESTART_S:
+            # one more step), its integral frozen (below). After long holds it re-starts from the
+            # measurement once the bridge obeys again; after a short one (a tick or two late) it
+            # goes on, as after a short gap of the states: re-starting stepped the commands 8.6 N a
+            # tick (α^d to α̂, a fresh integral) for what the bridge's ramp had already smoothed.
+            # "Long" is the hold time summed until the bridge obeys for STALE_RESTART_S on end: a
+            # starved controller (40 ms stopped, 8 ms running) made the bridge flap hold/active
+            # every 50 ms, no single hold lasted STALE_RESTART_S, the law ran on while the neck was
+            # held and its commands climbed to f_max; at the hand-back the neck reached 217-378°/s
+            # and α 71.9° (audit of session 43).
+            self._held_s += gap_s
+            self._bridge_held = True
+            if self._held_s >= STALE_RESTART_S:
                 self._restart = True
+            if self._restart and self._take_up is None and not (self._joined and self._estopped and not self.running):
+                # Re-starting: α̂ follows the encoders and the forces applied, as with the drives off,
+                # and the command is the hold at α̂ (the bridge's own), within the law's rate of the
+                # last command (as in a take-up): the law's command at the last hold tick had ended
+                # the hold, and the bridge ramped to it (100 N on a cable) before the law took over
+                # (audit of session 43).
+                applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
+                sent = self.ctl.f_prev.copy()
+                self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
+                self.ctl.f_prev[:] = sent
+                if self.latched:
+                    return self.hold(self.hold_reason)
+                return self.hold("drives hold" + (f": {self.drive_reason}" if self.drive_reason else ""))
             if self._joined and self._estopped and not self.running:
                 # A run joined during the bridge's hold (the controller restarted: the bridge held
                 # since its commands stopped) owes a take-up before the law runs: the hold at α̂
@@ -897,10 +927,22 @@ class CampaignService:
         if self._take_up is not None:
             return self._taking_up(theta_rad, stamp_s, drive, force_applied_N)
         if self._restart and drive == "active":
+            if self._bridge_held and force_applied_N is not None:
+                # After the bridge's hold the law's rate bound runs from what the bridge applies
+                # (its hold, ramping to our commands), not from a command it did not apply: the
+                # first commands had chased the one sent last during the hold (audit of session 43).
+                self.ctl.f_prev[:] = force_applied_N
             self._take_over(stamp_s)
+        if drive == "active":
+            self._bridge_held = False
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
         sent = self.ctl.f_prev.copy() if self._wind_down else None
+        # While the bridge holds, the neck does not follow the law: its integral would wind up on
+        # an error the law's commands do not act on (audit of session 43: to f_max), so it stays.
+        integral = self.ctl.integral.copy() if drive == "hold" else None
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s), stamp_s)
+        if integral is not None:
+            self.ctl.integral[:] = integral
         if sent is not None:
             cmd.f[:] = self._wind_down_bound(cmd.f, sent)
             self.ctl.f_prev[:] = cmd.f

@@ -356,8 +356,9 @@ def test_leaving_a_hold_blends_the_reference_from_the_estimate_back_to_the_traje
     loop = DriveLoop(params)
     loop.svc.handle(_request(), loop.stamp_s)
     loop.run_drive(0.5, "active")
-    held = loop.run_drive(0.3, "hold")  # the bridge's watchdog held: the law goes on meanwhile
-    assert all(o.law_ran for o in held)
+    held = loop.run_drive(0.3, "hold")  # the bridge's watchdog held: the law goes on meanwhile,
+    assert all(o.law_ran for o in held[:40])  # for STALE_RESTART_S; then it re-starts, holding at α̂
+    assert not any(o.law_ran for o in held[60:]) and loop.svc.hold_reason.startswith("drives hold")
     back = loop.run_drive(2.5, "active")
     np.testing.assert_allclose(back[0].alpha_d_rad, back[0].alpha_hat_rad, atol=1e-3)
     assert np.abs(np.diff(np.array([o.alpha_d_rad for o in back]), axis=0)).max() < math.radians(0.5)
@@ -769,3 +770,37 @@ def test_a_campaign_asked_for_during_a_stops_brake_is_checked_from_where_the_bra
     assert validated_from is not None
     assert np.degrees(np.abs(validated_from - rest)).max() < 0.05, np.degrees([validated_from, rest])
     assert np.degrees(np.abs(on_the_way - rest)).max() > 0.5  # what the old check had started from
+
+
+def test_a_starved_controller_whose_bridge_flaps_hold_active_re_starts_the_law_and_its_commands_stay_bounded(params):
+    """Audit of session 43: a starved controller (stopped 40 ms, running 8 ms) made the bridge's
+    watchdog flap hold/active every 48 ms. No single hold lasted STALE_RESTART_S, so the law ran on
+    while the neck was held, α^d advancing and its integral winding up: its commands climbed to
+    f_max and the bridge ramped to them at each hand-back (the neck at 217-378°/s, α 71.9°). The
+    hold time now adds up: the law re-starts from the measurement (a hold at α̂ while held, then a
+    fresh integral and α^d blended from α̂), and no command leaves the bridge's forces by more than
+    the law's rate bound."""
+    traj = Trajectory.from_degrees([[0, 0, 0], [30, 20, 10], [-10, 25, 20]], 1.5, 0.2, name="sweep")
+    loop = Loop(params)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min,
+                                 f_max_N=params.limits.f_max))
+    loop.svc.handle(_request(trajectory_json=traj.to_json()), loop.stamp_s)
+    f_max, step_max = params.limits.f_max, loop.svc.law.force_rate_max_N_s * 0.002
+    commands, restarted, age = [], False, 0
+    for k in range(round(2.5 * 500)):
+        starved = 250 <= k < 550 and (k - 250) % 24 < 20  # 0.6 s from 0.5 s into the campaign
+        out = loop.svc.control(loop.tick.theta_meas, loop.stamp_s, safety.drive, np.asarray(safety.force))
+        if out.law_ran:
+            loop.svc.advance(loop.stamp_s)
+        loop.events += loop.svc.drain_events()
+        restarted |= loop.svc.drive == "hold" and loop.svc.hold_reason.startswith("drives hold")
+        age = age + 1 if starved else 0
+        commands.append(out.force_N)  # lost or not: one promise after the other
+        d = safety.step(Inputs(command_N=None if starved else out.force_N.tolist(), command_age_s=0.002 * age,
+                               states_unanswered=age, hold_N=hold_forces(params, loop.tick.alpha).tolist()))
+        loop.tick = loop.twin.tick(np.asarray(d.force_N, dtype=float))
+    sent = np.array(commands)
+    print(f"\nlargest command {sent.max():.1f} N, largest step between commands {np.abs(np.diff(sent, axis=0)).max():.2f} N")
+    assert sent.max() < 0.95 * f_max, sent.max(axis=0)  # it had climbed to f_max
+    assert np.abs(np.diff(sent, axis=0)).max() <= step_max + 1e-6
+    assert restarted
