@@ -1,0 +1,101 @@
+"""The bridge's watchdog hold while the controller still receives states but its commands are lost
+(refused, a one-way link, a congested publisher, a starved process) for D s mid-campaign, then the
+hand-back (docs/safety.md, "The law's force rate"; audit of session 43).
+
+    .venv/bin/python docs/safety/watchdog_handback.py                     # laws 1-3, D 0, 0.3, 0.6, 1.0 s, about 10 s
+    .venv/bin/python docs/safety/watchdog_handback.py --flap        # a starved controller
+
+The §7 control test (controller.trajectory.control_test_trajectory) on the robot truth, the
+controller's campaign service closed on the twin through the bridge's safety rules in one process.
+``--at`` s into the campaign the commands stop reaching the bridge for D s (the states go on, so
+the service sees the bridge's hold); the bridge's watchdog holds, and ramps to the controller's
+commands again when they return. After the hand-back (1.5 s): the neck's peak joint speed and
+largest |α| (truth), the largest applied force step per tick, and the command at the hand-back.
+D = 0: the same run without the loss (law 1 reaches 127°/s there without any fault). ``--flap``: the
+controller starved (stopped 40 ms, running 8 ms, as SIGSTOP/SIGCONT did): its commands come through
+8 ms in every 48 over D, and the bridge flaps hold/active.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from bridge import bus
+from bridge.motor_speed import MotorSpeed
+from bridge.safety import Inputs, Safety, SafetyConfig
+from controller.laws import LawConfig, encoder_hold_forces
+from controller.service import CampaignService
+from controller.trajectory import control_test_trajectory
+from twin.model.params import load_params
+from twin.sim.simulator import Twin, TwinConfig
+
+DT = 0.002
+
+
+def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False) -> dict:
+    """One run (module docstring): figures after the hand-back, or over the same window with no loss."""
+    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
+    tick = twin.tick(np.zeros(params.n_cables))
+    speed.update(tick.theta_meas.tolist())
+    svc.initialise(tick.theta_meas)
+    start_k = 500  # 1 s of hold, then the campaign
+    lost = range(start_k + round(at_s / DT), start_k + round((at_s + lost_s) / DT))
+    end_k = lost.stop + round(after_s / DT)
+    applied, alpha, alpha_dot, sent = [], [], [], np.zeros(params.n_cables)
+    age = 0
+    for k in range(end_k):
+        if k == start_k:
+            svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ct", action="start", law=law,  # type: ignore[arg-type]
+                                           trajectory_json=control_test_trajectory().to_json()), tick.t_s)
+        svc.drive_reason = safety.estop_reason if safety.drive == "disabled" else safety.hold_reason
+        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+        if out.law_ran:
+            svc.advance(tick.t_s)
+        svc.drain_events()
+        if k in lost and not (flap and (k - lost.start) % 24 >= 20):  # flap: 40 ms lost, 8 ms through
+            age += 1
+            command, sent = None, out.force_N
+        else:
+            age, command = 0, out.force_N.tolist()
+        d = safety.step(Inputs(command_N=command, command_age_s=DT * age, states_unanswered=age, estop=(),
+                               hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
+        if k >= lost.stop - 1:
+            applied.append(np.asarray(d.force_N, dtype=float))
+        tick = twin.tick(np.asarray(d.force_N, dtype=float))
+        speed.update(tick.theta_meas.tolist())
+        if k >= lost.stop:
+            alpha.append(tick.alpha.copy())
+            alpha_dot.append(tick.alpha_dot.copy())
+    return dict(speed=math.degrees(float(np.abs(alpha_dot).max())), alpha=math.degrees(float(np.abs(alpha).max())),
+                step=float(np.abs(np.diff(np.array(applied), axis=0)).max()), command=sent)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description="The hand-back after the bridge's watchdog held for lost commands.")
+    ap.add_argument("--law", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--lost", type=float, nargs="+", default=[0.0, 0.3, 0.6, 1.0], help="s of lost commands (0: none)")
+    ap.add_argument("--at", type=float, default=3.0, help="s into the control test the loss starts")
+    ap.add_argument("--flap", action="store_true", help="a starved controller: 40 ms lost, 8 ms through, over D")
+    args = ap.parse_args()
+    params = load_params()
+    print(f"control test on the robot truth, commands lost from +{args.at:g} s; after the hand-back (1.5 s):")
+    for law in args.law:
+        for lost_s in args.lost:
+            r = handback(params, law, args.at, lost_s, flap=args.flap)
+            held = f"command at the hand-back {np.round(r['command'], 0).tolist()} N" if lost_s else "no loss"
+            print(f"law {law}, lost {lost_s:.1f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
+                  f"max applied step {r['step']:5.2f} N/tick; {held}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
