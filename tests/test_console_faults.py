@@ -183,11 +183,15 @@ def test_recovery_never_touches_an_archive_whose_writer_is_alive(tmp_path: Path)
     assert json.loads((campaigns / f"{cid}.json").read_text())["status"] == "running"
 
 
-def test_a_stop_no_controller_answers_is_refused_and_says_what_still_runs(tmp_path: Path) -> None:
+def test_a_stop_no_controller_answers_is_refused_and_says_what_still_runs(tmp_path: Path, monkeypatch) -> None:
     """A campaign the bus says a controller runs on unrecorded (a console restarted during it; the
     real processes: tests/test_stack.py::test_a_campaign_its_controller_runs_on_through_a_console_
     restart_is_shown_and_stopped) whose controller does not answer the stop: NotStopped (a 409 at
     REST), naming the controller, never a stop that seems to work while the neck moves on."""
+    import server.campaigns
+
+    # The controller never answers: the stop waits STOP_ANSWER_S (3 s) in vain, shortened here.
+    monkeypatch.setattr(server.campaigns, "STOP_ANSWER_S", 1.0)
     from server.campaigns import STOP_ANSWER_S, CampaignManager, NotStopped
 
     campaigns = tmp_path / "data" / "campaigns"
@@ -466,7 +470,13 @@ def test_a_failed_campaigns_archive_is_finished_in_place_where_a_copy_does_not_f
 # -- finding 3 ---------------------------------------------------------------------------------------------------
 
 
-def test_start_up_reports_recovery_errors_per_file_and_keeps_serving(tmp_path: Path) -> None:
+def test_start_up_reports_recovery_errors_per_file_and_keeps_serving(tmp_path: Path, monkeypatch) -> None:
+    # A start that recovered campaigns ``interrupted`` makes a new campaign wait for the bus, up to
+    # BUS_SETTLE_S (8 s) from the start (the late-link tests above); nothing
+    # links here, and the 507 below comes after that wait, whatever its length.
+    import server.campaigns
+
+    monkeypatch.setattr(server.campaigns, "BUS_SETTLE_S", 1.0)
     data = tmp_path / "data"
     data.mkdir()
     with tmpfs(data / "campaigns", "4m") as campaigns:
@@ -673,11 +683,16 @@ def test_a_cli_campaign_on_a_full_disk_is_one_error_line_and_a_readable_failed_a
         assert info["outcome"] == "failed" and "No space left" in info["message"], info
 
 
-def test_the_estop_answers_while_a_new_campaign_waits_for_the_bus(tmp_path: Path, caplog) -> None:
+def test_the_estop_answers_while_a_new_campaign_waits_for_the_bus(tmp_path: Path, caplog, monkeypatch) -> None:
     """Review of session 40: a campaign asked for right after a crash recovery waits (up to
     ``BUS_SETTLE_S``) for the bus, and that wait ran on the console's event loop: the e-stop,
     pressed meanwhile, was answered 5 s later, after the campaign. It must be answered while
     the campaign still waits."""
+    import server.campaigns
+
+    # The wait, 8 s from the console's start, shortened: the e-stop is asked as soon as the wait
+    # began and answered in milliseconds; the rest of the wait was idle time.
+    monkeypatch.setattr(server.campaigns, "BUS_SETTLE_S", 4.0)
     campaigns = tmp_path / "data" / "campaigns"
     campaigns.mkdir(parents=True)
     (campaigns / "control-crashed.json").write_text(json.dumps(record("control-crashed", "running")))
@@ -687,7 +702,7 @@ def test_the_estop_answers_while_a_new_campaign_waits_for_the_bus(tmp_path: Path
             c.post("/api/campaigns", json={"kind": "control"}, headers=AUTH)), daemon=True)
         with caplog.at_level(logging.INFO, logger="xneck.campaigns"):
             asking.start()
-            # the campaign's request validated and waiting for the bus (nothing links: up to 8 s)
+            # the campaign's request validated and waiting for the bus (nothing links: up to 4 s here)
             assert wait_until(lambda: "waiting up to" in caplog.text, 20, 0.02), caplog.text[-2000:]
         estop = c.post("/api/system/estop", json={"engaged": True, "reason": "pressed while it waits"}, headers=AUTH)
         waiting = asking.is_alive()
