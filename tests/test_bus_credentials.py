@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import msgspec
@@ -270,8 +271,12 @@ def test_a_flood_of_strangers_gets_no_session_with_credentials_and_a_bounded_num
 
     run_flood = bus_peer.run_flood
     creds = write_new(tmp_path / "c")
-    with_creds = run_flood("sessions", 4, 6.0, ENV | {ENV_CREDENTIALS: str(creds.path)}, ENV)
-    without = run_flood("sessions", 4, 6.0, ENV, ENV)
+    # Both floods at once, each its own publisher, control peer and rogue on ports of its own (as
+    # test_bus_dead_peers runs its two scenarios): each is mostly its 6 s of states.
+    with ThreadPoolExecutor(2) as pool:
+        with_creds_run = pool.submit(run_flood, "sessions", 4, 6.0, ENV | {ENV_CREDENTIALS: str(creds.path)}, ENV)
+        without_run = pool.submit(run_flood, "sessions", 4, 6.0, ENV, ENV)
+        with_creds, without = with_creds_run.result(timeout=180), without_run.result(timeout=180)
     assert with_creds["rogue"]["opened"] == 4 and with_creds["rogue"]["linked"] == 0, with_creds
     assert without["rogue"]["linked"] == 4, without
     assert with_creds["received"] > 1000 and without["received"] > 1000, json.dumps([with_creds, without])
