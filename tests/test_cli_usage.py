@@ -278,9 +278,16 @@ def test_a_converged_fit_is_not_marked(xneck, campaign, tmp_path):
 # -- 7. strict JSON ----------------------------------------------------------------------------------------
 
 
-def test_identify_json_and_provenance_are_strict_json(xneck, campaign, tmp_path):
-    out = tmp_path / "id"
-    run = xneck("identify", str(campaign), "--json", "--no-alpha-hat", "--out", str(out))
+@pytest.fixture(scope="module")
+def identified(xneck, campaign, tmp_path_factory):
+    """`xneck identify CAMPAIGN --json --no-alpha-hat --out DIR` on the module's campaign, run once
+    for the tests that read it as it is (the finished process, DIR): nothing writes into DIR."""
+    out = tmp_path_factory.mktemp("identified") / "id"
+    return xneck("identify", str(campaign), "--json", "--no-alpha-hat", "--out", str(out)), out
+
+
+def test_identify_json_and_provenance_are_strict_json(identified):
+    run, out = identified
     assert run.returncode == 0, run.stderr
     doc = _strict(run.stdout)
     sigmas = [p["relative_sigma"] for p in doc["table_2"]["parameters"]]
@@ -293,7 +300,8 @@ def _without_files(doc: dict) -> dict:
     return {k: v for k, v in doc.items() if k not in ("files", "provenance", "record_notes")}
 
 
-def test_identify_refuses_two_cameras_and_reads_the_one_chosen_past_a_stray_frame(xneck, campaign, tmp_path):
+def test_identify_refuses_two_cameras_and_reads_the_one_chosen_past_a_stray_frame(xneck, campaign, identified,
+                                                                                   tmp_path):
     """Audit of 2026-11-29: an archive holding the α_IP of two cameras was identified as one camera,
     exit 0 (k(4) 4464 → 7530 N/m); one stray frame stamped 1e9 s got the whole record refused for a
     clock step. The camera is chosen by name, the stray dropped and said, the tables those of the
@@ -320,7 +328,7 @@ def test_identify_refuses_two_cameras_and_reads_the_one_chosen_past_a_stray_fram
                    "--out", str(tmp_path / "chosen"))
     assert chosen.returncode == 0, chosen.stderr
     assert "note: 1 camera frame(s)" in chosen.stderr and "1e+09" in chosen.stderr, chosen.stderr
-    clean = xneck("identify", str(campaign), "--json", "--no-alpha-hat", "--out", str(tmp_path / "clean"))
+    clean, _ = identified  # the same command on the clean record
     assert clean.returncode == 0, clean.stderr
     doc = _strict(chosen.stdout)
     assert len(doc["record_notes"]) == 1 and "1 camera frame(s)" in doc["record_notes"][0]
