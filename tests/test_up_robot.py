@@ -39,10 +39,10 @@ PY = [sys.executable, "-m", "server.cli"]
 
 
 @contextlib.contextmanager
-def _up_robot(tmp_path: Path):
+def _up_robot(tmp_path: Path, exit_after_s: int = 120):
     """``xneck up --robot`` on the fake board (its log in ``tmp_path/rcpy.log``), on free ports;
     yields (base URL, hub, process) once the controller has enabled the drives. Stopped within
-    bounded time, the bridge too even if it was left stopped."""
+    bounded time (``--exit-after``), the bridge too even if it was left stopped."""
     board = tmp_path / "rcpy.log"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "FAKE_RCPY_LOG": str(board),
            "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "fake_rcpy"), os.environ.get("PYTHONPATH", "")])}
@@ -50,7 +50,7 @@ def _up_robot(tmp_path: Path):
     base = f"http://127.0.0.1:{port}"
     with open(tmp_path / "up.log", "wb") as log:
         up = subprocess.Popen([*PY, "up", "--robot", "--port", str(port), "--hub", hub, "--data-dir", str(tmp_path / "d"),
-                               "--viser-port", str(free_tcp_port()), "--exit-after", "120"],
+                               "--viser-port", str(free_tcp_port()), "--exit-after", str(exit_after_s)],
                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                               start_new_session=True)
     bridge = None
@@ -114,52 +114,61 @@ def test_a_hung_robot_bridge_is_killed_and_its_drives_disabled(tmp_path: Path, s
     assert levels(lines, others) == dict.fromkeys(BLUE_GP0_PINS, 0)  # set off by the drives-off process
 
 
-def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def healthy_stack(tmp_path_factory):
+    """One ``xneck up --robot`` for the tests below that stall a part of it and check that nothing
+    is taken for hung, or only look at it: each leaves the stack as it found it (healthy, drives on,
+    which each checks), so they share its start-up. Yields (base URL, process, bridge pid, up.log)."""
+    tmp = tmp_path_factory.mktemp("up-robot")
+    with _up_robot(tmp, exit_after_s=600) as (base, _hub, up, bridge):
+        yield base, up, bridge, tmp / "up.log"
+
+
+def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(healthy_stack) -> None:
     """Audit of 2026-11-26: `xneck up` stopped for 3 s (Ctrl-Z, then fg) found the states 3 s old
     on its next pass and killed a healthy bridge."""
-    with _up_robot(tmp_path) as (base, _hub, up, bridge):
-        os.kill(up.pid, signal.SIGSTOP)
-        time.sleep(3.0)
-        os.kill(up.pid, signal.SIGCONT)
-        time.sleep(3.0)
-        printed = (tmp_path / "up.log").read_text()
-        assert "hung" not in printed, printed[-3000:]  # the verdict under test
-        # Nor did the bridge's own loop watchdog end it (it once did under a full suite's load,
-        # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority").
-        assert up.poll() is None and "exited" not in printed, printed[-3000:]
-        assert Path(f"/proc/{bridge}").exists()
-        # The drives go on: active, or back to active within a few ticks after a hold (the bridge's
-        # watchdog holds while the controller's commands come late, as they may under a full
-        # suite's load; the next valid one ends it). CI of 2026-11-27 sampled such a hold once.
-        seen: list[dict] = []
+    base, up, bridge, log = healthy_stack
+    os.kill(up.pid, signal.SIGSTOP)
+    time.sleep(3.0)
+    os.kill(up.pid, signal.SIGCONT)
+    time.sleep(3.0)
+    printed = log.read_text()
+    assert "hung" not in printed, printed[-3000:]  # the verdict under test
+    # Nor did the bridge's own loop watchdog end it (it once did under a full suite's load,
+    # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority").
+    assert up.poll() is None and "exited" not in printed, printed[-3000:]
+    assert Path(f"/proc/{bridge}").exists()
+    # The drives go on: active, or back to active within a few ticks after a hold (the bridge's
+    # watchdog holds while the controller's commands come late, as they may under a full
+    # suite's load; the next valid one ends it). CI of 2026-11-27 sampled such a hold once.
+    seen: list[dict] = []
 
-        def active() -> bool:
-            seen.append((_get(base + "/api/system/health", 5) or {}).get("bridge") or {})
-            return seen[-1].get("drive") == "active"
+    def active() -> bool:
+        seen.append((_get(base + "/api/system/health", 5) or {}).get("bridge") or {})
+        return seen[-1].get("drive") == "active"
 
-        assert wait_until(active, 5, 0.1), (seen[-5:], printed[-3000:])
+    assert wait_until(active, 5, 0.1), (seen[-5:], printed[-3000:])
 
 
-
-def test_a_stalled_hub_does_not_make_a_healthy_bridge_look_hung(tmp_path: Path) -> None:
+def test_a_stalled_hub_does_not_make_a_healthy_bridge_look_hung(healthy_stack) -> None:
     """Looking for why CI (2026-11-26 19:22) saw a healthy bridge killed as hung: a console stopped
     for 2.5 s (SIGSTOP; it hosts the hub) does not make the bridge look hung to `xneck up` (this
     held before that fix too: the bus's peers reach each other without the hub; the cause was
     where `xneck up` ran, the next test)."""
-    with _up_robot(tmp_path) as (base, _hub, up, bridge):
-        server = _child(up.pid, "server")
-        assert server is not None
-        os.kill(server, signal.SIGSTOP)
-        try:
-            time.sleep(2.5)
-        finally:
-            os.kill(server, signal.SIGCONT)
-        time.sleep(2.0)
-        printed = (tmp_path / "up.log").read_text()
-        assert "hung" not in printed and up.poll() is None, printed[-3000:]
-        assert Path(f"/proc/{bridge}").exists()
-        assert wait_until(lambda: ((_get(base + "/api/system/health", 2) or {}).get("bridge") or {}).get("drive")
-                          in ("active", "hold"), 30, 0.3)
+    base, up, bridge, log = healthy_stack
+    server = _child(up.pid, "server")
+    assert server is not None
+    os.kill(server, signal.SIGSTOP)
+    try:
+        time.sleep(2.5)
+    finally:
+        os.kill(server, signal.SIGCONT)
+    time.sleep(2.0)
+    printed = log.read_text()
+    assert "hung" not in printed and up.poll() is None, printed[-3000:]
+    assert Path(f"/proc/{bridge}").exists()
+    assert wait_until(lambda: ((_get(base + "/api/system/health", 2) or {}).get("bridge") or {}).get("drive")
+                      in ("active", "hold"), 30, 0.3)
 
 
 def _allowed_cpus(pid: int) -> dict[int, set[int]]:
@@ -173,17 +182,19 @@ def _allowed_cpus(pid: int) -> dict[int, set[int]]:
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 or os.environ.get("XNECK_REALTIME") == "0",
                     reason="one CPU, or isolation turned off: nothing to keep apart")
-def test_xneck_up_itself_stays_off_the_loops_cpu(tmp_path: Path) -> None:
+def test_xneck_up_itself_stays_off_the_loops_cpu(healthy_stack) -> None:
     """CI (2026-11-26 19:22): `xneck up --robot` killed a healthy bridge as hung (no motor state for
     1 s) while the controller, already at SCHED_FIFO 49 on the loop's CPU, spent 2.7 s importing:
     `xneck up` itself was not placed, so its bus threads could sit on that CPU, below every
     real-time thread, while its main thread ran on time elsewhere. Its threads, the bus's included,
     run where the console does."""
     loop_cpus, other_cpus = cpu_split()
-    with _up_robot(tmp_path) as (_base, _hub, up, _bridge):
-        threads = _allowed_cpus(up.pid)
-        assert threads  # (since 2026-11-27 it judges the bridge by its loop's pings, with no bus session)
-        assert all(cpus == other_cpus for cpus in threads.values()), (threads, loop_cpus)
+    _base, up, _bridge, _log = healthy_stack
+    assert up.poll() is None
+    threads = _allowed_cpus(up.pid)
+    assert threads  # (since 2026-11-27 it judges the bridge by its loop's pings, with no bus session)
+    assert all(cpus == other_cpus for cpus in threads.values()), (threads, loop_cpus)
+
 
 def test_drives_off_is_refused_for_a_driver_without_motors() -> None:
     r = subprocess.run([*PY, "bridge", "--driver", "twin", "--drives-off"], capture_output=True, text=True, timeout=60)
