@@ -305,10 +305,22 @@ def test_xneck_ups_campaign_records_its_twins_camera_beside_a_rendering_camera_o
         {why: chosen.count(why) for why in set(chosen)}
 
 
-def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def robot_stack(tmp_path_factory):
+    """One console (robot mode), twin bridge and controller service for the three stray tests
+    below: each adds its stray (a controller service, a bridge, a twin) to the hub, stops it
+    before it ends, and judges only its own campaign's record and archive (by its id), so they
+    share the stack's start-up. Yields (base URL, hub endpoint, data directory)."""
+    tmp = tmp_path_factory.mktemp("strays")
+    with _robot_stack(tmp) as (base, hub, _):
+        yield base, hub, tmp / "d"
+
+
+def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign(robot_stack, tmp_path: Path) -> None:
     """Both services took the console's request and the one the bridge does not obey aborted the
     campaign at once, "the bridge obeys controller <the stack's>, not this one"."""
-    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+    base, hub, _data = robot_stack
+    with _procs() as spawn:
         stack_service = _processes(base, "campaign-service")
         assert len(stack_service) == 1, stack_service
         spawn(["controller", "--law", "2", "--instance", "stray-ctl", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
@@ -321,11 +333,12 @@ def test_a_second_controller_service_neither_runs_nor_ends_the_consoles_campaign
         assert rec["id"] not in stray_log, stray_log[-2000:]  # the request never reached it
 
 
-def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaign(tmp_path: Path) -> None:
+def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaign(robot_stack, tmp_path: Path) -> None:
     """A stray twin bridge joined the hub mid-campaign and left: the console took its disabled
     drives for the campaign's (aborted), counted 136 million messages lost across the two bridges'
     sequences, and archived both bridges' states."""
-    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+    base, hub, data = robot_stack
+    with _procs() as spawn:
         body = {**GENTLE, "waypoints": {**GENTLE["waypoints"], "durations_s": 4.0}}
         cid = _campaign(base, body)
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json().get("progress", 0) > 0.05,
@@ -341,7 +354,7 @@ def test_a_second_bridge_on_the_hub_neither_ends_nor_enters_the_consoles_campaig
         quality = rec["quality"]
         assert quality["foreign_messages"] > 0, quality  # the stray was there, and set aside
         assert quality["messages_lost"] < 1000, quality
-        campaign = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap")
+        campaign = read_campaign(data / "campaigns" / f"{cid}.mcap")
         bridges = {m.bridge for _, m in campaign.messages(bus.MOTOR_STATE)}
         assert bridges and "stray-bridge" not in bridges, bridges
         assert len(bridges) == 1, bridges
@@ -363,11 +376,13 @@ def _live_truth_stamps(base: str, seconds: float) -> list[float]:
     return stamps
 
 
-def test_a_second_twin_on_the_hub_leaves_its_truth_out_of_the_consoles_campaign_and_view(tmp_path: Path) -> None:
+def test_a_second_twin_on_the_hub_leaves_its_truth_out_of_the_consoles_campaign_and_view(robot_stack,
+                                                                                          tmp_path: Path) -> None:
     """A Truth carries no identity of its own: a stray twin's ``xneck/twin/truth`` was archived
     beside the campaign twin's (two interleaved ground truths in one archive, which the docs'
     analyses read as the one truth) and the dashboard's truth series flipped between them."""
-    with _robot_stack(tmp_path) as (base, hub, _), _procs() as spawn:
+    base, hub, data = robot_stack
+    with _procs() as spawn:
         body = {**GENTLE, "waypoints": {**GENTLE["waypoints"], "durations_s": 4.0}}
         cid = _campaign(base, body)
         assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json().get("progress", 0) > 0.05,
@@ -380,7 +395,7 @@ def test_a_second_twin_on_the_hub_leaves_its_truth_out_of_the_consoles_campaign_
         assert stray.wait(20) is not None
         rec = _wait_end(base, cid, 120)
     assert rec["status"] in ("finished", "degraded"), rec
-    campaign = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap")
+    campaign = read_campaign(data / "campaigns" / f"{cid}.mcap")
     states = [m for _, m in campaign.messages(bus.MOTOR_STATE)]
     truths = [m for _, m in campaign.messages(bus.TWIN_TRUTH)]
     assert len({m.epoch for m in states}) == 1 and truths
