@@ -119,7 +119,10 @@ function onFrame(frame) {
       $("#live-info").textContent = `${s.status.law}, t = ${s.status.stamp_s.toFixed(2)} s` +
         (s.status.holding ? `, HOLD: ${s.status.hold_reason}` : "");
     }
-    if (s.campaign && s.campaign.campaign_id === runningId) setProgress(s.campaign.progress, s.campaign.event);
+    // A running campaign's progress; its end is the record's (pollStatus, showEnded): a late frame
+    // saying "aborted" had replaced the end shown, message and all (CI of session 43).
+    if (s.campaign && s.campaign.campaign_id === runningId && !["finished", "aborted", "interrupted"].includes(s.campaign.event))
+      setProgress(s.campaign.progress, s.campaign.event);
   } finally {
     // Whatever a plot made of the frame, safety.js (the bridge's e-stop, "stream lost") and jog.js get it.
     dirty = true;
@@ -279,7 +282,8 @@ async function refreshList() {
     }
     tr.append(actions);
     tbody.append(tr);
-    if (r.status === "running") { runningId = r.id; setProgress(r.progress, r.id); }
+    // a list fetched before the campaign shown as ended ended does not make it run again
+    if (r.status === "running" && r.id !== endedShown) { runningId = r.id; setProgress(r.progress, r.id); }
   }
   // While nothing runs, the bar shows the newest campaign's end (the records are the console's truth,
   // and an operator opening the page after an e-stop wants to know what it did): on a page loaded
