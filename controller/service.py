@@ -33,7 +33,12 @@ command that enables them is one that holds the neck where it is. When the drive
 again (also after a watchdog ``hold`` of the bridge, during which the law keeps running since its
 next command ends the hold, and after a long hold of the controller's own for stale states) the
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
-trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. A campaign during which the drives were disabled ends
+trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
+stops meanwhile (from the moment the law stops tracking) and comes back up to speed from rest over
+``resume_duration_s`` (a cycloid in the clock's rate, :meth:`CampaignService.campaign_time`): the
+law takes over at α̇^d = 0 and the campaign resumes where it was, ending later by the time it was
+held (α̇^d had been the trajectory's at once: 128-130°/s after a 0.3 s watchdog hold mid-move,
+past the trajectories' 86°/s; session 43). A campaign during which the drives were disabled ends
 ``aborted`` with the reason, and none starts while they are. After an e-stop the law does not
 take over at once: the fall left cables slack that the hold's forces cannot wind in, and α̂ off
 the neck, so every cable's floor is first raised past the motors' friction at α̂ until the motors
@@ -116,6 +121,10 @@ JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog w
 # hold's): half the trajectories' bound (controller.trajectory.TrajectoryLimits), so an abort at
 # the highest pretension returns to t_min within a couple of seconds, 0.1 N per tick.
 PRETENSION_RELEASE_N_S = 50.0
+# rad/s² the campaign clock's ramp back to speed may add to α̈^d (α̇ of the trajectory times the
+# rate's derivative): half the trajectories' own bound, the other half left to the trajectory
+RESUME_ACCELERATION_MAX_RAD_S2 = 1.5
+RESUME_DURATION_MIN_S = 0.2  # s: a trajectory at rest where it resumes still comes back smoothly
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
 
@@ -203,6 +212,11 @@ class CampaignService:
         self.last_sane = np.zeros(n_joints)
         self.hold_target = np.zeros(n_joints)
         self._t0, self._total, self._next_progress = 0.0, math.inf, 0.0
+        # the campaign clock (campaign_time): stopped at this campaign time while the law
+        # re-starts, then back up to speed from (stamp s, campaign time s, duration s)
+        self._paused_at: float | None = None
+        self._resume: tuple[float, float, float] | None = None
+        self.resume_duration_s = RESUME_DURATION_MIN_S
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
@@ -413,6 +427,9 @@ class CampaignService:
         self.trajectory = trajectory
         self.phase = "running"
         self._t0 = stamp_s
+        self._paused_at = self._resume = None
+        peak_rad_s = float(np.max(trajectory.segment_peak_velocity(), initial=0.0))
+        self.resume_duration_s = max(RESUME_DURATION_MIN_S, 2.0 * peak_rad_s / RESUME_ACCELERATION_MAX_RAD_S2)
         self._total = trajectory.duration_s + (JOG_SETTLE_S if self.kind == "jog" else self.settle_s)
         self._next_progress = 0.0
         self.outcome = ""
@@ -434,6 +451,7 @@ class CampaignService:
         self.phase = outcome
         self._event(outcome, progress, message)
         self.trajectory = None
+        self._paused_at = self._resume = None
         if outcome != "finished":  # held where it is; a finished one holds its last waypoint, blend and all
             self._blend = None
         self.hold_target = np.array(hold_at, dtype=float)
@@ -452,7 +470,7 @@ class CampaignService:
             self._starting = None
 
     def _progress(self, stamp_s: float) -> float:
-        return min(max((stamp_s - self._t0) / self._total, 0.0), 1.0)
+        return min(max(self.campaign_time(stamp_s)[0] / self._total, 0.0), 1.0)
 
     def stop(self, campaign_id: str, stamp_s: float) -> None:
         """A stop request: aborts the campaign ``campaign_id`` if it runs or is being prepared."""
@@ -761,7 +779,8 @@ class CampaignService:
         if self.trajectory is not None:
             if stamp_s is not None:
                 self._leftover_N = max(0.0, self._leftover_N - PRETENSION_RELEASE_N_S * self.ctl.dt)
-                self.pretension_N = max(self.trajectory.pretension_at(stamp_s - self._t0), self._leftover_N)
+                self.pretension_N = max(self.trajectory.pretension_at(self.campaign_time(stamp_s)[0]),
+                                        self._leftover_N)
         elif self._take_up is not None:
             self.pretension_N = self._take_up.level_N
         elif self.pretension_N > 0.0:
@@ -774,7 +793,34 @@ class CampaignService:
         integral did not move meanwhile, and a blend would only delay the trajectory)."""
         if stale_for_s >= STALE_RESTART_S:
             self._restart = True
+            if self._theta_last is not None:
+                self._pause(self._theta_last[0])
         return self.hold(reason)
+
+    def campaign_time(self, stamp_s: float) -> tuple[float, float, float]:
+        """The running campaign's clock at ``stamp_s`` (the states' clock): its time t (s, 0 at the
+        start), rate dt/ds and the rate's derivative (1/s). It runs with the states' clock, except
+        that it stops while the law re-starts and, from the take-over, comes back up to speed over
+        ``resume_duration_s``: rate = s(x), the cycloid of x = (stamp − take-over)/duration, so
+        t = t_paused + duration·∫₀ˣ s = t_paused + duration·(x²/2 + (cos 2πx − 1)/4π²), and past
+        the ramp it lags the states' clock by the time held plus half the ramp."""
+        if self._paused_at is not None:
+            return self._paused_at, 0.0, 0.0
+        if self._resume is not None:
+            start_s, paused_t, duration_s = self._resume
+            x = (stamp_s - start_s) / duration_s
+            if x < 1.0:
+                x = max(x, 0.0)
+                s, ds, _ = cycloid_at(x)
+                integral = 0.5 * x * x + (math.cos(2.0 * math.pi * x) - 1.0) / (4.0 * math.pi**2)
+                return paused_t + duration_s * integral, s, ds / duration_s
+            return stamp_s - (start_s + 0.5 * duration_s - paused_t), 1.0, 0.0
+        return stamp_s - self._t0, 1.0, 0.0
+
+    def _pause(self, stamp_s: float) -> None:
+        """Stop the running campaign's clock at ``stamp_s`` until the law takes over again."""
+        if self.trajectory is not None and self._paused_at is None:
+            self._paused_at = self.campaign_time(stamp_s)[0]
 
     def reference(self, stamp_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """α^d, α̇^d, α̈^d at ``stamp_s``: the campaign's trajectory or the hold target, plus the
@@ -783,7 +829,11 @@ class CampaignService:
         trajectory's from the start: the k_v term then damps whatever motion the neck has, rather
         than following an α̂̇ that is mostly the jolt of the drives coming back.)"""
         if self.trajectory is not None:
-            a_d, a_d_dot, a_d_ddot = self.trajectory.sample_at(stamp_s - self._t0)
+            t, rate, rate_dot = self.campaign_time(stamp_s)
+            a_d, a_d_dot, a_d_ddot = self.trajectory.sample_at(t)
+            if rate != 1.0:  # d/dt of α(τ(t)): α' τ̇ and α'' τ̇² + α' τ̈
+                a_d_ddot = a_d_ddot * rate**2 + a_d_dot * rate_dot
+                a_d_dot = a_d_dot * rate
         elif self._brake is not None:
             start_s, a0, v0, duration_s = self._brake
             if stamp_s - start_s >= duration_s:
@@ -811,6 +861,8 @@ class CampaignService:
         """The law re-starts from the measured state: fresh integral, α^d from α̂ (module docstring)."""
         self._restart = False
         self.ctl.restart_integral()
+        if self._paused_at is not None:
+            self._resume, self._paused_at = (stamp_s, self._paused_at, self.resume_duration_s), None
         alpha_hat = self.hold_alpha()
         brake, self._blend, self._brake = self._brake, None, None
         drives_were_off, self._drives_off = self._drives_off, False
@@ -875,6 +927,7 @@ class CampaignService:
             self._bridge_held = True
             if self._held_s >= STALE_RESTART_S:
                 self._restart = True
+                self._pause(stamp_s)
             if self._restart and self._take_up is None and not (self._joined and self._estopped and not self.running):
                 # Re-starting: α̂ follows the encoders and the forces applied, as with the drives off,
                 # and the command is the hold at α̂ (the bridge's own), within the law's rate of the
@@ -897,6 +950,7 @@ class CampaignService:
             applied = self.ctl.f_prev if force_applied_N is None else np.asarray(force_applied_N, dtype=float)
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
             self._restart = self._drives_off = True
+            self._pause(stamp_s)
             if drive == "disabled":
                 self._estopped, self._take_up = True, None  # a take-up starts again at the release
                 self._joined = False  # that take-up is the e-stop's (a re-estimate owed stays owed)
@@ -1012,7 +1066,7 @@ class CampaignService:
                 waiting, self._next_jog = self._next_jog, None
                 self.start(waiting, stamp_s)
             return
-        t = stamp_s - self._t0
+        t = self.campaign_time(stamp_s)[0]
         if t >= self._next_progress:
             self._event("progress", min(t / self._total, 1.0))
             self._next_progress += PROGRESS_PERIOD_S

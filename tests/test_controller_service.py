@@ -804,3 +804,46 @@ def test_a_starved_controller_whose_bridge_flaps_hold_active_re_starts_the_law_a
     assert sent.max() < 0.95 * f_max, sent.max(axis=0)  # it had climbed to f_max
     assert np.abs(np.diff(sent, axis=0)).max() <= step_max + 1e-6
     assert restarted
+
+
+@pytest.mark.parametrize("law", [2, 3])
+def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_speed_limit(params, law):
+    """Session 43's open point (docs/safety/watchdog_handback.py): 0.3 s of lost commands 3 s into
+    the §7 control test on the robot truth, the bridge's watchdog holding the neck meanwhile. At
+    the take-over α^d was blended from α̂ but α̇^d was the trajectory's at once: the law asked the
+    held neck for the trajectory's speed in one tick (10 N a tick) and it reached 128-130°/s, past
+    the trajectories' own bound (86°/s). The campaign's clock now stops while the law re-starts and
+    comes back up to speed gently, so the neck stays within that bound and the campaign still ends
+    ``finished`` (later, by the time it was held)."""
+    from bridge.motor_speed import MotorSpeed
+    from controller.laws import encoder_hold_forces
+    from controller.trajectory import TrajectoryLimits, control_test_trajectory
+
+    traj = control_test_trajectory()
+    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
+    tick = twin.tick(np.zeros(params.n_cables))
+    svc.initialise(tick.theta_meas)
+    lost = range(500 + 1500, 500 + 1650)  # 0.3 s from 3 s into the campaign
+    events, alpha_dot, age = [], [], 0
+    for k in range(lost.stop + 750):
+        if k == 500:
+            svc.handle(_request("ct", law=law, trajectory_json=traj.to_json()), tick.t_s)
+        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+        if out.law_ran:
+            svc.advance(tick.t_s)
+        events += svc.drain_events()
+        age = age + 1 if k in lost else 0
+        d = safety.step(Inputs(command_N=None if k in lost else out.force_N.tolist(), command_age_s=0.002 * age,
+                               states_unanswered=age, hold_N=hold_rule(tick.theta_meas).tolist(),
+                               speed_rad_s=speed.rad_s))
+        tick = twin.tick(np.asarray(d.force_N, dtype=float))
+        speed.update(tick.theta_meas.tolist())
+        if k >= lost.stop:
+            alpha_dot.append(tick.alpha_dot.copy())
+    peak = float(np.abs(alpha_dot).max())
+    print(f"\nlaw {law}: peak joint speed after the hand-back {math.degrees(peak):.1f}°/s")
+    assert peak <= TrajectoryLimits().alpha_dot_max_rad_s, math.degrees(peak)
+    assert svc.running and not [e for e in events if e.event == "aborted"]
