@@ -30,19 +30,27 @@ from twin.model.estimation import pseudo_inverse_update
 
 
 @njit(cache=True)
-def estimate(m, dt, gap, beta, has_prev, theta, theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c,
-             f_prev, tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero):
+def estimate(m, dt, gap, beta, accel_max, has_prev, theta, theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta,
+             x_c, f_prev, tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero):
     """α̂ from the encoders θ (eq. 35 with eq. 58's stretch over ``dt`` s, :func:`pseudo_inverse_update`)
     and the filtered θ̇ and α̂̇, all in place (the state arrays of :class:`controller.laws.ComputedTorque`).
     ``gap`` (s): the time since the state θ_prev was read, the divisor of the increments (the mean
-    velocity over it, however long); ``beta`` the low-pass weight for that gap."""
+    velocity over it, however long); ``beta`` the low-pass weight for that gap. α̂̇'s new sample
+    differs from the filtered value by at most ``accel_max``·gap (rad/s², inf: no bound;
+    :attr:`controller.laws.LawConfig.alpha_hat_accel_max_rad_s2`): an encoder jump is not a speed."""
     if has_prev:
         for j in range(m.n_cables):
             theta_dot[j] += beta * ((theta[j] - theta_prev[j]) / gap - theta_dot[j])
     pseudo_inverse_update(m, dt, theta, est_theta, x_c, alpha_hat, f_prev, theta_dot,
                           tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero)
+    dv_max = accel_max * gap
     for i in range(m.n_joints):
-        alpha_hat_dot[i] += beta * (step[i] / gap - alpha_hat_dot[i])
+        dv = step[i] / gap - alpha_hat_dot[i]
+        if dv > dv_max:
+            dv = dv_max
+        elif dv < -dv_max:
+            dv = -dv_max
+        alpha_hat_dot[i] += beta * dv
     for j in range(m.n_cables):
         theta_prev[j] = theta[j]
 
@@ -55,18 +63,20 @@ def law_tick(m, gains, short, long, has_prev, theta, a_d, a_d_dot, a_d_ddot, pre
     The forces then move from the last ones (``f_prev``: commanded, or applied while the law only
     observed) by at most ``df_max`` N (:attr:`controller.laws.LawConfig.force_rate_max_N_s`).
 
-    ``gains`` = (k_p, k_v, k_i, dt, β of the velocity filters, df_max, gap): ``gap`` (s) the time
+    ``gains`` = (k_p, k_v, k_i, dt, β of the velocity filters, df_max, gap, the bound on α̂̇'s
+    change in rad/s² of :func:`estimate`): ``gap`` (s) the time
     since the last state the law took, over which it differentiates (:func:`estimate`), ``dt`` (s)
     that gap bounded, over which it integrates e and predicts the stretch (eq. 58), ``df_max`` (N)
     per command (:class:`controller.laws.ComputedTorque`, "Time step"); ``state`` = (θ_prev, θ̇, α̂,
     α̂̇, θ of the estimator, x_c, f_prev, ∫e) updated in place; ``out`` = (f, saturated, e, Γ^d)."""
     kp, kv, ki, dt, beta, df_max, gap = gains[0], gains[1], gains[2], gains[3], gains[4], gains[5], gains[6]
+    accel_max = gains[7]
     theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c, f_prev, integral = state
     (tab, lc, Z, Zd, Mm, cm, g, M, c, A, LU, Z1, vN, vN2, step, p, nvec, w, vc, rhs, zero, ff, tdd, lower,
      Zdes, Zddes) = work
     f, saturated, e, gamma = out
     N, nc = m.n_joints, m.n_cables
-    estimate(m, dt, gap, beta, has_prev, theta, theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c, f_prev,
+    estimate(m, dt, gap, beta, accel_max, has_prev, theta, theta_prev, theta_dot, alpha_hat, alpha_hat_dot, est_theta, x_c, f_prev,
              tab, lc, Z, Zd, A, LU, vN, vN2, step, vc, rhs, zero)
     for i in range(N):
         e[i] = a_d[i] - alpha_hat[i]

@@ -79,12 +79,21 @@ class LawConfig:
     # term of eq. 59 steps the forces by up to 84 N in a tick (law 1 on the robot truth). The bound
     # never binds on smooth tracking (steps stay below 5 N); math.inf turns it off.
     force_rate_max_N_s: float = 5000.0
+    # The most α̂̇'s new sample may differ from its filtered value, per second of the gap (rad/s²;
+    # 0.5 rad/s in a 2 ms tick). Not from the paper: a cable that goes slack under the motors'
+    # stiction lets its motor cross the gear's backlash (0.44 rad) within a tick, α̂ jumps by
+    # about 0.5° and the k_v term of eq. 59 answered with 10 N a tick, the force rate bound, for
+    # 2-4 ticks, 26 N in all, even while idle at law 2 (robot truth; session 44). Smooth tracking
+    # stays well inside it (|sample − filtered| p99 0.1 rad/s, docs/safety.md); math.inf: no bound.
+    alpha_hat_accel_max_rad_s2: float = 250.0
 
     def __post_init__(self) -> None:
         if self.law not in LAWS:
             raise ValueError(f"law must be one of {LAWS}, got {self.law!r}")
         if not (self.omega > 0 and math.isfinite(self.omega)):
             raise ValueError(f"omega must be a positive number (rad/s), got {self.omega}")
+        if not self.alpha_hat_accel_max_rad_s2 > 0:  # inf allowed: no bound
+            raise ValueError(f"alpha_hat_accel_max_rad_s2 must be positive (rad/s²) or inf, got {self.alpha_hat_accel_max_rad_s2}")
         if not self.force_rate_max_N_s > 0:  # inf allowed: no bound
             raise ValueError(f"force_rate_max_N_s must be a positive rate (N/s) or inf, got {self.force_rate_max_N_s}")
 
@@ -136,7 +145,7 @@ class ComputedTorque:
         self._theta_prev = np.zeros(m.n_cables) if theta is None else np.array(theta, dtype=float)
         self._work = kernel.scratch(m.n_joints, m.n_cables)
         self._gains = np.array([self.kp, self.kv, self.ki, self.dt, self._beta,
-                                self.config.force_rate_max_N_s * self.dt, self.dt])
+                                self.config.force_rate_max_N_s * self.dt, self.dt, self.config.alpha_hat_accel_max_rad_s2])
         self._stamp_prev = math.nan  # s, the stamp of the state θ_prev was read at (nan: unknown)
         self.gap_s = self.dt  # s, the time the last tick's estimate spanned (tick_time)
         self._theta = np.zeros(m.n_cables)
@@ -202,7 +211,7 @@ class ComputedTorque:
         self._theta[:] = theta
         w, est = self._work, self.estimator
         g = self._gains
-        kernel.estimate(self.model, g[3], g[6], g[4], self._has_prev, self._theta, self._theta_prev, self.theta_dot,
+        kernel.estimate(self.model, g[3], g[6], g[4], g[7], self._has_prev, self._theta, self._theta_prev, self.theta_dot,
                         est.alpha_hat, self.alpha_hat_dot, est.theta, est.x_c, self.f_prev, w[0], w[1], w[2], w[3],
                         w[9], w[10], w[12], w[13], w[14], w[18], w[19], w[20])
         self._has_prev = True

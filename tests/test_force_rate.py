@@ -40,10 +40,40 @@ def _held_then_jump(params, config: LawConfig) -> np.ndarray:
 def test_an_encoder_jump_moves_the_forces_at_the_bounded_rate(params):
     config = LawConfig(law=1)
     per_tick = config.force_rate_max_N_s / config.rate_hz
-    free = np.abs(np.diff(_held_then_jump(params, LawConfig(law=1, force_rate_max_N_s=math.inf)), axis=0))
+    free = np.abs(np.diff(_held_then_jump(params, LawConfig(law=1, force_rate_max_N_s=math.inf,
+                                                            alpha_hat_accel_max_rad_s2=math.inf)), axis=0))
     assert free[199:].max() > 2 * per_tick  # without the bound, the jump is a force step
     bounded = np.abs(np.diff(_held_then_jump(params, config), axis=0))
     assert bounded.max() <= per_tick + 1e-9
+
+
+def test_an_encoder_jump_is_not_taken_for_a_speed(params):
+    """Session 44: at rest (law 2 idle on the robot truth, 0.64 s after the first enable) a cable
+    under the motors' stiction lets its motor cross the backlash within a tick; the α̂̇ filter took
+    the jump of α̂ for a speed and the k_v term stepped the forces 10 N a tick for 2-4 ticks. α̂̇'s
+    new sample now differs from the filtered value by at most ``alpha_hat_accel_max_rad_s2``·dt."""
+    for law in (1, 2, 3):
+        unbounded = LawConfig(law=law, alpha_hat_accel_max_rad_s2=math.inf)
+        config = LawConfig(law=law)
+        speed_bound = config.alpha_hat_accel_max_rad_s2 / config.rate_hz
+        speeds = {}
+        for c in (unbounded, config):
+            ctl = ComputedTorque(params, c)
+            zero, theta = np.zeros(params.n_joints), np.zeros(params.n_cables)
+            for _ in range(200):
+                ctl.step(theta, zero, zero, zero)
+            theta[1] += BACKLASH_RAD
+            peak = 0.0
+            for _ in range(20):
+                ctl.step(theta, zero, zero, zero)
+                peak = max(peak, float(np.abs(ctl.alpha_hat_dot).max()))
+            speeds[c] = peak
+        assert speeds[unbounded] > 3 * speed_bound  # the jump read as a speed
+        assert speeds[config] <= speed_bound + 1e-9
+        free, bounded = (np.abs(_held_then_jump(params, c)[200:] - _held_then_jump(params, c)[199]).max()
+                         for c in (unbounded, config))
+        print(f"law {law}: peak force change after the jump {free:.1f} N unbounded, {bounded:.1f} N bounded")
+        assert bounded < 0.75 * free
 
 
 def test_the_first_command_starts_from_the_applied_forces(params):
@@ -70,3 +100,5 @@ def test_a_bad_rate_bound_is_refused():
     for bad in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match="force_rate_max_N_s"):
             LawConfig(force_rate_max_N_s=bad)
+        with pytest.raises(ValueError, match="alpha_hat_accel_max_rad_s2"):
+            LawConfig(alpha_hat_accel_max_rad_s2=bad)
