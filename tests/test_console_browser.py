@@ -442,6 +442,9 @@ def test_a_campaign_or_replay_started_elsewhere_is_shown_and_stopped_and_a_hung_
                            timeout=15000)
     page.click("#stop")
     assert wait_until(lambda: not (http.get("/api/system/health").json()["replay"] or {}).get("running"), 20, 0.2)
+    # how it ended, not "replay ended: 100%" (session 43's follow-up)
+    page.wait_for_function("/^replay of run-a stopped at \\d+%$/.test(document.querySelector('#progress-text').textContent)",
+                           timeout=15000)
 
     controller = console.procs[1]
     os.kill(controller.pid, signal.SIGSTOP)
