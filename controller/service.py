@@ -34,11 +34,16 @@ again (also after a watchdog ``hold`` of the bridge, during which the law keeps 
 next command ends the hold, and after a long hold of the controller's own for stale states) the
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
-stops meanwhile (from the moment the law stops tracking) and comes back up to speed from rest over
+stops meanwhile (at the last state before stale states, once the bridge's holds add up to
+``STALE_RESTART_S``, or when the drives go off) and comes back up to speed from rest over
 ``resume_duration_s`` (a cycloid in the clock's rate, :meth:`CampaignService.campaign_time`): the
 law takes over at α̇^d = 0 and the campaign resumes where it was, ending later by the time it was
-held (α̇^d had been the trajectory's at once: 128-130°/s after a 0.3 s watchdog hold mid-move,
-past the trajectories' 86°/s; session 43). A campaign during which the drives were disabled ends
+stopped plus half the ramp (α̇^d had been the trajectory's at once: 128-130°/s after a 0.3 s
+watchdog hold mid-move, past the trajectories' 86°/s; session 43). A controller starved for
+good (its bridge flapping hold/active) thus stops its campaign's clock for as long: the campaign
+makes no progress rather than running on a neck it does not control. Taking over from its own
+hold (stale states, the bridge obeying it), the law's command winds down from the hold's at the
+take-up's 1 N a tick until it meets the law's (it had stepped 10 N, then 6.5 N). A campaign during which the drives were disabled ends
 ``aborted`` with the reason, and none starts while they are. After an e-stop the law does not
 take over at once: the fall left cables slack that the hold's forces cannot wind in, and α̂ off
 the neck, so every cable's floor is first raised past the motors' friction at α̂ until the motors
@@ -245,6 +250,9 @@ class CampaignService:
         # a take-up ended (or was cut short) and the command still moves at most its FORCE_STEP_N a
         # tick, until it meets what the law or the hold asks (``_wind_down_bound``)
         self._wind_down = False
+        # the law re-starts from a hold of its own (stale states) that the bridge obeyed: it takes
+        # over winding down from it (``control``)
+        self._own_hold = False
         # the take-up was for a run joined under way (initialise), not an e-stop this service saw
         self._joined = False
         # α̂ came from a reading of slack cables (a run joined under way whose first parity showed
@@ -311,7 +319,7 @@ class CampaignService:
             np.all(np.isfinite(theta)) and model.rho * np.max(np.abs(theta), initial=0.0) > UNDER_WAY_M)
         self._reestimate_when_taut = alpha is not None and self._joined and self._slack_seen(theta, alpha, f)
         self._estopped, self._take_up, self._hold_sent = self._joined, None, None
-        self._wind_down = False
+        self._wind_down = self._own_hold = False
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
             self.encoder_check.reset()
@@ -393,6 +401,13 @@ class CampaignService:
         # "Time step") leaves it out, as the take-up's times do.
         self.ctl.clock_stepped(step_s)
         if abs(step_s) < CLOCK_STEP_ABORT_S:
+            if self._theta_last is not None:
+                # The encoders' speed check spans the time that passed, as the law's gap does: a
+                # step back after a stall had it measure the stall's motion over no time and abort
+                # the campaign ("encoder 4 moved 3.82 rad in 0 ms"; audit of session 44).
+                self._theta_last = (self._theta_last[0] + step_s, self._theta_last[1])
+            if self._active_since is not None:
+                self._active_since += step_s
             return  # a stall's catch-up, not a clock set: the campaign goes on, as before the check
         if self._take_up is not None:
             # it goes on, on the new clock: forward, its floor had jumped to the peak and its time
@@ -792,7 +807,7 @@ class CampaignService:
         re-starts from the measurement when states return (after a short one it goes on: its
         integral did not move meanwhile, and a blend would only delay the trajectory)."""
         if stale_for_s >= STALE_RESTART_S:
-            self._restart = True
+            self._restart = self._own_hold = True
             if self._theta_last is not None:
                 self._pause(self._theta_last[0])
         return self.hold(reason)
@@ -986,6 +1001,12 @@ class CampaignService:
                 # (its hold, ramping to our commands), not from a command it did not apply: the
                 # first commands had chased the one sent last during the hold (audit of session 43).
                 self.ctl.f_prev[:] = force_applied_N
+            elif self._own_hold and not self._drives_off:
+                # From the hold it sent on stale states, which the bridge applied: the law's first
+                # commands had stepped 10 and 6.5 N a tick from it (its friction and velocity
+                # terms; audit of session 44), now let go at the take-up's rate.
+                self._wind_down = True
+            self._own_hold = False
             self._take_over(stamp_s)
         if drive == "active":
             self._bridge_held = False

@@ -15,7 +15,7 @@ from bridge import bus
 from bridge.safety import Inputs, Ownership, Safety, SafetyConfig
 from controller.laws import LawConfig, hold_forces
 from controller.prepare import Refused, prepare
-from controller.service import CampaignService
+from controller.service import MOTOR_SPEED_MAX_RAD_S, CampaignService
 from controller.state_gate import StateGate
 from controller.trajectory import Trajectory
 from twin.sim.simulator import Twin, TwinConfig
@@ -847,3 +847,72 @@ def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_
     print(f"\nlaw {law}: peak joint speed after the hand-back {math.degrees(peak):.1f}°/s")
     assert peak <= float(TrajectoryLimits().per_joint(3)[1].min()), math.degrees(peak)
     assert svc.running and not [e for e in events if e.event == "aborted"]
+
+
+def test_the_law_takes_over_after_stale_states_without_a_force_step(params):
+    """Audit of session 44: after 0.3 s without states mid-campaign (the controller's own hold,
+    the bridge active throughout) the law's first commands stepped 10 and 6.5 N a tick from the
+    hold's (law 2, robot truth): the hold and the law differ by their friction and velocity
+    terms. Taking over from its own hold, the law's command now moves at the take-up's 1 N a tick
+    until it meets the law's, as after a take-up."""
+    from bridge.motor_speed import MotorSpeed
+    from controller.laws import encoder_hold_forces
+    from controller.take_up import FORCE_STEP_N
+    from controller.trajectory import control_test_trajectory
+
+    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+    svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
+    tick = twin.tick(np.zeros(params.n_cables))
+    svc.initialise(tick.theta_meas)
+    stale = range(2000, 2150)  # 0.3 s from 3 s into the campaign
+    sent, last_state_s = [], tick.t_s
+    for k in range(stale.stop + 250):
+        if k == 500:
+            svc.handle(_request("ct", trajectory_json=control_test_trajectory().to_json()), tick.t_s)
+        if k in stale:  # what the process shell does without states: the hold, sent on
+            out = svc.stale("stale state", tick.t_s - last_state_s)
+        else:
+            out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+            last_state_s = tick.t_s
+            if out.law_ran:
+                svc.advance(tick.t_s)
+        svc.drain_events()
+        sent.append(out.force_N)
+        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0,
+                               hold_N=hold_rule(tick.theta_meas).tolist(), speed_rad_s=speed.rad_s))
+        tick = twin.tick(np.asarray(d.force_N, dtype=float))
+        speed.update(tick.theta_meas.tolist())
+    steps = np.abs(np.diff(np.array(sent[stale.stop - 1:]), axis=0)).max(axis=1)
+    print(f"\nlargest command step after the hand-back {steps.max():.2f} N/tick")
+    assert svc.running
+    assert steps.max() <= 2 * FORCE_STEP_N, steps[:12]
+
+
+def test_a_small_step_back_of_the_clock_after_a_stall_is_no_encoder_fault(params):
+    """Audit of session 44: 0.3 s without states mid-move, then the bridge's clock stepped 2 s back
+    (under CLOCK_STEP_ABORT_S: the campaign goes on). The encoders' speed check measured the
+    stall's motion over no time, "encoder 4 moved 3.82 rad in 0 ms", and aborted the campaign; it
+    now spans the time that passed, as the law's gap does."""
+    from controller.trajectory import control_test_trajectory
+
+    loop = Loop(params)
+    loop.twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+    loop.tick = loop.twin.tick(np.zeros(params.n_cables))
+    loop.svc.initialise(loop.tick.theta_meas)
+    loop.run(1.0)
+    loop.svc.handle(_request("c", trajectory_json=control_test_trajectory().to_json()), loop.stamp_s)
+    loop.run(3.0)
+    start = loop.tick.theta_meas.copy()
+    last_s = loop.stamp_s
+    for _ in range(150):  # the stall: the process's loop holds on stale states
+        out = loop.svc.stale("stale state", loop.stamp_s - last_s)
+        loop.tick = loop.twin.tick(out.force_N)
+    assert np.abs(loop.tick.theta_meas - start).max() > MOTOR_SPEED_MAX_RAD_S * 0.002  # moved more than one tick allows
+    loop.svc.clock_stepped(-2.0, loop.stamp_s - 2.0)
+    for _ in range(50):
+        out = loop.svc.control(loop.tick.theta_meas, loop.stamp_s - 2.0)
+        loop.events += loop.svc.drain_events()
+        loop.tick = loop.twin.tick(out.force_N)
+    assert loop.svc.running and not [e for e in loop.events if e.event == "aborted"], loop.events
