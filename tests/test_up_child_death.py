@@ -63,13 +63,13 @@ def _get(url: str, timeout_s: float = 5.0) -> dict | None:
 
 
 @contextlib.contextmanager
-def _xneck_up(tmp_path: Path):
+def _xneck_up(tmp_path: Path, *extra: str):
     """``xneck up`` on free ports; yields (base URL, data dir, process). Stopped within bounded time."""
     port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
     data = tmp_path / "d"
     with open(tmp_path / "up.log", "wb") as log:  # the child has its own copy of the descriptor
         up = subprocess.Popen([*PY, "up", "--port", str(port), "--hub", hub, "--data-dir", str(data),
-                               "--viser-port", str(free_tcp_port())],
+                               "--viser-port", str(free_tcp_port()), *extra],
                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=ENV,
                               start_new_session=True)
     try:
@@ -91,25 +91,43 @@ def _start_gentle(base: str, data: Path, tmp_path: Path) -> str:
     return r.json()["id"]
 
 
+def _kill_under_way(base: str, cid: str, up: subprocess.Popen, victim: str, tmp_path: Path) -> int:
+    """Once campaign ``cid`` is under way, SIGKILL the ``victim`` child of ``up``; its pid."""
+    last: dict = {}
+
+    def under_way() -> bool:
+        last.update(_get(f"{base}/api/campaigns/{cid}") or {})
+        return last.get("progress", 0) > 0.05 or last.get("status", "running") != "running"
+
+    wait_until(under_way, 60, 0.1)
+    # CI of 2026-11-28 saw no progress in 60 s once: say what the campaign and the stack said
+    assert last.get("status") == "running" and last.get("progress", 0) > 0.05, \
+        (last, (tmp_path / "up.log").read_text()[-4000:])
+    pid = _child(up.pid, victim)
+    assert pid is not None, f"no {victim} under xneck up"
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
 @pytest.mark.parametrize("victim", ["bridge", "controller"])
 def test_a_child_killed_mid_campaign_under_xneck_up_ends_it_naming_the_child_and_signal(tmp_path: Path,
                                                                                        victim: str) -> None:
+    """With ``--restarts 1`` (session 44): the bridge's death stops the stack at once (a bridge that
+    died could not disable its drives); the controller's first is restarted, its campaign aborted
+    naming it, and a new controller serves the next campaign; its second stops the stack."""
     cause = f"{victim} process exited (signal SIGKILL)"
-    with _xneck_up(tmp_path) as (base, data, up):
+    with _xneck_up(tmp_path, "--restarts", "1") as (base, data, up):
+        if victim == "controller":
+            first = _start_gentle(base, data, tmp_path)
+            old = _kill_under_way(base, first, up, victim, tmp_path)
+            assert wait_until(lambda: cause in (_get(f"{base}/api/campaigns/{first}", 2) or {}).get("message", ""),
+                              60, 0.1), (tmp_path / "up.log").read_text()[-3000:]
+            assert wait_until(lambda: _child(up.pid, victim) not in (None, old), 30, 0.1)
+            assert up.poll() is None  # restarted, the stack up
+            assert "warning: the controller exited (signal SIGKILL); restarting it (restart 1 of 1" in \
+                (tmp_path / "up.log").read_text()
         cid = _start_gentle(base, data, tmp_path)
-        last: dict = {}
-
-        def under_way() -> bool:
-            last.update(_get(f"{base}/api/campaigns/{cid}") or {})
-            return last.get("progress", 0) > 0.05 or last.get("status", "running") != "running"
-
-        wait_until(under_way, 60, 0.1)
-        # CI of 2026-11-28 saw no progress in 60 s once: say what the campaign and the stack said
-        assert last.get("status") == "running" and last.get("progress", 0) > 0.05, \
-            (last, (tmp_path / "up.log").read_text()[-4000:])
-        pid = _child(up.pid, victim)
-        assert pid is not None, f"no {victim} under xneck up"
-        os.kill(pid, signal.SIGKILL)
+        _kill_under_way(base, cid, up, victim, tmp_path)
         seen: list[dict] = []  # what REST said while the console was up, after the campaign ended
 
         def ended_or_gone() -> bool:

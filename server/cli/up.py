@@ -20,7 +20,11 @@ and the viser port are free and that no other stack answers on the hub; if not, 
 so in one line and exits with code 3, having started no process (issue 13, finding 5: a second
 stack on the same hub would otherwise join the first one's bus and command its bridge). Nothing
 is restarted silently: if a process exits, the launcher says which, with its exit code or signal
-and last log lines, stops the others and exits non-zero. Before it stops them it tells the console
+and last log lines, stops the others and exits non-zero. With ``--restarts N`` a controller or a
+camera that exits is restarted instead, saying so the same way, at most N times in
+:data:`RESTART_WINDOW_S` (:data:`RESTARTABLE`: the bridge holds the neck meanwhile and the new
+controller joins its run under way, taking up any slack first); past them the stack stops as
+without. The running campaign ends ``aborted`` naming the death either way. Before it stops them it tells the console
 the cause (``POST /api/system/abort``, :func:`abort_campaign`), so that a running campaign ends
 ``aborted`` naming the process and how it ended, e.g. "bridge process exited (signal SIGKILL)",
 in its record and archive, not the side effect the campaign would see next (the controller
@@ -84,6 +88,14 @@ ABORT_WINDOW_MARGIN_S = 1.0
 BRIDGE_HUNG_S = 1.0
 PING_WATCHDOG_S = 0.4  # WATCHDOG_USEC given to the bridge: it pings every half of it (bridge.runtime.SystemdNotify)
 DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's import initialises the board)
+# s over which ``--restarts`` counts a child's restarts (systemd's StartLimitIntervalSec): a child
+# that keeps dying stops the stack once it has used them up within this window.
+RESTART_WINDOW_S = 600.0
+# The children a restart cannot harm: while the controller is away the bridge's watchdog holds the
+# neck, and the new one joins the bridge's run under way, taking up any slack before its law runs
+# (controller.service.CampaignService.initialise); the camera only gives α_IP. A bridge that died
+# could not disable its drives, and the console is what a restart would be told through.
+RESTARTABLE = ("controller", "camera")
 
 
 SOCKETS_PREFIX = "xneck-up-"  # + the pid of the xneck up that made the folder, "-", random
@@ -379,6 +391,9 @@ def up(
                                  "and detects the markers, as the robot's camera would; costs about a fifth of a core)."),
     exit_after: float | None = typer.Option(None, "--exit-after", callback=NON_NEGATIVE, help="Stop everything "
                                             "after this many seconds (tests, demos)."),
+    restarts: int = typer.Option(0, "--restarts", min=0, max=100, help="Restart a controller or camera that dies, "
+                                 "at most this many times in 10 minutes (default 0: any death stops the stack). The "
+                                 "bridge holds the neck meanwhile; a running campaign ends aborted naming the death."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
     if bridge_at_option is not None and not no_bridge:
@@ -458,7 +473,11 @@ def up(
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
         signal.signal(sig, on_signal)
 
+    started_with: dict[str, tuple[list[str], dict[str, str] | None]] = {}
+    restarted: list[float] = []  # monotonic times of the restarts within RESTART_WINDOW_S
+
     def start(name: str, args: list[str], env: dict[str, str] | None = None) -> None:
+        started_with[name] = (args, env)
         log_files[name] = logs / f"{name}.log"
         # The endpoints are given on each command line: a user's XNECK_ZENOH_* must not add others.
         child_env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},
@@ -527,10 +546,31 @@ def up(
                 procs["bridge"].wait(STOP_GRACE_S)
                 hung = f"hung (its loop silent for {age:.1f} s), killed"
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
+            restarted[:] = [t for t in restarted if polled - t < RESTART_WINDOW_S]
+            if dead and all(n in RESTARTABLE for n, _ in dead) and len(restarted) < restarts:
+                name, rc = dead[0]
+                how = f"exited ({exit_how(rc)})"
+                restarted.append(polled)
+                typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted)} of {restarts} "
+                            f"within {RESTART_WINDOW_S / 60:.0f} min).\n"
+                            f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
+                            fg="yellow")
+                typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
+                                           time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S), err=True, fg="yellow")
+                if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
+                    with contextlib.suppress(OSError):
+                        (sockets / "controller.sock").unlink()
+                start(name, *started_with[name])
+                typer.echo(f"  {name} restarted (pid {procs[name].pid})")
+                seen_alive = last_pass = time.monotonic()
+                continue
             if dead:
                 name, rc = dead[0]
                 how = hung if name == "bridge" and hung else f"exited ({exit_how(rc)})"
-                typer.secho(f"error: the {name} {how}; stopping the stack, nothing is restarted.\n"
+                more = f" ({len(restarted)} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
+                    if restarts and name in RESTARTABLE else ""
+                typer.secho(f"error: the {name} {how}{more}; stopping the stack, nothing {'more ' if more else ''}is "
+                            f"restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
                 if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
                     typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
