@@ -36,7 +36,8 @@ law re-starts from the measurement: a fresh integral and α^d starting at α̂, 
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
 stops meanwhile (at the last state before stale states, once the bridge's holds add up to
 ``STALE_RESTART_S``, or when the drives go off) and comes back up to speed from rest over
-``resume_duration_s`` (a cycloid in the clock's rate, :meth:`CampaignService.campaign_time`): the
+:meth:`CampaignService.resume_duration_s` (a cycloid in the clock's rate,
+:meth:`CampaignService.campaign_time`; none where the trajectory rests, a dwell's or its start): the
 law takes over at α̇^d = 0 and the campaign resumes where it was, ending later by the time it was
 stopped plus half the ramp (α̇^d had been the trajectory's at once: 128-130°/s after a 0.3 s
 watchdog hold mid-move, past the trajectories' 86°/s; session 43). A controller starved for
@@ -129,7 +130,7 @@ PRETENSION_RELEASE_N_S = 50.0
 # rad/s² the campaign clock's ramp back to speed may add to α̈^d (α̇ of the trajectory times the
 # rate's derivative): half the trajectories' own bound, the other half left to the trajectory
 RESUME_ACCELERATION_MAX_RAD_S2 = 1.5
-RESUME_DURATION_MIN_S = 0.2  # s: a trajectory at rest where it resumes still comes back smoothly
+RESUME_DURATION_MIN_S = 0.2  # s: the shortest ramp back to speed
 
 Phase = Literal["idle", "starting", "running", "finished", "aborted"]
 
@@ -221,7 +222,7 @@ class CampaignService:
         # re-starts, then back up to speed from (stamp s, campaign time s, duration s)
         self._paused_at: float | None = None
         self._resume: tuple[float, float, float] | None = None
-        self.resume_duration_s = RESUME_DURATION_MIN_S
+        self._resume_max_s = RESUME_DURATION_MIN_S  # the ramp the trajectory's peak speed needs
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
@@ -444,7 +445,7 @@ class CampaignService:
         self._t0 = stamp_s
         self._paused_at = self._resume = None
         peak_rad_s = float(np.max(trajectory.segment_peak_velocity(), initial=0.0))
-        self.resume_duration_s = max(RESUME_DURATION_MIN_S, 2.0 * peak_rad_s / RESUME_ACCELERATION_MAX_RAD_S2)
+        self._resume_max_s = max(RESUME_DURATION_MIN_S, 2.0 * peak_rad_s / RESUME_ACCELERATION_MAX_RAD_S2)
         self._total = trajectory.duration_s + (JOG_SETTLE_S if self.kind == "jog" else self.settle_s)
         self._next_progress = 0.0
         self.outcome = ""
@@ -816,7 +817,7 @@ class CampaignService:
         """The running campaign's clock at ``stamp_s`` (the states' clock): its time t (s, 0 at the
         start), rate dt/ds and the rate's derivative (1/s). It runs with the states' clock, except
         that it stops while the law re-starts and, from the take-over, comes back up to speed over
-        ``resume_duration_s``: rate = s(x), the cycloid of x = (stamp − take-over)/duration, so
+        :meth:`resume_duration_s`: rate = s(x), the cycloid of x = (stamp − take-over)/duration, so
         t = t_paused + duration·∫₀ˣ s = t_paused + duration·(x²/2 + (cos 2πx − 1)/4π²), and past
         the ramp it lags the states' clock by the time held plus half the ramp."""
         if self._paused_at is not None:
@@ -831,6 +832,27 @@ class CampaignService:
                 return paused_t + duration_s * integral, s, ds / duration_s
             return stamp_s - (start_s + 0.5 * duration_s - paused_t), 1.0, 0.0
         return stamp_s - self._t0, 1.0, 0.0
+
+    def resume_duration_s(self, paused_t: float) -> float:
+        """s over which the campaign clock stopped at ``paused_t`` (campaign time, s) comes back to
+        speed: 0 where the trajectory rests there (α̇^d = α̈^d = 0: a dwell, its start; resuming
+        at once is bumpless), else long enough that the rate's rise adds at most
+        ``RESUME_ACCELERATION_MAX_RAD_S2`` (2·v/T with v the largest speed over the half ramp the
+        clock covers meanwhile), at least ``RESUME_DURATION_MIN_S``. The trajectory's start
+        (pausing while the drives are inactive at a first enable) had waited 0.58 s for a ramp
+        over its dwell."""
+        traj = self.trajectory
+        if traj is None:
+            return 0.0
+        _a, v0, a0 = traj.sample_at(paused_t)
+        if float(np.max(np.abs(v0))) < 1e-9 and float(np.max(np.abs(a0))) < 1e-9:
+            return 0.0
+        duration_s = self._resume_max_s
+        for _ in range(3):  # shorter while the speed over the half ramp allows (never longer)
+            window = traj.sample(np.linspace(paused_t, min(paused_t + duration_s / 2, traj.duration_s), 25))
+            v = float(np.max(np.abs(window.alpha_dot)))
+            duration_s = max(RESUME_DURATION_MIN_S, min(duration_s, 2.0 * v / RESUME_ACCELERATION_MAX_RAD_S2))
+        return duration_s
 
     def _pause(self, stamp_s: float) -> None:
         """Stop the running campaign's clock at ``stamp_s`` until the law takes over again."""
@@ -877,7 +899,12 @@ class CampaignService:
         self._restart = False
         self.ctl.restart_integral()
         if self._paused_at is not None:
-            self._resume, self._paused_at = (stamp_s, self._paused_at, self.resume_duration_s), None
+            duration_s = self.resume_duration_s(self._paused_at)
+            if duration_s > 0.0:
+                self._resume = (stamp_s, self._paused_at, duration_s)
+            else:  # at rest there: the clock goes on at once, from where it stopped
+                self._t0, self._resume = stamp_s - self._paused_at, None
+            self._paused_at = None
         alpha_hat = self.hold_alpha()
         brake, self._blend, self._brake = self._brake, None, None
         drives_were_off, self._drives_off = self._drives_off, False
