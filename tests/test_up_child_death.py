@@ -214,3 +214,18 @@ def test_ctrl_c_mid_campaign_ends_it_naming_the_operators_stop(tmp_path: Path) -
     assert record["status"] == "aborted" and record["message"].startswith(cause), record["message"]
     assert read_campaign(data / "campaigns" / f"{cid}.mcap").info["message"] == record["message"]
     assert f"campaign {cid} aborted: {cause}" in (tmp_path / "up.log").read_text()
+
+
+def test_a_stacks_console_refuses_a_campaign_while_its_controller_is_away(tmp_path: Path) -> None:
+    """Audit of session 44: while `xneck up --restarts` restarted its controller (or while a hung
+    one had left the bus), a campaign POSTed to the stack's console found no controller service
+    and ran as a console of its own does, on a twin and a controller it spawned on the stack's
+    bus; that controller then met the stack's bridge ("the bridge obeys controller …, not this
+    one"), which had obeyed it for a while. A stack's console (``--stack``, which `xneck up`
+    passes) refuses instead, 503 naming the cause, and records nothing."""
+    with running_server(tmp_path / "d", stack=True) as (base, _app), httpx.Client(base_url=base, timeout=30) as client:
+        r = client.post("/api/campaigns", json=GENTLE, headers=AUTH)
+        assert r.status_code == 503, r.text
+        assert "stack's controller service is not on the bus" in r.json()["detail"], r.text
+        assert client.get("/api/campaigns").json() == []
+        assert client.get("/api/system/processes").json()["processes"] == []  # nothing spawned

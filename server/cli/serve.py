@@ -22,6 +22,8 @@ def server(
                                           help="Port of the 3D view, 0-65535 (default: free)."),
     twin_truth: str | None = typer.Option(None, "--twin-truth", help="Truth of the stack's twin bridge, when a "
                                              "controller service is on the bus (xneck up passes it)."),
+    stack: bool = typer.Option(False, "--stack", help="This console is an `xneck up` stack's (set by it): a campaign "
+                               "with the stack's controller service away is refused, never run on a twin of its own."),
     twin_seed: int | None = typer.Option(None, "--twin-seed", help="Seed of the stack's twin bridge (likewise)."),
     twin_alpha_ip: str | None = typer.Option(None, "--twin-alpha-ip", help="α_IP of the stack's twin bridge, noise "
                                              "or camera (likewise): the one camera its campaigns record."),
@@ -47,7 +49,8 @@ def server(
     given = {"host": host, "port": port, "data_dir": data_dir, "pace": pace, "mode": mode, "hub": hub,
              "connect": connect, "viser_port": viser_port, "twin_truth": twin_truth, "twin_seed": twin_seed,
              "twin_alpha_ip": twin_alpha_ip, "twin_camera": twin_camera,
-             "min_free_mb": min_free_mb, "allowed_hosts": allowed_host, "allowed_origins": allowed_origin}
+             "min_free_mb": min_free_mb, "allowed_hosts": allowed_host, "allowed_origins": allowed_origin,
+             "stack": stack or None}
     try:
         settings = Settings(**{k: v for k, v in given.items() if v is not None})
     except ValidationError as exc:

@@ -474,11 +474,18 @@ def up(
         signal.signal(sig, on_signal)
 
     started_with: dict[str, tuple[list[str], dict[str, str] | None]] = {}
-    restarted: list[float] = []  # monotonic times of the restarts within RESTART_WINDOW_S
+    # per child, as systemd counts per unit: a flaky camera must not use up the controller's
+    restarted: dict[str, list[float]] = {name: [] for name in RESTARTABLE}  # monotonic times within RESTART_WINDOW_S
 
     def start(name: str, args: list[str], env: dict[str, str] | None = None) -> None:
         started_with[name] = (args, env)
         log_files[name] = logs / f"{name}.log"
+        if name in RESTARTABLE and restarted[name]:
+            # where the new process's lines begin: a child that died before writing any had its
+            # predecessor's last lines shown as its own (audit of session 44)
+            with open(log_files[name], "a", encoding="utf-8") as log:
+                log.write(f"---- xneck up: {name} restarted ({len(restarted[name])} of {restarts}) at "
+                          f"{time.strftime('%Y-%m-%d %H:%M:%S')} ----\n")
         # The endpoints are given on each command line: a user's XNECK_ZENOH_* must not add others.
         child_env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},
                      "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **(env or {})}
@@ -498,7 +505,7 @@ def up(
     drives_set_off = False
     try:
         start("server", ["server", "--host", host, "--port", str(port), "--data-dir", str(data_dir), "--hub", hub,
-                         *control_path,
+                         *control_path, "--stack",
                          "--mode", "robot" if robot else "twin", "--viser-port", str(viser_port),
                          # what this stack's twin bridge is, so that campaign requests are checked against it
                          "--twin-truth", truth, "--twin-seed", str(seed),
@@ -546,31 +553,39 @@ def up(
                 procs["bridge"].wait(STOP_GRACE_S)
                 hung = f"hung (its loop silent for {age:.1f} s), killed"
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
-            restarted[:] = [t for t in restarted if polled - t < RESTART_WINDOW_S]
-            if dead and all(n in RESTARTABLE for n, _ in dead) and len(restarted) < restarts:
-                name, rc = dead[0]
-                how = f"exited ({exit_how(rc)})"
-                restarted.append(polled)
-                typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted)} of {restarts} "
-                            f"within {RESTART_WINDOW_S / 60:.0f} min).\n"
-                            f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
-                            fg="yellow")
-                typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
+            for times in restarted.values():
+                times[:] = [t for t in times if polled - t < RESTART_WINDOW_S]
+            # What stops the stack first (a bridge or console before a child that may be restarted:
+            # the bridge's death had been named "camera exited" when both died in one pass).
+            dead.sort(key=lambda d: d[0] in RESTARTABLE and len(restarted[d[0]]) < restarts)
+            if dead and dead[0][0] in RESTARTABLE and len(restarted[dead[0][0]]) < restarts:
+                causes = []
+                for name, rc in dead:  # every one restartable, with a restart left
+                    how = f"exited ({exit_how(rc)})"
+                    causes.append(f"{name} process {how}")
+                    restarted[name].append(polled)
+                    typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted[name])} of "
+                                f"{restarts} within {RESTART_WINDOW_S / 60:.0f} min).\n"
+                                f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
+                                fg="yellow")
+                    if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
+                        with contextlib.suppress(OSError):
+                            (sockets / "controller.sock").unlink()
+                    # before the console is told: a console that hangs had held the restart 15 s
+                    start(name, *started_with[name])
+                    typer.echo(f"  {name} restarted (pid {procs[name].pid})")
+                typer.secho(abort_campaign(url, _token(data_dir), "; ".join(causes),
                                            time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S), err=True, fg="yellow")
-                if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
-                    with contextlib.suppress(OSError):
-                        (sockets / "controller.sock").unlink()
-                start(name, *started_with[name])
-                typer.echo(f"  {name} restarted (pid {procs[name].pid})")
                 seen_alive = last_pass = time.monotonic()
                 continue
             if dead:
                 name, rc = dead[0]
                 how = hung if name == "bridge" and hung else f"exited ({exit_how(rc)})"
-                more = f" ({len(restarted)} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
+                more = f" ({len(restarted[name])} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
                     if restarts and name in RESTARTABLE else ""
-                typer.secho(f"error: the {name} {how}{more}; stopping the stack, nothing {'more ' if more else ''}is "
-                            f"restarted.\n"
+                also = "".join(f"; the {n} exited too ({exit_how(c)})" for n, c in dead[1:])
+                typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
+                            f"{'more ' if more else ''}is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
                 if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
                     typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
