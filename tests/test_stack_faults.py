@@ -71,34 +71,22 @@ def _wait_end(base: str, cid: str, timeout_s: float) -> dict:
 
 # -- finding 7: honest outcomes -------------------------------------------------------------------
 
-def test_a_campaign_whose_controller_stalls_ends_degraded_with_its_reasons(tmp_path: Path) -> None:
-    """Finding 7: a real-time run that fell well below 500 Hz was recorded ``finished``."""
-    with _robot_stack(tmp_path) as (base, _hub, procs):
-        r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90)
-        assert r.status_code == 201, r.text
-        cid = r.json()["id"]
-        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.05)
-        procs["controller"].send_signal(signal.SIGSTOP)  # a stalled real-time process (the bridge holds)
-        time.sleep(1.0)
-        procs["controller"].send_signal(signal.SIGCONT)
-        rec = _wait_end(base, cid, 60)
-        results = httpx.get(f"{base}/api/campaigns/{cid}/results", timeout=10).json()
-    assert rec["status"] == "degraded", rec
-    reasons = rec["quality"]["reasons"]
-    assert any(r.startswith("rate ") for r in reasons), rec["quality"]
-    assert rec["quality"]["rate_hz"] < 0.95 * 500
-    assert results["status"] == "degraded" and results["quality"]["reasons"] == reasons
-    shown = [t for t in results["tables"] if t["title"].startswith("Real-time quality")]  # the dashboard's table
-    assert shown and shown[0]["note"] == "degraded: " + "; ".join(reasons)
-    info = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").info
-    assert info["outcome"] == "degraded" and info["degraded_reasons"] == "; ".join(reasons)
-    assert json.loads(info["quality"])["reasons"] == reasons
+@pytest.fixture(scope="module")
+def robot_stack(tmp_path_factory: pytest.TempPathFactory):
+    """One robot-mode stack for the two campaigns below: each starts its own campaign and judges
+    only that campaign's record, results and archive (by its id; the controller's timing by its
+    campaign id), so they share the stack's start-up and shutdown. The healthy campaign runs first,
+    on the fresh stack; the stall (SIGSTOP, then SIGCONT a second later) comes after it. Yields
+    (base URL, {name: process}, data directory)."""
+    tmp = tmp_path_factory.mktemp("stack-faults")
+    with _robot_stack(tmp) as (base, _hub, procs):
+        yield base, procs, tmp / "d"
 
 
-def test_a_healthy_real_time_campaign_finishes_with_its_quality_on_record(tmp_path: Path) -> None:
-    with _robot_stack(tmp_path) as (base, _, _):
-        cid = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90).json()["id"]
-        rec = _wait_end(base, cid, 60)
+def test_a_healthy_real_time_campaign_finishes_with_its_quality_on_record(robot_stack) -> None:
+    base, _, data = robot_stack
+    cid = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90).json()["id"]
+    rec = _wait_end(base, cid, 60)
     # A loaded test machine may miss deadlines: then it is degraded, and must say why.
     assert rec["status"] in ("finished", "degraded"), rec
     q = rec["quality"]
@@ -106,8 +94,32 @@ def test_a_healthy_real_time_campaign_finishes_with_its_quality_on_record(tmp_pa
     assert (rec["status"] == "degraded") == bool(q["reasons"])
     # Issue 21: the controller's own latency of this campaign on record, its histograms in the MCAP.
     assert 0 < q["latency_p50_ms"] <= q["latency_p99_ms"] and q["skipped_states"] >= 0, q
-    timing = [m for _, m in read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").messages(bus.CONTROLLER_TIMING)
+    timing = [m for _, m in read_campaign(data / "campaigns" / f"{cid}.mcap").messages(bus.CONTROLLER_TIMING)
               if m.campaign_id == cid]
     assert timing and timing[-1].campaign_ticks == q["controller_ticks"], (timing[-1:], q)
     assert sum(timing[-1].campaign_latency_counts) >= 0.9 * q["controller_ticks"]
     assert len(timing[-1].campaign_period_counts) == len(timing[-1].bin_edges_ms) - 1
+
+
+def test_a_campaign_whose_controller_stalls_ends_degraded_with_its_reasons(robot_stack) -> None:
+    """Finding 7: a real-time run that fell well below 500 Hz was recorded ``finished``."""
+    base, procs, data = robot_stack
+    r = httpx.post(base + "/api/campaigns", json=GENTLE, headers=AUTH, timeout=90)
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.1, 60, 0.05)
+    procs["controller"].send_signal(signal.SIGSTOP)  # a stalled real-time process (the bridge holds)
+    time.sleep(1.0)
+    procs["controller"].send_signal(signal.SIGCONT)
+    rec = _wait_end(base, cid, 60)
+    results = httpx.get(f"{base}/api/campaigns/{cid}/results", timeout=10).json()
+    assert rec["status"] == "degraded", rec
+    reasons = rec["quality"]["reasons"]
+    assert any(r.startswith("rate ") for r in reasons), rec["quality"]
+    assert rec["quality"]["rate_hz"] < 0.95 * 500
+    assert results["status"] == "degraded" and results["quality"]["reasons"] == reasons
+    shown = [t for t in results["tables"] if t["title"].startswith("Real-time quality")]  # the dashboard's table
+    assert shown and shown[0]["note"] == "degraded: " + "; ".join(reasons)
+    info = read_campaign(data / "campaigns" / f"{cid}.mcap").info
+    assert info["outcome"] == "degraded" and info["degraded_reasons"] == "; ".join(reasons)
+    assert json.loads(info["quality"])["reasons"] == reasons
