@@ -31,7 +31,8 @@ NOD = Trajectory.from_degrees([[0, 0, 0], [10, 8, 6], [0, 0, 0]], 1.2, 0.4, name
 @pytest.fixture(scope="module")
 def identification_run(tmp_path_factory):
     """`xneck campaign identification --twin` (see its test below), started before the control
-    campaigns so that it runs beside them: one lockstep campaign keeps about one CPU busy."""
+    campaigns so that it runs beside them, and beside the two real-time tests after them while it
+    finishes: one lockstep campaign keeps about one CPU busy."""
     tmp = tmp_path_factory.mktemp("identification")
     out, damping = tmp / "ident.mcap", tmp / "damping.toml"
     damping.write_text('[cables]\nenabled = true\ncreep_ratio = { value = 0.0, source = "none: test" }\n'
@@ -120,71 +121,11 @@ def test_lockstep_campaigns_repeat_exactly(campaigns):
     assert again.metrics["e_mean_all_deg"] == pytest.approx(first.metrics["e_mean_all_deg"], rel=1e-3)
 
 
-def test_cli_campaign_prints_json_metrics_and_records_into_the_data_directory(tmp_path, xneck, identification_run):
-    """Without --out the archive goes to the console's data directory (XNECK_DATA_DIR), never the
-    current directory; the printed metrics are the archive's."""
-    # After the module's identification campaign: two lockstep stacks on two cores starve the
-    # recorders, and a campaign that loses states ends degraded (exit 1; a fresh-clone CI run, 23:41).
-    identification_run[0].wait(600)
-    cwd, data = tmp_path / "cwd", tmp_path / "data"
-    cwd.mkdir()
-    nod = tmp_path / "nod.json"  # 3.2 s, not the 13 s control test: where the archive goes is the point
-    nod.write_text(json.dumps({"name": "nod", "waypoints_deg": [[0, 0, 0], [10, 8, 6], [0, 0, 0]],
-                               "durations_s": 1.2, "dwell_s": 0.4}))
-    run = xneck("campaign", "control", "--law", "1", "--twin", "--json", "--seed", "2", "--trajectory", str(nod),
-                cwd=cwd, env={"XNECK_DATA_DIR": str(data)})
-    assert run.returncode == 0, run.stderr + run.stdout[-3000:]
-    summary = json.loads(run.stdout)
-    out = Path(summary["path"])
-    assert summary["outcome"] == "finished" and summary["law"] == "law1" and out.exists()
-    assert out.parent == data.resolve() / "cli-campaigns" and out.name == f"campaign-{summary['campaign_id']}.mcap"
-    assert list(cwd.iterdir()) == []
-    assert len(summary["metrics"]["e_mean_deg"]) == 3
-    assert summary["metrics"] == json.loads(json.dumps(metrics_from_archive(out)))
-
-
-def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, identification_run):
-    """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
-    processes, identified from the archive: Table 1 friction and Table 2 stiffness come back, and the
-    robot's small cable damping is flagged, never used. The twin runs a truth file with that damping
-    alone (`--truth FILE`): the default robot truth's friction and creep are outside what the paper's
-    identification models (issue 16, docs/twin-fidelity.md), and this test checks the pipeline."""
-    proc, tmp, out, damping = identification_run
-    returncode = proc.wait(600)
-    assert returncode == 0, (tmp / "stderr").read_text()[-2000:]
-    doc = json.loads((tmp / "stdout").read_text())
-    values = lambda table: {p["name"]: p["value"] for p in table["parameters"]}  # noqa: E731
-    f_s = values(doc["table_1"]["friction"])
-    for j, truth in enumerate(params.friction.f_s):
-        assert abs(f_s[f"f_s({j + 1})"] / truth - 1) < 0.03
-    var = values(doc["table_2"])
-    # the default --estimator auto: this truth is the paper's model, which its test keeps (IDIM-IV)
-    assert doc["table_2"]["estimator"].startswith("auto → iv (the paper's model (no friction growing"), doc["table_2"]["estimator"]
-    for j in range(4):
-        assert abs(var[f"k({j + 1})"] / params.cables.variable.k[j] - 1) < 0.10
-        assert abs(var[f"lambda({j + 1})"] / params.cables.variable.lam[j] - 1) < 0.10
-    assert any(p.endswith(".toml") for p in doc["files"])
-    tension = doc["validation"]["tension_mean_error_N"]
-    assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
-    assert all(p["badly_identified"] for p in doc["table_2"]["parameters"] if p["name"].startswith("c_a"))
-    from bridge.archive_read import read_campaign
-
-    assert read_campaign(out).info["twin_truth"] == str(damping.resolve())
-
-
-def test_loadfriction_finds_the_papers_friction_shape_in_the_bus_campaign(params, identification_run):
-    """The same archive with `--estimator loadfriction`: the twin's friction here is the paper's
-    arctan (eq. 37, c_s = 0.5 s/rad), far from a sign at the fit's speeds (0.76 of its level at
-    5 rad/s). The estimator fits its slope c_f and gets it back; with a sign in its place λ(3)
-    came out 13 % low on this campaign."""
-    from twin.identification.record import identify_record
-
-    proc, _, out, _ = identification_run
-    assert proc.wait(600) == 0
-    var = identify_record(out, params, estimator="loadfriction", with_validation=False).estimate["variable"]
-    assert np.all(np.abs(var.vector("c_f") / params.friction.c_s - 1) < 0.3), var.vector("c_f")
-    assert np.all(np.abs(var.vector("lambda") / np.asarray(params.cables.variable.lam) - 1) < 0.10), var.vector("lambda")
-
+# The two real-time campaigns below come before the tests that wait for the module's identification
+# campaign (pytest runs a module's tests in file order): they run while it finishes, beside it, instead
+# of after it. Neither needs the machine to itself: the hung bridge's abort is what load does not
+# change, and the robot campaign may end degraded on a loaded machine. The lockstep campaigns stay
+# one at a time beside it (the campaigns fixture, the CLI run after it).
 
 def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(params, tmp_path, monkeypatch):
     """Audit of 2026-11-26: a bridge killed or hung mid-campaign where nothing supervised it (the
@@ -303,3 +244,69 @@ def test_a_robot_campaign_runs_against_the_bridge_it_connects_to(tmp_path, xneck
     assert c.info["target"] == "robot" and c.info["pace"] == "realtime"
     theta = np.array([m.theta_rad for _, m in c.messages(bus.MOTOR_STATE)])
     assert np.ptp(theta, axis=0).max() > 0.1  # the bridge's motors turned (rad): the nod ran on it
+
+
+def test_cli_campaign_prints_json_metrics_and_records_into_the_data_directory(tmp_path, xneck, identification_run):
+    """Without --out the archive goes to the console's data directory (XNECK_DATA_DIR), never the
+    current directory; the printed metrics are the archive's."""
+    # After the module's identification campaign: two lockstep stacks on two cores starve the
+    # recorders, and a campaign that loses states ends degraded (exit 1; a fresh-clone CI run, 23:41).
+    identification_run[0].wait(600)
+    cwd, data = tmp_path / "cwd", tmp_path / "data"
+    cwd.mkdir()
+    nod = tmp_path / "nod.json"  # 3.2 s, not the 13 s control test: where the archive goes is the point
+    nod.write_text(json.dumps({"name": "nod", "waypoints_deg": [[0, 0, 0], [10, 8, 6], [0, 0, 0]],
+                               "durations_s": 1.2, "dwell_s": 0.4}))
+    run = xneck("campaign", "control", "--law", "1", "--twin", "--json", "--seed", "2", "--trajectory", str(nod),
+                cwd=cwd, env={"XNECK_DATA_DIR": str(data)})
+    assert run.returncode == 0, run.stderr + run.stdout[-3000:]
+    summary = json.loads(run.stdout)
+    out = Path(summary["path"])
+    assert summary["outcome"] == "finished" and summary["law"] == "law1" and out.exists()
+    assert out.parent == data.resolve() / "cli-campaigns" and out.name == f"campaign-{summary['campaign_id']}.mcap"
+    assert list(cwd.iterdir()) == []
+    assert len(summary["metrics"]["e_mean_deg"]) == 3
+    assert summary["metrics"] == json.loads(json.dumps(metrics_from_archive(out)))
+
+
+def test_identification_campaign_over_the_bus_finds_the_twins_truth(params, identification_run):
+    """`xneck campaign identification --twin`: the §5.2.2 trajectory with law 1 through the real
+    processes, identified from the archive: Table 1 friction and Table 2 stiffness come back, and the
+    robot's small cable damping is flagged, never used. The twin runs a truth file with that damping
+    alone (`--truth FILE`): the default robot truth's friction and creep are outside what the paper's
+    identification models (issue 16, docs/twin-fidelity.md), and this test checks the pipeline."""
+    proc, tmp, out, damping = identification_run
+    returncode = proc.wait(600)
+    assert returncode == 0, (tmp / "stderr").read_text()[-2000:]
+    doc = json.loads((tmp / "stdout").read_text())
+    values = lambda table: {p["name"]: p["value"] for p in table["parameters"]}  # noqa: E731
+    f_s = values(doc["table_1"]["friction"])
+    for j, truth in enumerate(params.friction.f_s):
+        assert abs(f_s[f"f_s({j + 1})"] / truth - 1) < 0.03
+    var = values(doc["table_2"])
+    # the default --estimator auto: this truth is the paper's model, which its test keeps (IDIM-IV)
+    assert doc["table_2"]["estimator"].startswith("auto → iv (the paper's model (no friction growing"), doc["table_2"]["estimator"]
+    for j in range(4):
+        assert abs(var[f"k({j + 1})"] / params.cables.variable.k[j] - 1) < 0.10
+        assert abs(var[f"lambda({j + 1})"] / params.cables.variable.lam[j] - 1) < 0.10
+    assert any(p.endswith(".toml") for p in doc["files"])
+    tension = doc["validation"]["tension_mean_error_N"]
+    assert tension["variable"] < tension["linear"]  # Figs. 5-7: stiffness grows with tension
+    assert all(p["badly_identified"] for p in doc["table_2"]["parameters"] if p["name"].startswith("c_a"))
+    from bridge.archive_read import read_campaign
+
+    assert read_campaign(out).info["twin_truth"] == str(damping.resolve())
+
+
+def test_loadfriction_finds_the_papers_friction_shape_in_the_bus_campaign(params, identification_run):
+    """The same archive with `--estimator loadfriction`: the twin's friction here is the paper's
+    arctan (eq. 37, c_s = 0.5 s/rad), far from a sign at the fit's speeds (0.76 of its level at
+    5 rad/s). The estimator fits its slope c_f and gets it back; with a sign in its place λ(3)
+    came out 13 % low on this campaign."""
+    from twin.identification.record import identify_record
+
+    proc, _, out, _ = identification_run
+    assert proc.wait(600) == 0
+    var = identify_record(out, params, estimator="loadfriction", with_validation=False).estimate["variable"]
+    assert np.all(np.abs(var.vector("c_f") / params.friction.c_s - 1) < 0.3), var.vector("c_f")
+    assert np.all(np.abs(var.vector("lambda") / np.asarray(params.cables.variable.lam) - 1) < 0.10), var.vector("lambda")
