@@ -26,6 +26,9 @@ from twin.sim import calibrate
 from twin.sim.simulator import Twin, TwinConfig
 from twin.sim.truth import RobotTruth, load_truth
 
+# pure computation, no bus or process: beside the realtime modules at nice 19 (tests/conftest.py)
+pytestmark = pytest.mark.background
+
 PARAMS = load_params()
 ROBOT = load_truth("robot")
 

@@ -19,6 +19,9 @@ from controller.trajectory import control_test_trajectory
 from twin.sim.simulator import Twin, TwinConfig
 from twin.sim.truth import load_truth
 
+# pure computation, no bus or process: beside the realtime modules at nice 19 (tests/conftest.py)
+pytestmark = pytest.mark.background
+
 BOUND_N = 10.0  # the law's rate bound per command (LawConfig.force_rate_max_N_s at 500 Hz)
 
 

@@ -11,6 +11,9 @@ from scipy.integrate import solve_ivp
 from twin.model import dynamics
 from twin.sim.simulator import Twin, TwinConfig
 
+# pure computation, no bus or process: beside the realtime modules at nice 19 (tests/conftest.py)
+pytestmark = pytest.mark.background
+
 
 def static_forces(model, alpha, pretension=10.0):
     """Inverse statics: Z f = g(α) with the redundancy spent on pretension (f = f_p + τ·n)."""

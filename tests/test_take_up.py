@@ -16,6 +16,9 @@ from controller import take_up as rules
 from controller.take_up import TakeUp, take_up_peak_N
 from controller.trajectory import control_test_trajectory
 
+# pure computation, no bus or process: beside the realtime modules at nice 19 (tests/conftest.py)
+pytestmark = pytest.mark.background
+
 DT = 0.002
 
 
