@@ -56,6 +56,7 @@ import zenoh
 
 from bridge import bus
 from bridge.log_limit import LogLimit
+from bridge.runtime import SystemdNotify
 from bridge.session import controller_attachment, liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.prepare import GivenUp, Prepared, Refused, prepare, start_pose_when_known
@@ -186,6 +187,8 @@ class ControllerNode:
         self._to_prepare: queue.Queue[bus.CampaignRequest | None] = queue.Queue(maxsize=4)
         self._prepared: queue.Queue[tuple[bus.CampaignRequest, Prepared | Refused]] = queue.Queue()
         self._worker: threading.Thread | None = None
+        self._systemd: SystemdNotify | None = None  # run()'s watchdog, pinged by both threads (_ping)
+        self._next_ping = 0.0
         if self._service:
             self._worker = threading.Thread(target=self._prepare_forever, name="campaign-prepare", daemon=True)
             self._worker.start()
@@ -388,10 +391,16 @@ class ControllerNode:
             self._stoppable = stoppable
 
     # -- the loop -----------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> str:
+    def run(self, stop: threading.Event, systemd: SystemdNotify | None = None) -> str:
         """Run until the trajectory is done (then "finished"), the estimate diverges ("aborted"),
         the states stop for good ("aborted") or ``stop`` is set ("stopped"). In service mode
         (``exit_when_done`` False) it holds between campaigns and serves campaign requests.
+        ``systemd``: its watchdog is pinged every ``ping_period_s`` (``WATCHDOG=1``) by this thread
+        (also while it waits for the first state) and by the ticks, whichever runs: ``xneck up``
+        stands in for systemd and takes a controller silent on both (SIGSTOP, a deadlock on the
+        tick's lock) for a dead one (server/cli/up.py). Either alone would not do: a console that
+        hangs holds this thread up to 5 s in a blocking put (docs/safety.md, "Peers that stop
+        reading"), and the ticks stop with the bridge's states.
 
         Each new state is answered in the subscriber's callback itself (:meth:`_on_state`): no
         queue, no thread hand-over and no polling between its arrival and the command. This
@@ -406,6 +415,7 @@ class ControllerNode:
         # Zenoh's network thread needs the GIL to run the tick: this thread hands it over every
         # 0.5 ms rather than every 5 ms when it is busy (it mostly sleeps).
         sys.setswitchinterval(0.0005)
+        self._systemd, self._next_ping = systemd, 0.0
         try:
             return self._loop(stop)
         finally:
@@ -422,6 +432,7 @@ class ControllerNode:
         # honoured at once, not after the whole start-up timeout (audit of 2026-11-26).
         deadline, first = time.monotonic() + cfg.startup_timeout_s, None
         while first is None and not stop.is_set() and time.monotonic() < deadline:
+            self._ping()
             first = self.states.wait(min(0.1, max(0.0, deadline - time.monotonic())), lambda _state: True)
         if first is None and stop.is_set():
             return "stopped"
@@ -447,6 +458,7 @@ class ControllerNode:
         wait_s = LOCKSTEP_RESEND_S if cfg.lockstep else cfg.stale_s
         timeout_s = wait_s
         while not stop.is_set():
+            self._ping()
             self.publish_events()
             if time.monotonic() >= next_health:
                 self.publish_health(self._state.stamp_s)
@@ -485,10 +497,18 @@ class ControllerNode:
                     self.command(out.force_N, self._state)
         return svc.outcome or "stopped"
 
+    def _ping(self) -> None:
+        """The watchdog's ping when it is due (:meth:`run`; from either thread, whose race costs at
+        most one ping more); a few ns otherwise."""
+        if self._systemd is not None and time.monotonic() >= self._next_ping:
+            self._systemd.ping()
+            self._next_ping = time.monotonic() + self._systemd.ping_period_s
+
     def _on_state(self, state: bus.MotorState, arrival_ns: int) -> None:
         """Zenoh's callback, for each state the gate took: the tick, at once. Nothing escapes
         (an error is handed to the loop, which raises it: the process ends, the bridge holds)."""
         decoded_ns = time.time_ns()
+        self._ping()  # before the lock: a tick that cannot take it pings no more (run)
         try:
             with self._tick_lock:
                 if not self._live or self._done:

@@ -367,7 +367,7 @@ def controller(
     """Run the controller on the bus: follows --trajectory, or holds the neck where it is (a
     service: runs the campaigns asked for on xneck/campaign/request and .../request/<instance>)."""
     from bridge.instance_check import NameTaken, check_name_free
-    from bridge.runtime import raise_priority, setup_logging, stop_on_signals
+    from bridge.runtime import SystemdNotify, raise_priority, setup_logging, stop_on_signals
     from controller.process import ControllerNode, ControllerProcessConfig
 
     setup_logging(verbose)
@@ -391,10 +391,13 @@ def controller(
         if not lockstep:
             raise_priority()
         logging.getLogger("xneck.controller").info("controller %s up (%s)", node.instance, config.name)
+        systemd = SystemdNotify.from_environ()  # xneck up's watch of its loop (server/cli/up.py), or systemd's
         try:
-            outcome = node.run(stop)
+            outcome = node.run(stop, systemd)
         finally:
             node.close()
+            if systemd is not None:
+                systemd.close()
         logging.getLogger("xneck.controller").info("controller %s: %s", node.instance, outcome)
     if outcome == "aborted":
         raise typer.Exit(1)

@@ -38,7 +38,8 @@ bridge's real-time loop, as systemd's watchdog would (:class:`_LoopPings`): the 
 (sd_notify ``WATCHDOG=1``, five times a second) to a socket of this process, and a bridge whose
 process lives but whose loop was silent for :data:`BRIDGE_HUNG_S` is hung (its loop no longer runs
 its watchdog or its e-stop, and the ESCONs go on driving the last currents): it is killed and
-handled as a death. A bridge that did not end
+handled as a death. Likewise the controller, twin and robot alike: its loop pings (:data:`CONTROLLER_HUNG_S`),
+and one silent that long is killed and handled as a death (restarted under ``--restarts``). A bridge that did not end
 cleanly (killed, crashed, or not stopping within :data:`STOP_GRACE_S`) could not disable its
 drives: ``xneck bridge --driver beaglebone --drives-off`` then does (enable lines off,
 zero-current set values; audit of 2026-11-26: a hung bridge's SIGKILL left them as they were).
@@ -86,6 +87,11 @@ ABORT_WINDOW_MARGIN_S = 1.0
 # s without a ping from a live local robot bridge's loop after which it counts as hung (a stall the
 # bridge's own watchdog cannot see: a SIGSTOP, a C call holding the GIL): five missed pings.
 BRIDGE_HUNG_S = 1.0
+# s without a ping from the controller's loop (controller.process.ControllerNode.run) after which it
+# counts as hung and is killed, then handled as a death (restarted under --restarts): a SIGSTOPped
+# controller had left the bridge holding and `xneck up` silent; its console ended the campaign
+# "the controller service vanished" 11 s later (audit of session 44). Ten missed pings.
+CONTROLLER_HUNG_S = 2.0
 PING_WATCHDOG_S = 0.4  # WATCHDOG_USEC given to the bridge: it pings every half of it (bridge.runtime.SystemdNotify)
 DRIVES_OFF_TIMEOUT_S = 30.0  # s `xneck bridge --drives-off` may take (rcpy's import initialises the board)
 # s over which ``--restarts`` counts a child's restarts (systemd's StartLimitIntervalSec): a child
@@ -352,6 +358,11 @@ class _LoopPings:
         last_ns = self._last_ns
         return None if last_ns is None else (time.monotonic_ns() - last_ns) / 1e9
 
+    def restarted(self) -> None:
+        """A new process pings here now: the old one's pings say nothing of it."""
+        self.age_s()
+        self._last_ns = None
+
     def close(self) -> None:
         self._sock.close()
 
@@ -498,6 +509,7 @@ def up(
 
     code = 0
     watch = _LoopPings() if robot and not no_bridge else None
+    controller_watch = _LoopPings()
     driver: list[str] = []
     bridge_instance = f"bridge-up-{os.getpid()}"
     camera = alpha_ip == "camera" and not robot and not no_bridge
@@ -526,7 +538,8 @@ def up(
             start("bridge", ["bridge", *driver, "--instance", bridge_instance, "--listen", str(bridge_at), *param_args],
                   watch.environ() if watch is not None else None)
         start("controller", ["controller", "--law", str(law), "--listen", controller_at,
-                             "--connect", connect_to if bridge_at is None else bridge_at, *param_args])
+                             "--connect", connect_to if bridge_at is None else bridge_at, *param_args],
+              controller_watch.environ())
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
         typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
@@ -546,12 +559,14 @@ def up(
             # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg) judges nothing: the
             # pings' age grew with its own pause (audit of 2026-11-26: a healthy bridge killed).
             late, last_pass = polled - last_pass > BRIDGE_HUNG_S / 2, polled
-            age = watch.age_s() if watch is not None and not late else None
-            hung = ""
-            if age is not None and age > BRIDGE_HUNG_S and procs["bridge"].poll() is None:
-                procs["bridge"].kill()  # hung: SIGTERM would wait on a loop that does not run
-                procs["bridge"].wait(STOP_GRACE_S)
-                hung = f"hung (its loop silent for {age:.1f} s), killed"
+            hung: dict[str, str] = {}
+            for name, pings, limit_s in (("bridge", watch, BRIDGE_HUNG_S), ("controller", controller_watch,
+                                                                            CONTROLLER_HUNG_S)):
+                age = pings.age_s() if pings is not None and not late else None
+                if age is not None and age > limit_s and procs[name].poll() is None:
+                    procs[name].kill()  # hung: SIGTERM would wait on a loop that does not run
+                    procs[name].wait(STOP_GRACE_S)
+                    hung[name] = f"hung (its loop silent for {age:.1f} s), killed"
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
             for times in restarted.values():
                 times[:] = [t for t in times if polled - t < RESTART_WINDOW_S]
@@ -561,7 +576,7 @@ def up(
             if dead and dead[0][0] in RESTARTABLE and len(restarted[dead[0][0]]) < restarts:
                 causes = []
                 for name, rc in dead:  # every one restartable, with a restart left
-                    how = f"exited ({exit_how(rc)})"
+                    how = hung.get(name) or f"exited ({exit_how(rc)})"
                     causes.append(f"{name} process {how}")
                     restarted[name].append(polled)
                     typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted[name])} of "
@@ -571,6 +586,7 @@ def up(
                     if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
                         with contextlib.suppress(OSError):
                             (sockets / "controller.sock").unlink()
+                        controller_watch.restarted()
                     # before the console is told: a console that hangs had held the restart 15 s
                     start(name, *started_with[name])
                     typer.echo(f"  {name} restarted (pid {procs[name].pid})")
@@ -580,10 +596,10 @@ def up(
                 continue
             if dead:
                 name, rc = dead[0]
-                how = hung if name == "bridge" and hung else f"exited ({exit_how(rc)})"
+                how = hung.get(name) or f"exited ({exit_how(rc)})"
                 more = f" ({len(restarted[name])} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
                     if restarts and name in RESTARTABLE else ""
-                also = "".join(f"; the {n} exited too ({exit_how(c)})" for n, c in dead[1:])
+                also = "".join(f"; the {n} {hung.get(n) or f'exited ({exit_how(c)})'} too" for n, c in dead[1:])
                 typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
                             f"{'more ' if more else ''}is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
@@ -620,6 +636,7 @@ def up(
                 typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
         if watch is not None:
             watch.close()
+        controller_watch.close()
         shutil.rmtree(sockets, ignore_errors=True)
         typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
     if code:
