@@ -139,7 +139,7 @@ async def safety_journal(request: Request,
                                       description="How many of the newest events to return.")) -> dict[str, Any]:
     """The console's safety journal (docs/console.md, "Safety journal"; server.safety_journal):
     ``events``, the newest ``limit`` lines, oldest first, each as written (``time`` ISO 8601
-    UTC, ``stamp_s`` s since the epoch, ``event``: ``estop_sent``, ``bridge_run``,
+    UTC, ``stamp_s`` s since the epoch, ``event``: ``estop_sent``, ``process_fault``, ``bridge_run``,
     ``bridge_state``, and its fields); ``skipped``, lines read that are not events (a line torn
     by a crash, garbage); ``journal``, the counters since the console started (``written``,
     ``write_errors``, ``last_error``, ``dropped`` lines; ``suppressed`` transitions no line
@@ -176,8 +176,16 @@ def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
     first in its record and in its archive, what it saw itself after that. Answers once its record
     is final (at most 10 s): ``campaign_id`` (null if none was running or ended within
     ``ended_within_s``), its ``status`` and ``message``. Nothing else changes: the bridge, the
-    controller and the e-stop are left as they are (the controller holds as after any stop)."""
-    rec = request.app.state.campaigns.abort(body.reason, body.ended_within_s)
+    controller and the e-stop are left as they are (the controller holds as after any stop). The
+    cause is journalled (``process_fault``, :mod:`server.safety_journal`): a stack's deaths, hangs
+    and restarts stay on record between campaigns too."""
+    s = request.app.state
+    rec = None
+    try:
+        rec = s.campaigns.abort(body.reason, body.ended_within_s)
+    finally:
+        s.journal.record("process_fault", reason=bus.plain_text(body.reason), campaign_id=rec.id if rec else None,
+                         campaign_status=rec.status if rec else None, **_requester(request))
     if rec is None:
         return {"campaign_id": None, "status": None, "message": None}
     return {"campaign_id": rec.id, "status": rec.status, "message": rec.message}

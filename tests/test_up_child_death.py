@@ -131,6 +131,10 @@ def test_a_child_killed_mid_campaign_under_xneck_up_ends_it_naming_the_child_and
             printed = (tmp_path / "up.log").read_text()
             assert "warning: the controller hung (its loop silent for " in printed, printed[-3000:]
             assert "killed; restarting it (restart 1 of 1" in printed, printed[-3000:]
+            # on record between campaigns too: the console's safety journal
+            journal = httpx.get(f"{base}/api/system/safety-journal?limit=50", timeout=10).json()["events"]
+            faults = [e for e in journal if e["event"] == "process_fault"]
+            assert faults and faults[-1]["reason"].startswith(hang) and faults[-1]["campaign_id"] == first, faults
         cid = _start_gentle(base, data, tmp_path)
         _kill_under_way(base, cid, up, victim, tmp_path)
         seen: list[dict] = []  # what REST said while the console was up, after the campaign ended
