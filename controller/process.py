@@ -421,6 +421,7 @@ class ControllerNode:
         finally:
             with self._tick_lock:
                 self._live = False  # no command after run() returned
+                self._systemd = None  # nor a ping: the caller closes its socket
             self.publish_events()
             if self._worker is not None:
                 with contextlib.suppress(queue.Full):

@@ -128,7 +128,8 @@ JOG_SETTLE_S = 0.2  # s a jog holds its pose before ``finished``: the next jog w
 # the highest pretension returns to t_min within a couple of seconds, 0.1 N per tick.
 PRETENSION_RELEASE_N_S = 50.0
 # rad/s² the campaign clock's ramp back to speed may add to α̈^d (α̇ of the trajectory times the
-# rate's derivative): half the trajectories' own bound, the other half left to the trajectory
+# rate's derivative): half the trajectories' own bound (the trajectory's own α̈ comes on top, scaled
+# by the rate squared: 1.6 rad/s² at most on the control test, 3.0 on one built at the limits)
 RESUME_ACCELERATION_MAX_RAD_S2 = 1.5
 RESUME_DURATION_MIN_S = 0.2  # s: the shortest ramp back to speed
 

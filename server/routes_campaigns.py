@@ -84,7 +84,7 @@ def _conflict(exc: Busy | DrivesDisabled) -> JSONResponse:
                         422: {"description": "Invalid body, or a choice this console cannot honour; loc names "
                                              "the field"},
                         503: {"description": "An `xneck up` stack's console whose controller service is not on "
-                                             "the bus (being restarted, hung or stopped)"},
+                                             "the bus (being restarted or stopped)"},
                         507: {"description": "The archive cannot be written (free space with the figures, "
                                              "read-only, I/O error)"}})
 async def create_campaign(body: CampaignCreate, request: Request) -> Any:
@@ -98,7 +98,7 @@ async def create_campaign(body: CampaignCreate, request: Request) -> Any:
         # Run as a console of its own, it spawned a twin and a controller on the stack's bus, whose
         # bridge then obeyed that controller for a while (audit of session 44).
         return JSONResponse(status_code=503, content={"detail": (
-            "the stack's controller service is not on the bus (being restarted by `xneck up --restarts`, hung, or "
+            "the stack's controller service is not on the bus (being restarted by `xneck up --restarts`, or "
             "stopped): try again once it is back (GET /api/system/processes lists it as campaign-service)")})
     try:
         prepared = await run_in_threadpool(prepare, body, request.app.state.params, request.app.state.settings,

@@ -51,7 +51,7 @@ class Settings(BaseSettings):
                                     "the one camera of its source its campaigns record (server.quality); unset: the "
                                     "first of that source seen.")
     stack: bool = Field(False, description="This console is an `xneck up` stack's (`xneck up` sets it): campaigns "
-                        "go to the stack's controller service, and with none on the bus (restarting, hung) a campaign "
+                        "go to the stack's controller service, and with none on the bus (being restarted, stopped) a campaign "
                         "is refused (503), never run on a twin and a controller of the console's own beside the "
                         "stack's bridge.")
     min_free_mb: float = Field(64.0, ge=0, description="A campaign starts only with this much free space (MB) "

@@ -327,6 +327,15 @@ def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_an
         assert f"still running on controller {controller}, not recorded since the console's restart" in \
             rec["message"], rec
         assert controller in refused.json()["detail"], refused.text
+        # The dashboard follows it and keeps following it (review of session 44: a page dropped
+        # it at every poll as ended, its record being `interrupted`, and its Stop said nothing ran).
+        from browser_harness import dashboard_page
+
+        with dashboard_page(base) as (page, errors):
+            page.wait_for_function(f"runningId === '{cid}'", timeout=15000)
+            page.wait_for_timeout(2500)  # a few polls
+            assert page.evaluate("runningId") == cid  # what its Stop stops
+            assert not errors, errors
         stopped = httpx.post(f"{base}/api/campaigns/{cid}/stop", headers=AUTH, timeout=15)
         assert stopped.status_code == 200, stopped.text
         assert f"stopped on controller {controller}" in stopped.json()["message"], stopped.json()

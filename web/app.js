@@ -13,6 +13,7 @@ const stats = (window.xneckStats = { frames: 0, points: 0, lastStamp: null });
 let config = null;
 let runningId = null;
 let replayId = null;  // the campaign a replay is republishing (health.replay), null if none runs
+let replayShown = null;  // the replay the bar shows running, until its end is shown once
 
 function token() { return $("#token").value.trim(); }
 $("#token").value = localStorage.getItem("xneck-token") || "";
@@ -453,14 +454,15 @@ async function pollStatus() {
     }
     const replay = h.replay && h.replay.running ? h.replay : null;
     replayId = replay ? replay.campaign_id : null;
-    if (!runningId && replay) setProgress(replay.progress, `replay of ${replay.campaign_id}`);
-    else if (!runningId && $("#progress-text").textContent.startsWith("replay of")) {
-      // How it ended, from its last status: a replay stopped half-way had read "replay ended: 100%".
-      const last = h.replay, pct = last ? Math.round(100 * (last.progress || 0)) : 100;
+    if (!runningId && replay) { setProgress(replay.progress, `replay of ${replay.campaign_id}`); replayShown = replay.campaign_id; }
+    else if (!runningId && replayShown) {
+      // How it ended, once, from its last status: a replay stopped half-way had read "replay ended: 100%".
+      const last = h.replay, pct = last ? Math.floor(100 * (last.progress || 0)) : 100;
       if (!last) setProgress(1, "replay ended:");
       else if (last.error) setProgress(last.progress, `replay of ${last.campaign_id} failed at ${pct}%: ${last.error}`, "failure");
-      else if (pct >= 100) setProgress(1, `replay of ${last.campaign_id} ended at 100%`, "success");
+      else if (last.total && last.published >= last.total) setProgress(1, `replay of ${last.campaign_id} ended at 100%`, "success");
       else setProgress(last.progress, `replay of ${last.campaign_id} stopped at ${pct}%`, "warning");
+      replayShown = null;
     }
     if (runningId && h.running_campaign_id !== runningId) {
       const rec = await api("GET", `/api/campaigns/${runningId}`);
@@ -468,9 +470,10 @@ async function pollStatus() {
       else setProgress(rec.progress, `${rec.id} ${rec.status}`);
     } else if (runningId) {
       // The record may end before the health says so: its end then, not "<id> stopped by the user 3%"
-      // as if it ran on (a race the browser test met in session 44).
+      // as if it ran on (a race the browser test met in session 44). Not one a controller still
+      // runs unrecorded after a console restart (running_on): the health follows it, Stop stops it.
       const rec = await api("GET", `/api/campaigns/${runningId}`);
-      if (rec.status !== "running") { runningId = null; showEnded(rec); refreshList(); showResults(rec.id); }
+      if (rec.status !== "running" && !rec.running_on) { runningId = null; showEnded(rec); refreshList(); showResults(rec.id); }
       else setProgress(rec.progress, `${rec.id} ${rec.message}`);
     }
   } catch (e) { $("#sys").textContent = "server unreachable"; }
