@@ -87,6 +87,11 @@ SERVICE_GONE_GRACE_S = 1.5
 # machine seen in the suite, far shorter than the campaign's timeout.
 STOPPED_BY_USER = "stopped by the user"  # the outcome of a stop request (server.campaigns matches it)
 BRIDGE_SILENT_S = 3.0
+# s between two passes of the runner's loop (0.2 s apart) beyond which this process itself was held
+# (SIGSTOP, a suspended machine, swap): the bridge's silence is then counted from that late pass on,
+# since no state could be received meanwhile (review of session 44: a console stopped 9 s ended its
+# campaign "no motor state from the bridge for 9.0 s: it is gone or hung").
+RUNNER_HELD_S = 1.0
 CAMERA_STARTUP_S = 120.0  # s a camera process may take to come up (OpenCV and the renderer load; a loaded machine)
 # s a robot campaign waits for a bridge on the bus before it gives up with the reason: a bridge that
 # runs is seen at once (its liveliness token), and the controller otherwise waited 120 s for a
@@ -365,6 +370,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
         ended = False  # the controller's end event of the campaign came: no stop is owed
         dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
         gone_since = 0.0  # when the controller service was first seen gone (its cause may be on the way)
+        last_pass = held_until = time.monotonic()  # RUNNER_HELD_S
         while not not_up:
             try:
                 ev = events.get(timeout=0.2)
@@ -380,7 +386,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
             if disabled:
                 outcome, message = "aborted", f"the drives were disabled during the campaign: {disabled}"
                 break
-            silent_s = monitor.state_silence_s() if started else 0.0
+            now = time.monotonic()
+            if now - last_pass > RUNNER_HELD_S:
+                held_until = now
+            last_pass = now
+            silent_s = min(monitor.state_silence_s(), now - held_until) if started else 0.0
             if silent_s > BRIDGE_SILENT_S:
                 outcome, message = "aborted", f"no motor state from the bridge for {silent_s:.1f} s: it is gone or hung"
                 break

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from busutil import wait_until
 
 from bridge import bus
 from bridge.archive_read import read_campaign
@@ -310,3 +311,54 @@ def test_loadfriction_finds_the_papers_friction_shape_in_the_bus_campaign(params
     var = identify_record(out, params, estimator="loadfriction", with_validation=False).estimate["variable"]
     assert np.all(np.abs(var.vector("c_f") / params.friction.c_s - 1) < 0.3), var.vector("c_f")
     assert np.all(np.abs(var.vector("lambda") / np.asarray(params.cables.variable.lam) - 1) < 0.10), var.vector("lambda")
+
+
+def test_a_campaign_whose_recorder_was_held_judges_the_bridge_from_its_return(tmp_path):
+    """Review of session 44: a console (here `xneck campaign`, whose process records and judges the
+    campaign) held for longer than BRIDGE_SILENT_S (SIGSTOP; a suspended laptop, swap) had received
+    no state meanwhile and, at its first look back, ended its campaign "no motor state from the
+    bridge for 9.0 s: it is gone or hung". The bridge's silence now counts from the runner's return."""
+    import os
+    import signal
+    import time
+
+    from bridge.session import free_tcp_port
+    from server.campaign_runner import BRIDGE_SILENT_S
+
+    slow = tmp_path / "slow.json"  # 9 s: the hold comes mid-campaign, and the campaign goes on after it
+    slow.write_text(Trajectory.from_degrees([[0, 0, 0], [10, 8, 6], [0, 0, 0]], 4.0, 0.3, name="slow").to_json())
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open(tmp_path / "bridge.log", "wb") as log:
+        bridge = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "twin", "--listen", hub],
+                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    try:
+        with open(tmp_path / "out", "wb") as out, open(tmp_path / "err", "wb") as err:
+            run = subprocess.Popen([sys.executable, "-m", "server.cli", "campaign", "control", "--robot", "--connect",
+                                    hub, "--trajectory", str(slow), "--json", "--out", str(tmp_path / "held.mcap")],
+                                   stdout=out, stderr=err, stdin=subprocess.DEVNULL)
+        try:
+            # under way: the bridge's first enable ramped (its log), a second into the campaign
+            assert wait_until(lambda: b"bumpless ramp done" in (tmp_path / "bridge.log").read_bytes()
+                              or run.poll() is not None, 90, 0.1), (tmp_path / "bridge.log").read_text()[-2000:]
+            time.sleep(1.0)
+            # The machine held (a suspended laptop): the bridge too, which the runner sees again a
+            # moment after its own return (without the rule, it blamed the bridge at once).
+            os.kill(bridge.pid, signal.SIGSTOP)
+            os.kill(run.pid, signal.SIGSTOP)
+            time.sleep(BRIDGE_SILENT_S + 1.5)
+            os.kill(run.pid, signal.SIGCONT)
+            time.sleep(0.5)
+            os.kill(bridge.pid, signal.SIGCONT)
+            run.wait(120)
+        finally:
+            if run.poll() is None:
+                run.kill()
+                run.wait(10)
+    finally:
+        bridge.terminate()
+        bridge.wait(30)
+    summary = json.loads((tmp_path / "out").read_text())
+    assert "no motor state from the bridge" not in summary["message"], summary
+    # held: states were lost meanwhile, so degraded, or aborted by the controller's own word (its
+    # stale states), never the bridge blamed
+    assert summary["outcome"] in ("finished", "degraded", "aborted"), summary
