@@ -704,9 +704,11 @@ def test_without_hold_forces_ready_the_hold_keeps_the_present_forces(params):
         f_cmd = [20.0, 15.0, 10.0, 12.0]
         try:
             assert _put_until(pub, _command(1, f_cmd, node), lambda: node.commands.stats.accepted >= 1)
-            for _ in range(40):
+            for seq in range(2, 42):
                 tick(node)
-                pub.put(_command(2, f_cmd, node))
+                accepted = node.commands.stats.accepted
+                pub.put(_command(seq, f_cmd, node))  # delivered before the next tick, as above
+                assert wait_until(lambda: node.commands.stats.accepted > accepted, 5.0)
             time.sleep(0.05)
             for _ in range(10):
                 tick(node)
