@@ -54,9 +54,15 @@ class Rig:
         commands = self.node.commands
         before = commands.stats
         deadline = time.monotonic() + 5.0
+        copies = 0
         while time.monotonic() < deadline:
             self.pub.put(msg)
+            copies += 1
             if wait_until(lambda: commands.stats.received > before.received, 0.02, 0.001):
+                if copies > 1:
+                    # Copies put while the first was slow in coming may still be in flight: let
+                    # them land now, not after the next put's count was taken (a loaded machine).
+                    wait_until(lambda: commands.stats.received >= before.received + copies, 0.5, 0.002)
                 return commands.stats.accepted > before.accepted
         raise AssertionError("the command never arrived")
 
@@ -248,7 +254,8 @@ def test_a_command_answering_no_recent_state_is_no_command(board, params):
             rig.answered_ticks([30.0] * 4, 60)  # answers to real states: active again
             assert node.mode == "active" and node.force.tolist() == pytest.approx([30.0] * 4)
         node.publish_health()
-        assert wait_until(lambda: any(h.rejected.get("command_stale_state") == 20 for h in health.items), 2.0)
+        # each of the 20 refused (a copy re-put on a slow route is refused and counted too)
+        assert wait_until(lambda: any(h.rejected.get("command_stale_state", 0) >= 20 for h in health.items), 2.0)
 
 
 def test_a_controller_answering_a_state_a_few_ticks_old_is_obeyed(board, params):

@@ -434,18 +434,22 @@ def test_the_bridge_on_the_beaglebone_driver_ramps_the_escon_currents_after_an_e
             # The owner's command must be accepted: until the bridge has seen the owner's fresh
             # liveliness token it refuses it ("no liveliness token"), and a received-only wait
             # made the test flaky. The intruder's must merely arrive (it is refused).
-            def count():
+            # Each identified by what it does, not by a count: a late copy of an earlier command,
+            # re-put on a slow route, had counted as the intruder's arrival (review of session 45).
+            def arrived(n_rejected=node.commands.stats.rejected):
                 stats = node.commands.stats
-                return stats.accepted if sender == "ctl" else stats.received
+                if sender == "ctl":
+                    latest = node.commands.latest()
+                    return latest is not None and latest.seq == seq and latest.sender == sender
+                return stats.rejected > n_rejected and "owned by" in stats.last_reject_reason
 
-            n = count()
             if math.isnan(node.last_state_stamp_s):
                 node.publish_state()  # a state to answer
             msg = bus.ForceCommand(seq=seq, stamp_s=node.last_state_stamp_s, force_N=force, source="law2", sender=sender,
                                    epoch=node.epoch)
             for _ in range(250):  # the first messages on a fresh route may be lost
                 cmd_pub.put(msg)
-                if wait_until(lambda: count() > n, 0.02, 0.002):
+                if wait_until(arrived, 0.02, 0.002):
                     return
             raise AssertionError(f"command never arrived: {node.commands.stats}")
 

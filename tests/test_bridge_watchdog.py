@@ -185,8 +185,11 @@ def test_the_limit_is_zero_or_at_least_50_ms() -> None:
 
 def test_the_watchdog_thread_sees_a_real_stall_and_not_a_busy_loop() -> None:
     calls: list[tuple[float, str, float, str]] = []
-    wd = LoopWatchdog(0.1, lambda w, since: calls.append((time.perf_counter(), threading.current_thread().name, since,
-                                                         w.loop_stack())))
+    # 0.3 s, not the bridge's 0.1-0.5: a busy thread descheduled for 100 ms on a loaded 2-CPU
+    # machine is not what this test looks for.
+    limit = 0.3
+    wd = LoopWatchdog(limit, lambda w, since: calls.append((time.perf_counter(), threading.current_thread().name,
+                                                           since, w.loop_stack())))
     stop_ticking = threading.Event()
 
     def loop() -> None:
@@ -208,10 +211,11 @@ def test_the_watchdog_thread_sees_a_real_stall_and_not_a_busy_loop() -> None:
     th.join(2)
     wd.stop()
     (at, name, since, stack), = calls
-    print(f"\nwatchdog thread: fired {(at - hung) * 1e3:.0f} ms after the last tick (limit 100 ms, polls of 25 ms)")
+    print(f"\nwatchdog thread: fired {(at - hung) * 1e3:.0f} ms after the last tick (limit {limit * 1e3:.0f} ms, "
+          f"polls of {wd.poll_s * 1e3:.0f} ms)")
     assert name == "xneck-loop-watchdog"
-    assert 0.1 <= at - hung <= 0.1 + 0.025 + 0.2, at - hung
-    assert since >= 0.1
+    assert limit <= at - hung <= limit + wd.poll_s + 1.0, at - hung  # not before the limit; not never
+    assert since >= limit
     assert "hung, with the GIL free" in stack.splitlines()[-1] or "in wait" in stack.splitlines()[-2], stack
     assert wd.loop_stack() == "(the loop's thread is gone)"
 
@@ -632,7 +636,7 @@ def test_a_trip_stuck_in_the_hardware_library_still_ends_the_process(tmp_path: P
 
 def test_a_stopped_process_or_a_short_stall_is_no_hang(tmp_path: Path) -> None:
     """What the bridge already rides out is left alone: the whole process stopped for 1.5 s
-    (SIGSTOP: a VM stall, a debugger) and its loop blocked for 0.25 s. It keeps its drives and
+    (SIGSTOP: a VM stall, a debugger) and its loop blocked for 0.1 s. It keeps its drives and
     its epoch, then stops cleanly on SIGTERM."""
     with bus_pair() as (hub, hub_session, _connect):
         robot = _RobotBridge(tmp_path, hub, hub_session)
@@ -641,7 +645,9 @@ def test_a_stopped_process_or_a_short_stall_is_no_hang(tmp_path: Path) -> None:
             epoch = robot.states[-1][1].epoch
             robot.block.write_text("sleep")
             assert _seen(robot.board, "hang", 5.0) is not None
-            time.sleep(0.25)
+            # 0.1 s: the stall the loop sees adds this test's lateness in seeing the hang and the
+            # board's poll; 0.25 s had come near the 0.5 s watchdog on a loaded machine.
+            time.sleep(0.1)
             robot.block.unlink()
             assert _seen(robot.board, "resume", 5.0) is not None
             os.kill(robot.proc.pid, signal.SIGSTOP)

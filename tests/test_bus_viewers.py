@@ -107,7 +107,10 @@ def test_a_viewer_receives_everything_and_what_it_publishes_reaches_no_one(tmp_p
             viewer.declare_subscriber("xneck/test/**", received["viewer"])
             tokens = [op.liveliness().declare_token("xneck/alive/controller/op"),
                       viewer.liveliness().declare_token("xneck/alive/controller/viewer")]
-            time.sleep(0.5)
+            # the subscriptions have reached the listener once its probe reaches both (a fixed
+            # 0.5 s was a guess; the counts below are exact)
+            assert wait_until(lambda: (listener.put("xneck/test/probe", b"0"),
+                                       all("xneck/test/probe" in c.keys for c in received.values()))[1], 10, 0.05)
             for _ in range(5):
                 for name, s in (("op", op), ("viewer", viewer)):
                     s.put(f"xneck/test/{name}", b"1")
@@ -116,7 +119,7 @@ def test_a_viewer_receives_everything_and_what_it_publishes_reaches_no_one(tmp_p
                 time.sleep(0.1)
             assert wait_until(lambda: received["viewer"].keys.count("xneck/test/state") == 5, 5, 0.05)
             time.sleep(0.5)
-            from_peers = [k for k in got.keys if k != "xneck/test/state"]  # its own samples reach it too
+            from_peers = [k for k in got.keys if k not in ("xneck/test/state", "xneck/test/probe")]  # its own reach it
             assert from_peers == ["xneck/test/op"] * 10, got.keys
             assert alive.keys == ["xneck/alive/controller/op"], alive.keys
             assert received["op"].keys.count("xneck/test/state") == 5

@@ -96,7 +96,11 @@ def test_two_replays_at_once_one_is_refused_and_stop_and_estop_silence_the_bus(c
     assert a.post(f"/api/campaigns/{cid}/stop", headers=AUTH).status_code == 200
     assert a.post("/api/system/estop", json={"engaged": True, "reason": "test"}, headers=AUTH).status_code == 200
     try:
-        time.sleep(0.5)  # messages in flight
+        assert wait_until(lambda: _idle(a), 10)
+        # Messages in flight land first (a fixed 0.5 s was short on a loaded machine): 0.5 s with
+        # none, within 10 s, and then none for 2 s more.
+        assert wait_until(lambda: not [t for t in states if t > time.monotonic() - 0.5], 10), \
+            "the replay went on publishing after stop and e-stop"
         quiet_from = time.monotonic()
         time.sleep(2.0)
         assert [t for t in states if t > quiet_from] == [], "recorded MotorStates published after stop and e-stop"

@@ -280,4 +280,5 @@ def test_the_console_sends_its_stop_again_until_the_campaign_ends():
             answered.wait(5)
             answer.close()
     assert ev is not None and ev.event == "aborted", stops
-    assert len(stops) == 3 and all(s.action == "stop" and s.campaign_id == "c-lost" for s in stops)
+    # answered at the third; a fourth may have gone out while the answer was slow in coming
+    assert len(stops) >= 3 and all(s.action == "stop" and s.campaign_id == "c-lost" for s in stops)
