@@ -62,7 +62,7 @@ rest on its pose, and starts from there: moves chain without a step in α^d or �
 aborting the running jog drops the waiting one.
 
 Stops: a stop request (the user's, or the console's on a silent bridge or a timeout) while the law
-tracks brings α^d to rest from where it is at its speed (:func:`controller.trajectory.brake_at`,
+tracks brings α^d to rest from where it is at its speed and acceleration (:func:`controller.trajectory.brake_at`,
 at most the trajectories' 3 rad/s², firmer where that would cross a joint limit) and holds there,
 as any jog or campaign does, through a re-start of the law too; a campaign asked for meanwhile
 starts when α^d rests. Faults (a latch, drives off, a new bridge run) hold at α̂ instead and answer
@@ -95,6 +95,7 @@ from controller.trajectory import (
     brake_at,
     brake_duration_s,
     cycloid_at,
+    release_duration_s,
 )
 from twin.model.estimation import alpha_hat_3, static_elongation
 from twin.model.params import Params
@@ -232,7 +233,8 @@ class CampaignService:
         # campaign's), let go at PRETENSION_RELEASE_N_S under the trajectory's own pretension
         self._leftover_N = 0.0
         self._blend: tuple[float, np.ndarray, float] | None = None  # (start stamp, α̂ − α^d, duration)
-        self._brake: tuple[float, np.ndarray, np.ndarray, float] | None = None  # (start stamp, α^d₀, α̇^d₀, duration)
+        # (start stamp, α^d₀, α̇^d₀, duration, α̈^d₀) of a stop's brake
+        self._brake: tuple[float, np.ndarray, np.ndarray, float, np.ndarray] | None = None
         # the request being prepared: the object itself, since a stopped request's id may be reused
         # by the next one before the stopped one's preparation ends (audit of 2026-11-27)
         self._starting: bus.CampaignRequest | None = None
@@ -498,7 +500,8 @@ class CampaignService:
             brake = self._brake_from(stamp_s)
             self._end("aborted", "stopped by the user", self._progress(stamp_s), self.ctl.estimator.alpha_hat)
             if brake is not None:
-                self._brake, self.hold_target = brake, brake[1] + brake[2] * (brake[3] / 2.0)
+                end_s = max(brake[3], release_duration_s(brake[4]))
+                self._brake, self.hold_target = brake, brake_at(brake[1], brake[2], brake[3], end_s, brake[4])[0]
         elif self._starting is not None and self._starting.campaign_id == campaign_id:
             self.refuse(campaign_id, self._starting.kind, "stopped by the user before it started")
             self._starting, self.phase = None, "idle"
@@ -534,16 +537,14 @@ class CampaignService:
             return np.array(self.hold_target, dtype=np.float64)
         return np.array(self.ctl.estimator.alpha_hat, dtype=np.float64)
 
-    def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float] | None:
+    def _brake_from(self, stamp_s: float) -> tuple[float, np.ndarray, np.ndarray, float, np.ndarray] | None:
         """A controlled stop from where α^d is at ``stamp_s`` (:func:`controller.trajectory.brake_at`),
         while the law tracks it (drives active, no hold, no re-start due); ``None`` otherwise (the
         hold at α̂ then applies, bounded by the law's force rate)."""
         if self.latched or self._restart or self.drive != "active" or self.hold_reason:
             return None
-        a_d, a_d_dot, _ = self.reference(stamp_s)
-        a_d = np.array(a_d, dtype=float)
-        a_d_dot = np.array(a_d_dot, dtype=float)
-        return stamp_s, a_d, a_d_dot, brake_duration_s(a_d, a_d_dot, self._alpha_max)
+        a_d, a_d_dot, a_d_ddot = (np.array(x, dtype=float) for x in self.reference(stamp_s))
+        return stamp_s, a_d, a_d_dot, brake_duration_s(a_d, a_d_dot, self._alpha_max, a_d_ddot), a_d_ddot
 
     def _drop_waiting(self, reason: str) -> None:
         """Answer the campaign waiting for the brake to end (none waits behind a running one
@@ -873,13 +874,13 @@ class CampaignService:
                 a_d_ddot = a_d_ddot * rate**2 + a_d_dot * rate_dot
                 a_d_dot = a_d_dot * rate
         elif self._brake is not None:
-            start_s, a0, v0, duration_s = self._brake
-            if stamp_s - start_s >= duration_s:
+            start_s, a0, v0, duration_s, acc0 = self._brake
+            if stamp_s - start_s >= max(duration_s, release_duration_s(acc0)):
                 self._brake = None
                 a_d = self.hold_target
                 a_d_dot = a_d_ddot = np.zeros_like(a_d)
             else:
-                a_d, a_d_dot, a_d_ddot = brake_at(a0, v0, duration_s, stamp_s - start_s)
+                a_d, a_d_dot, a_d_ddot = brake_at(a0, v0, duration_s, stamp_s - start_s, acc0)
         else:
             a_d = self.hold_target
             a_d_dot = a_d_ddot = np.zeros_like(a_d)

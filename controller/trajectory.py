@@ -752,34 +752,119 @@ def approach_duration_s(delta_rad: float) -> float:
 
 BRAKE_ACCELERATION_MAX_RAD_S2 = 3.0  # the trajectories' own bound (TrajectoryLimits.alpha_ddot_max_rad_s2)
 BRAKE_DURATION_MIN_S = 0.05  # s: a stop at (almost) rest still ends smoothly over 25 ticks
+#: rad/s³: how fast a stop lets go of the acceleration α^d had (:func:`brake_at`): 0.12 rad/s² a
+#: tick at 500 Hz, over 0.2 s from 3 rad/s². Starting the brake at α̈ = 0 had stepped the law's
+#: feed-forward 2.35 N in one tick at 2.9 rad/s² (session 45).
+BRAKE_JERK_MAX_RAD_S3 = 60.0
+_BRAKE_SAMPLES = 65  # τ samples a brake's path is checked at against the joint limits
 
 
-def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max_rad: float) -> float:
-    """Duration (s) of a controlled stop from α at speed α̇ (:func:`brake_at`): its deceleration
-    peaks at 2|α̇|/T, at most ``BRAKE_ACCELERATION_MAX_RAD_S2`` on every joint, and its travel
-    α̇T/2 ends within ±``alpha_max_rad`` (the stop is then shorter and firmer)."""
+def release_duration_s(alpha_ddot_rad_s2: ArrayLike | None) -> float:
+    """Duration (s) over which a stop lets go of the acceleration α̈ it starts with (:func:`brake_at`):
+    4|α̈|/``BRAKE_JERK_MAX_RAD_S3``, at least ``BRAKE_DURATION_MIN_S``; 0 without one."""
+    acc = np.asarray(alpha_ddot_rad_s2 if alpha_ddot_rad_s2 is not None else (), dtype=np.float64)
+    a_abs = float(np.max(np.abs(acc))) if acc.size else 0.0
+    return 0.0 if a_abs == 0.0 else max(BRAKE_DURATION_MIN_S, 4.0 * a_abs / BRAKE_JERK_MAX_RAD_S3)
+
+
+def _release(tau: float) -> tuple[float, float, float]:
+    """g(τ) = (1 − τ)(1 − 3τ) and its first two integrals from 0: α̈₀ is let go of as α̈₀g(τ).
+    g(0) = 1 (no step), g(1) = 0, ∫₀¹g = 0 (no speed left) and ∫₀¹∫₀^τ g = 1/12 (α̈₀T²/12 more travel)."""
+    tau = min(max(tau, 0.0), 1.0)
+    return (1.0 - tau) * (1.0 - 3.0 * tau), tau * (1.0 - tau) ** 2, tau * tau * (0.5 - 2.0 * tau / 3.0 + tau * tau / 4.0)
+
+
+def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max_rad: float,
+                     alpha_ddot_rad_s2: ArrayLike | None = None) -> float:
+    """Duration T (s) of a controlled stop's deceleration from α at speed α̇ (:func:`brake_at`;
+    with an acceleration α̈ the stop ends at the later of T and :func:`release_duration_s`): the
+    shortest whose |α̈^d| stays within ``BRAKE_ACCELERATION_MAX_RAD_S2`` (2|α̇|/T at rest from
+    α̈; with α̈ let go of meanwhile, checked along the path: at most 3 T_fast) or within |α̈| if
+    that is larger, and whose path stays within ±``alpha_max_rad`` (or where a joint already is
+    beyond it): the stop is then shorter and firmer."""
     a = np.asarray(alpha_rad, dtype=np.float64)
     v = np.asarray(alpha_dot_rad_s, dtype=np.float64)
+    acc = None if alpha_ddot_rad_s2 is None else np.asarray(alpha_ddot_rad_s2, dtype=np.float64)
     speed = float(np.max(np.abs(v))) if v.size else 0.0
+    a_abs = float(np.max(np.abs(acc))) if acc is not None and acc.size else 0.0
     duration = max(BRAKE_DURATION_MIN_S, CYCLOID_PEAK_VELOCITY * speed / BRAKE_ACCELERATION_MAX_RAD_S2)
+    if acc is not None and a_abs > 0.0 and speed > 0.0:
+        # α̈ let go of adds to the deceleration where their signs meet: the shortest of a few
+        # longer brakes whose sampled path keeps within the bound (vectorised: a stop is
+        # handled within a tick)
+        ceiling = max(BRAKE_ACCELERATION_MAX_RAD_S2, a_abs) + 1e-9
+        for candidate in np.geomspace(duration, 3.0 * duration, 12):
+            _, _, acc_path = brake_path(a, v, float(candidate), _brake_times(float(candidate), acc), acc)
+            duration = float(candidate)
+            if float(np.max(np.abs(acc_path))) <= ceiling:
+                break
     room = np.where(v > 0, alpha_max_rad - a, np.where(v < 0, alpha_max_rad + a, np.inf))
     moving = np.abs(v) > 0
     if np.any(moving):
         duration = min(duration, float(np.min(2.0 * np.maximum(room[moving], 0.0) / np.abs(v[moving]))))
-    return max(duration, 1e-3)
+    duration = max(duration, 1e-3)
+    if acc is None or a_abs == 0.0 or _brake_within(a, v, acc, duration, alpha_max_rad):
+        return duration
+    lo, hi = 1e-3, duration  # α̈'s release moves the path (and may turn it): the longest that fits
+    for _ in range(24):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _brake_within(a, v, acc, mid, alpha_max_rad) else (lo, mid)
+    return lo
+
+
+def _brake_times(duration_s: float, acc: np.ndarray | None) -> FloatArray:
+    """Times (s) a brake's path is checked at: over the whole stop."""
+    return np.linspace(0.0, max(duration_s, release_duration_s(acc)), _BRAKE_SAMPLES)
+
+
+def _brake_within(a: np.ndarray, v: np.ndarray, acc: np.ndarray, duration_s: float, alpha_max_rad: float) -> bool:
+    """Whether a brake's path stays within ±alpha_max (or |α₀|, where a joint is beyond it)."""
+    bound = np.maximum(alpha_max_rad, np.abs(a)) + 1e-12
+    alpha, _, _ = brake_path(a, v, duration_s, _brake_times(duration_s, acc), acc)
+    return bool(np.all(np.abs(alpha) <= bound))
+
+
+def brake_path(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s: float, t_s: ArrayLike,
+               alpha_ddot0_rad_s2: np.ndarray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`brake_at` at many times ``t_s`` (shape (k,)) at once: arrays of shape (k, N)."""
+    t = np.asarray(t_s, dtype=np.float64)[:, None]
+    tau = np.clip(t / duration_s, 0.0, 1.0)
+    s, ds, _ = cycloid(tau)
+    travelled = tau * tau / 2.0 + (np.cos(_TWO_PI * tau) - 1.0) / (_TWO_PI * _TWO_PI)
+    alpha = alpha0_rad + alpha_dot0_rad_s * duration_s * (tau - travelled)
+    alpha_dot = alpha_dot0_rad_s * (1.0 - s)
+    alpha_ddot = -alpha_dot0_rad_s * (ds / duration_s)
+    release_s = release_duration_s(alpha_ddot0_rad_s2)
+    if alpha_ddot0_rad_s2 is not None and release_s > 0.0:
+        r = np.clip(t / release_s, 0.0, 1.0)
+        g, g1, g2 = (1.0 - r) * (1.0 - 3.0 * r), r * (1.0 - r) ** 2, r * r * (0.5 - 2.0 * r / 3.0 + r * r / 4.0)
+        alpha = alpha + alpha_ddot0_rad_s2 * (release_s * release_s * g2)
+        alpha_dot = alpha_dot + alpha_ddot0_rad_s2 * (release_s * g1)
+        alpha_ddot = alpha_ddot + alpha_ddot0_rad_s2 * g
+    return alpha, alpha_dot, alpha_ddot
 
 
 def brake_at(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s: float,
-             t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """α, α̇, α̈ at ``t_s`` into a controlled stop from (α₀, α̇₀): the velocity α̇₀(1 − s(τ)) with
-    the cycloid s over ``duration_s``, so the deceleration starts and ends at zero and α^d comes to
-    rest at α₀ + α̇₀T/2 without a step in α^d or α̇^d (a stop that set α^d to α̂ at rest stepped
-    the law's forces by its rate bound, 10 N a tick: audit of 2026-11-26)."""
+             t_s: float, alpha_ddot0_rad_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """α, α̇, α̈ at ``t_s`` into a controlled stop from (α₀, α̇₀, α̈₀): the velocity α̇₀(1 − s(t/T))
+    with the cycloid s over T = ``duration_s``, plus α̈₀ let go of as α̈₀g(t/T_r) over
+    T_r = :func:`release_duration_s` (:func:`_release`): α^d, α̇^d and α̈^d start where they were
+    and end at rest at α₀ + α̇₀T/2 + α̈₀T_r²/12 once both are over, without a step (a stop that set
+    α^d to α̂ at rest stepped the law's forces by its rate bound, 10 N a tick: audit of
+    2026-11-26; one that started at α̈ = 0, 2.35 N at 2.9 rad/s²: session 45)."""
     tau = min(max(t_s / duration_s, 0.0), 1.0)
     s, ds, _ = cycloid_at(tau)
     travelled = tau * tau / 2.0 + (math.cos(_TWO_PI * tau) - 1.0) / (_TWO_PI * _TWO_PI)  # ∫₀^τ s
-    return (alpha0_rad + alpha_dot0_rad_s * duration_s * (tau - travelled),
-            alpha_dot0_rad_s * (1.0 - s), -alpha_dot0_rad_s * (ds / duration_s))
+    alpha = alpha0_rad + alpha_dot0_rad_s * duration_s * (tau - travelled)
+    alpha_dot = alpha_dot0_rad_s * (1.0 - s)
+    alpha_ddot = -alpha_dot0_rad_s * (ds / duration_s)
+    release_s = release_duration_s(alpha_ddot0_rad_s2)
+    if alpha_ddot0_rad_s2 is not None and release_s > 0.0:
+        g, g1, g2 = _release(t_s / release_s)
+        alpha = alpha + alpha_ddot0_rad_s2 * (release_s * release_s * g2)
+        alpha_dot = alpha_dot + alpha_ddot0_rad_s2 * (release_s * g1)
+        alpha_ddot = alpha_ddot + alpha_ddot0_rad_s2 * g
+    return alpha, alpha_dot, alpha_ddot
 
 
 def approach(traj: Trajectory, alpha_now: ArrayLike, tolerance_rad: float = math.radians(0.5)) -> Trajectory:

@@ -148,6 +148,23 @@ def test_a_campaign_stopped_mid_trajectory_brakes_too(params):
     assert d_alpha_d < math.radians(0.2) and d_force < 2.0
 
 
+def test_a_campaign_stopped_at_its_peak_acceleration_brakes_without_a_force_step(params):
+    """Session 45: the brake started at α̈^d = 0; stopped where the swing accelerates at 2.9 rad/s²
+    (its bound is 3), the law's forces stepped 2.35 N in one tick (about 0.5 N a tick without the
+    stop). The brake lets go of α̈^d smoothly (``controller.trajectory.brake_at``)."""
+    loop = Loop(params)
+    swing = Trajectory.from_degrees([[0, 0, 0], [30, -20, 10], [0, 0, 0]], 1.05, 0.2, name="swing")
+    loop.svc.handle(_request("c-1", trajectory_json=swing.to_json()), loop.stamp_s)
+    loop.run(0.5)  # a quarter into the first move: its peak acceleration
+    assert np.abs(loop.svc.reference(loop.stamp_s)[2]).max() > 2.5
+    before = len(loop.outputs)
+    loop.svc.handle(_request("c-1", action="stop"), loop.stamp_s)
+    loop.run(1.5)
+    _d_alpha_d, d_force = _steps_around(loop, before)
+    assert d_force < 1.2, d_force
+    assert np.allclose(loop.outputs[-1].alpha_d_rad, loop.svc.hold_target)  # at rest where it said
+
+
 def test_a_jog_asked_for_while_the_neck_brakes_starts_where_it_rests(params):
     loop = _braking(params)
     before = len(loop.outputs)

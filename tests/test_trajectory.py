@@ -319,6 +319,49 @@ def test_a_brake_comes_to_rest_from_speed_without_a_step_and_within_the_joint_li
     assert brake_duration_s(a0, np.zeros(3), math.radians(60.0)) > 0  # at rest: a short, smooth stop
 
 
+@pytest.mark.parametrize("acc0", [[2.9, -1.9, 1.0], [-2.9, 1.9, -1.0]], ids=["accelerating", "decelerating"])
+def test_a_brake_lets_go_of_the_acceleration_it_starts_with_without_a_step(acc0):
+    """Session 45: a stop at a trajectory's peak acceleration (2.9 rad/s²) started its brake at
+    α̈ = 0 and stepped the law's feed-forward 2.35 N in one tick. The brake starts at α̈₀ and lets
+    go of it at most ``BRAKE_JERK_MAX_RAD_S3``, comes to rest where it says, within the bound on
+    α̈ and within the joint limits."""
+    from controller.trajectory import (
+        BRAKE_ACCELERATION_MAX_RAD_S2,
+        BRAKE_JERK_MAX_RAD_S3,
+        brake_at,
+        brake_duration_s,
+        brake_path,
+        release_duration_s,
+    )
+
+    a0, v0, acc = np.radians([20.0, -13.0, 7.0]), np.array([0.5, -0.33, 0.17]), np.array(acc0)
+    duration = brake_duration_s(a0, v0, math.radians(60.0), acc)
+    end_s = max(duration, release_duration_s(acc))
+    t = np.linspace(0.0, end_s + 0.1, 4001)
+    samples = [brake_at(a0, v0, duration, float(x), acc) for x in t]
+    a, v, dd = (np.array([s[k] for s in samples]) for k in range(3))
+    path = brake_path(a0, v0, duration, t, acc)
+    for k in range(3):
+        np.testing.assert_allclose(path[k], [a, v, dd][k], atol=1e-12)  # the checked path is the braked one
+    np.testing.assert_allclose(a[0], a0)
+    np.testing.assert_allclose(v[0], v0)
+    np.testing.assert_allclose(dd[0], acc)  # no step in α̈^d either
+    np.testing.assert_allclose(v[t >= end_s], 0.0, atol=1e-12)
+    np.testing.assert_allclose(dd[t >= end_s], 0.0, atol=1e-12)
+    np.testing.assert_allclose(a[-1], a0 + v0 * duration / 2.0 + acc * release_duration_s(acc) ** 2 / 12.0)
+    np.testing.assert_allclose(np.gradient(a, t, axis=0), v, atol=2e-3)
+    np.testing.assert_allclose(np.gradient(v, t, axis=0), dd, atol=2e-2)
+    assert np.abs(dd).max() <= BRAKE_ACCELERATION_MAX_RAD_S2 * (1 + 1e-6)
+    # let go of smoothly: per 2 ms tick, α̈^d changes by what the jerk bound and the cycloid allow
+    per_tick = np.abs(np.diff([brake_at(a0, v0, duration, k * 0.002, acc)[2] for k in range(400)], axis=0)).max()
+    assert per_tick <= (BRAKE_JERK_MAX_RAD_S3 + 2 * math.pi * 2 * np.abs(v0).max() / duration**2) * 0.002
+    # accelerating towards a joint limit: shorter, and the path (not only its end) within it
+    near, out = np.array([math.radians(59.0), 0.0, 0.0]), np.array([0.3, 0.0, 0.0])
+    short = brake_duration_s(near, out, math.radians(60.0), np.array([3.0, 0.0, 0.0]))
+    stretch = brake_path(near, out, short, np.linspace(0.0, 0.5, 501), np.array([3.0, 0.0, 0.0]))[0]
+    assert stretch[:, 0].max() <= math.radians(60.0) + 1e-9
+
+
 def test_a_recorded_trajectory_beyond_any_campaign_is_no_excitation_not_a_memory_error():
     """Audit of 2026-11-27: ``xneck identify`` samples the archive's ``trajectory`` at the record's
     rate; a dwell of 1e308 s failed with numpy's "Maximum allowed size exceeded", one of 1e6 s with a
