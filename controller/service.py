@@ -89,6 +89,7 @@ from controller.laws import ComputedTorque, LawConfig, hold_forces
 from controller.prepare import Prepared, Refused, prepare
 from controller.take_up import TakeUp, take_up_peak_N
 from controller.trajectory import (
+    BRAKE_RELEASE_ACCELERATION_MAX_RAD_S2,
     Trajectory,
     approach,
     approach_duration_s,
@@ -544,6 +545,7 @@ class CampaignService:
         if self.latched or self._restart or self.drive != "active" or self.hold_reason:
             return None
         a_d, a_d_dot, a_d_ddot = (np.array(x, dtype=float) for x in self.reference(stamp_s))
+        a_d_ddot = np.clip(a_d_ddot, -BRAKE_RELEASE_ACCELERATION_MAX_RAD_S2, BRAKE_RELEASE_ACCELERATION_MAX_RAD_S2)
         return stamp_s, a_d, a_d_dot, brake_duration_s(a_d, a_d_dot, self._alpha_max, a_d_ddot), a_d_ddot
 
     def _drop_waiting(self, reason: str) -> None:

@@ -752,26 +752,36 @@ def approach_duration_s(delta_rad: float) -> float:
 
 BRAKE_ACCELERATION_MAX_RAD_S2 = 3.0  # the trajectories' own bound (TrajectoryLimits.alpha_ddot_max_rad_s2)
 BRAKE_DURATION_MIN_S = 0.05  # s: a stop at (almost) rest still ends smoothly over 25 ticks
-#: rad/s³: how fast a stop lets go of the acceleration α^d had (:func:`brake_at`): 0.12 rad/s² a
-#: tick at 500 Hz, over 0.2 s from 3 rad/s². Starting the brake at α̈ = 0 had stepped the law's
-#: feed-forward 2.35 N in one tick at 2.9 rad/s² (session 45).
-BRAKE_JERK_MAX_RAD_S3 = 60.0
+#: rad/s³: how fast a stop lets go of the acceleration α^d had (:func:`brake_at`): 0.24 rad/s² a
+#: tick at 500 Hz, over 0.22 s from 3 rad/s². Starting the brake at α̈ = 0 had stepped the law's
+#: feed-forward 2.35 N in one tick at 2.9 rad/s², 0.74 N now (session 45). 60 rad/s³ had made the
+#: release overlap the deceleration and the stop travel 7.4° instead of 4.8° (the same now).
+BRAKE_JERK_MAX_RAD_S3 = 120.0
+#: rad/s²: the acceleration a stop lets go of is clipped to this first (a validated trajectory,
+#: its resume ramp or a blend reach about 5.5; nothing sane beyond: review of session 45).
+BRAKE_RELEASE_ACCELERATION_MAX_RAD_S2 = 6.0
 _BRAKE_SAMPLES = 65  # τ samples a brake's path is checked at against the joint limits
 
 
 def release_duration_s(alpha_ddot_rad_s2: ArrayLike | None) -> float:
     """Duration (s) over which a stop lets go of the acceleration α̈ it starts with (:func:`brake_at`):
-    4|α̈|/``BRAKE_JERK_MAX_RAD_S3``, at least ``BRAKE_DURATION_MIN_S``; 0 without one."""
+    9|α̈|/``BRAKE_JERK_MAX_RAD_S3`` (|g'| ≤ 9, :func:`_release`), at least ``BRAKE_DURATION_MIN_S``;
+    0 without one."""
     acc = np.asarray(alpha_ddot_rad_s2 if alpha_ddot_rad_s2 is not None else (), dtype=np.float64)
     a_abs = float(np.max(np.abs(acc))) if acc.size else 0.0
-    return 0.0 if a_abs == 0.0 else max(BRAKE_DURATION_MIN_S, 4.0 * a_abs / BRAKE_JERK_MAX_RAD_S3)
+    return 0.0 if a_abs == 0.0 else max(BRAKE_DURATION_MIN_S, 9.0 * a_abs / BRAKE_JERK_MAX_RAD_S3)
 
 
-def _release(tau: float) -> tuple[float, float, float]:
-    """g(τ) = (1 − τ)(1 − 3τ) and its first two integrals from 0: α̈₀ is let go of as α̈₀g(τ).
-    g(0) = 1 (no step), g(1) = 0, ∫₀¹g = 0 (no speed left) and ∫₀¹∫₀^τ g = 1/12 (α̈₀T²/12 more travel)."""
-    tau = min(max(tau, 0.0), 1.0)
-    return (1.0 - tau) * (1.0 - 3.0 * tau), tau * (1.0 - tau) ** 2, tau * tau * (0.5 - 2.0 * tau / 3.0 + tau * tau / 4.0)
+def _release(tau: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """g(τ) = (1 − τ)(1 − 8τ + 10τ²) and its first two integrals from 0: α̈₀ is let go of as α̈₀g(τ).
+    g(0) = 1 (no step), g(1) = 0, ∫₀¹g = 0 (no speed left) and ∫₀¹∫₀^τ g = 0 (no travel left: a
+    stop rests where it would without α̈₀; on the way, at most 0.0173 α̈₀T_r²). Review of session
+    45: (1 − τ)(1 − 3τ) had added α̈₀T_r²/12, cubic in α̈₀, beyond the joint limits' reach."""
+    t = np.clip(np.asarray(tau, dtype=np.float64), 0.0, 1.0)
+    g = (1.0 - t) * (1.0 - 8.0 * t + 10.0 * t * t)
+    g1 = t * (1.0 - t * (4.5 - t * (6.0 - 2.5 * t)))
+    g2 = t * t * (0.5 - t * (1.5 - t * (1.5 - 0.5 * t)))
+    return g, g1, g2
 
 
 def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max_rad: float,
@@ -793,7 +803,7 @@ def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max
         # longer brakes whose sampled path keeps within the bound (vectorised: a stop is
         # handled within a tick)
         ceiling = max(BRAKE_ACCELERATION_MAX_RAD_S2, a_abs) + 1e-9
-        for candidate in np.geomspace(duration, 3.0 * duration, 12):
+        for candidate in np.geomspace(duration, 3.0 * duration, 6):
             _, _, acc_path = brake_path(a, v, float(candidate), _brake_times(float(candidate), acc), acc)
             duration = float(candidate)
             if float(np.max(np.abs(acc_path))) <= ceiling:
@@ -805,8 +815,12 @@ def brake_duration_s(alpha_rad: ArrayLike, alpha_dot_rad_s: ArrayLike, alpha_max
     duration = max(duration, 1e-3)
     if acc is None or a_abs == 0.0 or _brake_within(a, v, acc, duration, alpha_max_rad):
         return duration
-    lo, hi = 1e-3, duration  # α̈'s release moves the path (and may turn it): the longest that fits
-    for _ in range(24):
+    if not _brake_within(a, v, acc, 1e-3, alpha_max_rad):
+        # the release's own excursion crosses (a joint at its limit, α̈ outward): no shorter
+        # brake helps, and one within a tick would stop every joint dead (review of session 45)
+        return duration
+    lo, hi = 1e-3, duration  # the release turns the path on its way: the longest that fits (to 0.4 %:
+    for _ in range(8):  # a stop is handled within a tick, 0.1 ms each)
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if _brake_within(a, v, acc, mid, alpha_max_rad) else (lo, mid)
     return lo
@@ -836,8 +850,7 @@ def brake_path(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s:
     alpha_ddot = -alpha_dot0_rad_s * (ds / duration_s)
     release_s = release_duration_s(alpha_ddot0_rad_s2)
     if alpha_ddot0_rad_s2 is not None and release_s > 0.0:
-        r = np.clip(t / release_s, 0.0, 1.0)
-        g, g1, g2 = (1.0 - r) * (1.0 - 3.0 * r), r * (1.0 - r) ** 2, r * r * (0.5 - 2.0 * r / 3.0 + r * r / 4.0)
+        g, g1, g2 = _release(t / release_s)
         alpha = alpha + alpha_ddot0_rad_s2 * (release_s * release_s * g2)
         alpha_dot = alpha_dot + alpha_ddot0_rad_s2 * (release_s * g1)
         alpha_ddot = alpha_ddot + alpha_ddot0_rad_s2 * g
@@ -849,7 +862,7 @@ def brake_at(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s: f
     """α, α̇, α̈ at ``t_s`` into a controlled stop from (α₀, α̇₀, α̈₀): the velocity α̇₀(1 − s(t/T))
     with the cycloid s over T = ``duration_s``, plus α̈₀ let go of as α̈₀g(t/T_r) over
     T_r = :func:`release_duration_s` (:func:`_release`): α^d, α̇^d and α̈^d start where they were
-    and end at rest at α₀ + α̇₀T/2 + α̈₀T_r²/12 once both are over, without a step (a stop that set
+    and end at rest at α₀ + α̇₀T/2 once both are over, without a step (a stop that set
     α^d to α̂ at rest stepped the law's forces by its rate bound, 10 N a tick: audit of
     2026-11-26; one that started at α̈ = 0, 2.35 N at 2.9 rad/s²: session 45)."""
     tau = min(max(t_s / duration_s, 0.0), 1.0)
@@ -860,7 +873,10 @@ def brake_at(alpha0_rad: np.ndarray, alpha_dot0_rad_s: np.ndarray, duration_s: f
     alpha_ddot = -alpha_dot0_rad_s * (ds / duration_s)
     release_s = release_duration_s(alpha_ddot0_rad_s2)
     if alpha_ddot0_rad_s2 is not None and release_s > 0.0:
-        g, g1, g2 = _release(t_s / release_s)
+        r = min(max(t_s / release_s, 0.0), 1.0)  # _release in plain floats (the per-tick path)
+        g = (1.0 - r) * (1.0 - 8.0 * r + 10.0 * r * r)
+        g1 = r * (1.0 - r * (4.5 - r * (6.0 - 2.5 * r)))
+        g2 = r * r * (0.5 - r * (1.5 - r * (1.5 - 0.5 * r)))
         alpha = alpha + alpha_ddot0_rad_s2 * (release_s * release_s * g2)
         alpha_dot = alpha_dot + alpha_ddot0_rad_s2 * (release_s * g1)
         alpha_ddot = alpha_ddot + alpha_ddot0_rad_s2 * g

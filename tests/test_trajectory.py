@@ -348,7 +348,7 @@ def test_a_brake_lets_go_of_the_acceleration_it_starts_with_without_a_step(acc0)
     np.testing.assert_allclose(dd[0], acc)  # no step in α̈^d either
     np.testing.assert_allclose(v[t >= end_s], 0.0, atol=1e-12)
     np.testing.assert_allclose(dd[t >= end_s], 0.0, atol=1e-12)
-    np.testing.assert_allclose(a[-1], a0 + v0 * duration / 2.0 + acc * release_duration_s(acc) ** 2 / 12.0)
+    np.testing.assert_allclose(a[-1], a0 + v0 * duration / 2.0)  # the release leaves no travel
     np.testing.assert_allclose(np.gradient(a, t, axis=0), v, atol=2e-3)
     np.testing.assert_allclose(np.gradient(v, t, axis=0), dd, atol=2e-2)
     assert np.abs(dd).max() <= BRAKE_ACCELERATION_MAX_RAD_S2 * (1 + 1e-6)
@@ -360,6 +360,17 @@ def test_a_brake_lets_go_of_the_acceleration_it_starts_with_without_a_step(acc0)
     short = brake_duration_s(near, out, math.radians(60.0), np.array([3.0, 0.0, 0.0]))
     stretch = brake_path(near, out, short, np.linspace(0.0, 0.5, 501), np.array([3.0, 0.0, 0.0]))[0]
     assert stretch[:, 0].max() <= math.radians(60.0) + 1e-9
+    # Review of session 45: near the limit with α̈ outward, the release (then α̈₀T_r²/12 further)
+    # fit no brake; the bisection returned 1 ms and stopped every other joint dead (0.8 rad/s in
+    # a tick). The release leaves no travel now: a firmer brake fits, within the limit.
+    at, lateral, outward = np.radians([59.7, 0.0, 0.0]), np.array([0.05, 0.8, 0.0]), np.array([3.0, 0.0, 0.0])
+    kept = brake_duration_s(at, lateral, math.radians(60.0), outward)
+    assert kept >= 0.05
+    path = brake_path(at, lateral, kept, np.arange(0.0, 1.0, 0.002), outward)
+    assert np.abs(np.diff(path[1], axis=0)).max() < 0.05  # rad/s a tick: no dead stop
+    assert path[0][:, 0].max() <= math.radians(60.0) + 1e-9
+    # at the limit, α̈ outward: nothing fits (the release's excursion is its own): not a 1 ms stop
+    assert brake_duration_s(np.radians([60.0, 0.0, 0.0]), np.zeros(3), math.radians(60.0), outward) >= 0.05
 
 
 def test_a_recorded_trajectory_beyond_any_campaign_is_no_excitation_not_a_memory_error():
