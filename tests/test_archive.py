@@ -50,6 +50,41 @@ class LosslessPublisher:
         self._pub.undeclare()
 
 
+class Heard:
+    """What a recorder's session hears besides the recorder: every sample (``samples``) and the
+    seqs of those that decode, by key. A test that put its seed until the recorder heard one (extra
+    copies of it arrive late) waits with :meth:`caught_up` for the last message it put, not for a
+    count those copies reach while the burst's tail is still on its way."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.samples = 0
+        self.seqs: dict[str, set[int]] = {}
+        self._sub = session.declare_subscriber(bus.ALL, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self.samples += 1  # before the seq: a seq heard is counted in ``samples``
+        key = str(sample.key_expr)
+        if bus.message_type(key) is None:
+            return
+        try:
+            msg = bus.decode(key, sample.payload.to_bytes())
+        except bus.BusDecodeError:
+            return
+        self.seqs.setdefault(key, set()).add(msg.seq)
+
+    def caught_up(self, recorder: CampaignRecorder, *last: tuple[str, int]) -> bool:
+        """Each ``(key, seq)`` of ``last`` heard, the recorder received all this heard, and its
+        writer dealt with all it received (recorded, skipped or rejected)."""
+        if not all(seq in self.seqs.get(key, ()) for key, seq in last):
+            return False
+        s = recorder.stats
+        return (s.received + s.dropped >= self.samples
+                and s.recorded + s.skipped + sum(s.rejected.values()) == s.received)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
 # --- writing and reading -------------------------------------------------------------------------
 
 
@@ -365,12 +400,14 @@ def test_the_recorder_writes_its_last_chunk_before_its_final_records(
     a, b = sessions
     path = tmp_path / "full-at-stop.mcap"
     states = LosslessPublisher(a, bus.MOTOR_STATE)
+    heard = Heard(b)
     recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=60.0)  # one open chunk
     try:
         assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.recorded > 0)[1])
         for i in range(1, 300):
             states.put(motor_state(i))
-        assert wait_until(lambda: recorder.stats.recorded >= 300)
+        # the last one recorded, not a count: the seed's late copies reach 300 with the tail still queued
+        assert wait_until(lambda: heard.caught_up(recorder, (bus.MOTOR_STATE, 299)), 10), recorder.stats
         recorded = recorder.stats.recorded
 
         def disk_full() -> None:
@@ -380,6 +417,7 @@ def test_the_recorder_writes_its_last_chunk_before_its_final_records(
         with pytest.raises(ArchiveError, match="finishing failed"):
             recorder.stop("finished")
     finally:
+        heard.close()
         states.close()
     monkeypatch.undo()
     report = recover(path)
@@ -424,6 +462,7 @@ def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
     path = tmp_path / "stamps.mcap"
     states = LosslessPublisher(a, bus.MOTOR_STATE)
     frames = LosslessPublisher(a, bus.CAMERA_FRAME)
+    heard = Heard(b)
     recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2)
     try:
         assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.recorded > 0)[1])
@@ -433,9 +472,11 @@ def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
                                    data=jpeg, width=2, height=2))
         for i in range(2, 100):
             states.put(motor_state(i))
-        assert wait_until(lambda: recorder.stats.recorded >= 101), recorder.stats
+        assert wait_until(lambda: heard.caught_up(recorder, (bus.MOTOR_STATE, 99), (bus.CAMERA_FRAME, 1)), 10), \
+            recorder.stats
     finally:
         recorder.stop("finished")
+        heard.close()
         states.close()
         frames.close()
     seqs = [m.seq for _, m in read_campaign(path).messages(bus.MOTOR_STATE)]
@@ -457,6 +498,7 @@ def test_an_alpha_ip_captured_after_its_publication_is_rejected_not_recorded(
                               source="twin-render")
         return msgspec.structs.replace(msg, **changes)
 
+    heard = Heard(b)
     recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2)
     try:
         assert wait_until(lambda: (alphas.put(alpha(0)), recorder.stats.recorded > 0)[1])
@@ -465,9 +507,10 @@ def test_an_alpha_ip_captured_after_its_publication_is_rejected_not_recorded(
             if i == 10:
                 alphas.put(alpha(1, capture_stamp_s=1e9, source="stray"))
                 alphas.put(alpha(2, capture_stamp_s=1e300, source="stray"))
-        assert wait_until(lambda: sum(recorder.stats.rejected.values()) >= 2 and recorder.stats.recorded >= 30)
+        assert wait_until(lambda: heard.caught_up(recorder, (bus.CAMERA_ALPHA, 29)), 10), recorder.stats
     finally:
         recorder.stop("finished")
+        heard.close()
         alphas.close()
     campaign = read_campaign(path)
     frames = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]

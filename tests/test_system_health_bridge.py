@@ -61,8 +61,14 @@ def test_health_says_how_old_the_bridges_latest_motor_state_is(tmp_path: Path) -
         twin = spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], "b.log")
         spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], "c.log")
         assert wait_until(lambda: (bridge().get("owner") or "").startswith("controller-"), 120, 0.2), bridge()
-        live = bridge()
-        assert live["state_age_s"] is not None and 0 <= live["state_age_s"] < 1.0, live  # 500 Hz states
+        seen: list[dict] = []
+
+        def fresh() -> bool:  # 500 Hz states: small, in a sample a loaded machine did not delay
+            seen.append(bridge())
+            return seen[-1].get("state_age_s") is not None and 0 <= seen[-1]["state_age_s"] < 1.0
+
+        assert wait_until(fresh, 10, 0.2), seen[-5:]
+        live = seen[-1]
         assert live["drive"] in ("active", "hold"), live
         assert bool(live["hold_reason"]) == (live["drive"] == "hold"), live  # a hold says why, nothing else does
         twin.send_signal(signal.SIGTERM)  # a clean stop: its last state says the drives are off
