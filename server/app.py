@@ -58,6 +58,7 @@ from server.live import (
 )
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
+from server.process_faults import ProcessFaults
 from server.quality import TWIN_CAMERA
 from server.routes_jog import request_jog, stop_jog
 from server.routes_studies import router as studies_router
@@ -112,6 +113,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             # every e-stop this console sends (routes_system) and every transition of a bridge's
             # state it sees (the live state's sampler): user audit of session 42
             state.journal = SafetyJournal(data_dir)
+            state.process_faults = ProcessFaults()  # what xneck up reported, for the header (health)
             state.transitions = BridgeTransitions(state.journal.record)
             state.live = LiveBus(session)
             state.live.on_state = state.transitions.observe

@@ -42,7 +42,9 @@ def health(request: Request) -> dict[str, Any]:
     replaced since it started, which its session does not apply until a restart).
     ``unrecorded_campaign``: ``{"id", "controller"}`` of a campaign of this console's that a
     controller service still runs though the console no longer records it (it was restarted during
-    it; ``running_campaign_id`` names it too), else null. ``uptime_s`` in seconds."""
+    it; ``running_campaign_id`` names it too), else null. ``process_faults``: how many deaths,
+    hangs and restarts of the stack's processes ``xneck up`` reported since the console started,
+    and the newest (server.process_faults). ``uptime_s`` in seconds."""
     s = request.app.state
     elsewhere = s.campaigns.unrecorded()
     return {
@@ -61,6 +63,7 @@ def health(request: Request) -> dict[str, Any]:
         "bridge": bridge_status(s.live.values),  # how old its latest motor state is: live or silent
         "camera": camera_health(s.live.values, s.camera, s.presence),  # detection health (issue 15); None without a camera
         "safety_journal": _journal_status(s),  # lines written, failed, dropped; transitions suppressed
+        "process_faults": s.process_faults.status(),  # deaths, hangs, restarts xneck up reported
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }
@@ -186,6 +189,7 @@ def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
     finally:
         s.journal.record("process_fault", reason=bus.plain_text(body.reason), campaign_id=rec.id if rec else None,
                          campaign_status=rec.status if rec else None, **_requester(request))
+        s.process_faults.record(bus.plain_text(body.reason), rec.id if rec else None)
     if rec is None:
         return {"campaign_id": None, "status": None, "message": None}
     return {"campaign_id": rec.id, "status": rec.status, "message": rec.message}

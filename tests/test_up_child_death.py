@@ -144,6 +144,10 @@ def test_a_child_killed_mid_campaign_under_xneck_up_ends_it_naming_the_child_and
 
             assert wait_until(fault_on_record, 10, 0.1), faults
             assert faults[-1]["campaign_id"] == first, faults
+            # and in the dashboard's header, saying it was restarted (server.process_faults)
+            shown = httpx.get(f"{base}/api/system/health", timeout=10).json()["process_faults"]
+            assert shown["count"] >= 1 and shown["last_reason"].startswith(hang), shown
+            assert "restarted (1 of 1 within 10 min)" in shown["last_reason"], shown
         cid = _start_gentle(base, data, tmp_path)
         _kill_under_way(base, cid, up, victim, tmp_path)
         killed = time.monotonic()
@@ -187,6 +191,9 @@ def test_a_campaign_that_ended_of_the_cause_before_it_was_told_is_named_within_t
         assert client.post("/api/system/abort", json={"reason": cause}).status_code == 401  # token first
         nothing = client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 5}, headers=AUTH).json()
         assert nothing == {"campaign_id": None, "status": None, "message": None}, nothing
+        # the header's record of it (the refused one above is none)
+        faults = client.get("/api/system/health").json()["process_faults"]
+        assert faults["count"] == 1 and faults["last_reason"] == cause and faults["last_campaign_id"] is None, faults
         cid = start_campaign(client, {**GENTLE, "pace": "realtime"}, progress=0.05)  # lockstep could finish first
         client.post(f"/api/campaigns/{cid}/stop", headers=AUTH)
         assert wait_until(lambda: client.get(f"/api/campaigns/{cid}").json()["status"] != "running", 60, 0.1)
@@ -215,6 +222,8 @@ def test_a_campaign_that_ended_of_the_cause_before_it_was_told_is_named_within_t
         assert well["status"] in ("finished", "degraded"), well
         answer = client.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH).json()
         assert answer == {"campaign_id": done, "status": well["status"], "message": well["message"]}, answer
+        faults = client.get("/api/system/health").json()["process_faults"]
+        assert faults["count"] == 6 and faults["last_campaign_id"] == done and faults["last_age_s"] >= 0, faults
     info = read_campaign(tmp_path / "d" / "campaigns" / f"{cid}.mcap").info
     assert info["outcome"] == "aborted" and info["message"] == named, info
     assert cause not in read_campaign(tmp_path / "d" / "campaigns" / f"{done}.mcap").info.get("message", "")

@@ -417,6 +417,17 @@ function busViewer(bus) {
     "use an operator's console or the e-stop button";
 }
 
+// Deaths, hangs and restarts of the stack's processes xneck up reported (server.process_faults):
+// said in the header for 10 min (its restart window), then as a count beside the processes alive.
+const PROCESS_FAULT_SHOWN_S = 600;
+
+function processFaults(f) {
+  if (!f || !f.count || f.last_age_s === null || f.last_age_s >= PROCESS_FAULT_SHOWN_S) return "";
+  const ago = f.last_age_s < 60 ? `${f.last_age_s.toFixed(0)} s` : `${(f.last_age_s / 60).toFixed(0)} min`;
+  return `STACK: ${clip(f.last_reason, 160)} — ${ago} ago` +
+    (f.count > 1 ? ` (${f.count} process faults since this console started)` : "");
+}
+
 function showViewer(text) {
   $("#bus-viewer").hidden = !text;
   $("#bus-viewer").textContent = text;
@@ -432,8 +443,12 @@ async function pollStatus() {
   try {
     const h = await api("GET", "/api/system/health");
     const procs = await api("GET", "/api/system/processes");
+    const faults = h.process_faults && h.process_faults.count ? ` (${h.process_faults.count} process faults)` : "";
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
-      ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"} — ${bridgeAge(h.bridge)}`;
+      ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}${faults} — ${bridgeAge(h.bridge)}`;
+    const fault = processFaults(h.process_faults);  // text: the reason comes from a request
+    $("#process-faults").hidden = !fault;
+    $("#process-faults").textContent = fault;
     $("#bridge-health").textContent = bridgeHealth(procs);  // text: the reject reason comes from the bus
     const open = busOpen(h.bus);
     $("#bus-open").hidden = !open;

@@ -577,8 +577,10 @@ def up(
                 causes = []
                 for name, rc in dead:  # every one restartable, with a restart left
                     how = hung.get(name) or f"exited ({exit_how(rc)})"
-                    causes.append(f"{name} process {how}")
                     restarted[name].append(polled)
+                    # said in the cause: the console's header shows it (server.process_faults)
+                    causes.append(f"{name} process {how}, restarted ({len(restarted[name])} of {restarts} "
+                                  f"within {RESTART_WINDOW_S / 60:.0f} min)")
                     typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted[name])} of "
                                 f"{restarts} within {RESTART_WINDOW_S / 60:.0f} min).\n"
                                 f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
