@@ -128,7 +128,11 @@ def test_the_realtime_modules_run_on_one_worker_and_the_background_ones_beside_t
 
     rt0, rt1 = window("test_rt1", "test_rt2")
     bg0, bg1 = window("test_0bg", "test_1bg")
-    assert bg1 <= rt1 + 0.5 and bg0 < rt0 + 0.5, ((bg0, bg1), (rt0, rt1))  # both beside the chain
+    # Both beside the chain: each background module starts before the realtime chain ends (the
+    # bug: the second waited for the chain). Not a margin in seconds: reniced on a loaded CI
+    # machine the second one ended 0.57 s after the chain (CI of session 45).
+    starts = {m: min(r["t0"] for r in rows if r["module"] == m) for m in ("test_0bg", "test_1bg")}
+    assert all(t < rt1 for t in starts.values()), (starts, (bg0, bg1), (rt0, rt1))
     # Reniced for the background modules (as root, or where RLIMIT_NICE allows it back), and back after.
     if os.geteuid() == 0:
         assert {r["nice"] for r in rows if r["module"].endswith("bg")} == {19}
