@@ -165,10 +165,12 @@ def main() -> None:
     for kind in ("paper", "designed"):
         cv[kind] = go(f"cv-{kind}-{s0}", ["identify", str((RUNS / f"{kind}-{s0}.mcap").relative_to(ROOT)),
                                          "--validate", str((RUNS / "control-0.mcap").relative_to(ROOT)),
-                                         "--out", str((RUNS / f"cv-{kind}-{s0}").relative_to(ROOT)), "--json"], f"cv-{kind}")
+                                         "--out", str((RUNS / f"cv-{kind}-{s0}").relative_to(ROOT)), "--json",
+                                         "--force"], f"cv-{kind}")  # --force: a re-run replaces its own set
     creep = {s: go(f"creep-paper-{s}", ["identify", str((RUNS / f"paper-{s}.mcap").relative_to(ROOT)), "--creep-time-s",
                                        f"{CREEP_TIME_S:g}", "--no-alpha-hat", "--out",
-                                       str((RUNS / f"creep-paper-{s}").relative_to(ROOT)), "--json"], "creep")
+                                       str((RUNS / f"creep-paper-{s}").relative_to(ROOT)), "--json", "--force"],
+                   "creep")
              for s in seeds}
     table3 = {}
     for label, extra in (("with pulleys", []), ("without pulleys", ["--no-pulleys"])):

@@ -7,6 +7,7 @@ Every test runs the real command (the `xneck` fixture: a subprocess)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -294,6 +295,28 @@ def test_identify_json_and_provenance_are_strict_json(identified):
     assert None in sigmas  # a damping held at 0: its relative σ is infinite, written as null
     provenance = _strict(next(out.glob("*.provenance.json")).read_text())
     assert any(p["relative_sigma"] is None for p in provenance["parameters"])
+
+
+def test_identify_refuses_to_replace_an_earlier_identifications_parameter_set(xneck, identified, campaign, tmp_path):
+    """User audit of session 45: `xneck identify` into a folder holding an earlier identification's
+    set (`xneck campaign identification`'s analysis, another estimator) replaced it without a word.
+    Refused before the fit, the set untouched; --force replaces it."""
+    import shutil
+
+    run, out = identified
+    assert run.returncode == 0, run.stderr
+    again = tmp_path / "id"
+    shutil.copytree(out, again)
+    sets = sorted(again.glob("*-identified.toml"))
+    assert len(sets) == 1
+    before = sets[0].read_bytes()
+    _refused(xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again)),
+             str(sets[0]), "exists", "--force")
+    assert sets[0].read_bytes() == before
+    os.utime(sets[0], (1.0, 1.0))  # written again below: its time says so (the fit may give the same values)
+    forced = xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again), "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert sets[0].stat().st_mtime > 1.0
 
 
 def _without_files(doc: dict) -> dict:

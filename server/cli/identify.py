@@ -57,6 +57,8 @@ def identify(
     window: str | None = typer.Option(None, "--window", help="START:END (s, on the record's clock, as its "
                                       "error or report gives times): fit only this span, e.g. the one without gaps "
                                       "that a refused campaign's error names."),
+    force: bool = typer.Option(False, "--force", help="Replace the parameter set an earlier identification wrote "
+                               "in --out (default: refused, as archives are never overwritten)."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
@@ -81,7 +83,12 @@ def identify(
             raise fail(f"cannot read {what}: {exc}") from None
     # After the checks: the pipeline's imports (scipy.signal, numba) take 2 s a refusal need not wait.
     from controller.trajectory import recorded_excitation
-    from twin.identification.pipeline import DEFAULT_THRESHOLD, IdentificationError, write_identified
+    from twin.identification.pipeline import (
+        DEFAULT_THRESHOLD,
+        IdentificationError,
+        identified_name,
+        write_identified,
+    )
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict, tables_text, write_figures
     from twin.model.params import ParameterError, load_params, parse_override
@@ -93,6 +100,12 @@ def identify(
             # it names the files written into --out: "/x/y" or "../z" wrote them elsewhere (audit of 2026-11-28)
             raise ParameterError(f"parameter set name {base.name!r} cannot name a file in --out: use 1-64 letters, "
                                  f"digits, '_', '.' or '-', not starting with '.' (--set name=...)")
+        earlier = out_dir / f"{identified_name(base.name)}.toml"
+        if earlier.exists() and not force:
+            # before the fit: an earlier identification's set (another estimator, another campaign's
+            # analysis) had been replaced without a word (user audit of session 45)
+            raise ParameterError(f"{earlier} exists: an earlier identification's parameter set; --out another "
+                                 f"directory, or --force to replace it")
         if data_b is not None:  # before the fit: it was refused after A's fit and files (audit of 2026-11-27)
             sizes = {"motors": (data_b.theta_rad.shape[1], base.n_cables),
                      "joints": (data_b.alpha_ip_rad.shape[1], base.n_joints)}

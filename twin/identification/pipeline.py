@@ -109,6 +109,7 @@ __all__ = [
     "cable_tension",
     "check_variable_options",
     "cutoff_rule",
+    "identified_name",
     "identified_params",
     "identified_toml",
     "identify_complete",
@@ -485,7 +486,7 @@ def identified_params(
             })
         section[key] = values
     rows += _structure(data, estimates.get("variable"))
-    data["name"] = f"{base.name}-identified"
+    data["name"] = identified_name(base.name)
     params = params_from_dict(data, f"identified from {provenance.campaign}")
     prov = msgspec.structs.replace(
         provenance, parameters=rows, kept_base=list(report.kept_base), base_parameter_set=base.name
@@ -532,6 +533,11 @@ def identified_toml(params: Params, provenance: Provenance, provenance_file: str
         *([f"# full provenance and per-parameter relative σ: {provenance_file}"] if provenance_file else []),
     ]
     return "\n".join(header) + "\n" + params.to_toml()
+
+
+def identified_name(base_name: str) -> str:
+    """The name (and file stem) of the parameter set identified from base set ``base_name``."""
+    return f"{base_name}-identified"
 
 
 def write_identified(path: str | Path, params: Params, provenance: Provenance) -> tuple[Path, Path]:
