@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -227,6 +228,51 @@ def test_resume_after_the_study_process_is_killed_loses_and_repeats_no_row(nod, 
     files = part_files(tmp_path)
     assert run_study(s, tmp_path, client=dask_client)["runs_done"] == total
     assert part_files(tmp_path) == files  # nothing left to run, nothing written
+
+
+def test_the_rows_read_as_the_docs_say_with_pyarrow_and_the_law_is_the_folder_only(nod, dask_client, tmp_path) -> None:
+    """Audit: docs/studies.md's read, ``pyarrow.dataset.dataset("DIR/runs", partitioning="hive")``,
+    raised 'Field law has incompatible types: int64 vs int32' on every study: the writer stored
+    ``law`` in each file as well as in its ``law=<n>`` folder. The docs' own line is run here."""
+    import pyarrow  # noqa: F401 - the documented line's namespace
+    import pyarrow.dataset  # noqa: F401
+    import pyarrow.parquet as pq
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "studies.md").read_text()
+    documented = re.search(r"`(pyarrow\.dataset\.dataset\(\"DIR/runs\"[^`]*)`", doc)
+    assert documented, "docs/studies.md no longer says how to read the rows"
+    s = _study(nod, 2)
+    run_study(s, tmp_path, client=dask_client)
+    table = eval(documented.group(1).replace("DIR", str(tmp_path)), {"pyarrow": sys.modules["pyarrow"]})  # noqa: S307
+    laws = dict(zip(table.column("run_id").to_pylist(), table.column("law").to_pylist(), strict=True))
+    assert laws == {r.run_id: r.law for r in expand(s)}
+    assert all("law" not in pq.read_schema(f).names for f in part_files(tmp_path))  # the folder says it, once
+    assert {r["run_id"]: r["law"] for r in read_rows(tmp_path)} == laws  # xneck's own reader too
+
+
+def test_a_directory_written_with_law_in_its_files_still_reads_and_resumes(tmp_path) -> None:
+    """Batches of an older xneck (``law`` an int64 column in the file too) and new ones (the folder
+    only) in one directory: the summary's reader and the console's pages give every row its law."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from server.studies.execute import study_dir, write_batch
+    from server.studies.rows import read_page
+
+    s = study_from("control", samples=2, laws=(1, 2))
+    runs = list(expand(s))
+    rows = [{"run_id": r.run_id, "law": r.law, "seed": r.seed, "outcome": "finished", "message": ""} for r in runs]
+    with study_dir(s, tmp_path):
+        old = tmp_path / "runs" / "law=1" / "part-1-1.parquet"
+        old.parent.mkdir(parents=True)
+        pq.write_table(pa.Table.from_pylist([r for r in rows if r["law"] == 1]), old)  # as the old writer did
+        write_batch(tmp_path, [r for r in rows if r["law"] == 2])
+    assert pq.read_schema(old).field("law").type == pa.int64()
+    assert {r["run_id"]: r["law"] for r in read_rows(tmp_path)} == {r.run_id: r.law for r in runs}
+    assert finished_ids(tmp_path) == {r.run_id for r in runs}
+    total, page = read_page(tmp_path, 0, 10)
+    assert total == 4 and {r["run_id"]: r["law"] for r in page} == {r.run_id: r.law for r in runs}
+    assert list(page[0])[:3] == ["run_id", "law", "seed"]  # the column where it always was
 
 
 def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, dask_client, tmp_path) -> None:

@@ -3,7 +3,8 @@
 Layout of ``DIR``::
 
     study.json                 the study (its definition and digest): DIR holds this study only
-    runs/law=<n>/part-*.parquet one row per finished run (law 0: design studies)
+    runs/law=<n>/part-*.parquet one row per finished run (law 0: design studies); the law is the folder's
+                               only (hive partitioning), never a column of the file too
     summary.json, figures/     written at the end (server.studies.report)
 
 Resumable: the finished run ids are read back (the ``run_id`` column only) and skipped. A batch of
@@ -69,6 +70,26 @@ def _read_part(f: Path, columns: list[str] | None = None) -> Any:
     return table
 
 
+def law_of(f: Path | str) -> int:
+    """The law of a batch: its folder's ``law=<n>``; :class:`StudyError` for a folder that names none."""
+    folder = Path(f).parent.name
+    try:
+        return int(folder.split("=", 1)[1])
+    except (IndexError, ValueError):
+        raise StudyError(f"{f}: a batch outside a law=<n> folder") from None
+
+
+def with_law(table: Any, law: int) -> Any:
+    """``table`` with its folder's law as the column after ``run_id`` (int64, as rows always had it).
+    Batches of xneck before 2026-12 also hold it in the file: that copy is replaced by the folder's."""
+    import pyarrow as pa
+
+    if "law" in table.column_names:
+        table = table.drop_columns(["law"])
+    at = table.column_names.index("run_id") + 1 if "run_id" in table.column_names else 0
+    return table.add_column(at, pa.field("law", pa.int64()), pa.array([law] * table.num_rows, pa.int64()))
+
+
 def finished_ids(out: Path) -> set[str]:
     done: set[str] = set()
     for f in part_files(out):
@@ -84,7 +105,7 @@ def read_rows(out: Path) -> list[dict[str, Any]]:
     if not files:
         return []
     try:
-        table = pa.concat_tables([_read_part(f) for f in files], promote_options="default")
+        table = pa.concat_tables([with_law(_read_part(f), law_of(f)) for f in files], promote_options="default")
     except (ValueError, pa.ArrowException) as exc:
         if isinstance(exc, StudyError):
             raise
@@ -99,14 +120,18 @@ def read_rows(out: Path) -> list[dict[str, Any]]:
 
 
 def write_batch(out: Path, rows: list[dict[str, Any]]) -> list[Path]:
-    """Rows as one Parquet file per law partition, each made visible atomically (temp + fsync + rename)."""
+    """Rows as one Parquet file per law partition, each made visible atomically (temp + fsync + rename).
+
+    The law is the folder's ``law=<n>`` only: stored in the file too (int64) it clashed with the int32
+    pyarrow infers from the folder, and ``pyarrow.dataset.dataset(DIR/runs, partitioning="hive")``
+    refused every study. xneck's readers take it from the folder (:func:`with_law`)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     written = []
     for law in sorted({r["law"] for r in rows}):
         part = [r for r in rows if r["law"] == law]
-        keys = list(dict.fromkeys(k for r in part for k in r))
+        keys = [k for k in dict.fromkeys(k for r in part for k in r) if k != "law"]
         table = pa.Table.from_pylist([{k: r.get(k) for k in keys} for r in part])
         folder = Path(out) / RUNS_DIR / f"law={law}"
         folder.mkdir(parents=True, exist_ok=True)

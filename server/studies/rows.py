@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from server.studies.execute import RUNS_DIR
+from server.studies.execute import RUNS_DIR, law_of, with_law
 from server.studies.spec import StudyError
 
 
@@ -66,9 +66,11 @@ def _footer(path: str, stamp: tuple[int, int]) -> _Batch:
         meta = pq.read_metadata(path)
     except (OSError, ValueError, pa.ArrowException) as exc:
         raise StudyError(f"{path}: not a readable batch of rows ({exc})") from None
-    columns = tuple(meta.schema.names)
-    if "run_id" not in columns:
+    names = [n for n in meta.schema.names if n != "law"]  # the folder's (older batches hold it in the file too)
+    if "run_id" not in names:
         raise StudyError(f"{path}: a batch of rows without run_id")
+    at = names.index("run_id") + 1
+    columns = (*names[:at], "law", *names[at:])
     return _Batch(path, stamp, int(meta.num_rows), columns)
 
 
@@ -111,7 +113,7 @@ def read_page(out: Path, offset: int, limit: int) -> tuple[int, list[dict[str, A
         end = start + b.rows
         if end > offset and start < offset + limit and b.rows:
             try:
-                table = pq.read_table(b.path)
+                table = with_law(pq.read_table(b.path), law_of(b.path))
             except (OSError, ValueError, pa.ArrowException) as exc:
                 raise StudyError(f"{b.path}: not a readable batch of rows ({exc})") from None
             lo = max(offset - start, 0)
