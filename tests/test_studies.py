@@ -47,6 +47,7 @@ BAD_SPECS = [
     ("friction.f_s=N(10,0)", "sigma must be > 0"),
     ("friction.f_s=U(3,1)", "needs a < b"),
     ("geometry.b=0.04:0.06:0", "n >= 1"),
+    ("geometry.b=0.03:0.06:1", "one point cannot include both ends 0.03 and 0.06"),  # ran 0.03 only
     ("friction.nope=10%", "unknown key 'nope'"),
     ("friction.model=10%", "not numeric"),
     ("friction.f_s[9]=10%", "has 4 elements, no [9]"),
@@ -54,6 +55,14 @@ BAD_SPECS = [
     ("truth.friction.static_ratio=10%", "need --truth robot"),
     ("geometry.n_joints=3:5:3", "only a design study"),
 ]
+
+
+def test_a_grid_of_one_point_is_its_one_value_and_both_ends_need_two() -> None:
+    assert parse_vary("geometry.b=0.05:0.05:1").grid().tolist() == [0.05]
+    assert parse_vary("geometry.b=0.03:0.06:2").grid().tolist() == [0.03, 0.06]
+    for spec in ("geometry.b=0.03:0.06:1", "geometry.b=0.05:0.05:3"):
+        with pytest.raises(StudyError, match="a:b:n"):
+            parse_vary(spec)
 
 
 def test_bad_specs_are_rejected_with_a_clear_message_before_anything_runs(tmp_path) -> None:

@@ -13,7 +13,7 @@ SPEC (one scalar per run and path):
 - ``N(mu,sigma)``: a normal draw, sigma > 0; ``U(a,b)``: a uniform draw, a < b. A vector path gets
   the drawn value in every element; ``friction.f_s[2]`` (counted from 1, as the papers number
   cables and joints) varies one element.
-- ``a:b:n``: a grid of n values from a to b (both included). Runs are the product of every grid
+- ``a:b:n``: a grid of n values from a to b (both included: n >= 2, or ``a:a:1`` for one value). Runs are the product of every grid
   with ``samples`` random draws of the other paths, for every law.
 
 PATH is a parameter-file key (twin/model/params.py), or ``truth.<effect>.<key>`` for the truth file
@@ -129,8 +129,13 @@ def parse_vary(text: str) -> Vary:
                 shown = digits if len(digits) <= 30 else f"a {len(digits)}-digit number of"
                 raise StudyError(f"{where}: the grid has {shown} points, more than the limit of {MAX_RUNS} runs")
             n = int(digits)
-        if kind == "grid" and not (n >= 1 and (n == 1 or a != b)):
-            raise StudyError(f"{where}: a grid a:b:n needs n >= 1 points (and a != b for n > 1)")
+        if kind == "grid" and n < 1:
+            raise StudyError(f"{where}: a grid a:b:n needs n >= 1 points")
+        if kind == "grid" and n == 1 and a != b:  # np.linspace gave a alone: b silently never ran
+            raise StudyError(f"{where}: a grid a:b:n includes both ends, and one point cannot include both ends "
+                             f"{a:g} and {b:g}: use n >= 2, or {a:g}:{a:g}:1 for the one value")
+        if kind == "grid" and n > 1 and a == b:
+            raise StudyError(f"{where}: a grid a:b:n of n > 1 points needs a != b (a:a:1 is the one value)")
         return Vary(path, index, kind, a, b, n)
     raise StudyError(f"{where}: SPEC {spec!r} is none of: 10% (relative spread), N(mu,sigma), U(a,b), a:b:n (grid)")
 
