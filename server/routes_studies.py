@@ -24,9 +24,11 @@ from server.studies.execute import check_workers
 from server.studies.service import (
     SCHEDULER_ENV,
     DamagedStudy,
+    NotRunning,
     StudyBusy,
     StudyError,
     StudyManager,
+    UnknownFigure,
     UnknownStudy,
     study_or_error,
 )
@@ -145,17 +147,22 @@ async def study_figure(study_id: str, name: str, request: Request) -> FileRespon
         return FileResponse(_manager(request).figure(study_id, name), media_type="image/png",
                             headers={"Cache-Control": "no-cache"})
     except UnknownStudy:
-        raise _unknown(f"{study_id}/{name}") from None
+        raise _unknown(study_id) from None
+    except UnknownFigure as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc.args[0])) from None
 
 
 @router.post("/{study_id}/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[Depends(require_token)],
-             responses={404: {"description": "No such study"}})
+             responses={404: {"description": "No such study"},
+                        409: {"description": "The study is not running (complete, stopped, failed); detail says which"}})
 async def stop_study(study_id: str, request: Request) -> dict[str, str]:
     """Stop after the runs in progress; the rows so far stay and creating the same study again goes on."""
     try:
-        _manager(request).stop(study_id)
+        await run_in_threadpool(_manager(request).stop, study_id)  # a study not running: its rows are counted
     except UnknownStudy:
         raise _unknown(study_id) from None
+    except NotRunning as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     return {"id": study_id, "state": "stopping"}
 
 

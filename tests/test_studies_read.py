@@ -215,3 +215,29 @@ def test_a_summary_json_names_per_law_outcomes_after_write_outputs(tmp_path) -> 
         write_outputs(tmp_path, study, 200)
     doc = json.loads((tmp_path / "summary.json").read_text())
     assert doc["outcomes_per_law"]["1"] == {"finished": 50, "diverged": 50}
+
+
+def test_stopping_a_study_that_is_not_running_says_its_state_and_a_missing_figure_is_named(tmp_path) -> None:
+    """Audit: POST .../stop of a complete study answered 202 {"state": "stopping"} and nothing happened;
+    GET .../figures/nosuch.png answered 404 "no study '<id>/nosuch.png'", as if the study were missing."""
+    studies = tmp_path / "data" / "studies"
+    complete, _runs = _on_disk(studies, [60, 60])
+    with study_dir(DESIGN, complete):
+        write_outputs(complete, DESIGN, 120)
+    stopped_study = study_from("design", samples=60, vary=("geometry.b=0.03:0.06:2",), design_configurations=10, seed=1)
+    partial = studies / f"design-{stopped_study.digest()}"
+    with study_dir(stopped_study, partial):
+        write_batch(partial, _design_rows(expand(stopped_study)[:5], 0.5))
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as http:
+        assert http.get(f"/api/studies/{complete.name}").json()["state"] == "complete"
+        r = http.post(f"/api/studies/{complete.name}/stop", headers=AUTH)
+        assert r.status_code == 409 and "complete" in r.json()["detail"] and complete.name in r.json()["detail"], r.text
+        r = http.post(f"/api/studies/{partial.name}/stop", headers=AUTH)
+        assert r.status_code == 409 and "stopped" in r.json()["detail"] and "not running" in r.json()["detail"], r.text
+        assert http.post("/api/studies/design-0123456789abcdef/stop", headers=AUTH).status_code == 404
+        r = http.get(f"/api/studies/{complete.name}/figures/nosuch.png")
+        assert r.status_code == 404, r.text
+        assert r.json()["detail"] == f"study {complete.name!r} has no figure 'nosuch.png' (its figures: distributions.png, sensitivity.png, design_maps.png)"
+        r = http.get("/api/studies/design-0123456789abcdef/figures/distributions.png")
+        assert r.status_code == 404 and r.json()["detail"] == "no study 'design-0123456789abcdef'", r.text
+        assert http.get(f"/api/studies/{complete.name}/figures/distributions.png").status_code == 200

@@ -36,6 +36,14 @@ class StudyBusy(RuntimeError):
     pass
 
 
+class NotRunning(RuntimeError):
+    """A stop of a study that is not running (complete, stopped, failed): the message says its state."""
+
+
+class UnknownFigure(LookupError):
+    """A known study without the figure asked for; the message names both."""
+
+
 class DamagedStudy(ValueError):
     """A study directory whose files do not read (edited by hand, truncated, another version's); the
     message names the study, the file and why."""
@@ -131,10 +139,22 @@ class StudyManager:
             os.replace(tmp, folder / STATE_FILE)
 
     def stop(self, study_id: str) -> None:
+        """Stop a running study; :class:`NotRunning` says the state of one that is not (a stop of a complete
+        study was accepted and did nothing), :class:`UnknownStudy` when there is none."""
         self._dir(study_id)
         run = self._runs.get(study_id)
-        if run is not None:
+        if run is not None and run.state == "running":
             run.stop.set()
+            return
+        try:
+            state = self.progress(study_id)["state"]
+        except DamagedStudy:
+            state = "damaged"
+        if state == "running":  # started meanwhile
+            self.stop(study_id)
+            return
+        again = " (creating it again goes on where it stopped)" if state in ("stopped", "failed") else ""
+        raise NotRunning(f"study {study_id!r} is {state}, not running: nothing to stop{again}")
 
     def ids(self) -> list[str]:
         """Every study, newest first: those this console started from the moment they are created (their
@@ -242,9 +262,12 @@ class StudyManager:
     def figure(self, study_id: str, name: str) -> Path:
         from server.studies.report import FIGURES
 
-        path = self._dir(study_id) / "figures" / name
+        folder = self._dir(study_id) / "figures"
+        path = folder / name
         if name not in FIGURES or not path.is_file():
-            raise UnknownStudy(f"{study_id}/{name}")
+            present = [f for f in FIGURES if (folder / f).is_file()]
+            raise UnknownFigure(f"study {study_id!r} has no figure {name!r} "
+                                f"({'its figures: ' + ', '.join(present) if present else 'it has no figures yet'})")
         return path
 
 
@@ -271,4 +294,5 @@ def study_or_error(**fields: Any) -> Study:
     return study_from(kind, **fields)
 
 
-__all__ = ["DamagedStudy", "StudyBusy", "StudyError", "StudyManager", "UnknownStudy", "study_or_error"]
+__all__ = ["DamagedStudy", "NotRunning", "StudyBusy", "StudyError", "StudyManager", "UnknownFigure", "UnknownStudy",
+           "study_or_error"]
