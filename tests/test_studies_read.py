@@ -241,3 +241,37 @@ def test_stopping_a_study_that_is_not_running_says_its_state_and_a_missing_figur
         r = http.get("/api/studies/design-0123456789abcdef/figures/distributions.png")
         assert r.status_code == 404 and r.json()["detail"] == "no study 'design-0123456789abcdef'", r.text
         assert http.get(f"/api/studies/{complete.name}/figures/distributions.png").status_code == 200
+
+
+def test_a_summary_or_figures_folder_that_cannot_be_written_is_the_file_named(tmp_path) -> None:
+    """Audit: a file named ``figures`` in the study directory gave 'cannot write DIR: File exists', and
+    ``summary.json`` a folder 'cannot write DIR: Is a directory': the directory, not the file at fault."""
+    out, _runs = _on_disk(tmp_path, [10])
+    (out / "figures").write_text("in the way")
+    with pytest.raises(OSError) as raised:
+        write_outputs(out, DESIGN, 120)
+    assert raised.value.filename == str(out / "figures") and raised.value.filename2 is None
+    (out / "figures").unlink()
+    (out / "summary.json").mkdir()
+    with pytest.raises(OSError) as raised:
+        write_outputs(out, DESIGN, 120)
+    assert raised.value.filename == str(out / "summary.json") and raised.value.filename2 is None, raised.value
+
+
+@pytest.mark.parametrize("in_the_way", ["figures", "summary.json"])
+def test_the_command_line_names_the_file_in_the_way_before_anything_runs(tmp_path, in_the_way) -> None:
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    out = tmp_path / "study"
+    out.mkdir()
+    if in_the_way == "figures":
+        (out / "figures").write_text("in the way")
+    else:
+        (out / "summary.json").mkdir()
+    result = CliRunner().invoke(app, ["study", "design", "--out", str(out), "--vary", "geometry.b=0.03:0.06:2",
+                                      "--configurations", "10", "--workers", "1"])
+    assert result.exit_code == 2, result.output
+    assert f"{out / in_the_way}:" in result.output and f"cannot write {out}:" not in result.output, result.output
+    assert not (out / "runs").exists()  # said before a cluster started and runs were spent

@@ -59,7 +59,9 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
     except OSError as exc:  # the disk filled or the folder went away since the check; finished rows are kept
         if exc.filename is None:
             raise  # not a file: a scheduler's connection, not an output problem
-        raise write_failed(out, exc) from None
+        if line_open[0]:
+            typer.echo("", err=True)
+        raise write_failed(Path(exc.filename), exc) from None  # the file at fault (report.py names it), not DIR
     except KeyboardInterrupt:
         typer.secho(f"\ninterrupted: the rows finished so far are in {out}; run the same command again to go on",
                     err=True, fg="yellow")

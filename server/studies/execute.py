@@ -258,7 +258,7 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     ``workers`` processes, default and at most the CPUs this process may use: :func:`check_workers`).
     ``stop``: set to stop early: the runs in flight are cancelled, the rows finished so far are kept
     and a rerun goes on. Returns the summary (server.studies.report)."""
-    from server.studies.report import write_outputs
+    from server.studies.report import check_outputs, write_outputs
     from server.studies.run import config_for
 
     out = Path(out)
@@ -269,6 +269,7 @@ def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler:
     total = len(runs)
     inputs = hashlib.sha256(json.dumps([cfg.params, cfg.truth, cfg.trajectory_json], sort_keys=True).encode()).hexdigest()[:16]
     with study_dir(study, out, inputs):
+        check_outputs(out)  # a file in the way of the summary: said now, not after the runs
         done = finished_ids(out)
         finished = runs.count_finished(done)  # by their ids: no run built
         if progress:

@@ -8,16 +8,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from server.studies.execute import read_rows
-from server.studies.spec import Study
+from server.studies.spec import Study, StudyError
 
 METRICS = {
     "control": ("e_mean_all_deg", "e_max_all_deg", "e_alpha_mean_all_deg", "force_mean_all_N", "force_max_all_N",
@@ -98,14 +100,38 @@ def summarize(study: Study, rows: list[dict[str, Any]], total: int) -> dict[str,
     }
 
 
+def check_outputs(out: Path) -> None:
+    """:class:`StudyError` naming what stands where the summary or the figures go (a file named
+    ``figures``, a folder named ``summary.json``): said before the runs, not after them."""
+    out = Path(out)
+    if (out / "figures").exists() and not (out / "figures").is_dir():
+        raise StudyError(f"{out / 'figures'}: a file where the study's figures folder goes; move it away")
+    if (out / "summary.json").is_dir():
+        raise StudyError(f"{out / 'summary.json'}: a folder where the study's summary goes; move it away")
+
+
+@contextlib.contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """An OSError of writing ``path`` (through a hidden temp file, or its folder) names ``path``: the file
+    the user knows, not the temp file (os.replace's error names both) nor the study directory."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno is None or (exc.filename == str(path) and exc.filename2 is None):
+            raise
+        raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+
+
 def write_outputs(out: Path, study: Study, total: int) -> dict[str, Any]:
-    """summary.json and figures/ of the rows so far (atomically replaced: a reader never sees half a file)."""
+    """summary.json and figures/ of the rows so far (atomically replaced: a reader never sees half a file).
+    An OSError names the file that could not be written."""
     rows = read_rows(out)
     summary = summarize(study, rows, total)
     summary["figures"] = write_figures(out / "figures", study, rows, summary) if rows else []
     tmp = out / ".summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False, default=_none_for_nan))
-    os.replace(tmp, out / "summary.json")
+    with _writing(out / "summary.json"):
+        tmp.write_text(json.dumps(summary, indent=2, allow_nan=False, default=_none_for_nan))
+        os.replace(tmp, out / "summary.json")
     return summary
 
 
@@ -124,14 +150,18 @@ def _plt() -> Any:
 
 def _save(fig: Any, path: Path) -> str:
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    os.replace(tmp, path)
-    _plt().close(fig)
+    try:
+        with _writing(path):
+            fig.savefig(tmp, dpi=90)
+            os.replace(tmp, path)
+    finally:
+        _plt().close(fig)
     return path.name
 
 
 def write_figures(folder: Path, study: Study, rows: list[dict[str, Any]], summary: dict[str, Any]) -> list[str]:
-    folder.mkdir(parents=True, exist_ok=True)
+    with _writing(folder):
+        folder.mkdir(parents=True, exist_ok=True)
     plt = _plt()
     ok = [r for r in rows if r.get("outcome") == "finished"]
     metrics = METRICS[study.kind]
