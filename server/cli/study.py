@@ -21,7 +21,7 @@ OUT = typer.Option(..., "--out", help="Study directory: Parquet rows (runs/law=<
 SAMPLES = typer.Option(None, "--samples", help="Random draws per grid point (default 1).")
 VARY = typer.Option(None, "--vary", help="PATH=SPEC, repeatable: a parameter-file path (friction.f_s, "
                     "cables.variable.k[2], geometry.b) or truth.<effect>.<key>; SPEC 10% (relative spread, "
-                    "U(0.9,1.1) x nominal), N(mu,sigma), U(a,b) or a grid first:last:n (n values, both ends included: n >= 2, or a:a:1).")
+                    "U(0.9,1.1) x nominal), N(mu,sigma), U(a,b) or a grid first:last:n (n values, both ends included: n >= 2, or n = 1 with first = last).")
 SEED = typer.Option(None, "--seed", help="Study seed: every run's draws and twin seed follow from it (default 0).")
 WORKERS = typer.Option(None, "--workers", help="Local Dask worker processes (default and at most: the CPUs this process may use).")
 SCHEDULER = typer.Option(None, "--scheduler", help="An existing Dask cluster, tcp://HOST:PORT (see docs/studies.md).")
