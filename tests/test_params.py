@@ -62,6 +62,26 @@ def test_bad_values_name_the_key_and_the_reason(override, key, reason):
     assert key in str(err.value) and reason in str(err.value)
 
 
+def test_a_bad_set_value_is_said_to_be_the_set_value_not_the_parameter_file():
+    """Audit: ``--set friction.f_s=nan`` said '<package>/prototype_3x.toml: friction.f_s: Expected
+    `array`, got `float`', which read as if the shipped file were broken."""
+    with pytest.raises(ParameterError) as err:
+        load_params(overrides={"friction.f_s": float("nan")})
+    text = str(err.value)
+    assert text.startswith("--set friction.f_s=nan: "), text
+    assert "a list of 4 values" in text and "write --set friction.f_s=[" in text, text
+    assert "friction.f_s must be finite, not nan" in text, text
+    with pytest.raises(ParameterError) as err:
+        load_params(overrides={"friction.f_s": [1.0, float("inf"), 1.0, 1.0]})
+    assert str(err.value).startswith("--set friction.f_s=[1.0, inf, 1.0, 1.0]: ") and "finite" in str(err.value)
+    with pytest.raises(ParameterError) as err:
+        load_params(overrides={"geometry.b": [0.01, 0.02]})
+    assert str(err.value).startswith("--set geometry.b=[0.01, 0.02]: ") and "a single value" in str(err.value)
+    with pytest.raises(ParameterError) as err:  # a value of the right shape the file's others refuse
+        load_params(overrides={"geometry.b": 0.1})
+    assert "with --set geometry.b=0.1: geometry: b = 0.1 m must be smaller than L" in str(err.value), str(err.value)
+
+
 def test_unknown_keys_are_refused(params, tmp_path):
     data = tomllib.loads(params.to_toml())
     data["springs"]["k_middle"] = [1.0, 2.0, 3.0]

@@ -83,6 +83,18 @@ def test_bad_specs_are_rejected_with_a_clear_message_before_anything_runs(tmp_pa
     assert result.exit_code == 2 and "varied twice" in result.output and not out.exists()
 
 
+def test_a_bad_set_value_of_a_study_is_said_to_be_the_set_value(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    out = tmp_path / "study"
+    result = CliRunner().invoke(app, ["study", "control", "--out", str(out), "--set", "friction.f_s=nan"])
+    assert result.exit_code == 2, result.output
+    assert "error: --set friction.f_s=nan: " in result.output and "prototype_3x.toml:" not in result.output, result.output
+    assert not out.exists()
+
+
 def test_runs_are_fixed_by_the_seed_and_every_law_meets_the_same_robots(nod) -> None:
     s = _study(nod, 3)
     a, b = expand(s), expand(s)

@@ -366,8 +366,8 @@ def config_for(study: Study, version: str) -> RunConfig:
 
     try:
         params = load_params(study.params_file, dict(parse_override(o) for o in study.set))
-    except ParameterError as exc:
-        raise StudyError(f"parameter file: {exc}") from None
+    except ParameterError as exc:  # a --set value's own fault is said as such, not as the parameter file's
+        raise StudyError(str(exc) if str(exc).startswith("--set ") else f"parameter file: {exc}") from None
     try:
         load_truth(study.truth)
     except TruthError as exc:

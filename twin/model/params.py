@@ -349,7 +349,16 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
         raise ParameterError(f"{source}: nested too deeply") from None
     for key, value in (overrides or {}).items():
         _set_dotted(data, key, value, source)
+    if overrides:  # what the file's values refuse of a --set value is said with it, not as the file's fault
+        source += " with --set " + ", ".join(f"{k}={_shown(v)}" for k, v in overrides.items())
     return params_from_dict(data, source)
+
+
+def _shown(value: Any) -> str:
+    """An override's value as written after ``--set key=`` (TOML-like: strings bare, lists bracketed)."""
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_shown(v) for v in value) + "]"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def params_from_dict(data: dict[str, Any], source: str = "<dict>") -> Params:
@@ -384,10 +393,26 @@ def dotted_parent(data: dict[str, Any], key: str) -> tuple[dict[str, Any], str]:
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any, source: str) -> None:
+    """``data[key] = value``; :class:`ParameterError` beginning ``--set key=value:`` when the value is
+    not one the key can take whatever the file holds (not finite; a single value for a list or the other
+    way round): the --set value is at fault, not the parameter file (audit: ``--set friction.f_s=nan``
+    read '<package>/prototype_3x.toml: friction.f_s: Expected `array`, got `float`')."""
     try:
         node, last = dotted_parent(data, key)
     except ValueError as exc:
         raise ParameterError(f"{source}: override '{key}': {exc}") from None
+    old = node[last]
+    items = value if isinstance(value, list | tuple) else [value]
+    problems = []
+    if any(isinstance(v, float) and not math.isfinite(v) for v in items):
+        problems.append(f"{key} must be finite, not {_shown(value)} (NaN and infinities are no parameter values)")
+    if isinstance(old, list) and not isinstance(value, list | tuple):
+        problems.append(f"{key} is a list of {len(old)} values, one per element, not a single value: "
+                        f"write --set {key}={_shown(old)} with your values")
+    elif isinstance(value, list | tuple) and not isinstance(old, list | dict):
+        problems.append(f"{key} is a single value, not a list: write --set {key}={_shown(old)} with your value")
+    if problems:
+        raise ParameterError(f"--set {key}={_shown(value)}: " + "; and ".join(problems))
     node[last] = value
 
 
