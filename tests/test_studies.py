@@ -6,6 +6,7 @@ Runs are the §7 loop on a short nod (0.6 s of simulated time) so that each cost
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -294,6 +295,52 @@ def test_a_directory_written_with_law_in_its_files_still_reads_and_resumes(tmp_p
     total, page = read_page(tmp_path, 0, 10)
     assert total == 4 and {r["run_id"]: r["law"] for r in page} == {r.run_id: r.law for r in runs}
     assert list(page[0])[:3] == ["run_id", "law", "seed"]  # the column where it always was
+
+
+def test_ctrl_c_stops_the_command_cleanly_with_the_summary_of_its_rows_and_says_how_to_go_on(dask_client, tmp_path) -> None:
+    """Audit: Ctrl-C (SIGINT to the terminal's process group) during ``xneck study`` killed the
+    LocalCluster's worker processes too (their KeyboardInterrupt tracebacks and the scheduler's 'lost
+    scattered data' on stderr) and left no summary. The first Ctrl-C now stops the study: the runs in
+    flight are cancelled, the rows kept, their summary written, exit 130; a rerun goes on."""
+    traj = tmp_path / "slow_nod.json"  # ~0.5 s a run: the study is still running when Ctrl-C comes
+    traj.write_text(json.dumps({**NOD, "durations_s": 1.5}))
+    (tmp_path / "settle.toml").write_text("settle_s = 0.1\n")
+    out = tmp_path / "study"
+    args = [sys.executable, "-m", "server.cli", "study", "control", "--out", str(out), "--samples", "8", "--law", "1",
+            "--law", "2", "--trajectory", str(traj), "--study", str(tmp_path / "settle.toml"), "--workers", "1",
+            "--vary", VARY[0]]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    err: list[bytes] = []
+    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read1(4096), b"")), daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    try:
+        assert wait_until(lambda: re.search(rb"\b[1-9]\d*/16 runs", b"".join(err)) is not None or proc.poll() is not None,
+                          120), b"".join(err).decode()[-2000:]
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        proc.wait(120)  # stderr is the reader's alone; stdout (the summary's table) fits in its pipe
+        stdout = proc.stdout.read().decode()  # type: ignore[union-attr]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    reader.join(10)
+    stderr = b"".join(err).decode()
+    assert proc.returncode == 130, (proc.returncode, stderr[-3000:])
+    for noise in ("Traceback", "KeyboardInterrupt", "distributed.", "lost scattered data"):
+        assert noise not in stderr, stderr[-3000:]
+    rows = read_rows(out)
+    assert 0 < len(rows) < 16, len(rows)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs_done"] == len(rows) and not summary["complete"]
+    assert (out / "figures" / "distributions.png").is_file()
+    assert f"{len(rows)}/16 runs" in stdout  # the summary's table of the rows it has
+    assert "interrupted" in stderr and "run the same command again" in stderr and str(out) in stderr, stderr[-2000:]
+    # the same study goes on where it stopped
+    s = study_from("control", file=tmp_path / "settle.toml", samples=8, laws=(1, 2), trajectory=str(traj), vary=VARY[:1])
+    assert run_study(s, out, client=dask_client)["complete"]
+    ids = [r["run_id"] for r in read_rows(out)]
+    assert sorted(ids) == sorted(r.run_id for r in expand(s))
 
 
 def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, dask_client, tmp_path) -> None:

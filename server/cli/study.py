@@ -7,6 +7,8 @@ before a cluster starts. A rerun on the same DIR goes on where the last one stop
 
 from __future__ import annotations
 
+import signal
+import threading
 from pathlib import Path
 
 import typer
@@ -48,9 +50,20 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
         line_open[0] = done < total
         _progress(done, total, message)
 
+    stop = threading.Event()
+
+    def interrupt(_signum: int, _frame: object) -> None:
+        if stop.is_set():  # a second Ctrl-C: no summary, at once (the rows written so far are kept)
+            raise KeyboardInterrupt
+        stop.set()
+        line_open[0] = False
+        typer.secho("\nstopping: the runs in flight are cancelled, the finished rows kept and summarized "
+                    "(Ctrl-C again to quit at once)", err=True, fg="yellow")
+
+    previous = signal.signal(signal.SIGINT, interrupt)  # the workers never take it (execute._sigint_blocked)
     try:
         study = study_from(kind, **fields)
-        summary = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress)
+        summary = run_study(study, out, workers=workers, scheduler=scheduler, progress=progress, stop=stop)
     except StudyError as exc:
         if line_open[0]:
             typer.echo("", err=True)
@@ -63,14 +76,20 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
             typer.echo("", err=True)
         raise write_failed(Path(exc.filename), exc) from None  # the file at fault (report.py names it), not DIR
     except KeyboardInterrupt:
-        typer.secho(f"\ninterrupted: the rows finished so far are in {out}; run the same command again to go on",
-                    err=True, fg="yellow")
+        typer.secho(f"\ninterrupted: the rows finished so far are in {out} (no summary written); "
+                    "run the same command again to go on", err=True, fg="yellow")
         raise typer.Exit(130) from None
+    finally:
+        signal.signal(signal.SIGINT, previous)
     if as_json:
         echo_json({k: v for k, v in summary.items() if k != "study"})
     else:
         typer.echo(_table(summary))
         typer.echo(f"rows: {out}/runs; summary: {out}/summary.json; figures: {out}/figures")
+    if stop.is_set() and not summary["complete"]:
+        typer.secho(f"interrupted: {summary['runs_done']}/{summary['runs_total']} runs finished, their rows and "
+                    f"summary are in {out}; run the same command again to go on", err=True, fg="yellow")
+        raise typer.Exit(130)
 
 
 def _progress(done: int, total: int, message: str) -> None:

@@ -244,9 +244,45 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
             raise StudyError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         except ValueError as exc:  # not an address ('missing port number'): was a traceback
             raise StudyError(f"--scheduler {scheduler!r}: not a scheduler address tcp://HOST:PORT ({exc})") from None
-    cluster = LocalCluster(n_workers=check_workers(workers), threads_per_worker=1, processes=True,
-                           dashboard_address=None)  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
+    n = check_workers(workers)
+    _workers_ignore_ctrl_c()
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, preload=["server.studies.worker"],
+                           dashboard_address=None,  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
+                           # its HTTP routes (health) on a free port, not 8787: a second cluster warned 'Port 8787 is in use'
+                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
     return Client(cluster), cluster
+
+
+def _workers_ignore_ctrl_c() -> None:
+    """In a command's main thread: the LocalCluster's worker processes ignore SIGINT, so a terminal's
+    Ctrl-C (sent to its whole process group, the workers included) reaches this process alone, which
+    stops the study (runs in flight cancelled, rows kept, summary written) and closes the cluster.
+    Before, each worker died of its KeyboardInterrupt mid-run, printing its traceback, and the
+    scheduler its 'lost scattered data'.
+
+    How: the workers are forked by multiprocessing's fork server (distributed's
+    ``multiprocessing-method: forkserver``) started here with SIGINT ignored; its children keep the
+    disposition it started with, also those a nanny starts again after a worker died. Only the fork
+    server's start (a fork, milliseconds) runs with SIGINT ignored here. A spawned worker (the default)
+    takes the disposition of this process at that moment instead, which must handle Ctrl-C. Checked
+    on distributed 2026.8 (tests/test_studies.py: Ctrl-C to a real ``xneck study`` process group).
+    Elsewhere (the console's study thread, which cannot set signal handlers) the default is kept."""
+    import multiprocessing.forkserver
+    import signal
+    import threading
+
+    import dask.config
+    from distributed.utils import get_mp_context
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})  # also for workers restarted later
+    get_mp_context()  # distributed's preload of the fork server (its imports), before the fork server starts
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def run_study(study: Study, out: Path, *, workers: int | None = None, scheduler: str | None = None, client: Any = None,
