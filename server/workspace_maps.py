@@ -143,8 +143,15 @@ class WorkspaceCache:
 
     def __init__(self, root: Path, grid_3x: int = GRID_3X, grid_2x: int = GRID_2X,
                  max_entries: int = MAX_ENTRIES) -> None:
+        from twin.analysis.workspace import grid_problem
+
         if grid_3x < 3 or grid_3x % 2 == 0:
             raise ValueError(f"grid_3x must be odd and >= 3 (α3 = 0 on the grid), got {grid_3x}")
+        # The CLI's memory bound (the maps of a grid too large for it never fit), checked here
+        # before the directory is made; the settings cap grid_3x at 61 already.
+        for design, grid in (("3x", grid_3x), ("2x", grid_2x)):
+            if (problem := grid_problem(design, grid)) is not None:
+                raise ValueError(f"grid_{design}: {problem.removeprefix(f'--n {grid}: ')}")
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.grid_3x = grid_3x

@@ -144,6 +144,49 @@ def test_workspace_maps_are_written_whole(xneck, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["3x_stiffness.png", "3x_wfw.png"]  # no .tmp left
 
 
+def _capped(*args: str, gib: float = 1.0) -> subprocess.CompletedProcess:
+    """``xneck <args>`` with its address space capped at ``gib`` GiB: a command that started to
+    build an array it cannot hold ends in a MemoryError there, instead of growing into the swap or
+    the OOM killer of the machine running the tests."""
+    import resource
+
+    cap = int(gib * 2**30)
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+
+    return subprocess.run([sys.executable, "-m", "server.cli", *args], capture_output=True, text=True,
+                          timeout=120, preexec_fn=limit)
+
+
+@pytest.mark.parametrize("design, n, said", [
+    ("3x", "400", ["--n 400", "a 3x map of 400³ points needs ~", "GB", "at most 89 for this design"]),
+    ("2x", "1000000", ["--n 1000000", "a 2x map of 1000000² points needs ~", "at most 1123 for this design"]),
+    ("3x", "90", ["--n 90", "at most 89"]),
+])
+def test_a_workspace_grid_beyond_its_memory_bound_is_refused_before_any_array(tmp_path, design, n, said):
+    """Audit of 2026-12: `workspace --design 3x --n 400` grew to 22 GB and was OOM-killed, `--design
+    2x --n 1000000` ended in "Unable to allocate 7.28 TiB". Refused now from an estimate of the
+    arrays' bytes, before any is built and before --out is made (the cap of 1 GiB would turn an
+    allocation into a MemoryError traceback)."""
+    out = tmp_path / "ws"
+    _refused(_capped("workspace", "--design", design, "--n", n, "--out", str(out)), *said)
+    assert not out.exists()
+
+
+def test_the_workspace_help_states_the_grid_bounds(xneck):
+    run = xneck("workspace", "--help", env={"COLUMNS": "200"})
+    assert run.returncode == 0, run.stderr
+    text = " ".join(run.stdout.split())
+    assert "at most 1123 for 2x and 89 for 3x" in text, text
+
+
+@pytest.mark.parametrize("n", ["-1", "1"])
+def test_a_workspace_grid_below_two_is_one_error_line(xneck, tmp_path, n):
+    _refused(xneck("workspace", "--n", n, "--out", str(tmp_path / "ws")), f"--n {n}", ">= 2")
+    assert not (tmp_path / "ws").exists()
+
+
 # -- 9. excitation design writes JSON, so its file is .json ---------------------------------------------
 
 

@@ -157,3 +157,24 @@ def test_dashboard_shows_the_maps_and_follows_the_active_set(tmp_path: Path) -> 
             assert errors == []
         finally:
             browser.close()
+
+
+def test_the_console_grids_are_within_the_memory_bound_of_the_cli(tmp_path) -> None:
+    """Audit of 2026-12 (`xneck workspace --n 400` OOM-killed): the console's maps take no grid from a
+    request; their grids come from the settings (3x, 5..61) and GRID_2X, within the CLI's bound,
+    and a WorkspaceCache built with a grid beyond it is refused before any map is computed."""
+    from pydantic import ValidationError
+
+    from server.settings import Settings
+    from server.workspace_maps import GRID_2X, WorkspaceCache
+    from twin.analysis.workspace import max_grid
+
+    with pytest.raises(ValidationError, match="workspace_grid"):
+        Settings.model_validate({"workspace_grid": 401})
+    highest = max(m.le for m in Settings.model_fields["workspace_grid"].metadata if hasattr(m, "le"))
+    assert highest <= max_grid("3x") and max_grid("2x") >= GRID_2X
+    with pytest.raises(ValueError, match="at most 89"):
+        WorkspaceCache(tmp_path / "a", grid_3x=91)
+    with pytest.raises(ValueError, match="at most 1123"):
+        WorkspaceCache(tmp_path / "b", grid_2x=2000)
+    assert not list(tmp_path.iterdir())

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from server.cli.options import check_output, echo_json, write_failed
+from server.cli.options import check_output, echo_json, fail, write_failed
 from twin.analysis.kinematics import FLAT, check_design, cuspidal_threshold, det_jacobian_2x, fk, ik_2x, is_cuspidal
+from twin.analysis.workspace import MEMORY_BUDGET, max_grid
 
 kinematics_app = typer.Typer(
     help="Kinematics of the 2-X manipulator (Furet & Wenger 2019): inverse kinematics, cuspidality.",
@@ -101,21 +102,32 @@ def cuspidal(
     typer.echo(f"  most IK solutions found on the axis x = 0: {result['max_ik_solutions_found']}")
 
 
+_DEFAULT_GRID = {"2x": 300, "3x": 31}
+_N_HELP = (f"Grid points per axis, >= 2 (0: {_DEFAULT_GRID['2x']} for 2x, {_DEFAULT_GRID['3x']} for 3x); "
+           f"at most {max_grid('2x')} for 2x and {max_grid('3x')} for 3x, the grids whose maps fit in "
+           f"~{MEMORY_BUDGET / 1e9:.1f} GB of memory (n² points for 2x, n³ for 3x).")
+
+
 def workspace(
     design: str = typer.Option("2x", "--design", help="2x (the 2-X paper's figures) or 3x (the prototype)."),
     out: Path = typer.Option(Path("artifacts/workspace"), "--out", help="Directory for the PNG files."),
-    n: int = typer.Option(0, "--n", help="Grid points per axis (0: 300 for 2x, 31 for 3x)."),
+    n: int = typer.Option(0, "--n", help=_N_HELP),
 ) -> None:
     """Write workspace, wrench-feasible workspace and stiffness maps as PNG files."""
-    from twin.analysis.workspace import write_2x_figures, write_3x_figures
+    from twin.analysis.workspace import grid_problem, write_2x_figures, write_3x_figures
 
     if design not in ("2x", "3x"):
         raise typer.BadParameter(f"--design must be 2x or 3x, got {design!r}")
     if n < 0 or n == 1:
-        raise typer.BadParameter(f"--n must be 0 (default) or >= 2, got {n}")
+        raise fail(f"--n {n}: 0 (the default) or >= 2 points per axis")
+    n = n or _DEFAULT_GRID[design]
+    # From the estimated bytes of the maps, before any array and before --out is made: the 3-X
+    # maps grow with n³ (--n 400 ran into the OOM killer at 22 GB).
+    if (problem := grid_problem(design, n)) is not None:
+        raise fail(problem)
     check_output(out, directory=True)  # before the maps are computed
     try:
-        paths = write_2x_figures(out, n=n or 300) if design == "2x" else write_3x_figures(out, n=n or 31)
+        paths = write_2x_figures(out, n=n) if design == "2x" else write_3x_figures(out, n=n)
     except OSError as exc:
         raise write_failed(out, exc) from None
     for p in paths:

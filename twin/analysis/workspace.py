@@ -27,15 +27,20 @@ from twin.analysis.kinematics import (
 from twin.analysis.statics import Design, prototype_2x, stiffness_extremes, wrench_feasible_two_cables
 
 __all__ = [
+    "BYTES_PER_POINT",
     "CAPTIONS",
+    "MEMORY_BUDGET",
     "CartesianCounts",
     "JointMaps2X",
     "Maps3X",
     "cartesian_counts",
     "cuspidality_threshold_numeric",
+    "grid_problem",
     "joint_grid",
     "joint_maps_2x",
+    "map_bytes",
     "maps_3x",
+    "max_grid",
     "max_solutions_on_axis",
     "plot_3x_stiffness",
     "plot_3x_wfw",
@@ -58,6 +63,64 @@ CAPTIONS: dict[str, str] = {
     "3x_wfw.png": "3-X prototype: configurations with Z(α) f = g(α) for f in [f_min, f_max], slices and head positions.",
     "3x_stiffness.png": "3-X prototype: joint stiffness at the lowest and the highest antagonistic tension, slice α3 = 0.",
 }
+
+
+# --- grid size bound -------------------------------------------------------------------------------
+
+# Peak bytes per grid point while a design's figures are computed and drawn (numpy arrays and the
+# points handed to matplotlib), measured with tracemalloc and ru_maxrss over write_*_figures at
+# several n: ≈2.7 kB per α configuration for 3x (statics_3x's batched (n, n, n, 4, ...) LAPACK
+# arrays, the two stiffness_3x finite-difference batches), ≈1.5 kB per grid point for 2x
+# (cartesian_counts' (n, n, 4, 2) IK candidates and their Gauss-Newton steps). Rounded up.
+BYTES_PER_POINT: dict[str, int] = {"2x": 1700, "3x": 3000}
+# The largest estimate a grid may have: about 2 GB, so the stated maximum is the same on every
+# machine and a grid within it fits beside a running stack (the 3-X maps cost n³: 22 GB and an
+# OOM kill for --n 400 before the bound).
+MEMORY_BUDGET = 2 * 1024**3
+_DIMS = {"2x": 2, "3x": 3}
+
+
+def map_bytes(design: str, n: int) -> int:
+    """Estimated peak bytes of the maps and figures of ``design`` ("2x" or "3x") on an n-point grid
+    per axis (n² points for 2x, n³ for 3x)."""
+    return BYTES_PER_POINT[design] * n ** _DIMS[design]
+
+
+def max_grid(design: str, budget: int = MEMORY_BUDGET) -> int:
+    """Largest n whose :func:`map_bytes` is within ``budget``."""
+    n = int(round((budget / BYTES_PER_POINT[design]) ** (1.0 / _DIMS[design])))
+    while map_bytes(design, n) > budget:
+        n -= 1
+    while map_bytes(design, n + 1) <= budget:
+        n += 1
+    return n
+
+
+def _size(nbytes: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if nbytes < 999.5:
+            return f"{nbytes:.3g} {unit}"
+        nbytes /= 1000.0
+    return f"{nbytes:.3g} PB"
+
+
+def grid_problem(design: str, n: int) -> str | None:
+    """Why an n-point grid is refused for ``design`` (one line naming ``--n``), or None.
+
+    Checked from :func:`map_bytes` alone, before any array is built."""
+    if n < 2:
+        return f"--n {n}: a grid needs >= 2 points per axis"
+    m = max_grid(design)
+    if n <= m:
+        return None
+    power = "²" if _DIMS[design] == 2 else "³"
+    return (f"--n {n}: a {design} map of {n}{power} points needs ~{_size(map_bytes(design, n))} of memory; "
+            f"at most {m} for this design (~{_size(map_bytes(design, m))})")
+
+
+def _check_grid(design: str, n: int) -> None:
+    if (problem := grid_problem(design, n)) is not None:
+        raise ValueError(problem)
 
 
 # --- solution counting ---------------------------------------------------------------------------
@@ -448,7 +511,10 @@ def _save(plt: Any, fig: Any, path: Path) -> None:
 
 
 def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> list[Path]:
-    """Write the 2-X paper's figures (3, 4, 5, 8, 9, 11, 13-19) as PNGs into ``out``."""
+    """Write the 2-X paper's figures (3, 4, 5, 8, 9, 11, 13-19) as PNGs into ``out``.
+
+    :class:`ValueError` for a grid :func:`grid_problem` refuses, before anything is computed."""
+    _check_grid("2x", n)
     plt = _plt()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -534,8 +600,10 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None, maps: Maps3X | 
     joint stiffness range that raising the antagonistic tension gives.
 
     ``maps``: already computed :func:`maps_3x` output for ``params`` (then ``n`` is ignored), so
-    a caller that also needs the numbers computes them once.
+    a caller that also needs the numbers computes them once. :class:`ValueError` for a grid
+    :func:`grid_problem` refuses, before anything is computed.
     """
+    _check_grid("3x", n if maps is None else maps.alpha.size)
     from twin.model.numeric import build
     from twin.model.params import load_params
 
