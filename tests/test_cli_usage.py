@@ -18,6 +18,7 @@ from bridge import archive, bus
 from bridge.session import free_tcp_port
 from controller.identification_loop import simulate_campaign
 from controller.trajectory import trajectory_by_name
+from twin.analysis.workspace import CAPTIONS
 
 NOT_A_FOLDER = b"a regular file, kept as it is\n"
 
@@ -185,6 +186,20 @@ def test_the_workspace_help_states_the_grid_bounds(xneck):
 def test_a_workspace_grid_below_two_is_one_error_line(xneck, tmp_path, n):
     _refused(xneck("workspace", "--n", n, "--out", str(tmp_path / "ws")), f"--n {n}", ">= 2")
     assert not (tmp_path / "ws").exists()
+
+
+@pytest.mark.parametrize("design, n", [("2x", "2"), ("2x", "3"), ("3x", "2")])
+def test_a_coarse_workspace_grid_writes_every_figure(xneck, tmp_path, design, n):
+    """Audit of 2026-12: `workspace --n 2` (and 3) ended in an IndexError of the Cartesian stiffness
+    figure (no grid point inside the four-cable WFW), with 8 of the 9 PNGs written. A coarse grid is
+    a quick preview: every figure is written, a panel without data says so."""
+    out = tmp_path / "ws"
+    run = xneck("workspace", "--design", design, "--n", n, "--out", str(out), timeout=300)
+    assert run.returncode == 0, (run.stdout, run.stderr)
+    assert "Traceback" not in run.stderr and "Warning" not in run.stderr, run.stderr
+    written = sorted(p.name for p in out.iterdir())
+    assert written == sorted(f for f in CAPTIONS if f.startswith(design)), written
+    assert sorted(Path(line).name for line in run.stdout.split()) == written
 
 
 # -- 9. excitation design writes JSON, so its file is .json ---------------------------------------------

@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import tracemalloc
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 import twin.analysis.workspace as ws
@@ -54,3 +56,30 @@ def test_the_estimate_bounds_the_arrays_the_maps_build(design, n):
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert peak < ws.map_bytes(design, n)
+
+
+def _texts(fig) -> str:
+    return " ".join(t.get_text() for ax in fig.axes for t in ax.texts)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_stiffness_figures_of_a_grid_without_feasible_points_say_so(n):
+    """n = 2, 3: no grid point has a positive Cartesian stiffness in the four-cable WFW; before,
+    np.percentile of the empty set raised an IndexError."""
+    d = prototype_2x()
+    with np.errstate(all="raise"):
+        fig = ws.plot_cartesian_stiffness(d, n)
+    assert "no grid point" in _texts(fig) and f"n = {n}" in _texts(fig)
+    ws.plot_joint_stiffness(d, n)
+
+
+def test_a_figure_that_fails_leaves_no_figure_written(tmp_path, monkeypatch):
+    """The figures are drawn first and written after: an error while drawing leaves nothing."""
+    def broken(*a, **k):
+        raise RuntimeError("drawing failed")
+
+    monkeypatch.setattr(ws, "plot_cartesian_stiffness", broken)
+    out = tmp_path / "ws"
+    with pytest.raises(RuntimeError, match="drawing failed"):
+        ws.write_2x_figures(out, n=4)
+    assert not out.exists() or not list(Path(out).iterdir())

@@ -105,7 +105,8 @@ def cuspidal(
 _DEFAULT_GRID = {"2x": 300, "3x": 31}
 _N_HELP = (f"Grid points per axis, >= 2 (0: {_DEFAULT_GRID['2x']} for 2x, {_DEFAULT_GRID['3x']} for 3x); "
            f"at most {max_grid('2x')} for 2x and {max_grid('3x')} for 3x, the grids whose maps fit in "
-           f"~{MEMORY_BUDGET / 1e9:.1f} GB of memory (n² points for 2x, n³ for 3x).")
+           f"~{MEMORY_BUDGET / 1e9:.1f} GB of memory (n² points for 2x, n³ for 3x). A coarse grid is a "
+           "quick preview: a panel with no grid point in the workspace says so.")
 
 
 def workspace(

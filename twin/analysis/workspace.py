@@ -417,6 +417,15 @@ def plot_ik_example(L: float = 1.0, b: float = 2.0 / 3.0, x: float = 0.03, y: fl
     return fig
 
 
+def _no_data(ax: Any, what: str, n: int) -> None:
+    """An empty panel saying why: a coarse grid (or a design, or force bounds) that leaves no grid
+    point where the map is defined is a result, not an error."""
+    ax.text(0.5, 0.5, f"no grid point {what}\n(n = {n} per axis: a finer grid may find some)",
+            ha="center", va="center", transform=ax.transAxes, fontsize=8, color="0.35")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
 def _joint_image(ax: Any, t: NDArray[np.float64], z: NDArray[np.float64], title: str, **kw: Any) -> Any:
     deg = np.degrees(t)
     im = ax.pcolormesh(deg, deg, z.T, shading="nearest", **kw)
@@ -462,8 +471,13 @@ def plot_joint_stiffness(d: Design, n: int = 300) -> Any:
     fig, axes = plt.subplots(2, 2, figsize=(9, 8.5), constrained_layout=True)
     for col, i in enumerate((0, 1)):
         vals = np.concatenate([maps.K_joint_min[..., i].ravel(), maps.K_joint_max[..., i].ravel()])
-        lim = np.nanmax(np.abs(vals))
+        vals = vals[np.isfinite(vals)]
+        lim = float(np.abs(vals).max()) if vals.size else 0.0
         for row, (kind, K) in enumerate((("min", maps.K_joint_min), ("max", maps.K_joint_max))):
+            if not vals.size:
+                axes[row, col].set_title(f"{kind} K_θ{i + 1} (N·m/rad)", fontsize=9)
+                _no_data(axes[row, col], "in the four-cable WFW", n)
+                continue
             im = _joint_image(axes[row, col], maps.half_alpha, K[..., i], f"{kind} K_θ{i + 1} (N·m/rad)",
                               cmap="RdBu_r", vmin=-lim, vmax=lim)
             fig.colorbar(im, ax=axes[row, col], shrink=0.8)
@@ -482,14 +496,19 @@ def plot_cartesian_stiffness(d: Design, n: int = 300) -> Any:
     for col, (i, name) in enumerate(((0, "K_x"), (1, "K_y"))):
         vals = np.concatenate([maps.K_c_min[..., i].ravel(), maps.K_c_max[..., i].ravel()])
         pos = vals[np.isfinite(vals) & (vals > 0)]
-        lo, hi = np.percentile(pos, [2, 98])
+        if pos.size:
+            lo, hi = np.percentile(pos, [2, 98])
+            hi = max(hi, lo * (1.0 + 1e-9))  # one value: LogNorm needs vmin < vmax
         for row, (kind, K) in enumerate((("min", maps.K_c_min), ("max", maps.K_c_max))):
             k = K[..., i]
             sel = np.isfinite(k) & (k > 0)
             ax = axes[row, col]
+            ax.set_title(f"{kind} {name} (N/m)", fontsize=9)
+            if not pos.size:
+                _no_data(ax, "in the four-cable WFW with a positive stiffness", n)
+                continue
             sc = ax.scatter(xy[sel, 0], xy[sel, 1], c=k[sel], s=1, norm=LogNorm(lo, hi), cmap="viridis")
             ax.set_aspect("equal")
-            ax.set_title(f"{kind} {name} (N/m)", fontsize=9)
             ax.set_xlabel("x / L")
             ax.set_ylabel("y / L")
             fig.colorbar(sc, ax=ax, shrink=0.8)
@@ -497,17 +516,31 @@ def plot_cartesian_stiffness(d: Design, n: int = 300) -> Any:
     return fig
 
 
-def _save(plt: Any, fig: Any, path: Path) -> None:
-    """``fig`` as PNG in ``path``, written whole (bridge.archive.atomic_write): a full disk or a
-    Ctrl-C leaves the previous figure or none, never a truncated one."""
-    from bridge.archive import atomic_write
-
+def _png(plt: Any, make: Any) -> bytes:
+    """The figure ``make()`` draws, as PNG bytes (the figure closed)."""
+    fig = make()
     buffer = io.BytesIO()
     try:
         fig.savefig(buffer, dpi=110, format="png")
     finally:
         plt.close(fig)
-    atomic_write(path, buffer.getvalue())
+    return buffer.getvalue()
+
+
+def _write_all(plt: Any, out: Path, jobs: dict[str, Any]) -> list[Path]:
+    """Draw every figure of ``jobs`` (file name -> drawing function) first, then write them, each
+    whole (bridge.archive.atomic_write): an error while drawing leaves no figure of the set written
+    (before, 8 of 9 PNGs were left behind), a full disk or a Ctrl-C the previous file or none,
+    never a truncated one. ``out`` is made only once the figures are drawn."""
+    from bridge.archive import atomic_write
+
+    drawn = {name: _png(plt, make) for name, make in jobs.items()}
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, data in drawn.items():
+        atomic_write(out / name, data)
+        written.append(out / name)
+    return written
 
 
 def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> list[Path]:
@@ -516,8 +549,6 @@ def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> l
     :class:`ValueError` for a grid :func:`grid_problem` refuses, before anything is computed."""
     _check_grid("2x", n)
     plt = _plt()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     d = prototype_2x() if design is None else design
     same = Design(**{**_fields(d), "k_l": (90.0, 90.0), "k_r": (90.0, 90.0)})
     designs = [(1.0, 2 / 5), (1.0, 2 / 3), (1.0, 9 / 10)]
@@ -532,11 +563,7 @@ def write_2x_figures(out: Path, n: int = 300, design: Design | None = None) -> l
         "2x_joint_stiffness.png": lambda: plot_joint_stiffness(d, n),
         "2x_cartesian_stiffness.png": lambda: plot_cartesian_stiffness(d, n),
     }
-    written = []
-    for name, make in jobs.items():
-        _save(plt, make(), out / name)
-        written.append(out / name)
-    return written
+    return _write_all(plt, Path(out), jobs)
 
 
 def _fields(d: Design) -> dict[str, Any]:
@@ -581,10 +608,15 @@ def plot_3x_stiffness(mp: Maps3X) -> Any:
     fig, axes = plt.subplots(2, 3, figsize=(13, 8), constrained_layout=True)
     for j in range(3):
         lo, hi = mp.K_lo[:, :, k, j], mp.K_hi[:, :, k, j]
-        vmax = np.nanmax(hi)
-        vmin = min(np.nanmin(lo), 0.0)
+        feasible = bool(np.isfinite(hi).any() and np.isfinite(lo).any())
+        vmax = float(np.nanmax(hi)) if feasible else 0.0
+        vmin = min(float(np.nanmin(lo)), 0.0) if feasible else 0.0
         for row, (name, z) in enumerate((("lowest tension", lo), ("highest tension", hi))):
             ax = axes[row, j]
+            if not feasible:
+                ax.set_title(f"K_{j + 1}{j + 1}, {name} (N·m/rad)", fontsize=9)
+                _no_data(ax, f"wrench-feasible at α3 = {a[k]:.0f}°", a.size)
+                continue
             im = ax.pcolormesh(a, a, z.T, shading="nearest", cmap="viridis", vmin=vmin, vmax=vmax)
             ax.set_aspect("equal")
             ax.set_xlabel("α1 (deg)")
@@ -608,14 +640,8 @@ def write_3x_figures(out: Path, n: int = 31, params: Any = None, maps: Maps3X | 
     from twin.model.params import load_params
 
     plt = _plt()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     params = load_params() if params is None else params
     lim = params.limits
     mp = maps_3x(build(params), lim.f_min, lim.f_max, n=n) if maps is None else maps
-    written = []
-    for name, draw in (("3x_wfw.png", lambda: plot_3x_wfw(mp, lim.f_min, lim.f_max)),
-                       ("3x_stiffness.png", lambda: plot_3x_stiffness(mp))):
-        _save(plt, draw(), out / name)
-        written.append(out / name)
-    return written
+    return _write_all(plt, Path(out), {"3x_wfw.png": lambda: plot_3x_wfw(mp, lim.f_min, lim.f_max),
+                                       "3x_stiffness.png": lambda: plot_3x_stiffness(mp)})
