@@ -375,6 +375,8 @@ def test_identify_refuses_to_replace_an_earlier_identifications_parameter_set(xn
     forced = xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again), "--force")
     assert forced.returncode == 0, forced.stderr
     assert sets[0].stat().st_mtime > 1.0
+    # the module's campaign is a control test: identified as asked, and said (user audit of session 45)
+    assert f"warning: {campaign} is a control campaign, not an identification one" in forced.stderr, forced.stderr
 
 
 def _without_files(doc: dict) -> dict:
@@ -438,7 +440,7 @@ def test_identify_says_when_alpha_ip_is_stamped_off_the_encoders_time(xneck, cam
     assert timing["resolved"] and 0.032 < timing["delay_s"] < 0.048, timing
     clean = xneck("identify", str(campaign), "--no-alpha-hat", "--out", str(tmp_path / "clean"))
     assert clean.returncode == 0, clean.stderr
-    assert "α_IP timing: best matched" in clean.stdout and "warning" not in clean.stderr, clean.stderr
+    assert "α_IP timing: best matched" in clean.stdout and "warning: α_IP timing" not in clean.stderr, clean.stderr
 
 
 # -- 8. numbers that make no sense ---------------------------------------------------------------------------

@@ -128,6 +128,12 @@ def identify(
                                          ident.params, ident.report)
     from twin.identification.timing import alpha_ip_timing
 
+    if ident.data.kind not in ("", "identification"):
+        # allowed (a researcher may), but said: nothing but an identification campaign's excitation
+        # was designed to identify k and λ (user audit of session 45: silent)
+        typer.echo(f"warning: {campaign} is a {ident.data.kind} campaign, not an identification one: its "
+                   f"trajectory was not chosen to excite the friction and stiffness models (their σ below say how "
+                   f"well it did); validate on it instead (--validate)", err=True)
     timing = alpha_ip_timing(ident.data)
     if timing.warn:  # also under --json: the fit used shifted α_IP
         typer.echo(f"warning: {timing.text()}", err=True)

@@ -82,6 +82,7 @@ class CampaignData:
         used, to set the filter cutoff (:func:`cutoff_rule`), so it need not be aligned with t_s.
     notes: what the reader of an archive set aside and why (stray messages dropped:
         :func:`twin.identification.record.campaign_data_from_mcap`), for the report; () if nothing.
+    kind: the campaign's kind as its archive says (``identification``, ``control``, ...); "" unknown.
 
     Raises :class:`IdentificationError` on wrong shapes, NaNs, non-increasing times, too few
     samples, or camera frames that do not cover the encoder record.
@@ -95,6 +96,7 @@ class CampaignData:
     campaign: str = "unnamed"
     excitation_alpha_rad: FloatArray | None = None
     notes: tuple[str, ...] = ()
+    kind: str = ""
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, dtype=float)

@@ -200,7 +200,7 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     if excitation is not None and trajectory_json and len(t) >= 2:
         alpha_d = excitation(trajectory_json, t[order])
     return CampaignData(t[order], theta[order], force[order], t_ip[order_ip], alpha[order_ip], campaign=campaign,
-                        excitation_alpha_rad=alpha_d, notes=tuple(notes))
+                        excitation_alpha_rad=alpha_d, notes=tuple(notes), kind=str(camp.info.get("kind", "")))
 
 
 class Identification(NamedTuple):
