@@ -12,6 +12,7 @@ import re
 import time
 from dataclasses import replace
 
+import msgspec
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -508,6 +509,12 @@ def test_a_video_of_a_campaign_is_aligned_within_one_frame(tmp_path, params, mod
     short = write_campaign(tmp_path / "short.mcap", truths[:50], {"campaign_id": "c2"})
     r = CliRunner().invoke(app, ["camera", "align", str(video), str(short), "--out", str(tmp_path / "x.mcap")])
     assert r.exit_code == 2 and "never overlap" in r.output
+    # Another motion (user audit of session 45: written with exit 0, rms 7°, drift -108 %): refused.
+    other = write_campaign(tmp_path / "other.mcap", [(k, ns, msgspec.structs.replace(m, alpha_rad=(-np.array(m.alpha_rad)).tolist()))
+                                                     for k, ns, m in truths], {"campaign_id": "c3"})
+    r = CliRunner().invoke(app, ["camera", "align", str(video), str(other), "--out", str(tmp_path / "y.mcap")])
+    assert r.exit_code == 2 and "does not match this campaign's motion" in r.output, r.output
+    assert not (tmp_path / "y.mcap").exists()
 
 
 def test_detection_health_in_the_console(tmp_path) -> None:

@@ -195,8 +195,19 @@ def _mse(video: VideoAlpha, ref: Reference, offset: float, drift: float, min_fra
     return (float(np.mean(e**2)) if len(e) else math.inf), int(inside.sum())
 
 
+#: deg: the residual above which a video is not this campaign's (a match is within about 1°, the
+#: camera's noise and α̂'s model error; another motion left 7-28°, written with exit 0: user audit
+#: of session 45)
+ALIGN_RMS_MAX_DEG = 4.0
+#: the clock drift (s/s) beyond which an alignment is not a clock's: a crystal is within 1e-4, a
+#: container declaring 30 fps for 29.97 is 1e-3 off; the audit's wrong video fitted -1.08
+ALIGN_DRIFT_MAX = 5e-3
+
+
 def align(video: VideoAlpha, ref: Reference, estimate_drift: bool = True, min_overlap: float = 0.5) -> Alignment:
-    """Offset (s) and drift of the video's clock against the campaign's (see the module doc)."""
+    """Offset (s) and drift of the video's clock against the campaign's (see the module doc).
+    Raises :class:`AlignmentError` when the best one is no match: a residual above
+    ``ALIGN_RMS_MAX_DEG`` or a drift beyond ``ALIGN_DRIFT_MAX`` (another campaign's video)."""
     if video.alpha_rad.shape[1] != ref.alpha_rad.shape[1]:
         raise AlignmentError(f"the video has {video.alpha_rad.shape[1]} joints, the campaign {ref.alpha_rad.shape[1]}")
     min_frames = max(10, int(min_overlap * len(video.t_s)))
@@ -226,7 +237,13 @@ def align(video: VideoAlpha, ref: Reference, estimate_drift: bool = True, min_ov
                        options={"xatol": 1e-5, "fatol": 1e-12, "initial_simplex": [[offsets[best]], [offsets[best] + step]]})
         offset, drift = float(res.x[0]), 0.0
     mse, used = _mse(video, ref, offset, drift, min_frames)
-    return Alignment(offset_s=offset, drift=drift, rms_deg=math.degrees(math.sqrt(mse)), frames_used=used,
+    rms_deg = math.degrees(math.sqrt(mse))
+    if not rms_deg <= ALIGN_RMS_MAX_DEG or abs(drift) > ALIGN_DRIFT_MAX:
+        raise AlignmentError(f"the video does not match this campaign's motion: its best alignment (offset "
+                             f"{offset:+.4f} s, drift {drift * 1e6:+.0f} ppm) leaves {rms_deg:.2f}° rms against its "
+                             f"{ref.name} over {used} frames (a match: within {ALIGN_RMS_MAX_DEG:g}° and "
+                             f"{ALIGN_DRIFT_MAX * 1e6:.0f} ppm); is it another campaign's video?")
+    return Alignment(offset_s=offset, drift=drift, rms_deg=rms_deg, frames_used=used,
                      runner_up_offset_s=float(offsets[runner]),
                      runner_up_rms_deg=math.degrees(math.sqrt(costs[runner])) if np.isfinite(costs[runner]) else math.inf)
 
