@@ -394,3 +394,17 @@ def test_xneck_camera_align_says_how_many_frames_the_video_lost_and_keeps_the_ti
     assert np.abs(np.array([f.capture_stamp_s for f in frames]) - (offset + kept / FPS)).max() < 0.005
     r = CliRunner().invoke(app, ["camera", "align", str(hole), str(camp), "--out", str(tmp_path / "b.mcap")])
     assert r.exit_code == 0 and "89 of the 90 frames" in r.output, r.output
+
+
+def test_xneck_camera_on_a_video_without_a_frame_says_nothing_was_published(tmp_path) -> None:
+    """User audit of session 45: a video of zero frames replayed '0 frames', exit 0."""
+    from busutil import bus_pair
+
+    empty = tmp_path / "zero.avi"
+    writer = cv2.VideoWriter(str(empty), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (64, 48))
+    writer.release()
+    with bus_pair() as (hub, _session, _connect):
+        done = subprocess.run([sys.executable, "-m", "server.cli", "camera", "--source", f"file:{empty}", "--fast",
+                               "--frame-rate-hz", "0", "--connect", hub], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "no frame decoded: nothing was published" in done.stderr, done.stderr[-3000:]
+    assert "Traceback" not in done.stderr

@@ -266,6 +266,11 @@ def camera(
         # Everything that decoded was published, with its own time; the exit code is what tells a
         # script that this video was not whole (a frame the recorder dropped is not damage: exit 0).
         raise typer.Exit(1)
+    if kind == "file" and count == 0 and lost is None and not stop.is_set():
+        # a video without one frame published nothing: not a replay that went well (user audit of
+        # session 45: '0 frames', exit 0)
+        typer.secho(f"error: {source}: no frame decoded: nothing was published", err=True, fg="red")
+        raise typer.Exit(1)
     if lost is not None:
         typer.secho(f"error: {lost}", err=True, fg="red")
         raise typer.Exit(1)
