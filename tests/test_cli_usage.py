@@ -446,6 +446,13 @@ def test_identify_says_when_alpha_ip_is_stamped_off_the_encoders_time(xneck, cam
 # -- 8. numbers that make no sense ---------------------------------------------------------------------------
 
 
+def test_the_twin_refuses_no_camera_with_an_alpha_ip_it_would_not_publish(xneck):
+    """User audit of session 45: `xneck twin --no-camera --alpha-ip camera` was accepted and the
+    twin published no α_IP at all."""
+    _refused(xneck("twin", "--no-camera", "--alpha-ip", "camera", "--listen", "tcp/127.0.0.1:0", timeout=60),
+             "--no-camera", "--alpha-ip camera")
+
+
 @pytest.mark.parametrize("argv, said", [
     (["identify", "{junk}", "--threshold", "nan"], "--threshold"),
     (["identify", "{junk}", "--threshold", "0"], "--threshold"),

@@ -246,6 +246,9 @@ def bridge(
     params = load_cli_params(params_file, overrides)
     if lockstep and driver != "twin":
         raise fail("--lockstep needs --driver twin: real motors cannot wait for the controller")
+    if no_camera and alpha_ip != "noise":
+        # accepted, the twin then published no α_IP at all (user audit of session 45)
+        raise fail(f"--no-camera and --alpha-ip {alpha_ip}: the twin's α_IP is off with --no-camera; choose one")
     try:
         config = BridgeConfig(command_timeout_s=command_timeout, hold_ramp_s=hold_ramp, lockstep=lockstep,
                               max_force_step_N=max_force_step, max_force_rate_N_s=max_force_rate,
