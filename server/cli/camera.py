@@ -434,6 +434,6 @@ def align(
     if json_out:
         echo_json({**provenance, "out": str(target)}, indent=None)
         return
-    typer.echo(f"offset {result.offset_s:+.4f} s, drift {result.drift:+.2e}, rms {result.rms_deg:.3f}° against {ref.name} "
+    typer.echo(f"offset {result.offset_s:+.4f} s, drift {result.drift * 1e6:+.1f} ppm, rms {result.rms_deg:.3f}° against {ref.name} "
                f"over {result.frames_used} frames (next best: {result.runner_up_offset_s:+.3f} s, {result.runner_up_rms_deg:.2f}°)")
     typer.echo(f"wrote {target}")
