@@ -206,6 +206,18 @@ def test_cli_render_then_detect_json(tmp_path) -> None:
     assert r.exit_code == 0, r.output
     out = json.loads(runner.invoke(app, ["camera", "detect", str(covered), "--json"]).stdout)
     assert out["alpha_deg"][2] is None and out["confidence"][2] == 0.0
+    # A JPEG whose EXIF says "rotate 90°" (a phone's): its pixels as stored, the calibration's size
+    # (user audit of session 45: OpenCV turned it, refused as 720×1280)
+    from PIL import Image
+
+    turned = tmp_path / "exif6.jpg"
+    image = Image.open(frame)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    image.save(turned, quality=95, exif=exif)
+    r = runner.invoke(app, ["camera", "detect", str(turned), "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["alpha_deg"] == pytest.approx([12.0, -25.0, 33.0], abs=1.0)
     cal = tmp_path / "cal.json"
     cal.write_text("[]")
     r = runner.invoke(app, ["camera", "detect", str(frame), "--calibration", str(cal)])

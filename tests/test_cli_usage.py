@@ -466,6 +466,8 @@ def test_the_twin_refuses_no_camera_with_an_alpha_ip_it_would_not_publish(xneck)
     (["twin", "calibrate", "{junk}", "--out", "{tmp}/c.toml", "--horizon", "nan"], "--horizon"),
     (["camera", "render", "--alpha", "0", "0", "0", "--out", "{tmp}/f.png", "--noise", "nan"], "--noise"),
     (["up", "--exit-after", "nan", "--data-dir", "{tmp}/data"], "--exit-after"),
+    (["camera", "--source", "twin", "--rate", "1e9"], "≤ 1000 frames per second"),  # user audit of session 45
+    (["camera", "--source", "file:{junk}", "--t0", "1e17"], "≤ 1e+10 s"),
 ])
 def test_a_non_finite_or_negative_number_is_refused(xneck, tmp_path, argv, said):
     junk = tmp_path / "junk.mcap"

@@ -24,7 +24,6 @@ import typer
 
 from server.cli.options import (
     CONNECT_OPTION,
-    FINITE,
     INSTANCE_OPTION,
     LISTEN_OPTION,
     NON_NEGATIVE,
@@ -38,6 +37,7 @@ from server.cli.options import (
     echo_json,
     fail,
     load_cli_params,
+    number,
     open_bus,
     write_failed,
 )
@@ -147,7 +147,8 @@ def camera(
     ctx: typer.Context,
     source: str | None = typer.Option(None, "--source", help="usb:N, /dev/videoN, file:VIDEO or twin (frames rendered from xneck/twin/truth)."),
     calibration: Path | None = CALIBRATION_OPTION,
-    rate: float = typer.Option(30.0, "--rate", callback=POSITIVE, help="twin: frames per second of simulated time."),
+    rate: float = typer.Option(30.0, "--rate", callback=number(high=1000.0, unit=" frames per second"),
+                               help="twin: frames per second of simulated time (at most 1000)."),
     latency: float | None = typer.Option(None, "--latency", help="s from exposure to publication (twin) or to grab (usb); default: the parameter file's sensors.camera_latency."),
     seed: int = typer.Option(0, "--seed", min=0, help="twin: seed of the sensor noise (≥ 0)."),
     noise: float = typer.Option(2.0, "--noise", callback=NON_NEGATIVE, help="twin: sensor noise σ, grey levels."),
@@ -156,7 +157,10 @@ def camera(
     frame_rate_hz: float = typer.Option(5.0, "--frame-rate-hz", min=0.0, max=30.0, callback=NON_NEGATIVE, help="JPEG frames per second (of the source's clock) on xneck/camera/frame, for the console and campaign archives (0: none)."),
     jpeg_quality: int = typer.Option(75, "--jpeg-quality", min=10, max=95, help="JPEG quality of those frames."),
     realtime: bool = typer.Option(True, "--realtime/--fast", help="file: replay at the video's frame rate, or as fast as detection runs."),
-    t0: float = typer.Option(0.0, "--t0", callback=FINITE, help="file: time stamp of the first frame (s)."),
+    # beyond 1e10 s (the year 2286 as a Unix time) a float's resolution is no longer a frame's
+    # (user audit of session 45: --t0 1e17 stamped every frame alike)
+    t0: float = typer.Option(0.0, "--t0", callback=number(-1e10, strict=False, high=1e10, unit=" s"),
+                             help="file: time stamp of the first frame (s, |t0| ≤ 1e10)."),
     max_frames: int | None = typer.Option(None, "--max-frames", min=1, help="Stop after this many frames."),
     idle_timeout: float | None = typer.Option(None, "--idle-timeout", callback=POSITIVE,
                                               help="twin: stop after this long without truth (s)."),

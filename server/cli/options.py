@@ -38,17 +38,19 @@ INSTANCE_OPTION = typer.Option("", "--instance", callback=_check_instance,
                                help="Name on the bus (default: a random one).")
 
 
-def number(low: float = 0.0, *, strict: bool = True, inf: bool = False):
+def number(low: float = 0.0, *, strict: bool = True, inf: bool = False, high: float = math.inf, unit: str = ""):
     """Typer callback for a float option: a number above ``low`` (at least ``low`` unless
-    ``strict``), finite unless ``inf``; None (an unset option) passes. Click's own ``min``
-    lets NaN through (every comparison with it is false), which silently disabled checks such as
-    ``--threshold nan`` or made ``--idle-timeout nan`` wait for ever."""
+    ``strict``) and at most ``high``, finite unless ``inf``; None (an unset option) passes. Click's
+    own ``min`` lets NaN through (every comparison with it is false), which silently disabled
+    checks such as ``--threshold nan`` or made ``--idle-timeout nan`` wait for ever."""
 
     def callback(ctx: typer.Context, param: typer.CallbackParam, value: float | None) -> float | None:
         if value is None or ctx.resilient_parsing:
             return value
-        if math.isnan(value) or not (value > low if strict else value >= low) or (math.isinf(value) and not inf):
+        if (math.isnan(value) or not (value > low if strict else value >= low) or (math.isinf(value) and not inf)
+                or value > high):
             bound = "" if low == -math.inf else f" {'>' if strict else '≥'} {low:g}"
+            bound += "" if high == math.inf else f"{' and' if bound else ''} ≤ {high:g}{unit}"
             raise fail(f"{param.opts[0] if param.opts else param.name}: must be a {'' if inf else 'finite '}"
                        f"number{bound}, got {value}")
         return value

@@ -38,7 +38,9 @@ def read_frame(path: str | Path, width: int, height: int) -> np.ndarray:
         raise ImageFileError(f"the {kind.upper()} image is {w}×{h} px (its header says), the calibration's "
                              f"{width}×{height}: refused before decoding")
     try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        # the pixels as stored: an EXIF orientation would turn the image away from the size its header
+        # says and the calibration's (user audit of session 45: 'frame is 720×1280')
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error as exc:
         raise ImageFileError(f"OpenCV cannot decode it ({str(exc).strip().splitlines()[-1]})") from None
     if image is None:
