@@ -408,3 +408,35 @@ def test_xneck_camera_on_a_video_without_a_frame_says_nothing_was_published(tmp_
                                "--frame-rate-hz", "0", "--connect", hub], capture_output=True, text=True, timeout=120)
     assert done.returncode == 1 and "no frame decoded: nothing was published" in done.stderr, done.stderr[-3000:]
     assert "Traceback" not in done.stderr
+
+
+def test_xneck_camera_replay_stopped_by_ctrl_c_says_it_was_interrupted(rendered_clip, tmp_path) -> None:
+    """User audit of session 45: Ctrl-C 2.5 s into a 10 s replay printed '49 frames', exit 0."""
+    import signal
+
+    from busutil import bus_pair, wait_until
+
+    from bridge import bus
+
+    cap, clip = cv2.VideoCapture(str(rendered_clip[0])), []
+    while (read := cap.read())[0]:
+        clip.append(read[1])
+    cap.release()
+    video = write_video(tmp_path / "long.avi", clip * 10)  # 10 s at 30 fps, replayed in real time
+    with bus_pair() as (hub, session, _connect):
+        got: list = []
+        sub = session.declare_subscriber(bus.CAMERA_ALPHA, lambda s: got.append(s))
+        proc = subprocess.Popen([sys.executable, "-m", "server.cli", "camera", "--source", f"file:{video}",
+                                 "--frame-rate-hz", "0", "--connect", hub], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            assert wait_until(lambda: len(got) > 0, 60.0)
+            proc.send_signal(signal.SIGINT)
+            _out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
+            sub.undeclare()
+    assert proc.returncode == 130, err[-3000:]
+    assert "interrupted: " in err and "of the 300 it declares" in err and "Traceback" not in err, err[-3000:]

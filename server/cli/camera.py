@@ -270,6 +270,13 @@ def camera(
         # Everything that decoded was published, with its own time; the exit code is what tells a
         # script that this video was not whole (a frame the recorder dropped is not damage: exit 0).
         raise typer.Exit(1)
+    if (isinstance(frames, FileSource) and stop.is_set() and not frames.ended
+            and (max_frames is None or count < max_frames)):
+        # Ctrl-C or SIGTERM before the video's end: not a replay that went through (user audit of
+        # session 45: '49 frames', exit 0, like a whole one)
+        declared = f" of the {frames.declared} it declares" if frames.declared else ""
+        typer.secho(f"interrupted: {count} frames of {source} published{declared}", err=True, fg="yellow")
+        raise typer.Exit(130)
     if kind == "file" and count == 0 and lost is None and not stop.is_set():
         # a video without one frame published nothing: not a replay that went well (user audit of
         # session 45: '0 frames', exit 0)
