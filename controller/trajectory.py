@@ -754,8 +754,8 @@ BRAKE_ACCELERATION_MAX_RAD_S2 = 3.0  # the trajectories' own bound (TrajectoryLi
 BRAKE_DURATION_MIN_S = 0.05  # s: a stop at (almost) rest still ends smoothly over 25 ticks
 #: rad/s³: how fast a stop lets go of the acceleration α^d had (:func:`brake_at`): 0.24 rad/s² a
 #: tick at 500 Hz, over 0.22 s from 3 rad/s². Starting the brake at α̈ = 0 had stepped the law's
-#: feed-forward 2.35 N in one tick at 2.9 rad/s², 0.74 N now (session 45). 60 rad/s³ had made the
-#: release overlap the deceleration and the stop travel 7.4° instead of 4.8° (the same now).
+#: forces up to 3.33 N in one tick, 0.62-1.13 N now (docs/safety/stop_brake.py, session 45). 60
+#: rad/s³ had made the release overlap the deceleration and the stop travel further.
 BRAKE_JERK_MAX_RAD_S3 = 120.0
 #: rad/s²: the acceleration a stop lets go of is clipped to this first (a validated trajectory,
 #: its resume ramp or a blend reach about 5.5; nothing sane beyond: review of session 45).
