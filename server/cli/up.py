@@ -556,13 +556,16 @@ def up(
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         while not stop["signal"]:
             polled = time.monotonic()
-            # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg) judges nothing: the
-            # pings' age grew with its own pause (audit of 2026-11-26: a healthy bridge killed).
-            late, last_pass = polled - last_pass > BRIDGE_HUNG_S / 2, polled
+            # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg, the children with it)
+            # does not count its own lateness: the pings' age grew with the pause (audit of
+            # 2026-11-26: a healthy bridge killed). Subtracted, not skipped: a supervisor late on
+            # every pass (a starved CPU) had never judged a hung bridge (final CI of session 45).
+            lateness_s, last_pass = max(0.0, polled - last_pass - 0.2), polled
             hung: dict[str, str] = {}
             for name, pings, limit_s in (("bridge", watch, BRIDGE_HUNG_S), ("controller", controller_watch,
                                                                             CONTROLLER_HUNG_S)):
-                age = pings.age_s() if pings is not None and not late else None
+                raw = pings.age_s() if pings is not None else None
+                age = None if raw is None else raw - lateness_s
                 if age is not None and age > limit_s and procs[name].poll() is None:
                     procs[name].kill()  # hung: SIGTERM would wait on a loop that does not run
                     procs[name].wait(STOP_GRACE_S)
