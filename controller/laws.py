@@ -80,12 +80,14 @@ class LawConfig:
     # never binds on smooth tracking (steps stay below 5 N); math.inf turns it off.
     force_rate_max_N_s: float = 5000.0
     # The most α̂̇'s new sample may differ from its filtered value, per second of the gap (rad/s²;
-    # 0.5 rad/s in a 2 ms tick). Not from the paper: a cable that goes slack under the motors'
+    # 0.1 rad/s in a 2 ms tick). Not from the paper: a cable that goes slack under the motors'
     # stiction lets its motor cross the gear's backlash (0.44 rad) within a tick, α̂ jumps by
     # about 0.5° and the k_v term of eq. 59 answered with 10 N a tick, the force rate bound, for
-    # 2-4 ticks, 26 N in all, even while idle at law 2 (robot truth; session 44). Smooth tracking
-    # stays well inside it (|sample − filtered| p99 0.1 rad/s, docs/safety.md); math.inf: no bound.
-    alpha_hat_accel_max_rad_s2: float = 250.0
+    # 2-4 ticks, 26 N in all, even while idle at law 2 (robot truth; session 44), and with 250
+    # rad/s² still one tick of 8-9.5 N (session 46). 50 is 16 times the trajectories' 3 rad/s²
+    # and above the neck's own p99.9 (14-34 rad/s², slack cables included); the noise of smooth
+    # tracking (|sample − filtered| p99 0.1 rad/s) is trimmed at it (docs/safety.md); math.inf: no bound.
+    alpha_hat_accel_max_rad_s2: float = 50.0
 
     def __post_init__(self) -> None:
         if self.law not in LAWS:

@@ -12,11 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from controller.laws import ComputedTorque, LawConfig
+from bridge.motor_speed import MotorSpeed
+from bridge.safety import Inputs, Safety, SafetyConfig
+from controller.laws import ComputedTorque, LawConfig, encoder_hold_forces
 from controller.offline import run_closed_loop
+from controller.service import CampaignService
 from controller.trajectory import identification_trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import TwinConfig
+from twin.sim.simulator import Twin, TwinConfig
 
 BACKLASH_RAD = 0.44  # robot_truth.toml [actuation] backlash_rad
 
@@ -51,7 +54,8 @@ def test_an_encoder_jump_is_not_taken_for_a_speed(params):
     """Session 44: at rest (law 2 idle on the robot truth, 0.64 s after the first enable) a cable
     under the motors' stiction lets its motor cross the backlash within a tick; the α̂̇ filter took
     the jump of α̂ for a speed and the k_v term stepped the forces 10 N a tick for 2-4 ticks. α̂̇'s
-    new sample now differs from the filtered value by at most ``alpha_hat_accel_max_rad_s2``·dt."""
+    new sample now differs from the filtered value by at most ``alpha_hat_accel_max_rad_s2``·dt,
+    so the filtered α̂̇ changes by no more in a tick."""
     for law in (1, 2, 3):
         unbounded = LawConfig(law=law, alpha_hat_accel_max_rad_s2=math.inf)
         config = LawConfig(law=law)
@@ -63,10 +67,11 @@ def test_an_encoder_jump_is_not_taken_for_a_speed(params):
             for _ in range(200):
                 ctl.step(theta, zero, zero, zero)
             theta[1] += BACKLASH_RAD
-            peak = 0.0
-            for _ in range(20):
+            peak, before = 0.0, ctl.alpha_hat_dot.copy()
+            for _ in range(20):  # the largest change of the filtered α̂̇ in a tick
                 ctl.step(theta, zero, zero, zero)
-                peak = max(peak, float(np.abs(ctl.alpha_hat_dot).max()))
+                peak = max(peak, float(np.abs(ctl.alpha_hat_dot - before).max()))
+                before = ctl.alpha_hat_dot.copy()
             speeds[c] = peak
         assert speeds[unbounded] > 3 * speed_bound  # the jump read as a speed
         assert speeds[config] <= speed_bound + 1e-9
@@ -74,6 +79,41 @@ def test_an_encoder_jump_is_not_taken_for_a_speed(params):
                          for c in (unbounded, config))
         print(f"law {law}: peak force change after the jump {free:.1f} N unbounded, {bounded:.1f} N bounded")
         assert bounded < 0.75 * free
+
+
+def _idle_after_enable(params, law: int, config: LawConfig, seconds: float = 1.2) -> tuple[float, float]:
+    """The campaign service idle at the straight neck from the first enable, closed on the robot
+    truth through the bridge's safety rules: (largest encoder change in a tick, rad; largest
+    change of the applied forces in a tick after the first 10, N)."""
+    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+    svc = CampaignService(params, config, settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 1.0 / config.rate_hz)
+    tick = twin.tick(np.zeros(params.n_cables))
+    speed.update(tick.theta_meas.tolist())
+    svc.initialise(tick.theta_meas)
+    applied, theta = [], []
+    for _ in range(round(seconds * config.rate_hz)):
+        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0, estop=(),
+                               hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
+        applied.append(np.asarray(d.force_N, dtype=float))
+        theta.append(tick.theta_meas.copy())
+        tick = twin.tick(applied[-1])
+        speed.update(tick.theta_meas.tolist())
+    jump = float(np.abs(np.diff(np.array(theta), axis=0)).max())
+    return jump, float(np.abs(np.diff(np.array(applied[10:]), axis=0)).max())
+
+
+def test_a_backlash_crossing_while_idle_after_the_first_enable_moves_the_forces_gently(params):
+    """Session 46: idle at laws 1-2 after the first enable (robot truth), a cable under the motors'
+    stiction lets its motor cross the gear's backlash 0.64 s in; with α̂̇'s sample bounded at 250
+    rad/s² the k_v term still stepped the applied forces 8-9.5 N in one tick. At the default bound
+    (50 rad/s²) it is a ramp."""
+    for law in (1, 2):
+        jump, step = _idle_after_enable(params, law, LawConfig(law=law))
+        assert jump > 0.8 * BACKLASH_RAD  # the backlash is crossed: the case is what is tested
+        assert step < 4.0, f"law {law}: {step:.2f} N in a tick"
 
 
 def test_the_first_command_starts_from_the_applied_forces(params):
