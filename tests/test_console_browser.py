@@ -629,14 +629,14 @@ def test_the_header_says_a_process_of_the_stack_died_or_was_restarted(console):
     assert page.locator("#process-faults").is_hidden()
     # a campaign an earlier test left running would be this fault's victim
     assert wait_until(lambda: console.http.get("/api/system/health").json()["running_campaign_id"] is None, 60, 0.2)
-    reason = "controller process exited (signal SIGKILL), restarted (1 of 2 within 10 min)"
+    reason = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
     told = console.http.post("/api/system/abort", json={"reason": reason}, headers=AUTH)
     assert told.status_code == 200 and told.json()["campaign_id"] is None, told.text  # nothing ran
     page.wait_for_function("!document.querySelector('#process-faults').hidden", timeout=15000)
     text = page.inner_text("#process-faults")
     assert text.startswith(f"STACK: {reason}") and "ago" in text and "since" not in text, text
-    console.http.post("/api/system/abort", json={"reason": "camera process exited (code 3), restarted (1 of 2 "
-                                                           "within 10 min)"}, headers=AUTH)
+    console.http.post("/api/system/abort", json={"reason": "camera process exited (code 3), restarting camera in "
+                                                           "1 s (1 of 2 within 10 min)"}, headers=AUTH)
     page.wait_for_function("document.querySelector('#process-faults').textContent.includes('camera')", timeout=15000)
     assert "(2 process faults since this console started)" in page.inner_text("#process-faults")
     assert "(2 process faults)" in page.inner_text("#sys")

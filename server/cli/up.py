@@ -23,8 +23,9 @@ is restarted silently: if a process exits, the launcher says which, with its exi
 and last log lines, stops the others and exits non-zero. With ``--restarts N`` a controller or a
 camera that exits is restarted instead, saying so the same way, at most N times in
 :data:`RESTART_WINDOW_S` (:data:`RESTARTABLE`: the bridge holds the neck meanwhile and the new
-controller joins its run under way, taking up any slack first); past them the stack stops as
-without. The running campaign ends ``aborted`` naming the death either way. Before it stops them it tells the console
+controller joins its run under way, taking up any slack first), each after a back-off
+(:func:`restart_delay_s`: 1 s, doubled for each earlier restart in the window, at most 30 s)
+during which the other children are judged as ever; past them the stack stops as without. The running campaign ends ``aborted`` naming the death either way. Before it stops them it tells the console
 the cause (``POST /api/system/abort``, :func:`abort_campaign`), so that a running campaign ends
 ``aborted`` naming the process and how it ended, e.g. "bridge process exited (signal SIGKILL)",
 in its record and archive, not the side effect the campaign would see next (the controller
@@ -56,6 +57,7 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -102,6 +104,68 @@ RESTART_WINDOW_S = 600.0
 # (controller.service.CampaignService.initialise); the camera only gives α_IP. A bridge that died
 # could not disable its drives, and the console is what a restart would be told through.
 RESTARTABLE = ("controller", "camera")
+# s before the first restart of a child within RESTART_WINDOW_S, doubled for each further one up to
+# RESTART_DELAY_MAX_S (systemd's RestartSec, with RestartSteps' growth): a child that crashed at
+# start-up was restarted at once, its N restarts used up in a burst of a few seconds (review of
+# session 46), before a transient cause (a busy bus, a slow disk) could pass.
+RESTART_DELAY_S = 1.0
+RESTART_DELAY_MAX_S = 30.0
+
+
+def restart_delay_s(earlier: int) -> float:
+    """Seconds to wait before restarting a child that has been restarted ``earlier`` times within
+    :data:`RESTART_WINDOW_S`: 1, 2, 4, 8, 16, then 30 s (:data:`RESTART_DELAY_S` doubled per
+    earlier restart, at most :data:`RESTART_DELAY_MAX_S`)."""
+    if earlier >= 16:  # 2**16 s is far past the cap: no float overflow for a large count
+        return RESTART_DELAY_MAX_S
+    return min(RESTART_DELAY_S * 2.0 ** max(0, earlier), RESTART_DELAY_MAX_S)
+
+
+class RestartPlan:
+    """Each restartable child's restarts within :data:`RESTART_WINDOW_S` (counted per child, as
+    systemd counts per unit: a flaky camera must not use up the controller's) and the one it waits
+    for, if any. The supervisor's loop asks it on every pass, so that it goes on judging the other
+    children (a bridge that dies meanwhile stops the stack) while a dead one waits its back-off.
+    Times are seconds on the caller's monotonic clock."""
+
+    def __init__(self, restarts: int, window_s: float = RESTART_WINDOW_S) -> None:
+        self.restarts = restarts
+        self.window_s = window_s
+        self.times: dict[str, list[float]] = {name: [] for name in RESTARTABLE}  # when each restart was planned
+        self._due: dict[str, float] = {}  # child -> when it is to be started again
+
+    def forget_old(self, now: float) -> None:
+        """Drop the restarts older than the window: they no longer count, nor lengthen the delay."""
+        for times in self.times.values():
+            times[:] = [t for t in times if now - t < self.window_s]
+
+    def used(self, name: str) -> int:
+        """Restarts of ``name`` within the window (a planned one included)."""
+        return len(self.times.get(name, ()))
+
+    def may_restart(self, name: str) -> bool:
+        """Whether ``name`` is restartable and has a restart left within the window."""
+        return name in self.times and self.used(name) < self.restarts
+
+    def plan(self, name: str, now: float) -> float:
+        """Counts a restart of ``name``, which died at ``now``, and returns its delay (s): due at
+        ``now`` plus :func:`restart_delay_s` of its restarts before it within the window."""
+        delay_s = restart_delay_s(self.used(name))
+        self.times[name].append(now)
+        self._due[name] = now + delay_s
+        return delay_s
+
+    def waiting(self, name: str) -> bool:
+        """Whether ``name`` is dead and waiting for its restart (not a new death to judge)."""
+        return name in self._due
+
+    def due(self, now: float) -> list[str]:
+        """The children whose delay has passed at ``now``, in the order of :data:`RESTARTABLE`; no
+        longer waiting once returned."""
+        ready = [name for name in RESTARTABLE if self._due.get(name, float("inf")) <= now]
+        for name in ready:
+            del self._due[name]
+        return ready
 
 
 SOCKETS_PREFIX = "xneck-up-"  # + the pid of the xneck up that made the folder, "-", random
@@ -403,7 +467,8 @@ def up(
     exit_after: float | None = typer.Option(None, "--exit-after", callback=NON_NEGATIVE, help="Stop everything "
                                             "after this many seconds (tests, demos)."),
     restarts: int = typer.Option(0, "--restarts", min=0, max=100, help="Restart a controller or camera that dies, "
-                                 "at most this many times in 10 minutes (default 0: any death stops the stack). The "
+                                 "at most this many times in 10 minutes (default 0: any death stops the stack), after "
+                                 "1 s, 2 s, 4 s, ... (at most 30 s) for its 1st, 2nd, 3rd, ... restart in them. The "
                                  "bridge holds the neck meanwhile; a running campaign ends aborted naming the death."),
 ) -> None:
     """Start the bridge, the controller and the server as separate processes and print the URL."""
@@ -485,17 +550,25 @@ def up(
         signal.signal(sig, on_signal)
 
     started_with: dict[str, tuple[list[str], dict[str, str] | None]] = {}
-    # per child, as systemd counts per unit: a flaky camera must not use up the controller's
-    restarted: dict[str, list[float]] = {name: [] for name in RESTARTABLE}  # monotonic times within RESTART_WINDOW_S
+    plan = RestartPlan(restarts)  # on time.monotonic()
+    telling: list[threading.Thread] = []  # the console told of restarts, off the loop
+
+    def tell_console(cause: str, ended_within_s: float, colour: str) -> None:
+        typer.secho(abort_campaign(url, _token(data_dir), cause, ended_within_s), err=True, fg=colour)
+
+    def told_before() -> None:
+        """Wait (bounded) for the restarts' messages to the console, so that it hears the causes in order."""
+        for thread in telling:
+            thread.join(ABORT_TIMEOUT_S)
 
     def start(name: str, args: list[str], env: dict[str, str] | None = None) -> None:
         started_with[name] = (args, env)
         log_files[name] = logs / f"{name}.log"
-        if name in RESTARTABLE and restarted[name]:
+        if plan.used(name):
             # where the new process's lines begin: a child that died before writing any had its
             # predecessor's last lines shown as its own (audit of session 44)
             with open(log_files[name], "a", encoding="utf-8") as log:
-                log.write(f"---- xneck up: {name} restarted ({len(restarted[name])} of {restarts}) at "
+                log.write(f"---- xneck up: {name} restarted ({plan.used(name)} of {restarts}) at "
                           f"{time.strftime('%Y-%m-%d %H:%M:%S')} ----\n")
         # The endpoints are given on each command line: a user's XNECK_ZENOH_* must not add others.
         child_env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},
@@ -570,39 +643,43 @@ def up(
                     procs[name].kill()  # hung: SIGTERM would wait on a loop that does not run
                     procs[name].wait(STOP_GRACE_S)
                     hung[name] = f"hung (its loop silent for {age:.1f} s), killed"
-            dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None]
-            for times in restarted.values():
-                times[:] = [t for t in times if polled - t < RESTART_WINDOW_S]
+            for name in plan.due(polled):  # its back-off over
+                if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
+                    with contextlib.suppress(OSError):
+                        (sockets / "controller.sock").unlink()
+                    controller_watch.restarted()
+                start(name, *started_with[name])
+                typer.echo(f"  {name} restarted (pid {procs[name].pid})")
+            # a child waiting for its restart is not a new death
+            dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None and not plan.waiting(n)]
+            plan.forget_old(polled)
             # What stops the stack first (a bridge or console before a child that may be restarted:
             # the bridge's death had been named "camera exited" when both died in one pass).
-            dead.sort(key=lambda d: d[0] in RESTARTABLE and len(restarted[d[0]]) < restarts)
-            if dead and dead[0][0] in RESTARTABLE and len(restarted[dead[0][0]]) < restarts:
+            dead.sort(key=lambda d: plan.may_restart(d[0]))
+            if dead and plan.may_restart(dead[0][0]):
                 causes = []
                 for name, rc in dead:  # every one restartable, with a restart left
                     how = hung.get(name) or f"exited ({exit_how(rc)})"
-                    restarted[name].append(polled)
-                    # said in the cause: the console's header shows it (server.process_faults)
-                    causes.append(f"{name} process {how}, restarted ({len(restarted[name])} of {restarts} "
+                    # Started again by a later pass once its delay is over: this loop goes on judging
+                    # the others meanwhile (the bridge's watchdog holds the neck while the controller is away).
+                    delay_s = plan.plan(name, polled)
+                    restarting = (f"restarting {name} in {delay_s:.0f} s ({plan.used(name)} of {restarts} "
                                   f"within {RESTART_WINDOW_S / 60:.0f} min)")
-                    typer.secho(f"warning: the {name} {how}; restarting it (restart {len(restarted[name])} of "
-                                f"{restarts} within {RESTART_WINDOW_S / 60:.0f} min).\n"
+                    causes.append(f"{name} process {how}, {restarting}")  # the console's header shows it
+                    typer.secho(f"warning: the {name} {how}; {restarting}.\n"
                                 f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
                                 fg="yellow")
-                    if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
-                        with contextlib.suppress(OSError):
-                            (sockets / "controller.sock").unlink()
-                        controller_watch.restarted()
-                    # before the console is told: a console that hangs had held the restart 15 s
-                    start(name, *started_with[name])
-                    typer.echo(f"  {name} restarted (pid {procs[name].pid})")
-                typer.secho(abort_campaign(url, _token(data_dir), "; ".join(causes),
-                                           time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S), err=True, fg="yellow")
+                # Off the loop: a console that hangs had held the restart 15 s (and this loop with it).
+                telling.append(threading.Thread(
+                    target=tell_console, name="xneck-up-abort", daemon=True,
+                    args=("; ".join(causes), time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S, "yellow")))
+                telling[-1].start()
                 seen_alive = last_pass = time.monotonic()
                 continue
             if dead:
                 name, rc = dead[0]
                 how = hung.get(name) or f"exited ({exit_how(rc)})"
-                more = f" ({len(restarted[name])} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
+                more = f" ({plan.used(name)} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
                     if restarts and name in RESTARTABLE else ""
                 also = "".join(f"; the {n} {hung.get(n) or f'exited ({exit_how(c)})'} too" for n, c in dead[1:])
                 typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
@@ -612,6 +689,7 @@ def up(
                     typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
                     drives_set_off = True
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
+                    told_before()
                     typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
                                                time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
                                 err=True, fg="red")
@@ -626,6 +704,7 @@ def up(
             # cause before the controller and the bridge stop: it had recorded their stop's side
             # effect, "the drives were disabled during the campaign" (audit of 2026-11-28).
             why = f"xneck up was stopped ({stop['signal']})" if stop["signal"] else "xneck up reached --exit-after"
+            told_before()
             told = abort_campaign(url, _token(data_dir), why, 0.0)
             if told != "no campaign was running":
                 typer.secho(told, err=True, fg="yellow")
