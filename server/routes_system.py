@@ -114,8 +114,13 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
         log.warning("e-stop %s by %s (%s, %s): %r%s", "engaged" if body.engaged else "released", sent["client"],
                     sent["auth"], sent["user_agent"] or "no user agent", sent["reason"],
                     f"; NOT PUBLISHED: {error}" if error else "")
-        # queued, never written here: a journal that cannot write does not fail the e-stop
-        s.journal.record("estop_sent", **sent, published=not error, error=error)
+        # queued, never written here: a journal that cannot write does not fail the e-stop. The same
+        # request again from the same host (any port: a new connection each) within a second is
+        # counted in one line, not written each: a flood had rotated the journal's older lines out.
+        peer = request.client
+        same = (body.engaged, sent["reason"], peer.host if peer is not None else "", sent["user_agent"],
+                sent["holder"], error)
+        s.journal.record("estop_sent", repeat_key=same, **sent, published=not error, error=error)
     return {"engaged": body.engaged, "reason": body.reason}
 
 

@@ -7,7 +7,22 @@ File: ``<data_dir>/safety/journal.jsonl``, one JSON object a line, newest last. 
 - ``time``: wall-clock time the line was made, ISO 8601 in UTC with microseconds;
 - ``stamp_s``: the same instant in seconds since the Unix epoch (``time.time()``);
 - ``event``: what happened (``estop_sent``, from the console's REST route; ``bridge_run`` and
-  ``bridge_state``, from :mod:`server.bridge_transitions`), then the event's own fields.
+  ``bridge_state``, from :mod:`server.bridge_transitions`), then the event's own fields;
+- ``repeated`` (only on a line that stands for repeats, below): how many identical events this
+  line stands for, the first of them at ``repeated_since`` (ISO 8601, UTC), the last at ``time``.
+
+Repeats are coalesced (:class:`Repeats`): a producer that names what makes its event the same
+(``repeat_key``: the e-stop route gives engage or release, reason, the client's host (any port), its user
+agent, the holder and the outcome) has an event identical to the line just written within
+:data:`REPEAT_WINDOW_S` of it counted, not written; the count is written as one line (the last
+repeat's fields, ``repeated``, ``repeated_since``) when the window ends, every window while they
+go on, or at once when a different event comes, before it. The first event is written at once,
+a different one is never dropped nor reordered, and events without a key (the bridge's
+transitions, whose own limits are in :mod:`server.bridge_transitions`) are never coalesced. A
+token holder flooding the e-stop route (hundreds a second, each engaging) had written a line of
+~320 bytes each: ~15 600 of them rotated the journal and ~31 500 (a minute or two) pushed out the
+previous file and whatever it kept; now such a flood writes about one line a second. The e-stop
+itself acts on every request: only its line is coalesced.
 
 Written by a thread of its own from a bounded queue (:data:`QUEUE_LINES`): neither the e-stop's
 route nor the bus's state path waits for the disk, and neither ever sees a write fail. Each line
@@ -44,7 +59,7 @@ import stat
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -68,12 +83,73 @@ LINE_MAX_BYTES = 64 * 1024  # a longer line is no line of the journal's (about 1
 #: lines a read examines beyond the events it returns, at most: millions of short garbage lines
 #: (someone else's writes) must not cost a read seconds of CPU
 READ_MAX_SKIPPED = 10_000
+#: s after a line during which identical events (the same ``repeat_key``) are counted, not written
+REPEAT_WINDOW_S = 1.0
+
+
+class Repeats:
+    """Which lines to write of events that repeat (module docstring), on the caller's clock
+    (seconds): pure, no thread or file. At most one group of repeats is open: the event last
+    written and the identical ones counted since, so the lines stay in the order events came."""
+
+    def __init__(self, window_s: float = REPEAT_WINDOW_S) -> None:
+        self.window_s = window_s
+        self._key: Hashable | None = None  # of the event last written (None: no group open)
+        self._ends = 0.0  # when the open group's window ends (clock)
+        self._count = 0  # identical events counted in this window, not yet written
+        self._last: dict[str, Any] = {}  # the newest of them
+        self._since = ""  # the ``time`` of the first of them
+
+    def offer(self, key: Hashable | None, line: dict[str, Any], now: float) -> list[dict[str, Any]]:
+        """The lines to write, in order, now that event ``line`` came at ``now``: none if it repeats
+        the open group's (same ``key``, not None, within its window), else the group's count first
+        (if any) and then ``line``."""
+        out = self.expire(now)
+        if key is not None and key == self._key:
+            if self._count == 0:
+                self._since = line.get("time", "")
+            self._count += 1
+            self._last = line
+            return out
+        out += self.close()
+        out.append(line)
+        if key is not None:
+            self._key, self._ends = key, now + self.window_s
+        return out
+
+    def expire(self, now: float) -> list[dict[str, Any]]:
+        """The open group's count, if its window ended by ``now`` (a new window starts: a flood
+        goes on as one line a window); the group closes on a window without repeats."""
+        if self._key is None or now < self._ends:
+            return []
+        if self._count == 0:
+            self._key = None
+            return []
+        out = [self._summary()]
+        self._ends = now + self.window_s
+        return out
+
+    def close(self) -> list[dict[str, Any]]:
+        """The open group's count (if any), now; the group closes."""
+        out = [self._summary()] if self._count else []
+        self._key, self._count = None, 0
+        return out
+
+    def deadline(self) -> float | None:
+        """When the open group's count is due (clock), None when nothing is counted."""
+        return self._ends if self._key is not None and self._count else None
+
+    def _summary(self) -> dict[str, Any]:
+        line = {**self._last, "repeated": self._count, "repeated_since": self._since}
+        self._count, self._last = 0, {}
+        return line
 
 
 class SafetyJournal:
     """The journal of one data directory (module docstring); :meth:`record` never raises."""
 
-    def __init__(self, data_dir: Path, max_bytes: int = MAX_BYTES) -> None:
+    def __init__(self, data_dir: Path, max_bytes: int = MAX_BYTES, repeat_window_s: float = REPEAT_WINDOW_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.dir = Path(data_dir) / JOURNAL_DIR
         self.path = self.dir / JOURNAL_FILE
         self.previous = self.dir / PREVIOUS_FILE
@@ -84,6 +160,8 @@ class SafetyJournal:
         self.last_error = ""  # why the last write failed ("" if none did)
         self._limit = LogLimit(FAILURE_LOG_PERIOD_S)
         self._queue: deque[bytes] = deque()
+        self._repeats = Repeats(repeat_window_s)  # under _cond
+        self._clock = clock  # s, the repeats' windows
         self._cond = threading.Condition()
         self._writing = False
         self._closed = False
@@ -94,22 +172,32 @@ class SafetyJournal:
         self._thread.start()
 
     # -- producers (any thread) -------------------------------------------------------------------
-    def record(self, event: str, **fields: Any) -> None:
+    def record(self, event: str, *, repeat_key: Hashable | None = None, **fields: Any) -> None:
         """Queue one line: ``time``, ``stamp_s`` (now), ``event`` and ``fields`` (JSON values; a
-        value that is not one is written as its ``str``). Never raises, never waits for the disk."""
+        value that is not one is written as its ``str``). Never raises, never waits for the disk.
+        With a ``repeat_key`` (hashable, not written), an event identical to the one just written
+        (same ``event`` and key) within :data:`REPEAT_WINDOW_S` is counted, not written (:class:`Repeats`)."""
         try:
             now_ns = time.time_ns()
             line = {"time": iso_time(now_ns), "stamp_s": now_ns / 1e9, "event": event, **fields}
-            data = (json.dumps(line, ensure_ascii=False, allow_nan=False, default=str) + "\n").encode("utf-8", "replace")
+            _encode(line)  # a line that cannot be written is not a repeat either
         except (TypeError, ValueError) as exc:  # a NaN (no JSON has it): a caller's bug
             self._failed(f"line not encoded ({type(exc).__name__}: {exc})")
             return
         with self._cond:
-            if self._closed or len(self._queue) >= QUEUE_LINES:
+            if self._closed:
                 self.dropped += 1
                 return
-            self._queue.append(data)
+            for out in self._repeats.offer(None if repeat_key is None else (event, repeat_key), line, self._clock()):
+                self._queue_line(out)
             self._cond.notify()
+
+    def _queue_line(self, line: dict[str, Any]) -> None:
+        """Queue ``line`` for the writer (holding ``_cond``), or count it dropped when the queue is full."""
+        if len(self._queue) >= QUEUE_LINES:
+            self.dropped += 1
+            return
+        self._queue.append(_encode(line))
 
     def flush(self, timeout_s: float = 1.0) -> bool:
         """Wait until every line queued so far was written (or failed); False after ``timeout_s``."""
@@ -131,6 +219,10 @@ class SafetyJournal:
     def close(self, timeout_s: float = 2.0) -> None:
         """Write what is queued (within ``timeout_s``) and stop the writer; lines recorded after
         are dropped (counted)."""
+        with self._cond:  # the repeats counted so far are written too
+            for out in self._repeats.close():
+                self._queue_line(out)
+            self._cond.notify()
         self.flush(timeout_s)
         with self._cond:
             self._closed = True
@@ -163,7 +255,16 @@ class SafetyJournal:
         while True:
             with self._cond:
                 while not self._queue and not self._closed:
-                    self._cond.wait()
+                    due = self._repeats.deadline()
+                    if due is None:
+                        self._cond.wait()
+                        continue
+                    now = self._clock()
+                    if now < due:
+                        self._cond.wait(due - now)
+                        continue
+                    for out in self._repeats.expire(now):  # a window of repeats ended: their count
+                        self._queue_line(out)
                 if not self._queue:  # closed and nothing left
                     break
                 data = self._queue.popleft()
@@ -203,6 +304,12 @@ class SafetyJournal:
         held = self._limit.allow()
         if held is not None:
             log.error("the safety journal %s could not be written: %s%s", self.path, reason, LogLimit.tail(held))
+
+
+def _encode(line: dict[str, Any]) -> bytes:
+    """One journal line: ``line`` as JSON (a value JSON has not written as its ``str``; a NaN
+    raises ValueError) and its newline."""
+    return (json.dumps(line, ensure_ascii=False, allow_nan=False, default=str) + "\n").encode("utf-8", "replace")
 
 
 def _open_append(path: Path) -> int:

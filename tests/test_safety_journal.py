@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import pytest
+from busutil import wait_until
 
 from bridge import bus
 from server import bridge_transitions as bt
@@ -474,3 +475,87 @@ def test_reading_back_in_blocks_finds_the_lines_a_forward_read_does(tmp_path: Pa
         expected += [None if len(line) > line_max else line for line in reversed(whole) if line]
         with open(path, "rb") as f:
             assert list(sj._lines_backward(f)) == expected, data
+
+
+# -- repeats coalesced (server.safety_journal.Repeats; review of session 46) ---------------------------
+
+def _line(i: int, reason: str = "flood") -> dict:
+    return {"time": f"t{i}", "event": "estop_sent", "reason": reason, "n": i}
+
+
+def test_repeats_write_the_first_at_once_and_their_count_when_the_window_ends_or_another_comes() -> None:
+    from server.safety_journal import Repeats
+
+    r = Repeats(window_s=1.0)
+    key = ("estop_sent", (True, "flood", "10.0.0.1"))
+    assert r.offer(key, _line(0), 0.0) == [_line(0)]  # the first: at once
+    assert all(r.offer(key, _line(i), i * 0.01) == [] for i in range(1, 51))  # 50 repeats: counted
+    assert r.deadline() == 1.0 and r.expire(0.99) == []
+    assert r.expire(1.0) == [{**_line(50), "repeated": 50, "repeated_since": "t1"}]  # the last one's fields
+    # a flood going on: one line a window, not one an event
+    assert all(r.offer(key, _line(i), 1.0 + i * 0.01) == [] for i in range(51, 61))
+    other = ("estop_sent", (False, "clear", "10.0.0.1"))
+    # a different event: the count first, then it, at once; never dropped, never reordered
+    assert r.offer(other, _line(61, "clear"), 1.2) == [{**_line(60), "repeated": 10, "repeated_since": "t51"},
+                                                       _line(61, "clear")]
+    assert r.offer(key, _line(62), 1.3) == [_line(62)]  # a different event before it: not a repeat
+    assert r.deadline() is None and r.expire(5.0) == []  # no repeat in its window: the group closes
+    assert r.offer(key, _line(63), 5.1) == [_line(63)]  # so the next one is written at once
+    # events without a key (the bridge's transitions) are never coalesced
+    assert r.offer(None, _line(64, "bridge"), 5.2) == [_line(64, "bridge")]
+    assert r.offer(None, _line(65, "bridge"), 5.2) == [_line(65, "bridge")]
+    assert r.close() == []
+
+
+def test_a_token_holders_estop_flood_acts_on_every_request_and_no_longer_rotates_older_lines_out(
+        tmp_path: Path) -> None:
+    """Review of session 46: each REST e-stop wrote a line (~320 bytes), so a token holder flooding
+    the route (hundreds a second) rotated the journal within a minute or two and, at its second
+    rotation, pushed out the previous file: here, a 16 kB journal (~50 lines) and 150 e-stops, the
+    bridge's e-stop line written before them lost. Now the first is written at once, identical ones
+    counted; every request still engages."""
+    import asyncio
+
+    import httpx
+
+    now = [0.0]  # the repeats' clock: the flood within one window
+    journal = SafetyJournal(tmp_path, max_bytes=16_000, clock=lambda: now[0])
+    campaigns = _Campaigns()
+    app = _route_app(journal, campaigns)
+    auth = {"Authorization": "Bearer tok"}
+    try:
+        journal.record("bridge_state", bridge="robot", estop_engaged=True, estop_reason="pressed on the robot")
+
+        async def main() -> None:
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+                assert (await c.post("/api/system/estop", json={"reason": "flood"}, headers=auth)).status_code == 200
+                assert journal.flush(5)  # the first e-stop's line: on disk at once, not at the window's end
+                assert [e.get("reason") for e in read_journal(journal, 10)[0]] == [None, "flood"]
+                for _ in range(149):
+                    assert (await c.post("/api/system/estop", json={"reason": "flood"}, headers=auth)).status_code == 200
+                await c.post("/api/system/estop", json={"engaged": False, "reason": "clear"}, headers=auth)
+
+        asyncio.run(main())
+    finally:
+        journal.close()
+    assert campaigns.sent == [(True, "flood")] * 150 + [(False, "clear")]  # every request acted
+    events, skipped, _ = read_journal(journal, 1000)
+    assert events[0]["event"] == "bridge_state", events[:3]  # the line before the flood: kept
+    assert skipped == 0 and not journal.previous.exists()
+    assert [(e["event"], e.get("reason"), e.get("repeated")) for e in events] == [
+        ("bridge_state", None, None), ("estop_sent", "flood", None), ("estop_sent", "flood", 149),
+        ("estop_sent", "clear", None)], events
+    assert events[2]["engaged"] is True and events[2]["repeated_since"] <= events[2]["time"]
+
+
+def test_a_window_of_repeats_that_ends_is_written_by_the_writer_unasked(tmp_path: Path) -> None:
+    """No later event needed: the writer writes the count when the window ends."""
+    journal = SafetyJournal(tmp_path, repeat_window_s=0.05)
+    try:
+        for i in range(5):
+            journal.record("estop_sent", repeat_key="k", reason="flood", n=i)
+        assert wait_until(lambda: len(read_journal(journal, 10)[0]) == 2, 5, 0.02), read_journal(journal, 10)
+        first, count = read_journal(journal, 10)[0]
+        assert first["n"] == 0 and "repeated" not in first and count["n"] == 4 and count["repeated"] == 4
+    finally:
+        journal.close()
