@@ -14,6 +14,12 @@ disabled (the bridge's e-stop, its one truth) or when several controller service
 and the bridge obeys none of them (``server/service_choice.py``: a jog goes to one service);
 503 without a controller service or its status;
 429 when jogs come faster than ``JOG_MIN_INTERVAL_S`` (the sliders send at most a few per second).
+
+``GET /api/jog`` (and ``jog`` in ``/api/system/health``, which the dashboard's jog panel reads)
+says the last jog this console sent and, in ``ended``, why it ended before its move and settle
+were over when a death of the controller or the bridge cut it short, as ``xneck up`` told the
+console (``POST /api/system/abort``: :func:`note_fault`). Before, only the dashboard's header
+said it; the jog panel went on showing the move as under way (review of session 46).
 """
 
 from __future__ import annotations
@@ -42,6 +48,12 @@ log = logging.getLogger("xneck.server")
 router = APIRouter(prefix="/api/jog", tags=["jog"])
 
 JOG_MIN_INTERVAL_S = 0.1  # s between two accepted jogs
+# s after its planned move a jog still counts as under way: the controller's settle
+# (controller.service.JOG_SETTLE_S, 0.2 s) and the request's transit
+JOG_END_MARGIN_S = 0.5
+# The processes whose death ends a jog, as xneck up names them in a cause ("controller process
+# exited (signal SIGKILL), restarting controller in 1 s (...)"; causes of one pass joined by "; ").
+JOG_CARRIERS = ("controller", "bridge")
 STATUS_MAX_AGE_S = 0.5  # s: an older controller status says nothing about α̂ now
 
 
@@ -62,6 +74,15 @@ class JogDesk:
         self.last_id = ""
         self.seq = itertools.count(1)  # of the request messages
         self.ids = itertools.count(1)
+        #: the last jog sent: jog_id, to_deg, duration_s, sent_s and ends_s (time.monotonic(): when
+        #: its move and settle are over), ended (why it was cut short, "" if it was not); None before any
+        self.last: dict[str, Any] | None = None
+
+    def sent(self, jog_id: str, to_deg: list[float], duration_s: float, now_s: float) -> None:
+        """Keep jog ``jog_id`` (to ``to_deg``, deg; its move ``duration_s`` long, s) as the last one,
+        sent at ``now_s`` (time.monotonic()). The caller holds :attr:`lock`."""
+        self.last = {"jog_id": jog_id, "to_deg": list(to_deg), "duration_s": duration_s, "sent_s": now_s,
+                     "ends_s": now_s + duration_s + JOG_END_MARGIN_S, "ended": ""}
 
     def send(self, campaign_id: str, action: str, trajectory_json: str = "", target: str | None = None) -> None:
         """A request to the service ``target`` (None: the last jog's), bare if none is known."""
@@ -156,9 +177,56 @@ def request_jog(state: Any, alpha_deg: list[float]) -> tuple[int, Any]:
         desk.last_s = now
         desk.last_id = f"jog-{time.strftime('%H%M%S')}-{next(desk.ids)}"
         desk.send(desk.last_id, "start", target_pose.to_json(), target)
+        desk.sent(desk.last_id, alpha_deg, move.duration_s, now)
     return status.HTTP_202_ACCEPTED, {"jog_id": desk.last_id,
                                       "from_deg": [round(math.degrees(a), 3) for a in ctl.alpha_hat_rad],
                                       "to_deg": list(alpha_deg), "duration_s": move.duration_s}
+
+
+def cuts_jog(cause: str) -> bool:
+    """Whether a process fault ``cause`` as ``xneck up`` words it names the death or hang of a
+    process a jog needs (:data:`JOG_CARRIERS`; a camera's does not end one)."""
+    return any(part.strip().startswith(f"{name} process ") for part in cause.split(";") for name in JOG_CARRIERS)
+
+
+def under_way(sent_s: float, ends_s: float, fault_s: float, died_within_s: float) -> bool:
+    """Whether a jog sent at ``sent_s`` whose move and settle end at ``ends_s`` was under way when
+    a process died that the console heard of at ``fault_s``, its death at most ``died_within_s``
+    before (the supervisor's ``ended_within_s``; s, one monotonic clock): sent before the console
+    heard of it, and not over before the death could have happened."""
+    return sent_s <= fault_s and ends_s >= fault_s - max(0.0, died_within_s)
+
+
+def note_fault(state: Any, cause: str, died_within_s: float | None) -> str:
+    """Mark the last jog cut short by ``cause`` when it names a process a jog needs and the jog
+    was under way (:func:`under_way`; ``died_within_s`` None: the death now). Returns the jog's id
+    ('' when none was cut short)."""
+    desk: JogDesk | None = getattr(state, "jog", None)  # none: no jog was ever sent
+    if desk is None:
+        return ""
+    with desk.lock:
+        last = desk.last
+        if last is None or last["ended"] or not cuts_jog(cause):
+            return ""
+        if not under_way(last["sent_s"], last["ends_s"], time.monotonic(), died_within_s or 0.0):
+            return ""
+        last["ended"] = cause
+        return last["jog_id"]
+
+
+def jog_status(state: Any) -> dict[str, Any] | None:
+    """The last jog this console sent: ``jog_id``, ``to_deg``, ``duration_s`` (its planned move),
+    ``age_s`` (since it was sent), ``ended`` (why it was cut short: the supervisor's cause; null if
+    it was not); None before any."""
+    desk: JogDesk | None = getattr(state, "jog", None)
+    if desk is None:
+        return None
+    with desk.lock:
+        last = None if desk.last is None else dict(desk.last)
+    if last is None:
+        return None
+    return {"jog_id": last["jog_id"], "to_deg": last["to_deg"], "duration_s": last["duration_s"],
+            "age_s": round(time.monotonic() - last["sent_s"], 1), "ended": last["ended"] or None}
 
 
 def service_status(state: Any, service: str) -> bus.ControllerStatus | None:
@@ -187,6 +255,8 @@ def stop_jog(state: Any) -> list[str]:
     running = {st.campaign_id: name if INSTANCE_NAME.fullmatch(name) else ""
                for name, st in state.live.live_statuses(STATUS_MAX_AGE_S).items() if st.campaign_id.startswith("jog-")}
     with desk.lock:
+        if desk.last is not None:  # over now: a death after this stop did not cut it short
+            desk.last["ends_s"] = min(desk.last["ends_s"], time.monotonic())
         last_target = desk.target
         sends = [(desk.last_id, last_target)] if desk.last_id else []
         sends += [(cid, name) for cid, name in running.items() if (cid, name) != (desk.last_id, last_target)]
@@ -215,6 +285,13 @@ def jog(body: JogRequest, request: Request) -> Any:
     move planned from α̂: ``jog_id``, ``from_deg``, ``to_deg``, ``duration_s``."""
     code, answer = request_jog(request.app.state, body.alpha_deg)
     return JSONResponse(status_code=code, content=answer)
+
+
+@router.get("")
+def jog_last(request: Request) -> dict[str, Any]:
+    """The last jog this console sent (:func:`jog_status`; ``jog`` null before any), and in
+    ``ended`` why a death of the controller or the bridge cut it short."""
+    return {"jog": jog_status(request.app.state)}
 
 
 @router.post("/stop", dependencies=[Depends(require_token), Depends(require_operator)])

@@ -20,6 +20,7 @@ from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
 from server.live import bridge_status
+from server.routes_jog import jog_status, note_fault
 from server.safety_journal import READ_MAX_LINES, SafetyJournal, read_journal
 
 log = logging.getLogger("xneck.server")
@@ -64,6 +65,7 @@ def health(request: Request) -> dict[str, Any]:
         "camera": camera_health(s.live.values, s.camera, s.presence),  # detection health (issue 15); None without a camera
         "safety_journal": _journal_status(s),  # lines written, failed, dropped; transitions suppressed
         "process_faults": s.process_faults.status(),  # deaths, hangs, restarts xneck up reported
+        "jog": jog_status(s),  # the last jog, and why a death cut it short (the dashboard's jog panel)
         "live": {"clients": len(s.broadcaster.clients), "frames_sent": s.broadcaster.frames_sent,
                  "rejected_payloads": s.live.values.rejected},
     }
@@ -195,6 +197,7 @@ def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
         s.journal.record("process_fault", reason=bus.plain_text(body.reason), campaign_id=rec.id if rec else None,
                          campaign_status=rec.status if rec else None, **_requester(request))
         s.process_faults.record(bus.plain_text(body.reason), rec.id if rec else None)
+        note_fault(s, bus.plain_text(body.reason), body.ended_within_s)  # a jog it cut short says so
     if rec is None:
         return {"campaign_id": None, "status": None, "message": None}
     return {"campaign_id": rec.id, "status": rec.status, "message": rec.message}

@@ -447,6 +447,7 @@ async function pollStatus() {
     $("#sys").textContent = `mode ${h.mode}, pace ${h.pace}` +
       ` — alive: ${procs.processes.map((p) => p.kind).join(", ") || "none"}${faults} — ${bridgeAge(h.bridge)}`;
     const fault = processFaults(h.process_faults);  // text: the reason comes from a request
+    window.dispatchEvent(new CustomEvent("xneck-health", { detail: h }));  // jog.js: a jog a death cut short
     $("#process-faults").hidden = !fault;
     $("#process-faults").textContent = fault;
     $("#bridge-health").textContent = bridgeHealth(procs);  // text: the reject reason comes from the bus

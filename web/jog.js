@@ -9,7 +9,9 @@
 (() => {
   const SEND_PERIOD_MS = 300;
   // target: the last target accepted (deg) while it stands, null when none does.
-  const jog = (window.xneckJog = { sent: 0, accepted: 0, last: null, error: "", alphaHat: null, target: null });
+  // ended: why the last jog accepted was cut short (a process death; "" if it was not).
+  const jog = (window.xneckJog = { sent: 0, accepted: 0, last: null, error: "", alphaHat: null, target: null,
+                                   ended: "" });
   let sliders = [];
   let timer = null, lastSent = 0, inFlight = false, pending = false;
 
@@ -37,7 +39,7 @@
     const alpha = target();
     try {
       const r = await api("POST", "/api/jog", { alpha_deg: alpha });
-      jog.accepted++; jog.last = r; jog.target = alpha;
+      jog.accepted++; jog.last = r; jog.target = alpha; jog.ended = "";
       say(`→ ${degrees(alpha)} in ${r.duration_s.toFixed(1)} s (${r.jog_id})`, false);
     } catch (e) {
       if (String(e.message).startsWith("429")) pending = true;  // too fast: the newest target goes next
@@ -97,6 +99,19 @@
     });
     if (first) show(jog.alphaHat);  // start from where the neck is, not from zero
     if (runningId !== null) jog.target = null;  // a campaign has the neck: no jog target stands
+  });
+
+  // A jog a death of the controller or the bridge cut short (health.jog.ended, the cause xneck up
+  // told the console): said here, not only in the header, and its target no longer stands (the
+  // bridge holds the neck where it was). Said once per jog; a newer jog's answer replaces it.
+  let endedSaid = "";
+  window.addEventListener("xneck-health", (ev) => {
+    const last = ev.detail.jog;
+    if (!last || !last.ended || !jog.last || last.jog_id !== jog.last.jog_id || endedSaid === last.jog_id) return;
+    endedSaid = last.jog_id;
+    jog.target = null;
+    jog.ended = last.ended;
+    say(`jog ${last.jog_id} to ${degrees(last.to_deg)} cut short: ${last.ended}`, true);
   });
 
   $("#jog-hold").addEventListener("click", async () => {
