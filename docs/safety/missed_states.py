@@ -1,7 +1,7 @@
 """The law's commanded force steps when the controller answers every state, and when it misses
 some (docs/safety.md, "The law's force rate"; controller/laws.py, "Time step").
 
-    .venv/bin/python docs/safety/missed_states.py                  # laws 1-3, about 2 min
+    .venv/bin/python docs/safety/missed_states.py                  # laws 1-3, about 5 s
     .venv/bin/python docs/safety/missed_states.py --law 2 --fixed-period   # as before: 1/rate_hz
 
 The §7 control test (controller.trajectory.control_test_trajectory) on the robot truth, the
