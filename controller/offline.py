@@ -2,7 +2,8 @@
 
 For tests, benchmarks and the results report: the same :class:`ComputedTorque` and
 :class:`Twin` that the bus processes wrap, stepped alternately (state → command → tick), which is
-exactly what the lockstep bus mode does.
+exactly what the lockstep bus mode does. :class:`ServiceLoop` closes the controller's campaign
+service on the twin through the bridge's safety rules instead, as the three processes do.
 """
 
 from __future__ import annotations
@@ -12,8 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from bridge import bus
-from controller.laws import ComputedTorque, LawConfig
+from bridge.motor_speed import MotorSpeed
+from bridge.safety import Inputs, Safety, SafetyConfig
+from controller.laws import ComputedTorque, LawConfig, encoder_hold_forces
 from controller.metrics import campaign_metrics
+from controller.service import CampaignService
 from controller.trajectory import Trajectory
 from twin.model.params import Params
 from twin.sim.simulator import Twin, TwinConfig
@@ -105,3 +109,44 @@ def run_closed_loop(
         ip_confidence=np.array(frames_c).reshape(-1, N), ip_source=twin.camera.source if twin.camera else "",
         flat_steps=flat_steps, **out,
     )
+
+
+class ServiceLoop:
+    """The controller's campaign service (:class:`controller.service.CampaignService`) closed on a
+    twin of ``params`` through the bridge's safety rules (:class:`bridge.safety.Safety`, the hold
+    rule of the encoders and the motors' speeds as :class:`bridge.node.BridgeNode` gives them),
+    one state per tick, every command answered and delivered at once: what the bridge, the
+    controller and the twin do on the bus, in one process. :attr:`tick` is the last state."""
+
+    def __init__(self, params: Params, law: LawConfig, twin_config: TwinConfig, settle_s: float = 0.5) -> None:
+        self.twin = Twin(params, twin_config)
+        self.svc = CampaignService(params, law, settle_s=settle_s, service=True)
+        self.safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min,
+                                          f_max_N=params.limits.f_max))
+        self.hold_rule = encoder_hold_forces(params)
+        self.speed = MotorSpeed(params.n_cables, 1.0 / law.rate_hz)
+        self.tick = self.twin.tick(np.zeros(params.n_cables))
+        self.speed.update(self.tick.theta_meas.tolist())
+        self.svc.initialise(self.tick.theta_meas)
+
+    def start(self, trajectory: Trajectory, kind: str = "campaign", campaign_id: str = "c") -> None:
+        """Ask the service to run ``trajectory`` (``kind`` "campaign" or "jog") from the current state."""
+        self.svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id=campaign_id, action="start",
+                                            law=self.svc.law.law, kind=kind,  # type: ignore[arg-type]
+                                            trajectory_json=trajectory.to_json()), self.tick.t_s)
+
+    def step(self) -> np.ndarray:
+        """One state → the service's command → the bridge's rules → the twin's tick; returns the
+        forces applied (N)."""
+        tick, safety = self.tick, self.safety
+        out = self.svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+        if out.law_ran:
+            self.svc.advance(tick.t_s)
+        self.svc.drain_events()
+        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0, estop=(),
+                               hold_N=self.hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=self.speed.rad_s))
+        applied = np.asarray(d.force_N, dtype=float)
+        self.last_alpha_d = out.alpha_d_rad
+        self.tick = self.twin.tick(applied)
+        self.speed.update(self.tick.theta_meas.tolist())
+        return applied

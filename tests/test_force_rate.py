@@ -12,14 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import ComputedTorque, LawConfig, encoder_hold_forces
-from controller.offline import run_closed_loop
-from controller.service import CampaignService
+from controller.laws import ComputedTorque, LawConfig
+from controller.offline import ServiceLoop, run_closed_loop
 from controller.trajectory import identification_trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.simulator import TwinConfig
 
 BACKLASH_RAD = 0.44  # robot_truth.toml [actuation] backlash_rad
 
@@ -81,26 +78,15 @@ def test_an_encoder_jump_is_not_taken_for_a_speed(params):
         assert bounded < 0.75 * free
 
 
-def _idle_after_enable(params, law: int, config: LawConfig, seconds: float = 1.2) -> tuple[float, float]:
+def _idle_after_enable(params, config: LawConfig, seconds: float = 1.2) -> tuple[float, float]:
     """The campaign service idle at the straight neck from the first enable, closed on the robot
     truth through the bridge's safety rules: (largest encoder change in a tick, rad; largest
     change of the applied forces in a tick after the first 10, N)."""
-    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
-    svc = CampaignService(params, config, settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 1.0 / config.rate_hz)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
+    loop = ServiceLoop(params, config, TwinConfig(camera=False, seed=0, truth="robot"))
     applied, theta = [], []
     for _ in range(round(seconds * config.rate_hz)):
-        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
-        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0, estop=(),
-                               hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
-        applied.append(np.asarray(d.force_N, dtype=float))
-        theta.append(tick.theta_meas.copy())
-        tick = twin.tick(applied[-1])
-        speed.update(tick.theta_meas.tolist())
+        theta.append(loop.tick.theta_meas.copy())
+        applied.append(loop.step())
     jump = float(np.abs(np.diff(np.array(theta), axis=0)).max())
     return jump, float(np.abs(np.diff(np.array(applied[10:]), axis=0)).max())
 
@@ -111,7 +97,7 @@ def test_a_backlash_crossing_while_idle_after_the_first_enable_moves_the_forces_
     rad/s² the k_v term still stepped the applied forces 8-9.5 N in one tick. At the default bound
     (50 rad/s²) it is a ramp."""
     for law in (1, 2):
-        jump, step = _idle_after_enable(params, law, LawConfig(law=law))
+        jump, step = _idle_after_enable(params, LawConfig(law=law))
         assert jump > 0.8 * BACKLASH_RAD  # the backlash is crossed: the case is what is tested
         assert step < 4.0, f"law {law}: {step:.2f} N in a tick"
 

@@ -27,44 +27,24 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bridge import bus
-from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import LawConfig, encoder_hold_forces
-from controller.service import CampaignService
+from controller.laws import LawConfig
+from controller.offline import ServiceLoop
 from controller.trajectory import Trajectory, control_test_trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.simulator import TwinConfig
 
 
 def idle_then_jog(params, config: LawConfig, seed: int, idle_s: float, jog_deg: list[float],
                   after_s: float = 3.0) -> tuple[float, np.ndarray]:
     """(largest encoder change in a tick (rad), the applied forces' change per tick (N)) of one run."""
-    dt = 1.0 / config.rate_hz
-    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
-    svc = CampaignService(params, config, settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, dt)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
-    jog_k = round(idle_s / dt)
+    loop = ServiceLoop(params, config, TwinConfig(camera=False, seed=seed, truth="robot"))
+    jog_k = round(idle_s * config.rate_hz)
     applied, theta = [], []
-    for k in range(jog_k + round(after_s / dt)):
+    for k in range(jog_k + round(after_s * config.rate_hz)):
         if k == jog_k:
-            svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="jog", action="start", law=config.law,  # type: ignore[arg-type]
-                                           kind="jog", trajectory_json=Trajectory.from_degrees([jog_deg], [], 0.0, "jog").to_json()),
-                       tick.t_s)
-        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
-        if out.law_ran:
-            svc.advance(tick.t_s)
-        svc.drain_events()
-        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0, estop=(),
-                               hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
-        applied.append(np.asarray(d.force_N, dtype=float))
-        theta.append(tick.theta_meas.copy())
-        tick = twin.tick(applied[-1])
-        speed.update(tick.theta_meas.tolist())
+            loop.start(Trajectory.from_degrees([jog_deg], [], 0.0, "jog"), kind="jog", campaign_id="jog")
+        theta.append(loop.tick.theta_meas.copy())
+        applied.append(loop.step())
     jump = float(np.abs(np.diff(np.array(theta), axis=0)).max())
     return jump, np.abs(np.diff(np.array(applied[10:]), axis=0)).max(axis=1)
 
@@ -74,31 +54,17 @@ def control_test(params, config: LawConfig, seed: int) -> tuple[np.ndarray, floa
     (N), the truth's |α̈| p99.9 and largest (rad/s², a joint a tick)) over the §7 control test from
     0.2 s after its start, started after 1 s idle."""
     dt = 1.0 / config.rate_hz
-    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
-    svc = CampaignService(params, config, settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, dt)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
+    loop = ServiceLoop(params, config, TwinConfig(camera=False, seed=seed, truth="robot"))
     trajectory, start_k = control_test_trajectory(), round(1.0 / dt)
     error, applied, alpha_dot = [], [], []
     for k in range(start_k + round(trajectory.duration_s / dt)):
         if k == start_k:
-            svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ct", action="start", law=config.law,  # type: ignore[arg-type]
-                                           trajectory_json=trajectory.to_json()), tick.t_s)
-        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
-        if out.law_ran:
-            svc.advance(tick.t_s)
-        svc.drain_events()
-        d = safety.step(Inputs(command_N=out.force_N.tolist(), command_age_s=0.0, states_unanswered=0, estop=(),
-                               hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
+            loop.start(trajectory, campaign_id="ct")
+        alpha, f = loop.tick.alpha.copy(), loop.step()
         if k > start_k + round(0.2 / dt):
-            error.append(np.degrees(tick.alpha - out.alpha_d_rad))
-            applied.append(np.asarray(d.force_N, dtype=float))
-            alpha_dot.append(tick.alpha_dot.copy())
-        tick = twin.tick(np.asarray(d.force_N, dtype=float))
-        speed.update(tick.theta_meas.tolist())
+            error.append(np.degrees(alpha - loop.last_alpha_d))
+            applied.append(f)
+            alpha_dot.append(loop.tick.alpha_dot.copy())
     e, accel = np.array(error), np.abs(np.diff(np.array(alpha_dot), axis=0)) / dt
     return (np.sqrt((e ** 2).mean(axis=0)), float(np.abs(e).max()),
             float(np.abs(np.diff(np.array(applied), axis=0)).max()), float(np.percentile(accel, 99.9)), float(accel.max()))
