@@ -35,7 +35,7 @@ next command ends the hold, and after a long hold of the controller's own for st
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
 stops meanwhile (at the last state before stale states, once the bridge's holds add up to
-``STALE_RESTART_S``, or when the drives go off) and comes back up to speed from rest over
+``HOLD_RESTART_S``, more than a period, or when the drives go off) and comes back up to speed from rest over
 :meth:`CampaignService.resume_duration_s` (a cycloid in the clock's rate,
 :meth:`CampaignService.campaign_time`; none where the trajectory rests, a dwell's or its start): the
 law takes over at α̇^d = 0 and the campaign resumes where it was, ending later by the time it was
@@ -104,6 +104,13 @@ from twin.model.params import Params
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
 PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
 STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
+# s of the bridge's watchdog holds (summed until it obeys STALE_RESTART_S on end) after which the
+# law re-starts as after stale states: more than one 500 Hz period, so one late command is no
+# loss. It was STALE_RESTART_S: a loss of 20-98 ms (a 10-88 ms hold) mid-move left the law
+# running on the held neck, its commands climbing to f_max and the trajectory's clock running on,
+# and at the hand-back the neck reached 74-157°/s, past the trajectories' 86°/s, |α| 55°
+# (docs/safety/watchdog_handback.py, session 46); re-started, 37-53°/s.
+HOLD_RESTART_S = 0.003
 # No motor shaft turns faster: an encoder whose reading moved more than this allows between two
 # states is faulty (an offset, a runaway) and latches a hold (audit of 2026-11-26: a 60 rad step
 # moved α̂ a few degrees and the law drove the real joint to 85°). EC-max 40: about 785 rad/s
@@ -960,18 +967,18 @@ class CampaignService:
         if drive == "hold":
             # The bridge's watchdog holds because our commands came late: the next one ends the
             # hold (the bridge ramps to it), so the law keeps running (a hold command here would be
-            # one more step), its integral frozen (below). After long holds it re-starts from the
-            # measurement once the bridge obeys again; after a short one (a tick or two late) it
-            # goes on, as after a short gap of the states: re-starting stepped the commands 8.6 N a
-            # tick (α^d to α̂, a fresh integral) for what the bridge's ramp had already smoothed.
-            # "Long" is the hold time summed until the bridge obeys for STALE_RESTART_S on end: a
+            # one more step), its integral frozen (below). After holds of more than a period
+            # (HOLD_RESTART_S) it re-starts from the measurement once the bridge obeys again; after
+            # one tick it goes on (re-starting had stepped the commands 8.6 N a tick, 2026-11-26,
+            # before the take-over took its rate bound from the forces applied; now under 2 N).
+            # The hold time is summed until the bridge obeys for STALE_RESTART_S on end: a
             # starved controller (40 ms stopped, 8 ms running) made the bridge flap hold/active
             # every 50 ms, no single hold lasted STALE_RESTART_S, the law ran on while the neck was
             # held and its commands climbed to f_max; at the hand-back the neck reached 217-378°/s
             # and α 71.9° (audit of session 43).
             self._held_s += gap_s
             self._bridge_held = True
-            if self._held_s >= STALE_RESTART_S:
+            if self._held_s >= HOLD_RESTART_S:
                 self._restart = True
                 self._pause(stamp_s)
             if self._restart and self._take_up is None and not (self._joined and self._estopped and not self.running):

@@ -254,16 +254,25 @@ def test_stopping_a_campaign_that_waits_on_a_brake_answers_with_its_kind(params)
 def test_a_one_tick_watchdog_hold_mid_trajectory_does_not_re_start_the_law(params):
     """A watchdog ``hold`` of a tick or two (a late command) re-started the law: α^d jumped to α̂
     with a fresh integral and the commands stepped 8.6 N a tick (found 2026-11-26, after the
-    brake's audit). As after a short gap of the states (``STALE_RESTART_S``), a short hold lets
-    the law go on; a long one still re-starts it."""
+    brake's audit). A hold of one tick lets the law go on; a longer one re-starts it
+    (``HOLD_RESTART_S``: a law running on a held neck wound up, session 46), α^d starting at α̂.
+    (This loop has no bridge: what the bridge applies through such a re-start, its hold and its
+    ramp back, is test_controller_service's hand-back test.)"""
     swing = Trajectory.from_degrees([[0, 0, 0], [30, -20, 10], [0, 0, 0]], 2.0, 0.2, name="swing")
     loop = Loop(params)
     loop.svc.handle(_request("c-1", trajectory_json=swing.to_json()), loop.stamp_s)
     loop.run(1.0)
     before = len(loop.outputs)
-    _run(loop, 0.004, drive="hold")
+    _run(loop, 0.002, drive="hold")
+    assert not loop.svc._restart
     _run(loop, 0.5)
     d_alpha_d, d_force = _steps_around(loop, before)
     assert d_alpha_d < math.radians(0.2) and d_force < 2.0
-    _run(loop, 0.2, drive="hold")  # a long hold: the law re-starts from the measurement
+    before = len(loop.outputs)
+    _run(loop, 0.004, drive="hold")  # two ticks: the law re-starts from the measurement
+    assert loop.svc._restart
+    _run(loop, 0.002)
+    assert not loop.svc._restart
+    np.testing.assert_allclose(loop.outputs[-1].alpha_d_rad, loop.outputs[-1].alpha_hat_rad, atol=1e-3)
+    _run(loop, 0.2, drive="hold")
     assert loop.svc._restart

@@ -2,7 +2,7 @@
 (refused, a one-way link, a congested publisher, a starved process) for D s mid-campaign, then the
 hand-back (docs/safety.md, "The law's force rate"; audit of session 43).
 
-    .venv/bin/python docs/safety/watchdog_handback.py                     # laws 1-3, D 0, 0.3, 0.6, 1.0 s, about 10 s
+    .venv/bin/python docs/safety/watchdog_handback.py                     # laws 1-3, D 0 to 1.0 s, about 15 s
     .venv/bin/python docs/safety/watchdog_handback.py --flap        # a starved controller
 
 The §7 control test (controller.trajectory.control_test_trajectory) on the robot truth, the
@@ -83,7 +83,8 @@ def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5,
 def main() -> None:
     ap = argparse.ArgumentParser(description="The hand-back after the bridge's watchdog held for lost commands.")
     ap.add_argument("--law", type=int, nargs="+", default=[1, 2, 3])
-    ap.add_argument("--lost", type=float, nargs="+", default=[0.0, 0.3, 0.6, 1.0], help="s of lost commands (0: none)")
+    ap.add_argument("--lost", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.08, 0.3, 0.6, 1.0],
+                    help="s of lost commands (0: none; the bridge holds from 10 ms)")
     ap.add_argument("--at", type=float, default=3.0, help="s into the control test the loss starts")
     ap.add_argument("--flap", action="store_true", help="a starved controller: 40 ms lost, 8 ms through, over D")
     args = ap.parse_args()
@@ -93,7 +94,7 @@ def main() -> None:
         for lost_s in args.lost:
             r = handback(params, law, args.at, lost_s, flap=args.flap)
             held = f"command at the hand-back {np.round(r['command'], 0).tolist()} N" if lost_s else "no loss"
-            print(f"law {law}, lost {lost_s:.1f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
+            print(f"law {law}, lost {lost_s:.2f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
                   f"max applied step {r['step']:5.2f} N/tick; {held}", flush=True)
 
 
