@@ -159,6 +159,38 @@ def test_calibration_files_are_validated(tmp_path) -> None:
         load_calibration(path)
 
 
+def test_a_calibration_with_absurd_but_finite_values_is_refused_naming_the_field(xneck, tmp_path) -> None:
+    """User audit: cx = 1e300 px, fx = 1e300 px, a distortion coefficient of 1e6 or a camera 1e9 m
+    away were accepted (only finiteness was checked) and rendered or measured nonsense."""
+    good = json.loads(twin_calibration().to_json())
+    cases = [
+        ({"cx": 1e300}, r"cx = 1e\+300 px is not plausible: expected -640 to 1920 px"),
+        ({"cy": -400.0}, r"cy = -400 px is not plausible"),
+        ({"fx": 1e300}, r"fx = 1e\+300 px is not plausible"),
+        ({"fy": 0.5}, r"fy = 0.5 px is not plausible"),
+        ({"fx": 1000.0, "fy": 3000.0}, r"fy/fx = 3 is not plausible"),
+        ({"dist": [1e6, 0.0, 0.0, 0.0, 0.0]}, r"dist k1 = 1e\+06 is not plausible"),
+        ({"dist": [0.0, 0.0, 0.0, 5.0, 0.0]}, r"dist p2 = 5 is not plausible"),
+        ({"rvec": [1e9, 0.0, 0.0]}, r"\|rvec\| = 1e\+09 rad is not plausible"),
+        ({"tvec": [0.0, 0.0, 1e9]}, r"\|tvec\| = 1e\+09 m is not plausible: expected 0.01 to 5 m"),
+        ({"tvec": [0.0, 0.0, 1e-9]}, r"\|tvec\| = 1e-09 m is not plausible"),
+    ]
+    for change, says in cases:
+        with pytest.raises(CalibrationError, match=says):
+            calibration_from_dict({**good, **change})
+    # The command line says so in one line naming the file, before anything is rendered.
+    path = tmp_path / "absurd.json"
+    path.write_text(json.dumps({**good, "cx": 1e300}))
+    out = tmp_path / "r.png"
+    r = xneck("camera", "render", "--alpha", "1", "2", "3", "--out", str(out), "--calibration", str(path))
+    assert r.returncode == 2 and r.stderr.strip() == f"error: {path}: cx = 1e+300 px is not plausible: expected -640 to 1920 px", r.stderr
+    assert not out.exists()
+    # Generous enough for real cameras: a wide lens, a phone's portrait frame, a far bench camera.
+    calibration_from_dict({**good, "fx": 300.0, "fy": 300.0, "dist": [-0.4, 0.2, 0.001, -0.001, -0.1]})
+    calibration_from_dict({**good, "width": 720, "height": 1280, "cx": 360.0, "cy": 640.0})
+    calibration_from_dict({**good, "fx": 4000.0, "fy": 4000.0, "tvec": [0.1, -0.2, 3.0]})
+
+
 def test_a_calibration_file_that_is_not_one_is_refused_in_one_line(xneck, tmp_path) -> None:
     """Audit of 2026-11-29: a JSON of 200,000 nested arrays (400 kB) made `xneck camera detect
     --calibration` print a 54-line RecursionError traceback; undecodable bytes a UnicodeDecodeError.

@@ -30,6 +30,23 @@ class CalibrationError(ValueError):
     """A calibration file or a calibration input is unusable; the message says why."""
 
 
+# Plausibility bounds of a calibration (Calibration._check_plausible).
+FOCAL_MIN_SIZES = 0.05  # focal length, in multiples of the image's larger side: a 170° fisheye
+FOCAL_MAX_SIZES = 100.0  # a 0.6° field of view
+PIXEL_ASPECT_MAX = 2.0  # fy/fx: square pixels are 1, anamorphic optics up to 2
+RADIAL_MAX = 100.0  # |k1|, |k2|, |k3|: wide lenses fit |k| < 1, a free k3 may reach tens
+TANGENTIAL_MAX = 1.0  # |p1|, |p2|: real lenses fit under 0.01
+ROTATION_MAX_RAD = 2 * math.pi  # |rvec|: every rotation has one at most π; OpenCV's refinement may pass π
+DISTANCE_MIN_M = 0.01  # |tvec|: the plane's origin from the camera, for a camera on a lab bench
+DISTANCE_MAX_M = 5.0
+
+
+def _in_range(name: str, value: float, low: float, high: float, unit: str = "") -> None:
+    """:class:`CalibrationError` naming ``name``, its value and [low, high] unless low ≤ value ≤ high."""
+    if not (low <= value <= high):
+        raise CalibrationError(f"{name} = {value:g}{unit} is not plausible: expected {low:g} to {high:g}{unit}")
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Pinhole camera looking at the neck's plane. ``dist`` = (k1, k2, p1, p2, k3) in OpenCV's
@@ -57,6 +74,27 @@ class Calibration:
             raise CalibrationError("focal lengths must be positive")
         if self.tvec[2] <= 0:
             raise CalibrationError("the plane must lie in front of the camera (tvec z > 0)")
+        self._check_plausible()
+
+    def _check_plausible(self) -> None:
+        """Finite is not enough: cx = 1e300 px or a camera 1e9 m away passed as a calibration
+        (user audit) and rendered or detected nonsense. The ranges are generous on purpose (any
+        real lens, the twin's camera and what OpenCV fits on a sane checkerboard pass); the error
+        names the field, its value and the range."""
+        w, h, size = self.width, self.height, max(self.width, self.height)
+        # A principal point is near the image's centre; decentred or cropped sensors move it, not
+        # beyond half an image outside it.
+        _in_range("cx", self.cx, -0.5 * w, 1.5 * w, " px")
+        _in_range("cy", self.cy, -0.5 * h, 1.5 * h, " px")
+        # f = size / (2 tan(FOV/2)): 0.05 × the larger side is a 170° fisheye's, 100 × a 0.6° telephoto's.
+        for name, f in (("fx", self.fx), ("fy", self.fy)):
+            _in_range(name, f, FOCAL_MIN_SIZES * size, FOCAL_MAX_SIZES * size, " px")
+        _in_range("fy/fx", self.fy / self.fx, 1.0 / PIXEL_ASPECT_MAX, PIXEL_ASPECT_MAX)
+        for name, k in zip(("k1", "k2", "p1", "p2", "k3"), self.dist):
+            bound = TANGENTIAL_MAX if name.startswith("p") else RADIAL_MAX
+            _in_range(f"dist {name}", k, -bound, bound)
+        _in_range("|rvec|", math.hypot(*self.rvec), 0.0, ROTATION_MAX_RAD, " rad")
+        _in_range("|tvec|", math.hypot(*self.tvec), DISTANCE_MIN_M, DISTANCE_MAX_M, " m")
 
     @property
     def K(self) -> np.ndarray:
