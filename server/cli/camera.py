@@ -417,7 +417,14 @@ def align(
 ) -> None:
     """Align a video with a recorded campaign and write its α_IP into a copy of the campaign."""
     from bridge.archive import software_version
-    from twin.camera.align import AlignmentError, align, campaign_reference, measure_video, write_aligned
+    from twin.camera.align import (
+        AlignmentError,
+        align,
+        campaign_reference,
+        measure_video,
+        provenance_json,
+        write_aligned,
+    )
     from twin.camera.detect import Detector
     from twin.camera.source import SourceError
 
@@ -443,7 +450,8 @@ def align(
     if measured.loss:  # the alignment used the frames that decoded, each at its own time
         typer.secho(f"warning: {measured.loss.removeprefix('file:')}", err=True, fg="yellow")
     if json_out:
-        echo_json({**provenance, "out": str(target)}, indent=None)
+        # the archive's record holds strings (MCAP metadata); JSON has numbers (user audit: "offset_s": "4.321000")
+        echo_json({**provenance_json(provenance), "out": str(target)}, indent=None)
         return
     typer.echo(f"offset {result.offset_s:+.4f} s, drift {result.drift * 1e6:+.1f} ppm, rms {result.rms_deg:.3f}° against {ref.name} "
                f"over {result.frames_used} frames (next best: {result.runner_up_offset_s:+.3f} s, {result.runner_up_rms_deg:.2f}°)")

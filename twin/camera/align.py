@@ -57,6 +57,27 @@ MOTOR_TOPIC = bus.mcap_topic(bus.MOTOR_STATE)
 CAMERA_TOPIC = bus.mcap_topic(bus.CAMERA_ALPHA)
 
 
+#: The provenance's numeric fields. MCAP metadata holds strings only; ``xneck camera align --json``
+#: prints these as JSON numbers (:func:`provenance_json`), which jq and scripts compare as such.
+PROVENANCE_INTEGERS = ("frames", "frames_used", "frames_declared", "frames_lost", "frames_written", "missing_joints",
+                       "replaced_camera_messages", "images", "replaced_images")
+PROVENANCE_FLOATS = ("video_fps", "offset_s", "drift", "rms_deg", "runner_up_offset_s", "runner_up_rms_deg")
+
+
+def provenance_json(provenance: dict[str, str]) -> dict[str, str | int | float]:
+    """The provenance record of :func:`write_aligned` (strings, as the archive stores it) with its
+    numeric fields as numbers: the same figures as the archive's record, not new ones. A non-finite
+    figure (a video without a frame rate: nan) stays a float, which strict JSON prints as null."""
+    out: dict[str, str | int | float] = dict(provenance)
+    for name in PROVENANCE_INTEGERS:
+        if name in provenance:
+            out[name] = int(provenance[name])
+    for name in PROVENANCE_FLOATS:
+        if name in provenance:
+            out[name] = float(provenance[name])
+    return out
+
+
 class AlignmentError(ValueError):
     """The video and the campaign cannot be aligned (no overlap, no reference, unreadable file)."""
 
