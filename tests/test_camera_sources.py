@@ -440,3 +440,32 @@ def test_xneck_camera_replay_stopped_by_ctrl_c_says_it_was_interrupted(rendered_
             sub.undeclare()
     assert proc.returncode == 130, err[-3000:]
     assert "interrupted: " in err and "of the 300 it declares" in err and "Traceback" not in err, err[-3000:]
+
+
+def test_xneck_camera_commands_print_no_opencv_or_ffmpeg_lines_only_their_own(tmp_path, params, xneck) -> None:
+    """User audit: OpenCV's FFmpeg printed ``[mov,mp4,… @ 0x…] moov atom not found`` above xneck's
+    error on a file that is not a video, and ``[mjpeg @ 0x…] No JPEG data found in image`` for an
+    undecodable frame: the CLI silences OpenCV's log (server.cli.quiet_opencv); xneck says it itself."""
+    from bridge import bus
+    from bridge.archive import write_campaign
+
+    zeros = [0.0] * params.n_cables
+    truths = [(bus.TWIN_TRUTH, int((1.7e9 + k * 0.01) * 1e9), bus.Truth(
+        seq=k + 1, stamp_s=k * 0.01, alpha_rad=[0.0] * 3, alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros, theta_dot_rad_s=zeros,
+        tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables, near_singular=False)) for k in range(100)]
+    camp = write_campaign(tmp_path / "c.mcap", truths, {"campaign_id": "c1"})
+    not_video = tmp_path / "bad.mp4"
+    not_video.write_bytes(b"not a video at all")
+    # 1280×720 like the calibration, so the frames are decoded; frame 3 cannot be.
+    big = write_video(tmp_path / "big.avi", [np.full((720, 1280, 3), 8 * k, np.uint8) for k in range(8)])
+    hole = damaged(big, "hole.avi", "undecodable", k=3)
+    runs = [
+        (("camera", "align", str(not_video), str(camp), "--out", str(tmp_path / "a.mcap")),
+         f"error: {not_video}: OpenCV cannot open this video"),
+        (("camera", "--source", f"file:{not_video}"), f"error: {not_video}: OpenCV cannot open this video"),
+        (("camera", "align", str(hole), str(camp), "--out", str(tmp_path / "b.mcap")),
+         f"error: {hole}: 7 frames; at least 10 are needed"),
+    ]
+    for args, says in runs:
+        r = xneck(*args)
+        assert r.returncode == 2 and r.stderr.strip() == says, r.stderr

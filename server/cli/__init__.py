@@ -8,6 +8,8 @@ bridge on a small board loads only the bridge.
 
 from __future__ import annotations
 
+import os
+
 import typer
 
 from server.cli import (
@@ -68,10 +70,23 @@ app.add_typer(bus.bus_app, name="bus")
 app.add_typer(estop.estop_app, name="estop")
 
 
+def quiet_opencv() -> None:
+    """Silence OpenCV's own log and its FFmpeg's: a video that cannot be opened printed
+    ``[mov,mp4,… @ 0x…] moov atom not found`` above xneck's error, an undecodable frame
+    ``[mjpeg @ 0x…] No JPEG data found in image`` above its warning, a missing camera two
+    ``[ WARN:0@0.19] global cap_v4l.cpp …`` lines (user audit). xneck says what failed itself
+    (twin.camera.source). Environment variables, read when OpenCV starts logging and opens its
+    first video, so OpenCV is not imported here (the bridge never loads it); one a user set
+    (to debug OpenCV) is kept."""
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
 def main() -> None:
     from server.child_processes import die_with_parent_from_env
 
     die_with_parent_from_env()  # a child of `xneck up` stops when it dies
+    quiet_opencv()
     app()
 
 
