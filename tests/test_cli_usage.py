@@ -563,15 +563,40 @@ def test_the_docs_shell_commands_parse_and_name_existing_options():
 
 
 @pytest.mark.parametrize("argv, said", [
-    (["identify", "."], "cannot read campaign: .: not a regular file"),
-    (["identify", "/"], "cannot read campaign: /: not a regular file"),
-    (["camera", "align", "video.mp4", "."], ".: not a regular file"),
+    (["identify", "."], "cannot read campaign: .: is a directory, not a campaign file"),
+    (["identify", "/"], "cannot read campaign: /: is a directory, not a campaign file"),
+    (["camera", "align", "video.mp4", "."], ".: is a directory, not a campaign file"),
 ])
 def test_a_campaign_that_is_a_folder_is_one_line(xneck, tmp_path, argv, said):
     """The default --out is named after the campaign's file: '.' and '/' have no name (a ValueError
     traceback from Path.with_name)."""
     _refused(xneck(*argv, cwd=tmp_path), said)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["camera", "detect", "d"], "d: is a directory, not an image file"),
+    (["camera", "detect", "missing.png"], "missing.png: no such image file"),
+    (["camera", "detect", "f.png", "--calibration", "d"], "--calibration: d: is a directory, not a calibration file"),
+    (["camera", "render", "--alpha", "1", "2", "3", "--out", "r.png", "--calibration", "d"],
+     "--calibration: d: is a directory, not a calibration file"),
+    (["camera", "render", "--alpha", "1", "2", "3", "--out", "r.png", "--params", "d"],
+     "--params: d: is a directory, not a parameter file"),
+    (["camera", "align", "d", "c.mcap"], "d: is a directory, not a video file"),
+    (["camera", "--source", "file:d"], "d: is a directory, not a video file"),
+    (["model", "--params", "d", "--alpha", "0", "0", "0"], "--params: d: is a directory, not a parameter file"),
+    (["study", "design", "--out", "s", "--study", "d"], "--study: d: is a directory, not a study file"),
+    (["study", "design", "--out", "s", "--params", "d"], "--params: d: is a directory, not a parameter file"),
+])
+def test_a_directory_given_for_a_file_says_it_is_a_directory(xneck, tmp_path, argv, said):
+    """User audit: a directory where a file is expected was reported as "no such file"
+    (server.cli.options.check_input for every file option)."""
+    for folder in ("d", "d.toml"):
+        (tmp_path / folder).mkdir()
+    (tmp_path / "f.png").write_bytes(b"")
+    (tmp_path / "c.mcap").write_bytes(b"")
+    _refused(xneck(*argv, cwd=tmp_path), said)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.mcap", "d", "d.toml", "f.png"]
 
 
 @pytest.mark.parametrize("L", ["1e-200", "1e100", "1e200"])
@@ -612,7 +637,7 @@ def test_a_scheduler_that_is_no_address_is_one_line(xneck, tmp_path):
 
 
 @pytest.mark.parametrize("argv, said", [
-    (["--params", "{tmp}/missing.toml"], "cannot read parameter file"),
+    (["--params", "{tmp}/missing.toml"], "--params: {tmp}/missing.toml: no such parameter file"),
     (["--robot", "--driver-config", "{tmp}/missing.toml"], "cannot read the driver config"),
 ])
 def test_up_refuses_files_that_do_not_load_before_anything_starts(xneck, tmp_path, argv, said):
@@ -620,7 +645,7 @@ def test_up_refuses_files_that_do_not_load_before_anything_starts(xneck, tmp_pat
     --robot the launcher then reported "DRIVES MAY BE ON"."""
     run = xneck("up", *[a.format(tmp=tmp_path) for a in argv], "--data-dir", str(tmp_path / "data"),
                 "--port", "1", "--exit-after", "3", timeout=60)
-    _refused(run, said)
+    _refused(run, said.format(tmp=tmp_path))
     assert "xneck is up" not in run.stdout and not (tmp_path / "data").exists()
 
 

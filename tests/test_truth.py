@@ -67,6 +67,9 @@ def test_a_value_without_a_source_or_out_of_range_is_refused(tmp_path):
         parse_truth({"camera": {}})
     with pytest.raises(TruthError, match="does not exist"):
         check_truth(str(tmp_path / "missing.toml"))
+    (tmp_path / "folder.toml").mkdir()  # user audit: a directory was "does not exist"
+    with pytest.raises(TruthError, match=r"folder\.toml' is a directory"):
+        check_truth(str(tmp_path / "folder.toml"))
     with pytest.raises(TruthError, match="truth must be one of"):
         check_truth("robots")
     bad = tmp_path / "bad.toml"

@@ -33,6 +33,7 @@ from server.cli.options import (
     VERBOSE_OPTION,
     check_credentials,
     check_endpoints,
+    check_input,
     check_output,
     echo_json,
     fail,
@@ -58,6 +59,7 @@ def _calibration(path: Path | None):
 
     if path is None:
         return twin_calibration()
+    check_input(path, "calibration file", "--calibration")
     try:
         return load_calibration(path)
     except CalibrationError as exc:
@@ -340,8 +342,7 @@ def detect(
 
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
-    if not image.is_file():
-        raise fail(f"{image}: no such file")
+    check_input(image, "image file")
     try:  # the header's size is checked against the calibration's before decoding (a bomb declares 32000×32000)
         frame = read_frame(image, cal.width, cal.height)
     except ImageFileError as exc:
@@ -430,8 +431,8 @@ def align(
 
     params = load_cli_params(params_file, overrides)
     cal = _calibration(calibration)
-    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
-        raise fail(f"{campaign}: {'not a regular file' if campaign.exists() else 'no such campaign file'}")
+    check_input(campaign, "campaign file")  # '.' or '/' have no name to derive the default --out from: say why now
+    check_input(video, "video file")
     target = out or campaign.with_name(campaign.stem + ".aligned.mcap")
     if target.exists():
         raise fail(f"{target}: exists already (choose another --out)")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import POSITIVE, check_output, echo_json, fail, write_failed
+from server.cli.options import POSITIVE, check_output, echo_json, fail, input_problem, write_failed
 
 
 def identify(
@@ -61,8 +61,9 @@ def identify(
                                "in --out (default: refused, as archives are never overwritten)."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
-    if not campaign.is_file():  # '.' or '/' have no name to derive the default --out from: say why now
-        raise fail(f"cannot read campaign: {campaign}: {'not a regular file' if campaign.exists() else 'no such file'}")
+    problem = input_problem(campaign, "campaign file")
+    if problem:  # '.' or '/' have no name to derive the default --out from: say why now
+        raise fail(f"cannot read campaign: {problem}")
     out_dir = out or campaign.with_name(campaign.stem + "_identification")
     check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
     from bridge.archive import ArchiveError

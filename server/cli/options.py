@@ -106,6 +106,28 @@ def check_output(path: Path, option: str = "--out", *, directory: bool = False) 
         raise fail(f"{option}: {problem}")
 
 
+def input_problem(path: Path, what: str = "file") -> str:
+    """Why ``path`` cannot be read as an input ``what`` (e.g. "video file"), '' if it can be
+    opened as one: missing, a directory (which was reported as "no such file", user audit), or
+    not a regular file (a FIFO would block the command, a device never ends). Permissions and
+    content are the loader's to judge."""
+    a = "an" if what[:1] in "aeiou" else "a"
+    if path.is_dir():
+        return f"{path}: is a directory, not {a} {what}"
+    if not path.exists():
+        return f"{path}: no such {what}"
+    if not path.is_file():
+        return f"{path}: not a regular file ({a} {what} is expected)"
+    return ""
+
+
+def check_input(path: Path, what: str = "file", option: str = "") -> None:
+    """:func:`input_problem` as a usage error (``option``, e.g. "--calibration", leads the line)."""
+    problem = input_problem(path, what)
+    if problem:
+        raise fail(f"{option}: {problem}" if option else problem)
+
+
 def write_failed(path: Path, exc: OSError) -> typer.Exit:
     """A write that failed despite :func:`check_output` (disk full, a folder removed meanwhile):
     one line naming the file; the writes are atomic, so no half-written file is left."""
@@ -249,6 +271,8 @@ SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set sp
 
 def load_cli_params(params_file: Path | None, overrides: list[str] | None) -> Params:
     """Parameters for a command, or a clean exit with the reason (no traceback)."""
+    if params_file is not None:
+        check_input(params_file, "parameter file", "--params")
     try:
         return load_params(params_file, dict(parse_override(o) for o in overrides or []))
     except ParameterError as exc:

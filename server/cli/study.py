@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from server.cli.options import PARAMS_OPTION, SET_OPTION, check_output, echo_json, write_failed
+from server.cli.options import PARAMS_OPTION, SET_OPTION, check_input, check_output, echo_json, write_failed
 
 study_app = typer.Typer(help="Studies: Monte Carlo robustness, identification and design sweeps on Dask "
                         "(docs/studies.md).", no_args_is_help=True)
@@ -44,6 +44,10 @@ def _run(kind: str, out: Path, as_json: bool, workers: int | None, scheduler: st
     if workers is not None and workers < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--workers")
     check_output(out, directory=True)  # before a cluster starts and runs are lost
+    if fields.get("file") is not None:
+        check_input(fields["file"], "study file", "--study")
+    if fields.get("params_file") is not None:
+        check_input(Path(fields["params_file"]), "parameter file", "--params")
     line_open = [False]  # a progress line printed and not ended: an error starts on a line of its own
 
     def progress(done: int, total: int, message: str) -> None:

@@ -87,8 +87,8 @@ class FileSource:
 
     def __init__(self, path: str | Path, t0_s: float = 0.0) -> None:
         path = Path(path)
-        if not path.is_file():
-            raise SourceError(f"{path}: no such video file")
+        if not path.is_file():  # a directory is not "no such file" (user audit)
+            raise SourceError(f"{path}: {'is a directory, not a video file' if path.is_dir() else 'no such video file'}")
         self.cap = cv2.VideoCapture(str(path))
         if not self.cap.isOpened():
             raise SourceError(f"{path}: OpenCV cannot open this video")

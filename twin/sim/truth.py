@@ -281,8 +281,8 @@ def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
     path = ROBOT_TRUTH_FILE if truth == "robot" else Path(truth)
     if str(truth) not in TRUTHS and path.suffix != ".toml":
         raise TruthError(f"truth must be one of {', '.join(TRUTHS)} or a .toml file, got {truth!r}")
-    if not path.is_file():
-        raise TruthError(f"truth file {str(path)!r} does not exist")
+    if not path.is_file():  # a directory is not "does not exist" (user audit)
+        raise TruthError(f"truth file {str(path)!r} {'is a directory' if path.is_dir() else 'does not exist'}")
     truth_obj = _load_file(path.resolve(), path.stat().st_mtime_ns)
     return msgspec.structs.replace(truth_obj, name="robot") if truth == "robot" else truth_obj
 
