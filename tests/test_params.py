@@ -54,6 +54,11 @@ def test_round_trip_through_a_user_file(params, tmp_path):
         ({"cables.linear.k": [1e9] * 4}, "cables.linear", "k must be <= 1e+07 N/m"),
         ({"bars.m_diagonal": [0.0] * 3, "bars.I_diagonal": [0.0] * 3, "bars.m_top": [0.0] * 3, "bars.I_top": [0.0] * 3},
          "bars", "a neck without any mass or inertia"),
+        # user audit: a study with friction.f_s = 6e299 N ran a twin stuck at rest, 'finished'; the
+        # prototype's motors pull 5 A × 0.0367 N·m/A × 25 / 0.020 m = 229.4 N at most
+        ({"friction.f_s": [6e299] * 4}, "friction.f_s", "must be below the motors' peak force at the cable, 229.4 N"),
+        ({"friction.f_s": [14.0, 14.0, 230.0, 14.0]}, "friction.f_s", "229.4 N"),
+        ({"motors.current_max": 0.3}, "friction.f_s", "peak force at the cable, 13.76 N"),
     ],
 )
 def test_bad_values_name_the_key_and_the_reason(override, key, reason):

@@ -500,6 +500,33 @@ def test_a_run_whose_twin_stood_at_the_flat_singularity_is_diverged_not_finished
     assert row["flat_steps"] > 0
 
 
+def test_a_study_of_a_physically_absurd_robot_is_refused_before_anything_runs() -> None:
+    """User audit: ``--set friction.f_s=6e299`` ran, and its run ended 'finished' (the twin stood
+    at rest, every force saturated). A friction beyond the motors' peak force is refused by the
+    parameter set's validation (twin.model.params), so the study is, as a --set or at a --vary's extreme."""
+    s = study_from("control", set=("friction.f_s=[6e299,6e299,6e299,6e299]",))
+    with pytest.raises(StudyError, match=r"friction.f_s = \[6e\+299.*must be below the motors' peak force at the cable, 229.4 N"):
+        config_for(s, "v")
+    s = study_from("control", vary=("friction.f_s=U(10,300)",))
+    with pytest.raises(StudyError, match=r"--vary friction.f_s=U\(10,300\): at 300: .*peak force"):
+        config_for(s, "v")
+
+
+def test_a_run_that_divides_by_zero_or_gives_non_finite_numbers_is_not_finished(monkeypatch) -> None:
+    """A gear ratio of 6e299 divided by zero in the dynamics: the ZeroDivisionError was a traceback
+    that ended the whole study; it is the run's 'failed' with its reason. A non-finite metric of
+    numpy's own type (float32 is no Python float) was not seen and the run 'finished'."""
+    from server.studies import run as run_module
+
+    s = study_from("design", set=("geometry.R=6e299",), design_configurations=10)
+    row = run_one(config_for(s, "v"), expand(s)[0])
+    assert row["outcome"] == "failed" and row["message"].startswith("ZeroDivisionError"), row
+    monkeypatch.setattr(run_module, "_design", lambda cfg, run, params: {"n_joints": 3.0, "feasible_fraction": np.float32("nan")})
+    s = study_from("design", design_configurations=10)
+    row = run_one(config_for(s, "v"), expand(s)[0])
+    assert row["outcome"] == "diverged" and row["message"] == "non-finite metrics: feasible_fraction", row
+
+
 def test_identification_metrics_of_a_twin_value_of_zero_are_undefined_not_a_divergence() -> None:
     """A twin with linear cables (λ = 0, which the parameter file allows and a study may vary to,
     e.g. cables.variable.lambda[1]=0:150:4) has no relative error for λ: it used to be inf, and the

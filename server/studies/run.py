@@ -203,21 +203,31 @@ def run_one(cfg: RunConfig, run: RunSpec) -> dict[str, Any]:
         kind = cfg.study.kind
         metrics = (_control(cfg, run, params, truth) if kind == "control" else
                    _identification(cfg, run, params, truth) if kind == "identification" else _design(cfg, run, params))
-        finite = all(math.isfinite(x) for x in metrics.values() if isinstance(x, float))
+        unfinite = non_finite(metrics)
         row.update(metrics)
         flat = int(metrics.get("flat_steps", 0) or 0)
         row["outcome"], row["message"] = (
-            ("diverged", "non-finite metrics") if not finite else
+            ("diverged", f"non-finite metrics: {', '.join(unfinite[:5])}{', ...' if len(unfinite) > 5 else ''}")
+            if unfinite else
             # the twin stood still at a joint's flat singularity: its metrics are not the robot's
             ("diverged", f"the twin refused {flat} step(s) at a joint's flat singularity (α = ±180°)") if flat else
             ("finished", ""))
     except (ParameterError, TruthError, StudyError) as exc:
         row["outcome"], row["message"] = "invalid", str(exc)
-    except (IdentificationError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+    except (IdentificationError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        # ArithmeticError: FloatingPointError, and a ZeroDivisionError or OverflowError of a robot with
+        # absurd values (geometry.R = 6e299 divided by zero in the dynamics: a traceback ended the study)
         row["outcome"], row["message"] = "failed", f"{type(exc).__name__}: {exc}"
     row["run_s"] = time.perf_counter() - t0
     row["version"] = cfg.version
     return row
+
+
+def non_finite(metrics: dict[str, Any]) -> list[str]:
+    """Names of the metrics that are NaN or ±inf: Python and numpy numbers alike (a numpy float32
+    is no ``float``). None is an undefined metric (identification_metrics), not a non-finite one."""
+    return [k for k, v in metrics.items()
+            if isinstance(v, float | np.floating) and not math.isfinite(float(v))]
 
 
 def _flat(metrics: dict[str, object]) -> dict[str, Any]:

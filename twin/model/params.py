@@ -264,6 +264,14 @@ class Params(_Section, frozen=True, kw_only=True):
         return len(self.cables.routing)
 
     @property
+    def motor_peak_force_N(self) -> float:
+        """The largest cable force a motor gives (N): its controller's current limit through the
+        torque constant, the gear and the drum, as the bridge converts forces (no gear efficiency:
+        the identified friction holds the gear's losses)."""
+        m, g = self.motors, self.geometry
+        return m.current_max * m.torque_constant * g.R / g.r_d
+
+    @property
     def routes(self) -> tuple[tuple[tuple[int, str], ...], ...]:
         """Routing as data: for each cable, the (joint index from 0, case letter) pairs it runs along."""
         return tuple(_parse_route(p, "routing") for p in self.cables.routing)
@@ -290,6 +298,14 @@ class Params(_Section, frozen=True, kw_only=True):
         for j, route in enumerate(self.routes):
             for joint, _ in route:
                 _require(joint < n, f"cables.routing[{j}] names joint {joint + 1} but n_joints = {n}")
+        # A motor whose static friction is more than the largest force it can pull its cable with
+        # never moves: no robot has such a friction (user audit: a study with friction.f_s = 6e299 N
+        # ran its twin stuck at rest and reported the run as finished).
+        peak = self.motor_peak_force_N
+        _require(max(self.friction.f_s) < peak,
+                 f"friction.f_s = {list(self.friction.f_s)} N: each must be below the motors' peak force at the "
+                 f"cable, {peak:.4g} N (motors.current_max × motors.torque_constant × geometry.R / geometry.r_d), "
+                 "or the motor never overcomes its friction")
 
     def to_dict(self) -> dict[str, Any]:
         return msgspec.to_builtins(self)
