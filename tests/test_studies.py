@@ -527,6 +527,42 @@ def test_a_run_that_divides_by_zero_or_gives_non_finite_numbers_is_not_finished(
     assert row["outcome"] == "diverged" and row["message"] == "non-finite metrics: feasible_fraction", row
 
 
+def test_a_study_records_and_hashes_only_the_fields_its_kind_uses(tmp_path) -> None:
+    """User audit: a design study's study.json showed laws, a trajectory and a truth it never ran,
+    and its digest (hence its directory, its resume and its console id) changed with them."""
+    from dataclasses import asdict
+
+    from server.studies.execute import STUDY_FILE, load_study, study_dir
+
+    design = study_from("design", design_configurations=10)
+    unused = dict(laws=(1, 3), no_pulleys=True, trajectory="identification", truth="robot", alpha_ip="camera",
+                  settle_s=5.0, model_follows=True)
+    assert study_from("design", design_configurations=10, **unused) == design  # the console sends its truth select
+    assert study_from("design", design_configurations=10, **unused).digest() == design.digest()
+    design_fields = {"kind", "samples", "seed", "vary", "params_file", "set", "design_configurations"}
+    with study_dir(design, tmp_path / "d"):
+        pass
+    recorded = json.loads((tmp_path / "d" / STUDY_FILE).read_text())
+    assert set(recorded["study"]) == design_fields and recorded["digest"] == design.digest()
+    assert load_study(tmp_path / "d") == design
+    # a control study records its campaign's fields, not the design's configurations
+    assert set(study_from("control").canonical()) == design_fields - {"design_configurations"} | {
+        "laws", "no_pulleys", "trajectory", "truth", "alpha_ip", "settle_s", "model_follows"}
+    # Resume: the digests of studies recorded before are kept (these are the previous version's),
+    # and a directory whose study.json recorded every field still holds the same study.
+    assert [study_from(k).digest() for k in ("control", "identification", "design")] == [
+        "825a25500aefa78c", "8cb27dc463fbc46c", "92705072dafb4453"]
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / STUDY_FILE).write_text(json.dumps({"digest": "92705072dafb4453", "study": asdict(study_from("design"))}))
+    assert load_study(old) == study_from("design")
+    with study_dir(study_from("design"), old):
+        pass
+    # a design study runs no twin: a truth path is refused, not left to fail every run
+    with pytest.raises(StudyError, match=r"design study .* runs no twin"):
+        study_from("design", vary=("truth.friction.static_ratio=U(1.1,1.5)",), truth="robot")
+
+
 def test_identification_metrics_of_a_twin_value_of_zero_are_undefined_not_a_divergence() -> None:
     """A twin with linear cables (λ = 0, which the parameter file allows and a study may vary to,
     e.g. cables.variable.lambda[1]=0:150:4) has no relative error for λ: it used to be inf, and the

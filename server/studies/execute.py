@@ -29,7 +29,7 @@ from pathlib import Path
 from threading import Event
 from typing import Any
 
-from server.studies.spec import RunSpec, Study, StudyError, expand
+from server.studies.spec import RunSpec, Study, StudyError, expand, for_kind
 
 RUNS_DIR = "runs"
 STUDY_FILE = "study.json"
@@ -189,8 +189,9 @@ def load_study(out: Path) -> Study:
     try:
         data = dict(doc["study"])
         for key in ("vary", "laws", "set"):
-            data[key] = tuple(data[key])
-        return Study(**data)
+            if key in data:  # a design study records no laws
+                data[key] = tuple(data[key])
+        return for_kind(Study(**data))
     except (KeyError, TypeError, ValueError) as exc:  # edited by hand, or written by another version
         raise StudyError(f"{Path(out) / STUDY_FILE}: not a study definition ({type(exc).__name__}: {exc})") from None
 

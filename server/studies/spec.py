@@ -30,7 +30,7 @@ import operator
 import re
 import tomllib
 from collections.abc import Collection, Container, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, overload
 
@@ -168,15 +168,46 @@ class Study:
     def varies(self) -> tuple[Vary, ...]:
         return tuple(parse_vary(v) for v in self.vary)
 
+    def uses(self) -> tuple[str, ...]:
+        """The fields this kind of study runs on (:data:`KIND_FIELDS`; every field for an unknown kind)."""
+        return KIND_FIELDS.get(self.kind, tuple(Study.__dataclass_fields__))
+
     def canonical(self) -> dict[str, Any]:
-        out = asdict(self)
-        if out["estimator"] == "auto":  # the default is left out: a study defined before the field keeps its digest
+        """The study as study.json and summary.json record it: the fields its kind uses only (a
+        design study showed laws and a trajectory it never ran, user audit)."""
+        out = {k: v for k, v in asdict(self).items() if k in self.uses()}
+        if out.get("estimator") == "auto":  # the default is left out: a study defined before the field keeps its digest
             del out["estimator"]
         return out
 
     def digest(self) -> str:
-        """Identity of the study's rows: a study directory holds one study and refuses another."""
-        return hashlib.sha256(json.dumps(self.canonical(), sort_keys=True).encode()).hexdigest()[:16]
+        """Identity of the study's rows: a study directory holds one study and refuses another.
+        It depends on the fields its kind uses only; the others enter at their defaults, as
+        constants, so that the digests of studies recorded before (every field hashed, the
+        unused ones at their defaults from the command line) are kept and their directories resume."""
+        doc = {**asdict(self), **{k: v for k, v in _DEFAULTS.items() if k not in self.uses()}}
+        if doc["estimator"] == "auto":
+            del doc["estimator"]
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: The fields each kind of study runs on. Design studies compute statics of the parameter set: no
+#: twin, law, trajectory or truth. Only identification studies use an estimator; only design ones
+#: a number of configurations.
+_COMMON_FIELDS = ("kind", "samples", "seed", "vary", "params_file", "set")
+_CAMPAIGN_FIELDS = ("laws", "no_pulleys", "trajectory", "truth", "alpha_ip", "settle_s", "model_follows")
+KIND_FIELDS: dict[str, tuple[str, ...]] = {
+    "control": _COMMON_FIELDS + _CAMPAIGN_FIELDS,
+    "identification": _COMMON_FIELDS + _CAMPAIGN_FIELDS + ("estimator",),
+    "design": _COMMON_FIELDS + ("design_configurations",),
+}
+_DEFAULTS: dict[str, Any] = asdict(Study())
+
+
+def for_kind(study: Study) -> Study:
+    """``study`` with the fields its kind does not use at their defaults: two studies that run
+    alike are equal (the console sends a design study its truth select's value)."""
+    return replace(study, **{k: v for k, v in _DEFAULTS.items() if k not in study.uses()})
 
 
 @dataclass(frozen=True)
@@ -213,7 +244,8 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
         else:
             data[key] = value
     data["kind"] = kind
-    data.setdefault("trajectory", "identification" if kind == "identification" else "control_test")
+    if kind != "design":  # a design study has no trajectory
+        data.setdefault("trajectory", "identification" if kind == "identification" else "control_test")
     if kind == "identification":
         data["laws"] = (1,)  # the §5.2.2 campaign runs law 1 (server.cli.campaign): its rows say so
     for key in ("vary", "laws", "set"):
@@ -223,7 +255,7 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
         study = Study(**data)
     except TypeError as exc:
         raise StudyError(f"study: {exc}") from None
-    return _checked_syntax(study)
+    return for_kind(_checked_syntax(study))
 
 
 def _checked_syntax(s: Study) -> Study:
@@ -252,6 +284,9 @@ def _checked_syntax(s: Study) -> Study:
     labels = [v.label for v in s.varies()]
     if len(set(labels)) != len(labels):
         raise StudyError(f"--vary: a path is varied twice ({', '.join(sorted({x for x in labels if labels.count(x) > 1}))})")
+    if s.kind == "design" and any(label.startswith("truth.") for label in labels):
+        raise StudyError("--vary truth.*: a design study computes the parameter set's statics, it runs no twin "
+                         "and so no truth: vary parameter-file paths")
     if "geometry.n_joints" in labels and s.kind != "design":
         raise StudyError("--vary geometry.n_joints: only a design study changes the number of joints "
                          "(a control or identification trajectory is written for the prototype's joints)")
