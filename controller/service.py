@@ -11,7 +11,8 @@ Life cycle of one campaign::
                          '--refused-----------> aborted (with the reason)
 
 ``finished`` and ``aborted`` are idle again for the next request. Between campaigns the law holds
-the neck at ``hold_target`` (the last waypoint, or where it was when the service started). A
+the neck at ``hold_target`` (the last waypoint, or where it was when the service started), with
+the service's own law and parameter set: a campaign's own are given back when it ends (``_go_home``). A
 campaign starts bumplessly from that hold, as a jog does: α^d approaches the first waypoint from
 where it rests, and the law (or the new law) goes on with its filtered velocities and its
 integral's share of the command (``_switch_law``).
@@ -223,6 +224,9 @@ class CampaignService:
 
     def __post_init__(self) -> None:
         self.ctl = ComputedTorque(self.params, self.law)
+        # the set and law the service holds with between campaigns (``xneck controller --law``):
+        # a campaign's own are taken back when it ends (_end)
+        self._home = (self.params, self.law)
         self.encoder_check = self._make_encoder_check()
         n_joints = self.ctl.model.n_joints
         self.last_sane = np.zeros(n_joints)
@@ -483,6 +487,8 @@ class CampaignService:
             self._blend = None
         self.hold_target = np.array(hold_at, dtype=float)
         self.ticks = self.overruns = self.deadline_misses = 0
+        if self.service and self.kind != "jog":
+            self._go_home()
         waiting, self._next_jog = self._next_jog, None
         if waiting is not None and outcome != "finished":
             self.refuse(waiting.campaign_id, waiting.kind, f"dropped: jog {self.campaign_id} ended {outcome} ({message})")
@@ -685,6 +691,20 @@ class CampaignService:
         except Refused as exc:
             result = exc
         self.prepared(result, req, stamp_s)
+
+    def _go_home(self) -> None:
+        """Hold with the service's own set and law again once a campaign that brought its own
+        ended (user audit of session 46: after an identification the stack held, and jogged, with
+        law 1 until the next campaign of another law), from the last command at the take-up's
+        1 N a tick, as a campaign's own law starts."""
+        params, law = self._home
+        if params is self.params and law == self.law:
+            return
+        old_limits, old_law = self.params.limits, self.law
+        self.params = params
+        self._switch_law(law)
+        if self.drive == "active" and (params.limits != old_limits or law != old_law):
+            self._wind_down = True
 
     def _switch_law(self, law: LawConfig) -> None:
         """A new law continues from the current estimate (α̂, θ and, when both models are

@@ -921,3 +921,24 @@ def test_a_small_step_back_of_the_clock_after_a_stall_is_no_encoder_fault(params
         loop.events += loop.svc.drain_events()
         loop.tick = loop.twin.tick(out.force_N)
     assert loop.svc.running and not [e for e in loop.events if e.event == "aborted"], loop.events
+
+
+@pytest.mark.parametrize("stop", [False, True])
+def test_a_campaign_of_another_law_gives_the_hold_back_to_the_services_own_law(params, stop):
+    """User audit of session 46: after an identification (law 1) the stack held, and jogged, with
+    law 1 until a campaign of another law ran, though ``--law`` is the law it holds with between
+    campaigns. The service's own law and set come back when a campaign ends, finished or stopped,
+    without a force step (the take-up's 1 N a tick from the last command)."""
+    loop = Loop(params)
+    loop.run(0.3)
+    loop.svc.handle(_request(law=1), loop.stamp_s)
+    assert loop.svc.law.law == 1
+    loop.run(0.6 if stop else NOD.duration_s + 0.5)
+    if stop:
+        loop.svc.handle(_request(action="stop"), loop.stamp_s)
+    before = len(loop.outputs)
+    loop.run(1.0)
+    assert [e.event for e in loop.events if e.event in ("finished", "aborted")] == ["aborted" if stop else "finished"]
+    assert loop.svc.law.law == 2 and loop.svc.ctl.config.law == 2
+    forces = np.array([o.force_N for o in loop.outputs[before - 5:]])
+    assert np.abs(np.diff(forces, axis=0)).max() <= 2.0
