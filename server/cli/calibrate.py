@@ -48,6 +48,10 @@ def calibrate(
         "of every recording; the finite-difference Jacobians are not counted, and cost one replay more per fitted "
         "value: with the 8 default values, 1 runs 9 replays, 10 about 66 (the count run is printed). A fit stopped "
         "by this limit is still written, marked not converged."),
+    starts: int = typer.Option(
+        16, "--starts", min=0, max=1024, help="Points of the fitted values' bounds screened for the fit's start "
+        "besides the base truth's values, each one replay of every recording (0: start from the base alone); "
+        "the replays' mismatch has local minima."),
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
     params_file: Path | None = PARAMS_OPTION,
@@ -94,7 +98,7 @@ def calibrate(
         if d is not None:
             progress(f"-- delay {d} tick(s)")
         results.append(cal.fit(recordings, params, start, fitted, weights, progress, max_evaluations,
-                               command=command, base_name=base))
+                               command=command, base_name=base, starts=starts))
     result = min(results, key=lambda r: r.cost)
     truth = result.truth
     if delays:
