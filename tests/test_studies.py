@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -535,8 +536,8 @@ def test_a_study_records_and_hashes_only_the_fields_its_kind_uses(tmp_path) -> N
     from server.studies.execute import STUDY_FILE, load_study, study_dir
 
     design = study_from("design", design_configurations=10)
-    unused = dict(laws=(1, 3), no_pulleys=True, trajectory="identification", truth="robot", alpha_ip="camera",
-                  settle_s=5.0, model_follows=True)
+    unused: dict[str, Any] = dict(laws=(1, 3), no_pulleys=True, trajectory="identification", truth="robot",
+                                  alpha_ip="camera", settle_s=5.0, model_follows=True)
     assert study_from("design", design_configurations=10, **unused) == design  # the console sends its truth select
     assert study_from("design", design_configurations=10, **unused).digest() == design.digest()
     design_fields = {"kind", "samples", "seed", "vary", "params_file", "set", "design_configurations"}
