@@ -565,6 +565,53 @@ def test_an_estop_the_console_refuses_is_said_in_the_banner_until_one_is_sent(co
                            "document.querySelector('#live-lost').hidden", timeout=10000)
 
 
+def test_the_header_says_a_process_of_the_stack_died_or_was_restarted(console):
+    """Follow-up of session 44: `xneck up --restarts` restarted a dead controller and told the
+    console (POST /api/system/abort), which only journalled it: between campaigns the dashboard
+    showed nothing. The header says the newest fault and how many since the console started."""
+    page = console.page
+    assert page.locator("#process-faults").is_hidden()
+    # a campaign an earlier test left running would be this fault's victim
+    assert wait_until(lambda: console.http.get("/api/system/health").json()["running_campaign_id"] is None, 60, 0.2)
+    reason = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
+    told = console.http.post("/api/system/abort", json={"reason": reason}, headers=AUTH)
+    assert told.status_code == 200 and told.json()["campaign_id"] is None, told.text  # nothing ran
+    page.wait_for_function("!document.querySelector('#process-faults').hidden", timeout=15000)
+    text = page.inner_text("#process-faults")
+    assert text.startswith(f"STACK: {reason}") and "ago" in text and "since" not in text, text
+    console.http.post("/api/system/abort", json={"reason": "camera process exited (code 3), restarting camera in "
+                                                           "1 s (1 of 2 within 10 min)"}, headers=AUTH)
+    page.wait_for_function("document.querySelector('#process-faults').textContent.includes('camera')", timeout=15000)
+    assert "(2 process faults since this console started)" in page.inner_text("#process-faults")
+    assert "(2 process faults)" in page.inner_text("#sys")
+
+
+
+def test_a_jog_a_controller_death_cut_short_says_so_in_the_jog_panel(console):
+    """Review of session 46: a jog cut short by the controller's death was said by the header's
+    process-fault line only; the jog panel went on showing the move (``→ [..] in 2.0 s``). The
+    console marks the jog that was under way (``GET /api/jog``, ``jog`` in the health) and the
+    panel says why it ended; its target no longer stands."""
+    page = console.page
+    console.wait_idle()
+    page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
+    accepted = page.evaluate("window.xneckJog.accepted")
+    _slide(page, 2, 6.0)
+    page.wait_for_function(f"window.xneckJog.accepted > {accepted}", timeout=10000)
+    jog_id = page.evaluate("window.xneckJog.last.jog_id")
+    cause = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
+    # as xneck up tells it (the death at most ended_within_s before: generous, the machine may be loaded)
+    told = console.http.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH)
+    assert told.status_code == 200, told.text
+    assert console.http.get("/api/jog").json()["jog"] | {"age_s": 0} == {
+        "jog_id": jog_id, "to_deg": page.evaluate("window.xneckJog.target"), "age_s": 0,
+        "duration_s": page.evaluate("window.xneckJog.last.duration_s"), "ended": cause}
+    page.wait_for_function("document.querySelector('#jog-error').textContent.includes('cut short')", timeout=15000)
+    text = page.inner_text("#jog-error")
+    assert text.startswith(f"jog {jog_id} to [") and text.endswith(f"cut short: {cause}"), text
+    assert page.inner_text("#jog-status") == "" and page.evaluate("window.xneckJog.target") is None
+
+
 def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_said(console):
     page, http = console.page, console.http
     console.wait_idle()  # the campaign the editor test stopped
@@ -619,50 +666,3 @@ def test_an_identification_campaigns_analysis_options_reach_the_server_from_the_
     page.select_option("select[name=kind]", "control")
     assert page.locator("#analysis-box").is_hidden()
     page.evaluate("document.querySelector('#error').textContent = ''")
-
-
-def test_the_header_says_a_process_of_the_stack_died_or_was_restarted(console):
-    """Follow-up of session 44: `xneck up --restarts` restarted a dead controller and told the
-    console (POST /api/system/abort), which only journalled it: between campaigns the dashboard
-    showed nothing. The header says the newest fault and how many since the console started."""
-    page = console.page
-    assert page.locator("#process-faults").is_hidden()
-    # a campaign an earlier test left running would be this fault's victim
-    assert wait_until(lambda: console.http.get("/api/system/health").json()["running_campaign_id"] is None, 60, 0.2)
-    reason = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
-    told = console.http.post("/api/system/abort", json={"reason": reason}, headers=AUTH)
-    assert told.status_code == 200 and told.json()["campaign_id"] is None, told.text  # nothing ran
-    page.wait_for_function("!document.querySelector('#process-faults').hidden", timeout=15000)
-    text = page.inner_text("#process-faults")
-    assert text.startswith(f"STACK: {reason}") and "ago" in text and "since" not in text, text
-    console.http.post("/api/system/abort", json={"reason": "camera process exited (code 3), restarting camera in "
-                                                           "1 s (1 of 2 within 10 min)"}, headers=AUTH)
-    page.wait_for_function("document.querySelector('#process-faults').textContent.includes('camera')", timeout=15000)
-    assert "(2 process faults since this console started)" in page.inner_text("#process-faults")
-    assert "(2 process faults)" in page.inner_text("#sys")
-
-
-
-def test_a_jog_a_controller_death_cut_short_says_so_in_the_jog_panel(console):
-    """Review of session 46: a jog cut short by the controller's death was said by the header's
-    process-fault line only; the jog panel went on showing the move (``→ [..] in 2.0 s``). The
-    console marks the jog that was under way (``GET /api/jog``, ``jog`` in the health) and the
-    panel says why it ended; its target no longer stands."""
-    page = console.page
-    console.wait_idle()
-    page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
-    accepted = page.evaluate("window.xneckJog.accepted")
-    _slide(page, 2, 6.0)
-    page.wait_for_function(f"window.xneckJog.accepted > {accepted}", timeout=10000)
-    jog_id = page.evaluate("window.xneckJog.last.jog_id")
-    cause = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
-    # as xneck up tells it (the death at most ended_within_s before: generous, the machine may be loaded)
-    told = console.http.post("/api/system/abort", json={"reason": cause, "ended_within_s": 60}, headers=AUTH)
-    assert told.status_code == 200, told.text
-    assert console.http.get("/api/jog").json()["jog"] | {"age_s": 0} == {
-        "jog_id": jog_id, "to_deg": page.evaluate("window.xneckJog.target"), "age_s": 0,
-        "duration_s": page.evaluate("window.xneckJog.last.duration_s"), "ended": cause}
-    page.wait_for_function("document.querySelector('#jog-error').textContent.includes('cut short')", timeout=15000)
-    text = page.inner_text("#jog-error")
-    assert text.startswith(f"jog {jog_id} to [") and text.endswith(f"cut short: {cause}"), text
-    assert page.inner_text("#jog-status") == "" and page.evaluate("window.xneckJog.target") is None
