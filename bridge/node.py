@@ -701,7 +701,8 @@ class BridgeNode:
         self._state_pub.put(bus.MotorState(
             seq=self._seq["state"], stamp_s=stamp, theta_rad=self._theta_list,
             force_applied_N=self.force.tolist(), drive=self.mode,
-            hold_reason=self.hold_reason if self.mode == "hold" else "", epoch=self.epoch, bridge=self.instance,
+            hold_reason=self.hold_reason if self.mode == "hold" or self._closed else "", epoch=self.epoch,
+            bridge=self.instance,
             # one attribute read (a str): the lock only guards the callback's read-modify-write
             owner=self.ownership.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
 
@@ -724,9 +725,12 @@ class BridgeNode:
             last_reject_reason=self.fault or reason)))
 
     # -- exit -----------------------------------------------------------------------------------
-    def shutdown(self) -> None:
+    def shutdown(self, cause: str = "") -> None:
         """Disable the drives, publish the final state and health, close the driver and the bus
-        objects. Safe to call more than once and from a half-dead state."""
+        objects. Safe to call more than once and from a half-dead state. ``cause``: why the bridge
+        stops (e.g. "stopped by SIGTERM: its parent process (pid 812) died"), said in the final
+        state's ``hold_reason`` beside ``drive = "disabled"`` (what a console records of a campaign
+        the stop ended)."""
         if self._closed:
             return
         self._closed = True
@@ -745,7 +749,7 @@ class BridgeNode:
                 self.mode, self.hold_reason = "hold", f"DRIVES MAY BE ON: they could not be disabled ({failed})"
                 log.error("bridge %s: %s", self.instance, self.hold_reason)
             else:
-                self.mode, self.hold_reason = "disabled", ""
+                self.mode, self.hold_reason = "disabled", f"bridge {cause}" if cause else ""
             self.force = np.zeros(self.driver.n_motors)
             for last in (self.publish_state, self.publish_health):
                 with contextlib.suppress(Exception):  # the session may already be gone

@@ -21,12 +21,33 @@ def setup_logging(verbose: bool = False) -> None:
     )
 
 
-def stop_on_signals() -> threading.Event:
-    """An event set by Ctrl-C or SIGTERM, so loops end cleanly and sessions get closed."""
-    stop = threading.Event()
+class Stop(threading.Event):
+    """The stop event of a bus process, with ``cause``: why it was set ("" until then)."""
+
+    cause: str = ""
+
+
+def stop_cause(signum: int, parent_pid: int, ppid: int) -> str:
+    """Why a process stops on signal ``signum``, as its last state says it: a supervisor's death
+    (the kernel's parent-death SIGTERM, ``xneck up`` killed) is named as such, since its children
+    were stopped by it, not by anyone's stop (the console had recorded "the drives were disabled
+    during the campaign: the bridge's drives are disabled", user audit of session 46). ``ppid``:
+    the parent now, ``parent_pid`` the one at start-up."""
+    name = signal.Signals(signum).name
+    if ppid != parent_pid:
+        return f"stopped by {name}: its parent process (pid {parent_pid}) died"
+    return f"stopped by {name}"
+
+
+def stop_on_signals() -> Stop:
+    """An event set by Ctrl-C or SIGTERM, so loops end cleanly and sessions get closed; its
+    ``cause`` says which signal, and whether the process's parent had died (:func:`stop_cause`)."""
+    stop = Stop()
+    parent_pid = os.getppid()
 
     def handler(signum: int, _frame: object) -> None:
-        logging.getLogger("xneck").info("signal %s: stopping", signal.Signals(signum).name)
+        stop.cause = stop_cause(signum, parent_pid, os.getppid())
+        logging.getLogger("xneck").info("signal %s: stopping (%s)", signal.Signals(signum).name, stop.cause)
         stop.set()
 
     signal.signal(signal.SIGINT, handler)

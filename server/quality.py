@@ -461,8 +461,8 @@ def drive_estop(state: bus.MotorState) -> tuple[bool, str]:
     drives disabled without it (a bridge stopping) are not an e-stop but get a reason too."""
     if state.estop_engaged:
         return True, state.estop_reason or "e-stop engaged"
-    if state.drive == "disabled":
-        return False, "the bridge's drives are disabled"
+    if state.drive == "disabled":  # a stopping bridge says why in its last state
+        return False, bus.plain_text(state.hold_reason) or "the bridge's drives are disabled"
     return False, ""
 
 

@@ -260,3 +260,21 @@ def test_a_stacks_console_refuses_a_campaign_while_its_controller_is_away(tmp_pa
         assert "stack's controller service is not on the bus" in r.json()["detail"], r.text
         assert client.get("/api/campaigns").json() == []
         assert client.get("/api/system/processes").json()["processes"] == []  # nothing spawned
+
+
+def test_a_supervisor_killed_mid_campaign_is_named_not_an_estop(tmp_path: Path) -> None:
+    """User audit of session 46: `kill -9` of `xneck up` mid-campaign stopped its children (their
+    parent-death SIGTERM) and the campaign recorded "the drives were disabled during the campaign:
+    the bridge's drives are disabled", as if an e-stop had happened. The bridge's last state says
+    why it stopped, and the record names the supervisor's death."""
+    with _xneck_up(tmp_path) as (base, data, up):
+        cid = _start_gentle(base, data, tmp_path)
+        assert wait_until(lambda: (_get(f"{base}/api/campaigns/{cid}") or {}).get("progress", 0) > 0.05, 60, 0.1)
+        up.kill()
+        up.wait(10)
+        record_file = data / "campaigns" / f"{cid}.json"
+        assert wait_until(lambda: record_file.exists() and json.loads(record_file.read_text())["status"] != "running",
+                          60, 0.2)
+    record = json.loads(record_file.read_text())
+    assert record["status"] == "aborted", record
+    assert "its parent process" in record["message"] and "died" in record["message"], record["message"]

@@ -301,7 +301,7 @@ def _run_bridge(node, drv, stop, lockstep: bool, loop_stall: float, command_time
     try:
         ticks = run_lockstep(node, stop) if lockstep else run_realtime(node, stop, SystemdNotify.from_environ())
     finally:
-        node.shutdown()
+        node.shutdown(getattr(stop, "cause", ""))
     stats = node.commands.stats
     log.info("bridge %s stopped after %d ticks, %s; commands accepted %d, rejected %d, "
              "clamped %d, holds %d, overruns %d, periods skipped %d", node.instance, ticks,
