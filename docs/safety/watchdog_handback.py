@@ -4,6 +4,7 @@ hand-back (docs/safety.md, "The law's force rate"; audit of session 43).
 
     .venv/bin/python docs/safety/watchdog_handback.py                     # laws 1-3, D 0 to 1.0 s, about 15 s
     .venv/bin/python docs/safety/watchdog_handback.py --flap        # a starved controller
+    .venv/bin/python docs/safety/watchdog_handback.py --stalls 0.0005 0.002   # random stalls, the whole test
 
 The §7 control test (controller.trajectory.control_test_trajectory) on the robot truth, the
 controller's campaign service closed on the twin through the bridge's safety rules in one process.
@@ -13,7 +14,11 @@ commands again when they return. After the hand-back (1.5 s): the neck's peak jo
 largest |α| (truth), the largest applied force step per tick, and the command at the hand-back.
 D = 0: the same run without the loss (law 1 reaches 127°/s there without any fault). ``--flap``: the
 controller starved (stopped 40 ms, running 8 ms, as SIGSTOP/SIGCONT did): its commands come through
-8 ms in every 48 over D, and the bridge flaps hold/active.
+8 ms in every 48 over D, and the bridge flaps hold/active. ``--stalls P``: the whole control test
+with, at each tick, a probability P that the commands stop for 12-20 ms (seeded; the bridge holds
+from 10 ms), run with the law re-starting after any hold of more than a period (``HOLD_RESTART_S``,
+session 46) and after 0.1 s of holds as before: how much later the campaign ends, the holds, and
+the neck's peak joint speed over it.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+import controller.service as service
 from bridge import bus
 from bridge.motor_speed import MotorSpeed
 from bridge.safety import Inputs, Safety, SafetyConfig
@@ -80,6 +86,50 @@ def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5,
                 step=float(np.abs(np.diff(np.array(applied), axis=0)).max()), command=sent)
 
 
+def stalls(params, law: int, p_stall: float, hold_restart_s: float, seed: int = 1) -> tuple[float, int, float, str]:
+    """(campaign length from its start to its end event, s; the bridge's holds; peak joint speed,
+    °/s; the end event) of the control test with random stalls of the commands (module docstring)."""
+    default, service.HOLD_RESTART_S = service.HOLD_RESTART_S, hold_restart_s
+    try:
+        rng = np.random.default_rng(seed)
+        twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
+        svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
+        safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+        hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
+        tick = twin.tick(np.zeros(params.n_cables))
+        speed.update(tick.theta_meas.tolist())
+        svc.initialise(tick.theta_meas)
+        start_k, lost_until, age, peak, holds, end = 250, -1, 0, 0.0, 0, "none"
+        k = start_k
+        for k in range(round(120 / DT)):
+            if k == start_k:
+                svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ct", action="start", law=law,  # type: ignore[arg-type]
+                                               trajectory_json=control_test_trajectory().to_json()), tick.t_s)
+            out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+            if out.law_ran:
+                svc.advance(tick.t_s)
+            ended = [e.event for e in svc.drain_events() if e.event in ("finished", "aborted")]
+            if ended:
+                end = ended[0]
+                break
+            if k > start_k and k > lost_until and rng.random() < p_stall:
+                lost_until = k + int(rng.integers(6, 10))  # 12-20 ms
+            lost = k <= lost_until
+            age = age + 1 if lost else 0
+            was = safety.drive
+            d = safety.step(Inputs(command_N=None if lost else out.force_N.tolist(), command_age_s=DT * age,
+                                   states_unanswered=age, estop=(), hold_N=hold_rule(tick.theta_meas).tolist(),
+                                   sender="c", speed_rad_s=speed.rad_s))
+            holds += was != "hold" and safety.drive == "hold"
+            tick = twin.tick(np.asarray(d.force_N, dtype=float))
+            speed.update(tick.theta_meas.tolist())
+            if k > start_k:
+                peak = max(peak, float(np.abs(tick.alpha_dot).max()))
+        return (k - start_k) * DT, holds, math.degrees(peak), end
+    finally:
+        service.HOLD_RESTART_S = default
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description="The hand-back after the bridge's watchdog held for lost commands.")
     ap.add_argument("--law", type=int, nargs="+", default=[1, 2, 3])
@@ -87,8 +137,19 @@ def main() -> None:
                     help="s of lost commands (0: none; the bridge holds from 10 ms)")
     ap.add_argument("--at", type=float, default=3.0, help="s into the control test the loss starts")
     ap.add_argument("--flap", action="store_true", help="a starved controller: 40 ms lost, 8 ms through, over D")
+    ap.add_argument("--stalls", type=float, nargs="+", help="per-tick probabilities of a 12-20 ms stall (module docstring)")
     args = ap.parse_args()
     params = load_params()
+    if args.stalls:
+        print("control test on the robot truth with random 12-20 ms stalls of the commands:")
+        for p_stall in args.stalls:
+            for law in args.law:
+                for hold_restart_s, name in ((0.1, "re-start after 0.1 s of holds (before)"),
+                                             (service.HOLD_RESTART_S, "after a period (now)")):
+                    length, holds, peak, end = stalls(params, law, p_stall, hold_restart_s)
+                    print(f"P {p_stall:g}, law {law}, {name}: {end} after {length:.1f} s, {holds} holds, "
+                          f"peak joint {peak:.0f}°/s", flush=True)
+        return
     print(f"control test on the robot truth, commands lost from +{args.at:g} s; after the hand-back (1.5 s):")
     for law in args.law:
         for lost_s in args.lost:
