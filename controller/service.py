@@ -32,7 +32,7 @@ applied forces (:meth:`controller.laws.ComputedTorque.observe`), the integral st
 the command is the hold forces at α̂, so nothing grows while the drives are off and the first
 command that enables them is one that holds the neck where it is. When the drives are ``active``
 again (also after a watchdog ``hold`` of the bridge, during which the law keeps running since its
-next command ends the hold, and after a long hold of the controller's own for stale states) the
+next command ends the hold, and after a hold of the controller's own for stale states) the
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
 stops meanwhile (at the last state before stale states, once the bridge's holds add up to
@@ -104,10 +104,19 @@ from twin.model.params import Params
 
 DIVERGENCE_MARGIN = math.radians(20.0)  # rad beyond the joint limit that counts as diverging
 PROGRESS_PERIOD_S = 0.5  # s of campaign time between two progress events
-STALE_RESTART_S = 0.1  # s without states after which the law re-starts from the measurement
-# s of the bridge's watchdog holds (summed until it obeys STALE_RESTART_S on end) after which the
+# s without states after which the law re-starts from the measurement: any gap its own hold
+# covered (the process holds after its stale_s, 10 ms). It was 0.1 s: after a shorter gap the law
+# went on from its hold, its commands stepping 10 N a tick back to the law's, and after 30-50 ms
+# with the trajectory's clock that had run on while the neck was held (57-70°/s; 65-135°/s when
+# the bridge took the hold throughout); re-started, at most 1.8 N a tick and 52°/s (control test,
+# robot truth, laws 1-3: docs/safety/watchdog_handback.py --stale, session 46). The price: the
+# campaign's clock stops and comes back to speed after each such gap.
+STALE_RESTART_S = 0.0
+# s the bridge must obey on end before its watchdog holds are no longer summed (HOLD_RESTART_S)
+HOLDS_FORGOTTEN_S = 0.1
+# s of the bridge's watchdog holds (summed until it obeys HOLDS_FORGOTTEN_S on end) after which the
 # law re-starts as after stale states: more than one 500 Hz period, so one late command is no
-# loss. It was STALE_RESTART_S: a loss of 20-98 ms (a 10-88 ms hold) mid-move left the law
+# loss. It was 0.1 s: a loss of 20-98 ms (a 10-88 ms hold) mid-move left the law
 # running on the held neck, its commands climbing to f_max and the trajectory's clock running on,
 # and at the hand-back the neck reached 74-157°/s, past the trajectories' 86°/s, |α| 55°
 # (docs/safety/watchdog_handback.py, session 46); re-started, 37-53°/s.
@@ -256,7 +265,7 @@ class CampaignService:
         self._check_armed_at = math.inf  # the drives have not been active yet (ENCODER_CHECK_SETTLE_S)
         # s of the bridge's watchdog hold summed over its recent holds, and the stamp of the first
         # state of the present run of active ones (None: not active), which clears the sum once it
-        # lasts STALE_RESTART_S (a run of short holds re-starts the law as one long one does)
+        # lasts HOLDS_FORGOTTEN_S (a run of short holds re-starts the law as one long one does)
         self._held_s = 0.0
         self._active_since: float | None = None
         self._bridge_held = False  # the bridge's watchdog held since the law last ran with it active
@@ -835,9 +844,8 @@ class CampaignService:
         return self.pretension_N
 
     def stale(self, reason: str, stale_for_s: float) -> Output:
-        """No new state for ``stale_for_s``: hold; after a long gap (``STALE_RESTART_S``) the law
-        re-starts from the measurement when states return (after a short one it goes on: its
-        integral did not move meanwhile, and a blend would only delay the trajectory)."""
+        """No new state for ``stale_for_s``: hold; after a gap of ``STALE_RESTART_S`` (any the
+        process holds for) the law re-starts from the measurement when states return."""
         if stale_for_s >= STALE_RESTART_S:
             self._restart = self._own_hold = True
             if self._theta_last is not None:
@@ -980,7 +988,7 @@ class CampaignService:
         if drive == "active":
             if self._active_since is None:
                 self._active_since = stamp_s
-            if stamp_s - self._active_since >= STALE_RESTART_S:
+            if stamp_s - self._active_since >= HOLDS_FORGOTTEN_S:
                 self._held_s = 0.0
         else:
             self._active_since = None
@@ -991,9 +999,9 @@ class CampaignService:
             # (HOLD_RESTART_S) it re-starts from the measurement once the bridge obeys again; after
             # one tick it goes on (re-starting had stepped the commands 8.6 N a tick, 2026-11-26,
             # before the take-over took its rate bound from the forces applied; now under 2 N).
-            # The hold time is summed until the bridge obeys for STALE_RESTART_S on end: a
+            # The hold time is summed until the bridge obeys for HOLDS_FORGOTTEN_S on end: a
             # starved controller (40 ms stopped, 8 ms running) made the bridge flap hold/active
-            # every 50 ms, no single hold lasted STALE_RESTART_S, the law ran on while the neck was
+            # every 50 ms, no single hold lasted 0.1 s (the threshold then), the law ran on while the neck was
             # held and its commands climbed to f_max; at the hand-back the neck reached 217-378°/s
             # and α 71.9° (audit of session 43).
             self._held_s += gap_s

@@ -14,7 +14,10 @@ commands again when they return. After the hand-back (1.5 s): the neck's peak jo
 largest |α| (truth), the largest applied force step per tick, and the command at the hand-back.
 D = 0: the same run without the loss (law 1 reaches 127°/s there without any fault). ``--flap``: the
 controller starved (stopped 40 ms, running 8 ms, as SIGSTOP/SIGCONT did): its commands come through
-8 ms in every 48 over D, and the bridge flaps hold/active. ``--stalls P``: the whole control test
+8 ms in every 48 over D, and the bridge flaps hold/active. ``--stale``: the states are lost for D
+instead (the commands would go through): the controller answers nothing for 10 ms, then holds by
+itself (:meth:`CampaignService.stale`) on the last state's stamp, which the bridge takes until that
+state is 50 ms old, then refuses, and its watchdog holds. ``--stalls P``: the whole control test
 with, at each tick, a probability P that the commands stop for 12-20 ms (seeded; the bridge holds
 from 10 ms), run with the law re-starting after any hold of more than a period (``HOLD_RESTART_S``,
 session 46) and after 0.1 s of holds as before: how much later the campaign ends, the holds, and
@@ -45,8 +48,10 @@ from twin.sim.simulator import Twin, TwinConfig
 DT = 0.002
 
 
-def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False) -> dict:
-    """One run (module docstring): figures after the hand-back, or over the same window with no loss."""
+def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False,
+             stale: bool = False) -> dict:
+    """One run (module docstring): figures after the hand-back, or over the same window with no loss.
+    ``stale``: the states, not the commands, are lost; the controller's own hold goes through."""
     twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
     svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
     safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
@@ -64,11 +69,24 @@ def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5,
             svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ct", action="start", law=law,  # type: ignore[arg-type]
                                            trajectory_json=control_test_trajectory().to_json()), tick.t_s)
         svc.drive_reason = safety.estop_reason if safety.drive == "disabled" else safety.hold_reason
-        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
-        if out.law_ran:
-            svc.advance(tick.t_s)
+        gap_k = k - lost.start
+        if stale and k in lost:
+            # No state reaches the controller: it answers none for its stale_s (10 ms), then holds
+            # by itself on the last state's stamp, which the bridge takes while that state is one of
+            # its last 50 ms (bridge.node.ANSWER_WINDOW_S), then refuses; its watchdog then holds.
+            if gap_k >= 5:
+                out = svc.stale("stale state", DT * (gap_k + 1))
+            taken = 5 <= gap_k < 25
+            age, command = (0, out.force_N.tolist()) if taken else (age + 1, None)
+        else:
+            out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+            if out.law_ran:
+                svc.advance(tick.t_s)
         svc.drain_events()
-        if k in lost and not (flap and (k - lost.start) % 24 >= 20):  # flap: 40 ms lost, 8 ms through
+        if stale:
+            if k not in lost:
+                age, command = 0, out.force_N.tolist()
+        elif k in lost and not (flap and (k - lost.start) % 24 >= 20):  # flap: 40 ms lost, 8 ms through
             age += 1
             command, sent = None, out.force_N
         else:
@@ -137,6 +155,8 @@ def main() -> None:
                     help="s of lost commands (0: none; the bridge holds from 10 ms)")
     ap.add_argument("--at", type=float, default=3.0, help="s into the control test the loss starts")
     ap.add_argument("--flap", action="store_true", help="a starved controller: 40 ms lost, 8 ms through, over D")
+    ap.add_argument("--stale", action="store_true", help="the states are lost for D, not the commands: the "
+                    "controller holds by itself from 10 ms (controller.process's stale_s)")
     ap.add_argument("--stalls", type=float, nargs="+", help="per-tick probabilities of a 12-20 ms stall (module docstring)")
     args = ap.parse_args()
     params = load_params()
@@ -150,10 +170,11 @@ def main() -> None:
                     print(f"P {p_stall:g}, law {law}, {name}: {end} after {length:.1f} s, {holds} holds, "
                           f"peak joint {peak:.0f}°/s", flush=True)
         return
-    print(f"control test on the robot truth, commands lost from +{args.at:g} s; after the hand-back (1.5 s):")
+    print(f"control test on the robot truth, {'states' if args.stale else 'commands'} lost from +{args.at:g} s; "
+          "after the hand-back (1.5 s):")
     for law in args.law:
         for lost_s in args.lost:
-            r = handback(params, law, args.at, lost_s, flap=args.flap)
+            r = handback(params, law, args.at, lost_s, flap=args.flap, stale=args.stale)
             held = f"command at the hand-back {np.round(r['command'], 0).tolist()} N" if lost_s else "no loss"
             print(f"law {law}, lost {lost_s:.2f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
                   f"max applied step {r['step']:5.2f} N/tick; {held}", flush=True)
