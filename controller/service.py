@@ -31,8 +31,9 @@ Drives and re-starts (issue 13): while the bridge says the drives are ``disabled
 applied forces (:meth:`controller.laws.ComputedTorque.observe`), the integral stays at zero and
 the command is the hold forces at α̂, so nothing grows while the drives are off and the first
 command that enables them is one that holds the neck where it is. When the drives are ``active``
-again (also after a watchdog ``hold`` of the bridge, during which the law keeps running since its
-next command ends the hold, and after a hold of the controller's own for stale states) the
+again (also after a watchdog ``hold`` of the bridge of more than a period, ``HOLD_RESTART_S``: for
+one tick the law runs on, its next command ending the hold; and after a hold of the controller's
+own for stale states) the
 law re-starts from the measurement: a fresh integral and α^d starting at α̂, blended back to the
 trajectory by a cycloid as gentle as :func:`controller.trajectory.approach`. The campaign's clock
 stops meanwhile (at the last state before stale states, once the bridge's holds add up to
