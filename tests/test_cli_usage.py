@@ -315,8 +315,9 @@ def test_a_fit_stopped_by_the_evaluation_limit_says_so(xneck, campaign, tmp_path
     assert run.returncode == 0, run.stderr
     summary = _strict(run.stdout)
     assert summary["converged"] is False and summary["status"] == "not converged: stopped at the evaluation limit"
-    # As the help says: one evaluation, plus a Jacobian of one replay per fitted value (8 by default).
-    assert summary["evaluations"] == 9
+    # As the help says: one evaluation, plus a Jacobian of one replay per fitted value (8 by default),
+    # plus the screen of the fit's start (the base values and 16 points, --starts).
+    assert summary["evaluations"] == 9 + 17
     assert "warning: the fit is not converged" in run.stderr
     text = out.read_text()
     fitted = [line for line in text.splitlines() if "measurement: fitted by xneck twin calibrate" in line]

@@ -46,8 +46,8 @@ def calibrate(
     max_evaluations: int = typer.Option(
         200, "--max-evaluations", min=1, help="Cost evaluations of the fit at most (scipy's max_nfev), each a replay "
         "of every recording; the finite-difference Jacobians are not counted, and cost one replay more per fitted "
-        "value: with the 8 default values, 1 runs 9 replays, 10 about 66 (the count run is printed). A fit stopped "
-        "by this limit is still written, marked not converged."),
+        "value: with the 8 default values, 1 runs 9 replays, 10 about 66, plus the --starts screen's (17 by "
+        "default; the count run is printed). A fit stopped by this limit is still written, marked not converged."),
     starts: int = typer.Option(
         16, "--starts", min=0, max=1024, help="Points of the fitted values' bounds screened for the fit's start "
         "besides the base truth's values, each one replay of every recording (0: start from the base alone); "
