@@ -88,6 +88,22 @@ def check_finished(path: str | os.PathLike[str]) -> Path:
     return path
 
 
+def read_campaign_info(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The ``xneck.campaign`` record of a finished campaign file (falls back to
+    ``xneck.campaign.start``; ``{}`` if it has neither), read from its metadata alone: a command
+    judges the campaign (its ``outcome``) before it reads the messages (seconds for a long one).
+    :class:`ArchiveError` as :func:`read_campaign` raises it."""
+    path = check_finished(path)
+    metadata: dict[str, dict[str, str]] = {}
+    try:
+        with open(path, "rb") as f:
+            for record in BoundedReader(f).iter_metadata():
+                metadata[record.name] = dict(record.metadata)  # the last record of a name wins
+    except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
+        raise ArchiveError(path, f"damaged MCAP file ({type(exc).__name__}: {exc})") from None
+    return metadata.get(CAMPAIGN) or metadata.get(CAMPAIGN_START, {})
+
+
 def read_campaign(path: str | os.PathLike[str]) -> Campaign:
     """Read a finished campaign file. Raises :class:`ArchiveError` for a missing, non-MCAP,
     truncated or unfinished file (run :func:`recover` on the latter two), or a message that does

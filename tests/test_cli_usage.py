@@ -380,6 +380,47 @@ def test_identify_refuses_to_replace_an_earlier_identifications_parameter_set(xn
     assert f"warning: {campaign} is a control campaign, not an identification one" in forced.stderr, forced.stderr
 
 
+def _ended(campaign: Path, path: Path, outcome: str, message: str) -> Path:
+    """``campaign``'s messages rewritten into ``path`` with the ``xneck.campaign`` outcome and message given."""
+    from bridge.archive_read import read_campaign
+
+    original = read_campaign(campaign)
+    msgs = [(bus.key_of_topic(topic), t, m) for topic, items in original.topics.items() for t, m in items]
+    archive.write_campaign(path, sorted(msgs, key=lambda x: x[1]),
+                           {**original.info, "outcome": outcome, "message": message})
+    return path
+
+
+@pytest.mark.parametrize("outcome", ["aborted", "interrupted"])
+def test_identify_refuses_a_campaign_that_did_not_finish(xneck, campaign, tmp_path, outcome):
+    """User audit of 2026-11-30: a campaign stopped by the user at 28 % was identified with exit 0 and
+    no word (its set 20-25 % off the truth, ±2σ missing it), while the console saves no set from it
+    (409). Refused before the fit, naming the outcome and its message; nothing written."""
+    stopped = _ended(campaign, tmp_path / "stopped.mcap", outcome, "stopped by the user")
+    out = tmp_path / "id"
+    _refused(xneck("identify", str(stopped), "--no-alpha-hat", "--out", str(out)),
+             f"outcome {outcome}: stopped by the user", "did not finish", "--partial")
+    assert not out.exists()
+
+
+def test_identify_partial_fits_an_aborted_campaign_and_says_so_everywhere(xneck, campaign, identified, tmp_path):
+    """--partial fits it anyway: stderr, the tables' first line and the set's header say it was a
+    partial campaign, with the outcome and how much was recorded; a finished one says nothing."""
+    stopped = _ended(campaign, tmp_path / "stopped.mcap", "aborted", "stopped by the user")
+    out = tmp_path / "id"
+    run = xneck("identify", str(stopped), "--no-alpha-hat", "--partial", "--out", str(out))
+    assert run.returncode == 0, run.stderr
+    said = "fitted on a PARTIAL campaign that did not finish (outcome aborted: stopped by the user; 13.0 s recorded"
+    assert f"warning: {said}" in run.stderr, run.stderr
+    assert run.stdout.startswith(f"WARNING: {said}"), run.stdout[:400]
+    header = next(out.glob("*-identified.toml")).read_text().splitlines()[:2]
+    assert header[1].startswith(f"# WARNING: {said}"), header
+    assert _strict(next(out.glob("*.provenance.json")).read_text())["warning"].startswith(said)
+    clean, clean_out = identified  # the finished campaign: no warning anywhere
+    assert _strict(clean.stdout)["campaign_outcome"] == {"outcome": "finished", "message": "", "partial": False}
+    assert "PARTIAL" not in clean.stderr and "WARNING" not in next(clean_out.glob("*-identified.toml")).read_text()
+
+
 def _without_files(doc: dict) -> dict:
     return {k: v for k, v in doc.items() if k not in ("files", "provenance", "record_notes")}
 

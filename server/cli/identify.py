@@ -6,10 +6,21 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from server.cli.options import POSITIVE, check_output, echo_json, fail, input_problem, write_failed
+
+if TYPE_CHECKING:  # the command line starts without numpy (every command module is imported)
+    import numpy as np
+
+#: The archive outcomes (``xneck.campaign``'s ``outcome``) whose record is the whole campaign, as the
+#: console judges them: it identifies a finished or degraded campaign (server/campaign_runner.py),
+#: ``analysis_failed`` is one of those whose analysis failed (refit here, e.g. with --window), and ''
+#: an archive without the field. Any other (aborted, interrupted, failed) holds a campaign cut short:
+#: the console saves no parameter set from it (409), and xneck identify fits it only with --partial.
+WHOLE_OUTCOMES = ("finished", "degraded", "analysis_failed", "")
 
 
 def identify(
@@ -59,6 +70,10 @@ def identify(
                                       "that a refused campaign's error names."),
     force: bool = typer.Option(False, "--force", help="Replace the parameter set an earlier identification wrote "
                                "in --out (default: refused, as archives are never overwritten)."),
+    partial: bool = typer.Option(False, "--partial", help="Fit a campaign that did not finish (its archive's "
+                                 "outcome aborted, interrupted or failed; refused by default, as the console "
+                                 "saves no set from it): its excitation was cut short, so its estimates and their "
+                                 "σ can be far off. The output and the set's header say so."),
 ) -> None:
     """Identify friction and cable stiffness from a campaign (Tables 1-2, Figs. 4-8)."""
     problem = input_problem(campaign, "campaign file")
@@ -67,7 +82,7 @@ def identify(
     out_dir = out or campaign.with_name(campaign.stem + "_identification")
     check_output(out_dir, directory=True)  # before the fit, which would otherwise be lost at its end
     from bridge.archive import ArchiveError
-    from bridge.archive_read import check_finished
+    from bridge.archive_read import check_finished, read_campaign_info
     from twin.identification.options import check_sigma, check_variable_options
 
     try:  # the options and the files, before the archive is read and the fit runs
@@ -82,6 +97,18 @@ def identify(
                 check_finished(path)
         except ArchiveError as exc:
             raise fail(f"cannot read {what}: {exc}") from None
+    try:
+        info = read_campaign_info(campaign)
+    except ArchiveError as exc:
+        raise fail(f"cannot read campaign: {exc}") from None
+    ended = _how_it_ended(info)
+    if info.get("outcome", "") not in WHOLE_OUTCOMES and not partial:
+        # before the fit: an aborted campaign's set was written with exit 0 and no word, 20-25 % off
+        # the truth with ±2σ missing it (user audit of 2026-11-30)
+        raise fail(f"campaign {campaign} did not finish ({ended}): its record is partial; the console "
+                   f"saves no parameter set from it; --partial to fit it anyway")
+    if info.get("outcome") == "degraded":  # identified, as the console does, but said
+        typer.echo(f"warning: campaign {campaign} is {ended}", err=True)
     # After the checks: the pipeline's imports (scipy.signal, numba) take 2 s a refusal need not wait.
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import (
@@ -135,6 +162,12 @@ def identify(
         typer.echo(f"warning: {campaign} is a {ident.data.kind} campaign, not an identification one: its "
                    f"trajectory was not chosen to excite the friction and stiffness models (their σ below say how "
                    f"well it did); validate on it instead (--validate)", err=True)
+    if info.get("outcome", "") not in WHOLE_OUTCOMES:  # --partial: said on stderr, stdout, JSON, TOML
+        warning = _partial_warning(ended, ident.data.t_s, info.get("trajectory", ""))
+        import msgspec
+
+        prov = msgspec.structs.replace(prov, warning=warning)
+        typer.secho(f"warning: {warning}", err=True, fg="yellow")
     timing = alpha_ip_timing(ident.data)
     if timing.warn:  # also under --json: the fit used shifted α_IP
         typer.echo(f"warning: {timing.text()}", err=True)
@@ -150,19 +183,48 @@ def identify(
         doc = report_dict(est, proc, val, prov)
         doc["record_notes"] = list(ident.data.notes)
         doc["alpha_ip_timing"] = timing.as_dict()
+        doc["campaign_outcome"] = {"outcome": info.get("outcome", ""), "message": info.get("message", ""),
+                                   "partial": bool(prov.warning)}
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
         if cross is not None:
             doc["cross_validation"] = cross[0]
         echo_json(doc)
     else:
+        if prov.warning:  # first, where a reader of the tables starts
+            typer.echo(f"WARNING: {prov.warning}\n")
         typer.echo(tables_text(est, proc, val, prov.kept_base))
         typer.echo("")
         typer.echo("\n".join(report.lines()))
         typer.echo(timing.text())
-        typer.echo(f"parameter set: {toml_path} (provenance {prov_path.name}); figures: {out_dir}")
+        typer.echo(f"parameter set: {toml_path} (provenance {prov_path.name}); figures: {out_dir}"
+                   + (" (fitted on a partial campaign: see WARNING above)" if prov.warning else ""))
         if cross is not None:
             typer.echo("")
             typer.echo(cross[1])
+
+
+def _how_it_ended(info: dict[str, str]) -> str:
+    """A campaign's outcome and its message as the archive's ``xneck.campaign`` record gives them,
+    e.g. "outcome aborted: stopped by the user"."""
+    outcome, message = info.get("outcome", "") or "unknown", info.get("message", "")
+    return f"outcome {outcome}" + (f": {message}" if message else "")
+
+
+def _partial_warning(ended: str, t_s: np.ndarray, trajectory_json: str) -> str:
+    """What a set fitted on a campaign that did not finish (``ended``: :func:`_how_it_ended`) must
+    say: how much of its trajectory it recorded, the span of the motor states ``t_s`` (s) against
+    the trajectory's duration (s) in the archive, when that can be read."""
+    from controller.trajectory import trajectory_from_json
+
+    recorded_s = float(t_s[-1] - t_s[0]) if len(t_s) >= 2 else 0.0
+    try:
+        planned_s = trajectory_from_json(trajectory_json).duration_s if trajectory_json else 0.0
+    except Exception:  # noqa: BLE001 - an unreadable trajectory only loses the progress from the warning
+        planned_s = 0.0
+    progress = (f"{recorded_s:.1f} s recorded of its trajectory's {planned_s:.1f} s (about "
+                f"{100 * min(recorded_s / planned_s, 1.0):.0f} %)" if planned_s > 0 else f"{recorded_s:.1f} s recorded")
+    return (f"fitted on a PARTIAL campaign that did not finish ({ended}; {progress}): its excitation may be "
+            f"incomplete, so these estimates and their ±2σ can be far off the truth (--partial)")
 
 
 def _validation_campaign(path: Path, alpha_ip_source: str | None):

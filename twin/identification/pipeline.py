@@ -371,6 +371,10 @@ class Provenance(msgspec.Struct, frozen=True, kw_only=True):
     software_version: str = ""
     parameters: list[dict[str, Any]] = msgspec.field(default_factory=list)  # per-parameter flags
     kept_base: list[str] = msgspec.field(default_factory=list)  # names of the parameters not used
+    #: Why the set is not to be trusted as an identification ("" for none): e.g. fitted on a campaign
+    #: that did not finish (``xneck identify --partial``). First in the TOML's header, where a reader
+    #: of the set alone sees it.
+    warning: str = ""
 
 
 @dataclass(frozen=True)
@@ -519,11 +523,12 @@ def make_provenance(campaign: str, proc: Processed, *, method: str = "", thresho
 
 def identified_toml(params: Params, provenance: Provenance, provenance_file: str = "") -> str:
     """The identified set as TOML that :func:`twin.model.params.load_params` reads, after a comment
-    header naming the campaign, date, method, the parameters kept at their base value, the ``--set``
+    header naming the campaign, its warning if any, date, method, the parameters kept at their base value, the ``--set``
     line of the output error's structure, and ``provenance_file`` if given."""
     structure = structure_overrides(provenance.parameters)
     header = [
         f"# Identified parameter set (3-X paper §5) from campaign {provenance.campaign}",
+        *([f"# WARNING: {provenance.warning}"] if provenance.warning else []),
         f"# date {provenance.date}, software {provenance.software_version}, base {provenance.base_parameter_set}",
         f"# method: {provenance.method}",
         f"# parameters kept at their base value (badly identified or not estimated): "
