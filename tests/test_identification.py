@@ -159,6 +159,25 @@ def test_a_physically_impossible_value_is_never_used(params):
     assert [r["reason"] for r in est.rows()] == ["", "outside its physical range", ""]  # JSON and dashboard
 
 
+def test_a_huge_relative_sigma_keeps_the_tables_columns_aligned():
+    """User audit of 2026-11-30: a parameter the record did not determine printed
+    `rel. σ787836161473377219760881664.00% !`, breaking Table 2's columns. Shown as >1000% (the
+    reason in scientific notation); 9.94 % is below the documented 10 % threshold, so not flagged."""
+    from twin.identification.report import table_2
+
+    est = Estimate(method="variable", equations="test", names=("k(1)", "lambda(1)", "c_a(1)"),
+                   values=np.array([5000.0, 1e-25, 80.0]), sigma=np.array([497.0, 0.788, 1.0]),
+                   relative_sigma=np.array([0.0994, 7.878e27, 1 / 80]), condition_number=1.0, residual_norm=1.0,
+                   n_rows=10, n_samples=10)
+    lines = table_2({"variable": est}).splitlines()
+    head, rows = lines[1], lines[3:5]
+    assert [len(line) for line in rows] == [len(head)] * 2, "\n".join(lines)
+    assert [line.index("|") for line in rows] == [head.index("|")] * 2
+    cells = [cell.strip() for cell in rows[1].split("|")]
+    assert cells[0].endswith(" 9.94%") and cells[1].endswith(" >1000% !"), rows[1]
+    assert est.reason(1) == "badly identified, relative σ 7.88e+29 % > 10 %"
+
+
 def test_bad_excitation_is_refused(short_campaign):
     exc = np.zeros((1000, 3))
     exc[10, 1] = np.nan

@@ -6,6 +6,7 @@ builds W and Y).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,19 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 DEFAULT_THRESHOLD = 0.10  # relative σ above which a parameter is badly identified
+#: Relative σ (a fraction) from which it is shown as ">1000%": none of its digits means anything
+#: then, and printed whole (1e29 % for a parameter the record does not determine, 30 characters)
+#: it broke the tables' columns (user audit of 2026-11-30).
+RELATIVE_SIGMA_SHOWN_MAX = 10.0
+
+
+def relative_sigma_percent(r: float) -> str:
+    """A relative σ ``r`` (a fraction, eq. 50) as a percentage of at most 7 characters for the
+    tables' fixed columns: "9.94%", "260.32%", ">1000%" from :data:`RELATIVE_SIGMA_SHOWN_MAX` on,
+    "inf%" (held at a bound of 0), "nan%"."""
+    if math.isfinite(r) and r >= RELATIVE_SIGMA_SHOWN_MAX:
+        return f">{100 * RELATIVE_SIGMA_SHOWN_MAX:.0f}%"
+    return f"{100 * r:.2f}%"
 RANK_TOL = 1e-7  # relative singular value below which the (column-scaled) regressor is rank-deficient
 
 
@@ -99,7 +113,8 @@ class Estimate:
         if self.at_bound[i]:  # first: at a bound of 0 its relative σ is infinite by construction
             return "held at its physical bound (the data pull it beyond)"
         if not np.isfinite(r) or r > self.threshold:
-            return f"badly identified, relative σ {100 * r:.1f} % > {100 * self.threshold:g} %"
+            shown = f"{100 * r:.1f}" if not r >= RELATIVE_SIGMA_SHOWN_MAX else f"{100 * r:.3g}"  # 1.56e+29, not 30 digits
+            return f"badly identified, relative σ {shown} % > {100 * self.threshold:g} %"
         if self.out_of_range[i]:
             return "outside its physical range"
         return ""

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.identification.estimators import relative_sigma_percent
 from twin.identification.pipeline import Estimate, Processed, Validation
 
 __all__ = ["report_dict", "table_1", "table_2", "tables_text", "write_figures"]
@@ -26,7 +27,7 @@ _BANDWIDTH_FROM = {"alpha_d": "the excitation α^d", "theta_dot": "the motor vel
 def _cell(est: Estimate, name: str) -> tuple[str, str]:
     i = est.names.index(name)
     flag = " !" if est.badly_identified[i] else (" b" if est.at_bound[i] else "")
-    return f"{est.values[i]:.4g}", f"{100 * est.relative_sigma[i]:.2f}%{flag}"
+    return f"{est.values[i]:.4g}", f"{relative_sigma_percent(float(est.relative_sigma[i]))}{flag}"
 
 
 def _method_lines(est: Estimate) -> list[str]:
