@@ -108,7 +108,8 @@ def identify(
         raise fail(f"campaign {campaign} did not finish ({ended}): its record is partial; the console "
                    f"saves no parameter set from it; --partial to fit it anyway")
     if info.get("outcome") == "degraded":  # identified, as the console does, but said
-        typer.echo(f"warning: campaign {campaign} is {ended}", err=True)
+        typer.echo(f"warning: campaign {campaign} ran below the real-time quality thresholds ({ended}): its "
+                   f"identification may suffer from it", err=True)
     # After the checks: the pipeline's imports (scipy.signal, numba) take 2 s a refusal need not wait.
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import (
