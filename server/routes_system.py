@@ -10,7 +10,7 @@ from typing import Any
 import anyio
 import anyio.to_thread
 from fastapi import APIRouter, Depends, Query, Request
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from bridge import bus, small_file
 from bridge.archive import software_version
@@ -90,9 +90,25 @@ def mode(request: Request) -> dict[str, str]:
     return {"mode": request.app.state.settings.mode, "pace": request.app.state.settings.pace}
 
 
+#: The reason sent when the request names none: a release's says it released, never "console"
+#: alone, which read as the engage's cause in the answer and the bridge's log (user audit).
+DEFAULT_REASONS = {True: "console", False: "released from the console"}
+
+
 class EStopRequest(BaseModel):
-    engaged: bool = Field(True, description="true engages, false releases.")
-    reason: str = Field("console", max_length=200)
+    """The e-stop's body, as strict as the campaigns' (user audit): an unknown field
+    (``{"release": true}``) or a value that is not a JSON boolean (``"off"``, ``0``,
+    ``"false"``) is a 422, never coerced into a release or ignored into an engage."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    engaged: bool = Field(True, description="true engages, false releases (a JSON boolean: nothing else).")
+    reason: str | None = Field(None, max_length=200, description="Why; none: \"console\" for an engage, "
+                                                                  "\"released from the console\" for a release.")
+
+    def why(self) -> str:
+        """The reason sent: the one given, else the default of an engage or a release."""
+        return self.reason if self.reason is not None else DEFAULT_REASONS[self.engaged]
 
 
 @router.post("/api/system/estop", dependencies=[Depends(require_token), Depends(require_operator)])
@@ -103,15 +119,16 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
     first, then logged and journalled (a failed publication too): a log handler that blocks does
     not delay the e-stop (review of session 43)."""
     s = request.app.state
+    why = body.why()
     error = "unexpected error"
     try:
-        s.campaigns.estop(body.engaged, body.reason)
+        s.campaigns.estop(body.engaged, why)
         error = ""
     except Exception as exc:
         error = bus.plain_text(f"{type(exc).__name__}: {exc}")
         raise
     finally:
-        sent = {"engaged": body.engaged, "reason": bus.plain_text(body.reason), **_requester(request),
+        sent = {"engaged": body.engaged, "reason": bus.plain_text(why), **_requester(request),
                 "holder": s.campaigns.estop_holder}
         log.warning("e-stop %s by %s (%s, %s): %r%s", "engaged" if body.engaged else "released", sent["client"],
                     sent["auth"], sent["user_agent"] or "no user agent", sent["reason"],
@@ -123,7 +140,7 @@ def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
         same = (body.engaged, sent["reason"], peer.host if peer is not None else "", sent["user_agent"],
                 sent["holder"], error)
         s.journal.record("estop_sent", repeat_key=same, **sent, published=not error, error=error)
-    return {"engaged": body.engaged, "reason": body.reason}
+    return {"engaged": body.engaged, "reason": why}
 
 
 def _requester(request: Request) -> dict[str, Any]:

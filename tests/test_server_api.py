@@ -143,6 +143,23 @@ def test_estop_is_published_and_blocks_new_campaigns(client) -> None:
     assert client.get("/api/system/health").json()["estop"]["engaged"] is False
 
 
+def test_estop_body_is_strict_and_a_release_says_it_released(client) -> None:
+    """User audit: ``{"release": true}`` and ``{"engage": false}`` answered 200 (nothing released),
+    and ``{"engaged": "off"}``, ``0`` or ``"false"`` were coerced into a release. Each is a 422
+    naming the field now, and the e-stop stays as it was; a release without a reason no longer
+    answers ``"reason": "console"`` (the engage's default)."""
+    assert client.post("/api/system/estop", json={"engaged": True, "reason": "strict"}, headers=AUTH).status_code == 200
+    for body, field in (({"release": True}, "release"), ({"engage": False}, "engage"), ({"engaged": "off"}, "engaged"),
+                        ({"engaged": 0}, "engaged"), ({"engaged": "false"}, "engaged"),
+                        ({"engaged": False, "reason": 3}, "reason"), ({"engaged": False, "reason": "x" * 201}, "reason")):
+        r = client.post("/api/system/estop", json=body, headers=AUTH)
+        assert ["body", field] in _loc(r), (body, r.json())
+        assert client.get("/api/system/health").json()["estop"]["engaged"] is True, body
+    r = client.post("/api/system/estop", json={"engaged": False}, headers=AUTH)
+    assert r.status_code == 200 and r.json() == {"engaged": False, "reason": "released from the console"}, r.json()
+    assert client.get("/api/system/health").json()["estop"]["engaged"] is False
+
+
 def test_unknown_campaign_is_404(client) -> None:
     for path in ("/api/campaigns/none", "/api/campaigns/none/results", "/api/campaigns/none/mcap"):
         assert client.get(path).status_code == 404
