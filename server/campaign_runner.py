@@ -166,6 +166,27 @@ class RecordingFailed(ArchiveError):
         self.quality = quality
 
 
+class CausedStop(threading.Event):
+    """A campaign's stop that may say why (``interrupted by SIGINT``): the campaign's message and
+    its archive's then name that cause instead of :data:`STOPPED_BY_USER` (user audit: a CLI
+    campaign stopped by Ctrl-C was recorded with no cause at all)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cause = ""
+
+    def stop(self, cause: str) -> None:
+        """Stop with ``cause``; the first cause given is kept (a second Ctrl-C names no new one)."""
+        if not self.cause:
+            self.cause = cause
+        self.set()
+
+
+def stop_message(stop: threading.Event) -> str:
+    """What a stopped campaign's message says: its :class:`CausedStop` cause, else :data:`STOPPED_BY_USER`."""
+    return getattr(stop, "cause", "") or STOPPED_BY_USER
+
+
 @dataclass
 class CampaignResult:
     campaign_id: str
@@ -425,7 +446,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monit
                 # The console's e-stop sets stop too: the bridge's word on it, if it comes, names the reason.
                 disabled = monitor.wait_drives_disabled(0.3)
                 outcome, message = ("aborted", f"the drives were disabled during the campaign: {disabled}") \
-                    if disabled else ("aborted", STOPPED_BY_USER)
+                    if disabled else ("aborted", stop_message(stop))
                 break
             # Once its events have stopped (0.2 s), and SERVICE_GONE_GRACE_S after: a service killed
             # under `xneck up` is named by the supervisor, which needs that time to tell the console
@@ -567,7 +588,7 @@ def _wait_alive(session: zenoh.Session, key: str, stop: threading.Event, timeout
             if child is not None and child[0].poll() is not None:
                 return f"the {what} exited with code {child[0].returncode} before it was up: {log_tail(child[1], 3)}"
             if stop.is_set():
-                return STOPPED_BY_USER
+                return stop_message(stop)
             if time.monotonic() > deadline:
                 if child is None:
                     return (f"no {what} on the bus at {where or 'the campaign hub'} within {timeout_s:.0f} s: "

@@ -4,6 +4,7 @@ not a traceback (the campaigns themselves: tests/test_campaign.py, realtime)."""
 from __future__ import annotations
 
 import json
+import threading
 
 import pytest
 from typer.testing import CliRunner
@@ -82,3 +83,47 @@ def test_a_robot_campaign_must_say_where_the_bridge_is(tmp_path, monkeypatch, ar
     assert r.exit_code == 2, r.output
     assert said in r.stderr
     assert not out.exists()
+
+
+@pytest.mark.parametrize("as_json", [False, True])
+@pytest.mark.parametrize("kind", ["control", "identification"])
+def test_ctrl_c_ends_the_campaign_and_says_where_its_archive_and_logs_are(tmp_path, monkeypatch, kind, as_json):
+    """User audit: Ctrl-C on a CLI campaign exited 130 with nothing said (no end line, no archive,
+    no ``process logs:``; nothing at all with --json) and its archive named no cause. Now SIGINT
+    stops the campaign (the runner's stop, named ``interrupted by SIGINT``), which ends as any
+    other: the table or the JSON summary, an ``error:`` line, exit 130. The runner is a fake
+    that signals this process and waits for the stop, as the real one's loop does."""
+    import os
+    import signal
+
+    import server.campaign_runner as runner
+
+    def fake_run(spec, params, out=None, progress=None, stop=None, **_):
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop is not None and stop.wait(5), "SIGINT did not stop the campaign"
+        return runner.CampaignResult("c-1", out, "aborted", runner.stop_message(stop), law="law1",
+                                     logs_dir=str(tmp_path / "logs"))
+
+    monkeypatch.setattr(runner, "run_campaign", fake_run)
+    out = tmp_path / "c.mcap"
+    r = CliRunner().invoke(app, ["campaign", kind, "--out", str(out), *(["--json"] if as_json else [])])
+    assert r.exit_code == 130, (r.exit_code, r.output, r.exception)
+    assert "error: campaign c-1 aborted: interrupted by SIGINT" in r.stderr
+    if as_json:
+        summary = json.loads(r.stdout)
+        assert summary["outcome"] == "aborted" and summary["message"] == "interrupted by SIGINT"
+        assert summary["path"] == str(out) and summary["logs_dir"] == str(tmp_path / "logs")
+    else:
+        assert f"archive: {out}" in r.stdout and f"process logs: {tmp_path / 'logs'}" in r.stdout
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # given back once it ended
+
+
+def test_a_stop_names_its_cause_else_the_users_stop() -> None:
+    from server.campaign_runner import STOPPED_BY_USER, CausedStop, stop_message
+
+    plain, caused = threading.Event(), CausedStop()
+    plain.set()
+    caused.stop("interrupted by SIGINT")
+    caused.stop("interrupted by SIGTERM")  # the first cause stays
+    assert stop_message(plain) == STOPPED_BY_USER and stop_message(caused) == "interrupted by SIGINT"
+    assert caused.is_set()

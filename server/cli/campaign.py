@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -28,6 +32,9 @@ from server.cli.options import (
     load_checked_trajectory,
     load_cli_params,
 )
+
+if TYPE_CHECKING:
+    from server.campaign_runner import CampaignResult, CausedStop
 
 CAMPAIGN_ALPHA_IP_OPTION = typer.Option(
     "camera", "--alpha-ip", callback=check_alpha_ip,
@@ -90,31 +97,73 @@ def campaign_control(
     spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
                         params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip,
                         connect=robot_endpoints(twin, connect))
-    result = _run_recorded(spec, params, out, as_json)
-    if as_json:
-        echo_json(result.summary())
-    else:
-        typer.echo(result.table())
+    result, signum = _run_recorded(spec, params, out, as_json)
+    _print_end(result, as_json, signum)
+    if signum:
+        raise typer.Exit(128 + signum)  # as a shell says a process a signal ended (130 for SIGINT)
     if result.outcome != "finished":
-        # on stderr as `campaign identification` says it: a script looking for `error:` had missed
-        # a control test's abort, printed only in the table (audit of session 42)
-        kind = "warning" if result.outcome == "degraded" else "error"
-        typer.secho(f"{kind}: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True,
-                    fg="yellow" if kind == "warning" else "red")
         raise typer.Exit(1)
 
 
 CLI_RESERVE_BYTES = 512 * 1024  # as the console's campaigns/.reserve (server.campaigns.RESERVE_BYTES)
 
 
-def _run_recorded(spec, params, out: Path | None, as_json: bool):
+def _print_end(result: CampaignResult, as_json: bool, signum: int = 0) -> None:
+    """A campaign's end as every ending prints it: the table (``archive:``, ``process logs:``) or,
+    with ``--json``, its summary (``outcome``, ``path``, ``logs_dir``); then, unless it finished, an
+    ``error:`` line on stderr (``warning:`` if degraded). ``signum``: the signal that stopped it."""
+    if as_json:
+        echo_json(result.summary())
+    else:
+        typer.echo(result.table())
+    if result.outcome != "finished" or signum:
+        # on stderr as `campaign identification` says it: a script looking for `error:` had missed
+        # a control test's abort, printed only in the table (audit of session 42)
+        kind = "warning" if result.outcome == "degraded" and not signum else "error"
+        late = f" ({_signal_cause(signum)} after the campaign ended)" if signum and \
+            not result.message.startswith(_signal_cause(signum)) else ""
+        typer.secho(f"{kind}: campaign {result.campaign_id} {result.outcome}: {result.message}{late}", err=True,
+                    fg="yellow" if kind == "warning" else "red")
+
+
+def _signal_cause(signum: int) -> str:
+    """The campaign's message for a stop by signal ``signum``: ``interrupted by SIGINT``."""
+    return f"interrupted by {signal.Signals(signum).name}"
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: CausedStop) -> Iterator[list[int]]:
+    """While the campaign runs, SIGINT and SIGTERM stop it (``stop``, a
+    :class:`server.campaign_runner.CausedStop`) instead of killing this process: it then ends
+    ``aborted`` with the signal as its cause, finishes its archive and stops its processes, and the
+    CLI prints where as any other ending (user audit: Ctrl-C exited 130 with nothing said, and
+    SIGTERM left the twin and controller running). A second signal raises KeyboardInterrupt (the old
+    way out, should the end itself hang). Yields the list the first signal's number goes in."""
+    got: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if got:
+            raise KeyboardInterrupt
+        got.append(signum)
+        stop.stop(_signal_cause(signum))
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield got
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _run_recorded(spec, params, out: Path | None, as_json: bool) -> tuple[CampaignResult, int]:
     """:func:`server.campaign_runner.run_campaign`, a storage fault being one ``error:`` line (exit
     1) and the archive finished where it lies with the outcome ``failed`` and the reason, as the
-    console does (a full disk was a traceback and an unreadable file: audit of 2026-11-28)."""
+    console does (a full disk was a traceback and an unreadable file: audit of 2026-11-28).
+    Returns the result and the signal (SIGINT, SIGTERM) that stopped the campaign, 0 for none."""
     from bridge.archive import ArchiveError
     from bridge.archive_read import is_complete
     from bridge.archive_recovery import finish_in_place
-    from server.campaign_runner import RecordingFailed, default_archive, run_campaign
+    from server.campaign_runner import CausedStop, RecordingFailed, default_archive, run_campaign
 
     # Room for the final records on a full disk, given up on a fault (as the console's campaigns/.reserve).
     reserve = (Path(out).parent if out else default_archive("reserve").parent) / f".xneck-reserve-{os.getpid()}"
@@ -125,8 +174,11 @@ def _run_recorded(spec, params, out: Path | None, as_json: bool):
             os.fsync(f.fileno())
     except OSError:  # no room even for it: the campaign's own start says so
         reserve.unlink(missing_ok=True)
+    stop = CausedStop()
     try:
-        return run_campaign(spec, params, out, progress=None if as_json else _print_progress)
+        with _stop_on_signals(stop) as got:
+            result = run_campaign(spec, params, out, progress=None if as_json else _print_progress, stop=stop)
+        return result, (got[0] if got else 0)
     except ArchiveError as exc:
         reserve.unlink(missing_ok=True)
         fields = {"message": f"recording failed: {exc.reason}"[:2000]}
@@ -211,12 +263,10 @@ def campaign_identification(
                         seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
                         truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s,
                         connect=robot_endpoints(twin, connect))
-    result = _run_recorded(spec, params, out, as_json)
-    if result.outcome not in ("finished", "degraded"):
-        typer.secho(f"error: campaign {result.campaign_id} {result.outcome}: {result.message}", err=True, fg="red")
-        if as_json:
-            echo_json(result.summary())
-        raise typer.Exit(1)
+    result, signum = _run_recorded(spec, params, out, as_json)
+    if result.outcome not in ("finished", "degraded") or signum:
+        _print_end(result, as_json, signum)  # the archive and the logs said too, as a control campaign's
+        raise typer.Exit(128 + signum if signum else 1)
     if result.outcome == "degraded":
         typer.secho(f"warning: campaign {result.campaign_id} degraded: {result.message}", err=True, fg="yellow")
     if not as_json:
