@@ -49,6 +49,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -60,7 +61,7 @@ import zenoh
 
 from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, atomic_write, iso_time, storage_reason, writer_alive
-from bridge.archive_read import is_complete, read_campaign
+from bridge.archive_read import Campaign, is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
 from bridge.estop_holder import EStopHolder
 from bridge.session import payload_of, publisher
@@ -134,6 +135,16 @@ class NotFound(KeyError):
 
 class StorageError(Exception):
     """A campaign cannot be recorded (no space, read-only, I/O error); the message has the figures."""
+
+
+def archived_progress(campaign: Campaign, campaign_id: str) -> float:
+    """How far (0-1) the campaign ``campaign_id`` got as its archive's ``/xneck/campaign/events``
+    say: the largest progress of its own events, 0.0 without any. A campaign a crash interrupted is
+    recorded with it (user audit: one whose events reached 0.0758 was shown at 0.0, its record
+    never saved after the start)."""
+    seen = [float(ev.progress) for _, ev in campaign.messages(bus.CAMPAIGN_EVENTS)
+            if isinstance(ev, bus.CampaignEvent) and ev.campaign_id == campaign_id and math.isfinite(ev.progress)]
+    return min(max([0.0, *seen]), 1.0)
 
 
 def _with_cause(cause: str, seen: str, stopped_for_it: bool) -> str:
@@ -272,9 +283,10 @@ class CampaignManager:
                 raise exc from None
         with self._lock:
             self._unfinished.pop(cid, None)
-        info = {}
+        info, progress = {}, 0.0
         with contextlib.suppress(ArchiveError):
-            info = read_campaign(mcap).info
+            archived = read_campaign(mcap)
+            info, progress = archived.info, archived_progress(archived, cid)
         rec = rec or self._record_from_archive(cid, info)
         note = f"recovered after a crash ({report.status}: {report.messages} messages kept" + \
                (f"; {report.reason}" if report.reason else "") + ")"
@@ -282,6 +294,7 @@ class CampaignManager:
             rec.status = "interrupted"
             rec.ended_at = info.get("end_time", iso_time())
             rec.message = note
+            rec.progress = max(rec.progress, progress)  # the record's own is its last save's, often the start's
         else:  # e.g. failed on a full disk: keep the outcome, say the archive was repaired since
             rec.message = f"{rec.message}; archive {note}"[:2000]
         with contextlib.suppress(Exception):

@@ -179,6 +179,7 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
         rec = c.get(f"/api/campaigns/{cid}").json()
         assert rec["status"] == "interrupted" and "recovered" in rec["message"]
         assert c.get("/api/campaigns", params={"status": "interrupted"}).json()[0]["id"] == cid
+        recovered_progress = rec["progress"]
         download = c.get(f"/api/campaigns/{cid}/mcap")
         assert download.status_code == 200
     assert is_complete(mcap)
@@ -192,6 +193,28 @@ def test_a_server_killed_mid_campaign_leaves_an_archive_the_next_start_recovers(
     assert len(ours) > 100
     assert all(b.seq > a.seq and b.stamp_s >= a.stamp_s for a, b in itertools.pairwise(statuses))
     assert "xneck.recovery" in campaign.metadata
+    # User audit: the record said progress 0.0 though the archive's events went further.
+    archived = max(m.progress for _, m in campaign.messages(bus.CAMPAIGN_EVENTS) if m.campaign_id == cid)
+    assert archived > 0 and recovered_progress == pytest.approx(archived), (recovered_progress, archived)
+
+
+def test_the_progress_recovered_is_the_archives_last_of_that_campaign() -> None:
+    """:func:`server.campaigns.archived_progress`: the largest of the campaign's own events (another
+    campaign's on the bus and a NaN set aside), 0.0 without any, never above 1."""
+    from bridge.archive_read import Campaign
+    from server.campaigns import archived_progress
+
+    def event(cid: str, progress: float) -> tuple[int, bus.CampaignEvent]:
+        return 0, bus.CampaignEvent(seq=1, stamp_s=0.0, campaign_id=cid, kind="identification", event="progress",
+                                    progress=progress)
+
+    events = [event("c", 0.0), event("c", 0.0758), event("other", 0.9), event("c", float("nan")), event("c", 0.05)]
+    archive = Campaign(path=Path("c.mcap"), metadata={}, topics={bus.mcap_topic(bus.CAMPAIGN_EVENTS): events})
+    assert archived_progress(archive, "c") == pytest.approx(0.0758)
+    assert archived_progress(archive, "none") == 0.0
+    assert archived_progress(Campaign(path=Path("c.mcap"), metadata={}, topics={}), "c") == 0.0
+    assert archived_progress(Campaign(path=Path("c.mcap"), metadata={}, topics={
+        bus.mcap_topic(bus.CAMPAIGN_EVENTS): [event("c", 7.0)]}), "c") == 1.0
 
 
 def test_campaign_truth_defaults_by_kind(tmp_path) -> None:
