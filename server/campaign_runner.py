@@ -40,6 +40,7 @@ import json
 import os
 import queue
 import shutil
+import stat
 import subprocess
 import tempfile
 import threading
@@ -242,6 +243,45 @@ def default_archive(campaign_id: str) -> Path:
     return Path(settings.data_dir).resolve() / CLI_ARCHIVES / f"campaign-{campaign_id}.mcap"
 
 
+WORKDIR_PREFIX = "xneck-"  # $TMPDIR/xneck-<campaign id>-*: a CLI campaign's folder (kept when it does not finish)
+CONSOLE_WORKDIR_PREFIX = "xneck-console-"  # a console campaign's (removed when it ends, swept at the console's start)
+STALE_WORKDIR_S = 86400.0  # s after which a console campaign's folder no console knows is a leftover
+
+
+def sweep_console_workdirs(ended: Callable[[str], bool], tmp: Path | None = None, now: float | None = None,
+                           max_age_s: float = STALE_WORKDIR_S) -> list[Path]:
+    """Remove the working folders console campaigns left in ``tmp`` (default: the temporary
+    directory) before :func:`run_campaign` removed them itself, or after a crash; returns those
+    removed. Only folders (no link, no file) of this software's naming: ``xneck-console-<id>-*``
+    whose campaign ``ended(id)`` says ended, or whose last change is older than ``max_age_s`` s
+    (another console's, on the same machine, that is running stays: ``now`` and the age in s of
+    the epoch); ``xneck-<id>-*`` (the naming before) only when ``ended(id)``: a CLI campaign's is
+    its user's, kept with its logs (README), and this console knows none of their ids."""
+    base = Path(tmp) if tmp is not None else Path(tempfile.gettempdir())
+    now = time.time() if now is None else now
+    removed = []
+    try:
+        entries = list(base.iterdir())
+    except OSError:
+        return []
+    for entry in entries:
+        name = entry.name
+        console = name.startswith(CONSOLE_WORKDIR_PREFIX)
+        if not console and not name.startswith(WORKDIR_PREFIX):
+            continue
+        cid = name[len(CONSOLE_WORKDIR_PREFIX if console else WORKDIR_PREFIX):].rpartition("-")[0]
+        try:
+            st = entry.lstat()
+        except OSError:
+            continue
+        if not cid or not stat.S_ISDIR(st.st_mode):
+            continue
+        if ended(cid) or (console and now - st.st_mtime > max_age_s):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+    return removed
+
+
 def new_campaign_id(kind: str) -> str:
     return f"{kind}-{dt.datetime.now().strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:4]}"
 
@@ -257,9 +297,14 @@ def run_campaign(
     spec: CampaignSpec, params: Params, out: Path | None = None,
     progress: Callable[[float, str], None] | None = None, campaign_id: str | None = None,
     session: zenoh.Session | None = None, hub: str | None = None, stop: threading.Event | None = None,
-    on_monitor: Callable[[CampaignMonitor | None], None] | None = None,
+    on_monitor: Callable[[CampaignMonitor | None], None] | None = None, console: bool = False,
 ) -> CampaignResult:
     """Run one campaign end to end (module docstring). Never leaves a child process behind.
+
+    ``console``: a console's campaign, whose working folder (its trajectory file and processes'
+    logs, ``$TMPDIR/xneck-console-<id>-*``) is removed whatever the outcome: nothing shows a
+    console's user that folder, and those of its unfinished campaigns accumulated by the hundred
+    (user audit). Else (the CLI) it is kept, and named, when the campaign does not finish (README).
 
     ``session``/``hub``: run on an existing session that listens on ``hub`` (the server does, so
     it sees the live traffic); by default a private hub is opened. ``stop``: set it to abort.
@@ -274,15 +319,28 @@ def run_campaign(
     if (session is None) != (hub is None):
         raise ValueError("pass both session and hub, or neither")
     path.parent.mkdir(parents=True, exist_ok=True)
-    if session is None:
-        hub = f"tcp/127.0.0.1:{free_tcp_port()}"
-        with open_session(listen=[hub], connect=list(spec.connect)) as own:
-            return _run(spec, params, path, progress, campaign_id, own, hub, stop or threading.Event(), on_monitor)
-    return _run(spec, params, path, progress, campaign_id, session, hub, stop or threading.Event(), on_monitor)
+    workdir = Path(tempfile.mkdtemp(prefix=f"{CONSOLE_WORKDIR_PREFIX if console else WORKDIR_PREFIX}{campaign_id}-"))
+    try:
+        if session is None:
+            hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+            with open_session(listen=[hub], connect=list(spec.connect)) as own:
+                result = _run(spec, params, path, progress, campaign_id, own, hub, stop or threading.Event(),
+                              workdir, on_monitor)
+        else:
+            result = _run(spec, params, path, progress, campaign_id, session, hub, stop or threading.Event(), workdir,
+                          on_monitor)
+    except BaseException:
+        if console:  # a storage fault, a bug: nobody is told of the folder either
+            shutil.rmtree(workdir, ignore_errors=True)
+        raise
+    if console and result.logs_dir:
+        shutil.rmtree(workdir, ignore_errors=True)
+        result.logs_dir = ""
+    return result
 
 
-def _run(spec, params, path, progress, campaign_id, session, hub, stop, on_monitor=None) -> CampaignResult:
-    workdir = Path(tempfile.mkdtemp(prefix=f"xneck-{campaign_id}-"))
+def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir: Path,
+         on_monitor=None) -> CampaignResult:
     traj_file = workdir / "trajectory.json"
     traj_file.write_text(spec.trajectory.to_json())
     common = ["--listen", "tcp/127.0.0.1:0", "--connect", hub, *[a for c in spec.connect for a in ("--connect", c)],

@@ -73,6 +73,7 @@ from server.campaign_runner import (
     metrics_from_archive,
     new_campaign_id,
     run_campaign,
+    sweep_console_workdirs,
 )
 from server.datadir import storage_problem
 from server.foxglove_scene import add_scene_channel
@@ -241,7 +242,24 @@ class CampaignManager:
                 interrupted.append(rec.id)
         self.release_reserve(keep=True)
         self._recovered_now.update(interrupted)
+        self._sweep_workdirs()
         return interrupted
+
+    def _sweep_workdirs(self) -> None:
+        """Remove the temporary folders of this console's campaigns that ended (a crash, or a
+        version that kept those of unfinished campaigns, left them: hundreds, user audit), and
+        console campaigns' folders a day old (server.campaign_runner.sweep_console_workdirs)."""
+        def ended(cid: str) -> bool:
+            rec = self._records.get(cid)
+            return rec is not None and rec.status != "running"
+
+        try:
+            removed = sweep_console_workdirs(ended)
+        except Exception as exc:  # noqa: BLE001 - a leftover folder never stops the console
+            log.warning("temporary folders of earlier campaigns not swept: %s", exc)
+            return
+        if removed:
+            log.info("removed %d temporary folders of ended campaigns", len(removed))
 
     def _await_bus(self) -> None:
         """Wait, after a start that recovered campaigns a crash interrupted, until a live controller
@@ -571,7 +589,8 @@ class CampaignManager:
         try:
             try:
                 result = run_campaign(spec, prepared.params, path, progress=progress, campaign_id=cid,
-                                      session=self.session, hub=self.hub, stop=stop, on_monitor=self._on_monitor)
+                                      session=self.session, hub=self.hub, stop=stop, on_monitor=self._on_monitor,
+                                      console=True)
             finally:
                 with self._lock:
                     self._last_end = (cid, time.monotonic())

@@ -1,10 +1,15 @@
 """`xneck campaign control|identification` refuse bad input before anything runs, with a message,
-not a traceback (the campaigns themselves: tests/test_campaign.py, realtime)."""
+not a traceback (the campaigns themselves: tests/test_campaign.py, realtime); Ctrl-C ends a campaign
+as an abort; the runner's working folders (the CLI's kept when unfinished, the console's never)."""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import threading
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from typer.testing import CliRunner
@@ -93,12 +98,11 @@ def test_ctrl_c_ends_the_campaign_and_says_where_its_archive_and_logs_are(tmp_pa
     stops the campaign (the runner's stop, named ``interrupted by SIGINT``), which ends as any
     other: the table or the JSON summary, an ``error:`` line, exit 130. The runner is a fake
     that signals this process and waits for the stop, as the real one's loop does."""
-    import os
     import signal
 
     import server.campaign_runner as runner
 
-    def fake_run(spec, params, out=None, progress=None, stop=None, **_):
+    def fake_run(spec, params, out: Path, progress=None, stop=None, **_):
         os.kill(os.getpid(), signal.SIGINT)
         assert stop is not None and stop.wait(5), "SIGINT did not stop the campaign"
         return runner.CampaignResult("c-1", out, "aborted", runner.stop_message(stop), law="law1",
@@ -127,3 +131,67 @@ def test_a_stop_names_its_cause_else_the_users_stop() -> None:
     caused.stop("interrupted by SIGTERM")  # the first cause stays
     assert stop_message(plain) == STOPPED_BY_USER and stop_message(caused) == "interrupted by SIGINT"
     assert caused.is_set()
+
+
+# -- the campaigns' working folders (user audit: hundreds of /tmp/xneck-<id>-* left by the console) --------
+
+
+@pytest.mark.parametrize("console, outcome, kept", [(True, "aborted", False), (True, "finished", False),
+                                                    (True, "raises", False), (False, "aborted", True)])
+def test_a_console_campaigns_folder_goes_whatever_its_outcome_a_cli_ones_stays_when_unfinished(
+        tmp_path, monkeypatch, console, outcome, kept):
+    """The runner's ``_run`` is a fake ending as the real one does: the folder named in
+    ``logs_dir`` unless finished (removed by the real one then), or raising (a storage fault)."""
+    import server.campaign_runner as runner
+
+    made: list[Path] = []
+
+    def fake_run(spec, params, path, progress, campaign_id, session, hub, stop, workdir, on_monitor=None):
+        made.append(workdir)
+        (workdir / "trajectory.json").write_text("{}")
+        if outcome == "raises":
+            raise OSError("no space left on device")
+        if outcome == "finished":
+            shutil.rmtree(workdir)
+            return runner.CampaignResult(campaign_id, path, outcome, "")
+        return runner.CampaignResult(campaign_id, path, outcome, "", logs_dir=str(workdir))
+
+    monkeypatch.setattr(runner, "_run", fake_run)
+    monkeypatch.setattr(runner.tempfile, "tempdir", str(tmp_path))
+    spec = SimpleNamespace(kind="control")
+    try:
+        result = runner.run_campaign(spec, None, tmp_path / "c.mcap", session=object(), hub="tcp/x",  # pyright: ignore[reportArgumentType]
+                                     console=console)
+    except OSError:
+        result = None
+    assert made[0].name.startswith("xneck-console-" if console else "xneck-") and made[0].parent == tmp_path
+    assert made[0].exists() is kept, list(tmp_path.iterdir())
+    if result is not None:
+        assert result.logs_dir == (str(made[0]) if kept else "")
+
+
+def test_the_consoles_start_sweeps_only_its_own_ended_or_day_old_folders(tmp_path) -> None:
+    from server.campaign_runner import STALE_WORKDIR_S, sweep_console_workdirs
+
+    now = 1_800_000_000.0
+
+    def folder(name: str, age_s: float = 0.0) -> Path:
+        p = tmp_path / name
+        p.mkdir()
+        (p / "trajectory.json").write_text("{}")
+        os.utime(p, (now - age_s, now - age_s))
+        return p
+
+    ended_console = folder("xneck-console-control-20261130-010203-ab12-k3j4h5g6")
+    old_console = folder("xneck-console-control-20261128-010203-cd34-aaaaaaaa", STALE_WORKDIR_S + 60)
+    running_elsewhere = folder("xneck-console-identification-20261130-010203-ef56-bbbbbbbb", 60)
+    ended_before = folder("xneck-control-20261130-010203-0a0b-cccccccc")  # the naming before: this console's
+    cli_kept = folder("xneck-identification-20261101-010203-9999-dddddddd", 30 * STALE_WORKDIR_S)  # a CLI's logs
+    up = folder("xneck-up-22286-f61pq3_h")
+    (tmp_path / "xneck-console-control-20261130-010203-ab12-file").write_text("not a folder")
+    (tmp_path / "xneck-console-control-20261130-010203-ab12-link").symlink_to(up)
+    ended = {"control-20261130-010203-ab12", "control-20261130-010203-0a0b"}
+    removed = sweep_console_workdirs(ended.__contains__, tmp_path, now)
+    assert sorted(removed) == sorted([ended_console, old_console, ended_before])
+    assert all(p.exists() for p in (running_elsewhere, cli_kept, up)) and (up / "trajectory.json").exists()
+    assert (tmp_path / "xneck-console-control-20261130-010203-ab12-file").exists()
