@@ -195,3 +195,23 @@ def test_the_consoles_start_sweeps_only_its_own_ended_or_day_old_folders(tmp_pat
     assert sorted(removed) == sorted([ended_console, old_console, ended_before])
     assert all(p.exists() for p in (running_elsewhere, cli_kept, up)) and (up / "trajectory.json").exists()
     assert (tmp_path / "xneck-console-control-20261130-010203-ab12-file").exists()
+
+
+@pytest.mark.parametrize("kind", ["control", "identification"])
+def test_a_campaign_ended_midway_ends_its_progress_line_before_its_summary(tmp_path, monkeypatch, kind):
+    """User audit: ``xneck campaign control --robot`` aborted printed its summary on the progress
+    bar's line ("…the bridge obeys controlcampaign control-…"): the bar, redrawn in place, had its
+    newline only at 100 %."""
+    import server.campaign_runner as runner
+
+    def fake_run(spec, params, out: Path, progress=None, stop=None, **_):
+        assert progress is not None
+        progress(0.4, "aborted: no controller the bridge obeys control")
+        return runner.CampaignResult("c-1", out, "aborted", "no controller", law="law1")
+
+    monkeypatch.setattr(runner, "run_campaign", fake_run)
+    r = CliRunner().invoke(app, ["campaign", kind, "--out", str(tmp_path / "c.mcap")])
+    assert r.exit_code == 1, (r.output, r.exception)
+    assert r.output.count("\n") >= 2
+    line = next(x for x in r.output.split("\n") if "obeys control" in x)
+    assert "campaign c-1" not in line and "error:" not in line, r.output

@@ -175,9 +175,13 @@ def _run_recorded(spec, params, out: Path | None, as_json: bool) -> tuple[Campai
     except OSError:  # no room even for it: the campaign's own start says so
         reserve.unlink(missing_ok=True)
     stop = CausedStop()
+    line = _ProgressLine()
     try:
         with _stop_on_signals(stop) as got:
-            result = run_campaign(spec, params, out, progress=None if as_json else _print_progress, stop=stop)
+            try:
+                result = run_campaign(spec, params, out, progress=None if as_json else line, stop=stop)
+            finally:
+                line.end()
         return result, (got[0] if got else 0)
     except ArchiveError as exc:
         reserve.unlink(missing_ok=True)
@@ -211,10 +215,29 @@ def _check_default_archive(out: Path | None) -> None:
 
 
 def _print_progress(fraction: float, message: str) -> None:
+    """The progress bar on stderr, redrawn in place (``fraction`` 0-1); its line ends at 1.0 only."""
     bar = "#" * int(30 * fraction)
     typer.echo(f"\r[{bar:<30s}] {100 * fraction:5.1f}% {message[:60]:<60s}", nl=False, err=True)
     if fraction >= 1.0:
         typer.echo("", err=True)
+
+
+class _ProgressLine:
+    """:func:`_print_progress` that knows whether its line is still open: :meth:`end` closes it, so
+    that what a campaign ending short of 100 % prints next starts on a line of its own (user audit:
+    "…the bridge obeys controlcampaign control-…")."""
+
+    def __init__(self) -> None:
+        self.open = False
+
+    def __call__(self, fraction: float, message: str) -> None:
+        _print_progress(fraction, message)
+        self.open = fraction < 1.0
+
+    def end(self) -> None:
+        if self.open:
+            typer.echo("", err=True)
+            self.open = False
 
 
 def campaign_identification(
