@@ -98,6 +98,9 @@ STOP_RESEND_S = 0.5
 BUS_SETTLE_S = 8.0
 
 
+REPLAY_OF = "replay of"  # a Busy's ``what`` when a replay holds the robot (its 409 says so: routes_campaigns)
+
+
 class Busy(Exception):
     """Another campaign (or a replay) holds the robot; ``running_id`` names it."""
 
@@ -502,9 +505,9 @@ class CampaignManager:
         if self._running is not None:
             return Busy(self._running)
         if self._replay_starting is not None:
-            return Busy(self._replay_starting[0], "replay of")
+            return Busy(self._replay_starting[0], REPLAY_OF)
         if self._replay is not None and self._replay.running:
-            return Busy(self._replay.campaign_id, "replay of")
+            return Busy(self._replay.campaign_id, REPLAY_OF)
         return None
 
     def start(self, prepared: PreparedCampaign) -> CampaignRecord:
@@ -770,9 +773,9 @@ class CampaignManager:
                 if running_on:
                     raise RunningElsewhere(campaign_id, running_on)
                 if self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
-                    raise Busy(campaign_id, "replay of")
+                    raise Busy(campaign_id, REPLAY_OF)
                 if self._replay_starting is not None and self._replay_starting[0] == campaign_id:
-                    raise Busy(campaign_id, "replay of")
+                    raise Busy(campaign_id, REPLAY_OF)
                 self._records.pop(campaign_id, None)
                 self._unfinished.pop(campaign_id, None)
             for p in (self.index.mcap(campaign_id), self.index.json(campaign_id)):

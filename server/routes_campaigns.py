@@ -17,7 +17,15 @@ from starlette.concurrency import run_in_threadpool
 from bridge.archive import MAGIC
 from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
-from server.campaigns import Busy, CampaignManager, DrivesDisabled, NotFound, NotStopped, RunningElsewhere
+from server.campaigns import (
+    REPLAY_OF,
+    Busy,
+    CampaignManager,
+    DrivesDisabled,
+    NotFound,
+    NotStopped,
+    RunningElsewhere,
+)
 from server.records import CampaignRecord, CampaignStatus, valid_id
 from server.results import FIGURES, control_tables, identification_tables, quality_tables, render_figure
 
@@ -62,25 +70,33 @@ def _record(manager: CampaignManager, campaign_id: str) -> CampaignRecord:
 
 
 def _conflict(exc: Busy | DrivesDisabled) -> JSONResponse:
-    """409: what holds the robot (``running_campaign_id``, null when it is the e-stop) and whether
-    the e-stop refused it (``estop``)."""
+    """409: what holds the robot: ``running_campaign_id``, the campaign running (null when it is
+    the e-stop or a replay, as in ``/api/system/health``); ``replay``, the campaign whose archive a
+    replay publishes (null when it is no replay); ``estop``, whether the e-stop refused it. A
+    replay's 409 had named the replayed campaign as running (user audit)."""
     if isinstance(exc, DrivesDisabled):
         return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
-            "detail": f"{exc}: release the e-stop first", "running_campaign_id": None, "estop": True})
+            "detail": f"{exc}: release the e-stop first", "running_campaign_id": None, "estop": True, "replay": None})
+    replay = exc.what == REPLAY_OF
     if isinstance(exc, RunningElsewhere):
         detail = (f"campaign {exc.running_id} is still running on controller {exc.controller or '(unknown)'}, not "
                   f"recorded since this console's restart: stop it first (POST /api/campaigns/{exc.running_id}/stop)")
+    elif replay:
+        detail = (f"a {REPLAY_OF} {exc.running_id} is running (its archive published again, nothing recorded): "
+                  f"stop it first (POST /api/campaigns/{exc.running_id}/stop)")
     else:
         detail = f"{exc.what} {exc.running_id} is running"
     return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={
-        "detail": detail, "running_campaign_id": exc.running_id, "estop": False})
+        "detail": detail, "running_campaign_id": None if replay else exc.running_id, "estop": False,
+        "replay": exc.running_id if replay else None})
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignRecord,
              dependencies=[Depends(require_token), Depends(require_operator)],
-             responses={409: {"description": "Another campaign or a replay is running (its id in "
-                                             "running_campaign_id, estop false), or the e-stop disables the "
-                                             "drives (running_campaign_id null, estop true)"},
+             responses={409: {"description": "Another campaign is running (its id in running_campaign_id, "
+                                             "estop false), a replay runs (the replayed campaign's id in replay, "
+                                             "running_campaign_id null), or the e-stop disables the drives "
+                                             "(running_campaign_id null, estop true)"},
                         422: {"description": "Invalid body, or a choice this console cannot honour; loc names "
                                              "the field"},
                         503: {"description": "An `xneck up` stack's console whose controller service is not on "

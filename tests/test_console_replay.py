@@ -92,6 +92,7 @@ def test_two_replays_at_once_one_is_refused_and_stop_and_estop_silence_the_bus(c
     assert codes == [200, 409], (first.text, second.text)
     refused = first if first.status_code == 409 else second
     assert f"replay of {cid}" in refused.json()["detail"], refused.text
+    assert refused.json()["replay"] == cid and refused.json()["running_campaign_id"] is None, refused.text
     assert wait_until(lambda: len(states) > 50, 10), "the accepted replay published nothing"
     assert a.post(f"/api/campaigns/{cid}/stop", headers=AUTH).status_code == 200
     assert a.post("/api/system/estop", json={"engaged": True, "reason": "test"}, headers=AUTH).status_code == 200
@@ -107,6 +108,31 @@ def test_two_replays_at_once_one_is_refused_and_stop_and_estop_silence_the_bus(c
         assert _idle(a)
     finally:
         a.post("/api/system/estop", json={"engaged": False, "reason": ""}, headers=AUTH)
+
+
+def test_a_409_for_a_replay_says_it_is_a_replay_not_a_running_campaign() -> None:
+    """User audit: a campaign asked for during a replay got a 409 whose ``running_campaign_id``
+    was the replayed archive's campaign, which ended long ago (the health said none ran). The 409
+    names the replay in ``replay`` and says so in ``detail``; ``running_campaign_id`` is null, as
+    in the health; a campaign's 409 and the e-stop's have ``replay`` null."""
+    import json
+
+    from server.campaigns import Busy, DrivesDisabled
+    from server.routes_campaigns import _conflict
+
+    def body(exc: Busy | DrivesDisabled) -> dict[str, Any]:
+        r = _conflict(exc)
+        assert r.status_code == 409
+        return json.loads(bytes(r.body))
+
+    replay = body(Busy("control-1", "replay of"))
+    assert replay["replay"] == "control-1" and replay["running_campaign_id"] is None and replay["estop"] is False
+    assert replay["detail"].startswith("a replay of control-1 is running") and "/api/campaigns/control-1/stop" in \
+        replay["detail"], replay
+    campaign = body(Busy("control-2"))
+    assert campaign == {"detail": "campaign control-2 is running", "running_campaign_id": "control-2", "estop": False,
+                        "replay": None}
+    assert body(DrivesDisabled("x"))["replay"] is None
 
 
 def test_a_replay_and_a_campaign_at_once_only_one_holds_the_robot(console) -> None:
