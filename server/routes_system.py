@@ -9,8 +9,9 @@ from typing import Any
 
 import anyio
 import anyio.to_thread
-from fastapi import APIRouter, Depends, Query, Request
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from bridge import bus, small_file
 from bridge.archive import software_version
@@ -111,36 +112,63 @@ class EStopRequest(BaseModel):
         return self.reason if self.reason is not None else DEFAULT_REASONS[self.engaged]
 
 
-@router.post("/api/system/estop", dependencies=[Depends(require_token), Depends(require_operator)])
-def estop(body: EStopRequest, request: Request) -> dict[str, Any]:
+MALFORMED_ANSWER = ("The body is no e-stop request (an unknown field, a value that is not a JSON boolean, a "
+                    "reason too long): the e-stop was ENGAGED all the same, never released (``engaged``: true "
+                    "in the answer), and ``detail`` says what was wrong.")
+
+
+@router.post("/api/system/estop", dependencies=[Depends(require_token), Depends(require_operator)],
+             openapi_extra={"requestBody": {"required": False, "content": {"application/json": {
+                 "schema": EStopRequest.model_json_schema()}}}},
+             responses={422: {"description": MALFORMED_ANSWER}})
+def estop(request: Request, raw: Any = Body(None)) -> Any:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
     sent; ``/api/system/health`` shows what the bridge reports (``estop.source``). Published
     first, then logged and journalled (a failed publication too): a log handler that blocks does
-    not delay the e-stop (review of session 43)."""
-    s = request.app.state
+    not delay the e-stop (review of session 43).
+
+    A body that is no :class:`EStopRequest` engages it all the same and answers 422
+    (:data:`MALFORMED_ANSWER`): the body is strict, so nothing is coerced into a release, and a
+    caller's typo in an emergency (``{"engage": true}``) still stops the robot (user audit of
+    session 46; before, unknown fields were ignored and ``"off"``, ``0``, ``"false"`` released)."""
+    try:
+        body = EStopRequest.model_validate({} if raw is None else raw)
+    except ValidationError as exc:
+        errors = [{"type": e["type"], "loc": ["body", *e["loc"]], "msg": e["msg"]} for e in exc.errors()]
+        first = errors[0]
+        why = bus.plain_text(f"console (malformed e-stop request: {'.'.join(map(str, first['loc'][1:])) or 'body'}: "
+                             f"{first['msg']})")
+        _send_estop(request, True, why)
+        return JSONResponse(status_code=422, content={"detail": errors, "engaged": True, "reason": why})
     why = body.why()
+    _send_estop(request, body.engaged, why)
+    return {"engaged": body.engaged, "reason": why}
+
+
+def _send_estop(request: Request, engaged: bool, why: str) -> None:
+    """Publish an e-stop request, then log and journal it (module docstring of :func:`estop`)."""
+    s = request.app.state
     error = "unexpected error"
     try:
-        s.campaigns.estop(body.engaged, why)
+        s.campaigns.estop(engaged, why)
         error = ""
     except Exception as exc:
         error = bus.plain_text(f"{type(exc).__name__}: {exc}")
         raise
     finally:
-        sent = {"engaged": body.engaged, "reason": bus.plain_text(why), **_requester(request),
+        sent = {"engaged": engaged, "reason": bus.plain_text(why), **_requester(request),
                 "holder": s.campaigns.estop_holder}
-        log.warning("e-stop %s by %s (%s, %s): %r%s", "engaged" if body.engaged else "released", sent["client"],
+        log.warning("e-stop %s by %s (%s, %s): %r%s", "engaged" if engaged else "released", sent["client"],
                     sent["auth"], sent["user_agent"] or "no user agent", sent["reason"],
                     f"; NOT PUBLISHED: {error}" if error else "")
         # queued, never written here: a journal that cannot write does not fail the e-stop. The same
         # request again from the same host (any port: a new connection each) within a second is
         # counted in one line, not written each: a flood had rotated the journal's older lines out.
         peer = request.client
-        same = (body.engaged, sent["reason"], peer.host if peer is not None else "", sent["user_agent"],
+        same = (engaged, sent["reason"], peer.host if peer is not None else "", sent["user_agent"],
                 sent["holder"], error)
         s.journal.record("estop_sent", repeat_key=same, **sent, published=not error, error=error)
-    return {"engaged": body.engaged, "reason": why}
 
 
 def _requester(request: Request) -> dict[str, Any]:

@@ -143,21 +143,26 @@ def test_estop_is_published_and_blocks_new_campaigns(client) -> None:
     assert client.get("/api/system/health").json()["estop"]["engaged"] is False
 
 
-def test_estop_body_is_strict_and_a_release_says_it_released(client) -> None:
+def test_estop_body_is_strict_a_malformed_one_engages_and_a_release_says_it_released(client) -> None:
     """User audit: ``{"release": true}`` and ``{"engage": false}`` answered 200 (nothing released),
     and ``{"engaged": "off"}``, ``0`` or ``"false"`` were coerced into a release. Each is a 422
-    naming the field now, and the e-stop stays as it was; a release without a reason no longer
-    answers ``"reason": "console"`` (the engage's default)."""
-    assert client.post("/api/system/estop", json={"engaged": True, "reason": "strict"}, headers=AUTH).status_code == 200
+    naming the field now, and ENGAGES the e-stop (never a release; a typo in an emergency still
+    stops the robot); a release without a reason no longer answers ``"reason": "console"``."""
+    health = lambda: client.get("/api/system/health").json()["estop"]["engaged"]  # noqa: E731
     for body, field in (({"release": True}, "release"), ({"engage": False}, "engage"), ({"engaged": "off"}, "engaged"),
                         ({"engaged": 0}, "engaged"), ({"engaged": "false"}, "engaged"),
-                        ({"engaged": False, "reason": 3}, "reason"), ({"engaged": False, "reason": "x" * 201}, "reason")):
+                        ({"engaged": False, "reason": 3}, "reason"), ({"engaged": False, "reason": "x" * 201}, "reason"),
+                        ([False], "body")):
+        assert client.post("/api/system/estop", json={"engaged": False, "reason": "strict"}, headers=AUTH).status_code == 200
+        assert health() is False
         r = client.post("/api/system/estop", json=body, headers=AUTH)
-        assert ["body", field] in _loc(r), (body, r.json())
-        assert client.get("/api/system/health").json()["estop"]["engaged"] is True, body
+        assert r.status_code == 422 and (["body", field] in _loc(r) or field == "body"), (body, r.json())
+        assert r.json()["engaged"] is True and "malformed e-stop request" in r.json()["reason"], r.json()
+        assert health() is True, body
     r = client.post("/api/system/estop", json={"engaged": False}, headers=AUTH)
     assert r.status_code == 200 and r.json() == {"engaged": False, "reason": "released from the console"}, r.json()
-    assert client.get("/api/system/health").json()["estop"]["engaged"] is False
+    assert health() is False
+    assert client.post("/api/system/estop", headers=AUTH).json()["engaged"] is True  # no body: engage
 
 
 def test_unknown_campaign_is_404(client) -> None:
