@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from busutil import bus_pair, repeating, wait_until
 from test_bridge_node import _node
@@ -208,6 +209,9 @@ def test_the_default_endpoint_is_the_bridge_of_the_one_xneck_up_running(tmp_path
 
     up = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "xneck", "up"])  # argv as xneck up's
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # took a dead stack's pid
+    # Popen returns once the child is forked: until it has exec'd, /proc shows the parent's command
+    # line (a loaded CI saw no stack at all)
+    assert wait_until(lambda: b"\0xneck\0up" in Path(f"/proc/{up.pid}/cmdline").read_bytes(), 10, 0.01)
     try:
         for pid, endpoint in ((up.pid, "unixsock-stream//tmp/x/bridge.sock"), (other.pid, "unixsock-stream//tmp/y"),
                               (999999999, "tcp/127.0.0.1:1")):  # no such pid
