@@ -398,9 +398,11 @@ def test_identify_refuses_a_campaign_that_did_not_finish(xneck, campaign, tmp_pa
     (409). Refused before the fit, naming the outcome and its message; nothing written."""
     stopped = _ended(campaign, tmp_path / "stopped.mcap", outcome, "stopped by the user")
     out = tmp_path / "id"
-    _refused(xneck("identify", str(stopped), "--no-alpha-hat", "--out", str(out)),
-             f"outcome {outcome}: stopped by the user", "did not finish", "--partial")
+    run = xneck("identify", str(stopped), "--no-alpha-hat", "--out", str(out), "--validate", str(stopped))
+    _refused(run, f"outcome {outcome}: stopped by the user", "did not finish", "--partial")
     assert not out.exists()
+    # a --validate campaign that did not finish is only said (the errors are of the part it recorded)
+    assert f"warning: validation campaign {stopped} did not finish (outcome {outcome}" in run.stderr, run.stderr
 
 
 def test_identify_partial_fits_an_aborted_campaign_and_says_so_everywhere(xneck, campaign, identified, tmp_path):

@@ -102,6 +102,14 @@ def identify(
     except ArchiveError as exc:
         raise fail(f"cannot read campaign: {exc}") from None
     ended = _how_it_ended(info)
+    if validate is not None:
+        try:
+            info_b = read_campaign_info(validate)
+        except ArchiveError as exc:
+            raise fail(f"cannot read validation campaign: {exc}") from None
+        if info_b.get("outcome", "") not in WHOLE_OUTCOMES:  # a check on part of a run: said, not refused
+            typer.echo(f"warning: validation campaign {validate} did not finish ({_how_it_ended(info_b)}): the "
+                       "errors are of the part it recorded", err=True)
     if info.get("outcome", "") not in WHOLE_OUTCOMES and not partial:
         # before the fit: an aborted campaign's set was written with exit 0 and no word, 20-25 % off
         # the truth with ±2σ missing it (user audit of 2026-11-30)
