@@ -239,8 +239,13 @@ def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
     try:
         rec = s.campaigns.abort(body.reason, body.ended_within_s)
     finally:
-        s.journal.record("process_fault", reason=bus.plain_text(body.reason), campaign_id=rec.id if rec else None,
-                         campaign_status=rec.status if rec else None, **_requester(request))
+        # the same cause again from the same host within a second is counted in one line (a flood of
+        # a token holder's would rotate older lines out, as the e-stop's did)
+        who = _requester(request)
+        same = (bus.plain_text(body.reason), (request.client.host if request.client else ""), who["user_agent"],
+                rec.id if rec else None, rec.status if rec else None)
+        s.journal.record("process_fault", repeat_key=same, reason=bus.plain_text(body.reason),
+                         campaign_id=rec.id if rec else None, campaign_status=rec.status if rec else None, **who)
         s.process_faults.record(bus.plain_text(body.reason), rec.id if rec else None)
         note_fault(s, bus.plain_text(body.reason), body.ended_within_s)  # a jog it cut short says so
     if rec is None:

@@ -559,3 +559,37 @@ def test_a_window_of_repeats_that_ends_is_written_by_the_writer_unasked(tmp_path
         assert first["n"] == 0 and "repeated" not in first and count["n"] == 4 and count["repeated"] == 4
     finally:
         journal.close()
+
+
+def test_a_flood_of_one_process_fault_is_one_line_with_its_count(tmp_path: Path) -> None:
+    """Session 46: ``POST /api/system/abort`` (a token holder's, as ``xneck up``'s) wrote a
+    ``process_fault`` line each, as the e-stop route had: a flood rotated older lines out. The same
+    cause from the same host within a second is counted in one line; another cause is written."""
+    import asyncio
+
+    import httpx
+
+    from server.process_faults import ProcessFaults
+
+    class Campaigns(_Campaigns):
+        def abort(self, reason: str, ended_within_s: float | None) -> None:
+            return None
+
+    now = [0.0]
+    journal = SafetyJournal(tmp_path, clock=lambda: now[0])
+    app = _route_app(journal, Campaigns())
+    app.state.process_faults = ProcessFaults()
+    auth = {"Authorization": "Bearer tok"}
+    try:
+        async def main() -> None:
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+                for reason in ["camera process exited (code 3)"] * 40 + ["controller process exited (code 1)"]:
+                    assert (await c.post("/api/system/abort", json={"reason": reason}, headers=auth)).status_code == 200
+
+        asyncio.run(main())
+    finally:
+        journal.close()
+    events, _, _ = read_journal(journal, 1000)
+    assert [(e["event"], e["reason"], e.get("repeated")) for e in events] == [
+        ("process_fault", "camera process exited (code 3)", None), ("process_fault", "camera process exited (code 3)", 39),
+        ("process_fault", "controller process exited (code 1)", None)], events
