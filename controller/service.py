@@ -949,9 +949,15 @@ class CampaignService:
         brake, self._blend, self._brake = self._brake, None, None
         drives_were_off, self._drives_off = self._drives_off, False
         if brake is not None and not drives_were_off:
-            # A stop's brake goes on through a re-start (a watchdog hold, stale states), blended
-            # from α̂ like a trajectory; dropping it had set α^d to α̂ at rest (audit of 2026-11-26).
-            self._brake = brake
+            # A stop's brake through a re-start (a watchdog hold, stale states) ends there: the law
+            # holds the neck where it finds it. The brake had gone on, on the states' clock, while
+            # the hold stopped the neck, and the law took over asking 50°/s of a neck at 3°/s: it
+            # reached 104-183°/s (review of session 46); planned again from α̂ and α̂̇ (the jolt of
+            # the drives coming back), still 94°/s after a 20 ms loss. Held at α̂: at most 52°/s.
+            # (Dropping it had set α^d to α̂ at rest with a force step, audit of 2026-11-26, before
+            # the take-over took its rate bound from the forces applied.)
+            self._cut_brake(alpha_hat)
+            return
         elif not self.running and (drives_were_off or self.kind != "jog" or self.outcome != "finished"):
             self.hold_target = alpha_hat.copy()
             return
@@ -961,6 +967,15 @@ class CampaignService:
         delta = float(np.max(np.abs(offset)))
         if delta > BLEND_TOLERANCE_RAD:
             self._blend = (stamp_s, offset, approach_duration_s(delta))
+
+    def _cut_brake(self, alpha_hat: np.ndarray) -> None:
+        """Hold at α̂ instead of a stop's brake (:meth:`_take_over`); a jog waiting for the brake
+        was checked from where it would have ended: it is dropped."""
+        self.hold_target = np.array(alpha_hat, dtype=float)
+        if self._next_jog is not None and not self.running:
+            waiting, self._next_jog = self._next_jog, None
+            self.refuse(waiting.campaign_id, waiting.kind, "dropped before it started: a hold cut short the stop's "
+                                                           "brake it waited for, the neck is held elsewhere: ask again")
 
     def control(self, theta_rad: np.ndarray, stamp_s: float, drive: str = "active",
                 force_applied_N: np.ndarray | None = None, obeyed: bool = True) -> Output:

@@ -806,8 +806,9 @@ def test_a_starved_controller_whose_bridge_flaps_hold_active_re_starts_the_law_a
     assert restarted
 
 
-@pytest.mark.parametrize(("law", "lost_s"), [(2, 0.3), (3, 0.3), (2, 0.05), (3, 0.08)])
-def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_speed_limit(params, law, lost_s):
+@pytest.mark.parametrize(("law", "lost_s", "stop"), [(2, 0.3, False), (3, 0.3, False), (2, 0.05, False),
+                                                     (3, 0.08, False), (2, 0.05, True), (3, 0.02, True)])
+def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_speed_limit(params, law, lost_s, stop):
     """Session 43's open point (docs/safety/watchdog_handback.py): 0.3 s of lost commands 3 s into
     the §7 control test on the robot truth, the bridge's watchdog holding the neck meanwhile. At
     the take-over α^d was blended from α̂ but α̇^d was the trajectory's at once: the law asked the
@@ -816,7 +817,10 @@ def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_
     comes back up to speed gently, so the neck stays within that bound and the campaign still ends
     ``finished`` (later, by the time it was held). A loss of 20-98 ms (a hold shorter than
     0.1 s, the threshold then) did not re-start the law at all: its commands climbed to f_max on the
-    held neck and it reached 133-157°/s (laws 2-3, session 46); it re-starts after a period now."""
+    held neck and it reached 133-157°/s (laws 2-3, session 46); it re-starts after a period now.
+    ``stop``: the user stops the campaign one tick before the loss; its brake went on through the
+    re-start on the states' clock while the hold stopped the neck, and the law took over asking
+    ~50°/s of a neck at rest: 104-183°/s (review of session 46). The law now holds at α̂ there."""
     from bridge.motor_speed import MotorSpeed
     from controller.laws import encoder_hold_forces
     from controller.trajectory import TrajectoryLimits, control_test_trajectory
@@ -833,6 +837,8 @@ def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_
     for k in range(lost.stop + 750):
         if k == 500:
             svc.handle(_request("ct", law=law, trajectory_json=traj.to_json()), tick.t_s)
+        if stop and k == lost.start - 1:
+            svc.stop("ct", tick.t_s)
         out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
         if out.law_ran:
             svc.advance(tick.t_s)
@@ -851,7 +857,8 @@ def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_
     print(f"\nlaw {law}: peak joint speed after the hand-back {math.degrees(peak):.1f}°/s, {step:.2f} N a tick")
     assert peak <= float(TrajectoryLimits().per_joint(3)[1].min()), math.degrees(peak)
     assert step <= 2.0  # the bridge's ramp back to the re-started law, and the law
-    assert svc.running and not [e for e in events if e.event == "aborted"]
+    assert [e.event for e in events if e.event == "aborted"] == (["aborted"] if stop else [])
+    assert svc.running != stop
 
 
 def test_the_law_takes_over_after_stale_states_without_a_force_step(params):
