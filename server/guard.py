@@ -14,7 +14,8 @@ In order, for HTTP and WebSocket requests:
    loopback (the token may come as ``?token=`` since a browser WebSocket cannot set headers).
 4. **Body**: at most ``max_body_bytes`` (413 on a larger ``Content-Length`` at once, and as soon
    as a chunked body passes the limit, the rest unread); a JSON body nested deeper than
-   :data:`MAX_JSON_DEPTH` is a 422 (Python's parser would recurse until it crashes).
+   :data:`MAX_JSON_DEPTH` is a 422 (Python's parser would recurse until it crashes), but the
+   e-stop's, which its route reads and checks itself: a malformed e-stop request engages.
 
 Every HTTP response carries :data:`SECURITY_HEADERS`: no page of the console may be framed (a page
 on another port of 127.0.0.1 framed the dashboard invisibly over its own button and one click
@@ -41,6 +42,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 MAX_JSON_DEPTH = 32
+ESTOP_PATH = "/api/system/estop"  # checks its body's depth itself (server.routes_system.estop)
 #: Scripts only from the console itself, no plugins, no <base>: an injected value that ever reached
 #: the page as HTML could run nothing (the dashboard writes every value as text; defence in depth,
 #: audit of 2026-11-27). Styles are not limited (the page sets widths inline).
@@ -182,7 +184,8 @@ class ConsoleGuard:
             if not message.get("more_body", False):
                 break
         body = b"".join(chunks)
-        if "json" in headers.get("content-type", "") and json_depth_exceeds(body):
+        # the e-stop's route reads its body itself: one too deep engages it (a 422 here sent nothing)
+        if "json" in headers.get("content-type", "") and scope.get("path") != ESTOP_PATH and json_depth_exceeds(body):
             await _send_json(send, 422, {"detail": [{"loc": ["body"], "msg": f"JSON nested deeper than "
                                                      f"{MAX_JSON_DEPTH} levels", "type": "value_error"}]}, {})
             return

@@ -3,13 +3,14 @@ cause; ``/api/config`` for the dashboard."""
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from typing import Any
 
 import anyio
 import anyio.to_thread
-from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -20,6 +21,7 @@ from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
+from server.guard import MAX_JSON_DEPTH, json_depth_exceeds
 from server.live import bridge_status
 from server.routes_jog import jog_status, note_fault
 from server.safety_journal import READ_MAX_LINES, SafetyJournal, read_journal
@@ -121,7 +123,7 @@ MALFORMED_ANSWER = ("The body is no e-stop request (an unknown field, a value th
              openapi_extra={"requestBody": {"required": False, "content": {"application/json": {
                  "schema": EStopRequest.model_json_schema()}}}},
              responses={422: {"description": MALFORMED_ANSWER}})
-def estop(request: Request, raw: Any = Body(None)) -> Any:
+async def estop(request: Request) -> Any:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
     sent; ``/api/system/health`` shows what the bridge reports (``estop.source``). Published
@@ -130,20 +132,47 @@ def estop(request: Request, raw: Any = Body(None)) -> Any:
 
     A body that is no :class:`EStopRequest` engages it all the same and answers 422
     (:data:`MALFORMED_ANSWER`): the body is strict, so nothing is coerced into a release, and a
-    caller's typo in an emergency (``{"engage": true}``) still stops the robot (user audit of
-    session 46; before, unknown fields were ignored and ``"off"``, ``0``, ``"false"`` released)."""
-    try:
-        body = EStopRequest.model_validate({} if raw is None else raw)
-    except ValidationError as exc:
-        errors = [{"type": e["type"], "loc": ["body", *e["loc"]], "msg": e["msg"]} for e in exc.errors()]
+    caller's typo in an emergency (``{"engage": true}``, JSON cut short, not JSON at all) still
+    stops the robot (user audit and review of session 46; before, unknown fields were ignored and
+    ``"off"``, ``0``, ``"false"`` released). The body is read here, not by FastAPI, whose own
+    refusals (422, 400) had sent nothing; a key given twice is malformed too."""
+    body, errors = _estop_body(await request.body())
+    if body is None:
         first = errors[0]
-        why = bus.plain_text(f"console (malformed e-stop request: {'.'.join(map(str, first['loc'][1:])) or 'body'}: "
-                             f"{first['msg']})")
-        _send_estop(request, True, why)
+        where = ".".join(str(x) for x in first["loc"][1:]) or "body"
+        why = bus.plain_text(f"console (malformed e-stop request: {where}: {first['msg']})")
+        await anyio.to_thread.run_sync(_send_estop, request, True, why)
         return JSONResponse(status_code=422, content={"detail": errors, "engaged": True, "reason": why})
     why = body.why()
-    _send_estop(request, body.engaged, why)
+    await anyio.to_thread.run_sync(_send_estop, request, body.engaged, why)
     return {"engaged": body.engaged, "reason": why}
+
+
+ESTOP_ERRORS_MAX = 5  # errors an e-stop's 422 lists (a body of 100 unknown keys answered 2.9 MB)
+
+
+def _estop_body(raw: bytes) -> tuple[EStopRequest | None, list[dict[str, Any]]]:
+    """The e-stop request in ``raw`` (no body: an engage), or None and the errors (at most
+    :data:`ESTOP_ERRORS_MAX`, each ``type``, ``loc`` (its parts cut to 64 characters), ``msg``)."""
+
+    def no_twice(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [k for k, _ in pairs]
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        if twice:
+            raise ValueError(f"key given twice: {', '.join(twice)}")
+        return dict(pairs)
+
+    if json_depth_exceeds(raw):  # the guard leaves this path's body to the route
+        return None, [{"type": "json_invalid", "loc": ["body"], "msg": f"JSON nested deeper than {MAX_JSON_DEPTH} levels"}]
+    try:
+        value = json.loads(raw.decode("utf-8-sig"), object_pairs_hook=no_twice) if raw.strip() else {}
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        return None, [{"type": "json_invalid", "loc": ["body"], "msg": bus.plain_text(f"not JSON: {exc}")}]
+    try:
+        return EStopRequest.model_validate({} if value is None else value), []
+    except ValidationError as exc:
+        return None, [{"type": e["type"], "loc": ["body", *(bus.plain_text(str(x), 64) for x in e["loc"])],
+                       "msg": bus.plain_text(e["msg"])} for e in exc.errors()[:ESTOP_ERRORS_MAX]]
 
 
 def _send_estop(request: Request, engaged: bool, why: str) -> None:

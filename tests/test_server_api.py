@@ -159,6 +159,12 @@ def test_estop_body_is_strict_a_malformed_one_engages_and_a_release_says_it_rele
         assert r.status_code == 422 and (["body", field] in _loc(r) or field == "body"), (body, r.json())
         assert r.json()["engaged"] is True and "malformed e-stop request" in r.json()["reason"], r.json()
         assert health() is True, body
+    # what FastAPI had refused before the route ran (422, 400), sending nothing (review of session 46)
+    for raw in (b"STOP NOW", b'{"engaged": false', b'{"engaged": false, "engaged": false}', b'\xff{"engaged": false}',
+                b"[" * 100_000):
+        assert client.post("/api/system/estop", json={"engaged": False, "reason": "strict"}, headers=AUTH).status_code == 200
+        r = client.post("/api/system/estop", content=raw, headers={**AUTH, "Content-Type": "application/json"})
+        assert r.status_code == 422 and r.json()["engaged"] is True and health() is True, (raw[:40], r.text[:300])
     r = client.post("/api/system/estop", json={"engaged": False}, headers=AUTH)
     assert r.status_code == 200 and r.json() == {"engaged": False, "reason": "released from the console"}, r.json()
     assert health() is False
