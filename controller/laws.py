@@ -84,9 +84,11 @@ class LawConfig:
     # stiction lets its motor cross the gear's backlash (0.44 rad) within a tick, α̂ jumps by
     # about 0.5° and the k_v term of eq. 59 answered with 10 N a tick, the force rate bound, for
     # 2-4 ticks, 26 N in all, even while idle at law 2 (robot truth; session 44), and with 250
-    # rad/s² still one tick of 8-9.5 N (session 46). 50 is 16 times the trajectories' 3 rad/s²
-    # and above the neck's own p99.9 (14-34 rad/s², slack cables included); the noise of smooth
-    # tracking (|sample − filtered| p99 0.1 rad/s) is trimmed at it (docs/safety.md); math.inf: no bound.
+    # rad/s² still one tick of 8-9.5 N (session 46). Through the velocity filter the filtered α̂̇
+    # then follows at most β·50 ≈ 23 rad/s² (β = 0.47 at 500 Hz): 8 times the trajectories' 3
+    # rad/s², within the neck's own p99.9 (14-34 rad/s², slack cables included), the control test's
+    # tracking unchanged; the noise of smooth tracking (|sample − filtered| p99 0.1 rad/s) is
+    # trimmed at it (docs/safety.md); math.inf: no bound.
     alpha_hat_accel_max_rad_s2: float = 50.0
 
     def __post_init__(self) -> None:

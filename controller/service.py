@@ -78,6 +78,7 @@ consistent with the controller's own.
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -122,6 +123,14 @@ HOLDS_FORGOTTEN_S = 0.1
 # and at the hand-back the neck reached 74-157°/s, past the trajectories' 86°/s, |α| 55°
 # (docs/safety/watchdog_handback.py, session 46); re-started, 37-53°/s.
 HOLD_RESTART_S = 0.003
+# A campaign whose law re-starts this often (RESTARTS_MAX within RESTARTS_WINDOW_S s) is aborted
+# naming why: every re-start stops its clock and brings it back up to speed, so one-tick holds
+# 60-90 ms apart (a controller whose commands come late all the time) held a campaign at 15 % of
+# its trajectory until the console's 600 s timeout, which does not say why (review of session 46).
+# 2 a second on average: the stalls of docs/safety/watchdog_handback.py --stalls 0.002 re-start it
+# 0.7 times a second.
+RESTARTS_MAX = 20
+RESTARTS_WINDOW_S = 10.0
 # No motor shaft turns faster: an encoder whose reading moved more than this allows between two
 # states is faulty (an offset, a runaway) and latches a hold (audit of 2026-11-26: a 60 rad step
 # moved α̂ a few degrees and the law drove the real joint to 85°). EC-max 40: about 785 rad/s
@@ -247,6 +256,7 @@ class CampaignService:
         self._paused_at: float | None = None
         self._resume: tuple[float, float, float] | None = None
         self._resume_max_s = RESUME_DURATION_MIN_S  # the ramp the trajectory's peak speed needs
+        self._restarts: collections.deque[float] = collections.deque()  # stamps (s) of the campaign's re-starts
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
@@ -467,6 +477,7 @@ class CampaignService:
         """Run ``trajectory`` from ``stamp_s`` (the states' clock) on; the counters start at zero."""
         self.trajectory = trajectory
         self.phase = "running"
+        self._restarts.clear()
         self._t0 = stamp_s
         self._paused_at = self._resume = None
         peak_rad_s = float(np.max(trajectory.segment_peak_velocity(), initial=0.0))
@@ -938,6 +949,17 @@ class CampaignService:
         """The law re-starts from the measured state: fresh integral, α^d from α̂ (module docstring)."""
         self._restart = False
         self.ctl.restart_integral()
+        if self.running:
+            restarts = self._restarts
+            restarts.append(stamp_s)
+            while restarts and stamp_s - restarts[0] > RESTARTS_WINDOW_S:
+                restarts.popleft()
+            if len(restarts) >= RESTARTS_MAX:
+                restarts.clear()
+                self._end("aborted", f"the law re-started {RESTARTS_MAX} times within {RESTARTS_WINDOW_S:.0f} s "
+                                     "(the bridge's holds or stale states: the commands come late or the states "
+                                     "stall), each stopping the campaign's clock: it could not follow its trajectory",
+                          self._progress(stamp_s), self.hold_alpha())
         if self._paused_at is not None:
             duration_s = self.resume_duration_s(self._paused_at)
             if duration_s > 0.0:

@@ -991,3 +991,41 @@ def test_the_law_returns_from_a_short_stale_gap_mid_trajectory_without_a_force_s
     step = float(np.abs(np.diff(applied, axis=0)).max())
     assert step <= 2.0, step
     assert peak <= float(TrajectoryLimits().per_joint(3)[1].min()) and svc.running
+
+
+def test_a_campaign_whose_law_re_starts_all_the_time_is_aborted_naming_why(params):
+    """Review of session 46: commands lost 12 ms every 60 ms (a one-tick hold of the bridge each
+    time, a controller whose commands come late all the time): every re-start stopped the
+    campaign's clock and brought it back up to speed, and the campaign stood at 15 % until the
+    console's 600 s timeout, which does not say why. After ``RESTARTS_MAX`` re-starts within
+    ``RESTARTS_WINDOW_S`` it ends aborted, saying so."""
+    from bridge.motor_speed import MotorSpeed
+    from controller.laws import encoder_hold_forces
+    from controller.service import RESTARTS_MAX
+    from controller.trajectory import control_test_trajectory
+
+    twin = Twin(params, TwinConfig(camera=False, seed=1, truth="robot"))
+    svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
+    tick = twin.tick(np.zeros(params.n_cables))
+    svc.initialise(tick.theta_meas)
+    svc.handle(_request("ct", law=2, trajectory_json=control_test_trajectory().to_json()), tick.t_s)
+    events, age = [], 0
+    for k in range(round(8.0 / 0.002)):
+        out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
+        if out.law_ran:
+            svc.advance(tick.t_s)
+        events += svc.drain_events()
+        if not svc.running:
+            break
+        lost = k > 500 and k % 30 < 6
+        age = age + 1 if lost else 0
+        d = safety.step(Inputs(command_N=None if lost else out.force_N.tolist(), command_age_s=0.002 * age,
+                               states_unanswered=age, hold_N=hold_rule(tick.theta_meas).tolist(),
+                               speed_rad_s=speed.rad_s))
+        tick = twin.tick(np.asarray(d.force_N, dtype=float))
+        speed.update(tick.theta_meas.tolist())
+    end = [e for e in events if e.event in ("finished", "aborted")]
+    assert [e.event for e in end] == ["aborted"], events[-3:]
+    assert f"re-started {RESTARTS_MAX} times" in end[0].message and end[0].progress < 0.5, end[0]
