@@ -28,6 +28,21 @@ def _request(cid="c-1", action: Literal["start", "stop"] = "start", trajectory_j
     return bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id=cid, action=action, trajectory_json=trajectory_json, **kw)
 
 
+def _robot_loop(params, law: int, seed: int):
+    """The service (law ``law``) on the robot truth through the bridge's safety rules, the pieces
+    a test steps by hand: (twin, service, safety, the bridge's hold rule, motor speeds, first tick)."""
+    from bridge.motor_speed import MotorSpeed
+    from controller.laws import encoder_hold_forces
+
+    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
+    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
+    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
+    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
+    tick = twin.tick(np.zeros(params.n_cables))
+    svc.initialise(tick.theta_meas)
+    return twin, svc, safety, hold_rule, speed, tick
+
+
 class Loop:
     """The service closed on the simulator, one state per 2 ms: what the bus shell does."""
 
@@ -821,17 +836,10 @@ def test_a_single_watchdog_hold_mid_trajectory_hands_back_within_the_trajectory_
     ``stop``: the user stops the campaign one tick before the loss; its brake went on through the
     re-start on the states' clock while the hold stopped the neck, and the law took over asking
     ~50°/s of a neck at rest: 104-183°/s (review of session 46). The law now holds at α̂ there."""
-    from bridge.motor_speed import MotorSpeed
-    from controller.laws import encoder_hold_forces
     from controller.trajectory import TrajectoryLimits, control_test_trajectory
 
     traj = control_test_trajectory()
-    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
-    tick = twin.tick(np.zeros(params.n_cables))
-    svc.initialise(tick.theta_meas)
+    twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, law, seed=0)
     lost = range(500 + 1500, 500 + 1500 + round(lost_s / 0.002))  # from 3 s into the campaign
     events, alpha_dot, applied, age = [], [], [], 0
     for k in range(lost.stop + 750):
@@ -867,17 +875,10 @@ def test_the_law_takes_over_after_stale_states_without_a_force_step(params):
     hold's (law 2, robot truth): the hold and the law differ by their friction and velocity
     terms. Taking over from its own hold, the law's command now moves at the take-up's 1 N a tick
     until it meets the law's, as after a take-up."""
-    from bridge.motor_speed import MotorSpeed
-    from controller.laws import encoder_hold_forces
     from controller.take_up import FORCE_STEP_N
     from controller.trajectory import control_test_trajectory
 
-    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
-    tick = twin.tick(np.zeros(params.n_cables))
-    svc.initialise(tick.theta_meas)
+    twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, 2, seed=0)
     stale = range(2000, 2150)  # 0.3 s from 3 s into the campaign
     sent, last_state_s = [], tick.t_s
     for k in range(stale.stop + 250):
@@ -956,16 +957,9 @@ def test_the_law_returns_from_a_short_stale_gap_mid_trajectory_without_a_force_s
     process holds by itself after 10 ms on the last state's stamp, which the bridge takes. Below
     the 0.1 s it then took to re-start, the law went on from that hold and its commands stepped
     10 N a tick back to the law's; re-started (``STALE_RESTART_S``), it winds back gently."""
-    from bridge.motor_speed import MotorSpeed
-    from controller.laws import encoder_hold_forces
     from controller.trajectory import TrajectoryLimits, control_test_trajectory
 
-    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
-    tick = twin.tick(np.zeros(params.n_cables))
-    svc.initialise(tick.theta_meas)
+    twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, 2, seed=0)
     stale = range(500 + 1500, 500 + 1510)  # 20 ms from 3 s into the campaign
     peak, applied, age, command = 0.0, [], 0, None
     for k in range(stale.stop + 500):
@@ -999,17 +993,10 @@ def test_a_campaign_whose_law_re_starts_all_the_time_is_aborted_naming_why(param
     campaign's clock and brought it back up to speed, and the campaign stood at 15 % until the
     console's 600 s timeout, which does not say why. After ``RESTARTS_MAX`` re-starts within
     ``RESTARTS_WINDOW_S`` it ends aborted, saying so."""
-    from bridge.motor_speed import MotorSpeed
-    from controller.laws import encoder_hold_forces
     from controller.service import RESTARTS_MAX
     from controller.trajectory import control_test_trajectory
 
-    twin = Twin(params, TwinConfig(camera=False, seed=1, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, 0.002)
-    tick = twin.tick(np.zeros(params.n_cables))
-    svc.initialise(tick.theta_meas)
+    twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, 2, seed=1)
     svc.handle(_request("ct", law=2, trajectory_json=control_test_trajectory().to_json()), tick.t_s)
     events, age = [], 0
     for k in range(round(8.0 / 0.002)):

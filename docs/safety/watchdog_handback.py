@@ -48,17 +48,24 @@ from twin.sim.simulator import Twin, TwinConfig
 DT = 0.002
 
 
-def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False,
-             stale: bool = False) -> dict:
-    """One run (module docstring): figures after the hand-back, or over the same window with no loss.
-    ``stale``: the states, not the commands, are lost; the controller's own hold goes through."""
-    twin = Twin(params, TwinConfig(camera=False, seed=0, truth="robot"))
+def _loop(params, law: int, seed: int):
+    """The service (law ``law``) on the robot truth through the bridge's rules, as its node holds:
+    (twin, service, safety, hold rule, motor speeds, first tick)."""
+    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
     svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
     safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
     hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
     tick = twin.tick(np.zeros(params.n_cables))
     speed.update(tick.theta_meas.tolist())
     svc.initialise(tick.theta_meas)
+    return twin, svc, safety, hold_rule, speed, tick
+
+
+def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False,
+             stale: bool = False) -> dict:
+    """One run (module docstring): figures after the hand-back, or over the same window with no loss.
+    ``stale``: the states, not the commands, are lost; the controller's own hold goes through."""
+    twin, svc, safety, hold_rule, speed, tick = _loop(params, law, seed=0)
     start_k = 500  # 1 s of hold, then the campaign
     lost = range(start_k + round(at_s / DT), start_k + round((at_s + lost_s) / DT))
     end_k = lost.stop + round(after_s / DT)
@@ -110,13 +117,7 @@ def stalls(params, law: int, p_stall: float, hold_restart_s: float, seed: int = 
     default, service.HOLD_RESTART_S = service.HOLD_RESTART_S, hold_restart_s
     try:
         rng = np.random.default_rng(seed)
-        twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
-        svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
-        safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-        hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
-        tick = twin.tick(np.zeros(params.n_cables))
-        speed.update(tick.theta_meas.tolist())
-        svc.initialise(tick.theta_meas)
+        twin, svc, safety, hold_rule, speed, tick = _loop(params, law, seed)
         start_k, lost_until, age, peak, holds, end = 250, -1, 0, 0.0, 0, "none"
         k = start_k
         for k in range(round(120 / DT)):
