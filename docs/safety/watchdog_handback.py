@@ -14,7 +14,8 @@ commands again when they return. After the hand-back (1.5 s): the neck's peak jo
 largest |α| (truth), the largest applied force step per tick, and the command at the hand-back.
 D = 0: the same run without the loss (law 1 reaches 127°/s there without any fault). ``--flap``: the
 controller starved (stopped 40 ms, running 8 ms, as SIGSTOP/SIGCONT did): its commands come through
-8 ms in every 48 over D, and the bridge flaps hold/active. ``--stale``: the states are lost for D
+8 ms in every 48 over D, and the bridge flaps hold/active. ``--stop``: the campaign is stopped one
+tick before the loss, so its brake meets the hold (peak speed from the hand-back on). ``--stale``: the states are lost for D
 instead (the commands would go through): the controller answers nothing for 10 ms, then holds by
 itself (:meth:`CampaignService.stale`) on the last state's stamp, which the bridge takes until that
 state is 50 ms old, then refuses, and its watchdog holds. ``--stalls P``: the whole control test
@@ -62,9 +63,10 @@ def _loop(params, law: int, seed: int):
 
 
 def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False,
-             stale: bool = False) -> dict:
+             stale: bool = False, stop: bool = False) -> dict:
     """One run (module docstring): figures after the hand-back, or over the same window with no loss.
-    ``stale``: the states, not the commands, are lost; the controller's own hold goes through."""
+    ``stale``: the states, not the commands, are lost; the controller's own hold goes through.
+    ``stop``: the user stops the campaign one tick before the loss (its brake meets the hold)."""
     twin, svc, safety, hold_rule, speed, tick = _loop(params, law, seed=0)
     start_k = 500  # 1 s of hold, then the campaign
     lost = range(start_k + round(at_s / DT), start_k + round((at_s + lost_s) / DT))
@@ -75,6 +77,8 @@ def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5,
         if k == start_k:
             svc.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ct", action="start", law=law,  # type: ignore[arg-type]
                                            trajectory_json=control_test_trajectory().to_json()), tick.t_s)
+        if stop and k == lost.start - 1:
+            svc.stop("ct", tick.t_s)
         svc.drive_reason = safety.estop_reason if safety.drive == "disabled" else safety.hold_reason
         gap_k = k - lost.start
         if stale and k in lost:
@@ -158,6 +162,7 @@ def main() -> None:
     ap.add_argument("--flap", action="store_true", help="a starved controller: 40 ms lost, 8 ms through, over D")
     ap.add_argument("--stale", action="store_true", help="the states are lost for D, not the commands: the "
                     "controller holds by itself from 10 ms (controller.process's stale_s)")
+    ap.add_argument("--stop", action="store_true", help="the user stops the campaign one tick before the loss")
     ap.add_argument("--stalls", type=float, nargs="+", help="per-tick probabilities of a 12-20 ms stall (module docstring)")
     args = ap.parse_args()
     params = load_params()
@@ -175,7 +180,7 @@ def main() -> None:
           "after the hand-back (1.5 s):")
     for law in args.law:
         for lost_s in args.lost:
-            r = handback(params, law, args.at, lost_s, flap=args.flap, stale=args.stale)
+            r = handback(params, law, args.at, lost_s, flap=args.flap, stale=args.stale, stop=args.stop)
             held = f"command at the hand-back {np.round(r['command'], 0).tolist()} N" if lost_s else "no loss"
             print(f"law {law}, lost {lost_s:.2f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
                   f"max applied step {r['step']:5.2f} N/tick; {held}", flush=True)

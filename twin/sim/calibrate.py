@@ -16,16 +16,9 @@ periods), in process and open loop. The fit minimises, with bounded
 Start: the replays' mismatch has local minima (stiction makes the motion depend on the forces in
 steps), so the local fit starts from the best of the base truth's values and ``starts`` points of a
 scrambled Sobol sequence over the fitted values' bounds (log scale where the value is fitted on
-one), each one cost evaluation. From the base alone (``--starts 0``), the 4 s law 2 recording of
-values injected into the robot truth of tests/test_calibrate.py ended at a static ratio of 1.39
-for 1.6 and a current-loop bandwidth of 13 Hz for 30, its θ residual 0.39 rad against 0.019 at
-the truth (session 46, once the law's α̂̇ bound had made its commands smoother).
-
-Uncertainties: one standard deviation from the Jacobian at the solution,
-cov = s²(JᵀJ)⁻¹ with s² = 2·cost/(m − n) (the residuals' own scale, so the weights only set the
-balance between θ, α_IP and tension). A value fitted on a log scale (bandwidth, damping, times)
-has σ = value·σ_log. The replay is the twin's own integrator (twin.sim.integrator) through
-:meth:`twin.sim.simulator.Twin.advance`; pure functions except for the progress callback.
+one), each one cost evaluation. From the base alone (``--starts 0``), the short law 2 recording
+of values injected into the robot truth in tests/test_calibrate.py ended in a local minimum far
+from them (session 46, once the law's α̂̇ bound had made its commands smoother).
 """
 
 from __future__ import annotations
