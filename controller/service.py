@@ -123,14 +123,16 @@ HOLDS_FORGOTTEN_S = 0.1
 # and at the hand-back the neck reached 74-157°/s, past the trajectories' 86°/s, |α| 55°
 # (docs/safety/watchdog_handback.py, session 46); re-started, 37-53°/s.
 HOLD_RESTART_S = 0.003
-# A campaign whose law re-starts this often (RESTARTS_MAX within RESTARTS_WINDOW_S s) is aborted
-# naming why: every re-start stops its clock and brings it back up to speed, so one-tick holds
-# 60-90 ms apart (a controller whose commands come late all the time) held a campaign at 15 % of
-# its trajectory until the console's 600 s timeout, which does not say why (review of session 46).
-# 2 a second on average: the stalls of docs/safety/watchdog_handback.py --stalls 0.002 re-start it
-# 0.7 times a second.
-RESTARTS_MAX = 20
+# A campaign whose clock advanced less than PROGRESS_MIN_RATIO of RESTARTS_WINDOW_S s over that
+# long while its law re-started at least RESTARTS_MIN times is aborted naming why: every re-start
+# stops its clock and brings it back up to speed, so one-tick holds 60-90 ms apart (a controller
+# whose commands come late all the time) held a campaign at 15 % of its trajectory until the
+# console's 600 s timeout, which does not say why (review of session 46). Counting re-starts alone
+# (20 in 10 s) aborted campaigns that still progressed on a loaded machine (a stray bridge
+# starting on the bus, CI).
 RESTARTS_WINDOW_S = 10.0
+RESTARTS_MIN = 5
+PROGRESS_MIN_RATIO = 0.25
 # No motor shaft turns faster: an encoder whose reading moved more than this allows between two
 # states is faulty (an offset, a runaway) and latches a hold (audit of 2026-11-26: a 60 rad step
 # moved α̂ a few degrees and the law drove the real joint to 85°). EC-max 40: about 785 rad/s
@@ -257,6 +259,7 @@ class CampaignService:
         self._resume: tuple[float, float, float] | None = None
         self._resume_max_s = RESUME_DURATION_MIN_S  # the ramp the trajectory's peak speed needs
         self._restarts: collections.deque[float] = collections.deque()  # stamps (s) of the campaign's re-starts
+        self._window = (0.0, 0.0)  # (stamp s, campaign time s) where the progress window began (_stalled)
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
@@ -478,6 +481,7 @@ class CampaignService:
         self.trajectory = trajectory
         self.phase = "running"
         self._restarts.clear()
+        self._window = (stamp_s, 0.0)  # (stamp s, campaign time s) where the progress window began
         self._t0 = stamp_s
         self._paused_at = self._resume = None
         peak_rad_s = float(np.max(trajectory.segment_peak_velocity(), initial=0.0))
@@ -522,6 +526,26 @@ class CampaignService:
             self.refuse(starting.campaign_id, starting.kind, f"dropped: jog {self.campaign_id} ended {outcome} "
                                                              f"({message}) before it reached the pose its approach was checked from")
             self._starting = None
+
+    def _stalled(self, stamp_s: float, t: float) -> bool:
+        """Whether the running campaign was just aborted for making no progress while its law kept
+        re-starting (:data:`RESTARTS_WINDOW_S`); checked once a window, on the states' clock."""
+        since_s, since_t = self._window
+        if stamp_s - since_s < RESTARTS_WINDOW_S:
+            return False
+        restarts = self._restarts
+        while restarts and stamp_s - restarts[0] > stamp_s - since_s:
+            restarts.popleft()
+        n, advanced_s = len(restarts), t - since_t
+        self._window = (stamp_s, t)
+        restarts.clear()
+        if n < RESTARTS_MIN or advanced_s >= PROGRESS_MIN_RATIO * (stamp_s - since_s):
+            return False
+        self._end("aborted", f"the law re-started {n} times in {stamp_s - since_s:.0f} s (the bridge's holds or stale "
+                             f"states: the commands come late or the states stall), each stopping the campaign's clock: "
+                             f"it advanced {advanced_s:.1f} s of its trajectory meanwhile",
+                  self._progress(stamp_s), self.hold_alpha())
+        return True
 
     def _progress(self, stamp_s: float) -> float:
         return min(max(self.campaign_time(stamp_s)[0] / self._total, 0.0), 1.0)
@@ -950,16 +974,7 @@ class CampaignService:
         self._restart = False
         self.ctl.restart_integral()
         if self.running:
-            restarts = self._restarts
-            restarts.append(stamp_s)
-            while restarts and stamp_s - restarts[0] > RESTARTS_WINDOW_S:
-                restarts.popleft()
-            if len(restarts) >= RESTARTS_MAX:
-                restarts.clear()
-                self._end("aborted", f"the law re-started {RESTARTS_MAX} times within {RESTARTS_WINDOW_S:.0f} s "
-                                     "(the bridge's holds or stale states: the commands come late or the states "
-                                     "stall), each stopping the campaign's clock: it could not follow its trajectory",
-                          self._progress(stamp_s), self.hold_alpha())
+            self._restarts.append(stamp_s)
         if self._paused_at is not None:
             duration_s = self.resume_duration_s(self._paused_at)
             if duration_s > 0.0:
@@ -1192,6 +1207,8 @@ class CampaignService:
                 self.start(waiting, stamp_s)
             return
         t = self.campaign_time(stamp_s)[0]
+        if self._stalled(stamp_s, t):
+            return
         if t >= self._next_progress:
             self._event("progress", min(t / self._total, 1.0))
             self._next_progress += PROGRESS_PERIOD_S

@@ -991,15 +991,15 @@ def test_a_campaign_whose_law_re_starts_all_the_time_is_aborted_naming_why(param
     """Review of session 46: commands lost 12 ms every 60 ms (a one-tick hold of the bridge each
     time, a controller whose commands come late all the time): every re-start stopped the
     campaign's clock and brought it back up to speed, and the campaign stood at 15 % until the
-    console's 600 s timeout, which does not say why. After ``RESTARTS_MAX`` re-starts within
-    ``RESTARTS_WINDOW_S`` it ends aborted, saying so."""
-    from controller.service import RESTARTS_MAX
+    console's 600 s timeout, which does not say why. A window of ``RESTARTS_WINDOW_S`` with at
+    least ``RESTARTS_MIN`` re-starts and less than ``PROGRESS_MIN_RATIO`` of it advanced ends it
+    aborted, saying so."""
     from controller.trajectory import control_test_trajectory
 
     twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, 2, seed=1)
     svc.handle(_request("ct", law=2, trajectory_json=control_test_trajectory().to_json()), tick.t_s)
     events, age = [], 0
-    for k in range(round(8.0 / 0.002)):
+    for k in range(round(14.0 / 0.002)):
         out = svc.control(tick.theta_meas, tick.t_s, safety.drive, np.asarray(safety.force))
         if out.law_ran:
             svc.advance(tick.t_s)
@@ -1015,4 +1015,4 @@ def test_a_campaign_whose_law_re_starts_all_the_time_is_aborted_naming_why(param
         speed.update(tick.theta_meas.tolist())
     end = [e for e in events if e.event in ("finished", "aborted")]
     assert [e.event for e in end] == ["aborted"], events[-3:]
-    assert f"re-started {RESTARTS_MAX} times" in end[0].message and end[0].progress < 0.5, end[0]
+    assert "re-started" in end[0].message and "advanced" in end[0].message and end[0].progress < 0.5, end[0]
