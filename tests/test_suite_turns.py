@@ -36,11 +36,12 @@ import pytest
 {mark}
 
 def group_nice():
-    try:  # "/autogroup-2208 nice 0"
+    try:  # "/autogroup-2208 nice 0"; empty in the kernel's root group (a session never set up, as PID 1's)
         with open("/proc/self/autogroup") as f:
-            return int(f.read().split()[-1])
-    except (OSError, ValueError, IndexError):
+            text = f.read()
+    except OSError:
         return None
+    return int(text.split()[-1]) if text.strip() else "root"
 
 @pytest.mark.parametrize("k", range({n}))
 def test_span(k):
@@ -141,6 +142,9 @@ def test_the_realtime_modules_run_on_one_worker_and_the_background_ones_beside_t
     # nice counts only inside its session, and every realtime stack runs in a session of its own.
     if Path("/proc/self/autogroup").exists():
         assert {r["group_nice"] for r in rows if r["module"].endswith("bg")} == {19}, rows
-        assert {r["group_nice"] for r in rows if not r["module"].endswith("bg")} == {0}, rows
+        # The others at 0, or in the kernel's root group, whose weight is a nice 0 one and cannot be
+        # changed (the project's CI runs the suite in PID 1's session: the realtime worker, which
+        # never needs a session of its own, read an empty file there, CI of stop 56).
+        assert {r["group_nice"] for r in rows if not r["module"].endswith("bg")} <= {0, "root"}, rows
     shared = [r for r in rows if r["module"] in ("test_a", "test_b")]
     assert not [r for r in shared if r["t0"] < rt1 and r["t1"] > rt0], (rt0, rt1, shared)
