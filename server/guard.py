@@ -42,6 +42,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 MAX_JSON_DEPTH = 32
+TOO_LARGE = "xneck.body_too_large"  # the scope key of a refused body's detail, for the e-stop's route
 ESTOP_PATH = "/api/system/estop"  # checks its body's depth itself (server.routes_system.estop)
 #: Scripts only from the console itself, no plugins, no <base>: an injected value that ever reached
 #: the page as HTML could run nothing (the dashboard writes every value as text; defence in depth,
@@ -167,7 +168,7 @@ class ConsoleGuard:
         limit = self.max_body_bytes
         declared = headers.get("content-length")
         if declared is not None and (not declared.strip().isdigit() or int(declared) > limit):
-            await _deny(scope, receive, send, 413, f"request body of {declared} bytes: at most {limit} bytes", {})
+            await self._too_large(scope, receive, send, f"request body of {declared} bytes: at most {limit} bytes")
             return
         chunks: list[bytes] = []
         size = 0
@@ -178,7 +179,7 @@ class ConsoleGuard:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > limit:
-                await _deny(scope, receive, send, 413, f"request body larger than {limit} bytes", {})
+                await self._too_large(scope, receive, send, f"request body larger than {limit} bytes")
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):
@@ -199,6 +200,19 @@ class ConsoleGuard:
             return await receive()
 
         await self.app(scope, replay, send)
+
+
+    async def _too_large(self, scope: Scope, receive: Receive, send: Send, detail: str) -> None:
+        """A 413, the rest of the body unread; the e-stop's route gets an empty body and the
+        refusal in ``scope[TOO_LARGE]`` instead, so that it engages (a 413 here had sent nothing)."""
+        if scope.get("path") != ESTOP_PATH:
+            await _deny(scope, receive, send, 413, detail, {})
+            return
+
+        async def nothing() -> Message:
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        await self.app({**scope, TOO_LARGE: detail}, nothing, send)
 
 
 def document_responses(routes: Iterable[Any]) -> None:

@@ -21,7 +21,7 @@ from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
-from server.guard import MAX_JSON_DEPTH, json_depth_exceeds
+from server.guard import MAX_JSON_DEPTH, TOO_LARGE, json_depth_exceeds
 from server.live import bridge_status
 from server.routes_jog import jog_status, note_fault
 from server.safety_journal import READ_MAX_LINES, SafetyJournal, read_journal
@@ -122,7 +122,9 @@ MALFORMED_ANSWER = ("The body is no e-stop request (an unknown field, a value th
 @router.post("/api/system/estop", dependencies=[Depends(require_token), Depends(require_operator)],
              openapi_extra={"requestBody": {"required": False, "content": {"application/json": {
                  "schema": EStopRequest.model_json_schema()}}}},
-             responses={422: {"description": MALFORMED_ANSWER}})
+             responses={422: {"description": MALFORMED_ANSWER},
+                        413: {"description": "The body is larger than the console takes: the e-stop was ENGAGED "
+                                             "all the same (``engaged``: true), the body left unread."}})
 async def estop(request: Request) -> Any:
     """Engage or release the e-stop: published on the bus (the bridge disables its drives and
     latches it); engaging also aborts the running campaign and any replay. The answer is what was
@@ -135,14 +137,20 @@ async def estop(request: Request) -> Any:
     caller's typo in an emergency (``{"engage": true}``, JSON cut short, not JSON at all) still
     stops the robot (user audit and review of session 46; before, unknown fields were ignored and
     ``"off"``, ``0``, ``"false"`` released). The body is read here, not by FastAPI, whose own
-    refusals (422, 400) had sent nothing; a key given twice is malformed too."""
-    body, errors = _estop_body(await request.body())
+    refusals (422, 400) had sent nothing; a key given twice is malformed too. A body larger than
+    the console takes engages it too, answering 413 (the guard's 413 had sent nothing)."""
+    too_large = request.scope.get(TOO_LARGE)
+    if too_large is not None:  # the guard read no further: engaged, never a release
+        body, errors, status = None, [{"type": "too_large", "loc": ["body"], "msg": f"larger than the console takes ({too_large})"}], 413
+    else:
+        body, errors = _estop_body(await request.body())
+        status = 422
     if body is None:
         first = errors[0]
         where = ".".join(str(x) for x in first["loc"][1:]) or "body"
         why = bus.plain_text(f"console (malformed e-stop request: {where}: {first['msg']})")
         await anyio.to_thread.run_sync(_send_estop, request, True, why)
-        return JSONResponse(status_code=422, content={"detail": errors, "engaged": True, "reason": why})
+        return JSONResponse(status_code=status, content={"detail": errors, "engaged": True, "reason": why})
     why = body.why()
     await anyio.to_thread.run_sync(_send_estop, request, body.engaged, why)
     return {"engaged": body.engaged, "reason": why}

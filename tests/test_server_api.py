@@ -165,6 +165,14 @@ def test_estop_body_is_strict_a_malformed_one_engages_and_a_release_says_it_rele
         assert client.post("/api/system/estop", json={"engaged": False, "reason": "strict"}, headers=AUTH).status_code == 200
         r = client.post("/api/system/estop", content=raw, headers={**AUTH, "Content-Type": "application/json"})
         assert r.status_code == 422 and r.json()["engaged"] is True and health() is True, (raw[:40], r.text[:300])
+    # larger than the console takes (the guard's 413 had sent nothing), declared or streamed
+    from server.paramsets import MAX_UPLOAD_BYTES
+    big = b'{"engaged": false, "reason": "' + b"x" * MAX_UPLOAD_BYTES + b'"}'
+    for content in (big, iter([big[:65536]] * (len(big) // 65536 + 1))):
+        assert client.post("/api/system/estop", json={"engaged": False, "reason": "strict"}, headers=AUTH).status_code == 200
+        r = client.post("/api/system/estop", content=content, headers={**AUTH, "Content-Type": "application/json"})
+        assert r.status_code == 413 and r.json()["engaged"] is True and health() is True, r.text[:300]
+        assert "larger than" in r.json()["reason"], r.json()
     r = client.post("/api/system/estop", json={"engaged": False}, headers=AUTH)
     assert r.status_code == 200 and r.json() == {"engaged": False, "reason": "released from the console"}, r.json()
     assert health() is False
