@@ -130,6 +130,13 @@ HOLD_RESTART_S = 0.003
 # console's 600 s timeout, which does not say why (review of session 46). Counting re-starts alone
 # (20 in 10 s) aborted campaigns that still progressed on a loaded machine (a stray bridge
 # starting on the bus, CI).
+# s over which a hold the controller enters from the law's commands (stale states, a fault's latch)
+# reaches the hold forces, linearly per cable, as the bridge's own hold does (bridge.node.NodeConfig
+# hold_ramp_s); at least HOLD_STEP_MIN_N a tick, so a hold whose α̂ moves still follows it. Within
+# the law's 10 N a tick only, the stale hold had stepped 10 and 4.9 N (control test, robot truth,
+# law 2: docs/safety/watchdog_handback.py --stale, session 47).
+HOLD_RAMP_S = 0.010
+HOLD_STEP_MIN_N = 1.0
 RESTARTS_WINDOW_S = 10.0
 RESTARTS_MIN = 5
 PROGRESS_MIN_RATIO = 0.25
@@ -286,6 +293,10 @@ class CampaignService:
         self._estopped = False  # the drives were disabled (e-stop) since the law last held the neck
         self._take_up: TakeUp | None = None  # the slack an e-stop left being taken up (controller.take_up)
         self._hold_sent: np.ndarray | None = None  # N, the last hold's command (a take-up's rate bound)
+        # N a tick per cable of the ramp into a hold entered from the law's commands (HOLD_RAMP_S);
+        # ``_from_law``: the last command was the law's, so the next hold starts such a ramp
+        self._hold_step_N: np.ndarray | None = None
+        self._from_law = False
         # a take-up ended (or was cut short) and the command still moves at most its FORCE_STEP_N a
         # tick, until it meets what the law or the hold asks (``_wind_down_bound``)
         self._wind_down = False
@@ -358,7 +369,8 @@ class CampaignService:
             np.all(np.isfinite(theta)) and model.rho * np.max(np.abs(theta), initial=0.0) > UNDER_WAY_M)
         self._reestimate_when_taut = alpha is not None and self._joined and self._slack_seen(theta, alpha, f)
         self._estopped, self._take_up, self._hold_sent = self._joined, None, None
-        self._wind_down = self._own_hold = False
+        self._wind_down = self._own_hold = self._from_law = False
+        self._hold_step_N = None
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
         if self.encoder_check is not None:
             self.encoder_check.reset()
@@ -789,7 +801,8 @@ class CampaignService:
         what was last sent, and the law resumes from what was sent (audit of 2026-11-26: a stale
         gap's hold stepped 21.9 N in one tick, and the law's return another 21.9 N). During a
         take-up (:mod:`controller.take_up`) they carry its floor and motor damping, within its
-        tighter bound per tick, whatever the hold is for (a stale gap's too)."""
+        tighter bound per tick, whatever the hold is for (a stale gap's too). Entered from the
+        law's commands, they reach the hold linearly over ``HOLD_RAMP_S``, as the bridge's hold."""
         self.hold_reason = reason
         alpha = self.hold_alpha().copy()  # the law's α̂ changes in place at its next tick
         f = hold_forces(self.params, alpha, self._pretension(None))
@@ -799,9 +812,14 @@ class CampaignService:
             step = min(step, take_up_rules.FORCE_STEP_N)
         if self.drive in ("active", "hold"):  # a command ends the bridge's hold, which ramps to it
             f_prev = self.ctl.f_prev
+            if self._from_law:
+                ticks = max(1, round(HOLD_RAMP_S / self.ctl.dt))
+                self._hold_step_N = np.maximum(np.abs(f - f_prev) / ticks, HOLD_STEP_MIN_N)
+            if self._take_up is None and self._hold_step_N is not None:
+                step = np.minimum(step, self._hold_step_N)
             f = self._wind_down_bound(f, f_prev) if self._wind_down else np.clip(f, f_prev - step, f_prev + step)
             f_prev[:] = f
-        self._hold_sent = f
+        self._hold_sent, self._from_law = f, False
         zeros = np.zeros_like(alpha)
         return Output(f, alpha, alpha, zeros, np.zeros(len(f), dtype=bool), False)
 
@@ -1151,6 +1169,7 @@ class CampaignService:
         # where a hold would aim: never beyond the joint limit (audit of 2026-11-26)
         self.last_sane = np.clip(cmd.alpha_hat, -self._alpha_max, self._alpha_max)
         self.hold_reason = ""
+        self._from_law, self._hold_step_N = True, None
         # The law's arrays change in place at its next tick: the Output keeps its own (a few µs).
         return Output(cmd.f.copy(), cmd.alpha_hat.copy(), np.array(a_d), cmd.e.copy(), cmd.saturated.copy(), True)
 

@@ -956,12 +956,14 @@ def test_the_law_returns_from_a_short_stale_gap_mid_trajectory_without_a_force_s
     """Session 46: no state for 20 ms 3 s into the §7 control test (robot truth, law 2); the
     process holds by itself after 10 ms on the last state's stamp, which the bridge takes. Below
     the 0.1 s it then took to re-start, the law went on from that hold and its commands stepped
-    10 N a tick back to the law's; re-started (``STALE_RESTART_S``), it winds back gently."""
+    10 N a tick back to the law's; re-started (``STALE_RESTART_S``), it winds back gently. And
+    its hold reaches the hold forces over ``HOLD_RAMP_S``, as the bridge's does: within the law's
+    10 N a tick only, it had stepped 10 and 4.9 N (session 47)."""
     from controller.trajectory import TrajectoryLimits, control_test_trajectory
 
     twin, svc, safety, hold_rule, speed, tick = _robot_loop(params, 2, seed=0)
     stale = range(500 + 1500, 500 + 1510)  # 20 ms from 3 s into the campaign
-    peak, applied, age, command = 0.0, [], 0, None
+    peak, applied, held, age, command = 0.0, [], [], 0, None
     for k in range(stale.stop + 500):
         if k == 500:
             svc.handle(_request("ct", law=2, trajectory_json=control_test_trajectory().to_json()), tick.t_s)
@@ -978,12 +980,16 @@ def test_the_law_returns_from_a_short_stale_gap_mid_trajectory_without_a_force_s
                                hold_N=hold_rule(tick.theta_meas).tolist(), speed_rad_s=speed.rad_s))
         if k >= stale.stop - 1:
             applied.append(np.asarray(d.force_N, dtype=float))
+        if stale.start - 1 <= k < stale.stop:
+            held.append(np.asarray(d.force_N, dtype=float))
         tick = twin.tick(np.asarray(d.force_N, dtype=float))
         speed.update(tick.theta_meas.tolist())
         if k >= stale.stop:
             peak = max(peak, float(np.abs(tick.alpha_dot).max()))
     step = float(np.abs(np.diff(applied, axis=0)).max())
     assert step <= 2.0, step
+    entry = np.abs(np.diff(held, axis=0)).max(axis=1)  # from the last state's tick into the hold
+    assert entry.max() <= 5.0 and np.count_nonzero(entry > 1.0) >= 3, entry
     assert peak <= float(TrajectoryLimits().per_joint(3)[1].min()) and svc.running
 
 

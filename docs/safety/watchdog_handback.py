@@ -11,7 +11,8 @@ controller's campaign service closed on the twin through the bridge's safety rul
 ``--at`` s into the campaign the commands stop reaching the bridge for D s (the states go on, so
 the service sees the bridge's hold); the bridge's watchdog holds, and ramps to the controller's
 commands again when they return. After the hand-back (1.5 s): the neck's peak joint speed and
-largest |α| (truth), the largest applied force step per tick, and the command at the hand-back.
+largest |α| (truth), the largest applied force step per tick (and, in brackets, while lost: the
+holds' entry), and the command at the hand-back.
 D = 0: the same run without the loss (law 1 reaches 127°/s there without any fault). ``--flap``: the
 controller starved (stopped 40 ms, running 8 ms, as SIGSTOP/SIGCONT did): its commands come through
 8 ms in every 48 over D, and the bridge flaps hold/active. ``--stop``: the campaign is stopped one
@@ -104,15 +105,17 @@ def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5,
             age, command = 0, out.force_N.tolist()
         d = safety.step(Inputs(command_N=command, command_age_s=DT * age, states_unanswered=age, estop=(),
                                hold_N=hold_rule(tick.theta_meas).tolist(), sender="c", speed_rad_s=speed.rad_s))
-        if k >= lost.stop - 1:
+        if k >= lost.start - 1:
             applied.append(np.asarray(d.force_N, dtype=float))
         tick = twin.tick(np.asarray(d.force_N, dtype=float))
         speed.update(tick.theta_meas.tolist())
         if k >= lost.stop:
             alpha.append(tick.alpha.copy())
             alpha_dot.append(tick.alpha_dot.copy())
+    steps = np.abs(np.diff(np.array(applied), axis=0)).max(axis=1)  # from the tick before the loss
+    n_lost = len(lost)
     return dict(speed=math.degrees(float(np.abs(alpha_dot).max())), alpha=math.degrees(float(np.abs(alpha).max())),
-                step=float(np.abs(np.diff(np.array(applied), axis=0)).max()), command=sent)
+                step=float(steps[n_lost:].max()), held_step=float(steps[:n_lost].max()) if n_lost else 0.0, command=sent)
 
 
 def stalls(params, law: int, p_stall: float, hold_restart_s: float, seed: int = 1) -> tuple[float, int, float, str]:
@@ -183,7 +186,7 @@ def main() -> None:
             r = handback(params, law, args.at, lost_s, flap=args.flap, stale=args.stale, stop=args.stop)
             held = f"command at the hand-back {np.round(r['command'], 0).tolist()} N" if lost_s else "no loss"
             print(f"law {law}, lost {lost_s:.2f} s: peak joint {r['speed']:5.1f}°/s, max |α| {r['alpha']:4.1f}°, "
-                  f"max applied step {r['step']:5.2f} N/tick; {held}", flush=True)
+                  f"max applied step {r['step']:5.2f} N/tick ({r['held_step']:5.2f} while lost); {held}", flush=True)
 
 
 if __name__ == "__main__":
