@@ -59,6 +59,11 @@ def test_round_trip_through_a_user_file(params, tmp_path):
         ({"friction.f_s": [6e299] * 4}, "friction.f_s", "must be below the motors' peak force at the cable, 229.4 N"),
         ({"friction.f_s": [14.0, 14.0, 230.0, 14.0]}, "friction.f_s", "229.4 N"),
         ({"motors.current_max": 0.3}, "friction.f_s", "peak force at the cable, 13.76 N"),
+        # audit of session 46: a study with λ = 1e12 1/m ran a twin at 0.05 N of tension for 10-90 N
+        # commanded, 'finished'; eq. 54's stiffness at f_max, (k + λ·f_max)²/k, within 1e7 N/m
+        ({"cables.variable.lambda": [1e12] * 4}, "cables.variable.lambda",
+         "λ <= 2265, 2262, 2434, 1362 1/m for cable(s) 1, 2, 3, 4"),
+        ({"cables.variable.lambda": [103.3, 88.7, 53.2, 1400.0]}, "cables.variable.lambda", "1362 1/m for cable(s) 4"),
     ],
 )
 def test_bad_values_name_the_key_and_the_reason(override, key, reason):
@@ -147,3 +152,36 @@ def test_to_toml_reads_back_whatever_strings_a_set_holds(params):
     assert odd.routes == params.routes
     back = params_from_dict(tomllib.loads(odd.to_toml()))
     assert back == odd
+
+
+def test_an_estimate_past_the_checked_bounds_keeps_the_base_value_and_says_why():
+    """An identified λ, k or f_s the estimator accepts (small σ) but a parameter set refuses
+    (above): the base value stays, named in the report, and the set loads (before the λ bound an
+    identified λ of 1e5 1/m would have made the set fail to load; f_s and k could already)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from twin.identification.estimators import Estimate
+    from twin.identification.pipeline import identified_params, make_provenance
+
+    base = load_params()
+
+    def estimate(method, names, values):
+        v = np.asarray(values, dtype=float)
+        return Estimate(method=method, equations="test", names=tuple(names), values=v, sigma=0.01 * v,
+                        relative_sigma=np.full(len(v), 0.01), condition_number=1.0, residual_norm=0.0,
+                        n_rows=100, n_samples=100)
+
+    lam = [100.0, 1e5, 50.0, 120.0]
+    est = {"friction": estimate("friction", [f"f_s({j})" for j in range(1, 5)], [15.0, 16.0, 300.0, 17.0]),
+           "variable": estimate("variable", [f"{s}({j})" for s in ("k", "lambda", "c_a") for j in range(1, 5)],
+                                [5000.0, 2e7, 6000.0, 2000.0, *lam, *[3000.0] * 4])}
+    new, report, _ = identified_params(base, est, make_provenance("t", SimpleNamespace(cutoff_hz=1.0, rate_hz=31.25)))  # type: ignore[arg-type]
+    assert list(new.friction.f_s) == [15.0, 16.0, base.friction.f_s[2], 17.0]
+    assert list(new.cables.variable.k) == [5000.0, base.cables.variable.k[1], 6000.0, 2000.0]
+    # λ(2) against the k the set keeps for cable 2 (its estimate was refused)
+    assert list(new.cables.variable.lam) == [100.0, base.cables.variable.lam[1], 50.0, 120.0]
+    assert "peak force" in report.kept_base["friction.f_s(3)"][2]
+    assert "N/m the twin" in report.kept_base["cables.variable.k(2)"][2]
+    assert "stiffen past" in report.kept_base["cables.variable.lambda(2)"][2]

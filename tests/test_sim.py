@@ -101,7 +101,7 @@ def test_flat_singularity_is_flagged_and_never_crossed():
 
 @pytest.mark.parametrize("overrides", [
     {"springs.k_left": [1e6] * 3, "springs.k_right": [1e6] * 3},
-    {"cables.variable.k": [1e7] * 4},
+    {"cables.variable.k": [1e7] * 4, "cables.variable.lambda": [0.0] * 4},  # at 1e7 N/m no λ stiffens it further
     {"bars.m_diagonal": [0.0] * 3, "bars.I_diagonal": [0.0] * 3, "bars.m_top": [0.0, 0.0, 1e-3],
      "bars.I_top": [0.0] * 3},
 ])
@@ -117,6 +117,21 @@ def test_at_the_parameter_bounds_the_twin_still_integrates(overrides):
     assert not any(t.flat for t in ticks)
     assert max(float(np.abs(t.tension).max()) for t in ticks) < 15.0
     assert np.all(np.isfinite(ticks[-1].alpha))
+
+
+def test_at_the_lambda_bound_the_twin_still_pulls_what_is_commanded():
+    """Eq. 54's λ at its bound (twin.model.params.lambda_max_per_m: the cable's stiffness at f_max
+    within CABLE_K_MAX_N_M): 10 N then 90 N commanded give tensions near the command (within the
+    pulleys' friction); at λ = 1e6 1/m, 90 N gave 29 N, and at 1e12, 0.05 N (audit of session 46)."""
+    from twin.model.params import lambda_max_per_m, load_params
+
+    base = load_params()
+    top = [lambda_max_per_m(k, base.limits.f_max) * (1 - 1e-9) for k in base.cables.variable.k]
+    twin = Twin(load_params(overrides={"cables.variable.lambda": top}), TwinConfig(camera=False))
+    for command in (10.0, 90.0):
+        ticks = [twin.tick(np.full(4, command)) for _ in range(750)]
+        assert not any(t.flat for t in ticks)
+        assert np.all((0.8 * command < ticks[-1].tension) & (ticks[-1].tension < 1.1 * command)), (command, ticks[-1].tension)
 
 
 def test_encoders_are_quantised_and_camera_is_noisy_late_and_30_hz():

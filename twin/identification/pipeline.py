@@ -91,7 +91,7 @@ from twin.identification.regressors import (
 from twin.jsonout import strict_json
 from twin.model import dynamics
 from twin.model.numeric import CableModelName, build
-from twin.model.params import Params, params_from_dict
+from twin.model.params import CABLE_K_MAX_N_M, Params, lambda_max_per_m, params_from_dict
 
 __all__ = [
     "DECIMATION",
@@ -451,6 +451,22 @@ def structure_overrides(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return out
 
 
+def _beyond_checked(base: Params, data: dict[str, Any], key: str, j: int, value: float) -> str:
+    """Why an estimate the estimator accepts cannot go into a parameter set ("" if it can): past
+    the bounds :mod:`twin.model.params` checks (a motor's peak force, the stiffness the twin's step
+    was checked with); written, the set would not load."""
+    if key == "f_s" and value >= base.motor_peak_force_N:
+        return f"above the motors' peak force at the cable, {base.motor_peak_force_N:.4g} N: no motor would move"
+    if key == "k" and value > CABLE_K_MAX_N_M:
+        return f"stiffer than the {CABLE_K_MAX_N_M:g} N/m the twin's step is checked with"
+    if key == "lambda":
+        top = lambda_max_per_m(float(data["cables"]["variable"]["k"][j]), base.limits.f_max)
+        if value > top:
+            return (f"the cable would stiffen past {CABLE_K_MAX_N_M:g} N/m at f_max (eq. 54): λ at most "
+                    f"{top:.4g} 1/m with its k")
+    return ""
+
+
 def identified_params(
     base: Params, estimates: Mapping[str, Estimate], provenance: Provenance
 ) -> tuple[Params, ParameterReport, Provenance]:
@@ -459,8 +475,9 @@ def identified_params(
     error's spring rates and pulley radius are in the provenance's rows, not in the set
     (:func:`_structure`).
 
-    A badly identified parameter (relative σ above the estimate's threshold), or one outside its
-    physical range (k ≤ 0, λ < 0, f_s < 0, c_a < 0), is NOT used: the base value stays and the
+    A badly identified parameter (relative σ above the estimate's threshold), one outside its
+    physical range (k ≤ 0, λ < 0, f_s < 0, c_a < 0), or one past the bounds a parameter set is
+    checked against (:func:`_beyond_checked`) is NOT used: the base value stays and the
     parameter is listed in the report and in the returned provenance (``kept_base``).
     """
     data = base.to_dict()
@@ -478,7 +495,7 @@ def identified_params(
         idx = [i for i, n in enumerate(est.names) if n.split("(")[0] == symbol]
         for j, (value, i) in enumerate(zip(new, idx)):
             name = f"{'.'.join(path)}.{key}({j + 1})"
-            reason = est.reason(i)
+            reason = est.reason(i) or _beyond_checked(base, data, key, j, float(value))
             if reason:
                 report.kept_base[name] = (float(values[j]), float(value), reason)
             else:

@@ -47,6 +47,12 @@ SPRING_K_MAX_N_M = 1e6
 CABLE_K_MAX_N_M = 1e7
 
 
+def lambda_max_per_m(k_N_m: float, f_max_N: float) -> float:
+    """The largest λ (1/m) of eq. 54's cable of stiffness ``k_N_m`` whose stiffness at ``f_max_N``,
+    dt/dx = (k + λ·t)²/k, stays within :data:`CABLE_K_MAX_N_M`."""
+    return (math.sqrt(CABLE_K_MAX_N_M * k_N_m) - k_N_m) / f_max_N
+
+
 def _require(ok: bool, message: str) -> None:
     if not ok:
         raise ValueError(message)
@@ -298,6 +304,17 @@ class Params(_Section, frozen=True, kw_only=True):
         for j, route in enumerate(self.routes):
             for joint, _ in route:
                 _require(joint < n, f"cables.routing[{j}] names joint {joint + 1} but n_joints = {n}")
+        # Eq. 54's cable stiffens with its tension, dt/dx = (k + λ·t)²/k: at f_max it must stay within
+        # what the twin's 2 ms step was checked with (CABLE_K_MAX_N_M). Beyond, a study with
+        # λ = 1e12 1/m ran its twin at 0.05 N of tension for 10-90 N commanded and reported the run
+        # as finished (audit of session 46); the prototype's λ (53-121 1/m) is 11-46 times below.
+        f_max, v = self.limits.f_max, self.cables.variable
+        lam_max = [lambda_max_per_m(k, f_max) for k in v.k]
+        over = [j for j, (lam, top) in enumerate(zip(v.lam, lam_max, strict=True)) if lam > top]
+        _require(not over, "cables.variable.lambda = " + str(list(v.lam)) + " 1/m: a cable's stiffness at "
+                 f"limits.f_max, (k + λ·f_max)²/k (eq. 54), must be <= {CABLE_K_MAX_N_M:g} N/m, so λ <= "
+                 + ", ".join(f"{lam_max[j]:.4g}" for j in over) + " 1/m for cable(s) "
+                 + ", ".join(str(j + 1) for j in over))
         # A motor whose static friction is more than the largest force it can pull its cable with
         # never moves: no robot has such a friction (user audit: a study with friction.f_s = 6e299 N
         # ran its twin stuck at rest and reported the run as finished).
