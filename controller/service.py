@@ -1148,17 +1148,20 @@ class CampaignService:
         if drive == "active":
             self._bridge_held = False
         a_d, a_d_dot, a_d_ddot = self.reference(stamp_s)
-        sent = self.ctl.f_prev.copy() if self._wind_down else None
+        sent = self.ctl.f_prev.copy()  # what was last commanded: a wind-down's bound, a divergence's hold
         # While the bridge holds, the neck does not follow the law: its integral would wind up on
         # an error the law's commands do not act on (audit of session 43: to f_max), so it stays.
         integral = self.ctl.integral.copy() if drive == "hold" else None
         cmd = self.ctl.step(np.asarray(theta_rad), a_d, a_d_dot, a_d_ddot, self._pretension(stamp_s), stamp_s)
         if integral is not None:
             self.ctl.integral[:] = integral
-        if sent is not None:
+        if self._wind_down:
             cmd.f[:] = self._wind_down_bound(cmd.f, sent)
             self.ctl.f_prev[:] = cmd.f
         if not _sane(cmd.alpha_hat, self._limit, cmd.f):
+            # The hold ramps from what was sent, not from this command, which is not (a non-finite
+            # one had made every hold command NaN, session 47).
+            self.ctl.f_prev[:] = sent
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
             self._drop_waiting(self.hold_reason)

@@ -159,6 +159,33 @@ def test_a_diverging_estimate_latches_a_hold_at_the_last_sane_estimate(loop, par
     assert not loop.svc.latched and loop.svc.phase == "running"
 
 
+def test_a_law_that_computes_non_finite_forces_latches_a_hold_that_sends_finite_ones(loop, params):
+    """Session 47: the law's non-finite command (never sent: the divergence check catches it) was
+    left as the last command, and the latched hold ramped from it: NaN forces every tick after,
+    which the bridge refuses, so the controller's own hold never held. The hold ramps from what
+    was last sent."""
+    loop.svc.handle(_request(), loop.stamp_s)
+    loop.run(0.3)
+    sent = loop.outputs[-1].force_N.copy()
+    law_step = loop.svc.ctl.step
+
+    def broken(*args, **kwargs):
+        cmd = law_step(*args, **kwargs)
+        cmd.f[:] = np.nan
+        loop.svc.ctl.f_prev[:] = np.nan  # as the law's kernel leaves it
+        return cmd
+
+    loop.svc.ctl.step = broken  # type: ignore[method-assign]
+    loop.run(0.002)
+    loop.svc.ctl.step = law_step  # type: ignore[method-assign]
+    assert loop.svc.latched and loop.svc.hold_reason.startswith("diverging"), loop.svc.hold_reason
+    loop.run(0.1)
+    forces = np.array([o.force_N for o in loop.outputs[-51:]])
+    assert np.all(np.isfinite(forces)), forces[:3]
+    assert float(np.abs(forces[0] - sent).max()) <= LawConfig(law=2).force_rate_max_N_s / 500.0 + 1e-9
+    np.testing.assert_allclose(forces[-1], hold_forces(params, loop.svc.hold_alpha()), atol=1e-6)
+
+
 def _fast_request(cid="fast"):
     """A validated move at the speed and acceleration limits: 0 → 40° on every joint and back."""
     d = math.radians(40.0)
