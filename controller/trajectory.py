@@ -433,6 +433,10 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
                 spec = msgspec.json.decode(path.read_bytes(), type=TrajectoryFile)
             elif suffix == ".toml":
                 spec = msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), TrajectoryFile)
+            elif not suffix and not path.exists():  # a name: the user meant a built-in one
+                raise TrajectoryError(
+                    f"no built-in trajectory of that name ({' or '.join(NAMED_TRAJECTORIES)}) and no such file: "
+                    "give one of those names, or a .json or .toml file of waypoints")
             else:
                 raise TrajectoryError(
                     f"unknown trajectory file type {suffix!r}: give a .json or .toml file of waypoints, or a "

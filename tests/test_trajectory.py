@@ -181,6 +181,16 @@ def test_bad_files_are_rejected_with_context(tmp_path, content, suffix, message)
         load_trajectory(path)
 
 
+def test_a_misspelt_built_in_name_is_said_to_be_neither_a_name_nor_a_file(tmp_path):
+    """``--trajectory contol_test`` said "unknown trajectory file type ''" (session 47)."""
+    with pytest.raises(TrajectoryError, match=r"contol_test: no built-in trajectory of that name \(identification or "
+                                              r"control_test\) and no such file"):
+        load_trajectory(tmp_path / "contol_test")
+    (tmp_path / "waypoints").write_text("")  # a file without a suffix: its type is what is wrong
+    with pytest.raises(TrajectoryError, match="unknown trajectory file type ''"):
+        load_trajectory(tmp_path / "waypoints")
+
+
 # -- rejection paths ----------------------------------------------------------------------------
 
 
