@@ -12,7 +12,7 @@ import pytest
 
 from bridge import bus
 from controller.laws import ComputedTorque, LawConfig, controller_model, hold_forces, nominal_force_check
-from controller.service import PRETENSION_RELEASE_N_S, CampaignService
+from controller.service import HOLD_RAMP_S, PRETENSION_RELEASE_N_S, CampaignService
 from controller.trajectory import (
     Trajectory,
     TrajectoryError,
@@ -139,8 +139,10 @@ def test_a_campaign_at_high_tension_stopped_by_the_user_lets_go_without_a_step(p
     assert loop.svc.pretension_N == 0.0 and loop.svc.phase == "aborted"
     steps = np.abs(np.diff(np.array(loop.forces[n_before - 1:]), axis=0)).max()
     assert steps < 2.0, steps
-    # a hold from here (e.g. a diverging estimate) commands the plain floor again
-    np.testing.assert_allclose(loop.svc.hold("test").force_N, hold_forces(params, loop.svc.hold_alpha()))
+    # a hold from here (e.g. a diverging estimate) commands the plain floor again, reached over
+    # the hold's ramp from the law's last command (HOLD_RAMP_S, as the bridge's hold)
+    held = [loop.svc.hold("test").force_N for _ in range(round(HOLD_RAMP_S * 500))]
+    np.testing.assert_allclose(held[-1], hold_forces(params, loop.svc.hold_alpha()))
 
 
 def test_a_finished_pretension_campaign_ends_on_the_plain_floor(params):
