@@ -201,7 +201,6 @@ class ConsoleGuard:
 
         await self.app(scope, replay, send)
 
-
     async def _too_large(self, scope: Scope, receive: Receive, send: Send, detail: str) -> None:
         """A 413, the rest of the body unread; the e-stop's route gets an empty body and the
         refusal in ``scope[TOO_LARGE]`` instead, so that it engages (a 413 here had sent nothing)."""
