@@ -44,6 +44,7 @@ import sys
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,7 @@ def _trajectory(name: str) -> Trajectory:
 class Event:
     k: int  # tick
     kind: str  # start_ct, start_id, jog, stop, lost, stale, estop, release, glitch
-    arg: object = None  # duration in ticks (lost, stale), pose (jog), (encoder, rad) (glitch)
+    arg: Any = None  # duration in ticks (lost, stale), pose (jog), (encoder, rad) (glitch)
 
     def __str__(self) -> str:
         if self.kind in ("lost", "stale"):
@@ -177,7 +178,7 @@ def run(params, law: int, seed: int, events: list[Event], duration_s: float, tai
                     traj = (_trajectory("control") if e.kind == "start_ct" else _trajectory("ident") if e.kind == "start_id"
                             else Trajectory.from_degrees([list(e.arg)], [], 0.0, "jog"))
                     svc.handle(bus.CampaignRequest(seq=seq, stamp_s=0.0, campaign_id=last_id, action="start", law=law,  # type: ignore[arg-type]
-                                                   kind="jog" if e.kind == "jog" else "campaign",
+                                                   kind="jog" if e.kind == "jog" else "campaign",  # pyright: ignore[reportArgumentType]
                                                    trajectory_json=traj.to_json()), tick.t_s)
                 elif e.kind == "stop":
                     seq += 1
