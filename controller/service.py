@@ -239,6 +239,7 @@ class CampaignService:
     outcome: str = ""
     hold_reason: str = ""
     latched: bool = False
+    latch_reason: str = ""  # why the hold latched (a take-up under the latch says it, then goes back to it)
     overruns: int = 0  # these three count since the campaign started (or the last one ended)
     deadline_misses: int = 0
     ticks: int = 0
@@ -512,7 +513,7 @@ class CampaignService:
         if self.latched:
             self._reestimate()
             self._restart = True  # the law takes over from the new estimate, bumplessly
-        self.latched = False
+        self.latched, self.latch_reason = False, ""
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:
         self.outcome = outcome
@@ -633,7 +634,7 @@ class CampaignService:
     def taking_up(self) -> bool:
         """The slack an e-stop left is (to be) taken up before the law holds the neck again."""
         return self._take_up is not None or (self._estopped and self.drive != "disabled"
-                                             and (self._drives_off or self._joined) and not self.latched)
+                                             and (self._drives_off or self._joined))
 
     @property
     def braking(self) -> bool:
@@ -1048,7 +1049,7 @@ class CampaignService:
         fault = self._encoder_fault(theta_rad, stamp_s, force_applied_N,
                                     *self._check_phase(drive == "active" and obeyed, stamp_s))
         if fault and not self.latched:
-            self.latched = True
+            self.latched, self.latch_reason = True, fault
             self._drop_waiting(fault)
             out = self.hold(fault)
             if self.running or (not self.service and not self.outcome):  # not ended by _drop_waiting
@@ -1091,7 +1092,7 @@ class CampaignService:
                 self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
                 self.ctl.f_prev[:] = sent
                 if self.latched:
-                    return self.hold(self.hold_reason)
+                    return self.hold(self.latch_reason)
                 return self.hold("drives hold" + (f": {self.drive_reason}" if self.drive_reason else ""))
             if self._joined and self._estopped and not self.running:
                 # A run joined during the bridge's hold (the controller restarted: the bridge held
@@ -1115,14 +1116,7 @@ class CampaignService:
                 self._end("aborted", f"{reason} during the campaign", self._progress(stamp_s), self.hold_alpha())
             elif drive == "disabled" or not obeyed:
                 self._drop_waiting(reason)
-            return self.hold(self.hold_reason if self.latched else reason)
-        if self.latched:
-            if self._take_up is not None:  # the latch's hold, at the last sane α̂; a new campaign lifts it
-                # Cut short: its damping (up to 44 N) is let go at its rate, not dropped (audit of
-                # 2026-11-29: 10 N a tick for 5-6 ticks).
-                self._take_up, self._wind_down = None, True
-            self.reference(stamp_s)
-            return self.hold(self.hold_reason)
+            return self.hold(self.latch_reason if self.latched else reason)
         if self._restart and drive == "active" and self._estopped:
             self._estopped = False
             peak = take_up_peak_N(self.params)
@@ -1131,7 +1125,14 @@ class CampaignService:
             else:  # none (a campaign of its own runs, or the take-up is off): nothing is owed
                 self._joined = self._reestimate_when_taut = False
         if self._take_up is not None:
+            # Under a latch too, at the last sane α̂ (hold_alpha), and on to the latch's hold: held
+            # without it, the slack cables' drums wound in undamped at the release and the neck
+            # reached 500-845°/s (docs/safety/transition_fuzz.py, session 47; the take-up had
+            # waited for the latch to be lifted, or been cut short by one).
             return self._taking_up(theta_rad, stamp_s, drive, force_applied_N)
+        if self.latched:  # the latch's hold, at the last sane α̂; a new campaign lifts it
+            self.reference(stamp_s)
+            return self.hold(self.latch_reason)
         if self._restart and drive == "active":
             if self._bridge_held and force_applied_N is not None:
                 # After the bridge's hold the law's rate bound runs from what the bridge applies
@@ -1164,6 +1165,7 @@ class CampaignService:
             self.ctl.f_prev[:] = sent
             self.latched = True
             out = self.hold(f"diverging estimate α̂ = {np.round(np.degrees(cmd.alpha_hat), 1).tolist()}°")
+            self.latch_reason = self.hold_reason
             self._drop_waiting(self.hold_reason)
             if self.running or (not self.service and not self.outcome):  # not ended by _drop_waiting
                 self._end("aborted", self.hold_reason, self._progress(stamp_s) if self.running else 0.0,
@@ -1199,18 +1201,27 @@ class CampaignService:
         if drive != "active" or take_up.step(stamp_s, cap):  # a bridge hold: wait, level kept
             waiting = self._next_jog
             own = f"; {self.kind} {self.campaign_id} waits for it" if self._own_waiting is not None else ""
+            latched = f"; latched: {self.latch_reason}" if self.latched else ""
             return self.hold(f"taking up the cables' slack {self._take_up_cause()}: floor t_min + {take_up.level_N:.0f} N "
                              f"(peak {take_up.peak_N:.0f} N)"
-                             + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else own))
+                             + (f"; {waiting.kind} {waiting.campaign_id} waits for it" if waiting is not None else own)
+                             + latched)
         # The law takes over at the next state (``_restart`` is still set), from this command at
         # the take-up's rate: a motor still turning at ``PEAK_MAX_S`` left up to 10 N of damping
         # in it, which the law's first command dropped at once (audit of 2026-11-29).
         self._take_up, self._wind_down = None, True
         self.pretension_N = take_up.level_N
+        if self.latched and (self._next_jog is not None or self._own_waiting is not None):
+            # A campaign waits behind a take-up the latch went through: it lifts the latch, as any new
+            # campaign does, α̂ again from the taut cables (eq. 33; the law takes over at the next state).
+            self.latched, self.latch_reason = False, ""
+            self._reestimate_when_taut = True
         if self._reestimate_when_taut:
             self._reestimate_taut(np.asarray(theta_rad, dtype=float), applied, stamp_s)
         self._joined = False
         # said once, in the status and the process's log (a new hold reason): how it ended
+        if self.latched:
+            return self.hold(f"the cables' slack is taken up ({take_up.done_reason}); latched: {self.latch_reason}")
         return self.hold(f"the cables' slack is taken up ({take_up.done_reason}): the law takes over")
 
     def count_timing(self, overrun: bool, deadline_missed: bool) -> None:

@@ -8,6 +8,7 @@ holds the neck at α̂ while the motors wind in, and only then lets the law hold
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -230,12 +231,15 @@ def test_a_campaign_that_waited_for_the_take_up_starts_without_a_step(params, ki
 
 
 @pytest.mark.parametrize("at_s", [0.8, 1.2])
-def test_an_encoder_fault_during_the_take_up_lets_its_damping_go_at_its_rate(params, at_s):
+def test_an_encoder_fault_during_the_take_up_lets_it_end_under_the_latch(params, at_s):
     """Audit of 2026-11-29: an encoder fault latching while the drums wound in dropped the take-up
-    at once, its damping (up to 44 N) with it, under the law's bound: 10 N a tick for 5-6 ticks.
-    The cut-short take-up now winds down: the command moves 1 N a tick at most until it reaches
-    the latch's plain hold."""
+    at once, its damping (up to 44 N) with it, under the law's bound: 10 N a tick for 5-6 ticks;
+    it was then cut short at the take-up's rate. Session 47: a latch left the slack undamped (a
+    latch still in force at a release: 500-845°/s), so the take-up now goes on under the latch,
+    at the last sane α̂, the command moving 1 N a tick at most, and the latch's plain hold follows
+    once the slack is in and its floor let go."""
     from controller.laws import hold_forces
+    from controller.service import PRETENSION_RELEASE_N_S
 
     loop = _dropped_on_slack_cables(params, 0)
     loop.run(at_s, estop=((False, "audit"),))
@@ -243,12 +247,20 @@ def test_an_encoder_fault_during_the_take_up_lets_its_damping_go_at_its_rate(par
     assert take_up is not None and np.abs(take_up.damping_N).max() > 10.0
     start = len(loop.applied) - 1
     loop.run(DT, stuck={0: float(loop.tick.theta_meas[0]) + 100.0})  # one faulty reading
-    assert loop.svc.latched and "encoder 1" in loop.svc.hold_reason
-    loop.run(0.5)
+    assert loop.svc.latched and "encoder 1" in loop.svc.latch_reason
+    loop.run(DT)
+    assert loop.svc._take_up is take_up and "latched: encoder 1" in loop.svc.hold_reason, loop.svc.hold_reason
+    for _ in range(round(5.0 / DT)):
+        loop.run(DT)
+        if loop.svc._take_up is None:
+            break
+    assert loop.svc._take_up is None and loop.svc.latched
+    assert loop.svc.hold_reason.startswith("the cables' slack is taken up") and "latched: encoder 1" in loop.svc.hold_reason
+    loop.run(loop.svc.pretension_N / PRETENSION_RELEASE_N_S + 0.5)
     applied = np.array(loop.applied[start:])
     assert np.abs(np.diff(applied, axis=0)).max() <= 1.0 + 1e-9
-    out = loop.outputs[-1]  # then the latch's hold, plain
-    np.testing.assert_allclose(out.force_N, hold_forces(params, loop.svc.hold_alpha(), loop.svc.pretension_N))
+    assert loop.svc.hold_reason.startswith("encoder 1"), loop.svc.hold_reason  # the latch's hold, plain
+    np.testing.assert_allclose(loop.outputs[-1].force_N, hold_forces(params, loop.svc.hold_alpha()))
 
 
 class _Drifting:
@@ -406,7 +418,8 @@ def test_the_take_up_at_a_tilted_pose_keeps_every_cable_under_its_margin_of_f_ma
 def test_a_campaign_after_a_latch_an_estop_and_its_release_starts(params):
     """Audit of 2026-11-29: the release found the hold latched (a stuck encoder), returned before
     the take-up the e-stop owed was started or given up, and every new campaign waited for it
-    forever. The campaign (what lifts a latch) now lifts it, and starts after the take-up."""
+    forever. The campaign (what lifts a latch) now lifts it, and starts after the take-up (which
+    since session 47 runs under the latch, at the last sane α̂, the latch lifted at its end)."""
     from bridge_loop import BridgeLoop
 
     loop = BridgeLoop(params, seed=0)
@@ -655,3 +668,28 @@ def test_the_newest_campaign_asked_for_during_the_take_up_is_the_one_that_runs(p
         loop.run(DT)
     svc.prepared(prepare(b, params, LawConfig(law=2), alpha_from_rad=svc.start_pose()), b, loop.stamp_s)
     assert svc.running and svc.campaign_id == "jog-B"
+
+
+def test_a_latch_in_force_at_the_release_still_takes_the_slack_up(params):
+    """Session 47 (docs/safety/transition_fuzz.py): an encoder glitch latched the hold while the
+    drives were off; at the release the latched hold, without the take-up (which waited for the
+    latch to be lifted), let the slack cables' drums wind in undamped and the neck reached
+    500-845°/s (laws 1-3). The take-up now runs under the latch, at the last sane α̂: the neck
+    moves as after a release without the latch, and the latch's hold follows."""
+
+    def peak_after_release(glitch: bool) -> tuple[float, Any]:
+        loop = _dropped_on_slack_cables(params, 0)
+        if glitch:  # one reading off by more than a motor turns in a tick
+            loop.run(DT, stuck={3: float(loop.tick.theta_meas[3]) + 54.5})
+            assert loop.svc.latched and "encoder 4" in loop.svc.hold_reason
+        loop.run(DT, estop=((False, "audit"),))
+        peak = 0.0
+        for _ in range(round(2.0 / DT)):
+            loop.run(DT)
+            peak = max(peak, float(np.abs(loop.tick.alpha_dot).max()))
+        return math.degrees(peak), loop
+
+    plain, _ = peak_after_release(False)
+    latched, loop = peak_after_release(True)
+    assert latched <= 1.2 * plain, (latched, plain)
+    assert loop.svc.latched and "latched: encoder 4" in loop.svc.hold_reason, loop.svc.hold_reason
