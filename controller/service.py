@@ -513,6 +513,10 @@ class CampaignService:
         if self.latched:
             self._reestimate()
             self._restart = True  # the law takes over from the new estimate, bumplessly
+            # from the latch's hold, which the bridge obeyed: the law's first commands wind down
+            # from it at the take-up's 1 N a tick, as after its own stale hold (a campaign asked for
+            # within 20 ms of a latch had the law take over at 10 N a tick, transition_fuzz.py)
+            self._own_hold = True
         self.latched, self.latch_reason = False, ""
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:

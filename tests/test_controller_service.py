@@ -1049,3 +1049,29 @@ def test_a_campaign_whose_law_re_starts_all_the_time_is_aborted_naming_why(param
     end = [e for e in events if e.event in ("finished", "aborted")]
     assert [e.event for e in end] == ["aborted"], events[-3:]
     assert "re-started" in end[0].message and "advanced" in end[0].message and end[0].progress < 0.5, end[0]
+
+
+def test_a_campaign_right_after_a_latch_takes_over_from_its_hold_without_a_step(params):
+    """Session 47 (docs/safety/transition_fuzz.py): a campaign asked for 4 ms after an encoder
+    glitch latched the hold (the control test 2.5 s in, law 2, robot truth, through the bridge's
+    rules) had the law take over at its full 10 N a tick: the latch's hold had not reached the
+    hold forces, and nothing bounded the law's first commands to it. They now wind down from the
+    hold at the take-up's 1 N a tick, as after the controller's own stale hold."""
+    from bridge_loop import BridgeLoop
+
+    from controller.trajectory import control_test_trajectory
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(0.5)
+    loop.svc.handle(_request("c-1", trajectory_json=control_test_trajectory().to_json()), loop.stamp_s)
+    loop.run(2.5)
+    glitched = loop.tick.theta_meas.copy()
+    loop.run(0.002, stuck={1: float(glitched[1]) - 29.3})
+    assert loop.svc.latched
+    loop.run(0.002)
+    start = len(loop.applied) - 1
+    loop.svc.handle(_request("c-2", trajectory_json=control_test_trajectory().to_json()), loop.stamp_s)
+    loop.run(0.5)
+    assert loop.svc.running and not loop.svc.latched
+    step = float(np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max())
+    assert step <= 2.0, step
