@@ -271,6 +271,9 @@ class CampaignService:
         self._limit = math.radians(self.params.limits.alpha_max_deg) + DIVERGENCE_MARGIN
         self._restart = False  # the law takes over again at the next active state
         self._drives_off = False  # the drives were off since the law last ran
+        # the bridge's drives were active under this service's commands since they were last off: an
+        # "inactive" state after that is an e-stop engaged and released between two states seen
+        self._enabled = False
         self.pretension_N = 0.0  # the floor added to t_min at the last tick (N, module docstring)
         # N, the floor in force when the running campaign started (a take-up's, an aborted
         # campaign's), let go at PRETENSION_RELEASE_N_S under the trajectory's own pretension
@@ -370,6 +373,7 @@ class CampaignService:
             np.all(np.isfinite(theta)) and model.rho * np.max(np.abs(theta), initial=0.0) > UNDER_WAY_M)
         self._reestimate_when_taut = alpha is not None and self._joined and self._slack_seen(theta, alpha, f)
         self._estopped, self._take_up, self._hold_sent = self._joined, None, None
+        self._enabled = False
         self._wind_down = self._own_hold = self._from_law = False
         self._hold_step_N = None
         self._check_armed_at: float | None = math.inf  # stamp from which the stuck-encoder check looks
@@ -1061,6 +1065,18 @@ class CampaignService:
             return out
         if not obeyed:
             drive = "inactive"
+        elif drive == "inactive" and self._enabled:
+            # Drives inactive after they were active under our commands: only an e-stop's release
+            # leaves them so (bridge.safety), engaged and released while no state reached this
+            # service (a stale gap). The neck fell meanwhile: as after a seen e-stop, the campaign
+            # is aborted and the slack taken up (it had run on, and no take-up, transition_fuzz.py).
+            drive = "disabled"
+            self.drive_reason = ("an e-stop was engaged and released while no state reached the controller "
+                                 "(the drives came back inactive)")
+        if drive == "active":
+            self._enabled = True
+        elif drive == "disabled":
+            self._enabled = False
         if drive == "active":
             if self._active_since is None:
                 self._active_since = stamp_s

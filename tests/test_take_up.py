@@ -693,3 +693,34 @@ def test_a_latch_in_force_at_the_release_still_takes_the_slack_up(params):
     latched, loop = peak_after_release(True)
     assert latched <= 1.2 * plain, (latched, plain)
     assert loop.svc.latched and "latched: encoder 4" in loop.svc.hold_reason, loop.svc.hold_reason
+
+
+def test_an_estop_engaged_and_released_within_a_stale_gap_is_taken_for_one(params):
+    """Session 47 (docs/safety/transition_fuzz.py): an e-stop engaged and released while no state
+    reached the controller (232 ms of stale states) left it seeing "inactive" only, which a
+    bridge's first states also are: the campaign ran on from the neck that fell, with no take-up.
+    Drives inactive after they were active under its commands are an e-stop's release (nothing
+    else leaves a bridge so): the campaign is aborted saying so, and the slack taken up."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(0.5)
+    loop.svc.handle(_request("c-1"), loop.stamp_s)
+    loop.run(3.5)
+    assert loop.svc.running
+    # 232 ms without states: the controller holds by itself from 10 ms (its commands, on a state
+    # older than the bridge's answer window, refused: none reach the bridge here), and the bridge
+    # sees the e-stop engaged 8 ms in and released 210 ms later
+    for k in range(116):
+        if k >= 5:
+            loop.svc.stale("stale state", DT * (k + 1))
+        events = ((True, "operator"),) if k == 4 else ((False, "operator"),) if k == 109 else ()
+        loop._bridge_tick(None, DT * (k + 1), k + 1, events)
+    assert loop.safety.drive == "inactive"
+    reasons = set()
+    for _ in range(round(0.5 / DT)):
+        loop.run(DT)
+        reasons.add(loop.svc.hold_reason.split(":")[0])
+    ended = _ended(loop, "c-1")
+    assert ended and ended[0].event == "aborted" and "e-stop was engaged and released" in ended[0].message, ended
+    assert "taking up the cables' slack after the e-stop" in reasons, reasons
