@@ -39,13 +39,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import controller.service as service
 from bridge import bus
-from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import LawConfig, encoder_hold_forces
-from controller.service import CampaignService
+from bridge.safety import Inputs
+from controller.laws import LawConfig
+from controller.offline import ServiceLoop
 from controller.trajectory import control_test_trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.simulator import TwinConfig
 
 DT = 0.002
 
@@ -53,14 +52,8 @@ DT = 0.002
 def _loop(params, law: int, seed: int):
     """The service (law ``law``) on the robot truth through the bridge's rules, as its node holds:
     (twin, service, safety, hold rule, motor speeds, first tick)."""
-    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
-    return twin, svc, safety, hold_rule, speed, tick
+    loop = ServiceLoop(params, LawConfig(law=law), TwinConfig(camera=False, seed=seed, truth="robot"), settle_s=0.5)
+    return loop.twin, loop.svc, loop.safety, loop.hold_rule, loop.speed, loop.tick
 
 
 def handback(params, law: int, at_s: float, lost_s: float, after_s: float = 1.5, flap: bool = False,
