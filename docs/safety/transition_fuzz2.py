@@ -37,6 +37,7 @@ import math
 import sys
 import traceback
 from pathlib import Path
+from typing import Any, cast
 
 import msgspec
 import numpy as np
@@ -44,17 +45,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import transition_fuzz as tf  # noqa: E402
-from transition_fuzz import DT, Event, Result, _state, _trajectory, after, report  # noqa: E402
+import transition_fuzz as tf
+from transition_fuzz import DT, Event, Result, _state, _trajectory, after, report
 
-from bridge import bus  # noqa: E402
-from bridge.motor_speed import MotorSpeed  # noqa: E402
-from bridge.safety import Inputs, Safety, SafetyConfig  # noqa: E402
-from controller.laws import LawConfig, encoder_hold_forces  # noqa: E402
-from controller.service import CampaignService  # noqa: E402
-from controller.trajectory import Trajectory  # noqa: E402
-from twin.model.params import load_params  # noqa: E402
-from twin.sim.simulator import Twin, TwinConfig  # noqa: E402
+from bridge import bus
+from bridge.motor_speed import MotorSpeed
+from bridge.safety import Inputs, Safety, SafetyConfig
+from controller.laws import LawConfig, encoder_hold_forces
+from controller.service import CampaignService
+from controller.trajectory import Trajectory
+from twin.model.params import load_params
+from twin.sim.simulator import Twin, TwinConfig
 
 REBIND_TICKS = 125  # StateGate.rebind_s 0.25 s
 SKEW_S = 0.045  # under StateGate.skew_s 0.05
@@ -159,7 +160,7 @@ def _tmin_toml(params) -> str:
     return q.to_toml()
 
 
-def run(params, law: int, seed: int, events: list[Ev], duration_s: float, tail_s: float, trace: bool = False) -> Result:
+def run(params, law: int, seed: int, events: list[Any], duration_s: float, tail_s: float, trace: bool = False) -> Result:
     res = Result(seed, law, events)
     res.requests = {}  # id -> [kind, svc generation, events...]
     twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
@@ -188,7 +189,8 @@ def run(params, law: int, seed: int, events: list[Ev], duration_s: float, tail_s
     f_lost_until = f_cmd_from = f_cmd_until = f_vanish_at = -1
     f_jog_at, f_jog = -1, None
     # gates (clock step / bridge restart): states refused from gate_from until gate_take, then action
-    gate_from, gate_take, gate_action = -1, -1, None
+    gate_from, gate_take = -1, -1
+    gate_action: Any = cast(Any, None)
     dead_until, bridge_down_until, bridge_down_from = -1, -1, -1
     last_taken_k = 0
     last_stamp = tick.t_s  # requests are served on the last state's stamp (controller/process.py)
@@ -208,8 +210,8 @@ def run(params, law: int, seed: int, events: list[Ev], duration_s: float, tail_s
                         res.requests[last_id].append("lost: controller down")
                         continue
                     svc.handle(bus.CampaignRequest(seq=seq, stamp_s=0.0, campaign_id=last_id, action="start",
-                                                   law=e.arg if e.kind == "start_law" else law,
-                                                   kind="jog" if e.kind == "jog" else "campaign",
+                                                   law=e.arg if e.kind == "start_law" else law,  # pyright: ignore[reportArgumentType]
+                                                   kind="jog" if e.kind == "jog" else "campaign",  # pyright: ignore[reportArgumentType]
                                                    parameters_toml=tmin_toml if e.kind == "start_tmin" else "",
                                                    trajectory_json=traj.to_json()), last_stamp)
                 elif e.kind in ("stop", "stopother"):
@@ -249,7 +251,7 @@ def run(params, law: int, seed: int, events: list[Ev], duration_s: float, tail_s
                         gate_from = k
                         first = max(k, last_taken_k + REBIND_TICKS)
                         gate_take, gate_action = first + 1, ("clock", s)
-                    elif not (0.0 < s <= SKEW_S) and gate_action[0] == "clock":
+                    elif not (0.0 < s <= SKEW_S) and gate_action is not None and gate_action[0] == "clock":
                         gate_action = ("clock", gate_action[1] + s)
             # -- the bridge's side: dead, restarting
             bridge_down = bridge_down_from <= k <= bridge_down_until
@@ -390,7 +392,7 @@ def run(params, law: int, seed: int, events: list[Ev], duration_s: float, tail_s
         if svc._starting is not None or (svc._next_jog is not None and not svc.running):
             res.end_problems.append("a campaign still waits to start at the end")
         for cid, rec in res.requests.items():
-            kind, g, evs = rec[0], rec[1], rec[2:]
+            _kind, g, evs = rec[0], rec[1], rec[2:]
             if any(str(x).startswith("lost") for x in evs):
                 continue
             if g != gen and not evs:
