@@ -1063,6 +1063,7 @@ class CampaignService:
             if self.running or (not self.service and not self.outcome):  # not ended by _drop_waiting
                 self._end("aborted", fault, self._progress(stamp_s) if self.running else 0.0, self.hold_alpha())
             return out
+        estop_seen = drive == "disabled"  # whoever the bridge obeys: the neck falls all the same
         if not obeyed:
             drive = "inactive"
         elif drive == "inactive" and self._enabled:
@@ -1070,12 +1071,12 @@ class CampaignService:
             # leaves them so (bridge.safety), engaged and released while no state reached this
             # service (a stale gap). The neck fell meanwhile: as after a seen e-stop, the campaign
             # is aborted and the slack taken up (it had run on, and no take-up, transition_fuzz.py).
-            drive = "disabled"
+            drive, estop_seen = "disabled", True
             self.drive_reason = ("an e-stop was engaged and released while no state reached the controller "
                                  "(the drives came back inactive)")
         if drive == "active":
             self._enabled = True
-        elif drive == "disabled":
+        elif estop_seen:
             self._enabled = False
         if drive == "active":
             if self._active_since is None:
@@ -1124,8 +1125,11 @@ class CampaignService:
             self.ctl.observe(np.asarray(theta_rad, dtype=float), applied, stamp_s)
             self._restart = self._drives_off = True
             self._pause(stamp_s)
-            if drive == "disabled":
-                self._estopped, self._take_up = True, None  # a take-up starts again at the release
+            if estop_seen:
+                # A take-up starts again at the release, also when the bridge obeyed another
+                # controller meanwhile: handed back during that one's take-up, the law had run at
+                # once on slack cables, α̂ 12° off 3 s later (transition_fuzz2.py, session 47).
+                self._estopped, self._take_up = True, None
                 self._joined = False  # that take-up is the e-stop's (a re-estimate owed stays owed)
                 self._wind_down = False  # the bridge ramps from zero at the release
             if not obeyed:

@@ -35,6 +35,12 @@ def _request(cid: str):
     return request(cid, trajectory_json=control_test_trajectory().to_json())
 
 
+def _jog_request(cid: str, trajectory):
+    from test_controller_service import _request as request
+
+    return request(cid, trajectory_json=trajectory.to_json(), kind="jog")
+
+
 def _ended(loop, cid: str) -> list:
     return [e for e in loop.events if e.campaign_id == cid and e.event in ("finished", "aborted")]
 
@@ -724,3 +730,36 @@ def test_an_estop_engaged_and_released_within_a_stale_gap_is_taken_for_one(param
     ended = _ended(loop, "c-1")
     assert ended and ended[0].event == "aborted" and "e-stop was engaged and released" in ended[0].message, ended
     assert "taking up the cables' slack after the e-stop" in reasons, reasons
+
+
+def test_an_estop_while_another_controller_owns_the_bridge_is_taken_up_at_the_hand_back(params):
+    """Session 47 (docs/safety/transition_fuzz2.py): the service took the bridge's states for
+    "inactive" while it obeyed another controller, so an e-stop engaged and released meanwhile was
+    never recorded: handed back during the other's take-up, the law ran at once on slack cables
+    and α̂ was 12.2° off 3 s later (4.6° after the same e-stop seen). It owes the take-up now."""
+    from bridge_loop import BridgeLoop
+
+    from controller.laws import LawConfig
+    from controller.service import CampaignService
+    from controller.trajectory import Trajectory
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(0.3)
+    loop.svc.handle(_jog_request("j", Trajectory.from_degrees([[35.0, -25.0, 20.0]], [], 0.0, "jog")), loop.stamp_s)
+    loop.run(2.7)
+    other = CampaignService(params, LawConfig(law=2), settle_s=0.5, service=True)
+    other.initialise(loop.tick.theta_meas, np.asarray(loop.safety.force))
+    for k in range(350):  # 0.7 s of the other's commands, an e-stop 0.1-0.5 s in
+        theta, drive, force = loop.tick.theta_meas, loop.safety.drive, np.asarray(loop.safety.force)
+        loop.svc.drive_reason = "the bridge obeys controller o, not this one"
+        loop.svc.control(theta, loop.stamp_s, drive, force, obeyed=False)
+        other.drive_reason = loop.safety.estop_reason if drive == "disabled" else loop.safety.hold_reason
+        command = other.control(theta, loop.stamp_s, drive, force).force_N.tolist()
+        loop._bridge_tick(command, 0.0, 0, ((True, "operator"),) if k == 50 else ((False, "operator"),) if k == 250 else ())
+    reasons = set()
+    for _ in range(round(3.0 / DT)):
+        loop.run(DT)
+        reasons.add(loop.svc.hold_reason.split(":")[0])
+    assert "taking up the cables' slack after the e-stop" in reasons, reasons
+    error = np.degrees(np.abs(loop.svc.ctl.estimator.alpha_hat - loop.tick.alpha).max())
+    assert error < 8.0, error
