@@ -584,7 +584,7 @@ class CampaignService:
                 self._brake, self.hold_target = brake, brake_at(brake[1], brake[2], brake[3], end_s, brake[4])[0]
         elif self._starting is not None and self._starting.campaign_id == campaign_id:
             self.refuse(campaign_id, self._starting.kind, "stopped by the user before it started")
-            self._starting, self.phase = None, "idle"
+            self._starting, self.phase = None, self._phase_beside()
 
     def stoppable(self) -> frozenset[str]:
         """The campaign ids a stop request may concern now (:meth:`stop`): the running campaign,
@@ -680,14 +680,20 @@ class CampaignService:
                 return False
             self.refuse(waiting.campaign_id, waiting.kind, f"superseded by {req.campaign_id} (asked for while the "
                                                            "cables' slack was taken up)")
-            self._starting, self.phase = req, "starting"
+            self._starting, self.phase = req, self._phase_beside("starting")
             return True
         busy = self.busy_reason(req.kind)
         if busy:
             self.refuse(req.campaign_id, req.kind, f"refused: {busy}")
             return False
-        self._starting, self.phase = req, "starting"
+        self._starting, self.phase = req, self._phase_beside("starting")
         return True
+
+    def _phase_beside(self, otherwise: Phase = "idle") -> Phase:
+        """The phase while a request is prepared or after it: the running campaign's, if one runs
+        (a jog asked for during a jog waits for it; the status had said ``idle`` meanwhile,
+        transition_fuzz2.py, session 47), else ``otherwise``."""
+        return "running" if self.running else otherwise
 
     def prepared(self, result: Prepared | Refused, req: bus.CampaignRequest, stamp_s: float) -> None:
         """The preparation of request ``req`` ended: start it, or pass the refusal on. Dropped if
@@ -695,7 +701,7 @@ class CampaignService:
         with the same id is being prepared now: only the very request prepared may start."""
         if self._starting is not req:
             return
-        self._starting, self.phase = None, "idle"
+        self._starting, self.phase = None, self._phase_beside()
         if isinstance(result, Refused):
             self.refuse(req.campaign_id, req.kind, result.reason)
             return

@@ -29,6 +29,11 @@ def test_a_jog_during_a_jog_waits_the_newest_wins_and_they_chain_without_a_step(
     loop.svc.handle(_jog("jog-c", [-5.0, 0.0, 6.0]), loop.stamp_s)  # supersedes the waiting one
     loop.svc.handle(_request("ctl"), loop.stamp_s)  # a campaign is refused while a jog runs
     loop.events += loop.svc.drain_events()
+    # the status says the running jog's phase meanwhile (it said idle: transition_fuzz2.py, session 47)
+    assert loop.svc.phase == "running"
+    assert loop.svc.request_start(_jog("jog-d", [0.0, 0.0, 0.0])) and loop.svc.phase == "running"
+    loop.svc.stop("jog-d", loop.stamp_s)
+    assert loop.svc.phase == "running"
     assert loop.svc.campaign_id == "jog-a" and not _outcome(loop, "jog-c")
     assert _outcome(loop, "ctl") == "aborted" and "running campaign jog-a" in loop.events[-1].message
     b = next(e for e in loop.events if e.campaign_id == "jog-b")
