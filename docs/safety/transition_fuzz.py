@@ -51,13 +51,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bridge import bus
-from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import LawConfig, encoder_hold_forces
+from bridge.safety import Inputs
+from controller.laws import LawConfig
+from controller.offline import ServiceLoop
 from controller.service import CampaignService
 from controller.trajectory import Trajectory, control_test_trajectory, identification_trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.simulator import TwinConfig
 
 DT = 0.002
 # the first 0.1 s: the twin's start (the neck sags 1.5° at 145°/s at zero force), no transition
@@ -148,13 +148,8 @@ class Result:
 def run(params, law: int, seed: int, events: list[Event], duration_s: float, tail_s: float,
         trace: bool = False) -> Result:
     res = Result(seed, law, events)
-    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
-    svc = CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)
-    safety = Safety(SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max))
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
+    loop = ServiceLoop(params, LawConfig(law=law), TwinConfig(camera=False, seed=seed, truth="robot"), settle_s=0.5)
+    twin, svc, safety, hold_rule, speed, tick = loop.twin, loop.svc, loop.safety, loop.hold_rule, loop.speed, loop.tick
     n = round((duration_s + tail_s) / DT)
     by_k: dict[int, list[Event]] = {}
     for e in events:

@@ -50,12 +50,13 @@ from transition_fuzz import DT, Event, Result, _state, _trajectory, after, repor
 
 from bridge import bus
 from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety, SafetyConfig
-from controller.laws import LawConfig, encoder_hold_forces
+from bridge.safety import Inputs, Safety
+from controller.laws import LawConfig
+from controller.offline import ServiceLoop
 from controller.service import CampaignService
 from controller.trajectory import Trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import Twin, TwinConfig
+from twin.sim.simulator import TwinConfig
 
 REBIND_TICKS = 125  # StateGate.rebind_s 0.25 s
 SKEW_S = 0.045  # under StateGate.skew_s 0.05
@@ -163,15 +164,11 @@ def _tmin_toml(params) -> str:
 def run(params, law: int, seed: int, events: list[Any], duration_s: float, tail_s: float, trace: bool = False) -> Result:
     res = Result(seed, law, events)
     res.requests = {}  # id -> [kind, svc generation, events...]
-    twin = Twin(params, TwinConfig(camera=False, seed=seed, truth="robot"))
+    loop = ServiceLoop(params, LawConfig(law=law), TwinConfig(camera=False, seed=seed, truth="robot"), settle_s=0.5)
+    twin, svc, safety, hold_rule, speed, tick = loop.twin, loop.svc, loop.safety, loop.hold_rule, loop.speed, loop.tick
     new_svc = lambda: CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)  # noqa: E731
-    cfg = SafetyConfig(n_motors=params.n_cables, f_min_N=params.limits.f_min, f_max_N=params.limits.f_max)
-    svc, safety = new_svc(), Safety(cfg)
+    cfg = safety.config  # a restarted bridge's
     gen = 0
-    hold_rule, speed = encoder_hold_forces(params), MotorSpeed(params.n_cables, DT)
-    tick = twin.tick(np.zeros(params.n_cables))
-    speed.update(tick.theta_meas.tolist())
-    svc.initialise(tick.theta_meas)
     n = round((duration_s + tail_s) / DT)
     by_k: dict[int, list[Ev]] = {}
     for e in events:
