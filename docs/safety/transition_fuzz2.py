@@ -33,66 +33,28 @@ own (start_ct, start_id, jog, stop, lost, stale, estop, release, glitch):
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-import traceback
 from pathlib import Path
-from typing import Any, cast
 
-import msgspec
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import transition_fuzz as tf
-from transition_fuzz import DT, Event, Result, _state, _trajectory, after, report
+from transition_fuzz import DT, SKEW_S, TRACE_FROM, Event, after, report, run
 
-from bridge import bus
-from bridge.motor_speed import MotorSpeed
-from bridge.safety import Inputs, Safety
-from controller.laws import LawConfig
-from controller.offline import ServiceLoop
-from controller.service import CampaignService
-from controller.trajectory import Trajectory
 from twin.model.params import load_params
-from twin.sim.simulator import TwinConfig
-
-REBIND_TICKS = 125  # StateGate.rebind_s 0.25 s
-SKEW_S = 0.045  # under StateGate.skew_s 0.05
-TRACE_FROM = [0.0]
 
 
-def _str(e: Event) -> str:
-    if e.kind == "foreign":
-        g, d, l_ = e.arg
-        return f"foreign G{g * 2}ms D{d * 2}ms L{l_ * 2}ms{' jog' if e.arg2 else ''}@{e.k * DT:.3f}s"
-    if e.kind in ("ctlrestart", "bridgerestart"):
-        return f"{e.kind} {e.arg * 2}ms@{e.k * DT:.3f}s"
-    if e.kind == "clock":
-        return f"clock {e.arg:+.3f}s@{e.k * DT:.3f}s"
-    if e.kind == "start_law":
-        return f"start_law{e.arg}@{e.k * DT:.3f}s"
-    return Event.__str__(e)
+def ev(k: int, kind: str, arg=None, arg2=None) -> Event:
+    return Event(k, kind, arg, arg2)
 
 
-class Ev(Event):
-    arg2: object = None
-
-    def __str__(self) -> str:
-        return _str(self)
-
-
-def ev(k: int, kind: str, arg=None, arg2=None) -> Ev:
-    e = Ev(k, kind, arg)
-    e.arg2 = arg2
-    return e
-
-
-def schedule(seed: int, duration_s: float, tail_s: float, law: int, family: str = "all") -> list[Ev]:
+def schedule(seed: int, duration_s: float, tail_s: float, law: int, family: str = "all") -> list[Event]:
     rng = np.random.default_rng(10_000 + seed)
     n = round(duration_s / DT)
-    events: list[Ev] = []
+    events: list[Event] = []
 
     def start(k: int) -> None:
         r = rng.random()
@@ -156,255 +118,10 @@ def schedule(seed: int, duration_s: float, tail_s: float, law: int, family: str 
     return [e for e in events if e.k < n]
 
 
-def _tmin_toml(params) -> str:
-    q = msgspec.structs.replace(params, limits=msgspec.structs.replace(params.limits, t_min=14.0))
-    return q.to_toml()
-
-
-def run(params, law: int, seed: int, events: list[Any], duration_s: float, tail_s: float, trace: bool = False) -> Result:
-    res = Result(seed, law, events)
-    res.requests = {}  # id -> [kind, svc generation, events...]
-    loop = ServiceLoop(params, LawConfig(law=law), TwinConfig(camera=False, seed=seed, truth="robot"), settle_s=0.5)
-    twin, svc, safety, hold_rule, speed, tick = loop.twin, loop.svc, loop.safety, loop.hold_rule, loop.speed, loop.tick
-    new_svc = lambda: CampaignService(params, LawConfig(law=law), settle_s=0.5, service=True)  # noqa: E731
-    cfg = safety.config  # a restarted bridge's
-    gen = 0
-    n = round((duration_s + tail_s) / DT)
-    by_k: dict[int, list[Ev]] = {}
-    for e in events:
-        by_k.setdefault(e.k, []).append(e)
-    lost_until = stale_from = stale_until = -1
-    age, seq, last_id = 0, 0, ""
-    applied_prev = np.zeros(params.n_cables)
-    steps, speeds, alphas = np.zeros(n), np.zeros(n), np.zeros(n)
-    out = None
-    law_ran_tail, progress_at_tail, k = 0, None, 0
-    tmin_toml = _tmin_toml(params)
-    stamp_off = 0.0
-    # ownership: owner on the bridge; the foreign controller's service and its phases
-    owner, svc_o = "c", None
-    f_lost_until = f_cmd_from = f_cmd_until = f_vanish_at = -1
-    f_jog_at, f_jog = -1, None
-    # gates (clock step / bridge restart): states refused from gate_from until gate_take, then action
-    gate_from, gate_take = -1, -1
-    gate_action: Any = cast(Any, None)
-    dead_until, bridge_down_until, bridge_down_from = -1, -1, -1
-    last_taken_k = 0
-    last_stamp = tick.t_s  # requests are served on the last state's stamp (controller/process.py)
-    try:
-        for k in range(n):
-            estop: list[tuple[bool, str]] = []
-            glitch = np.zeros(params.n_cables)
-            for e in by_k.get(k, ()):
-                if e.kind in ("start_ct", "start_id", "jog", "start_law", "start_tmin"):
-                    seq += 1
-                    last_id = f"{e.kind}-{seq}"
-                    traj = (_trajectory("control") if e.kind in ("start_ct", "start_law", "start_tmin")
-                            else _trajectory("ident") if e.kind == "start_id"
-                            else Trajectory.from_degrees([list(e.arg)], [], 0.0, "jog"))
-                    res.requests[last_id] = [e.kind, gen]
-                    if k <= dead_until:
-                        res.requests[last_id].append("lost: controller down")
-                        continue
-                    svc.handle(bus.CampaignRequest(seq=seq, stamp_s=0.0, campaign_id=last_id, action="start",
-                                                   law=e.arg if e.kind == "start_law" else law,  # pyright: ignore[reportArgumentType]
-                                                   kind="jog" if e.kind == "jog" else "campaign",  # pyright: ignore[reportArgumentType]
-                                                   parameters_toml=tmin_toml if e.kind == "start_tmin" else "",
-                                                   trajectory_json=traj.to_json()), last_stamp)
-                elif e.kind in ("stop", "stopother"):
-                    seq += 1
-                    if k > dead_until:
-                        svc.handle(bus.CampaignRequest(seq=seq, stamp_s=0.0, action="stop",
-                                                       campaign_id=last_id if e.kind == "stop" else f"nope-{seq}"),
-                                   last_stamp)
-                elif e.kind == "lost":
-                    lost_until = max(lost_until, k + int(e.arg) - 1)
-                elif e.kind == "stale":
-                    if stale_until < k:
-                        stale_from = k
-                    stale_until = max(stale_until, k + int(e.arg) - 1)
-                elif e.kind == "estop":
-                    estop.append((True, "fuzz e-stop"))
-                elif e.kind == "release":
-                    estop.append((False, "fuzz release"))
-                elif e.kind == "glitch":
-                    glitch[e.arg[0]] = e.arg[1]
-                elif e.kind == "foreign" and f_vanish_at < k:
-                    g, d, l_ = e.arg
-                    owner = ""
-                    f_lost_until = k + g - 1
-                    f_cmd_from, f_cmd_until, f_vanish_at = k + g, k + g + d - 1, k + g + d + l_
-                    svc_o = None
-                    if e.arg2:
-                        f_jog_at, f_jog = k + g + 10, np.random.default_rng(seed + k).uniform(-25, 25, 3)
-                elif e.kind == "ctlrestart":
-                    dead_until = max(dead_until, k + int(e.arg) - 1)
-                elif e.kind == "bridgerestart" and bridge_down_until < k:
-                    bridge_down_from, bridge_down_until = k, k + int(e.arg) - 1
-                elif e.kind == "clock":
-                    s = float(e.arg)
-                    stamp_off += s
-                    if not (0.0 < s <= SKEW_S) and gate_action is None:
-                        gate_from = k
-                        first = max(k, last_taken_k + REBIND_TICKS)
-                        gate_take, gate_action = first + 1, ("clock", s)
-                    elif not (0.0 < s <= SKEW_S) and gate_action is not None and gate_action[0] == "clock":
-                        gate_action = ("clock", gate_action[1] + s)
-            # -- the bridge's side: dead, restarting
-            bridge_down = bridge_down_from <= k <= bridge_down_until
-            if k == bridge_down_until + 1 and bridge_down_from >= 0:
-                was_engaged = safety.estop_engaged
-                safety = Safety(cfg)
-                speed = MotorSpeed(params.n_cables, DT)
-                speed.update(tick.theta_meas.tolist())
-                if was_engaged:
-                    safety.apply_estop([(True, "fuzz e-stop (token)")])
-                age, owner = 0, "c"
-                stamp_off = -tick.t_s  # the new run's clock starts at 0
-                first = max(k, last_taken_k + REBIND_TICKS)
-                gate_from, gate_take, gate_action = bridge_down_from, first + 1, ("bridge", 0.0)
-                bridge_down_from = -1
-            theta = tick.theta_meas + glitch
-            stamp = tick.t_s + stamp_off
-            if owner == "" and k == f_cmd_from:
-                owner = "o"
-            if owner == "o" and k >= f_vanish_at:
-                owner = ""
-            # -- the foreign controller
-            o_cmd = None
-            if f_cmd_from <= k <= f_cmd_until and not bridge_down:
-                if svc_o is None:
-                    svc_o = new_svc()
-                    svc_o.initialise(theta, np.asarray(safety.force))
-                if k == f_jog_at and f_jog is not None:
-                    svc_o.handle(bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="ojog", action="start", kind="jog",
-                                                     trajectory_json=Trajectory.from_degrees([list(f_jog)], [], 0.0, "jog").to_json()),
-                                 stamp)
-                svc_o.drive_reason = safety.estop_reason if safety.drive == "disabled" else safety.hold_reason
-                oo = svc_o.control(theta, stamp, safety.drive, np.asarray(safety.force))
-                if oo.law_ran:
-                    svc_o.advance(stamp)
-                svc_o.drain_events()
-                o_cmd = oo.force_N.tolist()
-            # -- the controller's side
-            dead = k <= dead_until
-            gated = gate_from <= k < gate_take
-            stale = (stale_from <= k <= stale_until) or gated or bridge_down
-            command = None
-            if dead:
-                out = None
-                if k == dead_until:  # the next state is the new process's first
-                    svc = new_svc()
-                    gen += 1
-                    svc._fresh = True
-            elif stale and getattr(svc, "_fresh", False):
-                out = None  # a new process sends nothing before its first state
-            elif stale:
-                gap_k = k - last_taken_k - 1
-                if gap_k >= 5:
-                    out = svc.stale("stale state", DT * (gap_k + 1))
-                taken = 5 <= gap_k < 25 and not gated and not bridge_down
-                command = out.force_N.tolist() if taken and out is not None else None
-            else:
-                if k == gate_take and gate_action is not None:
-                    if gate_action[0] == "clock":
-                        svc.clock_stepped(gate_action[1], stamp)
-                    else:
-                        svc.new_bridge_run(theta, stamp, "b2")
-                    gate_action = None
-                applied_now = np.asarray(safety.force)
-                if getattr(svc, "_fresh", False):
-                    svc.initialise(theta, applied_now)
-                    svc._fresh = False
-                obeyed = owner != "o"
-                svc.drive_reason = safety.estop_reason if safety.drive == "disabled" else safety.hold_reason
-                if not obeyed:
-                    svc.drive_reason = "the bridge obeys controller o, not this one"
-                out = svc.control(theta, stamp, safety.drive, applied_now, obeyed)
-                if out.law_ran:
-                    svc.advance(stamp)
-                last_taken_k, last_stamp = k, stamp
-                command = out.force_N.tolist() if obeyed else None
-            if out is not None and not np.all(np.isfinite(out.force_N)):
-                res.nonfinite.append(k)
-            for cev in svc.drain_events():
-                if cev.event != "progress":
-                    res.campaign_log.append(f"{tick.t_s:.3f}s g{gen} {cev.campaign_id} {cev.event} {cev.message[:110]}")
-                    if cev.campaign_id in res.requests:
-                        res.requests[cev.campaign_id].append(cev.event)
-            if k <= lost_until or k <= f_lost_until:
-                command = None
-            sender = "c"
-            if o_cmd is not None:
-                command, sender = o_cmd, "o"
-            if command is not None and sender == "c" and owner == "":
-                owner = "c"
-            age = 0 if command is not None else age + 1
-            was = safety.drive
-            if bridge_down:
-                applied = np.zeros(params.n_cables)
-                if was != "down":
-                    res.estop_ticks.add(k)
-                drive_rec = "inactive"
-                safety.drive = safety.drive  # untouched; replaced at the restart
-            else:
-                d = safety.step(Inputs(command_N=command, command_age_s=DT * age, states_unanswered=age,
-                                       estop=tuple(estop), hold_N=hold_rule(theta).tolist(), sender=sender,
-                                       speed_rad_s=speed.rad_s))
-                applied = np.asarray(d.force_N, dtype=float)
-                drive_rec = safety.drive
-                if safety.drive == "disabled" and was != "disabled":
-                    res.estop_ticks.add(k)
-            steps[k] = float(np.abs(applied - applied_prev).max())
-            applied_prev = applied
-            res.drive.append(drive_rec)
-            res.state.append(("DEAD" if dead else "") + (f"own:{owner}," if owner != "c" else "") + _state(svc, out, stale))
-            if trace and tick.t_s >= TRACE_FROM[0]:
-                print(f"{k:5d} {tick.t_s:7.3f} {drive_rec:8s} step {steps[k]:5.2f} {res.state[-1]} "
-                      f"cmd {np.round(out.force_N, 1).tolist() if out is not None else None} "
-                      f"applied {np.round(applied, 1).tolist()}")
-            tick = twin.tick(applied)
-            speed.update(tick.theta_meas.tolist())
-            speeds[k] = math.degrees(float(np.abs(tick.alpha_dot).max()))
-            alphas[k] = math.degrees(float(np.abs(tick.alpha).max()))
-            if k >= n - round(1.0 / DT):
-                law_ran_tail += int(out is not None and out.law_ran)
-            if k == n - round(tail_s / DT) and svc.running:
-                progress_at_tail = (svc.campaign_id, svc.campaign_time(tick.t_s + stamp_off)[0])
-    except Exception:  # noqa: BLE001
-        res.exception = f"tick {k} ({k * DT:.3f}s): " + traceback.format_exc(limit=8)
-    res.step, res.speed, res.alpha = steps[: k + 1], speeds[: k + 1], alphas[: k + 1]
-    if not res.exception:
-        res.end_problems.append(f"(info) at the end |α̂ − α| = {math.degrees(float(np.abs(svc.ctl.estimator.alpha_hat - tick.alpha).max())):.1f}° "
-                                f"α = {np.round(np.degrees(tick.alpha), 1).tolist()}° phase {svc.phase} hold {svc.hold_reason[:40]!r}")
-        if safety.drive == "active" and not svc.latched and law_ran_tail == 0:
-            res.end_problems.append(f"holds over the last 1 s with the drives active, not latched: {svc.hold_reason!r}")
-        if progress_at_tail is not None and svc.running and svc.campaign_id == progress_at_tail[0]:
-            t_now = svc.campaign_time(tick.t_s + stamp_off)[0]
-            if t_now - progress_at_tail[1] < 0.5 * tail_s:
-                res.end_problems.append(f"campaign {svc.campaign_id} advanced {t_now - progress_at_tail[1]:.2f} s "
-                                        f"over the {tail_s:g} s tail")
-        if safety.drive in ("disabled", "inactive") and not safety.estop_engaged and k > 10:
-            res.end_problems.append(f"bridge {safety.drive} at the end without an e-stop")
-        if svc._starting is not None or (svc._next_jog is not None and not svc.running):
-            res.end_problems.append("a campaign still waits to start at the end")
-        for cid, rec in res.requests.items():
-            _kind, g, evs = rec[0], rec[1], rec[2:]
-            if any(str(x).startswith("lost") for x in evs):
-                continue
-            if g != gen and not evs:
-                continue  # in flight when the controller died
-            if not evs:
-                res.end_problems.append(f"request {cid} never answered (no started/aborted)")
-            elif evs[-1] == "started" and not (svc.running and svc.campaign_id == cid) and g == gen:
-                res.end_problems.append(f"campaign {cid} started and never ended: {evs}")
-    return res
-
-
-def parse_script(text: list[str]) -> list[Ev]:
+def parse_script(text: list[str]) -> list[Event]:
     """tf.parse_script words plus ``foreign:G,D,L[,jog]@s`` (ms), ``ctlrestart:R@s``,
     ``bridgerestart:R@s`` (ms), ``clock:S@s`` (s), ``start_law:L@s``, ``start_tmin@s``, ``stopother@s``."""
-    out: list[Ev] = []
+    out: list[Event] = []
     for word in text:
         head, at = word.rsplit("@", 1)
         kind, _, arg = head.partition(":")
