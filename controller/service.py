@@ -521,6 +521,11 @@ class CampaignService:
             # from it at the take-up's 1 N a tick, as after its own stale hold (a campaign asked for
             # within 20 ms of a latch had the law take over at 10 N a tick, transition_fuzz.py)
             self._own_hold = True
+            if self.drive == "active":
+                # and whatever came before the latch's hold (drives off, a bridge hold, both of which
+                # skip that wind-down): it is what the bridge applies now (review of session 47: an
+                # e-stop under the latch, then a campaign, 4.4 N a tick)
+                self._wind_down = True
         self.latched, self.latch_reason = False, ""
 
     def _end(self, outcome: Literal["finished", "aborted"], message: str, progress: float, hold_at: np.ndarray) -> None:

@@ -763,3 +763,24 @@ def test_an_estop_while_another_controller_owns_the_bridge_is_taken_up_at_the_ha
     assert "taking up the cables' slack after the e-stop" in reasons, reasons
     error = np.degrees(np.abs(loop.svc.ctl.estimator.alpha_hat - loop.tick.alpha).max())
     assert error < 8.0, error
+
+
+def test_a_campaign_lifting_a_latch_after_an_estop_takes_over_without_a_step(params):
+    """Review of session 47: a latch's lift winds the law's take-over down from the latch's hold
+    only when the drives had not been off; after an e-stop under the latch (its take-up done,
+    the latch's hold applied for seconds) the law took over at 4.4 N a tick."""
+    from bridge_loop import BridgeLoop
+
+    loop = BridgeLoop(params, seed=0)
+    loop.run(1.0)
+    loop.run(DT, stuck={1: float(loop.tick.theta_meas[1]) - 29.3})  # one glitch: a latch
+    assert loop.svc.latched
+    loop.run(0.5, estop=((True, "operator"),))
+    loop.run(4.0, estop=((False, "operator"),))
+    assert loop.svc.latched and loop.svc._take_up is None
+    start = len(loop.applied) - 1
+    loop.svc.handle(_request("c-1"), loop.stamp_s)
+    loop.run(0.3)
+    assert loop.svc.running
+    step = float(np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max())
+    assert step <= 1.5, step
