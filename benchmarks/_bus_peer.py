@@ -11,7 +11,10 @@ Roles:
                  and a status at 500 Hz; prints ``ready`` at the first state and, at the end, one
                  JSON line: the number of states received, the longest gap between two (s) and
                  its time (s since the first state), the gaps' median and p99 (s), and how many
-                 exceeded 10 ms (the bridge's command timeout) and 100 ms.
+                 exceeded 10 ms (the bridge's command timeout) and 100 ms; ``stalls``: for each time
+                 no state came for 0.5 s (at most 3), what the threads of every process the
+                 scenario started were doing then (:func:`_threads_now`), so that a gap seen once
+                 on a CI machine says where it came from.
     ``rogue-sessions`` a stranger on the network: opens COUNT Zenoh sessions to CONNECT at once (16
                  threads), each subscribing to every xneck key, and holds them; prints one JSON line
                  once they are open: how many, how many linked to a peer, the seconds it took.
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -67,9 +71,54 @@ def _publish(listen: list[str], connect: list[str], seconds: float) -> None:
             time.sleep(max(0.0, t0 + 0.002 * k - time.monotonic()))
 
 
+STALL_S = 0.5  # no state for this long: the control role notes what every thread was doing
+MAX_STALLS = 3
+IDLE_FRAMES = ("futex", "epoll_wait", "nanosleep", "poll_schedule")
+
+
+def _read(path: str) -> str:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+def _threads_now(siblings_of: int) -> list[str]:
+    """One line per thread of every process whose parent is ``siblings_of`` (the scenario's
+    processes): pid, its command's role, the thread's name and state, its system call
+    (``/proc/.../syscall``: number first) and its kernel stack's innermost frames (root only); a
+    stopped process (SIGSTOP) in one line.
+    Threads idle in a futex, a poll or a sleep (innermost frame) are counted, not listed: what is
+    left is what a process waits in (a socket's close, say)."""
+    lines: list[str] = []
+    for proc in sorted(Path("/proc").glob("[0-9]*"), key=lambda p: int(p.name)):
+        status = _read(f"{proc}/status")
+        if f"\nPPid:\t{siblings_of}\n" not in status:
+            continue
+        role = (_read(f"{proc}/cmdline").split("\0")[2:3] or ["?"])[0]
+        if "\nState:\tT" in status:
+            lines.append(f"{proc.name} {role}: stopped")
+            continue
+        idle = 0
+        for task in sorted(proc.glob("task/*"), key=lambda p: int(p.name)):
+            state = next((ln.split(":", 1)[1].strip() for ln in _read(f"{task}/status").splitlines()
+                          if ln.startswith("State:")), "?")
+            stack = [ln.split("] ", 1)[-1] for ln in _read(f"{task}/stack").splitlines()][:5]
+            if state.startswith("S") and stack and any(w in stack[0] for w in IDLE_FRAMES):
+                idle += 1
+                continue
+            lines.append(f"{proc.name} {role} {_read(f'{task}/comm')} {state} "
+                         f"syscall={_read(f'{task}/syscall').split(' ')[0]} {' < '.join(stack)}")
+        lines.append(f"{proc.name} {role}: {idle} threads idle (futex, poll, sleep)")
+    return lines
+
+
 def _control(listen: list[str], connect: list[str], seconds: float) -> None:
     times: list[float] = []
+    stalls: list[dict] = []
     lock = threading.Lock()
+    done = threading.Event()
 
     def on_state(_sample: object) -> None:
         with lock:
@@ -77,6 +126,17 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
             if len(times) == 1:
                 print("ready", flush=True)
 
+    def watch() -> None:  # a gap that happens once in a CI run must say where it came from
+        noted = -1.0
+        while not done.wait(0.1):
+            with lock:
+                last = times[-1] if times else None
+            if last is not None and last != noted and time.monotonic() - last > STALL_S \
+                    and len(stalls) < MAX_STALLS:
+                noted = last
+                stalls.append({"at_s": round(last - times[0], 3), "threads": _threads_now(os.getppid())})
+
+    threading.Thread(target=watch, daemon=True).start()
     with open_session(listen=listen, connect=connect) as session:
         sub = session.declare_subscriber(bus.MOTOR_STATE, on_state)
         commands = publisher(session, bus.MOTOR_COMMAND)
@@ -93,6 +153,7 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
                 holding=False))
             time.sleep(max(0.0, t0 + 0.002 * k - time.monotonic()))
         sub.undeclare()
+    done.set()
     with lock:
         t = np.asarray(times)
     gaps = np.diff(t)
@@ -105,6 +166,7 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
         "p99_gap_s": float(np.quantile(gaps, 0.99)) if gaps.size else float("inf"),
         "gaps_over_10ms": int(np.sum(gaps > 0.010)),
         "gaps_over_100ms": int(np.sum(gaps > 0.100)),
+        "stalls": stalls,
     }), flush=True)
 
 
