@@ -23,7 +23,7 @@ from pathlib import Path
 import _timing
 import numpy as np
 
-from server.studies.execute import read_rows, run_study, software_version
+from server.studies.execute import loopback_cluster, read_rows, run_study, software_version
 from server.studies.report import write_outputs
 from server.studies.run import config_for, run_one
 from server.studies.spec import expand, study_from
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=20, help="runs per measurement")
     parser.add_argument("--trajectory", default="control_test")
     args = parser.parse_args()
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     study = _study(args.runs, args.trajectory, 1)
     cfg = config_for(study, software_version())
@@ -67,7 +67,7 @@ def main() -> None:
     _timing.summary("plain loop: one run", loop, unit=1e-3, unit_name="ms")
     loop_rate = len(runs) / loop.sum()
 
-    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    cluster = loopback_cluster(1)
     client = Client(cluster)
     try:
         rates, overheads, medians = {}, {}, {}

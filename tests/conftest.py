@@ -267,9 +267,11 @@ def _timeline(request: pytest.FixtureRequest, exclusive: bool, asked_monotonic: 
 @pytest.fixture(scope="module")
 def dask_client():
     """A local Dask cluster of two worker processes for a module's studies (server/studies)."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    from server.studies.execute import loopback_cluster
+
+    cluster = loopback_cluster(2)
     c = Client(cluster)
     try:
         yield c

@@ -13,7 +13,7 @@ import pytest
 from server_harness import AUTH, running_server
 
 from server.studies import execute
-from server.studies.execute import read_rows, run_study
+from server.studies.execute import loopback_cluster, read_rows, run_study
 from server.studies.run import apply_values, config_for, run_one
 from server.studies.spec import StudyError, expand, study_from
 
@@ -106,7 +106,7 @@ def _blocked_run(cfg, run):  # a run that takes until the test says (run on in-p
 def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) -> None:
     """Audit: the stop was read only when a run finished. A stop while every worker is inside a
     long run ends the study without waiting for them."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     from server.studies import run as run_module
 
@@ -115,7 +115,7 @@ def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) ->
     stop = threading.Event()
     _release.clear()
     _started.clear()
-    cluster = LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None)  # pyright: ignore[reportArgumentType]
+    cluster = loopback_cluster(1, threads_per_worker=2, processes=False)
     c = Client(cluster)
     try:
         threading.Thread(target=lambda: (_started.wait(60), stop.set()), daemon=True).start()
@@ -130,6 +130,58 @@ def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) ->
 
 
 # --- local workers --------------------------------------------------------------------------------
+
+
+def _listening(pids: list[int]) -> list[str]:
+    """The local addresses (hex ip:port, /proc/net/tcp's) of the TCP sockets in LISTEN that the
+    processes ``pids`` hold."""
+    inodes = set()
+    for pid in pids:
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            try:
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+            except OSError:
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    found = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                cols = line.split()
+                if cols[3] == "0A" and cols[9] in inodes:  # 0A: LISTEN
+                    found.append(cols[1])
+    return found
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            kids += [int(k) for k in f.read().split()]
+    return kids + [g for k in kids for g in _children(k)]
+
+
+@pytest.mark.parametrize("processes", [False, True])
+def test_a_studys_local_cluster_listens_on_loopback_only(processes) -> None:
+    """Audit: Dask's defaults put the scheduler's HTTP routes on 0.0.0.0:8787 and in-process
+    workers' on 0.0.0.0 (the suite's warnings: 'Port 8787 is already in use'); a Dask scheduler
+    runs what it is sent. Every listener of a study's cluster, its worker processes' too, is on
+    127.0.0.1."""
+    from distributed import Client
+
+    me = os.getpid()
+    before = set(_listening([me]))
+    cluster = loopback_cluster(1, processes=processes)
+    try:
+        with Client(cluster) as client:
+            assert client.submit(sum, [1, 2]).result(timeout=60) == 3
+            opened = [a for a in _listening([me, *_children(me)]) if a not in before]
+    finally:
+        cluster.close()
+    assert opened, "the cluster opened no listener: nothing was checked"
+    loopback = ("0100007F:", "00000000000000000000000001000000:")  # 127.0.0.1 and ::1, as /proc/net writes them
+    assert all(a.startswith(loopback) for a in opened), opened
 
 
 def test_local_workers_are_capped_at_the_cpus_this_process_may_use(tmp_path) -> None:

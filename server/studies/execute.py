@@ -235,8 +235,22 @@ def _threads(client: Any) -> int:
     return int(info.get("total_threads") or len(info.get("workers", {})))
 
 
+def loopback_cluster(n_workers: int, threads_per_worker: int = 1, processes: bool = True, **kwargs: Any) -> Any:
+    """A dask.distributed LocalCluster whose every listener is on 127.0.0.1: no dashboard, the
+    scheduler's and the workers' HTTP routes (health) on free loopback ports. Dask's defaults put
+    them on every interface, the scheduler's on 8787 (a second cluster warned 'Port 8787 is in
+    use'), and in-process workers (``processes=False``) on 0.0.0.0: a Dask scheduler runs what it
+    is sent, so nothing of it faces the lab network. ``kwargs``: LocalCluster's."""
+    from distributed import LocalCluster
+
+    return LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
+                        dashboard_address=None,  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
+                        worker_dashboard_address="127.0.0.1:0",
+                        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, **kwargs)
+
+
 def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler:
         try:
@@ -247,10 +261,7 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
             raise StudyError(f"--scheduler {scheduler!r}: not a scheduler address tcp://HOST:PORT ({exc})") from None
     n = check_workers(workers)
     _workers_ignore_ctrl_c()
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, preload=["server.studies.worker"],
-                           dashboard_address=None,  # pyright: ignore[reportArgumentType] - None: no dashboard (documented)
-                           # its HTTP routes (health) on a free port, not 8787: a second cluster warned 'Port 8787 is in use'
-                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+    cluster = loopback_cluster(n, preload=["server.studies.worker"])
     return Client(cluster), cluster
 
 
