@@ -31,6 +31,17 @@ from bridge.session import free_tcp_port, open_session
 from twin.model.numeric import build
 from twin.model.params import load_params
 
+# xneck reads its settings from XNECK_* variables (server/settings.py, bridge/session.py): a lab
+# shell's XNECK_CONNECT, XNECK_ZENOH_CONNECT or XNECK_MODE=robot would point the suite's consoles,
+# controllers and campaigns at that lab's bridge, and XNECK_ZENOH_LISTEN or XNECK_HOST open them
+# to its network (audit of session 48). The suite runs on its own settings: every XNECK_* variable
+# but its own (XNECK_TEST_*) and the numba switch is dropped here, before any test reads it (no
+# module reads them on import), for this process and those it starts; the header names them.
+KEPT_XNECK_VARIABLES = ("XNECK_TEST_", "XNECK_NO_NUMBA")
+IGNORED_XNECK_VARIABLES = sorted(k for k in os.environ if k.startswith("XNECK_") and not k.startswith(KEPT_XNECK_VARIABLES))
+for _name in IGNORED_XNECK_VARIABLES:
+    del os.environ[_name]
+
 XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter, whatever PATH says
 
 # The suite starts some hundreds of Python processes (stacks, campaigns, CLI runs); with
@@ -338,3 +349,10 @@ def board(monkeypatch: pytest.MonkeyPatch) -> Any:
     for name, module in b.modules().items():
         monkeypatch.setitem(sys.modules, name, module)
     return b
+
+
+def pytest_report_header(config) -> str | None:
+    if IGNORED_XNECK_VARIABLES:
+        return "xneck: ignored from the environment (the suite runs on its own settings): " + \
+            ", ".join(IGNORED_XNECK_VARIABLES)
+    return None

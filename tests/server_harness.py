@@ -58,7 +58,12 @@ def stop_process_groups(started: list[subprocess.Popen]) -> None:
 @contextlib.contextmanager
 def running_server(data_dir: Path, **overrides) -> Iterator[tuple[str, object]]:
     """A console in this process (uvicorn.Server in a thread); yields (base URL, app). uvicorn binds
-    127.0.0.1 even when ``host`` says otherwise: the settings' host only sets the console's policy."""
+    127.0.0.1 even when ``host`` says otherwise: the settings' host only sets the console's policy.
+    The viser view binds the settings' host, so another host needs ``viser=False`` (tests bind
+    127.0.0.1 only)."""
+    host = overrides.get("host", "127.0.0.1")
+    if host not in ("127.0.0.1", "localhost", "::1") and overrides.get("viser", True):
+        raise ValueError(f"running_server(host={host!r}) would open the viser view there: pass viser=False")
     port = free_tcp_port()
     settings = Settings(**{"host": "127.0.0.1", "port": port, "data_dir": data_dir, "token": TOKEN, "pace": "lockstep",
                            "campaign_timeout_s": 120, **overrides})
