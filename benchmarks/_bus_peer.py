@@ -12,9 +12,10 @@ Roles:
                  JSON line: the number of states received, the longest gap between two (s) and
                  its time (s since the first state), the gaps' median and p99 (s), and how many
                  exceeded 10 ms (the bridge's command timeout) and 100 ms; ``stalls``: for each time
-                 no state came for 0.5 s (at most 3), what the threads of every process the
-                 scenario started were doing then (:func:`_threads_now`), so that a gap seen once
-                 on a CI machine says where it came from.
+                 no state came for 0.5 s (at most 3), when (``at_s``, as ``at_s`` above), how long
+                 the gap lasted (``gap_s``) and what the threads of every process of the scenario
+                 were doing then (:func:`_threads_now`), so that a gap seen once on a CI machine
+                 says where it came from.
     ``rogue-sessions`` a stranger on the network: opens COUNT Zenoh sessions to CONNECT at once (16
                  threads), each subscribing to every xneck key, and holds them; prints one JSON line
                  once they are open: how many, how many linked to a peer, the seconds it took.
@@ -84,19 +85,37 @@ def _read(path: str) -> str:
         return ""
 
 
-def _threads_now(siblings_of: int) -> list[str]:
-    """One line per thread of every process whose parent is ``siblings_of`` (the scenario's
-    processes): pid, its command's role, the thread's name and state, its system call
-    (``/proc/.../syscall``: number first) and its kernel stack's innermost frames (root only); a
-    stopped process (SIGSTOP) in one line.
-    Threads idle in a futex, a poll or a sleep (innermost frame) are counted, not listed: what is
-    left is what a process waits in (a socket's close, say)."""
-    lines: list[str] = []
-    for proc in sorted(Path("/proc").glob("[0-9]*"), key=lambda p: int(p.name)):
-        status = _read(f"{proc}/status")
-        if f"\nPPid:\t{siblings_of}\n" not in status:
+def _scenario(siblings_of: int, endpoints: set[str]) -> list[tuple[Path, str]]:
+    """The processes of one scenario: among the bus peers whose parent is ``siblings_of``, those
+    linked to ``endpoints`` (the caller's own) through endpoints they listen on or connect to,
+    directly or through each other (a test runs several scenarios at once). (folder in /proc, role)."""
+    peers = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        if f"\nPPid:\t{siblings_of}\n" not in _read(f"{proc}/status"):
             continue
-        role = (_read(f"{proc}/cmdline").split("\0")[2:3] or ["?"])[0]
+        argv = _read(f"{proc}/cmdline").split("\0")
+        if len(argv) >= 6 and argv[1] == PEER[1]:
+            peers.append((proc, argv[2], {e for arg in argv[4:6] for e in arg.split(",") if e and e != ANY}))
+    linked, mine = [], set(endpoints) - {ANY}
+    while True:
+        more = [p for p in peers if p[2] & mine and p not in linked]
+        if not more:
+            return sorted(((proc, role) for proc, role, _ in linked), key=lambda p: int(p[0].name))
+        linked += more
+        mine |= {e for p in more for e in p[2]}
+
+
+def _threads_now(processes: list[tuple[Path, str]]) -> list[str]:
+    """One line per thread of ``processes`` ((folder in /proc, role), :func:`_scenario`): pid, role,
+    the thread's name and state, its system call (``/proc/.../syscall``: number first, if this
+    user may read it) and its kernel stack's innermost frames (as root; else its wait channel);
+    a stopped process (SIGSTOP) in one line. Threads idle in a futex, a poll or a sleep (innermost
+    frame) are counted, not listed: what is left is what a process waits in (a socket's close, say)."""
+    lines: list[str] = []
+    for proc, role in processes:
+        status = _read(f"{proc}/status")
+        if not status:
+            continue  # gone
         if "\nState:\tT" in status:
             lines.append(f"{proc.name} {role}: stopped")
             continue
@@ -104,12 +123,13 @@ def _threads_now(siblings_of: int) -> list[str]:
         for task in sorted(proc.glob("task/*"), key=lambda p: int(p.name)):
             state = next((ln.split(":", 1)[1].strip() for ln in _read(f"{task}/status").splitlines()
                           if ln.startswith("State:")), "?")
-            stack = [ln.split("] ", 1)[-1] for ln in _read(f"{task}/stack").splitlines()][:5]
-            if state.startswith("S") and stack and any(w in stack[0] for w in IDLE_FRAMES):
+            stack = [ln.split("] ", 1)[-1] for ln in _read(f"{task}/stack").splitlines()][:5] or \
+                [f"wchan {_read(f'{task}/wchan')}"]
+            if state.startswith("S") and any(w in stack[0] for w in IDLE_FRAMES):
                 idle += 1
                 continue
             lines.append(f"{proc.name} {role} {_read(f'{task}/comm')} {state} "
-                         f"syscall={_read(f'{task}/syscall').split(' ')[0]} {' < '.join(stack)}")
+                         f"syscall={_read(f'{task}/syscall').split(' ')[0] or '?'} {' < '.join(stack)}")
         lines.append(f"{proc.name} {role}: {idle} threads idle (futex, poll, sleep)")
     return lines
 
@@ -134,7 +154,9 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
             if last is not None and last != noted and time.monotonic() - last > STALL_S \
                     and len(stalls) < MAX_STALLS:
                 noted = last
-                stalls.append({"at_s": round(last - times[0], 3), "threads": _threads_now(os.getppid())})
+                scenario = _scenario(os.getppid(), {*listen, *connect})
+                stalls.append({"at_s": round(last - times[0], 3), "index": times.index(last),
+                               "threads": _threads_now(scenario)})
 
     threading.Thread(target=watch, daemon=True).start()
     with open_session(listen=listen, connect=connect) as session:
@@ -158,6 +180,9 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
         t = np.asarray(times)
     gaps = np.diff(t)
     worst = int(np.argmax(gaps)) if gaps.size else 0
+    for stall in stalls:  # how long that gap lasted in the end (s)
+        i = stall.pop("index")
+        stall["gap_s"] = round(float(gaps[i]), 3) if i < gaps.size else round(time.monotonic() - float(t[i]), 3)
     print(json.dumps({
         "received": int(t.size),
         "max_gap_s": float(gaps[worst]) if gaps.size else float("inf"),

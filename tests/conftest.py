@@ -35,10 +35,12 @@ from twin.model.params import load_params
 # shell's XNECK_CONNECT, XNECK_ZENOH_CONNECT or XNECK_MODE=robot would point the suite's consoles,
 # controllers and campaigns at that lab's bridge, and XNECK_ZENOH_LISTEN or XNECK_HOST open them
 # to its network (audit of session 48). The suite runs on its own settings: every XNECK_* variable
-# but its own (XNECK_TEST_*) and the numba switch is dropped here, before any test reads it (no
-# module reads them on import), for this process and those it starts; the header names them.
-KEPT_XNECK_VARIABLES = ("XNECK_TEST_", "XNECK_NO_NUMBA")
-IGNORED_XNECK_VARIABLES = sorted(k for k in os.environ if k.startswith("XNECK_") and not k.startswith(KEPT_XNECK_VARIABLES))
+# but its own switches (XNECK_TEST_*, XNECK_NO_NUMBA, XNECK_REALTIME) is dropped here, before any
+# test reads it (no module reads them on import), for this process and those it starts; the
+# header names them.
+KEPT_XNECK_VARIABLES = ("XNECK_TEST_", "XNECK_NO_NUMBA", "XNECK_REALTIME")  # the suite's switches (README)
+IGNORED_XNECK_VARIABLES = sorted(k for k in os.environ  # the settings read them in any case (pydantic)
+                                 if k.upper().startswith("XNECK_") and not k.upper().startswith(KEPT_XNECK_VARIABLES))
 for _name in IGNORED_XNECK_VARIABLES:
     del os.environ[_name]
 

@@ -164,10 +164,11 @@ def _children(pid: int) -> list[int]:
 
 @pytest.mark.parametrize("processes", [False, True])
 def test_a_studys_local_cluster_listens_on_loopback_only(processes) -> None:
-    """Audit: Dask's defaults put the scheduler's HTTP routes on 0.0.0.0:8787 and in-process
-    workers' on 0.0.0.0 (the suite's warnings: 'Port 8787 is already in use'); a Dask scheduler
-    runs what it is sent. Every listener of a study's cluster, its worker processes' too, is on
-    127.0.0.1."""
+    """Audit: a cluster of in-process workers (``processes=False``) listened on 0.0.0.0 and ``::``
+    with Dask's defaults, and the scheduler's HTTP routes took 8787 (the suite warned 'Port 8787 is
+    already in use'); a Dask scheduler runs what it is sent. Every listener of a study's cluster,
+    its worker processes' too, is on 127.0.0.1 (worker processes already were: that case guards
+    loopback_cluster's own settings)."""
     from distributed import Client
 
     me = os.getpid()

@@ -30,7 +30,7 @@ from server.settings import Settings
 
 def test_the_lab_shells_settings_are_not_read():
     s = Settings()
-    assert (s.host, s.mode, s.connect) == ("127.0.0.1", "twin", [])
+    assert (s.host, s.mode, s.connect, s.hub) == ("127.0.0.1", "twin", [], "tcp/127.0.0.1:0")
     assert endpoints_from_env(ENV_LISTEN) is None and endpoints_from_env(ENV_CONNECT) is None
     child = subprocess.run([sys.executable, "-c", "import os; print(sorted(k for k in os.environ if k.startswith('XNECK_')))"],
                            capture_output=True, text=True, check=True).stdout
@@ -39,7 +39,8 @@ def test_the_lab_shells_settings_are_not_read():
 """
 
 LAB_SHELL = {"XNECK_MODE": "robot", "XNECK_CONNECT": '["tcp/192.0.2.1:7447"]', "XNECK_HOST": "0.0.0.0",
-             "XNECK_ZENOH_LISTEN": "tcp/0.0.0.0:0", "XNECK_ZENOH_CONNECT": "tcp/192.0.2.1:7447"}
+             "XNECK_ZENOH_LISTEN": "tcp/0.0.0.0:0", "XNECK_ZENOH_CONNECT": "tcp/192.0.2.1:7447",
+             "xneck_hub": "tcp/0.0.0.0:7447"}  # the settings read names in any case
 
 
 def test_a_lab_shells_xneck_variables_reach_no_test_and_are_named(tmp_path: Path) -> None:

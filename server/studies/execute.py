@@ -237,10 +237,11 @@ def _threads(client: Any) -> int:
 
 def loopback_cluster(n_workers: int, threads_per_worker: int = 1, processes: bool = True, **kwargs: Any) -> Any:
     """A dask.distributed LocalCluster whose every listener is on 127.0.0.1: no dashboard, the
-    scheduler's and the workers' HTTP routes (health) on free loopback ports. Dask's defaults put
-    them on every interface, the scheduler's on 8787 (a second cluster warned 'Port 8787 is in
-    use'), and in-process workers (``processes=False``) on 0.0.0.0: a Dask scheduler runs what it
-    is sent, so nothing of it faces the lab network. ``kwargs``: LocalCluster's."""
+    scheduler's and the workers' HTTP routes (health) on free loopback ports. With Dask's defaults
+    the scheduler's routes take 8787 (a second cluster warned 'Port 8787 is in use'), and a
+    cluster of in-process workers (``processes=False``) listens on 0.0.0.0 and ``::``: a Dask
+    scheduler runs what it is sent, so nothing of it may face the lab network. ``kwargs``:
+    LocalCluster's."""
     from distributed import LocalCluster
 
     return LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker, processes=processes,
