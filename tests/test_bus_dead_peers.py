@@ -65,11 +65,11 @@ def test_states_keep_flowing_between_two_peers_while_listeners_stop_reading() ->
     24 --layout hub --runtime default --runs 4`, 2026-11-30 12:03, and `--stopped 3`, 12:09).
     Deaf later is run once more, alone, and must not be again; the first
     result, with what every thread of the scenario was doing during the gap, is reported as a
-    warning. Why: twice in some fifty runs of the suite since 2026-11-27 (one fresh-clone run
-    here, one on the project's CI; none in `--runtime xneck --runs 10` of that benchmark,
-    2026-11-30 11:54) the control peer got no state for 5-6 s from 20 s after its first until
-    about when the stopped listeners resumed, cause not found (docs/safety.md, "Peers that stop
-    reading")."""
+    warning. Why: three times in some fifty runs of the suite since 2026-11-27 (none in
+    `--runtime xneck --runs 10` of that benchmark, 2026-11-30 11:54) the control peer got no
+    state for 5-6 s from 20 s after its first until about when the stopped listeners resumed: the
+    publisher's Zenoh `net-0` thread in a lingering close (the third one's snapshot; docs/safety.md,
+    "Peers that stop reading"), open."""
     scenarios = {"the-hub": 1, "the-hub-and-another-listener": 2, "the-hub-and-two-listeners": 3}
     with ThreadPoolExecutor(len(scenarios)) as pool:
         runs = {name: pool.submit(_run, stopped) for name, stopped in scenarios.items()}
