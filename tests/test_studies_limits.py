@@ -4,12 +4,14 @@ at once, and local workers capped at the CPUs the process may use."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
 
 import httpx
 import pytest
+from proc_net import LISTEN, tcp_sockets
 from server_harness import AUTH, running_server
 
 from server.studies import execute
@@ -135,30 +137,17 @@ def test_a_stop_does_not_wait_for_the_runs_in_progress(tmp_path, monkeypatch) ->
 def _listening(pids: list[int]) -> list[str]:
     """The local addresses (hex ip:port, /proc/net/tcp's) of the TCP sockets in LISTEN that the
     processes ``pids`` hold."""
-    inodes = set()
-    for pid in pids:
-        for fd in os.listdir(f"/proc/{pid}/fd"):
-            try:
-                target = os.readlink(f"/proc/{pid}/fd/{fd}")
-            except OSError:
-                continue
-            if target.startswith("socket:["):
-                inodes.add(target[8:-1])
-    found = []
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        with open(table) as f:
-            for line in f.readlines()[1:]:
-                cols = line.split()
-                if cols[3] == "0A" and cols[9] in inodes:  # 0A: LISTEN
-                    found.append(cols[1])
-    return found
+    return [f"{s.local[0]}:{s.local[1]:04X}" for s in tcp_sockets(pids) if s.state == LISTEN]
 
 
 def _children(pid: int) -> list[int]:
     kids = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            kids += [int(k) for k in f.read().split()]
+    with contextlib.suppress(FileNotFoundError, ProcessLookupError):  # ended meanwhile: no children
+        for task in os.listdir(f"/proc/{pid}/task"):
+            # a thread that ended meanwhile has none
+            with contextlib.suppress(FileNotFoundError, ProcessLookupError), \
+                    open(f"/proc/{pid}/task/{task}/children") as f:
+                kids += [int(k) for k in f.read().split()]
     return kids + [g for k in kids for g in _children(k)]
 
 
