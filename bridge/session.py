@@ -156,6 +156,14 @@ MAX_SESSIONS = 64
 #: session table; TLS on the board's one core): at most one a second (a 0.5 s cap made 23 in 10 s
 #: against Zenoh's 4, review of session 42). ``docs/safety/relink.py`` measures both.
 CONNECT_RETRY_MS = (100, 1000)
+#: Gossip's autoconnect of a process that opens no link by itself (``zenoh_config(autoconnect=False)``):
+#: only its ``connect`` endpoints; the peers that gossip tells of it link to it instead. For the
+#: control path (``xneck up``'s bridge and controller), whose only links are then its own to its
+#: peer and the ones it accepts, on Unix sockets: a TCP link it opened to a tool that stops reading
+#: lingers on close (SO_LINGER, hard-coded in Zenoh) on the one thread of Zenoh's ``net`` runtime,
+#: which also serves the links the process opened, the controller's to the bridge among them
+#: (docs/safety.md, "Peers that stop reading"; tests/test_up_links.py).
+NO_AUTOCONNECT = "{router: [], peer: []}"
 #: Read the credentials from the environment (zenoh_config's default).
 FROM_ENV = "env"
 
@@ -219,6 +227,7 @@ def zenoh_config(
     mode: str = "peer",
     credentials: Credentials | str | None = FROM_ENV,
     tls: Tls | str | None = FROM_ENV,
+    autoconnect: bool = True,
 ) -> zenoh.Config:
     """Zenoh configuration of an xneck process.
 
@@ -232,6 +241,8 @@ def zenoh_config(
     ``tls``: :data:`FROM_ENV` (``XNECK_ZENOH_TLS``, if set), None or a loaded folder: ``tls/``
     endpoints encrypt and authenticate both ends (bridge.bus_tls; raises TlsError, a ValueError);
     a ``tls/`` endpoint without one is refused.
+    ``autoconnect``: open links to the peers gossip names (default); False: open only the
+    ``connect`` links, and let the others link to this process (:data:`NO_AUTOCONNECT`, why).
     Connections are retried in the background, so a process may start before its listener.
     """
     if mode not in MODES:
@@ -256,7 +267,8 @@ def zenoh_config(
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "true")
-    conf.insert_json5("scouting/gossip/autoconnect", '{router: [], peer: ["router", "peer"]}')
+    conf.insert_json5("scouting/gossip/autoconnect",
+                      '{router: [], peer: ["router", "peer"]}' if autoconnect else NO_AUTOCONNECT)
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     first_ms, cap_ms = CONNECT_RETRY_MS
@@ -289,10 +301,11 @@ def open_session(
     mode: str = "peer",
     credentials: Credentials | str | None = FROM_ENV,
     tls: Tls | str | None = FROM_ENV,
+    autoconnect: bool = True,
 ) -> zenoh.Session:
     """Open a Zenoh session (see :func:`zenoh_config`). Use it as a context manager, or close it:
     an open session with callback subscribers can hang interpreter exit."""
-    conf = zenoh_config(listen, connect, mode, credentials, tls)
+    conf = zenoh_config(listen, connect, mode, credentials, tls, autoconnect)
     _log_access(conf)
     return zenoh.open(conf)
 

@@ -17,6 +17,10 @@ LISTEN_OPTION = typer.Option(
     "Default: $XNECK_ZENOH_LISTEN or an ephemeral loopback port.")
 CONNECT_OPTION = typer.Option(
     None, "--connect", help="Zenoh endpoint to connect to (repeatable). Default: $XNECK_ZENOH_CONNECT.")
+AUTOCONNECT_OPTION = typer.Option(
+    True, "--autoconnect/--no-autoconnect",
+    help="Link to the peers the bus's gossip names (default), or only to --connect's, the others linking to this "
+    "process (xneck up's bridge and controller: docs/safety.md, 'Peers that stop reading').")
 VERBOSE_OPTION = typer.Option(False, "--verbose", "-v", help="Debug logging.")
 
 
@@ -182,9 +186,10 @@ def check_credentials(acts: bool = True) -> None:
                    f"not act; set {ENV_USER} to an operator's entry or use the lab's credentials file")
 
 
-def open_bus(listen: list[str] | None, connect: list[str] | None):
+def open_bus(listen: list[str] | None, connect: list[str] | None, autoconnect: bool = True):
     """The Zenoh session of a bus process (bridge.session.open_session): an endpoint Zenoh refuses
-    (a port above 65535, an unknown host or protocol, a port in use) is one ``error:`` line."""
+    (a port above 65535, an unknown host or protocol, a port in use) is one ``error:`` line.
+    ``autoconnect``: see :data:`AUTOCONNECT_OPTION`."""
     import zenoh
 
     from bridge.runtime import endpoints
@@ -192,7 +197,7 @@ def open_bus(listen: list[str] | None, connect: list[str] | None):
 
     check_endpoints(listen, connect)
     try:
-        return open_session(endpoints(listen), endpoints(connect))
+        return open_session(endpoints(listen), endpoints(connect), autoconnect=autoconnect)
     except zenoh.ZError as exc:
         # Zenoh appends the Rust source location (" at /root/.cargo/…/lib.rs:62."): no use to a user.
         raise fail(f"cannot open the bus session: {str(exc).split(' at /')[0]}") from None

@@ -19,6 +19,7 @@ import typer
 
 from server.cli.options import (
     ALPHA_IP_OPTION,
+    AUTOCONNECT_OPTION,
     CABLE_MODEL_OPTION,
     CONNECT_OPTION,
     IDLE_TIMEOUT_OPTION,
@@ -211,6 +212,7 @@ def bridge(
     instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
+    autoconnect: bool = AUTOCONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
@@ -268,7 +270,7 @@ def bridge(
     try:
         # After configure: importing rcpy installs its own SIGINT/SIGTERM handlers, ours must win.
         stop = stop_on_signals()
-        with open_bus(listen, connect) as session:
+        with open_bus(listen, connect, autoconnect) as session:
             try:  # before our own token (bridge.instance_check); a signal ends its wait
                 check_name_free(session, config.instance, stop=stop)
                 node = None if stop.is_set() else bridge_node(session, drv, params, config)
@@ -324,6 +326,7 @@ def twin(
     instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
+    autoconnect: bool = AUTOCONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
@@ -336,7 +339,7 @@ def twin(
     bridge(driver="twin", replay=None, loop=False, driver_config=None, lockstep=lockstep, command_timeout=0.010,
            hold_ramp=0.010, hold_damping=1.0, max_force_step=1.0, max_force_rate=5000.0, loop_stall=None, seed=seed, cable_model=cable_model, no_friction=no_friction, truth=truth, no_camera=no_camera, alpha_ip=alpha_ip, max_ticks=max_ticks,
            idle_timeout=idle_timeout, startup_timeout=startup_timeout, instance=instance, listen=listen,
-           connect=connect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False, estop_latch=None)
+           connect=connect, autoconnect=autoconnect, params_file=params_file, overrides=overrides, verbose=verbose, drives_off=False, estop_latch=None)
 
 
 def _check_campaign_kind(value: str) -> str:
@@ -363,6 +366,7 @@ def controller(
     instance: str = INSTANCE_OPTION,
     listen: list[str] | None = LISTEN_OPTION,
     connect: list[str] | None = CONNECT_OPTION,
+    autoconnect: bool = AUTOCONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
     verbose: bool = VERBOSE_OPTION,
@@ -382,7 +386,7 @@ def controller(
     stop = stop_on_signals()
     cfg = ControllerProcessConfig(campaign_id=campaign_id, campaign_kind=campaign_kind, lockstep=lockstep,
                                   idle_timeout_s=idle_timeout, exit_when_done=traj is not None, instance=instance)
-    with open_bus(listen, connect) as session:
+    with open_bus(listen, connect, autoconnect) as session:
         try:  # before its tokens (bridge.instance_check); a signal ends its wait
             check_name_free(session, instance, kind="controller", stop=stop)
         except NameTaken as exc:

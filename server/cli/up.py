@@ -12,7 +12,10 @@ stopped hub ends in a socket close that blocks the retrying process's Zenoh poll
 hard-coded SO_LINGER), one bridge hold per retry (docs/safety.md, "Peers that stop reading";
 tests/test_up_stalled_console.py). And on Unix sockets a link's close does not wait for the
 peer: on loopback TCP, a peer that left (a console or tool closing) cost ~40 ms likewise
-(benchmarks/peer_churn.py).
+(benchmarks/peer_churn.py). Nor do they open links to the tools on the hub (``--no-autoconnect``):
+gossip had them link to every tool's loopback TCP listener, and a link a process opened that
+lingers on close stalls every link it opened, the controller's to the bridge among them; the tools
+link to them instead, over their Unix sockets (tests/test_up_links.py).
 With ``--no-bridge`` the controller connects to the remote bridge where it listens
 (``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until
 its health endpoint answers), bridge, controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
@@ -608,10 +611,13 @@ def up(
         if not no_bridge:
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
-            start("bridge", ["bridge", *driver, "--instance", bridge_instance, "--listen", str(bridge_at), *param_args],
+            start("bridge", ["bridge", *driver, "--instance", bridge_instance, "--listen", str(bridge_at),
+                             "--no-autoconnect", *param_args],
                   watch.environ() if watch is not None else None)
+        # Without --bridge-at the bridge and the controller meet on the hub: gossip must link them.
         start("controller", ["controller", "--law", str(law), "--listen", controller_at,
-                             "--connect", connect_to if bridge_at is None else bridge_at, *param_args],
+                             "--connect", connect_to if bridge_at is None else bridge_at,
+                             *([] if bridge_at is None else ["--no-autoconnect"]), *param_args],
               controller_watch.environ())
         token_file = Path(data_dir) / "token"
         typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
