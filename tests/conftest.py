@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from bridge.session import free_tcp_port, open_session
+from bridge.session import ENV_ZENOH_RUNTIME, free_tcp_port, open_session, zenoh_runtime_environment
 from twin.model.numeric import build
 from twin.model.params import load_params
 
@@ -43,6 +43,11 @@ IGNORED_XNECK_VARIABLES = sorted(k for k in os.environ  # the settings read them
                                  if k.upper().startswith("XNECK_") and not k.upper().startswith(KEPT_XNECK_VARIABLES))
 for _name in IGNORED_XNECK_VARIABLES:
     del os.environ[_name]
+# Likewise Zenoh's runtime, which xneck sets unless the shell did (bridge.session, imported above):
+# a lab's ZENOH_RUNTIME decided whether tests/test_bus_dead_peers.py passed (review of session 48).
+if os.environ.get(ENV_ZENOH_RUNTIME) != (_XNECK_RUNTIME := zenoh_runtime_environment({})):
+    IGNORED_XNECK_VARIABLES.append(ENV_ZENOH_RUNTIME)
+    os.environ[ENV_ZENOH_RUNTIME] = _XNECK_RUNTIME
 
 XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter, whatever PATH says
 
@@ -285,7 +290,11 @@ def dask_client():
     from server.studies.execute import loopback_cluster
 
     cluster = loopback_cluster(2)
-    c = Client(cluster)
+    try:
+        c = Client(cluster)
+    except BaseException:
+        cluster.close()
+        raise
     try:
         yield c
     finally:
@@ -353,8 +362,18 @@ def board(monkeypatch: pytest.MonkeyPatch) -> Any:
     return b
 
 
-def pytest_report_header(config) -> str | None:
+def _ignored_line() -> str | None:
     if IGNORED_XNECK_VARIABLES:
         return "xneck: ignored from the environment (the suite runs on its own settings): " + \
             ", ".join(IGNORED_XNECK_VARIABLES)
     return None
+
+
+def pytest_report_header(config) -> str | None:
+    return _ignored_line()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    """The ignored variables again at the end: ``-q`` (.ci/run, the README) shows no header."""
+    if (line := _ignored_line()) is not None:
+        terminalreporter.write_line(line)
