@@ -68,7 +68,11 @@ def main() -> None:
     loop_rate = len(runs) / loop.sum()
 
     cluster = loopback_cluster(1)
-    client = Client(cluster)
+    try:
+        client = Client(cluster)
+    except BaseException:
+        cluster.close()
+        raise
     try:
         rates, overheads, medians = {}, {}, {}
         for n in (1, 2):

@@ -236,8 +236,9 @@ def _threads(client: Any) -> int:
 
 
 def loopback_cluster(n_workers: int, threads_per_worker: int = 1, processes: bool = True, **kwargs: Any) -> Any:
-    """A dask.distributed LocalCluster whose every listener is on 127.0.0.1: no dashboard, the
-    scheduler's and the workers' HTTP routes (health) on free loopback ports. With Dask's defaults
+    """A dask.distributed LocalCluster whose every listener is on 127.0.0.1: no scheduler dashboard,
+    the scheduler's and the workers' HTTP routes (health; the workers' dashboard pages too, where
+    bokeh is installed, which it is not here) on free loopback ports. With Dask's defaults
     the scheduler's routes take 8787 (a second cluster warned 'Port 8787 is in use'), and a
     cluster of in-process workers (``processes=False``) listens on 0.0.0.0 and ``::``: a Dask
     scheduler runs what it is sent, so nothing of it may face the lab network. ``kwargs``:
@@ -263,7 +264,11 @@ def _client(workers: int | None, scheduler: str | None) -> tuple[Any, Any]:
     n = check_workers(workers)
     _workers_ignore_ctrl_c()
     cluster = loopback_cluster(n, preload=["server.studies.worker"])
-    return Client(cluster), cluster
+    try:
+        return Client(cluster), cluster
+    except BaseException:  # its workers would live on in the console (review of session 48)
+        cluster.close()
+        raise
 
 
 def _workers_ignore_ctrl_c() -> None:
