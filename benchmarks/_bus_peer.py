@@ -1,7 +1,8 @@
 """A bus peer in a process of its own (its own Zenoh runtime), for benchmarks/stalled_peers.py,
 benchmarks/bus_flood.py, benchmarks/peer_churn.py and tests/test_bus_dead_peers.py: ``python benchmarks/_bus_peer.py ROLE
-SECONDS LISTEN CONNECT [COUNT]`` (the endpoints comma-separated, "" for none); every role exits by
-itself after SECONDS. Credentials as every xneck process reads them (``XNECK_ZENOH_CREDENTIALS``).
+SECONDS LISTEN CONNECT [COUNT [no-autoconnect]]`` (the endpoints comma-separated, "" for none;
+``no-autoconnect``: the session opens no link by gossip, ``bridge.session.NO_AUTOCONNECT``); every
+role exits by itself after SECONDS. Credentials as every xneck process reads them (``XNECK_ZENOH_CREDENTIALS``).
 
 Roles:
     ``listener`` subscribes to every xneck key (the console, the hub; another console, a recorder),
@@ -22,9 +23,11 @@ Roles:
     ``rogue-tcp``  opens COUNT plain TCP connections to CONNECT's address, sends nothing, holds them;
                  prints the same line (``linked``: connections the listener accepted).
 
-Layouts (:data:`LAYOUTS`): ``hub``, every peer connects to the hub; ``up``, ``xneck up``'s since
+Layouts (:data:`LAYOUTS`): ``hub``, every peer connects to the hub; ``up``, ``xneck up``'s from
 2026-11-27 (server/cli/up.py): the publisher listens, the control peer connects to it, the hub
-connects to both and the other listeners to the hub.
+connects to both and the other listeners to the hub, on loopback TCP; ``stack``, ``xneck up``'s
+since 2026-11-30: as ``up``, but the publisher and the control peer listen on Unix sockets and
+open no link by gossip (``--no-autoconnect``), so the listeners link to them, over those sockets.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Mapping
@@ -51,12 +55,13 @@ from bridge.session import open_session, publisher
 PEER = [sys.executable, str(Path(__file__).resolve())]
 
 
-LAYOUTS = ("hub", "up")
+LAYOUTS = ("hub", "up", "stack")
 ANY = "tcp/127.0.0.1:0"
+NO_AUTOCONNECT_ARG = "no-autoconnect"
 
 
-def _publish(listen: list[str], connect: list[str], seconds: float) -> None:
-    with open_session(listen=listen, connect=connect) as session:
+def _publish(listen: list[str], connect: list[str], seconds: float, autoconnect: bool = True) -> None:
+    with open_session(listen=listen, connect=connect, autoconnect=autoconnect) as session:
         states = publisher(session, bus.MOTOR_STATE)
         frames = publisher(session, bus.CAMERA_FRAME)
         frame = bus.CameraFrame(seq=0, stamp_s=0.0, capture_stamp_s=0.0, width=640, height=480,
@@ -134,7 +139,7 @@ def _threads_now(processes: list[tuple[Path, str]]) -> list[str]:
     return lines
 
 
-def _control(listen: list[str], connect: list[str], seconds: float) -> None:
+def _control(listen: list[str], connect: list[str], seconds: float, autoconnect: bool = True) -> None:
     times: list[float] = []
     stalls: list[dict] = []
     lock = threading.Lock()
@@ -159,7 +164,7 @@ def _control(listen: list[str], connect: list[str], seconds: float) -> None:
                                "threads": _threads_now(scenario)})
 
     threading.Thread(target=watch, daemon=True).start()
-    with open_session(listen=listen, connect=connect) as session:
+    with open_session(listen=listen, connect=connect, autoconnect=autoconnect) as session:
         sub = session.declare_subscriber(bus.MOTOR_STATE, on_state)
         commands = publisher(session, bus.MOTOR_COMMAND)
         status = publisher(session, bus.CONTROLLER_STATUS)
@@ -256,8 +261,10 @@ def _rogue_tcp(connect: list[str], seconds: float, count: int) -> None:
 
 
 def _start(role: str, seconds: float, listen: list[str], connect: list[str],
-           env: Mapping[str, str] | None, count: int = 0, prefix: list[str] | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen([*(prefix or []), *PEER, role, str(seconds), ",".join(listen), ",".join(connect), str(count)],
+           env: Mapping[str, str] | None, count: int = 0, prefix: list[str] | None = None,
+           autoconnect: bool = True) -> subprocess.Popen[str]:
+    return subprocess.Popen([*(prefix or []), *PEER, role, str(seconds), ",".join(listen), ",".join(connect), str(count),
+                             *([] if autoconnect else [NO_AUTOCONNECT_ARG])],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
                             env=None if env is None else dict(env))
 
@@ -280,6 +287,8 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
         raise ValueError(f"layout {layout!r} is not one of {LAYOUTS}")
     life = stop_s + 40.0
     procs: list[subprocess.Popen[str]] = []
+    sockets = tempfile.TemporaryDirectory(prefix="xneck-stalled-")  # the stack layout's Unix sockets
+    autoconnect = layout != "stack"
     try:
         if layout == "hub":
             hub_peer = _start("listener", life, [hub], [], env)
@@ -288,7 +297,8 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
         else:
             from bridge.session import free_tcp_port
 
-            publish_ep, control_ep = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+            publish_ep, control_ep = (f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}") \
+                if layout == "up" else tuple(f"unixsock-stream/{sockets.name}/{n}.sock" for n in ("publish", "control"))
             hub_peer = _start("listener", life, [hub], [publish_ep, control_ep], env)
             publish_at, control_at = [publish_ep], [control_ep]
             publish_to, control_to = [], [publish_ep]
@@ -299,8 +309,8 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
             listeners.append(_start("listener", life, [ANY], [hub], env))
             procs.append(listeners[-1])
             _expect(listeners[-1], "ready")
-        procs.append(_start("publish", life, publish_at, publish_to, env))
-        control = _start("control", stop_s + 12.0, control_at, control_to, env)
+        procs.append(_start("publish", life, publish_at, publish_to, env, autoconnect=autoconnect))
+        control = _start("control", stop_s + 12.0, control_at, control_to, env, autoconnect=autoconnect)
         procs.append(control)
         _expect(control, "ready")
         for p in listeners:  # linked: stopping one that never was proves nothing
@@ -320,6 +330,7 @@ def run_stalled(hub: str, stopped: int, stop_s: float, env: Mapping[str, str] | 
                 p.kill()
             with contextlib.suppress(subprocess.TimeoutExpired):
                 p.communicate(timeout=10)
+        sockets.cleanup()
 
 
 FLOODS = ("none", "tcp", "sessions")
@@ -418,10 +429,11 @@ def run_churn(peers: int, period_s: float, slots: int | None = None, env: Mappin
 def main(argv: list[str]) -> None:
     role, seconds = argv[0], float(argv[1])
     listen, connect = ([e for e in arg.split(",") if e] for arg in argv[2:4])
+    autoconnect = NO_AUTOCONNECT_ARG not in argv[5:]
     if role == "publish":
-        _publish(listen, connect, seconds)
+        _publish(listen, connect, seconds, autoconnect)
     elif role == "control":
-        _control(listen, connect, seconds)
+        _control(listen, connect, seconds, autoconnect)
     elif role == "listener":
         _listen_all(listen, connect, seconds)
     elif role == "rogue-sessions":

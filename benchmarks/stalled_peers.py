@@ -1,6 +1,6 @@
 """Stalled peers benchmark: does the control path keep flowing while listeners stop reading?
 
-    .venv/bin/python benchmarks/stalled_peers.py [--stopped 1,2] [--stop-s 34] [--layout hub,up]
+    .venv/bin/python benchmarks/stalled_peers.py [--stopped 1,2] [--stop-s 34] [--layout hub,up,stack]
         [--runtime default,xneck] [--runs 1]
 
 Processes of their own on 127.0.0.1 (benchmarks/_bus_peer.py): a hub that subscribes to every
@@ -11,7 +11,9 @@ stopped (SIGSTOP) for ``--stop-s``: their links' leases expire after 10 s and Ze
 linger up to 10 s on close (eclipse-zenoh/zenoh#1101; docs/safety.md, "Peers that stop reading").
 Layouts: ``hub``, every peer connects to the hub (as ``xneck up`` linked them before
 2026-11-27); ``up``, the publisher listens, the control peer connects to it and the hub to both,
-as ``xneck up`` links the bridge, the controller and the console now (server/cli/up.py).
+as ``xneck up`` linked the bridge, the controller and the console from 2026-11-27, on loopback TCP;
+``stack``, as ``up`` with the publisher and the control peer on Unix sockets and opening no link by
+gossip, as ``xneck up`` links them since 2026-11-30 (server/cli/up.py).
 
 Each case runs ``--runs`` times with each runtime of ``--runtime``: Zenoh's default (2 receive
 workers, ``ZENOH_RUNTIME`` set so in the children: the baseline) and xneck's (bridge.session:
@@ -32,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _bus_peer import run_stalled
+from _bus_peer import LAYOUTS, run_stalled
 
 from bridge.session import ENV_ZENOH_RUNTIME, ZENOH_RX_WORKERS, free_tcp_port
 
@@ -44,14 +46,14 @@ def main() -> None:
     ap.add_argument("--stopped", default="1,2", help="numbers of stopped listeners, the hub included (default 1,2)")
     ap.add_argument("--stop-s", type=float, default=34.0, help="how long they stay stopped (s; default 34: the "
                     "lease, the linger, and two of the peers' 11-14 s retries to a stopped hub)")
-    ap.add_argument("--layout", default="hub,up", help="layouts to run, of hub and up (default hub,up)")
+    ap.add_argument("--layout", default="hub,up,stack", help="layouts to run, of hub, up and stack (default all)")
     ap.add_argument("--runtime", default="default,xneck", help="Zenoh runtimes, of default and xneck "
                     "(default both)")
     ap.add_argument("--runs", type=int, default=1, help="runs of each case and runtime (default 1)")
     args = ap.parse_args()
     layouts = [x for x in args.layout.split(",") if x]
-    if not layouts or not set(layouts) <= {"hub", "up"}:
-        ap.error(f"--layout takes hub and/or up, got {args.layout!r}")
+    if not layouts or not set(layouts) <= set(LAYOUTS):
+        ap.error(f"--layout takes {', '.join(LAYOUTS)}, got {args.layout!r}")
     runtimes = [x for x in args.runtime.split(",") if x]
     if not runtimes or not set(runtimes) <= {"default", "xneck"}:
         ap.error(f"--runtime takes default and/or xneck, got {args.runtime!r}")
