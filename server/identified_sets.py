@@ -36,10 +36,17 @@ class NotIdentified(ValueError):
 
 def identified_set(ident: Identification, base_name: str) -> dict[str, Any]:
     """What a save stores and answers, from an identification of the campaign on base set
-    ``base_name``: the TOML and which values were used, kept (why) and reported as structure."""
-    from twin.identification.pipeline import identified_toml, structure_overrides
+    ``base_name``: the TOML and which values were used, kept (why) and reported as structure;
+    ``warning``, why the set is not to be trusted ('' for none: α_IP stamped off, as ``xneck
+    identify`` says), also first in the TOML's header."""
+    from twin.identification.pipeline import identified_toml, structure_overrides, warned
+    from twin.identification.timing import alpha_ip_timing
 
-    return {"toml": identified_toml(ident.params, ident.provenance), "base_parameter_set": base_name,
+    provenance = ident.provenance
+    if (timing := alpha_ip_timing(ident.data)).warn:
+        provenance = warned(provenance, timing.text())
+    return {"toml": identified_toml(ident.params, provenance), "warning": provenance.warning,
+            "base_parameter_set": base_name,
             "used": ident.report.used, "kept_base": {k: why for k, (_, _, why) in ident.report.kept_base.items()},
             "structure_set": structure_overrides(ident.provenance.parameters)}
 

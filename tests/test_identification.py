@@ -320,6 +320,36 @@ def test_a_record_with_a_gap_names_the_span_to_fit_and_xneck_identify_window_fit
     assert "identify it alone" not in r.stderr and not (tmp_path / "d").exists()
 
 
+def test_a_set_fitted_on_alpha_ip_stamped_far_off_says_so_in_its_file(short_campaign, params, tmp_path, xneck):
+    """Audit of session 49: a campaign whose camera stamps were 0.5 s late was identified with exit 0
+    and f_s(1) 66 % off (2.6 times with 2 s); the warning went to stderr only, and the set written
+    (and a console's save of it) said nothing. The warning now heads the set and its provenance."""
+    import json
+
+    from controller.trajectory import recorded_excitation
+    from server.identified_sets import identified_set
+    from twin.identification.record import identify_record
+
+    d = short_campaign
+    late = _mcap_of(CampaignData(**_with(d, t_ip_s=d.t_ip_s + 0.5)), tmp_path / "late.mcap")
+    r = xneck("identify", str(late), "--no-alpha-hat", "--json", "--out", str(tmp_path / "late"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(r.stdout)
+    assert "α_IP timing" in doc["warning"] and not doc["campaign_outcome"]["partial"], doc["warning"]
+    toml = (tmp_path / "late" / f"{params.name}-identified.toml").read_text()
+    assert toml.splitlines()[1].startswith("# WARNING: α_IP timing:") and "record again" in toml.splitlines()[1]
+    provenance = json.loads((tmp_path / "late" / f"{params.name}-identified.provenance.json").read_text())
+    assert "α_IP timing" in provenance["warning"]
+    saved = identified_set(identify_record(late, params, excitation=recorded_excitation, with_validation=False),
+                           params.name)
+    assert "α_IP timing" in saved["warning"] and "# WARNING: α_IP timing:" in saved["toml"]
+    # on time: no warning anywhere
+    on_time = _mcap_of(d, tmp_path / "on_time.mcap")
+    r = xneck("identify", str(on_time), "--no-alpha-hat", "--json", "--out", str(tmp_path / "on_time"))
+    assert r.returncode == 0 and json.loads(r.stdout)["warning"] == "", r.stderr[-2000:]
+    assert "WARNING" not in (tmp_path / "on_time" / f"{params.name}-identified.toml").read_text()
+
+
 def test_motors_that_never_move_are_rank_deficient(params):
     data, _ = simulate_campaign(0, duration_s=8.0, still=True)
     proc = preprocess(data, params)

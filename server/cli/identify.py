@@ -171,15 +171,19 @@ def identify(
         typer.echo(f"warning: {campaign} is a {ident.data.kind} campaign, not an identification one: its "
                    f"trajectory was not chosen to excite the friction and stiffness models (their σ below say how "
                    f"well it did); validate on it instead (--validate)", err=True)
-    if info.get("outcome", "") not in WHOLE_OUTCOMES:  # --partial: said on stderr, stdout, JSON, TOML
-        warning = _partial_warning(ended, ident.data.t_s, info.get("trajectory", ""))
-        import msgspec
+    from twin.identification.pipeline import warned
 
-        prov = msgspec.structs.replace(prov, warning=warning)
+    partial_fit = info.get("outcome", "") not in WHOLE_OUTCOMES
+    if partial_fit:  # --partial: said on stderr, stdout, JSON, TOML
+        warning = _partial_warning(ended, ident.data.t_s, info.get("trajectory", ""))
+        prov = warned(prov, warning)
         typer.secho(f"warning: {warning}", err=True, fg="yellow")
     timing = alpha_ip_timing(ident.data)
     if timing.warn:  # also under --json: the fit used shifted α_IP
         typer.echo(f"warning: {timing.text()}", err=True)
+        # and in the set: one whose camera was 2 s late was written with f_s 2.6 times off and
+        # nothing in the file said so (audit of session 49)
+        prov = warned(prov, timing.text())
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         figures = write_figures(val, out_dir) if val is not None else []
@@ -193,7 +197,8 @@ def identify(
         doc["record_notes"] = list(ident.data.notes)
         doc["alpha_ip_timing"] = timing.as_dict()
         doc["campaign_outcome"] = {"outcome": info.get("outcome", ""), "message": info.get("message", ""),
-                                   "partial": bool(prov.warning)}
+                                   "partial": partial_fit}
+        doc["warning"] = prov.warning
         doc["files"] = [str(p) for p in (*figures, toml_path, prov_path)]
         if cross is not None:
             doc["cross_validation"] = cross[0]
@@ -206,7 +211,7 @@ def identify(
         typer.echo("\n".join(report.lines()))
         typer.echo(timing.text())
         typer.echo(f"parameter set: {toml_path} (provenance {prov_path.name}); figures: {out_dir}"
-                   + (" (fitted on a partial campaign: see WARNING above)" if prov.warning else ""))
+                   + (" (see WARNING above)" if prov.warning else ""))
         if cross is not None:
             typer.echo("")
             typer.echo(cross[1])

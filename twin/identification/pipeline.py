@@ -377,6 +377,12 @@ class Provenance(msgspec.Struct, frozen=True, kw_only=True):
     warning: str = ""
 
 
+def warned(provenance: Provenance, warning: str) -> Provenance:
+    """``provenance`` with ``warning`` added after its own (one line: the TOML's header holds it)."""
+    line = " ".join(warning.split())
+    return msgspec.structs.replace(provenance, warning=f"{provenance.warning}; {line}" if provenance.warning else line)
+
+
 @dataclass(frozen=True)
 class ParameterReport:
     """What :func:`identified_params` did with each estimate.
