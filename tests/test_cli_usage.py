@@ -372,6 +372,13 @@ def test_identify_refuses_to_replace_an_earlier_identifications_parameter_set(xn
     _refused(xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again)),
              str(sets[0]), "exists", "--force")
     assert sets[0].read_bytes() == before
+    # under another set name, the folder's figures would have been replaced beside the first set,
+    # then of another fit (audit of session 49): refused too, naming them
+    figures = {p: p.read_bytes() for p in again.glob("fig*.png")}
+    assert figures
+    _refused(xneck("identify", str(campaign), "--no-alpha-hat", "--set", "name=other", "--out", str(again)),
+             "holds an earlier identification's files", "fig4_torques.png", "--force")
+    assert all(p.read_bytes() == b for p, b in figures.items()) and not list(again.glob("other*"))
     os.utime(sets[0], (1.0, 1.0))  # written again below: its time says so (the fit may give the same values)
     forced = xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again), "--force")
     assert forced.returncode == 0, forced.stderr

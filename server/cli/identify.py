@@ -68,8 +68,8 @@ def identify(
     window: str | None = typer.Option(None, "--window", help="START:END (s, on the record's clock, as its "
                                       "error or report gives times): fit only this span, e.g. the one without gaps "
                                       "that a refused campaign's error names."),
-    force: bool = typer.Option(False, "--force", help="Replace the parameter set an earlier identification wrote "
-                               "in --out (default: refused, as archives are never overwritten)."),
+    force: bool = typer.Option(False, "--force", help="Replace the files an earlier identification wrote in --out, "
+                               "its parameter set and figures (default: refused, as archives are never overwritten)."),
     partial: bool = typer.Option(False, "--partial", help="Fit a campaign that did not finish (its archive's "
                                  "outcome aborted, interrupted or failed; refused by default, as the console "
                                  "saves no set from it): its excitation was cut short, so its estimates and their "
@@ -143,6 +143,11 @@ def identify(
             # analysis) had been replaced without a word (user audit of session 45)
             raise ParameterError(f"{earlier} exists: an earlier identification's parameter set; --out another "
                                  f"directory, or --force to replace it")
+        if (files := _earlier_outputs(out_dir)) and not force:
+            # its figures would be replaced beside its set, then of another fit (audit of session 49:
+            # --set name=other rewrote fig4-7 next to the first set)
+            raise ParameterError(f"{out_dir} holds an earlier identification's files ({', '.join(files)}): --out "
+                                 f"another directory, or --force to replace them")
         if data_b is not None:  # before the fit: it was refused after A's fit and files (audit of 2026-11-27)
             sizes = {"motors": (data_b.theta_rad.shape[1], base.n_cables),
                      "joints": (data_b.alpha_ip_rad.shape[1], base.n_joints)}
@@ -215,6 +220,18 @@ def identify(
         if cross is not None:
             typer.echo("")
             typer.echo(cross[1])
+
+
+#: What an identification writes in --out besides its set (twin/identification/report.write_figures,
+#: and --validate's folder): a second run there would replace them under another run's set.
+EARLIER_OUTPUTS = ("*-identified.toml", "*-identified.provenance.json", "fig[4-8]_*.png", "validation")
+
+
+def _earlier_outputs(out_dir: Path) -> list[str]:
+    """The names of an earlier identification's files in ``out_dir`` (none if it does not exist)."""
+    if not out_dir.is_dir():
+        return []
+    return sorted({p.name for pattern in EARLIER_OUTPUTS for p in out_dir.glob(pattern)})
 
 
 def _how_it_ended(info: dict[str, str]) -> str:
