@@ -65,6 +65,25 @@ def test_validate_prints_in_sample_and_out_of_sample_columns(campaigns, tmp_path
     assert any(abs(x - y) > 1e-3 for x, y in rows.values())
     figs = sorted(p.name for p in (tmp_path / "id" / "validation").glob("*.png"))
     assert "fig4_torques.png" in figs and "fig7_tension_variable.png" in figs
+    assert "is the identified campaign" not in r.stderr
+
+
+def test_validating_on_the_identified_campaign_itself_is_said(campaigns, tmp_path):
+    """Audit of session 49: --validate A (or a copy of A) printed its in-sample errors as "on B"
+    without a word. Said, naming the campaign; the run goes on (it still shows the figures)."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    a, _ = campaigns
+    copy = shutil.copy(a, tmp_path / "copy.mcap")
+    for n, other in enumerate((a, copy)):
+        r = CliRunner().invoke(app, ["identify", str(a), "--validate", str(other), "--no-alpha-hat", "--out",
+                                     str(tmp_path / f"id{n}")])
+        assert r.exit_code == 0, r.output
+        assert f"warning: validation campaign {other} is the identified campaign (A)" in r.stderr, r.stderr
 
 
 @pytest.fixture(scope="module")

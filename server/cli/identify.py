@@ -107,6 +107,11 @@ def identify(
             info_b = read_campaign_info(validate)
         except ArchiveError as exc:
             raise fail(f"cannot read validation campaign: {exc}") from None
+        if validate.resolve() == campaign.resolve() or info_b.get("campaign_id", "") == info.get("campaign_id", "") != "":
+            # its errors "on B" are the in-sample ones, and read as a validation (audit of session 49)
+            typer.echo(f"warning: validation campaign {validate} is the identified campaign "
+                       f"({info.get('campaign_id') or campaign}): its errors are in-sample, not a validation; "
+                       "validate on another campaign (e.g. a §7 control test)", err=True)
         if info_b.get("outcome", "") not in WHOLE_OUTCOMES:  # a check on part of a run: said, not refused
             typer.echo(f"warning: validation campaign {validate} did not finish ({_how_it_ended(info_b)}): the "
                        "errors are of the part it recorded", err=True)
