@@ -243,6 +243,35 @@ def test_a_sample_out_of_physical_reach_is_named_before_any_filter(short_campaig
             preprocess(CampaignData(**_with(short_campaign, alpha_ip_rad=alpha)), params)
 
 
+
+@pytest.mark.parametrize("change, said", [
+    ("spike", r"motor 1's encoder jumps \+1\.0000\d*e\+06 rad between t = 4\.000\d s and 4\.002\d s .* \(2 such steps\)"),
+    ("glitch", r"motor 3's encoder jumps \+10000 rad .* \(2 such steps\)"),
+    ("turn", r"motor 2's encoder jumps \+6\.28\d* rad between t = 8\.000\d s .* \(1 such step\)"),
+], ids=["spike", "glitch", "turn"])
+def test_an_encoder_step_no_motor_can_turn_is_refused_naming_the_motor_and_the_time(short_campaign, params, change,
+                                                                                 said):
+    """Audit of 2026-11-30: θ was never checked. One sample of θ₁ at 1e6 rad gave k(1) = 36 N/m
+    (truth ~5400) at 8.5 % relative σ, a 1e4 rad spike k(3) +20 %, a one-turn jump of θ₂ (+2π from
+    a sample on) k(2) −11 % and λ(4) −10 %, all written unflagged. A step beyond what a motor turns
+    in the time between two samples (the bridge's bound, 1600 rad/s) is refused before any filter."""
+    import warnings
+
+    d = short_campaign
+    # the campaign itself turns its motors far below the bound: a real record never trips it
+    assert np.abs(np.diff(d.theta_rad, axis=0) / np.diff(d.t_s)[:, None]).max() < 1600.0 / 10
+    theta = d.theta_rad.copy()
+    if change == "spike":
+        theta[2000, 0] = 1e6
+    elif change == "glitch":
+        theta[3000, 2] += 1e4
+    else:
+        theta[4000:, 1] += 2 * np.pi
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(IdentificationError, match=said):
+            preprocess(CampaignData(**_with(d, theta_rad=theta)), params)
+
 def test_shapes_and_times(short_campaign):
     d = short_campaign
     with pytest.raises(IdentificationError, match="force_N must have shape"):
