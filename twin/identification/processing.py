@@ -368,6 +368,59 @@ def _check_plausible(data: CampaignData, params: Params) -> None:
             f"beyond ±180°: a damaged record ({len(bad)} such frames)")
 
 
+#: rad by which consecutive camera frames' α_IP may differ (every joint) and still be the same
+#: reading: a camera's noise (1° on the twin's) moves it more at every frame, a frozen camera not at all.
+FROZEN_STEP_RAD = float(np.radians(0.01))
+#: s and frames a run of unchanged α_IP must last for its camera to be judged frozen: a few
+#: repeated frames are a still neck seen by a noiseless camera (the twin's rendered one).
+FROZEN_MIN_S = 1.0
+FROZEN_MIN_FRAMES = 10
+#: rad the joint angles estimated from the encoders (eq. 33, the stretch from the forces) must move
+#: within such a run for the camera to be taken for frozen. That estimate's error (up to 10-12° on
+#: the twin's campaigns) moves little at rest: hundredths of a degree in a hold, about 10° were the
+#: base set's k 50 % off and a cable's force to change by f_max there (about 1.6° per mm of a short
+#: cable's stretch); the excitation moves the neck 40-86° per joint.
+FROZEN_MOTION_RAD = float(np.radians(20.0))
+
+
+def check_camera_moves(data: CampaignData, params: Params) -> None:
+    """Raise :class:`IdentificationError` for a frozen camera: α_IP unchanged (consecutive frames
+    within :data:`FROZEN_STEP_RAD`) for at least :data:`FROZEN_MIN_S` and :data:`FROZEN_MIN_FRAMES`
+    while the joint angles the encoders give there (eq. 33 on θ, with the stretch f/k of the base
+    set's linear cables) move by more than :data:`FROZEN_MOTION_RAD`. A camera whose α_IP stayed
+    constant after its fifth frame while the motors moved for 97 s was fitted (k(3) −63 %, exit 0)
+    with a note that the record moved too little to tell α_IP's delay (audit of 2026-11-30): a frozen
+    camera's α_IP is not the neck's, and nothing fitted on it is."""
+    from twin.model.estimation import alpha_hat_3
+
+    t_ip, alpha, t = data.t_ip_s, data.alpha_ip_rad, data.t_s
+    if len(t_ip) < 2:
+        return
+    changed = np.flatnonzero((np.abs(np.diff(alpha, axis=0)) > FROZEN_STEP_RAD).any(axis=1)) + 1
+    starts = np.concatenate([[0], changed])
+    ends = np.concatenate([changed - 1, [len(t_ip) - 1]])
+    m = None
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        inside = np.flatnonzero((t_ip[a:b + 1] >= t[0]) & (t_ip[a:b + 1] <= t[-1])) + a
+        if len(inside) < FROZEN_MIN_FRAMES or t_ip[inside[-1]] - t_ip[inside[0]] < FROZEN_MIN_S:
+            continue
+        m = build(params, "linear") if m is None else m
+        theta = np.column_stack([np.interp(t_ip[inside], t, x) for x in data.theta_rad.T])
+        force = np.column_stack([np.interp(t_ip[inside], t, x) for x in data.force_N.T])
+        guess = np.zeros(m.n_joints)
+        hat = np.empty((len(inside), m.n_joints))
+        for i in range(len(inside)):
+            guess = hat[i] = alpha_hat_3(m, theta[i], force[i] / m.k, guess)
+        moved = np.ptp(hat, axis=0)
+        j = int(np.argmax(moved))
+        if moved[j] > FROZEN_MOTION_RAD:
+            raise IdentificationError(
+                f"the camera looks frozen: its α_IP stays at {np.degrees(alpha[a]).round(2).tolist()}° from t = "
+                f"{t_ip[inside[0]]:.3f} s to {t_ip[inside[-1]]:.3f} s ({len(inside)} frames) while the encoders move "
+                f"joint {j + 1} through {np.degrees(moved[j]):.0f}° there (eq. 33 from θ and the forces): a frozen or "
+                f"stuck camera's α_IP is not the neck's; check the camera and record again")
+
+
 def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
     """§5.2.1: zero-phase Butterworth (order 4, :func:`cutoff_rule` unless ``cutoff_hz``) on θ,
     f and α_IP; central differences; θ and f decimated from 500 Hz to 31.25 Hz (anti-aliased,
@@ -384,6 +437,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
         )
     _check_plausible(data, params)
     check_gaps(data)
+    check_camera_moves(data, params)
     t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
     rate = 1.0 / dt
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
