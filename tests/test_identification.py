@@ -243,6 +243,35 @@ def test_a_sample_out_of_physical_reach_is_named_before_any_filter(short_campaig
             preprocess(CampaignData(**_with(short_campaign, alpha_ip_rad=alpha)), params)
 
 
+
+@pytest.mark.parametrize("change, said", [
+    ("spike", r"motor 1's encoder jumps \+1\.0000\d*e\+06 rad between t = 4\.000\d s and 4\.002\d s .* \(2 such steps\)"),
+    ("glitch", r"motor 3's encoder jumps \+10000 rad .* \(2 such steps\)"),
+    ("turn", r"motor 2's encoder jumps \+6\.28\d* rad between t = 8\.000\d s .* \(1 such step\)"),
+], ids=["spike", "glitch", "turn"])
+def test_an_encoder_step_no_motor_can_turn_is_refused_naming_the_motor_and_the_time(short_campaign, params, change,
+                                                                                 said):
+    """Audit of 2026-11-30: θ was never checked. One sample of θ₁ at 1e6 rad gave k(1) = 36 N/m
+    (truth ~5400) at 8.5 % relative σ, a 1e4 rad spike k(3) +20 %, a one-turn jump of θ₂ (+2π from
+    a sample on) k(2) −11 % and λ(4) −10 %, all written unflagged. A step beyond what a motor turns
+    in the time between two samples (the bridge's bound, 1600 rad/s) is refused before any filter."""
+    import warnings
+
+    d = short_campaign
+    # the campaign itself turns its motors far below the bound: a real record never trips it
+    assert np.abs(np.diff(d.theta_rad, axis=0) / np.diff(d.t_s)[:, None]).max() < 1600.0 / 10
+    theta = d.theta_rad.copy()
+    if change == "spike":
+        theta[2000, 0] = 1e6
+    elif change == "glitch":
+        theta[3000, 2] += 1e4
+    else:
+        theta[4000:, 1] += 2 * np.pi
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(IdentificationError, match=said):
+            preprocess(CampaignData(**_with(d, theta_rad=theta)), params)
+
 def test_shapes_and_times(short_campaign):
     d = short_campaign
     with pytest.raises(IdentificationError, match="force_N must have shape"):
@@ -425,3 +454,33 @@ def test_the_closed_loop_stamps_encoders_and_frames_on_the_twins_clock():
     assert np.array_equal(truth["t"], data.t_s)
     at = np.searchsorted(data.t_s, data.t_ip_s)
     assert np.allclose(data.t_s[at], data.t_ip_s, rtol=0.0, atol=1e-12)  # each frame at a sample's stamp
+
+
+@pytest.mark.parametrize("frozen", ["after frame 5", "for 4 s mid-record"])
+def test_a_frozen_camera_is_refused_naming_it_and_the_span(short_campaign, params, frozen, tmp_path, xneck):
+    """Audit of 2026-11-30: α_IP constant after frame 5 while the encoders moved for 97 s: `xneck
+    identify` exited 0, said the record "moves too little to tell a delay", and wrote k(3) −63 %."""
+    d = short_campaign
+    alpha = d.alpha_ip_rad.copy()
+    if frozen == "after frame 5":
+        alpha[5:] = alpha[5]
+        said = rf"α_IP stays at .* from t = {d.t_ip_s[5]:.3f} s to {d.t_ip_s[-1]:.3f} s \({len(d.t_ip_s) - 5} frames\)"
+    else:
+        held = (d.t_ip_s >= 5.0) & (d.t_ip_s < 9.0)
+        alpha[held] = alpha[np.flatnonzero(held)[0]]
+        said = rf"α_IP stays at .* from t = 5\.0\d\d s to (8\.9|9\.0)\d\d s \({held.sum()} frames\) while the encoders move joint \d through"
+    frozen_data = CampaignData(**_with(d, alpha_ip_rad=alpha))
+    with pytest.raises(IdentificationError, match=rf"camera looks frozen: its {said}.*frozen or stuck camera"):
+        preprocess(frozen_data, params)
+    if frozen == "after frame 5":  # xneck identify (the console's identify_record alike): refused, nothing written
+        r = xneck("identify", str(_mcap_of(frozen_data, tmp_path / "frozen.mcap")), "--out", str(tmp_path / "out"))
+        assert r.returncode == 2 and "error: the camera looks frozen" in r.stderr, r.stderr[-2000:]
+        assert not (tmp_path / "out").exists()
+
+
+def test_a_noiseless_camera_at_rest_is_not_taken_for_a_frozen_one(params):
+    """A still neck seen by a camera without noise (the twin's rendered one) repeats its α_IP: the
+    encoders do not move the neck there, and the record is not refused for it."""
+    data, _ = simulate_campaign(0, duration_s=8.0, still=True)
+    alpha = np.broadcast_to(data.alpha_ip_rad.mean(axis=0), data.alpha_ip_rad.shape).copy()
+    assert preprocess(CampaignData(**_with(data, alpha_ip_rad=alpha)), params).n > 100

@@ -107,3 +107,75 @@ def test_a_clock_set_back_is_still_refused_and_so_are_too_many_strays(tmp_path) 
         strays[i] = _replace(strays[i], capture_stamp_s=1e9 + i, stamp_s=1e9 + i + 0.05)
     with pytest.raises(IdentificationError, match=r"8 of 180 camera frames are stamped far off"):
         campaign_data_from_mcap(_archive(tmp_path / "strays.mcap", _states(), strays))
+
+
+# -- one bridge run (audit of 2026-11-30: two runs' states interleaved gave k -14/-15 %, λ +59 %, exit 0) --
+
+
+def _other_run(states: list, epoch: str = "e2", bridge: str = "b2", shift_s: float = 0.001,
+               offset_rad: float = 0.3) -> list:
+    """``states`` as another bridge run's: ``shift_s`` later (stamp and receive time), θ ``offset_rad`` off."""
+    return [(key, log_ns + int(shift_s * 1e9), msgspec.structs.replace(
+        m, bridge=bridge, epoch=epoch, stamp_s=m.stamp_s + shift_s, theta_rad=[x + offset_rad for x in m.theta_rad]))
+        for key, log_ns, m in states]
+
+
+def _received_later(part: list, s: float = 20.0) -> list:
+    """``part`` received ``s`` later (another run's states may then be received before it)."""
+    return [(key, log_ns + int(s * 1e9), m) for key, log_ns, m in part]
+
+
+def _commands(epoch: str, every: int = 10) -> list:
+    """The campaign's controller's commands, each answering a state of the bridge run ``epoch``."""
+    return [(bus.MOTOR_COMMAND, int(k * 2e6) + 3, bus.ForceCommand(
+        seq=k + 1, stamp_s=k * 0.002, force_N=[10.0] * 4, source="law1", sender="ctl", epoch=epoch))
+        for k in range(0, N_STATES, every)]
+
+
+def test_states_of_two_bridge_runs_received_interleaved_are_refused_when_no_command_names_the_campaigns(tmp_path):
+    """A second bridge on the bus, its states interleaved with the campaign's, both recorded (the
+    recorder keeps every run until a command names the campaign's): fitted as one record."""
+    mixed = _archive(tmp_path / "mixed.mcap", _states(), _other_run(_states()), _frames())
+    with pytest.raises(IdentificationError, match=r"holds the states of 2 bridge runs received interleaved: bridge "
+                                                  r"'b' run 'e' \(3000 states, stamped 0-5\.998 s\), bridge 'b2' run "
+                                                  r"'e2' \(3000 states.*no command names the campaign's"):
+        campaign_data_from_mcap(mixed)
+
+
+def test_the_states_of_the_run_the_commands_answer_are_read_and_the_others_dropped_and_said(tmp_path):
+    clean = campaign_data_from_mcap(_archive(tmp_path / "clean.mcap", _states(), _frames()))
+    for name, other in (("interleaved", _other_run(_states())),  # during the campaign: told apart by its epoch
+                        ("before", _other_run(_states()[:1000], shift_s=10.0))):  # before the first command
+        campaign = [_states(), _frames(), _commands("e")]
+        if name == "before":  # received before the campaign's, stamped on another clock
+            campaign = [_received_later(part) for part in campaign]
+        data = campaign_data_from_mcap(_archive(tmp_path / f"{name}.mcap", other, *campaign))
+        np.testing.assert_array_equal(data.t_s, clean.t_s)
+        np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)
+        n = len(other)
+        assert len(data.notes) == 1 and data.notes[0].startswith(
+            f"{n} motor state(s) of 1 other bridge run(s) dropped: bridge 'b2' run 'e2' ({n} states"), data.notes
+        assert "kept bridge 'b' run 'e' (3000 states: the run the campaign's commands answer)" in data.notes[0]
+
+
+def test_another_runs_states_received_before_the_campaigns_are_dropped_when_no_command_names_a_run(tmp_path):
+    """An archive without commands (or none naming a run recorded): the run with the most states,
+    another's kept out as long as none of its states was received within that run's span."""
+    clean = campaign_data_from_mcap(_archive(tmp_path / "clean.mcap", _states(), _frames()))
+    other = _other_run(_states()[:500], shift_s=10.0)  # another clock, received before: not the campaign's
+    campaign = [_received_later(part) for part in (_states(), _frames(), _commands("gone"))]
+    data = campaign_data_from_mcap(_archive(tmp_path / "before.mcap", other, *campaign))
+    np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)
+    assert len(data.notes) == 1 and data.notes[0].startswith("500 motor state(s) of 1 other bridge run(s) dropped"), \
+        data.notes
+    assert "the run with the most states" in data.notes[0]
+
+
+def test_commands_answering_two_bridge_runs_are_refused(tmp_path):
+    """A bridge restarted mid-campaign: its second run's encoders have their own zero."""
+    states, commands = _states(), _commands("e")
+    restarted = states[:1500] + _other_run(states[1500:], epoch="e3", bridge="b", shift_s=0.0)
+    commands = commands[:150] + [_replace(c, epoch="e3") for c in commands[150:]]
+    with pytest.raises(IdentificationError, match=r"commands answer 2 bridge runs: bridge 'b' run 'e' \(1500 states.*"
+                                                  r"bridge 'b' run 'e3' \(1500 states.*restarted mid-campaign"):
+        campaign_data_from_mcap(_archive(tmp_path / "restart.mcap", restarted, _frames(), commands))

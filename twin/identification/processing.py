@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
+from bridge.motor_speed import MAX_SPEED_RAD_S
 from twin.model import dynamics
 from twin.model.numeric import build
 from twin.model.params import Params
@@ -308,14 +309,50 @@ def _butter(x: FloatArray, cutoff_hz: float, rate_hz: float, order: int = 4) -> 
 #: the record is taken for damaged: margins for another set's limits and for camera noise.
 PLAUSIBLE_FORCE_FACTOR = 10.0
 PLAUSIBLE_ALPHA_RAD = np.pi
+#: rad/s at the motor shaft no encoder step between two samples can mean: the bridge's own bound
+#: (:data:`bridge.motor_speed.MAX_SPEED_RAD_S`, the controller's ``MOTOR_SPEED_MAX_RAD_S``), twice
+#: the EC-max 40's no-load speed (about 785 rad/s); an identification campaign's fastest step is
+#: 80 rad/s on the twin, 250 rad/s against the robot truth (its slack and its stamps' jitter). Not
+#: larger: one encoder turn (2π rad) in one 2 ms period must stay beyond it (3200 rad/s).
+PLAUSIBLE_MOTOR_SPEED_RAD_S = MAX_SPEED_RAD_S
+
+
+def _check_encoder_steps(data: CampaignData) -> None:
+    """Raise :class:`IdentificationError` naming the first step of a motor's θ between two
+    consecutive samples that no motor can turn: beyond :data:`PLAUSIBLE_MOTOR_SPEED_RAD_S` times
+    the time between them (at least the median period: a state stamped late and the next on time
+    are no faster motor). A non-finite θ is refused before (:class:`CampaignData`). The bridge
+    and the controller refuse such a reading live; the identification fitted it: one θ sample of 1e6
+    rad gave k(1) = 36 N/m (truth ~5400) at a relative σ of 8.5 %, a one-turn jump of θ₁ k(2) 11 %
+    and λ(4) 10 % low, unflagged (audit of 2026-11-30)."""
+    theta, t = data.theta_rad, data.t_s
+    if len(t) < 2:
+        return
+    dt = np.diff(t)
+    dt = np.maximum(dt, float(np.median(dt)))
+    with np.errstate(over="ignore", invalid="ignore"):  # a 1e300 rad sample: an inf step, refused
+        step = np.diff(theta, axis=0)
+    bad = ~(np.abs(step) <= (PLAUSIBLE_MOTOR_SPEED_RAD_S * dt)[:, None])
+    if not bad.any():
+        return
+    rows = np.flatnonzero(bad.any(axis=1))
+    i = int(rows[0])
+    j = int(np.flatnonzero(bad[i])[0])
+    raise IdentificationError(
+        f"motor {j + 1}'s encoder jumps {step[i, j]:+.6g} rad between t = {t[i]:.4f} s and {t[i + 1]:.4f} s "
+        f"(samples {i} and {i + 1}: θ = {theta[i, j]:.6g} then {theta[i + 1, j]:.6g} rad), more than a motor "
+        f"turns in {dt[i] * 1e3:.3g} ms ({PLAUSIBLE_MOTOR_SPEED_RAD_S:g} rad/s): an encoder fault (a glitch, a "
+        f"count lost or gained) or a damaged record ({len(rows)} such step{'' if len(rows) == 1 else 's'})")
 
 
 def _check_plausible(data: CampaignData, params: Params) -> None:
-    """Raise :class:`IdentificationError` naming the first sample out of physical reach: a force
-    beyond ±``PLAUSIBLE_FORCE_FACTOR`` × f_max (a measured force may dip below 0 with its noise),
+    """Raise :class:`IdentificationError` naming the first sample out of physical reach: a step of
+    θ faster than a motor turns (:func:`_check_encoder_steps`), a force beyond
+    ±``PLAUSIBLE_FORCE_FACTOR`` × f_max (a measured force may dip below 0 with its noise),
     an α_IP beyond ±π. One force sample of
     1e300 N went through the filters as 32 lines of numpy overflow warnings and an error blaming
     the trajectory's excitation (audit of 2026-11-27)."""
+    _check_encoder_steps(data)
     f_max = float(params.limits.f_max)
     bad = np.flatnonzero((np.abs(data.force_N) > PLAUSIBLE_FORCE_FACTOR * f_max).any(axis=1))
     if bad.size:
@@ -329,6 +366,59 @@ def _check_plausible(data: CampaignData, params: Params) -> None:
         raise IdentificationError(
             f"camera frame {i} (t = {data.t_ip_s[i]:.3f} s) measures α = {np.degrees(data.alpha_ip_rad[i]).round(1).tolist()}°, "
             f"beyond ±180°: a damaged record ({len(bad)} such frames)")
+
+
+#: rad by which consecutive camera frames' α_IP may differ (every joint) and still be the same
+#: reading: a camera's noise (1° on the twin's) moves it more at every frame, a frozen camera not at all.
+FROZEN_STEP_RAD = float(np.radians(0.01))
+#: s and frames a run of unchanged α_IP must last for its camera to be judged frozen: a few
+#: repeated frames are a still neck seen by a noiseless camera (the twin's rendered one).
+FROZEN_MIN_S = 1.0
+FROZEN_MIN_FRAMES = 10
+#: rad the joint angles estimated from the encoders (eq. 33, the stretch from the forces) must move
+#: within such a run for the camera to be taken for frozen. That estimate's error (up to 10-12° on
+#: the twin's campaigns) moves little at rest: hundredths of a degree in a hold, about 10° were the
+#: base set's k 50 % off and a cable's force to change by f_max there (about 1.6° per mm of a short
+#: cable's stretch); the excitation moves the neck 40-86° per joint.
+FROZEN_MOTION_RAD = float(np.radians(20.0))
+
+
+def check_camera_moves(data: CampaignData, params: Params) -> None:
+    """Raise :class:`IdentificationError` for a frozen camera: α_IP unchanged (consecutive frames
+    within :data:`FROZEN_STEP_RAD`) for at least :data:`FROZEN_MIN_S` and :data:`FROZEN_MIN_FRAMES`
+    while the joint angles the encoders give there (eq. 33 on θ, with the stretch f/k of the base
+    set's linear cables) move by more than :data:`FROZEN_MOTION_RAD`. A camera whose α_IP stayed
+    constant after its fifth frame while the motors moved for 97 s was fitted (k(3) −63 %, exit 0)
+    with a note that the record moved too little to tell α_IP's delay (audit of 2026-11-30): a frozen
+    camera's α_IP is not the neck's, and nothing fitted on it is."""
+    from twin.model.estimation import alpha_hat_3
+
+    t_ip, alpha, t = data.t_ip_s, data.alpha_ip_rad, data.t_s
+    if len(t_ip) < 2:
+        return
+    changed = np.flatnonzero((np.abs(np.diff(alpha, axis=0)) > FROZEN_STEP_RAD).any(axis=1)) + 1
+    starts = np.concatenate([[0], changed])
+    ends = np.concatenate([changed - 1, [len(t_ip) - 1]])
+    m = None
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        inside = np.flatnonzero((t_ip[a:b + 1] >= t[0]) & (t_ip[a:b + 1] <= t[-1])) + a
+        if len(inside) < FROZEN_MIN_FRAMES or t_ip[inside[-1]] - t_ip[inside[0]] < FROZEN_MIN_S:
+            continue
+        m = build(params, "linear") if m is None else m
+        theta = np.column_stack([np.interp(t_ip[inside], t, x) for x in data.theta_rad.T])
+        force = np.column_stack([np.interp(t_ip[inside], t, x) for x in data.force_N.T])
+        guess = np.zeros(m.n_joints)
+        hat = np.empty((len(inside), m.n_joints))
+        for i in range(len(inside)):
+            guess = hat[i] = alpha_hat_3(m, theta[i], force[i] / m.k, guess)
+        moved = np.ptp(hat, axis=0)
+        j = int(np.argmax(moved))
+        if moved[j] > FROZEN_MOTION_RAD:
+            raise IdentificationError(
+                f"the camera looks frozen: its α_IP stays at {np.degrees(alpha[a]).round(2).tolist()}° from t = "
+                f"{t_ip[inside[0]]:.3f} s to {t_ip[inside[-1]]:.3f} s ({len(inside)} frames) while the encoders move "
+                f"joint {j + 1} through {np.degrees(moved[j]):.0f}° there (eq. 33 from θ and the forces): a frozen or "
+                f"stuck camera's α_IP is not the neck's; check the camera and record again")
 
 
 def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
@@ -347,6 +437,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
         )
     _check_plausible(data, params)
     check_gaps(data)
+    check_camera_moves(data, params)
     t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
     rate = 1.0 / dt
     t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")

@@ -20,6 +20,18 @@ What a shared bus may have put in an archive (audit of 2026-11-29):
   A clock set back mid-record moves many messages at once, which that median follows: it is still
   refused (:func:`_refuse_clock_step_back`), and so is a record with more strays than
   :data:`STRAY_FRACTION_MAX` of its messages (at least :data:`STRAY_COUNT_MIN` pass).
+- One bridge run. States of two bridge runs (``MotorState.bridge`` and ``.epoch``: a second
+  bridge on the bus, or one restarted), recorded interleaved, were fitted as one record (k −14 %,
+  λ +59 %, exit 0: audit of 2026-11-30); the recorder keeps every run's states until the
+  campaign's first command names its run (server.quality), so a real archive may hold another
+  run's before the campaign's. The states read are those of the campaign's run
+  (:func:`_one_bridge_run`): the run the archive's commands (``ForceCommand.epoch``) answer, else,
+  if no command names a run, the run with the most states, provided no other run's state was
+  received within its span (first to last state, the recorder's receive time: one clock). The other
+  runs' states are dropped, counted and said (:attr:`CampaignData.notes`). Refused: the commands
+  answering several runs (a bridge restarted mid-campaign: each run's encoders have their own
+  zero), or, with no command naming one, two runs received interleaved (which is the campaign's
+  cannot be told).
 """
 
 from __future__ import annotations
@@ -27,7 +39,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -54,6 +66,7 @@ Given by the caller (:func:`controller.trajectory.recorded_excitation`): traject
 controller's, and the identification must not depend on them."""
 
 MOTOR_TOPIC = "/xneck/motor/state"
+MOTOR_COMMAND_TOPIC = "/xneck/motor/command"  # whose epochs name the campaign's bridge run
 CAMERA_TOPIC = "/xneck/camera/alpha_ip"
 
 
@@ -108,6 +121,57 @@ def _one_camera(path: str | Path, frames: list, source: str | None) -> list:
     return [m for m in frames if m.source == source]
 
 
+RUNS_NAMED_MAX = 4  # bridge runs an error or a note names (an archive is untrusted input)
+
+
+def _runs_text(runs: dict[tuple[str, str], list[tuple[int, Any]]]) -> str:
+    """``runs`` (bridge, epoch) → states, most states first, e.g. "bridge 'b' run 'e' (3000 states,
+    stamped 0-6 s)"."""
+    ordered = sorted(runs.items(), key=lambda kv: -len(kv[1]))
+    named = [f"bridge {bridge[:64]!r} run {epoch[:64]!r} ({len(states)} state{'' if len(states) == 1 else 's'}, "
+             f"stamped {states[0][1].stamp_s:.6g}-{states[-1][1].stamp_s:.6g} s)"
+             for (bridge, epoch), states in ordered[:RUNS_NAMED_MAX]]
+    more = len(ordered) - len(named)
+    return ", ".join(named) + (f" and {more} more" if more > 0 else "")
+
+
+def _one_bridge_run(path: str | Path, states: list[tuple[int, Any]], commands: list[tuple[int, Any]],
+                    notes: list[str]) -> list:
+    """The motor states (``(log_time_ns, MotorState)`` in receive order) of the campaign's bridge run
+    (module docstring, "One bridge run"); a note for the other runs' states dropped, or
+    :class:`IdentificationError` when which run is the campaign's cannot be told."""
+    runs: dict[tuple[str, str], list[tuple[int, Any]]] = {}
+    for item in states:
+        runs.setdefault((item[1].bridge, item[1].epoch), []).append(item)
+    if len(runs) <= 1:
+        return [m for _, m in states]
+    answered = Counter(c.epoch for _, c in commands)
+    named = [run for run in runs if answered.get(run[1], 0) > 0]
+    if len(named) > 1:
+        raise IdentificationError(
+            f"{path}: the campaign's commands answer {len(named)} bridge runs: "
+            f"{_runs_text({r: runs[r] for r in named})}. Its bridge restarted mid-campaign (each run's encoders "
+            "have their own zero) or two bridges obeyed its controller: fitted as one record they give wrong "
+            "parameters; record the campaign again")
+    if named:
+        chosen, why = named[0], "the run the campaign's commands answer"
+    else:
+        chosen = max(runs, key=lambda r: len(runs[r]))
+        first, last = runs[chosen][0][0], runs[chosen][-1][0]
+        within = {r: v for r, v in runs.items() if r != chosen and any(first < log_ns < last for log_ns, _ in v)}
+        if within:
+            raise IdentificationError(
+                f"{path}: {MOTOR_TOPIC} holds the states of {len(runs)} bridge runs received interleaved: "
+                f"{_runs_text(runs)}, and no command names the campaign's. Two bridges on one bus were recorded "
+                "together, and fitted as one record they give wrong parameters")
+        why = "the run with the most states, none of another received within its span; no command names a run"
+    others = {r: v for r, v in runs.items() if r != chosen}
+    dropped = sum(len(v) for v in others.values())
+    notes.append(f"{dropped} motor state(s) of {len(others)} other bridge run(s) dropped: {_runs_text(others)}; "
+                 f"kept bridge {chosen[0][:64]!r} run {chosen[1][:64]!r} ({len(runs[chosen])} states: {why})")
+    return [m for _, m in runs[chosen]]
+
+
 def _strays(stamps: np.ndarray) -> np.ndarray:
     """Which of ``stamps`` (receive order) lie more than :data:`CLOCK_STEP_BACK_S` from the median
     of the :data:`STRAY_WINDOW` messages on either side of each (and itself)."""
@@ -143,9 +207,11 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     """Campaign arrays from an archived campaign; with ``excitation``, α^d of its recorded
     trajectory too (the filter cutoff then follows the excitation). ``alpha_ip_source``: the
     camera (``CameraAlpha.source``) whose α_IP is read, needed when the archive holds several;
-    stray messages are dropped and said in the data's ``notes`` (module docstring). Raises
-    :class:`IdentificationError` for a missing, truncated or damaged file, for missing or empty
-    channels, for the α_IP of several cameras none chosen, and for a clock set back."""
+    stray messages and the states of another bridge run than the campaign's are dropped and said
+    in the data's ``notes`` (module docstring). Raises :class:`IdentificationError` for a missing,
+    truncated or damaged file, for missing or empty channels, for the α_IP of several cameras none
+    chosen, for states of several bridge runs the campaign's cannot be told from, and for a clock
+    set back."""
     from bridge.archive import ArchiveError
     from bridge.archive_read import read_campaign
     from bridge.bus import CAPTURE_AFTER_PUBLICATION_MAX_S
@@ -158,9 +224,9 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     if missing:
         have = ", ".join(sorted(camp.topics)) or "none"
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
-    motor = [m for _, m in camp.topics[MOTOR_TOPIC]]
     notes: list[str] = []
     try:
+        motor = _one_bridge_run(path, camp.topics[MOTOR_TOPIC], camp.topics.get(MOTOR_COMMAND_TOPIC, []), notes)
         frames = _one_camera(path, [m for _, m in camp.topics[CAMERA_TOPIC]], alpha_ip_source)
         # Captured after its publication: refused by the recorder since, possibly in an older archive.
         late = [m for m in frames if m.capture_stamp_s > m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]

@@ -52,7 +52,8 @@ class AlphaIpTiming(NamedTuple):
     ``aligned`` (the stamps do as well as any delay), ``delayed`` (the least residual is at τ and
     the stamps do measurably worse), ``out_of_range`` (the least residual is at the grid's edge,
     ±``searched_s``, and the stamps do measurably worse: |τ| at least that), ``uninformative``
-    (too few frames, or a residual flat over the grid: a still neck, a frozen camera)."""
+    (too few frames, or a residual flat over the grid: a still neck, a frozen camera; the
+    identification refuses the latter before: :func:`twin.identification.processing.check_camera_moves`)."""
 
     delay_s: float  # τ of least residual: α_IP stamped this much late (negative: early)
     rms_rad: float  # residual at τ
