@@ -529,6 +529,8 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
             continue
         md += ["| mean error | in-sample (fitted campaign) | on the control test |", "|---|---|---|"]
         for name, r in doc["errors"].items():
+            # runs recorded before f3b0a5e labelled the torques N·m/rad, a stiffness's unit: they are N·m
+            name = name.replace("(N·m/rad)", "(N·m)")
             md.append(f"| {name.replace('|', chr(92) + '|')} | {r['in_sample']:.3f} | {r['out_of_sample']:.3f} |")
         md.append("")
     # -- Table 3 ----------------------------------------------------------------------------------
@@ -541,6 +543,9 @@ def page(design, paper, designed, control, cv, table3, seeds, version: str = "",
         m = (rec.get("json") or {}).get("metrics") or {}
         md.append(f"| {label} | `{rec['command']}` | {_fmt(m.get('e_mean_all_deg'), '.3f')} | "
                   f"{_fmt(m.get('e_alpha_mean_all_deg'), '.3f')} | {paper_t3[label]} |")
+    md += ["", "## Which campaigns `xneck identify` fits", "",
+           "What a record may hold, what is refused or said, and what `!` and `>1000%` mean in the tables:",
+           "docs/identify-inputs.md."]
     md += ["", "## Not done", "",
            "- Closed-loop tracking is not in the design: only the box keeps law 1 on track (a design out to",
            "  the joint limits diverged, above). A criterion on the closed loop (simulating law 1 on the twin",
