@@ -379,6 +379,40 @@ def test_a_set_fitted_on_alpha_ip_stamped_far_off_says_so_in_its_file(short_camp
     assert "WARNING" not in (tmp_path / "on_time" / f"{params.name}-identified.toml").read_text()
 
 
+def test_identify_takes_the_set_the_campaign_ran_with_and_says_when_another_differs(short_campaign, params,
+                                                                                     tmp_path, xneck):
+    """Audit of session 49: the archive records the set its campaign ran with (``parameters_toml``),
+    which the console refits with, but ``xneck identify`` took the prototype's without a word, for a
+    campaign of another robot's set too. It now takes the recorded set, says so, and warns when
+    ``--params`` differs from it, naming the values."""
+    import json
+
+    import msgspec
+
+    from bridge.archive import write_campaign
+
+    springs = msgspec.structs.replace(params.springs, k_left=tuple(1.1 * k for k in params.springs.k_left))
+    lab = msgspec.structs.replace(params, name="mylab-3x", springs=springs)
+    path = write_campaign(tmp_path / "lab.mcap", _messages_of(short_campaign),
+                          {"campaign_id": "lab", "kind": "identification", "parameters_toml": lab.to_toml()})
+    r = xneck("identify", str(path), "--no-alpha-hat", "--json", "--out", str(tmp_path / "own"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "note: base parameter set 'mylab-3x', the one the campaign ran with" in r.stderr, r.stderr
+    assert (tmp_path / "own" / "mylab-3x-identified.toml").is_file()
+    prototype = tmp_path / "prototype.toml"
+    prototype.write_text(params.to_toml())
+    r = xneck("identify", str(path), "--no-alpha-hat", "--json", "--params", str(prototype), "--out",
+              str(tmp_path / "other"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "warning: the base set differs from the one" in r.stderr and "name, springs.k_left" in r.stderr, r.stderr
+    assert json.loads(r.stdout)["provenance"]["base_parameter_set"] == params.name
+    # a recorded set that does not load: refused without --params (as the console), said with it
+    bad = write_campaign(tmp_path / "bad.mcap", _messages_of(short_campaign),
+                         {"campaign_id": "bad", "kind": "identification", "parameters_toml": "name = 3\n"})
+    r = xneck("identify", str(bad), "--no-alpha-hat", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "the parameter set recorded in" in r.stderr and "--params FILE" in r.stderr, r.stderr
+
+
 def test_motors_that_never_move_are_rank_deficient(params):
     data, _ = simulate_campaign(0, duration_s=8.0, still=True)
     proc = preprocess(data, params)

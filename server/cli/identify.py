@@ -28,7 +28,8 @@ def identify(
     json_out: bool = typer.Option(False, "--json", help="Print the tables and checks as JSON."),
     out: Path | None = typer.Option(None, "--out", help="Directory for figures and the parameter set "
                                        "(default: <campaign stem>_identification next to the file)."),
-    params_file: Path | None = typer.Option(None, "--params", help="Base parameter file (default: prototype)."),
+    params_file: Path | None = typer.Option(None, "--params", help="Base parameter file (default: the set the "
+                                            "campaign ran with, recorded in its archive; else the prototype's)."),
     overrides: list[str] | None = typer.Option(None, "--set", help="Override one value of the base parameter "
                                                "file, e.g. --set motors.gear_loss_forward=0.05."),
     cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", callback=POSITIVE,
@@ -133,11 +134,29 @@ def identify(
     )
     from twin.identification.record import identify_record
     from twin.identification.report import report_dict, tables_text, write_figures
-    from twin.model.params import ParameterError, load_params, parse_override
+    from twin.model.params import ParameterError, differing_keys, load_params, params_from_toml, parse_override
 
     data_b = _validation_campaign(validate, alpha_ip_source) if validate is not None else None
     try:
-        base = load_params(params_file, dict(parse_override(o) for o in overrides or []))
+        changes = dict(parse_override(o) for o in overrides or [])
+        recorded = info.get("parameters_toml", "")
+        if params_file is None and recorded:
+            # the set the campaign ran with, as the console refits it: the prototype's had been taken
+            # for an archive of another robot's set, without a word (audit of session 49)
+            base = params_from_toml(recorded, f"the parameter set recorded in {campaign} (--params FILE for "
+                                    f"another)", changes)
+            typer.echo(f"note: base parameter set {base.name!r}, the one the campaign ran with (its archive's); "
+                       f"--params FILE for another", err=True)
+        else:
+            base = load_params(params_file, changes)
+            try:
+                ran = params_from_toml(recorded, f"the set recorded in {campaign}", changes) if recorded else None
+            except ParameterError as exc:  # an archive is hostile input: said, the set chosen is used
+                typer.echo(f"warning: not compared with the campaign's own set: {exc}", err=True)
+                ran = None
+            if ran is not None and (keys := differing_keys(base, ran)):
+                typer.echo(f"warning: the base set differs from the one {campaign} ran with (its archive's), in "
+                           f"{len(keys)} value(s): {', '.join(keys[:8])}{', ...' if len(keys) > 8 else ''}", err=True)
         if not re.fullmatch(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}", base.name):
             # it names the files written into --out: "/x/y" or "../z" wrote them elsewhere (audit of 2026-11-28)
             raise ParameterError(f"parameter set name {base.name!r} cannot name a file in --out: use 1-64 letters, "

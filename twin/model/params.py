@@ -19,8 +19,8 @@ from typing import Any, Literal
 
 import msgspec
 
-__all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "dotted_parent", "load_params", "params_from_dict",
-           "parse_override"]
+__all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "differing_keys", "dotted_parent", "load_params",
+           "params_from_dict", "params_from_toml", "parse_override"]
 
 DEFAULT_PARAMS_FILE = "prototype_3x.toml"
 _CASES = "abcd"
@@ -374,6 +374,12 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
             raise ParameterError(f"{source}: cannot read parameter file ({exc.strerror})") from exc
         except UnicodeDecodeError as exc:  # the console answered 500 (audit of 2026-11-26)
             raise ParameterError(f"{source}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    return params_from_toml(text, source, overrides)
+
+
+def params_from_toml(text: str, source: str, overrides: dict[str, Any] | None = None) -> Params:
+    """A parameter set from TOML ``text`` (a file's, or an archive's ``parameters_toml``), named
+    ``source`` in errors, with dotted-key ``overrides`` applied (:func:`load_params`)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -385,6 +391,17 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
     if overrides:  # what the file's values refuse of a --set value is said with it, not as the file's fault
         source += " with --set " + ", ".join(f"{k}={_shown(v)}" for k, v in overrides.items())
     return params_from_dict(data, source)
+
+
+def differing_keys(a: Params, b: Params) -> list[str]:
+    """The dotted keys whose values differ between sets ``a`` and ``b`` (``name`` included)."""
+    def leaves(value: Any, prefix: str = "") -> dict[str, Any]:
+        if isinstance(value, dict):
+            return {k: v for key, sub in value.items() for k, v in leaves(sub, f"{prefix}{key}.").items()}
+        return {prefix[:-1]: value}
+
+    la, lb = leaves(msgspec.to_builtins(a)), leaves(msgspec.to_builtins(b))
+    return sorted(k for k in la.keys() | lb.keys() if la.get(k) != lb.get(k))
 
 
 def _shown(value: Any) -> str:
