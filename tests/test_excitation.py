@@ -170,6 +170,23 @@ def test_bad_design_requests_are_refused_clearly(cli, tmp_path, args, message):
     assert not (tmp_path / "x.json").exists()
 
 
+@pytest.mark.parametrize("existing", ["x.json", "x.design.json"])
+def test_an_existing_design_or_its_scores_are_refused_unless_force(cli, tmp_path, existing):
+    """Input audit: `excitation design --out FILE` replaced FILE and <stem>.design.json without a
+    word, where identify, campaign --out and twin calibrate refuse an existing output."""
+    (tmp_path / existing).write_text("earlier\n")
+    args = ["excitation", "design", "--out", str(tmp_path / "x.json"), "--duration", "12", "--starts", "1",
+            "--maxiter", "0"]
+    r = cli.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.count("error:") == 1 and f"{tmp_path / existing} exists" in r.stderr and "--force" in r.stderr
+    assert (tmp_path / existing).read_text() == "earlier\n"
+    r = cli.invoke(app, [*args, "--force"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "x.json").read_text())["waypoints_deg"]
+    assert json.loads((tmp_path / "x.design.json").read_text())["trajectory_file"] == str(tmp_path / "x.json")
+
+
 def test_the_default_box_is_the_paper_amplitudes(params):
     p = _problem(params, 12.0, 0.6)
     np.testing.assert_allclose(np.degrees(p.alpha_max), [40.0, 30.0, 20.0])

@@ -85,7 +85,8 @@ def design_command(
     duration: float = typer.Option(97.0, "--duration", help="Duration of the trajectory (s), rests included; "
                                    "97 s is the §5.2.2 identification trajectory's."),
     out: Path = typer.Option(Path("excitation.json"), "--out", help="Trajectory file to write (.json, degrees); "
-                             "the design's scores go to <stem>.design.json beside it."),
+                             "the design's scores go to <stem>.design.json beside it. Refused if either "
+                             "exists, unless --force."),
     seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random starting designs (≥ 0)."),
     waypoints: int | None = typer.Option(None, "--waypoints", help="Number of waypoints, the straight start and "
                                          "end included (default: one every 4 s)."),
@@ -106,6 +107,7 @@ def design_command(
     starts: int = typer.Option(2, "--starts", min=1, help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", min=0, help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
+    force: bool = typer.Option(False, "--force", help="Overwrite --out and its <stem>.design.json."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -125,6 +127,12 @@ def design_command(
     if out.suffix.lower() != ".json":  # --trajectory reads a file by its suffix: JSON in a .toml would not load
         raise fail(f"--out must be a .json file (the trajectory is written as JSON), got {out}")
     check_output(out)  # before the design, which takes minutes
+    design_path = out.with_name(out.stem + ".design.json")
+    # An earlier design and its scores (which docs cite) were replaced without a word, where
+    # identify, campaign --out and twin calibrate refuse an existing output (input audit).
+    for path in (out, design_path):
+        if not force and (path.exists() or path.is_symlink()):
+            raise fail(f"{path} exists: choose another --out or add --force")
     params = load_cli_params(params_file, overrides)
     try:
         problem = _problem(params, duration, speed, criterion, box_deg, pretension_max, holds)
@@ -156,7 +164,6 @@ def design_command(
                  "predicted_sigma_ratio": {n: result.score.relative_sigma[n] / baseline.relative_sigma[n]
                                            for n in baseline.relative_sigma}},
     }
-    design_path = out.with_name(out.stem + ".design.json")
     try:
         from twin.jsonout import strict_json
 
