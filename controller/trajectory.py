@@ -43,6 +43,8 @@ import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from bridge.small_file import read_input_file
+
 __all__ = [
     "CONTROL_TEST_WAYPOINTS_DEG",
     "CYCLOID_PEAK_ACCELERATION",
@@ -429,10 +431,12 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
             path = Path(source)
             where = f"{path}: "
             suffix = path.suffix.lower()
+            # read_input_file: a regular file of at most 1 MiB (a FIFO hung the command, /dev/zero
+            # ended in a MemoryError traceback: input audit); the reason is an OSError's, below
             if suffix == ".json":
-                spec = msgspec.json.decode(path.read_bytes(), type=TrajectoryFile)
+                spec = msgspec.json.decode(read_input_file(path), type=TrajectoryFile)
             elif suffix == ".toml":
-                spec = msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), TrajectoryFile)
+                spec = msgspec.convert(tomllib.loads(read_input_file(path).decode("utf-8")), TrajectoryFile)
             elif not suffix and not path.exists():  # a name: the user meant a built-in one
                 raise TrajectoryError(
                     f"no built-in trajectory of that name ({' or '.join(NAMED_TRAJECTORIES)}) and no such file: "

@@ -238,6 +238,49 @@ def test_a_trajectory_of_another_type_names_what_to_give_not_a_function(xneck, t
     assert "trajectory_by_name" not in line
 
 
+# -- 2b. a trajectory or parameter file that is no regular file, or huge ----------------------------------
+
+
+@pytest.fixture
+def special_inputs(tmp_path) -> dict[str, dict[str, Path]]:
+    """For .json and .toml: a FIFO (reading it blocked for ever), a link to /dev/zero (read whole,
+    a MemoryError traceback) and a sparse regular file of 4 MiB, past the loaders' bound
+    (bridge.small_file.INPUT_FILE_MAX_BYTES, 1 MiB)."""
+    out: dict[str, dict[str, Path]] = {}
+    for kind in ("fifo", "zero", "big"):
+        for suffix in (".json", ".toml"):
+            path = tmp_path / f"{kind}{suffix}"
+            if kind == "fifo":
+                os.mkfifo(path)
+            elif kind == "zero":
+                path.symlink_to("/dev/zero")
+            else:
+                with path.open("wb") as f:
+                    f.truncate(4 * 1024 * 1024)
+            out.setdefault(kind, {})[suffix] = path
+    return out
+
+
+@pytest.mark.parametrize("kind, said", [("fifo", "a FIFO"), ("zero", "a character device"), ("big", "more than")])
+@pytest.mark.parametrize("command, suffix", [
+    (["campaign", "identification", "--trajectory", "{path}", "--out", "{out}"], ".json"),
+    (["campaign", "control", "--trajectory", "{path}", "--out", "{out}"], ".toml"),
+    (["excitation", "bound", "--trajectory", "{path}"], ".json"),
+    (["campaign", "control", "--params", "{path}", "--out", "{out}"], ".toml"),
+    (["identify", "{campaign}", "--params", "{path}", "--out", "{out}"], ".toml"),
+])
+def test_a_special_or_huge_input_file_is_one_error_line(xneck, tmp_path, campaign, special_inputs, command, suffix,
+                                                        kind, said):
+    """Input audit: a FIFO as --trajectory or --params hung the command for ever, /dev/zero (behind
+    a link) ended in a MemoryError traceback; the loaders read a regular file of at most 1 MiB."""
+    path = special_inputs[kind][suffix]
+    out = tmp_path / "out.mcap"
+    argv = [a.format(path=path, out=out, campaign=campaign) for a in command]
+    line = _refused(xneck(*argv, timeout=60), str(path))
+    assert said in line or (kind != "big" and "not a regular file" in line), line
+    assert not out.exists()
+
+
 # -- 10. a truncated archive: what the user can do -------------------------------------------------------
 
 

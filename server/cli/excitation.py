@@ -224,6 +224,15 @@ def bound_command(
     if not (math.isfinite(t_hi) and MIN_TENSION_N < t_hi <= 10 * params.limits.f_max):
         raise fail(f"--t-max must be above the {MIN_TENSION_N:g} N slack threshold and at most 10·f_max = "
                    f"{10 * params.limits.f_max:g} N, got {t_hi}")
+    loaded = []  # before the bound, which takes seconds: an unreadable file is refused at once
+    for path in trajectories or []:
+        try:
+            traj = load_trajectory(path)
+        except TrajectoryError as exc:
+            raise fail(str(exc)) from None
+        if traj.n_joints != params.n_joints:
+            raise fail(f"{path}: {traj.n_joints} joints, the robot has {params.n_joints}")
+        loaded.append((path, traj))
     try:
         problem = _problem(params, duration, 0.6)
     except DesignError as exc:
@@ -249,13 +258,7 @@ def bound_command(
                       "reachable": bool(ratio <= target), "support_tensions_N": list(design.tensions_N),
                       "support_weights": list(design.weights), "shortest_duration_s": float(shortest)}
     scored: dict[str, dict[str, float]] = {}
-    for path in trajectories or []:
-        try:
-            traj = load_trajectory(path)
-        except TrajectoryError as exc:
-            raise fail(str(exc)) from None
-        if traj.n_joints != params.n_joints:
-            raise fail(f"{path}: {traj.n_joints} joints, the robot has {params.n_joints}")
+    for path, traj in loaded:
         s = score(problem, traj.waypoints_rad, traj.durations_s, traj.dwell_s,
                   traj.pretension_N if traj.has_pretension else None)
         scored[str(path)] = {n: s.relative_sigma[n] / base.relative_sigma[n] * math.sqrt(base.duration_s / s.duration_s)
