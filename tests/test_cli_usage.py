@@ -540,6 +540,18 @@ def test_the_twin_refuses_no_camera_with_an_alpha_ip_it_would_not_publish(xneck)
              "--no-camera", "--alpha-ip camera")
 
 
+@pytest.mark.parametrize("cutoff", ["1e-9", "0.001", "1e6"])
+def test_a_cutoff_out_of_the_records_range_states_the_range(xneck, campaign, tmp_path, cutoff):
+    """Input audit: `identify --cutoff-hz 1e-9` ended in "error: Singular matrix" (the Butterworth's
+    coefficients), while 0.001 Hz said only that too few instants remained. Both, and a cutoff
+    past the Nyquist frequency, state the range this record accepts, before any filter runs."""
+    line = _refused(xneck("identify", str(campaign), "--cutoff-hz", cutoff, "--out", str(tmp_path / "o"),
+                          "--no-alpha-hat", timeout=120), f"cutoff {float(cutoff):g} Hz is out of range",
+                    "must be in [")
+    assert "Singular" not in line
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
 @pytest.mark.parametrize("argv, said", [
     (["identify", "{junk}", "--threshold", "nan"], "--threshold"),
     (["identify", "{junk}", "--threshold", "0"], "--threshold"),
