@@ -155,7 +155,9 @@ def test_a_pretension_design_writes_a_schedule_the_campaign_accepts(cli, tmp_pat
     (("--speed", "1.5"), "speed is a fraction"),
     (("--waypoints", "2"), "at least 3"),
     (("--criterion", "e"), "criterion must be d"),
-    (("--box-deg", "40,70,20"), "--box-deg needs 3 amplitudes"),
+    # one value is every joint's (docs/identification.md runs --box-deg 55): the message says so (input audit)
+    (("--box-deg", "40,70,20"), "--box-deg needs one amplitude for every joint or 3, one per joint"),
+    (("--box-deg", "40,30"), "--box-deg needs one amplitude for every joint or 3, one per joint"),
     (("--box-deg", "forty"), "--box-deg must be numbers"),
     (("--holds", "some"), "holds must be none"),
     # beyond what one campaign runs: they optimised for hours (audit of 2026-11-27)

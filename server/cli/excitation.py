@@ -47,8 +47,8 @@ def _box(box_deg: str, n_joints: int, alpha_max_deg: float):
     if len(values) == 1:
         values *= n_joints
     if len(values) != n_joints or not all(0.0 < v <= alpha_max_deg for v in values):
-        raise DesignError(f"--box-deg needs {n_joints} amplitudes in (0, {alpha_max_deg:g}]° (the joint limit), "
-                          f"got {box_deg!r}")
+        raise DesignError(f"--box-deg needs one amplitude for every joint or {n_joints}, one per joint, each in "
+                          f"(0, {alpha_max_deg:g}]° (the joint limit), got {box_deg!r}")
     return [math.radians(v) for v in values]
 
 
@@ -95,7 +95,7 @@ def design_command(
     criterion: str = typer.Option("d", "--criterion", help="d: D-optimality on f_s, k, λ and c_a; ds: on f_s, "
                                   "k and λ only (the damping, barely identifiable, a nuisance)."),
     box_deg: str = typer.Option(PAPER_BOX_DEG, "--box-deg", help="Largest |α| per joint (deg), e.g. 40,30,20 (the "
-                                "§5.2.2 amplitudes, the default): a design out to the joint limits (60°) asks law 1 "
+                                "§5.2.2 amplitudes, the default), or one value for every joint: a design out to the joint limits (60°) asks law 1 "
                                 "for poses where it loses track (a campaign aborted on a diverging α̂)."),
     pretension_max: float = typer.Option(PRETENSION_MAX_N, "--pretension-max", help="Largest pretension a waypoint "
                                          "may add to every cable's floor t_min (N), to sweep the tensions over "
