@@ -211,6 +211,15 @@ def test_an_excitation_out_that_is_not_json_is_refused_before_the_design(xneck, 
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command", ["control", "identification"])
+@pytest.mark.parametrize("name", ["x.json", "x", "x.mcap.tmp"])
+def test_a_campaign_out_that_is_not_mcap_is_refused_before_the_campaign(xneck, tmp_path, command, name):
+    """Input audit: `campaign identification --out x.json` recorded an MCAP named .json."""
+    out = tmp_path / name
+    _refused(xneck("campaign", command, "--out", str(out)), "--out", ".mcap")
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
 # -- 2. an unreadable --trajectory -----------------------------------------------------------------------
 
 
