@@ -180,3 +180,20 @@ def test_a_campaign_body_of_the_wrong_types_is_refused_not_coerced(no_room_conso
     if "waypoints" in body and body["waypoints"] is not NOD:  # the library refuses the same trajectory
         assert client.put("/api/trajectories/typed", json=body["waypoints"], headers=AUTH).status_code == 422
     assert client.post("/api/campaigns", json={"waypoints": NOD}, headers=AUTH).status_code == 507  # well typed
+
+
+@pytest.mark.parametrize("name", ["nod\u202e", "a\x00b", "a\nb", "a\u200bb"])
+def test_a_trajectory_name_with_a_control_or_format_character_is_a_422(no_room_console, name):
+    """Input audit: a NUL, a newline or a bidi override (U+202E, which reorders what the console
+    and the CLI show) in a trajectory's name reached the campaign's record and archive."""
+    client = no_room_console
+    body = {**NOD, "name": name}
+    r = client.post("/api/campaigns", json={"waypoints": body}, headers=AUTH)
+    bad = next(c for c in name if not c.isalnum())
+    assert r.status_code == 422 and f"U+{ord(bad):04X}" in r.text, r.text
+    assert client.put("/api/trajectories/named", json=body, headers=AUTH).status_code == 422
+    v = client.post("/api/trajectories/validate", json=body, headers=AUTH).json()
+    assert not v["ok"] and "name" in v["message"], v
+    from urllib.parse import quote
+
+    assert client.put(f"/api/trajectories/{quote(name)}", json=NOD, headers=AUTH).status_code in (404, 422)
