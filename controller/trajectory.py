@@ -34,6 +34,7 @@ import json
 import math
 import os
 import tomllib
+import unicodedata
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,8 @@ from typing import Any, NamedTuple, cast
 import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from bridge.small_file import read_input_file
 
 __all__ = [
     "CONTROL_TEST_WAYPOINTS_DEG",
@@ -404,7 +407,25 @@ def trajectory_json_schema() -> dict[str, Any]:
     return msgspec.json.schema(TrajectoryFile)
 
 
+#: The longest trajectory name, as the console's (server/campaign_request.py, the library's names).
+TRAJECTORY_NAME_MAX = 64
+#: Unicode categories a name may not hold: controls (NUL, newline), formats (bidi overrides such as
+#: U+202E, zero-width characters), surrogates, line and paragraph separators. The name is shown by
+#: the console, printed by the CLI and recorded in archives: such a character hides or reorders text.
+_NAME_REFUSED_CATEGORIES = ("Cc", "Cf", "Cs", "Zl", "Zp")
+
+
+def _check_name(name: str) -> None:
+    if len(name) > TRAJECTORY_NAME_MAX:
+        raise TrajectoryError(f"name: {len(name)} characters, at most {TRAJECTORY_NAME_MAX}")
+    bad = next((c for c in name if unicodedata.category(c) in _NAME_REFUSED_CATEGORIES), None)
+    if bad is not None:
+        raise TrajectoryError(f"name {name!r}: U+{ord(bad):04X} ({unicodedata.name(bad, 'a control character')}) "
+                              f"at {name.index(bad)}: no control, format or line-separator character")
+
+
 def _from_file_struct(spec: TrajectoryFile) -> Trajectory:
+    _check_name(spec.name)
     rows = spec.waypoints_deg
     if rows and len({len(r) for r in rows}) != 1:
         first = len(rows[0])
@@ -429,10 +450,12 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
             path = Path(source)
             where = f"{path}: "
             suffix = path.suffix.lower()
+            # read_input_file: a regular file of at most 1 MiB (a FIFO hung the command, /dev/zero
+            # ended in a MemoryError traceback: input audit); the reason is an OSError's, below
             if suffix == ".json":
-                spec = msgspec.json.decode(path.read_bytes(), type=TrajectoryFile)
+                spec = msgspec.json.decode(read_input_file(path), type=TrajectoryFile)
             elif suffix == ".toml":
-                spec = msgspec.convert(tomllib.loads(path.read_text(encoding="utf-8")), TrajectoryFile)
+                spec = msgspec.convert(tomllib.loads(read_input_file(path).decode("utf-8")), TrajectoryFile)
             elif not suffix and not path.exists():  # a name: the user meant a built-in one
                 raise TrajectoryError(
                     f"no built-in trajectory of that name ({' or '.join(NAMED_TRAJECTORIES)}) and no such file: "
@@ -496,7 +519,10 @@ def recorded_excitation(trajectory_json: str, t: FloatArray) -> FloatArray | Non
     if not trajectory_json or len(t) < 2:
         return None
     try:
-        traj = load_trajectory(json.loads(trajectory_json))
+        data = json.loads(trajectory_json)
+        if isinstance(data, dict):  # the name plays no part in the excitation (older archives: any name)
+            data.pop("name", None)
+        traj = load_trajectory(data)
     except (TrajectoryError, ValueError, TypeError, RecursionError):  # the archive's word: hostile until read
         return None
     dt = float(np.median(np.diff(t)))

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import msgspec
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from controller.laws import LawConfig, nominal_force_check
 from controller.trajectory import (
@@ -58,9 +58,11 @@ class RequestError(ValueError):
 
 
 class WaypointsIn(BaseModel):
-    """A user trajectory: waypoints in degrees joined by cycloidal moves (see controller.trajectory)."""
+    """A user trajectory: waypoints in degrees joined by cycloidal moves (see controller.trajectory).
+    Strict, as ``/api/trajectories`` reads the same body: ``true`` was taken as 1°, ``"8"`` as 8°
+    and ``"durations_s": "3"`` as 3 s, and the campaign started (input audit)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     name: str = Field("user", max_length=64)
     waypoints_deg: list[list[float]] = Field(min_length=1, description="Joint angles α1..αN per waypoint (deg).")
     durations_s: float | list[float] = Field(description="Duration of each move (s), one per move or one for all.")
@@ -69,9 +71,10 @@ class WaypointsIn(BaseModel):
 
 class CampaignCreate(BaseModel):
     """Start a campaign. Defaults: control, law 2, the §7 control test, the active parameter set,
-    the server's mode as target and its pace."""
+    the server's mode as target and its pace. Strict (module docstring: never silently changed):
+    ``"no_pulleys": "true"``, ``"seed": "5"`` or ``"creep_time_s": true`` are a 422, not coerced."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     kind: Literal["identification", "control"] = "control"
     law: Literal[1, 2, 3] | None = Field(None, description="Control law 1, 2 or 3 (default: 2; 1 for identification).")
     no_pulleys: bool = Field(False, description="Neglect the pulleys in the controller's model (Table 3).")
@@ -104,6 +107,14 @@ class CampaignCreate(BaseModel):
         None, description="Identification only: the cable line's creep time constant (s) measured apart (a bench "
         "creep test), held in the load-friction fit instead of estimated from the record; with estimator auto or "
         "loadfriction.")
+
+    @field_validator("law", mode="before")
+    @classmethod
+    def _law_not_bool(cls, value: Any) -> Any:
+        """true equals 1 to Python, so strict Literal[1, 2, 3] took it as law 1."""
+        if isinstance(value, bool):
+            raise ValueError(f"law must be the integer 1, 2 or 3, got {str(value).lower()}")
+        return value
 
 
 class PreparedCampaign(BaseModel):

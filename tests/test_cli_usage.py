@@ -211,6 +211,15 @@ def test_an_excitation_out_that_is_not_json_is_refused_before_the_design(xneck, 
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command", ["control", "identification"])
+@pytest.mark.parametrize("name", ["x.json", "x", "x.mcap.tmp"])
+def test_a_campaign_out_that_is_not_mcap_is_refused_before_the_campaign(xneck, tmp_path, command, name):
+    """Input audit: `campaign identification --out x.json` recorded an MCAP named .json."""
+    out = tmp_path / name
+    _refused(xneck("campaign", command, "--out", str(out)), "--out", ".mcap")
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
 # -- 2. an unreadable --trajectory -----------------------------------------------------------------------
 
 
@@ -236,6 +245,49 @@ def test_a_trajectory_of_another_type_names_what_to_give_not_a_function(xneck, t
     line = _refused(xneck("campaign", "control", "--trajectory", str(tmp_path / "t.yaml"), "--out",
                           str(tmp_path / "c.mcap")), ".json or .toml", "identification or control_test")
     assert "trajectory_by_name" not in line
+
+
+# -- 2b. a trajectory or parameter file that is no regular file, or huge ----------------------------------
+
+
+@pytest.fixture
+def special_inputs(tmp_path) -> dict[str, dict[str, Path]]:
+    """For .json and .toml: a FIFO (reading it blocked for ever), a link to /dev/zero (read whole,
+    a MemoryError traceback) and a sparse regular file of 4 MiB, past the loaders' bound
+    (bridge.small_file.INPUT_FILE_MAX_BYTES, 1 MiB)."""
+    out: dict[str, dict[str, Path]] = {}
+    for kind in ("fifo", "zero", "big"):
+        for suffix in (".json", ".toml"):
+            path = tmp_path / f"{kind}{suffix}"
+            if kind == "fifo":
+                os.mkfifo(path)
+            elif kind == "zero":
+                path.symlink_to("/dev/zero")
+            else:
+                with path.open("wb") as f:
+                    f.truncate(4 * 1024 * 1024)
+            out.setdefault(kind, {})[suffix] = path
+    return out
+
+
+@pytest.mark.parametrize("kind, said", [("fifo", "a FIFO"), ("zero", "a character device"), ("big", "more than")])
+@pytest.mark.parametrize("command, suffix", [
+    (["campaign", "identification", "--trajectory", "{path}", "--out", "{out}"], ".json"),
+    (["campaign", "control", "--trajectory", "{path}", "--out", "{out}"], ".toml"),
+    (["excitation", "bound", "--trajectory", "{path}"], ".json"),
+    (["campaign", "control", "--params", "{path}", "--out", "{out}"], ".toml"),
+    (["identify", "{campaign}", "--params", "{path}", "--out", "{out}"], ".toml"),
+])
+def test_a_special_or_huge_input_file_is_one_error_line(xneck, tmp_path, campaign, special_inputs, command, suffix,
+                                                        kind, said):
+    """Input audit: a FIFO as --trajectory or --params hung the command for ever, /dev/zero (behind
+    a link) ended in a MemoryError traceback; the loaders read a regular file of at most 1 MiB."""
+    path = special_inputs[kind][suffix]
+    out = tmp_path / "out.mcap"
+    argv = [a.format(path=path, out=out, campaign=campaign) for a in command]
+    line = _refused(xneck(*argv, timeout=60), str(path))
+    assert said in line or (kind != "big" and "not a regular file" in line), line
+    assert not out.exists()
 
 
 # -- 10. a truncated archive: what the user can do -------------------------------------------------------
@@ -502,6 +554,18 @@ def test_the_twin_refuses_no_camera_with_an_alpha_ip_it_would_not_publish(xneck)
     twin published no α_IP at all."""
     _refused(xneck("twin", "--no-camera", "--alpha-ip", "camera", "--listen", "tcp/127.0.0.1:0", timeout=60),
              "--no-camera", "--alpha-ip camera")
+
+
+@pytest.mark.parametrize("cutoff", ["1e-9", "0.001", "1e6"])
+def test_a_cutoff_out_of_the_records_range_states_the_range(xneck, campaign, tmp_path, cutoff):
+    """Input audit: `identify --cutoff-hz 1e-9` ended in "error: Singular matrix" (the Butterworth's
+    coefficients), while 0.001 Hz said only that too few instants remained. Both, and a cutoff
+    past the Nyquist frequency, state the range this record accepts, before any filter runs."""
+    line = _refused(xneck("identify", str(campaign), "--cutoff-hz", cutoff, "--out", str(tmp_path / "o"),
+                          "--no-alpha-hat", timeout=120), f"cutoff {float(cutoff):g} Hz is out of range",
+                    "must be in [")
+    assert "Singular" not in line
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
 @pytest.mark.parametrize("argv, said", [

@@ -145,3 +145,55 @@ def test_a_library_trajectory_starts_as_a_campaign_by_name_with_the_same_checks(
     msg = r.json()["detail"][0]["msg"]
     assert r.status_code == 422 and "unknown trajectory 'no-such-one'" in msg and "nod-run" in msg, r.text
     assert "control_test" in msg, msg
+
+
+@pytest.fixture(scope="module")
+def no_room_console(tmp_path_factory):
+    """A console whose free-space floor no disk meets (tests/test_fuzz_api.py's device): a campaign
+    body that passes every check is answered 507 instead of spawning a twin."""
+    data = tmp_path_factory.mktemp("strict") / "data"
+    with running_server(data, viser=False, min_free_mb=1e12) as (base, _app), \
+            httpx.Client(base_url=base, timeout=10) as client:
+        yield client
+
+
+@pytest.mark.parametrize("body", [
+    {"waypoints": {**NOD, "waypoints_deg": [[0, 0, 0], [True, 10, 0], [0, 0, 0]]}},
+    {"waypoints": {**NOD, "waypoints_deg": [[0, 0, 0], ["8", 10, 0], [0, 0, 0]]}},
+    {"waypoints": {**NOD, "durations_s": "3"}},
+    {"waypoints": {**NOD, "dwell_s": [False, 0, 0]}},
+    {"waypoints": NOD, "no_pulleys": "true"},
+    {"waypoints": NOD, "seed": "5"},
+    {"waypoints": NOD, "law": True},
+    {"kind": "identification", "creep_time_s": True},
+], ids=["bool-angle", "string-angle", "string-duration", "bool-dwell", "string-bool", "string-seed", "bool-law",
+        "bool-creep"])
+def test_a_campaign_body_of_the_wrong_types_is_refused_not_coerced(no_room_console, body):
+    """Input audit: POST /api/campaigns took true as 1°, "8" as 8° and "durations_s": "3" as 3 s and
+    started the campaign (201), where /api/trajectories refuses the same body ("never silently
+    changed", server/campaign_request.py). 422 naming the field, like every other route."""
+    client = no_room_console
+    r = client.post("/api/campaigns", json=body, headers=AUTH)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert detail and all(d["loc"][0] == "body" for d in detail), detail
+    if "waypoints" in body and body["waypoints"] is not NOD:  # the library refuses the same trajectory
+        assert client.put("/api/trajectories/typed", json=body["waypoints"], headers=AUTH).status_code == 422
+    assert client.post("/api/campaigns", json={"waypoints": NOD}, headers=AUTH).status_code == 507  # well typed
+
+
+@pytest.mark.parametrize("name", ["nod\u202e", "a\x00b", "a\nb", "a\u200bb"])
+def test_a_trajectory_name_with_a_control_or_format_character_is_a_422(no_room_console, name):
+    """Input audit: a NUL, a newline or a bidi override (U+202E, which reorders what the console
+    and the CLI show) in a trajectory's name reached the campaign's record and archive."""
+    client = no_room_console
+    body = {**NOD, "name": name}
+    r = client.post("/api/campaigns", json={"waypoints": body}, headers=AUTH)
+    bad = next(c for c in name if not c.isalnum())
+    assert r.status_code == 422 and f"U+{ord(bad):04X}" in r.text, r.text
+    assert client.put("/api/trajectories/named", json=body, headers=AUTH).status_code == 422
+    v = client.post("/api/trajectories/validate", json=body, headers=AUTH).json()
+    assert not v["ok"] and "name" in v["message"], v
+    from urllib.parse import quote
+
+    assert client.put(f"/api/trajectories/{quote(name)}", json=NOD, headers=AUTH).status_code in (404, 422)

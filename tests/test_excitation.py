@@ -155,7 +155,9 @@ def test_a_pretension_design_writes_a_schedule_the_campaign_accepts(cli, tmp_pat
     (("--speed", "1.5"), "speed is a fraction"),
     (("--waypoints", "2"), "at least 3"),
     (("--criterion", "e"), "criterion must be d"),
-    (("--box-deg", "40,70,20"), "--box-deg needs 3 amplitudes"),
+    # one value is every joint's (docs/identification.md runs --box-deg 55): the message says so (input audit)
+    (("--box-deg", "40,70,20"), "--box-deg needs one amplitude for every joint or 3, one per joint"),
+    (("--box-deg", "40,30"), "--box-deg needs one amplitude for every joint or 3, one per joint"),
     (("--box-deg", "forty"), "--box-deg must be numbers"),
     (("--holds", "some"), "holds must be none"),
     # beyond what one campaign runs: they optimised for hours (audit of 2026-11-27)
@@ -168,6 +170,23 @@ def test_bad_design_requests_are_refused_clearly(cli, tmp_path, args, message):
     assert message in r.stderr
     assert r.exception is None or isinstance(r.exception, SystemExit)  # a message, not a traceback
     assert not (tmp_path / "x.json").exists()
+
+
+@pytest.mark.parametrize("existing", ["x.json", "x.design.json"])
+def test_an_existing_design_or_its_scores_are_refused_unless_force(cli, tmp_path, existing):
+    """Input audit: `excitation design --out FILE` replaced FILE and <stem>.design.json without a
+    word, where identify, campaign --out and twin calibrate refuse an existing output."""
+    (tmp_path / existing).write_text("earlier\n")
+    args = ["excitation", "design", "--out", str(tmp_path / "x.json"), "--duration", "12", "--starts", "1",
+            "--maxiter", "0"]
+    r = cli.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert r.stderr.count("error:") == 1 and f"{tmp_path / existing} exists" in r.stderr and "--force" in r.stderr
+    assert (tmp_path / existing).read_text() == "earlier\n"
+    r = cli.invoke(app, [*args, "--force"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "x.json").read_text())["waypoints_deg"]
+    assert json.loads((tmp_path / "x.design.json").read_text())["trajectory_file"] == str(tmp_path / "x.json")
 
 
 def test_the_default_box_is_the_paper_amplitudes(params):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -424,3 +425,28 @@ def test_a_cached_identified_set_nested_too_deeply_is_identified_again(tmp_path)
 
     (tmp_path / CACHE_NAME).write_text("[" * 100_000 + "]" * 100_000)
     assert cached_set(tmp_path) is None
+
+
+@pytest.mark.parametrize("name, said", [
+    ("x" * 65, "65 characters, at most 64"),
+    ("nod\u202e", "U+202E (RIGHT-TO-LEFT OVERRIDE) at 3"),
+    ("a\x00b", "U+0000"),
+    ("a\nb", "U+000A"),
+    ("a\u2028b", "U+2028"),
+])
+def test_a_trajectory_name_is_capped_and_refuses_control_characters(tmp_path, name, said):
+    """Input audit: a file's name (the CLI's --trajectory, the bus, the console alike) was neither
+    capped like the console's 64 characters nor free of controls and bidi overrides."""
+    from controller.trajectory import TrajectoryError, load_trajectory
+
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps({"name": name, "waypoints_deg": [[0, 0, 0], [5, 0, 0]], "durations_s": 2.0}))
+    with pytest.raises(TrajectoryError, match=re.escape(said)):
+        load_trajectory(path)
+    assert load_trajectory({"name": "x" * 64 + "", "waypoints_deg": [[0, 0, 0]]}).name == "x" * 64
+    assert load_trajectory({"name": "nœud à 3 joints", "waypoints_deg": [[0, 0, 0]]}).name == "nœud à 3 joints"
+    # an archive's recorded trajectory still sets the filter cutoff, whatever name an older one holds
+    from controller.trajectory import recorded_excitation
+
+    text = json.dumps({"name": name, "waypoints_deg": [[0, 0, 0], [5, 0, 0]], "durations_s": 2.0})
+    assert recorded_excitation(text, np.arange(0.0, 2.0, 0.002)).shape == (1000, 3)

@@ -47,8 +47,8 @@ def _box(box_deg: str, n_joints: int, alpha_max_deg: float):
     if len(values) == 1:
         values *= n_joints
     if len(values) != n_joints or not all(0.0 < v <= alpha_max_deg for v in values):
-        raise DesignError(f"--box-deg needs {n_joints} amplitudes in (0, {alpha_max_deg:g}]° (the joint limit), "
-                          f"got {box_deg!r}")
+        raise DesignError(f"--box-deg needs one amplitude for every joint or {n_joints}, one per joint, each in "
+                          f"(0, {alpha_max_deg:g}]° (the joint limit), got {box_deg!r}")
     return [math.radians(v) for v in values]
 
 
@@ -85,7 +85,8 @@ def design_command(
     duration: float = typer.Option(97.0, "--duration", help="Duration of the trajectory (s), rests included; "
                                    "97 s is the §5.2.2 identification trajectory's."),
     out: Path = typer.Option(Path("excitation.json"), "--out", help="Trajectory file to write (.json, degrees); "
-                             "the design's scores go to <stem>.design.json beside it."),
+                             "the design's scores go to <stem>.design.json beside it. Refused if either "
+                             "exists, unless --force."),
     seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random starting designs (≥ 0)."),
     waypoints: int | None = typer.Option(None, "--waypoints", help="Number of waypoints, the straight start and "
                                          "end included (default: one every 4 s)."),
@@ -94,7 +95,7 @@ def design_command(
     criterion: str = typer.Option("d", "--criterion", help="d: D-optimality on f_s, k, λ and c_a; ds: on f_s, "
                                   "k and λ only (the damping, barely identifiable, a nuisance)."),
     box_deg: str = typer.Option(PAPER_BOX_DEG, "--box-deg", help="Largest |α| per joint (deg), e.g. 40,30,20 (the "
-                                "§5.2.2 amplitudes, the default): a design out to the joint limits (60°) asks law 1 "
+                                "§5.2.2 amplitudes, the default), or one value for every joint: a design out to the joint limits (60°) asks law 1 "
                                 "for poses where it loses track (a campaign aborted on a diverging α̂)."),
     pretension_max: float = typer.Option(PRETENSION_MAX_N, "--pretension-max", help="Largest pretension a waypoint "
                                          "may add to every cable's floor t_min (N), to sweep the tensions over "
@@ -106,6 +107,7 @@ def design_command(
     starts: int = typer.Option(2, "--starts", min=1, help="Random starting designs, each optimised."),
     maxiter: int = typer.Option(40, "--maxiter", min=0, help="L-BFGS-B iterations per start."),
     as_json: bool = typer.Option(False, "--json", help="Print the scores as JSON."),
+    force: bool = typer.Option(False, "--force", help="Overwrite --out and its <stem>.design.json."),
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
 ) -> None:
@@ -125,6 +127,12 @@ def design_command(
     if out.suffix.lower() != ".json":  # --trajectory reads a file by its suffix: JSON in a .toml would not load
         raise fail(f"--out must be a .json file (the trajectory is written as JSON), got {out}")
     check_output(out)  # before the design, which takes minutes
+    design_path = out.with_name(out.stem + ".design.json")
+    # An earlier design and its scores (which docs cite) were replaced without a word, where
+    # identify, campaign --out and twin calibrate refuse an existing output (input audit).
+    for path in (out, design_path):
+        if not force and (path.exists() or path.is_symlink()):
+            raise fail(f"{path} exists: choose another --out or add --force")
     params = load_cli_params(params_file, overrides)
     try:
         problem = _problem(params, duration, speed, criterion, box_deg, pretension_max, holds)
@@ -156,7 +164,6 @@ def design_command(
                  "predicted_sigma_ratio": {n: result.score.relative_sigma[n] / baseline.relative_sigma[n]
                                            for n in baseline.relative_sigma}},
     }
-    design_path = out.with_name(out.stem + ".design.json")
     try:
         from twin.jsonout import strict_json
 
@@ -217,6 +224,15 @@ def bound_command(
     if not (math.isfinite(t_hi) and MIN_TENSION_N < t_hi <= 10 * params.limits.f_max):
         raise fail(f"--t-max must be above the {MIN_TENSION_N:g} N slack threshold and at most 10·f_max = "
                    f"{10 * params.limits.f_max:g} N, got {t_hi}")
+    loaded = []  # before the bound, which takes seconds: an unreadable file is refused at once
+    for path in trajectories or []:
+        try:
+            traj = load_trajectory(path)
+        except TrajectoryError as exc:
+            raise fail(str(exc)) from None
+        if traj.n_joints != params.n_joints:
+            raise fail(f"{path}: {traj.n_joints} joints, the robot has {params.n_joints}")
+        loaded.append((path, traj))
     try:
         problem = _problem(params, duration, 0.6)
     except DesignError as exc:
@@ -242,13 +258,7 @@ def bound_command(
                       "reachable": bool(ratio <= target), "support_tensions_N": list(design.tensions_N),
                       "support_weights": list(design.weights), "shortest_duration_s": float(shortest)}
     scored: dict[str, dict[str, float]] = {}
-    for path in trajectories or []:
-        try:
-            traj = load_trajectory(path)
-        except TrajectoryError as exc:
-            raise fail(str(exc)) from None
-        if traj.n_joints != params.n_joints:
-            raise fail(f"{path}: {traj.n_joints} joints, the robot has {params.n_joints}")
+    for path, traj in loaded:
         s = score(problem, traj.waypoints_rad, traj.durations_s, traj.dwell_s,
                   traj.pretension_N if traj.has_pretension else None)
         scored[str(path)] = {n: s.relative_sigma[n] / base.relative_sigma[n] * math.sqrt(base.duration_s / s.duration_s)

@@ -33,7 +33,10 @@ def identify(
     overrides: list[str] | None = typer.Option(None, "--set", help="Override one value of the base parameter "
                                                "file, e.g. --set motors.gear_loss_forward=0.05."),
     cutoff_hz: float | None = typer.Option(None, "--cutoff-hz", callback=POSITIVE,
-                                           help="Override the filter cutoff rule (Hz)."),
+                                           help="Override the filter cutoff rule (Hz), within what the record allows: "
+                                           "from about 4/(its duration − 2 s), as the filter edges dropped at each "
+                                           "end must leave 64 instants, to below the Nyquist frequency (≈ 15 Hz); "
+                                           "one out of range is refused, the record's range stated."),
     threshold: float | None = typer.Option(None, "--threshold", callback=POSITIVE, help="Relative σ above which "
                                            "a parameter is badly identified (a fraction > 0; default: the "
                                            "pipeline's, 0.10)."),

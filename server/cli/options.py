@@ -247,6 +247,10 @@ def check_new_archive(value: Path | None) -> Path | None:
     """Typer callback: ``--out`` of a campaign must not exist and must be writable. The runner
     refuses an existing one too (server.campaign_runner.run_campaign); checking here refuses it
     before anything is loaded or started, as a usage error rather than a traceback."""
+    if value is not None and value.suffix.lower() != ".mcap":
+        # an MCAP named x.json was written (input audit): the console, identify and camera align
+        # know archives by their suffix
+        raise fail(f"--out must be an .mcap file (the campaign is recorded as MCAP), got {value}")
     if value is not None and value.exists():
         raise fail(f"--out: {value} exists: choose another --out (archives are never overwritten)")
     if value is not None:
@@ -268,7 +272,7 @@ def check_estimator(value: str) -> str:
 
 
 ARCHIVE_OUT_OPTION = typer.Option(
-    None, "--out", callback=check_new_archive, help="MCAP file to write, which must not exist (default: "
+    None, "--out", callback=check_new_archive, help="MCAP file to write (.mcap), which must not exist (default: "
     "<data dir>/cli-campaigns/campaign-<id>.mcap; the data dir is XNECK_DATA_DIR, else ./data).")
 PARAMS_OPTION = typer.Option(None, "--params", help="Parameter file (TOML); default: the 3-X prototype.")
 SET_OPTION = typer.Option(None, "--set", help="Override one value, e.g. --set springs.l0=[0.05,0.05,0.05].")

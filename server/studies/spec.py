@@ -36,6 +36,8 @@ from typing import Any, overload
 
 import numpy as np
 
+from bridge.small_file import read_input_file
+
 KINDS = ("control", "identification", "design")
 MAX_RUNS = 200_000  # a typo (a grid of 1e6 points) is refused before a cluster spends a day on it
 _NUM = r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*"
@@ -226,8 +228,10 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
     data: dict[str, Any] = {}
     if file is not None:
         try:
-            data = tomllib.loads(Path(file).read_text())
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            data = tomllib.loads(read_input_file(file).decode("utf-8"))  # a FIFO or a device: refused, not read
+        except OSError as exc:
+            raise StudyError(f"study file {str(file)!r}: {exc.strerror or exc}") from None
+        except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise StudyError(f"study file {str(file)!r}: {exc}") from None
         unknown = set(data) - set(Study.__dataclass_fields__)
         if unknown:

@@ -446,6 +446,18 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
     if cutoff_hz is not None:
         fc, f_99, source = float(cutoff_hz), float("nan"), "given"
+        # The edges dropped below (two cutoff periods at each end) must leave MIN_SAMPLES instants:
+        # fc ≥ 4/room. Far below that the Butterworth's coefficients are singular too (1e-9 Hz
+        # was "error: Singular matrix", input audit). Rounded up to the mHz, as the message says it.
+        span = min(t[-1], t_ip[-1]) - max(t[0], t_ip[0])
+        room = span - MIN_SAMPLES * DECIMATION * dt
+        fc_min = math.ceil(4.0 / max(room, 2.0) * 1000.0) / 1000.0
+        if not (fc_min <= fc < nyquist):
+            raise IdentificationError(
+                f"cutoff {fc:g} Hz is out of range: for this record it must be in [{fc_min:g}, {nyquist:.2f}) Hz "
+                f"(below, the filter edges, two cutoff periods dropped at each end of its {span:.1f} s, leave fewer "
+                f"than {MIN_SAMPLES} instants; from {nyquist:.2f} Hz up, past the Nyquist frequency of the "
+                f"decimated/camera data)")
     elif data.excitation_alpha_rad is not None:
         fc, f_99 = cutoff_rule(np.gradient(data.excitation_alpha_rad, dt, axis=0), rate, nyquist)
         source = "alpha_d"

@@ -19,6 +19,8 @@ from typing import Any, Literal
 
 import msgspec
 
+from bridge.small_file import read_input_file
+
 __all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "differing_keys", "dotted_parent", "load_params",
            "params_from_dict", "params_from_toml", "parse_override"]
 
@@ -368,8 +370,8 @@ def load_params(path: str | Path | None = None, overrides: dict[str, Any] | None
         text = resources.files("twin.model").joinpath(DEFAULT_PARAMS_FILE).read_text()
     else:
         source = str(path)
-        try:
-            text = Path(path).read_text()
+        try:  # a regular file of bounded size: a FIFO hung the command, /dev/zero exhausted memory (input audit)
+            text = read_input_file(path).decode("utf-8")
         except OSError as exc:
             raise ParameterError(f"{source}: cannot read parameter file ({exc.strerror})") from exc
         except UnicodeDecodeError as exc:  # the console answered 500 (audit of 2026-11-26)

@@ -49,6 +49,7 @@ from typing import Any, Literal
 
 import msgspec
 
+from bridge.small_file import read_input_file
 from twin.model.params import ParameterError, Params, load_params
 
 TruthName = Literal["model", "robot"]  # named truths (not the bus message bridge.bus.Truth); a path also works
@@ -258,8 +259,10 @@ def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
 @lru_cache(maxsize=16)
 def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
     try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        data = tomllib.loads(read_input_file(path).decode("utf-8"))  # a FIFO or a device: refused, not read
+    except OSError as exc:
+        raise TruthError(f"{path}: cannot read the truth file ({exc.strerror or exc})") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise TruthError(f"{path}: {exc}") from None
     except RecursionError:
         raise TruthError(f"{path}: nested too deeply") from None
@@ -281,8 +284,10 @@ def load_truth(truth: str | Path | RobotTruth = "model") -> RobotTruth:
     path = ROBOT_TRUTH_FILE if truth == "robot" else Path(truth)
     if str(truth) not in TRUTHS and path.suffix != ".toml":
         raise TruthError(f"truth must be one of {', '.join(TRUTHS)} or a .toml file, got {truth!r}")
-    if not path.is_file():  # a directory is not "does not exist" (user audit)
-        raise TruthError(f"truth file {str(path)!r} {'is a directory' if path.is_dir() else 'does not exist'}")
+    if not path.is_file():  # a directory is not "does not exist" (user audit), nor is a FIFO or a device
+        why = ("is a directory" if path.is_dir() else "does not exist" if not path.exists()
+               else "is not a regular file")
+        raise TruthError(f"truth file {str(path)!r} {why}")
     truth_obj = _load_file(path.resolve(), path.stat().st_mtime_ns)
     return msgspec.structs.replace(truth_obj, name="robot") if truth == "robot" else truth_obj
 
