@@ -61,9 +61,15 @@ def run(name: str, args: list[str], fresh: bool) -> dict[str, Any]:
     path = RUNS / f"{name}.json"
     if path.exists() and not fresh:
         return json.loads(path.read_text())
-    if "--out" in args and args[args.index("--out") + 1].endswith(".mcap"):
-        # a re-run: archives are never overwritten, and this one belongs to the run being redone
-        (ROOT / args[args.index("--out") + 1]).unlink(missing_ok=True)
+    if "--out" in args:
+        # a re-run: xneck overwrites no archive, design nor identification, and these belong to the
+        # run being redone: its archive, its design and scores, its identification's folder
+        out = ROOT / args[args.index("--out") + 1]
+        if out.suffix in (".mcap", ".json"):
+            for stale in (out, out.with_name(out.stem + ".design.json")):
+                stale.unlink(missing_ok=True)
+        elif args[0] == "identify" and out.is_dir():
+            shutil.rmtree(out)
     command = "xneck " + " ".join(shlex.quote(a) for a in args)
     print(f"[{time.strftime('%H:%M:%S')}] {command}", file=sys.stderr, flush=True)
     t0 = time.monotonic()
