@@ -179,3 +179,18 @@ def test_commands_answering_two_bridge_runs_are_refused(tmp_path):
     with pytest.raises(IdentificationError, match=r"commands answer 2 bridge runs: bridge 'b' run 'e' \(1500 states.*"
                                                   r"bridge 'b' run 'e3' \(1500 states.*restarted mid-campaign"):
         campaign_data_from_mcap(_archive(tmp_path / "restart.mcap", restarted, _frames(), commands))
+
+
+def test_another_controllers_commands_recorded_before_the_campaigns_own_do_not_refuse_it(tmp_path):
+    """Review of session 49: until the recorder follows the campaign's controller it keeps every
+    command on the bus; a few of another controller's, answering its own bridge's run, made the
+    reader refuse a good archive as "the campaign's commands answer 2 bridge runs". The run is the
+    one the campaign's controller (the sender of most commands) answers."""
+    clean = campaign_data_from_mcap(_archive(tmp_path / "clean.mcap", _states(), _frames()))
+    stray = [_replace(c, sender="other", epoch="e2") for c in _commands("e2")[:10]]
+    other = _other_run(_states()[:100])
+    data = campaign_data_from_mcap(_archive(tmp_path / "stray.mcap", _states(), _frames(), _commands("e"), stray, other))
+    np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)
+    assert any("kept bridge 'b' run 'e'" in n and "the run the campaign's commands answer" in n for n in data.notes), \
+        data.notes
+    assert any("10 command(s) of 1 other controller(s) ('other') not counted" in n for n in data.notes), data.notes

@@ -25,7 +25,9 @@ What a shared bus may have put in an archive (audit of 2026-11-29):
   λ +59 %, exit 0: audit of 2026-11-30); the recorder keeps every run's states until the
   campaign's first command names its run (server.quality), so a real archive may hold another
   run's before the campaign's. The states read are those of the campaign's run
-  (:func:`_one_bridge_run`): the run the archive's commands (``ForceCommand.epoch``) answer, else,
+  (:func:`_one_bridge_run`): the run the campaign controller's commands (``ForceCommand.epoch``;
+  the controller that sent most of the archive's commands: until the recorder follows it, it keeps
+  any controller's) answer, else,
   if no command names a run, the run with the most states, provided no other run's state was
   received within its span (first to last state, the recorder's receive time: one clock). The other
   runs' states are dropped, counted and said (:attr:`CampaignData.notes`). Refused: the commands
@@ -145,7 +147,18 @@ def _one_bridge_run(path: str | Path, states: list[tuple[int, Any]], commands: l
         runs.setdefault((item[1].bridge, item[1].epoch), []).append(item)
     if len(runs) <= 1:
         return [m for _, m in states]
-    answered = Counter(c.epoch for _, c in commands)
+    # The campaign's controller is the sender of most commands: until the recorder follows it, it
+    # keeps every controller's, and another's few, answering its own bridge, had the record refused
+    # as one restarted mid-campaign (review of session 49).
+    senders = Counter(c.sender for _, c in commands)
+    own = senders.most_common(1)[0][0] if senders else ""
+    if len(senders) > 1:
+        strays = {s: n for s, n in senders.items() if s != own}
+        notes.append(f"{sum(strays.values())} command(s) of {len(strays)} other controller(s) "
+                     f"({', '.join(repr(s[:64]) for s in list(strays)[:3])}{', …' if len(strays) > 3 else ''}) not "
+                     f"counted in telling the campaign's bridge run: the campaign's is {own[:64]!r}, the sender of "
+                     f"most ({senders[own]})")
+    answered = Counter(c.epoch for _, c in commands if c.sender == own)
     named = [run for run in runs if answered.get(run[1], 0) > 0]
     if len(named) > 1:
         raise IdentificationError(
