@@ -15,7 +15,10 @@ peer: on loopback TCP, a peer that left (a console or tool closing) cost ~40 ms 
 (benchmarks/peer_churn.py). Nor do they open links to the tools on the hub (``--no-autoconnect``):
 gossip had them link to every tool's loopback TCP listener, and a link a process opened that
 lingers on close stalls every link it opened, the controller's to the bridge among them; the tools
-link to them instead, over their Unix sockets (tests/test_up_links.py).
+link to them instead, over their Unix sockets (tests/test_up_links.py). So a tool that cannot open
+those sockets (another machine on an exposed hub, another user, a container without the folder)
+links to the console alone and hears neither the bridge nor the controller (Zenoh peers do not
+relay): it connects to a bridge of its own endpoint (``--no-bridge --bridge-at``, the board's).
 With ``--no-bridge`` the controller connects to the remote bridge where it listens
 (``--bridge-at``), else to the hub, to which the bridge then connects. Start order: server (until
 its health endpoint answers), bridge, controller. Before anything starts, :func:`preflight` checks that the hub endpoint, the HTTP port
