@@ -432,9 +432,14 @@ def test_identify_refuses_to_replace_an_earlier_identifications_parameter_set(xn
              "holds an earlier identification's files", "fig4_torques.png", "--force")
     assert all(p.read_bytes() == b for p, b in figures.items()) and not list(again.glob("other*"))
     os.utime(sets[0], (1.0, 1.0))  # written again below: its time says so (the fit may give the same values)
+    (again / "validation").mkdir(exist_ok=True)  # an earlier --validate's: not this run's, so removed
+    (again / "fig8_alpha_hat.png").write_bytes(b"earlier")  # --no-alpha-hat writes no Fig. 8: removed too
+    (again / "notes.txt").write_text("mine")  # not an identification's: kept
     forced = xneck("identify", str(campaign), "--no-alpha-hat", "--estimator", "ols", "--out", str(again), "--force")
     assert forced.returncode == 0, forced.stderr
     assert sets[0].stat().st_mtime > 1.0
+    assert not (again / "validation").exists() and not (again / "fig8_alpha_hat.png").exists()
+    assert (again / "notes.txt").read_text() == "mine" and (again / "fig4_torques.png").is_file()
     # the module's campaign is a control test: identified as asked, and said (user audit of session 45)
     assert f"warning: {campaign} is a control campaign, not an identification one" in forced.stderr, forced.stderr
 

@@ -218,6 +218,8 @@ def identify(
         prov = warned(prov, timing.text())
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
+        if force:  # replaced, not mixed: a figure or validation/ this run does not write stayed (review of session 49)
+            _remove_earlier_outputs(out_dir)
         figures = write_figures(val, out_dir) if val is not None else []
         toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
         cross = (_cross_validate(ident, data_b, validate, out_dir, alpha_hat=not no_alpha_hat)
@@ -258,7 +260,21 @@ def _earlier_outputs(out_dir: Path) -> list[str]:
     """The names of an earlier identification's files in ``out_dir`` (none if it does not exist)."""
     if not out_dir.is_dir():
         return []
-    return sorted({p.name for pattern in EARLIER_OUTPUTS for p in out_dir.glob(pattern)})
+    # files, and the validation folder: a folder named like a figure is no identification's output
+    return sorted({p.name for pattern in EARLIER_OUTPUTS for p in out_dir.glob(pattern)
+                   if (p.is_dir() and not p.is_symlink()) == (pattern == "validation")})
+
+
+def _remove_earlier_outputs(out_dir: Path) -> None:
+    """Remove an earlier identification's files from ``out_dir`` (:data:`EARLIER_OUTPUTS`), for ``--force``."""
+    import shutil
+
+    for name in _earlier_outputs(out_dir):
+        path = out_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def _how_it_ended(info: dict[str, str]) -> str:
