@@ -413,6 +413,21 @@ def test_identify_takes_the_set_the_campaign_ran_with_and_says_when_another_diff
     assert r.returncode == 2 and "the parameter set recorded in" in r.stderr and "--params FILE" in r.stderr, r.stderr
 
 
+def test_a_recorded_trajectory_that_does_not_describe_the_record_is_refused(short_campaign, params):
+    """Audit of session 49: the filter cutoff follows the archive's recorded trajectory, and one that
+    said a 0.5° move beside a record of 80° set it at 0.5 Hz (k(2) −23 %, exit 0). Refused, naming
+    the joint; --cutoff-hz (the cutoff given) fits it anyway; the campaign's own trajectory passes."""
+    d = short_campaign
+    assert d.excitation_alpha_rad is not None
+    assert preprocess(d, params).bandwidth_from == "alpha_d"
+    for scale in (0.01, 3.0):
+        wrong = CampaignData(**_with(d), excitation_alpha_rad=d.excitation_alpha_rad * scale)
+        with pytest.raises(IdentificationError, match=r"recorded trajectory does not describe its record: joint 1 "
+                                                      r"moves through [\d.]+° in it and 8\d\.\d° in α_IP"):
+            preprocess(wrong, params)
+        assert preprocess(wrong, params, cutoff_hz=2.0).bandwidth_from == "given"
+
+
 def test_motors_that_never_move_are_rank_deficient(params):
     data, _ = simulate_campaign(0, duration_s=8.0, still=True)
     proc = preprocess(data, params)

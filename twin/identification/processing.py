@@ -421,6 +421,36 @@ def check_camera_moves(data: CampaignData, params: Params) -> None:
                 f"stuck camera's α_IP is not the neck's; check the camera and record again")
 
 
+#: How far the excitation α^d's range of a joint may differ from what the camera saw it move (rad,
+#: and a fraction of the larger of the two) and still describe the record: the closed loop tracks
+#: α^d within a few degrees (84 against 80°, 64 against 60° on the twin's campaigns).
+EXCITATION_MISMATCH_RAD = float(np.radians(15.0))
+EXCITATION_MISMATCH_FRACTION = 0.5
+
+
+def check_excitation_describes(data: CampaignData) -> None:
+    """Raise :class:`IdentificationError` when the excitation α^d (the archive's recorded trajectory)
+    does not describe the record: a joint's range in α^d and in α_IP differ by more than
+    :data:`EXCITATION_MISMATCH_RAD` and :data:`EXCITATION_MISMATCH_FRACTION` of the larger. The
+    filter cutoff follows α^d: an archive whose trajectory said a 0.5° move, beside a record of
+    80°, was filtered at 0.5 Hz and gave k(2) −23 %, λ(3) +49 %, exit 0 (audit of 2026-11-30)."""
+    if data.excitation_alpha_rad is None or len(data.t_ip_s) < 2:
+        return
+    inside = (data.t_ip_s >= data.t_s[0]) & (data.t_ip_s <= data.t_s[-1])
+    if inside.sum() < 2:
+        return
+    seen = np.ptp(data.alpha_ip_rad[inside], axis=0)
+    planned = np.ptp(data.excitation_alpha_rad, axis=0)
+    gap = np.abs(seen - planned)
+    bad = np.flatnonzero(gap > np.maximum(EXCITATION_MISMATCH_RAD, EXCITATION_MISMATCH_FRACTION * np.maximum(seen, planned)))
+    if bad.size:
+        j = int(bad[np.argmax(gap[bad])])
+        raise IdentificationError(
+            f"the campaign's recorded trajectory does not describe its record: joint {j + 1} moves through "
+            f"{np.degrees(planned[j]):.1f}° in it and {np.degrees(seen[j]):.1f}° in α_IP (an edited archive, or "
+            f"another campaign's trajectory): the filter cutoff follows the trajectory; --cutoff-hz sets it instead")
+
+
 def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = None) -> Processed:
     """§5.2.1: zero-phase Butterworth (order 4, :func:`cutoff_rule` unless ``cutoff_hz``) on θ,
     f and α_IP; central differences; θ and f decimated from 500 Hz to 31.25 Hz (anti-aliased,
@@ -459,6 +489,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
                 f"than {MIN_SAMPLES} instants; from {nyquist:.2f} Hz up, past the Nyquist frequency of the "
                 f"decimated/camera data)")
     elif data.excitation_alpha_rad is not None:
+        check_excitation_describes(data)
         fc, f_99 = cutoff_rule(np.gradient(data.excitation_alpha_rad, dt, axis=0), rate, nyquist)
         source = "alpha_d"
     else:
