@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -118,6 +119,9 @@ def test_cli_writes_a_file_the_identification_campaign_accepts(xneck, tmp_path, 
     assert r.returncode == 0, r.stderr
     report = json.loads(r.stdout)
     assert report["trajectory_file"] == str(out)
+    # progress on stderr (the defaults take minutes; input audit of session 49: none was printed)
+    assert "design: start 1 of 1: optimising (2 iterations at most)" in r.stderr, r.stderr
+    assert re.search(r"design: start 1 of 1: iteration [12] of at most 2, criterion -?[\d.]", r.stderr), r.stderr
     # a 12 s design after 2 iterations: its criterion is reported beside the cycloids' (the gain
     # itself is test_design_beats_the_paper_cycloids_on_the_criterion's)
     assert math.isfinite(report["designed"]["log_det"]) and math.isfinite(report["paper_4x6_cycloids"]["log_det"])

@@ -144,7 +144,7 @@ def design_command(
         k = waypoints if waypoints is not None else max(int(round(duration / 4.0)) + 1, 3)
         start = paper.waypoints_rad if k == paper.n_waypoints else None
         result = design(problem, n_waypoints=waypoints, seed=seed, starts=starts, maxiter=maxiter, margin=1.0,
-                        start=start)
+                        start=start, progress=lambda line: typer.echo(f"design: {line}", err=True))
     except DesignError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(2) from None

@@ -394,15 +394,29 @@ def _waypoints(p: DesignProblem, u: FloatArray, k: int, n: int) -> tuple[FloatAr
     return w, P
 
 
+def _iterations_told(progress: Callable[[str], None], what: str, maxiter: int) -> Callable[..., None]:
+    """An L-BFGS-B callback telling ``progress`` each iteration and the criterion there."""
+    done = [0]
+
+    # scipy passes the iterate as an OptimizeResult to a callback whose one parameter has this name
+    def tell(intermediate_result: optimize.OptimizeResult) -> None:
+        done[0] += 1
+        progress(f"{what}: iteration {done[0]} of at most {maxiter}, criterion {float(intermediate_result.fun):.4g}")
+
+    return tell
+
+
 def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, starts: int = 2,
-           maxiter: int = 40, margin: float = 0.95, start: FloatArray | None = None) -> Excitation:
+           maxiter: int = 40, margin: float = 0.95, start: FloatArray | None = None,
+           progress: Callable[[str], None] | None = None) -> Excitation:
     """The D-optimal excitation of ``p`` (module docstring).
 
     ``n_waypoints`` K (default: one every 4 s, as the §5.2.2 trajectory's 25 in 97 s); the inner
     waypoints move within ±``margin``·alpha_max. ``start`` (K, N) rad, e.g. the §5.2.2 cycloids'
     waypoints: a first starting design, so the result is at least as good on the criterion; then
     ``starts`` random starting designs (seeded by ``seed``); each is improved by L-BFGS-B for at
-    most ``maxiter`` iterations; the best one that the
+    most ``maxiter`` iterations (``progress``, if given, is told each start and iteration in one
+    line: a design at the defaults takes minutes); the best one that the
     caller's ``check`` accepts, with every nominal force under FORCE_MARGIN·f_max, is returned (a
     rejected one is shrunk towards the straight pose by 5 % steps until it passes). Raises :class:`DesignError` when none passes."""
     k = n_waypoints if n_waypoints is not None else max(int(round(p.duration_s / 4.0)) + 1, 3)
@@ -421,9 +435,14 @@ def design(p: DesignProblem, *, n_waypoints: int | None = None, seed: int = 0, s
         initial.append(np.concatenate([np.clip(w0[1:-1] / p.alpha_max, -margin, margin).ravel(), np.zeros(n_pre)]))
     for _ in range(max(starts, 1)):
         initial.append(np.concatenate([rng.uniform(-margin, margin, size=(k - 2) * n), rng.uniform(0.0, 1.0, size=n_pre)]))
-    for u0 in initial:
+    for i, u0 in enumerate(initial):
+        what = f"start {i + 1} of {len(initial)}" + (" (the given design)" if start is not None and i == 0 else "")
+
+        if progress is not None:
+            progress(f"{what}: optimising ({maxiter} iterations at most)")
         res = optimize.minimize(_objective(p, k), u0, method="L-BFGS-B", bounds=bounds,
-                                options={"maxiter": maxiter, "eps": 1e-4})
+                                options={"maxiter": maxiter, "eps": 1e-4},
+                                callback=None if progress is None else _iterations_told(progress, what, maxiter))
         if best is None or res.fun < best[0]:
             best = (float(res.fun), np.asarray(res.x), int(res.nit))
     assert best is not None
