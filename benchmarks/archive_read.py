@@ -2,18 +2,26 @@
 metrics, the console's results page and ``xneck identify`` pay before they compute anything.
 
 Writes a synthetic campaign of the §7 control test's size (14 s at 500 Hz: motor states, commands,
-controller statuses and the twin's truth, the camera at 30 Hz; ~28,000 messages) unless a file is
-given, then times ``read_campaign`` against a baseline in the same process: the same read with
-mcap's own log-time ordering (``iter_messages(log_time_order=True)``, what read_campaign used until
-2026-11-28), which orders the messages through a Python heap. Prints median and p99 of each and the
-ratio. Run: ``.venv/bin/python benchmarks/archive_read.py [FILE.mcap] [--repeats N]``.
+controller statuses and the twin's truth, the camera at 30 Hz, and the Foxglove scene the console
+adds at 20 Hz; ~28,000 messages) unless a file is given, then times ``read_campaign`` against a
+baseline in the same process: the same read with mcap's own log-time ordering
+(``iter_messages(log_time_order=True)``, what read_campaign used until 2026-11-28), which orders
+the messages through a Python heap. Prints median and p99 of each and the ratio.
+
+Then the memory the decoded campaign holds (tracemalloc's peak during the read, against the
+file's size): whole, and with the keys ``xneck identify`` reads (``keys=``, 2026-11-30), per second
+of record as well, since a campaign may last 600 s.
+Run: ``.venv/bin/python benchmarks/archive_read.py [FILE.mcap] [--repeats N]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import tempfile
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 import _timing  # (benchmarks/ is sys.path[0] when run as a script)
@@ -21,6 +29,12 @@ import _timing  # (benchmarks/ is sys.path[0] when run as a script)
 from bridge import bus
 from bridge.archive import write_campaign
 from bridge.archive_read import decode_archived, read_campaign
+from server.foxglove_scene import add_scene_channel
+from twin.identification.record import CAMERA_TOPIC, MOTOR_COMMAND_TOPIC, MOTOR_TOPIC
+from twin.model.params import load_params
+
+#: What ``xneck identify`` reads (twin.identification.record.campaign_data_from_mcap).
+IDENTIFY_KEYS = (MOTOR_TOPIC, MOTOR_COMMAND_TOPIC, CAMERA_TOPIC)
 
 
 def synthetic(path: Path, seconds: float = 14.0) -> Path:
@@ -45,7 +59,25 @@ def synthetic(path: Path, seconds: float = 14.0) -> Path:
             msgs.append((bus.CAMERA_ALPHA, t + 200_000, bus.CameraAlpha(
                 seq=i, stamp_s=s, capture_stamp_s=s, alpha_ip_rad=[0.1] * 3, confidence=[1.0] * 3, source="twin")))
     msgs.sort(key=lambda m: m[1])
-    return write_campaign(path, msgs, {"campaign_id": "bench"})
+    write_campaign(path, msgs, {"campaign_id": "bench"})
+    add_scene_channel(path, load_params())
+    return path
+
+
+def peak_bytes(fn: Callable[[], object]) -> int:
+    """tracemalloc's peak over one call of ``fn``, from what was allocated before it."""
+    gc.collect()
+    tracemalloc.start()
+    fn()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak
+
+
+def record_seconds(path: Path) -> float:
+    """The motor states' span (s): what the memory is per second of."""
+    t = [m.stamp_s for _, m in read_campaign(path, keys=(bus.MOTOR_STATE,)).messages(bus.MOTOR_STATE)]
+    return max(t) - min(t) if len(t) > 1 else float("nan")
 
 
 def baseline(path: Path) -> int:
@@ -76,6 +108,13 @@ def main() -> None:
         bmed, bp99 = _timing.summary("baseline: mcap log_time_order=True", _timing.time_calls(
             lambda: baseline(path), args.repeats, 1), unit=1e-3, unit_name="ms")
         print(f"ratio read_campaign / baseline: median {med / bmed:.2f}, p99 {p99 / bp99:.2f}")
+        size, span = path.stat().st_size, record_seconds(path)
+        whole = peak_bytes(lambda: read_campaign(path))
+        some = peak_bytes(lambda: read_campaign(path, keys=IDENTIFY_KEYS))
+        for label, peak in (("read_campaign, whole", whole), ("read_campaign, xneck identify's keys", some)):
+            print(f"{label:<58s} peak {peak / 1e6:8.1f} MB   {peak / size:5.1f}x the file   "
+                  f"{peak / span / 1e6:6.2f} MB per s of record ({peak / span * 600 / 1e9:.2f} GB for 600 s)")
+        print(f"ratio identify's keys / whole: {some / whole:.2f}")
 
 
 if __name__ == "__main__":

@@ -685,7 +685,7 @@ class _Services:
 
 def metrics_from_archive(path: Path) -> dict[str, object]:
     """The paper's metrics (controller.metrics) from a recorded campaign."""
-    campaign = read_campaign(path)
+    campaign = read_campaign(path, keys=(bus.CONTROLLER_STATUS, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA))
     status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS) if not m.holding]
     if not status:
         raise ValueError(f"{path}: no controller status recorded")

@@ -306,7 +306,7 @@ class CampaignManager:
             self._unfinished.pop(cid, None)
         info, progress = {}, 0.0
         with contextlib.suppress(ArchiveError):
-            archived = read_campaign(mcap)
+            archived = read_campaign(mcap, keys=(bus.CAMPAIGN_EVENTS,))
             info, progress = archived.info, archived_progress(archived, cid)
         rec = rec or self._record_from_archive(cid, info)
         note = f"recovered after a crash ({report.status}: {report.messages} messages kept" + \

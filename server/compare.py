@@ -85,7 +85,7 @@ def _deg(rows: list[list[float | None]]) -> list[list[float | None]]:
 
 def traces(mcap: Path, max_points: int = 800) -> dict[str, Any]:
     """The overlaid series of one archive (module docstring)."""
-    campaign = read_campaign(mcap)
+    campaign = read_campaign(mcap, keys=(bus.CONTROLLER_STATUS, bus.MOTOR_STATE, bus.CAMERA_ALPHA))
     status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS)]
     if not status:
         return {"t_s": [], "alpha_d_deg": [], "alpha_hat_deg": [], "e_deg": [], "force": {"t_s": [], "force_N": []},

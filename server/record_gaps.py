@@ -31,6 +31,8 @@ from bridge.archive_read import Campaign
 MAX_GAP_PERIODS = 5.0  # as twin.identification.pipeline._uniform: longer is lost data, not jitter
 CONTEXT_S = 0.05  # s before a gap in which holds and deadline misses are counted as its context
 SHOWN = 3  # gaps described one by one per topic
+#: What :func:`explain_gaps` reads of a campaign (``read_campaign(path, keys=GAP_KEYS)``).
+GAP_KEYS = (bus.MOTOR_STATE, bus.CAMERA_ALPHA, bus.CONTROLLER_STATUS)
 
 
 @dataclass

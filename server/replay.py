@@ -22,6 +22,13 @@ from bridge.session import REPLAYED, BusPublisher, publisher
 NEVER_REPLAYED: frozenset[type[bus.BusMessage]] = frozenset({bus.ForceCommand, bus.EStop, bus.CampaignRequest})
 
 
+def _replayed(topic: str) -> bool:
+    """Whether a topic's messages are replayed (the others are not even decoded: the Foxglove
+    scene is half of an archive's decoded size)."""
+    msg_type = bus.message_type(bus.key_of_topic(topic))  # by type: requests are also addressed to one service
+    return msg_type is not None and msg_type not in NEVER_REPLAYED
+
+
 class Replay:
     """One replay in a daemon thread, read from ``path`` when built (a bad file raises here) and
     published from :meth:`start` on; :meth:`stop` ends it within one message interval.
@@ -36,13 +43,10 @@ class Replay:
         self.total = 0
         self.error = ""
         self._stop = threading.Event()
-        campaign = read_campaign(path)  # before the thread: a bad file is the caller's error
+        campaign = read_campaign(path, keys=_replayed)  # before the thread: a bad file is the caller's error
         self._messages: list[tuple[int, str, bus.BusMessage]] = []
         for topic, msgs in campaign.topics.items():
             key = bus.key_of_topic(topic)
-            msg_type = bus.message_type(key)  # by type: requests are also addressed to one service
-            if msg_type is None or msg_type in NEVER_REPLAYED:
-                continue
             self._messages += [(t, key, m) for t, m in msgs if isinstance(m, bus.BusMessage)]
         self._messages.sort(key=lambda x: x[0])
         self.total = len(self._messages)

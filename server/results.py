@@ -21,7 +21,7 @@ import numpy as np
 from bridge import bus
 from bridge.archive_read import read_campaign
 from server.quality import SATURATION_NOTE_FRACTION
-from server.record_gaps import explain_gaps
+from server.record_gaps import GAP_KEYS, explain_gaps
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,7 @@ def analyse_archive(path: Path, params_file: Path | None, *, estimator: str = "a
             kept = None
         return report, "identified", kept
     try:  # the gaps that broke it, explained (issue 17): which topic, which messages, what happened then
-        gaps = explain_gaps(read_campaign(path))
+        gaps = explain_gaps(read_campaign(path, keys=GAP_KEYS))
     except Exception as exc:  # noqa: BLE001 - an unreadable archive: its reason is the failure above
         gaps = f"(record gaps not examined: {type(exc).__name__}: {exc})"
     return None, f"{text}; {gaps}" if gaps else text, None
@@ -171,7 +171,7 @@ def render_figure(mcap: Path, name: str, out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    campaign = read_campaign(mcap)
+    campaign = read_campaign(mcap, keys=(bus.CONTROLLER_STATUS, bus.CAMERA_ALPHA, bus.MOTOR_COMMAND))
     status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS)]
     out.parent.mkdir(parents=True, exist_ok=True)
     with PYPLOT_LOCK:

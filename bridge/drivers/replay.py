@@ -38,7 +38,7 @@ class ReplayDriver(Driver):
         from bridge.archive_read import read_campaign
 
         try:
-            campaign = read_campaign(Path(self.config.path))
+            campaign = read_campaign(Path(self.config.path), keys=(bus.MOTOR_STATE,))
         except ArchiveError as exc:
             raise DriverError(f"replay: {exc}") from None
         states = [m for _, m in campaign.messages(bus.MOTOR_STATE) if isinstance(m, bus.MotorState)]

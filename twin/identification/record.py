@@ -230,12 +230,12 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     from bridge.bus import CAPTURE_AFTER_PUBLICATION_MAX_S
 
     try:
-        camp = read_campaign(path)
+        camp = read_campaign(path, keys=(MOTOR_TOPIC, MOTOR_COMMAND_TOPIC, CAMERA_TOPIC))
     except ArchiveError as exc:
         raise IdentificationError(f"cannot read campaign: {exc}") from None
     missing = [t for t in (MOTOR_TOPIC, CAMERA_TOPIC) if not camp.topics.get(t)]
     if missing:
-        have = ", ".join(sorted(camp.topics)) or "none"
+        have = ", ".join(sorted(camp.counts)) or "none"
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
     notes: list[str] = []
     try:

@@ -179,12 +179,12 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
 
     path = Path(path)
     try:
-        camp = read_campaign(path)
+        camp = read_campaign(path, keys=(MOTOR_TOPIC, CAMERA_TOPIC, TRUTH_TOPIC))
     except ArchiveError as exc:
         raise CalibrationError(f"cannot read the recording: {exc}") from None
     motor = [m for _, m in camp.topics.get(MOTOR_TOPIC, [])]
     if not motor:
-        have = ", ".join(sorted(camp.topics)) or "none"
+        have = ", ".join(sorted(camp.counts)) or "none"
         raise CalibrationError(f"{path}: no motor states ({MOTOR_TOPIC}) to replay (channels present: {have})")
     nc, n = params.n_cables, params.n_joints
     try:
