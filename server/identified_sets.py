@@ -27,7 +27,9 @@ if TYPE_CHECKING:
 
 #: The identified set a campaign's analysis kept (JSON of :func:`identified_set`), in its figures folder.
 CACHE_NAME = "identified-set.json"
-_CACHE_KEYS = {"toml": str, "base_parameter_set": str, "used": dict, "kept_base": dict, "structure_set": list}
+#: A kept set without ``warning`` (kept before sets said one) is identified again: its warning is not known.
+_CACHE_KEYS = {"toml": str, "base_parameter_set": str, "used": dict, "kept_base": dict, "structure_set": list,
+               "warning": str}
 
 
 class NotIdentified(ValueError):
@@ -71,7 +73,7 @@ def save_identified_set(mcap: Path, rec: CampaignRecord, store: ParameterStore, 
     :class:`FileExistsError` (the name is taken), or
     :class:`twin.identification.pipeline.IdentificationError` (the archive does not identify)."""
     from bridge.archive import ArchiveError
-    from bridge.archive_read import read_campaign
+    from bridge.archive_read import read_campaign_info
     from controller.trajectory import recorded_excitation
     from twin.identification.pipeline import IdentificationError
     from twin.identification.record import identify_record
@@ -92,7 +94,7 @@ def save_identified_set(mcap: Path, rec: CampaignRecord, store: ParameterStore, 
             cached = None
     if cached is None:
         try:
-            info = read_campaign(mcap).info
+            info = read_campaign_info(mcap)
             base = params_from_dict(tomllib.loads(info["parameters_toml"]), f"campaign {rec.id}")
         except ArchiveError as exc:
             raise IdentificationError(f"cannot read campaign {rec.id}: {exc}") from None

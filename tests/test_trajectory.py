@@ -427,6 +427,21 @@ def test_a_cached_identified_set_nested_too_deeply_is_identified_again(tmp_path)
     assert cached_set(tmp_path) is None
 
 
+def test_a_cached_identified_set_without_its_warning_is_identified_again(tmp_path):
+    """A set kept before sets said why not to trust them (``warning``: α_IP stamped off) would be
+    saved without it: identified again, as a warning that is no string."""
+    import json
+
+    from server.identified_sets import CACHE_NAME, cached_set
+
+    doc = {"toml": "x = 1", "base_parameter_set": "b", "used": {}, "kept_base": {}, "structure_set": []}
+    for bad in (doc, {**doc, "warning": 3}):
+        (tmp_path / CACHE_NAME).write_text(json.dumps(bad))
+        assert cached_set(tmp_path) is None
+    (tmp_path / CACHE_NAME).write_text(json.dumps({**doc, "warning": "late"}))
+    assert cached_set(tmp_path) == {**doc, "warning": "late"}
+
+
 @pytest.mark.parametrize("name, said", [
     ("x" * 65, "65 characters, at most 64"),
     ("nod\u202e", "U+202E (RIGHT-TO-LEFT OVERRIDE) at 3"),

@@ -345,15 +345,19 @@ function saveSetForm(id) {
   name.title = "Name of the new parameter set (letters, digits, _ . -); an existing set is never replaced";
   const button = document.createElement("button"); button.type = "submit"; button.textContent = "save as parameter set";
   const said = document.createElement("span"); said.className = "save-set-result";
-  form.append(name, button, said);
+  const warned = document.createElement("p"); warned.className = "save-set-warning";
+  form.append(name, button, said, warned);
   form.addEventListener("submit", async (ev) => {
     ev.preventDefault();
-    said.textContent = "identifying the archive again…";
+    said.textContent = "identifying the archive again…"; warned.textContent = "";
     try {
       const out = await api("POST", `/api/campaigns/${id}/parameter-set`, { name: name.value.trim() });
       const kept = Object.keys(out.kept_base);
       said.textContent = `saved as ${out.name} (${Object.keys(out.used).length} values identified` +
         (kept.length ? `, ${kept.length} kept at ${out.base_parameter_set}'s` : "") + "): choose it under Workspace";
+      // Why the set is not to be trusted (α_IP stamped off the encoders): also the first line of its
+      // TOML, but a lab that chooses it here never reads that file.
+      warned.textContent = typeof out.warning === "string" && out.warning ? `warning: ${out.warning}` : "";
       pollActiveSet();
     } catch (e) { said.textContent = "not saved: " + (e.message || e); }
   });
