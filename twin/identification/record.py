@@ -233,14 +233,14 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
         camp = read_campaign(path, keys=(MOTOR_TOPIC, MOTOR_COMMAND_TOPIC, CAMERA_TOPIC))
     except ArchiveError as exc:
         raise IdentificationError(f"cannot read campaign: {exc}") from None
-    missing = [t for t in (MOTOR_TOPIC, CAMERA_TOPIC) if not camp.topics.get(t)]
+    missing = [t for t in (MOTOR_TOPIC, CAMERA_TOPIC) if not camp.messages(t)]
     if missing:
         have = ", ".join(sorted(camp.counts)) or "none"
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
     notes: list[str] = []
     try:
-        motor = _one_bridge_run(path, camp.topics[MOTOR_TOPIC], camp.topics.get(MOTOR_COMMAND_TOPIC, []), notes)
-        frames = _one_camera(path, [m for _, m in camp.topics[CAMERA_TOPIC]], alpha_ip_source)
+        motor = _one_bridge_run(path, camp.messages(MOTOR_TOPIC), camp.messages(MOTOR_COMMAND_TOPIC), notes)
+        frames = _one_camera(path, [m for _, m in camp.messages(CAMERA_TOPIC)], alpha_ip_source)
         # Captured after its publication: refused by the recorder since, possibly in an older archive.
         late = [m for m in frames if m.capture_stamp_s > m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
         if late:

@@ -182,7 +182,7 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
         camp = read_campaign(path, keys=(MOTOR_TOPIC, CAMERA_TOPIC, TRUTH_TOPIC))
     except ArchiveError as exc:
         raise CalibrationError(f"cannot read the recording: {exc}") from None
-    motor = [m for _, m in camp.topics.get(MOTOR_TOPIC, [])]
+    motor = [m for _, m in camp.messages(MOTOR_TOPIC)]
     if not motor:
         have = ", ".join(sorted(camp.counts)) or "none"
         raise CalibrationError(f"{path}: no motor states ({MOTOR_TOPIC}) to replay (channels present: {have})")
@@ -210,7 +210,7 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
         k = int(np.argmax(gaps))
         raise CalibrationError(f"{path}: the motor states stop for {gaps[k]:.2f} s at t = {t[k]:.3f} s: "
                                "not one continuous run (cut it with --span)")
-    frames = [m for _, m in camp.topics.get(CAMERA_TOPIC, [])]
+    frames = [m for _, m in camp.messages(CAMERA_TOPIC)]
     t_ip = np.array([m.capture_stamp_s for m in frames], dtype=float)
     alpha_ip = np.array([[np.nan if a is None else a for a in m.alpha_ip_rad] for m in frames],
                         dtype=float).reshape(len(frames), -1)
@@ -218,7 +218,7 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
         raise CalibrationError(f"{path}: camera frames carry {alpha_ip.shape[1]} joints, the parameter set {n}")
     inside = (t_ip >= t[0]) & (t_ip <= t[-1]) & np.isfinite(alpha_ip).all(axis=1) if len(frames) else np.zeros(0, bool)
     t_ip, alpha_ip = t_ip[inside], alpha_ip[inside].reshape(-1, n)
-    truth = {m.stamp_s: m for _, m in camp.topics.get(TRUTH_TOPIC, [])}
+    truth = {m.stamp_s: m for _, m in camp.messages(TRUTH_TOPIC)}
     tension = None
     if sum(s in truth for s in t) >= 0.9 * len(t):  # the twin's Truth (a lockstep twin's first state has none)
         tension = np.array([truth[s].tension_N if s in truth else [np.nan] * nc for s in t], dtype=float)
