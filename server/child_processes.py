@@ -69,18 +69,37 @@ def die_with_parent_from_env() -> None:
         die_with_parent(int(value))
 
 
-def stop_child(proc: subprocess.Popen, grace_s: float) -> bool:
-    """SIGTERM, then SIGKILL after ``grace_s`` seconds. Returns True if it had to be killed."""
+#: What :func:`stop_child` answers for a child that SIGKILL did not end within the grace period.
+STILL_EXITING = "killed, still exiting"
+
+
+def stop_child(proc: subprocess.Popen, grace_s: float) -> str:
+    """SIGTERM, then SIGKILL after ``grace_s`` seconds. Returns ``""`` if it stopped on SIGTERM (or
+    had ended), ``"killed"`` if it had to be killed, :data:`STILL_EXITING` if even SIGKILL had not
+    ended it after another ``grace_s``. Never raises for that: a killed process whose threads
+    cannot run their exit (a CPU starved by real-time work, a thread in the kernel) had raised
+    ``TimeoutExpired`` out of ``xneck up``'s clean-up, which then stopped none of the other
+    children (audit of 2026-11-30), and out of a campaign runner's, which then recorded nothing."""
     if proc.poll() is not None:
-        return False
+        return ""
     proc.send_signal(signal.SIGTERM)
     try:
         proc.wait(grace_s)
-        return False
+        return ""
     except subprocess.TimeoutExpired:
+        return "killed" if kill_child(proc, grace_s) else STILL_EXITING
+
+
+def kill_child(proc: subprocess.Popen, wait_s: float) -> bool:
+    """SIGKILL, then wait up to ``wait_s`` seconds: whether it has ended (False: still exiting, to
+    be judged again later; it never raises for that)."""
+    with contextlib.suppress(ProcessLookupError):
         proc.kill()
-        proc.wait(grace_s)
+    try:
+        proc.wait(wait_s)
         return True
+    except subprocess.TimeoutExpired:
+        return False
 
 
 def exit_how(returncode: int) -> str:

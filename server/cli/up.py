@@ -70,7 +70,16 @@ from pathlib import Path
 
 import typer
 
-from server.child_processes import ENV_PARENT, exit_how, isolate, isolate_self, log_tail, stop_child, xneck_argv
+from server.child_processes import (
+    ENV_PARENT,
+    exit_how,
+    isolate,
+    isolate_self,
+    kill_child,
+    log_tail,
+    stop_child,
+    xneck_argv,
+)
 from server.cli.options import (
     NON_NEGATIVE,
     PORT_MAX,
@@ -83,6 +92,7 @@ from server.cli.options import (
 )
 
 STOP_GRACE_S = 8.0
+HUNG_KILL_WAIT_S = 1.0  # s a hung child, killed, is waited for in one pass of the supervisor
 LOG_LINES = 12  # of a child's log in an error message
 PREFLIGHT_EXIT = 3  # exit code of a refused start (nothing was started)
 PROBE_S = 1.0  # how long the preflight waits for a Zenoh peer on a busy hub port
@@ -649,8 +659,10 @@ def up(
                 raw = pings.age_s() if pings is not None else None
                 age = None if raw is None else raw - lateness_s
                 if age is not None and age > limit_s and procs[name].poll() is None:
-                    procs[name].kill()  # hung: SIGTERM would wait on a loop that does not run
-                    procs[name].wait(STOP_GRACE_S)
+                    # Hung: SIGTERM would wait on a loop that does not run. Not waited for long: one
+                    # whose exit is slow (starved) is judged dead on a later pass, while this loop
+                    # goes on watching the others (its wait's timeout had ended xneck up).
+                    kill_child(procs[name], HUNG_KILL_WAIT_S)
                     hung[name] = f"hung (its loop silent for {age:.1f} s), killed"
             for name in plan.due(polled):  # its back-off over
                 if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
@@ -723,8 +735,8 @@ def up(
     finally:
         for name in ("controller", "bridge", "camera", "server"):
             p = procs.get(name)
-            if p is not None and stop_child(p, STOP_GRACE_S):
-                typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: killed", err=True, fg="yellow")
+            if p is not None and (how := stop_child(p, STOP_GRACE_S)):
+                typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: {how}", err=True, fg="yellow")
             if name == "bridge" and robot and p is not None and p.returncode != 0 and not drives_set_off:
                 typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
         if watch is not None:
