@@ -32,7 +32,7 @@ from controller.trajectory import (
     trajectory_by_name,
     validate,
 )
-from server.campaign_runner import CampaignSpec
+from server.campaign_runner import CampaignSpec, check_timeout
 from server.paramsets import ParameterStore, UnknownParameterSet
 from server.settings import Settings
 from server.truthstore import TruthStore, UnknownTruth, truth_label
@@ -262,6 +262,10 @@ def prepare(req: CampaignCreate, store: ParameterStore, settings: Settings, serv
     try:
         check_trajectory(traj, params, law)
     except TrajectoryError as exc:
+        raise RequestError(loc, f"trajectory rejected: {exc}") from None
+    try:
+        check_timeout(traj.duration_s, settings.campaign_timeout_s, pace == "realtime" or service or target == "robot")
+    except ValueError as exc:
         raise RequestError(loc, f"trajectory rejected: {exc}") from None
     estimator = _analysis_options(req)
     spec = CampaignSpec(

@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
+import math
 import os
 import queue
 import shutil
@@ -106,6 +107,29 @@ OWNER_WAIT_S = 0.5  # s: with several controller services, for a state saying wh
 # for a campaign stopped after the console's restart (its own constants, of the same values).
 STOP_ANSWER_S = 3.0
 STOP_RESEND_S = 0.5
+#: Wall time a campaign that runs in real time (the robot, a real-time twin, `xneck up`'s) needs
+#: within its timeout beyond its trajectory's duration: REALTIME_MARGIN_S and REALTIME_MARGIN of
+#: the duration, for its start-up (2.7-3.1 s measured), the bridge's holds (each pauses the
+#: campaign's clock, which then ramps back) and its end. A campaign whose trajectory leaves less
+#: is refused before anything moves: a 600 s trajectory under the 600 s timeout was aborted at
+#: progress 0.896 every time (audit of 2026-11-30).
+REALTIME_MARGIN_S = 10.0
+REALTIME_MARGIN = 0.1
+#: The timeout of a campaign (wall, s) unless one is given: the longest trajectory
+#: (controller.trajectory.TrajectoryLimits.duration_max_s, 600 s) with 300 s for the rest.
+DEFAULT_TIMEOUT_S = 900.0
+
+
+def check_timeout(duration_s: float, timeout_s: float, real_time: bool) -> None:
+    """:class:`ValueError` saying why a trajectory of ``duration_s`` cannot run within
+    ``timeout_s`` when the campaign runs in real time (:data:`REALTIME_MARGIN_S`)."""
+    needed_s = duration_s * (1.0 + REALTIME_MARGIN) + REALTIME_MARGIN_S
+    if real_time and needed_s > timeout_s:
+        raise ValueError(f"the trajectory lasts {duration_s:.1f} s, and a campaign in real time needs "
+                         f"{needed_s - duration_s:.0f} s more within its timeout of {timeout_s:.0f} s (start-up, "
+                         f"holds, its end): it would be aborted before its end. Give a timeout of at least "
+                         f"{math.ceil(needed_s):.0f} s (`xneck campaign --timeout`, the console's "
+                         "XNECK_CAMPAIGN_TIMEOUT_S) or a shorter trajectory")
 
 
 @dataclass(frozen=True)
@@ -115,7 +139,7 @@ class CampaignSpec:
     trajectory: Trajectory
     twin: bool = True  # start a lockstep twin; False: the robot's bridge is already on the bus
     seed: int = 0
-    timeout_s: float = 600.0
+    timeout_s: float = DEFAULT_TIMEOUT_S
     params_file: Path | None = None
     overrides: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()  # extra endpoints (robot mode: where the bridge listens)
@@ -137,6 +161,12 @@ class CampaignSpec:
             raise ValueError(f"alpha_ip must be one of {', '.join(ALPHA_IP_KINDS)}, got {self.alpha_ip!r}")
         # a bad analysis option fails before the campaign runs, not after the robot has moved
         object.__setattr__(self, "estimator", check_variable_options(self.estimator, self.creep_time_s))
+        check_timeout(self.trajectory.duration_s, self.timeout_s, self.real_time)
+
+    @property
+    def real_time(self) -> bool:
+        """Whether it runs at the clock's pace: the robot, a real-time twin, `xneck up`'s twin."""
+        return self.realtime or self.service or not self.twin
 
     @property
     def alpha_ip_source(self) -> str:

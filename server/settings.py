@@ -36,7 +36,8 @@ class Settings(BaseSettings):
                                                    "deterministic) or real time (500 Hz, for watching).")
     live_rate_hz: float = Field(30.0, gt=0, le=200, description="Rate of live frames sent to browsers (Hz).")
     scene_rate_hz: float = Field(30.0, gt=0, le=200, description="Update rate of the viser scene (Hz).")
-    campaign_timeout_s: float = Field(600.0, gt=0, description="Abort a campaign after this long (wall, s).")
+    campaign_timeout_s: float = Field(900.0, gt=0, description="Abort a campaign after this long (wall, s); a "
+                                      "campaign in real time needs its trajectory's duration, 10 % and 10 s more within it.")
     viser: bool = Field(True, description="Start the viser 3D view.")
     twin_truth: str = Field("model", description="With a controller service on the bus (`xneck up`): what the "
                             "stack's twin bridge simulates, model, robot or a truth file (twin/sim/truth.py).")

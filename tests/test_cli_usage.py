@@ -596,6 +596,16 @@ def test_a_non_finite_or_negative_number_is_refused(xneck, tmp_path, argv, said)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.mcap"]
 
 
+@pytest.mark.parametrize("kind", ["control", "identification"])
+def test_a_robot_campaign_that_cannot_end_within_its_timeout_is_refused(xneck, tmp_path, kind):
+    """Audit of 2026-11-30: a trajectory as long as the timeout was aborted before its end every time
+    (start-up and holds take wall time too); on the robot it is refused before anything moves."""
+    run = xneck("campaign", kind, "--robot", "--connect", "tcp/127.0.0.1:9", "--timeout", "20",
+                "--out", str(tmp_path / "c.mcap"), timeout=60)
+    _refused(run, "aborted before its end", "a timeout of at least")
+    assert not (tmp_path / "c.mcap").exists()
+
+
 @pytest.mark.parametrize("argv", [
     ["campaign", "control", "--seed", "-1"], ["twin", "--seed", "-1"], ["excitation", "design", "--seed", "-1"],
     ["camera", "render", "--alpha", "0", "0", "0", "--out", "f.png", "--seed", "-1"], ["twin", "--max-ticks", "0"],

@@ -98,6 +98,14 @@ def test_a_waypoint_beyond_the_limits_is_refused_before_anything_moves(client) -
     assert "too fast" in client.post("/api/campaigns", json=too_fast, headers=AUTH).json()["detail"][0]["msg"]
     wrong_joints = {"waypoints": {"waypoints_deg": [[0, 0], [10, 0]], "durations_s": 2}}
     assert ["body", "waypoints"] in _loc(client.post("/api/campaigns", json=wrong_joints, headers=AUTH))
+    # In real time a trajectory needs 10 % and 10 s more than its duration within the console's
+    # timeout (120 s here): 110 s would have been aborted before its end, the robot moved for nothing
+    # (audit of 2026-11-30: a 600 s one under the 600 s timeout ended at progress 0.896).
+    long = {"pace": "realtime", "waypoints": {"waypoints_deg": [[0, 0, 0], [5, 5, 5]], "durations_s": 110.0}}
+    r = client.post("/api/campaigns", json=long, headers=AUTH)
+    assert ["body", "waypoints"] in _loc(r)
+    msg = r.json()["detail"][0]["msg"]
+    assert "aborted before its end" in msg and "at least 131 s" in msg and "XNECK_CAMPAIGN_TIMEOUT_S" in msg, msg
     assert client.get("/api/campaigns").json() == []  # nothing was started
 
 

@@ -80,8 +80,8 @@ def campaign_control(
                               "parameter file as it is (model), the robot's unmodelled physics (robot), or a truth "
                               "FILE (e.g. from `xneck twin calibrate`)."),
     alpha_ip: str = ALPHA_IP_OPTION,
-    timeout: float = typer.Option(600.0, "--timeout", callback=POSITIVE,
-                                  help="Abort the campaign after this many seconds (wall)."),
+    timeout: float = typer.Option(900.0, "--timeout", callback=POSITIVE, help="Abort the campaign after this many "
+                                  "seconds (wall); on the robot its trajectory's duration, 10 % and 10 s more must fit in it."),
     connect: list[str] | None = ROBOT_CONNECT_OPTION,
     params_file: Path | None = PARAMS_OPTION,
     overrides: list[str] | None = SET_OPTION,
@@ -94,9 +94,12 @@ def campaign_control(
     params = load_cli_params(params_file, overrides)
     config = law_config(law, no_pulleys)
     traj = load_checked_trajectory(trajectory, params, config)
-    spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
-                        params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip,
-                        connect=robot_endpoints(twin, connect))
+    try:
+        spec = CampaignSpec(kind="control", law=config, trajectory=traj, twin=twin, seed=seed, timeout_s=timeout,
+                            params_file=params_file, overrides=tuple(overrides or ()), truth=truth, alpha_ip=alpha_ip,
+                            connect=robot_endpoints(twin, connect))
+    except ValueError as exc:  # the trajectory does not fit in --timeout on the robot
+        raise fail(str(exc)) from None
     result, signum = _run_recorded(spec, params, out, as_json)
     _print_end(result, as_json, signum)
     if signum:
@@ -250,8 +253,8 @@ def campaign_identification(
                               "unmodelled physics (robot: twin/sim/robot_truth.toml, the default), the parameter file "
                               "as it is (model, an identity check), or a truth FILE; see twin/sim/truth.py."),
     alpha_ip: str = CAMPAIGN_ALPHA_IP_OPTION,
-    timeout: float = typer.Option(900.0, "--timeout", callback=POSITIVE,
-                                  help="Abort the campaign after this many seconds (wall)."),
+    timeout: float = typer.Option(900.0, "--timeout", callback=POSITIVE, help="Abort the campaign after this many "
+                                  "seconds (wall); on the robot its trajectory's duration, 10 % and 10 s more must fit in it."),
     trajectory: str = typer.Option("identification", "--trajectory", help="identification (§5.2.2), or a "
                                    "trajectory file (e.g. from `xneck excitation design`), validated as any campaign's."),
     estimator: str = typer.Option("auto", "--estimator", callback=check_estimator, help="Table 2's estimator, "
@@ -282,10 +285,13 @@ def campaign_identification(
     params = load_cli_params(params_file, overrides)
     config = law_config(1, False)
     traj = load_checked_trajectory(trajectory, params, config)
-    spec = CampaignSpec(kind="identification", law=config, trajectory=traj, twin=twin,
-                        seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
-                        truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s,
-                        connect=robot_endpoints(twin, connect))
+    try:
+        spec = CampaignSpec(kind="identification", law=config, trajectory=traj, twin=twin,
+                            seed=seed, timeout_s=timeout, params_file=params_file, overrides=tuple(overrides or ()),
+                            truth=truth, alpha_ip=alpha_ip, estimator=estimator, creep_time_s=creep_time_s,
+                            connect=robot_endpoints(twin, connect))
+    except ValueError as exc:  # the trajectory does not fit in --timeout on the robot
+        raise fail(str(exc)) from None
     result, signum = _run_recorded(spec, params, out, as_json)
     if result.outcome not in ("finished", "degraded") or signum:
         _print_end(result, as_json, signum)  # the archive and the logs said too, as a control campaign's
