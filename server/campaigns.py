@@ -495,9 +495,10 @@ class CampaignManager:
         return self.index.mcap(campaign_id)
 
     # -- life cycle -------------------------------------------------------------------------
-    def storage_problem(self) -> str:
-        """Why no campaign can be recorded now ('' if one can); see :mod:`server.datadir`."""
-        return storage_problem(self.index.dir, self.min_free_bytes)
+    def storage_problem(self, duration_s: float = 0.0) -> str:
+        """Why no campaign (of ``duration_s`` seconds) can be recorded now ('' if one can); see
+        :mod:`server.datadir`."""
+        return storage_problem(self.index.dir, self.min_free_bytes, duration_s)
 
     def _holder(self) -> Busy | None:
         """What holds the robot now (None if nothing does): a campaign, a replay, or a replay whose
@@ -530,7 +531,7 @@ class CampaignManager:
             disabled = self._drives_disabled(spec.twin and not spec.service)  # a service drives the bus bridge
             if disabled:
                 raise DrivesDisabled(disabled)
-            problem = self.storage_problem()
+            problem = self.storage_problem(spec.trajectory.duration_s)
             if problem:
                 raise StorageError(problem)
             cid = new_campaign_id(spec.kind)

@@ -389,6 +389,26 @@ def test_a_full_disk_ends_the_campaign_failed_and_the_next_start_is_a_507(tmp_pa
 
 
 
+def test_a_campaign_whose_archive_would_not_fit_is_a_507_before_it_starts(tmp_path: Path) -> None:
+    """Audit of 2026-11-30: the free-space check was a fixed 64 MB whatever the campaign's duration,
+    so a 600 s campaign (a 0.3-0.4 GB archive) started on a disk it would fill part-way through.
+    Now the room of its archive (0.8 MB per second of trajectory) is needed besides ``min_free_mb``."""
+    with tmpfs(tmp_path / "data", "24m") as data, \
+            running_server(data, viser=False, min_free_mb=2.0) as (base, app), \
+            httpx.Client(base_url=base, timeout=60) as c:
+        long = {"kind": "control", "waypoints": {"waypoints_deg": [[0, 0, 0], [5, 5, 5]], "durations_s": 60.0}}
+        r = c.post("/api/campaigns", json=long, headers=AUTH)
+        assert r.status_code == 507, r.text
+        detail = r.json()["detail"]
+        assert "48 MB for the archive of 60 s" in detail and "2.0 MB besides" in detail and "needs at least 50.0 MB" in detail
+        assert c.get("/api/campaigns").json() == []
+        short = {"kind": "control", "waypoints": {"waypoints_deg": [[0, 0, 0], [5, 5, 5]], "durations_s": 2.0}}
+        r = c.post("/api/campaigns", json=short, headers=AUTH)  # 1.6 MB of archive: it fits
+        assert r.status_code == 201, r.text
+        c.post(f"/api/campaigns/{r.json()['id']}/stop", headers=AUTH)
+        assert app.state.campaigns.wait_idle(60)
+
+
 def test_a_campaign_failed_on_a_full_disk_has_a_readable_archive_that_says_why(tmp_path: Path) -> None:
     """Audit of 2026-11-28: on the full disk the console went on serving the failed campaign's MCAP
     as a 200 without a footer (``read_campaign``: "truncated or unfinished"), its record said
