@@ -10,6 +10,8 @@ from ``CameraAlpha``. Angles in degrees (a report edge), forces in N, decimated 
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from bridge import bus
+from bridge.archive import atomic_write
 from bridge.archive_read import read_campaign
 from server.records import CampaignRecord
 
@@ -81,6 +84,35 @@ def _deg(rows: list[list[float | None]]) -> list[list[float | None]]:
     """Per joint lists of degrees (rounded) from per sample lists of radians (None kept)."""
     arr = np.array(rows, dtype=float)
     return [[None if not np.isfinite(v) else round(float(np.degrees(v)), 4) for v in col] for col in arr.T]
+
+
+log = logging.getLogger("xneck.compare")
+TRACE_KEYS = frozenset({"t_s", "alpha_d_deg", "alpha_hat_deg", "e_deg", "force", "camera"})
+
+
+def cached_traces(mcap: Path, folder: Path, max_points: int = 800) -> dict[str, Any]:
+    """:func:`traces` of ``mcap``, kept in ``folder`` (the campaign's figures folder) as JSON with
+    the archive's size and modification time, and read from there while the archive has both: a
+    600 s campaign's took 13-15 s and ~0.8 GB per request, every time a comparison was opened (audit
+    of 2026-11-30). A kept file that does not read as traces is computed again; one that cannot be
+    written (a full disk) is not kept."""
+    cache = folder / f"traces-{max_points}.json"
+    st = mcap.stat()  # a missing archive is the caller's error, as traces() raises it
+    of = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    try:
+        doc = json.loads(cache.read_text(encoding="utf-8"))
+        if isinstance(doc, dict) and doc.get("mcap") == of and isinstance(doc.get("traces"), dict) \
+                and set(doc["traces"]) == TRACE_KEYS:
+            return doc["traces"]
+    except (OSError, ValueError, RecursionError):  # absent, damaged: computed again
+        pass
+    out = traces(mcap, max_points)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write(cache, json.dumps({"mcap": of, "traces": out}, allow_nan=False).encode())
+    except (OSError, ValueError) as exc:
+        log.warning("traces of %s not kept: %s", mcap.name, exc)
+    return out
 
 
 def traces(mcap: Path, max_points: int = 800) -> dict[str, Any]:

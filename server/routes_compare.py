@@ -10,7 +10,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, status
 from starlette.concurrency import run_in_threadpool
 
 from server.campaigns import NotFound
-from server.compare import UnreadableMetrics, compare_table, traces
+from server.compare import UnreadableMetrics, cached_traces, compare_table
 from server.records import valid_id
 
 router = APIRouter(prefix="/api/campaigns", tags=["campaigns"])
@@ -53,7 +53,8 @@ async def compare(request: Request, ids: str = Query(..., max_length=600, descri
         series = {}
         for rec in records:
             try:
-                series[rec.id] = await run_in_threadpool(traces, manager.mcap_path(rec.id))
+                series[rec.id] = await run_in_threadpool(cached_traces, manager.mcap_path(rec.id),
+                                                         manager.index.figures(rec.id))
             except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
                 raise HTTPException(422, f"cannot read {rec.id}: {exc}") from None
         out["traces"] = series

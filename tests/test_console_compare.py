@@ -3,6 +3,7 @@ table of the chosen runs with their parameter sets and truths, and their traces.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -87,6 +88,34 @@ def test_compare_traces_overlay_each_runs_series(console):
     assert b["t_s"][0] == 0.0 and len(b["alpha_d_deg"]) == 3 and len(b["force"]["force_N"]) == 4
     assert b["e_deg"][0][0] == pytest.approx(2.0) and b["camera"]["e_alpha_deg"][0][0] == pytest.approx(1.5, abs=1e-3)
     assert b["alpha_d_deg"][1][0] - b["alpha_hat_deg"][1][0] == pytest.approx(2.0)
+
+
+def test_traces_are_kept_beside_the_archive_and_computed_again_when_it_changes(tmp_path):
+    """A 600 s campaign's traces took 13-15 s and ~0.8 GB per request, every time a comparison was
+    opened (audit of 2026-11-30): kept in its figures folder while newer than the archive."""
+    from server.compare import cached_traces, traces
+
+    index = CampaignIndex(tmp_path / "campaigns")
+    mcap, folder = index.mcap("run-a"), index.figures("run-a")
+    _archive(mcap, "run-a", 1.0, 0.5)
+    first = cached_traces(mcap, folder)
+    assert first == traces(mcap) and (folder / "traces-800.json").is_file()
+    mcap.write_bytes(b"no longer an archive")  # newer than the kept traces: read again, and refused
+    with pytest.raises(Exception, match="not an MCAP file"):
+        cached_traces(mcap, folder)
+    _archive(mcap.with_suffix(".new"), "run-a", 2.0, 0.5)
+    mcap.with_suffix(".new").replace(mcap)
+    (folder / "traces-800.json").write_text('{"t_s": [')  # damaged, and older: computed again, kept again
+    again = cached_traces(mcap, folder)
+    assert again == traces(mcap) and again["e_deg"][0][0] == pytest.approx(2.0)
+    kept = (folder / "traces-800.json").read_text()
+    doc = json.loads(kept)
+    doc["traces"]["e_deg"][0][0] = 99.0  # what is kept is what is served while the archive is unchanged
+    (folder / "traces-800.json").write_text(json.dumps(doc))
+    assert cached_traces(mcap, folder)["e_deg"][0][0] == 99.0
+    mcap.unlink()  # a missing archive is an error, kept traces or not
+    with pytest.raises(FileNotFoundError):
+        cached_traces(mcap, folder)
 
 
 @pytest.mark.parametrize(("ids", "code"), [("run-a", 422), ("run-a,run-a", 422), ("run-a,b,c,d,e", 422),
