@@ -332,6 +332,14 @@ def main() -> None:
     ap.add_argument("--fifo", type=int, default=0, help="SCHED_FIFO priority of every thread (0: leave it)")
     ap.add_argument("--cpus", default="", help="comma-separated CPUs for every thread (default: leave it)")
     args = ap.parse_args()
+    parent = os.environ.get("XNECK_DIE_WITH_PARENT", "")
+    if parent.isdigit() and sys.platform.startswith("linux"):  # as server.child_processes.die_with_parent
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        if os.getppid() != int(parent):
+            return
     if args.cpus:
         with contextlib.suppress(OSError):
             os.sched_setaffinity(0, {int(c) for c in args.cpus.split(",")})

@@ -63,7 +63,7 @@ sys.path.insert(0, str(REPO))  # this tree's packages, not an installed checkout
 from bridge import bus  # noqa: E402
 from bridge.session import free_tcp_port, open_session  # noqa: E402
 from controller.trajectory import Trajectory  # noqa: E402
-from server.child_processes import cpu_split, isolate  # noqa: E402
+from server.child_processes import ENV_PARENT, cpu_split, isolate  # noqa: E402
 
 PY = [sys.executable, "-m", "server.cli"]
 LINK_PRIORITY = 45  # SCHED_FIFO: above everything but the loop's processes (50/49), which it never shares a CPU with
@@ -89,7 +89,9 @@ class Case:
 def _env() -> dict[str, str]:
     # this tree first, whatever the venv's editable install points at; the endpoints on each command line only
     drop = ("XNECK_ZENOH_LISTEN", "XNECK_ZENOH_CONNECT", "XNECK_ZENOH_CREDENTIALS", "XNECK_ZENOH_TLS")
-    return {k: v for k, v in os.environ.items() if k not in drop} | {"PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    # ENV_PARENT: each child gets SIGTERM when this process dies, however it dies (a SIGKILL too)
+    return {k: v for k, v in os.environ.items() if k not in drop} | {
+        "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid())}
 
 
 def _start(argv: list[str], log: Path) -> subprocess.Popen:
@@ -317,6 +319,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="also write every figure here")
     ap.add_argument("--keep", type=Path, default=None, help="keep the processes' logs and the links' records in this folder")
     args = ap.parse_args()
+    # SIGTERM (and a hangup) end the run as Ctrl-C does: through the finally clauses that stop every process
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, lambda signum, _frame: sys.exit(128 + signum))
     try:
         delays = [float(d) for d in args.delays_ms.split(",") if d.strip()]
     except ValueError:
