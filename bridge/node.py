@@ -118,6 +118,8 @@ log = logging.getLogger("xneck.bridge")
 #: s of states a command may answer at least (:class:`BridgeNode`, "Commands"): a command path
 #: that lags more than this (a buffering link) ends in the watchdog's hold.
 ANSWER_WINDOW_S = 0.05
+#: s during which a state names the last command refused as answering no recent state.
+STALE_NOTE_S = 1.0
 
 #: The real-time loop's GIL switch interval (s), instead of Python's 5 ms: a thread computing in
 #: Python (the hold worker, a Zenoh callback) hands the GIL to a waking tick within this.
@@ -365,6 +367,7 @@ class BridgeNode:
             if cmd.epoch == self.epoch and cmd.stamp_s not in self._state_stamps:
                 # (another run's command: refused by its epoch below, the clearer reason)
                 self.commands_stale += 1
+                self._stale_seen = (time.monotonic(), self.last_state_stamp_s - cmd.stamp_s)
                 raise bus.BusDecodeError(
                     f"ForceCommand from {cmd.sender!r}: answers no state of the last {len(self._state_stamps)} this "
                     f"bridge published (stamp_s {cmd.stamp_s!r}; newest {self.last_state_stamp_s!r})")
@@ -385,6 +388,7 @@ class BridgeNode:
         self._state_stamps: list[float | None] = [None] * n_stamps
         self._stamp_k = 0
         self.commands_stale = 0  # commands refused for answering no recent state
+        self._stale_seen = (-math.inf, math.nan)  # (monotonic s, how much older than the newest state, s) of the last
         self.last_state_stamp_s = math.nan  # s, the stamp of the newest state published
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
@@ -607,6 +611,8 @@ class BridgeNode:
             self._consumed_ns = max(self._consumed_ns, self.commands.latest_with_time()[1])
         self.mode = self.safety.drive
         self.hold_reason = self.safety.hold_reason if self.mode == "hold" else ""
+        if self.mode in ("inactive", "hold") and (stale := self._stale_note()):
+            self.hold_reason = f"{self.hold_reason}; {stale}" if self.hold_reason else stale
         if not self.safety.enabled:
             self.force = np.zeros(self.driver.n_motors)
         if self.latch_file is not None and self.safety.estop_engaged != self._latched_on_disk:
@@ -701,10 +707,23 @@ class BridgeNode:
         self._state_pub.put(bus.MotorState(
             seq=self._seq["state"], stamp_s=stamp, theta_rad=self._theta_list,
             force_applied_N=self.force.tolist(), drive=self.mode,
-            hold_reason=self.hold_reason if self.mode == "hold" or self._closed else "", epoch=self.epoch,
+            hold_reason=self.hold_reason if self.mode in ("hold", "inactive") or self._closed else "",
+            epoch=self.epoch,
             bridge=self.instance,
             # one attribute read (a str): the lock only guards the callback's read-modify-write
             owner=self.ownership.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
+
+    def _stale_note(self) -> str:
+        """Why the commands of the last :data:`STALE_NOTE_S` did not count ('' if none was stale): a
+        controller whose every command answered a state gone (a link's round trip over 50 ms) had
+        said only "drives inactive", forever (lab-network benchmark of 2026-11-30)."""
+        seen_s, older_s = self._stale_seen
+        if time.monotonic() - seen_s > STALE_NOTE_S:
+            return ""
+        how = f"a state {older_s * 1e3:.0f} ms older than the newest" if math.isfinite(older_s) and older_s > 0 \
+            else "no state this bridge published"
+        return (f"commands refused: the last answered {how}, none of the last {ANSWER_WINDOW_S * 1e3:.0f} ms "
+                "(a round trip too long? docs/bridge.md, what network the link needs)")
 
     def publish_health(self) -> None:
         stats = self.commands.stats

@@ -258,6 +258,33 @@ def test_a_command_answering_no_recent_state_is_no_command(board, params):
         assert wait_until(lambda: any(h.rejected.get("command_stale_state", 0) >= 20 for h in health.items), 2.0)
 
 
+def test_a_state_says_why_the_drives_stay_off_when_every_command_answers_a_state_gone(board, params):
+    """A controller behind a link whose round trip exceeds the 50 ms a command may lag (32 ms one
+    way in benchmarks/lab_network.py) had every command refused, and said only "drives inactive",
+    forever: the bridge's states now say why the drives stay off (``hold_reason`` beside
+    ``inactive``, or after a hold's own reason), for a second after the last such command."""
+    with _rig(board, params, command_timeout_s=0.010) as rig:
+        node = rig.node
+        for _ in range(30):  # states the controller's answers are 60 ms late for
+            node.tick()
+            time.sleep(DT)
+        late = node.last_state_stamp_s - 0.060
+        for _ in range(5):
+            assert not rig.put(rig.command([30.0] * 4, stamp_s=late))
+            node.tick()
+        assert node.mode == "inactive" and not _drives_on(board)
+        assert "commands refused: the last answered a state" in node.hold_reason, node.hold_reason
+        assert "ms older than the newest, none of the last 50 ms" in node.hold_reason, node.hold_reason
+        rig.answered_ticks([30.0] * 4, 20)  # answers on time: active, nothing to say
+        assert node.mode == "active" and node.hold_reason == ""
+        assert not rig.put(rig.command([30.0] * 4, stamp_s=node.last_state_stamp_s - 1.0))
+        for _ in range(10):  # then only late answers: the watchdog's hold says both why
+            node.tick()
+            time.sleep(DT)
+        assert node.mode == "hold" and "no valid command" in node.hold_reason, node.hold_reason
+        assert "; commands refused: the last answered a state 10" in node.hold_reason, node.hold_reason
+
+
 def test_a_controller_answering_a_state_a_few_ticks_old_is_obeyed(board, params):
     """The states a command may lag without a hold (the watchdog's 5 at 500 Hz) are answered."""
     with _rig(board, params, command_timeout_s=5.0) as rig:
