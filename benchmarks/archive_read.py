@@ -9,8 +9,10 @@ baseline in the same process: the same read with mcap's own log-time ordering
 the messages through a Python heap. Prints median and p99 of each and the ratio.
 
 Then the memory the decoded campaign holds (tracemalloc's peak during the read, against the
-file's size): whole, and with the keys ``xneck identify`` reads (``keys=``, 2026-11-30), per second
-of record as well, since a campaign may last 600 s.
+file's size): whole, with the keys ``xneck identify`` read until it folded its motor states
+(``keys=``, 2026-11-30), and as ``xneck identify`` reads it now
+(``twin.identification.record.campaign_data_from_mcap``: motor states and commands folded into
+columns, ``fold=``), per second of record as well, since a campaign may last 600 s.
 Run: ``.venv/bin/python benchmarks/archive_read.py [FILE.mcap] [--repeats N]``.
 """
 
@@ -30,7 +32,7 @@ from bridge import bus
 from bridge.archive import write_campaign
 from bridge.archive_read import decode_archived, read_campaign
 from server.foxglove_scene import add_scene_channel
-from twin.identification.record import CAMERA_TOPIC, MOTOR_COMMAND_TOPIC, MOTOR_TOPIC
+from twin.identification.record import CAMERA_TOPIC, MOTOR_COMMAND_TOPIC, MOTOR_TOPIC, campaign_data_from_mcap
 from twin.model.params import load_params
 
 #: What ``xneck identify`` reads (twin.identification.record.campaign_data_from_mcap).
@@ -111,10 +113,12 @@ def main() -> None:
         size, span = path.stat().st_size, record_seconds(path)
         whole = peak_bytes(lambda: read_campaign(path))
         some = peak_bytes(lambda: read_campaign(path, keys=IDENTIFY_KEYS))
-        for label, peak in (("read_campaign, whole", whole), ("read_campaign, xneck identify's keys", some)):
+        folded = peak_bytes(lambda: campaign_data_from_mcap(path))
+        for label, peak in (("read_campaign, whole", whole), ("read_campaign, xneck identify's keys", some),
+                            ("xneck identify's read (motor states folded)", folded)):
             print(f"{label:<58s} peak {peak / 1e6:8.1f} MB   {peak / size:5.1f}x the file   "
                   f"{peak / span / 1e6:6.2f} MB per s of record ({peak / span * 600 / 1e9:.2f} GB for 600 s)")
-        print(f"ratio identify's keys / whole: {some / whole:.2f}")
+        print(f"ratio identify's keys / whole: {some / whole:.2f}; folded / whole: {folded / whole:.2f}")
 
 
 if __name__ == "__main__":

@@ -175,6 +175,40 @@ def test_a_reader_that_names_its_keys_decodes_only_those(tmp_path: Path) -> None
         read_campaign(path, keys=bus.MOTOR_STATE)
 
 
+def test_a_folded_topic_is_handed_over_message_by_message_and_not_kept(tmp_path: Path) -> None:
+    """``fold=``: each message of the topic, decoded and checked, goes to its function in file order
+    (``xneck identify`` keeps a few numbers of each motor state: 806 → 431 MB on a 577 s campaign);
+    the campaign does not keep them, and says so if asked; a FoldError's own error goes through."""
+    from bridge.archive_read import FoldError
+
+    path = tmp_path / "fold.mcap"
+    t0 = 1_700_000_000_000_000_000
+    msgs: list[tuple[str, int, bus.BusMessage]] = [(bus.MOTOR_STATE, t0 + i * 2_000_000, motor_state(i)) for i in range(30)]
+    msgs.append((bus.ESTOP, t0 + 5, bus.EStop(seq=0, stamp_s=0.0, engaged=False, reason="r")))
+    write_campaign(path, msgs, {"campaign_id": "fold"}, chunk_size=512)
+    seen: list[tuple[int, int]] = []
+    campaign = read_campaign(path, keys=(bus.ESTOP,), fold={bus.MOTOR_STATE: lambda t, m: seen.append((t, m.seq))})
+    assert sorted(seen) == [(t0 + i * 2_000_000, i) for i in range(30)]
+    assert campaign.counts["/" + bus.MOTOR_STATE] == 30 and campaign.messages(bus.ESTOP)[0][1].reason == "r"
+    with pytest.raises(KeyError, match="folded"):
+        campaign.messages(bus.MOTOR_STATE)
+
+    class Refused(Exception):
+        pass
+
+    def refuse(_t: int, m: bus.MotorState) -> None:
+        if m.seq == 7:
+            raise FoldError(Refused("seq 7"))
+
+    with pytest.raises(Refused, match="seq 7"):
+        read_campaign(path, fold={bus.MOTOR_STATE: refuse})
+    def fails(_t: int, _m: bus.MotorState) -> None:
+        raise ZeroDivisionError("a bug")
+
+    with pytest.raises(ArchiveError, match="damaged MCAP file"):  # anything else a function raises
+        read_campaign(path, fold={bus.MOTOR_STATE: fails})
+
+
 def test_bad_files_give_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ArchiveError, match="no such file"):
         read_campaign(tmp_path / "missing.mcap")

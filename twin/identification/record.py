@@ -38,6 +38,7 @@ What a shared bus may have put in an archive (audit of 2026-11-29):
 
 from __future__ import annotations
 
+from array import array
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -126,31 +127,91 @@ def _one_camera(path: str | Path, frames: list, source: str | None) -> list:
 RUNS_NAMED_MAX = 4  # bridge runs an error or a note names (an archive is untrusted input)
 
 
-def _runs_text(runs: dict[tuple[str, str], list[tuple[int, Any]]]) -> str:
-    """``runs`` (bridge, epoch) → states, most states first, e.g. "bridge 'b' run 'e' (3000 states,
-    stamped 0-6 s)"."""
+class MotorStates:
+    """An archive's motor states as columns, folded as they are read (``read_campaign(fold=...)``):
+    decoded one by one, 577 s of them had taken 565 MB of Python objects in ``xneck identify``
+    (audit of 2026-11-30). :meth:`ordered` gives them in the order ``read_campaign`` keeps a topic
+    (log time, ties in file order); ``run`` indexes :attr:`runs` ((bridge, epoch) of each)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = path
+        self.log_ns, self.stamp_s, self.run = array("q"), array("d"), array("q")
+        self.theta_rad, self.force_N = array("d"), array("d")
+        self.runs: dict[tuple[str, str], int] = {}
+        self.width: int | None = None
+
+    def add(self, log_ns: int, m: Any) -> None:
+        from bridge.archive_read import FoldError
+        from bridge.bus import MotorState
+
+        if not isinstance(m, MotorState):
+            raise FoldError(IdentificationError(
+                f"{self.path}: motor or camera messages are malformed (a {type(m).__name__} on {MOTOR_TOPIC})"))
+        if self.width is None:
+            self.width = len(m.theta_rad)
+        if len(m.theta_rad) != self.width or len(m.force_applied_N) != self.width:
+            raise FoldError(IdentificationError(
+                f"{self.path}: motor or camera messages are malformed (a motor state of {len(m.theta_rad)} angles and "
+                f"{len(m.force_applied_N)} forces, the first had {self.width})"))
+        self.log_ns.append(log_ns)
+        self.stamp_s.append(m.stamp_s)
+        self.theta_rad.extend(m.theta_rad)
+        self.force_N.extend(m.force_applied_N)
+        self.run.append(self.runs.setdefault((m.bridge, m.epoch), len(self.runs)))
+
+    def __len__(self) -> int:
+        return len(self.stamp_s)
+
+    def ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(log_time_ns, stamp_s, theta_rad (N, n), force_N (N, n), run) in log-time order."""
+        log = np.frombuffer(self.log_ns, dtype=np.int64) if len(self) else np.zeros(0, np.int64)
+        order = np.argsort(log, kind="stable")
+        n = self.width or 0
+        stamp = np.frombuffer(self.stamp_s, dtype=float) if len(self) else np.zeros(0)
+        theta = np.frombuffer(self.theta_rad, dtype=float).reshape(-1, n) if len(self) else np.zeros((0, n))
+        force = np.frombuffer(self.force_N, dtype=float).reshape(-1, n) if len(self) else np.zeros((0, n))
+        run = np.frombuffer(self.run, dtype=np.int64) if len(self) else np.zeros(0, np.int64)
+        return log[order], stamp[order], theta[order], force[order], run[order]
+
+
+class CommandRuns(Counter):
+    """How many commands each (sender, epoch) sent, folded as they are read: all
+    :func:`_one_bridge_run` needs of them."""
+
+    def add(self, _log_ns: int, c: Any) -> None:
+        sender, epoch = getattr(c, "sender", None), getattr(c, "epoch", None)
+        if isinstance(sender, str) and isinstance(epoch, str):
+            self[(sender, epoch)] += 1
+
+
+def _runs_text(runs: dict[tuple[str, str], np.ndarray], stamp_s: np.ndarray) -> str:
+    """``runs`` (bridge, epoch) → the indices of their states in ``stamp_s``, most states first,
+    e.g. "bridge 'b' run 'e' (3000 states, stamped 0-6 s)"."""
     ordered = sorted(runs.items(), key=lambda kv: -len(kv[1]))
-    named = [f"bridge {bridge[:64]!r} run {epoch[:64]!r} ({len(states)} state{'' if len(states) == 1 else 's'}, "
-             f"stamped {states[0][1].stamp_s:.6g}-{states[-1][1].stamp_s:.6g} s)"
-             for (bridge, epoch), states in ordered[:RUNS_NAMED_MAX]]
+    named = [f"bridge {bridge[:64]!r} run {epoch[:64]!r} ({len(idx)} state{'' if len(idx) == 1 else 's'}, "
+             f"stamped {stamp_s[idx[0]]:.6g}-{stamp_s[idx[-1]]:.6g} s)"
+             for (bridge, epoch), idx in ordered[:RUNS_NAMED_MAX]]
     more = len(ordered) - len(named)
     return ", ".join(named) + (f" and {more} more" if more > 0 else "")
 
 
-def _one_bridge_run(path: str | Path, states: list[tuple[int, Any]], commands: list[tuple[int, Any]],
-                    notes: list[str]) -> list:
-    """The motor states (``(log_time_ns, MotorState)`` in receive order) of the campaign's bridge run
-    (module docstring, "One bridge run"); a note for the other runs' states dropped, or
-    :class:`IdentificationError` when which run is the campaign's cannot be told."""
-    runs: dict[tuple[str, str], list[tuple[int, Any]]] = {}
-    for item in states:
-        runs.setdefault((item[1].bridge, item[1].epoch), []).append(item)
+def _one_bridge_run(path: str | Path, log_ns: np.ndarray, stamp_s: np.ndarray, run: np.ndarray,
+                    names: dict[tuple[str, str], int], commands: Counter[tuple[str, str]],
+                    notes: list[str]) -> np.ndarray:
+    """The indices of the motor states (``log_ns``, ``stamp_s``, ``run``: in receive order; ``names``:
+    (bridge, epoch) → run) of the campaign's bridge run (module docstring, "One bridge run"); a
+    note for the other runs' states dropped, or :class:`IdentificationError` when which run is the
+    campaign's cannot be told. ``commands``: how many commands each (sender, epoch) sent."""
+    runs = {name: np.flatnonzero(run == k) for name, k in names.items()}
+    runs = {name: idx for name, idx in runs.items() if len(idx)}
     if len(runs) <= 1:
-        return [m for _, m in states]
+        return np.arange(len(stamp_s))
     # The campaign's controller is the sender of most commands: until the recorder follows it, it
     # keeps every controller's, and another's few, answering its own bridge, had the record refused
     # as one restarted mid-campaign (review of session 49).
-    senders = Counter(c.sender for _, c in commands)
+    senders: Counter[str] = Counter()
+    for (sender, _), n in commands.items():
+        senders[sender] += n
     own = senders.most_common(1)[0][0] if senders else ""
     if len(senders) > 1:
         strays = {s: n for s, n in senders.items() if s != own}
@@ -158,31 +219,33 @@ def _one_bridge_run(path: str | Path, states: list[tuple[int, Any]], commands: l
                      f"({', '.join(repr(s[:64]) for s in list(strays)[:3])}{', …' if len(strays) > 3 else ''}) not "
                      f"counted in telling the campaign's bridge run: the campaign's is {own[:64]!r}, the sender of "
                      f"most ({senders[own]})")
-    answered = Counter(c.epoch for _, c in commands if c.sender == own)
-    named = [run for run in runs if answered.get(run[1], 0) > 0]
+    answered = Counter({epoch: n for (sender, epoch), n in commands.items() if sender == own})
+    named = [r for r in runs if answered.get(r[1], 0) > 0]
     if len(named) > 1:
         raise IdentificationError(
             f"{path}: the campaign's commands answer {len(named)} bridge runs: "
-            f"{_runs_text({r: runs[r] for r in named})}. Its bridge restarted mid-campaign (each run's encoders "
+            f"{_runs_text({r: runs[r] for r in named}, stamp_s)}. Its bridge restarted mid-campaign (each run's encoders "
             "have their own zero) or two bridges obeyed its controller: fitted as one record they give wrong "
             "parameters; record the campaign again")
     if named:
         chosen, why = named[0], "the run the campaign's commands answer"
     else:
         chosen = max(runs, key=lambda r: len(runs[r]))
-        first, last = runs[chosen][0][0], runs[chosen][-1][0]
-        within = {r: v for r, v in runs.items() if r != chosen and any(first < log_ns < last for log_ns, _ in v)}
+        first, last = log_ns[runs[chosen][0]], log_ns[runs[chosen][-1]]
+        within = {r: v for r, v in runs.items()
+                  if r != chosen and bool(np.any((log_ns[v] > first) & (log_ns[v] < last)))}
         if within:
             raise IdentificationError(
                 f"{path}: {MOTOR_TOPIC} holds the states of {len(runs)} bridge runs received interleaved: "
-                f"{_runs_text(runs)}, and no command names the campaign's. Two bridges on one bus were recorded "
+                f"{_runs_text(runs, stamp_s)}, and no command names the campaign's. Two bridges on one bus were recorded "
                 "together, and fitted as one record they give wrong parameters")
         why = "the run with the most states, none of another received within its span; no command names a run"
     others = {r: v for r, v in runs.items() if r != chosen}
     dropped = sum(len(v) for v in others.values())
-    notes.append(f"{dropped} motor state(s) of {len(others)} other bridge run(s) dropped: {_runs_text(others)}; "
+    notes.append(f"{dropped} motor state(s) of {len(others)} other bridge run(s) dropped: "
+                 f"{_runs_text(others, stamp_s)}; "
                  f"kept bridge {chosen[0][:64]!r} run {chosen[1][:64]!r} ({len(runs[chosen])} states: {why})")
-    return [m for _, m in runs[chosen]]
+    return runs[chosen]
 
 
 def _strays(stamps: np.ndarray) -> np.ndarray:
@@ -229,17 +292,19 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     from bridge.archive_read import read_campaign
     from bridge.bus import CAPTURE_AFTER_PUBLICATION_MAX_S
 
+    states, commands = MotorStates(path), CommandRuns()
     try:
-        camp = read_campaign(path, keys=(MOTOR_TOPIC, MOTOR_COMMAND_TOPIC, CAMERA_TOPIC))
+        camp = read_campaign(path, keys=(CAMERA_TOPIC,), fold={MOTOR_TOPIC: states.add, MOTOR_COMMAND_TOPIC: commands.add})
     except ArchiveError as exc:
         raise IdentificationError(f"cannot read campaign: {exc}") from None
-    missing = [t for t in (MOTOR_TOPIC, CAMERA_TOPIC) if not camp.messages(t)]
+    missing = [t for t, n in ((MOTOR_TOPIC, len(states)), (CAMERA_TOPIC, len(camp.messages(CAMERA_TOPIC)))) if not n]
     if missing:
         have = ", ".join(sorted(camp.counts)) or "none"
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
     notes: list[str] = []
     try:
-        motor = _one_bridge_run(path, camp.messages(MOTOR_TOPIC), camp.messages(MOTOR_COMMAND_TOPIC), notes)
+        log_ns, stamps, theta_all, force_all, run = states.ordered()
+        chosen = _one_bridge_run(path, log_ns, stamps, run, states.runs, commands, notes)
         frames = _one_camera(path, [m for _, m in camp.messages(CAMERA_TOPIC)], alpha_ip_source)
         # Captured after its publication: refused by the recorder since, possibly in an older archive.
         late = [m for m in frames if m.capture_stamp_s > m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
@@ -248,9 +313,7 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
                          f"{late[0].capture_stamp_s:.6g} s, published {late[0].stamp_s:.6g} s"
                          f"{', …' if len(late) > 1 else ''} (an exposure ends before the message that reports it)")
             frames = [m for m in frames if m.capture_stamp_s <= m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
-        t = np.array([m.stamp_s for m in motor], dtype=float)
-        theta = np.array([m.theta_rad for m in motor], dtype=float)
-        force = np.array([m.force_applied_N for m in motor], dtype=float)
+        t, theta, force = stamps[chosen], theta_all[chosen], force_all[chosen]
         t_ip = np.array([m.capture_stamp_s for m in frames], dtype=float)
         alpha = np.array([m.alpha_ip_rad for m in frames], dtype=float)
     except IdentificationError:
