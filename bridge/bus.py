@@ -114,7 +114,7 @@ class MotorState(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=Tr
     ``force_applied_N`` is what the drives actually apply, after the bridge's clamping to
     [f_min, f_max], bumpless ramp and hold logic. ``hold_reason`` is empty unless ``drive == "hold"``,
     or, in a stopping bridge's last state (``drive == "disabled"``), says why it stopped, or, with
-    ``drive`` ``"inactive"`` or ``"hold"``, names the commands it refused as answering no recent
+    ``drive`` ``"inactive"`` or ``"hold"``, says that it refused commands as answering no recent
     state within the last second (a link whose round trip is too long: nothing else said why).
 
     Identity (v2): ``epoch`` is a random id of this bridge run, new at every start (a command

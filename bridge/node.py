@@ -367,7 +367,7 @@ class BridgeNode:
             if cmd.epoch == self.epoch and cmd.stamp_s not in self._state_stamps:
                 # (another run's command: refused by its epoch below, the clearer reason)
                 self.commands_stale += 1
-                self._stale_seen = (time.monotonic(), self.last_state_stamp_s - cmd.stamp_s)
+                self._stale_seen = time.monotonic()
                 raise bus.BusDecodeError(
                     f"ForceCommand from {cmd.sender!r}: answers no state of the last {len(self._state_stamps)} this "
                     f"bridge published (stamp_s {cmd.stamp_s!r}; newest {self.last_state_stamp_s!r})")
@@ -388,7 +388,7 @@ class BridgeNode:
         self._state_stamps: list[float | None] = [None] * n_stamps
         self._stamp_k = 0
         self.commands_stale = 0  # commands refused for answering no recent state
-        self._stale_seen = (-math.inf, math.nan)  # (monotonic s, how much older than the newest state, s) of the last
+        self._stale_seen = -math.inf  # monotonic s of the last command refused so
         self.last_state_stamp_s = math.nan  # s, the stamp of the newest state published
         self.commands = subscribe_latest(session, bus.MOTOR_COMMAND, validate=check)
         self._estop_lock = threading.Lock()
@@ -716,14 +716,14 @@ class BridgeNode:
     def _stale_note(self) -> str:
         """Why the commands of the last :data:`STALE_NOTE_S` did not count ('' if none was stale): a
         controller whose every command answered a state gone (a link's round trip over 50 ms) had
-        said only "drives inactive", forever (lab-network benchmark of 2026-11-30)."""
-        seen_s, older_s = self._stale_seen
-        if time.monotonic() - seen_s > STALE_NOTE_S:
+        said only "drives inactive", forever (lab-network benchmark of 2026-11-30). The text does
+        not change while it holds (no figure in it): the safety journal writes a line per change
+        of a state's reason, and the gaps' explanations list each distinct one (review)."""
+        if time.monotonic() - self._stale_seen > STALE_NOTE_S:
             return ""
-        how = f"a state {older_s * 1e3:.0f} ms older than the newest" if math.isfinite(older_s) and older_s > 0 \
-            else "no state this bridge published"
-        return (f"commands refused: the last answered {how}, none of the last {ANSWER_WINDOW_S * 1e3:.0f} ms "
-                "(a round trip too long? docs/bridge.md, what network the link needs)")
+        window_ms = len(self._state_stamps) * self.dt * 1e3
+        return (f"commands refused: they answer no state of the last {window_ms:.0f} ms (a round trip too long? "
+                "docs/bridge.md, what network the link needs)")
 
     def publish_health(self) -> None:
         stats = self.commands.stats

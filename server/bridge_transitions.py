@@ -11,7 +11,8 @@ every one), and with several bridges on the bus each is seen when its state is t
 What is compared, per bridge run (``bridge``, the instance name; ``epoch``, the run's random id,
 new at each start): ``estop_engaged`` and ``estop_reason`` (the bridge's latched e-stop and why),
 ``drive`` (``active``, ``hold``, ``inactive``, ``disabled``: :data:`bridge.bus.DriveState`) and
-``hold_reason`` ("" unless ``drive`` is ``hold``). Events handed to ``emit(event, fields)``:
+``hold_reason`` (why it holds; beside ``inactive`` or ``hold``, also the commands it refuses as
+answering no recent state, for a second after the last: :class:`bridge.bus.MotorState`). Events handed to ``emit(event, fields)``:
 
 - ``bridge_run``: a run seen for the first time (a bridge started or restarted; ``previous_epoch``
   names the run of the same bridge seen before it, "" if none), with its state;

@@ -273,8 +273,10 @@ def test_a_state_says_why_the_drives_stay_off_when_every_command_answers_a_state
             assert not rig.put(rig.command([30.0] * 4, stamp_s=late))
             node.tick()
         assert node.mode == "inactive" and not _drives_on(board)
-        assert "commands refused: the last answered a state" in node.hold_reason, node.hold_reason
-        assert "ms older than the newest, none of the last 50 ms" in node.hold_reason, node.hold_reason
+        assert node.hold_reason.startswith("commands refused: they answer no state of the last 50 ms"), node.hold_reason
+        said = node.hold_reason
+        node.tick()
+        assert node.hold_reason == said  # one text while it lasts: the journal writes a line per change
         rig.answered_ticks([30.0] * 4, 20)  # answers on time: active, nothing to say
         assert node.mode == "active" and node.hold_reason == ""
         assert not rig.put(rig.command([30.0] * 4, stamp_s=node.last_state_stamp_s - 1.0))
@@ -282,7 +284,7 @@ def test_a_state_says_why_the_drives_stay_off_when_every_command_answers_a_state
             node.tick()
             time.sleep(DT)
         assert node.mode == "hold" and "no valid command" in node.hold_reason, node.hold_reason
-        assert "; commands refused: the last answered a state 10" in node.hold_reason, node.hold_reason
+        assert node.hold_reason.endswith(f"; {said}"), node.hold_reason
 
 
 def test_a_controller_answering_a_state_a_few_ticks_old_is_obeyed(board, params):

@@ -646,6 +646,9 @@ def up(
         typer.echo(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
         typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
+        # Why a child was killed, kept until its death is handled: one slow to exit after SIGKILL
+        # dies a pass or more later, and had been said to have "exited (signal SIGKILL)" (review).
+        hung: dict[str, str] = {}
         while not stop["signal"]:
             polled = time.monotonic()
             # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg, the children with it)
@@ -653,7 +656,6 @@ def up(
             # 2026-11-26: a healthy bridge killed). Subtracted, not skipped: a supervisor late on
             # every pass (a starved CPU) had never judged a hung bridge (final CI of session 45).
             lateness_s, last_pass = max(0.0, polled - last_pass - 0.2), polled
-            hung: dict[str, str] = {}
             for name, pings, limit_s in (("bridge", watch, BRIDGE_HUNG_S), ("controller", controller_watch,
                                                                             CONTROLLER_HUNG_S)):
                 raw = pings.age_s() if pings is not None else None
@@ -663,7 +665,7 @@ def up(
                     # whose exit is slow (starved) is judged dead on a later pass, while this loop
                     # goes on watching the others (its wait's timeout had ended xneck up).
                     kill_child(procs[name], HUNG_KILL_WAIT_S)
-                    hung[name] = f"hung (its loop silent for {age:.1f} s), killed"
+                    hung.setdefault(name, f"hung (its loop silent for {age:.1f} s), killed")
             for name in plan.due(polled):  # its back-off over
                 if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
                     with contextlib.suppress(OSError):
@@ -680,7 +682,7 @@ def up(
             if dead and plan.may_restart(dead[0][0]):
                 causes = []
                 for name, rc in dead:  # every one restartable, with a restart left
-                    how = hung.get(name) or f"exited ({exit_how(rc)})"
+                    how = hung.pop(name, None) or f"exited ({exit_how(rc)})"
                     # Started again by a later pass once its delay is over: this loop goes on judging
                     # the others meanwhile (the bridge's watchdog holds the neck while the controller is away).
                     delay_s = plan.plan(name, polled)
