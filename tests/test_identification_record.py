@@ -194,3 +194,35 @@ def test_another_controllers_commands_recorded_before_the_campaigns_own_do_not_r
     assert any("kept bridge 'b' run 'e'" in n and "the run the campaign's commands answer" in n for n in data.notes), \
         data.notes
     assert any("10 command(s) of 1 other controller(s) ('other') not counted" in n for n in data.notes), data.notes
+
+
+def test_runs_read_as_columns_break_ties_and_keep_others_out_as_before(tmp_path):
+    """Review of 2026-11-30: the reader folds motor states into columns as it reads them (a 577 s
+    campaign's decoded states had taken 565 MB). Read in file order, runs and senders were then
+    numbered in file order, not log-time order: on equal counts another run was kept. And a state
+    of another run with another motor count refused the whole record, where it is dropped."""
+    clean = campaign_data_from_mcap(_archive(tmp_path / "clean.mcap", _states(), _frames()))
+    # Written in this order (the recorder's file order is not its log-time order across threads):
+    # another run's 3000 states received 10 s after the campaign's, then the campaign's.
+    later = _other_run(_states(), shift_s=10.0)
+    tie = write_campaign(tmp_path / "tie.mcap", later + _states() + _frames(), {"campaign_id": "tie"})
+    data = campaign_data_from_mcap(tie)
+    np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)  # the run first received, as before
+    assert "kept bridge 'b' run 'e' (3000 states: the run with the most states" in data.notes[0], data.notes
+    # Two controllers, as many commands each: the one first heard is the campaign's, whatever the file order.
+    first = [_replace(c, sender="first") for c in _commands("e")]
+    second = [(k, t + int(10e9), msgspec.structs.replace(c, sender="second", epoch="e2")) for k, t, c in _commands("e")]
+    both = write_campaign(tmp_path / "senders.mcap", second + later + _states() + _frames() + first,
+                          {"campaign_id": "senders"})
+    data = campaign_data_from_mcap(both)
+    np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)
+    assert any("the campaign's is 'first'" in n for n in data.notes), data.notes
+    # Another run of 3 motors: dropped, not the record refused; the campaign's own run must be regular.
+    three = [(k, t, msgspec.structs.replace(m, theta_rad=m.theta_rad[:3], force_applied_N=m.force_applied_N[:3]))
+             for k, t, m in _other_run(_states()[:200])]
+    data = campaign_data_from_mcap(_archive(tmp_path / "three.mcap", three, _states(), _frames(), _commands("e")))
+    np.testing.assert_array_equal(data.theta_rad, clean.theta_rad)
+    ragged = _states()
+    ragged[1000] = _replace(ragged[1000], theta_rad=[0.0] * 3, force_applied_N=[10.0] * 3)
+    with pytest.raises(IdentificationError, match=r"a motor state of 3 angles and 3 forces, its run's first had 4"):
+        campaign_data_from_mcap(_archive(tmp_path / "ragged.mcap", ragged, _frames()))

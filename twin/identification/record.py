@@ -127,18 +127,28 @@ def _one_camera(path: str | Path, frames: list, source: str | None) -> list:
 RUNS_NAMED_MAX = 4  # bridge runs an error or a note names (an archive is untrusted input)
 
 
+class _Run:
+    """One bridge run's angles and forces, in the order its states were read."""
+
+    def __init__(self, width: int) -> None:
+        self.width = width
+        self.theta_rad, self.force_N = array("d"), array("d")
+        self.ragged = ""  # why its states cannot be one array ('' if they can)
+
+
 class MotorStates:
     """An archive's motor states as columns, folded as they are read (``read_campaign(fold=...)``):
     decoded one by one, 577 s of them had taken 565 MB of Python objects in ``xneck identify``
-    (audit of 2026-11-30). :meth:`ordered` gives them in the order ``read_campaign`` keeps a topic
-    (log time, ties in file order); ``run`` indexes :attr:`runs` ((bridge, epoch) of each)."""
+    (audit of 2026-11-30). Each bridge run's angles and forces are kept apart: a run whose states
+    do not all carry as many motors is refused only if it is the campaign's (another's are dropped
+    anyway, as before)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = path
-        self.log_ns, self.stamp_s, self.run = array("q"), array("d"), array("q")
-        self.theta_rad, self.force_N = array("d"), array("d")
+        self.log_ns, self.stamp_s = array("Q"), array("d")  # MCAP log times are unsigned 64-bit
+        self.code, self.row = array("q"), array("q")  # per state: its run, its row in that run's arrays
         self.runs: dict[tuple[str, str], int] = {}
-        self.width: int | None = None
+        self._runs: list[_Run] = []
 
     def add(self, log_ns: int, m: Any) -> None:
         from bridge.archive_read import FoldError
@@ -147,41 +157,79 @@ class MotorStates:
         if not isinstance(m, MotorState):
             raise FoldError(IdentificationError(
                 f"{self.path}: motor or camera messages are malformed (a {type(m).__name__} on {MOTOR_TOPIC})"))
-        if self.width is None:
-            self.width = len(m.theta_rad)
-        if len(m.theta_rad) != self.width or len(m.force_applied_N) != self.width:
-            raise FoldError(IdentificationError(
-                f"{self.path}: motor or camera messages are malformed (a motor state of {len(m.theta_rad)} angles and "
-                f"{len(m.force_applied_N)} forces, the first had {self.width})"))
+        code = self.runs.setdefault((m.bridge, m.epoch), len(self.runs))
+        if code == len(self._runs):
+            self._runs.append(_Run(len(m.theta_rad)))
+        r = self._runs[code]
+        row = len(r.theta_rad) // r.width if r.width else len(r.force_N)
+        if len(m.theta_rad) != r.width or len(m.force_applied_N) != r.width:
+            r.ragged = r.ragged or (f"{self.path}: motor or camera messages are malformed (a motor state of "
+                                    f"{len(m.theta_rad)} angles and {len(m.force_applied_N)} forces, its run's "
+                                    f"first had {r.width})")
+            row = -1
+        elif r.width:
+            r.theta_rad.extend(m.theta_rad)
+            r.force_N.extend(m.force_applied_N)
+        else:  # no motor at all: rows counted in force_N's place
+            r.force_N.append(0.0)
         self.log_ns.append(log_ns)
         self.stamp_s.append(m.stamp_s)
-        self.theta_rad.extend(m.theta_rad)
-        self.force_N.extend(m.force_applied_N)
-        self.run.append(self.runs.setdefault((m.bridge, m.epoch), len(self.runs)))
+        self.code.append(code)
+        self.row.append(row)
 
     def __len__(self) -> int:
         return len(self.stamp_s)
 
-    def ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(log_time_ns, stamp_s, theta_rad (N, n), force_N (N, n), run) in log-time order."""
-        log = np.frombuffer(self.log_ns, dtype=np.int64) if len(self) else np.zeros(0, np.int64)
+    def ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[tuple[str, str]]]:
+        """(order, log_time_ns, stamp_s, run, names): the states in the order ``read_campaign``
+        keeps a topic (log time, ties in file order; ``order``: their places as read), each one's
+        run numbered as first seen in that order, ``names[run]`` its (bridge, epoch)."""
+        log = np.frombuffer(self.log_ns, dtype=np.uint64) if len(self) else np.zeros(0, np.uint64)
         order = np.argsort(log, kind="stable")
-        n = self.width or 0
-        stamp = np.frombuffer(self.stamp_s, dtype=float) if len(self) else np.zeros(0)
-        theta = np.frombuffer(self.theta_rad, dtype=float).reshape(-1, n) if len(self) else np.zeros((0, n))
-        force = np.frombuffer(self.force_N, dtype=float).reshape(-1, n) if len(self) else np.zeros((0, n))
-        run = np.frombuffer(self.run, dtype=np.int64) if len(self) else np.zeros(0, np.int64)
-        return log[order], stamp[order], theta[order], force[order], run[order]
+        code = np.frombuffer(self.code, dtype=np.int64)[order] if len(self) else np.zeros(0, np.int64)
+        _, first = np.unique(code, return_index=True)
+        seen = np.unique(code)[np.argsort(first, kind="stable")]  # the codes, first seen first
+        renumber = np.empty(len(self._runs), dtype=np.int64)
+        renumber[seen] = np.arange(len(seen))
+        by_code = {k: name for name, k in self.runs.items()}
+        stamp = np.frombuffer(self.stamp_s, dtype=float)[order] if len(self) else np.zeros(0)
+        return order, log[order], stamp, renumber[code], [by_code[int(k)] for k in seen]
+
+    def columns(self, places: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(theta_rad (N, n), force_N (N, n)) of the states at ``places`` (as read), all of one run;
+        :class:`IdentificationError` if that run's states do not all carry as many motors."""
+        if len(places) == 0:
+            return np.zeros((0, 0)), np.zeros((0, 0))
+        r = self._runs[int(self.code[int(places[0])])]
+        if r.ragged:
+            raise IdentificationError(r.ragged)
+        rows = np.frombuffer(self.row, dtype=np.int64)[places]
+        if r.width == 0:
+            return np.zeros((len(rows), 0)), np.zeros((len(rows), 0))
+        theta = np.frombuffer(r.theta_rad, dtype=float).reshape(-1, r.width)[rows]
+        return theta, np.frombuffer(r.force_N, dtype=float).reshape(-1, r.width)[rows]
 
 
-class CommandRuns(Counter):
+class CommandRuns:
     """How many commands each (sender, epoch) sent, folded as they are read: all
-    :func:`_one_bridge_run` needs of them."""
+    :func:`_one_bridge_run` needs of them. :meth:`in_order` gives them as they first came in log
+    time (ties as read): the order a tie between senders is broken in, as before they were folded."""
 
-    def add(self, _log_ns: int, c: Any) -> None:
+    def __init__(self) -> None:
+        self.counts: Counter[tuple[str, str]] = Counter()
+        self.first: dict[tuple[str, str], tuple[int, int]] = {}
+        self._n = 0
+
+    def add(self, log_ns: int, c: Any) -> None:
         sender, epoch = getattr(c, "sender", None), getattr(c, "epoch", None)
+        self._n += 1
         if isinstance(sender, str) and isinstance(epoch, str):
-            self[(sender, epoch)] += 1
+            key = (sender, epoch)
+            self.counts[key] += 1
+            self.first[key] = min(self.first.get(key, (log_ns, self._n)), (log_ns, self._n))
+
+    def in_order(self) -> Counter[tuple[str, str]]:
+        return Counter({k: self.counts[k] for k in sorted(self.counts, key=self.first.__getitem__)})
 
 
 def _runs_text(runs: dict[tuple[str, str], np.ndarray], stamp_s: np.ndarray) -> str:
@@ -196,14 +244,14 @@ def _runs_text(runs: dict[tuple[str, str], np.ndarray], stamp_s: np.ndarray) -> 
 
 
 def _one_bridge_run(path: str | Path, log_ns: np.ndarray, stamp_s: np.ndarray, run: np.ndarray,
-                    names: dict[tuple[str, str], int], commands: Counter[tuple[str, str]],
+                    names: list[tuple[str, str]], commands: Counter[tuple[str, str]],
                     notes: list[str]) -> np.ndarray:
     """The indices of the motor states (``log_ns``, ``stamp_s``, ``run``: in receive order; ``names``:
-    (bridge, epoch) → run) of the campaign's bridge run (module docstring, "One bridge run"); a
-    note for the other runs' states dropped, or :class:`IdentificationError` when which run is the
-    campaign's cannot be told. ``commands``: how many commands each (sender, epoch) sent."""
-    runs = {name: np.flatnonzero(run == k) for name, k in names.items()}
-    runs = {name: idx for name, idx in runs.items() if len(idx)}
+    (bridge, epoch) of each run, first seen first) of the campaign's bridge run (module docstring,
+    "One bridge run"); a note for the other runs' states dropped, or :class:`IdentificationError`
+    when which run is the campaign's cannot be told. ``commands``: how many commands each
+    (sender, epoch) sent, first sent first (:meth:`CommandRuns.in_order`)."""
+    runs = {name: np.flatnonzero(run == k) for k, name in enumerate(names)}
     if len(runs) <= 1:
         return np.arange(len(stamp_s))
     # The campaign's controller is the sender of most commands: until the recorder follows it, it
@@ -303,8 +351,8 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
         raise IdentificationError(f"{path}: missing channel(s) {', '.join(missing)} (channels present: {have})")
     notes: list[str] = []
     try:
-        log_ns, stamps, theta_all, force_all, run = states.ordered()
-        chosen = _one_bridge_run(path, log_ns, stamps, run, states.runs, commands, notes)
+        order, log_ns, stamps, run, names = states.ordered()
+        chosen = _one_bridge_run(path, log_ns, stamps, run, names, commands.in_order(), notes)
         frames = _one_camera(path, [m for _, m in camp.messages(CAMERA_TOPIC)], alpha_ip_source)
         # Captured after its publication: refused by the recorder since, possibly in an older archive.
         late = [m for m in frames if m.capture_stamp_s > m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
@@ -313,7 +361,8 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
                          f"{late[0].capture_stamp_s:.6g} s, published {late[0].stamp_s:.6g} s"
                          f"{', …' if len(late) > 1 else ''} (an exposure ends before the message that reports it)")
             frames = [m for m in frames if m.capture_stamp_s <= m.stamp_s + CAPTURE_AFTER_PUBLICATION_MAX_S]
-        t, theta, force = stamps[chosen], theta_all[chosen], force_all[chosen]
+        t = stamps[chosen]
+        theta, force = states.columns(order[chosen])
         t_ip = np.array([m.capture_stamp_s for m in frames], dtype=float)
         alpha = np.array([m.alpha_ip_rad for m in frames], dtype=float)
     except IdentificationError:
