@@ -116,7 +116,8 @@ def _stop(procs: list[subprocess.Popen]) -> None:
         except subprocess.TimeoutExpired:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(p.pid, signal.SIGKILL)
-            p.wait(5)
+            with contextlib.suppress(subprocess.TimeoutExpired):  # slow to exit: the others still stopped
+                p.wait(5)
 
 
 def _link_argv(listen_port: int, to_port: int, case: Case, record: Path | None = None) -> list[str]:

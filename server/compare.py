@@ -88,6 +88,8 @@ def _deg(rows: list[list[float | None]]) -> list[list[float | None]]:
 
 log = logging.getLogger("xneck.compare")
 TRACE_KEYS = frozenset({"t_s", "alpha_d_deg", "alpha_hat_deg", "e_deg", "force", "camera"})
+#: Changed with what :func:`traces` computes: traces kept by another version are computed again.
+TRACES_VERSION = 1
 
 
 def cached_traces(mcap: Path, folder: Path, max_points: int = 800) -> dict[str, Any]:
@@ -98,7 +100,7 @@ def cached_traces(mcap: Path, folder: Path, max_points: int = 800) -> dict[str, 
     written (a full disk) is not kept."""
     cache = folder / f"traces-{max_points}.json"
     st = mcap.stat()  # a missing archive is the caller's error, as traces() raises it
-    of = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    of = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "version": TRACES_VERSION}
     try:
         doc = json.loads(cache.read_text(encoding="utf-8"))
         if isinstance(doc, dict) and doc.get("mcap") == of and isinstance(doc.get("traces"), dict) \
