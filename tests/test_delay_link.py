@@ -15,6 +15,8 @@ import threading
 import time
 from pathlib import Path
 
+from busutil import wait_until
+
 _spec = importlib.util.spec_from_file_location(
     "_delay_link", Path(__file__).resolve().parents[1] / "benchmarks" / "_delay_link.py")
 assert _spec is not None and _spec.loader is not None
@@ -76,15 +78,6 @@ def _exchange(port: int, payload: bytes) -> bytes:
     return bytes(got)
 
 
-def _eventually(predicate, timeout_s: float = TIMEOUT_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
-
 def test_bytes_arrive_complete_and_in_order_both_ways_with_jitter() -> None:
     echo = Echo()
     payload = random.Random(0).randbytes(600_000)
@@ -93,7 +86,7 @@ def test_bytes_arrive_complete_and_in_order_both_ways_with_jitter() -> None:
     try:
         port = link.start()
         assert _exchange(port, payload) == payload  # up to the echo and back down: both directions
-        assert _eventually(lambda: link.stats()["down"]["bytes"] == len(payload))  # counted after it went
+        assert wait_until(lambda: link.stats()["down"]["bytes"] == len(payload))  # counted after it went
         stats = link.stats()
         assert stats["up"]["bytes"] == stats["down"]["bytes"] == len(payload)
     finally:
@@ -117,7 +110,7 @@ def test_the_configured_delay_is_applied_to_every_chunk_each_way() -> None:
             # failed this test one run in three).
             def held(name: str = name) -> list[int]:
                 return [h for d in link.directions if d.name == name for h in d.held_ns]
-            assert _eventually(lambda: len(held()) == 5), (name, held())
+            assert wait_until(lambda: len(held()) == 5), (name, held())
             assert min(held()) >= 20_000_000, (name, held())
     finally:
         link.close()
