@@ -133,6 +133,7 @@ class _Run:
     def __init__(self, width: int) -> None:
         self.width = width
         self.theta_rad, self.force_N = array("d"), array("d")
+        self.rows = 0
         self.ragged = ""  # why its states cannot be one array ('' if they can)
 
 
@@ -161,17 +162,15 @@ class MotorStates:
         if code == len(self._runs):
             self._runs.append(_Run(len(m.theta_rad)))
         r = self._runs[code]
-        row = len(r.theta_rad) // r.width if r.width else len(r.force_N)
         if len(m.theta_rad) != r.width or len(m.force_applied_N) != r.width:
             r.ragged = r.ragged or (f"{self.path}: motor or camera messages are malformed (a motor state of "
                                     f"{len(m.theta_rad)} angles and {len(m.force_applied_N)} forces, its run's "
                                     f"first had {r.width})")
             row = -1
-        elif r.width:
+        else:
             r.theta_rad.extend(m.theta_rad)
             r.force_N.extend(m.force_applied_N)
-        else:  # no motor at all: rows counted in force_N's place
-            r.force_N.append(0.0)
+            row, r.rows = r.rows, r.rows + 1
         self.log_ns.append(log_ns)
         self.stamp_s.append(m.stamp_s)
         self.code.append(code)
@@ -204,10 +203,8 @@ class MotorStates:
         if r.ragged:
             raise IdentificationError(r.ragged)
         rows = np.frombuffer(self.row, dtype=np.int64)[places]
-        if r.width == 0:
-            return np.zeros((len(rows), 0)), np.zeros((len(rows), 0))
-        theta = np.frombuffer(r.theta_rad, dtype=float).reshape(-1, r.width)[rows]
-        return theta, np.frombuffer(r.force_N, dtype=float).reshape(-1, r.width)[rows]
+        theta = np.frombuffer(r.theta_rad, dtype=float).reshape(r.rows, r.width)[rows]
+        return theta, np.frombuffer(r.force_N, dtype=float).reshape(r.rows, r.width)[rows]
 
 
 class CommandRuns:
