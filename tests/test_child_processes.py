@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Callable, Iterator
+
+import pytest
 
 from server.child_processes import STILL_EXITING, kill_child, stop_child
 
@@ -38,37 +41,39 @@ class SlowToExit(subprocess.Popen):
         return super().wait(timeout)
 
 
-def test_a_child_that_ignores_sigterm_is_killed() -> None:
-    proc = SlowToExit(late=0)
-    try:
-        assert stop_child(proc, 0.3) == "killed"
-        assert proc.returncode is not None and proc.returncode < 0
-    finally:
+@pytest.fixture
+def slow_child() -> Iterator[Callable[[int], SlowToExit]]:
+    """Makes :class:`SlowToExit` children; each is killed and reaped at the end, whatever happened."""
+    made: list[SlowToExit] = []
+
+    def make(late: int) -> SlowToExit:
+        made.append(SlowToExit(late))
+        return made[-1]
+
+    yield make
+    for proc in made:
+        proc.late = 0
         proc.kill()
         proc.wait()
         proc.stdout.close()  # type: ignore[union-attr]
 
 
-def test_a_killed_child_slow_to_exit_is_said_not_raised() -> None:
-    proc = SlowToExit(late=1)
-    try:
-        assert stop_child(proc, 0.3) == STILL_EXITING  # raised TimeoutExpired before
-        assert proc.killed and proc.wait(10) < 0  # reaped later, as the caller's next look does
-        assert stop_child(proc, 0.3) == ""  # ended: nothing to do
-    finally:
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()  # type: ignore[union-attr]
+def test_a_child_that_ignores_sigterm_is_killed(slow_child) -> None:
+    proc = slow_child(0)
+    assert stop_child(proc, 0.3) == "killed"
+    assert proc.returncode is not None and proc.returncode < 0
 
 
-def test_killing_a_hung_child_waits_briefly_and_answers_whether_it_ended() -> None:
-    proc = SlowToExit(late=1)
-    try:
-        assert kill_child(proc, 0.2) is False  # xneck up's supervisor goes on and judges it on a later pass
-        assert kill_child(proc, 5.0) is True  # killed again: harmless; now seen ended
-        assert proc.returncode is not None and proc.returncode < 0
-        assert kill_child(proc, 0.2) is True  # an ended (reaped) child: no error
-    finally:
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()  # type: ignore[union-attr]
+def test_a_killed_child_slow_to_exit_is_said_not_raised(slow_child) -> None:
+    proc = slow_child(1)
+    assert stop_child(proc, 0.3) == STILL_EXITING  # raised TimeoutExpired before
+    assert proc.killed and proc.wait(10) < 0  # reaped later, as the caller's next look does
+    assert stop_child(proc, 0.3) == ""  # ended: nothing to do
+
+
+def test_killing_a_hung_child_waits_briefly_and_answers_whether_it_ended(slow_child) -> None:
+    proc = slow_child(1)
+    assert kill_child(proc, 0.2) is False  # xneck up's supervisor goes on and judges it on a later pass
+    assert kill_child(proc, 5.0) is True  # killed again: harmless; now seen ended
+    assert proc.returncode is not None and proc.returncode < 0
+    assert kill_child(proc, 0.2) is True  # an ended (reaped) child: no error
