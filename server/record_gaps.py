@@ -1,8 +1,9 @@
 """Where a recorded campaign has holes, and why (issue 17, campaign honesty).
 
-The identification resamples its records on a uniform grid and refuses a gap longer than five
-sample periods (``twin.identification.pipeline._uniform``): "37 gap(s) in the record" said neither
-where nor why. :func:`record_gaps` finds the same gaps in the two records it reads — the bridge's
+The identification resamples its records on a uniform grid; a gap longer than five sample
+periods is lost data, which it bridges up to 2 s (``twin.identification.processing.check_gaps``,
+``fitted_instants``) and refuses beyond. "37 gap(s) in the record" said neither where nor why.
+:func:`record_gaps` finds the same gaps in the two records it reads — the bridge's
 ``MotorState`` (500 Hz, ``stamp_s``) and the camera's ``CameraAlpha`` (30 Hz, ``capture_stamp_s``;
 a frame with a missing joint does not count, as the identification's reader drops it) — and, for
 each, what the archive says happened then:
@@ -28,7 +29,7 @@ from bridge import bus
 from bridge.archive import RECORDER
 from bridge.archive_read import Campaign
 
-MAX_GAP_PERIODS = 5.0  # as twin.identification.pipeline._uniform: longer is lost data, not jitter
+MAX_GAP_PERIODS = 5.0  # as twin.identification.processing.gaps_of: longer is lost data, not jitter
 CONTEXT_S = 0.05  # s before a gap in which holds and deadline misses are counted as its context
 SHOWN = 3  # gaps described one by one per topic
 #: What :func:`explain_gaps` reads of a campaign (``read_campaign(path, keys=GAP_KEYS)``).

@@ -102,11 +102,12 @@ def test_the_lockstep_camera_is_deterministic_from_the_seed(params) -> None:
 
 
 def _gappy_campaign(path, n_motors: int = 4, n_joints: int = 3):
-    """6 s at 500 Hz in which the record lacks MotorState seq 1601-1615 (t = 3.2-3.23 s): the
-    controller missed deadlines and the bridge held on the command timeout just before."""
+    """8 s at 500 Hz in which the record lacks MotorState seq 1601-2800 (t = 3.2-5.6 s, longer
+    than the 2 s the fit bridges): the controller missed deadlines and the bridge held on the
+    command timeout just before."""
     msgs = []
-    lost = range(1601, 1616)
-    for k in range(1, 3001):
+    lost = range(1601, 2801)
+    for k in range(1, 4001):
         t = 0.002 * k
         hold = 1590 <= k < 1601
         if k not in lost:
@@ -120,7 +121,7 @@ def _gappy_campaign(path, n_motors: int = 4, n_joints: int = 3):
             seq=k, stamp_s=t, law="law1", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=misses,
             saturated=[False] * n_motors, alpha_hat_rad=[0.0] * n_joints, alpha_d_rad=[0.0] * n_joints,
             e_rad=[0.0] * n_joints, holding=False, campaign_id="gappy", ticks=k)))
-    for k in range(180):
+    for k in range(240):
         t = k / 30
         msgs.append((bus.CAMERA_ALPHA, int((t + 0.05) * 1e9) + 2, bus.CameraAlpha(
             seq=k + 1, stamp_s=t + 0.05, capture_stamp_s=t, alpha_ip_rad=[0.1 * np.sin(t)] * n_joints,
@@ -138,8 +139,9 @@ def test_the_record_gaps_that_break_an_identification_are_explained(tmp_path) ->
     report, text = identify_archive(path, None)
     assert report is None and text.startswith("identification failed")
     assert "gap(s) in the record" in text
-    assert "/xneck/motor/state" in text and "seq 1601-1615" in text and "t = 3.200" in text
-    assert "15 message(s)" in text and "not in the record" in text
+    assert "longer than 2 s" in text
+    assert "/xneck/motor/state" in text and "seq 1601-2800" in text and "t = 3.200" in text
+    assert "1200 message(s)" in text and "not in the record" in text
     assert "7 deadline miss(es)" in text
     assert "command timeout" in text
 

@@ -76,7 +76,7 @@ def _synthetic(params, seed: int = 1, n: int = 3000, noise_N: float = 0.5, gear:
         y = ((1 + a * truth["mu"]) * t + a * truth["F_0"] - g_b * np.maximum(-a, 0) * t) / (1 - g_f * np.maximum(a, 0))
         force[:, j] = y + noise_N * e[:, j] + ia_over_rho(params) * theta_ddot[:, j]
     return SimpleNamespace(x_c=x, x_c_dot=x_dot, theta_dot=theta_dot, theta_ddot=theta_ddot, force=force,
-                           rate_hz=RATE_HZ, cutoff_hz=1.0, n=n)
+                           rate_hz=RATE_HZ, cutoff_hz=1.0, n=n, fitted=np.ones(n, dtype=bool))
 
 
 @pytest.fixture(scope="module")

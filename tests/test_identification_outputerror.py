@@ -107,7 +107,7 @@ def test_refuses_a_bad_sigma_a_still_record_and_a_creep_time(params, robot_campa
     with pytest.raises(ValueError, match="sigma must be one of"):
         fit_output_error(proc, params, sigma="magic")
     still = SimpleNamespace(**{f: getattr(proc, f) for f in ("force", "theta_ddot", "n", "rate_hz", "alpha",
-                                                             "theta", "cutoff_hz")},
+                                                             "theta", "cutoff_hz", "fitted")},
                             theta_dot=0.1 * proc.theta_dot)
     with pytest.raises(ValueError, match=r"fewer than 50 instants with the motor faster than 5 rad/s"):
         fit_output_error(still, params)  # type: ignore[arg-type]

@@ -193,6 +193,8 @@ def identify(
     for what, data in (("", ident.data), (f"--validate {validate}: ", data_b)):
         for note in data.notes if data is not None else ():
             typer.echo(f"note: {what}{note}", err=True)
+    for note in ident.processed.notes:  # the record's gaps, bridged and not fitted
+        typer.echo(f"note: {note}", err=True)
     est, proc, val, prov, new, report = (ident.estimate, ident.processed, ident.validation, ident.provenance,
                                          ident.params, ident.report)
     from twin.identification.timing import alpha_ip_timing

@@ -204,9 +204,9 @@ def _residual(p: FloatArray, x: FloatArray, xd: FloatArray, theta_dot: FloatArra
 
 def fit_rows(proc: Processed, params: Params) -> tuple[FloatArray, NDArray[np.bool_]]:
     """y = f − (R/r_d)I_a·θ̈ (N, (n, n_cables)) and the rows the fit uses: motor faster than
-    5 rad/s and y above 2 N."""
+    5 rad/s and y above 2 N, at an instant the fit uses (``Processed.fitted``: not a record gap's)."""
     y = proc.force - ia_over_rho(params) * proc.theta_ddot
-    return y, (np.abs(proc.theta_dot) >= MIN_SPEED_RAD_S) & (y > MIN_FORCE_N)
+    return y, (np.abs(proc.theta_dot) >= MIN_SPEED_RAD_S) & (y > MIN_FORCE_N) & proc.fitted[:, None]
 
 
 def linear_start(proc: Processed, params: Params) -> tuple[FloatArray, FloatArray]:

@@ -209,7 +209,9 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
     proc = decimated(proc)[0]
     y, rows = fit_rows(proc, params)
     edge = int(EDGE_S * proc.rate_hz)
-    keep = slice(edge, proc.n - edge)
+    inner = np.zeros(proc.n, dtype=bool)
+    inner[edge:proc.n - edge] = True
+    keep = np.flatnonzero(inner & proc.fitted)  # the pose rows' instants: not a record gap's either
     a = np.sign(proc.theta_dot)
     g_f, g_b = gear_losses(params)
     neck = _Neck(params, build(params, "variable"), proc, np.array(proc.alpha, dtype=float))
@@ -248,7 +250,7 @@ def fit_output_error(proc: Processed, params: Params, *, threshold: float = DEFA
         k, lam, beta, tau, springs, delta_r, mu, _ = unpack(q)
         d_alpha, d_t = neck.derivatives(k, lam, beta, tau, springs, delta_r)
         t = neck.simulate(k, lam, beta, tau, springs, delta_r)[1]
-        ja = np.zeros((N * (keep.stop - keep.start), len(q)))
+        ja = np.zeros((N * len(keep), len(q)))
         ja[:, :i_mu] = d_alpha[keep].reshape(-1, i_mu)
         jf = np.zeros((len(motor), len(q)))
         jf[:, :i_mu] = (((1 + a * mu - g_b * np.maximum(-a, 0)) / winding)[:, :, None] * d_t)[rows]
@@ -295,7 +297,7 @@ def decimated(proc: Processed) -> tuple[Processed, int]:
     if step == 1:
         return proc, 1
     fields = ("t_s", "theta", "theta_dot", "theta_ddot", "force", "alpha", "alpha_dot", "alpha_ddot", "x_c", "x_c_dot",
-              "x_c_ddot", "Z", "M", "c", "g")
+              "x_c_ddot", "Z", "M", "c", "g", "fitted")
     return dataclasses.replace(proc, rate_hz=proc.rate_hz / step,
                                **{f: np.ascontiguousarray(getattr(proc, f)[::step]) for f in fields}), step
 
@@ -324,17 +326,17 @@ def structure_models(params: Params) -> list[Model]:
     return out
 
 
-def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows: NDArray[np.bool_], keep: slice,
+def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows: NDArray[np.bool_], keep: NDArray[np.int64],
               threshold: float, sigma: str, lo: FloatArray, hi: FloatArray, shifts: list[FloatArray]) -> Estimate:
     """The Estimate: values in SI, σ of the linearised estimator q − q_true ≈ −(JᵀJ)⁻¹Jᵀρ by the HAC
     sandwich over the instants (each instant's α rows and force rows summed), mapped to the
     parameters through the exponential of the log-parametrised ones."""
     nc, N = params.n_cables, params.n_joints
     J, res = np.asarray(sol.jac, dtype=float), np.asarray(sol.fun, dtype=float)
-    n_alpha = N * (keep.stop - keep.start)
+    n_alpha = N * len(keep)
     # each row's instant: the α rows instant by instant (joints within), then the force rows as
     # (model - y)[rows] orders them (row-major: instant, then cable)
-    idx = np.concatenate([np.repeat(np.arange(keep.start, keep.stop), N), np.nonzero(rows)[0]]).astype(np.int64)
+    idx = np.concatenate([np.repeat(keep, N), np.nonzero(rows)[0]]).astype(np.int64)
     free = (q > lo + 1e-9 * (hi - lo)) & (q < hi - 1e-9 * (hi - lo))
     cov = np.zeros((len(q), len(q)))
     lag = 0

@@ -109,6 +109,7 @@ __all__ = [
     "cable_tension",
     "check_variable_options",
     "cutoff_rule",
+    "fitted_at",
     "identified_name",
     "identified_params",
     "identified_toml",
@@ -178,7 +179,8 @@ def identify_friction(proc: Processed, params: Params, *, threshold: float = DEF
     D, y = joint_rows(proc, params, elastic=False)
     nc = D.shape[-1]
     est = check_estimator(estimator)
-    return _solve(proc, D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), stacked_rows(proc.n, D.shape[1]),
+    D, y = D[proc.fitted], y[proc.fitted]
+    return _solve(proc, D.reshape(-1, nc), y.reshape(-1), param_names("f_s", nc), stacked_rows(proc.fitted, D.shape[1]),
                   method="friction", equations="eq. 38, rigid cables (eqs. 46-47)", threshold=threshold,
                   estimator="ols" if est == "iv" else est, sigma=sigma, bounded=bounded)
 
@@ -197,22 +199,23 @@ def identify_complete(
     the linear model re-simulated on the encoders), ``"ols"`` (eq. 49 as printed) or ``"wls"``.
     """
     check_friction_excitation(proc, params)
-    n, nc = proc.n, params.n_cables
+    nc = params.n_cables
     a = friction_shape(proc, params)
     y_t = proc.force - ia_over_rho(params) * proc.theta_ddot
     D_j, y_j = joint_rows(proc, params, elastic=True)
+    D_j, y_j = D_j[proc.fitted], y_j[proc.fitted]
     N = D_j.shape[1]
     eye = np.eye(nc)
 
     def tension_rows(x: FloatArray, x_dot: FloatArray) -> FloatArray:
         return np.concatenate([x[:, :, None] * eye, x_dot[:, :, None] * eye, a[:, :, None] * eye], axis=2)
 
-    bottom = np.concatenate([np.zeros((n, N, 2 * nc)), weight * D_j], axis=2).reshape(-1, 3 * nc)
+    bottom = np.concatenate([np.zeros((len(D_j), N, 2 * nc)), weight * D_j], axis=2).reshape(-1, 3 * nc)
     mask = tension_mask(y_t - a * np.asarray(params.friction.f_s)) & moving_mask(proc, params)
     W = np.concatenate([tension_rows(proc.x_c, proc.x_c_dot)[mask], bottom])
     Y = np.concatenate([y_t[mask], weight * y_j.reshape(-1)])
     est = check_estimator(estimator)
-    (si_t, g_t), (si_j, g_j) = masked_rows(mask), stacked_rows(n, N)
+    (si_t, g_t), (si_j, g_j) = masked_rows(mask), stacked_rows(proc.fitted, N)
     rows = (np.concatenate([si_t, si_j]), np.concatenate([g_t, nc + g_j]))
     names = param_names("k", nc) + param_names("c_a", nc) + param_names("f_s", nc)
 
@@ -601,7 +604,8 @@ class Validation:
     """Checks of the identified models (Figs. 4-8).
 
     Torques (N·m) at the identification instants: Γ_m = Z·f, Γ_rf and Γ_r (eqs. 51-53, our
-    sign) and the mean absolute errors |Γ_m − Γ_rf|, |Γ_m − Γ_r|. Tension (N), both sides of
+    sign) and the mean absolute errors |Γ_m − Γ_rf|, |Γ_m − Γ_r| (every mean error over the
+    instants and frames the fit uses, ``Processed.fitted``: not a gap's interpolation). Tension (N), both sides of
     eq. 42: ``tension_force[model]`` from the forces (RHS) and ``tension_stiffness[model]`` from
     the cable model (LHS, eq. 39 or 54), for "linear" and "variable", with mean absolute errors
     over non-slack samples. α̂ by eqs. 33 and 35 for the rigid, linear and variable cable models
@@ -631,16 +635,25 @@ class Validation:
         }
 
 
+def fitted_at(proc: Processed, t_s: FloatArray) -> NDArray[np.bool_]:
+    """Which times ``t_s`` (e.g. camera frames) lie among instants the fit uses (``Processed.fitted``):
+    not in a gap of the record nor within the filter's memory of a long one. Times before or after
+    the processed instants count as fitted."""
+    return np.interp(t_s, proc.t_s, proc.fitted.astype(float)) > 1.0 - 1e-9
+
+
 def _alpha_hat_all(data: CampaignData, proc: Processed, params: Params, models: tuple[CableModelName, ...]) -> tuple[dict, FloatArray, FloatArray]:
     """α̂ by eqs. 33 and 35 (twin.model.estimation) on the 500 Hz record, compared at the camera
-    frames inside it. The estimators start at α̂ = 0, x_c = 0 with the first encoder reading: the
-    campaign starts straight and at rest (§5.2.2)."""
+    frames inside it (the errors over those the fit would use: :func:`fitted_at`). The estimators
+    start at α̂ = 0, x_c = 0 with the first encoder reading: the campaign starts straight and at
+    rest (§5.2.2)."""
     from twin.model.estimation import PseudoInverseEstimator, alpha_hat_3
 
     t, theta, force, theta_dot = proc.fast_t_s, proc.fast_theta, proc.fast_force, proc.fast_theta_dot
     inside = (data.t_ip_s >= t[0]) & (data.t_ip_s <= t[-1])
     t_ip, a_ip = data.t_ip_s[inside], data.alpha_ip_rad[inside]
     k_ip = np.clip(np.searchsorted(t, t_ip - 1e-9), 0, len(t) - 1)  # the tick of each capture
+    ok = fitted_at(proc, t_ip)  # the mean error leaves out the frames of the record's gaps
     out: dict[tuple[str, str], AlphaHat] = {}
     for name in models:
         m = build(params, name)
@@ -659,7 +672,7 @@ def _alpha_hat_all(data: CampaignData, proc: Processed, params: Params, models: 
                 guess = a33[j] = alpha_hat_3(m, theta[k], est.x_c, guess)
                 j += 1
         for meth, arr in (("eq33", a33), ("eq35", a35)):
-            err = float(np.degrees(np.mean(np.abs(arr - a_ip))))
+            err = float(np.degrees(np.mean(np.abs(arr - a_ip)[ok])))
             out[(meth, name)] = AlphaHat(meth, name, t_ip, arr, err)
     return out, t_ip, a_ip
 
@@ -703,7 +716,7 @@ def validate(
         k, lam, c_a = var.vector("k"), var.vector("lambda"), var.vector("c_a")
         ts["variable"] = dynamics.cable_tension_law(k, lam, c_a, proc.x_c, proc.x_c_dot)
     for name in tf:
-        mask = tension_mask(tf[name])
+        mask = tension_mask(tf[name]) & proc.fitted[:, None]
         te[name] = float(np.mean(np.abs(tf[name] - ts[name])[mask]))
 
     if alpha_hat:
@@ -712,6 +725,7 @@ def validate(
         ah, t_ip, a_ip = {}, np.zeros(0), np.zeros((0, data.n_joints))
     return Validation(
         t_s=proc.t_s, gamma_m=gamma_m, gamma_rf=gamma_rf, gamma_r=gamma_r,
-        gamma_rf_error=float(np.mean(np.abs(gamma_m - gamma_rf))), gamma_r_error=float(np.mean(np.abs(gamma_m - gamma_r))),
+        gamma_rf_error=float(np.mean(np.abs(gamma_m - gamma_rf)[proc.fitted])),
+        gamma_r_error=float(np.mean(np.abs(gamma_m - gamma_r)[proc.fitted])),
         tension_force=tf, tension_stiffness=ts, tension_error=te, alpha_hat=ah, t_ip_s=t_ip, alpha_ip=a_ip,
     )

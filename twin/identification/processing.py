@@ -155,7 +155,8 @@ class CampaignData:
     def window(self, t0_s: float, t1_s: float) -> CampaignData:
         """The record between ``t0_s`` and ``t1_s`` (s, on the record's clock: the times its
         gaps are reported at), encoders and camera alike; a note says so. For a campaign whose
-        record has gaps (:func:`longest_common_span`): ``xneck identify --window``."""
+        record has a gap too long to bridge (:func:`check_gaps`, :func:`longest_common_span`):
+        ``xneck identify --window``."""
         if not (math.isfinite(t0_s) and math.isfinite(t1_s) and t0_s < t1_s):
             raise IdentificationError(f"window {t0_s:g}-{t1_s:g} s: the start must be a time before the end")
         keep = (self.t_s >= t0_s) & (self.t_s <= t1_s)
@@ -189,23 +190,74 @@ def longest_common_span(data: CampaignData, max_gap: float = 5.0) -> tuple[float
     return best
 
 
+def gaps_of(t: FloatArray, max_gap: float = 5.0) -> FloatArray:
+    """(k, 2): the times (s) of the samples before and after each gap of ``t`` longer than
+    ``max_gap`` median periods (lost data, not jitter)."""
+    if len(t) < 2:
+        return np.zeros((0, 2))
+    k = np.flatnonzero(np.diff(t) > max_gap * float(np.median(np.diff(t))))
+    return np.column_stack([t[k], t[k + 1]])
+
+
 def check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
-    """Refuse a record with gaps (lost data, not jitter), saying which span could be fitted alone."""
+    """Refuse a record with a gap longer than :data:`MAX_GAP_S` (the record is then two campaigns,
+    not one with states lost), saying which span could be fitted alone. Shorter gaps are bridged
+    by :func:`preprocess`, their instants not fitted (:func:`fitted_instants`)."""
     for what, t in (("encoder/force record", data.t_s), ("camera record", data.t_ip_s)):
-        dt = float(np.median(np.diff(t)))
-        gaps = np.diff(t) > max_gap * dt
-        if not gaps.any():
+        gaps = gaps_of(t, max_gap)
+        long = np.flatnonzero(gaps[:, 1] - gaps[:, 0] > MAX_GAP_S)
+        if not long.size:
             continue
-        k = int(np.flatnonzero(gaps)[0])
+        k = int(long[0])
         lo, hi = longest_common_span(data, max_gap)
         total = float(max(data.t_s[-1], data.t_ip_s[-1]) - min(data.t_s[0], data.t_ip_s[0]))
         hint = (f"the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s ({hi - lo:.1f} s of "
                 f"{total:.1f} s): identify it alone with --window {lo:.2f}:{hi:.2f}") if math.isfinite(lo) else \
             "no span is free of gaps in both records"
         raise IdentificationError(
-            f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
-            f"(sampling period {dt * 1e3:.2f} ms); {hint}"
+            f"{what}: {long.size} gap(s) in the record longer than {MAX_GAP_S:g} s (too long to bridge: the "
+            f"record is two campaigns), the first {gaps[k, 1] - gaps[k, 0]:.3f} s long at t = {gaps[k, 0]:.3f} s "
+            f"(sampling period {float(np.median(np.diff(t))) * 1e3:.2f} ms); {hint}"
         )
+
+
+#: Periods of the filter's cutoff up to which a gap is *bridged*: interpolated linearly, only its
+#: own instants not fitted. Why 0.2: the motion lies below f_99 = f_c/4 (:func:`cutoff_rule`),
+#: whose linear interpolation over 0.2/f_c errs by at most (2π·0.05)²/8 = 1.2 % of its amplitude at
+#: the gap's middle, and the filter spreads that over its memory, ~1/f_c, five times the gap.
+#: 125 ms at the §5.2.2 trajectory's 1.6 Hz: 88 of the 95 gaps of a loaded 600 s campaign
+#: (docs/console.md "Long campaigns"; 10-819 ms, median 42 ms).
+BRIDGE_CUTOFF_PERIODS = 0.2
+#: s: a longer gap is refused (:func:`check_gaps`). Shorter and beyond the bridge, a gap is
+#: interpolated (the filters and the model's recursions run through it) and the instants within
+#: the filter's memory of it (the record ends' edge, two cutoff periods, at least 1 s) are not fitted.
+MAX_GAP_S = 2.0
+
+
+def fitted_instants(t_s: FloatArray, gaps: FloatArray, cutoff_hz: float, edge_s: float) -> NDArray[np.bool_]:
+    """(n,) which instants ``t_s`` a fit may use, given the record's ``gaps`` ((k, 2), s, both records'):
+    not those inside a gap of at most :data:`BRIDGE_CUTOFF_PERIODS` cutoff periods, nor those within
+    ``edge_s`` of a longer one."""
+    fitted = np.ones(len(t_s), dtype=bool)
+    bridge = BRIDGE_CUTOFF_PERIODS / cutoff_hz
+    for a, b in gaps:
+        pad = 0.0 if b - a <= bridge else edge_s
+        fitted &= ~((t_s > a - pad) & (t_s < b + pad))
+    return fitted
+
+
+def _gap_note(gaps: FloatArray, fitted: NDArray[np.bool_], cutoff_hz: float, h: float) -> str:
+    """What the gaps cost, for the report; "" without gaps."""
+    if not len(gaps):
+        return ""
+    length = gaps[:, 1] - gaps[:, 0]
+    bridge = BRIDGE_CUTOFF_PERIODS / cutoff_hz
+    short = int((length <= bridge).sum())
+    lost = int((~fitted).sum())
+    return (f"{len(gaps)} gap(s) in the record (states or frames lost, {1e3 * length.min():.0f}-{1e3 * length.max():.0f} ms): "
+            f"{short} of at most {1e3 * bridge:.0f} ms ({BRIDGE_CUTOFF_PERIODS:g} cutoff period) bridged by interpolation, "
+            f"{len(gaps) - short} longer with the filter's memory around them; {lost} of {len(fitted)} instants "
+            f"({lost * h:.1f} s) not fitted")
 
 
 # --- processing (§5.2.1) ----------------------------------------------------------------------
@@ -220,6 +272,8 @@ class Processed:
     camera rate, linearly interpolated to ``t_s``, central differences); x_c, ẋ_c, ẍ_c (m, m/s,
     m/s²) from eq. 27 (our sign); the model terms Z, M, c, g at (α, α̇).
     ``fast_*``: the 500 Hz record (raw θ, filtered θ̇, f) for the 2 ms estimators of eqs. 35/58.
+    ``fitted`` (n,): the instants a fit uses (:func:`fitted_instants`: not those of a gap in the
+    record, where the signals are interpolated); ``notes``: what the gaps cost, for the report.
     """
 
     t_s: FloatArray
@@ -245,6 +299,8 @@ class Processed:
     fast_theta: FloatArray
     fast_theta_dot: FloatArray
     fast_force: FloatArray
+    fitted: NDArray[np.bool_]
+    notes: tuple[str, ...] = ()
 
     @property
     def n(self) -> int:
@@ -281,17 +337,11 @@ def cutoff_rule(velocity: FloatArray, rate_hz: float, nyquist_hz: float) -> tupl
     return float(np.clip(CUTOFF_FACTOR * f_99, CUTOFF_MIN_HZ, 0.8 * nyquist_hz)), f_99
 
 
-def _uniform(t: FloatArray, x: FloatArray, what: str, max_gap: float = 5.0) -> tuple[FloatArray, FloatArray, float]:
-    """Samples on a uniform grid at the median rate (linear interpolation of jittered stamps).
-    A gap longer than ``max_gap`` periods is lost data, not jitter: refuse it."""
+def _uniform(t: FloatArray, x: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+    """Samples on a uniform grid at the median rate: linear interpolation of jittered stamps, and
+    across gaps (:func:`check_gaps` refused those too long to bridge; :func:`fitted_instants` says
+    which instants of a gap's are not fitted)."""
     dt = float(np.median(np.diff(t)))
-    gaps = np.diff(t) > max_gap * dt
-    if gaps.any():
-        k = int(np.flatnonzero(gaps)[0])
-        raise IdentificationError(
-            f"{what}: {gaps.sum()} gap(s) in the record, the first {t[k + 1] - t[k]:.3f} s long at t = {t[k]:.3f} s "
-            f"(sampling period {dt * 1e3:.2f} ms)"
-        )
     n = int(math.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     # Length first: with a missed sample the grid is longer than the stamps and cannot be compared.
@@ -457,7 +507,9 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     zero phase); α_IP interpolated linearly to the same instants; x_c from eq. 27 (our sign).
 
     Edge samples spoiled by the filters (two cutoff periods, at least 1 s, at each end) and
-    instants outside the camera record are dropped.
+    instants outside the camera record are dropped. Gaps in either record (lost states or frames)
+    up to :data:`MAX_GAP_S` are interpolated across, their instants marked not fitted
+    (``Processed.fitted``, :func:`fitted_instants`); a longer one is refused (:func:`check_gaps`).
     """
     m = build(params)
     if data.n_cables != m.n_cables or data.n_joints != m.n_joints:
@@ -468,9 +520,9 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     _check_plausible(data, params)
     check_gaps(data)
     check_camera_moves(data, params)
-    t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]), "encoder/force record")
+    t, enc, dt = _uniform(data.t_s, np.hstack([data.theta_rad, data.force_N]))
     rate = 1.0 / dt
-    t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad, "camera record")
+    t_ip, a_ip, dt_ip = _uniform(data.t_ip_s, data.alpha_ip_rad)
     nc = m.n_cables
     raw_theta = enc[:, :nc]
     nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
@@ -516,6 +568,14 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
             f"at each end; need at least {MIN_SAMPLES}"
         )
     t_dec, dec = t_dec[keep], dec[keep]
+    gaps = np.concatenate([gaps_of(data.t_s), gaps_of(data.t_ip_s)])
+    fitted = fitted_instants(t_dec, gaps, fc, edge)
+    if fitted.sum() < MIN_SAMPLES:
+        lo, hi = longest_common_span(data)
+        raise IdentificationError(
+            f"only {fitted.sum()} identification instants remain fitted, need at least {MIN_SAMPLES}: "
+            f"{_gap_note(gaps, fitted, fc, DECIMATION * dt)}"
+            + (f"; the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s" if math.isfinite(lo) else ""))
     theta_d, theta_dot_d, theta_ddot_d, force_d = np.split(dec, 4, axis=1)
     alpha = np.column_stack([np.interp(t_dec, t_ip, alpha_f[:, i]) for i in range(m.n_joints)])
     h = DECIMATION * dt
@@ -532,4 +592,5 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
         Z=terms.Z, M=terms.M, c=terms.c, g=terms.g,
         cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h, bandwidth_from=source,
         fast_t_s=t, fast_theta=raw_theta, fast_theta_dot=theta_dot, fast_force=enc[:, nc:],
+        fitted=fitted, notes=tuple(n for n in [_gap_note(gaps, fitted, fc, h)] if n),
     )

@@ -371,7 +371,7 @@ def campaign_data_from_mcap(path: str | Path, excitation: Excitation | None = No
     keep = _drop_strays(path, "camera frames", t_ip, notes)
     t_ip, alpha = t_ip[keep], alpha[keep]
     # A camera frame with a missing joint (CameraAlpha v2: null, read as NaN) is a frame not measured:
-    # drop it; the pipeline interpolates across short gaps and refuses long ones (_uniform).
+    # drop it; the pipeline interpolates across gaps, not fitting their instants, and refuses those beyond 2 s.
     measured = np.isfinite(alpha).all(axis=1) if alpha.ndim == 2 else np.zeros(len(t_ip), dtype=bool)
     if not measured.any():
         raise IdentificationError(f"{path}: no camera frame measures every joint")

@@ -27,7 +27,7 @@ MIN_MOVING = 16  # decimated samples (≈ 0.5 s) a motor must turn in each direc
 def check_friction_excitation(proc: Processed, params: Params) -> None:
     """f_s(j) needs motor j to turn both ways at speeds where eq. 37 is near saturation
     (|θ̇| > 1/c_s, a > 0.5); below that its regressor column is numerically, not exactly, zero."""
-    v = proc.theta_dot * params.friction.c_s
+    v = proc.theta_dot[proc.fitted] * params.friction.c_s
     poor = [j for j in range(v.shape[1]) if min((v[:, j] > 1).sum(), (v[:, j] < -1).sum()) < MIN_MOVING]
     if poor:
         names = ", ".join(f"f_s({j + 1})" for j in poor)
@@ -68,8 +68,9 @@ def moving_mask(proc: Processed, params: Params) -> NDArray[np.bool_]:
     or follows a Stribeck curve, its friction anywhere within ±(static level), so the tension of
     eq. 55 (t_c = f − a·f_s − …) is unknown by up to ~f_s. Tension rows keep moving motors only:
     on the robot truth (set-valued stiction) this alone takes k from 21-37 % low to 7-18 % low;
-    on a truth with eq. 37's friction it changes k and λ by less than their σ."""
-    return np.abs(proc.theta_dot) * params.friction.c_s >= 1.0
+    on a truth with eq. 37's friction it changes k and λ by less than their σ. Instants not fitted
+    (``Processed.fitted``: a gap in the record) are False."""
+    return (np.abs(proc.theta_dot) * params.friction.c_s >= 1.0) & proc.fitted[:, None]
 
 
 def cable_tension(proc: Processed, params: Params, f_s: FloatArray) -> FloatArray:
@@ -77,9 +78,11 @@ def cable_tension(proc: Processed, params: Params, f_s: FloatArray) -> FloatArra
     return proc.force - friction_shape(proc, params) * np.asarray(f_s) - ia_over_rho(params) * proc.theta_ddot
 
 
-def stacked_rows(n: int, per_sample: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(instant, equation) of each row of an (n, per_sample, ·) block reshaped to rows."""
-    return np.repeat(np.arange(n), per_sample), np.tile(np.arange(per_sample), n)
+def stacked_rows(fitted: NDArray[np.bool_], per_sample: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(instant, equation) of each row of an (n, per_sample, ·) block's ``fitted`` instants reshaped
+    to rows (``block[fitted].reshape(-1, ·)``)."""
+    instants = np.flatnonzero(fitted).astype(np.int64)
+    return np.repeat(instants, per_sample), np.tile(np.arange(per_sample, dtype=np.int64), len(instants))
 
 
 def masked_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

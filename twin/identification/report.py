@@ -84,7 +84,8 @@ def tables_text(estimates: Mapping[str, Estimate], proc: Processed, validation: 
     parts = [
         f"processing: Butterworth filtfilt cutoff {proc.cutoff_hz:.2f} Hz (f_99 {proc.f_99_hz:.2f} Hz of "
         f"{_BANDWIDTH_FROM.get(proc.bandwidth_from, proc.bandwidth_from)}), "
-        f"{proc.n} instants at {proc.rate_hz:.2f} Hz",
+        f"{proc.n} instants at {proc.rate_hz:.2f} Hz"
+        + (f", {int(proc.fitted.sum())} fitted: {'; '.join(proc.notes)}" if not proc.fitted.all() else ""),
         "", table_1(estimates), "", table_2(estimates), "",
         f"! = badly identified (relative σ > {100 * estimates['variable'].threshold:g} %, or a value outside the "
         "physical range, or held at a physical bound by the bounded solution, or a σ that cannot be trusted on a "
@@ -110,7 +111,8 @@ def report_dict(estimates: Mapping[str, Estimate], proc: Processed, validation: 
     import msgspec
 
     out: dict[str, Any] = {
-        "processing": {"cutoff_hz": proc.cutoff_hz, "f_99_hz": proc.f_99_hz, "bandwidth_from": proc.bandwidth_from, "rate_hz": proc.rate_hz, "n": proc.n},
+        "processing": {"cutoff_hz": proc.cutoff_hz, "f_99_hz": proc.f_99_hz, "bandwidth_from": proc.bandwidth_from, "rate_hz": proc.rate_hz, "n": proc.n,
+                       "n_fitted": int(proc.fitted.sum()), "notes": list(proc.notes)},
         "table_1": {"complete": estimates["complete"].to_dict(), "friction": estimates["friction"].to_dict()},
         "table_2": estimates["variable"].to_dict(),
     }

@@ -78,7 +78,7 @@ def out_of_sample(fit: Identification, data: CampaignData, proc: Processed, *, a
     for name, (f_s, k, lam, c_a) in _tension_fits(fit).items():
         tf[name] = cable_tension(proc, params, f_s)
         ts[name] = dynamics.cable_tension_law(k, lam, c_a, proc.x_c, proc.x_c_dot)
-        mask = tension_mask(tf[name])
+        mask = tension_mask(tf[name]) & proc.fitted[:, None]
         te[name] = float(np.mean(np.abs(tf[name] - ts[name])[mask])) if mask.any() else math.nan
     return dataclasses.replace(val, tension_force=tf, tension_stiffness=ts, tension_error=te)
 
