@@ -12,7 +12,9 @@ Then the memory the decoded campaign holds (tracemalloc's peak during the read, 
 file's size): whole, with the keys ``xneck identify`` read until it folded its motor states
 (``keys=``, 2026-11-30), and as ``xneck identify`` reads it now
 (``twin.identification.record.campaign_data_from_mcap``: motor states and commands folded into
-columns, ``fold=``), per second of record as well, since a campaign may last 600 s.
+columns, ``fold=``), per second of record as well, since a campaign may last 600 s; and the
+console's campaign metrics, as they read the archive until 2026-11-30 (controller statuses and
+commands decoded and kept) and folded (``server.archive_metrics.metrics_from_archive``).
 Run: ``.venv/bin/python benchmarks/archive_read.py [FILE.mcap] [--repeats N]``.
 """
 
@@ -31,12 +33,15 @@ import _timing  # (benchmarks/ is sys.path[0] when run as a script)
 from bridge import bus
 from bridge.archive import write_campaign
 from bridge.archive_read import decode_archived, read_campaign
+from server.archive_metrics import metrics_from_archive
 from server.foxglove_scene import add_scene_channel
 from twin.identification.record import CAMERA_TOPIC, MOTOR_COMMAND_TOPIC, MOTOR_TOPIC, campaign_data_from_mcap
 from twin.model.params import load_params
 
 #: What ``xneck identify`` reads (twin.identification.record.campaign_data_from_mcap).
 IDENTIFY_KEYS = (MOTOR_TOPIC, MOTOR_COMMAND_TOPIC, CAMERA_TOPIC)
+#: What the console's campaign metrics read, decoded and kept, until they were folded (2026-11-30).
+METRICS_KEYS = (bus.CONTROLLER_STATUS, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA)
 
 
 def synthetic(path: Path, seconds: float = 14.0) -> Path:
@@ -114,11 +119,16 @@ def main() -> None:
         whole = peak_bytes(lambda: read_campaign(path))
         some = peak_bytes(lambda: read_campaign(path, keys=IDENTIFY_KEYS))
         folded = peak_bytes(lambda: campaign_data_from_mcap(path))
+        metrics_kept = peak_bytes(lambda: read_campaign(path, keys=METRICS_KEYS))
+        metrics_folded = peak_bytes(lambda: metrics_from_archive(path))
         for label, peak in (("read_campaign, whole", whole), ("read_campaign, xneck identify's keys", some),
-                            ("xneck identify's read (motor states folded)", folded)):
+                            ("xneck identify's read (motor states folded)", folded),
+                            ("read_campaign, the campaign metrics' keys", metrics_kept),
+                            ("campaign metrics (statuses and commands folded)", metrics_folded)):
             print(f"{label:<58s} peak {peak / 1e6:8.1f} MB   {peak / size:5.1f}x the file   "
                   f"{peak / span / 1e6:6.2f} MB per s of record ({peak / span * 600 / 1e9:.2f} GB for 600 s)")
-        print(f"ratio identify's keys / whole: {some / whole:.2f}; folded / whole: {folded / whole:.2f}")
+        print(f"ratio identify's keys / whole: {some / whole:.2f}; folded / whole: {folded / whole:.2f}; "
+              f"metrics folded / their keys kept: {metrics_folded / metrics_kept:.2f}")
 
 
 if __name__ == "__main__":

@@ -52,16 +52,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from bridge import bus
 from bridge.archive import CAMPAIGN, ArchiveError, CampaignRecorder
-from bridge.archive_read import is_complete, read_campaign
+from bridge.archive_read import is_complete
 from bridge.session import BusPublisher, free_tcp_port, open_session, payload_of, publisher
 from controller.laws import LawConfig
-from controller.metrics import campaign_metrics
 from controller.trajectory import Trajectory
+from server.archive_metrics import metrics_from_archive
 from server.archive_rewrite import rewrite_archive
 from server.child_processes import isolate, log_tail, stop_child, xneck_argv
 from server.quality import (
@@ -711,28 +710,3 @@ class _Services:
 
     def close(self) -> None:
         self._sub.undeclare()
-
-
-def metrics_from_archive(path: Path) -> dict[str, object]:
-    """The paper's metrics (controller.metrics) from a recorded campaign."""
-    campaign = read_campaign(path, keys=(bus.CONTROLLER_STATUS, bus.MOTOR_COMMAND, bus.CAMERA_ALPHA))
-    status = [m for _, m in campaign.messages(bus.CONTROLLER_STATUS) if not m.holding]
-    if not status:
-        raise ValueError(f"{path}: no controller status recorded")
-    cmds = {m.stamp_s: m.force_N for _, m in campaign.messages(bus.MOTOR_COMMAND)}
-    status = [m for m in status if m.stamp_s in cmds]
-    t = np.array([m.stamp_s for m in status])
-    # A frame with a missing joint (the rendered camera's occlusions) measured nothing to compare with.
-    # One camera: the recorder keeps one source (server.quality); of an archive recorded before it
-    # did, the first source's, as the recorder would have chosen.
-    alphas = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
-    frames = [m for m in alphas if m.source == alphas[0].source and None not in m.alpha_ip_rad]
-    return campaign_metrics(
-        t_s=t,
-        alpha_hat=np.array([m.alpha_hat_rad for m in status]),
-        alpha_d=np.array([m.alpha_d_rad for m in status]),
-        force_N=np.array([cmds[m.stamp_s] for m in status]),
-        saturated=np.array([m.saturated for m in status]),
-        t_ip_s=np.array([m.capture_stamp_s for m in frames]),
-        alpha_ip=np.array([m.alpha_ip_rad for m in frames]).reshape(len(frames), -1),
-    )
