@@ -319,7 +319,8 @@ def test_a_record_with_a_gap_too_long_to_bridge_names_the_span_to_fit_and_xneck_
     assert MAX_GAP_S < 2.5
     with pytest.raises(IdentificationError, match=r"1 gap\(s\) in the record longer than 2 s .*the first 2\.502 s long at t = 1\.500 s") as err:
         preprocess(gappy, params)
-    window = re.search(r"t = ([\d.]+)-([\d.]+) s \(7\.9 s of 12\.0 s\): identify it alone with --window (\S+)$",
+    window = re.search(r"the longest span without a gap beyond 2 s in either record is t = ([\d.]+)-([\d.]+) s "
+                       r"\(7\.9 s of 12\.0 s\): identify it alone with --window (\S+)$",
                        str(err.value))
     assert window, str(err.value)
     t0, t1 = float(window.group(1)), float(window.group(2))
@@ -376,7 +377,8 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
     import dataclasses
 
     from twin.identification.pipeline import fitted_at
-    from twin.identification.processing import BRIDGE_CUTOFF_PERIODS
+    from twin.identification.processing import BRIDGE_CUTOFF_PERIODS, RECURSION_MEMORY_S
+    from twin.identification.timing import alpha_ip_timing
 
     data = simulate_campaign(0)[0]
     rng = np.random.default_rng(5)
@@ -391,19 +393,22 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
     edge = max(1.0, 2.0 / proc.cutoff_hz)
     assert 0.1 < bridge < 0.15
     note = proc.notes[0]
-    assert note.startswith("44 gap(s) in the record") and f"40 of at most {1e3 * bridge:.0f} ms" in note, note
+    assert note.startswith("44 gap(s) in the record (43 of the motor states, 1 of the camera frames") and \
+        f"40 of at most {1e3 * bridge:.0f} ms" in note, note
     assert f"{(~proc.fitted).sum()} of {proc.n} instants" in note
     t = proc.t_s
-    for a, _ in long:  # the filter's memory around a long gap is not fitted, beyond it is
+    for a, _ in long:  # the filter's and the creep's memory around a long gap are not fitted, beyond it is
         t_a, t_b = data.t_s[a - 1], data.t_s[a + 350]
-        assert not proc.fitted[(t > t_a - edge + 0.05) & (t < t_b + edge - 0.05)].any()
-        assert proc.fitted[(t > t_b + edge + 0.05) & (t < t_b + edge + 0.5)].all()
+        after = t_b + edge + RECURSION_MEMORY_S
+        assert not proc.fitted[(t > t_a - edge + 0.05) & (t < after - 0.05)].any()
+        assert proc.fitted[(t > t_a - edge - 0.5) & (t < t_a - edge - 0.05)].all()
+        assert proc.fitted[(t > after + 0.05) & (t < after + 0.5)].all()
     for a, b in short:  # a short gap's own instants only
         inside = (t > data.t_s[a - 1]) & (t < data.t_s[b])
         assert not proc.fitted[inside].any()
         near = (t > data.t_s[b] + 0.1) & (t < data.t_s[b] + 0.3) & ~(t < data.t_s[b] + 0.3)
         assert proc.fitted[near].all()
-    assert 0.8 * proc.n < proc.fitted.sum() < 0.9 * proc.n
+    assert 0.7 * proc.n < proc.fitted.sum() < 0.85 * proc.n
 
     same = dataclasses.replace(whole, fitted=proc.fitted)  # the whole record, on the instants fitted
     got, ref = identify_all(proc, params), identify_all(same, params)
@@ -411,6 +416,7 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
         z = (got[model].values - ref[model].values) / ref[model].sigma
         assert np.abs(z).max() < 0.25, (model, z)
         assert got[model].n_rows < identify_all(whole, params)[model].n_rows
+        assert got[model].n_samples == proc.fitted.sum()  # what "σ unreliable" weighs the lag against
     lf = identify_all(proc, params, estimator="loadfriction")["variable"]
     lf_ref = identify_all(same, params, estimator="loadfriction")["variable"]
     k = [i for i, name in enumerate(lf.names) if name.startswith(("k(", "lambda("))]
@@ -418,13 +424,26 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
     val = validate(lossy, proc, params, got, alpha_hat=False)
     assert np.isfinite(val.gamma_rf_error) and all(np.isfinite(e) for e in val.tension_error.values())
     frames = fitted_at(proc, lossy.t_ip_s)
-    assert not frames[np.abs(lossy.t_ip_s - data.t_s[25000]) < edge - 0.05].any() and frames.mean() > 0.8
+    assert not frames[np.abs(lossy.t_ip_s - data.t_s[25000]) < edge - 0.05].any() and frames.mean() > 0.7
+    # α_IP's delay is measured on the frames away from the lost states: interpolated ones had made
+    # eight gaps of 1.9 s read as "α_IP 250 ms early" (review of session 51)
+    sparse = _lose(data, [(a, a + 950) for a in np.linspace(3000, 45000, 8).astype(int)])
+    timing, reference = alpha_ip_timing(sparse), alpha_ip_timing(data)
+    assert not timing.warn and timing.verdict == reference.verdict and abs(timing.delay_s - reference.delay_s) < 0.03
 
     # the same through the archive: `xneck identify` fits it and says what the gaps cost
     path = _mcap_of(lossy, tmp_path / "lossy.mcap", trajectory=identification_trajectory().to_json())
     r = xneck("identify", str(path), "--no-alpha-hat", "--estimator", "iv", "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert "note: 44 gap(s) in the record" in r.stderr and f"{int(proc.fitted.sum())} fitted: 44 gap(s)" in r.stdout
+    # a --validate campaign with too little left fitted across its gaps is refused before A's files
+    # are written (it was after them: review of session 51)
+    holes = _lose(data, [(a, a + 900) for a in range(1000, 47000, 1800)])
+    b = _mcap_of(holes, tmp_path / "holes.mcap", trajectory=identification_trajectory().to_json())
+    r = xneck("identify", str(path), "--no-alpha-hat", "--estimator", "iv", "--out", str(tmp_path / "v"),
+              "--validate", str(b))
+    assert r.returncode == 2 and "identification instants remain fitted" in r.stderr, r.stderr[-2000:]
+    assert "--window applies to the identified campaign" in r.stderr and not (tmp_path / "v").exists()
 
 
 def test_a_set_fitted_on_alpha_ip_stamped_far_off_says_so_in_its_file(short_campaign, params, tmp_path, xneck):

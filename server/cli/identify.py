@@ -218,14 +218,19 @@ def identify(
         # and in the set: one whose camera was 2 s late was written with f_s 2.6 times off and
         # nothing in the file said so (audit of session 49)
         prov = warned(prov, timing.text())
+    # B validated before anything is written: its failure (e.g. too little left fitted across its
+    # gaps) had come after A's set and figures (review of session 51)
+    cv = _cross_validation(ident, data_b, alpha_hat=not no_alpha_hat) if data_b is not None else None
+    for note in cv.processed.notes if cv is not None else ():
+        typer.echo(f"note: --validate {validate}: {note}", err=True)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         if force:  # replaced, not mixed: a figure or validation/ this run does not write stayed (review of session 49)
             _remove_earlier_outputs(out_dir)
         figures = write_figures(val, out_dir) if val is not None else []
         toml_path, prov_path = write_identified(out_dir / f"{new.name}.toml", new, prov)
-        cross = (_cross_validate(ident, data_b, validate, out_dir, alpha_hat=not no_alpha_hat)
-                 if validate is not None and data_b is not None else None)
+        cross = (_write_cross_validation(cv, ident, validate, out_dir)
+                 if validate is not None and cv is not None else None)
     except OSError as exc:  # the disk filled or the folder went away since the check
         raise write_failed(out_dir, exc) from None
     if json_out:
@@ -331,18 +336,23 @@ def _not_for_validation(message: str) -> str:
                   message)
 
 
-def _cross_validate(ident, data_b, campaign_b: Path, out_dir: Path, *, alpha_hat: bool) -> tuple[dict, str]:
-    """A's models on campaign B (twin/identification/validation.py); B's Figs. 4-8 in
-    ``out_dir/validation``. Returns the JSON summary and the text table; a clean exit if B is unusable."""
+def _cross_validation(ident, data_b, *, alpha_hat: bool):
+    """A's models on campaign B (twin/identification/validation.py); a clean exit if B is unusable."""
     from twin.identification.pipeline import IdentificationError
-    from twin.identification.report import write_figures
-    from twin.identification.validation import comparison_text, cross_validate, summary
+    from twin.identification.validation import cross_validate
 
     try:
-        cv = cross_validate(ident, data_b, alpha_hat=alpha_hat)
+        return cross_validate(ident, data_b, alpha_hat=alpha_hat)
     except IdentificationError as exc:
         typer.echo(f"error: {_not_for_validation(str(exc))}", err=True)
         raise typer.Exit(2) from None
+
+
+def _write_cross_validation(cv, ident, campaign_b: Path, out_dir: Path) -> tuple[dict, str]:
+    """B's Figs. 4-8 in ``out_dir/validation``; returns the JSON summary and the text table."""
+    from twin.identification.report import write_figures
+    from twin.identification.validation import comparison_text, summary
+
     doc = summary(cv)
     figures = write_figures(cv.validation, out_dir / "validation")
     doc["files"] = [str(p) for p in figures]

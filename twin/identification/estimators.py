@@ -263,7 +263,7 @@ def least_squares(
     res_w = Yw - Ww @ v
     idx = np.arange(r) if sample_index is None else np.asarray(sample_index)
     if sigma == "hac":
-        cov, lag = uncertainty.hac_covariance(B, res_w, idx, int(idx.max()) + 1, min_lag=min_lag)
+        cov, lag = uncertainty.hac_covariance(B, res_w, idx, int(idx.max()) + 1, min_lag=min_lag, n_used=n_samples)
         sigma_method = f"HAC (Newey-West, Bartlett, {lag} lags)"
     else:
         cov, lag = uncertainty.white_covariance(B, res_w), 0

@@ -599,7 +599,7 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
             B = np.asarray(np.linalg.pinv(Z.T @ J) @ Z.T, dtype=np.float64)[: int(fj.sum())]
         idx = np.flatnonzero(c.rows).astype(np.int64)
         if sigma == "hac":
-            cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
+            cov, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag, n_used=int(proc.fitted.sum()))
         else:
             cov, lag = uncertainty.white_covariance(B, res), 0
         sd[j, fj] = np.sqrt(np.abs(np.diag(cov)))
@@ -615,7 +615,7 @@ def _estimate(proc: Processed, cables: list[_Cable], values: FloatArray, taus: F
         method="variable", equations="eqs. 54-55 with load-dependent friction and creep",
         names=sum((param_names(sym, nc) for sym in SYMBOLS), ()), values=v, sigma=sd_v, relative_sigma=rel,
         condition_number=max(conds), residual_norm=float(np.sqrt(sse)), n_rows=int(sum(c.rows.sum() for c in cables)),
-        n_samples=proc.n, threshold=threshold,
+        n_samples=int(proc.fitted.sum()), threshold=threshold,
         sigma_method=f"HAC (Newey-West, Bartlett, {lag} lags)" if sigma == "hac" else "eq. 50 (white residuals)",
         hac_lag=lag, active_bounds=tuple(active),
     )

@@ -347,7 +347,7 @@ def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows:
         B = np.linalg.pinv(Jf.T @ Jf) @ Jf.T
     if sigma == "hac":
         min_lag = int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz))
-        c_free, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag)
+        c_free, lag = uncertainty.hac_covariance(B, res, idx, proc.n, min_lag=min_lag, n_used=int(proc.fitted.sum()))
     else:
         c_free = uncertainty.white_covariance(B, res)
     # type B: each held structure value moved by its σ shifts the estimate by −B·Δρ (uncorrelated)
@@ -374,7 +374,7 @@ def _estimate(proc: Processed, params: Params, sol, q: FloatArray, unpack, rows:
         method="variable", equations="eq. 32's equilibrium on the encoders (α rows) and eqs. 54-55 with load friction",
         names=names, values=values, sigma=sd, relative_sigma=rel,
         condition_number=float(np.linalg.cond(J[:, free])), residual_norm=float(np.linalg.norm(res)),
-        n_rows=len(res), n_samples=proc.n, threshold=threshold,
+        n_rows=len(res), n_samples=int(proc.fitted.sum()), threshold=threshold,
         sigma_method=(f"HAC (Newey-West, Bartlett, {lag} lags)" if sigma == "hac" else "eq. 50 (white residuals)")
         + f" + what the fit holds (type B, {len(shifts)} values: free lengths, bar masses, force scales)",
         hac_lag=lag, active_bounds=active,

@@ -135,7 +135,7 @@ def _solve(proc: Processed, W: FloatArray, Y: FloatArray, names: tuple[str, ...]
     with at least the filter's memory (rate / cutoff instants) as correlation lag."""
     sample_index, groups = rows
     return least_squares(
-        W, Y, names, method=method, equations=equations, n_samples=proc.n, threshold=threshold,
+        W, Y, names, method=method, equations=equations, n_samples=int(proc.fitted.sum()), threshold=threshold,
         instruments=instruments, estimator=estimator, groups=groups, sample_index=sample_index,
         bounds=physical_bounds(names) if bounded else None, sigma=sigma,
         min_lag=int(np.ceil(HAC_MIN_LAG_PERIODS * proc.rate_hz / proc.cutoff_hz)),
@@ -322,7 +322,7 @@ def _identify_variable_auto(proc: Processed, params: Params, f_s: FloatArray, *,
         return dataclasses.replace(iv, estimator=f"auto → iv (no load-friction fit: {exc}); {iv.estimator}")
     test = paper_model_test(plain.estimate)
     if test.rejects_paper_model:
-        damping = damping_check(plain.estimate, proc.x_c_dot)
+        damping = damping_check(plain.estimate, proc.x_c_dot[proc.fitted])
         why = f"{test.describe()}; {damping.describe()}"
         if creep_time_s is not None:
             why += f"; the creep time held at {creep_time_s:g} s, which the output error fits itself"

@@ -170,20 +170,21 @@ class CampaignData:
                        notes=(*self.notes, note))
 
 
-def gap_free_spans(t: FloatArray, max_gap: float = 5.0) -> list[tuple[float, float]]:
-    """The spans (s) of ``t`` between gaps longer than ``max_gap`` median periods."""
-    cuts = np.flatnonzero(np.diff(t) > max_gap * float(np.median(np.diff(t))))
+def gap_free_spans(t: FloatArray, max_gap: float = 5.0, min_gap_s: float = 0.0) -> list[tuple[float, float]]:
+    """The spans (s) of ``t`` between gaps longer than ``max_gap`` median periods and ``min_gap_s``."""
+    cuts = np.flatnonzero(np.diff(t) > max(max_gap * float(np.median(np.diff(t))), min_gap_s))
     starts = [0, *(cuts + 1)]
     ends = [*cuts, len(t) - 1]
     return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends, strict=True)]
 
 
-def longest_common_span(data: CampaignData, max_gap: float = 5.0) -> tuple[float, float]:
-    """The longest span (s) free of gaps in both the encoder/force and the camera record, rounded
-    inwards to 10 ms so that a window given with two decimals stays inside it; (nan, nan) if none."""
+def longest_common_span(data: CampaignData, max_gap: float = 5.0, min_gap_s: float = 0.0) -> tuple[float, float]:
+    """The longest span (s) free of gaps (longer than ``max_gap`` periods and ``min_gap_s``) in both
+    the encoder/force and the camera record, rounded inwards to 10 ms so that a window given with
+    two decimals stays inside it; (nan, nan) if none."""
     best = (math.nan, math.nan)
-    for a0, a1 in gap_free_spans(data.t_s, max_gap):
-        for b0, b1 in gap_free_spans(data.t_ip_s, max_gap):
+    for a0, a1 in gap_free_spans(data.t_s, max_gap, min_gap_s):
+        for b0, b1 in gap_free_spans(data.t_ip_s, max_gap, min_gap_s):
             lo, hi = math.ceil(max(a0, b0) * 100) / 100, math.floor(min(a1, b1) * 100) / 100
             if hi > lo and (math.isnan(best[0]) or hi - lo > best[1] - best[0]):
                 best = (lo, hi)
@@ -209,11 +210,12 @@ def check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
         if not long.size:
             continue
         k = int(long[0])
-        lo, hi = longest_common_span(data, max_gap)
+        # shorter gaps are bridged: the span runs across them (it stopped at every one: review of session 51)
+        lo, hi = longest_common_span(data, max_gap, MAX_GAP_S)
         total = float(max(data.t_s[-1], data.t_ip_s[-1]) - min(data.t_s[0], data.t_ip_s[0]))
-        hint = (f"the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s ({hi - lo:.1f} s of "
-                f"{total:.1f} s): identify it alone with --window {lo:.2f}:{hi:.2f}") if math.isfinite(lo) else \
-            "no span is free of gaps in both records"
+        hint = (f"the longest span without a gap beyond {MAX_GAP_S:g} s in either record is t = {lo:.2f}-{hi:.2f} s "
+                f"({hi - lo:.1f} s of {total:.1f} s): identify it alone with --window {lo:.2f}:{hi:.2f}") \
+            if math.isfinite(lo) else f"no span is without a gap beyond {MAX_GAP_S:g} s in both records"
         raise IdentificationError(
             f"{what}: {long.size} gap(s) in the record longer than {MAX_GAP_S:g} s (too long to bridge: the "
             f"record is two campaigns), the first {gaps[k, 1] - gaps[k, 0]:.3f} s long at t = {gaps[k, 0]:.3f} s "
@@ -230,34 +232,39 @@ def check_gaps(data: CampaignData, max_gap: float = 5.0) -> None:
 BRIDGE_CUTOFF_PERIODS = 0.2
 #: s: a longer gap is refused (:func:`check_gaps`). Shorter and beyond the bridge, a gap is
 #: interpolated (the filters and the model's recursions run through it) and the instants within
-#: the filter's memory of it (the record ends' edge, two cutoff periods, at least 1 s) are not fitted.
+#: the filter's memory of it (the record ends' edge, two cutoff periods, at least 1 s) are not fitted,
+#: nor those :data:`RECURSION_MEMORY_S` further after it.
 MAX_GAP_S = 2.0
+#: s after a long gap's filter edge not fitted either: the creep state of the load-friction and
+#: output-error fits (τ 0.5-8 s), driven through the interpolation, keeps its error for about τ.
+#: Without it, seven 1.9 s gaps of frames moved the load-friction fit's k 1.3 σ and β 1.6 σ from
+#: the whole record's on the same instants (τ held at 2 s); with it 0.3 and 0.5 σ (review of session 51).
+RECURSION_MEMORY_S = 2.0
 
 
-def fitted_instants(t_s: FloatArray, gaps: FloatArray, cutoff_hz: float, edge_s: float) -> NDArray[np.bool_]:
+def fitted_instants(t_s: FloatArray, gaps: FloatArray, bridge_s: float, edge_s: float) -> NDArray[np.bool_]:
     """(n,) which instants ``t_s`` a fit may use, given the record's ``gaps`` ((k, 2), s, both records'):
-    not those inside a gap of at most :data:`BRIDGE_CUTOFF_PERIODS` cutoff periods, nor those within
-    ``edge_s`` of a longer one."""
+    not those inside a gap of at most ``bridge_s`` (:data:`BRIDGE_CUTOFF_PERIODS` cutoff periods),
+    nor those within ``edge_s`` before a longer one and ``edge_s`` + :data:`RECURSION_MEMORY_S` after it."""
     fitted = np.ones(len(t_s), dtype=bool)
-    bridge = BRIDGE_CUTOFF_PERIODS / cutoff_hz
     for a, b in gaps:
-        pad = 0.0 if b - a <= bridge else edge_s
-        fitted &= ~((t_s > a - pad) & (t_s < b + pad))
+        long = b - a > bridge_s
+        before, after = (edge_s, edge_s + RECURSION_MEMORY_S) if long else (0.0, 0.0)
+        fitted &= ~((t_s > a - before) & (t_s < b + after))
     return fitted
 
 
-def _gap_note(gaps: FloatArray, fitted: NDArray[np.bool_], cutoff_hz: float, h: float) -> str:
-    """What the gaps cost, for the report; "" without gaps."""
+def _gap_note(gaps: FloatArray, n_states: int, fitted: NDArray[np.bool_], bridge_s: float, h: float) -> str:
+    """What the gaps cost, for the report; "" without gaps. ``gaps[:n_states]``: the motor states'."""
     if not len(gaps):
         return ""
     length = gaps[:, 1] - gaps[:, 0]
-    bridge = BRIDGE_CUTOFF_PERIODS / cutoff_hz
-    short = int((length <= bridge).sum())
+    short = int((length <= bridge_s).sum())
     lost = int((~fitted).sum())
-    return (f"{len(gaps)} gap(s) in the record (states or frames lost, {1e3 * length.min():.0f}-{1e3 * length.max():.0f} ms): "
-            f"{short} of at most {1e3 * bridge:.0f} ms ({BRIDGE_CUTOFF_PERIODS:g} cutoff period) bridged by interpolation, "
-            f"{len(gaps) - short} longer with the filter's memory around them; {lost} of {len(fitted)} instants "
-            f"({lost * h:.1f} s) not fitted")
+    return (f"{len(gaps)} gap(s) in the record ({n_states} of the motor states, {len(gaps) - n_states} of the camera "
+            f"frames; {1e3 * length.min():.0f}-{1e3 * length.max():.0f} ms): {short} of at most {1e3 * bridge_s:.0f} ms "
+            f"bridged by interpolation, {len(gaps) - short} longer with the filter's memory around them; {lost} of "
+            f"{len(fitted)} instants ({lost * h:.1f} s) not fitted")
 
 
 # --- processing (§5.2.1) ----------------------------------------------------------------------
@@ -528,6 +535,7 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     nyquist = 0.5 * min(rate / DECIMATION, 1.0 / dt_ip)
     if cutoff_hz is not None:
         fc, f_99, source = float(cutoff_hz), float("nan"), "given"
+        motion_f99 = cutoff_rule(np.gradient(raw_theta, dt, axis=0), rate, nyquist)[1]  # for the gaps' bridge
         # The edges dropped below (two cutoff periods at each end) must leave MIN_SAMPLES instants:
         # fc ≥ 4/room. Far below that the Butterworth's coefficients are singular too (1e-9 Hz
         # was "error: Singular matrix", input audit). Rounded up to the mHz, as the message says it.
@@ -547,6 +555,8 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
     else:
         fc, f_99 = cutoff_rule(np.gradient(raw_theta, dt, axis=0), rate, nyquist)
         source = "theta_dot"
+    if source != "given":
+        motion_f99 = f_99
     if not (0.0 < fc < nyquist):
         raise IdentificationError(f"cutoff {fc} Hz must be in (0, {nyquist:.2f}) Hz (Nyquist of the decimated/camera data)")
 
@@ -568,14 +578,20 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
             f"at each end; need at least {MIN_SAMPLES}"
         )
     t_dec, dec = t_dec[keep], dec[keep]
-    gaps = np.concatenate([gaps_of(data.t_s), gaps_of(data.t_ip_s)])
-    fitted = fitted_instants(t_dec, gaps, fc, edge)
+    # the gaps that touch the instants kept (those in the dropped ends cost nothing)
+    states, frames = (g[(g[:, 1] > t_dec[0]) & (g[:, 0] < t_dec[-1])] for g in (gaps_of(data.t_s), gaps_of(data.t_ip_s)))
+    gaps = np.concatenate([states, frames])
+    # The bridge's bound holds for the motion's bandwidth (BRIDGE_CUTOFF_PERIODS): a cutoff given
+    # below the rule's (4·f_99) does not lengthen it.
+    bridge_s = BRIDGE_CUTOFF_PERIODS / max(fc, CUTOFF_FACTOR * motion_f99)
+    fitted = fitted_instants(t_dec, gaps, bridge_s, edge)
+    gap_note = _gap_note(gaps, len(states), fitted, bridge_s, DECIMATION * dt)
     if fitted.sum() < MIN_SAMPLES:
         lo, hi = longest_common_span(data)
         raise IdentificationError(
-            f"only {fitted.sum()} identification instants remain fitted, need at least {MIN_SAMPLES}: "
-            f"{_gap_note(gaps, fitted, fc, DECIMATION * dt)}"
-            + (f"; the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s" if math.isfinite(lo) else ""))
+            f"only {fitted.sum()} identification instants remain fitted, need at least {MIN_SAMPLES}: {gap_note}"
+            + (f"; the longest span free of gaps in both records is t = {lo:.2f}-{hi:.2f} s: identify it alone with "
+               f"--window {lo:.2f}:{hi:.2f}" if math.isfinite(lo) else ""))
     theta_d, theta_dot_d, theta_ddot_d, force_d = np.split(dec, 4, axis=1)
     alpha = np.column_stack([np.interp(t_dec, t_ip, alpha_f[:, i]) for i in range(m.n_joints)])
     h = DECIMATION * dt
@@ -592,5 +608,5 @@ def preprocess(data: CampaignData, params: Params, cutoff_hz: float | None = Non
         Z=terms.Z, M=terms.M, c=terms.c, g=terms.g,
         cutoff_hz=fc, f_99_hz=f_99, rate_hz=1.0 / h, bandwidth_from=source,
         fast_t_s=t, fast_theta=raw_theta, fast_theta_dot=theta_dot, fast_force=enc[:, nc:],
-        fitted=fitted, notes=tuple(n for n in [_gap_note(gaps, fitted, fc, h)] if n),
+        fitted=fitted, notes=(gap_note,) if gap_note else (),
     )

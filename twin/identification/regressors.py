@@ -35,6 +35,7 @@ def check_friction_excitation(proc: Processed, params: Params) -> None:
             f"regressor is rank-deficient in practice: {names} not excited (motor(s) "
             f"{', '.join(str(j + 1) for j in poor)} turned faster than {1 / params.friction.c_s:.1f} rad/s in each "
             f"direction for less than {MIN_MOVING} samples); run the identification trajectory"
+            + "".join(f" (counted on the instants fitted: {note})" for note in proc.notes)
         )
 
 

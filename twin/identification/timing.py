@@ -24,7 +24,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from twin.identification.processing import CampaignData
+from twin.identification.processing import CampaignData, gaps_of
 
 #: s searched either side of the stamps as recorded: above a camera's latency guess's error (the
 #: default 50 ms entirely wrong) and a frame period's several, below the excitation's period.
@@ -116,9 +116,12 @@ def alpha_ip_timing(data: CampaignData, max_delay_s: float = MAX_DELAY_S, step_s
     """The delay of α_IP against the encoders and forces (module docstring): the residual on a grid
     of ±``max_delay_s`` every :data:`COARSE_STEP_S`, then every ``step_s`` within one coarse step of
     its least, refined by a parabola through the least one and its two neighbours. The same frames count at every τ: those at least ``max_delay_s`` inside the
-    encoder record."""
+    encoder record, and not within ``max_delay_s`` of a gap in it (its interpolated states gave a
+    lossy record a false "α_IP stamped 250 ms early": review of session 51)."""
     t = data.t_s
     keep = (data.t_ip_s >= t[0] + max_delay_s) & (data.t_ip_s <= t[-1] - max_delay_s)
+    for a, b in gaps_of(t):
+        keep &= ~((data.t_ip_s > a - max_delay_s) & (data.t_ip_s < b + max_delay_s))
     t_ip, alpha = data.t_ip_s[keep], data.alpha_ip_rad[keep]
     signals = np.concatenate([data.theta_rad, data.force_N], axis=1)
     if len(t_ip) < 3 * (signals.shape[1] + 1):  # too few frames to fit the map with a residual to compare

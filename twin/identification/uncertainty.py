@@ -37,11 +37,13 @@ def instant_sums(rows: FloatArray, sample_index: IntArray, n_samples: int) -> Fl
     return out
 
 
-def correlation_lag(residual: FloatArray, sample_index: IntArray, n_samples: int, min_lag: int = 1) -> int:
+def correlation_lag(residual: FloatArray, sample_index: IntArray, n_samples: int, min_lag: int = 1,
+                    n_used: int | None = None) -> int:
     """Lags (instants) until the residuals' autocorrelation first drops below 0.1, each equation
     (row position within its instant) taken separately and the largest kept; at least ``min_lag``,
-    at most :data:`MAX_LAG_FRACTION` of the instants (or ``min_lag`` if it is more)."""
-    cap = max(min_lag, int(MAX_LAG_FRACTION * n_samples))
+    at most :data:`MAX_LAG_FRACTION` of the instants (or ``min_lag`` if it is more): of the
+    ``n_samples`` the indices run over, or of ``n_used`` if fewer are used (a record's gaps)."""
+    cap = max(min_lag, int(MAX_LAG_FRACTION * min(n_samples, n_samples if n_used is None else n_used)))
     order = np.argsort(sample_index, kind="stable")
     idx, res = sample_index[order], residual[order]
     # position of each row within its instant: equation j of instant t
@@ -72,11 +74,12 @@ def newey_west(scores: FloatArray, lag: int) -> FloatArray:
 
 
 def hac_covariance(B: FloatArray, residual: FloatArray, sample_index: IntArray, n_samples: int,
-                   lag: int | None = None, min_lag: int = 1) -> tuple[FloatArray, int]:
+                   lag: int | None = None, min_lag: int = 1, n_used: int | None = None) -> tuple[FloatArray, int]:
     """Covariance of v = B·Y (B: (p, r)) with residuals ρ (r,) correlated within and across
-    instants, and the lag used. ``lag`` None: :func:`correlation_lag` (at least ``min_lag``)."""
+    instants, and the lag used. ``lag`` None: :func:`correlation_lag` (at least ``min_lag``; its
+    cap on ``n_used`` instants if given)."""
     if lag is None:
-        lag = correlation_lag(residual, sample_index, n_samples, min_lag)
+        lag = correlation_lag(residual, sample_index, n_samples, min_lag, n_used)
     scores = instant_sums((B * residual).T, sample_index, n_samples)
     dof = len(residual) / max(len(residual) - B.shape[0], 1)  # small-sample correction, as eq. 50's r − n_p
     return dof * newey_west(scores, lag), int(lag)  # v − v_true = Σ_t g_t

@@ -148,6 +148,7 @@ def summary(cv: CrossValidation) -> dict[str, Any]:
     return {
         "fitted_on": cv.fit.data.campaign, "validated_on": cv.data.campaign,
         "validation_processing": {"cutoff_hz": cv.processed.cutoff_hz, "rate_hz": cv.processed.rate_hz,
-                                  "n": cv.processed.n, "bandwidth_from": cv.processed.bandwidth_from},
+                                  "n": cv.processed.n, "n_fitted": int(cv.processed.fitted.sum()),
+                                  "notes": list(cv.processed.notes), "bandwidth_from": cv.processed.bandwidth_from},
         "errors": comparison(in_sample, cv.validation),
     }
