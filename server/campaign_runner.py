@@ -645,12 +645,17 @@ def analyse_identification(result: CampaignResult, params_file: Path | None, est
     by ``estimator``, the creep time held at ``creep_time_s`` s if given, the parameter file with the
     campaign's ``overrides``, as its controller ran) into ``result``, with the set it identified; a failed
     analysis makes the outcome ``analysis_failed`` with its reason, in the result and in the archive
-    (module docstring)."""
+    (module docstring). In a child process (server.analysis_process): the console stays responsive
+    and gets its memory back."""
+    from server.analysis_process import AnalysisDied, run_in_child
     from server.results import analyse_archive
 
-    result.identification, result.analysis, result.identified_set = analyse_archive(
-        result.path, params_file, estimator=estimator, creep_time_s=creep_time_s, overrides=overrides,
-        base_name=base_name)
+    try:
+        result.identification, result.analysis, result.identified_set = run_in_child(
+            analyse_archive, result.path, params_file, estimator=estimator, creep_time_s=creep_time_s,
+            overrides=overrides, base_name=base_name, what="identification")
+    except AnalysisDied as exc:
+        result.identification, result.analysis, result.identified_set = None, f"identification failed: {exc}", None
     if result.identification is not None:
         return
     run = result.message

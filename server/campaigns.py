@@ -65,6 +65,7 @@ from bridge.archive_read import Campaign, is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
 from bridge.estop_holder import EStopHolder
 from bridge.session import payload_of, publisher
+from server.analysis_process import run_in_child
 from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import (
@@ -625,7 +626,8 @@ class CampaignManager:
             fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
         try:  # not after a storage fault: the scene is added by a copy of the archive, on a disk that refused a write
             if not storage_fault and path.exists() and is_complete(path):
-                fields["scene_messages"] = add_scene_channel(path, prepared.params)
+                # in a child as the identification (server.analysis_process): 11 s of a 600 s campaign
+                fields["scene_messages"] = run_in_child(add_scene_channel, path, prepared.params, what="scene")
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
         fields["ended_at"] = iso_time()

@@ -353,13 +353,13 @@ def test_a_record_with_a_gap_too_long_to_bridge_names_the_span_to_fit_and_xneck_
     assert "identify it alone" not in r.stderr and not (tmp_path / "d").exists()
 
 
-def _lose(data: CampaignData, states: list[tuple[int, int]], frames: list[tuple[int, int]] = ()) -> CampaignData:
+def _lose(data: CampaignData, states: list[tuple[int, int]], frames: list[tuple[int, int]] | None = None) -> CampaignData:
     """``data`` without the motor states of the index ranges ``states`` and the camera frames of ``frames``."""
     keep = np.ones(len(data.t_s), dtype=bool)
     for a, b in states:
         keep[a:b] = False
     keep_ip = np.ones(len(data.t_ip_s), dtype=bool)
-    for a, b in frames:
+    for a, b in frames or ():
         keep_ip[a:b] = False
     return CampaignData(t_s=data.t_s[keep], theta_rad=data.theta_rad[keep], force_N=data.force_N[keep],
                         t_ip_s=data.t_ip_s[keep_ip], alpha_ip_rad=data.alpha_ip_rad[keep_ip],
