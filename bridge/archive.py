@@ -130,6 +130,18 @@ class ArchiveError(Exception):
         self.path = Path(path)
         self.reason = reason
 
+    def __reduce__(self) -> tuple[Any, tuple[type[ArchiveError], tuple[Any, ...], dict[str, Any]]]:
+        # rebuilt as it is, not through its constructor from its message (the default, a TypeError):
+        # an analysis' process hands it over (server/analysis_process.py)
+        return _rebuilt_error, (type(self), self.args, dict(self.__dict__))
+
+
+def _rebuilt_error(cls: type[ArchiveError], args: tuple[Any, ...], state: dict[str, Any]) -> ArchiveError:
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
 
 def software_version() -> str:
     """Version of the installed xneck package (``unknown`` when run from a bare checkout)."""

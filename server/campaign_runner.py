@@ -590,13 +590,13 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
         result.logs_dir = str(workdir)
     try:
         result.metrics = metrics_from_archive(path)
-    except ValueError as exc:
+    except (ValueError, ArchiveError) as exc:  # a damaged archive's reason, not the campaign's failure
         result.metrics = {"error": str(exc)}
     if spec.kind == "identification" and outcome in ("finished", "degraded"):
         if progress:
             progress(1.0, "identifying (twin.identification.pipeline)…")
         analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides,
-                               base_name=params.name)
+                               base_name=params.name, stop=stop)
     return result
 
 
@@ -640,22 +640,31 @@ def _stop_until_ended(requests: BusPublisher[bus.BusMessage], events: queue.Queu
 
 def analyse_identification(result: CampaignResult, params_file: Path | None, estimator: str = "auto",
                            creep_time_s: float | None = None, overrides: tuple[str, ...] = (),
-                           base_name: str = "") -> None:
+                           base_name: str = "", stop: threading.Event | None = None) -> None:
     """Identify a recorded identification campaign (:func:`server.results.analyse_archive`, Table 2
     by ``estimator``, the creep time held at ``creep_time_s`` s if given, the parameter file with the
     campaign's ``overrides``, as its controller ran) into ``result``, with the set it identified; a failed
     analysis makes the outcome ``analysis_failed`` with its reason, in the result and in the archive
     (module docstring). In a child process (server.analysis_process): the console stays responsive
-    and gets its memory back."""
-    from server.analysis_process import AnalysisDied, run_in_child
+    and gets its memory back. ``stop`` set meanwhile (an abort, the console closing) kills it: the
+    recording's outcome stays, the archive is not amended, the message says the analysis was not
+    done (``xneck identify`` does it on the archive)."""
+    from server.analysis_process import AnalysisStopped, run_in_child
     from server.results import analyse_archive
 
     try:
         result.identification, result.analysis, result.identified_set = run_in_child(
             analyse_archive, result.path, params_file, estimator=estimator, creep_time_s=creep_time_s,
-            overrides=overrides, base_name=base_name, what="identification")
-    except AnalysisDied as exc:
-        result.identification, result.analysis, result.identified_set = None, f"identification failed: {exc}", None
+            overrides=overrides, base_name=base_name, what="identification", stop=stop)
+    except AnalysisStopped as exc:
+        why = stop_message(stop) if stop is not None else "stopped"
+        result.identification, result.identified_set = None, None
+        result.analysis = f"identification not done: {exc} ({why}); `xneck identify {result.path}` does it"
+        result.message = f"{result.message}; {result.analysis}" if result.message else result.analysis
+        return
+    except Exception as exc:  # noqa: BLE001 - the process died, could not start (EMFILE), sent what cannot be read
+        result.identification, result.analysis, result.identified_set = (
+            None, f"identification failed: {type(exc).__name__}: {exc}", None)
     if result.identification is not None:
         return
     run = result.message

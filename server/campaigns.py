@@ -627,7 +627,8 @@ class CampaignManager:
         try:  # not after a storage fault: the scene is added by a copy of the archive, on a disk that refused a write
             if not storage_fault and path.exists() and is_complete(path):
                 # in a child as the identification (server.analysis_process): 11 s of a 600 s campaign
-                fields["scene_messages"] = run_in_child(add_scene_channel, path, prepared.params, what="scene")
+                fields["scene_messages"] = run_in_child(add_scene_channel, path, prepared.params, what="scene",
+                                                        stop=stop)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
         fields["ended_at"] = iso_time()

@@ -82,13 +82,25 @@ def test_no_tick_or_mixed_widths_are_refused_as_before(tmp_path) -> None:
     held = [(bus.CONTROLLER_STATUS, k + 1, _status(k, 0.002 * k, holding=True)) for k in range(10)]
     with pytest.raises(ValueError, match="no controller status recorded"):
         metrics_from_archive(write_campaign(tmp_path / "held.mcap", held, {"campaign_id": "h"}))
-    mixed = _campaign(100) + [(bus.CONTROLLER_STATUS, int(0.5e9), _status(999, 0.5, joints=2))]
-    with pytest.raises(ValueError, match="controller statuses of 3 and 2 joints"):
+    # a tick of another width that a command answers
+    mixed = _campaign(100) + [(bus.CONTROLLER_STATUS, int(0.1e9) + 7, _status(50, 0.1, joints=2))]
+    with pytest.raises(ValueError, match=r"controller statuses of different widths"):
         metrics_from_archive(write_campaign(tmp_path / "mixed.mcap", mixed, {"campaign_id": "m"}))
+    # the command a tick takes (the last logged of its stamp) of another width
     wide = _campaign(100) + [(bus.MOTOR_COMMAND, int(0.1e9) + 9, _command(50, 0.1, 5.0, width=5))]
     with pytest.raises(ValueError, match="motor commands of different widths"):
         metrics_from_archive(write_campaign(tmp_path / "wide.mcap", wide, {"campaign_id": "w"}))
-    # a stray command of another width answering no tick is harmless, as it was
-    stray = _campaign(100) + [(bus.MOTOR_COMMAND, int(5e9), _command(5000, 10.0, 5.0, width=5))]
-    assert metrics_from_archive(write_campaign(tmp_path / "stray.mcap", stray, {"campaign_id": "s"})) == \
-        _reference(_campaign(100))
+
+
+@pytest.mark.parametrize("stray", [
+    (bus.CONTROLLER_STATUS, int(5e9), _status(999, 10.0, joints=2)),  # a tick no command answers
+    (bus.MOTOR_COMMAND, int(5e9), _command(5000, 10.0, 5.0, width=5)),  # a command answering no tick
+    (bus.MOTOR_COMMAND, 0, _command(5000, 10.0, 5.0, width=5)),  # the same, first in the file
+    (bus.MOTOR_COMMAND, 0, _command(5000, 10.0, 5.0, width=0)),  # an empty one, first in the file
+], ids=["unanswered-tick", "stray-command", "stray-command-first", "empty-command-first"])
+def test_a_message_of_another_width_that_no_tick_uses_is_harmless_as_it_was(tmp_path, stray) -> None:
+    """Review of session 51: the first message's width was taken for all, so a stray command first
+    in the file refused the campaign's metrics, an empty one gave empty forces, and a tick of
+    another width no command answered refused them too; the messages kept had given the metrics."""
+    got = metrics_from_archive(write_campaign(tmp_path / "s.mcap", [stray, *_campaign(100)], {"campaign_id": "s"}))
+    assert got == _reference(_campaign(100))

@@ -167,7 +167,9 @@ def test_forged_states_are_rejected_and_real_ones_keep_flowing(stack):
     """Finding 3: a state from the future (same bridge, same epoch) or from another bridge run is
     rejected and counted; the controller keeps answering the real bridge."""
     real = stack.states.messages()[-1]
-    forged = publisher(stack.session, bus.MOTOR_STATE)
+    # block: all 80 must arrive to be counted, and a state's key drops under congestion (fresh-clone
+    # CI of 2026-11-30 counted fewer than 80 in 30 s on a loaded machine)
+    forged = publisher(stack.session, bus.MOTOR_STATE, block=True)
     try:
         for i in range(20):
             forged.put(bus.MotorState(**{**bus.as_plain(real), "seq": 10**6 + i, "stamp_s": 1e12}))
