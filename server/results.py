@@ -12,6 +12,7 @@ Figures (matplotlib, Agg): ``tracking`` (α̂, α^d, α_IP per joint, deg, again
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,11 @@ def quality_tables(quality: dict[str, Any] | None) -> list[dict[str, Any]]:
                    ("degraded: " + "; ".join(reasons)) if reasons else "within the thresholds")]
 
 
+def _finite(x: Any) -> Any:
+    """``x``, or None for a non-finite number (a cutoff given: no f_99), which JSON cannot carry."""
+    return x if not isinstance(x, float) or math.isfinite(x) else None
+
+
 def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]:
     """Tables 1 and 2 from ``twin.identification.report.report_dict`` output."""
     if not report:
@@ -95,6 +101,12 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
         return [[p["name"], p["value"], p["sigma"], round(100 * p["relative_sigma"], 2),
                  p.get("reason") or ("badly identified" if p["badly_identified"] else "")] for p in est["parameters"]]
 
+    proc = report.get("processing") or {}
+    if proc:  # what was fitted: a record's gaps leave instants out (twin.identification.processing)
+        out.append(_table("Identification data (3-X paper §5.2.1)", ["", "value"], [
+            ["filter cutoff (Hz)", _finite(proc.get("cutoff_hz"))], ["motion bandwidth f_99 (Hz)", _finite(proc.get("f_99_hz"))],
+            ["instants (decimated)", proc.get("n")], ["instants fitted", proc.get("n_fitted", proc.get("n"))],
+        ], "; ".join(proc.get("notes") or []) or "every instant fitted: no gap in the record"))
     cols = ["parameter", "value (SI)", "σ", "σ/|value| (%)", ""]
     t1 = report.get("table_1", {})
     for key, title in (("complete", "Table 1: identified parameters (friction + elastic cables)"),

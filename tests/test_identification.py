@@ -421,6 +421,13 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
     lf_ref = identify_all(same, params, estimator="loadfriction")["variable"]
     k = [i for i, name in enumerate(lf.names) if name.startswith(("k(", "lambda("))]
     assert np.abs((lf.values[k] - lf_ref.values[k]) / lf_ref.sigma[k]).max() < 0.25
+    # the console shows what was fitted above its tables (its results page, server/results.py)
+    from server.results import identification_tables
+    from twin.identification.report import report_dict
+
+    shown = identification_tables(report_dict(got, proc))[0]
+    assert shown["title"].startswith("Identification data") and shown["note"] == note
+    assert ["instants fitted", int(proc.fitted.sum())] in shown["rows"]
     val = validate(lossy, proc, params, got, alpha_hat=False)
     assert np.isfinite(val.gamma_rf_error) and all(np.isfinite(e) for e in val.tension_error.values())
     frames = fitted_at(proc, lossy.t_ip_s)
