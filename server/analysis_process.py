@@ -81,16 +81,22 @@ def run_in_child(fn: Callable[..., T], /, *args: Any, what: str = "analysis", st
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, os.getpid(), fn, args, kwargs), name=f"xneck-{what}", daemon=True)
     started = time.monotonic()
+
+    def stopped() -> bool:
+        return stop is not None and stop.is_set()
+
     try:
-        proc.start()
-    finally:
-        send.close()
-    try:
+        try:
+            proc.start()
+        finally:
+            send.close()
         while not recv.poll(POLL_S):
-            if stop is not None and stop.is_set():
+            if stopped() and not recv.poll(0):
                 proc.kill()
                 raise AnalysisStopped(f"the {what} was stopped after {time.monotonic() - started:.0f} s")
             if not proc.is_alive() and not recv.poll(0):
+                if stopped():  # a Ctrl-C reached it before it could ignore it: the caller's stop
+                    raise AnalysisStopped(f"the {what} was stopped after {time.monotonic() - started:.0f} s")
                 raise AnalysisDied(f"the {what} process ended with exit code {proc.exitcode} after "
                                    f"{time.monotonic() - started:.0f} s without a result (killed, or out of memory?)")
         try:

@@ -146,8 +146,13 @@ def metrics_from_archive(path: Path) -> dict[str, object]:
     # did, the first source's, as the recorder would have chosen.
     alphas = [m for _, m in campaign.messages(bus.CAMERA_ALPHA)]
     frames = [m for m in alphas if m.source == alphas[0].source and None not in m.alpha_ip_rad]
+    if alpha_hat.shape != alpha_d.shape:  # numpy would broadcast one α^d over every joint's α̂
+        raise ValueError(f"{path}: controller statuses of {alpha_hat.shape[1]} estimated and {alpha_d.shape[1]} "
+                         "desired joint angles")
     return campaign_metrics(
         t_s=t[answered], alpha_hat=alpha_hat, alpha_d=alpha_d, force_N=force, saturated=saturated.astype(bool),
-        t_ip_s=np.array([m.capture_stamp_s for m in frames]),
-        alpha_ip=np.array([m.alpha_ip_rad for m in frames]).reshape(len(frames), -1),
+        t_ip_s=np.array([m.capture_stamp_s for m in frames], dtype=float),
+        # no camera (a campaign without α_IP): no frames, not an error ("cannot reshape array of size 0")
+        alpha_ip=np.array([m.alpha_ip_rad for m in frames]).reshape(len(frames), -1) if frames
+        else np.zeros((0, alpha_hat.shape[1])),
     )

@@ -185,6 +185,7 @@ class CampaignManager:
         self._records: dict[str, CampaignRecord] = {}
         self._running: str | None = None
         self._stop = threading.Event()
+        self._closing = threading.Event()  # the console closing (not a campaign's stop: a stopped one gets its scene)
         self._worker: threading.Thread | None = None
         # Serialises the last steps of a campaign's record (its final fields, the cause named in it
         # and its archive) with :meth:`abort`'s naming of a cause; taken before ``_lock``, never inside.
@@ -628,9 +629,10 @@ class CampaignManager:
             if not storage_fault and path.exists() and is_complete(path):
                 # in a child as the identification (server.analysis_process): 11 s of a 600 s campaign
                 fields["scene_messages"] = run_in_child(add_scene_channel, path, prepared.params, what="scene",
-                                                        stop=stop)
+                                                        stop=self._closing)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
+            path.with_name(path.name + ".rewrite").unlink(missing_ok=True)  # a rewrite killed half-way
         fields["ended_at"] = iso_time()
         with self._final_lock:  # a cause told from now on finds this record final (abort)
             with self._lock:
@@ -906,6 +908,7 @@ class CampaignManager:
                 self._replay_starting[2].set()
 
     def close(self, timeout_s: float = 20.0) -> None:
+        self._closing.set()
         self._stop.set()
         self._cancel_starting_replay()
         if self._replay is not None:

@@ -9,6 +9,7 @@ camera left out, and mixed widths refused.
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -104,3 +105,17 @@ def test_a_message_of_another_width_that_no_tick_uses_is_harmless_as_it_was(tmp_
     another width no command answered refused them too; the messages kept had given the metrics."""
     got = metrics_from_archive(write_campaign(tmp_path / "s.mcap", [stray, *_campaign(100)], {"campaign_id": "s"}))
     assert got == _reference(_campaign(100))
+
+
+def test_a_campaign_without_a_camera_has_its_metrics_and_alpha_hat_against_alpha_d_of_other_widths_is_refused(
+        tmp_path) -> None:
+    """Review of session 51: a campaign without α_IP (no camera started) had no metrics at all
+    ("cannot reshape array of size 0"); ticks whose α^d has fewer joints than α̂ were broadcast
+    into wrong errors."""
+    no_camera = [m for m in _campaign(100) if m[0] != bus.CAMERA_ALPHA]
+    got = metrics_from_archive(write_campaign(tmp_path / "nocam.mcap", no_camera, {"campaign_id": "n"}))
+    assert isinstance(got["ticks"], int) and got["ticks"] > 0 and got["camera_frames"] == 0 and got["e_alpha_mean_deg"] is None and got["e_mean_deg"] == _reference(_campaign(100))["e_mean_deg"]
+    short_d = [(key, log, msgspec.structs.replace(m, alpha_d_rad=m.alpha_d_rad[:1]) if key == bus.CONTROLLER_STATUS else m)
+               for key, log, m in _campaign(100)]
+    with pytest.raises(ValueError, match="3 estimated and 1 desired joint angles"):
+        metrics_from_archive(write_campaign(tmp_path / "short.mcap", short_d, {"campaign_id": "s"}))

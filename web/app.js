@@ -305,7 +305,9 @@ function renderTable(t) {
   table.append(head);
   t.rows.forEach((row) => {
     const tr = document.createElement("tr");
-    row.forEach((v) => tr.append(cell(v === null ? "–" : typeof v === "number" ? Number(v.toPrecision(4)) : v)));
+    // counts as they are (18743 instants, not 18740): four digits for measured values only
+    row.forEach((v) => tr.append(cell(v === null ? "–" : typeof v === "number" && !Number.isInteger(v)
+      ? Number(v.toPrecision(4)) : v)));
     table.append(tr);
   });
   wrap.append(table);
