@@ -170,9 +170,14 @@ class CampaignData:
                        notes=(*self.notes, note))
 
 
+def _cuts(t: FloatArray, max_gap: float, min_gap_s: float = 0.0) -> NDArray[np.int64]:
+    """The samples of ``t`` after which comes a gap longer than ``max_gap`` median periods and ``min_gap_s``."""
+    return np.flatnonzero(np.diff(t) > max(max_gap * float(np.median(np.diff(t))), min_gap_s))
+
+
 def gap_free_spans(t: FloatArray, max_gap: float = 5.0, min_gap_s: float = 0.0) -> list[tuple[float, float]]:
     """The spans (s) of ``t`` between gaps longer than ``max_gap`` median periods and ``min_gap_s``."""
-    cuts = np.flatnonzero(np.diff(t) > max(max_gap * float(np.median(np.diff(t))), min_gap_s))
+    cuts = _cuts(t, max_gap, min_gap_s)
     starts = [0, *(cuts + 1)]
     ends = [*cuts, len(t) - 1]
     return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends, strict=True)]
@@ -196,7 +201,7 @@ def gaps_of(t: FloatArray, max_gap: float = 5.0) -> FloatArray:
     ``max_gap`` median periods (lost data, not jitter)."""
     if len(t) < 2:
         return np.zeros((0, 2))
-    k = np.flatnonzero(np.diff(t) > max_gap * float(np.median(np.diff(t))))
+    k = _cuts(t, max_gap)
     return np.column_stack([t[k], t[k + 1]])
 
 
