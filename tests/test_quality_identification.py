@@ -151,7 +151,10 @@ def service_identification(tmp_path_factory):
     """An identification campaign as `xneck up`'s console runs it (``service=True``, real time, its
     twin's white-noise camera named), through a twin bridge and a controller service as processes;
     its parameter set tightens f_max to 20 N: the 3.2 s nod's nominal forces stay under 15 N
-    (validated), law 1's from rest do not (about 85 % of its ticks at f_max on the twin)."""
+    (validated), law 1's from rest do not: about 85 % of its ticks have a cable at f_max on an idle
+    machine, 42-55 % on a loaded one (a CI run; here with 3 busy processes: the twin and the
+    controller fall behind, ~100 states skipped, 449 Hz, and the closed loop takes another path).
+    The test needs a clear share, not a figure of the dynamics."""
     from test_campaign import NOD
     from test_stack import _procs
 
@@ -184,7 +187,7 @@ def test_an_identification_through_the_service_whose_cables_sat_at_f_max_says_so
     fails), in the record and in the archive's metadata; the count is in its quality."""
     result = service_identification
     q = result.quality
-    assert q["law_ticks"] > 500 and q["saturated_ticks"] > 0.5 * q["law_ticks"], q
+    assert q["law_ticks"] > 500 and q["saturated_ticks"] > 0.25 * q["law_ticks"], q
     assert len(q["saturated_by_cable"]) == 4 and sum(q["saturated_by_cable"]) >= q["saturated_ticks"], q
     said = saturation_note(q)
     assert said.startswith("cables at f_max in ") and "the law asked more than f_max" in said, q
