@@ -47,7 +47,10 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+try:
+    import _repo  # noqa: F401  (run as a script, as the peers are: this checkout's packages, benchmarks/_repo.py)
+except ModuleNotFoundError:  # loaded by its path (tests/test_bus_dead_peers.py): the suite's own checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bridge import bus
 from bridge.session import open_session, publisher

@@ -28,6 +28,7 @@ import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing  # (benchmarks/ is sys.path[0] when run as a script)
 
 from bridge import bus

@@ -28,13 +28,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 from _bus_peer import FLOODS, run_flood
 
 from bridge.bus_credentials import ENV_CREDENTIALS, ENV_USER, add_entry, write_new

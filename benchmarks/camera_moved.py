@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import sys
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import numpy as np
 
 from twin.camera.calibration import look_at_pose, twin_calibration

@@ -38,6 +38,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402

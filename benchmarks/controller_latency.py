@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 from _stall_probe import pin  # noqa: E402
 

@@ -25,6 +25,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 summary, time_calls = _timing.summary, _timing.time_calls

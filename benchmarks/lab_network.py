@@ -59,7 +59,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-sys.path.insert(0, str(REPO))  # this tree's packages, not an installed checkout's
+
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 
 from bridge import bus  # noqa: E402
 from bridge.session import free_tcp_port, open_session  # noqa: E402

@@ -30,6 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the fake board's log reader (tests/fake_board_log.py)
 
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 from fake_board_log import board_log, levels  # noqa: E402  # pyright: ignore[reportMissingImports]  (tests/ on sys.path above)
 
 from bridge import bus  # noqa: E402

@@ -28,9 +28,8 @@ import threading
 import time
 from pathlib import Path
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bridge import bus
 from bridge.session import free_tcp_port, open_session, publisher

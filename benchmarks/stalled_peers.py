@@ -28,12 +28,9 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 from _bus_peer import LAYOUTS, run_stalled
 
 from bridge.session import ENV_ZENOH_RUNTIME, ZENOH_RX_WORKERS, free_tcp_port

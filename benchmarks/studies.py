@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing
 import numpy as np
 

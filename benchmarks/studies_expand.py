@@ -21,6 +21,7 @@ import time
 import tracemalloc
 from collections.abc import Callable
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing
 import numpy as np
 

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 HERE = Path(__file__).resolve().parent
+import _repo  # noqa: E402, F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import _timing  # noqa: E402  (benchmarks/ is sys.path[0] when run as a script)
 
 summary = _timing.summary

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import _repo  # noqa: F401  (this checkout's packages, not the installed ones: benchmarks/_repo.py)
 import numpy as np
 
 from twin.analysis.statics import prototype_2x, stiffness_extremes, wrench_feasible_two_cables
