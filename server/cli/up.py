@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import faulthandler
 import json
 import os
 import shutil
@@ -564,6 +565,9 @@ def up(
     # the default action killed this process at once and left its children unsupervised.
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
         signal.signal(sig, on_signal)
+    # `kill -USR1 <pid>` writes every thread's stack to stderr (the log): where a stack that seems
+    # stuck waits (a hung bridge twice left unjudged on CI, the log silent after start-up).
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     started_with: dict[str, tuple[list[str], dict[str, str] | None]] = {}
     plan = RestartPlan(restarts)  # on time.monotonic()
