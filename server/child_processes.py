@@ -102,6 +102,19 @@ def kill_child(proc: subprocess.Popen, wait_s: float) -> bool:
         return False
 
 
+def process_state(pid: int) -> str:
+    """What the kernel says process ``pid`` is doing, for a message: ``"state T, in
+    do_signal_stop"`` (/proc's state letter and the kernel function it waits in), or why it
+    cannot say."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        state = stat[stat.rindex(")") + 2:].split()[0]
+        wchan = Path(f"/proc/{pid}/wchan").read_text().strip()
+    except (OSError, ValueError, IndexError) as exc:
+        return f"its state unreadable: {getattr(exc, 'strerror', None) or exc}"
+    return f"state {state}" + (f", in {wchan}" if wchan and wchan != "0" else "")
+
+
 def exit_how(returncode: int) -> str:
     """How a child ended, from its ``Popen.returncode``: ``"signal SIGKILL"`` for a negative one
     (killed by that signal), ``"code 1"`` otherwise."""

@@ -78,6 +78,7 @@ from server.child_processes import (
     isolate_self,
     kill_child,
     log_tail,
+    process_state,
     stop_child,
     xneck_argv,
 )
@@ -380,6 +381,9 @@ def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> s
     return f"campaign {answer['campaign_id']} {answer['status']}: {answer['message']}"
 
 
+DRIVES_MAY_BE_ON = "DRIVES MAY BE ON"
+
+
 def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) -> str:
     """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``), once
     more if it fails; one line for the operator saying whether the drives are off. In a session
@@ -398,7 +402,7 @@ def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) ->
         if proc.returncode == 0:
             return "the bridge did not end cleanly: its drives were disabled by `xneck bridge --drives-off`"
         why = f"failed ({exit_how(proc.returncode)}), see {log_file}"
-    return f"DRIVES MAY BE ON: `xneck bridge --drives-off` {why}"
+    return f"{DRIVES_MAY_BE_ON}: `xneck bridge --drives-off` {why}"
 
 
 class _LoopPings:
@@ -668,7 +672,20 @@ def up(
                     # Hung: SIGTERM would wait on a loop that does not run. Not waited for long: one
                     # whose exit is slow (starved) is judged dead on a later pass, while this loop
                     # goes on watching the others (its wait's timeout had ended xneck up).
-                    kill_child(procs[name], HUNG_KILL_WAIT_S)
+                    if not kill_child(procs[name], HUNG_KILL_WAIT_S) and name not in hung:
+                        # Killed but its threads cannot run their exit (a CPU held by real-time work:
+                        # a killed FIFO process on the loop's CPU waits for every higher task there).
+                        # Said at once (the log had stayed silent after start-up, CI of session 52),
+                        # and a robot's drives set off now, beside it (`--drives-off` may run beside a
+                        # bridge, and a killed one runs no code of its own again): after its exit, they
+                        # had stayed enabled for as long as the exit was late.
+                        typer.secho(f"warning: the {name} hung (its loop silent for {age:.1f} s): killed, not exited "
+                                    f"after {HUNG_KILL_WAIT_S:g} s ({process_state(procs[name].pid)}); waiting for it",
+                                    err=True, fg="yellow")
+                        if name == "bridge" and robot:
+                            said = drives_off(driver, param_args, log_files["bridge"])
+                            typer.secho(said, err=True, fg="red")
+                            drives_set_off = not said.startswith(DRIVES_MAY_BE_ON)
                     hung.setdefault(name, f"hung (its loop silent for {age:.1f} s), killed")
             for name in plan.due(polled):  # its back-off over
                 if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
@@ -712,7 +729,7 @@ def up(
                 typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
                             f"{'more ' if more else ''}is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
-                if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
+                if name == "bridge" and robot and rc != 0 and not drives_set_off:  # the drives first, the record after
                     typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
                     drives_set_off = True
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
