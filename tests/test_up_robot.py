@@ -95,7 +95,13 @@ def _stuck_report(up_pid: int, bridge: int, log: Path) -> str:
     time.sleep(1.0)
     children = [int(d.name) for d in Path("/proc").iterdir() if d.name.isdigit() and _parent_pid(int(d.name)) == up_pid]
     procs = "\n".join(_proc_line(pid) for pid in dict.fromkeys([up_pid, bridge, *children]))
-    return f"{log.read_text()[-12000:]}\n-- processes:\n{procs}\n-- load: {Path('/proc/loadavg').read_text()}"
+    realtime = []  # whoever may hold the loop's CPU: a killed FIFO bridge cannot exit below one
+    for d in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, ValueError):
+            if d.name.isdigit() and os.sched_getscheduler(int(d.name)) in (os.SCHED_FIFO, os.SCHED_RR):
+                realtime.append(_proc_line(int(d.name)))
+    return (f"{log.read_text()[-12000:]}\n-- processes:\n{procs}\n-- real-time processes:\n" + "\n".join(realtime)
+            + f"\n-- load: {Path('/proc/loadavg').read_text()}")
 
 
 def _stray_states(hub: str, stop: threading.Event) -> None:
