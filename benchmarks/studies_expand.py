@@ -3,7 +3,7 @@ replaced (a copy of expand() at 0c249fc), in the same process, on one study at t
 
     .venv/bin/python benchmarks/studies_expand.py [--runs 200000] [--repeats 5]
 
-(from a git worktree, with PYTHONPATH=. : a script's imports otherwise find the checkout .venv was installed from)
+(from any checkout: benchmarks/_repo.py puts its packages first)
 
 Measured, each as median and p99 of the repeats, with the ratio eager / lazy: the time until the
 first run can be submitted (eager: the whole list), all runs one after the other (what a study

@@ -6,7 +6,8 @@ real-time priority, a kernel thread) keeps the killed bridge alive, unreaped, fo
 runs (a FIFO 60 task spinning 4 s kept one 3.6 s). `xneck up` judged the bridge hung, killed it and
 set its drives off only once it had exited: the ESCONs drove the last currents all that time, and
 the log said nothing (a fresh-clone CI run of session 52 waited 150 s on a silent log). Now the
-supervisor says so at once and runs `xneck bridge --drives-off` beside the dying bridge.
+supervisor says so at once and runs `xneck bridge --drives-off` beside the dying bridge, and
+again after its exit.
 
 Staged for real: the bridge SIGSTOPped (hung), then a FIFO 60 process spinning on the loop's CPU
 for :data:`SPIN_S` (bounded, killed at the end whatever happens). It takes the loop's CPU, so the
@@ -32,11 +33,15 @@ from bridge.drivers.beaglebone import BLUE_GP0_PINS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # it holds the loop's CPU for SPIN_S
 
-SPIN_S = 10.0  # the judgement (1 s), the kill's wait (1 s), `--drives-off` (a process start), and a margin
+SPIN_S = 30.0  # the judgement (1 s), the kill's wait (1 s), `--drives-off` (a process start); killed once seen
 SPINNER = """\
 import os, sys, time
 os.sched_setaffinity(0, {{{cpu}}})
-os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(60))
+try:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(60))
+except PermissionError:
+    print("refused", flush=True)
+    sys.exit(0)
 print("spinning", flush=True)
 end = time.monotonic() + {spin_s}
 while time.monotonic() < end:
@@ -50,7 +55,11 @@ def _spinner(cpu: int):
     proc = subprocess.Popen([sys.executable, "-c", SPINNER.format(cpu=cpu, spin_s=SPIN_S)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "spinning", proc.stderr
+        assert proc.stdout is not None
+        said = proc.stdout.readline().strip()
+        if said == "refused":
+            pytest.skip("SCHED_FIFO 60 is not permitted here (RLIMIT_RTPRIO): no task above the bridge to stage")
+        assert said == "spinning", proc.stderr.read() if proc.stderr is not None else said
         yield proc
     finally:
         proc.kill()
@@ -63,6 +72,8 @@ def test_a_hung_robot_bridge_that_cannot_exit_has_its_drives_disabled_beside_it(
     with _up_robot(tmp_path, exit_after_s=300) as (_base, _hub, up, bridge):
         if os.sched_getscheduler(bridge) != os.SCHED_FIFO:
             pytest.skip("the bridge did not get SCHED_FIFO here (not permitted, or XNECK_REALTIME=0)")
+        if os.sched_getaffinity(bridge) == os.sched_getaffinity(up.pid):
+            pytest.skip("one CPU for everyone: a spinner on the loop's would starve xneck up too")
         assert set(levels(board_log(board), {bridge}).values()) == {1}  # every drive enabled
         (cpu,) = os.sched_getaffinity(bridge)
         os.kill(bridge, signal.SIGSTOP)  # hung
@@ -70,9 +81,9 @@ def test_a_hung_robot_bridge_that_cannot_exit_has_its_drives_disabled_beside_it(
             said = "its drives were disabled by `xneck bridge --drives-off`"
             assert wait_until(lambda: said in log.read_text() or spin.poll() is not None, SPIN_S + 5, 0.1)
             assert spin.poll() is None, ("the drives were not set off while the bridge could not exit",
-                                         _stuck_report(up.pid, bridge, log))
-            # the drives are off while the killed bridge is still there, unreaped
-            assert Path(f"/proc/{bridge}").exists()
+                                         _stuck_report(up, bridge, log))
+            # the drives are off while the killed bridge is still there, not even a zombie
+            assert Path(f"/proc/{bridge}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
             lines = board_log(board)
             assert levels(lines, {pid for pid, *_ in lines} - {bridge}) == dict.fromkeys(BLUE_GP0_PINS, 0)
             assert levels(lines) == dict.fromkeys(BLUE_GP0_PINS, 0)
@@ -83,10 +94,14 @@ def test_a_hung_robot_bridge_that_cannot_exit_has_its_drives_disabled_beside_it(
             rc = up.wait(120)
         except subprocess.TimeoutExpired:
             rc = None
-        assert rc == 1, (rc, _stuck_report(up.pid, bridge, log))
+        assert rc == 1, (rc, _stuck_report(up, bridge, log))
     printed = log.read_text()
-    assert "error: the bridge hung (its loop silent for" in printed, printed[-3000:]
-    assert printed.count(said) == 1, printed[-3000:]  # not run again after the exit
-    assert printed.index(said) < printed.index("error: the bridge hung") < printed.index("no campaign was running")
+    # The controller (FIFO 49, same CPU) was starved too: it may be judged and reaped first, the
+    # stack then stopped for it and the bridge's exit seen at the stop.
+    error = next((line for line in printed.splitlines() if line.startswith("error: the ")), "")
+    assert error.startswith(("error: the bridge hung (its loop silent for", "error: the controller hung")), printed[-3000:]
+    # beside the dying bridge, then again after its exit (a thread preempted in a GPIO write ends it first)
+    assert printed.count(said) == 2, printed[-3000:]
+    assert printed.index(said) < printed.index(error) < printed.rindex(said), printed[-3000:]
     time.sleep(0.1)
     assert levels(board_log(board)) == dict.fromkeys(BLUE_GP0_PINS, 0)  # and they stay off

@@ -381,9 +381,6 @@ def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> s
     return f"campaign {answer['campaign_id']} {answer['status']}: {answer['message']}"
 
 
-DRIVES_MAY_BE_ON = "DRIVES MAY BE ON"
-
-
 def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) -> str:
     """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``), once
     more if it fails; one line for the operator saying whether the drives are off. In a session
@@ -391,18 +388,21 @@ def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) ->
     enable lines left high (audit of 2026-11-26)."""
     why = ""
     for _attempt in range(2):
-        with open(log_file, "ab") as log:
-            try:
+        try:
+            with open(log_file, "ab") as log:
                 proc = subprocess.run(xneck_argv("bridge", *driver_args, *param_args, "--drives-off"), stdout=log,
                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, timeout=DRIVES_OFF_TIMEOUT_S,
                                       env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
-            except subprocess.TimeoutExpired:
-                why = f"did not end within {DRIVES_OFF_TIMEOUT_S:.0f} s"
-                continue
+        except subprocess.TimeoutExpired:
+            why = f"did not end within {DRIVES_OFF_TIMEOUT_S:.0f} s"
+            continue
+        except OSError as exc:  # no fork on a machine out of memory or processes, a log that cannot be opened
+            why = f"could not be started ({exc.strerror or exc})"
+            continue
         if proc.returncode == 0:
             return "the bridge did not end cleanly: its drives were disabled by `xneck bridge --drives-off`"
         why = f"failed ({exit_how(proc.returncode)}), see {log_file}"
-    return f"{DRIVES_MAY_BE_ON}: `xneck bridge --drives-off` {why}"
+    return f"DRIVES MAY BE ON: `xneck bridge --drives-off` {why}"
 
 
 class _LoopPings:
@@ -682,10 +682,9 @@ def up(
                         typer.secho(f"warning: the {name} hung (its loop silent for {age:.1f} s): killed, not exited "
                                     f"after {HUNG_KILL_WAIT_S:g} s ({process_state(procs[name].pid)}); waiting for it",
                                     err=True, fg="yellow")
-                        if name == "bridge" and robot:
-                            said = drives_off(driver, param_args, log_files["bridge"])
-                            typer.secho(said, err=True, fg="red")
-                            drives_set_off = not said.startswith(DRIVES_MAY_BE_ON)
+                        if name == "bridge" and robot:  # and again after its exit (drives_set_off stays False):
+                            # a thread preempted in a system call (a GPIO write) ends that call first
+                            typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
                     hung.setdefault(name, f"hung (its loop silent for {age:.1f} s), killed")
             for name in plan.due(polled):  # its back-off over
                 if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
@@ -729,7 +728,7 @@ def up(
                 typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
                             f"{'more ' if more else ''}is restarted.\n"
                             f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
-                if name == "bridge" and robot and rc != 0 and not drives_set_off:  # the drives first, the record after
+                if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
                     typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
                     drives_set_off = True
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
