@@ -5,6 +5,7 @@ commands. The twin driver stands in for the motors; the rules are the same for t
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import re
@@ -276,7 +277,10 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
                 tick()
             for _ in range(120):
                 tick()
-            assert wait_until(lambda: len(states.messages()) >= len(applied), 5.0)
+            # States go best effort: on a loaded machine a few are dropped (the suite beside a busy
+            # loop, session 52; a fresh-clone CI run before). Every one is waited for a while, and
+            # the published steps are compared between consecutive seq numbers only.
+            wait_until(lambda: len(states.messages()) >= len(applied), 5.0)
             seen = states.messages()  # before the shutdown's final state
         finally:
             node.shutdown()
@@ -285,8 +289,10 @@ def test_estop_release_ramps_the_forces_instead_of_stepping_to_the_first_command
         print(f"\nlargest force step per tick: {steps.max():.2f} N")
         assert steps.max() <= 1.0 + 1e-9, steps.round(1).tolist()
         assert applied[-1].tolist() == [100.0, 48.0, 8.0, 54.0]
-        after = [s.force_applied_N for s in seen[next(i for i, s in enumerate(seen) if s.drive == "disabled"):]]
-        assert len(after) > 100 and np.abs(np.diff(np.array(after), axis=0)).max() <= 1.0 + 1e-9
+        after = seen[next(i for i, s in enumerate(seen) if s.drive == "disabled"):]
+        published = [np.abs(np.subtract(b.force_applied_N, a.force_applied_N)).max()
+                     for a, b in itertools.pairwise(after) if b.seq == a.seq + 1]
+        assert len(published) > 100 and max(published) <= 1.0 + 1e-9, (len(after), len(published))
 
 
 def test_one_controller_owns_the_bridge_and_a_second_is_refused_until_the_owner_is_gone(params):
