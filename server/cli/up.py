@@ -677,8 +677,8 @@ def up(
                         # a killed FIFO process on the loop's CPU waits for every higher task there).
                         # Said at once (the log had stayed silent after start-up, CI of session 52),
                         # and a robot's drives set off now, beside it (`--drives-off` may run beside a
-                        # bridge, and a killed one runs no code of its own again): after its exit, they
-                        # had stayed enabled for as long as the exit was late.
+                        # bridge): set off after its exit only, they had stayed enabled for as long as
+                        # the exit was late.
                         typer.secho(f"warning: the {name} hung (its loop silent for {age:.1f} s): killed, not exited "
                                     f"after {HUNG_KILL_WAIT_S:g} s ({process_state(procs[name].pid)}); waiting for it",
                                     err=True, fg="yellow")
