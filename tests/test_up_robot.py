@@ -30,7 +30,7 @@ from test_up_child_death import _child, _get, _parent_pid
 from bridge import bus
 from bridge.drivers.beaglebone import BLUE_GP0_PINS
 from bridge.session import free_tcp_port, open_session
-from server.child_processes import cpu_split
+from server.child_processes import cpu_split, process_state
 
 pytestmark = pytest.mark.e2e
 
@@ -74,16 +74,14 @@ def _up_robot(tmp_path: Path, exit_after_s: int = 120):
 
 
 def _proc_line(pid: int) -> str:
-    """A process's name, state, kernel wait channel, policy and CPUs, from /proc."""
+    """A process's state and kernel wait channel (``process_state``, as `xneck up` says them),
+    policy, CPUs and command line, from /proc."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-        name, rest = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
-        wchan = Path(f"/proc/{pid}/wchan").read_text()
         policy, cpus = os.sched_getscheduler(pid), sorted(os.sched_getaffinity(pid))
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")[:120].decode(errors="replace")
-    except (OSError, ValueError, IndexError) as exc:  # gone meanwhile: a report must not raise
+    except (OSError, ValueError) as exc:  # gone meanwhile: a report must not raise
         return f"{pid}: {exc}"
-    return f"{pid} ({name}) state {rest[0]} wchan {wchan or '-'} policy {policy} cpus {cpus}: {cmd}"
+    return f"{pid} {process_state(pid)}, policy {policy}, cpus {cpus}: {cmd}"
 
 
 def _stuck_report(up: subprocess.Popen, bridge: int, log: Path) -> str:
