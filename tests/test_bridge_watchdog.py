@@ -533,6 +533,27 @@ def _seen(path: Path, what: str, timeout_s: float) -> float | None:
     return None
 
 
+def test_a_robot_bridge_pings_its_supervisor_from_its_first_tick(tmp_path: Path) -> None:
+    """CI of session 52 (twice, and twice in session 45): `xneck up --robot`'s bridge, SIGSTOPped
+    40 ms after its loop started (the drives enabled within 20 ms), was never judged hung: its first
+    ping was due a ping period (0.2 s) after the loop's start, and the supervisor judges only a
+    bridge that has pinged once (a bridge still starting is not judged). The loop now pings at its
+    first tick: counted in states, the first ping comes before the first few, not after a period's."""
+    systemd = _FakeSystemd()
+    with bus_pair() as (hub, hub_session, _connect):
+        robot = _RobotBridge(tmp_path, hub, hub_session, {"NOTIFY_SOCKET": systemd.address, "WATCHDOG_USEC": "200000"})
+        try:
+            robot.enable()
+            assert wait_until(lambda: any(m == "WATCHDOG=1" for _, m in systemd.got), 5.0), systemd.got
+        finally:
+            robot.close()
+            systemd.close()
+    first_ping = next(t for t, m in systemd.got if m == "WATCHDOG=1")
+    before = [s.seq for t, s in robot.states if t < first_ping]
+    # a ping period is 50 ticks; the states reach this test over the bus, the ping over a datagram
+    assert len(before) < 20, (len(before), before[:5])
+
+
 @pytest.mark.parametrize("mode", ["sleep", "spin", "convoy"])
 def test_a_hung_robot_bridge_disables_its_own_drives_and_exits_70(tmp_path: Path, mode: str) -> None:
     """The loop blocks in an encoder read (``sleep``: in a call that releases the GIL; ``spin``: an

@@ -100,8 +100,10 @@ def _stuck_report(up: subprocess.Popen, bridge: int, log: Path) -> str:
         with contextlib.suppress(OSError, ValueError):
             if d.name.isdigit() and os.sched_getscheduler(int(d.name)) in (os.SCHED_FIFO, os.SCHED_RR):
                 realtime.append(_proc_line(int(d.name)))
-    return (f"{log.read_text()[-12000:]}\n-- processes:\n{procs}\n-- real-time processes:\n" + "\n".join(realtime)
-            + f"\n-- load: {Path('/proc/loadavg').read_text()}")
+    report = (f"{log.read_text()[-12000:]}\n-- processes:\n{procs}\n-- real-time processes:\n" + "\n".join(realtime)
+              + f"\n-- load: {Path('/proc/loadavg').read_text()}")
+    print(report)  # whole in the captured output: pytest cuts a long assertion message (CI of session 52)
+    return report
 
 
 def _stray_states(hub: str, stop: threading.Event) -> None:
