@@ -102,7 +102,7 @@ from bridge.estop_latch import LatchFile, read_latch
 from bridge.log_limit import LogLimit
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
-from bridge.runtime import SystemdNotify, raise_loop_thread
+from bridge.runtime import SystemdNotify, no_core_dump, raise_loop_thread
 from bridge.safety import RELEASE_TOKEN_WAIT_S, EStopHolders, HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import (
     BusPublisher,
@@ -832,6 +832,10 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
             # systemd's watchdog kills with SIGABRT: the journal then shows where every thread was
             # (faulthandler needs no GIL, so a loop hung in a C call holding it is shown too).
             faulthandler.enable(all_threads=True)
+        # A supervisor disables the drives once this process has ended: with no core to write
+        # first (SIGABRT, SIGSEGV) it ends at once.
+        if why := no_core_dump():
+            log.warning("%s: a crash writes a core before the supervisor's drives-off", why)
         systemd.ready()
     try:
         while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not driver.exhausted:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import resource
 import signal
 import socket
 import threading
@@ -92,6 +93,21 @@ def raise_loop_thread() -> str:
     except OSError as exc:
         return (f"could not raise the loop above the process's real-time priority ({exc.strerror}; "
                 "LimitRTPRIO must allow two above the process's)")
+    return ""
+
+
+def no_core_dump() -> str:
+    """Set this process's core-file size limit (soft) to 0: a process killed by a signal whose
+    default action dumps core (systemd's watchdog SIGABRT, a SIGSEGV in a hardware library) then
+    ends at once. A core is written before the process has ended, so before its supervisor's
+    drives-off (the unit's ``ExecStopPost``, ``xneck up``) can run: systemd-coredump compressing
+    a whole Python process image takes seconds on a small board. The stacks are in the log
+    (faulthandler) all the same. '' if done, else why not."""
+    try:
+        _soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+        resource.setrlimit(resource.RLIMIT_CORE, (0, hard))
+    except (OSError, ValueError) as exc:
+        return f"core dumps stay on ({exc})"
     return ""
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import shutil
 import signal
 import socket
@@ -478,7 +479,9 @@ class _RobotBridge:
     this test as its controller."""
 
     def __init__(self, tmp_path: Path, hub: str, hub_session, extra_env: dict[str, str] | None = None,
-                 extra_args: tuple[str, ...] = ()) -> None:
+                 extra_args: tuple[str, ...] = (), core_limit: bool = False) -> None:
+        """``core_limit``: the bridge starts with its core-file size limit raised to the hard one,
+        in ``tmp_path`` (where the kernel writes a core when ``core_pattern`` is a plain name)."""
         self.board, self.block, self.log = tmp_path / "rcpy.log", tmp_path / "block", tmp_path / "bridge.log"
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "FAKE_RCPY_LOG": str(self.board),
                "FAKE_RCPY_BLOCK": str(self.block), **(extra_env or {}),
@@ -495,7 +498,9 @@ class _RobotBridge:
         with open(self.log, "wb") as out:
             self.proc = subprocess.Popen([*XNECK, "bridge", "--driver", "beaglebone", "--listen", "tcp/127.0.0.1:0",
                                           "--connect", hub, "--instance", "wd-test", *extra_args], stdout=out,
-                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                         cwd=tmp_path if core_limit else None,
+                                         preexec_fn=_core_limit_to_hard if core_limit else None)
 
     def enable(self) -> None:
         """Command until the drives are active (every enable line high, set by the bridge), then
@@ -521,6 +526,17 @@ class _RobotBridge:
         self._sub.undeclare()
         self._pub.close()
         self._token.undeclare()
+
+
+def _core_limit_to_hard() -> None:
+    _soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+    resource.setrlimit(resource.RLIMIT_CORE, (hard, hard))
+
+
+def _core_limit(pid: int) -> str:
+    """The soft core-file size limit of process ``pid``, as /proc says it ("0", "unlimited")."""
+    line = next(x for x in Path(f"/proc/{pid}/limits").read_text().splitlines() if x.startswith("Max core file size"))
+    return line.split()[4]
 
 
 def _seen(path: Path, what: str, timeout_s: float) -> float | None:
@@ -694,13 +710,16 @@ def test_what_the_loop_watchdog_cannot_see_systemds_watchdog_does(tmp_path: Path
     is off instead, ``--loop-stall 0``) stops the loop's pings to systemd, whose ``WatchdogSec=``
     then kills the service with SIGABRT (done by hand here); the bridge's faulthandler first writes
     every thread's stack, the hung loop's included, to the journal. ExecStopPost's drives-off is
-    tests/test_up_robot.py's."""
+    tests/test_up_robot.py's. The bridge ends at once, without writing a core first (systemd-coredump
+    compresses a whole process image, seconds on the board, before the drives-off may run), even
+    when started with core dumps allowed."""
     systemd = _FakeSystemd()
     with bus_pair() as (hub, hub_session, _connect):
         robot = _RobotBridge(tmp_path, hub, hub_session, {"NOTIFY_SOCKET": systemd.address, "WATCHDOG_USEC": "200000"},
-                             ("--loop-stall", "0"))
+                             ("--loop-stall", "0"), core_limit=True)
         try:
             robot.enable()
+            assert _core_limit(robot.proc.pid) == "0", Path(f"/proc/{robot.proc.pid}/limits").read_text()
             time.sleep(0.5)
             robot.block.write_text("sleep")
             hung = _seen(robot.board, "hang", 5.0)
@@ -718,6 +737,7 @@ def test_what_the_loop_watchdog_cannot_see_systemds_watchdog_does(tmp_path: Path
     assert "Fatal Python error: Aborted" in printed, printed[-3000:]
     assert "in hang_while_blocked" in printed and "in run_realtime" in printed, printed[-3000:]
     assert "made no tick" not in printed
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith("core")], "a core was written"
     pings = [t for t, m in systemd.got if m == "WATCHDOG=1"]
     assert [t for t in pings if t < hung], systemd.got
     assert not [t for t in pings if t > hung + 0.01], [round((t - hung) * 1e3) for t in pings]  # silent once hung
