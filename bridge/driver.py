@@ -253,6 +253,12 @@ class Driver(abc.ABC):
         """Time stamp of the last :meth:`read` (s): wall clock for hardware, simulated time for the twin."""
         return time.time()
 
+    def steady_s(self) -> float:
+        """A steady time of the last :meth:`read` (s), for the time between reads (the motors'
+        speeds): monotonic for hardware, whose :meth:`stamp_s` is the wall clock (NTP steps it; a
+        board without an RTC battery may boot before its clock is set), simulated time for the twin."""
+        return time.monotonic()
+
     def extra_messages(self) -> list[tuple[str, bus.BusMessage]]:
         """Messages besides ``MotorState`` produced by the last step (the twin's ``Truth`` and
         camera frames); ``(key, message)`` pairs with their own ``seq``. Hardware: none."""

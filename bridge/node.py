@@ -14,7 +14,10 @@ Commands
     machine's late answers in bursts); anything else is counted as rejected (a
     command of a state gone, ``Health.rejected["command_stale_state"]``) and never moves a motor,
     so a command path that lags ends in the watchdog's hold (audit of 2026-11-29: a command
-    answering a state 5 s old, or one 1e9 s ahead, had been obeyed). Valid forces are clamped to [f_min, f_max] (a cable must stay taut).
+    answering a state 5 s old, or one 1e9 s ahead, had been obeyed). A command answering an older
+    state than its sender's last accepted one (delayed, re-ordered, replayed) is refused too: it
+    would move the cables back to older forces; the same state answered again is valid (the
+    controller's own hold when no state reaches it). Valid forces are clamped to [f_min, f_max] (a cable must stay taut).
 Activation
     The drives start disabled (``inactive``: angles published, zero force). The first valid
     command enables them (``active``).
@@ -128,6 +131,8 @@ SWITCH_INTERVAL_S = 2e-4
 #: s the start waits for the answer to "which e-stop tokens are alive": Zenoh answers a liveliness
 #: query from the tokens it knows (0.1 ms on loopback), so this bounds only a sick session.
 ESTOP_QUERY_S = 2.0
+#: Holders seen letting go while that query runs; past it, the query's answer is not used.
+TOKENS_GONE_MAX = 1024
 
 
 @dataclass(frozen=True)
@@ -364,7 +369,8 @@ class BridgeNode:
 
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
-            if cmd.epoch == self.epoch and cmd.stamp_s not in self._state_stamps:
+            answered = self._state_numbers.get(cmd.stamp_s) if cmd.epoch == self.epoch else None
+            if cmd.epoch == self.epoch and answered is None:
                 # (another run's command: refused by its epoch below, the clearer reason)
                 self.commands_stale += 1
                 self._stale_seen = time.monotonic()
@@ -373,7 +379,16 @@ class BridgeNode:
                     f"bridge published (stamp_s {cmd.stamp_s!r}; newest {self.last_state_stamp_s!r})")
             with self._owner_lock:
                 before = self.ownership.owner
-                reason = self.ownership.admit(cmd.sender, cmd.epoch)
+                if answered is not None and cmd.sender == self._last_sender and answered < self._last_answered:
+                    # A command delayed, re-ordered or replayed: it would move the cables back to
+                    # older forces, and its arrival reset the watchdog (review of session 53). The
+                    # same state answered again stays valid: the controller's own stale-state hold.
+                    reason = (f"answers an older state than its last accepted command (state {answered}, "
+                              f"after {self._last_answered}): delayed or replayed")
+                else:
+                    reason = self.ownership.admit(cmd.sender, cmd.epoch)
+                if not reason and answered is not None:
+                    self._last_sender, self._last_answered = cmd.sender, answered
             if reason:
                 raise bus.BusDecodeError(f"ForceCommand from {cmd.sender!r}: {reason}")
             if before != cmd.sender:
@@ -386,7 +401,14 @@ class BridgeNode:
         # browser test's stack, CI of session 40): holds where the watchdog saw none.
         n_stamps = max(2 * self.safety.config.command_timeout_states, round(ANSWER_WINDOW_S / self.dt))
         self._state_stamps: list[float | None] = [None] * n_stamps
+        # The same states by stamp: their number (``seq`` of the state), so that a command's order
+        # is that of the states it answers, not of the stamps (a wall clock may step back).
+        self._state_numbers: dict[float, int] = {}
         self._stamp_k = 0
+        self._last_sender, self._last_answered = "", 0  # the newest accepted command's sender and state
+        # After a stall of the loop: the first state published after it (its number); a command
+        # answering an older one was computed before the resume (:meth:`tick`).
+        self._resume_number = 0
         self.commands_stale = 0  # commands refused for answering no recent state
         self._stale_seen = -math.inf  # monotonic s of the last command refused so
         self.last_state_stamp_s = math.nan  # s, the stamp of the newest state published
@@ -399,10 +421,15 @@ class BridgeNode:
         # events, and an engage followed by 64 more messages had been lost (audit of 2026-11-29).
         self._estop_engage: str | None = None
         self.estop_received = self.estop_rejected = 0
-        self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
         # An engaged e-stop's holders (bridge.safety, "E-stop holders"): followed from now on, and
-        # asked for before the first tick, so this run starts latched if one is alive.
+        # asked for before the first tick, so this run starts latched if one is alive. Made before
+        # either subscriber, whose callbacks use them: an e-stop arriving in between was lost to
+        # an AttributeError (review of session 53).
         self.estop_holders = EStopHolders()
+        # The holders whose token the subscriber saw go while the start's query ran: its answer
+        # about them may be older (None once the query is done; a flood stops recording).
+        self._tokens_gone: set[str] | None = set()
+        self._estop_sub = session.declare_subscriber(bus.ESTOP, self._on_estop)
         self._estop_tokens = session.liveliness().declare_subscriber(bus.ESTOP_ENGAGED_ALL, self._on_estop_token,
                                                                     history=True)
         self._latch_for_holders(session)
@@ -533,6 +560,11 @@ class BridgeNode:
             return
         with self._estop_lock:
             expired = ""
+            if self._tokens_gone is not None and len(self._tokens_gone) < TOKENS_GONE_MAX:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._tokens_gone.discard(holder)
+                else:
+                    self._tokens_gone.add(holder)
             if sample.kind == zenoh.SampleKind.PUT:
                 self._queue_estop(self.estop_holders.appeared(holder))
             elif (released := self.estop_holders.vanished(holder)) is not None:
@@ -570,7 +602,12 @@ class BridgeNode:
         except Exception as exc:  # noqa: BLE001 - the subscriber still follows the tokens
             log.error("could not ask for the e-stop's holders (%s: %s): following them as they come", type(exc).__name__, exc)
         with self._estop_lock:
-            events = [self.estop_holders.appeared(h) for h in sorted(set(holders))]
+            # A holder the subscriber saw go meanwhile stays gone: one that let go between the
+            # query's answer and now had been put back for good, and every release refused until a
+            # restart (review of session 53). Past the cap, the subscriber alone.
+            gone, self._tokens_gone = self._tokens_gone or set(), None
+            trusted = len(gone) < TOKENS_GONE_MAX
+            events = [self.estop_holders.appeared(h) for h in sorted(set(holders)) if trusted and h not in gone]
         if events:
             self.safety.apply_estop(events)
             _log_events(self.safety.take_events())
@@ -601,6 +638,11 @@ class BridgeNode:
         """Make the driver and the published state follow the safety rules' decision. The
         decision's log lines come after (formatting and writing them takes longer than a tick's
         work: the drives and the bus go first)."""
+        if self.latch_file is not None and self.safety.estop_engaged != self._latched_on_disk:
+            # Handed over before the drives move: a disable that raises or hangs (the loop watchdog
+            # then ends the process) had left no latch on disk (review of session 53).
+            self._latched_on_disk = self.safety.estop_engaged  # written off the tick (bridge.estop_latch)
+            self.latch_file.set(self._latched_on_disk, self.safety.estop_reason)
         if self.safety.enabled:
             if self.driver.state is not Lifecycle.ACTIVE:
                 self.driver.activate()
@@ -615,9 +657,6 @@ class BridgeNode:
             self.hold_reason = f"{self.hold_reason}; {stale}" if self.hold_reason else stale
         if not self.safety.enabled:
             self.force = np.zeros(self.driver.n_motors)
-        if self.latch_file is not None and self.safety.estop_engaged != self._latched_on_disk:
-            self._latched_on_disk = self.safety.estop_engaged  # written off the tick (bridge.estop_latch)
-            self.latch_file.set(self._latched_on_disk, self.safety.estop_reason)
 
     def _source_text(self, cmd: bus.ForceCommand) -> str:
         """``sender (law)`` of a command, for the log: formatted once per sender and law, not per
@@ -631,8 +670,9 @@ class BridgeNode:
     def tick(self, held_up_s: float = 0.0) -> None:
         """Bus in, safety rules, driver, bus out: one control period. Nothing here may cost more
         than a few µs on this machine (benchmarks/bridge_tick.py): the model is not called.
-        ``held_up_s``: how late this tick starts (:func:`run_realtime` knows it; a stalled process
-        or CPU): past the command timeout the safety rules ramp the command computed meanwhile."""
+        ``held_up_s``: how long commands went unread before this tick (:func:`run_realtime` knows
+        it; a stalled process or CPU): past the command timeout the safety rules ramp the command
+        computed meanwhile, until one that answers a state published after the stall."""
         t0 = time.perf_counter()
         # An empty queue is read without its lock: an event appended meanwhile waits one tick,
         # as one arriving just after the read would.
@@ -641,11 +681,18 @@ class BridgeNode:
         fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
         if recv_ns > self._consumed_ns:
             self._consumed_ns, self._unanswered = recv_ns, 0
+        if held_up_s > self.safety.config.command_timeout_s:
+            self._resume_number = self._seq["state"] + 1  # the state this tick publishes
+        # A command after a stall counts as the controller's answer to it only if it answers a
+        # state published since: a late answer to one before had ended the ramp (review of session 53).
+        after_resume = fresh is None or self._resume_number == 0 or \
+            self._state_numbers.get(fresh.stamp_s, 0) >= self._resume_number
         decision = self.safety.step(Inputs(
             command_N=fresh.force_N if fresh is not None else None,
             source=self._source_text(fresh) if fresh is not None else "",
             command_age_s=(time.monotonic_ns() - recv_ns) * 1e-9 if cmd is not None else None, estop=estop,
             sender=fresh.sender if fresh is not None else "", resumed_after_s=held_up_s,
+            command_after_resume=after_resume,
             # a tick with a valid command neither starts nor continues a hold
             hold_N=self.hold.ready(time.monotonic(), self._theta_list, self.speed.rad_s) if fresh is None else None,
             states_unanswered=self._unanswered,
@@ -690,7 +737,9 @@ class BridgeNode:
             return False
         self._read_errors_in_row = 0
         self._theta_list = self.theta.tolist()
-        self.speed.update(self._theta_list, self.driver.stamp_s())  # a late tick: divided by the time it took
+        # A late tick: divided by the time it took, on a clock no NTP step moves (a step had
+        # restarted the filter and skipped the glitch check: review of session 53).
+        self.speed.update(self._theta_list, self.driver.steady_s())
         if self.speed.trusted:  # never hold forces of a glitch's angles (bridge.motor_speed.TRUST_AFTER_READINGS)
             self.hold.offer(self._theta_list)
         return True
@@ -702,7 +751,10 @@ class BridgeNode:
         if stamp != self.last_state_stamp_s:  # a lockstep bridge re-publishes its waiting state
             # recorded before the state goes out: an answer may arrive before put() returns
             self._stamp_k = (self._stamp_k + 1) % len(self._state_stamps)
-            self._state_stamps[self._stamp_k] = stamp
+            gone, self._state_stamps[self._stamp_k] = self._state_stamps[self._stamp_k], stamp
+            self._state_numbers[stamp] = self._seq["state"]
+            if gone is not None and gone != stamp:
+                self._state_numbers.pop(gone, None)
             self.last_state_stamp_s = stamp
         self._state_pub.put(bus.MotorState(
             seq=self._seq["state"], stamp_s=stamp, theta_rad=self._theta_list,
@@ -757,7 +809,16 @@ class BridgeNode:
             self.driver.close()  # disables the drives first of all
         finally:
             self.hold.stop()
+            with contextlib.suppress(Exception):
+                # An e-stop that came after the last tick: the drives are off already, but the
+                # next start must find it latched (review of session 53).
+                if self._estop_events or self._estop_engage is not None:
+                    self.safety.apply_estop(self._take_estop_events())
+                    _log_events(self.safety.take_events())
             if self.latch_file is not None:
+                if self.safety.estop_engaged != self._latched_on_disk:
+                    self._latched_on_disk = self.safety.estop_engaged
+                    self.latch_file.set(self._latched_on_disk, self.safety.estop_reason)
                 self.latch_file.close()  # what the e-stop last did is on disk before the process ends
             failed = getattr(self.driver, "close_error", "")
             if failed:
@@ -837,9 +898,17 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
         if why := no_core_dump():
             log.warning("%s: a crash writes a core before the supervisor's drives-off", why)
         systemd.ready()
+    began = math.nan  # when the last tick began
     try:
         while not stop.is_set() and (cfg.max_ticks is None or k < cfg.max_ticks) and not driver.exhausted:
-            node.tick(time.perf_counter() - (start + k * dt))  # how late this tick starts
+            # How long commands went unread: late to start, or the last tick stalled (a tick that
+            # overran puts the next one back on its slot, which then starts "on time": a 600 ms
+            # stall inside a tick had shown as none, and its next command was not ramped; review
+            # of session 53). NaN at the first tick: 0.
+            t = time.perf_counter()
+            held_up = max(t - (start + k * dt), t - began - dt)
+            began = t
+            node.tick(held_up if held_up == held_up else 0.0)
             k += 1
             now = time.perf_counter()
             watchdog.last_tick_s = now  # the loop watchdog's per-tick cost: two stores

@@ -20,7 +20,8 @@ Bumpless
     loop was held up longer than the command timeout (``Inputs.resumed_after_s``: a stalled CPU
     or process woke up to a command computed meanwhile) starts from the forces applied now and
     moves at most ``max_force_step_N`` per tick until the command is reached (after a stall: a
-    command that arrived after it); then commands pass through, within the active rate bound.
+    command answering a state published after it, ``Inputs.command_after_resume``); then
+    commands pass through, within the active rate bound.
 Active rate bound
     While ``active`` the forces move at most ``max_active_step_N`` per tick towards the newest
     command (default 10 N: the computed-torque law's own 5000 N/s at 500 Hz,
@@ -177,6 +178,7 @@ class Inputs(NamedTuple):
     command_age_s: float | None = None
     sender: str = ""
     resumed_after_s: float = 0.0  # how long the bridge's own loop was held up before this tick (s)
+    command_after_resume: bool = True  # False: ``command_N`` answers a state published before that hold-up
     estop: Sequence[EStopEvent] = ()
     hold_N: Sequence[float] | None = None
     states_unanswered: int | None = None
@@ -216,7 +218,7 @@ class Safety:
         self._damping = self._zero  # N, the damping added to them (module docstring, "Hold damping")
         self._target = self._zero  # N, the clamped forces of the newest valid command
         self._bumpless = False  # after an enable, until the applied forces reach the command
-        self._stale_target = False  # after a stall of the loop, until a command arrives after it
+        self._stale_target = False  # after a stall of the loop, until a command answering a state after it
         self._sender = ""  # the controller whose commands the applied forces follow
         self.clamped = self.holds = self.rate_limited = 0
         self._bounding = False  # in a run of ticks bounded by max_active_step_N (logged once per run)
@@ -291,7 +293,7 @@ class Safety:
             self._sender = inputs.sender
             self.drive, self.hold_reason = "active", ""
             self._target = self.clamp(inputs.command_N)
-            self._stale_target = self._stale_target and stalled
+            self._stale_target = self._stale_target and (stalled or not inputs.command_after_resume)
         elif self.drive == "active" and cfg.watchdog and inputs.command_age_s is not None:
             age_s, unanswered = inputs.command_age_s, inputs.states_unanswered
             if age_s > cfg.command_timeout_s and (unanswered is None or unanswered >= cfg.command_timeout_states):

@@ -133,6 +133,15 @@ def _flock(f, mode: int, deadline: float) -> bool:
             time.sleep(0.05)
 
 
+@pytest.fixture(autouse=True)
+def _own_state_home(monkeypatch: pytest.MonkeyPatch, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Each test's processes keep their state (the board bridge's e-stop latch file,
+    ``bridge.estop_latch``) in a folder of its own, not in the user's ``~/.local/state``: a robot
+    bridge that a test stopped under an engaged e-stop had left its latch there, and every later
+    robot bridge of the suite (and of the user) started latched (session 53)."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("xdg-state")))
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _cpu_turn(request: pytest.FixtureRequest) -> Iterator[None]:
     """A module marked ``realtime`` (its assertions are about deadlines, ticks and lost messages)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 from busutil import bus_pair, wait_until
 from server_harness import AUTH, running_server
 from test_bridge_node import Collector, _as_controller, _command, _node, _put_until
@@ -316,3 +317,144 @@ def test_a_flood_of_refused_releases_and_churning_tokens_logs_a_line_a_period(pa
     let_go = [r for r in caplog.records if "let go" in r.getMessage()]
     assert len(refused) == 1 and node._refusals_logged.suppressed == 199, [r.getMessage() for r in refused]
     assert len(let_go) == 1 and node._tokens_logged.suppressed == 50  # the strangers, then the console
+
+
+def test_an_estop_whose_disable_fails_or_that_comes_after_the_last_tick_is_latched_on_disk(
+        params, tmp_path: Path, monkeypatch):
+    """Review of session 53: the latch file was handed its state after the drives' disable, so a
+    disable that raised (an enable line reading back high) or hung (the loop watchdog then ends the
+    process) left no latch on disk; an engage that came after the last tick was never written
+    either. Either way the next start obeyed the controller."""
+    from bridge.estop_latch import read_latch
+
+    with bus_pair() as (_hub, hub_session, connect):
+        _token = _as_controller(hub_session)
+        cmd_pub, estop_pub = publisher(hub_session, bus.MOTOR_COMMAND), publisher(hub_session, bus.ESTOP)
+        latch = tmp_path / "raises" / "estop-board"
+        node = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            _send(node, cmd_pub, 1, [30.0] * 4)
+            node.tick()
+            assert node.mode == "active"
+
+            def stuck_high() -> None:
+                raise OSError("enable line 1 reads back high")
+
+            monkeypatch.setattr(node.driver, "_on_deactivate", stuck_high)
+            estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="operator e-stop"))
+            assert wait_until(lambda: node.estop_received >= 1, 5.0)
+            with pytest.raises(OSError, match="reads back high"):
+                node.tick()
+        finally:
+            node.shutdown()
+        assert read_latch(latch) is not None and "operator e-stop" in str(read_latch(latch))
+
+        latch = tmp_path / "after" / "estop-board"
+        node = _node(connect(), params, command_timeout_s=5.0, estop_latch_path=latch)
+        try:
+            _send(node, cmd_pub, 1, [30.0] * 4)
+            node.tick()
+            n = node.estop_received
+            estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=True, reason="pressed at the stop"))
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+        finally:
+            node.shutdown()  # no tick in between
+        assert read_latch(latch) is not None and "pressed at the stop" in str(read_latch(latch))
+
+
+class _QueryThenSession:
+    """A bridge's session whose liveliness query runs ``then`` after its answer and before the
+    bridge applies it (the window of a token let go meanwhile); everything else is the session's."""
+
+    def __init__(self, session, then) -> None:
+        self._session, self._then = session, then
+
+    def __getattr__(self, name):
+        return getattr(self._session, name)
+
+    def liveliness(self):
+        real, then = self._session.liveliness(), self._then
+
+        class Liveliness:
+            def __getattr__(self, name):
+                return getattr(real, name)
+
+            def get(self, *args, **kwargs):
+                replies = list(real.get(*args, **kwargs))
+                then()
+                return replies
+
+        return Liveliness()
+
+
+def test_a_holder_gone_while_the_bridge_asked_for_the_holders_is_not_put_back(params):
+    """Review of session 53: the bridge asks which e-stop holders are alive when it starts and
+    applies the answer after its token subscriber is up; a holder that let go in between was seen
+    going by the subscriber, then put back by the answer, for good: every release refused ("still
+    holds") until a restart. The answer no longer overrides what the subscriber saw."""
+    from bridge.estop_holder import EStopHolder
+
+    with bus_pair() as (_hub, hub_session, connect):
+        holder = EStopHolder(hub_session, "console-gone")
+        holder.engage("operator e-stop")
+
+        def let_go() -> None:
+            holder.close()
+            time.sleep(0.3)  # the subscriber sees it go
+
+        node = _node(_QueryThenSession(connect(), let_go), params, command_timeout_s=5.0)
+        try:
+            assert "console-gone" not in node.estop_holders.holders, node.estop_holders.holders
+            node.tick()
+            assert node.mode == "disabled"  # latched: a holder that let go releases nothing
+            n = node.estop_received
+            publisher(hub_session, bus.ESTOP).put(bus.EStop(seq=9, stamp_s=time.time(), engaged=False,
+                                                             reason="released by the operator"))
+            assert wait_until(lambda: node.estop_received > n, 5.0)
+            time.sleep(0.05)
+            node.tick()
+            assert node.mode == "inactive", node.estop_reason
+        finally:
+            node.shutdown()
+
+
+def test_an_estop_arriving_while_the_bridge_starts_is_never_lost_to_its_own_callback(params):
+    """Review of session 53: the e-stop subscriber was declared before the holders its callback
+    uses, so an e-stop arriving in between raised AttributeError in the callback (Zenoh swallows
+    it) and was lost. Here an engage is delivered as soon as the subscriber is declared, before the
+    bridge goes on: it is counted, and the bridge starts latched."""
+    with bus_pair() as (_hub, hub_session, connect):
+        estop_pub = publisher(hub_session, bus.ESTOP)
+        session, calls, errors = connect(), [], []
+
+        class EStopAtOnce:
+            def __getattr__(self, name):
+                return getattr(session, name)
+
+            def declare_subscriber(self, key, callback, **kwargs):
+                if key != bus.ESTOP:
+                    return session.declare_subscriber(key, callback, **kwargs)
+
+                def recorded(sample):
+                    calls.append(sample)
+                    try:
+                        callback(sample)
+                    except Exception as exc:
+                        errors.append(exc)
+                        raise
+
+                sub = session.declare_subscriber(key, recorded, **kwargs)
+                deadline = time.monotonic() + 5.0
+                while not calls and time.monotonic() < deadline:  # the first routes may drop a message
+                    estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="while starting"))
+                    wait_until(lambda: bool(calls), 0.05, 0.002)
+                return sub
+
+        node = _node(EStopAtOnce(), params, command_timeout_s=5.0)
+        try:
+            assert calls and not errors, errors
+            assert node.estop_received >= 1
+            node.tick()
+            assert node.mode == "disabled" and "while starting" in node.estop_reason, node.estop_reason
+        finally:
+            node.shutdown()

@@ -148,6 +148,9 @@ class TwinDriver(Driver):
     def stamp_s(self) -> float:
         return self.twin.t_s if self.twin is not None else 0.0
 
+    def steady_s(self) -> float:
+        return self.stamp_s()  # simulated time: a lockstep twin runs faster than the wall clock
+
     def extra_messages(self) -> list[tuple[str, bus.BusMessage]]:
         out, self._extra = self._extra, []
         return out
