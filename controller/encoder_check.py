@@ -242,6 +242,15 @@ class EncoderConsistency:
         stuck" 50 ms in with the allowance left behind)."""
         self.slack_m, self._settling, self._taut_at = other.slack_m, other._settling, other._taut_at
 
+    def clock_stepped(self, step_s: float) -> None:
+        """The states' clock stepped by ``step_s`` (s) since the last state: not time that passed,
+        so the times kept on it move with it (a step forward had counted as the persistence of a
+        residual, or as the settling after a snap; review of session 53)."""
+        if self._above_since is not None:
+            self._above_since += step_s
+        self._taut_at += step_s  # NaN stays NaN
+        self._changed_at = [t + step_s for t in self._changed_at]
+
     def reset(self) -> None:
         """Forget the history (a new bridge run, a new estimate). The slack allowed stays: it is
         the cables', not the readings' (the next settling state measures it afresh)."""

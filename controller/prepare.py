@@ -139,7 +139,8 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
             budget_s: float = VALIDATION_BUDGET_S, clock: Callable[[], float] = time.monotonic,
             wanted: Callable[[], bool] | None = None, alpha_from_rad: np.ndarray | None = None) -> Prepared:
     """Parse and validate a start request against the robot's parameter set ``robot``; ``law``
-    gives the gains and rate kept from the process's own law. Runs off the control loop (it may
+    gives the gains and rate kept from the process's own law (a jog's law and set are the
+    service's own, ``law`` and ``robot``: it runs on them). Runs off the control loop (it may
     take seconds), never longer than ``budget_s`` by ``clock``; ``wanted`` is asked at each look
     at the budget (every ``FORCE_CHECK_CHUNK`` samples, about 15 ms): once it says False, the
     preparation ends with :class:`GivenUp`. ``alpha_from_rad``: the pose the campaign will start
@@ -151,13 +152,19 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
         if not req.trajectory_json:
             raise ValueError("the request has no trajectory (trajectory_json is empty)")
         params = robot
+        if req.kind == "jog" and req.parameters_toml:
+            # A jog runs on the service's own set and law (controller.service: it keeps them), so
+            # it is checked on them: a made-up set (masses zeroed) had passed a pose the robot's
+            # refuses (107.9 N > f_max), then been held with the robot's (review of session 53).
+            raise ValueError("a jog runs on the controller's own parameter set: the request's parameters_toml must "
+                             "be empty")
         if req.parameters_toml:
             params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
             if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")
             params = within_robot_limits(params, robot)
-        new_law = dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
+        new_law = law if req.kind == "jog" else dataclasses.replace(law, law=req.law, no_pulleys=req.no_pulleys)
         traj = trajectory_from_json(req.trajectory_json)
         base = limits or TrajectoryLimits()
         limits = TrajectoryLimits(alpha_max_rad=math.radians(params.limits.alpha_max_deg),

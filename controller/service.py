@@ -247,6 +247,8 @@ class CampaignService:
     drive_reason: str = ""  # why, when it is not active (e-stop reason, bridge hold reason)
     trajectory: Trajectory | None = None
     events: list[Event] = field(default_factory=list)
+    #: start requests ignored as the start of a campaign already running, prepared or waiting
+    duplicate_starts: int = 0
     # m: the stuck-encoder check's threshold (controller.encoder_check, measured on the robot
     # truth; re-measure it on the robot); None turns the check off.
     encoder_threshold_m: float | None = THRESHOLD_M
@@ -456,7 +458,16 @@ class CampaignService:
         # Whatever its size the step is no time that passed: the law's next gap (controller.laws,
         # "Time step") leaves it out, as the take-up's times do.
         self.ctl.clock_stepped(step_s)
+        if self._take_up is not None:
+            # it goes on, on the new clock: forward, its floor had jumped to the peak and its time
+            # limit ended it at once, handing over with 10 N steps (audit of 2026-11-29); a step
+            # under CLOCK_STEP_ABORT_S too (review of session 53: +0.3 s took the neck to 62°/s)
+            self._take_up.clock_stepped(step_s)
+        if self.encoder_check is not None:
+            self.encoder_check.clock_stepped(step_s)
         if abs(step_s) < CLOCK_STEP_ABORT_S:
+            if self._check_armed_at is not None and math.isfinite(self._check_armed_at):
+                self._check_armed_at += step_s  # the settling after the drives came on, on the new clock
             if self._theta_last is not None:
                 # The encoders' speed check spans the time that passed, as the law's gap does: a
                 # step back after a stall had it measure the stall's motion over no time and abort
@@ -465,10 +476,6 @@ class CampaignService:
             if self._active_since is not None:
                 self._active_since += step_s
             return  # a stall's catch-up, not a clock set: the campaign goes on, as before the check
-        if self._take_up is not None:
-            # it goes on, on the new clock: forward, its floor had jumped to the peak and its time
-            # limit ended it at once, handing over with 10 N steps (audit of 2026-11-29)
-            self._take_up.clock_stepped(step_s)
         reason = f"the bridge's clock stepped by {step_s:+.3g} s"
         last_stamp = self._theta_last[0] if self._theta_last is not None else stamp_s
         if self.running:
@@ -674,7 +681,15 @@ class CampaignService:
         otherwise it was refused with the reason. During a take-up the request being prepared
         waits for the pose it will start from (:meth:`start_pose`), seconds maybe: a newer one
         supersedes it, the newest only, as behind a stop's brake (a slider dragged on right
-        after a release had ended at its first position: review of session 41)."""
+        after a release had ended at its first position: review of session 41).
+
+        A start of a campaign that runs, is being prepared or waits (the same request delivered
+        twice, or re-published by another peer) is ignored and counted (``duplicate_starts``):
+        refused, its ``aborted`` event under the campaign's own id had ended the campaign on the
+        console, which then sent no stop while this service ran it on (review of session 53)."""
+        if req.campaign_id in self.stoppable():
+            self.duplicate_starts += 1
+            return False
         waiting = self._starting
         if waiting is not None and self.taking_up and not self.running:
             self._starting = None  # busy_reason without it

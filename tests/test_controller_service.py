@@ -1075,3 +1075,60 @@ def test_a_campaign_right_after_a_latch_takes_over_from_its_hold_without_a_step(
     assert loop.svc.running and not loop.svc.latched
     step = float(np.abs(np.diff(np.array(loop.applied[start:]), axis=0)).max())
     assert step <= 2.0, step
+
+
+@pytest.mark.parametrize("when", ["running", "prepared", "waiting behind a jog"])
+def test_a_start_request_delivered_twice_is_ignored_not_answered_aborted(loop, params, when):
+    """Review of session 53: a start whose campaign id was already running (or being prepared, or
+    a jog waiting) was refused with an ``aborted`` event under that very id; the console, which
+    matches events by id, ended its record there (aborted, no stop owed) while the controller ran
+    the campaign on, and the console's stop of a duplicated jog cancelled only the waiting copy.
+    The duplicate is ignored and counted; the campaign runs, and one stop stops it."""
+    svc, kind = loop.svc, ("jog" if when == "waiting behind a jog" else "control")
+    far = Trajectory.from_degrees([[0, 0, 0], [10, 5, 0]], 3.0, 0.2, name="long")
+    first = _request("c-1", trajectory_json=far.to_json(), kind=kind)
+    if when == "prepared":
+        assert svc.request_start(first)
+    elif when == "running":
+        svc.handle(first, loop.stamp_s)
+        loop.run(0.1)
+    else:
+        svc.handle(_request("jog-0", trajectory_json=far.to_json(), kind="jog"), loop.stamp_s)
+        loop.run(0.1)
+        svc.handle(first, loop.stamp_s)  # waits for jog-0
+        assert svc.stoppable() == {"jog-0", "c-1"}
+    assert not svc.request_start(_request("c-1", trajectory_json=far.to_json(), kind=kind))
+    assert svc.duplicate_starts == 1
+    if when == "prepared":
+        svc.prepared(prepare(first, params, svc.law), first, loop.stamp_s)
+    loop.run(0.1)
+    events = loop.events + svc.drain_events()
+    assert not [e for e in events if e.campaign_id == "c-1" and e.event == "aborted"], events
+    assert "c-1" in svc.stoppable()
+    svc.stop("c-1", loop.stamp_s)
+    assert "c-1" not in svc.stoppable()
+    ended = [e for e in svc.drain_events() if e.campaign_id == "c-1"]
+    assert [e.event for e in ended] == ["aborted"] and "stopped by the user" in ended[0].message
+
+
+def test_a_jog_is_checked_on_the_law_and_set_it_runs_on(params):
+    """Review of session 53: a jog was checked with the request's parameter set and law, but the
+    service runs a jog on its own (it keeps them): a set with its masses zeroed passed a pose that
+    the robot's set refuses, and the console's jogs were checked with the message's default law.
+    A jog's request carries no set (refused if it does) and is checked on the service's law."""
+    import dataclasses
+
+    from controller.prepare import Refused
+
+    far = Trajectory.from_degrees([[60.0, -60.0, 60.0]], [], 0.0, "jog")
+    with pytest.raises(Refused, match="f_max"):
+        prepare(_request("j-1", kind="jog", trajectory_json=far.to_json()), params, LawConfig(law=2))
+    with pytest.raises(Refused, match="parameters_toml must be empty"):
+        prepare(_request("j-2", kind="jog", trajectory_json=far.to_json(), parameters_toml=params.to_toml()),
+                params, LawConfig(law=2))
+    near = Trajectory.from_degrees([[5.0, 0.0, 0.0]], [], 0.0, "jog")
+    held = dataclasses.replace(LawConfig(law=3), no_pulleys=True)
+    got = prepare(_request("j-3", kind="jog", trajectory_json=near.to_json(), law=1), params, held)
+    assert got.law == held  # the service's law, not the message's
+    control = prepare(_request("c-3", trajectory_json=near.to_json(), law=1), params, held)
+    assert control.law.law == 1  # a campaign's own law, as before

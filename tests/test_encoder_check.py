@@ -155,6 +155,25 @@ def test_one_tick_beyond_the_threshold_does_not_latch_a_sustained_one_does(param
     assert first * dt == pytest.approx(PERSISTENCE_S, abs=dt / 2)
 
 
+def test_a_clock_step_told_of_is_no_persistence(params):
+    """Review of session 53: a step of the states' clock under the 5 s that abort a campaign (NTP)
+    left the check's times on the old clock, so a residual above the threshold for one tick and a
+    step forward made a fault at the next tick. A step the controller is told of is no time."""
+    m, alpha, theta = _consistent(params, [10, 20, -15], [20, 20, 20, 30])
+    force, still = np.array([20, 20, 20, 30.0]), np.zeros(4)
+    jump = theta.copy()
+    jump[1] += 2 * THRESHOLD_M / m.rho / 0.4
+    dt, step = 0.002, 1.0
+    check = EncoderConsistency(params)
+    assert check.update(theta, alpha, force, still, 0.0) == ""
+    assert check.update(jump, alpha, force, still, dt) == ""
+    check.clock_stepped(step)
+    assert check.update(jump, alpha, force, still, 2 * dt + step) == ""  # 2 ms above it, not 1 s
+    reasons = [check.update(jump, alpha, force, still, (3 + k) * dt + step) for k in range(40)]
+    first = next(k for k, why in enumerate(reasons) if why)
+    assert (first + 2) * dt == pytest.approx(PERSISTENCE_S, abs=dt / 2)
+
+
 @pytest.mark.parametrize("bad", ["theta", "alpha", "force", "theta_dot", "stamp"])
 def test_non_finite_input_is_a_fault_at_once_not_an_exception(params, bad):
     _, alpha, theta = _consistent(params, [10, 20, -15], [20, 20, 20, 30])

@@ -331,9 +331,13 @@ def test_a_told_clock_step_shifts_the_take_up_with_it():
     assert t.level_N == pytest.approx(level + 20.0 * DT)
 
 
-def test_a_clock_step_during_the_take_up_neither_ends_it_nor_steps_the_forces(params):
+@pytest.mark.parametrize("step_s", [3600.0, 3.0])
+def test_a_clock_step_during_the_take_up_neither_ends_it_nor_steps_the_forces(params, step_s):
     """Audit of 2026-11-29: the bridge's clock set forward an hour 1.6 s into the take-up (at its
-    peak) ended it on its time limit at once, handing over with up to 10 N steps."""
+    peak) ended it on its time limit at once, handing over with up to 10 N steps. Review of session
+    53: a step under the 5 s that aborts a campaign (an NTP step, 3 s here) was not passed on to
+    the take-up, whose floor jumped to its peak, so its hold climbed at 1 N a tick, and whose
+    stillness ended it on one still state."""
     from bridge_loop import BridgeLoop
 
     loop = _dropped_on_slack_cables(params, 0)
@@ -344,10 +348,13 @@ def test_a_clock_step_during_the_take_up_neither_ends_it_nor_steps_the_forces(pa
     class Shifted(BridgeLoop):
         @property
         def stamp_s(self) -> float:
-            return self.tick.t_s + 3600.0
+            return self.tick.t_s + step_s
 
+    level = loop.svc._take_up.level_N
     loop.__class__ = Shifted
-    loop.svc.clock_stepped(3600.0, loop.stamp_s)
+    loop.svc.clock_stepped(step_s, loop.stamp_s)
+    loop.run(DT)
+    assert loop.svc._take_up.level_N <= level + rules.TAKE_UP_RATE_N_S * 2 * DT  # its rate, not the step's
     loop.run(0.1)
     assert loop.svc.taking_up  # the motors still wind in
     for _ in range(round(3.0 / DT)):
