@@ -523,7 +523,8 @@ class ControllerNode:
                 if state.epoch != self._last_key[0]:
                     log.warning("bridge %s restarted (epoch %s): re-initialising from its state", state.bridge,
                                 state.epoch)
-                    self.service.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge)
+                    self.service.new_bridge_run(np.asarray(state.theta_rad), state.stamp_s, state.bridge,
+                                                np.asarray(state.force_applied_N))
                 elif step_s is not None:
                     log.warning("the clock of bridge %s stepped by %+.3g s", state.bridge, step_s)
                     self.service.clock_stepped(step_s, state.stamp_s)

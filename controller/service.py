@@ -438,14 +438,17 @@ class CampaignService:
             self.encoder_check.reset()
         self.last_sane = np.clip(alpha, -self._alpha_max, self._alpha_max)
 
-    def new_bridge_run(self, theta_rad: np.ndarray, stamp_s: float, bridge: str) -> None:
+    def new_bridge_run(self, theta_rad: np.ndarray, stamp_s: float, bridge: str,
+                       force_N: np.ndarray | None = None) -> None:
         """The bridge restarted (a new epoch): its clock and encoders start again, so a running
-        campaign cannot go on; the estimate starts again from the encoders."""
+        campaign cannot go on; the estimate starts again from the encoders and the forces its state
+        says are applied (:meth:`initialise`: a run met under way holds its cables stretched, and
+        without them α̂ was 3-5.5° off and an owed take-up could be skipped; review of session 53)."""
         if self.running:
             self._end("aborted", f"the bridge restarted ({bridge}): the campaign cannot continue",
                       self._progress(stamp_s), self.ctl.estimator.alpha_hat)
         self._drop_waiting(f"the bridge restarted ({bridge})")
-        self.initialise(theta_rad)
+        self.initialise(theta_rad, force_N)
 
     def clock_stepped(self, step_s: float, stamp_s: float) -> None:
         """The bridge's clock stepped by ``step_s`` within one run (a wall clock set by NTP: the

@@ -1132,3 +1132,28 @@ def test_a_jog_is_checked_on_the_law_and_set_it_runs_on(params):
     assert got.law == held  # the service's law, not the message's
     control = prepare(_request("c-3", trajectory_json=near.to_json(), law=1), params, held)
     assert control.law.law == 1  # a campaign's own law, as before
+
+
+def test_a_new_bridge_run_met_under_way_starts_from_its_forces_too(loop, params):
+    """Review of session 53: a bridge run met under way (the gate re-bound to a run already going:
+    a stray run seen first, then the robot's bridge) started the estimate from the encoders alone,
+    as if the cables held no load: α̂ off by their stretch, and the slack test that decides an owed
+    take-up read f = 0. It starts as a first state does, from the forces its state says."""
+    bent = Trajectory.from_degrees([[20.0, 10.0, -10.0]], [], 0.0, "jog")
+    loop.svc.handle(_request("j", kind="jog", trajectory_json=bent.to_json()), loop.stamp_s)
+    loop.run(3.0)
+    theta, f = loop.tick.theta_meas.copy(), loop.outputs[-1].force_N.copy()
+    assert f.max() > 10.0
+    first = CampaignService(params, LawConfig(law=2), service=True)
+    first.initialise(theta, f)
+    rebound = CampaignService(params, LawConfig(law=2), service=True)
+    rebound.initialise(np.zeros_like(theta))
+    rebound.new_bridge_run(theta, 1.0, "bridge-2", f)
+    np.testing.assert_allclose(rebound.ctl.estimator.alpha_hat, first.ctl.estimator.alpha_hat)
+    np.testing.assert_allclose(rebound.ctl.estimator.x_c, first.ctl.estimator.x_c)
+    assert rebound._joined == first._joined and rebound._reestimate_when_taut == first._reestimate_when_taut
+    unloaded = CampaignService(params, LawConfig(law=2), service=True)
+    unloaded.initialise(theta)  # what the re-bind did before
+    off = np.degrees(np.abs(unloaded.ctl.estimator.alpha_hat - first.ctl.estimator.alpha_hat)).max()
+    assert off > 0.5, off  # the forces matter here
+    assert np.degrees(np.abs(first.ctl.estimator.alpha_hat - loop.tick.alpha)).max() < off
