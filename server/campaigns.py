@@ -709,8 +709,11 @@ class CampaignManager:
         rec = self.get(campaign_id)
         with self._lock:
             starting = self._replay_starting
-        if self._running == campaign_id:
-            self._stop.set()
+            # That campaign's own stop event, taken with the check under the lock: read apart, a
+            # campaign B started between them (a new ``_stop``) was stopped by a stop of A (review).
+            own = self._stop if self._running == campaign_id else None
+        if own is not None:
+            own.set()
         elif starting is not None and starting[0] == campaign_id:
             starting[2].set()  # it never starts
         elif self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:

@@ -58,7 +58,11 @@ STATUS_MAX_AGE_S = 0.5  # s: an older controller status says nothing about α̂ 
 
 
 class JogRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A jog's target. Strict, as :class:`server.campaign_request.CampaignCreate`: ``["10", true, 0]``
+    was taken as [10, 1, 0]° and moved the neck (review); a string or a bool is a 422, not coerced
+    (pydantic's strict float refuses bools too)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
     alpha_deg: list[float] = Field(min_length=1, max_length=16, description="Target joint angles α1..αN (deg).")
 
 

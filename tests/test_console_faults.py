@@ -212,6 +212,60 @@ def test_a_stop_no_controller_answers_is_refused_and_says_what_still_runs(tmp_pa
             manager.close()
 
 
+def test_a_stop_of_a_campaign_that_ends_as_another_starts_never_stops_the_new_one(tmp_path: Path) -> None:
+    """Review: stop() read ``_running`` and then set ``_stop`` without the lock; campaign A ending
+    and B starting (a new ``_stop``) between the two had a stop of A stop B. The race window is made
+    explicit: the read of ``_running`` in stop() does A's end and B's start as their threads do,
+    under the manager's lock, at once when the lock is free, else as soon as stop() lets it go."""
+    from server.campaigns import CampaignManager
+    from server.records import CampaignRecord
+
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub]) as s:
+        manager = CampaignManager(tmp_path / "data", s, hub)
+        try:
+            for cid in ("control-a", "control-b"):
+                manager._records[cid] = CampaignRecord(**record(cid, "running"))
+            stop_a, stop_b = threading.Event(), threading.Event()
+            deferred: list[bool] = []
+
+            def a_ends_and_b_starts() -> None:  # what A's worker and B's start() do, each under the lock
+                manager._running = None
+                manager._stop = stop_b
+                manager._running = "control-b"
+
+            class Racing(str):
+                """``control-a`` whose comparison in stop() is the moment A ends and B starts."""
+
+                def __eq__(self, other: object) -> bool:
+                    same = str.__eq__(self, other)
+                    if manager._running is self and not deferred:
+                        if manager._lock.acquire(blocking=False):  # free: the other threads go on now
+                            try:
+                                a_ends_and_b_starts()
+                            finally:
+                                manager._lock.release()
+                            deferred.append(False)
+                        else:  # stop() holds it: they wait for it
+                            deferred.append(True)
+                    return same
+
+                __hash__ = str.__hash__
+
+            manager._running, manager._stop = Racing("control-a"), stop_a
+            manager.stop("control-a")
+            if deferred == [True]:
+                with manager._lock:
+                    a_ends_and_b_starts()
+            assert deferred, "stop() never compared the running campaign's id"
+            assert manager.running_id == "control-b"
+            assert not stop_b.is_set(), "the stop of control-a stopped control-b"
+            assert stop_a.is_set()
+        finally:
+            manager._running = None
+            manager.close()
+
+
 def test_a_replays_controller_statuses_never_make_a_campaign_look_run_unrecorded(tmp_path: Path) -> None:
     """Audit of 2026-11-29 (session 39): a replay of an interrupted campaign republished its
     controller's statuses, and the console took them for a controller still running it: running on

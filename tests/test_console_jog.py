@@ -45,6 +45,21 @@ def test_a_jog_out_of_the_joint_limits_is_refused_with_the_checkers_message(cons
         assert r.status_code == 422, (bad, r.text)
 
 
+def test_a_jog_with_strings_or_bools_for_angles_is_refused_not_coerced(console):
+    """Review: the body was not strict, so ``["10", true, 0]`` was taken as [10, 1, 0]° and moved
+    the neck. Without a controller service an accepted body gets a 503: a 422 says the body was refused."""
+    client, _ = console
+    for body, bad_index in (({"alpha_deg": ["10", True, 0]}, 0), ({"alpha_deg": [True, 0, 0]}, 0),
+                            ({"alpha_deg": [0, False, 0]}, 1), ({"alpha_deg": [0, "5", 0]}, 1)):
+        r = client.post("/api/jog", json=body, headers=AUTH)
+        assert r.status_code == 422, (body, r.text)
+        detail = r.json()["detail"]
+        assert detail[0]["loc"] == ["body", "alpha_deg", bad_index], (body, detail)
+        assert detail[0]["msg"] == "Input should be a valid number", (body, detail)
+    r = client.post("/api/jog", json={"alpha_deg": [5, 0, 0]}, headers=AUTH)  # ints stay good degrees
+    assert r.status_code == 503, r.text
+
+
 def test_a_jog_needs_the_token_and_a_controller_service(console):
     client, _ = console
     assert client.post("/api/jog", json={"alpha_deg": [5, 0, 0]}).status_code == 401
