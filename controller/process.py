@@ -381,11 +381,16 @@ class ControllerNode:
         for _, req in sorted(todo, key=lambda item: item[0]):
             if isinstance(req, str):
                 svc.stop(req, stamp_s)
-            elif svc.request_start(req):
+                continue
+            duplicates = svc.duplicate_starts
+            if svc.request_start(req):
                 try:
                     self._to_prepare.put_nowait(req)
                 except queue.Full:
                     svc.prepared(Refused("refused: the controller is busy preparing other campaigns"), req, stamp_s)
+            elif svc.duplicate_starts > duplicates:  # ignored, not answered: counted in Health
+                self._reject_request(f"{req.campaign_id}: a start of a campaign already running, being prepared or "
+                                     "waiting: ignored (the request delivered twice, or re-published)")
         stoppable = svc.stoppable()  # what a stop may concern from now on (the tick keeps it a superset)
         with self._req_lock:
             self._stoppable = stoppable

@@ -141,6 +141,20 @@ def test_malformed_campaign_requests_are_answered_counted_and_never_stop_the_con
     assert fin.ticks >= mine[-1].ticks and f"overruns {fin.overruns}," in fin.message
 
 
+def test_a_start_request_delivered_twice_runs_once_and_its_copy_is_counted(stack):
+    """Review of session 53: the copy of a start request (the bus delivering it twice, a peer
+    re-publishing it) was refused with an ``aborted`` event of the running campaign's id, which
+    the console takes for that campaign's end. The copy is ignored and counted in Health."""
+    rejected = stack.health.messages()[-1].rejected[bus.CAMPAIGN_REQUEST]
+    stack.request("twice", trajectory_json=NOD.to_json())
+    stack.request("twice", trajectory_json=NOD.to_json())
+    assert stack.final("twice", 60).event == "finished", stack.answers("twice")
+    assert [e.event for e in stack.answers("twice")].count("started") == 1, stack.answers("twice")
+    assert not [e for e in stack.answers("twice") if e.event == "aborted"], stack.answers("twice")
+    assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.CAMPAIGN_REQUEST] > rejected, 10, 0.05)
+    assert "ignored" in stack.health.messages()[-1].last_reject_reason
+
+
 def test_a_long_trajectory_is_refused_or_prepared_off_the_loop(stack):
     """Finding 8: a request beyond the maximum duration is refused with the reason at once; a long
     one within it is validated by a worker while the loop keeps commanding."""
