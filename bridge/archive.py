@@ -51,6 +51,7 @@ import errno
 import fcntl
 import os
 import queue
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -184,16 +185,25 @@ def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
 
 
 def writer_alive(path: str | os.PathLike[str]) -> bool:
-    """Whether a live process (this one included) is writing ``path`` (it holds the writer's flock)."""
+    """Whether a live process (this one included) is writing ``path`` (it holds the writer's flock).
+    Anything but a regular file is written by nobody: opening a FIFO had blocked the console's
+    start for ever (review of session 53); opened non-blocking, in case one is swapped in."""
     try:
-        with open(path, "rb") as f:
-            try:
-                fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                return True
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         return False
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
     return False
 
 

@@ -16,6 +16,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from bridge.archive import atomic_write, storage_reason
+from bridge.small_file import read_input_file
 
 log = logging.getLogger("xneck.campaigns")
 
@@ -63,6 +64,11 @@ class CampaignRecord(BaseModel):
                             "POST .../stop stops it there. Empty otherwise; true only while it runs.")
 
 
+#: The most bytes a campaign record may have: an identification campaign's, its tables included,
+#: is some tens of kB; a FIFO or a device in its place must neither block nor fill the memory.
+RECORD_MAX_BYTES = 16 * 1024 * 1024
+
+
 def valid_id(campaign_id: str) -> bool:
     return bool(_ID.fullmatch(campaign_id)) and not campaign_id.startswith(".")
 
@@ -88,14 +94,23 @@ class CampaignIndex:
         atomic_write(self.json(record.id), record.model_dump_json(indent=1).encode())
 
     def load_all(self, errors: dict[str, str] | None = None) -> list[CampaignRecord]:
-        """Every readable record; a file that cannot be read is reported in ``errors`` (name ->
-        reason) and skipped, never an exception."""
+        """Every readable record; a file that cannot be read, or is not a record this version
+        reads (damaged, hand-edited, from a later version), is reported in ``errors`` (name ->
+        reason) and skipped, never an exception. Nothing here changes a file: a record skipped
+        is left as it is (:meth:`server.campaigns.CampaignManager.recover_all` too)."""
         out = []
         for p in sorted(self.dir.glob("*.json")):
             try:
-                rec = CampaignRecord.model_validate_json(p.read_text())
-            except ValueError:
-                continue  # a foreign or damaged file is not a campaign; leave it alone
+                # A regular file of bounded size: a FIFO here had blocked the console's start for
+                # ever (review of session 53).
+                rec = CampaignRecord.model_validate_json(read_input_file(p, RECORD_MAX_BYTES))
+            except ValueError as exc:
+                # Reported: the start-up had gone on to rebuild it from its archive, over it.
+                reason = f"not a campaign record this version reads ({str(exc).splitlines()[0][:300]}): left as it is"
+                log.error("not loading %s: %s", p, reason)
+                if errors is not None:
+                    errors[p.name] = reason
+                continue
             except OSError as exc:
                 log.error("cannot read %s: %s", p, storage_reason(exc))
                 if errors is not None:

@@ -795,3 +795,103 @@ def test_the_estop_answers_while_a_new_campaign_waits_for_the_bus(tmp_path: Path
             app.state.campaigns.wait_idle(60)
         assert estop.status_code == 200, estop.text
         assert waiting, "the e-stop was answered only after the campaign's wait for the bus"
+
+
+# -- review of session 53: what start-up and a delete do to files they did not write --------------------------------
+
+
+def _manager(tmp_path: Path, session, hub: str):
+    from server.campaigns import CampaignManager
+
+    return CampaignManager(tmp_path / "data", session, hub)
+
+
+def test_a_record_this_version_cannot_read_is_never_rebuilt_over_nor_its_archive_touched(tmp_path: Path) -> None:
+    """A record that failed validation (a later version's status, a hand edit) was skipped without
+    a word, and start-up then rebuilt one from its archive and saved it over the original: its
+    metrics, identification tables, message and real status lost, a finished campaign shown
+    interrupted. Now both files are left byte for byte and each is reported."""
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    later = {**record("control-later", "reviewed-by-a-later-version"), "metrics": {"rms_deg": 1.5},
+             "message": "the operator's note"}
+    (campaigns / "control-later.json").write_text(json.dumps(later))
+    unfinished_mcap(campaigns / "control-later.mcap", "control-later")
+    (campaigns / "control-edited.json").write_text('{"id": "control-edited", "status": ')  # cut by hand
+    unfinished_mcap(campaigns / "control-edited.mcap", "control-edited")
+    before = {p.name: p.read_bytes() for p in campaigns.iterdir()}
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub]) as s:
+        manager = _manager(tmp_path, s, hub)
+        try:
+            assert manager.recover_all() == []
+            errors = manager.recovery_errors
+        finally:
+            manager.close()
+    assert {p.name: p.read_bytes() for p in campaigns.iterdir() if p.name != ".reserve"} == before
+    for cid in ("control-later", "control-edited"):
+        assert "not a campaign record this version reads" in errors[f"{cid}.json"], errors
+        assert "left as they are" in errors[f"{cid}.mcap"], errors
+
+
+def test_a_fifo_in_the_campaigns_folder_neither_blocks_the_start_nor_is_taken_for_a_record(tmp_path: Path) -> None:
+    """``mkfifo campaigns/x.json`` (or ``x.mcap``) blocked the console's start for ever: the record
+    and the writer's lock were read by opening the path. A special file is reported, not opened."""
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    os.mkfifo(campaigns / "control-pipe.json")
+    os.mkfifo(campaigns / "control-tube.mcap")
+    (campaigns / "control-ok.json").write_text(json.dumps(record("control-ok", "finished")))
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub]) as s:
+        manager = _manager(tmp_path, s, hub)
+        done: list[list[str]] = []
+        worker = threading.Thread(target=lambda: done.append(manager.recover_all()), daemon=True)
+        worker.start()
+        worker.join(60)
+        try:
+            assert done == [[]], "the start-up blocked on a FIFO"
+            assert "FIFO" in manager.recovery_errors["control-pipe.json"], manager.recovery_errors
+            assert manager.get("control-ok").status == "finished"
+        finally:
+            manager.close()
+
+
+def test_a_delete_removes_the_campaigns_own_files_only_and_its_leftover_copies(tmp_path: Path) -> None:
+    """A ``<id>_figures`` that is a symbolic link had the delete empty the folder it points to (a
+    thesis), then answer 500; the copies recovery and rewrites leave beside an archive (as large
+    as it) were never removed, so the room a full disk's advice promised was not freed. A crash's
+    half-written copy is swept at start-up once a minute old."""
+    campaigns = tmp_path / "data" / "campaigns"
+    campaigns.mkdir(parents=True)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "thesis.tex").write_text("years of work")
+    for cid in ("control-linked", "control-copies"):
+        (campaigns / f"{cid}.json").write_text(json.dumps(record(cid, "finished")))
+    (campaigns / "control-linked_figures").symlink_to(victim, target_is_directory=True)
+    own = campaigns / "control-copies_figures"
+    (own / "inner").mkdir(parents=True)
+    (own / "inner" / "fig.png").write_bytes(b"png")
+    (own / "outside").symlink_to(victim, target_is_directory=True)
+    copies = ["control-copies.mcap.corrupt", "control-copies.mcap.corrupt.1", "control-copies.mcap.rewrite",
+              "control-copies.mcap.recovering"]
+    for name in copies:
+        (campaigns / name).write_bytes(b"\0" * 1000)
+    stale, fresh = campaigns / "control-crashed.mcap.rewrite", campaigns / "control-busy.mcap.recovering"
+    stale.write_bytes(b"\0" * 1000)
+    fresh.write_bytes(b"\0" * 1000)
+    os.utime(stale, (time.time() - 600, time.time() - 600))
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub]) as s:
+        manager = _manager(tmp_path, s, hub)
+        try:
+            manager.recover_all()
+            assert not stale.exists() and fresh.exists()
+            manager.delete("control-linked")
+            manager.delete("control-copies")
+        finally:
+            manager.close()
+    assert (victim / "thesis.tex").read_text() == "years of work"
+    assert not (campaigns / "control-linked_figures").exists() and not (campaigns / "control-linked_figures").is_symlink()
+    assert not own.exists() and not [n for n in copies if (campaigns / n).exists()]
