@@ -162,8 +162,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
+            idle = True
             if getattr(state, "campaigns", None) is not None:
-                await asyncio.to_thread(state.campaigns.close)
+                idle = await asyncio.to_thread(state.campaigns.close)
             if state.scene is not None:
                 state.scene.close()
             for name in ("live", "camera", "presence", "journal"):  # the journal after the state's sampler
@@ -171,7 +172,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 if obj is not None:
                     obj.close()
             session.close()
-            lock.release()
+            if idle:
+                lock.release()
+            else:  # the worker may still write the archive: the folder stays this process's until it ends
+                log.warning("a campaign's worker is still stopping: the data directory stays locked until it ends")
+                state.campaigns.when_idle(lock.release)
 
     app = FastAPI(
         title="xneck experiment console",

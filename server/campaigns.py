@@ -958,14 +958,35 @@ class CampaignManager:
             if self._replay_starting is not None:
                 self._replay_starting[2].set()
 
-    def close(self, timeout_s: float = 20.0) -> None:
+    def close(self, timeout_s: float = 20.0) -> bool:
+        """Stop the running campaign and replay, wait up to ``timeout_s`` for the campaign's
+        worker, let go of the e-stop token. True if the worker has ended; False if it still runs
+        (its children take up to 10 s each to stop, its recorder 10 s to close): it may still
+        write the data folder, so the folder's lock waits for it (:meth:`when_idle`)."""
         self._closing.set()
         self._stop.set()
         self._cancel_starting_replay()
         if self._replay is not None:
             self._replay.stop()
-        self.wait_idle(timeout_s)
+        idle = self.wait_idle(timeout_s)
         # The token goes with this console (as in a crash): bridges latched stay latched until a release.
         for closer in (self._estop.close, self._estop_holders_sub.undeclare):
             with contextlib.suppress(Exception):
                 closer()
+        return idle
+
+    def when_idle(self, then: Callable[[], None]) -> None:
+        """Call ``then`` once the campaign's worker has ended: at once if none runs, else from a
+        thread of its own. What the data folder's lock is released by after a :meth:`close` that
+        timed out: released at once, a console restarted meanwhile had recovered the archive the
+        worker was still writing (review of session 53)."""
+        worker = self._worker
+        if worker is None or not worker.is_alive():
+            then()
+            return
+
+        def wait_then() -> None:
+            worker.join()
+            then()
+
+        threading.Thread(target=wait_then, name="data-dir-release", daemon=True).start()

@@ -895,3 +895,26 @@ def test_a_delete_removes_the_campaigns_own_files_only_and_its_leftover_copies(t
     assert (victim / "thesis.tex").read_text() == "years of work"
     assert not (campaigns / "control-linked_figures").exists() and not (campaigns / "control-linked_figures").is_symlink()
     assert not own.exists() and not [n for n in copies if (campaigns / n).exists()]
+
+
+def test_a_close_that_times_out_keeps_the_data_folder_until_the_worker_ends(tmp_path: Path) -> None:
+    """The console released the data folder's lock after a close whose campaign worker had not
+    ended in its 20 s (children stopping 10 s each, the recorder 10 s): a console restarted then
+    recovered the archive the old worker was still writing. The close says so, and the release
+    waits for the worker."""
+    from server.datadir import DataDirInUse, DataDirLock
+
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    lock = DataDirLock(tmp_path / "data")
+    finishing = threading.Event()
+    with open_session(listen=[hub]) as s:
+        manager = _manager(tmp_path, s, hub)
+        manager._worker = threading.Thread(target=finishing.wait, daemon=True)  # a worker still closing its archive
+        manager._worker.start()
+        assert manager.close(timeout_s=0.1) is False
+        manager.when_idle(lock.release)
+        with pytest.raises(DataDirInUse):
+            DataDirLock(tmp_path / "data")
+        finishing.set()
+        assert wait_until(lambda: lock._fd is None, 10)
+        DataDirLock(tmp_path / "data").release()
