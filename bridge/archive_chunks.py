@@ -7,10 +7,11 @@ with the chunk's declared ``uncompressed_size``. A 17.7 MB file whose one LZ4 ch
 :func:`bridge.archive_recovery.recover` and 5.2 GB in ``xneck server``'s start-up recovery (audit
 of 2026-11-28). Here each chunk is decompressed by a bounded stream that stops at its declared size
 (itself at most :data:`MAX_CHUNK_BYTES`): a chunk that holds more, or less, is refused with
-:class:`ChunkRefused` before more than that was ever allocated. :func:`breakup_chunk` replaces
-mcap's, and :class:`BoundedReader` the queries of mcap's ``SeekingReader`` that the project uses;
-every reader of archives (:mod:`bridge.archive_read`, :mod:`bridge.archive_recovery`,
-``twin.camera.align``, ``server.archive_rewrite``) goes through them.
+:class:`ChunkRefused` before more than that was ever allocated; a read of many chunks decompresses
+at most :func:`read_limit` of its file's size, summed (else :class:`ReadRefused`).
+:func:`breakup_chunk` replaces mcap's, and :class:`BoundedReader` the queries of mcap's
+``SeekingReader`` that the project uses; every reader of archives (:mod:`bridge.archive_read`,
+:mod:`bridge.archive_recovery`, ``twin.camera.align``, ``server.archive_rewrite``) goes through them.
 """
 
 from __future__ import annotations
@@ -43,6 +44,18 @@ except ImportError:  # pragma: no cover
 #: frame as JPEG (a few MB at 4K). 32 MiB, 128 × ``CHUNK_SIZE``, leaves a factor of ten and more
 #: for those and for other tools' larger chunk settings, and bounds what a hostile chunk costs.
 MAX_CHUNK_BYTES = 32 * 1024 * 1024
+#: How many times its file's size one read may decompress, chunks summed (:class:`BoundedReader`;
+#: review of session 53). The chunk cap bounds one chunk, not a file of many: a 392 KB archive of
+#: identical messages (LZ4 at about 250:1) decompressed to 98 MB and the console's start-up
+#: recovery peaked at 464 MB decoding it. Real archives decompress to far less than 32 times
+#: their size (measured: a 14 s control campaign of `xneck campaign control`, 5.9 MB: 2.3; console
+#: campaigns with their Foxglove scene: 2.9-3.1; identifications with camera frames, 25 MB: 3.8;
+#: the tests' small synthetic archives: at most 5.4): a margin of six over the most compressible,
+#: since a refused archive is data the console cannot show.
+MAX_EXPANSION = 32
+#: The least one read may always decompress (16 MiB), whatever the file's size: a small file's
+#: chunks read even if they compress better than real archives do; what a small bomb costs.
+MIN_READ_BYTES = 16 * 1024 * 1024
 #: The longest record read into memory: a chunk of :data:`MAX_CHUNK_BYTES` stored uncompressed or
 #: as incompressible LZ4/zstd (a few hundred kB of framing over its size), with its fixed fields.
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + 1024 * 1024
@@ -51,6 +64,36 @@ MAX_RECORD_BYTES = MAX_CHUNK_BYTES + 1024 * 1024
 class ChunkRefused(McapError):
     """A chunk that decompresses to other than its declared size, or declares or holds more than
     :data:`MAX_CHUNK_BYTES`: damaged or hostile, never decompressed past its bound."""
+
+
+class ReadRefused(McapError):
+    """A read whose chunks decompress, summed, to more than :func:`read_limit` of its file:
+    refused before the chunk that would pass the limit is decompressed."""
+
+
+def read_limit(file_bytes: int) -> int:
+    """The most bytes one read of a file of ``file_bytes`` bytes may decompress, chunks summed."""
+    return max(MIN_READ_BYTES, MAX_EXPANSION * file_bytes)
+
+
+class ReadBudget:
+    """The bytes one read of a file of ``file_bytes`` bytes has decompressed (``spent``), against
+    its :func:`read_limit` (``limit``, bytes)."""
+
+    def __init__(self, file_bytes: int) -> None:
+        self.file_bytes = file_bytes
+        self.limit = read_limit(file_bytes)
+        self.spent = 0
+
+    def spend(self, chunk: Chunk) -> None:
+        """Counts what ``chunk`` decompresses to (its declared size: :func:`chunk_data` refuses a
+        chunk that holds more), or raises :class:`ReadRefused` if that passes the limit."""
+        size = len(chunk.data) if chunk.compression == "" else chunk.uncompressed_size
+        self.spent += size
+        if self.spent > self.limit:
+            raise ReadRefused(f"the file decompresses to more than {self.limit} bytes ({MAX_EXPANSION} times its "
+                              f"{self.file_bytes} bytes, at least {MIN_READ_BYTES}): not read, a decompression "
+                              f"bomb or not an archive of this software")
 
 
 def chunk_data(chunk: Chunk, validate_crc: bool = False) -> bytes:
@@ -142,11 +185,15 @@ class BoundedReader:
     file or log-time order), every chunk decompressed by :func:`breakup_chunk`. Messages come in
     the order ``SeekingReader`` gives them: the chunks of the summary's index in file order, or
     merged by log time (ties by position in the file); a file without a chunk index is read
-    sequentially, as ``SeekingReader`` falls back to doing."""
+    sequentially, as ``SeekingReader`` falls back to doing. Each :meth:`iter_messages` decompresses
+    at most :func:`read_limit` of the file's size (else :class:`ReadRefused`)."""
 
     def __init__(self, stream: IO[bytes], validate_crcs: bool = False) -> None:
         self._stream = stream
         self._validate_crcs = validate_crcs
+        position = stream.tell()
+        self._file_bytes = stream.seek(0, io.SEEK_END)
+        stream.seek(position, io.SEEK_SET)
         self._reader = SeekingReader(stream, validate_crcs=validate_crcs, record_size_limit=MAX_RECORD_BYTES)
 
     def get_summary(self) -> Summary | None:
@@ -163,15 +210,16 @@ class BoundedReader:
                 yield record
 
     def iter_messages(self, log_time_order: bool = True) -> Iterator[MessageTuple]:
+        budget = ReadBudget(self._file_bytes)
         summary = self.get_summary()
         if summary is None or not summary.chunk_indexes:
             self._stream.seek(0, io.SEEK_SET)
-            messages = self._iter_sequential()
+            messages = self._iter_sequential(budget)
             yield from sorted(messages, key=_log_time) if log_time_order else messages
             return
         if not log_time_order:
             for index in summary.chunk_indexes:
-                yield from self._chunk_messages(summary, index)
+                yield from self._chunk_messages(summary, index, budget)
             return
         # Merged by log time as mcap's queue does: a chunk enters at its first message's time, ties
         # go to the earlier position in the file (chunk offset, then place in the chunk); the fourth
@@ -184,15 +232,17 @@ class BoundedReader:
         while heap:
             _, offset, _, _, item = heapq.heappop(heap)
             if isinstance(item, ChunkIndex):
-                for k, entry in enumerate(self._chunk_messages(summary, item)):
+                for k, entry in enumerate(self._chunk_messages(summary, item, budget)):
                     heapq.heappush(heap, (entry[2].log_time, offset, k, n, entry))
                     n += 1
             else:
                 yield item
 
-    def _chunk_messages(self, summary: Summary, index: ChunkIndex) -> list[MessageTuple]:
+    def _chunk_messages(self, summary: Summary, index: ChunkIndex, budget: ReadBudget) -> list[MessageTuple]:
         out: list[MessageTuple] = []
-        for record in breakup_chunk(self._read_chunk(index.chunk_start_offset), self._validate_crcs):
+        chunk = self._read_chunk(index.chunk_start_offset)
+        budget.spend(chunk)
+        for record in breakup_chunk(chunk, self._validate_crcs):
             if isinstance(record, Message):
                 channel = summary.channels.get(record.channel_id)
                 if channel is None:
@@ -216,10 +266,12 @@ class BoundedReader:
             raise McapError(f"chunk record at byte {offset} runs past the end of the file")
         return Chunk.read(ReadDataStream(io.BytesIO(body)))
 
-    def _iter_sequential(self) -> Iterator[MessageTuple]:
+    def _iter_sequential(self, budget: ReadBudget) -> Iterator[MessageTuple]:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         for top in stream_records(self._stream).records:
+            if isinstance(top, Chunk):
+                budget.spend(top)
             for record in breakup_chunk(top, self._validate_crcs) if isinstance(top, Chunk) else (top,):
                 if isinstance(record, Schema):
                     schemas[record.id] = record
@@ -238,5 +290,5 @@ def _log_time(entry: MessageTuple) -> int:
     return entry[2].log_time
 
 
-__all__ = ["MAX_CHUNK_BYTES", "MAX_RECORD_BYTES", "BoundedReader", "ChunkRefused", "breakup_chunk", "chunk_data",
-           "stream_records"]
+__all__ = ["MAX_CHUNK_BYTES", "MAX_EXPANSION", "MAX_RECORD_BYTES", "MIN_READ_BYTES", "BoundedReader", "ChunkRefused",
+           "ReadBudget", "ReadRefused", "breakup_chunk", "chunk_data", "read_limit", "stream_records"]

@@ -29,7 +29,7 @@ from mcap.records import Channel, Message
 
 from bridge import bus
 from bridge.archive import CAMPAIGN, CAMPAIGN_START, MAGIC, ArchiveError
-from bridge.archive_chunks import BoundedReader
+from bridge.archive_chunks import BoundedReader, ReadRefused
 
 
 @dataclass
@@ -135,9 +135,10 @@ def read_campaign(path: str | os.PathLike[str],
     neither decoded nor checked. The messages of a key of ``fold`` are decoded and checked, then
     handed to its function as ``(log_time_ns, message)`` in file order (not log-time order: the
     caller orders what it keeps) and not kept. Raises :class:`ArchiveError` for a missing,
-    non-MCAP, truncated or unfinished file (run :func:`recover` on the latter two), or a message
-    read that does not match its schema; a fold function raises :class:`FoldError` to have its
-    own error raised as it is."""
+    non-MCAP, truncated or unfinished file (run :func:`recover` on the latter two), a message
+    read that does not match its schema, or a file whose chunks decompress to more than
+    :func:`bridge.archive_chunks.read_limit` of its size (a decompression bomb); a fold function
+    raises :class:`FoldError` to have its own error raised as it is."""
     path = check_finished(path)
     wanted = _selection(keys)
     folds = {bus.mcap_topic(k): f for k, f in (fold or {}).items()}
@@ -172,6 +173,8 @@ def read_campaign(path: str | os.PathLike[str],
         raise
     except FoldError as exc:
         raise exc.error from None
+    except ReadRefused as exc:  # a bomb of many chunks: not a damaged file, and not read
+        raise ArchiveError(path, str(exc)) from None
     except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
         raise ArchiveError(path, f"damaged MCAP file ({type(exc).__name__}: {exc})") from None
     return Campaign(path=path, metadata=metadata, topics=topics, schemas=schemas, counts=counts, selected=wanted,

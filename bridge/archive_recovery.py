@@ -58,7 +58,14 @@ from bridge.archive import (
     iso_time,
     storage_reason,
 )
-from bridge.archive_chunks import BoundedReader, ChunkRefused, breakup_chunk, stream_records
+from bridge.archive_chunks import (
+    BoundedReader,
+    ChunkRefused,
+    ReadBudget,
+    ReadRefused,
+    breakup_chunk,
+    stream_records,
+)
 from bridge.archive_read import is_complete
 
 
@@ -70,6 +77,8 @@ class RecoveryReport:
     crash). A chunk whose content is damaged (CRC or decompression failure, or other than the size
     it declares: :mod:`bridge.archive_chunks` never decompresses past that bound, so a
     decompression bomb is such a chunk) but whose framing is intact is skipped and reading goes on;
+    so are the chunks past a read's limit (:func:`bridge.archive_chunks.read_limit` of the file's
+    size: a bomb of many chunks);
     damaged framing, or a record longer than ``MAX_RECORD_BYTES``, ends the salvage. ``corrupt_copy``: the
     original, kept only when something was damaged (not merely cut short), since a specialised
     tool might salvage more; a plain truncation keeps nothing, the discarded tail being an
@@ -96,7 +105,8 @@ def recover(path: str | os.PathLike[str], outcome: str | None = None,
     (strings, e.g. ``message``): how the campaign ended when the caller knows it (a campaign that
     failed on a full disk), written into ``xneck.campaign`` instead (an outcome the file claimed
     is kept as ``outcome_before`` in ``xneck.recovery``). An ``xneck.recovery`` record tells what
-    was salvaged. Raises :class:`ArchiveError` if the file is missing or not MCAP.
+    was salvaged. Raises :class:`ArchiveError` if the file is missing or not MCAP, or if writing
+    the copy fails (a full disk: the file is left as it was, for :func:`finish_in_place`).
     """
     path = Path(path)
     valid = _valid(path)
@@ -108,7 +118,11 @@ def recover(path: str | os.PathLike[str], outcome: str | None = None,
     out = ArchiveWriter(tmp)
     try:
         salvage = _Salvage(out)
-        stop_reason, damaged = salvage.copy_from(path, size)
+        try:
+            stop_reason, damaged = salvage.copy_from(path, size)
+        except _WriteFault as fault:
+            raise ArchiveError(path, f"cannot write its recovered copy ({storage_reason(fault.error)}): the file "
+                                     f"is left as it was") from fault.error
         if not salvage.header_seen:
             raise ArchiveError(path, f"no readable MCAP header, nothing to recover ({stop_reason})")
         recovery = {"recovered_at": iso_time(), "original_bytes": str(size),
@@ -142,6 +156,7 @@ def _valid(path: Path) -> RecoveryReport | None:
     try:
         # MCAP-level check only: a message of another schema version is no reason to rewrite.
         with open(path, "rb") as f:
+            # Within a read's limit (a bomb of many chunks is salvaged: its chunks past it skipped).
             reader = BoundedReader(f, validate_crcs=True)
             for _ in reader.iter_metadata():
                 pass
@@ -411,29 +426,33 @@ class _Salvage:
         self._inferred: dict[int, int | None] = {}  # lost channel id -> the one its messages' key gave
         self.held: dict[str, dict[str, str]] = {}  # the final records, written after every message
         self.damaged_chunks = False
+        self._over_limit = False
 
     def copy_from(self, path: Path, size: int) -> tuple[str, bool]:
-        """Returns why reading stopped, and whether it was damage rather than the end of the file."""
+        """Returns why reading stopped, and whether it was damage rather than the end of the file.
+        Raises :class:`_WriteFault` if writing the copy fails."""
+        # What the copy holds is read back under this limit: chunks past it are not copied.
+        budget = ReadBudget(size)
         with open(path, "rb") as f:
             try:
                 for record in stream_records(f, validate_crcs=True).records:
                     if isinstance(record, Chunk):
                         try:
+                            budget.spend(record)
                             inner = breakup_chunk(record, validate_crc=True)
-                        except Exception as exc:  # CRC or decompression failure, or a bomb (ChunkRefused)
+                        except Exception as exc:  # CRC or decompression failure, a bomb (ChunkRefused, ReadRefused)
                             if f.tell() > size:
                                 raise
                             # The chunk's framing is intact (its length led to the next record):
                             # skip its content, carry on with the next chunk.
-                            why = f"{type(exc).__name__}: {exc}" if isinstance(exc, ChunkRefused) else type(exc).__name__
-                            self.skipped.append(f"chunk at byte {self.good_end} ({why})")
-                            self.damaged_chunks = True
+                            self._skip(exc)
                             inner = []
-                        for r in inner:
-                            self._copy(r)
+                        self._write(inner)
                     else:
-                        self._copy(record)
+                        self._write([record])
                     self.good_end = f.tell()
+            except _WriteFault:
+                raise
             except Exception as exc:  # noqa: BLE001 - mcap raises many types on a damaged file
                 # mcap reads short records without complaint and fails later, so tell a
                 # truncation (the record at good_end runs past the end of the file) from damage.
@@ -444,6 +463,28 @@ class _Salvage:
                 return self._reason(f"damaged record at byte {self.good_end} ({type(exc).__name__}: {exc})"), True
             self.good_end = f.tell()  # past the closing magic
         return self._reason("end of file"), bool(self.skipped)
+
+    def _skip(self, exc: Exception) -> None:
+        """Notes the chunk at ``good_end`` as skipped: damaged, or past the read's limit."""
+        self.damaged_chunks = True
+        if isinstance(exc, ReadRefused):  # every later chunk is past it too: said once
+            if not self._over_limit:
+                self.skipped.append(f"chunks from byte {self.good_end} on ({exc})")
+            self._over_limit = True
+            return
+        why = f"{type(exc).__name__}: {exc}" if isinstance(exc, ChunkRefused) else type(exc).__name__
+        self.skipped.append(f"chunk at byte {self.good_end} ({why})")
+
+    def _write(self, records: list[McapRecord]) -> None:
+        """Copies ``records``. An error here is the copy's (a full disk, EIO), not damage of the
+        original: it must not end the salvage as if the original ended there (review of session
+        53: an ENOSPC was read as "damaged record" and a copy missing a third of its messages
+        replaced an intact file)."""
+        try:
+            for record in records:
+                self._copy(record)
+        except Exception as exc:
+            raise _WriteFault(exc) from exc
 
     def _reason(self, stop: str) -> str:
         found = sum(1 for c in self._inferred.values() if c is not None)
@@ -502,6 +543,14 @@ class _Salvage:
             self.metadata_names.add(record.name)
             if record.name == CAMPAIGN_START:
                 self.start_metadata = dict(record.metadata)
+
+
+class _WriteFault(Exception):
+    """Writing the recovered copy failed (``error``): :func:`recover` fails, the original kept."""
+
+    def __init__(self, error: Exception) -> None:
+        super().__init__(str(error))
+        self.error = error
 
 
 def _key_of_payload(data: bytes) -> tuple[str, type[bus.BusMessage]] | None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import builtins
+import errno
 import os
 import queue
 import signal
@@ -17,11 +19,13 @@ import numpy as np
 import pytest
 import zenoh
 from busutil import wait_until
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+import bridge.archive
 from bridge import bus
-from bridge.archive import CAMPAIGN, ArchiveError, CampaignRecorder, write_campaign
+from bridge.archive import CAMPAIGN, CHUNK_SIZE, ArchiveError, CampaignRecorder, write_campaign
 from bridge.archive_read import is_complete, read_campaign
 from bridge.archive_recovery import finish_in_place, recover
 from bridge.session import free_tcp_port, open_session, publisher
@@ -436,6 +440,58 @@ def test_a_damaged_first_chunk_loses_only_its_own_messages(tmp_path: Path) -> No
     campaign = read_campaign(path)
     assert [m.seq for _, m in campaign.messages(bus.MOTOR_STATE)] == list(range(PER_CHUNK, 3 * PER_CHUNK))
     assert campaign.schemas == {"/" + bus.MOTOR_STATE: "xneck.MotorState"}
+
+
+class _FullOnce:
+    """A file whose first write of a chunk fails with ENOSPC (a disk full for a moment: the
+    writes after it succeed). The rest is the real file's."""
+
+    def __init__(self, f) -> None:
+        self._f = f
+        self.failed = False
+
+    def write(self, data: bytes) -> int:
+        if not self.failed and data[:1] == bytes([Opcode.CHUNK]):
+            self.failed = True
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return self._f.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._f, name)
+
+
+def test_a_full_disk_while_writing_the_copy_is_not_damage_of_the_original(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of session 53: an ENOSPC writing the recovered copy was taken for "damaged record at
+    byte N" of the original; the writes after it succeeded, and a copy whose statistics counted
+    messages its index lacked replaced the intact original (kept only as ``.corrupt``). Now the
+    error is the copy's: recovery fails, the file is left as it was (the console then finishes it
+    in place), and with room again it recovers every message."""
+    path = tmp_path / "crash.mcap"
+    n_chunks = 3 * CHUNK_SIZE // (PER_CHUNK * len(bus.encode(motor_state(0)))) + 1  # the copy writes 2 chunks
+    chunks = _crashing_file(path, n_chunks)
+    data = path.read_bytes()[: chunks[-1][1]]  # killed after its last chunk: no summary, no footer
+    path.write_bytes(data)
+    copies: list[_FullOnce] = []
+
+    def full_once(file, mode="r", *args, **kwargs):
+        f = builtins.open(file, mode, *args, **kwargs)  # noqa: SIM115 - ArchiveWriter closes it
+        if "x" in mode:  # the recovered copy (ArchiveWriter never overwrites)
+            copies.append(_FullOnce(f))
+            return copies[-1]
+        return f
+
+    monkeypatch.setattr(bridge.archive, "open", full_once, raising=False)
+    with pytest.raises(ArchiveError, match=r"cannot write its recovered copy \(No space left on device \(ENOSPC\)\)"):
+        recover(path)
+    assert [c.failed for c in copies] == [True]  # the copy's first chunk, while the original was read
+    assert path.read_bytes() == data
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no copy left, no .corrupt
+    monkeypatch.undo()
+    report = recover(path)
+    assert report.messages == n_chunks * PER_CHUNK and report.corrupt_copy is None, report
+    assert len(read_campaign(path).messages(bus.MOTOR_STATE)) == n_chunks * PER_CHUNK
 
 
 def test_a_final_record_written_before_a_lost_chunk_is_not_believed(tmp_path: Path) -> None:

@@ -40,10 +40,19 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk as mcap_breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 
-from bridge import bus
-from bridge.archive import CAMPAIGN, CAMPAIGN_START, CHUNK_SIZE, MAGIC, write_campaign
-from bridge.archive_chunks import MAX_CHUNK_BYTES, BoundedReader, ChunkRefused, breakup_chunk
+from bridge import archive_chunks, bus
+from bridge.archive import CAMPAIGN, CAMPAIGN_START, CHUNK_SIZE, MAGIC, ArchiveError, write_campaign
+from bridge.archive_chunks import (
+    MAX_CHUNK_BYTES,
+    MAX_EXPANSION,
+    BoundedReader,
+    ChunkRefused,
+    ReadRefused,
+    breakup_chunk,
+    read_limit,
+)
 from bridge.archive_read import read_campaign
+from bridge.archive_recovery import recover
 
 REPO = Path(__file__).resolve().parents[1]
 BOMB_BYTES = 256 << 20  # what the bomb chunk really holds
@@ -252,6 +261,77 @@ def test_a_file_without_summary_is_read_through(tmp_path: Path) -> None:
     campaign = read_campaign(path)
     assert [m.seq for _, m in campaign.messages(bus.MOTOR_STATE)] == list(range(2 * PER_CHUNK))
     assert set(campaign.metadata) == {CAMPAIGN_START, CAMPAIGN} and campaign.info["outcome"] == "finished"
+
+
+# --- many honest chunks (review of session 53) --------------------------------------------------
+
+
+def _many_chunks(path: Path, n: int = 40, chunk_bytes: int = 4 << 20, **kw: bool) -> Path:
+    """``n`` LZ4 chunks of ``chunk_bytes`` each, one motor state repeated (about 250:1): each honest
+    and within the chunk cap, together 160 MiB in a file of 0.7 MB (the review's: 98 MB in 392 KB)."""
+    message = _records(Message(channel_id=1, log_time=T0, data=bus.encode(motor_state(0)), publish_time=0, sequence=0))
+    raw = _records(SCHEMA, CHANNEL) + message * (chunk_bytes // len(message))
+    chunk = Chunk(compression="lz4", data=lz4.frame.compress(raw), message_start_time=T0, message_end_time=T0,
+                  uncompressed_crc=zlib.crc32(raw), uncompressed_size=len(raw))
+    return _archive(path, [chunk] * n, **kw)
+
+
+def _count_decompressed(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The sizes of the chunks decompressed from now on, in a list that grows."""
+    sizes: list[int] = []
+    real = archive_chunks.chunk_data
+
+    def counted(chunk: Chunk, validate_crc: bool = False) -> bytes:
+        sizes.append(chunk.uncompressed_size)
+        return real(chunk, validate_crc)
+
+    monkeypatch.setattr(archive_chunks, "chunk_data", counted)
+    return sizes
+
+
+def test_a_read_decompresses_no_more_than_its_limit_whatever_the_chunks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of session 53: the chunk cap bounded each chunk, nothing a read of many: the console's
+    start-up took 464 MB decoding a 392 KB archive. A read now decompresses at most
+    ``read_limit`` of its file's size and says so; a realistic archive is far inside it."""
+    decompressed = _count_decompressed(monkeypatch)
+    for indexed in (True, False):
+        path = _many_chunks(tmp_path / f"many-{indexed}.mcap", indexed=indexed)
+        limit = read_limit(path.stat().st_size)
+        with pytest.raises(ArchiveError, match=f"decompresses to more than {limit} bytes .*: not read"):
+            read_campaign(path, keys=(bus.CAMPAIGN_EVENTS,))  # what the console's start-up reads
+        assert 0 < sum(decompressed) <= limit, (indexed, sum(decompressed))
+        decompressed.clear()
+        with open(path, "rb") as f, pytest.raises(ReadRefused):  # in log-time order too (archive rewrites)
+            for _ in BoundedReader(f).iter_messages(log_time_order=True):
+                pass
+        assert sum(decompressed) <= limit
+        decompressed.clear()
+    # A recorder's archive reads on its ratio alone (no floor), with room to spare.
+    monkeypatch.setattr(archive_chunks, "MIN_READ_BYTES", 0)
+    msgs = [(bus.MOTOR_STATE, T0 + i * 2_000_000, motor_state(i)) for i in range(3000)]
+    path = write_campaign(tmp_path / "real.mcap", msgs, {"campaign_id": "real"}, chunk_size=CHUNK_SIZE)
+    assert [m.seq for _, m in read_campaign(path).messages(bus.MOTOR_STATE)] == list(range(3000))
+    assert sum(decompressed) < MAX_EXPANSION / 2 * path.stat().st_size, sum(decompressed) / path.stat().st_size
+
+
+def test_recovery_copies_no_more_than_a_read_takes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same archive unfinished: recovery copied all of it, and its copy, made larger by its
+    message indexes, passed a read's limit (the review's 98 MB of events read at 11 times the
+    copy's size). Now the chunks past the original's limit are skipped as damaged, the original
+    kept."""
+    decompressed = _count_decompressed(monkeypatch)
+    path = _many_chunks(tmp_path / "many.mcap", finished=False)
+    original = path.read_bytes()
+    limit = read_limit(len(original))
+    report = recover(path)
+    assert report.status == "recovered" and report.messages > 0, report
+    assert "skipped damaged chunks from byte" in report.reason and f"more than {limit} bytes" in report.reason
+    assert report.corrupt_copy is not None and report.corrupt_copy.read_bytes() == original
+    assert sum(decompressed) <= limit
+    campaign = read_campaign(path, keys=())
+    assert campaign.counts == {CHANNEL.topic: report.messages} and campaign.info["outcome"] == "interrupted"
 
 
 # --- every reader of archives -------------------------------------------------------------------
