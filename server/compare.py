@@ -51,7 +51,8 @@ def _metric(rec: CampaignRecord, m: dict[str, Any], key: str, per_joint: bool = 
         if not isinstance(value, list) or not all(_number(v) for v in value):
             raise UnreadableMetrics(f"campaign {rec.id}: metrics.{key} is {str(value)[:60]}, not a list of numbers "
                                     "(one per joint)")
-        return _r(max(value)) if value else None
+        # One joint's value unknown: so is their largest (max() with a NaN depends on the order).
+        return _r(max(value)) if value and all(math.isfinite(v) for v in value) else None
     if not _number(value):
         raise UnreadableMetrics(f"campaign {rec.id}: metrics.{key} is {str(value)[:60]!r}, not a number")
     return _r(value)

@@ -16,6 +16,8 @@ from bridge.archive import write_campaign
 from server.campaign_runner import metrics_from_archive
 from server.records import CampaignIndex, CampaignRecord
 
+NAN, INF = float("nan"), float("inf")
+
 
 def _archive(path: Path, cid: str, offset_deg: float, camera_offset_deg: float) -> None:
     """A 2 s control run at 100 Hz whose α̂ lags α^d by ``offset_deg`` and the camera sees α̂ +
@@ -64,6 +66,13 @@ def console(tmp_path_factory):
                          ("edited-text", {"e_max_deg": [1.0, 2.0, 3.0], "e_mean_all_deg": "x"})):
         index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",  # edited by hand
                                   parameter_set="prototype_3x", target="twin", status="finished", metrics=metrics))
+    # run-a's record with numbers JSON cannot carry, as a damaged or edited file holds them (none is
+    # written: pydantic writes null): Python's json writes NaN and Infinity, the console reads them.
+    record = CampaignRecord.model_validate_json(index.json("run-a").read_bytes()).model_dump()
+    metrics = record["metrics"]
+    metrics["e_mean_all_deg"], metrics["force_mean_all_N"], metrics["saturated_ticks"] = NAN, -INF, NAN
+    metrics["e_max_deg"][1], metrics["e_mean_deg"][0] = NAN, INF
+    index.json("not-finite").write_text(json.dumps({**record, "id": "not-finite", "metrics": metrics}))
     with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=10) as client:
         yield client
 
@@ -131,3 +140,25 @@ def test_a_hand_edited_record_whose_metrics_are_not_numbers_is_a_422_naming_them
     r = console.get("/api/campaigns/compare", params={"ids": f"run-a,{edited}"})
     assert r.status_code == 422, r.text
     assert edited in r.json()["detail"] and said in r.json()["detail"], r.text
+
+
+def test_numbers_json_cannot_carry_answer_null_not_a_500(console):
+    """Review of session 53: a NaN or infinity in a record read from disk, which JSON cannot carry.
+    Each is null (FastAPI writes a route's answer through its return annotation with pydantic,
+    which writes them as null: a route without one would be a 500), the rest as it was. The
+    largest e of joints one of which is unknown is unknown: max() with a NaN gave 1.0 here."""
+    r = console.get("/api/campaigns/compare", params={"ids": "run-a,not-finite"})
+    assert r.status_code == 200, r.text
+    table = r.json()["table"]
+    a, bad = (dict(zip(table["columns"], row)) for row in table["rows"])
+    assert bad["e mean (deg)"] is None and bad["force mean (N)"] is None and bad["saturated ticks"] is None, bad
+    assert bad["e max (deg)"] is None  # one joint's unknown: the largest is unknown too
+    assert bad["e_α mean (deg)"] == a["e_α mean (deg)"] is not None
+    r = console.get("/api/campaigns/not-finite/results")
+    assert r.status_code == 200, r.text
+    metrics = r.json()["metrics"]
+    assert metrics["e_mean_all_deg"] is None and metrics["force_mean_all_N"] is None and metrics["saturated_ticks"] is None
+    assert metrics["e_max_deg"][1] is None and metrics["e_mean_deg"][0] is None and metrics["e_max_deg"][0] > 0
+    errors = next(t for t in r.json()["tables"] if t["title"] == "Errors per joint (deg)")
+    assert errors["rows"][0][1] is None and errors["rows"][1][2] is None, errors
+    assert console.get("/api/campaigns/not-finite").json()["metrics"]["e_mean_all_deg"] is None
