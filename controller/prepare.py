@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
-from bridge import bus
+from bridge import bus, toml_text
 from controller.laws import LawConfig, nominal_force_check
 from controller.trajectory import (
     ForceCheck,
@@ -159,7 +159,7 @@ def prepare(req: bus.CampaignRequest, robot: Params, law: LawConfig, limits: Tra
             raise ValueError("a jog runs on the controller's own parameter set: the request's parameters_toml must "
                              "be empty")
         if req.parameters_toml:
-            params = params_from_dict(tomllib.loads(req.parameters_toml), f"campaign {req.campaign_id}")
+            params = params_from_dict(toml_text.loads(req.parameters_toml), f"campaign {req.campaign_id}")
             if (params.n_joints, params.n_cables) != (robot.n_joints, robot.n_cables):
                 raise ValueError(f"parameter set {params.name!r} is for {params.n_joints} joints and "
                                  f"{params.n_cables} cables, the robot has {robot.n_joints} and {robot.n_cables}")

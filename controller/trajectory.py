@@ -44,6 +44,7 @@ import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from bridge import toml_text
 from bridge.small_file import read_input_file
 
 __all__ = [
@@ -455,7 +456,7 @@ def load_trajectory(source: str | os.PathLike[str] | Mapping[str, Any]) -> Traje
             if suffix == ".json":
                 spec = msgspec.json.decode(read_input_file(path), type=TrajectoryFile)
             elif suffix == ".toml":
-                spec = msgspec.convert(tomllib.loads(read_input_file(path).decode("utf-8")), TrajectoryFile)
+                spec = msgspec.convert(toml_text.loads(read_input_file(path).decode("utf-8")), TrajectoryFile)
             elif not suffix and not path.exists():  # a name: the user meant a built-in one
                 raise TrajectoryError(
                     f"no built-in trajectory of that name ({' or '.join(NAMED_TRAJECTORIES)}) and no such file: "

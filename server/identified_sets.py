@@ -19,6 +19,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bridge import toml_text
 from server.paramsets import BUILTIN, ParameterStore, check_name
 from server.records import CampaignRecord
 
@@ -95,7 +96,7 @@ def save_identified_set(mcap: Path, rec: CampaignRecord, store: ParameterStore, 
     if cached is None:
         try:
             info = read_campaign_info(mcap)
-            base = params_from_dict(tomllib.loads(info["parameters_toml"]), f"campaign {rec.id}")
+            base = params_from_dict(toml_text.loads(info["parameters_toml"]), f"campaign {rec.id}")
         except ArchiveError as exc:
             raise IdentificationError(f"cannot read campaign {rec.id}: {exc}") from None
         except (KeyError, tomllib.TOMLDecodeError, ParameterError) as exc:

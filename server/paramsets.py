@@ -18,6 +18,7 @@ import threading
 import tomllib
 from pathlib import Path
 
+from bridge import toml_text
 from bridge.archive import atomic_write
 from twin.model.params import ParameterError, Params, load_params, params_from_dict
 
@@ -111,7 +112,7 @@ class ParameterStore:
             except UnicodeDecodeError:
                 raise ParameterError(f"{source}: not a text file (invalid UTF-8)") from None
         try:
-            data = tomllib.loads(text)
+            data = toml_text.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ParameterError(f"{source}: not a valid TOML file ({exc})") from None
         except RecursionError:  # tomllib recurses per nesting level: a hostile file, not a traceback

@@ -13,12 +13,12 @@ from __future__ import annotations
 import json
 import os
 import re
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bridge import toml_text
 from controller.trajectory import NAMED_TRAJECTORIES, Trajectory, TrajectoryError, load_trajectory, trajectory_by_name
 
 NAME = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}$")
@@ -50,7 +50,7 @@ def parse(body: bytes, content_type: str = "application/json") -> Trajectory:
         raise LibraryError(f"{len(body)} bytes: more than {MAX_BYTES} for a trajectory")
     try:
         text = body.decode("utf-8")
-        data = tomllib.loads(text) if "toml" in content_type.lower() else json.loads(text)
+        data = toml_text.loads(text) if "toml" in content_type.lower() else json.loads(text)
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise LibraryError(f"not a {'TOML' if 'toml' in content_type.lower() else 'JSON'} trajectory: {exc}") from None
     if not isinstance(data, dict):

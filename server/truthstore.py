@@ -15,6 +15,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from bridge import toml_text
 from bridge.archive import atomic_write
 from server.paramsets import check_name
 from twin.model.params import ParameterError
@@ -69,7 +70,7 @@ class TruthStore:
         if len(body) > MAX_TRUTH_BYTES:
             raise TruthError(f"{source}: {len(body)} bytes, more than {MAX_TRUTH_BYTES} for a truth file")
         try:
-            data = tomllib.loads(body.decode("utf-8"))
+            data = toml_text.loads(body.decode("utf-8"))
             truth = parse_truth(data, source)
             if truth.robot_params not in ("", "prototype"):  # a path: the console would read a file the request names
                 raise TruthError(f"{source}: robot_params of an uploaded truth is \"prototype\" or absent (the "

@@ -112,7 +112,7 @@ def test_unknown_keys_are_refused(params, tmp_path):
         load_params(latin)
     deep = tmp_path / "deep.toml"
     deep.write_text("x = " + "[" * 50_000 + "]" * 50_000 + "\n")
-    with pytest.raises(ParameterError, match=r"deep\.toml: nested too deeply"):
+    with pytest.raises(ParameterError, match=r"deep\.toml: .*nested too deeply"):
         load_params(deep)
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import typer
 
+from bridge import toml_text
 from server.cli.options import (
     ALPHA_IP_OPTION,
     AUTOCONNECT_OPTION,
@@ -70,7 +71,7 @@ def _driver_table(path: Path | None) -> dict:
     if path is None:
         return {}
     try:
-        return tomllib.loads(path.read_text())
+        return toml_text.loads(path.read_text())
     except OSError as exc:
         raise fail(f"{path}: cannot read the driver config ({exc.strerror})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

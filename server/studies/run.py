@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from bridge import toml_text
 from server.studies.spec import RunSpec, Study, StudyError, Vary
 
 ROUTE_SHORT, ROUTE_LONG = "b", "a"  # cases of eqs. 3-6 where a short cable ends / the long one ends (prototype routing)
@@ -384,9 +385,7 @@ def config_for(study: Study, version: str) -> RunConfig:
         raise StudyError(f"--truth {study.truth!r}: {exc} (choose {' or '.join(TRUTHS)} or a truth file)") from None
     truth: str | dict[str, Any] = "model"
     if study.truth != "model":
-        import tomllib
-
-        truth = tomllib.loads((ROBOT_TRUTH_FILE if study.truth == "robot" else Path(study.truth)).read_text())
+        truth = toml_text.loads((ROBOT_TRUTH_FILE if study.truth == "robot" else Path(study.truth)).read_text())
     traj_json = ""
     if study.kind != "design":
         name = study.trajectory

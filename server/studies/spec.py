@@ -36,6 +36,7 @@ from typing import Any, overload
 
 import numpy as np
 
+from bridge import toml_text
 from bridge.small_file import read_input_file
 
 KINDS = ("control", "identification", "design")
@@ -228,7 +229,7 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
     data: dict[str, Any] = {}
     if file is not None:
         try:
-            data = tomllib.loads(read_input_file(file).decode("utf-8"))  # a FIFO or a device: refused, not read
+            data = toml_text.loads(read_input_file(file).decode("utf-8"))  # a FIFO or a device: refused, not read
         except OSError as exc:
             raise StudyError(f"study file {str(file)!r}: {exc.strerror or exc}") from None
         except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 import msgspec
 
+from bridge import toml_text
 from bridge.small_file import read_input_file
 
 __all__ = ["DEFAULT_PARAMS_FILE", "ParameterError", "Params", "differing_keys", "dotted_parent", "load_params",
@@ -353,7 +354,7 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ParameterError(f"override '{text}' must look like key.path=value")
     key, raw = (s.strip() for s in text.split("=", 1))
     try:
-        value = tomllib.loads(f"v = {raw}")["v"]
+        value = toml_text.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw  # a bare word is taken as a string, e.g. cables.model=linear
     return key, value
@@ -383,7 +384,7 @@ def params_from_toml(text: str, source: str, overrides: dict[str, Any] | None = 
     """A parameter set from TOML ``text`` (a file's, or an archive's ``parameters_toml``), named
     ``source`` in errors, with dotted-key ``overrides`` applied (:func:`load_params`)."""
     try:
-        data = tomllib.loads(text)
+        data = toml_text.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ParameterError(f"{source}: not a valid TOML file ({exc})") from exc
     except RecursionError:

@@ -38,6 +38,7 @@ import msgspec
 import numpy as np
 from scipy.optimize import least_squares
 
+from bridge import toml_text
 from twin.model.estimation import alpha_hat_3
 from twin.model.params import Params
 from twin.sim.simulator import Twin, TwinConfig
@@ -527,7 +528,7 @@ def check_loadable(text: str, path: Path) -> RobotTruth:
     from twin.sim.truth import parse_truth
 
     try:
-        parse_truth(tomllib.loads(text), path.stem)
+        parse_truth(toml_text.loads(text), path.stem)
     except (tomllib.TOMLDecodeError, TruthError) as exc:
         raise CalibrationError(f"the calibrated truth does not load back ({exc}); not written") from None
     atomic_write(path, text.encode("utf-8"))

@@ -49,6 +49,7 @@ from typing import Any, Literal
 
 import msgspec
 
+from bridge import toml_text
 from bridge.small_file import read_input_file
 from twin.model.params import ParameterError, Params, load_params
 
@@ -259,7 +260,7 @@ def parse_truth(data: dict[str, Any], name: str = "truth") -> RobotTruth:
 @lru_cache(maxsize=16)
 def _load_file(path: Path, mtime_ns: int) -> RobotTruth:
     try:
-        data = tomllib.loads(read_input_file(path).decode("utf-8"))  # a FIFO or a device: refused, not read
+        data = toml_text.loads(read_input_file(path).decode("utf-8"))  # a FIFO or a device: refused, not read
     except OSError as exc:
         raise TruthError(f"{path}: cannot read the truth file ({exc.strerror or exc})") from None
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

@@ -1,0 +1,62 @@
+"""TOML from outside parsed with a bound (bridge/toml_text.py; review of session 53).
+
+``tomllib`` is quadratic in the parts of one dotted key: 32 kB of ``a.a.a…=1`` took 1.8 s and
+1 GB on the console's event loop (the e-stop 7 s late), 120 kB a MemoryError. Every loader of
+TOML from a request, the bus or a user's file goes through :func:`bridge.toml_text.loads`, which
+refuses a key of more than 64 parts before ``tomllib`` sees it. The bombs here are small enough
+(8000 parts, 0.4 s) that a run without the guard only fails its asserts.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import tomllib
+from pathlib import Path
+
+import httpx
+import pytest
+from server_harness import AUTH, running_server
+
+from bridge import bus, toml_text
+from controller.laws import LawConfig
+from controller.prepare import Refused, prepare
+from controller.trajectory import Trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+BOMB = "a" + ".a" * 8000 + " = 1\n"
+
+
+def test_every_toml_file_of_the_repository_passes_the_guard() -> None:
+    files = subprocess.run(["git", "ls-files", "*.toml"], cwd=ROOT, capture_output=True, text=True,
+                           check=True).stdout.split()
+    assert "twin/model/prototype_3x.toml" in files, files
+    for name in files:
+        text = (ROOT / name).read_text()
+        assert toml_text.loads(text) == tomllib.loads(text), name
+
+
+@pytest.mark.parametrize("text", [BOMB, "[" + ".".join(["t"] * 8000) + "]\n", "ok = 1\n" + BOMB])
+def test_a_key_of_thousands_of_parts_is_refused_naming_its_line(text: str) -> None:
+    with pytest.raises(tomllib.TOMLDecodeError, match=r"line \d+: a key of more than 64 dotted parts"):
+        toml_text.loads(text)
+
+
+def test_nesting_too_deep_for_the_parser_is_a_parse_error() -> None:
+    with pytest.raises(tomllib.TOMLDecodeError, match="nested too deeply"):
+        toml_text.loads("x = " + "[" * 5000 + "]" * 5000)
+
+
+def test_a_bomb_is_refused_by_every_route_that_takes_toml_and_by_a_campaign_request(tmp_path: Path, params) -> None:
+    toml = {**AUTH, "Content-Type": "application/toml"}
+    with running_server(tmp_path / "data", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=60) as c:
+        for path in ("/api/params/bomb", "/api/truths/bomb", "/api/trajectories/bomb"):
+            r = c.put(path, content=BOMB, headers=toml)
+            assert r.status_code == 422 and "dotted parts" in r.text, (path, r.status_code, r.text[:300])
+        r = c.post("/api/trajectories/validate", content=BOMB, headers=toml)
+        assert r.status_code == 200 and not r.json()["ok"] and "dotted parts" in r.json()["message"], r.text[:300]
+        assert c.get("/api/system/health").status_code == 200
+    nod = Trajectory.from_degrees([[0, 0, 0], [10, 5, 0]], 1.0, 0.2, name="nod")
+    req = bus.CampaignRequest(seq=1, stamp_s=0.0, campaign_id="c-bomb", action="start",
+                              trajectory_json=nod.to_json(), parameters_toml=BOMB)
+    with pytest.raises(Refused, match="dotted parts"):
+        prepare(req, params, LawConfig(law=2))
