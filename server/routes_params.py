@@ -7,6 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
 
 from server.auth import require_token
 from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore, UnknownParameterSet, check_name
@@ -86,7 +87,9 @@ async def upload_params(name: str, request: Request) -> Any:
     if len(body) > MAX_UPLOAD_BYTES:
         return _unprocessable(["body"], f"{len(body)} bytes: more than {MAX_UPLOAD_BYTES} for a parameter file")
     try:
-        params = _store(request).save(name, body)
+        # Parsed, checked and written (fsync of the file and its folder) off the event loop: on it
+        # they held every other request, the e-stop's too (review of session 53).
+        params = await run_in_threadpool(_store(request).save, name, body)
     except ParameterError as exc:
         return _unprocessable(["body"], str(exc))
     return {"name": name, "n_joints": params.n_joints, "n_cables": params.n_cables}

@@ -44,15 +44,17 @@ def _unprocessable(loc: list[str], msg: str) -> JSONResponse:
 
 async def _parsed(request: Request) -> Trajectory:
     """The body as a trajectory (JSON, or TOML by its content type); raises :class:`LibraryError`
-    or :class:`TrajectoryError`."""
-    return parse(await request.body(), request.headers.get("content-type", "application/json"))
+    or :class:`TrajectoryError`. Parsed off the event loop, as the checks and the library's
+    reads and writes are: on it a parse held every other request, the e-stop's too (review of
+    session 53)."""
+    return await run_in_threadpool(parse, await request.body(), request.headers.get("content-type", "application/json"))
 
 
 async def _check(request: Request, traj: Trajectory, law: int, parameter_set: str | None) -> None:
     """The campaign checks on ``traj``; raises :class:`TrajectoryError` (the checker's message),
     :class:`UnknownParameterSet` or :class:`ParameterError`."""
     store = request.app.state.params
-    params = store.load(parameter_set or store.active())
+    params = await run_in_threadpool(store.load, parameter_set or store.active())
     await run_in_threadpool(check_trajectory, traj, params, LawConfig(law=law))
 
 
@@ -132,7 +134,7 @@ async def put_trajectory(name: str, request: Request, law: int = Query(2, ge=1, 
     except (LibraryError, TrajectoryError, UnknownParameterSet, ParameterError) as exc:
         return _unprocessable(["body"], str(exc))
     try:
-        lib.put(name, traj)
+        await run_in_threadpool(lib.put, name, traj)
     except LibraryError as exc:
         return _unprocessable(["path", "name"], str(exc))
     return {"name": name, "waypoints": traj.n_waypoints, "duration_s": traj.duration_s}
