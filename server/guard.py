@@ -12,8 +12,9 @@ In order, for HTTP and WebSocket requests:
 3. **Token**: every mutating request (POST/PUT/PATCH/DELETE) needs the bearer token (401 without,
    403 wrong) checked *before its body is read*; live data too when the console listens beyond
    loopback (the token may come as ``?token=`` since a browser WebSocket cannot set headers).
-4. **Body**: at most ``max_body_bytes`` (413 on a larger ``Content-Length`` at once, and as soon
-   as a chunked body passes the limit, the rest unread); a JSON body nested deeper than
+4. **Body**: at most ``max_body_bytes`` (the e-stop's: :data:`ESTOP_MAX_BODY_BYTES`; 413 on a
+   larger ``Content-Length`` at once, and as soon as a chunked body passes the limit, the rest
+   unread; the e-stop's route gets the refusal instead, and engages); a JSON body nested deeper than
    :data:`MAX_JSON_DEPTH` is a 422 (Python's parser would recurse until it crashes), but the
    e-stop's, which its route reads and checks itself: a malformed e-stop request engages.
 
@@ -44,6 +45,9 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 MAX_JSON_DEPTH = 32
 TOO_LARGE = "xneck.body_too_large"  # the scope key of a refused body's detail, for the e-stop's route
 ESTOP_PATH = "/api/system/estop"  # checks its body's depth itself (server.routes_system.estop)
+#: The e-stop's body at most (``{"engaged": false, "reason": <200 characters>}`` is far less): a
+#: larger one engages it unread (413), its parse on the event loop bounded (review of session 53).
+ESTOP_MAX_BODY_BYTES = 4096
 #: Scripts only from the console itself, no plugins, no <base>: an injected value that ever reached
 #: the page as HTML could run nothing (the dashboard writes every value as text; defence in depth,
 #: audit of 2026-11-27). Styles are not limited (the page sets widths inline).
@@ -165,7 +169,7 @@ class ConsoleGuard:
     async def _with_bounded_body(self, scope: Scope, receive: Receive, send: Send, headers: dict[str, str]) -> None:
         """Read the body up to the limit (413 beyond, without reading on), check JSON depth, then
         hand the app the same body."""
-        limit = self.max_body_bytes
+        limit = ESTOP_MAX_BODY_BYTES if scope.get("path") == ESTOP_PATH else self.max_body_bytes
         declared = headers.get("content-length")
         if declared is not None and (not declared.strip().isdigit() or int(declared) > limit):
             await self._too_large(scope, receive, send, f"request body of {declared} bytes: at most {limit} bytes")

@@ -15,6 +15,7 @@ from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
 from bridge.archive import MAGIC
+from server.archive_reads import archive_reads, read_failure
 from server.auth import require_operator, require_token
 from server.campaign_request import CampaignCreate, RequestError, prepare
 from server.campaigns import (
@@ -237,10 +238,19 @@ async def figure(campaign_id: str, name: str, request: Request) -> FileResponse:
     manager = _manager(request)
     out = manager.index.figures(campaign_id) / f"{name}.png"
     if not out.exists():
+        mcap = manager.index.mcap(campaign_id)
+
+        def draw() -> None:
+            if not out.exists():  # drawn by the request this one waited for
+                render_figure(mcap, name, out)
+
         try:
-            await run_in_threadpool(render_figure, manager.mcap_path(campaign_id), name, out)
+            # its archive read outside PYPLOT_LOCK: one per archive, two at most, on threads of
+            # their own, never the pool the e-stop's POST needs (review of session 53)
+            await archive_reads(request.app.state).run(mcap, draw)
         except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
-            raise HTTPException(422, f"cannot draw {name}: {exc}") from None
+            # not the exception's text alone: it named the data directory (review of session 53)
+            raise HTTPException(422, f"cannot draw {name}: {read_failure(campaign_id, mcap, exc)}") from None
     try:
         file = open(out, "rb")  # noqa: SIM115 - the response closes it
     except FileNotFoundError:  # the campaign was deleted meanwhile

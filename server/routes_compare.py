@@ -7,8 +7,8 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
-from starlette.concurrency import run_in_threadpool
 
+from server.archive_reads import archive_reads, read_failure
 from server.campaigns import NotFound
 from server.compare import UnreadableMetrics, cached_traces, compare_table
 from server.records import valid_id
@@ -50,12 +50,16 @@ async def compare(request: Request, ids: str = Query(..., max_length=600, descri
                            "campaigns": [{"id": r.id, "law": r.law, "parameter_set": r.parameter_set, "truth": r.truth,
                                           "trajectory": r.trajectory, "status": r.status} for r in records]}
     if traces_:
+        # one read per archive at a time, two at most, on threads of their own: a flood of these
+        # open GETs had taken the pool the e-stop's POST needs (review of session 53)
+        reads = archive_reads(request.app.state)
         series = {}
         for rec in records:
+            mcap = manager.index.mcap(rec.id)
             try:
-                series[rec.id] = await run_in_threadpool(cached_traces, manager.mcap_path(rec.id),
-                                                         manager.index.figures(rec.id))
+                series[rec.id] = await reads.run(mcap, cached_traces, mcap, manager.index.figures(rec.id))
             except Exception as exc:  # noqa: BLE001 - a damaged archive is a 422, not a crash
-                raise HTTPException(422, f"cannot read {rec.id}: {exc}") from None
+                # never the exception's text: it named the data directory (review of session 53)
+                raise HTTPException(422, read_failure(rec.id, mcap, exc)) from None
         out["traces"] = series
     return out

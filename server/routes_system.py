@@ -21,7 +21,7 @@ from controller.trajectory import NAMED_TRAJECTORIES, trajectory_json_schema
 from server.auth import require_operator, require_token
 from server.camera_feed import camera_health
 from server.child_processes import local_processes
-from server.guard import MAX_JSON_DEPTH, TOO_LARGE, json_depth_exceeds
+from server.guard import ESTOP_MAX_BODY_BYTES, MAX_JSON_DEPTH, TOO_LARGE, json_depth_exceeds
 from server.live import bridge_status
 from server.routes_jog import jog_status, note_fault
 from server.safety_journal import READ_MAX_LINES, SafetyJournal, read_journal
@@ -31,9 +31,12 @@ log = logging.getLogger("xneck.server")
 router = APIRouter(tags=["system"])
 
 USER_AGENT_MAX_CHARS = 120  # of a client's User-Agent as journalled and logged
-#: threads reading the safety journal at once, their own: never those of the pool the sync routes
-#: (the e-stop's POST) run in, whatever the disk does and however many GETs (no token) wait
+#: threads reading the safety journal at once, their own: never those of anyio's default pool (the
+#: sync routes'), whatever the disk does and however many GETs (no token) wait
 JOURNAL_READERS = 2
+#: threads publishing e-stops, their own too: anyio's default pool is any open GET's (a flood of
+#: 45 compare GETs had held it and the e-stop waited 7.3 s for a thread: review of session 53)
+ESTOP_SENDERS = 2
 
 
 @router.get("/api/system/health")
@@ -138,22 +141,35 @@ async def estop(request: Request) -> Any:
     stops the robot (user audit and review of session 46; before, unknown fields were ignored and
     ``"off"``, ``0``, ``"false"`` released). The body is read here, not by FastAPI, whose own
     refusals (422, 400) had sent nothing; a key given twice is malformed too. A body larger than
-    the console takes engages it too, answering 413 (the guard's 413 had sent nothing)."""
+    the console takes engages it too, answering 413 (the guard's 413 had sent nothing): for this
+    route that is :data:`~server.guard.ESTOP_MAX_BODY_BYTES`, whatever the rest take (a 248 KB body
+    of 28,000 keys had held the e-stop 5.75 s: review of session 53). Published on threads of its
+    own (:data:`ESTOP_SENDERS`), its token checked on the event loop: no GET delays it."""
     too_large = request.scope.get(TOO_LARGE)
     if too_large is not None:  # the guard read no further: engaged, never a release
         body, errors, status = None, [{"type": "too_large", "loc": ["body"], "msg": f"larger than the console takes ({too_large})"}], 413
     else:
         body, errors = _estop_body(await request.body())
-        status = 422
+        status = 413 if errors and errors[0]["type"] == "too_large" else 422
     if body is None:
         first = errors[0]
         where = ".".join(str(x) for x in first["loc"][1:]) or "body"
         why = bus.plain_text(f"console (malformed e-stop request: {where}: {first['msg']})")
-        await anyio.to_thread.run_sync(_send_estop, request, True, why)
+        await anyio.to_thread.run_sync(_send_estop, request, True, why, limiter=_estop_senders(request))
         return JSONResponse(status_code=status, content={"detail": errors, "engaged": True, "reason": why})
     why = body.why()
-    await anyio.to_thread.run_sync(_send_estop, request, body.engaged, why)
+    await anyio.to_thread.run_sync(_send_estop, request, body.engaged, why, limiter=_estop_senders(request))
     return {"engaged": body.engaged, "reason": why}
+
+
+def _estop_senders(request: Request) -> anyio.CapacityLimiter:
+    """The e-stop's own threads (:data:`ESTOP_SENDERS`), made in the app's event loop on first use
+    (no await between the test and the set)."""
+    s = request.app.state
+    senders = getattr(s, "estop_senders", None)
+    if senders is None:
+        senders = s.estop_senders = anyio.CapacityLimiter(ESTOP_SENDERS)
+    return senders
 
 
 ESTOP_ERRORS_MAX = 5  # errors an e-stop's 422 lists (a body of 100 unknown keys answered 2.9 MB)
@@ -164,12 +180,20 @@ def _estop_body(raw: bytes) -> tuple[EStopRequest | None, list[dict[str, Any]]]:
     :data:`ESTOP_ERRORS_MAX`, each ``type``, ``loc`` (its parts cut to 64 characters), ``msg``)."""
 
     def no_twice(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-        keys = [k for k, _ in pairs]
-        twice = sorted({k for k in keys if keys.count(k) > 1})
+        # a set, one pass: keys.count(k) per key was O(n²) on the event loop, 28,000 keys held the
+        # e-stop 5.75 s before it was published (review of session 53)
+        seen: set[str] = set()
+        twice: set[str] = set()
+        for k, _ in pairs:
+            (twice if k in seen else seen).add(k)
         if twice:
-            raise ValueError(f"key given twice: {', '.join(twice)}")
+            raise ValueError(f"key given twice: {', '.join(sorted(twice)[:ESTOP_ERRORS_MAX])}")
         return dict(pairs)
 
+    if len(raw) > ESTOP_MAX_BODY_BYTES:  # the guard's cap too; this holds if it is ever left out
+        return None, [{"type": "too_large", "loc": ["body"],
+                       "msg": f"larger than the e-stop takes (request body of {len(raw)} bytes: at most "
+                              f"{ESTOP_MAX_BODY_BYTES} bytes)"}]
     if json_depth_exceeds(raw):  # the guard leaves this path's body to the route
         return None, [{"type": "json_invalid", "loc": ["body"], "msg": f"JSON nested deeper than {MAX_JSON_DEPTH} levels"}]
     try:

@@ -73,6 +73,10 @@ def console(tmp_path_factory):
     metrics["e_mean_all_deg"], metrics["force_mean_all_N"], metrics["saturated_ticks"] = NAN, -INF, NAN
     metrics["e_max_deg"][1], metrics["e_mean_deg"][0] = NAN, INF
     index.json("not-finite").write_text(json.dumps({**record, "id": "not-finite", "metrics": metrics}))
+    for cid in ("no-archive", "damaged"):  # a record whose archive is missing, one whose archive is no MCAP
+        index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",
+                                  parameter_set="prototype_3x", target="twin", status="finished"))
+    index.mcap("damaged").write_bytes(b"no archive at all")
     with running_server(data, viser=False) as (base, _app), httpx.Client(base_url=base, timeout=10) as client:
         yield client
 
@@ -162,3 +166,98 @@ def test_numbers_json_cannot_carry_answer_null_not_a_500(console):
     errors = next(t for t in r.json()["tables"] if t["title"] == "Errors per joint (deg)")
     assert errors["rows"][0][1] is None and errors["rows"][1][2] is None, errors
     assert console.get("/api/campaigns/not-finite").json()["metrics"]["e_mean_all_deg"] is None
+
+
+@pytest.mark.parametrize(("cid", "said"), [("no-archive", "campaign no-archive has no archive"),
+                                           ("damaged", "not an MCAP file")])
+def test_an_unreadable_archive_is_a_422_that_does_not_name_the_data_directory(console, cid, said):
+    """Review of session 53: the 422 carried the exception's text, which for a record without an
+    archive was ``[Errno 2] No such file or directory: '/…/campaigns/x.mcap'`` (an open GET
+    telling the data directory). Now the campaign and the reason, no path; a figure's too."""
+    r = console.get("/api/campaigns/compare", params={"ids": f"run-a,{cid}", "traces": "true"})
+    assert r.status_code == 422 and said in r.json()["detail"] and cid in r.json()["detail"], r.text
+    assert "/" not in r.json()["detail"] and "campaigns" not in r.json()["detail"], r.text
+    r = console.get(f"/api/campaigns/{cid}/figures/tracking.png")
+    assert r.status_code == 422 and cid in r.json()["detail"] and "/" not in r.json()["detail"], r.text
+
+
+def test_a_flood_of_open_archive_reads_never_delays_the_estop(tmp_path, monkeypatch):
+    """Review of session 53: a compare GET with traces needs no token and read its archives on
+    anyio's default pool (40 threads), each request the whole archive again while the first had
+    not kept it; the e-stop's POST needed that pool for its token check and its publication, and
+    45 such GETs delayed it 7.3 s. Here 50 compare GETs and 6 figure GETs over 6 archives, every
+    archive read held in progress: the e-stop is answered and engaged while they are held, at most
+    2 reads ran at once, and once released each archive was read once for its traces and once
+    for its figure (the requests for the same archive waited, then used what the first kept)."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from server_harness import AUTH, running_server, wait_until
+
+    from server import compare, results, routes_campaigns, routes_compare
+
+    data = tmp_path / "data"
+    index = CampaignIndex(data / "campaigns")
+    index.dir.mkdir(parents=True, exist_ok=True)
+    ids = [f"run-{k}" for k in range(6)]
+    for k, cid in enumerate(ids):
+        _archive(index.mcap(cid), cid, 1.0 + k, 0.5)
+        index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",
+                                  parameter_set="prototype_3x", target="twin", truth="model", status="finished",
+                                  created_at=f"2026-11-23T10:00:0{k}"))
+    release = threading.Event()
+    lock = threading.Lock()
+    running, peak, arrived = [0], [0], [0]
+    reads: dict[tuple[str, str], int] = {}
+
+    def held(what: str, real):
+        def read(mcap: Path, *args):
+            with lock:
+                running[0] += 1
+                peak[0] = max(peak[0], running[0])
+                reads[(what, mcap.stem)] = reads.get((what, mcap.stem), 0) + 1
+            try:
+                release.wait(60)
+                return real(mcap, *args)
+            finally:
+                with lock:
+                    running[0] -= 1
+        return read
+
+    def counted(real):
+        def call(*args):
+            with lock:
+                arrived[0] += 1  # a request past its lookups, at its archive reads
+            return real(*args)
+        return call
+
+    monkeypatch.setattr(compare, "traces", held("traces", compare.traces))
+    monkeypatch.setattr(routes_campaigns, "render_figure", held("figure", results.render_figure))
+    monkeypatch.setattr(routes_compare, "compare_table", counted(routes_compare.compare_table))
+    monkeypatch.setattr(routes_campaigns, "_record", counted(routes_campaigns._record))
+    urls = [f"/api/campaigns/compare?ids={ids[k % 6]},{ids[(k + 1) % 6]}&traces=true" for k in range(50)]
+    urls += [f"/api/campaigns/{cid}/figures/tracking.png" for cid in ids[:3] * 2]
+    with (running_server(data, viser=False) as (base, app), httpx.Client(base_url=base, timeout=60) as client,
+          ThreadPoolExecutor(len(urls)) as pool):
+        try:
+            gets = [pool.submit(httpx.get, base + url, timeout=90) for url in urls]
+            assert wait_until(lambda: arrived[0] == len(urls) and running[0] >= 2, 30), (arrived, running)
+            try:  # a bound, not a time asserted: before, it was answered only once the reads were released
+                estop = client.post("/api/system/estop", json={"engaged": True, "reason": "flood"}, headers=AUTH,
+                                    timeout=20)
+            except httpx.TimeoutException:
+                estop = None
+            assert estop is not None and estop.status_code == 200, "the e-stop waited for the archive reads"
+            assert not release.is_set() and running[0] == 2  # the reads still held, two at most
+            assert app.state.campaigns.estop_engaged is True
+            assert client.get("/api/system/health", timeout=20).json()["estop"]["engaged"] is True
+            assert wait_until(lambda: getattr(app.state.live.values.get("estop"), "engaged", None) is True, 10), \
+                "the e-stop was not on the bus"
+        finally:
+            release.set()
+        answers = [g.result() for g in gets]
+    assert all(r.status_code == 200 for r in answers), [r.text[:200] for r in answers if r.status_code != 200]
+    assert all(set(r.json()["traces"]) == set(u.split("=")[1].split("&")[0].split(","))
+               for r, u in zip(answers, urls) if "compare" in u)
+    assert peak[0] == 2, peak
+    assert reads == {**{("traces", cid): 1 for cid in ids}, **{("figure", cid): 1 for cid in ids[:3]}}, reads

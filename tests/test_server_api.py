@@ -169,7 +169,7 @@ def test_estop_body_is_strict_a_malformed_one_engages_and_a_release_says_it_rele
         assert health() is True, body
     # what FastAPI had refused before the route ran (422, 400), sending nothing (review of session 46)
     for raw in (b"STOP NOW", b'{"engaged": false', b'{"engaged": false, "engaged": false}', b'\xff{"engaged": false}',
-                b"[" * 100_000):
+                b"[" * 4000):  # nested too deep within the e-stop's cap (larger: a 413, engaged too)
         assert client.post("/api/system/estop", json={"engaged": False, "reason": "strict"}, headers=AUTH).status_code == 200
         r = client.post("/api/system/estop", content=raw, headers={**AUTH, "Content-Type": "application/json"})
         assert r.status_code == 422 and r.json()["engaged"] is True and health() is True, (raw[:40], r.text[:300])
@@ -185,6 +185,39 @@ def test_estop_body_is_strict_a_malformed_one_engages_and_a_release_says_it_rele
     assert r.status_code == 200 and r.json() == {"engaged": False, "reason": "released from the console"}, r.json()
     assert health() is False
     assert client.post("/api/system/estop", headers=AUTH).json()["engaged"] is True  # no body: engage
+
+
+def test_a_wide_estop_body_engages_unparsed_and_duplicates_are_found_in_one_pass(client, monkeypatch) -> None:
+    """Review of session 53: the duplicate-key check counted each key in the list of all keys
+    (O(n²), on the event loop): a 248 KB body of 28,000 keys held the e-stop 5.75 s before it was
+    published. The e-stop's body is capped at a few KB now (ESTOP_MAX_BODY_BYTES), a larger one
+    ENGAGES unparsed (413, the reason saying so), and the check keeps a set."""
+    from server import routes_system
+    from server.guard import ESTOP_MAX_BODY_BYTES
+    from server.paramsets import MAX_UPLOAD_BYTES
+
+    health = lambda: client.get("/api/system/health").json()["estop"]["engaged"]  # noqa: E731
+    wide = ("{" + ",".join(f'"k{i}":0' for i in range(24_000)) + ',"engaged":false}').encode()
+    assert 240_000 < len(wide) < MAX_UPLOAD_BYTES  # what the other routes take: the e-stop's cap refuses it
+    assert client.post("/api/system/estop", json={"engaged": False, "reason": "wide"}, headers=AUTH).status_code == 200
+    assert health() is False
+    r = client.post("/api/system/estop", content=wide, headers={**AUTH, "Content-Type": "application/json"})
+    assert r.status_code == 413 and r.json()["engaged"] is True and health() is True, r.text[:300]
+    assert "larger than" in r.json()["reason"] and f"at most {ESTOP_MAX_BODY_BYTES} bytes" in r.json()["reason"], r.json()
+    # the route's own cap holds without the guard: nothing of such a body is parsed
+    parsed: list[int] = []
+    depth = routes_system.json_depth_exceeds
+    monkeypatch.setattr(routes_system, "json_depth_exceeds", lambda raw: parsed.append(len(raw)) or depth(raw))
+    body, errors = routes_system._estop_body(wide)
+    assert body is None and errors[0]["type"] == "too_large" and not parsed, errors
+    # a key given twice among many (within the cap) is still found, and engages
+    near = ("{" + '"engaged": false, ' + ", ".join(f'"k{i}": 0' for i in range(200)) + ', "engaged": false}').encode()
+    assert len(near) <= ESTOP_MAX_BODY_BYTES
+    assert client.post("/api/system/estop", json={"engaged": False, "reason": "wide"}, headers=AUTH).status_code == 200
+    r = client.post("/api/system/estop", content=near, headers={**AUTH, "Content-Type": "application/json"})
+    assert r.status_code == 422 and r.json()["engaged"] is True and health() is True, r.text[:300]
+    assert "key given twice: engaged" in r.json()["reason"], r.json()
+    assert client.post("/api/system/estop", json={"engaged": False, "reason": "wide"}, headers=AUTH).status_code == 200
 
 
 def test_unknown_campaign_is_404(client) -> None:
