@@ -131,6 +131,9 @@ LIVE_MAX_AGE_S: dict[str, float] = {"camera": CAMERA_MAX_AGE_S}
 _K = TypeVar("_K")
 
 CLIENT_QUEUE_FRAMES = 4  # frames buffered per browser before the oldest is dropped
+#: live clients (WebSocket and SSE) at once: each costs a queue, an encode's share and a socket, and
+#: anyone on the lab network may open them (review of session 53); more are refused (LiveFull)
+LIVE_MAX_CLIENTS = 64
 BRIDGE_STATE_MAX_AGE_S = 0.5  # s: an older MotorState says nothing about the drives now
 #: s between two takes of the bridge's newest ``MotorState`` off its ring (:class:`LiveBus`), read
 #: or not: a sample is stamped when it is taken, so its age (:func:`bridge_status`, the e-stop's
@@ -755,6 +758,10 @@ class Client:
                     self.dropped += 1
 
 
+class LiveFull(Exception):
+    """:data:`LIVE_MAX_CLIENTS` are connected: the message says so, for the one refused."""
+
+
 class Broadcaster:
     """Sends a frame to every connected client at ``rate_hz`` when something changed (runs on the
     server's event loop; :meth:`run` is its task)."""
@@ -763,11 +770,19 @@ class Broadcaster:
         self.values = values
         self.period_s = 1.0 / rate_hz
         self.clients: set[Client] = set()
+        self.max_clients = LIVE_MAX_CLIENTS
         self.frames_sent = 0
         self._encoder = msgspec.json.Encoder()
         self._watched = asyncio.Event()  # set while a client is connected
 
+    def full(self) -> bool:
+        """Whether :data:`LIVE_MAX_CLIENTS` are connected (a new one would be refused)."""
+        return len(self.clients) >= self.max_clients
+
     def connect(self) -> Client:
+        """A new client; :class:`LiveFull` when :meth:`full`."""
+        if self.full():
+            raise LiveFull(f"the console serves at most {self.max_clients} live clients at once: close another view")
         client = Client()
         self.clients.add(client)
         self._watched.set()

@@ -7,20 +7,36 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, HTTPException, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
+
+from server.live import LiveFull
 
 router = APIRouter(tags=["live"])
 
 KEEPALIVE_S = 15.0
+#: A WebSocket message a client may send at most (uvicorn's ``ws_max_size``: server.cli.serve and
+#: the tests' harness): the console ignores them all, and uvicorn's default of 16 MB was read and
+#: decoded first; a larger one closes that client with 1009 (review of session 53).
+WS_MAX_BYTES = 4096
+#: The close code of a client refused because :data:`server.live.LIVE_MAX_CLIENTS` are connected
+#: (1013, "try again later"), its reason saying so.
+LIVE_FULL_CLOSE_CODE = 1013
 
 
 @router.websocket("/api/live")
 async def live_ws(ws: WebSocket) -> None:
-    """Live frames as JSON text messages (see :mod:`server.live`); anything the browser sends is ignored."""
+    """Live frames as JSON text messages (see :mod:`server.live`); anything the browser sends is
+    ignored (at most :data:`WS_MAX_BYTES` a message: a larger one closes the connection, 1009).
+    Beyond :data:`server.live.LIVE_MAX_CLIENTS` live clients a new one is accepted and closed at
+    once with :data:`LIVE_FULL_CLOSE_CODE` and the reason (review of session 53)."""
     await ws.accept()
     broadcaster = ws.app.state.broadcaster
-    client = broadcaster.connect()
+    try:
+        client = broadcaster.connect()
+    except LiveFull as exc:  # accepted first: a refused handshake carries no reason a browser sees
+        await ws.close(LIVE_FULL_CLOSE_CODE, str(exc))
+        return
 
     async def until_disconnect() -> None:
         # Without a pending receive a closed socket goes unnoticed while no frame is due.
@@ -46,13 +62,21 @@ async def live_ws(ws: WebSocket) -> None:
 
 
 @router.get("/api/live/sse", response_class=StreamingResponse,
-            responses={200: {"content": {"text/event-stream": {}}}})
+            responses={200: {"content": {"text/event-stream": {}}},
+                       503: {"description": "As many live clients as the console serves are connected"}})
 async def live_sse(request: Request) -> StreamingResponse:
-    """Server-sent events, one ``data:`` line per live frame."""
+    """Server-sent events, one ``data:`` line per live frame; 503 while
+    :data:`server.live.LIVE_MAX_CLIENTS` live clients are connected."""
     broadcaster = request.app.state.broadcaster
+    if broadcaster.full():
+        raise HTTPException(503, f"the console serves at most {broadcaster.max_clients} live clients at once: "
+                            "close another view")
 
     async def stream():
-        client = broadcaster.connect()
+        try:
+            client = broadcaster.connect()
+        except LiveFull:  # filled since the check above: the stream ends at once
+            return
         try:
             while True:
                 try:

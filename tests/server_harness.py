@@ -21,6 +21,7 @@ from websockets.sync.client import connect
 
 from bridge.session import free_tcp_port
 from server.app import create_app
+from server.routes_live import WS_MAX_BYTES
 from server.settings import Settings
 
 TOKEN = "test-token-0123456789"
@@ -69,7 +70,8 @@ def running_server(data_dir: Path, **overrides) -> Iterator[tuple[str, object]]:
                            "campaign_timeout_s": 120, **overrides})
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
-                                           ws_ping_interval=None, timeout_graceful_shutdown=5))
+                                           ws_ping_interval=None, ws_max_size=WS_MAX_BYTES,  # as xneck server
+                                           timeout_graceful_shutdown=5))
     thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
     thread.start()
     try:

@@ -44,6 +44,7 @@ def server(
 
     from server.app import create_app
     from server.datadir import DataDirError
+    from server.routes_live import WS_MAX_BYTES
     from server.settings import Settings
 
     given = {"host": host, "port": port, "data_dir": data_dir, "pace": pace, "mode": mode, "hub": hub,
@@ -90,5 +91,6 @@ def server(
     typer.echo(f"xneck console: {url}  (API docs {url}docs, data in {Path(settings.data_dir).resolve()})")
     if app.state.token_generated:
         typer.echo(f"new API token (saved in {Path(settings.data_dir) / 'token'}): {app.state.token}")
+    # ws_max_size: a live client's message is ignored, uvicorn's 16 MB default was read first (review of session 53)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_ping_interval=20,
-                timeout_graceful_shutdown=5)
+                ws_max_size=WS_MAX_BYTES, timeout_graceful_shutdown=5)
