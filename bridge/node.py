@@ -369,7 +369,7 @@ class BridgeNode:
 
         def check(cmd: bus.ForceCommand) -> None:
             bus.check_force_command(cmd, n, 0.0, self.f_max)
-            answered = self._state_numbers.get(cmd.stamp_s) if cmd.epoch == self.epoch else None
+            answered = self._answered(cmd.stamp_s) if cmd.epoch == self.epoch else None
             if cmd.epoch == self.epoch and answered is None:
                 # (another run's command: refused by its epoch below, the clearer reason)
                 self.commands_stale += 1
@@ -401,14 +401,15 @@ class BridgeNode:
         # browser test's stack, CI of session 40): holds where the watchdog saw none.
         n_stamps = max(2 * self.safety.config.command_timeout_states, round(ANSWER_WINDOW_S / self.dt))
         self._state_stamps: list[float | None] = [None] * n_stamps
-        # The same states by stamp: their number (``seq`` of the state), so that a command's order
-        # is that of the states it answers, not of the stamps (a wall clock may step back).
-        self._state_numbers: dict[float, int] = {}
+        # Each one's number (``seq`` of the state), at the same place: a command's order is that of
+        # the states it answers, not of the stamps (a wall clock may step back).
+        self._state_numbers: list[int] = [0] * n_stamps
         self._stamp_k = 0
         self._last_sender, self._last_answered = "", 0  # the newest accepted command's sender and state
         # After a stall of the loop: the first state published after it (its number); a command
         # answering an older one was computed before the resume (:meth:`tick`).
         self._resume_number = 0
+        self._stall_s = config.command_timeout_s  # a hold-up past it is a stall (Safety's own rule)
         self.commands_stale = 0  # commands refused for answering no recent state
         self._stale_seen = -math.inf  # monotonic s of the last command refused so
         self.last_state_stamp_s = math.nan  # s, the stamp of the newest state published
@@ -681,12 +682,13 @@ class BridgeNode:
         fresh = cmd if cmd is not None and recv_ns > self._consumed_ns else None
         if recv_ns > self._consumed_ns:
             self._consumed_ns, self._unanswered = recv_ns, 0
-        if held_up_s > self.safety.config.command_timeout_s:
+        if held_up_s > self._stall_s:
             self._resume_number = self._seq["state"] + 1  # the state this tick publishes
         # A command after a stall counts as the controller's answer to it only if it answers a
-        # state published since: a late answer to one before had ended the ramp (review of session 53).
-        after_resume = fresh is None or self._resume_number == 0 or \
-            self._state_numbers.get(fresh.stamp_s, 0) >= self._resume_number
+        # state published since: a late answer to one before had ended the ramp (review of session
+        # 53). Looked up only while a stall's ramp may wait for one (a list scan).
+        after_resume = fresh is None or not self._resume_number or \
+            (self._answered(fresh.stamp_s) or 0) >= self._resume_number
         decision = self.safety.step(Inputs(
             command_N=fresh.force_N if fresh is not None else None,
             source=self._source_text(fresh) if fresh is not None else "",
@@ -751,10 +753,9 @@ class BridgeNode:
         if stamp != self.last_state_stamp_s:  # a lockstep bridge re-publishes its waiting state
             # recorded before the state goes out: an answer may arrive before put() returns
             self._stamp_k = (self._stamp_k + 1) % len(self._state_stamps)
-            gone, self._state_stamps[self._stamp_k] = self._state_stamps[self._stamp_k], stamp
-            self._state_numbers[stamp] = self._seq["state"]
-            if gone is not None and gone != stamp:
-                self._state_numbers.pop(gone, None)
+            # the number first: a callback that finds the stamp finds its number (two stores)
+            self._state_numbers[self._stamp_k] = self._seq["state"]
+            self._state_stamps[self._stamp_k] = stamp
             self.last_state_stamp_s = stamp
         self._state_pub.put(bus.MotorState(
             seq=self._seq["state"], stamp_s=stamp, theta_rad=self._theta_list,
@@ -764,6 +765,15 @@ class BridgeNode:
             bridge=self.instance,
             # one attribute read (a str): the lock only guards the callback's read-modify-write
             owner=self.ownership.owner, estop_engaged=self.safety.estop_engaged, estop_reason=self.safety.estop_reason))
+
+    def _answered(self, stamp_s: float) -> int | None:
+        """The number of the state of ``stamp_s`` among the newest published, None if none (read
+        on a Zenoh thread without a lock: the loop writes a place's number before its stamp)."""
+        try:
+            k = self._state_stamps.index(stamp_s)
+        except ValueError:
+            return None
+        return self._state_numbers[k]
 
     def _stale_note(self) -> str:
         """Why the commands of the last :data:`STALE_NOTE_S` did not count ('' if none was stale): a
