@@ -699,6 +699,8 @@ class BridgeNode:
             hold_N=self.hold.ready(time.monotonic(), self._theta_list, self.speed.rad_s) if fresh is None else None,
             states_unanswered=self._unanswered,
             speed_rad_s=self.speed.rad_s))
+        if self._resume_number and not self.safety.ramp_awaits_answer:
+            self._resume_number = 0  # no ramp waits: no command's state need be looked up
         if not (decision.drive == self.mode == "active" and self.driver.state is Lifecycle.ACTIVE):
             self._follow()  # something to follow (else nothing changed: the steady state, cheaper)
         self.force = self.driver.write(decision.force_N) if self.driver.state is Lifecycle.ACTIVE \

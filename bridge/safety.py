@@ -309,6 +309,12 @@ class Safety:
                         self.hold_reason if self.drive == "hold" else "", self.estop_engaged, self.estop_reason,
                         self.take_events() if self._events else ())
 
+    @property
+    def ramp_awaits_answer(self) -> bool:
+        """Whether the ramp after a stall of the loop waits for a command answering a state
+        published after it (``Inputs.command_after_resume``)."""
+        return self._stale_target
+
     def take_events(self) -> tuple[tuple[int, str], ...]:
         """The log events since the last call (``(logging level, message)``), oldest first."""
         events, self._events = tuple(self._events), []
