@@ -284,3 +284,21 @@ def test_a_drives_off_that_cannot_be_started_is_said_not_raised(tmp_path: Path) 
 
     said = drives_off(["--driver", "beaglebone"], [], tmp_path / "no-such-folder" / "bridge.log")
     assert said.startswith("DRIVES MAY BE ON: `xneck bridge --drives-off` could not be started (No such file"), said
+
+
+def test_a_message_to_a_terminal_or_pipe_that_is_gone_never_stops_the_supervisor() -> None:
+    """Review of session 53: `xneck up --robot 2>&1 | tee up.log`, then Ctrl-C (tee killed too),
+    or a dropped SSH session: each message on the supervisor's and the shutdown's path raised
+    (EPIPE, EIO) and ended the shutdown early, a slow controller's "did not stop" line skipping
+    the bridge's stop and its `--drives-off`. The supervisor's messages never raise; typer's do."""
+    code = ("import sys, typer\nfrom server.cli.up import _say\n"
+            "_say('to a pipe nobody reads', err=True, fg='red')\n_say('and to stdout')\n"
+            "try:\n    typer.secho('again, by typer', err=True)\nexcept OSError as exc:\n"
+            "    print(type(exc).__name__, file=open('/dev/null', 'w'))\n    sys.exit(3)\n")
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone (tee killed by the same Ctrl-C)
+    try:
+        proc = subprocess.run([sys.executable, "-c", code], stdout=w, stderr=w, timeout=60, cwd=ROOT)
+    finally:
+        os.close(w)
+    assert proc.returncode == 3  # _say went on; typer's own call raised, as every message had

@@ -381,6 +381,15 @@ def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> s
     return f"campaign {answer['campaign_id']} {answer['status']}: {answer['message']}"
 
 
+def _say(text: str, err: bool = False, fg: str | None = None) -> None:
+    """``typer.secho`` that never raises: once the terminal is gone (a closed SSH session: EIO) or
+    the pipe it wrote to (``xneck up 2>&1 | tee up.log``, Ctrl-C killing ``tee`` too: EPIPE), a
+    message on the supervisor's or the shutdown's path had raised out of it, skipping the stop of
+    the children after it and a robot's `--drives-off` (review of session 53)."""
+    with contextlib.suppress(OSError, ValueError):  # ValueError: a stream already closed
+        typer.secho(text, err=err, fg=fg)
+
+
 def drives_off(driver_args: list[str], param_args: list[str], log_file: Path) -> str:
     """Run ``xneck bridge <driver_args> --drives-off`` (output appended to ``log_file``), once
     more if it fails; one line for the operator saying whether the drives are off. In a session
@@ -578,7 +587,7 @@ def up(
     telling: list[threading.Thread] = []  # the console told of restarts, off the loop
 
     def tell_console(cause: str, ended_within_s: float, colour: str) -> None:
-        typer.secho(abort_campaign(url, _token(data_dir), cause, ended_within_s), err=True, fg=colour)
+        _say(abort_campaign(url, _token(data_dir), cause, ended_within_s), err=True, fg=colour)
 
     def told_before() -> None:
         """Wait (bounded) for the restarts' messages to the console, so that it hears the causes in order."""
@@ -641,18 +650,18 @@ def up(
                              *([] if bridge_at is None else ["--no-autoconnect"]), *param_args],
               controller_watch.environ())
         token_file = Path(data_dir) / "token"
-        typer.echo(f"xneck is up: dashboard {url}  (API docs {url}docs)")
-        typer.echo(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
-                   f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
-                   f", controller service (law {law})")
+        _say(f"xneck is up: dashboard {url}  (API docs {url}docs)")
+        _say(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
+             f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
+             f", controller service (law {law})")
         if bridge_link:
-            typer.echo(f"  {bridge_link}")
+            _say(f"  {bridge_link}")
         if no_bridge and not bridge_at:
-            typer.echo("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
-                       "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
-        typer.echo(f"  {_bus_access(hub, no_bridge)}")
-        typer.echo(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
-        typer.echo(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
+            _say("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
+                 "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
+        _say(f"  {_bus_access(hub, no_bridge)}")
+        _say(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
+        _say(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         # Why a child was killed, kept until its death is handled: one slow to exit after SIGKILL
         # dies a pass or more later, and had been said to have "exited (signal SIGKILL)" (review).
@@ -679,12 +688,12 @@ def up(
                         # and a robot's drives set off now, beside it (`--drives-off` may run beside a
                         # bridge): set off after its exit only, they had stayed enabled for as long as
                         # the exit was late.
-                        typer.secho(f"warning: the {name} hung (its loop silent for {age:.1f} s): killed, not exited "
-                                    f"after {HUNG_KILL_WAIT_S:g} s ({process_state(procs[name].pid)}); waiting for it",
-                                    err=True, fg="yellow")
+                        _say(f"warning: the {name} hung (its loop silent for {age:.1f} s): killed, not exited "
+                             f"after {HUNG_KILL_WAIT_S:g} s ({process_state(procs[name].pid)}); waiting for it",
+                             err=True, fg="yellow")
                         if name == "bridge" and robot:  # and again after its exit (drives_set_off stays False):
                             # a thread preempted in a system call (a GPIO write) ends that call first
-                            typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
+                            _say(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
                     hung.setdefault(name, f"hung (its loop silent for {age:.1f} s), killed")
             for name in plan.due(polled):  # its back-off over
                 if name == "controller":  # its endpoint, left by the dead process, for the new one to listen on
@@ -692,7 +701,7 @@ def up(
                         (sockets / "controller.sock").unlink()
                     controller_watch.restarted()
                 start(name, *started_with[name])
-                typer.echo(f"  {name} restarted (pid {procs[name].pid})")
+                _say(f"  {name} restarted (pid {procs[name].pid})")
             # a child waiting for its restart is not a new death
             dead = [(n, p.returncode) for n, p in procs.items() if p.poll() is not None and not plan.waiting(n)]
             plan.forget_old(polled)
@@ -709,9 +718,9 @@ def up(
                     restarting = (f"restarting {name} in {delay_s:.0f} s ({plan.used(name)} of {restarts} "
                                   f"within {RESTART_WINDOW_S / 60:.0f} min)")
                     causes.append(f"{name} process {how}, {restarting}")  # the console's header shows it
-                    typer.secho(f"warning: the {name} {how}; {restarting}.\n"
-                                f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
-                                fg="yellow")
+                    _say(f"warning: the {name} {how}; {restarting}.\n"
+                         f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True,
+                         fg="yellow")
                 # Off the loop: a console that hangs had held the restart 15 s (and this loop with it).
                 telling.append(threading.Thread(
                     target=tell_console, name="xneck-up-abort", daemon=True,
@@ -721,21 +730,25 @@ def up(
                 continue
             if dead:
                 name, rc = dead[0]
+                bridge_rc = next((c for n, c in dead if n == "bridge"), 0)
+                if robot and bridge_rc != 0:
+                    # The drives first, whichever death is named: with the console dead in the same
+                    # pass (listed first) they had waited for the controller's stop, up to 16 s
+                    # (review of session 53).
+                    _say(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
+                    drives_set_off = True
                 how = hung.get(name) or f"exited ({exit_how(rc)})"
                 more = f" ({plan.used(name)} restart(s) within {RESTART_WINDOW_S / 60:.0f} min used up)" \
                     if restarts and name in RESTARTABLE else ""
                 also = "".join(f"; the {n} {hung.get(n) or f'exited ({exit_how(c)})'} too" for n, c in dead[1:])
-                typer.secho(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
-                            f"{'more ' if more else ''}is restarted.\n"
-                            f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
-                if name == "bridge" and robot and rc != 0:  # the drives first, the console's record after
-                    typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
-                    drives_set_off = True
+                _say(f"error: the {name} {how}{more}{also}; stopping the stack, nothing "
+                     f"{'more ' if more else ''}is restarted.\n"
+                     f"last lines of {log_files[name]}:\n{log_tail(log_files[name], LOG_LINES)}", err=True, fg="red")
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
                     told_before()
-                    typer.secho(abort_campaign(url, _token(data_dir), f"{name} process {how}",
-                                               time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
-                                err=True, fg="red")
+                    _say(abort_campaign(url, _token(data_dir), f"{name} process {how}",
+                                        time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
+                         err=True, fg="red")
                 code = 1
                 break
             seen_alive = polled
@@ -750,21 +763,21 @@ def up(
             told_before()
             told = abort_campaign(url, _token(data_dir), why, 0.0)
             if told != "no campaign was running":
-                typer.secho(told, err=True, fg="yellow")
+                _say(told, err=True, fg="yellow")
     except RuntimeError as exc:
-        typer.secho(f"error: {exc}", err=True, fg="red")
+        _say(f"error: {exc}", err=True, fg="red")
         code = 1
     finally:
         for name in ("controller", "bridge", "camera", "server"):
             p = procs.get(name)
             if p is not None and (how := stop_child(p, STOP_GRACE_S)):
-                typer.secho(f"{name} did not stop within {STOP_GRACE_S:.0f} s: {how}", err=True, fg="yellow")
+                _say(f"{name} did not stop within {STOP_GRACE_S:.0f} s: {how}", err=True, fg="yellow")
             if name == "bridge" and robot and p is not None and p.returncode != 0 and not drives_set_off:
-                typer.secho(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
+                _say(drives_off(driver, param_args, log_files["bridge"]), err=True, fg="red")
         if watch is not None:
             watch.close()
         controller_watch.close()
         shutil.rmtree(sockets, ignore_errors=True)
-        typer.echo(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
+        _say(f"xneck stopped{' (' + stop['signal'] + ')' if stop['signal'] else ''}")
     if code:
         raise typer.Exit(code)
