@@ -162,14 +162,20 @@ async def estop(request: Request) -> Any:
     return {"engaged": body.engaged, "reason": why}
 
 
-def _estop_senders(request: Request) -> anyio.CapacityLimiter:
-    """The e-stop's own threads (:data:`ESTOP_SENDERS`), made in the app's event loop on first use
-    (no await between the test and the set)."""
+def _own_threads(request: Request, name: str, threads: int) -> anyio.CapacityLimiter:
+    """The app's limiter ``name`` of ``threads`` threads, never anyio's default pool: made in the
+    app's event loop on first use (no await between the test and the set)."""
     s = request.app.state
-    senders = getattr(s, "estop_senders", None)
-    if senders is None:
-        senders = s.estop_senders = anyio.CapacityLimiter(ESTOP_SENDERS)
-    return senders
+    limiter = getattr(s, name, None)
+    if limiter is None:
+        limiter = anyio.CapacityLimiter(threads)
+        setattr(s, name, limiter)
+    return limiter
+
+
+def _estop_senders(request: Request) -> anyio.CapacityLimiter:
+    """The e-stop's own threads (:data:`ESTOP_SENDERS`)."""
+    return _own_threads(request, "estop_senders", ESTOP_SENDERS)
 
 
 ESTOP_ERRORS_MAX = 5  # errors an e-stop's 422 lists (a body of 100 unknown keys answered 2.9 MB)
@@ -264,9 +270,7 @@ async def safety_journal(request: Request,
     is refused, never waited on). Open like the other reads (no token): read on
     :data:`JOURNAL_READERS` threads of its own, so no number of GETs delays the e-stop's POST."""
     s = request.app.state
-    readers = getattr(s, "journal_readers", None)
-    if readers is None:  # made in the app's event loop, once (no await between the test and the set)
-        readers = s.journal_readers = anyio.CapacityLimiter(JOURNAL_READERS)
+    readers = _own_threads(request, "journal_readers", JOURNAL_READERS)
     events, skipped, unreadable = await anyio.to_thread.run_sync(_read_journal, s.journal, limit, limiter=readers)
     return {"events": events, "skipped": skipped, "unreadable": unreadable, "journal": _journal_status(s)}
 
