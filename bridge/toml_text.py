@@ -11,6 +11,7 @@ parse error a caller expects).
 
 from __future__ import annotations
 
+import re
 import tomllib
 from typing import Any
 
@@ -19,20 +20,40 @@ from typing import Any
 MAX_KEY_PARTS = 64
 
 
+#: One token of the scan: a quoted string (basic or literal, on one line), a bare word, a dot,
+#: spaces, a comment, a line's end or any other character. Each alternative ends at a quote, a
+#: line's end or the first character outside its class: one pass, linear in the text.
+_TOKEN = re.compile(r'''"(?:[^"\\\n]|\\.)*"|'[^'\n]*'|[A-Za-z0-9_-]+|\.|[ \t]+|#[^\n]*|\n|.''')
+
+
 def check_keys(text: str) -> None:
-    """Raise ``tomllib.TOMLDecodeError`` (a ``ValueError``) naming the line of the first key or
-    table header of more than :data:`MAX_KEY_PARTS` parts. Counts the dots before a line's
-    first ``=`` (or inside its ``[...]`` header): a dot in a quoted key counts too, which only
-    errs on the side of refusing a key no file here has."""
-    for number, line in enumerate(text.splitlines(), 1):
-        stripped = line.lstrip()
-        if stripped.startswith("["):
-            key = stripped.split("]", 1)[0]
-        else:
-            key = stripped.split("=", 1)[0] if "=" in stripped else ""
-        if key.count(".") >= MAX_KEY_PARTS:
-            raise tomllib.TOMLDecodeError(f"line {number}: a key of more than {MAX_KEY_PARTS} dotted parts "
-                                          f"({key.count('.') + 1}): not a file of this software")
+    """Raise ``tomllib.TOMLDecodeError`` (a ``ValueError``) naming the line of the first chain of
+    more than :data:`MAX_KEY_PARTS` parts (bare words or quoted strings) joined by dots, wherever
+    it stands: a key, a table header, an inline table's key. The text is scanned as tokens, so a
+    quoted part holding ``=`` or ``]`` counts as one part (splitting the line at its first ``=``
+    had let ``"=".a.a…`` through: review of session 53's diff). A chain in a value counts too
+    (``1.5`` is two parts): it only errs on the side of refusing what no file here has."""
+    parts, line, dot = 0, 1, False
+    for match in _TOKEN.finditer(text):
+        token = match.group()
+        first = token[0]
+        if first == "." and len(token) == 1:
+            dot = parts > 0
+            continue
+        if first in " \t" or first == "#":
+            continue
+        if first == "\n":
+            line += 1
+            parts, dot = 0, False  # a key never spans lines
+            continue
+        if (first in "\"'" and len(token) > 1) or first.isalnum() or first in "_-":
+            parts = parts + 1 if dot else 1
+            dot = False
+            if parts > MAX_KEY_PARTS:
+                raise tomllib.TOMLDecodeError(f"line {line}: a key of more than {MAX_KEY_PARTS} dotted parts: "
+                                              "not a file of this software")
+            continue
+        parts, dot = 0, False
 
 
 def loads(text: str) -> dict[str, Any]:
