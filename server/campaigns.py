@@ -52,6 +52,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 import threading
 import time
@@ -837,7 +838,11 @@ class CampaignManager:
         killed half-way (``.rewrite``, ``.recovering``). Deleting a campaign had kept them, so
         the room a full disk's advice ("delete archives") promised was not freed."""
         mcap = self.index.mcap(campaign_id)
-        for p in [*mcap.parent.glob(glob.escape(mcap.name) + ".corrupt*"),
+        # only NAME.corrupt and NAME.corrupt.<n> (bridge.archive_recovery): ids may hold dots, so a
+        # glob's "*" took another campaign's "<id>.mcap.corrupt_b.json" too (review of session 53's diff)
+        copy = re.compile(re.escape(mcap.name) + r"\.corrupt(?:\.[0-9]+)?")
+        corrupt = [p for p in mcap.parent.glob(glob.escape(mcap.name) + ".corrupt*") if copy.fullmatch(p.name)]
+        for p in [*corrupt,
                   mcap.with_name(mcap.name + ".rewrite"), mcap.with_name(mcap.name + ".recovering")]:
             with contextlib.suppress(OSError):
                 if not p.is_dir():

@@ -867,8 +867,12 @@ def test_a_delete_removes_the_campaigns_own_files_only_and_its_leftover_copies(t
     victim = tmp_path / "victim"
     victim.mkdir()
     (victim / "thesis.tex").write_text("years of work")
-    for cid in ("control-linked", "control-copies"):
+    # a neighbour whose id starts as a copy's name (ids may hold dots): its files are not copies
+    # (a glob of "<id>.mcap.corrupt*" took them: review of session 53's diff)
+    neighbour = "control-copies.mcap.corrupt_b"
+    for cid in ("control-linked", "control-copies", neighbour):
         (campaigns / f"{cid}.json").write_text(json.dumps(record(cid, "finished")))
+    (campaigns / f"{neighbour}.mcap").write_bytes(b"\0" * 1000)
     (campaigns / "control-linked_figures").symlink_to(victim, target_is_directory=True)
     own = campaigns / "control-copies_figures"
     (own / "inner").mkdir(parents=True)
@@ -895,6 +899,7 @@ def test_a_delete_removes_the_campaigns_own_files_only_and_its_leftover_copies(t
     assert (victim / "thesis.tex").read_text() == "years of work"
     assert not (campaigns / "control-linked_figures").exists() and not (campaigns / "control-linked_figures").is_symlink()
     assert not own.exists() and not [n for n in copies if (campaigns / n).exists()]
+    assert (campaigns / f"{neighbour}.json").exists() and (campaigns / f"{neighbour}.mcap").exists()
 
 
 def test_a_close_that_times_out_keeps_the_data_folder_until_the_worker_ends(tmp_path: Path) -> None:
