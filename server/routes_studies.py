@@ -49,7 +49,8 @@ class StudyRequest(BaseModel):
     laws: list[Literal[1, 2, 3]] = Field(default_factory=lambda: [2], min_length=1, max_length=3)
     no_pulleys: bool = False
     trajectory: Literal["control_test", "identification"] | None = None
-    truth: Literal["model", "robot"] = "model"
+    truth: Literal["model", "robot"] | None = Field(
+        None, description="What the twin simulates; default robot for an identification study, model otherwise")
     alpha_ip: Literal["noise", "camera"] = "noise"
     settle_s: float = Field(1.0, ge=0.0, le=60.0)
     model_follows: bool = False

@@ -551,7 +551,10 @@ def test_a_study_records_and_hashes_only_the_fields_its_kind_uses(tmp_path) -> N
         "laws", "no_pulleys", "trajectory", "truth", "alpha_ip", "settle_s", "model_follows"}
     # Resume: the digests of studies recorded before are kept (these are the previous version's),
     # and a directory whose study.json recorded every field still holds the same study.
-    assert [study_from(k).digest() for k in ("control", "identification", "design")] == [
+    # (an identification study's default truth became the robot's on 2026-12-01: the one on the
+    # model truth, asked for, keeps its digest)
+    assert [study_from(k, **({"truth": "model"} if k == "identification" else {})).digest()
+            for k in ("control", "identification", "design")] == [
         "825a25500aefa78c", "8cb27dc463fbc46c", "92705072dafb4453"]
     old = tmp_path / "old"
     old.mkdir()
@@ -594,3 +597,19 @@ def test_identification_metrics_of_a_twin_value_of_zero_are_undefined_not_a_dive
     assert m["lambda_within_10pct_fraction"] == pytest.approx(2 / 3)  # over the three defined: 3 %, 10.5 %, 0 %
     assert [m[f"lambda_covered[{i}]"] for i in range(1, 5)] == [1.0, 1.0, 0.0, 1.0]  # 0 ± 4 covers 0, 89.5 ± 1.8 not 100
     assert m["k_rel_error_max"] == pytest.approx(0.05) and m["k_covered_fraction"] == 1.0  # 5 % off, σ 3 %
+
+
+def test_an_identification_study_defaults_to_the_robot_truth_by_every_entry() -> None:
+    """Truth audit of 2026-12-01: ``xneck study identification`` and the console's studies ran on
+    the model truth by default, the controller's own model, where an identification finds the
+    parameter file it started from; identification campaigns default to the robot truth."""
+    from server.routes_studies import StudyRequest
+    from server.studies.service import study_or_error
+
+    assert study_from("identification").truth == "robot"
+    assert study_from("identification", truth="model").truth == "model"  # asked for: kept
+    assert study_from("control").truth == "model"
+    rest = StudyRequest.model_validate({"kind": "identification"}).model_dump(exclude={"workers"})
+    assert study_or_error(**rest).truth == "robot"
+    rest = StudyRequest.model_validate({"kind": "control"}).model_dump(exclude={"workers"})
+    assert study_or_error(**rest).truth == "model"

@@ -51,6 +51,12 @@ def test_the_studies_card_runs_a_study_live_and_shows_its_summary_and_figures(tm
               if (t && window.rowsSeen[window.rowsSeen.length - 1] !== t) window.rowsSeen.push(t); })
             .observe(document.querySelector('#st-list tbody'), {childList: true, subtree: true, characterData: true}); }""")
 
+        # The truth follows the kind, as the API's default does (truth audit of 2026-12-01).
+        page.select_option("#st-kind", "identification")
+        assert page.input_value("#st-truth") == "robot"
+        page.select_option("#st-kind", "control")
+        assert page.input_value("#st-truth") == "model"
+
         # A bad spec: refused with the checker's message, nothing created.
         page.fill("#st-samples", "3")
         page.fill("#st-laws", "2")

@@ -131,6 +131,10 @@
 
   el("st-start").addEventListener("click", start);
   el("st-refresh").addEventListener("click", refresh);
-  form.kind.addEventListener("change", () => { form.laws.disabled = form.kind.value !== "control"; });
+  form.kind.addEventListener("change", () => {
+    form.laws.disabled = form.kind.value !== "control";
+    // an identification on the model truth finds the file it started from: robot, as the API's default
+    form.truth.value = form.kind.value === "identification" ? "robot" : "model";
+  });
   refresh();
 })();

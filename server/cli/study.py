@@ -29,7 +29,8 @@ WORKERS = typer.Option(None, "--workers", help="Local Dask worker processes (def
 SCHEDULER = typer.Option(None, "--scheduler", help="An existing Dask cluster, tcp://HOST:PORT (see docs/studies.md).")
 AS_JSON = typer.Option(False, "--json", help="Print the summary as JSON.")
 FILE = typer.Option(None, "--study", help="Study file (TOML) for anything the flags cannot say.")
-TRUTH = typer.Option(None, "--truth", help="What the twin simulates: model (default), robot or a truth file.")
+TRUTH = typer.Option(None, "--truth", help="What the twin simulates: model, robot or a truth file (default: robot for an identification "
+                     "study, model otherwise).")
 ALPHA_IP = typer.Option(None, "--alpha-ip", help="The twin's α_IP: noise (default, fast) or camera.")
 TRAJECTORY = typer.Option(None, "--trajectory", help="Trajectory name or file (default: control_test; "
                           "identification for an identification study).")

@@ -159,7 +159,7 @@ class Study:
     laws: tuple[int, ...] = (2,)
     no_pulleys: bool = False
     trajectory: str = "control_test"  # an identification study's default is "identification" (§5.2.2)
-    truth: str = "model"
+    truth: str = "model"  # an identification study's default is "robot" (issue 17: never the controller's own model)
     alpha_ip: str = "noise"
     settle_s: float = 1.0
     model_follows: bool = False
@@ -252,6 +252,10 @@ def study_from(kind: str, file: Path | None = None, **flags: Any) -> Study:
     if kind != "design":  # a design study has no trajectory
         data.setdefault("trajectory", "identification" if kind == "identification" else "control_test")
     if kind == "identification":
+        # on the model truth an identification finds the parameter file it started from (the
+        # identity check): the robot truth, as identification campaigns default to (truth audit
+        # of 2026-12-01: studies alone defaulted to the model)
+        data.setdefault("truth", "robot")
         data["laws"] = (1,)  # the §5.2.2 campaign runs law 1 (server.cli.campaign): its rows say so
     for key in ("vary", "laws", "set"):
         if key in data:
