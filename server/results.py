@@ -91,6 +91,12 @@ def _finite(x: Any) -> Any:
     return x if not isinstance(x, float) or math.isfinite(x) else None
 
 
+def _percent(x: Any) -> float | None:
+    """A relative σ as a percentage to 2 decimals; None where there is none (a parameter held at
+    its bound has no σ: its null was a TypeError, the whole results a 500; fresh-user audit of 2026-12-01)."""
+    return round(100 * x, 2) if isinstance(x, (int, float)) and math.isfinite(x) else None
+
+
 def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]:
     """Tables 1 and 2 from ``twin.identification.report.report_dict`` output."""
     if not report:
@@ -98,7 +104,7 @@ def identification_tables(report: dict[str, Any] | None) -> list[dict[str, Any]]
     out = []
 
     def rows(est: dict[str, Any]) -> list[list[Any]]:
-        return [[p["name"], p["value"], p["sigma"], round(100 * p["relative_sigma"], 2),
+        return [[p["name"], _finite(p["value"]), _finite(p["sigma"]), _percent(p["relative_sigma"]),
                  p.get("reason") or ("badly identified" if p["badly_identified"] else "")] for p in est["parameters"]]
 
     proc = report.get("processing") or {}

@@ -73,6 +73,14 @@ def console(tmp_path_factory):
     metrics["e_mean_all_deg"], metrics["force_mean_all_N"], metrics["saturated_ticks"] = NAN, -INF, NAN
     metrics["e_max_deg"][1], metrics["e_mean_deg"][0] = NAN, INF
     index.json("not-finite").write_text(json.dumps({**record, "id": "not-finite", "metrics": metrics}))
+    # an identification whose c_a(4) was held at its bound (0): no σ, relative σ null (fresh-user audit
+    # of 2026-12-01: its /results was a 500 and the dashboard showed no table)
+    held = [{"name": "c_a(4)", "value": 0.0, "sigma": None, "relative_sigma": None, "badly_identified": True,
+             "reason": "held at its bound"},
+            {"name": "k(1)", "value": 5000.0, "sigma": 50.0, "relative_sigma": 0.01, "badly_identified": False}]
+    index.save(CampaignRecord(id="held-at-bound", kind="identification", law="law1", trajectory="identification",
+                              parameter_set="prototype_3x", target="twin", status="finished",
+                              identification={"table_2": {"parameters": held, "estimator": "auto"}}))
     for cid in ("no-archive", "damaged"):  # a record whose archive is missing, one whose archive is no MCAP
         index.save(CampaignRecord(id=cid, kind="control", law="law2", trajectory="control_test",
                                   parameter_set="prototype_3x", target="twin", status="finished"))
@@ -261,3 +269,12 @@ def test_a_flood_of_open_archive_reads_never_delays_the_estop(tmp_path, monkeypa
                for r, u in zip(answers, urls) if "compare" in u)
     assert peak[0] == 2, peak
     assert reads == {**{("traces", cid): 1 for cid in ids}, **{("figure", cid): 1 for cid in ids[:3]}}, reads
+
+
+def test_an_identification_with_a_parameter_held_at_its_bound_has_its_tables(console):
+    r = console.get("/api/campaigns/held-at-bound/results")
+    assert r.status_code == 200, r.text
+    table = next(t for t in r.json()["tables"] if t["title"].startswith("Table 2"))
+    rows = {row[0]: row for row in table["rows"]}
+    assert rows["c_a(4)"][1:5] == [0.0, None, None, "held at its bound"], rows
+    assert rows["k(1)"][3] == 1.0, rows
