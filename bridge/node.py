@@ -105,7 +105,7 @@ from bridge.estop_latch import LatchFile, read_latch
 from bridge.log_limit import LogLimit
 from bridge.loop_watchdog import MIN_STALL_S, LoopWatchdog, drives_off_and_exit
 from bridge.motor_speed import MotorSpeed
-from bridge.runtime import SystemdNotify, no_core_dump, raise_loop_thread
+from bridge.runtime import SystemdNotify, arrange_thread, no_core_dump, raise_loop_thread, take_loop_priority
 from bridge.safety import RELEASE_TOKEN_WAIT_S, EStopHolders, HoldForces, Inputs, Ownership, Safety, SafetyConfig
 from bridge.session import (
     BusPublisher,
@@ -204,6 +204,7 @@ def _demote_this_thread() -> None:
     inversion; suspected first for the 0.5 s stalls of 2026-11-26, which were Zenoh's threads at
     the loop's FIFO priority instead: :func:`bridge.runtime.raise_loop_thread`)."""
     tid = threading.get_native_id()
+    arrange_thread(None)  # and out of a real-time priority the process takes later
     with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
         os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
 
@@ -896,6 +897,9 @@ def run_realtime(node: BridgeNode, stop: threading.Event, systemd: SystemdNotify
     node.publish_health()
     switch = sys.getswitchinterval()
     sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
+    # the priority a supervisor asked for, now that imports, model and hold are set up
+    if why := take_loop_priority():
+        log.warning("real-time loop: %s", why)
     above = raise_loop_thread()  # before the watchdog, which goes one above the loop
     if above:
         log.warning("real-time loop: %s", above)

@@ -73,6 +73,60 @@ def raise_priority(niceness: int = -10) -> bool:
         return False
 
 
+#: Set by a supervisor for a loop process (``xneck up``, the console's campaign runner:
+#: :func:`server.child_processes.loop_environ`): the SCHED_FIFO priority it takes once it is set
+#: up, at its loop's start (:func:`take_loop_priority`). Taken at its exec instead, its imports,
+#: model and numba caches computed for seconds at that priority on the loop's CPU, above another
+#: stack's controller there, which was killed as hung (fresh-user audit of 2026-12-01).
+ENV_LOOP_PRIORITY = "XNECK_LOOP_PRIORITY"
+LOOP_NICE = -10  # where real-time priority is not permitted
+_arranged: dict[int, int | None] = {}  # native thread id -> its place against the loop's priority
+
+
+def arrange_thread(offset: int | None) -> None:
+    """Say where the calling thread stands against its process's loop priority, for a priority
+    taken later (:func:`take_loop_priority`): ``None`` out of real-time scheduling (the bridge's
+    hold worker), ``-1`` one below (the controller's own threads). The caller applies it now too
+    if the process already runs at real-time priority."""
+    _arranged[threading.get_native_id()] = offset
+
+
+def take_loop_priority() -> str:
+    """The real-time priority ``$XNECK_LOOP_PRIORITY`` asks for, taken now by every thread of this
+    process but those placed by :func:`arrange_thread` (at their place); where SCHED_FIFO is not
+    permitted, nice :data:`LOOP_NICE`. Without the variable nothing is done (a systemd unit gives
+    the policy at exec, or nobody asked). '' if done, else why not (logged by the caller)."""
+    value = os.environ.get(ENV_LOOP_PRIORITY, "")
+    if not value:
+        return ""
+    try:
+        prio = int(value)
+        if not 1 <= prio <= 98:
+            raise ValueError
+    except ValueError:
+        return f"{ENV_LOOP_PRIORITY}={value[:20]!r} is no real-time priority (1-98): scheduling left as is"
+    try:
+        tids = sorted(int(t) for t in os.listdir("/proc/self/task"))
+    except OSError:
+        tids = [threading.get_native_id()]
+    refused: set[str] = set()
+    for tid in tids:
+        offset = _arranged.get(tid, 0)
+        if offset is None:
+            continue
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(1, prio + offset)))
+        except ProcessLookupError:
+            continue  # a thread that ended meanwhile
+        except (AttributeError, OSError) as exc:
+            refused.add(f"SCHED_FIFO {prio}: {getattr(exc, 'strerror', None) or exc}")
+            try:
+                os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
+            except OSError as exc2:
+                refused.add(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
+    return "; ".join(sorted(refused))
+
+
 def raise_loop_thread() -> str:
     """Under a real-time policy (SCHED_FIFO/RR, as the robot's unit and ``xneck up`` give the whole
     process), put the calling thread, the real-time loop, one priority above the process's other

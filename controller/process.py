@@ -56,7 +56,7 @@ import zenoh
 
 from bridge import bus
 from bridge.log_limit import LogLimit
-from bridge.runtime import SystemdNotify
+from bridge.runtime import SystemdNotify, arrange_thread, take_loop_priority
 from bridge.session import controller_attachment, liveliness_token, payload_of, publisher, subscribe_latest
 from controller.laws import LawConfig
 from controller.prepare import GivenUp, Prepared, Refused, prepare, start_pose_when_known
@@ -83,6 +83,7 @@ def below_the_tick() -> None:
     (FIFO does not share a CPU between equals), and a waiting tick cannot even ask them for the
     GIL. One below, the tick preempts them and gets the GIL within the switch interval."""
     tid = threading.get_native_id()
+    arrange_thread(-1)  # and one below a real-time priority the process takes later
     with contextlib.suppress(AttributeError, OSError):  # not Linux, or not allowed: carry on as is
         if os.sched_getscheduler(tid) == os.SCHED_FIFO:
             prio = os.sched_getparam(tid).sched_priority
@@ -412,7 +413,9 @@ class ControllerNode:
         thread does the rest, between ticks: holds on stale states, lockstep re-sends, campaign
         requests, events, health and timing."""
         below_the_tick()
-        self.service.warm_up()
+        self.service.warm_up()  # numba's caches, LAPACK: before a real-time priority asked for
+        if why := take_loop_priority():  # the supervisor's (bridge.runtime), this thread one below
+            log.warning("real-time loop: %s", why)
         # Everything allocated so far lives for the whole run: keep the collector off it, so a
         # full collection cannot land in the middle of a 2 ms tick.
         gc.collect()

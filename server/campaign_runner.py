@@ -62,7 +62,7 @@ from controller.laws import LawConfig
 from controller.trajectory import Trajectory
 from server.archive_metrics import metrics_from_archive
 from server.archive_rewrite import rewrite_archive
-from server.child_processes import isolate, log_tail, stop_child, xneck_argv
+from server.child_processes import isolate, log_tail, loop_environ, stop_child, xneck_argv
 from server.quality import (
     THRESHOLDS,
     TWIN_CAMERA,
@@ -421,11 +421,13 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
     try:
         def spawn(name: str, args: list[str]) -> None:
             logs[name] = workdir / f"{name}.log"
+            # a loop process takes its real-time priority itself once set up (server.child_processes.loop_environ)
+            env = {**os.environ, "PYTHONUNBUFFERED": "1", **(loop_environ(args[0]) if realtime else {})}
             with open(logs[name], "wb") as log:
                 procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT,
-                                               stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                               stdin=subprocess.DEVNULL, env=env)
             if realtime:  # a lockstep twin runs flat out: no real-time priority for it (issue 21)
-                isolate(procs[name].pid, args[0])
+                isolate(procs[name].pid, args[0], realtime=False)
 
         not_up = ""  # a camera process (or a robot's bridge) that is not up: the campaign does not start
         if not spec.twin and not spec.service:  # the robot's bridge, already on the bus: is it?

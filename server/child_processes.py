@@ -23,11 +23,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from bridge.runtime import ENV_LOOP_PRIORITY, LOOP_NICE
+
 ENV_REALTIME = "XNECK_REALTIME"
 #: SCHED_FIFO priority of each loop process (1-99): the bridge (its watchdog and hold) first; the
 #: robot's bridge unit has 50 too (docs/bridge.md).
 LOOP_PRIORITY = {"bridge": 50, "twin": 50, "controller": 49}
-LOOP_NICE = -10  # the fallback when real-time priority is not permitted
 KINDS = ("bridge", "twin", "controller", "server", "camera", "up", "campaign")
 _POLICIES = {os.SCHED_OTHER: "other", os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr",
              getattr(os, "SCHED_BATCH", -1): "batch", getattr(os, "SCHED_IDLE", -2): "idle"}
@@ -173,9 +174,13 @@ def _tids(pid: int) -> list[int]:
         return [pid]
 
 
-def isolate(pid: int, kind: str) -> dict[str, Any]:
+def isolate(pid: int, kind: str, realtime: bool = True) -> dict[str, Any]:
     """Schedule process ``pid`` as its ``kind`` asks (module docstring) and return what it got
-    (:func:`scheduling`). Call it right after the process started: it sets every thread the
+    (:func:`scheduling`). ``realtime=False``: its CPUs only; a loop process started with
+    :func:`loop_environ` then takes its real-time priority itself once set up (raised at its exec,
+    it computed its imports and caches for seconds at SCHED_FIFO on the loop's CPU, above another
+    stack's controller there, which was killed as hung: fresh-user audit of 2026-12-01). Call it
+    right after the process started: it sets every thread the
     process has by then (the interpreter may already have started some, e.g. when this caller
     was slow to run), and the threads it starts later inherit. A thread that made itself nicer
     than its process's main thread (the bridge's hold worker, which must not run at real-time
@@ -195,7 +200,7 @@ def isolate(pid: int, kind: str) -> dict[str, Any]:
                 continue  # a thread that ended meanwhile
             except OSError as exc:
                 refused.append(f"CPU affinity: {exc.strerror or exc}")
-            if not is_loop or (tid != pid and _nice(tid) > base_nice):
+            if not is_loop or not realtime or (tid != pid and _nice(tid) > base_nice):
                 continue
             try:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))
@@ -209,6 +214,15 @@ def isolate(pid: int, kind: str) -> dict[str, Any]:
                     refused.append(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
     _refusals[pid] = sorted(set(refused))
     return scheduling(pid, kind)
+
+
+def loop_environ(kind: str) -> dict[str, str]:
+    """What the environment of a ``kind`` process started with ``isolate(..., realtime=False)``
+    needs to take its loop's real-time priority itself at its loop's start
+    (:func:`bridge.runtime.take_loop_priority`): nothing for other kinds or ``XNECK_REALTIME=0``."""
+    if kind not in LOOP_PRIORITY or os.environ.get(ENV_REALTIME, "1") == "0":
+        return {}
+    return {ENV_LOOP_PRIORITY: str(LOOP_PRIORITY[kind])}
 
 
 def _nice(tid: int) -> int:

@@ -143,3 +143,53 @@ def test_the_controllers_own_threads_run_one_below_its_tick_on_zenohs_threads():
             assert counts.get(f"fifo {tick}", 0) >= 1, counts  # Zenoh's threads, the tick's
         finally:
             p.kill()
+
+
+def test_a_loop_process_takes_the_priority_asked_for_at_its_loop_each_thread_at_its_place():
+    """``xneck up`` and the campaign runner start a loop process on the loop's CPU only, with
+    ``XNECK_LOOP_PRIORITY`` (:func:`server.child_processes.loop_environ`); at its loop's start it
+    takes that priority itself (bridge.runtime.take_loop_priority): every thread, but those that
+    placed themselves (the bridge's hold worker out of real-time scheduling, the controller's own
+    threads one below). Fresh-user audit of 2026-12-01: taken at exec, the imports had starved
+    another stack's controller on that CPU."""
+    code = ("import os, sys, threading, time\n"
+            "from bridge.runtime import arrange_thread, take_loop_priority\n"
+            "def placed(offset):\n"
+            "    arrange_thread(offset)\n"
+            "    time.sleep(30)\n"
+            "for offset in (None, -1):\n"
+            "    threading.Thread(target=placed, args=(offset,), daemon=True).start()\n"
+            "threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+            "time.sleep(0.3)\n"
+            "print(os.sched_getscheduler(0), flush=True)\n"
+            "print(repr(take_loop_priority()), flush=True)\n"
+            "time.sleep(30)\n")
+    env = {**os.environ, **cp.loop_environ("controller")}
+    if not cp.loop_environ("controller"):
+        pytest.skip("XNECK_REALTIME=0: no priority asked for")
+    prio = cp.LOOP_PRIORITY["controller"]
+    with subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env) as p:
+        try:
+            assert p.stdout is not None
+            cp.isolate(p.pid, "controller", realtime=False)
+            assert p.stdout.readline().strip() == str(os.SCHED_OTHER)  # not at its start
+            why = p.stdout.readline().strip()
+            counts = cp.thread_scheduling(p.pid)
+            if why != "''":
+                assert "SCHED_FIFO" in why and counts.get(f"fifo {prio}", 0) == 0, (why, counts)
+                pytest.skip(f"no real-time priority here: {why}")
+            assert counts == {f"fifo {prio}": 2, f"fifo {prio - 1}": 1, "other": 1}, counts
+        finally:
+            p.kill()
+    assert cp.loop_environ("server") == {} and cp.loop_environ("camera") == {}
+
+
+def test_a_priority_asked_for_that_is_none_is_said_and_nothing_changes(monkeypatch):
+    from bridge.runtime import ENV_LOOP_PRIORITY, take_loop_priority
+
+    before = os.sched_getscheduler(0)
+    for value in ("high", "0", "99", "-5"):
+        monkeypatch.setenv(ENV_LOOP_PRIORITY, value)
+        assert "is no real-time priority" in take_loop_priority(), value
+    monkeypatch.delenv(ENV_LOOP_PRIORITY)
+    assert take_loop_priority() == "" and os.sched_getscheduler(0) == before

@@ -278,3 +278,73 @@ def test_a_supervisor_killed_mid_campaign_is_named_not_an_estop(tmp_path: Path) 
     record = json.loads(record_file.read_text())
     assert record["status"] == "aborted", record
     assert "its parent process" in record["message"] and "died" in record["message"], record["message"]
+
+
+def _fifo_permitted() -> bool:
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(5)"]) as p:
+        try:
+            os.sched_setscheduler(p.pid, os.SCHED_FIFO, os.sched_param(1))
+            return True
+        except OSError:
+            return False
+        finally:
+            p.kill()
+
+
+@pytest.mark.skipif(os.environ.get("XNECK_REALTIME") == "0", reason="isolation turned off")
+def test_xneck_ups_loop_processes_take_real_time_priority_at_their_loop_not_at_their_start(tmp_path: Path) -> None:
+    """Fresh-user audit of 2026-12-01: a second `xneck up` on one machine (the hub refusal's own
+    advice: its own --hub, --port, --viser-port) had its bridge and controller at SCHED_FIFO from
+    their exec, computing their imports and numba caches for seconds on the loop's CPU above the
+    first stack's controller, which was killed as hung, its campaign aborted. They start as
+    ordinary processes (on the loop's CPU) and take the priority at their loop's start, where the
+    threads' order is as before: the bridge's loop above its process, its hold worker out of
+    real-time scheduling; the controller's own threads one below its ticks (Zenoh's threads).
+    (A twin's bridge has no loop watchdog, the thread above its loop: tests/test_bridge_watchdog.py.)"""
+    from server.child_processes import LOOP_PRIORITY, cpu_split
+
+    if not _fifo_permitted():
+        pytest.skip("SCHED_FIFO is not permitted here: no priority to take")
+    with _xneck_up(tmp_path) as (base, _data, up):
+        early: dict[str, list[str]] = {"bridge": [], "controller": []}
+        seen: dict[str, int] = {}
+        deadline = time.monotonic() + 120
+        while len(seen) < 2 and time.monotonic() < deadline and up.poll() is None:
+            for kind in early:
+                pid = seen.get(kind) or _child(up.pid, kind)
+                if pid is None:
+                    continue
+                first = kind not in seen
+                seen[kind] = pid
+                if first:  # its first 0.3 s: interpreter start-up and imports, nowhere near its loop
+                    until = time.monotonic() + 0.3
+                    while time.monotonic() < until:
+                        with contextlib.suppress(OSError):
+                            early[kind].append(f"{os.sched_getscheduler(pid)} {os.sched_getparam(pid).sched_priority}")
+                        time.sleep(0.02)
+            time.sleep(0.02)
+        assert len(seen) == 2, (seen, up.poll())
+        for kind, samples in early.items():
+            assert samples and set(samples) == {f"{os.SCHED_OTHER} 0"}, (kind, samples)
+        loop_cpus, _ = cpu_split()
+        bridge, controller = seen["bridge"], seen["controller"]
+        tick, safety = LOOP_PRIORITY["controller"], LOOP_PRIORITY["bridge"]
+        assert wait_until(lambda: os.sched_getparam(controller).sched_priority == tick - 1, 120), \
+            cp_counts(controller)  # the controller's main thread, one below its ticks
+        assert wait_until(lambda: os.sched_getparam(bridge).sched_priority == safety + 1, 120), \
+            cp_counts(bridge)  # the bridge's loop (its main thread), above its process
+        from server.child_processes import thread_scheduling
+
+        bridge_threads, controller_threads = thread_scheduling(bridge), thread_scheduling(controller)
+        assert controller_threads.get(f"fifo {tick}", 0) >= 1, controller_threads  # Zenoh's: the ticks
+        assert bridge_threads.get(f"fifo {safety}", 0) >= 1, bridge_threads  # Zenoh's
+        assert bridge_threads.get("other", 0) >= 1, bridge_threads  # the hold worker
+        for pid in (bridge, controller):
+            assert os.sched_getaffinity(pid) == loop_cpus, pid
+        assert _get(f"{base}/api/system/health") is not None
+
+
+def cp_counts(pid: int) -> dict[str, int]:
+    from server.child_processes import thread_scheduling
+
+    return thread_scheduling(pid)

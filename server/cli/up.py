@@ -78,6 +78,7 @@ from server.child_processes import (
     isolate_self,
     kill_child,
     log_tail,
+    loop_environ,
     process_state,
     stop_child,
     xneck_argv,
@@ -605,13 +606,16 @@ def up(
                           f"{time.strftime('%Y-%m-%d %H:%M:%S')} ----\n")
         # The endpoints are given on each command line: a user's XNECK_ZENOH_* must not add others.
         child_env = {**{k: v for k, v in os.environ.items() if k not in (ENV_LISTEN, ENV_CONNECT)},
-                     "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **(env or {})}
+                     "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **loop_environ(args[0]), **(env or {})}
         if env and "NOTIFY_SOCKET" in env:
             child_env.pop("WATCHDOG_PID", None)  # inherited from a systemd unit of ours it would name us, not the child
         with open(log_files[name], "ab") as log:
             procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                            env=child_env, start_new_session=True)
-        isolate(procs[name].pid, args[0])  # the loop's processes first, the console off their CPU (issue 21)
+        # The loop's processes on their CPU, the console off it (issue 21); a loop process takes
+        # its real-time priority itself once set up (loop_environ: at its exec, its imports had
+        # starved another stack's controller until it was killed as hung; fresh-user audit of 2026-12-01).
+        isolate(procs[name].pid, args[0], realtime=False)
 
     code = 0
     watch = _LoopPings() if robot and not no_bridge else None
