@@ -91,13 +91,22 @@ def calibrated(recordings, tmp_path_factory) -> tuple[Path, str]:
     return out, run.output
 
 
-def test_the_calibration_recovers_injected_truth_values_within_10_percent(calibrated):
+# How close each injected value comes back. From θ and α_IP alone (the default: the twin's tensions
+# are not read) the current-loop bandwidth is the least constrained: 26.9 Hz for 30 Hz on 2026-12-01
+# (within 10 % while the fit also read the twin's true tensions).
+TOLERANCE = {"friction.static_ratio": 0.10, "cables.damping_N_s_m": 0.10, "actuation.current_bandwidth_hz": 0.15}
+
+
+def test_the_calibration_recovers_injected_truth_values(calibrated):
+    """The injected values differ from the base in the fitted values only (and the recording is
+    short): a check of the fit's mechanics, not of a calibration against unmodelled effects
+    (docs/twin-fidelity.md, "Demonstration", shows that case)."""
     out, output = calibrated
     truth = load_truth(str(out))
     found = {"friction.static_ratio": truth.friction.static_ratio, "cables.damping_N_s_m": truth.cables.damping_N_s_m,
              "actuation.current_bandwidth_hz": truth.actuation.current_bandwidth_hz}
     for name, value in INJECTED.items():
-        assert found[name] == pytest.approx(value, rel=0.10), (name, found[name], output)
+        assert found[name] == pytest.approx(value, rel=TOLERANCE[name]), (name, found[name], output)
     # The robot truth's own values (1.3, 40 N·s/m, 1 kHz) were far from these: it moved there.
     assert abs(ROBOT.cables.damping_N_s_m - 80.0) / 80.0 > 0.4
 
@@ -109,7 +118,8 @@ def test_the_truth_file_keeps_its_provenance_and_the_held_out_prediction_errors(
     assert cal is not None and cal.campaigns == ["law2.mcap"] and cal.base == "robot"
     assert set(cal.fitted) == set(INJECTED) == set(cal.sigma) and all(s >= 0 for s in cal.sigma.values())
     assert cal.command.startswith("xneck twin calibrate") or cal.command == ""
-    assert {"theta_rad", "alpha_ip_deg", "tension_N"} <= set(cal.residual_rms)
+    # By default only what a prototype records is fitted: no tensions from the twin's Truth topic.
+    assert set(cal.residual_rms) == {"theta_rad", "alpha_ip_deg"}
     assert truth.sources["cables.damping_N_s_m"].startswith("measurement: fitted by xneck twin calibrate to law2.mcap")
     # Values it did not fit stay the robot truth's, with their sources.
     assert truth.friction.pulley_friction_per_N == ROBOT.friction.pulley_friction_per_N
@@ -139,6 +149,53 @@ def test_a_recording_without_tensions_calibrates_on_encoders_and_camera(recordin
     result = calibrate.fit([rec], PARAMS, base, calibrate.unknowns(["cables.damping_N_s_m"], 4))
     assert result.values[0] == pytest.approx(80.0, rel=0.10)
     assert set(result.residual_rms) == {"theta_rad", "alpha_ip_deg"}
+
+
+def _tampered(path: Path, out: Path) -> Path:
+    """``path`` with its twin Truth topic falsified (tensions doubled plus 5 N, α off by 0.3 rad):
+    what a calibration that reads the Truth topic would fit differently."""
+    import msgspec
+
+    from bridge.archive_read import read_campaign
+
+    camp = read_campaign(path)
+    truth_topic = bus.mcap_topic(bus.TWIN_TRUTH)
+    msgs: list[tuple[str, int, bus.BusMessage]] = []
+    for topic, items in camp.topics.items():
+        for t, m in items:
+            if topic == truth_topic:
+                assert isinstance(m, bus.Truth)
+                m = msgspec.structs.replace(m, tension_N=[2.0 * x + 5.0 for x in m.tension_N],
+                                            alpha_rad=[a + 0.3 for a in m.alpha_rad])
+            msgs.append((bus.key_of_topic(topic), t, m))
+    return write_campaign(out, msgs, dict(camp.info))
+
+
+def test_the_calibration_ignores_the_twins_truth_topic_unless_asked(recordings, tmp_path):
+    """A prototype's recording has no Truth topic (true tensions, true α): by default the
+    calibration must not read it, so a twin recording whose Truth topic was falsified gives the very
+    same fit; ``use_twin_truth`` (``--use-twin-truth``) reads it, and then the fit changes."""
+    tampered = _tampered(recordings[2], tmp_path / "tampered.mcap")
+    fitted = calibrate.unknowns(["cables.damping_N_s_m"], 4)
+    base = TRUE.replace("cables", damping_N_s_m=30.0)
+
+    def run(path: Path, use: bool) -> calibrate.Result:
+        rec = calibrate.load_recording(path, PARAMS, span_s=2.0, use_twin_truth=use)
+        return calibrate.fit([rec], PARAMS, base, fitted, max_evaluations=8, starts=0)
+
+    honest = calibrate.load_recording(recordings[2], PARAMS)
+    falsified = calibrate.load_recording(tampered, PARAMS)
+    assert honest.tension is None and falsified.tension is None
+    np.testing.assert_array_equal(honest.alpha0, falsified.alpha0)
+    by_default = run(recordings[2], False), run(tampered, False)
+    np.testing.assert_array_equal(by_default[0].values, by_default[1].values)
+    assert by_default[0].cost == by_default[1].cost
+    assert set(by_default[1].residual_rms) == {"theta_rad", "alpha_ip_deg"}
+    # Asked for, the Truth topic is read: the falsified one changes the fit (so the check above has teeth).
+    asked = run(recordings[2], True), run(tampered, True)
+    assert "tension_N" in asked[1].residual_rms
+    assert asked[1].cost > 10 * asked[0].cost
+    assert not np.array_equal(asked[0].values, asked[1].values)
 
 
 def _truncated(path: Path, tmp_path: Path) -> Path:

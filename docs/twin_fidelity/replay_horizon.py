@@ -7,7 +7,8 @@
 What runs: the replay `xneck twin calibrate` fits with (twin.sim.calibrate.replay: the twin of
 ``--truth`` held at the recording's applied forces, in process) and its prediction errors
 (twin.sim.calibrate.prediction_errors: RMS of replay − recording, θ every 10th tick, α_IP at each
-camera frame, tensions where the recording has the twin's Truth topic), for each horizon: the
+camera frame; with ``--use-twin-truth``, tensions from the twin's Truth topic, and the replay starts at
+its true α, as ``xneck twin calibrate --use-twin-truth`` does), for each horizon: the
 calibration's default 0.25 s and ``inf``, one open-loop replay from the recording's start. Nothing is
 fitted. With the truth that made the recording, what is left is what the forces alone do not
 determine (stiction) and the sensors' noise. About 2.5 s for the 14 s law 2 recording on the 2-CPU
@@ -34,6 +35,9 @@ def main() -> None:
     parser.add_argument("recordings", nargs="+", type=Path, help="Campaign MCAP files (e.g. law2.mcap).")
     parser.add_argument("--truth", default="robot",
                         help="Truth replayed: robot, model or a truth FILE (the one that made the recording).")
+    parser.add_argument("--use-twin-truth", action="store_true",
+                        help="Also compare the tensions of the twin's Truth topic and start at its true α "
+                             "(twin recordings only; off by default, as in xneck twin calibrate).")
     parser.add_argument("--horizon", type=float, action="append",
                         help="Re-start the motors from the encoders this often (s; inf: never). Repeatable; "
                              "default: 0.25 and inf.")
@@ -44,7 +48,7 @@ def main() -> None:
     print(f"truth: {args.truth}; RMS of replay − recording (θ in rad, α_IP in °, tension in N)")
     print(f"{'recording':24s} {'horizon (s)':>11s} {'θ':>9s} {'α_IP':>9s} {'tension':>9s} {'wall (s)':>9s}")
     for path in args.recordings:
-        rec = cal.load_recording(path, params)
+        rec = cal.load_recording(path, params, use_twin_truth=args.use_twin_truth)
         for h in horizons:
             start = time.perf_counter()
             errors = cal.prediction_errors(rec, params, truth, cal.Weights(horizon_s=h))

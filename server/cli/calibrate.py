@@ -52,6 +52,10 @@ def calibrate(
         16, "--starts", min=0, max=1024, help="Points of the fitted values' bounds screened for the fit's start "
         "besides the base truth's values, each one replay of every recording (0: start from the base alone); "
         "the replays' mismatch has local minima."),
+    use_twin_truth: bool = typer.Option(
+        False, "--use-twin-truth", help="Twin recordings only, for diagnosing the twin: also fit the true "
+        "tensions of the twin's Truth topic and start each replay at its true α. Off by default: a prototype's "
+        "recording has no such topic, and a calibration that reads it sees the answer."),
     force: bool = typer.Option(False, "--force", help="Overwrite --out."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
     params_file: Path | None = PARAMS_OPTION,
@@ -71,8 +75,8 @@ def calibrate(
     try:
         base_truth = load_truth(base)
         fitted = cal.unknowns(fit or cal.DEFAULT_FIT, params.n_cables)
-        recordings = [cal.load_recording(p, params, span) for p in campaigns]
-        held_out = [cal.load_recording(p, params, span) for p in validate or ()]
+        recordings = [cal.load_recording(p, params, span, use_twin_truth) for p in campaigns]
+        held_out = [cal.load_recording(p, params, span, use_twin_truth) for p in validate or ()]
         for d in delays or ():
             base_truth.replace("timing", delay_ticks=d)  # a bad delay is refused before any fit
         robot = robot_base(base_truth, params)
@@ -89,7 +93,7 @@ def calibrate(
 
     for rec in recordings:
         progress(f"{rec.name}: {rec.duration_s:.1f} s, {len(rec.t_s)} motor states, {len(rec.t_ip)} camera frames, "
-                 f"tensions {'recorded (twin)' if rec.tension is not None else 'not recorded'}")
+                 f"tensions {'fitted (the twin Truth topic, --use-twin-truth)' if rec.tension is not None else 'not used'}")
     command = "xneck twin calibrate " + " ".join(shlex.quote(a) for a in sys.argv[3:]) \
         if sys.argv[1:3] == ["twin", "calibrate"] else ""
     results = []

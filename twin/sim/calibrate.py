@@ -10,8 +10,14 @@ periods), in process and open loop. The fit minimises, with bounded
 - the motor angles θ (encoders, every ``every``-th tick), which carry the cables' stretch and so
   the forces;
 - α_IP (the camera), against the replayed α at each frame's capture time;
-- the cable tensions, when the recording has them (the twin's ``Truth`` topic: twin recordings
-  only; the prototype has no tension sensor).
+- the cable tensions, only when asked (``use_twin_truth``, ``--use-twin-truth``) and the recording
+  has them (the twin's ``Truth`` topic: twin recordings only; the prototype has no tension sensor).
+
+By default the calibration reads what the prototype records too: the motor states and the camera.
+The twin's ``Truth`` topic (true tensions, the true α at the start) is ignored unless asked for, so
+a calibration on a twin recording is the one a prototype recording would get, and never sees the
+answer (audit of 2026-12-01). With ``use_twin_truth`` it also fits the true tensions and starts the
+replay at the true α: a diagnosis of the twin, not a calibration a prototype can have.
 
 Start: the replays' mismatch has local minima (stiction makes the motion depend on the forces in
 steps), so the local fit starts from the best of the base truth's values and ``starts`` points of a
@@ -163,8 +169,8 @@ class Recording:
     force: np.ndarray  # (T, n_cables) force applied during the period that ends at t_s[k]
     t_ip: np.ndarray  # (K,) camera capture times
     alpha_ip: np.ndarray  # (K, N)
-    tension: np.ndarray | None  # (T, n_cables), the twin's Truth; None on the robot
-    alpha0: np.ndarray  # (N,) where the replay starts: the Truth's α, else α̂ (eq. 33) of θ[0]
+    tension: np.ndarray | None  # (T, n_cables), the twin's Truth if asked for (use_twin_truth); else None
+    alpha0: np.ndarray  # (N,) where the replay starts: α̂ (eq. 33) of θ[0]; the Truth's α if asked for
     info: dict[str, str] = field(default_factory=dict)  # the campaign's metadata (law, kind, ...)
 
     @property
@@ -172,15 +178,21 @@ class Recording:
         return float(self.t_s[-1] - self.t_s[0])
 
 
-def load_recording(path: str | Path, params: Params, span_s: float | None = None) -> Recording:
+def load_recording(path: str | Path, params: Params, span_s: float | None = None,
+                   use_twin_truth: bool = False) -> Recording:
     """A campaign MCAP as a :class:`Recording` (the first ``span_s`` seconds of it), or
-    :class:`CalibrationError` naming what is wrong with the file."""
+    :class:`CalibrationError` naming what is wrong with the file.
+
+    The twin's ``Truth`` topic (true tensions, the true starting α) is read only with
+    ``use_twin_truth`` (a diagnosis on twin recordings; a prototype's recording has no such topic):
+    by default a twin recording is read as a prototype's would be (module docstring)."""
     from bridge.archive import ArchiveError  # the lower layer; imported when used
     from bridge.archive_read import read_campaign
 
     path = Path(path)
     try:
-        camp = read_campaign(path, keys=(MOTOR_TOPIC, CAMERA_TOPIC, TRUTH_TOPIC))
+        camp = read_campaign(path, keys=(MOTOR_TOPIC, CAMERA_TOPIC, TRUTH_TOPIC) if use_twin_truth
+                             else (MOTOR_TOPIC, CAMERA_TOPIC))
     except ArchiveError as exc:
         raise CalibrationError(f"cannot read the recording: {exc}") from None
     motor = [m for _, m in camp.messages(MOTOR_TOPIC)]
@@ -219,7 +231,7 @@ def load_recording(path: str | Path, params: Params, span_s: float | None = None
         raise CalibrationError(f"{path}: camera frames carry {alpha_ip.shape[1]} joints, the parameter set {n}")
     inside = (t_ip >= t[0]) & (t_ip <= t[-1]) & np.isfinite(alpha_ip).all(axis=1) if len(frames) else np.zeros(0, bool)
     t_ip, alpha_ip = t_ip[inside], alpha_ip[inside].reshape(-1, n)
-    truth = {m.stamp_s: m for _, m in camp.messages(TRUTH_TOPIC)}
+    truth = {m.stamp_s: m for _, m in camp.messages(TRUTH_TOPIC)} if use_twin_truth else {}
     tension = None
     if sum(s in truth for s in t) >= 0.9 * len(t):  # the twin's Truth (a lockstep twin's first state has none)
         tension = np.array([truth[s].tension_N if s in truth else [np.nan] * nc for s in t], dtype=float)
