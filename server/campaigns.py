@@ -191,6 +191,9 @@ class CampaignManager:
         self._running: str | None = None
         self._stop = threading.Event()
         self._closing = threading.Event()  # the console closing (not a campaign's stop: a stopped one gets its scene)
+        # The running campaign's scene is not added (or cut short): the console closes, or the stack
+        # stops after the campaign's abort (:meth:`abort`'s ``stack_stopping``). One per campaign.
+        self._scene_stop = threading.Event()
         self._worker: threading.Thread | None = None
         # Serialises the last steps of a campaign's record (its final fields, the cause named in it
         # and its archive) with :meth:`abort`'s naming of a cause; taken before ``_lock``, never inside.
@@ -562,6 +565,9 @@ class CampaignManager:
             # this event when it returns, so the campaign it missed at the check ends at once (one
             # armed after the record was written let it run: audit of 2026-11-27).
             stop = self._stop = threading.Event()
+            scene_stop = self._scene_stop = threading.Event()
+            if self._closing.is_set():
+                scene_stop.set()
             disabled = self._drives_disabled(spec.twin and not spec.service)  # a service drives the bus bridge
             if disabled:
                 raise DrivesDisabled(disabled)
@@ -582,8 +588,8 @@ class CampaignManager:
                 raise StorageError(f"cannot write the campaign record: {storage_reason(exc)}") from None
             self._records[cid] = rec
             self._running = cid
-            self._worker = threading.Thread(target=self._run, args=(cid, prepared, stop), name=f"campaign:{cid}",
-                                            daemon=True)
+            self._worker = threading.Thread(target=self._run, args=(cid, prepared, stop, scene_stop),
+                                            name=f"campaign:{cid}", daemon=True)
             self._worker.start()
         return rec.model_copy()
 
@@ -602,9 +608,9 @@ class CampaignManager:
                     rec.message = f"{rec.message} (this record could not be saved: storage fault)"[:2000]
         return snapshot
 
-    def _run(self, cid: str, prepared: PreparedCampaign, stop: threading.Event) -> None:
+    def _run(self, cid: str, prepared: PreparedCampaign, stop: threading.Event, scene_stop: threading.Event) -> None:
         try:
-            self._record_campaign(cid, prepared, stop)
+            self._record_campaign(cid, prepared, stop, scene_stop)
         finally:  # whatever happened, the robot is free again
             self._monitor = None
             with self._lock:
@@ -613,7 +619,8 @@ class CampaignManager:
                 self._causes.pop(cid, None)
             self.release_reserve(keep=True)
 
-    def _record_campaign(self, cid: str, prepared: PreparedCampaign, stop: threading.Event) -> None:
+    def _record_campaign(self, cid: str, prepared: PreparedCampaign, stop: threading.Event,
+                         scene_stop: threading.Event) -> None:
         path = self.index.mcap(cid)
         spec = prepared.spec
 
@@ -658,10 +665,12 @@ class CampaignManager:
             log.exception("campaign %s failed", cid)
             fields = {"status": "failed", "message": f"{type(exc).__name__}: {exc}"}
         try:  # not after a storage fault: the scene is added by a copy of the archive, on a disk that refused a write
-            if not storage_fault and path.exists() and is_complete(path):
+            if scene_stop.is_set():  # the stack stops: its record final at once, not after a scene cut short
+                log.info("no Foxglove scene for %s: the console or its stack is stopping", cid)
+            elif not storage_fault and path.exists() and is_complete(path):
                 # in a child as the identification (server.analysis_process): 11 s of a 600 s campaign
                 fields["scene_messages"] = run_in_child(add_scene_channel, path, prepared.params, what="scene",
-                                                        stop=self._closing)
+                                                        stop=scene_stop)
         except Exception as exc:  # noqa: BLE001 - the archive itself is fine without the scene
             log.warning("no Foxglove scene for %s: %s", cid, exc)
             path.with_name(path.name + ".rewrite").unlink(missing_ok=True)  # a rewrite killed half-way
@@ -689,7 +698,7 @@ class CampaignManager:
                       storage_reason(exc) if isinstance(exc, OSError) else exc)
 
     def abort(self, reason: str, ended_within_s: float | None = None,
-              timeout_s: float = ABORT_WAIT_S) -> CampaignRecord | None:
+              timeout_s: float = ABORT_WAIT_S, stack_stopping: bool = False) -> CampaignRecord | None:
         """Stop the running campaign because of ``reason`` (a cause the console cannot see, e.g.
         ``"bridge process exited (signal SIGKILL)"`` from ``xneck up``): it ends ``aborted`` with
         ``reason`` first in its record's and its archive's message, and what the runner itself saw
@@ -698,7 +707,12 @@ class CampaignManager:
         ``ended_within_s`` (seconds before this call): a campaign whose run ended within that window
         (it saw the cause's side effect before the cause was told) is named too, if it ended
         ``aborted``; without it only a campaign still running is. Returns the record named (None
-        if none was): its status says whether the cause was written (``aborted``) or not."""
+        if none was): its status says whether the cause was written (``aborted``) or not.
+
+        ``stack_stopping``: the console is stopped next (``xneck up`` stopping its stack), so the
+        campaign's Foxglove scene is not added, or is cut short: its 8-11 s had outlasted this
+        wait, and ``xneck up`` printed the campaign still running (fresh-user audit of 2026-12-01);
+        the scene would have been stopped with the console anyway."""
         now = time.monotonic()
         with self._final_lock:
             with self._lock:
@@ -711,6 +725,8 @@ class CampaignManager:
                 if target == self._running:  # its worker names the cause when it writes the final record
                     self._causes[target] = (reason, ended_s is None and not self._stop.is_set())
                     self._stop.set()
+                    if stack_stopping:
+                        self._scene_stop.set()
                     late = None
                 else:
                     rec = self._records.get(target)
@@ -970,6 +986,7 @@ class CampaignManager:
         write the data folder, so the folder's lock waits for it (:meth:`when_idle`)."""
         self._closing.set()
         self._stop.set()
+        self._scene_stop.set()
         self._cancel_starting_replay()
         if self._replay is not None:
             self._replay.stop()

@@ -287,6 +287,8 @@ class AbortRequest(BaseModel):
     ended_within_s: float | None = Field(None, ge=0, le=60, description="Also name a campaign that already ended "
                                          "aborted within this many seconds before the request (it saw the cause's "
                                          "side effect first); null: only a running one.")
+    stack_stopping: bool = Field(False, description="The console is stopped next (`xneck up` stopping its stack): "
+                                 "the campaign's 3D scene is not added, so its record is final at once.")
 
 
 @router.post("/api/system/abort", dependencies=[Depends(require_token), Depends(require_operator)])
@@ -302,7 +304,7 @@ def abort(body: AbortRequest, request: Request) -> dict[str, Any]:
     s = request.app.state
     rec = None
     try:
-        rec = s.campaigns.abort(body.reason, body.ended_within_s)
+        rec = s.campaigns.abort(body.reason, body.ended_within_s, stack_stopping=body.stack_stopping)
     finally:
         # the same cause again from the same host within a second is counted in one line (a flood of
         # a token holder's would rotate older lines out, as the e-stop's did)

@@ -923,3 +923,31 @@ def test_a_close_that_times_out_keeps_the_data_folder_until_the_worker_ends(tmp_
         finishing.set()
         assert wait_until(lambda: lock._fd is None, 10)
         DataDirLock(tmp_path / "data").release()
+
+
+def slow_scene(path: Path, params: object) -> int:
+    """A Foxglove scene that takes longer than an abort waits (a 600 s campaign's took 11 s on a
+    loaded machine): module level, so that the analysis child can run it."""
+    time.sleep(60)
+    return 0
+
+
+def test_an_abort_before_the_stack_stops_is_final_at_once_without_the_scene(tmp_path: Path, monkeypatch) -> None:
+    """Fresh-user audit of 2026-12-01: Ctrl-C to `xneck up` mid-campaign printed "campaign … running"
+    as its last word on it: the console's abort waited 10 s for the record, which came only after the
+    campaign's 3D scene (8-9 s there), itself cut short when the console stopped. Told the stack
+    stops next, the console adds no scene and the record is final within the abort's answer."""
+    import server.campaigns as campaigns
+
+    monkeypatch.setattr(campaigns, "add_scene_channel", slow_scene)
+    with running_server(tmp_path / "d", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        cid = start_campaign(c, {"kind": "control", "law": 2, "pace": "realtime"}, progress=0.05)
+        told = c.post("/api/system/abort", json={"reason": "xneck up was stopped (SIGINT)", "stack_stopping": True},
+                      headers=AUTH)
+        assert told.status_code == 200, told.text
+        answer = told.json()
+        assert answer["campaign_id"] == cid and answer["status"] == "aborted", answer
+        assert answer["message"].startswith("xneck up was stopped (SIGINT)"), answer
+        rec = c.get(f"/api/campaigns/{cid}").json()
+        assert rec["status"] == "aborted" and not rec.get("scene_messages"), rec
+        assert is_complete(tmp_path / "d" / "campaigns" / f"{cid}.mcap")

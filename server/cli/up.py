@@ -361,16 +361,19 @@ def _token(data_dir: Path) -> str:
         return ""
 
 
-def abort_campaign(url: str, token: str, cause: str, ended_within_s: float) -> str:
+def abort_campaign(url: str, token: str, cause: str, ended_within_s: float, stack_stopping: bool = False) -> str:
     """Tell the console at ``url`` that ``cause`` ends its running campaign (``POST
     /api/system/abort``; also one whose run ended within ``ended_within_s`` seconds, having seen
-    the cause's side effect first). Returns one line for the operator: what became of which
-    campaign, or why the console could not be told. Waits at most :data:`ABORT_TIMEOUT_S`."""
+    the cause's side effect first). ``stack_stopping``: the stack stops next, the campaign gets no
+    3D scene (its record is final at once, so the line printed is its final state). Returns one
+    line for the operator: what became of which campaign, or why the console could not be told.
+    Waits at most :data:`ABORT_TIMEOUT_S`."""
     if not token:
         return "the console could not be told why (no API token)"
     request = urllib.request.Request(  # a loopback URL we built
         url + "api/system/abort", method="POST",
-        data=json.dumps({"reason": cause, "ended_within_s": round(min(ended_within_s, 60.0), 3)}).encode(),
+        data=json.dumps({"reason": cause, "ended_within_s": round(min(ended_within_s, 60.0), 3),
+                         "stack_stopping": stack_stopping}).encode(),
         headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
     try:
         with urllib.request.urlopen(request, timeout=ABORT_TIMEOUT_S) as r:
@@ -751,7 +754,7 @@ def up(
                 if name != "server":  # the console ends its campaign with the cause before the rest stops
                     told_before()
                     _say(abort_campaign(url, _token(data_dir), f"{name} process {how}",
-                                        time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S),
+                                        time.monotonic() - seen_alive + ABORT_WINDOW_MARGIN_S, stack_stopping=True),
                          err=True, fg="red")
                 code = 1
                 break
@@ -765,7 +768,7 @@ def up(
             # effect, "the drives were disabled during the campaign" (audit of 2026-11-28).
             why = f"xneck up was stopped ({stop['signal']})" if stop["signal"] else "xneck up reached --exit-after"
             told_before()
-            told = abort_campaign(url, _token(data_dir), why, 0.0)
+            told = abort_campaign(url, _token(data_dir), why, 0.0, stack_stopping=True)
             if told != "no campaign was running":
                 _say(told, err=True, fg="yellow")
     except RuntimeError as exc:
