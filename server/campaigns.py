@@ -73,6 +73,7 @@ from server.archive_rewrite import rewrite_archive
 from server.campaign_request import PreparedCampaign
 from server.campaign_runner import (
     STOPPED_BY_USER,
+    CausedStop,
     RecordingFailed,
     metrics_from_archive,
     new_campaign_id,
@@ -157,13 +158,25 @@ def archived_progress(campaign: Campaign, campaign_id: str) -> float:
     return min(max([0.0, *seen]), 1.0)
 
 
+#: The runner's word for a campaign :meth:`CampaignManager.abort` stopped (it had said "stopped by
+#: the user", whom nobody was: fresh-user audit of 2026-12-01).
+STOPPED_FOR_CAUSE = "stopped by the console for that cause"
+
+
 def _with_cause(cause: str, seen: str, stopped_for_it: bool) -> str:
-    """A campaign's message with ``cause`` first, then what the campaign itself ``seen`` (dropped
-    when it is only the runner's word for the stop the cause asked for: ``stopped_for_it``); a
-    message that names the cause already is kept as it is."""
+    """A campaign's message with ``cause`` first, then what the campaign itself ``seen`` (the
+    runner's word for the stop the cause asked for dropped, ``stopped_for_it``, and the notes
+    after it kept: an identification's saturation note); a message that names the cause already
+    is kept as it is."""
     if seen.startswith(cause):  # named already (a retry)
         return seen
-    if not seen or (stopped_for_it and seen == STOPPED_BY_USER):
+    if stopped_for_it:
+        for word in (STOPPED_FOR_CAUSE, STOPPED_BY_USER):
+            if seen == word:
+                seen = ""
+            elif seen.startswith(word + "; "):
+                seen = seen[len(word) + 2:]
+    if not seen:
         return cause[:2000]
     return f"{cause}; the campaign saw: {seen}"[:2000]
 
@@ -189,7 +202,7 @@ class CampaignManager:
         self._lock = threading.Lock()
         self._records: dict[str, CampaignRecord] = {}
         self._running: str | None = None
-        self._stop = threading.Event()
+        self._stop = CausedStop()
         self._closing = threading.Event()  # the console closing (not a campaign's stop: a stopped one gets its scene)
         # The running campaign's scene is not added (or cut short): the console closes, or the stack
         # stops after the campaign's abort (:meth:`abort`'s ``stack_stopping``). One per campaign.
@@ -564,7 +577,7 @@ class CampaignManager:
             # Armed before the e-stop is checked: an e-stop whose publication is under way now sets
             # this event when it returns, so the campaign it missed at the check ends at once (one
             # armed after the record was written let it run: audit of 2026-11-27).
-            stop = self._stop = threading.Event()
+            stop = self._stop = CausedStop()
             scene_stop = self._scene_stop = threading.Event()
             if self._closing.is_set():
                 scene_stop.set()
@@ -724,7 +737,7 @@ class CampaignManager:
                     return None  # nothing running, or it had ended before the cause
                 if target == self._running:  # its worker names the cause when it writes the final record
                     self._causes[target] = (reason, ended_s is None and not self._stop.is_set())
-                    self._stop.set()
+                    self._stop.stop(STOPPED_FOR_CAUSE)
                     if stack_stopping:
                         self._scene_stop.set()
                     late = None

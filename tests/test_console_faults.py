@@ -947,7 +947,24 @@ def test_an_abort_before_the_stack_stops_is_final_at_once_without_the_scene(tmp_
         assert told.status_code == 200, told.text
         answer = told.json()
         assert answer["campaign_id"] == cid and answer["status"] == "aborted", answer
-        assert answer["message"].startswith("xneck up was stopped (SIGINT)"), answer
+        assert answer["message"] == "xneck up was stopped (SIGINT)", answer  # no "stopped by the user"
         rec = c.get(f"/api/campaigns/{cid}").json()
         assert rec["status"] == "aborted" and not rec.get("scene_messages"), rec
         assert is_complete(tmp_path / "d" / "campaigns" / f"{cid}.mcap")
+
+
+def test_a_cause_names_what_the_campaign_saw_without_the_runners_word_for_its_own_stop() -> None:
+    """Fresh-user audit of 2026-12-01: a hung controller's identification ended "controller process
+    hung (…), killed; the campaign saw: stopped by the user; cables at f_max in 11.6 % …": no user
+    had stopped it. The console's stop for a cause says so, and is dropped before the notes."""
+    from server.campaigns import STOPPED_FOR_CAUSE, _with_cause
+
+    cause = "controller process hung (its loop silent for 2.0 s), killed"
+    note = "cables at f_max in 11.6 % of the law's ticks"
+    for word in (STOPPED_FOR_CAUSE, "stopped by the user"):
+        assert _with_cause(cause, f"{word}; {note}", True) == f"{cause}; the campaign saw: {note}"
+        assert _with_cause(cause, word, True) == cause
+    # a user's stop before the cause came is what the campaign saw
+    assert _with_cause(cause, f"stopped by the user; {note}", False) == \
+        f"{cause}; the campaign saw: stopped by the user; {note}"
+    assert _with_cause(cause, f"{cause}; the campaign saw: x", True) == f"{cause}; the campaign saw: x"
