@@ -112,8 +112,9 @@ def test_xneck_up_serves_the_dashboard_and_a_campaign_completes(tmp_path: Path) 
         # --alpha-ip camera: α_IP measured on frames rendered from the twin's truth (issue 15), not white noise
         assert wait_until(lambda: camera().get("source") == "twin-render" and camera().get("fresh"), 90, 0.5), \
             (camera(), (tmp_path / "d" / "logs" / "camera.log").read_text()[-2000:])
-        printed = (tmp_path / "up.log").read_text()
-        assert f"dashboard http://127.0.0.1:{port}/" in printed
+        # "xneck is up: dashboard URL" once a campaign can start (its supervisor's next pass)
+        assert wait_until(lambda: f"dashboard http://127.0.0.1:{port}/" in (tmp_path / "up.log").read_text(), 30, 0.2), \
+            (tmp_path / "up.log").read_text()
         assert "<html" in httpx.get(base + "/", timeout=5).text.lower()
         r = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10)
         assert r.status_code in (200, 201), r.text

@@ -348,3 +348,20 @@ def cp_counts(pid: int) -> dict[str, int]:
     from server.child_processes import thread_scheduling
 
     return thread_scheduling(pid)
+
+
+def test_xneck_up_says_it_is_up_once_a_campaign_can_start(tmp_path: Path) -> None:
+    """Fresh-user audit of 2026-12-01: "xneck is up" came as soon as the children were started, and
+    a campaign asked for at once got 503 "the stack's controller service is not on the bus (being
+    restarted …, or stopped)" for 20-28 s on a loaded machine. Now it is said once the controller's
+    loop runs and the console has the bridge's states: a campaign asked for then starts."""
+    with _xneck_up(tmp_path) as (base, data, up):
+        log = tmp_path / "up.log"
+        assert wait_until(lambda: "xneck is up" in log.read_text() or up.poll() is not None, 180, 0.05), \
+            log.read_text()
+        assert up.poll() is None, log.read_text()
+        text = log.read_text()
+        assert text.index("xneck is starting") < text.index("xneck is up"), text
+        token = (data / "token").read_text().strip()
+        r = httpx.post(f"{base}/api/campaigns", json=GENTLE, headers={"Authorization": f"Bearer {token}"}, timeout=30)
+        assert r.status_code == 201, r.text

@@ -33,6 +33,8 @@ GOSSIP_S = 5.0
 
 
 def _hub(up_log: Path) -> str:
+    # said with "xneck is up", once a campaign could start (the console has the bridge's states)
+    wait_until(lambda: re.search(r"bus hub (tcp/\S+?);", up_log.read_text()) is not None, 60, 0.1)
     m = re.search(r"bus hub (tcp/\S+?);", up_log.read_text())
     assert m, up_log.read_text()
     return m.group(1)

@@ -48,6 +48,7 @@ def test_up_refuses_when_another_stack_answers_on_the_hub(tmp_path: Path) -> Non
         base, hub_port, *_ = _robot_console(spawn, tmp_path, tmp_path / "first", controller=False)
         line, _ = _up_refused(tmp_path, free_tcp_port(), free_tcp_port(), hub_port)
         assert "another xneck stack answers on the hub" in line and "bridge/" in line, line
+        assert "--data-dir" in line, line  # all it needs at once (it was refused again for the folder)
         assert _alive_kinds(base) == {"bridge"}  # no second controller joined
         time.sleep(0.5)
     assert "drives enabled" not in (tmp_path / "b.log").read_text()

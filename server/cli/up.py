@@ -105,6 +105,7 @@ ABORT_TIMEOUT_S = 15.0
 # s added to the time since a child was last seen alive, for the console's window of campaigns that
 # ended of its death before they were told (the request's own transit, a loaded machine).
 ABORT_WINDOW_MARGIN_S = 1.0
+READY_HINT_S = 60.0  # s after the children's start without "xneck is up": said once
 # s without a ping from a live local robot bridge's loop after which it counts as hung (a stall the
 # bridge's own watchdog cannot see: a SIGSTOP, a C call holding the GIL): five missed pings.
 BRIDGE_HUNG_S = 1.0
@@ -328,7 +329,7 @@ def preflight(host: str, port: int, viser_port: int, hub: str) -> str:
             stack = _stack_on(hub)
             if stack:
                 return (f"another xneck stack answers on the hub {hub} ({', '.join(stack)}): stop it, or give this "
-                        f"one its own --hub, --port and --viser-port")
+                        f"one its own --hub, --port, --viser-port and --data-dir")
             return (f"the hub endpoint {hub} is {why} (another program listens there, or a stack whose bus "
                     f"credentials differ): choose another --hub")
     why = _port_taken(host, port) if port else ""
@@ -345,6 +346,15 @@ def _healthy(url: str) -> bool:
         with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # a loopback URL we built
             return r.status == 200
     except OSError:
+        return False
+
+
+def _bridge_seen(url: str) -> bool:
+    """Whether the console at ``url`` has a motor state of a bridge (``/api/system/health``)."""
+    try:
+        with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # a loopback URL we built
+            return (json.loads(r.read()).get("bridge") or {}).get("state_age_s") is not None
+    except (OSError, ValueError, AttributeError):
         return False
 
 
@@ -657,23 +667,40 @@ def up(
                              *([] if bridge_at is None else ["--no-autoconnect"]), *param_args],
               controller_watch.environ())
         token_file = Path(data_dir) / "token"
-        _say(f"xneck is up: dashboard {url}  (API docs {url}docs)")
-        _say(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
-             f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
-             f", controller service (law {law})")
-        if bridge_link:
-            _say(f"  {bridge_link}")
-        if no_bridge and not bridge_at:
-            _say("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless hold "
-                 "per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
-        _say(f"  {_bus_access(hub, no_bridge)}")
-        _say(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
-        _say(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
+
+        def announce() -> None:
+            _say(f"xneck is up: dashboard {url}  (API docs {url}docs)")
+            _say(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
+                 f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
+                 f", controller service (law {law})")
+            if bridge_link:
+                _say(f"  {bridge_link}")
+            if no_bridge and not bridge_at:
+                _say("  note: a bridge that connects to the hub retries it while this console hangs, one bumpless "
+                     "hold per retry; a listening bridge and --bridge-at avoid that (docs/bridge.md, deployment)")
+            _say(f"  {_bus_access(hub, no_bridge)}")
+            _say(f"  e-stop from a terminal, the console down too: xneck estop engage (its bridge: {estop_at})")
+            _say(f"  API token in {token_file}; logs in {logs}; Ctrl-C stops everything")
+
+        # "up" once a campaign can start: the controller's loop runs (its service is on the bus, its
+        # warm-up done) and, with a bridge of this stack, the console has its motor states. Said
+        # as soon as the children were started, a campaign asked for at once got 503 "the
+        # controller service is not on the bus (being restarted ..., or stopped)" for 20-28 s on a
+        # loaded machine, which reads as a crash (fresh-user audit of 2026-12-01).
+        _say(f"xneck is starting: console {url} up; waiting for the {'controller' if no_bridge else 'bridge and the controller'}…")
+        announced, hinted = False, False
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         # Why a child was killed, kept until its death is handled: one slow to exit after SIGKILL
         # dies a pass or more later, and had been said to have "exited (signal SIGKILL)" (review).
         hung: dict[str, str] = {}
         while not stop["signal"]:
+            if not announced and controller_watch.age_s() is not None and (no_bridge or _bridge_seen(url)):
+                announce()
+                announced = True
+            elif not announced and not hinted and time.monotonic() - started > READY_HINT_S:
+                hinted = True
+                _say(f"  still starting after {READY_HINT_S:.0f} s (a loaded machine, or see the logs in {logs})",
+                     err=True, fg="yellow")
             polled = time.monotonic()
             # A pass that comes late (this process stopped, e.g. Ctrl-Z then fg, the children with it)
             # does not count its own lateness: the pings' age grew with the pause (audit of
