@@ -772,3 +772,29 @@ def test_a_video_declaring_frames_larger_than_any_camera_is_refused_before_decod
     wide = bus.FRAME_MAX_SIDE_PX + 8
     with pytest.raises(SourceError, match=f"frames of {wide}×8 px, more than"):
         FileSource(video("wide.avi", wide, 8))
+
+
+def test_the_alignment_takes_the_controllers_estimate_first_as_a_prototypes_campaign_has_it(tmp_path, params) -> None:
+    """Truth audit of 2026-12-01: `auto` aligned a twin's campaign on the twin's truth, which a
+    prototype's campaign never has, so the alignment was checked on an easier reference than the
+    robot's. α̂ first, the truth only where no α̂ was recorded, or when asked for."""
+    from bridge import bus
+    from bridge.archive import write_campaign
+    from twin.camera.align import campaign_reference
+
+    t = np.arange(0.0, 2.0, 0.01)
+    zeros = [0.0] * params.n_cables
+    truth = [(bus.TWIN_TRUTH, int((1.7e9 + tk) * 1e9), bus.Truth(
+        seq=k + 1, stamp_s=float(tk), alpha_rad=[0.1, 0.0, 0.0], alpha_dot_rad_s=[0.0] * 3, theta_rad=zeros,
+        theta_dot_rad_s=zeros, tension_N=zeros, elongation_m=zeros, slack=[False] * params.n_cables,
+        near_singular=False)) for k, tk in enumerate(t)]
+    hat = [(bus.CONTROLLER_STATUS, int((1.7e9 + tk) * 1e9), bus.ControllerStatus(
+        seq=k + 1, stamp_s=float(tk), law="law2", tick_s=0.002, compute_s=1e-4, overruns=0, deadline_misses=0,
+        saturated=[False] * params.n_cables, alpha_hat_rad=[0.2, 0.0, 0.0], alpha_d_rad=[0.0] * 3, e_rad=[0.0] * 3,
+        holding=False)) for k, tk in enumerate(t)]
+    both = write_campaign(tmp_path / "both.mcap", truth + hat, {"campaign_id": "c1", "kind": "identification"})
+    only_truth = write_campaign(tmp_path / "truth.mcap", truth, {"campaign_id": "c2", "kind": "identification"})
+    ref = campaign_reference(both)
+    assert ref.name == "alpha_hat" and np.allclose(ref.alpha_rad[:, 0], 0.2)
+    assert campaign_reference(both, "truth").name == "truth"
+    assert campaign_reference(only_truth).name == "truth"

@@ -408,7 +408,7 @@ def align(
     video: Path = typer.Argument(..., help="Video of the campaign (any format OpenCV reads)."),
     campaign: Path = typer.Argument(..., help="The campaign's MCAP file."),
     out: Path | None = typer.Option(None, "--out", help="New MCAP file (default: CAMPAIGN.aligned.mcap); never overwritten."),
-    reference: str = typer.Option("auto", "--reference", help="auto (the twin's truth if recorded, else α̂), truth or alpha_hat."),
+    reference: str = typer.Option("auto", "--reference", help="auto (the controller's α̂ if recorded, as on the prototype, else the twin's truth), truth or alpha_hat."),
     drift: bool = typer.Option(True, "--drift/--no-drift", help="Estimate the video clock's drift as well as the offset."),
     images: float = typer.Option(5.0, "--images", min=0.0, max=60.0, callback=NON_NEGATIVE, help="Frames per second (of video) archived as JPEG on /xneck/camera/image (0: none)."),
     calibration: Path | None = CALIBRATION_OPTION,

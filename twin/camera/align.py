@@ -175,7 +175,10 @@ def _iter_raw(path: Path):
 
 
 def campaign_reference(path: str | Path, which: str = "auto") -> Reference:
-    """The campaign's α (rad) on its clock: ``truth``, ``alpha_hat`` or ``auto`` (truth if recorded)."""
+    """The campaign's α (rad) on its clock: ``truth``, ``alpha_hat`` or ``auto`` (α̂ if recorded,
+    else the twin's truth). ``auto`` takes α̂ first, what a prototype's campaign has: a twin's
+    campaign aligned on its truth was an easier test than the robot's (truth audit of 2026-12-01);
+    ``truth`` asks for it, e.g. to check the alignment itself on the twin."""
     if which not in ("auto", "truth", "alpha_hat"):
         raise AlignmentError(f"reference {which!r}: choose auto, truth or alpha_hat")
     series: dict[str, list[tuple[float, list[float]]]] = {"truth": [], "alpha_hat": []}
@@ -191,7 +194,7 @@ def campaign_reference(path: str | Path, which: str = "auto") -> Reference:
         except bus.BusDecodeError:
             continue  # another schema version or a damaged message: not a reference sample
         series[name].append((msg.stamp_s, getattr(msg, field)))
-    order = ["truth", "alpha_hat"] if which == "auto" else [which]
+    order = ["alpha_hat", "truth"] if which == "auto" else [which]
     for name in order:
         samples = series[name]
         if len(samples) >= 10:
