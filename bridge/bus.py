@@ -218,7 +218,10 @@ class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
 
     Whose truth: not a field. The bridge that runs the twin names its run (``MotorState.epoch``)
     in the Zenoh attachment (``bridge.session.RUN_PREFIX``, why there), and a campaign archive
-    holds only the truth of the run whose states it follows.
+    holds only the truth of the run whose states it follows. ``truth``: which truth the twin
+    simulates (twin.sim.truth: ``model``, ``robot`` or a truth file's ``name``; empty in archives
+    before 2026-12-01), so that a campaign's record says what was observed, not only what its
+    console was told (truth audit of 2026-12-01).
     """
 
     v: int = 1
@@ -230,6 +233,7 @@ class Truth(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):
     elongation_m: list[float]
     slack: list[bool]
     near_singular: bool
+    truth: str = ""
 
 
 class ControllerStatus(BusMessage, frozen=True, forbid_unknown_fields=True, kw_only=True):

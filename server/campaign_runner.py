@@ -73,8 +73,10 @@ from server.quality import (
     thresholds_dict,
 )
 from server.service_choice import alive_services, choose_service
+from server.truthstore import truth_label
 from twin.model.params import Params
 from twin.sim.sensors import ALPHA_IP_KINDS, ALPHA_IP_SOURCES
+from twin.sim.truth import load_truth
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
@@ -230,6 +232,7 @@ class CampaignResult:
     identification: dict[str, object] | None = None  # twin.identification.report.report_dict, when identified
     identified_set: dict[str, Any] | None = None  # server.identified_sets.identified_set, when identified
     logs_dir: str = ""  # the child processes' logs, kept when the campaign did not finish (else removed)
+    truth_seen: str = ""  # the truth the twin's messages named, where it is not the one the campaign was told
 
     def summary(self) -> dict[str, object]:
         out = {"campaign_id": self.campaign_id, "path": str(self.path), "outcome": self.outcome,
@@ -576,6 +579,11 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
             note = f"{note}; {clipped}" if note else clipped
         if note:
             message = f"{message}; {note}" if message else note
+        truth_seen = monitor.truth_seen or ""
+        if spec.twin and (differs := truth_note(spec.truth, truth_seen)):  # said, and the record names what ran
+            message = f"{message}; {differs}" if message else differs
+        else:
+            truth_seen = ""
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
         try:
             recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
@@ -583,7 +591,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
                           final_metadata=lambda: {"alpha_ip": alpha_ip_recorded(monitor.recorded_alpha_ip())})
         except ArchiveError as exc:  # a storage fault: the run's counters go with it to the record
             raise RecordingFailed(exc, quality) from exc
-    result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality)
+    result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality,
+                            truth_seen=truth_seen)
     # The children's logs matter only when something went wrong: kept then (and named), else removed,
     # so that a lab's thousands of campaigns do not leave as many folders in the temporary directory.
     if outcome == "finished":
@@ -600,6 +609,24 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
         analyse_identification(result, spec.params_file, spec.estimator, spec.creep_time_s, spec.overrides,
                                base_name=params.name, stop=stop)
     return result
+
+
+def truth_note(told: str, seen: str) -> str:
+    """'' if the twin's ``Truth`` messages name the truth ``told`` (a name or a truth file's path;
+    nothing named: a twin from before the field), else what the campaign's message says. A
+    console in a stack is told its twin's truth (``xneck up --truth``, ``xneck server
+    --twin-truth``) and cannot set it: with ``--no-bridge`` the twin is another's, and the record
+    had named what the console was told (truth audit of 2026-12-01)."""
+    if not seen:
+        return ""
+    try:
+        expected = load_truth(told).name
+    except (OSError, ValueError):  # gone or changed since: nothing to compare against
+        return ""
+    if seen == expected:
+        return ""
+    return (f"the twin simulated the {seen!r} truth (its Truth messages), not {truth_label(told)!r} as this "
+            f"console was told: the record names {seen!r}")
 
 
 #: The twin's α_IP kind (:data:`ALPHA_IP_KINDS`) of each twin camera's ``CameraAlpha.source``.

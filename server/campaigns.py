@@ -658,6 +658,8 @@ class CampaignManager:
                                          "metrics": result.metrics or None, "quality": result.quality or None}
             if result.analysis:  # an identification campaign, analysed by the runner (issue 17: never finished if it failed)
                 fields["identification"], fields["identification_status"] = result.identification, result.analysis
+            if result.truth_seen:  # the twin's messages named another truth than the console was told
+                fields["truth"] = result.truth_seen
             if result.identified_set is not None:
                 self._keep_identified_set(cid, result.identified_set)
             if status in ("finished", "degraded"):

@@ -156,6 +156,7 @@ class CampaignMonitor:
         self.epoch = ""  # the bridge run its commands answer ('' until one came: every bridge)
         self.foreign = 0  # states, commands, truths and α_IP of other bridges and controllers, not taken
         self.foreign_truths = 0  # of which truths of another twin (or of none said)
+        self.truth_seen: str | None = None  # the truth its twin says it simulates (Truth.truth; first one decoded)
         self._owners: dict[str, tuple[str, float]] = {}  # bridge epoch -> (the controller it obeys, monotonic s)
         self._alpha_ip_source: str | None = None  # the camera recorded (None until known: module docstring)
         self._alpha_ip_camera = ""  # the camera process recorded ('' until one named itself: module docstring)
@@ -395,6 +396,10 @@ class CampaignMonitor:
         """Counts the truths and α_IP of another twin (not decoded: the attachment says whose)."""
         truth = str(sample.key_expr) == bus.TWIN_TRUTH
         if self._of_run(truth, run_of(sample)):
+            if truth and self.truth_seen is None and self.epoch:  # once, of the campaign's own run
+                msg = self._decode(bus.Truth, sample)
+                if msg is not None:
+                    self.truth_seen = msg.truth
             return
         with self._lock:
             self.foreign += 1

@@ -359,3 +359,28 @@ def test_a_campaign_its_controller_runs_on_through_a_console_restart_is_shown_an
         rec = httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json()
         assert rec["status"] == "interrupted" and rec["running_on"] == "", rec
         assert f"stopped on controller {controller}" in rec["message"], rec
+
+
+def test_a_stacks_record_names_the_truth_its_twin_simulated_not_the_one_it_was_told(tmp_path: Path) -> None:
+    """Truth audit of 2026-12-01: `xneck up --no-bridge --truth robot` labelled its campaigns
+    `robot` whatever the twin on its bus simulated (here one started with the model truth, the
+    controller's own model): the record said what the console was told. The twin's Truth messages
+    name its truth; a record whose twin named another says so and names it."""
+    port, hub_port = free_tcp_port(), free_tcp_port()
+    base, hub = f"http://127.0.0.1:{port}", f"tcp/127.0.0.1:{hub_port}"
+    brisk = {"kind": "control", "law": 2, "waypoints": {"name": "brisk", "waypoints_deg": [[0, 0, 0], [8, 6, 4], [0, 0, 0]],
+                                                         "durations_s": 1.0, "dwell_s": 0.2}}
+    with _procs() as spawn:
+        spawn(["up", "--no-bridge", "--truth", "robot", "--port", str(port), "--hub", hub, "--data-dir",
+               str(tmp_path / "d"), "--viser-port", str(free_tcp_port())], tmp_path / "up.log")
+        assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "up.log").read_text()
+        spawn(["bridge", "--driver", "twin", "--truth", "model", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
+              tmp_path / "b.log")
+        assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 120, 0.3)
+        r = httpx.post(base + "/api/campaigns", json=brisk, headers=AUTH, timeout=10)
+        assert r.status_code == 201, r.text
+        rec = _wait_status(base, r.json()["id"], {"finished", "degraded", "aborted", "failed"}, 90)
+        assert rec["truth"] == "model", rec
+        assert "the twin simulated the 'model' truth (its Truth messages), not 'robot'" in rec["message"], rec["message"]
+        info = read_campaign(tmp_path / "d" / "campaigns" / f"{rec['id']}.mcap").info
+        assert "the twin simulated the 'model' truth" in info["message"], info

@@ -63,7 +63,9 @@ class TwinDriver(Driver):
             raise ValueError(f"the parameter set has {params.n_cables} cables, the driver config {config.n_motors} motors")
         # The robot: the truth's own parameter file where it names one (the robot truth: the
         # prototype), so a parameter set given to the controller does not rebuild the robot.
-        self.params = robot_base(load_truth(config.truth), params)
+        truth = load_truth(config.truth)
+        self.truth_name = bus.plain_text(truth.name, 64)  # in every Truth message: what is simulated
+        self.params = robot_base(truth, params)
         differ = believed_differently(self.params, params) if self.params is not params else []
         if differ:
             # Loud: a lab that gave its own robot's file with the shipped robot truth would
@@ -142,7 +144,8 @@ class TwinDriver(Driver):
             seq=self._seq["truth"], stamp_s=tick.t_s, alpha_rad=tick.alpha.tolist(),
             alpha_dot_rad_s=tick.alpha_dot.tolist(), theta_rad=tick.theta.tolist(),
             theta_dot_rad_s=tick.theta_dot.tolist(), tension_N=tick.tension.tolist(),
-            elongation_m=tick.elongation.tolist(), slack=tick.slack.tolist(), near_singular=tick.near_singular)))
+            elongation_m=tick.elongation.tolist(), slack=tick.slack.tolist(), near_singular=tick.near_singular,
+            truth=self.truth_name)))
         self._extra = extra
 
     def stamp_s(self) -> float:
