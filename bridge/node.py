@@ -131,7 +131,8 @@ SWITCH_INTERVAL_S = 2e-4
 #: s the start waits for the answer to "which e-stop tokens are alive": Zenoh answers a liveliness
 #: query from the tokens it knows (0.1 ms on loopback), so this bounds only a sick session.
 ESTOP_QUERY_S = 2.0
-#: Holders seen letting go while that query runs; past it, the query's answer is not used.
+#: Holders seen letting go while that query runs, at most (a flood stops recording them); past
+#: it, the query's answer still latches for every holder it names but those recorded going.
 TOKENS_GONE_MAX = 1024
 
 
@@ -606,10 +607,15 @@ class BridgeNode:
         with self._estop_lock:
             # A holder the subscriber saw go meanwhile stays gone: one that let go between the
             # query's answer and now had been put back for good, and every release refused until a
-            # restart (review of session 53). Past the cap, the subscriber alone.
+            # restart (review of session 53). Past the cap (a flood of tokens letting go), the answer
+            # still latches for every holder it names but those recorded going: dropped whole, a
+            # holder alive had been left to the subscriber's history, which may come after the first
+            # commands (review of session 53's diff). A wrong latch is the safe side.
             gone, self._tokens_gone = self._tokens_gone or set(), None
-            trusted = len(gone) < TOKENS_GONE_MAX
-            events = [self.estop_holders.appeared(h) for h in sorted(set(holders)) if trusted and h not in gone]
+            if len(gone) >= TOKENS_GONE_MAX:
+                log.warning("e-stop: %d or more holders let go while this bridge asked for them; latched for "
+                            "every holder the answer named (a release of one gone needs a restart)", TOKENS_GONE_MAX)
+            events = [self.estop_holders.appeared(h) for h in sorted(set(holders)) if h not in gone]
         if events:
             self.safety.apply_estop(events)
             _log_events(self.safety.take_events())

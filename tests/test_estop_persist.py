@@ -461,3 +461,31 @@ def test_an_estop_arriving_while_the_bridge_starts_is_never_lost_to_its_own_call
             assert node.mode == "disabled" and "while starting" in node.estop_reason, node.estop_reason
         finally:
             node.shutdown()
+
+
+def test_a_flood_of_holders_letting_go_during_the_start_still_latches_the_holders_alive(params):
+    """Review of session 53's diff: past TOKENS_GONE_MAX holders seen letting go while the start's
+    query ran, the query's whole answer was dropped, and a holder alive (engaged) was left to the
+    subscriber's history, which may come after the first commands: a peer churning tokens could
+    have the bridge start unlatched. Past the cap the answer applies to every holder but those seen
+    going (latching wrongly is the safe side)."""
+    from bridge.estop_holder import EStopHolder
+    from bridge.node import TOKENS_GONE_MAX
+    from bridge.safety import EStopHolders
+
+    with bus_pair() as (_hub, hub_session, connect):
+        holder = EStopHolder(hub_session, "console-alive")
+        holder.engage("operator e-stop")
+        session = connect()
+        node = _node(session, params, command_timeout_s=5.0)
+        try:
+            # as at the start, the subscriber's history not yet in: nothing known, a flood seen going
+            node.estop_holders = EStopHolders()
+            node._tokens_gone = {f"churn-{i}" for i in range(TOKENS_GONE_MAX)}
+            node._latch_for_holders(session)
+            assert "console-alive" in node.estop_holders.holders, node.estop_holders.holders
+            node.tick()
+            assert node.mode == "disabled", node.mode
+        finally:
+            node.shutdown()
+            holder.close()
