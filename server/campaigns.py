@@ -697,6 +697,10 @@ class CampaignManager:
             if cause is not None and fields["status"] == "aborted":
                 fields["message"] = _with_cause(cause[0], str(fields["message"]), cause[1])
                 self._name_in_archive(path, str(fields["message"]))
+            elif cause is not None and STOPPED_FOR_CAUSE in str(fields["message"]):
+                # recorded, then its analysis cut by the cause ("identification not done: … (stopped
+                # by the console for that cause)"): which cause, said (review of this session's diff)
+                fields["message"] = str(fields["message"]).replace(STOPPED_FOR_CAUSE, f"stopped for: {cause[0]}")[:2000]
             fields["mcap_bytes"] = path.stat().st_size if path.exists() else 0
             rec = self._update(cid, **fields)
         if self._on_finish is not None:
@@ -738,7 +742,9 @@ class CampaignManager:
                                                                or ended_s < now - ended_within_s)):
                     return None  # nothing running, or it had ended before the cause
                 if target == self._running:  # its worker names the cause when it writes the final record
-                    self._causes[target] = (reason, ended_s is None and not self._stop.is_set())
+                    # the first cause told stays (a second had replaced it), and a stop that came
+                    # first (the user's) keeps its word (review of this session's diff)
+                    self._causes.setdefault(target, (reason, ended_s is None and not self._stop.is_set()))
                     self._stop.stop(STOPPED_FOR_CAUSE)
                     if stack_stopping:
                         self._scene_stop.set()
@@ -776,7 +782,7 @@ class CampaignManager:
             # campaign B started between them (a new ``_stop``) was stopped by a stop of A (review).
             own = self._stop if self._running == campaign_id else None
         if own is not None:
-            own.set()
+            own.stop(STOPPED_BY_USER)  # the first cause stays (an abort after it had renamed the user's stop)
         elif starting is not None and starting[0] == campaign_id:
             starting[2].set()  # it never starts
         elif self._replay is not None and self._replay.campaign_id == campaign_id and self._replay.running:
@@ -984,7 +990,7 @@ class CampaignManager:
                     self.estop_engaged, self.estop_reason = engaged, bus.plain_text(reason)
         finally:
             if engaged:  # the campaign start() armed meanwhile too (it arms before it checks the e-stop)
-                self._stop.set()
+                self._stop.stop(STOPPED_BY_USER)
                 self._cancel_starting_replay()
                 if self._replay is not None:
                     self._replay.stop()
@@ -1000,7 +1006,7 @@ class CampaignManager:
         (its children take up to 10 s each to stop, its recorder 10 s to close): it may still
         write the data folder, so the folder's lock waits for it (:meth:`when_idle`)."""
         self._closing.set()
-        self._stop.set()
+        self._stop.stop(STOPPED_BY_USER)
         self._scene_stop.set()
         self._cancel_starting_replay()
         if self._replay is not None:

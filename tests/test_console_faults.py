@@ -968,3 +968,46 @@ def test_a_cause_names_what_the_campaign_saw_without_the_runners_word_for_its_ow
     assert _with_cause(cause, f"stopped by the user; {note}", False) == \
         f"{cause}; the campaign saw: stopped by the user; {note}"
     assert _with_cause(cause, f"{cause}; the campaign saw: x", True) == f"{cause}; the campaign saw: x"
+
+
+def test_a_users_stop_then_a_cause_keeps_the_users_word_and_the_first_cause(tmp_path: Path) -> None:
+    """Review of this session's diff: a user's stop set the campaign's stop without a word, and a
+    cause told within the runner's 0.3 s (a Ctrl-C to `xneck up`) gave it "stopped by the console
+    for that cause"; a second cause replaced the first. The first word and the first cause stay."""
+    with running_server(tmp_path / "d", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        cid = start_campaign(c, {"kind": "control", "law": 2, "pace": "realtime"}, progress=0.05)
+        assert c.post(f"/api/campaigns/{cid}/stop", headers=AUTH).status_code == 200
+        for reason in ("xneck up was stopped (SIGINT)", "controller process exited (signal SIGKILL)"):
+            c.post("/api/system/abort", json={"reason": reason, "stack_stopping": True}, headers=AUTH)
+        assert wait_until(lambda: c.get(f"/api/campaigns/{cid}").json()["status"] != "running", 30)
+        msg = c.get(f"/api/campaigns/{cid}").json()["message"]
+        assert msg == "xneck up was stopped (SIGINT); the campaign saw: stopped by the user", msg
+
+
+def test_an_analysis_cut_by_a_cause_names_it(tmp_path: Path, monkeypatch) -> None:
+    """Review of this session's diff: a cause told while an identification was analysed (its
+    recording finished) cut the analysis, and the record said "identification not done: … (stopped
+    by the console for that cause)", a cause named nowhere. It is named there now."""
+    import server.campaigns as campaigns
+    from server.campaign_runner import CampaignResult
+
+    ran = threading.Event()
+
+    def recorded_then_cut(spec, params, path, *, stop, **_kwargs):
+        ran.set()
+        assert stop.wait(20)  # the abort's stop, while "analysing"
+        from server.campaign_runner import stop_message
+
+        return CampaignResult("x", path, "finished", f"identification not done: the identification was stopped after "
+                              f"1 s ({stop_message(stop)}); `xneck identify {path}` does it")
+
+    monkeypatch.setattr(campaigns, "run_campaign", recorded_then_cut)
+    with running_server(tmp_path / "d", viser=False) as (base, _app), httpx.Client(base_url=base, timeout=30) as c:
+        r = c.post("/api/campaigns", json={"kind": "identification"}, headers=AUTH)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        assert ran.wait(20)
+        cause = "bridge process exited (signal SIGKILL)"
+        answer = c.post("/api/system/abort", json={"reason": cause}, headers=AUTH).json()
+        assert answer["campaign_id"] == cid and answer["status"] == "finished", answer
+        assert f"(stopped for: {cause})" in answer["message"] and "that cause" not in answer["message"], answer
