@@ -217,6 +217,7 @@ def test_a_stop_of_a_campaign_that_ends_as_another_starts_never_stops_the_new_on
     and B starting (a new ``_stop``) between the two had a stop of A stop B. The race window is made
     explicit: the read of ``_running`` in stop() does A's end and B's start as their threads do,
     under the manager's lock, at once when the lock is free, else as soon as stop() lets it go."""
+    from server.campaign_runner import CausedStop
     from server.campaigns import CampaignManager
     from server.records import CampaignRecord
 
@@ -226,7 +227,7 @@ def test_a_stop_of_a_campaign_that_ends_as_another_starts_never_stops_the_new_on
         try:
             for cid in ("control-a", "control-b"):
                 manager._records[cid] = CampaignRecord(**record(cid, "running"))
-            stop_a, stop_b = threading.Event(), threading.Event()
+            stop_a, stop_b = CausedStop(), CausedStop()
             deferred: list[bool] = []
 
             def a_ends_and_b_starts() -> None:  # what A's worker and B's start() do, each under the lock
