@@ -18,6 +18,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -365,3 +366,44 @@ def test_xneck_up_says_it_is_up_once_a_campaign_can_start(tmp_path: Path) -> Non
         token = (data / "token").read_text().strip()
         r = httpx.post(f"{base}/api/campaigns", json=GENTLE, headers={"Authorization": f"Bearer {token}"}, timeout=30)
         assert r.status_code == 201, r.text
+
+
+def test_the_wait_for_the_bridges_states_never_raises_and_runs_off_the_supervisors_loop() -> None:
+    """Review of this session's diff: `xneck up` asked the console for the bridge's states in its
+    supervisor loop, catching OSError only: a console dying mid-answer (a truncated body, a
+    garbage status line: http.client's errors) raised through the loop, and a hung one held each
+    pass a second, the hang detection as late. A thread of its own asks now, and any failure is a no."""
+    import socket as socket_module
+
+    from server.cli.up import _bridge_seen, _watch_bridge_seen
+
+    def serve(answer: bytes) -> tuple[str, socket_module.socket]:
+        srv = socket_module.create_server(("127.0.0.1", 0))
+
+        def run() -> None:
+            with contextlib.suppress(OSError):
+                while True:
+                    conn, _ = srv.accept()
+                    conn.recv(4096)
+                    conn.sendall(answer)
+                    conn.close()
+
+        threading.Thread(target=run, daemon=True).start()
+        return f"http://127.0.0.1:{srv.getsockname()[1]}/", srv
+
+    for answer in (b"garbage\r\n\r\n", b"HTTP/1.1 200 OK\r\nContent-Length: 500\r\n\r\n{\"bridge\": ",
+                   b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n[]"):
+        url, srv = serve(answer)
+        try:
+            assert _bridge_seen(url) is False, answer
+        finally:
+            srv.close()
+    body = b'{"bridge": {"state_age_s": 0.0}}'
+    url, srv = serve(b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
+    seen, give_up = threading.Event(), threading.Event()
+    try:
+        thread = _watch_bridge_seen(url, seen, give_up)
+        assert seen.wait(10) and thread.daemon
+    finally:
+        give_up.set()
+        srv.close()

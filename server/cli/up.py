@@ -350,12 +350,29 @@ def _healthy(url: str) -> bool:
 
 
 def _bridge_seen(url: str) -> bool:
-    """Whether the console at ``url`` has a motor state of a bridge (``/api/system/health``)."""
+    """Whether the console at ``url`` has a motor state of a bridge (``/api/system/health``); any
+    failure is a no (a console dying mid-answer raised http.client's errors, which are no OSError)."""
     try:
         with urllib.request.urlopen(url + "api/system/health", timeout=1.0) as r:  # a loopback URL we built
-            return (json.loads(r.read()).get("bridge") or {}).get("state_age_s") is not None
-    except (OSError, ValueError, AttributeError):
+            return (json.loads(r.read(65536)).get("bridge") or {}).get("state_age_s") is not None
+    except Exception:  # noqa: BLE001 - not yet, whatever the reason
         return False
+
+
+def _watch_bridge_seen(url: str, seen: threading.Event, give_up: threading.Event) -> threading.Thread:
+    """A daemon thread that sets ``seen`` once the console at ``url`` has the bridge's states
+    (polled every 0.3 s until then or ``give_up``): off the supervisor's loop, which a hung or
+    trickling console had held a second or more a pass, its hang detection as late (review of
+    this session's diff)."""
+    def poll() -> None:
+        while not give_up.is_set() and not _bridge_seen(url):
+            give_up.wait(0.3)
+        if not give_up.is_set():
+            seen.set()
+
+    thread = threading.Thread(target=poll, name="xneck-up-bridge-seen", daemon=True)
+    thread.start()
+    return thread
 
 
 def _token(data_dir: Path) -> str:
@@ -631,6 +648,7 @@ def up(
         isolate(procs[name].pid, args[0], realtime=False)
 
     code = 0
+    bridge_seen, stop_polling = threading.Event(), threading.Event()  # "xneck is up" waits for the bridge's states
     watch = _LoopPings() if robot and not no_bridge else None
     controller_watch = _LoopPings()
     driver: list[str] = []
@@ -689,14 +707,17 @@ def up(
         # loaded machine, which reads as a crash (fresh-user audit of 2026-12-01).
         _say(f"xneck is starting: console {url} up; waiting for the {'controller' if no_bridge else 'bridge and the controller'}…")
         announced, hinted = False, False
+        if not no_bridge:
+            _watch_bridge_seen(url, bridge_seen, stop_polling)
         started = seen_alive = last_pass = time.monotonic()  # when every child was last seen running
         # Why a child was killed, kept until its death is handled: one slow to exit after SIGKILL
         # dies a pass or more later, and had been said to have "exited (signal SIGKILL)" (review).
         hung: dict[str, str] = {}
         while not stop["signal"]:
-            if not announced and controller_watch.age_s() is not None and (no_bridge or _bridge_seen(url)):
+            if not announced and controller_watch.age_s() is not None and (no_bridge or bridge_seen.is_set()):
                 announce()
                 announced = True
+                stop_polling.set()
             elif not announced and not hinted and time.monotonic() - started > READY_HINT_S:
                 hinted = True
                 _say(f"  still starting after {READY_HINT_S:.0f} s (a loaded machine, or see the logs in {logs})",
@@ -802,6 +823,7 @@ def up(
         _say(f"error: {exc}", err=True, fg="red")
         code = 1
     finally:
+        stop_polling.set()
         for name in ("controller", "bridge", "camera", "server"):
             p = procs.get(name)
             if p is not None and (how := stop_child(p, STOP_GRACE_S)):
