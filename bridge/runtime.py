@@ -105,25 +105,33 @@ def take_loop_priority() -> str:
             raise ValueError
     except ValueError:
         return f"{ENV_LOOP_PRIORITY}={value[:20]!r} is no real-time priority (1-98): scheduling left as is"
-    try:
-        tids = sorted(int(t) for t in os.listdir("/proc/self/task"))
-    except OSError:
-        tids = [threading.get_native_id()]
     refused: set[str] = set()
-    for tid in tids:
-        offset = _arranged.get(tid, 0)
-        if offset is None:
-            continue
+    done: set[int] = set()
+    for _pass in range(3):  # again for a thread started meanwhile by one not yet raised (it inherited nothing)
         try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(1, prio + offset)))
-        except ProcessLookupError:
-            continue  # a thread that ended meanwhile
-        except (AttributeError, OSError) as exc:
-            refused.add(f"SCHED_FIFO {prio}: {getattr(exc, 'strerror', None) or exc}")
+            tids = {int(t) for t in os.listdir("/proc/self/task")}
+        except OSError:
+            tids = {threading.get_native_id()}
+        for tid in list(_arranged):  # a place of a thread that ended: its id may come back for another
+            if tid not in tids:
+                _arranged.pop(tid, None)
+        if tids <= done:
+            break
+        for tid in sorted(tids - done):
+            done.add(tid)
+            offset = _arranged.get(tid, 0)
+            if offset is None:
+                continue
             try:
-                os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
-            except OSError as exc2:
-                refused.add(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(1, prio + offset)))
+            except ProcessLookupError:
+                continue  # a thread that ended meanwhile
+            except (AttributeError, OSError) as exc:
+                refused.add(f"SCHED_FIFO {prio}: {getattr(exc, 'strerror', None) or exc}")
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
+                except OSError as exc2:
+                    refused.add(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
     return "; ".join(sorted(refused))
 
 
