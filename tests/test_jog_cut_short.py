@@ -37,7 +37,7 @@ def test_a_jog_was_under_way_from_its_sending_until_its_move_and_settle_were_ove
 
 
 class _Campaigns:
-    def abort(self, reason: str, ended_within_s: float | None) -> None:
+    def abort(self, reason: str, ended_within_s: float | None, stack_stopping: bool = False) -> None:
         return None  # no campaign ran
 
 

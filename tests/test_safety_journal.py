@@ -572,7 +572,7 @@ def test_a_flood_of_one_process_fault_is_one_line_with_its_count(tmp_path: Path)
     from server.process_faults import ProcessFaults
 
     class Campaigns(_Campaigns):
-        def abort(self, reason: str, ended_within_s: float | None) -> None:
+        def abort(self, reason: str, ended_within_s: float | None, stack_stopping: bool = False) -> None:
             return None
 
     now = [0.0]

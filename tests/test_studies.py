@@ -553,7 +553,7 @@ def test_a_study_records_and_hashes_only_the_fields_its_kind_uses(tmp_path) -> N
     # and a directory whose study.json recorded every field still holds the same study.
     # (an identification study's default truth became the robot's on 2026-12-01: the one on the
     # model truth, asked for, keeps its digest)
-    assert [study_from(k, **({"truth": "model"} if k == "identification" else {})).digest()
+    assert [study_from(k, truth="model" if k == "identification" else None).digest()
             for k in ("control", "identification", "design")] == [
         "825a25500aefa78c", "8cb27dc463fbc46c", "92705072dafb4453"]
     old = tmp_path / "old"

@@ -686,8 +686,7 @@ def up(
               controller_watch.environ())
         token_file = Path(data_dir) / "token"
 
-        def announce() -> None:
-            _say(f"xneck is up: dashboard {url}  (API docs {url}docs)")
+        def describe() -> None:
             _say(f"  bus hub {hub}; {'robot (BeagleBone)' if robot else f'twin ({truth} truth)'} bridge"
                  f"{(' expected at ' + bridge_at if bridge_at else ' expected on the hub') if no_bridge else ''}"
                  f", controller service (law {law})")
@@ -706,6 +705,7 @@ def up(
         # controller service is not on the bus (being restarted ..., or stopped)" for 20-28 s on a
         # loaded machine, which reads as a crash (fresh-user audit of 2026-12-01).
         _say(f"xneck is starting: console {url} up; waiting for the {'controller' if no_bridge else 'bridge and the controller'}…")
+        describe()
         announced, hinted = False, False
         if not no_bridge:
             _watch_bridge_seen(url, bridge_seen, stop_polling)
@@ -715,7 +715,7 @@ def up(
         hung: dict[str, str] = {}
         while not stop["signal"]:
             if not announced and controller_watch.age_s() is not None and (no_bridge or bridge_seen.is_set()):
-                announce()
+                _say(f"xneck is up: dashboard {url}  (API docs {url}docs)")
                 announced = True
                 stop_polling.set()
             elif not announced and not hinted and time.monotonic() - started > READY_HINT_S:
