@@ -152,7 +152,10 @@ def test_a_start_request_delivered_twice_runs_once_and_its_copy_is_counted(stack
     assert [e.event for e in stack.answers("twice")].count("started") == 1, stack.answers("twice")
     assert not [e for e in stack.answers("twice") if e.event == "aborted"], stack.answers("twice")
     assert wait_until(lambda: stack.health.messages()[-1].rejected[bus.CAMPAIGN_REQUEST] > rejected, 10, 0.05)
-    assert "ignored" in stack.health.messages()[-1].last_reject_reason
+    # the reason of the first Health that counted it: a later one may carry another topic's
+    # reason (a state refused as ahead of the clock on a loaded machine, fresh-clone CI of session 54)
+    first = next(h for h in stack.health.messages() if h.rejected[bus.CAMPAIGN_REQUEST] > rejected)
+    assert "ignored" in first.last_reject_reason, first.last_reject_reason
 
 
 def test_a_long_trajectory_is_refused_or_prepared_off_the_loop(stack):

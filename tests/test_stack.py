@@ -204,7 +204,10 @@ def test_a_controller_killed_mid_campaign_leaves_the_robot_held_and_the_campaign
         assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * (span / 5 + 2.2) + 1e-6, (a, b, span)
     for a, b in itertools.pairwise(settled):
         ticks = max(round((b[0] - a[0]) / 0.002), 1)
-        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * 1.0 + 1e-6, (a, b)
+        # the damping's 1 N a tick, and the hold forces' own 1 N a tick where they came after the
+        # ramp (computed off the tick, late on a loaded machine: bridge/safety.py, "Watchdog"); a
+        # state 2 N from the last (all four cables) failed the 1 N bound in a full suite (session 55)
+        assert np.abs(np.asarray(b[2]) - np.asarray(a[2])).max() <= ticks * 2.0 + 1e-6, (a, b)
     alpha = np.array([m.alpha_rad for _, m in campaign.messages(bus.TWIN_TRUTH)])
     assert np.degrees(np.abs(alpha)).max() <= 60.0
 
