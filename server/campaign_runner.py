@@ -696,12 +696,27 @@ def analyse_identification(result: CampaignResult, params_file: Path | None, est
             None, f"identification failed: {type(exc).__name__}: {exc}", None)
     if result.identification is not None:
         return
-    run = result.message
     result.outcome = "analysis_failed"
-    result.message = f"{result.analysis} ({run})" if run else result.analysis
+    result.message = failed_analysis_message(result.analysis, result.message)
     if is_complete(result.path):
         rewrite_archive(result.path, amend={CAMPAIGN: {"outcome": result.outcome, "message": result.message[:2000],
                                                        "analysis": result.analysis[:2000]}})
+
+
+MESSAGE_MAX = 2000  # characters of a campaign's message kept in its record and its archive
+
+
+def failed_analysis_message(analysis: str, run: str) -> str:
+    """The message of a campaign whose analysis failed: the analysis's reason, then the run's own
+    message in parentheses, kept whole within :data:`MESSAGE_MAX` (its notes: cables at f_max,
+    holds, a stop's cause), the reason clipped to the room left (whole in the archive's
+    ``analysis`` field). Cut at the end instead, a reason that lists many gaps had taken the
+    saturation note out of the archive (fresh-clone CI of session 55)."""
+    if not run:
+        return analysis
+    room = max(MESSAGE_MAX - len(run) - 3, 300)
+    head = analysis if len(analysis) <= room else analysis[:room - 1] + "…"
+    return f"{head} ({run})"
 
 
 def _wait_alive(session: zenoh.Session, key: str, stop: threading.Event, timeout_s: float, what: str, *,

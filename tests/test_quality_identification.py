@@ -180,6 +180,23 @@ def service_identification(tmp_path_factory):
         return run_campaign(spec, params, tmp / "ident.mcap", session=session, hub=hub)
 
 
+def test_a_failed_analysis_with_a_long_reason_keeps_the_runs_notes_in_the_archives_message() -> None:
+    """Fresh-clone CI of session 55: the analysis's reason (a rank-deficient regressor, with a note
+    per gap of a loaded machine's record) came first and the message was cut at 2000 characters
+    for the record and the archive, taking the run's saturation note with it."""
+    from server.campaign_runner import MESSAGE_MAX, failed_analysis_message
+
+    run = "controller: finished; " + saturation_note({"law_ticks": 2832, "saturated_ticks": 1316,
+                                                       "saturated_by_cable": [869, 865, 869, 1]})
+    reason = "identification failed: IdentificationError: regressor is rank-deficient in practice: " + \
+        "".join(f" (counted on the instants fitted: gap {k} of 0.1 s)" for k in range(60))
+    message = failed_analysis_message(reason, run)
+    assert len(message) <= MESSAGE_MAX and message.endswith(f"({run})"), message[-300:]
+    assert message.startswith("identification failed: IdentificationError: regressor is rank-deficient")
+    assert failed_analysis_message("short reason", run) == f"short reason ({run})"
+    assert failed_analysis_message(reason, "") == reason
+
+
 @pytest.mark.e2e
 def test_an_identification_through_the_service_whose_cables_sat_at_f_max_says_so(service_identification) -> None:
     """The audit's case end to end: the console counts the service's statuses and the campaign's
