@@ -80,6 +80,7 @@ from twin.sim.truth import load_truth
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
+MESSAGE_MAX = 2000  # characters of a campaign's message kept in its record and its archive
 # s a vanished controller service's campaign waits for its cause before it ends on the vanishing:
 # ``xneck up`` polls its children every 0.2 s, then tells the console (CI of 2026-11-29: the runner
 # ended first and REST showed the side effect). Nothing physical waits on it: the bridge's watchdog
@@ -586,7 +587,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
             truth_seen = ""
         quality = {**counters, "realtime": realtime, "reasons": reasons, "thresholds": thresholds_dict(THRESHOLDS)}
         try:
-            recorder.stop(outcome, {"message": message[:2000], "quality": json.dumps(quality),
+            recorder.stop(outcome, {"message": message[:MESSAGE_MAX], "quality": json.dumps(quality),
                                     "degraded_reasons": "; ".join(reasons)},
                           final_metadata=lambda: {"alpha_ip": alpha_ip_recorded(monitor.recorded_alpha_ip())})
         except ArchiveError as exc:  # a storage fault: the run's counters go with it to the record
@@ -699,11 +700,8 @@ def analyse_identification(result: CampaignResult, params_file: Path | None, est
     result.outcome = "analysis_failed"
     result.message = failed_analysis_message(result.analysis, result.message)
     if is_complete(result.path):
-        rewrite_archive(result.path, amend={CAMPAIGN: {"outcome": result.outcome, "message": result.message[:2000],
-                                                       "analysis": result.analysis[:2000]}})
-
-
-MESSAGE_MAX = 2000  # characters of a campaign's message kept in its record and its archive
+        rewrite_archive(result.path, amend={CAMPAIGN: {"outcome": result.outcome, "message": result.message[:MESSAGE_MAX],
+                                                       "analysis": result.analysis[:MESSAGE_MAX]}})
 
 
 def failed_analysis_message(analysis: str, run: str) -> str:
