@@ -62,7 +62,7 @@ from controller.laws import LawConfig
 from controller.trajectory import Trajectory
 from server.archive_metrics import metrics_from_archive
 from server.archive_rewrite import rewrite_archive
-from server.child_processes import isolate, log_tail, loop_environ, stop_child, xneck_argv
+from server.child_processes import isolate, log_tail, loop_environ, start_xneck, stop_child
 from server.quality import (
     THRESHOLDS,
     TWIN_CAMERA,
@@ -427,9 +427,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
             logs[name] = workdir / f"{name}.log"
             # a loop process takes its real-time priority itself once set up (server.child_processes.loop_environ)
             env = {**os.environ, "PYTHONUNBUFFERED": "1", **(loop_environ(args[0]) if realtime else {})}
-            with open(logs[name], "wb") as log:
-                procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT,
-                                               stdin=subprocess.DEVNULL, env=env)
+            procs[name] = start_xneck(args, logs[name], env)
             if realtime:  # a lockstep twin runs flat out: no real-time priority for it (issue 21)
                 isolate(procs[name].pid, args[0], realtime=False)
 

@@ -40,6 +40,17 @@ def xneck_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "server.cli", *args]
 
 
+def start_xneck(args: list[str], log: Path, env: dict[str, str], *, append: bool = False,
+                start_new_session: bool = False) -> subprocess.Popen:
+    """``xneck <args>`` started as a child by this very interpreter: stdout and stderr to ``log``
+    (appended to, or truncated), stdin ``/dev/null``, ``env`` its whole environment. The one place
+    the orchestrators (campaign runner, `xneck up`) start a child; the test suite forks them from a
+    server that has the imports and kernels loaded (tests/forkserver_client.py)."""
+    with open(log, "ab" if append else "wb") as out:
+        return subprocess.Popen(xneck_argv(*args), stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env=env, start_new_session=start_new_session)
+
+
 #: prctl(2) option: the signal the kernel sends a process when the thread that started it dies.
 PR_SET_PDEATHSIG = 1
 #: Set by a supervisor (``xneck up``) in a child's environment: its own pid, whose death stops the child.

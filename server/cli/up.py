@@ -80,6 +80,7 @@ from server.child_processes import (
     log_tail,
     loop_environ,
     process_state,
+    start_xneck,
     stop_child,
     xneck_argv,
 )
@@ -639,9 +640,7 @@ def up(
                      "PYTHONUNBUFFERED": "1", ENV_PARENT: str(os.getpid()), **loop_environ(args[0]), **(env or {})}
         if env and "NOTIFY_SOCKET" in env:
             child_env.pop("WATCHDOG_PID", None)  # inherited from a systemd unit of ours it would name us, not the child
-        with open(log_files[name], "ab") as log:
-            procs[name] = subprocess.Popen(xneck_argv(*args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=child_env, start_new_session=True)
+        procs[name] = start_xneck(args, log_files[name], child_env, append=True, start_new_session=True)
         # The loop's processes on their CPU, the console off it (issue 21); a loop process takes
         # its real-time priority itself once set up (loop_environ: at its exec, its imports had
         # starved another stack's controller until it was killed as hung; fresh-user audit of 2026-12-01).
