@@ -11,11 +11,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import contextlib
 import fcntl
 import functools
-import json
 import re
 import resource
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -26,6 +23,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import forkserver_client
 import numpy as np
 import pytest
 import zenoh
@@ -342,101 +340,45 @@ XneckRunner = Callable[..., subprocess.CompletedProcess]
 
 
 @pytest.fixture(scope="session")
-def xneck(tmp_path_factory: pytest.TempPathFactory) -> Iterator[XneckRunner]:
+def xneck() -> XneckRunner:
     """Runs ``xneck <args>`` (``python -m server.cli``) to completion and returns the finished
     process (text stdout/stderr). Keywords: ``timeout`` (s, default 180), ``cwd``, ``env`` (added
     to this process's environment).
 
     Runs are forked from tests/xneck_forkserver.py, which has imported the command line's modules
-    once (a ``python -m server.cli`` start-up is 0.4-1 s of CPU, and the suite runs some hundreds);
-    a run with ``env``, or ``XNECK_TEST_FORKSERVER=0``, is a process of its own, as is every run if
-    the fork server cannot start. (``XNECK_TEST_TIMELINE`` counts the forked runs' CPU in the module
-    that ends the session, when the server is waited for.)"""
-    server = _XneckForkServer(tmp_path_factory.mktemp("forkserver") / "socket")
+    once (a ``python -m server.cli`` start-up is 0.4-1 s of CPU, and the suite runs some hundreds;
+    test_cli_usage took 70 s instead of 258 s); a run with ``env``, or ``XNECK_TEST_FORKSERVER=0``,
+    is a process of its own, as is every run if the fork server cannot start.
+    (``XNECK_TEST_TIMELINE`` counts the forked runs' CPU when the worker ends, not in their module.)"""
 
     def run(*args: str, timeout: float = 180, cwd: Path | None = None,
             env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-        if env is None and (done := server.run(list(args), timeout, cwd)) is not None:
+        if env is None and (done := forkserver_client.shared().run(list(args), timeout, cwd)) is not None:
             return done
         return subprocess.run([*XNECK, *args], capture_output=True, text=True, timeout=timeout, cwd=cwd,
                               env={**os.environ, **(env or {})})
 
-    try:
-        yield run
-    finally:
-        server.stop()
+    return run
 
 
-class _XneckForkServer:
-    """The client of tests/xneck_forkserver.py, started at the first run."""
+@pytest.fixture(autouse=True, scope="session")
+def _forked_campaign_children() -> Iterator[None]:
+    """The campaigns this process runs (``run_campaign``, the in-process consoles) start their twin,
+    controller and camera forked from the suite's fork server (tests/forkserver_client.py), not as
+    new interpreters: each was 1.5-2 s of CPU of imports and numba kernel loads before its first
+    tick. Same command lines, same environment, same logs; ``XNECK_TEST_FORKSERVER=0`` turns it off."""
+    import server.campaign_runner
+    from server.child_processes import start_xneck
 
-    START_TIMEOUT_S = 120.0
+    def start(args: list[str], log: Path, env: dict[str, str], *, append: bool = False,
+              start_new_session: bool = False) -> subprocess.Popen:
+        forked = forkserver_client.shared().spawn(list(args), log, env, start_new_session=start_new_session,
+                                                  append=append)
+        return forked or start_xneck(args, log, env, append=append, start_new_session=start_new_session)
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.proc: subprocess.Popen | None = None
-        self.broken = os.environ.get("XNECK_TEST_FORKSERVER", "1") == "0"
-
-    def _start(self) -> bool:
-        if self.proc is None and not self.broken:
-            self.proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("xneck_forkserver.py")),
-                                          str(self.path)], cwd=Path(__file__).parent.parent,
-                                         stdin=subprocess.DEVNULL)
-            deadline = time.monotonic() + self.START_TIMEOUT_S
-            while not self.path.exists() and self.proc.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.02)
-            if not self.path.exists():
-                warnings.warn("the xneck fork server did not start: each run is a process of its own", stacklevel=3)
-                self.stop()
-                self.broken = True
-        return not self.broken
-
-    def run(self, args: list[str], timeout: float, cwd: Path | None) -> subprocess.CompletedProcess | None:
-        """The finished run, or None if the server could not take it (then the caller starts a process)."""
-        if not self._start():
-            return None
-        with tempfile.TemporaryDirectory(prefix="xneck-run-") as tmp:
-            out, err = Path(tmp) / "stdout", Path(tmp) / "stderr"
-            out.touch()
-            err.touch()
-            request = {"argv": args, "cwd": str(Path(cwd or os.getcwd()).absolute()), "env": dict(os.environ),
-                       "nice": os.getpriority(os.PRIO_PROCESS, 0), "stdout": str(out), "stderr": str(err)}
-            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
-                conn.connect(str(self.path))
-                conn.sendall(json.dumps(request).encode() + b"\n")
-                answers = conn.makefile("rb")
-                first = answers.readline().decode().strip()
-                if not first.lstrip("-").isdigit():
-                    warnings.warn(f"the xneck fork server refused a run ({first or 'no answer'}): "
-                                  "each run is a process of its own", stacklevel=3)
-                    self.broken = True
-                    return None
-                pid = int(first)
-                conn.settimeout(timeout)
-                try:
-                    code = int(answers.readline())
-                except TimeoutError:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.kill(pid, signal.SIGKILL)
-                    raise subprocess.TimeoutExpired([*XNECK, *args], timeout, _text(out), _text(err)) from None
-            return subprocess.CompletedProcess([*XNECK, *args], code, _text(out), _text(err))
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-
-
-def _text(path: Path) -> str:
-    """A file's bytes as ``subprocess.run(text=True)`` decodes a pipe's (locale encoding, universal newlines)."""
-    import locale
-
-    data = path.read_bytes().decode(locale.getpreferredencoding(False))
-    return data.replace("\r\n", "\n").replace("\r", "\n")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(server.campaign_runner, "start_xneck", start)
+        yield
 
 
 @pytest.fixture(autouse=True)

@@ -139,6 +139,8 @@ def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(
     import threading
     import time
 
+    from forkserver_client import parent_pids
+
     from server import campaign_runner
 
     # The hung bridge ignores the runner's SIGTERM (it is stopped): the runner kills it after this
@@ -157,7 +159,7 @@ def test_a_campaign_whose_bridge_hangs_ends_aborted_with_why_not_at_its_timeout(
             try:
                 argv = (d / "cmdline").read_bytes().split(b"\0")
                 if d.name.isdigit() and (b"bridge" in argv or b"twin" in argv) and b"server.cli" in argv and \
-                        int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == os.getpid():
+                        int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) in parent_pids():
                     return int(d.name)
             except (OSError, ValueError, IndexError):
                 continue

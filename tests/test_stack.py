@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
+import forkserver_client
 import httpx
 import numpy as np
 import pytest
@@ -63,8 +64,10 @@ def _procs():
     started: list[subprocess.Popen] = []
 
     def spawn(args: list[str], log: Path) -> subprocess.Popen:
-        p = subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,  # noqa: SIM115
-                             env=ENV, start_new_session=True)
+        # forked from the suite's fork server (tests/forkserver_client.py): no imports, no kernel loads
+        p = forkserver_client.shared().spawn(args, log, ENV) or \
+            subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT,  # noqa: SIM115
+                             stdin=subprocess.DEVNULL, env=ENV, start_new_session=True)
         started.append(p)
         return p
 

@@ -1,19 +1,24 @@
-"""A fork server for the suite's ``xneck`` runs (tests/conftest.py's ``xneck`` fixture).
+"""A fork server for the suite's ``xneck`` processes (tests/forkserver_client.py is its client).
 
-The suite runs ``xneck`` to completion some hundreds of times; each ``python -m server.cli`` read
-and initialised numpy, typer, pydantic and the project again (0.4-1 s of CPU apiece, on a VM whose
-page cache is emptied all the time). This server imports them once, then forks a child per run:
-the child takes the asking test's working directory, environment and nice, its output files and
-``/dev/null`` as stdin, and runs ``server.cli`` as ``python -m`` does (``runpy``, ``sys.path[0]``
-the working directory), then exits through the interpreter's normal shutdown (threads joined,
-``atexit`` handlers run, objects finalised), as the real process would.
+The suite starts ``python -m server.cli`` some hundreds of times: commands run to completion (the
+``xneck`` fixture) and the stacks' processes (tests/test_stack.py's ``_procs``). Each read and
+initialised numpy, typer, pydantic and the project again, and a bridge or a controller loaded its
+numba kernels from the cache (0.4-2 s of CPU apiece, on a VM whose page cache is emptied all the
+time). This server imports them and loads the kernels once, then forks a child per process: the
+child takes the asking test's working directory, environment, nice and CPUs, its output files,
+``/dev/null`` as stdin and, if asked, a session of its own (``start_new_session``), and runs
+``server.cli`` as ``python -m`` does (``runpy``, ``sys.path[0]`` the working directory). It exits as
+the interpreter would (non-daemon threads joined, cycles collected, ``atexit`` handlers run, output
+flushed, the code of ``SystemExit``) but without finalising the modules it was forked with.
 
-Protocol, over a Unix socket, one run per connection: the client sends one JSON line (``argv``,
-``cwd``, ``env``, ``nice``, ``stdout``, ``stderr``: paths of files the child writes), the server
-answers the child's pid on one line, then its exit code (``subprocess`` convention: -N for a
-signal) on another. The server stops when its parent (the pytest worker) is gone or on SIGTERM.
+Protocol, over a Unix socket, one process per connection: the client sends one JSON line (``argv``,
+``cwd``, ``env``, ``nice``, ``cpus``, ``session``, ``stdout``, ``stderr``: paths of files the child
+writes, the same path for both as ``stderr=STDOUT``, ``append``), the server answers the child's pid on one
+line, then its exit code (``subprocess`` convention: -N for a signal) on another when it has ended.
+The server stops when its parent (the pytest worker) is gone or on SIGTERM.
 
-Run as ``python tests/xneck_forkserver.py SOCKET``; it binds SOCKET once its imports are done.
+Run as ``python tests/xneck_forkserver.py SOCKET PADDING`` (PADDING: :data:`CMDLINE_ROOM` characters,
+the room the children's command lines are written in); it binds SOCKET once its imports are done.
 """
 
 from __future__ import annotations
@@ -42,6 +47,20 @@ def _preload() -> None:
     for name in PRELOAD:
         with contextlib.suppress(ImportError):  # a module this checkout lacks: its commands say so themselves
             importlib.import_module(name)
+    with contextlib.suppress(Exception):  # best effort: a child loads what is missing itself
+        _load_kernels()
+
+
+def _load_kernels() -> None:
+    """The numba kernels of the twin and of the three laws, loaded from numba's cache (or compiled)
+    here once: about 1 s of every bridge's and controller's start-up."""
+    from controller.laws import ComputedTorque, LawConfig
+    from twin.model.params import load_params
+    from twin.sim.simulator import Twin
+
+    Twin()
+    for law in (1, 2, 3):
+        ComputedTorque(load_params(), LawConfig(law=law))
 
 
 def _threads() -> int:
@@ -51,6 +70,8 @@ def _threads() -> int:
 def serve(path: str) -> dict[str, Any]:
     """Accepts runs until the parent is gone; returns only in a forked child, with its request."""
     me, parent = os.getpid(), os.getppid()
+    start, end = cmdline_area()
+    room = end - start
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     listener.bind(path + ".binding")
     listener.listen(64)
@@ -73,6 +94,10 @@ def serve(path: str) -> dict[str, Any]:
                     request = json.loads(lines.readline())
                 if _threads() != 1:  # a fork would copy locks held by threads that do not follow
                     conn.sendall(b"refused: the fork server has threads\n")
+                    conn.close()
+                    continue
+                if len(child_cmdline(request["argv"])) > room:  # this one only: a process of its own
+                    conn.sendall(b"too long\n")
                     conn.close()
                     continue
                 sys.stdout.flush()
@@ -111,6 +136,37 @@ def serve(path: str) -> dict[str, Any]:
     sys.exit(0)
 
 
+#: Bytes the server's own command line is padded with: room for its children's (:func:`set_cmdline`).
+CMDLINE_ROOM = 8192
+PR_SET_MM, PR_SET_MM_ARG_END = 35, 9  # prctl(2)
+
+
+def cmdline_area() -> tuple[int, int]:
+    """(start, end) addresses of this process's command line (proc(5): /proc/self/stat fields 48-49)."""
+    with open("/proc/self/stat") as stat:
+        fields = stat.read().rsplit(")", 1)[1].split()
+    return int(fields[45]), int(fields[46])  # fields 48 and 49, counted from field 3 after the ")"
+
+
+def child_cmdline(argv: list[str]) -> bytes:
+    """What /proc/PID/cmdline shows for ``python -m server.cli <argv>``."""
+    return b"".join(a.encode() + b"\0" for a in [sys.executable, "-m", "server.cli", *argv])
+
+
+def set_cmdline(title: bytes) -> None:
+    """This process's /proc/PID/cmdline becomes ``title`` (NUL-separated, as the kernel keeps argv):
+    a forked child is then the `python -m server.cli ...` it runs for everything that finds xneck
+    processes by their command line (``server.child_processes.local_processes``, ``ps``, tests).
+    Written over the server's own (padded) argv; its end moved to the title's where the kernel lets
+    this process (CAP_SYS_RESOURCE), else the rest stays NUL bytes (empty trailing arguments)."""
+    import ctypes
+
+    start, end = cmdline_area()
+    ctypes.memmove(start, title + b"\0" * (end - start - len(title)), end - start)
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_MM, PR_SET_MM_ARG_END, ctypes.c_ulong(start + len(title)), 0, 0)
+
+
 def run_child(request: dict[str, Any]) -> None:
     """In the forked child: become the asking test's ``python -m server.cli <argv>``, run it and exit
     as the interpreter would (non-daemon threads joined, cycles collected, ``atexit`` handlers run,
@@ -122,18 +178,36 @@ def run_child(request: dict[str, Any]) -> None:
     import threading
     import traceback
 
+    set_cmdline(child_cmdline(request["argv"]))
+    if request.get("session"):
+        os.setsid()
     null = os.open(os.devnull, os.O_RDONLY)
     os.dup2(null, 0)
     os.close(null)
-    for fd, key in ((1, "stdout"), (2, "stderr")):
-        out = os.open(request[key], os.O_WRONLY | os.O_TRUNC)
-        os.dup2(out, fd)
-        os.close(out)
+    out = os.open(request["stdout"], os.O_WRONLY | (os.O_APPEND if request.get("append") else os.O_TRUNC))
+    os.dup2(out, 1)
+    if request["stderr"] == request["stdout"]:
+        os.dup2(out, 2)
+    else:
+        err = os.open(request["stderr"], os.O_WRONLY | os.O_TRUNC)
+        os.dup2(err, 2)
+        os.close(err)
+    os.close(out)
     os.chdir(request["cwd"])
     os.environ.clear()
     os.environ.update(request["env"])
+    if os.environ.get("PYTHONUNBUFFERED"):  # as `python -u` makes them: every write reaches the file
+        import io
+
+        sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), encoding=sys.stdout.encoding,
+                                      errors=sys.stdout.errors, write_through=True)
+        sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding=sys.stderr.encoding,
+                                      errors=sys.stderr.errors, write_through=True)
     with contextlib.suppress(OSError):  # lowering a nice needs the right to: the server's then
         os.setpriority(os.PRIO_PROCESS, 0, int(request["nice"]))
+    if request.get("cpus"):
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setaffinity(0, request["cpus"])
     sys.argv = ["-m", *request["argv"]]  # runpy sets argv[0] to the module's file, as `python -m` does
     sys.path[0] = request["cwd"]
     before = set(sys.modules)
