@@ -157,7 +157,11 @@ def _estop_mid_campaign_ends_it_at_once(base: str, hub: str) -> None:
         finally:
             holder.release("done")
             holder.close()
-    assert rec["status"] == "aborted" and "mid-campaign" in rec["message"], rec
+    # The e-stop's reason, or its holder's token's (bridge/safety.py TOKEN_REASON_TAIL) when the
+    # token reached the console first: a race of two bus messages, and either names the e-stop and
+    # who holds it (a loaded machine's suite of session 56 had the token first).
+    assert rec["status"] == "aborted" and ("mid-campaign" in rec["message"] or
+                                           "e-stop engaged by cli-test-midcampaign" in rec["message"]), rec
     # one, or a resend if the controller's end event was slow in coming (the bug sent 6-7)
     assert len([q for q in stops if q.action == "stop" and q.campaign_id == cid]) <= 2, stops
 

@@ -33,11 +33,18 @@ import socket
 import sys
 from typing import Any
 
-# What `xneck`'s commands import beyond `server.cli` itself (their heavier dependencies are
-# imported inside the commands): imported here once, shared copy-on-write by every child.
+# What `xneck`'s processes import beyond `server.cli` itself (their heavier dependencies are
+# imported inside the commands): imported here once, shared copy-on-write by every child. A list,
+# not what the children were seen to import: importing those here (anyio's and asyncio's modules
+# among them, after an `xneck up` had run) left the next forked console's threadpool without its
+# asyncio task (anyio: "cannot create weak reference to 'NoneType' object").
 PRELOAD = ("server.cli", "server.cli.identify", "server.cli.camera", "server.cli.campaign", "server.cli.study",
            "server.cli.excitation", "server.cli.kinematics", "server.cli.model", "server.cli.estop",
-           "scipy.signal", "scipy.optimize", "mcap.reader", "mcap.writer", "zenoh", "matplotlib.pyplot")
+           "server.cli.processes", "server.cli.up", "server.cli.serve", "server.cli.bus", "server.cli.calibrate",
+           "typer._adapters", "typer.rich_utils", "rich.markdown", "rich.traceback", "rich.syntax", "pydantic",
+           "twin.jsonout", "importlib.metadata", "zoneinfo", "csv", "secrets",
+           "scipy.signal", "scipy.optimize", "mcap.reader", "mcap.writer", "zenoh", "matplotlib.pyplot",
+           "bridge.node", "twin.sim.driver", "controller.process", "server.app")
 
 
 def _preload() -> None:
@@ -77,7 +84,6 @@ def serve(path: str) -> dict[str, Any]:
     listener.listen(64)
     os.rename(path + ".binding", path)  # the path appears once connections are accepted
     waiting: dict[int, socket.socket] = {}  # child pid -> the connection that waits for its exit code
-    children_modules: dict[int, str] = {}  # child pid -> the file it names its new modules in
     stopping = False
 
     def _stop(*_: object) -> None:
@@ -103,24 +109,26 @@ def serve(path: str) -> dict[str, Any]:
                 sys.stdout.flush()
                 sys.stderr.flush()
                 gc.freeze()  # what the server imported since, out of the child's collections too
+                ready_r, ready_w = os.pipe()
                 pid = os.fork()
                 if pid == 0:
+                    os.close(ready_r)
                     listener.close()
                     for other in waiting.values():
                         other.close()
                     conn.close()
                     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-                    request["modules"] = f"{path}.{os.getpid()}.modules"
+                    request["ready_fd"] = ready_w
                     return request
+                os.close(ready_w)
+                os.read(ready_r, 1)  # the child is set up (run_child), or dead: then b""
+                os.close(ready_r)
                 conn.sendall(f"{pid}\n".encode())
                 waiting[pid] = conn
-                children_modules[pid] = f"{path}.{pid}.modules"
             while waiting:
                 pid, status = os.waitpid(-1, os.WNOHANG)
                 if pid == 0:
                     break
-                if (modules := children_modules.pop(pid, None)) is not None:
-                    import_what_children_did(modules)
                 if (conn := waiting.pop(pid, None)) is not None:
                     with contextlib.suppress(OSError):  # the client is gone (its test timed out and left)
                         conn.sendall(f"{os.waitstatus_to_exitcode(status)}\n".encode())
@@ -178,9 +186,18 @@ def run_child(request: dict[str, Any]) -> None:
     import threading
     import traceback
 
+    # What the asker may act on as soon as it has the pid (a killpg, an isolate() that sets the
+    # CPUs and nice, a look at /proc/PID/cmdline) is done before the server answers it.
     set_cmdline(child_cmdline(request["argv"]))
     if request.get("session"):
         os.setsid()
+    with contextlib.suppress(OSError):  # lowering a nice needs the right to: the server's then
+        os.setpriority(os.PRIO_PROCESS, 0, int(request["nice"]))
+    if request.get("cpus"):
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setaffinity(0, request["cpus"])
+    os.write(request["ready_fd"], b"1")
+    os.close(request["ready_fd"])
     null = os.open(os.devnull, os.O_RDONLY)
     os.dup2(null, 0)
     os.close(null)
@@ -203,14 +220,8 @@ def run_child(request: dict[str, Any]) -> None:
                                       errors=sys.stdout.errors, write_through=True)
         sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding=sys.stderr.encoding,
                                       errors=sys.stderr.errors, write_through=True)
-    with contextlib.suppress(OSError):  # lowering a nice needs the right to: the server's then
-        os.setpriority(os.PRIO_PROCESS, 0, int(request["nice"]))
-    if request.get("cpus"):
-        with contextlib.suppress(OSError, AttributeError):
-            os.sched_setaffinity(0, request["cpus"])
     sys.argv = ["-m", *request["argv"]]  # runpy sets argv[0] to the module's file, as `python -m` does
     sys.path[0] = request["cwd"]
-    before = set(sys.modules)
     code = 0
     try:
         runpy.run_module("server.cli", run_name="__main__", alter_sys=True)
@@ -229,28 +240,11 @@ def run_child(request: dict[str, Any]) -> None:
         threading._shutdown()  # type: ignore[attr-defined]  # as at a normal exit
         gc.collect()
         atexit._run_exitfuncs()
-        with open(request["modules"], "w") as imported:  # for the server to import before the next runs
-            imported.write("\n".join(sorted(set(sys.modules) - before)))
     finally:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(OSError, ValueError):
                 stream.flush()
         os._exit(code)
-
-
-def import_what_children_did(path: str) -> None:
-    """Imports the modules a child imported (a file of names), so that later children have them."""
-    import importlib
-
-    try:
-        with open(path) as names:
-            wanted = [name for name in names.read().splitlines() if name not in sys.modules and name != "__main__"]
-        os.unlink(path)
-    except OSError:
-        return
-    for name in wanted:
-        with contextlib.suppress(BaseException):  # a module that needs its own process stays the child's
-            importlib.import_module(name)
 
 
 if __name__ == "__main__":
