@@ -50,7 +50,7 @@ if os.environ.get(ENV_ZENOH_RUNTIME) != (_XNECK_RUNTIME := zenoh_runtime_environ
     IGNORED_XNECK_VARIABLES.append(ENV_ZENOH_RUNTIME)
     os.environ[ENV_ZENOH_RUNTIME] = _XNECK_RUNTIME
 
-XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter, whatever PATH says
+XNECK = forkserver_client.XNECK  # `xneck` with this interpreter, whatever PATH says (what a forked run stands for)
 
 # The suite starts some hundreds of Python processes (stacks, campaigns, CLI runs); with
 # PYTHONDONTWRITEBYTECODE set (this machine's default environment does) each one compiled the

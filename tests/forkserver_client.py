@@ -25,7 +25,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-XNECK = [sys.executable, "-m", "server.cli"]  # what a forked process stands for
+XNECK = [sys.executable, "-m", "server.cli"]  # `xneck` with this interpreter (tests/conftest.py uses it too)
 START_TIMEOUT_S = 120.0
 CMDLINE_ROOM = 8192  # xneck_forkserver.CMDLINE_ROOM: its children's command lines are written over it
 
