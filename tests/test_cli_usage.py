@@ -769,8 +769,12 @@ def test_a_scheduler_that_is_no_address_is_one_line(xneck, tmp_path):
 @pytest.mark.parametrize("argv, said", [
     (["--params", "{tmp}/missing.toml"], "--params: {tmp}/missing.toml: no such parameter file"),
     (["--robot", "--driver-config", "{tmp}/missing.toml"], "cannot read the driver config"),
+    # the bridge's own check, once the stack was up, had been the first word of a bad --loop-stall
+    (["--robot", "--loop-stall", "0.01"], "--loop-stall must be 0 (off) or at least 0.05 s, not 0.01"),
+    (["--loop-stall", "nan"], "--loop-stall: must be a finite number"),
+    (["--no-bridge", "--loop-stall", "1"], "--loop-stall sets the watchdog of the bridge `xneck up` starts"),
 ])
-def test_up_refuses_files_that_do_not_load_before_anything_starts(xneck, tmp_path, argv, said):
+def test_up_refuses_what_would_end_its_bridge_before_anything_starts(xneck, tmp_path, argv, said):
     """The stack started ("xneck is up"), then the bridge exited with the reason in its log; with
     --robot the launcher then reported "DRIVES MAY BE ON"."""
     run = xneck("up", *[a.format(tmp=tmp_path) for a in argv], "--data-dir", str(tmp_path / "data"),

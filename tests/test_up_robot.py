@@ -49,8 +49,13 @@ def _up_robot(tmp_path: Path, exit_after_s: int = 120):
     port, hub = free_tcp_port(), f"tcp/127.0.0.1:{free_tcp_port()}"
     base = f"http://127.0.0.1:{port}"
     with open(tmp_path / "up.log", "wb") as log:
+        # The bridge's loop watchdog at 5 s, not the board's 0.5: CI of 8b61d5c saw it end a test
+        # stack's healthy bridge at start-up (code 70, its loop asleep in its 2 ms pace) under a full
+        # suite's load; these tests are about `xneck up`'s supervision, the watchdog is
+        # test_bridge_watchdog's (``xneck bridge --driver beaglebone`` at its default included).
         up = subprocess.Popen([*PY, "up", "--robot", "--port", str(port), "--hub", hub, "--data-dir", str(tmp_path / "d"),
-                               "--viser-port", str(free_tcp_port()), "--exit-after", str(exit_after_s)],
+                               "--viser-port", str(free_tcp_port()), "--exit-after", str(exit_after_s),
+                               "--loop-stall", "5"],
                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                               start_new_session=True)
     bridge = None
@@ -175,7 +180,9 @@ def test_a_paused_supervisor_does_not_take_its_bridge_for_hung(healthy_stack) ->
     printed = log.read_text()
     assert "hung" not in printed, printed[-3000:]  # the verdict under test
     # Nor did the bridge's own loop watchdog end it (it once did under a full suite's load,
-    # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority").
+    # before the loop ran above Zenoh's threads: docs/bridge.md, "Real-time priority"; here at the
+    # 5 s `_up_robot` gives, which `xneck up --loop-stall` passed on to the bridge).
+    assert "loop watchdog 5 s" in (log.parent / "d" / "logs" / "bridge.log").read_text()
     assert up.poll() is None and "exited" not in printed, printed[-3000:]
     assert Path(f"/proc/{bridge}").exists()
     # The drives go on: active, or back to active within a few ticks after a hold (the bridge's

@@ -528,6 +528,11 @@ def up(
                                  "and detects the markers, as the robot's camera would; costs about a fifth of a core)."),
     exit_after: float | None = typer.Option(None, "--exit-after", callback=NON_NEGATIVE, help="Stop everything "
                                             "after this many seconds (tests, demos)."),
+    loop_stall: float | None = typer.Option(
+        None, "--loop-stall", callback=NON_NEGATIVE,
+        help="The bridge's loop watchdog (s, at least 0.05; 0: off): when its loop makes no tick for this long, the "
+        "bridge disables the drives and exits with code 70, as `xneck bridge --loop-stall`. Default: the bridge's "
+        "(0.5 with --robot, off on the twin)."),
     restarts: int = typer.Option(0, "--restarts", min=0, max=100, help="Restart a controller or camera that dies, "
                                  "at most this many times in 10 minutes (default 0: any death stops the stack), after "
                                  "1 s, 2 s, 4 s, ... (at most 30 s) for its 1st, 2nd, 3rd, ... restart in them. The "
@@ -540,6 +545,14 @@ def up(
         check_endpoints(["tcp/127.0.0.1:0"], [bridge_at_option])  # one error line for a malformed endpoint
     if alpha_ip not in ("noise", "camera"):
         raise fail(f"--alpha-ip must be noise or camera, not {alpha_ip!r}")
+    if loop_stall is not None:  # now, not as a bridge that exits once the stack is up
+        from bridge.loop_watchdog import MIN_STALL_S
+
+        if no_bridge:
+            raise fail("--loop-stall sets the watchdog of the bridge `xneck up` starts: not with --no-bridge "
+                       "(give it to that bridge's `xneck bridge`)")
+        if 0 < loop_stall < MIN_STALL_S:
+            raise fail(f"--loop-stall must be 0 (off) or at least {MIN_STALL_S} s, not {loop_stall:g}")
     law_config(law, False)  # a bad --law now, not as a controller that exits once the stack is up
     # Likewise a --params or --driver-config that does not load: it was the bridge's exit once the
     # stack was up ("xneck is up" printed first), and with --robot a failed --drives-off besides.
@@ -676,7 +689,8 @@ def up(
             driver = ["--driver", "beaglebone"] + (["--driver-config", str(driver_config)] if driver_config else []) \
                 if robot else ["--driver", "twin", "--seed", str(seed), "--truth", truth] + (["--no-camera"] if camera else [])
             start("bridge", ["bridge", *driver, "--instance", bridge_instance, "--listen", str(bridge_at),
-                             "--no-autoconnect", *param_args],
+                             "--no-autoconnect", *param_args,
+                             *([] if loop_stall is None else ["--loop-stall", repr(loop_stall)])],
                   watch.environ() if watch is not None else None)
         # Without --bridge-at the bridge and the controller meet on the hub: gossip must link them.
         start("controller", ["controller", "--law", str(law), "--listen", controller_at,
