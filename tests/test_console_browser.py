@@ -22,6 +22,8 @@ import pytest
 from server_harness import AUTH, TOKEN, running_server, wait_until
 from test_console_compare import seed_runs
 
+from server.child_processes import isolate, loop_environ
+
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
         "--disable-sync", "--no-first-run", "--disable-quic"]
@@ -51,16 +53,35 @@ class Console:
         assert r.status_code == 201, r.text
         return r.json()["id"]
 
+    def wait_for(self, expression: str, timeout_ms: float) -> None:
+        """``page.wait_for_function`` that says, when it times out, what the page, the console and the
+        stack's processes were doing (CI of 8b61d5c: α̂ never reached a jog's target in 45 s, and
+        the timeout said nothing more)."""
+        try:
+            self.page.wait_for_function(expression, timeout=timeout_ms)
+        except playwright_sync.TimeoutError:
+            state = {"jog": self.page.evaluate("JSON.stringify(window.xneckJog)"),
+                     "health": self.http.get("/api/system/health").text}
+            logs = {name: (self.tmp / f"{name}.log").read_text()[-2500:] for name in ("bridge", "controller")}
+            raise AssertionError(f"{expression!r} not true in {timeout_ms / 1e3:g} s: {state} {logs}") from None
+
     def wait_idle(self, timeout_s: float = 40) -> None:
         assert wait_until(lambda: self.http.get("/api/system/health").json()["running_campaign_id"] is None,
                           timeout_s, 0.2)
 
 
 def _spawn(hub: str, log: Path, *args: str) -> subprocess.Popen:
+    """``xneck <args>`` on the hub, placed as `xneck up` places its loop processes: the loop's CPU,
+    and its real-time priority taken once set up (CI of 8b61d5c: at the default scheduling, under a
+    full suite's load, the controller held on stale states so often that a jog's α̂ stood at 5° of
+    15° for 45 s, the jog's clock stopped at each hold as designed)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **loop_environ(args[0])}
     with open(log, "wb") as out:
-        return subprocess.Popen([sys.executable, "-m", "server.cli", *args, "--listen", "tcp/127.0.0.1:0",
-                                 "--connect", hub], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        p = subprocess.Popen([sys.executable, "-m", "server.cli", *args, "--listen", "tcp/127.0.0.1:0",
+                              "--connect", hub], stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             start_new_session=True, env=env)
+    isolate(p.pid, args[0], realtime=False)
+    return p
 
 
 @pytest.fixture(scope="module")
@@ -110,8 +131,8 @@ def test_jog_sliders_move_the_3d_neck_and_the_plots_and_a_campaign_refuses_jogs(
     page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
     straight = np.array(app.state.scene.bars.points, copy=True)
     _slide(page, 1, 15.0)
-    page.wait_for_function("window.xneckJog.accepted >= 1", timeout=10000)
-    page.wait_for_function("Math.abs(window.xneckJog.alphaHat[0] - 15) < 1", timeout=45000)  # slow when loaded
+    console.wait_for("window.xneckJog.accepted >= 1", 10000)
+    console.wait_for("Math.abs(window.xneckJog.alphaHat[0] - 15) < 1", 45000)  # slow when loaded
     # the 3D view follows: its bars are drawn at α̂ ≈ (15, 0, 0)°
     bent = app.state.scene.drawing.geometry(np.radians([15.0, 0.0, 0.0])).bars
     assert wait_until(lambda: np.abs(np.asarray(app.state.scene.bars.points) - bent).max() < 0.003, 5, 0.05)
