@@ -19,7 +19,11 @@ and the bridge obeys none of them (``server/service_choice.py``: a jog goes to o
 says the last jog this console sent and, in ``ended``, why it ended before its move and settle
 were over when a death of the controller or the bridge cut it short, as ``xneck up`` told the
 console (``POST /api/system/abort``: :func:`note_fault`). Before, only the dashboard's header
-said it; the jog panel went on showing the move as under way (review of session 46).
+said it; the jog panel went on showing the move as under way (review of session 46). It says too
+why the controller aborted it, from the jog's ``aborted`` event on the bus (:meth:`JogDesk.heard`;
+CI of 8b61d5c, reproduced beside busy loops: a starved controller's status named no campaign any
+more, the neck at 5° of the jog's 15°, and the panel went on showing "→ [15, 0, 0]° in 1.3 s"),
+unless this console stopped it itself (``POST /api/jog/stop``: the panel says "holding").
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bridge import bus
 from bridge.safety import INSTANCE_NAME
-from bridge.session import publisher
+from bridge.session import payload_of, publisher
 from controller.laws import LawConfig
 from controller.trajectory import Trajectory, TrajectoryError, approach
 from server.auth import require_operator, require_token
@@ -79,14 +83,35 @@ class JogDesk:
         self.seq = itertools.count(1)  # of the request messages
         self.ids = itertools.count(1)
         #: the last jog sent: jog_id, to_deg, duration_s, sent_s and ends_s (time.monotonic(): when
-        #: its move and settle are over), ended (why it was cut short, "" if it was not); None before any
+        #: its move and settle are over), ended (why it was cut short, "" if it was not), stopped
+        #: (this console asked it to stop); None before any
         self.last: dict[str, Any] | None = None
+        # Its end events, heard from before the first jog is sent (the desk is made for it).
+        self.events = None if session is None else session.declare_subscriber(bus.CAMPAIGN_EVENTS, self._on_event)
+
+    def _on_event(self, sample: Any) -> None:
+        try:
+            self.heard(bus.decode(bus.CampaignEvent, payload_of(sample, bus.CampaignEvent)))
+        except bus.BusDecodeError:
+            return  # a malformed event is the bus's to count (server.live), not the jog's
+
+    def heard(self, event: bus.CampaignEvent) -> None:
+        """A campaign event from the bus: the last jog's ``aborted`` (a controller's reason: no
+        progress, drives off, a latch, a campaign's start) ends it with that reason, unless this
+        console stopped it (:func:`stop_jog`) or it ended already (a death said first stands)."""
+        if event.kind != "jog" or event.event not in ("aborted", "interrupted"):
+            return
+        with self.lock:
+            last = self.last
+            if last is None or last["jog_id"] != event.campaign_id or last["ended"] or last["stopped"]:
+                return
+            last["ended"] = f"{event.event} by the controller: {bus.plain_text(event.message, 300) or 'no reason given'}"
 
     def sent(self, jog_id: str, to_deg: list[float], duration_s: float, now_s: float) -> None:
         """Keep jog ``jog_id`` (to ``to_deg``, deg; its move ``duration_s`` long, s) as the last one,
         sent at ``now_s`` (time.monotonic()). The caller holds :attr:`lock`."""
         self.last = {"jog_id": jog_id, "to_deg": list(to_deg), "duration_s": duration_s, "sent_s": now_s,
-                     "ends_s": now_s + duration_s + JOG_END_MARGIN_S, "ended": ""}
+                     "ends_s": now_s + duration_s + JOG_END_MARGIN_S, "ended": "", "stopped": False}
 
     def send(self, campaign_id: str, action: str, trajectory_json: str = "", target: str | None = None) -> None:
         """A request to the service ``target`` (None: the last jog's), bare if none is known."""
@@ -220,8 +245,8 @@ def note_fault(state: Any, cause: str, died_within_s: float | None) -> str:
 
 def jog_status(state: Any) -> dict[str, Any] | None:
     """The last jog this console sent: ``jog_id``, ``to_deg``, ``duration_s`` (its planned move),
-    ``age_s`` (since it was sent), ``ended`` (why it was cut short: the supervisor's cause; null if
-    it was not); None before any."""
+    ``age_s`` (since it was sent), ``ended`` (why it was cut short: the supervisor's cause, or the
+    controller's reason for aborting it; null if it was not); None before any."""
     desk: JogDesk | None = getattr(state, "jog", None)
     if desk is None:
         return None
@@ -261,6 +286,7 @@ def stop_jog(state: Any) -> list[str]:
     with desk.lock:
         if desk.last is not None:  # over now: a death after this stop did not cut it short
             desk.last["ends_s"] = min(desk.last["ends_s"], time.monotonic())
+            desk.last["stopped"] = True  # nor did its "aborted: stopped by the user"
         last_target = desk.target
         sends = [(desk.last_id, last_target)] if desk.last_id else []
         sends += [(cid, name) for cid, name in running.items() if (cid, name) != (desk.last_id, last_target)]

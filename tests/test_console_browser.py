@@ -61,7 +61,8 @@ class Console:
             self.page.wait_for_function(expression, timeout=timeout_ms)
         except playwright_sync.TimeoutError:
             state = {"jog": self.page.evaluate("JSON.stringify(window.xneckJog)"),
-                     "health": self.http.get("/api/system/health").text}
+                     "health": self.http.get("/api/system/health").text,
+                     "controller status": repr(self.app.state.live.values.fresh("status", 5.0))}
             logs = {name: (self.tmp / f"{name}.log").read_text()[-2500:] for name in ("bridge", "controller")}
             raise AssertionError(f"{expression!r} not true in {timeout_ms / 1e3:g} s: {state} {logs}") from None
 
@@ -645,11 +646,22 @@ def test_escape_engages_the_estop_the_bridge_reports_it_and_a_silent_bridge_is_s
       new MutationObserver(() => { if (!box.hidden) shown = true; else if (shown) window.estopBlinks++; })
         .observe(box, { attributes: true, attributeFilter: ['hidden'] });
     }""")
+    # A jog under way when the e-stop engages: the controller aborts it and the jog panel says so
+    # (CI of 8b61d5c: a jog the controller had ended went on showing as under way).
+    page.wait_for_function("window.xneckJog.alphaHat !== null", timeout=20000)
+    accepted = page.evaluate("window.xneckJog.accepted")
+    _slide(page, 2, 20.0)
+    page.wait_for_function(f"window.xneckJog.accepted > {accepted}", timeout=10000)
+    page.focus("#jog-2")
     page.keyboard.press("Escape")
     page.wait_for_function("!document.querySelector('#estop-state').hidden", timeout=10000)
     page.wait_for_timeout(2500)  # several health polls and many live frames
     text = page.inner_text("#estop-state")
     assert "E-STOP ENGAGED" in text and "Escape key" in text, text
+    console.wait_for("document.querySelector('#jog-error').textContent.includes('cut short')", 15000)
+    said = page.inner_text("#jog-error")
+    assert "cut short: aborted by the controller: " in said and "Escape key" in said, said
+    assert page.evaluate("window.xneckJog.target") is None
     assert page.evaluate("window.estopBlinks") == 0
     st = console.app.state.live.values.get("state")
     assert st.estop_engaged and "Escape key" in st.estop_reason  # the bridge's word, not the page's

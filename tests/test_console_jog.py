@@ -318,3 +318,29 @@ def test_a_controller_status_naming_no_instance_does_not_stop_the_jog_stops(cons
             assert wait_until(lambda: {("xneck/campaign/request", "jog-120000-6"),
                                        ("xneck/campaign/request/ctl-other", "jog-120000-9")}
                               <= {(k, c) for k, c, a in seen if a == "stop"}, 5), seen
+
+
+def test_a_jog_the_controller_aborts_says_why_in_the_jogs_state(console):
+    """CI of 8b61d5c: a starved controller's jog ended with the neck at 5° of 15°; ``GET /api/jog``
+    and the health's ``jog`` (the panel's source) went on as if the neck were moving there. The
+    jog's ``aborted`` event on the bus now ends it with the controller's reason; a malformed event
+    is ignored."""
+    client, app = console
+    reason = "the law re-started 6 times in 10 s: it advanced 0.3 s of its trajectory meanwhile"
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=[app.state.hub]) as peer:
+        token = liveliness_token(peer, "campaign-service", "ctl-owner")
+        try:
+            with two_controllers(peer, bridge_state("ctl-owner"), controller_status(), controller_status()):
+                answers: list[httpx.Response] = []
+                assert wait_until(lambda: answers.append(client.post("/api/jog", json={"alpha_deg": [6, 0, 0]},
+                                                                     headers=AUTH)) or answers[-1].status_code == 202, 20, 0.3)
+                jog_id = answers[-1].json()["jog_id"]
+                assert client.get("/api/jog").json()["jog"]["ended"] is None
+                peer.put(bus.CAMPAIGN_EVENTS, b'{"v": 2, "campaign_id": "' + jog_id.encode() + b'", "event": "aborted"')
+                peer.put(bus.CAMPAIGN_EVENTS, bus.encode(bus.CampaignEvent(
+                    seq=1, stamp_s=1.0, campaign_id=jog_id, kind="jog", event="aborted", message=reason)))
+                assert wait_until(lambda: client.get("/api/jog").json()["jog"]["ended"] is not None, 10, 0.1)
+                health = client.get("/api/system/health").json()["jog"]
+        finally:
+            token.undeclare()
+    assert health["jog_id"] == jog_id and health["ended"] == f"aborted by the controller: {reason}", health

@@ -1,4 +1,5 @@
-"""A jog cut short by a death of the controller (or the bridge) says so itself (review of session 46).
+"""A jog cut short by a death of the controller (or the bridge) says so itself (review of session 46),
+and so does one the controller aborted (CI of 8b61d5c).
 
 Before, only the dashboard's header said the death (server.process_faults); the jog's own state,
 ``GET /api/jog`` and ``jog`` in the health (which the jog panel reads), said nothing, and the
@@ -12,7 +13,8 @@ import time
 
 import httpx
 
-from server.routes_jog import JOG_END_MARGIN_S, JogDesk, cuts_jog, under_way
+from bridge import bus
+from server.routes_jog import JOG_END_MARGIN_S, JogDesk, cuts_jog, stop_jog, under_way
 
 CONTROLLER = "controller process exited (signal SIGKILL), restarting controller in 1 s (1 of 2 within 10 min)"
 CAMERA = "camera process exited (code 3), restarting camera in 1 s (1 of 2 within 10 min)"
@@ -89,3 +91,45 @@ def test_the_jogs_state_says_the_death_that_cut_it_short_and_not_one_after_it() 
     assert cut["ended"] == CONTROLLER and cut["to_deg"] == [4.0, 0.0, 0.0] and cut["duration_s"] == 2.0, cut
     assert again["ended"] == CONTROLLER
     assert over["jog_id"] == "jog-2" and over["ended"] is None, over
+
+
+def _aborted(jog_id: str, message: str, kind: str = "jog", event: str = "aborted") -> bus.CampaignEvent:
+    return bus.CampaignEvent(seq=1, stamp_s=1.0, campaign_id=jog_id, kind=kind, event=event, message=message)  # pyright: ignore[reportArgumentType]
+
+
+STALLED = ("the law re-started 7 times in 10 s (the bridge's holds or stale states: the commands come late or "
+           "the states stall), each stopping the campaign's clock: it advanced 0.4 s of its trajectory meanwhile")
+
+
+def test_a_jog_the_controller_aborts_says_why_unless_this_console_stopped_it() -> None:
+    """CI of 8b61d5c: a starved controller's jog ended with the neck at 5° of 15° while the jog's
+    state (and the panel) went on as if the neck were moving there; a controller's abort (no
+    progress, drives off, a latch) is said now."""
+    desk = JogDesk(session=None)
+    with desk.lock:
+        desk.sent("jog-1", [15.0, 0.0, 0.0], 1.3, time.monotonic())
+    desk.heard(_aborted("jog-0", "superseded"))  # another jog's end
+    desk.heard(_aborted("jog-1", "not a jog", kind="control"))
+    desk.heard(_aborted("jog-1", "", event="progress"))
+    assert desk.last is not None and desk.last["ended"] == ""
+    desk.heard(_aborted("jog-1", STALLED + "\n\x1b[2Jforged line"))
+    assert desk.last["ended"].startswith("aborted by the controller: the law re-started 7 times"), desk.last
+    assert "\n" not in desk.last["ended"] and "\x1b" not in desk.last["ended"]  # plain text, one line
+    first = desk.last["ended"]
+    desk.heard(_aborted("jog-1", "drives disabled"))
+    assert desk.last["ended"] == first  # the first reason stands
+    # stopped from this console ("hold here"): its "stopped by the user" is no cut
+    with desk.lock:
+        desk.sent("jog-2", [5.0, 0.0, 0.0], 1.0, time.monotonic())
+
+    class _Live:
+        def live_statuses(self, _max_age_s: float) -> dict:
+            return {}
+
+    class _State:
+        jog, live = desk, _Live()
+
+    stop_jog(_State())  # no bus to send the stop on (logged): the desk's state is what is checked
+    assert desk.last["stopped"] is True
+    desk.heard(_aborted("jog-2", "stopped by the user"))
+    assert desk.last["ended"] == ""
