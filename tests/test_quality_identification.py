@@ -169,8 +169,10 @@ def service_identification(tmp_path_factory):
         states = [0]
         sub = session.declare_subscriber(bus.MOTOR_STATE, lambda _s: states.__setitem__(0, states[0] + 1))
         try:
-            spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "bridge.log")
-            spawn(["controller", "--law", "1", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "controller.log")
+            spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "bridge.log",
+                  place=True)
+            spawn(["controller", "--law", "1", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp / "controller.log",
+                  place=True)
             assert wait_until(lambda: states[0] > 0 and bool(alive_services(session)), 120, 0.3), \
                 [(tmp / f"{n}.log").read_text()[-1500:] for n in ("bridge", "controller")]
         finally:

@@ -24,6 +24,7 @@ from server_harness import AUTH, TOKEN, stop_process_groups, wait_until
 from bridge import bus
 from bridge.archive_read import read_campaign
 from bridge.session import free_tcp_port, open_session
+from server.child_processes import isolate, loop_environ
 
 pytestmark = [pytest.mark.e2e, pytest.mark.realtime]  # the whole stack as processes, campaigns over the bus
 
@@ -63,12 +64,20 @@ def _wait_status(base: str, cid: str, statuses: set[str], timeout_s: float) -> d
 def _procs():
     started: list[subprocess.Popen] = []
 
-    def spawn(args: list[str], log: Path) -> subprocess.Popen:
+    def spawn(args: list[str], log: Path, *, place: bool = False) -> subprocess.Popen:
+        """``xneck <args>``; ``place``: a loop process (bridge, controller, twin) placed as `xneck up`
+        places its own, on the loop's CPU with its real-time priority taken once set up, for a
+        stack that stands for one (CI of 8b61d5c and a2c45e1: at the default scheduling, beside the
+        other worker's module on the slow VM, the controller held on stale states so often that
+        campaigns were aborted for no progress, 94-105 re-starts in 10 s)."""
+        env = {**ENV, **(loop_environ(args[0]) if place else {})}
         # forked from the suite's fork server (tests/forkserver_client.py): no imports, no kernel loads
-        p = forkserver_client.shared().spawn(args, log, ENV) or \
+        p = forkserver_client.shared().spawn(args, log, env) or \
             subprocess.Popen([*PY, *args], stdout=open(log, "wb"), stderr=subprocess.STDOUT,  # noqa: SIM115
-                             stdin=subprocess.DEVNULL, env=ENV, start_new_session=True)
+                             stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         started.append(p)
+        if place:
+            isolate(p.pid, args[0], realtime=False)
         return p
 
     try:
@@ -93,9 +102,10 @@ def _robot_console(spawn, tmp_path: Path, data: Path, *, controller: bool = True
     server_args = ["server", "--port", str(port), "--data-dir", str(data), "--hub", hub, "--mode", "robot"]
     server = spawn(server_args, tmp_path / "s.log")
     assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()
-    spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log")
+    spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "b.log",
+          place=True)
     ctl = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
-                tmp_path / "c.log") if controller else None
+                tmp_path / "c.log", place=True) if controller else None
     assert wait_until(lambda: {"bridge", "campaign-service" if controller else "bridge"} <= _alive_kinds(base), 120, 0.3)
     return RobotConsole(base, hub_port, ctl, server, server_args)
 

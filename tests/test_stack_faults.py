@@ -43,9 +43,9 @@ def _robot_stack(tmp_path: Path):
                                   "--mode", "robot"], tmp_path / "s.log")}
         assert wait_until(lambda: _healthy(base), 60, 0.3), (tmp_path / "s.log").read_text()[-2000:]
         procs["bridge"] = spawn(["bridge", "--driver", "twin", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
-                                tmp_path / "b.log")
+                                tmp_path / "b.log", place=True)
         procs["controller"] = spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub],
-                                    tmp_path / "c.log")
+                                    tmp_path / "c.log", place=True)
         assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 120, 0.3)
         yield base, hub, procs
 
