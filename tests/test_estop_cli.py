@@ -132,7 +132,13 @@ def test_hold_latches_a_bridge_that_starts_later_and_leaving_releases_nothing(pa
                 assert wait_until(lambda: node.estop_reason == "before the bridge", 10), node.estop_reason
                 assert "bridge beaglebone-lab: e-stop engaged (before the bridge)" in _line(proc.stderr)
                 proc.send_signal(signal.SIGTERM)
-                proc.wait(20)  # what it printed is small: no pipe fills meanwhile
+                try:
+                    proc.wait(20)  # what it printed is small: no pipe fills meanwhile
+                except subprocess.TimeoutExpired:  # where it waits (it dumps its threads on SIGUSR1)
+                    proc.send_signal(signal.SIGUSR1)
+                    time.sleep(1.0)
+                    proc.kill()
+                    raise AssertionError(f"no exit 20 s after SIGTERM: {proc.communicate(timeout=10)[1][-6000:]}") from None
                 out, err = proc.stdout.read(), proc.stderr.read()  # past what _line's readline() buffered
                 assert proc.returncode == 0, err  # a bridge confirmed while it held
                 answer = json.loads(out)  # stdout is the one JSON object (review of session 41)

@@ -22,6 +22,7 @@ or run id is no instance name is ignored and counted (audit of session 42).
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import re
 import signal
 import socket
@@ -352,6 +353,9 @@ def engage(
     why = bus.plain_text(reason.strip()) or f"xneck estop engage ({name})"
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)} if hold else {}
+    if hold:  # `kill -USR1 <pid>` writes every thread's stack to stderr, as `xneck up` does: where a
+        # hold that does not end waits (fresh-clone CI of a2c45e1: 20 s after its SIGTERM, unexplained)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     with _bus(endpoints) as session:
         watch, holder = BridgeWatch(session), EStopHolder(session, name)
 
