@@ -23,6 +23,7 @@ from bridge import bus
 from bridge.session import free_tcp_port, open_session, publisher
 from controller.laws import LawConfig
 from controller.trajectory import Trajectory
+from server.child_processes import isolate, loop_environ
 
 XNECK = [sys.executable, "-m", "server.cli"]
 NOD = Trajectory.from_degrees([[0, 0, 0], [8, 4, 0], [0, 0, 0]], 1.0, 0.2, name="nod")
@@ -45,10 +46,15 @@ class Stack:
         self.controller = self.spawn("controller", "controller", "--law", "2")
 
     def spawn(self, name: str, *args: str) -> subprocess.Popen:
+        # Placed as `xneck up` places its loop processes (loop CPU, real-time priority once set up):
+        # fresh-clone CI of b6b400c saw a 3.0 N per-tick change at the e-stop's release on a stack
+        # starved beside the other worker (a 64 ms gap in its commands), as d8ae598's saw campaigns
+        # aborted on unplaced stacks (tests/test_stack.py `_procs(place=True)`).
         with open(self.tmp / f"{name}-{len(self.procs)}.log", "wb") as log:
             p = subprocess.Popen([*XNECK, *args, "--listen", "tcp/127.0.0.1:0", "--connect", self.hub], stdout=log,
                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                 env={**os.environ, "PYTHONUNBUFFERED": "1", **loop_environ(args[0])})
+        isolate(p.pid, args[0], realtime=False)
         self.procs.append(p)
         return p
 
