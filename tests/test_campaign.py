@@ -119,7 +119,15 @@ def test_lockstep_campaigns_repeat_exactly(campaigns):
     assert all(a[t] == b[t] for t in common)
     moved = np.ptp([alpha for alpha, _theta in a.values()], axis=0)
     assert np.degrees(moved).max() > 5.0, moved  # the neck nodded: not two records of a robot at rest
-    assert again.metrics["e_mean_all_deg"] == pytest.approx(first.metrics["e_mean_all_deg"], rel=1e-3)
+    # The controller's error too, by time stamp: its campaign mean (e_mean_all_deg) is over what each
+    # record holds, and two records that lost different samples had 1.7 % apart (fresh-clone CI of
+    # 2d216c7) while every common truth sample was identical.
+    def errors(path):
+        return {m.stamp_s: m.e_rad for _, m in read_campaign(path).messages(bus.CONTROLLER_STATUS)}
+
+    ea, eb = errors(first.path), errors(again.path)
+    both = ea.keys() & eb.keys()
+    assert len(both) > 0.9 * max(len(ea), len(eb)) > 100 and all(ea[t] == eb[t] for t in both)
 
 
 # The two real-time campaigns below come before the tests that wait for the module's identification
