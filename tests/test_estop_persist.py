@@ -41,12 +41,19 @@ def _send(node, pub, seq: int, force: list[float]) -> None:
         node.commands.stats.last_reject_reason
 
 
+def _engage_heard(node) -> bool:
+    """Whether ``node`` has heard the console's engage, by its message or by its holder's token:
+    the two travel apart, and a message going out while the bridge's route is still being made can
+    be lost (official CI of 30ba0a1: the token alone, 5 s on), which is what the token is for."""
+    return node.estop_received >= 1 or bool(node.estop_holders.holders)
+
+
 def _engaged_while_active(node, console, pub) -> None:
     """The node active under the test controller's 30 N, then the console's e-stop: disabled."""
     _send(node, pub, 1, [30.0] * 4)
     node.tick()
     console.estop(True, "operator e-stop")
-    assert wait_until(lambda: node.estop_received >= 1, 5.0)
+    assert wait_until(lambda: _engage_heard(node), 5.0)
     node.tick()
     assert node.mode == "disabled"
 
@@ -74,7 +81,7 @@ def test_a_bridge_restarted_under_an_engaged_estop_starts_disabled_and_ignores_c
             first.tick()
             assert first.mode == "active"
             console.estop(True, "operator e-stop")
-            assert wait_until(lambda: first.estop_received >= 1, 5.0)
+            assert wait_until(lambda: _engage_heard(first), 5.0)
             first.tick()
             assert first.mode == "disabled"
         finally:
