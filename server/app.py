@@ -60,7 +60,7 @@ from server.paramsets import MAX_UPLOAD_BYTES, ParameterStore
 from server.presence import Presence
 from server.process_faults import ProcessFaults
 from server.quality import TWIN_CAMERA
-from server.routes_jog import request_jog, stop_jog
+from server.routes_jog import jog_status, request_jog, stop_jog
 from server.routes_studies import router as studies_router
 from server.safety_journal import SafetyJournal
 from server.settings import Settings, resolve_token
@@ -134,7 +134,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 state.scene = NeckScene(state.live.values, state.default_params, host=settings.host,
                                         port=settings.viser_port, rate_hz=settings.scene_rate_hz,
                                         jog=lambda alpha_deg: request_jog(state, alpha_deg), hold=lambda: stop_jog(state),
-                                        token=lambda: app.state.token)  # the panel jogs as POST /api/jog: with the token
+                                        token=lambda: app.state.token,  # the panel jogs as POST /api/jog: with the token
+                                        jog_state=lambda: jog_status(state))
             state.campaigns = CampaignManager(data_dir, session, state.hub,
                                               service_alive=lambda: state.presence.any_alive("campaign-service"),
                                               min_free_bytes=int(settings.min_free_mb * 1e6),

@@ -18,7 +18,10 @@ joint sending jog targets (``jog``, :func:`server.routes_jog.request_jog`; at mo
 (``hold``) and an "API token" field. Any web page the operator visits can open viser's websocket
 on 127.0.0.1 (it checks neither Origin nor token), so the folder is built per client (one client's
 values never reach another) and its sliders and button act only while that client's token field
-holds the console's API token (``token``), as ``POST /api/jog`` asks.
+holds the console's API token (``token``), as ``POST /api/jog`` asks. A jog the client sent that
+ends cut short (the controller aborted it, or a death of the controller or the bridge ended it:
+``jog_state``, :func:`server.routes_jog.jog_status`) says so in its status line, as the dashboard's
+jog panel does: it had gone on showing "→ jog-…" (review of session 57).
 
 Nodes are created once; a daemon thread updates their properties at ``rate_hz`` inside
 ``server.atomic()`` so a browser never sees half a pose. It only reads :class:`LatestValues`,
@@ -92,6 +95,11 @@ def plain_markdown(text: object) -> str:
     return _MARKDOWN_SPECIAL.sub(r"\\\1", html.escape(one_line, quote=False))
 
 
+def jog_ended_markdown(jog_id: str, ended: object) -> str:
+    """The jog folder's status line for a jog ``jog_id`` cut short, ``ended`` saying why."""
+    return f"→ {plain_markdown(jog_id)} **cut short**: {plain_markdown(ended)}"
+
+
 def jog_status_markdown(code: int, answer: object) -> str:
     """The jog folder's status line for the console's answer ``(code, answer)`` to a jog."""
     if code == 202 and isinstance(answer, dict):
@@ -112,6 +120,7 @@ class ClientJog:
     text: viser.GuiMarkdownHandle
     target: list[float] | None = None
     sent_s: float = field(default=-math.inf)  # monotonic s of the last target sent
+    jog_id: str = ""  # the last jog this client's sliders started, until its end is shown ('' : none)
 
 
 def camera_frustum_pose(cal: Calibration) -> tuple[np.ndarray, np.ndarray, float, float]:
@@ -135,11 +144,13 @@ class NeckScene:
     def __init__(self, values: LatestValues, params: Params, host: str = "127.0.0.1", port: int = 0,
                  rate_hz: float = 30.0, jog: Callable[[list[float]], tuple[int, Any]] | None = None,
                  hold: Callable[[], object] | None = None, calibration: Calibration | None = None,
-                 token: Callable[[], str] | None = None) -> None:
+                 token: Callable[[], str] | None = None,
+                 jog_state: Callable[[], dict[str, Any] | None] | None = None) -> None:
         from bridge.session import free_tcp_port
 
         self.values = values
         self.jog, self.hold = jog, hold
+        self.jog_state = jog_state  # the console's last jog (server.routes_jog.jog_status), for its end
         self.token = token  # the console's API token now; without it the panel never jogs
         self.jogs: dict[int, ClientJog] = {}  # client id -> its jog folder
         self._aspects: dict[int, float] = {}  # client id -> aspect ratio of its last fit
@@ -296,7 +307,7 @@ class NeckScene:
             return
         if self.hold is not None:
             self.hold()
-            jog.text.content = "holding"
+            jog.jog_id, jog.text.content = "", "holding"
 
     def send_jog(self, now_s: float) -> None:
         """Send each client's newest slider pose if one waits and its last went ``JOG_PERIOD_S``
@@ -313,7 +324,23 @@ class NeckScene:
             if code == 429:
                 jog.target = target  # the newest goes next time
                 continue
+            jog.jog_id = str(answer.get("jog_id", "")) if code == 202 and isinstance(answer, dict) else ""
             jog.text.content = jog_status_markdown(code, answer)
+
+    def show_jog_ends(self) -> None:
+        """Say "cut short" in the status line of each client whose last jog ended so: the
+        console's last jog (``jog_state``) is that client's, with an ``ended`` reason, as the
+        dashboard's jog panel says it. A jog followed by another (any client's) is followed no more."""
+        waiting = [j for j in list(self.jogs.values()) if j.jog_id]
+        if not waiting or self.jog_state is None:
+            return
+        last = self.jog_state() or {}
+        for jog in waiting:
+            if jog.jog_id != last.get("jog_id"):
+                jog.jog_id = ""
+            elif last.get("ended"):
+                jog.text.content = jog_ended_markdown(jog.jog_id, last["ended"])
+                jog.jog_id = ""
 
     # -- preview of a trajectory's motion -------------------------------------------------------
     def preview(self, trajectory: Any) -> float:
@@ -392,6 +419,7 @@ class NeckScene:
                 return
             try:
                 self.send_jog(time.monotonic())
+                self.show_jog_ends()
                 self.draw_preview(time.monotonic())
             except Exception:  # a jog that cannot be sent must not kill the view thread
                 log.exception("jog or preview in the 3D view failed")

@@ -210,6 +210,36 @@ def test_the_viser_panel_jogs_only_for_a_client_whose_token_field_holds_the_api_
         operator.close()
 
 
+def test_a_jog_the_controller_aborts_is_said_cut_short_in_the_viser_panel_that_sent_it(viser_console):
+    """Review of session 57: the dashboard's jog panel said a jog the controller had aborted was cut
+    short, the viser panel went on showing "→ jog-…". Its status line now says it, with the
+    controller's reason as plain text; another client's line is left alone."""
+    app, requests = viser_console
+    scene = app.state.scene
+    operator, other = ViserPanel(scene.port), ViserPanel(scene.port)
+    try:
+        n = len(requests)
+        operator.set("API token", TOKEN)
+        operator.set("α3", -6.0)
+        assert wait_until(lambda: any(r.action == "start" for r in requests[n:]), 10), requests[n:]
+        jog_id = next(r for r in requests[n:] if r.action == "start").campaign_id
+        mine = lambda: [j for j in scene.jogs.values() if jog_id in j.text.content]  # noqa: E731
+        assert wait_until(lambda: len(mine()) == 1, 10), [j.text.content for j in scene.jogs.values()]
+        others = [j.text.content for j in scene.jogs.values() if j is not mine()[0]]
+        with open_session(connect=[app.state.hub]) as peer:
+            peer.put(bus.CAMPAIGN_EVENTS, bus.encode(bus.CampaignEvent(
+                seq=1, stamp_s=time.time(), campaign_id=jog_id, kind="jog", event="aborted",
+                message="drives disabled: e-stop [x](javascript:1) <b>here</b>")))
+            assert wait_until(lambda: "cut short" in mine()[0].text.content, 10), mine()[0].text.content
+        line = mine()[0].text.content
+        assert line == (f"→ {jog_id} **cut short**: aborted by the controller: drives disabled: e-stop "
+                        r"\[x\]\(javascript:1\) &lt;b&gt;here&lt;/b&gt;"), line
+        assert [j.text.content for j in scene.jogs.values() if j is not mine()[0]] == others
+    finally:
+        operator.close()
+        other.close()
+
+
 PAYLOAD = ("<iframe srcdoc=\"<script>p=parent;p.__pwned=1</script>\"></iframe> "
            "[token](javascript:alert(1)) ![x](http://evil.example/x.png) **bold** `code` &amp;")
 
