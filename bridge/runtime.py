@@ -83,6 +83,24 @@ LOOP_NICE = -10  # where real-time priority is not permitted
 _arranged: dict[int, int | None] = {}  # native thread id -> its place against the loop's priority
 
 
+def fifo_or_nice(tid: int, prio: int) -> list[str]:
+    """Put thread ``tid`` at SCHED_FIFO ``prio``, or where that is not permitted at nice
+    :data:`LOOP_NICE`; what was refused (empty if FIFO was taken). ``ProcessLookupError``
+    (the thread ended meanwhile) is the caller's to skip."""
+    try:
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
+        return []
+    except ProcessLookupError:
+        raise
+    except (AttributeError, OSError) as exc:
+        refused = [f"SCHED_FIFO {prio}: {getattr(exc, 'strerror', None) or exc}"]
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
+    except OSError as exc2:
+        refused.append(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
+    return refused
+
+
 def arrange_thread(offset: int | None) -> None:
     """Say where the calling thread stands against its process's loop priority, for a priority
     taken later (:func:`take_loop_priority`): ``None`` out of real-time scheduling (the bridge's
@@ -123,15 +141,9 @@ def take_loop_priority() -> str:
             if offset is None:
                 continue
             try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(max(1, prio + offset)))
+                refused.update(fifo_or_nice(tid, max(1, prio + offset)))
             except ProcessLookupError:
                 continue  # a thread that ended meanwhile
-            except (AttributeError, OSError) as exc:
-                refused.add(f"SCHED_FIFO {prio}: {getattr(exc, 'strerror', None) or exc}")
-                try:
-                    os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
-                except OSError as exc2:
-                    refused.add(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
     return "; ".join(sorted(refused))
 
 

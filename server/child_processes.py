@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from bridge.runtime import ENV_LOOP_PRIORITY, LOOP_NICE
+from bridge.runtime import ENV_LOOP_PRIORITY, fifo_or_nice
 
 ENV_REALTIME = "XNECK_REALTIME"
 #: SCHED_FIFO priority of each loop process (1-99): the bridge (its watchdog and hold) first; the
@@ -214,15 +214,9 @@ def isolate(pid: int, kind: str, realtime: bool = True) -> dict[str, Any]:
             if not is_loop or not realtime or (tid != pid and _nice(tid) > base_nice):
                 continue
             try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY[kind]))
+                refused.extend(fifo_or_nice(tid, LOOP_PRIORITY[kind]))
             except ProcessLookupError:
                 continue
-            except OSError as exc:
-                refused.append(f"SCHED_FIFO {LOOP_PRIORITY[kind]}: {exc.strerror or exc}")
-                try:
-                    os.setpriority(os.PRIO_PROCESS, tid, LOOP_NICE)
-                except OSError as exc2:
-                    refused.append(f"nice {LOOP_NICE}: {exc2.strerror or exc2}")
     _refusals[pid] = sorted(set(refused))
     return scheduling(pid, kind)
 

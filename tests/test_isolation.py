@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from bridge.runtime import LOOP_NICE
 from server import child_processes as cp
 
 
@@ -32,7 +33,7 @@ def test_a_loop_process_gets_real_time_priority_and_the_loop_cpu_or_says_why_not
         assert got["rt_priority"] == cp.LOOP_PRIORITY["controller"] and not got["refused"]
     else:  # not permitted here: the fallback and the refusal are on record
         assert any("SCHED_FIFO" in r for r in got["refused"]), got
-        assert got["nice"] == cp.LOOP_NICE or any("nice" in r for r in got["refused"]), got
+        assert got["nice"] == LOOP_NICE or any("nice" in r for r in got["refused"]), got
     assert cp.scheduling(child.pid, "controller") == got  # read back from the kernel, not remembered
 
 
@@ -193,3 +194,22 @@ def test_a_priority_asked_for_that_is_none_is_said_and_nothing_changes(monkeypat
         assert "is no real-time priority" in take_loop_priority(), value
     monkeypatch.delenv(ENV_LOOP_PRIORITY)
     assert take_loop_priority() == "" and os.sched_getscheduler(0) == before
+
+
+def test_where_fifo_is_refused_a_loop_thread_falls_back_to_the_loop_nice_and_says_why():
+    """The one fallback both placements use (bridge.runtime.fifo_or_nice: the supervisor's
+    isolate and the loop's own take_loop_priority): SCHED_FIFO refused (no CAP_SYS_NICE, no
+    RLIMIT_RTPRIO) gives nice LOOP_NICE and the refusal; in a child, whose nice it changes."""
+    script = (
+        "import errno, os, threading\n"
+        "from bridge.runtime import fifo_or_nice\n"
+        "def refuse(*_a):\n"
+        "    raise PermissionError(errno.EPERM, 'Operation not permitted')\n"
+        "os.sched_setscheduler = refuse\n"
+        "tid = threading.get_native_id()\n"
+        "print(repr(fifo_or_nice(tid, 49)), os.getpriority(os.PRIO_PROCESS, tid), flush=True)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True)
+    refused, nice = out.stdout.rsplit(" ", 1)
+    assert refused.startswith("['SCHED_FIFO 49: Operation not permitted'"), out.stdout
+    # lowering nice needs the right to (CAP_SYS_NICE): without it, the second refusal is said
+    assert (int(nice) == LOOP_NICE and "nice" not in refused) or f"nice {LOOP_NICE}: " in refused, out.stdout
