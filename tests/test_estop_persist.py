@@ -351,8 +351,9 @@ def test_an_estop_whose_disable_fails_or_that_comes_after_the_last_tick_is_latch
                 raise OSError("enable line 1 reads back high")
 
             monkeypatch.setattr(node.driver, "_on_deactivate", stuck_high)
-            estop_pub.put(bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="operator e-stop"))
-            assert wait_until(lambda: node.estop_received >= 1, 5.0)
+            # repeated: the first messages on the node's fresh route may be lost (test_bridge_node)
+            assert _put_until(estop_pub, bus.EStop(seq=1, stamp_s=time.time(), engaged=True, reason="operator e-stop"),
+                              lambda: node.estop_received >= 1)
             with pytest.raises(OSError, match="reads back high"):
                 node.tick()
         finally:
@@ -365,8 +366,8 @@ def test_an_estop_whose_disable_fails_or_that_comes_after_the_last_tick_is_latch
             _send(node, cmd_pub, 1, [30.0] * 4)
             node.tick()
             n = node.estop_received
-            estop_pub.put(bus.EStop(seq=2, stamp_s=time.time(), engaged=True, reason="pressed at the stop"))
-            assert wait_until(lambda: node.estop_received > n, 5.0)
+            assert _put_until(estop_pub, bus.EStop(seq=2, stamp_s=time.time(), engaged=True, reason="pressed at the stop"),
+                              lambda: node.estop_received > n)
         finally:
             node.shutdown()  # no tick in between
         assert read_latch(latch) is not None and "pressed at the stop" in str(read_latch(latch))
