@@ -10,7 +10,9 @@ console starts (and the console itself: viewers, figures, the 3D scene) the othe
 viewer never competes with the loop. What the kernel does not permit falls back (FIFO → nice −10
 → nothing) and is reported: :func:`isolate` answers what each process really got, read back from
 the kernel, with the reason of each refusal; ``/api/system/processes`` shows it for every xneck
-process of this machine (:func:`local_processes`). ``XNECK_REALTIME=0`` leaves scheduling alone.
+process of this machine (:func:`local_processes`). ``XNECK_REALTIME=0`` leaves scheduling alone;
+``XNECK_LOOP_CPUS`` (a CPU list, ``"3"`` or ``"2-3"``) names the loop's CPUs instead of the last
+one (a CPU the lab keeps free with ``isolcpus``, or one per stack when two run on one machine).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Any
 from bridge.runtime import ENV_LOOP_PRIORITY, fifo_or_nice
 
 ENV_REALTIME = "XNECK_REALTIME"
+ENV_LOOP_CPUS = "XNECK_LOOP_CPUS"
 #: SCHED_FIFO priority of each loop process (1-99): the bridge (its watchdog and hold) first; the
 #: robot's bridge unit has 50 too (docs/bridge.md).
 LOOP_PRIORITY = {"bridge": 50, "twin": 50, "controller": 49}
@@ -168,13 +171,33 @@ def machine_cpus() -> set[int]:
 
 
 def cpu_split(cpus: set[int] | None = None) -> tuple[set[int], set[int]]:
-    """(the loop's CPUs, everyone else's) out of ``cpus`` (default: :func:`machine_cpus`): the
-    last CPU for the loop and the rest for the others; one CPU is shared by all."""
+    """(the loop's CPUs, everyone else's) out of ``cpus`` (default: :func:`machine_cpus`): those
+    ``$XNECK_LOOP_CPUS`` names, else the last CPU, for the loop and the rest for the others; one
+    CPU is shared by all. A list naming no CPU of ``cpus``, or all of them, or that does not
+    parse, is refused (:func:`loop_cpus_refusal`) and the last CPU is the loop's."""
     cpus = machine_cpus() if cpus is None else set(cpus)
     if len(cpus) < 2:
         return cpus, cpus
-    loop = {max(cpus)}
+    loop = {max(cpus)} if loop_cpus_refusal(cpus) else _parse_cpu_list(os.environ.get(ENV_LOOP_CPUS, "")) & cpus
+    loop = loop or {max(cpus)}
     return loop, cpus - loop
+
+
+def loop_cpus_refusal(cpus: set[int] | None = None) -> str:
+    """Why ``$XNECK_LOOP_CPUS`` is not used for the loop's CPUs out of ``cpus`` ('' if it is, or
+    is not set)."""
+    value = os.environ.get(ENV_LOOP_CPUS, "").strip()
+    if not value:
+        return ""
+    cpus = machine_cpus() if cpus is None else set(cpus)
+    try:
+        chosen = _parse_cpu_list(value)
+    except ValueError:
+        return f"{ENV_LOOP_CPUS}={value[:40]!r} is no CPU list (e.g. 3 or 2-3): the last CPU is the loop's"
+    if not chosen & cpus or cpus <= chosen:
+        return (f"{ENV_LOOP_CPUS}={value[:40]!r} leaves no CPU to the loop or none to the others (this machine's: "
+                f"{sorted(cpus)}): the last CPU is the loop's")
+    return ""
 
 
 def _tids(pid: int) -> list[int]:
@@ -201,6 +224,8 @@ def isolate(pid: int, kind: str, realtime: bool = True) -> dict[str, Any]:
     if os.environ.get(ENV_REALTIME, "1") == "0":
         refused.append(f"{ENV_REALTIME}=0: scheduling left alone")
     else:
+        if why := loop_cpus_refusal():
+            refused.append(why)
         loop_cpus, other_cpus = cpu_split()
         is_loop = kind in LOOP_PRIORITY
         base_nice = _nice(pid)

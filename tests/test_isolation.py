@@ -53,7 +53,8 @@ def test_the_console_leaves_the_loop_cpu_and_realtime_can_be_turned_off(child, m
             other.kill()
 
 
-def test_cpu_split_keeps_one_cpu_for_the_loop():
+def test_cpu_split_keeps_one_cpu_for_the_loop(monkeypatch):
+    monkeypatch.delenv(cp.ENV_LOOP_CPUS, raising=False)  # the suite's workers set one each (conftest)
     assert cp.cpu_split({0, 1, 2, 3}) == ({3}, {0, 1, 2})
     assert cp.cpu_split({0}) == ({0}, {0})
 
@@ -213,3 +214,23 @@ def test_where_fifo_is_refused_a_loop_thread_falls_back_to_the_loop_nice_and_say
     assert refused.startswith("['SCHED_FIFO 49: Operation not permitted'"), out.stdout
     # lowering nice needs the right to (CAP_SYS_NICE): without it, the second refusal is said
     assert (int(nice) == LOOP_NICE and "nice" not in refused) or f"nice {LOOP_NICE}: " in refused, out.stdout
+
+
+@pytest.mark.parametrize(("value", "loop", "refused"), [
+    ("", {3}, ""), ("1", {1}, ""), ("1-2", {1, 2}, ""), ("0,3", {0, 3}, ""),
+    ("0-3", {3}, "leaves no CPU"), ("7", {3}, "leaves no CPU"), ("x", {3}, "is no CPU list"),
+    ("-1", {3}, "is no CPU list")])
+def test_xneck_loop_cpus_names_the_loops_cpus_or_is_refused_for_the_last_one(monkeypatch, value, loop, refused):
+    monkeypatch.setenv(cp.ENV_LOOP_CPUS, value)
+    assert cp.cpu_split({0, 1, 2, 3}) == (loop, {0, 1, 2, 3} - loop)
+    why = cp.loop_cpus_refusal({0, 1, 2, 3})
+    assert (refused in why and why) if refused else why == "", why
+
+
+def test_a_loop_process_goes_to_the_cpu_xneck_loop_cpus_names(child, monkeypatch):
+    cpus = cp.machine_cpus()
+    if len(cpus) < 2:
+        pytest.skip("one CPU: shared by all")
+    monkeypatch.setenv(cp.ENV_LOOP_CPUS, str(min(cpus)))
+    got = cp.isolate(child.pid, "controller", realtime=False)
+    assert got["cpus"] == [min(cpus)] or any("affinity" in r for r in got["refused"]), got
