@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import pytest
@@ -71,6 +73,20 @@ def campaigns(params, tmp_path_factory, identification_run):
                                   out / f"{name}.mcap")
     return runs
 
+
+
+def _placed_bridge(hub: str, log: IO[bytes]) -> subprocess.Popen:
+    """A twin bridge listening on ``hub``, placed as `xneck up` places its own (the loop's CPU,
+    its real-time priority taken once set up): unplaced, beside the other worker's module on the
+    slow VM, the suite's stacks held on stale states and their campaigns were aborted (CI of
+    a2c45e1, d8ae598's fix for test_stack's)."""
+    from server.child_processes import isolate, loop_environ
+
+    bridge = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "twin", "--listen", hub],
+                              stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                              env={**os.environ, **loop_environ("bridge")})
+    isolate(bridge.pid, "bridge", realtime=False)
+    return bridge
 
 def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
     for name, result in campaigns.items():
@@ -230,8 +246,7 @@ def test_a_robot_campaign_runs_against_the_bridge_it_connects_to(tmp_path, xneck
 
     hub = f"tcp/127.0.0.1:{free_tcp_port()}"
     with open(tmp_path / "bridge.log", "wb") as log:
-        bridge = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "twin", "--listen", hub],
-                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        bridge = _placed_bridge(hub, log)
     try:
         run = xneck("campaign", "control", "--robot", "--connect", hub, "--trajectory", str(nod), "--json",
                     "--out", str(tmp_path / "robot.mcap"), timeout=180)
@@ -344,8 +359,7 @@ def test_a_campaign_whose_recorder_was_held_judges_the_bridge_from_its_return(tm
     slow.write_text(Trajectory.from_degrees([[0, 0, 0], [10, 8, 6], [0, 0, 0]], 4.0, 0.3, name="slow").to_json())
     hub = f"tcp/127.0.0.1:{free_tcp_port()}"
     with open(tmp_path / "bridge.log", "wb") as log:
-        bridge = subprocess.Popen([sys.executable, "-m", "server.cli", "bridge", "--driver", "twin", "--listen", hub],
-                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        bridge = _placed_bridge(hub, log)
     try:
         with open(tmp_path / "out", "wb") as out, open(tmp_path / "err", "wb") as err:
             run = subprocess.Popen([sys.executable, "-m", "server.cli", "campaign", "control", "--robot", "--connect",
