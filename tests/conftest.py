@@ -50,18 +50,6 @@ if os.environ.get(ENV_ZENOH_RUNTIME) != (_XNECK_RUNTIME := zenoh_runtime_environ
     IGNORED_XNECK_VARIABLES.append(ENV_ZENOH_RUNTIME)
     os.environ[ENV_ZENOH_RUNTIME] = _XNECK_RUNTIME
 
-# Each xdist worker's stacks on a loop CPU of their own (server.child_processes.ENV_LOOP_CPUS): on
-# the last CPU, both workers' placed stacks ran their four 500 Hz loops at equal real-time priority
-# on one CPU, and a campaign beside another module's stack was aborted for no progress (172 law
-# re-starts in 10 s: fresh-clone CI of c4babec, test_console_strays beside test_controller_faults).
-_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
-if _WORKER.startswith("gw") and _WORKER[2:].isdigit():
-    from server.child_processes import ENV_LOOP_CPUS, machine_cpus
-
-    _CPUS = sorted(machine_cpus())
-    if len(_CPUS) >= 2:
-        os.environ[ENV_LOOP_CPUS] = str(_CPUS[-1 - int(_WORKER[2:]) % len(_CPUS)])
-
 XNECK = forkserver_client.XNECK  # `xneck` with this interpreter, whatever PATH says (what a forked run stands for)
 
 # The suite starts some hundreds of Python processes (stacks, campaigns, CLI runs); with
