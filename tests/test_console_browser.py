@@ -284,9 +284,21 @@ def test_the_editor_rejects_an_out_of_limit_waypoint_with_the_checkers_message_a
 def test_comparing_two_campaigns_shows_both_traces_and_their_table(console):
     page = console.page
     ids = ["run-b", "run-a"]  # seeded archives
+    # The test before stops its campaign: the page's poll then rebuilds the list and draws that
+    # campaign's results, and a click on a row being replaced can be lost (official CI of e99b31a:
+    # a check still "performing click action" after 10 s). Settled first, then each pick retried
+    # until the page holds it.
+    page.wait_for_function("!runningId", timeout=15000)
     page.evaluate("refreshList()")
     for cid in ids:
-        page.locator(f'#campaigns tr[data-id="{cid}"] .cmp-pick').check(timeout=10000)
+        for attempt in range(6):
+            try:
+                page.locator(f'#campaigns tr[data-id="{cid}"] .cmp-pick').check(timeout=5000)
+            except playwright_sync.TimeoutError:
+                if attempt == 5:
+                    raise
+            if page.evaluate("(id) => window.xneckCompare.chosen.has(id)", cid):
+                break
     page.click("#compare-go")
     page.wait_for_function("window.xneckCompare.plots.length >= 6", timeout=15000)
     labels = page.evaluate("window.xneckCompare.plots.map((p) => p.labels)")
