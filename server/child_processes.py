@@ -149,13 +149,21 @@ def log_tail(path: Path, lines: int) -> str:
         return ""
 
 
+#: Above any CPU number a kernel gives (CONFIG_NR_CPUS is at most 8192): a range to it is a typo.
+MAX_CPU = 8191
+
+
 def _parse_cpu_list(text: str) -> set[int]:
-    """``"0-2,5"`` (the kernel's CPU list format) -> {0, 1, 2, 5}."""
+    """``"0-2,5"`` (the kernel's CPU list format) -> {0, 1, 2, 5}; ValueError for anything else
+    (a range backwards or past :data:`MAX_CPU`: "0-100000000000" was enumerated for minutes)."""
     cpus: set[int] = set()
     for part in text.strip().split(","):
         if part:
             lo, _, hi = part.partition("-")
-            cpus.update(range(int(lo), int(hi or lo) + 1))
+            first, last = int(lo), int(hi or lo)
+            if not 0 <= first <= last <= MAX_CPU:
+                raise ValueError(f"CPU range {part!r}")
+            cpus.update(range(first, last + 1))
     return cpus
 
 
@@ -178,26 +186,30 @@ def cpu_split(cpus: set[int] | None = None) -> tuple[set[int], set[int]]:
     cpus = machine_cpus() if cpus is None else set(cpus)
     if len(cpus) < 2:
         return cpus, cpus
-    loop = {max(cpus)} if loop_cpus_refusal(cpus) else _parse_cpu_list(os.environ.get(ENV_LOOP_CPUS, "")) & cpus
-    loop = loop or {max(cpus)}
+    loop = _named_loop_cpus(cpus)[0] or {max(cpus)}
     return loop, cpus - loop
 
 
 def loop_cpus_refusal(cpus: set[int] | None = None) -> str:
     """Why ``$XNECK_LOOP_CPUS`` is not used for the loop's CPUs out of ``cpus`` ('' if it is, or
     is not set)."""
+    return _named_loop_cpus(machine_cpus() if cpus is None else set(cpus))[1]
+
+
+def _named_loop_cpus(cpus: set[int]) -> tuple[set[int], str]:
+    """(the CPUs of ``cpus`` that ``$XNECK_LOOP_CPUS`` names, '') if they leave some to the others;
+    (empty, why not) if the list does not parse or leaves none; (empty, '') if it is not set."""
     value = os.environ.get(ENV_LOOP_CPUS, "").strip()
     if not value:
-        return ""
-    cpus = machine_cpus() if cpus is None else set(cpus)
+        return set(), ""
     try:
-        chosen = _parse_cpu_list(value)
+        chosen = _parse_cpu_list(value) & cpus
     except ValueError:
-        return f"{ENV_LOOP_CPUS}={value[:40]!r} is no CPU list (e.g. 3 or 2-3): the last CPU is the loop's"
-    if not chosen & cpus or cpus <= chosen:
-        return (f"{ENV_LOOP_CPUS}={value[:40]!r} leaves no CPU to the loop or none to the others (this machine's: "
-                f"{sorted(cpus)}): the last CPU is the loop's")
-    return ""
+        return set(), f"{ENV_LOOP_CPUS}={value[:40]!r} is no CPU list (e.g. 3 or 2-3): the last CPU is the loop's"
+    if not chosen or chosen == cpus:
+        return set(), (f"{ENV_LOOP_CPUS}={value[:40]!r} leaves no CPU to the loop or none to the others (this "
+                       f"machine's: {sorted(cpus)}): the last CPU is the loop's")
+    return chosen, ""
 
 
 def _tids(pid: int) -> list[int]:

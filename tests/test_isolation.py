@@ -219,7 +219,8 @@ def test_where_fifo_is_refused_a_loop_thread_falls_back_to_the_loop_nice_and_say
 @pytest.mark.parametrize(("value", "loop", "refused"), [
     ("", {3}, ""), ("1", {1}, ""), ("1-2", {1, 2}, ""), ("0,3", {0, 3}, ""),
     ("0-3", {3}, "leaves no CPU"), ("7", {3}, "leaves no CPU"), ("x", {3}, "is no CPU list"),
-    ("-1", {3}, "is no CPU list")])
+    ("-1", {3}, "is no CPU list"), ("3-1", {3}, "is no CPU list"),
+    ("0-100000000000", {3}, "is no CPU list")])  # a typo's range is not enumerated (it was, for minutes)
 def test_xneck_loop_cpus_names_the_loops_cpus_or_is_refused_for_the_last_one(monkeypatch, value, loop, refused):
     monkeypatch.setenv(cp.ENV_LOOP_CPUS, value)
     assert cp.cpu_split({0, 1, 2, 3}) == (loop, {0, 1, 2, 3} - loop)
