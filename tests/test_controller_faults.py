@@ -25,6 +25,11 @@ from controller.laws import LawConfig
 from controller.trajectory import Trajectory
 from server.child_processes import isolate, loop_environ
 
+# realtime: it asserts the commands keep flowing at 500 Hz while a worker validates a long
+# trajectory; beside another module's stack on the loop CPU they once stopped 4.5 s (fresh-clone
+# CI of 4c18a07), and its own stack had made test_console_strays' late (CI of c4babec).
+pytestmark = pytest.mark.realtime
+
 XNECK = [sys.executable, "-m", "server.cli"]
 NOD = Trajectory.from_degrees([[0, 0, 0], [8, 4, 0], [0, 0, 0]], 1.0, 0.2, name="nod")
 
