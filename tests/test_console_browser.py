@@ -553,6 +553,9 @@ def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(consol
     cleared(lambda: page.click("#stop"))
     assert wait_until(lambda: http.get(f"/api/campaigns/{cid}").json()["status"] != "running", 30, 0.2)
     console.wait_idle()
+    # The page rebuilds the campaign list when it sees the campaign end; a click on a row being
+    # replaced is lost (the compare test's failure on CI, 2026-12-01): act once it has seen it.
+    page.wait_for_function("runningId === null", timeout=15000)
     page.evaluate("refreshList()")
 
     refused_results()
@@ -563,6 +566,7 @@ def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(consol
     refused_results()
     cleared(lambda: page.click("#stop"))
     assert wait_until(lambda: not (http.get("/api/system/health").json()["replay"] or {}).get("running"), 20, 0.2)
+    page.wait_for_function("replayId === null", timeout=15000)
     refused_results()
     page.once("dialog", lambda d: d.accept())
     cleared(row_button(cid, "delete"))
