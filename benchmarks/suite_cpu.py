@@ -6,17 +6,19 @@ worker and the children it waited for; this says which processes did: the worker
 stacks' bridges, controllers and consoles, pyright, Chromium, pip, numba's warm-up...
 
 It runs COMMAND, becomes its child subreaper (PR_SET_CHILD_SUBREAPER: an orphaned grandchild stays
-below it, not below init) and samples every descendant's CPU (utime + stime, /proc/PID/stat) every
-``--period-s``. A process is counted at its last sample: what it ran after that (up to one period)
-and a process shorter than a period are missed, and come out as "not sampled" against the
-command's whole CPU (getrusage of its waited-for children). Prints, per kind, CPU seconds, share of
-the total and processes; ``--json FILE`` writes the same. Run:
-``.venv/bin/python benchmarks/suite_cpu.py [--period-s 0.25] [--json FILE] -- bash .ci/run``.
+below it, not below init; reaped as soon as it exits, as init would) and samples every descendant's
+CPU (utime + stime, /proc/PID/stat) every ``--period-s``. A process is counted at its last sample
+(an orphan of its own at its exit): what it ran after that (up to one period) and a process shorter
+than a period are missed, and come out as "not sampled" against the command's whole CPU (getrusage
+of its waited-for children). Prints, per kind, CPU seconds, share of the total and processes;
+``--json FILE`` writes the same. Standard library only, so a fresh clone's set-up can be measured
+too. Run: ``python3 benchmarks/suite_cpu.py [--period-s 0.25] [--json FILE] -- bash .ci/run``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import itertools
 import json
@@ -116,11 +118,37 @@ class Tally:
             name, ticks = self.live.pop(key)
             self.done[name] += ticks
 
+    def exited(self, pid: int) -> bool:
+        """Whether ``pid`` is a zombie; if so its last CPU is counted (it may be reaped then)."""
+        try:
+            raw = Path(f"/proc/{pid}/stat").read_bytes()
+        except OSError:
+            return False
+        fields = raw[raw.rindex(b")") + 2:].split()
+        if fields[0] != b"Z":
+            return False
+        key, ticks = (pid, int(fields[19])), int(fields[11]) + int(fields[12])
+        if key in self.live:
+            name = self.live.pop(key)[0]
+        else:  # shorter than a period: never sampled alive
+            name = "[" + raw[raw.index(b"(") + 1:raw.rindex(b")")].decode(errors="replace") + "]"
+            self.processes[name] += 1
+        self.done[name] += ticks
+        return True
+
     def totals_s(self) -> Counter:
         total = Counter(self.done)
         for name, ticks in self.live.values():
             total[name] += ticks
         return Counter({name: ticks / TICKS_PER_S for name, ticks in total.items()})
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            out += [int(c) for c in (task / "children").read_text().split()]
+    return out
 
 
 def _descends(pid: int, root: int, stats: dict[int, tuple[int, int, int]]) -> bool:
@@ -143,13 +171,26 @@ def run(command: list[str], period_s: float) -> tuple[int, Counter, Counter, flo
     tally = Tally()
     proc = subprocess.Popen(command)
     me = os.getpid()
+    def reap(_signum: int, _frame: object) -> None:
+        # An orphan's zombie would stay "alive" to os.kill(pid, 0) and to a test waiting for it to
+        # go: init reaps at once, and so must a subreaper. Counted first; never the command, whose
+        # status Popen collects.
+        for pid in _children(me):
+            if pid != proc.pid and tally.exited(pid):
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(pid, os.WNOHANG)
+
+    signal.signal(signal.SIGCHLD, reap)
     try:
         while proc.poll() is None:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGCHLD})  # the handler counts too
             tally.sample(me)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGCHLD})
             time.sleep(period_s)
     except KeyboardInterrupt:
         proc.send_signal(signal.SIGINT)
         proc.wait()
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
     tally.sample(me)
     while True:  # orphans that outlived the command were re-parented here: reap them
         try:

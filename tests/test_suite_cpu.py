@@ -50,24 +50,33 @@ def burn(s):
     while time.process_time() - t < s:
         pass
     time.sleep(0.6)  # sampled at least once after its CPU: counted whole
+r, w = os.pipe()
 if os.fork() == 0:  # an orphan: its parent exits before it, it must still be counted
     if os.fork() == 0:
+        os.write(w, str(os.getpid()).encode())
         burn(0.4)
     os._exit(0)
-burn(0.5)
 os.wait()
-time.sleep(0.8)  # the orphan outlives its parent
+orphan = int(os.read(r, 32))
+burn(0.5)
+for _ in range(100):  # reaped once it exits, as init would: else kill(pid, 0) finds its zombie
+    try:
+        os.kill(orphan, 0)
+    except ProcessLookupError:
+        sys.exit(3)
+    time.sleep(0.1)
+sys.exit(4)
 """
 
 
 def test_the_commands_children_and_an_orphaned_grandchild_are_counted_and_the_exit_code_kept(tmp_path: Path) -> None:
     script = tmp_path / "burn.py"
-    script.write_text(BURN + "sys.exit(3)\n")
+    script.write_text(BURN)
     out = tmp_path / "cpu.json"
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--period-s", "0.05",
                           "--json", str(out), "--", sys.executable, str(script)],
                          capture_output=True, text=True, timeout=60)
-    assert run.returncode == 3, run.stderr  # the command's own exit code
+    assert run.returncode == 3, run.stderr  # the command's own exit code: it saw its orphan go (4: a zombie)
     figures = json.loads(out.read_text())
     burners = figures["kinds"]["python burn.py"]
     assert burners["processes"] >= 2, figures  # the script and the orphaned grandchild (its parent, if seen alive)
