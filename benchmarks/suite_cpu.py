@@ -214,7 +214,11 @@ def main() -> int:
         parser.error("no command: suite_cpu.py [options] -- COMMAND ...")
     if not 0.01 <= args.period_s <= 10:
         parser.error("--period-s: between 0.01 and 10 s")
-    code, seconds, processes, whole, wall = run(command, args.period_s)
+    try:
+        code, seconds, processes, whole, wall = run(command, args.period_s)
+    except OSError as exc:  # not found, not executable: as a shell says it
+        print(f"suite_cpu.py: {command[0]}: {exc.strerror}", file=sys.stderr)
+        return 127
     sampled = sum(seconds.values())
     print(f"\n{' '.join(command)}: exit {code}, {wall:.0f} s wall, {whole:.0f} CPU-s in all "
           f"({whole / max(wall, 1e-9):.2f} CPUs on average, {os.cpu_count()} here)")

@@ -89,3 +89,9 @@ def test_no_command_is_a_usage_error() -> None:
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--"],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and "no command" in run.stderr
+
+
+def test_a_command_that_cannot_start_is_one_line_and_exit_127(tmp_path: Path) -> None:
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--", str(tmp_path / "nothing")],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 127 and run.stderr.strip() == f"suite_cpu.py: {tmp_path / 'nothing'}: No such file or directory"
