@@ -1053,7 +1053,7 @@ def test_sigterm_leaves_the_drives_disabled(tmp_path):
         assert "drives disabled" in log
 
 
-def test_killed_controller_leaves_the_twin_holding_within_its_joint_limits(params, tmp_path):
+def test_killed_controller_leaves_the_twin_holding_within_its_joint_limits(params, tmp_path, caplog):
     alpha_max = math.radians(params.limits.alpha_max_deg)
     with bus_pair() as (hub, hub_session, connect):
         node = _node(connect(), params)
@@ -1087,12 +1087,21 @@ def test_killed_controller_leaves_the_twin_holding_within_its_joint_limits(param
             commands.close()
             truths.close()
         assert "error" not in out, out.get("error")
-        to_hold, age, late, ramp, _target = _hold_check(states.timed(), commands.timed())
+        to_hold, age, late, ramp, target = _hold_check(states.timed(), commands.timed())
         print(f"\ncontroller killed: hold {to_hold * 1e3:.1f} ms (wall, seen here) and {age * 1e3:.0f} ms (bridge's "
               f"clock) after its last command, ramp {ramp * 1e3:.0f} ms (sim); holds before the kill: {node.holds - 1}")
         assert 0.010 <= age <= 0.010 + 2 * DT + late, (age, late)
         assert to_hold <= 0.030 + late, (to_hold, late)
-        assert ramp <= 0.010 + 1e-9, ramp
+        ramp_max = 0.010
+        if any("loop was held up" in r.getMessage() for r in caplog.records):
+            # After a stall of its own loop the bridge ramps whatever it applies next at 1 N a tick
+            # (bridge/safety.py, "Bumpless"): the hold too (fresh-clone CI of 2026-12-02: held up
+            # 486 ms as the controller was killed, a 46 ms ramp).
+            t_cmd = commands.timed()[-1][0]
+            first = next(s for t, s in states.timed() if t > t_cmd and s.drive == "hold")
+            step = SafetyConfig(n_motors=4, f_min_N=0.0, f_max_N=1.0).max_force_step_N
+            ramp_max = max(ramp_max, (np.abs(np.array(first.force_applied_N) - target).max() / step + 2) * DT)
+        assert ramp <= ramp_max + 1e-9, (ramp, ramp_max)
         alpha = np.array([t.alpha_rad for t in truths.messages()])
         moved = np.degrees(np.abs(alpha).max())
         print(f"max |α| {moved:.1f}° (limit {params.limits.alpha_max_deg:.0f}°)")
