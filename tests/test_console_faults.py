@@ -322,9 +322,13 @@ def test_a_second_controllers_statuses_never_hide_the_campaign_one_runs_unrecord
         reads = [c.get("/api/system/health").json() for _ in range(40)]
         seen = [(h["unrecorded_campaign"], h["bridge"]["state_age_s"]) for h in reads]
         # Never the idle one's (the bug: every other read). None only while what the test's
-        # publisher sends (state and statuses together) was old: a publisher starved on a loaded machine.
-        assert all(s == {"id": cid, "controller": "ctl-owner"} or (s is None and (age is None or age > 0.3))
-                   for s, age in seen), seen
+        # publisher sends (state and statuses together) was old: a publisher starved on a loaded
+        # machine; or right after, its fresh state read before the statuses sent with it arrived
+        # (fresh-clone CI of 2026-12-02: starved 0.33-0.37 s). Not after a good read: the bug's pattern.
+        wrong = [(i, s, age) for i, (s, age) in enumerate(seen)
+                 if not (s == {"id": cid, "controller": "ctl-owner"} or
+                         (s is None and (age is None or age > 0.3 or (i > 0 and seen[i - 1][0] is None))))]
+        assert not wrong, (wrong, seen)
         assert sum(s is not None for s, _ in seen) >= 20, seen
 
 
