@@ -36,6 +36,9 @@ from pathlib import Path
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 PR_SET_CHILD_SUBREAPER = 36
 
+#: Kinds that say nothing of what runs: named with their parent's kind.
+ANONYMOUS = frozenset({"python -c", "python multiprocessing child", "python", "sh", "bash"})
+
 _XNECK = re.compile(r"(?:-m server\.cli|/xneck)\s+([a-z][a-z-]*)")
 
 
@@ -62,6 +65,8 @@ def kind(cmdline: str) -> str:
         return "numba warm-up (set-up)"
     if re.search(r"-m pip\b|/pip3?\b", cmdline):
         return "pip"
+    if "from multiprocessing" in cmdline:  # spawn_main, the resource tracker, a forkserver
+        return "python multiprocessing child"
     if "distributed" in cmdline or "dask" in cmdline:
         return "dask"
     if "ruff" in cmdline:
@@ -112,8 +117,13 @@ class Tally:
                 cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
             except OSError:
                 continue
-            self.live[key] = (kind(cmdline) if cmdline else f"[{comms[pid]}]", ticks)  # a zombie has none
-            self.processes[self.live[key][0]] += 1
+            name = kind(cmdline) if cmdline else f"[{comms[pid]}]"  # a zombie has none
+            ppid = stats[pid][0]
+            parent = self.live.get((ppid, stats[ppid][1])) if ppid in stats else None
+            if parent is not None and name in ANONYMOUS:  # say whose it is
+                name = f"{name} (from {parent[0]})"
+            self.live[key] = (name, ticks)
+            self.processes[name] += 1
         for key in [k for k in self.live if k not in alive]:
             name, ticks = self.live.pop(key)
             self.done[name] += ticks

@@ -35,6 +35,8 @@ PY = "/repo/.venv/bin/python"
     (f"{PY} -m pip install --no-compile -e .[pc,test]", "pip"),
     (f"{PY} /repo/benchmarks/_bus_peer.py publish tcp/127.0.0.1:7447", "python _bus_peer.py"),
     ("/usr/bin/gcc -O2 -c x.c", "gcc"),
+    (f"{PY} -c from multiprocessing.spawn import spawn_main; spawn_main(tracker_fd=5, pipe_handle=7) --multiprocessing-fork",
+     "python multiprocessing child"),
     (f"{PY} -m pytest -q", "pytest"),
     (f"{PY} /tmp/pytest-of-root/pytest-3/t0/burn.py", "python burn.py"),  # not pytest for its folder
     ("", "(no command line)"),
@@ -95,3 +97,15 @@ def test_a_command_that_cannot_start_is_one_line_and_exit_127(tmp_path: Path) ->
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--", str(tmp_path / "nothing")],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 127 and run.stderr.strip() == f"suite_cpu.py: {tmp_path / 'nothing'}: No such file or directory"
+
+
+def test_an_anonymous_child_is_named_with_its_parents_kind(tmp_path: Path) -> None:
+    script = tmp_path / "parent.py"
+    script.write_text("import subprocess, sys\n"
+                      "subprocess.run([sys.executable, '-c', 'import time; time.sleep(0.5)'], check=True)\n")
+    out = tmp_path / "cpu.json"
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--period-s", "0.05",
+                          "--json", str(out), "--", sys.executable, str(script)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(out.read_text())["kinds"]["python -c (from python parent.py)"]["processes"] == 1
