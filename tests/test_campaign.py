@@ -6,9 +6,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import IO
 
@@ -86,7 +88,20 @@ def _placed_bridge(hub: str, log: IO[bytes]) -> subprocess.Popen:
                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                               env={**os.environ, **loop_environ("bridge")})
     isolate(bridge.pid, "bridge", realtime=False)
-    return bridge
+    # Listening before a campaign looks for it (BRIDGE_WAIT_S, 10 s): on the loop CPU beside the
+    # other worker's real-time stack its start had taken longer (fresh-clone CI of 2026-12-02).
+    port = int(hub.rsplit(":", 1)[1])
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return bridge
+        except OSError:
+            if bridge.poll() is not None or time.monotonic() > deadline:
+                bridge.kill()
+                bridge.wait(10)
+                raise AssertionError(f"the bridge did not listen at {hub}: {Path(log.name).read_text()[-2000:]}") from None
+            time.sleep(0.1)
 
 def test_every_campaign_finishes_and_its_archive_holds_every_channel(campaigns):
     for name, result in campaigns.items():
