@@ -274,12 +274,24 @@ def test_a_server_killed_and_restarted_mid_campaign(tmp_path: Path) -> None:
     with _procs() as spawn:
         server = spawn(server_args, tmp_path / "s1.log")
         assert wait_until(lambda: _healthy(base), 60, 0.3)
-        spawn(["bridge", "--driver", "twin", "--listen", f"tcp/127.0.0.1:{bridge_port}", "--connect", hub], tmp_path / "b.log")
-        spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "c.log")
+        # Placed as `xneck up` places them (CI of 98cea3b: unplaced, beside a background module, the
+        # campaign had not reached 20 % in 60 s).
+        spawn(["bridge", "--driver", "twin", "--listen", f"tcp/127.0.0.1:{bridge_port}", "--connect", hub],
+              tmp_path / "b.log", place=True)
+        spawn(["controller", "--law", "2", "--listen", "tcp/127.0.0.1:0", "--connect", hub], tmp_path / "c.log",
+              place=True)
         assert wait_until(lambda: {"bridge", "campaign-service"} <= _alive_kinds(base), 60, 0.3)
         before = {c["id"] for c in httpx.get(base + "/api/campaigns").json()}
         cid = httpx.post(base + "/api/campaigns", json=CAMPAIGN, headers=AUTH, timeout=10).json()["id"]
-        assert wait_until(lambda: httpx.get(f"{base}/api/campaigns/{cid}").json().get("progress", 0) > 0.2, 60, 0.2)
+        rec: dict = {}
+
+        def under_way() -> bool:
+            rec.update(httpx.get(f"{base}/api/campaigns/{cid}", timeout=5).json())
+            return rec.get("progress", 0) > 0.2 or rec.get("status") != "running"
+
+        wait_until(under_way, 60, 0.2)
+        assert rec.get("status") == "running" and rec.get("progress", 0) > 0.2, \
+            (rec, *(f"{log}: {(tmp_path / log).read_text(errors='replace')[-1500:]}" for log in ("b.log", "c.log")))
         os.killpg(server.pid, signal.SIGKILL)
         server.wait(10)
 
