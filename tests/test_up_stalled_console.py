@@ -24,12 +24,10 @@ Real processes, real Zenoh on 127.0.0.1; every process is stopped within bounded
 
 from __future__ import annotations
 
-import contextlib
+import importlib.util
 import os
-import re
 import signal
 import socket
-import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -46,58 +44,14 @@ pytestmark = [pytest.mark.e2e, pytest.mark.realtime]
 # The first reconnect attempt closed ~19 s after the stop (lease 10 s, open timeout 10 s), the
 # next ones 11-14 s apart: 34 s covers two.
 STOP_S = 34.0
-LEASE_S = 10.0  # Zenoh's transport lease: the stopped console's links close after it
-LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 
-
-def _holds_between(log: Path, since: float, until: float = float("inf")) -> list[str]:
-    """The bridge's hold lines logged in the wall-clock interval [``since``, ``until``)."""
-    lines = []
-    for line in log.read_text(errors="replace").splitlines():
-        m = LOG_TIME.match(line)
-        if m and " hold: " in line and since <= datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp() < until:
-            lines.append(line)
-    return lines
-
-
-def _accept_queue(port: int) -> int:
-    """Connections the kernel accepted on the TCP socket listening on ``port`` (any address) that no
-    process has taken yet: the listener's ``rx_queue`` in ``/proc/net/tcp{,6}`` (state 0A, LISTEN)."""
-    queued = 0
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        with contextlib.suppress(OSError):
-            for row in Path(table).read_text().splitlines()[1:]:
-                fields = row.split()
-                if fields[3] == "0A" and int(fields[1].rsplit(":", 1)[1], 16) == port:
-                    queued += int(fields[4].split(":")[1], 16)
-    return queued
-
-
-class _AcceptWatch:
-    """Samples :func:`_accept_queue` every 0.1 s in a thread; ``rises`` holds (time.time(), queue)
-    at each increase (a new connection attempt to the stopped listener: it stays queued 10 s, until
-    the connecting Zenoh's open timeout)."""
-
-    def __init__(self, port: int) -> None:
-        self.port, self.rises = port, []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        last = _accept_queue(self.port)
-        while not self._stop.wait(0.1):
-            now = _accept_queue(self.port)
-            if now > last:
-                self.rises.append((time.time(), now))
-            last = now
-
-    def __enter__(self) -> _AcceptWatch:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(5)
+# What benchmarks/stalled_console.py counts, counted the same way.
+_spec = importlib.util.spec_from_file_location("_stalled", Path(__file__).resolve().parents[1] / "benchmarks" / "_stalled.py")
+assert _spec is not None and _spec.loader is not None
+_stalled = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_stalled)
+LEASE_S, AcceptWatch = _stalled.LEASE_S, _stalled.AcceptWatch
+accept_queue, holds_between = _stalled.accept_queue, _stalled.holds_between
 
 
 def _bridge_state_age_s(url: str) -> float:
@@ -114,14 +68,14 @@ def test_a_console_stopped_past_zenohs_timeouts_is_never_reconnected_to(tmp_path
         bridge_log = data / "logs" / "bridge.log"
         assert wait_until(lambda: bridge_log.exists() and "bumpless ramp done" in bridge_log.read_text(), 120, 0.3), \
             (tmp_path / "up.log").read_text()
-        time.sleep(2.0)  # past the start-up: any hold from here on is the stop's
+        time.sleep(2.0)  # past the start-up
         assert isinstance(up.args, list)  # _xneck_up's argv
         args = [str(a) for a in up.args]
         hub_port = int(args[args.index("--hub") + 1].rsplit(":", 1)[1])
-        assert _accept_queue(hub_port) == 0  # the running console takes its connections
+        assert accept_queue(hub_port) == 0  # the running console takes its connections
         server = _child(up.pid, "server")
         assert server is not None
-        with _AcceptWatch(hub_port) as watch:
+        with AcceptWatch(hub_port) as watch:
             stopped_at = time.time()
             os.kill(server, signal.SIGSTOP)
             try:
@@ -140,12 +94,12 @@ def test_a_console_stopped_past_zenohs_timeouts_is_never_reconnected_to(tmp_path
         # of 11 ms, 0.1-0.6 s in, in one CI run of ef29ae4) is another effect, open: docs/safety.md,
         # "Peers that stop reading". Until the console resumes: its links coming back are a peer
         # joining (benchmarks/peer_churn.py), not this test's subject.
-        holds = _holds_between(bridge_log, stopped_at + LEASE_S, resumed_at)
-        early = _holds_between(bridge_log, stopped_at, stopped_at + LEASE_S)
+        holds = holds_between(bridge_log, stopped_at + LEASE_S, resumed_at)
+        early = holds_between(bridge_log, stopped_at, stopped_at + LEASE_S)
         assert up.poll() is None, (tmp_path / "up.log").read_text()
         # The console comes back and sees the bridge's states again (its links were closed meanwhile).
         assert wait_until(lambda: _bridge_state_age_s(url) < 0.5, 60, 0.5)
-        late = _holds_between(bridge_log, resumed_at)
+        late = holds_between(bridge_log, resumed_at)
         # The hub layout (before 634f4cd) had the bridge and the controller retry the console every
         # 11-14 s, and held at every retry: two attempts or more in 34 s.
         assert not attempts, "\n".join(["connections to the stopped console:", *attempts, "bridge holds (after the lease's end):",
