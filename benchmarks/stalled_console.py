@@ -34,12 +34,15 @@ from bridge.session import free_tcp_port
 
 
 def _server_of(up_pid: int) -> int | None:
-    """The pid of the `xneck server` child of ``up_pid``."""
+    """The pid of the `xneck server` child of ``up_pid`` (its kind read as the console reads it)."""
+    from server.child_processes import _kind_of
+
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             with contextlib.suppress(OSError):
                 ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-                if ppid == up_pid and "\0server\0" in (entry / "cmdline").read_text(errors="replace"):
+                argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+                if ppid == up_pid and _kind_of(argv) == "server":
                     return int(entry.name)
     return None
 
