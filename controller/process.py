@@ -160,6 +160,9 @@ class ControllerNode:
         self._status = publisher(session, bus.CONTROLLER_STATUS, block=config.lockstep)
         self._named = controller_attachment(self.instance)  # its statuses name it (server.live.bus_campaign)
         self._timing = publisher(session, bus.CONTROLLER_TIMING)
+        # A campaign's final timing, once per campaign, is what its archive and quality keep: it
+        # waits out congestion as its end event does; a periodic window may drop (CI of 2026-12-02).
+        self._timing_final = publisher(session, bus.CONTROLLER_TIMING, block=True)
         self._events = publisher(session, bus.CAMPAIGN_EVENTS)
         self._health = publisher(session, bus.health_key("controller", self.instance))
         self._token = liveliness_token(session, "controller", self.instance)
@@ -241,14 +244,15 @@ class ControllerNode:
         """The ticks since the last call as a ``ControllerTiming``: stages, latency and period, and
         the campaign's histograms; ``ended`` = (id, ticks, misses, overruns) of a campaign that
         just ended (its final figures), else the running campaign's so far."""
+        final = ended is not None  # waits out congestion (the final publisher's comment)
         with self._tick_lock:
             stages, period = self.times.window()
             svc = self.service
             if ended is None:
                 ended = (svc.campaign_id if svc.running else "", svc.ticks, svc.deadline_misses, svc.overruns)
         campaign_id, ticks, misses, overruns = ended
-        self._timing.put(timing_message(self._next("timing"), stamp_s, campaign_id, stages, period, self.times,
-                                        ticks, misses, overruns))
+        (self._timing_final if final else self._timing).put(timing_message(
+            self._next("timing"), stamp_s, campaign_id, stages, period, self.times, ticks, misses, overruns))
 
     def status(self, stamp_s: float, tick_s: float, compute_s: float, out: Output) -> None:
         svc = self.service
@@ -608,7 +612,7 @@ class ControllerNode:
 
     def close(self) -> None:
         closers = [self.states.close, self._cmd.close, self._status.close, self._events.close, self._health.close,
-                   self._timing.close, self._token.undeclare]
+                   self._timing.close, self._timing_final.close, self._token.undeclare]
         closers += [x.undeclare for x in (*self._request_subs, self._service_token) if x is not None]
         for closer in closers:
             with contextlib.suppress(Exception):  # the session may already be gone
