@@ -45,6 +45,7 @@ Storage faults
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import datetime as dt
 import errno
@@ -113,6 +114,10 @@ QUEUE_MAX = 100_000
 # stamped 1e300 s, and int(1e300 * 1e9) killed the writer thread (audit of 2026-11-26).
 MAX_STAMP_S = 9.2e9
 FRAME_QUEUE_MAX = 8  # frames (≤ 1.4 MB each on the wire) waiting for the writer: bounds the recorder's memory
+# How long a stop named after a campaign's end event waits for the recorder's own subscriber to have
+# it (CampaignRecorder.stop's ``end_of``); its thread is at most the backlog of one loaded moment behind.
+END_WAIT_S = 5.0
+ENDS_KEPT = 16  # campaign ids whose end event the recorder heard, the latest (a flood of forged ends stays bounded)
 
 
 def compressed_image(stamp_s: float, frame_id: str, data: bytes, image_format: str = "jpeg") -> bytes:
@@ -336,6 +341,8 @@ class CampaignRecorder:
         self._stopped = False
         self._error: BaseException | None = None
         self._on_error = on_error
+        self._ends: collections.deque[str] = collections.deque(maxlen=ENDS_KEPT)  # see stop's end_of
+        self._end_heard = threading.Condition(self._lock)
 
         self._out = ArchiveWriter(self.path, chunk_size)
         try:
@@ -363,7 +370,10 @@ class CampaignRecorder:
                 bus.check_payload_size(msg_type, len(sample.payload))
             run, camera = (run_of(sample), camera_of(sample)) if self._keep else ("", "")
             controller = controller_of(sample) if self._keep and key == bus.CONTROLLER_STATUS else ""
-            self._queue.put_nowait((key, sample.payload.to_bytes(), now_ns, run, camera, controller))
+            payload = sample.payload.to_bytes()
+            self._queue.put_nowait((key, payload, now_ns, run, camera, controller))
+            if key == bus.CAMPAIGN_EVENTS:  # after it is queued: all before it is (stop's end_of)
+                self._note_end(payload)
         except bus.BusDecodeError as exc:
             with self._lock:
                 self._received += 1
@@ -374,9 +384,23 @@ class CampaignRecorder:
             with self._lock:
                 self._dropped += 1
                 self._frames_queued -= frame
+            if key == bus.CAMPAIGN_EVENTS:  # dropped, but what came before it was dealt with
+                self._note_end(payload)
             return
         with self._lock:
             self._received += 1
+
+    def _note_end(self, payload: bytes) -> None:
+        """Note the campaign an end event (finished, aborted) names; a malformed one is the writer's
+        to reject, as any other."""
+        try:
+            ev = bus.decode(bus.CampaignEvent, payload)
+        except bus.BusDecodeError:
+            return
+        if ev.event in ("finished", "aborted"):
+            with self._end_heard:
+                self._ends.append(ev.campaign_id)
+                self._end_heard.notify_all()
 
     def _reject(self, key: str, reason: str) -> None:
         with self._lock:
@@ -433,14 +457,22 @@ class CampaignRecorder:
             )
 
     def stop(self, outcome: str = "finished", extra_metadata: Mapping[str, str] | None = None,
-             timeout_s: float = 10.0, *, final_metadata: Callable[[], Mapping[str, str]] | None = None) -> Path:
+             timeout_s: float = 10.0, *, final_metadata: Callable[[], Mapping[str, str]] | None = None,
+             end_of: str = "") -> Path:
         """Stop recording, write the ``xneck.campaign`` and ``xneck.recorder`` records and finish
         the file. ``extra_metadata`` (strings) is merged into ``xneck.campaign``, then what
         ``final_metadata`` returns, asked once the writer has written its last message: what says
         what the file holds (the α_IP recorded, server.campaign_runner) is not asked while a
-        backlog still waits. Idempotent."""
+        backlog still waits. ``end_of``: the campaign whose end event the caller heard; the stop
+        first waits (up to :data:`END_WAIT_S`) until the recorder's own subscriber has it too. Why:
+        each subscriber's callback runs in its own thread (zenoh-python's default), so the caller
+        may hear the end while the recorder's thread still has what came before it, such as the
+        controller's final timing (the official CI of stop 64 lost it). Idempotent."""
         if self._stopped:
             return self.path
+        if end_of:
+            with self._end_heard:
+                self._end_heard.wait_for(lambda: end_of in self._ends, END_WAIT_S)
         self._stopped = True
         for sub in self._subs:
             sub.undeclare()

@@ -580,6 +580,45 @@ def test_final_metadata_is_asked_once_the_writer_has_written_its_last_message(
     assert campaign.info["kept"] == str(len(campaign.messages(bus.MOTOR_STATE))) == str(recorder.stats.recorded)
 
 
+def test_a_stop_on_the_campaigns_end_event_keeps_all_that_came_before_it(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The official CI of stop 64: a campaign's MCAP lacked its final ControllerTiming, put before
+    its end event. Each Zenoh subscriber's callback runs in its own thread (zenoh-python's default),
+    so the runner heard the end event and stopped the recorder while the recorder's own thread still
+    had what came before it. Here that thread is slowed (2 ms a sample): the stop that names the
+    campaign whose end it heard still records everything put before the end event."""
+    a, b = sessions
+    path = tmp_path / "end.mcap"
+    states, events = LosslessPublisher(a, bus.MOTOR_STATE), LosslessPublisher(a, bus.CAMPAIGN_EVENTS)
+    heard_end = threading.Event()
+
+    def on_event(sample: zenoh.Sample) -> None:
+        if bus.decode(bus.CampaignEvent, sample.payload.to_bytes()).event == "finished":
+            heard_end.set()
+
+    sub = b.declare_subscriber(bus.CAMPAIGN_EVENTS, on_event)
+    recorder = CampaignRecorder(b, path, {"campaign_id": "c-1"}, flush_period_s=0.2, keep=lambda *_: True)
+    try:
+        assert wait_until(lambda: (states.put(motor_state(0)), recorder.stats.received > 0)[1])
+        slow_run_of = bridge.archive.run_of
+        monkeypatch.setattr(bridge.archive, "run_of", lambda sample: (time.sleep(0.002), slow_run_of(sample))[1])
+        for i in range(1, 300):
+            states.put(motor_state(i))
+        events.put(bus.CampaignEvent(seq=1, stamp_s=1.0, campaign_id="c-1", kind="control", event="finished"))
+        assert heard_end.wait(10)
+        assert recorder.stats.received < 300  # the race is there: the recorder's thread is behind
+    finally:
+        recorder.stop("finished", end_of="c-1")
+        sub.undeclare()
+        states.close()
+        events.close()
+    campaign = read_campaign(path)
+    # every state (the seed's repeats of 0 aside) and the end event
+    assert {m.seq for _, m in campaign.messages(bus.MOTOR_STATE)} == set(range(300))
+    assert len(campaign.messages(bus.CAMPAIGN_EVENTS)) == 1
+
+
 def test_a_stamp_beyond_any_clock_is_recorded_at_its_receive_time(
     sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path,
 ) -> None:
