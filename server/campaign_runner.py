@@ -80,6 +80,7 @@ from twin.sim.truth import load_truth
 
 STOP_GRACE_S = 5.0  # s a child gets after SIGTERM before SIGKILL
 EXIT_GRACE_S = 1.0  # s to wait for a child's last event after it exited
+FINAL_TIMING_WAIT_S = 2.0  # s the quality waits for the controller's final timing after its end event
 MESSAGE_MAX = 2000  # characters of a campaign's message kept in its record and its archive
 # s a vanished controller service's campaign waits for its cause before it ends on the vanishing:
 # ``xneck up`` polls its children every 0.2 s, then tells the console (CI of 2026-11-29: the runner
@@ -422,6 +423,7 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
                                 keep=monitor.keep)
     requests: BusPublisher[bus.BusMessage] | None = None  # service mode: to the controller service
     requested = False  # a start request went out (a stop follows an abort)
+    ended = False  # the controller's end event of the campaign came: no stop is owed
     try:
         def spawn(name: str, args: list[str]) -> None:
             logs[name] = workdir / f"{name}.log"
@@ -479,7 +481,6 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
         deadline = time.monotonic() + spec.timeout_s
         answer_deadline = time.monotonic() + 10.0
         started = False
-        ended = False  # the controller's end event of the campaign came: no stop is owed
         dead_since = 0.0  # when a child was first seen exited (its last event may be on the way)
         gone_since = 0.0  # when the controller service was first seen gone (its cause may be on the way)
         last_pass = held_until = time.monotonic()  # RUNNER_HELD_S
@@ -553,12 +554,14 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
                 outcome, message = "aborted", "no controller service answered the campaign request"
                 break
     finally:
+        if ended:  # its final latency figures, put before the end event, may be a moment behind it
+            monitor.wait_final_timing(campaign_id, FINAL_TIMING_WAIT_S)
         monitor.end()
         # Not when the service vanished: nothing would answer (it ended the campaign with it).
         if requests is not None and requested and outcome == "aborted" and not ended \
                 and (services is None or services.alive()):
             with contextlib.suppress(Exception):
-                _stop_until_ended(requests, events, campaign_id)
+                ended = _stop_until_ended(requests, events, campaign_id) is not None
         if requests is not None:
             requests.close()
         if services is not None:
@@ -587,7 +590,8 @@ def _run(spec, params, path, progress, campaign_id, session, hub, stop, workdir:
         try:
             recorder.stop(outcome, {"message": message[:MESSAGE_MAX], "quality": json.dumps(quality),
                                     "degraded_reasons": "; ".join(reasons)},
-                          final_metadata=lambda: {"alpha_ip": alpha_ip_recorded(monitor.recorded_alpha_ip())})
+                          final_metadata=lambda: {"alpha_ip": alpha_ip_recorded(monitor.recorded_alpha_ip())},
+                          end_of=campaign_id if ended else "")  # all the controller put before its end
         except ArchiveError as exc:  # a storage fault: the run's counters go with it to the record
             raise RecordingFailed(exc, quality) from exc
     result = CampaignResult(campaign_id, path, outcome, message, law=spec.law.name, quality=quality,

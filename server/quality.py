@@ -307,6 +307,23 @@ class CampaignMonitor:
             self._controller = {"controller_ticks": event.ticks, "overruns": event.overruns,
                                 "deadline_misses": event.deadline_misses}
 
+    def wait_final_timing(self, campaign_id: str, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the controller's final timing of ``campaign_id``: the one
+        with its end event's ticks (:meth:`note_event`). Call before :meth:`end`. Why: the timing's
+        subscriber runs in its own thread (zenoh-python's default), which may be behind the events'
+        though the controller put the timing first (bridge.archive.CampaignRecorder.stop)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                if not self._controller["controller_ticks"]:
+                    return False  # no tick ran: no timing to wait for
+                if self._timing.get("id") == campaign_id \
+                        and self._timing.get("ticks") == self._controller["controller_ticks"]:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.005)
+
     def state_silence_s(self) -> float:
         """Seconds since the bridge's newest motor state (since :meth:`begin` if none came); 0
         before it began. A campaign whose bridge went silent is not waited for until its timeout
@@ -413,7 +430,8 @@ class CampaignMonitor:
             # Its state-to-command latency over the whole campaign (upper bin edges, ms), and the
             # stale states of bursts it skipped; the last message of the campaign is its final one.
             skipped = self._timing.get("skipped_states", 0) + msg.window_skipped
-            self._timing = {"id": msg.campaign_id, "latency_p50_ms": msg.campaign_latency_p50_ms,
+            self._timing = {"id": msg.campaign_id, "ticks": msg.campaign_ticks,
+                            "latency_p50_ms": msg.campaign_latency_p50_ms,
                             "latency_p99_ms": msg.campaign_latency_p99_ms, "skipped_states": skipped}
 
     # -- questions --------------------------------------------------------------------------
@@ -438,7 +456,7 @@ class CampaignMonitor:
                 "duration_wall_s": round(duration_s, 4),
                 "rate_hz": round((self._commands.count - 1) / duration_s, 2) if duration_s > 0 else 0.0,
                 **self._controller,
-                **{k: v for k, v in self._timing.items() if k != "id"},
+                **{k: v for k, v in self._timing.items() if k not in ("id", "ticks")},
                 "record_gaps": self._states.gaps + self._commands.gaps + (1 if recorder_dropped else 0),
                 "messages_lost": self._states.lost + self._commands.lost + recorder_dropped,
                 "recorder_dropped": recorder_dropped, "rejected_payloads": self.rejected,
