@@ -548,6 +548,10 @@ class Ownership:
     def appeared(self, sender: str) -> None:
         self._alive.add(sender)
 
+    def alive(self, sender: str) -> bool:
+        """Whether ``sender``'s token is known alive (its command may take an ownerless bridge)."""
+        return sender in self._alive
+
     def vanished(self, sender: str) -> bool:
         """Forget a token; True if it was the owner's (ownership released)."""
         self._alive.discard(sender)

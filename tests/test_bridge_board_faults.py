@@ -81,6 +81,9 @@ def _rig(board, params, **config) -> Iterator[Rig]:
         node = bridge_node(connect(), BeagleBoneDriver.from_params(BeagleBoneConfig(), params), params,
                            BridgeConfig(**config))
         try:
+            # The token reaches the node by its liveliness subscriber, in a thread of its own: on a
+            # loaded machine the first command came first and was refused (CI of 2026-12-02, ci148).
+            assert wait_until(lambda: node.ownership.alive("test"), 10, 0.005)
             node.tick()  # the first state, for a controller to answer (drives inactive)
             yield Rig(node, board, hub)
         finally:
