@@ -576,7 +576,18 @@ def test_the_forms_error_line_is_cleared_by_the_next_action_that_succeeds(consol
     refused_results()
     cleared(row_button("run-a", "results"))
     refused_results()
-    cleared(row_button("run-a", "replay"))
+    # The button replays at 1x: run-a's 2 s had ended on a loaded machine before the stop below,
+    # which was then refused (fresh-clone CI of 2026-12-02, ci149). The same click, a slower replay.
+    replay_url = "**/api/campaigns/run-a/replay"
+
+    def slower(route) -> None:
+        route.continue_(post_data=json.dumps({"speed": 0.1}))
+
+    page.route(replay_url, slower)
+    try:
+        cleared(row_button("run-a", "replay"))
+    finally:
+        page.unroute(replay_url, slower)
     page.wait_for_function("replayId === 'run-a'", timeout=15000)
     refused_results()
     cleared(lambda: page.click("#stop"))
