@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 from busutil import bus_pair, run_in_thread, wait_until
 
 from bridge import bus
@@ -450,12 +451,14 @@ def test_an_oversized_command_is_refused_unread_and_an_oversized_estop_engages(p
             huge = bus.encode(_command(2, [60.0] * 4, node)).replace(b'"source":"law2"',
                                                                            b'"source":"' + b"x" * 2_000_000 + b'"')
             n = node.commands.stats.rejected
-            hub_session.put(bus.MOTOR_COMMAND, huge)
+            # BLOCK: a put's default (DROP) may drop a 2 MB message's fragments on a loaded machine,
+            # and nothing came to refuse (a fresh-clone CI of f93b801, 2026-12-02)
+            hub_session.put(bus.MOTOR_COMMAND, huge, congestion_control=zenoh.CongestionControl.BLOCK)
             assert wait_until(lambda: node.commands.stats.rejected > n, 5.0)
             assert "ForceCommand: payload of 2000" in node.commands.stats.last_reject_reason
             assert node.commands.latest().force_N == [20.0] * 4
             release = bus.encode(bus.EStop(seq=1, stamp_s=time.time(), engaged=False, reason="x" * 100_000))
-            hub_session.put(bus.ESTOP, release)
+            hub_session.put(bus.ESTOP, release, congestion_control=zenoh.CongestionControl.BLOCK)
             assert wait_until(lambda: node.estop_received >= 1, 5.0)
             node.tick()
             assert node.mode == "disabled" and node.estop_rejected == 1
