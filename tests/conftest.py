@@ -269,27 +269,31 @@ def _restore_nice(saved: dict[int, int]) -> None:
             os.setpriority(os.PRIO_PROCESS, tid, saved.get(tid, base))
 
 
-def _cpu_s() -> float:
-    """CPU seconds (user and system) of this worker and of the children it has waited for."""
+def _cpu_s() -> tuple[float, float]:
+    """CPU seconds (user and system): of this worker and of the children it has waited for; of
+    this worker alone (its tests' own work: in-process consoles, recorders, analyses)."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+    mine = own.ru_utime + own.ru_stime
+    return mine + children.ru_utime + children.ru_stime, mine
 
 
 def _timeline(request: pytest.FixtureRequest, exclusive: bool, asked_monotonic: float, started: float,
-              cpu_s: float) -> None:
+              cpu_s: tuple[float, float]) -> None:
     """With ``XNECK_TEST_TIMELINE=FILE``, one line per module appended to FILE: worker, realtime or
     not, seconds waited for its turn, wall-clock start and end (s since the epoch), CPU seconds
     (the worker's and its waited-for children's: a process a test leaves unwaited is not counted),
-    module. The suite's critical path, read with ``sort -k4 -n FILE``, and its CPU, ``sort -k6 -n``,
-    are what to cut when CI's time grows: two workers on two CPUs make the suite CPU-bound."""
+    CPU seconds of the worker alone, module. The suite's critical path, read with ``sort -k4 -n
+    FILE``, and its CPU, ``sort -k6 -n`` (``-k7``: the tests' in-process work), are what to cut when
+    CI's time grows: two workers on two CPUs make the suite CPU-bound."""
     path = os.environ.get("XNECK_TEST_TIMELINE")
     if not path:
         return
     waited = time.monotonic() - asked_monotonic - (time.time() - started)
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     with open(path, "a") as f:
+        total, own = _cpu_s()
         f.write(f"{worker} {'rt' if exclusive else '--'} {waited:7.1f} {started:.1f} {time.time():.1f} "
-                f"{_cpu_s() - cpu_s:7.1f} {request.node.nodeid}\n")
+                f"{total - cpu_s[0]:7.1f} {own - cpu_s[1]:7.1f} {request.node.nodeid}\n")
 
 
 @pytest.fixture(scope="module")
