@@ -11,7 +11,8 @@ CPU (utime + stime, /proc/PID/stat) every ``--period-s``. A process is counted a
 (an orphan of its own at its exit): what it ran after that (up to one period) and a process shorter
 than a period are missed, and come out as "not sampled" against the command's whole CPU (getrusage
 of its waited-for children). Prints, per kind, CPU seconds, share of the total and processes;
-``--json FILE`` writes the same. Standard library only, so a fresh clone's set-up can be measured
+``--json FILE`` writes the same. Then the machine's busy CPU over the same span (/proc/stat) and
+the processes outside the command that took most of it (kernel threads, a VM's agent). Standard library only, so a fresh clone's set-up can be measured
 too. Run: ``python3 benchmarks/suite_cpu.py [--period-s 0.25] [--json FILE] -- bash .ci/run``.
 """
 
@@ -90,6 +91,9 @@ class Tally:
     done: Counter = field(default_factory=Counter)
     processes: Counter = field(default_factory=Counter)
     live: dict[tuple[int, int], tuple[str, int]] = field(default_factory=dict)  # (pid, start) → (kind, ticks)
+    #: processes outside the command (the machine's: kernel threads, a VM's agent): (pid, start) →
+    #: [name, ticks at the first sample, ticks at the latest]
+    outside: dict[tuple[int, int], list] = field(default_factory=dict)
 
     def sample(self, root: int) -> None:
         stats: dict[int, tuple[int, int, int]] = {}  # pid → (ppid, start, ticks)
@@ -107,6 +111,8 @@ class Tally:
         alive: set[tuple[int, int]] = set()
         for pid, (_, start, ticks) in stats.items():
             if pid == root or not _descends(pid, root, stats):  # not the sampler itself
+                seen = self.outside.setdefault((pid, start), [f"[{comms[pid]}]", ticks, ticks])
+                seen[2] = ticks
                 continue
             key = (pid, start)
             alive.add(key)
@@ -146,6 +152,13 @@ class Tally:
         self.done[name] += ticks
         return True
 
+    def outside_s(self) -> Counter:
+        """CPU s per name of the processes outside the command, while it ran (from each one's first sample)."""
+        out: Counter = Counter()
+        for name, first, last in self.outside.values():
+            out[name] += (last - first) / TICKS_PER_S
+        return out
+
     def totals_s(self) -> Counter:
         total = Counter(self.done)
         for name, ticks in self.live.values():
@@ -170,14 +183,22 @@ def _descends(pid: int, root: int, stats: dict[int, tuple[int, int, int]]) -> bo
     return True
 
 
-def run(command: list[str], period_s: float) -> tuple[int, Counter, Counter, float, float]:
+def _machine_busy_s() -> float:
+    """CPU s every CPU of the machine spent not idle since boot (/proc/stat's cpu line, proc(5))."""
+    ticks = [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)  # idle, iowait
+    return (sum(ticks[:8]) - idle) / TICKS_PER_S  # guest time is counted in user already
+
+
+def run(command: list[str], period_s: float) -> tuple[int, Counter, Counter, float, float, float, Counter]:
     """Runs ``command`` to its end, sampling; returns (exit code, CPU s per kind, processes per
-    kind, the command's whole CPU s, wall s)."""
+    kind, the command's whole CPU s, wall s, the machine's busy CPU s meanwhile, CPU s of the
+    processes outside the command per name)."""
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    started = time.monotonic()
+    started, busy = time.monotonic(), _machine_busy_s()
     tally = Tally()
     proc = subprocess.Popen(command)
     me = os.getpid()
@@ -210,7 +231,8 @@ def run(command: list[str], period_s: float) -> tuple[int, Counter, Counter, flo
             break
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     whole = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return proc.returncode, tally.totals_s(), tally.processes, whole, time.monotonic() - started
+    return (proc.returncode, tally.totals_s(), tally.processes, whole, time.monotonic() - started,
+            _machine_busy_s() - busy, tally.outside_s())
 
 
 def main() -> int:
@@ -225,7 +247,7 @@ def main() -> int:
     if not 0.01 <= args.period_s <= 10:
         parser.error("--period-s: between 0.01 and 10 s")
     try:
-        code, seconds, processes, whole, wall = run(command, args.period_s)
+        code, seconds, processes, whole, wall, busy, outside = run(command, args.period_s)
     except OSError as exc:  # not found, not executable: as a shell says it
         print(f"suite_cpu.py: {command[0]}: {exc.strerror}", file=sys.stderr)
         return 127
@@ -237,8 +259,15 @@ def main() -> int:
         print(f"{s:8.1f} {100 * s / max(whole, 1e-9):5.1f}% {processes[name]:6d}  {name}")
     print(f"{whole - sampled:8.1f} {100 * (whole - sampled) / max(whole, 1e-9):5.1f}% {'':>6}  not sampled "
           f"(after a process's last sample, or shorter than {args.period_s} s)")
+    # What the machine spent beside it: a VM's memory monitor (kdamond) and agent took about 8 % of
+    # a suite run's CPU on 2026-12-02, which no change to the suite takes back.
+    print(f"\nthe machine meanwhile: {busy:.0f} CPU-s busy, {busy - whole:.0f} outside the command; "
+          "the largest outside it:")
+    for name, s in outside.most_common(5):
+        print(f"{s:8.1f} {100 * s / max(busy, 1e-9):5.1f}% of the machine's  {name}")
     if args.json:
         args.json.write_text(json.dumps({"command": command, "exit": code, "wall_s": wall, "cpu_s": whole,
+                                         "machine_busy_s": busy, "outside": dict(outside.most_common(20)),
                                          "kinds": {n: {"cpu_s": s, "processes": processes[n]}
                                                    for n, s in seconds.most_common()}}, indent=1))
     return code

@@ -109,3 +109,24 @@ def test_an_anonymous_child_is_named_with_its_parents_kind(tmp_path: Path) -> No
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 0, run.stderr
     assert json.loads(out.read_text())["kinds"]["python -c (from python parent.py)"]["processes"] == 1
+
+
+def test_a_process_outside_the_command_is_the_machines_not_the_commands(tmp_path: Path) -> None:
+    """A VM's own processes (its memory monitor's kernel thread, its agent) took about 8 % of a
+    suite run's CPU (docs/testing.md): counted apart, as the machine's, never in the command's."""
+    burner = subprocess.Popen([sys.executable, "-c", "import time\nend = time.process_time() + 30\n"
+                               "while time.process_time() < end: pass"])
+    try:
+        out = tmp_path / "cpu.json"
+        run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "suite_cpu.py"), "--period-s", "0.05",
+                              "--json", str(out), "--", sys.executable, "-c", "import time; time.sleep(1.0)"],
+                             capture_output=True, text=True, timeout=60)
+    finally:
+        burner.kill()
+        burner.wait(10)
+    assert run.returncode == 0, run.stderr
+    figures = json.loads(out.read_text())
+    assert figures["cpu_s"] < 0.5, figures  # the sleeper only
+    assert figures["outside"].get("[python]", 0.0) > 0.3, figures  # the burner, beside it
+    assert figures["machine_busy_s"] >= figures["outside"]["[python]"], figures
+    assert "the machine meanwhile" in run.stdout
