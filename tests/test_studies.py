@@ -362,6 +362,52 @@ def test_a_worker_killed_mid_study_loses_only_its_running_tasks(nod, dask_client
     assert victim not in dask_client.run(os.getpid).values()
 
 
+def test_every_worker_killed_at_once_mid_study_loses_nothing(nod, dask_client, tmp_path) -> None:
+    """The study's configuration reaches the workers as a task the scheduler can compute again, not
+    as scattered data: the Active Memory Manager drops a broadcast's extra replicas (ReduceReplicas),
+    so one worker's death lost the only copy and cancelled every run in flight ('already forgotten',
+    the official CI of stop 65). Killing every worker at once loses every replica on any scheduler."""
+    s = _study(nod, 8)
+    victims = set(dask_client.run(os.getpid).values())
+    killed: list[int] = []
+
+    def progress(done: int, total: int, message: str) -> None:
+        if done >= 4 and not killed:
+            for pid in victims:
+                os.kill(pid, signal.SIGKILL)
+            killed.append(done)
+
+    summary = run_study(s, tmp_path, client=dask_client, progress=progress)
+    assert killed and killed[0] < len(expand(s))
+    ids = [r["run_id"] for r in read_rows(tmp_path)]
+    assert sorted(ids) == sorted(r.run_id for r in expand(s)) and summary["outcomes"] == {"finished": 16}
+    assert not victims & set(dask_client.run(os.getpid).values())
+
+
+def test_runs_the_cluster_cancels_end_the_study_with_a_clear_error_and_a_rerun_goes_on(nod, dask_client,
+                                                                                       tmp_path) -> None:
+    """Runs cancelled by the cluster (here by key, as another client or an operator may) stop the study
+    with a StudyError that says what happened and what to do, the finished rows kept; it was
+    distributed's FuturesCancelledError traceback."""
+    from distributed import Future
+
+    s = _study(nod, 4)
+    keys = [f"xneck-study-{s.digest()}-{r.run_id}" for r in expand(s)]
+    cancelled: list[int] = []
+
+    def progress(done: int, total: int, message: str) -> None:
+        if done >= 2 and not cancelled:
+            dask_client.cancel([Future(k, dask_client) for k in keys], force=True)
+            cancelled.append(done)
+
+    with pytest.raises(StudyError, match=r"cancelled the study's runs in flight .*run the same command again"):
+        run_study(s, tmp_path, client=dask_client, progress=progress)
+    kept = [r["run_id"] for r in read_rows(tmp_path)]
+    assert len(kept) >= cancelled[0] and len(kept) < len(expand(s))
+    assert run_study(s, tmp_path, client=dask_client)["complete"]
+    assert sorted(r["run_id"] for r in read_rows(tmp_path)) == sorted(r.run_id for r in expand(s))
+
+
 def test_an_identification_study_takes_an_estimator_and_counts_the_covered_intervals() -> None:
     """An identification study is the coverage test run as users run studies: Table 2 by the
     estimator asked for, and per run which k and λ the ±2σ interval covers."""

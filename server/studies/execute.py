@@ -12,7 +12,10 @@ rows becomes visible at once (written to a hidden temp file, fsynced, renamed), 
 moment leaves whole batches and no partial or repeated row; what was computed but not yet written
 is simply run again. One process at a time runs a study directory (an flock on ``DIR/.lock``).
 A worker killed mid-study loses its running tasks only: the scheduler gives them to another worker
-(``distributed.scheduler.allowed-failures`` times before it gives up on a task).
+(``distributed.scheduler.allowed-failures`` times before it gives up on a task). The study's
+configuration is a task too (:func:`_config`), which the scheduler computes again when every copy of
+it died with its workers; runs the cluster cancels all the same end the study with a
+:class:`StudyError` that says so, the finished rows kept.
 """
 
 from __future__ import annotations
@@ -346,10 +349,26 @@ def _finished_summary(out: Path, total: int) -> dict[str, Any] | None:
     return summary if summary.get("runs_done") == total else None
 
 
+def _config(cfg: Any) -> Any:
+    """The study's configuration, as the result of a task rather than scattered data: the scheduler
+    computes a task again when every worker holding its result died, where scattered data is lost for
+    good and every run waiting on it cancelled ('already forgotten'). A broadcast's replicas do not
+    prevent that: the Active Memory Manager (on by default) drops the copies no waiting task needs
+    (its ReduceReplicas policy), so one killed worker could hold the last (the official CI of stop 65)."""
+    return cfg
+
+
+def _cancelled(exc: BaseException, finished: int, in_flight: int) -> StudyError:
+    reason = getattr(exc, "reason", None) or "; ".join(sorted({g.reason for g in getattr(exc, "error_groups", ())}))
+    return StudyError(f"the Dask cluster cancelled the study's runs in flight ({in_flight}; reason: {reason or exc}); "
+                      f"the {finished} run(s) finished in this call are kept: run the same command again to go on")
+
+
 def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
              scheduler: str | None, progress: Progress | None, stop: Event | None, flush_rows: int,
              flush_s: float) -> None:
     from distributed import wait
+    from distributed.client import FutureCancelledError, FuturesCancelledError
 
     from server.studies.run import run_one
 
@@ -363,8 +382,9 @@ def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int
     finished = 0
     stopped = stop.is_set if stop is not None else (lambda: False)
     try:
-        cfg_future = client.scatter(cfg, broadcast=True, hash=False)
         digest = cfg.study.digest()
+        cfg_future = client.submit(_config, cfg, key=f"xneck-study-{digest}-config-{os.getpid()}-{time.time_ns()}",
+                                   pure=False)
         # a window of runs at a time, not the whole study: 200,000 futures took GBs in the scheduler,
         # and a stop had to wait behind them (and cancel them one by one)
         limit, sized = 0, -math.inf
@@ -384,9 +404,15 @@ def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int
                 done_now = waited.done
             except TimeoutError:
                 continue
+            except (FutureCancelledError, FuturesCancelledError) as exc:  # was distributed's traceback
+                raise _cancelled(exc, finished, len(in_flight)) from None
             for fut in done_now:
                 in_flight.discard(fut)
-                pending.append(fut.result())
+                try:
+                    row = fut.result()
+                except (FutureCancelledError, FuturesCancelledError) as exc:
+                    raise _cancelled(exc, finished, len(in_flight) + 1) from None
+                pending.append(row)
                 fut.release()
                 finished += 1
                 if len(pending) >= flush_rows or time.monotonic() - last_flush >= flush_s:
