@@ -408,6 +408,55 @@ def test_runs_the_cluster_cancels_end_the_study_with_a_clear_error_and_a_rerun_g
     assert sorted(r["run_id"] for r in read_rows(tmp_path)) == sorted(r.run_id for r in expand(s))
 
 
+def test_a_scheduler_lost_mid_study_ends_the_command_with_what_to_do_and_keeps_the_rows(nod, dask_client,
+                                                                                         tmp_path) -> None:
+    """`xneck study --scheduler` whose scheduler dies mid-study (the docs' `dask scheduler` and `dask
+    worker` commands, on loopback): exit 2, 'the connection to the scheduler was lost' and 'run the same
+    command again', in bounded time; the rows written so far kept, and the study goes on elsewhere."""
+    dask = str(Path(sys.executable).with_name("dask"))
+    out, sched_file = tmp_path / "study", tmp_path / "scheduler.json"
+    procs: list[subprocess.Popen] = []
+
+    def start(args: list[str]) -> subprocess.Popen:
+        procs.append(subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      start_new_session=True))
+        return procs[-1]
+
+    try:
+        scheduler = start([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                           "--scheduler-file", str(sched_file)])
+        assert wait_until(lambda: sched_file.is_file() and "address" in sched_file.read_text(), 60)
+        address = json.loads(sched_file.read_text())["address"]
+        start([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--host", "127.0.0.1",
+               "--no-dashboard", "--death-timeout", "20"])
+        (tmp_path / "settle.toml").write_text("settle_s = 0.1\n")
+        args = [sys.executable, "-m", "server.cli", "study", "control", "--out", str(out), "--samples", "6",
+                "--law", "1", "--law", "2", "--trajectory", nod, "--seed", "3", "--scheduler", address,
+                "--study", str(tmp_path / "settle.toml")] + [x for v in VARY for x in ("--vary", v)]
+        study = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 start_new_session=True)
+        procs.append(study)
+        assert wait_until(lambda: bool(part_files(out)) or study.poll() is not None, 120), "no batch written"
+        assert study.poll() is None, study.communicate()[1][-2000:]
+        os.killpg(scheduler.pid, signal.SIGKILL)
+        _, stderr = study.communicate(timeout=90)
+    finally:
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+    assert study.returncode == 2, stderr[-3000:]
+    assert "connection to the scheduler was lost" in stderr and "run the same command again" in stderr, stderr[-3000:]
+    assert "Traceback" not in stderr, stderr
+    kept = finished_ids(out)
+    s = study_from("control", file=tmp_path / "settle.toml", samples=6, laws=(1, 2), trajectory=nod, vary=VARY,
+                   seed=3)
+    assert 0 < len(kept) < len(expand(s))
+    assert run_study(s, out, client=dask_client)["complete"]
+    ids = [r["run_id"] for r in read_rows(out)]
+    assert sorted(ids) == sorted(r.run_id for r in expand(s))
+
+
 def test_an_identification_study_takes_an_estimator_and_counts_the_covered_intervals() -> None:
     """An identification study is the coverage test run as users run studies: Table 2 by the
     estimator asked for, and per run which k and λ the ±2σ interval covers."""

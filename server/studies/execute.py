@@ -358,10 +358,38 @@ def _config(cfg: Any) -> Any:
     return cfg
 
 
-def _cancelled(exc: BaseException, finished: int, in_flight: int) -> StudyError:
-    reason = getattr(exc, "reason", None) or "; ".join(sorted({g.reason for g in getattr(exc, "error_groups", ())}))
-    return StudyError(f"the Dask cluster cancelled the study's runs in flight ({in_flight}; reason: {reason or exc}); "
-                      f"the {finished} run(s) finished in this call are kept: run the same command again to go on")
+_REASONS = {"scheduler-connection-lost": "the connection to the scheduler was lost"}
+
+
+def _interrupted(exc: BaseException, finished: int, in_flight: int) -> StudyError:
+    """The StudyError of a study the cluster stopped: runs it cancelled (distributed's FutureCancelledError
+    of one future, FuturesCancelledError of several; their reasons in words where distributed's are codes)
+    or a connection to the scheduler lost (CommClosedError, an OSError naming no file)."""
+    if isinstance(exc, OSError):
+        reasons = f"the connection to the scheduler was lost ({type(exc).__name__}: {exc})"
+    else:
+        groups = [str(g.reason) for g in getattr(exc, "error_groups", ())] or [str(getattr(exc, "reason", None) or exc)]
+        reasons = "; ".join(sorted({_REASONS.get(r, r) for r in groups}))
+    return StudyError(f"the Dask cluster cancelled the study's runs in flight ({in_flight}: {reasons}); the "
+                      f"{finished} run(s) finished in this call are kept: run the same command again to go on")
+
+
+def _close(client: Any) -> None:
+    """Close a client made here. One that lost its scheduler is trying to connect again, and closing it
+    cancels that attempt, which distributed logged as an ERROR with two tracebacks after the study had
+    already said the connection was lost (:func:`_interrupted`): that logger is quiet for the close."""
+    import logging
+
+    if client.status == "running":
+        client.close()
+        return
+    log = logging.getLogger("distributed.client")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        client.close()
+    finally:
+        log.setLevel(level)
 
 
 def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int, client: Any, workers: int | None,
@@ -404,14 +432,14 @@ def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int
                 done_now = waited.done
             except TimeoutError:
                 continue
-            except (FutureCancelledError, FuturesCancelledError) as exc:  # was distributed's traceback
-                raise _cancelled(exc, finished, len(in_flight)) from None
+            except (FutureCancelledError, FuturesCancelledError, OSError) as exc:  # was distributed's traceback
+                raise _interrupted(exc, finished, len(in_flight)) from None
             for fut in done_now:
                 in_flight.discard(fut)
                 try:
                     row = fut.result()
-                except (FutureCancelledError, FuturesCancelledError) as exc:
-                    raise _cancelled(exc, finished, len(in_flight) + 1) from None
+                except (FutureCancelledError, FuturesCancelledError, OSError) as exc:  # OSError: the scheduler's
+                    raise _interrupted(exc, finished, len(in_flight) + 1) from None
                 pending.append(row)
                 fut.release()
                 finished += 1
@@ -424,9 +452,9 @@ def _execute(cfg: Any, todo: Iterable[RunSpec], out: Path, total: int, done: int
     finally:
         if pending:  # whatever finished is kept, also on Ctrl-C
             write_batch(out, pending)
-        if in_flight:  # a stop does not wait for the runs in progress: one call cancels them all
-            client.cancel(list(in_flight))
+        if in_flight and client.status == "running":  # a stop does not wait for the runs in progress: one call
+            client.cancel(list(in_flight))  # cancels them all (a lost scheduler took them already)
         if own_client:  # a client made here (on --scheduler too: it held a connection open) and its cluster
-            client.close()
+            _close(client)
             if cluster is not None:
                 cluster.close()
