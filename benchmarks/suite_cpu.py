@@ -66,6 +66,8 @@ def kind(cmdline: str) -> str:
         return "numba warm-up (set-up)"
     if re.search(r"-m pip\b|/pip3?\b", cmdline):
         return "pip"
+    if Path(words[0]).name == "uv":  # .ci/setup's install
+        return "uv"
     if "from multiprocessing" in cmdline:  # spawn_main, the resource tracker, a forkserver
         return "python multiprocessing child"
     if "distributed" in cmdline or "dask" in cmdline:

@@ -33,6 +33,7 @@ PY = "/repo/.venv/bin/python"
     ("/proc/self/exe --type=utility --utility-sub-type=network.mojom.NetworkService", "chromium"),
     (f"{PY} -m controller.warmup", "numba warm-up (set-up)"),
     (f"{PY} -m pip install --no-compile -e .[pc,test]", "pip"),
+    ("/repo/.venv/bin/uv pip install --python /repo/.venv/bin/python -e .[pc,test]", "uv"),
     (f"{PY} /repo/benchmarks/_bus_peer.py publish tcp/127.0.0.1:7447", "python _bus_peer.py"),
     ("/usr/bin/gcc -O2 -c x.c", "gcc"),
     (f"{PY} -c from multiprocessing.spawn import spawn_main; spawn_main(tracker_fd=5, pipe_handle=7) --multiprocessing-fork",
