@@ -12,6 +12,8 @@ positive null vector of Z, friction compensated): smooth, rich forces, as §5.2.
 
 from __future__ import annotations
 
+import functools
+
 import msgspec
 import numpy as np
 import pytest
@@ -46,9 +48,20 @@ def params():
     return load_params()
 
 
+@functools.cache
+def _campaign(seed: int) -> tuple[CampaignData, dict[str, np.ndarray]]:
+    """``simulate_campaign(seed)``, the §5.2.2 cycloids' 97 s, once per module (16 s of CPU apiece):
+    ``result`` and the lossy-record test fit seed 0's. Its arrays are read-only, so no test can
+    change another's record."""
+    data, truth = simulate_campaign(seed)
+    for a in (data.t_s, data.theta_rad, data.force_N, data.t_ip_s, data.alpha_ip_rad, *truth.values()):
+        a.flags.writeable = False
+    return data, truth
+
+
 @pytest.fixture(scope="module", params=SEEDS, ids=lambda s: f"seed{s}")
 def result(request, params):
-    data, truth = simulate_campaign(request.param)
+    data, truth = _campaign(request.param)
     proc = preprocess(data, params)
     est = identify_all(proc, params)
     new, report, prov = identified_params(params, est, make_provenance(data.campaign, proc))
@@ -380,7 +393,7 @@ def test_a_record_with_states_and_frames_lost_is_fitted_across_its_gaps(params, 
     from twin.identification.processing import BRIDGE_CUTOFF_PERIODS, RECURSION_MEMORY_S
     from twin.identification.timing import alpha_ip_timing
 
-    data = simulate_campaign(0)[0]
+    data = _campaign(0)[0]
     rng = np.random.default_rng(5)
     short = [(int(a), int(a + rng.integers(6, 60))) for a in rng.choice(np.arange(2000, len(data.t_s) - 2000), 40,
                                                                      replace=False)]  # 12-118 ms
