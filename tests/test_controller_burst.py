@@ -23,6 +23,65 @@ def _state(k: int) -> bus.MotorState:
                           epoch="e1", bridge="b1")
 
 
+def _on_time_until_answered(pub, answered: set[float], t0: float, k: int, timeout_s: float = 10.0) -> int | None:
+    """The bridge's states from ``k`` on, each at its due time (``t0`` + its stamp), until the
+    controller answers one: the number of the first answered, None if none was within ``timeout_s``.
+    A bridge states every period, so the first on time after a burst may still arrive on the
+    burst's heels, where it is one of it (skipped; on a loaded machine, CI of 2026-12-02): the next
+    is answered."""
+    first, deadline = k, time.perf_counter() + timeout_s
+    while time.perf_counter() < deadline:
+        seen = {round(s, 6) for s in answered}
+        if done := [j for j in range(first, k) if round(j * 0.002, 6) in seen]:
+            return done[0]
+        time.sleep(max(0.0, t0 + k * 0.002 - time.perf_counter()))
+        pub.put(_state(k))
+        k += 1
+    return None
+
+
+def _node(ctl_side, instance: str) -> ControllerNode:
+    return ControllerNode(ctl_side, load_params(), LawConfig(law=2), None,
+                          ControllerProcessConfig(exit_when_done=False, instance=instance))
+
+
+def test_a_state_on_the_heels_of_a_burst_is_one_of_it_and_the_bridges_next_is_answered():
+    """The controller held up (its tick lock taken) while the bridge's states 1-61 arrive, the last
+    of them on time: they wait in Zenoh's thread and come back to back. The first is answered (the
+    bridge waits for a command), most of the rest skipped, state 61 among them as a rule: it came
+    on the burst's heels like the stale ones, as it did on CI's loaded machine, where the test
+    below waited for its answer in vain. The bridge's next states, on time and apart, are answered."""
+    hub = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_session(listen=[hub], connect=[]) as bridge_side, open_session(connect=[hub]) as ctl_side:
+        answered: set[float] = set()
+        sub = bridge_side.declare_subscriber(bus.MOTOR_COMMAND, lambda s: answered.add(
+            round(bus.decode(bus.ForceCommand, s.payload.to_bytes()).stamp_s, 6)))
+        node = _node(ctl_side, "c-heels")
+        pub = publisher(bridge_side, bus.MOTOR_STATE, block=True)
+        stop = threading.Event()
+        loop = threading.Thread(target=node.run, args=(stop,), daemon=True)
+        loop.start()
+        try:
+            assert wait_until(lambda: (pub.put(_state(0)), 0.0 in answered)[1], 30, 0.05)
+            with node._tick_lock:  # held up: a loaded machine, a long tick
+                for k in range(1, 62):
+                    pub.put(_state(k))
+                time.sleep(0.1)  # every one of them is in Zenoh's thread, waiting for the lock
+            fresh = _on_time_until_answered(pub, answered, time.perf_counter() - 0.122, 62)  # 62 due in 2 ms
+            burst = {round(k * 0.002, 6) for k in range(1, 62)} & answered
+            # The first answered, most of the rest not: 10-19 of the 61 were answered in runs on an
+            # idle 2-CPU VM, those that the GIL's hand-over to Zenoh's thread kept more than a
+            # quarter period after the tick before (answering each would be 61).
+            assert 0.002 in burst and len(burst) < 61 / 2, sorted(burst)
+            assert fresh is not None, sorted(answered)[-5:]
+        finally:
+            stop.set()
+            loop.join(10)
+            node.close()
+            sub.undeclare()
+            pub.close()
+
+
 def test_a_burst_of_stale_states_is_skipped_and_the_next_fresh_one_answered():
     hub = f"tcp/127.0.0.1:{free_tcp_port()}"
     with open_session(listen=[hub], connect=[]) as bridge_side, open_session(connect=[hub]) as ctl_side:
@@ -32,8 +91,7 @@ def test_a_burst_of_stale_states_is_skipped_and_the_next_fresh_one_answered():
         delivered: set[float] = set()  # what the bus brought the controller's session
         probe = ctl_side.declare_subscriber(bus.MOTOR_STATE, lambda s: delivered.add(
             round(bus.decode(bus.MotorState, s.payload.to_bytes()).stamp_s, 6)))
-        node = ControllerNode(ctl_side, load_params(), LawConfig(law=2), None,
-                              ControllerProcessConfig(exit_when_done=False, instance="c-burst"))
+        node = _node(ctl_side, "c-burst")
         # Blocking, unlike the bridge's: on a loaded machine the bus dropped up to 44 of the burst's
         # 60 states at this end, and the burst is what this test is about.
         pub = publisher(bridge_side, bus.MOTOR_STATE, block=True)
@@ -46,9 +104,8 @@ def test_a_burst_of_stale_states_is_skipped_and_the_next_fresh_one_answered():
             time.sleep(0.06)  # the bridge's states 1..60 are due meanwhile: they come all at once
             for k in range(1, 61):
                 pub.put(_state(k))
-            time.sleep(max(0.0, t0 + 0.122 - time.perf_counter()))
-            pub.put(_state(61))  # on time again
-            assert wait_until(lambda: 0.122 in {round(s, 6) for s in answered}, 10, 0.01), (sorted(answered)[-5:], node._error, node.times.skipped)
+            fresh = _on_time_until_answered(pub, answered, t0, 61)
+            assert fresh is not None, (sorted(answered)[-5:], node._error, sorted(delivered)[-5:], node.states.stats)
             burst = {round(k * 0.002, 6) for k in range(1, 61)}
             answered_burst = burst & {round(s, 6) for s in answered}
             # The first of the burst is answered (the bridge waits for a command), most of the rest not:
